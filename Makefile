@@ -1,0 +1,57 @@
+# Everything a fresh machine needs is installed by these targets themselves.
+PY      ?= python3
+VENV    := .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+WEBSTAMP := web/node_modules/.installed
+
+.PHONY: all install web-install browser test lint typecheck unit demo bench reproduce clean
+
+all: test
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+$(WEBSTAMP): web/package.json web/package-lock.json
+	cd web && npm ci --no-audit --no-fund
+	touch $(WEBSTAMP)
+
+web-install: $(WEBSTAMP)
+
+# Debian's chromium for the browser tests (never a downloaded browser build).
+browser:
+	@if [ ! -x /usr/bin/chromium ]; then \
+	  if [ "$$(id -u)" = "0" ]; then \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+	      || echo "warning: could not install Debian chromium; browser tests will be skipped"; \
+	  else echo "warning: not root, cannot install chromium; browser tests will be skipped"; fi; \
+	fi
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check shared server client tests haptic_cli.py
+
+typecheck: $(STAMP)
+	$(BIN)/mypy
+
+unit: $(STAMP) $(WEBSTAMP) browser
+	$(BIN)/pytest -q
+
+test: lint typecheck unit
+
+demo: $(STAMP) $(WEBSTAMP)
+	$(BIN)/haptic demo --report demo-out/report.json --plot demo-out/demo.png $(DEMO_ARGS)
+
+reproduce: $(STAMP)
+	$(BIN)/haptic reproduce all --out out/figures
+
+bench: $(STAMP)
+	$(BIN)/haptic bench all --json
+
+clean:
+	rm -rf $(VENV) web/node_modules out demo-out

@@ -1,0 +1,185 @@
+"""What every haptic device offers the servo loop: position in, force out, and its limits.
+
+DESIGN section 7 and the CHAI3D idea of a generic haptic device: a device is opened, read for the
+position of its handle (the probe x_h of the paper), written with the force it should display on
+the user, and it publishes the limits the servo loop must respect (largest force, largest stiffness
+that is stable at its servo rate, its own damping, its workspace). The servo loop (client/servo.py)
+reads and writes a device once per servo period T in three phases: update from device, compute
+forces, apply to device.
+
+Conventions (SI units, world frame of the shared object):
+
+- positions in metres, forces in newtons, the force is the one applied *on the user's hand*;
+- :meth:`Device.read` takes the time ``t_s`` [s] of the tick (the servo loop's clock): a simulated
+  device integrates its physics up to ``t_s``; a real device ignores it or uses it for rate inputs;
+- a device never raises from :meth:`Device.read` or :meth:`Device.write` once it is open: when it
+  errors or disappears it sets :attr:`Device.fault` to a message and keeps returning its last
+  position, so the servo loop can ramp forces down instead of dying mid-tick.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from enum import StrEnum
+
+Vec3 = tuple[float, float, float]
+
+
+class HapticError(StrEnum):
+    """Named events the servo loop counts and reports (``ServoCore.status()``).
+
+    FORCE_LIMIT
+        The local model asked for more than ``DeviceLimits.max_force_n``; the force was clamped.
+    VELOCITY_LIMIT
+        The probe moved faster than ``DeviceLimits.max_velocity_m_s``; forces ramped down.
+    DEVICE_FAULT
+        The device reported a fault (unplugged, read error); forces ramped down.
+    LINK_LOST
+        No patch or pong from the server within the link timeout; forces ramped down.
+    SERVO_OVERRUN
+        A servo deadline was missed (and skipped, never piled up).
+    """
+
+    FORCE_LIMIT = "force_limit"
+    VELOCITY_LIMIT = "velocity_limit"
+    DEVICE_FAULT = "device_fault"
+    LINK_LOST = "link_lost"
+    SERVO_OVERRUN = "servo_overrun"
+
+
+def _vec3(name: str, value: Sequence[float]) -> Vec3:
+    try:
+        x, y, z = (float(v) for v in value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be 3 numbers, got {value!r}") from exc
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return (x, y, z)
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceLimits:
+    """Limits a device publishes (CHAI3D's device specification), SI units.
+
+    Parameters
+    ----------
+    max_force_n : float
+        Largest force [N] the servo loop may command, >= 0 (peak force of the device). For a
+        position-only input (``has_force_output=False``) this bounds the coupling force sent to the
+        object instead.
+    max_stiffness_n_per_m : float
+        Largest local-model stiffness K_h [N/m] the device renders stably at its servo rate, > 0.
+    max_velocity_m_s : float
+        Probe speed [m/s] above which forces are ramped down, > 0.
+    damping_n_s_per_m : float
+        The device's own viscous damping [N*s/m], >= 0.
+    workspace_min_m, workspace_max_m : (3,) float
+        Corners [m] of the axis-aligned box the handle can reach, in the world frame.
+    has_force_output : bool
+        False for a position-only input (a SpaceMouse): :meth:`Device.write` is a no-op.
+
+    Raises
+    ------
+    ValueError
+        Non-finite or out-of-range values, or a workspace corner not below the other.
+    """
+
+    max_force_n: float
+    max_stiffness_n_per_m: float
+    max_velocity_m_s: float
+    damping_n_s_per_m: float
+    workspace_min_m: Vec3
+    workspace_max_m: Vec3
+    has_force_output: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("max_force_n", "damping_n_s_per_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        for name in ("max_stiffness_n_per_m", "max_velocity_m_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        lo = _vec3("workspace_min_m", self.workspace_min_m)
+        hi = _vec3("workspace_max_m", self.workspace_max_m)
+        if not all(a < b for a, b in zip(lo, hi, strict=True)):
+            raise ValueError(f"workspace_min_m {lo} must be below workspace_max_m {hi} on every axis")
+        object.__setattr__(self, "workspace_min_m", lo)
+        object.__setattr__(self, "workspace_max_m", hi)
+
+    def centered_at(self, center: Sequence[float]) -> DeviceLimits:
+        """The same limits with the workspace box moved to be centred on ``center`` (3,) [m]."""
+        c = _vec3("center", center)
+        lo, hi = self.workspace_min_m, self.workspace_max_m
+        half = tuple(0.5 * (b - a) for a, b in zip(lo, hi, strict=True))
+        return DeviceLimits(
+            max_force_n=self.max_force_n,
+            max_stiffness_n_per_m=self.max_stiffness_n_per_m,
+            max_velocity_m_s=self.max_velocity_m_s,
+            damping_n_s_per_m=self.damping_n_s_per_m,
+            workspace_min_m=(c[0] - half[0], c[1] - half[1], c[2] - half[2]),
+            workspace_max_m=(c[0] + half[0], c[1] + half[1], c[2] + half[2]),
+            has_force_output=self.has_force_output,
+        )
+
+
+class Device(ABC):
+    """A haptic device as the servo loop sees it (CHAI3D's generic device, DESIGN section 7).
+
+    Lifecycle: :meth:`open`, then once per servo tick :meth:`read` then :meth:`write`, and finally
+    :meth:`close`. Forces are displayed only between :meth:`enable_forces` and
+    :meth:`disable_forces`; a freshly opened device has forces disabled.
+
+    Attributes
+    ----------
+    name : str
+        Human-readable name (profile or product).
+    limits : DeviceLimits
+        What the servo loop must respect.
+    fault : str or None
+        None while healthy; a message once the device errored or disappeared.
+    """
+
+    name: str
+    limits: DeviceLimits
+    fault: str | None
+
+    @abstractmethod
+    def open(self) -> None:
+        """Connect to the device.
+
+        Raises
+        ------
+        OSError
+            If the device cannot be opened.
+        """
+
+    @abstractmethod
+    def close(self) -> None:
+        """Zero the force, disable it and release the device; safe to call twice."""
+
+    @abstractmethod
+    def read(self, t_s: float) -> Vec3:
+        """Handle position (x, y, z) [m] at time ``t_s`` [s] (the servo clock, non-decreasing).
+
+        Never raises once open: on error sets :attr:`fault` and returns the last position.
+        """
+
+    @abstractmethod
+    def write(self, fx: float, fy: float, fz: float) -> None:
+        """Command the force (fx, fy, fz) [N] on the user's hand until the next write.
+
+        Ignored while forces are disabled. Never raises once open (sets :attr:`fault`).
+        """
+
+    @abstractmethod
+    def enable_forces(self) -> None:
+        """Allow :meth:`write` to display forces."""
+
+    @abstractmethod
+    def disable_forces(self) -> None:
+        """Zero the displayed force and ignore further writes until re-enabled."""

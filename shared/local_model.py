@@ -1,0 +1,261 @@
+"""The local model L(z): a proportional or proportional-integral virtual coupling at the servo rate.
+
+Paper eq. (12): ``L(z) = K_h + T*I/(z - 1)``, stepped every servo period T with the penetration
+e [m] in and the interaction force [N] out (along the outward normal: it pushes the probe out of
+the object, and the object inward by the same amount, Step 3 of section 6).
+
+Difference equations implemented (n is the servo tick)::
+
+    f(n)   = K_h * e(n) + s(n)                       proportional + integral force [N]
+    s(n+1) = s(n) + T * I * (e(n) - theta(n))        integrator fed with e - theta (sec. 5.1)
+
+which is the state-space realization ``A_L = 1, B_L = 1, C_L = T*I, D_L = K_h`` of eq. (12) with
+state ``lambda = s / (T*I)`` (see :func:`shared.stability.local_model_state_space`).
+
+The integration threshold theta (section 5.1):
+
+- ``fixed`` (eq. 17): theta = 0 out of contact, theta_bar in contact;
+- ``variable`` (eq. 18): theta_1 while penetrating (e growing); while exiting (e shrinking) theta
+  grows linearly with the integral force s up to theta_2, reached when s >= i_tot_bar. The paper
+  prints the exiting branch as theta_2 / I_tot, which its own text ("grows linearly ... up to a
+  certain limit and then is fixed to such limit") contradicts; we implement the text:
+  theta = theta_2 * min(1, s / i_tot_bar).
+
+Contact is unilateral by default: a contact only pushes. Out of contact (e <= 0) the proportional
+term is zero and the integral force is *driven to zero linearly* over ``release_time_s`` rather
+than dropped at once (section 5.1: "this should not occur instantaneously ... Typical time
+intervals can be small multiples of NT"). The integral never pulls (s >= 0) and the force is never
+negative. ``unilateral=False`` gives the linear bilateral coupling analysed in sections 3-5 (used to
+reproduce Fig. 7 and to check the lifting against a direct simulation).
+
+Nothing here reads a clock: time advances one servo period per :meth:`LocalModel.step`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+ThresholdMode = Literal["none", "fixed", "variable"]
+
+
+def _finite_nonneg(name: str, value: float) -> float:
+    v = float(value)
+    if not math.isfinite(v) or v < 0.0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return v
+
+
+@dataclass(frozen=True, slots=True)
+class ThresholdParams:
+    """Integration threshold theta of section 5.1 (eq. 17 and 18). All lengths in metres.
+
+    Parameters
+    ----------
+    mode : {"none", "fixed", "variable"}
+        ``none``: theta = 0 (the integral drives e to zero); ``fixed``: eq. 17 with ``theta_m``;
+        ``variable``: eq. 18 with ``theta_1_m``, ``theta_2_m`` and ``i_tot_bar_n``.
+    theta_m : float
+        theta_bar of eq. 17 [m]: the steady-state penetration tolerated.
+    theta_1_m, theta_2_m : float
+        eq. 18 thresholds [m] while penetrating and (at most) while exiting.
+    i_tot_bar_n : float
+        Integral force [N] at which the exiting threshold reaches ``theta_2_m`` (eq. 18's I_tot bar).
+    direction_deadband_m : float
+        Penetration change per tick [m] below which the penetrating/exiting state is kept (keeps
+        encoder noise from flipping eq. 18's branch every tick).
+
+    Raises
+    ------
+    ValueError
+        Negative or non-finite values, unknown mode, or i_tot_bar_n <= 0 in variable mode.
+    """
+
+    mode: ThresholdMode = "fixed"
+    theta_m: float = 0.001
+    theta_1_m: float = 0.0005
+    theta_2_m: float = 0.003
+    i_tot_bar_n: float = 1.0
+    direction_deadband_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("none", "fixed", "variable"):
+            raise ValueError(f"threshold mode must be none, fixed or variable, got {self.mode!r}")
+        for name in ("theta_m", "theta_1_m", "theta_2_m", "i_tot_bar_n", "direction_deadband_m"):
+            _finite_nonneg(name, getattr(self, name))
+        if self.mode == "variable" and self.i_tot_bar_n <= 0.0:
+            raise ValueError("i_tot_bar_n must be > 0 for the variable threshold (eq. 18)")
+
+
+@dataclass(frozen=True, slots=True)
+class LocalModelParams:
+    """Parameters of the local model (eq. 12), SI units.
+
+    Parameters
+    ----------
+    k_h : float
+        Proportional stiffness K_h [N/m], > 0.
+    i_gain : float
+        Integral weight I [N/(m*s)], >= 0; 0 gives the proportional local model L(z) = K_h.
+    servo_period_s : float
+        Servo period T [s], > 0 (1e-3 for a 1 kHz servo rate).
+    threshold : ThresholdParams
+        Integration threshold (eq. 17-18).
+    release_time_s : float
+        Interval [s] over which the integral force is driven linearly to zero on release (> 0);
+        pick a small multiple of the simulation period N*T (section 5.1).
+    unilateral : bool
+        True: a contact only pushes (e <= 0 is no contact). False: the linear bilateral coupling of
+        the paper's analysis.
+
+    Raises
+    ------
+    ValueError
+        Non-finite or out-of-range values.
+    """
+
+    k_h: float
+    i_gain: float = 0.0
+    servo_period_s: float = 1e-3
+    threshold: ThresholdParams = field(default_factory=ThresholdParams)
+    release_time_s: float = 0.1
+    unilateral: bool = True
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.k_h) and self.k_h > 0.0):
+            raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {self.k_h!r}")
+        _finite_nonneg("i_gain", self.i_gain)
+        if not (math.isfinite(self.servo_period_s) and self.servo_period_s > 0.0):
+            raise ValueError(f"servo_period_s must be > 0 s, got {self.servo_period_s!r}")
+        if not (math.isfinite(self.release_time_s) and self.release_time_s > 0.0):
+            raise ValueError(f"release_time_s must be > 0 s, got {self.release_time_s!r}")
+
+
+class LocalModel:
+    """Stateful local model L(z) of eq. (12) with the threshold of eq. (17)/(18).
+
+    Call :meth:`step` once per servo tick with the penetration [m]; it returns the force magnitude
+    [N] along the outward normal. Gains may be changed between ticks with :meth:`set_gains` (the
+    integral state is kept, so the force does not jump when a new patch arrives).
+
+    Examples
+    --------
+    >>> lm = LocalModel(LocalModelParams(k_h=200.0))
+    >>> lm.step(0.005)
+    1.0
+    """
+
+    __slots__ = (
+        "params",
+        "_k_h",
+        "_ti",
+        "_s",
+        "_theta",
+        "_e_prev",
+        "_exiting",
+        "_release_step",
+        "_force",
+        "_in_contact",
+    )
+
+    def __init__(self, params: LocalModelParams) -> None:
+        self.params = params
+        self._k_h = params.k_h
+        self._ti = params.servo_period_s * params.i_gain
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the integral and contact state (force 0 on the next tick out of contact)."""
+        self._s = 0.0
+        self._theta = 0.0
+        self._e_prev = 0.0
+        self._exiting = False
+        self._release_step = 0.0
+        self._force = 0.0
+        self._in_contact = False
+
+    def set_gains(self, k_h: float, i_gain: float) -> None:
+        """Replace K_h [N/m] and I [N/(m*s)] between ticks; the integral force is kept.
+
+        Raises
+        ------
+        ValueError
+            If the gains are out of range (see :class:`LocalModelParams`).
+        """
+        self.params = replace(self.params, k_h=k_h, i_gain=i_gain)
+        self._k_h = self.params.k_h
+        self._ti = self.params.servo_period_s * self.params.i_gain
+
+    @property
+    def integral_n(self) -> float:
+        """Current integral force s [N]."""
+        return self._s
+
+    @property
+    def theta_m(self) -> float:
+        """Threshold theta [m] used on the last tick."""
+        return self._theta
+
+    @property
+    def force_n(self) -> float:
+        """Force [N] returned by the last tick (Step 3: the force the simulation samples)."""
+        return self._force
+
+    @property
+    def in_contact(self) -> bool:
+        """Whether the last tick was in contact (e > 0, or always for a bilateral coupling)."""
+        return self._in_contact
+
+    def _threshold(self, e: float) -> float:
+        th = self.params.threshold
+        if th.mode == "none":
+            return 0.0
+        if th.mode == "fixed":
+            return th.theta_m
+        de = e - self._e_prev
+        if de > th.direction_deadband_m:
+            self._exiting = False
+        elif de < -th.direction_deadband_m:
+            self._exiting = True
+        if not self._exiting:
+            return th.theta_1_m
+        ratio = self._s / th.i_tot_bar_n
+        return th.theta_2_m * (ratio if ratio < 1.0 else 1.0)
+
+    def step(self, penetration_m: float) -> float:
+        """Advance one servo period with penetration e [m]; return the force [N] (eq. 12).
+
+        A non-finite penetration is treated as loss of contact (the force ramps down, never jumps).
+        """
+        e = penetration_m
+        if not math.isfinite(e):
+            e = -1.0
+        p = self.params
+        if not p.unilateral:
+            self._in_contact = True
+            theta = self._threshold(e) if self._ti > 0.0 else 0.0
+            f = self._k_h * e + self._s
+            self._s += self._ti * (e - theta)
+        elif e > 0.0:
+            self._in_contact = True
+            theta = self._threshold(e) if self._ti > 0.0 else 0.0
+            f = self._k_h * e + self._s
+            s = self._s + self._ti * (e - theta)
+            self._s = s if s > 0.0 else 0.0
+            self._release_step = 0.0
+            if f < 0.0:
+                f = 0.0
+        else:
+            # Release: drive the integral force to zero linearly over release_time_s (sec. 5.1).
+            theta = 0.0
+            if self._in_contact or self._release_step == 0.0:
+                self._release_step = self._s * p.servo_period_s / p.release_time_s
+            self._in_contact = False
+            f = self._s
+            s = self._s - self._release_step
+            self._s = s if s > 0.0 else 0.0
+        self._theta = theta
+        self._e_prev = e
+        self._force = f
+        return f

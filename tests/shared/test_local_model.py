@@ -1,0 +1,155 @@
+"""The local model L(z) (eq. 12, 17, 18, section 5.1) and the primitives it is rendered against."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from shared.local_model import LocalModel, LocalModelParams, ThresholdParams
+from shared.multirate import simulate, step_metrics
+from shared.primitives import make_plane, make_sphere
+
+
+def test_proportional_force_is_stiffness_times_penetration():
+    lm = LocalModel(LocalModelParams(k_h=250.0))
+    assert lm.step(0.004) == pytest.approx(1.0)
+    assert lm.in_contact
+    assert lm.step(-0.002) == 0.0  # a contact never pulls
+    assert not lm.in_contact
+
+
+def test_pi_difference_equation_of_eq12():
+    """f(n) = K_h e(n) + s(n), s(n+1) = s(n) + T I e(n) (no threshold, bilateral)."""
+    lm = LocalModel(
+        LocalModelParams(k_h=100.0, i_gain=2000.0, unilateral=False, threshold=ThresholdParams(mode="none"))
+    )
+    e = [0.01, 0.01, 0.02, -0.005]
+    s, expected = 0.0, []
+    for x in e:
+        expected.append(100.0 * x + s)
+        s += 1e-3 * 2000.0 * x
+    assert [lm.step(x) for x in e] == pytest.approx(expected)
+
+
+def test_fixed_threshold_eq17_holds_the_tolerated_penetration():
+    """Against a spring object the PI model leaves exactly theta as steady-state penetration."""
+    theta = 0.004
+    lm = LocalModel(
+        LocalModelParams(k_h=100.0, i_gain=3000.0, threshold=ThresholdParams(mode="fixed", theta_m=theta))
+    )
+    tr = simulate(lm, np.full(6000, 0.03), k_o=300.0, n_ticks=6000)
+    m = step_metrics(tr)
+    assert m.settled
+    assert m.steady_state_error_m == pytest.approx(theta, abs=2e-4)
+    p_only = step_metrics(simulate(LocalModel(LocalModelParams(k_h=100.0)), np.full(6000, 0.03), k_o=300.0, n_ticks=6000))
+    # eq. 11: x_o = K_h/(K_h+K_o) x_h, error 0.75 * 30 mm
+    assert p_only.steady_state_error_m == pytest.approx(0.0225, rel=1e-3)
+
+
+def test_variable_threshold_eq18_small_entering_larger_exiting():
+    th = ThresholdParams(mode="variable", theta_1_m=0.001, theta_2_m=0.004, i_tot_bar_n=2.0)
+    lm = LocalModel(LocalModelParams(k_h=100.0, i_gain=1000.0, threshold=th))
+    for depth in np.linspace(0.001, 0.02, 50):  # penetrating
+        lm.step(float(depth))
+        assert lm.theta_m == pytest.approx(0.001)
+    assert lm.integral_n > 0.0
+    s = lm.integral_n
+    lm.step(0.019)  # exiting: theta grows with the integral up to theta_2
+    assert lm.theta_m == pytest.approx(0.004 * min(1.0, s / 2.0), rel=0.05)
+    lm.step(-0.001)  # no contact: theta = 0
+    assert lm.theta_m == 0.0
+
+
+def test_release_drives_the_integral_to_zero_linearly():
+    lm = LocalModel(
+        LocalModelParams(
+            k_h=100.0, i_gain=5000.0, release_time_s=0.1, threshold=ThresholdParams(mode="none")
+        )
+    )
+    for _ in range(300):
+        lm.step(0.01)
+    s0 = lm.integral_n
+    assert s0 > 1.0
+    forces = [lm.step(-0.001) for _ in range(150)]
+    # never dropped at once: the first release force is the integral, then linear steps to zero
+    assert forces[0] == pytest.approx(s0)
+    steps = -np.diff(forces[:99])
+    assert np.allclose(steps, s0 / 100.0, rtol=1e-6)
+    assert forces[100] == pytest.approx(0.0, abs=1e-9) and forces[-1] == 0.0
+    assert max(abs(d) for d in np.diff(forces)) <= s0 / 100.0 + 1e-12
+
+
+def test_gain_change_keeps_the_integral_force():
+    lm = LocalModel(LocalModelParams(k_h=100.0, i_gain=3000.0, threshold=ThresholdParams(mode="none")))
+    for _ in range(100):
+        f_before = lm.step(0.005)
+    lm.set_gains(110.0, 2500.0)
+    f_after = lm.step(0.005)
+    assert abs(f_after - f_before) < 0.1  # K_h change adds 10 N/m * 5 mm = 0.05 N plus one integral step
+
+
+def test_non_finite_penetration_is_treated_as_release():
+    lm = LocalModel(LocalModelParams(k_h=100.0))
+    lm.step(0.01)
+    assert lm.step(math.nan) == 0.0
+    assert lm.step(math.inf) == 0.0
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"k_h": 0.0},
+        {"k_h": -5.0},
+        {"k_h": math.nan},
+        {"k_h": 10.0, "i_gain": -1.0},
+        {"k_h": 10.0, "servo_period_s": 0.0},
+        {"k_h": 10.0, "release_time_s": 0.0},
+    ],
+)
+def test_bad_parameters_are_refused(kwargs):
+    with pytest.raises(ValueError):
+        LocalModelParams(**kwargs)
+
+
+def test_bad_threshold_is_refused():
+    with pytest.raises(ValueError):
+        ThresholdParams(mode="bogus")  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        ThresholdParams(theta_m=-0.001)
+    with pytest.raises(ValueError):
+        ThresholdParams(mode="variable", i_tot_bar_n=0.0)
+
+
+def test_plane_penetration_and_proxy():
+    plane = make_plane((0.0, 0.0, 0.1), (0.0, 0.0, 2.0))
+    assert plane.normal == (0.0, 0.0, 1.0)
+    assert plane.penetration(0.01, 0.0, 0.095) == pytest.approx(0.005)
+    e, nx, ny, nz = plane.contact(0.0, 0.0, 0.12)
+    assert e == pytest.approx(-0.02) and (nx, ny, nz) == (0.0, 0.0, 1.0)
+    assert plane.proxy(0.01, 0.02, 0.09) == pytest.approx((0.01, 0.02, 0.1))
+
+
+def test_sphere_penetration_and_normal():
+    sphere = make_sphere((0.0, 0.0, 0.0), 0.1)
+    e, nx, ny, nz = sphere.contact(0.0, 0.095, 0.0)
+    assert e == pytest.approx(0.005) and (nx, ny, nz) == pytest.approx((0.0, 1.0, 0.0))
+    assert sphere.proxy(0.0, 0.0, 0.5) == pytest.approx((0.0, 0.0, 0.1))
+    assert sphere.penetration(0.0, 0.0, 0.0) == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: make_plane((0, 0, 0), (0, 0, 0)),
+        lambda: make_plane((0, 0, math.nan), (0, 0, 1)),
+        lambda: make_plane((0, 0), (0, 0, 1)),
+        lambda: make_sphere((0, 0, 0), -1.0),
+        lambda: make_sphere((0, 0, 0), math.inf),
+        lambda: make_sphere(("a", 0, 0), 0.1),
+    ],
+)
+def test_bad_primitives_are_refused(make):
+    with pytest.raises(ValueError):
+        make()
