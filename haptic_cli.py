@@ -115,7 +115,9 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--damping", type=_nonneg, default=0.0, help="object damping b [N*s/m]")
     p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo rate 1/T [Hz]")
     p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
-    p.add_argument("--delay-ticks", type=_nonneg_int, default=0, help="extra simulation ticks of delay")
+    p.add_argument(
+        "--delay-ticks", type=_nonneg_int, default=0, help="extra simulation ticks of delay"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_stability)
 
@@ -140,7 +142,9 @@ def _add_reproduce(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 # -------------------------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     """The ``haptic`` argument parser with every subcommand."""
-    parser = _Parser(prog="haptic", description="Multirate haptic collaboration on a shared deformable object.")
+    parser = _Parser(
+        prog="haptic", description="Multirate haptic collaboration on a shared deformable object."
+    )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_stability(sub)
     _add_reproduce(sub)

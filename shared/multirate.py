@@ -118,7 +118,7 @@ def simulate(
         f_out[i] = f
         s_out[i] = local_model.integral_n
     return Trace(
-        t_s=np.arange(n_ticks) * period,
+        t_s=np.arange(n_ticks, dtype=np.float64) * period,
         probe_m=xh,
         proxy_m=xo_out,
         force_n=f_out,

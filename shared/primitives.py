@@ -139,5 +139,7 @@ def make_sphere(center: Sequence[float], radius: float) -> Sphere:
     c = _vec3("sphere center", center)
     r = float(radius)
     if not (math.isfinite(r) and MIN_RADIUS_M <= r <= MAX_RADIUS_M):
-        raise ValueError(f"sphere radius must be in [{MIN_RADIUS_M}, {MAX_RADIUS_M}] m, got {radius!r}")
+        raise ValueError(
+            f"sphere radius must be in [{MIN_RADIUS_M}, {MAX_RADIUS_M}] m, got {radius!r}"
+        )
     return Sphere(center=c, radius=r)

@@ -241,9 +241,7 @@ def eq16_stable(k_h: float, k_o: float, nti: float, b_o: float) -> bool:
     ``|INT - K_h + B_o| < K_o + B_o`` and ``INT - 2 K_h > -2 K_o - 4 B_o``.
     """
     return (
-        nti > 0.0
-        and abs(nti - k_h + b_o) < k_o + b_o
-        and nti - 2.0 * k_h > -2.0 * k_o - 4.0 * b_o
+        nti > 0.0 and abs(nti - k_h + b_o) < k_o + b_o and nti - 2.0 * k_h > -2.0 * k_o - 4.0 * b_o
     )
 
 

@@ -23,7 +23,9 @@ def test_proportional_force_is_stiffness_times_penetration():
 def test_pi_difference_equation_of_eq12():
     """f(n) = K_h e(n) + s(n), s(n+1) = s(n) + T I e(n) (no threshold, bilateral)."""
     lm = LocalModel(
-        LocalModelParams(k_h=100.0, i_gain=2000.0, unilateral=False, threshold=ThresholdParams(mode="none"))
+        LocalModelParams(
+            k_h=100.0, i_gain=2000.0, unilateral=False, threshold=ThresholdParams(mode="none")
+        )
     )
     e = [0.01, 0.01, 0.02, -0.005]
     s, expected = 0.0, []
@@ -37,13 +39,19 @@ def test_fixed_threshold_eq17_holds_the_tolerated_penetration():
     """Against a spring object the PI model leaves exactly theta as steady-state penetration."""
     theta = 0.004
     lm = LocalModel(
-        LocalModelParams(k_h=100.0, i_gain=3000.0, threshold=ThresholdParams(mode="fixed", theta_m=theta))
+        LocalModelParams(
+            k_h=100.0, i_gain=3000.0, threshold=ThresholdParams(mode="fixed", theta_m=theta)
+        )
     )
     tr = simulate(lm, np.full(6000, 0.03), k_o=300.0, n_ticks=6000)
     m = step_metrics(tr)
     assert m.settled
     assert m.steady_state_error_m == pytest.approx(theta, abs=2e-4)
-    p_only = step_metrics(simulate(LocalModel(LocalModelParams(k_h=100.0)), np.full(6000, 0.03), k_o=300.0, n_ticks=6000))
+    p_only = step_metrics(
+        simulate(
+            LocalModel(LocalModelParams(k_h=100.0)), np.full(6000, 0.03), k_o=300.0, n_ticks=6000
+        )
+    )
     # eq. 11: x_o = K_h/(K_h+K_o) x_h, error 0.75 * 30 mm
     assert p_only.steady_state_error_m == pytest.approx(0.0225, rel=1e-3)
 
@@ -82,12 +90,16 @@ def test_release_drives_the_integral_to_zero_linearly():
 
 
 def test_gain_change_keeps_the_integral_force():
-    lm = LocalModel(LocalModelParams(k_h=100.0, i_gain=3000.0, threshold=ThresholdParams(mode="none")))
+    lm = LocalModel(
+        LocalModelParams(k_h=100.0, i_gain=3000.0, threshold=ThresholdParams(mode="none"))
+    )
     for _ in range(100):
         f_before = lm.step(0.005)
     lm.set_gains(110.0, 2500.0)
     f_after = lm.step(0.005)
-    assert abs(f_after - f_before) < 0.1  # K_h change adds 10 N/m * 5 mm = 0.05 N plus one integral step
+    assert (
+        abs(f_after - f_before) < 0.1
+    )  # K_h change adds 10 N/m * 5 mm = 0.05 N plus one integral step
 
 
 def test_non_finite_penetration_is_treated_as_release():

@@ -105,7 +105,9 @@ def test_lifting_matches_direct_fast_rate_simulation(k_h, i_gain, k_o, b_o, dela
     assert np.allclose(direct, lifted, rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize("k_h,i_gain,k_o,damping", [(100.0, 0.0, 900.0, 0.0), (120.0, 2500.0, 300.0, 2.0)])
+@pytest.mark.parametrize(
+    "k_h,i_gain,k_o,damping", [(100.0, 0.0, 900.0, 0.0), (120.0, 2500.0, 300.0, 2.0)]
+)
 def test_client_local_model_code_matches_the_analysed_loop(k_h, i_gain, k_o, damping):
     """The multirate simulator runs LocalModel (the servo's code): same proxy as the LTI model."""
     lm = LocalModel(
@@ -149,12 +151,18 @@ def test_closed_forms_agree_with_numeric_verdict_on_random_parameters(seed):
         nti = float(rng.uniform(0.0, 3.5) * k_o) if rng.random() < 0.7 else 0.0
         i_gain = nti * servo / n
         damping = float(rng.uniform(0.0, 0.5) * k_o / sim) if rng.random() < 0.5 else 0.0
-        res = analyze(k_o, k_h, i_gain=i_gain, damping=damping, servo_rate_hz=servo, sim_rate_hz=sim)
+        res = analyze(
+            k_o, k_h, i_gain=i_gain, damping=damping, servo_rate_hz=servo, sim_rate_hz=sim
+        )
         b_o = damping * sim
         if i_gain == 0.0:
             closed = eq8_stable(k_h, k_o) if b_o == 0.0 else eq10_stable(k_h, k_o, b_o)
         else:
-            closed = eq15_stable(k_h, k_o, res.nti) if b_o == 0.0 else eq16_stable(k_h, k_o, res.nti, b_o)
+            closed = (
+                eq15_stable(k_h, k_o, res.nti)
+                if b_o == 0.0
+                else eq16_stable(k_h, k_o, res.nti, b_o)
+            )
         assert res.analytic_stable == closed
         # skip points within round-off of the boundary
         if abs(res.spectral_radius - 1.0) > 1e-6:
@@ -172,7 +180,9 @@ def test_pi_region_of_eq15_has_the_shape_of_fig8():
     # the region scales with K_o: the same normalised point has the same verdict
     for scale in (0.5, 2.0, 7.0):
         a = analyze(k_o * scale, 100.0 * scale, i_gain=3000.0 * scale)
-        assert a.stable and a.spectral_radius == pytest.approx(analyze(k_o, 100.0, i_gain=3000.0).spectral_radius)
+        assert a.stable and a.spectral_radius == pytest.approx(
+            analyze(k_o, 100.0, i_gain=3000.0).spectral_radius
+        )
 
 
 def test_delay_shrinks_the_pi_region_but_not_the_p_condition():
@@ -205,14 +215,23 @@ def test_grid_radius_equals_matrix_radius():
 def test_selected_gains_are_stable_with_margin_and_device_cap(mode, delay):
     for k_o in (150.0, 400.0, 1500.0):
         g = select_gains(
-            k_o, rate_ratio=50, servo_period_s=T, delay_ticks=delay, margin=0.3, k_h_max=1000.0, mode=mode
+            k_o,
+            rate_ratio=50,
+            servo_period_s=T,
+            delay_ticks=delay,
+            margin=0.3,
+            k_h_max=1000.0,
+            mode=mode,
         )
         assert g.stable
         assert 0.0 < g.k_h <= min(1000.0, 0.7 * k_o) + 1e-9
         verdict = analyze(k_o, g.k_h, i_gain=g.i_gain, delay_ticks=delay)
         assert verdict.stable
         # with the margin the loop also holds when K_o was overestimated by 30 %
-        assert analyze(0.7 * k_o * 1.001, g.k_h, i_gain=g.i_gain, delay_ticks=delay).spectral_radius <= 1.0 + 1e-6
+        assert (
+            analyze(0.7 * k_o * 1.001, g.k_h, i_gain=g.i_gain, delay_ticks=delay).spectral_radius
+            <= 1.0 + 1e-6
+        )
         if mode == "pi":
             assert g.i_gain > 0.0 and g.worst_spectral_radius < 1.0
         else:

@@ -1,0 +1,327 @@
+"""A haptic user's side of the protocol, sans-I/O: server frames and times in, frames and patches out.
+
+The asyncio link (:mod:`client.link`) pumps bytes; this class decides. On each ``patch`` it picks
+the local model's gains with :func:`shared.stability.select_gains` from the patch's K_o_eff and B_o,
+the rate ratio N and the *measured* delay (round-trip time in whole simulation ticks), never above
+the device's maximum stiffness (Step 2 of section 6), and hands primitive and gains to the servo
+loop as one :class:`PatchUpdate` (zero-order hold: it replaces the old one between servo ticks).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Literal
+
+import numpy as np
+
+from shared.primitives import Primitive, make_plane, make_sphere
+from shared.protocol import (
+    PROTOCOL_VERSION,
+    DeviceInfo,
+    ErrorMsg,
+    Hello,
+    ObjectInfo,
+    Patch,
+    Ping,
+    PlaneModel,
+    Pong,
+    ProtocolError,
+    RoomState,
+    State,
+    Welcome,
+    encode,
+    parse_server,
+)
+from shared.stability import GainChoice, select_gains
+
+#: K_o is quantized *down* to steps of this ratio before gain selection (conservative, cacheable).
+K_O_QUANTUM = 1.02
+
+
+@dataclass(frozen=True)
+class PatchUpdate:
+    """What the servo loop needs from one patch: the primitive and the gains, swapped atomically.
+
+    Attributes
+    ----------
+    primitive : Plane | Sphere
+        The local geometric model.
+    k_h : float
+        K_h [N/m].
+    i_gain : float
+        I [N/(m*s)].
+    tick : int
+        Simulation tick of the patch.
+    k_o, k_o_eff, b_o : float
+        As reported by the server [N/m].
+    delay_ticks : int
+        Delay assumed in the gain choice [simulation ticks].
+    spectral_radius : float
+        Predicted slow-loop spectral radius with these gains.
+    """
+
+    primitive: Primitive
+    k_h: float
+    i_gain: float
+    tick: int
+    k_o: float
+    k_o_eff: float
+    b_o: float
+    delay_ticks: int
+    spectral_radius: float
+
+
+@dataclass(frozen=True)
+class ServoSample:
+    """The servo loop's latest state, as the link reports it to the server (latest wins)."""
+
+    probe_m: tuple[float, float, float]
+    force_n: tuple[float, float, float]
+    penetration_m: float
+    in_contact: bool
+    k_h: float
+    i_gain: float
+    servo_rate_hz: float
+    period_us_p99: float
+
+
+@lru_cache(maxsize=4096)
+def _gains_cached(
+    k_o_q: float,
+    b_o: float,
+    rate_ratio: int,
+    period_s: float,
+    delay: int,
+    margin: float,
+    k_h_max: float,
+    mode: str,
+) -> GainChoice:
+    return select_gains(
+        k_o_q,
+        rate_ratio=rate_ratio,
+        servo_period_s=period_s,
+        b_o=b_o,
+        delay_ticks=delay,
+        margin=margin,
+        k_h_max=k_h_max,
+        mode=mode,  # type: ignore[arg-type]
+    )
+
+
+def choose_gains(
+    k_o_eff: float,
+    b_o: float,
+    *,
+    rate_ratio: int,
+    servo_period_s: float,
+    delay_ticks: int,
+    margin: float,
+    k_h_max: float,
+    mode: Literal["p", "pi"],
+) -> GainChoice:
+    """:func:`shared.stability.select_gains` with K_o quantized down by 2 % steps and cached.
+
+    Quantizing K_o *down* only lowers the design stiffness (safer, section 5's robustness remark);
+    B_o is quantized down to 1 N/m. Raises ValueError like ``select_gains``.
+    """
+    if not (math.isfinite(k_o_eff) and k_o_eff > 0.0):
+        raise ValueError(f"k_o_eff must be > 0, got {k_o_eff!r}")
+    q = K_O_QUANTUM ** math.floor(math.log(k_o_eff) / math.log(K_O_QUANTUM))
+    return _gains_cached(
+        q,
+        float(math.floor(max(0.0, b_o))),
+        rate_ratio,
+        servo_period_s,
+        delay_ticks,
+        margin,
+        k_h_max,
+        mode,
+    )
+
+
+class ClientSession:
+    """Protocol state of one haptic user (or a viewer, with ``role="viewer"``).
+
+    Parameters
+    ----------
+    name : str
+        User name shown to others.
+    servo_rate_hz : float
+        The servo loop's rate 1/T [Hz].
+    device : DeviceInfo
+        Profile name, max force [N], max stable stiffness [N/m].
+    mode : {"p", "pi"}
+        Local model type.
+    margin : float
+        Fraction by which K_o may be overestimated (gain selection margin).
+    role : {"user", "viewer"}
+    """
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        servo_rate_hz: float = 1000.0,
+        device: DeviceInfo | None = None,
+        mode: Literal["p", "pi"] = "pi",
+        margin: float = 0.3,
+        role: Literal["user", "viewer"] = "user",
+    ) -> None:
+        self.name = name
+        self.servo_rate_hz = servo_rate_hz
+        self.device = device or DeviceInfo()
+        self.mode: Literal["p", "pi"] = mode
+        self.margin = margin
+        self.role: Literal["user", "viewer"] = role
+        self.welcome: Welcome | None = None
+        self.last_patch: Patch | None = None
+        self.last_update: PatchUpdate | None = None
+        self.errors: list[ErrorMsg] = []
+        self.room: RoomState | None = None
+        self._seq = 0
+        self._ping_id = 0
+        self.rtt_s: deque[float] = deque(maxlen=64)
+        self.rtt_all_ms: list[float] = []
+        self.patches = 0
+
+    # ------------------------------------------------------------------ outgoing
+    def hello(self) -> str:
+        """The first frame to send on every (re)connection."""
+        return encode(
+            Hello(
+                protocol=PROTOCOL_VERSION,
+                role=self.role,
+                name=self.name,
+                device=self.device,
+                servo_rate_hz=self.servo_rate_hz,
+                local_model=self.mode,
+            )
+        )
+
+    def ping(self, now_s: float) -> str:
+        """A ping frame stamped with the local monotonic time ``now_s`` [s]."""
+        self._ping_id += 1
+        return encode(Ping(id=self._ping_id, t_client_s=now_s))
+
+    def state(self, sample: ServoSample) -> str:
+        """The ``state`` frame for the servo loop's latest sample."""
+        self._seq += 1
+        return encode(
+            State(
+                seq=self._seq,
+                probe_m=sample.probe_m,
+                force_n=sample.force_n,
+                penetration_m=sample.penetration_m,
+                in_contact=sample.in_contact,
+                k_h=sample.k_h,
+                i_gain=sample.i_gain,
+                servo_rate_hz=sample.servo_rate_hz,
+                period_us_p99=sample.period_us_p99,
+                rtt_ms=self.rtt_ms(),
+                patch_tick=self.last_patch.tick if self.last_patch else -1,
+            )
+        )
+
+    # ------------------------------------------------------------------ incoming
+    def receive(self, frame: str | bytes, now_s: float) -> PatchUpdate | None:
+        """Handle one server frame at local time ``now_s`` [s]; return a patch update if any.
+
+        Raises
+        ------
+        ProtocolError
+            The frame is not a valid server message (the link logs it and goes on).
+        """
+        if isinstance(frame, bytes | bytearray):
+            return None  # surface frames are for viewers
+        msg = parse_server(frame)
+        if isinstance(msg, Welcome):
+            self.welcome = msg
+            return None
+        if isinstance(msg, Pong):
+            rtt = now_s - msg.t_client_s
+            if 0.0 <= rtt < 60.0:
+                self.rtt_s.append(rtt)
+                self.rtt_all_ms.append(rtt * 1000.0)
+            return None
+        if isinstance(msg, ErrorMsg):
+            self.errors.append(msg)
+            return None
+        if isinstance(msg, RoomState):
+            self.room = msg
+            return None
+        if isinstance(msg, Patch):
+            return self._patch(msg)
+        return None
+
+    @property
+    def object(self) -> ObjectInfo | None:
+        """The shared object's rest-state description, after ``welcome``."""
+        return self.welcome.object if self.welcome else None
+
+    @property
+    def sim_rate_hz(self) -> float:
+        """Simulation rate announced by the server (20 Hz before ``welcome``)."""
+        return self.welcome.sim_rate_hz if self.welcome else 20.0
+
+    def rtt_ms(self) -> float | None:
+        """Median of recent round-trip times [ms], None before the first pong."""
+        return float(np.median(self.rtt_s)) * 1000.0 if self.rtt_s else None
+
+    def delay_ticks(self) -> int:
+        """Extra loop delay in whole simulation ticks, from the worst recent round trip.
+
+        The force the server samples at tick k+1 reflects patch k only if the patch's trip down,
+        the state's age (up to :attr:`state_interval_s`) and its trip up fit in one simulation
+        period; every further period adds one tick: ``ceil((rtt + age) / period) - 1``.
+        """
+        if not self.rtt_s:
+            return 0
+        worst = max(self.rtt_s) + self.state_interval_s
+        return max(0, math.ceil(worst * self.sim_rate_hz - 1e-9) - 1)
+
+    @property
+    def state_interval_s(self) -> float:
+        """Interval [s] at which the link sends ``state``: half a simulation period."""
+        return 0.5 / self.sim_rate_hz
+
+    def _patch(self, msg: Patch) -> PatchUpdate | None:
+        if self.last_patch is not None and msg.tick <= self.last_patch.tick:
+            return None  # stale
+        prim: Primitive
+        p = msg.primitive
+        try:
+            if isinstance(p, PlaneModel):
+                prim = make_plane(p.point, p.normal)
+            else:
+                prim = make_sphere(p.center, p.radius)
+        except ValueError as exc:
+            raise ProtocolError("invalid_primitive", str(exc)) from None
+        n = max(1, round(self.servo_rate_hz / self.sim_rate_hz))
+        d = self.delay_ticks()
+        g = choose_gains(
+            msg.k_o_eff,
+            msg.b_o,
+            rate_ratio=n,
+            servo_period_s=1.0 / self.servo_rate_hz,
+            delay_ticks=d,
+            margin=self.margin,
+            k_h_max=self.device.max_stiffness_n_per_m,
+            mode=self.mode,
+        )
+        self.last_patch = msg
+        self.patches += 1
+        self.last_update = PatchUpdate(
+            primitive=prim,
+            k_h=g.k_h,
+            i_gain=g.i_gain,
+            tick=msg.tick,
+            k_o=msg.k_o,
+            k_o_eff=msg.k_o_eff,
+            b_o=msg.b_o,
+            delay_ticks=d,
+            spectral_radius=g.spectral_radius,
+        )
+        return self.last_update

@@ -1,0 +1,302 @@
+"""The server's asyncio layer: websockets, static files, the simulation schedule, latency injection.
+
+Everything that decides anything lives in :class:`server.room.Room`; this module only moves
+frames between sockets and the room, keeps the simulation on a drift-free schedule and injects
+latency. HTTP ``/`` serves the viewer (web/), ``/vendor/three/...`` the three.js package from
+web/node_modules, ``/status`` a JSON summary; the websocket endpoint is ``/ws``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import mimetypes
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from http import HTTPStatus
+from pathlib import Path
+from typing import Any
+
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.datastructures import Headers
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+
+from server.latency import LinkConfig, LinkShaper
+from server.room import Outgoing, Room
+
+log = logging.getLogger("haptic.server")
+
+#: websockets' own frame limit; the room answers frames above its smaller limit with an error.
+WS_MAX_SIZE = 64 * 1024
+WEB_DIR = Path(__file__).resolve().parent.parent / "web"
+_STATIC_SUFFIXES = {".html", ".js", ".mjs", ".css", ".json", ".png", ".svg", ".ico", ".map"}
+
+
+@dataclass
+class _Peer:
+    conn_id: str
+    ws: ServerConnection
+    up: LinkShaper
+    down: LinkShaper
+    ready: deque[Outgoing] = field(default_factory=deque)
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+
+
+def _static_response(web_dir: Path, path: str) -> Response:
+    path = path.split("?", 1)[0]
+    if path in ("", "/"):
+        path = "/index.html"
+    if path.startswith("/vendor/three/"):
+        root = web_dir / "node_modules" / "three"
+        rel = path[len("/vendor/three/") :]
+    else:
+        root = web_dir
+        rel = path.lstrip("/")
+    try:
+        target = (root / rel).resolve()
+        target.relative_to(root.resolve())
+    except (ValueError, OSError):
+        return _text(HTTPStatus.NOT_FOUND, "not found\n")
+    if target.suffix not in _STATIC_SUFFIXES or not target.is_file() or "node_modules" in rel:
+        return _text(HTTPStatus.NOT_FOUND, "not found\n")
+    ctype = mimetypes.guess_type(target.name)[0] or "application/octet-stream"
+    if target.suffix in (".js", ".mjs"):
+        ctype = "text/javascript"
+    body = target.read_bytes()
+    headers = Headers(
+        [("Content-Type", ctype), ("Content-Length", str(len(body))), ("Cache-Control", "no-cache")]
+    )
+    return Response(200, "OK", headers, body)
+
+
+def _text(status: HTTPStatus, text: str, ctype: str = "text/plain; charset=utf-8") -> Response:
+    body = text.encode()
+    return Response(
+        status.value,
+        status.phrase,
+        Headers([("Content-Type", ctype), ("Content-Length", str(len(body)))]),
+        body,
+    )
+
+
+class ServerApp:
+    """Runs one room over websockets.
+
+    Parameters
+    ----------
+    room : Room
+        The sans-I/O core.
+    host, port : str, int
+        Where to listen (port 0 picks a free port; see :attr:`port` after start).
+    link : LinkConfig
+        Latency injection applied to each direction of each connection.
+    seed : int
+        Seed of the latency injection's random draws (reproducible runs).
+    web_dir : Path
+        The viewer's files.
+    """
+
+    def __init__(
+        self,
+        room: Room,
+        host: str = "127.0.0.1",
+        port: int = 8765,
+        link: LinkConfig | None = None,
+        seed: int = 0,
+        web_dir: Path = WEB_DIR,
+    ) -> None:
+        self.room = room
+        self.host = host
+        self.port = port
+        self.link = link or LinkConfig()
+        self.seed = seed
+        self.web_dir = web_dir
+        self._peers: dict[str, _Peer] = {}
+        self._next_conn = 0
+        self._server: Server | None = None
+        self._sim_task: asyncio.Task[None] | None = None
+        self.tick = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    async def start(self) -> None:
+        """Listen and start the simulation loop."""
+        self._server = await serve(
+            self._handler,
+            self.host,
+            self.port,
+            process_request=self._process_request,
+            max_size=WS_MAX_SIZE,
+            max_queue=64,
+            ping_interval=5.0,
+            ping_timeout=10.0,
+        )
+        sock = next(iter(self._server.sockets))
+        self.port = int(sock.getsockname()[1])
+        self._sim_task = asyncio.create_task(self._sim_loop())
+
+    async def stop(self) -> None:
+        """Stop the simulation and close every connection."""
+        if self._sim_task:
+            self._sim_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._sim_task
+        if self._server:
+            self._server.close()
+            await self._server.wait_closed()
+
+    async def run(
+        self, duration_s: float | None = None, on_ready: Callable[[int], None] | None = None
+    ) -> None:
+        """Start, call ``on_ready(port)``, serve until cancelled or ``duration_s`` elapses."""
+        await self.start()
+        if on_ready:
+            on_ready(self.port)
+        try:
+            if duration_s is None:
+                await asyncio.Future()
+            else:
+                await asyncio.sleep(duration_s)
+        finally:
+            await self.stop()
+
+    # ------------------------------------------------------------------ HTTP
+    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        path = request.path.split("?", 1)[0]
+        if path in ("/ws", "/ws/"):
+            return None
+        if path == "/status":
+            body = json.dumps(self.status())
+            return _text(HTTPStatus.OK, body, "application/json")
+        if request.headers.get("Upgrade", "").lower() == "websocket":
+            return _text(HTTPStatus.NOT_FOUND, "the websocket endpoint is /ws\n")
+        return _static_response(self.web_dir, path)
+
+    def status(self) -> dict[str, Any]:
+        """JSON-able summary: tick, users, viewers, tick costs, overruns, link conditions."""
+        room = self.room
+        return {
+            "tick": self.tick,
+            "sim_rate_hz": room.sim_rate_hz,
+            "users": len(room.users),
+            "viewers": len(room.viewers),
+            "tick_ms_p50": room.stats.percentile(50),
+            "tick_ms_p99": room.stats.percentile(99),
+            "overruns": room.stats.overruns,
+            "latency_ms": self.link.latency_ms,
+            "jitter_ms": self.link.jitter_ms,
+            "loss": self.link.loss,
+        }
+
+    # ------------------------------------------------------------------ websockets
+    async def _handler(self, ws: ServerConnection) -> None:
+        self._next_conn += 1
+        conn_id = f"c{self._next_conn}"
+        peer = _Peer(
+            conn_id,
+            ws,
+            up=LinkShaper(self.link, seed=f"{self.seed}:{conn_id}:up"),
+            down=LinkShaper(self.link, seed=f"{self.seed}:{conn_id}:down"),
+        )
+        self._peers[conn_id] = peer
+        loop = asyncio.get_running_loop()
+        sender = asyncio.create_task(self._sender(peer))
+        try:
+            self._dispatch(self.room.connect(conn_id, loop.time()))
+            async for frame in ws:
+                at = peer.up.schedule(loop.time(), droppable=_droppable_in(frame))
+                if at is None:
+                    continue
+                if at <= loop.time():
+                    self._deliver(conn_id, frame)
+                else:
+                    loop.call_at(at, self._deliver, conn_id, frame)
+        except ConnectionClosed:
+            pass
+        finally:
+            self.room.disconnect(conn_id)
+            self._peers.pop(conn_id, None)
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sender
+
+    def _deliver(self, conn_id: str, frame: str | bytes) -> None:
+        if conn_id not in self._peers:
+            return
+        self._dispatch(self.room.receive(conn_id, frame, asyncio.get_running_loop().time()))
+
+    def _dispatch(self, outs: list[Outgoing]) -> None:
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        for out in outs:
+            peer = self._peers.get(out.conn_id)
+            if peer is None:
+                continue
+            at = peer.down.schedule(now, droppable=out.stream is not None and not out.close)
+            if at is None:
+                continue
+            if at <= now:
+                self._ready(peer, out)
+            else:
+                loop.call_at(at, self._ready, peer, out)
+
+    @staticmethod
+    def _ready(peer: _Peer, out: Outgoing) -> None:
+        peer.ready.append(out)
+        peer.wake.set()
+
+    async def _sender(self, peer: _Peer) -> None:
+        """Send due frames in order; a stream frame is skipped if a newer one of its stream is due."""
+        try:
+            while True:
+                await peer.wake.wait()
+                peer.wake.clear()
+                while peer.ready:
+                    out = peer.ready.popleft()
+                    if out.stream is not None and any(o.stream == out.stream for o in peer.ready):
+                        continue  # latest wins
+                    await peer.ws.send(out.data)
+                    if out.close:
+                        await peer.ws.close(1008, "closed by server, see the error message")
+                        return
+        except ConnectionClosed:
+            return
+
+    # ------------------------------------------------------------------ simulation
+    async def _sim_loop(self) -> None:
+        """Tick the room at ``sim_rate_hz`` on a drift-free schedule; count and skip overruns."""
+        loop = asyncio.get_running_loop()
+        period = 1.0 / self.room.sim_rate_hz
+        t0 = loop.time()
+        k = 0
+        while True:
+            k += 1
+            target = t0 + k * period
+            delay = target - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            start = loop.time()
+            behind = int((start - target) // period)
+            if behind > 0:  # missed whole ticks: skip them, never pile them up
+                k += behind
+                self.room.stats.overruns += behind
+            try:
+                outs = self.room.tick(k, start)
+            except Exception:  # a bug in the physics must not take every user down silently
+                log.exception("simulation tick %d failed", k)
+                outs = []
+            cost = loop.time() - start
+            self.room.stats.record(cost * 1000.0, overran=cost > period)
+            self.tick = k
+            self._dispatch(outs)
+
+
+def _droppable_in(frame: str | bytes) -> bool:
+    """Incoming state-stream frames (state, ping) may be dropped by loss injection; events not."""
+    if isinstance(frame, str):
+        head = frame[:40]
+        return '"type":"state"' in head or '"type":"ping"' in head or '"type": "state"' in head
+    return False

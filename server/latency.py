@@ -1,0 +1,74 @@
+"""Latency injection for one direction of one connection: delay, jitter and loss, seeded.
+
+Sans-I/O: :meth:`LinkShaper.schedule` takes the send time and returns when the frame may be
+delivered, or None when it is dropped; the asyncio layer does the waiting. Time is passed in.
+
+- delay: ``latency_ms`` plus a jitter drawn uniformly from ``[-jitter_ms, +jitter_ms]``, never
+  negative; deliveries stay in order (a websocket is a TCP stream, so a late frame holds back the
+  ones behind it), i.e. ``deliver_at = max(previous deliver_at, now + delay)``.
+- loss: each *droppable* frame (the latest-wins state streams: state, patch, room, vertices, ping,
+  pong) is dropped with probability ``loss``; events (hello, welcome, error, bye) never are, since
+  TCP would retransmit them — a lost state frame models a late one overtaken by its successor.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Injected link conditions for one direction. ``latency_ms``, ``jitter_ms`` >= 0,
+    ``loss`` in [0, 1).
+
+    Raises
+    ------
+    ValueError
+        Out of range or non-finite values.
+    """
+
+    latency_ms: float = 0.0
+    jitter_ms: float = 0.0
+    loss: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("latency_ms", "jitter_ms"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0.0 <= v <= 60_000.0):
+                raise ValueError(f"{name} must be in [0, 60000] ms, got {v!r}")
+        if not (math.isfinite(self.loss) and 0.0 <= self.loss < 1.0):
+            raise ValueError(f"loss must be in [0, 1), got {self.loss!r}")
+
+    @property
+    def active(self) -> bool:
+        """Whether any impairment is configured."""
+        return self.latency_ms > 0.0 or self.jitter_ms > 0.0 or self.loss > 0.0
+
+
+class LinkShaper:
+    """Schedules frames through one impaired direction. Deterministic for a given ``seed``."""
+
+    def __init__(self, config: LinkConfig, seed: int | str | None = None) -> None:
+        self.config = config
+        self._rng = random.Random(seed)
+        self._last_delivery_s = -math.inf
+        self.dropped = 0
+        self.sent = 0
+
+    def schedule(self, now_s: float, droppable: bool) -> float | None:
+        """Delivery time [s] of a frame sent at ``now_s`` [s], or None if it is dropped."""
+        cfg = self.config
+        self.sent += 1
+        if droppable and cfg.loss > 0.0 and self._rng.random() < cfg.loss:
+            self.dropped += 1
+            return None
+        delay_ms = cfg.latency_ms
+        if cfg.jitter_ms > 0.0:
+            delay_ms += self._rng.uniform(-cfg.jitter_ms, cfg.jitter_ms)
+        at = now_s + max(0.0, delay_ms) / 1000.0
+        if at < self._last_delivery_s:
+            at = self._last_delivery_s
+        self._last_delivery_s = at
+        return at

@@ -1,0 +1,354 @@
+"""Wire protocol between the server, the haptic clients and the browser viewers (version 1).
+
+JSON text frames carry one message each, a pydantic model discriminated by ``type``; every message
+a client sends first is ``hello`` with the protocol version. Surface geometry goes to viewers as
+binary frames (:func:`encode_vertices`, :func:`encode_faces`). docs/protocol.md describes it all with
+a complete example exchange; ``haptic protocol --schema`` prints the JSON Schema.
+
+Streams and events (viser's rule): ``state`` (client -> server), ``patch`` and ``room``
+(server -> client) are *latest wins* state streams — a newer one replaces any queued older one;
+``hello``, ``welcome``, ``error``, ``bye`` are events, delivered reliably and in order.
+
+Only the network edge uses pydantic; the servo tick never sees these classes. All quantities SI:
+positions [m], forces [N], stiffness [N/m], I [N/(m*s)], rates [Hz], times [s] unless a field name
+says ``_ms`` or ``_us``.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+
+PROTOCOL_VERSION = 1
+
+#: Largest text or binary frame a client may send [bytes]; the server closes on larger ones.
+MAX_CLIENT_FRAME_BYTES = 16 * 1024
+#: Largest force a client may report [N]; larger reports are rejected (no device exceeds this).
+MAX_REPORTED_FORCE_N = 50.0
+#: Largest probe distance from the origin a client may report [m].
+MAX_PROBE_DISTANCE_M = 100.0
+
+Role = Literal["user", "viewer"]
+
+
+class _Msg(BaseModel):
+    model_config = ConfigDict(extra="ignore", allow_inf_nan=False, frozen=True)
+
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]
+Name = Annotated[str, Field(min_length=1, max_length=32, pattern=r"^[A-Za-z0-9_.-]+$")]
+
+
+# ----------------------------------------------------------------------------- client -> server
+class DeviceInfo(_Msg):
+    """A user's device, as the server and viewers need to know it."""
+
+    profile: Annotated[str, Field(max_length=64)] = "unknown"
+    max_force_n: Annotated[float, Field(gt=0, le=100)] = 7.9
+    max_stiffness_n_per_m: Annotated[float, Field(gt=0, le=1e5)] = 1000.0
+
+
+class Hello(_Msg):
+    """First message of every connection."""
+
+    type: Literal["hello"] = "hello"
+    protocol: int
+    role: Role
+    name: Name
+    device: DeviceInfo | None = None
+    servo_rate_hz: Annotated[float, Field(gt=0, le=100_000)] = 1000.0
+    local_model: Literal["p", "pi"] = "pi"
+
+
+class State(_Msg):
+    """A user's latest probe and rendered force, sent once per simulation tick (latest wins).
+
+    ``force_n`` is the last force the device rendered on the user [N] (outward: it pushes the probe
+    out of the object); the simulation applies its opposite (Step 3 of section 6).
+    """
+
+    type: Literal["state"] = "state"
+    seq: Annotated[int, Field(ge=0)]
+    probe_m: Vec3
+    force_n: Vec3
+    penetration_m: Finite = 0.0
+    in_contact: bool = False
+    k_h: Annotated[float, Field(ge=0, le=1e6)] = 0.0
+    i_gain: Annotated[float, Field(ge=0, le=1e8)] = 0.0
+    servo_rate_hz: Annotated[float, Field(ge=0, le=100_000)] = 0.0
+    period_us_p99: Annotated[float, Field(ge=0, le=1e7)] = 0.0
+    rtt_ms: Annotated[float, Field(ge=0, le=1e6)] | None = None
+    patch_tick: Annotated[int, Field(ge=-1)] = -1
+
+
+class Ping(_Msg):
+    """Round-trip probe; the server answers with a ``pong`` echoing ``id`` and ``t_client_s``."""
+
+    type: Literal["ping"] = "ping"
+    id: Annotated[int, Field(ge=0)]
+    t_client_s: Finite
+
+
+class Bye(_Msg):
+    """The client is leaving on purpose."""
+
+    type: Literal["bye"] = "bye"
+
+
+ClientMessage = Annotated[Hello | State | Ping | Bye, Field(discriminator="type")]
+
+
+# ----------------------------------------------------------------------------- server -> client
+class ObjectInfo(_Msg):
+    """The shared object, in its rest state: enough for a client to find the top and a side."""
+
+    n_vertices: int
+    n_faces: int
+    center_m: Vec3
+    radius_m: Finite
+    bounds_min_m: Vec3
+    bounds_max_m: Vec3
+    top_m: Vec3
+    top_normal: Vec3
+    side_m: Vec3
+    side_normal: Vec3
+
+
+class LinkConditions(_Msg):
+    """Latency injection in force on this connection (each direction)."""
+
+    latency_ms: Finite = 0.0
+    jitter_ms: Finite = 0.0
+    loss: Finite = 0.0
+
+
+class Welcome(_Msg):
+    """Answer to ``hello``."""
+
+    type: Literal["welcome"] = "welcome"
+    protocol: int = PROTOCOL_VERSION
+    user_id: str
+    name: str
+    role: Role
+    sim_rate_hz: Finite
+    object: ObjectInfo
+    link: LinkConditions = LinkConditions()
+
+
+class PlaneModel(_Msg):
+    """Plane primitive: a point on it [m] and its outward unit normal."""
+
+    kind: Literal["plane"] = "plane"
+    point: Vec3
+    normal: Vec3
+
+
+class SphereModel(_Msg):
+    """Sphere primitive fitted to the local curvature: centre [m] and radius [m]."""
+
+    kind: Literal["sphere"] = "sphere"
+    center: Vec3
+    radius: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
+PrimitiveModel = Annotated[PlaneModel | SphereModel, Field(discriminator="kind")]
+
+
+class Patch(_Msg):
+    """A user's local model for the next simulation period (latest wins).
+
+    ``k_o`` is the object's local stiffness at the contact, ``k_o_eff`` <= ``k_o`` the
+    coupling-aware value (DESIGN section 6) the client must choose its gains below; ``b_o`` the
+    object damping divided by the simulation period (eq. 9).
+    """
+
+    type: Literal["patch"] = "patch"
+    tick: int
+    primitive: PrimitiveModel
+    proxy_m: Vec3
+    normal: Vec3
+    penetration_m: Finite
+    in_contact: bool
+    k_o: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    k_o_eff: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    b_o: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+
+class Pong(_Msg):
+    """Answer to ``ping``."""
+
+    type: Literal["pong"] = "pong"
+    id: int
+    t_client_s: Finite
+    tick: int
+
+
+class ErrorMsg(_Msg):
+    """Something the peer sent was refused. ``fatal`` errors are followed by a close."""
+
+    type: Literal["error"] = "error"
+    code: str
+    message: str
+    fatal: bool = False
+
+
+class UserView(_Msg):
+    """One user as the viewers see it."""
+
+    user_id: str
+    name: str
+    probe_m: Vec3
+    proxy_m: Vec3
+    normal: Vec3
+    force_n: Vec3
+    penetration_m: Finite
+    in_contact: bool
+    k_o: Finite
+    k_o_eff: Finite
+    k_h: Finite
+    i_gain: Finite
+    servo_rate_hz: Finite
+    rtt_ms: Finite | None = None
+    device: str = "unknown"
+
+
+class RoomState(_Msg):
+    """What viewers need each tick besides the vertices: users, rates, injected latency."""
+
+    type: Literal["room"] = "room"
+    tick: int
+    sim_rate_hz: Finite
+    tick_ms: Finite
+    tick_ms_p99: Finite
+    overruns: int
+    link: LinkConditions
+    users: list[UserView]
+
+
+ServerMessage = Annotated[
+    Welcome | Patch | Pong | ErrorMsg | RoomState, Field(discriminator="type")
+]
+
+CLIENT_ADAPTER: TypeAdapter[Hello | State | Ping | Bye] = TypeAdapter(ClientMessage)
+SERVER_ADAPTER: TypeAdapter[Welcome | Patch | Pong | ErrorMsg | RoomState] = TypeAdapter(
+    ServerMessage
+)
+
+
+class ProtocolError(ValueError):
+    """A frame that is not a valid message. ``code`` names the problem for the ``error`` reply."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def _first_error(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    where = ".".join(str(p) for p in err.get("loc", ())) or "message"
+    return f"{where}: {err.get('msg', 'invalid')}"
+
+
+def _parse(adapter: TypeAdapter[Any], text: str | bytes, known: tuple[str, ...]) -> Any:
+    if isinstance(text, bytes | bytearray | memoryview):
+        raise ProtocolError("binary_not_expected", "expected a JSON text frame")
+    try:
+        raw = json.loads(text, parse_constant=_reject_constant)
+    except ProtocolError:
+        raise
+    except (ValueError, RecursionError):
+        raise ProtocolError("malformed_json", "frame is not valid JSON") from None
+    if not isinstance(raw, dict):
+        raise ProtocolError("malformed_message", "a message must be a JSON object")
+    kind = raw.get("type")
+    if kind not in known:
+        raise ProtocolError("unknown_type", f"unknown message type {str(kind)[:40]!r}")
+    try:
+        return adapter.validate_python(raw)
+    except ValidationError as exc:
+        raise ProtocolError("invalid_message", f"invalid {kind}: {_first_error(exc)}") from None
+
+
+def _reject_constant(name: str) -> float:
+    raise ProtocolError("non_finite", f"non-finite number {name} is not allowed")
+
+
+def parse_client(text: str | bytes) -> Hello | State | Ping | Bye:
+    """Parse and validate one client frame.
+
+    Raises
+    ------
+    ProtocolError
+        ``malformed_json``, ``non_finite``, ``malformed_message``, ``unknown_type``,
+        ``invalid_message`` or ``binary_not_expected``, with a message fit to send back.
+    """
+    return _parse(CLIENT_ADAPTER, text, ("hello", "state", "ping", "bye"))  # type: ignore[no-any-return]
+
+
+def parse_server(text: str | bytes) -> Welcome | Patch | Pong | ErrorMsg | RoomState:
+    """Parse and validate one server text frame (client side). Raises :class:`ProtocolError`."""
+    return _parse(SERVER_ADAPTER, text, ("welcome", "patch", "pong", "error", "room"))  # type: ignore[no-any-return]
+
+
+def encode(msg: BaseModel) -> str:
+    """One message as a JSON text frame."""
+    return msg.model_dump_json()
+
+
+# ----------------------------------------------------------------------------- binary frames
+#: Binary frame header: 4-byte magic, uint32 tick, uint32 count (little-endian).
+BINARY_HEADER = struct.Struct("<4sII")
+VERTICES_MAGIC = b"VTX1"  # count vertices follow as float32 x, y, z [m]
+FACES_MAGIC = b"FAC1"  # count faces follow as uint32 i, j, k (counter-clockwise seen from outside)
+
+
+def encode_vertices(tick: int, vertices: NDArray[np.floating[Any]]) -> bytes:
+    """Binary frame of the current surface: header + (n, 3) float32 little-endian [m]."""
+    v = np.ascontiguousarray(vertices, dtype="<f4")
+    return BINARY_HEADER.pack(VERTICES_MAGIC, tick & 0xFFFFFFFF, v.shape[0]) + v.tobytes()
+
+
+def encode_faces(faces: NDArray[np.integer[Any]]) -> bytes:
+    """Binary frame of the triangle list: header (tick 0) + (m, 3) uint32 little-endian."""
+    f = np.ascontiguousarray(faces, dtype="<u4")
+    return BINARY_HEADER.pack(FACES_MAGIC, 0, f.shape[0]) + f.tobytes()
+
+
+def decode_binary(frame: bytes) -> tuple[bytes, int, NDArray[Any]]:
+    """Decode a binary frame into ``(magic, tick, (count, 3) array)``.
+
+    Raises
+    ------
+    ProtocolError
+        Unknown magic or a length that does not match the header.
+    """
+    if len(frame) < BINARY_HEADER.size:
+        raise ProtocolError("malformed_binary", "binary frame shorter than its header")
+    magic, tick, count = BINARY_HEADER.unpack_from(frame)
+    dtype = {VERTICES_MAGIC: "<f4", FACES_MAGIC: "<u4"}.get(magic)
+    if dtype is None:
+        raise ProtocolError("malformed_binary", f"unknown binary frame {magic!r}")
+    body = frame[BINARY_HEADER.size :]
+    if len(body) != count * 12:
+        raise ProtocolError("malformed_binary", "binary frame length does not match its count")
+    return magic, tick, np.frombuffer(body, dtype=dtype).reshape(count, 3)
+
+
+def json_schema() -> dict[str, Any]:
+    """JSON Schema of every message, keyed by direction (``haptic protocol --schema``)."""
+    return {
+        "protocol": PROTOCOL_VERSION,
+        "client_to_server": CLIENT_ADAPTER.json_schema(),
+        "server_to_client": SERVER_ADAPTER.json_schema(),
+        "binary_frames": {
+            "header": "little-endian: 4-byte magic, uint32 tick, uint32 count",
+            VERTICES_MAGIC.decode(): "count x 3 float32 vertex positions [m]",
+            FACES_MAGIC.decode(): "count x 3 uint32 vertex indices, counter-clockwise from outside",
+        },
+    }
