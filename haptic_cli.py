@@ -139,6 +139,279 @@ def _add_reproduce(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.set_defaults(func=_cmd_reproduce)
 
 
+# ------------------------------------------------------------------------------------------- server
+def _cmd_server(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+
+    from server.main import ServerOptions, run_server
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    opts = ServerOptions(
+        host=args.host,
+        port=args.port,
+        mesh=args.mesh,
+        mesh_scale=args.mesh_scale,
+        mesh_size=args.mesh_size,
+        sim_rate_hz=args.sim_rate,
+        latency_ms=args.latency_ms,
+        jitter_ms=args.jitter_ms,
+        loss=args.loss,
+        seed=args.seed,
+        primitive=args.primitive,
+        damping=args.damping,
+        subdivisions=args.subdivisions,
+        duration_s=args.duration,
+    )
+    try:
+        asyncio.run(run_server(opts))
+    except ValueError as exc:  # bad mesh, bad parameters
+        raise CliError(str(exc)) from None
+    except OSError as exc:
+        raise CliError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}") from None
+    return 0
+
+
+def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("server", help="run the authoritative server (object, simulation, viewer)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=_nonneg_int, default=8765, help="TCP port (0: any free port)")
+    p.add_argument(
+        "--mesh", default="balloon", help="'balloon' or a mesh file (STL, OBJ, PLY, OFF, GLB)"
+    )
+    p.add_argument(
+        "--mesh-scale", type=_positive, default=None, help="multiply the file's coordinates by S"
+    )
+    p.add_argument(
+        "--mesh-size",
+        type=_positive,
+        default=None,
+        help="rescale so the largest extent is this [m]",
+    )
+    p.add_argument(
+        "--subdivisions", type=_nonneg_int, default=4, help="icosphere subdivisions of the balloon"
+    )
+    p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
+    p.add_argument(
+        "--damping", type=_nonneg, default=None, help="object damping (visco-elastic, eq. 9)"
+    )
+    p.add_argument(
+        "--primitive", choices=["plane", "sphere"], default="plane", help="local model primitive"
+    )
+    p.add_argument("--latency-ms", type=_nonneg, default=0.0, help="injected one-way latency [ms]")
+    p.add_argument("--jitter-ms", type=_nonneg, default=0.0, help="injected jitter [ms]")
+    p.add_argument(
+        "--loss", type=_probability, default=0.0, help="injected loss of state frames [0, 1)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the latency injection")
+    p.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
+    p.set_defaults(func=_cmd_server)
+
+
+# ------------------------------------------------------------------------------------------- client
+def _trajectory_options(text: str) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise argparse.ArgumentTypeError(f"expected key=value, got {item!r}")
+        out[key.strip()] = _finite(value)
+    return out
+
+
+def _cmd_client(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+
+    from client.app import ClientOptions, run_client
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    opts = ClientOptions(
+        url=args.url,
+        name=args.name,
+        device=args.device,
+        profile=args.profile,
+        local_model=args.local_model,
+        servo_rate_hz=args.servo_rate,
+        record=Path(args.record) if args.record else None,
+        summary=Path(args.summary) if args.summary else None,
+        duration_s=args.duration,
+        anchor=args.anchor,
+        trajectory=args.trajectory,
+        theta_m=args.theta_mm / 1000.0,
+        margin=args.margin,
+        hid_profile=args.hid_profile,
+    )
+    try:
+        summary = asyncio.run(run_client(opts))
+    except (ValueError, ConnectionError) as exc:
+        raise CliError(str(exc)) from None
+    rate = summary.get("servo_rate_hz")
+    print(
+        f"{opts.name}: servo {rate if rate is None else round(rate, 1)} Hz, "
+        f"max force {summary.get('max_force_n', 0.0):.2f} N, patches {summary['patches']}, "
+        f"rtt p50 {summary['rtt_ms_p50']} ms"
+    )
+    return 0
+
+
+def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("client", help="run one haptic user: device, 1 kHz servo loop, link")
+    p.add_argument("--url", default="ws://127.0.0.1:8765/ws")
+    p.add_argument("--name", default="A", help="user name shown to others")
+    p.add_argument(
+        "--device", default="sim:press", help="sim:press | sim:rest | sim:replay:FILE | hid:VID:PID"
+    )
+    p.add_argument(
+        "--profile", default="phantom-desktop", help="simulated device profile (see haptic devices)"
+    )
+    p.add_argument(
+        "--hid-profile", default=None, help="generic HID device profile (name or JSON file)"
+    )
+    p.add_argument("--local-model", choices=["p", "pi"], default="pi")
+    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo rate [Hz]")
+    p.add_argument("--record", default=None, help="write the servo telemetry CSV here")
+    p.add_argument("--summary", default=None, help="write a JSON summary here")
+    p.add_argument("--duration", type=_positive, default=None, help="run this many seconds")
+    p.add_argument(
+        "--anchor", choices=["auto", "top", "side"], default="auto", help="where the hand works"
+    )
+    p.add_argument(
+        "--trajectory",
+        type=_trajectory_options,
+        default={},
+        help="scripted hand options, e.g. delay_s=4,depth_m=0.02,hold_s=6",
+    )
+    p.add_argument(
+        "--theta-mm", type=_nonneg, default=1.0, help="integration threshold theta (eq. 17) [mm]"
+    )
+    p.add_argument("--margin", type=_probability, default=0.3, help="gain margin on K_o (Step 2)")
+    p.set_defaults(func=_cmd_client)
+
+
+# ------------------------------------------------------------------------------------------ devices
+def _cmd_devices(args: argparse.Namespace) -> int:
+    from client.devices import list_devices
+
+    devices = list_devices()
+    if args.json:
+        print(json.dumps(devices, indent=2))
+        return 0
+    sims = [d for d in devices if d.get("kind") == "sim"]
+    hid = [d for d in devices if d.get("kind") != "sim"]
+    print("Simulated devices (--device sim:press|sim:rest|sim:replay:FILE --profile NAME):")
+    for d in {d["profile"]: d for d in sims}.values():
+        print(
+            f"  {d['profile']:<16} max force {d['max_force_n']:.1f} N, "
+            f"max stiffness {d['max_stiffness_n_per_m']:.0f} N/m"
+        )
+    print("HID devices (--device hid:VID:PID):")
+    if not hid:
+        print("  none found")
+    for d in hid:
+        print(
+            f"  {d.get('spec', '?'):<16} {d.get('manufacturer', '')} {d.get('product', '')}".rstrip()
+        )
+    return 0
+
+
+def _add_devices(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("devices", help="list HID devices and simulated device profiles")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_cmd_devices)
+
+
+# ----------------------------------------------------------------------------------------- protocol
+def _cmd_protocol(args: argparse.Namespace) -> int:
+    from shared.protocol import json_schema
+
+    print(json.dumps(json_schema(), indent=2))
+    return 0
+
+
+def _add_protocol(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("protocol", help="print the wire protocol's JSON Schema")
+    p.add_argument("--schema", action="store_true", help="print the JSON Schema (the default)")
+    p.set_defaults(func=_cmd_protocol)
+
+
+# -------------------------------------------------------------------------------------------- bench
+def _cmd_bench(args: argparse.Namespace) -> int:
+    results: dict[str, object] = {}
+    if args.what in ("server", "all"):
+        from server.bench_world import run as bench_server
+
+        results["server"] = bench_server(json_out=True)
+    if args.what in ("servo", "all"):
+        from client.bench_servo import run as bench_servo
+
+        results["servo"] = bench_servo(duration_s=args.duration, rate_hz=args.servo_rate)
+    payload = results if args.what == "all" else results[args.what]
+    text = json.dumps(payload, indent=2)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text)
+    print(text if args.json or not args.out else f"wrote {args.out}")
+    return 0
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("bench", help="measure speed (JSON): server tick cost, servo loop timing")
+    p.add_argument("what", choices=["server", "servo", "all"])
+    p.add_argument("--json", action="store_true", help="print JSON (always JSON; kept for scripts)")
+    p.add_argument("--out", default=None, help="also write the JSON here")
+    p.add_argument("--duration", type=_positive, default=5.0, help="servo bench duration [s]")
+    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo bench rate [Hz]")
+    p.set_defaults(func=_cmd_bench)
+
+
+# --------------------------------------------------------------------------------------------- demo
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from haptic_demo import DemoOptions, run_demo
+
+    opts = DemoOptions(
+        duration_s=args.duration,
+        headless=args.headless,
+        report=Path(args.report) if args.report else None,
+        plot=Path(args.plot) if args.plot else None,
+        sim_rate_hz=args.sim_rate,
+        servo_rate_hz=args.servo_rate,
+        latency_ms=args.latency_ms,
+        jitter_ms=args.jitter_ms,
+        loss=args.loss,
+        mesh=args.mesh,
+        port=args.port,
+        local_model=args.local_model,
+        workdir=Path(args.workdir) if args.workdir else None,
+    )
+    try:
+        run_demo(opts)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    except RuntimeError as exc:
+        print(f"haptic demo: failed: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("demo", help="server + two simulated users on a shared water balloon")
+    p.add_argument("--duration", type=_positive, default=20.0, help="run length [s] (>= 12)")
+    p.add_argument("--headless", action="store_true", help="do not open a browser")
+    p.add_argument("--report", default=None, help="write the JSON report here")
+    p.add_argument("--plot", default=None, help="write a PNG of probe, proxy and force here")
+    p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
+    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo rate [Hz]")
+    p.add_argument("--latency-ms", type=_nonneg, default=0.0, help="injected one-way latency [ms]")
+    p.add_argument("--jitter-ms", type=_nonneg, default=0.0, help="injected jitter [ms]")
+    p.add_argument("--loss", type=_probability, default=0.0, help="injected loss of state frames")
+    p.add_argument("--mesh", default="balloon", help="'balloon' or a mesh file")
+    p.add_argument("--port", type=_nonneg_int, default=8765, help="server port (0: any free port)")
+    p.add_argument("--local-model", choices=["p", "pi"], default="pi")
+    p.add_argument("--workdir", default=None, help="keep logs and telemetry here")
+    p.set_defaults(func=_cmd_demo)
+
+
 # -------------------------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     """The ``haptic`` argument parser with every subcommand."""
@@ -153,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_EXTRA: list = []  # subcommands registered by later sections of this module
+_EXTRA = [_add_server, _add_client, _add_demo, _add_devices, _add_protocol, _add_bench]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

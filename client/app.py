@@ -1,0 +1,244 @@
+"""``haptic client``: one user's process — device, 1 kHz servo thread, network link.
+
+Sequence: connect and join (the ``welcome`` says where the object is), build the device around the
+anchor the trajectory works on (the top of the object for ``press``, a side for ``rest``), start the
+servo thread (forces stay off until the first patch), then run until ``--duration`` or Ctrl-C; on
+exit the servo ramps forces to zero, the link says ``bye``, the telemetry is written.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from client.devices import make_device
+from client.devices.base import Device
+from client.devices.profiles import get_sim_profile
+from client.link import Link
+from client.recorder import TelemetryRecorder
+from client.servo import ServoConfig, ServoCore, ServoThread
+from client.session import ClientSession, PatchUpdate, ServoSample
+from shared.local_model import LocalModelParams, ThresholdParams
+from shared.protocol import DeviceInfo, Welcome
+
+log = logging.getLogger("haptic.client")
+
+
+@dataclass
+class ClientOptions:
+    """Options of ``haptic client`` (SI units)."""
+
+    url: str = "ws://127.0.0.1:8765/ws"
+    name: str = "A"
+    device: str = "sim:press"
+    profile: str = "phantom-desktop"
+    local_model: Literal["p", "pi"] = "pi"
+    servo_rate_hz: float = 1000.0
+    record: Path | None = None
+    summary: Path | None = None
+    duration_s: float | None = None
+    anchor: Literal["auto", "top", "side"] = "auto"
+    trajectory: dict[str, float] = field(default_factory=dict)
+    theta_m: float = 0.001
+    margin: float = 0.3
+    join_timeout_s: float = 20.0
+    hid_profile: str | None = None
+
+
+def _device_info(opts: ClientOptions) -> DeviceInfo:
+    if opts.device.startswith("sim:"):
+        lim = get_sim_profile(opts.profile).limits
+        return DeviceInfo(
+            profile=opts.profile,
+            max_force_n=lim.max_force_n,
+            max_stiffness_n_per_m=lim.max_stiffness_n_per_m,
+        )
+    return DeviceInfo(profile=opts.device[:64])
+
+
+def _anchor(
+    opts: ClientOptions, welcome: Welcome
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    obj = welcome.object
+    which = opts.anchor
+    if which == "auto":
+        which = "side" if opts.device.startswith("sim:rest") else "top"
+    if which == "side":
+        return obj.side_m, obj.side_normal
+    return obj.top_m, obj.top_normal
+
+
+def _sample(servo: ServoThread) -> ServoSample | None:
+    snap = servo.core.latest()
+    if snap is None:
+        return None
+    pen = snap.penetration_m if math.isfinite(snap.penetration_m) else 0.0
+    p99 = snap.period_p99_s if math.isfinite(snap.period_p99_s) else 0.0
+    rate = snap.servo_rate_hz if math.isfinite(snap.servo_rate_hz) else 0.0
+    return ServoSample(
+        probe_m=snap.probe_m,
+        force_n=snap.force_n,
+        penetration_m=pen,
+        in_contact=snap.in_contact,
+        k_h=snap.k_h,
+        i_gain=snap.i_gain,
+        servo_rate_hz=rate,
+        period_us_p99=p99 * 1e6,
+    )
+
+
+async def run_client(opts: ClientOptions) -> dict[str, Any]:
+    """Run one user until the duration elapses or the task is cancelled; return a summary.
+
+    Raises
+    ------
+    ValueError
+        Bad options (device spec, profile, trajectory option).
+    ConnectionError
+        The server could not be joined within ``join_timeout_s``.
+    """
+    session = ClientSession(
+        opts.name,
+        servo_rate_hz=opts.servo_rate_hz,
+        device=_device_info(opts),
+        mode=opts.local_model,
+        margin=opts.margin,
+    )
+    origin_s = time.perf_counter()
+
+    def clock() -> float:
+        """Servo and link time [s] since this client started (scripted hands start at 0)."""
+        return time.perf_counter() - origin_s
+
+    state: dict[str, Any] = {"servo": None, "device": None}
+    recorder = TelemetryRecorder(
+        capacity=int(opts.servo_rate_hz * min(opts.duration_s or 120.0, 600.0)) + 2000
+    )
+    updates: list[PatchUpdate] = []
+
+    def on_welcome(welcome: Welcome) -> None:
+        if state["servo"] is not None:
+            return  # a reconnection: keep the running device and servo loop
+        anchor, normal = _anchor(opts, welcome)
+        device: Device = make_device(
+            opts.device,
+            anchor,
+            normal,
+            profile=opts.profile,
+            trajectory_options=opts.trajectory or None,
+            servo_rate_hz=opts.servo_rate_hz,
+            hid_profile=opts.hid_profile,
+        )
+        device.open()
+        period = 1.0 / opts.servo_rate_hz
+        lm = LocalModelParams(
+            k_h=1.0,
+            servo_period_s=period,
+            threshold=ThresholdParams(mode="fixed", theta_m=opts.theta_m),
+            release_time_s=2.0 / welcome.sim_rate_hz,
+        )
+        core = ServoCore(
+            device, ServoConfig(servo_rate_hz=opts.servo_rate_hz), local_model=lm, recorder=recorder
+        )
+        servo = ServoThread(core, clock=clock)
+        servo.start()
+        servo.enable_forces()
+        state["servo"], state["device"] = servo, device
+        log.info(
+            "%s joined as %s; device %s on %s", opts.name, welcome.user_id, opts.device, anchor
+        )
+
+    def on_patch(update: PatchUpdate, now_s: float) -> None:
+        servo: ServoThread | None = state["servo"]
+        if servo is None:
+            return
+        servo.set_patch(update.primitive, update.k_h, update.i_gain)
+        updates.append(update)
+
+    def sample() -> ServoSample | None:
+        servo: ServoThread | None = state["servo"]
+        return None if servo is None else _sample(servo)
+
+    link = Link(
+        opts.url, session, on_patch=on_patch, sample=sample, clock=clock, on_welcome=on_welcome
+    )
+    stop = asyncio.Event()
+    link_task = asyncio.create_task(link.run(stop))
+    t_start = clock()
+    try:
+        try:
+            await asyncio.wait_for(link.connected.wait(), opts.join_timeout_s)
+        except TimeoutError:
+            raise ConnectionError(
+                f"could not join {opts.url} within {opts.join_timeout_s:g} s"
+            ) from None
+        if opts.duration_s is None:
+            await asyncio.Future()
+        else:
+            await asyncio.sleep(max(0.0, opts.duration_s - (clock() - t_start)))
+    finally:
+        servo = state["servo"]
+        if servo is not None:
+            servo.stop()
+        stop.set()
+        with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
+            await asyncio.wait_for(link_task, 3.0)
+        device = state["device"]
+        if device is not None:
+            device.close()
+    summary = _summary(opts, session, link, state["servo"], recorder, updates)
+    summary["clock_origin_s"] = origin_s  # time.perf_counter() (CLOCK_MONOTONIC) at t_s = 0
+    if opts.record is not None:
+        opts.record.parent.mkdir(parents=True, exist_ok=True)
+        recorder.write_csv(opts.record)
+    if opts.summary is not None:
+        opts.summary.parent.mkdir(parents=True, exist_ok=True)
+        opts.summary.write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _summary(
+    opts: ClientOptions,
+    session: ClientSession,
+    link: Link,
+    servo: ServoThread | None,
+    recorder: TelemetryRecorder,
+    updates: list[PatchUpdate],
+) -> dict[str, Any]:
+    rtt = np.asarray(session.rtt_all_ms, float)
+    out: dict[str, Any] = {
+        "name": opts.name,
+        "device": opts.device,
+        "profile": opts.profile,
+        "local_model": opts.local_model,
+        "joins": link.joins,
+        "patches": session.patches,
+        "server_errors": [e.model_dump() for e in session.errors[-10:]],
+        "rtt_ms_p50": float(np.percentile(rtt, 50)) if rtt.size else None,
+        "rtt_ms_p99": float(np.percentile(rtt, 99)) if rtt.size else None,
+        "rtt_ms_samples": [float(x) for x in rtt[-2000:]],
+        "delay_ticks_last": updates[-1].delay_ticks if updates else None,
+        "spectral_radius_last": updates[-1].spectral_radius if updates else None,
+    }
+    if servo is not None:
+        status = servo.core.status().as_dict()
+        out["servo"] = status
+        out["servo_overruns"] = servo.loop.overruns
+    if len(recorder):
+        period = recorder.column("period_s")
+        period = period[np.isfinite(period) & (period > 0)]
+        force = recorder.column("force_n")
+        out["servo_rate_hz"] = float(1.0 / np.mean(period)) if period.size else None
+        out["period_us_p50"] = float(np.percentile(period, 50) * 1e6) if period.size else None
+        out["period_us_p99"] = float(np.percentile(period, 99) * 1e6) if period.size else None
+        out["max_force_n"] = float(np.nanmax(force)) if force.size else 0.0
+    return out

@@ -1,0 +1,406 @@
+"""``haptic demo``: the server and two simulated users as separate processes over real websockets.
+
+User A presses into the top of the shared water balloon, holds and releases; user B rests lightly
+on its side the whole time. Because every local model is rebuilt from the current global surface,
+B's side bulges out while A presses and B feels it: B's force rises. The run prints the viewer URL
+and live progress, then a summary table; ``--report`` writes JSON, ``--plot`` a PNG.
+
+Timeline for a run of D seconds (D >= 12): B approaches at once and rests; A waits 0.2 D,
+approaches (1 s), presses (1.5 s), holds until 0.75 D, releases (1 s) and withdraws.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+import webbrowser
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: A hold is stable when the peak-to-peak penetration over its last second stays below this [mm].
+STABLE_P2P_MM = 1.0
+
+
+@dataclass
+class DemoOptions:
+    """Options of ``haptic demo``."""
+
+    duration_s: float = 20.0
+    headless: bool = False
+    report: Path | None = None
+    plot: Path | None = None
+    sim_rate_hz: float = 20.0
+    servo_rate_hz: float = 1000.0
+    latency_ms: float = 0.0
+    jitter_ms: float = 0.0
+    loss: float = 0.0
+    mesh: str = "balloon"
+    port: int = 8765
+    host: str = "127.0.0.1"
+    local_model: str = "pi"
+    workdir: Path | None = None
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """A's scripted press, in seconds from the start of A's client."""
+
+    delay_s: float
+    approach_s: float
+    press_s: float
+    hold_s: float
+    release_s: float
+
+    @property
+    def contact_s(self) -> float:
+        """When A's hand reaches the surface."""
+        return self.delay_s + self.approach_s
+
+    @property
+    def hold_end_s(self) -> float:
+        """When A's hold ends (the release begins)."""
+        return self.delay_s + self.approach_s + self.press_s + self.hold_s
+
+    def options(self) -> str:
+        """``--trajectory`` value for A's client."""
+        return (
+            f"delay_s={self.delay_s:g},approach_s={self.approach_s:g},press_s={self.press_s:g},"
+            f"hold_s={self.hold_s:g},release_s={self.release_s:g}"
+        )
+
+
+def timeline(duration_s: float) -> Timeline:
+    """A's press for a run of ``duration_s`` seconds (module docstring)."""
+    delay = 0.2 * duration_s
+    approach, press, release = 1.0, 1.5, 1.0
+    hold = max(2.0, 0.75 * duration_s - delay - approach - press)
+    return Timeline(delay, approach, press, hold, release)
+
+
+def _free_port(host: str) -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def _port_free(host: str, port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def _status(host: str, port: int) -> dict[str, Any] | None:
+    try:
+        with urllib.request.urlopen(f"http://{host}:{port}/status", timeout=1.0) as r:
+            return json.loads(r.read())  # type: ignore[no-any-return]
+    except (OSError, ValueError):
+        return None
+
+
+def _haptic(*args: str) -> list[str]:
+    return [sys.executable, "-m", "haptic_cli", *args]
+
+
+def run_demo(opts: DemoOptions) -> dict[str, Any]:
+    """Run the demo; return the report dict.
+
+    Raises
+    ------
+    ValueError
+        Bad options (duration shorter than 12 s, port in use).
+    RuntimeError
+        A process failed (its output is shown).
+    """
+    if opts.duration_s < 12.0:
+        raise ValueError("--duration must be at least 12 s (approach, press, hold, release)")
+    port = opts.port or _free_port(opts.host)
+    if not _port_free(opts.host, port):
+        raise ValueError(
+            f"port {port} on {opts.host} is in use (pick another with --port, or 0 for any)"
+        )
+    work = opts.workdir or Path(tempfile.mkdtemp(prefix="haptic-demo-"))
+    work.mkdir(parents=True, exist_ok=True)
+    tl = timeline(opts.duration_s)
+    url = f"http://{opts.host}:{port}/"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    server_cmd = _haptic(
+        "server", "--host", opts.host, "--port", str(port), "--mesh", opts.mesh,
+        "--sim-rate", f"{opts.sim_rate_hz:g}", "--latency-ms", f"{opts.latency_ms:g}",
+        "--jitter-ms", f"{opts.jitter_ms:g}", "--loss", f"{opts.loss:g}", "--seed", str(opts.seed),
+    )  # fmt: skip
+    logs = {k: open(work / f"{k}.log", "w") for k in ("server", "A", "B")}  # noqa: SIM115
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    try:
+        procs["server"] = subprocess.Popen(
+            server_cmd, stdout=logs["server"], stderr=subprocess.STDOUT, env=env
+        )
+        t0 = time.monotonic()
+        while _status(opts.host, port) is None:
+            if procs["server"].poll() is not None:
+                raise RuntimeError(
+                    "the server exited:\n" + (work / "server.log").read_text()[-2000:]
+                )
+            if time.monotonic() - t0 > 60.0:
+                raise RuntimeError("the server did not come up within 60 s")
+            time.sleep(0.1)
+        print(f"viewer: {url}", flush=True)
+        if not opts.headless:
+            with contextlib.suppress(Exception):
+                webbrowser.open(url)
+        ws = f"ws://{opts.host}:{port}/ws"
+        common = [
+            "--url", ws, "--servo-rate", f"{opts.servo_rate_hz:g}", "--local-model", opts.local_model,
+            "--duration", f"{opts.duration_s:g}",
+        ]  # fmt: skip
+        for name, device, extra in (
+            ("B", "sim:rest", []),
+            ("A", "sim:press", ["--trajectory", tl.options()]),
+        ):
+            procs[name] = subprocess.Popen(
+                _haptic(
+                    "client",
+                    "--name",
+                    name,
+                    "--device",
+                    device,
+                    *common,
+                    *extra,
+                    "--record",
+                    str(work / f"{name}.csv"),
+                    "--summary",
+                    str(work / f"{name}.json"),
+                ),  # fmt: skip
+                stdout=logs[name],
+                stderr=subprocess.STDOUT,
+                env=env,
+            )
+        _progress(opts, procs, port, tl)
+        for name in ("A", "B"):
+            rc = procs[name].wait(timeout=60.0)
+            if rc != 0:
+                raise RuntimeError(
+                    f"client {name} failed (exit {rc}):\n"
+                    + (work / f"{name}.log").read_text()[-3000:]
+                )
+        server_status = _status(opts.host, port) or {}
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs.values():
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=5.0)
+            if p.poll() is None:
+                p.kill()
+        for f in logs.values():
+            f.close()
+    report = build_report(work, tl, server_status, opts)
+    report["workdir"] = str(work)
+    if opts.report:
+        opts.report.parent.mkdir(parents=True, exist_ok=True)
+        opts.report.write_text(json.dumps(report, indent=2))
+    if opts.plot:
+        plot_demo(work, tl, opts.plot)
+    print_summary(report)
+    if opts.workdir is None and opts.report is None:
+        shutil.rmtree(work, ignore_errors=True)
+    return report
+
+
+def _progress(
+    opts: DemoOptions, procs: dict[str, subprocess.Popen[bytes]], port: int, tl: Timeline
+) -> None:
+    t0 = time.monotonic()
+    last = -1.0
+    while any(procs[n].poll() is None for n in ("A", "B")):
+        t = time.monotonic() - t0
+        if t - last >= 2.0:
+            last = t
+            st = _status(opts.host, port) or {}
+            phase = (
+                "B resting, A waiting" if t < tl.delay_s
+                else "A approaching" if t < tl.contact_s
+                else "A pressing" if t < tl.contact_s + tl.press_s
+                else "A holding" if t < tl.hold_end_s
+                else "A released"
+            )  # fmt: skip
+            print(
+                f"  t={t:5.1f} s  {phase:<22} users {st.get('users', '?')}  tick {st.get('tick', '?')}  "
+                f"tick cost p50 {st.get('tick_ms_p50', 0):.2f} ms  overruns {st.get('overruns', '?')}",
+                flush=True,
+            )
+        time.sleep(0.2)
+
+
+# ------------------------------------------------------------------------------------ analysis
+def _load(work: Path, name: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    summary = json.loads((work / f"{name}.json").read_text())
+    with open(work / f"{name}.csv") as f:
+        header = f.readline().strip().split(",")
+    data = np.loadtxt(work / f"{name}.csv", delimiter=",", skiprows=1, ndmin=2)
+    cols = {h: data[:, i] for i, h in enumerate(header)}
+    return cols, summary
+
+
+def _window(cols: dict[str, np.ndarray], t0: float, t1: float) -> np.ndarray:
+    t = cols["t_s"]
+    return (t >= t0) & (t < t1)
+
+
+def _user_report(
+    cols: dict[str, np.ndarray], summary: dict[str, Any], hold: tuple[float, float]
+) -> dict[str, Any]:
+    w = _window(cols, *hold)
+    pen = cols["penetration_m"][w]
+    p2p = float((np.nanmax(pen) - np.nanmin(pen)) * 1000.0) if pen.size else float("nan")
+    faults = int(np.nansum(cols["fault"])) if "fault" in cols else 0
+    return {
+        "servo_rate_hz": summary.get("servo_rate_hz"),
+        "period_us_p99": summary.get("period_us_p99"),
+        "max_force_n": float(np.nanmax(cols["force_n"])) if cols["force_n"].size else 0.0,
+        "hold_oscillation_mm": p2p,
+        "stable": bool(np.isfinite(p2p) and p2p < STABLE_P2P_MM and faults == 0),
+        "mean_force_during_hold_n": float(np.nanmean(cols["force_n"][w])) if w.any() else None,
+        "servo_overruns": summary.get("servo_overruns"),
+        "patches": summary.get("patches"),
+        "delay_ticks_last": summary.get("delay_ticks_last"),
+    }
+
+
+def build_report(
+    work: Path, tl: Timeline, server_status: dict[str, Any], opts: DemoOptions
+) -> dict[str, Any]:
+    """The ``--report`` JSON from the clients' telemetry and summaries and the server's status."""
+    a, a_sum = _load(work, "A")
+    b, b_sum = _load(work, "B")
+    # B's telemetry on A's clock (both clocks are CLOCK_MONOTONIC with a per-process origin)
+    shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
+    b = dict(b)
+    b["t_s"] = b["t_s"] + shift
+    hold = (tl.hold_end_s - 1.0, tl.hold_end_s)
+    before = (tl.delay_s - 1.5, tl.delay_s - 0.25)
+    b_before = float(np.nanmean(b["force_n"][_window(b, *before)]))
+    b_during = float(np.nanmean(b["force_n"][_window(b, *hold)]))
+    rtts = np.array(a_sum.get("rtt_ms_samples", []) + b_sum.get("rtt_ms_samples", []), float)
+    return {
+        "users": {"A": _user_report(a, a_sum, hold), "B": _user_report(b, b_sum, hold)},
+        "coupling": {
+            "b_force_before_n": b_before,
+            "b_force_during_a_press_n": b_during,
+            "ratio": b_during / b_before if b_before > 1e-9 else None,
+        },
+        "server": {
+            "sim_rate_hz": opts.sim_rate_hz,
+            "tick_ms_p50": server_status.get("tick_ms_p50"),
+            "tick_ms_p99": server_status.get("tick_ms_p99"),
+            "overruns": server_status.get("overruns"),
+        },
+        "network": {
+            "rtt_ms_p50": float(np.percentile(rtts, 50)) if rtts.size else None,
+            "rtt_ms_p99": float(np.percentile(rtts, 99)) if rtts.size else None,
+            "latency_ms": opts.latency_ms,
+            "jitter_ms": opts.jitter_ms,
+            "loss": opts.loss,
+        },
+        "timeline_s": {
+            "a_contact": tl.contact_s,
+            "a_hold_end": tl.hold_end_s,
+            "duration": opts.duration_s,
+        },
+    }
+
+
+def print_summary(report: dict[str, Any]) -> None:
+    """A readable table of the report."""
+    print()
+    print(f"{'user':<6}{'servo Hz':>10}{'p99 us':>9}{'max N':>8}{'hold p2p mm':>13}{'stable':>8}")
+    for name, u in report["users"].items():
+        rate = u["servo_rate_hz"] or float("nan")
+        p99 = u["period_us_p99"] or float("nan")
+        print(
+            f"{name:<6}{rate:>10.1f}{p99:>9.0f}{u['max_force_n']:>8.2f}"
+            f"{u['hold_oscillation_mm']:>13.3f}{'yes' if u['stable'] else 'NO':>8}"
+        )
+    c = report["coupling"]
+    ratio = c["ratio"]
+    print(
+        f"B feels A: B's force {c['b_force_before_n']:.3f} N before A presses, "
+        f"{c['b_force_during_a_press_n']:.3f} N while A holds (ratio {ratio if ratio is None else round(ratio, 2)})"
+    )
+    s, n = report["server"], report["network"]
+    print(
+        f"server: {s['sim_rate_hz']:g} Hz, tick p50 {s['tick_ms_p50'] or 0:.2f} ms, p99 {s['tick_ms_p99'] or 0:.2f} ms, "
+        f"overruns {s['overruns']}; network rtt p50 {n['rtt_ms_p50'] or 0:.1f} ms, p99 {n['rtt_ms_p99'] or 0:.1f} ms"
+    )
+
+
+def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
+    """PNG of both users' probe, proxy and force over time (A's press and B's response)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    a, a_sum = _load(work, "A")
+    b, b_sum = _load(work, "B")
+    shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
+    fig, axes = plt.subplots(3, 1, figsize=(11, 9), sharex=True)
+    for ax, cols, name, dt in (
+        (axes[0], a, "A (presses the top)", 0.0),
+        (axes[1], b, "B (rests on the side)", shift),
+    ):
+        t = cols["t_s"] + dt
+        # positions along the contact normal, relative to the undeformed surface at the first contact
+        probe = np.stack([cols["probe_x_m"], cols["probe_y_m"], cols["probe_z_m"]], axis=1)
+        proxy = np.stack([cols["proxy_x_m"], cols["proxy_y_m"], cols["proxy_z_m"]], axis=1)
+        fvec = np.stack([cols["force_x_n"], cols["force_y_n"], cols["force_z_n"]], axis=1)
+        fmag = np.linalg.norm(fvec, axis=1)
+        normal = (
+            np.nanmean(fvec[fmag > 0.05] / fmag[fmag > 0.05, None], axis=0)
+            if (fmag > 0.05).any()
+            else np.array([0, 0, 1.0])
+        )
+        normal /= np.linalg.norm(normal)
+        ok = np.isfinite(proxy).all(axis=1)
+        ref = proxy[ok][0] if ok.any() else probe[0]
+        ax.plot(t, (probe - ref) @ normal * 1000.0, label="probe $x_h$ (device)", color="tab:blue")
+        ax.plot(
+            t[ok],
+            (proxy[ok] - ref) @ normal * 1000.0,
+            label="proxy $x_o$ (surface)",
+            color="tab:red",
+        )
+        ax.set_ylabel("outward position [mm]")
+        ax.set_title(f"user {name}")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower left")
+    axes[2].plot(a["t_s"], a["force_n"], label="A", color="tab:purple")
+    axes[2].plot(b["t_s"] + shift, b["force_n"], label="B", color="tab:green")
+    axes[2].set_ylabel("force on the user [N]")
+    axes[2].set_xlabel("time [s] (A's clock)")
+    axes[2].grid(alpha=0.3)
+    axes[2].legend(loc="upper left")
+    for ax in axes:
+        ax.axvspan(tl.contact_s, tl.hold_end_s, color="0.9", zorder=0)
+    axes[0].text(tl.contact_s + 0.1, axes[0].get_ylim()[1] * 0.9, "A presses and holds", va="top")
+    fig.suptitle("Two users on a shared water balloon: B feels A's press")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,47 @@
+"""Latency injection: delay, jitter bounds, order, loss only on state streams, reproducible."""
+
+from __future__ import annotations
+
+import pytest
+
+from server.latency import LinkConfig, LinkShaper
+
+
+def test_constant_latency_delays_every_frame():
+    sh = LinkShaper(LinkConfig(latency_ms=100.0), seed=1)
+    assert sh.schedule(1.0, droppable=True) == pytest.approx(1.1)
+    assert sh.schedule(2.0, droppable=False) == pytest.approx(2.1)
+
+
+def test_jitter_stays_in_bounds_and_keeps_order():
+    sh = LinkShaper(LinkConfig(latency_ms=100.0, jitter_ms=20.0), seed=2)
+    last = 0.0
+    for i in range(2000):
+        now = i * 0.005
+        at = sh.schedule(now, droppable=False)
+        assert at is not None and at >= last
+        assert 0.080 - 1e-9 <= at - now <= 0.120 + 0.02  # order may add up to one jitter span
+        last = at
+
+
+def test_loss_drops_only_droppable_frames_at_the_set_rate():
+    sh = LinkShaper(LinkConfig(loss=0.1), seed=3)
+    dropped = sum(sh.schedule(0.0, droppable=True) is None for _ in range(20000))
+    assert 0.09 < dropped / 20000 < 0.11
+    assert all(sh.schedule(0.0, droppable=False) is not None for _ in range(1000))
+
+
+def test_same_seed_same_run():
+    a = LinkShaper(LinkConfig(latency_ms=50, jitter_ms=10, loss=0.05), seed=9)
+    b = LinkShaper(LinkConfig(latency_ms=50, jitter_ms=10, loss=0.05), seed=9)
+    assert [a.schedule(i * 0.01, True) for i in range(500)] == [
+        b.schedule(i * 0.01, True) for i in range(500)
+    ]
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{"latency_ms": -1}, {"jitter_ms": float("nan")}, {"loss": 1.0}, {"loss": -0.1}]
+)
+def test_absurd_link_settings_are_refused(kwargs):
+    with pytest.raises(ValueError):
+        LinkConfig(**kwargs)

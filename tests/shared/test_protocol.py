@@ -1,0 +1,98 @@
+"""Wire protocol: valid messages round-trip, hostile frames get named errors, binary frames."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from shared.protocol import (
+    PROTOCOL_VERSION,
+    Hello,
+    Patch,
+    PlaneModel,
+    ProtocolError,
+    State,
+    decode_binary,
+    encode,
+    encode_faces,
+    encode_vertices,
+    json_schema,
+    parse_client,
+    parse_server,
+)
+
+
+def test_hello_and_state_round_trip():
+    hello = Hello(protocol=PROTOCOL_VERSION, role="user", name="A")
+    assert parse_client(encode(hello)) == hello
+    state = State(
+        seq=3, probe_m=(0.0, 0.0, 0.095), force_n=(0.0, 0.0, 1.2), in_contact=True, k_h=200.0
+    )
+    assert parse_client(encode(state)) == state
+    # the type comes first so the server can classify a frame cheaply (latency injection)
+    assert encode(state).startswith('{"type":"state"')
+
+
+def test_patch_round_trip_on_the_client_side():
+    patch = Patch(
+        tick=7,
+        primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)),
+        proxy_m=(0, 0, 0.1),
+        normal=(0, 0, 1),
+        penetration_m=0.002,
+        in_contact=True,
+        k_o=400.0,
+        k_o_eff=350.0,
+        b_o=0.0,
+    )
+    assert parse_server(encode(patch)) == patch
+
+
+@pytest.mark.parametrize(
+    "frame,code",
+    [
+        ("not json", "malformed_json"),
+        ("[1, 2]", "malformed_message"),
+        ('{"type": "launch_missiles"}', "unknown_type"),
+        ('{"no_type": 1}', "unknown_type"),
+        ('{"type":"state","seq":1,"probe_m":[0,0,NaN],"force_n":[0,0,0]}', "non_finite"),
+        ('{"type":"state","seq":1,"probe_m":[0,0,Infinity],"force_n":[0,0,0]}', "non_finite"),
+        ('{"type":"state","seq":1,"probe_m":[0,0,1e999],"force_n":[0,0,0]}', "invalid_message"),
+        ('{"type":"state","seq":1,"probe_m":[0,0],"force_n":[0,0,0]}', "invalid_message"),
+        ('{"type":"state","seq":-4,"probe_m":[0,0,0],"force_n":[0,0,0]}', "invalid_message"),
+        ('{"type":"hello","protocol":1,"role":"admin","name":"x"}', "invalid_message"),
+        ('{"type":"hello","protocol":1,"role":"user","name":"<script>"}', "invalid_message"),
+        (
+            '{"type":"hello","protocol":1,"role":"user","name":"' + "x" * 200 + '"}',
+            "invalid_message",
+        ),
+        (b"\x00\x01binary", "binary_not_expected"),
+        ("[" * 100000 + "]" * 100000, "malformed_json"),
+    ],
+)
+def test_hostile_frames_get_named_errors(frame, code):
+    with pytest.raises(ProtocolError) as info:
+        parse_client(frame)
+    assert info.value.code == code
+    assert len(str(info.value)) < 300  # fit to send back
+
+
+def test_binary_vertex_and_face_frames():
+    v = np.random.default_rng(0).normal(size=(100, 3))
+    magic, tick, arr = decode_binary(encode_vertices(42, v))
+    assert magic == b"VTX1" and tick == 42 and np.allclose(arr, v, atol=1e-6)
+    f = np.arange(30).reshape(10, 3)
+    magic, tick, arr = decode_binary(encode_faces(f))
+    assert magic == b"FAC1" and (arr == f).all()
+    with pytest.raises(ProtocolError):
+        decode_binary(b"VTX1" + b"\x00" * 4 + b"\x05\x00\x00\x00" + b"\x00" * 12)
+    with pytest.raises(ProtocolError):
+        decode_binary(b"XXXX" + b"\x00" * 8)
+
+
+def test_schema_lists_every_message():
+    schema = json.dumps(json_schema())
+    for name in ("hello", "state", "ping", "bye", "welcome", "patch", "pong", "error", "room"):
+        assert f'"{name}"' in schema
