@@ -237,7 +237,7 @@ def _summary(
         period = recorder.column("period_s")
         period = period[np.isfinite(period) & (period > 0)]
         force = recorder.column("force_n")
-        out["servo_rate_hz"] = float(1.0 / np.mean(period)) if period.size else None
+        out["servo_rate_hz"] = float(1.0 / np.nanmean(period)) if period.size else None
         out["period_us_p50"] = float(np.percentile(period, 50) * 1e6) if period.size else None
         out["period_us_p99"] = float(np.percentile(period, 99) * 1e6) if period.size else None
         out["max_force_n"] = float(np.nanmax(force)) if force.size else 0.0

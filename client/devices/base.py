@@ -107,7 +107,9 @@ class DeviceLimits:
         lo = _vec3("workspace_min_m", self.workspace_min_m)
         hi = _vec3("workspace_max_m", self.workspace_max_m)
         if not all(a < b for a, b in zip(lo, hi, strict=True)):
-            raise ValueError(f"workspace_min_m {lo} must be below workspace_max_m {hi} on every axis")
+            raise ValueError(
+                f"workspace_min_m {lo} must be below workspace_max_m {hi} on every axis"
+            )
         object.__setattr__(self, "workspace_min_m", lo)
         object.__setattr__(self, "workspace_max_m", hi)
 

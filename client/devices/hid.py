@@ -1,0 +1,566 @@
+"""Real devices through hidapi: a 3Dconnexion SpaceMouse and generic devices described by a profile.
+
+Every call into hidapi lives in this module, and ``hid`` is imported only when a device is opened
+or listed, so the rest of the client imports on machines without hidapi or without a HID backend.
+Report parsing is done by pure functions of the report bytes (tests feed recorded reports):
+
+- :func:`parse_spacemouse_report`: the public SpaceMouse layout. Report id 1 carries translation
+  x, y, z as int16 little-endian in bytes 1-6; report id 2 carries rotation rx, ry, rz likewise;
+  newer models send translation and rotation together in one 13-byte report id 1 (12 data bytes).
+  Raw axes: x right, y toward the user, z down (pressing the cap gives +z); counts up to about
+  +-350 at full deflection.
+- :func:`spacemouse_position` / :func:`integrate_rate`: counts to a position in the workspace,
+  either by scaling the deflection (``position`` mode: the cap is a spring-centred joystick, the
+  probe springs back when released) or by integrating it as a velocity (``rate`` mode).
+- :func:`decode_input` / :func:`encode_output`: the generic layout of a JSON profile
+  (:mod:`client.devices.profiles`).
+
+A device that errors (``read`` raising ``OSError``, the unplugged case) or, for a device that
+streams, stays silent past its profile's ``silence_timeout_s`` gets :attr:`Device.fault` set; the
+servo loop then ramps its forces down. Reads are non-blocking and drain every queued report each
+tick, keeping the newest.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
+
+from client.devices.base import Device, DeviceLimits, Vec3
+from client.devices.profiles import (
+    HidInputLayout,
+    HidOutputLayout,
+    HidProfile,
+    find_hid_profile,
+)
+
+#: 3Dconnexion's own USB vendor id (every device of theirs is treated as a SpaceMouse).
+VID_3DCONNEXION = 0x256F
+#: Logitech's vendor id, used by older 3Dconnexion devices.
+VID_LOGITECH = 0x046D
+#: Older 3Dconnexion product ids sold under Logitech's vendor id.
+LOGITECH_SPACEMOUSE_PIDS = frozenset(
+    {0xC603, 0xC621, 0xC623, 0xC625, 0xC626, 0xC627, 0xC628, 0xC629, 0xC62B, 0xC62E, 0xC62F}
+)
+
+_I16X3 = struct.Struct("<hhh")
+#: Reports drained per read at most (a burst larger than this waits for the next tick).
+MAX_REPORTS_PER_READ = 64
+#: Largest report read at once [bytes].
+REPORT_SIZE = 64
+
+
+def is_spacemouse(vendor_id: int, product_id: int) -> bool:
+    """Whether (vendor_id, product_id) is a 3Dconnexion SpaceMouse-family device."""
+    return vendor_id == VID_3DCONNEXION or (
+        vendor_id == VID_LOGITECH and product_id in LOGITECH_SPACEMOUSE_PIDS
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure parsing
+# ---------------------------------------------------------------------------------------------
+
+
+def parse_spacemouse_report(
+    data: bytes | Sequence[int],
+) -> tuple[tuple[int, int, int] | None, tuple[int, int, int] | None]:
+    """Decode one SpaceMouse input report into (translation, rotation) counts.
+
+    Parameters
+    ----------
+    data : bytes or sequence of int
+        The report as hidapi returns it, report id first.
+
+    Returns
+    -------
+    translation, rotation : (3,) int or None
+        Raw counts (x, y, z) and (rx, ry, rz); None for the part the report does not carry
+        (a buttons report gives (None, None)).
+
+    Raises
+    ------
+    ValueError
+        A translation or rotation report shorter than 7 bytes.
+    """
+    b = bytes(data)
+    if not b:
+        return (None, None)
+    rid = b[0]
+    if rid not in (1, 2):
+        return (None, None)
+    if len(b) < 7:
+        raise ValueError(f"SpaceMouse report id {rid} too short: {len(b)} bytes, need 7")
+    first: tuple[int, int, int] = _I16X3.unpack_from(b, 1)
+    if rid == 2:
+        return (None, first)
+    rot: tuple[int, int, int] | None = _I16X3.unpack_from(b, 7) if len(b) >= 13 else None
+    return (first, rot)
+
+
+@dataclass(frozen=True, slots=True)
+class SpaceMouseMapping:
+    """How SpaceMouse counts become a probe position (world frame = device frame, z up).
+
+    Parameters
+    ----------
+    mode : {"position", "rate"}
+        ``position``: offset = travel * counts / full_scale from the workspace centre.
+        ``rate``: velocity = speed * counts / full_scale, integrated and kept in the workspace.
+    full_scale_counts : float
+        Counts at full deflection (default 350); larger values are clipped.
+    travel_m : float
+        Offset [m] at full deflection in position mode (default 0.04).
+    speed_m_s : float
+        Speed [m/s] at full deflection in rate mode (default 0.1).
+    signs : (3,) float
+        Raw axis to world axis signs; default (1, -1, -1): x right, y away from the user, z up
+        (pressing the cap moves the probe down).
+    """
+
+    mode: Literal["position", "rate"] = "position"
+    full_scale_counts: float = 350.0
+    travel_m: float = 0.04
+    speed_m_s: float = 0.1
+    signs: tuple[float, float, float] = (1.0, -1.0, -1.0)
+
+
+def _unit_counts(c: float, full: float) -> float:
+    u = c / full
+    return 1.0 if u > 1.0 else (-1.0 if u < -1.0 else u)
+
+
+def spacemouse_position(
+    counts: tuple[int, int, int], center: Vec3, mapping: SpaceMouseMapping
+) -> Vec3:
+    """Position [m] for translation ``counts`` in ``position`` mode, around ``center`` (3,) [m]."""
+    fs, tr, s = mapping.full_scale_counts, mapping.travel_m, mapping.signs
+    return (
+        center[0] + s[0] * tr * _unit_counts(counts[0], fs),
+        center[1] + s[1] * tr * _unit_counts(counts[1], fs),
+        center[2] + s[2] * tr * _unit_counts(counts[2], fs),
+    )
+
+
+def integrate_rate(
+    position: Vec3,
+    velocity: Vec3,
+    dt_s: float,
+    lo: Vec3,
+    hi: Vec3,
+) -> Vec3:
+    """One explicit step ``position + dt * velocity`` [m], clamped into the box [lo, hi] (3,) [m]."""
+    return (
+        min(max(position[0] + dt_s * velocity[0], lo[0]), hi[0]),
+        min(max(position[1] + dt_s * velocity[1], lo[1]), hi[1]),
+        min(max(position[2] + dt_s * velocity[2], lo[2]), hi[2]),
+    )
+
+
+def spacemouse_velocity(counts: tuple[int, int, int], mapping: SpaceMouseMapping) -> Vec3:
+    """Velocity [m/s] for translation ``counts`` in ``rate`` mode."""
+    fs, sp, s = mapping.full_scale_counts, mapping.speed_m_s, mapping.signs
+    return (
+        s[0] * sp * _unit_counts(counts[0], fs),
+        s[1] * sp * _unit_counts(counts[1], fs),
+        s[2] * sp * _unit_counts(counts[2], fs),
+    )
+
+
+def decode_input(layout: HidInputLayout, data: bytes | Sequence[int]) -> Vec3 | None:
+    """Decode x, y, z from one input report of a generic profile.
+
+    Returns
+    -------
+    (3,) float or None
+        Absolute mode: position [m] in the device frame (scale * count + offset_m). Rate mode:
+        velocity [m/s]. None if the report id is not the layout's.
+
+    Raises
+    ------
+    ValueError
+        The report is too short for the layout.
+    """
+    b = bytes(data)
+    if layout.report_id is not None and (not b or b[0] != layout.report_id):
+        return None
+    out = [0.0, 0.0, 0.0]
+    for i, ax in enumerate(layout.axes):
+        if len(b) < ax.end:
+            raise ValueError(f"report of {len(b)} bytes too short: axis {i} needs {ax.end}")
+        raw = ax.struct.unpack_from(b, ax.byte)[0]
+        out[i] = raw * ax.scale + (ax.offset_m if layout.mode == "absolute" else 0.0)
+    return (out[0], out[1], out[2])
+
+
+_RANGES = {
+    "int8": (-(2**7), 2**7 - 1),
+    "uint8": (0, 2**8 - 1),
+    "int16": (-(2**15), 2**15 - 1),
+    "uint16": (0, 2**16 - 1),
+    "int32": (-(2**31), 2**31 - 1),
+    "uint32": (0, 2**32 - 1),
+}
+
+
+def encode_output(layout: HidOutputLayout, fx: float, fy: float, fz: float) -> bytes:
+    """Encode the force (fx, fy, fz) [N] into an output report of a generic profile.
+
+    Counts are ``round(f / scale)`` clipped to the field's integer range; the report id (0 when
+    the layout has none) is the first byte, as hidapi's ``write`` expects.
+    """
+    buf = bytearray(layout.length)
+    buf[0] = layout.report_id if layout.report_id is not None else 0
+    for ax, f in zip(layout.axes, (fx, fy, fz), strict=True):
+        v = f / ax.scale if math.isfinite(f) else 0.0
+        if ax.type == "float32":
+            ax.struct.pack_into(buf, ax.byte, v)
+        else:
+            lo, hi = _RANGES[ax.type]
+            ax.struct.pack_into(buf, ax.byte, min(max(round(v), lo), hi))
+    return bytes(buf)
+
+
+# ---------------------------------------------------------------------------------------------
+# Devices
+# ---------------------------------------------------------------------------------------------
+
+
+class HidPort(Protocol):
+    """The part of ``hid.device`` the devices use (tests substitute a fake)."""
+
+    def read(self, max_length: int) -> Sequence[int]: ...
+
+    def write(self, data: bytes) -> int: ...
+
+    def close(self) -> None: ...
+
+
+Opener = Callable[[int, int], HidPort]
+
+
+def _hid_open(vendor_id: int, product_id: int) -> HidPort:
+    """Open (vendor_id, product_id) with hidapi in non-blocking mode.
+
+    Raises
+    ------
+    OSError
+        hidapi is not installed, has no backend, or the device cannot be opened.
+    """
+    try:
+        import hid
+    except ImportError as exc:  # pragma: no cover - hidapi is a declared dependency
+        raise OSError(f"hidapi is not available: {exc}") from exc
+    dev = hid.device()
+    dev.open(vendor_id, product_id)
+    dev.set_nonblocking(1)
+    port: HidPort = dev
+    return port
+
+
+class _HidDevice(Device):
+    """Shared plumbing: open/close through an opener, drain reports, set ``fault`` on errors."""
+
+    def __init__(
+        self,
+        vendor_id: int,
+        product_id: int,
+        name: str,
+        limits: DeviceLimits,
+        opener: Opener | None,
+        silence_timeout_s: float | None,
+    ) -> None:
+        self.vendor_id = vendor_id
+        self.product_id = product_id
+        self.name = name
+        self.limits = limits
+        self.fault: str | None = None
+        self._opener: Opener = opener if opener is not None else _hid_open
+        self._port: HidPort | None = None
+        self._silence_s = silence_timeout_s
+        self._last_report_t: float | None = None
+        self._enabled = False
+        self.bad_reports = 0
+
+    def open(self) -> None:
+        """Open the device (hidapi, non-blocking).
+
+        Raises
+        ------
+        OSError
+            The device is absent, busy, or hidapi has no backend.
+        """
+        self._port = self._opener(self.vendor_id, self.product_id)
+        self.fault = None
+        self._last_report_t = None
+
+    def close(self) -> None:
+        """Zero the force, release the device; safe to call twice."""
+        if self._port is not None:
+            self.disable_forces()
+            try:
+                self._port.close()
+            except OSError:
+                pass
+            self._port = None
+
+    def enable_forces(self) -> None:
+        """Allow forces to be written (no effect on a position-only device)."""
+        self._enabled = True
+
+    def disable_forces(self) -> None:
+        """Write a zero force once and ignore further writes."""
+        if self._enabled and self.limits.has_force_output:
+            self._send(0.0, 0.0, 0.0)
+        self._enabled = False
+
+    def _send(self, fx: float, fy: float, fz: float) -> None:
+        """Write one force report (subclasses with force output override)."""
+
+    def write(self, fx: float, fy: float, fz: float) -> None:
+        """Send the force (fx, fy, fz) [N]; a no-op unless enabled and the device has an output."""
+        if self._enabled and self.fault is None and self.limits.has_force_output:
+            self._send(fx, fy, fz)
+
+    def _drain(self, t_s: float, handle: Callable[[bytes], bool]) -> None:
+        """Read every queued report, pass each to ``handle`` (True if it was used)."""
+        port = self._port
+        if port is None or self.fault is not None:
+            return
+        if self._last_report_t is None:
+            self._last_report_t = t_s
+        try:
+            for _ in range(MAX_REPORTS_PER_READ):
+                data = port.read(REPORT_SIZE)
+                if not data:
+                    break
+                try:
+                    if handle(bytes(data)):
+                        self._last_report_t = t_s
+                except ValueError:
+                    self.bad_reports += 1
+        except (OSError, ValueError) as exc:
+            self.fault = f"{self.name}: read failed ({exc}); device unplugged?"
+            return
+        if self._silence_s is not None and t_s - self._last_report_t > self._silence_s:
+            self.fault = (
+                f"{self.name}: no report for {t_s - self._last_report_t:.3f} s "
+                f"(> {self._silence_s} s); device unplugged?"
+            )
+
+
+class SpaceMouseDevice(_HidDevice):
+    """A 3Dconnexion SpaceMouse as a position input (no force output).
+
+    Parameters
+    ----------
+    vendor_id, product_id : int
+        USB ids.
+    center : (3,) float
+        Workspace centre [m] in the world: where the probe sits with the cap at rest (position
+        mode) or where it starts (rate mode).
+    mapping : SpaceMouseMapping
+        Counts to position.
+    max_force_n : float
+        Cap [N] on the coupling force sent to the object (the device itself displays none).
+    opener : callable, optional
+        ``opener(vendor_id, product_id) -> port``; default opens through hidapi.
+
+    Notes
+    -----
+    A SpaceMouse sends nothing while its cap is still, so silence is not a fault; a failing read
+    (``OSError``, the unplugged case) is.
+    """
+
+    def __init__(
+        self,
+        vendor_id: int,
+        product_id: int,
+        center: Sequence[float],
+        mapping: SpaceMouseMapping | None = None,
+        *,
+        max_force_n: float = 10.0,
+        opener: Opener | None = None,
+    ) -> None:
+        self.mapping = mapping if mapping is not None else SpaceMouseMapping()
+        c = (float(center[0]), float(center[1]), float(center[2]))
+        reach = self.mapping.travel_m if self.mapping.mode == "position" else 0.1
+        limits = DeviceLimits(
+            max_force_n=max_force_n,
+            max_stiffness_n_per_m=5000.0,
+            max_velocity_m_s=1.0,
+            damping_n_s_per_m=0.0,
+            workspace_min_m=(c[0] - reach, c[1] - reach, c[2] - reach),
+            workspace_max_m=(c[0] + reach, c[1] + reach, c[2] + reach),
+            has_force_output=False,
+        )
+        super().__init__(
+            vendor_id,
+            product_id,
+            f"spacemouse:{vendor_id:04x}:{product_id:04x}",
+            limits,
+            opener,
+            None,
+        )
+        self.center: Vec3 = c
+        self._counts: tuple[int, int, int] = (0, 0, 0)
+        self._pos: Vec3 = c
+        self._t: float | None = None
+
+    def _handle(self, data: bytes) -> bool:
+        trans, _rot = parse_spacemouse_report(data)
+        if trans is None:
+            return False
+        self._counts = trans
+        return True
+
+    def read(self, t_s: float) -> Vec3:
+        """Probe position (x, y, z) [m] from the newest translation report."""
+        self._drain(t_s, self._handle)
+        m = self.mapping
+        if m.mode == "position":
+            self._pos = spacemouse_position(self._counts, self.center, m)
+        else:
+            dt = 0.0 if self._t is None else max(0.0, t_s - self._t)
+            v = spacemouse_velocity(self._counts, m)
+            lim = self.limits
+            self._pos = integrate_rate(self._pos, v, dt, lim.workspace_min_m, lim.workspace_max_m)
+        self._t = t_s
+        return self._pos
+
+
+class ProfileHidDevice(_HidDevice):
+    """A generic HID device described by a :class:`~client.devices.profiles.HidProfile`.
+
+    Parameters
+    ----------
+    profile : HidProfile
+        Report layouts, limits, silence timeout.
+    origin : (3,) float
+        World position [m] of the device frame's origin (the workspace box is centred on it).
+    opener : callable, optional
+        ``opener(vendor_id, product_id) -> port``; default opens through hidapi.
+    """
+
+    def __init__(
+        self, profile: HidProfile, origin: Sequence[float], *, opener: Opener | None = None
+    ) -> None:
+        o = (float(origin[0]), float(origin[1]), float(origin[2]))
+        super().__init__(
+            profile.vendor_id,
+            profile.product_id,
+            f"hid:{profile.name}",
+            profile.limits.centered_at(o),
+            opener,
+            profile.silence_timeout_s,
+        )
+        self.profile = profile
+        self.origin: Vec3 = o
+        self._value: Vec3 = (0.0, 0.0, 0.0)
+        self._pos: Vec3 = o
+        self._t: float | None = None
+
+    def _handle(self, data: bytes) -> bool:
+        v = decode_input(self.profile.input, data)
+        if v is None:
+            return False
+        self._value = v
+        return True
+
+    def read(self, t_s: float) -> Vec3:
+        """Probe position (x, y, z) [m] from the newest input report."""
+        self._drain(t_s, self._handle)
+        v, o = self._value, self.origin
+        if self.profile.input.mode == "absolute":
+            self._pos = (o[0] + v[0], o[1] + v[1], o[2] + v[2])
+        else:
+            dt = 0.0 if self._t is None else max(0.0, t_s - self._t)
+            lim = self.limits
+            self._pos = integrate_rate(self._pos, v, dt, lim.workspace_min_m, lim.workspace_max_m)
+        self._t = t_s
+        return self._pos
+
+    def _send(self, fx: float, fy: float, fz: float) -> None:
+        out = self.profile.output
+        if out is None or self._port is None:
+            return
+        try:
+            self._port.write(encode_output(out, fx, fy, fz))
+        except (OSError, ValueError) as exc:
+            self.fault = f"{self.name}: write failed ({exc}); device unplugged?"
+
+
+def open_hid_device(
+    vendor_id: int,
+    product_id: int,
+    center: Sequence[float],
+    *,
+    profile: HidProfile | None = None,
+    mapping: SpaceMouseMapping | None = None,
+    opener: Opener | None = None,
+) -> Device:
+    """The right device object for (vendor_id, product_id) (not opened yet).
+
+    A SpaceMouse-family id gives a :class:`SpaceMouseDevice`; otherwise ``profile``, or the
+    bundled profile with these ids, gives a :class:`ProfileHidDevice`.
+
+    Raises
+    ------
+    ValueError
+        Neither a SpaceMouse nor a known profile for these ids.
+    """
+    if profile is not None:
+        return ProfileHidDevice(profile, center, opener=opener)
+    if is_spacemouse(vendor_id, product_id):
+        return SpaceMouseDevice(vendor_id, product_id, center, mapping, opener=opener)
+    found = find_hid_profile(vendor_id, product_id)
+    if found is None:
+        raise ValueError(
+            f"no HID profile for {vendor_id:04x}:{product_id:04x}; write one "
+            "(see client/devices/profiles.py) and pass it as hid_profile"
+        )
+    return ProfileHidDevice(found, center, opener=opener)
+
+
+def list_devices() -> list[dict[str, Any]]:
+    """HID devices attached now, one entry per vendor/product id (``haptic devices``).
+
+    Returns
+    -------
+    list of dict
+        Keys: ``spec`` (``hid:VID:PID`` for ``make_device``), ``vendor_id``, ``product_id``
+        (ints), ``manufacturer``, ``product`` (str), ``kind`` (``spacemouse``,
+        ``profile:NAME`` or ``unsupported``). Empty when hidapi is missing or has no backend.
+    """
+    try:
+        import hid
+
+        infos = hid.enumerate()
+    except (ImportError, OSError, RuntimeError):
+        return []
+    seen: set[tuple[int, int]] = set()
+    out: list[dict[str, Any]] = []
+    for d in infos:
+        vid, pid = int(d.get("vendor_id", 0)), int(d.get("product_id", 0))
+        if (vid, pid) in seen:
+            continue
+        seen.add((vid, pid))
+        if is_spacemouse(vid, pid):
+            kind = "spacemouse"
+        else:
+            prof = find_hid_profile(vid, pid)
+            kind = f"profile:{prof.name}" if prof is not None else "unsupported"
+        out.append(
+            {
+                "spec": f"hid:{vid:04x}:{pid:04x}",
+                "vendor_id": vid,
+                "product_id": pid,
+                "manufacturer": d.get("manufacturer_string") or "",
+                "product": d.get("product_string") or "",
+                "kind": kind,
+            }
+        )
+    return out

@@ -1,0 +1,396 @@
+"""The servo loop: forces felt, safety ramps, patch hand-over and deadline scheduling.
+
+Time is an input everywhere except one short real-thread test.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import pytest
+
+from client.devices.base import Device, DeviceLimits, HapticError, Vec3
+from client.servo import DeadlineLoop, ServoConfig, ServoCore, ServoThread
+from shared.local_model import LocalModelParams
+from shared.primitives import make_plane, make_sphere
+
+T = 1e-3
+RAMP_S = 0.05
+STEP = T / RAMP_S  # safety-gain change per tick
+
+
+class FakeDevice(Device):
+    """A device whose handle is wherever the test puts it; records every write."""
+
+    def __init__(self, position: Vec3 = (0.0, 0.0, 0.0), max_force_n: float = 7.9) -> None:
+        self.name = "fake"
+        self.limits = DeviceLimits(
+            max_force_n=max_force_n,
+            max_stiffness_n_per_m=1000.0,
+            max_velocity_m_s=0.5,
+            damping_n_s_per_m=0.5,
+            workspace_min_m=(-1.0, -1.0, -1.0),
+            workspace_max_m=(1.0, 1.0, 1.0),
+        )
+        self.fault: str | None = None
+        self.position = position
+        self.enabled = False
+        self.writes: list[Vec3] = []
+        self.displayed: Vec3 = (0.0, 0.0, 0.0)
+
+    def open(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self.disable_forces()
+
+    def read(self, t_s: float) -> Vec3:
+        return self.position
+
+    def write(self, fx: float, fy: float, fz: float) -> None:
+        self.writes.append((fx, fy, fz))
+        if self.enabled:
+            self.displayed = (fx, fy, fz)
+
+    def enable_forces(self) -> None:
+        self.enabled = True
+
+    def disable_forces(self) -> None:
+        self.enabled = False
+        self.displayed = (0.0, 0.0, 0.0)
+
+
+def make_core(dev: FakeDevice, link_timeout_s: float = 0.25) -> ServoCore:
+    return ServoCore(dev, ServoConfig(ramp_s=RAMP_S, link_timeout_s=link_timeout_s))
+
+
+def mag(v: Vec3) -> float:
+    return math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+
+
+def run(core: ServoCore, t0: float, n: int, notify_every: int | None = None) -> float:
+    """Tick n times from tick-time t0; optionally notify the link every few ticks."""
+    t = t0
+    for k in range(n):
+        t = t0 + k * T
+        if notify_every is not None and k % notify_every == 0:
+            core.notify_link(t)
+        core.tick(t)
+    return t0 + n * T
+
+
+PLANE = make_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+
+
+def test_no_force_before_first_patch_nor_before_enable() -> None:
+    dev = FakeDevice((0.0, 0.0, -0.005))  # where a surface would be pushing hard
+    core = make_core(dev)
+    core.enable_forces()
+    run(core, 0.0, 200, notify_every=10)
+    assert all(w == (0.0, 0.0, 0.0) for w in dev.writes)
+    assert core.latest() is not None and math.isnan(core.latest().penetration_m)  # type: ignore[union-attr]
+
+    # a patch but forces never enabled: still nothing
+    dev2 = FakeDevice((0.0, 0.0, -0.005))
+    core2 = make_core(dev2)
+    core2.set_patch(PLANE, 200.0, 0.0)
+    run(core2, 0.0, 200, notify_every=10)
+    assert all(w == (0.0, 0.0, 0.0) for w in dev2.writes)
+    assert not dev2.enabled
+
+
+@pytest.mark.parametrize(
+    "normal", [(0.0, 0.0, 1.0), (0.6, 0.0, 0.8), (0.0, -1.0, 0.0)], ids=["z", "tilted", "-y"]
+)
+def test_plane_5mm_inside_gives_k_h_times_5mm_outward(normal: Vec3) -> None:
+    anchor = (0.01, 0.02, 0.03)
+    plane = make_plane(anchor, normal)
+    probe = tuple(a - 0.005 * n for a, n in zip(anchor, plane.normal, strict=True))
+    dev = FakeDevice(probe)  # type: ignore[arg-type]
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(plane, 300.0, 0.0)
+    run(core, 0.0, int(RAMP_S / T) + 20, notify_every=10)
+    f = dev.displayed
+    expected = 300.0 * 0.005  # 1.5 N
+    assert mag(f) == pytest.approx(expected, rel=1e-9)
+    for fi, ni in zip(f, plane.normal, strict=True):
+        assert fi == pytest.approx(expected * ni, abs=1e-12)
+    snap = core.latest()
+    assert snap is not None and snap.in_contact and snap.penetration_m == pytest.approx(0.005)
+
+
+def test_forces_ramp_up_on_first_patch_without_a_jump() -> None:
+    dev = FakeDevice((0.0, 0.0, -0.005))
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    run(core, 0.0, 100, notify_every=10)
+    mags = [mag(w) for w in dev.writes]
+    full = 1.5
+    assert max(abs(b - a) for a, b in zip(mags, mags[1:], strict=False)) <= STEP * full + 1e-12
+    assert mags[-1] == pytest.approx(full)
+
+
+def test_force_above_device_max_is_clamped_and_counted() -> None:
+    dev = FakeDevice((0.0, 0.0, -0.02), max_force_n=7.9)  # 1000 N/m * 20 mm = 20 N asked
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(PLANE, 1000.0, 0.0)
+    run(core, 0.0, 200, notify_every=10)
+    assert max(mag(w) for w in dev.writes) == pytest.approx(7.9)
+    assert dev.displayed[2] == pytest.approx(7.9)
+    st = core.status()
+    assert st.counts[HapticError.FORCE_LIMIT] == 1  # one episode, not one per tick
+    assert st.last_event is not None and st.last_event.kind is HapticError.FORCE_LIMIT
+
+
+def test_stiffness_above_device_max_is_clamped() -> None:
+    dev = FakeDevice((0.0, 0.0, -0.001))
+    core = make_core(dev)
+    core.enable_forces()
+    patch = core.set_patch(PLANE, 5000.0, 0.0)
+    run(core, 0.0, 100, notify_every=10)
+    assert patch.k_h == dev.limits.max_stiffness_n_per_m
+    assert dev.displayed[2] == pytest.approx(1000.0 * 0.001)
+    assert core.status().stiffness_clamps == 1
+
+
+@pytest.mark.parametrize("bad", [(0.0, 0.0), (math.nan, 0.0), (100.0, -1.0), (100.0, math.inf)])
+def test_bad_gains_are_refused_in_the_callers_thread(bad: tuple[float, float]) -> None:
+    core = make_core(FakeDevice())
+    with pytest.raises(ValueError):
+        core.set_patch(PLANE, *bad)
+    with pytest.raises(TypeError):
+        core.set_patch("plane", 100.0, 0.0)  # type: ignore[arg-type]
+
+
+def test_link_silence_ramps_force_to_zero_linearly_then_back_on_new_patch() -> None:
+    dev = FakeDevice((0.0, 0.0, -0.005))
+    core = make_core(dev, link_timeout_s=0.25)
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    t = run(core, 0.0, 500, notify_every=50)  # link alive for 0.5 s
+    last_notify = 0.45
+    full = 1.5
+    assert dev.displayed[2] == pytest.approx(full)
+    n0 = len(dev.writes)
+    t = run(core, t, 600)  # silence
+    mags = [mag(w) for w in dev.writes[n0 - 1 :]]
+    steps = [b - a for a, b in zip(mags, mags[1:], strict=False)]
+    assert max(abs(s) for s in steps) <= STEP * full + 1e-12  # never a jump
+    assert all(s <= 1e-12 for s in steps)  # monotone down
+    times = [0.5 + k * T for k in range(600)]
+    zero_at = next(tt for tt, m in zip(times, mags[1:], strict=True) if m == 0.0)
+    assert zero_at <= last_notify + 0.25 + RAMP_S + 2 * T
+    assert zero_at > last_notify + 0.25  # nothing changed before the timeout
+    st = core.status()
+    assert st.counts[HapticError.LINK_LOST] == 1 and not st.link_alive and not st.has_patch
+
+    # a pong alone does not bring forces back: the old patch is stale
+    core.notify_link(t)
+    t = run(core, t + T, 20)
+    assert dev.displayed == (0.0, 0.0, 0.0)
+    # a new patch does, smoothly
+    n1 = len(dev.writes)
+    core.set_patch(PLANE, 300.0, 0.0)
+    run(core, t, 200, notify_every=20)
+    mags = [mag(w) for w in dev.writes[n1 - 1 :]]
+    assert max(b - a for a, b in zip(mags, mags[1:], strict=False)) <= STEP * full + 1e-12
+    assert mags[-1] == pytest.approx(full)
+
+
+def test_device_fault_ramps_force_to_zero() -> None:
+    dev = FakeDevice((0.0, 0.0, -0.005))
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    t = run(core, 0.0, 100, notify_every=10)
+    dev.fault = "USB read failed"
+    n0 = len(dev.writes)
+    run(core, t, 100, notify_every=10)
+    mags = [mag(w) for w in dev.writes[n0 - 1 :]]
+    assert max(a - b for a, b in zip(mags, mags[1:], strict=False)) <= STEP * 1.5 + 1e-12
+    assert mags[int(RAMP_S / T) + 1] == 0.0 and mags[-1] == 0.0
+    st = core.status()
+    assert st.counts[HapticError.DEVICE_FAULT] == 1
+    assert st.device_fault == "USB read failed"
+    assert st.last_event is not None and "USB read failed" in st.last_event.detail
+
+
+def test_fast_probe_ramps_force_down_and_back() -> None:
+    dev = FakeDevice((0.0, 0.0, 0.4995))  # 0.5 mm inside a 0.5 m sphere
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(make_sphere((0.0, 0.0, 0.0), 0.5), 300.0, 0.0)
+    t = run(core, 0.0, 100, notify_every=10)
+    before = mag(dev.displayed)
+    assert before > 0
+    # the probe whips sideways at 2 m/s (limit 0.5 m/s), staying at the same depth
+    for k in range(100):
+        a = 2.0 * k * T / 0.4995
+        dev.position = (0.4995 * math.sin(a), 0.0, 0.4995 * math.cos(a))
+        core.notify_link(t)
+        core.tick(t)
+        t += T
+    assert mag(dev.displayed) == 0.0
+    assert core.status().counts[HapticError.VELOCITY_LIMIT] == 1
+    run(core, t, 200, notify_every=10)  # held still: forces come back
+    assert mag(dev.displayed) == pytest.approx(before)
+
+
+def test_new_patch_changes_gains_without_a_force_jump_from_the_integral() -> None:
+    params = LocalModelParams(k_h=200.0, i_gain=2000.0, servo_period_s=T)
+    dev = FakeDevice((0.0, 0.0, -0.005))
+    core = ServoCore(dev, ServoConfig(ramp_s=RAMP_S), local_model=params)
+    core.enable_forces()
+    core.set_patch(PLANE, 200.0, 2000.0)
+    t = run(core, 0.0, 500, notify_every=10)
+    integral = core.local_model.integral_n
+    assert integral > 1.0  # the integral carries a force the user feels
+    before = dev.displayed[2]
+    increment = T * 2000.0 * 0.005  # what one tick adds to the integral
+
+    core.set_patch(PLANE, 200.0, 500.0)  # new I, same K_h
+    core.notify_link(t)
+    core.tick(t)
+    assert abs(dev.displayed[2] - before) <= increment + 1e-12
+    assert core.local_model.integral_n >= integral
+
+    core.set_patch(PLANE, 300.0, 500.0)  # new K_h: only the proportional part changes
+    before = dev.displayed[2]
+    core.tick(t + T)
+    assert dev.displayed[2] - before == pytest.approx(100.0 * 0.005, abs=T * 500.0 * 0.005 + 1e-12)
+
+
+def test_stop_ramps_down_then_disables_the_device() -> None:
+    dev = FakeDevice((0.0, 0.0, -0.005))
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    t = run(core, 0.0, 100, notify_every=10)
+    assert dev.enabled
+    core.request_stop()
+    n0 = len(dev.writes)
+    stopped_after = None
+    for k in range(200):
+        core.notify_link(t)
+        if core.tick(t):
+            stopped_after = k
+            break
+        t += T
+    assert stopped_after is not None and stopped_after <= int(RAMP_S / T) + 1
+    mags = [mag(w) for w in dev.writes[n0 - 1 :]]
+    assert max(a - b for a, b in zip(mags, mags[1:], strict=False)) <= STEP * 1.5 + 1e-12
+    assert dev.writes[-1] == (0.0, 0.0, 0.0) and not dev.enabled
+    assert core.status().stopped
+
+
+def test_local_model_period_must_match_the_servo_rate() -> None:
+    with pytest.raises(ValueError, match="period"):
+        ServoCore(
+            FakeDevice(),
+            ServoConfig(servo_rate_hz=1000.0),
+            local_model=LocalModelParams(k_h=100.0, servo_period_s=2e-3),
+        )
+
+
+class FakeClock:
+    """Time that advances only when slept on, plus 1 us per reading (so spinning ends)."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        self.t += 1e-6
+        return self.t
+
+    def sleep(self, d: float) -> None:
+        self.t += max(d, 0.0)
+
+
+def test_missed_deadlines_are_counted_and_skipped_not_piled_up() -> None:
+    clock = FakeClock()
+    loop = DeadlineLoop(1e-3, clock=clock, sleep=clock.sleep, spin_s=3e-4, late_tolerance=0.5)
+    ticks: list[float] = []
+
+    def tick(now: float) -> bool:
+        ticks.append(now)
+        if len(ticks) == 11:
+            clock.t += 3.4e-3  # one tick takes 3.4 ms
+        return False
+
+    loop.run(tick, max_ticks=30)
+    assert loop.overruns == 2  # deadlines 11 and 12 missed; 13 (0.4 ms late) runs at once
+    start = ticks[0]
+    idx = [round((t - start) / 1e-3) for t in ticks]
+    assert idx[:11] == list(range(11))
+    assert idx[11:] == list(range(13, 32))  # skipped, then back on the integer grid
+    for t, k in zip(ticks[12:], idx[12:], strict=True):
+        assert abs(t - (start + k * 1e-3)) < 5e-5  # on its deadline, no drift
+    gaps = [b - a for a, b in zip(ticks, ticks[1:], strict=False)]
+    assert min(gaps) > 0.5e-3  # no burst of catch-up ticks
+
+
+def test_overruns_show_in_the_servo_status() -> None:
+    clock = FakeClock()
+
+    class SlowOnce(FakeDevice):
+        calls = 0
+
+        def read(self, t_s: float) -> Vec3:
+            SlowOnce.calls += 1
+            if SlowOnce.calls == 5:
+                clock.t += 5.2e-3  # deadlines 5, 6, 7, 8 pass
+            return self.position
+
+    dev = SlowOnce((0.0, 0.0, 0.01))
+    core = make_core(dev)
+    th = ServoThread(core, clock=clock, sleep=clock.sleep, switch_interval_s=None)
+    assert th.run(max_ticks=20) == 20
+    st = core.status()
+    assert st.counts[HapticError.SERVO_OVERRUN] == 4
+    assert st.last_event is not None and st.last_event.kind is HapticError.SERVO_OVERRUN
+
+
+def test_a_crashing_device_leaves_no_force_on() -> None:
+    class Crashing(FakeDevice):
+        def read(self, t_s: float) -> Vec3:
+            if t_s > 100.05:
+                raise RuntimeError("driver bug")
+            return self.position
+
+    clock = FakeClock()
+    dev = Crashing((0.0, 0.0, -0.005))
+    core = make_core(dev, link_timeout_s=math.inf)
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    th = ServoThread(core, clock=clock, sleep=clock.sleep, switch_interval_s=None)
+    th.run(max_ticks=1000)
+    assert dev.writes[-1] == (0.0, 0.0, 0.0) and not dev.enabled
+    assert "driver bug" in (core.status().error or "")
+
+
+def test_real_thread_runs_and_stops_cleanly() -> None:
+    switch_before = sys.getswitchinterval()
+    dev = FakeDevice((0.0, 0.0, -0.004))
+    core = make_core(dev)
+    th = ServoThread(core)
+    core.enable_forces()
+    th.start()
+    th.set_patch(PLANE, 250.0, 0.0)
+    t_end = time.monotonic() + 0.3
+    while time.monotonic() < t_end:
+        th.notify_link()
+        time.sleep(0.02)
+    snap = th.latest()
+    assert th.running
+    assert snap is not None and snap.tick > 0 and snap.servo_rate_hz > 0
+    assert snap.in_contact and snap.k_h == 250.0
+    assert th.stop()
+    assert not th.running
+    assert core.status().stopped
+    assert dev.writes[-1] == (0.0, 0.0, 0.0) and not dev.enabled
+    assert sys.getswitchinterval() == switch_before  # the interpreter is left as it was
