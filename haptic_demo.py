@@ -377,8 +377,9 @@ def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
             else np.array([0, 0, 1.0])
         )
         normal /= np.linalg.norm(normal)
-        ok = np.isfinite(proxy).all(axis=1)
-        ref = proxy[ok][0] if ok.any() else probe[0]
+        ok = np.isfinite(proxy).all(axis=1) & (cols["k_h_n_per_m"] > 0)  # a patch is in use
+        touching = ok & (cols["in_contact"] > 0)
+        ref = proxy[touching][0] if touching.any() else (proxy[ok][0] if ok.any() else probe[0])
         ax.plot(t, (probe - ref) @ normal * 1000.0, label="probe $x_h$ (device)", color="tab:blue")
         ax.plot(
             t[ok],
@@ -386,7 +387,7 @@ def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
             label="proxy $x_o$ (surface)",
             color="tab:red",
         )
-        ax.set_ylabel("outward position [mm]")
+        ax.set_ylabel("outward position [mm]\n(0: surface at first contact)")
         ax.set_title(f"user {name}")
         ax.grid(alpha=0.3)
         ax.legend(loc="lower left")

@@ -74,9 +74,9 @@ class Link:
         """Connect, serve, reconnect with backoff until ``stop`` is set."""
         delay = self.backoff_s[0]
         while not stop.is_set():
+            joins = self.joins
             try:
                 async with connect(self.url, max_size=8 * 1024 * 1024, open_timeout=5.0) as ws:
-                    delay = self.backoff_s[0]
                     await self._serve(ws, stop)
             except (OSError, InvalidHandshake, TimeoutError, ConnectionClosed) as exc:
                 if not stop.is_set():
@@ -85,6 +85,8 @@ class Link:
                 raise ValueError(f"bad server URL {self.url!r}: {exc}") from None
             finally:
                 self.connected.clear()
+                if self.joins > joins:
+                    delay = self.backoff_s[0]  # a session that joined resets the backoff
             if stop.is_set():
                 break
             with contextlib.suppress(TimeoutError):

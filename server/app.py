@@ -226,7 +226,12 @@ class ServerApp:
     def _deliver(self, conn_id: str, frame: str | bytes) -> None:
         if conn_id not in self._peers:
             return
-        self._dispatch(self.room.receive(conn_id, frame, asyncio.get_running_loop().time()))
+        try:
+            outs = self.room.receive(conn_id, frame, asyncio.get_running_loop().time())
+        except Exception:  # a bug must cost one frame, not the connection or the room
+            log.exception("frame from %s could not be handled", conn_id)
+            return
+        self._dispatch(outs)
 
     def _dispatch(self, outs: list[Outgoing]) -> None:
         loop = asyncio.get_running_loop()

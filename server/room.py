@@ -314,11 +314,7 @@ class Room:
         out = [
             Outgoing(
                 conn.conn_id,
-                encode(
-                    _welcome(
-                        conn.user_id, name, msg.role, self.sim_rate_hz, self.object_info, self.link
-                    )
-                ),
+                _welcome(conn.user_id, name, msg.role, self.sim_rate_hz, self.object_info, self.link),
             )
         ]
         if msg.role == "viewer":

@@ -1,0 +1,193 @@
+"""The room's protocol handling, sans-I/O: joins, patches, and hostile input from one connection.
+
+A small recording world stands in for the physics here so that the tests can see exactly what
+reached the simulation; the real world is exercised in test_world.py and the loopback tests.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from server.room import Room, RoomLimits
+from shared.primitives import make_plane
+from shared.protocol import PROTOCOL_VERSION, decode_binary
+
+
+class RecordingWorld:
+    """Minimal world: an octahedron; echoes a plane patch per input and records every input."""
+
+    def __init__(self) -> None:
+        self.vertices = np.array(
+            [[0.1, 0, 0], [-0.1, 0, 0], [0, 0.1, 0], [0, -0.1, 0], [0, 0, 0.1], [0, 0, -0.1]], float
+        )
+        self.faces = np.array(
+            [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
+        )
+        self.inputs: list[dict] = []
+
+    def tick(self, inputs):
+        from server.world import ContactOutput
+
+        self.inputs.append(dict(inputs))
+        out = {}
+        for key, inp in inputs.items():
+            assert np.all(np.isfinite(inp.probe)) and np.all(np.isfinite(inp.force))
+            out[key] = ContactOutput(
+                primitive=make_plane((0, 0, 0.1), (0, 0, 1)),
+                proxy=np.array([inp.probe[0], inp.probe[1], 0.1]),
+                normal=np.array([0.0, 0.0, 1.0]),
+                penetration_m=0.1 - float(inp.probe[2]),
+                k_o=400.0,
+                k_o_eff=380.0,
+                b_o=0.0,
+                in_contact=True,
+            )
+        return out
+
+
+def hello(name: str, role: str = "user") -> str:
+    return json.dumps({"type": "hello", "protocol": PROTOCOL_VERSION, "role": role, "name": name})
+
+
+def state(seq: int, z: float = 0.095, force: float = 1.0) -> str:
+    return json.dumps({"type": "state", "seq": seq, "probe_m": [0, 0, z], "force_n": [0, 0, force]})
+
+
+def texts(outs, conn):
+    return [json.loads(o.data) for o in outs if o.conn_id == conn and isinstance(o.data, str)]
+
+
+@pytest.fixture
+def room():
+    r = Room(RecordingWorld(), sim_rate_hz=20.0)
+    for c in ("a", "b"):
+        r.connect(c, 0.0)
+        (w,) = texts(r.receive(c, hello(c.upper()), 0.0), c)
+        assert w["type"] == "welcome" and w["object"]["n_vertices"] == 6
+    return r
+
+
+def test_users_get_patches_with_k_o_and_k_o_eff(room):
+    room.receive("a", state(1), 0.01)
+    room.receive("b", state(1, z=0.098), 0.01)
+    outs = room.tick(1, 0.05)
+    pa = texts(outs, "a")[0]
+    assert pa["type"] == "patch" and pa["tick"] == 1
+    assert pa["k_o"] == 400.0 and pa["k_o_eff"] == 380.0
+    assert pa["primitive"]["kind"] == "plane"
+    assert texts(outs, "b")[0]["penetration_m"] == pytest.approx(0.002)
+
+
+def test_viewer_gets_faces_then_vertices_and_room_each_tick(room):
+    room.connect("v", 0.0)
+    outs = room.receive("v", hello("viewer", "viewer"), 0.0)
+    binaries = [o.data for o in outs if isinstance(o.data, bytes)]
+    assert decode_binary(binaries[0])[0] == b"FAC1" and decode_binary(binaries[1])[0] == b"VTX1"
+    room.receive("a", state(1), 0.01)
+    outs = room.tick(2, 0.05)
+    (summary,) = texts(outs, "v")
+    assert summary["type"] == "room" and [u["name"] for u in summary["users"]] == ["A"]
+    assert summary["users"][0]["k_o_eff"] == 380.0
+    assert any(isinstance(o.data, bytes) and o.conn_id == "v" for o in outs)
+
+
+@pytest.mark.parametrize(
+    "frame,code",
+    [
+        ("{not json", "malformed_json"),
+        ('{"type":"state","seq":5,"probe_m":[0,0,NaN],"force_n":[0,0,1]}', "non_finite"),
+        ('{"type":"teleport"}', "unknown_type"),
+        ('{"type":"state","seq":5,"probe_m":[0,0,0.09],"force_n":[0,0,1e6]}', "force_limit"),
+        ('{"type":"state","seq":5,"probe_m":[1e6,0,0],"force_n":[0,0,1]}', "probe_out_of_range"),
+        (hello("again"), "duplicate_hello"),
+    ],
+)
+def test_hostile_frame_gets_an_error_and_the_others_are_unaffected(room, frame, code):
+    room.receive("a", state(1), 0.01)
+    room.receive("b", state(1, z=0.097, force=0.5), 0.01)
+    outs = room.receive("a", frame, 0.02)
+    (err,) = texts(outs, "a")
+    assert err["type"] == "error" and err["code"] == code and not err["fatal"]
+    assert not any(o.close for o in outs)
+    outs = room.tick(1, 0.05)
+    world = room.world
+    # the world got A's last good state and B's, nothing from the bad frame
+    last = world.inputs[-1]
+    assert set(last) == {"a", "b"}
+    assert last["a"].force[2] == pytest.approx(1.0) and last["b"].force[2] == pytest.approx(0.5)
+    assert texts(outs, "b")[0]["type"] == "patch"
+
+
+def test_wrong_protocol_version_and_missing_hello_close_only_that_connection(room):
+    room.connect("x", 0.0)
+    outs = room.receive("x", json.dumps({"type": "hello", "protocol": 99, "role": "user", "name": "X"}), 0.0)
+    assert texts(outs, "x")[0]["code"] == "protocol_version" and outs[0].close
+    room.connect("y", 0.0)
+    outs = room.receive("y", state(1), 0.0)
+    assert texts(outs, "y")[0]["code"] == "expected_hello" and outs[0].close
+    assert sorted(room.users) == ["a", "b"]
+
+
+def test_oversized_frame_closes_that_connection(room):
+    outs = room.receive("a", "x" * 20000, 0.01)
+    assert texts(outs, "a")[0]["code"] == "frame_too_large" and outs[0].close
+    assert room.users == ["b"]
+
+
+def test_flood_is_cut_off_and_the_other_user_keeps_working():
+    r = Room(RecordingWorld(), sim_rate_hz=20.0, limits=RoomLimits(rate_per_s=100.0, burst=50.0))
+    for c in ("a", "b"):
+        r.connect(c, 0.0)
+        r.receive(c, hello(c.upper()), 0.0)
+    closed = False
+    for i in range(200):  # 200 frames within 10 ms
+        outs = r.receive("a", state(i + 1), 0.00005 * i)
+        if any(o.close for o in outs):
+            assert texts(outs, "a")[0]["code"] == "rate_limited"
+            closed = True
+            break
+    assert closed
+    r.receive("b", state(1, force=0.7), 0.02)
+    outs = r.tick(1, 0.05)
+    assert set(r.world.inputs[-1]) == {"b"} and texts(outs, "b")[0]["type"] == "patch"
+
+
+def test_too_many_errors_closes_the_connection():
+    r = Room(RecordingWorld(), sim_rate_hz=20.0, limits=RoomLimits(max_errors=5))
+    r.connect("a", 0.0)
+    r.receive("a", hello("A"), 0.0)
+    codes = []
+    for i in range(8):
+        outs = r.receive("a", "garbage", 0.1 * i)
+        codes += [(m["code"], o.close) for m, o in zip(texts(outs, "a"), outs, strict=True)]
+    assert codes[:5] == [("malformed_json", False)] * 5
+    assert codes[5] == ("too_many_errors", True) and len(codes) == 6  # then nothing: closed
+
+
+def test_silent_user_stops_loading_the_object(room):
+    room.receive("a", state(1, force=2.0), 0.0)
+    room.tick(1, 0.05)
+    assert room.world.inputs[-1]["a"].force[2] == pytest.approx(2.0)
+    room.tick(20, 1.0)  # nothing from A for a second
+    assert np.allclose(room.world.inputs[-1]["a"].force, 0.0)
+
+
+def test_older_state_does_not_replace_newer(room):
+    room.receive("a", state(5, force=1.5), 0.0)
+    room.receive("a", state(4, force=3.0), 0.001)
+    room.tick(1, 0.05)
+    assert room.world.inputs[-1]["a"].force[2] == pytest.approx(1.5)
+
+
+def test_names_are_made_unique_and_room_limits_hold():
+    r = Room(RecordingWorld(), sim_rate_hz=20.0, limits=RoomLimits(max_users=2))
+    names = []
+    for c in ("a", "b", "c"):
+        r.connect(c, 0.0)
+        outs = r.receive(c, hello("same"), 0.0)
+        names.append(texts(outs, c)[0])
+    assert names[0]["name"] == "same" and names[1]["name"] == "same-2"
+    assert names[2]["code"] == "room_full"
