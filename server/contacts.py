@@ -1,0 +1,476 @@
+"""Per-user contact geometry on the current surface, and multipoint stability (DESIGN section 6).
+
+Pure functions, run once per simulation tick for every user:
+
+- :func:`closest_point`: the point of the *current* deformed surface nearest to a probe, the
+  outward normal there and the signed penetration (paper section 6, Step 1: "the local model is
+  calculated ... using the current surface configuration of the deformable object, as if it was
+  static").
+- :func:`fit_plane`, :func:`fit_sphere`: the local model's geometric primitive (Adachi et al.
+  1995, Balaniuk 1999) as :mod:`shared.primitives` objects.
+- :func:`spectral_radius`, :func:`effective_stiffness`: the coupled slow loop of several contacts
+  ``x(k+1) = C diag(K_h) (x_h - x(k))`` is stable iff ``rho(C diag(K_h)) < 1``; the server reports
+  per contact a ``K_o_eff <= K_o`` such that any ``K_h <= K_o_eff`` keeps it stable.
+
+Closest-point search without rebuilding a spatial index each tick: vertices move by at most
+``W = max |current - rest|``, so a ball query on a KD-tree of the *rest* face centroids, built
+once, bounds the candidate faces exactly; the exact point-triangle distance is then taken over
+the few faces whose bounds can still hold the minimum.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from shared.primitives import MAX_RADIUS_M, MIN_RADIUS_M, Plane, Sphere, make_plane, make_sphere
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+#: Stiffness [N/m] reported for a contact that cannot move (zero compliance, e.g. a fixed base).
+K_O_MAX = 1.0e6
+
+#: A fitted sphere larger than this [m] is rendered as a plane (nearly flat surface).
+FLAT_RADIUS_M = 2.0
+
+#: Off-diagonal compliance below this fraction of sqrt(C_ii C_jj) counts as uncoupled.
+_COUPLING_TOL = 1e-9
+
+
+@dataclass(frozen=True, slots=True)
+class SurfaceIndex:
+    """Topology and rest-state search structures of a triangle mesh, built once.
+
+    Attributes
+    ----------
+    rest_vertices : (n, 3) float64 [m]
+    faces : (m, 3) int64
+    tree : scipy.spatial.cKDTree over ``rest_vertices``
+    face_tree : scipy.spatial.cKDTree over the rest face centroids
+    vf_indptr, vf_faces : CSR vertex-to-incident-faces map, (n + 1,) and (3m,) int64
+    max_rest_edge_m : float, longest rest edge [m]
+    max_rest_face_radius_m : float, largest rest centroid-to-vertex distance [m]
+    """
+
+    rest_vertices: FloatArray
+    faces: IntArray
+    tree: cKDTree
+    face_tree: cKDTree
+    vf_indptr: IntArray
+    vf_faces: IntArray
+    max_rest_edge_m: float
+    max_rest_face_radius_m: float
+
+    @classmethod
+    def build(cls, rest_vertices: npt.ArrayLike, faces: npt.ArrayLike) -> SurfaceIndex:
+        """Index a mesh: ``rest_vertices`` (n, 3) [m], ``faces`` (m, 3) int.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes, no faces, non-finite vertices or face indices out of range.
+        """
+        v = np.ascontiguousarray(rest_vertices, dtype=np.float64)
+        f = np.ascontiguousarray(faces, dtype=np.int64)
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            raise ValueError("rest_vertices must be (n, 3) and faces (m, 3) with m > 0")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("rest_vertices must be finite")
+        if f.min() < 0 or f.max() >= len(v):
+            raise ValueError("face indices out of range")
+        flat = f.ravel()
+        order = np.argsort(flat, kind="stable")
+        vf_faces = (order // 3).astype(np.int64)
+        counts = np.bincount(flat, minlength=len(v))
+        vf_indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        edges = np.concatenate(
+            [v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 1]], v[f[:, 0]] - v[f[:, 2]]]
+        )
+        max_edge = float(np.sqrt(np.max(_rowdot(edges, edges))))
+        tri = v[f]
+        centroids = tri.mean(axis=1)
+        spread = tri - centroids[:, None, :]
+        face_radius = float(np.sqrt(np.max(np.einsum("kij,kij->ki", spread, spread))))
+        return cls(v, f, cKDTree(v), cKDTree(centroids), vf_indptr, vf_faces, max_edge, face_radius)
+
+
+@dataclass(frozen=True, slots=True)
+class SurfacePoint:
+    """The current surface near a probe.
+
+    Attributes
+    ----------
+    point : (3,) float64 [m]
+        Closest surface point (the proxy x_o).
+    normal : (3,) float64
+        Outward unit normal there (interpolated vertex normals of the current surface).
+    penetration_m : float
+        Signed depth of the probe past the surface [m]: positive inside, negative outside.
+    face : int
+        Index of the face holding ``point``.
+    """
+
+    point: FloatArray
+    normal: FloatArray
+    penetration_m: float
+    face: int
+
+
+def _closest_on_triangles(
+    p: FloatArray, a: FloatArray, b: FloatArray, c: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Closest points on triangles (a, b, c), each (k, 3), to the point p (3,).
+
+    The projection onto the triangle's plane when it falls inside, else the closest of the three
+    edge points (clamped segment projections).
+
+    Returns
+    -------
+    points : (k, 3) float64
+    bary : (k, 3) float64 barycentric coordinates of the points w.r.t. (a, b, c)
+    """
+    k = len(a)
+    ab, ac, ap = b - a, c - a, p - a
+    d00 = _rowdot(ab, ab)
+    d01 = _rowdot(ab, ac)
+    d11 = _rowdot(ac, ac)
+    d1 = _rowdot(ab, ap)
+    d2 = _rowdot(ac, ap)
+    den = d00 * d11 - d01 * d01
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = (d11 * d1 - d01 * d2) / den
+        w = (d00 * d2 - d01 * d1) / den
+    inside = (v >= 0.0) & (w >= 0.0) & (v + w <= 1.0) & (den > 0.0)
+    # edges a->b, b->c, c->a as one (3k, 3) batch of segments
+    start = np.concatenate([a, b, c])
+    edge = np.concatenate([ab, c - b, a - c])
+    e2 = _rowdot(edge, edge)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = _rowdot(p - start, edge) / e2
+    t = np.clip(np.where(e2 > 0.0, t, 0.0), 0.0, 1.0)
+    on_edge = start + t[:, None] * edge
+    gap = on_edge - p
+    best = np.argmin(_rowdot(gap, gap).reshape(3, k), axis=0)
+    rows = best * k + np.arange(k)
+    points = on_edge[rows]
+    t_best = t[rows]
+    bary = np.zeros((k, 3))
+    cols = np.arange(k)
+    # edge j runs from vertex j to vertex (j + 1) % 3
+    bary[cols, best] = 1.0 - t_best
+    bary[cols, (best + 1) % 3] = t_best
+    if inside.any():
+        vi, wi = v[inside], w[inside]
+        points[inside] = a[inside] + vi[:, None] * ab[inside] + wi[:, None] * ac[inside]
+        bary[inside] = np.stack([1.0 - vi - wi, vi, wi], axis=1)
+    return points, bary
+
+
+def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise dot product (k,) of (k, 3) arrays (cheaper than einsum for small k)."""
+    return np.asarray((a * b).sum(axis=1), dtype=np.float64)
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise cross product of (k, 3) arrays (cheaper than np.cross for small k)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _vertex_normals(index: SurfaceIndex, vertices: FloatArray, ids: IntArray) -> FloatArray:
+    """Area-weighted outward unit normals (k, 3) of the current surface at vertices ``ids``."""
+    starts = index.vf_indptr[ids]
+    counts = index.vf_indptr[ids + 1] - starts
+    group_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    total = int(counts.sum())
+    gather = np.repeat(starts - group_start, counts) + np.arange(total)
+    fs = index.faces[index.vf_faces[gather]]
+    p0 = vertices[fs[:, 0]]
+    fn = _cross(vertices[fs[:, 1]] - p0, vertices[fs[:, 2]] - p0)
+    sums = np.add.reduceat(fn, group_start, axis=0)
+    lengths = np.sqrt(_rowdot(sums, sums))
+    safe = lengths > 0.0
+    sums[safe] /= lengths[safe, None]
+    sums[~safe] = (0.0, 0.0, 1.0)
+    return sums
+
+
+def closest_point(
+    index: SurfaceIndex,
+    vertices: npt.ArrayLike,
+    probe: npt.ArrayLike,
+    displacement_bound_m: float,
+) -> SurfacePoint:
+    """Closest point of the current surface to ``probe``, outward normal, signed penetration.
+
+    Exact over the mesh: every face that could hold the minimum is tested. Cost: one KD-tree
+    query and one ball query on the rest face centroids, vectorized bounds on the faces within
+    about ``d + 3 * displacement_bound_m`` of the probe, and an exact point-triangle test on the
+    few faces whose bounds can still hold the minimum.
+
+    Parameters
+    ----------
+    index : SurfaceIndex
+        Built once from the rest mesh.
+    vertices : (n, 3) float [m]
+        Current vertex positions (same topology as the index).
+    probe : (3,) float [m]
+        Haptic interface point x_h.
+    displacement_bound_m : float
+        An upper bound [m] on ``|vertices - index.rest_vertices|`` (e.g. max |w|).
+
+    Returns
+    -------
+    SurfacePoint
+        ``penetration_m`` > 0 when the probe is inside the object (sign from the interpolated
+        vertex normal at the closest point, a pseudo-normal that is exact on smooth regions).
+
+    Raises
+    ------
+    ValueError
+        ``probe`` not 3 finite numbers, or a negative/non-finite ``displacement_bound_m``.
+    """
+    p = np.asarray(probe, dtype=np.float64)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"probe must be 3 finite numbers [m], got {probe!r}")
+    bound = float(displacement_bound_m)
+    if not (math.isfinite(bound) and bound >= 0.0):
+        raise ValueError(
+            f"displacement_bound_m must be finite and >= 0, got {displacement_bound_m!r}"
+        )
+    cur = np.asarray(vertices, dtype=np.float64)
+
+    # Each face contains its centroid g and lies within its radius rc of it, so
+    # |p - g| - rc <= dist(p, face) <= |p - g|. Centroids move by at most W and radii grow by at
+    # most 2W from rest, so every face that can hold the minimum has its rest centroid within
+    # ub + rc_max + 3W of p, ub being any face's |p - g| (here: the nearest rest centroid's).
+    _, f0 = index.face_tree.query(p)
+    g0 = cur[index.faces[int(f0)]].mean(axis=0) - p
+    ub0 = math.sqrt(float(g0 @ g0))
+    radius = ub0 + index.max_rest_face_radius_m + 3.0 * bound + 1e-12
+    fids = np.asarray(
+        index.face_tree.query_ball_point(p, radius, return_sorted=False), dtype=np.int64
+    )
+    if len(fids) == 0:
+        fids = np.asarray([int(f0)], dtype=np.int64)
+    tri = cur[index.faces[fids]]  # (k, 3, 3)
+    g = tri.mean(axis=1)
+    spread = tri - g[:, None, :]
+    rc = np.sqrt(np.max(np.einsum("kij,kij->ki", spread, spread), axis=1))
+    dg = g - p
+    dist_g = np.sqrt(_rowdot(dg, dg))
+    sel = (dist_g - rc) <= dist_g.min()
+    fids, tri = fids[sel], tri[sel]
+    q, bary_all = _closest_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
+    dq = q - p
+    dist2 = _rowdot(dq, dq)
+    j = int(np.argmin(dist2))
+    face = int(fids[j])
+    point = q[j]
+    bary = bary_all[j]
+    normal = bary @ _vertex_normals(index, cur, index.faces[face])
+    length = math.sqrt(float(normal @ normal))
+    if length < 1e-12:
+        a, b, c = tri[j]
+        normal = _cross((b - a)[None, :], (c - a)[None, :])[0]
+        length = math.sqrt(float(normal @ normal))
+    normal = normal / length if length > 0.0 else np.array([0.0, 0.0, 1.0])
+    dist = math.sqrt(float(dist2[j]))
+    penetration = -dist if float((p - point) @ normal) >= 0.0 else dist
+    return SurfacePoint(point=point, normal=normal, penetration_m=penetration, face=face)
+
+
+def fit_plane(surface: SurfacePoint) -> Plane:
+    """Plane primitive tangent to the current surface at the closest point (section 6, Step 1).
+
+    Parameters
+    ----------
+    surface : SurfacePoint
+
+    Returns
+    -------
+    shared.primitives.Plane
+        Through ``surface.point`` [m] with outward ``surface.normal``.
+    """
+    return make_plane(surface.point.tolist(), surface.normal.tolist())
+
+
+def fit_sphere(
+    surface: SurfacePoint,
+    index: SurfaceIndex,
+    vertices: npt.ArrayLike,
+    radius_m: float,
+    displacement_bound_m: float,
+) -> Plane | Sphere:
+    """Sphere primitive fitted to the local curvature of the current surface (section 6, Step 1).
+
+    The sphere is tangent at ``surface.point`` with outward normal ``surface.normal``; its
+    curvature ``c = 1/R`` is the least-squares fit of the height function ``h = h0 - c r^2 / 2`` of
+    the current vertices within ``radius_m`` (``h`` along the normal, ``r`` tangential distance;
+    ``h0`` absorbs the offset of a proxy inside a flat facet).
+    A concave or nearly flat fit (``R`` > :data:`FLAT_RADIUS_M`), or fewer than 3 neighbours,
+    gives a :class:`~shared.primitives.Plane` instead.
+
+    Parameters
+    ----------
+    surface : SurfacePoint
+    index : SurfaceIndex
+    vertices : (n, 3) float [m], current positions
+    radius_m : float, neighbourhood radius [m] (e.g. the finger-pad patch radius)
+    displacement_bound_m : float, bound [m] on the vertices' distance from rest
+
+    Returns
+    -------
+    shared.primitives.Sphere or shared.primitives.Plane
+
+    Raises
+    ------
+    ValueError
+        ``radius_m`` not finite and positive.
+    """
+    r_fit = float(radius_m)
+    if not (math.isfinite(r_fit) and r_fit > 0.0):
+        raise ValueError(f"radius_m must be finite and > 0, got {radius_m!r}")
+    cur = np.asarray(vertices, dtype=np.float64)
+    p, n = surface.point, surface.normal
+    cand = np.asarray(
+        index.tree.query_ball_point(p, r_fit + max(0.0, float(displacement_bound_m))),
+        dtype=np.int64,
+    )
+    if len(cand) < 3:
+        return fit_plane(surface)
+    d = cur[cand] - p
+    h = d @ n
+    r2 = _rowdot(d, d) - h * h
+    keep = (r2 + h * h <= r_fit * r_fit) & (r2 > 1e-12)
+    if int(keep.sum()) < 3:
+        return fit_plane(surface)
+    h, r2 = h[keep], r2[keep]
+    # least squares h = h0 - (c / 2) r^2: the offset h0 absorbs the facet's sag at the proxy
+    r2_mean, h_mean = float(r2.mean()), float(h.mean())
+    spread = float((r2 - r2_mean) @ (r2 - r2_mean))
+    if spread <= 0.0:
+        return fit_plane(surface)
+    curvature = -2.0 * float((r2 - r2_mean) @ (h - h_mean)) / spread
+    if not math.isfinite(curvature) or curvature <= 1.0 / min(FLAT_RADIUS_M, MAX_RADIUS_M):
+        return fit_plane(surface)
+    radius = max(1.0 / curvature, MIN_RADIUS_M)
+    return make_sphere((p - radius * n).tolist(), radius)
+
+
+def spectral_radius(compliance: npt.ArrayLike, k_h: npt.ArrayLike) -> float:
+    """``rho(C diag(K_h))``: the slow-loop gain of coupled contacts (DESIGN section 6).
+
+    The loop ``x(k+1) = C diag(K_h) (x_h - x(k))`` is asymptotically stable iff this is < 1
+    (for one contact it is K_h / K_o, paper eq. 8).
+
+    Parameters
+    ----------
+    compliance : (m, m) float [m/N], symmetric positive semi-definite
+    k_h : (m,) float [N/m], >= 0
+
+    Returns
+    -------
+    float, dimensionless.
+
+    Raises
+    ------
+    ValueError
+        Shapes mismatch, non-finite entries, negative gains.
+    """
+    c, k = _check_ck(compliance, k_h, "k_h")
+    if len(k) == 0:
+        return 0.0
+    s = np.sqrt(k)
+    return float(max(0.0, np.linalg.eigvalsh(s[:, None] * c * s[None, :])[-1]))
+
+
+def _check_ck(
+    compliance: npt.ArrayLike, k: npt.ArrayLike, name: str
+) -> tuple[FloatArray, FloatArray]:
+    c = np.asarray(compliance, dtype=np.float64)
+    kk = np.asarray(k, dtype=np.float64).reshape(-1)
+    m = len(kk)
+    if c.shape != (m, m):
+        raise ValueError(f"compliance must be ({m}, {m}) for {m} gains, got {c.shape}")
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(kk))):
+        raise ValueError("compliance and gains must be finite")
+    if np.any(kk < 0.0):
+        raise ValueError(f"{name} must be >= 0")
+    return 0.5 * (c + c.T), kk
+
+
+def _coupled_groups(coupled: npt.NDArray[np.bool_]) -> list[IntArray]:
+    """Connected components of a symmetric boolean (m, m) coupling matrix."""
+    m = len(coupled)
+    unseen = np.ones(m, dtype=bool)
+    groups = []
+    for start in range(m):
+        if not unseen[start]:
+            continue
+        members = np.zeros(m, dtype=bool)
+        members[start] = True
+        frontier = members.copy()
+        while frontier.any():
+            new = coupled[frontier].any(axis=0) & ~members
+            members |= new
+            frontier = new
+        unseen &= ~members
+        groups.append(np.flatnonzero(members))
+    return groups
+
+
+def effective_stiffness(compliance: npt.ArrayLike, k_o: npt.ArrayLike) -> FloatArray:
+    """Coupling-aware object stiffness ``K_o_eff <= K_o`` per contact (DESIGN section 6).
+
+    For each group of mutually coupled contacts (connected through non-zero ``C_ij``),
+    ``K_o_eff = K_o / max(1, rho(C diag(K_o)))`` on that group; an uncoupled contact with
+    ``K_o = 1 / C_ii`` keeps ``K_o_eff = K_o``. Since ``C_ii K_o,i = 1``, ``rho(C diag K_o) >= 1`` whenever ``C`` is
+    PSD, and ``rho(C diag K_o_eff) = 1`` on a coupled group.
+
+    Guarantee (monotonicity): if ``0 <= K_h <= K_o_eff`` elementwise then
+    ``rho(C diag K_h) <= 1``, strictly below 1 when ``K_h < K_o_eff`` everywhere. Proof: with
+    ``D = diag(K)``, ``C D`` is similar to the symmetric PSD ``D^1/2 C D^1/2``, so
+    ``rho(C D) = max_x x^T D^1/2 C D^1/2 x / x^T x = max_y y^T C y / y^T D^-1 y`` (``y = D^1/2 x``,
+    for K > 0). ``K_h <= K_o_eff`` gives ``y^T D_h^-1 y >= y^T D_eff^-1 y``, and ``y^T C y >= 0``,
+    so every quotient, hence ``rho(C D_h)``, is at most ``rho(C D_eff) = 1`` (strict when all
+    ``K_h`` are strictly smaller, as then ``y^T D_h^-1 y > y^T D_eff^-1 y``). A zero gain
+    removes its contact from the quotient and cannot raise it.
+
+    Parameters
+    ----------
+    compliance : (m, m) float [m/N]
+        ``C_ij = beta_i^T K^-1 beta_j`` of the contacts taking part (symmetric PSD).
+    k_o : (m,) float [N/m]
+        ``K_o,i = 1 / C_ii`` (or any positive stiffness).
+
+    Returns
+    -------
+    (m,) float64 [N/m]
+
+    Raises
+    ------
+    ValueError
+        Shapes mismatch, non-finite entries, negative stiffness.
+    """
+    c, k = _check_ck(compliance, k_o, "k_o")
+    m = len(k)
+    out = k.copy()
+    if m == 0:
+        return out
+    scale = np.sqrt(np.abs(np.diag(c)))
+    coupled = np.abs(c) > _COUPLING_TOL * np.outer(scale, scale)
+    np.fill_diagonal(coupled, True)
+    for members in _coupled_groups(coupled):
+        rho = spectral_radius(c[np.ix_(members, members)], k[members])
+        if rho > 1.0:
+            out[members] = k[members] / rho
+    return out

@@ -1,0 +1,338 @@
+"""The sans-I/O simulation core: one deformable object, every user's contact, once per tick.
+
+The room calls :meth:`World.tick` once per simulation period N*T with each user's latest probe
+position and last rendered force, and sends each user the returned :class:`ContactOutput`
+(DESIGN section 4). One tick is paper section 6:
+
+1. **Step 3** - each user's last force rendered *on the user* (outward) is applied to the object
+   as a push ``f = max(0, force . n)`` along the inward normal ``-n``, spread over a finger-pad
+   patch at the contact: the proxy of the user's probe on the local model sent last tick (which
+   *is* the current surface near the probe, Step 1), or the exact closest point of the current
+   surface for a new user or a probe that jumped. The force is applied whatever the probe's
+   position relative to that surface: the paper's Step 3 uses "the last force returned to the
+   haptic device", and a surface that overshot past the probe still receives the integral force
+   the local model is ramping down (section 5.1). Gating the load by the server's own geometry
+   instead drops that force at once and turns such an overshoot into a sustained period-2
+   oscillation. Only probes farther than ``reach_m`` outside (a stale or bogus report) push nothing.
+2. The object steps one simulation period (eq. 6 static, or eq. 9 visco-elastic).
+3. **Step 1** - every probe is located on the *new* surface: proxy (closest point), outward normal,
+   signed penetration, and a plane or sphere primitive fitted there.
+4. **Step 2 inputs** - per contact ``K_o = 1 / C_ii``, ``B_o`` (eq. 9) and the coupling-aware
+   ``K_o_eff`` (DESIGN section 6) over the contacts that touch or nearly touch the surface.
+
+Nothing here uses sockets, threads, asyncio or clocks; time advances one tick per call.
+Bad values never crash a tick: a non-finite probe or force skips that user's load, and the
+user's output is computed at the last finite probe (or the top of the object).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from server.contacts import (
+    K_O_MAX,
+    SurfaceIndex,
+    SurfacePoint,
+    closest_point,
+    effective_stiffness,
+    fit_plane,
+    fit_sphere,
+)
+from server.objects import AdmittanceObject
+from shared.primitives import Plane, Sphere
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class ContactInput:
+    """One user's input to a tick.
+
+    Attributes
+    ----------
+    probe : (3,) float [m]
+        Haptic interface point x_h.
+    force : (3,) float [N]
+        The last force the user's device rendered ON THE USER (outward: it pushes the probe out).
+        The object receives the opposite (section 6, Step 3).
+    """
+
+    probe: FloatArray
+    force: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class ContactOutput:
+    """One user's local model for the next ticks (section 6, Steps 1-2).
+
+    Attributes
+    ----------
+    primitive : shared.primitives.Plane or Sphere
+        Local geometric model fitted to the current surface at the proxy.
+    proxy : (3,) float64 [m]
+        Closest point of the current surface to the probe (x_o).
+    normal : (3,) float64
+        Outward unit surface normal at the proxy.
+    penetration_m : float
+        Signed depth of the probe past the surface [m], positive inside.
+    k_o : float
+        Object stiffness at the contact, ``1 / C_ii`` [N/m] (paper eq. 6-8).
+    k_o_eff : float
+        Coupling-aware stiffness [N/m], ``<= k_o`` (DESIGN section 6): choosing ``K_h < k_o_eff``
+        keeps the coupled slow loop of all nearby contacts stable.
+    b_o : float
+        Object damping divided by the simulation period [N/m] (paper eq. 9); 0 without damping.
+    in_contact : bool
+        ``penetration_m > 0``.
+    """
+
+    primitive: Plane | Sphere
+    proxy: FloatArray
+    normal: FloatArray
+    penetration_m: float
+    k_o: float
+    k_o_eff: float
+    b_o: float
+    in_contact: bool
+
+
+#: A probe that moved more than this [m] since last tick is located exactly before loading.
+_RELOCATE_M = 0.01
+
+
+@dataclass(frozen=True, eq=False)
+class _UserState:
+    """What the world remembers of a user between ticks: last finite probe, primitive, patch."""
+
+    probe: FloatArray
+    primitive: Plane | Sphere
+    key: int
+
+
+def _finite3(value: object) -> FloatArray | None:
+    """The value as a (3,) float64 array if it is 3 finite numbers, else None."""
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return None
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        return None
+    return arr
+
+
+class World:
+    """The authoritative simulation: one admittance object and every user's contact.
+
+    Parameters
+    ----------
+    obj : AdmittanceObject
+        The deformable object, e.g. :class:`server.objects.balloon.Balloon`.
+    primitive : {"plane", "sphere"}
+        Local geometric model sent to users (a sphere falls back to a plane where the surface
+        is flat or concave).
+    proximity_m : float
+        Contacts within this distance [m] outside the surface (or inside it) take part in the
+        coupled stability of ``k_o_eff``.
+    reach_m : float
+        A reported force is applied (Step 3) unless the probe is more than this [m] outside the
+        local model it was rendered against.
+
+    Raises
+    ------
+    ValueError
+        Unknown primitive, or ``proximity_m`` or ``reach_m`` not finite and >= 0.
+    """
+
+    def __init__(
+        self,
+        obj: AdmittanceObject,
+        primitive: Literal["plane", "sphere"] = "plane",
+        proximity_m: float = 0.005,
+        reach_m: float = 0.03,
+    ) -> None:
+        if primitive not in ("plane", "sphere"):
+            raise ValueError(f"primitive must be 'plane' or 'sphere', got {primitive!r}")
+        prox = float(proximity_m)
+        if not (math.isfinite(prox) and prox >= 0.0):
+            raise ValueError(f"proximity_m must be finite and >= 0, got {proximity_m!r}")
+        self.obj = obj
+        self.primitive: Literal["plane", "sphere"] = primitive
+        self.proximity_m = prox
+        reach = float(reach_m)
+        if not (math.isfinite(reach) and reach >= 0.0):
+            raise ValueError(f"reach_m must be finite and >= 0, got {reach_m!r}")
+        self.reach_m = reach
+        self._index = SurfaceIndex.build(obj.rest_vertices, obj.faces)
+        self._faces = np.ascontiguousarray(obj.faces, dtype=np.int32)
+        self._faces.setflags(write=False)
+        rest = self._index.rest_vertices
+        lo, hi = rest.min(axis=0), rest.max(axis=0)
+        self._bounds = np.stack([lo, hi])
+        self._center = 0.5 * (lo + hi)
+        self._radius = float(np.max(np.linalg.norm(rest - self._center, axis=1)))
+        self._current = np.asarray(obj.vertices, dtype=np.float64)
+        self._bound = float(obj.max_displacement_m)
+        self._tick = 0
+        self._users: dict[str, _UserState] = {}
+
+    # ------------------------------------------------------------------ state
+    @property
+    def vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] current surface vertices (read-only view, replaced each tick)."""
+        view = self._current.view()
+        view.setflags(write=False)
+        return view
+
+    @property
+    def faces(self) -> npt.NDArray[np.int32]:
+        """(m, 3) int32 triangle vertex indices, outward winding."""
+        return self._faces
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of surface vertices n."""
+        return len(self._current)
+
+    @property
+    def tick_count(self) -> int:
+        """Ticks simulated so far."""
+        return self._tick
+
+    @property
+    def sim_period_s(self) -> float:
+        """Simulation period N*T [s] of one tick."""
+        return float(self.obj.sim_period_s)
+
+    @property
+    def rest_center(self) -> FloatArray:
+        """(3,) float64 [m] centre of the rest bounding box."""
+        return self._center.copy()
+
+    @property
+    def rest_radius_m(self) -> float:
+        """Largest distance [m] of a rest vertex from :attr:`rest_center`."""
+        return self._radius
+
+    @property
+    def rest_bounds(self) -> FloatArray:
+        """(2, 3) float64 [m] rest bounding box ``[min, max]``; the top is ``max[2]``."""
+        return self._bounds.copy()
+
+    # ------------------------------------------------------------------ tick
+    def _locate(self, probe: FloatArray) -> SurfacePoint:
+        return closest_point(self._index, self._current, probe, self._bound)
+
+    def _probe_for(self, name: str, inp: ContactInput) -> FloatArray:
+        probe = _finite3(getattr(inp, "probe", None))
+        if probe is not None:
+            return probe
+        last = self._users.get(name)
+        if last is not None:
+            return last.probe
+        return self._center + np.array([0.0, 0.0, self._radius + self.proximity_m + 0.01])
+
+    def _load_point(self, name: str, probe: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+        """Where the user's force acts this tick: ``(point, outward normal, penetration)``.
+
+        The local model the user's device rendered against (sent last tick) is the current
+        surface near the probe (section 6, Step 1), so its proxy and normal at the probe are the
+        contact. A user without one, or whose probe jumped more than ``_RELOCATE_M`` since, is
+        located exactly on the current surface.
+        """
+        user = self._users.get(name)
+        if user is not None:
+            jump = probe - user.probe
+            if float(jump @ jump) <= _RELOCATE_M**2:
+                prim = user.primitive
+                e, nx, ny, nz = prim.contact(float(probe[0]), float(probe[1]), float(probe[2]))
+                proxy = np.asarray(prim.proxy(float(probe[0]), float(probe[1]), float(probe[2])))
+                return proxy, np.array([nx, ny, nz]), e
+        here = self._locate(probe)
+        return here.point, here.normal, here.penetration_m
+
+    def tick(self, inputs: Mapping[str, ContactInput]) -> dict[str, ContactOutput]:
+        """Apply every user's force, step the object one period, and fit every local model.
+
+        Parameters
+        ----------
+        inputs : mapping user id -> ContactInput
+            Users absent from the mapping neither push nor get an output (their state is
+            forgotten).
+
+        Returns
+        -------
+        dict user id -> ContactOutput, same keys (and order) as ``inputs``.
+        """
+        names = list(inputs)
+        # Step 3: each user's last rendered force, opposite, on the object at its contact.
+        keys: list[int] = []
+        forces: list[float] = []
+        for name in names:
+            inp = inputs[name]
+            probe = _finite3(getattr(inp, "probe", None))
+            force = _finite3(getattr(inp, "force", None))
+            if probe is None or force is None:
+                continue
+            point, normal, penetration = self._load_point(name, probe)
+            if penetration <= -self.reach_m:
+                continue
+            push = float(force @ normal)
+            if push > 0.0:
+                user = self._users.get(name)
+                keys.append(self.obj.patch_key(point, user.key if user is not None else None))
+                forces.append(push)
+        self.obj.step(keys, forces)
+        self._current = np.asarray(self.obj.vertices, dtype=np.float64)
+        self._bound = float(self.obj.max_displacement_m)
+        self._tick += 1
+        if not names:
+            self._users.clear()
+            return {}
+
+        # Step 1: every probe on the new surface.
+        probes = [self._probe_for(name, inputs[name]) for name in names]
+        located = [self._locate(probe) for probe in probes]
+        patch_keys = []
+        for name, s in zip(names, located, strict=True):
+            user = self._users.get(name)
+            patch_keys.append(self.obj.patch_key(s.point, user.key if user is not None else None))
+        # Step 2 inputs: K_o, B_o and the coupling-aware K_o_eff.
+        compliance = self.obj.contact_compliance(patch_keys)
+        diag = np.diag(compliance)
+        k_o = np.where(diag > 1.0 / K_O_MAX, 1.0 / np.maximum(diag, 1e-300), K_O_MAX)
+        b_o = np.asarray(self.obj.contact_damping(patch_keys), dtype=np.float64)
+        pen = np.array([s.penetration_m for s in located])
+        near = np.flatnonzero(pen > -self.proximity_m)
+        k_eff = k_o.copy()
+        if len(near):
+            k_eff[near] = effective_stiffness(compliance[np.ix_(near, near)], k_o[near])
+
+        out: dict[str, ContactOutput] = {}
+        users: dict[str, _UserState] = {}
+        for i, (name, s) in enumerate(zip(names, located, strict=True)):
+            prim: Plane | Sphere
+            if self.primitive == "sphere":
+                prim = fit_sphere(
+                    s, self._index, self._current, self.obj.patch_radius_m, self._bound
+                )
+            else:
+                prim = fit_plane(s)
+            users[name] = _UserState(probe=probes[i], primitive=prim, key=patch_keys[i])
+            out[name] = ContactOutput(
+                primitive=prim,
+                proxy=s.point,
+                normal=s.normal,
+                penetration_m=float(s.penetration_m),
+                k_o=float(k_o[i]),
+                k_o_eff=float(k_eff[i]),
+                b_o=float(b_o[i]),
+                in_contact=bool(s.penetration_m > 0.0),
+            )
+        self._users = users
+        return out
