@@ -131,6 +131,16 @@ _DOCS = {
 }
 
 
+def _js(value: Any) -> str:
+    """A JSON literal, one top-level entry per line (stable and diff-friendly)."""
+    if isinstance(value, dict) and value:
+        items = [
+            f"  {json.dumps(k)}: {json.dumps(v, ensure_ascii=False)}" for k, v in value.items()
+        ]
+        return "{\n" + ",\n".join(items) + ",\n}"
+    return json.dumps(value, ensure_ascii=False)
+
+
 def generate() -> str:
     """The full text of web/protocol.js (deterministic: same schema, same bytes)."""
     lines = [
@@ -139,8 +149,7 @@ def generate() -> str:
         " docs/protocol.md.\n",
     ]
     for name, value in schema().items():
-        text = json.dumps(value, indent=2, ensure_ascii=False)
-        frozen = f"Object.freeze({text})" if isinstance(value, dict | list) else text
+        frozen = f"Object.freeze({_js(value)})" if isinstance(value, dict | list) else _js(value)
         lines.append(f"\n/** {_DOCS[name]} */\nexport const {name} = {frozen};\n")
     return "".join(lines)
 

@@ -1,0 +1,442 @@
+"""The browser viewer against the real server: HTTP serving, and a live page in Debian's chromium.
+
+The browser tests start the real server in-process (World -> Room -> ServerApp on a free port),
+connect two scripted haptic users over real websockets that close the loop through the server
+(each renders ``k_h * penetration`` against the patch it last received and reports it back), and
+drive /usr/bin/chromium through Playwright. They are skipped, with the reason, when chromium, the
+playwright package or web/node_modules/three is missing. Every wait is bounded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib.util
+import io
+import json
+import math
+import os
+import re
+import urllib.request
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from websockets.asyncio.client import ClientConnection, connect
+
+from shared.protocol import PROTOCOL_VERSION
+
+ROOT = Path(__file__).resolve().parents[2]
+WEB = ROOT / "web"
+THREE_MODULE = WEB / "node_modules" / "three" / "build" / "three.module.js"
+#: The README's screenshot is refreshed only on request: HAPTIC_UPDATE_SCREENSHOT=1 pytest tests/web
+SCREENSHOT = ROOT / "docs" / "viewer.png"
+UPDATE_SCREENSHOT = os.environ.get("HAPTIC_UPDATE_SCREENSHOT") == "1"
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    # WebGL through SwiftShader, so that the canvas is really drawn headless
+    "--use-gl=angle",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+]
+VIEW_W, VIEW_H = 1280, 760
+
+SIM_RATE_HZ = 20.0
+STATE_RATE_HZ = 40.0
+PROBE_SPEED_M_PER_S = 0.02  # how fast a scripted hand moves its probe toward its target
+MAX_FORCE_N = 5.0
+
+needs_three = pytest.mark.skipif(
+    not THREE_MODULE.is_file(),
+    reason="web/node_modules/three is missing: run `make web-install` (npm ci in web/)",
+)
+
+
+def _browser_skip_reason() -> str | None:
+    if not CHROMIUM.is_file():
+        return "Debian's chromium is not installed at /usr/bin/chromium (`make browser`)"
+    if importlib.util.find_spec("playwright") is None:
+        return "the playwright Python package is not installed (pip install -e '.[dev]')"
+    if not THREE_MODULE.is_file():
+        return "web/node_modules/three is missing: run `make web-install` (npm ci in web/)"
+    return None
+
+
+# ----------------------------------------------------------------------------- the real server
+def _world(subdivisions: int) -> Any:
+    from server.objects.balloon import Balloon, BalloonParams
+    from server.objects.mesh import default_balloon
+    from server.world import World
+
+    mesh = default_balloon(subdivisions=subdivisions)
+    return World(Balloon(mesh, BalloonParams(sim_period_s=1.0 / SIM_RATE_HZ)))
+
+
+@contextlib.asynccontextmanager
+async def running_server(subdivisions: int = 4, port: int = 0) -> AsyncIterator[Any]:
+    """The real server (World, Room, ServerApp) on 127.0.0.1, a free port unless ``port``."""
+    from server.app import ServerApp
+    from server.room import Room
+
+    app = ServerApp(Room(_world(subdivisions), SIM_RATE_HZ), "127.0.0.1", port)
+    await app.start()
+    try:
+        yield app
+    finally:
+        await app.stop()
+
+
+def _get(url: str) -> tuple[int, str, bytes]:
+    with urllib.request.urlopen(url, timeout=10) as res:  # loopback only
+        return res.status, res.headers.get("Content-Type", ""), res.read()
+
+
+# ----------------------------------------------------------------------------- scripted users
+class ScriptedUser:
+    """A haptic user without a device: a probe scripted along the normal of an anchor point.
+
+    ``depth_m`` is how far the probe is inside the *rest* surface along the anchor's inward
+    normal (negative: outside); it moves toward ``target_m`` at :data:`PROBE_SPEED_M_PER_S`.
+    At :data:`STATE_RATE_HZ` it sends a ``state`` with the force a proportional local model
+    renders against the last patch: ``f = k_h * max(e, 0) * n``, ``k_h = 0.5 * k_o_eff``, with
+    ``e`` the penetration into the patch primitive. The loop closes through the server.
+    """
+
+    def __init__(self, name: str, anchor: str, depth_m: float) -> None:
+        self.name = name
+        self.anchor = anchor
+        self.depth_m = depth_m
+        self.target_m = depth_m
+        self.force_n = 0.0
+        self.patch: dict[str, Any] | None = None
+        self.errors: list[dict[str, Any]] = []
+        self.welcomed = asyncio.Event()
+
+    def _contact(self, probe: np.ndarray) -> tuple[float, np.ndarray]:
+        """Penetration [m] into the last patch's primitive and its outward normal at the probe."""
+        assert self.patch is not None
+        prim = self.patch["primitive"]
+        if prim["kind"] == "sphere":
+            d = probe - np.asarray(prim["center"], float)
+            dist = float(np.linalg.norm(d))
+            return float(prim["radius"]) - dist, d / max(dist, 1e-12)
+        n = np.asarray(prim["normal"], float)
+        return float((np.asarray(prim["point"], float) - probe) @ n), n
+
+    async def _receive(self, ws: ClientConnection) -> None:
+        async for frame in ws:
+            if isinstance(frame, bytes):
+                continue
+            msg = json.loads(frame)
+            if msg["type"] == "patch":
+                self.patch = msg
+            elif msg["type"] == "error":
+                self.errors.append(msg)
+
+    async def run(self, port: int, stop: asyncio.Event) -> None:
+        """Connect, say hello, then send states until ``stop`` is set."""
+        async with connect(f"ws://127.0.0.1:{port}/ws", open_timeout=10) as ws:
+            hello = {
+                "type": "hello",
+                "protocol": PROTOCOL_VERSION,
+                "role": "user",
+                "name": self.name,
+                "device": {"profile": "scripted", "max_force_n": 7.9},
+                "servo_rate_hz": 1000.0,
+                "local_model": "p",
+            }
+            await ws.send(json.dumps(hello))
+            welcome = json.loads(await asyncio.wait_for(ws.recv(), 10))
+            assert welcome["type"] == "welcome", welcome
+            obj = welcome["object"]
+            point = np.asarray(obj[f"{self.anchor}_m"], float)
+            inward = -np.asarray(obj[f"{self.anchor}_normal"], float)
+            self.welcomed.set()
+            receiver = asyncio.create_task(self._receive(ws))
+            loop = asyncio.get_running_loop()
+            period = 1.0 / STATE_RATE_HZ
+            step = PROBE_SPEED_M_PER_S * period
+            t_next = loop.time()
+            seq = 0
+            try:
+                while not stop.is_set() and not receiver.done():
+                    self.depth_m += max(-step, min(step, self.target_m - self.depth_m))
+                    probe = point + inward * self.depth_m
+                    e, n, k_h = 0.0, -inward, 0.0
+                    if self.patch is not None:
+                        e, n = self._contact(probe)
+                        k_h = 0.5 * float(self.patch["k_o_eff"])
+                    f = min(k_h * max(e, 0.0), MAX_FORCE_N)
+                    self.force_n = f
+                    seq += 1
+                    state = {
+                        "type": "state",
+                        "seq": seq,
+                        "probe_m": probe.tolist(),
+                        "force_n": (f * n).tolist(),
+                        "penetration_m": e,
+                        "in_contact": e > 0.0,
+                        "k_h": k_h,
+                        "servo_rate_hz": 1000.0,
+                        "rtt_ms": 1.0,
+                        "patch_tick": self.patch["tick"] if self.patch else -1,
+                    }
+                    await ws.send(json.dumps(state))
+                    t_next += period
+                    await asyncio.sleep(max(0.0, t_next - loop.time()))
+            finally:
+                receiver.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await receiver
+
+
+@contextlib.asynccontextmanager
+async def scripted_users(port: int, *users: ScriptedUser) -> AsyncIterator[None]:
+    """Run the users for the duration of the block; re-raise the first failure of any of them."""
+    stop = asyncio.Event()
+    tasks = [asyncio.create_task(u.run(port, stop)) for u in users]
+    try:
+        await asyncio.wait_for(asyncio.gather(*(u.welcomed.wait() for u in users)), 10)
+        yield
+    finally:
+        stop.set()
+        done = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 10)
+    for res in done:
+        if isinstance(res, BaseException):
+            raise res
+    for u in users:
+        assert not u.errors, f"server refused user {u.name}: {u.errors}"
+
+
+# ----------------------------------------------------------------------------- fast tests
+async def test_http_serves_viewer_page() -> None:
+    async with running_server(subdivisions=2) as app:
+        base = f"http://127.0.0.1:{app.port}"
+        status, ctype, body = await asyncio.to_thread(_get, base + "/")
+        assert status == 200
+        assert ctype.startswith("text/html")
+        html = body.decode()
+        assert '<script type="module" src="/viewer.js">' in html
+        m = re.search(r'<script type="importmap">(.*?)</script>', html, re.S)
+        assert m, "index.html needs an import map for three"
+        imports = json.loads(m.group(1))["imports"]
+        assert imports["three"] == "/vendor/three/build/three.module.js"
+        assert imports["three/addons/"] == "/vendor/three/examples/jsm/"
+        for path in ("/viewer.js", "/protocol.js"):
+            status, ctype, body = await asyncio.to_thread(_get, base + path)
+            assert status == 200 and ctype.startswith("text/javascript"), (path, ctype)
+        status, ctype, _ = await asyncio.to_thread(_get, base + "/style.css")
+        assert status == 200 and ctype.startswith("text/css")
+
+
+@needs_three
+async def test_http_serves_three_and_every_addon_the_viewer_imports() -> None:
+    viewer = (WEB / "viewer.js").read_text(encoding="utf-8")
+    addons = re.findall(r'from "three/addons/([^"]+)"', viewer)
+    assert addons, "viewer.js imports OrbitControls and friends from three/addons/"
+    paths = ["/vendor/three/build/three.module.js"]
+    paths += [f"/vendor/three/examples/jsm/{a}" for a in addons]
+    async with running_server(subdivisions=2) as app:
+        for path in paths:
+            status, ctype, body = await asyncio.to_thread(
+                _get, f"http://127.0.0.1:{app.port}{path}"
+            )
+            assert status == 200, path
+            assert "javascript" in ctype, (path, ctype)
+            assert b"export" in body, path
+
+
+# ----------------------------------------------------------------------------- browser tests
+_READY = """() => {
+  const s = window.viewerState;
+  return !!(s && s.connected && s.frames >= 3 && s.renders >= 1 && s.users.A && s.users.B
+            && s.users.B.in_contact && s.users.B.force_n_mag > 0);
+}"""
+
+# Pixels of the WebGL canvas itself (it is transparent where nothing is drawn), in the middle of
+# the part of the window the user panel leaves free: how many are drawn, how many balloon-blue.
+_CANVAS_PIXELS = """() => {
+  const c = document.querySelector("#scene canvas");
+  const sx = c.width / c.clientWidth;
+  const panel = document.getElementById("users").getBoundingClientRect();
+  const right = Math.min(c.width, panel.left * sx);
+  const x0 = Math.floor(right * 0.35), x1 = Math.floor(right * 0.65);
+  const y0 = Math.floor(c.height * 0.35), y1 = Math.floor(c.height * 0.65);
+  const cv = document.createElement("canvas");
+  cv.width = x1 - x0;
+  cv.height = y1 - y0;
+  const g = cv.getContext("2d");
+  g.drawImage(c, x0, y0, cv.width, cv.height, 0, 0, cv.width, cv.height);
+  const d = g.getImageData(0, 0, cv.width, cv.height).data;
+  let drawn = 0, blue = 0;
+  for (let i = 0; i < d.length; i += 4) {
+    if (d[i + 3] < 16) continue;
+    drawn++;
+    if (d[i + 2] > 90 && d[i + 2] > d[i] + 30) blue++;
+  }
+  return { total: d.length / 4, drawn, blue };
+}"""
+
+
+async def _viewer_users(page: Any) -> dict[str, dict[str, Any]]:
+    users: dict[str, dict[str, Any]] = await page.evaluate("() => window.viewerState.users")
+    return users
+
+
+async def _sample_force(page: Any, name: str, n: int, interval_s: float) -> list[float]:
+    out = []
+    for _ in range(n):
+        out.append(float((await _viewer_users(page))[name]["force_n_mag"]))
+        await asyncio.sleep(interval_s)
+    return out
+
+
+def _blue_fraction_of_screenshot(png: bytes, right_px: float) -> float | None:
+    """Balloon-blue share of the middle of the free area of a screenshot; None without PIL."""
+    try:
+        from PIL import Image
+    except ImportError:
+        return None
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+    h = img.shape[0]
+    x0, x1 = int(right_px * 0.35), int(right_px * 0.65)
+    mid = img[int(h * 0.35) : int(h * 0.65), x0:x1]
+    r, b = mid[..., 0], mid[..., 2]
+    return float(np.mean((b > 110) & (b > r + 40)))
+
+
+@pytest.mark.browser
+@pytest.mark.timeout(120)
+async def test_viewer_shows_balloon_users_and_coupled_force() -> None:
+    """A presses the top; the force the viewer shows for B, resting on the side, rises."""
+    reason = _browser_skip_reason()
+    if reason:
+        pytest.skip(reason)
+    from playwright.async_api import async_playwright
+
+    a = ScriptedUser("A", "top", depth_m=-0.005)  # hovering 5 mm above the top
+    b = ScriptedUser("B", "side", depth_m=0.002)  # resting 2 mm inside the side
+    async with (
+        running_server() as app,
+        scripted_users(app.port, a, b),
+        async_playwright() as pw,
+    ):
+        browser = await pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            page = await browser.new_page(viewport={"width": VIEW_W, "height": VIEW_H})
+            problems: list[str] = []
+            page.on("pageerror", lambda exc: problems.append(f"page error: {exc}"))
+            page.on(
+                "console",
+                lambda m: problems.append(f"console: {m.text}") if m.type == "error" else None,
+            )
+            await page.goto(f"http://127.0.0.1:{app.port}/", wait_until="domcontentloaded")
+            await page.wait_for_function(_READY, timeout=30_000)
+
+            # header and connection indicator
+            assert await page.locator("#conn").get_attribute("class") == "conn connected"
+            assert await page.locator("#s-rate").inner_text() == f"{SIM_RATE_HZ:.0f}"
+
+            # B at rest, A not touching yet: B's force settles
+            await asyncio.sleep(1.0)
+            before = await _sample_force(page, "B", n=5, interval_s=0.1)
+            baseline = sum(before) / len(before)
+            assert baseline > 0.0
+            assert (await _viewer_users(page))["A"]["force_n_mag"] == 0.0
+
+            # A presses 15 mm into the top: the water pushes the side out into B's probe
+            a.target_m = 0.015
+            peak = baseline
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + 15.0
+            while loop.time() < deadline:
+                users = await _viewer_users(page)
+                peak = max(peak, float(users["B"]["force_n_mag"]))
+                if peak >= 1.15 * baseline and users["A"]["penetration_mm"] > 5.0:
+                    break
+                await asyncio.sleep(0.1)
+            users = await _viewer_users(page)
+            assert peak >= 1.10 * baseline, (
+                f"B's force shown by the viewer went {baseline:.3f} -> {peak:.3f} N "
+                f"while A pressed (expected a rise of at least 10 %)"
+            )
+            assert users["A"]["in_contact"] and users["A"]["force_n_mag"] > 0.3, users["A"]
+            assert users["A"]["penetration_mm"] > 1.0, users["A"]
+            assert users["B"]["k_o"] > 0 and users["B"]["k_o_eff"] > 0 and users["B"]["k_h"] > 0
+
+            # both users have a panel showing their force
+            await page.wait_for_timeout(300)
+            cards = page.locator("#user-list section.user")
+            assert await cards.count() == 2
+            for name in ("A", "B"):
+                card = page.locator(f'#user-list section.user[data-user-name="{name}"]')
+                assert await card.locator(".name").inner_text() == name
+                shown = float(await card.locator(".force-value").inner_text())
+                assert math.isfinite(shown) and shown > 0.0
+                assert "scripted" in await card.locator(".device").inner_text()
+
+            # the balloon is drawn, in the middle of the free area
+            pixels = await page.evaluate(_CANVAS_PIXELS)
+            assert pixels["drawn"] >= 0.9 * pixels["total"], pixels
+            assert pixels["blue"] >= 0.5 * pixels["total"], pixels
+
+            png = await page.screenshot(type="png")
+            panel_left = await page.evaluate(
+                "() => document.getElementById('users').getBoundingClientRect().left"
+            )
+            blue = _blue_fraction_of_screenshot(png, panel_left)
+            if blue is not None:
+                assert blue >= 0.5, f"only {blue:.0%} of the view centre is balloon-blue"
+            if UPDATE_SCREENSHOT:
+                SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+                SCREENSHOT.write_bytes(png)
+            assert not problems, problems
+        finally:
+            await browser.close()
+
+
+@pytest.mark.browser
+@pytest.mark.timeout(90)
+async def test_viewer_reconnects_after_server_restart() -> None:
+    """The socket closes (server restarted on the same port): the page reconnects by itself."""
+    reason = _browser_skip_reason()
+    if reason:
+        pytest.skip(reason)
+    from playwright.async_api import async_playwright
+
+    async with async_playwright() as pw:
+        browser = await pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        try:
+            page = await browser.new_page(viewport={"width": VIEW_W, "height": VIEW_H})
+            async with running_server(subdivisions=2) as app:
+                port = app.port
+                await page.goto(f"http://127.0.0.1:{port}/", wait_until="domcontentloaded")
+                await page.wait_for_function(
+                    "() => window.viewerState && window.viewerState.connected"
+                    " && window.viewerState.frames > 0",
+                    timeout=30_000,
+                )
+            await page.wait_for_function("() => !window.viewerState.connected", timeout=10_000)
+            assert await page.locator("#conn").get_attribute("class") == "conn reconnecting"
+            async with running_server(subdivisions=2, port=port):
+                await page.wait_for_function(
+                    "() => window.viewerState.connected && window.viewerState.reconnects >= 1",
+                    timeout=20_000,
+                )
+                frames = await page.evaluate("() => window.viewerState.frames")
+                await page.wait_for_function(
+                    f"() => window.viewerState.frames > {frames}", timeout=10_000
+                )
+                assert await page.locator("#conn").get_attribute("class") == "conn connected"
+        finally:
+            await browser.close()
