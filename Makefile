@@ -34,7 +34,7 @@ browser:
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/ruff format --check shared server client tests haptic_cli.py
+	$(BIN)/ruff format --check shared server client tests haptic_cli.py haptic_demo.py
 
 typecheck: $(STAMP)
 	$(BIN)/mypy

@@ -239,6 +239,7 @@ class ClientSession:
         msg = parse_server(frame)
         if isinstance(msg, Welcome):
             self.welcome = msg
+            self.last_patch = None  # a new session: its ticks start afresh
             return None
         if isinstance(msg, Pong):
             rtt = now_s - msg.t_client_s

@@ -131,6 +131,7 @@ class ServerApp:
             process_request=self._process_request,
             max_size=WS_MAX_SIZE,
             max_queue=64,
+            close_timeout=1.0,
             ping_interval=5.0,
             ping_timeout=10.0,
         )

@@ -21,7 +21,7 @@ import math
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -314,7 +314,9 @@ class Room:
         out = [
             Outgoing(
                 conn.conn_id,
-                _welcome(conn.user_id, name, msg.role, self.sim_rate_hz, self.object_info, self.link),
+                _welcome(
+                    conn.user_id, name, msg.role, self.sim_rate_hz, self.object_info, self.link
+                ),
             )
         ]
         if msg.role == "viewer":
@@ -422,14 +424,19 @@ class Room:
 
 
 def _welcome(
-    user_id: str, name: str, role: str, sim_rate_hz: float, info: ObjectInfo, link: LinkConditions
+    user_id: str,
+    name: str,
+    role: Literal["user", "viewer"],
+    sim_rate_hz: float,
+    info: ObjectInfo,
+    link: LinkConditions,
 ) -> str:
     from shared.protocol import Welcome
 
     return encode(
         Welcome(
             user_id=user_id, name=name, role=role, sim_rate_hz=sim_rate_hz, object=info, link=link
-        )  # type: ignore[arg-type]
+        )
     )
 
 

@@ -123,7 +123,9 @@ def test_hostile_frame_gets_an_error_and_the_others_are_unaffected(room, frame, 
 
 def test_wrong_protocol_version_and_missing_hello_close_only_that_connection(room):
     room.connect("x", 0.0)
-    outs = room.receive("x", json.dumps({"type": "hello", "protocol": 99, "role": "user", "name": "X"}), 0.0)
+    outs = room.receive(
+        "x", json.dumps({"type": "hello", "protocol": 99, "role": "user", "name": "X"}), 0.0
+    )
     assert texts(outs, "x")[0]["code"] == "protocol_version" and outs[0].close
     room.connect("y", 0.0)
     outs = room.receive("y", state(1), 0.0)

@@ -1,0 +1,18 @@
+# One image for the server (viewer included) and the simulated clients.
+FROM python:3.11-slim
+
+RUN apt-get update && apt-get install -y --no-install-recommends nodejs npm libhidapi-hidraw0 \
+    && rm -rf /var/lib/apt/lists/*
+
+WORKDIR /app
+COPY pyproject.toml README.md haptic_cli.py haptic_demo.py ./
+COPY shared ./shared
+COPY server ./server
+COPY client ./client
+RUN pip install --no-cache-dir .
+COPY web ./web
+RUN cd web && npm ci --no-audit --no-fund
+
+EXPOSE 8765
+ENTRYPOINT ["haptic"]
+CMD ["server", "--host", "0.0.0.0", "--port", "8765"]

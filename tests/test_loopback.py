@@ -1,0 +1,231 @@
+"""End to end over real websockets on loopback: real server, real clients with 1 kHz servo threads.
+
+- Two users feel each other: A presses 10 mm into the top of the balloon while B rests on its side;
+  B's surface moves outward and the force B's local model renders rises by at least 20 %.
+- A hostile connection (garbage, NaN, huge forces, oversized frames, a flood) gets clear errors and
+  is closed where it must be, while a well-behaved user keeps getting patches every tick.
+- Link loss in the middle of a press ramps the client's force to zero within the timeout, and the
+  client rejoins when the server comes back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+from client.app import ClientOptions, run_client
+from client.servo import ServoConfig
+from server.app import ServerApp
+from server.main import ServerOptions, build_world
+from server.room import Room
+
+pytestmark = pytest.mark.slow
+
+SIM_RATE = 20.0
+
+
+async def start_server(port: int = 0, subdivisions: int = 4) -> ServerApp:
+    world = build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=subdivisions))
+    app = ServerApp(Room(world, SIM_RATE), "127.0.0.1", port)
+    await app.start()
+    return app
+
+
+def load_csv(path):
+    with open(path) as f:
+        header = f.readline().strip().split(",")
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    return {h: data[:, i] for i, h in enumerate(header)}
+
+
+def along(cols, prefix, normal):
+    v = np.stack([cols[f"{prefix}_x_m"], cols[f"{prefix}_y_m"], cols[f"{prefix}_z_m"]], axis=1)
+    return v @ np.asarray(normal)
+
+
+async def test_two_users_feel_each_other_over_websockets(tmp_path):
+    app = await start_server()
+    url = f"ws://127.0.0.1:{app.port}/ws"
+    info = app.room.object_info
+    # A: hand waits 3 s, approaches 1 s, presses 1.5 s to a target ~20 mm in, holds 4 s
+    a_opts = ClientOptions(
+        url=url, name="A", device="sim:press", duration_s=11.0, record=tmp_path / "A.csv",
+        trajectory={"delay_s": 3.0, "approach_s": 1.0, "press_s": 1.5, "hold_s": 4.0, "release_s": 1.0},
+    )  # fmt: skip
+    b_opts = ClientOptions(
+        url=url, name="B", device="sim:rest", duration_s=11.0, record=tmp_path / "B.csv"
+    )
+    try:
+        a_sum, b_sum = await asyncio.gather(run_client(a_opts), run_client(b_opts))
+    finally:
+        await app.stop()
+    a, b = load_csv(tmp_path / "A.csv"), load_csv(tmp_path / "B.csv")
+    shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
+    b["t_s"] = b["t_s"] + shift
+    hold_end = 3.0 + 1.0 + 1.5 + 4.0
+    during_a = (a["t_s"] > hold_end - 1.0) & (a["t_s"] < hold_end)
+    during_b = (b["t_s"] > hold_end - 1.0) & (b["t_s"] < hold_end)
+    before_b = (b["t_s"] > 1.8) & (b["t_s"] < 2.8)
+    # A pushed about 10 mm into the top (probe below the rest top surface)
+    a_depth = info.top_m[2] - np.mean(a["probe_z_m"][during_a])
+    assert 0.006 < a_depth < 0.016, a_depth
+    # B's surface moved outward and B's rendered force rose by at least 20 %
+    side_n = np.array(info.side_normal)
+    proxy_before = np.mean(along(b, "proxy", side_n)[before_b])
+    proxy_during = np.mean(along(b, "proxy", side_n)[during_b])
+    assert proxy_during - proxy_before > 0.0003, (proxy_before, proxy_during)
+    f_before = np.mean(b["force_n"][before_b])
+    f_during = np.mean(b["force_n"][during_b])
+    assert f_before > 0.05  # B really rests on the balloon
+    assert f_during >= 1.2 * f_before, (f_before, f_during)
+    # both held a stable contact: no sustained oscillation over the last second of the hold
+    for cols, mask in ((a, during_a), (b, during_b)):
+        pen = cols["penetration_m"][mask]
+        assert np.ptp(pen) < 0.001
+    assert a_sum["patches"] > 100 and b_sum["patches"] > 100
+
+
+async def _good_user(url: str, seconds: float) -> list[int]:
+    """A scripted, well-behaved user resting 2 mm into the top; returns the patch ticks it got."""
+    ticks: list[int] = []
+    async with connect(url) as ws:
+        await ws.send(json.dumps({"type": "hello", "protocol": 1, "role": "user", "name": "good"}))
+        welcome = json.loads(await ws.recv())
+        top = welcome["object"]["top_m"]
+        probe = [top[0], top[1], top[2] - 0.002]
+        t_end = time.monotonic() + seconds
+        seq = 0
+
+        async def send() -> None:
+            nonlocal seq
+            while time.monotonic() < t_end:
+                seq += 1
+                await ws.send(
+                    json.dumps(
+                        {"type": "state", "seq": seq, "probe_m": probe, "force_n": [0, 0, 0.3]}
+                    )
+                )
+                await asyncio.sleep(0.025)
+
+        sender = asyncio.create_task(send())
+        with contextlib.suppress(TimeoutError):
+            while time.monotonic() < t_end:
+                msg = await asyncio.wait_for(ws.recv(), max(0.01, t_end - time.monotonic()))
+                if isinstance(msg, str):
+                    m = json.loads(msg)
+                    assert m["type"] != "error", m
+                    if m["type"] == "patch":
+                        assert all(math.isfinite(x) for x in m["proxy_m"])
+                        ticks.append(m["tick"])
+        await sender
+    return ticks
+
+
+async def _hostile(url: str) -> dict[str, list]:
+    """Sends every kind of bad input over several connections; returns what came back."""
+    seen: dict[str, list] = {}
+
+    async def session(label: str, frames: list, hello: bool = True) -> None:
+        got: list = []
+        seen[label] = got
+        try:
+            async with connect(url, max_size=2**20) as ws:
+                if hello:
+                    await ws.send(
+                        json.dumps({"type": "hello", "protocol": 1, "role": "user", "name": label})
+                    )
+                    await ws.recv()
+                for f in frames:
+                    await ws.send(f)
+                with contextlib.suppress(TimeoutError):
+                    while True:
+                        msg = await asyncio.wait_for(ws.recv(), 0.5)
+                        if isinstance(msg, str) and '"error"' in msg:
+                            got.append(json.loads(msg))
+        except ConnectionClosed:
+            got.append("closed")
+
+    nan_state = '{"type":"state","seq":1,"probe_m":[0,0,NaN],"force_n":[0,0,1]}'
+    big_force = '{"type":"state","seq":2,"probe_m":[0,0,0.09],"force_n":[0,0,1e5]}'
+    await session("garbage", ["{oops", '{"type":"warp"}', nan_state, big_force, b"\x00\xff"])
+    await session(
+        "nohello", ['{"type":"state","seq":1,"probe_m":[0,0,0],"force_n":[0,0,0]}'], hello=False
+    )
+    await session("oversized", ["x" * 40000])
+    flood = [json.dumps({"type": "ping", "id": i, "t_client_s": 0}) for i in range(1500)]
+    await session("flood", flood)
+    return seen
+
+
+async def test_hostile_input_gets_errors_and_the_other_user_keeps_working():
+    app = await start_server(subdivisions=3)
+    url = f"ws://127.0.0.1:{app.port}/ws"
+    try:
+        good, bad = await asyncio.gather(_good_user(url, 4.0), _hostile(url))
+    finally:
+        await app.stop()
+    codes = {k: [m["code"] for m in v if isinstance(m, dict)] for k, v in bad.items()}
+    assert codes["garbage"][:5] == [
+        "malformed_json",
+        "unknown_type",
+        "non_finite",
+        "force_limit",
+        "binary_not_expected",
+    ]
+    assert "closed" not in bad["garbage"]  # soft errors keep the connection
+    assert codes["nohello"] == ["expected_hello"] and bad["nohello"][-1] == "closed"
+    assert codes["oversized"] == ["frame_too_large"] and bad["oversized"][-1] == "closed"
+    assert "rate_limited" in codes["flood"] and bad["flood"][-1] == "closed"
+    # the good user got a patch on (nearly) every tick throughout
+    assert len(good) >= 0.8 * 4.0 * SIM_RATE
+    assert max(np.diff(good)) <= 3
+    assert np.all(np.isfinite(app.room.world.vertices))
+
+
+async def test_link_loss_ramps_force_to_zero_and_the_client_rejoins(tmp_path):
+    app = await start_server(subdivisions=3)
+    port = app.port
+    opts = ClientOptions(
+        url=f"ws://127.0.0.1:{port}/ws", name="A", device="sim:press", duration_s=9.0,
+        record=tmp_path / "A.csv",
+        trajectory={"delay_s": 0.5, "approach_s": 1.0, "press_s": 1.0, "hold_s": 10.0},
+    )  # fmt: skip
+    client = asyncio.create_task(run_client(opts))
+    t_origin = time.perf_counter()
+    await asyncio.sleep(4.0)  # A is pressing and holding
+    t_loss = time.perf_counter()
+    await app.stop()  # the server goes away in the middle of the press
+    await asyncio.sleep(1.5)
+    app2 = ServerApp(
+        Room(build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=3)), SIM_RATE),
+        "127.0.0.1",
+        port,
+    )
+    await app2.start()
+    try:
+        summary = await client
+    finally:
+        await app2.stop()
+    cols = load_csv(tmp_path / "A.csv")
+    t = cols["t_s"] + (summary["clock_origin_s"] - t_origin)  # seconds since t_origin
+    t_loss -= t_origin
+    f = cols["force_n"]
+    before = (t > t_loss - 0.5) & (t < t_loss)
+    assert np.mean(f[before]) > 0.5  # A was really pressing
+    timeout = ServoConfig().link_timeout_s + ServoConfig().ramp_s
+    after = (t > t_loss + timeout + 0.05) & (t < t_loss + 1.4)
+    assert np.all(f[after] == 0.0)  # ramped to zero within the link timeout plus the ramp
+    ramp = (t > t_loss) & (t < t_loss + timeout + 0.05)
+    steps = np.abs(np.diff(f[ramp]))
+    assert steps.max() < 0.2  # a ramp, not a jump
+    assert summary["joins"] >= 2  # rejoined the restarted server
+    late = t > t_loss + 3.0
+    assert np.mean(f[late]) > 0.5  # and presses again
