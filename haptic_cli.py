@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -431,6 +432,10 @@ _EXTRA = [_add_server, _add_client, _add_demo, _add_devices, _add_protocol, _add
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``haptic`` console script; returns the exit status."""
+    # One BLAS thread: the simulation tick measured faster that way on a busy machine, and a client's
+    # BLAS threads must not compete with its servo thread. Set before numpy is first imported.
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
