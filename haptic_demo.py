@@ -113,6 +113,13 @@ def _status(host: str, port: int) -> dict[str, Any] | None:
         return None
 
 
+def _has_display() -> bool:
+    """Whether a graphical browser can open here (never hand the terminal to a text browser)."""
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def _haptic(*args: str) -> list[str]:
     return [sys.executable, "-m", "haptic_cli", *args]
 
@@ -160,7 +167,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
                 raise RuntimeError("the server did not come up within 60 s")
             time.sleep(0.1)
         print(f"viewer: {url}", flush=True)
-        if not opts.headless:
+        if not opts.headless and _has_display():
             with contextlib.suppress(Exception):
                 webbrowser.open(url)
         ws = f"ws://{opts.host}:{port}/ws"
