@@ -29,8 +29,8 @@ MIN_RADIUS_M = 1e-4
 MAX_RADIUS_M = 1e3
 
 
-def _vec3(name: str, value: Sequence[float]) -> Vec3:
-    """Validate a 3-vector of finite floats.
+def vec3(name: str, value: Sequence[float]) -> Vec3:
+    """Validate a 3-vector of finite floats; ``name`` is used in the error message.
 
     Raises
     ------
@@ -44,6 +44,21 @@ def _vec3(name: str, value: Sequence[float]) -> Vec3:
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
         raise ValueError(f"{name} must be finite, got {value!r}")
     return (x, y, z)
+
+
+def unit_vec3(name: str, value: Sequence[float]) -> Vec3:
+    """Validate and normalize a direction (3,).
+
+    Raises
+    ------
+    ValueError
+        Not 3 finite entries, or shorter than 1e-9.
+    """
+    x, y, z = vec3(name, value)
+    length = math.sqrt(x * x + y * y + z * z)
+    if length < 1e-9:
+        raise ValueError(f"{name} must be a non-zero vector, got {value!r}")
+    return (x / length, y / length, z / length)
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,12 +135,7 @@ def make_plane(point: Sequence[float], normal: Sequence[float]) -> Plane:
     ValueError
         Non-finite entries, or a normal shorter than 1e-9.
     """
-    p = _vec3("plane point", point)
-    n = _vec3("plane normal", normal)
-    length = math.sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
-    if length < 1e-9:
-        raise ValueError("plane normal must be a non-zero vector")
-    return Plane(point=p, normal=(n[0] / length, n[1] / length, n[2] / length))
+    return Plane(point=vec3("plane point", point), normal=unit_vec3("plane normal", normal))
 
 
 def make_sphere(center: Sequence[float], radius: float) -> Sphere:
@@ -136,7 +146,7 @@ def make_sphere(center: Sequence[float], radius: float) -> Sphere:
     ValueError
         Non-finite centre, or a radius outside [MIN_RADIUS_M, MAX_RADIUS_M].
     """
-    c = _vec3("sphere center", center)
+    c = vec3("sphere center", center)
     r = float(radius)
     if not (math.isfinite(r) and MIN_RADIUS_M <= r <= MAX_RADIUS_M):
         raise ValueError(

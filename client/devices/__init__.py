@@ -32,10 +32,9 @@ from client.devices.trajectories import (
     Replay,
     ReplayError,
     Rest,
-    _unit,
-    _vec3,
     hand_depth_for,
 )
+from shared.primitives import unit_vec3, vec3
 
 __all__ = [
     "Device",
@@ -126,8 +125,8 @@ def make_device(
     ReplayError
         The replay file is missing or malformed (a ValueError).
     """
-    a = _vec3("anchor", anchor)
-    n = _unit("normal", normal)
+    a = vec3("anchor", anchor)
+    n = unit_vec3("normal", normal)
     kind, _, rest = spec.partition(":")
     if kind == "sim":
         prof = get_sim_profile(profile)

@@ -25,6 +25,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 
+from shared.primitives import vec3
+
 Vec3 = tuple[float, float, float]
 
 
@@ -48,16 +50,6 @@ class HapticError(StrEnum):
     DEVICE_FAULT = "device_fault"
     LINK_LOST = "link_lost"
     SERVO_OVERRUN = "servo_overrun"
-
-
-def _vec3(name: str, value: Sequence[float]) -> Vec3:
-    try:
-        x, y, z = (float(v) for v in value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be 3 numbers, got {value!r}") from exc
-    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return (x, y, z)
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,8 +96,8 @@ class DeviceLimits:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
-        lo = _vec3("workspace_min_m", self.workspace_min_m)
-        hi = _vec3("workspace_max_m", self.workspace_max_m)
+        lo = vec3("workspace_min_m", self.workspace_min_m)
+        hi = vec3("workspace_max_m", self.workspace_max_m)
         if not all(a < b for a, b in zip(lo, hi, strict=True)):
             raise ValueError(
                 f"workspace_min_m {lo} must be below workspace_max_m {hi} on every axis"
@@ -115,7 +107,7 @@ class DeviceLimits:
 
     def centered_at(self, center: Sequence[float]) -> DeviceLimits:
         """The same limits with the workspace box moved to be centred on ``center`` (3,) [m]."""
-        c = _vec3("center", center)
+        c = vec3("center", center)
         lo, hi = self.workspace_min_m, self.workspace_max_m
         half = tuple(0.5 * (b - a) for a, b in zip(lo, hi, strict=True))
         return DeviceLimits(

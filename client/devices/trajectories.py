@@ -31,28 +31,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from shared.primitives import unit_vec3, vec3
+
 Vec3 = tuple[float, float, float]
 
 #: Required CSV columns of a replay file.
 REPLAY_COLUMNS = ("t_s", "x_m", "y_m", "z_m")
-
-
-def _vec3(name: str, value: Sequence[float]) -> Vec3:
-    try:
-        x, y, z = (float(v) for v in value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be 3 numbers, got {value!r}") from exc
-    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return (x, y, z)
-
-
-def _unit(name: str, value: Sequence[float]) -> Vec3:
-    x, y, z = _vec3(name, value)
-    n = math.sqrt(x * x + y * y + z * z)
-    if n < 1e-9:
-        raise ValueError(f"{name} must be a non-zero vector")
-    return (x / n, y / n, z / n)
 
 
 def _nonneg(name: str, value: float) -> float:
@@ -153,8 +137,8 @@ class Press:
     _path: _Waypoints = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        a = _vec3("anchor", self.anchor)
-        n = _unit("normal", self.normal)
+        a = vec3("anchor", self.anchor)
+        n = unit_vec3("normal", self.normal)
         so, dp = _nonneg("standoff_m", self.standoff_m), _nonneg("depth_m", self.depth_m)
         t0 = _nonneg("delay_s", self.delay_s)
         t1 = t0 + _nonneg("approach_s", self.approach_s)
@@ -208,8 +192,8 @@ class Rest:
     _path: _Waypoints = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        a = _vec3("anchor", self.anchor)
-        n = _unit("normal", self.normal)
+        a = vec3("anchor", self.anchor)
+        n = unit_vec3("normal", self.normal)
         so, dp = _nonneg("standoff_m", self.standoff_m), _nonneg("depth_m", self.depth_m)
         t0 = _nonneg("delay_s", self.delay_s)
         t1 = t0 + _nonneg("approach_s", self.approach_s)
@@ -256,7 +240,7 @@ class Replay:
         if any(b <= a for a, b in zip(t, t[1:], strict=False)):
             raise ReplayError("replay times must be strictly increasing")
         try:
-            pos = tuple(_vec3(f"position {i}", q) for i, q in enumerate(p))
+            pos = tuple(vec3(f"position {i}", q) for i, q in enumerate(p))
         except ValueError as exc:
             raise ReplayError(str(exc)) from exc
         object.__setattr__(self, "times_s", t)
