@@ -247,11 +247,11 @@ def _cmd_client(args: argparse.Namespace) -> int:
         summary = asyncio.run(run_client(opts))
     except (ValueError, ConnectionError) as exc:
         raise CliError(str(exc)) from None
-    rate = summary.get("servo_rate_hz")
+    rate, rtt = summary.get("servo_rate_hz"), summary.get("rtt_ms_p50")
     print(
-        f"{opts.name}: servo {rate if rate is None else round(rate, 1)} Hz, "
+        f"{opts.name}: servo {'-' if rate is None else f'{rate:.1f}'} Hz, "
         f"max force {summary.get('max_force_n', 0.0):.2f} N, patches {summary['patches']}, "
-        f"rtt p50 {summary['rtt_ms_p50']} ms"
+        f"rtt p50 {'-' if rtt is None else f'{rtt:.1f}'} ms"
     )
     return 0
 
