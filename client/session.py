@@ -37,6 +37,9 @@ from shared.protocol import (
 )
 from shared.stability import GainChoice, select_gains
 
+#: Pings (one every 0.5 s) over which the loop delay is estimated.
+RTT_WINDOW = 20
+
 #: K_o is quantized *down* to steps of this ratio before gain selection (conservative, cacheable).
 K_O_QUANTUM = 1.02
 
@@ -272,15 +275,18 @@ class ClientSession:
         return float(np.median(self.rtt_s)) * 1000.0 if self.rtt_s else None
 
     def delay_ticks(self) -> int:
-        """Extra loop delay in whole simulation ticks, from the worst recent round trip.
+        """Extra loop delay in whole simulation ticks, from recent round trips.
 
         The force the server samples at tick k+1 reflects patch k only if the patch's trip down,
         the state's age (up to :attr:`state_interval_s`) and its trip up fit in one simulation
-        period; every further period adds one tick: ``ceil((rtt + age) / period) - 1``.
+        period; every further period adds one tick: ``ceil((rtt + age) / period) - 1``. The round
+        trip is the 90th percentile of the last :data:`RTT_WINDOW` pings (10 s): conservative under
+        steady jitter, yet one stall does not make the local model soft for long.
         """
         if not self.rtt_s:
             return 0
-        worst = max(self.rtt_s) + self.state_interval_s
+        recent = list(self.rtt_s)[-RTT_WINDOW:]
+        worst = float(np.percentile(recent, 90)) + self.state_interval_s
         return max(0, math.ceil(worst * self.sim_rate_hz - 1e-9) - 1)
 
     @property
