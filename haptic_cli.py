@@ -82,6 +82,7 @@ def _cmd_stability(args: argparse.Namespace) -> int:
             servo_rate_hz=args.servo_rate,
             sim_rate_hz=args.sim_rate,
             delay_ticks=args.delay_ticks,
+            sample_tick=args.sample_tick,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
@@ -118,6 +119,12 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
     p.add_argument(
         "--delay-ticks", type=_nonneg_int, default=0, help="extra simulation ticks of delay"
+    )
+    p.add_argument(
+        "--sample-tick",
+        type=_nonneg_int,
+        default=0,
+        help="servo tick of the period whose force the simulation samples (0: the paper's decimator)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_stability)

@@ -139,12 +139,20 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
             hid_profile=opts.hid_profile,
         )
         device.open()
+        lim = device.limits
+        # gains are designed for this device's real limits (a HID profile's, not the defaults)
+        session.device = DeviceInfo(
+            profile=session.device.profile,
+            max_force_n=min(100.0, lim.max_force_n),
+            max_stiffness_n_per_m=min(1e5, lim.max_stiffness_n_per_m),
+        )
         period = 1.0 / opts.servo_rate_hz
         lm = LocalModelParams(
             k_h=1.0,
             servo_period_s=period,
             threshold=ThresholdParams(mode="fixed", theta_m=opts.theta_m),
             release_time_s=2.0 / welcome.sim_rate_hz,
+            integral_limit_n=lim.max_force_n,  # anti-windup: never more than the device can render
         )
         core = ServoCore(
             device, ServoConfig(servo_rate_hz=opts.servo_rate_hz), local_model=lm, recorder=recorder

@@ -144,7 +144,12 @@ class Link:
             if self.session.role == "user":
                 sample = self.sample()
                 if sample is not None:
-                    await ws.send(self.session.state(sample))
+                    try:
+                        frame = self.session.state(sample)
+                    except ValueError as exc:  # e.g. a non-finite sample: skip it, keep the link
+                        log.warning("not sending an invalid state: %s", exc)
+                    else:
+                        await ws.send(frame)
             now = self.clock()
             if now >= next_ping:
                 await ws.send(self.session.ping(now))

@@ -463,6 +463,9 @@ class ServoCore:
         # 1. update from device
         dev = self.device
         x, y, z = dev.read(now_s)
+        bad_position = not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z))
+        if bad_position:  # keep the last finite position; treated as a device fault below
+            x, y, z = self._px, self._py, self._pz
 
         # 2. compute
         n = self._ticks
@@ -489,6 +492,8 @@ class ServoCore:
             self._overspeed = True
             self._event(HapticError.VELOCITY_LIMIT, now_s, "probe speed above the device limit")
         fault = dev.fault
+        if fault is None and bad_position:
+            fault = "device reported a non-finite position"
         if fault is not None and self._fault is None:
             self._event(HapticError.DEVICE_FAULT, now_s, fault)
         self._fault = fault

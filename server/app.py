@@ -27,6 +27,7 @@ from websockets.http11 import Request, Response
 
 from server.latency import LinkConfig, LinkShaper
 from server.room import Outgoing, Room
+from shared.protocol import ErrorMsg, encode
 
 log = logging.getLogger("haptic.server")
 
@@ -205,15 +206,30 @@ class ServerApp:
         self._peers[conn_id] = peer
         loop = asyncio.get_running_loop()
         sender = asyncio.create_task(self._sender(peer))
+        limits = self.room.limits
+        tokens, last = limits.burst, loop.time()
+        closing = False
         try:
             self._dispatch(self.room.connect(conn_id, loop.time()))
             async for frame in ws:
-                at = peer.up.schedule(loop.time(), droppable=_droppable_in(frame))
-                if at is None:
+                if closing:
+                    continue  # keep draining so the close handshake can complete
+                now = loop.time()
+                # flood control on arrival, before latency injection holds anything in memory
+                tokens = min(limits.burst, tokens + (now - last) * limits.rate_per_s * 1.25)
+                last = now
+                if tokens < 1.0:
+                    self.room.disconnect(conn_id)
+                    err = ErrorMsg(code="rate_limited", message="too many messages", fatal=True)
+                    self._ready(peer, Outgoing(conn_id, encode(err), close=True))
+                    closing = True
                     continue
-                if at <= loop.time():
+                tokens -= 1.0
+                if not self.link.active:
                     self._deliver(conn_id, frame)
-                else:
+                    continue
+                at = peer.up.schedule(now, droppable=_droppable_in(frame))
+                if at is not None:  # strictly increasing times: the timers fire in order
                     loop.call_at(at, self._deliver, conn_id, frame)
         except ConnectionClosed:
             pass
@@ -221,7 +237,7 @@ class ServerApp:
             self.room.disconnect(conn_id)
             self._peers.pop(conn_id, None)
             sender.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
+            with contextlib.suppress(asyncio.CancelledError, ConnectionClosed):
                 await sender
 
     def _deliver(self, conn_id: str, frame: str | bytes) -> None:
@@ -241,29 +257,29 @@ class ServerApp:
             peer = self._peers.get(out.conn_id)
             if peer is None:
                 continue
-            at = peer.down.schedule(now, droppable=out.stream is not None and not out.close)
-            if at is None:
-                continue
-            if at <= now:
+            if not self.link.active:
                 self._ready(peer, out)
-            else:
+                continue
+            at = peer.down.schedule(now, droppable=out.stream is not None and not out.close)
+            if at is not None:
                 loop.call_at(at, self._ready, peer, out)
 
     @staticmethod
     def _ready(peer: _Peer, out: Outgoing) -> None:
+        """Queue a due frame; a newer frame of a state stream replaces the queued older one."""
+        if out.stream is not None and any(o.stream == out.stream for o in peer.ready):
+            peer.ready = deque(o for o in peer.ready if o.stream != out.stream)
         peer.ready.append(out)
         peer.wake.set()
 
     async def _sender(self, peer: _Peer) -> None:
-        """Send due frames in order; a stream frame is skipped if a newer one of its stream is due."""
+        """Send queued frames in order until a closing frame or the connection ends."""
         try:
             while True:
                 await peer.wake.wait()
                 peer.wake.clear()
                 while peer.ready:
                     out = peer.ready.popleft()
-                    if out.stream is not None and any(o.stream == out.stream for o in peer.ready):
-                        continue  # latest wins
                     await peer.ws.send(out.data)
                     if out.close:
                         await peer.ws.close(1008, "closed by server, see the error message")

@@ -5,7 +5,8 @@ delivered, or None when it is dropped; the asyncio layer does the waiting. Time 
 
 - delay: ``latency_ms`` plus a jitter drawn uniformly from ``[-jitter_ms, +jitter_ms]``, never
   negative; deliveries stay in order (a websocket is a TCP stream, so a late frame holds back the
-  ones behind it), i.e. ``deliver_at = max(previous deliver_at, now + delay)``.
+  ones behind it), i.e. ``deliver_at = max(previous deliver_at + 1 us, now + delay)``: strictly
+  increasing, so that timers scheduled for the deliveries fire in order.
 - loss: each *droppable* frame (the latest-wins state streams: state, patch, room, vertices, ping,
   pong) is dropped with probability ``loss``; events (hello, welcome, error, bye) never are, since
   TCP would retransmit them — a lost state frame models a late one overtaken by its successor.
@@ -68,7 +69,7 @@ class LinkShaper:
         if cfg.jitter_ms > 0.0:
             delay_ms += self._rng.uniform(-cfg.jitter_ms, cfg.jitter_ms)
         at = now_s + max(0.0, delay_ms) / 1000.0
-        if at < self._last_delivery_s:
-            at = self._last_delivery_s
+        if at <= self._last_delivery_s:  # strictly increasing: timers fire in this order
+            at = self._last_delivery_s + 1e-6
         self._last_delivery_s = at
         return at

@@ -78,8 +78,14 @@ class RoomLimits:
     ----------
     max_users : int
         Haptic users in the room at once.
+    max_viewers : int
+        Viewers at once.
+    max_pending : int
+        Connections that have not sent ``hello`` yet.
+    hello_timeout_s : float
+        A connection that has not sent ``hello`` within this [s] is closed.
     max_connections : int
-        Users plus viewers.
+        Users, viewers and pending connections together.
     rate_per_s, burst : float
         Token bucket on incoming frames: sustained frames per second and burst size.
     stale_after_s : float
@@ -89,6 +95,9 @@ class RoomLimits:
     """
 
     max_users: int = 32
+    max_viewers: int = 64
+    max_pending: int = 32
+    hello_timeout_s: float = 5.0
     max_connections: int = 128
     rate_per_s: float = 400.0
     burst: float = 400.0
@@ -216,7 +225,8 @@ class Room:
 
     def connect(self, conn_id: str, now_s: float) -> list[Outgoing]:
         """Register a new connection; it must send ``hello`` first."""
-        if len(self._conns) >= self.limits.max_connections:
+        pending = sum(1 for c in self._conns.values() if c.hello is None)
+        if len(self._conns) >= self.limits.max_connections or pending >= self.limits.max_pending:
             return [self._error(conn_id, "room_full", "too many connections", fatal=True)]
         self._conns[conn_id] = _Conn(conn_id, now_s, self.limits.burst, now_s)
         return []
@@ -304,6 +314,10 @@ class Room:
             )
         if msg.role == "user" and len(self.users) >= self.limits.max_users:
             return self._close(conn, "room_full", f"the room holds {self.limits.max_users} users")
+        if msg.role == "viewer" and len(self.viewers) >= self.limits.max_viewers:
+            return self._close(
+                conn, "room_full", f"the room holds {self.limits.max_viewers} viewers"
+            )
         taken = {c.hello.name for c in self._conns.values() if c.hello}
         name, k = msg.name, 2
         while name in taken:
@@ -361,6 +375,12 @@ class Room:
         from server.world import ContactInput
 
         self.tick_count = tick
+        out: list[Outgoing] = []
+        for c in list(self._conns.values()):
+            if c.hello is None and now_s - c.connected_at_s > self.limits.hello_timeout_s:
+                out += self._close(
+                    c, "hello_timeout", f"no hello within {self.limits.hello_timeout_s:g} s"
+                )
         inputs: dict[str, ContactInput] = {}
         for c in self._conns.values():
             if c.state is None or c.hello is None or c.hello.role != "user":
@@ -370,7 +390,6 @@ class Room:
                 force = (0.0, 0.0, 0.0)  # silent user: its hand no longer loads the object
             inputs[c.conn_id] = ContactInput(probe=np.array(c.state.probe_m), force=np.array(force))
         outputs = self.world.tick(inputs)
-        out: list[Outgoing] = []
         for conn_id, res in outputs.items():
             conn = self._conns.get(conn_id)
             if conn is None:

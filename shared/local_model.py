@@ -108,6 +108,9 @@ class LocalModelParams:
     unilateral : bool
         True: a contact only pushes (e <= 0 is no contact). False: the linear bilateral coupling of
         the paper's analysis.
+    integral_limit_n : float
+        Largest integral force [N] (anti-windup). Set it to the device's maximum force: an integral
+        beyond what the device can render only makes the surface push on after the user leaves.
 
     Raises
     ------
@@ -121,6 +124,7 @@ class LocalModelParams:
     threshold: ThresholdParams = field(default_factory=ThresholdParams)
     release_time_s: float = 0.1
     unilateral: bool = True
+    integral_limit_n: float = math.inf
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.k_h) and self.k_h > 0.0):
@@ -130,6 +134,8 @@ class LocalModelParams:
             raise ValueError(f"servo_period_s must be > 0 s, got {self.servo_period_s!r}")
         if not (math.isfinite(self.release_time_s) and self.release_time_s > 0.0):
             raise ValueError(f"release_time_s must be > 0 s, got {self.release_time_s!r}")
+        if not (self.integral_limit_n > 0.0):
+            raise ValueError(f"integral_limit_n must be > 0 N, got {self.integral_limit_n!r}")
 
 
 class LocalModel:
@@ -148,6 +154,7 @@ class LocalModel:
 
     __slots__ = (
         "params",
+        "_s_max",
         "_k_h",
         "_ti",
         "_s",
@@ -163,6 +170,7 @@ class LocalModel:
         self.params = params
         self._k_h = params.k_h
         self._ti = params.servo_period_s * params.i_gain
+        self._s_max = params.integral_limit_n
         self.reset()
 
     def reset(self) -> None:
@@ -236,13 +244,14 @@ class LocalModel:
             self._in_contact = True
             theta = self._threshold(e) if self._ti > 0.0 else 0.0
             f = self._k_h * e + self._s
-            self._s += self._ti * (e - theta)
+            s = self._s + self._ti * (e - theta)
+            self._s = s if abs(s) <= self._s_max else math.copysign(self._s_max, s)
         elif e > 0.0:
             self._in_contact = True
             theta = self._threshold(e) if self._ti > 0.0 else 0.0
             f = self._k_h * e + self._s
             s = self._s + self._ti * (e - theta)
-            self._s = s if s > 0.0 else 0.0
+            self._s = 0.0 if s < 0.0 else (s if s < self._s_max else self._s_max)
             self._release_step = 0.0
             if f < 0.0:
                 f = 0.0

@@ -2,8 +2,9 @@
 
 A servo loop at period T runs :class:`shared.local_model.LocalModel` (the very code the client's
 servo thread runs) on the penetration ``e = x_h - x_o`` along the contact normal. The object runs at
-N*T: every N servo ticks it samples the force of the servo tick at the start of the previous block
-(the decimator S_N of section 2.2 and Step 3 of section 6), computes its new surface position, and
+N*T: every N servo ticks it samples the force of servo tick ``sample_tick`` of the previous block
+(0 is the decimator S_N of section 2.2; a networked simulation taking the latest force, Step 3 of
+section 6, samples a later tick), computes its new surface position, and
 that position reaches the servo loop ``1 + delay_ticks`` simulation ticks after the force was
 sampled, held constant in between (zero-order hold, eq. 1).
 
@@ -62,6 +63,7 @@ def simulate(
     damping: float = 0.0,
     sim_rate_hz: float = 20.0,
     delay_ticks: int = 0,
+    sample_tick: int = 0,
 ) -> Trace:
     """Run the multirate loop for ``n_ticks`` servo ticks.
 
@@ -81,6 +83,9 @@ def simulate(
         Simulation rate [Hz]; the servo rate must be a whole multiple of it.
     delay_ticks : int
         Extra whole simulation ticks of delay before a new surface reaches the servo loop.
+    sample_tick : int
+        Servo tick of each block whose force the simulation samples (0: the paper's decimator,
+        N-1: the last force before the next simulation step).
 
     Raises
     ------
@@ -93,6 +98,8 @@ def simulate(
         raise ValueError(f"k_o must be > 0, got {k_o!r}")
     if delay_ticks < 0:
         raise ValueError(f"delay_ticks must be >= 0, got {delay_ticks}")
+    if not 0 <= sample_tick < n:
+        raise ValueError(f"sample_tick must be in [0, {n}), got {sample_tick}")
     b_o = damping * sim_rate_hz
     if callable(probe_m):
         xh = np.array([probe_m(i) for i in range(n_ticks)], dtype=float)
@@ -112,7 +119,7 @@ def simulate(
                 pipeline.append(x_obj)
                 x_seen = pipeline.popleft()
         f = local_model.step(xh[i] - x_seen)
-        if i % n == 0:
+        if i % n == sample_tick:
             f_sample = f
         xo_out[i] = x_seen
         f_out[i] = f

@@ -144,15 +144,31 @@ def lift(model: StateSpace, n: int) -> StateSpace:
     return StateSpace(At, Bt, Ct, Dt)
 
 
-def slow_rate_model(model: StateSpace, n: int) -> StateSpace:
+def slow_rate_model(model: StateSpace, n: int, sample_tick: int = 0) -> StateSpace:
     """The SISO slow-rate local model L_h of Fig. 6 (section 2.2).
 
-    With the decimator S_N keeping the first lifted output and an input held over the N fast
-    ticks (zero-order hold, eq. 1): ``L_h = [A^N, sum_{i=0}^{N-1} A^i B, C, D]``.
-    For the PI model this is ``L_h(z) = K_h + N*T*I/(z-1)`` (eq. 13).
+    With an input held over the N fast ticks (zero-order hold, eq. 1) and the decimator keeping
+    lifted output ``j = sample_tick`` (the paper's S_N keeps j = 0):
+    ``L_h = [A^N, sum_{i<N} A^i B, C A^j, D + sum_{i<j} C A^i B]``.
+    For the PI model and j = 0 this is ``L_h(z) = K_h + N*T*I/(z-1)`` (eq. 13); sampling later in
+    the block adds ``j*T*I`` to the proportional part. A networked simulation that takes "the last
+    force returned to the haptic device" (Step 3) samples at an arbitrary j, so gains must hold for
+    every j (see :func:`select_gains`).
+
+    Raises
+    ------
+    ValueError
+        ``sample_tick`` outside [0, N).
     """
+    if not 0 <= sample_tick < n:
+        raise ValueError(f"sample_tick must be in [0, {n}), got {sample_tick}")
     lifted = lift(model, n)
-    return StateSpace(lifted.A, lifted.B.sum(axis=1, keepdims=True), model.C, model.D)
+    return StateSpace(
+        lifted.A,
+        lifted.B.sum(axis=1, keepdims=True),
+        lifted.C[sample_tick : sample_tick + 1],
+        lifted.D[sample_tick : sample_tick + 1].sum(axis=1, keepdims=True),
+    )
 
 
 def object_state_space(k_o: float, b_o: float = 0.0) -> StateSpace:
@@ -301,6 +317,7 @@ def analyze(
     servo_rate_hz: float = 1000.0,
     sim_rate_hz: float = 20.0,
     delay_ticks: int = 0,
+    sample_tick: int = 0,
 ) -> LoopAnalysis:
     """Analyse the simulation loop numerically via lifting, and by the closed forms when they apply.
 
@@ -318,6 +335,9 @@ def analyze(
         1/T and 1/(N*T); the servo rate must be a whole multiple of the simulation rate.
     delay_ticks : int
         Extra whole simulation ticks of transport delay (network, computation), >= 0.
+    sample_tick : int
+        Servo tick within the block whose force the simulation samples (0: the paper's decimator;
+        the closed forms assume 0 and are reported only then).
 
     Raises
     ------
@@ -335,12 +355,15 @@ def analyze(
     period = 1.0 / float(servo_rate_hz)
     b_o = damping * sim_rate_hz
     nti = i_gain * n * period
-    l_h = slow_rate_model(local_model_state_space(k_h, i_gain, period), n)
+    l_h = slow_rate_model(local_model_state_space(k_h, i_gain, period), n, sample_tick)
     acl = closed_loop_matrix(l_h, object_state_space(k_o, b_o), delay_ticks)
     poles = np.linalg.eigvals(acl) if acl.size else np.zeros(0, dtype=complex)
     rho = float(np.max(np.abs(poles))) if poles.size else 0.0
     analytic: bool | None
-    if delay_ticks:
+    if sample_tick and i_gain > 0.0:
+        analytic = None
+        cond = f"numeric: force sampled at servo tick {sample_tick} of {n}, {delay_ticks} tick(s) of delay"
+    elif delay_ticks:
         analytic, cond = None, f"numeric: spectral radius with {delay_ticks} tick(s) of delay"
     elif i_gain == 0.0 and b_o == 0.0:
         analytic, cond = eq8_stable(k_h, k_o), "eq. 8: K_h < K_o"
@@ -431,7 +454,7 @@ class GainChoice:
     i_gain : float
         I [N/(m*s)] (0 for a proportional local model).
     spectral_radius : float
-        Slow-loop spectral radius at the reported K_o.
+        Slow-loop spectral radius at the reported K_o (worst force-sampling phase).
     worst_spectral_radius : float
         The larger of the spectral radii at the reported K_o and at the design value
         (1 - margin) K_o. For ``pi`` it is below 1: stable for any object stiffness from K_o' up.
@@ -467,10 +490,12 @@ def select_gains(
 
     - ``p``: ``K_h = min(k_h_max, K_o')`` — as close to K_o as the margin allows (eq. 8 and 11);
       with pure delay the P loop keeps ``|z|^(1+d) = K_h/K_o`` so this stays stable.
-    - ``pi``: K_h <= min(k_h_max, K_o') and INT in (0, 2 K_o'] minimising the worse of the
-      spectral radii at K_o' and K_o, on a ``grid x grid`` search plus a local refinement (Fig. 8,
-      eq. 15/16 with delay handled numerically). Without delay this is the deadbeat point
-      ``K_h = INT = K_o'`` when the device allows it.
+    - ``pi``: K_h <= min(k_h_max, K_o') and INT in (0, 2 K_o'] minimising the worst spectral
+      radius at K_o' and K_o *and over the force-sampling phase*: the simulation may sample the
+      force at any servo tick j of the block (Step 3 over a network), which turns K_h into
+      ``K_h + (j/N) INT`` (:func:`slow_rate_model`). Phases 0, 1/4, 1/2, 3/4 and (N-1)/N are
+      checked; without delay the region of eq. 15/16 is convex, so the two ends already cover every
+      phase. Searched on a ``grid x grid`` grid plus a local refinement (Fig. 8).
 
     Parameters
     ----------
@@ -512,11 +537,17 @@ def select_gains(
     k_design = (1.0 - margin) * k_o
     kh_cap = min(k_h_max, k_design if margin > 0.0 else 0.999 * k_o)
     nt = rate_ratio * servo_period_s
+    last = (rate_ratio - 1) / rate_ratio
+    phases = sorted({0.0, min(0.25, last), min(0.5, last), min(0.75, last), last})
 
     def worst(kh: FloatArray, nti: FloatArray) -> FloatArray:
-        a = spectral_radius_grid(k_design, kh, nti, b_o, delay_ticks)
-        b = spectral_radius_grid(k_o, kh, nti, b_o, delay_ticks)
-        return np.maximum(a, b)
+        out = np.zeros(np.broadcast(kh, nti).shape)
+        for alpha in phases:
+            for k in (k_design, k_o):
+                out = np.maximum(
+                    out, spectral_radius_grid(k, kh + alpha * nti, nti, b_o, delay_ticks)
+                )
+        return out
 
     if mode == "p":
         kh = np.array([kh_cap])
@@ -536,7 +567,9 @@ def select_gains(
         i2, j2 = np.unravel_index(int(np.argmin(w2)), w2.shape)
         kh = np.array([KH2[i2, j2]])
         nti = np.array([NI2[i2, j2]])
-    rho_reported = float(spectral_radius_grid(k_o, kh, nti, b_o, delay_ticks)[0])
+    rho_reported = float(
+        max(spectral_radius_grid(k_o, kh + a * nti, nti, b_o, delay_ticks)[0] for a in phases)
+    )
     rho_worst = float(worst(kh, nti)[0])
     return GainChoice(
         k_h=float(kh[0]),

@@ -60,6 +60,15 @@ def test_stability_json_for_the_paper_cases(capsys):
     assert out["analytic_stable"] is None and out["stable"] and len(out["poles"]) == 3
 
 
+def test_sampling_the_force_late_in_the_period(capsys):
+    args = ["stability", "--k-o", "300", "--k-h", "210", "--i-gain", "4200", "--json"]
+    assert main(args) == 0 and json.loads(capsys.readouterr().out)["stable"] is True
+    assert main([*args, "--sample-tick", "49"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["stable"] is False and out["analytic_stable"] is None
+    assert run("stability", "--k-o", "300", "--k-h", "1", "--sample-tick", "50").returncode == 2
+
+
 def test_stability_readable_verdict(capsys):
     assert main(["stability", "--k-o", "200", "--k-h", "190"]) == 0
     text = capsys.readouterr().out

@@ -193,6 +193,8 @@ def decode_input(layout: HidInputLayout, data: bytes | Sequence[int]) -> Vec3 | 
             raise ValueError(f"report of {len(b)} bytes too short: axis {i} needs {ax.end}")
         raw = ax.struct.unpack_from(b, ax.byte)[0]
         out[i] = raw * ax.scale + (ax.offset_m if layout.mode == "absolute" else 0.0)
+        if not math.isfinite(out[i]):
+            raise ValueError(f"axis {i} decoded to a non-finite value")
     return (out[0], out[1], out[2])
 
 
@@ -278,6 +280,7 @@ class _HidDevice(Device):
         self.name = name
         self.limits = limits
         self.fault: str | None = None
+        self._zeroed_after_fault = False
         self._opener: Opener = opener if opener is not None else _hid_open
         self._port: HidPort | None = None
         self._silence_s = silence_timeout_s
@@ -321,9 +324,21 @@ class _HidDevice(Device):
         """Write one force report (subclasses with force output override)."""
 
     def write(self, fx: float, fy: float, fz: float) -> None:
-        """Send the force (fx, fy, fz) [N]; a no-op unless enabled and the device has an output."""
-        if self._enabled and self.fault is None and self.limits.has_force_output:
+        """Send the force (fx, fy, fz) [N]; a no-op unless enabled and the device has an output.
+
+        After a fault (silence, a failed read) the output may still work: one zero-force report is
+        attempted so the device never keeps the last force, then writes stop.
+        """
+        if not (self._enabled and self.limits.has_force_output):
+            return
+        if self.fault is None:
             self._send(fx, fy, fz)
+        elif not self._zeroed_after_fault:
+            self._zeroed_after_fault = True
+            try:
+                self._send(0.0, 0.0, 0.0)
+            except OSError:
+                pass
 
     def _drain(self, t_s: float, handle: Callable[[bytes], bool]) -> None:
         """Read every queued report, pass each to ``handle`` (True if it was used)."""

@@ -171,7 +171,10 @@ def test_profile_device_reads_writes_and_faults_when_silent() -> None:
     assert dev.fault is not None and "no report" in dev.fault
     n = len(port.written)
     dev.write(1.0, 0.0, 0.0)
-    assert len(port.written) == n  # nothing sent to a faulted device
+    dev.write(1.0, 0.0, 0.0)
+    # the device must not keep its last force: one zero report, then nothing more
+    assert len(port.written) == n + 1
+    assert struct.unpack("<hhh", port.written[-1][1:]) == (0, 0, 0)
     dev.close()
     assert port.closed
 

@@ -220,6 +220,31 @@ def test_device_fault_ramps_force_to_zero() -> None:
     assert st.last_event is not None and "USB read failed" in st.last_event.detail
 
 
+def test_non_finite_position_ramps_force_down_and_keeps_the_velocity_limit_working() -> None:
+    dev = FakeDevice((0.0, 0.0, -0.005))
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    t = run(core, 0.0, 100, notify_every=10)
+    dev.position = (math.nan, 0.0, -0.005)  # one bad sample, then a stuck NaN
+    n0 = len(dev.writes)
+    t = run(core, t, 100, notify_every=10)
+    forces = [mag(w) for w in dev.writes[n0 - 1 :]]
+    assert all(math.isfinite(f) for f in forces)
+    assert max(a - b for a, b in zip(forces, forces[1:], strict=False)) <= STEP * 1.5 + 1e-12
+    assert forces[-1] == 0.0
+    assert core.status().counts[HapticError.DEVICE_FAULT] == 1
+    dev.position = (0.0, 0.0, -0.005)  # good samples again: forces return
+    t = run(core, t, 200, notify_every=10)
+    assert mag(dev.displayed) == pytest.approx(1.5)
+    for k in range(50):  # and a fast probe still trips the velocity limit
+        dev.position = (0.002 * k, 0.0, -0.005)
+        core.notify_link(t)
+        core.tick(t)
+        t += T
+    assert core.status().counts[HapticError.VELOCITY_LIMIT] == 1
+
+
 def test_fast_probe_ramps_force_down_and_back() -> None:
     dev = FakeDevice((0.0, 0.0, 0.4995))  # 0.5 mm inside a 0.5 m sphere
     core = make_core(dev)

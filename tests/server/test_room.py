@@ -193,3 +193,17 @@ def test_names_are_made_unique_and_room_limits_hold():
         names.append(texts(outs, c)[0])
     assert names[0]["name"] == "same" and names[1]["name"] == "same-2"
     assert names[2]["code"] == "room_full"
+
+
+def test_silent_connections_are_closed_and_cannot_lock_users_out():
+    r = Room(
+        RecordingWorld(), sim_rate_hz=20.0, limits=RoomLimits(max_pending=4, hello_timeout_s=5.0)
+    )
+    for i in range(4):
+        r.connect(f"idle{i}", 0.0)
+    assert texts(r.connect("late", 0.1), "late")[0]["code"] == "room_full"  # too many pending
+    outs = r.tick(1, 6.0)  # the idle ones never said hello
+    codes = {o.conn_id: json.loads(o.data)["code"] for o in outs if o.close}
+    assert codes == {f"idle{i}": "hello_timeout" for i in range(4)}
+    r.connect("user", 6.1)
+    assert texts(r.receive("user", hello("U"), 6.1), "user")[0]["type"] == "welcome"

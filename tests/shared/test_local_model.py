@@ -89,6 +89,24 @@ def test_release_drives_the_integral_to_zero_linearly():
     assert max(abs(d) for d in np.diff(forces)) <= s0 / 100.0 + 1e-12
 
 
+def test_integral_is_limited_so_a_release_never_pushes_more_than_the_device_can():
+    lm = LocalModel(
+        LocalModelParams(
+            k_h=200.0,
+            i_gain=5000.0,
+            integral_limit_n=3.3,
+            release_time_s=0.1,
+            threshold=ThresholdParams(mode="none"),
+        )
+    )
+    for _ in range(3000):  # held 10 mm in for 3 s: the integral would reach 150 N
+        lm.step(0.01)
+    assert lm.integral_n == pytest.approx(3.3)
+    forces = [lm.step(-0.002) for _ in range(120)]
+    assert forces[0] == pytest.approx(3.3) and forces[-1] == 0.0
+    assert max(abs(d) for d in np.diff(forces)) <= 3.3 / 100 + 1e-9  # a ramp over 0.1 s
+
+
 def test_gain_change_keeps_the_integral_force():
     lm = LocalModel(
         LocalModelParams(k_h=100.0, i_gain=3000.0, threshold=ThresholdParams(mode="none"))

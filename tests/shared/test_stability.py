@@ -28,7 +28,7 @@ from shared.stability import (
 T = 1e-3
 
 
-def _fast_rate_simulation(k_h, i_gain, k_o, b_o, n, x_h, blocks, delay=0):
+def _fast_rate_simulation(k_h, i_gain, k_o, b_o, n, x_h, blocks, delay=0, sample_tick=0):
     """Direct fast-rate simulation of Fig. 4 with the state-space L(z), independent of lifting."""
     ss = local_model_state_space(k_h, i_gain, T)
     lam = np.zeros(ss.n_states)
@@ -46,14 +46,14 @@ def _fast_rate_simulation(k_h, i_gain, k_o, b_o, n, x_h, blocks, delay=0):
         f = float((ss.C @ lam)[0] if ss.n_states else 0.0) + ss.D[0, 0] * u
         if ss.n_states:
             lam = ss.A @ lam + ss.B[:, 0] * u
-        if i % n == 0:
+        if i % n == sample_tick:
             f_sample = f
     return np.array(seen)
 
 
-def _slow_rate_simulation(k_h, i_gain, k_o, b_o, n, x_h, blocks, delay=0):
+def _slow_rate_simulation(k_h, i_gain, k_o, b_o, n, x_h, blocks, delay=0, sample_tick=0):
     """The slow-rate LTI loop of Fig. 6 built from the lifted model, driven by a held x_h."""
-    l_h = slow_rate_model(local_model_state_space(k_h, i_gain, T), n)
+    l_h = slow_rate_model(local_model_state_space(k_h, i_gain, T), n, sample_tick)
     obj = object_state_space(k_o, b_o)
     lam = np.zeros(l_h.n_states)
     xi = np.zeros(obj.n_states)
@@ -238,10 +238,53 @@ def test_selected_gains_are_stable_with_margin_and_device_cap(mode, delay):
             assert g.i_gain == 0.0
 
 
-def test_pi_gains_without_delay_settle_faster_than_p():
-    p = select_gains(300.0, rate_ratio=50, servo_period_s=T, mode="p")
-    pi = select_gains(300.0, rate_ratio=50, servo_period_s=T, mode="pi")
-    assert pi.spectral_radius < 0.5 * p.spectral_radius
+@pytest.mark.parametrize("sample_tick", [1, 17, 49])
+def test_lifting_with_a_later_force_sample_matches_the_direct_simulation(sample_tick):
+    """Step 3 over a network samples the force at any servo tick j of the block: L_h,j."""
+    direct = _fast_rate_simulation(120.0, 2500.0, 300.0, 0.0, 50, 0.02, 40, 1, sample_tick)
+    lifted = _slow_rate_simulation(120.0, 2500.0, 300.0, 0.0, 50, 0.02, 40, 1, sample_tick)
+    assert np.allclose(direct, lifted, rtol=1e-9, atol=1e-12)
+    lm = LocalModel(
+        LocalModelParams(
+            k_h=120.0, i_gain=2500.0, unilateral=False, threshold=ThresholdParams(mode="none")
+        )
+    )
+    tr = simulate(
+        lm, np.full(2000, 0.02), k_o=300.0, n_ticks=2000, delay_ticks=1, sample_tick=sample_tick
+    )
+    assert np.allclose(tr.proxy_m[::50], lifted, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("delay", [0, 2])
+def test_selected_pi_gains_hold_for_every_force_sampling_tick(delay):
+    g = select_gains(300.0, rate_ratio=50, servo_period_s=T, delay_ticks=delay)
+    radii = [
+        analyze(300.0, g.k_h, i_gain=g.i_gain, delay_ticks=delay, sample_tick=j).spectral_radius
+        for j in range(50)
+    ]
+    assert max(radii) < 0.95
+    assert max(radii) == pytest.approx(g.spectral_radius, abs=0.05)
+
+
+def test_deadbeat_gains_oscillate_when_the_force_is_sampled_late():
+    """K_h = INT = 0.7 K_o is deadbeat for the paper's decimator but unstable for the last tick."""
+    k_o, kh, n = 300.0, 210.0, 50
+    i_gain = kh / (n * T)
+    assert analyze(k_o, kh, i_gain=i_gain).stable
+    assert not analyze(k_o, kh, i_gain=i_gain, sample_tick=49).stable
+
+    def hold_oscillation(k_h, i):
+        lm = LocalModel(
+            LocalModelParams(
+                k_h=k_h, i_gain=i, threshold=ThresholdParams(mode="fixed", theta_m=0.001)
+            )
+        )
+        tr = simulate(lm, np.full(8000, 0.02), k_o=k_o, n_ticks=8000, sample_tick=49)
+        return float(np.ptp(tr.proxy_m[-1000:]))
+
+    assert hold_oscillation(kh, i_gain) > 0.002  # a sustained oscillation of millimetres
+    g = select_gains(k_o, rate_ratio=n, servo_period_s=T)
+    assert hold_oscillation(g.k_h, g.i_gain) < 1e-5  # the selected gains hold still
 
 
 @pytest.mark.parametrize(
