@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from server.world import ContactInput
 from shared.protocol import (
     MAX_CLIENT_FRAME_BYTES,
     MAX_PROBE_DISTANCE_M,
@@ -45,6 +46,7 @@ from shared.protocol import (
     SphereModel,
     State,
     UserView,
+    Welcome,
     encode,
     encode_faces,
     encode_vertices,
@@ -372,8 +374,6 @@ class Room:
 
         Returns the patches for users and the surface and summary for viewers.
         """
-        from server.world import ContactInput
-
         self.tick_count = tick
         out: list[Outgoing] = []
         for c in list(self._conns.values()):
@@ -450,8 +450,6 @@ def _welcome(
     info: ObjectInfo,
     link: LinkConditions,
 ) -> str:
-    from shared.protocol import Welcome
-
     return encode(
         Welcome(
             user_id=user_id, name=name, role=role, sim_rate_hz=sim_rate_hz, object=info, link=link
