@@ -1,0 +1,504 @@
+"""The full haptic loop: hand + device, local model, slow delayed simulation (DESIGN section 6b).
+
+The paper (sections 2-5) proves the *simulation loop* stable with the probe treated as a position
+source. A user holds the device, so hand and device close a second loop at the servo rate through
+the local model, and the simulation-rate proxy jumps excite it. This module models the complete
+N-periodic system exactly and judges it by the spectral radius of its monodromy matrix (the
+state-transition matrix over one simulation period).
+
+One-dimensional, along the contact normal, linearised in contact (the threshold theta and the
+unilateral contact are affine offsets or switches and do not change the linear verdict; the
+time-domain passivity layer is the safety net for those, :mod:`shared.passivity`). Coordinates are
+depths along the inward normal [m]: ``x`` the probe, ``p`` the proxy (surface) the servo renders
+against, ``e = x - p`` the penetration.
+
+Blocks, servo tick n (period T), simulation tick k (period N*T):
+
+hand + device
+    ``m x'' = -b x' - k x - f``: total moving mass m [kg], damping b [N*s/m], stiffness k [N/m]
+    toward a still target (its offset does not change stability); the force f [N] the local model
+    writes pushes the probe out and is held over the tick (zero-order hold, discretised exactly).
+    ``hand=None`` is the paper's rigid probe (a position source, x = 0).
+local model (servo rate, eq. 12 plus an optional probe damper)
+    ``f(n) = K_h e(n) + s(n) + B_h (x(n) - x(n-1)) / T``, ``s(n+1) = s(n) + T I e(n)``. The damper
+    B_h acts on the probe's backward difference only, never on the proxy's jumps.
+decimation (Step 3 of section 6)
+    the simulation takes the force of servo tick ``j`` (``sample_tick``) of each block.
+object (simulation rate), eq. 6 / eq. 9
+    ``x_o(k+1) = (F(k) + B_o x_o(k)) / (K_o + B_o)``.
+delay
+    ``D`` whole extra simulation ticks (network, computation) before ``x_o`` reaches the servo.
+proxy hold
+    ``zoh``: the proxy jumps to the new surface at the block boundary (eq. 1); ``foh``: it moves
+    linearly from the previous surface to the new one over the block, reaching it at the last tick
+    (``p(i) = p_old + (p_new - p_old) (i + 1) / N``), one simulation period of smoothing.
+
+With ``hand=None``, ``b_h = 0`` and ``zoh`` the monodromy matrix has the same non-zero eigenvalues
+as :func:`shared.stability.closed_loop_matrix` (the paper's Fig. 6 loop): tested to 1e-9.
+
+Everything is vectorised over a batch of hands and gains (numpy broadcasting): the gain design
+(:mod:`shared.gain_design`) evaluates thousands of candidates at once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import expm
+
+FloatArray = NDArray[np.float64]
+ProxyHold = Literal["zoh", "foh"]
+
+#: Spectral radii below 1 - STABILITY_TOL count as stable (guards marginal round-off).
+STABILITY_TOL = 1e-9
+
+
+@dataclass(frozen=True, slots=True)
+class Hand:
+    """Combined hand and device as the probe feels them, SI units (DESIGN section 6b).
+
+    Parameters
+    ----------
+    mass_kg : float
+        Total moving mass m [kg] (hand + device handle), > 0.
+    damping_n_s_per_m : float
+        Total damping b [N*s/m] (hand + device friction), >= 0.
+    stiffness_n_per_m : float
+        Hand stiffness k [N/m] toward where the user wants to be, >= 0.
+
+    Raises
+    ------
+    ValueError
+        Non-finite or out-of-range values.
+    """
+
+    mass_kg: float
+    damping_n_s_per_m: float
+    stiffness_n_per_m: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.mass_kg) and self.mass_kg > 0.0):
+            raise ValueError(f"hand mass must be a finite number > 0 kg, got {self.mass_kg!r}")
+        for name in ("damping_n_s_per_m", "stiffness_n_per_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"hand {name} must be finite and >= 0, got {v!r}")
+
+    def as_dict(self) -> dict[str, float]:
+        """``{"mass_kg", "stiffness_n_per_m", "damping_n_s_per_m"}``."""
+        return {
+            "mass_kg": self.mass_kg,
+            "stiffness_n_per_m": self.stiffness_n_per_m,
+            "damping_n_s_per_m": self.damping_n_s_per_m,
+        }
+
+
+#: The project's simulated user (client.devices.sim: 0.45 kg hand, 300 N/m, 5 N*s/m) on the
+#: simulated Phantom Desktop (0.045 kg, 0.5 N*s/m), as the probe feels them.
+DEFAULT_HAND = Hand(mass_kg=0.495, damping_n_s_per_m=5.5, stiffness_n_per_m=300.0)
+
+
+@dataclass(frozen=True, slots=True)
+class HandBox:
+    """A box of plausible combined hand + device parameters (README "The hand box" for sources).
+
+    Gains are accepted only if the full loop is stable for every hand the box yields
+    (:meth:`hands`): its 8 corners, the centres of its faces, its centre and the ``extra`` hands.
+
+    Parameters
+    ----------
+    mass_kg, damping_n_s_per_m, stiffness_n_per_m : (lo, hi)
+        Ranges [kg], [N*s/m], [N/m]; lo <= hi, lo > 0 for the mass.
+    extra : tuple of Hand
+        Hands checked besides the box's points (the simulated hand by default).
+    """
+
+    mass_kg: tuple[float, float] = (0.1, 0.6)
+    damping_n_s_per_m: tuple[float, float] = (2.0, 10.0)
+    stiffness_n_per_m: tuple[float, float] = (20.0, 1000.0)
+    extra: tuple[Hand, ...] = (DEFAULT_HAND,)
+
+    def __post_init__(self) -> None:
+        for name in ("mass_kg", "damping_n_s_per_m", "stiffness_n_per_m"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi):
+                raise ValueError(f"hand box {name} must be finite with 0 <= lo <= hi")
+        if self.mass_kg[0] <= 0.0:
+            raise ValueError("hand box mass must be > 0 kg")
+
+    def hands(self) -> list[Hand]:
+        """Corners, face centres and centre of the box, then ``extra`` (27 - 8 edges + extra)."""
+        out: list[Hand] = []
+        m, b, k = self.mass_kg, self.damping_n_s_per_m, self.stiffness_n_per_m
+        mid = lambda r: 0.5 * (r[0] + r[1])  # noqa: E731
+        for mi in (m[0], mid(m), m[1]):
+            for bi in (b[0], mid(b), b[1]):
+                for ki in (k[0], mid(k), k[1]):
+                    n_mid = (mi == mid(m)) + (bi == mid(b)) + (ki == mid(k))
+                    if n_mid == 1 and not (m[0] == m[1] or b[0] == b[1] or k[0] == k[1]):
+                        continue  # edge centres add nothing the corners and faces do not
+                    h = Hand(mi, bi, ki)
+                    if h not in out:
+                        out.append(h)
+        for h in self.extra:
+            if h not in out:
+                out.append(h)
+        return out
+
+    def corners(self) -> list[Hand]:
+        """The 8 corners of the box."""
+        return [
+            Hand(mi, bi, ki)
+            for mi in self.mass_kg
+            for bi in self.damping_n_s_per_m
+            for ki in self.stiffness_n_per_m
+        ]
+
+    def as_dict(self) -> dict[str, list[float]]:
+        """``{"mass_kg": [lo, hi], "stiffness_n_per_m": [lo, hi], "damping_n_s_per_m": [lo, hi]}``."""
+        return {
+            "mass_kg": list(self.mass_kg),
+            "stiffness_n_per_m": list(self.stiffness_n_per_m),
+            "damping_n_s_per_m": list(self.damping_n_s_per_m),
+        }
+
+
+#: The hand box every gain design is checked against (README, "The hand box").
+DEFAULT_HAND_BOX = HandBox()
+
+
+def _hand_zoh(
+    m: FloatArray, b: FloatArray, k: FloatArray, period_s: float
+) -> tuple[FloatArray, FloatArray]:
+    """Exact ZOH discretisation of ``m x'' = -b x' - k x - f``: Phi (B, 2, 2), Gamma (B, 2)."""
+    nb = m.shape[0]
+    aug = np.zeros((nb, 3, 3))
+    aug[:, 0, 1] = 1.0
+    aug[:, 1, 0] = -k / m
+    aug[:, 1, 1] = -b / m
+    aug[:, 1, 2] = -1.0 / m
+    e = expm(aug * period_s)
+    return e[:, :2, :2], e[:, :2, 2]
+
+
+def _fast_system(
+    hand: tuple[FloatArray, FloatArray, FloatArray] | None,
+    k_h: FloatArray,
+    i_gain: FloatArray,
+    b_h: FloatArray,
+    period_s: float,
+    integral: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Servo-rate closed hand + local model with the proxy as input.
+
+    Returns A (B, n, n), Bp (B, n), C (B, n), D (B,) with ``xi' = A xi + Bp p``, ``f = C xi + D p``.
+    State: [x, v, (s), x_prev] with a hand; [(s)] for a rigid probe.
+    """
+    nb = k_h.shape[0]
+    T = period_s
+    if hand is None:
+        n = 1 if integral else 0
+        A = np.ones((nb, n, n))
+        Bp = np.zeros((nb, n))
+        C = np.zeros((nb, n))
+        if integral:
+            Bp[:, 0] = -T * i_gain
+            C[:, 0] = 1.0
+        return A, Bp, C, -k_h
+    m, b, k = hand
+    phi, gam = _hand_zoh(m, b, k, T)
+    n = 4 if integral else 3
+    ix, ip = 0, n - 1
+    C = np.zeros((nb, n))
+    C[:, ix] = k_h + b_h / T
+    C[:, ip] = -b_h / T
+    if integral:
+        C[:, 2] = 1.0
+    D = -k_h
+    A = np.zeros((nb, n, n))
+    A[:, :2, :2] = phi
+    A[:, ip, ix] = 1.0
+    Bu = np.zeros((nb, n))
+    Bu[:, :2] = gam
+    Bp = Bu * D[:, None]
+    if integral:
+        A[:, 2, 2] = 1.0
+        A[:, 2, ix] += T * i_gain
+        Bp[:, 2] = -T * i_gain
+    A = A + Bu[:, :, None] * C[:, None, :]
+    return A, Bp, C, D
+
+
+def monodromy(
+    *,
+    hand: Hand | Sequence[Hand] | None,
+    k_o: float | FloatArray,
+    k_h: float | FloatArray,
+    i_gain: float | FloatArray = 0.0,
+    b_h: float | FloatArray = 0.0,
+    b_o: float | FloatArray = 0.0,
+    servo_period_s: float = 1e-3,
+    rate_ratio: int = 50,
+    delay_ticks: int = 0,
+    sample_ticks: Sequence[int] | None = None,
+    proxy_hold: ProxyHold = "zoh",
+    integral: bool | None = None,
+) -> FloatArray:
+    """Monodromy matrices of the full loop over one simulation period (module docstring).
+
+    Parameters
+    ----------
+    hand : Hand, sequence of Hand, or None
+        The combined hand + device (None: rigid probe, the paper's position source). A sequence is
+        one hand per batch element.
+    k_o, k_h, i_gain, b_h, b_o : float or (B,) array
+        K_o [N/m], K_h [N/m], I [N/(m*s)], probe damper B_h [N*s/m], B_o [N/m]; broadcast to the
+        batch size B.
+    servo_period_s : float
+        T [s].
+    rate_ratio : int
+        N, servo ticks per simulation tick, >= 1.
+    delay_ticks : int
+        Extra whole simulation ticks of delay D, >= 0.
+    sample_ticks : sequence of int, optional
+        Servo ticks j in [0, N) at which the simulation samples the force (default: all N).
+    proxy_hold : {"zoh", "foh"}
+    integral : bool, optional
+        Model the integral state (default: any ``i_gain > 0``). Without it I is ignored.
+
+    Returns
+    -------
+    (B, J, n, n) float array
+        One monodromy matrix per batch element and sampling tick; the state is
+        [fast states, proxy, (previous proxy), object, delay line].
+
+    Raises
+    ------
+    ValueError
+        Out-of-range rate ratio, delay, sampling ticks or hold.
+    """
+    if rate_ratio < 1:
+        raise ValueError(f"rate_ratio must be >= 1, got {rate_ratio}")
+    if delay_ticks < 0:
+        raise ValueError(f"delay_ticks must be >= 0, got {delay_ticks}")
+    if proxy_hold not in ("zoh", "foh"):
+        raise ValueError(f"proxy_hold must be 'zoh' or 'foh', got {proxy_hold!r}")
+    N, T = int(rate_ratio), float(servo_period_s)
+    js = list(range(N)) if sample_ticks is None else [int(j) for j in sample_ticks]
+    if not js or any(not 0 <= j < N for j in js):
+        raise ValueError(f"sample ticks must be in [0, {N}), got {sample_ticks!r}")
+    hands: list[Hand] | None
+    if hand is None:
+        hands = None
+    elif isinstance(hand, Hand):
+        hands = [hand]
+    else:
+        hands = list(hand)
+    arrays = [np.atleast_1d(np.asarray(a, dtype=float)) for a in (k_o, k_h, i_gain, b_h, b_o)]
+    if hands is not None:
+        arrays += [
+            np.array([h.mass_kg for h in hands]),
+            np.array([h.damping_n_s_per_m for h in hands]),
+            np.array([h.stiffness_n_per_m for h in hands]),
+        ]
+    arrays = [np.ascontiguousarray(a) for a in np.broadcast_arrays(*arrays)]
+    ko, kh, ig, bh, bo = arrays[:5]
+    if integral is None:
+        integral = bool(np.any(ig > 0.0))
+    hand_arr = None if hands is None else (arrays[5], arrays[6], arrays[7])
+    A, Bp, C, Dp = _fast_system(hand_arr, kh, ig, bh, T, integral)
+    nb, nf = A.shape[0], A.shape[1]
+    foh = proxy_hold == "foh"
+    # proxy inputs over the block: p(i) = w_old(i) p_old + w_new(i) p
+    if foh:
+        w_new = (np.arange(N) + 1.0) / N
+    else:
+        w_new = np.ones(N)
+    w_old = 1.0 - w_new
+    # propagate xi(i) = Phi_i xi0 + G_old_i p_old + G_new_i p, recording F at the sampled ticks
+    Phi = np.broadcast_to(np.eye(nf), (nb, nf, nf)).copy()
+    Gn = np.zeros((nb, nf))
+    Go = np.zeros((nb, nf))
+    want = {j: idx for idx, j in enumerate(js)}
+    F_xi = np.zeros((nb, len(js), nf))
+    F_new = np.zeros((nb, len(js)))
+    F_old = np.zeros((nb, len(js)))
+    for i in range(N):
+        idx = want.get(i)
+        if idx is not None:
+            F_xi[:, idx] = np.einsum("bn,bnm->bm", C, Phi)
+            F_new[:, idx] = np.einsum("bn,bn->b", C, Gn) + Dp * w_new[i]
+            F_old[:, idx] = np.einsum("bn,bn->b", C, Go) + Dp * w_old[i]
+        Phi = A @ Phi
+        Gn = np.einsum("bnm,bm->bn", A, Gn) + Bp * w_new[i]
+        Go = np.einsum("bnm,bm->bn", A, Go) + Bp * w_old[i]
+    # slow state: [xi (nf), p, (p_old), x_obj, q_1..q_D]
+    D = int(delay_ticks)
+    i_p = nf
+    i_po = nf + 1 if foh else None
+    i_obj = nf + (2 if foh else 1)
+    i_q = i_obj + 1
+    n = i_q + D
+    M = np.zeros((nb, len(js), n, n))
+    M[:, :, :nf, :nf] = Phi[:, None]
+    M[:, :, :nf, i_p] = Gn[:, None]
+    if i_po is not None:
+        M[:, :, :nf, i_po] = Go[:, None]
+        M[:, :, i_po, i_p] = 1.0
+    # object: x_obj' = (F + B_o x_obj) / (K_o + B_o), F = F_xi xi + F_new p + F_old p_old
+    inv = 1.0 / (ko + bo)
+    obj_row = np.zeros((nb, len(js), n))
+    obj_row[:, :, :nf] = F_xi * inv[:, None, None]
+    obj_row[:, :, i_p] = F_new * inv[:, None]
+    if i_po is not None:
+        obj_row[:, :, i_po] = F_old * inv[:, None]
+    obj_row[:, :, i_obj] = (bo * inv)[:, None]
+    M[:, :, i_obj, :] = obj_row
+    if D == 0:
+        M[:, :, i_p, :] = obj_row
+    else:
+        M[:, :, i_p, i_q] = 1.0
+        for r in range(D - 1):
+            M[:, :, i_q + r, i_q + r + 1] = 1.0
+        M[:, :, i_q + D - 1, :] = obj_row
+    return M
+
+
+def spectral_radius(
+    *,
+    hand: Hand | Sequence[Hand] | None,
+    k_o: float | FloatArray,
+    k_h: float | FloatArray,
+    i_gain: float | FloatArray = 0.0,
+    b_h: float | FloatArray = 0.0,
+    b_o: float | FloatArray = 0.0,
+    servo_period_s: float = 1e-3,
+    rate_ratio: int = 50,
+    delay_ticks: int = 0,
+    sample_ticks: Sequence[int] | None = None,
+    proxy_hold: ProxyHold = "zoh",
+    integral: bool | None = None,
+) -> FloatArray:
+    """Spectral radius of the full loop per batch element and sampling tick, shape (B, J).
+
+    Same parameters as :func:`monodromy`. A value below 1 means every mode of hand, device, local
+    model and object decays from one simulation period to the next.
+    """
+    M = monodromy(
+        hand=hand,
+        k_o=k_o,
+        k_h=k_h,
+        i_gain=i_gain,
+        b_h=b_h,
+        b_o=b_o,
+        servo_period_s=servo_period_s,
+        rate_ratio=rate_ratio,
+        delay_ticks=delay_ticks,
+        sample_ticks=sample_ticks,
+        proxy_hold=proxy_hold,
+        integral=integral,
+    )
+    if M.shape[-1] == 0:
+        return np.zeros(M.shape[:2])
+    return np.max(np.abs(np.linalg.eigvals(M)), axis=-1)
+
+
+@dataclass(frozen=True)
+class FullLoopAnalysis:
+    """Verdict on the full loop for one hand, gains and object (worst sampling tick).
+
+    Attributes
+    ----------
+    stable : bool
+        Spectral radius below 1 at every sampling tick.
+    spectral_radius : float
+        Largest over the sampling ticks.
+    worst_sample_tick : int
+        The sampling tick j at which it occurs.
+    """
+
+    stable: bool
+    spectral_radius: float
+    worst_sample_tick: int
+
+    def to_json(self) -> dict[str, object]:
+        """``{"stable", "spectral_radius", "worst_sample_tick"}``."""
+        return {
+            "stable": self.stable,
+            "spectral_radius": self.spectral_radius,
+            "worst_sample_tick": self.worst_sample_tick,
+        }
+
+
+def analyze_full_loop(
+    hand: Hand | None,
+    *,
+    k_o: float,
+    k_h: float,
+    i_gain: float = 0.0,
+    b_h: float = 0.0,
+    damping: float = 0.0,
+    servo_rate_hz: float = 1000.0,
+    sim_rate_hz: float = 20.0,
+    delay_ticks: int = 0,
+    sample_tick: int | None = None,
+    proxy_hold: ProxyHold = "zoh",
+) -> FullLoopAnalysis:
+    """The full-loop verdict for one case, in the units of :func:`shared.stability.analyze`.
+
+    Parameters
+    ----------
+    hand : Hand or None
+        Combined hand + device (None: rigid probe).
+    k_o, k_h, i_gain, b_h : float
+        K_o [N/m] > 0, K_h [N/m] > 0, I [N/(m*s)] >= 0, probe damper B_h [N*s/m] >= 0.
+    damping : float
+        Object damping b [N*s/m]; B_o = b / (N*T) (eq. 9).
+    servo_rate_hz, sim_rate_hz : float
+        The servo rate must be a whole multiple of the simulation rate.
+    delay_ticks : int
+        Extra whole simulation ticks of delay.
+    sample_tick : int, optional
+        One sampling tick; default: the worst over all N.
+    proxy_hold : {"zoh", "foh"}
+
+    Raises
+    ------
+    ValueError
+        Out-of-range or inconsistent input.
+    """
+    from shared.stability import rate_ratio as _rate_ratio
+
+    n = _rate_ratio(servo_rate_hz, sim_rate_hz)
+    for name, v, lo in (("k_o", k_o, 0.0), ("k_h", k_h, 0.0)):
+        if not (math.isfinite(v) and v > lo):
+            raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    for name, v in (("i_gain", i_gain), ("b_h", b_h), ("damping", damping)):
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+    if isinstance(delay_ticks, bool) or int(delay_ticks) != delay_ticks or delay_ticks < 0:
+        raise ValueError(f"delay_ticks must be a whole number >= 0, got {delay_ticks!r}")
+    js = list(range(n)) if sample_tick is None else [int(sample_tick)]
+    rho = spectral_radius(
+        hand=hand,
+        k_o=k_o,
+        k_h=k_h,
+        i_gain=i_gain,
+        b_h=b_h,
+        b_o=damping * sim_rate_hz,
+        servo_period_s=1.0 / servo_rate_hz,
+        rate_ratio=n,
+        delay_ticks=int(delay_ticks),
+        sample_ticks=js,
+        proxy_hold=proxy_hold,
+    )[0]
+    w = int(np.argmax(rho))
+    r = float(rho[w])
+    return FullLoopAnalysis(
+        stable=r < 1.0 - STABILITY_TOL, spectral_radius=r, worst_sample_tick=js[w]
+    )

@@ -1,0 +1,562 @@
+"""Local model gains with the hand in the loop: the most transparent gains the full loop allows.
+
+Step 2 of the paper's section 6 picks K_h and I inside the stability region of the *simulation
+loop* (probe as a position source). This module picks them inside the stability region of the
+*full loop* (:mod:`shared.full_loop`): the gains are accepted only if the loop is stable, with a
+decay-rate margin, for
+
+- every hand of the hand box (:class:`shared.full_loop.HandBox`),
+- every servo tick j at which the simulation may sample the force (Step 3 over a network),
+- every object stiffness K_o' in ``[(1 - margin) K_o, K_o]`` (the paper's advice to design for a
+  lower K_o than reported),
+
+and among those the one with the best *transparency*: the felt stiffness |dF/dx| at the probe,
+probe as a position source, relative to K_o, at 1 Hz (then 8 Hz to break ties).
+Besides K_h (P) and K_h, I (PI), the design may use
+
+- a probe damper B_h on the backward difference of the probe position, in contact only, up to the
+  device's ``b_h_max``;
+- a first-order-hold proxy (``foh``): the proxy moves linearly to each new surface over the next
+  simulation period instead of jumping (``zoh``).
+
+Felt stiffness is computed exactly on the lifted (N-periodic) loop: for a probe motion
+``x(n) = Re(X e^{j w n T})`` the steady state of the lifted loop at ``z = e^{j w N T}`` gives the
+servo-rate force over one block, whose component at w (the fundamental) over X is the felt
+stiffness. For a P local model on an elastic object at low frequency it tends to
+``K_h K_o / (K_h + K_o)``; for PI to K_o.
+
+:class:`GainTable` caches designs on a geometric grid of K_o so that a client's network loop only
+looks gains up (the design itself runs off the loop).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from shared.full_loop import (
+    DEFAULT_HAND_BOX,
+    Hand,
+    HandBox,
+    ProxyHold,
+    monodromy,
+)
+
+FloatArray = NDArray[np.float64]
+Mode = Literal["p", "pi"]
+
+#: Slowest accepted decay of any mode of the full loop [1/s]: the spectral radius over one
+#: simulation period must be at most exp(-MIN_DECAY_RATE * N * T). 1/s: a disturbance falls to a
+#: third within a second; the box's least damped hand (0.6 kg, 2 N*s/m) alone decays at 1.7/s.
+MIN_DECAY_RATE_PER_S = 1.0
+
+
+@dataclass(frozen=True)
+class GainDesign:
+    """Gains for one object stiffness, with their robustness and transparency (SI units).
+
+    Attributes
+    ----------
+    k_h : float
+        K_h [N/m].
+    i_gain : float
+        I [N/(m*s)] (0: proportional local model).
+    b_h : float
+        Probe damper B_h [N*s/m], in contact only.
+    proxy_hold : {"zoh", "foh"}
+    worst_spectral_radius : float
+        Largest spectral radius of the full loop over the hand box, every sampling tick and the
+        K_o range (below ``rho_limit``).
+    rho_limit : float
+        exp(-MIN_DECAY_RATE * N * T): the bound the design respects.
+    felt_stiffness_ratio_1hz, felt_stiffness_ratio_8hz : float
+        |dF/dx| / K_o at the probe (position source) at 1 Hz and 8 Hz.
+    k_o : float
+        K_o [N/m] designed for; the design holds for K_o' in ``k_o_range``.
+    k_o_range : (float, float)
+        Object stiffness interval [N/m] checked.
+    rate_ratio, delay_ticks : int
+    mode : {"p", "pi"}
+    hand_box : HandBox
+    design_ms : float
+        Wall time the design took [ms] (informative; ``haptic bench gains`` measures properly).
+    """
+
+    k_h: float
+    i_gain: float
+    b_h: float
+    proxy_hold: ProxyHold
+    worst_spectral_radius: float
+    rho_limit: float
+    felt_stiffness_ratio_1hz: float
+    felt_stiffness_ratio_8hz: float
+    k_o: float
+    k_o_range: tuple[float, float]
+    rate_ratio: int
+    delay_ticks: int
+    mode: Mode
+    hand_box: HandBox = field(default=DEFAULT_HAND_BOX, repr=False)
+    design_ms: float = 0.0
+
+    def to_json(self) -> dict[str, object]:
+        """The ``haptic gains --json`` object."""
+        return {
+            "k_h": self.k_h,
+            "i_gain": self.i_gain,
+            "b_h": self.b_h,
+            "proxy_hold": self.proxy_hold,
+            "worst_spectral_radius": self.worst_spectral_radius,
+            "rho_limit": self.rho_limit,
+            "hand_box": self.hand_box.as_dict(),
+            "felt_stiffness_ratio_1hz": self.felt_stiffness_ratio_1hz,
+            "felt_stiffness_ratio_8hz": self.felt_stiffness_ratio_8hz,
+            "k_o": self.k_o,
+            "k_o_range": list(self.k_o_range),
+            "rate_ratio": self.rate_ratio,
+            "delay_ticks": self.delay_ticks,
+            "local_model": self.mode,
+            "design_ms": self.design_ms,
+        }
+
+
+def felt_stiffness(
+    freq_hz: float,
+    *,
+    k_o: float | FloatArray,
+    k_h: float | FloatArray,
+    i_gain: float | FloatArray = 0.0,
+    b_h: float | FloatArray = 0.0,
+    b_o: float | FloatArray = 0.0,
+    servo_period_s: float = 1e-3,
+    rate_ratio: int = 50,
+    delay_ticks: int = 0,
+    sample_tick: int | None = None,
+    proxy_hold: ProxyHold = "zoh",
+    complex_response: bool = False,
+) -> FloatArray:
+    """Felt stiffness |dF/dx| [N/m] at the probe, probe as a position source, shape (B,).
+
+    Exact fundamental-harmonic response of the N-periodic loop (module docstring) to a probe motion
+    at ``freq_hz``; the other parameters as in :func:`shared.full_loop.monodromy`. The simulation
+    samples the force at ``sample_tick`` (default N - 1: the latest force, Step 3).
+
+    Raises
+    ------
+    ValueError
+        ``freq_hz`` not in (0, servo rate / 2), or as :func:`shared.full_loop.monodromy`.
+    """
+    N, T = int(rate_ratio), float(servo_period_s)
+    if not (0.0 < freq_hz < 0.5 / T):
+        raise ValueError(f"freq_hz must be in (0, {0.5 / T:g}), got {freq_hz!r}")
+    j = N - 1 if sample_tick is None else int(sample_tick)
+    ko, kh, ig, bh, bo = (
+        np.ascontiguousarray(a)
+        for a in np.broadcast_arrays(
+            *(np.atleast_1d(np.asarray(v, dtype=float)) for v in (k_o, k_h, i_gain, b_h, b_o))
+        )
+    )
+    integral = bool(np.any(ig > 0.0))
+    M = monodromy(
+        hand=None,
+        k_o=ko,
+        k_h=kh,
+        i_gain=ig,
+        b_h=bh,
+        b_o=bo,
+        servo_period_s=T,
+        rate_ratio=N,
+        delay_ticks=delay_ticks,
+        sample_ticks=[j],
+        proxy_hold=proxy_hold,
+        integral=integral,
+    )[:, 0]
+    nb, n = M.shape[0], M.shape[1]
+    w = 2.0 * math.pi * freq_hz
+    i_ticks = np.arange(N)
+    c = np.exp(1j * w * T * i_ticks)  # probe phasor at each tick of block 0
+    z = np.exp(1j * w * N * T)
+    damp = bh * (1.0 - np.exp(-1j * w * T)) / T  # (B,) damper on the probe's backward difference
+    ti = T * ig
+    # probe contributions to the sampled force and to the next slow state
+    csum = np.concatenate(([0.0], np.cumsum(c)))  # csum[i] = sum_{l<i} c_l
+    fx = kh * c[j] + (ti * csum[j] if integral else 0.0) + damp * c[j]
+    nf = 1 if integral else 0
+    foh = proxy_hold == "foh"
+    i_p, i_obj = nf, nf + (2 if foh else 1)
+    bx = np.zeros((nb, n), dtype=complex)
+    if integral:
+        bx[:, 0] = ti * csum[N]
+    inv = 1.0 / (ko + bo)
+    bx[:, i_obj] = fx * inv
+    row_new = i_p if delay_ticks == 0 else n - 1
+    bx[:, row_new] = fx * inv
+    Y = np.linalg.solve(z * np.eye(n)[None] - M, bx[:, :, None])[:, :, 0]
+    p = Y[:, i_p]
+    p_old = Y[:, nf + 1] if foh else p
+    w_new = (i_ticks + 1.0) / N if foh else np.ones(N)
+    prox = np.outer(p_old, 1.0 - w_new) + np.outer(p, w_new)  # (B, N)
+    e = c[None, :] - prox
+    f = kh[:, None] * e + damp[:, None] * c[None, :]
+    if integral:
+        s0 = Y[:, 0]
+        e_cum = np.concatenate((np.zeros((nb, 1)), np.cumsum(e, axis=1)[:, :-1]), axis=1)
+        f = f + s0[:, None] + ti[:, None] * e_cum
+    f1 = (f * np.conj(c)[None, :]).mean(axis=1)
+    return f1 if complex_response else np.abs(f1)
+
+
+def _worst_rho(
+    cand: dict[str, FloatArray],
+    hold: ProxyHold,
+    hands: Sequence[Hand],
+    k_os: Sequence[float],
+    *,
+    b_o: float,
+    servo_period_s: float,
+    rate_ratio: int,
+    delay_ticks: int,
+    sample_ticks: Sequence[int],
+    integral: bool,
+    chunk: int = 4096,
+) -> FloatArray:
+    """Worst full-loop spectral radius per candidate over hands x K_o' x sampling ticks, (G,)."""
+    g = cand["k_h"].shape[0]
+    L, K = len(hands), len(k_os)
+    # batch order: candidate, hand, k_o
+    kh = np.repeat(cand["k_h"], L * K)
+    ig = np.repeat(cand["i_gain"], L * K)
+    bh = np.repeat(cand["b_h"], L * K)
+    hs = [h for h in hands for _ in range(K)] * g
+    ko = np.tile(np.asarray(k_os, float), g * L)
+    out = np.empty(g * L * K)
+    for a in range(0, out.size, chunk):
+        sl = slice(a, a + chunk)
+        M = monodromy(
+            hand=hs[sl],
+            k_o=ko[sl],
+            k_h=kh[sl],
+            i_gain=ig[sl],
+            b_h=bh[sl],
+            b_o=b_o,
+            servo_period_s=servo_period_s,
+            rate_ratio=rate_ratio,
+            delay_ticks=delay_ticks,
+            sample_ticks=sample_ticks,
+            proxy_hold=hold,
+            integral=integral,
+        )
+        out[sl] = np.max(np.abs(np.linalg.eigvals(M)), axis=(-1, -2))
+    return out.reshape(g, L * K).max(axis=1)
+
+
+def _screen_hands(box: HandBox) -> list[Hand]:
+    corners = box.corners()
+    c = Hand(
+        0.5 * sum(box.mass_kg), 0.5 * sum(box.damping_n_s_per_m), 0.5 * sum(box.stiffness_n_per_m)
+    )
+    return list(dict.fromkeys([*corners, c, *box.extra]))
+
+
+def design_gains(
+    k_o: float,
+    *,
+    b_o: float = 0.0,
+    servo_rate_hz: float = 1000.0,
+    sim_rate_hz: float = 20.0,
+    delay_ticks: int = 0,
+    mode: Mode = "pi",
+    margin: float = 0.15,
+    k_o_hi: float | None = None,
+    k_h_max: float = math.inf,
+    b_h_max: float = 0.0,
+    holds: Sequence[ProxyHold] = ("zoh", "foh"),
+    hand_box: HandBox = DEFAULT_HAND_BOX,
+    min_decay_rate_per_s: float = MIN_DECAY_RATE_PER_S,
+) -> GainDesign:
+    """The most transparent gains stable over the hand box (module docstring).
+
+    Parameters
+    ----------
+    k_o : float
+        Reported (coupling-aware) object stiffness K_o_eff [N/m], > 0.
+    b_o : float
+        B_o [N/m] (eq. 9), >= 0.
+    servo_rate_hz, sim_rate_hz : float
+        1/T and 1/(N*T); N must be a whole number.
+    delay_ticks : int
+        Extra whole simulation ticks of delay, >= 0.
+    mode : {"p", "pi"}
+        Proportional or proportional-integral local model.
+    margin : float
+        Fraction in [0, 1) by which K_o may be overestimated: stability is checked down to
+        ``(1 - margin) K_o``.
+    k_o_hi : float, optional
+        Upper end of the K_o range checked (default ``k_o``; :class:`GainTable` passes the next
+        grid point so a design covers its whole cell).
+    k_h_max : float
+        The device's maximum stable stiffness [N/m].
+    b_h_max : float
+        The device's maximum virtual damping [N*s/m] (0: no probe damper).
+    holds : sequence of {"zoh", "foh"}
+        Proxy holds the design may use.
+    hand_box : HandBox
+        Hands the gains must be stable for.
+    min_decay_rate_per_s : float
+        Decay-rate margin [1/s] (:data:`MIN_DECAY_RATE_PER_S`).
+
+    Returns
+    -------
+    GainDesign
+
+    Raises
+    ------
+    ValueError
+        Out-of-range input, or no candidate is stable over the box (then the box or the rates are
+        beyond what any local model of this kind can render).
+    """
+    from shared.stability import rate_ratio as _rate_ratio
+
+    t0 = time.perf_counter()
+    N = _rate_ratio(servo_rate_hz, sim_rate_hz)
+    T = 1.0 / float(servo_rate_hz)
+    if not (math.isfinite(k_o) and k_o > 0.0):
+        raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
+    if not (math.isfinite(b_o) and b_o >= 0.0):
+        raise ValueError(f"b_o must be finite and >= 0, got {b_o!r}")
+    if not 0.0 <= margin < 1.0:
+        raise ValueError(f"margin must be in [0, 1), got {margin!r}")
+    if isinstance(delay_ticks, bool) or int(delay_ticks) != delay_ticks or delay_ticks < 0:
+        raise ValueError(f"delay_ticks must be a whole number >= 0, got {delay_ticks!r}")
+    if mode not in ("p", "pi"):
+        raise ValueError(f"mode must be 'p' or 'pi', got {mode!r}")
+    if not k_h_max > 0.0:
+        raise ValueError(f"k_h_max must be > 0, got {k_h_max!r}")
+    if not (math.isfinite(b_h_max) and b_h_max >= 0.0):
+        raise ValueError(f"b_h_max must be finite and >= 0, got {b_h_max!r}")
+    if not holds or any(h not in ("zoh", "foh") for h in holds):
+        raise ValueError(f"holds must name 'zoh' and/or 'foh', got {holds!r}")
+    hi = float(k_o if k_o_hi is None else max(k_o, k_o_hi))
+    lo = (1.0 - margin) * k_o
+    k_os = sorted({lo, math.sqrt(lo * hi), hi})
+    rho_limit = math.exp(-min_decay_rate_per_s * N * T)
+    delay = int(delay_ticks)
+    integral = mode == "pi"
+
+    # candidates
+    kh_cap = min(k_h_max, 0.999 * lo)
+    kh_axis = kh_cap * np.geomspace(0.03, 1.0, 28 if integral else 48)
+    bh_axis = np.unique(np.linspace(0.0, b_h_max, 4)) if b_h_max > 0.0 else np.zeros(1)
+    if integral:
+        nti_axis = lo * np.geomspace(0.02, 2.0, 16)
+        KH, NI, BH = np.meshgrid(kh_axis, nti_axis / (N * T), bh_axis, indexing="ij")
+    else:
+        KH, BH = np.meshgrid(kh_axis, bh_axis, indexing="ij")
+        NI = np.zeros_like(KH)
+    base = {"k_h": KH.ravel(), "i_gain": NI.ravel(), "b_h": BH.ravel()}
+    screen_hands = _screen_hands(hand_box)
+    all_hands = hand_box.hands()
+    screen_ticks = sorted({0, N // 2, N - 1})
+    all_ticks = list(range(N))
+
+    best: tuple[float, float, GainDesign] | None = None
+
+    def worst(
+        cand: dict[str, FloatArray], hold: ProxyHold, hands: list[Hand], ticks: list[int]
+    ) -> FloatArray:
+        return _worst_rho(
+            cand,
+            hold,
+            hands,
+            k_os,
+            b_o=b_o,
+            servo_period_s=T,
+            rate_ratio=N,
+            delay_ticks=delay,
+            sample_ticks=ticks,
+            integral=integral,
+        )
+
+    for hold in holds:
+        resp1 = (
+            felt_stiffness(
+                1.0,
+                k_o=k_o,
+                servo_period_s=T,
+                rate_ratio=N,
+                delay_ticks=delay,
+                proxy_hold=hold,
+                b_o=b_o,
+                complex_response=True,
+                **base,
+            )
+            / k_o
+        )
+        # objective: the elastic part of the felt stiffness (a damper is felt as viscosity, not
+        # as a stiffer object), capped at the object's own
+        felt1 = np.minimum(resp1.real, 1.0)
+        if best is not None:
+            felt1 = np.where(felt1 < best[0] - 1e-3, -np.inf, felt1)  # cannot win
+        order = np.array([i for i in np.argsort(-felt1) if np.isfinite(felt1[i])], dtype=int)
+        found = None
+        # screen in order of transparency (few hands, three sampling ticks), then verify fully
+        for a in range(0, order.size, 64):
+            idx = order[a : a + 64]
+            cand = {k: v[idx] for k, v in base.items()}
+            rho_s = worst(cand, hold, screen_hands, screen_ticks)
+            for b in idx[rho_s < rho_limit]:
+                one = {k: v[b : b + 1] for k, v in base.items()}
+                r = worst(one, hold, all_hands, all_ticks)[0]
+                if r < rho_limit:
+                    found = (int(b), float(r))
+                    break
+            if found is not None:
+                break
+        if found is None:
+            continue
+        i, rho_full = found
+        felt8 = float(
+            felt_stiffness(
+                8.0,
+                k_o=k_o,
+                k_h=base["k_h"][i],
+                i_gain=base["i_gain"][i],
+                b_h=base["b_h"][i],
+                b_o=b_o,
+                servo_period_s=T,
+                rate_ratio=N,
+                delay_ticks=delay,
+                proxy_hold=hold,
+            )[0]
+            / k_o
+        )
+        d = GainDesign(
+            k_h=float(base["k_h"][i]),
+            i_gain=float(base["i_gain"][i]),
+            b_h=float(base["b_h"][i]),
+            proxy_hold=hold,
+            worst_spectral_radius=rho_full,
+            rho_limit=rho_limit,
+            felt_stiffness_ratio_1hz=float(abs(resp1[i])),
+            felt_stiffness_ratio_8hz=felt8,
+            k_o=float(k_o),
+            k_o_range=(lo, hi),
+            rate_ratio=N,
+            delay_ticks=delay,
+            mode=mode,
+            hand_box=hand_box,
+        )
+        key = (round(float(felt1[i]), 3), -abs(d.felt_stiffness_ratio_8hz - 1.0))
+        if best is None or key > (best[0], best[1]):
+            best = (key[0], key[1], d)
+    if best is None:
+        raise ValueError(
+            f"no {mode} local model is stable over the hand box at K_o = {k_o:g} N/m, "
+            f"{sim_rate_hz:g} Hz, {delay} tick(s) of delay"
+        )
+    return replace(best[2], design_ms=(time.perf_counter() - t0) * 1e3)
+
+
+#: Ratio between neighbouring K_o grid points of a :class:`GainTable`.
+K_O_GRID_RATIO = 1.1
+
+
+@dataclass(frozen=True)
+class GainKey:
+    """What a design depends on besides K_o (hashable; one :class:`GainTable` row per key)."""
+
+    servo_rate_hz: float
+    sim_rate_hz: float
+    delay_ticks: int
+    mode: Mode
+    margin: float
+    k_h_max: float
+    b_h_max: float
+    b_o: float = 0.0
+
+
+class GainTable:
+    """Designs cached on a geometric grid of K_o; lookups cost a dict access.
+
+    A design for grid point g_i is checked over K_o' in ``[(1 - margin) g_i, g_(i+1)]``, so for a
+    reported K_o with ``g_i <= K_o < g_(i+1)`` it is stable with the full margin below g_i and
+    loses at most one grid ratio (10 %) of stiffness. The table never designs by itself:
+    :meth:`lookup` says which cell is missing and the caller runs :meth:`design` off its event
+    loop (a thread), then :meth:`lookup` again. Pure: no threads, no clocks.
+
+    Parameters
+    ----------
+    hand_box : HandBox
+        The hands every design is checked against.
+    grid_ratio : float
+        Ratio between neighbouring K_o grid points, > 1.
+    """
+
+    def __init__(self, hand_box: HandBox = DEFAULT_HAND_BOX, grid_ratio: float = K_O_GRID_RATIO):
+        if not grid_ratio > 1.0:
+            raise ValueError(f"grid_ratio must be > 1, got {grid_ratio!r}")
+        self.hand_box = hand_box
+        self.grid_ratio = float(grid_ratio)
+        self._cells: dict[tuple[GainKey, int], GainDesign] = {}
+        self._log_r = math.log(self.grid_ratio)
+
+    def cell(self, k_o: float) -> int:
+        """Grid index i with ``g_i <= k_o < g_(i+1)``, ``g_i = ratio**i`` [N/m]."""
+        if not (math.isfinite(k_o) and k_o > 0.0):
+            raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
+        return math.floor(math.log(k_o) / self._log_r + 1e-12)
+
+    def grid_point(self, i: int) -> float:
+        """g_i [N/m]."""
+        return self.grid_ratio**i
+
+    def lookup(self, key: GainKey, k_o: float) -> GainDesign | None:
+        """The design covering ``k_o``, or None if its cell has not been designed yet."""
+        return self._cells.get((key, self.cell(k_o)))
+
+    def fallback(self, key: GainKey, k_o: float) -> GainDesign | None:
+        """The nearest designed cell *below* ``k_o`` with the same key (softer), or None.
+
+        A design for a softer object is checked on its own cell only; it is what the client
+        renders while the exact cell is being designed (with K_h, I scaled down by the ratio of
+        the cell points when the cell is above, never up).
+        """
+        i = self.cell(k_o)
+        below = [c for (k, c) in self._cells if k == key and c <= i]
+        if not below:
+            return None
+        return self._cells[(key, max(below))]
+
+    def design(self, key: GainKey, k_o: float) -> GainDesign:
+        """Design (slow: tens to hundreds of ms) and store the cell covering ``k_o``.
+
+        Raises
+        ------
+        ValueError
+            As :func:`design_gains`.
+        """
+        i = self.cell(k_o)
+        g = self.grid_point(i)
+        d = design_gains(
+            g,
+            b_o=key.b_o,
+            servo_rate_hz=key.servo_rate_hz,
+            sim_rate_hz=key.sim_rate_hz,
+            delay_ticks=key.delay_ticks,
+            mode=key.mode,
+            margin=key.margin,
+            k_o_hi=self.grid_point(i + 1),
+            k_h_max=key.k_h_max,
+            b_h_max=key.b_h_max,
+            hand_box=self.hand_box,
+        )
+        self._cells[(key, i)] = d
+        return d
+
+    def __len__(self) -> int:
+        return len(self._cells)
