@@ -49,7 +49,9 @@ class ClientOptions:
     anchor: Literal["auto", "top", "side"] = "auto"
     trajectory: dict[str, float] = field(default_factory=dict)
     theta_m: float = 0.001
-    margin: float = 0.3
+    theta_mode: Literal["auto", "fixed", "variable"] = "auto"
+    passivity: Literal["auto", "on", "off"] = "auto"
+    margin: float = 0.15
     join_timeout_s: float = 20.0
     hid_profile: str | None = None
 
@@ -63,6 +65,39 @@ def _device_info(opts: ClientOptions) -> DeviceInfo:
             max_stiffness_n_per_m=lim.max_stiffness_n_per_m,
         )
     return DeviceInfo(profile=opts.device[:64])
+
+
+def threshold_for(
+    mode: Literal["auto", "fixed", "variable"],
+    local_model: Literal["p", "pi"],
+    theta_m: float,
+    encoder_resolution_m: float,
+) -> ThresholdParams:
+    """The integration threshold theta (eq. 17 or 18) the client renders with.
+
+    ``auto`` is eq. 18 (variable) for PI and eq. 17 (fixed) otherwise. Eq. 18's branch follows the
+    direction of the penetration; its deadband is three encoder counts per tick, so quantisation
+    noise (one count back and forth) never flips the branch, while a hand moving faster than
+    3 counts per servo period (0.07 m/s at 1 kHz on a 23 um encoder) does. theta_1 = theta_m / 2
+    while penetrating, theta_2 = 3 theta_m while exiting, reached at 1 N of integral force.
+    """
+    variable = mode == "variable" or (mode == "auto" and local_model == "pi")
+    if not variable:
+        return ThresholdParams(mode="fixed", theta_m=theta_m)
+    return ThresholdParams(
+        mode="variable",
+        theta_m=theta_m,
+        theta_1_m=0.5 * theta_m,
+        theta_2_m=3.0 * theta_m,
+        i_tot_bar_n=1.0,
+        direction_deadband_m=3.0 * encoder_resolution_m,
+    )
+
+
+def _encoder_resolution(device: Device) -> float:
+    profile = getattr(device, "profile", None)
+    res = getattr(profile, "encoder_resolution_m", 0.0)
+    return float(res) if isinstance(res, int | float) and math.isfinite(res) else 0.0
 
 
 def _anchor(
@@ -146,16 +181,28 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
             max_force_n=min(100.0, lim.max_force_n),
             max_stiffness_n_per_m=min(1e5, lim.max_stiffness_n_per_m),
         )
+        session.b_h_max = min(1e3, lim.max_damping_n_s_per_m)
         period = 1.0 / opts.servo_rate_hz
         lm = LocalModelParams(
             k_h=1.0,
             servo_period_s=period,
-            threshold=ThresholdParams(mode="fixed", theta_m=opts.theta_m),
+            threshold=threshold_for(
+                opts.theta_mode,
+                opts.local_model,
+                opts.theta_m,
+                _encoder_resolution(device),
+            ),
             release_time_s=2.0 / welcome.sim_rate_hz,
             integral_limit_n=lim.max_force_n,  # anti-windup: never more than the device can render
         )
+        passivity = opts.passivity == "on" or (
+            opts.passivity == "auto" and opts.local_model == "pi"
+        )
         core = ServoCore(
-            device, ServoConfig(servo_rate_hz=opts.servo_rate_hz), local_model=lm, recorder=recorder
+            device,
+            ServoConfig(servo_rate_hz=opts.servo_rate_hz, passivity=passivity),
+            local_model=lm,
+            recorder=recorder,
         )
         servo = ServoThread(core, clock=clock)
         servo.start()
@@ -169,7 +216,14 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
         servo: ServoThread | None = state["servo"]
         if servo is None:
             return
-        servo.set_patch(update.primitive, update.k_h, update.i_gain)
+        servo.set_patch(
+            update.primitive,
+            update.k_h,
+            update.i_gain,
+            b_h=update.b_h,
+            proxy_hold=update.proxy_hold,
+            hold_ticks=update.hold_ticks,
+        )
         updates.append(update)
 
     def sample() -> ServoSample | None:
@@ -236,6 +290,17 @@ def _summary(
         "rtt_ms_samples": [float(x) for x in rtt[-2000:]],
         "delay_ticks_last": updates[-1].delay_ticks if updates else None,
         "spectral_radius_last": updates[-1].spectral_radius if updates else None,
+        "gains_last": None
+        if not updates
+        else {
+            "k_h": updates[-1].k_h,
+            "i_gain": updates[-1].i_gain,
+            "b_h": updates[-1].b_h,
+            "proxy_hold": updates[-1].proxy_hold,
+            "felt_stiffness_ratio_1hz": updates[-1].felt_stiffness_ratio_1hz,
+        },
+        "gain_designs": link.designs,
+        "fallback_patches": sum(1 for u in updates if u.fallback),
     }
     if servo is not None:
         status = servo.core.status().as_dict()

@@ -13,13 +13,17 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import multiprocessing
 import random
 from collections.abc import Callable
+from dataclasses import replace
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from client.session import ClientSession, PatchUpdate, ServoSample
+from shared.gain_design import design_cell, warm_up
 from shared.protocol import ProtocolError, Welcome
 
 log = logging.getLogger("haptic.client")
@@ -46,6 +50,9 @@ class Link:
         Called on every (re)join.
     backoff_s : (float, float)
         First and largest reconnect delay [s].
+    design_executor : Executor, optional
+        Where gain designs run (default: one worker process, started on the first design, so a
+        design never holds the event loop or the servo thread's interpreter lock).
     """
 
     def __init__(
@@ -58,6 +65,7 @@ class Link:
         clock: Callable[[], float],
         on_welcome: Callable[[Welcome], None] | None = None,
         backoff_s: tuple[float, float] = (0.2, 5.0),
+        design_executor: Executor | None = None,
     ) -> None:
         self.url = url
         self.session = session
@@ -69,9 +77,88 @@ class Link:
         self.connected = asyncio.Event()
         self.joins = 0
         self.protocol_errors = 0
+        self.designs = 0
+        self._executor = design_executor
+        self._own_executor = False
+        self._design_task: asyncio.Task[None] | None = None
+
+    def _start_design(self) -> None:
+        """Run the design the session asks for in the executor (one at a time)."""
+        want = self.session.design_wanted
+        if want is None or (self._design_task is not None and not self._design_task.done()):
+            return
+        self.session.design_wanted = None
+        key, k_o = want
+        table = self.session.gain_table
+        cell = table.cell(k_o)
+        if table.lookup(key, k_o) is not None:
+            return
+        self._ensure_executor()
+
+        async def run() -> None:
+            loop = asyncio.get_running_loop()
+            try:
+                design = await loop.run_in_executor(
+                    self._executor, design_cell, key, cell, table.grid_ratio, table.hand_box
+                )
+            except ValueError as exc:
+                log.error("no stable gains for K_o = %.0f N/m: %s", k_o, exc)
+                return
+            table.store(key, cell, design)
+            self.designs += 1
+            log.debug("designed gains for K_o = %.0f N/m in %.0f ms", k_o, design.design_ms)
+            # prefetch the neighbours most likely needed next: one more tick of delay, and the
+            # cells just below and above (the contact moves, K_o changes)
+            for nk, nko in (
+                (replace(key, delay_ticks=key.delay_ticks + 1), k_o),
+                (key, table.grid_point(cell - 1)),
+                (key, table.grid_point(cell + 1) * 1.0001),
+            ):
+                if table.lookup(nk, nko) is None:
+                    try:
+                        nd = await loop.run_in_executor(
+                            self._executor,
+                            design_cell,
+                            nk,
+                            table.cell(nko),
+                            table.grid_ratio,
+                            table.hand_box,
+                        )
+                    except ValueError:
+                        continue
+                    table.store(nk, table.cell(nko), nd)
+                    self.designs += 1
+                if self.session.design_wanted is not None:
+                    break  # something is needed now: let the next patch start it
+
+        self._design_task = asyncio.get_running_loop().create_task(run())
+
+    def _ensure_executor(self) -> None:
+        if self._executor is None:
+            self._own_executor = True
+            try:
+                self._executor = ProcessPoolExecutor(
+                    max_workers=1, mp_context=multiprocessing.get_context("spawn")
+                )
+                self._executor.submit(warm_up)  # start the worker while the client joins
+            except (RuntimeError, OSError) as exc:
+                # e.g. a script without the ``if __name__ == "__main__"`` guard: design in a
+                # thread instead (it then shares the interpreter lock with the servo thread)
+                log.warning("gain design runs in a thread, not a worker process: %s", exc)
+                if self._executor is not None:
+                    self._executor.shutdown(wait=False, cancel_futures=True)
+                self._executor = ThreadPoolExecutor(max_workers=1)
+
+    def close(self) -> None:
+        """Stop the design worker (if this link started it)."""
+        if self._own_executor and self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
 
     async def run(self, stop: asyncio.Event) -> None:
         """Connect, serve, reconnect with backoff until ``stop`` is set."""
+        if self.session.role == "user":
+            self._ensure_executor()
         delay = self.backoff_s[0]
         while not stop.is_set():
             joins = self.joins
@@ -92,6 +179,7 @@ class Link:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), delay * (0.8 + 0.4 * random.random()))
             delay = min(self.backoff_s[1], delay * 2.0)
+        self.close()
 
     async def _serve(self, ws: ClientConnection, stop: asyncio.Event) -> None:
         await ws.send(self.session.hello())
@@ -128,6 +216,8 @@ class Link:
                 err = self.session.errors[-1]
                 level = logging.ERROR if err.fatal else logging.WARNING
                 log.log(level, "server: %s (%s)", err.message, err.code)
+            if self.session.design_wanted is not None:
+                self._start_design()
             if update is not None:
                 self.on_patch(update, now)
             elif self.session.welcome is not None and not self.connected.is_set():

@@ -42,6 +42,9 @@ COLUMNS: tuple[str, ...] = (
     "ramping",
     "fault",
     "force_limited",
+    "b_h_n_s_per_m",
+    "pc_observed_j",
+    "pc_dissipated_j",
 )
 _INT_COLUMNS = frozenset({"tick", "in_contact", "ramping", "fault", "force_limited"})
 _COMPUTE_COL = COLUMNS.index("compute_s")

@@ -53,6 +53,7 @@ from typing import Any
 from client.devices.base import Device, HapticError, Vec3
 from client.recorder import TelemetryRecorder
 from shared.local_model import LocalModel, LocalModelParams
+from shared.passivity import PassivityController, PassivityParams
 from shared.primitives import Plane, Primitive, Sphere
 
 Clock = Callable[[], float]
@@ -80,6 +81,12 @@ class ServoConfig:
         (hysteresis), in (0, 1] (default 0.8).
     period_window : int
         Ticks over which :meth:`ServoCore.latest` reports period statistics, >= 2 (default 1000).
+    passivity : bool
+        Run the time-domain passivity observer and controller at the device port
+        (:mod:`shared.passivity`; Hannaford and Ryu 2002), default False (the client turns it on
+        for PI local models).
+    passivity_energy_bias_j : float
+        Energy [J] the port may give the user before the controller damps, >= 0 (default 1 mJ).
 
     Raises
     ------
@@ -93,6 +100,8 @@ class ServoConfig:
     velocity_filter_s: float = 0.005
     velocity_resume_ratio: float = 0.8
     period_window: int = 1000
+    passivity: bool = False
+    passivity_energy_bias_j: float = 1e-3
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.servo_rate_hz) and self.servo_rate_hz > 0.0):
@@ -107,6 +116,10 @@ class ServoConfig:
             raise ValueError("velocity_resume_ratio must be in (0, 1]")
         if self.period_window < 2:
             raise ValueError("period_window must be >= 2 ticks")
+        if not (
+            math.isfinite(self.passivity_energy_bias_j) and self.passivity_energy_bias_j >= 0.0
+        ):
+            raise ValueError("passivity_energy_bias_j must be finite and >= 0 J")
 
     @property
     def servo_period_s(self) -> float:
@@ -131,11 +144,22 @@ class Patch:
         Local model stiffness K_h [N/m] (already clamped to the device's max stiffness).
     i_gain : float
         Integral weight I [N/(m*s)] (eq. 12).
+    b_h : float
+        Probe damper B_h [N*s/m] on the backward difference of the probe position, in contact
+        only (already clamped to the device's max damping).
+    proxy_hold : {"zoh", "foh"}
+        ``zoh``: the new surface replaces the old at once (eq. 1); ``foh``: the penetration moves
+        linearly from the old surface's to the new one's over ``hold_ticks`` servo ticks.
+    hold_ticks : int
+        Servo ticks of the first-order hold (N, one simulation period), >= 1.
     """
 
     primitive: Primitive
     k_h: float
     i_gain: float
+    b_h: float = 0.0
+    proxy_hold: str = "zoh"
+    hold_ticks: int = 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -175,6 +199,10 @@ class ServoStatus:
         The stop ramp finished and the device's forces are disabled.
     error : str or None
         An unexpected exception that ended the servo thread (forces were zeroed).
+    passivity : dict or None
+        The passivity controller's energies [J]: ``observed_j`` (energy the virtual environment
+        holds, > 0 passive), ``dissipated_j`` (removed by the controller), ``active_j`` (energy
+        the local model would have given the user); None when the controller is off.
     """
 
     ticks: int
@@ -188,6 +216,7 @@ class ServoStatus:
     stiffness_clamps: int
     stopped: bool
     error: str | None = None
+    passivity: dict[str, float] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able dictionary of the status."""
@@ -206,6 +235,7 @@ class ServoStatus:
             "stiffness_clamps": self.stiffness_clamps,
             "stopped": self.stopped,
             "error": self.error,
+            "passivity": None if self.passivity is None else dict(self.passivity),
         }
 
 
@@ -342,8 +372,24 @@ class ServoCore:
         self._patch_in: Patch | None = None
         self._patch: Patch | None = None
         self._primitive: Primitive | None = None
+        self._prim_old: Primitive | None = None  # the surface a first-order hold moves away from
+        self._hold_i = 0
+        self._hold_n = 1
         self._k_h = 0.0
         self._i_gain = 0.0
+        self._b_h = 0.0
+        self._inv_T = 1.0 / T
+        self._pc: PassivityController | None = None
+        if cfg.passivity and lim.has_force_output and lim.max_damping_n_s_per_m > 0.0:
+            # the controller's damper is bounded by what the device can render stably
+            self._pc = PassivityController(
+                PassivityParams(
+                    max_damping_n_s_per_m=lim.max_damping_n_s_per_m,
+                    energy_bias_j=cfg.passivity_energy_bias_j,
+                    servo_period_s=T,
+                    max_force_n=lim.max_force_n,
+                )
+            )
         self._need_patch = True
         self._link_t = -math.inf
         # switches set from other threads
@@ -372,12 +418,23 @@ class ServoCore:
         self._n_periods = 0
 
     # -- inputs from other threads ---------------------------------------------------------------
-    def set_patch(self, primitive: Primitive, k_h: float, i_gain: float) -> Patch:
+    def set_patch(
+        self,
+        primitive: Primitive,
+        k_h: float,
+        i_gain: float,
+        *,
+        b_h: float = 0.0,
+        proxy_hold: str = "zoh",
+        hold_ticks: int = 1,
+    ) -> Patch:
         """Hand a new local model to the servo loop; applied whole at the start of the next tick.
 
         K_h above the device's ``max_stiffness_n_per_m`` is clamped to it (counted in
-        ``status().stiffness_clamps``). The LocalModel's integral state is kept (eq. 12 gains
-        change, its state does not).
+        ``status().stiffness_clamps``), B_h to ``max_damping_n_s_per_m``. The LocalModel's
+        integral state is kept (eq. 12 gains change, its state does not). With ``proxy_hold="foh"``
+        the surface moves from the previous patch's to this one's over ``hold_ticks`` ticks
+        (:mod:`shared.full_loop` analyses exactly this).
 
         Parameters
         ----------
@@ -387,6 +444,11 @@ class ServoCore:
             K_h [N/m], finite and > 0.
         i_gain : float
             I [N/(m*s)], finite and >= 0.
+        b_h : float
+            Probe damper B_h [N*s/m], finite and >= 0.
+        proxy_hold : {"zoh", "foh"}
+        hold_ticks : int
+            Servo ticks per simulation tick N for the first-order hold, >= 1.
 
         Returns
         -------
@@ -408,11 +470,20 @@ class ServoCore:
             raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {k_h!r}")
         if not (math.isfinite(i) and i >= 0.0):
             raise ValueError(f"i_gain must be finite and >= 0 N/(m*s), got {i_gain!r}")
-        kmax = self.device.limits.max_stiffness_n_per_m
+        bh = float(b_h)
+        if not (math.isfinite(bh) and bh >= 0.0):
+            raise ValueError(f"b_h must be finite and >= 0 N*s/m, got {b_h!r}")
+        if proxy_hold not in ("zoh", "foh"):
+            raise ValueError(f"proxy_hold must be 'zoh' or 'foh', got {proxy_hold!r}")
+        if isinstance(hold_ticks, bool) or int(hold_ticks) != hold_ticks or hold_ticks < 1:
+            raise ValueError(f"hold_ticks must be a whole number >= 1, got {hold_ticks!r}")
+        lim = self.device.limits
+        kmax = lim.max_stiffness_n_per_m
         if k > kmax:
             k = kmax
             self._stiffness_clamps += 1
-        patch = Patch(primitive, k, i)
+        bh = min(bh, lim.max_damping_n_s_per_m)
+        patch = Patch(primitive, k, i, bh, proxy_hold, int(hold_ticks))
         self._patch_in = patch
         return patch
 
@@ -452,10 +523,15 @@ class ServoCore:
         p = self._patch_in
         if p is not self._patch and p is not None:
             self._patch = p
+            fresh = self._primitive is None or self._need_patch
+            self._prim_old = None if fresh or p.proxy_hold != "foh" else self._primitive
+            self._hold_i = 0
+            self._hold_n = p.hold_ticks
             self._primitive = p.primitive
             self.local_model.set_gains(p.k_h, p.i_gain)
             self._k_h = p.k_h
             self._i_gain = p.i_gain
+            self._b_h = p.b_h
             self._need_patch = False
             if now_s > self._link_t:
                 self._link_t = now_s
@@ -469,6 +545,7 @@ class ServoCore:
 
         # 2. compute
         n = self._ticks
+        ox, oy, oz = (self._px, self._py, self._pz) if n else (x, y, z)
         if n:
             period = now_s - self._t
             if period > 0.0:
@@ -527,8 +604,22 @@ class ServoCore:
         prim = self._primitive
         if prim is not None:
             e, nx, ny, nz = prim.contact(x, y, z)
+            old = self._prim_old
+            if old is not None:  # first-order hold: slide from the old surface to the new one
+                hi = self._hold_i + 1
+                if hi >= self._hold_n:
+                    self._prim_old = None
+                else:
+                    self._hold_i = hi
+                    e_old = old.contact(x, y, z)[0]
+                    e = e_old + (e - e_old) * (hi / self._hold_n)
             f = lm.step(e)
             in_contact = lm.in_contact
+            if in_contact and self._b_h > 0.0:
+                # probe damper on the backward difference of the probe's depth (never the proxy's)
+                f -= self._b_h * ((x - ox) * nx + (y - oy) * ny + (z - oz) * nz) * self._inv_T
+                if f < 0.0:
+                    f = 0.0
         else:
             e, nx, ny, nz, f, in_contact = _NAN, 0.0, 0.0, 0.0, 0.0, False
         fmax = self._fmax
@@ -542,6 +633,10 @@ class ServoCore:
         self._limited = limited
         fo = f * s
         fx, fy, fz = fo * nx, fo * ny, fo * nz
+        pc = self._pc
+        if pc is not None:  # passivity observer/controller at the device port
+            it = self._inv_T
+            fx, fy, fz = pc.step(fx, fy, fz, (x - ox) * it, (y - oy) * it, (z - oz) * it)
         if s == 0.0 and not want and prim is not None:
             lm.reset()  # forces withheld: no integral wind-up while off
 
@@ -586,6 +681,9 @@ class ServoCore:
             ramping,
             fault is not None,
             limited,
+            self._b_h,
+            pc.observed_energy_j if pc is not None else 0.0,
+            pc.dissipated_energy_j if pc is not None else 0.0,
         )
         self._pub = (n, now_s, x, y, z, fx, fy, fz, e, in_contact, self._k_h, self._i_gain, s)
         self._ticks = n + 1
@@ -670,6 +768,13 @@ class ServoCore:
             stiffness_clamps=self._stiffness_clamps,
             stopped=self._stopped,
             error=self.error,
+            passivity=None
+            if self._pc is None
+            else {
+                "observed_j": self._pc.observed_energy_j,
+                "dissipated_j": self._pc.dissipated_energy_j,
+                "active_j": self._pc.active_energy_j,
+            },
         )
 
 
@@ -975,9 +1080,20 @@ class ServoThread:
         return ok
 
     # -- delegation for the network side -------------------------------------------------------------
-    def set_patch(self, primitive: Primitive, k_h: float, i_gain: float) -> Patch:
+    def set_patch(
+        self,
+        primitive: Primitive,
+        k_h: float,
+        i_gain: float,
+        *,
+        b_h: float = 0.0,
+        proxy_hold: str = "zoh",
+        hold_ticks: int = 1,
+    ) -> Patch:
         """See :meth:`ServoCore.set_patch`; also counts as link activity now."""
-        patch = self.core.set_patch(primitive, k_h, i_gain)
+        patch = self.core.set_patch(
+            primitive, k_h, i_gain, b_h=b_h, proxy_hold=proxy_hold, hold_ticks=hold_ticks
+        )
         self.core.notify_link(self.clock())
         return patch
 

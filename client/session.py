@@ -1,10 +1,14 @@
 """A haptic user's side of the protocol, sans-I/O: server frames and times in, frames and patches out.
 
-The asyncio link (:mod:`client.link`) pumps bytes; this class decides. On each ``patch`` it picks
-the local model's gains with :func:`shared.stability.select_gains` from the patch's K_o_eff and B_o,
-the rate ratio N and the *measured* delay (round-trip time in whole simulation ticks), never above
-the device's maximum stiffness (Step 2 of section 6), and hands primitive and gains to the servo
-loop as one :class:`PatchUpdate` (zero-order hold: it replaces the old one between servo ticks).
+The asyncio link (:mod:`client.link`) pumps bytes; this class decides. On each ``patch`` it looks
+the local model's gains up in a :class:`shared.gain_design.GainTable`: the full-loop design (hand in
+the loop, every sampling tick, a K_o margin) for the patch's K_o_eff, the rate ratio N and the
+*measured* delay (round-trip time in whole simulation ticks), within the device's maximum stiffness
+and damping (Step 2 of section 6). A lookup is a dict access; a cell not designed yet is named in
+:attr:`ClientSession.design_wanted` for the link to design off its event loop, and meanwhile the
+nearest designed cell renders no stiffer relative to K_o (the very first patch waits for its
+design: forces are off until then). Primitive and gains go to the servo loop as one
+:class:`PatchUpdate` (zero-order hold: it replaces the old one between servo ticks).
 """
 
 from __future__ import annotations
@@ -12,11 +16,11 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Literal
 
 import numpy as np
 
+from shared.gain_design import GainDesign, GainKey, GainTable
 from shared.primitives import Primitive, make_plane, make_sphere
 from shared.protocol import (
     PROTOCOL_VERSION,
@@ -35,13 +39,11 @@ from shared.protocol import (
     encode,
     parse_server,
 )
-from shared.stability import GainChoice, select_gains
+from shared.stability import rate_ratio as _rate_ratio
 
 #: Pings (one every 0.5 s) over which the loop delay is estimated.
 RTT_WINDOW = 20
 
-#: K_o is quantized *down* to steps of this ratio before gain selection (conservative, cacheable).
-K_O_QUANTUM = 1.02
 
 
 @dataclass(frozen=True)
@@ -63,7 +65,17 @@ class PatchUpdate:
     delay_ticks : int
         Delay assumed in the gain choice [simulation ticks].
     spectral_radius : float
-        Predicted slow-loop spectral radius with these gains.
+        Worst full-loop spectral radius of the design over the hand box (below its decay limit).
+    b_h : float
+        Probe damper B_h [N*s/m].
+    proxy_hold : {"zoh", "foh"}
+        How the servo moves to the new surface.
+    hold_ticks : int
+        N, servo ticks per simulation tick (the first-order hold's length).
+    felt_stiffness_ratio_1hz : float
+        Designed felt stiffness over K_o at 1 Hz.
+    fallback : bool
+        True while the exact design for this K_o is still being computed.
     """
 
     primitive: Primitive
@@ -75,6 +87,11 @@ class PatchUpdate:
     b_o: float
     delay_ticks: int
     spectral_radius: float
+    b_h: float = 0.0
+    proxy_hold: str = "zoh"
+    hold_ticks: int = 1
+    felt_stiffness_ratio_1hz: float = math.nan
+    fallback: bool = False
 
 
 @dataclass(frozen=True)
@@ -89,60 +106,6 @@ class ServoSample:
     i_gain: float
     servo_rate_hz: float
     period_us_p99: float
-
-
-@lru_cache(maxsize=4096)
-def _gains_cached(
-    k_o_q: float,
-    b_o: float,
-    rate_ratio: int,
-    period_s: float,
-    delay: int,
-    margin: float,
-    k_h_max: float,
-    mode: str,
-) -> GainChoice:
-    return select_gains(
-        k_o_q,
-        rate_ratio=rate_ratio,
-        servo_period_s=period_s,
-        b_o=b_o,
-        delay_ticks=delay,
-        margin=margin,
-        k_h_max=k_h_max,
-        mode=mode,  # type: ignore[arg-type]
-    )
-
-
-def choose_gains(
-    k_o_eff: float,
-    b_o: float,
-    *,
-    rate_ratio: int,
-    servo_period_s: float,
-    delay_ticks: int,
-    margin: float,
-    k_h_max: float,
-    mode: Literal["p", "pi"],
-) -> GainChoice:
-    """:func:`shared.stability.select_gains` with K_o quantized down by 2 % steps and cached.
-
-    Quantizing K_o *down* only lowers the design stiffness (safer, section 5's robustness remark);
-    B_o is quantized down to 1 N/m. Raises ValueError like ``select_gains``.
-    """
-    if not (math.isfinite(k_o_eff) and k_o_eff > 0.0):
-        raise ValueError(f"k_o_eff must be > 0, got {k_o_eff!r}")
-    q = K_O_QUANTUM ** math.floor(math.log(k_o_eff) / math.log(K_O_QUANTUM))
-    return _gains_cached(
-        q,
-        float(math.floor(max(0.0, b_o))),
-        rate_ratio,
-        servo_period_s,
-        delay_ticks,
-        margin,
-        k_h_max,
-        mode,
-    )
 
 
 class ClientSession:
@@ -161,6 +124,10 @@ class ClientSession:
     margin : float
         Fraction by which K_o may be overestimated (gain selection margin).
     role : {"user", "viewer"}
+    b_h_max : float
+        The device's largest virtual damping [N*s/m] (0: no probe damper).
+    gain_table : GainTable, optional
+        Where designs are cached (default: a new table over the default hand box).
     """
 
     def __init__(
@@ -170,8 +137,10 @@ class ClientSession:
         servo_rate_hz: float = 1000.0,
         device: DeviceInfo | None = None,
         mode: Literal["p", "pi"] = "pi",
-        margin: float = 0.3,
+        margin: float = 0.15,
         role: Literal["user", "viewer"] = "user",
+        b_h_max: float = 0.0,
+        gain_table: GainTable | None = None,
     ) -> None:
         self.name = name
         self.servo_rate_hz = servo_rate_hz
@@ -189,6 +158,10 @@ class ClientSession:
         self.rtt_s: deque[float] = deque(maxlen=64)
         self.rtt_all_ms: list[float] = []
         self.patches = 0
+        self.b_h_max = b_h_max
+        self.gain_table = gain_table if gain_table is not None else GainTable()
+        #: (key, K_o) of a design the table lacks; the link designs it off the event loop.
+        self.design_wanted: tuple[GainKey, float] | None = None
 
     # ------------------------------------------------------------------ outgoing
     def hello(self) -> str:
@@ -294,6 +267,22 @@ class ClientSession:
         """Interval [s] at which the link sends ``state``: half a simulation period."""
         return 0.5 / self.sim_rate_hz
 
+    def gain_key(self, b_o: float, delay_ticks: int) -> GainKey:
+        """What the gain design depends on besides K_o, for this user now.
+
+        B_o is quantized *down* to 1 N/m steps (a design for less object damping).
+        """
+        return GainKey(
+            servo_rate_hz=float(self.servo_rate_hz),
+            sim_rate_hz=float(self.sim_rate_hz),
+            delay_ticks=int(delay_ticks),
+            mode=self.mode,
+            margin=float(self.margin),
+            k_h_max=float(self.device.max_stiffness_n_per_m),
+            b_h_max=float(self.b_h_max),
+            b_o=float(math.floor(max(0.0, b_o))),
+        )
+
     def _patch(self, msg: Patch) -> PatchUpdate | None:
         if self.last_patch is not None and msg.tick <= self.last_patch.tick:
             return None  # stale
@@ -306,29 +295,54 @@ class ClientSession:
                 prim = make_sphere(p.center, p.radius)
         except ValueError as exc:
             raise ProtocolError("invalid_primitive", str(exc)) from None
-        n = max(1, round(self.servo_rate_hz / self.sim_rate_hz))
+        try:
+            n = _rate_ratio(self.servo_rate_hz, self.sim_rate_hz)
+        except ValueError as exc:
+            raise ProtocolError("unsupported_rates", str(exc)) from None
         d = self.delay_ticks()
-        g = choose_gains(
-            msg.k_o_eff,
-            msg.b_o,
-            rate_ratio=n,
-            servo_period_s=1.0 / self.servo_rate_hz,
-            delay_ticks=d,
-            margin=self.margin,
-            k_h_max=self.device.max_stiffness_n_per_m,
-            mode=self.mode,
-        )
+        key = self.gain_key(msg.b_o, d)
+        design = self.gain_table.lookup(key, msg.k_o_eff)
+        fallback = design is None
+        if design is None:
+            self.design_wanted = (key, msg.k_o_eff)
+            design = self.gain_table.fallback(key, msg.k_o_eff)
+            if design is None and self.last_update is not None:
+                # a new delay or damping: keep rendering the gains in use until the design is done
+                # (patches keep flowing, so the servo's link watchdog stays quiet)
+                lu = self.last_update
+                design = GainDesign(
+                    k_h=lu.k_h,
+                    i_gain=lu.i_gain,
+                    b_h=lu.b_h,
+                    proxy_hold=lu.proxy_hold,  # type: ignore[arg-type]
+                    worst_spectral_radius=lu.spectral_radius,
+                    rho_limit=math.nan,
+                    felt_stiffness_ratio_1hz=lu.felt_stiffness_ratio_1hz,
+                    felt_stiffness_ratio_8hz=math.nan,
+                    k_o=lu.k_o_eff,
+                    k_o_range=(lu.k_o_eff, lu.k_o_eff),
+                    rate_ratio=n,
+                    delay_ticks=lu.delay_ticks,
+                    mode=self.mode,
+                )
+            if design is None:
+                return None  # the first patch waits for its design (forces are still off)
         self.last_patch = msg
         self.patches += 1
         self.last_update = PatchUpdate(
             primitive=prim,
-            k_h=g.k_h,
-            i_gain=g.i_gain,
+            k_h=design.k_h,
+            i_gain=design.i_gain,
             tick=msg.tick,
             k_o=msg.k_o,
             k_o_eff=msg.k_o_eff,
             b_o=msg.b_o,
             delay_ticks=d,
-            spectral_radius=g.spectral_radius,
+            spectral_radius=design.worst_spectral_radius,
+            b_h=design.b_h,
+            proxy_hold=design.proxy_hold,
+            hold_ticks=n,
+            felt_stiffness_ratio_1hz=design.felt_stiffness_ratio_1hz,
+            fallback=fallback,
         )
         return self.last_update

@@ -175,14 +175,18 @@ DEFAULT_HAND_BOX = HandBox()
 def _hand_zoh(
     m: FloatArray, b: FloatArray, k: FloatArray, period_s: float
 ) -> tuple[FloatArray, FloatArray]:
-    """Exact ZOH discretisation of ``m x'' = -b x' - k x - f``: Phi (B, 2, 2), Gamma (B, 2)."""
-    nb = m.shape[0]
-    aug = np.zeros((nb, 3, 3))
+    """Exact ZOH discretisation of ``m x'' = -b x' - k x - f``: Phi (B, 2, 2), Gamma (B, 2).
+
+    One matrix exponential per distinct hand (a batch repeats few hands many times).
+    """
+    hands, inverse = np.unique(np.stack([m, b, k], axis=1), axis=0, return_inverse=True)
+    mu, bu, ku = hands[:, 0], hands[:, 1], hands[:, 2]
+    aug = np.zeros((hands.shape[0], 3, 3))
     aug[:, 0, 1] = 1.0
-    aug[:, 1, 0] = -k / m
-    aug[:, 1, 1] = -b / m
-    aug[:, 1, 2] = -1.0 / m
-    e = expm(aug * period_s)
+    aug[:, 1, 0] = -ku / mu
+    aug[:, 1, 1] = -bu / mu
+    aug[:, 1, 2] = -1.0 / mu
+    e = expm(aug * period_s)[inverse.reshape(-1)]
     return e[:, :2, :2], e[:, :2, 2]
 
 

@@ -51,10 +51,15 @@ from shared.full_loop import (
 FloatArray = NDArray[np.float64]
 Mode = Literal["p", "pi"]
 
-#: Slowest accepted decay of any mode of the full loop [1/s]: the spectral radius over one
-#: simulation period must be at most exp(-MIN_DECAY_RATE * N * T). 1/s: a disturbance falls to a
-#: third within a second; the box's least damped hand (0.6 kg, 2 N*s/m) alone decays at 1.7/s.
+#: Slowest accepted decay of any *oscillating* mode of the full loop [1/s]: its eigenvalue over
+#: one simulation period must have magnitude at most exp(-MIN_DECAY_RATE * N * T). 1/s: a
+#: vibration falls to a third within a second; the box's least damped hand (0.6 kg, 2 N*s/m) alone
+#: decays at 1.7/s.
 MIN_DECAY_RATE_PER_S = 1.0
+
+#: Modes slower than this [Hz] are creep, not vibration (the integral slowly pushing a stiff hand
+#: out): they need only be stable (|eigenvalue| < 1), not decay at MIN_DECAY_RATE_PER_S.
+CREEP_FREQUENCY_HZ = 0.5
 
 
 @dataclass(frozen=True)
@@ -72,9 +77,10 @@ class GainDesign:
     proxy_hold : {"zoh", "foh"}
     worst_spectral_radius : float
         Largest spectral radius of the full loop over the hand box, every sampling tick and the
-        K_o range (below ``rho_limit``).
+        K_o range: below 1; every oscillating mode is below ``rho_limit``.
     rho_limit : float
-        exp(-MIN_DECAY_RATE * N * T): the bound the design respects.
+        exp(-MIN_DECAY_RATE * N * T): the bound oscillating modes respect (slow creep of the
+        integral, below :data:`CREEP_FREQUENCY_HZ`, need only be stable).
     felt_stiffness_ratio_1hz, felt_stiffness_ratio_8hz : float
         |dF/dx| / K_o at the probe (position source) at 1 Hz and 8 Hz.
     k_o : float
@@ -223,9 +229,16 @@ def _worst_rho(
     delay_ticks: int,
     sample_ticks: Sequence[int],
     integral: bool,
+    rho_limit: float = 1.0,
     chunk: int = 4096,
-) -> FloatArray:
-    """Worst full-loop spectral radius per candidate over hands x K_o' x sampling ticks, (G,)."""
+) -> tuple[FloatArray, FloatArray]:
+    """Worst full-loop spectral radius per candidate over hands x K_o' x sampling ticks, (G,).
+
+    Returns ``(margin_radius, radius)``: ``radius`` the true spectral radius; ``margin_radius``
+    the largest oscillating eigenvalue magnitude, with creep eigenvalues (slower than
+    :data:`CREEP_FREQUENCY_HZ`) counted as ``|lambda| * rho_limit``, so that ``margin_radius <
+    rho_limit`` means "oscillations decay at the required rate and creep is stable".
+    """
     g = cand["k_h"].shape[0]
     L, K = len(hands), len(k_os)
     # batch order: candidate, hand, k_o
@@ -235,6 +248,8 @@ def _worst_rho(
     hs = [h for h in hands for _ in range(K)] * g
     ko = np.tile(np.asarray(k_os, float), g * L)
     out = np.empty(g * L * K)
+    marg = np.empty(g * L * K)
+    creep_angle = 2.0 * math.pi * CREEP_FREQUENCY_HZ * rate_ratio * servo_period_s
     for a in range(0, out.size, chunk):
         sl = slice(a, a + chunk)
         M = monodromy(
@@ -251,8 +266,12 @@ def _worst_rho(
             proxy_hold=hold,
             integral=integral,
         )
-        out[sl] = np.max(np.abs(np.linalg.eigvals(M)), axis=(-1, -2))
-    return out.reshape(g, L * K).max(axis=1)
+        ev = np.linalg.eigvals(M)
+        mag = np.abs(ev)
+        slow = np.abs(np.angle(ev)) < creep_angle
+        out[sl] = np.max(mag, axis=(-1, -2))
+        marg[sl] = np.max(np.where(slow, mag * rho_limit, mag), axis=(-1, -2))
+    return marg.reshape(g, L * K).max(axis=1), out.reshape(g, L * K).max(axis=1)
 
 
 def _screen_hands(box: HandBox) -> list[Hand]:
@@ -313,12 +332,14 @@ def design_gains(
     Returns
     -------
     GainDesign
+        For ``pi``, a proportional design (``mode == "p"``, I = 0) when no integral is stable
+        over the box (long delays without a probe damper).
 
     Raises
     ------
     ValueError
         Out-of-range input, or no candidate is stable over the box (then the box or the rates are
-        beyond what any local model of this kind can render).
+        beyond what any local model can render).
     """
     from shared.stability import rate_ratio as _rate_ratio
 
@@ -352,12 +373,8 @@ def design_gains(
     kh_cap = min(k_h_max, 0.999 * lo)
     kh_axis = kh_cap * np.geomspace(0.03, 1.0, 28 if integral else 48)
     bh_axis = np.unique(np.linspace(0.0, b_h_max, 4)) if b_h_max > 0.0 else np.zeros(1)
-    if integral:
-        nti_axis = lo * np.geomspace(0.02, 2.0, 16)
-        KH, NI, BH = np.meshgrid(kh_axis, nti_axis / (N * T), bh_axis, indexing="ij")
-    else:
-        KH, BH = np.meshgrid(kh_axis, bh_axis, indexing="ij")
-        NI = np.zeros_like(KH)
+    i_axis = lo * np.geomspace(0.02, 2.0, 16) / (N * T) if integral else np.zeros(1)
+    KH, NI, BH = np.meshgrid(kh_axis, i_axis, bh_axis, indexing="ij")
     base = {"k_h": KH.ravel(), "i_gain": NI.ravel(), "b_h": BH.ravel()}
     screen_hands = _screen_hands(hand_box)
     all_hands = hand_box.hands()
@@ -368,7 +385,7 @@ def design_gains(
 
     def worst(
         cand: dict[str, FloatArray], hold: ProxyHold, hands: list[Hand], ticks: list[int]
-    ) -> FloatArray:
+    ) -> tuple[FloatArray, FloatArray]:
         return _worst_rho(
             cand,
             hold,
@@ -380,6 +397,7 @@ def design_gains(
             delay_ticks=delay,
             sample_ticks=ticks,
             integral=integral,
+            rho_limit=rho_limit,
         )
 
     for hold in holds:
@@ -393,7 +411,9 @@ def design_gains(
                 proxy_hold=hold,
                 b_o=b_o,
                 complex_response=True,
-                **base,
+                k_h=base["k_h"],
+                i_gain=base["i_gain"],
+                b_h=base["b_h"],
             )
             / k_o
         )
@@ -404,16 +424,20 @@ def design_gains(
             felt1 = np.where(felt1 < best[0] - 1e-3, -np.inf, felt1)  # cannot win
         order = np.array([i for i in np.argsort(-felt1) if np.isfinite(felt1[i])], dtype=int)
         found = None
+
+        def passes(b: int) -> tuple[bool, float]:
+            one = {k: v[b : b + 1] for k, v in base.items()}
+            m_r, r_r = worst(one, hold, all_hands, all_ticks)
+            return bool(m_r[0] < rho_limit and r_r[0] < 1.0 - 1e-9), float(r_r[0])
+
         # screen in order of transparency (few hands, three sampling ticks), then verify fully
         for a in range(0, order.size, 64):
             idx = order[a : a + 64]
-            cand = {k: v[idx] for k, v in base.items()}
-            rho_s = worst(cand, hold, screen_hands, screen_ticks)
+            rho_s = worst({k: v[idx] for k, v in base.items()}, hold, screen_hands, screen_ticks)[0]
             for b in idx[rho_s < rho_limit]:
-                one = {k: v[b : b + 1] for k, v in base.items()}
-                r = worst(one, hold, all_hands, all_ticks)[0]
-                if r < rho_limit:
-                    found = (int(b), float(r))
+                ok_b, r_b = passes(int(b))
+                if ok_b:
+                    found = (int(b), r_b)
                     break
             if found is not None:
                 break
@@ -454,6 +478,23 @@ def design_gains(
         key = (round(float(felt1[i]), 3), -abs(d.felt_stiffness_ratio_8hz - 1.0))
         if best is None or key > (best[0], best[1]):
             best = (key[0], key[1], d)
+    if best is None and integral:
+        # no integral is stable here: render the best proportional local model instead
+        return design_gains(
+            k_o,
+            b_o=b_o,
+            servo_rate_hz=servo_rate_hz,
+            sim_rate_hz=sim_rate_hz,
+            delay_ticks=delay,
+            mode="p",
+            margin=margin,
+            k_o_hi=k_o_hi,
+            k_h_max=k_h_max,
+            b_h_max=b_h_max,
+            holds=holds,
+            hand_box=hand_box,
+            min_decay_rate_per_s=min_decay_rate_per_s,
+        )
     if best is None:
         raise ValueError(
             f"no {mode} local model is stable over the hand box at K_o = {k_o:g} N/m, "
@@ -520,20 +561,31 @@ class GainTable:
         return self._cells.get((key, self.cell(k_o)))
 
     def fallback(self, key: GainKey, k_o: float) -> GainDesign | None:
-        """The nearest designed cell *below* ``k_o`` with the same key (softer), or None.
+        """Gains to render while the cell covering ``k_o`` is being designed, or None.
 
-        A design for a softer object is checked on its own cell only; it is what the client
-        renders while the exact cell is being designed (with K_h, I scaled down by the ratio of
-        the cell points when the cell is above, never up).
+        The nearest designed cell below (a design for a softer object: its K_h is lower than the
+        missing cell's would be), else the nearest above with K_h, I and B_h scaled down by the
+        ratio of the grid points (the same gains relative to K_o). Either keeps the local model no
+        stiffer, relative to K_o, than a verified design.
         """
         i = self.cell(k_o)
-        below = [c for (k, c) in self._cells if k == key and c <= i]
-        if not below:
+        cells = [c for (k, c) in self._cells if k == key]
+        if not cells:
             return None
-        return self._cells[(key, max(below))]
+        below = [c for c in cells if c <= i]
+        if below:
+            return self._cells[(key, max(below))]
+        c = min(cells)
+        d = self._cells[(key, c)]
+        r = self.grid_point(i) / self.grid_point(c)
+        return replace(d, k_h=d.k_h * r, i_gain=d.i_gain * r, b_h=d.b_h * r)
+
+    def store(self, key: GainKey, cell: int, design: GainDesign) -> None:
+        """Keep ``design`` (from :func:`design_cell`) for ``cell``."""
+        self._cells[(key, cell)] = design
 
     def design(self, key: GainKey, k_o: float) -> GainDesign:
-        """Design (slow: tens to hundreds of ms) and store the cell covering ``k_o``.
+        """Design (slow: tens of ms to a second) and store the cell covering ``k_o``.
 
         Raises
         ------
@@ -541,22 +593,41 @@ class GainTable:
             As :func:`design_gains`.
         """
         i = self.cell(k_o)
-        g = self.grid_point(i)
-        d = design_gains(
-            g,
-            b_o=key.b_o,
-            servo_rate_hz=key.servo_rate_hz,
-            sim_rate_hz=key.sim_rate_hz,
-            delay_ticks=key.delay_ticks,
-            mode=key.mode,
-            margin=key.margin,
-            k_o_hi=self.grid_point(i + 1),
-            k_h_max=key.k_h_max,
-            b_h_max=key.b_h_max,
-            hand_box=self.hand_box,
-        )
-        self._cells[(key, i)] = d
+        d = design_cell(key, i, self.grid_ratio, self.hand_box)
+        self.store(key, i, d)
         return d
 
     def __len__(self) -> int:
         return len(self._cells)
+
+
+def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -> GainDesign:
+    """Design grid cell ``cell`` of a :class:`GainTable`: K_o = ratio**cell, checked up to the next.
+
+    A module-level function so that a worker process can run it (arguments and result pickle).
+
+    Raises
+    ------
+    ValueError
+        As :func:`design_gains`.
+    """
+    g = grid_ratio**cell
+    return design_gains(
+        g,
+        b_o=key.b_o,
+        servo_rate_hz=key.servo_rate_hz,
+        sim_rate_hz=key.sim_rate_hz,
+        delay_ticks=key.delay_ticks,
+        mode=key.mode,
+        margin=key.margin,
+        k_o_hi=grid_ratio ** (cell + 1),
+        k_h_max=key.k_h_max,
+        b_h_max=key.b_h_max,
+        hand_box=hand_box,
+    )
+
+
+def warm_up() -> None:
+    """Import and exercise the design code once (a worker process calls this before the first
+    real design, so the first patch does not also pay for imports)."""
+    design_gains(300.0, mode="p", sim_rate_hz=100.0, holds=("zoh",))

@@ -15,6 +15,7 @@ hidapi is only imported when a HID device is opened or listed.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,7 @@ from shared.primitives import unit_vec3, vec3
 __all__ = [
     "Device",
     "DeviceLimits",
+    "HAND_OPTIONS",
     "HandParams",
     "HapticError",
     "Press",
@@ -49,6 +51,7 @@ __all__ = [
     "SimDevice",
     "Vec3",
     "hand_depth_for",
+    "hand_with_options",
     "list_devices",
     "make_device",
     "parse_hid_ids",
@@ -76,6 +79,41 @@ def parse_hid_ids(text: str) -> tuple[int, int]:
     if not (0 <= vid <= 0xFFFF and 0 <= pid <= 0xFFFF):
         raise ValueError(f"VID and PID must be in 0..ffff, got {text!r}")
     return vid, pid
+
+
+#: ``trajectory_options`` keys that set the simulated hand's own values (:class:`HandParams`
+#: field each one sets); the device's mass and damping are added by :class:`SimDevice`.
+HAND_OPTIONS: dict[str, str] = {
+    "hand_mass_kg": "mass_kg",
+    "hand_stiffness_n_per_m": "stiffness_n_per_m",
+    "hand_damping_n_s_per_m": "damping_n_s_per_m",
+}
+
+
+def hand_with_options(hand: HandParams | None, options: dict[str, float]) -> HandParams | None:
+    """Take the :data:`HAND_OPTIONS` keys out of ``options`` and apply them to ``hand``.
+
+    Parameters
+    ----------
+    hand : HandParams or None
+        The hand to start from (None: the default :class:`HandParams`).
+    options : dict
+        Trajectory options; the hand keys are removed from it (in place).
+
+    Returns
+    -------
+    HandParams or None
+        ``hand`` unchanged when ``options`` holds no hand key, else a new HandParams.
+
+    Raises
+    ------
+    ValueError
+        A hand value out of range (see :class:`HandParams`).
+    """
+    values = {HAND_OPTIONS[k]: float(options.pop(k)) for k in list(options) if k in HAND_OPTIONS}
+    if not values:
+        return hand
+    return replace(hand if hand is not None else HandParams(), **values)
 
 
 def make_device(
@@ -108,6 +146,9 @@ def make_device(
     trajectory_options : mapping, optional
         Overrides of the scripted trajectory's keyword arguments, e.g. ``{"delay_s": 2.0,
         "depth_m": 0.025}`` (see :class:`Press` and :class:`Rest` for names and defaults).
+        The keys of :data:`HAND_OPTIONS` (``hand_mass_kg``, ``hand_stiffness_n_per_m``,
+        ``hand_damping_n_s_per_m``) override the hand's own values instead (``haptic client
+        --hand-mass/--hand-stiffness/--hand-damping``), for any ``sim:`` device.
     servo_rate_hz : float
         Servo rate [Hz] the simulation sub-steps against (default 1000).
     hid_profile : str, Path or HidProfile, optional
@@ -131,6 +172,7 @@ def make_device(
     if kind == "sim":
         prof = get_sim_profile(profile)
         opts = dict(trajectory_options or {})
+        hand = hand_with_options(hand, opts)
         what, _, arg = rest.partition(":")
         traj: Press | Rest | Replay
         try:

@@ -72,6 +72,9 @@ class DeviceLimits:
         Corners [m] of the axis-aligned box the handle can reach, in the world frame.
     has_force_output : bool
         False for a position-only input (a SpaceMouse): :meth:`Device.write` is a no-op.
+    max_damping_n_s_per_m : float
+        Largest virtual damping B_h [N*s/m] the local model may add on the probe velocity, >= 0
+        (CHAI3D's ``m_maxLinearDamping``, OpenHaptics' ``HD_NOMINAL_MAX_DAMPING``); 0: none.
 
     Raises
     ------
@@ -86,9 +89,10 @@ class DeviceLimits:
     workspace_min_m: Vec3
     workspace_max_m: Vec3
     has_force_output: bool = True
+    max_damping_n_s_per_m: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("max_force_n", "damping_n_s_per_m"):
+        for name in ("max_force_n", "damping_n_s_per_m", "max_damping_n_s_per_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
@@ -118,6 +122,7 @@ class DeviceLimits:
             workspace_min_m=(c[0] - half[0], c[1] - half[1], c[2] - half[2]),
             workspace_max_m=(c[0] + half[0], c[1] + half[1], c[2] + half[2]),
             has_force_output=self.has_force_output,
+            max_damping_n_s_per_m=self.max_damping_n_s_per_m,
         )
 
 

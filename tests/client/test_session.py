@@ -14,6 +14,7 @@ from shared.protocol import (
     Welcome,
     encode,
 )
+from shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from shared.stability import analyze
 
 OBJ = ObjectInfo(
@@ -47,17 +48,56 @@ def session(max_stiffness: float = 1000.0) -> ClientSession:
     return s
 
 
+def receive_designed(s: ClientSession, frame: str, now: float):
+    """Receive a patch; if its gains are not designed yet, design them (as the link does) and
+    receive the patch again."""
+    up = s.receive(frame, now)
+    if up is None and s.design_wanted is not None:
+        key, k_o = s.design_wanted
+        s.design_wanted = None
+        s.gain_table.design(key, k_o)
+        up = s.receive(frame, now)
+    return up
+
+
 def pong(s: ClientSession, rtt_s: float, now: float) -> None:
     s.receive(encode(Pong(id=1, t_client_s=now - rtt_s, tick=0)), now)
 
 
-def test_gains_are_stable_for_k_o_eff_and_below_the_device_limit():
+def test_the_first_patch_waits_for_its_design_then_gains_are_stable_with_every_hand():
     s = session(max_stiffness=150.0)
-    up = s.receive(patch(1, k_o_eff=400.0), 0.1)
-    assert up is not None and up.k_h <= 150.0 and up.i_gain > 0.0
+    assert s.receive(patch(1, k_o_eff=400.0), 0.1) is None  # no gains yet: forces stay off
+    assert s.design_wanted is not None
+    up = receive_designed(s, patch(1, k_o_eff=400.0), 0.1)
+    assert up is not None and up.k_h <= 150.0 and up.i_gain > 0.0 and not up.fallback
+    assert up.hold_ticks == 50
+    # stable with the hand in the loop for every hand of the box and every sampling tick, also if
+    # K_o_eff was overestimated by the margin (15 %)
+    for k_o in (400.0, 0.85 * 400.0):
+        rho = spectral_radius(
+            hand=DEFAULT_HAND_BOX.hands(),
+            k_o=k_o,
+            k_h=up.k_h,
+            i_gain=up.i_gain,
+            b_h=up.b_h,
+            rate_ratio=50,
+            proxy_hold=up.proxy_hold,
+        )
+        assert rho.max() < 1.0
+    # and the paper's simulation loop is stable too
     assert analyze(400.0, up.k_h, i_gain=up.i_gain).stable
-    # designed with the margin: still stable if K_o_eff was overestimated by 30 %
-    assert analyze(0.7 * 400.0 * 1.001, up.k_h, i_gain=up.i_gain).spectral_radius <= 1.0 + 1e-6
+
+
+def test_while_a_new_stiffness_is_designed_the_local_model_is_no_stiffer():
+    s = session()
+    first = receive_designed(s, patch(1, k_o_eff=300.0), 0.1)
+    assert first is not None
+    softer = s.receive(patch(2, k_o_eff=150.0), 0.2)  # a cell not designed yet
+    assert softer is not None and softer.fallback
+    table = s.gain_table
+    g_new, g_old = table.grid_point(table.cell(150.0)), table.grid_point(table.cell(300.0))
+    assert softer.k_h / g_new <= first.k_h / g_old * 1.0001  # the same K_h / K_o, never more
+    assert s.design_wanted is not None and s.design_wanted[1] == 150.0
 
 
 def test_measured_delay_is_counted_in_whole_ticks_and_makes_gains_safe():
@@ -65,9 +105,20 @@ def test_measured_delay_is_counted_in_whole_ticks_and_makes_gains_safe():
     for i in range(20):
         pong(s, 0.22, 1.0 + 0.5 * i)  # 220 ms round trip at 20 Hz
     assert s.delay_ticks() == 4  # ceil((0.22 + 0.025) * 20) - 1
-    up = s.receive(patch(2), 20.0)
+    up = receive_designed(s, patch(2), 20.0)
     assert up is not None and up.delay_ticks == 4
     assert analyze(300.0, up.k_h, i_gain=up.i_gain, delay_ticks=4).stable
+    rho = spectral_radius(
+        hand=DEFAULT_HAND_BOX.hands(),
+        k_o=300.0,
+        k_h=up.k_h,
+        i_gain=up.i_gain,
+        b_h=up.b_h,
+        rate_ratio=50,
+        delay_ticks=4,
+        proxy_hold=up.proxy_hold,
+    )
+    assert rho.max() < 1.0
 
 
 def test_one_stall_does_not_make_the_local_model_soft_for_long():
@@ -83,7 +134,7 @@ def test_one_stall_does_not_make_the_local_model_soft_for_long():
 
 def test_stale_patches_are_ignored_and_a_new_session_starts_afresh():
     s = session()
-    assert s.receive(patch(10), 0.1) is not None
+    assert receive_designed(s, patch(10), 0.1) is not None
     assert s.receive(patch(9), 0.2) is None
     s.receive(
         encode(Welcome(user_id="u2", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 1.0
