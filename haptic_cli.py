@@ -134,28 +134,58 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 def _cmd_reproduce(args: argparse.Namespace) -> int:
     from shared.reproduce import reproduce
 
-    results = reproduce(args.figure, Path(args.out))
+    results: dict[str, object] = {}
+    if args.figure not in ("fig10", "fig11"):  # Fig. 7-9: the 1-D multirate simulator
+        results.update(reproduce(args.figure, Path(args.out)))
+    if args.figure in ("fig10", "fig11", "all"):  # Fig. 10-11 need the server's 3-D object
+        from server.reproduce_3d import reproduce_3d
+
+        results.update(reproduce_3d(args.figure, Path(args.out)))
     for name in results:
         print(f"wrote {Path(args.out) / (name + '.png')} and {name}.json")
     return 0
 
 
 def _add_reproduce(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("reproduce", help="reproduce the paper's Fig. 7, 8 and 9 (PNG + JSON)")
-    p.add_argument("figure", choices=["fig7", "fig8", "fig9", "all"])
+    p = sub.add_parser("reproduce", help="reproduce the paper's Fig. 7 to 11 (PNG + JSON)")
+    p.add_argument("figure", choices=["fig7", "fig8", "fig9", "fig10", "fig11", "all"])
     p.add_argument("--out", default="out/figures", help="output directory")
     p.set_defaults(func=_cmd_reproduce)
 
 
 # ------------------------------------------------------------------------------------------- server
+def _add_stiffness_scale(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--stiffness-scale",
+        type=_positive,
+        default=1.0,
+        metavar="S",
+        help="multiply every stiffness term of the object by S (K_o scales by S; default 1)",
+    )
+
+
 def _cmd_server(args: argparse.Namespace) -> int:
     import asyncio
     import logging
 
-    from server.main import ServerOptions, run_server
+    from server.main import run_server
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    opts = ServerOptions(
+    opts = _server_options(args)
+    try:
+        asyncio.run(run_server(opts))
+    except ValueError as exc:  # bad mesh, bad parameters
+        raise CliError(str(exc)) from None
+    except OSError as exc:
+        raise CliError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}") from None
+    return 0
+
+
+def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """The :class:`server.main.ServerOptions` of parsed ``haptic server`` arguments."""
+    from server.main import ServerOptions
+
+    return ServerOptions(
         host=args.host,
         port=args.port,
         mesh=args.mesh,
@@ -168,16 +198,10 @@ def _cmd_server(args: argparse.Namespace) -> int:
         seed=args.seed,
         primitive=args.primitive,
         damping=args.damping,
+        stiffness_scale=args.stiffness_scale,
         subdivisions=args.subdivisions,
         duration_s=args.duration,
     )
-    try:
-        asyncio.run(run_server(opts))
-    except ValueError as exc:  # bad mesh, bad parameters
-        raise CliError(str(exc)) from None
-    except OSError as exc:
-        raise CliError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}") from None
-    return 0
 
 
 def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -203,6 +227,7 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument(
         "--damping", type=_nonneg, default=None, help="object damping (visco-elastic, eq. 9)"
     )
+    _add_stiffness_scale(p)
     p.add_argument(
         "--primitive", choices=["plane", "sphere"], default="plane", help="local model primitive"
     )
@@ -231,25 +256,10 @@ def _cmd_client(args: argparse.Namespace) -> int:
     import asyncio
     import logging
 
-    from client.app import ClientOptions, run_client
+    from client.app import run_client
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    opts = ClientOptions(
-        url=args.url,
-        name=args.name,
-        device=args.device,
-        profile=args.profile,
-        local_model=args.local_model,
-        servo_rate_hz=args.servo_rate,
-        record=Path(args.record) if args.record else None,
-        summary=Path(args.summary) if args.summary else None,
-        duration_s=args.duration,
-        anchor=args.anchor,
-        trajectory=args.trajectory,
-        theta_m=args.theta_mm / 1000.0,
-        margin=args.margin,
-        hid_profile=args.hid_profile,
-    )
+    opts = _client_options(args)
     try:
         summary = asyncio.run(run_client(opts))
     except (ValueError, ConnectionError) as exc:
@@ -261,6 +271,67 @@ def _cmd_client(args: argparse.Namespace) -> int:
         f"rtt p50 {'-' if rtt is None else f'{rtt:.1f}'} ms"
     )
     return 0
+
+
+def _hand_trajectory_options(args: argparse.Namespace) -> dict[str, float]:
+    """``--hand-*`` values as :data:`client.devices.HAND_OPTIONS` keys (only those given)."""
+    given = {
+        "hand_mass_kg": args.hand_mass,
+        "hand_stiffness_n_per_m": args.hand_stiffness,
+        "hand_damping_n_s_per_m": args.hand_damping,
+    }
+    return {k: v for k, v in given.items() if v is not None}
+
+
+def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """The :class:`client.app.ClientOptions` of parsed ``haptic client`` arguments.
+
+    The ``--hand-*`` flags travel in the trajectory options (the simulated hand pulls the device
+    along the trajectory); :func:`client.devices.make_device` takes them out into the hand.
+    """
+    from client.app import ClientOptions
+
+    return ClientOptions(
+        url=args.url,
+        name=args.name,
+        device=args.device,
+        profile=args.profile,
+        local_model=args.local_model,
+        servo_rate_hz=args.servo_rate,
+        record=Path(args.record) if args.record else None,
+        summary=Path(args.summary) if args.summary else None,
+        duration_s=args.duration,
+        anchor=args.anchor,
+        trajectory={**args.trajectory, **_hand_trajectory_options(args)},
+        theta_m=args.theta_mm / 1000.0,
+        margin=args.margin,
+        hid_profile=args.hid_profile,
+    )
+
+
+def _add_hand(p: argparse.ArgumentParser) -> None:
+    """``--hand-mass``, ``--hand-stiffness``, ``--hand-damping``: the simulated hand's own values."""
+    p.add_argument(
+        "--hand-mass",
+        type=_nonneg,
+        default=None,
+        metavar="KG",
+        help="simulated hand mass [kg] (default 0.45; the device's 0.045 kg is added)",
+    )
+    p.add_argument(
+        "--hand-stiffness",
+        type=_positive,
+        default=None,
+        metavar="N_PER_M",
+        help="simulated hand stiffness [N/m] (default 300)",
+    )
+    p.add_argument(
+        "--hand-damping",
+        type=_nonneg,
+        default=None,
+        metavar="N_S_PER_M",
+        help="simulated hand damping [N*s/m] (default 5; the device's own is added)",
+    )
 
 
 def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -294,6 +365,7 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "--theta-mm", type=_nonneg, default=1.0, help="integration threshold theta (eq. 17) [mm]"
     )
     p.add_argument("--margin", type=_probability, default=0.3, help="gain margin on K_o (Step 2)")
+    _add_hand(p)
     p.set_defaults(func=_cmd_client)
 
 
@@ -391,6 +463,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         port=args.port,
         local_model=args.local_model,
         workdir=Path(args.workdir) if args.workdir else None,
+        stiffness_scale=args.stiffness_scale,
+        hand_mass_kg=args.hand_mass,
+        hand_stiffness_n_per_m=args.hand_stiffness,
+        hand_damping_n_s_per_m=args.hand_damping,
     )
     try:
         run_demo(opts)
@@ -417,6 +493,8 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
     p.add_argument("--port", type=_nonneg_int, default=8765, help="server port (0: any free port)")
     p.add_argument("--local-model", choices=["p", "pi"], default="pi")
     p.add_argument("--workdir", default=None, help="keep logs and telemetry here")
+    _add_stiffness_scale(p)
+    _add_hand(p)
     p.set_defaults(func=_cmd_demo)
 
 

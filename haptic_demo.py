@@ -52,6 +52,22 @@ class DemoOptions:
     local_model: str = "pi"
     workdir: Path | None = None
     seed: int = 0
+    stiffness_scale: float = 1.0
+    hand_mass_kg: float | None = None
+    hand_stiffness_n_per_m: float | None = None
+    hand_damping_n_s_per_m: float | None = None
+
+    def hand_args(self) -> list[str]:
+        """``haptic client`` flags for the simulated hand values that were given (both users)."""
+        out: list[str] = []
+        for flag, value in (
+            ("--hand-mass", self.hand_mass_kg),
+            ("--hand-stiffness", self.hand_stiffness_n_per_m),
+            ("--hand-damping", self.hand_damping_n_s_per_m),
+        ):
+            if value is not None:
+                out += [flag, repr(float(value))]
+        return out
 
 
 @dataclass(frozen=True)
@@ -150,6 +166,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         "server", "--host", opts.host, "--port", str(port), "--mesh", opts.mesh,
         "--sim-rate", f"{opts.sim_rate_hz:g}", "--latency-ms", f"{opts.latency_ms:g}",
         "--jitter-ms", f"{opts.jitter_ms:g}", "--loss", f"{opts.loss:g}", "--seed", str(opts.seed),
+        "--stiffness-scale", repr(float(opts.stiffness_scale)),
     )  # fmt: skip
     logs = {k: open(work / f"{k}.log", "w") for k in ("server", "A", "B")}  # noqa: SIM115
     procs: dict[str, subprocess.Popen[bytes]] = {}
@@ -173,7 +190,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         ws = f"ws://{opts.host}:{port}/ws"
         common = [
             "--url", ws, "--servo-rate", f"{opts.servo_rate_hz:g}", "--local-model", opts.local_model,
-            "--duration", f"{opts.duration_s:g}",
+            "--duration", f"{opts.duration_s:g}", *opts.hand_args(),
         ]  # fmt: skip
         for name, device, extra in (
             ("B", "sim:rest", []),
@@ -314,6 +331,7 @@ def build_report(
         },
         "server": {
             "sim_rate_hz": opts.sim_rate_hz,
+            "stiffness_scale": opts.stiffness_scale,
             "tick_ms_p50": server_status.get("tick_ms_p50"),
             "tick_ms_p99": server_status.get("tick_ms_p99"),
             "overruns": server_status.get("overruns"),

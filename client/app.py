@@ -75,13 +75,16 @@ def threshold_for(
 ) -> ThresholdParams:
     """The integration threshold theta (eq. 17 or 18) the client renders with.
 
-    ``auto`` is eq. 18 (variable) for PI and eq. 17 (fixed) otherwise. Eq. 18's branch follows the
-    direction of the penetration; its deadband is three encoder counts per tick, so quantisation
-    noise (one count back and forth) never flips the branch, while a hand moving faster than
-    3 counts per servo period (0.07 m/s at 1 kHz on a 23 um encoder) does. theta_1 = theta_m / 2
-    while penetrating, theta_2 = 3 theta_m while exiting, reached at 1 N of integral force.
+    ``auto`` is eq. 17 (fixed): with a hand in the loop eq. 18 sustains a limit cycle of about
+    theta_2 - theta_1 (the integral pushing the hand out reads as "exiting", which raises theta,
+    which lets the hand back in; measured 1 mm peak to peak in the loopback test against 0.3 mm
+    with eq. 17), so it is opt-in with ``variable``. Eq. 18's branch follows the
+    probe's own motion along the normal (never the proxy's jumps), low-pass filtered over 20 ms;
+    its deadband is three encoder counts per filter time constant (3.5 mm/s on a 23 um encoder),
+    so quantisation noise never flips the branch. theta_1 = theta_m / 2 while penetrating,
+    theta_2 = 3 theta_m while exiting, reached at 1 N of integral force.
     """
-    variable = mode == "variable" or (mode == "auto" and local_model == "pi")
+    variable = mode == "variable"
     if not variable:
         return ThresholdParams(mode="fixed", theta_m=theta_m)
     return ThresholdParams(
@@ -91,6 +94,8 @@ def threshold_for(
         theta_2_m=3.0 * theta_m,
         i_tot_bar_n=1.0,
         direction_deadband_m=3.0 * encoder_resolution_m,
+        direction_deadband_m_s=3.0 * encoder_resolution_m / 0.02,
+        direction_filter_s=0.02,
     )
 
 

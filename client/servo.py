@@ -52,6 +52,7 @@ from typing import Any
 
 from client.devices.base import Device, HapticError, Vec3
 from client.recorder import TelemetryRecorder
+from shared.full_loop import DAMPER_FILTER_S
 from shared.local_model import LocalModel, LocalModelParams
 from shared.passivity import PassivityController, PassivityParams
 from shared.primitives import Plane, Primitive, Sphere
@@ -379,6 +380,8 @@ class ServoCore:
         self._i_gain = 0.0
         self._b_h = 0.0
         self._inv_T = 1.0 / T
+        self._a_u = T / (T + DAMPER_FILTER_S)  # the damper's velocity filter (shared.full_loop)
+        self._u = 0.0
         self._pc: PassivityController | None = None
         if cfg.passivity and lim.has_force_output and lim.max_damping_n_s_per_m > 0.0:
             # the controller's damper is bounded by what the device can render stably
@@ -613,11 +616,13 @@ class ServoCore:
                     self._hold_i = hi
                     e_old = old.contact(x, y, z)[0]
                     e = e_old + (e - e_old) * (hi / self._hold_n)
-            f = lm.step(e)
+            # the probe's depth rate along the inward normal (backward difference, never the proxy's)
+            v_in = -((x - ox) * nx + (y - oy) * ny + (z - oz) * nz) * self._inv_T
+            f = lm.step(e, v_in)
             in_contact = lm.in_contact
+            self._u += self._a_u * (v_in - self._u)
             if in_contact and self._b_h > 0.0:
-                # probe damper on the backward difference of the probe's depth (never the proxy's)
-                f -= self._b_h * ((x - ox) * nx + (y - oy) * ny + (z - oz) * nz) * self._inv_T
+                f += self._b_h * self._u  # probe damper on the filtered probe velocity
                 if f < 0.0:
                     f = 0.0
         else:

@@ -45,7 +45,6 @@ from shared.stability import rate_ratio as _rate_ratio
 RTT_WINDOW = 20
 
 
-
 @dataclass(frozen=True)
 class PatchUpdate:
     """What the servo loop needs from one patch: the primitive and the gains, swapped atomically.

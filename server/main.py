@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -17,7 +18,11 @@ log = logging.getLogger("haptic.server")
 
 @dataclass
 class ServerOptions:
-    """Options of ``haptic server`` (SI units, rates in Hz, latency in ms)."""
+    """Options of ``haptic server`` (SI units, rates in Hz, latency in ms).
+
+    ``stiffness_scale`` multiplies every stiffness term of the balloon (K_o scales by it, see
+    :meth:`server.objects.balloon.BalloonParams.with_stiffness_scale`).
+    """
 
     host: str = "127.0.0.1"
     port: int = 8765
@@ -27,6 +32,7 @@ class ServerOptions:
     subdivisions: int = 4
     sim_rate_hz: float = 20.0
     damping: float | None = None
+    stiffness_scale: float = 1.0
     primitive: str = "plane"
     latency_ms: float = 0.0
     jitter_ms: float = 0.0
@@ -55,7 +61,10 @@ def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
         mesh = default_balloon(subdivisions=opts.subdivisions)
     else:
         mesh = load_mesh(Path(opts.mesh), scale=opts.mesh_scale, target_size_m=opts.mesh_size)
-    params = BalloonParams(sim_period_s=1.0 / opts.sim_rate_hz)
+    scale = float(opts.stiffness_scale)
+    if not (math.isfinite(scale) and scale > 0.0):
+        raise ValueError(f"--stiffness-scale must be a finite number > 0, got {scale:g}")
+    params = BalloonParams(sim_period_s=1.0 / opts.sim_rate_hz).with_stiffness_scale(scale)
     if opts.damping is not None:
         params = replace(params, damping=opts.damping)
     obj = Balloon(mesh, params)

@@ -20,8 +20,10 @@ hand + device
     writes pushes the probe out and is held over the tick (zero-order hold, discretised exactly).
     ``hand=None`` is the paper's rigid probe (a position source, x = 0).
 local model (servo rate, eq. 12 plus an optional probe damper)
-    ``f(n) = K_h e(n) + s(n) + B_h (x(n) - x(n-1)) / T``, ``s(n+1) = s(n) + T I e(n)``. The damper
-    B_h acts on the probe's backward difference only, never on the proxy's jumps.
+    ``f(n) = K_h e(n) + s(n) + B_h u(n)``, ``s(n+1) = s(n) + T I e(n)``, with the probe velocity
+    ``u(n) = (1 - a) u(n-1) + a (x(n) - x(n-1)) / T`` low-pass filtered (``a = T / (T + tau)``,
+    tau = :data:`DAMPER_FILTER_S`: one encoder count would otherwise be a force step of
+    B_h * count / T). The damper acts on the probe only, never on the proxy's jumps.
 decimation (Step 3 of section 6)
     the simulation takes the force of servo tick ``j`` (``sample_tick``) of each block.
 object (simulation rate), eq. 6 / eq. 9
@@ -56,6 +58,10 @@ ProxyHold = Literal["zoh", "foh"]
 
 #: Spectral radii below 1 - STABILITY_TOL count as stable (guards marginal round-off).
 STABILITY_TOL = 1e-9
+
+#: Time constant [s] of the first-order filter on the probe velocity of the damper B_h (the
+#: servo uses the same): 5 ms, a 32 Hz corner, well above the hand's 1-10 Hz motion.
+DAMPER_FILTER_S = 0.005
 
 
 @dataclass(frozen=True, slots=True)
@@ -197,11 +203,12 @@ def _fast_system(
     b_h: FloatArray,
     period_s: float,
     integral: bool,
+    damper_filter_s: float = DAMPER_FILTER_S,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Servo-rate closed hand + local model with the proxy as input.
 
     Returns A (B, n, n), Bp (B, n), C (B, n), D (B,) with ``xi' = A xi + Bp p``, ``f = C xi + D p``.
-    State: [x, v, (s), x_prev] with a hand; [(s)] for a rigid probe.
+    State: [x, v, (s), x_prev, u_prev] with a hand; [(s)] for a rigid probe.
     """
     nb = k_h.shape[0]
     T = period_s
@@ -216,17 +223,22 @@ def _fast_system(
         return A, Bp, C, -k_h
     m, b, k = hand
     phi, gam = _hand_zoh(m, b, k, T)
-    n = 4 if integral else 3
-    ix, ip = 0, n - 1
+    a = T / (T + damper_filter_s)
+    n = 5 if integral else 4
+    ix, ip, iu = 0, n - 2, n - 1
     C = np.zeros((nb, n))
-    C[:, ix] = k_h + b_h / T
-    C[:, ip] = -b_h / T
+    C[:, ix] = k_h + b_h * a / T
+    C[:, ip] = -b_h * a / T
+    C[:, iu] = b_h * (1.0 - a)
     if integral:
         C[:, 2] = 1.0
     D = -k_h
     A = np.zeros((nb, n, n))
     A[:, :2, :2] = phi
     A[:, ip, ix] = 1.0
+    A[:, iu, ix] = a / T
+    A[:, iu, ip] = -a / T
+    A[:, iu, iu] = 1.0 - a
     Bu = np.zeros((nb, n))
     Bu[:, :2] = gam
     Bp = Bu * D[:, None]

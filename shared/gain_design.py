@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from shared.full_loop import (
+    DAMPER_FILTER_S,
     DEFAULT_HAND_BOX,
     Hand,
     HandBox,
@@ -187,7 +188,10 @@ def felt_stiffness(
     i_ticks = np.arange(N)
     c = np.exp(1j * w * T * i_ticks)  # probe phasor at each tick of block 0
     z = np.exp(1j * w * N * T)
-    damp = bh * (1.0 - np.exp(-1j * w * T)) / T  # (B,) damper on the probe's backward difference
+    # (B,) damper on the filtered backward difference of the probe (shared.full_loop)
+    a_f = T / (T + DAMPER_FILTER_S)
+    zi = np.exp(-1j * w * T)
+    damp = bh * a_f * (1.0 - zi) / T / (1.0 - (1.0 - a_f) * zi)
     ti = T * ig
     # probe contributions to the sampled force and to the next slow state
     csum = np.concatenate(([0.0], np.cumsum(c)))  # csum[i] = sum_{l<i} c_l
@@ -425,7 +429,7 @@ def design_gains(
         order = np.array([i for i in np.argsort(-felt1) if np.isfinite(felt1[i])], dtype=int)
         found = None
 
-        def passes(b: int) -> tuple[bool, float]:
+        def passes(b: int, hold: ProxyHold = hold) -> tuple[bool, float]:
             one = {k: v[b : b + 1] for k, v in base.items()}
             m_r, r_r = worst(one, hold, all_hands, all_ticks)
             return bool(m_r[0] < rho_limit and r_r[0] < 1.0 - 1e-9), float(r_r[0])

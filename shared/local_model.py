@@ -64,7 +64,13 @@ class ThresholdParams:
         Integral force [N] at which the exiting threshold reaches ``theta_2_m`` (eq. 18's I_tot bar).
     direction_deadband_m : float
         Penetration change per tick [m] below which the penetrating/exiting state is kept (keeps
-        encoder noise from flipping eq. 18's branch every tick).
+        encoder noise from flipping eq. 18's branch every tick). Used when :meth:`LocalModel.step`
+        is given no probe velocity.
+    direction_deadband_m_s : float
+        With a probe velocity given to :meth:`LocalModel.step`: filtered probe speed along the
+        inward normal [m/s] below which the penetrating/exiting state is kept.
+    direction_filter_s : float
+        Time constant [s] of the first-order filter on that probe velocity (> 0).
 
     Raises
     ------
@@ -78,12 +84,23 @@ class ThresholdParams:
     theta_2_m: float = 0.003
     i_tot_bar_n: float = 1.0
     direction_deadband_m: float = 0.0
+    direction_deadband_m_s: float = 0.0
+    direction_filter_s: float = 0.02
 
     def __post_init__(self) -> None:
         if self.mode not in ("none", "fixed", "variable"):
             raise ValueError(f"threshold mode must be none, fixed or variable, got {self.mode!r}")
-        for name in ("theta_m", "theta_1_m", "theta_2_m", "i_tot_bar_n", "direction_deadband_m"):
+        for name in (
+            "theta_m",
+            "theta_1_m",
+            "theta_2_m",
+            "i_tot_bar_n",
+            "direction_deadband_m",
+            "direction_deadband_m_s",
+        ):
             _finite_nonneg(name, getattr(self, name))
+        if not (math.isfinite(self.direction_filter_s) and self.direction_filter_s > 0.0):
+            raise ValueError(f"direction_filter_s must be > 0 s, got {self.direction_filter_s!r}")
         if self.mode == "variable" and self.i_tot_bar_n <= 0.0:
             raise ValueError("i_tot_bar_n must be > 0 for the variable threshold (eq. 18)")
 
@@ -164,6 +181,8 @@ class LocalModel:
         "_release_step",
         "_force",
         "_in_contact",
+        "_v_f",
+        "_a_v",
     )
 
     def __init__(self, params: LocalModelParams) -> None:
@@ -171,6 +190,8 @@ class LocalModel:
         self._k_h = params.k_h
         self._ti = params.servo_period_s * params.i_gain
         self._s_max = params.integral_limit_n
+        th = params.threshold
+        self._a_v = params.servo_period_s / (params.servo_period_s + th.direction_filter_s)
         self.reset()
 
     def reset(self) -> None:
@@ -182,6 +203,7 @@ class LocalModel:
         self._release_step = 0.0
         self._force = 0.0
         self._in_contact = False
+        self._v_f = 0.0
 
     def set_gains(self, k_h: float, i_gain: float) -> None:
         """Replace K_h [N/m] and I [N/(m*s)] between ticks; the integral force is kept.
@@ -215,26 +237,37 @@ class LocalModel:
         """Whether the last tick was in contact (e > 0, or always for a bilateral coupling)."""
         return self._in_contact
 
-    def _threshold(self, e: float) -> float:
+    def _threshold(self, e: float, v: float | None) -> float:
         th = self.params.threshold
         if th.mode == "none":
             return 0.0
         if th.mode == "fixed":
             return th.theta_m
-        de = e - self._e_prev
-        if de > th.direction_deadband_m:
-            self._exiting = False
-        elif de < -th.direction_deadband_m:
-            self._exiting = True
+        if v is not None:
+            # the user's motion decides (never the proxy's jumps): filtered probe depth rate
+            self._v_f += self._a_v * (v - self._v_f)
+            if self._v_f > th.direction_deadband_m_s:
+                self._exiting = False
+            elif self._v_f < -th.direction_deadband_m_s:
+                self._exiting = True
+        else:
+            de = e - self._e_prev
+            if de > th.direction_deadband_m:
+                self._exiting = False
+            elif de < -th.direction_deadband_m:
+                self._exiting = True
         if not self._exiting:
             return th.theta_1_m
         ratio = self._s / th.i_tot_bar_n
         return th.theta_2_m * (ratio if ratio < 1.0 else 1.0)
 
-    def step(self, penetration_m: float) -> float:
+    def step(self, penetration_m: float, depth_rate_m_s: float | None = None) -> float:
         """Advance one servo period with penetration e [m]; return the force [N] (eq. 12).
 
-        A non-finite penetration is treated as loss of contact (the force ramps down, never jumps).
+        ``depth_rate_m_s`` is the probe's velocity along the inward normal [m/s] (its backward
+        difference); eq. 18's penetrating/exiting branch follows it, filtered, when given, and
+        the change of e otherwise. A non-finite penetration is treated as loss of contact (the
+        force ramps down, never jumps).
         """
         e = penetration_m
         if not math.isfinite(e):
@@ -242,13 +275,13 @@ class LocalModel:
         p = self.params
         if not p.unilateral:
             self._in_contact = True
-            theta = self._threshold(e) if self._ti > 0.0 else 0.0
+            theta = self._threshold(e, depth_rate_m_s) if self._ti > 0.0 else 0.0
             f = self._k_h * e + self._s
             s = self._s + self._ti * (e - theta)
             self._s = s if abs(s) <= self._s_max else math.copysign(self._s_max, s)
         elif e > 0.0:
             self._in_contact = True
-            theta = self._threshold(e) if self._ti > 0.0 else 0.0
+            theta = self._threshold(e, depth_rate_m_s) if self._ti > 0.0 else 0.0
             f = self._k_h * e + self._s
             s = self._s + self._ti * (e - theta)
             self._s = 0.0 if s < 0.0 else (s if s < self._s_max else self._s_max)

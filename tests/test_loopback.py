@@ -87,10 +87,11 @@ async def test_two_users_feel_each_other_over_websockets(tmp_path):
     f_during = np.mean(b["force_n"][during_b])
     assert f_before > 0.05  # B really rests on the balloon
     assert f_during >= 1.2 * f_before, (f_before, f_during)
-    # both held a stable contact: no sustained oscillation over the last second of the hold
-    for cols, mask in ((a, during_a), (b, during_b)):
-        pen = cols["penetration_m"][mask]
-        assert np.ptp(pen) < 0.001
+    # both held a stable contact: the hands do not shake over the last second of the hold (the
+    # penetration itself may creep while the integral settles and the surface moves under B)
+    for cols, mask, normal in ((a, during_a, info.top_normal), (b, during_b, info.side_normal)):
+        probe = along(cols, "probe", np.asarray(normal))[mask]
+        assert np.ptp(probe) < 0.001, np.ptp(probe)
     assert a_sum["patches"] > 100 and b_sum["patches"] > 100
 
 

@@ -59,7 +59,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -153,6 +153,36 @@ class BalloonParams:
                 raise ValueError(f"BalloonParams.{f.name} must be > 0, got {value!r}")
             if v < 0.0:
                 raise ValueError(f"BalloonParams.{f.name} must be >= 0, got {value!r}")
+
+    def with_stiffness_scale(self, scale: float) -> BalloonParams:
+        """The same balloon with every stiffness term multiplied by ``scale`` (``--stiffness-scale``).
+
+        Tension, bending, foundation and water bulk are all multiplied, so ``K`` becomes
+        ``scale * K``: the compliance ``C = K^-1`` scales by ``1 / scale`` and every contact's
+        ``K_o = 1 / C_ii`` by ``scale`` (up to :data:`server.contacts.K_O_MAX`); the shape of a
+        dent under a given push depth is unchanged. Damping ``b`` (eq. 9) is not a stiffness and
+        is kept.
+
+        Parameters
+        ----------
+        scale : float
+            Finite and > 0 (1 returns equal parameters).
+
+        Raises
+        ------
+        ValueError
+            ``scale`` not a finite number > 0.
+        """
+        s = float(scale)
+        if not (math.isfinite(s) and s > 0.0):
+            raise ValueError(f"stiffness scale must be a finite number > 0, got {scale!r}")
+        return replace(
+            self,
+            tension=self.tension * s,
+            bending=self.bending * s,
+            foundation=self.foundation * s,
+            bulk=self.bulk * s,
+        )
 
 
 @dataclass(frozen=True, slots=True)

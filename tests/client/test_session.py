@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from client.session import ClientSession
+from shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from shared.protocol import (
     DeviceInfo,
     ObjectInfo,
@@ -14,7 +15,6 @@ from shared.protocol import (
     Welcome,
     encode,
 )
-from shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from shared.stability import analyze
 
 OBJ = ObjectInfo(

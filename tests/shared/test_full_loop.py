@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from shared.full_loop import (
+    DAMPER_FILTER_S,
     DEFAULT_HAND,
     DEFAULT_HAND_BOX,
     Hand,
@@ -45,6 +46,8 @@ def _simulate(
     m, b, k = hand.mass_kg, hand.damping_n_s_per_m, hand.stiffness_n_per_m
     x, v = 0.001, 0.0  # the hand starts 1 mm in, target at 0: a disturbance
     x_prev = x
+    u = 0.0  # the damper's filtered probe velocity
+    a_u = T / (T + DAMPER_FILTER_S)
     s = 0.0
     x_obj = 0.0
     line: deque[float] = deque([0.0] * delay)
@@ -62,7 +65,8 @@ def _simulate(
             w = (i + 1) / n if hold == "foh" else 1.0
             p = p_old + (p_new - p_old) * w
             e = x - p
-            f = k_h * e + s + b_h * (x - x_prev) / T
+            u += a_u * ((x - x_prev) / T - u)
+            f = k_h * e + s + b_h * u
             if i == j:
                 f_sample = f
             s += T * i_gain * e
