@@ -70,9 +70,26 @@ def _probability(text: str) -> float:
 
 
 # ---------------------------------------------------------------------------------------- stability
+def _hand_from(args: argparse.Namespace) -> object | None:
+    """The Hand of --hand-mass/--hand-damping/--hand-stiffness (all three or none)."""
+    from shared.full_loop import Hand
+
+    vals = (args.hand_mass, args.hand_damping, args.hand_stiffness)
+    if all(v is None for v in vals):
+        return None
+    if any(v is None for v in vals):
+        raise CliError("give --hand-mass, --hand-damping and --hand-stiffness together")
+    try:
+        return Hand(args.hand_mass, args.hand_damping, args.hand_stiffness)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
 def _cmd_stability(args: argparse.Namespace) -> int:
+    from shared.full_loop import analyze_full_loop
     from shared.stability import analyze
 
+    hand = _hand_from(args)
     try:
         res = analyze(
             args.k_o,
@@ -84,10 +101,28 @@ def _cmd_stability(args: argparse.Namespace) -> int:
             delay_ticks=args.delay_ticks,
             sample_tick=args.sample_tick,
         )
+        full = (
+            None
+            if hand is None
+            else analyze_full_loop(
+                hand,  # type: ignore[arg-type]
+                k_o=args.k_o,
+                k_h=args.k_h,
+                i_gain=args.i_gain,
+                b_h=args.b_h,
+                damping=args.damping,
+                servo_rate_hz=args.servo_rate,
+                sim_rate_hz=args.sim_rate,
+                delay_ticks=args.delay_ticks,
+                proxy_hold=args.proxy_hold,
+            )
+        )
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if args.json:
-        print(json.dumps(res.to_json()))
+        out = res.to_json()
+        out["full_loop"] = None if full is None else full.to_json()
+        print(json.dumps(out))
         return 0
     kind = "proportional-integral" if args.i_gain > 0 else "proportional"
     verdict = "STABLE" if res.stable else "UNSTABLE"
@@ -102,6 +137,13 @@ def _cmd_stability(args: argparse.Namespace) -> int:
         print(f"  {res.condition}: {'holds' if res.analytic_stable else 'fails'} ({agree})")
     else:
         print(f"  {res.condition}")
+    if full is not None:
+        fv = "STABLE" if full.stable else "UNSTABLE"
+        print(
+            f"  full loop with the hand ({args.hand_mass:g} kg, {args.hand_damping:g} N*s/m, "
+            f"{args.hand_stiffness:g} N/m): {fv}, spectral radius {full.spectral_radius:.4f} "
+            f"(worst sampling tick {full.worst_sample_tick})"
+        )
     return 0
 
 
@@ -126,8 +168,95 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
         default=0,
         help="servo tick of the period whose force the simulation samples (0: the paper's decimator)",
     )
+    hand = p.add_argument_group(
+        "full loop",
+        "the combined hand and device as the probe feels them; with all three, the JSON gains "
+        '"full_loop": {"stable", "spectral_radius", "worst_sample_tick"} (worst over every '
+        "sampling tick; null without them)",
+    )
+    hand.add_argument("--hand-mass", type=_positive, default=None, help="moving mass m [kg]")
+    hand.add_argument("--hand-damping", type=_nonneg, default=None, help="damping b [N*s/m]")
+    hand.add_argument("--hand-stiffness", type=_nonneg, default=None, help="stiffness k [N/m]")
+    hand.add_argument(
+        "--b-h", type=_nonneg, default=0.0, help="probe damper B_h [N*s/m] (default 0)"
+    )
+    hand.add_argument(
+        "--proxy-hold", choices=["zoh", "foh"], default="zoh", help="proxy hold (default zoh)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_stability)
+
+
+# ------------------------------------------------------------------------------------------- gains
+def _cmd_gains(args: argparse.Namespace) -> int:
+    from client.devices.profiles import get_sim_profile
+    from shared.gain_design import design_gains
+
+    try:
+        lim = get_sim_profile(args.profile).limits
+        d = design_gains(
+            args.k_o,
+            b_o=args.b_o,
+            servo_rate_hz=args.servo_rate,
+            sim_rate_hz=args.sim_rate,
+            delay_ticks=args.delay_ticks,
+            mode=args.local_model,
+            margin=args.margin,
+            k_h_max=lim.max_stiffness_n_per_m,
+            b_h_max=lim.max_damping_n_s_per_m,
+        )
+    except (ValueError, KeyError) as exc:
+        raise CliError(str(exc).strip("'\"")) from None
+    out = d.to_json()
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    kind = "PI" if d.i_gain > 0 else "P"
+    print(
+        f"{kind} local model for K_o = {args.k_o:g} N/m ({args.sim_rate:g} Hz, "
+        f"{args.delay_ticks} tick(s) of delay, {args.profile}):"
+    )
+    print(
+        f"  K_h = {d.k_h:.1f} N/m, I = {d.i_gain:.0f} N/(m*s), B_h = {d.b_h:.2f} N*s/m, "
+        f"proxy {d.proxy_hold}"
+    )
+    print(
+        f"  felt stiffness / K_o: {d.felt_stiffness_ratio_1hz:.3f} at 1 Hz, "
+        f"{d.felt_stiffness_ratio_8hz:.3f} at 8 Hz"
+    )
+    box = d.hand_box
+    print(
+        f"  worst spectral radius {d.worst_spectral_radius:.4f} over hands {box.mass_kg[0]:g}-"
+        f"{box.mass_kg[1]:g} kg, {box.damping_n_s_per_m[0]:g}-{box.damping_n_s_per_m[1]:g} N*s/m, "
+        f"{box.stiffness_n_per_m[0]:g}-{box.stiffness_n_per_m[1]:g} N/m, every sampling tick, "
+        f"K_o' in [{d.k_o_range[0]:g}, {d.k_o_range[1]:g}] N/m ({d.design_ms:.0f} ms)"
+    )
+    return 0
+
+
+def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "gains",
+        help="the most transparent local model stable with the hand in the loop (full loop)",
+        description="Design K_h, I, B_h and the proxy hold for an object stiffness: stable for "
+        "every hand of the hand box, every force-sampling tick and K_o' down to (1 - margin) K_o.",
+    )
+    p.add_argument("--k-o", type=_positive, required=True, help="object stiffness K_o [N/m]")
+    p.add_argument("--local-model", choices=["p", "pi"], default="pi", help="default: %(default)s")
+    p.add_argument("--b-o", type=_nonneg, default=0.0, help="object damping B_o [N/m] (eq. 9)")
+    p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
+    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo rate [Hz]")
+    p.add_argument("--delay-ticks", type=_nonneg_int, default=0, help="extra ticks of delay")
+    p.add_argument(
+        "--profile",
+        default="phantom-desktop",
+        help="device profile whose limits bound K_h and B_h (phantom-desktop | touch)",
+    )
+    p.add_argument(
+        "--margin", type=_probability, default=0.15, help="K_o margin (default %(default)s)"
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_cmd_gains)
 
 
 # ---------------------------------------------------------------------------------------- reproduce
@@ -426,6 +555,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from client.bench_servo import run as bench_servo
 
         results["servo"] = bench_servo(duration_s=args.duration, rate_hz=args.servo_rate)
+    if args.what in ("gains", "all"):
+        from client.bench_gains import run as bench_gains
+
+        results["gains"] = bench_gains()
     payload = results if args.what == "all" else results[args.what]
     text = json.dumps(payload, indent=2)
     if args.out:
@@ -437,7 +570,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("bench", help="measure speed (JSON): server tick cost, servo loop timing")
-    p.add_argument("what", choices=["server", "servo", "all"])
+    p.add_argument("what", choices=["server", "servo", "gains", "all"])
     p.add_argument("--json", action="store_true", help="print JSON (always JSON; kept for scripts)")
     p.add_argument("--out", default=None, help="also write the JSON here")
     p.add_argument("--duration", type=_positive, default=5.0, help="servo bench duration [s]")
@@ -506,6 +639,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_stability(sub)
+    _add_gains(sub)
     _add_reproduce(sub)
     for extra in _EXTRA:
         extra(sub)
