@@ -433,6 +433,8 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         anchor=args.anchor,
         trajectory={**args.trajectory, **_hand_trajectory_options(args)},
         theta_m=args.theta_mm / 1000.0,
+        theta_mode=args.theta_mode,
+        passivity=args.passivity,
         margin=args.margin,
         hid_profile=args.hid_profile,
     )
@@ -493,7 +495,25 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument(
         "--theta-mm", type=_nonneg, default=1.0, help="integration threshold theta (eq. 17) [mm]"
     )
-    p.add_argument("--margin", type=_probability, default=0.3, help="gain margin on K_o (Step 2)")
+    p.add_argument(
+        "--theta-mode",
+        choices=["auto", "fixed", "variable"],
+        default="auto",
+        help="threshold: fixed (eq. 17) or variable (eq. 18); auto = fixed (default %(default)s)",
+    )
+    p.add_argument(
+        "--passivity",
+        choices=["auto", "on", "off"],
+        default="auto",
+        help="time-domain passivity controller at the device port; auto = on for PI "
+        "(default %(default)s)",
+    )
+    p.add_argument(
+        "--margin",
+        type=_probability,
+        default=0.15,
+        help="K_o margin of the gain design (default %(default)s)",
+    )
     _add_hand(p)
     p.set_defaults(func=_cmd_client)
 
