@@ -138,17 +138,17 @@ class HandBox:
             raise ValueError("hand box mass must be > 0 kg")
 
     def hands(self) -> list[Hand]:
-        """Corners, face centres and centre of the box, then ``extra`` (27 - 8 edges + extra)."""
+        """A lattice over the box, then ``extra``: 5 masses x 3 dampings x 5 stiffnesses.
+
+        Stability is not monotone in the hand's mass or stiffness (a lightly damped hand has its
+        worst mass between the corners), so the corners alone are not enough; tests re-check
+        designs on an independent 4 x 4 x 4 lattice.
+        """
         out: list[Hand] = []
-        m, b, k = self.mass_kg, self.damping_n_s_per_m, self.stiffness_n_per_m
-        mid = lambda r: 0.5 * (r[0] + r[1])  # noqa: E731
-        for mi in (m[0], mid(m), m[1]):
-            for bi in (b[0], mid(b), b[1]):
-                for ki in (k[0], mid(k), k[1]):
-                    n_mid = (mi == mid(m)) + (bi == mid(b)) + (ki == mid(k))
-                    if n_mid == 1 and not (m[0] == m[1] or b[0] == b[1] or k[0] == k[1]):
-                        continue  # edge centres add nothing the corners and faces do not
-                    h = Hand(mi, bi, ki)
+        for mi in np.linspace(*self.mass_kg, 5):
+            for bi in np.linspace(*self.damping_n_s_per_m, 3):
+                for ki in np.linspace(*self.stiffness_n_per_m, 5):
+                    h = Hand(float(mi), float(bi), float(ki))
                     if h not in out:
                         out.append(h)
         for h in self.extra:

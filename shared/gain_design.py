@@ -568,9 +568,10 @@ class GainTable:
         """Gains to render while the cell covering ``k_o`` is being designed, or None.
 
         The nearest designed cell below (a design for a softer object: its K_h is lower than the
-        missing cell's would be), else the nearest above with K_h, I and B_h scaled down by the
-        ratio of the grid points (the same gains relative to K_o). Either keeps the local model no
-        stiffer, relative to K_o, than a verified design.
+        missing cell's would be; more than two cells below, without its integral), else the
+        nearest above with K_h, I and B_h scaled down by the ratio of the grid points (the same
+        gains relative to K_o). Either keeps the local model no stiffer, relative to K_o, than a
+        verified design.
         """
         i = self.cell(k_o)
         cells = [c for (k, c) in self._cells if k == key]
@@ -578,7 +579,13 @@ class GainTable:
             return None
         below = [c for c in cells if c <= i]
         if below:
-            return self._cells[(key, max(below))]
+            c = max(below)
+            d = self._cells[(key, c)]
+            if i - c > 2 and d.i_gain > 0.0:
+                # an integral designed for a much softer object may not hold on this one (a
+                # heavy, soft, lightly damped hand): render its P part until the design is done
+                return replace(d, i_gain=0.0)
+            return d
         c = min(cells)
         d = self._cells[(key, c)]
         r = self.grid_point(i) / self.grid_point(c)
