@@ -579,6 +579,23 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from client.bench_gains import run as bench_gains
 
         results["gains"] = bench_gains()
+    if args.what == "fidelity":
+        from server.bench_fidelity import plot as plot_fidelity
+        from server.bench_fidelity import run as bench_fidelity
+
+        results["fidelity"] = fid = bench_fidelity(
+            quick=args.quick,
+            seed=args.seed,
+            workers=args.workers,
+            include_3d=not args.no_3d,
+            log=lambda msg: print(msg, file=sys.stderr, flush=True),
+        )
+        if args.plot:
+            for path in plot_fidelity(fid, Path(args.plot)):
+                print(f"wrote {path}", file=sys.stderr)
+        if not args.json and not args.out:
+            _print_fidelity_table(fid)
+            return 0
     payload = results if args.what == "all" else results[args.what]
     text = json.dumps(payload, indent=2)
     if args.out:
@@ -589,13 +606,45 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("bench", help="measure speed (JSON): server tick cost, servo loop timing")
-    p.add_argument("what", choices=["server", "servo", "gains", "all"])
+    p = sub.add_parser(
+        "bench",
+        help="measure speed (JSON): server tick cost, servo loop timing, gain lookups; "
+        "'fidelity': every rendering scheme side by side",
+    )
+    p.add_argument("what", choices=["server", "servo", "gains", "fidelity", "all"])
     p.add_argument("--json", action="store_true", help="print JSON (always JSON; kept for scripts)")
     p.add_argument("--out", default=None, help="also write the JSON here")
     p.add_argument("--duration", type=_positive, default=5.0, help="servo bench duration [s]")
     p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo bench rate [Hz]")
+    p.add_argument(
+        "--quick", action="store_true", help="fidelity: the documented subset (< 3 min, 2 cores)"
+    )
+    p.add_argument("--plot", default=None, metavar="DIR", help="fidelity: write the plots here")
+    p.add_argument("--seed", type=int, default=0, help="fidelity: recorded seed (deterministic)")
+    p.add_argument(
+        "--workers", type=int, default=None, help="fidelity: worker processes (default: cores)"
+    )
+    p.add_argument("--no-3d", action="store_true", help="fidelity: skip the 3-D World cells")
     p.set_defaults(func=_cmd_bench)
+
+
+def _print_fidelity_table(result: dict[str, object]) -> None:
+    """A human-readable summary of ``haptic bench fidelity`` (``--json`` for everything)."""
+    summary = result["summary"]
+    assert isinstance(summary, dict)
+    print(f"{'scheme':18s} {'stable':>7s} {'best':>6s} {'felt 1Hz':>9s} {'felt 8Hz':>9s}")
+    for s in result["schemes"]:  # type: ignore[attr-defined]
+        row = summary[s]
+
+        def num(v: object) -> str:
+            return f"{v:9.2f}" if isinstance(v, float) else f"{'-':>9s}"
+
+        print(
+            f"{s:18s} {row['stable_fraction']:7.1%} {row['best_transparency_fraction']:6.1%} "
+            f"{num(row['median_felt_stiffness_ratio_1hz'])} "
+            f"{num(row['median_felt_stiffness_ratio_8hz'])}"
+        )
+    print(f"local model best in {summary['local_model_best_fraction']:.1%} of conditions")
 
 
 # --------------------------------------------------------------------------------------------- demo
