@@ -38,7 +38,7 @@ from shared.fidelity import (
     cell_metrics,
     design_delay_ticks,
     felt_depth_m,
-    felt_stiffness_ratio,
+    felt_response,
     felt_trajectory,
     rendering_for,
     scheme_tuning,
@@ -122,8 +122,16 @@ def _simulate_batch(cells: list[Cell], felt: bool, device: DeviceModel) -> list[
     """Simulate one batch (a worker's job): metrics, or felt-stiffness ratios."""
     run = simulate(cells, device=device, servo_rate_hz=_SERVO_RATE_HZ)
     if felt:
-        return felt_stiffness_ratio(run, cells)
+        return [None if q is None else (abs(q), q.real) for q in felt_response(run, cells)]
     return [m.to_json() for m in cell_metrics(run, cells)]
+
+
+def _mag(q: tuple[float, float] | None) -> float | None:
+    return None if q is None else q[0]
+
+
+def _re(q: tuple[float, float] | None) -> float | None:
+    return None if q is None else q[1]
 
 
 def _chunks(items: Sequence[Cell], size: int) -> Iterable[list[Cell]]:
@@ -131,8 +139,8 @@ def _chunks(items: Sequence[Cell], size: int) -> Iterable[list[Cell]]:
         yield list(items[a : a + size])
 
 
-def _best_transparency(cells: list[dict[str, Any]]) -> None:
-    """Mark, per condition, the stable scheme whose 1 Hz felt stiffness is closest to 1."""
+def _best_transparency(cells: list[dict[str, Any]], field: str, tag: str) -> None:
+    """Mark (``c[tag]``), per condition, the stable scheme whose ``field`` is closest to 1."""
     groups: dict[tuple[Any, ...], list[dict[str, Any]]] = defaultdict(list)
     for c in cells:
         key = (
@@ -146,44 +154,55 @@ def _best_transparency(cells: list[dict[str, Any]]) -> None:
         )
         groups[key].append(c)
     for group in groups.values():
-        ok = [c for c in group if c["stable"] and c["felt_stiffness_ratio_1hz"] is not None]
-        best = min((abs(c["felt_stiffness_ratio_1hz"] - 1.0) for c in ok), default=None)
+        ok = [c for c in group if c["stable"] and c[field] is not None]
+        best = min((abs(c[field] - 1.0) for c in ok), default=None)
         for c in group:
-            c["_best"] = (
-                best is not None
-                and c in ok
-                and abs(c["felt_stiffness_ratio_1hz"] - 1.0) <= best + 1e-6
-            )
+            c[tag] = best is not None and c in ok and abs(c[field] - 1.0) <= best + 1e-6
             c["_condition"] = id(group)
 
 
-def summarize(cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, Any]:
-    """Per scheme: ``stable_fraction``, ``best_transparency_fraction`` (issue 9), and the
-    median 1 Hz and 8 Hz felt stiffness and median hold p2p over its stable cells; plus
-    ``"local_model_best_fraction"`` (conditions where local-p or local-pi is the best stable
+def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, Any]:
+    """Per scheme, over the 1-D grid: ``stable_fraction``, ``best_transparency_fraction``
+    (issue 9: stable, and |dF/dx| / K_o at 1 Hz closest to 1 among the stable schemes),
+    ``best_elastic_fraction`` (the same ranking on the elastic, in-phase part Re(dF/dx) / K_o: a
+    force lagging by a long delay keeps its magnitude but is not felt as stiffness), and the
+    medians of those and of the hold p2p over its stable cells; ``stable_fraction_3d`` over the 3-D World cells (felt stiffness is measured in 1-D
+    only, so the 3-D cells do not enter the transparency ranking). Plus
+    ``"local_model_best_fraction"`` (1-D conditions where local-p or local-pi is the best stable
     scheme) and ``"peer_wins"`` (the conditions, grouped over hands and trajectories, where a
     peer is best)."""
-    _best_transparency(cells)
+    cells = [c for c in all_cells if c["model"] == "1d"]
+    _best_transparency(cells, "felt_elastic_ratio_1hz", "_best_elastic")
+    _best_transparency(cells, "felt_stiffness_ratio_1hz", "_best")
     out: dict[str, Any] = {}
     for s in schemes:
         mine = [c for c in cells if c["scheme"] == s]
+        mine3 = [c for c in all_cells if c["scheme"] == s and c["model"] == "3d"]
         if not mine:
             continue
         stable = [c for c in mine if c["stable"]]
         felt1 = [c["felt_stiffness_ratio_1hz"] for c in stable if c["felt_stiffness_ratio_1hz"]]
         felt8 = [c["felt_stiffness_ratio_8hz"] for c in stable if c["felt_stiffness_ratio_8hz"]]
+        el1 = [c["felt_elastic_ratio_1hz"] for c in stable if c["felt_elastic_ratio_1hz"]]
         out[s] = {
             "cells": len(mine),
             "stable_fraction": len(stable) / len(mine),
             "best_transparency_fraction": sum(c["_best"] for c in mine) / len(mine),
+            "best_elastic_fraction": sum(c["_best_elastic"] for c in mine) / len(mine),
             "median_felt_stiffness_ratio_1hz": statistics.median(felt1) if felt1 else None,
             "median_felt_stiffness_ratio_8hz": statistics.median(felt8) if felt8 else None,
+            "median_felt_elastic_ratio_1hz": statistics.median(el1) if el1 else None,
             "median_hold_p2p_mm": statistics.median(c["hold_p2p_mm"] for c in mine),
+            "stable_fraction_3d": (sum(c["stable"] for c in mine3) / len(mine3) if mine3 else None),
         }
     conditions: dict[int, list[dict[str, Any]]] = defaultdict(list)
     for c in cells:
         conditions[c["_condition"]].append(c)
     ours = 0
+    ours_elastic = sum(
+        any(c["_best_elastic"] and c["scheme"] in ("local-p", "local-pi") for c in group)
+        for group in conditions.values()
+    )
     wins: dict[tuple[Any, ...], dict[str, Any]] = {}
     for group in conditions.values():
         best = [c["scheme"] for c in group if c["_best"]]
@@ -212,8 +231,10 @@ def summarize(cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, 
         )
     for c in cells:
         c.pop("_best", None)
+        c.pop("_best_elastic", None)
         c.pop("_condition", None)
     out["local_model_best_fraction"] = ours / max(1, len(conditions))
+    out["local_model_best_elastic_fraction"] = ours_elastic / max(1, len(conditions))
     out["conditions"] = len(conditions)
     out["peer_wins"] = sorted(
         wins.values(),
@@ -232,6 +253,7 @@ def run(
     include_3d: bool = True,
     seed: int = 0,
     log: Any = None,
+    design_cache: dict[tuple[str, GainKey, float], GainDesign] | None = None,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the ``--json`` document (issue 9's shape).
 
@@ -252,6 +274,9 @@ def run(
         seed changes nothing today.
     log : callable, optional
         Progress lines (``print`` to stderr from the CLI).
+    design_cache : dict, optional
+        Designs already made, keyed ``(mode, GainKey, K_o)``; new designs are added to it (lets a
+        caller rerun the simulations without redesigning).
 
     Raises
     ------
@@ -276,11 +301,13 @@ def run(
                 for d in g.delay_ms:
                     key = _gain_key(mode, rate, d, device)
                     for k_o in g.k_o:
-                        if (mode, key, k_o) not in jobs:
+                        known = design_cache is not None and (mode, key, k_o) in design_cache
+                        if (mode, key, k_o) not in jobs and not known:
                             jobs[(mode, key, k_o)] = pool.submit(_design, key, k_o)
-        designs: dict[tuple[str, GainKey, float], GainDesign] = {
-            k: f.result() for k, f in jobs.items()
-        }
+        designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
+        designs.update({k: f.result() for k, f in jobs.items()})
+        if design_cache is not None:
+            design_cache.update(designs)
         t_design = time.perf_counter() - t0
         say(f"designed {len(designs)} gain sets in {t_design:.1f} s")
 
@@ -315,7 +342,7 @@ def run(
         for hz, cs in felt_cells.items():
             for chunk in _chunks(cs, _BATCH):
                 futs.append(("felt", hz, chunk, pool.submit(_simulate_batch, chunk, True, device)))
-        felt: dict[tuple[str, float, float, float, float], float | None] = {}
+        felt: dict[tuple[str, float, float, float, float], tuple[float, float] | None] = {}
         metrics: list[tuple[Cell, dict[str, Any]]] = []
         for kind, what, chunk, fut in futs:
             res = fut.result()
@@ -343,8 +370,9 @@ def run(
                 "hand": c.hand.as_dict(),
                 "trajectory": c.trajectory.name,
                 **m,
-                "felt_stiffness_ratio_1hz": felt[(*rkey, 1.0)],
-                "felt_stiffness_ratio_8hz": felt[(*rkey, 8.0)],
+                "felt_stiffness_ratio_1hz": _mag(felt[(*rkey, 1.0)]),
+                "felt_stiffness_ratio_8hz": _mag(felt[(*rkey, 8.0)]),
+                "felt_elastic_ratio_1hz": _re(felt[(*rkey, 1.0)]),
             }
         )
     t_3d = 0.0

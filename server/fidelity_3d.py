@@ -1,0 +1,693 @@
+"""The fidelity benchmark's schemes on the 3-D World: the product's own object, servo and hand.
+
+Issue 9 (``haptic bench fidelity``): the 1-D multirate simulator of :mod:`shared.fidelity` carries
+the full grid; the same schemes also run here on the server's :class:`server.world.World`
+(the default water balloon, ``--stiffness-scale``, 20 Hz) without the network, one user pressing
+the top with the default simulated hand. Every block is the product's code run in-process, tick
+by tick, with integer ticks and no clock, socket or thread (as :mod:`server.reproduce_3d`):
+
+object
+    :func:`server.main.build_world` with ``ServerOptions(sim_rate_hz=20,
+    stiffness_scale=s)``, stepped once every N = 50 servo ticks. K_o is what the World reports
+    at the top for a probe resting on it with no force (the first World tick of a run:
+    :func:`top_contact`); that tick's :class:`server.world.ContactOutput` is also the patch the
+    user holds before the run starts (the 1-D servo likewise knows the rest surface at t = 0).
+user
+    :class:`client.devices.sim.SimDevice`, profile ``phantom-desktop`` with the
+    :class:`shared.fidelity.DeviceModel`'s force, stiffness and damping limits, default
+    :class:`client.devices.sim.HandParams`; the hand target moves along the top's inward normal
+    exactly as the 1-D trajectory ``y(t)`` (:class:`NormalTrajectory`); for ``impact`` the handle
+    starts with the hand's velocity, as in the 1-D model. The probe hitting the device's
+    workspace end stop counts as a runaway (the 1-D model's :data:`shared.fidelity.RUNAWAY_M`
+    cannot be reached inside the 120 mm workspace).
+network
+    one-way delay ``d`` whole servo ticks both ways, as the 1-D model: the World ticking at servo
+    tick ``n`` (``n % N == 0``) uses the user's state published by the servo at tick ``n - d``
+    (the client is modelled as sending its latest state every tick; the product's client sends
+    it every half simulation period), and its output reaches the servo from tick ``n + 1 + d``.
+    Before tick ``d`` the World sees the user's starting probe and no force.
+
+Schemes (:func:`shared.fidelity.rendering_for` for the gains):
+
+``local-p``, ``local-pi``, ``virtual-coupling``, ``static-local``
+    :class:`client.servo.ServoCore` at 1 kHz rendering the World's patch with the scheme's
+    K_h, I, B_h and proxy hold (``hold_ticks = N``); the World receives the probe and the force
+    the servo rendered (Step 3 of the paper's section 6). The local models' gains are the
+    product's design for the K_o at the top and the delay ticks the client would measure
+    (:class:`shared.gain_design.GainTable`, margin 0.15, K_h <= the device's maximum stiffness,
+    B_h <= its maximum damping); eq. 17 threshold fixed at 1 mm, release over two simulation
+    periods, integral limited to the device's maximum force; passivity layer on for PI
+    (``ServoConfig(passivity=True)``, 1 mJ bias). Two safety features of the servo that the 1-D
+    model does not have are set out of the way so that the schemes are compared as control laws:
+    the force ramp at start-up is one tick (``ramp_s = T``) and the velocity limit is raised to
+    :data:`VELOCITY_LIMIT_M_S`; the device's stiffness limit is raised to K_h when K_h is above it
+    (as :mod:`server.reproduce_3d` does).
+``direct``, ``direct-tdpa``
+    the World computes the contact force from the probe it received, applies it to the object
+    as the user's contact force and sends it back; the user's loop (written here: read the
+    device, write the force) holds it (zero-order hold) until the next one. The rule (see
+    :data:`DIRECT_REFERENCE`): with ``(prim, K_o)`` the World's last :class:`ContactOutput` for
+    the user (the surface its last load produced), ``e`` the received probe's penetration below
+    ``prim`` and ``F_prev >= 0`` the force the World applied last tick, the new force is
+
+    - ``"undisturbed"`` (default): ``F = clamp(F_prev + K_o e, 0, F_max)``: ``K_o`` times the
+      probe's depth below the surface as it would be without this user's own last push (the
+      patch moved out by ``F_prev / K_o``, exact for the quasi-static balloon at a fixed
+      contact). On a static probe it settles at ``F = K_o x``, the 1-D ``direct``;
+    - ``"patch"``: ``F = clamp(K_o e, 0, F_max)``: the probe's depth below the deformed patch
+      itself. The object then pushes back on its own deformation: a held probe gives ``F_k = K_o
+      x - F_(k-1)``, a period-2 oscillation at the margin of eq. 8 (K_h = K_o) even without delay.
+
+    The force acts along ``prim``'s outward normal at the probe. ``direct-tdpa`` passes the held
+    force through :class:`shared.passivity.PassivityController` (alpha_max = the device's maximum
+    damping, no energy bias, force limit the device's) at 1 kHz with the device velocity (backward
+    difference of the positions read), as Ryu, Kwon and Hannaford 2004.
+
+Every force is clamped to the device's maximum (the servo's clamp, the World's rule above, the
+PC's limit, and :meth:`SimDevice.write`).
+
+Metrics (:func:`shared.fidelity.cell_metrics`) are taken on ``x`` = the probe position read by
+the servo, as depth below the rest top along the inward normal [m], and ``f`` = the force written
+to the device along the top's outward normal [N] (positive pushing the probe out), on the servo
+clock ``t = n T`` with the windows of the matching :data:`shared.fidelity.PRESS` /
+:data:`shared.fidelity.IMPACT`.
+
+Usage::
+
+    from server.fidelity_3d import run_3d_cells
+    cells = run_3d_cells(("local-p", "direct"), stiffness_scales=(3.3,), delays_ms=(100.0,))
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from client.devices.base import Vec3
+from client.devices.profiles import get_sim_profile
+from client.devices.sim import HandParams, SimDevice
+from client.recorder import TelemetryRecorder
+from client.servo import ServoConfig, ServoCore
+from server.main import ServerOptions, build_world
+from server.reproduce_3d import combined_hand
+from server.world import ContactInput, ContactOutput, World
+from shared.fidelity import (
+    IMPACT,
+    PRESS,
+    RUNAWAY_M,
+    SCHEMES,
+    Cell,
+    CellMetrics,
+    DeviceModel,
+    Rendering,
+    Run,
+    Trajectory,
+    cell_metrics,
+    design_delay_ticks,
+    rendering_for,
+)
+from shared.gain_design import GainKey, GainTable
+from shared.local_model import LocalModelParams, ThresholdParams
+from shared.passivity import PassivityController, PassivityParams
+from shared.primitives import Plane, Sphere
+
+FloatArray = NDArray[np.float64]
+DirectReference = Literal["undisturbed", "patch"]
+
+#: Servo rate 1/T [Hz].
+SERVO_RATE_HZ = 1000.0
+#: World rate [Hz] (issue 9: the 3-D cells run at 20 Hz).
+SIM_RATE_HZ = 20.0
+#: Servo ticks per World tick.
+RATE_RATIO = round(SERVO_RATE_HZ / SIM_RATE_HZ)
+#: The simulated device.
+PROFILE = "phantom-desktop"
+#: The servo's velocity limit [m/s] during these runs (the 1-D model has none; the product's
+#: 0.6 m/s would withhold forces on a fast impact or an oscillating scheme).
+VELOCITY_LIMIT_M_S = 100.0
+#: Default rule of the direct schemes (module docstring).
+DIRECT_REFERENCE: DirectReference = "undisturbed"
+#: The 3-D trajectories, by name, with the 1-D windows their metrics use.
+TRAJECTORIES_3D: dict[str, Trajectory] = {"press": PRESS, "impact": IMPACT}
+#: The device every scheme renders on by default (the simulated Phantom Desktop's limits).
+DEFAULT_DEVICE = DeviceModel()
+#: Design margin and other fixed parts of the client's gain key (as :mod:`server.bench_fidelity`).
+DESIGN_MARGIN = 0.15
+
+_USER = "user"
+
+
+def _opts(stiffness_scale: float) -> ServerOptions:
+    return ServerOptions(sim_rate_hz=SIM_RATE_HZ, stiffness_scale=stiffness_scale)
+
+
+def top_contact(world: World) -> tuple[ContactOutput, FloatArray, FloatArray]:
+    """One World tick with the user's probe exactly at the top of the rest surface, no force.
+
+    Returns
+    -------
+    (output, top, normal)
+        The user's :class:`ContactOutput` (K_o at the top, the rest-surface patch), the top
+        point (3,) [m] and the outward unit normal (3,) there (the patch's).
+    """
+    top = np.array([*world.rest_center[:2], world.rest_bounds[1, 2]], dtype=np.float64)
+    out = world.tick({_USER: ContactInput(probe=top, force=np.zeros(3))})[_USER]
+    n = np.asarray(out.normal, dtype=np.float64)
+    return out, top, n / float(np.linalg.norm(n))
+
+
+def top_k_o(stiffness_scale: float) -> float:
+    """K_o [N/m] the World reports at the top of the balloon scaled by ``stiffness_scale``.
+
+    Raises
+    ------
+    ValueError
+        A scale that is not a finite number > 0 (:func:`server.main.build_world`).
+    """
+    out, _, _ = top_contact(build_world(_opts(stiffness_scale)))
+    return float(out.k_o)
+
+
+class NormalTrajectory:
+    """The 1-D intention ``y(t)`` (:class:`shared.fidelity.Trajectory`) as a hand target in 3-D.
+
+    ``target(t) = top - y(t) normal`` [m] (``y`` positive inside), the callable
+    :class:`client.devices.sim.SimDevice` pulls the hand toward; tabulated on the servo ticks
+    ``t = n / servo_rate_hz`` of the trajectory's duration and linearly interpolated between them
+    (held after the end).
+
+    Parameters
+    ----------
+    trajectory : Trajectory
+    top, normal : (3,) float
+        Rest top [m] and its outward unit normal.
+    servo_rate_hz : float
+    """
+
+    def __init__(
+        self,
+        trajectory: Trajectory,
+        top: ArrayLike,
+        normal: ArrayLike,
+        servo_rate_hz: float = SERVO_RATE_HZ,
+    ) -> None:
+        self.trajectory = trajectory
+        self._top = np.asarray(top, dtype=np.float64).reshape(3)
+        self._n = np.asarray(normal, dtype=np.float64).reshape(3)
+        self._T = 1.0 / float(servo_rate_hz)
+        n = round(trajectory.duration_s * servo_rate_hz) + 1
+        self._t = np.arange(n, dtype=np.float64) * self._T
+        y, yd = trajectory.target(self._t)
+        self._y = np.asarray(y, dtype=np.float64)
+        self.initial_speed_in_m_s = float(yd[0])
+
+    def depth_m(self, t_s: float) -> float:
+        """Intended depth ``y`` [m] at ``t_s`` [s]."""
+        k = t_s / self._T
+        i = round(k)
+        if abs(k - i) < 1e-9 and 0 <= i < len(self._y):
+            return float(self._y[i])
+        return float(np.interp(t_s, self._t, self._y))
+
+    @property
+    def initial_velocity_m_s(self) -> Vec3:
+        """The hand's velocity (3,) [m/s] at t = 0 (an impact starts already moving)."""
+        v = -self.initial_speed_in_m_s * self._n
+        return (float(v[0]), float(v[1]), float(v[2]))
+
+    def __call__(self, t_s: float) -> Vec3:
+        """Hand target (x, y, z) [m] at ``t_s`` [s]."""
+        p = self._top - self.depth_m(t_s) * self._n
+        return (float(p[0]), float(p[1]), float(p[2]))
+
+
+class _PortDevice(SimDevice):
+    """A :class:`SimDevice` whose handle starts with a given velocity and that remembers the
+    position the servo last read (the 1-D model's ``x``).
+
+    SimDevice has no public way to start the handle moving: this sets its velocity state
+    (``_v``) right after the first read, which places the handle (``_t`` is None before it).
+    """
+
+    def __init__(self, *args: Any, initial_velocity: Vec3 = (0.0, 0.0, 0.0), **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self._v_start = initial_velocity
+        self.last_read: Vec3 = (math.nan, math.nan, math.nan)
+
+    def read(self, t_s: float) -> Vec3:
+        first = self._t is None
+        q = super().read(t_s)
+        if first:
+            self._v = self._v_start  # the hand already moving with its intention (1-D: v = y')
+        self.last_read = q
+        return q
+
+    def at_end_stop(self) -> bool:
+        """The handle is on a face of the workspace box (the device's mechanical stop)."""
+        x, lo, hi = self.position_m, self.limits.workspace_min_m, self.limits.workspace_max_m
+        return any(x[i] <= lo[i] or x[i] >= hi[i] for i in range(3))
+
+
+@dataclass
+class Run3D:
+    """One 3-D cell's time response and metrics.
+
+    Attributes
+    ----------
+    cell : Cell
+        The 1-D description of the cell (rendering, K_o, rate, delay, combined hand, trajectory)
+        whose windows the metrics use.
+    stiffness_scale : float
+    t : (n,) float
+        Servo tick times [s].
+    x : (n,) float
+        Probe depth [m] below the rest top along the inward normal, as read by the servo.
+    f : (n,) float
+        Force [N] written to the device along the top's outward normal (pushing the probe out).
+    runaway : bool
+        The probe reached the workspace end stop, left :data:`shared.fidelity.RUNAWAY_M` or went
+        non-finite.
+    metrics : CellMetrics
+    world_k_o : (m,) float
+        K_o [N/m] the World reported at each of its ticks.
+    """
+
+    cell: Cell
+    stiffness_scale: float
+    t: FloatArray
+    x: FloatArray
+    f: FloatArray
+    runaway: bool
+    metrics: CellMetrics
+    world_k_o: FloatArray
+
+    def to_json(self) -> dict[str, Any]:
+        """The cell object of ``haptic bench fidelity --json`` (the 1-D cells' shape, ``model``
+        ``"3d"``, plus ``stiffness_scale``; felt stiffness is measured in 1-D only: None)."""
+        c = self.cell
+        assert c.hand is not None
+        return {
+            "scheme": c.rendering.scheme,
+            "model": "3d",
+            "k_o_n_per_m": c.k_o,
+            "sim_rate_hz": c.sim_rate_hz,
+            "delay_ms": c.delay_ms,
+            "hand": c.hand.as_dict(),
+            "trajectory": c.trajectory.name,
+            "stiffness_scale": self.stiffness_scale,
+            **self.metrics.to_json(),
+            "felt_stiffness_ratio_1hz": None,
+            "felt_stiffness_ratio_8hz": None,
+        }
+
+
+def gain_key(mode: Literal["p", "pi"], delay_ms: float, device: DeviceModel) -> GainKey:
+    """The client's gain key at 20 Hz for a one-way delay ``delay_ms`` [ms] (the 1-D bench's)."""
+    return GainKey(
+        servo_rate_hz=SERVO_RATE_HZ,
+        sim_rate_hz=SIM_RATE_HZ,
+        delay_ticks=design_delay_ticks(delay_ms * 1e-3, SIM_RATE_HZ),
+        mode=mode,
+        margin=DESIGN_MARGIN,
+        k_h_max=device.max_stiffness_n_per_m,
+        b_h_max=device.max_damping_n_s_per_m,
+    )
+
+
+def rendering_3d(
+    scheme: str,
+    k_o: float,
+    delay_ms: float,
+    *,
+    device: DeviceModel = DEFAULT_DEVICE,
+    gain_table: GainTable | None = None,
+) -> Rendering:
+    """:func:`shared.fidelity.rendering_for` at 20 Hz, designing the local models' gains for
+    ``k_o`` [N/m] and ``delay_ms`` [ms] (seconds per design; ``gain_table`` caches them).
+
+    Raises
+    ------
+    ValueError
+        An unknown scheme, or a K_o the design refuses.
+    """
+    design = None
+    if scheme in ("local-p", "local-pi"):
+        mode: Literal["p", "pi"] = "pi" if scheme == "local-pi" else "p"
+        table = gain_table if gain_table is not None else GainTable()
+        key = gain_key(mode, delay_ms, device)
+        design = table.lookup(key, k_o)
+        if design is None:
+            design = table.design(key, k_o)
+    return rendering_for(scheme, sim_rate_hz=SIM_RATE_HZ, device=device, design=design)
+
+
+def _check_delay(delay_ms: float) -> int:
+    dq = delay_ms * 1e-3 * SERVO_RATE_HZ
+    if not (math.isfinite(delay_ms) and delay_ms >= 0.0 and abs(dq - round(dq)) < 1e-9):
+        raise ValueError(f"delay must be whole servo ticks >= 0 ms, got {delay_ms!r}")
+    return round(dq)
+
+
+def run_3d_cell(
+    scheme: str,
+    *,
+    stiffness_scale: float = 1.0,
+    delay_ms: float = 0.0,
+    trajectory: str = "press",
+    device: DeviceModel = DEFAULT_DEVICE,
+    hand: HandParams | None = None,
+    rendering: Rendering | None = None,
+    gain_table: GainTable | None = None,
+    direct_reference: DirectReference = DIRECT_REFERENCE,
+) -> Run3D:
+    """Run one scheme on the World (module docstring): one user pressing the top.
+
+    Parameters
+    ----------
+    scheme : str
+        One of :data:`shared.fidelity.SCHEMES`.
+    stiffness_scale : float
+        ``--stiffness-scale`` of the balloon (1.0: K_o about 310 N/m at the top; 3.3: about
+        1000 N/m, the paper's Fig. 10).
+    delay_ms : float
+        One-way network delay [ms], whole servo ticks, >= 0.
+    trajectory : {"press", "impact"}
+    device : DeviceModel
+        Force, stiffness and damping limits (applied to the simulated Phantom Desktop).
+    hand : HandParams, optional
+        The simulated hand (default :class:`HandParams`).
+    rendering : Rendering, optional
+        The scheme's rendering; default :func:`rendering_3d` for the K_o at the top.
+    gain_table : GainTable, optional
+        Cache of the local models' designs.
+    direct_reference : {"undisturbed", "patch"}
+        The direct schemes' force rule (module docstring).
+
+    Returns
+    -------
+    Run3D
+
+    Raises
+    ------
+    ValueError
+        An unknown scheme or trajectory, a rendering of another scheme, a delay that is not a
+        whole number of servo ticks, a bad scale or direct rule.
+    """
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown scheme {scheme!r}; expected one of {', '.join(SCHEMES)}")
+    if trajectory not in TRAJECTORIES_3D:
+        raise ValueError(
+            f"unknown trajectory {trajectory!r}; expected one of {', '.join(TRAJECTORIES_3D)}"
+        )
+    if direct_reference not in ("undisturbed", "patch"):
+        raise ValueError(
+            f"direct_reference must be 'undisturbed' or 'patch', got {direct_reference!r}"
+        )
+    d = _check_delay(delay_ms)
+    tr = TRAJECTORIES_3D[trajectory]
+    hand = hand if hand is not None else HandParams()
+    T = 1.0 / SERVO_RATE_HZ
+    N = RATE_RATIO
+
+    world = build_world(_opts(stiffness_scale))
+    out0, top, normal = top_contact(world)
+    k_o = float(out0.k_o)
+    r = (
+        rendering
+        if rendering is not None
+        else rendering_3d(scheme, k_o, delay_ms, device=device, gain_table=gain_table)
+    )
+    if r.scheme != scheme:
+        raise ValueError(f"rendering is for {r.scheme!r}, not {scheme!r}")
+
+    prof = get_sim_profile(PROFILE)
+    limits = replace(
+        prof.limits,
+        max_force_n=device.max_force_n,
+        max_stiffness_n_per_m=max(device.max_stiffness_n_per_m, r.k_h),
+        max_damping_n_s_per_m=device.max_damping_n_s_per_m,
+        max_velocity_m_s=VELOCITY_LIMIT_M_S,
+    ).centered_at((float(top[0]), float(top[1]), float(top[2])))
+    target = NormalTrajectory(tr, top, normal)
+    dev = _PortDevice(
+        prof,
+        target,
+        hand,
+        limits=limits,
+        servo_period_s=T,
+        initial_velocity=target.initial_velocity_m_s,
+    )
+    n_ticks = round(tr.duration_s * SERVO_RATE_HZ)
+    x = np.empty(n_ticks)
+    f = np.empty(n_ticks)
+    hit = False
+    nx, ny, nz = (float(v) for v in normal)
+    tx, ty, tz = (float(v) for v in top)
+    fmax = device.max_force_n
+    world_k_o: list[float] = []
+
+    # what the World sees before tick d: the starting probe, no force
+    start = np.asarray(target(0.0), dtype=np.float64)
+    dev.open()
+    dev.enable_forces()
+
+    if r.kind == "coupling":
+        lm = LocalModelParams(
+            k_h=r.k_h,
+            i_gain=r.i_gain,
+            servo_period_s=T,
+            threshold=ThresholdParams(mode="fixed", theta_m=r.theta_m),
+            release_time_s=r.release_time_s,
+            integral_limit_n=device.max_force_n,
+        )
+        cfg = ServoConfig(
+            servo_rate_hz=SERVO_RATE_HZ,
+            ramp_s=T,
+            passivity=r.passivity,
+            passivity_energy_bias_j=r.passivity_bias_j if r.passivity else 1e-3,
+        )
+        core = ServoCore(dev, cfg, local_model=lm, recorder=TelemetryRecorder(capacity=64))
+        patch_kw: dict[str, Any] = {"b_h": r.b_h, "proxy_hold": r.proxy_hold, "hold_ticks": N}
+        core.set_patch(out0.primitive, r.k_h, r.i_gain, **patch_kw)
+        core.enable_forces()
+        sent: dict[int, ContactInput] = {}
+        patches: dict[int, Plane | Sphere] = {}
+        for n in range(n_ticks):
+            prim = patches.pop(n, None)
+            if prim is not None:
+                core.set_patch(prim, r.k_h, r.i_gain, **patch_kw)
+            core.tick(n * T)
+            qx, qy, qz = dev.last_read
+            fx, fy, fz = dev.applied_force_n
+            x[n] = (tx - qx) * nx + (ty - qy) * ny + (tz - qz) * nz
+            f[n] = fx * nx + fy * ny + fz * nz
+            hit = hit or dev.at_end_stop()
+            if (n + d) % N == 0:
+                snap = core.latest()
+                if snap is not None:
+                    sent[n + d] = ContactInput(
+                        probe=np.asarray(snap.probe_m, dtype=np.float64),
+                        force=np.asarray(snap.force_n, dtype=np.float64),
+                    )
+            if n % N == 0:
+                state = sent.pop(n, None)
+                if state is None:
+                    state = ContactInput(probe=start, force=np.zeros(3))
+                out = world.tick({_USER: state})[_USER]
+                world_k_o.append(float(out.k_o))
+                patches[n + 1 + d] = out.primitive
+    else:
+        pc = (
+            PassivityController(
+                PassivityParams(
+                    max_damping_n_s_per_m=device.max_damping_n_s_per_m,
+                    energy_bias_j=r.passivity_bias_j,
+                    servo_period_s=T,
+                    max_force_n=fmax,
+                )
+            )
+            if r.passivity
+            else None
+        )
+        probes: dict[int, FloatArray] = {}
+        forces: dict[int, Vec3] = {}
+        last = out0
+        f_prev = 0.0
+        held: Vec3 = (0.0, 0.0, 0.0)
+        px = py = pz = math.nan
+        for n in range(n_ticks):
+            arrived = forces.pop(n, None)
+            if arrived is not None:
+                held = arrived
+            qx, qy, qz = dev.read(n * T)
+            hx, hy, hz = held
+            if pc is not None:
+                if n:
+                    vx, vy, vz = (qx - px) / T, (qy - py) / T, (qz - pz) / T
+                else:  # no backward difference yet (the 1-D model's first tick too)
+                    vx = vy = vz = 0.0
+                hx, hy, hz = pc.step(hx, hy, hz, vx, vy, vz)
+            m2 = hx * hx + hy * hy + hz * hz
+            if m2 > fmax * fmax:
+                s = fmax / math.sqrt(m2)
+                hx, hy, hz = hx * s, hy * s, hz * s
+            dev.write(hx, hy, hz)
+            px, py, pz = qx, qy, qz
+            fx, fy, fz = dev.applied_force_n
+            x[n] = (tx - qx) * nx + (ty - qy) * ny + (tz - qz) * nz
+            f[n] = fx * nx + fy * ny + fz * nz
+            hit = hit or dev.at_end_stop()
+            if (n + d) % N == 0:
+                probes[n + d] = np.array([qx, qy, qz], dtype=np.float64)
+            if n % N == 0:
+                probe = probes.pop(n, start)
+                e, ex, ey, ez = last.primitive.contact(
+                    float(probe[0]), float(probe[1]), float(probe[2])
+                )
+                base = f_prev if direct_reference == "undisturbed" else 0.0
+                push = min(max(base + last.k_o * e, 0.0), fmax)
+                force = np.array([push * ex, push * ey, push * ez], dtype=np.float64)
+                last = world.tick({_USER: ContactInput(probe=probe, force=force)})[_USER]
+                world_k_o.append(float(last.k_o))
+                f_prev = push
+                forces[n + 1 + d] = (float(force[0]), float(force[1]), float(force[2]))
+
+    t = np.arange(n_ticks, dtype=np.float64) * T
+    runaway = bool(
+        hit or not np.isfinite(x).all() or not np.isfinite(f).all() or np.abs(x).max() > RUNAWAY_M
+    )
+    cell = Cell(r, k_o, SIM_RATE_HZ, float(delay_ms), combined_hand(hand, PROFILE), tr)
+    run = Run(t=t, x=x[None, :], f=f[None, :], runaway=np.array([runaway]))
+    metrics = cell_metrics(run, [cell])[0]
+    return Run3D(
+        cell=cell,
+        stiffness_scale=float(stiffness_scale),
+        t=t,
+        x=x,
+        f=f,
+        runaway=runaway,
+        metrics=metrics,
+        world_k_o=np.asarray(world_k_o),
+    )
+
+
+def _cell_job(
+    scheme: str,
+    scale: float,
+    delay_ms: float,
+    trajectory: str,
+    device: DeviceModel,
+    rendering: Rendering,
+    direct_reference: DirectReference,
+) -> dict[str, Any]:
+    """One cell's JSON (a worker's job)."""
+    return run_3d_cell(
+        scheme,
+        stiffness_scale=scale,
+        delay_ms=delay_ms,
+        trajectory=trajectory,
+        device=device,
+        rendering=rendering,
+        direct_reference=direct_reference,
+    ).to_json()
+
+
+def _design_job(scheme: str, k_o: float, delay_ms: float, device: DeviceModel) -> Rendering:
+    """One local model's rendering (a worker's job: the design takes seconds)."""
+    return rendering_3d(scheme, k_o, delay_ms, device=device)
+
+
+def run_3d_cells(
+    schemes: Sequence[str] = SCHEMES,
+    *,
+    stiffness_scales: Sequence[float] = (1.0, 3.3),
+    delays_ms: Sequence[float] = (0.0, 100.0),
+    trajectories: Sequence[str] = ("press", "impact"),
+    device: DeviceModel = DEFAULT_DEVICE,
+    workers: int | None = 1,
+    gain_table: GainTable | None = None,
+    direct_reference: DirectReference = DIRECT_REFERENCE,
+) -> list[dict[str, Any]]:
+    """Every scheme x stiffness scale x delay x trajectory on the World (module docstring).
+
+    Parameters
+    ----------
+    schemes : sequence of str
+        Subset of :data:`shared.fidelity.SCHEMES`.
+    stiffness_scales : sequence of float
+        Balloon ``--stiffness-scale`` values (> 0).
+    delays_ms : sequence of float
+        One-way delays [ms], whole servo ticks.
+    trajectories : sequence of {"press", "impact"}
+    device : DeviceModel
+    workers : int or None
+        Worker processes (spawn) for the designs and the runs; 1 (default) runs in this process,
+        None uses every core. The result does not depend on it.
+    gain_table : GainTable, optional
+        Cache of the local models' designs (in-process runs only).
+    direct_reference : {"undisturbed", "patch"}
+        The direct schemes' force rule.
+
+    Returns
+    -------
+    list of dict
+        One cell per combination, in the order scheme, scale, delay, trajectory: ``scheme``,
+        ``model`` (``"3d"``), ``k_o_n_per_m`` (K_o at the top), ``sim_rate_hz`` (20),
+        ``delay_ms``, ``hand`` (hand + device as the probe feels them: ``mass_kg``,
+        ``stiffness_n_per_m``, ``damping_n_s_per_m``), ``trajectory``, ``stiffness_scale``, the
+        :class:`shared.fidelity.CellMetrics` fields, and ``felt_stiffness_ratio_1hz`` /
+        ``_8hz`` (None: measured in 1-D only).
+
+    Raises
+    ------
+    ValueError
+        An unknown scheme or trajectory, a bad scale or delay, or ``workers < 1``.
+    """
+    for s in schemes:
+        if s not in SCHEMES:
+            raise ValueError(f"unknown scheme {s!r}; expected one of {', '.join(SCHEMES)}")
+    for name in trajectories:
+        if name not in TRAJECTORIES_3D:
+            raise ValueError(
+                f"unknown trajectory {name!r}; expected one of {', '.join(TRAJECTORIES_3D)}"
+            )
+    for dm in delays_ms:
+        _check_delay(dm)
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers!r}")
+    k_o = {sc: top_k_o(sc) for sc in stiffness_scales}
+    combos = [
+        (s, sc, dm, name)
+        for s in schemes
+        for sc in stiffness_scales
+        for dm in delays_ms
+        for name in trajectories
+    ]
+    rend_keys = sorted({(s, sc, dm) for s, sc, dm, _ in combos}, key=str)
+    if workers == 1:
+        table = gain_table if gain_table is not None else GainTable()
+        rend = {
+            (s, sc, dm): rendering_3d(s, k_o[sc], dm, device=device, gain_table=table)
+            for s, sc, dm in rend_keys
+        }
+        return [
+            _cell_job(s, sc, dm, name, device, rend[(s, sc, dm)], direct_reference)
+            for s, sc, dm, name in combos
+        ]
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+        fut_r = {
+            (s, sc, dm): pool.submit(_design_job, s, k_o[sc], dm, device) for s, sc, dm in rend_keys
+        }
+        rend = {k: v.result() for k, v in fut_r.items()}
+        futs = [
+            pool.submit(_cell_job, s, sc, dm, name, device, rend[(s, sc, dm)], direct_reference)
+            for s, sc, dm, name in combos
+        ]
+        return [fu.result() for fu in futs]

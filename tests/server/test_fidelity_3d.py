@@ -1,0 +1,165 @@
+"""The fidelity benchmark's schemes on the 3-D World (server.fidelity_3d): what a user would notice."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from server.fidelity_3d import (
+    RATE_RATIO,
+    NormalTrajectory,
+    run_3d_cell,
+    run_3d_cells,
+    top_contact,
+)
+from server.main import ServerOptions, build_world
+from shared.fidelity import IMPACT, SCHEMES, STABLE_HOLD_P2P_M, cell_metrics, simulate
+from shared.gain_design import GainTable
+
+CELL_KEYS = {
+    "scheme",
+    "model",
+    "k_o_n_per_m",
+    "sim_rate_hz",
+    "delay_ms",
+    "hand",
+    "trajectory",
+    "stiffness_scale",
+    "stable",
+    "hold_p2p_mm",
+    "peak_penetration_mm",
+    "steady_state_error_mm",
+    "energy_out_mj",
+    "force_ripple_n",
+    "felt_stiffness_ratio_1hz",
+    "felt_stiffness_ratio_8hz",
+}
+
+
+@pytest.fixture(scope="module")
+def table() -> GainTable:
+    """One design cache for the module (a design takes seconds)."""
+    return GainTable()
+
+
+def _first_force_tick(f: np.ndarray) -> int:
+    return int(np.flatnonzero(f > 0.0)[0])
+
+
+def test_local_p_holds_still_with_the_p_coupling_error(table: GainTable) -> None:
+    run = run_3d_cell("local-p", stiffness_scale=1.0, delay_ms=0.0, gain_table=table)
+    m = run.metrics
+    assert not run.runaway
+    assert m.stable and m.hold_p2p_mm < STABLE_HOLD_P2P_M * 1e3
+    # P coupling: the probe sits f / K_h past the surface the object shows under f
+    hold = run.t >= 3.5
+    f_hold = float(np.mean(run.f[hold]))
+    assert 0.5 < f_hold < 7.9  # a real press (hand 300 N/m, K_h and K_o in series), no limit
+    assert m.steady_state_error_mm == pytest.approx(f_hold / run.cell.rendering.k_h * 1e3, rel=0.05)
+    # the World's K_o at the top is the default balloon's (about 310 N/m) and stays put
+    assert 250.0 < run.cell.k_o < 350.0
+    assert np.ptp(run.world_k_o) < 0.05 * run.cell.k_o
+    # the 1-D model of the same cell agrees (same hand, object stiffness, delay, gains)
+    m1 = cell_metrics(simulate([run.cell]), [run.cell])[0]
+    assert m1.stable
+    assert m.steady_state_error_mm == pytest.approx(m1.steady_state_error_mm, abs=0.2)
+    assert m.peak_penetration_mm == pytest.approx(m1.peak_penetration_mm, abs=0.3)
+
+
+def test_direct_at_100_ms_on_the_stiff_balloon_is_far_worse_than_local_p(
+    table: GainTable,
+) -> None:
+    kw = {"stiffness_scale": 3.3, "delay_ms": 100.0, "trajectory": "press"}
+    local = run_3d_cell("local-p", gain_table=table, **kw)  # type: ignore[arg-type]
+    direct = run_3d_cell("direct", **kw)  # type: ignore[arg-type]
+    assert local.cell.k_o == pytest.approx(1000.0, rel=0.1)  # the paper's 1 N/mm
+    assert local.metrics.stable
+    assert (
+        not direct.metrics.stable
+        or direct.metrics.peak_penetration_mm > 3.0 * local.metrics.peak_penetration_mm
+    )
+    # what the user feels: the probe bounces by centimetres, and the port gives energy
+    assert direct.metrics.hold_p2p_mm > 10.0
+    assert direct.metrics.energy_out_mj > 0.0 > local.metrics.energy_out_mj
+
+
+def test_the_delay_postpones_the_first_direct_force_by_two_delays() -> None:
+    f0 = run_3d_cell("direct", delay_ms=0.0).f
+    f1 = run_3d_cell("direct", delay_ms=100.0).f
+    n0, n1 = _first_force_tick(f0), _first_force_tick(f1)
+    # up 100 ticks, the World's tick (a multiple of 50 later), down 100 ticks
+    assert n1 - n0 == 200
+    # without delay the force arrives one tick after the first World tick that saw the probe in
+    assert n0 % RATE_RATIO == 1
+
+
+def test_impact_starts_with_the_hand_moving() -> None:
+    run = run_3d_cell("direct", trajectory="impact")
+    v0 = (run.x[10] - run.x[0]) / (run.t[10] - run.t[0])
+    assert v0 == pytest.approx(0.3, rel=0.05)
+    assert run.x[0] == pytest.approx(IMPACT.y0_m, abs=1e-4)
+
+
+def test_the_hand_target_follows_the_1d_intention() -> None:
+    world = build_world(ServerOptions(sim_rate_hz=20.0))
+    _, top, normal = top_contact(world)
+    traj = NormalTrajectory(IMPACT, top, normal)
+    t = np.array([0.0, 0.05, 0.1, 2.0])
+    y, _ = IMPACT.target(t)
+    for ti, yi in zip(t, y, strict=True):
+        p = np.asarray(traj(float(ti)))
+        assert float((top - p) @ normal) == pytest.approx(float(yi), abs=1e-12)
+    assert traj.initial_velocity_m_s == pytest.approx(tuple(-0.3 * normal), abs=1e-9)
+
+
+def test_cells_have_the_1d_json_shape() -> None:
+    cells = run_3d_cells(
+        ("direct-tdpa",), stiffness_scales=(1.0,), delays_ms=(0.0,), trajectories=("press",)
+    )
+    assert len(cells) == 1
+    c = cells[0]
+    assert set(c) == CELL_KEYS
+    assert c["model"] == "3d" and c["sim_rate_hz"] == 20.0 and c["trajectory"] == "press"
+    assert c["felt_stiffness_ratio_1hz"] is None and c["felt_stiffness_ratio_8hz"] is None
+    assert c["hand"] == pytest.approx(
+        {"mass_kg": 0.495, "stiffness_n_per_m": 300.0, "damping_n_s_per_m": 5.5}
+    )
+    json.dumps(cells, allow_nan=False)
+    # the passivity layer keeps the undelayed direct force from buzzing
+    assert c["stable"]
+
+
+def test_bad_input_is_refused() -> None:
+    with pytest.raises(ValueError, match="unknown scheme"):
+        run_3d_cells(("chai3d",))
+    with pytest.raises(ValueError, match="whole servo ticks"):
+        run_3d_cells(("direct",), delays_ms=(0.5,))
+    with pytest.raises(ValueError, match="unknown trajectory"):
+        run_3d_cell("direct", trajectory="tap")
+    with pytest.raises(ValueError, match="workers"):
+        run_3d_cells(("direct",), workers=0)
+
+
+@pytest.mark.slow
+def test_the_whole_3d_grid() -> None:
+    cells = run_3d_cells(workers=None)
+    assert len(cells) == len(SCHEMES) * 2 * 2 * 2
+    json.dumps(cells, allow_nan=False)
+    by = {(c["scheme"], c["stiffness_scale"], c["delay_ms"], c["trajectory"]): c for c in cells}
+    for key, c in by.items():
+        assert set(c) == CELL_KEYS
+        assert all(
+            math.isfinite(c[k]) for k in ("hold_p2p_mm", "peak_penetration_mm", "energy_out_mj")
+        )
+        if key[0] in ("local-p", "local-pi"):
+            assert c["stable"], key  # the product's design holds every 3-D cell
+        if key[0] == "direct" and key[2] == 100.0:
+            assert not c["stable"], key
+    # the integral removes most of the P coupling's error
+    for scale in (1.0, 3.3):
+        p = by[("local-p", scale, 0.0, "press")]["steady_state_error_mm"]
+        pi = by[("local-pi", scale, 0.0, "press")]["steady_state_error_mm"]
+        assert pi < 0.5 * p
