@@ -1,0 +1,898 @@
+"""Several users on one object: every user's full loop, coupled through the object's compliance.
+
+Each user's full loop (:mod:`shared.full_loop`, DESIGN section 6b) is the hand + device plant, the
+local model L(z) of eq. 12 with the filtered probe damper, the decimator (Step 3 of the paper's
+section 6: the simulation takes the force of servo tick ``j`` of the user's block), the object,
+``D`` ticks of delay and the proxy hold (eq. 1, or a first-order hold). With M users on one object
+the object block is a matrix: the contacts' normal compliance ``C`` (M x M, [m/N], symmetric
+positive definite, DESIGN section 5, ``C_ij = beta_i^T K^-1 beta_j``) maps the M sampled forces to
+the M surface displacements, eq. 6 and eq. 9 written for M contacts:
+
+    ``x_o(k+1) = (C^-1 + B_o)^-1 (F(k) + B_o x_o(k)) = (I + C B_o)^-1 C (F(k) + B_o x_o(k))``
+
+with ``B_o = diag(b_o)`` [N/m] (0: the elastic object ``x_o(k+1) = C F(k)``). User u's proxy is its
+own surface displacement ``x_o,u``, held after ``D`` ticks. The users' servo loops are not
+synchronised, so every user has its own sampling tick ``j_u`` (its own phase between its patch
+arriving and the simulation taking its force); each block is the user's own N servo ticks.
+The coupled monodromy matrix (the state-transition matrix over one simulation period) is
+assembled from the per-user lifted blocks of :func:`shared.full_loop.monodromy` (evaluated with
+``K_o = 1`` so that its object row is exactly the sampled-force row); with one user and
+``C = 1 / K_o`` it reproduces :func:`shared.full_loop.spectral_radius` (tested to 1e-9).
+
+Modal decomposition (why K_o_eff alone is not enough). If every user has the same hand, local
+model, hold and sampling tick, and ``B_o = b I``, write ``C = V diag(lambda) V^T`` (V orthonormal).
+All user blocks are identical linear maps and the only cross-user term is C, so the coordinates
+``V^T`` (applied to every state of the M users alike) split the coupled loop into M single-user
+full loops with object stiffness ``1 / lambda_i``: the coupled spectral radius is the largest
+single-user spectral radius over the *modal stiffnesses* ``1 / lambda_i(C)``. With
+``S = K^1/2 C K^1/2`` (``K = diag(K_o,i)``, ``K_o,i = 1 / C_ii``, unit diagonal) they range over
+
+- ``K_o_eff = K_o / lambda_max(S)``: the common mode, all users pressing together on a softer
+  object; what the server reports today (:func:`server.contacts.effective_stiffness`). The
+  paper's P argument (eq. 8 for each mode: ``rho(C diag K_h) < 1``) needs only this one.
+- ``K_o_stiff = K_o / lambda_min(S)``: the differential mode, one user pressing, another pushed
+  back; at coupling c -> 1 the object transmits the push rigidly (``K_o_stiff -> inf``).
+
+For the product's parametrisation ``C = (1/K_o) ((1 - c) I + c 1 1^T)``:
+``K_o_eff = K_o / (1 + (M-1) c)``, ``K_o_stiff = K_o / (1 - c)``. With a rigid probe a stiffer
+object only helps (eq. 8, eq. 15: the PI region of Fig. 8 scales up with K_o), but with the hand in
+the loop the PI local model is *not* robust to a stiffer object: against a rigid proxy the hand +
+PI loop is roughly ``m s^3 + (b + B_h) s^2 + (k + K_h) s + I`` (continuous time, no delay, no
+damper filter), unstable for a heavy, lightly damped hand once ``I > (b + B_h)(k + K_h) / m``. An
+integral chosen for the soft K_o_eff breaks that (docs/coupled-users.md: coupled spectral radius
+up to 1.10 with the Phantom's limits). So each user's gains must be designed over the whole modal
+range ``[(1 - margin) K_o_eff, K_o_stiff]`` (:func:`design_coupled`), then verified on the coupled
+loop with *different* hands and sampling ticks per user, which the modal argument does not cover
+(:func:`verify_coupled`). A proportional local model (I = 0) needs only K_o_eff (measured, same
+document). :func:`stiff_ratio_class` and :func:`coupled_k_o_hi` are the product's form of the rule
+for a gain table keyed on K_o_eff.
+
+Units SI throughout; depths along each contact's inward normal [m]; forces [N].
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from shared.full_loop import DEFAULT_HAND_BOX, STABILITY_TOL, Hand, HandBox, ProxyHold, monodromy
+from shared.gain_design import (
+    CREEP_FREQUENCY_HZ,
+    MIN_DECAY_RATE_PER_S,
+    GainDesign,
+    Mode,
+    design_gains,
+)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Stiffness [N/m] that stands for a rigid differential mode (singular compliance, coupling -> 1),
+#: the same value the server reports for a contact that cannot move (server.contacts.K_O_MAX).
+K_O_RIGID = 1.0e6
+
+#: Batch size of coupled monodromy matrices per eigenvalue call (bounds memory: 4096 x 30 x 30).
+_CHUNK = 4096
+
+
+# --------------------------------------------------------------------------------------------
+# the compliance and its modal stiffnesses
+
+
+def compliance_matrix(k_o: float | Sequence[float], coupling: float, users: int = 2) -> FloatArray:
+    """The contacts' compliance with equal pairwise coupling, (M, M) [m/N].
+
+    ``C_ii = 1 / K_o,i`` and ``C_ij = c / sqrt(K_o,i K_o,j)`` for i != j (the product's
+    parametrisation: c is the cross compliance as a fraction of the diagonal, DESIGN section 5).
+
+    Parameters
+    ----------
+    k_o : float or sequence of M floats
+        Each contact's own stiffness K_o,i = 1 / C_ii [N/m], > 0.
+    coupling : float
+        c in [0, 1): 0 uncoupled contacts; about 0.9 for two contacts 2 cm apart on the default
+        balloon (server.objects.balloon).
+    users : int
+        M >= 1 (ignored when ``k_o`` is a sequence).
+
+    Raises
+    ------
+    ValueError
+        Non-positive stiffness, c outside [0, 1), M < 1.
+    """
+    k = np.atleast_1d(np.asarray(k_o, dtype=float))
+    if k.ndim != 1:
+        raise ValueError(f"k_o must be a float or a 1-D sequence, got shape {k.shape}")
+    if k.size == 1 and not isinstance(k_o, Sequence | np.ndarray):
+        if int(users) < 1:
+            raise ValueError(f"users must be >= 1, got {users!r}")
+        k = np.full(int(users), float(k[0]))
+    if k.size < 1 or not np.all(np.isfinite(k)) or np.any(k <= 0.0):
+        raise ValueError(f"k_o must be finite stiffnesses > 0 N/m, got {k_o!r}")
+    if not (math.isfinite(coupling) and 0.0 <= coupling < 1.0):
+        raise ValueError(f"coupling must be in [0, 1), got {coupling!r}")
+    s = 1.0 / np.sqrt(k)
+    c = coupling * np.outer(s, s)
+    np.fill_diagonal(c, 1.0 / k)
+    return c
+
+
+def _check_compliance(compliance: ArrayLike) -> FloatArray:
+    c = np.asarray(compliance, dtype=float)
+    if c.ndim != 2 or c.shape[0] != c.shape[1] or c.shape[0] < 1:
+        raise ValueError(f"compliance must be a square (M, M) matrix, got shape {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise ValueError("compliance must be finite")
+    scale = float(np.max(np.abs(c)))
+    if not np.allclose(c, c.T, rtol=0.0, atol=1e-12 * scale):
+        raise ValueError("compliance must be symmetric")
+    c = 0.5 * (c + c.T)
+    if np.any(np.diag(c) <= 0.0):
+        raise ValueError("compliance must have a positive diagonal (every contact can move)")
+    d = 1.0 / np.sqrt(np.diag(c))
+    if np.linalg.eigvalsh(d[:, None] * c * d[None, :])[0] < -1e-12:
+        raise ValueError("compliance must be positive semi-definite")
+    return c
+
+
+@dataclass(frozen=True)
+class ModalStiffness:
+    """Per-contact stiffnesses of a compliance matrix (module docstring), each (M,) [N/m].
+
+    Attributes
+    ----------
+    k_o : contact's own stiffness ``1 / C_ii``.
+    k_o_eff : ``K_o / lambda_max(S)``, the softest mode seen at the contact (the server's K_o_eff).
+    k_o_stiff : ``K_o / lambda_min(S)``, the stiffest mode, capped at :data:`K_O_RIGID`.
+    """
+
+    k_o: FloatArray
+    k_o_eff: FloatArray
+    k_o_stiff: FloatArray
+
+
+def modal_stiffness(compliance: ArrayLike) -> ModalStiffness:
+    """Softest and stiffest modal stiffness of the contacts (module docstring), SI units.
+
+    Parameters
+    ----------
+    compliance : (M, M) float [m/N], symmetric positive semi-definite, positive diagonal
+
+    Raises
+    ------
+    ValueError
+        Not square, not finite, not symmetric, not PSD, or a zero diagonal entry.
+    """
+    c = _check_compliance(compliance)
+    k = 1.0 / np.diag(c)
+    d = np.sqrt(k)
+    lam = np.linalg.eigvalsh(d[:, None] * c * d[None, :])
+    # S has a unit diagonal, so lambda_min <= 1 <= lambda_max; round-off must not move an
+    # uncoupled contact off K_o
+    hi = max(float(lam[-1]), 1.0)
+    lo = min(float(lam[0]), 1.0)
+    hi = 1.0 if hi - 1.0 < 1e-12 else hi
+    lo = 1.0 if 1.0 - lo < 1e-12 else lo
+    rigid = np.maximum(K_O_RIGID, k)
+    stiff = np.minimum(k / lo, rigid) if lo > 0.0 else rigid
+    return ModalStiffness(k_o=k, k_o_eff=k / hi, k_o_stiff=stiff)
+
+
+#: Ratio classes above this are designed as rigid (:func:`stiff_ratio_class`).
+MAX_STIFF_RATIO_CLASS = 256.0
+
+
+def stiff_ratio_class(k_o_eff: float, k_o_stiff: float) -> float:
+    """``K_o_stiff / K_o_eff`` rounded up to a power of 2, for a gain-table key (SI, [N/m] in).
+
+    1 for an uncoupled contact (ratio 1), else 2, 4, ..., :data:`MAX_STIFF_RATIO_CLASS`, and
+    ``inf`` (design against a rigid proxy) beyond. A design checked up to
+    :func:`coupled_k_o_hi` covers every modal stiffness of the contact's coupled group.
+
+    Raises
+    ------
+    ValueError
+        Non-positive or non-finite ``k_o_eff``; ``k_o_stiff`` below ``k_o_eff`` or NaN.
+    """
+    if not (math.isfinite(k_o_eff) and k_o_eff > 0.0):
+        raise ValueError(f"k_o_eff must be a finite stiffness > 0 N/m, got {k_o_eff!r}")
+    if not k_o_stiff >= k_o_eff * (1.0 - 1e-9):
+        raise ValueError(f"k_o_stiff must be >= k_o_eff, got {k_o_stiff!r} < {k_o_eff!r}")
+    ratio = k_o_stiff / k_o_eff
+    if ratio <= 1.0 + 1e-9:
+        return 1.0
+    q = 2.0 ** math.ceil(math.log2(ratio) - 1e-9)
+    return math.inf if q > MAX_STIFF_RATIO_CLASS else q
+
+
+def coupled_k_o_hi(k_o_hi: float, ratio_class: float) -> float:
+    """Upper end [N/m] of the K_o range a coupled contact's design must be checked over.
+
+    ``min(K_O_RIGID, k_o_hi * ratio_class)``: ``k_o_hi`` the upper end the single-user design
+    would use (the gain table's next grid point), ``ratio_class`` from :func:`stiff_ratio_class`.
+    """
+    return float(min(K_O_RIGID, k_o_hi * ratio_class))
+
+
+# --------------------------------------------------------------------------------------------
+# the coupled lifted loop
+
+
+@dataclass(frozen=True, slots=True)
+class UserGains:
+    """One user's local model (eq. 12 plus the probe damper), SI units.
+
+    Attributes
+    ----------
+    k_h : float
+        K_h [N/m], > 0.
+    i_gain : float
+        I [N/(m*s)], >= 0 (0: proportional local model).
+    b_h : float
+        Probe damper B_h [N*s/m], >= 0.
+    proxy_hold : {"zoh", "foh"}
+
+    Raises
+    ------
+    ValueError
+        Out-of-range values.
+    """
+
+    k_h: float
+    i_gain: float = 0.0
+    b_h: float = 0.0
+    proxy_hold: ProxyHold = "zoh"
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.k_h) and self.k_h > 0.0):
+            raise ValueError(f"k_h must be a finite number > 0, got {self.k_h!r}")
+        for name in ("i_gain", "b_h"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if self.proxy_hold not in ("zoh", "foh"):
+            raise ValueError(f"proxy_hold must be 'zoh' or 'foh', got {self.proxy_hold!r}")
+
+    @classmethod
+    def from_design(cls, design: GainDesign) -> UserGains:
+        """The gains of a :class:`shared.gain_design.GainDesign`."""
+        return cls(design.k_h, design.i_gain, design.b_h, design.proxy_hold)
+
+
+@dataclass(frozen=True)
+class _Blocks:
+    """One user's lifted servo-rate pieces for H hands and J sampling ticks (no object)."""
+
+    phi: FloatArray  # (H, nf, nf) fast state over the block
+    g_new: FloatArray  # (H, nf) ... from the proxy
+    g_old: FloatArray  # (H, nf) ... from the previous proxy (foh)
+    f_xi: FloatArray  # (H, J, nf) sampled force from the fast state
+    f_new: FloatArray  # (H, J) ... from the proxy
+    f_old: FloatArray  # (H, J) ... from the previous proxy (foh)
+    foh: bool
+
+    @property
+    def nf(self) -> int:
+        return int(self.phi.shape[1])
+
+
+def _user_blocks(
+    gains: UserGains,
+    hands: Sequence[Hand | None],
+    ticks: Sequence[int],
+    *,
+    servo_period_s: float,
+    rate_ratio: int,
+) -> _Blocks:
+    """Blocks of :func:`shared.full_loop.monodromy` at ``K_o = 1``: its object row is the force."""
+    foh = gains.proxy_hold == "foh"
+    rigid = [h is None for h in hands]
+    if any(rigid) and not all(rigid):
+        raise ValueError("a user's hands must be all None (rigid probe) or all Hand")
+    uniq = sorted(set(int(j) for j in ticks))
+    M = monodromy(
+        hand=None if rigid[0] else [h for h in hands if h is not None],
+        k_o=1.0,
+        k_h=np.full(len(hands), gains.k_h),
+        i_gain=gains.i_gain,
+        b_h=gains.b_h,
+        b_o=0.0,
+        servo_period_s=servo_period_s,
+        rate_ratio=rate_ratio,
+        delay_ticks=0,
+        sample_ticks=uniq,
+        proxy_hold=gains.proxy_hold,
+        integral=gains.i_gain > 0.0,
+    )
+    sel = [uniq.index(int(j)) for j in ticks]
+    M = M[:, sel]
+    n = M.shape[-1]
+    nf = n - 2 - (1 if foh else 0)
+    i_p, i_obj = nf, n - 1
+    g_new = M[:, 0, :nf, i_p]
+    f_new = M[:, :, i_obj, i_p]
+    return _Blocks(
+        phi=M[:, 0, :nf, :nf],
+        g_new=g_new,
+        g_old=M[:, 0, :nf, nf + 1] if foh else np.zeros_like(g_new),
+        f_xi=M[:, :, i_obj, :nf],
+        f_new=f_new,
+        f_old=M[:, :, i_obj, nf + 1] if foh else np.zeros_like(f_new),
+        foh=foh,
+    )
+
+
+def _assemble(
+    blocks: Sequence[_Blocks],
+    hand_idx: IntArray,
+    tick_idx: IntArray,
+    compliance: FloatArray,
+    b_o: FloatArray,
+    delay_ticks: int,
+) -> FloatArray:
+    """Coupled monodromy matrices (K, n, n) for hand/tick indices (K, M), compliance (K, M, M).
+
+    State: per user u in turn ``[fast states, proxy, (previous proxy), object, delay line]``, the
+    layout of :func:`shared.full_loop.monodromy`.
+    """
+    m = len(blocks)
+    nb = hand_idx.shape[0]
+    D = int(delay_ticks)
+    sizes = [b.nf + 2 + (1 if b.foh else 0) + D for b in blocks]
+    offs = [0, *itertools.accumulate(sizes)]
+    n = offs[-1]
+    Mx = np.zeros((nb, n, n))
+    # object, eq. 9 for M contacts: x_o' = A F + Bm x_o, A = (I + C B_o)^-1 C, Bm = A B_o
+    A = np.linalg.solve(np.eye(m)[None] + compliance * b_o[None, None, :], compliance)
+    Bm = A * b_o[None, None, :]
+    frows = np.zeros((m, nb, n))  # each user's sampled force over the whole state
+    i_obj = []
+    for u, bl in enumerate(blocks):
+        o, nf = offs[u], bl.nf
+        h, j = hand_idx[:, u], tick_idx[:, u]
+        i_p = o + nf
+        Mx[:, o:i_p, o:i_p] = bl.phi[h]
+        Mx[:, o:i_p, i_p] = bl.g_new[h]
+        frows[u, :, o:i_p] = bl.f_xi[h, j]
+        frows[u, :, i_p] = bl.f_new[h, j]
+        if bl.foh:
+            Mx[:, o:i_p, i_p + 1] = bl.g_old[h]
+            Mx[:, i_p + 1, i_p] = 1.0
+            frows[u, :, i_p + 1] = bl.f_old[h, j]
+        i_obj.append(i_p + (2 if bl.foh else 1))
+    obj_rows = np.einsum("buv,vbn->bun", A, frows)
+    obj_rows[:, :, np.array(i_obj)] += Bm
+    for u, bl in enumerate(blocks):
+        i_p, io = offs[u] + bl.nf, i_obj[u]
+        Mx[:, io, :] = obj_rows[:, u]
+        if D == 0:
+            Mx[:, i_p, :] = obj_rows[:, u]
+        else:
+            Mx[:, i_p, io + 1] = 1.0
+            for r in range(D - 1):
+                Mx[:, io + 1 + r, io + 2 + r] = 1.0
+            Mx[:, io + D, :] = obj_rows[:, u]
+    return Mx
+
+
+def _check_common(
+    compliance: ArrayLike,
+    gains: Sequence[UserGains],
+    b_o: ArrayLike,
+    rate_ratio: int,
+    delay_ticks: int,
+) -> tuple[FloatArray, FloatArray]:
+    c = _check_compliance(compliance)
+    m = c.shape[0]
+    if len(gains) != m:
+        raise ValueError(f"{m} users in the compliance but {len(gains)} gains")
+    bo = np.broadcast_to(np.asarray(b_o, dtype=float), (m,)).copy()
+    if not (np.all(np.isfinite(bo)) and np.all(bo >= 0.0)):
+        raise ValueError(f"b_o must be finite and >= 0, got {b_o!r}")
+    if isinstance(rate_ratio, bool) or int(rate_ratio) != rate_ratio or rate_ratio < 1:
+        raise ValueError(f"rate_ratio must be a whole number >= 1, got {rate_ratio!r}")
+    if isinstance(delay_ticks, bool) or int(delay_ticks) != delay_ticks or delay_ticks < 0:
+        raise ValueError(f"delay_ticks must be a whole number >= 0, got {delay_ticks!r}")
+    return c, bo
+
+
+def coupled_monodromy(
+    *,
+    compliance: ArrayLike,
+    gains: Sequence[UserGains],
+    hands: Sequence[Sequence[Hand | None]],
+    sample_ticks: Sequence[Sequence[int]] | None = None,
+    b_o: ArrayLike = 0.0,
+    servo_period_s: float = 1e-3,
+    rate_ratio: int = 50,
+    delay_ticks: int = 0,
+) -> FloatArray:
+    """Monodromy matrices of M users' full loops coupled through the object (module docstring).
+
+    Parameters
+    ----------
+    compliance : (M, M) float [m/N]
+        The contacts' normal compliance C (symmetric PSD, positive diagonal).
+    gains : sequence of M UserGains
+        Each user's local model.
+    hands : (B, M) nested sequence of Hand or None
+        B hand combinations, one hand per user (None: that user's probe is rigid, a position
+        source; a user must be rigid in all combinations or in none).
+    sample_ticks : (J, M) nested sequence of int, optional
+        J combinations of sampling ticks, one ``j_u`` in [0, N) per user (default: the N
+        combinations with every user at the same tick).
+    b_o : float or sequence of M floats
+        Object damping per contact B_o [N/m] (eq. 9), >= 0: ``B_o = diag(b_o)``.
+    servo_period_s : float
+        T [s].
+    rate_ratio : int
+        N, servo ticks per simulation tick.
+    delay_ticks : int
+        D, extra whole simulation ticks of delay (the same for every user), >= 0.
+
+    Returns
+    -------
+    (B, J, n, n) float array
+        ``n = sum_u (n_fast,u + 2 + [foh] + D)``; state per user as in
+        :func:`shared.full_loop.monodromy`.
+
+    Raises
+    ------
+    ValueError
+        Inconsistent shapes, a bad compliance, out-of-range ticks, delay or gains.
+    """
+    c, bo = _check_common(compliance, gains, b_o, rate_ratio, delay_ticks)
+    m, N = c.shape[0], int(rate_ratio)
+    combos = [tuple(h) for h in hands]
+    if not combos or any(len(h) != m for h in combos):
+        raise ValueError(f"hands must be a non-empty sequence of {m}-user combinations")
+    tick_combos = (
+        [(j,) * m for j in range(N)] if sample_ticks is None else [tuple(t) for t in sample_ticks]
+    )
+    if not tick_combos or any(len(t) != m for t in tick_combos):
+        raise ValueError(f"sample_ticks must be a non-empty sequence of {m}-user combinations")
+    if any(not 0 <= int(j) < N for t in tick_combos for j in t):
+        raise ValueError(f"sample ticks must be in [0, {N})")
+    blocks, h_idx, t_idx = [], [], []
+    for u in range(m):
+        hu = list(dict.fromkeys(h[u] for h in combos))
+        tu = sorted({int(t[u]) for t in tick_combos})
+        blocks.append(
+            _user_blocks(gains[u], hu, tu, servo_period_s=float(servo_period_s), rate_ratio=N)
+        )
+        h_idx.append([hu.index(h[u]) for h in combos])
+        t_idx.append([tu.index(int(t[u])) for t in tick_combos])
+    B, J = len(combos), len(tick_combos)
+    hi = np.repeat(np.array(h_idx, dtype=np.intp).T, J, axis=0)
+    ti = np.tile(np.array(t_idx, dtype=np.intp).T, (B, 1))
+    Mx = _assemble(blocks, hi, ti, np.broadcast_to(c, (B * J, m, m)), bo, int(delay_ticks))
+    return Mx.reshape(B, J, *Mx.shape[1:])
+
+
+def coupled_spectral_radius(
+    *,
+    compliance: ArrayLike,
+    gains: Sequence[UserGains],
+    hands: Sequence[Sequence[Hand | None]],
+    sample_ticks: Sequence[Sequence[int]] | None = None,
+    b_o: ArrayLike = 0.0,
+    servo_period_s: float = 1e-3,
+    rate_ratio: int = 50,
+    delay_ticks: int = 0,
+) -> FloatArray:
+    """Spectral radius of the coupled loop per hand and tick combination, shape (B, J).
+
+    Same parameters as :func:`coupled_monodromy`. Below 1: every mode of every user's hand,
+    device and local model and of the object decays from one simulation period to the next.
+    """
+    M = coupled_monodromy(
+        compliance=compliance,
+        gains=gains,
+        hands=hands,
+        sample_ticks=sample_ticks,
+        b_o=b_o,
+        servo_period_s=servo_period_s,
+        rate_ratio=rate_ratio,
+        delay_ticks=delay_ticks,
+    )
+    return np.max(np.abs(np.linalg.eigvals(M)), axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# verification over hands, sampling ticks and the K_o margin
+
+
+@dataclass(frozen=True)
+class CoupledVerdict:
+    """Worst case of the coupled loop over the checked combinations (:func:`verify_coupled`).
+
+    Attributes
+    ----------
+    spectral_radius : float
+        Largest spectral radius of the coupled monodromy.
+    margin_radius : float
+        Largest oscillating eigenvalue magnitude, creep eigenvalues (slower than
+        :data:`shared.gain_design.CREEP_FREQUENCY_HZ`) counted as ``|lambda| * rho_limit``: the
+        quantity :func:`shared.gain_design.design_gains` holds below ``rho_limit``.
+    rho_limit : float
+        ``exp(-min_decay_rate * N * T)``, the single-user design's bound.
+    meets_margin : bool
+        ``margin_radius < rho_limit`` and ``spectral_radius < 1``: the same margin as one user.
+    stable : bool
+        ``spectral_radius < 1``.
+    worst_hands : tuple of Hand
+        One hand per user at the worst case.
+    worst_sample_ticks : tuple of int
+        One sampling tick per user at the worst case.
+    worst_compliance_scale : float
+        The compliance factor (1, or ``1 / (1 - margin)``) at the worst case.
+    cases : int
+        Coupled loops evaluated.
+    """
+
+    spectral_radius: float
+    margin_radius: float
+    rho_limit: float
+    meets_margin: bool
+    stable: bool
+    worst_hands: tuple[Hand | None, ...]
+    worst_sample_ticks: tuple[int, ...]
+    worst_compliance_scale: float
+    cases: int
+
+    def to_json(self) -> dict[str, object]:
+        """Plain JSON-able dict."""
+        return {
+            "spectral_radius": self.spectral_radius,
+            "margin_radius": self.margin_radius,
+            "rho_limit": self.rho_limit,
+            "meets_margin": self.meets_margin,
+            "stable": self.stable,
+            "worst_hands": [None if h is None else h.as_dict() for h in self.worst_hands],
+            "worst_sample_ticks": list(self.worst_sample_ticks),
+            "worst_compliance_scale": self.worst_compliance_scale,
+            "cases": self.cases,
+        }
+
+
+def verification_hands(box: HandBox = DEFAULT_HAND_BOX) -> list[Hand]:
+    """The hands each user takes in :func:`verify_coupled`: box corners, centre, ``extra``."""
+    centre = Hand(
+        0.5 * sum(box.mass_kg), 0.5 * sum(box.damping_n_s_per_m), 0.5 * sum(box.stiffness_n_per_m)
+    )
+    return list(dict.fromkeys([*box.corners(), centre, *box.extra]))
+
+
+def _permutation_symmetric(c: FloatArray, gains: Sequence[UserGains], b_o: FloatArray) -> bool:
+    """Whether relabelling the users leaves the coupled loop unchanged (equal gains and object
+    damping, equal diagonal, equal off-diagonal compliance)."""
+    m = c.shape[0]
+    if any(g != gains[0] for g in gains) or np.ptp(b_o) > 0.0:
+        return False
+    d = np.diag(c)
+    off = c[~np.eye(m, dtype=bool)]
+    tol = 1e-12 * float(np.max(np.abs(c)))
+    return bool(np.ptp(d) <= tol and (off.size == 0 or np.ptp(off) <= tol))
+
+
+def verify_coupled(
+    compliance: ArrayLike,
+    gains: Sequence[UserGains],
+    *,
+    b_o: ArrayLike = 0.0,
+    servo_rate_hz: float = 1000.0,
+    sim_rate_hz: float = 20.0,
+    delay_ticks: int = 0,
+    margin: float = 0.15,
+    hands: Sequence[Hand | None] | None = None,
+    sample_ticks: Sequence[int] | None = None,
+    hand_combos: Sequence[Sequence[Hand | None]] | None = None,
+    tick_combos: Sequence[Sequence[int]] | None = None,
+    min_decay_rate_per_s: float = MIN_DECAY_RATE_PER_S,
+) -> CoupledVerdict:
+    """Worst coupled spectral radius over hands x sampling ticks x the K_o margin.
+
+    Every user takes every hand of ``hands`` and every tick of ``sample_ticks`` independently
+    (all combinations; when relabelling users leaves the loop unchanged -- equal gains and object
+    damping, equal diagonal and off-diagonal compliance -- only one combination per multiset of
+    (hand, tick) pairs, which is exact). The compliance is checked as given and scaled by
+    ``1 / (1 - margin)`` (every K_o overestimated by ``margin``, as
+    :func:`shared.gain_design.design_gains` checks).
+
+    Parameters
+    ----------
+    compliance : (M, M) float [m/N]
+    gains : sequence of M UserGains
+    b_o : float or (M,) [N/m]
+    servo_rate_hz, sim_rate_hz : float
+        1/T and 1/(N*T) [Hz]; N must be whole.
+    delay_ticks : int
+    margin : float
+        In [0, 1).
+    hands : sequence of Hand or None, optional
+        Per-user hands (default :func:`verification_hands`: the 8 corners of the default box, its
+        centre and the simulated user's hand).
+    sample_ticks : sequence of int, optional
+        Per-user sampling ticks (default ``{0, N/2, N-1}``: the worst cases sit at the ends).
+    hand_combos, tick_combos : (B, M) and (J, M) nested sequences, optional
+        Explicit combinations instead of the products above (then no symmetry reduction).
+    min_decay_rate_per_s : float
+        Decay-rate margin [1/s] (:data:`shared.gain_design.MIN_DECAY_RATE_PER_S`).
+
+    Raises
+    ------
+    ValueError
+        As :func:`coupled_monodromy`; margin outside [0, 1); no hands or ticks.
+    """
+    from shared.stability import rate_ratio as _rate_ratio
+
+    N = _rate_ratio(servo_rate_hz, sim_rate_hz)
+    T = 1.0 / float(servo_rate_hz)
+    c, bo = _check_common(compliance, gains, b_o, N, delay_ticks)
+    if not (math.isfinite(margin) and 0.0 <= margin < 1.0):
+        raise ValueError(f"margin must be in [0, 1), got {margin!r}")
+    m = c.shape[0]
+    hs: list[Hand | None] = [h for h in (verification_hands() if hands is None else hands)]
+    if not hs:
+        raise ValueError("hands must not be empty")
+    ts = (
+        sorted({0, N // 2, N - 1})
+        if sample_ticks is None
+        else sorted({int(j) for j in _ticks_ok(sample_ticks, N)})
+    )
+    # per-user (hand, tick) pairs
+    if hand_combos is None and tick_combos is None:
+        pairs = [(h, t) for h in range(len(hs)) for t in range(len(ts))]
+        combos: list[tuple[int, ...]]
+        if _permutation_symmetric(c, gains, bo):
+            combos = list(itertools.combinations_with_replacement(range(len(pairs)), m))
+        else:
+            combos = list(itertools.product(range(len(pairs)), repeat=m))
+        idx = np.array(combos, dtype=np.intp).reshape(len(combos), m)
+        pair_arr = np.array(pairs, dtype=np.intp)
+        h_idx, t_idx = pair_arr[idx, 0], pair_arr[idx, 1]
+        user_hands: list[list[Hand | None]] = [hs] * m
+        user_ticks: list[list[int]] = [ts] * m
+    else:
+        hc = [tuple(h) for h in (hand_combos or [(h,) * m for h in hs])]
+        tc = [tuple(int(j) for j in t) for t in (tick_combos or [(j,) * m for j in ts])]
+        if any(len(h) != m for h in hc) or any(len(t) != m for t in tc):
+            raise ValueError(f"hand_combos and tick_combos must hold {m}-user combinations")
+        _ticks_ok([j for t in tc for j in t], N)
+        user_hands = [list(dict.fromkeys(h[u] for h in hc)) for u in range(m)]
+        user_ticks = [sorted({t[u] for t in tc}) for u in range(m)]
+        hh = np.array([[user_hands[u].index(h[u]) for u in range(m)] for h in hc], dtype=np.intp)
+        tt = np.array([[user_ticks[u].index(t[u]) for u in range(m)] for t in tc], dtype=np.intp)
+        h_idx = np.repeat(hh, len(tc), axis=0)
+        t_idx = np.tile(tt, (len(hc), 1))
+    blocks = [
+        _user_blocks(gains[u], user_hands[u], user_ticks[u], servo_period_s=T, rate_ratio=N)
+        for u in range(m)
+    ]
+    rho_limit = math.exp(-min_decay_rate_per_s * N * T)
+    creep_angle = 2.0 * math.pi * CREEP_FREQUENCY_HZ * N * T
+    scales = [1.0] if margin == 0.0 else [1.0, 1.0 / (1.0 - margin)]
+    best = (-1.0, -1.0, 0, 1.0)  # margin radius, radius, combo, scale
+    K = h_idx.shape[0]
+    for s in scales:
+        for a in range(0, K, _CHUNK):
+            sl = slice(a, min(a + _CHUNK, K))
+            k = sl.stop - sl.start
+            Mx = _assemble(
+                blocks, h_idx[sl], t_idx[sl], np.broadcast_to(c * s, (k, m, m)), bo, delay_ticks
+            )
+            ev = np.linalg.eigvals(Mx)
+            mag = np.abs(ev)
+            slow = np.abs(np.angle(ev)) < creep_angle
+            marg = np.max(np.where(slow, mag * rho_limit, mag), axis=-1)
+            rad = np.max(mag, axis=-1)
+            w = int(np.argmax(marg))
+            if marg[w] > best[0]:
+                best = (float(marg[w]), max(best[1], float(rad.max())), a + w, s)
+            else:
+                best = (best[0], max(best[1], float(rad.max())), best[2], best[3])
+    marg_r, rad_r, wc, ws = best
+    return CoupledVerdict(
+        spectral_radius=rad_r,
+        margin_radius=marg_r,
+        rho_limit=rho_limit,
+        meets_margin=bool(marg_r < rho_limit and rad_r < 1.0 - STABILITY_TOL),
+        stable=bool(rad_r < 1.0 - STABILITY_TOL),
+        worst_hands=tuple(user_hands[u][int(h_idx[wc, u])] for u in range(m)),
+        worst_sample_ticks=tuple(int(user_ticks[u][int(t_idx[wc, u])]) for u in range(m)),
+        worst_compliance_scale=ws,
+        cases=K * len(scales),
+    )
+
+
+def _ticks_ok(ticks: Sequence[int], rate_ratio: int) -> list[int]:
+    """``ticks`` as ints, checked to lie in [0, N)."""
+    out = [int(j) for j in ticks]
+    if not out or any(not 0 <= j < rate_ratio for j in out):
+        raise ValueError(f"sample ticks must be in [0, {rate_ratio}), got {list(ticks)!r}")
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# design
+
+
+@dataclass(frozen=True)
+class CoupledDesign:
+    """Per-user gains for M coupled contacts, verified on the coupled loop (SI units).
+
+    Attributes
+    ----------
+    designs : tuple of M GainDesign
+        Each user's single-user design (:func:`shared.gain_design.design_gains`), made for
+        ``k_o = design_k_o[u]`` and checked up to ``k_o_hi = modal.k_o_stiff[u]``.
+    gains : tuple of M UserGains
+        The same gains, ready for :func:`coupled_monodromy`.
+    modal : ModalStiffness
+        K_o, K_o_eff and K_o_stiff of every contact.
+    design_k_o : tuple of M floats
+        The stiffness [N/m] each user designed for: ``K_o_eff * retune**rounds``.
+    verdict : CoupledVerdict
+        The coupled loop's worst case (:func:`verify_coupled`).
+    rounds : int
+        Retuning rounds taken (0: the modal-range design met the margin at once).
+    design_ms : float
+        Wall time [ms] (informative).
+    """
+
+    designs: tuple[GainDesign, ...]
+    gains: tuple[UserGains, ...]
+    modal: ModalStiffness
+    design_k_o: tuple[float, ...]
+    verdict: CoupledVerdict
+    rounds: int
+    design_ms: float = 0.0
+
+    def to_json(self) -> dict[str, object]:
+        """Plain JSON-able dict."""
+        return {
+            "users": [d.to_json() for d in self.designs],
+            "k_o": self.modal.k_o.tolist(),
+            "k_o_eff": self.modal.k_o_eff.tolist(),
+            "k_o_stiff": self.modal.k_o_stiff.tolist(),
+            "design_k_o": list(self.design_k_o),
+            "verdict": self.verdict.to_json(),
+            "rounds": self.rounds,
+            "design_ms": self.design_ms,
+        }
+
+
+def design_coupled(
+    compliance: ArrayLike,
+    *,
+    b_o: ArrayLike = 0.0,
+    servo_rate_hz: float = 1000.0,
+    sim_rate_hz: float = 20.0,
+    delay_ticks: int = 0,
+    mode: Mode = "pi",
+    margin: float = 0.15,
+    k_h_max: float = math.inf,
+    b_h_max: float = 0.0,
+    holds: Sequence[ProxyHold] = ("zoh", "foh"),
+    hand_box: HandBox = DEFAULT_HAND_BOX,
+    retune: float = 0.85,
+    max_rounds: int = 4,
+    sample_ticks: Sequence[int] | None = None,
+    min_decay_rate_per_s: float = MIN_DECAY_RATE_PER_S,
+) -> CoupledDesign:
+    """Gains for M users coupled through C with the same margin as one user (module docstring).
+
+    1. Each user u designs (:func:`shared.gain_design.design_gains`) for its softest modal
+       stiffness ``K_o_eff,u`` with the usual ``margin`` below it, *and* up to its stiffest modal
+       stiffness ``K_o_stiff,u`` (``k_o_hi``): for identical users this covers every mode of the
+       coupled loop exactly (modal decomposition).
+    2. The coupled loop is verified (:func:`verify_coupled`) with every user taking every hand of
+       :func:`verification_hands` and its own sampling tick, C as given and scaled by
+       ``1 / (1 - margin)``, against the single-user ``rho_limit``.
+    3. If it fails, every user re-designs for ``K_o_eff * retune**r`` (r = 1, 2, ...: a softer
+       object, hence lower gains) up to ``max_rounds``.
+
+    Parameters
+    ----------
+    compliance : (M, M) float [m/N]
+        The contacts' normal compliance (symmetric PSD, positive diagonal).
+    b_o : float or (M,) [N/m]
+        Object damping per contact (eq. 9).
+    servo_rate_hz, sim_rate_hz, delay_ticks, mode, margin, k_h_max, b_h_max, holds, hand_box,
+    min_decay_rate_per_s
+        As :func:`shared.gain_design.design_gains` (the same for every user).
+    retune : float
+        Factor in (0, 1) by which the design stiffness drops per retuning round.
+    max_rounds : int
+        Retuning rounds allowed, >= 0.
+    sample_ticks : sequence of int, optional
+        Per-user sampling ticks verified (default ``{0, N/2, N-1}``).
+
+    Returns
+    -------
+    CoupledDesign
+        The first design meeting the margin; if none does within ``max_rounds``, the one with the
+        smallest coupled margin radius, with ``verdict.meets_margin`` False (the caller decides:
+        the numbers say by how much).
+
+    Raises
+    ------
+    ValueError
+        Bad compliance or parameters, or as :func:`shared.gain_design.design_gains` (no local
+        model stable over the hand box for some user).
+    """
+    t0 = time.perf_counter()
+    c = _check_compliance(compliance)
+    m = c.shape[0]
+    bo = np.broadcast_to(np.asarray(b_o, dtype=float), (m,)).copy()
+    if not (math.isfinite(retune) and 0.0 < retune < 1.0):
+        raise ValueError(f"retune must be in (0, 1), got {retune!r}")
+    if isinstance(max_rounds, bool) or int(max_rounds) != max_rounds or max_rounds < 0:
+        raise ValueError(f"max_rounds must be a whole number >= 0, got {max_rounds!r}")
+    modal = modal_stiffness(c)
+    cache: dict[tuple[float, float, float], GainDesign] = {}
+    best: CoupledDesign | None = None
+    for r in range(int(max_rounds) + 1):
+        k_design = tuple(float(k) * retune**r for k in modal.k_o_eff)
+        designs = []
+        for u in range(m):
+            key = (k_design[u], float(modal.k_o_stiff[u]), float(bo[u]))
+            if key not in cache:
+                cache[key] = design_gains(
+                    key[0],
+                    b_o=key[2],
+                    servo_rate_hz=servo_rate_hz,
+                    sim_rate_hz=sim_rate_hz,
+                    delay_ticks=delay_ticks,
+                    mode=mode,
+                    margin=margin,
+                    k_o_hi=key[1],
+                    k_h_max=k_h_max,
+                    b_h_max=b_h_max,
+                    holds=holds,
+                    hand_box=hand_box,
+                    min_decay_rate_per_s=min_decay_rate_per_s,
+                )
+            designs.append(cache[key])
+        gains = tuple(UserGains.from_design(d) for d in designs)
+        verdict = verify_coupled(
+            c,
+            gains,
+            b_o=bo,
+            servo_rate_hz=servo_rate_hz,
+            sim_rate_hz=sim_rate_hz,
+            delay_ticks=delay_ticks,
+            margin=margin,
+            hands=verification_hands(hand_box),
+            sample_ticks=sample_ticks,
+            min_decay_rate_per_s=min_decay_rate_per_s,
+        )
+        cand = CoupledDesign(
+            designs=tuple(designs),
+            gains=gains,
+            modal=modal,
+            design_k_o=k_design,
+            verdict=verdict,
+            rounds=r,
+        )
+        if best is None or verdict.margin_radius < best.verdict.margin_radius:
+            best = cand
+        if verdict.meets_margin:
+            best = cand
+            break
+    assert best is not None
+    return CoupledDesign(
+        designs=best.designs,
+        gains=best.gains,
+        modal=best.modal,
+        design_k_o=best.design_k_o,
+        verdict=best.verdict,
+        rounds=best.rounds,
+        design_ms=(time.perf_counter() - t0) * 1e3,
+    )
