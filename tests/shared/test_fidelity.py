@@ -147,6 +147,7 @@ def test_the_local_model_is_the_products_local_model() -> None:
             threshold=ThresholdParams(mode="fixed", theta_m=1e-3),
             release_time_s=0.1,
             integral_limit_n=7.9,
+            recovery_m_per_n=1.0 / k_o,
         )
     )
     n_ratio = 50
