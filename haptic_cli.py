@@ -499,7 +499,8 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "--theta-mode",
         choices=["auto", "fixed", "variable"],
         default="auto",
-        help="threshold: fixed (eq. 17) or variable (eq. 18); auto = fixed (default %(default)s)",
+        help="threshold: fixed (eq. 17) or variable (eq. 18); auto = variable for PI, fixed for P "
+        "(default %(default)s)",
     )
     p.add_argument(
         "--passivity",

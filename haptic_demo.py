@@ -100,8 +100,8 @@ class Timeline:
 
 def timeline(duration_s: float) -> Timeline:
     """A's press for a run of ``duration_s`` seconds (module docstring)."""
-    # B's forces come on once its first gain design is done (about 1-2.5 s after its client
-    # starts): A waits at least 4 s, so the "before" window sees B resting
+    # B's forces come on once its first gains are checked (a few hundred ms after its first patch;
+    # before interim checks, 1-2.5 s): A waits at least 4 s, so the "before" window sees B resting
     delay = max(4.0, 0.2 * duration_s)
     approach, press, release = 1.0, 1.5, 1.0
     hold = max(2.0, 0.75 * duration_s - delay - approach - press)

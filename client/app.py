@@ -27,7 +27,7 @@ from client.link import Link
 from client.recorder import TelemetryRecorder
 from client.servo import ServoConfig, ServoCore, ServoThread
 from client.session import ClientSession, PatchUpdate, ServoSample
-from shared.local_model import LocalModelParams, ThresholdParams
+from shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
 from shared.protocol import DeviceInfo, Welcome
 
 log = logging.getLogger("haptic.client")
@@ -67,42 +67,97 @@ def _device_info(opts: ClientOptions) -> DeviceInfo:
     return DeviceInfo(profile=opts.device[:64])
 
 
+#: Filter time constant [s] on the probe's depth rate that decides eq. 18's branch: 20 ms, an
+#: 8 Hz corner, above the 1-5 Hz of a hand deliberately leaving an object.
+THETA_DIRECTION_FILTER_S = 0.02
+
+#: Encoder counts the quantization noise of a still probe may span (a position between two
+#: counts plus a little tremor); eq. 18's deadband is set 20 % above what that can make of the
+#: filtered speed (:func:`shared.local_model.encoder_speed_bound`; the bound is reached only by
+#: the worst pattern, a long plateau then a drop of all the counts in one tick).
+THETA_ENCODER_NOISE_COUNTS = 3.0
+THETA_ENCODER_MARGIN = 1.2
+
+#: Slowest outward probe speed [m/s] taken as the user leaving (eq. 18's exiting branch), unless
+#: the encoder needs more. Measured with the simulated hand and the hand box's extremes holding a
+#: press on 300 and 1000 N/m objects and nudged: below about 7 mm/s the hand's own ringing after
+#: a nudge reaches the exiting branch now and then (0.5-0.7 mm peak to peak with 5 mm/s); from
+#: 7.5 mm/s on the hold stays below 0.5 mm for every hand tried. A deliberate exit is faster
+#: (tens of mm/s).
+THETA_EXIT_SPEED_M_S = 0.01
+
+
 def threshold_for(
     mode: Literal["auto", "fixed", "variable"],
     local_model: Literal["p", "pi"],
     theta_m: float,
     encoder_resolution_m: float,
+    servo_period_s: float = 1e-3,
 ) -> ThresholdParams:
     """The integration threshold theta (eq. 17 or 18) the client renders with.
 
-    ``auto`` is eq. 17 (fixed): with a hand in the loop eq. 18 sustains a limit cycle of about
-    theta_2 - theta_1 (the integral pushing the hand out reads as "exiting", which raises theta,
-    which lets the hand back in; measured 1 mm peak to peak in the loopback test against 0.3 mm
-    with eq. 17), so it is opt-in with ``variable``. Eq. 18's branch follows the
-    probe's own motion along the normal (never the proxy's jumps), low-pass filtered over 20 ms;
-    its deadband is three encoder counts per filter time constant (3.5 mm/s on a 23 um encoder),
-    so quantisation noise never flips the branch. theta_1 = theta_m / 2 while penetrating,
-    theta_2 = 3 theta_m while exiting, reached at 1 N of integral force.
+    ``auto`` is eq. 18 (variable) for a PI local model and eq. 17 (fixed) otherwise (a P model
+    has no integral: theta does nothing). Eq. 18: theta_1 = theta_m / 2 while pressing in or
+    holding, up to theta_2 = 3 theta_m while leaving (reached at 1 N of integral force). The
+    branch is a memoryless function of the probe's own speed along the normal (never the proxy's
+    jumps), low-pass filtered over :data:`THETA_DIRECTION_FILTER_S`: leaving while the filtered
+    outward speed exceeds the deadband ``max(1.2 R q / (T + tau), THETA_EXIT_SPEED_M_S)``, R =
+    :data:`THETA_ENCODER_NOISE_COUNTS` counts of the device's encoder q [m] (quantization noise
+    cannot reach it, :func:`shared.local_model.encoder_speed_bound`; 3.9 mm/s for a 23 um
+    encoder, 9.4 mm/s for 55 um), and at least the speed of a deliberate exit.
+
+    Parameters
+    ----------
+    mode : {"auto", "fixed", "variable"}
+    local_model : {"p", "pi"}
+    theta_m : float
+        theta_bar [m] of eq. 17 (and the scale of eq. 18's thresholds), >= 0.
+    encoder_resolution_m : float
+        The device's position quantum [m], >= 0 (0: unknown or none).
+    servo_period_s : float
+        Servo period T [s].
+
+    Raises
+    ------
+    ValueError
+        Out-of-range values.
     """
-    variable = mode == "variable"
+    variable = mode == "variable" or (mode == "auto" and local_model == "pi")
     if not variable:
         return ThresholdParams(mode="fixed", theta_m=theta_m)
+    tau = THETA_DIRECTION_FILTER_S
+    noise = THETA_ENCODER_MARGIN * encoder_speed_bound(
+        encoder_resolution_m, THETA_ENCODER_NOISE_COUNTS, tau, servo_period_s
+    )
     return ThresholdParams(
         mode="variable",
         theta_m=theta_m,
         theta_1_m=0.5 * theta_m,
         theta_2_m=3.0 * theta_m,
         i_tot_bar_n=1.0,
-        direction_deadband_m=3.0 * encoder_resolution_m,
-        direction_deadband_m_s=3.0 * encoder_resolution_m / 0.02,
-        direction_filter_s=0.02,
+        direction_deadband_m=THETA_ENCODER_NOISE_COUNTS * encoder_resolution_m,
+        direction_deadband_m_s=max(noise, THETA_EXIT_SPEED_M_S),
+        direction_filter_s=tau,
     )
 
 
 def _encoder_resolution(device: Device) -> float:
+    """Position quantum [m] of the device: a simulated profile's encoder, or the coarsest integer
+    axis of an absolute-position HID profile (metres per count); 0 when unknown."""
     profile = getattr(device, "profile", None)
-    res = getattr(profile, "encoder_resolution_m", 0.0)
-    return float(res) if isinstance(res, int | float) and math.isfinite(res) else 0.0
+    res = getattr(profile, "encoder_resolution_m", None)
+    if isinstance(res, int | float) and math.isfinite(res):
+        return float(res)
+    layout = getattr(profile, "input", None)
+    if getattr(layout, "mode", None) == "absolute":
+        scales = [
+            abs(float(ax.scale))
+            for ax in getattr(layout, "axes", ())
+            if getattr(ax, "type", "float32") != "float32"
+        ]
+        if scales and all(math.isfinite(v) for v in scales):
+            return max(scales)
+    return 0.0
 
 
 def _anchor(
@@ -196,6 +251,7 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
                 opts.local_model,
                 opts.theta_m,
                 _encoder_resolution(device),
+                period,
             ),
             release_time_s=2.0 / welcome.sim_rate_hz,
             integral_limit_n=lim.max_force_n,  # anti-windup: never more than the device can render
@@ -228,6 +284,7 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
             b_h=update.b_h,
             proxy_hold=update.proxy_hold,
             hold_ticks=update.hold_ticks,
+            k_o=update.k_o,
         )
         updates.append(update)
 
@@ -305,7 +362,23 @@ def _summary(
             "felt_stiffness_ratio_1hz": updates[-1].felt_stiffness_ratio_1hz,
         },
         "gain_designs": link.designs,
+        "interim_checks": link.checks,
         "fallback_patches": sum(1 for u in updates if u.fallback),
+        "unverified_patches": session.unverified_patches,
+        "first_patch_s": session.first_patch_s,
+        "first_gains_s": session.first_update_s,
+        "first_contact_wait_ms": None
+        if session.first_patch_s is None or session.first_update_s is None
+        else (session.first_update_s - session.first_patch_s) * 1e3,
+        "first_gains": None
+        if not updates
+        else {
+            "k_h": updates[0].k_h,
+            "i_gain": updates[0].i_gain,
+            "b_h": updates[0].b_h,
+            "proxy_hold": updates[0].proxy_hold,
+            "fallback": updates[0].fallback,
+        },
     }
     if servo is not None:
         status = servo.core.status().as_dict()

@@ -6,6 +6,15 @@ state is never queued behind a new one) and a ``ping`` twice a second, hands eac
 loop through ``on_patch``, and reconnects with exponential backoff when the server goes away. The
 servo loop never waits on any of this: when the link falls silent it ramps its forces to zero by its
 own timeout.
+
+Two worker processes (spawned when the link starts) keep the numerical work off the event loop
+and off the servo thread's interpreter lock: one runs gain designs (a second or more each, then
+the likely next cells), the other the short checks of interim gains
+(:func:`client.session.interim_design`, about 0.1 s), so a check is never queued behind a
+design. After each design or check the checker verifies gains for the neighbouring cells and one
+more tick of delay ahead of need. The one exception is the check a first contact waits for:
+nothing is rendered yet (forces are off), so it runs at once in a thread of this process rather
+than waiting for a worker to start.
 """
 
 from __future__ import annotations
@@ -22,8 +31,14 @@ from dataclasses import replace
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
-from client.session import ClientSession, PatchUpdate, ServoSample
-from shared.gain_design import design_cell, warm_up
+from client.session import (
+    ClientSession,
+    PatchUpdate,
+    ServoSample,
+    interim_design,
+    warm_up_worker,
+)
+from shared.gain_design import GainDesign, GainKey, design_cell
 from shared.protocol import ProtocolError, Welcome
 
 log = logging.getLogger("haptic.client")
@@ -51,8 +66,11 @@ class Link:
     backoff_s : (float, float)
         First and largest reconnect delay [s].
     design_executor : Executor, optional
-        Where gain designs run (default: one worker process, started on the first design, so a
-        design never holds the event loop or the servo thread's interpreter lock).
+        Where gain designs run (default: one worker process, started with the link, so a design
+        never holds the event loop or the servo thread's interpreter lock).
+    check_executor : Executor, optional
+        Where interim gains are checked (default: a second worker process; with a
+        ``design_executor`` given and no ``check_executor``, the design executor).
     """
 
     def __init__(
@@ -66,6 +84,7 @@ class Link:
         on_welcome: Callable[[Welcome], None] | None = None,
         backoff_s: tuple[float, float] = (0.2, 5.0),
         design_executor: Executor | None = None,
+        check_executor: Executor | None = None,
     ) -> None:
         self.url = url
         self.session = session
@@ -78,12 +97,17 @@ class Link:
         self.joins = 0
         self.protocol_errors = 0
         self.designs = 0
+        self.checks = 0
         self._executor = design_executor
+        self._checker = check_executor if check_executor is not None else design_executor
         self._own_executor = False
         self._design_task: asyncio.Task[None] | None = None
+        self._check_task: asyncio.Task[None] | None = None
+        self._first_pool: ThreadPoolExecutor | None = None
+        self._check_queue: list[tuple[GainKey, int, tuple[GainDesign, ...], bool]] = []
 
     def _start_design(self) -> None:
-        """Run the design the session asks for in the executor (one at a time)."""
+        """Run the design the session asks for in the design executor (one at a time)."""
         want = self.session.design_wanted
         if want is None or (self._design_task is not None and not self._design_task.done()):
             return
@@ -107,13 +131,19 @@ class Link:
             table.store(key, cell, design)
             self.designs += 1
             log.debug("designed gains for K_o = %.0f N/m in %.0f ms", k_o, design.design_ms)
-            # prefetch the neighbours most likely needed next: one more tick of delay, and the
-            # cells just below and above (the contact moves, K_o changes)
-            for nk, nko in (
+            self._deliver_waiting()
+            # the neighbours most likely needed next: one more tick of delay, and the cells just
+            # below and above (the contact moves, K_o changes). First check these gains there
+            # (fast, the other worker), then design them (slow, this one).
+            near = (
                 (replace(key, delay_ticks=key.delay_ticks + 1), k_o),
                 (key, table.grid_point(cell - 1)),
                 (key, table.grid_point(cell + 1) * 1.0001),
-            ):
+            )
+            for nk, nko in near:
+                self._queue_check(nk, table.cell(nko), (design,), ahead=True)
+            self._start_check()
+            for nk, nko in near:
                 if table.lookup(nk, nko) is None:
                     try:
                         nd = await loop.run_in_executor(
@@ -133,27 +163,116 @@ class Link:
 
         self._design_task = asyncio.get_running_loop().create_task(run())
 
+    def _queue_check(
+        self, key: GainKey, cell: int, candidates: tuple[GainDesign, ...], *, ahead: bool
+    ) -> None:
+        item = (key, cell, candidates, ahead)
+        if ahead:
+            if all((k, c) != (key, cell) for k, c, _, _ in self._check_queue):
+                self._check_queue.append(item)
+        else:
+            self._check_queue.insert(0, item)  # needed now: before any check ahead
+
+    def _start_check(self) -> None:
+        """Check interim gains (the session's request first) in the check executor, in turn."""
+        want = self.session.interim_wanted
+        if want is not None:
+            self.session.interim_wanted = None
+            self._queue_check(*want, ahead=False)
+        if not self._check_queue or (self._check_task is not None and not self._check_task.done()):
+            return
+        self._ensure_executor()
+        session = self.session
+        table = session.gain_table
+
+        async def run() -> None:
+            loop = asyncio.get_running_loop()
+            while self._check_queue:
+                key, cell, candidates, ahead = self._check_queue.pop(0)
+                if (key, cell) in session.interim or table.lookup(
+                    key, table.grid_point(cell) * 1.0001
+                ):
+                    continue
+                # Before anything is rendered (a first contact, or after a rejoin) forces are
+                # off, so the servo thread's timing is not felt: check in a thread here, at once
+                # (the worker process may still be starting); later checks go to the worker.
+                first = not ahead and session.last_update is None
+                try:
+                    d = await loop.run_in_executor(
+                        self._first_thread() if first else self._checker,
+                        interim_design,
+                        key,
+                        cell,
+                        table.grid_ratio,
+                        table.hand_box,
+                        candidates,
+                        not ahead,  # a check ahead of need never falls back to a slow design
+                    )
+                except Exception as exc:  # ValueError: nothing passed; or a broken worker
+                    if not ahead:
+                        session.interim_failed(key, cell)
+                        log.warning("no interim gains for cell %d: %s", cell, exc)
+                    continue
+                session.store_interim(key, cell, d)
+                self.checks += 1
+                log.debug(
+                    "interim gains for K_o = %.0f N/m (%s) in %.0f ms", d.k_o, d.mode, d.design_ms
+                )
+                if not ahead:
+                    self._deliver_waiting()
+                    # and ahead of need: one more tick of delay, the cells below and above
+                    for nk, nc in (
+                        (replace(key, delay_ticks=key.delay_ticks + 1), cell),
+                        (key, cell - 1),
+                        (key, cell + 1),
+                    ):
+                        self._queue_check(nk, nc, (d,), ahead=True)
+
+        self._check_task = asyncio.get_running_loop().create_task(run())
+
+    def _first_thread(self) -> Executor:
+        if self._first_pool is None:
+            self._first_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="first-check")
+        return self._first_pool
+
+    def _deliver_waiting(self) -> None:
+        """Hand the servo loop the patch that waited for gains, if it can render now."""
+        now = self.clock()
+        update = self.session.retry_waiting(now)
+        if update is not None:
+            self.on_patch(update, now)
+
     def _ensure_executor(self) -> None:
         if self._executor is None:
             self._own_executor = True
             try:
-                self._executor = ProcessPoolExecutor(
-                    max_workers=1, mp_context=multiprocessing.get_context("spawn")
-                )
-                self._executor.submit(warm_up)  # start the worker while the client joins
+                ctx = multiprocessing.get_context("spawn")
+                self._executor = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+                self._checker = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+                # start both workers while the client joins
+                self._executor.submit(warm_up_worker)
+                self._checker.submit(warm_up_worker)
             except (RuntimeError, OSError) as exc:
                 # e.g. a script without the ``if __name__ == "__main__"`` guard: design in a
                 # thread instead (it then shares the interpreter lock with the servo thread)
                 log.warning("gain design runs in a thread, not a worker process: %s", exc)
-                if self._executor is not None:
-                    self._executor.shutdown(wait=False, cancel_futures=True)
+                for ex in (self._executor, self._checker):
+                    if ex is not None:
+                        ex.shutdown(wait=False, cancel_futures=True)
                 self._executor = ThreadPoolExecutor(max_workers=1)
+                self._checker = ThreadPoolExecutor(max_workers=1)
+        elif self._checker is None:
+            self._checker = self._executor
 
     def close(self) -> None:
-        """Stop the design worker (if this link started it)."""
-        if self._own_executor and self._executor is not None:
-            self._executor.shutdown(wait=False, cancel_futures=True)
-            self._executor = None
+        """Stop the workers (if this link started them)."""
+        if self._own_executor:
+            for ex in {id(e): e for e in (self._executor, self._checker) if e is not None}.values():
+                ex.shutdown(wait=False, cancel_futures=True)
+            self._executor = self._checker = None
+        if self._first_pool is not None:
+            self._first_pool.shutdown(wait=False, cancel_futures=True)
+            self._first_pool = None
 
     async def run(self, stop: asyncio.Event) -> None:
         """Connect, serve, reconnect with backoff until ``stop`` is set."""
@@ -182,7 +301,7 @@ class Link:
         self.close()
 
     async def _serve(self, ws: ClientConnection, stop: asyncio.Event) -> None:
-        await ws.send(self.session.hello())
+        await ws.send(self.session.hello(self.clock()))
         sender = asyncio.create_task(self._send_loop(ws))
         stopper = asyncio.create_task(stop.wait())
         try:
@@ -216,6 +335,8 @@ class Link:
                 err = self.session.errors[-1]
                 level = logging.ERROR if err.fatal else logging.WARNING
                 log.log(level, "server: %s (%s)", err.message, err.code)
+            if self.session.interim_wanted is not None:
+                self._start_check()
             if self.session.design_wanted is not None:
                 self._start_design()
             if update is not None:

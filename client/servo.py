@@ -150,9 +150,14 @@ class Patch:
         only (already clamped to the device's max damping).
     proxy_hold : {"zoh", "foh"}
         ``zoh``: the new surface replaces the old at once (eq. 1); ``foh``: the penetration moves
-        linearly from the old surface's to the new one's over ``hold_ticks`` servo ticks.
+        linearly from the old surface's to the new one's over ``hold_ticks`` servo ticks (from
+        where the previous slide had got to, if this patch arrived before it finished).
     hold_ticks : int
         Servo ticks of the first-order hold (N, one simulation period), >= 1.
+    recovery_m_per_n : float or None
+        1/K_o of the contact [m/N]: the local model keeps a PI contact while the probe is within
+        the deformation its integral force holds (:class:`shared.local_model.LocalModelParams`);
+        None keeps the local model's own.
     """
 
     primitive: Primitive
@@ -161,6 +166,7 @@ class Patch:
     b_h: float = 0.0
     proxy_hold: str = "zoh"
     hold_ticks: int = 1
+    recovery_m_per_n: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -374,6 +380,10 @@ class ServoCore:
         self._patch: Patch | None = None
         self._primitive: Primitive | None = None
         self._prim_old: Primitive | None = None  # the surface a first-order hold moves away from
+        self._hold_off = 0.0  # depth [m] added to _prim_old: where the slide really starts
+        # a patch that arrived mid-slide: (start surface, its offset, weight reached); the new
+        # slide's start offset is computed from it on the next tick, once the probe is read
+        self._rebase: tuple[Primitive, float, float] | None = None
         self._hold_i = 0
         self._hold_n = 1
         self._k_h = 0.0
@@ -430,6 +440,7 @@ class ServoCore:
         b_h: float = 0.0,
         proxy_hold: str = "zoh",
         hold_ticks: int = 1,
+        k_o: float | None = None,
     ) -> Patch:
         """Hand a new local model to the servo loop; applied whole at the start of the next tick.
 
@@ -437,7 +448,8 @@ class ServoCore:
         ``status().stiffness_clamps``), B_h to ``max_damping_n_s_per_m``. The LocalModel's
         integral state is kept (eq. 12 gains change, its state does not). With ``proxy_hold="foh"``
         the surface moves from the previous patch's to this one's over ``hold_ticks`` ticks
-        (:mod:`shared.full_loop` analyses exactly this).
+        (:mod:`shared.full_loop` analyses exactly this); a patch that arrives before the previous
+        slide is over (network jitter) slides on from the blend reached, so the force never steps.
 
         Parameters
         ----------
@@ -452,6 +464,9 @@ class ServoCore:
         proxy_hold : {"zoh", "foh"}
         hold_ticks : int
             Servo ticks per simulation tick N for the first-order hold, >= 1.
+        k_o : float, optional
+            The contact's K_o [N/m], > 0: sets the local model's recovery band (a PI contact is
+            kept while the probe is within s/K_o of the proxy; :mod:`shared.local_model`).
 
         Returns
         -------
@@ -486,7 +501,12 @@ class ServoCore:
             k = kmax
             self._stiffness_clamps += 1
         bh = min(bh, lim.max_damping_n_s_per_m)
-        patch = Patch(primitive, k, i, bh, proxy_hold, int(hold_ticks))
+        rec = None
+        if k_o is not None:
+            if not (math.isfinite(k_o) and k_o > 0.0):
+                raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
+            rec = 1.0 / k_o
+        patch = Patch(primitive, k, i, bh, proxy_hold, int(hold_ticks), rec)
         self._patch_in = patch
         return patch
 
@@ -527,11 +547,22 @@ class ServoCore:
         if p is not self._patch and p is not None:
             self._patch = p
             fresh = self._primitive is None or self._need_patch
-            self._prim_old = None if fresh or p.proxy_hold != "foh" else self._primitive
+            old = self._prim_old
+            if fresh or p.proxy_hold != "foh":
+                self._prim_old = None
+                self._rebase = None
+            else:
+                # a patch arriving before the last slide finished (network jitter) slides on from
+                # the blend reached, not from the last target (that would be a step)
+                self._rebase = (
+                    None if old is None else (old, self._hold_off, self._hold_i / self._hold_n)
+                )
+                self._prim_old = self._primitive
+                self._hold_off = 0.0
             self._hold_i = 0
             self._hold_n = p.hold_ticks
             self._primitive = p.primitive
-            self.local_model.set_gains(p.k_h, p.i_gain)
+            self.local_model.set_gains(p.k_h, p.i_gain, p.recovery_m_per_n)
             self._k_h = p.k_h
             self._i_gain = p.i_gain
             self._b_h = p.b_h
@@ -609,12 +640,19 @@ class ServoCore:
             e, nx, ny, nz = prim.contact(x, y, z)
             old = self._prim_old
             if old is not None:  # first-order hold: slide from the old surface to the new one
+                rb = self._rebase
+                if rb is not None:  # start where the interrupted slide was: its blend, here
+                    s_prim, s_off, w = rb
+                    self._hold_off = (1.0 - w) * (
+                        s_prim.contact(x, y, z)[0] + s_off - old.contact(x, y, z)[0]
+                    )
+                    self._rebase = None
                 hi = self._hold_i + 1
                 if hi >= self._hold_n:
                     self._prim_old = None
                 else:
                     self._hold_i = hi
-                    e_old = old.contact(x, y, z)[0]
+                    e_old = old.contact(x, y, z)[0] + self._hold_off
                     e = e_old + (e - e_old) * (hi / self._hold_n)
             # the probe's depth rate along the inward normal (backward difference, never the proxy's)
             v_in = -((x - ox) * nx + (y - oy) * ny + (z - oz) * nz) * self._inv_T
@@ -1094,10 +1132,17 @@ class ServoThread:
         b_h: float = 0.0,
         proxy_hold: str = "zoh",
         hold_ticks: int = 1,
+        k_o: float | None = None,
     ) -> Patch:
         """See :meth:`ServoCore.set_patch`; also counts as link activity now."""
         patch = self.core.set_patch(
-            primitive, k_h, i_gain, b_h=b_h, proxy_hold=proxy_hold, hold_ticks=hold_ticks
+            primitive,
+            k_h,
+            i_gain,
+            b_h=b_h,
+            proxy_hold=proxy_hold,
+            hold_ticks=hold_ticks,
+            k_o=k_o,
         )
         self.core.notify_link(self.clock())
         return patch

@@ -5,22 +5,49 @@ the local model's gains up in a :class:`shared.gain_design.GainTable`: the full-
 the loop, every sampling tick, a K_o margin) for the patch's K_o_eff, the rate ratio N and the
 *measured* delay (round-trip time in whole simulation ticks), within the device's maximum stiffness
 and damping (Step 2 of section 6). A lookup is a dict access; a cell not designed yet is named in
-:attr:`ClientSession.design_wanted` for the link to design off its event loop, and meanwhile the
-nearest designed cell renders no stiffer relative to K_o (the very first patch waits for its
-design: forces are off until then). Primitive and gains go to the servo loop as one
-:class:`PatchUpdate` (zero-order hold: it replaces the old one between servo ticks).
+:attr:`ClientSession.design_wanted` for the link to design off its event loop (about a second for
+PI, up to ten).
+
+Interim gains. Until that design is done the cell renders *verified interim gains*: gains that
+pass exactly the design's acceptance test for the cell (:func:`verify_gains`: every hand of the
+box, every sampling tick, K_o' over the cell's range with the margin, oscillations decaying at
+:data:`shared.gain_design.MIN_DECAY_RATE_PER_S`), found by :func:`interim_design` among gains
+already known (the nearest designed cell, the gains in use) and a short ladder of generic gains
+(:data:`INTERIM_LADDER`), a P design as the last resort. That takes one or a few checks of
+0.1-0.5 s of CPU each (a PI design takes 2-3 s on the same machine), so the first contact no
+longer waits for the PI design; forces stay off only until the first verified gains. Designs for
+one key are not safe on another without this check: one for fewer delay ticks than the loop now
+has was unstable in every case tried (spectral radius up to 1.18), one for more delay or a
+softer cell missed the design's decay margin in about a third of them
+(tests/client/test_first_contact.py). :attr:`ClientSession.interim_wanted` names the check for
+the link; while it runs after a mid-contact change (new cell or delay) the nearest designed cell
+(no stiffer relative to K_o) or the gains in use stay, flagged ``verified=False``.
+
+Primitive and gains go to the servo loop as one :class:`PatchUpdate` (zero-order hold: it replaces
+the old one between servo ticks).
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
-from shared.gain_design import GainDesign, GainKey, GainTable
+from shared.full_loop import HandBox, monodromy
+from shared.gain_design import (
+    CREEP_FREQUENCY_HZ,
+    MIN_DECAY_RATE_PER_S,
+    GainDesign,
+    GainKey,
+    GainTable,
+    design_cell,
+    felt_stiffness,
+)
 from shared.primitives import Primitive, make_plane, make_sphere
 from shared.protocol import (
     PROTOCOL_VERSION,
@@ -74,7 +101,11 @@ class PatchUpdate:
     felt_stiffness_ratio_1hz : float
         Designed felt stiffness over K_o at 1 Hz.
     fallback : bool
-        True while the exact design for this K_o is still being computed.
+        True while the exact design for this K_o is still being computed (interim gains).
+    verified : bool
+        The gains passed the full-loop check for this patch's key and K_o cell (a design, or
+        verified interim gains); False only for the short while that check runs after a change
+        of cell or delay in mid-contact.
     """
 
     primitive: Primitive
@@ -91,6 +122,202 @@ class PatchUpdate:
     hold_ticks: int = 1
     felt_stiffness_ratio_1hz: float = math.nan
     fallback: bool = False
+    verified: bool = True
+
+
+#: Generic interim gains tried when no known gains pass, in order: (K_h, I) as multiples of the
+#: cell's lowest K_o, lo = (1 - margin) g_i [N/m], i.e. K_h = a lo [N/m] and I = b lo [N/(m*s)],
+#: with the device's full damper B_h and a zero-order hold. The PI one only with a damper and a
+#: PI key: with a 10 N*s/m damper at 1 kHz / 20 Hz it passed at K_o = 30 to 3000 N/m and 0 to 3
+#: ticks of delay, and no integral passed without a damper; P with K_h = 0.1 lo passed everywhere
+#: but at 3000 N/m with a delay, hence 0.05.
+INTERIM_LADDER: tuple[tuple[float, float], ...] = ((0.2, 2.0), (0.2, 0.0), (0.1, 0.0), (0.05, 0.0))
+
+
+def _cell_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, float]:
+    g = grid_ratio**cell
+    return (1.0 - key.margin) * g, grid_ratio ** (cell + 1)
+
+
+def verify_gains(
+    key: GainKey,
+    cell: int,
+    grid_ratio: float,
+    hand_box: HandBox,
+    *,
+    k_h: float,
+    i_gain: float,
+    b_h: float,
+    proxy_hold: Literal["zoh", "foh"],
+    chunk: int = 256,
+) -> tuple[bool, float]:
+    """Do these gains pass the design's acceptance test for grid cell ``cell`` of ``key``?
+
+    The test :func:`shared.gain_design.design_gains` applies to its chosen gains: the full loop
+    (:func:`shared.full_loop.monodromy`) for every hand of ``hand_box.hands()``, every sampling
+    tick j in [0, N) and K_o' in {lo, sqrt(lo hi), hi}, ``(lo, hi) = ((1 - margin) g_i,
+    g_(i+1))`` (the range :func:`shared.gain_design.design_cell` covers) has spectral radius below
+    1 and every oscillating mode (faster than :data:`shared.gain_design.CREEP_FREQUENCY_HZ`) below
+    ``exp(-MIN_DECAY_RATE_PER_S N T)``. Stops at the first failing chunk.
+
+    Parameters
+    ----------
+    key : GainKey
+        Rates, delay ticks, margin and object damping B_o [N/m] to check at.
+    cell, grid_ratio : int, float
+        The K_o grid cell (g_i = grid_ratio**cell [N/m]).
+    hand_box : HandBox
+    k_h, i_gain, b_h : float
+        K_h [N/m] > 0, I [N/(m*s)] >= 0, B_h [N*s/m] >= 0.
+    proxy_hold : {"zoh", "foh"}
+    chunk : int
+        Loop cases per batch.
+
+    Returns
+    -------
+    (bool, float)
+        Passed, and the worst spectral radius seen.
+
+    Raises
+    ------
+    ValueError
+        Out-of-range gains or rates (as :func:`shared.full_loop.monodromy`).
+    """
+    if not (math.isfinite(k_h) and k_h > 0.0):
+        raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {k_h!r}")
+    for name, v in (("i_gain", i_gain), ("b_h", b_h)):
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+    n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
+    T = 1.0 / key.servo_rate_hz
+    lo, hi = _cell_range(key, cell, grid_ratio)
+    k_os = sorted({lo, math.sqrt(lo * hi), hi})
+    hands = [h for h in hand_box.hands() for _ in k_os]
+    ko = np.tile(np.asarray(k_os, float), len(hand_box.hands()))
+    rho_limit = math.exp(-MIN_DECAY_RATE_PER_S * n * T)
+    creep_angle = 2.0 * math.pi * CREEP_FREQUENCY_HZ * n * T
+    worst = 0.0
+    for a in range(0, len(hands), chunk):
+        M = monodromy(
+            hand=hands[a : a + chunk],
+            k_o=ko[a : a + chunk],
+            k_h=k_h,
+            i_gain=i_gain,
+            b_h=b_h,
+            b_o=key.b_o,
+            servo_period_s=T,
+            rate_ratio=n,
+            delay_ticks=key.delay_ticks,
+            proxy_hold=proxy_hold,
+            integral=i_gain > 0.0,
+        )
+        ev = np.linalg.eigvals(M)
+        mag = np.abs(ev)
+        slow = np.abs(np.angle(ev)) < creep_angle
+        worst = max(worst, float(mag.max()))
+        margin_r = float(np.where(slow, mag * rho_limit, mag).max())
+        if margin_r >= rho_limit or worst >= 1.0 - 1e-9:
+            return False, worst
+    return True, worst
+
+
+def interim_design(
+    key: GainKey,
+    cell: int,
+    grid_ratio: float,
+    hand_box: HandBox,
+    candidates: Sequence[GainDesign] = (),
+    design_fallback: bool = True,
+) -> GainDesign:
+    """Verified gains to render in grid cell ``cell`` of ``key`` until its design is done.
+
+    Tries, in order, ``candidates`` (gains already known, most transparent first), then the
+    generic gains of :data:`INTERIM_LADDER`; returns the first that passes
+    :func:`verify_gains`. If none does and ``design_fallback``, a proportional design of the cell
+    (:func:`shared.gain_design.design_cell` with ``mode="p"``, seconds). A module-level function
+    so that a worker process can run it.
+
+    Returns
+    -------
+    GainDesign
+        For this key and cell (``k_o_range`` the cell's checked range); ``design_ms`` the time it
+        took.
+
+    Raises
+    ------
+    ValueError
+        Nothing passed (and, with ``design_fallback``, not even a proportional design is stable
+        over the box).
+    """
+    t0 = time.perf_counter()
+    lo, hi = _cell_range(key, cell, grid_ratio)
+    n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
+    tries: list[tuple[float, float, float, Literal["zoh", "foh"]]] = [
+        (c.k_h, c.i_gain, c.b_h, c.proxy_hold) for c in candidates
+    ]
+    tries += [
+        (min(a * lo, key.k_h_max), b * lo, key.b_h_max, "zoh")
+        for a, b in INTERIM_LADDER
+        if b == 0.0 or (key.mode == "pi" and key.b_h_max > 0.0)
+    ]
+    seen: set[tuple[float, float, float, str]] = set()
+    for k_h, i_gain, b_h, hold in tries:
+        if (k_h, i_gain, b_h, hold) in seen or k_h > key.k_h_max or b_h > key.b_h_max:
+            continue
+        seen.add((k_h, i_gain, b_h, hold))
+        ok, rho = verify_gains(
+            key, cell, grid_ratio, hand_box, k_h=k_h, i_gain=i_gain, b_h=b_h, proxy_hold=hold
+        )
+        if not ok:
+            continue
+        g = grid_ratio**cell
+        felt = [
+            float(
+                felt_stiffness(
+                    hz,
+                    k_o=g,
+                    k_h=k_h,
+                    i_gain=i_gain,
+                    b_h=b_h,
+                    b_o=key.b_o,
+                    servo_period_s=1.0 / key.servo_rate_hz,
+                    rate_ratio=n,
+                    delay_ticks=key.delay_ticks,
+                    proxy_hold=hold,
+                )[0]
+                / g
+            )
+            for hz in (1.0, 8.0)
+        ]
+        return GainDesign(
+            k_h=k_h,
+            i_gain=i_gain,
+            b_h=b_h,
+            proxy_hold=hold,
+            worst_spectral_radius=rho,
+            rho_limit=math.exp(-MIN_DECAY_RATE_PER_S * n / key.servo_rate_hz),
+            felt_stiffness_ratio_1hz=felt[0],
+            felt_stiffness_ratio_8hz=felt[1],
+            k_o=g,
+            k_o_range=(lo, hi),
+            rate_ratio=n,
+            delay_ticks=key.delay_ticks,
+            mode="pi" if i_gain > 0.0 else "p",
+            hand_box=hand_box,
+            design_ms=(time.perf_counter() - t0) * 1e3,
+        )
+    if not design_fallback:
+        raise ValueError(f"no known or proportional gains pass in cell {cell} of {key}")
+    d = design_cell(replace(key, mode="p"), cell, grid_ratio, hand_box)
+    return replace(d, design_ms=(time.perf_counter() - t0) * 1e3)
+
+
+def warm_up_worker() -> None:
+    """Import the full-loop code and run it once (a worker process does this while the client
+    joins, so the first check does not also pay for imports)."""
+    from shared.full_loop import DEFAULT_HAND
+
+    monodromy(hand=DEFAULT_HAND, k_o=300.0, k_h=100.0, i_gain=1000.0, b_h=1.0, rate_ratio=50)
 
 
 @dataclass(frozen=True)
@@ -161,10 +388,29 @@ class ClientSession:
         self.gain_table = gain_table if gain_table is not None else GainTable()
         #: (key, K_o) of a design the table lacks; the link designs it off the event loop.
         self.design_wanted: tuple[GainKey, float] | None = None
+        #: (key, cell, candidates) of interim gains to verify (:func:`interim_design`); the link
+        #: runs it off the event loop and calls :meth:`store_interim` or :meth:`interim_failed`.
+        self.interim_wanted: tuple[GainKey, int, tuple[GainDesign, ...]] | None = None
+        #: Verified interim gains per (key, cell), until the cell's design is in the table.
+        self.interim: dict[tuple[GainKey, int], GainDesign] = {}
+        self._interim_asked: set[tuple[GainKey, int]] = set()
+        #: Local times [s] of the first patch received and of the first one rendered (gains
+        #: ready): how long the first contact waited.
+        self.first_patch_s: float | None = None
+        self.first_update_s: float | None = None
+        #: Patches rendered with gains not (yet) verified for their key and cell.
+        self.unverified_patches = 0
+        self._waiting: Patch | None = None
+        self._hello_s: float | None = None
 
     # ------------------------------------------------------------------ outgoing
-    def hello(self) -> str:
-        """The first frame to send on every (re)connection."""
+    def hello(self, now_s: float | None = None) -> str:
+        """The first frame to send on every (re)connection, sent at local time ``now_s`` [s].
+
+        With ``now_s`` the ``welcome`` that answers it gives the first round-trip time, so the
+        very first patch already knows the loop delay (:meth:`delay_ticks`).
+        """
+        self._hello_s = now_s
         return encode(
             Hello(
                 protocol=PROTOCOL_VERSION,
@@ -213,8 +459,14 @@ class ClientSession:
             return None  # surface frames are for viewers
         msg = parse_server(frame)
         if isinstance(msg, Welcome):
+            if self._hello_s is not None:
+                rtt = now_s - self._hello_s
+                if 0.0 <= rtt < 60.0:
+                    self.rtt_s.append(rtt)  # hello -> welcome: a round trip like a ping's
+                self._hello_s = None
             self.welcome = msg
             self.last_patch = None  # a new session: its ticks start afresh
+            self.last_update = None  # and its first patch waits for verified gains again
             return None
         if isinstance(msg, Pong):
             rtt = now_s - msg.t_client_s
@@ -229,7 +481,7 @@ class ClientSession:
             self.room = msg
             return None
         if isinstance(msg, Patch):
-            return self._patch(msg)
+            return self._patch(msg, now_s)
         return None
 
     @property
@@ -282,7 +534,44 @@ class ClientSession:
             b_o=float(math.floor(max(0.0, b_o))),
         )
 
-    def _patch(self, msg: Patch) -> PatchUpdate | None:
+    def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
+        """Keep verified interim gains (from :func:`interim_design`) for (key, cell)."""
+        self.interim[(key, cell)] = design
+
+    def interim_failed(self, key: GainKey, cell: int) -> None:
+        """No interim gains were found for (key, cell): its patches wait for the design."""
+        self._interim_asked.add((key, cell))
+
+    def retry_waiting(self, now_s: float) -> PatchUpdate | None:
+        """Render the newest patch that waited for gains, now that some may be ready.
+
+        The link calls this when a design or interim gains arrive, so the first contact does not
+        also wait for the next patch. Returns None if nothing waited or it still cannot render.
+        """
+        msg, self._waiting = self._waiting, None
+        return None if msg is None else self._patch(msg, now_s)
+
+    def _design_in_use(self, n: int) -> GainDesign | None:
+        lu = self.last_update
+        if lu is None:
+            return None
+        return GainDesign(
+            k_h=lu.k_h,
+            i_gain=lu.i_gain,
+            b_h=lu.b_h,
+            proxy_hold="foh" if lu.proxy_hold == "foh" else "zoh",
+            worst_spectral_radius=lu.spectral_radius,
+            rho_limit=math.nan,
+            felt_stiffness_ratio_1hz=lu.felt_stiffness_ratio_1hz,
+            felt_stiffness_ratio_8hz=math.nan,
+            k_o=lu.k_o_eff,
+            k_o_range=(lu.k_o_eff, lu.k_o_eff),
+            rate_ratio=n,
+            delay_ticks=lu.delay_ticks,
+            mode="pi" if lu.i_gain > 0.0 else "p",
+        )
+
+    def _patch(self, msg: Patch, now_s: float) -> PatchUpdate | None:
         if self.last_patch is not None and msg.tick <= self.last_patch.tick:
             return None  # stale
         prim: Primitive
@@ -298,36 +587,42 @@ class ClientSession:
             n = _rate_ratio(self.servo_rate_hz, self.sim_rate_hz)
         except ValueError as exc:
             raise ProtocolError("unsupported_rates", str(exc)) from None
+        if self.first_patch_s is None:
+            self.first_patch_s = now_s
         d = self.delay_ticks()
         key = self.gain_key(msg.b_o, d)
-        design = self.gain_table.lookup(key, msg.k_o_eff)
+        table = self.gain_table
+        cell = table.cell(msg.k_o_eff)
+        design = table.lookup(key, msg.k_o_eff)
         fallback = design is None
+        verified = True
         if design is None:
             self.design_wanted = (key, msg.k_o_eff)
-            design = self.gain_table.fallback(key, msg.k_o_eff)
-            if design is None and self.last_update is not None:
-                # a new delay or damping: keep rendering the gains in use until the design is done
-                # (patches keep flowing, so the servo's link watchdog stays quiet)
-                lu = self.last_update
-                design = GainDesign(
-                    k_h=lu.k_h,
-                    i_gain=lu.i_gain,
-                    b_h=lu.b_h,
-                    proxy_hold=lu.proxy_hold,  # type: ignore[arg-type]
-                    worst_spectral_radius=lu.spectral_radius,
-                    rho_limit=math.nan,
-                    felt_stiffness_ratio_1hz=lu.felt_stiffness_ratio_1hz,
-                    felt_stiffness_ratio_8hz=math.nan,
-                    k_o=lu.k_o_eff,
-                    k_o_range=(lu.k_o_eff, lu.k_o_eff),
-                    rate_ratio=n,
-                    delay_ticks=lu.delay_ticks,
-                    mode=self.mode,
-                )
+            design = self.interim.get((key, cell))
             if design is None:
-                return None  # the first patch waits for its design (forces are still off)
+                # no gains verified for this key and cell yet: have some checked (fast), and
+                # meanwhile keep the nearest designed cell (no stiffer relative to K_o) or the
+                # gains in use -- never for a first contact, which waits with forces off
+                near = table.fallback(key, msg.k_o_eff)
+                in_use = self._design_in_use(n)
+                if (key, cell) not in self._interim_asked:
+                    self._interim_asked.add((key, cell))
+                    self.interim_wanted = (
+                        key,
+                        cell,
+                        tuple(c for c in (near, in_use) if c is not None),
+                    )
+                design = near if near is not None else in_use
+                if design is None or self.last_update is None:
+                    self._waiting = msg
+                    return None
+                verified = False
+                self.unverified_patches += 1
+        self._waiting = None
         self.last_patch = msg
         self.patches += 1
+        if self.first_update_s is None:
+            self.first_update_s = now_s
         self.last_update = PatchUpdate(
             primitive=prim,
             k_h=design.k_h,
@@ -343,5 +638,6 @@ class ClientSession:
             hold_ticks=n,
             felt_stiffness_ratio_1hz=design.felt_stiffness_ratio_1hz,
             fallback=fallback,
+            verified=verified,
         )
         return self.last_update

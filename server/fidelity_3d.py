@@ -474,7 +474,12 @@ def run_3d_cell(
             passivity_energy_bias_j=r.passivity_bias_j if r.passivity else 1e-3,
         )
         core = ServoCore(dev, cfg, local_model=lm, recorder=TelemetryRecorder(capacity=64))
-        patch_kw: dict[str, Any] = {"b_h": r.b_h, "proxy_hold": r.proxy_hold, "hold_ticks": N}
+        patch_kw: dict[str, Any] = {
+            "b_h": r.b_h,
+            "proxy_hold": r.proxy_hold,
+            "hold_ticks": N,
+            "k_o": k_o,
+        }
         core.set_patch(out0.primitive, r.k_h, r.i_gain, **patch_kw)
         core.enable_forces()
         sent: dict[int, ContactInput] = {}

@@ -15,11 +15,30 @@ state ``lambda = s / (T*I)`` (see :func:`shared.stability.local_model_state_spac
 The integration threshold theta (section 5.1):
 
 - ``fixed`` (eq. 17): theta = 0 out of contact, theta_bar in contact;
-- ``variable`` (eq. 18): theta_1 while penetrating (e growing); while exiting (e shrinking) theta
-  grows linearly with the integral force s up to theta_2, reached when s >= i_tot_bar. The paper
-  prints the exiting branch as theta_2 / I_tot, which its own text ("grows linearly ... up to a
-  certain limit and then is fixed to such limit") contradicts; we implement the text:
-  theta = theta_2 * min(1, s / i_tot_bar).
+- ``variable`` (eq. 18): theta_1 while penetrating or holding; while exiting theta grows linearly
+  with the integral force s up to theta_2, reached when s >= i_tot_bar. The paper prints the
+  exiting branch as theta_2 / I_tot, which its own text ("grows linearly ... up to a certain limit
+  and then is fixed to such limit") contradicts; we implement the text:
+  theta = theta_2 * min(1, s / i_tot_bar). "Exiting" is decided each tick from the probe's own
+  depth rate (the user's motion, never the proxy's jumps), low-pass filtered: exiting while it is
+  below ``-direction_deadband_m_s`` (or, without a depth rate, while e falls by more than
+  ``direction_deadband_m`` per tick).
+
+Why eq. 18's branch has no memory. Eq. 18 makes theta a function of the penetration speed *now*.
+An earlier version latched the branch (exiting until a motion inward was seen), which turns eq.
+18 into a relay with hysteresis inside the loop: switching to theta_2 drains the integral, the
+hand sinks back in, which reads as "penetrating", back to theta_1, the integral refills and
+pushes the hand out, which reads as "exiting" ... A relay with hysteresis closed around a lagging
+loop sustains a limit cycle (describing function: the hysteresis is a phase lag, so each cycle
+feeds energy in); with the simulated hand it was 0.55-0.6 mm peak to peak at K_o = 300 and
+1000 N/m once anything (a 2 mm nudge of the hand) set it off, 1 mm in the loopback demo, and no
+speed deadband can stop it because the switch itself moves the probe at tens of mm/s. Without the
+latch the branch is a memoryless function of the filtered speed: the extra integral drain acts
+only while the probe moves out faster than the deadband, so it behaves like a (nonlinear) spring
+on the outward stroke rather than a delayed relay, and nothing is left switched once the motion
+stops. Measured with the simulated hand holding a press, nudged: 0.02-0.09 mm peak to peak (eq.
+17: 0-0.07 mm), no branch switch during the hold; over eleven hands spanning the design's hand
+box at most 0.25 mm (300 N/m) and 0.48 mm (1000 N/m), eq. 17 0.6 mm and one 10 mm bounce.
 
 Contact is unilateral by default: a contact only pushes. Out of contact (e <= 0) the proportional
 term is zero and the integral force is *driven to zero linearly* over ``release_time_s`` rather
@@ -63,14 +82,16 @@ class ThresholdParams:
     i_tot_bar_n : float
         Integral force [N] at which the exiting threshold reaches ``theta_2_m`` (eq. 18's I_tot bar).
     direction_deadband_m : float
-        Penetration change per tick [m] below which the penetrating/exiting state is kept (keeps
-        encoder noise from flipping eq. 18's branch every tick). Used when :meth:`LocalModel.step`
-        is given no probe velocity.
+        Used when :meth:`LocalModel.step` is given no probe velocity: eq. 18 exits on a tick whose
+        penetration falls by more than this [m]; otherwise theta_1.
     direction_deadband_m_s : float
-        With a probe velocity given to :meth:`LocalModel.step`: filtered probe speed along the
-        inward normal [m/s] below which the penetrating/exiting state is kept.
+        With a probe velocity given to :meth:`LocalModel.step`: eq. 18 exits while the filtered
+        probe speed *out* of the object exceeds this [m/s]; slower, still, or inward: theta_1. It
+        must exceed what encoder quantization can make of the filtered speed: a probe whose
+        reported position stays within R counts of q [m] gives at most ``R q / (T + tau)``
+        (:func:`encoder_speed_bound`).
     direction_filter_s : float
-        Time constant [s] of the first-order filter on that probe velocity (> 0).
+        Time constant tau [s] of the first-order filter on that probe velocity (> 0).
 
     Raises
     ------
@@ -103,6 +124,41 @@ class ThresholdParams:
             raise ValueError(f"direction_filter_s must be > 0 s, got {self.direction_filter_s!r}")
         if self.mode == "variable" and self.i_tot_bar_n <= 0.0:
             raise ValueError("i_tot_bar_n must be > 0 for the variable threshold (eq. 18)")
+
+
+def encoder_speed_bound(
+    encoder_resolution_m: float, counts: float, filter_s: float, servo_period_s: float
+) -> float:
+    """Largest filtered speed [m/s] that quantization alone can produce: ``R q / (T + tau)``.
+
+    The filter is ``v_f(n) = v_f(n-1) + a (v(n) - v_f(n-1))``, ``a = T / (T + tau)``, on the
+    backward difference ``v(n) = (x(n) - x(n-1)) / T`` of the reported position. Summing by parts,
+    ``v_f(n) = (a / T) (x(n) - sum_k a (1 - a)^k x(n - 1 - k))`` (from rest): the reported position
+    minus a weighted mean (weights summing to at most 1) of earlier ones. If every reported
+    position lies within ``R`` counts (a band of width ``R q``), ``|v_f| <= a R q / T =
+    R q / (T + tau)``, whatever the pattern of the noise. A still probe dithering over ``R``
+    counts can therefore never drive the filtered speed past this bound.
+
+    Parameters
+    ----------
+    encoder_resolution_m : float
+        Encoder count q [m], >= 0.
+    counts : float
+        Width R of the band of counts the noise spans, >= 0.
+    filter_s, servo_period_s : float
+        Filter time constant tau [s] and servo period T [s], > 0.
+
+    Raises
+    ------
+    ValueError
+        Out-of-range values.
+    """
+    q = _finite_nonneg("encoder_resolution_m", encoder_resolution_m)
+    r = _finite_nonneg("counts", counts)
+    for name, v in (("filter_s", filter_s), ("servo_period_s", servo_period_s)):
+        if not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"{name} must be > 0 s, got {v!r}")
+    return r * q / (servo_period_s + filter_s)
 
 
 @dataclass(frozen=True, slots=True)
@@ -217,9 +273,7 @@ class LocalModel:
         self._in_contact = False
         self._v_f = 0.0
 
-    def set_gains(
-        self, k_h: float, i_gain: float, recovery_m_per_n: float | None = None
-    ) -> None:
+    def set_gains(self, k_h: float, i_gain: float, recovery_m_per_n: float | None = None) -> None:
         """Replace K_h [N/m] and I [N/(m*s)] between ticks; the integral force is kept.
 
         ``recovery_m_per_n`` (1/K_o of the new patch [m/N], see :class:`LocalModelParams`)
@@ -263,20 +317,16 @@ class LocalModel:
             return 0.0
         if th.mode == "fixed":
             return th.theta_m
+        # eq. 18 is a function of the penetration speed *now*: no state is latched (module
+        # docstring, "Why eq. 18's branch has no memory").
         if v is not None:
             # the user's motion decides (never the proxy's jumps): filtered probe depth rate
             self._v_f += self._a_v * (v - self._v_f)
-            if self._v_f > th.direction_deadband_m_s:
-                self._exiting = False
-            elif self._v_f < -th.direction_deadband_m_s:
-                self._exiting = True
+            exiting = self._v_f < -th.direction_deadband_m_s
         else:
-            de = e - self._e_prev
-            if de > th.direction_deadband_m:
-                self._exiting = False
-            elif de < -th.direction_deadband_m:
-                self._exiting = True
-        if not self._exiting:
+            exiting = e - self._e_prev < -th.direction_deadband_m
+        self._exiting = exiting
+        if not exiting:
             return th.theta_1_m
         ratio = self._s / th.i_tot_bar_n
         return th.theta_2_m * (ratio if ratio < 1.0 else 1.0)
@@ -314,6 +364,8 @@ class LocalModel:
             if self._in_contact or self._release_step == 0.0:
                 self._release_step = self._s * p.servo_period_s / p.release_time_s
             self._in_contact = False
+            self._v_f = 0.0  # a new contact starts from rest
+            self._exiting = False
             f = self._s
             s = self._s - self._release_step
             self._s = s if s > 0.0 else 0.0

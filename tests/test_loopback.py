@@ -56,7 +56,7 @@ async def test_two_users_feel_each_other_over_websockets(tmp_path):
     url = f"ws://127.0.0.1:{app.port}/ws"
     info = app.room.object_info
     # A: hand waits 4 s, approaches 1 s, presses 1.5 s to a target ~20 mm in, holds 4 s. B's forces
-    # come on once its first gain design is done (a worker process, about 1-2 s after joining).
+    # come on once its first gains are checked (interim gains, a few hundred ms after joining).
     a_opts = ClientOptions(
         url=url, name="A", device="sim:press", duration_s=12.0, record=tmp_path / "A.csv",
         trajectory={"delay_s": 4.0, "approach_s": 1.0, "press_s": 1.5, "hold_s": 4.0, "release_s": 1.0},

@@ -12,7 +12,7 @@ import pytest
 
 from client.devices.base import Device, DeviceLimits, Vec3
 from client.servo import ServoConfig, ServoCore
-from shared.primitives import Plane, make_plane
+from shared.primitives import Plane, make_plane, make_sphere
 
 T = 1e-3
 RAMP_S = 0.05
@@ -140,6 +140,69 @@ def test_foh_then_the_next_patch_slides_from_where_the_last_one_ended() -> None:
     steps = [b - a for a, b in zip(forces, forces[1:], strict=False)]
     assert steps == pytest.approx([K_H * 0.001 / HOLD] * len(steps), abs=1e-9)
     assert forces[-1] == pytest.approx(K_H * 0.008)
+
+
+@pytest.mark.parametrize("after_ticks", [1, 20, 49])
+def test_foh_patch_arriving_mid_slide_slides_on_from_where_the_proxy_is(after_ticks: int) -> None:
+    """Network jitter: the next patch comes before the slide to the last one is over. The proxy
+    must go on from where it is (the blend reached), never jump back to the last target: no force
+    step larger than the new slide's per-tick increment, and the new surface reached N ticks on."""
+    dev = ScriptedDevice(lambda n: -0.005)  # 5 mm in, at rest
+    core = make_core(dev)
+    core.set_patch(PLANE, K_H, 0.0)
+    run(core, SETTLE)
+    core.set_patch(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD)
+    run(core, after_ticks)
+    reached = 0.002 * after_ticks / HOLD  # where the first slide has got to [m]
+    f_before = dev.fz[-1]
+    assert f_before == pytest.approx(K_H * (0.005 + reached), abs=1e-9)
+    core.set_patch(plane_at(0.004), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD)
+    n0 = len(dev.fz)
+    run(core, HOLD + 10)
+    after = dev.fz[n0:]
+    per_tick = K_H * (0.004 - reached) / HOLD  # the new slide's increment [N]
+    for i, f in enumerate(after):
+        expected = K_H * (0.005 + reached + (0.004 - reached) * min(1.0, (i + 1) / HOLD))
+        assert f == pytest.approx(expected, abs=1e-9), i
+    steps = [abs(b - a) for a, b in zip(dev.fz[n0 - 1 :], after, strict=False)]
+    # (jumping back to the last target first would be a step of K_H * (2 mm - reached))
+    assert max(steps) <= per_tick + 1e-9
+    assert after[-1] == pytest.approx(K_H * 0.009)
+
+
+def test_foh_patches_every_few_ticks_keep_the_force_continuous() -> None:
+    """Patches bunched by jitter (every 7 ticks instead of 50) onto a sphere growing 1 mm each:
+    each new slide starts at the blend, so the force moves in small steps only."""
+    center = (0.0, 0.0, -0.1)
+    dev = ScriptedDevice(lambda n: -0.005)  # 5 mm inside a 100 mm sphere
+    core = make_core(dev)
+    core.set_patch(make_sphere(center, 0.1), K_H, 0.0)
+    run(core, SETTLE)
+    n0 = len(dev.fz)
+    for k in range(1, 6):
+        core.set_patch(make_sphere(center, 0.1 + 0.001 * k), K_H, 0.0, proxy_hold="foh",
+                       hold_ticks=HOLD)  # fmt: skip
+        run(core, 7)
+    run(core, 2 * HOLD)
+    forces = dev.fz[n0 - 1 :]
+    steps = [abs(b - a) for a, b in zip(forces, forces[1:], strict=False)]
+    # the largest slide covers at most 5 mm over HOLD ticks
+    assert max(steps) <= K_H * 0.005 / HOLD + 1e-9
+    assert forces[-1] == pytest.approx(K_H * 0.010, abs=1e-9)
+
+
+def test_zoh_patch_mid_foh_slide_steps_at_once() -> None:
+    """A zero-order-hold patch replaces the surface at once, even mid-slide (that is zoh)."""
+    dev = ScriptedDevice(lambda n: -0.005)
+    core = make_core(dev)
+    core.set_patch(PLANE, K_H, 0.0)
+    run(core, SETTLE)
+    core.set_patch(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD)
+    run(core, 20)
+    core.set_patch(plane_at(0.004), K_H, 0.0, proxy_hold="zoh", hold_ticks=HOLD)
+    n0 = len(dev.fz)
+    run(core, 5)
+    assert dev.fz[n0:] == pytest.approx([K_H * 0.009] * 5)
 
 
 # ----------------------------------------------------------------------------------- damper

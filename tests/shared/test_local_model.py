@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from shared.local_model import LocalModel, LocalModelParams, ThresholdParams
+from shared.local_model import LocalModel, LocalModelParams, ThresholdParams, encoder_speed_bound
 from shared.multirate import simulate, step_metrics
 from shared.primitives import make_plane, make_sphere
 
@@ -68,6 +68,77 @@ def test_variable_threshold_eq18_small_entering_larger_exiting():
     assert lm.theta_m == pytest.approx(0.004 * min(1.0, s / 2.0), rel=0.05)
     lm.step(-0.001)  # no contact: theta = 0
     assert lm.theta_m == 0.0
+
+
+def _variable(deadband_m_s: float = 0.01) -> LocalModel:
+    th = ThresholdParams(
+        mode="variable", theta_1_m=0.0005, theta_2_m=0.003, i_tot_bar_n=1.0,
+        direction_deadband_m_s=deadband_m_s, direction_filter_s=0.02,
+    )  # fmt: skip
+    return LocalModel(LocalModelParams(k_h=300.0, i_gain=3000.0, threshold=th))
+
+
+def test_eq18_exits_only_while_the_probe_moves_out_faster_than_the_deadband():
+    """Eq. 18 is a function of the penetration speed now: theta_2 while the user pulls out, back
+    to theta_1 as soon as the motion stops (no branch is latched: a latched branch is a relay in
+    the loop and sustained a hold limit cycle)."""
+    lm = _variable()
+    e = 0.005
+    for _ in range(300):  # held still, 5 mm in: the integral builds up past i_tot_bar
+        lm.step(e, 0.0)
+    assert lm.theta_m == pytest.approx(0.0005) and lm.integral_n > 1.0
+    for _ in range(60):  # pulling out at 40 mm/s
+        e -= 0.04e-3
+        lm.step(e, -0.04)
+    assert lm.theta_m == pytest.approx(0.003)  # exiting, integral >= i_tot_bar: theta_2
+    for _ in range(200):  # stopped
+        lm.step(e, 0.0)
+    assert lm.theta_m == pytest.approx(0.0005)  # theta_1 again, nothing left switched
+    for _ in range(200):  # moving out slower than the deadband (5 mm/s): a hold, not an exit
+        e -= 0.005e-3
+        lm.step(e, -0.005)
+        assert lm.theta_m == pytest.approx(0.0005)
+
+
+def test_a_new_contact_starts_on_the_penetrating_branch():
+    lm = _variable()
+    for _ in range(100):
+        lm.step(0.004, 0.0)
+    for _ in range(30):
+        lm.step(0.004, -0.05)  # leaving fast
+    assert lm.theta_m == pytest.approx(0.003 * min(1.0, lm.integral_n))
+    lm.step(-0.001, -0.05)  # out
+    lm.step(0.0005, 0.02)  # back in at once
+    assert lm.theta_m == pytest.approx(0.0005)
+
+
+@pytest.mark.parametrize("counts", [1, 2, 3])
+def test_quantization_noise_never_filters_past_the_encoder_speed_bound(counts):
+    """Any position sequence within ``counts`` encoder counts gives a filtered speed of at most
+    counts * q / (T + tau): random noise and the worst pattern (creep up, drop at once)."""
+    q, T, tau = 23e-6, 1e-3, 0.02
+    bound = encoder_speed_bound(q, counts, tau, T)
+    assert bound == pytest.approx(counts * q / (T + tau))
+    rng = np.random.default_rng(counts)
+    phase = [(k // 5) % (2 * counts + 2) for k in range(4000)]
+    creep = [p if p <= counts else 0 for p in phase]  # up a count every 5 ticks, then all down
+    for levels in (rng.integers(0, counts + 1, size=4000), np.array(creep)):
+        th = ThresholdParams(
+            mode="variable", direction_deadband_m_s=1.01 * bound, direction_filter_s=tau
+        )
+        lm = LocalModel(LocalModelParams(k_h=300.0, i_gain=3000.0, threshold=th))
+        x = 0.005 + levels * q
+        v = np.diff(x, prepend=x[0]) / T
+        worst = 0.0
+        v_f = 0.0
+        for vi in v:
+            v_f += T / (T + tau) * (vi - v_f)
+            worst = max(worst, abs(v_f))
+            lm.step(0.005, float(vi))
+            assert lm.theta_m == pytest.approx(th.theta_1_m)  # never the exiting branch
+        assert worst <= bound + 1e-12
+    with pytest.raises(ValueError):
+        encoder_speed_bound(q, counts, 0.0, T)
 
 
 def test_release_drives_the_integral_to_zero_linearly():
