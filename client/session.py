@@ -47,6 +47,7 @@ from shared.gain_design import (
     GainTable,
     design_cell,
     felt_stiffness,
+    loop_delay_ticks,
 )
 from shared.primitives import Primitive, make_plane, make_sphere
 from shared.protocol import (
@@ -503,15 +504,15 @@ class ClientSession:
 
         The force the server samples at tick k+1 reflects patch k only if the patch's trip down,
         the state's age (up to :attr:`state_interval_s`) and its trip up fit in one simulation
-        period; every further period adds one tick: ``ceil((rtt + age) / period) - 1``. The round
+        period; every further period adds one tick (:func:`shared.gain_design.loop_delay_ticks`). The round
         trip is the 90th percentile of the last :data:`RTT_WINDOW` pings (10 s): conservative under
         steady jitter, yet one stall does not make the local model soft for long.
         """
         if not self.rtt_s:
             return 0
         recent = list(self.rtt_s)[-RTT_WINDOW:]
-        worst = float(np.percentile(recent, 90)) + self.state_interval_s
-        return max(0, math.ceil(worst * self.sim_rate_hz - 1e-9) - 1)
+        rtt = float(np.percentile(recent, 90))
+        return loop_delay_ticks(rtt, self.state_interval_s, self.sim_rate_hz)
 
     @property
     def state_interval_s(self) -> float:

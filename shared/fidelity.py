@@ -47,14 +47,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from shared.full_loop import DAMPER_FILTER_S, Hand, ProxyHold, _hand_zoh
-from shared.gain_design import GainDesign
+from shared.gain_design import GainDesign, loop_delay_ticks
 
 FloatArray = NDArray[np.float64]
 SchemeName = Literal[
@@ -217,13 +217,10 @@ PRESS = Trajectory(
 )
 #: Press as above, settle, tap at 4 Hz with 1 mm amplitude for 2 s (8 cycles), hold (the hold
 #: is judged a second after the last tap: the box's lightest-damped hand rings that long alone).
-TAP = Trajectory(
-    "tap",
+TAP = replace(
+    PRESS,
+    name="tap",
     duration_s=6.0,
-    y0_m=-2e-3,
-    y1_m=10e-3,
-    ramp_start_s=0.1,
-    ramp_s=0.4,
     sine_amplitude_m=1e-3,
     sine_hz=4.0,
     sine_start_s=2.0,
@@ -746,19 +743,17 @@ def design_delay_ticks(one_way_delay_s: float, sim_rate_hz: float) -> int:
     """Delay ticks the product's client designs for over a network of this one-way delay.
 
     :meth:`client.session.ClientSession.delay_ticks` with a steady round trip of twice the delay
-    and a state sent every half simulation period: ``ceil((rtt + 0.5 / rate) rate) - 1``.
+    and a state sent every half simulation period
+    (:func:`shared.gain_design.loop_delay_ticks`).
 
     Raises
     ------
     ValueError
         A negative or non-finite delay, or a non-positive rate.
     """
-    if not (math.isfinite(one_way_delay_s) and one_way_delay_s >= 0.0):
-        raise ValueError(f"delay must be finite and >= 0 s, got {one_way_delay_s!r}")
     if not sim_rate_hz > 0.0:
         raise ValueError(f"sim_rate_hz must be > 0, got {sim_rate_hz!r}")
-    worst = 2.0 * one_way_delay_s + 0.5 / sim_rate_hz
-    return max(0, math.ceil(worst * sim_rate_hz - 1e-9) - 1)
+    return loop_delay_ticks(2.0 * one_way_delay_s, 0.5 / sim_rate_hz, sim_rate_hz)
 
 
 def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:

@@ -507,6 +507,35 @@ def design_gains(
     return replace(best[2], design_ms=(time.perf_counter() - t0) * 1e3)
 
 
+def loop_delay_ticks(round_trip_s: float, state_age_s: float, sim_rate_hz: float) -> int:
+    """Extra loop delay D [whole simulation ticks] a design must cover.
+
+    The force the server samples at tick k+1 reflects patch k only if the patch's trip down, the
+    age of the client's state and its trip up fit in one simulation period; every further period
+    adds one tick: ``ceil((round_trip + state_age) * rate) - 1``, at least 0.
+
+    Parameters
+    ----------
+    round_trip_s : float
+        Network round trip [s], >= 0.
+    state_age_s : float
+        Oldest age [s] of the state the server samples (the client's send interval), >= 0.
+    sim_rate_hz : float
+        Simulation rate [Hz], > 0.
+
+    Raises
+    ------
+    ValueError
+        Negative or non-finite times, or a non-positive rate.
+    """
+    for name, v in (("round_trip_s", round_trip_s), ("state_age_s", state_age_s)):
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be finite and >= 0 s, got {v!r}")
+    if not (math.isfinite(sim_rate_hz) and sim_rate_hz > 0.0):
+        raise ValueError(f"sim_rate_hz must be > 0, got {sim_rate_hz!r}")
+    return max(0, math.ceil((round_trip_s + state_age_s) * sim_rate_hz - 1e-9) - 1)
+
+
 #: Ratio between neighbouring K_o grid points of a :class:`GainTable`.
 K_O_GRID_RATIO = 1.1
 

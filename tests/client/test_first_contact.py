@@ -26,29 +26,14 @@ from client.session import (
 )
 from shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from shared.gain_design import GainKey, GainTable
-from shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Pong, Welcome, encode
-
-OBJ = ObjectInfo(
-    n_vertices=6, n_faces=8, center_m=(0, 0, 0), radius_m=0.1, bounds_min_m=(-0.1, -0.1, -0.1),
-    bounds_max_m=(0.1, 0.1, 0.1), top_m=(0, 0, 0.1), top_normal=(0, 0, 1), side_m=(0.1, 0, 0),
-    side_normal=(1, 0, 0),
-)  # fmt: skip
+from shared.protocol import DeviceInfo, Pong, Welcome, encode
+from tests.client.test_session import OBJ
+from tests.client.test_session import patch as session_patch
 
 
 def patch(tick: int, k_o_eff: float = 300.0) -> str:
-    return encode(
-        Patch(
-            tick=tick,
-            primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)),
-            proxy_m=(0, 0, 0.1),
-            normal=(0, 0, 1),
-            penetration_m=0.002,
-            in_contact=True,
-            k_o=k_o_eff,
-            k_o_eff=k_o_eff,
-            b_o=0.0,
-        )  # fmt: skip
-    )
+    """A patch whose contact is not coupled (K_o = K_o_eff)."""
+    return session_patch(tick, k_o_eff, k_o=k_o_eff)
 
 
 def welcome() -> str:

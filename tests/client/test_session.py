@@ -24,7 +24,7 @@ OBJ = ObjectInfo(
 )  # fmt: skip
 
 
-def patch(tick: int, k_o_eff: float = 300.0) -> str:
+def patch(tick: int, k_o_eff: float = 300.0, k_o: float = 320.0) -> str:
     return encode(
         Patch(
             tick=tick,
@@ -33,7 +33,7 @@ def patch(tick: int, k_o_eff: float = 300.0) -> str:
             normal=(0, 0, 1),
             penetration_m=0.002,
             in_contact=True,
-            k_o=320.0,
+            k_o=k_o,
             k_o_eff=k_o_eff,
             b_o=0.0,
         )  # fmt: skip

@@ -31,7 +31,8 @@ from shared.full_loop import DEFAULT_HAND, Hand, spectral_radius
 from shared.gain_design import felt_stiffness
 from shared.local_model import LocalModel, LocalModelParams, ThresholdParams
 from shared.passivity import PassivityController, PassivityParams
-from shared.protocol import ObjectInfo, Welcome, encode
+from shared.protocol import Welcome, encode
+from tests.client.test_session import OBJ
 
 P500 = Rendering("local-p", "coupling", k_h=500.0)
 DIRECT = Rendering("direct", "direct")
@@ -230,21 +231,24 @@ def test_every_scheme_has_a_rendering_and_a_stated_tuning() -> None:
         rendering_for("teleport", sim_rate_hz=20.0)
 
 
-@pytest.mark.parametrize("delay_ms", [0.0, 10.0, 50.0, 100.0, 200.0])
-@pytest.mark.parametrize("rate", [10.0, 20.0, 50.0, 100.0])
-def test_design_delay_ticks_is_what_the_client_measures(delay_ms: float, rate: float) -> None:
+@pytest.mark.parametrize(
+    ("delay_ms", "rate", "ticks"),
+    [(0.0, 20.0, 0), (10.0, 20.0, 0), (50.0, 20.0, 2), (100.0, 20.0, 4), (200.0, 20.0, 8),
+     (10.0, 100.0, 2), (50.0, 10.0, 1)],
+)  # fmt: skip
+def test_design_delay_ticks_is_what_the_client_measures(
+    delay_ms: float, rate: float, ticks: int
+) -> None:
+    # a round trip of twice the delay plus half a period of state age, in whole periods, minus the
+    # one the loop always has: e.g. 20 Hz, 50 ms each way: 100 + 25 ms -> 3 periods -> 2 extra
+    assert design_delay_ticks(delay_ms * 1e-3, rate) == ticks
     s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=1000.0))
-    obj = ObjectInfo(
-        n_vertices=6, n_faces=8, center_m=(0, 0, 0), radius_m=0.1, bounds_min_m=(-0.1, -0.1, -0.1),
-        bounds_max_m=(0.1, 0.1, 0.1), top_m=(0, 0, 0.1), top_normal=(0, 0, 1), side_m=(0.1, 0, 0),
-        side_normal=(1, 0, 0),
-    )  # fmt: skip
     s.receive(
-        encode(Welcome(user_id="u", name="A", role="user", sim_rate_hz=rate, object=obj)), 0.0
+        encode(Welcome(user_id="u", name="A", role="user", sim_rate_hz=rate, object=OBJ)), 0.0
     )
     for _ in range(10):
         s.rtt_s.append(2.0 * delay_ms * 1e-3)
-    assert design_delay_ticks(delay_ms * 1e-3, rate) == s.delay_ticks()
+    assert s.delay_ticks() == ticks
 
 
 def test_bad_input_is_refused() -> None:
