@@ -38,6 +38,7 @@ from typing import Literal
 
 import numpy as np
 
+from shared.coupled_loop import stiff_ratio_class
 from shared.full_loop import HandBox, monodromy
 from shared.gain_design import (
     CREEP_FREQUENCY_HZ,
@@ -45,8 +46,10 @@ from shared.gain_design import (
     GainDesign,
     GainKey,
     GainTable,
+    cell_k_o_range,
     design_cell,
     felt_stiffness,
+    k_o_points,
     loop_delay_ticks,
 )
 from shared.primitives import Primitive, make_plane, make_sphere
@@ -135,11 +138,6 @@ class PatchUpdate:
 INTERIM_LADDER: tuple[tuple[float, float], ...] = ((0.2, 2.0), (0.2, 0.0), (0.1, 0.0), (0.05, 0.0))
 
 
-def _cell_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, float]:
-    g = grid_ratio**cell
-    return (1.0 - key.margin) * g, grid_ratio ** (cell + 1)
-
-
 def verify_gains(
     key: GainKey,
     cell: int,
@@ -191,8 +189,8 @@ def verify_gains(
             raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
     n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
     T = 1.0 / key.servo_rate_hz
-    lo, hi = _cell_range(key, cell, grid_ratio)
-    k_os = sorted({lo, math.sqrt(lo * hi), hi})
+    lo, hi = cell_k_o_range(key, cell, grid_ratio)
+    k_os = k_o_points(lo, hi)
     hands = [h for h in hand_box.hands() for _ in k_os]
     ko = np.tile(np.asarray(k_os, float), len(hand_box.hands()))
     rho_limit = math.exp(-MIN_DECAY_RATE_PER_S * n * T)
@@ -251,7 +249,7 @@ def interim_design(
         over the box).
     """
     t0 = time.perf_counter()
-    lo, hi = _cell_range(key, cell, grid_ratio)
+    lo, hi = cell_k_o_range(key, cell, grid_ratio)
     n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
     tries: list[tuple[float, float, float, Literal["zoh", "foh"]]] = [
         (c.k_h, c.i_gain, c.b_h, c.proxy_hold) for c in candidates
@@ -403,6 +401,9 @@ class ClientSession:
         self.unverified_patches = 0
         self._waiting: Patch | None = None
         self._hello_s: float | None = None
+        #: The coupled contact's K_o_stiff / K_o_eff class in use (GainKey.stiff_ratio), with
+        #: hysteresis: it rises at once and falls only when the ratio is 4x below it.
+        self.stiff_ratio = 1.0
 
     # ------------------------------------------------------------------ outgoing
     def hello(self, now_s: float | None = None) -> str:
@@ -519,10 +520,12 @@ class ClientSession:
         """Interval [s] at which the link sends ``state``: half a simulation period."""
         return 0.5 / self.sim_rate_hz
 
-    def gain_key(self, b_o: float, delay_ticks: int) -> GainKey:
+    def gain_key(self, b_o: float, delay_ticks: int, stiff_ratio: float = 1.0) -> GainKey:
         """What the gain design depends on besides K_o, for this user now.
 
         B_o is quantized *down* to 1 N/m steps (a design for less object damping).
+        ``stiff_ratio`` is the class of ``K_o_stiff / K_o_eff`` of a contact coupled to other
+        users (1 uncoupled; :func:`shared.coupled_loop.stiff_ratio_class`).
         """
         return GainKey(
             servo_rate_hz=float(self.servo_rate_hz),
@@ -533,7 +536,21 @@ class ClientSession:
             k_h_max=float(self.device.max_stiffness_n_per_m),
             b_h_max=float(self.b_h_max),
             b_o=float(math.floor(max(0.0, b_o))),
+            stiff_ratio=float(stiff_ratio),
         )
+
+    def _stiff_class(self, msg: Patch) -> float:
+        """The ratio class to design for, from the patch's ``k_o_eff`` and ``k_o_stiff``.
+
+        Rises to a new class at once (a design for a wider K_o range is the safe side) and
+        falls only when the measured class is a quarter of the one in use, so that a coupling
+        that wavers around a class boundary does not ask for a new design every tick.
+        """
+        new = stiff_ratio_class(msg.k_o_eff, max(msg.k_o_eff, msg.k_o_stiff_or_k_o()))
+        cur = self.stiff_ratio
+        if new > cur or new * 4.0 <= cur:
+            self.stiff_ratio = new
+        return self.stiff_ratio
 
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
         """Keep verified interim gains (from :func:`interim_design`) for (key, cell)."""
@@ -591,7 +608,7 @@ class ClientSession:
         if self.first_patch_s is None:
             self.first_patch_s = now_s
         d = self.delay_ticks()
-        key = self.gain_key(msg.b_o, d)
+        key = self.gain_key(msg.b_o, d, self._stiff_class(msg))
         table = self.gain_table
         cell = table.cell(msg.k_o_eff)
         design = table.lookup(key, msg.k_o_eff)
@@ -614,6 +631,14 @@ class ClientSession:
                         tuple(c for c in (near, in_use) if c is not None),
                     )
                 design = near if near is not None else in_use
+                if near is None and in_use is not None and key.stiff_ratio > 1.0:
+                    # the gains in use were not designed for this coupled contact's stiff
+                    # modes: until verified gains arrive, render them as a proportional model
+                    # scaled to the new K_o_eff (the K_o_eff argument holds for P; the
+                    # integral force already built is kept, frozen)
+                    last = self.last_update
+                    scale = 1.0 if last is None else min(1.0, msg.k_o_eff / last.k_o_eff)
+                    design = replace(in_use, k_h=in_use.k_h * scale, i_gain=0.0, mode="p")
                 if design is None or self.last_update is None:
                     self._waiting = msg
                     return None

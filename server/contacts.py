@@ -8,7 +8,8 @@ Pure functions, run once per simulation tick for every user:
   static").
 - :func:`fit_plane`, :func:`fit_sphere`: the local model's geometric primitive (Adachi et al.
   1995, Balaniuk 1999) as :mod:`shared.primitives` objects.
-- :func:`spectral_radius`, :func:`effective_stiffness`: the coupled slow loop of several contacts
+- :func:`spectral_radius`, :func:`effective_stiffness`, :func:`stiff_stiffness`: the coupled slow
+  loop of several contacts
   ``x(k+1) = C diag(K_h) (x_h - x(k))`` is stable iff ``rho(C diag(K_h)) < 1``; the server reports
   per contact a ``K_o_eff <= K_o`` such that any ``K_h <= K_o_eff`` keeps it stable.
 
@@ -473,4 +474,50 @@ def effective_stiffness(compliance: npt.ArrayLike, k_o: npt.ArrayLike) -> FloatA
         rho = spectral_radius(c[np.ix_(members, members)], k[members])
         if rho > 1.0:
             out[members] = k[members] / rho
+    return out
+
+
+def stiff_stiffness(compliance: npt.ArrayLike, k_o: npt.ArrayLike) -> FloatArray:
+    """Stiffest modal object stiffness ``K_o_stiff >= K_o`` per contact (docs/coupled-users.md).
+
+    For each group of mutually coupled contacts (as in :func:`effective_stiffness`),
+    ``K_o_stiff = K_o / lambda_min(D^1/2 C D^1/2)`` with ``D = diag(K_o)`` on that group, capped at
+    :data:`K_O_MAX` (a rigid mode when ``lambda_min`` is 0); an uncoupled contact keeps ``K_o``.
+    With identical users the modal stiffnesses of the group lie in ``[K_o_eff, K_o_stiff]``
+    (``K_o_eff`` from :func:`effective_stiffness`): a PI local model checked over that whole range
+    is stable in every mode of the coupled loop (:mod:`shared.coupled_loop`), whereas the
+    ``K_o_eff`` argument alone holds for a proportional one only.
+
+    Parameters
+    ----------
+    compliance : (m, m) float [m/N]
+        ``C_ij`` of the contacts taking part (symmetric PSD).
+    k_o : (m,) float [N/m]
+        ``K_o,i = 1 / C_ii`` (or any positive stiffness).
+
+    Returns
+    -------
+    (m,) float64 [N/m], ``K_o <= K_o_stiff <= max(K_o, K_O_MAX)``.
+
+    Raises
+    ------
+    ValueError
+        Shapes mismatch, non-finite entries, negative stiffness.
+    """
+    c, k = _check_ck(compliance, k_o, "k_o")
+    out = k.copy()
+    if len(k) == 0:
+        return out
+    scale = np.sqrt(np.abs(np.diag(c)))
+    coupled = np.abs(c) > _COUPLING_TOL * np.outer(scale, scale)
+    np.fill_diagonal(coupled, True)
+    for members in _coupled_groups(coupled):
+        if len(members) < 2:
+            continue
+        s = np.sqrt(k[members])
+        lam = float(np.linalg.eigvalsh(s[:, None] * c[np.ix_(members, members)] * s[None, :])[0])
+        cap = np.maximum(k[members], K_O_MAX)
+        # a unit-diagonal S has lambda_min <= 1: round-off must not move a contact below K_o
+        stiff = k[members] / lam if lam > 0.0 else cap
+        out[members] = np.clip(stiff, k[members], cap)
     return out

@@ -473,5 +473,6 @@ def _patch(tick: int, res: ContactOutput) -> Patch:
         in_contact=bool(res.in_contact),
         k_o=float(res.k_o),
         k_o_eff=float(res.k_o_eff),
+        k_o_stiff=float(res.k_o if res.k_o_stiff is None else res.k_o_stiff),
         b_o=float(res.b_o),
     )

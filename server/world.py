@@ -43,6 +43,7 @@ from server.contacts import (
     effective_stiffness,
     fit_plane,
     fit_sphere,
+    stiff_stiffness,
 )
 from server.objects import AdmittanceObject
 from shared.primitives import Plane, Sphere
@@ -86,6 +87,10 @@ class ContactOutput:
     k_o_eff : float
         Coupling-aware stiffness [N/m], ``<= k_o`` (DESIGN section 6): choosing ``K_h < k_o_eff``
         keeps the coupled slow loop of all nearby contacts stable.
+    k_o_stiff : float
+        Stiffest modal stiffness of the contact's coupled group [N/m], ``>= k_o`` (equal when
+        uncoupled; None means uncoupled): a PI local model must be stable for every K_o' in
+        ``[k_o_eff, k_o_stiff]`` (docs/coupled-users.md).
     b_o : float
         Object damping divided by the simulation period [N/m] (paper eq. 9); 0 without damping.
     in_contact : bool
@@ -100,6 +105,7 @@ class ContactOutput:
     k_o_eff: float
     b_o: float
     in_contact: bool
+    k_o_stiff: float | None = None
 
 
 #: A probe that moved more than this [m] since last tick is located exactly before loading.
@@ -310,8 +316,11 @@ class World:
         pen = np.array([s.penetration_m for s in located])
         near = np.flatnonzero(pen > -self.proximity_m)
         k_eff = k_o.copy()
+        k_stiff = k_o.copy()
         if len(near):
-            k_eff[near] = effective_stiffness(compliance[np.ix_(near, near)], k_o[near])
+            c_near = compliance[np.ix_(near, near)]
+            k_eff[near] = effective_stiffness(c_near, k_o[near])
+            k_stiff[near] = stiff_stiffness(c_near, k_o[near])
 
         out: dict[str, ContactOutput] = {}
         users: dict[str, _UserState] = {}
@@ -331,6 +340,7 @@ class World:
                 penetration_m=float(s.penetration_m),
                 k_o=float(k_o[i]),
                 k_o_eff=float(k_eff[i]),
+                k_o_stiff=float(k_stiff[i]),
                 b_o=float(b_o[i]),
                 in_contact=bool(s.penetration_m > 0.0),
             )

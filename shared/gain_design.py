@@ -368,7 +368,7 @@ def design_gains(
         raise ValueError(f"holds must name 'zoh' and/or 'foh', got {holds!r}")
     hi = float(k_o if k_o_hi is None else max(k_o, k_o_hi))
     lo = (1.0 - margin) * k_o
-    k_os = sorted({lo, math.sqrt(lo * hi), hi})
+    k_os = k_o_points(lo, hi)
     rho_limit = math.exp(-min_decay_rate_per_s * N * T)
     delay = int(delay_ticks)
     integral = mode == "pi"
@@ -552,6 +552,42 @@ class GainKey:
     k_h_max: float
     b_h_max: float
     b_o: float = 0.0
+    #: ``K_o_stiff / K_o_eff`` class of the contact (:func:`shared.coupled_loop.stiff_ratio_class`):
+    #: 1 uncoupled, 2, 4, ... 256 or inf (rigid) for users coupled through the object. A cell's
+    #: design is checked up to ``coupled_k_o_hi(g_(i+1), stiff_ratio)`` (docs/coupled-users.md).
+    stiff_ratio: float = 1.0
+
+
+#: Largest ratio between neighbouring K_o points a design is checked at (:func:`k_o_points`).
+K_O_CHECK_RATIO = 4.0
+
+
+def k_o_points(lo: float, hi: float) -> list[float]:
+    """The K_o values [N/m] a design over ``[lo, hi]`` is checked at.
+
+    ``lo``, the geometric middle and ``hi`` for a range up to :data:`K_O_CHECK_RATIO` wide; a
+    geometric grid with a ratio of at most :data:`K_O_CHECK_RATIO` between neighbours beyond
+    (a coupled contact's range reaches ``K_O_RIGID`` = 1e6 N/m: about 8 points from 150 N/m).
+    """
+    if hi <= lo:
+        return [float(lo)]
+    n = max(3, 1 + math.ceil(math.log(hi / lo) / math.log(K_O_CHECK_RATIO) - 1e-9))
+    return [float(v) for v in np.geomspace(lo, hi, n)]
+
+
+def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, float]:
+    """``[(1 - margin) g_i, k_o_hi]`` [N/m], the K_o range a :class:`GainTable` cell is checked over.
+
+    ``g_i = grid_ratio**cell``; ``k_o_hi`` is the next grid point, widened for a coupled contact
+    to ``coupled_k_o_hi(g_(i+1), key.stiff_ratio)`` (:mod:`shared.coupled_loop`).
+    """
+    from shared.coupled_loop import coupled_k_o_hi
+
+    g = grid_ratio**cell
+    hi = grid_ratio ** (cell + 1)
+    if key.stiff_ratio != 1.0:
+        hi = max(hi, coupled_k_o_hi(hi, key.stiff_ratio))
+    return (1.0 - key.margin) * g, hi
 
 
 class GainTable:
@@ -660,7 +696,7 @@ def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -
         delay_ticks=key.delay_ticks,
         mode=key.mode,
         margin=key.margin,
-        k_o_hi=grid_ratio ** (cell + 1),
+        k_o_hi=cell_k_o_range(key, cell, grid_ratio)[1],
         k_h_max=key.k_h_max,
         b_h_max=key.b_h_max,
         hand_box=hand_box,

@@ -7,12 +7,14 @@ import pytest
 import trimesh
 
 from server.contacts import (
+    K_O_MAX,
     SurfaceIndex,
     closest_point,
     effective_stiffness,
     fit_plane,
     fit_sphere,
     spectral_radius,
+    stiff_stiffness,
 )
 from server.objects.balloon import Balloon
 from shared.primitives import Plane, Sphere
@@ -192,3 +194,23 @@ def test_two_close_contacts_are_unstable_at_095_k_o_but_stable_at_095_k_o_eff(ba
     stable = run_balloon(safe, 200)
     assert unstable[-1] > 100 * unstable[10]  # growing oscillation
     assert stable[-1] == pytest.approx(float(np.abs(final).max()), rel=1e-4)
+
+
+def test_stiff_stiffness_is_the_stiffest_mode_of_each_coupled_group() -> None:
+    from shared.coupled_loop import compliance_matrix, modal_stiffness
+
+    k_o = 300.0
+    for c in (0.0, 0.5, 0.9):
+        cm = compliance_matrix(k_o, c, users=2)
+        got = stiff_stiffness(cm, [k_o, k_o])
+        assert got == pytest.approx([k_o / (1.0 - c)] * 2)
+    # a rigid mode (users pushing the same point) is capped, never infinite or negative
+    rigid = stiff_stiffness(np.full((2, 2), 1.0 / k_o), [k_o, k_o])
+    assert np.all(rigid == K_O_MAX)
+    # two groups: one coupled pair and a lone contact, which keeps its K_o
+    cm = np.zeros((3, 3))
+    cm[:2, :2] = compliance_matrix(k_o, 0.9, users=2)
+    cm[2, 2] = 1.0 / 500.0
+    got = stiff_stiffness(cm, [k_o, k_o, 500.0])
+    assert got[2] == pytest.approx(500.0)
+    assert got[:2] == pytest.approx(modal_stiffness(cm[:2, :2]).k_o_stiff)

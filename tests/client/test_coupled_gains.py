@@ -1,0 +1,108 @@
+"""Two PI users coupled through the object: the gains the product picks meet the coupled margin.
+
+The server sends each coupled contact ``k_o_stiff`` (its group's stiffest modal stiffness) beside
+``k_o_eff``; the client designs its cell over ``[(1 - margin) g_i, k_o_hi]`` widened by the ratio
+class (docs/coupled-users.md). Checked here end to end: the server's own stiffness functions on a
+two-user compliance, the patch through the wire, the session's design request run as the link
+runs it, and the coupled lifted loop of both users (:func:`shared.coupled_loop.verify_coupled`)
+with those gains, every hand of the verification set and every sampling-tick combination.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from client.session import ClientSession, interim_design
+from server.contacts import effective_stiffness, stiff_stiffness
+from shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
+from shared.protocol import DeviceInfo, Patch, PlaneModel, Welcome, encode
+from tests.client.test_session import OBJ
+
+
+def coupled_patch(tick: int, k_o: float, k_o_eff: float, k_o_stiff: float | None) -> str:
+    return encode(
+        Patch(
+            tick=tick,
+            primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)),
+            proxy_m=(0, 0, 0.1),
+            normal=(0, 0, 1),
+            penetration_m=0.002,
+            in_contact=True,
+            k_o=k_o,
+            k_o_eff=k_o_eff,
+            k_o_stiff=k_o_stiff,
+            b_o=0.0,
+        )  # fmt: skip
+    )
+
+
+def session() -> ClientSession:
+    s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=1000.0), b_h_max=10.0)
+    s.receive(
+        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
+    )
+    return s
+
+
+def test_an_uncoupled_patch_keeps_todays_gain_key() -> None:
+    s = session()
+    s.receive(coupled_patch(1, 300.0, 300.0, None), 0.1)
+    assert s.design_wanted is not None and s.design_wanted[0].stiff_ratio == 1.0
+    s2 = session()
+    s2.receive(coupled_patch(1, 300.0, 300.0, 300.0), 0.1)
+    assert s2.design_wanted is not None and s2.design_wanted[0] == s.design_wanted[0]
+
+
+@pytest.mark.parametrize("coupling", [0.5, 0.9])
+def test_coupled_pi_users_get_gains_that_meet_the_margin_of_the_coupled_loop(
+    coupling: float,
+) -> None:
+    k_o = 300.0
+    c = compliance_matrix(k_o, coupling, users=2)
+    k = np.full(2, k_o)
+    k_eff = effective_stiffness(c, k)
+    k_stiff = stiff_stiffness(c, k)
+    assert k_eff[0] == pytest.approx(k_o / (1 + coupling))
+    assert k_stiff[0] == pytest.approx(k_o / (1 - coupling))
+    s = session()
+    s.receive(coupled_patch(1, k_o, float(k_eff[0]), float(k_stiff[0])), 0.1)
+    assert s.design_wanted is not None
+    key, k_req = s.design_wanted
+    assert key.stiff_ratio >= k_stiff[0] / k_eff[0]
+    s.gain_table.design(key, k_req)  # as the link's worker does
+    up = s.receive(coupled_patch(2, k_o, float(k_eff[0]), float(k_stiff[0])), 0.15)
+    assert up is not None and not up.fallback and up.i_gain > 0.0
+    g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold)  # type: ignore[arg-type]
+    verdict = verify_coupled(c, [g, g], delay_ticks=up.delay_ticks, margin=0.15)
+    assert verdict.meets_margin, verdict
+    # what the product did before (design for K_o_eff alone) does not meet it at 0.9
+    if coupling == 0.9:
+        plain = s.gain_table.design(
+            s.gain_key(0.0, up.delay_ticks, stiff_ratio=1.0), float(k_eff[0])
+        )
+        old = UserGains(plain.k_h, plain.i_gain, plain.b_h, plain.proxy_hold)
+        assert not verify_coupled(c, [old, old], margin=0.15).meets_margin
+
+
+def test_a_new_coupling_class_renders_a_scaled_proportional_model_until_verified() -> None:
+    s = session()
+    assert s.receive(coupled_patch(1, 300.0, 300.0, None), 0.1) is None
+    assert s.interim_wanted is not None
+    key, cell, cands = s.interim_wanted
+    s.interim_wanted = None
+    s.store_interim(key, cell, interim_design(key, cell, 1.1, s.gain_table.hand_box, cands))
+    first = s.retry_waiting(0.15)
+    assert first is not None and first.verified
+    # another user presses nearby: strongly coupled, K_o_eff halves, K_o_stiff is 10x K_o
+    up = s.receive(coupled_patch(2, 300.0, 158.0, 3000.0), 0.2)
+    assert up is not None and not up.verified
+    assert up.i_gain == 0.0
+    assert up.k_h <= first.k_h * 158.0 / 300.0 + 1e-9
+    # the class stays up while the coupling wavers just below it (no design per tick)
+    ratio = s.stiff_ratio
+    s.receive(coupled_patch(3, 300.0, 160.0, 160.0 * ratio / 2.5), 0.25)
+    assert s.stiff_ratio == ratio
+    # and comes down once the users are apart
+    s.receive(coupled_patch(4, 300.0, 300.0, 300.0), 0.3)
+    assert s.stiff_ratio == 1.0
