@@ -12,8 +12,11 @@ State: one normal displacement ``w`` [m] per vertex, outward positive; the curre
   contacts through the water (DESIGN section 5);
 - ``k_f * A``: a weak skin/foundation [N/m^3], ``A = diag(a)`` the lumped vertex areas [m^2];
 - ``kappa * a a^T``: the enclosed water. ``a^T w`` is the volume change [m^3] and
-  ``kappa * a^T w`` the pressure change [Pa], so ``kappa`` is in N/m^5. This rank-one term couples
-  every contact: pushing the top in raises the pressure and bulges the sides out.
+  ``dp = -kappa * a^T w`` the pressure change [Pa] (a smaller volume, a higher pressure; it acts
+  outward on every vertex as the load ``-kappa * a (a^T w)``), so ``kappa`` is in N/m^5. For a
+  liquid of bulk modulus ``K_w`` [Pa] (``dp = -K_w dV / V``) filling the mesh's rest volume
+  ``V`` [m^3], ``kappa = K_w / V`` (:func:`server.materials.bulk_term`). This rank-one term
+  couples every contact: pushing the top in raises the pressure and bulges the sides out.
 
 A supported base holds the balloon: vertices within ``base_radius_m`` of the lowest point
 (smallest z) are fixed (``w = 0``), like a balloon resting on a table.
@@ -95,6 +98,11 @@ class BalloonParams:
     user resting 1.5 mm into the equator feels 44 % more force when another presses 10 mm into
     the top. Two contacts 2 cm apart (overlapping patches) are coupled at about 90 %.
 
+    Physically these defaults are a thick silicone shell filled with water (a 7 mm Sylgard 184
+    wall, 1 kPa overpressure), not a latex water balloon, whose 18 um film bends about 6e7 times
+    more easily: see the presets of :mod:`server.materials` (``silicone-ball``,
+    ``water-balloon``, ``soft-tissue``) and :func:`server.materials.material_to_params`.
+
     Parameters
     ----------
     tension : float
@@ -105,8 +113,10 @@ class BalloonParams:
         Skin/foundation stiffness k_f [N/m^3] (>= 0): a spring per unit area pulling each point
         back to rest. Keep it small: it holds the sides in place and kills the water coupling.
     bulk : float
-        Water bulk term kappa [N/m^5] (>= 0): pressure change [Pa] per enclosed volume change
-        [m^3]. Large means nearly incompressible water.
+        Water bulk term kappa [N/m^5] (>= 0): pressure rise [Pa] per m^3 of enclosed volume
+        lost, ``dp = -kappa * dV``. ``kappa = K_w / V`` for a liquid of bulk modulus K_w [Pa]
+        filling the rest volume V [m^3] (the default 1e12 is 4.2 GPa on the default mesh,
+        V = 4.18e-3 m^3; water is 2.2 GPa). Large means nearly incompressible water.
     damping : float
         Visco-elastic damping b [N*s/m^3] (>= 0): damping pressure [Pa] per normal speed [m/s],
         paper eq. (9). 0 gives the static admittance of eq. (6).

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from server.objects.mesh import MeshError, default_balloon, load_mesh
+from server.objects.mesh import (
+    MeshError,
+    default_balloon,
+    load_mesh,
+    mesh_size_m,
+    mesh_warnings,
+    scale_mesh_to_size,
+)
 
 
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, extra: str = "") -> Path:
@@ -151,3 +158,51 @@ def test_scene_with_two_bodies_is_flattened_into_one_mesh(tmp_path):
     assert m.is_watertight
     assert m.volume == pytest.approx(2.0)
     assert m.extents[0] == pytest.approx(4.0)
+
+
+# ------------------------------------------------------------------------------ sanity warnings
+def test_the_default_balloon_draws_no_warning():
+    assert mesh_warnings(default_balloon(), patch_radius_m=0.015) == []
+
+
+def test_a_sphere_exported_in_millimetres_warns_and_suggests_the_scale(tmp_path):
+    path = tmp_path / "ball_mm.stl"
+    default_balloon(radius_m=100.0).export(path)  # a 0.1 m balloon written in millimetres
+    mesh = load_mesh(path)
+    warnings = mesh_warnings(mesh, where=str(path))
+    assert len(warnings) == 1, warnings
+    assert "ball_mm.stl" in warnings[0] and "200 m across" in warnings[0]
+    assert "--mesh-scale 0.001" in warnings[0] and "--mesh-size" in warnings[0]
+    assert mesh_warnings(load_mesh(path, scale=0.001)) == []
+    assert mesh_warnings(load_mesh(path, target_size_m=0.2)) == []
+
+
+def test_a_tiny_object_warns_and_suggests_mesh_size():
+    warnings = mesh_warnings(default_balloon(radius_m=0.002))
+    assert any("outside 1 cm - 2 m" in w and "--mesh-size" in w for w in warnings), warnings
+
+
+def test_an_eight_vertex_box_warns_that_it_cannot_dent():
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    warnings = mesh_warnings(box, where="box.stl")
+    assert len(warnings) == 1, warnings
+    assert "box.stl: only 8 vertices" in warnings[0]
+
+
+def test_a_mesh_too_coarse_for_the_finger_pad_warns():
+    coarse = default_balloon(subdivisions=3)  # 642 vertices, 15 mm edges
+    warnings = mesh_warnings(coarse, patch_radius_m=0.015)
+    assert len(warnings) == 1 and "too coarse for a finger pad" in warnings[0], warnings
+    # the same mesh is fine for a finger pad twice as wide
+    assert mesh_warnings(coarse, patch_radius_m=0.03) == []
+
+
+def test_scale_mesh_to_size_sets_the_largest_extent_and_keeps_proportions():
+    box = trimesh.creation.box(extents=(100.0, 50.0, 20.0))
+    scaled = scale_mesh_to_size(box.vertices, 0.2)
+    assert mesh_size_m(scaled) == pytest.approx(0.2)
+    assert np.allclose(np.ptp(scaled, axis=0), [0.2, 0.1, 0.04])
+    assert np.allclose(box.vertices, trimesh.creation.box(extents=(100.0, 50.0, 20.0)).vertices)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="size_m"):
+            scale_mesh_to_size(box.vertices, bad)
