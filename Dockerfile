@@ -15,4 +15,7 @@ RUN cd web && npm ci --no-audit --no-fund
 
 EXPOSE 8765
 ENTRYPOINT ["haptic"]
-CMD ["server", "--host", "0.0.0.0", "--port", "8765"]
+# Off loopback the server requires tokens: mount a token file (lines "TOKEN ROLE [NAME]"), e.g.
+#   docker run -v $PWD/tokens.txt:/run/secrets/haptic_tokens:ro -p 8765:8765 haptic-collab
+# and open http://localhost:8765/#token=... (docs/security.md; add TLS on a real network).
+CMD ["server", "--host", "0.0.0.0", "--port", "8765", "--token-file", "/run/secrets/haptic_tokens"]

@@ -15,15 +15,23 @@ design. After each design or check the checker verifies gains for the neighbouri
 more tick of delay ahead of need. The one exception is the check a first contact waits for:
 nothing is rendered yet (forces are off), so it runs at once in a thread of this process rather
 than waiting for a worker to start.
+
+Security: the link presents a token in ``hello`` (``token=`` or the ``HAPTIC_TOKEN`` environment
+variable) and never logs it; a ``wss://`` URL is verified against the system's CAs or ``ca_file``
+(``HAPTIC_CA_FILE``). A server that answers ``unauthorized`` is not retried: :meth:`Link.run`
+raises ``ValueError``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import multiprocessing
+import os
 import random
+import ssl
 from collections.abc import Callable
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
@@ -44,6 +52,13 @@ from shared.protocol import ProtocolError, Welcome
 log = logging.getLogger("haptic.client")
 
 PING_INTERVAL_S = 0.5
+#: Environment variables read when no token or CA file is given.
+TOKEN_ENV = "HAPTIC_TOKEN"
+CA_FILE_ENV = "HAPTIC_CA_FILE"
+
+
+class Unauthorized(Exception):
+    """The server refused this client's token (``unauthorized``): retrying cannot help."""
 
 
 class Link:
@@ -71,6 +86,11 @@ class Link:
     check_executor : Executor, optional
         Where interim gains are checked (default: a second worker process; with a
         ``design_executor`` given and no ``check_executor``, the design executor).
+    token : str, optional
+        Sent in ``hello`` (default: ``$HAPTIC_TOKEN``; none when unset or empty).
+    ca_file : str, optional
+        PEM file of the CA that signed a ``wss://`` server's certificate (default:
+        ``$HAPTIC_CA_FILE``, else the system's CAs).
     """
 
     def __init__(
@@ -85,8 +105,12 @@ class Link:
         backoff_s: tuple[float, float] = (0.2, 5.0),
         design_executor: Executor | None = None,
         check_executor: Executor | None = None,
+        token: str | None = None,
+        ca_file: str | None = None,
     ) -> None:
         self.url = url
+        self._token = token if token is not None else (os.environ.get(TOKEN_ENV) or None)
+        self.ca_file = ca_file if ca_file is not None else (os.environ.get(CA_FILE_ENV) or None)
         self.session = session
         self.on_patch = on_patch
         self.sample = sample
@@ -279,11 +303,17 @@ class Link:
         if self.session.role == "user":
             self._ensure_executor()
         delay = self.backoff_s[0]
+        tls = self.ssl_context()
         while not stop.is_set():
             joins = self.joins
             try:
-                async with connect(self.url, max_size=8 * 1024 * 1024, open_timeout=5.0) as ws:
+                async with connect(
+                    self.url, max_size=8 * 1024 * 1024, open_timeout=5.0, ssl=tls
+                ) as ws:
                     await self._serve(ws, stop)
+            except Unauthorized as exc:
+                self.close()
+                raise ValueError(f"{self.url} refused this client: {exc}") from None
             except (OSError, InvalidHandshake, TimeoutError, ConnectionClosed) as exc:
                 if not stop.is_set():
                     log.info("link to %s down (%s); retrying in %.1f s", self.url, exc, delay)
@@ -300,8 +330,34 @@ class Link:
             delay = min(self.backoff_s[1], delay * 2.0)
         self.close()
 
+    def ssl_context(self) -> ssl.SSLContext | None:
+        """TLS context for a ``wss://`` URL (verifying against ``ca_file`` if given), else None.
+
+        Raises
+        ------
+        ValueError
+            A CA file given for a ``ws://`` URL, or one that cannot be read.
+        """
+        if not self.url.lower().startswith("wss://"):
+            if self.ca_file:
+                raise ValueError(f"--ca-file needs a wss:// URL, got {self.url!r}")
+            return None
+        try:
+            return ssl.create_default_context(cafile=self.ca_file)
+        except (OSError, ssl.SSLError) as exc:
+            raise ValueError(f"cannot use CA file {self.ca_file}: {exc}") from None
+
+    def hello_frame(self) -> str:
+        """The session's ``hello`` with this link's token, if any."""
+        frame = self.session.hello(self.clock())
+        if self._token is None:
+            return frame
+        msg = json.loads(frame)
+        msg["token"] = self._token
+        return json.dumps(msg, separators=(",", ":"))
+
     async def _serve(self, ws: ClientConnection, stop: asyncio.Event) -> None:
-        await ws.send(self.session.hello(self.clock()))
+        await ws.send(self.hello_frame())
         sender = asyncio.create_task(self._send_loop(ws))
         stopper = asyncio.create_task(stop.wait())
         try:
@@ -335,6 +391,8 @@ class Link:
                 err = self.session.errors[-1]
                 level = logging.ERROR if err.fatal else logging.WARNING
                 log.log(level, "server: %s (%s)", err.message, err.code)
+                if err.fatal and err.code == "unauthorized":
+                    raise Unauthorized(f"{err.message} (unauthorized)")
             if self.session.interim_wanted is not None:
                 self._start_check()
             if self.session.design_wanted is not None:

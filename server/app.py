@@ -4,6 +4,11 @@ Everything that decides anything lives in :class:`server.room.Room`; this module
 frames between sockets and the room, keeps the simulation on a drift-free schedule and injects
 latency. HTTP ``/`` serves the viewer (web/), ``/vendor/three/...`` the three.js package from
 web/node_modules, ``/status`` a JSON summary; the websocket endpoint is ``/ws``.
+
+With an :class:`ssl.SSLContext` everything is served as ``https://`` and ``wss://``. Browser
+handshakes are checked by ``Origin`` (:func:`server.security.origin_allowed`), each connection is
+registered with its source address (the room budgets per address), and a consumer whose send
+buffer stays full for ``send_timeout_s`` (10 s) is dropped, viewers included.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ import contextlib
 import json
 import logging
 import mimetypes
+import ssl
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,12 +33,15 @@ from websockets.http11 import Request, Response
 
 from server.latency import LinkConfig, LinkShaper
 from server.room import Outgoing, Room
+from server.security import is_loopback, origin_allowed
 from shared.protocol import ErrorMsg, encode
 
 log = logging.getLogger("haptic.server")
 
 #: websockets' own frame limit; the room answers frames above its smaller limit with an error.
 WS_MAX_SIZE = 64 * 1024
+#: A consumer whose send buffer stays full this long [s] is dropped.
+SEND_TIMEOUT_S = 10.0
 WEB_DIR = Path(__file__).resolve().parent.parent / "web"
 _STATIC_SUFFIXES = {".html", ".js", ".mjs", ".css", ".json", ".png", ".svg", ".ico", ".map"}
 
@@ -99,6 +108,12 @@ class ServerApp:
         Seed of the latency injection's random draws (reproducible runs).
     web_dir : Path
         The viewer's files.
+    ssl_context : ssl.SSLContext, optional
+        Serve ``https://`` and ``wss://`` with it (``haptic server --tls-cert/--tls-key``).
+    allowed_origins : iterable of str
+        Browser origins allowed besides the server's own (``--allow-origin``; ``*``: any).
+    send_timeout_s : float
+        Drop a consumer whose send buffer stays full this long [s].
     """
 
     def __init__(
@@ -109,6 +124,9 @@ class ServerApp:
         link: LinkConfig | None = None,
         seed: int = 0,
         web_dir: Path = WEB_DIR,
+        ssl_context: ssl.SSLContext | None = None,
+        allowed_origins: tuple[str, ...] | frozenset[str] = (),
+        send_timeout_s: float = SEND_TIMEOUT_S,
     ) -> None:
         self.room = room
         self.host = host
@@ -116,6 +134,13 @@ class ServerApp:
         self.link = link or LinkConfig()
         self.seed = seed
         self.web_dir = web_dir
+        self.ssl_context = ssl_context
+        self.allowed_origins = frozenset(o.rstrip("/") for o in allowed_origins)
+        self.send_timeout_s = float(send_timeout_s)
+        #: Consumers dropped because their send buffer stayed full.
+        self.send_timeouts = 0
+        #: Browser handshakes refused for their Origin.
+        self.origins_refused = 0
         self._peers: dict[str, _Peer] = {}
         self._next_conn = 0
         self._server: Server | None = None
@@ -130,6 +155,7 @@ class ServerApp:
             self.host,
             self.port,
             process_request=self._process_request,
+            ssl=self.ssl_context,
             max_size=WS_MAX_SIZE,
             max_queue=64,
             close_timeout=1.0,
@@ -169,7 +195,14 @@ class ServerApp:
     def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
         path = request.path.split("?", 1)[0]
         if path in ("/ws", "/ws/"):
-            return None
+            origin = request.headers.get("Origin")
+            if origin_allowed(
+                origin, request.headers.get("Host"), self.allowed_origins, is_loopback(self.host)
+            ):
+                return None
+            self.origins_refused += 1
+            log.warning("refused a websocket handshake from origin %.100r", origin)
+            return _text(HTTPStatus.FORBIDDEN, "origin not allowed (see --allow-origin)\n")
         if path == "/status":
             body = json.dumps(self.status())
             return _text(HTTPStatus.OK, body, "application/json")
@@ -191,6 +224,11 @@ class ServerApp:
             "latency_ms": self.link.latency_ms,
             "jitter_ms": self.link.jitter_ms,
             "loss": self.link.loss,
+            "tls": self.ssl_context is not None,
+            "auth": room.auth is not None,
+            "force_clamps": sum(room.clamp_counts.values()),
+            "send_timeouts": self.send_timeouts,
+            "origins_refused": self.origins_refused,
         }
 
     # ------------------------------------------------------------------ websockets
@@ -209,8 +247,9 @@ class ServerApp:
         limits = self.room.limits
         tokens, last = limits.burst, loop.time()
         closing = False
+        address = _address(ws)
         try:
-            self._dispatch(self.room.connect(conn_id, loop.time()))
+            self._dispatch(self.room.connect(conn_id, loop.time(), address))
             async for frame in ws:
                 if closing:
                     continue  # keep draining so the close handshake can complete
@@ -273,19 +312,36 @@ class ServerApp:
         peer.wake.set()
 
     async def _sender(self, peer: _Peer) -> None:
-        """Send queued frames in order until a closing frame or the connection ends."""
+        """Send queued frames in order until a closing frame or the connection ends.
+
+        A send that cannot complete within ``send_timeout_s`` (the peer does not read and its
+        buffer stays full) drops the peer: the room forgets it and the socket is aborted.
+        """
         try:
             while True:
                 await peer.wake.wait()
                 peer.wake.clear()
                 while peer.ready:
                     out = peer.ready.popleft()
-                    await peer.ws.send(out.data)
+                    if out.data is not None:
+                        await asyncio.wait_for(peer.ws.send(out.data), self.send_timeout_s)
+                        if out.on_sent is not None:  # the viewer stream tracks what was sent
+                            out.on_sent()
                     if out.close:
-                        await peer.ws.close(1008, "closed by server, see the error message")
+                        reason = "bye" if out.close_code == 1000 else "closed by server, see error"
+                        await peer.ws.close(out.close_code, reason)
                         return
         except ConnectionClosed:
             return
+        except TimeoutError:
+            self.send_timeouts += 1
+            log.warning(
+                "dropping %s: its send buffer stayed full for %g s",
+                peer.conn_id,
+                self.send_timeout_s,
+            )
+            self.room.disconnect(peer.conn_id)
+            peer.ws.transport.abort()
 
     # ------------------------------------------------------------------ simulation
     async def _sim_loop(self) -> None:
@@ -314,6 +370,15 @@ class ServerApp:
             self.room.stats.record(cost * 1000.0, overran=cost > period)
             self.tick = k
             self._dispatch(outs)
+
+
+def _address(ws: ServerConnection) -> str:
+    """The peer's source address (host part only; ports change on every connection)."""
+    remote = ws.remote_address
+    if isinstance(remote, tuple) and remote:
+        host = str(remote[0])
+        return host.removeprefix("::ffff:")  # an IPv4 peer on a dual-stack socket
+    return "unknown"
 
 
 def _droppable_in(frame: str | bytes) -> bool:

@@ -8,6 +8,11 @@ drift about 0.3 mm per tick along the surface with 0.1 mm jitter, so that the pa
 the misses a slowly moving hand causes. The first ``warmup`` ticks (every patch solved for the
 first time) are reported apart as ``first_tick_ms``.
 
+:func:`bench_viewer_stream` measures what one viewer receives per second while a user presses a
+10k-vertex balloon: the float32 positions sent every tick before (``VTX1``) against the
+displacement stream (:mod:`server.viewer_stream`), as payload and as wire bytes after the
+permessage-deflate compression the server negotiates with browsers.
+
 This is the only server module allowed to read a clock (``time.perf_counter``).
 """
 
@@ -17,6 +22,7 @@ import ctypes
 import json
 import math
 import time
+import zlib
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -25,7 +31,9 @@ import numpy as np
 
 from server.objects.balloon import Balloon, BalloonParams
 from server.objects.mesh import default_balloon
+from server.viewer_stream import DEFAULT_BYTES_PER_S, ViewerStream, ViewerStreamDecoder
 from server.world import ContactInput, World
+from shared.protocol import encode_faces, encode_vertices
 
 #: (setter, getter) symbol pairs of the OpenBLAS builds numpy and scipy ship
 _BLAS_THREAD_SYMBOLS = (
@@ -202,6 +210,145 @@ def _bench_mesh(
     return {"n_vertices": n, "build_s": build_s, "runs": runs}
 
 
+#: Phases of the press :func:`bench_viewer_stream` streams: (name, seconds).
+PRESS_PHASES = (("rest", 1.0), ("press", 1.5), ("hold", 3.0), ("release", 1.0), ("after", 2.0))
+
+
+class _WireBytes:
+    """Bytes one websocket message takes on the wire from the server to a browser.
+
+    permessage-deflate as websockets negotiates it by default (deflate, 4 KiB window, memLevel 5,
+    context kept between messages), plus the 2-10 byte frame header (server frames are unmasked).
+    """
+
+    def __init__(self) -> None:
+        self._z = zlib.compressobj(6, zlib.DEFLATED, -12, 5)
+
+    def __call__(self, payload: bytes) -> int:
+        n = len(self._z.compress(payload) + self._z.flush(zlib.Z_SYNC_FLUSH)) - 4
+        return n + (2 if n < 126 else 4 if n < 65536 else 10)
+
+
+def bench_viewer_stream(
+    n_vertices: int = 10242,
+    dent_m: float = 0.010,
+    tremor_m: float = 5e-5,
+    bytes_per_s: float | None = DEFAULT_BYTES_PER_S,
+    seed: int = 0,
+    params: BalloonParams | None = None,
+) -> dict[str, Any]:
+    """Bytes per second one viewer receives while a user presses the top of the balloon.
+
+    The user holds its probe 2 mm into the top and its force follows :data:`PRESS_PHASES`: none
+    (rest), a linear ramp over 1.5 s to ``F = K_o * dent_m`` (press), held with a hand tremor of
+    ``K_o * tremor_m`` N standard deviation per tick (hold), a ramp back to none (release), none
+    (after). Every tick the viewer gets the float32 frame of before (``VTX1``, n x 12 bytes) and,
+    for comparison, the stream's frame (reported sent at once: an ideal link), which the
+    reference decoder applies.
+
+    Parameters
+    ----------
+    n_vertices : int
+        Icosphere vertex count (10 * 4**s + 2).
+    dent_m : float
+        Static depth of the dent at the top under the full force [m].
+    tremor_m : float
+        Standard deviation of the hand tremor, as surface displacement at the top [m].
+    bytes_per_s : float or None
+        The stream's budget per viewer [bytes/s] (None: unlimited).
+    seed : int
+        Seed of the tremor.
+    params : BalloonParams, optional
+        Balloon parameters (default :class:`BalloonParams`, 20 Hz).
+
+    Returns
+    -------
+    dict
+        JSON-able: ``n_vertices``, ``sim_rate_hz``, ``frame_budget_bytes``, ``press_force_n``,
+        ``dent_m`` (deepest displacement reached), ``join_bytes``, ``phases`` ({name: {
+        ``seconds``, ``float32_bytes_per_s``, ``float32_wire_bytes_per_s``,
+        ``stream_bytes_per_s``, ``stream_wire_bytes_per_s``, ``max_error_m`` (largest
+        difference of the decoded surface from the server's), ``partial_frames``}}), ``press``
+        (the same rates over press, hold and release together), ``peak_stream_bytes_per_s``
+        (over any 1 s window).
+
+    Raises
+    ------
+    ValueError
+        A vertex count that is not an icosphere size.
+    """
+    if n_vertices not in _SUBDIVISIONS:
+        raise ValueError(f"{n_vertices} is not an icosphere vertex count (10 * 4**s + 2)")
+    p = params if params is not None else BalloonParams()
+    rate = 1.0 / p.sim_period_s
+    world = World(Balloon(default_balloon(0.1, _SUBDIVISIONS[n_vertices]), p))
+    obj = world.obj
+    rest = np.asarray(obj.rest_vertices)
+    top = rest[int(np.argmax(rest[:, 2]))]
+    probe = top - np.array([0.0, 0.0, 0.002])
+    k_o = world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})["u"].k_o
+    force_n = k_o * dent_m
+    stream = ViewerStream.of_world(world, rate, bytes_per_s)
+    decoder = ViewerStreamDecoder()
+    join = [encode_faces(world.faces), *stream.join("v", 0, world.vertices)]
+    for data in join[1:]:
+        decoder.feed(data)
+    rng = np.random.default_rng(seed)
+    old_wire, new_wire = _WireBytes(), _WireBytes()
+    rows: list[tuple[str, int, int, int, int, float, bool]] = []
+    tick = 0
+    deepest = 0.0
+    for name, seconds in PRESS_PHASES:
+        ticks = round(seconds * rate)
+        for i in range(ticks):
+            ramp = (i + 1) / ticks
+            f = {"rest": 0.0, "press": ramp, "hold": 1.0, "release": 1.0 - ramp, "after": 0.0}
+            push = f[name] * force_n
+            if name == "hold":
+                push += k_o * tremor_m * float(rng.normal())
+            tick += 1
+            world.tick({"u": ContactInput(probe=probe, force=np.array([0.0, 0.0, push]))})
+            old = encode_vertices(tick, world.vertices)
+            frame = stream.frames(tick, world.vertices, ["v"])["v"]
+            frame.sent()
+            decoder.feed(frame.data)
+            err = float(np.max(np.linalg.norm(decoder.vertices - world.vertices, axis=1)))
+            deepest = min(deepest, float(np.min(stream.displacement(world.vertices))))
+            rows.append(
+                (name, len(old), old_wire(old), len(frame.data), new_wire(frame.data), err,
+                 frame.partial)
+            )  # fmt: skip
+
+    def rates(selected: list[tuple[str, int, int, int, int, float, bool]]) -> dict[str, Any]:
+        k = max(len(selected), 1)
+        return {
+            "seconds": len(selected) / rate,
+            "float32_bytes_per_s": sum(r[1] for r in selected) * rate / k,
+            "float32_wire_bytes_per_s": sum(r[2] for r in selected) * rate / k,
+            "stream_bytes_per_s": sum(r[3] for r in selected) * rate / k,
+            "stream_wire_bytes_per_s": sum(r[4] for r in selected) * rate / k,
+            "max_error_m": max((r[5] for r in selected), default=0.0),
+            "partial_frames": sum(r[6] for r in selected),
+        }
+
+    window = max(1, round(rate))
+    sizes = np.array([r[3] for r in rows], dtype=float)
+    peak = np.convolve(sizes, np.ones(window), "valid").max() if len(sizes) >= window else 0.0
+    return {
+        "benchmark": "viewer_stream",
+        "n_vertices": n_vertices,
+        "sim_rate_hz": rate,
+        "frame_budget_bytes": stream.frame_budget_bytes,
+        "press_force_n": force_n,
+        "dent_m": -deepest,
+        "tremor_m": tremor_m,
+        "join_bytes": sum(len(f) for f in join),
+        "phases": {n: rates([r for r in rows if r[0] == n]) for n, _ in PRESS_PHASES},
+        "press": rates([r for r in rows if r[0] in ("press", "hold", "release")]),
+        "peak_stream_bytes_per_s": float(peak),
+    }
+
+
 def run(json_out: bool) -> dict[str, Any]:
     """Run the default benchmark (about 1-2 minutes) and print JSON or a short table.
 
@@ -216,6 +363,7 @@ def run(json_out: bool) -> dict[str, Any]:
         The :func:`bench_world` result.
     """
     result = bench_world()
+    result["viewer_stream"] = stream = bench_viewer_stream()
     if json_out:
         print(json.dumps(result, indent=2))
     else:
@@ -226,6 +374,17 @@ def run(json_out: bool) -> dict[str, Any]:
                     f"    {r['users']:>3} users: median {r['median_ms']:.2f} ms, "
                     f"p99 {r['p99_ms']:.2f} ms, {r['solves_per_tick']:.2f} solves/tick"
                 )
+        print(
+            f"viewer bytes/s at {stream['n_vertices']} vertices, {stream['sim_rate_hz']:g} Hz, "
+            f"a {stream['dent_m'] * 1e3:.1f} mm press (payload / on the wire, kB/s):"
+        )
+        for name, r in [*stream["phases"].items(), ("press+hold+release", stream["press"])]:
+            print(
+                f"    {name:>18}: float32 {r['float32_bytes_per_s'] / 1e3:7.1f} / "
+                f"{r['float32_wire_bytes_per_s'] / 1e3:7.1f}   stream "
+                f"{r['stream_bytes_per_s'] / 1e3:6.1f} / {r['stream_wire_bytes_per_s'] / 1e3:6.1f}"
+                f"   max error {r['max_error_m'] * 1e3:.3f} mm"
+            )
     return result
 
 

@@ -13,19 +13,29 @@ The asyncio layer (:mod:`server.app`) only moves frames: it calls :meth:`Room.co
 :meth:`Room.receive`, :meth:`Room.disconnect` and :meth:`Room.tick` and sends what they return.
 Hostile input never reaches the world: a bad frame gets an ``error`` reply on that connection only
 (and a close where the connection cannot go on); the object and every other user are unaffected.
+
+Safety (DESIGN section 7b): with a :class:`server.security.TokenTable` every ``hello`` must carry
+a valid token (``unauthorized`` otherwise); every reported force is bounded by what that user's
+local model could render at the penetration the server computes (:mod:`server.force_bound`,
+``force_clamped``); and each source address has its own pre-hello, frame-rate and byte budgets
+besides each connection's, so one address cannot lock others out or saturate the room.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from server.force_bound import BoundedForce, ForceBoundParams, bound_force
+from server.security import TokenBucket, TokenTable
+from server.viewer_stream import ViewerStream
 from server.world import ContactInput
+from shared.primitives import Plane, Sphere
 from shared.protocol import (
     MAX_CLIENT_FRAME_BYTES,
     MAX_PROBE_DISTANCE_M,
@@ -49,7 +59,7 @@ from shared.protocol import (
     Welcome,
     encode,
     encode_faces,
-    encode_vertices,
+    frame_size_bytes,
     parse_client,
 )
 
@@ -63,18 +73,23 @@ class Outgoing:
 
     ``stream`` names a latest-wins stream (a newer frame of the same stream replaces a queued
     older one); None marks an event, delivered in order. ``close`` asks the I/O layer to close the
-    connection after sending.
+    connection after sending (``data`` None: close without sending), with websocket close code
+    ``close_code`` (1000 after ``bye``, 1008 after a fatal error). ``on_sent``, when set, must be
+    called right after ``data`` is written to the socket (never for a dropped frame): the viewer
+    stream counts on it to know what each viewer holds (:mod:`server.viewer_stream`).
     """
 
     conn_id: str
-    data: str | bytes
+    data: str | bytes | None
     stream: str | None = None
     close: bool = False
+    close_code: int = 1008
+    on_sent: Callable[[], None] | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class RoomLimits:
-    """Abuse limits per connection.
+    """Abuse limits per connection and per source address.
 
     Attributes
     ----------
@@ -83,36 +98,69 @@ class RoomLimits:
     max_viewers : int
         Viewers at once.
     max_pending : int
-        Connections that have not sent ``hello`` yet.
+        Connections that have not sent ``hello`` yet, in total. When full, a newcomer from an
+        address with fewer pending connections evicts the oldest pending connection of the
+        address that holds the most.
+    max_pending_per_address : int
+        Connections from one source address that have not sent ``hello`` yet.
     hello_timeout_s : float
         A connection that has not sent ``hello`` within this [s] is closed.
     max_connections : int
         Users, viewers and pending connections together.
+    max_connections_per_address : int
+        Connections from one source address (a NAT may hide a lab behind one).
     rate_per_s, burst : float
-        Token bucket on incoming frames: sustained frames per second and burst size.
+        Token bucket on incoming frames of one connection: sustained frames/s and burst size.
+    bytes_per_s, bytes_burst : float
+        Token bucket on incoming bytes of one connection [bytes/s, bytes].
+    address_rate_per_s, address_burst : float
+        Frames/s and burst of all connections from one source address together.
+    address_bytes_per_s, address_bytes_burst : float
+        Bytes/s and burst of all connections from one source address together.
     stale_after_s : float
         A user whose last state is older than this [s] no longer loads the object.
     max_errors : int
         Non-fatal errors on one connection before it is closed.
+    clamp_report_interval_s : float
+        At most one ``force_clamped`` error per user per this interval [s] (clamps are all
+        counted, see :meth:`Room.force_clamps`).
     """
 
     max_users: int = 32
     max_viewers: int = 64
     max_pending: int = 32
+    max_pending_per_address: int = 8
     hello_timeout_s: float = 5.0
     max_connections: int = 128
+    max_connections_per_address: int = 64
     rate_per_s: float = 400.0
     burst: float = 400.0
+    bytes_per_s: float = 64 * 1024
+    bytes_burst: float = 64 * 1024
+    address_rate_per_s: float = 2000.0
+    address_burst: float = 2000.0
+    address_bytes_per_s: float = 1024 * 1024
+    address_bytes_burst: float = 1024 * 1024
     stale_after_s: float = 0.5
     max_errors: int = 50
+    clamp_report_interval_s: float = 1.0
+
+
+@dataclass
+class _Address:
+    """Budgets shared by every connection from one source address."""
+
+    frames: TokenBucket
+    bytes: TokenBucket
 
 
 @dataclass
 class _Conn:
     conn_id: str
     connected_at_s: float
-    tokens: float
-    last_refill_s: float
+    address: str
+    frames: TokenBucket
+    bytes: TokenBucket
     hello: Hello | None = None
     user_id: str = ""
     state: State | None = None
@@ -120,6 +168,12 @@ class _Conn:
     errors: int = 0
     closed: bool = False
     output: ContactOutput | None = None
+    #: (primitive, K_o) of the latest patches, newest last (the force bound's geometry).
+    recent: deque[tuple[Plane | Sphere, float]] = field(default_factory=lambda: deque(maxlen=3))
+    applied: BoundedForce | None = None
+    applied_at_s: float = -math.inf
+    clamps: int = 0
+    clamp_reported_s: float = -math.inf
 
 
 @dataclass
@@ -194,6 +248,10 @@ class Room:
         Injected latency, announced to clients and viewers.
     limits : RoomLimits
         Abuse limits.
+    auth : TokenTable, optional
+        Tokens the room accepts in ``hello``; None admits everyone (a loopback server).
+    force_bound : ForceBoundParams, optional
+        Tolerances of the bound on reported forces (:mod:`server.force_bound`).
     """
 
     def __init__(
@@ -202,14 +260,22 @@ class Room:
         sim_rate_hz: float,
         link: LinkConditions | None = None,
         limits: RoomLimits | None = None,
+        auth: TokenTable | None = None,
+        force_bound: ForceBoundParams | None = None,
     ) -> None:
         self.world = world
         self.sim_rate_hz = float(sim_rate_hz)
         self.link = link or LinkConditions()
         self.limits = limits or RoomLimits()
+        self.auth = auth
+        self.force_bound = force_bound or ForceBoundParams()
+        self._addresses: dict[str, _Address] = {}
+        #: Clamped force reports per user name since the room started.
+        self.clamp_counts: dict[str, int] = {}
         self.stats = TickStats()
         self.object_info = object_info(world.vertices, world.faces)
         self._faces_frame = encode_faces(world.faces)
+        self._viewer_stream = ViewerStream.of_world(world, self.sim_rate_hz)
         self._conns: dict[str, _Conn] = {}
         self._next_user = 1
         self.tick_count = 0
@@ -225,17 +291,76 @@ class Room:
         """Connection ids of the viewers."""
         return [c.conn_id for c in self._conns.values() if c.hello and c.hello.role == "viewer"]
 
-    def connect(self, conn_id: str, now_s: float) -> list[Outgoing]:
-        """Register a new connection; it must send ``hello`` first."""
-        pending = sum(1 for c in self._conns.values() if c.hello is None)
-        if len(self._conns) >= self.limits.max_connections or pending >= self.limits.max_pending:
+    def connect(self, conn_id: str, now_s: float, address: str = "local") -> list[Outgoing]:
+        """Register a new connection from source ``address`` at ``now_s`` [s].
+
+        It must send ``hello`` first. Refused (a fatal error for ``conn_id``) when the room holds
+        ``max_connections``, when ``address`` holds ``max_connections_per_address`` or
+        ``max_pending_per_address`` connections, or when ``max_pending`` connections wait in
+        total and no address holds more of them than ``address`` does; otherwise, with the
+        pending total full, the oldest pending connection of the address holding the most is
+        closed to make room (the returned frames include its error).
+        """
+        lim = self.limits
+        if len(self._conns) >= lim.max_connections:
             return [self._error(conn_id, "room_full", "too many connections", fatal=True)]
-        self._conns[conn_id] = _Conn(conn_id, now_s, self.limits.burst, now_s)
-        return []
+        same = [c for c in self._conns.values() if c.address == address]
+        if len(same) >= lim.max_connections_per_address:
+            return [
+                self._error(
+                    conn_id,
+                    "too_many_connections",
+                    f"at most {lim.max_connections_per_address} connections per address",
+                    fatal=True,
+                )
+            ]
+        if sum(1 for c in same if c.hello is None) >= lim.max_pending_per_address:
+            return [
+                self._error(
+                    conn_id,
+                    "too_many_pending",
+                    f"at most {lim.max_pending_per_address} connections per address may wait "
+                    "for hello",
+                    fatal=True,
+                )
+            ]
+        out: list[Outgoing] = []
+        pending: dict[str, list[_Conn]] = {}
+        for c in self._conns.values():
+            if c.hello is None:
+                pending.setdefault(c.address, []).append(c)
+        if sum(len(v) for v in pending.values()) >= lim.max_pending:
+            heavy = max(pending.values(), key=len)
+            if len(heavy) <= len(pending.get(address, [])) + 1:
+                return [
+                    self._error(
+                        conn_id, "too_many_pending", "too many connections wait for hello", True
+                    )
+                ]
+            oldest = min(heavy, key=lambda c: c.connected_at_s)
+            out += self._close(oldest, "too_many_pending", "evicted: too many waiting for hello")
+        self._conns[conn_id] = _Conn(
+            conn_id,
+            now_s,
+            address,
+            TokenBucket(lim.rate_per_s, lim.burst, now_s),
+            TokenBucket(lim.bytes_per_s, lim.bytes_burst, now_s),
+            recent=deque(maxlen=max(1, self.force_bound.history_patches)),
+        )
+        if address not in self._addresses:
+            self._addresses[address] = _Address(
+                TokenBucket(lim.address_rate_per_s, lim.address_burst, now_s),
+                TokenBucket(lim.address_bytes_per_s, lim.address_bytes_burst, now_s),
+            )
+        return out
 
     def disconnect(self, conn_id: str) -> None:
         """Forget a connection; a user's load leaves the object from the next tick on."""
         self._conns.pop(conn_id, None)
+
+    def force_clamps(self) -> dict[str, int]:
+        """Clamped force reports per user name (connected or not) since the room started."""
+        return dict(self.clamp_counts)
 
     def _error(self, conn_id: str, code: str, message: str, fatal: bool = False) -> Outgoing:
         return Outgoing(
@@ -250,23 +375,50 @@ class Room:
         conn = self._conns.get(conn_id)
         if conn is None or conn.closed:
             return []
-        # flood control: token bucket
-        conn.tokens = min(
-            self.limits.burst, conn.tokens + (now_s - conn.last_refill_s) * self.limits.rate_per_s
-        )
-        conn.last_refill_s = now_s
-        if conn.tokens < 1.0:
+        size = frame_size_bytes(frame)
+        # flood control: token buckets per connection (frames, bytes), then per source address
+        if not conn.frames.take(1.0, now_s):
             return self._close(
                 conn, "rate_limited", "too many messages; slow down to the simulation rate"
             )
-        conn.tokens -= 1.0
-        if len(frame) > MAX_CLIENT_FRAME_BYTES:
+        if size > MAX_CLIENT_FRAME_BYTES:
             return self._close(
                 conn, "frame_too_large", f"frames are limited to {MAX_CLIENT_FRAME_BYTES} bytes"
             )
+        if not conn.bytes.take(size, now_s):
+            return self._close(conn, "rate_limited", "too many bytes; slow down")
+        out = self._charge_address(conn, size, now_s)
+        if conn.closed:
+            return out
+        return out + self._handle(conn, frame, now_s)
+
+    def _charge_address(self, conn: _Conn, size: int, now_s: float) -> list[Outgoing]:
+        """Charge one frame of ``size`` bytes to the connection's source address.
+
+        When the address has spent its budget, its heaviest connection (the one that spent the
+        largest share of its own budget) is closed with ``rate_limited``; the frame at hand is
+        still admitted when it came from another, lighter connection.
+        """
+        addr = self._addresses.get(conn.address)
+        if addr is None:  # pragma: no cover - created in connect
+            return []
+        if addr.frames.take(1.0, now_s) & addr.bytes.take(size, now_s):
+            return []
+        same = [c for c in self._conns.values() if c.address == conn.address]
+        heavy = min(same, key=lambda c: min(c.frames.fill, c.bytes.fill))
+        addr.frames.level -= 1.0
+        addr.bytes.level -= size
+        return self._close(
+            heavy, "rate_limited", "this address sends too much; its busiest connection is closed"
+        )
+
+    def _handle(self, conn: _Conn, frame: str | bytes, now_s: float) -> list[Outgoing]:
+        conn_id = conn.conn_id
         try:
             msg = parse_client(frame)
         except ProtocolError as exc:
+            if conn.hello is None:  # before hello nothing is kept: a refused frame closes
+                return self._close(conn, exc.code, str(exc))
             return self._soft_error(conn, exc.code, str(exc))
         if conn.hello is None:
             if not isinstance(msg, Hello):
@@ -282,10 +434,10 @@ class Room:
                     stream="pong",
                 )
             ]
-        if isinstance(msg, Bye):
+        if isinstance(msg, Bye):  # leaving on purpose: the I/O layer closes the socket
             conn.closed = True
             self._conns.pop(conn_id, None)
-            return []
+            return [Outgoing(conn_id, None, close=True, close_code=1000)]
         if isinstance(msg, State):
             if conn.hello.role != "user":
                 return self._soft_error(conn, "not_a_user", "viewers do not send state")
@@ -314,17 +466,30 @@ class Room:
                 "protocol_version",
                 f"server speaks protocol {PROTOCOL_VERSION}, client sent {msg.protocol}",
             )
+        bound: str | None = None
+        if self.auth is not None:
+            entry = self.auth.check(msg.token)
+            if entry is None:
+                what = "a token is required" if msg.token is None else "the token is not valid"
+                return self._close(conn, "unauthorized", f"{what} (hello.token)")
+            if msg.role == "user" and entry.role != "user":
+                return self._close(conn, "unauthorized", "this token may only watch (viewer)")
+            bound = entry.name
         if msg.role == "user" and len(self.users) >= self.limits.max_users:
             return self._close(conn, "room_full", f"the room holds {self.limits.max_users} users")
         if msg.role == "viewer" and len(self.viewers) >= self.limits.max_viewers:
             return self._close(
                 conn, "room_full", f"the room holds {self.limits.max_viewers} viewers"
             )
+        # names bound to tokens belong to their token, connected or not
         taken = {c.hello.name for c in self._conns.values() if c.hello}
-        name, k = msg.name, 2
+        if self.auth is not None:
+            taken |= self.auth.bound_names - {bound}
+        base = bound if bound is not None else msg.name
+        name, k = base, 2
         while name in taken:
-            name, k = f"{msg.name}-{k}", k + 1
-        conn.hello = msg.model_copy(update={"name": name})
+            name, k = f"{base}-{k}", k + 1
+        conn.hello = msg.model_copy(update={"name": name, "token": None})  # forget the token
         conn.user_id = f"u{self._next_user}"
         self._next_user += 1
         out = [
@@ -337,13 +502,9 @@ class Room:
         ]
         if msg.role == "viewer":
             out.append(Outgoing(conn.conn_id, self._faces_frame))
-            out.append(
-                Outgoing(
-                    conn.conn_id,
-                    encode_vertices(self.tick_count, self.world.vertices),
-                    stream="vertices",
-                )
-            )
+            # keyframe (rest VTX1, NRM1, dense DSP1) as events: never dropped
+            keyframe = self._viewer_stream.join(conn.conn_id, self.tick_count, self.world.vertices)
+            out += [Outgoing(conn.conn_id, f) for f in keyframe]
         return out
 
     def _state(self, conn: _Conn, msg: State, now_s: float) -> list[Outgoing]:
@@ -381,13 +542,12 @@ class Room:
                 out += self._close(
                     c, "hello_timeout", f"no hello within {self.limits.hello_timeout_s:g} s"
                 )
+        self._forget_idle_addresses(now_s)
         inputs: dict[str, ContactInput] = {}
         for c in self._conns.values():
             if c.state is None or c.hello is None or c.hello.role != "user":
                 continue
-            force = c.state.force_n
-            if now_s - c.state_at_s > self.limits.stale_after_s:
-                force = (0.0, 0.0, 0.0)  # silent user: its hand no longer loads the object
+            force = self._bounded_force(c, now_s, out)
             inputs[c.conn_id] = ContactInput(probe=np.array(c.state.probe_m), force=np.array(force))
         outputs = self.world.tick(inputs)
         for conn_id, res in outputs.items():
@@ -395,15 +555,66 @@ class Room:
             if conn is None:
                 continue
             conn.output = res
+            conn.recent.append((res.primitive, float(res.k_o)))
             out.append(Outgoing(conn_id, encode(_patch(tick, res)), stream="patch"))
         viewers = self.viewers
+        vframes = self._viewer_stream.frames(tick, self.world.vertices, viewers)
         if viewers:
-            vframe = encode_vertices(tick, self.world.vertices)
             summary = encode(self.room_state(tick))
             for v in viewers:
-                out.append(Outgoing(v, vframe, stream="vertices"))
+                vf = vframes[v]
+                out.append(Outgoing(v, vf.data, stream="vertices", on_sent=vf.sent))
                 out.append(Outgoing(v, summary, stream="room"))
         return out
+
+    def _bounded_force(
+        self, c: _Conn, now_s: float, out: list[Outgoing]
+    ) -> tuple[float, float, float]:
+        """The force [N] user ``c`` loads the object with this tick (appends a clamp report)."""
+        assert c.state is not None and c.hello is not None
+        if now_s - c.state_at_s > self.limits.stale_after_s:
+            # silent user: its hand no longer loads the object
+            c.applied = BoundedForce((0.0, 0.0, 0.0), 0.0)
+            c.applied_at_s = now_s
+            return c.applied.force_n
+        s = c.state
+        device = c.hello.device or DeviceInfo()
+        prev = c.applied
+        res = bound_force(
+            s.force_n,
+            s.probe_m,
+            tuple(c.recent),
+            k_h=s.k_h,
+            i_gain=s.i_gain,
+            integral_limit_n=min(device.max_force_n, MAX_REPORTED_FORCE_N),
+            integral_bound_n=prev.integral_bound_n if prev is not None else 0.0,
+            dt_s=now_s - c.applied_at_s,
+            params=self.force_bound,
+        )
+        c.applied, c.applied_at_s = res, now_s
+        if res.reason is not None:
+            c.clamps += 1
+            name = c.hello.name
+            self.clamp_counts[name] = self.clamp_counts.get(name, 0) + 1
+            if now_s - c.clamp_reported_s >= self.limits.clamp_report_interval_s:
+                c.clamp_reported_s = now_s
+                msg = (
+                    f"reported force clamped ({res.reason.replace('_', ' ')}): "
+                    f"{res.excess_n:.3g} N over what your local model can render here "
+                    f"(<= {res.limit_n:.3g} N along the surface normal); {c.clamps} clamps so far"
+                )
+                out.append(self._error(c.conn_id, "force_clamped", msg))
+        return res.force_n
+
+    def _forget_idle_addresses(self, now_s: float) -> None:
+        """Drop the budgets of addresses with no connection once they have refilled."""
+        live = {c.address for c in self._conns.values()}
+        for address in [a for a in self._addresses if a not in live]:
+            budget = self._addresses[address]
+            if budget.frames.refill(now_s) >= budget.frames.burst and (
+                budget.bytes.refill(now_s) >= budget.bytes.burst
+            ):
+                del self._addresses[address]
 
     def room_state(self, tick: int) -> RoomState:
         """The summary viewers get each tick."""
@@ -419,7 +630,8 @@ class Room:
                     probe_m=s.probe_m,
                     proxy_m=_t3(res.proxy) if res is not None else s.probe_m,
                     normal=_t3(res.normal) if res is not None else (0.0, 0.0, 1.0),
-                    force_n=s.force_n,
+                    # the force the server applied (bounded; zero for a silent user)
+                    force_n=c.applied.force_n if c.applied is not None else s.force_n,
                     penetration_m=s.penetration_m,
                     in_contact=s.in_contact,
                     k_o=float(res.k_o) if res is not None else 0.0,

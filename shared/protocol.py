@@ -22,7 +22,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, Strict, TypeAdapter, ValidationError
 
 PROTOCOL_VERSION = 1
 
@@ -32,6 +32,12 @@ MAX_CLIENT_FRAME_BYTES = 16 * 1024
 MAX_REPORTED_FORCE_N = 50.0
 #: Largest probe distance from the origin a client may report [m].
 MAX_PROBE_DISTANCE_M = 100.0
+#: Sequence numbers and ping ids stay below this (the largest integer a JavaScript number holds).
+MAX_SEQ = 2**53
+#: Containers (``[`` plus ``{``) and commas a client frame may hold, counted before parsing: a
+#: valid message has fewer than 10 and 40; the cap bounds nesting depth and array lengths.
+MAX_FRAME_CONTAINERS = 64
+MAX_FRAME_COMMAS = 512
 
 Role = Literal["user", "viewer"]
 
@@ -45,25 +51,46 @@ Vec3 = tuple[Finite, Finite, Finite]
 Name = Annotated[str, Field(min_length=1, max_length=32, pattern=r"^[A-Za-z0-9_.-]+$")]
 
 
+# Inbound (client -> server) fields are strict: no "1" for 1, no true for 1, no "yes" for true; a
+# JSON integer is accepted where a float is expected. Every number has a physical range.
+StrictFinite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+StrictBool = Annotated[bool, Strict()]
+#: A position component [m]: within 1 km of the origin (the room refuses beyond 100 m).
+Coord = Annotated[StrictFinite, Field(ge=-1e3, le=1e3)]
+#: A force component [N]: no device comes near; the room applies the much tighter per-user bound.
+ForceComponent = Annotated[StrictFinite, Field(ge=-1e6, le=1e6)]
+InVec3 = tuple[Coord, Coord, Coord]
+ForceVec3 = tuple[ForceComponent, ForceComponent, ForceComponent]
+Seq = Annotated[int, Strict(), Field(ge=0, lt=MAX_SEQ)]
+
+
 # ----------------------------------------------------------------------------- client -> server
 class DeviceInfo(_Msg):
     """A user's device, as the server and viewers need to know it."""
 
-    profile: Annotated[str, Field(max_length=64)] = "unknown"
-    max_force_n: Annotated[float, Field(gt=0, le=100)] = 7.9
-    max_stiffness_n_per_m: Annotated[float, Field(gt=0, le=1e5)] = 1000.0
+    profile: Annotated[str, Strict(), Field(max_length=64)] = "unknown"
+    max_force_n: Annotated[StrictFinite, Field(gt=0, le=100)] = 7.9
+    max_stiffness_n_per_m: Annotated[StrictFinite, Field(gt=0, le=1e5)] = 1000.0
 
 
 class Hello(_Msg):
-    """First message of every connection."""
+    """First message of every connection.
+
+    ``token`` authenticates the connection when the server requires tokens (``haptic server
+    --token-file`` or ``--token``); browsers cannot set headers on a websocket, so it travels
+    here. It is never shown in a ``repr`` or log.
+    """
 
     type: Literal["hello"] = "hello"
-    protocol: int
+    protocol: Annotated[int, Strict(), Field(ge=0, le=2**31)]
     role: Role
     name: Name
     device: DeviceInfo | None = None
-    servo_rate_hz: Annotated[float, Field(gt=0, le=100_000)] = 1000.0
+    servo_rate_hz: Annotated[StrictFinite, Field(gt=0, le=100_000)] = 1000.0
     local_model: Literal["p", "pi"] = "pi"
+    token: Annotated[str, Strict(), Field(min_length=1, max_length=256)] | None = Field(
+        default=None, repr=False
+    )
 
 
 class State(_Msg):
@@ -74,25 +101,25 @@ class State(_Msg):
     """
 
     type: Literal["state"] = "state"
-    seq: Annotated[int, Field(ge=0)]
-    probe_m: Vec3
-    force_n: Vec3
-    penetration_m: Finite = 0.0
-    in_contact: bool = False
-    k_h: Annotated[float, Field(ge=0, le=1e6)] = 0.0
-    i_gain: Annotated[float, Field(ge=0, le=1e8)] = 0.0
-    servo_rate_hz: Annotated[float, Field(ge=0, le=100_000)] = 0.0
-    period_us_p99: Annotated[float, Field(ge=0, le=1e7)] = 0.0
-    rtt_ms: Annotated[float, Field(ge=0, le=1e6)] | None = None
-    patch_tick: Annotated[int, Field(ge=-1)] = -1
+    seq: Seq
+    probe_m: InVec3
+    force_n: ForceVec3
+    penetration_m: Annotated[StrictFinite, Field(ge=-10.0, le=10.0)] = 0.0
+    in_contact: StrictBool = False
+    k_h: Annotated[StrictFinite, Field(ge=0, le=1e6)] = 0.0
+    i_gain: Annotated[StrictFinite, Field(ge=0, le=1e8)] = 0.0
+    servo_rate_hz: Annotated[StrictFinite, Field(ge=0, le=100_000)] = 0.0
+    period_us_p99: Annotated[StrictFinite, Field(ge=0, le=1e7)] = 0.0
+    rtt_ms: Annotated[StrictFinite, Field(ge=0, le=1e6)] | None = None
+    patch_tick: Annotated[int, Strict(), Field(ge=-1, lt=MAX_SEQ)] = -1
 
 
 class Ping(_Msg):
     """Round-trip probe; the server answers with a ``pong`` echoing ``id`` and ``t_client_s``."""
 
     type: Literal["ping"] = "ping"
-    id: Annotated[int, Field(ge=0)]
-    t_client_s: Finite
+    id: Seq
+    t_client_s: Annotated[StrictFinite, Field(ge=-1e12, le=1e12)]
 
 
 class Bye(_Msg):
@@ -263,6 +290,47 @@ def _first_error(exc: ValidationError) -> str:
     return f"{where}: {err.get('msg', 'invalid')}"
 
 
+_NUMBER_ERRORS = frozenset({"float_type", "int_type", "float_parsing", "int_parsing"})
+
+
+def frame_size_bytes(frame: str | bytes) -> int:
+    """Size of a frame on the wire [bytes]: UTF-8 bytes of a text frame, not characters."""
+    if isinstance(frame, str):
+        # a character is at most 4 bytes: skip the encoding when even that fits
+        return len(frame) if frame.isascii() else len(frame.encode("utf-8", "surrogatepass"))
+    return len(frame)
+
+
+def check_complexity(text: str) -> None:
+    """Bound the cost of parsing a client frame before parsing it.
+
+    Counts containers (``[``, ``{``) and commas with :meth:`str.count` (linear, in C), which bounds
+    both the nesting depth and the length of every array; the byte limit
+    (:data:`MAX_CLIENT_FRAME_BYTES`) bounds the rest.
+
+    Raises
+    ------
+    ProtocolError
+        ``too_complex`` when the frame holds more than :data:`MAX_FRAME_CONTAINERS` containers or
+        :data:`MAX_FRAME_COMMAS` commas.
+    """
+    containers = text.count("[") + text.count("{")
+    if containers > MAX_FRAME_CONTAINERS or text.count(",") > MAX_FRAME_COMMAS:
+        raise ProtocolError(
+            "too_complex",
+            f"a message holds at most {MAX_FRAME_CONTAINERS} arrays or objects and "
+            f"{MAX_FRAME_COMMAS} commas",
+        )
+
+
+def _null_number(exc: ValidationError) -> str | None:
+    """The location of a JSON ``null`` given where a number was expected, if any."""
+    for err in exc.errors():
+        if err.get("input", ...) is None and err.get("type") in _NUMBER_ERRORS:
+            return ".".join(str(p) for p in err.get("loc", ())) or "message"
+    return None
+
+
 def _parse(adapter: TypeAdapter[Any], text: str | bytes, known: tuple[str, ...]) -> Any:
     if isinstance(text, bytes | bytearray | memoryview):
         raise ProtocolError("binary_not_expected", "expected a JSON text frame")
@@ -280,6 +348,13 @@ def _parse(adapter: TypeAdapter[Any], text: str | bytes, known: tuple[str, ...])
     try:
         return adapter.validate_python(raw)
     except ValidationError as exc:
+        where = _null_number(exc)
+        if where is not None:  # JSON.stringify(NaN) is null: tell the sender what happened
+            raise ProtocolError(
+                "non_finite",
+                f"invalid {kind}: {where} is null; JSON has no NaN or Infinity (a NaN becomes "
+                "null), send a finite number",
+            ) from None
         raise ProtocolError("invalid_message", f"invalid {kind}: {_first_error(exc)}") from None
 
 
@@ -290,12 +365,18 @@ def _reject_constant(name: str) -> float:
 def parse_client(text: str | bytes) -> Hello | State | Ping | Bye:
     """Parse and validate one client frame.
 
+    Inbound fields are strict (no coercion of ``"1"``, ``true`` or ``"yes"``) and every number is
+    bounded; ``null`` where a number belongs is reported as ``non_finite``.
+
     Raises
     ------
     ProtocolError
         ``malformed_json``, ``non_finite``, ``malformed_message``, ``unknown_type``,
-        ``invalid_message`` or ``binary_not_expected``, with a message fit to send back.
+        ``invalid_message``, ``too_complex`` or ``binary_not_expected``, with a message fit to
+        send back.
     """
+    if isinstance(text, str):
+        check_complexity(text)
     return _parse(CLIENT_ADAPTER, text, ("hello", "state", "ping", "bye"))  # type: ignore[no-any-return]
 
 

@@ -1,11 +1,18 @@
 // Live browser viewer of the shared deformable object (three.js, one ES module, no build step).
 //
-// Connects to ws://<page host>/ws as a `viewer`, receives the surface as binary frames (FAC1 once,
-// VTX1 every simulation tick) and a `room` summary per tick, and draws the balloon as it deforms,
-// each user's probe, proxy and force, and a panel per user. Reconnects by itself with backoff.
+// Connects to ws://<page host>/ws as a `viewer` and receives the surface as the viewer stream
+// (docs/protocol.md, "Viewer stream"): on join the triangles (FAC1), the rest positions (VTX1) and
+// rest normals (NRM1) and a keyframe of displacements (DSP1); then one DSP1 per simulation tick
+// with only the displacements that changed, and a `room` summary. It draws the balloon coloured
+// by how far each point is pushed in or bulged out (legend in mm), turns the camera toward the
+// deepest dent until the user moves it, and shows each user's probe, proxy and force (arrows
+// scaled to stay in view) and a card per user with the surface indentation at its contact.
+// Reconnects by itself with backoff.
 //
-// Test hooks: `window.viewerState` (connection, tick, frame counts, users by name) is updated live.
-// Protocol constants come from ./protocol.js, generated from shared/protocol.py.
+// Test hooks: `window.viewerState` (connection, tick, frame counts, users by name, colour scale,
+// dent, bytes per second) is updated live.
+// Protocol constants come from ./protocol.js, generated from shared/protocol.py; the viewer
+// stream's own constants (STREAM below) mirror server/viewer_stream.py, checked by a test.
 //
 // Naming rule, checked by tests/web/test_protocol_js.py: a RoomState is only ever called `room`,
 // a Welcome `welcome`, an ObjectInfo `obj`, a UserView `u`, a LinkConditions `link`, an error
@@ -34,18 +41,38 @@ export const USED_FIELDS = /* USED_FIELDS:BEGIN */ {
   ]
 } /* USED_FIELDS:END */;
 
+/** Viewer-stream frames, as server/viewer_stream.py defines them (not in shared/protocol.py). */
+export const STREAM = Object.freeze({
+  NORMALS_MAGIC: "NRM1", // rest unit normals: BINARY_HEADER, count x 3 float32
+  DISPLACEMENT_MAGIC: "DSP1", // magic, uint32 tick, count, quantum [nm], flags; then the body
+  DSP_HEADER_BYTES: 20,
+  FLAG_DENSE: 1, // body: n int16 values in vertex order
+  FLAG_KEY: 2, // keyframe (every vertex)
+  FLAG_INDEX32: 4, // uint32 indices (else uint16), then int16 values
+  FLAG_CLAMPED: 8,
+  FLAG_PARTIAL: 16, // the server's byte budget held changes back; they follow
+});
+
 // ----------------------------------------------------------------------------- settings
 const params = new URLSearchParams(location.search);
-/** Arrow length per newton of force [m/N]: ?force_scale=0.01 for 1 cm per N; by default a third
- * of the object's radius per newton (3.3 cm per N on the 0.1 m balloon), set at welcome. */
+/** Arrow length per newton of force [m/N]: ?force_scale=0.01 for a fixed 1 cm per N; by default
+ * a third of the object's radius per newton, reduced in steps of 1-2-5 so that the largest force
+ * stays within ARROW_MAX_PER_RADIUS of the radius and every arrow tip stays in view. */
 const FORCE_SCALE_PARAM = positiveParam("force_scale", 0);
 const FORCE_SCALE_PER_RADIUS = 1 / 3;
-let forceScaleMPerN = FORCE_SCALE_PARAM || 0.01;
+const ARROW_MAX_PER_RADIUS = 0.55;
 const RECONNECT_MIN_MS = 500;
 const RECONNECT_MAX_MS = 8000;
 const PANEL_REFRESH_MS = 100;
-/** Per-user colours (the balloon is blue: none of these is). */
-const USER_COLORS = ["#ff9f43", "#7bed9f", "#ff6b9d", "#ffd93d", "#b794f6", "#ff6b6b", "#63e6be"];
+/** Per-user colours, picked by a hash of the name (the balloon is blue: none of these is). */
+const USER_COLORS = [
+  "#ff9f43", "#7bed9f", "#ff6b9d", "#ffd93d", "#b794f6",
+  "#ff5c5c", "#38d9a9", "#c0eb75", "#e599f7", "#e9ecef",
+];
+/** Colour-scale ranges [mm]: the smallest that holds the largest displacement is shown. */
+const COLOR_RANGES_MM = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000];
+/** A dent shallower than this [m] (or 0.5 % of the radius) is not worth turning the camera for. */
+const DENT_MIN_M = 0.0005;
 
 function positiveParam(name, fallback) {
   if (!params.has(name)) return fallback;
@@ -59,18 +86,26 @@ const viewerState = {
   status: "connecting",
   protocol: PROTOCOL_VERSION,
   tick: -1,
-  frames: 0, // VTX1 frames received
+  frames: 0, // surface frames received (DSP1 after the keyframe)
   faceFrames: 0, // FAC1 frames received
+  keyframes: 0, // DSP1 keyframes received
+  partialFrames: 0, // DSP1 frames the server's byte budget cut short
   roomMessages: 0,
   renders: 0,
   renderMs: null, // cost of the last render [ms]
   reconnects: 0,
   nVertices: 0,
   nFaces: 0,
+  bytesPerS: 0, // binary bytes received over the last second
   simRateHz: null,
   object: null,
   lastError: null,
-  users: {}, // by name: force_n_mag [N], penetration_mm [mm], k_o, k_o_eff, k_h [N/m], ...
+  colorScale: { range_mm: COLOR_RANGES_MM[0], max_in_mm: 0, max_out_mm: 0 },
+  dent: null, // { index, depth_mm, px: [x, y], facing, in_view } of the deepest dent, or null
+  autoView: true,
+  forceScaleMPerN: 0.01,
+  arrows: {}, // by name: { tip_px: [x, y], in_view, visible } of the force arrow, after a render
+  users: {}, // by name: force_n_mag [N], penetration_mm, indentation_mm [mm], color, k_o, ...
 };
 window.viewerState = viewerState;
 
@@ -78,6 +113,7 @@ window.viewerState = viewerState;
 const $ = (id) => document.getElementById(id);
 const dom = {
   scene: $("scene"),
+  view: $("view-area"),
   conn: $("conn"),
   connText: $("conn-text"),
   rate: $("s-rate"),
@@ -94,6 +130,9 @@ const dom = {
   clientHint: $("client-hint"),
   toast: $("toast"),
   forceScale: $("force-scale"),
+  cmIn: $("cm-in"),
+  cmOut: $("cm-out"),
+  autoView: $("auto-view"),
 };
 
 function fmt(x, digits = 1) {
@@ -102,6 +141,11 @@ function fmt(x, digits = 1) {
 
 function fmtInt(x) {
   return typeof x === "number" && Number.isFinite(x) ? Math.round(x).toLocaleString("en-US") : "–";
+}
+
+function fmtLength(m) {
+  if (m >= 0.01) return `${+(m * 100).toPrecision(2)} cm`;
+  return `${+(m * 1000).toPrecision(2)} mm`;
 }
 
 function setStatus(status, text) {
@@ -148,18 +192,19 @@ const controls = new OrbitControls(camera, renderer.domElement);
 controls.enableDamping = true;
 controls.dampingFactor = 0.12;
 controls.addEventListener("change", () => (sceneDirty = true));
+controls.addEventListener("start", () => setAutoView(false)); // the user takes the camera
 
 scene.add(new THREE.HemisphereLight(0xcfe6ff, 0x1a1f2e, 0.9));
-const key = new THREE.DirectionalLight(0xffffff, 2.2);
+const key = new THREE.DirectionalLight(0xffffff, 2.0);
 key.position.set(1.2, -1.0, 2.0);
 scene.add(key);
-const rim = new THREE.DirectionalLight(0x7fb8ff, 1.4);
+const rim = new THREE.DirectionalLight(0x7fb8ff, 1.2);
 rim.position.set(-1.5, 1.4, 0.6);
 scene.add(rim);
 
-// The balloon: back faces first (darker, the inside wall), then the front skin, then a faint
-// wireframe so that the deformation reads clearly. All three share one BufferGeometry that VTX1
-// frames update in place.
+// The balloon: back faces first (darker, the inside wall), then the front skin coloured by the
+// displacement, then a faint wireframe so that the shape reads clearly. All three share one
+// BufferGeometry that the displacement frames update in place.
 const surface = new THREE.BufferGeometry();
 const skinBack = new THREE.Mesh(
   surface,
@@ -175,13 +220,14 @@ const skinBack = new THREE.Mesh(
 const skin = new THREE.Mesh(
   surface,
   new THREE.MeshPhysicalMaterial({
-    color: 0x2f86ff,
-    roughness: 0.18,
+    color: 0xffffff,
+    vertexColors: true,
+    roughness: 0.3,
     metalness: 0.0,
-    clearcoat: 0.8,
-    clearcoatRoughness: 0.1,
+    clearcoat: 0.6,
+    clearcoatRoughness: 0.15,
     transparent: true,
-    opacity: 0.5,
+    opacity: 0.72,
     side: THREE.FrontSide,
     depthWrite: false,
   }),
@@ -192,7 +238,7 @@ const wire = new THREE.Mesh(
     color: 0xa8d8ff,
     wireframe: true,
     transparent: true,
-    opacity: 0.09,
+    opacity: 0.07,
     depthWrite: false,
   }),
 );
@@ -212,27 +258,25 @@ const usersGroup = new THREE.Group();
 scene.add(usersGroup);
 
 let objectRadius = 0.05;
+const objectCenter = new THREE.Vector3();
 let framed = false;
+let viewDistance = 0.5;
+/** Where the camera looks from by default: about 40 degrees above the equator. */
+const DEFAULT_VIEW_DIR = new THREE.Vector3(0.55, -0.8, 0.72).normalize();
 
 /** Place the floor and frame the camera on the object (first welcome only: keep the user's view). */
 function frameObject(obj) {
-  const c = new THREE.Vector3(...obj.center_m);
+  const c = objectCenter.set(...obj.center_m);
   const r = Math.max(obj.radius_m, 1e-3);
   objectRadius = r;
-  forceScaleMPerN = FORCE_SCALE_PARAM || r * FORCE_SCALE_PER_RADIUS;
-  dom.forceScale.textContent = `${+(forceScaleMPerN * 100).toPrecision(2)} cm`;
+  if (FORCE_SCALE_PARAM) setForceScale(FORCE_SCALE_PARAM);
+  else setForceScale(niceBelow(r * FORCE_SCALE_PER_RADIUS));
   const zFloor = obj.bounds_min_m[2];
   buildFloor(c, r, zFloor);
   if (framed) return;
   framed = true;
-  // Fit the bounding sphere in the part of the window the panels leave free (72 % of it).
-  const view = freeRegion();
-  const halfV = THREE.MathUtils.degToRad(camera.fov / 2) * (view.h / window.innerHeight);
-  const halfH = Math.atan(Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)) * camera.aspect) *
-    (view.w / window.innerWidth);
-  const dist = r / Math.sin(0.72 * Math.min(halfV, halfH));
-  const dir = new THREE.Vector3(0.55, -0.8, 0.72).normalize(); // about 40 degrees above the equator
-  camera.position.copy(c).addScaledVector(dir, dist);
+  viewDistance = fitDistance(r);
+  camera.position.copy(c).addScaledVector(DEFAULT_VIEW_DIR, viewDistance);
   camera.near = r * 0.01;
   camera.far = r * 200;
   camera.updateProjectionMatrix();
@@ -241,6 +285,16 @@ function frameObject(obj) {
   controls.maxDistance = r * 30;
   controls.update();
   sceneDirty = true;
+}
+
+/** Camera distance at which a sphere of radius 1.25 r (the object, probes and arrows near it)
+ * fills the view area. */
+function fitDistance(r) {
+  const view = freeRegion();
+  const halfV = THREE.MathUtils.degToRad(camera.fov / 2) * (view.h / window.innerHeight);
+  const halfH = Math.atan(Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)) * camera.aspect) *
+    (view.w / window.innerWidth);
+  return (1.25 * r) / Math.sin(0.95 * Math.max(Math.min(halfV, halfH), 0.05));
 }
 
 function buildFloor(c, r, zFloor) {
@@ -274,15 +328,68 @@ function radialTexture() {
   return tex;
 }
 
+// ----------------------------------------------------------------------------- colour map
+// Displacement t = w / range in [-1, 1], pushed in (negative) warm, bulged out cyan, blue at rest.
+// The same stops (sRGB, 0-255) make the CSS legend (--cm in style.css).
+const CM_STOPS = [
+  [-1.0, [255, 217, 64]],
+  [-0.55, [255, 115, 51]],
+  [-0.22, [219, 71, 184]],
+  [0.0, [46, 133, 255]],
+  [0.5, [38, 217, 242]],
+  [1.0, [204, 255, 242]],
+];
+const CM_SIZE = 512;
+/** Linear-sRGB lookup table, CM_SIZE entries from t = -1 to 1 (vertex colours are linear). */
+const CM_LUT = (() => {
+  const lut = new Float32Array(CM_SIZE * 3);
+  const toLinear = (c) => (c <= 0.04045 ? c / 12.92 : ((c + 0.055) / 1.055) ** 2.4);
+  for (let i = 0; i < CM_SIZE; i++) {
+    const t = -1 + (2 * i) / (CM_SIZE - 1);
+    let k = 0;
+    while (k < CM_STOPS.length - 2 && t > CM_STOPS[k + 1][0]) k++;
+    const [t0, c0] = CM_STOPS[k];
+    const [t1, c1] = CM_STOPS[k + 1];
+    const a = Math.min(1, Math.max(0, (t - t0) / (t1 - t0)));
+    for (let j = 0; j < 3; j++) lut[3 * i + j] = toLinear((c0[j] + a * (c1[j] - c0[j])) / 255);
+  }
+  return lut;
+})();
+
+function setColorRange(rangeMm) {
+  viewerState.colorScale.range_mm = rangeMm;
+  dom.cmIn.textContent = `−${rangeMm} mm`;
+  dom.cmOut.textContent = `+${rangeMm} mm`;
+}
+setColorRange(COLOR_RANGES_MM[0]);
+
 // ----------------------------------------------------------------------------- surface frames
+// The surface: rest positions and normals (once), a displacement w [m] per vertex (the stream),
+// positions rest + w * normal and colours by w, written in place into the shared geometry.
+const mesh = {
+  n: 0,
+  rest: null, // Float32Array (3n) [m]
+  normal: null, // Float32Array (3n), unit
+  w: null, // Float32Array (n) [m], outward positive
+  rangeM: COLOR_RANGES_MM[0] / 1000, // colour-scale range [m]
+  shrinkFrames: 0, // frames in a row the displacement would fit a smaller range
+  dentIndex: -1, // vertex of the deepest dent, -1 when there is none worth showing
+};
+
+function readMagic(buf) {
+  if (buf.byteLength < 4) return "";
+  const b = new Uint8Array(buf, 0, 4);
+  return String.fromCharCode(b[0], b[1], b[2], b[3]);
+}
+
+/** Header of FAC1/VTX1/NRM1 (magic, uint32 tick, uint32 count) if the length matches. */
 function readHeader(buf) {
   if (buf.byteLength < BINARY_HEADER_BYTES) return null;
   const dv = new DataView(buf);
-  const magic = String.fromCharCode(dv.getUint8(0), dv.getUint8(1), dv.getUint8(2), dv.getUint8(3));
   const tick = dv.getUint32(4, true);
   const count = dv.getUint32(8, true);
   if (buf.byteLength !== BINARY_HEADER_BYTES + count * 12) return null;
-  return { magic, tick, count };
+  return { tick, count };
 }
 
 /** Little-endian count x 3 values after the header (typed arrays are little-endian in browsers). */
@@ -290,42 +397,162 @@ function body(buf, count, Kind) {
   return new Kind(buf, BINARY_HEADER_BYTES, count * 3);
 }
 
+const byteLog = []; // [arrival time ms, bytes] of recent binary frames
+
 function onBinary(buf) {
-  const h = readHeader(buf);
-  if (!h) {
-    console.warn("viewer: malformed binary frame ignored");
+  const now = performance.now();
+  byteLog.push([now, buf.byteLength]);
+  const magic = readMagic(buf);
+  if (magic === STREAM.DISPLACEMENT_MAGIC) {
+    if (!onDisplacement(buf)) console.warn("viewer: malformed DSP1 frame ignored");
     return;
   }
-  if (h.magic === FACES_MAGIC) {
+  const h = readHeader(buf);
+  if (!h) {
+    console.warn(`viewer: malformed binary frame ${magic} ignored`);
+    return;
+  }
+  if (magic === FACES_MAGIC) {
     viewerState.faceFrames += 1;
     viewerState.nFaces = h.count;
     surface.dispose(); // (re)connected: free the previous GPU buffers, they are re-uploaded
     surface.setIndex(new THREE.BufferAttribute(body(buf, h.count, Uint32Array).slice(), 1));
-    updateNormalsAndShow();
-  } else if (h.magic === VERTICES_MAGIC) {
-    viewerState.frames += 1;
-    viewerState.tick = h.tick;
-    frameTimes.push(performance.now());
-    const src = body(buf, h.count, Float32Array);
-    let pos = surface.getAttribute("position");
-    if (!pos || pos.count !== h.count) {
-      pos = new THREE.BufferAttribute(new Float32Array(h.count * 3), 3);
-      pos.setUsage(THREE.DynamicDrawUsage);
-      surface.setAttribute("position", pos);
-      surface.deleteAttribute("normal"); // recomputed at the new size
-      viewerState.nVertices = h.count;
+    showSurface();
+  } else if (magic === VERTICES_MAGIC) {
+    setRest(body(buf, h.count, Float32Array).slice());
+  } else if (magic === STREAM.NORMALS_MAGIC) {
+    if (h.count === mesh.n) {
+      mesh.normal = body(buf, h.count, Float32Array).slice();
+      writeAll();
     }
-    pos.array.set(src); // in place: no new geometry per frame
-    pos.needsUpdate = true;
-    updateNormalsAndShow();
   } else {
-    console.warn(`viewer: unknown binary frame ${h.magic}`);
+    console.warn(`viewer: unknown binary frame ${magic}`);
   }
 }
 
-function updateNormalsAndShow() {
+/** VTX1: the rest positions; the surface is at rest until displacements arrive. */
+function setRest(rest) {
+  const n = rest.length / 3;
+  mesh.n = n;
+  mesh.rest = rest;
+  mesh.w = new Float32Array(n);
+  if (!mesh.normal || mesh.normal.length !== 3 * n) mesh.normal = new Float32Array(3 * n);
+  let pos = surface.getAttribute("position");
+  if (!pos || pos.count !== n) {
+    pos = new THREE.BufferAttribute(new Float32Array(3 * n), 3);
+    pos.setUsage(THREE.DynamicDrawUsage);
+    surface.setAttribute("position", pos);
+    const col = new THREE.BufferAttribute(new Float32Array(3 * n), 3);
+    col.setUsage(THREE.DynamicDrawUsage);
+    surface.setAttribute("color", col);
+    surface.deleteAttribute("normal"); // recomputed at the new size
+    viewerState.nVertices = n;
+  }
+  writeAll();
+}
+
+/** DSP1: displacements of some or all vertices. Returns false for a malformed frame. */
+function onDisplacement(buf) {
+  if (buf.byteLength < STREAM.DSP_HEADER_BYTES || !mesh.rest) return false;
+  const dv = new DataView(buf);
+  const tick = dv.getUint32(4, true);
+  const count = dv.getUint32(8, true);
+  const quantumM = dv.getUint32(12, true) * 1e-9;
+  const flags = dv.getUint32(16, true);
+  const w = mesh.w;
+  const off = STREAM.DSP_HEADER_BYTES;
+  let index = null;
+  let values;
+  if (flags & STREAM.FLAG_DENSE) {
+    if (count !== mesh.n || buf.byteLength !== off + 2 * count) return false;
+    values = new Int16Array(buf, off, count);
+    for (let i = 0; i < count; i++) w[i] = values[i] * quantumM;
+  } else {
+    const width = flags & STREAM.FLAG_INDEX32 ? 4 : 2;
+    if (buf.byteLength !== off + (width + 2) * count) return false;
+    index = width === 4 ? new Uint32Array(buf, off, count) : new Uint16Array(buf, off, count);
+    values = new Int16Array(buf, off + width * count, count);
+    for (let k = 0; k < count; k++) {
+      if (index[k] >= mesh.n) return false;
+      w[index[k]] = values[k] * quantumM;
+    }
+  }
+  if (flags & STREAM.FLAG_KEY) viewerState.keyframes += 1;
+  else viewerState.frames += 1;
+  if (flags & STREAM.FLAG_PARTIAL) viewerState.partialFrames += 1;
+  viewerState.tick = tick;
+  frameTimes.push(performance.now());
+  if (updateColorRange() || !index) writeAll();
+  else writeSome(index);
+  return true;
+}
+
+/** Pick the colour range for the current displacement: up at once, down after 2 s. */
+function updateColorRange() {
+  const w = mesh.w;
+  let lo = 0;
+  let hi = 0;
+  let deepest = -1;
+  for (let i = 0; i < mesh.n; i++) {
+    if (w[i] < lo) {
+      lo = w[i];
+      deepest = i;
+    }
+    if (w[i] > hi) hi = w[i];
+  }
+  viewerState.colorScale.max_in_mm = -lo * 1000;
+  viewerState.colorScale.max_out_mm = hi * 1000;
+  mesh.dentIndex = -lo > Math.max(DENT_MIN_M, 0.005 * objectRadius) ? deepest : -1;
+  const peakMm = Math.max(-lo, hi) * 1000;
+  const fit = COLOR_RANGES_MM.find((r) => r >= peakMm) ?? COLOR_RANGES_MM.at(-1);
+  const current = viewerState.colorScale.range_mm;
+  mesh.shrinkFrames = fit < current ? mesh.shrinkFrames + 1 : 0;
+  const shrink = mesh.shrinkFrames > 2 * (viewerState.simRateHz || 20);
+  if (fit > current || shrink) {
+    mesh.shrinkFrames = 0;
+    mesh.rangeM = fit / 1000;
+    setColorRange(fit);
+    return true;
+  }
+  return false;
+}
+
+function writeVertex(i, pos, col) {
+  const w = mesh.w[i];
+  const r = mesh.rest;
+  const nrm = mesh.normal;
+  const j = 3 * i;
+  pos[j] = r[j] + w * nrm[j];
+  pos[j + 1] = r[j + 1] + w * nrm[j + 1];
+  pos[j + 2] = r[j + 2] + w * nrm[j + 2];
+  const t = Math.max(-1, Math.min(1, w / mesh.rangeM));
+  const k = 3 * Math.round(((t + 1) / 2) * (CM_SIZE - 1));
+  col[j] = CM_LUT[k];
+  col[j + 1] = CM_LUT[k + 1];
+  col[j + 2] = CM_LUT[k + 2];
+}
+
+function writeAll() {
   const pos = surface.getAttribute("position");
-  if (!pos || !surface.index) return;
+  const col = surface.getAttribute("color");
+  if (!pos || !mesh.rest) return;
+  for (let i = 0; i < mesh.n; i++) writeVertex(i, pos.array, col.array);
+  pos.needsUpdate = col.needsUpdate = true;
+  showSurface();
+}
+
+function writeSome(index) {
+  if (index.length === 0) return;
+  const pos = surface.getAttribute("position");
+  const col = surface.getAttribute("color");
+  for (let k = 0; k < index.length; k++) writeVertex(index[k], pos.array, col.array);
+  pos.needsUpdate = col.needsUpdate = true;
+  showSurface();
+}
+
+function showSurface() {
+  const pos = surface.getAttribute("position");
+  if (!pos || !surface.index || surface.index.count === 0) return;
   surface.computeVertexNormals();
   sceneDirty = true;
   if (!skin.visible) {
@@ -334,20 +561,159 @@ function updateNormalsAndShow() {
   }
 }
 
+/** Displacement [m] of the current surface vertex nearest to a point, or null. */
+function displacementNear(p) {
+  const pos = surface.getAttribute("position");
+  if (!pos || !mesh.w) return null;
+  const a = pos.array;
+  let best = Infinity;
+  let at = -1;
+  for (let i = 0, j = 0; i < mesh.n; i++, j += 3) {
+    const dx = a[j] - p[0];
+    const dy = a[j + 1] - p[1];
+    const dz = a[j + 2] - p[2];
+    const d = dx * dx + dy * dy + dz * dz;
+    if (d < best) {
+      best = d;
+      at = i;
+    }
+  }
+  return at < 0 ? null : mesh.w[at];
+}
+
+// ----------------------------------------------------------------------------- camera: the dent
+const tmpDir = new THREE.Vector3();
+const wantDir = new THREE.Vector3();
+
+function setAutoView(on) {
+  viewerState.autoView = on;
+  dom.autoView.setAttribute("aria-pressed", String(on));
+  if (on && framed) {
+    // back to the framing distance (the user may have zoomed); the direction follows the dent
+    const dir = tmpDir.copy(camera.position).sub(controls.target).normalize();
+    viewDistance = fitDistance(objectRadius);
+    camera.position.copy(controls.target).addScaledVector(dir, viewDistance);
+    sceneDirty = true;
+  }
+}
+dom.autoView.addEventListener("click", () => setAutoView(!viewerState.autoView));
+
+/** Direction from the object's centre to where the camera should be to see the deepest dent:
+ * from the side of the dent, raised, and turned a little so that its depth shows. */
+function dentViewDir(out) {
+  const i = mesh.dentIndex;
+  if (i < 0) return out.copy(tmpDir.copy(camera.position).sub(objectCenter).normalize());
+  const nx = mesh.normal[3 * i];
+  const ny = mesh.normal[3 * i + 1];
+  const nz = mesh.normal[3 * i + 2];
+  const horiz = Math.hypot(nx, ny);
+  const cur = tmpDir.copy(camera.position).sub(objectCenter);
+  const az = horiz > 0.3 ? Math.atan2(ny, nx) - 0.35 : Math.atan2(cur.y, cur.x);
+  const el = Math.min(1.0, Math.max(0.3, 0.35 + 0.6 * Math.asin(Math.max(-1, Math.min(1, nz)))));
+  return out.set(Math.cos(el) * Math.cos(az), Math.cos(el) * Math.sin(az), Math.sin(el));
+}
+
+/** Turn the camera a step toward the dent (auto view only); true while it is still turning. */
+function followDent() {
+  if (!viewerState.autoView || !framed || mesh.dentIndex < 0) return false;
+  dentViewDir(wantDir);
+  const off = tmpDir.copy(camera.position).sub(controls.target);
+  const dist = off.length();
+  off.normalize();
+  if (off.angleTo(wantDir) < 0.01) return false;
+  off.lerp(wantDir, 0.06).normalize();
+  camera.position.copy(controls.target).addScaledVector(off, dist);
+  camera.lookAt(controls.target);
+  return true;
+}
+
+const projected = new THREE.Vector3();
+
+/** CSS-pixel position of a world point on the canvas, and whether it is inside the view area. */
+function toScreen(p) {
+  projected.copy(p).project(camera);
+  const x = ((projected.x + 1) / 2) * window.innerWidth;
+  const y = ((1 - projected.y) / 2) * window.innerHeight;
+  const v = freeRegion();
+  const inView = projected.z < 1 && x >= v.x && x <= v.x + v.w && y >= v.y && y <= v.y + v.h;
+  return { px: [x, y], inView };
+}
+
+function updateDentHook() {
+  const i = mesh.dentIndex;
+  if (i < 0 || !mesh.rest) {
+    viewerState.dent = null;
+    return;
+  }
+  const pos = surface.getAttribute("position").array;
+  const p = new THREE.Vector3(pos[3 * i], pos[3 * i + 1], pos[3 * i + 2]);
+  const n = new THREE.Vector3(mesh.normal[3 * i], mesh.normal[3 * i + 1], mesh.normal[3 * i + 2]);
+  const toCam = tmpDir.copy(camera.position).sub(p).normalize();
+  const s = toScreen(p);
+  viewerState.dent = {
+    index: i,
+    depth_mm: -mesh.w[i] * 1000,
+    px: s.px,
+    in_view: s.inView,
+    facing: n.dot(toCam), // > 0: the camera sees the dent from outside
+  };
+}
+
 // ----------------------------------------------------------------------------- users (3-D)
-const colorOf = new Map(); // user_id -> colour
-const actors = new Map(); // user_id -> { group, probe, proxy, tether, arrow, label, tag }
+const actors = new Map(); // user_id -> { group, probe, proxy, tether, arrow, label, tag, tip }
 const Z = new THREE.Vector3(0, 0, 1);
 const tmpA = new THREE.Vector3();
 const tmpB = new THREE.Vector3();
+let forceScaleMPerN = 0.01;
+let scaleUpFrames = 0; // room messages in a row the arrows would fit a larger scale
+let viewCap = { mPerN: Infinity, forceN: 0 }; // set when an arrow tip left the view at forceN
 
-function userColor(userId) {
-  if (!colorOf.has(userId)) colorOf.set(userId, USER_COLORS[colorOf.size % USER_COLORS.length]);
-  return colorOf.get(userId);
+/** A colour per user name: the same in every viewer and whoever joined first (FNV-1a hash). */
+function userColor(name) {
+  let h = 0x811c9dc5;
+  for (const ch of String(name)) {
+    h ^= ch.codePointAt(0);
+    h = Math.imul(h, 0x01000193) >>> 0;
+  }
+  return USER_COLORS[h % USER_COLORS.length];
+}
+
+/** The largest 1-2-5 x 10^k not above x. */
+function niceBelow(x) {
+  const e = 10 ** Math.floor(Math.log10(x));
+  const m = x / e;
+  return (m >= 5 ? 5 : m >= 2 ? 2 : 1) * e;
+}
+
+function setForceScale(mPerN) {
+  forceScaleMPerN = mPerN;
+  viewerState.forceScaleMPerN = mPerN;
+  dom.forceScale.textContent = fmtLength(mPerN);
+}
+
+/** Shrink the arrows at once when the largest force would run too long, grow back after 2 s. */
+function updateForceScale(maxForceN) {
+  if (FORCE_SCALE_PARAM) return;
+  const preferred = niceBelow(objectRadius * FORCE_SCALE_PER_RADIUS);
+  const cap = maxForceN > 0 ? niceBelow((ARROW_MAX_PER_RADIUS * objectRadius) / maxForceN) : preferred;
+  if (maxForceN < 0.5 * viewCap.forceN) viewCap = { mPerN: Infinity, forceN: 0 };
+  const want = Math.min(preferred, cap, viewCap.mPerN);
+  if (want < forceScaleMPerN) {
+    setForceScale(want);
+    scaleUpFrames = 0;
+  } else if (want > forceScaleMPerN) {
+    scaleUpFrames += 1;
+    if (scaleUpFrames > 2 * (viewerState.simRateHz || 20)) {
+      setForceScale(want);
+      scaleUpFrames = 0;
+    }
+  } else {
+    scaleUpFrames = 0;
+  }
 }
 
 function makeActor(u) {
-  const color = new THREE.Color(userColor(u.user_id));
+  const color = new THREE.Color(userColor(u.name));
   const r = objectRadius;
   const group = new THREE.Group();
   const probe = new THREE.Mesh(
@@ -378,7 +744,7 @@ function makeActor(u) {
   label.center.set(-0.45, 0.5); // to the right of the probe, clear of the force arrow
   group.add(probe, proxy, tether, arrow, label);
   usersGroup.add(group);
-  return { group, probe, proxy, tether, arrow, label, tag };
+  return { group, probe, proxy, tether, arrow, label, tag, tip: new THREE.Vector3() };
 }
 
 /** A solid arrow along +y from the origin: unit shaft (scaled to length) and a cone head. */
@@ -426,9 +792,12 @@ function updateActor(a, u) {
   tmpB.set(...u.force_n);
   const mag = tmpB.length();
   if (mag > 1e-4) {
-    setArrow(a.arrow, tmpA.set(...u.probe_m), tmpB.normalize(), mag * forceScaleMPerN);
+    const length = mag * forceScaleMPerN;
+    setArrow(a.arrow, tmpA.set(...u.probe_m), tmpB.normalize(), length);
+    a.tip.copy(tmpA).addScaledVector(tmpB, length);
     a.arrow.visible = true;
   } else {
+    a.tip.set(...u.probe_m);
     a.arrow.visible = false;
   }
 }
@@ -446,34 +815,40 @@ function dropActor(userId) {
 }
 
 // ----------------------------------------------------------------------------- users (panels)
-const cards = new Map(); // user_id -> { root, fields }
+const cards = new Map(); // user_id -> { root, fields, ... }
 let forceBarScaleN = 2.0;
 
+/** [key, label, unit, tooltip]: two rows of four columns; the first cell spans two. */
 const CARD_ROWS = [
-  ["penetration_mm", "penetration", "mm"],
-  ["k_o", "K<sub>o</sub>", "N/m"],
-  ["k_o_eff", "K<sub>o,eff</sub>", "N/m"],
-  ["k_h", "K<sub>h</sub>", "N/m"],
-  ["i_gain", "I", "N/(m·s)"],
-  ["servo_rate_hz", "servo", "Hz"],
-  ["rtt_ms", "round trip", "ms"],
+  ["penetration_mm", "probe–proxy", "mm", "how far the probe is past its local model (penetration)"],
+  ["k_o", "K<sub>o</sub>", "N/m", "object stiffness at the contact"],
+  ["k_o_eff", "K<sub>o,eff</sub>", "N/m", "coupling-aware stiffness the gains stay below"],
+  ["k_h", "K<sub>h</sub>", "N/m", "local model stiffness"],
+  ["i_gain", "I", "N/(m·s)", "local model integral weight"],
+  ["servo_rate_hz", "servo", "Hz", "haptic loop rate"],
+  ["rtt_ms", "RTT", "ms", "network round trip"],
 ];
 
-function makeCard(userId) {
+function makeCard(userId, name) {
   const root = document.createElement("section");
   root.className = "user";
-  root.style.setProperty("--c", userColor(userId));
+  root.style.setProperty("--c", userColor(name));
   root.innerHTML = `
     <header>
       <span class="swatch"></span>
       <span class="name"></span>
+      <span class="device"></span>
       <span class="badge"></span>
     </header>
-    <div class="device"></div>
-    <div class="force"><span class="force-value">–</span><span class="unit">N</span>
-      <span class="force-label">force</span></div>
+    <div class="big">
+      <div><span class="label">force</span>
+        <span class="value"><span class="force-value">–</span><small>N</small></span></div>
+      <div title="how far the surface is pushed in at this user's contact">
+        <span class="label">indentation</span>
+        <span class="value indent-value"><span class="indent-number">–</span><small>mm</small></span></div>
+    </div>
     <div class="bar"><span></span></div>
-    <dl>${CARD_ROWS.map(([k, label, unit]) => `<div><dt>${label}</dt><dd><span data-k="${k}">–</span> <small>${unit}</small></dd></div>`).join("")}</dl>`;
+    <dl>${CARD_ROWS.map(([k, label, unit, hint]) => `<div title="${hint}"><dt>${label} <small>${unit}</small></dt><dd data-k="${k}">–</dd></div>`).join("")}</dl>`;
   const fields = {};
   for (const el of root.querySelectorAll("[data-k]")) fields[el.dataset.k] = el;
   dom.userList.appendChild(root);
@@ -484,8 +859,24 @@ function makeCard(userId) {
     badge: root.querySelector(".badge"),
     device: root.querySelector(".device"),
     force: root.querySelector(".force-value"),
+    indent: root.querySelector(".indent-value"),
     bar: root.querySelector(".bar > span"),
   };
+}
+
+function setIndentation(card, mm) {
+  if (mm === null) {
+    card.indent.classList.add("none");
+    card.indent.textContent = "not in contact";
+    return;
+  }
+  if (card.indent.classList.contains("none") || !card.indent.querySelector(".indent-number")) {
+    card.indent.classList.remove("none");
+    card.indent.innerHTML = '<span class="indent-number"></span><small>mm</small>';
+  }
+  // pushed in is positive; a contact the water pushed outward reads as "out"
+  card.indent.querySelector(".indent-number").textContent =
+    mm >= 0 ? fmt(mm, 2) : `${fmt(-mm, 2)} out`;
 }
 
 function renderPanels() {
@@ -497,7 +888,7 @@ function renderPanels() {
   for (const s of entries) {
     let card = cards.get(s.user_id);
     if (!card) {
-      card = makeCard(s.user_id);
+      card = makeCard(s.user_id, s.name);
       cards.set(s.user_id, card);
     }
     card.root.dataset.userName = s.name;
@@ -507,7 +898,10 @@ function renderPanels() {
     card.device.textContent = s.device;
     card.force.textContent = fmt(s.force_n_mag, 2);
     card.bar.style.width = `${Math.min(100, (100 * s.force_n_mag) / forceBarScaleN).toFixed(1)}%`;
-    card.fields.penetration_mm.textContent = fmt(s.penetration_mm, 2);
+    setIndentation(card, s.indentation_mm);
+    const pen = card.fields.penetration_mm;
+    if (s.in_contact) pen.textContent = fmt(s.penetration_mm, 2);
+    else pen.innerHTML = '<span class="none">not in contact</span>'; // not a negative depth
     card.fields.k_o.textContent = fmtInt(s.k_o);
     card.fields.k_o_eff.textContent = fmtInt(s.k_o_eff);
     card.fields.k_h.textContent = fmtInt(s.k_h);
@@ -527,11 +921,13 @@ function renderPanels() {
 // ----------------------------------------------------------------------------- header stats
 let lastRoom = null;
 let meshInfo = "";
-const frameTimes = []; // arrival times of recent VTX1 frames [ms]
+const frameTimes = []; // arrival times of recent displacement frames [ms]
 
 function renderHeader() {
   const now = performance.now();
   while (frameTimes.length && now - frameTimes[0] > 1000) frameTimes.shift();
+  while (byteLog.length && now - byteLog[0][0] > 1000) byteLog.shift();
+  viewerState.bytesPerS = byteLog.reduce((sum, [, b]) => sum + b, 0);
   const room = lastRoom;
   if (room) {
     dom.rate.textContent = fmt(room.sim_rate_hz, 0);
@@ -542,7 +938,9 @@ function renderHeader() {
     dom.overruns.classList.toggle("warn", room.overruns > 0);
     dom.link.textContent = linkText(room.link);
   }
-  dom.mesh.textContent = viewerState.nVertices ? `${meshInfo} · ${frameTimes.length} fps` : "–";
+  dom.mesh.textContent = viewerState.nVertices
+    ? `${meshInfo} · ${frameTimes.length} fps · ${fmt(viewerState.bytesPerS / 1000, 1)} kB/s`
+    : "–";
 }
 
 function linkText(link) {
@@ -576,19 +974,28 @@ function onRoom(room) {
   viewerState.tick = room.tick;
   viewerState.simRateHz = room.sim_rate_hz;
   lastRoom = room;
+  let maxForce = 0;
+  for (const u of room.users) {
+    const f = u.force_n;
+    maxForce = Math.max(maxForce, Math.hypot(f[0], f[1], f[2]));
+  }
+  updateForceScale(maxForce);
   const byName = {};
   const live = new Set();
   for (const u of room.users) {
     live.add(u.user_id);
     const f = u.force_n;
+    const w = u.in_contact ? displacementNear(u.proxy_m) : null;
     byName[u.name] = {
       user_id: u.user_id,
       name: u.name,
+      color: userColor(u.name),
       device: u.device,
       in_contact: u.in_contact,
       force_n: f,
       force_n_mag: Math.hypot(f[0], f[1], f[2]),
       penetration_mm: u.penetration_m * 1000,
+      indentation_mm: w === null ? null : -w * 1000,
       k_o: u.k_o,
       k_o_eff: u.k_o_eff,
       k_h: u.k_h,
@@ -606,9 +1013,30 @@ function onRoom(room) {
     updateActor(a, u);
   }
   viewerState.users = byName;
+  for (const name of Object.keys(viewerState.arrows)) if (!byName[name]) delete viewerState.arrows[name];
   for (const id of [...actors.keys()]) if (!live.has(id)) dropActor(id);
   panelsDirty = true;
   sceneDirty = true;
+}
+
+/** After a render: where the arrow tips are; a tip out of the view area shrinks the arrows. */
+function checkArrowsInView() {
+  let out = false;
+  let maxForceN = 0;
+  for (const s of Object.values(viewerState.users)) {
+    const a = actors.get(s.user_id);
+    if (!a) continue;
+    const t = toScreen(a.tip);
+    viewerState.arrows[s.name] = { tip_px: t.px, in_view: t.inView, visible: a.arrow.visible };
+    out ||= !t.inView && a.arrow.visible;
+    maxForceN = Math.max(maxForceN, s.force_n_mag);
+  }
+  if (out && !FORCE_SCALE_PARAM && forceScaleMPerN > objectRadius * 1e-3) {
+    setForceScale(niceBelow(forceScaleMPerN * 0.99));
+    viewCap = { mPerN: forceScaleMPerN, forceN: maxForceN };
+    scaleUpFrames = 0;
+    sceneDirty = true; // redrawn with shorter arrows at the next room message
+  }
 }
 
 function onError(err) {
@@ -662,7 +1090,12 @@ function connect() {
   ws = sock;
   sock.binaryType = "arraybuffer";
   sock.onopen = () => {
-    sock.send(JSON.stringify({ type: "hello", protocol: PROTOCOL_VERSION, role: "viewer", name: "viewer" }));
+    const hello = { type: "hello", protocol: PROTOCOL_VERSION, role: "viewer", name: "viewer" };
+    // a server with tokens: open http(s)://HOST:PORT/#token=TOKEN (a fragment never reaches a
+    // server or its logs); the token is sent only in hello and never logged here
+    const token = new URLSearchParams(location.hash.slice(1)).get("token");
+    if (token) hello.token = token;
+    sock.send(JSON.stringify(hello));
   };
   sock.onmessage = (ev) => {
     if (typeof ev.data === "string") onText(ev.data);
@@ -694,20 +1127,13 @@ window.addEventListener("online", () => {
 });
 
 // ----------------------------------------------------------------------------- layout & loop
-/** The window area not covered by the header, the user panel and the legend [CSS px]. */
+/** The view area: the grid cell the panels leave free [CSS px] (the whole window as fallback). */
 function freeRegion() {
-  const w = window.innerWidth;
-  const h = window.innerHeight;
-  const top = $("topbar").getBoundingClientRect();
-  const legend = $("legend").getBoundingClientRect();
-  const panel = dom.users.getBoundingClientRect();
-  const beside = panel.width > 0 && panel.left > w * 0.5; // wide layout: panel on the right
-  const below = !beside && panel.height > 0 && panel.top > h * 0.5; // narrow: panel at the bottom
-  const right = beside ? panel.left : w;
-  const bottom = Math.min(legend.height > 0 ? legend.top : h, below ? panel.top : h);
-  const y0 = Math.min(top.bottom, h * 0.4);
-  const y1 = Math.max(bottom, h * 0.6);
-  return { x: 0, y: y0, w: right, h: y1 - y0 };
+  const r = dom.view.getBoundingClientRect();
+  if (r.width < 40 || r.height < 40) {
+    return { x: 0, y: 0, w: window.innerWidth, h: window.innerHeight };
+  }
+  return { x: r.left, y: r.top, w: r.width, h: r.height };
 }
 
 function resize() {
@@ -720,9 +1146,16 @@ function resize() {
   const view = freeRegion();
   camera.setViewOffset(w, h, w / 2 - (view.x + view.w / 2), h / 2 - (view.y + view.h / 2), w, h);
   camera.updateProjectionMatrix();
+  if (framed && viewerState.autoView) {
+    // keep the object filling the view area: the same direction, the distance that fits now
+    const dir = tmpDir.copy(camera.position).sub(controls.target).normalize();
+    viewDistance = fitDistance(objectRadius);
+    camera.position.copy(controls.target).addScaledVector(dir, viewDistance);
+  }
   sceneDirty = true;
 }
 window.addEventListener("resize", resize);
+new ResizeObserver(resize).observe(dom.view); // the grid reflows when the header wraps
 resize();
 
 let lastPanelMs = 0;
@@ -730,6 +1163,7 @@ let lastPanelMs = 0;
 function animate(now) {
   requestAnimationFrame(animate);
   controls.update(); // fires "change" while damping settles
+  if (followDent()) sceneDirty = true;
   if (sceneDirty) {
     sceneDirty = false;
     const t0 = performance.now();
@@ -737,6 +1171,8 @@ function animate(now) {
     labels.render(scene, camera);
     viewerState.renders += 1;
     viewerState.renderMs = performance.now() - t0;
+    checkArrowsInView();
+    updateDentHook();
   }
   if (now - lastPanelMs >= PANEL_REFRESH_MS) {
     lastPanelMs = now;

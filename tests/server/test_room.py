@@ -52,8 +52,18 @@ def hello(name: str, role: str = "user") -> str:
     return json.dumps({"type": "hello", "protocol": PROTOCOL_VERSION, "role": role, "name": name})
 
 
-def state(seq: int, z: float = 0.095, force: float = 1.0) -> str:
-    return json.dumps({"type": "state", "seq": seq, "probe_m": [0, 0, z], "force_n": [0, 0, force]})
+def state(seq: int, z: float = 0.095, force: float = 1.0, k_h: float = 400.0) -> str:
+    """A state with gains that can render ``force`` at that depth (the server bounds forces)."""
+    return json.dumps(
+        {"type": "state", "seq": seq, "probe_m": [0, 0, z], "force_n": [0, 0, force], "k_h": k_h}
+    )
+
+
+def prime(room, conns, now_s=0.0):
+    """One tick with a resting state from each user, so each has a patch (forces need one)."""
+    for c in conns:
+        room.receive(c, state(0, z=0.099, force=0.0), now_s)
+    room.tick(0, now_s)
 
 
 def texts(outs, conn):
@@ -67,6 +77,7 @@ def room():
         r.connect(c, 0.0)
         (w,) = texts(r.receive(c, hello(c.upper()), 0.0), c)
         assert w["type"] == "welcome" and w["object"]["n_vertices"] == 6
+    prime(r, ("a", "b"))
     return r
 
 
@@ -89,8 +100,9 @@ def test_viewer_gets_faces_then_vertices_and_room_each_tick(room):
     room.receive("a", state(1), 0.01)
     outs = room.tick(2, 0.05)
     (summary,) = texts(outs, "v")
-    assert summary["type"] == "room" and [u["name"] for u in summary["users"]] == ["A"]
+    assert summary["type"] == "room" and [u["name"] for u in summary["users"]] == ["A", "B"]
     assert summary["users"][0]["k_o_eff"] == 380.0
+    assert summary["users"][0]["force_n"] == [0, 0, 1.0]
     assert any(isinstance(o.data, bytes) and o.conn_id == "v" for o in outs)
 
 
@@ -101,7 +113,7 @@ def test_viewer_gets_faces_then_vertices_and_room_each_tick(room):
         ('{"type":"state","seq":5,"probe_m":[0,0,NaN],"force_n":[0,0,1]}', "non_finite"),
         ('{"type":"teleport"}', "unknown_type"),
         ('{"type":"state","seq":5,"probe_m":[0,0,0.09],"force_n":[0,0,1e6]}', "force_limit"),
-        ('{"type":"state","seq":5,"probe_m":[1e6,0,0],"force_n":[0,0,1]}', "probe_out_of_range"),
+        ('{"type":"state","seq":5,"probe_m":[90,90,0],"force_n":[0,0,1]}', "probe_out_of_range"),
         (hello("again"), "duplicate_hello"),
     ],
 )
@@ -144,6 +156,7 @@ def test_flood_is_cut_off_and_the_other_user_keeps_working():
     for c in ("a", "b"):
         r.connect(c, 0.0)
         r.receive(c, hello(c.upper()), 0.0)
+    prime(r, ("a", "b"))
     closed = False
     for i in range(200):  # 200 frames within 10 ms
         outs = r.receive("a", state(i + 1), 0.00005 * i)
@@ -201,7 +214,8 @@ def test_silent_connections_are_closed_and_cannot_lock_users_out():
     )
     for i in range(4):
         r.connect(f"idle{i}", 0.0)
-    assert texts(r.connect("late", 0.1), "late")[0]["code"] == "room_full"  # too many pending
+    # too many pending (all from one address): named as such, not "room_full"
+    assert texts(r.connect("late", 0.1), "late")[0]["code"] == "too_many_pending"
     outs = r.tick(1, 6.0)  # the idle ones never said hello
     codes = {o.conn_id: json.loads(o.data)["code"] for o in outs if o.close}
     assert codes == {f"idle{i}": "hello_timeout" for i in range(4)}

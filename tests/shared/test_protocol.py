@@ -18,6 +18,7 @@ from shared.protocol import (
     encode,
     encode_faces,
     encode_vertices,
+    frame_size_bytes,
     json_schema,
     parse_client,
     parse_server,
@@ -69,7 +70,44 @@ def test_patch_round_trip_on_the_client_side():
             "invalid_message",
         ),
         (b"\x00\x01binary", "binary_not_expected"),
-        ("[" * 100000 + "]" * 100000, "malformed_json"),
+        # parse cost is bounded before parsing: nesting depth and array lengths
+        ("[" * 100000 + "]" * 100000, "too_complex"),
+        ('{"type":"ping","id":1,"t_client_s":0,"pad":' + "[" * 70 + "]" * 70 + "}", "too_complex"),
+        ('{"type":"ping","id":1,"t_client_s":0,"pad":[' + "0," * 600 + "0]}", "too_complex"),
+        # no coercion: a string, a boolean or a float for an integer, a string for a boolean
+        ('{"type":"state","seq":"1","probe_m":[0,0,0],"force_n":[0,0,0]}', "invalid_message"),
+        ('{"type":"state","seq":true,"probe_m":[0,0,0],"force_n":[0,0,0]}', "invalid_message"),
+        ('{"type":"state","seq":1.0,"probe_m":[0,0,0],"force_n":[0,0,0]}', "invalid_message"),
+        (
+            '{"type":"state","seq":1,"probe_m":[0,0,0],"force_n":[0,0,0],"in_contact":"yes"}',
+            "invalid_message",
+        ),
+        ('{"type":"state","seq":1,"probe_m":["0",0,0],"force_n":[0,0,0]}', "invalid_message"),
+        ('{"type":"hello","protocol":"1","role":"user","name":"x"}', "invalid_message"),
+        ('{"type":"ping","id":1,"t_client_s":"0"}', "invalid_message"),
+        # bounded: seq below 2**53, every number in a physical range
+        (
+            '{"type":"state","seq":' + "1" + "0" * 4000 + ',"probe_m":[0,0,0],"force_n":[0,0,0]}',
+            "invalid_message",
+        ),  # fmt: skip
+        (
+            '{"type":"state","seq":9007199254740992,"probe_m":[0,0,0],"force_n":[0,0,0]}',
+            "invalid_message",
+        ),  # fmt: skip
+        (
+            '{"type":"state","seq":1,"probe_m":[0,0,0],"force_n":[0,0,0],"penetration_m":1e308}',
+            "invalid_message",
+        ),
+        (
+            '{"type":"state","seq":1,"probe_m":[0,0,0],"force_n":[0,0,0],"k_h":-1}',
+            "invalid_message",
+        ),
+        ('{"type":"state","seq":1,"probe_m":[1e9,0,0],"force_n":[0,0,0]}', "invalid_message"),
+        ('{"type":"ping","id":1,"t_client_s":1e300}', "invalid_message"),
+        ('{"type":"hello","protocol":1,"role":"user","name":"x","token":""}', "invalid_message"),
+        # JSON has no NaN: JSON.stringify(NaN) gives null, reported as such
+        ('{"type":"state","seq":1,"probe_m":[0,0,null],"force_n":[0,0,0]}', "non_finite"),
+        ('{"type":"state","seq":1,"probe_m":[0,0,0],"force_n":[0,0,0],"k_h":null}', "non_finite"),
     ],
 )
 def test_hostile_frames_get_named_errors(frame, code):
@@ -77,6 +115,37 @@ def test_hostile_frames_get_named_errors(frame, code):
         parse_client(frame)
     assert info.value.code == code
     assert len(str(info.value)) < 300  # fit to send back
+
+
+def test_null_for_a_number_says_json_has_no_nan():
+    with pytest.raises(ProtocolError) as info:
+        parse_client('{"type":"state","seq":1,"probe_m":[0,0,null],"force_n":[0,0,0]}')
+    assert info.value.code == "non_finite" and "NaN" in str(info.value)
+    assert "probe_m.2" in str(info.value)
+
+
+def test_valid_values_still_pass_and_optional_nulls_stay_allowed():
+    # integers where floats are expected are not a coercion; rtt_ms may be null (unknown yet)
+    s = parse_client(
+        '{"type":"state","seq":9007199254740991,"probe_m":[0,0,1],"force_n":[0,0,2],'
+        '"in_contact":true,"k_h":300,"rtt_ms":null,"penetration_m":-0.5}'
+    )
+    assert isinstance(s, State) and s.seq == 2**53 - 1 and s.rtt_ms is None and s.k_h == 300.0
+
+
+def test_hello_token_is_carried_but_never_shown():
+    h = parse_client(
+        '{"type":"hello","protocol":1,"role":"viewer","name":"v","token":"s3cret-token-value"}'
+    )
+    assert isinstance(h, Hello) and h.token == "s3cret-token-value"
+    assert "s3cret" not in repr(h) and "s3cret" not in str(h)
+
+
+def test_frame_size_counts_bytes_not_characters():
+    assert frame_size_bytes("abc") == 3
+    assert frame_size_bytes("\u00e9" * 10) == 20  # two bytes each in UTF-8
+    assert frame_size_bytes("\U0001f600") == 4
+    assert frame_size_bytes(b"\x00" * 7) == 7
 
 
 def test_binary_vertex_and_face_frames():

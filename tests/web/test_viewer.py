@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import importlib.util
-import io
 import json
 import math
 import os
@@ -256,6 +255,28 @@ async def test_http_serves_three_and_every_addon_the_viewer_imports() -> None:
             assert b"export" in body, path
 
 
+# ----------------------------------------------------------------------------- no browser
+def test_viewer_stream_constants_match_the_server() -> None:
+    """The STREAM block of viewer.js decodes what server/viewer_stream.py encodes."""
+    from server import viewer_stream as vs
+
+    text = (WEB / "viewer.js").read_text(encoding="utf-8")
+    m = re.search(r"export const STREAM = Object\.freeze\(\{(.*?)\}\);", text, re.S)
+    assert m, "viewer.js must declare `export const STREAM = Object.freeze({...});`"
+    js = dict(re.findall(r'^\s*(\w+): ("?\w+"?),', m.group(1), re.M))
+    expected = {
+        "NORMALS_MAGIC": f'"{vs.NORMALS_MAGIC.decode()}"',
+        "DISPLACEMENT_MAGIC": f'"{vs.DISPLACEMENT_MAGIC.decode()}"',
+        "DSP_HEADER_BYTES": str(vs.DSP_HEADER.size),
+        "FLAG_DENSE": str(vs.FLAG_DENSE),
+        "FLAG_KEY": str(vs.FLAG_KEY),
+        "FLAG_INDEX32": str(vs.FLAG_INDEX32),
+        "FLAG_CLAMPED": str(vs.FLAG_CLAMPED),
+        "FLAG_PARTIAL": str(vs.FLAG_PARTIAL),
+    }
+    assert js == expected
+
+
 # ----------------------------------------------------------------------------- browser tests
 _READY = """() => {
   const s = window.viewerState;
@@ -264,28 +285,64 @@ _READY = """() => {
 }"""
 
 # Pixels of the WebGL canvas itself (it is transparent where nothing is drawn), in the middle of
-# the part of the window the user panel leaves free: how many are drawn, how many balloon-blue.
+# the view area (the part of the window the panels leave free): how many are drawn.
 _CANVAS_PIXELS = """() => {
   const c = document.querySelector("#scene canvas");
   const sx = c.width / c.clientWidth;
-  const panel = document.getElementById("users").getBoundingClientRect();
-  const right = Math.min(c.width, panel.left * sx);
-  const x0 = Math.floor(right * 0.35), x1 = Math.floor(right * 0.65);
-  const y0 = Math.floor(c.height * 0.35), y1 = Math.floor(c.height * 0.65);
+  const v = document.getElementById("view-area").getBoundingClientRect();
+  const x0 = Math.floor((v.left + v.width * 0.35) * sx), x1 = Math.floor((v.left + v.width * 0.65) * sx);
+  const y0 = Math.floor((v.top + v.height * 0.35) * sx), y1 = Math.floor((v.top + v.height * 0.65) * sx);
   const cv = document.createElement("canvas");
   cv.width = x1 - x0;
   cv.height = y1 - y0;
   const g = cv.getContext("2d");
   g.drawImage(c, x0, y0, cv.width, cv.height, 0, 0, cv.width, cv.height);
   const d = g.getImageData(0, 0, cv.width, cv.height).data;
-  let drawn = 0, blue = 0;
-  for (let i = 0; i < d.length; i += 4) {
-    if (d[i + 3] < 16) continue;
-    drawn++;
-    if (d[i + 2] > 90 && d[i + 2] > d[i] + 30) blue++;
-  }
-  return { total: d.length / 4, drawn, blue };
+  let drawn = 0;
+  for (let i = 0; i < d.length; i += 4) if (d[i + 3] >= 16) drawn++;
+  return { total: d.length / 4, drawn };
 }"""
+
+# Mean colour of the canvas in a 7 x 7 CSS-pixel square around [x, y].
+_COLOR_AT = """([x, y]) => {
+  const c = document.querySelector("#scene canvas");
+  const sx = c.width / c.clientWidth;
+  const cv = document.createElement("canvas");
+  const n = Math.max(1, Math.round(7 * sx));
+  cv.width = cv.height = n;
+  const g = cv.getContext("2d");
+  g.drawImage(c, Math.round(x * sx) - (n >> 1), Math.round(y * sx) - (n >> 1), n, n, 0, 0, n, n);
+  const d = g.getImageData(0, 0, n, n).data;
+  const m = [0, 0, 0];
+  for (let i = 0; i < d.length; i += 4) for (let k = 0; k < 3; k++) m[k] += d[i + k] / (n * n);
+  return m;
+}"""
+
+# Bounding boxes [left, top, right, bottom] of the panels and of every user card.
+_BOXES = """() => {
+  const box = (e) => { const r = e.getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom]; };
+  const q = (s) => document.querySelector(s);
+  return {
+    window: [0, 0, window.innerWidth, window.innerHeight],
+    topbar: box(q("#topbar")), users: box(q("#users")), legend: box(q("#legend")),
+    colormap: box(q("#colormap")), view: box(q("#view-area")),
+    cards: Object.fromEntries([...document.querySelectorAll("#user-list section.user")]
+      .map((e) => [e.dataset.userName, box(e)])),
+  };
+}"""
+
+
+def _overlap(a: list[float], b: list[float]) -> bool:
+    return a[0] < b[2] - 0.5 and b[0] < a[2] - 0.5 and a[1] < b[3] - 0.5 and b[1] < a[3] - 0.5
+
+
+def _inside(inner: list[float], outer: list[float]) -> bool:
+    return (
+        inner[0] >= outer[0] - 0.5
+        and inner[1] >= outer[1] - 0.5
+        and inner[2] <= outer[2] + 0.5
+        and inner[3] <= outer[3] + 0.5
+    )
 
 
 async def _viewer_users(page: Any) -> dict[str, dict[str, Any]]:
@@ -301,24 +358,34 @@ async def _sample_force(page: Any, name: str, n: int, interval_s: float) -> list
     return out
 
 
-def _blue_fraction_of_screenshot(png: bytes, right_px: float) -> float | None:
-    """Balloon-blue share of the middle of the free area of a screenshot; None without PIL."""
-    try:
-        from PIL import Image
-    except ImportError:
-        return None
-    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
-    h = img.shape[0]
-    x0, x1 = int(right_px * 0.35), int(right_px * 0.65)
-    mid = img[int(h * 0.35) : int(h * 0.65), x0:x1]
-    r, b = mid[..., 0], mid[..., 2]
-    return float(np.mean((b > 110) & (b > r + 40)))
+def _server_indentation_mm(app: Any, proxy_m: list[float]) -> float:
+    """The server's own surface displacement inward [mm] at the vertex nearest ``proxy_m``."""
+    world = app.room.world
+    v = np.asarray(world.vertices)
+    i = int(np.argmin(np.linalg.norm(v - np.asarray(proxy_m), axis=1)))
+    w = float((v[i] - world.obj.rest_vertices[i]) @ world.obj.rest_normals[i])
+    return -w * 1000.0
+
+
+async def _launch(pw: Any) -> Any:
+    return await pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+
+
+def _watch(page: Any) -> list[str]:
+    problems: list[str] = []
+    page.on("pageerror", lambda exc: problems.append(f"page error: {exc}"))
+    page.on(
+        "console",
+        lambda m: problems.append(f"console: {m.text}") if m.type == "error" else None,
+    )
+    return problems
 
 
 @pytest.mark.browser
 @pytest.mark.timeout(120)
-async def test_viewer_shows_balloon_users_and_coupled_force() -> None:
-    """A presses the top; the force the viewer shows for B, resting on the side, rises."""
+async def test_viewer_shows_the_dent_users_and_coupled_force() -> None:
+    """A presses the top: the viewer colours the dent, shows A's indentation as the server has
+    it, keeps A's arrow and the dent in view, and the force it shows for B (on the side) rises."""
     reason = _browser_skip_reason()
     if reason:
         pytest.skip(reason)
@@ -331,15 +398,10 @@ async def test_viewer_shows_balloon_users_and_coupled_force() -> None:
         scripted_users(app.port, a, b),
         async_playwright() as pw,
     ):
-        browser = await pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        browser = await _launch(pw)
         try:
             page = await browser.new_page(viewport={"width": VIEW_W, "height": VIEW_H})
-            problems: list[str] = []
-            page.on("pageerror", lambda exc: problems.append(f"page error: {exc}"))
-            page.on(
-                "console",
-                lambda m: problems.append(f"console: {m.text}") if m.type == "error" else None,
-            )
+            problems = _watch(page)
             await page.goto(f"http://127.0.0.1:{app.port}/", wait_until="domcontentloaded")
             await page.wait_for_function(_READY, timeout=30_000)
 
@@ -347,12 +409,24 @@ async def test_viewer_shows_balloon_users_and_coupled_force() -> None:
             assert await page.locator("#conn").get_attribute("class") == "conn connected"
             assert await page.locator("#s-rate").inner_text() == f"{SIM_RATE_HZ:.0f}"
 
-            # B at rest, A not touching yet: B's force settles
-            await asyncio.sleep(1.0)
+            # B at rest, A not touching yet: B's force settles and the surface stream goes quiet
+            await asyncio.sleep(1.5)
             before = await _sample_force(page, "B", n=5, interval_s=0.1)
             baseline = sum(before) / len(before)
             assert baseline > 0.0
-            assert (await _viewer_users(page))["A"]["force_n_mag"] == 0.0
+            users = await _viewer_users(page)
+            assert users["A"]["force_n_mag"] == 0.0 and users["A"]["penetration_mm"] < 0.0
+            card_a = page.locator('#user-list section.user[data-user-name="A"]')
+            await page.wait_for_timeout(300)
+            assert await card_a.locator(".indent-value").inner_text() == "not in contact"
+            assert await card_a.locator('[data-k="penetration_mm"]').inner_text() == (
+                "not in contact"
+            )  # not a negative depth
+            # once B's contact has settled nothing moves: the surface stream is about a header a
+            # tick (float32 frames were 31 kB a tick here, 600 kB/s)
+            await page.wait_for_function(
+                "() => window.viewerState.bytesPerS < 5000", timeout=15_000
+            )
 
             # A presses 15 mm into the top: the water pushes the side out into B's probe
             a.target_m = 0.015
@@ -374,32 +448,114 @@ async def test_viewer_shows_balloon_users_and_coupled_force() -> None:
             assert users["A"]["penetration_mm"] > 1.0, users["A"]
             assert users["B"]["k_o"] > 0 and users["B"]["k_o_eff"] > 0 and users["B"]["k_h"] > 0
 
-            # both users have a panel showing their force
+            # A holds still: the indentation shown is the server's surface displacement there
+            while a.depth_m != a.target_m and loop.time() < deadline:
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(1.0)
+            users = await _viewer_users(page)
+            shown = users["A"]["indentation_mm"]
+            assert shown is not None and shown >= 0.0
+            truth = _server_indentation_mm(app, users["A"]["proxy_m"])
+            assert truth > 2.0 and abs(shown - truth) < 0.3, (shown, truth)
             await page.wait_for_timeout(300)
+            text = await card_a.locator(".indent-value").inner_text()
+            assert abs(float(text.replace("mm", "")) - shown) < 0.05, (text, shown)
+
+            # both users have a panel showing their force, in the colour of their name
             cards = page.locator("#user-list section.user")
             assert await cards.count() == 2
             for name in ("A", "B"):
                 card = page.locator(f'#user-list section.user[data-user-name="{name}"]')
                 assert await card.locator(".name").inner_text() == name
-                shown = float(await card.locator(".force-value").inner_text())
-                assert math.isfinite(shown) and shown > 0.0
+                shown_f = float(await card.locator(".force-value").inner_text())
+                assert math.isfinite(shown_f) and shown_f > 0.0
                 assert "scripted" in await card.locator(".device").inner_text()
+                color = await card.evaluate("e => e.style.getPropertyValue('--c')")
+                assert color == users[name]["color"]
+            assert users["A"]["color"] != users["B"]["color"]
 
-            # the balloon is drawn, in the middle of the free area
+            # the colour legend is there in mm and covers the dent
+            state = await page.evaluate("() => window.viewerState")
+            scale = state["colorScale"]
+            assert await page.locator("#colormap").is_visible()
+            legend = await page.locator("#cm-in").inner_text()
+            assert legend == f"−{scale['range_mm']:g} mm", legend
+            assert scale["max_in_mm"] >= shown - 0.05 and scale["range_mm"] >= scale["max_in_mm"]
+
+            # the camera shows the dent from outside, and the force arrows stay in view
+            dent = state["dent"]
+            assert dent is not None and dent["depth_mm"] >= shown - 0.05
+            assert dent["in_view"] and dent["facing"] > 0.2, dent
+            for name, arrow in state["arrows"].items():
+                assert arrow["in_view"] or not arrow["visible"], (name, arrow)
+            assert state["arrows"]["A"]["visible"]
+            # pushed in is warm on the legend: the dent is drawn in warm colours
+            r, _, blue = await page.evaluate(_COLOR_AT, dent["px"])
+            assert r > blue + 40, (r, blue)
+
+            # the balloon is drawn, in the middle of the view area
             pixels = await page.evaluate(_CANVAS_PIXELS)
             assert pixels["drawn"] >= 0.9 * pixels["total"], pixels
-            assert pixels["blue"] >= 0.5 * pixels["total"], pixels
 
             png = await page.screenshot(type="png")
-            panel_left = await page.evaluate(
-                "() => document.getElementById('users').getBoundingClientRect().left"
-            )
-            blue = _blue_fraction_of_screenshot(png, panel_left)
-            if blue is not None:
-                assert blue >= 0.5, f"only {blue:.0%} of the view centre is balloon-blue"
             if UPDATE_SCREENSHOT:
                 SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
                 SCREENSHOT.write_bytes(png)
+            assert not problems, problems
+        finally:
+            await browser.close()
+
+
+@pytest.mark.browser
+@pytest.mark.timeout(120)
+async def test_layout_at_900_px_shows_every_card_and_colours_follow_names() -> None:
+    """At 900 x 700 nothing overlaps and three users' cards are all visible; a user who leaves
+    and comes back keeps its colour; a free user reads "not in contact"."""
+    reason = _browser_skip_reason()
+    if reason:
+        pytest.skip(reason)
+    from playwright.async_api import async_playwright
+
+    a = ScriptedUser("A", "top", depth_m=0.002)
+    b = ScriptedUser("B", "side", depth_m=0.002)
+    async with (
+        running_server(subdivisions=3) as app,
+        scripted_users(app.port, a, b),
+        async_playwright() as pw,
+    ):
+        browser = await _launch(pw)
+        try:
+            page = await browser.new_page(viewport={"width": 900, "height": 700})
+            problems = _watch(page)
+            await page.goto(f"http://127.0.0.1:{app.port}/", wait_until="domcontentloaded")
+            await page.wait_for_function(_READY, timeout=30_000)
+            three = "() => Object.keys(window.viewerState.users).length === 3"
+            async with scripted_users(app.port, ScriptedUser("C", "side", depth_m=-0.02)):
+                await page.wait_for_function(three, timeout=10_000)
+                await page.wait_for_timeout(400)  # the panels refresh every 100 ms
+                boxes = await page.evaluate(_BOXES)
+                colors = {n: u["color"] for n, u in (await _viewer_users(page)).items()}
+                card_c = page.locator('#user-list section.user[data-user-name="C"]')
+                assert await card_c.locator(".indent-value").inner_text() == "not in contact"
+            for name in ("topbar", "users", "legend", "colormap", "view"):
+                assert _inside(boxes[name], boxes["window"]), (name, boxes[name])
+            assert not _overlap(boxes["topbar"], boxes["users"]), boxes
+            assert not _overlap(boxes["topbar"], boxes["view"]), boxes
+            assert not _overlap(boxes["users"], boxes["legend"]), boxes
+            assert not _overlap(boxes["users"], boxes["view"]), boxes
+            assert sorted(boxes["cards"]) == ["A", "B", "C"]
+            for name, card in boxes["cards"].items():
+                assert _inside(card, boxes["users"]), (name, card, boxes["users"])
+            assert len(set(colors.values())) == 3, colors
+
+            # C leaves; C comes back (a new connection, a new user id): the same colour
+            await page.wait_for_function(
+                "() => Object.keys(window.viewerState.users).length === 2", timeout=10_000
+            )
+            async with scripted_users(app.port, ScriptedUser("C", "top", depth_m=-0.02)):
+                await page.wait_for_function(three, timeout=10_000)
+                again = (await _viewer_users(page))["C"]["color"]
+            assert again == colors["C"]
             assert not problems, problems
         finally:
             await browser.close()

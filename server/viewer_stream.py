@@ -1,0 +1,701 @@
+"""The viewer stream: the deforming surface as quantised normal displacements, sent when changed.
+
+A viewer gets the surface as *displacements along the rest normals* of the vertices, ``w`` [m],
+outward positive: the surface it draws is ``rest + w * rest_normal``, exactly the balloon's own
+state (:mod:`server.objects.balloon`). Each ``w`` is an ``int16`` count of a quantum (1 um unless
+the deformation outgrows +-32.767 mm, see *Scale* below), and a vertex is sent only when the
+value the viewer holds differs from the current one by at least a quantum. At rest the stream
+costs a 20-byte header per tick; a 10 mm press on a 10k-vertex balloon stays under the per-frame
+byte budget (150 kB/s at 20 Hz by default) instead of 2.4 MB/s of float32 positions.
+
+Frames (little-endian; docs/protocol.md, "Viewer stream")
+---------------------------------------------------------
+On join, three events:
+
+1. ``VTX1`` (:func:`shared.protocol.encode_vertices`, tick 0): the *rest* positions, (n, 3)
+   float32 [m];
+2. ``NRM1`` (same layout): the rest unit normals, (n, 3) float32;
+3. a ``DSP1`` keyframe: every vertex's displacement (flags ``DENSE | KEY``).
+
+Then one ``DSP1`` per simulation tick, a latest-wins state stream. ``DSP1`` header
+(:data:`DSP_HEADER`, 20 bytes): magic, uint32 tick, uint32 count, uint32 quantum [nm], uint32
+flags. Body: ``DENSE``: n int16 values (count = n); otherwise count indices (uint16, or uint32
+with ``INDEX32``) then count int16 values. A value ``v`` at vertex ``i`` means
+``w_i = v * quantum``; vertices not listed keep what the viewer has.
+
+What the server guarantees
+--------------------------
+The encoder keeps, per viewer, what that viewer holds: the values of the frames the I/O layer
+*reported as written* to its socket (:attr:`Frame.sent`), applied in order. A frame the I/O layer
+dropped (latest-wins replacement, injected loss) is never reported, so the next frame carries
+its vertices again. Values are absolute, not increments, so applying any subset of the frames in
+flight leaves the viewer correct: a frame lists every vertex where the viewer's value, or the
+value of any frame still in flight, differs from the current one. Hence, with an unlimited
+budget, after each frame the viewer holds the server's displacement within half a quantum
+(the rounding), and ``rest + w * n`` is the server's surface within one quantum.
+
+Byte budget: when more vertices changed than a frame may carry (``frame_budget_bytes``), the
+frame carries the largest differences first (flag ``PARTIAL``); the rest follow in the next
+frames, so during fast motion small far-field changes lag by a few ticks (under 0.5 mm in
+``haptic bench server``) and everything is exact again within a few ticks of the motion stopping.
+
+Scale: if ``max |w|`` exceeds what int16 holds at the base quantum, the quantum doubles (up to
+2**15 base quanta, +-1 km); it halves again once the deformation fits in half of the smaller
+range (hysteresis). Values beyond even that are clamped and flagged ``CLAMPED``.
+
+Only the normal component of a vertex's motion is carried: an object that also moves vertices
+tangentially (a solid FEM model, say) would need a vector stream.
+
+Pure numpy; no sockets, no clocks. The I/O layer must deliver a viewer's frames in the order they
+were made (dropping some is fine) and call :attr:`Frame.sent` right after writing one.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from shared.protocol import BINARY_HEADER, VERTICES_MAGIC, encode_vertices
+
+FloatArray = npt.NDArray[np.float64]
+Int16Array = npt.NDArray[np.int16]
+Int32Array = npt.NDArray[np.int32]
+Int64Array = npt.NDArray[np.int64]
+
+#: Displacement frame: header :data:`DSP_HEADER`, then indices and/or int16 values.
+DISPLACEMENT_MAGIC = b"DSP1"
+#: Rest normals: header :data:`shared.protocol.BINARY_HEADER`, then count x 3 float32.
+NORMALS_MAGIC = b"NRM1"
+#: ``DSP1`` header: magic, uint32 tick, uint32 count, uint32 quantum [nm], uint32 flags.
+DSP_HEADER = struct.Struct("<4sIIII")
+
+#: Body is n int16 values, one per vertex (no indices).
+FLAG_DENSE = 1
+#: Keyframe: every vertex is listed; the viewer's earlier state no longer matters.
+FLAG_KEY = 2
+#: Indices are uint32 (meshes of more than 65 536 vertices); uint16 otherwise.
+FLAG_INDEX32 = 4
+#: Some displacement exceeded 32767 quanta at the largest scale and was clamped.
+FLAG_CLAMPED = 8
+#: The byte budget cut this frame short: more changes follow in the next frames.
+FLAG_PARTIAL = 16
+
+#: Smallest quantum [nm] (1 um).
+BASE_QUANTUM_NM = 1000
+#: Largest quantum is ``BASE_QUANTUM_NM * 2**MAX_SCALE_EXP`` (32.8 mm; range +-1.07 km).
+MAX_SCALE_EXP = 15
+#: Default viewer budget [bytes/s]; divided by the simulation rate for the per-frame budget.
+DEFAULT_BYTES_PER_S = 150_000
+#: No per-frame budget goes below this [bytes] (a very high simulation rate would starve it).
+MIN_FRAME_BUDGET_BYTES = 1024
+
+_INT16_MAX = 32767
+#: What the encoder knows the viewer holds when it does not know (it is never a valid value).
+_UNKNOWN = np.iinfo(np.int32).min
+
+
+def vertex_normals(vertices: npt.ArrayLike, faces: npt.ArrayLike) -> FloatArray:
+    """Area-weighted outward unit vertex normals.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float [m]
+    faces : (m, 3) int
+        Counter-clockwise seen from outside.
+
+    Returns
+    -------
+    (n, 3) float64
+        Unit normals; (0, 0, 1) for a vertex that no face uses.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    length = np.linalg.norm(vn, axis=1, keepdims=True)
+    out = np.divide(vn, length, out=np.zeros_like(vn), where=length > 0)
+    out[length[:, 0] == 0] = (0.0, 0.0, 1.0)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    """One tick's quantised displacement, computed once and shared by every viewer.
+
+    Attributes
+    ----------
+    tick : int
+        Simulation tick number.
+    scale_exp : int
+        The quantum is ``BASE_QUANTUM_NM * 2**scale_exp`` [nm].
+    values : (n,) int16
+        ``w`` in quanta.
+    target : (n,) int32
+        ``values * 2**scale_exp``: ``w`` in base quanta (1 um), as a viewer decodes it.
+    clamped : bool
+        Some ``|w|`` exceeded the int16 range at the largest scale.
+    version : int
+        Counts the distinct displacements of one stream (frames made from one snapshot for
+        viewers in the same state are encoded once).
+    """
+
+    tick: int
+    scale_exp: int
+    values: Int16Array
+    target: Int32Array
+    clamped: bool
+    version: int = 0
+
+    @property
+    def quantum_nm(self) -> int:
+        """Quantum of :attr:`values` [nm]."""
+        return BASE_QUANTUM_NM << self.scale_exp
+
+    @property
+    def quantum_m(self) -> float:
+        """Quantum of :attr:`values` [m]."""
+        return self.quantum_nm * 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One ``DSP1`` frame for one viewer.
+
+    Attributes
+    ----------
+    data : bytes
+        The binary websocket frame.
+    sent : callable
+        Call it (no arguments) right after ``data`` is written to that viewer's socket; never for
+        a frame that was dropped. The encoder counts on it to know what the viewer holds.
+    count : int
+        Vertices carried.
+    dense, partial : bool
+        Flags ``DENSE`` and ``PARTIAL`` (the byte budget held changes back).
+    """
+
+    data: bytes
+    sent: Callable[[], None] = field(repr=False)
+    count: int = 0
+    dense: bool = False
+    partial: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class _Encoded:
+    """A frame's content, shared by the viewers that held the same state (read-only arrays)."""
+
+    index: Int64Array | None  # None: dense, every vertex
+    target: Int32Array  # base quanta sent, same length as index (or n)
+    data: bytes
+    partial: bool
+    #: Token of the exact state a viewer is in once it got this frame and nothing else is in
+    #: flight: the snapshot's version when complete; for a partial frame shared by viewers in one
+    #: state a fresh negative number; None when not known exactly.
+    result: int | None
+
+
+@dataclass(frozen=True, eq=False)
+class _InFlight:
+    """A frame made but not yet reported written."""
+
+    seq: int
+    content: _Encoded
+
+
+@dataclass(eq=False)
+class _Viewer:
+    """What the encoder knows of one viewer."""
+
+    held: Int32Array  # (n,) base quanta the viewer holds for sure; _UNKNOWN where unknown
+    in_flight: deque[_InFlight] = field(default_factory=deque)
+    next_seq: int = 1
+    last_sent_seq: int = 0
+    #: Token of the exact state the viewer is in, with nothing in flight (else None): the
+    #: version of a snapshot whose target it holds, or the token of a shared partial frame.
+    synced: int | None = None
+
+
+class ViewerStream:
+    """Encoder of the viewer stream for one object; keeps per-viewer state of what was sent.
+
+    Parameters
+    ----------
+    rest_vertices : (n, 3) float [m]
+        Rest positions.
+    rest_normals : (n, 3) float
+        Outward unit normals at rest; the displacement is measured along them.
+    frame_budget_bytes : int or None
+        Largest ``DSP1`` frame after the keyframe [bytes] (None: unlimited, every frame exact).
+    max_in_flight : int
+        Frames per viewer tracked while not yet reported written; older ones are forgotten and
+        their vertices resent (a viewer too slow to take frames costs a few more bytes, never
+        unbounded memory).
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not match, an empty mesh, a non-finite rest state, a budget below a
+        header, or ``max_in_flight < 1``.
+    """
+
+    def __init__(
+        self,
+        rest_vertices: npt.ArrayLike,
+        rest_normals: npt.ArrayLike,
+        frame_budget_bytes: int | None = None,
+        max_in_flight: int = 8,
+    ) -> None:
+        rest = np.array(rest_vertices, dtype=np.float64)
+        normals = np.array(rest_normals, dtype=np.float64)
+        if rest.ndim != 2 or rest.shape[1] != 3 or rest.shape[0] == 0:
+            raise ValueError(f"rest_vertices must be (n, 3) with n > 0, got {rest.shape}")
+        if normals.shape != rest.shape:
+            raise ValueError(f"rest_normals must be {rest.shape}, got {normals.shape}")
+        if not (np.all(np.isfinite(rest)) and np.all(np.isfinite(normals))):
+            raise ValueError("rest_vertices and rest_normals must be finite")
+        if frame_budget_bytes is not None and frame_budget_bytes < DSP_HEADER.size + 8:
+            raise ValueError(f"frame_budget_bytes must be >= {DSP_HEADER.size + 8}")
+        if max_in_flight < 1:
+            raise ValueError(f"max_in_flight must be >= 1, got {max_in_flight}")
+        rest.setflags(write=False)
+        normals.setflags(write=False)
+        self._rest = rest
+        self._normals = normals
+        self.frame_budget_bytes = frame_budget_bytes
+        self.max_in_flight = int(max_in_flight)
+        n = rest.shape[0]
+        self._index_dtype = "<u2" if n <= 0x10000 else "<u4"
+        self._index_flag = 0 if n <= 0x10000 else FLAG_INDEX32
+        self._rest_frames = (
+            encode_vertices(0, rest),
+            BINARY_HEADER.pack(NORMALS_MAGIC, 0, n) + normals.astype("<f4").tobytes(),
+        )
+        self._scale_exp = 0
+        self._version = 0
+        self._last_target: Int32Array | None = None
+        self._partial_token = 0
+        self._viewers: dict[str, _Viewer] = {}
+        #: Frames of the latest snapshot by the version the viewers were synced to.
+        self._shared: dict[tuple[int, int], _Encoded] = {}
+
+    @classmethod
+    def of_world(
+        cls, world: Any, rate_hz: float, bytes_per_s: float | None = DEFAULT_BYTES_PER_S
+    ) -> ViewerStream:
+        """The stream of a :class:`server.world.World` (or anything with ``vertices`` and ``faces``).
+
+        Rest positions and normals are the object's (``world.obj.rest_vertices`` and
+        ``rest_normals``) where it has them, else the current vertices and their area-weighted
+        normals (the world is taken to be at rest).
+
+        Parameters
+        ----------
+        world : World
+        rate_hz : float
+            Frames per second (the simulation rate) [Hz].
+        bytes_per_s : float or None
+            Budget per viewer [bytes/s]; None for unlimited.
+        """
+        obj = getattr(world, "obj", None)
+        rest = getattr(obj, "rest_vertices", None)
+        if rest is None:
+            rest = np.asarray(world.vertices, dtype=np.float64)
+        normals = getattr(obj, "rest_normals", None)
+        if normals is None:
+            normals = vertex_normals(rest, world.faces)
+        budget = None
+        if bytes_per_s is not None:
+            budget = max(MIN_FRAME_BUDGET_BYTES, int(bytes_per_s / max(float(rate_hz), 1e-9)))
+        return cls(rest, normals, frame_budget_bytes=budget)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def n_vertices(self) -> int:
+        """Number of vertices n."""
+        return int(self._rest.shape[0])
+
+    @property
+    def rest_vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] rest positions (read-only)."""
+        return self._rest
+
+    @property
+    def rest_normals(self) -> FloatArray:
+        """(n, 3) float64 outward unit rest normals (read-only)."""
+        return self._normals
+
+    @property
+    def viewers(self) -> list[str]:
+        """Viewer ids the encoder keeps state for."""
+        return list(self._viewers)
+
+    def displacement(self, vertices: npt.ArrayLike) -> FloatArray:
+        """Normal displacement ``w = (vertices - rest) . rest_normal`` per vertex.
+
+        Parameters
+        ----------
+        vertices : (n, 3) float [m]
+
+        Returns
+        -------
+        (n,) float64 [m], outward positive; non-finite entries become 0.
+
+        Raises
+        ------
+        ValueError
+            ``vertices`` is not (n, 3).
+        """
+        v = np.asarray(vertices, dtype=np.float64)
+        if v.shape != self._rest.shape:
+            raise ValueError(f"vertices must be {self._rest.shape}, got {v.shape}")
+        w = np.einsum("ij,ij->i", v - self._rest, self._normals)
+        return np.nan_to_num(w, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def snapshot(self, tick: int, vertices: npt.ArrayLike) -> Snapshot:
+        """Quantise the current surface once for all viewers (updates the stream's scale).
+
+        Parameters
+        ----------
+        tick : int
+            Simulation tick number (sent modulo 2**32).
+        vertices : (n, 3) float [m]
+            Current positions.
+        """
+        base = self.displacement(vertices) * (1e9 / BASE_QUANTUM_NM)  # in base quanta
+        peak = float(np.max(np.abs(base))) if base.size else 0.0
+        exp = self._scale_exp
+        while exp < MAX_SCALE_EXP and peak > (_INT16_MAX << exp):
+            exp += 1
+        while exp > 0 and peak <= (_INT16_MAX << (exp - 1)) / 2:
+            exp -= 1
+        self._scale_exp = exp
+        scaled = np.rint(base / (1 << exp))
+        clamped = bool(np.any(np.abs(scaled) > _INT16_MAX))
+        values = np.clip(scaled, -_INT16_MAX, _INT16_MAX).astype(np.int16)
+        target = values.astype(np.int32) << exp
+        values.setflags(write=False)
+        target.setflags(write=False)
+        self._shared.clear()
+        if self._last_target is None or not np.array_equal(target, self._last_target):
+            self._version += 1  # the same displacement keeps its version: viewers stay in step
+            self._last_target = target
+        return Snapshot(int(tick), exp, values, target, clamped, self._version)
+
+    # ------------------------------------------------------------------ viewers
+    def join(self, viewer_id: str, tick: int, vertices: npt.ArrayLike) -> list[bytes]:
+        """A new viewer: its keyframe, to be sent as reliable, ordered events.
+
+        Parameters
+        ----------
+        viewer_id : str
+            Connection id; a viewer already known starts over.
+        tick : int
+            Current tick number.
+        vertices : (n, 3) float [m]
+            Current positions.
+
+        Returns
+        -------
+        list of bytes
+            ``[VTX1 rest positions, NRM1 rest normals, DSP1 keyframe]``. The keyframe counts as
+            held by the viewer from now on: events are never dropped.
+        """
+        snap = self.snapshot(tick, vertices)
+        self._viewers[viewer_id] = _Viewer(held=snap.target.copy(), synced=snap.version)
+        key = self._encode(snap, None, FLAG_DENSE | FLAG_KEY)
+        return [*self._rest_frames, key]
+
+    def leave(self, viewer_id: str) -> None:
+        """Forget a viewer (no error if unknown)."""
+        self._viewers.pop(viewer_id, None)
+
+    def frames(
+        self, tick: int, vertices: npt.ArrayLike, viewer_ids: Iterable[str]
+    ) -> dict[str, Frame]:
+        """This tick's frame for each viewer; viewers not listed are forgotten.
+
+        Parameters
+        ----------
+        tick : int
+            Simulation tick number.
+        vertices : (n, 3) float [m]
+            Current positions.
+        viewer_ids : iterable of str
+            The viewers connected now.
+
+        Returns
+        -------
+        dict viewer id -> Frame
+            A viewer that never joined gets every vertex (in one dense frame, or over several
+            under the budget); it has no rest geometry, though: call :meth:`join` first.
+        """
+        ids = list(viewer_ids)
+        keep = set(ids)
+        for gone in [v for v in self._viewers if v not in keep]:
+            del self._viewers[gone]
+        if not ids:
+            return {}
+        snap = self.snapshot(tick, vertices)
+        return {v: self.frame(v, snap) for v in ids}
+
+    def frame(self, viewer_id: str, snap: Snapshot) -> Frame:
+        """The frame that brings ``viewer_id`` to ``snap`` (within the byte budget).
+
+        Parameters
+        ----------
+        viewer_id : str
+        snap : Snapshot
+            From :meth:`snapshot` of this stream.
+
+        Returns
+        -------
+        Frame
+            Its :attr:`Frame.sent` must be called once the frame is written to the socket.
+        """
+        state = self._viewers.get(viewer_id)
+        if state is None:
+            state = self._viewers[viewer_id] = _Viewer(
+                held=np.full(self.n_vertices, _UNKNOWN, dtype=np.int32)
+            )
+        if state.synced is None:
+            content = self._content(state, snap, shared=False)
+        else:  # viewers in the same state get the same frame: encode it once
+            key = (state.synced, snap.version)
+            found = self._shared.get(key)
+            content = found or self._shared.setdefault(key, self._content(state, snap, shared=True))
+        seq = state.next_seq
+        state.next_seq += 1
+        state.synced = None
+        state.in_flight.append(_InFlight(seq, content))
+        while len(state.in_flight) > self.max_in_flight:
+            old = state.in_flight.popleft().content  # forget it: its vertices count as unknown
+            if old.index is None:
+                state.held[:] = _UNKNOWN
+            else:
+                state.held[old.index] = _UNKNOWN
+        return Frame(
+            data=content.data,
+            sent=partial(_mark_sent, state, seq),
+            count=self.n_vertices if content.index is None else int(content.index.size),
+            dense=content.index is None,
+            partial=content.partial,
+        )
+
+    def _content(self, state: _Viewer, snap: Snapshot, shared: bool) -> _Encoded:
+        """Choose and encode the vertices ``state`` needs to reach ``snap`` (budget permitting).
+
+        ``shared``: ``state`` is exact (``synced``), so a partial frame leads to an exact state
+        that other viewers taking the same frame share.
+        """
+        target = snap.target
+        diff = np.abs(target.astype(np.int64) - state.held)
+        for e in state.in_flight:  # a frame in flight may yet land: its values must be overwritten
+            c = e.content
+            if c.index is None:
+                np.maximum(diff, np.abs(target - c.target), out=diff)
+            else:
+                d = np.abs(target[c.index] - c.target)
+                diff[c.index] = np.maximum(diff[c.index], d)
+        changed = np.flatnonzero(diff)
+        n = self.n_vertices
+        entry = np.dtype(self._index_dtype).itemsize + 2
+        budget = self.frame_budget_bytes
+        room = None if budget is None else budget - DSP_HEADER.size
+        dense_fits = room is None or 2 * n <= room
+        flags = 0
+        index: Int64Array | None
+        if dense_fits and 2 * n <= entry * changed.size:
+            index, flags = None, FLAG_DENSE
+        elif room is not None and entry * changed.size > room:
+            cap = room // entry
+            index = np.sort(changed[np.argpartition(diff[changed], changed.size - cap)[-cap:]])
+            flags = FLAG_PARTIAL
+        else:
+            index = changed
+        sent = target if index is None else target[index]
+        if index is not None:
+            index.setflags(write=False)
+            sent.setflags(write=False)
+        data = self._encode(snap, index, flags)
+        result: int | None = snap.version
+        if flags & FLAG_PARTIAL:
+            self._partial_token -= 1
+            result = self._partial_token if shared else None
+        return _Encoded(index, sent, data, bool(flags & FLAG_PARTIAL), result)
+
+    def _encode(self, snap: Snapshot, index: Int64Array | None, flags: int) -> bytes:
+        if snap.clamped:
+            flags |= FLAG_CLAMPED
+        if index is None:
+            count = self.n_vertices
+            body = snap.values.astype("<i2").tobytes()
+        else:
+            flags |= self._index_flag
+            count = int(index.size)
+            body = index.astype(self._index_dtype).tobytes()
+            body += snap.values[index].astype("<i2").tobytes()
+        head = DSP_HEADER.pack(
+            DISPLACEMENT_MAGIC, snap.tick & 0xFFFFFFFF, count, snap.quantum_nm, flags
+        )
+        return head + body
+
+
+def _mark_sent(state: _Viewer, seq: int) -> None:
+    """Frame ``seq`` reached the viewer's socket: the viewer now holds its values.
+
+    Frames older than ``seq`` still in flight were dropped (frames go out in order), so they are
+    forgotten. A report out of order breaks that rule: the encoder then trusts nothing it knew.
+    """
+    state.synced = None
+    if seq <= state.last_sent_seq:
+        state.held[:] = _UNKNOWN
+        state.in_flight.clear()
+        return
+    state.last_sent_seq = seq
+    while state.in_flight and state.in_flight[0].seq <= seq:
+        e = state.in_flight.popleft()
+        if e.seq != seq:
+            continue
+        c = e.content
+        if c.index is None:
+            state.held[:] = c.target
+        else:
+            state.held[c.index] = c.target
+        if not state.in_flight:
+            state.synced = c.result  # the exact state the viewer is in (None: not known)
+
+
+# ----------------------------------------------------------------------------- decoding
+@dataclass(frozen=True, eq=False)
+class DisplacementFrame:
+    """A decoded ``DSP1`` frame.
+
+    Attributes
+    ----------
+    tick : int
+    quantum_m : float
+        Quantum of :attr:`values` [m].
+    flags : int
+        ``FLAG_*`` bits.
+    index : (count,) int64 or None
+        Vertices carried (None: dense, all of them in order).
+    values : (count,) int16
+        Displacements in quanta.
+    """
+
+    tick: int
+    quantum_m: float
+    flags: int
+    index: Int64Array | None
+    values: Int16Array
+
+
+def decode_displacement(frame: bytes) -> DisplacementFrame:
+    """Decode a ``DSP1`` frame (no mesh needed; :class:`ViewerStreamDecoder` applies it).
+
+    Raises
+    ------
+    ValueError
+        Not a ``DSP1`` frame, or a length that does not match its header.
+    """
+    if len(frame) < DSP_HEADER.size:
+        raise ValueError("DSP1 frame shorter than its header")
+    magic, tick, count, quantum_nm, flags = DSP_HEADER.unpack_from(frame)
+    if magic != DISPLACEMENT_MAGIC:
+        raise ValueError(f"not a DSP1 frame: {magic!r}")
+    body = memoryview(frame)[DSP_HEADER.size :]
+    if flags & FLAG_DENSE:
+        if len(body) != 2 * count:
+            raise ValueError("DSP1 dense frame length does not match its count")
+        values = np.frombuffer(body, dtype="<i2").astype(np.int16)
+        return DisplacementFrame(tick, quantum_nm * 1e-9, flags, None, values)
+    width = 4 if flags & FLAG_INDEX32 else 2
+    if len(body) != (width + 2) * count:
+        raise ValueError("DSP1 sparse frame length does not match its count")
+    index = np.frombuffer(body[: width * count], dtype="<u4" if width == 4 else "<u2")
+    values = np.frombuffer(body[width * count :], dtype="<i2").astype(np.int16)
+    return DisplacementFrame(tick, quantum_nm * 1e-9, flags, index.astype(np.int64), values)
+
+
+class ViewerStreamDecoder:
+    """What a viewer does with the stream (the reference for web/viewer.js).
+
+    Feed it every binary frame in the order received; :attr:`vertices` is then the surface.
+    """
+
+    def __init__(self) -> None:
+        self.rest: FloatArray | None = None
+        self.normals: FloatArray | None = None
+        self._w: FloatArray | None = None
+        self.tick = -1
+        self.frames = 0
+
+    @property
+    def w(self) -> FloatArray:
+        """(n,) float64 [m] the displacement the viewer holds, outward positive.
+
+        Raises
+        ------
+        ValueError
+            Before the rest geometry arrived.
+        """
+        if self._w is None:
+            raise ValueError("no rest geometry yet")
+        return self._w
+
+    def feed(self, frame: bytes) -> None:
+        """Apply one binary frame (``VTX1`` rest, ``NRM1``, ``DSP1``; others are ignored).
+
+        Raises
+        ------
+        ValueError
+            A malformed frame, or a ``DSP1`` frame before the rest geometry or of another size.
+        """
+        magic = bytes(frame[:4])
+        if magic == DISPLACEMENT_MAGIC:
+            d = decode_displacement(frame)
+            if self._w is None:
+                raise ValueError("DSP1 frame before the rest geometry (VTX1, NRM1)")
+            if d.index is None:
+                if d.values.size != self._w.size:
+                    raise ValueError("DSP1 dense frame of another mesh size")
+                self._w = d.values.astype(np.float64) * d.quantum_m
+            else:
+                if d.index.size and int(d.index.max()) >= self._w.size:
+                    raise ValueError("DSP1 index out of range")
+                self._w[d.index] = d.values * d.quantum_m
+            self.tick = d.tick
+            self.frames += 1
+        elif magic in (VERTICES_MAGIC, NORMALS_MAGIC):
+            _, _, count = BINARY_HEADER.unpack_from(frame)
+            body = memoryview(frame)[BINARY_HEADER.size :]
+            if len(body) != 12 * count:
+                raise ValueError(f"{magic!r} frame length does not match its count")
+            arr = np.frombuffer(body, dtype="<f4").reshape(count, 3).astype(np.float64)
+            if magic == VERTICES_MAGIC:
+                self.rest, self._w = arr, np.zeros(count)
+            else:
+                self.normals = arr
+
+    @property
+    def vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] the surface as the viewer draws it, ``rest + w * normal``.
+
+        Raises
+        ------
+        ValueError
+            Before the rest geometry arrived.
+        """
+        if self.rest is None or self.normals is None or self._w is None:
+            raise ValueError("no rest geometry yet")
+        return self.rest + self._w[:, None] * self.normals

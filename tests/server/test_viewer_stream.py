@@ -1,0 +1,448 @@
+"""The viewer stream: what a viewer decodes is the server's surface, at a fraction of the bytes.
+
+Sans-I/O: frames go through a simulated link that drops, replaces and delays them the way the
+asyncio layer may (latest-wins queue, injected loss and latency), and the reference decoder
+(what web/viewer.js does) checks the surface after every frame it gets. At the end, one test
+drives the room with the real balloon and one runs a viewer over real websockets.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections import deque
+
+import numpy as np
+import pytest
+
+from server.objects.balloon import Balloon, BalloonParams
+from server.objects.mesh import default_balloon
+from server.room import Room
+from server.viewer_stream import (
+    BASE_QUANTUM_NM,
+    DSP_HEADER,
+    FLAG_CLAMPED,
+    FLAG_DENSE,
+    FLAG_KEY,
+    FLAG_PARTIAL,
+    Frame,
+    ViewerStream,
+    ViewerStreamDecoder,
+    decode_displacement,
+    vertex_normals,
+)
+from server.world import ContactInput, World
+from shared.protocol import PROTOCOL_VERSION, decode_binary
+
+QUANTUM_M = BASE_QUANTUM_NM * 1e-9
+#: float32 rest positions and normals add a few nm on top of the half-quantum rounding
+TOL_M = QUANTUM_M + 1e-8
+SIM_RATE_HZ = 20.0
+
+
+def sphere(n_sub: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    mesh = default_balloon(0.1, n_sub)
+    return np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+
+
+def stream_and_decoder(
+    rest: np.ndarray, faces: np.ndarray, budget: int | None = None, w0: np.ndarray | None = None
+) -> tuple[ViewerStream, ViewerStreamDecoder, np.ndarray]:
+    normals = vertex_normals(rest, faces)
+    stream = ViewerStream(rest, normals, frame_budget_bytes=budget)
+    w = np.zeros(len(rest)) if w0 is None else w0
+    dec = ViewerStreamDecoder()
+    for f in stream.join("v", 0, rest + w[:, None] * normals):
+        dec.feed(f)
+    return stream, dec, normals
+
+
+def surface_error_m(dec: ViewerStreamDecoder, vertices: np.ndarray) -> float:
+    return float(np.max(np.linalg.norm(dec.vertices - vertices, axis=1)))
+
+
+def press(world: World, top: np.ndarray, force_n: float) -> None:
+    world.tick({"a": ContactInput(probe=top - [0, 0, 0.002], force=np.array([0, 0, force_n]))})
+
+
+def press_profile() -> list[float]:
+    """Force [N] per tick: rest, a 1.5 s ramp to 4 N (about 13 mm at the top), hold, release."""
+    return [0.0] * 5 + list(np.linspace(0.0, 4.0, 30)) + [4.0] * 10 + list(np.linspace(4, 0, 10))
+
+
+@pytest.fixture
+def balloon_world() -> World:
+    return World(Balloon(default_balloon(0.1, 3), BalloonParams(sim_period_s=1 / SIM_RATE_HZ)))
+
+
+# ----------------------------------------------------------------------------- exactness
+def test_viewer_sees_the_pressed_balloon_within_one_quantum_after_every_frame(balloon_world):
+    world = balloon_world
+    top = world.obj.rest_vertices[np.argmax(world.obj.rest_vertices[:, 2])]
+    stream = ViewerStream(world.obj.rest_vertices, world.obj.rest_normals)
+    dec = ViewerStreamDecoder()
+    for f in stream.join("v", 0, world.vertices):
+        dec.feed(f)
+    deepest = 0.0
+    for k, force in enumerate(press_profile(), start=1):
+        press(world, top, force)
+        frame = stream.frames(k, world.vertices, ["v"])["v"]
+        frame.sent()
+        dec.feed(frame.data)
+        assert dec.tick == k
+        assert surface_error_m(dec, world.vertices) <= TOL_M, k
+        deepest = min(deepest, float(np.min(dec.w)))
+    assert deepest < -0.010  # the test saw a real dent (more than 10 mm)
+
+
+def test_join_mid_press_gets_the_current_dent_in_its_keyframe(balloon_world):
+    world = balloon_world
+    top = world.obj.rest_vertices[np.argmax(world.obj.rest_vertices[:, 2])]
+    for _ in range(3):
+        press(world, top, 3.0)
+    stream = ViewerStream(world.obj.rest_vertices, world.obj.rest_normals)
+    frames = stream.join("late", 7, world.vertices)
+    assert [f[:4] for f in frames[:2]] == [b"VTX1", b"NRM1"]
+    assert decode_binary(frames[0])[1] == 0  # the rest positions, a plain VTX1 frame
+    key = decode_displacement(frames[2])
+    assert key.flags & FLAG_KEY and key.flags & FLAG_DENSE and key.tick == 7
+    dec = ViewerStreamDecoder()
+    for f in frames:
+        dec.feed(f)
+    assert np.min(dec.w) < -0.005
+    assert surface_error_m(dec, world.vertices) <= TOL_M
+
+
+# ----------------------------------------------------------------------------- bytes
+def test_a_balloon_at_rest_costs_a_header_per_tick(balloon_world):
+    world = balloon_world
+    stream = ViewerStream.of_world(world, SIM_RATE_HZ)
+    stream.join("v", 0, world.vertices)
+    sizes = []
+    for k in range(1, 41):
+        world.tick({})
+        f = stream.frames(k, world.vertices, ["v"])["v"]
+        f.sent()
+        sizes.append(len(f.data))
+    assert sizes == [DSP_HEADER.size] * 40
+    assert sum(sizes) / 2.0 <= 500  # bytes per second at 20 Hz: about nothing
+
+
+def test_after_a_press_is_released_the_stream_goes_quiet_again(balloon_world):
+    world = balloon_world
+    top = world.obj.rest_vertices[np.argmax(world.obj.rest_vertices[:, 2])]
+    stream = ViewerStream.of_world(world, SIM_RATE_HZ)
+    stream.join("v", 0, world.vertices)
+    counts = []
+    for k, force in enumerate([*press_profile(), *[0.0] * 10], start=1):
+        press(world, top, force)
+        f = stream.frames(k, world.vertices, ["v"])["v"]
+        f.sent()
+        counts.append(f.count)
+    assert max(counts) > 100  # the press was streamed
+    assert counts[-5:] == [0] * 5
+
+
+def test_a_frame_never_exceeds_the_budget_and_catches_up_once_the_motion_stops(balloon_world):
+    world = balloon_world
+    top = world.obj.rest_vertices[np.argmax(world.obj.rest_vertices[:, 2])]
+    budget = 600  # bytes: about 145 of the 642 vertices per frame
+    stream = ViewerStream(world.obj.rest_vertices, world.obj.rest_normals, budget)
+    dec = ViewerStreamDecoder()
+    for data in stream.join("v", 0, world.vertices):
+        dec.feed(data)
+    partial = 0
+    ramp = [0.0] * 2 + list(np.linspace(0.0, 4.0, 20))
+    for k, force in enumerate(ramp + [4.0] * 10, start=1):
+        press(world, top, force)
+        f = stream.frames(k, world.vertices, ["v"])["v"]
+        f.sent()
+        dec.feed(f.data)
+        assert len(f.data) <= budget
+        partial += f.partial
+        assert f.partial == bool(decode_displacement(f.data).flags & FLAG_PARTIAL)
+        if k == len(ramp):  # the largest changes go first: the dent itself is never far behind
+            err = np.abs(dec.w - stream.displacement(world.vertices))
+            assert err.max() < 0.1 * np.abs(dec.w).max()
+    assert partial > 5  # the budget really held changes back during the ramp
+    assert surface_error_m(dec, world.vertices) <= TOL_M  # and the viewer caught up in the hold
+
+
+# ----------------------------------------------------------------------------- a lossy link
+class Link:
+    """The asyncio layer as the encoder sees it: frames of one viewer, in order, some dropped.
+
+    A frame waits ``delay`` ticks in flight; a newer one may replace an older one still queued
+    (latest wins), or be lost (injected loss). A frame is reported ``sent`` when it is written,
+    then decoded.
+    """
+
+    def __init__(self, rng: np.random.Generator, loss: float, replace: float, delay: int) -> None:
+        self.rng, self.loss, self.replace, self.delay = rng, loss, replace, delay
+        self.queue: deque[tuple[int, int, Frame]] = deque()  # (due tick, tick made, frame)
+
+    def push(self, now: int, frame: Frame) -> None:
+        if self.rng.random() < self.loss:
+            return
+        if self.queue and self.rng.random() < self.replace:
+            self.queue.pop()  # the newer frame of the stream replaces the queued one
+        self.queue.append((now + int(self.rng.integers(0, self.delay + 1)), now, frame))
+
+    def deliver(self, now: int) -> list[tuple[int, Frame]]:
+        out = []
+        while self.queue and self.queue[0][0] <= now:
+            _, made, frame = self.queue.popleft()
+            frame.sent()
+            out.append((made, frame))
+        return out
+
+
+def random_smooth_field(rng: np.random.Generator, rest: np.ndarray, amplitude_m: float):
+    c = rng.normal(size=3)
+    c /= np.linalg.norm(c)
+    d = np.linalg.norm(rest / np.linalg.norm(rest, axis=1, keepdims=True) - c, axis=1)
+    return -amplitude_m * np.exp(-((d / rng.uniform(0.2, 0.8)) ** 2))
+
+
+def random_step(rng: np.random.Generator, rest: np.ndarray, w: np.ndarray, earlier: np.ndarray):
+    """The next displacement: a dent moves in, a few vertices wiggle, or an earlier shape returns."""
+    kind = rng.integers(0, 4)
+    if kind == 0:
+        return random_smooth_field(rng, rest, rng.uniform(0.0005, 0.02))
+    if kind == 1:
+        idx = rng.choice(len(rest), 10, replace=False)
+        w = w.copy()
+        w[idx] += rng.normal(0, 2e-4, 10)
+        return w
+    if kind == 2:
+        return earlier
+    return w
+
+
+#: viewer -> (loss, replace, delay in ticks, tick it joins at)
+LINKS = {
+    "ideal": (0.0, 0.0, 0, 0),
+    "drops": (0.3, 0.0, 0, 0),
+    "lossy": (0.2, 0.5, 3, 0),
+    "late": (0.1, 0.3, 1, 100),
+}
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_dropped_replaced_and_delayed_frames_never_leave_a_viewer_wrong(seed):
+    rng = np.random.default_rng(seed)
+    rest, faces = sphere(2)
+    normals = vertex_normals(rest, faces)
+    stream = ViewerStream(rest, normals)
+    links = {v: Link(rng, *LINKS[v][:3]) for v in LINKS}
+    decoders: dict[str, ViewerStreamDecoder] = {}
+    history = {0: np.zeros(len(rest))}
+    w = history[0]
+    checked = 0
+    for k in range(1, 300):
+        for v, (*_, joins) in LINKS.items():
+            if joins == k - 1:
+                decoders[v] = ViewerStreamDecoder()
+                for f in stream.join(v, k - 1, rest + w[:, None] * normals):
+                    decoders[v].feed(f)
+        w = history[k] = random_step(rng, rest, w, history[max(0, k - int(rng.integers(1, 5)))])
+        for v, frame in stream.frames(k, rest + w[:, None] * normals, list(decoders)).items():
+            links[v].push(k, frame)
+        for v in decoders:
+            for made, frame in links[v].deliver(k):
+                decoders[v].feed(frame.data)
+                truth = rest + history[made][:, None] * normals
+                assert surface_error_m(decoders[v], truth) <= TOL_M, (seed, v, k, made)
+                checked += 1
+    assert checked > 300
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_under_a_budget_every_viewer_catches_up_once_the_surface_stops(seed):
+    rng = np.random.default_rng(seed)
+    rest, faces = sphere(2)
+    normals = vertex_normals(rest, faces)
+    budget = 200  # 45 of the 162 vertices per frame
+    stream = ViewerStream(rest, normals, budget)
+    links = {v: Link(rng, *LINKS[v][:3]) for v in LINKS}
+    decoders: dict[str, ViewerStreamDecoder] = {}
+    w = np.zeros(len(rest))
+    partial = 0
+    for k in range(1, 200):
+        for v, (*_, joins) in LINKS.items():
+            if joins == k - 1:
+                decoders[v] = ViewerStreamDecoder()
+                for f in stream.join(v, k - 1, rest + w[:, None] * normals):
+                    decoders[v].feed(f)
+        if k < 150:  # moving over a poor link, then still over a perfect one
+            w = random_step(rng, rest, w, w)
+        elif k == 150:
+            for link in links.values():
+                link.loss = link.replace = link.delay = 0
+        for v, frame in stream.frames(k, rest + w[:, None] * normals, list(decoders)).items():
+            assert len(frame.data) <= budget
+            partial += frame.partial
+            links[v].push(k, frame)
+        for v in decoders:
+            for _, frame in links[v].deliver(k):
+                decoders[v].feed(frame.data)
+    assert partial > 20
+    for v, dec in decoders.items():
+        assert surface_error_m(dec, rest + w[:, None] * normals) <= TOL_M, v
+
+
+def test_a_stalled_viewer_costs_bounded_memory_and_recovers():
+    rng = np.random.default_rng(1)
+    rest, faces = sphere(2)
+    stream, dec, normals = stream_and_decoder(rest, faces)
+    stuck: Frame | None = None
+    w = np.zeros(len(rest))
+    for k in range(1, 60):  # the socket is stuck writing frame 1; later ones replace each other
+        w = random_smooth_field(rng, rest, 0.01)
+        f = stream.frames(k, rest + w[:, None] * normals, ["v"])["v"]
+        stuck = stuck or f
+    assert stuck is not None
+    stuck.sent()  # the old frame finally goes out
+    dec.feed(stuck.data)
+    f = stream.frames(60, rest + w[:, None] * normals, ["v"])["v"]
+    f.sent()
+    dec.feed(f.data)
+    assert surface_error_m(dec, rest + w[:, None] * normals) <= TOL_M
+    assert len(stream._viewers["v"].in_flight) <= stream.max_in_flight
+
+
+def test_viewers_that_left_are_forgotten_and_each_viewer_has_its_own_state():
+    rest, faces = sphere(1)
+    normals = vertex_normals(rest, faces)
+    stream = ViewerStream(rest, normals)
+    stream.join("a", 0, rest)
+    stream.join("b", 0, rest)
+    moved = rest + 0.003 * normals
+    fa = stream.frames(1, moved, ["a", "b"])
+    fa["a"].sent()  # b's frame was dropped: b gets the change again, a does not
+    again = stream.frames(2, moved, ["a", "b"])
+    assert again["a"].count == 0 and again["b"].count == len(rest)
+    stream.frames(3, moved, ["b"])
+    assert stream.viewers == ["b"]
+
+
+# ----------------------------------------------------------------------------- scale and format
+def test_a_deformation_beyond_int16_micrometres_doubles_the_quantum_and_comes_back():
+    rest, faces = sphere(1)
+    stream, dec, normals = stream_and_decoder(rest, faces)
+    for k, amp in enumerate((0.050, 0.200, 0.002), start=1):
+        w = np.linspace(-amp, amp, len(rest))
+        f = stream.frames(k, rest + w[:, None] * normals, ["v"])["v"]
+        f.sent()
+        dec.feed(f.data)
+        q = decode_displacement(f.data).quantum_m
+        assert q == pytest.approx({1: 2e-6, 2: 8e-6, 3: 1e-6}[k])
+        assert np.max(np.abs(dec.w - w)) <= q / 2 + 1e-12
+    huge = stream.frames(9, rest + 5e3 * normals, ["v"])["v"]
+    assert decode_displacement(huge.data).flags & FLAG_CLAMPED
+
+
+def test_large_meshes_use_32_bit_indices_and_bad_frames_are_refused():
+    n = 70_000
+    rest = np.column_stack([np.arange(n) * 1e-3, np.zeros(n), np.zeros(n)])
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    stream = ViewerStream(rest, normals)
+    stream.join("v", 0, rest)
+    moved = rest.copy()
+    moved[[5, 69_999], 2] = [0.001, -0.002]
+    d = decode_displacement(stream.frames(1, moved, ["v"])["v"].data)
+    assert d.index is not None and list(d.index) == [5, 69_999]
+    assert list(d.values) == [1000, -2000]
+    with pytest.raises(ValueError):
+        decode_displacement(b"DSP1" + b"\x00" * 8)
+    with pytest.raises(ValueError):
+        decode_displacement(DSP_HEADER.pack(b"DSP1", 0, 3, 1000, 0) + b"\x00" * 4)
+    with pytest.raises(ValueError):
+        ViewerStream(rest, normals[:-1])
+
+
+# ----------------------------------------------------------------------------- the room
+def test_room_streams_displacements_to_a_viewer_that_reports_what_was_sent():
+    world = World(Balloon(default_balloon(0.1, 2), BalloonParams(sim_period_s=1 / SIM_RATE_HZ)))
+    room = Room(world, SIM_RATE_HZ)
+    top = room.object_info.top_m
+    for conn, role in (("a", "user"), ("v", "viewer")):
+        room.connect(conn, 0.0)
+        hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": role, "name": conn}
+        outs = room.receive(conn, json.dumps(hello), 0.0)
+    dec = ViewerStreamDecoder()
+    binaries = [o.data for o in outs if isinstance(o.data, bytes)]
+    assert [b[:4] for b in binaries] == [b"FAC1", b"VTX1", b"NRM1", b"DSP1"]
+    for b in binaries[1:]:
+        dec.feed(b)
+    sizes = []
+    for k in range(1, 40):
+        state = {
+            "type": "state",
+            "seq": k,
+            "probe_m": [top[0], top[1], top[2] - 0.004],
+            "force_n": [0.0, 0.0, min(2.0, 0.1 * k)],
+            "k_h": 300.0,
+            "i_gain": 3000.0,
+        }
+        room.receive("a", json.dumps(state), k * 0.05 - 0.01)
+        (vout,) = [o for o in room.tick(k, k * 0.05) if o.conn_id == "v" and o.stream == "vertices"]
+        assert isinstance(vout.data, bytes) and vout.on_sent is not None
+        vout.on_sent()
+        dec.feed(vout.data)
+        sizes.append(len(vout.data))
+        assert surface_error_m(dec, world.vertices) <= TOL_M
+    assert np.min(dec.w) < -0.003
+    assert sizes[-1] == DSP_HEADER.size  # the press is held: nothing more to send
+
+
+# ----------------------------------------------------------------------------- over websockets
+@pytest.mark.timeout(60)
+async def test_a_viewer_over_websockets_decodes_the_servers_surface():
+    from websockets.asyncio.client import connect
+
+    from server.app import ServerApp
+
+    world = World(Balloon(default_balloon(0.1, 3), BalloonParams(sim_period_s=1 / SIM_RATE_HZ)))
+    app = ServerApp(Room(world, SIM_RATE_HZ), "127.0.0.1", 0)
+    await app.start()
+    dec = ViewerStreamDecoder()
+    sizes: list[int] = []
+    try:
+        url = f"ws://127.0.0.1:{app.port}/ws"
+        async with connect(url) as user, connect(url) as viewer:
+            hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "name": "A"}
+            await user.send(json.dumps({**hello, "role": "user"}))
+            top = json.loads(await user.recv())["object"]["top_m"]
+            await viewer.send(json.dumps({**hello, "name": "V", "role": "viewer"}))
+            loop = asyncio.get_running_loop()
+            end = loop.time() + 2.5
+            seq = 0
+            while loop.time() < end:
+                seq += 1
+                force = min(2.0, 0.1 * seq)  # ramps up over 1 s, then a steady press
+                state = {
+                    "type": "state",
+                    "seq": seq,
+                    "probe_m": [top[0], top[1], top[2] - 0.004],
+                    "force_n": [0.0, 0.0, force],
+                    "k_h": 300.0,
+                    "i_gain": 3000.0,
+                }
+                await user.send(json.dumps(state))
+                deadline = loop.time() + 0.05
+                while (left := deadline - loop.time()) > 0:
+                    try:
+                        frame = await asyncio.wait_for(viewer.recv(), left)
+                    except TimeoutError:
+                        break
+                    if isinstance(frame, bytes):
+                        dec.feed(frame)
+                        sizes.append(len(frame))
+            server_vertices = app.room.world.vertices.copy()
+    finally:
+        await app.stop()
+    assert np.min(dec.w) < -0.003  # the viewer saw the dent
+    assert surface_error_m(dec, server_vertices) <= TOL_M
+    # while the press is held, the frames are empty: the rest of the bytes went into the press
+    assert sizes[-5:] == [DSP_HEADER.size] * 5
