@@ -330,15 +330,36 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         stiffness_scale=args.stiffness_scale,
         subdivisions=args.subdivisions,
         duration_s=args.duration,
+        token_file=args.token_file,
+        token=args.token,
+        allow_origins=tuple(args.allow_origin),
+        tls_cert=args.tls_cert,
+        tls_key=args.tls_key,
+        insecure=args.insecure,
+        material=args.material,
     )
 
 
 def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("server", help="run the authoritative server (object, simulation, viewer)")
+    p.add_argument(
+        "--config",
+        default=None,
+        metavar="FILE.toml",
+        help="defaults for every option below from a TOML file (flags given here override it; "
+        "docs/server-config.example.toml)",
+    )
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=_nonneg_int, default=8765, help="TCP port (0: any free port)")
     p.add_argument(
         "--mesh", default="balloon", help="'balloon' or a mesh file (STL, OBJ, PLY, OFF, GLB)"
+    )
+    p.add_argument(
+        "--material",
+        default=None,
+        metavar="NAME|FILE.toml",
+        help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file "
+        "(docs/materials.md; default: the built-in silicone-like balloon)",
     )
     p.add_argument(
         "--mesh-scale", type=_positive, default=None, help="multiply the file's coordinates by S"
@@ -367,6 +388,28 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the latency injection")
     p.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
+    sec = p.add_argument_group("security (docs/security.md)")
+    sec.add_argument(
+        "--token-file",
+        default=None,
+        metavar="FILE",
+        help="accepted tokens, one per line: TOKEN ROLE [NAME] (role user or viewer; NAME binds)",
+    )
+    sec.add_argument("--token", default=None, help="one accepted token, role user (may also watch)")
+    sec.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        metavar="ORIGIN",
+        help="browser origin allowed besides the server's own, e.g. https://lab.example (repeat)",
+    )
+    sec.add_argument("--tls-cert", default=None, metavar="PEM", help="serve https and wss")
+    sec.add_argument("--tls-key", default=None, metavar="PEM", help="the certificate's key")
+    sec.add_argument(
+        "--insecure",
+        action="store_true",
+        help="listen off loopback without tokens (anyone who can reach it may push)",
+    )
     p.set_defaults(func=_cmd_server)
 
 
@@ -383,15 +426,16 @@ def _trajectory_options(text: str) -> dict[str, float]:
 
 def _cmd_client(args: argparse.Namespace) -> int:
     import asyncio
-    import logging
 
     from client.app import run_client
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    _configure_logging(args)
     opts = _client_options(args)
     try:
         summary = asyncio.run(run_client(opts))
-    except (ValueError, ConnectionError) as exc:
+    except (ValueError, ConnectionError) as exc:  # DeviceError too: before any network
+        raise CliError(str(exc)) from None
+    except OSError as exc:  # e.g. the --record file cannot be created
         raise CliError(str(exc)) from None
     rate, rtt = summary.get("servo_rate_hz"), summary.get("rtt_ms_p50")
     print(
@@ -437,6 +481,9 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         passivity=args.passivity,
         margin=args.margin,
         hid_profile=args.hid_profile,
+        stop_on_signals=True,
+        token=args.token,
+        ca_file=args.ca_file,
     )
 
 
@@ -515,6 +562,17 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         default=0.15,
         help="K_o margin of the gain design (default %(default)s)",
     )
+    p.add_argument(
+        "--token",
+        default=None,
+        help="the server's token (default: $HAPTIC_TOKEN; prefer the variable: it stays out of ps)",
+    )
+    p.add_argument(
+        "--ca-file",
+        default=None,
+        metavar="PEM",
+        help="trust this CA for a wss:// server (default: the system's CAs)",
+    )
     _add_hand(p)
     p.set_defaults(func=_cmd_client)
 
@@ -549,6 +607,36 @@ def _add_devices(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p = sub.add_parser("devices", help="list HID devices and simulated device profiles")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_cmd_devices)
+
+
+# --------------------------------------------------------------------------------------------- plot
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from client.recorder import plot_recording
+
+    files = [Path(f) for f in args.files]
+    out = Path(args.out) if args.out else files[0].with_suffix(".png")
+    try:
+        plot_recording(files, out)
+    except ImportError as exc:
+        raise CliError(f"plotting needs matplotlib ({exc}); pip install matplotlib") from None
+    except (ValueError, OSError) as exc:
+        raise CliError(str(exc)) from None
+    print(f"wrote {out}")
+    return 0
+
+
+def _add_plot(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "plot",
+        help="draw --record files: probe and proxy along the contact normal, and the force",
+        description="Draw one or more `haptic client --record` CSV files like the demo plot: per "
+        "file, probe and proxy along the contact normal [mm]; then the force on each user [N].",
+    )
+    p.add_argument("files", nargs="+", metavar="FILE", help="--record CSV file(s)")
+    p.add_argument(
+        "--out", default=None, metavar="PNG", help="PNG to write (default: FILE with .png)"
+    )
+    p.set_defaults(func=_cmd_plot)
 
 
 # ----------------------------------------------------------------------------------------- protocol
@@ -664,12 +752,17 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         loss=args.loss,
         mesh=args.mesh,
         port=args.port,
+        host=args.host,
         local_model=args.local_model,
         workdir=Path(args.workdir) if args.workdir else None,
         stiffness_scale=args.stiffness_scale,
+        material=args.material,
+        mesh_scale=args.mesh_scale,
+        mesh_size=args.mesh_size,
         hand_mass_kg=args.hand_mass,
         hand_stiffness_n_per_m=args.hand_stiffness,
         hand_damping_n_s_per_m=args.hand_damping,
+        log_level=getattr(args, "log_level", "info"),
     )
     try:
         run_demo(opts)
@@ -693,7 +786,32 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
     p.add_argument("--jitter-ms", type=_nonneg, default=0.0, help="injected jitter [ms]")
     p.add_argument("--loss", type=_probability, default=0.0, help="injected loss of state frames")
     p.add_argument("--mesh", default="balloon", help="'balloon' or a mesh file")
+    p.add_argument(
+        "--mesh-scale",
+        type=_positive,
+        default=None,
+        help="multiply the mesh file's coordinates by S",
+    )
+    p.add_argument(
+        "--mesh-size",
+        type=_positive,
+        default=None,
+        metavar="M",
+        help="rescale the mesh file so its largest extent is M [m]",
+    )
+    p.add_argument(
+        "--material",
+        default=None,
+        metavar="NAME|FILE.toml",
+        help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file",
+    )
     p.add_argument("--port", type=_nonneg_int, default=8765, help="server port (0: any free port)")
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="server address (0.0.0.0: every interface; the viewer URLs of this machine are "
+        "printed; default %(default)s)",
+    )
     p.add_argument("--local-model", choices=["p", "pi"], default="pi")
     p.add_argument("--workdir", default=None, help="keep logs and telemetry here")
     _add_stiffness_scale(p)
@@ -702,21 +820,52 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
 
 
 # -------------------------------------------------------------------------------------------- main
+#: ``--log-level`` choices (Python logging levels).
+LOG_LEVELS = ("debug", "info", "warning", "error")
+#: Subcommands that log (and take ``--log-level`` after their name as well as before).
+_LOGGING_COMMANDS = ("server", "client", "demo")
+
+
+def _configure_logging(args: argparse.Namespace) -> None:
+    """Log to stderr at ``--log-level`` (default info) with time, logger name and level."""
+    import logging
+
+    level = getattr(logging, str(getattr(args, "log_level", "info")).upper(), logging.INFO)
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.getLogger().setLevel(level)
+
+
+def _add_log_level(p: argparse.ArgumentParser, *, top: bool) -> None:
+    if "--log-level" in p._option_string_actions:
+        return
+    p.add_argument(
+        "--log-level",
+        choices=LOG_LEVELS,
+        # after the subcommand it overrides the top-level value only when given
+        default="info" if top else argparse.SUPPRESS,
+        help="log verbosity of server, client and demo (default info)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``haptic`` argument parser with every subcommand."""
     parser = _Parser(
         prog="haptic", description="Multirate haptic collaboration on a shared deformable object."
     )
+    _add_log_level(parser, top=True)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_stability(sub)
     _add_gains(sub)
     _add_reproduce(sub)
     for extra in _EXTRA:
         extra(sub)
+    for name in _LOGGING_COMMANDS:
+        if name in sub.choices:
+            _add_log_level(sub.choices[name], top=False)
     return parser
 
 
-_EXTRA = [_add_server, _add_client, _add_demo, _add_devices, _add_protocol, _add_bench]
+_EXTRA = [_add_server, _add_client, _add_demo, _add_devices, _add_plot, _add_protocol, _add_bench]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -727,6 +876,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.environ.setdefault(var, "1")
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == "server" and getattr(args, "config", None):
+        from server.config import ConfigError, apply_server_config
+
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        try:
+            apply_server_config(sub.choices["server"], args.config)
+        except ConfigError as exc:
+            print(f"haptic server: error: {exc}", file=sys.stderr)
+            return 2
+        args = parser.parse_args(argv)  # flags given explicitly override the file
+    if args.command in _LOGGING_COMMANDS:
+        _configure_logging(args)  # before the subcommand's own basicConfig (then a no-op)
     try:
         return int(args.func(args) or 0)
     except CliError as exc:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -28,6 +29,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from server.security import is_loopback
+from server.urls import WILDCARD_HOSTS, local_host, url_host, viewer_urls
 
 #: A hold is stable when the peak-to-peak penetration over its last second stays below this [mm].
 STABLE_P2P_MM = 1.0
@@ -53,9 +57,13 @@ class DemoOptions:
     workdir: Path | None = None
     seed: int = 0
     stiffness_scale: float = 1.0
+    material: str | None = None
+    mesh_scale: float | None = None
+    mesh_size: float | None = None
     hand_mass_kg: float | None = None
     hand_stiffness_n_per_m: float | None = None
     hand_damping_n_s_per_m: float | None = None
+    log_level: str = "info"
 
     def hand_args(self) -> list[str]:
         """``haptic client`` flags for the simulated hand values that were given (both users)."""
@@ -108,24 +116,56 @@ def timeline(duration_s: float) -> Timeline:
     return Timeline(delay, approach, press, hold, release)
 
 
+#: Hosts that mean "every interface" when bound.
+
+
+def _bind_socket(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to (host, port) the way the server's listener binds it.
+
+    The server listens through asyncio's ``create_server``, which sets ``SO_REUSEADDR`` on POSIX:
+    a port whose earlier connections linger in TIME_WAIT (a demo run a minute ago) is free for it,
+    and must be free here too. A port another process listens on is still refused.
+
+    Raises
+    ------
+    OSError
+        The address cannot be bound.
+    """
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    if host not in WILDCARD_HOSTS and ":" not in host:
+        with contextlib.suppress(OSError):
+            family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+    s = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        if os.name == "posix":
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind((host, port))
+    except OSError:
+        s.close()
+        raise
+    return s
+
+
 def _free_port(host: str) -> int:
-    with socket.socket() as s:
-        s.bind((host, 0))
+    """A port the server can listen on at ``host`` (the kernel's pick)."""
+    with _bind_socket(host, 0) as s:
         return int(s.getsockname()[1])
 
 
 def _port_free(host: str, port: int) -> bool:
-    with socket.socket() as s:
-        try:
-            s.bind((host, port))
-        except OSError:
-            return False
+    """Whether the server could listen on (host, port) now (TIME_WAIT leftovers do not count)."""
+    try:
+        with _bind_socket(host, port) as s:
+            s.listen(1)
+    except OSError:
+        return False
     return True
 
 
 def _status(host: str, port: int) -> dict[str, Any] | None:
     try:
-        with urllib.request.urlopen(f"http://{host}:{port}/status", timeout=1.0) as r:
+        url = f"http://{url_host(local_host(host))}:{port}/status"
+        with urllib.request.urlopen(url, timeout=1.0) as r:
             return json.loads(r.read())  # type: ignore[no-any-return]
     except (OSError, ValueError):
         return None
@@ -162,14 +202,28 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     work = opts.workdir or Path(tempfile.mkdtemp(prefix="haptic-demo-"))
     work.mkdir(parents=True, exist_ok=True)
     tl = timeline(opts.duration_s)
-    url = f"http://{opts.host}:{port}/"
+    urls = viewer_urls(opts.host, port)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     server_cmd = _haptic(
+        "--log-level", opts.log_level,
         "server", "--host", opts.host, "--port", str(port), "--mesh", opts.mesh,
         "--sim-rate", f"{opts.sim_rate_hz:g}", "--latency-ms", f"{opts.latency_ms:g}",
         "--jitter-ms", f"{opts.jitter_ms:g}", "--loss", f"{opts.loss:g}", "--seed", str(opts.seed),
         "--stiffness-scale", repr(float(opts.stiffness_scale)),
     )  # fmt: skip
+    if opts.material is not None:
+        server_cmd += ["--material", opts.material]
+    if opts.mesh_scale is not None:
+        server_cmd += ["--mesh-scale", repr(float(opts.mesh_scale))]
+    if opts.mesh_size is not None:
+        server_cmd += ["--mesh-size", repr(float(opts.mesh_size))]
+    hint = ""
+    if not is_loopback(local_host(opts.host)) or opts.host in WILDCARD_HOSTS:
+        # reachable from the network: the demo's users and viewers need a token (docs/security.md)
+        token = secrets.token_urlsafe(18)
+        env["HAPTIC_TOKEN"] = token
+        server_cmd += ["--token", token]
+        hint = f"#token={token}"
     logs = {k: open(work / f"{k}.log", "w") for k in ("server", "A", "B")}  # noqa: SIM115
     procs: dict[str, subprocess.Popen[bytes]] = {}
     try:
@@ -185,11 +239,12 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             if time.monotonic() - t0 > 60.0:
                 raise RuntimeError("the server did not come up within 60 s")
             time.sleep(0.1)
-        print(f"viewer: {url}", flush=True)
+        for url in urls:
+            print(f"viewer: {url}{hint}", flush=True)
         if not opts.headless and _has_display():
             with contextlib.suppress(Exception):
-                webbrowser.open(url)
-        ws = f"ws://{opts.host}:{port}/ws"
+                webbrowser.open(urls[0] + hint)
+        ws = f"ws://{url_host(local_host(opts.host))}:{port}/ws"
         common = [
             "--url", ws, "--servo-rate", f"{opts.servo_rate_hz:g}", "--local-model", opts.local_model,
             "--duration", f"{opts.duration_s:g}", *opts.hand_args(),
@@ -200,6 +255,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         ):
             procs[name] = subprocess.Popen(
                 _haptic(
+                    "--log-level",
+                    opts.log_level,
                     "client",
                     "--name",
                     name,
@@ -384,6 +441,8 @@ def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from client.recorder import plot_probe_proxy
+
     a, a_sum = _load(work, "A")
     b, b_sum = _load(work, "B")
     shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
@@ -392,32 +451,8 @@ def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
         (axes[0], a, "A (presses the top)", 0.0),
         (axes[1], b, "B (rests on the side)", shift),
     ):
-        t = cols["t_s"] + dt
-        # positions along the contact normal, relative to the undeformed surface at the first contact
-        probe = np.stack([cols["probe_x_m"], cols["probe_y_m"], cols["probe_z_m"]], axis=1)
-        proxy = np.stack([cols["proxy_x_m"], cols["proxy_y_m"], cols["proxy_z_m"]], axis=1)
-        fvec = np.stack([cols["force_x_n"], cols["force_y_n"], cols["force_z_n"]], axis=1)
-        fmag = np.linalg.norm(fvec, axis=1)
-        normal = (
-            np.nanmean(fvec[fmag > 0.05] / fmag[fmag > 0.05, None], axis=0)
-            if (fmag > 0.05).any()
-            else np.array([0, 0, 1.0])
-        )
-        normal /= np.linalg.norm(normal)
-        ok = np.isfinite(proxy).all(axis=1) & (cols["k_h_n_per_m"] > 0)  # a patch is in use
-        touching = ok & (cols["in_contact"] > 0)
-        ref = proxy[touching][0] if touching.any() else (proxy[ok][0] if ok.any() else probe[0])
-        ax.plot(t, (probe - ref) @ normal * 1000.0, label="probe $x_h$ (device)", color="tab:blue")
-        ax.plot(
-            t[ok],
-            (proxy[ok] - ref) @ normal * 1000.0,
-            label="proxy $x_o$ (surface)",
-            color="tab:red",
-        )
-        ax.set_ylabel("outward position [mm]\n(0: surface at first contact)")
+        plot_probe_proxy(ax, cols, dt)
         ax.set_title(f"user {name}")
-        ax.grid(alpha=0.3)
-        ax.legend(loc="lower left")
     axes[2].plot(a["t_s"], a["force_n"], label="A", color="tab:purple")
     axes[2].plot(b["t_s"] + shift, b["force_n"], label="B", color="tab:green")
     axes[2].set_ylabel("force on the user [N]")

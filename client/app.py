@@ -1,9 +1,16 @@
 """``haptic client``: one user's process — device, 1 kHz servo thread, network link.
 
-Sequence: connect and join (the ``welcome`` says where the object is), build the device around the
-anchor the trajectory works on (the top of the object for ``press``, a side for ``rest``), start the
-servo thread (forces stay off until the first patch), then run until ``--duration`` or Ctrl-C; on
-exit the servo ramps forces to zero, the link says ``bye``, the telemetry is written.
+Sequence: check the ``--device`` spec and open the device (a HID device's port) *before* any
+network, so a bad spec or an absent device fails at once with one line; start streaming
+``--record``; connect and join (the ``welcome`` says where the object is), place the device around
+the anchor the trajectory works on (the top of the object for ``press``, a side for ``rest``),
+start the servo thread (forces stay off until the first patch), then run until ``--duration``,
+Ctrl-C or SIGTERM; on exit the servo ramps forces to zero, the link says ``bye``, the recording
+is flushed and closed and the summary written.
+
+A device that faults while running (unplugged) is the device's business: the servo loop ramps
+forces to zero and the client reopens the device with backoff (:data:`DEVICE_REOPEN_BACKOFF_S`);
+the network link is never restarted for it.
 """
 
 from __future__ import annotations
@@ -13,18 +20,21 @@ import contextlib
 import json
 import logging
 import math
+import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from client.devices import make_device
+from client.devices import DeviceOpener
 from client.devices.base import Device
+from client.devices.hid import HidPort
 from client.devices.profiles import get_sim_profile
 from client.link import Link
-from client.recorder import TelemetryRecorder
+from client.recorder import CsvRecording, TelemetryRecorder
 from client.servo import ServoConfig, ServoCore, ServoThread
 from client.session import ClientSession, PatchUpdate, ServoSample
 from shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
@@ -54,6 +64,15 @@ class ClientOptions:
     margin: float = 0.15
     join_timeout_s: float = 20.0
     hid_profile: str | None = None
+    #: Stop cleanly on SIGINT and SIGTERM (``haptic client``); needs the main thread's loop.
+    stop_on_signals: bool = False
+    #: ``opener(vendor_id, product_id) -> port`` for HID devices (default hidapi; tests a fake).
+    hid_opener: Callable[[int, int], HidPort] | None = None
+    #: The server's token, sent in ``hello`` (None: ``$HAPTIC_TOKEN``, else none).
+    token: str | None = None
+    #: CA file [PEM] a ``wss://`` server is verified against (None: ``$HAPTIC_CA_FILE``, else
+    #: the system's CAs).
+    ca_file: str | None = None
 
 
 def _device_info(opts: ClientOptions) -> DeviceInfo:
@@ -191,16 +210,90 @@ def _sample(servo: ServoThread) -> ServoSample | None:
     )
 
 
+#: First and largest delay [s] between two attempts to reopen a faulted device.
+DEVICE_REOPEN_BACKOFF_S = (0.5, 5.0)
+#: How often [s] the client looks at the device's fault flag.
+DEVICE_WATCH_PERIOD_S = 0.05
+
+
+async def _watch_device(state: dict[str, Any], counters: dict[str, int]) -> None:
+    """Reopen the device with backoff while it reports a fault (it was unplugged).
+
+    A device fault is the device's business: the servo loop already ramps forces to zero while
+    :attr:`Device.fault` is set and back up once it clears; the network link is not touched. A
+    device that cannot be reopened (:meth:`Device.reopen` returns False, e.g. simulated) is left
+    faulted, forces off, and logged once.
+    """
+    while True:
+        await asyncio.sleep(DEVICE_WATCH_PERIOD_S)
+        device: Device | None = state["device"]
+        if device is None or device.fault is None:
+            continue
+        counters["device_faults"] += 1
+        log.warning(
+            "device fault: %s; forces ramp to zero, reopening the device (the server link stays)",
+            device.fault,
+        )
+        delay = DEVICE_REOPEN_BACKOFF_S[0]
+        while device.fault is not None:
+            await asyncio.sleep(delay)
+            try:
+                ok = device.reopen()
+            except OSError as exc:
+                delay = min(DEVICE_REOPEN_BACKOFF_S[1], 2.0 * delay)
+                log.info("device still unavailable (%s); next try in %.1f s", exc, delay)
+                continue
+            if not ok:
+                if device.fault is not None:
+                    log.error("device %s cannot be reopened; forces stay off", device.name)
+                    while device.fault is not None:
+                        await asyncio.sleep(DEVICE_WATCH_PERIOD_S)
+                break
+            counters["device_reopens"] += 1
+            log.warning("device %s is back; forces ramp up again", device.name)
+
+
 async def run_client(opts: ClientOptions) -> dict[str, Any]:
-    """Run one user until the duration elapses or the task is cancelled; return a summary.
+    """Run one user until the duration elapses, a stop signal, or the task is cancelled.
+
+    The device is checked and (a HID device) opened before any network: a bad ``--device`` or
+    a device that cannot be opened raises :class:`client.devices.DeviceError` at once, with no
+    connection made. ``--record`` streams to its file while the client runs
+    (:class:`client.recorder.CsvRecording`); the recording and the summary are written however
+    the run ends (duration, SIGINT or SIGTERM with ``stop_on_signals``, cancellation, error).
+
+    Returns
+    -------
+    dict
+        The summary (also written to ``opts.summary``).
 
     Raises
     ------
+    DeviceError
+        Bad device spec, or the device cannot be opened (a ValueError).
     ValueError
-        Bad options (device spec, profile, trajectory option).
+        Bad options (profile, trajectory option, server URL).
     ConnectionError
         The server could not be joined within ``join_timeout_s``.
+    OSError
+        The recording file cannot be created.
     """
+    opener = DeviceOpener(
+        opts.device,
+        profile=opts.profile,
+        trajectory_options=opts.trajectory or None,
+        servo_rate_hz=opts.servo_rate_hz,
+        hid_profile=opts.hid_profile,
+        hid_opener=opts.hid_opener,
+    )
+    opener.check()  # before any network: DeviceError with one line
+    try:
+        return await _run(opts, opener)
+    finally:
+        opener.close()
+
+
+async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
     session = ClientSession(
         opts.name,
         servo_rate_hz=opts.servo_rate_hz,
@@ -214,26 +307,45 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
         """Servo and link time [s] since this client started (scripted hands start at 0)."""
         return time.perf_counter() - origin_s
 
-    state: dict[str, Any] = {"servo": None, "device": None}
+    state: dict[str, Any] = {"servo": None, "device": None, "error": None}
+    counters = {"device_faults": 0, "device_reopens": 0}
+    # bounded memory: the ring holds the last two minutes; --record streams everything to disk
     recorder = TelemetryRecorder(
-        capacity=int(opts.servo_rate_hz * min(opts.duration_s or 120.0, 600.0)) + 2000
+        capacity=int(opts.servo_rate_hz * min(opts.duration_s or 120.0, 120.0)) + 2000
     )
+    recording = None if opts.record is None else CsvRecording(recorder, opts.record)
+    if recording is not None:
+        recording.start()
+        log.info("recording every servo tick to %s", opts.record)
     updates: list[PatchUpdate] = []
+    halt = asyncio.Event()  # a stop signal or a device that could not be placed
+    loop = asyncio.get_running_loop()
+    signals: list[signal.Signals] = []
+
+    def on_signal(sig: signal.Signals) -> None:
+        log.info("%s: stopping (forces ramp to zero, recording and summary are written)", sig.name)
+        state["signal"] = sig.name
+        halt.set()
+
+    if opts.stop_on_signals:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.add_signal_handler(sig, on_signal, sig)
+                signals.append(sig)
 
     def on_welcome(welcome: Welcome) -> None:
-        if state["servo"] is not None:
+        if state["servo"] is not None or state["error"] is not None:
             return  # a reconnection: keep the running device and servo loop
+        try:
+            start_servo(welcome)
+        except Exception as exc:  # never a network retry: the client stops with this error
+            state["error"] = exc
+            halt.set()
+
+    def start_servo(welcome: Welcome) -> None:
         anchor, normal = _anchor(opts, welcome)
-        device: Device = make_device(
-            opts.device,
-            anchor,
-            normal,
-            profile=opts.profile,
-            trajectory_options=opts.trajectory or None,
-            servo_rate_hz=opts.servo_rate_hz,
-            hid_profile=opts.hid_profile,
-        )
-        device.open()
+        device: Device = opener.build(anchor, normal)
+        state["device"] = device
         lim = device.limits
         # gains are designed for this device's real limits (a HID profile's, not the defaults)
         session.device = DeviceInfo(
@@ -268,7 +380,7 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
         servo = ServoThread(core, clock=clock)
         servo.start()
         servo.enable_forces()
-        state["servo"], state["device"] = servo, device
+        state["servo"] = servo
         log.info(
             "%s joined as %s; device %s on %s", opts.name, welcome.user_id, opts.device, anchor
         )
@@ -293,40 +405,76 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
         return None if servo is None else _sample(servo)
 
     link = Link(
-        opts.url, session, on_patch=on_patch, sample=sample, clock=clock, on_welcome=on_welcome
+        opts.url,
+        session,
+        on_patch=on_patch,
+        sample=sample,
+        clock=clock,
+        on_welcome=on_welcome,
+        token=opts.token,
+        ca_file=opts.ca_file,
     )
     stop = asyncio.Event()
     link_task = asyncio.create_task(link.run(stop))
+    watcher = asyncio.create_task(_watch_device(state, counters))
+    joined = asyncio.create_task(link.connected.wait())
+    halted = asyncio.create_task(halt.wait())
     t_start = clock()
     try:
-        try:
-            await asyncio.wait_for(link.connected.wait(), opts.join_timeout_s)
-        except TimeoutError:
-            raise ConnectionError(
-                f"could not join {opts.url} within {opts.join_timeout_s:g} s"
-            ) from None
-        if opts.duration_s is None:
-            await asyncio.Future()
-        else:
-            await asyncio.sleep(max(0.0, opts.duration_s - (clock() - t_start)))
+        done, _ = await asyncio.wait(
+            {joined, halted, link_task},
+            timeout=opts.join_timeout_s,
+            return_when=asyncio.FIRST_COMPLETED,
+        )
+        if state["error"] is not None:
+            raise state["error"]
+        if link_task in done:
+            link_task.result()  # e.g. ValueError: a bad URL
+        if not done:
+            raise ConnectionError(f"could not join {opts.url} within {opts.join_timeout_s:g} s")
+        if not halt.is_set():
+            remaining = (
+                None if opts.duration_s is None else max(0.0, opts.duration_s - (clock() - t_start))
+            )
+            done, _ = await asyncio.wait(
+                {halted, link_task}, timeout=remaining, return_when=asyncio.FIRST_COMPLETED
+            )
+            if state["error"] is not None:
+                raise state["error"]
+            if link_task in done:
+                link_task.result()
     finally:
+        for task in (joined, halted, watcher):
+            task.cancel()
         servo = state["servo"]
         if servo is not None:
             servo.stop()
         stop.set()
-        with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
+        with contextlib.suppress(Exception, asyncio.CancelledError):
             await asyncio.wait_for(link_task, 3.0)
         device = state["device"]
         if device is not None:
             device.close()
-    summary = _summary(opts, session, link, state["servo"], recorder, updates)
-    summary["clock_origin_s"] = origin_s  # time.perf_counter() (CLOCK_MONOTONIC) at t_s = 0
-    if opts.record is not None:
-        opts.record.parent.mkdir(parents=True, exist_ok=True)
-        recorder.write_csv(opts.record)
-    if opts.summary is not None:
-        opts.summary.parent.mkdir(parents=True, exist_ok=True)
-        opts.summary.write_text(json.dumps(summary, indent=2))
+        for sig in signals:
+            loop.remove_signal_handler(sig)
+        if recording is not None:
+            recording.close()
+        summary = _summary(opts, session, link, state["servo"], recorder, updates)
+        summary["clock_origin_s"] = origin_s  # time.perf_counter() (CLOCK_MONOTONIC) at t_s = 0
+        summary["stopped_by"] = state.get("signal") or (
+            "error" if state["error"] is not None else "end"
+        )
+        summary.update(counters)
+        if recording is not None:
+            summary["record"] = {
+                "path": str(opts.record),
+                "rows": recording.rows_written,
+                "rows_dropped": recording.rows_dropped,
+                "error": recording.error,
+            }
+        if opts.summary is not None:
+            opts.summary.parent.mkdir(parents=True, exist_ok=True)
+            opts.summary.write_text(json.dumps(summary, indent=2))
     return summary
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import ssl
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -11,6 +12,8 @@ from pathlib import Path
 from server.app import ServerApp
 from server.latency import LinkConfig
 from server.room import Room
+from server.security import TokenTable, is_loopback, normalize_origin
+from server.urls import viewer_urls
 from shared.protocol import LinkConditions
 
 log = logging.getLogger("haptic.server")
@@ -22,6 +25,11 @@ class ServerOptions:
 
     ``stiffness_scale`` multiplies every stiffness term of the balloon (K_o scales by it, see
     :meth:`server.objects.balloon.BalloonParams.with_stiffness_scale`).
+
+    Security (docs/security.md): ``token_file`` (lines ``TOKEN ROLE [NAME]``) or ``token`` (one
+    token, role user) make every connection authenticate; a ``host`` that is not loopback
+    requires one of them unless ``insecure``. ``tls_cert`` and ``tls_key`` (PEM files) serve
+    https and wss. ``allow_origins`` are browser origins allowed besides the server's own.
     """
 
     host: str = "127.0.0.1"
@@ -39,6 +47,58 @@ class ServerOptions:
     loss: float = 0.0
     seed: int = 0
     duration_s: float | None = None
+    token_file: str | None = None
+    token: str | None = None
+    allow_origins: tuple[str, ...] = ()
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    insecure: bool = False
+    material: str | None = None
+
+
+def build_auth(opts: ServerOptions) -> TokenTable | None:
+    """The tokens of these options, None when the server admits everyone.
+
+    Raises
+    ------
+    ValueError
+        Both or a malformed token source; a host off loopback without tokens nor ``insecure``.
+    """
+    if opts.token_file and opts.token:
+        raise ValueError("give --token-file or --token, not both")
+    auth: TokenTable | None = None
+    if opts.token_file:
+        auth = TokenTable.load(opts.token_file)
+    elif opts.token:
+        auth = TokenTable.single(opts.token)
+    if auth is None and not is_loopback(opts.host) and not opts.insecure:
+        raise ValueError(
+            f"refusing to listen on {opts.host} without tokens: anyone who can reach it could "
+            "push every user's hand. Give --token-file FILE or --token TOKEN (and --tls-cert/"
+            "--tls-key), or --insecure to accept that risk (docs/security.md)"
+        )
+    return auth
+
+
+def build_ssl(opts: ServerOptions) -> ssl.SSLContext | None:
+    """The TLS context of ``tls_cert``/``tls_key``, None without them.
+
+    Raises
+    ------
+    ValueError
+        Only one of the two given, or files that do not hold a matching certificate and key.
+    """
+    if not opts.tls_cert and not opts.tls_key:
+        return None
+    if not (opts.tls_cert and opts.tls_key):
+        raise ValueError("--tls-cert and --tls-key go together")
+    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        ctx.load_cert_chain(opts.tls_cert, opts.tls_key)
+    except (OSError, ssl.SSLError) as exc:
+        raise ValueError(f"cannot load the TLS certificate or key: {exc}") from None
+    return ctx
 
 
 def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
@@ -49,8 +109,9 @@ def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
     ValueError
         A mesh that cannot be loaded, stays open or is degenerate; bad parameters.
     """
+    from server.materials import load_material, material_to_params, top_side_stiffness
     from server.objects.balloon import Balloon, BalloonParams
-    from server.objects.mesh import default_balloon, load_mesh
+    from server.objects.mesh import default_balloon, load_mesh, mesh_warnings
     from server.world import World
 
     if not (1.0 <= opts.sim_rate_hz <= 1000.0):
@@ -64,37 +125,66 @@ def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
     scale = float(opts.stiffness_scale)
     if not (math.isfinite(scale) and scale > 0.0):
         raise ValueError(f"--stiffness-scale must be a finite number > 0, got {scale:g}")
-    params = BalloonParams(sim_period_s=1.0 / opts.sim_rate_hz).with_stiffness_scale(scale)
+    base = BalloonParams(sim_period_s=1.0 / opts.sim_rate_hz)
+    if opts.material is not None:
+        material = load_material(opts.material)
+        base = material_to_params(material, base, volume_m3=float(mesh.volume))
+        log.info("material %s", material.summary())
+    params = base.with_stiffness_scale(scale)
     if opts.damping is not None:
         params = replace(params, damping=opts.damping)
+    for warning in mesh_warnings(mesh, params.patch_radius_m, where=opts.mesh):
+        log.warning("%s", warning)
     obj = Balloon(mesh, params)
+    log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))
     return World(obj, primitive=opts.primitive)  # type: ignore[arg-type]
 
 
 async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None = None) -> None:
     """Build everything, listen, and serve until cancelled or ``duration_s`` elapses."""
     link = LinkConfig(latency_ms=opts.latency_ms, jitter_ms=opts.jitter_ms, loss=opts.loss)
+    auth = build_auth(opts)
+    ssl_context = build_ssl(opts)
+    origins = tuple(normalize_origin(o) for o in opts.allow_origins)
     world = build_world(opts)
     room = Room(
         world,
         opts.sim_rate_hz,
         link=LinkConditions(latency_ms=opts.latency_ms, jitter_ms=opts.jitter_ms, loss=opts.loss),
+        auth=auth,
     )
-    app = ServerApp(room, opts.host, opts.port, link=link, seed=opts.seed)
+    app = ServerApp(
+        room,
+        opts.host,
+        opts.port,
+        link=link,
+        seed=opts.seed,
+        ssl_context=ssl_context,
+        allowed_origins=origins,
+    )
+    scheme = "https" if ssl_context else "http"
+    if auth is None and not is_loopback(opts.host):
+        log.warning("--insecure: anyone who can reach %s may join and push", opts.host)
+    elif ssl_context is None and not is_loopback(opts.host):
+        log.warning("no TLS: tokens and forces cross the network in clear (give --tls-cert)")
 
     def ready(port: int) -> None:
         info = room.object_info
         log.info(
-            "serving %d-vertex object at %g Hz on http://%s:%d/ (websocket /ws)%s",
+            "serving %d-vertex object at %g Hz on %s://%s:%d/ (websocket /ws, %s)%s",
             info.n_vertices,
             opts.sim_rate_hz,
+            scheme,
             opts.host,
             port,
+            f"{len(auth)} tokens" if auth is not None else "no tokens",
             f"; injecting {opts.latency_ms:g} +- {opts.jitter_ms:g} ms, loss {opts.loss:g}"
             if link.active
             else "",
         )
-        print(f"viewer: http://{opts.host}:{port}/", flush=True)
+        hint = "#token=YOUR_TOKEN" if auth is not None else ""
+        for url in viewer_urls(opts.host, port, scheme):
+            print(f"viewer: {url}{hint}", flush=True)
         if on_ready:
             on_ready(port)
 

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import shlex
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -116,18 +118,41 @@ def test_protocol_schema_and_devices(capsys):
     assert {d["profile"] for d in devices if d["kind"] == "sim"} >= {"phantom-desktop", "touch"}
 
 
-def test_client_with_a_bad_device_spec_exits_2():
-    res = run(
-        "client",
-        "--device",
-        "sim:juggle",
-        "--url",
-        "ws://127.0.0.1:9/ws",
-        "--duration",
-        "1",
-        timeout=60,
-    )
-    assert res.returncode == 2 and "Traceback" not in res.stderr
+def _spacemouse_attached() -> bool:
+    from client.devices.hid import list_devices
+
+    return any(d["spec"] == "hid:256f:c635" for d in list_devices())
+
+
+@pytest.mark.parametrize(
+    ("spec", "says"),
+    [
+        ("sim:juggle", "unknown simulated device 'sim:juggle'; use sim:press"),
+        ("hid:1234:5678", "no HID profile for 1234:5678"),
+        ("hid:256f:c635", "`haptic devices`"),  # a SpaceMouse that is not plugged in
+    ],
+)
+def test_client_with_a_bad_device_exits_2_before_connecting(spec: str, says: str) -> None:
+    if spec == "hid:256f:c635" and _spacemouse_attached():
+        pytest.skip("a SpaceMouse Compact is attached")
+    # a reachable server: a client that got as far as the network would connect to it (and then
+    # wait 20 s for a welcome that never comes)
+    with socket.create_server(("127.0.0.1", 0)) as srv:
+        srv.setblocking(False)
+        port = srv.getsockname()[1]
+        t0 = time.monotonic()
+        res = run(
+            "client", "--device", spec, "--url", f"ws://127.0.0.1:{port}/ws", "--duration", "30",
+            timeout=60,
+        )  # fmt: skip
+        elapsed = time.monotonic() - t0
+        with pytest.raises(BlockingIOError):
+            srv.accept()  # no connection was ever made
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("haptic client: error: "), res.stderr
+    assert says in lines[0] and "Traceback" not in res.stderr
+    assert elapsed < 5.0  # under a second in practice (interpreter start included)
 
 
 def test_compose_services_run_valid_haptic_commands():

@@ -5,19 +5,26 @@
 ==================  ============================================================================
 ``sim:press``       simulated device whose hand presses on ``anchor`` (:class:`Press`)
 ``sim:rest``        simulated device whose hand rests lightly on ``anchor`` (:class:`Rest`)
-``sim:replay:FILE`` simulated device whose hand replays a CSV ``t_s,x_m,y_m,z_m`` (:class:`Replay`)
+``sim:replay:FILE`` simulated device whose hand replays a file (:func:`load_replay`): a
+                    ``--record`` CSV (its probe path) or a CSV ``t_s,x_m,y_m,z_m``
 ``hid:VID:PID``     a real HID device (hex ids): a SpaceMouse, or a device with a JSON profile
 ==================  ============================================================================
+
+:class:`DeviceOpener` checks a spec and opens the device *before* the client touches the network
+(a bad spec or an absent device is a :class:`DeviceError`: one line, what and what to do), and
+places it on the object once the server's ``welcome`` says where the object is.
 
 hidapi is only imported when a HID device is opened or listed.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from client.devices.base import Device, DeviceLimits, HapticError, Vec3
 from client.devices.profiles import (
@@ -37,9 +44,14 @@ from client.devices.trajectories import (
 )
 from shared.primitives import unit_vec3, vec3
 
+if TYPE_CHECKING:
+    from client.devices.hid import HidPort
+
 __all__ = [
     "Device",
+    "DeviceError",
     "DeviceLimits",
+    "DeviceOpener",
     "HAND_OPTIONS",
     "HandParams",
     "HapticError",
@@ -53,12 +65,80 @@ __all__ = [
     "hand_depth_for",
     "hand_with_options",
     "list_devices",
+    "load_replay",
     "make_device",
     "parse_hid_ids",
 ]
 
 #: Distance [m] outside the anchor of a HID device's workspace centre.
 HID_STANDOFF_M = 0.02
+
+#: Probe columns of a ``haptic client --record`` file (:data:`client.recorder.COLUMNS`).
+RECORD_PROBE_COLUMNS = ("t_s", "probe_x_m", "probe_y_m", "probe_z_m")
+
+
+class DeviceError(ValueError):
+    """A device spec that cannot be used, or a device that cannot be opened.
+
+    The message is one line: what is wrong and what to do (``haptic client`` prints it and
+    exits 2 before connecting to any server).
+    """
+
+
+def load_replay(path: str | Path) -> Replay:
+    """The hand trajectory of ``sim:replay:FILE``: a ``--record`` file or a ``t_s,x_m,y_m,z_m`` CSV.
+
+    A ``haptic client --record`` CSV (header with ``t_s,probe_x_m,probe_y_m,probe_z_m``) replays
+    its recorded probe path, with the time of its first row taken as t = 0 (the replaying
+    device's first read); rows whose time does not increase are skipped. Any other CSV must hold
+    ``t_s,x_m,y_m,z_m`` (:meth:`Replay.from_csv`, times used as they are). Positions are in the
+    world frame [m].
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    Replay
+        Linear interpolation of the samples, holding the first before and the last after.
+
+    Raises
+    ------
+    ReplayError
+        Missing file, missing columns, a non-numeric or non-finite cell, or no data rows.
+    """
+    p = Path(path)
+    try:
+        with p.open(encoding="utf-8") as fh:
+            first = ""
+            for line in fh:
+                if line.strip() and not line.lstrip().startswith("#"):
+                    first = line
+                    break
+    except OSError as exc:
+        raise ReplayError(f"cannot open replay file {str(p)!r}: {exc}") from exc
+    names = [h.strip() for h in first.strip().split(",")]
+    if not all(c in names for c in RECORD_PROBE_COLUMNS):
+        return Replay.from_csv(p)
+    cols = [names.index(c) for c in RECORD_PROBE_COLUMNS]
+    try:
+        data = np.loadtxt(p, delimiter=",", skiprows=1, usecols=cols, ndmin=2, comments="#")
+    except ValueError as exc:
+        raise ReplayError(f"{p}: not a readable --record file: {exc}") from None
+    if data.shape[0] == 0:
+        raise ReplayError(f"{p}: no data rows")
+    if not np.isfinite(data).all():
+        bad = int(np.flatnonzero(~np.isfinite(data).all(axis=1))[0])
+        raise ReplayError(f"{p}, data row {bad + 1}: non-finite value in {data[bad].tolist()}")
+    t = data[:, 0]
+    keep = np.ones(t.size, dtype=bool)
+    keep[1:] = t[1:] > np.maximum.accumulate(t)[:-1]
+    data = data[keep]
+    times = tuple((data[:, 0] - data[0, 0]).tolist())
+    positions = tuple(map(tuple, data[:, 1:4].tolist()))
+    return Replay(times, positions)  # type: ignore[arg-type]
 
 
 def parse_hid_ids(text: str) -> tuple[int, int]:
@@ -126,6 +206,7 @@ def make_device(
     trajectory_options: Mapping[str, float] | None = None,
     servo_rate_hz: float = 1000.0,
     hid_profile: str | Path | HidProfile | None = None,
+    hid_opener: Callable[[int, int], HidPort] | None = None,
 ) -> Device:
     """Build a device (not opened) from a spec string.
 
@@ -153,6 +234,9 @@ def make_device(
         Servo rate [Hz] the simulation sub-steps against (default 1000).
     hid_profile : str, Path or HidProfile, optional
         Generic HID profile (bundled name, file, or loaded) for a non-SpaceMouse device.
+    hid_opener : callable, optional
+        ``opener(vendor_id, product_id) -> port`` a HID device opens its port with (default
+        hidapi; :class:`DeviceOpener` hands over a port it opened early, tests a fake).
 
     Returns
     -------
@@ -183,7 +267,7 @@ def make_device(
             elif what == "replay" and arg:
                 if opts:
                     raise ValueError("sim:replay takes no trajectory options")
-                traj = Replay.from_csv(arg)
+                traj = load_replay(arg)
             else:
                 raise ValueError(
                     f"unknown simulated device {spec!r}; use sim:press, sim:rest or sim:replay:FILE"
@@ -212,10 +296,141 @@ def make_device(
             a[1] + HID_STANDOFF_M * n[1],
             a[2] + HID_STANDOFF_M * n[2],
         )
-        return open_hid_device(vid, pid, center, profile=hp)
+        return open_hid_device(vid, pid, center, profile=hp, opener=hid_opener)
     raise ValueError(
         f"unknown device spec {spec!r}; use sim:press, sim:rest, sim:replay:FILE or hid:VID:PID"
     )
+
+
+def _one_line(text: str) -> str:
+    return "; ".join(part.strip() for part in str(text).splitlines() if part.strip())
+
+
+class DeviceOpener:
+    """Check a ``--device`` spec and open the device before the network; place it on the object later.
+
+    ``haptic client`` calls :meth:`check` before it connects: the whole spec is parsed (kind,
+    simulated profile, trajectory options, replay file, HID ids and profile) by building the
+    device around a placeholder anchor, and a HID device's port is opened and kept open. Once the
+    server's ``welcome`` says where the object is, :meth:`build` makes the device around the real
+    anchor and opens it, a HID device on the port :meth:`check` opened (a replayed hand does not
+    depend on the anchor: the checked device is used as it is). A device that faults later
+    reopens through the same opener (:meth:`Device.reopen`).
+
+    Parameters
+    ----------
+    spec : str
+        ``sim:press``, ``sim:rest``, ``sim:replay:FILE`` or ``hid:VID:PID``.
+    profile, trajectory_options, servo_rate_hz, hid_profile
+        As :func:`make_device`.
+    hid_opener : callable, optional
+        ``opener(vendor_id, product_id) -> port`` (default: hidapi, non-blocking).
+    """
+
+    def __init__(
+        self,
+        spec: str,
+        *,
+        profile: str = "phantom-desktop",
+        trajectory_options: Mapping[str, float] | None = None,
+        servo_rate_hz: float = 1000.0,
+        hid_profile: str | Path | HidProfile | None = None,
+        hid_opener: Callable[[int, int], HidPort] | None = None,
+    ) -> None:
+        self.spec = spec
+        self.profile = profile
+        self.trajectory_options = dict(trajectory_options or {})
+        self.servo_rate_hz = servo_rate_hz
+        self.hid_profile = hid_profile
+        self._base_opener = hid_opener
+        self._early: HidPort | None = None
+        self._checked: Device | None = None
+        self.hid_ids: tuple[int, int] | None = None
+
+    def _open_port(self, vendor_id: int, product_id: int) -> HidPort:
+        """The port :meth:`check` opened (once), else a newly opened one."""
+        port, self._early = self._early, None
+        if port is not None:
+            return port
+        if self._base_opener is not None:
+            return self._base_opener(vendor_id, product_id)
+        from client.devices.hid import _hid_open
+
+        return _hid_open(vendor_id, product_id)
+
+    def _make(self, anchor: Sequence[float], normal: Sequence[float]) -> Device:
+        return make_device(
+            self.spec,
+            anchor,
+            normal,
+            profile=self.profile,
+            trajectory_options=self.trajectory_options or None,
+            servo_rate_hz=self.servo_rate_hz,
+            hid_profile=self.hid_profile,
+            hid_opener=self._open_port,
+        )
+
+    def check(self) -> None:
+        """Parse the spec and open a HID device now (before any network).
+
+        Raises
+        ------
+        DeviceError
+            A bad spec (unknown kind, profile or trajectory option, unreadable replay file, a
+            HID device with no profile) or a HID device that cannot be opened (absent, no
+            permission, busy), as one line with what to do.
+        """
+        try:
+            dev = self._make((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+        except ValueError as exc:
+            raise DeviceError(_one_line(str(exc))) from None
+        self._checked = dev
+        if self.spec.startswith("hid:"):
+            vid, pid = parse_hid_ids(self.spec.partition(":")[2])
+            self.hid_ids = (vid, pid)
+            try:
+                self._early = self._open_port(vid, pid)
+            except OSError as exc:
+                from client.devices.hid import open_error_message
+
+                raise DeviceError(open_error_message(vid, pid, exc)) from None
+
+    def build(self, anchor: Sequence[float], normal: Sequence[float]) -> Device:
+        """The device placed on the object (anchor (3,) [m], outward normal (3,)), opened.
+
+        Raises
+        ------
+        DeviceError
+            Bad anchor or normal, or the device cannot be opened (it went away since
+            :meth:`check`).
+        """
+        if self._checked is not None and isinstance(
+            getattr(self._checked, "trajectory", None), Replay
+        ):
+            dev = self._checked  # a replayed hand is in world coordinates already
+        else:
+            try:
+                dev = self._make(anchor, normal)
+            except ValueError as exc:
+                raise DeviceError(_one_line(str(exc))) from None
+        try:
+            dev.open()
+        except OSError as exc:
+            if self.hid_ids is None:
+                raise DeviceError(f"cannot open {self.spec}: {exc}") from None
+            from client.devices.hid import open_error_message
+
+            raise DeviceError(open_error_message(*self.hid_ids, exc)) from None
+        return dev
+
+    def close(self) -> None:
+        """Release a port :meth:`check` opened that :meth:`build` never used."""
+        port, self._early = self._early, None
+        if port is not None:
+            try:
+                port.close()
+            except OSError:
+                pass
 
 
 def list_devices() -> list[dict[str, Any]]:

@@ -182,3 +182,22 @@ class Device(ABC):
     @abstractmethod
     def disable_forces(self) -> None:
         """Zero the displayed force and ignore further writes until re-enabled."""
+
+    def reopen(self) -> bool:
+        """Try to recover a faulted device by opening it again (it was unplugged and came back).
+
+        The client calls this with backoff, from another thread than the servo loop's, while
+        :attr:`fault` is set; the servo loop keeps forces at zero until the fault clears.
+
+        Returns
+        -------
+        bool
+            True when the device is healthy again; False when it cannot be reopened (the
+            default: a device that does not support it, e.g. a simulated one).
+
+        Raises
+        ------
+        OSError
+            The device is still absent.
+        """
+        return False

@@ -24,6 +24,7 @@ tick, keeping the newest.
 from __future__ import annotations
 
 import math
+import os
 import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -300,6 +301,40 @@ class _HidDevice(Device):
         self.fault = None
         self._last_report_t = None
 
+    def reopen(self) -> bool:
+        """Release the port of a faulted device and open it again (the device came back).
+
+        Called from another thread than the servo loop's, only while :attr:`fault` is set: a
+        faulted device no longer touches its port in :meth:`read` (and in :meth:`write` after one
+        zero-force report), so the port can be swapped; :attr:`fault` is cleared last, once the
+        new port is in place. Forces stay enabled as they were (the servo loop ramps them back
+        up from zero when the fault clears).
+
+        Returns
+        -------
+        bool
+            True when the device is open and healthy again; False if it was not faulted.
+
+        Raises
+        ------
+        OSError
+            The device cannot be opened (still unplugged); the fault stays set.
+        """
+        if self.fault is None:
+            return False
+        old, self._port = self._port, None
+        if old is not None:
+            try:
+                old.close()
+            except OSError:
+                pass
+        port = self._opener(self.vendor_id, self.product_id)
+        self._port = port
+        self._last_report_t = None
+        self._zeroed_after_fault = False
+        self.fault = None
+        return True
+
     def close(self) -> None:
         """Zero the force, release the device; safe to call twice."""
         if self._port is not None:
@@ -534,10 +569,84 @@ def open_hid_device(
     found = find_hid_profile(vendor_id, product_id)
     if found is None:
         raise ValueError(
-            f"no HID profile for {vendor_id:04x}:{product_id:04x}; write one "
-            "(see client/devices/profiles.py) and pass it as hid_profile"
+            f"no HID profile for {vendor_id:04x}:{product_id:04x}: it is not a SpaceMouse and no "
+            "bundled profile has these ids; write a JSON profile for it (docs/client.md) and pass "
+            "--hid-profile FILE.json; `haptic devices` lists what is attached"
         )
     return ProfileHidDevice(found, center, opener=opener)
+
+
+#: How to let a user open hidraw devices on Linux (one line, docs/client.md shows the file).
+UDEV_HINT = (
+    "give your user access with a udev rule, e.g. "
+    '\'KERNEL=="hidraw*", ATTRS{{idVendor}}=="{vid:04x}", MODE="0660", TAG+="uaccess"\' '
+    "in /etc/udev/rules.d/70-haptic.rules, then `sudo udevadm control --reload` and replug "
+    "(docs/client.md)"
+)
+
+
+def open_error_message(
+    vendor_id: int,
+    product_id: int,
+    error: BaseException,
+    attached: Sequence[dict[str, Any]] | None = None,
+) -> str:
+    """One line saying why (vendor_id, product_id) could not be opened and what to do.
+
+    hidapi says only "open failed"; the cause is told apart by what is attached: nothing with
+    these ids (not plugged in), a ``/dev/hidraw*`` node the user may not read and write (a
+    missing udev rule), or attached but busy or refused.
+
+    Parameters
+    ----------
+    vendor_id, product_id : int
+        The ids that failed to open.
+    error : BaseException
+        What the opener raised.
+    attached : sequence of dict, optional
+        ``hid.enumerate()`` entries (``vendor_id``, ``product_id``, ``path``); default: ask
+        hidapi now (an empty list when hidapi is unavailable).
+
+    Returns
+    -------
+    str
+        ``cannot open hid:VID:PID: <what>; <what to do>``, without a newline.
+    """
+    spec = f"hid:{vendor_id:04x}:{product_id:04x}"
+    if attached is None:
+        try:
+            import hid
+
+            attached = list(hid.enumerate(vendor_id, product_id))
+        except (ImportError, OSError, RuntimeError):
+            attached = []
+    mine = [
+        d
+        for d in attached
+        if int(d.get("vendor_id", -1)) == vendor_id and int(d.get("product_id", -1)) == product_id
+    ]
+    detail = str(error).strip() or type(error).__name__
+    if isinstance(error, ImportError) or "hidapi is not available" in detail:
+        return f"cannot open {spec}: {detail}; install hidapi (pip install hidapi)"
+    if not mine:
+        return (
+            f"cannot open {spec}: no device with these ids is attached ({detail}); plug it in, "
+            "or run `haptic devices` to list what is attached"
+        )
+    paths = []
+    for d in mine:
+        raw = d.get("path") or b""
+        path = raw.decode(errors="replace") if isinstance(raw, bytes) else str(raw)
+        paths.append(path)
+    denied = [p for p in paths if p.startswith("/dev/") and not os.access(p, os.R_OK | os.W_OK)]
+    if denied or isinstance(error, PermissionError):
+        where = f" on {denied[0]}" if denied else ""
+        return f"cannot open {spec}: permission denied{where}; " + UDEV_HINT.format(vid=vendor_id)
+    return (
+        f"cannot open {spec}: it is attached but refused to open ({detail}); close any other "
+        "program using it (a vendor driver or daemon), or check its permissions: "
+        + UDEV_HINT.format(vid=vendor_id)
+    )
 
 
 def list_devices() -> list[dict[str, Any]]:
