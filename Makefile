@@ -4,8 +4,9 @@ VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 WEBSTAMP := web/node_modules/.installed
+JSSTAMP := client/js/node_modules/.installed
 
-.PHONY: all install web-install browser test lint typecheck unit demo bench reproduce clean
+.PHONY: all install web-install js-install browser test lint typecheck unit demo bench reproduce clean
 
 all: test
 
@@ -23,6 +24,13 @@ $(WEBSTAMP): web/package.json web/package-lock.json
 
 web-install: $(WEBSTAMP)
 
+# The Node.js reference client (client/js): the `ws` package from its lockfile.
+$(JSSTAMP): client/js/package.json client/js/package-lock.json
+	cd client/js && npm ci --no-audit --no-fund
+	touch $(JSSTAMP)
+
+js-install: $(JSSTAMP)
+
 # Debian's chromium for the browser tests (never a downloaded browser build).
 browser:
 	@if [ ! -x /usr/bin/chromium ]; then \
@@ -39,7 +47,7 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
-unit: $(STAMP) $(WEBSTAMP) browser
+unit: $(STAMP) $(WEBSTAMP) $(JSSTAMP) browser
 	$(BIN)/pytest -q
 
 test: lint typecheck unit

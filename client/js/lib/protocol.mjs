@@ -1,0 +1,97 @@
+// Messages of docs/protocol.md (wire protocol version 1), as this client builds and reads them.
+// Pure functions: no sockets, no clocks.
+
+export const PROTOCOL = 1;
+
+const NAME_RE = /^[A-Za-z0-9_.-]{1,32}$/;
+
+/** True when every number in a (nested) JSON value is finite: JSON has no NaN or Infinity. */
+export function allFinite(v) {
+  if (typeof v === "number") return Number.isFinite(v);
+  if (Array.isArray(v)) return v.every(allFinite);
+  if (v && typeof v === "object") return Object.values(v).every(allFinite);
+  return true;
+}
+
+/**
+ * The `hello` of a haptic user. `token` is sent only when given.
+ * @throws {RangeError} a name outside 1-32 of A-Za-z0-9_.-
+ */
+export function helloMessage({ name, device, servoRateHz, localModel, token }) {
+  if (!NAME_RE.test(name)) throw new RangeError(`name must be 1-32 of A-Za-z0-9_.-, got ${JSON.stringify(name)}`);
+  const m = {
+    type: "hello",
+    protocol: PROTOCOL,
+    role: "user",
+    name,
+    device: {
+      profile: device.profile,
+      max_force_n: device.maxForceN,
+      max_stiffness_n_per_m: device.maxStiffnessNPerM,
+    },
+    servo_rate_hz: servoRateHz,
+    local_model: localModel,
+  };
+  if (token) m.token = token;
+  return m;
+}
+
+/**
+ * The `state` frame from a servo snapshot. Returns null when a number is not finite (the
+ * server refuses NaN/Infinity, and JSON.stringify would turn them into null): skip the frame.
+ */
+export function stateMessage({ seq, snap, rttMs }) {
+  const m = {
+    type: "state",
+    seq,
+    probe_m: snap.probe,
+    force_n: snap.force,
+    penetration_m: snap.penetration,
+    in_contact: snap.inContact,
+    k_h: snap.kH,
+    i_gain: snap.iGain,
+    servo_rate_hz: snap.rateHz,
+    period_us_p99: snap.p99Us,
+    patch_tick: snap.patchTick,
+  };
+  if (rttMs !== null && rttMs !== undefined) m.rtt_ms = rttMs;
+  return allFinite(m) ? m : null;
+}
+
+function finiteNonNeg(v, dflt) {
+  return Number.isFinite(v) && v >= 0 ? v : dflt;
+}
+
+/**
+ * The gains to render for a patch.
+ *
+ * - mode "patch" and the patch carries `gains` {k_h, i_gain, b_h, proxy_hold, theta_m} with a
+ *   finite k_h: those (the server designed them for this device, servo rate and delay), with
+ *   K_h clamped to the device's maximum stable stiffness and I = 0 if we declared a P model;
+ * - otherwise the fallback: K_h = 0.3 * k_o_eff (inside eq. 8's K_h < K_o with margin for the
+ *   delay and the sampling tick), P only.
+ * Returns null when the patch allows neither (no positive k_o_eff/k_o): keep the previous gains.
+ */
+export function chooseGains(patch, { mode, maxStiffnessNPerM, localModel, fallbackRatio = 0.3 }) {
+  const g = patch.gains;
+  if (mode === "patch" && g && typeof g === "object" && Number.isFinite(g.k_h) && g.k_h >= 0) {
+    return {
+      k_h: Math.min(g.k_h, maxStiffnessNPerM),
+      i_gain: localModel === "p" ? 0 : finiteNonNeg(g.i_gain, 0),
+      b_h: finiteNonNeg(g.b_h, 0),
+      theta_m: finiteNonNeg(g.theta_m, 0),
+      proxy_hold: g.proxy_hold === "foh" ? "foh" : "zoh",
+      source: "patch",
+    };
+  }
+  const kEff = Number.isFinite(patch.k_o_eff) && patch.k_o_eff > 0 ? patch.k_o_eff : patch.k_o;
+  if (!(Number.isFinite(kEff) && kEff > 0)) return null;
+  return {
+    k_h: Math.min(fallbackRatio * kEff, maxStiffnessNPerM),
+    i_gain: 0,
+    b_h: 0,
+    theta_m: 0,
+    proxy_hold: "zoh",
+    source: "fallback",
+  };
+}

@@ -1,0 +1,148 @@
+// Unit tests of the servo core and the message builders: `node --test client/js/test/`.
+import { test } from "node:test";
+import assert from "node:assert/strict";
+import {
+  LocalModel,
+  Servo,
+  SimHand,
+  penetration,
+  primitiveFromPatch,
+  scriptedTarget,
+} from "../lib/servo.mjs";
+import { chooseGains, helloMessage, stateMessage } from "../lib/protocol.mjs";
+
+const close = (a, b, tol = 1e-9) => assert.ok(Math.abs(a - b) <= tol, `${a} != ${b} (tol ${tol})`);
+
+test("plane: penetration positive inside, force along the outward normal", () => {
+  const prim = primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, 0.1], normal: [0, 0, 2] } });
+  const { e, n } = penetration(prim, [0.05, 0, 0.098]);
+  close(e, 0.002);
+  assert.deepEqual(n, [0, 0, 1]);
+  close(penetration(prim, [0, 0, 0.125]).e, -0.025); // out of contact: negative
+});
+
+test("sphere: a bump (object inside) and a dent (object outside) read off the patch", () => {
+  const sphere = { kind: "sphere", center: [0, 0, 0], radius: 0.1 };
+  const bump = primitiveFromPatch({ primitive: sphere, proxy_m: [0, 0, 0.1], normal: [0, 0, 1] });
+  assert.equal(bump.inside, true);
+  const b = penetration(bump, [0, 0.097, 0]);
+  close(b.e, 0.003);
+  assert.deepEqual(b.n, [0, 1, 0]); // radial, outward
+  const dent = primitiveFromPatch({ primitive: sphere, proxy_m: [0, 0, 0.1], normal: [0, 0, -1] });
+  assert.equal(dent.inside, false);
+  const d = penetration(dent, [0, 0.103, 0]);
+  close(d.e, 0.003);
+  assert.deepEqual(d.n, [-0, -1, -0]); // toward the centre, out of the object
+  assert.throws(() => primitiveFromPatch({ primitive: { kind: "cone" } }), RangeError);
+});
+
+test("P model: f = K_h e in contact, nothing out of contact", () => {
+  const m = new LocalModel();
+  m.setGains({ k_h: 100 });
+  close(m.step(0.002, 0, 0.001), 0.2);
+  assert.equal(m.step(-0.001, 0, 0.001), 0);
+});
+
+test("PI model: the integral removes the error above theta and bleeds to zero on release", () => {
+  const m = new LocalModel({ bleedS: 0.1 });
+  m.setGains({ k_h: 100, i_gain: 4000, theta_m: 0.001 });
+  let f = 0;
+  for (let i = 0; i < 1000; i++) f = m.step(0.002, 0, 0.001); // 1 s at e = 2 mm
+  close(f, 100 * 0.002 + 4000 * 0.001 * 1.0, 1e-9); // K_h e + I * (e - theta) * t
+  for (let i = 0; i < 1000; i++) m.step(0.0005, 0, 0.001); // below theta: the integral unwinds
+  assert.ok(m.s < 4.0);
+  const s0 = m.s;
+  m.step(-0.001, 0, 0.05);
+  close(m.s, s0 / 2, 1e-9); // half the bleed time: half the integral
+  m.step(-0.001, 0, 0.06);
+  assert.equal(m.s, 0);
+});
+
+test("servo: force ramps up after a patch, clamps, and ramps to zero when patches stop", () => {
+  const dev = new SimHand({ start: [0, 0, 0.095], target: () => [0, 0, 0.095], handMass: 1e6 });
+  const s = new Servo({ device: dev, maxForceN: 7.9, linkTimeoutS: 0.25, rampS: 0.05 });
+  const prim = primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, 0.1], normal: [0, 0, 1] } });
+  let t = 0;
+  s.tick(t);
+  s.setPatch({ prim, tick: 1, gains: { k_h: 100, proxy_hold: "zoh", source: "t" }, simPeriodS: 0.05, tS: t });
+  const forces = [];
+  for (let i = 0; i < 600; i++) {
+    t += 0.001;
+    forces.push(s.tick(t)[2]);
+  }
+  close(forces[24], 0.5 * 0.5, 0.02); // halfway up the 50 ms ramp (e = 5 mm, K_h e = 0.5 N)
+  close(forces[200], 0.5, 1e-3); // full force
+  assert.equal(forces[599], 0); // 0.25 s without a patch + 50 ms ramp: zero
+  const steps = forces.slice(1).map((f, i) => Math.abs(f - forces[i]));
+  assert.ok(Math.max(...steps) < 0.02, "a ramp, never a jump");
+  assert.equal(s.linkLosses, 1);
+  // forces come back only after a new patch
+  s.setPatch({ prim, tick: 2, gains: { k_h: 100, proxy_hold: "zoh", source: "t" }, simPeriodS: 0.05, tS: t });
+  for (let i = 0; i < 100; i++) t += 0.001, s.tick(t);
+  close(s.fMag, 0.5, 1e-3);
+  // clamp to the device's limit
+  s.setPatch({ prim, tick: 3, gains: { k_h: 1e5, proxy_hold: "zoh", source: "t" }, simPeriodS: 0.05, tS: t });
+  for (let i = 0; i < 10; i++) t += 0.001, s.tick(t);
+  close(s.fMag, 7.9, 1e-9);
+});
+
+test("a simulated hand resting on a plane settles where hand spring and K_h balance", () => {
+  const target = scriptedTarget({ anchor: [0, 0, 0.1], normal: [0, 0, 1], restDepthM: 0.004, approachAtS: 0, approachS: 0.2 });
+  const dev = new SimHand({ start: target.start, target });
+  const s = new Servo({ device: dev });
+  const prim = primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, 0.1], normal: [0, 0, 1] } });
+  s.setPatch({ prim, tick: 1, gains: { k_h: 100, source: "t" }, simPeriodS: 0.05, tS: 0 });
+  for (let k = 0; k <= 2000; k++) {
+    if (k % 50 === 0) s.setPatch({ prim, tick: k + 2, gains: { k_h: 100, source: "t" }, simPeriodS: 0.05, tS: k / 1000 });
+    s.tick(k / 1000);
+  }
+  // series springs: hand 300 N/m and K_h 100 N/m over 4 mm -> 0.3 N
+  close(s.fMag, (0.004 * 300 * 100) / 400, 0.005);
+});
+
+test("gains: the patch's recommendation when present, else 0.3 k_o_eff and P only", () => {
+  const o = { mode: "patch", maxStiffnessNPerM: 1000, localModel: "pi" };
+  const g = chooseGains({ k_o: 400, k_o_eff: 300, gains: { k_h: 120, i_gain: 3000, b_h: 0.5, proxy_hold: "foh", theta_m: 0.0004 } }, o);
+  assert.deepEqual(g, { k_h: 120, i_gain: 3000, b_h: 0.5, theta_m: 0.0004, proxy_hold: "foh", source: "patch" });
+  const f = chooseGains({ k_o: 400, k_o_eff: 300 }, o);
+  assert.equal(f.source, "fallback");
+  close(f.k_h, 90);
+  assert.equal(f.i_gain, 0);
+  assert.equal(chooseGains({ k_o: 400, k_o_eff: 300, gains: { k_h: 120 } }, { ...o, mode: "fallback" }).source, "fallback");
+  assert.equal(chooseGains({ k_o: 0, k_o_eff: 0 }, o), null);
+});
+
+test("messages: token only when given; a state with NaN is not sent", () => {
+  const dev = { profile: "js-sim", maxForceN: 7.9, maxStiffnessNPerM: 1000 };
+  const h = helloMessage({ name: "A", device: dev, servoRateHz: 1000, localModel: "pi" });
+  assert.equal("token" in h, false);
+  assert.equal(helloMessage({ name: "A", device: dev, servoRateHz: 1000, localModel: "pi", token: "s3cret" }).token, "s3cret");
+  assert.throws(() => helloMessage({ name: "no spaces", device: dev, servoRateHz: 1000, localModel: "p" }), RangeError);
+  const snap = { probe: [0, 0, 0.1], force: [0, 0, 0.2], penetration: 0.002, inContact: true, kH: 90, iGain: 0, rateHz: 1000, p99Us: 1010, patchTick: 5 };
+  const st = stateMessage({ seq: 3, snap, rttMs: null });
+  assert.equal(st.type, "state");
+  assert.equal("rtt_ms" in st, false);
+  assert.equal(stateMessage({ seq: 4, snap: { ...snap, probe: [0, 0, NaN] }, rttMs: 1 }), null);
+});
+
+test("first-order hold: a new surface slides in over one simulation period instead of stepping", () => {
+  const dev = new SimHand({ start: [0, 0, 0.095], target: () => [0, 0, 0.095], handMass: 1e6 });
+  const s = new Servo({ device: dev, rampS: 0.001 });
+  const plane = (z) => primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, z], normal: [0, 0, 1] } });
+  const gains = (hold) => ({ k_h: 100, proxy_hold: hold, source: "t" });
+  let t = 0;
+  s.setPatch({ prim: plane(0.1), tick: 1, gains: gains("foh"), simPeriodS: 0.05, tS: t });
+  for (let i = 0; i < 20; i++) t += 0.001, s.tick(t);
+  close(s.fMag, 0.5, 1e-6); // e = 5 mm
+  s.setPatch({ prim: plane(0.102), tick: 2, gains: gains("foh"), simPeriodS: 0.05, tS: t });
+  t += 0.025;
+  s.tick(t);
+  close(s.fMag, 0.6, 1e-6); // halfway through the slide: e = 6 mm
+  t += 0.03;
+  s.tick(t);
+  close(s.fMag, 0.7, 1e-6); // the slide is over: e = 7 mm
+  s.setPatch({ prim: plane(0.1), tick: 3, gains: gains("zoh"), simPeriodS: 0.05, tS: t });
+  t += 0.001;
+  s.tick(t);
+  close(s.fMag, 0.5, 1e-6); // zero-order hold: at once
+});
