@@ -68,6 +68,9 @@ class ClientOptions:
     stop_on_signals: bool = False
     #: ``opener(vendor_id, product_id) -> port`` for HID devices (default hidapi; tests a fake).
     hid_opener: Callable[[int, int], HidPort] | None = None
+    #: ``server``: render the server's recommended gains when they fit this device; ``local``:
+    #: always design the gains here (client.session.ClientSession).
+    gains: Literal["server", "local"] = "server"
     #: The server's token, sent in ``hello`` (None: ``$HAPTIC_TOKEN``, else none).
     token: str | None = None
     #: CA file [PEM] a ``wss://`` server is verified against (None: ``$HAPTIC_CA_FILE``, else
@@ -82,6 +85,7 @@ def _device_info(opts: ClientOptions) -> DeviceInfo:
             profile=opts.profile,
             max_force_n=lim.max_force_n,
             max_stiffness_n_per_m=lim.max_stiffness_n_per_m,
+            max_damping_n_s_per_m=min(1e3, lim.max_damping_n_s_per_m),
         )
     return DeviceInfo(profile=opts.device[:64])
 
@@ -294,12 +298,15 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
 
 
 async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
+    info = _device_info(opts)
     session = ClientSession(
         opts.name,
         servo_rate_hz=opts.servo_rate_hz,
-        device=_device_info(opts),
+        device=info,
         mode=opts.local_model,
         margin=opts.margin,
+        b_h_max=info.max_damping_n_s_per_m,
+        gains=opts.gains,
     )
     origin_s = time.perf_counter()
 
@@ -352,6 +359,7 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
             profile=session.device.profile,
             max_force_n=min(100.0, lim.max_force_n),
             max_stiffness_n_per_m=min(1e5, lim.max_stiffness_n_per_m),
+            max_damping_n_s_per_m=min(1e3, lim.max_damping_n_s_per_m),
         )
         session.b_h_max = min(1e3, lim.max_damping_n_s_per_m)
         period = 1.0 / opts.servo_rate_hz
@@ -513,6 +521,8 @@ def _summary(
         "interim_checks": link.checks,
         "fallback_patches": sum(1 for u in updates if u.fallback),
         "unverified_patches": session.unverified_patches,
+        "server_gain_patches": session.server_gain_patches,
+        "gains_source": session.gains_source,
         "first_patch_s": session.first_patch_s,
         "first_gains_s": session.first_update_s,
         "first_contact_wait_ms": None

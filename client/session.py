@@ -30,28 +30,23 @@ the old one between servo ticks).
 from __future__ import annotations
 
 import math
-import time
 from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
 from shared.coupled_loop import stiff_ratio_class
-from shared.full_loop import HandBox, monodromy
+from shared.full_loop import monodromy
+from shared.gain_design import INTERIM_LADDER as INTERIM_LADDER
 from shared.gain_design import (
-    CREEP_FREQUENCY_HZ,
-    MIN_DECAY_RATE_PER_S,
     GainDesign,
     GainKey,
     GainTable,
-    cell_k_o_range,
-    design_cell,
-    felt_stiffness,
-    k_o_points,
     loop_delay_ticks,
 )
+from shared.gain_design import interim_design as interim_design
+from shared.gain_design import verify_gains as verify_gains
 from shared.primitives import Primitive, make_plane, make_sphere
 from shared.protocol import (
     PROTOCOL_VERSION,
@@ -129,188 +124,6 @@ class PatchUpdate:
     verified: bool = True
 
 
-#: Generic interim gains tried when no known gains pass, in order: (K_h, I) as multiples of the
-#: cell's lowest K_o, lo = (1 - margin) g_i [N/m], i.e. K_h = a lo [N/m] and I = b lo [N/(m*s)],
-#: with the device's full damper B_h and a zero-order hold. The PI one only with a damper and a
-#: PI key: with a 10 N*s/m damper at 1 kHz / 20 Hz it passed at K_o = 30 to 3000 N/m and 0 to 3
-#: ticks of delay, and no integral passed without a damper; P with K_h = 0.1 lo passed everywhere
-#: but at 3000 N/m with a delay, hence 0.05.
-INTERIM_LADDER: tuple[tuple[float, float], ...] = ((0.2, 2.0), (0.2, 0.0), (0.1, 0.0), (0.05, 0.0))
-
-
-def verify_gains(
-    key: GainKey,
-    cell: int,
-    grid_ratio: float,
-    hand_box: HandBox,
-    *,
-    k_h: float,
-    i_gain: float,
-    b_h: float,
-    proxy_hold: Literal["zoh", "foh"],
-    chunk: int = 256,
-) -> tuple[bool, float]:
-    """Do these gains pass the design's acceptance test for grid cell ``cell`` of ``key``?
-
-    The test :func:`shared.gain_design.design_gains` applies to its chosen gains: the full loop
-    (:func:`shared.full_loop.monodromy`) for every hand of ``hand_box.hands()``, every sampling
-    tick j in [0, N) and K_o' in {lo, sqrt(lo hi), hi}, ``(lo, hi) = ((1 - margin) g_i,
-    g_(i+1))`` (the range :func:`shared.gain_design.design_cell` covers) has spectral radius below
-    1 and every oscillating mode (faster than :data:`shared.gain_design.CREEP_FREQUENCY_HZ`) below
-    ``exp(-MIN_DECAY_RATE_PER_S N T)``. Stops at the first failing chunk.
-
-    Parameters
-    ----------
-    key : GainKey
-        Rates, delay ticks, margin and object damping B_o [N/m] to check at.
-    cell, grid_ratio : int, float
-        The K_o grid cell (g_i = grid_ratio**cell [N/m]).
-    hand_box : HandBox
-    k_h, i_gain, b_h : float
-        K_h [N/m] > 0, I [N/(m*s)] >= 0, B_h [N*s/m] >= 0.
-    proxy_hold : {"zoh", "foh"}
-    chunk : int
-        Loop cases per batch.
-
-    Returns
-    -------
-    (bool, float)
-        Passed, and the worst spectral radius seen.
-
-    Raises
-    ------
-    ValueError
-        Out-of-range gains or rates (as :func:`shared.full_loop.monodromy`).
-    """
-    if not (math.isfinite(k_h) and k_h > 0.0):
-        raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {k_h!r}")
-    for name, v in (("i_gain", i_gain), ("b_h", b_h)):
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-    n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
-    T = 1.0 / key.servo_rate_hz
-    lo, hi = cell_k_o_range(key, cell, grid_ratio)
-    k_os = k_o_points(lo, hi)
-    hands = [h for h in hand_box.hands() for _ in k_os]
-    ko = np.tile(np.asarray(k_os, float), len(hand_box.hands()))
-    rho_limit = math.exp(-MIN_DECAY_RATE_PER_S * n * T)
-    creep_angle = 2.0 * math.pi * CREEP_FREQUENCY_HZ * n * T
-    worst = 0.0
-    for a in range(0, len(hands), chunk):
-        M = monodromy(
-            hand=hands[a : a + chunk],
-            k_o=ko[a : a + chunk],
-            k_h=k_h,
-            i_gain=i_gain,
-            b_h=b_h,
-            b_o=key.b_o,
-            servo_period_s=T,
-            rate_ratio=n,
-            delay_ticks=key.delay_ticks,
-            proxy_hold=proxy_hold,
-            integral=i_gain > 0.0,
-        )
-        ev = np.linalg.eigvals(M)
-        mag = np.abs(ev)
-        slow = np.abs(np.angle(ev)) < creep_angle
-        worst = max(worst, float(mag.max()))
-        margin_r = float(np.where(slow, mag * rho_limit, mag).max())
-        if margin_r >= rho_limit or worst >= 1.0 - 1e-9:
-            return False, worst
-    return True, worst
-
-
-def interim_design(
-    key: GainKey,
-    cell: int,
-    grid_ratio: float,
-    hand_box: HandBox,
-    candidates: Sequence[GainDesign] = (),
-    design_fallback: bool = True,
-) -> GainDesign:
-    """Verified gains to render in grid cell ``cell`` of ``key`` until its design is done.
-
-    Tries, in order, ``candidates`` (gains already known, most transparent first), then the
-    generic gains of :data:`INTERIM_LADDER`; returns the first that passes
-    :func:`verify_gains`. If none does and ``design_fallback``, a proportional design of the cell
-    (:func:`shared.gain_design.design_cell` with ``mode="p"``, seconds). A module-level function
-    so that a worker process can run it.
-
-    Returns
-    -------
-    GainDesign
-        For this key and cell (``k_o_range`` the cell's checked range); ``design_ms`` the time it
-        took.
-
-    Raises
-    ------
-    ValueError
-        Nothing passed (and, with ``design_fallback``, not even a proportional design is stable
-        over the box).
-    """
-    t0 = time.perf_counter()
-    lo, hi = cell_k_o_range(key, cell, grid_ratio)
-    n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
-    tries: list[tuple[float, float, float, Literal["zoh", "foh"]]] = [
-        (c.k_h, c.i_gain, c.b_h, c.proxy_hold) for c in candidates
-    ]
-    tries += [
-        (min(a * lo, key.k_h_max), b * lo, key.b_h_max, "zoh")
-        for a, b in INTERIM_LADDER
-        if b == 0.0 or (key.mode == "pi" and key.b_h_max > 0.0)
-    ]
-    seen: set[tuple[float, float, float, str]] = set()
-    for k_h, i_gain, b_h, hold in tries:
-        if (k_h, i_gain, b_h, hold) in seen or k_h > key.k_h_max or b_h > key.b_h_max:
-            continue
-        seen.add((k_h, i_gain, b_h, hold))
-        ok, rho = verify_gains(
-            key, cell, grid_ratio, hand_box, k_h=k_h, i_gain=i_gain, b_h=b_h, proxy_hold=hold
-        )
-        if not ok:
-            continue
-        g = grid_ratio**cell
-        felt = [
-            float(
-                felt_stiffness(
-                    hz,
-                    k_o=g,
-                    k_h=k_h,
-                    i_gain=i_gain,
-                    b_h=b_h,
-                    b_o=key.b_o,
-                    servo_period_s=1.0 / key.servo_rate_hz,
-                    rate_ratio=n,
-                    delay_ticks=key.delay_ticks,
-                    proxy_hold=hold,
-                )[0]
-                / g
-            )
-            for hz in (1.0, 8.0)
-        ]
-        return GainDesign(
-            k_h=k_h,
-            i_gain=i_gain,
-            b_h=b_h,
-            proxy_hold=hold,
-            worst_spectral_radius=rho,
-            rho_limit=math.exp(-MIN_DECAY_RATE_PER_S * n / key.servo_rate_hz),
-            felt_stiffness_ratio_1hz=felt[0],
-            felt_stiffness_ratio_8hz=felt[1],
-            k_o=g,
-            k_o_range=(lo, hi),
-            rate_ratio=n,
-            delay_ticks=key.delay_ticks,
-            mode="pi" if i_gain > 0.0 else "p",
-            hand_box=hand_box,
-            design_ms=(time.perf_counter() - t0) * 1e3,
-        )
-    if not design_fallback:
-        raise ValueError(f"no known or proportional gains pass in cell {cell} of {key}")
-    d = design_cell(replace(key, mode="p"), cell, grid_ratio, hand_box)
-    return replace(d, design_ms=(time.perf_counter() - t0) * 1e3)
-
-
 def warm_up_worker() -> None:
     """Import the full-loop code and run it once (a worker process does this while the client
     joins, so the first check does not also pay for imports)."""
@@ -353,6 +166,11 @@ class ClientSession:
         The device's largest virtual damping [N*s/m] (0: no probe damper).
     gain_table : GainTable, optional
         Where designs are cached (default: a new table over the default hand box).
+    gains : {"server", "local"}
+        ``server``: render the gains the server recommends in a patch (``patch.gains``, designed
+        by the same code for this device) when they are within this device's limits, this local
+        model kind and cover at least the delay this client measures; else design locally.
+        ``local``: always design locally.
     """
 
     def __init__(
@@ -366,7 +184,13 @@ class ClientSession:
         role: Literal["user", "viewer"] = "user",
         b_h_max: float = 0.0,
         gain_table: GainTable | None = None,
+        gains: Literal["server", "local"] = "server",
     ) -> None:
+        if gains not in ("server", "local"):
+            raise ValueError(f"gains must be 'server' or 'local', got {gains!r}")
+        self.gains_source: Literal["server", "local"] = gains
+        #: Patches rendered with the server's recommended gains.
+        self.server_gain_patches = 0
         self.name = name
         self.servo_rate_hz = servo_rate_hz
         self.device = device or DeviceInfo()
@@ -589,6 +413,34 @@ class ClientSession:
             mode="pi" if lu.i_gain > 0.0 else "p",
         )
 
+    def _recommended(self, msg: Patch, n: int, delay_ticks: int) -> GainDesign | None:
+        """The server's recommended gains as a design, if this client may render them."""
+        rec = msg.gains
+        if self.gains_source != "server" or rec is None:
+            return None
+        if (
+            rec.k_h > self.device.max_stiffness_n_per_m
+            or rec.b_h > self.b_h_max + 1e-9
+            or (self.mode == "p" and rec.i_gain > 0.0)
+            or rec.delay_ticks < delay_ticks
+        ):
+            return None  # designed for another device, kind or a shorter delay: design here
+        return GainDesign(
+            k_h=rec.k_h,
+            i_gain=rec.i_gain,
+            b_h=rec.b_h,
+            proxy_hold=rec.proxy_hold,
+            worst_spectral_radius=math.nan,
+            rho_limit=math.nan,
+            felt_stiffness_ratio_1hz=math.nan,
+            felt_stiffness_ratio_8hz=math.nan,
+            k_o=msg.k_o_eff,
+            k_o_range=(msg.k_o_eff, msg.k_o_eff),
+            rate_ratio=n,
+            delay_ticks=rec.delay_ticks,
+            mode="pi" if rec.i_gain > 0.0 else "p",
+        )
+
     def _patch(self, msg: Patch, now_s: float) -> PatchUpdate | None:
         if self.last_patch is not None and msg.tick <= self.last_patch.tick:
             return None  # stale
@@ -611,7 +463,11 @@ class ClientSession:
         key = self.gain_key(msg.b_o, d, self._stiff_class(msg))
         table = self.gain_table
         cell = table.cell(msg.k_o_eff)
-        design = table.lookup(key, msg.k_o_eff)
+        design = self._recommended(msg, n, d)
+        if design is not None:
+            self.server_gain_patches += 1
+        else:
+            design = table.lookup(key, msg.k_o_eff)
         fallback = design is None
         verified = True
         if design is None:

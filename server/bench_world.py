@@ -349,6 +349,48 @@ def bench_viewer_stream(
     }
 
 
+def bench_gain_advice(users: int = 8, lookups: int = 20_000) -> dict[str, Any]:
+    """Cost [us] the recommended gains add to a simulation tick, per user (:mod:`server.gains`).
+
+    One design is made first (outside the timing, as the worker would); then ``lookups`` calls of
+    :meth:`server.gains.GainAdvisor.recommend` for ``users`` users on the designed cell (the
+    steady case) and as many on cells still missing (a miss queues a job, costs a lookup).
+    """
+    from server.gains import GainAdvisor, run_job
+    from shared.protocol import DeviceInfo, Hello
+
+    adv = GainAdvisor(20.0)
+    dev = DeviceInfo(max_stiffness_n_per_m=1000.0, max_damping_n_s_per_m=10.0)
+    hellos = [Hello(protocol=1, role="user", name=f"u{i}", device=dev) for i in range(users)]
+    adv.recommend("u0", hellos[0], k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0)
+    t0 = time.perf_counter()
+    for job in adv.take_jobs():
+        adv.store(job, run_job(job, adv.table.grid_ratio, adv.table.hand_box))
+    design_s = time.perf_counter() - t0
+
+    def timed(k_o: float) -> list[float]:
+        out = []
+        for i in range(lookups):
+            name = f"u{i % users}"
+            t = time.perf_counter()
+            adv.recommend(name, hellos[i % users], k_o_eff=k_o, k_o_stiff=k_o, b_o=0.0)
+            out.append((time.perf_counter() - t) * 1e6)
+        return out
+
+    hit = timed(300.0)
+    miss = timed(3000.0)
+    return {
+        "benchmark": "gain_advice",
+        "users": users,
+        "design_s": design_s,
+        "hit_us_p50": float(np.percentile(hit, 50)),
+        "hit_us_p99": float(np.percentile(hit, 99)),
+        "miss_us_p50": float(np.percentile(miss, 50)),
+        "miss_us_p99": float(np.percentile(miss, 99)),
+        "per_tick_us_p50_at_users": float(np.percentile(hit, 50)) * users,
+    }
+
+
 def run(json_out: bool) -> dict[str, Any]:
     """Run the default benchmark (about 1-2 minutes) and print JSON or a short table.
 
@@ -364,6 +406,7 @@ def run(json_out: bool) -> dict[str, Any]:
     """
     result = bench_world()
     result["viewer_stream"] = stream = bench_viewer_stream()
+    result["gain_advice"] = advice = bench_gain_advice()
     if json_out:
         print(json.dumps(result, indent=2))
     else:
@@ -385,6 +428,11 @@ def run(json_out: bool) -> dict[str, Any]:
                 f"{r['stream_bytes_per_s'] / 1e3:6.1f} / {r['stream_wire_bytes_per_s'] / 1e3:6.1f}"
                 f"   max error {r['max_error_m'] * 1e3:.3f} mm"
             )
+        print(
+            f"recommended gains: {advice['hit_us_p50']:.1f} us per user per tick (p99 "
+            f"{advice['hit_us_p99']:.1f}), {advice['per_tick_us_p50_at_users']:.0f} us per tick "
+            f"at {advice['users']} users; a missing cell {advice['miss_us_p50']:.1f} us"
+        )
     return result
 
 

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from server.force_bound import BoundedForce, ForceBoundParams, bound_force
+from server.gains import GainAdvisor
 from server.security import TokenBucket, TokenTable
 from server.viewer_stream import ViewerStream
 from server.world import ContactInput
@@ -52,6 +53,7 @@ from shared.protocol import (
     PlaneModel,
     Pong,
     ProtocolError,
+    RecommendedGains,
     RoomState,
     SphereModel,
     State,
@@ -276,6 +278,8 @@ class Room:
         self.object_info = object_info(world.vertices, world.faces)
         self._faces_frame = encode_faces(world.faces)
         self._viewer_stream = ViewerStream.of_world(world, self.sim_rate_hz)
+        #: Recommended gains for every patch (server.gains; designs run by the I/O layer).
+        self.gains = GainAdvisor(self.sim_rate_hz)
         self._conns: dict[str, _Conn] = {}
         self._next_user = 1
         self.tick_count = 0
@@ -357,6 +361,7 @@ class Room:
     def disconnect(self, conn_id: str) -> None:
         """Forget a connection; a user's load leaves the object from the next tick on."""
         self._conns.pop(conn_id, None)
+        self.gains.forget(conn_id)
 
     def force_clamps(self) -> dict[str, int]:
         """Clamped force reports per user name (connected or not) since the room started."""
@@ -526,6 +531,7 @@ class Room:
         if conn.state is not None and msg.seq <= conn.state.seq:
             return []  # older than what we have: latest wins
         conn.state = msg
+        self.gains.observe_rtt(conn.conn_id, msg.rtt_ms)
         conn.state_at_s = now_s
         return []
 
@@ -556,7 +562,16 @@ class Room:
                 continue
             conn.output = res
             conn.recent.append((res.primitive, float(res.k_o)))
-            out.append(Outgoing(conn_id, encode(_patch(tick, res)), stream="patch"))
+            rec = None
+            if conn.hello is not None:
+                rec = self.gains.recommend(
+                    conn_id,
+                    conn.hello,
+                    k_o_eff=float(res.k_o_eff),
+                    k_o_stiff=float(res.k_o if res.k_o_stiff is None else res.k_o_stiff),
+                    b_o=float(res.b_o),
+                )
+            out.append(Outgoing(conn_id, encode(_patch(tick, res, rec)), stream="patch"))
         viewers = self.viewers
         vframes = self._viewer_stream.frames(tick, self.world.vertices, viewers)
         if viewers:
@@ -669,7 +684,7 @@ def _welcome(
     )
 
 
-def _patch(tick: int, res: ContactOutput) -> Patch:
+def _patch(tick: int, res: ContactOutput, gains: RecommendedGains | None = None) -> Patch:
     prim = res.primitive
     model: PlaneModel | SphereModel
     if prim.kind == "plane":
@@ -687,4 +702,5 @@ def _patch(tick: int, res: ContactOutput) -> Patch:
         k_o_eff=float(res.k_o_eff),
         k_o_stiff=float(res.k_o if res.k_o_stiff is None else res.k_o_stiff),
         b_o=float(res.b_o),
+        gains=gains,
     )

@@ -71,6 +71,9 @@ class DeviceInfo(_Msg):
     profile: Annotated[str, Strict(), Field(max_length=64)] = "unknown"
     max_force_n: Annotated[StrictFinite, Field(gt=0, le=100)] = 7.9
     max_stiffness_n_per_m: Annotated[StrictFinite, Field(gt=0, le=1e5)] = 1000.0
+    #: Largest virtual damping [N*s/m] the device renders stably (the probe damper B_h's limit;
+    #: 0: no damper). The server's recommended gains stay within it.
+    max_damping_n_s_per_m: Annotated[StrictFinite, Field(ge=0, le=1e3)] = 0.0
 
 
 class Hello(_Msg):
@@ -187,6 +190,23 @@ class SphereModel(_Msg):
 PrimitiveModel = Annotated[PlaneModel | SphereModel, Field(discriminator="kind")]
 
 
+class RecommendedGains(_Msg):
+    """Gains the server recommends for a user's local model (SI units; docs/protocol.md).
+
+    Designed with :func:`shared.gain_design.design_gains` (the Python client's own design) for the
+    user's declared device (``max_stiffness_n_per_m``, ``max_damping_n_s_per_m``, servo rate,
+    ``local_model``), its reported round trip and the patch's ``k_o_eff``/``k_o_stiff``/``b_o``:
+    stable over the hand box at every sampling tick, with the design's margin.
+    """
+
+    k_h: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    i_gain: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    b_h: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    proxy_hold: Literal["zoh", "foh"]
+    theta_m: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    delay_ticks: Annotated[int, Field(ge=0)]
+
+
 class Patch(_Msg):
     """A user's local model for the next simulation period (latest wins).
 
@@ -209,6 +229,8 @@ class Patch(_Msg):
     k_o_eff: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     b_o: Annotated[float, Field(ge=0, allow_inf_nan=False)]
     k_o_stiff: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    #: Gains the server recommends (absent until designed for this user's key and K_o cell).
+    gains: RecommendedGains | None = None
 
     def k_o_stiff_or_k_o(self) -> float:
         """``k_o_stiff``, or ``k_o`` when the server sent none (an uncoupled contact) [N/m]."""
@@ -429,15 +451,84 @@ def decode_binary(frame: bytes) -> tuple[bytes, int, NDArray[Any]]:
     return magic, tick, np.frombuffer(body, dtype=dtype).reshape(count, 3)
 
 
-def json_schema() -> dict[str, Any]:
-    """JSON Schema of every message, keyed by direction (``haptic protocol --schema``)."""
+#: The JSON Schema dialect :func:`json_schema` writes.
+JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+
+#: ``direction`` values of :func:`json_schema`: which messages the top-level ``oneOf`` admits.
+SCHEMA_DIRECTIONS = ("both", "client", "server")
+
+
+def _merge_defs(into: dict[str, Any], defs: dict[str, Any]) -> None:
+    """Add ``defs`` to ``into``; a name already there must hold the same schema."""
+    for name, sub in defs.items():
+        if name in into and into[name] != sub:
+            raise RuntimeError(f"two different JSON Schemas named {name!r}")  # pragma: no cover
+        into[name] = sub
+
+
+def _direction_schema(adapter: TypeAdapter[Any], defs: dict[str, Any]) -> dict[str, Any]:
+    """One direction's discriminated union (``oneOf`` + ``discriminator``); its defs go to ``defs``."""
+    schema = adapter.json_schema(mode="validation")
+    _merge_defs(defs, schema.pop("$defs", {}))
+    return schema
+
+
+def json_schema(direction: str = "both") -> dict[str, Any]:
+    """One JSON Schema (draft 2020-12) of the JSON text frames (``haptic protocol --schema``).
+
+    Every message and nested model is a ``$defs`` entry named after its class (``Hello``,
+    ``State``, ``Welcome``, ``RoomState``...). ``$defs/ClientMessage`` and ``$defs/ServerMessage``
+    are the ``oneOf`` of the messages each direction sends. The top level is a ``oneOf`` of the
+    messages ``direction`` selects (``"both"``: all nine, ``"client"``: client -> server,
+    ``"server"``: server -> client), each with a required ``type`` constant, so exactly one branch
+    matches a valid frame; ``discriminator`` (the OpenAPI keyword, an annotation to a JSON Schema
+    validator) maps each ``type`` to its definition. ``protocol`` in ``hello`` and ``welcome`` is
+    the constant :data:`PROTOCOL_VERSION`. Objects admit unknown fields (the server ignores them).
+    The binary viewer frames are not JSON: docs/protocol.md, "Viewer stream", describes them.
+
+    Parameters
+    ----------
+    direction
+        ``"both"``, ``"client"`` or ``"server"`` (:data:`SCHEMA_DIRECTIONS`).
+
+    Raises
+    ------
+    ValueError
+        An unknown ``direction``.
+    """
+    if direction not in SCHEMA_DIRECTIONS:
+        raise ValueError(
+            f"direction must be one of {', '.join(SCHEMA_DIRECTIONS)}, not {direction!r}"
+        )
+    defs: dict[str, Any] = {}
+    client = _direction_schema(CLIENT_ADAPTER, defs)
+    server = _direction_schema(SERVER_ADAPTER, defs)
+    client["description"] = "A message a client (user or viewer) sends to the server."
+    server["description"] = "A JSON message the server sends to a client."
+    for union in (client, server):
+        for ref in union["discriminator"]["mapping"].values():
+            message = defs[ref.rsplit("/", 1)[-1]]
+            message["required"] = ["type", *(r for r in message.get("required", []) if r != "type")]
+            if "protocol" in message["properties"]:
+                message["properties"]["protocol"] = {
+                    "const": PROTOCOL_VERSION,
+                    "title": "Protocol",
+                    "description": "The wire protocol version; the server refuses any other.",
+                }
+    defs["ClientMessage"] = client
+    defs["ServerMessage"] = server
+    chosen = {"both": (client, server), "client": (client,), "server": (server,)}[direction]
+    mapping = {t: ref for union in chosen for t, ref in union["discriminator"]["mapping"].items()}
+    which = {"both": "", "client": " (client -> server)", "server": " (server -> client)"}
     return {
-        "protocol": PROTOCOL_VERSION,
-        "client_to_server": CLIENT_ADAPTER.json_schema(),
-        "server_to_client": SERVER_ADAPTER.json_schema(),
-        "binary_frames": {
-            "header": "little-endian: 4-byte magic, uint32 tick, uint32 count",
-            VERTICES_MAGIC.decode(): "count x 3 float32 vertex positions [m]",
-            FACES_MAGIC.decode(): "count x 3 uint32 vertex indices, counter-clockwise from outside",
-        },
+        "$schema": JSON_SCHEMA_DIALECT,
+        "title": f"haptic-collab wire protocol, version {PROTOCOL_VERSION}{which[direction]}",
+        "description": "One JSON text frame: a message discriminated by its `type` (client -> "
+        "server: hello, state, ping, bye; server -> client: welcome, patch, pong, error, room). "
+        "Units are SI (m, N, N/m, Hz, s) unless a field name ends in _ms or _us. Binary frames "
+        f"({FACES_MAGIC.decode()}, {VERTICES_MAGIC.decode()} and the viewer stream) are not "
+        "JSON; docs/protocol.md describes them.",
+        "oneOf": [{"$ref": ref} for union in chosen for ref in (r["$ref"] for r in union["oneOf"])],
+        "discriminator": {"propertyName": "type", "mapping": mapping},
+        "$defs": dict(sorted(defs.items())),
     }

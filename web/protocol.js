@@ -29,7 +29,7 @@ export const MESSAGE_FIELDS = Object.freeze({
   "ping": ["type", "id", "t_client_s"],
   "bye": ["type"],
   "welcome": ["type", "protocol", "user_id", "name", "role", "sim_rate_hz", "object", "link"],
-  "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff"],
+  "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff", "gains"],
   "pong": ["type", "id", "t_client_s", "tick"],
   "error": ["type", "code", "message", "fatal"],
   "room": ["type", "tick", "sim_rate_hz", "tick_ms", "tick_ms_p99", "overruns", "link", "users"],
@@ -37,11 +37,12 @@ export const MESSAGE_FIELDS = Object.freeze({
 
 /** Field names of each nested model, by class name. */
 export const MODEL_FIELDS = Object.freeze({
-  "DeviceInfo": ["profile", "max_force_n", "max_stiffness_n_per_m"],
+  "DeviceInfo": ["profile", "max_force_n", "max_stiffness_n_per_m", "max_damping_n_s_per_m"],
   "ObjectInfo": ["n_vertices", "n_faces", "center_m", "radius_m", "bounds_min_m", "bounds_max_m", "top_m", "top_normal", "side_m", "side_normal"],
   "LinkConditions": ["latency_ms", "jitter_ms", "loss"],
   "PlaneModel": ["kind", "point", "normal"],
   "SphereModel": ["kind", "center", "radius"],
+  "RecommendedGains": ["k_h", "i_gain", "b_h", "proxy_hold", "theta_m", "delay_ticks"],
   "UserView": ["user_id", "name", "probe_m", "proxy_m", "normal", "force_n", "penetration_m", "in_contact", "k_o", "k_o_eff", "k_h", "i_gain", "servo_rate_hz", "rtt_ms", "device"],
 });
 
@@ -49,5 +50,6 @@ export const MODEL_FIELDS = Object.freeze({
 export const NESTED_MODELS = Object.freeze({
   "hello": {"device": "DeviceInfo"},
   "welcome": {"object": "ObjectInfo", "link": "LinkConditions"},
+  "patch": {"gains": "RecommendedGains"},
   "room": {"link": "LinkConditions", "users": "UserView"},
 });

@@ -87,7 +87,8 @@ def test_schema_lists_every_message_and_model_field() -> None:
         assert s["MODEL_FIELDS"][model.__name__] == list(model.model_fields)
     assert s["NESTED_MODELS"]["room"] == {"link": "LinkConditions", "users": "UserView"}
     assert s["NESTED_MODELS"]["welcome"] == {"object": "ObjectInfo", "link": "LinkConditions"}
-    assert "patch" not in s["NESTED_MODELS"]  # a plane-or-sphere union is no single model
+    # the recommended gains are one model; the plane-or-sphere union is no single model
+    assert s["NESTED_MODELS"]["patch"] == {"gains": "RecommendedGains"}
 
 
 def test_main_writes_and_checks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -1,0 +1,211 @@
+"""Recommended gains for every user's local model: the Python client's design, run by the server.
+
+A client in any language may render the gains the server sends in each patch
+(``patch.gains``, :class:`shared.protocol.RecommendedGains`) instead of porting the full-loop
+design (issue 14). The server designs them exactly as :class:`client.session.ClientSession` does:
+one :class:`shared.gain_design.GainTable` keyed by the user's declared device (maximum stiffness
+and damping, servo rate, P or PI local model), its loop delay in whole simulation ticks (from the
+round trips the user reports in ``state``), the object damping ``b_o`` and the coupling class
+``K_o_stiff / K_o_eff`` (docs/coupled-users.md), with a grid cell per ``K_o_eff``.
+
+Pure and cheap: :meth:`GainAdvisor.recommend` is a dictionary lookup, never a design. A missing
+cell is queued (:meth:`GainAdvisor.take_jobs`); the I/O layer runs the jobs in a worker process
+(:func:`run_job`) and hands the results back with :meth:`GainAdvisor.store`. Until then the
+patch carries verified interim gains (:func:`shared.gain_design.interim_design`, a fraction of
+a second) or, for the very first moment of a new key, no gains at all.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from shared.coupled_loop import stiff_ratio_class
+from shared.full_loop import DEFAULT_HAND_BOX, HandBox
+from shared.gain_design import (
+    K_O_GRID_RATIO,
+    GainDesign,
+    GainKey,
+    GainTable,
+    design_cell,
+    interim_design,
+    loop_delay_ticks,
+)
+from shared.protocol import Hello, RecommendedGains
+from shared.stability import rate_ratio
+
+#: Round trips [s] per user over which the loop delay is estimated (its 90th percentile).
+RTT_WINDOW = 20
+
+JobKind = Literal["interim", "design"]
+
+
+@dataclass(frozen=True)
+class GainJob:
+    """One piece of design work for the worker: ``kind`` for grid cell ``cell`` of ``key``."""
+
+    kind: JobKind
+    key: GainKey
+    cell: int
+
+
+@dataclass
+class _User:
+    rtt_s: deque[float] = field(default_factory=lambda: deque(maxlen=RTT_WINDOW))
+    stiff_ratio: float = 1.0
+    delay_ticks: int = 0
+
+
+class GainAdvisor:
+    """Recommended gains per user, from designs computed off the simulation tick.
+
+    Parameters
+    ----------
+    sim_rate_hz : float
+        The room's simulation rate [Hz].
+    margin : float
+        K_o margin of every design (the Python client's default, 0.15).
+    theta_m : float
+        The integration threshold theta [m] recommended with every PI design (eq. 17; the
+        Python client's default 1 mm, which it also uses as the scale of eq. 18).
+    hand_box : HandBox
+        Hands every design is stable for.
+    grid_ratio : float
+        K_o grid ratio of the gain table.
+    """
+
+    def __init__(
+        self,
+        sim_rate_hz: float,
+        *,
+        margin: float = 0.15,
+        theta_m: float = 0.001,
+        hand_box: HandBox = DEFAULT_HAND_BOX,
+        grid_ratio: float = K_O_GRID_RATIO,
+    ) -> None:
+        self.sim_rate_hz = float(sim_rate_hz)
+        self.margin = float(margin)
+        self.theta_m = float(theta_m)
+        self.table = GainTable(hand_box, grid_ratio)
+        self.interim: dict[tuple[GainKey, int], GainDesign] = {}
+        self._queued: dict[tuple[JobKind, GainKey, int], None] = {}
+        self._asked: set[tuple[JobKind, GainKey, int]] = set()
+        self._users: dict[str, _User] = {}
+        #: Lookups answered with gains / without (no design or interim yet).
+        self.hits = 0
+        self.misses = 0
+
+    # ---------------------------------------------------------------- per user
+    def observe_rtt(self, user: str, rtt_ms: float | None) -> None:
+        """Record a round trip [ms] the user reported in ``state`` (None or non-finite: none)."""
+        if rtt_ms is None or not math.isfinite(rtt_ms) or rtt_ms < 0.0:
+            return
+        u = self._users.setdefault(user, _User())
+        u.rtt_s.append(min(rtt_ms, 10_000.0) / 1e3)
+        rtt = float(np.percentile(u.rtt_s, 90)) if len(u.rtt_s) > 1 else u.rtt_s[0]
+        u.delay_ticks = loop_delay_ticks(rtt, 0.5 / self.sim_rate_hz, self.sim_rate_hz)
+
+    def forget(self, user: str) -> None:
+        """The user left."""
+        self._users.pop(user, None)
+
+    def delay_ticks(self, user: str) -> int:
+        """The user's loop delay [whole simulation ticks], as :meth:`ClientSession.delay_ticks`."""
+        u = self._users.get(user)
+        return 0 if u is None else u.delay_ticks
+
+    def key(self, user: str, hello: Hello, b_o: float, k_o_eff: float, k_o_stiff: float) -> GainKey:
+        """The gain key of ``user`` for this patch (raises ValueError for unsupported rates)."""
+        rate_ratio(hello.servo_rate_hz, self.sim_rate_hz)  # N must be whole
+        u = self._users.setdefault(user, _User())
+        new = stiff_ratio_class(k_o_eff, max(k_o_eff, k_o_stiff))
+        if new > u.stiff_ratio or new * 4.0 <= u.stiff_ratio:  # the client's hysteresis
+            u.stiff_ratio = new
+        device = hello.device
+        k_h_max = 1000.0 if device is None else float(device.max_stiffness_n_per_m)
+        b_h_max = 0.0 if device is None else float(device.max_damping_n_s_per_m)
+        return GainKey(
+            servo_rate_hz=float(hello.servo_rate_hz),
+            sim_rate_hz=self.sim_rate_hz,
+            delay_ticks=self.delay_ticks(user),
+            mode=hello.local_model,
+            margin=self.margin,
+            k_h_max=k_h_max,
+            b_h_max=b_h_max,
+            b_o=float(math.floor(max(0.0, b_o))),
+            stiff_ratio=u.stiff_ratio,
+        )
+
+    def recommend(
+        self, user: str, hello: Hello, *, k_o_eff: float, k_o_stiff: float, b_o: float
+    ) -> RecommendedGains | None:
+        """The gains to send ``user`` with this patch, or None while none are verified yet.
+
+        A dictionary lookup; a missing cell queues an interim check and a design
+        (:meth:`take_jobs`). Never raises for a hostile or odd user: unsupported rates give None.
+        """
+        if not (math.isfinite(k_o_eff) and k_o_eff > 0.0):
+            return None
+        try:
+            key = self.key(user, hello, b_o, k_o_eff, k_o_stiff)
+        except ValueError:
+            return None
+        cell = self.table.cell(k_o_eff)
+        design = self.table.lookup(key, k_o_eff)
+        if design is None:
+            self._want("design", key, cell)
+            design = self.interim.get((key, cell))
+            if design is None:
+                self._want("interim", key, cell)
+        if design is None:
+            self.misses += 1
+            return None
+        self.hits += 1
+        return RecommendedGains(
+            k_h=design.k_h,
+            i_gain=design.i_gain,
+            b_h=design.b_h,
+            proxy_hold=design.proxy_hold,
+            theta_m=self.theta_m if design.i_gain > 0.0 else 0.0,
+            delay_ticks=key.delay_ticks,
+        )
+
+    # ---------------------------------------------------------------- work for the worker
+    def _want(self, kind: JobKind, key: GainKey, cell: int) -> None:
+        job = (kind, key, cell)
+        if job not in self._asked:
+            self._asked.add(job)
+            self._queued[job] = None
+
+    def take_jobs(self) -> list[GainJob]:
+        """The design work queued since the last call (interim checks first), oldest first."""
+        jobs = [GainJob(k, key, cell) for (k, key, cell) in self._queued]
+        self._queued.clear()
+        jobs.sort(key=lambda j: j.kind != "interim")
+        return jobs
+
+    def store(self, job: GainJob, design: GainDesign | None) -> None:
+        """Hand back a job's result (None: no gains pass for it; it is not asked again)."""
+        if design is None:
+            return
+        if job.kind == "design":
+            self.table.store(job.key, job.cell, design)
+        else:
+            self.interim[(job.key, job.cell)] = design
+
+
+def run_job(job: GainJob, grid_ratio: float, hand_box: HandBox) -> GainDesign | None:
+    """Run one :class:`GainJob` (in a worker process: arguments and result pickle).
+
+    Returns None when no gains pass (the key is beyond what any local model renders).
+    """
+    try:
+        if job.kind == "design":
+            return design_cell(job.key, job.cell, grid_ratio, hand_box)
+        return interim_design(job.key, job.cell, grid_ratio, hand_box, design_fallback=False)
+    except ValueError:
+        return None

@@ -1,0 +1,171 @@
+"""The server recommends gains in every patch: the Python client's design, stable over the hand box.
+
+Checked without sockets (the advisor and the room, with the jobs run as the I/O layer runs them)
+and independently re-verified with :func:`shared.full_loop.spectral_radius` over every hand of
+the box, every sampling tick and the K_o margin.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from client.session import ClientSession
+from server.gains import GainAdvisor, GainJob, run_job
+from server.objects.balloon import Balloon
+from server.objects.mesh import default_balloon
+from server.room import Room
+from server.world import World
+from shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
+from shared.protocol import (
+    DeviceInfo,
+    Hello,
+    Patch,
+    PlaneModel,
+    RecommendedGains,
+    State,
+    Welcome,
+    encode,
+)
+from tests.client.test_session import OBJ
+
+PHANTOM = DeviceInfo(
+    profile="phantom-desktop",
+    max_force_n=7.9,
+    max_stiffness_n_per_m=1000.0,
+    max_damping_n_s_per_m=10.0,
+)
+
+
+def hello(local_model: str = "pi", device: DeviceInfo = PHANTOM) -> Hello:
+    return Hello(protocol=1, role="user", name="A", device=device, local_model=local_model)  # type: ignore[arg-type]
+
+
+def run_jobs(adv: GainAdvisor) -> list[GainJob]:
+    jobs = adv.take_jobs()
+    for job in jobs:
+        adv.store(job, run_job(job, adv.table.grid_ratio, adv.table.hand_box))
+    return jobs
+
+
+def assert_stable_over_the_box(g: RecommendedGains, k_o: float, rate_ratio: int = 50) -> None:
+    for k in (k_o, 0.85 * k_o):
+        rho = spectral_radius(
+            hand=DEFAULT_HAND_BOX.hands(), k_o=k, k_h=g.k_h, i_gain=g.i_gain, b_h=g.b_h,
+            rate_ratio=rate_ratio, delay_ticks=g.delay_ticks, proxy_hold=g.proxy_hold,
+        )  # fmt: skip
+        assert rho.max() < 1.0, (k, rho.max())
+
+
+@pytest.mark.parametrize("mode", ["p", "pi"])
+def test_recommended_gains_are_the_design_and_stable_over_the_hand_box(mode: str) -> None:
+    adv = GainAdvisor(20.0)
+    h = hello(mode)
+    assert adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
+    jobs = run_jobs(adv)
+    assert [j.kind for j in jobs] == ["interim", "design"]  # the quick check first
+    g = adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0)
+    assert g is not None
+    assert g.k_h <= PHANTOM.max_stiffness_n_per_m and g.b_h <= 10.0
+    assert (g.i_gain > 0.0) == (mode == "pi") and g.delay_ticks == 0
+    assert (g.theta_m > 0.0) == (mode == "pi")
+    assert_stable_over_the_box(g, 300.0)
+    # exactly what the Python client designs for itself
+    own = ClientSession("A", device=PHANTOM, b_h_max=10.0, mode=mode, gains="local")  # type: ignore[arg-type]
+    own.receive(
+        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
+    )
+    key = own.gain_key(0.0, 0)
+    d = own.gain_table.design(key, 300.0)
+    assert (g.k_h, g.i_gain, g.b_h, g.proxy_hold) == (d.k_h, d.i_gain, d.b_h, d.proxy_hold)
+
+
+def test_the_delay_the_user_reports_makes_the_gains_cover_it() -> None:
+    adv = GainAdvisor(20.0)
+    h = hello("pi")
+    for _ in range(5):
+        adv.observe_rtt("u1", 120.0)  # 120 ms round trip at 20 Hz: 2 extra ticks
+    assert adv.delay_ticks("u1") == 2
+    adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0)
+    run_jobs(adv)
+    g = adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0)
+    assert g is not None and g.delay_ticks == 2
+    assert_stable_over_the_box(g, 300.0)
+
+
+def test_odd_users_get_no_recommendation_and_cost_nothing() -> None:
+    adv = GainAdvisor(20.0)
+    odd = Hello(protocol=1, role="user", name="B", servo_rate_hz=1001.0)  # N = 50.05
+    assert adv.recommend("b", odd, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
+    assert adv.take_jobs() == []
+    # a failed job is not asked again every tick
+    h = hello("pi")
+    adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0)
+    jobs = adv.take_jobs()
+    for job in jobs:
+        adv.store(job, None)
+    adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0)
+    assert adv.take_jobs() == []
+
+
+def test_the_room_sends_the_recommendation_in_the_patch_and_the_client_renders_it() -> None:
+    world = World(Balloon(default_balloon(subdivisions=3)))
+    room = Room(world, 20.0)
+    room.connect("c1", 0.0)
+    room.receive("c1", encode(hello("pi")), 0.0)
+    top = room.object_info.top_m
+    probe = (top[0], top[1], top[2] - 0.002)
+    state = State(
+        seq=1, probe_m=probe, force_n=(0.0, 0.0, 0.0), penetration_m=0.0, in_contact=False
+    )
+    room.receive("c1", encode(state), 0.01)
+
+    def patch(k: int) -> Patch:
+        outs = [o for o in room.tick(k, 0.05 * k) if o.conn_id == "c1" and o.stream == "patch"]
+        assert len(outs) == 1
+        return Patch.model_validate(json.loads(outs[0].data))  # type: ignore[arg-type]
+
+    first = patch(1)
+    assert first.gains is None  # nothing designed yet: the client designs its own meanwhile
+    run_jobs(room.gains)
+    p = patch(2)
+    assert p.gains is not None
+    assert_stable_over_the_box(p.gains, p.k_o_eff)
+    # the Python client renders it as it is
+    s = ClientSession("A", device=PHANTOM, b_h_max=10.0)
+    s.receive(
+        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
+    )
+    up = s.receive(encode(p), 0.1)
+    assert up is not None and not up.fallback and s.server_gain_patches == 1
+    assert (up.k_h, up.i_gain, up.b_h) == (p.gains.k_h, p.gains.i_gain, p.gains.b_h)
+    # ... unless it is beyond this device: a softer device designs its own
+    soft = ClientSession(
+        "A", device=DeviceInfo(max_stiffness_n_per_m=0.5 * p.gains.k_h), b_h_max=10.0
+    )
+    soft.receive(
+        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
+    )
+    soft.receive(encode(p), 0.1)
+    assert soft.server_gain_patches == 0 and soft.design_wanted is not None
+
+
+def test_a_recommendation_for_a_shorter_delay_than_measured_is_not_used() -> None:
+    rec = RecommendedGains(
+        k_h=100.0, i_gain=0.0, b_h=0.0, proxy_hold="zoh", theta_m=0.0, delay_ticks=0
+    )
+    p = Patch(
+        tick=1, primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)), proxy_m=(0, 0, 0.1),
+        normal=(0, 0, 1), penetration_m=0.002, in_contact=True, k_o=300.0, k_o_eff=300.0,
+        b_o=0.0, gains=rec,
+    )  # fmt: skip
+    s = ClientSession("A", device=PHANTOM, b_h_max=10.0)
+    s.receive(
+        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
+    )
+    s.rtt_s.extend([0.2] * 10)  # this client measures 4 ticks of delay
+    s.receive(encode(p), 0.1)
+    assert s.server_gain_patches == 0
+    assert np.isfinite(s.delay_ticks()) and s.delay_ticks() > 0
