@@ -7,6 +7,12 @@ and live progress, then a summary table; ``--report`` writes JSON, ``--plot`` a 
 
 Timeline for a run of D seconds (D >= 12): B approaches at once and rests; A waits 0.2 D,
 approaches (1 s), presses (1.5 s), holds until 0.75 D, releases (1 s) and withdraws.
+
+The report's coupling (:func:`coupling_report`) compares the last second of A's hold with a window
+where B rests settled (1 s after B's force came on), before A touches, or after A's release when
+B's contact came on too late: B's force rise [N] and the outward displacement of the surface under
+B [mm]. The processes' logs and telemetry go to ``--workdir``, or to a temporary folder deleted
+after a good run.
 """
 
 from __future__ import annotations
@@ -30,11 +36,21 @@ from typing import Any
 
 import numpy as np
 
+from client.devices.trajectories import Rest
 from server.security import is_loopback
 from server.urls import WILDCARD_HOSTS, local_host, url_host, viewer_urls
 
 #: A hold is stable when the peak-to-peak penetration over its last second stays below this [mm].
 STABLE_P2P_MM = 1.0
+#: B's contact counts as settled this long after its force came on [s] (the PI local model's
+#: integral takes about 1 s to reach B's resting force).
+B_SETTLE_S = 1.0
+#: After A's release the surface and B's integral relax for about this long [s].
+RELEASE_SETTLE_S = 2.0
+#: B's force is "on" above this [N].
+B_FORCE_ON_N = 0.01
+#: The shortest window B's resting force and position are averaged over [s].
+MIN_REST_WINDOW_S = 0.25
 
 
 @dataclass
@@ -185,6 +201,9 @@ def _haptic(*args: str) -> list[str]:
 def run_demo(opts: DemoOptions) -> dict[str, Any]:
     """Run the demo; return the report dict.
 
+    The processes' logs and telemetry go to ``opts.workdir``, kept; without it, to a temporary
+    folder that is deleted after a good run and kept (its path printed) when the run fails.
+
     Raises
     ------
     ValueError
@@ -201,6 +220,18 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         )
     work = opts.workdir or Path(tempfile.mkdtemp(prefix="haptic-demo-"))
     work.mkdir(parents=True, exist_ok=True)
+    try:
+        report = _run_in(work, port, opts)
+    except BaseException:
+        print(f"haptic demo: logs and telemetry are in {work}", file=sys.stderr, flush=True)
+        raise
+    if opts.workdir is None:  # a temporary folder (5-8 MB of telemetry): gone after a good run
+        shutil.rmtree(work, ignore_errors=True)
+    return report
+
+
+def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
+    """Run the processes with their logs and telemetry in ``work``; report, plot, summary."""
     tl = timeline(opts.duration_s)
     urls = viewer_urls(opts.host, port)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -294,15 +325,13 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         for f in logs.values():
             f.close()
     report = build_report(work, tl, server_status, opts)
-    report["workdir"] = str(work)
+    report["workdir"] = str(work) if opts.workdir is not None else None  # a temp one is deleted
     if opts.report:
         opts.report.parent.mkdir(parents=True, exist_ok=True)
         opts.report.write_text(json.dumps(report, indent=2))
     if opts.plot:
         plot_demo(work, tl, opts.plot)
     print_summary(report)
-    if opts.workdir is None and opts.report is None:
-        shutil.rmtree(work, ignore_errors=True)
     return report
 
 
@@ -377,17 +406,11 @@ def build_report(
     b = dict(b)
     b["t_s"] = b["t_s"] + shift
     hold = (tl.hold_end_s - 1.0, tl.hold_end_s)
-    before = (tl.delay_s - 1.5, tl.delay_s - 0.25)
-    b_before = float(np.nanmean(b["force_n"][_window(b, *before)]))
-    b_during = float(np.nanmean(b["force_n"][_window(b, *hold)]))
     rtts = np.array(a_sum.get("rtt_ms_samples", []) + b_sum.get("rtt_ms_samples", []), float)
+    coupling = coupling_report(b, tl, hold, b_approach_end_s=shift + _REST_APPROACH_S)
     return {
         "users": {"A": _user_report(a, a_sum, hold), "B": _user_report(b, b_sum, hold)},
-        "coupling": {
-            "b_force_before_n": b_before,
-            "b_force_during_a_press_n": b_during,
-            "ratio": b_during / b_before if b_before > 1e-9 else None,
-        },
+        "coupling": coupling,
         "server": {
             "sim_rate_hz": opts.sim_rate_hz,
             "stiffness_scale": opts.stiffness_scale,
@@ -403,11 +426,106 @@ def build_report(
             "loss": opts.loss,
         },
         "timeline_s": {
+            "b_settled": coupling["b_settled_s"],
             "a_contact": tl.contact_s,
             "a_hold_end": tl.hold_end_s,
             "duration": opts.duration_s,
         },
     }
+
+
+#: When B's hand reaches the side [s from B's start]: the sim:rest approach (it starts at once).
+_REST_APPROACH_S = Rest((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)).approach_s
+
+
+def _rest_window(
+    b: dict[str, np.ndarray], tl: Timeline, settled_s: float
+) -> tuple[str, tuple[float, float]] | None:
+    """Where B rests undisturbed: (which, (t0, t1)) on A's clock, or None if nowhere.
+
+    Before A touches, from B's settled contact on; if that is too short (B's contact came on
+    late), from :data:`RELEASE_SETTLE_S` after A's release to B's last samples.
+    """
+    before = (settled_s, tl.contact_s - 0.1)
+    if before[1] - before[0] >= MIN_REST_WINDOW_S:
+        return "before A's press", before
+    end = float(b["t_s"][-1]) - 0.2 if b["t_s"].size else -np.inf
+    after = (max(settled_s, tl.hold_end_s + tl.release_s + RELEASE_SETTLE_S), end)
+    if after[1] - after[0] >= MIN_REST_WINDOW_S:
+        return "after A's release", after
+    return None
+
+
+def coupling_report(
+    b: dict[str, np.ndarray],
+    tl: Timeline,
+    hold: tuple[float, float],
+    b_approach_end_s: float,
+) -> dict[str, Any]:
+    """How much B feels A's press, as physical quantities.
+
+    ``b_force_rise_n``: B's force while A holds minus B's resting force [N].
+    ``b_surface_displacement_mm``: how far the surface under B (B's proxy) moves outward, along
+    B's force, while A holds [mm]. Both compare the ``hold`` window with a window where B rests,
+    settled (:data:`B_SETTLE_S` after B's force came on and after B's approach), before A touches
+    (or, failing that, after A's release: ``baseline`` says which). ``ratio`` is B's force while
+    A holds over B's resting force: it depends on how hard B leans in (its hand depth beyond the
+    threshold θ), not on the object; the two above are the coupling.
+
+    Parameters
+    ----------
+    b : dict of (m,) arrays
+        B's telemetry, times on A's clock.
+    tl : Timeline
+        A's press.
+    hold : (t0, t1)
+        The end of A's hold [s, A's clock].
+    b_approach_end_s : float
+        When B's hand reaches the side [s, A's clock].
+    """
+    on = (b["in_contact"] > 0) & (b["force_n"] > B_FORCE_ON_N) & (b["t_s"] >= b_approach_end_s)
+    onset = float(b["t_s"][np.argmax(on)]) if on.any() else None
+    out: dict[str, Any] = {
+        "b_force_rise_n": None,
+        "b_surface_displacement_mm": None,
+        "b_force_at_rest_n": None,
+        "b_force_during_a_press_n": None,
+        "ratio": None,
+        "ratio_is": "B's force while A holds / B's force at rest; set by how hard B rests (its "
+        "hand depth beyond the threshold theta), not by the object",
+        "baseline": None,
+        "rest_window_s": None,
+        "hold_window_s": [hold[0], hold[1]],
+        "b_settled_s": None if onset is None else onset + B_SETTLE_S,
+    }
+    # samples with B in contact at full force (no ramp in or out, no fault)
+    full = (b["in_contact"] > 0) & (b.get("force_scale", np.ones_like(b["t_s"])) >= 0.999)
+    w_hold = _window(b, *hold) & full
+    found = None if onset is None else _rest_window(b, tl, onset + B_SETTLE_S)
+    if found is None or not w_hold.any():
+        return out
+    baseline, rest = found
+    w_rest = _window(b, *rest) & full
+    if not w_rest.any():
+        return out
+    fvec = np.stack([b["force_x_n"], b["force_y_n"], b["force_z_n"]], axis=1)[w_rest]
+    outward = np.nanmean(fvec, axis=0)  # the force on B's hand points out of the surface
+    outward = outward / np.linalg.norm(outward)
+    proxy = np.stack([b["proxy_x_m"], b["proxy_y_m"], b["proxy_z_m"]], axis=1) @ outward
+    f_rest = float(np.nanmean(b["force_n"][w_rest]))
+    f_hold = float(np.nanmean(b["force_n"][w_hold]))
+    out.update(
+        b_force_rise_n=f_hold - f_rest,
+        b_surface_displacement_mm=float(
+            (np.nanmean(proxy[w_hold]) - np.nanmean(proxy[w_rest])) * 1000.0
+        ),
+        b_force_at_rest_n=f_rest,
+        b_force_during_a_press_n=f_hold,
+        ratio=f_hold / f_rest if f_rest > 1e-9 else None,
+        baseline=baseline,
+        rest_window_s=[rest[0], rest[1]],
+    )
+    return out
 
 
 def print_summary(report: dict[str, Any]) -> None:
@@ -422,11 +540,18 @@ def print_summary(report: dict[str, Any]) -> None:
             f"{u['hold_oscillation_mm']:>13.3f}{'yes' if u['stable'] else 'NO':>8}"
         )
     c = report["coupling"]
-    ratio = c["ratio"]
-    print(
-        f"B feels A: B's force {c['b_force_before_n']:.3f} N before A presses, "
-        f"{c['b_force_during_a_press_n']:.3f} N while A holds (ratio {ratio if ratio is None else round(ratio, 2)})"
-    )
+    if c["b_force_rise_n"] is None:
+        print("B feels A: not measured (B's contact never settled outside A's press)")
+    else:
+        w = c["rest_window_s"]
+        ratio = "n/a" if c["ratio"] is None else f"{c['ratio']:.2f}"
+        print(
+            f"B feels A: while A holds, B's force rises {c['b_force_rise_n']:+.3f} N "
+            f"({c['b_force_at_rest_n']:.3f} -> {c['b_force_during_a_press_n']:.3f} N) and the "
+            f"surface under B moves {c['b_surface_displacement_mm']:+.2f} mm outward\n"
+            f"  (B at rest {c['baseline']}, {w[0]:.1f}-{w[1]:.1f} s; force ratio {ratio}, which "
+            "depends on how hard B rests)"
+        )
     s, n = report["server"], report["network"]
     print(
         f"server: {s['sim_rate_hz']:g} Hz, tick p50 {s['tick_ms_p50'] or 0:.2f} ms, p99 {s['tick_ms_p99'] or 0:.2f} ms, "

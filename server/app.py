@@ -18,9 +18,11 @@ import contextlib
 import json
 import logging
 import mimetypes
+import multiprocessing
 import ssl
 from collections import deque
 from collections.abc import Callable
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
@@ -31,9 +33,11 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
+from server.gains import GainJob, run_job
 from server.latency import LinkConfig, LinkShaper
 from server.room import Outgoing, Room
 from server.security import is_loopback, origin_allowed
+from shared.gain_design import background_worker
 from shared.protocol import ErrorMsg, encode
 
 log = logging.getLogger("haptic.server")
@@ -54,6 +58,9 @@ class _Peer:
     down: LinkShaper
     ready: deque[Outgoing] = field(default_factory=deque)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
+    #: Who, for log lines: "HOST:PORT", then "HOST:PORT user 'A' (u1)" once welcomed.
+    who: str = ""
+    named: bool = False
 
 
 def _static_response(web_dir: Path, path: str) -> Response:
@@ -127,8 +134,14 @@ class ServerApp:
         ssl_context: ssl.SSLContext | None = None,
         allowed_origins: tuple[str, ...] | frozenset[str] = (),
         send_timeout_s: float = SEND_TIMEOUT_S,
+        gain_executor: Executor | None = None,
     ) -> None:
         self.room = room
+        #: Where recommended-gain designs run (default: one spawned worker process, made on the
+        #: first design; server.gains). Never the event loop's thread.
+        self.gain_executor = gain_executor
+        self._own_executor = gain_executor is None
+        self._gain_tasks: set[asyncio.Task[None]] = set()
         self.host = host
         self.port = port
         self.link = link or LinkConfig()
@@ -172,6 +185,11 @@ class ServerApp:
             self._sim_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._sim_task
+        for task in list(self._gain_tasks):
+            task.cancel()
+        if self._own_executor and self.gain_executor is not None:
+            self.gain_executor.shutdown(wait=False, cancel_futures=True)
+            self.gain_executor = None
         if self._server:
             self._server.close()
             await self._server.wait_closed()
@@ -248,6 +266,10 @@ class ServerApp:
         tokens, last = limits.burst, loop.time()
         closing = False
         address = _address(ws)
+        remote = ws.remote_address
+        port = remote[1] if isinstance(remote, tuple) and len(remote) > 1 else None
+        peer.who = address if port is None else f"{address}:{port}"
+        log.info("connection %s open: %s", conn_id, peer.who)
         try:
             self._dispatch(self.room.connect(conn_id, loop.time(), address))
             async for frame in ws:
@@ -273,6 +295,13 @@ class ServerApp:
         except ConnectionClosed:
             pass
         finally:
+            log.info(
+                "connection %s closed: %s%s, code %s",
+                conn_id,
+                peer.who,
+                "" if peer.named else " (before hello)",
+                ws.close_code,
+            )
             self.room.disconnect(conn_id)
             self._peers.pop(conn_id, None)
             sender.cancel()
@@ -287,6 +316,13 @@ class ServerApp:
         except Exception:  # a bug must cost one frame, not the connection or the room
             log.exception("frame from %s could not be handled", conn_id)
             return
+        peer = self._peers.get(conn_id)
+        if peer is not None and not peer.named:
+            conn = self.room._conns.get(conn_id)
+            if conn is not None and conn.hello is not None:  # welcomed: now we know who it is
+                peer.named = True
+                peer.who += f" {conn.hello.role} {conn.hello.name!r} ({conn.user_id})"
+                log.info("connection %s: %s joined", conn_id, peer.who)
         self._dispatch(outs)
 
     def _dispatch(self, outs: list[Outgoing]) -> None:
@@ -370,6 +406,28 @@ class ServerApp:
             self.room.stats.record(cost * 1000.0, overran=cost > period)
             self.tick = k
             self._dispatch(outs)
+            for job in self.room.gains.take_jobs():
+                self._gain_tasks.add(asyncio.create_task(self._design(job)))
+
+    async def _design(self, job: GainJob) -> None:
+        """Run one gain design off the simulation loop (a worker process) and hand it back."""
+        if self.gain_executor is None:
+            ctx = multiprocessing.get_context("spawn")
+            self.gain_executor = ProcessPoolExecutor(
+                max_workers=1, mp_context=ctx, initializer=background_worker
+            )
+        table = self.room.gains.table
+        loop = asyncio.get_running_loop()
+        try:
+            design = await loop.run_in_executor(
+                self.gain_executor, run_job, job, table.grid_ratio, table.hand_box
+            )
+        except Exception:  # a broken worker must not stop the room: no recommendation
+            log.exception("gain design %s failed", job.kind)
+            design = None
+        finally:
+            self._gain_tasks.discard(asyncio.current_task())  # type: ignore[arg-type]
+        self.room.gains.store(job, design)
 
 
 def _address(ws: ServerConnection) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import socket
 import subprocess
@@ -17,13 +18,18 @@ from haptic_cli import build_parser, main
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+def run(
+    *args: str, timeout: float = 120.0, tmpdir: Path | None = None
+) -> subprocess.CompletedProcess[str]:
+    """``haptic ARGS`` in a subprocess; ``tmpdir`` becomes its temporary folder (TMPDIR)."""
+    env = None if tmpdir is None else dict(os.environ, TMPDIR=str(tmpdir))
     return subprocess.run(
         [sys.executable, "-m", "haptic_cli", *args],
         capture_output=True,
         text=True,
         timeout=timeout,
         cwd=ROOT,
+        env=env,
     )
 
 
@@ -77,6 +83,24 @@ def test_stability_readable_verdict(capsys):
     assert text.startswith("STABLE") and "0.9500" in text
 
 
+@pytest.mark.parametrize("command", ["stability", "gains"])
+def test_help_shows_every_default(command, capsys):
+    with pytest.raises(SystemExit) as done:
+        main([command, "--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert "(default 20.0)" in text and "(default 1000.0)" in text
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    parser = sub.choices[command]
+    formatter = parser._get_formatter()
+    for action in parser._actions:
+        if action.required or action.nargs == 0:  # required values and flags have no default
+            continue
+        shown = "(default: none)" if action.default is None else f"(default {action.default})"
+        assert shown in formatter._expand_help(action), action.option_strings
+        assert shown in text, action.option_strings
+
+
 @pytest.mark.parametrize(
     "args",
     [
@@ -112,7 +136,11 @@ def test_server_refuses_a_broken_mesh_with_one_line(tmp_path):
 def test_protocol_schema_and_devices(capsys):
     assert main(["protocol", "--schema"]) == 0
     schema = json.loads(capsys.readouterr().out)
-    assert schema["protocol"] == 1 and "client_to_server" in schema and "server_to_client" in schema
+    assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+    assert "version 1" in schema["title"]
+    assert set(schema["discriminator"]["mapping"]) == {
+        "hello", "state", "ping", "bye", "welcome", "patch", "pong", "error", "room"
+    }  # fmt: skip
     assert main(["devices", "--json"]) == 0
     devices = json.loads(capsys.readouterr().out)
     assert {d["profile"] for d in devices if d["kind"] == "sim"} >= {"phantom-desktop", "touch"}
@@ -178,12 +206,15 @@ def test_demo_processes_feel_each_other(tmp_path):
     """`haptic demo`: server and two clients as processes; the report shows coupling and stability."""
     report = tmp_path / "report.json"
     plot = tmp_path / "demo.png"
+    temp = tmp_path / "tmp"
+    temp.mkdir()
     res = run(
         "demo", "--headless", "--duration", "12", "--port", "0", "--report", str(report), "--plot", str(plot),
-        timeout=180,
+        timeout=180, tmpdir=temp,
     )  # fmt: skip
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     assert "viewer: http://127.0.0.1:" in res.stdout and "B feels A" in res.stdout
+    assert list(temp.iterdir()) == []  # no --workdir: the logs and telemetry are gone
     data = json.loads(report.read_text())
     assert set(data) >= {"users", "coupling", "server", "network"}
     for name in ("A", "B"):
@@ -200,6 +231,28 @@ def test_demo_processes_feel_each_other(tmp_path):
             u["servo_rate_hz"] > 900.0
         )  # the 1 % figure is measured by the demo, not asserted here
     assert data["users"]["A"]["max_force_n"] > 1.0
-    assert data["coupling"]["ratio"] >= 1.2
+    c = data["coupling"]
+    # while A holds, B's side bulges out: the surface under B moves out, B's force rises
+    assert c["b_surface_displacement_mm"] > 0.3 and c["b_force_rise_n"] > 0.01, c
+    rest = c["rest_window_s"]
+    assert rest[0] >= c["b_settled_s"] and rest[1] - rest[0] >= 0.25  # B at rest, settled
+    assert rest[1] <= data["timeline_s"]["a_contact"] or rest[0] >= data["timeline_s"]["a_hold_end"]
+    assert c["ratio"] == pytest.approx(c["b_force_during_a_press_n"] / c["b_force_at_rest_n"])
+    assert data["workdir"] is None
     assert data["server"]["sim_rate_hz"] == 20.0 and data["network"]["rtt_ms_p50"] > 0.0
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and plot.stat().st_size > 20_000
+
+
+def test_a_failed_demo_keeps_its_logs_and_says_where(tmp_path):
+    broken = tmp_path / "broken.stl"
+    broken.write_bytes(b"\x00garbage that is not a mesh" * 10)
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    res = run(
+        "demo", "--headless", "--duration", "12", "--port", "0", "--mesh", str(broken),
+        timeout=120, tmpdir=temp,
+    )  # fmt: skip
+    assert res.returncode == 1, res.stdout[-2000:] + res.stderr[-2000:]
+    (kept,) = temp.iterdir()
+    assert f"logs and telemetry are in {kept}" in res.stderr
+    assert "broken.stl" in (kept / "server.log").read_text()

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
@@ -161,7 +159,23 @@ def test_binary_vertex_and_face_frames():
         decode_binary(b"XXXX" + b"\x00" * 8)
 
 
+CLIENT_TYPES = ("hello", "state", "ping", "bye")
+SERVER_TYPES = ("welcome", "patch", "pong", "error", "room")
+
+
 def test_schema_lists_every_message():
-    schema = json.dumps(json_schema())
-    for name in ("hello", "state", "ping", "bye", "welcome", "patch", "pong", "error", "room"):
-        assert f'"{name}"' in schema
+    schema = json_schema()
+    defs = schema["$defs"]
+    tags = {}
+    for ref in schema["oneOf"]:
+        message = defs[ref["$ref"].removeprefix("#/$defs/")]
+        assert "type" in message["required"]
+        tags[message["properties"]["type"]["const"]] = ref["$ref"]
+    assert tags == schema["discriminator"]["mapping"]
+    assert set(tags) == set(CLIENT_TYPES + SERVER_TYPES)
+    assert [r["$ref"] for r in defs["ClientMessage"]["oneOf"]] == [
+        "#/$defs/Hello", "#/$defs/State", "#/$defs/Ping", "#/$defs/Bye"
+    ]  # fmt: skip
+    assert json_schema("server")["oneOf"] == defs["ServerMessage"]["oneOf"]
+    with pytest.raises(ValueError, match="direction"):
+        json_schema("sideways")

@@ -1,0 +1,47 @@
+"""The server's connection log lines say who: the peer's address, then name and role once known."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+
+from websockets.asyncio.client import connect
+
+from server.app import ServerApp
+from server.main import ServerOptions, build_world
+from server.room import Room
+
+SIM_RATE = 20.0
+
+
+async def test_open_and_close_lines_name_the_peer(caplog):
+    caplog.set_level(logging.INFO, logger="haptic.server")
+    world = build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2))
+    app = ServerApp(Room(world, SIM_RATE), "127.0.0.1", 0)
+    await app.start()
+    try:
+        url = f"ws://127.0.0.1:{app.port}/ws"
+        async with connect(url) as ws:
+            port = ws.local_address[1]
+            await ws.send(
+                json.dumps({"type": "hello", "protocol": 1, "role": "user", "name": "Ada"})
+            )
+            assert json.loads(await asyncio.wait_for(ws.recv(), 10.0))["type"] == "welcome"
+            await ws.send(json.dumps({"type": "bye"}))
+            await asyncio.wait_for(ws.wait_closed(), 10.0)
+        async with connect(url) as quiet:  # leaves before saying hello
+            quiet_port = quiet.local_address[1]
+        for _ in range(100):  # the server notices the close a moment later
+            if sum("closed" in r.getMessage() for r in caplog.records) >= 2:
+                break
+            await asyncio.sleep(0.05)
+    finally:
+        await app.stop()
+    lines = [r.getMessage() for r in caplog.records if r.name == "haptic.server"]
+    mine = [ln for ln in lines if f"127.0.0.1:{port}" in ln]
+    assert any("open" in ln for ln in mine), lines
+    closed = [ln for ln in mine if "closed" in ln]
+    assert len(closed) == 1 and "user 'Ada'" in closed[0] and "code 1000" in closed[0], mine
+    quiet_closed = [ln for ln in lines if f"127.0.0.1:{quiet_port}" in ln and "closed" in ln]
+    assert len(quiet_closed) == 1 and "before hello" in quiet_closed[0], lines

@@ -1,0 +1,77 @@
+"""The demo report's coupling: B's force rise [N] and surface displacement [mm], measured while B
+rests settled, never while B is still approaching or its force is still building up."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from haptic_demo import B_SETTLE_S, RELEASE_SETTLE_S, coupling_report, timeline
+
+RATE = 1000.0
+REST_N, HOLD_N = 0.20, 0.24  # B's force at rest and while A holds
+BULGE_M = 0.0013  # how far the side moves out while A holds
+SIDE = np.array([0.1, 0.0, 0.0])  # B rests on +x: outward is +x
+
+
+def telemetry(duration_s: float, onset_s: float) -> tuple[dict[str, np.ndarray], tuple]:
+    """B's telemetry: force on at ``onset_s``, building up over 1 s, bulged out during A's press."""
+    tl = timeline(duration_s)
+    t = np.arange(0.0, duration_s, 1.0 / RATE)
+    # A's press bulges B's side out: ramps in over A's press, back out over the release
+    press = np.clip((t - tl.contact_s) / tl.press_s, 0.0, 1.0)
+    release = np.clip((t - tl.hold_end_s) / tl.release_s, 0.0, 1.0)
+    bulge = press * (1.0 - release)
+    on = t >= onset_s
+    build_up = np.clip((t - onset_s) / 0.9, 0.0, 1.0)  # the PI integral reaching B's rest force
+    force = np.where(on, (REST_N * build_up + (HOLD_N - REST_N) * bulge), 0.0)
+    proxy = SIDE[None, :] + np.outer(BULGE_M * bulge, [1.0, 0.0, 0.0])
+    cols = {
+        "t_s": t,
+        "force_n": force,
+        "force_x_n": force,
+        "force_y_n": np.zeros_like(t),
+        "force_z_n": np.zeros_like(t),
+        "proxy_x_m": proxy[:, 0],
+        "proxy_y_m": proxy[:, 1],
+        "proxy_z_m": proxy[:, 2],
+        "in_contact": on.astype(float),
+    }
+    hold = (tl.hold_end_s - 1.0, tl.hold_end_s)
+    return cols, (tl, hold)
+
+
+@pytest.mark.parametrize("duration_s", [12.0, 16.0, 20.0])
+def test_the_coupling_is_a_force_rise_and_a_displacement(duration_s: float) -> None:
+    # B's force comes on at 2.2 s: in a 12 s run the old "before" window (2.5-3.75 s) caught it
+    # still building up (ratio 2.9 instead of 1.2)
+    b, (tl, hold) = telemetry(duration_s, onset_s=2.2)
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["b_force_rise_n"] == pytest.approx(HOLD_N - REST_N, abs=2e-3)
+    assert c["b_surface_displacement_mm"] == pytest.approx(BULGE_M * 1000.0, abs=0.02)
+    assert c["b_force_at_rest_n"] == pytest.approx(REST_N, abs=2e-3)
+    assert c["ratio"] == pytest.approx(HOLD_N / REST_N, abs=0.02)
+    assert c["baseline"] == "before A's press"
+    rest = c["rest_window_s"]
+    assert 2.2 + B_SETTLE_S <= rest[0] < 2.2 + B_SETTLE_S + 0.1 and rest[1] <= tl.contact_s
+
+
+def test_a_late_contact_is_measured_after_the_release() -> None:
+    # B's contact comes on just before A touches (a slow network): no settled rest before the press
+    b, (tl, hold) = telemetry(16.0, onset_s=tl_contact(16.0) - 0.5)
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["baseline"] == "after A's release"
+    assert c["rest_window_s"][0] >= tl.hold_end_s + tl.release_s + RELEASE_SETTLE_S
+    assert c["b_force_rise_n"] == pytest.approx(HOLD_N - REST_N, abs=2e-3)
+    assert c["b_surface_displacement_mm"] == pytest.approx(BULGE_M * 1000.0, abs=0.02)
+
+
+def test_no_settled_rest_anywhere_is_not_a_number() -> None:
+    b, (tl, hold) = telemetry(12.0, onset_s=100.0)  # B never touched
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["b_force_rise_n"] is None and c["b_surface_displacement_mm"] is None
+    assert c["ratio"] is None and c["rest_window_s"] is None
+
+
+def tl_contact(duration_s: float) -> float:
+    return timeline(duration_s).contact_s
