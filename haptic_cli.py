@@ -155,18 +155,42 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     )
     p.add_argument("--k-o", type=_positive, required=True, help="object stiffness K_o [N/m]")
     p.add_argument("--k-h", type=_positive, required=True, help="local model stiffness K_h [N/m]")
-    p.add_argument("--i-gain", type=_nonneg, default=0.0, help="integral weight I [N/(m*s)]; 0 = P")
-    p.add_argument("--damping", type=_nonneg, default=0.0, help="object damping b [N*s/m]")
-    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo rate 1/T [Hz]")
-    p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
     p.add_argument(
-        "--delay-ticks", type=_nonneg_int, default=0, help="extra simulation ticks of delay"
+        "--i-gain",
+        type=_nonneg,
+        default=0.0,
+        help="integral weight I [N/(m*s)]; 0 = P (default %(default)s)",
+    )
+    p.add_argument(
+        "--damping",
+        type=_nonneg,
+        default=0.0,
+        help="object damping b [N*s/m] (default %(default)s)",
+    )
+    p.add_argument(
+        "--servo-rate",
+        type=_positive,
+        default=1000.0,
+        help="servo rate 1/T [Hz] (default %(default)s)",
+    )
+    p.add_argument(
+        "--sim-rate",
+        type=_positive,
+        default=20.0,
+        help="simulation rate [Hz] (default %(default)s)",
+    )
+    p.add_argument(
+        "--delay-ticks",
+        type=_nonneg_int,
+        default=0,
+        help="extra simulation ticks of delay (default %(default)s)",
     )
     p.add_argument(
         "--sample-tick",
         type=_nonneg_int,
         default=0,
-        help="servo tick of the period whose force the simulation samples (0: the paper's decimator)",
+        help="servo tick of the period whose force the simulation samples (0: the paper's "
+        "decimator) (default %(default)s)",
     )
     hand = p.add_argument_group(
         "full loop",
@@ -174,14 +198,23 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
         '"full_loop": {"stable", "spectral_radius", "worst_sample_tick"} (worst over every '
         "sampling tick; null without them)",
     )
-    hand.add_argument("--hand-mass", type=_positive, default=None, help="moving mass m [kg]")
-    hand.add_argument("--hand-damping", type=_nonneg, default=None, help="damping b [N*s/m]")
-    hand.add_argument("--hand-stiffness", type=_nonneg, default=None, help="stiffness k [N/m]")
     hand.add_argument(
-        "--b-h", type=_nonneg, default=0.0, help="probe damper B_h [N*s/m] (default 0)"
+        "--hand-mass", type=_positive, default=None, help="moving mass m [kg] (default: none)"
     )
     hand.add_argument(
-        "--proxy-hold", choices=["zoh", "foh"], default="zoh", help="proxy hold (default zoh)"
+        "--hand-damping", type=_nonneg, default=None, help="damping b [N*s/m] (default: none)"
+    )
+    hand.add_argument(
+        "--hand-stiffness", type=_nonneg, default=None, help="stiffness k [N/m] (default: none)"
+    )
+    hand.add_argument(
+        "--b-h", type=_nonneg, default=0.0, help="probe damper B_h [N*s/m] (default %(default)s)"
+    )
+    hand.add_argument(
+        "--proxy-hold",
+        choices=["zoh", "foh"],
+        default="zoh",
+        help="proxy hold (default %(default)s)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_stability)
@@ -242,15 +275,41 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "every hand of the hand box, every force-sampling tick and K_o' down to (1 - margin) K_o.",
     )
     p.add_argument("--k-o", type=_positive, required=True, help="object stiffness K_o [N/m]")
-    p.add_argument("--local-model", choices=["p", "pi"], default="pi", help="default: %(default)s")
-    p.add_argument("--b-o", type=_nonneg, default=0.0, help="object damping B_o [N/m] (eq. 9)")
-    p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
-    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo rate [Hz]")
-    p.add_argument("--delay-ticks", type=_nonneg_int, default=0, help="extra ticks of delay")
+    p.add_argument(
+        "--local-model",
+        choices=["p", "pi"],
+        default="pi",
+        help="local model: proportional or proportional-integral (default %(default)s)",
+    )
+    p.add_argument(
+        "--b-o",
+        type=_nonneg,
+        default=0.0,
+        help="object damping B_o [N/m] (eq. 9) (default %(default)s)",
+    )
+    p.add_argument(
+        "--sim-rate",
+        type=_positive,
+        default=20.0,
+        help="simulation rate [Hz] (default %(default)s)",
+    )
+    p.add_argument(
+        "--servo-rate",
+        type=_positive,
+        default=1000.0,
+        help="servo rate [Hz] (default %(default)s)",
+    )
+    p.add_argument(
+        "--delay-ticks",
+        type=_nonneg_int,
+        default=0,
+        help="extra simulation ticks of delay (default %(default)s)",
+    )
     p.add_argument(
         "--profile",
         default="phantom-desktop",
-        help="device profile whose limits bound K_h and B_h (phantom-desktop | touch)",
+        help="device profile whose limits bound K_h and B_h (phantom-desktop | touch) "
+        "(default %(default)s)",
     )
     p.add_argument(
         "--margin", type=_probability, default=0.15, help="K_o margin (default %(default)s)"
@@ -484,6 +543,7 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         stop_on_signals=True,
         token=args.token,
         ca_file=args.ca_file,
+        gains=args.gains,
     )
 
 
@@ -541,6 +601,13 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     )
     p.add_argument(
         "--theta-mm", type=_nonneg, default=1.0, help="integration threshold theta (eq. 17) [mm]"
+    )
+    p.add_argument(
+        "--gains",
+        choices=["server", "local"],
+        default="server",
+        help="render the server's recommended gains when they fit this device (server), or "
+        "always design them here (local) (default %(default)s)",
     )
     p.add_argument(
         "--theta-mode",
@@ -643,13 +710,29 @@ def _add_plot(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
 def _cmd_protocol(args: argparse.Namespace) -> int:
     from shared.protocol import json_schema
 
-    print(json.dumps(json_schema(), indent=2))
+    print(json.dumps(json_schema(args.direction), indent=2))
     return 0
 
 
 def _add_protocol(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("protocol", help="print the wire protocol's JSON Schema")
+    from shared.protocol import SCHEMA_DIRECTIONS
+
+    p = sub.add_parser(
+        "protocol",
+        help="print the wire protocol's JSON Schema",
+        description="Print one JSON Schema (draft 2020-12) of the JSON text frames: every message "
+        "and nested model in $defs, and a top-level oneOf of the messages, discriminated by "
+        "`type`. Validate a frame against it as is; docs/protocol.md describes the binary frames.",
+    )
     p.add_argument("--schema", action="store_true", help="print the JSON Schema (the default)")
+    p.add_argument(
+        "--direction",
+        choices=SCHEMA_DIRECTIONS,
+        default="both",
+        help="which messages the top-level oneOf admits: both directions, client -> server only "
+        "(hello, state, ping, bye) or server -> client only (welcome, patch, pong, error, room) "
+        "(default %(default)s)",
+    )
     p.set_defaults(func=_cmd_protocol)
 
 
@@ -685,6 +768,29 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if not args.json and not args.out:
             _print_fidelity_table(fid)
             return 0
+    if args.what == "load":
+        from server.bench_load import LoadOptions, subdivisions_for_vertices
+        from server.bench_load import run as bench_load
+
+        try:
+            subdivisions = (
+                subdivisions_for_vertices(args.vertices)
+                if args.vertices is not None
+                else args.subdivisions
+            )
+            load_opts = LoadOptions(
+                users=args.users,
+                viewers=args.viewers,
+                duration_s=args.duration,
+                sim_rate_hz=args.sim_rate,
+                subdivisions=subdivisions,
+                workers=args.workers or 4,
+            )
+            results["load"] = bench_load(
+                load_opts, log=lambda msg: print(msg, file=sys.stderr, flush=True)
+            )
+        except (ValueError, RuntimeError) as exc:
+            raise CliError(str(exc)) from None
     payload = results if args.what == "all" else results[args.what]
     text = json.dumps(payload, indent=2)
     if args.out:
@@ -698,12 +804,18 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p = sub.add_parser(
         "bench",
         help="measure speed (JSON): server tick cost, servo loop timing, gain lookups; "
-        "'fidelity': every rendering scheme side by side",
+        "'fidelity': every rendering scheme side by side; 'load': users and viewers against a "
+        "server process",
     )
-    p.add_argument("what", choices=["server", "servo", "gains", "fidelity", "all"])
+    p.add_argument("what", choices=["server", "servo", "gains", "fidelity", "load", "all"])
     p.add_argument("--json", action="store_true", help="print JSON (always JSON; kept for scripts)")
     p.add_argument("--out", default=None, help="also write the JSON here")
-    p.add_argument("--duration", type=_positive, default=5.0, help="servo bench duration [s]")
+    p.add_argument(
+        "--duration",
+        type=_positive,
+        default=5.0,
+        help="servo bench duration; load: the measurement window after warm-up [s]",
+    )
     p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo bench rate [Hz]")
     p.add_argument(
         "--quick", action="store_true", help="fidelity: the documented subset (< 3 min, 2 cores)"
@@ -711,9 +823,27 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--plot", default=None, metavar="DIR", help="fidelity: write the plots here")
     p.add_argument("--seed", type=int, default=0, help="fidelity: recorded seed (deterministic)")
     p.add_argument(
-        "--workers", type=int, default=None, help="fidelity: worker processes (default: cores)"
+        "--workers",
+        type=int,
+        default=None,
+        help="fidelity: worker processes (default: cores); load: client processes (default 4)",
     )
     p.add_argument("--no-3d", action="store_true", help="fidelity: skip the 3-D World cells")
+    p.add_argument("--users", type=_nonneg_int, default=32, help="load: websocket users (<= 32)")
+    p.add_argument("--viewers", type=_nonneg_int, default=8, help="load: websocket viewers")
+    p.add_argument("--sim-rate", type=_positive, default=20.0, help="load: simulation rate [Hz]")
+    p.add_argument(
+        "--subdivisions",
+        type=_nonneg_int,
+        default=4,
+        help="load: icosphere subdivisions of the balloon (4: 2562 vertices)",
+    )
+    p.add_argument(
+        "--vertices",
+        type=_nonneg_int,
+        default=None,
+        help="load: the balloon's vertex count instead (2562, 10242, 40962, ...)",
+    )
     p.set_defaults(func=_cmd_bench)
 
 

@@ -7,7 +7,8 @@
 // by how far each point is pushed in or bulged out (legend in mm), turns the camera toward the
 // deepest dent until the user moves it, and shows each user's probe, proxy and force (arrows
 // scaled to stay in view) and a card per user with the surface indentation at its contact.
-// Reconnects by itself with backoff.
+// A user in contact that has sent no state for 0.5 s is marked stale and shown with no force
+// (see "stale users" below). Reconnects by itself with backoff.
 //
 // Test hooks: `window.viewerState` (connection, tick, frame counts, users by name, colour scale,
 // dent, bytes per second) is updated live.
@@ -73,6 +74,9 @@ const USER_COLORS = [
 const COLOR_RANGES_MM = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000];
 /** A dent shallower than this [m] (or 0.5 % of the radius) is not worth turning the camera for. */
 const DENT_MIN_M = 0.0005;
+/** A user silent this long [s] is stale: the server no longer applies its force (its
+ * RoomLimits.stale_after_s) and the viewer shows no force for it. */
+const STALE_AFTER_S = 0.5;
 
 function positiveParam(name, fallback) {
   if (!params.has(name)) return fallback;
@@ -105,7 +109,7 @@ const viewerState = {
   autoView: true,
   forceScaleMPerN: 0.01,
   arrows: {}, // by name: { tip_px: [x, y], in_view, visible } of the force arrow, after a render
-  users: {}, // by name: force_n_mag [N], penetration_mm, indentation_mm [mm], color, k_o, ...
+  users: {}, // by name: force_n_mag [N], penetration_mm, indentation_mm [mm], color, stale, ...
 };
 window.viewerState = viewerState;
 
@@ -775,23 +779,27 @@ function setArrow(arrow, origin, dir, length) {
   head.position.set(0, shaftLen + headLen / 2, 0);
 }
 
-function updateActor(a, u) {
+/** Place a user's probe, proxy, tether and force arrow; a stale user gets a faded probe and no
+ * proxy, tether or arrow (its hand no longer loads the object). */
+function updateActor(a, u, stale) {
   a.probe.position.set(...u.probe_m);
+  a.probe.material.opacity = stale ? 0.35 : 1;
   a.label.position.set(...u.probe_m);
-  a.tag.textContent = u.name;
+  a.tag.textContent = stale ? `${u.name} · stale` : u.name;
+  a.tag.classList.toggle("stale", stale);
   a.proxy.position.set(...u.proxy_m);
   tmpA.set(...u.normal);
   if (tmpA.lengthSq() > 1e-12) a.proxy.quaternion.setFromUnitVectors(Z, tmpA.normalize());
-  a.proxy.visible = u.in_contact;
+  a.proxy.visible = u.in_contact && !stale;
   const pts = a.tether.geometry.getAttribute("position");
   pts.setXYZ(0, ...u.probe_m);
   pts.setXYZ(1, ...u.proxy_m);
   pts.needsUpdate = true;
   a.tether.computeLineDistances();
-  a.tether.visible = u.in_contact;
+  a.tether.visible = u.in_contact && !stale;
   tmpB.set(...u.force_n);
   const mag = tmpB.length();
-  if (mag > 1e-4) {
+  if (mag > 1e-4 && !stale) {
     const length = mag * forceScaleMPerN;
     setArrow(a.arrow, tmpA.set(...u.probe_m), tmpB.normalize(), length);
     a.tip.copy(tmpA).addScaledVector(tmpB, length);
@@ -892,12 +900,18 @@ function renderPanels() {
       cards.set(s.user_id, card);
     }
     card.root.dataset.userName = s.name;
-    card.root.classList.toggle("touching", s.in_contact);
+    card.root.classList.toggle("touching", s.in_contact && !s.stale);
+    card.root.classList.toggle("stale", s.stale);
     card.name.textContent = s.name;
-    card.badge.textContent = s.in_contact ? "in contact" : "free";
+    card.badge.textContent = s.stale ? "stale" : s.in_contact ? "in contact" : "free";
+    card.badge.title = s.stale
+      ? `no state from this user for ${fmt(s.stale_s, 1)} s: the server no longer applies its force`
+      : "";
     card.device.textContent = s.device;
-    card.force.textContent = fmt(s.force_n_mag, 2);
-    card.bar.style.width = `${Math.min(100, (100 * s.force_n_mag) / forceBarScaleN).toFixed(1)}%`;
+    // a stale user's force is not applied: none is shown (not its last one)
+    card.force.textContent = s.stale ? "–" : fmt(s.force_n_mag, 2);
+    const barN = s.stale ? 0 : s.force_n_mag;
+    card.bar.style.width = `${Math.min(100, (100 * barN) / forceBarScaleN).toFixed(1)}%`;
     setIndentation(card, s.indentation_mm);
     const pen = card.fields.penetration_mm;
     if (s.in_contact) pen.textContent = fmt(s.penetration_mm, 2);
@@ -952,6 +966,30 @@ function linkText(link) {
   return parts.join(" · ");
 }
 
+// ----------------------------------------------------------------------------- stale users
+// The room frame does not say how old a user's state is. The viewer infers it from what it sees:
+// a silent user's own report (probe, penetration, contact, gains, servo rate, RTT) stays exactly
+// as it was, and the server applies no force for it once its state is older than STALE_AFTER_S.
+// A user is stale when all three hold: its report has not changed for STALE_AFTER_S of simulation
+// ticks, that report says its local model is pushing (in contact, penetration and K_h > 0), and
+// the force the server applies for it is exactly zero. A user that went silent in free air is
+// not marked (it had no force to show); one holding perfectly still in free air is not mistaken
+// for a silent one.
+const freshness = new Map(); // user_id -> { sig, tick } of the last change in the user's report
+
+/** How long [s] user `u`'s own report has not changed, at tick `tick` and `simRateHz`. */
+function reportAge(u, tick, simRateHz) {
+  const sig = [
+    ...u.probe_m, u.penetration_m, u.in_contact, u.k_h, u.i_gain, u.servo_rate_hz, u.rtt_ms,
+  ].join(",");
+  const seen = freshness.get(u.user_id);
+  if (!seen || seen.sig !== sig || tick < seen.tick) {
+    freshness.set(u.user_id, { sig, tick });
+    return 0;
+  }
+  return (tick - seen.tick) / (simRateHz > 0 ? simRateHz : 20);
+}
+
 // ----------------------------------------------------------------------------- messages
 function onWelcome(welcome) {
   if (welcome.protocol !== PROTOCOL_VERSION) {
@@ -986,11 +1024,16 @@ function onRoom(room) {
     live.add(u.user_id);
     const f = u.force_n;
     const w = u.in_contact ? displacementNear(u.proxy_m) : null;
+    const age = reportAge(u, room.tick, room.sim_rate_hz);
+    const pushing = u.in_contact && u.penetration_m > 0 && u.k_h > 0;
+    const stale = pushing && age > STALE_AFTER_S && f[0] === 0 && f[1] === 0 && f[2] === 0;
     byName[u.name] = {
       user_id: u.user_id,
       name: u.name,
       color: userColor(u.name),
       device: u.device,
+      stale,
+      stale_s: stale ? age : 0, // how long its report has not changed [s]
       in_contact: u.in_contact,
       force_n: f,
       force_n_mag: Math.hypot(f[0], f[1], f[2]),
@@ -1010,11 +1053,12 @@ function onRoom(room) {
       a = makeActor(u);
       actors.set(u.user_id, a);
     }
-    updateActor(a, u);
+    updateActor(a, u, stale);
   }
   viewerState.users = byName;
   for (const name of Object.keys(viewerState.arrows)) if (!byName[name]) delete viewerState.arrows[name];
   for (const id of [...actors.keys()]) if (!live.has(id)) dropActor(id);
+  for (const id of [...freshness.keys()]) if (!live.has(id)) freshness.delete(id);
   panelsDirty = true;
   sceneDirty = true;
 }

@@ -108,7 +108,8 @@ class ScriptedUser:
     normal (negative: outside); it moves toward ``target_m`` at :data:`PROBE_SPEED_M_PER_S`.
     At :data:`STATE_RATE_HZ` it sends a ``state`` with the force a proportional local model
     renders against the last patch: ``f = k_h * max(e, 0) * n``, ``k_h = 0.5 * k_o_eff``, with
-    ``e`` the penetration into the patch primitive. The loop closes through the server.
+    ``e`` the penetration into the patch primitive. The loop closes through the server. While
+    ``silent`` is set it sends nothing but keeps its connection (a stalled client).
     """
 
     def __init__(self, name: str, anchor: str, depth_m: float) -> None:
@@ -116,6 +117,7 @@ class ScriptedUser:
         self.anchor = anchor
         self.depth_m = depth_m
         self.target_m = depth_m
+        self.silent = False
         self.force_n = 0.0
         self.patch: dict[str, Any] | None = None
         self.errors: list[dict[str, Any]] = []
@@ -190,7 +192,8 @@ class ScriptedUser:
                         "rtt_ms": 1.0,
                         "patch_tick": self.patch["tick"] if self.patch else -1,
                     }
-                    await ws.send(json.dumps(state))
+                    if not self.silent:
+                        await ws.send(json.dumps(state))
                     t_next += period
                     await asyncio.sleep(max(0.0, t_next - loop.time()))
             finally:
@@ -556,6 +559,72 @@ async def test_layout_at_900_px_shows_every_card_and_colours_follow_names() -> N
                 await page.wait_for_function(three, timeout=10_000)
                 again = (await _viewer_users(page))["C"]["color"]
             assert again == colors["C"]
+            assert not problems, problems
+        finally:
+            await browser.close()
+
+
+_STALE = """(name) => {
+  const u = window.viewerState.users[name], a = window.viewerState.arrows[name];
+  return !!(u && u.stale && a && !a.visible);
+}"""
+_LIVE = """(name) => {
+  const u = window.viewerState.users[name], a = window.viewerState.arrows[name];
+  return !!(u && !u.stale && u.force_n_mag > 0 && a && a.visible);
+}"""
+
+
+@pytest.mark.browser
+@pytest.mark.timeout(120)
+async def test_a_silent_user_is_shown_stale_with_no_force() -> None:
+    """B rests on the side, then stops sending states but stays connected: the viewer marks B
+    stale on its card and draws no arrow for it, while A, resting just as still on the top, keeps
+    its force and arrow. When B sends again it is live again."""
+    reason = _browser_skip_reason()
+    if reason:
+        pytest.skip(reason)
+    from playwright.async_api import async_playwright
+
+    a = ScriptedUser("A", "top", depth_m=0.002)
+    b = ScriptedUser("B", "side", depth_m=0.002)
+    async with (
+        running_server(subdivisions=3) as app,
+        scripted_users(app.port, a, b),
+        async_playwright() as pw,
+    ):
+        browser = await _launch(pw)
+        try:
+            page = await browser.new_page(viewport={"width": VIEW_W, "height": VIEW_H})
+            problems = _watch(page)
+            await page.goto(f"http://127.0.0.1:{app.port}/", wait_until="domcontentloaded")
+            await page.wait_for_function(_READY, timeout=30_000)
+            for name in ("A", "B"):
+                await page.wait_for_function(_LIVE, arg=name, timeout=10_000)
+            card_b = page.locator('#user-list section.user[data-user-name="B"]')
+            await page.wait_for_timeout(300)  # the panels refresh every 100 ms
+            assert (await card_b.locator(".badge").inner_text()).lower() != "stale"
+            assert float(await card_b.locator(".force-value").inner_text()) > 0.0
+
+            # B's client stalls: its last force is no longer shown, in the scene or on its card
+            b.silent = True
+            await page.wait_for_function(_STALE, arg="B", timeout=5_000)
+            await page.wait_for_timeout(300)
+            assert (await card_b.locator(".badge").inner_text()).lower() == "stale"
+            assert "stale" in (await card_b.get_attribute("class") or "").split()
+            assert await card_b.locator(".force-value").inner_text() == "–"
+            # A holds just as still, but it is still sending: it keeps its force and arrow
+            await asyncio.sleep(1.0)
+            users = await _viewer_users(page)
+            assert not users["A"]["stale"] and users["A"]["force_n_mag"] > 0.0, users["A"]
+            assert (await page.evaluate("() => window.viewerState.arrows"))["A"]["visible"]
+            card_a = page.locator('#user-list section.user[data-user-name="A"]')
+            assert (await card_a.locator(".badge").inner_text()).lower() != "stale"
+
+            # B sends again: live again, with its arrow
+            b.silent = False
+            await page.wait_for_function(_LIVE, arg="B", timeout=10_000)
+            await page.wait_for_timeout(300)
+            assert (await card_b.locator(".badge").inner_text()).lower() != "stale"
             assert not problems, problems
         finally:
             await browser.close()
