@@ -814,7 +814,8 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "--duration",
         type=_positive,
         default=5.0,
-        help="servo bench duration; load: the measurement window after warm-up [s]",
+        help="servo bench duration; load: the measurement window after warm-up [s] "
+        "(default %(default)s)",
     )
     p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo bench rate [Hz]")
     p.add_argument(
@@ -829,14 +830,29 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help="fidelity: worker processes (default: cores); load: client processes (default 4)",
     )
     p.add_argument("--no-3d", action="store_true", help="fidelity: skip the 3-D World cells")
-    p.add_argument("--users", type=_nonneg_int, default=32, help="load: websocket users (<= 32)")
-    p.add_argument("--viewers", type=_nonneg_int, default=8, help="load: websocket viewers")
-    p.add_argument("--sim-rate", type=_positive, default=20.0, help="load: simulation rate [Hz]")
+    p.add_argument(
+        "--users",
+        type=_nonneg_int,
+        default=32,
+        help="load: websocket users, at most 32 (default %(default)s)",
+    )
+    p.add_argument(
+        "--viewers",
+        type=_nonneg_int,
+        default=8,
+        help="load: websocket viewers (default %(default)s)",
+    )
+    p.add_argument(
+        "--sim-rate",
+        type=_positive,
+        default=20.0,
+        help="load: simulation rate [Hz] (default %(default)s)",
+    )
     p.add_argument(
         "--subdivisions",
         type=_nonneg_int,
         default=4,
-        help="load: icosphere subdivisions of the balloon (4: 2562 vertices)",
+        help="load: icosphere subdivisions of the balloon (default %(default)s: 2562 vertices)",
     )
     p.add_argument(
         "--vertices",
