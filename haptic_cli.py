@@ -605,7 +605,7 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument(
         "--gains",
         choices=["server", "local"],
-        default="server",
+        default="local",
         help="render the server's recommended gains when they fit this device (server), or "
         "always design them here (local) (default %(default)s)",
     )

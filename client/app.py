@@ -70,7 +70,7 @@ class ClientOptions:
     hid_opener: Callable[[int, int], HidPort] | None = None
     #: ``server``: render the server's recommended gains when they fit this device; ``local``:
     #: always design the gains here (client.session.ClientSession).
-    gains: Literal["server", "local"] = "server"
+    gains: Literal["server", "local"] = "local"
     #: The server's token, sent in ``hello`` (None: ``$HAPTIC_TOKEN``, else none).
     token: str | None = None
     #: CA file [PEM] a ``wss://`` server is verified against (None: ``$HAPTIC_CA_FILE``, else

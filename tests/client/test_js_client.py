@@ -169,7 +169,10 @@ async def test_two_js_users_feel_each_other(tmp_path, primitive):
     for s in (sa, sb):
         assert s["joins"] == 1 and s["fatal_error"] is None and not s["errors"], s
         assert s["patches"] > 100, s["patches"]  # ~20 per second once in contact
-        assert set(s["patches_by_kind"]) == {primitive}
+        # the server sends the primitive asked for; with --primitive sphere it sends a plane
+        # where the dented surface is not convex (docs/protocol.md, "The primitives")
+        kinds = set(s["patches_by_kind"])
+        assert primitive in kinds and kinds <= {primitive, "plane"}, kinds
     # B's press, on A's clock
     shift = sb["clock_origin_unix_s"] - sa["clock_origin_unix_s"]
     press_full = PRESS_AT + PRESS_RAMP
