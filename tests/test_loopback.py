@@ -55,14 +55,16 @@ async def test_two_users_feel_each_other_over_websockets(tmp_path):
     app = await start_server()
     url = f"ws://127.0.0.1:{app.port}/ws"
     info = app.room.object_info
-    # A: hand waits 4 s, approaches 1 s, presses 1.5 s to a target ~20 mm in, holds 4 s. B's forces
-    # come on once its first gains are checked (interim gains, a few hundred ms after joining).
+    # A: hand waits 6 s, approaches 1 s, presses 1.5 s to a target ~20 mm in, holds 4 s. B's forces
+    # come on once its first gains are checked (interim gains, a few hundred ms after joining on an
+    # idle machine, seconds when four design workers start at once on a busy 2-core one; the
+    # first-contact latency has its own test in tests/client/test_first_contact.py).
     a_opts = ClientOptions(
-        url=url, name="A", device="sim:press", duration_s=12.0, record=tmp_path / "A.csv",
-        trajectory={"delay_s": 4.0, "approach_s": 1.0, "press_s": 1.5, "hold_s": 4.0, "release_s": 1.0},
+        url=url, name="A", device="sim:press", duration_s=14.0, record=tmp_path / "A.csv",
+        trajectory={"delay_s": 6.0, "approach_s": 1.0, "press_s": 1.5, "hold_s": 4.0, "release_s": 1.0},
     )  # fmt: skip
     b_opts = ClientOptions(
-        url=url, name="B", device="sim:rest", duration_s=12.0, record=tmp_path / "B.csv"
+        url=url, name="B", device="sim:rest", duration_s=14.0, record=tmp_path / "B.csv"
     )
     try:
         a_sum, b_sum = await asyncio.gather(run_client(a_opts), run_client(b_opts))
@@ -71,10 +73,10 @@ async def test_two_users_feel_each_other_over_websockets(tmp_path):
     a, b = load_csv(tmp_path / "A.csv"), load_csv(tmp_path / "B.csv")
     shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
     b["t_s"] = b["t_s"] + shift
-    hold_end = 4.0 + 1.0 + 1.5 + 4.0
+    hold_end = 6.0 + 1.0 + 1.5 + 4.0
     during_a = (a["t_s"] > hold_end - 1.0) & (a["t_s"] < hold_end)
     during_b = (b["t_s"] > hold_end - 1.0) & (b["t_s"] < hold_end)
-    before_b = (b["t_s"] > 2.8) & (b["t_s"] < 3.8)
+    before_b = (b["t_s"] > 4.8) & (b["t_s"] < 5.8)
     # A pushed about 10 mm into the top (probe below the rest top surface)
     a_depth = info.top_m[2] - np.mean(a["probe_z_m"][during_a])
     assert 0.006 < a_depth < 0.016, a_depth
