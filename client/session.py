@@ -124,6 +124,36 @@ class PatchUpdate:
     verified: bool = True
 
 
+def _known_gains(
+    k_h: float,
+    i_gain: float,
+    b_h: float,
+    proxy_hold: Literal["zoh", "foh"],
+    *,
+    k_o_eff: float,
+    rate_ratio: int,
+    delay_ticks: int,
+    spectral_radius: float = math.nan,
+    felt_1hz: float = math.nan,
+) -> GainDesign:
+    """Gains chosen elsewhere (in use, or recommended by the server) as a :class:`GainDesign`."""
+    return GainDesign(
+        k_h=k_h,
+        i_gain=i_gain,
+        b_h=b_h,
+        proxy_hold=proxy_hold,
+        worst_spectral_radius=spectral_radius,
+        rho_limit=math.nan,
+        felt_stiffness_ratio_1hz=felt_1hz,
+        felt_stiffness_ratio_8hz=math.nan,
+        k_o=k_o_eff,
+        k_o_range=(k_o_eff, k_o_eff),
+        rate_ratio=rate_ratio,
+        delay_ticks=delay_ticks,
+        mode="pi" if i_gain > 0.0 else "p",
+    )
+
+
 def warm_up_worker() -> None:
     """Import the full-loop code and run it once (a worker process does this while the client
     joins, so the first check does not also pay for imports)."""
@@ -397,21 +427,11 @@ class ClientSession:
         lu = self.last_update
         if lu is None:
             return None
-        return GainDesign(
-            k_h=lu.k_h,
-            i_gain=lu.i_gain,
-            b_h=lu.b_h,
-            proxy_hold="foh" if lu.proxy_hold == "foh" else "zoh",
-            worst_spectral_radius=lu.spectral_radius,
-            rho_limit=math.nan,
-            felt_stiffness_ratio_1hz=lu.felt_stiffness_ratio_1hz,
-            felt_stiffness_ratio_8hz=math.nan,
-            k_o=lu.k_o_eff,
-            k_o_range=(lu.k_o_eff, lu.k_o_eff),
-            rate_ratio=n,
-            delay_ticks=lu.delay_ticks,
-            mode="pi" if lu.i_gain > 0.0 else "p",
-        )
+        return _known_gains(
+            lu.k_h, lu.i_gain, lu.b_h, "foh" if lu.proxy_hold == "foh" else "zoh",
+            k_o_eff=lu.k_o_eff, rate_ratio=n, delay_ticks=lu.delay_ticks,
+            spectral_radius=lu.spectral_radius, felt_1hz=lu.felt_stiffness_ratio_1hz,
+        )  # fmt: skip
 
     def _recommended(self, msg: Patch, n: int, delay_ticks: int) -> GainDesign | None:
         """The server's recommended gains as a design, if this client may render them."""
@@ -425,21 +445,10 @@ class ClientSession:
             or rec.delay_ticks < delay_ticks
         ):
             return None  # designed for another device, kind or a shorter delay: design here
-        return GainDesign(
-            k_h=rec.k_h,
-            i_gain=rec.i_gain,
-            b_h=rec.b_h,
-            proxy_hold=rec.proxy_hold,
-            worst_spectral_radius=math.nan,
-            rho_limit=math.nan,
-            felt_stiffness_ratio_1hz=math.nan,
-            felt_stiffness_ratio_8hz=math.nan,
-            k_o=msg.k_o_eff,
-            k_o_range=(msg.k_o_eff, msg.k_o_eff),
-            rate_ratio=n,
-            delay_ticks=rec.delay_ticks,
-            mode="pi" if rec.i_gain > 0.0 else "p",
-        )
+        return _known_gains(
+            rec.k_h, rec.i_gain, rec.b_h, rec.proxy_hold,
+            k_o_eff=msg.k_o_eff, rate_ratio=n, delay_ticks=rec.delay_ticks,
+        )  # fmt: skip
 
     def _patch(self, msg: Patch, now_s: float) -> PatchUpdate | None:
         if self.last_patch is not None and msg.tick <= self.last_patch.tick:

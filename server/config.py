@@ -25,6 +25,22 @@ import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+
+def read_toml(path: Path, what: str, error: type[ValueError]) -> dict[str, Any]:
+    """The table of TOML file ``path``; ``error`` (a ValueError) naming the file and ``what`` it
+    is (``"configuration"``, ``"material"``) when it is missing, unreadable or not TOML."""
+    where = str(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise error(f"{where}: {what} file does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{where}: not a valid TOML file ({exc})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{where}: cannot read the {what} file ({exc})") from None
 
 
 class ConfigError(ValueError):
@@ -165,15 +181,7 @@ def load_server_config(path: str | Path) -> dict[str, object]:
     """
     p = Path(path)
     where = str(p)
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{where}: configuration file does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{where}: not a valid TOML file ({exc})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{where}: cannot read the configuration file ({exc})") from None
+    data = read_toml(p, "configuration", ConfigError)
 
     known = tuple(SERVER_OPTIONS)
     out: dict[str, object] = {}

@@ -58,6 +58,7 @@ class _User:
     rtt_s: deque[float] = field(default_factory=lambda: deque(maxlen=RTT_WINDOW))
     stiff_ratio: float = 1.0
     delay_ticks: int = 0
+    stale: bool = False
 
 
 class GainAdvisor:
@@ -106,8 +107,7 @@ class GainAdvisor:
             return
         u = self._users.setdefault(user, _User())
         u.rtt_s.append(min(rtt_ms, 10_000.0) / 1e3)
-        rtt = float(np.percentile(u.rtt_s, 90)) if len(u.rtt_s) > 1 else u.rtt_s[0]
-        u.delay_ticks = loop_delay_ticks(rtt, 0.5 / self.sim_rate_hz, self.sim_rate_hz)
+        u.stale = True  # the delay is recomputed when the next patch asks for it
 
     def forget(self, user: str) -> None:
         """The user left."""
@@ -116,7 +116,13 @@ class GainAdvisor:
     def delay_ticks(self, user: str) -> int:
         """The user's loop delay [whole simulation ticks], as :meth:`ClientSession.delay_ticks`."""
         u = self._users.get(user)
-        return 0 if u is None else u.delay_ticks
+        if u is None:
+            return 0
+        if u.stale:
+            rtt = float(np.percentile(u.rtt_s, 90))
+            u.delay_ticks = loop_delay_ticks(rtt, 0.5 / self.sim_rate_hz, self.sim_rate_hz)
+            u.stale = False
+        return u.delay_ticks
 
     def key(self, user: str, hello: Hello, b_o: float, k_o_eff: float, k_o_stiff: float) -> GainKey:
         """The gain key of ``user`` for this patch (raises ValueError for unsupported rates)."""

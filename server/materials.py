@@ -67,7 +67,6 @@ from __future__ import annotations
 
 import difflib
 import math
-import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -518,18 +517,11 @@ def load_material_file(path: str | Path) -> Material:
         The file is missing or unreadable, is not valid TOML (the parser's line and column are
         given), or :func:`material_from_mapping` refuses its content.
     """
+    from server.config import read_toml
+
     p = Path(path)
-    where = str(p)
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise MaterialError(f"{where}: material file does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise MaterialError(f"{where}: not a valid TOML file ({exc})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise MaterialError(f"{where}: cannot read the material file ({exc})") from None
-    return material_from_mapping(data, where, default_name=p.stem)
+    data = read_toml(p, "material", MaterialError)
+    return material_from_mapping(data, str(p), default_name=p.stem)
 
 
 def load_material(spec: str | Path) -> Material:
