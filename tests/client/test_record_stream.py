@@ -64,6 +64,15 @@ def test_rows_overwritten_before_they_were_written_are_counted(tmp_path: Path) -
     assert load_recording(tmp_path / "run.csv")["tick"].tolist() == list(range(15, 25))
 
 
+def _complete_ticks(path: Path, tmp_path: Path) -> list[int]:
+    """Ticks of the complete lines of a recording still being written (as a reader sees it: the
+    writer may be in the middle of a line)."""
+    text = path.read_text()
+    snap = tmp_path / "snapshot.csv"
+    snap.write_text(text[: text.rfind("\n") + 1])
+    return [int(t) for t in load_recording(snap)["tick"].tolist()]
+
+
 def test_the_file_grows_while_the_client_runs(tmp_path: Path) -> None:
     rec = TelemetryRecorder(capacity=1000)
     out = CsvRecording(rec, tmp_path / "run.csv", flush_interval_s=0.02)
@@ -71,10 +80,11 @@ def test_the_file_grows_while_the_client_runs(tmp_path: Path) -> None:
     for i in range(300):
         rec.append(*row(i))
     deadline = time.monotonic() + 5.0
-    while len(load_recording(tmp_path / "run.csv")["tick"]) < 299 and time.monotonic() < deadline:
+    path = tmp_path / "run.csv"
+    while len(_complete_ticks(path, tmp_path)) < 299 and time.monotonic() < deadline:
         time.sleep(0.02)
     # on disk before close: all but the newest row (its compute time may still change)
-    assert load_recording(tmp_path / "run.csv")["tick"].tolist() == list(range(299))
+    assert _complete_ticks(path, tmp_path) == list(range(299))
     out.close()
     assert len(load_recording(tmp_path / "run.csv")["tick"]) == 300
 
