@@ -1,17 +1,24 @@
 # One image for the server (viewer included) and the simulated clients.
-FROM python:3.11-slim
-
-RUN apt-get update && apt-get install -y --no-install-recommends nodejs npm libhidapi-hidraw0 \
+# Stage 1 builds the wheel: node and npm only to take three.js from web/package-lock.json, which the
+# wheel carries as package data. Stage 2 installs that wheel: no node, no npm, no source tree.
+FROM python:3.11-slim AS build
+RUN apt-get update && apt-get install -y --no-install-recommends nodejs npm \
     && rm -rf /var/lib/apt/lists/*
-
-WORKDIR /app
-COPY pyproject.toml README.md haptic_cli.py haptic_demo.py ./
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY haptic_collab ./haptic_collab
 COPY shared ./shared
 COPY server ./server
 COPY client ./client
-RUN pip install --no-cache-dir .
 COPY web ./web
 RUN cd web && npm ci --no-audit --no-fund
+RUN pip wheel --no-cache-dir --no-deps -w /dist .
+
+FROM python:3.11-slim
+RUN apt-get update && apt-get install -y --no-install-recommends libhidapi-hidraw0 \
+    && rm -rf /var/lib/apt/lists/*
+COPY --from=build /dist /dist
+RUN pip install --no-cache-dir /dist/haptic_collab-*.whl && rm -rf /dist
 
 EXPOSE 8765
 ENTRYPOINT ["haptic"]

@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 WEBSTAMP := web/node_modules/.installed
 JSSTAMP := client/js/node_modules/.installed
 
-.PHONY: all install web-install js-install browser test lint typecheck unit demo bench reproduce clean
+.PHONY: all install web-install js-install browser test lint typecheck unit demo bench reproduce clean wheel
 
 all: test
 
@@ -40,9 +40,14 @@ browser:
 	  else echo "warning: not root, cannot install chromium; browser tests will be skipped"; fi; \
 	fi
 
+# The wheel (dist/): the viewer and the three.js files it loads ship inside it as package data.
+wheel: $(STAMP) $(WEBSTAMP)
+	rm -rf build dist/haptic_collab-*.whl
+	$(BIN)/pip wheel -q --no-deps -w dist .
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/ruff format --check shared server client tests haptic_cli.py haptic_demo.py
+	$(BIN)/ruff format --check shared server client tests haptic_collab/*.py
 
 typecheck: $(STAMP)
 	$(BIN)/mypy
@@ -62,4 +67,4 @@ bench: $(STAMP)
 	$(BIN)/haptic bench all --json
 
 clean:
-	rm -rf $(VENV) web/node_modules out demo-out
+	rm -rf $(VENV) web/node_modules out demo-out build dist

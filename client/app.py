@@ -29,16 +29,16 @@ from typing import Any, Literal
 
 import numpy as np
 
-from client.devices import DeviceOpener
-from client.devices.base import Device
-from client.devices.hid import HidPort
-from client.devices.profiles import get_sim_profile
-from client.link import Link
-from client.recorder import CsvRecording, TelemetryRecorder
-from client.servo import ServoConfig, ServoCore, ServoThread
-from client.session import ClientSession, PatchUpdate, ServoSample
-from shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
-from shared.protocol import DeviceInfo, Welcome
+from haptic_collab.client.devices import DeviceOpener
+from haptic_collab.client.devices.base import Device
+from haptic_collab.client.devices.hid import HidPort
+from haptic_collab.client.devices.profiles import get_sim_profile
+from haptic_collab.client.link import Link
+from haptic_collab.client.recorder import CsvRecording, TelemetryRecorder
+from haptic_collab.client.servo import ServoConfig, ServoCore, ServoThread
+from haptic_collab.client.session import ClientSession, PatchUpdate, ServoSample
+from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
+from haptic_collab.shared.protocol import DeviceInfo, Welcome
 
 log = logging.getLogger("haptic.client")
 

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from client.session import ClientSession
-from shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Welcome, encode
+from haptic_collab.client.session import ClientSession
+from haptic_collab.shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Welcome, encode
 
 _OBJ = ObjectInfo(
     n_vertices=6,
@@ -84,7 +84,7 @@ def run(n_patches: int = 2000, seed: int = 0) -> dict[str, Any]:
         t0 = time.perf_counter()
         s.gain_table.lookup(key, float(k))
         lookup_us.append((time.perf_counter() - t0) * 1e6)
-    from shared.gain_design import design_gains
+    from haptic_collab.shared.gain_design import design_gains
 
     design: dict[str, dict[str, float]] = {}
     for mode in ("p", "pi"):

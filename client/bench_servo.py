@@ -31,11 +31,11 @@ from typing import Any
 
 import numpy as np
 
-from client.devices import make_device
-from client.recorder import TelemetryRecorder
-from client.servo import DeadlineLoop, ServoConfig, ServoCore, try_realtime_priority
-from shared.local_model import LocalModelParams, ThresholdParams
-from shared.primitives import make_plane
+from haptic_collab.client.devices import make_device
+from haptic_collab.client.recorder import TelemetryRecorder
+from haptic_collab.client.servo import DeadlineLoop, ServoConfig, ServoCore, try_realtime_priority
+from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
+from haptic_collab.shared.primitives import make_plane
 
 
 def _in_thread(fn: Callable[[], dict[str, Any]], priority: int | None) -> dict[str, Any]:

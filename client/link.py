@@ -39,15 +39,15 @@ from dataclasses import replace
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
-from client.session import (
+from haptic_collab.client.session import (
     ClientSession,
     PatchUpdate,
     ServoSample,
     interim_design,
     warm_up_worker,
 )
-from shared.gain_design import GainDesign, GainKey, design_cell
-from shared.protocol import ProtocolError, Welcome
+from haptic_collab.shared.gain_design import GainDesign, GainKey, design_cell
+from haptic_collab.shared.protocol import ProtocolError, Welcome
 
 log = logging.getLogger("haptic.client")
 

@@ -50,12 +50,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from client.devices.base import Device, HapticError, Vec3
-from client.recorder import TelemetryRecorder
-from shared.full_loop import DAMPER_FILTER_S
-from shared.local_model import LocalModel, LocalModelParams
-from shared.passivity import PassivityController, PassivityParams
-from shared.primitives import Plane, Primitive, Sphere
+from haptic_collab.client.devices.base import Device, HapticError, Vec3
+from haptic_collab.client.recorder import TelemetryRecorder
+from haptic_collab.shared.full_loop import DAMPER_FILTER_S
+from haptic_collab.shared.local_model import LocalModel, LocalModelParams
+from haptic_collab.shared.passivity import PassivityController, PassivityParams
+from haptic_collab.shared.primitives import Plane, Primitive, Sphere
 
 Clock = Callable[[], float]
 Sleep = Callable[[float], None]

@@ -36,19 +36,19 @@ from typing import Literal
 
 import numpy as np
 
-from shared.coupled_loop import stiff_ratio_class
-from shared.full_loop import monodromy
-from shared.gain_design import INTERIM_LADDER as INTERIM_LADDER
-from shared.gain_design import (
+from haptic_collab.shared.coupled_loop import stiff_ratio_class
+from haptic_collab.shared.full_loop import monodromy
+from haptic_collab.shared.gain_design import INTERIM_LADDER as INTERIM_LADDER
+from haptic_collab.shared.gain_design import (
     GainDesign,
     GainKey,
     GainTable,
     loop_delay_ticks,
 )
-from shared.gain_design import interim_design as interim_design
-from shared.gain_design import verify_gains as verify_gains
-from shared.primitives import Primitive, make_plane, make_sphere
-from shared.protocol import (
+from haptic_collab.shared.gain_design import interim_design as interim_design
+from haptic_collab.shared.gain_design import verify_gains as verify_gains
+from haptic_collab.shared.primitives import Primitive, make_plane, make_sphere
+from haptic_collab.shared.protocol import (
     PROTOCOL_VERSION,
     DeviceInfo,
     ErrorMsg,
@@ -65,7 +65,7 @@ from shared.protocol import (
     encode,
     parse_server,
 )
-from shared.stability import rate_ratio as _rate_ratio
+from haptic_collab.shared.stability import rate_ratio as _rate_ratio
 
 #: Pings (one every 0.5 s) over which the loop delay is estimated.
 RTT_WINDOW = 20
@@ -157,7 +157,7 @@ def _known_gains(
 def warm_up_worker() -> None:
     """Import the full-loop code and run it once (a worker process does this while the client
     joins, so the first check does not also pay for imports)."""
-    from shared.full_loop import DEFAULT_HAND
+    from haptic_collab.shared.full_loop import DEFAULT_HAND
 
     monodromy(hand=DEFAULT_HAND, k_o=300.0, k_h=100.0, i_gain=1000.0, b_h=1.0, rate_ratio=50)
 

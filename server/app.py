@@ -25,6 +25,7 @@ from collections.abc import Callable
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from http import HTTPStatus
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -33,12 +34,12 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from server.gains import GainJob, run_job
-from server.latency import LinkConfig, LinkShaper
-from server.room import Outgoing, Room
-from server.security import is_loopback, origin_allowed
-from shared.gain_design import background_worker
-from shared.protocol import ErrorMsg, encode
+from haptic_collab.server.gains import GainJob, run_job
+from haptic_collab.server.latency import LinkConfig, LinkShaper
+from haptic_collab.server.room import Outgoing, Room
+from haptic_collab.server.security import is_loopback, origin_allowed
+from haptic_collab.shared.gain_design import background_worker
+from haptic_collab.shared.protocol import ErrorMsg, encode
 
 log = logging.getLogger("haptic.server")
 
@@ -46,7 +47,10 @@ log = logging.getLogger("haptic.server")
 WS_MAX_SIZE = 64 * 1024
 #: A consumer whose send buffer stays full this long [s] is dropped.
 SEND_TIMEOUT_S = 10.0
-WEB_DIR = Path(__file__).resolve().parent.parent / "web"
+#: The viewer's files: the package data ``haptic_collab/web`` (in a source checkout a link to
+#: ``web/``); three.js is served from its ``node_modules/three`` (npm's copy in a checkout, the
+#: files the page loads in a wheel).
+WEB_DIR = Path(str(resources.files("haptic_collab") / "web"))
 _STATIC_SUFFIXES = {".html", ".js", ".mjs", ".css", ".json", ".png", ".svg", ".ico", ".map"}
 
 
@@ -227,6 +231,16 @@ class ServerApp:
         if request.headers.get("Upgrade", "").lower() == "websocket":
             return _text(HTTPStatus.NOT_FOUND, "the websocket endpoint is /ws\n")
         return _static_response(self.web_dir, path)
+
+    def viewer_missing(self) -> list[str]:
+        """The viewer's files that are not there (relative to :attr:`web_dir`); [] when complete."""
+        need = (
+            "index.html",
+            "viewer.js",
+            "protocol.js",
+            "node_modules/three/build/three.module.js",
+        )
+        return [rel for rel in need if not (self.web_dir / rel).is_file()]
 
     def status(self) -> dict[str, Any]:
         """JSON-able summary: tick, users, viewers, tick costs, overruns, link conditions."""

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from shared.fidelity import (
+from haptic_collab.shared.fidelity import (
     SCHEMES,
     TRAJECTORIES,
     Cell,
@@ -44,8 +44,8 @@ from shared.fidelity import (
     scheme_tuning,
     simulate,
 )
-from shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
-from shared.gain_design import GainDesign, GainKey, GainTable, design_cell
+from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
+from haptic_collab.shared.gain_design import GainDesign, GainKey, GainTable, design_cell
 
 #: Frequencies [Hz] of the felt stiffness.
 FELT_HZ = (1.0, 8.0)
@@ -378,7 +378,7 @@ def run(
     t_3d = 0.0
     if include_3d:
         t3 = time.perf_counter()
-        from server.fidelity_3d import run_3d_cells
+        from haptic_collab.server.fidelity_3d import run_3d_cells
 
         cells3 = run_3d_cells(schemes, device=device)
         # felt stiffness is measured in 1-D only (the 3-D cells carry null)

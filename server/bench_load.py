@@ -1,6 +1,6 @@
 """``haptic bench load``: real users and viewers against a real server process, for minutes.
 
-The server runs in its own process (``python -m haptic_cli server --port 0``), exactly as deployed
+The server runs in its own process (``python -m haptic_collab.cli server --port 0``), exactly as deployed
 on loopback; the port is read from its ``viewer: http://...`` line. N users and M viewers are real
 websocket clients speaking the whole protocol (docs/protocol.md), spread over a few worker
 processes (``multiprocessing``, spawn), each with its own loopback source address (127.0.0.2, .3,
@@ -48,7 +48,6 @@ import time
 import urllib.request
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any
 
 #: The keys every ``haptic bench load --json`` result has (the issue's contract).
@@ -66,7 +65,6 @@ REQUIRED_KEYS = (
     "rss_mb_end",
     "errors",
 )
-ROOT = Path(__file__).resolve().parent.parent
 #: States a user sends per simulation tick (docs/protocol.md: "about twice per simulation tick").
 STATES_PER_TICK = 2.0
 #: Interval between a user's pings [s] (as ``haptic client``).
@@ -524,7 +522,7 @@ def _worker_main(
 
 # ----------------------------------------------------------------------------- server process
 class _ServerProcess:
-    """``python -m haptic_cli server --port 0`` in its own process; ``port`` once it listens."""
+    """``python -m haptic_collab.cli server --port 0`` in its own process; ``port`` once it listens."""
 
     def __init__(self, opts: LoadOptions) -> None:
         env = dict(os.environ)
@@ -535,7 +533,7 @@ class _ServerProcess:
         cmd = [
             sys.executable,
             "-m",
-            "haptic_cli",
+            "haptic_collab.cli",
             "--log-level",
             "info",
             "server",
@@ -552,7 +550,6 @@ class _ServerProcess:
         # are ended with it
         self.proc = subprocess.Popen(
             cmd,
-            cwd=ROOT,
             env=env,
             stdout=subprocess.PIPE,
             stderr=self.log,

@@ -29,11 +29,15 @@ from typing import Any
 
 import numpy as np
 
-from server.objects.balloon import Balloon, BalloonParams
-from server.objects.mesh import default_balloon
-from server.viewer_stream import DEFAULT_BYTES_PER_S, ViewerStream, ViewerStreamDecoder
-from server.world import ContactInput, World
-from shared.protocol import encode_faces, encode_vertices
+from haptic_collab.server.objects.balloon import Balloon, BalloonParams
+from haptic_collab.server.objects.mesh import default_balloon
+from haptic_collab.server.viewer_stream import (
+    DEFAULT_BYTES_PER_S,
+    ViewerStream,
+    ViewerStreamDecoder,
+)
+from haptic_collab.server.world import ContactInput, World
+from haptic_collab.shared.protocol import encode_faces, encode_vertices
 
 #: (setter, getter) symbol pairs of the OpenBLAS builds numpy and scipy ship
 _BLAS_THREAD_SYMBOLS = (
@@ -356,8 +360,8 @@ def bench_gain_advice(users: int = 8, lookups: int = 20_000) -> dict[str, Any]:
     :meth:`server.gains.GainAdvisor.recommend` for ``users`` users on the designed cell (the
     steady case) and as many on cells still missing (a miss queues a job, costs a lookup).
     """
-    from server.gains import GainAdvisor, run_job
-    from shared.protocol import DeviceInfo, Hello
+    from haptic_collab.server.gains import GainAdvisor, run_job
+    from haptic_collab.shared.protocol import DeviceInfo, Hello
 
     adv = GainAdvisor(20.0)
     dev = DeviceInfo(max_stiffness_n_per_m=1000.0, max_damping_n_s_per_m=10.0)

@@ -148,7 +148,7 @@ def _resolve(key: str, value: str, folder: Path) -> str:
     if value in _NOT_PATHS.get(key, ()):
         return value
     if key == "material":
-        from server.materials import PRESETS
+        from haptic_collab.server.materials import PRESETS
 
         if value in PRESETS:
             return value

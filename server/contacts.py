@@ -28,7 +28,14 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from shared.primitives import MAX_RADIUS_M, MIN_RADIUS_M, Plane, Sphere, make_plane, make_sphere
+from haptic_collab.shared.primitives import (
+    MAX_RADIUS_M,
+    MIN_RADIUS_M,
+    Plane,
+    Sphere,
+    make_plane,
+    make_sphere,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

@@ -74,7 +74,7 @@ clock ``t = n T`` with the windows of the matching :data:`shared.fidelity.PRESS`
 
 Usage::
 
-    from server.fidelity_3d import run_3d_cells
+    from haptic_collab.server.fidelity_3d import run_3d_cells
     cells = run_3d_cells(("local-p", "direct"), stiffness_scales=(3.3,), delays_ms=(100.0,))
 """
 
@@ -90,15 +90,15 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from client.devices.base import Vec3
-from client.devices.profiles import get_sim_profile
-from client.devices.sim import HandParams, SimDevice
-from client.recorder import TelemetryRecorder
-from client.servo import ServoConfig, ServoCore
-from server.main import ServerOptions, build_world
-from server.reproduce_3d import combined_hand
-from server.world import ContactInput, ContactOutput, World
-from shared.fidelity import (
+from haptic_collab.client.devices.base import Vec3
+from haptic_collab.client.devices.profiles import get_sim_profile
+from haptic_collab.client.devices.sim import HandParams, SimDevice
+from haptic_collab.client.recorder import TelemetryRecorder
+from haptic_collab.client.servo import ServoConfig, ServoCore
+from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.reproduce_3d import combined_hand
+from haptic_collab.server.world import ContactInput, ContactOutput, World
+from haptic_collab.shared.fidelity import (
     IMPACT,
     PRESS,
     RUNAWAY_M,
@@ -113,10 +113,10 @@ from shared.fidelity import (
     design_delay_ticks,
     rendering_for,
 )
-from shared.gain_design import GainKey, GainTable
-from shared.local_model import LocalModelParams, ThresholdParams
-from shared.passivity import PassivityController, PassivityParams
-from shared.primitives import Plane, Sphere
+from haptic_collab.shared.gain_design import GainKey, GainTable
+from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
+from haptic_collab.shared.passivity import PassivityController, PassivityParams
+from haptic_collab.shared.primitives import Plane, Sphere
 
 FloatArray = NDArray[np.float64]
 DirectReference = Literal["undisturbed", "patch"]

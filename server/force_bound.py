@@ -43,7 +43,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-from shared.primitives import Plane, Sphere
+from haptic_collab.shared.primitives import Plane, Sphere
 
 Vec3 = tuple[float, float, float]
 ClampReason = Literal["out_of_contact", "wrong_direction", "too_large"]

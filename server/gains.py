@@ -24,9 +24,9 @@ from typing import Literal
 
 import numpy as np
 
-from shared.coupled_loop import stiff_ratio_class
-from shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from shared.gain_design import (
+from haptic_collab.shared.coupled_loop import stiff_ratio_class
+from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
+from haptic_collab.shared.gain_design import (
     K_O_GRID_RATIO,
     GainDesign,
     GainKey,
@@ -35,8 +35,8 @@ from shared.gain_design import (
     interim_design,
     loop_delay_ticks,
 )
-from shared.protocol import Hello, RecommendedGains
-from shared.stability import rate_ratio
+from haptic_collab.shared.protocol import Hello, RecommendedGains
+from haptic_collab.shared.stability import rate_ratio
 
 #: Round trips [s] per user over which the loop delay is estimated (its 90th percentile).
 RTT_WINDOW = 20

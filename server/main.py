@@ -9,12 +9,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from server.app import ServerApp
-from server.latency import LinkConfig
-from server.room import Room
-from server.security import TokenTable, is_loopback, normalize_origin
-from server.urls import viewer_urls
-from shared.protocol import LinkConditions
+from haptic_collab.server.app import ServerApp
+from haptic_collab.server.latency import LinkConfig
+from haptic_collab.server.room import Room
+from haptic_collab.server.security import TokenTable, is_loopback, normalize_origin
+from haptic_collab.server.urls import viewer_urls
+from haptic_collab.shared.protocol import LinkConditions
 
 log = logging.getLogger("haptic.server")
 
@@ -109,10 +109,10 @@ def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
     ValueError
         A mesh that cannot be loaded, stays open or is degenerate; bad parameters.
     """
-    from server.materials import load_material, material_to_params, top_side_stiffness
-    from server.objects.balloon import Balloon, BalloonParams
-    from server.objects.mesh import default_balloon, load_mesh, mesh_warnings
-    from server.world import World
+    from haptic_collab.server.materials import load_material, material_to_params, top_side_stiffness
+    from haptic_collab.server.objects.balloon import Balloon, BalloonParams
+    from haptic_collab.server.objects.mesh import default_balloon, load_mesh, mesh_warnings
+    from haptic_collab.server.world import World
 
     if not (1.0 <= opts.sim_rate_hz <= 1000.0):
         raise ValueError(f"--sim-rate must be in [1, 1000] Hz, got {opts.sim_rate_hz:g}")
@@ -183,6 +183,14 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
             else "",
         )
         hint = "#token=YOUR_TOKEN" if auth is not None else ""
+        missing = app.viewer_missing()
+        if missing:
+            log.warning(
+                "the viewer is incomplete (%s missing under %s): the page will not load; "
+                "in a source checkout run `make web-install` (npm ci in web/)",
+                ", ".join(missing),
+                app.web_dir,
+            )
         for url in viewer_urls(opts.host, port, scheme):
             print(f"viewer: {url}{hint}", flush=True)
         if on_ready:

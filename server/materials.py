@@ -76,10 +76,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from server.objects.balloon import BalloonParams
+from haptic_collab.server.objects.balloon import BalloonParams
 
 if TYPE_CHECKING:
-    from server.objects.balloon import Balloon
+    from haptic_collab.server.objects.balloon import Balloon
 
 
 FloatArray = npt.NDArray[np.float64]
@@ -517,7 +517,7 @@ def load_material_file(path: str | Path) -> Material:
         The file is missing or unreadable, is not valid TOML (the parser's line and column are
         given), or :func:`material_from_mapping` refuses its content.
     """
-    from server.config import read_toml
+    from haptic_collab.server.config import read_toml
 
     p = Path(path)
     data = read_toml(p, "material", MaterialError)
@@ -609,8 +609,8 @@ def top_side_stiffness(balloon: Balloon) -> tuple[float, float]:
 
 def main() -> None:
     """Print every preset's parameters and K_o (top, side) on the default mesh."""
-    from server.objects.balloon import Balloon
-    from server.objects.mesh import default_balloon
+    from haptic_collab.server.objects.balloon import Balloon
+    from haptic_collab.server.objects.mesh import default_balloon
 
     mesh = default_balloon()
     print(f"default mesh: {len(mesh.vertices)} vertices, volume {mesh.volume:.4e} m^3")

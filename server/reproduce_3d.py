@@ -30,7 +30,7 @@ the hold (below 0.5 mm the product calls the hold stable).
 Usage::
 
     from pathlib import Path
-    from server.reproduce_3d import reproduce_3d
+    from haptic_collab.server.reproduce_3d import reproduce_3d
     results = reproduce_3d("all", Path("figs"))   # figs/fig10.json, fig10.png, fig11.json, ...
 """
 
@@ -47,17 +47,17 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from client.devices.profiles import get_sim_profile
-from client.devices.sim import HandParams, SimDevice
-from client.devices.trajectories import Press, hand_depth_for
-from client.recorder import TelemetryRecorder
-from client.servo import ServoConfig, ServoCore
-from server.main import ServerOptions, build_world
-from server.objects.balloon import Balloon
-from server.world import ContactInput, ContactOutput, World
-from shared.full_loop import Hand, analyze_full_loop
-from shared.local_model import LocalModelParams, ThresholdParams
-from shared.stability import eq8_stable, eq15_stable, rate_ratio
+from haptic_collab.client.devices.profiles import get_sim_profile
+from haptic_collab.client.devices.sim import HandParams, SimDevice
+from haptic_collab.client.devices.trajectories import Press, hand_depth_for
+from haptic_collab.client.recorder import TelemetryRecorder
+from haptic_collab.client.servo import ServoConfig, ServoCore
+from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.objects.balloon import Balloon
+from haptic_collab.server.world import ContactInput, ContactOutput, World
+from haptic_collab.shared.full_loop import Hand, analyze_full_loop
+from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
+from haptic_collab.shared.stability import eq8_stable, eq15_stable, rate_ratio
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -554,7 +554,7 @@ def product_cases(k_o: float) -> tuple[list[Case3D], list[str]]:
     skipped (a missing design module, a servo without the probe damper or the first-order hold).
     """
     try:
-        design = importlib.import_module("shared.gain_design").design_gains
+        design = importlib.import_module("haptic_collab.shared.gain_design").design_gains
     except (ImportError, AttributeError):
         return [], ["shared.gain_design.design_gains is not available: product cases skipped"]
     limits = get_sim_profile(PROFILE).limits

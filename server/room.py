@@ -31,13 +31,13 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from server.force_bound import BoundedForce, ForceBoundParams, bound_force
-from server.gains import GainAdvisor
-from server.security import TokenBucket, TokenTable
-from server.viewer_stream import ViewerStream
-from server.world import ContactInput
-from shared.primitives import Plane, Sphere
-from shared.protocol import (
+from haptic_collab.server.force_bound import BoundedForce, ForceBoundParams, bound_force
+from haptic_collab.server.gains import GainAdvisor
+from haptic_collab.server.security import TokenBucket, TokenTable
+from haptic_collab.server.viewer_stream import ViewerStream
+from haptic_collab.server.world import ContactInput
+from haptic_collab.shared.primitives import Plane, Sphere
+from haptic_collab.shared.protocol import (
     MAX_CLIENT_FRAME_BYTES,
     MAX_PROBE_DISTANCE_M,
     MAX_REPORTED_FORCE_N,
@@ -66,7 +66,7 @@ from shared.protocol import (
 )
 
 if TYPE_CHECKING:
-    from server.world import ContactOutput, World
+    from haptic_collab.server.world import ContactOutput, World
 
 
 @dataclass(frozen=True)

@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from shared.protocol import BINARY_HEADER, VERTICES_MAGIC, encode_vertices
+from haptic_collab.shared.protocol import BINARY_HEADER, VERTICES_MAGIC, encode_vertices
 
 FloatArray = npt.NDArray[np.float64]
 Int16Array = npt.NDArray[np.int16]

@@ -35,7 +35,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from server.contacts import (
+from haptic_collab.server.contacts import (
     K_O_MAX,
     SurfaceIndex,
     SurfacePoint,
@@ -45,8 +45,8 @@ from server.contacts import (
     fit_sphere,
     stiff_stiffness,
 )
-from server.objects import AdmittanceObject
-from shared.primitives import Plane, Sphere
+from haptic_collab.server.objects import AdmittanceObject
+from haptic_collab.shared.primitives import Plane, Sphere
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -61,8 +61,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from shared.full_loop import DEFAULT_HAND_BOX, STABILITY_TOL, Hand, HandBox, ProxyHold, monodromy
-from shared.gain_design import (
+from haptic_collab.shared.full_loop import (
+    DEFAULT_HAND_BOX,
+    STABILITY_TOL,
+    Hand,
+    HandBox,
+    ProxyHold,
+    monodromy,
+)
+from haptic_collab.shared.gain_design import (
     CREEP_FREQUENCY_HZ,
     MIN_DECAY_RATE_PER_S,
     GainDesign,
@@ -630,7 +637,7 @@ def verify_coupled(
     ValueError
         As :func:`coupled_monodromy`; margin outside [0, 1); no hands or ticks.
     """
-    from shared.stability import rate_ratio as _rate_ratio
+    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
 
     N = _rate_ratio(servo_rate_hz, sim_rate_hz)
     T = 1.0 / float(servo_rate_hz)

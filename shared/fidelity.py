@@ -53,8 +53,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from shared.full_loop import DAMPER_FILTER_S, Hand, ProxyHold, _hand_zoh
-from shared.gain_design import GainDesign, loop_delay_ticks
+from haptic_collab.shared.full_loop import DAMPER_FILTER_S, Hand, ProxyHold, _hand_zoh
+from haptic_collab.shared.gain_design import GainDesign, loop_delay_ticks
 
 FloatArray = NDArray[np.float64]
 SchemeName = Literal[

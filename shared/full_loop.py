@@ -488,7 +488,7 @@ def analyze_full_loop(
     ValueError
         Out-of-range or inconsistent input.
     """
-    from shared.stability import rate_ratio as _rate_ratio
+    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
 
     n = _rate_ratio(servo_rate_hz, sim_rate_hz)
     for name, v, lo in (("k_o", k_o, 0.0), ("k_h", k_h, 0.0)):

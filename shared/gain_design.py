@@ -40,7 +40,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from shared.full_loop import (
+from haptic_collab.shared.full_loop import (
     DAMPER_FILTER_S,
     DEFAULT_HAND_BOX,
     Hand,
@@ -345,7 +345,7 @@ def design_gains(
         Out-of-range input, or no candidate is stable over the box (then the box or the rates are
         beyond what any local model can render).
     """
-    from shared.stability import rate_ratio as _rate_ratio
+    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
 
     t0 = time.perf_counter()
     N = _rate_ratio(servo_rate_hz, sim_rate_hz)
@@ -581,7 +581,7 @@ def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, f
     ``g_i = grid_ratio**cell``; ``k_o_hi`` is the next grid point, widened for a coupled contact
     to ``coupled_k_o_hi(g_(i+1), key.stiff_ratio)`` (:mod:`shared.coupled_loop`).
     """
-    from shared.coupled_loop import coupled_k_o_hi
+    from haptic_collab.shared.coupled_loop import coupled_k_o_hi
 
     g = grid_ratio**cell
     hi = grid_ratio ** (cell + 1)
@@ -771,7 +771,7 @@ def verify_gains(
     for name, v in (("i_gain", i_gain), ("b_h", b_h)):
         if not (math.isfinite(v) and v >= 0.0):
             raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-    from shared.stability import rate_ratio as _rate_ratio
+    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
 
     n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
     T = 1.0 / key.servo_rate_hz
@@ -834,7 +834,7 @@ def interim_design(
         Nothing passed (and, with ``design_fallback``, not even a proportional design is stable
         over the box).
     """
-    from shared.stability import rate_ratio as _rate_ratio
+    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
 
     t0 = time.perf_counter()
     lo, hi = cell_k_o_range(key, cell, grid_ratio)

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from shared.local_model import LocalModel
-from shared.stability import rate_ratio as _rate_ratio
+from haptic_collab.shared.local_model import LocalModel
+from haptic_collab.shared.stability import rate_ratio as _rate_ratio
 
 FloatArray = NDArray[np.float64]
 

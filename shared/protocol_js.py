@@ -29,7 +29,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from shared import protocol
+from haptic_collab.shared import protocol
 
 #: Where the generated module lives, relative to the repository root.
 OUTPUT = Path(__file__).resolve().parent.parent / "web" / "protocol.js"

@@ -17,7 +17,7 @@ JSON files are in SI units (m, s, N, N/m, N/(m*s)); the plots use mm and s like 
 Usage::
 
     from pathlib import Path
-    from shared.reproduce import reproduce
+    from haptic_collab.shared.reproduce import reproduce
     results = reproduce("all", Path("figs"))   # writes figs/fig7.json, figs/fig7.png, ...
 """
 
@@ -31,9 +31,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from shared.local_model import LocalModel, LocalModelParams, ThresholdParams
-from shared.multirate import StepMetrics, Trace, simulate, step_metrics
-from shared.stability import STABILITY_TOL, analyze, eq15_stable, spectral_radius_grid
+from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
+from haptic_collab.shared.multirate import StepMetrics, Trace, simulate, step_metrics
+from haptic_collab.shared.stability import STABILITY_TOL, analyze, eq15_stable, spectral_radius_grid
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

@@ -2,7 +2,7 @@
 ``haptic client``): for the loopback tests.
 
 A server started with ``--port 0`` prints its viewer URL once it listens; :class:`ServerProcess`
-reads the port from that line. Every process runs ``python -m haptic_cli`` from the repository
+reads the port from that line. Every process runs ``python -m haptic_collab.cli`` from the repository
 root, so the tests exercise the command line a user types.
 """
 
@@ -28,7 +28,7 @@ _PORT_LINE = re.compile(r"viewer: https?://[^\s/]+:(\d+)/")
 
 def haptic(*args: str) -> list[str]:
     """The command line of ``haptic ARGS``."""
-    return [sys.executable, "-m", "haptic_cli", *args]
+    return [sys.executable, "-m", "haptic_collab.cli", *args]
 
 
 class ServerProcess:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from haptic_cli import build_parser, main
+from haptic_collab.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -24,7 +24,7 @@ def run(
     """``haptic ARGS`` in a subprocess; ``tmpdir`` becomes its temporary folder (TMPDIR)."""
     env = None if tmpdir is None else dict(os.environ, TMPDIR=str(tmpdir))
     return subprocess.run(
-        [sys.executable, "-m", "haptic_cli", *args],
+        [sys.executable, "-m", "haptic_collab.cli", *args],
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -147,7 +147,7 @@ def test_protocol_schema_and_devices(capsys):
 
 
 def _spacemouse_attached() -> bool:
-    from client.devices.hid import list_devices
+    from haptic_collab.client.devices.hid import list_devices
 
     return any(d["spec"] == "hid:256f:c635" for d in list_devices())
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from haptic_cli import main
-from shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX
+from haptic_collab.cli import main
+from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -138,7 +138,7 @@ def test_unknown_profile_error_lists_the_known_ones(capsys) -> None:
 
 def test_gains_runs_as_a_module() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "haptic_cli", "gains", "--k-o", "300", "--local-model", "p"],
+        [sys.executable, "-m", "haptic_collab.cli", "gains", "--k-o", "300", "--local-model", "p"],
         capture_output=True,
         text=True,
         timeout=120,

@@ -7,12 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from client.devices import HandParams, SimDevice, make_device
-from haptic_cli import _client_options, _server_options, build_parser, main
-from haptic_demo import DemoOptions
-from server.main import ServerOptions, build_world
-from server.objects.balloon import BalloonParams
-from server.world import ContactInput, World
+from haptic_collab.cli import _client_options, _server_options, build_parser, main
+from haptic_collab.client.devices import HandParams, SimDevice, make_device
+from haptic_collab.demo import DemoOptions
+from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.objects.balloon import BalloonParams
+from haptic_collab.server.world import ContactInput, World
 
 TOP = (0.0, 0.0, 0.1)
 UP = (0.0, 0.0, 1.0)

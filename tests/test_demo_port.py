@@ -8,9 +8,9 @@ import sys
 
 import pytest
 
-import haptic_demo
-from haptic_demo import _port_free
-from server.urls import reachable_addresses, viewer_urls
+from haptic_collab import demo as haptic_demo
+from haptic_collab.demo import _port_free
+from haptic_collab.server.urls import reachable_addresses, viewer_urls
 
 
 def _leave_time_wait() -> int:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from haptic_demo import B_SETTLE_S, RELEASE_SETTLE_S, coupling_report, timeline
+from haptic_collab.demo import B_SETTLE_S, RELEASE_SETTLE_S, coupling_report, timeline
 
 RATE = 1000.0
 REST_N, HOLD_N = 0.20, 0.24  # B's force at rest and while A holds

@@ -24,11 +24,11 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from client.servo import ServoConfig
-from server.app import ServerApp
-from server.main import ServerOptions, build_world
-from server.room import Room
-from shared.protocol import ObjectInfo
+from haptic_collab.client.servo import ServoConfig
+from haptic_collab.server.app import ServerApp
+from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.room import Room
+from haptic_collab.shared.protocol import ObjectInfo
 from tests.processes import ServerProcess, finish_client, start_client, wait_until
 
 pytestmark = pytest.mark.slow

@@ -13,12 +13,12 @@ import time
 import pytest
 from websockets.asyncio.client import connect
 
-from client.session import ClientSession, ServoSample
-from haptic_cli import main
-from server.app import ServerApp
-from server.main import ServerOptions, build_world
-from server.room import Room
-from shared.protocol import Bye, ProtocolError, encode, parse_client
+from haptic_collab.cli import main
+from haptic_collab.client.session import ClientSession, ServoSample
+from haptic_collab.server.app import ServerApp
+from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.room import Room
+from haptic_collab.shared.protocol import Bye, ProtocolError, encode, parse_client
 
 jsonschema = pytest.importorskip("jsonschema")
 

@@ -26,26 +26,26 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from client.devices.base import Device, DeviceLimits, HapticError, Vec3
-from client.devices.profiles import (
+from haptic_collab.client.devices.base import Device, DeviceLimits, HapticError, Vec3
+from haptic_collab.client.devices.profiles import (
     SIM_PROFILES,
     HidProfile,
     get_sim_profile,
     load_hid_profile,
     sim_profile_names,
 )
-from client.devices.sim import HandParams, SimDevice
-from client.devices.trajectories import (
+from haptic_collab.client.devices.sim import HandParams, SimDevice
+from haptic_collab.client.devices.trajectories import (
     Press,
     Replay,
     ReplayError,
     Rest,
     hand_depth_for,
 )
-from shared.primitives import unit_vec3, vec3
+from haptic_collab.shared.primitives import unit_vec3, vec3
 
 if TYPE_CHECKING:
-    from client.devices.hid import HidPort
+    from haptic_collab.client.devices.hid import HidPort
 
 __all__ = [
     "Device",
@@ -283,7 +283,7 @@ def make_device(
             servo_period_s=1.0 / servo_rate_hz,
         )
     if kind == "hid":
-        from client.devices.hid import open_hid_device
+        from haptic_collab.client.devices.hid import open_hid_device
 
         vid, pid = parse_hid_ids(rest)
         hp: HidProfile | None
@@ -354,7 +354,7 @@ class DeviceOpener:
             return port
         if self._base_opener is not None:
             return self._base_opener(vendor_id, product_id)
-        from client.devices.hid import _hid_open
+        from haptic_collab.client.devices.hid import _hid_open
 
         return _hid_open(vendor_id, product_id)
 
@@ -391,7 +391,7 @@ class DeviceOpener:
             try:
                 self._early = self._open_port(vid, pid)
             except OSError as exc:
-                from client.devices.hid import open_error_message
+                from haptic_collab.client.devices.hid import open_error_message
 
                 raise DeviceError(open_error_message(vid, pid, exc)) from None
 
@@ -418,7 +418,7 @@ class DeviceOpener:
         except OSError as exc:
             if self.hid_ids is None:
                 raise DeviceError(f"cannot open {self.spec}: {exc}") from None
-            from client.devices.hid import open_error_message
+            from haptic_collab.client.devices.hid import open_error_message
 
             raise DeviceError(open_error_message(*self.hid_ids, exc)) from None
         return dev
@@ -445,7 +445,7 @@ def list_devices() -> list[dict[str, Any]]:
         bundled generic HID profile files are listed by
         :func:`client.devices.profiles.hid_profile_names`.
     """
-    from client.devices.hid import list_devices as list_hid
+    from haptic_collab.client.devices.hid import list_devices as list_hid
 
     out = list_hid()
     for name in sim_profile_names():

@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 
-from shared.primitives import vec3
+from haptic_collab.shared.primitives import vec3
 
 Vec3 = tuple[float, float, float]
 

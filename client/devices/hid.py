@@ -30,8 +30,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
-from client.devices.base import Device, DeviceLimits, Vec3
-from client.devices.profiles import (
+from haptic_collab.client.devices.base import Device, DeviceLimits, Vec3
+from haptic_collab.client.devices.profiles import (
     HidInputLayout,
     HidOutputLayout,
     HidProfile,

@@ -62,7 +62,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from client.devices.base import DeviceLimits
+from haptic_collab.client.devices.base import DeviceLimits
 
 #: Folder of the bundled generic HID profile files.
 HID_PROFILE_DIR = Path(__file__).resolve().parent / "profiles"

@@ -21,8 +21,8 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from client.devices.base import Device, DeviceLimits, Vec3
-from client.devices.profiles import SimProfile
+from haptic_collab.client.devices.base import Device, DeviceLimits, Vec3
+from haptic_collab.client.devices.profiles import SimProfile
 
 Trajectory = Callable[[float], Vec3]
 

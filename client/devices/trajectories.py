@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from shared.primitives import unit_vec3, vec3
+from haptic_collab.shared.primitives import unit_vec3, vec3
 
 Vec3 = tuple[float, float, float]
 

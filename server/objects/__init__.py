@@ -15,8 +15,8 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from server.objects.balloon import Balloon, BalloonParams, Patch
-from server.objects.mesh import MeshError, default_balloon, load_mesh, repair_mesh
+from haptic_collab.server.objects.balloon import Balloon, BalloonParams, Patch
+from haptic_collab.server.objects.mesh import MeshError, default_balloon, load_mesh, repair_mesh
 
 
 class AdmittanceObject(Protocol):

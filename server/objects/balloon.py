@@ -72,8 +72,8 @@ import trimesh
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from server.contacts import K_O_MAX
-from server.objects.mesh import MeshError, default_balloon
+from haptic_collab.server.contacts import K_O_MAX
+from haptic_collab.server.objects.mesh import MeshError, default_balloon
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

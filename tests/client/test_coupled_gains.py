@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.session import ClientSession, interim_design
-from server.contacts import effective_stiffness, stiff_stiffness
-from shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
-from shared.protocol import DeviceInfo, Patch, PlaneModel, Welcome, encode
+from haptic_collab.client.session import ClientSession, interim_design
+from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
+from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
+from haptic_collab.shared.protocol import DeviceInfo, Patch, PlaneModel, Welcome, encode
 from tests.client.test_session import OBJ
 
 

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.app import ClientOptions, run_client
-from client.devices import DeviceError, DeviceOpener
-from client.devices.hid import ProfileHidDevice, open_error_message
-from client.recorder import load_recording
+from haptic_collab.client.app import ClientOptions, run_client
+from haptic_collab.client.devices import DeviceError, DeviceOpener
+from haptic_collab.client.devices.hid import ProfileHidDevice, open_error_message
+from haptic_collab.client.recorder import load_recording
 
 # -- the one line -----------------------------------------------------------------------------------
 
@@ -165,9 +165,9 @@ def _recorded(path: Path) -> dict[str, np.ndarray]:
 
 @pytest.mark.slow
 async def test_an_unplugged_device_is_reopened_and_the_link_is_left_alone(tmp_path: Path) -> None:
-    from server.app import ServerApp
-    from server.main import ServerOptions, build_world
-    from server.room import Room
+    from haptic_collab.server.app import ServerApp
+    from haptic_collab.server.main import ServerOptions, build_world
+    from haptic_collab.server.room import Room
 
     world = build_world(ServerOptions(sim_rate_hz=20.0, subdivisions=3))
     app = ServerApp(Room(world, 20.0), "127.0.0.1", 0)

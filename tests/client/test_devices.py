@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from client.devices import (
+from haptic_collab.client.devices import (
     HandParams,
     Press,
     Replay,
@@ -19,9 +19,9 @@ from client.devices import (
     make_device,
     parse_hid_ids,
 )
-from client.devices.profiles import SIM_PROFILES, get_sim_profile, sim_profile_names
-from client.servo import ServoConfig, ServoCore
-from shared.primitives import make_plane
+from haptic_collab.client.devices.profiles import SIM_PROFILES, get_sim_profile, sim_profile_names
+from haptic_collab.client.servo import ServoConfig, ServoCore
+from haptic_collab.shared.primitives import make_plane
 
 T = 1e-3
 

@@ -16,17 +16,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from client.link import Link
-from client.session import (
+from haptic_collab.client.link import Link
+from haptic_collab.client.session import (
     INTERIM_LADDER,
     ClientSession,
     PatchUpdate,
     interim_design,
     verify_gains,
 )
-from shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
-from shared.gain_design import GainKey, GainTable
-from shared.protocol import DeviceInfo, Pong, Welcome, encode
+from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
+from haptic_collab.shared.gain_design import GainKey, GainTable
+from haptic_collab.shared.protocol import DeviceInfo, Pong, Welcome, encode
 from tests.client.test_session import OBJ
 from tests.client.test_session import patch as session_patch
 

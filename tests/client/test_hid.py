@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from client.devices import make_device, parse_hid_ids
-from client.devices.hid import (
+from haptic_collab.client.devices import make_device, parse_hid_ids
+from haptic_collab.client.devices.hid import (
     ProfileHidDevice,
     SpaceMouseDevice,
     SpaceMouseMapping,
@@ -26,7 +26,7 @@ from client.devices.hid import (
     parse_spacemouse_report,
     spacemouse_position,
 )
-from client.devices.profiles import ProfileError, load_hid_profile, parse_hid_profile
+from haptic_collab.client.devices.profiles import ProfileError, load_hid_profile, parse_hid_profile
 
 CENTER = (0.0, 0.0, 0.1)
 

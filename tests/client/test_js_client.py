@@ -30,7 +30,7 @@ from typing import Any
 
 import pytest
 
-from server.main import ServerOptions, run_server
+from haptic_collab.server.main import ServerOptions, run_server
 
 ROOT = Path(__file__).resolve().parents[2]
 JS_DIR = ROOT / "client" / "js"

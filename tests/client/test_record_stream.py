@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.devices import make_device
-from client.recorder import COLUMNS, CsvRecording, TelemetryRecorder, load_recording
-from client.servo import ServoConfig, ServoCore
+from haptic_collab.client.devices import make_device
+from haptic_collab.client.recorder import COLUMNS, CsvRecording, TelemetryRecorder, load_recording
+from haptic_collab.client.servo import ServoConfig, ServoCore
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -133,7 +133,7 @@ def test_replay_still_reads_the_documented_t_x_y_z_format(tmp_path: Path) -> Non
 
 def _haptic(*args: str, **kw) -> subprocess.Popen[str]:  # type: ignore[no-untyped-def]
     return subprocess.Popen(
-        [sys.executable, "-m", "haptic_cli", *args],
+        [sys.executable, "-m", "haptic_collab.cli", *args],
         cwd=ROOT,
         text=True,
         stdout=subprocess.PIPE,
@@ -207,7 +207,7 @@ def test_haptic_plot_draws_a_recording(tmp_path: Path) -> None:
     dev.open()
     core = ServoCore(dev, ServoConfig(link_timeout_s=float("inf")))
     core.enable_forces()
-    from shared.primitives import make_plane
+    from haptic_collab.shared.primitives import make_plane
 
     core.set_patch(make_plane(anchor, normal), 250.0, 0.0)
     for k in range(800):
@@ -215,7 +215,7 @@ def test_haptic_plot_draws_a_recording(tmp_path: Path) -> None:
     path = tmp_path / "B.csv"
     core.recorder.write_csv(path)
     res = subprocess.run(
-        [sys.executable, "-m", "haptic_cli", "plot", str(path)],
+        [sys.executable, "-m", "haptic_collab.cli", "plot", str(path)],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -229,7 +229,7 @@ def test_haptic_plot_draws_a_recording(tmp_path: Path) -> None:
     bad = tmp_path / "hand.csv"
     bad.write_text("t_s,x_m,y_m,z_m\n0,0,0,0\n")
     res = subprocess.run(
-        [sys.executable, "-m", "haptic_cli", "plot", str(bad)],
+        [sys.executable, "-m", "haptic_collab.cli", "plot", str(bad)],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.devices import make_device
-from client.recorder import COLUMNS, TelemetryRecorder
-from client.servo import ServoConfig, ServoCore
-from shared.primitives import make_plane
+from haptic_collab.client.devices import make_device
+from haptic_collab.client.recorder import COLUMNS, TelemetryRecorder
+from haptic_collab.client.servo import ServoConfig, ServoCore
+from haptic_collab.shared.primitives import make_plane
 
 
 def row(i: int) -> list[float]:

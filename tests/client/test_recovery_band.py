@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import pytest
 
-from client.servo import ServoCore
-from shared.local_model import LocalModel, LocalModelParams, ThresholdParams
+from haptic_collab.client.servo import ServoCore
+from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
 from tests.client.test_servo_damper_hold import ScriptedDevice, make_core, plane_at, run
 
 

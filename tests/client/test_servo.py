@@ -11,10 +11,10 @@ import time
 
 import pytest
 
-from client.devices.base import Device, DeviceLimits, HapticError, Vec3
-from client.servo import DeadlineLoop, ServoConfig, ServoCore, ServoThread
-from shared.local_model import LocalModelParams
-from shared.primitives import make_plane, make_sphere
+from haptic_collab.client.devices.base import Device, DeviceLimits, HapticError, Vec3
+from haptic_collab.client.servo import DeadlineLoop, ServoConfig, ServoCore, ServoThread
+from haptic_collab.shared.local_model import LocalModelParams
+from haptic_collab.shared.primitives import make_plane, make_sphere
 
 T = 1e-3
 RAMP_S = 0.05

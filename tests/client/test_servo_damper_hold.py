@@ -10,9 +10,9 @@ from collections.abc import Callable
 
 import pytest
 
-from client.devices.base import Device, DeviceLimits, Vec3
-from client.servo import ServoConfig, ServoCore
-from shared.primitives import Plane, make_plane, make_sphere
+from haptic_collab.client.devices.base import Device, DeviceLimits, Vec3
+from haptic_collab.client.servo import ServoConfig, ServoCore
+from haptic_collab.shared.primitives import Plane, make_plane, make_sphere
 
 T = 1e-3
 RAMP_S = 0.05

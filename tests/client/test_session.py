@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from client.session import ClientSession
-from shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
-from shared.protocol import (
+from haptic_collab.client.session import ClientSession
+from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
+from haptic_collab.shared.protocol import (
     DeviceInfo,
     ObjectInfo,
     Patch,
@@ -15,7 +15,7 @@ from shared.protocol import (
     Welcome,
     encode,
 )
-from shared.stability import analyze
+from haptic_collab.shared.stability import analyze
 
 OBJ = ObjectInfo(
     n_vertices=6, n_faces=8, center_m=(0, 0, 0), radius_m=0.1, bounds_min_m=(-0.1, -0.1, -0.1),
@@ -144,7 +144,7 @@ def test_stale_patches_are_ignored_and_a_new_session_starts_afresh():
 
 @pytest.mark.parametrize("bad", ['{"type":"patch"}', "nope", '{"type":"room"}'])
 def test_bad_server_frames_raise_protocol_errors(bad):
-    from shared.protocol import ProtocolError
+    from haptic_collab.shared.protocol import ProtocolError
 
     with pytest.raises(ProtocolError):
         session().receive(bad, 0.0)

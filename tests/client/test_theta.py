@@ -17,15 +17,15 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from client.app import THETA_EXIT_SPEED_M_S, threshold_for
-from client.devices.base import Device, DeviceLimits, Vec3
-from client.devices.profiles import get_sim_profile
-from client.devices.sim import SimDevice
-from client.devices.trajectories import Press
-from client.servo import ServoConfig, ServoCore
-from shared.gain_design import GainDesign, GainKey, GainTable
-from shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
-from shared.primitives import make_plane
+from haptic_collab.client.app import THETA_EXIT_SPEED_M_S, threshold_for
+from haptic_collab.client.devices.base import Device, DeviceLimits, Vec3
+from haptic_collab.client.devices.profiles import get_sim_profile
+from haptic_collab.client.devices.sim import SimDevice
+from haptic_collab.client.devices.trajectories import Press
+from haptic_collab.client.servo import ServoConfig, ServoCore
+from haptic_collab.shared.gain_design import GainDesign, GainKey, GainTable
+from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
+from haptic_collab.shared.primitives import make_plane
 
 T = 1e-3
 N = 50  # servo ticks per simulation tick (20 Hz)

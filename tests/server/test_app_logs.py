@@ -8,9 +8,9 @@ import logging
 
 from websockets.asyncio.client import connect
 
-from server.app import ServerApp
-from server.main import ServerOptions, build_world
-from server.room import Room
+from haptic_collab.server.app import ServerApp
+from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.room import Room
 
 SIM_RATE = 20.0
 
@@ -45,3 +45,14 @@ async def test_open_and_close_lines_name_the_peer(caplog):
     assert len(closed) == 1 and "user 'Ada'" in closed[0] and "code 1000" in closed[0], mine
     quiet_closed = [ln for ln in lines if f"127.0.0.1:{quiet_port}" in ln and "closed" in ln]
     assert len(quiet_closed) == 1 and "before hello" in quiet_closed[0], lines
+
+
+def test_an_incomplete_viewer_is_named(tmp_path):
+    world = build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2))
+    room = Room(world, SIM_RATE)
+    # the package's own viewer is complete (npm's three.js in a checkout, package data in a wheel)
+    assert ServerApp(room, "127.0.0.1", 0).viewer_missing() == []
+    # a viewer folder without three.js: the server says which files are missing
+    (tmp_path / "index.html").write_text("<html></html>")
+    missing = ServerApp(room, "127.0.0.1", 0, web_dir=tmp_path).viewer_missing()
+    assert "node_modules/three/build/three.module.js" in missing and "index.html" not in missing

@@ -9,9 +9,14 @@ import pytest
 import scipy.sparse as sp
 import trimesh
 
-from server.contacts import K_O_MAX
-from server.objects.balloon import Balloon, BalloonParams, cotangent_laplacian, vertex_areas
-from server.objects.mesh import MeshError, default_balloon
+from haptic_collab.server.contacts import K_O_MAX
+from haptic_collab.server.objects.balloon import (
+    Balloon,
+    BalloonParams,
+    cotangent_laplacian,
+    vertex_areas,
+)
+from haptic_collab.server.objects.mesh import MeshError, default_balloon
 
 TOP = np.array([0.0, 0.0, 0.1])
 SIDE = np.array([0.1, 0.0, 0.0])

@@ -5,9 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from server.bench_fidelity import Grid, plot, run
-from shared.fidelity import SCHEMES
-from shared.full_loop import DEFAULT_HAND, Hand
+from haptic_collab.server.bench_fidelity import Grid, plot, run
+from haptic_collab.shared.fidelity import SCHEMES
+from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand
 
 CELL_KEYS = {
     "scheme", "model", "k_o_n_per_m", "sim_rate_hz", "delay_ms", "hand", "trajectory", "stable",

@@ -12,8 +12,8 @@ import json
 
 import pytest
 
-from haptic_cli import main
-from server.bench_load import REQUIRED_KEYS
+from haptic_collab.cli import main
+from haptic_collab.server.bench_load import REQUIRED_KEYS
 
 SIM_RATE_HZ = 20.0
 

@@ -8,8 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from haptic_cli import build_parser
-from server.config import SERVER_OPTIONS, ConfigError, apply_server_config, load_server_config
+from haptic_collab.cli import build_parser
+from haptic_collab.server.config import (
+    SERVER_OPTIONS,
+    ConfigError,
+    apply_server_config,
+    load_server_config,
+)
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "server-config.example.toml"
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from server.contacts import (
+from haptic_collab.server.contacts import (
     K_O_MAX,
     SurfaceIndex,
     closest_point,
@@ -16,8 +16,8 @@ from server.contacts import (
     spectral_radius,
     stiff_stiffness,
 )
-from server.objects.balloon import Balloon
-from shared.primitives import Plane, Sphere
+from haptic_collab.server.objects.balloon import Balloon
+from haptic_collab.shared.primitives import Plane, Sphere
 
 R = 0.1
 
@@ -197,7 +197,7 @@ def test_two_close_contacts_are_unstable_at_095_k_o_but_stable_at_095_k_o_eff(ba
 
 
 def test_stiff_stiffness_is_the_stiffest_mode_of_each_coupled_group() -> None:
-    from shared.coupled_loop import compliance_matrix, modal_stiffness
+    from haptic_collab.shared.coupled_loop import compliance_matrix, modal_stiffness
 
     k_o = 300.0
     for c in (0.0, 0.5, 0.9):

@@ -8,16 +8,16 @@ import math
 import numpy as np
 import pytest
 
-from server.fidelity_3d import (
+from haptic_collab.server.fidelity_3d import (
     RATE_RATIO,
     NormalTrajectory,
     run_3d_cell,
     run_3d_cells,
     top_contact,
 )
-from server.main import ServerOptions, build_world
-from shared.fidelity import IMPACT, SCHEMES, STABLE_HOLD_P2P_M, cell_metrics, simulate
-from shared.gain_design import GainTable
+from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.shared.fidelity import IMPACT, SCHEMES, STABLE_HOLD_P2P_M, cell_metrics, simulate
+from haptic_collab.shared.gain_design import GainTable
 
 CELL_KEYS = {
     "scheme",

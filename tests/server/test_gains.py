@@ -12,14 +12,14 @@ import json
 import numpy as np
 import pytest
 
-from client.session import ClientSession
-from server.gains import GainAdvisor, GainJob, run_job
-from server.objects.balloon import Balloon
-from server.objects.mesh import default_balloon
-from server.room import Room
-from server.world import World
-from shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
-from shared.protocol import (
+from haptic_collab.client.session import ClientSession
+from haptic_collab.server.gains import GainAdvisor, GainJob, run_job
+from haptic_collab.server.objects.balloon import Balloon
+from haptic_collab.server.objects.mesh import default_balloon
+from haptic_collab.server.room import Room
+from haptic_collab.server.world import World
+from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
+from haptic_collab.shared.protocol import (
     DeviceInfo,
     Hello,
     Patch,

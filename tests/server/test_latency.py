@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from server.latency import LinkConfig, LinkShaper
+from haptic_collab.server.latency import LinkConfig, LinkShaper
 
 
 def test_constant_latency_delays_every_frame():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from server.materials import (
+from haptic_collab.server.materials import (
     LIVER_YOUNG_PA,
     PRESETS,
     WATER_BULK_MODULUS_PA,
@@ -22,8 +22,8 @@ from server.materials import (
     material_to_params,
     top_side_stiffness,
 )
-from server.objects.balloon import Balloon, BalloonParams
-from server.objects.mesh import default_balloon
+from haptic_collab.server.objects.balloon import Balloon, BalloonParams
+from haptic_collab.server.objects.mesh import default_balloon
 
 #: K_o [N/m] (top, side) on the default mesh as docs/materials.md lists them.
 DOCUMENTED_K_O = {

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from server.objects.mesh import (
+from haptic_collab.server.objects.mesh import (
     MeshError,
     default_balloon,
     load_mesh,

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from server.reproduce_3d import (
+from haptic_collab.server.reproduce_3d import (
     K_O_TARGET,
     STABLE_HOLD_P2P_MM,
     Timeline3D,
@@ -95,7 +95,7 @@ def test_product_cases_are_skipped_with_a_note_without_the_design(
     real = importlib.import_module
 
     def missing(name: str, *args: Any, **kwargs: Any) -> Any:
-        if name == "shared.gain_design":
+        if name == "haptic_collab.shared.gain_design":
             raise ImportError(name)
         return real(name, *args, **kwargs)
 

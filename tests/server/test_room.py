@@ -11,9 +11,9 @@ import json
 import numpy as np
 import pytest
 
-from server.room import Room, RoomLimits
-from shared.primitives import make_plane
-from shared.protocol import PROTOCOL_VERSION, decode_binary
+from haptic_collab.server.room import Room, RoomLimits
+from haptic_collab.shared.primitives import make_plane
+from haptic_collab.shared.protocol import PROTOCOL_VERSION, decode_binary
 
 
 class RecordingWorld:
@@ -29,7 +29,7 @@ class RecordingWorld:
         self.inputs: list[dict] = []
 
     def tick(self, inputs):
-        from server.world import ContactOutput
+        from haptic_collab.server.world import ContactOutput
 
         self.inputs.append(dict(inputs))
         out = {}

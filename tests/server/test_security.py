@@ -11,11 +11,11 @@ import json
 import numpy as np
 import pytest
 
-from server.force_bound import ForceBoundParams, bound_force
-from server.main import ServerOptions, build_auth
-from server.room import Room, RoomLimits
-from server.security import TokenBucket, TokenTable, is_loopback, origin_allowed
-from shared.primitives import make_plane, make_sphere
+from haptic_collab.server.force_bound import ForceBoundParams, bound_force
+from haptic_collab.server.main import ServerOptions, build_auth
+from haptic_collab.server.room import Room, RoomLimits
+from haptic_collab.server.security import TokenBucket, TokenTable, is_loopback, origin_allowed
+from haptic_collab.shared.primitives import make_plane, make_sphere
 from tests.server.test_room import RecordingWorld, prime, state, texts
 
 ALICE = "alice-token-0123456789"

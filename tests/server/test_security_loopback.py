@@ -19,11 +19,11 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from client.app import ClientOptions, run_client
-from server.app import ServerApp
-from server.main import ServerOptions, build_world
-from server.room import Room
-from server.security import TokenTable
+from haptic_collab.client.app import ClientOptions, run_client
+from haptic_collab.server.app import ServerApp
+from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.room import Room
+from haptic_collab.server.security import TokenTable
 from tests.test_loopback import _good_user
 
 pytestmark = pytest.mark.slow
@@ -236,8 +236,8 @@ async def test_a_send_that_never_completes_drops_the_consumer_after_the_send_tim
         async def send(self, data: object) -> None:
             await asyncio.Event().wait()  # the peer never reads: drain never returns
 
-    from server.app import _Peer
-    from server.latency import LinkConfig, LinkShaper
+    from haptic_collab.server.app import _Peer
+    from haptic_collab.server.latency import LinkConfig, LinkShaper
 
     app.room.connect("v", 0.0, "10.0.0.1")
     app.room.receive("v", hello("v", role="viewer"), 0.0)

@@ -15,10 +15,10 @@ from collections import deque
 import numpy as np
 import pytest
 
-from server.objects.balloon import Balloon, BalloonParams
-from server.objects.mesh import default_balloon
-from server.room import Room
-from server.viewer_stream import (
+from haptic_collab.server.objects.balloon import Balloon, BalloonParams
+from haptic_collab.server.objects.mesh import default_balloon
+from haptic_collab.server.room import Room
+from haptic_collab.server.viewer_stream import (
     BASE_QUANTUM_NM,
     DSP_HEADER,
     FLAG_CLAMPED,
@@ -31,8 +31,8 @@ from server.viewer_stream import (
     decode_displacement,
     vertex_normals,
 )
-from server.world import ContactInput, World
-from shared.protocol import PROTOCOL_VERSION, decode_binary
+from haptic_collab.server.world import ContactInput, World
+from haptic_collab.shared.protocol import PROTOCOL_VERSION, decode_binary
 
 QUANTUM_M = BASE_QUANTUM_NM * 1e-9
 #: float32 rest positions and normals add a few nm on top of the half-quantum rounding
@@ -401,7 +401,7 @@ def test_room_streams_displacements_to_a_viewer_that_reports_what_was_sent():
 async def test_a_viewer_over_websockets_decodes_the_servers_surface():
     from websockets.asyncio.client import connect
 
-    from server.app import ServerApp
+    from haptic_collab.server.app import ServerApp
 
     world = World(Balloon(default_balloon(0.1, 3), BalloonParams(sim_period_s=1 / SIM_RATE_HZ)))
     app = ServerApp(Room(world, SIM_RATE_HZ), "127.0.0.1", 0)

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from server.bench_world import bench_world
-from server.objects.balloon import Balloon
-from server.world import ContactInput, ContactOutput, World
-from shared.primitives import Plane, Sphere
+from haptic_collab.server.bench_world import bench_world
+from haptic_collab.server.objects.balloon import Balloon
+from haptic_collab.server.world import ContactInput, ContactOutput, World
+from haptic_collab.shared.primitives import Plane, Sphere
 
 R = 0.1
 NO_FORCE = np.zeros(3)

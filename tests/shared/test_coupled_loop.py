@@ -17,8 +17,8 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
-from server.contacts import effective_stiffness
-from shared.coupled_loop import (
+from haptic_collab.server.contacts import effective_stiffness
+from haptic_collab.shared.coupled_loop import (
     K_O_RIGID,
     CoupledDesign,
     UserGains,
@@ -32,8 +32,8 @@ from shared.coupled_loop import (
     verification_hands,
     verify_coupled,
 )
-from shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand, spectral_radius
-from shared.gain_design import GainDesign, design_gains
+from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand, spectral_radius
+from haptic_collab.shared.gain_design import GainDesign, design_gains
 
 #: The simulated Phantom Desktop's limits (client.devices.profiles "phantom-desktop"): the gains
 #: the product renders for it.

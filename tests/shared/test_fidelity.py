@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from client.session import ClientSession, DeviceInfo
-from shared.fidelity import (
+from haptic_collab.client.session import ClientSession, DeviceInfo
+from haptic_collab.shared.fidelity import (
     IMPACT,
     PRESS,
     SCHEMES,
@@ -27,11 +27,11 @@ from shared.fidelity import (
     scheme_tuning,
     simulate,
 )
-from shared.full_loop import DEFAULT_HAND, Hand, spectral_radius
-from shared.gain_design import felt_stiffness
-from shared.local_model import LocalModel, LocalModelParams, ThresholdParams
-from shared.passivity import PassivityController, PassivityParams
-from shared.protocol import Welcome, encode
+from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand, spectral_radius
+from haptic_collab.shared.gain_design import felt_stiffness
+from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
+from haptic_collab.shared.passivity import PassivityController, PassivityParams
+from haptic_collab.shared.protocol import Welcome, encode
 from tests.client.test_session import OBJ
 
 P500 = Rendering("local-p", "coupling", k_h=500.0)

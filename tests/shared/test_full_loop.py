@@ -13,7 +13,7 @@ from collections import deque
 import numpy as np
 import pytest
 
-from shared.full_loop import (
+from haptic_collab.shared.full_loop import (
     DAMPER_FILTER_S,
     DEFAULT_HAND,
     DEFAULT_HAND_BOX,
@@ -23,7 +23,7 @@ from shared.full_loop import (
     monodromy,
     spectral_radius,
 )
-from shared.stability import analyze
+from haptic_collab.shared.stability import analyze
 
 
 def _simulate(

@@ -19,8 +19,14 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand, ProxyHold, spectral_radius
-from shared.gain_design import (
+from haptic_collab.shared.full_loop import (
+    DEFAULT_HAND,
+    DEFAULT_HAND_BOX,
+    Hand,
+    ProxyHold,
+    spectral_radius,
+)
+from haptic_collab.shared.gain_design import (
     GainDesign,
     GainKey,
     GainTable,

@@ -7,9 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from shared.local_model import LocalModel, LocalModelParams, ThresholdParams, encoder_speed_bound
-from shared.multirate import simulate, step_metrics
-from shared.primitives import make_plane, make_sphere
+from haptic_collab.shared.local_model import (
+    LocalModel,
+    LocalModelParams,
+    ThresholdParams,
+    encoder_speed_bound,
+)
+from haptic_collab.shared.multirate import simulate, step_metrics
+from haptic_collab.shared.primitives import make_plane, make_sphere
 
 
 def test_proportional_force_is_stiffness_times_penetration():

@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import pytest
 
-from shared.passivity import PassivityController, PassivityParams
+from haptic_collab.shared.passivity import PassivityController, PassivityParams
 
 T = 1e-3
 U = (0.6, 0.0, 0.8)  # unit direction of motion: the controller works in 3-D

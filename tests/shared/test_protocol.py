@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shared.protocol import (
+from haptic_collab.shared.protocol import (
     PROTOCOL_VERSION,
     Hello,
     Patch,

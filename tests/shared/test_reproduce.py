@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from shared.reproduce import reproduce
+from haptic_collab.shared.reproduce import reproduce
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

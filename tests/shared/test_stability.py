@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from shared.local_model import LocalModel, LocalModelParams, ThresholdParams
-from shared.multirate import simulate
-from shared.stability import (
+from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
+from haptic_collab.shared.multirate import simulate
+from haptic_collab.shared.stability import (
     analyze,
     closed_loop_matrix,
     eq8_stable,

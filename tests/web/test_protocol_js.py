@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
-from shared import protocol, protocol_js
+from haptic_collab.shared import protocol, protocol_js
 
 ROOT = Path(__file__).resolve().parents[2]
 WEB = ROOT / "web"

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import ClientConnection, connect
 
-from shared.protocol import PROTOCOL_VERSION
+from haptic_collab.shared.protocol import PROTOCOL_VERSION
 
 ROOT = Path(__file__).resolve().parents[2]
 WEB = ROOT / "web"
@@ -73,9 +73,9 @@ def _browser_skip_reason() -> str | None:
 
 # ----------------------------------------------------------------------------- the real server
 def _world(subdivisions: int) -> Any:
-    from server.objects.balloon import Balloon, BalloonParams
-    from server.objects.mesh import default_balloon
-    from server.world import World
+    from haptic_collab.server.objects.balloon import Balloon, BalloonParams
+    from haptic_collab.server.objects.mesh import default_balloon
+    from haptic_collab.server.world import World
 
     mesh = default_balloon(subdivisions=subdivisions)
     return World(Balloon(mesh, BalloonParams(sim_period_s=1.0 / SIM_RATE_HZ)))
@@ -84,8 +84,8 @@ def _world(subdivisions: int) -> Any:
 @contextlib.asynccontextmanager
 async def running_server(subdivisions: int = 4, port: int = 0) -> AsyncIterator[Any]:
     """The real server (World, Room, ServerApp) on 127.0.0.1, a free port unless ``port``."""
-    from server.app import ServerApp
-    from server.room import Room
+    from haptic_collab.server.app import ServerApp
+    from haptic_collab.server.room import Room
 
     app = ServerApp(Room(_world(subdivisions), SIM_RATE_HZ), "127.0.0.1", port)
     await app.start()
@@ -261,7 +261,7 @@ async def test_http_serves_three_and_every_addon_the_viewer_imports() -> None:
 # ----------------------------------------------------------------------------- no browser
 def test_viewer_stream_constants_match_the_server() -> None:
     """The STREAM block of viewer.js decodes what server/viewer_stream.py encodes."""
-    from server import viewer_stream as vs
+    from haptic_collab.server import viewer_stream as vs
 
     text = (WEB / "viewer.js").read_text(encoding="utf-8")
     m = re.search(r"export const STREAM = Object\.freeze\(\{(.*?)\}\);", text, re.S)

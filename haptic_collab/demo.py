@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from client.devices.trajectories import Rest
-from server.security import is_loopback
-from server.urls import WILDCARD_HOSTS, local_host, url_host, viewer_urls
+from haptic_collab.client.devices.trajectories import Rest
+from haptic_collab.server.security import is_loopback
+from haptic_collab.server.urls import WILDCARD_HOSTS, local_host, url_host, viewer_urls
 
 #: A hold is stable when the peak-to-peak penetration over its last second stays below this [mm].
 STABLE_P2P_MM = 1.0
@@ -195,7 +195,7 @@ def _has_display() -> bool:
 
 
 def _haptic(*args: str) -> list[str]:
-    return [sys.executable, "-m", "haptic_cli", *args]
+    return [sys.executable, "-m", "haptic_collab.cli", *args]
 
 
 def run_demo(opts: DemoOptions) -> dict[str, Any]:
@@ -566,7 +566,7 @@ def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from client.recorder import plot_probe_proxy
+    from haptic_collab.client.recorder import plot_probe_proxy
 
     a, a_sum = _load(work, "A")
     b, b_sum = _load(work, "B")

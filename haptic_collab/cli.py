@@ -72,7 +72,7 @@ def _probability(text: str) -> float:
 # ---------------------------------------------------------------------------------------- stability
 def _hand_from(args: argparse.Namespace) -> object | None:
     """The Hand of --hand-mass/--hand-damping/--hand-stiffness (all three or none)."""
-    from shared.full_loop import Hand
+    from haptic_collab.shared.full_loop import Hand
 
     vals = (args.hand_mass, args.hand_damping, args.hand_stiffness)
     if all(v is None for v in vals):
@@ -86,8 +86,8 @@ def _hand_from(args: argparse.Namespace) -> object | None:
 
 
 def _cmd_stability(args: argparse.Namespace) -> int:
-    from shared.full_loop import analyze_full_loop
-    from shared.stability import analyze
+    from haptic_collab.shared.full_loop import analyze_full_loop
+    from haptic_collab.shared.stability import analyze
 
     hand = _hand_from(args)
     try:
@@ -222,8 +222,8 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
 # ------------------------------------------------------------------------------------------- gains
 def _cmd_gains(args: argparse.Namespace) -> int:
-    from client.devices.profiles import get_sim_profile
-    from shared.gain_design import design_gains
+    from haptic_collab.client.devices.profiles import get_sim_profile
+    from haptic_collab.shared.gain_design import design_gains
 
     try:
         lim = get_sim_profile(args.profile).limits
@@ -320,13 +320,13 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 # ---------------------------------------------------------------------------------------- reproduce
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from shared.reproduce import reproduce
+    from haptic_collab.shared.reproduce import reproduce
 
     results: dict[str, object] = {}
     if args.figure not in ("fig10", "fig11"):  # Fig. 7-9: the 1-D multirate simulator
         results.update(reproduce(args.figure, Path(args.out)))
     if args.figure in ("fig10", "fig11", "all"):  # Fig. 10-11 need the server's 3-D object
-        from server.reproduce_3d import reproduce_3d
+        from haptic_collab.server.reproduce_3d import reproduce_3d
 
         results.update(reproduce_3d(args.figure, Path(args.out)))
     for name in results:
@@ -356,7 +356,7 @@ def _cmd_server(args: argparse.Namespace) -> int:
     import asyncio
     import logging
 
-    from server.main import run_server
+    from haptic_collab.server.main import run_server
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     opts = _server_options(args)
@@ -371,7 +371,7 @@ def _cmd_server(args: argparse.Namespace) -> int:
 
 def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     """The :class:`server.main.ServerOptions` of parsed ``haptic server`` arguments."""
-    from server.main import ServerOptions
+    from haptic_collab.server.main import ServerOptions
 
     return ServerOptions(
         host=args.host,
@@ -486,7 +486,7 @@ def _trajectory_options(text: str) -> dict[str, float]:
 def _cmd_client(args: argparse.Namespace) -> int:
     import asyncio
 
-    from client.app import run_client
+    from haptic_collab.client.app import run_client
 
     _configure_logging(args)
     opts = _client_options(args)
@@ -521,7 +521,7 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     The ``--hand-*`` flags travel in the trajectory options (the simulated hand pulls the device
     along the trajectory); :func:`client.devices.make_device` takes them out into the hand.
     """
-    from client.app import ClientOptions
+    from haptic_collab.client.app import ClientOptions
 
     return ClientOptions(
         url=args.url,
@@ -646,7 +646,7 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
 
 # ------------------------------------------------------------------------------------------ devices
 def _cmd_devices(args: argparse.Namespace) -> int:
-    from client.devices import list_devices
+    from haptic_collab.client.devices import list_devices
 
     devices = list_devices()
     if args.json:
@@ -678,7 +678,7 @@ def _add_devices(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
 
 # --------------------------------------------------------------------------------------------- plot
 def _cmd_plot(args: argparse.Namespace) -> int:
-    from client.recorder import plot_recording
+    from haptic_collab.client.recorder import plot_recording
 
     files = [Path(f) for f in args.files]
     out = Path(args.out) if args.out else files[0].with_suffix(".png")
@@ -708,14 +708,14 @@ def _add_plot(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
 
 # ----------------------------------------------------------------------------------------- protocol
 def _cmd_protocol(args: argparse.Namespace) -> int:
-    from shared.protocol import json_schema
+    from haptic_collab.shared.protocol import json_schema
 
     print(json.dumps(json_schema(args.direction), indent=2))
     return 0
 
 
 def _add_protocol(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    from shared.protocol import SCHEMA_DIRECTIONS
+    from haptic_collab.shared.protocol import SCHEMA_DIRECTIONS
 
     p = sub.add_parser(
         "protocol",
@@ -740,20 +740,22 @@ def _add_protocol(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
 def _cmd_bench(args: argparse.Namespace) -> int:
     results: dict[str, object] = {}
     if args.what in ("server", "all"):
-        from server.bench_world import run as bench_server
+        from haptic_collab.server.bench_world import run as bench_server
 
         results["server"] = bench_server(json_out=True)
     if args.what in ("servo", "all"):
-        from client.bench_servo import run as bench_servo
+        from haptic_collab.client.bench_servo import run as bench_servo
 
         results["servo"] = bench_servo(duration_s=args.duration, rate_hz=args.servo_rate)
     if args.what in ("gains", "all"):
-        from client.bench_gains import run as bench_gains
+        from haptic_collab.client.bench_gains import run as bench_gains
 
         results["gains"] = bench_gains()
     if args.what == "fidelity":
-        from server.bench_fidelity import plot as plot_fidelity
-        from server.bench_fidelity import run as bench_fidelity
+        if args.plot:
+            _need_matplotlib()
+        from haptic_collab.server.bench_fidelity import plot as plot_fidelity
+        from haptic_collab.server.bench_fidelity import run as bench_fidelity
 
         results["fidelity"] = fid = bench_fidelity(
             quick=args.quick,
@@ -769,8 +771,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             _print_fidelity_table(fid)
             return 0
     if args.what == "load":
-        from server.bench_load import LoadOptions, subdivisions_for_vertices
-        from server.bench_load import run as bench_load
+        from haptic_collab.server.bench_load import LoadOptions, subdivisions_for_vertices
+        from haptic_collab.server.bench_load import run as bench_load
 
         try:
             subdivisions = (
@@ -884,7 +886,10 @@ def _print_fidelity_table(result: dict[str, object]) -> None:
 
 # --------------------------------------------------------------------------------------------- demo
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from haptic_demo import DemoOptions, run_demo
+    from haptic_collab.demo import DemoOptions, run_demo
+
+    if args.plot:
+        _need_matplotlib()  # before the run, not after it
 
     opts = DemoOptions(
         duration_s=args.duration,
@@ -1014,6 +1019,14 @@ def build_parser() -> argparse.ArgumentParser:
 _EXTRA = [_add_server, _add_client, _add_demo, _add_devices, _add_plot, _add_protocol, _add_bench]
 
 
+def _need_matplotlib() -> None:
+    """Raise :class:`CliError` when the ``plots`` extra (matplotlib) is not installed."""
+    import importlib.util
+
+    if importlib.util.find_spec("matplotlib") is None:
+        raise CliError("--plot needs matplotlib: pip install 'haptic-collab[plots]'")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``haptic`` console script; returns the exit status."""
     # One BLAS thread: the simulation tick measured faster that way on a busy machine, and a client's
@@ -1023,7 +1036,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "server" and getattr(args, "config", None):
-        from server.config import ConfigError, apply_server_config
+        from haptic_collab.server.config import ConfigError, apply_server_config
 
         sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
         try:
@@ -1038,6 +1051,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except CliError as exc:
         print(f"haptic {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:
+        if exc.name is None or exc.name.split(".")[0] != "matplotlib":
+            raise
+        print(
+            f"haptic {args.command}: error: the figures need matplotlib: "
+            "pip install 'haptic-collab[plots]'",
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
         return 130
