@@ -20,6 +20,7 @@ import contextlib
 import json
 import logging
 import math
+import re
 import signal
 import time
 from collections.abc import Callable
@@ -186,12 +187,21 @@ def _encoder_resolution(device: Device) -> float:
 def _anchor(
     opts: ClientOptions, welcome: Welcome
 ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """Where the scripted hand works: (point [m], outward normal) on the object's rest surface.
+
+    ``top`` is the object's top; ``side`` one of its side anchors, chosen by join order (the
+    number in the user id: u1 on the first side, u2 on the second, ...) so that users resting on
+    a side spread apart; ``auto`` is ``side`` for ``sim:rest`` and ``top`` otherwise.
+    """
     obj = welcome.object
     which = opts.anchor
     if which == "auto":
         which = "side" if opts.device.startswith("sim:rest") else "top"
     if which == "side":
-        return obj.side_m, obj.side_normal
+        sides = [(p.point_m, p.normal) for p in obj.sides] or [(obj.side_m, obj.side_normal)]
+        digits = re.search(r"(\d+)$", welcome.user_id)
+        order = int(digits.group(1)) - 1 if digits else 0
+        return sides[max(order, 0) % len(sides)]
     return obj.top_m, obj.top_normal
 
 
@@ -351,6 +361,7 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
 
     def start_servo(welcome: Welcome) -> None:
         anchor, normal = _anchor(opts, welcome)
+        state["anchor"] = {"point_m": list(anchor), "normal": list(normal)}
         device: Device = opener.build(anchor, normal)
         state["device"] = device
         lim = device.limits
@@ -468,6 +479,7 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
         if recording is not None:
             recording.close()
         summary = _summary(opts, session, link, state["servo"], recorder, updates)
+        summary["anchor"] = state.get("anchor")  # where the scripted hand worked
         summary["clock_origin_s"] = origin_s  # time.perf_counter() (CLOCK_MONOTONIC) at t_s = 0
         summary["stopped_by"] = state.get("signal") or (
             "error" if state["error"] is not None else "end"

@@ -11,7 +11,7 @@ clock, the calling thread):
 
 Targets (DESIGN section 4, the servo rate): mean rate within 0.1 % of the set rate, period p99 of
 the servo loop within 1.2x the minimal loop's, compute p50 <= 20 us per tick. Speed is measured
-here, never asserted in tests. ``python -m client.bench_servo --duration 5 --rate 1000`` prints
+here, never asserted in tests. ``python -m haptic_collab.client.bench_servo --duration 5 --rate 1000`` prints
 the JSON.
 """
 

@@ -48,6 +48,7 @@ from haptic_collab.shared.protocol import (
     Hello,
     LinkConditions,
     ObjectInfo,
+    SurfacePoint,
     Patch,
     Ping,
     PlaneModel,
@@ -199,10 +200,11 @@ class TickStats:
 
 
 def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
-    """Rest-state description of the object: bounds, bounding radius, a top and a side anchor.
+    """Rest-state description of the object: bounds, bounding radius, a top and side anchors.
 
-    The top is the vertex with the largest z, the side the one with the largest x; their normals
-    are area-weighted vertex normals. Shapes: vertices (n, 3) [m], faces (m, 3).
+    The top is the vertex with the largest z, the side the one with the largest x, and ``sides``
+    the vertices furthest along +x, +y, -x and -y (so users resting on a side spread apart);
+    their normals are area-weighted vertex normals. Shapes: vertices (n, 3) [m], faces (m, 3).
     """
     v = np.asarray(vertices, float)
     f = np.asarray(faces, np.int64)
@@ -229,6 +231,15 @@ def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
         top_normal=t3(vn[top]),
         side_m=t3(v[side]),
         side_normal=t3(vn[side]),
+        sides=[
+            SurfacePoint(point_m=t3(v[i]), normal=t3(vn[i]))
+            for i in (
+                side,
+                int(np.argmax(v[:, 1])),
+                int(np.argmin(v[:, 0])),
+                int(np.argmin(v[:, 1])),
+            )
+        ],
     )
 
 

@@ -135,8 +135,20 @@ ClientMessage = Annotated[Hello | State | Ping | Bye, Field(discriminator="type"
 
 
 # ----------------------------------------------------------------------------- server -> client
+class SurfacePoint(_Msg):
+    """A point on the object's rest surface [m] and its outward unit normal."""
+
+    point_m: Vec3
+    normal: Vec3
+
+
 class ObjectInfo(_Msg):
-    """The shared object, in its rest state: enough for a client to find the top and a side."""
+    """The shared object, in its rest state: enough for a client to find the top and a side.
+
+    ``sides`` lists side anchors at four azimuths (the vertices furthest along +x, +y, -x, -y;
+    the first is ``side_m``) so that users resting on a side can spread apart; it may be empty
+    (an older server), then ``side_m`` is the only side.
+    """
 
     n_vertices: int
     n_faces: int
@@ -148,6 +160,7 @@ class ObjectInfo(_Msg):
     top_normal: Vec3
     side_m: Vec3
     side_normal: Vec3
+    sides: list[SurfacePoint] = Field(default_factory=list, max_length=16)
 
 
 class LinkConditions(_Msg):

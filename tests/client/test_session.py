@@ -148,3 +148,38 @@ def test_bad_server_frames_raise_protocol_errors(bad):
 
     with pytest.raises(ProtocolError):
         session().receive(bad, 0.0)
+
+
+def test_users_resting_on_a_side_spread_over_the_sides_by_join_order():
+    from haptic_collab.client.app import ClientOptions, _anchor
+    from haptic_collab.shared.protocol import LinkConditions, SurfacePoint, Welcome
+
+    sides = [
+        SurfacePoint(point_m=(0.1, 0, 0), normal=(1, 0, 0)),
+        SurfacePoint(point_m=(0, 0.1, 0), normal=(0, 1, 0)),
+        SurfacePoint(point_m=(-0.1, 0, 0), normal=(-1, 0, 0)),
+    ]
+    obj = OBJ.model_copy(update={"sides": sides})
+
+    def where(user_id: str, device: str = "sim:rest", anchor: str = "auto"):
+        welcome = Welcome(
+            protocol=1, user_id=user_id, name="x", role="user", sim_rate_hz=20.0, object=obj,
+            link=LinkConditions(),
+        )  # fmt: skip
+        return _anchor(ClientOptions(url="", device=device, anchor=anchor), welcome)  # type: ignore[arg-type]
+
+    assert [where(u)[0] for u in ("u1", "u2", "u3", "u4")] == [
+        (0.1, 0, 0), (0, 0.1, 0), (-0.1, 0, 0), (0.1, 0, 0),
+    ]  # fmt: skip
+    assert where("u2", "sim:press") == (OBJ.top_m, OBJ.top_normal)
+    assert where("u2", "sim:press", "side")[1] == (0, 1, 0)
+    # an older server without side anchors: the one side it names
+    old = OBJ.model_copy(update={"sides": []})
+    welcome = Welcome(
+        protocol=1, user_id="u3", name="x", role="user", sim_rate_hz=20.0, object=old,
+        link=LinkConditions(),
+    )  # fmt: skip
+    assert _anchor(ClientOptions(url="", device="sim:rest"), welcome) == (
+        old.side_m,
+        old.side_normal,
+    )

@@ -221,3 +221,17 @@ def test_silent_connections_are_closed_and_cannot_lock_users_out():
     assert codes == {f"idle{i}": "hello_timeout" for i in range(4)}
     r.connect("user", 6.1)
     assert texts(r.receive("user", hello("U"), 6.1), "user")[0]["type"] == "welcome"
+
+
+def test_users_resting_on_a_side_get_four_distinct_side_anchors(room):
+    info = room.object_info
+    assert len(info.sides) == 4
+    assert info.sides[0].point_m == info.side_m and info.sides[0].normal == info.side_normal
+    points = np.array([s.point_m for s in info.sides])
+    normals = np.array([s.normal for s in info.sides])
+    # +x, +y, -x, -y of the balloon: four points about a diameter apart, normals pointing out
+    center = np.array(info.center_m)
+    assert np.allclose(np.linalg.norm(points - center, axis=1), info.radius_m, rtol=0.05)
+    assert min(np.linalg.norm(points[i] - points[j]) for i in range(4) for j in range(i)) > 0.1
+    for want, n in zip(([1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]), normals, strict=True):
+        assert np.dot(n, want) > 0.9

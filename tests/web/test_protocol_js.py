@@ -52,7 +52,7 @@ def _fields_of(kind: str) -> list[str]:
 def test_committed_protocol_js_equals_generate() -> None:
     committed = (WEB / "protocol.js").read_text(encoding="utf-8")
     assert committed == protocol_js.generate(), (
-        "web/protocol.js is stale: run `python -m shared.protocol_js`"
+        "web/protocol.js is stale: run `python -m haptic_collab.shared.protocol_js`"
     )
 
 
