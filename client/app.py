@@ -40,6 +40,7 @@ from haptic_collab.client.servo import ServoConfig, ServoCore, ServoThread
 from haptic_collab.client.session import ClientSession, PatchUpdate, ServoSample
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
 from haptic_collab.shared.protocol import DeviceInfo, Welcome
+from haptic_collab.shared.stability import rate_ratio
 
 log = logging.getLogger("haptic.client")
 
@@ -360,6 +361,17 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
             halt.set()
 
     def start_servo(welcome: Welcome) -> None:
+        try:  # N must be whole: the local model's lifted loop (paper section 3)
+            rate_ratio(opts.servo_rate_hz, welcome.sim_rate_hz)
+        except ValueError:
+            sim = welcome.sim_rate_hz
+            fit = max(1, round(opts.servo_rate_hz / sim)) * sim
+            raise ValueError(
+                f"the server simulates at {sim:g} Hz and this client's servo rate "
+                f"{opts.servo_rate_hz:g} Hz is not a whole multiple of it; run the client with "
+                f"--servo-rate {fit:g}, or the server at a rate that divides "
+                f"{opts.servo_rate_hz:g} Hz"
+            ) from None
         anchor, normal = _anchor(opts, welcome)
         state["anchor"] = {"point_m": list(anchor), "normal": list(normal)}
         device: Device = opener.build(anchor, normal)

@@ -15,6 +15,10 @@ from haptic_collab.server.room import Room
 from haptic_collab.server.security import TokenTable, is_loopback, normalize_origin
 from haptic_collab.server.urls import viewer_urls
 from haptic_collab.shared.protocol import LinkConditions
+from haptic_collab.shared.stability import dividing_rates, rate_ratio
+
+#: The clients' servo rate the simulation rate must divide [Hz] (``haptic client``'s default).
+CLIENT_SERVO_RATE_HZ = 1000.0
 
 log = logging.getLogger("haptic.server")
 
@@ -116,6 +120,16 @@ def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
 
     if not (1.0 <= opts.sim_rate_hz <= 1000.0):
         raise ValueError(f"--sim-rate must be in [1, 1000] Hz, got {opts.sim_rate_hz:g}")
+    try:  # N = servo rate / simulation rate must be whole (the lifted loop, paper section 3)
+        rate_ratio(CLIENT_SERVO_RATE_HZ, opts.sim_rate_hz)
+    except ValueError:
+        ok = ", ".join(f"{r:g}" for r in dividing_rates(CLIENT_SERVO_RATE_HZ, 10.0, 250.0))
+        raise ValueError(
+            f"--sim-rate {opts.sim_rate_hz:g} Hz: a {CLIENT_SERVO_RATE_HZ:g} Hz servo loop is not "
+            f"a whole multiple of it (N = {CLIENT_SERVO_RATE_HZ / opts.sim_rate_hz:.3g}), so "
+            f"clients could not render its patches; use a rate that divides "
+            f"{CLIENT_SERVO_RATE_HZ:g} Hz: {ok} Hz"
+        ) from None
     if opts.mesh == "balloon":
         if not 0 <= opts.subdivisions <= 7:
             raise ValueError("--subdivisions must be in [0, 7]")

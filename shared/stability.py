@@ -94,6 +94,15 @@ def rate_ratio(servo_rate_hz: float, sim_rate_hz: float) -> int:
     return int(n)
 
 
+def dividing_rates(servo_rate_hz: float, lo_hz: float = 5.0, hi_hz: float = 500.0) -> list[float]:
+    """Simulation rates in ``[lo_hz, hi_hz]`` [Hz] of which ``servo_rate_hz`` is a whole multiple
+    (the rates :func:`rate_ratio` accepts), ascending; for messages that suggest a valid rate."""
+    servo = _positive("servo rate", servo_rate_hz)
+    n_max = int(servo // lo_hz) if lo_hz > 0 else 0
+    rates = {servo / n for n in range(1, n_max + 1) if lo_hz <= servo / n <= hi_hz}
+    return sorted(r for r in rates if abs(r - round(r)) < 1e-9)
+
+
 def local_model_state_space(k_h: float, i_gain: float, servo_period_s: float) -> StateSpace:
     """State-space realization at the servo period T of the local model L(z), eq. (12).
 
