@@ -685,7 +685,9 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     try:
         plot_recording(files, out)
     except ImportError as exc:
-        raise CliError(f"plotting needs matplotlib ({exc}); pip install matplotlib") from None
+        raise CliError(
+            f"plotting needs matplotlib ({exc}): pip install 'haptic-collab[plots]'"
+        ) from None
     except (ValueError, OSError) as exc:
         raise CliError(str(exc)) from None
     print(f"wrote {out}")
