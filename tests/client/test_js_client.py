@@ -23,6 +23,7 @@ import json
 import os
 import shutil
 import statistics
+import sys
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -193,6 +194,50 @@ async def test_two_js_users_feel_each_other(tmp_path, primitive):
     assert f_before > 0.05  # A really rests on the balloon
     assert f_press > 1.0 and f_press > 5 * f_before  # B really presses
     assert f_during >= 1.08 * f_before, (f_before, f_during)  # A feels B's press
+
+
+async def test_a_js_user_feels_a_python_user_in_the_same_room(tmp_path):
+    """One room, two languages: the JS client rests on the side while ``haptic client`` (Python,
+    ``sim:press``) presses into the top; the force the JS client renders rises."""
+    _require_node_modules()
+    async with serving(subdivisions=4) as port:
+        a = JsUser(tmp_path, "A", port, "--on=side", "--rest-depth=0.003", "--window=0.25",
+                   f"--duration={DURATION}")  # fmt: skip
+        await a.start()
+        py = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "haptic_collab.cli", "client",
+            "--url", f"ws://127.0.0.1:{port}/ws", "--name", "P", "--device", "sim:press",
+            "--duration", f"{DURATION - 1.0:g}", "--summary", str(tmp_path / "P.json"),
+            "--trajectory", f"delay_s={PRESS_AT - 1.0:g},approach_s=1,press_s={PRESS_RAMP:g},hold_s=30",
+            cwd=ROOT, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
+        )  # fmt: skip
+        _RUNNING.append(py)
+        (rc_a, sa, err_a), (out_p, _) = await asyncio.gather(
+            a.result(), asyncio.wait_for(py.communicate(), 120.0)
+        )
+    assert rc_a == 0, err_a
+    assert py.returncode == 0, out_p.decode(errors="replace")[-3000:]
+    sp = json.loads((tmp_path / "P.json").read_text())
+    assert sa["joins"] == 1 and sa["fatal_error"] is None and not sa["errors"], sa
+    assert sa["patches"] > 100 and sp["patches"] > 100
+    assert sp["max_force_n"] > 1.0, {
+        k: sp.get(k)
+        for k in (
+            "max_force_n",
+            "first_gains_s",
+            "first_patch_s",
+            "servo_rate_hz",
+            "faults",
+            "anchor",
+        )
+    }  # the Python user really pressed
+    # the Python hand reaches full depth about PRESS_AT + PRESS_RAMP after both started
+    before = windows(sa, PRESS_AT - 4.0, PRESS_AT - 0.5)
+    during = windows(sa, PRESS_AT + PRESS_RAMP + 3.0, DURATION - 1.5)
+    assert len(before) >= 3 and len(during) >= 3, sa["force_windows"]
+    f_before, f_during = median_force(before), median_force(during)
+    assert f_before > 0.05  # A really rests on the balloon
+    assert f_during >= 1.08 * f_before, (f_before, f_during)  # A feels the Python user's press
 
 
 def load_record(path: Path) -> dict[str, list[float]]:
