@@ -652,8 +652,9 @@ def _cmd_devices(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(devices, indent=2))
         return 0
+    backends = [d for d in devices if d.get("kind") == "backend"]
     sims = [d for d in devices if d.get("kind") == "sim"]
-    hid = [d for d in devices if d.get("kind") != "sim"]
+    hid = [d for d in devices if d.get("backend") == "hid"]
     print("Simulated devices (--device sim:press|sim:rest|sim:replay:FILE --profile NAME):")
     for d in {d["profile"]: d for d in sims}.values():
         print(
@@ -667,11 +668,20 @@ def _cmd_devices(args: argparse.Namespace) -> int:
         print(
             f"  {d.get('spec', '?'):<16} {d.get('manufacturer', '')} {d.get('product', '')}".rstrip()
         )
+    print("Device backends (--device NAME:ARGS; docs/devices.md says how to add one):")
+    for b in backends:
+        what = b["description"] if b["available"] else f"not available: {b['message']}"
+        print(f"  {b['name']:<16} {what}".rstrip())
+        if b["name"] not in ("sim", "hid"):  # their devices are listed above
+            for d in b["devices"]:
+                print(f"  {'':<16} {d.get('spec', '?')}")
     return 0
 
 
 def _add_devices(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("devices", help="list HID devices and simulated device profiles")
+    p = sub.add_parser(
+        "devices", help="list device backends, HID devices and simulated device profiles"
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_cmd_devices)
 

@@ -226,28 +226,32 @@ def test_link_loss_ramps_force_to_zero_and_the_client_rejoins(tmp_path):
     finally:
         t_loss = time.perf_counter()
         server.stop()  # the server goes away in the middle of the press
+    t_gone = time.perf_counter()  # the first server has exited
     time.sleep(1.5)
+    t_back = time.perf_counter()
     with ServerProcess(tmp_path / "server2.log", server.port, *SERVER_ARGS, "--subdivisions", "3"):
         summary, cols = finish_client(proc, tmp_path, "A")
-    t = cols["t_s"] + (summary["clock_origin_s"] - t_loss)  # seconds since the loss
-    f = cols["force_n"]
+    t = cols["t_s"] + (summary["clock_origin_s"] - t_loss)  # seconds since Ctrl-C to the server
+    f, ramping = cols["force_n"], cols["ramping"]
     before = (t > -0.5) & (t < 0.0)
     assert np.mean(f[before]) > 0.5  # A was really pressing
-    # the force ramps to zero (no jump) and stays there until the client rejoins
+    # The outage: the longest stretch of zero force after Ctrl-C. A loaded server may take a
+    # moment to act on Ctrl-C (even stall and resume first); it has surely gone by t_gone.
+    zero = (f == 0.0) & (t > 0.0)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], zero.astype(int), [0]])))
+    runs = list(zip(edges[::2], edges[1::2], strict=True))
+    assert runs, "the force never reached zero after the loss"
+    start, end = max(runs, key=lambda r: r[1] - r[0])
+    assert t[start] < t_gone - t_loss + 0.5, (t[start], t_gone - t_loss)
+    assert t[end - 1] - t[start] > t_back - t_gone - 0.2  # nothing rendered while it was gone
+    # a ramp, not a jump: the force falls in small steps over ramp_s of servo ticks (counted
+    # in ticks, not wall time) into the outage
     cfg = ServoConfig()
-    after = np.flatnonzero(t > 0.0)
-    zero = after[f[after] == 0.0]
-    assert zero.size, "the force never reached zero after the loss"
-    first_zero = zero[0]
-    # in ticks, not wall time: the ramp takes ramp_s of servo ticks after the link timeout
-    ramp_ticks = first_zero - after[0]
-    assert ramp_ticks <= (cfg.link_timeout_s + cfg.ramp_s) * 1000.0 + 300, ramp_ticks
-    steps = np.abs(np.diff(f[after[0] : first_zero + 1]))
-    assert steps.max() < 0.2  # a ramp, not a jump
+    ramp = np.flatnonzero(ramping[:start] == 0)
+    ramp_start = ramp[-1] + 1 if ramp.size else 0
+    assert 0 < start - ramp_start <= cfg.ramp_s * 1000.0 + 5, start - ramp_start
+    assert np.abs(np.diff(f[ramp_start - 1 : start + 1])).max() < 0.2
+    assert f[ramp_start - 1] > 0.5  # it ramped down from the press
     assert summary["joins"] >= 2  # rejoined the restarted server
-    back = first_zero + np.flatnonzero(f[first_zero:] > 0.5)
-    assert back.size, "A never pressed again"
-    assert np.all(f[first_zero : back[0]] < 0.5)
-    assert np.ptp(t[first_zero : back[0]]) > 1.0  # nothing rendered while the server was gone
-    late = t > t[back[0]] + 1.0
+    late = t > t_back - t_loss + 3.0
     assert np.mean(f[late]) > 0.5  # and presses again

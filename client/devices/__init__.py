@@ -8,7 +8,12 @@
 ``sim:replay:FILE`` simulated device whose hand replays a file (:func:`load_replay`): a
                     ``--record`` CSV (its probe path) or a CSV ``t_s,x_m,y_m,z_m``
 ``hid:VID:PID``     a real HID device (hex ids): a SpaceMouse, or a device with a JSON profile
+``NAME:ARGS``       a device of an installed backend (entry-point group ``haptic_collab.devices``)
 ==================  ============================================================================
+
+The prefix names a *backend* (:mod:`client.devices.backends`, docs/devices.md): ``sim`` and
+``hid`` are built in (:data:`SIM_BACKEND`, :data:`HID_BACKEND`); a lab adds its own device by
+installing a package that registers one.
 
 :class:`DeviceOpener` checks a spec and opens the device *before* the client touches the network
 (a bad spec or an absent device is a :class:`DeviceError`: one line, what and what to do), and
@@ -19,6 +24,7 @@ hidapi is only imported when a HID device is opened or listed.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -26,6 +32,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from haptic_collab.client.devices.backends import (
+    ENTRY_POINT_GROUP,
+    DeviceBackend,
+    DeviceError,
+    DeviceOpenError,
+    DeviceOptions,
+    list_backends,
+    one_line,
+    usable_backend,
+)
 from haptic_collab.client.devices.base import Device, DeviceLimits, HapticError, Vec3
 from haptic_collab.client.devices.profiles import (
     SIM_PROFILES,
@@ -49,21 +65,28 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Device",
+    "DeviceBackend",
     "DeviceError",
     "DeviceLimits",
+    "DeviceOpenError",
     "DeviceOpener",
+    "DeviceOptions",
+    "ENTRY_POINT_GROUP",
     "HAND_OPTIONS",
+    "HID_BACKEND",
     "HandParams",
     "HapticError",
     "Press",
     "Replay",
     "ReplayError",
     "Rest",
+    "SIM_BACKEND",
     "SIM_PROFILES",
     "SimDevice",
     "Vec3",
     "hand_depth_for",
     "hand_with_options",
+    "list_backends",
     "list_devices",
     "load_replay",
     "make_device",
@@ -75,14 +98,6 @@ HID_STANDOFF_M = 0.02
 
 #: Probe columns of a ``haptic client --record`` file (:data:`client.recorder.COLUMNS`).
 RECORD_PROBE_COLUMNS = ("t_s", "probe_x_m", "probe_y_m", "probe_z_m")
-
-
-class DeviceError(ValueError):
-    """A device spec that cannot be used, or a device that cannot be opened.
-
-    The message is one line: what is wrong and what to do (``haptic client`` prints it and
-    exits 2 before connecting to any server).
-    """
 
 
 def load_replay(path: str | Path) -> Replay:
@@ -196,6 +211,21 @@ def hand_with_options(hand: HandParams | None, options: dict[str, float]) -> Han
     return replace(hand if hand is not None else HandParams(), **values)
 
 
+#: Where :meth:`DeviceBackend.open` builds a device before the server says where the object is
+#: (:meth:`DeviceBackend.place` builds or moves it around the real anchor after the welcome).
+PLACEHOLDER_ANCHOR: Vec3 = (0.0, 0.0, 0.0)
+PLACEHOLDER_NORMAL: Vec3 = (0.0, 0.0, 1.0)
+
+
+def _is_device(obj: object, backend: DeviceBackend, what: str) -> Device:
+    if not isinstance(obj, Device):
+        raise DeviceError(
+            f"device backend {backend.name!r} returned {type(obj).__name__} from {what}(), not a "
+            "Device (see docs/devices.md)"
+        )
+    return obj
+
+
 def make_device(
     spec: str,
     anchor: Sequence[float],
@@ -210,10 +240,16 @@ def make_device(
 ) -> Device:
     """Build a device (not opened) from a spec string.
 
+    The spec's prefix names the backend (:func:`client.devices.backends.get_backend`): its
+    :meth:`~DeviceBackend.open` builds the device from the rest of the spec (without touching the
+    hardware: ``DeviceOptions.acquire`` is False) and its :meth:`~DeviceBackend.place` puts it
+    around ``anchor``.
+
     Parameters
     ----------
     spec : str
-        ``sim:press``, ``sim:rest``, ``sim:replay:FILE`` or ``hid:VID:PID`` (hex).
+        ``sim:press``, ``sim:rest``, ``sim:replay:FILE``, ``hid:VID:PID`` (hex), or
+        ``NAME:ARGS`` of an installed backend.
     anchor : (3,) float
         Surface point [m] of the object the user works on. Scripted hands press/rest on it; the
         simulated workspace is centred on it; a HID device's workspace is centred
@@ -244,6 +280,9 @@ def make_device(
 
     Raises
     ------
+    DeviceError
+        Unknown prefix (the message lists the known backends), a backend that cannot be loaded,
+        or one that is not available here (its message).
     ValueError
         Malformed spec, unknown profile, bad trajectory option, bad anchor or normal, or a HID
         device with neither SpaceMouse ids nor a profile.
@@ -252,75 +291,283 @@ def make_device(
     """
     a = vec3("anchor", anchor)
     n = unit_vec3("normal", normal)
-    kind, _, rest = spec.partition(":")
-    if kind == "sim":
-        prof = get_sim_profile(profile)
-        opts = dict(trajectory_options or {})
-        hand = hand_with_options(hand, opts)
-        what, _, arg = rest.partition(":")
-        traj: Press | Rest | Replay
-        try:
-            if what == "press" and not arg:
-                traj = Press(a, n, **opts)
-            elif what == "rest" and not arg:
-                traj = Rest(a, n, **opts)
-            elif what == "replay" and arg:
-                if opts:
-                    raise ValueError("sim:replay takes no trajectory options")
-                traj = load_replay(arg)
-            else:
-                raise ValueError(
-                    f"unknown simulated device {spec!r}; use sim:press, sim:rest or sim:replay:FILE"
-                )
-        except TypeError as exc:
-            raise ValueError(f"bad trajectory option for {spec!r}: {exc}") from None
-        center = a if not isinstance(traj, Replay) else traj(0.0)
-        return SimDevice(
-            prof,
-            traj,
-            hand,
-            limits=prof.limits.centered_at(center),
-            servo_period_s=1.0 / servo_rate_hz,
-        )
-    if kind == "hid":
-        from haptic_collab.client.devices.hid import open_hid_device
+    backend, args = usable_backend(spec)
+    options = DeviceOptions(
+        profile=profile,
+        trajectory_options=dict(trajectory_options or {}),
+        hand=hand,
+        servo_rate_hz=servo_rate_hz,
+        hid_profile=hid_profile,
+        hid_opener=hid_opener,
+    )
+    dev = _is_device(backend.open(args, options), backend, "open")
+    return _is_device(backend.place(dev, a, n), backend, "place")
 
-        vid, pid = parse_hid_ids(rest)
-        hp: HidProfile | None
-        if hid_profile is None or isinstance(hid_profile, HidProfile):
-            hp = hid_profile
+
+# -- the built-in backends ---------------------------------------------------------------------------
+
+
+def _make_sim(args: str, options: DeviceOptions, a: Vec3, n: Vec3) -> SimDevice:
+    """The simulated device ``sim:args`` around anchor ``a`` (outward normal ``n``)."""
+    spec = f"sim:{args}" if args else "sim"
+    prof = get_sim_profile(options.profile)
+    opts = dict(options.trajectory_options)
+    hand = hand_with_options(options.hand, opts)
+    what, _, arg = args.partition(":")
+    traj: Press | Rest | Replay
+    try:
+        if what == "press" and not arg:
+            traj = Press(a, n, **opts)
+        elif what == "rest" and not arg:
+            traj = Rest(a, n, **opts)
+        elif what == "replay" and arg:
+            if opts:
+                raise ValueError("sim:replay takes no trajectory options")
+            traj = load_replay(arg)
         else:
-            hp = load_hid_profile(hid_profile)
-        center = (
-            a[0] + HID_STANDOFF_M * n[0],
-            a[1] + HID_STANDOFF_M * n[1],
-            a[2] + HID_STANDOFF_M * n[2],
-        )
-        return open_hid_device(vid, pid, center, profile=hp, opener=hid_opener)
-    raise ValueError(
-        f"unknown device spec {spec!r}; use sim:press, sim:rest, sim:replay:FILE or hid:VID:PID"
+            raise ValueError(
+                f"unknown simulated device {spec!r}; use sim:press, sim:rest or sim:replay:FILE"
+            )
+    except TypeError as exc:
+        raise ValueError(f"bad trajectory option for {spec!r}: {exc}") from None
+    center = a if not isinstance(traj, Replay) else traj(0.0)
+    return SimDevice(
+        prof,
+        traj,
+        hand,
+        limits=prof.limits.centered_at(center),
+        servo_period_s=1.0 / options.servo_rate_hz,
     )
 
 
-def _one_line(text: str) -> str:
-    return "; ".join(part.strip() for part in str(text).splitlines() if part.strip())
+class SimBackend(DeviceBackend):
+    """``sim:press``, ``sim:rest``, ``sim:replay:FILE``: a simulated device and hand.
+
+    :meth:`open` builds the device around a placeholder anchor (every option is checked, a replay
+    file is read); :meth:`place` builds it again around the real anchor, except a replayed hand,
+    which is in world coordinates already (the device :meth:`open` returned is used as it is).
+    """
+
+    name = "sim"
+    description = (
+        "a simulated device held by a simulated hand: sim:press, sim:rest or sim:replay:FILE "
+        "(--profile NAME)"
+    )
+
+    def __init__(self) -> None:
+        self._opened: weakref.WeakKeyDictionary[Device, tuple[str, DeviceOptions]] = (
+            weakref.WeakKeyDictionary()
+        )
+
+    def detect(self) -> list[dict[str, Any]]:
+        """One entry per simulated profile (``kind`` ``sim``, ``spec`` ``sim:press``, limits)."""
+        out: list[dict[str, Any]] = []
+        for name in sim_profile_names():
+            lim = SIM_PROFILES[name].limits
+            out.append(
+                {
+                    "kind": "sim",
+                    "spec": "sim:press",
+                    "profile": name,
+                    "max_force_n": lim.max_force_n,
+                    "max_stiffness_n_per_m": lim.max_stiffness_n_per_m,
+                }
+            )
+        return out
+
+    def open(self, args: str, options: DeviceOptions) -> Device:
+        dev = _make_sim(args, options, PLACEHOLDER_ANCHOR, PLACEHOLDER_NORMAL)
+        self._opened[dev] = (args, options)
+        return dev
+
+    def place(self, device: Device, anchor: Vec3, normal: Vec3) -> Device:
+        if isinstance(getattr(device, "trajectory", None), Replay):
+            return device  # a replayed hand is in world coordinates already
+        plan = self._opened.get(device)
+        if plan is None:
+            raise DeviceError(f"{device.name} was not opened by the sim backend")
+        return _make_sim(plan[0], plan[1], anchor, normal)
+
+
+def _hid_center(a: Vec3, n: Vec3) -> Vec3:
+    """A HID device's workspace centre: ``HID_STANDOFF_M`` outside the anchor."""
+    return (
+        a[0] + HID_STANDOFF_M * n[0],
+        a[1] + HID_STANDOFF_M * n[1],
+        a[2] + HID_STANDOFF_M * n[2],
+    )
+
+
+class _EarlyPort:
+    """The port opened before the network, lent to the unplaced device until the placed one
+    takes it (:meth:`take`); closed with it if the client stops before the welcome."""
+
+    def __init__(self, port: HidPort) -> None:
+        self._port: HidPort | None = port
+
+    def take(self) -> HidPort | None:
+        port, self._port = self._port, None
+        return port
+
+    def read(self, max_length: int) -> Sequence[int]:
+        return self._port.read(max_length) if self._port is not None else []
+
+    def write(self, data: bytes) -> int:
+        return self._port.write(data) if self._port is not None else 0
+
+    def close(self) -> None:
+        port = self.take()
+        if port is not None:
+            port.close()
+
+
+class _HidPorts:
+    """The opener of every device built for one ``hid:VID:PID`` spec.
+
+    The port :meth:`acquire` opened before the network goes to the first device that opens (the
+    placed one); later opens (a reopen after an unplug) open a new port. A first open that fails
+    says why in one line (:func:`client.devices.hid.open_error_message`).
+    """
+
+    def __init__(
+        self, vendor_id: int, product_id: int, base: Callable[[int, int], HidPort] | None
+    ) -> None:
+        self.ids = (vendor_id, product_id)
+        self._base = base
+        self._early: _EarlyPort | None = None
+        self._opened = False
+
+    def _open(self, vendor_id: int, product_id: int) -> HidPort:
+        if self._base is not None:
+            return self._base(vendor_id, product_id)
+        from haptic_collab.client.devices.hid import _hid_open
+
+        return _hid_open(vendor_id, product_id)
+
+    def acquire(self) -> None:
+        """Open the port now (before the network).
+
+        Raises
+        ------
+        DeviceError
+            It cannot be opened (absent, no permission, busy), as one line with what to do.
+        """
+        from haptic_collab.client.devices.hid import open_error_message
+
+        try:
+            port = self._open(*self.ids)
+        except OSError as exc:
+            raise DeviceError(open_error_message(*self.ids, exc)) from None
+        self._early = _EarlyPort(port)
+
+    def lend(self, vendor_id: int, product_id: int) -> HidPort:
+        """The early port, for the unplaced device (its close() closes the port if untaken)."""
+        if self._early is None:
+            raise OSError("no port was opened early")
+        return self._early
+
+    def __call__(self, vendor_id: int, product_id: int) -> HidPort:
+        early, self._early = self._early, None
+        port = early.take() if early is not None else None
+        if port is None:
+            try:
+                port = self._open(vendor_id, product_id)
+            except OSError as exc:
+                if self._opened:
+                    raise
+                from haptic_collab.client.devices.hid import open_error_message
+
+                raise DeviceOpenError(open_error_message(vendor_id, product_id, exc)) from exc
+        self._opened = True
+        return port
+
+
+class HidBackend(DeviceBackend):
+    """``hid:VID:PID``: a 3Dconnexion SpaceMouse, or a HID device with a JSON profile.
+
+    :meth:`open` checks the ids and the profile and, with ``options.acquire``, opens the port
+    (the unplaced device holds it); :meth:`place` builds the device around the real anchor on
+    that port.
+    """
+
+    name = "hid"
+    description = (
+        "a real HID device through hidapi: hid:VID:PID (hex ids), a 3Dconnexion SpaceMouse or a "
+        "device with a JSON profile (--hid-profile NAME|FILE.json)"
+    )
+
+    def __init__(self) -> None:
+        self._opened: weakref.WeakKeyDictionary[
+            Device, tuple[int, int, HidProfile | None, _HidPorts]
+        ] = weakref.WeakKeyDictionary()
+
+    def available(self) -> str | None:
+        import importlib.util
+
+        if importlib.util.find_spec("hid") is None:
+            return "the hid backend needs hidapi, which is not installed: pip install hidapi"
+        return None
+
+    def detect(self) -> list[dict[str, Any]]:
+        """Attached HID devices (:func:`client.devices.hid.list_devices`)."""
+        from haptic_collab.client.devices.hid import list_devices as list_hid
+
+        return list_hid()
+
+    def open(self, args: str, options: DeviceOptions) -> Device:
+        from haptic_collab.client.devices.hid import open_hid_device
+
+        vid, pid = parse_hid_ids(args)
+        hp: HidProfile | None
+        if options.hid_profile is None or isinstance(options.hid_profile, HidProfile):
+            hp = options.hid_profile
+        else:
+            hp = load_hid_profile(options.hid_profile)
+        ports = _HidPorts(vid, pid, options.hid_opener)
+        center = _hid_center(PLACEHOLDER_ANCHOR, PLACEHOLDER_NORMAL)
+        opener = ports.lend if options.acquire else ports
+        dev = open_hid_device(vid, pid, center, profile=hp, opener=opener)
+        if options.acquire:
+            ports.acquire()
+            dev.open()  # holds the early port: its close() releases it if it is never placed
+        self._opened[dev] = (vid, pid, hp, ports)
+        return dev
+
+    def place(self, device: Device, anchor: Vec3, normal: Vec3) -> Device:
+        from haptic_collab.client.devices.hid import open_hid_device
+
+        plan = self._opened.get(device)
+        if plan is None:
+            raise DeviceError(f"{device.name} was not opened by the hid backend")
+        vid, pid, hp, ports = plan
+        return open_hid_device(vid, pid, _hid_center(anchor, normal), profile=hp, opener=ports)
+
+
+#: The built-in backends (pyproject.toml registers them as entry points ``sim`` and ``hid``).
+SIM_BACKEND = SimBackend()
+HID_BACKEND = HidBackend()
+
+
+# -- opening a device for haptic client ---------------------------------------------------------------
 
 
 class DeviceOpener:
     """Check a ``--device`` spec and open the device before the network; place it on the object later.
 
-    ``haptic client`` calls :meth:`check` before it connects: the whole spec is parsed (kind,
-    simulated profile, trajectory options, replay file, HID ids and profile) by building the
-    device around a placeholder anchor, and a HID device's port is opened and kept open. Once the
-    server's ``welcome`` says where the object is, :meth:`build` makes the device around the real
-    anchor and opens it, a HID device on the port :meth:`check` opened (a replayed hand does not
-    depend on the anchor: the checked device is used as it is). A device that faults later
-    reopens through the same opener (:meth:`Device.reopen`).
+    ``haptic client`` calls :meth:`check` before it connects: the spec's backend must be known and
+    available, and its :meth:`~DeviceBackend.open` checks the rest (for ``sim``: profile,
+    trajectory options, replay file; for ``hid``: ids and profile, and the port is opened and kept
+    open). Once the server's ``welcome`` says where the object is, :meth:`build` has the backend
+    place the device around the real anchor (:meth:`~DeviceBackend.place`) and opens it (a HID
+    device on the port :meth:`check` opened; a replayed hand, which does not depend on the anchor,
+    is the checked device as it is). A device that faults later reopens through the same opener
+    (:meth:`Device.reopen`).
 
     Parameters
     ----------
     spec : str
-        ``sim:press``, ``sim:rest``, ``sim:replay:FILE`` or ``hid:VID:PID``.
+        ``sim:press``, ``sim:rest``, ``sim:replay:FILE``, ``hid:VID:PID`` or ``NAME:ARGS`` of an
+        installed backend.
     profile, trajectory_options, servo_rate_hz, hid_profile
         As :func:`make_device`.
     hid_opener : callable, optional
@@ -342,58 +589,46 @@ class DeviceOpener:
         self.trajectory_options = dict(trajectory_options or {})
         self.servo_rate_hz = servo_rate_hz
         self.hid_profile = hid_profile
-        self._base_opener = hid_opener
-        self._early: HidPort | None = None
-        self._checked: Device | None = None
-        self.hid_ids: tuple[int, int] | None = None
-
-    def _open_port(self, vendor_id: int, product_id: int) -> HidPort:
-        """The port :meth:`check` opened (once), else a newly opened one."""
-        port, self._early = self._early, None
-        if port is not None:
-            return port
-        if self._base_opener is not None:
-            return self._base_opener(vendor_id, product_id)
-        from haptic_collab.client.devices.hid import _hid_open
-
-        return _hid_open(vendor_id, product_id)
-
-    def _make(self, anchor: Sequence[float], normal: Sequence[float]) -> Device:
-        return make_device(
-            self.spec,
-            anchor,
-            normal,
-            profile=self.profile,
-            trajectory_options=self.trajectory_options or None,
-            servo_rate_hz=self.servo_rate_hz,
-            hid_profile=self.hid_profile,
-            hid_opener=self._open_port,
+        #: What the backend gets (``acquire``: the hardware is checked and held before the network).
+        self.options = DeviceOptions(
+            profile=profile,
+            trajectory_options=self.trajectory_options,
+            servo_rate_hz=servo_rate_hz,
+            hid_profile=hid_profile,
+            hid_opener=hid_opener,
+            acquire=True,
         )
+        self.backend: DeviceBackend | None = None
+        self._checked: Device | None = None
+        self._built: Device | None = None
+
+    def _cannot_open(self, exc: BaseException) -> str:
+        if isinstance(exc, DeviceOpenError):
+            return one_line(exc)
+        return f"cannot open {self.spec}: {one_line(exc) or type(exc).__name__}"
 
     def check(self) -> None:
-        """Parse the spec and open a HID device now (before any network).
+        """Check the spec and open the device's hardware now (before any network).
 
         Raises
         ------
         DeviceError
-            A bad spec (unknown kind, profile or trajectory option, unreadable replay file, a
-            HID device with no profile) or a HID device that cannot be opened (absent, no
-            permission, busy), as one line with what to do.
+            An unknown backend (the message lists the known ones), a backend that is not
+            available here (its message: what is missing and what to install), a bad spec
+            (unknown kind, profile or trajectory option, unreadable replay file, a HID device with
+            no profile) or a device that cannot be opened (absent, no permission, busy), as one
+            line with what to do.
         """
+        backend, args = usable_backend(self.spec)
+        self.close()  # a second check: release what the first one held
+        self._checked = None
         try:
-            dev = self._make((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+            dev = backend.open(args, self.options)
         except ValueError as exc:
-            raise DeviceError(_one_line(str(exc))) from None
-        self._checked = dev
-        if self.spec.startswith("hid:"):
-            vid, pid = parse_hid_ids(self.spec.partition(":")[2])
-            self.hid_ids = (vid, pid)
-            try:
-                self._early = self._open_port(vid, pid)
-            except OSError as exc:
-                from haptic_collab.client.devices.hid import open_error_message
-
-                raise DeviceError(open_error_message(vid, pid, exc)) from None
+            raise DeviceError(one_line(exc)) from None
+        except OSError as exc:
+            raise DeviceError(self._cannot_open(exc)) from None
+        self.backend, self._checked = backend, _is_device(dev, backend, "open")
 
     def build(self, anchor: Sequence[float], normal: Sequence[float]) -> Device:
         """The device placed on the object (anchor (3,) [m], outward normal (3,)), opened.
@@ -404,59 +639,51 @@ class DeviceOpener:
             Bad anchor or normal, or the device cannot be opened (it went away since
             :meth:`check`).
         """
-        if self._checked is not None and isinstance(
-            getattr(self._checked, "trajectory", None), Replay
-        ):
-            dev = self._checked  # a replayed hand is in world coordinates already
-        else:
-            try:
-                dev = self._make(anchor, normal)
-            except ValueError as exc:
-                raise DeviceError(_one_line(str(exc))) from None
+        if self.backend is None or self._checked is None:
+            self.check()
+        assert self.backend is not None and self._checked is not None
+        try:
+            a = vec3("anchor", anchor)
+            n = unit_vec3("normal", normal)
+            dev = _is_device(self.backend.place(self._checked, a, n), self.backend, "place")
+        except ValueError as exc:
+            raise DeviceError(one_line(exc)) from None
         try:
             dev.open()
         except OSError as exc:
-            if self.hid_ids is None:
-                raise DeviceError(f"cannot open {self.spec}: {exc}") from None
-            from haptic_collab.client.devices.hid import open_error_message
-
-            raise DeviceError(open_error_message(*self.hid_ids, exc)) from None
+            raise DeviceError(self._cannot_open(exc)) from None
+        self._built = dev
         return dev
 
     def close(self) -> None:
-        """Release a port :meth:`check` opened that :meth:`build` never used."""
-        port, self._early = self._early, None
-        if port is not None:
+        """Release what :meth:`check` opened (a HID port) when :meth:`build` never used it."""
+        dev = self._checked
+        if dev is not None and self._built is None:
             try:
-                port.close()
+                dev.close()
             except OSError:
                 pass
 
 
 def list_devices() -> list[dict[str, Any]]:
-    """Every device one could use now: attached HID devices, then the simulated profiles.
+    """Every device one could use now, then every backend (``haptic devices``).
 
     Returns
     -------
     list of dict
+        First the devices each available backend detects, backend by backend (built-in first):
         HID entries as :func:`client.devices.hid.list_devices` (``kind`` spacemouse,
-        profile:NAME or unsupported), then one entry per simulated profile with ``kind`` ``sim``,
-        ``spec`` ``sim:press``, ``profile``, ``max_force_n`` and ``max_stiffness_n_per_m``. The
-        bundled generic HID profile files are listed by
-        :func:`client.devices.profiles.hid_profile_names`.
+        profile:NAME or unsupported), one entry per simulated profile with ``kind`` ``sim``,
+        ``spec`` ``sim:press``, ``profile``, ``max_force_n`` and ``max_stiffness_n_per_m``, then
+        those of installed backends (``spec``, ``kind`` defaulting to the backend's name); every
+        entry says its ``backend``. Then one entry per backend with ``kind`` ``backend``:
+        ``name``, ``spec`` (``NAME:``), ``description``, ``available`` (bool), ``message`` (None,
+        or what is missing and what to install), ``entry_point`` and ``devices``
+        (:func:`client.devices.backends.list_backends`). The bundled generic HID profile files
+        are listed by :func:`client.devices.profiles.hid_profile_names`.
     """
-    from haptic_collab.client.devices.hid import list_devices as list_hid
-
-    out = list_hid()
-    for name in sim_profile_names():
-        lim = SIM_PROFILES[name].limits
-        out.append(
-            {
-                "kind": "sim",
-                "spec": "sim:press",
-                "profile": name,
-                "max_force_n": lim.max_force_n,
-                "max_stiffness_n_per_m": lim.max_stiffness_n_per_m,
-            }
-        )
+    backends = list_backends()
+    out: list[dict[str, Any]] = [d for b in backends for d in b["devices"]]
+    for b in backends:
+        out.append({"kind": "backend", **b, "devices": [dict(d) for d in b["devices"]]})
     return out
