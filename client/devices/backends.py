@@ -62,6 +62,9 @@ ENTRY_POINT_GROUP = "haptic_collab.devices"
 BUILTIN_BACKENDS: dict[str, str] = {
     "hid": "haptic_collab.client.devices:HID_BACKEND",
     "sim": "haptic_collab.client.devices:SIM_BACKEND",
+    "openhaptics": "haptic_collab.client.devices.openhaptics:BACKEND",
+    "forcedimension": "haptic_collab.client.devices.forcedimension:BACKEND",
+    "haply": "haptic_collab.client.devices.haply:BACKEND",
 }
 
 #: What every backend object has (:class:`DeviceBackend`).

@@ -75,6 +75,10 @@ class DeviceLimits:
     max_damping_n_s_per_m : float
         Largest virtual damping B_h [N*s/m] the local model may add on the probe velocity, >= 0
         (CHAI3D's ``m_maxLinearDamping``, OpenHaptics' ``HD_NOMINAL_MAX_DAMPING``); 0: none.
+    max_continuous_force_n : float or None
+        Force [N] the device may display indefinitely (OpenHaptics'
+        ``HD_NOMINAL_MAX_CONTINUOUS_FORCE``), 0 < it <= ``max_force_n``; None: not stated, the
+        peak force ``max_force_n`` is all that is known.
 
     Raises
     ------
@@ -90,6 +94,7 @@ class DeviceLimits:
     workspace_max_m: Vec3
     has_force_output: bool = True
     max_damping_n_s_per_m: float = 0.0
+    max_continuous_force_n: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("max_force_n", "damping_n_s_per_m", "max_damping_n_s_per_m"):
@@ -108,6 +113,12 @@ class DeviceLimits:
             )
         object.__setattr__(self, "workspace_min_m", lo)
         object.__setattr__(self, "workspace_max_m", hi)
+        c = self.max_continuous_force_n
+        if c is not None and not (math.isfinite(c) and 0.0 < c <= self.max_force_n):
+            raise ValueError(
+                f"max_continuous_force_n must be in (0, max_force_n = {self.max_force_n:g}] N, "
+                f"got {c!r}"
+            )
 
     def centered_at(self, center: Sequence[float]) -> DeviceLimits:
         """The same limits with the workspace box moved to be centred on ``center`` (3,) [m]."""
@@ -123,6 +134,7 @@ class DeviceLimits:
             workspace_max_m=(c[0] + half[0], c[1] + half[1], c[2] + half[2]),
             has_force_output=self.has_force_output,
             max_damping_n_s_per_m=self.max_damping_n_s_per_m,
+            max_continuous_force_n=self.max_continuous_force_n,
         )
 
 
@@ -182,6 +194,11 @@ class Device(ABC):
     @abstractmethod
     def disable_forces(self) -> None:
         """Zero the displayed force and ignore further writes until re-enabled."""
+
+    def buttons(self) -> int:
+        """The buttons held now, as a bit mask (bit i: button i; a stylus's first button is bit
+        0), as of the last :meth:`read`. 0 for a device without buttons (the default)."""
+        return 0
 
     def reopen(self) -> bool:
         """Try to recover a faulted device by opening it again (it was unplugged and came back).

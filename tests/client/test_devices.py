@@ -191,7 +191,11 @@ def test_list_devices_includes_the_simulated_profiles() -> None:
     devs = list_devices()
     sims = {d["profile"] for d in devs if d["kind"] == "sim"}
     assert sims == {"phantom-desktop", "touch"}
-    assert all(d["spec"].startswith(("sim:", "hid:")) for d in devs)
+    # every device entry names its backend; every backend entry says whether it is usable
+    devices = [d for d in devs if d["kind"] != "backend"]
+    assert all(d["spec"].startswith(f"{d['backend']}:") for d in devices)
+    names = {d["name"] for d in devs if d["kind"] == "backend"}
+    assert {"sim", "hid", "openhaptics", "forcedimension", "haply"} <= names
 
 
 # -- the simulated device's physics ---------------------------------------------------------------
