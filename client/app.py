@@ -73,6 +73,10 @@ class ClientOptions:
     #: ``server``: render the server's recommended gains when they fit this device; ``local``:
     #: always design the gains here (client.session.ClientSession).
     gains: Literal["server", "local"] = "local"
+    #: ``button``: the user engages forces with the device's first button (a stylus button, as
+    #: vendor examples do); ``auto``: forces come on with the first checked patch; ``default``:
+    #: ``button`` for a device with buttons (``Device.has_buttons``), ``auto`` otherwise.
+    engage: Literal["default", "button", "auto"] = "default"
     #: The server's token, sent in ``hello`` (None: ``$HAPTIC_TOKEN``, else none).
     token: str | None = None
     #: CA file [PEM] a ``wss://`` server is verified against (None: ``$HAPTIC_CA_FILE``, else
@@ -402,9 +406,16 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
         passivity = opts.passivity == "on" or (
             opts.passivity == "auto" and opts.local_model == "pi"
         )
+        by_button = opts.engage == "button" or (
+            opts.engage == "default" and getattr(device, "has_buttons", False)
+        )
+        if by_button:
+            log.info("press the device's first button to engage forces (again to disengage)")
         core = ServoCore(
             device,
-            ServoConfig(servo_rate_hz=opts.servo_rate_hz, passivity=passivity),
+            ServoConfig(
+                servo_rate_hz=opts.servo_rate_hz, passivity=passivity, engage_with_button=by_button
+            ),
             local_model=lm,
             recorder=recorder,
         )

@@ -88,6 +88,12 @@ class ServoConfig:
         for PI local models).
     passivity_energy_bias_j : float
         Energy [J] the port may give the user before the controller damps, >= 0 (default 1 mJ).
+    engage_with_button : bool
+        The user engages forces with the device's first button, as in the vendors' examples: a
+        press (button 0 going down) engages them, the next press disengages them (a ramp to
+        zero). Until the first press no force is displayed, whatever else allows it. False
+        (default): :meth:`ServoCore.enable_forces` alone engages them (simulated devices, the
+        demo, devices without buttons).
 
     Raises
     ------
@@ -103,6 +109,7 @@ class ServoConfig:
     period_window: int = 1000
     passivity: bool = False
     passivity_energy_bias_j: float = 1e-3
+    engage_with_button: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.servo_rate_hz) and self.servo_rate_hz > 0.0):
@@ -192,6 +199,9 @@ class ServoStatus:
         The newest event.
     forces_enabled : bool
         Forces enabled by the user (:meth:`ServoCore.enable_forces`).
+    engaged : bool
+        Forces engaged with the stylus button (always True without
+        ``ServoConfig.engage_with_button``).
     has_patch : bool
         A patch has been received and is current (False again after a link loss until a new one).
     link_alive : bool
@@ -224,6 +234,7 @@ class ServoStatus:
     stopped: bool
     error: str | None = None
     passivity: dict[str, float] | None = None
+    engaged: bool = True
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able dictionary of the status."""
@@ -235,6 +246,7 @@ class ServoStatus:
             if ev is None
             else {"kind": ev.kind.value, "t_s": ev.t_s, "detail": ev.detail},
             "forces_enabled": self.forces_enabled,
+            "engaged": self.engaged,
             "has_patch": self.has_patch,
             "link_alive": self.link_alive,
             "force_scale": self.force_scale,
@@ -408,6 +420,10 @@ class ServoCore:
         # switches set from other threads
         self._enabled = False
         self._stopping = False
+        # the stylus button (ServoConfig.engage_with_button)
+        self._by_button = cfg.engage_with_button
+        self._engaged = not cfg.engage_with_button
+        self._button_was = False
         # tick state
         self._ticks = 0
         self._t = 0.0
@@ -573,6 +589,11 @@ class ServoCore:
         # 1. update from device
         dev = self.device
         x, y, z = dev.read(now_s)
+        if self._by_button:  # a press of button 0 toggles the engagement
+            pressed = bool(dev.buttons() & 1)
+            if pressed and not self._button_was:
+                self._engaged = not self._engaged
+            self._button_was = pressed
         bad_position = not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z))
         if bad_position:  # keep the last finite position; treated as a device fault below
             x, y, z = self._px, self._py, self._pz
@@ -615,6 +636,7 @@ class ServoCore:
         self._link_ok = link_ok
         want = (
             self._enabled
+            and self._engaged
             and not self._need_patch
             and link_ok
             and fault is None
@@ -804,6 +826,7 @@ class ServoCore:
             counts={k.value: v for k, v in self._counts.items()},
             last_event=self._last_event,
             forces_enabled=self._enabled,
+            engaged=self._engaged,
             has_patch=self._patch is not None and not self._need_patch,
             link_alive=self._link_ok,
             force_scale=self._scale,

@@ -544,6 +544,7 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         token=args.token,
         ca_file=args.ca_file,
         gains=args.gains,
+        engage=args.engage,
     )
 
 
@@ -608,6 +609,14 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         default="local",
         help="render the server's recommended gains when they fit this device (server), or "
         "always design them here (local) (default %(default)s)",
+    )
+    p.add_argument(
+        "--engage",
+        choices=["default", "button", "auto"],
+        default="default",
+        help="how forces come on: with the device's first button (button: a press engages, the "
+        "next disengages, as vendor examples do), with the first checked patch (auto), or button "
+        "for a device that has buttons and auto otherwise (default %(default)s)",
     )
     p.add_argument(
         "--theta-mode",

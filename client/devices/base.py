@@ -153,11 +153,15 @@ class Device(ABC):
         What the servo loop must respect.
     fault : str or None
         None while healthy; a message once the device errored or disappeared.
+    has_buttons : bool
+        The device reports buttons (:meth:`buttons`); then ``haptic client`` lets the user engage
+        forces with the first one unless told otherwise (``--engage``). Default False.
     """
 
     name: str
     limits: DeviceLimits
     fault: str | None
+    has_buttons: bool = False
 
     @abstractmethod
     def open(self) -> None:

@@ -419,3 +419,49 @@ def test_real_thread_runs_and_stops_cleanly() -> None:
     assert core.status().stopped
     assert dev.writes[-1] == (0.0, 0.0, 0.0) and not dev.enabled
     assert sys.getswitchinterval() == switch_before  # the interpreter is left as it was
+
+
+class StylusDevice(FakeDevice):
+    """A fake device with a stylus button the test presses and releases."""
+
+    has_buttons = True
+
+    def __init__(self, position: Vec3) -> None:
+        super().__init__(position)
+        self.held = 0
+
+    def buttons(self) -> int:
+        return self.held
+
+
+def test_the_stylus_button_engages_and_disengages_forces_with_ramps() -> None:
+    dev = StylusDevice((0.0, 0.0, -0.005))
+    core = ServoCore(dev, ServoConfig(ramp_s=RAMP_S, engage_with_button=True))
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    t = run(core, 0.0, 200, notify_every=10)
+    assert all(w == (0.0, 0.0, 0.0) for w in dev.writes)  # no force before the first press
+    assert not core.status().engaged
+    dev.held = 1  # press and hold: engages once, holding does not toggle again
+    t = run(core, t, 200, notify_every=10)
+    dev.held = 0
+    t = run(core, t, 100, notify_every=10)
+    assert core.status().engaged and dev.displayed[2] == pytest.approx(1.5)
+    mags = [mag(w) for w in dev.writes]
+    assert max(abs(b - a) for a, b in zip(mags, mags[1:], strict=False)) <= STEP * 1.5 + 1e-12
+    dev.held = 1  # the next press disengages: a ramp down, not a jump
+    n0 = len(dev.writes)
+    run(core, t, 200, notify_every=10)
+    mags = [mag(w) for w in dev.writes[n0 - 1 :]]
+    assert not core.status().engaged and mags[-1] == 0.0
+    assert max(abs(b - a) for a, b in zip(mags, mags[1:], strict=False)) <= STEP * 1.5 + 1e-12
+
+
+def test_without_button_engagement_buttons_are_ignored() -> None:
+    dev = StylusDevice((0.0, 0.0, -0.005))
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    dev.held = 1
+    run(core, 0.0, 200, notify_every=10)
+    assert core.status().engaged and dev.displayed[2] == pytest.approx(1.5)
