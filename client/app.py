@@ -401,7 +401,9 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
                 period,
             ),
             release_time_s=2.0 / welcome.sim_rate_hz,
-            integral_limit_n=lim.max_force_n,  # anti-windup: never more than the device can render
+            # anti-windup at what the device may display for long: its continuous force when it
+            # states one (a hold must not ask for the peak force for seconds), else its peak
+            integral_limit_n=lim.max_continuous_force_n or lim.max_force_n,
         )
         passivity = opts.passivity == "on" or (
             opts.passivity == "auto" and opts.local_model == "pi"

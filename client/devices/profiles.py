@@ -12,6 +12,11 @@ phantom-desktop    7.9      1000            0.045     0.5        10          0.0
 touch              3.3      400             0.045     0.2        5           0.055       160 x 120 x 70
 =================  =======  ==============  ========  =========  ==========  ==========  ===============
 
+F_max is the peak force; both devices also state a continuous force (24 hours): 1.75 N for the
+Phantom Desktop and 0.88 N for the Touch (3D Systems' datasheets). The PI local model's integral
+is limited to the continuous force (``haptic client``): a hold never asks the motors for their
+peak force for seconds; the peak stays available to the proportional part.
+
 B_max is the largest virtual damping the local model may add on the probe velocity (CHAI3D's
 ``m_maxLinearDamping``; CHAI3D declares 20-40 N*s/m for Force Dimension devices); it is a plausible
 value for these desktop devices, like the rest of the table.
@@ -117,6 +122,7 @@ SIM_PROFILES: dict[str, SimProfile] = {
         name="phantom-desktop",
         limits=DeviceLimits(
             max_force_n=7.9,
+            max_continuous_force_n=1.75,  # 3D Systems' datasheet: 24 h continuous, 0.4 lbf
             max_stiffness_n_per_m=1000.0,
             max_velocity_m_s=0.6,
             damping_n_s_per_m=0.5,
@@ -131,6 +137,7 @@ SIM_PROFILES: dict[str, SimProfile] = {
         name="touch",
         limits=DeviceLimits(
             max_force_n=3.3,
+            max_continuous_force_n=0.88,  # 3D Systems' datasheet: 24 h continuous, 0.2 lbf
             max_stiffness_n_per_m=400.0,
             max_velocity_m_s=0.5,
             damping_n_s_per_m=0.2,

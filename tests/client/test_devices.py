@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -289,3 +290,11 @@ def test_the_hand_clock_starts_at_the_first_read() -> None:
     for k in range(1, 2501):
         x = d.read(t0 + k * T)
     assert along(x, ANCHOR, NORMAL) < -0.005  # 2.5 s later: pressed in (no object here)
+
+
+def test_continuous_force_is_stated_and_bounded_by_the_peak() -> None:
+    desktop, touch = get_sim_profile("phantom-desktop").limits, get_sim_profile("touch").limits
+    assert (desktop.max_force_n, desktop.max_continuous_force_n) == (7.9, 1.75)
+    assert (touch.max_force_n, touch.max_continuous_force_n) == (3.3, 0.88)
+    with pytest.raises(ValueError, match="max_continuous_force_n"):
+        replace(desktop, max_continuous_force_n=8.0)
