@@ -903,6 +903,17 @@ def _print_fidelity_table(result: dict[str, object]) -> None:
             f"{num(row['median_felt_stiffness_ratio_8hz'])}"
         )
     print(f"local model best in {summary['local_model_best_fraction']:.1%} of conditions")
+    if "local_model_best_fraction_box" in summary:
+        print(
+            "stable with every hand of the box: local model best in "
+            f"{summary['local_model_best_fraction_box']:.1%} of "
+            f"{summary['box_conditions']} conditions; box-stable: "
+            + ", ".join(
+                f"{s} {summary[s]['box_stable_fraction']:.0%}"
+                for s in summary
+                if isinstance(summary[s], dict) and "box_stable_fraction" in summary[s]
+            )
+        )
 
 
 # --------------------------------------------------------------------------------------------- demo

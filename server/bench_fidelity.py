@@ -161,6 +161,55 @@ def _best_transparency(cells: list[dict[str, Any]], field: str, tag: str) -> Non
             c["_condition"] = id(group)
 
 
+def _hand_box_ranking(cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, Any]:
+    """The ranking with the hand box in the loop (how the product must judge a claim).
+
+    A *box condition* is a 1-D (K_o, simulation rate, delay, trajectory) over every hand of the
+    box. A scheme is *box-stable* there when it is stable with every hand: a user's hand is not
+    known in advance, so a scheme stable with some hands only is not stable for the product.
+    Among the box-stable schemes, the best is the one whose felt stiffness at 1 Hz (the same for
+    every hand: it is measured with the probe as a position source) is closest to 1.
+
+    Returns ``{"schemes": {scheme: {"box_stable_fraction", "best_transparency_fraction_box"}},
+    "local_model_best_fraction": ..., "conditions": n}``.
+    """
+    groups: dict[tuple[Any, ...], dict[str, list[dict[str, Any]]]] = defaultdict(
+        lambda: defaultdict(list)
+    )
+    for c in cells:
+        key = (c["k_o_n_per_m"], c["sim_rate_hz"], c["delay_ms"], c["trajectory"])
+        groups[key][c["scheme"]].append(c)
+    stable_n: dict[str, int] = dict.fromkeys(schemes, 0)
+    best_n: dict[str, int] = dict.fromkeys(schemes, 0)
+    ours = 0
+    for by_scheme in groups.values():
+        felt: dict[str, float] = {}
+        for s, mine in by_scheme.items():
+            values = [c["felt_stiffness_ratio_1hz"] for c in mine]
+            if mine and all(c["stable"] for c in mine) and values[0] is not None:
+                stable_n[s] = stable_n.get(s, 0) + 1
+                felt[s] = float(values[0])
+        if not felt:
+            continue
+        best = min(abs(v - 1.0) for v in felt.values())
+        winners = [s for s, v in felt.items() if abs(v - 1.0) <= best + 1e-6]
+        for s in winners:
+            best_n[s] = best_n.get(s, 0) + 1
+        ours += any(s in ("local-p", "local-pi") for s in winners)
+    n = max(1, len(groups))
+    return {
+        "schemes": {
+            s: {
+                "box_stable_fraction": stable_n.get(s, 0) / n,
+                "best_transparency_fraction_box": best_n.get(s, 0) / n,
+            }
+            for s in schemes
+        },
+        "local_model_best_fraction": ours / n,
+        "conditions": len(groups),
+    }
+
+
 def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, Any]:
     """Per scheme, over the 1-D grid: ``stable_fraction``, ``best_transparency_fraction``
     (issue 9: stable, and |dF/dx| / K_o at 1 Hz closest to 1 among the stable schemes),
@@ -234,6 +283,12 @@ def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[s
         c.pop("_best_elastic", None)
         c.pop("_condition", None)
     out["local_model_best_fraction"] = ours / max(1, len(conditions))
+    box = _hand_box_ranking(cells, schemes)
+    for s, v in box["schemes"].items():
+        if s in out:
+            out[s].update(v)
+    out["local_model_best_fraction_box"] = box["local_model_best_fraction"]
+    out["box_conditions"] = box["conditions"]
     out["local_model_best_elastic_fraction"] = ours_elastic / max(1, len(conditions))
     out["conditions"] = len(conditions)
     out["peer_wins"] = sorted(

@@ -46,3 +46,34 @@ def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
     paths = plot(out, tmp_path)
     assert [p.name for p in paths] == ["fidelity-stability.png", "fidelity-transparency.png"]
     assert all(p.stat().st_size > 10_000 for p in paths)
+
+
+def test_the_hand_box_ranking_asks_for_stability_with_every_hand() -> None:
+    from haptic_collab.server.bench_fidelity import _hand_box_ranking
+
+    def cell(scheme: str, hand: int, stable: bool, felt: float, delay: float = 0.0) -> dict:
+        return {
+            "model": "1d", "scheme": scheme, "k_o_n_per_m": 300.0, "sim_rate_hz": 20.0,
+            "delay_ms": delay, "trajectory": "press", "hand": {"mass_kg": hand},
+            "stable": stable, "felt_stiffness_ratio_1hz": felt,
+        }  # fmt: skip
+
+    cells = [
+        # direct renders K_o exactly but is unstable with the second hand: not box-stable
+        cell("direct", 1, True, 1.0), cell("direct", 2, False, 1.0),
+        cell("local-pi", 1, True, 0.8), cell("local-pi", 2, True, 0.8),
+        # at 100 ms nothing but the local model holds with both hands
+        cell("direct", 1, False, 1.0, 100.0), cell("direct", 2, False, 1.0, 100.0),
+        cell("local-pi", 1, True, 0.7, 100.0), cell("local-pi", 2, True, 0.7, 100.0),
+    ]  # fmt: skip
+    r = _hand_box_ranking(cells, ["local-pi", "direct"])
+    assert r["conditions"] == 2 and r["local_model_best_fraction"] == 1.0
+    assert r["schemes"]["direct"] == {
+        "box_stable_fraction": 0.0, "best_transparency_fraction_box": 0.0,
+    }  # fmt: skip
+    assert r["schemes"]["local-pi"]["best_transparency_fraction_box"] == 1.0
+    # stable with every hand, direct wins: it is closer to 1
+    cells[1]["stable"] = True
+    r = _hand_box_ranking(cells, ["local-pi", "direct"])
+    assert r["schemes"]["direct"]["best_transparency_fraction_box"] == 0.5
+    assert r["local_model_best_fraction"] == 0.5
