@@ -185,10 +185,12 @@ def _hand_box_ranking(cells: list[dict[str, Any]], schemes: Sequence[str]) -> di
     for by_scheme in groups.values():
         felt: dict[str, float] = {}
         for s, mine in by_scheme.items():
-            values = [c["felt_stiffness_ratio_1hz"] for c in mine]
-            if mine and all(c["stable"] for c in mine) and values[0] is not None:
-                stable_n[s] = stable_n.get(s, 0) + 1
-                felt[s] = float(values[0])
+            if not (mine and all(c["stable"] for c in mine)):
+                continue
+            stable_n[s] = stable_n.get(s, 0) + 1
+            value = mine[0]["felt_stiffness_ratio_1hz"]
+            if value is not None:  # a felt stiffness that could not be measured is not ranked
+                felt[s] = float(value)
         if not felt:
             continue
         best = min(abs(v - 1.0) for v in felt.values())
