@@ -9,6 +9,15 @@ With an :class:`ssl.SSLContext` everything is served as ``https://`` and ``wss:/
 handshakes are checked by ``Origin`` (:func:`server.security.origin_allowed`), each connection is
 registered with its source address (the room budgets per address), and a consumer whose send
 buffer stays full for ``send_timeout_s`` (10 s) is dropped, viewers included.
+
+Flood control is the room's (:meth:`server.room.Room.admit`), charged when a frame arrives and
+before latency injection holds it back. When the simulation loop is behind its schedule (the
+event loop stalled), the room is told (:meth:`server.room.Room.behind_schedule`), so that the
+backlog clients sent meanwhile is not taken for a flood. After every tick the loop yields to the
+event loop, also when it is late, so the senders write each tick's frames before the next tick
+replaces them (latest wins). Frames are sent uncompressed (no permessage-deflate): compression
+took a fifth of the server's time at 32 users (docs/bench-load.md), and the viewer stream caps its
+own bytes (:mod:`server.viewer_stream`).
 """
 
 from __future__ import annotations
@@ -17,6 +26,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import mimetypes
 import multiprocessing
 import ssl
@@ -39,7 +49,6 @@ from haptic_collab.server.latency import LinkConfig, LinkShaper
 from haptic_collab.server.room import Outgoing, Room
 from haptic_collab.server.security import is_loopback, origin_allowed
 from haptic_collab.shared.gain_design import background_worker
-from haptic_collab.shared.protocol import ErrorMsg, encode
 
 log = logging.getLogger("haptic.server")
 
@@ -163,6 +172,8 @@ class ServerApp:
         self._server: Server | None = None
         self._sim_task: asyncio.Task[None] | None = None
         self.tick = 0
+        #: When [s, event-loop time] the next simulation tick is due (inf until the loop runs).
+        self._due_s = math.inf
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
@@ -174,6 +185,7 @@ class ServerApp:
             process_request=self._process_request,
             ssl=self.ssl_context,
             max_size=WS_MAX_SIZE,
+            compression=None,  # permessage-deflate cost a fifth of the server's time
             max_queue=64,
             close_timeout=1.0,
             ping_interval=5.0,
@@ -189,6 +201,7 @@ class ServerApp:
             self._sim_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._sim_task
+        self._due_s = math.inf  # no schedule any more: nothing is behind it
         for task in list(self._gain_tasks):
             task.cancel()
         if self._own_executor and self.gain_executor is not None:
@@ -276,9 +289,6 @@ class ServerApp:
         self._peers[conn_id] = peer
         loop = asyncio.get_running_loop()
         sender = asyncio.create_task(self._sender(peer))
-        limits = self.room.limits
-        tokens, last = limits.burst, loop.time()
-        closing = False
         address = _address(ws)
         remote = ws.remote_address
         port = remote[1] if isinstance(remote, tuple) and len(remote) > 1 else None
@@ -286,20 +296,16 @@ class ServerApp:
         log.info("connection %s open: %s", conn_id, peer.who)
         try:
             self._dispatch(self.room.connect(conn_id, loop.time(), address))
-            async for frame in ws:
-                if closing:
-                    continue  # keep draining so the close handshake can complete
+            async for frame in ws:  # after a refusal: keep draining for the close handshake
                 now = loop.time()
+                if now > self._due_s:  # behind schedule: this may be a backlog from a stall
+                    self.room.behind_schedule(self._due_s, now)
                 # flood control on arrival, before latency injection holds anything in memory
-                tokens = min(limits.burst, tokens + (now - last) * limits.rate_per_s * 1.25)
-                last = now
-                if tokens < 1.0:
-                    self.room.disconnect(conn_id)
-                    err = ErrorMsg(code="rate_limited", message="too many messages", fatal=True)
-                    self._ready(peer, Outgoing(conn_id, encode(err), close=True))
-                    closing = True
+                admitted, outs = self.room.admit(conn_id, frame, now)
+                if outs:
+                    self._dispatch(outs)
+                if not admitted:
                     continue
-                tokens -= 1.0
                 if not self.link.active:
                     self._deliver(conn_id, frame)
                     continue
@@ -319,14 +325,17 @@ class ServerApp:
             self.room.disconnect(conn_id)
             self._peers.pop(conn_id, None)
             sender.cancel()
-            with contextlib.suppress(asyncio.CancelledError, ConnectionClosed):
-                await sender
+            # bounded: on Python 3.11 a cancel that lands as the sender's wait_for(send) finishes
+            # is swallowed, and an unbounded await would never return
+            with contextlib.suppress(asyncio.CancelledError, ConnectionClosed, TimeoutError):
+                await asyncio.wait_for(sender, 5.0)
 
     def _deliver(self, conn_id: str, frame: str | bytes) -> None:
+        """Hand an admitted frame to the room when it is due (after any injected latency)."""
         if conn_id not in self._peers:
             return
         try:
-            outs = self.room.receive(conn_id, frame, asyncio.get_running_loop().time())
+            outs = self.room.handle(conn_id, frame, asyncio.get_running_loop().time())
         except Exception:  # a bug must cost one frame, not the connection or the room
             log.exception("frame from %s could not be handled", conn_id)
             return
@@ -395,7 +404,15 @@ class ServerApp:
 
     # ------------------------------------------------------------------ simulation
     async def _sim_loop(self) -> None:
-        """Tick the room at ``sim_rate_hz`` on a drift-free schedule; count and skip overruns."""
+        """Tick the room at ``sim_rate_hz`` on a drift-free schedule; count and skip overruns.
+
+        Yields to the event loop before every tick, also when the tick is already due: the
+        previous tick's frames are queued latest-wins (:meth:`_ready`), so without the yield a
+        late tick would replace them before the senders had a chance to write them, and every
+        user would lose that patch. A late start is reported to the room
+        (:meth:`Room.behind_schedule`), as the connection handlers do for frames they read while
+        the loop is behind (``_due_s``).
+        """
         loop = asyncio.get_running_loop()
         period = 1.0 / self.room.sim_rate_hz
         t0 = loop.time()
@@ -403,10 +420,15 @@ class ServerApp:
         while True:
             k += 1
             target = t0 + k * period
+            self._due_s = target
             delay = target - loop.time()
             if delay > 0:
                 await asyncio.sleep(delay)
+            else:  # late: still let the senders write the last tick's frames first
+                await asyncio.sleep(0)
             start = loop.time()
+            if start > target:
+                self.room.behind_schedule(target, start)
             behind = int((start - target) // period)
             if behind > 0:  # missed whole ticks: skip them, never pile them up
                 k += behind

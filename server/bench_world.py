@@ -10,8 +10,8 @@ first time) are reported apart as ``first_tick_ms``.
 
 :func:`bench_viewer_stream` measures what one viewer receives per second while a user presses a
 10k-vertex balloon: the float32 positions sent every tick before (``VTX1``) against the
-displacement stream (:mod:`server.viewer_stream`), as payload and as wire bytes after the
-permessage-deflate compression the server negotiates with browsers.
+displacement stream (:mod:`server.viewer_stream`), as payload and as wire bytes (payload plus
+websocket frame header: the server negotiates no compression).
 
 This is the only server module allowed to read a clock (``time.perf_counter``).
 """
@@ -22,7 +22,6 @@ import ctypes
 import json
 import math
 import time
-import zlib
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -219,17 +218,12 @@ PRESS_PHASES = (("rest", 1.0), ("press", 1.5), ("hold", 3.0), ("release", 1.0), 
 
 
 class _WireBytes:
-    """Bytes one websocket message takes on the wire from the server to a browser.
-
-    permessage-deflate as websockets negotiates it by default (deflate, 4 KiB window, memLevel 5,
-    context kept between messages), plus the 2-10 byte frame header (server frames are unmasked).
-    """
-
-    def __init__(self) -> None:
-        self._z = zlib.compressobj(6, zlib.DEFLATED, -12, 5)
+    """Bytes one websocket message takes on the wire from the server to a browser: the payload
+    plus the 2-10 byte frame header (server frames are unmasked; the server negotiates no
+    permessage-deflate: compression cost a fifth of its time under load, docs/bench-load.md)."""
 
     def __call__(self, payload: bytes) -> int:
-        n = len(self._z.compress(payload) + self._z.flush(zlib.Z_SYNC_FLUSH)) - 4
+        n = len(payload)
         return n + (2 if n < 126 else 4 if n < 65536 else 10)
 
 

@@ -10,7 +10,9 @@ haptic *user* or a *viewer*. Per simulation tick (:meth:`Room.tick`):
 3. each user gets its ``patch``; viewers get the surface (binary) and a ``room`` summary.
 
 The asyncio layer (:mod:`server.app`) only moves frames: it calls :meth:`Room.connect`,
-:meth:`Room.receive`, :meth:`Room.disconnect` and :meth:`Room.tick` and sends what they return.
+:meth:`Room.admit` (budgets, on arrival) and :meth:`Room.handle` (when due; :meth:`Room.receive`
+does both), :meth:`Room.disconnect` and :meth:`Room.tick` and sends what they return, and reports
+when it is behind its schedule (:meth:`Room.behind_schedule`).
 Hostile input never reaches the world: a bad frame gets an ``error`` reply on that connection only
 (and a close where the connection cannot go on); the object and every other user are unaffected.
 
@@ -120,6 +122,13 @@ class RoomLimits:
         Frames/s and burst of all connections from one source address together.
     address_bytes_per_s, address_bytes_burst : float
         Bytes/s and burst of all connections from one source address together.
+    stall_credit_max_s : float
+        The longest time [s] the server may have been behind its schedule that is credited to
+        the budgets (:meth:`Room.behind_schedule`): no budget then holds more than ``burst +
+        rate * stall_credit_max_s``.
+    stall_credit_keep_s : float
+        How long [s] the credit for a stall is kept after it, at least (as long as the stall
+        lasted, when longer), for the backlog to be read; then it lapses.
     stale_after_s : float
         A user whose last state is older than this [s] no longer loads the object.
     max_errors : int
@@ -144,6 +153,8 @@ class RoomLimits:
     address_burst: float = 2000.0
     address_bytes_per_s: float = 1024 * 1024
     address_bytes_burst: float = 1024 * 1024
+    stall_credit_max_s: float = 30.0
+    stall_credit_keep_s: float = 2.0
     stale_after_s: float = 0.5
     max_errors: int = 50
     clamp_report_interval_s: float = 1.0
@@ -283,6 +294,8 @@ class Room:
         self.auth = auth
         self.force_bound = force_bound or ForceBoundParams()
         self._addresses: dict[str, _Address] = {}
+        #: Up to when [s] the budgets have been credited for the server being behind schedule.
+        self._credited_to_s = -math.inf
         #: Clamped force reports per user name since the room started.
         self.clamp_counts: dict[str, int] = {}
         self.stats = TickStats()
@@ -386,27 +399,97 @@ class Room:
     def receive(self, conn_id: str, frame: str | bytes, now_s: float) -> list[Outgoing]:
         """Handle one incoming frame at time ``now_s`` [s]; return the frames to send.
 
-        Never raises on bad input: replies ``error`` (closing where the connection cannot go on).
+        :meth:`admit` and then :meth:`handle` at the same time. Never raises on bad input:
+        replies ``error`` (closing where the connection cannot go on).
+        """
+        admitted, out = self.admit(conn_id, frame, now_s)
+        if not admitted:
+            return out
+        return out + self.handle(conn_id, frame, now_s)
+
+    def admit(self, conn_id: str, frame: str | bytes, now_s: float) -> tuple[bool, list[Outgoing]]:
+        """Charge one frame that arrived at ``now_s`` [s] to the budgets; nothing else.
+
+        Flood control: token buckets per connection (frames, bytes), then per source address
+        (:meth:`_charge_address`), and the frame size limit. The I/O layer calls it when a frame
+        arrives, before latency injection holds the frame back, and hands admitted frames to
+        :meth:`handle` when they are due. Returns whether the frame is admitted and the frames to
+        send (a fatal ``rate_limited`` or ``frame_too_large`` for this connection, or for the
+        busiest one of its address, which may be another).
+        """
+        conn = self._conns.get(conn_id)
+        if conn is None or conn.closed:
+            return False, []
+        size = frame_size_bytes(frame)
+        if not conn.frames.take(1.0, now_s):
+            return False, self._close(
+                conn, "rate_limited", "too many messages; slow down to the simulation rate"
+            )
+        if size > MAX_CLIENT_FRAME_BYTES:
+            return False, self._close(
+                conn, "frame_too_large", f"frames are limited to {MAX_CLIENT_FRAME_BYTES} bytes"
+            )
+        if not conn.bytes.take(size, now_s):
+            return False, self._close(conn, "rate_limited", "too many bytes; slow down")
+        out = self._charge_address(conn, size, now_s)
+        return not conn.closed, out
+
+    def handle(self, conn_id: str, frame: str | bytes, now_s: float) -> list[Outgoing]:
+        """Handle a frame :meth:`admit` admitted, at its delivery time ``now_s`` [s].
+
+        Returns the frames to send; nothing once the connection is gone. Never raises on bad
+        input: replies ``error`` (closing where the connection cannot go on).
         """
         conn = self._conns.get(conn_id)
         if conn is None or conn.closed:
             return []
-        size = frame_size_bytes(frame)
-        # flood control: token buckets per connection (frames, bytes), then per source address
-        if not conn.frames.take(1.0, now_s):
-            return self._close(
-                conn, "rate_limited", "too many messages; slow down to the simulation rate"
-            )
-        if size > MAX_CLIENT_FRAME_BYTES:
-            return self._close(
-                conn, "frame_too_large", f"frames are limited to {MAX_CLIENT_FRAME_BYTES} bytes"
-            )
-        if not conn.bytes.take(size, now_s):
-            return self._close(conn, "rate_limited", "too many bytes; slow down")
-        out = self._charge_address(conn, size, now_s)
-        if conn.closed:
-            return out
-        return out + self._handle(conn, frame, now_s)
+        return self._handle(conn, frame, now_s)
+
+    def behind_schedule(self, due_s: float, now_s: float) -> None:
+        """The simulation tick due at ``due_s`` [s] has not run by ``now_s`` [s]: credit budgets.
+
+        The budgets are charged when the server reads a frame. While the server is behind its
+        own schedule (its event loop blocked, or waiting for a CPU on a busy machine) it reads
+        nothing, and everything the clients sent meanwhile arrives at once when it resumes. A
+        bucket that was full at the start of such a stall would have refilled no further, so a
+        client sending steadily below its rate (a state twice per tick) reads as a flood once the
+        stall holds back more than a burst of its frames or bytes, and was closed with
+        ``rate_limited``: punished for the server's stall. So every budget (per connection and
+        per address, frames and bytes) is refilled over the stall *without* its burst cap
+        (:meth:`TokenBucket.lift`): the backlog is charged as if it had been read on time.
+
+        Why this and not another fix:
+
+        - It is exact where it matters and changes nothing elsewhere. A bucket that was being
+          spent during the stall (a flooder) gains exactly the refill it always gets: it is
+          still cut off when it sends faster than ``rate`` (``lift`` never credits a stretch
+          twice). Only a bucket that would have hit its cap gains more, and by no more than
+          ``rate`` times the stall: over any stretch of time that contains the stall a client
+          is admitted at most ``burst + rate * stretch``, as on a server that never stalls.
+        - The credit is bounded: it covers at most ``stall_credit_max_s`` of a stall and lapses
+          ``stall_credit_keep_s`` after the stall (or as long as the stall lasted, when longer),
+          so a quiet connection cannot save it up for later.
+        - The room stays sans-I/O: the I/O layer says when the tick was due and what time it is
+          now (it knows its schedule); the room reads no clock. A server that keeps its schedule
+          never falls a period behind, so a flood there is cut off exactly as before.
+        - Dropping superseded ``state`` frames uncounted (latest wins at the input as at the
+          output) would leave a ``state`` flood unbudgeted, although parsing every frame is
+          exactly what a flood costs the server, and would not help ``ping`` or byte budgets.
+
+        Lateness below one simulation period is jitter, not a stall, and is not credited;
+        credits are given in steps of at least one period (each step touches every budget).
+        """
+        period = 1.0 / self.sim_rate_hz
+        start = max(due_s, self._credited_to_s)
+        if now_s - due_s < period or now_s - start < period:
+            return
+        lim = self.limits
+        keep_until_s = now_s + max(lim.stall_credit_keep_s, now_s - due_s)
+        buckets = [b for c in self._conns.values() for b in (c.frames, c.bytes)]
+        buckets += [b for a in self._addresses.values() for b in (a.frames, a.bytes)]
+        for bucket in buckets:
+            bucket.lift(start, now_s, keep_until_s, lim.stall_credit_max_s)
+        self._credited_to_s = now_s
 
     def _charge_address(self, conn: _Conn, size: int, now_s: float) -> list[Outgoing]:
         """Charge one frame of ``size`` bytes to the connection's source address.

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import ipaddress
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -226,6 +227,11 @@ def normalize_origin(origin: str) -> str:
 class TokenBucket:
     """A token bucket: ``rate`` units per second, at most ``burst`` saved up; time is an input.
 
+    :meth:`lift` refills a stretch of time without the ``burst`` cap: the server was behind its
+    own schedule then and read nothing, so what a client sent meanwhile arrives at once and must
+    be charged as if it had been read on time (:meth:`server.room.Room.behind_schedule`). The
+    level above ``burst`` is kept until ``lifted_until_s`` [s], then cut back to ``burst``.
+
     Parameters
     ----------
     rate : float
@@ -236,18 +242,22 @@ class TokenBucket:
         Creation time [s]; the bucket starts full.
     """
 
-    __slots__ = ("rate", "burst", "level", "at_s")
+    __slots__ = ("rate", "burst", "level", "at_s", "lifted_until_s")
 
     def __init__(self, rate: float, burst: float, now_s: float) -> None:
         self.rate = float(rate)
         self.burst = float(burst)
         self.level = float(burst)
         self.at_s = float(now_s)
+        self.lifted_until_s = -math.inf
 
     def refill(self, now_s: float) -> float:
         """Bring the level up to time ``now_s`` [s]; returns the level."""
         if now_s > self.at_s:
-            self.level = min(self.burst, self.level + (now_s - self.at_s) * self.rate)
+            if self.level > self.burst and now_s > self.lifted_until_s:
+                self.level = self.burst  # a stall's credit lapsed unspent
+            if self.level < self.burst:
+                self.level = min(self.burst, self.level + (now_s - self.at_s) * self.rate)
             self.at_s = now_s
         return self.level
 
@@ -258,7 +268,25 @@ class TokenBucket:
         self.level -= amount
         return True
 
+    def lift(self, from_s: float, to_s: float, keep_until_s: float, max_extra_s: float) -> None:
+        """Refill the stretch ``[from_s, to_s]`` [s] without the ``burst`` cap.
+
+        Only the part of the stretch after the bucket's last update counts (no time is credited
+        twice), so a bucket that was being spent meanwhile gains exactly what :meth:`refill`
+        would have given it; only a bucket that would have hit ``burst`` gains more. The level
+        stays at most ``burst + rate * max_extra_s``; what lies above ``burst`` lapses after
+        ``keep_until_s`` [s].
+        """
+        self.refill(from_s)
+        start = max(self.at_s, from_s)
+        if to_s <= start:
+            return
+        top = self.burst + self.rate * max(0.0, max_extra_s)
+        self.level = max(self.level, min(top, self.level + (to_s - start) * self.rate))
+        self.at_s = to_s
+        self.lifted_until_s = max(self.lifted_until_s, keep_until_s)
+
     @property
     def fill(self) -> float:
-        """Level over size, in [0, 1] (lower: spent more of its budget recently)."""
+        """Level over size: 1 when full, lower when spent (above 1 while a stall is credited)."""
         return self.level / self.burst
