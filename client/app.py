@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from haptic_collab.client.devices import DeviceOpener
+from haptic_collab.client.devices import DeviceLimits, DeviceOpener
 from haptic_collab.client.devices.base import Device
 from haptic_collab.client.devices.hid import HidPort
 from haptic_collab.client.devices.profiles import get_sim_profile
@@ -84,16 +84,19 @@ class ClientOptions:
     ca_file: str | None = None
 
 
-def _device_info(opts: ClientOptions) -> DeviceInfo:
-    if opts.device.startswith("sim:"):
-        lim = get_sim_profile(opts.profile).limits
-        return DeviceInfo(
-            profile=opts.profile,
-            max_force_n=lim.max_force_n,
-            max_stiffness_n_per_m=lim.max_stiffness_n_per_m,
-            max_damping_n_s_per_m=min(1e3, lim.max_damping_n_s_per_m),
-        )
-    return DeviceInfo(profile=opts.device[:64])
+def _device_info(opts: ClientOptions, limits: DeviceLimits | None = None) -> DeviceInfo:
+    """What ``hello`` declares about the device: its limits as the opened device states them
+    (the server designs the recommended gains for them), capped to the protocol's ranges."""
+    if limits is None and opts.device.startswith("sim:"):
+        limits = get_sim_profile(opts.profile).limits
+    if limits is None:
+        return DeviceInfo(profile=opts.device[:64])
+    return DeviceInfo(
+        profile=(opts.profile if opts.device.startswith("sim:") else opts.device)[:64],
+        max_force_n=min(100.0, limits.max_force_n),
+        max_stiffness_n_per_m=min(1e5, limits.max_stiffness_n_per_m),
+        max_damping_n_s_per_m=min(1e3, limits.max_damping_n_s_per_m),
+    )
 
 
 #: Filter time constant [s] on the probe's depth rate that decides eq. 18's branch: 20 ms, an
@@ -313,7 +316,7 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
 
 
 async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
-    info = _device_info(opts)
+    info = _device_info(opts, opener.limits)
     session = ClientSession(
         opts.name,
         servo_rate_hz=opts.servo_rate_hz,

@@ -630,6 +630,12 @@ class DeviceOpener:
             raise DeviceError(self._cannot_open(exc)) from None
         self.backend, self._checked = backend, _is_device(dev, backend, "open")
 
+    @property
+    def limits(self) -> DeviceLimits | None:
+        """The checked device's limits (before placement: its workspace is not on the object
+        yet); None before :meth:`check`."""
+        return None if self._checked is None else self._checked.limits
+
     def build(self, anchor: Sequence[float], normal: Sequence[float]) -> Device:
         """The device placed on the object (anchor (3,) [m], outward normal (3,)), opened.
 

@@ -183,3 +183,21 @@ def test_users_resting_on_a_side_spread_over_the_sides_by_join_order():
         old.side_m,
         old.side_normal,
     )
+
+
+def test_hello_declares_the_opened_devices_own_limits():
+    """The server designs the recommended gains for what hello declares: a real device's limits
+    (here a HID device whose profile states the Touch's), not the protocol's defaults."""
+    from haptic_collab.client.app import ClientOptions, _device_info
+    from haptic_collab.client.devices.profiles import get_sim_profile
+
+    touch = get_sim_profile("touch").limits
+    info = _device_info(ClientOptions(url="", device="hid:1209:0001"), touch)
+    assert (info.profile, info.max_force_n, info.max_damping_n_s_per_m) == (
+        "hid:1209:0001",
+        3.3,
+        5.0,
+    )
+    assert info.max_stiffness_n_per_m == 400.0
+    sim = _device_info(ClientOptions(url="", device="sim:rest", profile="touch"))
+    assert sim.profile == "touch" and sim.max_damping_n_s_per_m == 5.0
