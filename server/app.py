@@ -48,12 +48,14 @@ from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkConfig, LinkShaper
 from haptic_collab.server.room import Outgoing, Room
 from haptic_collab.server.security import is_loopback, origin_allowed
-from haptic_collab.shared.gain_design import background_worker
+from haptic_collab.shared.gain_design import background_worker, warm_up
 
 log = logging.getLogger("haptic.server")
 
 #: websockets' own frame limit; the room answers frames above its smaller limit with an error.
 WS_MAX_SIZE = 64 * 1024
+#: Worker processes that design recommended gains (niced; :func:`background_worker`).
+DESIGN_WORKERS = 1
 #: A consumer whose send buffer stays full this long [s] is dropped.
 SEND_TIMEOUT_S = 10.0
 #: The viewer's files: the package data ``haptic_collab/web`` (in a source checkout a link to
@@ -194,6 +196,8 @@ class ServerApp:
         sock = next(iter(self._server.sockets))
         self.port = int(sock.getsockname()[1])
         self._sim_task = asyncio.create_task(self._sim_loop())
+        if self._own_executor:  # an injected executor (tests) is the caller's to warm
+            self._gain_tasks.add(asyncio.create_task(self._warm_design_pool()))
 
     async def stop(self) -> None:
         """Stop the simulation and close every connection."""
@@ -442,16 +446,43 @@ class ServerApp:
             self.room.stats.record(cost * 1000.0, overran=cost > period)
             self.tick = k
             self._dispatch(outs)
-            for job in self.room.gains.take_jobs():
-                self._gain_tasks.add(asyncio.create_task(self._design(job)))
+            self._start_designs()
 
-    async def _design(self, job: GainJob) -> None:
-        """Run one gain design off the simulation loop (a worker process) and hand it back."""
+    def _start_designs(self) -> None:
+        """Keep the design worker busy with the most urgent queued job (``GainAdvisor.next_job``:
+        interim checks first, then the newest designs), one job per worker at a time, so that an
+        urgent check never waits behind a queue of designs already handed to the pool."""
+        while len(self._gain_tasks) < DESIGN_WORKERS:
+            job = self.room.gains.next_job()
+            if job is None:
+                return
+            self._gain_tasks.add(asyncio.create_task(self._design(job)))
+
+    def _design_pool(self) -> Executor:
+        """The design workers (started once, at the server's start or on the first job)."""
         if self.gain_executor is None:
             ctx = multiprocessing.get_context("spawn")
             self.gain_executor = ProcessPoolExecutor(
-                max_workers=1, mp_context=ctx, initializer=background_worker
+                max_workers=DESIGN_WORKERS, mp_context=ctx, initializer=background_worker
             )
+        return self.gain_executor
+
+    async def _warm_design_pool(self) -> None:
+        """Start the design workers and import the design code in them before anyone joins: a
+        worker spawned on the first user's first patch took seconds (imports) before its first
+        interim check on a busy 2-core machine."""
+        loop = asyncio.get_running_loop()
+        try:
+            await loop.run_in_executor(self._design_pool(), warm_up)
+        except Exception:  # no warm worker: the first job starts it
+            log.exception("the gain design worker could not be started")
+        finally:
+            self._gain_tasks.discard(asyncio.current_task())  # type: ignore[arg-type]
+        self._start_designs()
+
+    async def _design(self, job: GainJob) -> None:
+        """Run one gain design off the simulation loop (a worker process) and hand it back."""
+        self._design_pool()
         table = self.room.gains.table
         loop = asyncio.get_running_loop()
         try:
@@ -464,6 +495,7 @@ class ServerApp:
         finally:
             self._gain_tasks.discard(asyncio.current_task())  # type: ignore[arg-type]
         self.room.gains.store(job, design)
+        self._start_designs()
 
 
 def _address(ws: ServerConnection) -> str:

@@ -187,6 +187,22 @@ class GainAdvisor:
             self._asked.add(job)
             self._queued[job] = None
 
+    def next_job(self) -> GainJob | None:
+        """The most urgent queued job, removed from the queue; None when there is none.
+
+        Interim checks come first (they let a user's forces come on within a fraction of a
+        second), then designs; within a kind the most recently asked first: a user moving over
+        the object asks for one K_o cell after another, and the cell it is in now matters more
+        than the ones it has left (those are still designed later, when nothing newer waits).
+        """
+        if not self._queued:
+            return None
+        jobs = list(self._queued)
+        interim = [j for j in jobs if j[0] == "interim"]
+        kind, key, cell = (interim or jobs)[-1]
+        del self._queued[(kind, key, cell)]
+        return GainJob(kind, key, cell)
+
     def take_jobs(self) -> list[GainJob]:
         """The design work queued since the last call (interim checks first), oldest first."""
         jobs = [GainJob(k, key, cell) for (k, key, cell) in self._queued]

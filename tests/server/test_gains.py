@@ -169,3 +169,20 @@ def test_a_recommendation_for_a_shorter_delay_than_measured_is_not_used() -> Non
     s.receive(encode(p), 0.1)
     assert s.server_gain_patches == 0
     assert np.isfinite(s.delay_ticks()) and s.delay_ticks() > 0
+
+
+def test_the_most_urgent_job_goes_first_interim_checks_then_the_newest_cell() -> None:
+    """A user sweeping over the object asks for one K_o cell after another: its forces come on
+    with an interim check, and the cell it is in now is designed before the ones it left."""
+    adv = GainAdvisor(20.0)
+    h = hello("pi")
+    for k_o in (200.0, 260.0, 340.0):  # three cells, in the order the user met them
+        assert adv.recommend("u1", h, k_o_eff=k_o, k_o_stiff=k_o, b_o=0.0) is None
+    order = []
+    while (job := adv.next_job()) is not None:
+        order.append((job.kind, job.cell))
+    cells = [adv.table.cell(k) for k in (200.0, 260.0, 340.0)]
+    assert order == [("interim", c) for c in reversed(cells)] + [
+        ("design", c) for c in reversed(cells)
+    ]
+    assert adv.next_job() is None and adv.take_jobs() == []  # each job is handed out once
