@@ -70,9 +70,10 @@ class ClientOptions:
     stop_on_signals: bool = False
     #: ``opener(vendor_id, product_id) -> port`` for HID devices (default hidapi; tests a fake).
     hid_opener: Callable[[int, int], HidPort] | None = None
-    #: ``server``: render the server's recommended gains when they fit this device; ``local``:
-    #: always design the gains here (client.session.ClientSession).
-    gains: Literal["server", "local"] = "local"
+    #: ``server``: render the server's recommended gains when they fit this device and no better
+    #: design of the client's own is ready (an interim recommendation yields to a full design);
+    #: ``local``: always design the gains here (client.session.ClientSession).
+    gains: Literal["server", "local"] = "server"
     #: ``button``: the user engages forces with the device's first button (a stylus button, as
     #: vendor examples do); ``auto``: forces come on with the first checked patch; ``default``:
     #: ``button`` for a device with buttons (``Device.has_buttons``), ``auto`` otherwise.

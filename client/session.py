@@ -433,10 +433,15 @@ class ClientSession:
             spectral_radius=lu.spectral_radius, felt_1hz=lu.felt_stiffness_ratio_1hz,
         )  # fmt: skip
 
-    def _recommended(self, msg: Patch, n: int, delay_ticks: int) -> GainDesign | None:
-        """The server's recommended gains as a design, if this client may render them."""
+    def _recommended(
+        self, msg: Patch, n: int, delay_ticks: int, own: GainDesign | None
+    ) -> GainDesign | None:
+        """The server's recommended gains as a design, if this client may render them and has
+        nothing better: interim recommendations yield to a full design of its own (``own``)."""
         rec = msg.gains
         if self.gains_source != "server" or rec is None:
+            return None
+        if rec.interim and own is not None:
             return None
         if (
             rec.k_h > self.device.max_stiffness_n_per_m
@@ -472,11 +477,12 @@ class ClientSession:
         key = self.gain_key(msg.b_o, d, self._stiff_class(msg))
         table = self.gain_table
         cell = table.cell(msg.k_o_eff)
-        design = self._recommended(msg, n, d)
+        own = table.lookup(key, msg.k_o_eff)
+        design = self._recommended(msg, n, d, own)
         if design is not None:
             self.server_gain_patches += 1
         else:
-            design = table.lookup(key, msg.k_o_eff)
+            design = own
         fallback = design is None
         verified = True
         if design is None:

@@ -606,9 +606,10 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument(
         "--gains",
         choices=["server", "local"],
-        default="local",
-        help="render the server's recommended gains when they fit this device (server), or "
-        "always design them here (local) (default %(default)s)",
+        default="server",
+        help="render the server's recommended gains when they fit this device and no better "
+        "design of its own is ready (server), or always design them here (local) "
+        "(default %(default)s)",
     )
     p.add_argument(
         "--engage",

@@ -162,6 +162,7 @@ class GainAdvisor:
             return None
         cell = self.table.cell(k_o_eff)
         design = self.table.lookup(key, k_o_eff)
+        interim = design is None
         if design is None:
             self._want("design", key, cell)
             design = self.interim.get((key, cell))
@@ -178,6 +179,7 @@ class GainAdvisor:
             proxy_hold=design.proxy_hold,
             theta_m=self.theta_m if design.i_gain > 0.0 else 0.0,
             delay_ticks=key.delay_ticks,
+            interim=interim,
         )
 
     # ---------------------------------------------------------------- work for the worker

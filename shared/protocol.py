@@ -209,7 +209,9 @@ class RecommendedGains(_Msg):
     Designed with :func:`shared.gain_design.design_gains` (the Python client's own design) for the
     user's declared device (``max_stiffness_n_per_m``, ``max_damping_n_s_per_m``, servo rate,
     ``local_model``), its reported round trip and the patch's ``k_o_eff``/``k_o_stiff``/``b_o``:
-    stable over the hand box at every sampling tick, with the design's margin.
+    stable over the hand box at every sampling tick, with the design's margin. ``interim``: these
+    are interim gains, only checked stable (a fraction of a second) while the design runs; a
+    client with a full design of its own for this contact should prefer its own.
     """
 
     k_h: Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -218,6 +220,7 @@ class RecommendedGains(_Msg):
     proxy_hold: Literal["zoh", "foh"]
     theta_m: Annotated[float, Field(ge=0, allow_inf_nan=False)]
     delay_ticks: Annotated[int, Field(ge=0)]
+    interim: bool = False
 
 
 class Patch(_Msg):

@@ -43,7 +43,7 @@ export const MODEL_FIELDS = Object.freeze({
   "LinkConditions": ["latency_ms", "jitter_ms", "loss"],
   "PlaneModel": ["kind", "point", "normal"],
   "SphereModel": ["kind", "center", "radius"],
-  "RecommendedGains": ["k_h", "i_gain", "b_h", "proxy_hold", "theta_m", "delay_ticks"],
+  "RecommendedGains": ["k_h", "i_gain", "b_h", "proxy_hold", "theta_m", "delay_ticks", "interim"],
   "UserView": ["user_id", "name", "probe_m", "proxy_m", "normal", "force_n", "penetration_m", "in_contact", "k_o", "k_o_eff", "k_h", "i_gain", "servo_rate_hz", "rtt_ms", "device"],
 });
 

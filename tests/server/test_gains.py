@@ -186,3 +186,36 @@ def test_the_most_urgent_job_goes_first_interim_checks_then_the_newest_cell() ->
         ("design", c) for c in reversed(cells)
     ]
     assert adv.next_job() is None and adv.take_jobs() == []  # each job is handed out once
+
+
+def test_an_interim_recommendation_yields_to_the_clients_own_full_design() -> None:
+    """The server flags interim gains; a client with its own full design for the contact renders
+    that, and renders the server's interim gains only while it has nothing designed itself."""
+    adv = GainAdvisor(20.0)
+    h = hello("pi")
+    assert adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
+    job = adv.next_job()
+    assert job is not None and job.kind == "interim"
+    adv.store(job, run_job(job, adv.table.grid_ratio, adv.table.hand_box))
+    rec = adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0)
+    assert rec is not None and rec.interim
+
+    def patch(tick: int) -> Patch:
+        return Patch(
+            tick=tick, primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)),
+            proxy_m=(0, 0, 0.1), normal=(0, 0, 1), penetration_m=0.002, in_contact=True,
+            k_o=300.0, k_o_eff=300.0, b_o=0.0, gains=rec,
+        )  # fmt: skip
+
+    s = ClientSession("A", device=PHANTOM, b_h_max=10.0)
+    s.receive(
+        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
+    )
+    up = s.receive(encode(patch(1)), 0.1)  # nothing of its own yet: the server's interim gains
+    assert up is not None and s.server_gain_patches == 1 and up.k_h == rec.k_h
+    key, k_o = s.design_wanted or (s.gain_key(0.0, 0), 300.0)
+    s.gain_table.design(key, k_o)  # its own full design is ready now
+    up = s.receive(encode(patch(2)), 0.15)
+    own = s.gain_table.lookup(key, 300.0)
+    assert up is not None and own is not None and s.server_gain_patches == 1
+    assert (up.k_h, up.i_gain) == (own.k_h, own.i_gain) != (rec.k_h, rec.i_gain)
