@@ -206,8 +206,12 @@ class ServerApp:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._sim_task
         self._due_s = math.inf  # no schedule any more: nothing is behind it
-        for task in list(self._gain_tasks):
+        pending = list(self._gain_tasks)
+        for task in pending:
             task.cancel()
+        for task in pending:  # let them finish their cancellation while the loop still runs
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
         if self._own_executor and self.gain_executor is not None:
             self.gain_executor.shutdown(wait=False, cancel_futures=True)
             self.gain_executor = None
@@ -472,12 +476,13 @@ class ServerApp:
         worker spawned on the first user's first patch took seconds (imports) before its first
         interim check on a busy 2-core machine."""
         loop = asyncio.get_running_loop()
+        me = asyncio.current_task()
         try:
             await loop.run_in_executor(self._design_pool(), warm_up)
         except Exception:  # no warm worker: the first job starts it
             log.exception("the gain design worker could not be started")
         finally:
-            self._gain_tasks.discard(asyncio.current_task())  # type: ignore[arg-type]
+            self._gain_tasks.discard(me)  # type: ignore[arg-type]
         self._start_designs()
 
     async def _design(self, job: GainJob) -> None:
@@ -485,6 +490,7 @@ class ServerApp:
         self._design_pool()
         table = self.room.gains.table
         loop = asyncio.get_running_loop()
+        me = asyncio.current_task()
         try:
             design = await loop.run_in_executor(
                 self.gain_executor, run_job, job, table.grid_ratio, table.hand_box
@@ -493,7 +499,7 @@ class ServerApp:
             log.exception("gain design %s failed", job.kind)
             design = None
         finally:
-            self._gain_tasks.discard(asyncio.current_task())  # type: ignore[arg-type]
+            self._gain_tasks.discard(me)  # type: ignore[arg-type]
         self.room.gains.store(job, design)
         self._start_designs()
 
