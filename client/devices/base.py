@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 from haptic_collab.shared.primitives import vec3
@@ -120,21 +120,42 @@ class DeviceLimits:
                 f"got {c!r}"
             )
 
+    def scaled(self, scale: float) -> DeviceLimits:
+        """The limits seen through a workspace scale: ``scale`` world metres per device metre.
+
+        A world displacement x is x / ``scale`` at the handle, so stiffness and damping (the
+        device's own and the largest virtual one) divide by ``scale``; speed and the workspace
+        (about its centre) multiply by it; forces are unchanged.
+
+        Raises
+        ------
+        ValueError
+            A scale that is not finite and > 0.
+        """
+        if not (math.isfinite(scale) and scale > 0.0):
+            raise ValueError(f"the workspace scale must be finite and > 0, got {scale!r}")
+        lo, hi = self.workspace_min_m, self.workspace_max_m
+        c = [0.5 * (a + b) for a, b in zip(lo, hi, strict=True)]
+        half = [0.5 * scale * (b - a) for a, b in zip(lo, hi, strict=True)]
+        return replace(
+            self,
+            max_stiffness_n_per_m=self.max_stiffness_n_per_m / scale,
+            max_velocity_m_s=self.max_velocity_m_s * scale,
+            damping_n_s_per_m=self.damping_n_s_per_m / scale,
+            max_damping_n_s_per_m=self.max_damping_n_s_per_m / scale,
+            workspace_min_m=(c[0] - half[0], c[1] - half[1], c[2] - half[2]),
+            workspace_max_m=(c[0] + half[0], c[1] + half[1], c[2] + half[2]),
+        )
+
     def centered_at(self, center: Sequence[float]) -> DeviceLimits:
         """The same limits with the workspace box moved to be centred on ``center`` (3,) [m]."""
         c = vec3("center", center)
         lo, hi = self.workspace_min_m, self.workspace_max_m
         half = tuple(0.5 * (b - a) for a, b in zip(lo, hi, strict=True))
-        return DeviceLimits(
-            max_force_n=self.max_force_n,
-            max_stiffness_n_per_m=self.max_stiffness_n_per_m,
-            max_velocity_m_s=self.max_velocity_m_s,
-            damping_n_s_per_m=self.damping_n_s_per_m,
+        return replace(
+            self,
             workspace_min_m=(c[0] - half[0], c[1] - half[1], c[2] - half[2]),
             workspace_max_m=(c[0] + half[0], c[1] + half[1], c[2] + half[2]),
-            has_force_output=self.has_force_output,
-            max_damping_n_s_per_m=self.max_damping_n_s_per_m,
-            max_continuous_force_n=self.max_continuous_force_n,
         )
 
 

@@ -205,17 +205,21 @@ def world_limits(
     f = model.max_force_n
     if sdk_max_force_n is not None and math.isfinite(sdk_max_force_n) and sdk_max_force_n > 0.0:
         f = min(f, sdk_max_force_n)
-    half = model.workspace_radius_m * scale
-    return DeviceLimits(
-        max_force_n=f,
-        max_stiffness_n_per_m=model.max_stiffness_n_per_m / scale,
-        max_velocity_m_s=MAX_VELOCITY_M_S * scale,
-        damping_n_s_per_m=0.0,
-        workspace_min_m=(-half, -half, -half),
-        workspace_max_m=(half, half, half),
-        max_damping_n_s_per_m=model.max_damping_n_s_per_m / scale,
-        max_continuous_force_n=None,
-    ).centered_at(center)
+    r = model.workspace_radius_m
+    return (
+        DeviceLimits(
+            max_force_n=f,
+            max_stiffness_n_per_m=model.max_stiffness_n_per_m,
+            max_velocity_m_s=MAX_VELOCITY_M_S,
+            damping_n_s_per_m=0.0,
+            workspace_min_m=(-r, -r, -r),
+            workspace_max_m=(r, r, r),
+            max_damping_n_s_per_m=model.max_damping_n_s_per_m,
+            max_continuous_force_n=None,
+        )
+        .scaled(scale)
+        .centered_at(center)
+    )
 
 
 def parse_args(args: str) -> tuple[int | None, float]:

@@ -161,19 +161,20 @@ class Inverse3Specs:
         ValueError
             A non-positive scale, or limits :class:`DeviceLimits` refuses.
         """
-        if not (math.isfinite(scale) and scale > 0.0):
-            raise ValueError(f"the workspace scale must be finite and > 0, got {scale!r}")
-        c = (float(center[0]), float(center[1]), float(center[2]))
         h = self.workspace_half_m
-        return DeviceLimits(
-            max_force_n=self.max_force_n,
-            max_stiffness_n_per_m=self.max_stiffness_n_per_m / scale,
-            max_velocity_m_s=self.max_velocity_m_s * scale,
-            damping_n_s_per_m=self.damping_n_s_per_m / scale,
-            workspace_min_m=(c[0] - scale * h[0], c[1] - scale * h[1], c[2] - scale * h[2]),
-            workspace_max_m=(c[0] + scale * h[0], c[1] + scale * h[1], c[2] + scale * h[2]),
-            max_damping_n_s_per_m=self.max_damping_n_s_per_m / scale,
-            max_continuous_force_n=self.max_continuous_force_n,
+        return (
+            DeviceLimits(
+                max_force_n=self.max_force_n,
+                max_stiffness_n_per_m=self.max_stiffness_n_per_m,
+                max_velocity_m_s=self.max_velocity_m_s,
+                damping_n_s_per_m=self.damping_n_s_per_m,
+                workspace_min_m=(-h[0], -h[1], -h[2]),
+                workspace_max_m=(h[0], h[1], h[2]),
+                max_damping_n_s_per_m=self.max_damping_n_s_per_m,
+                max_continuous_force_n=self.max_continuous_force_n,
+            )
+            .scaled(scale)
+            .centered_at(center)
         )
 
 

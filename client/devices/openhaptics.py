@@ -359,8 +359,8 @@ def world_limits(hd: HdLimits, scale: float, center_w: Vec3) -> DeviceLimits:
     Stiffness and damping divide by ``scale`` (a world displacement of ``x`` is ``x / scale`` at
     the stylus), velocity and workspace multiply by it, forces are unchanged.
     """
-    corners = [
-        device_to_world((x, y, z), center_w, hd.center_m, scale)
+    corners = [  # the rotated box at scale 1, centred on center_w; scaled below
+        device_to_world((x, y, z), center_w, hd.center_m, 1.0)
         for x in (hd.workspace_min_m[0], hd.workspace_max_m[0])
         for y in (hd.workspace_min_m[1], hd.workspace_max_m[1])
         for z in (hd.workspace_min_m[2], hd.workspace_max_m[2])
@@ -370,13 +370,13 @@ def world_limits(hd: HdLimits, scale: float, center_w: Vec3) -> DeviceLimits:
     return DeviceLimits(
         max_force_n=hd.max_force_n,
         max_continuous_force_n=hd.max_continuous_force_n,
-        max_stiffness_n_per_m=hd.max_stiffness_n_per_m / scale,
-        max_velocity_m_s=hd.max_velocity_m_s * scale,
+        max_stiffness_n_per_m=hd.max_stiffness_n_per_m,
+        max_velocity_m_s=hd.max_velocity_m_s,
         damping_n_s_per_m=0.0,  # the device's own damping: OpenHaptics does not state it
-        max_damping_n_s_per_m=hd.max_damping_n_s_per_m / scale,
+        max_damping_n_s_per_m=hd.max_damping_n_s_per_m,
         workspace_min_m=lo,
         workspace_max_m=hi,
-    )
+    ).scaled(scale)
 
 
 def standoff_center(anchor: Sequence[float], normal: Sequence[float]) -> Vec3:
