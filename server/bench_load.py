@@ -48,7 +48,8 @@ import time
 import urllib.request
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import IO, Any
 
 #: The keys every ``haptic bench load --json`` result has (the issue's contract).
 REQUIRED_KEYS = (
@@ -521,31 +522,40 @@ def _worker_main(
 
 
 # ----------------------------------------------------------------------------- server process
-class _ServerProcess:
-    """``python -m haptic_collab.cli server --port 0`` in its own process; ``port`` once it listens."""
+class ServerProcess:
+    """``haptic server --host 127.0.0.1 --port PORT ARGS`` in its own process (``python -m
+    haptic_collab.cli``, as a user starts it); ``port`` and ``url`` once it listens.
 
-    def __init__(self, opts: LoadOptions) -> None:
+    Parameters
+    ----------
+    args : str
+        Further ``haptic server`` options.
+    port : int
+        TCP port; 0 takes any free one.
+    log : Path, optional
+        File for the server's log (stderr); default a temporary file. :meth:`log_tail` and
+        :meth:`warnings` read it either way.
+
+    Raises
+    ------
+    RuntimeError
+        The server exited or did not print its URL within :data:`SERVER_START_TIMEOUT_S`.
+    """
+
+    def __init__(self, *args: str, port: int = 0, log: Path | None = None) -> None:
         env = dict(os.environ)
         for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             env.setdefault(var, "1")
         env["PYTHONUNBUFFERED"] = "1"
-        self.log = tempfile.TemporaryFile(mode="w+", prefix="haptic-bench-load-server-")
+        self.log: IO[str] = (
+            tempfile.TemporaryFile(mode="w+", prefix="haptic-server-")
+            if log is None
+            else open(log, "w+")  # noqa: SIM115 (closed in stop)
+        )
         cmd = [
-            sys.executable,
-            "-m",
-            "haptic_collab.cli",
-            "--log-level",
-            "info",
-            "server",
-            "--host",
-            "127.0.0.1",
-            "--port",
-            "0",
-            "--sim-rate",
-            f"{opts.sim_rate_hz:g}",
-            "--subdivisions",
-            str(opts.subdivisions),
-        ]
+            sys.executable, "-m", "haptic_collab.cli", "--log-level", "info",
+            "server", "--host", "127.0.0.1", "--port", str(port), *args,
+        ]  # fmt: skip
         # its own session and process group: the server's own worker processes (gain designs)
         # are ended with it
         self.proc = subprocess.Popen(
@@ -559,6 +569,13 @@ class _ServerProcess:
         self._lines: queue.Queue[str | None] = queue.Queue()
         threading.Thread(target=self._drain, daemon=True).start()
         self.port = self._wait_port()
+        self.url = f"ws://127.0.0.1:{self.port}/ws"
+
+    def __enter__(self) -> ServerProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
 
     def _drain(self) -> None:
         assert self.proc.stdout is not None
@@ -616,8 +633,9 @@ class _ServerProcess:
         except (OSError, ValueError, IndexError):
             return math.nan
 
-    def stop(self) -> None:
-        """End the server as Ctrl-C does (SIGINT: it shuts its workers down), then its group.
+    def stop(self) -> int | None:
+        """End the server as Ctrl-C does (SIGINT: it shuts its workers down), then its group;
+        returns its exit status.
 
         SIGTERM after 10 s, SIGKILL after 5 more; whatever is left of the server's process group
         (a worker orphaned by a server that did not shut down cleanly) gets SIGTERM.
@@ -630,6 +648,8 @@ class _ServerProcess:
                 self.proc.wait(wait_s)
         with contextlib.suppress(OSError):
             os.killpg(self.proc.pid, signal.SIGTERM)
+        self.log.flush()
+        return self.proc.returncode
 
 
 def _vm_rss_mb(pid: int) -> float:
@@ -707,7 +727,9 @@ def run(opts: LoadOptions, log: Callable[[str], None] | None = None) -> dict[str
     per_worker: list[list[_ClientSpec]] = [specs[i::n_workers] for i in range(n_workers)]
     sources = _source_addresses(n_workers)
     say(f"starting the server ({opts.sim_rate_hz:g} Hz, subdivisions {opts.subdivisions})")
-    server = _ServerProcess(opts)
+    server = ServerProcess(
+        "--sim-rate", f"{opts.sim_rate_hz:g}", "--subdivisions", str(opts.subdivisions)
+    )
     ctx = mp.get_context("spawn")
     to_coord: Any = ctx.Queue()
     inboxes: list[Any] = [ctx.Queue() for _ in range(n_workers)]
@@ -838,7 +860,7 @@ def _round_or_none(x: float, digits: int) -> float | None:
     return None if math.isnan(x) else round(x, digits)
 
 
-def _get(q: Any, timeout_s: float, server: _ServerProcess) -> tuple[str, int, Any]:
+def _get(q: Any, timeout_s: float, server: ServerProcess) -> tuple[str, int, Any]:
     """The next worker report, or RuntimeError after ``timeout_s`` or when the server died."""
     deadline = time.monotonic() + timeout_s
     while True:

@@ -29,7 +29,7 @@ from haptic_collab.server.app import ServerApp
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Room
 from haptic_collab.shared.protocol import ObjectInfo
-from tests.processes import ServerProcess, finish_client, start_client, wait_until
+from tests.processes import finish_client, server_process, start_client, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -77,7 +77,7 @@ def test_two_users_feel_each_other_over_websockets(tmp_path):
     # come on once its first gains are checked (interim gains, a few hundred ms after joining on an
     # idle machine, seconds when every design worker starts at once on a busy 2-core one; the
     # first-contact latency has its own test in tests/client/test_first_contact.py).
-    with ServerProcess(tmp_path / "server.log", 0, *SERVER_ARGS, "--subdivisions", "4") as server:
+    with server_process(tmp_path / "server.log", 0, *SERVER_ARGS, "--subdivisions", "4") as server:
         b_proc = start_client(tmp_path, "B", server.url, "--device", "sim:rest", "--duration", "14")
         a_proc = start_client(
             tmp_path, "A", server.url, "--device", "sim:press", "--duration", "14",
@@ -229,7 +229,7 @@ async def test_hostile_input_gets_errors_and_the_other_user_keeps_working():
 
 def test_link_loss_ramps_force_to_zero_and_the_client_rejoins(tmp_path):
     """The server process goes away in the middle of a press and comes back on the same port."""
-    server = ServerProcess(tmp_path / "server1.log", 0, *SERVER_ARGS, "--subdivisions", "3")
+    server = server_process(tmp_path / "server1.log", 0, *SERVER_ARGS, "--subdivisions", "3")
     try:
         proc = start_client(
             tmp_path, "A", server.url, "--device", "sim:press", "--duration", "12",
@@ -245,7 +245,7 @@ def test_link_loss_ramps_force_to_zero_and_the_client_rejoins(tmp_path):
     t_gone = time.perf_counter()  # the first server has exited
     time.sleep(1.5)
     t_back = time.perf_counter()
-    with ServerProcess(tmp_path / "server2.log", server.port, *SERVER_ARGS, "--subdivisions", "3"):
+    with server_process(tmp_path / "server2.log", server.port, *SERVER_ARGS, "--subdivisions", "3"):
         summary, cols = finish_client(proc, tmp_path, "A")
     t = cols["t_s"] + (summary["clock_origin_s"] - t_loss)  # seconds since Ctrl-C to the server
     f, ramping = cols["force_n"], cols["ramping"]
