@@ -13,7 +13,6 @@ import json
 import re
 import struct
 import sys
-import time
 import tomllib
 from collections.abc import Iterator
 from importlib.metadata import entry_points
@@ -285,11 +284,9 @@ def test_a_backend_without_its_vendor_library_says_exactly_what_to_install(
     assert str(info.value) == NOSDK_MESSAGE
     # haptic client stops there, before any network (nothing listens on port 9)
     opts = ClientOptions(url="ws://127.0.0.1:9/ws", device="nosdk:arm-1", join_timeout_s=30.0)
-    t0 = time.monotonic()
-    with pytest.raises(DeviceError) as info:
+    with pytest.raises(DeviceError) as info:  # a join attempt would end in ConnectionError
         asyncio.run(run_client(opts))
     assert str(info.value) == NOSDK_MESSAGE
-    assert time.monotonic() - t0 < 5.0  # no join timeout was waited for
     assert not [c for c in labpkg.CALLS if c[0] == "nosdk"]  # open() was never called
 
 

