@@ -119,6 +119,12 @@ THETA_ENCODER_MARGIN = 1.2
 #: (tens of mm/s).
 THETA_EXIT_SPEED_M_S = 0.01
 
+#: Time [s] over which the force step of new gains in the middle of a press is carried off
+#: (:class:`shared.local_model.LocalModelParams`): long enough that the hand feels a change of
+#: stiffness, not a tap (the demo's hold saw a 0.56 N step in one tick without it), short next to
+#: the seconds a new cell's design takes.
+GAIN_TRANSFER_S = 0.25
+
 
 def threshold_for(
     mode: Literal["auto", "fixed", "variable"],
@@ -408,6 +414,8 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
             # anti-windup at what the device may display for long: its continuous force when it
             # states one (a hold must not ask for the peak force for seconds), else its peak
             integral_limit_n=lim.max_continuous_force_n or lim.max_force_n,
+            # new gains in the middle of a press change the force smoothly, never in one tick
+            gain_transfer_s=GAIN_TRANSFER_S,
         )
         passivity = opts.passivity == "on" or (
             opts.passivity == "auto" and opts.local_model == "pi"

@@ -578,7 +578,9 @@ class ServoCore:
             self._hold_i = 0
             self._hold_n = p.hold_ticks
             self._primitive = p.primitive
-            self.local_model.set_gains(p.k_h, p.i_gain, p.recovery_m_per_n)
+            # the damper's share of the force step is carried off with the stiffness's
+            carry = (self._b_h - p.b_h) * self._u if self._b_h > 0.0 or p.b_h > 0.0 else 0.0
+            self.local_model.set_gains(p.k_h, p.i_gain, p.recovery_m_per_n, carry_n=carry)
             self._k_h = p.k_h
             self._i_gain = p.i_gain
             self._b_h = p.b_h

@@ -40,8 +40,12 @@ from haptic_collab.client.devices.trajectories import Rest
 from haptic_collab.server.security import is_loopback
 from haptic_collab.server.urls import WILDCARD_HOSTS, local_host, url_host, viewer_urls
 
-#: A hold is stable when the peak-to-peak penetration over its last second stays below this [mm].
+#: A hold is stable when the peak-to-peak penetration over its last second, after its straight-line
+#: trend, stays below this [mm] (:func:`hold_shake_mm`).
 STABLE_P2P_MM = 1.0
+#: After a change of gains the hold's equilibrium moves (a stiffer coupling holds the probe nearer
+#: the proxy) for about this long [s]: the client's gain transfer (0.25 s) and the hand settling.
+GAIN_SETTLE_S = 0.5
 #: B's contact counts as settled this long after its force came on [s] (the PI local model's
 #: integral takes about 1 s to reach B's resting force).
 B_SETTLE_S = 1.0
@@ -375,12 +379,52 @@ def _window(cols: dict[str, np.ndarray], t0: float, t1: float) -> np.ndarray:
     return (t >= t0) & (t < t1)
 
 
+def hold_shake_mm(
+    t: np.ndarray,
+    x: np.ndarray,
+    k_h: np.ndarray,
+    window: tuple[float, float],
+    settle_s: float = GAIN_SETTLE_S,
+) -> float:
+    """How much a held probe shakes: peak to peak [mm] of ``x`` [m] after its trend.
+
+    A hold is judged in ``window`` (t0, t1) [s] on the telemetry's clock ``t`` [s]. A change of
+    K_h (``k_h`` [N/m], one per sample) moves the hold's equilibrium: the ``settle_s`` after each
+    change are left out, and each stretch between changes is judged apart, after its own
+    straight-line trend (a slow creep, such as the probe sinking while the PI integral stops at
+    the device's continuous force, is not a shake). Stretches under 0.1 s are not judged.
+
+    Returns
+    -------
+    float
+        The largest peak to peak [mm] of a stretch; NaN if no stretch could be judged.
+    """
+    t = np.asarray(t, float)
+    x = np.asarray(x, float)
+    k_h = np.asarray(k_h, float)
+    judged = (t >= window[0]) & (t < window[1]) & np.isfinite(x)
+    changes = t[1:][np.diff(k_h) != 0.0]
+    for ts in changes:
+        judged &= ~((t >= ts) & (t < ts + settle_s))
+    # stretches: runs of judged samples not separated by a change of gains
+    stretch = np.searchsorted(changes, t, side="right")
+    worst = float("nan")
+    for k in np.unique(stretch[judged]):
+        m = judged & (stretch == k)
+        tk, xk = t[m], x[m]
+        if tk.size < 3 or tk[-1] - tk[0] < 0.1:
+            continue
+        shake = xk - np.polyval(np.polyfit(tk, xk, 1), tk)
+        p2p = float(np.ptp(shake) * 1000.0)
+        worst = p2p if not np.isfinite(worst) else max(worst, p2p)
+    return worst
+
+
 def _user_report(
     cols: dict[str, np.ndarray], summary: dict[str, Any], hold: tuple[float, float]
 ) -> dict[str, Any]:
     w = _window(cols, *hold)
-    pen = cols["penetration_m"][w]
-    p2p = float((np.nanmax(pen) - np.nanmin(pen)) * 1000.0) if pen.size else float("nan")
+    p2p = hold_shake_mm(cols["t_s"], cols["penetration_m"], cols["k_h_n_per_m"], hold)
     faults = int(np.nansum(cols["fault"])) if "fault" in cols else 0
     return {
         "servo_rate_hz": summary.get("servo_rate_hz"),

@@ -47,6 +47,21 @@ intervals can be small multiples of NT"). The integral never pulls (s >= 0) and 
 negative. ``unilateral=False`` gives the linear bilateral coupling analysed in sections 3-5 (used to
 reproduce Fig. 7 and to check the lifting against a direct simulation).
 
+Changing gains without a bump. A new patch may bring new gains in the middle of a press (the
+interim gains of a new K_o cell replaced by the designed ones a few seconds later, on a busy
+machine during a hold). The integral force is kept, but the proportional part steps by
+(K_h,old - K_h,new)*e: with A's hold in the two-user demo (e = 6.6 mm) tripling K_h from 43 to
+127 N/m threw a 0.56 N jolt at the hand and moved the probe 2 mm within 0.1 s. With
+``gain_transfer_s`` > 0 the step is carried by a transfer force b that takes its place at the
+change and is driven linearly to zero over ``gain_transfer_s`` ("bumpless parameter changes",
+Astrom and Hagglund, *Advanced PID Control*, ISA 2006)::
+
+    f(n) = K_h * e(n) + s(n) + b(n),    b -> b + (K_h,old - K_h,new) * e  at a change
+
+The loop itself is the new gains' (the design verified for them) from the first tick; b is an
+input from outside it, bounded by the step it replaces and gone after ``gain_transfer_s``. Out of
+contact b is zero.
+
 Nothing here reads a clock: time advances one servo period per :meth:`LocalModel.step`.
 """
 
@@ -192,6 +207,10 @@ class LocalModelParams:
         releases whenever the probe leaves the stale proxy by a fraction of a millimetre, and
         falls into a relaxation limit cycle (``haptic bench fidelity`` measured up to 4 mm peak to
         peak). The local model stays linear (eq. 12) inside that band, as the analysis assumes.
+    gain_transfer_s : float
+        Time [s] over which the force step of a change of gains in contact is carried off
+        (module docstring, "Changing gains without a bump"), >= 0; 0 (default): the force steps
+        as eq. (12) with the new gains says.
 
     Raises
     ------
@@ -207,6 +226,7 @@ class LocalModelParams:
     unilateral: bool = True
     integral_limit_n: float = math.inf
     recovery_m_per_n: float = 0.0
+    gain_transfer_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.k_h) and self.k_h > 0.0):
@@ -217,6 +237,7 @@ class LocalModelParams:
         if not (math.isfinite(self.release_time_s) and self.release_time_s > 0.0):
             raise ValueError(f"release_time_s must be > 0 s, got {self.release_time_s!r}")
         _finite_nonneg("recovery_m_per_n", self.recovery_m_per_n)
+        _finite_nonneg("gain_transfer_s", self.gain_transfer_s)
         if not (self.integral_limit_n > 0.0):
             raise ValueError(f"integral_limit_n must be > 0 N, got {self.integral_limit_n!r}")
 
@@ -226,7 +247,8 @@ class LocalModel:
 
     Call :meth:`step` once per servo tick with the penetration [m]; it returns the force magnitude
     [N] along the outward normal. Gains may be changed between ticks with :meth:`set_gains` (the
-    integral state is kept, so the force does not jump when a new patch arrives).
+    integral state is kept and, with ``gain_transfer_s``, the proportional part's step is carried
+    off smoothly).
 
     Examples
     --------
@@ -250,6 +272,8 @@ class LocalModel:
         "_v_f",
         "_a_v",
         "_rec",
+        "_b",
+        "_b_step",
     )
 
     def __init__(self, params: LocalModelParams) -> None:
@@ -272,24 +296,47 @@ class LocalModel:
         self._force = 0.0
         self._in_contact = False
         self._v_f = 0.0
+        self._b = 0.0
+        self._b_step = 0.0
 
-    def set_gains(self, k_h: float, i_gain: float, recovery_m_per_n: float | None = None) -> None:
+    def set_gains(
+        self,
+        k_h: float,
+        i_gain: float,
+        recovery_m_per_n: float | None = None,
+        *,
+        carry_n: float = 0.0,
+    ) -> None:
         """Replace K_h [N/m] and I [N/(m*s)] between ticks; the integral force is kept.
 
         ``recovery_m_per_n`` (1/K_o of the new patch [m/N], see :class:`LocalModelParams`)
-        replaces the contact's recovery band when given.
+        replaces the contact's recovery band when given. In contact, with ``gain_transfer_s`` >
+        0, the step (K_h,old - K_h,new)*e of the last tick's penetration e, plus ``carry_n`` [N]
+        (the step of a force the caller adds on top, e.g. a probe damper's (B_old - B_new)*v),
+        becomes a transfer force driven to zero over ``gain_transfer_s`` (module docstring).
 
         Raises
         ------
         ValueError
             If the gains are out of range (see :class:`LocalModelParams`).
         """
+        k_old = self._k_h
         self.params = replace(self.params, k_h=k_h, i_gain=i_gain)
         self._k_h = self.params.k_h
         self._ti = self.params.servo_period_s * self.params.i_gain
         if recovery_m_per_n is not None:
             self.params = replace(self.params, recovery_m_per_n=recovery_m_per_n)
             self._rec = self.params.recovery_m_per_n
+        step = (k_old - self._k_h) * self._e_prev + carry_n
+        transfer = self.params.gain_transfer_s
+        if self._in_contact and transfer > 0.0 and step != 0.0 and math.isfinite(step):
+            self._b += step
+            self._b_step = self._b * self.params.servo_period_s / transfer
+
+    @property
+    def transfer_n(self) -> float:
+        """Transfer force b [N] still carried from the last change of gains (0 when none)."""
+        return self._b
 
     @property
     def integral_n(self) -> float:
@@ -343,16 +390,20 @@ class LocalModel:
         if not math.isfinite(e):
             e = -1.0
         p = self.params
+        b = self._b
+        if b != 0.0:  # the transfer force of a change of gains, driven to zero
+            nb = b - self._b_step
+            self._b = nb if (nb > 0.0) == (b > 0.0) and nb != 0.0 else 0.0
         if not p.unilateral:
             self._in_contact = True
             theta = self._threshold(e, depth_rate_m_s) if self._ti > 0.0 else 0.0
-            f = self._k_h * e + self._s
+            f = self._k_h * e + self._s + b
             s = self._s + self._ti * (e - theta)
             self._s = s if abs(s) <= self._s_max else math.copysign(self._s_max, s)
         elif e > 0.0 or (self._in_contact and e > -self._s * self._rec):
             self._in_contact = True
             theta = self._threshold(e, depth_rate_m_s) if self._ti > 0.0 else 0.0
-            f = self._k_h * e + self._s
+            f = self._k_h * e + self._s + b
             s = self._s + self._ti * (e - theta)
             self._s = 0.0 if s < 0.0 else (s if s < self._s_max else self._s_max)
             self._release_step = 0.0
@@ -366,6 +417,7 @@ class LocalModel:
             self._in_contact = False
             self._v_f = 0.0  # a new contact starts from rest
             self._exiting = False
+            self._b = 0.0  # no transfer out of contact
             f = self._s
             s = self._s - self._release_step
             self._s = s if s > 0.0 else 0.0

@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from haptic_collab.demo import B_SETTLE_S, RELEASE_SETTLE_S, coupling_report, timeline
+from haptic_collab.demo import (
+    B_SETTLE_S,
+    RELEASE_SETTLE_S,
+    coupling_report,
+    hold_shake_mm,
+    timeline,
+)
 
 RATE = 1000.0
 REST_N, HOLD_N = 0.20, 0.24  # B's force at rest and while A holds
@@ -75,3 +81,27 @@ def test_no_settled_rest_anywhere_is_not_a_number() -> None:
 
 def tl_contact(duration_s: float) -> float:
     return timeline(duration_s).contact_s
+
+
+def test_a_hold_is_judged_for_shake_not_for_creep_nor_for_a_change_of_gains() -> None:
+    """The demo's `stable`: a shaking hold fails, a creeping one and a moved equilibrium pass."""
+    t = np.arange(0.0, 3.0, 1.0 / RATE)
+    window = (2.0, 3.0)
+    k_h = np.full_like(t, 43.0)
+    still = np.full_like(t, 0.0066)
+    assert hold_shake_mm(t, still, k_h, window) == pytest.approx(0.0, abs=1e-9)
+    creep = 0.0066 + 0.002 * t  # 2 mm/s of creep: not a shake
+    assert hold_shake_mm(t, creep, k_h, window) == pytest.approx(0.0, abs=1e-9)
+    shake = still + 0.0008 * np.sin(2 * np.pi * 6.0 * t)  # a 1.6 mm peak-to-peak oscillation
+    assert 1.5 < hold_shake_mm(t, shake, k_h, window) < 2.0  # the trend takes a little of it
+    # new gains at 2.3 s: the probe settles 2 mm nearer the proxy over a few hundred ms (the
+    # demo's CI failure: 2.85 mm peak to peak and "not stable", with no oscillation at all)
+    k_h2 = np.where(t >= 2.3, 127.0, 43.0)
+    moved = 0.0066 - 0.002 * np.clip((t - 2.3) / 0.3, 0.0, 1.0)
+    assert np.ptp(moved[t >= 2.0]) * 1000.0 == pytest.approx(2.0)
+    assert hold_shake_mm(t, moved, k_h2, window) == pytest.approx(0.0, abs=1e-9)
+    # a shake on either side of the change is still seen
+    assert hold_shake_mm(t, moved + shake - still, k_h2, window) > 1.0
+    # gains changing all the time leave nothing to judge: not a number (the demo says unstable)
+    chatter = 43.0 + 10.0 * (np.floor(t / 0.2) % 2)
+    assert np.isnan(hold_shake_mm(t, still, chatter, window))

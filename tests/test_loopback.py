@@ -25,6 +25,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from haptic_collab.client.servo import ServoConfig
+from haptic_collab.demo import hold_shake_mm
 from haptic_collab.server.app import ServerApp
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Room
@@ -113,20 +114,16 @@ def test_two_users_feel_each_other_over_websockets(tmp_path):
     # slow creep is not a shake (A's integral stops at the device's continuous force, 1.75 N,
     # and the probe then sinks until the proportional part carries the rest; B's surface moves
     # out under it): judge the motion left after a straight-line trend
-    for cols, mask, normal in ((a, during_a, info.top_normal), (b, during_b, side_n)):
-        # a change of gains (interim -> designed, arriving late on a busy machine) moves the
-        # hold's equilibrium in one step; the 0.3 s after it are not judged as shake
-        t_all, k_h = cols["t_s"], cols["k_h_n_per_m"]
-        switched = t_all[1:][np.diff(k_h) != 0.0]
-        settled = np.ones_like(mask)
-        for ts in switched:
-            settled &= ~((t_all >= ts) & (t_all < ts + 0.3))
-        mask = mask & settled
-        probe = along(cols, "probe", np.asarray(normal))[mask]
-        t = cols["t_s"][mask]
-        shake = probe - np.polyval(np.polyfit(t, probe, 1), t)
-        assert np.ptp(shake) < 0.001, (np.ptp(shake), np.ptp(probe))
-        assert abs(probe[-1] - probe[0]) < 0.003, "the hold drifted by more than 3 mm in 1 s"
+    # (the 0.5 s after a change of gains, interim -> designed arriving late on a busy machine,
+    # are left out: the equilibrium moves, smoothly, there; haptic_collab.demo.hold_shake_mm)
+    for cols, normal in ((a, info.top_normal), (b, side_n)):
+        probe = along(cols, "probe", np.asarray(normal))
+        window = (hold_end - 1.0, hold_end)
+        shake = hold_shake_mm(cols["t_s"], probe, cols["k_h_n_per_m"], window)
+        assert shake < 1.0, shake
+        held = (cols["t_s"] > window[0]) & (cols["t_s"] < window[1])
+        drift = abs(probe[held][-1] - probe[held][0])
+        assert drift < 0.003, f"the hold drifted by {drift * 1e3:.1f} mm in 1 s"
     assert a_sum["patches"] > 100 and b_sum["patches"] > 100
 
 

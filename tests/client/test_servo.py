@@ -290,6 +290,28 @@ def test_new_patch_changes_gains_without_a_force_jump_from_the_integral() -> Non
     assert dev.displayed[2] - before == pytest.approx(100.0 * 0.005, abs=T * 500.0 * 0.005 + 1e-12)
 
 
+def test_new_gains_mid_press_reach_the_hand_as_a_ramp_not_a_step() -> None:
+    """Through the servo: stiffness and probe damper change, the displayed force moves smoothly."""
+    params = LocalModelParams(k_h=50.0, servo_period_s=T, gain_transfer_s=0.2)
+    dev = FakeDevice((0.0, 0.0, -0.006))
+    core = ServoCore(dev, ServoConfig(ramp_s=RAMP_S), local_model=params)
+    core.enable_forces()
+    core.set_patch(PLANE, 50.0, 0.0, b_h=10.0)
+    t = run(core, 0.0, 200, notify_every=10)
+    assert dev.displayed[2] == pytest.approx(50.0 * 0.006)
+    core.set_patch(PLANE, 150.0, 0.0, b_h=5.0)
+    forces = []
+    for k in range(400):
+        if k % 10 == 0:
+            core.notify_link(t)
+        core.tick(t)
+        forces.append(dev.displayed[2])
+        t += T
+    steps = [b - a for a, b in zip([50.0 * 0.006, *forces], forces, strict=False)]
+    assert max(abs(x) for x in steps) <= 100.0 * 0.006 / 200 * 1.0001  # 0.6 N over 0.2 s
+    assert forces[-1] == pytest.approx(150.0 * 0.006)
+
+
 def test_stop_ramps_down_then_disables_the_device() -> None:
     dev = FakeDevice((0.0, 0.0, -0.005))
     core = make_core(dev)

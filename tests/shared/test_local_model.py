@@ -196,6 +196,60 @@ def test_gain_change_keeps_the_integral_force():
     )  # K_h change adds 10 N/m * 5 mm = 0.05 N plus one integral step
 
 
+def test_a_stiffer_coupling_mid_press_changes_the_force_smoothly_not_in_one_tick():
+    """A's hold in the demo: K_h 43 -> 127 N/m at 6.6 mm was a 0.56 N step in one tick."""
+    e = 0.0066
+    old, new = 43.0, 127.0
+    lm = LocalModel(LocalModelParams(k_h=old, gain_transfer_s=0.25))
+    f_before = lm.step(e)
+    lm.set_gains(new, 0.0)
+    forces = np.array([lm.step(e) for _ in range(400)])
+    # the first tick renders the force the hand already held, then the force moves linearly
+    assert forces[0] == pytest.approx(f_before)
+    steps = np.diff(np.concatenate([[f_before], forces]))
+    assert steps.max() <= (new - old) * e / 250 * 1.0001
+    # and after 0.25 s the force is the new gains' own (eq. 12), with nothing left over
+    assert forces[250:] == pytest.approx(new * e)
+    assert lm.transfer_n == 0.0
+
+    # a softer coupling comes down the same way (eq. 12 alone drops it in one tick)
+    lm.set_gains(old, 0.0)
+    f_soft = np.array([lm.step(e) for _ in range(300)])
+    assert f_soft[0] == pytest.approx(new * e)
+    assert np.diff(f_soft).min() >= -(new - old) * e / 250 * 1.0001
+    assert f_soft[-1] == pytest.approx(old * e)
+
+    plain = LocalModel(LocalModelParams(k_h=old))  # gain_transfer_s = 0: the paper's eq. 12
+    plain.step(e)
+    plain.set_gains(new, 0.0)
+    assert plain.step(e) == pytest.approx(new * e)
+
+
+def test_the_gain_transfer_keeps_the_integral_and_ends_with_the_contact():
+    lm = LocalModel(
+        LocalModelParams(
+            k_h=100.0, i_gain=3000.0, threshold=ThresholdParams(mode="none"), gain_transfer_s=0.1
+        )
+    )
+    for _ in range(100):
+        f_before = lm.step(0.005)
+    integral = lm.integral_n
+    lm.set_gains(300.0, 3000.0)
+    assert lm.step(0.005) - f_before == pytest.approx(3000.0 * 1e-3 * 0.005)  # one integral step
+    assert lm.integral_n > integral
+    assert lm.transfer_n < 0.0  # carrying -200 N/m * 5 mm, being driven to zero
+    # the probe leaves: the transfer is gone with the contact, a new touch is plain eq. 12
+    for _ in range(200):
+        lm.step(-0.001)
+    assert lm.transfer_n == 0.0
+    assert lm.step(0.002) == pytest.approx(300.0 * 0.002)
+    # out of contact a change of gains carries nothing
+    for _ in range(200):
+        lm.step(-0.001)
+    lm.set_gains(100.0, 3000.0)
+    assert lm.transfer_n == 0.0
+
+
 def test_non_finite_penetration_is_treated_as_release():
     lm = LocalModel(LocalModelParams(k_h=100.0))
     lm.step(0.01)
@@ -212,6 +266,8 @@ def test_non_finite_penetration_is_treated_as_release():
         {"k_h": 10.0, "i_gain": -1.0},
         {"k_h": 10.0, "servo_period_s": 0.0},
         {"k_h": 10.0, "release_time_s": 0.0},
+        {"k_h": 10.0, "gain_transfer_s": -0.1},
+        {"k_h": 10.0, "gain_transfer_s": math.inf},
     ],
 )
 def test_bad_parameters_are_refused(kwargs):
