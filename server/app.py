@@ -317,7 +317,7 @@ class ServerApp:
                 if not self.link.active:
                     self._deliver(conn_id, frame)
                     continue
-                at = peer.up.schedule(now, droppable=_droppable_in(frame))
+                at = peer.up.schedule(now, droppable=self.room.droppable(frame))
                 if at is not None:  # strictly increasing times: the timers fire in order
                     loop.call_at(at, self._deliver, conn_id, frame)
         except ConnectionClosed:
@@ -511,11 +511,3 @@ def _address(ws: ServerConnection) -> str:
         host = str(remote[0])
         return host.removeprefix("::ffff:")  # an IPv4 peer on a dual-stack socket
     return "unknown"
-
-
-def _droppable_in(frame: str | bytes) -> bool:
-    """Incoming state-stream frames (state, ping) may be dropped by loss injection; events not."""
-    if isinstance(frame, str):
-        head = frame[:40]
-        return '"type":"state"' in head or '"type":"ping"' in head or '"type": "state"' in head
-    return False

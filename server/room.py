@@ -62,6 +62,7 @@ from haptic_collab.shared.protocol import (
     SurfacePoint,
     UserView,
     Welcome,
+    client_stream_frame,
     encode,
     encode_faces,
     frame_size_bytes,
@@ -433,6 +434,16 @@ class Room:
             return False, self._close(conn, "rate_limited", "too many bytes; slow down")
         out = self._charge_address(conn, size, now_s)
         return not conn.closed, out
+
+    @staticmethod
+    def droppable(frame: str | bytes) -> bool:
+        """Whether latency injection's loss may drop this incoming frame.
+
+        Stream messages (``state``, ``ping``: each supersedes the last) may be lost; events
+        (``hello``, ``bye``) and anything the room would refuse are always delivered
+        (:func:`shared.protocol.client_stream_frame`).
+        """
+        return client_stream_frame(frame)
 
     def handle(self, conn_id: str, frame: str | bytes, now_s: float) -> list[Outgoing]:
         """Handle a frame :meth:`admit` admitted, at its delivery time ``now_s`` [s].

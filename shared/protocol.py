@@ -339,6 +339,29 @@ def frame_size_bytes(frame: str | bytes) -> int:
     return len(frame)
 
 
+#: Client messages that form a stream (each supersedes the last; a lost one is repaired by the
+#: next): loss injection may drop them. Every other message is an event and is never dropped.
+CLIENT_STREAM_TYPES = frozenset({"state", "ping"})
+
+
+def client_stream_frame(frame: str | bytes) -> bool:
+    """Whether a client frame is a stream message (:data:`CLIENT_STREAM_TYPES`).
+
+    Reads the frame's ``type`` field only; a frame that is not a JSON object with a string
+    ``type`` (binary, malformed, hostile) is not a stream frame: it goes on, undropped, to
+    :func:`parse_client`, which refuses it with its own error.
+    """
+    if not isinstance(frame, str):
+        return False
+    try:
+        check_complexity(frame)
+        msg = json.loads(frame)
+    except (ValueError, ProtocolError, RecursionError):
+        return False
+    kind = msg.get("type") if isinstance(msg, dict) else None
+    return isinstance(kind, str) and kind in CLIENT_STREAM_TYPES
+
+
 def check_complexity(text: str) -> None:
     """Bound the cost of parsing a client frame before parsing it.
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from haptic_collab.server.latency import LinkConfig, LinkShaper
+from haptic_collab.server.room import Room
 
 
 def test_constant_latency_delays_every_frame():
@@ -45,3 +46,24 @@ def test_same_seed_same_run():
 def test_absurd_link_settings_are_refused(kwargs):
     with pytest.raises(ValueError):
         LinkConfig(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("frame", "droppable"),
+    [
+        ('{"type":"state","seq":1,"probe_m":[0,0,0],"force_n":[0,0,0]}', True),
+        ('{ "seq": 1, "type" : "state", "probe_m": [0, 0, 0]}', True),  # any key order, spacing
+        ('{"type":"ping","id":1,"t_client_s":0.5}', True),
+        ('{"type":"hello","protocol":1,"role":"user","name":"x"}', False),  # events: never lost
+        ('{"type":"bye"}', False),
+        ('{"name":"\\"type\\":\\"state\\"","type":"hello"}', False),  # no sniffing of the text
+        ('{"type":["state"]}', False),  # hostile: refused by the room, never dropped silently
+        ("[1, 2, 3]", False),
+        ("not json", False),
+        (b"\x00\x01binary", False),
+        ("[" * 10000 + "]" * 10000, False),
+    ],
+)
+def test_only_stream_frames_may_be_lost(frame, droppable):
+    """The room decides which incoming frames loss injection may drop, from the message type."""
+    assert Room.droppable(frame) is droppable
