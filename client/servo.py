@@ -52,6 +52,11 @@ from typing import Any
 
 from haptic_collab.client.devices.base import Device, HapticError, Vec3
 from haptic_collab.client.recorder import TelemetryRecorder
+from haptic_collab.client.thermal import (
+    DEFAULT_THERMAL_TIME_CONSTANT_S,
+    ThermalLimit,
+    ThermalParams,
+)
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
@@ -382,6 +387,17 @@ class ServoCore:
         self._T = T
         self._step = cfg.ramp_step
         self._fmax = lim.max_force_n
+        # peak force for a limited time, then the continuous force (client.thermal)
+        self._thermal: ThermalLimit | None = None
+        if lim.has_force_output and lim.max_continuous_force_n is not None and lim.max_force_n > 0:
+            self._thermal = ThermalLimit(
+                ThermalParams(
+                    peak_force_n=lim.max_force_n,
+                    continuous_force_n=lim.max_continuous_force_n,
+                    time_constant_s=lim.thermal_time_constant_s or DEFAULT_THERMAL_TIME_CONSTANT_S,
+                    servo_period_s=T,
+                )
+            )
         self._vmax2 = lim.max_velocity_m_s**2
         self._vresume2 = (cfg.velocity_resume_ratio * lim.max_velocity_m_s) ** 2
         tau = cfg.velocity_filter_s
@@ -689,13 +705,19 @@ class ServoCore:
                     f = 0.0
         else:
             e, nx, ny, nz, f, in_contact = _NAN, 0.0, 0.0, 0.0, 0.0, False
-        fmax = self._fmax
+        th = self._thermal
+        fmax = self._fmax if th is None else th.limit_n
         limited = f > fmax or f < -fmax
         if limited:
             f = fmax if f > 0.0 else -fmax
             if not self._limited:
                 self._event(
-                    HapticError.FORCE_LIMIT, now_s, "local model force above the device max"
+                    HapticError.FORCE_LIMIT,
+                    now_s,
+                    "local model force above the device max"
+                    if fmax >= self._fmax
+                    else f"motors warm: force limited to {fmax:.2f} N, falling to the continuous "
+                    "force",
                 )
         self._limited = limited
         fo = f * s
@@ -704,6 +726,8 @@ class ServoCore:
         if pc is not None:  # passivity observer/controller at the device port
             it = self._inv_T
             fx, fy, fz = pc.step(fx, fy, fz, (x - ox) * it, (y - oy) * it, (z - oz) * it)
+        if th is not None:  # the motors heat with the force displayed (the safety scale included)
+            th.step(math.sqrt(fx * fx + fy * fy + fz * fz) if self._dev_enabled else 0.0)
         if s == 0.0 and not want and prim is not None:
             lm.reset()  # forces withheld: no integral wind-up while off
 

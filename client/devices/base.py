@@ -79,6 +79,11 @@ class DeviceLimits:
         Force [N] the device may display indefinitely (OpenHaptics'
         ``HD_NOMINAL_MAX_CONTINUOUS_FORCE``), 0 < it <= ``max_force_n``; None: not stated, the
         peak force ``max_force_n`` is all that is known.
+    thermal_time_constant_s : float or None
+        Thermal time constant [s] of the device's motors, > 0, for the servo's peak-force time
+        limit (:mod:`client.thermal`: the force limit comes down from the peak to the continuous
+        force once the peak has been used long enough); None: the stated assumption
+        :data:`client.thermal.DEFAULT_THERMAL_TIME_CONSTANT_S`. Used only with a continuous force.
 
     Raises
     ------
@@ -95,6 +100,7 @@ class DeviceLimits:
     has_force_output: bool = True
     max_damping_n_s_per_m: float = 0.0
     max_continuous_force_n: float | None = None
+    thermal_time_constant_s: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("max_force_n", "damping_n_s_per_m", "max_damping_n_s_per_m"):
@@ -119,6 +125,9 @@ class DeviceLimits:
                 f"max_continuous_force_n must be in (0, max_force_n = {self.max_force_n:g}] N, "
                 f"got {c!r}"
             )
+        tau = self.thermal_time_constant_s
+        if tau is not None and not (math.isfinite(tau) and tau > 0.0):
+            raise ValueError(f"thermal_time_constant_s must be finite and > 0 s, got {tau!r}")
 
     def scaled(self, scale: float) -> DeviceLimits:
         """The limits seen through a workspace scale: ``scale`` world metres per device metre.

@@ -8,7 +8,9 @@ from __future__ import annotations
 import math
 import sys
 import time
+from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from haptic_collab.client.devices.base import Device, DeviceLimits, HapticError, Vec3
@@ -310,6 +312,32 @@ def test_new_gains_mid_press_reach_the_hand_as_a_ramp_not_a_step() -> None:
     steps = [b - a for a, b in zip([50.0 * 0.006, *forces], forces, strict=False)]
     assert max(abs(x) for x in steps) <= 100.0 * 0.006 / 200 * 1.0001  # 0.6 N over 0.2 s
     assert forces[-1] == pytest.approx(150.0 * 0.006)
+
+
+def test_a_long_hard_press_comes_down_to_the_continuous_force_without_a_step() -> None:
+    """Peak force for moments only: the limit falls to the continuous force, at 1 N/s."""
+    dev = FakeDevice((0.0, 0.0, -0.01))  # 10 mm in at 500 N/m: the local model asks 5 N
+    dev.limits = replace(dev.limits, max_continuous_force_n=1.75, thermal_time_constant_s=1.0)
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(PLANE, 500.0, 0.0)
+    forces = []
+    t = 0.0
+    for k in range(6000):
+        if k % 10 == 0:
+            core.notify_link(t)
+        core.tick(t)
+        forces.append(dev.displayed[2])
+        t += T
+    f = np.array(forces)
+    on = int(np.argmax(f >= 5.0 - 1e-9))  # after the safety ramp
+    t_peak = -1.0 * math.log(1.0 - (1.75 / 5.0) ** 2)  # the model's budget from cold: 0.13 s
+    first_lowered = int(np.argmax(f[on:] < 5.0 - 1e-9))
+    assert first_lowered * T == pytest.approx(t_peak, abs=0.02)
+    assert np.diff(f[on:]).min() >= -T * 1.0001  # 1 N/s, never a step
+    assert f[-1] == pytest.approx(1.75)
+    ev = core.status().last_event
+    assert ev is not None and "motors warm" in ev.detail
 
 
 def test_stop_ramps_down_then_disables_the_device() -> None:
