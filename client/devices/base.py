@@ -64,8 +64,11 @@ class DeviceLimits:
         object instead.
     max_stiffness_n_per_m : float
         Largest local-model stiffness K_h [N/m] the device renders stably at its servo rate, > 0.
+        A position-only input displays nothing, so no stiffness limit comes from it: ``inf``
+        (allowed only with ``has_force_output=False``) leaves K_h to the gain design.
     max_velocity_m_s : float
-        Probe speed [m/s] above which forces are ramped down, > 0.
+        Probe speed [m/s] above which forces are ramped down, > 0; ``inf`` (only with
+        ``has_force_output=False``): no limit, nothing is displayed that could run away.
     damping_n_s_per_m : float
         The device's own viscous damping [N*s/m], >= 0.
     workspace_min_m, workspace_max_m : (3,) float
@@ -109,6 +112,8 @@ class DeviceLimits:
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
         for name in ("max_stiffness_n_per_m", "max_velocity_m_s"):
             v = getattr(self, name)
+            if not self.has_force_output and v == math.inf:
+                continue  # a position-only input: no limit comes from the device
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
         lo = vec3("workspace_min_m", self.workspace_min_m)

@@ -37,6 +37,7 @@ from haptic_collab.client.devices.profiles import (
     HidProfile,
     find_hid_profile,
 )
+from haptic_collab.shared.protocol import MAX_REPORTED_FORCE_N
 
 #: 3Dconnexion's own USB vendor id (every device of theirs is treated as a SpaceMouse).
 VID_3DCONNEXION = 0x256F
@@ -415,7 +416,10 @@ class SpaceMouseDevice(_HidDevice):
     mapping : SpaceMouseMapping
         Counts to position.
     max_force_n : float
-        Cap [N] on the coupling force sent to the object (the device itself displays none).
+        Cap [N] on the coupling force sent to the object (the device itself displays none);
+        default the protocol's limit on any user's reported force
+        (:data:`shared.protocol.MAX_REPORTED_FORCE_N`), under which the server bounds it by the
+        object's geometry like every other user's.
     opener : callable, optional
         ``opener(vendor_id, product_id) -> port``; default opens through hidapi.
 
@@ -432,7 +436,7 @@ class SpaceMouseDevice(_HidDevice):
         center: Sequence[float],
         mapping: SpaceMouseMapping | None = None,
         *,
-        max_force_n: float = 10.0,
+        max_force_n: float = MAX_REPORTED_FORCE_N,
         opener: Opener | None = None,
     ) -> None:
         self.mapping = mapping if mapping is not None else SpaceMouseMapping()
@@ -440,8 +444,11 @@ class SpaceMouseDevice(_HidDevice):
         reach = self.mapping.travel_m if self.mapping.mode == "position" else 0.1
         limits = DeviceLimits(
             max_force_n=max_force_n,
-            max_stiffness_n_per_m=5000.0,
-            max_velocity_m_s=1.0,
+            # a position input: no stiffness or speed limit comes from it (the gain design picks
+            # K_h from K_o), and its push is bounded as every user's is: by the protocol's limit
+            # on a reported force and, on the server, by the object's own geometry
+            max_stiffness_n_per_m=math.inf,
+            max_velocity_m_s=math.inf,
             damping_n_s_per_m=0.0,
             workspace_min_m=(c[0] - reach, c[1] - reach, c[2] - reach),
             workspace_max_m=(c[0] + reach, c[1] + reach, c[2] + reach),

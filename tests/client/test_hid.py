@@ -129,6 +129,39 @@ def test_spacemouse_through_make_device_has_no_force_output() -> None:
     assert dev.center == pytest.approx((0.0, 0.0, 0.07))  # centred 2 cm outside the anchor
 
 
+def test_a_spacemouse_push_comes_from_the_designed_coupling_bounded_as_every_users() -> None:
+    """No invented limits: K_h is the gain design's, the force the protocol's bound, no speed cap."""
+    from haptic_collab.client.app import ClientOptions, _device_info
+    from haptic_collab.client.servo import ServoConfig, ServoCore
+    from haptic_collab.shared.local_model import LocalModelParams
+    from haptic_collab.shared.primitives import make_plane
+    from haptic_collab.shared.protocol import MAX_REPORTED_FORCE_N
+
+    port = FakePort([sm_report(1, 0, 0, 350)] * 5)  # the cap pressed fully down
+    dev = SpaceMouseDevice(0x256F, 0xC635, CENTER, opener=opener_for(port))
+    dev.open()
+    lim = dev.limits
+    assert lim.max_force_n == MAX_REPORTED_FORCE_N
+    assert lim.max_stiffness_n_per_m == math.inf and lim.max_velocity_m_s == math.inf
+    # hello declares the protocol's ranges: the server designs for K_o, bounds by its geometry
+    info = _device_info(ClientOptions(url="ws://x", device="hid:256f:c635"), lim)
+    assert info.max_force_n == MAX_REPORTED_FORCE_N and info.max_stiffness_n_per_m == 1e5
+    # a coupling stiffer than the old invented 5000 N/m cap is rendered as designed
+    core = ServoCore(dev, ServoConfig(ramp_s=0.001), local_model=LocalModelParams(k_h=1.0))
+    core.enable_forces()
+    below = dev.read(0.0)[2] + 0.004  # a surface 4 mm above the probe: 4 mm of penetration
+    core.set_patch(make_plane((0.0, 0.0, below), (0.0, 0.0, 1.0)), 8000.0, 0.0)
+    t = 0.0
+    for k in range(50):
+        if k % 10 == 0:
+            core.notify_link(t)
+        core.tick(t)
+        t += 1e-3
+    snap = core.latest()
+    assert snap is not None and core.status().stiffness_clamps == 0
+    assert snap.force_n[2] == pytest.approx(8000.0 * 0.004)  # 32 N: under the protocol's 50 N
+
+
 # -- generic profiles -------------------------------------------------------------------------------
 
 
