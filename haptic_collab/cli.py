@@ -320,11 +320,11 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 # ---------------------------------------------------------------------------------------- reproduce
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from haptic_collab.shared.reproduce import reproduce
+    from haptic_collab.plots import reproduce_figures
 
     results: dict[str, object] = {}
     if args.figure not in ("fig10", "fig11"):  # Fig. 7-9: the 1-D multirate simulator
-        results.update(reproduce(args.figure, Path(args.out)))
+        results.update(reproduce_figures(args.figure, Path(args.out)))
     if args.figure in ("fig10", "fig11", "all"):  # Fig. 10-11 need the server's 3-D object
         from haptic_collab.server.reproduce_3d import reproduce_3d
 

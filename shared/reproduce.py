@@ -1,4 +1,9 @@
-"""Reproduce Fig. 7, 8 and 9 of Barbagli, Prattichizzo & Salisbury (IJRR 2005) from the project code.
+"""Fig. 7, 8 and 9 of Barbagli, Prattichizzo & Salisbury (IJRR 2005): the data, from the project code.
+
+This module owns the computation only: it simulates, measures and judges, and returns each
+figure's data (the JSON object and the arrays the plot draws). It draws nothing and writes no
+file; :mod:`haptic_collab.plots` draws the figures from this data and writes the PNG and JSON
+files (``haptic reproduce``).
 
 Every number and curve is computed by the project's own code, nothing is typed in:
 
@@ -12,21 +17,21 @@ Every number and curve is computed by the project's own code, nothing is typed i
 The paper's experiment is reproduced: servo loop at 1 kHz (T = 1 ms), deformable-object simulation
 at 20 Hz (N = 50), elastic object (eq. 6), no extra delay.
 
-JSON files are in SI units (m, s, N, N/m, N/(m*s)); the plots use mm and s like the paper.
+The JSON objects are in SI units (m, s, N, N/m, N/(m*s)) unless a key says otherwise (``_mm``).
 
 Usage::
 
-    from pathlib import Path
-    from haptic_collab.shared.reproduce import reproduce
-    results = reproduce("all", Path("figs"))   # writes figs/fig7.json, figs/fig7.png, ...
+    from haptic_collab.shared.reproduce import figure_data, json_text
+    data = figure_data("fig7")          # Fig7Data: .result (the JSON object), .traces
+    text = json_text(data.result)       # the text of fig7.json
 """
 
 from __future__ import annotations
 
 import json
 import math
-import pathlib
-from typing import TYPE_CHECKING, Any, Literal
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,11 +40,15 @@ from haptic_collab.shared.local_model import LocalModel, LocalModelParams, Thres
 from haptic_collab.shared.multirate import StepMetrics, Trace, simulate, step_metrics
 from haptic_collab.shared.stability import STABILITY_TOL, analyze, eq15_stable, spectral_radius_grid
 
-if TYPE_CHECKING:
-    from matplotlib.axes import Axes
-
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+#: One figure this module computes.
+FigureId = Literal["fig7", "fig8", "fig9"]
+#: A figure or ``"all"`` of them.
 FigureName = Literal["fig7", "fig8", "fig9", "all"]
 
+#: The figures this module computes, in order.
+FIGURES: tuple[FigureId, ...] = ("fig7", "fig8", "fig9")
 #: Servo rate 1/T [Hz] of the paper's experiment.
 SERVO_RATE_HZ = 1000.0
 #: Deformable-object simulation rate 1/(N*T) [Hz] of the paper's experiment.
@@ -48,10 +57,6 @@ SIM_RATE_HZ = 20.0
 SERVO_PERIOD_S = 1.0 / SERVO_RATE_HZ
 #: Rate ratio N.
 RATE_RATIO = round(SERVO_RATE_HZ / SIM_RATE_HZ)
-
-_DPI = 140
-_PROBE_STYLE: dict[str, Any] = {"color": "tab:blue", "lw": 1.8, "label": "probe $x_h$ (device)"}
-_PROXY_STYLE: dict[str, Any] = {"color": "tab:red", "lw": 1.8, "label": "proxy $x_o$ (surface)"}
 
 # Fig. 7: (case, K_o [N/m], K_h [N/m]) from the caption.
 _FIG7_CASES: tuple[tuple[str, float, float], ...] = (
@@ -62,7 +67,6 @@ _FIG7_CASES: tuple[tuple[str, float, float], ...] = (
 _FIG7_STEP_T_S = 0.5
 _FIG7_STEP_M = 0.060
 _FIG7_RUN_S = 8.0
-_FIG7_YCLIP_MM = 300.0
 
 # Fig. 8 grid (normalised by K_o) and the absolute slices of the "stability volume".
 _FIG8_K_O = 300.0
@@ -81,6 +85,76 @@ _FIG9_START_M = -0.010
 _FIG9_DEPTH_M = 0.030
 _FIG9_STEP_T_S = 0.5
 _FIG9_RUN_S = 5.0
+
+
+@dataclass(frozen=True)
+class Fig7Data:
+    """Fig. 7: step responses of the proportional local model on a spring.
+
+    Attributes
+    ----------
+    result : dict
+        The JSON object of ``fig7.json`` (SI units); ``result["cases"]`` is keyed by case
+        ``"a"``, ``"b"``, ``"c"`` in the caption's order.
+    traces : dict of str to shared.multirate.Trace
+        The simulated run of each case, same keys; one row per servo tick, ``run_s`` / T rows.
+    """
+
+    result: dict[str, Any]
+    traces: dict[str, Trace]
+
+
+@dataclass(frozen=True)
+class Fig8Data:
+    """Fig. 8: stability region of the PI local model, numeric and eq. 15.
+
+    Attributes
+    ----------
+    result : dict
+        The JSON object of ``fig8.json`` (SI units).
+    kh_over_ko : (n_kh,) float
+        Grid axis K_h / K_o [-], from 0.
+    nti_over_ko : (n_nti,) float
+        Grid axis I N T / K_o [-], from one grid step (> 0).
+    spectral_radius : (n_kh, n_nti) float
+        Spectral radius [-] of the Fig. 6 slow-rate loop at K_o = ``result["k_o"]`` [N/m].
+    stable : (n_kh, n_nti) bool
+        Numeric verdict: ``spectral_radius < 1 - STABILITY_TOL``.
+    slices_spectral_radius : dict of float to (n_kh, n_nti) float
+        Spectral radius [-] for each slice K_o [N/m] of the "stability volume" (200, 500,
+        1000 N/m), on the same grid in absolute units: K_h = ``kh_over_ko * K_o``,
+        I N T = ``nti_over_ko * K_o``.
+    fig9_gains : (float, float)
+        (K_h / K_o, I N T / K_o) of the Fig. 9 gains [-], a point of the plane.
+    """
+
+    result: dict[str, Any]
+    kh_over_ko: FloatArray
+    nti_over_ko: FloatArray
+    spectral_radius: FloatArray
+    stable: BoolArray
+    slices_spectral_radius: dict[float, FloatArray]
+    fig9_gains: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Fig9Data:
+    """Fig. 9: proportional vs proportional-integral local model with a 4 mm offset.
+
+    Attributes
+    ----------
+    result : dict
+        The JSON object of ``fig9.json`` (SI units unless a key ends in ``_mm``).
+    traces : dict of str to shared.multirate.Trace
+        The simulated run, keyed ``"pi"`` (I = ``result["i_gain"]``) and ``"p_only"`` (I = 0),
+        like ``result["pi"]`` and ``result["p_only"]``; one row per servo tick.
+    """
+
+    result: dict[str, Any]
+    traces: dict[str, Trace]
+
+
+FigureData = Fig7Data | Fig8Data | Fig9Data
 
 
 def _probe_step(before_m: float, after_m: float, t_step_s: float, run_s: float) -> NDArray[Any]:
@@ -112,31 +186,12 @@ def _metrics_json(m: StepMetrics) -> dict[str, Any]:
     }
 
 
-def _style(ax: Axes, xlabel: str, ylabel: str) -> None:
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.grid(True, alpha=0.3)
-
-
-def _rc() -> dict[Any, Any]:
-    return {
-        "font.size": 11,
-        "axes.titlesize": 12,
-        "axes.labelsize": 11,
-        "legend.fontsize": 9.5,
-        "xtick.labelsize": 10,
-        "ytick.labelsize": 10,
-        "figure.dpi": _DPI,
-        "savefig.dpi": _DPI,
-    }
-
-
 # --------------------------------------------------------------------------------------------
 # Fig. 7
 # --------------------------------------------------------------------------------------------
 
 
-def _fig7(out_dir: pathlib.Path) -> dict[str, Any]:
+def fig7_data() -> Fig7Data:
     """Fig. 7: step response of the proportional local model on a linear spring (section 3-4).
 
     Runs the bilateral (linear) coupling ``LocalModelParams(k_h, unilateral=False)`` -- the model
@@ -144,9 +199,17 @@ def _fig7(out_dir: pathlib.Path) -> dict[str, Any]:
     K_h < K_o -- for the three (K_o, K_h) pairs of the caption, with x_h stepping from 0 to 60 mm
     at t = 0.5 s. The verdict of the simulated response (settles within 2 %) must equal the
     verdict of :func:`shared.stability.analyze` (spectral radius and eq. 8).
-    """
-    import matplotlib.pyplot as plt
 
+    Returns
+    -------
+    Fig7Data
+        The JSON object and the three simulated runs (8 s each, 8000 servo ticks).
+
+    Raises
+    ------
+    AssertionError
+        If a simulated response and the stability analysis disagree (they never should).
+    """
     cases: dict[str, dict[str, Any]] = {}
     traces: dict[str, Trace] = {}
     for name, k_o, k_h in _FIG7_CASES:
@@ -194,79 +257,7 @@ def _fig7(out_dir: pathlib.Path) -> dict[str, Any]:
         "settling_band": 0.02,
         "cases": cases,
     }
-
-    with plt.rc_context(_rc()):
-        fig, axes = plt.subplots(1, 3, figsize=(15.0, 4.9), sharex=True)
-        for ax, (name, k_o, k_h) in zip(axes, _FIG7_CASES, strict=True):
-            tr = traces[name]
-            c = cases[name]
-            t = tr.t_s
-            ax.plot(t, tr.probe_m * 1e3, zorder=3, **_PROBE_STYLE)
-            proxy_mm = tr.proxy_m * 1e3
-            if c["stable"]:
-                ax.plot(t, proxy_mm, **_PROXY_STYLE)
-                ss = c["eq11_ratio"] * _FIG7_STEP_M * 1e3
-                ax.axhline(
-                    ss,
-                    color="0.35",
-                    ls="--",
-                    lw=1.0,
-                    label=rf"eq. 11: $\frac{{K_h}}{{K_h+K_o}}x_h$ = {ss:.1f} mm",
-                )
-                ts = c["settling_time_s"]
-                ax.axvline(_FIG7_STEP_T_S + ts, color="tab:green", ls=":", lw=1.3)
-                ax.text(
-                    _FIG7_STEP_T_S + ts + 0.1,
-                    0.25 * _FIG7_STEP_M * 1e3 if ss < 20.0 else 8.0,
-                    f"settled (2 %)\n{ts:.2f} s after the step",
-                    color="tab:green",
-                    fontsize=9.5,
-                    va="bottom",
-                )
-                ax.set_ylim(-5.0, 92.0)
-            else:
-                off = np.nonzero(np.abs(proxy_mm) > _FIG7_YCLIP_MM)[0]
-                i_off = int(off[0]) if off.size else t.size
-                ax.plot(t[:i_off], proxy_mm[:i_off], **_PROXY_STYLE)
-                if off.size:
-                    ax.text(
-                        t[i_off] + 0.1,
-                        0.62 * _FIG7_YCLIP_MM,
-                        f"off scale\nfrom t = {t[i_off]:.2f} s",
-                        color="darkred",
-                        fontsize=10,
-                    )
-                ax.set_ylim(-_FIG7_YCLIP_MM, _FIG7_YCLIP_MM)
-                ax.annotate(
-                    f"diverges\nslow pole z = {c['slow_pole']:.2f}:\n"
-                    f"$K_h > K_o$ violates eq. 8\n"
-                    f"($|x_o|$ reaches {c['max_abs_proxy_m']:.1e} m at {_FIG7_RUN_S:g} s)",
-                    xy=(1.68, -0.75 * _FIG7_YCLIP_MM),
-                    xytext=(3.4, -0.9 * _FIG7_YCLIP_MM),
-                    fontsize=10,
-                    color="darkred",
-                    arrowprops={"arrowstyle": "->", "color": "darkred", "lw": 1.2},
-                    bbox={"boxstyle": "round", "fc": "white", "ec": "darkred", "alpha": 0.9},
-                )
-            verdict = "stable" if c["stable"] else "unstable"
-            ax.set_title(
-                f"({name}) $K_o$ = {k_o / 1e3:g} N/mm ({k_o:g} N/m), "
-                f"$K_h$ = {k_h / 1e3:g} N/mm ({k_h:g} N/m)\n"
-                f"{verdict}, spectral radius {c['spectral_radius']:.2f}",
-                fontsize=11,
-            )
-            _style(ax, "time [s]", "position [mm]")
-            ax.set_xlim(0.0, _FIG7_RUN_S)
-            ax.legend(loc="upper right", framealpha=0.95)
-        fig.suptitle(
-            "Fig. 7: linear spring response to a probe step, proportional local model "
-            f"(servo {SERVO_RATE_HZ:g} Hz, simulation {SIM_RATE_HZ:g} Hz)",
-            fontsize=13,
-        )
-        fig.tight_layout()
-        fig.savefig(out_dir / "fig7.png")
-        plt.close(fig)
-    return result
+    return Fig7Data(result=result, traces=traces)
 
 
 # --------------------------------------------------------------------------------------------
@@ -274,21 +265,22 @@ def _fig7(out_dir: pathlib.Path) -> dict[str, Any]:
 # --------------------------------------------------------------------------------------------
 
 
-def _fig8(out_dir: pathlib.Path) -> dict[str, Any]:
+def fig8_data() -> Fig8Data:
     """Fig. 8: stability region of the PI local model in the (K_h/K_o, I N T/K_o) plane (eq. 15).
 
     The numeric verdict is the spectral radius of the Fig. 6 slow-rate loop
     (:func:`shared.stability.spectral_radius_grid`) below ``1 - STABILITY_TOL``; it is compared
     point by point with the closed form :func:`shared.stability.eq15_stable`. Points that lie
     exactly on a boundary of eq. 15 (where the spectral radius is 1 up to round-off) are counted
-    separately. A second panel draws slices of the "stability volume" for several K_o in absolute
-    units: the region scales with K_o (section 5).
-    """
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import ListedColormap
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
+    separately. Slices of the "stability volume" for several K_o in absolute units show that the
+    region scales with K_o (section 5).
 
+    Returns
+    -------
+    Fig8Data
+        The JSON object and the grids: K_h/K_o from 0 to 3.25 and I N T/K_o from 0.025 to 4.25,
+        step 0.025 (131 x 170 points), at K_o = 300 N/m and for the slices.
+    """
     k_o = _FIG8_K_O
     kh_r = np.round(np.arange(0.0, _FIG8_KH_MAX + _FIG8_D / 2, _FIG8_D), 10)
     nti_r = np.round(np.arange(_FIG8_D, _FIG8_NTI_MAX + _FIG8_D / 2, _FIG8_D), 10)
@@ -309,8 +301,10 @@ def _fig8(out_dir: pathlib.Path) -> dict[str, Any]:
     i_min = np.unravel_index(int(np.argmin(rho)), rho.shape)
 
     slices: dict[str, Any] = {}
+    slices_rho: dict[float, FloatArray] = {}
     for ko in _FIG8_SLICES_K_O:
         r = spectral_radius_grid(ko, KH * ko, NI * ko)
+        slices_rho[ko] = r
         slices[f"{ko:g}"] = {
             "k_o": ko,
             "stable_fraction": float(np.mean(r < 1.0 - STABILITY_TOL)),
@@ -343,98 +337,16 @@ def _fig8(out_dir: pathlib.Path) -> dict[str, Any]:
         "region_vertices_normalised": [[0.0, 0.0], [1.0, 0.0], [3.0, 4.0], [0.0, 1.0]],
         "slices": slices,
     }
-
-    with plt.rc_context(_rc()):
-        fig, (ax, ax2) = plt.subplots(
-            1, 2, figsize=(15.0, 6.4), gridspec_kw={"width_ratios": [1.15, 1.0]}
-        )
-        # -- left: normalised plane, numeric verdict shaded, eq. 15 boundaries drawn
-        rho_plot = np.clip(rho, 0.0, 1.0)
-        ext = (kh_r[0], kh_r[-1], nti_r[0], nti_r[-1])
-        img = ax.imshow(
-            np.where(numeric, rho_plot, np.nan).T,
-            origin="lower",
-            extent=ext,
-            aspect="auto",
-            cmap=ListedColormap(plt.get_cmap("Blues_r")(np.linspace(0.0, 0.75, 256))),
-            vmin=0.0,
-            vmax=1.0,
-            interpolation="nearest",
-        )
-        cbar = fig.colorbar(img, ax=ax, fraction=0.05, pad=0.02)
-        cbar.set_label("spectral radius of the slow-rate loop (stable points)")
-        ax.contour(KH, NI, rho, levels=[0.25, 0.5, 0.75], colors="white", linewidths=0.8)
-        x = np.linspace(0.0, _FIG8_KH_MAX, 200)
-        ax.plot(x, x + 1.0, color="tab:red", lw=2.2)
-        ax.plot(x, x - 1.0, color="tab:orange", lw=2.2)
-        ax.plot(x, 2.0 * x - 2.0, color="tab:purple", lw=2.2, ls="--")
-        ax.text(0.6, 1.75, r"$INT - K_h = K_o$", color="tab:red", rotation=33, fontsize=10.5)
-        ax.text(2.15, 1.28, r"$INT - K_h = -K_o$", color="tab:orange", rotation=33, fontsize=10.5)
-        ax.text(1.72, 1.02, r"$INT - 2K_h = -2K_o$", color="tab:purple", rotation=50, fontsize=10.5)
-        ax.plot([1.0], [1.0], "k*", ms=11)
-        ax.annotate(
-            "deadbeat $K_h = INT = K_o$\n(spectral radius 0)",
-            xy=(1.0, 1.0),
-            xytext=(1.35, 0.25),
-            fontsize=9.5,
-            arrowprops={"arrowstyle": "->", "lw": 0.8},
-        )
-        f9 = (_FIG9_K_H / _FIG9_K_O, _FIG9_I_GAIN * RATE_RATIO * SERVO_PERIOD_S / _FIG9_K_O)
-        ax.plot(*f9, "o", color="gold", mec="k", ms=8)
-        ax.annotate(
-            "Fig. 9 gains",
-            xy=f9,
-            xytext=(0.12, 1.45),
-            fontsize=9.5,
-            arrowprops={"arrowstyle": "->", "lw": 0.8},
-        )
-        ax.set_xlim(0.0, _FIG8_KH_MAX)
-        ax.set_ylim(0.0, _FIG8_NTI_MAX)
-        handles = [
-            Patch(facecolor="tab:blue", alpha=0.8, label="stable (spectral radius < 1)"),
-            Line2D([], [], color="0.6", lw=0.8, label="radius 0.25 / 0.5 / 0.75 (contours)"),
-            Line2D([], [], color="tab:red", lw=2.2, label=r"eq. 15: $|INT - K_h| = K_o$ (upper)"),
-            Line2D(
-                [], [], color="tab:orange", lw=2.2, label=r"eq. 15: $|INT - K_h| = K_o$ (lower)"
-            ),
-            Line2D(
-                [], [], color="tab:purple", lw=2.2, ls="--", label=r"eq. 15: $INT - 2K_h = -2K_o$"
-            ),
-        ]
-        ax.legend(handles=handles, loc="upper left", framealpha=0.95)
-        ax.set_title(
-            "Fig. 8: PI local model stability region (eq. 15)\n"
-            f"numeric verdict on {numeric.size} points, agrees with eq. 15 on "
-            f"{100.0 * fraction:.2f} %",
-            fontsize=11.5,
-        )
-        _style(ax, r"$K_h / K_o$", r"$I\,N\,T / K_o$")
-
-        # -- right: slices of the stability volume in absolute units
-        colors = ("tab:green", "tab:blue", "tab:purple")
-        for ko, col in zip(_FIG8_SLICES_K_O, colors, strict=True):
-            r = spectral_radius_grid(ko, KH * ko, NI * ko)
-            ax2.contourf(
-                KH * ko, NI * ko, r, levels=[0.0, 1.0 - STABILITY_TOL], colors=[col], alpha=0.22
-            )
-            ax2.contour(KH * ko, NI * ko, r, levels=[1.0], colors=[col], linewidths=2.0)
-        handles2 = [
-            Patch(facecolor=col, edgecolor=col, alpha=0.45, label=f"$K_o$ = {ko:g} N/m")
-            for ko, col in zip(_FIG8_SLICES_K_O, colors, strict=True)
-        ]
-        ax2.legend(handles=handles2, loc="upper left", title="stable region for")
-        ax2.set_xlim(0.0, 3.1 * max(_FIG8_SLICES_K_O))
-        ax2.set_ylim(0.0, 4.2 * max(_FIG8_SLICES_K_O))
-        ax2.set_title(
-            "Slices of the stability volume: the region scales with $K_o$\n"
-            "(stiffer objects are easier to stabilise)",
-            fontsize=11.5,
-        )
-        _style(ax2, r"$K_h$ [N/m]", r"$I\,N\,T$ [N/m]")
-        fig.tight_layout()
-        fig.savefig(out_dir / "fig8.png")
-        plt.close(fig)
-    return result
+    fig9_gains = (_FIG9_K_H / _FIG9_K_O, _FIG9_I_GAIN * RATE_RATIO * SERVO_PERIOD_S / _FIG9_K_O)
+    return Fig8Data(
+        result=result,
+        kh_over_ko=kh_r,
+        nti_over_ko=nti_r,
+        spectral_radius=rho,
+        stable=numeric,
+        slices_spectral_radius=slices_rho,
+        fig9_gains=fig9_gains,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -496,7 +408,7 @@ def _fig9_case(tr: Trace, m: StepMetrics, i_gain: float) -> dict[str, Any]:
     }
 
 
-def _fig9(out_dir: pathlib.Path) -> dict[str, Any]:
+def fig9_data() -> Fig9Data:
     """Fig. 9: proportional vs proportional-integral local model with a 4 mm offset (section 5).
 
     K_o = 300 N/m, K_h = 100 N/m, I = 3000 N/(m*s) (see ``i_gain_reason``), fixed integration
@@ -504,9 +416,17 @@ def _fig9(out_dir: pathlib.Path) -> dict[str, Any]:
     The probe starts 10 mm outside the object and steps to 30 mm depth at t = 0.5 s. Expected: the
     PI model settles with the proxy 4 mm (theta) from the probe, the P model with the eq. 11
     error K_o/(K_h+K_o) * x_h = 22.5 mm.
-    """
-    import matplotlib.pyplot as plt
 
+    Returns
+    -------
+    Fig9Data
+        The JSON object and the PI and P runs (5 s each, 5000 servo ticks).
+
+    Raises
+    ------
+    AssertionError
+        If a simulated response and the stability analysis disagree (they never should).
+    """
     tr_pi, m_pi = _fig9_run(_FIG9_I_GAIN)
     tr_p, m_p = _fig9_run(0.0)
     pi = _fig9_case(tr_pi, m_pi, _FIG9_I_GAIN)
@@ -578,83 +498,35 @@ def _fig9(out_dir: pathlib.Path) -> dict[str, Any]:
         },
         "fastest_settling": {"nti": nti_best, "spectral_radius": a_best.spectral_radius},
     }
-
-    with plt.rc_context(_rc()):
-        fig, axes = plt.subplots(1, 2, figsize=(13.5, 5.0), sharey=True)
-        panels = (
-            (
-                axes[0],
-                tr_pi,
-                pi,
-                "PI local model",
-                f"$K_h$ = {_FIG9_K_H / 1e3:g} N/mm, $I$ = {_FIG9_I_GAIN:g} N/(m s), "
-                rf"$\theta$ = {_FIG9_THETA_M * 1e3:g} mm",
-            ),
-            (axes[1], tr_p, p_only, "P local model", f"$K_h$ = {_FIG9_K_H / 1e3:g} N/mm, $I$ = 0"),
-        )
-        for ax, tr, c, label, gains in panels:
-            t = tr.t_s
-            ax.plot(t, tr.probe_m * 1e3, **_PROBE_STYLE)
-            ax.plot(t, tr.proxy_m * 1e3, **_PROXY_STYLE)
-            ax.axhline(0.0, color="0.5", lw=0.8, ls=":", label="undeformed surface")
-            t_mark = _FIG9_RUN_S - 0.9
-            yp = c["final_probe_mm"]
-            yo = c["final_proxy_mm"]
-            ax.annotate(
-                "",
-                xy=(t_mark, yo),
-                xytext=(t_mark, yp),
-                arrowprops={
-                    "arrowstyle": "<->",
-                    "color": "k",
-                    "lw": 1.3,
-                    "shrinkA": 0,
-                    "shrinkB": 0,
-                },
-            )
-            err = c["steady_state_error_mm"]
-            what = "offset = \u03b8" if c["i_gain"] > 0 else "eq. 11 error"
-            small = abs(yp - yo) < 8.0
-            ax.text(
-                t_mark - 0.1,
-                yo - 3.0 if small else 0.5 * (yo + yp),
-                f"{what} = {err:.1f} mm" if small else f"{what}\n{err:.1f} mm",
-                ha="right" if not small else "center",
-                va="top" if small else "center",
-                fontsize=10.5,
-                bbox={"boxstyle": "round", "fc": "white", "ec": "0.6", "alpha": 0.9},
-            )
-            ax.set_title(
-                f"{label}: {gains}\nsteady-state error {err:.1f} mm, "
-                f"settles (2 %) in {c['settling_time_s']:.2f} s",
-                fontsize=11,
-            )
-            _style(ax, "time [s]", "position (depth) [mm]")
-            ax.set_xlim(0.0, _FIG9_RUN_S)
-            ax.set_ylim(-15.0, 37.0)
-            ax.legend(loc="lower right")
-        fig.suptitle(
-            f"Fig. 9: probe and proxy, spring object $K_o$ = {_FIG9_K_O / 1e3:g} N/mm "
-            f"({_FIG9_K_O:g} N/m), servo {SERVO_RATE_HZ:g} Hz, simulation {SIM_RATE_HZ:g} Hz",
-            fontsize=13,
-        )
-        fig.tight_layout()
-        fig.savefig(out_dir / "fig9.png")
-        plt.close(fig)
-    return result
+    return Fig9Data(result=result, traces={"pi": tr_pi, "p_only": tr_p})
 
 
-_BUILDERS = {"fig7": _fig7, "fig8": _fig8, "fig9": _fig9}
+# --------------------------------------------------------------------------------------------
+# all figures
+# --------------------------------------------------------------------------------------------
 
 
-def reproduce(figure: FigureName, out_dir: pathlib.Path) -> dict[str, dict[str, Any]]:
-    """Recompute the paper's Fig. 7, 8 and/or 9 and write ``<fig>.json`` and ``<fig>.png``.
+def figure_names(figure: FigureName) -> list[FigureId]:
+    """The figures ``figure`` stands for: ``["fig7", "fig8", "fig9"]`` for ``"all"``.
+
+    Raises
+    ------
+    ValueError
+        Unknown figure name.
+    """
+    if figure == "all":
+        return list(FIGURES)
+    if figure in FIGURES:
+        return [figure]
+    raise ValueError(f"figure must be one of fig7, fig8, fig9, all; got {figure!r}")
+
+
+def figure_data(name: FigureId) -> FigureData:
+    """Compute one figure's data: :func:`fig7_data`, :func:`fig8_data` or :func:`fig9_data`.
 
     Parameters
     ----------
-    figure : {"fig7", "fig8", "fig9", "all"}
-        Which figure(s) to reproduce:
-
+    name : {"fig7", "fig8", "fig9"}
         - ``fig7``: step responses of the proportional local model on a spring (section 3-4,
           eq. 7, 8, 11), cases (a) K_o = 900, K_h = 100; (b) K_o = 200, K_h = 190;
           (c) K_o = 200, K_h = 220 N/m, with the linear bilateral coupling of section 3;
@@ -663,38 +535,38 @@ def reproduce(figure: FigureName, out_dir: pathlib.Path) -> dict[str, dict[str, 
           volume for K_o = 200, 500, 1000 N/m;
         - ``fig9``: P vs PI local model (K_o = 300, K_h = 100 N/m, I = 3000 N/(m*s), eq. 17
           threshold 4 mm), unilateral contact.
-    out_dir : pathlib.Path
-        Output directory, created if missing.
 
     Returns
     -------
-    dict
-        The JSON objects written, keyed by figure name (SI units: m, s, N, N/m, N/(m*s)).
+    Fig7Data, Fig8Data or Fig9Data
+        ``.result`` is the figure's JSON object (SI units: m, s, N, N/m, N/(m*s)).
 
     Raises
     ------
     ValueError
-        Unknown figure name.
+        Unknown figure name (``"all"`` included: see :func:`figure_names`).
     AssertionError
         If a simulated response and the stability analysis disagree (they never should).
     """
-    if figure == "all":
-        names = list(_BUILDERS)
-    elif figure in _BUILDERS:
-        names = [figure]
-    else:
-        raise ValueError(f"figure must be one of fig7, fig8, fig9, all; got {figure!r}")
-    import matplotlib
+    if name == "fig7":
+        return fig7_data()
+    if name == "fig8":
+        return fig8_data()
+    if name == "fig9":
+        return fig9_data()
+    raise ValueError(f"figure must be one of fig7, fig8, fig9; got {name!r}")
 
-    matplotlib.use("Agg")
-    out_dir = pathlib.Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    results: dict[str, dict[str, Any]] = {}
-    for name in names:
-        data = _BUILDERS[name](out_dir)
-        with open(out_dir / f"{name}.json", "w", encoding="utf-8") as fh:
-            # fig8's grid verdicts would take one line per boolean with an indent
-            json.dump(data, fh, indent=None if name == "fig8" else 2, allow_nan=False)
-            fh.write("\n")
-        results[name] = data
-    return results
+
+def json_text(result: dict[str, Any]) -> str:
+    """The text of ``<fig>.json`` for a figure's JSON object ``result``, ending in a newline.
+
+    Fig. 8 is written on one line (its grid verdicts would take one line per boolean with an
+    indent), the others with an indent of 2.
+
+    Raises
+    ------
+    ValueError
+        A NaN or infinite number in ``result`` (JSON has none).
+    """
+    indent = None if result.get("figure") == "fig8" else 2
+    return json.dumps(result, indent=indent, allow_nan=False) + "\n"
