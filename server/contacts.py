@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from scipy.sparse import csr_array
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from haptic_collab.shared.primitives import (
@@ -129,6 +131,10 @@ class SurfacePoint:
     face: int
 
 
+#: sin^2 of the smallest angle a triangle may have to be projected on (else: its edges).
+_FLAT_SIN2 = 1e-12
+
+
 def _closest_on_triangles(
     p: FloatArray, a: FloatArray, b: FloatArray, c: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
@@ -150,10 +156,14 @@ def _closest_on_triangles(
     d1 = _rowdot(ab, ap)
     d2 = _rowdot(ac, ap)
     den = d00 * d11 - d01 * d01
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # den = |ab|^2 |ac|^2 sin^2(angle at a): a triangle flatter than a microradian (a face squashed
+    # flat by the deformation: its vertices in a line) has no interior to project on; rounding
+    # left den slightly positive there and the "projection" could land centimetres away. Its
+    # closest point is on an edge.
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         v = (d11 * d1 - d01 * d2) / den
         w = (d00 * d2 - d01 * d1) / den
-    inside = (v >= 0.0) & (w >= 0.0) & (v + w <= 1.0) & (den > 0.0)
+        inside = (v >= 0.0) & (w >= 0.0) & (v + w <= 1.0) & (den > _FLAT_SIN2 * d00 * d11)
     # edges a->b, b->c, c->a as one (3k, 3) batch of segments
     start = np.concatenate([a, b, c])
     edge = np.concatenate([ab, c - b, a - c])
@@ -417,22 +427,23 @@ def _check_ck(
 
 
 def _coupled_groups(coupled: npt.NDArray[np.bool_]) -> list[IntArray]:
-    """Connected components of a symmetric boolean (m, m) coupling matrix."""
+    """Connected components of a symmetric boolean (m, m) coupling matrix, m >= 1.
+
+    Returns
+    -------
+    list of int64 index arrays, each sorted ascending; the groups are ordered by their smallest
+    index. Source: :func:`scipy.sparse.csgraph.connected_components` (undirected).
+    """
     m = len(coupled)
-    unseen = np.ones(m, dtype=bool)
-    groups = []
-    for start in range(m):
-        if not unseen[start]:
-            continue
-        members = np.zeros(m, dtype=bool)
-        members[start] = True
-        frontier = members.copy()
-        while frontier.any():
-            new = coupled[frontier].any(axis=0) & ~members
-            members |= new
-            frontier = new
-        unseen &= ~members
-        groups.append(np.flatnonzero(members))
+    if coupled.all():  # the usual case on one object (and a single contact): one group
+        return [np.arange(m, dtype=np.int64)]
+    rows, cols = np.nonzero(coupled)
+    indptr = np.searchsorted(rows, np.arange(m + 1)).astype(np.int32)
+    graph = csr_array((np.ones(len(cols)), cols.astype(np.int32), indptr), shape=(m, m))
+    count, labels = connected_components(graph, directed=False)
+    order = np.argsort(labels, kind="stable").astype(np.int64)
+    groups = np.split(order, np.cumsum(np.bincount(labels, minlength=count))[:-1])
+    groups.sort(key=lambda g: int(g[0]))
     return groups
 
 

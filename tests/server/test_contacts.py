@@ -214,3 +214,25 @@ def test_stiff_stiffness_is_the_stiffest_mode_of_each_coupled_group() -> None:
     got = stiff_stiffness(cm, [k_o, k_o, 500.0])
     assert got[2] == pytest.approx(500.0)
     assert got[:2] == pytest.approx(modal_stiffness(cm[:2, :2]).k_o_stiff)
+
+
+def test_interleaved_coupled_groups_are_stabilised_separately() -> None:
+    from haptic_collab.shared.coupled_loop import compliance_matrix
+
+    # contacts 0 and 2 share one dent, 1 and 3 another, 4 is alone: a group's stiffness must
+    # not depend on the other contacts, wherever they sit in the list
+    pair_a = compliance_matrix(300.0, 0.9, users=2)
+    pair_b = compliance_matrix(500.0, 0.5, users=2)
+    cm = np.zeros((5, 5))
+    cm[np.ix_([0, 2], [0, 2])] = pair_a
+    cm[np.ix_([1, 3], [1, 3])] = pair_b
+    cm[4, 4] = 1.0 / 800.0
+    k_o = 1.0 / np.diag(cm)
+    for stiffness in (effective_stiffness, stiff_stiffness):
+        got = stiffness(cm, k_o)
+        assert got[[0, 2]] == pytest.approx(stiffness(pair_a, k_o[[0, 2]]))
+        assert got[[1, 3]] == pytest.approx(stiffness(pair_b, k_o[[1, 3]]))
+        assert got[4] == pytest.approx(800.0)
+    k_eff = effective_stiffness(cm, k_o)
+    assert np.all(k_eff[:4] < k_o[:4])  # both pairs are coupled, hence softened
+    assert spectral_radius(cm, 0.99 * k_eff) < 1.0
