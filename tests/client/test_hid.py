@@ -12,6 +12,7 @@ import os
 import struct
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -256,11 +257,41 @@ def test_missing_or_invalid_profile_files(tmp_path: Path) -> None:
         load_hid_profile(bad)
 
 
-def test_list_devices_returns_plain_dicts() -> None:
-    devs = list_devices()  # [] on a machine without a HID backend or devices
-    assert isinstance(devs, list)
-    for d in devs:
-        assert d["spec"].startswith("hid:") and d["kind"]
+def test_haptic_devices_lists_each_attached_hid_device_once_with_what_it_is(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """hidapi's enumeration (one entry per interface) becomes one line per device and kind."""
+    import hid
+
+    def info(vid: int, pid: int, product: str | None, interface: int = 0) -> dict[str, Any]:
+        return {
+            "vendor_id": vid,
+            "product_id": pid,
+            "manufacturer_string": "maker" if product else None,
+            "product_string": product,
+            "interface_number": interface,
+        }
+
+    attached = [
+        info(0x256F, 0xC635, "SpaceMouse Compact"),
+        info(0x256F, 0xC635, "SpaceMouse Compact", interface=1),  # same device, second interface
+        info(0x1209, 0x0001, "3-DoF force device"),  # the example-3dof-force profile's ids
+        info(0x046D, 0xC077, None),  # a mouse: neither
+    ]
+    monkeypatch.setattr(hid, "enumerate", lambda *a: attached)
+    devs = list_devices()
+    assert [d["spec"] for d in devs] == ["hid:256f:c635", "hid:1209:0001", "hid:046d:c077"]
+    assert [d["kind"] for d in devs] == ["spacemouse", "profile:example-3dof-force", "unsupported"]
+    assert devs[0]["product"] == "SpaceMouse Compact" and devs[2]["product"] == ""
+    assert json.loads(json.dumps(devs)) == devs  # `haptic devices --json` prints them as they are
+
+
+def test_no_hid_backend_lists_nothing_rather_than_failing(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import hid
+
+    def broken(*a: object) -> list[dict[str, Any]]:
+        raise OSError("hidapi: no backend")
+
+    monkeypatch.setattr(hid, "enumerate", broken)
+    assert list_devices() == []
 
 
 @pytest.mark.hardware
