@@ -221,7 +221,7 @@ def _anchor(
 
 
 def _sample(servo: ServoThread) -> ServoSample | None:
-    snap = servo.core.latest()
+    snap = servo.latest()
     if snap is None:
         return None
     pen = snap.penetration_m if math.isfinite(snap.penetration_m) else 0.0
@@ -588,7 +588,7 @@ def _summary(
         },
     }
     if servo is not None:
-        status = servo.core.status().as_dict()
+        status = servo.status().as_dict()
         out["servo"] = status
         out["servo_overruns"] = servo.loop.overruns
     if len(recorder):

@@ -33,7 +33,8 @@ import numpy as np
 
 from haptic_collab.client.devices import make_device
 from haptic_collab.client.recorder import TelemetryRecorder
-from haptic_collab.client.servo import DeadlineLoop, ServoConfig, ServoCore, try_realtime_priority
+from haptic_collab.client.scheduler import DeadlineLoop, try_realtime_priority
+from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
 from haptic_collab.shared.primitives import make_plane
 

@@ -1,13 +1,17 @@
 """The 1 kHz servo loop: a sans-I/O core (:class:`ServoCore`) and the thread that times it.
 
 DESIGN section 4 (client side) and section 7; the paper's haptic loop of section 6, Steps 2-3.
-Every servo period T one :meth:`ServoCore.tick` runs three phases (CHAI3D's haptic tick):
+Every servo period T one :meth:`ServoCore.tick` runs CHAI3D's three haptic-tool phases, each a
+unit of its own that is tested without threads:
 
-1. update from device: x_h = device.read(t)
-2. compute: (e, n) = primitive.contact(x_h); f = L(z) e (eq. 12 with the threshold of eq. 17-18,
-   :class:`shared.local_model.LocalModel`); the force on the user is
-   F = g * clamp(f, +-F_max) * n, n the outward normal, g in [0, 1] the safety ramp
-3. apply to device: device.write(F)
+1. update from device: x_h = device.read(t), the buttons, the probe's filtered velocity
+   v(k) = v(k-1) + a * ((x_h(k) - x_h(k-1)) / dt - v(k-1)), a = T / (T + ``velocity_filter_s``);
+2. compute interaction forces: (f, e, n) = render(x_h) (:class:`client.render.LocalRenderer`: the
+   patch hand-over with its first-order hold, f = L(z) e of eq. 12 with the threshold of eq.
+   17-18 plus the probe damper); the safety gain g = update(...) and the force on the user
+   F = g * clamp(f, +-F_max) * n through the passivity controller
+   (:class:`client.safety.SafetySupervisor`);
+3. apply to device: device.write(F); then the telemetry row and the latest-wins snapshot.
 
 The local model (primitive + gains K_h, I) is a zero-order hold of the slow simulation's output
 (eq. 1): :meth:`ServoCore.set_patch` may be called from the network thread at any time; it swaps
@@ -15,7 +19,7 @@ one reference that the next tick picks up, so a patch is applied whole and betwe
 LocalModel's integral state is kept across patches (only its gains change), so a new patch does
 not make the integral force jump.
 
-Safety, as device vendors do it (STYLE rule 9):
+Safety, as device vendors do it (STYLE rule 9; :mod:`client.safety`):
 
 - forces are off until :meth:`ServoCore.enable_forces` *and* the first patch;
 - every force is clamped to ``limits.max_force_n`` (``FORCE_LIMIT`` counted per episode);
@@ -32,38 +36,48 @@ The tick reads no clock (time is an input, as in aioquic), does not log, does no
 allocates only its small result tuples; telemetry goes to a preallocated ring buffer
 (:class:`client.recorder.TelemetryRecorder`).
 
-:class:`ServoThread` runs the core on its own thread at ``servo_rate_hz``: tick k is due at
-``start + k*T`` (integer tick counts, never accumulated float time); it sleeps until ``spin_s``
-before the deadline and spins the rest; a deadline missed by more than ``late_tolerance`` periods
-is counted (``SERVO_OVERRUN``) and skipped, never piled up. Clock and sleep are injected.
+:class:`ServoThread` runs the core on its own thread at ``servo_rate_hz`` with
+:class:`client.scheduler.DeadlineLoop`: tick k is due at ``start + k*T`` (integer tick counts,
+never accumulated float time); a deadline missed by more than ``late_tolerance`` periods is
+counted (``SERVO_OVERRUN``) and skipped, never piled up. Clock and sleep are injected.
 """
 
 from __future__ import annotations
 
 import array
 import math
-import os
-import sys
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from haptic_collab.client.devices.base import Device, HapticError, Vec3
 from haptic_collab.client.recorder import TelemetryRecorder
-from haptic_collab.client.thermal import (
-    DEFAULT_THERMAL_TIME_CONSTANT_S,
-    ThermalLimit,
-    ThermalParams,
+from haptic_collab.client.render import LocalRenderer
+from haptic_collab.client.safety import SafetySupervisor, ServoEvent
+from haptic_collab.client.scheduler import (
+    Clock,
+    DeadlineLoop,
+    Sleep,
+    _switch_interval,
+    try_realtime_priority,
 )
-from haptic_collab.shared.full_loop import DAMPER_FILTER_S
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams
-from haptic_collab.shared.passivity import PassivityController, PassivityParams
 from haptic_collab.shared.primitives import Plane, Primitive, Sphere
 
-Clock = Callable[[], float]
-Sleep = Callable[[float], None]
+__all__ = [
+    "Clock",
+    "DeadlineLoop",
+    "Patch",
+    "ServoConfig",
+    "ServoCore",
+    "ServoEvent",
+    "ServoSnapshot",
+    "ServoStatus",
+    "ServoThread",
+    "Sleep",
+    "try_realtime_priority",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -182,15 +196,6 @@ class Patch:
 
 
 @dataclass(frozen=True, slots=True)
-class ServoEvent:
-    """One safety event: its kind, the servo time [s] it happened, a human-readable detail."""
-
-    kind: HapticError
-    t_s: float
-    detail: str
-
-
-@dataclass(frozen=True, slots=True)
 class ServoStatus:
     """Safety state of the servo loop (:meth:`ServoCore.status`).
 
@@ -243,6 +248,9 @@ class ServoStatus:
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able dictionary of the status."""
+        # Written out, not dataclasses.asdict: the event kind goes out as its string value (asdict
+        # keeps the enum member), and "engaged" sits after "forces_enabled" (the field came last
+        # so that the constructor's positional order stays the same).
         ev = self.last_event
         return {
             "ticks": self.ticks,
@@ -310,22 +318,7 @@ class ServoSnapshot:
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able dictionary (vectors as lists; NaN stays NaN)."""
-        return {
-            "tick": self.tick,
-            "t_s": self.t_s,
-            "probe_m": list(self.probe_m),
-            "force_n": list(self.force_n),
-            "penetration_m": self.penetration_m,
-            "in_contact": self.in_contact,
-            "k_h": self.k_h,
-            "i_gain": self.i_gain,
-            "force_scale": self.force_scale,
-            "servo_rate_hz": self.servo_rate_hz,
-            "period_mean_s": self.period_mean_s,
-            "period_p50_s": self.period_p50_s,
-            "period_p99_s": self.period_p99_s,
-            "period_max_s": self.period_max_s,
-        }
+        return {**asdict(self), "probe_m": list(self.probe_m), "force_n": list(self.force_n)}
 
 
 _NAN = math.nan
@@ -346,6 +339,15 @@ class ServoCore:
         model with no threshold.
     recorder : TelemetryRecorder, optional
         Where each tick writes its telemetry row (default: a new 120000-row recorder).
+
+    Attributes
+    ----------
+    renderer : LocalRenderer
+        Phase 2, the local model rendered at the probe (:mod:`client.render`).
+    safety : SafetySupervisor
+        The safety gain, clamp and passivity controller (:mod:`client.safety`).
+    local_model : LocalModel
+        ``renderer.model``.
 
     Raises
     ------
@@ -374,7 +376,9 @@ class ServoCore:
         T = cfg.servo_period_s
         lim = device.limits
         if local_model is None:
-            local_model = LocalModelParams(k_h=lim.max_stiffness_n_per_m, servo_period_s=T)
+            # a placeholder: no force is displayed before the first patch brings its gains (a
+            # position-only input has no finite max stiffness to start from)
+            local_model = LocalModelParams(k_h=1.0, servo_period_s=T)
         if not math.isclose(local_model.servo_period_s, T, rel_tol=1e-9):
             raise ValueError(
                 f"local model period {local_model.servo_period_s} s differs from the servo period "
@@ -383,79 +387,22 @@ class ServoCore:
         self.device = device
         self.config = cfg
         self.recorder = recorder if recorder is not None else TelemetryRecorder()
-        self.local_model = LocalModel(local_model)
-        self._T = T
-        self._step = cfg.ramp_step
-        self._fmax = lim.max_force_n
-        # peak force for a limited time, then the continuous force (client.thermal)
-        self._thermal: ThermalLimit | None = None
-        if lim.has_force_output and lim.max_continuous_force_n is not None and lim.max_force_n > 0:
-            self._thermal = ThermalLimit(
-                ThermalParams(
-                    peak_force_n=lim.max_force_n,
-                    continuous_force_n=lim.max_continuous_force_n,
-                    time_constant_s=lim.thermal_time_constant_s or DEFAULT_THERMAL_TIME_CONSTANT_S,
-                    servo_period_s=T,
-                )
-            )
-        self._vmax2 = lim.max_velocity_m_s**2
-        self._vresume2 = (cfg.velocity_resume_ratio * lim.max_velocity_m_s) ** 2
+        self.renderer = LocalRenderer(local_model)
+        self.local_model: LocalModel = self.renderer.model
+        self.safety = SafetySupervisor(lim, cfg)
         tau = cfg.velocity_filter_s
         self._alpha = 1.0 if tau == 0.0 else T / (T + tau)
-        self._timeout = cfg.link_timeout_s
+        self._by_button = cfg.engage_with_button
         # patch hand-over (one reference swap; see set_patch)
         self._patch_in: Patch | None = None
-        self._patch: Patch | None = None
-        self._primitive: Primitive | None = None
-        self._prim_old: Primitive | None = None  # the surface a first-order hold moves away from
-        self._hold_off = 0.0  # depth [m] added to _prim_old: where the slide really starts
-        # a patch that arrived mid-slide: (start surface, its offset, weight reached); the new
-        # slide's start offset is computed from it on the next tick, once the probe is read
-        self._rebase: tuple[Primitive, float, float] | None = None
-        self._hold_i = 0
-        self._hold_n = 1
-        self._k_h = 0.0
-        self._i_gain = 0.0
-        self._b_h = 0.0
-        self._inv_T = 1.0 / T
-        self._a_u = T / (T + DAMPER_FILTER_S)  # the damper's velocity filter (shared.full_loop)
-        self._u = 0.0
-        self._pc: PassivityController | None = None
-        if cfg.passivity and lim.has_force_output and lim.max_damping_n_s_per_m > 0.0:
-            # the controller's damper is bounded by what the device can render stably
-            self._pc = PassivityController(
-                PassivityParams(
-                    max_damping_n_s_per_m=lim.max_damping_n_s_per_m,
-                    energy_bias_j=cfg.passivity_energy_bias_j,
-                    servo_period_s=T,
-                    max_force_n=lim.max_force_n,
-                )
-            )
-        self._need_patch = True
-        self._link_t = -math.inf
-        # switches set from other threads
-        self._enabled = False
-        self._stopping = False
-        # the stylus button (ServoConfig.engage_with_button)
-        self._by_button = cfg.engage_with_button
-        self._engaged = not cfg.engage_with_button
-        self._button_was = False
         # tick state
         self._ticks = 0
         self._t = 0.0
         self._px = self._py = self._pz = 0.0
         self._vx = self._vy = self._vz = 0.0
-        self._scale = 0.0
-        self._overspeed = False
-        self._limited = False
-        self._link_ok = False
-        self._fault: str | None = None
         self._dev_enabled = False
         self._stopped = False
         self.error: str | None = None
-        # events
-        self._counts: dict[HapticError, int] = dict.fromkeys(HapticError, 0)
-        self._last_event: ServoEvent | None = None
         self._stiffness_clamps = 0
         # latest-wins publication and period window
         self._pub: tuple[Any, ...] | None = None
@@ -544,20 +491,19 @@ class ServoCore:
 
     def notify_link(self, now_s: float) -> None:
         """The server spoke (a patch or a pong arrived) at servo time ``now_s`` [s]."""
-        if now_s > self._link_t:
-            self._link_t = now_s
+        self.safety.notify_link(now_s)
 
     def enable_forces(self) -> None:
         """Allow forces (they ramp up once a patch is current and nothing else withholds them)."""
-        self._enabled = True
+        self.safety.enable()
 
     def disable_forces(self) -> None:
         """Ramp forces down to zero and keep them there until :meth:`enable_forces`."""
-        self._enabled = False
+        self.safety.disable()
 
     def request_stop(self) -> None:
         """Ramp forces down, then write zero and disable the device's forces (see :attr:`stopped`)."""
-        self._stopping = True
+        self.safety.request_stop()
 
     @property
     def stopped(self) -> bool:
@@ -575,178 +521,65 @@ class ServoCore:
         """
         if self._stopped:
             return True
+        rd = self.renderer
+        sup = self.safety
         p = self._patch_in
-        if p is not self._patch and p is not None:
-            self._patch = p
-            fresh = self._primitive is None or self._need_patch
-            old = self._prim_old
-            if fresh or p.proxy_hold != "foh":
-                self._prim_old = None
-                self._rebase = None
-            else:
-                # a patch arriving before the last slide finished (network jitter) slides on from
-                # the blend reached, not from the last target (that would be a step)
-                self._rebase = (
-                    None if old is None else (old, self._hold_off, self._hold_i / self._hold_n)
-                )
-                self._prim_old = self._primitive
-                self._hold_off = 0.0
-            self._hold_i = 0
-            self._hold_n = p.hold_ticks
-            self._primitive = p.primitive
-            # the damper's share of the force step is carried off with the stiffness's
-            carry = (self._b_h - p.b_h) * self._u if self._b_h > 0.0 or p.b_h > 0.0 else 0.0
-            self.local_model.set_gains(p.k_h, p.i_gain, p.recovery_m_per_n, carry_n=carry)
-            self._k_h = p.k_h
-            self._i_gain = p.i_gain
-            self._b_h = p.b_h
-            self._need_patch = False
-            if now_s > self._link_t:
-                self._link_t = now_s
+        if p is not rd.patch and p is not None:  # hand-over between ticks (one reference swap)
+            rd.hand_over(p, sup.need_patch)
+            sup.patch_arrived(now_s)
 
-        # 1. update from device
+        # 1. update from device: position, buttons, filtered velocity, period
         dev = self.device
         x, y, z = dev.read(now_s)
-        if self._by_button:  # a press of button 0 toggles the engagement
-            pressed = bool(dev.buttons() & 1)
-            if pressed and not self._button_was:
-                self._engaged = not self._engaged
-            self._button_was = pressed
-        bad_position = not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z))
-        if bad_position:  # keep the last finite position; treated as a device fault below
+        pressed = bool(dev.buttons() & 1) if self._by_button else False
+        position_ok = math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+        if not position_ok:  # keep the last finite position; the supervisor calls it a fault
             x, y, z = self._px, self._py, self._pz
-
-        # 2. compute
         n = self._ticks
-        ox, oy, oz = (self._px, self._py, self._pz) if n else (x, y, z)
         if n:
+            dx, dy, dz = x - self._px, y - self._py, z - self._pz
             period = now_s - self._t
             if period > 0.0:
                 a = self._alpha
                 inv = 1.0 / period
-                self._vx += a * ((x - self._px) * inv - self._vx)
-                self._vy += a * ((y - self._py) * inv - self._vy)
-                self._vz += a * ((z - self._pz) * inv - self._vz)
+                self._vx += a * (dx * inv - self._vx)
+                self._vy += a * (dy * inv - self._vy)
+                self._vz += a * (dz * inv - self._vz)
             self._periods[self._n_periods % len(self._periods)] = period
             self._n_periods += 1
         else:
+            dx = dy = dz = 0.0
             period = _NAN
         self._t, self._px, self._py, self._pz = now_s, x, y, z
+        vx, vy, vz = self._vx, self._vy, self._vz
 
-        # safety state
-        speed2 = self._vx * self._vx + self._vy * self._vy + self._vz * self._vz
-        if self._overspeed:
-            if speed2 < self._vresume2:
-                self._overspeed = False
-        elif speed2 > self._vmax2:
-            self._overspeed = True
-            self._event(HapticError.VELOCITY_LIMIT, now_s, "probe speed above the device limit")
-        fault = dev.fault
-        if fault is None and bad_position:
-            fault = "device reported a non-finite position"
-        if fault is not None and self._fault is None:
-            self._event(HapticError.DEVICE_FAULT, now_s, fault)
-        self._fault = fault
-        link_ok = now_s - self._link_t <= self._timeout
-        if self._link_ok and not link_ok and not self._need_patch:
-            self._need_patch = True
-            self._event(HapticError.LINK_LOST, now_s, "no patch or pong within the link timeout")
-        self._link_ok = link_ok
-        want = (
-            self._enabled
-            and self._engaged
-            and not self._need_patch
-            and link_ok
-            and fault is None
-            and not self._overspeed
-            and not self._stopping
-        )
-        s0 = self._scale
-        if want:
-            s = s0 + self._step
-            if s > 1.0:
-                s = 1.0
-        else:
-            s = s0 - self._step
-            if s < 0.0:
-                s = 0.0
-        self._scale = s
-        ramping = s != s0
-
-        # local model (eq. 12, 17-18) along the outward normal
-        lm = self.local_model
-        prim = self._primitive
-        if prim is not None:
-            e, nx, ny, nz = prim.contact(x, y, z)
-            old = self._prim_old
-            if old is not None:  # first-order hold: slide from the old surface to the new one
-                rb = self._rebase
-                if rb is not None:  # start where the interrupted slide was: its blend, here
-                    s_prim, s_off, w = rb
-                    self._hold_off = (1.0 - w) * (
-                        s_prim.contact(x, y, z)[0] + s_off - old.contact(x, y, z)[0]
-                    )
-                    self._rebase = None
-                hi = self._hold_i + 1
-                if hi >= self._hold_n:
-                    self._prim_old = None
-                else:
-                    self._hold_i = hi
-                    e_old = old.contact(x, y, z)[0] + self._hold_off
-                    e = e_old + (e - e_old) * (hi / self._hold_n)
-            # the probe's depth rate along the inward normal (backward difference, never the proxy's)
-            v_in = -((x - ox) * nx + (y - oy) * ny + (z - oz) * nz) * self._inv_T
-            f = lm.step(e, v_in)
-            in_contact = lm.in_contact
-            self._u += self._a_u * (v_in - self._u)
-            if in_contact and self._b_h > 0.0:
-                f += self._b_h * self._u  # probe damper on the filtered probe velocity
-                if f < 0.0:
-                    f = 0.0
-        else:
-            e, nx, ny, nz, f, in_contact = _NAN, 0.0, 0.0, 0.0, 0.0, False
-        th = self._thermal
-        fmax = self._fmax if th is None else th.limit_n
-        limited = f > fmax or f < -fmax
-        if limited:
-            f = fmax if f > 0.0 else -fmax
-            if not self._limited:
-                self._event(
-                    HapticError.FORCE_LIMIT,
-                    now_s,
-                    "local model force above the device max"
-                    if fmax >= self._fmax
-                    else f"motors warm: force limited to {fmax:.2f} N, falling to the continuous "
-                    "force",
-                )
-        self._limited = limited
-        fo = f * s
-        fx, fy, fz = fo * nx, fo * ny, fo * nz
-        pc = self._pc
-        if pc is not None:  # passivity observer/controller at the device port
-            it = self._inv_T
-            fx, fy, fz = pc.step(fx, fy, fz, (x - ox) * it, (y - oy) * it, (z - oz) * it)
-        if th is not None:  # the motors heat with the force displayed (the safety scale included)
-            th.step(math.sqrt(fx * fx + fy * fy + fz * fz) if self._dev_enabled else 0.0)
-        if s == 0.0 and not want and prim is not None:
-            lm.reset()  # forces withheld: no integral wind-up while off
+        # 2. compute interaction forces, then the safety gain, clamp and passivity
+        f, e, nx, ny, nz, in_contact = rd.render(x, y, z, dx, dy, dz)
+        s = sup.update(now_s, pressed, dev.fault, position_ok, vx * vx + vy * vy + vz * vz)
+        want = sup.want
+        fx, fy, fz, fo = sup.output(f, nx, ny, nz, dx, dy, dz, now_s, self._dev_enabled)
+        if s == 0.0 and not want:
+            rd.reset()  # forces withheld: no integral wind-up while off
 
         # 3. apply to device
         if want and not self._dev_enabled:
             dev.enable_forces()
             self._dev_enabled = True
         dev.write(fx, fy, fz)
-        if self._stopping and s == 0.0:
+        if s == 0.0 and sup.stopping:
             dev.write(0.0, 0.0, 0.0)
             dev.disable_forces()
             self._dev_enabled = False
             self._stopped = True
 
         # telemetry (plain stores) and latest-wins publication (one reference swap)
-        if prim is not None:
+        if rd.primitive is not None:
             qx, qy, qz = x + e * nx, y + e * ny, z + e * nz
         else:
             qx, qy, qz = x, y, z
+        lm = rd.model
+        pc = sup.passivity
+        k_h, i_gain = rd.k_h, rd.i_gain
         self.recorder.append(
             n,
             now_s,
@@ -761,22 +594,22 @@ class ServoCore:
             fy,
             fz,
             fo,
-            self._k_h,
-            self._i_gain,
+            k_h,
+            i_gain,
             lm.integral_n,
             lm.theta_m,
             period,
             0.0,
             s,
             in_contact,
-            ramping,
-            fault is not None,
-            limited,
-            self._b_h,
+            sup.ramping,
+            sup.fault is not None,
+            sup.limited,
+            rd.b_h,
             pc.observed_energy_j if pc is not None else 0.0,
             pc.dissipated_energy_j if pc is not None else 0.0,
         )
-        self._pub = (n, now_s, x, y, z, fx, fy, fz, e, in_contact, self._k_h, self._i_gain, s)
+        self._pub = (n, now_s, x, y, z, fx, fy, fz, e, in_contact, k_h, i_gain, s)
         self._ticks = n + 1
         return self._stopped
 
@@ -788,10 +621,9 @@ class ServoCore:
         """Count ``missed`` skipped deadlines (``SERVO_OVERRUN``) noticed at servo time ``now_s``."""
         if missed > 0:
             # one event (last_event) for the whole gap, counted once per missed deadline
-            self._counts[HapticError.SERVO_OVERRUN] += missed - 1
-            self._event(
-                HapticError.SERVO_OVERRUN, now_s, f"{missed} deadline(s) missed and skipped"
-            )
+            sup = self.safety
+            sup.counts[HapticError.SERVO_OVERRUN] += missed - 1
+            sup.event(HapticError.SERVO_OVERRUN, now_s, f"{missed} deadline(s) missed and skipped")
 
     def shutdown_now(self, error: str | None = None) -> None:
         """Zero and disable the device's forces at once, without a ramp.
@@ -801,17 +633,13 @@ class ServoCore:
         """
         if error is not None:
             self.error = error
-        self._scale = 0.0
+        self.safety.zero()
         try:
             self.device.write(0.0, 0.0, 0.0)
             self.device.disable_forces()
         finally:
             self._dev_enabled = False
             self._stopped = True
-
-    def _event(self, kind: HapticError, t_s: float, detail: str) -> None:
-        self._counts[kind] += 1
-        self._last_event = ServoEvent(kind, t_s, detail)
 
     # -- outputs to other threads ----------------------------------------------------------------
     def latest(self) -> ServoSnapshot | None:
@@ -847,183 +675,22 @@ class ServoCore:
 
     def status(self) -> ServoStatus:
         """Counters per :class:`HapticError`, the last event and the safety switches."""
+        sup = self.safety
         return ServoStatus(
             ticks=self._ticks,
-            counts={k.value: v for k, v in self._counts.items()},
-            last_event=self._last_event,
-            forces_enabled=self._enabled,
-            engaged=self._engaged,
-            has_patch=self._patch is not None and not self._need_patch,
-            link_alive=self._link_ok,
-            force_scale=self._scale,
-            device_fault=self._fault,
+            counts={k.value: v for k, v in sup.counts.items()},
+            last_event=sup.last_event,
+            forces_enabled=sup.enabled,
+            engaged=sup.engaged,
+            has_patch=self.renderer.patch is not None and not sup.need_patch,
+            link_alive=sup.link_ok,
+            force_scale=sup.scale,
+            device_fault=sup.fault,
             stiffness_clamps=self._stiffness_clamps,
             stopped=self._stopped,
             error=self.error,
-            passivity=None
-            if self._pc is None
-            else {
-                "observed_j": self._pc.observed_energy_j,
-                "dissipated_j": self._pc.dissipated_energy_j,
-                "active_j": self._pc.active_energy_j,
-            },
+            passivity=sup.passivity_energies(),
         )
-
-
-@dataclass
-class DeadlineLoop:
-    """Deadline scheduler: tick k is due at ``start + k * period_s`` (integer k, no float drift).
-
-    Parameters
-    ----------
-    period_s : float
-        Period T [s], > 0.
-    clock : callable
-        Monotonic clock [s] (default :func:`time.perf_counter`).
-    sleep : callable
-        ``sleep(seconds)`` (default :func:`time.sleep`).
-    spin_s : float
-        The last ``spin_s`` [s] before a deadline are busy-waited on ``clock`` instead of slept
-        (sleep overshoots by ~0.1 ms on a stock Linux kernel; default 3e-4).
-    late_tolerance : float
-        A deadline is missed when the loop gets to it more than ``late_tolerance * period_s``
-        late; missed deadlines are skipped (default 0.5).
-
-    Attributes
-    ----------
-    overruns : int
-        Deadlines missed and skipped so far.
-    ticks : int
-        Ticks run so far.
-    """
-
-    period_s: float
-    clock: Clock = time.perf_counter
-    sleep: Sleep = time.sleep
-    spin_s: float = 3e-4
-    late_tolerance: float = 0.5
-    overruns: int = field(default=0, init=False)
-    ticks: int = field(default=0, init=False)
-    _halt: bool = field(default=False, init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.period_s) and self.period_s > 0.0):
-            raise ValueError(f"period_s must be > 0, got {self.period_s!r}")
-        if not (0.0 < self.late_tolerance < 1.0):
-            raise ValueError("late_tolerance must be in (0, 1) periods")
-
-    def halt(self) -> None:
-        """Make :meth:`run` return after the current tick (from any thread)."""
-        self._halt = True
-
-    def run(
-        self,
-        tick: Callable[[float], bool],
-        *,
-        max_ticks: int | None = None,
-        after_tick: Callable[[float], None] | None = None,
-        on_overrun: Callable[[int, float], None] | None = None,
-    ) -> int:
-        """Call ``tick(now_s)`` at every deadline until it returns True, ``max_ticks`` or halt.
-
-        Parameters
-        ----------
-        tick : callable
-            ``tick(now_s) -> stop``; ``now_s`` [s] is the clock when the deadline was reached.
-        max_ticks : int, optional
-            Stop after this many ticks.
-        after_tick : callable, optional
-            ``after_tick(compute_s)`` with the tick's duration [s].
-        on_overrun : callable, optional
-            ``on_overrun(missed, now_s)`` when deadlines were missed and skipped.
-
-        Returns
-        -------
-        int
-            Ticks run by this call.
-        """
-        clock, sleep = self.clock, self.sleep
-        T, spin = self.period_s, self.spin_s
-        tol = self.late_tolerance * T
-        self._halt = False
-        start = clock()
-        k = 0
-        done = 0
-        while True:
-            deadline = start + k * T
-            now = clock()
-            wait = deadline - now
-            if wait > spin:
-                sleep(wait - spin)
-                now = clock()
-            while now < deadline:
-                now = clock()
-            stop = tick(now)
-            end = clock()
-            done += 1
-            if after_tick is not None:
-                after_tick(end - now)
-            if stop or self._halt or (max_ticks is not None and done >= max_ticks):
-                break
-            k += 1
-            if end - (start + k * T) > tol:
-                k_next = math.ceil((end - tol - start) / T)
-                missed = k_next - k
-                self.overruns += missed
-                if on_overrun is not None:
-                    on_overrun(missed, end)
-                k = k_next
-        self.ticks += done
-        return done
-
-
-class _SwitchInterval:
-    """Reference-counted lowering of the interpreter's thread switch interval (process-wide)."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._users = 0
-        self._saved = 0.0
-
-    def lower(self, interval_s: float) -> None:
-        with self._lock:
-            if self._users == 0:
-                self._saved = sys.getswitchinterval()
-            self._users += 1
-            sys.setswitchinterval(min(sys.getswitchinterval(), interval_s))
-
-    def restore(self) -> None:
-        with self._lock:
-            self._users -= 1
-            if self._users == 0:
-                sys.setswitchinterval(self._saved)
-
-
-_switch_interval = _SwitchInterval()
-
-
-def try_realtime_priority(priority: int) -> bool:
-    """Put the calling thread under SCHED_FIFO at ``priority`` (1-99) if the OS allows it.
-
-    What haptic vendors do for their servo thread: a real-time thread is not preempted by the
-    ordinary processes of the machine, so it wakes on time even when the CPUs are busy. The loop
-    still sleeps most of each period, and Linux caps real-time threads at 95 % of a CPU by
-    default, so it cannot lock the machine up.
-
-    Returns
-    -------
-    bool
-        True if granted; False where unsupported or not permitted (the thread keeps its policy).
-    """
-    setsched = getattr(os, "sched_setscheduler", None)
-    fifo = getattr(os, "SCHED_FIFO", None)
-    if setsched is None or fifo is None:
-        return False
-    try:
-        setsched(0, fifo, os.sched_param(priority))
-    except (OSError, ValueError):
-        return False
-    return True
 
 
 class ServoThread:

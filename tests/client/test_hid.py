@@ -134,7 +134,6 @@ def test_a_spacemouse_push_comes_from_the_designed_coupling_bounded_as_every_use
     """No invented limits: K_h is the gain design's, the force the protocol's bound, no speed cap."""
     from haptic_collab.client.app import ClientOptions, _device_info
     from haptic_collab.client.servo import ServoConfig, ServoCore
-    from haptic_collab.shared.local_model import LocalModelParams
     from haptic_collab.shared.primitives import make_plane
     from haptic_collab.shared.protocol import MAX_REPORTED_FORCE_N
 
@@ -148,7 +147,7 @@ def test_a_spacemouse_push_comes_from_the_designed_coupling_bounded_as_every_use
     info = _device_info(ClientOptions(url="ws://x", device="hid:256f:c635"), lim)
     assert info.max_force_n == MAX_REPORTED_FORCE_N and info.max_stiffness_n_per_m == 1e5
     # a coupling stiffer than the old invented 5000 N/m cap is rendered as designed
-    core = ServoCore(dev, ServoConfig(ramp_s=0.001), local_model=LocalModelParams(k_h=1.0))
+    core = ServoCore(dev, ServoConfig(ramp_s=0.001))
     core.enable_forces()
     below = dev.read(0.0)[2] + 0.004  # a surface 4 mm above the probe: 4 mm of penetration
     core.set_patch(make_plane((0.0, 0.0, below), (0.0, 0.0, 1.0)), 8000.0, 0.0)

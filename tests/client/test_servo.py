@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.devices.base import Device, DeviceLimits, HapticError, Vec3
-from haptic_collab.client.servo import DeadlineLoop, ServoConfig, ServoCore, ServoThread
+from haptic_collab.client.scheduler import DeadlineLoop
+from haptic_collab.client.servo import ServoConfig, ServoCore, ServoThread
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.primitives import make_plane, make_sphere
 

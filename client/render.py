@@ -1,0 +1,220 @@
+"""Compute interaction forces: the local model's force on the probe (phase 2 of the servo tick).
+
+CHAI3D's ``computeInteractionForces``, for the paper's local model (section 6, Step 2): the
+primitive of the newest patch gives the penetration e [m] and the outward normal n at the probe
+x_h; the local model L(z) (eq. 12, with the threshold of eq. 17-18;
+:class:`shared.local_model.LocalModel`) turns e into a force magnitude f [N]; in contact a probe
+damper adds B_h * u, u the filtered depth rate of the probe. The force on the user is f * n,
+before the safety supervisor clamps and scales it (:mod:`client.safety`).
+
+Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
+
+- ``zoh``: the new surface replaces the old at once (eq. 1);
+- ``foh``: the penetration slides linearly from the old surface's to the new one's over N =
+  ``hold_ticks`` ticks, e(k) = e_old(k) + (e_new(k) - e_old(k)) * k / N, k = 1..N-1, then
+  e_new (:mod:`shared.full_loop` analyses exactly this); a patch that arrives mid-slide (network
+  jitter) slides on from the blend reached, rebased once the next probe position is known, so
+  the force never steps;
+- the LocalModel keeps its integral state; the gain change's force step (K_h and the damper's
+  (B_h,old - B_h,new) * u) is carried off by the model's gain transfer
+  (``set_gains(..., carry_n=...)``).
+
+Difference equations, per servo period T, with the probe's backward difference
+d = x_h(k) - x_h(k-1):
+
+- depth rate along the inward normal: v_in = -(d . n) / T;
+- damper's velocity filter (time constant :data:`shared.full_loop.DAMPER_FILTER_S`):
+  u(k) = u(k-1) + a * (v_in - u(k-1)), a = T / (T + tau);
+- f = max(0, L(z) e + B_h * u) in contact, L(z) e out of contact.
+
+No clock, no thread, no device: time advances one servo period per :meth:`LocalRenderer.render`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+from haptic_collab.shared.full_loop import DAMPER_FILTER_S
+from haptic_collab.shared.local_model import LocalModel, LocalModelParams
+from haptic_collab.shared.primitives import Primitive
+
+if TYPE_CHECKING:
+    from haptic_collab.client.servo import Patch
+
+_NAN = math.nan
+
+
+class LocalRenderer:
+    """The local model rendered at the probe, one servo period per :meth:`render`.
+
+    Parameters
+    ----------
+    params : LocalModelParams
+        Threshold, release time, contact type and period T of the local model (its gains are
+        replaced by each patch's).
+
+    Attributes
+    ----------
+    model : LocalModel
+        The local model L(z) (its integral and threshold state, read by the telemetry).
+    patch : Patch or None
+        The patch in use (None before the first).
+    primitive : Plane or Sphere or None
+        Its primitive (None before the first patch).
+    k_h : float
+        K_h [N/m] in use (0 before the first patch).
+    i_gain : float
+        I [N/(m*s)] in use.
+    b_h : float
+        Probe damper B_h [N*s/m] in use.
+
+    Notes
+    -----
+    Read the attributes, never assign them: they change only through :meth:`hand_over`.
+    """
+
+    __slots__ = (
+        "model",
+        "patch",
+        "primitive",
+        "k_h",
+        "i_gain",
+        "b_h",
+        "_inv_T",
+        "_a_u",
+        "_u",
+        "_prim_old",
+        "_hold_off",
+        "_rebase",
+        "_hold_i",
+        "_hold_n",
+    )
+
+    def __init__(self, params: LocalModelParams) -> None:
+        T = params.servo_period_s
+        self.model = LocalModel(params)
+        self.patch: Patch | None = None
+        self.primitive: Primitive | None = None
+        self.k_h = 0.0
+        self.i_gain = 0.0
+        self.b_h = 0.0
+        self._inv_T = 1.0 / T
+        self._a_u = T / (T + DAMPER_FILTER_S)  # the damper's velocity filter (shared.full_loop)
+        self._u = 0.0
+        self._prim_old: Primitive | None = None  # the surface a first-order hold moves away from
+        self._hold_off = 0.0  # depth [m] added to _prim_old: where the slide really starts
+        # a patch that arrived mid-slide: (start surface, its offset, weight reached); the new
+        # slide's start offset is computed from it on the next render, once the probe is read
+        self._rebase: tuple[Primitive, float, float] | None = None
+        self._hold_i = 0
+        self._hold_n = 1
+
+    @property
+    def damper_velocity_m_s(self) -> float:
+        """The damper's filtered depth rate u [m/s] along the inward normal."""
+        return self._u
+
+    def hand_over(self, patch: Patch, fresh: bool) -> None:
+        """Make ``patch`` the local model from the next :meth:`render` on.
+
+        Parameters
+        ----------
+        patch : Patch
+            The new primitive and gains (already validated and clamped to the device).
+        fresh : bool
+            No surface to slide from (after a link loss): the patch replaces the old one at once
+            even with ``proxy_hold="foh"``. The first patch is always fresh.
+        """
+        fresh = fresh or self.primitive is None
+        old = self._prim_old
+        if fresh or patch.proxy_hold != "foh":
+            self._prim_old = None
+            self._rebase = None
+        else:
+            # a patch arriving before the last slide finished (network jitter) slides on from
+            # the blend reached, not from the last target (that would be a step)
+            self._rebase = (
+                None if old is None else (old, self._hold_off, self._hold_i / self._hold_n)
+            )
+            self._prim_old = self.primitive
+            self._hold_off = 0.0
+        self._hold_i = 0
+        self._hold_n = patch.hold_ticks
+        self.patch = patch
+        self.primitive = patch.primitive
+        # the damper's share of the force step is carried off with the stiffness's
+        b_old = self.b_h
+        carry = (b_old - patch.b_h) * self._u if b_old > 0.0 or patch.b_h > 0.0 else 0.0
+        self.model.set_gains(patch.k_h, patch.i_gain, patch.recovery_m_per_n, carry_n=carry)
+        self.k_h = patch.k_h
+        self.i_gain = patch.i_gain
+        self.b_h = patch.b_h
+
+    def render(
+        self, x: float, y: float, z: float, dx: float, dy: float, dz: float
+    ) -> tuple[float, float, float, float, float, bool]:
+        """Advance one servo period with the probe at (x, y, z) [m], moved by (dx, dy, dz) [m].
+
+        Parameters
+        ----------
+        x, y, z : float
+            Probe position x_h [m], finite.
+        dx, dy, dz : float
+            Its change since the last tick [m] (zero on the first tick): the backward difference
+            the depth rate and the damper use.
+
+        Returns
+        -------
+        f : float
+            Force magnitude [N] along the outward normal (local model plus damper; before the
+            safety clamp and scale); the force vector is f * n. 0 before the first patch.
+        e : float
+            Penetration e [m] (blended during a first-order hold); NaN before the first patch.
+        nx, ny, nz : float
+            Outward unit normal n of the surface at the probe; zero before the first patch.
+        in_contact : bool
+            The local model is in contact.
+        """
+        prim = self.primitive
+        if prim is None:
+            return 0.0, _NAN, 0.0, 0.0, 0.0, False
+        e, nx, ny, nz = prim.contact(x, y, z)
+        old = self._prim_old
+        if old is not None:  # first-order hold: slide from the old surface to the new one
+            rb = self._rebase
+            if rb is not None:  # start where the interrupted slide was: its blend, here
+                s_prim, s_off, w = rb
+                self._hold_off = (1.0 - w) * (
+                    s_prim.contact(x, y, z)[0] + s_off - old.contact(x, y, z)[0]
+                )
+                self._rebase = None
+            hi = self._hold_i + 1
+            if hi >= self._hold_n:
+                self._prim_old = None
+            else:
+                self._hold_i = hi
+                e_old = old.contact(x, y, z)[0] + self._hold_off
+                e = e_old + (e - e_old) * (hi / self._hold_n)
+        # the probe's depth rate along the inward normal (backward difference, never the proxy's)
+        v_in = -(dx * nx + dy * ny + dz * nz) * self._inv_T
+        lm = self.model
+        f = lm.step(e, v_in)
+        in_contact = lm.in_contact
+        u = self._u + self._a_u * (v_in - self._u)
+        self._u = u
+        if in_contact:
+            b_h = self.b_h
+            if b_h > 0.0:
+                f += b_h * u  # probe damper on the filtered probe velocity
+                if f < 0.0:
+                    f = 0.0
+        return f, e, nx, ny, nz, in_contact
+
+    def reset(self) -> None:
+        """Forces withheld: forget the local model's integral and contact state (no wind-up).
+
+        Does nothing before the first patch.
+        """
+        if self.primitive is not None:
+            self.model.reset()
