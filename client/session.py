@@ -65,7 +65,7 @@ from haptic_collab.shared.protocol import (
     encode,
     parse_server,
 )
-from haptic_collab.shared.stability import rate_ratio as _rate_ratio
+from haptic_collab.shared.rates import Rates
 
 #: Pings (one every 0.5 s) over which the loop delay is estimated.
 RTT_WINDOW = 20
@@ -350,6 +350,17 @@ class ClientSession:
         """Simulation rate announced by the server (20 Hz before ``welcome``)."""
         return self.welcome.sim_rate_hz if self.welcome else 20.0
 
+    @property
+    def rates(self) -> Rates:
+        """This client's servo rate and the server's simulation rate (:attr:`sim_rate_hz`).
+
+        Raises
+        ------
+        ValueError
+            The servo rate is not a whole multiple of the simulation rate (N not whole).
+        """
+        return Rates(self.servo_rate_hz, self.sim_rate_hz)
+
     def rtt_ms(self) -> float | None:
         """Median of recent round-trip times [ms], None before the first pong."""
         return float(np.median(self.rtt_s)) * 1000.0 if self.rtt_s else None
@@ -468,7 +479,7 @@ class ClientSession:
         except ValueError as exc:
             raise ProtocolError("invalid_primitive", str(exc)) from None
         try:
-            n = _rate_ratio(self.servo_rate_hz, self.sim_rate_hz)
+            n = self.rates.ratio
         except ValueError as exc:
             raise ProtocolError("unsupported_rates", str(exc)) from None
         if self.first_patch_s is None:

@@ -15,7 +15,7 @@ from haptic_collab.server.room import Room
 from haptic_collab.server.security import TokenTable, is_loopback, normalize_origin
 from haptic_collab.server.urls import viewer_urls
 from haptic_collab.shared.protocol import LinkConditions
-from haptic_collab.shared.stability import dividing_rates, rate_ratio
+from haptic_collab.shared.rates import Rates, dividing_rates
 
 #: The clients' servo rate the simulation rate must divide [Hz] (``haptic client``'s default).
 CLIENT_SERVO_RATE_HZ = 1000.0
@@ -105,23 +105,23 @@ def build_ssl(opts: ServerOptions) -> ssl.SSLContext | None:
     return ctx
 
 
-def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
-    """The world for these options: the default balloon or a mesh file, factorized once.
+def build_rates(opts: ServerOptions) -> Rates:
+    """The server's rates: the clients' servo rate :data:`CLIENT_SERVO_RATE_HZ` and ``--sim-rate``.
+
+    Built once per server (:func:`run_server`); the object, the world and the room all take their
+    simulation period from it.
 
     Raises
     ------
     ValueError
-        A mesh that cannot be loaded, stays open or is degenerate; bad parameters.
+        ``--sim-rate`` outside [1, 1000] Hz, or not dividing the servo rate (N = servo rate /
+        simulation rate must be whole: the lifted loop, paper section 3); the message lists the
+        rates that do.
     """
-    from haptic_collab.server.materials import load_material, material_to_params, top_side_stiffness
-    from haptic_collab.server.objects.balloon import Balloon, BalloonParams
-    from haptic_collab.server.objects.mesh import default_balloon, load_mesh, mesh_warnings
-    from haptic_collab.server.world import World
-
     if not (1.0 <= opts.sim_rate_hz <= 1000.0):
         raise ValueError(f"--sim-rate must be in [1, 1000] Hz, got {opts.sim_rate_hz:g}")
-    try:  # N = servo rate / simulation rate must be whole (the lifted loop, paper section 3)
-        rate_ratio(CLIENT_SERVO_RATE_HZ, opts.sim_rate_hz)
+    try:
+        return Rates(CLIENT_SERVO_RATE_HZ, opts.sim_rate_hz)
     except ValueError:
         ok = ", ".join(f"{r:g}" for r in dividing_rates(CLIENT_SERVO_RATE_HZ, 10.0, 250.0))
         raise ValueError(
@@ -130,6 +130,31 @@ def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
             f"clients could not render its patches; use a rate that divides "
             f"{CLIENT_SERVO_RATE_HZ:g} Hz: {ok} Hz"
         ) from None
+
+
+def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignore[no-untyped-def]
+    """The world for these options: the default balloon or a mesh file, factorized once.
+
+    The balloon steps with ``rates.sim_period_s`` and the world keeps ``rates`` (default:
+    :func:`build_rates` of ``opts``; given, its simulation rate must be ``opts.sim_rate_hz``).
+
+    Raises
+    ------
+    ValueError
+        A mesh that cannot be loaded, stays open or is degenerate; bad parameters; as
+        :func:`build_rates`; ``rates`` that disagree with ``opts.sim_rate_hz``.
+    """
+    from haptic_collab.server.materials import load_material, material_to_params, top_side_stiffness
+    from haptic_collab.server.objects.balloon import Balloon, BalloonParams
+    from haptic_collab.server.objects.mesh import default_balloon, load_mesh, mesh_warnings
+    from haptic_collab.server.world import World
+
+    if rates is None:
+        rates = build_rates(opts)
+    elif not math.isclose(rates.sim_rate_hz, opts.sim_rate_hz, rel_tol=1e-9):
+        raise ValueError(
+            f"rates at {rates.sim_rate_hz:g} Hz disagree with --sim-rate {opts.sim_rate_hz:g} Hz"
+        )
     if opts.mesh == "balloon":
         if not 0 <= opts.subdivisions <= 7:
             raise ValueError("--subdivisions must be in [0, 7]")
@@ -139,7 +164,7 @@ def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
     scale = float(opts.stiffness_scale)
     if not (math.isfinite(scale) and scale > 0.0):
         raise ValueError(f"--stiffness-scale must be a finite number > 0, got {scale:g}")
-    base = BalloonParams(sim_period_s=1.0 / opts.sim_rate_hz)
+    base = BalloonParams(sim_period_s=rates.sim_period_s)
     if opts.material is not None:
         material = load_material(opts.material)
         base = material_to_params(material, base, volume_m3=float(mesh.volume))
@@ -151,7 +176,7 @@ def build_world(opts: ServerOptions):  # type: ignore[no-untyped-def]
         log.warning("%s", warning)
     obj = Balloon(mesh, params)
     log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))
-    return World(obj, primitive=opts.primitive)  # type: ignore[arg-type]
+    return World(obj, primitive=opts.primitive, rates=rates)  # type: ignore[arg-type]
 
 
 async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None = None) -> None:
@@ -160,10 +185,11 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     auth = build_auth(opts)
     ssl_context = build_ssl(opts)
     origins = tuple(normalize_origin(o) for o in opts.allow_origins)
-    world = build_world(opts)
+    rates = build_rates(opts)
+    world = build_world(opts, rates)
     room = Room(
         world,
-        opts.sim_rate_hz,
+        rates,
         link=LinkConditions(latency_ms=opts.latency_ms, jitter_ms=opts.jitter_ms, loss=opts.loss),
         auth=auth,
     )
@@ -187,7 +213,7 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         log.info(
             "serving %d-vertex object at %g Hz on %s://%s:%d/ (websocket /ws, %s)%s",
             info.n_vertices,
-            opts.sim_rate_hz,
+            rates.sim_rate_hz,
             scheme,
             opts.host,
             port,

@@ -68,6 +68,7 @@ from haptic_collab.shared.protocol import (
     frame_size_bytes,
     parse_client,
 )
+from haptic_collab.shared.rates import PERIOD_RTOL, Rates
 
 if TYPE_CHECKING:
     from haptic_collab.server.world import ContactOutput, World
@@ -267,8 +268,11 @@ class Room:
     ----------
     world : World
         The simulation core (object + contacts).
-    sim_rate_hz : float
-        Simulation rate 1/(N*T) [Hz], announced to clients.
+    rates : shared.rates.Rates, float or None
+        The rates the server runs at (:func:`server.main.build_rates`): the room ticks and
+        announces ``rates.sim_rate_hz`` [Hz]. A bare float is the simulation rate 1/(N*T) [Hz]
+        alone (older callers and tests). None: the world's ``rates``. Either way the world's
+        object must step with the same period ``world.sim_period_s``.
     link : LinkConditions
         Injected latency, announced to clients and viewers.
     limits : RoomLimits
@@ -277,19 +281,33 @@ class Room:
         Tokens the room accepts in ``hello``; None admits everyone (a loopback server).
     force_bound : ForceBoundParams, optional
         Tolerances of the bound on reported forces (:mod:`server.force_bound`).
+
+    Raises
+    ------
+    ValueError
+        No rates given nor known to the world, a simulation rate that is not a finite number
+        > 0, or one that disagrees with the period the world's object steps with.
     """
 
     def __init__(
         self,
         world: World,
-        sim_rate_hz: float,
+        rates: Rates | float | None = None,
         link: LinkConditions | None = None,
         limits: RoomLimits | None = None,
         auth: TokenTable | None = None,
         force_bound: ForceBoundParams | None = None,
     ) -> None:
         self.world = world
-        self.sim_rate_hz = float(sim_rate_hz)
+        if rates is None:
+            rates = world.rates
+            if rates is None:
+                raise ValueError(
+                    "the room needs its rates: give Rates, or build the world with them"
+                )
+        #: The server's rates (None when the room was given a bare simulation rate).
+        self.rates: Rates | None = rates if isinstance(rates, Rates) else None
+        self.sim_rate_hz = _check_sim_rate(world, rates)
         self.link = link or LinkConditions()
         self.limits = limits or RoomLimits()
         self.auth = auth
@@ -772,6 +790,23 @@ class Room:
             link=self.link,
             users=users,
         )
+
+
+def _check_sim_rate(world: World, rates: Rates | float) -> float:
+    """The room's simulation rate [Hz], checked against the period the world steps with."""
+    if isinstance(rates, Rates):
+        rates.check_sim_period(world.sim_period_s, "the world")
+        return rates.sim_rate_hz
+    rate = float(rates)
+    if not (math.isfinite(rate) and rate > 0.0):
+        raise ValueError(f"the simulation rate must be a finite number > 0 Hz, got {rates!r}")
+    period = float(world.sim_period_s)
+    if abs(period * rate - 1.0) > PERIOD_RTOL:
+        raise ValueError(
+            f"the world steps every {period * 1e3:g} ms ({1.0 / period:g} Hz) but the room was "
+            f"given {rate:g} Hz: build both from one Rates"
+        )
+    return rate
 
 
 def _welcome(

@@ -47,6 +47,7 @@ from haptic_collab.server.contacts import (
 )
 from haptic_collab.server.objects import AdmittanceObject
 from haptic_collab.shared.primitives import Plane, Sphere
+from haptic_collab.shared.rates import Rates
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -148,11 +149,15 @@ class World:
     reach_m : float
         A reported force is applied (Step 3) unless the probe is more than this [m] outside the
         local model it was rendered against.
+    rates : shared.rates.Rates, optional
+        The servo and simulation rates the server runs at (:func:`server.main.build_rates`);
+        the object's ``sim_period_s`` must be their N*T. Kept as :attr:`rates` for the room.
 
     Raises
     ------
     ValueError
-        Unknown primitive, or ``proximity_m`` or ``reach_m`` not finite and >= 0.
+        Unknown primitive, ``proximity_m`` or ``reach_m`` not finite and >= 0, or an object
+        whose simulation period is not the one of ``rates``.
     """
 
     def __init__(
@@ -161,7 +166,12 @@ class World:
         primitive: Literal["plane", "sphere"] = "plane",
         proximity_m: float = 0.005,
         reach_m: float = 0.03,
+        rates: Rates | None = None,
     ) -> None:
+        if rates is not None:
+            rates.check_sim_period(float(obj.sim_period_s), "the object")
+        #: The rates the world was built for (None: only the object's own period is known).
+        self.rates = rates
         if primitive not in ("plane", "sphere"):
             raise ValueError(f"primitive must be 'plane' or 'sphere', got {primitive!r}")
         prox = float(proximity_m)
@@ -212,7 +222,7 @@ class World:
 
     @property
     def sim_period_s(self) -> float:
-        """Simulation period N*T [s] of one tick."""
+        """Simulation period N*T [s] of one tick (the object's; equal to ``rates.sim_period_s``)."""
         return float(self.obj.sim_period_s)
 
     @property

@@ -76,6 +76,7 @@ from haptic_collab.shared.gain_design import (
     Mode,
     design_gains,
 )
+from haptic_collab.shared.rates import Rates
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -637,10 +638,8 @@ def verify_coupled(
     ValueError
         As :func:`coupled_monodromy`; margin outside [0, 1); no hands or ticks.
     """
-    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
-
-    N = _rate_ratio(servo_rate_hz, sim_rate_hz)
-    T = 1.0 / float(servo_rate_hz)
+    rates = Rates(servo_rate_hz, sim_rate_hz)
+    N, T = rates.ratio, rates.servo_period_s
     c, bo = _check_common(compliance, gains, b_o, N, delay_ticks)
     if not (math.isfinite(margin) and 0.0 <= margin < 1.0):
         raise ValueError(f"margin must be in [0, 1), got {margin!r}")

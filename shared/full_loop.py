@@ -53,6 +53,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import expm
 
+from haptic_collab.shared.rates import Rates
+
 FloatArray = NDArray[np.float64]
 ProxyHold = Literal["zoh", "foh"]
 
@@ -488,9 +490,8 @@ def analyze_full_loop(
     ValueError
         Out-of-range or inconsistent input.
     """
-    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
-
-    n = _rate_ratio(servo_rate_hz, sim_rate_hz)
+    rates = Rates(servo_rate_hz, sim_rate_hz)
+    n = rates.ratio
     for name, v, lo in (("k_o", k_o, 0.0), ("k_h", k_h, 0.0)):
         if not (math.isfinite(v) and v > lo):
             raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
@@ -507,7 +508,7 @@ def analyze_full_loop(
         i_gain=i_gain,
         b_h=b_h,
         b_o=damping * sim_rate_hz,
-        servo_period_s=1.0 / servo_rate_hz,
+        servo_period_s=rates.servo_period_s,
         rate_ratio=n,
         delay_ticks=int(delay_ticks),
         sample_ticks=js,

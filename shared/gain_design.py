@@ -48,6 +48,7 @@ from haptic_collab.shared.full_loop import (
     ProxyHold,
     monodromy,
 )
+from haptic_collab.shared.rates import Rates
 
 FloatArray = NDArray[np.float64]
 Mode = Literal["p", "pi"]
@@ -345,11 +346,9 @@ def design_gains(
         Out-of-range input, or no candidate is stable over the box (then the box or the rates are
         beyond what any local model can render).
     """
-    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
-
     t0 = time.perf_counter()
-    N = _rate_ratio(servo_rate_hz, sim_rate_hz)
-    T = 1.0 / float(servo_rate_hz)
+    rates = Rates(servo_rate_hz, sim_rate_hz)
+    N, T = rates.ratio, rates.servo_period_s
     if not (math.isfinite(k_o) and k_o > 0.0):
         raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
     if not (math.isfinite(b_o) and b_o >= 0.0):
@@ -556,6 +555,11 @@ class GainKey:
     #: 1 uncoupled, 2, 4, ... 256 or inf (rigid) for users coupled through the object. A cell's
     #: design is checked up to ``coupled_k_o_hi(g_(i+1), stiff_ratio)`` (docs/coupled-users.md).
     stiff_ratio: float = 1.0
+
+    @property
+    def rates(self) -> Rates:
+        """The key's servo and simulation rates (raises ValueError when N is not whole)."""
+        return Rates(self.servo_rate_hz, self.sim_rate_hz)
 
 
 #: Largest ratio between neighbouring K_o points a design is checked at (:func:`k_o_points`).
@@ -771,10 +775,8 @@ def verify_gains(
     for name, v in (("i_gain", i_gain), ("b_h", b_h)):
         if not (math.isfinite(v) and v >= 0.0):
             raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
-
-    n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
-    T = 1.0 / key.servo_rate_hz
+    rates = key.rates
+    n, T = rates.ratio, rates.servo_period_s
     lo, hi = cell_k_o_range(key, cell, grid_ratio)
     k_os = k_o_points(lo, hi)
     hands = [h for h in hand_box.hands() for _ in k_os]
@@ -834,11 +836,10 @@ def interim_design(
         Nothing passed (and, with ``design_fallback``, not even a proportional design is stable
         over the box).
     """
-    from haptic_collab.shared.stability import rate_ratio as _rate_ratio
-
     t0 = time.perf_counter()
     lo, hi = cell_k_o_range(key, cell, grid_ratio)
-    n = _rate_ratio(key.servo_rate_hz, key.sim_rate_hz)
+    rates = key.rates
+    n = rates.ratio
     tries: list[tuple[float, float, float, Literal["zoh", "foh"]]] = [
         (c.k_h, c.i_gain, c.b_h, c.proxy_hold) for c in candidates
     ]
@@ -867,7 +868,7 @@ def interim_design(
                     i_gain=i_gain,
                     b_h=b_h,
                     b_o=key.b_o,
-                    servo_period_s=1.0 / key.servo_rate_hz,
+                    servo_period_s=rates.servo_period_s,
                     rate_ratio=n,
                     delay_ticks=key.delay_ticks,
                     proxy_hold=hold,

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from haptic_collab.shared.local_model import LocalModel
-from haptic_collab.shared.stability import rate_ratio as _rate_ratio
+from haptic_collab.shared.rates import Rates
 
 FloatArray = NDArray[np.float64]
 
@@ -93,7 +93,7 @@ def simulate(
         Inconsistent rates, non-positive stiffness, negative delay.
     """
     period = local_model.params.servo_period_s
-    n = _rate_ratio(1.0 / period, sim_rate_hz)
+    n = Rates(1.0 / period, sim_rate_hz).ratio
     if not k_o > 0.0:
         raise ValueError(f"k_o must be > 0, got {k_o!r}")
     if delay_ticks < 0:

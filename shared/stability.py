@@ -13,6 +13,11 @@ Implements sections 2-5 of Barbagli, Prattichizzo, Salisbury (IJRR 2005):
 - :func:`select_gains` — Step 2 of section 6: K_h and I inside the stability region (Fig. 8) with a
   margin on K_o, capped by the device's maximum stiffness.
 
+Every :class:`StateSpace` carries its sample time ``dt`` [s]: T for the servo-rate local model,
+N*T for the lifted and slow-rate models and the object; connecting two models on different
+timebases is refused (:func:`common_timebase`). The rates themselves, and N, come from
+:class:`shared.rates.Rates` (:func:`rate_ratio` and :func:`dividing_rates` are re-exported here).
+
 Units: stiffness [N/m], I [N/(m*s)], damping b [N*s/m], B_o = b / (N*T) [N/m], periods [s].
 The delay counts *extra* whole simulation ticks on top of the one tick the simulation itself takes.
 """
@@ -26,6 +31,10 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from haptic_collab.shared.rates import PERIOD_RTOL, Rates
+from haptic_collab.shared.rates import dividing_rates as dividing_rates
+from haptic_collab.shared.rates import rate_ratio as rate_ratio
+
 FloatArray = NDArray[np.float64]
 
 #: Poles with magnitude below 1 - STABILITY_TOL count as stable (guards marginal round-off).
@@ -34,15 +43,29 @@ STABILITY_TOL = 1e-9
 
 @dataclass(frozen=True)
 class StateSpace:
-    """Discrete-time state-space quadruple ``x(k+1) = A x + B u``, ``y = C x + D u``.
+    """Discrete-time state-space quadruple ``x(k+1) = A x + B u``, ``y = C x + D u``, sampled
+    every ``dt`` seconds.
 
     Shapes: A (n, n), B (n, m), C (p, n), D (p, m); n may be 0 (a static gain).
+
+    ``dt`` [s] is the sample time: T for a servo-rate model (:func:`local_model_state_space`),
+    N*T for a lifted or slow-rate one (:func:`lift`, :func:`slow_rate_model`) and for the object
+    (:func:`object_state_space`). ``None`` means unspecified (a static gain valid at any rate) and
+    is compatible with every timebase; functions that connect two models refuse two different
+    sample times (:func:`common_timebase`), as python-control does.
     """
 
     A: FloatArray
     B: FloatArray
     C: FloatArray
     D: FloatArray
+    dt: float | None
+
+    def __post_init__(self) -> None:
+        if self.dt is not None and not (math.isfinite(self.dt) and self.dt > 0.0):
+            raise ValueError(
+                f"sample time dt must be a finite number > 0 s or None, got {self.dt!r}"
+            )
 
     @property
     def n_states(self) -> int:
@@ -50,14 +73,57 @@ class StateSpace:
         return int(self.A.shape[0])
 
 
-def _ss(a: object, b: object, c: object, d: object) -> StateSpace:
+def _ss(a: object, b: object, c: object, d: object, dt: float | None) -> StateSpace:
     A = np.atleast_2d(np.asarray(a, dtype=float))
     D = np.atleast_2d(np.asarray(d, dtype=float))
     n = 0 if A.size == 0 else A.shape[0]
     A = A.reshape(n, n)
     B = np.asarray(b, dtype=float).reshape(n, D.shape[1])
     C = np.asarray(c, dtype=float).reshape(D.shape[0], n)
-    return StateSpace(A, B, C, D)
+    return StateSpace(A, B, C, D, None if dt is None else float(dt))
+
+
+def _describe_dt(dt: float | None) -> str:
+    return "dt unspecified" if dt is None else f"dt = {dt:g} s ({1.0 / dt:g} Hz)"
+
+
+def common_timebase(
+    first: StateSpace, second: StateSpace, names: tuple[str, str] = ("first", "second")
+) -> float | None:
+    """The sample time [s] two models share, for connecting them (python-control's rule).
+
+    ``None`` (unspecified) is compatible with any sample time; two given sample times must agree
+    within a relative :data:`shared.rates.PERIOD_RTOL` (they may be computed as ``N * T`` on one
+    side and ``1 / sim_rate`` on the other).
+
+    Parameters
+    ----------
+    first, second : StateSpace
+    names : (str, str)
+        What the two models are, for the message.
+
+    Returns
+    -------
+    float or None
+        The common sample time (the first given one), None if neither has one.
+
+    Raises
+    ------
+    ValueError
+        Different sample times, e.g. a servo-rate model wired to a slow-rate one; the message
+        names both models and their sample times.
+    """
+    a, b = first.dt, second.dt
+    if a is None:
+        return b
+    if b is None:
+        return a
+    if abs(a - b) > PERIOD_RTOL * max(a, b):
+        raise ValueError(
+            f"cannot connect models on different timebases: {names[0]} has {_describe_dt(a)}, "
+            f"{names[1]} has {_describe_dt(b)}"
+        )
+    return a
 
 
 def _positive(name: str, value: float) -> float:
@@ -74,40 +140,12 @@ def _nonneg(name: str, value: float) -> float:
     return v
 
 
-def rate_ratio(servo_rate_hz: float, sim_rate_hz: float) -> int:
-    """N, the number of servo ticks per simulation tick.
-
-    Raises
-    ------
-    ValueError
-        If a rate is not positive and finite, or the servo rate is not a whole multiple (>= 1) of
-        the simulation rate.
-    """
-    servo = _positive("servo rate", servo_rate_hz)
-    sim = _positive("simulation rate", sim_rate_hz)
-    ratio = servo / sim
-    n = round(ratio)
-    if n < 1 or abs(ratio - n) > 1e-9 * max(1.0, ratio):
-        raise ValueError(
-            f"servo rate {servo:g} Hz must be a whole multiple of the simulation rate {sim:g} Hz"
-        )
-    return int(n)
-
-
-def dividing_rates(servo_rate_hz: float, lo_hz: float = 5.0, hi_hz: float = 500.0) -> list[float]:
-    """Simulation rates in ``[lo_hz, hi_hz]`` [Hz] of which ``servo_rate_hz`` is a whole multiple
-    (the rates :func:`rate_ratio` accepts), ascending; for messages that suggest a valid rate."""
-    servo = _positive("servo rate", servo_rate_hz)
-    n_max = int(servo // lo_hz) if lo_hz > 0 else 0
-    rates = {servo / n for n in range(1, n_max + 1) if lo_hz <= servo / n <= hi_hz}
-    return sorted(r for r in rates if abs(r - round(r)) < 1e-9)
-
-
 def local_model_state_space(k_h: float, i_gain: float, servo_period_s: float) -> StateSpace:
     """State-space realization at the servo period T of the local model L(z), eq. (12).
 
     ``L(z) = K_h + T*I/(z-1)``: A_L = 1, B_L = 1, C_L = T*I, D_L = K_h. With ``i_gain == 0`` the
     proportional model ``L(z) = K_h`` has no state (A_L is 0x0), so no spurious pole at z = 1.
+    Either way its sample time ``dt`` is T = ``servo_period_s`` [s].
 
     Raises
     ------
@@ -118,8 +156,8 @@ def local_model_state_space(k_h: float, i_gain: float, servo_period_s: float) ->
     _nonneg("i_gain", i_gain)
     _positive("servo period", servo_period_s)
     if i_gain == 0.0:
-        return _ss(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), [[k_h]])
-    return _ss([[1.0]], [[1.0]], [[servo_period_s * i_gain]], [[k_h]])
+        return _ss(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), [[k_h]], servo_period_s)
+    return _ss([[1.0]], [[1.0]], [[servo_period_s * i_gain]], [[k_h]], servo_period_s)
 
 
 def lift(model: StateSpace, n: int) -> StateSpace:
@@ -127,6 +165,7 @@ def lift(model: StateSpace, n: int) -> StateSpace:
 
     ``A~ = A^N``, ``B~ = [A^(N-1) B, ..., A B, B]``, ``C~ = [C; C A; ...; C A^(N-1)]`` and D~ lower
     block-triangular with D on the diagonal and ``C A^(i-j-1) B`` below it. SISO models only.
+    The lifted model is sampled every ``N * dt`` (unspecified stays unspecified).
 
     Raises
     ------
@@ -150,7 +189,7 @@ def lift(model: StateSpace, n: int) -> StateSpace:
         Dt[i, i] = D[0, 0]
         for j in range(i):
             Dt[i, j] = (C @ powers[i - j - 1] @ B)[0, 0] if ns else 0.0
-    return StateSpace(At, Bt, Ct, Dt)
+    return StateSpace(At, Bt, Ct, Dt, None if model.dt is None else model.dt * n)
 
 
 def slow_rate_model(model: StateSpace, n: int, sample_tick: int = 0) -> StateSpace:
@@ -162,7 +201,7 @@ def slow_rate_model(model: StateSpace, n: int, sample_tick: int = 0) -> StateSpa
     For the PI model and j = 0 this is ``L_h(z) = K_h + N*T*I/(z-1)`` (eq. 13); sampling later in
     the block adds ``j*T*I`` to the proportional part. A networked simulation that takes "the last
     force returned to the haptic device" (Step 3) samples at an arbitrary j, so gains must hold for
-    every j (see :func:`select_gains`).
+    every j (see :func:`select_gains`). Sampled every ``N * dt`` like :func:`lift`.
 
     Raises
     ------
@@ -177,28 +216,45 @@ def slow_rate_model(model: StateSpace, n: int, sample_tick: int = 0) -> StateSpa
         lifted.B.sum(axis=1, keepdims=True),
         lifted.C[sample_tick : sample_tick + 1],
         lifted.D[sample_tick : sample_tick + 1].sum(axis=1, keepdims=True),
+        lifted.dt,
     )
 
 
-def object_state_space(k_o: float, b_o: float = 0.0) -> StateSpace:
+def object_state_space(
+    k_o: float, b_o: float = 0.0, sim_period_s: float | None = None
+) -> StateSpace:
     """Object admittance D(z) at the slow rate, force [N] in, position [m] out.
 
     Elastic, eq. (6): ``D(z) = 1/K_o``. Visco-elastic, eq. (9):
     ``D(z) = (K_o + B_o (z-1)/z)^-1 = z / ((K_o+B_o) z - B_o)``, realised with
     ``a = B_o/(K_o+B_o)``: A = a, B = 1, C = a/(K_o+B_o), D = 1/(K_o+B_o).
 
+    Parameters
+    ----------
+    k_o : float
+        K_o [N/m], > 0.
+    b_o : float
+        B_o = b / (N*T) [N/m], >= 0.
+    sim_period_s : float, optional
+        The simulation period N*T [s], the model's sample time ``dt`` (None: unspecified, then it
+        connects to a model of any sample time).
+
     Raises
     ------
     ValueError
-        k_o <= 0 or b_o < 0.
+        k_o <= 0, b_o < 0, or a period that is not a finite number > 0.
     """
     _positive("k_o", k_o)
     _nonneg("b_o", b_o)
+    if sim_period_s is not None:
+        _positive("simulation period", sim_period_s)
     if b_o == 0.0:
-        return _ss(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), [[1.0 / k_o]])
+        return _ss(
+            np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), [[1.0 / k_o]], sim_period_s
+        )
     s = k_o + b_o
     a = b_o / s
-    return _ss([[a]], [[1.0]], [[a / s]], [[1.0 / s]])
+    return _ss([[a]], [[1.0]], [[a / s]], [[1.0 / s]], sim_period_s)
 
 
 def closed_loop_matrix(l_h: StateSpace, obj: StateSpace, delay_ticks: int = 0) -> FloatArray:
@@ -208,6 +264,9 @@ def closed_loop_matrix(l_h: StateSpace, obj: StateSpace, delay_ticks: int = 0) -
     state ``[lambda_L, xi_D, d_1 .. d_(1+delay)]`` evolves as ``s(k+1) = A_cl s(k)``. The delay line
     carries the object position, so the loop has no algebraic feedthrough.
 
+    Both models must run at the simulation rate: ``l_h`` from :func:`slow_rate_model`, not the
+    servo-rate :func:`local_model_state_space` (:func:`common_timebase`).
+
     Returns
     -------
     (n, n) float array, n = states(L_h) + states(D) + 1 + delay.
@@ -215,8 +274,9 @@ def closed_loop_matrix(l_h: StateSpace, obj: StateSpace, delay_ticks: int = 0) -
     Raises
     ------
     ValueError
-        If ``delay_ticks < 0``.
+        If ``delay_ticks < 0``, or the two models have different sample times ``dt``.
     """
+    common_timebase(l_h, obj, ("the local model L_h", "the object D(z)"))
     if delay_ticks < 0:
         raise ValueError(f"delay_ticks must be >= 0, got {delay_ticks}")
     nl, no, nd = l_h.n_states, obj.n_states, 1 + delay_ticks
@@ -353,7 +413,8 @@ def analyze(
     ValueError
         On any out-of-range, non-finite or inconsistent input.
     """
-    n = rate_ratio(servo_rate_hz, sim_rate_hz)
+    rates = Rates(servo_rate_hz, sim_rate_hz)
+    n = rates.ratio
     _positive("k_o", k_o)
     _positive("k_h", k_h)
     _nonneg("i_gain", i_gain)
@@ -361,11 +422,11 @@ def analyze(
     if isinstance(delay_ticks, bool) or int(delay_ticks) != delay_ticks or delay_ticks < 0:
         raise ValueError(f"delay_ticks must be a whole number >= 0, got {delay_ticks!r}")
     delay_ticks = int(delay_ticks)
-    period = 1.0 / float(servo_rate_hz)
+    period = rates.servo_period_s
     b_o = damping * sim_rate_hz
     nti = i_gain * n * period
     l_h = slow_rate_model(local_model_state_space(k_h, i_gain, period), n, sample_tick)
-    acl = closed_loop_matrix(l_h, object_state_space(k_o, b_o), delay_ticks)
+    acl = closed_loop_matrix(l_h, object_state_space(k_o, b_o, rates.sim_period_s), delay_ticks)
     poles = np.linalg.eigvals(acl) if acl.size else np.zeros(0, dtype=complex)
     rho = float(np.max(np.abs(poles))) if poles.size else 0.0
     analytic: bool | None

@@ -10,8 +10,10 @@ import pytest
 from haptic_collab.cli import main
 from haptic_collab.client.app import ClientOptions, run_client
 from haptic_collab.server.app import ServerApp
-from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.objects.balloon import Balloon, BalloonParams
+from haptic_collab.server.objects.mesh import default_balloon
 from haptic_collab.server.room import Room
+from haptic_collab.server.world import World
 from haptic_collab.shared.stability import dividing_rates
 
 
@@ -29,7 +31,7 @@ def test_rates_that_divide_the_servo_rate():
 
 async def test_a_client_whose_servo_rate_does_not_fit_the_server_stops_at_once():
     # an older (or differently configured) server simulating at 30 Hz: built directly
-    world = build_world(ServerOptions(sim_rate_hz=20.0, subdivisions=2))
+    world = World(Balloon(default_balloon(subdivisions=2), BalloonParams(sim_period_s=1.0 / 30.0)))
     app = ServerApp(Room(world, 30.0), "127.0.0.1", 0)
     await app.start()
     try:

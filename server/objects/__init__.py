@@ -24,7 +24,9 @@ class AdmittanceObject(Protocol):
 
     Surface: ``rest_vertices`` (n, 3) [m], ``faces`` (m, 3) int, ``vertices`` (n, 3) [m]
     current, ``max_displacement_m`` bounding ``|vertices - rest_vertices|``.
-    Contacts are identified by patch keys from :meth:`patch_key`.
+    Contacts are identified by patch keys from :meth:`patch_key`. ``sim_period_s`` [s] is the
+    period N*T of one :meth:`step`: the server's :class:`shared.rates.Rates` ``sim_period_s``
+    (:class:`server.world.World` and :class:`server.room.Room` refuse rates that disagree).
     """
 
     @property

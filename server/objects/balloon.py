@@ -129,7 +129,10 @@ class BalloonParams:
         Vertices within this distance [m] of the lowest point are fixed (>= 0; at least the
         lowest vertex is always fixed).
     sim_period_s : float
-        Simulation period N*T [s] (> 0): one :meth:`Balloon.step`.
+        Simulation period N*T [s] (> 0): one :meth:`Balloon.step`; damping adds ``b*A/dt`` with
+        this dt. The server takes it from its one :class:`shared.rates.Rates`
+        (``rates.sim_period_s``, :func:`server.main.build_world`); :class:`server.world.World`
+        and :class:`server.room.Room` refuse rates that disagree with it.
     cache_mb : float
         Memory budget [MB] of the patch-solve cache (> 0; at least 16 patches are kept).
 

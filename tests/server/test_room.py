@@ -27,6 +27,7 @@ class RecordingWorld:
             [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
         )
         self.inputs: list[dict] = []
+        self.sim_period_s = 0.05  # a 20 Hz object, as the rooms below
 
     def tick(self, inputs):
         from haptic_collab.server.world import ContactOutput
@@ -72,7 +73,7 @@ def texts(outs, conn):
 
 @pytest.fixture
 def room():
-    r = Room(RecordingWorld(), sim_rate_hz=20.0)
+    r = Room(RecordingWorld(), 20.0)
     for c in ("a", "b"):
         r.connect(c, 0.0)
         (w,) = texts(r.receive(c, hello(c.upper()), 0.0), c)
@@ -152,7 +153,7 @@ def test_oversized_frame_closes_that_connection(room):
 
 
 def test_flood_is_cut_off_and_the_other_user_keeps_working():
-    r = Room(RecordingWorld(), sim_rate_hz=20.0, limits=RoomLimits(rate_per_s=100.0, burst=50.0))
+    r = Room(RecordingWorld(), 20.0, limits=RoomLimits(rate_per_s=100.0, burst=50.0))
     for c in ("a", "b"):
         r.connect(c, 0.0)
         r.receive(c, hello(c.upper()), 0.0)
@@ -171,7 +172,7 @@ def test_flood_is_cut_off_and_the_other_user_keeps_working():
 
 
 def test_too_many_errors_closes_the_connection():
-    r = Room(RecordingWorld(), sim_rate_hz=20.0, limits=RoomLimits(max_errors=5))
+    r = Room(RecordingWorld(), 20.0, limits=RoomLimits(max_errors=5))
     r.connect("a", 0.0)
     r.receive("a", hello("A"), 0.0)
     codes = []
@@ -198,7 +199,7 @@ def test_older_state_does_not_replace_newer(room):
 
 
 def test_names_are_made_unique_and_room_limits_hold():
-    r = Room(RecordingWorld(), sim_rate_hz=20.0, limits=RoomLimits(max_users=2))
+    r = Room(RecordingWorld(), 20.0, limits=RoomLimits(max_users=2))
     names = []
     for c in ("a", "b", "c"):
         r.connect(c, 0.0)
@@ -209,9 +210,7 @@ def test_names_are_made_unique_and_room_limits_hold():
 
 
 def test_silent_connections_are_closed_and_cannot_lock_users_out():
-    r = Room(
-        RecordingWorld(), sim_rate_hz=20.0, limits=RoomLimits(max_pending=4, hello_timeout_s=5.0)
-    )
+    r = Room(RecordingWorld(), 20.0, limits=RoomLimits(max_pending=4, hello_timeout_s=5.0))
     for i in range(4):
         r.connect(f"idle{i}", 0.0)
     # too many pending (all from one address): named as such, not "room_full"

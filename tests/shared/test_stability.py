@@ -10,8 +10,10 @@ import pytest
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
 from haptic_collab.shared.multirate import simulate
 from haptic_collab.shared.stability import (
+    StateSpace,
     analyze,
     closed_loop_matrix,
+    common_timebase,
     eq8_stable,
     eq10_stable,
     eq15_stable,
@@ -312,3 +314,51 @@ def test_rate_ratio():
         rate_ratio(1000, 30)
     with pytest.raises(ValueError):
         rate_ratio(10, 20)
+
+
+# ------------------------------------------------------------------ sample times
+
+
+def test_models_carry_their_sample_time():
+    servo = local_model_state_space(120.0, 800.0, T)
+    assert servo.dt == T
+    assert local_model_state_space(120.0, 0.0, T).dt == T  # a static P model is still at T
+    assert lift(servo, 4).dt == pytest.approx(4 * T, rel=1e-15)
+    assert slow_rate_model(servo, 50, sample_tick=49).dt == pytest.approx(0.05, rel=1e-12)
+    assert object_state_space(300.0, 60.0, 0.05).dt == 0.05
+    assert object_state_space(300.0).dt is None  # unspecified: connects to any rate
+    assert lift(object_state_space(300.0), 3).dt is None
+    with pytest.raises(ValueError, match="sample time"):
+        StateSpace(servo.A, servo.B, servo.C, servo.D, 0.0)
+    with pytest.raises(ValueError, match="simulation period"):
+        object_state_space(300.0, 0.0, -0.05)
+
+
+@pytest.mark.parametrize("i_gain", [0.0, 800.0])
+def test_a_servo_rate_model_is_not_wired_to_the_slow_object(i_gain):
+    servo = local_model_state_space(120.0, i_gain, T)
+    obj = object_state_space(300.0, 60.0, 50 * T)
+    with pytest.raises(ValueError, match="different timebases") as err:
+        closed_loop_matrix(servo, obj)
+    msg = str(err.value)
+    assert "local model L_h has dt = 0.001 s (1000 Hz)" in msg
+    assert "object D(z) has dt = 0.05 s (20 Hz)" in msg
+    # lifted to the object's rate first, it connects, and gives the loop without sample times
+    l_h = slow_rate_model(servo, 50)
+    with_dt = closed_loop_matrix(l_h, obj, 2)
+    untimed = StateSpace(l_h.A, l_h.B, l_h.C, l_h.D, None)
+    assert np.array_equal(with_dt, closed_loop_matrix(untimed, object_state_space(300.0, 60.0), 2))
+    # lifted by the wrong N, it is on another slow timebase: refused too
+    with pytest.raises(ValueError, match="different timebases"):
+        closed_loop_matrix(slow_rate_model(servo, 25), obj)
+
+
+def test_common_timebase_follows_python_control():
+    a = local_model_state_space(100.0, 0.0, T)
+    free = object_state_space(300.0)
+    assert common_timebase(a, free) == T and common_timebase(free, a) == T
+    assert common_timebase(free, free) is None
+    # 1 / 20 Hz and 50 * 1 ms are the same period, however rounded
+    assert common_timebase(lift(a, 50), object_state_space(300.0, 0.0, 1.0 / 20.0)) is not None
+    with pytest.raises(ValueError, match="'A' has dt = 0.001 s.*'B' has dt = 0.05 s"):
+        common_timebase(a, object_state_space(300.0, 0.0, 0.05), ("'A'", "'B'"))
