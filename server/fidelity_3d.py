@@ -434,6 +434,9 @@ def run_3d_cell(
         max_stiffness_n_per_m=max(device.max_stiffness_n_per_m, r.k_h),
         max_damping_n_s_per_m=device.max_damping_n_s_per_m,
         max_velocity_m_s=VELOCITY_LIMIT_M_S,
+        # the schemes are compared on their loops over seconds-long presses, as the 1-D model
+        # compares them: no motor-heating limit (client/thermal.py) lowers any scheme's force
+        max_continuous_force_n=None,
     ).centered_at((float(top[0]), float(top[1]), float(top[2])))
     target = NormalTrajectory(tr, top, normal)
     dev = _PortDevice(

@@ -374,7 +374,8 @@ def run_case(
         hold_s=tl.hold_s,
         release_s=1.0,
     )
-    limits = prof.limits
+    # the paper's experiment: no motor-heating limit (client/thermal.py) on its presses
+    limits = replace(prof.limits, max_continuous_force_n=None)
     if case.k_h > limits.max_stiffness_n_per_m:
         limits = replace(limits, max_stiffness_n_per_m=case.k_h)
     device = SimDevice(

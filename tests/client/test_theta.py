@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from collections.abc import Callable
 
 import numpy as np
@@ -61,7 +62,10 @@ def hold_run(
         x, y, z = press(t)
         return (x, y, z - 0.002) if nudge and T_NUDGE <= t < T_NUDGE + 0.1 else (x, y, z)
 
-    dev = SimDevice(PHANTOM, hand)
+    # eq. 18's switching is under test, over a 4 s hold of about 4.5 N: no motor-heating limit
+    # (client/thermal.py would start lowering the force after 2.5 s)
+    limits = replace(PHANTOM.limits.centered_at(hand(0.0)), max_continuous_force_n=None)
+    dev = SimDevice(PHANTOM, hand, limits=limits)
     dev.open()
     lm = LocalModelParams(k_h=1.0, servo_period_s=T, threshold=threshold, release_time_s=0.1,
                           integral_limit_n=PHANTOM.limits.max_force_n)  # fmt: skip
