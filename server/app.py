@@ -45,10 +45,11 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from haptic_collab.server.gains import GainJob, run_job
-from haptic_collab.server.latency import LinkConfig, LinkShaper
+from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.room import Outgoing, Room
 from haptic_collab.server.security import is_loopback, origin_allowed
 from haptic_collab.shared.gain_design import background_worker, warm_up
+from haptic_collab.shared.protocol import LinkConditions
 
 log = logging.getLogger("haptic.server")
 
@@ -124,8 +125,9 @@ class ServerApp:
         The sans-I/O core.
     host, port : str, int
         Where to listen (port 0 picks a free port; see :attr:`port` after start).
-    link : LinkConfig
-        Latency injection applied to each direction of each connection.
+    link : LinkConditions, optional
+        Latency injection applied to each direction of each connection (default: none). Give
+        the room's ``link``: the room announces its own to clients in ``welcome`` and ``room``.
     seed : int
         Seed of the latency injection's random draws (reproducible runs).
     web_dir : Path
@@ -143,7 +145,7 @@ class ServerApp:
         room: Room,
         host: str = "127.0.0.1",
         port: int = 8765,
-        link: LinkConfig | None = None,
+        link: LinkConditions | None = None,
         seed: int = 0,
         web_dir: Path = WEB_DIR,
         ssl_context: ssl.SSLContext | None = None,
@@ -159,7 +161,7 @@ class ServerApp:
         self._gain_tasks: set[asyncio.Task[None]] = set()
         self.host = host
         self.port = port
-        self.link = link or LinkConfig()
+        self.link = link if link is not None else LinkConditions()
         self.seed = seed
         self.web_dir = web_dir
         self.ssl_context = ssl_context

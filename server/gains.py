@@ -9,8 +9,8 @@ round trips the user reports in ``state``), the object damping ``b_o`` and the c
 ``K_o_stiff / K_o_eff`` (docs/coupled-users.md), with a grid cell per ``K_o_eff``.
 
 Pure and cheap: :meth:`GainAdvisor.recommend` is a dictionary lookup, never a design. A missing
-cell is queued (:meth:`GainAdvisor.take_jobs`); the I/O layer runs the jobs in a worker process
-(:func:`run_job`) and hands the results back with :meth:`GainAdvisor.store`. Until then the
+cell is queued (:meth:`GainAdvisor.next_job` hands out the most urgent first); the I/O layer runs
+the jobs in a worker process (:func:`run_job`) and hands the results back with :meth:`GainAdvisor.store`. Until then the
 patch carries verified interim gains (:func:`shared.gain_design.interim_design`, a fraction of
 a second) or, for the very first moment of a new key, no gains at all.
 """
@@ -152,7 +152,7 @@ class GainAdvisor:
         """The gains to send ``user`` with this patch, or None while none are verified yet.
 
         A dictionary lookup; a missing cell queues an interim check and a design
-        (:meth:`take_jobs`). Never raises for a hostile or odd user: unsupported rates give None.
+        (:meth:`next_job`). Never raises for a hostile or odd user: unsupported rates give None.
         """
         if not (math.isfinite(k_o_eff) and k_o_eff > 0.0):
             return None

@@ -16,42 +16,22 @@ from __future__ import annotations
 
 import math
 import random
-from dataclasses import dataclass
 
-
-@dataclass(frozen=True)
-class LinkConfig:
-    """Injected link conditions for one direction. ``latency_ms``, ``jitter_ms`` >= 0,
-    ``loss`` in [0, 1).
-
-    Raises
-    ------
-    ValueError
-        Out of range or non-finite values.
-    """
-
-    latency_ms: float = 0.0
-    jitter_ms: float = 0.0
-    loss: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("latency_ms", "jitter_ms"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and 0.0 <= v <= 60_000.0):
-                raise ValueError(f"{name} must be in [0, 60000] ms, got {v!r}")
-        if not (math.isfinite(self.loss) and 0.0 <= self.loss < 1.0):
-            raise ValueError(f"loss must be in [0, 1), got {self.loss!r}")
-
-    @property
-    def active(self) -> bool:
-        """Whether any impairment is configured."""
-        return self.latency_ms > 0.0 or self.jitter_ms > 0.0 or self.loss > 0.0
+from haptic_collab.shared.protocol import LinkConditions
 
 
 class LinkShaper:
-    """Schedules frames through one impaired direction. Deterministic for a given ``seed``."""
+    """Schedules frames through one impaired direction. Deterministic for a given ``seed``.
 
-    def __init__(self, config: LinkConfig, seed: int | str | None = None) -> None:
+    Parameters
+    ----------
+    config : LinkConditions
+        The conditions to inject (the ones announced to clients in ``welcome.link``).
+    seed : int or str, optional
+        Seed of the jitter and loss draws.
+    """
+
+    def __init__(self, config: LinkConditions, seed: int | str | None = None) -> None:
         self.config = config
         self._rng = random.Random(seed)
         self._last_delivery_s = -math.inf

@@ -10,7 +10,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from haptic_collab.server.app import ServerApp
-from haptic_collab.server.latency import LinkConfig
 from haptic_collab.server.room import Room
 from haptic_collab.server.security import TokenTable, is_loopback, normalize_origin
 from haptic_collab.server.urls import viewer_urls
@@ -105,6 +104,21 @@ def build_ssl(opts: ServerOptions) -> ssl.SSLContext | None:
     return ctx
 
 
+def build_link(opts: ServerOptions) -> LinkConditions:
+    """The injected link conditions of ``--latency-ms``, ``--jitter-ms`` and ``--loss``.
+
+    Built once per server (:func:`run_server`): the connections are shaped by them and the room
+    announces them to clients.
+
+    Raises
+    ------
+    ValueError
+        Latency or jitter outside [0, 60000] ms, loss outside [0, 1), or a non-finite value; the
+        message names the setting (:meth:`shared.protocol.LinkConditions.checked`).
+    """
+    return LinkConditions.checked(opts.latency_ms, opts.jitter_ms, opts.loss)
+
+
 def build_rates(opts: ServerOptions) -> Rates:
     """The server's rates: the clients' servo rate :data:`CLIENT_SERVO_RATE_HZ` and ``--sim-rate``.
 
@@ -181,7 +195,7 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
 
 async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None = None) -> None:
     """Build everything, listen, and serve until cancelled or ``duration_s`` elapses."""
-    link = LinkConfig(latency_ms=opts.latency_ms, jitter_ms=opts.jitter_ms, loss=opts.loss)
+    link = build_link(opts)
     auth = build_auth(opts)
     ssl_context = build_ssl(opts)
     origins = tuple(normalize_origin(o) for o in opts.allow_origins)
@@ -190,7 +204,7 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     room = Room(
         world,
         rates,
-        link=LinkConditions(latency_ms=opts.latency_ms, jitter_ms=opts.jitter_ms, loss=opts.loss),
+        link=link,
         auth=auth,
     )
     app = ServerApp(

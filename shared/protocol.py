@@ -163,12 +163,58 @@ class ObjectInfo(_Msg):
     sides: list[SurfacePoint] = Field(default_factory=list, max_length=16)
 
 
-class LinkConditions(_Msg):
-    """Latency injection in force on this connection (each direction)."""
+#: Largest injected latency and jitter [ms] (``haptic server --latency-ms``, ``--jitter-ms``).
+MAX_LINK_DELAY_MS = 60_000.0
+#: An injected delay [ms]: finite, in [0, :data:`MAX_LINK_DELAY_MS`].
+LinkDelayMs = Annotated[float, Field(ge=0.0, le=MAX_LINK_DELAY_MS, allow_inf_nan=False)]
 
-    latency_ms: Finite = 0.0
-    jitter_ms: Finite = 0.0
-    loss: Finite = 0.0
+
+class LinkConditions(_Msg):
+    """Latency injection in force on each direction of every connection (server.latency).
+
+    ``latency_ms`` [ms] delays every frame; ``jitter_ms`` [ms] adds a delay drawn uniformly from
+    ``[-jitter_ms, +jitter_ms]``; both are in [0, 60000]. ``loss`` in [0, 1) is the probability
+    that a stream frame (state, patch, room, vertices, ping, pong) is dropped; events never are.
+    All zero: no injection.
+
+    Raises
+    ------
+    pydantic.ValidationError
+        (a ValueError) Out of range or non-finite values. :meth:`checked` raises a one-line
+        ValueError naming the setting instead, for command-line and configuration input.
+    """
+
+    latency_ms: LinkDelayMs = 0.0
+    jitter_ms: LinkDelayMs = 0.0
+    loss: Annotated[float, Field(ge=0.0, lt=1.0, allow_inf_nan=False)] = 0.0
+
+    @property
+    def active(self) -> bool:
+        """Whether any impairment is configured."""
+        return self.latency_ms > 0.0 or self.jitter_ms > 0.0 or self.loss > 0.0
+
+    @classmethod
+    def checked(
+        cls, latency_ms: float = 0.0, jitter_ms: float = 0.0, loss: float = 0.0
+    ) -> LinkConditions:
+        """These conditions, validated with a message a ``haptic server`` user can act on.
+
+        Raises
+        ------
+        ValueError
+            The first setting out of range or non-finite, e.g. ``latency_ms must be in
+            [0, 60000] ms, got 70000.0`` or ``loss must be in [0, 1), got 1.0``.
+        """
+        try:
+            return cls(latency_ms=latency_ms, jitter_ms=jitter_ms, loss=loss)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            name, value = str(err["loc"][0]), err["input"]
+        if name == "loss":
+            raise ValueError(f"loss must be in [0, 1), got {value!r}") from None
+        raise ValueError(
+            f"{name} must be in [0, {MAX_LINK_DELAY_MS:g}] ms, got {value!r}"
+        ) from None
 
 
 class Welcome(_Msg):

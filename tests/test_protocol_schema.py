@@ -18,7 +18,7 @@ from haptic_collab.client.session import ClientSession, ServoSample
 from haptic_collab.server.app import ServerApp
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Room
-from haptic_collab.shared.protocol import Bye, ProtocolError, encode, parse_client
+from haptic_collab.shared.protocol import Bye, ProtocolError, encode, parse_client, parse_server
 
 jsonschema = pytest.importorskip("jsonschema")
 
@@ -133,6 +133,48 @@ def test_the_schema_refuses_what_the_server_refuses(capsys, bad):
     assert not check.is_valid(bad)
     with pytest.raises(ProtocolError):
         parse_client(json.dumps(bad))
+
+
+WELCOME = {
+    "type": "welcome",
+    "user_id": "u1",
+    "name": "A",
+    "role": "user",
+    "sim_rate_hz": 20.0,
+    "object": {
+        "n_vertices": 4,
+        "n_faces": 4,
+        "center_m": [0, 0, 0],
+        "radius_m": 0.1,
+        "bounds_min_m": [-0.1, -0.1, -0.1],
+        "bounds_max_m": [0.1, 0.1, 0.1],
+        "top_m": [0, 0, 0.1],
+        "top_normal": [0, 0, 1],
+        "side_m": [0.1, 0, 0],
+        "side_normal": [1, 0, 0],
+    },
+}
+
+
+@pytest.mark.parametrize(
+    ("link", "ok"),
+    [
+        ({"latency_ms": 100, "jitter_ms": 20, "loss": 0.02}, True),
+        ({"latency_ms": 60000, "jitter_ms": 0, "loss": 0.999}, True),
+        ({"latency_ms": -1}, False),
+        ({"jitter_ms": 60001}, False),
+        ({"loss": 1}, False),
+    ],
+)
+def test_the_schema_bounds_the_announced_link_conditions_as_the_server_does(capsys, link, ok):
+    check = validator(printed_schema(capsys, "--direction", "server"))
+    frame = {**WELCOME, "link": link}
+    assert check.is_valid(frame) is ok
+    if ok:
+        parse_server(json.dumps(frame))
+    else:
+        with pytest.raises(ProtocolError):
+            parse_server(json.dumps(frame))
 
 
 def test_minimal_hand_written_messages_pass_and_the_version_is_pinned(capsys):

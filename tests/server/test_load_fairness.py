@@ -24,10 +24,11 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as sync_connect
 
 from haptic_collab.server.app import ServerApp, _Peer
-from haptic_collab.server.latency import LinkConfig, LinkShaper
+from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Outgoing, Room, RoomLimits
 from haptic_collab.server.security import TokenBucket
+from haptic_collab.shared.protocol import LinkConditions
 from tests.server.test_room import RecordingWorld, hello, prime, state, texts
 
 SIM_RATE = 20.0
@@ -277,12 +278,12 @@ def test_a_late_tick_s_patches_are_sent_before_the_next_tick():
         return tick(k, now_s)
 
     room.tick = stalling_tick  # type: ignore[method-assign]
-    room.gains.take_jobs = list  # type: ignore[method-assign]  # no gain designs: no worker
+    room.gains.next_job = lambda: None  # type: ignore[method-assign]  # no gain designs: no worker
 
     async def main() -> list[int]:
         app = ServerApp(room, "127.0.0.1", 0)
         ws = Recording()
-        peer = _Peer("a", ws, LinkShaper(LinkConfig()), LinkShaper(LinkConfig()))  # type: ignore[arg-type]
+        peer = _Peer("a", ws, LinkShaper(LinkConditions()), LinkShaper(LinkConditions()))  # type: ignore[arg-type]
         app._peers["a"] = peer
         sender = asyncio.create_task(app._sender(peer))
         sim = asyncio.create_task(app._sim_loop())

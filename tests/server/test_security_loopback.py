@@ -237,11 +237,12 @@ async def test_a_send_that_never_completes_drops_the_consumer_after_the_send_tim
             await asyncio.Event().wait()  # the peer never reads: drain never returns
 
     from haptic_collab.server.app import _Peer
-    from haptic_collab.server.latency import LinkConfig, LinkShaper
+    from haptic_collab.server.latency import LinkShaper
+    from haptic_collab.shared.protocol import LinkConditions
 
     app.room.connect("v", 0.0, "10.0.0.1")
     app.room.receive("v", hello("v", role="viewer"), 0.0)
-    peer = _Peer("v", Stuck(), LinkShaper(LinkConfig()), LinkShaper(LinkConfig()))  # type: ignore[arg-type]
+    peer = _Peer("v", Stuck(), LinkShaper(LinkConditions()), LinkShaper(LinkConditions()))  # type: ignore[arg-type]
     app._peers["v"] = peer
     sender = asyncio.create_task(app._sender(peer))
     app._dispatch(app.room.tick(1, 0.05))

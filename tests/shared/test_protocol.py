@@ -8,10 +8,12 @@ import pytest
 from haptic_collab.shared.protocol import (
     PROTOCOL_VERSION,
     Hello,
+    LinkConditions,
     Patch,
     PlaneModel,
     ProtocolError,
     State,
+    Welcome,
     decode_binary,
     encode,
     encode_faces,
@@ -179,3 +181,44 @@ def test_schema_lists_every_message():
     assert json_schema("server")["oneOf"] == defs["ServerMessage"]["oneOf"]
     with pytest.raises(ValueError, match="direction"):
         json_schema("sideways")
+
+
+def _welcome_frame(link: str) -> str:
+    obj = (
+        '{"n_vertices":4,"n_faces":4,"center_m":[0,0,0],"radius_m":0.1,"bounds_min_m":[0,0,0],'
+        '"bounds_max_m":[0,0,0],"top_m":[0,0,0.1],"top_normal":[0,0,1],"side_m":[0.1,0,0],'
+        '"side_normal":[1,0,0]}'
+    )
+    return (
+        '{"type":"welcome","user_id":"u1","name":"A","role":"user","sim_rate_hz":20.0,'
+        f'"object":{obj},"link":{link}}}'
+    )
+
+
+def test_announced_link_conditions_round_trip_within_their_bounds():
+    link = LinkConditions(latency_ms=60_000.0, jitter_ms=20.0, loss=0.999)
+    welcome = parse_server(_welcome_frame(encode(link)))
+    assert isinstance(welcome, Welcome) and welcome.link == link and welcome.link.active
+
+
+@pytest.mark.parametrize(
+    "link",
+    [
+        '{"latency_ms":-1}',
+        '{"latency_ms":60001}',
+        '{"jitter_ms":1e9}',
+        '{"loss":1.0}',
+        '{"loss":-0.01}',
+    ],
+)
+def test_link_conditions_out_of_range_are_refused_on_the_wire(link):
+    with pytest.raises(ProtocolError) as info:
+        parse_server(_welcome_frame(link))
+    assert info.value.code == "invalid_message" and "link" in str(info.value)
+
+
+def test_the_schema_states_the_link_bounds():
+    props = json_schema()["$defs"]["LinkConditions"]["properties"]
+    for name in ("latency_ms", "jitter_ms"):
+        assert (props[name]["minimum"], props[name]["maximum"]) == (0, 60_000)
+    assert (props["loss"]["minimum"], props["loss"]["exclusiveMaximum"]) == (0, 1)

@@ -22,3 +22,6 @@ def test_the_reference_says_what_the_server_accepts() -> None:
         assert f"| `{name}` | {req} |" in section, name
     assert "| `probe_m` | yes |  | [number in [-1000, 1000]] × 3 |" in section
     assert '| `local_model` | no | `"pi"` | `"p"` \\| `"pi"` |' in section
+    # the latency injection's bounds, as ``haptic server`` enforces them
+    assert "| `latency_ms` | no | `0.0` | number in [0, 60000] |" in section
+    assert "| `loss` | no | `0.0` | number in [0, 1) |" in section
