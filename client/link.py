@@ -299,7 +299,28 @@ class Link:
             self._first_pool = None
 
     async def run(self, stop: asyncio.Event) -> None:
-        """Connect, serve, reconnect with backoff until ``stop`` is set."""
+        """Connect, serve, reconnect with backoff until ``stop`` is set.
+
+        The wait before each new attempt starts at ``backoff_s[0]``, doubles after every attempt
+        up to ``backoff_s[1]`` (each wait drawn within +-20 %), and returns to ``backoff_s[0]``
+        once a session has joined, not merely when the websocket opened.
+        ``stop`` ends a wait at once. A refused token (``unauthorized``) or a bad URL raises
+        ``ValueError`` instead of retrying.
+
+        This loop is written out rather than websockets' own reconnecting iterator (``async for
+        ws in connect(...)``) because that iterator resets its backoff as soon as the opening
+        handshake succeeds: the server accepts the websocket and then refuses the ``hello``
+        (``room_full``, ``too_many_connections``, ``rate_limited``: an error and a close), so a
+        refused client would reconnect at once, forever, with no wait. Its hook
+        (``process_exception``) only sees failures to open, and an exception raised in the loop
+        body ends the loop instead of retrying.
+
+        Raises
+        ------
+        ValueError
+            The server refused this client's token, the URL is not a websocket URL, or the TLS
+            settings cannot be used (:meth:`ssl_context`).
+        """
         if self.session.role == "user":
             self._ensure_executor()
         delay = self.backoff_s[0]
@@ -381,6 +402,7 @@ class Link:
         async for frame in ws:
             now = self.clock()
             n_errors = len(self.session.errors)
+            welcome_before = self.session.welcome
             try:
                 update = self.session.receive(frame, now)
             except ProtocolError as exc:
@@ -399,7 +421,9 @@ class Link:
                 self._start_design()
             if update is not None:
                 self.on_patch(update, now)
-            elif self.session.welcome is not None and not self.connected.is_set():
+            elif self.session.welcome is not welcome_before and not self.connected.is_set():
+                # joined only on a new welcome: after a rejoin the session still holds the old
+                # one, and a refusal (room_full, rate_limited) must not count as a join
                 self.joins += 1
                 self.connected.set()
                 if self.on_welcome:

@@ -55,7 +55,18 @@ a force in an output report. Schema (all keys required unless marked optional)::
 ``byte`` counts from the first byte hidapi returns (the report id, for a numbered report). Input
 ``scale`` is metres per count (absolute) or metres per second per count (rate); ``offset_m`` is
 added after scaling (absolute mode only). Types: int8, uint8, int16, uint16, int32, uint32,
-float32. Endianness: little or big.
+float32. Endianness: little or big. Optional keys not shown: ``input.report_id`` and
+``output.report_id`` (default null), ``input.mode`` (default absolute), ``endian`` (default
+little), ``offset_m`` (default 0), ``limits.damping_n_s_per_m`` and
+``limits.max_damping_n_s_per_m`` (default 0); ``silence_timeout_s`` defaults to 0.1 s, null turns
+the check off. Numbers must be JSON numbers (finite; no strings, no booleans); unknown keys are
+ignored.
+
+The schema is the pydantic model :class:`HidProfileModel`; ``HidProfileModel.model_json_schema()``
+is its JSON Schema (draft 2020-12) for editors and validators. A file that does not follow it is
+refused with a :class:`ProfileError` naming the file and, for each problem, the key's path and
+what is wrong, e.g. ``my.json: input.axes[1].endian: Input should be 'little' or 'big', got
+'middle'``.
 """
 
 from __future__ import annotations
@@ -65,7 +76,20 @@ import math
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    WithJsonSchema,
+    model_validator,
+)
+from pydantic_core import ErrorDetails, PydanticCustomError
 
 from haptic_collab.client.devices.base import DeviceLimits
 
@@ -176,30 +200,76 @@ def get_sim_profile(name: str) -> SimProfile:
 # Generic HID profiles
 # ---------------------------------------------------------------------------------------------
 
+# JSON numbers only: no "1" for 1, no true for 1 (a JSON integer is accepted where a float is
+# expected); no NaN or Infinity (``allow_inf_nan=False`` on every model).
+_StrictFinite = Annotated[float, Strict()]
+_Positive = Annotated[_StrictFinite, Field(gt=0)]
+_NonNegative = Annotated[_StrictFinite, Field(ge=0)]
+_ReportId = Annotated[int, Strict(), Field(ge=0, le=255)]
 
-@dataclass(frozen=True, slots=True)
-class HidField:
+
+def _non_zero(value: float) -> float:
+    if value == 0:
+        raise PydanticCustomError("non_zero", "Input should be non-zero")
+    return value
+
+
+def _usb_id(value: Any) -> Any:
+    """A USB vendor or product id from a hex string (``"0x046d"``, ``"046d"``) or an int."""
+    try:
+        v = int(value, 16) if isinstance(value, str) else int(value)
+    except (TypeError, ValueError):
+        raise PydanticCustomError(
+            "usb_id", "Input should be a hex string like '0x046d' or an int"
+        ) from None
+    if not 0 <= v <= 0xFFFF:
+        raise PydanticCustomError("usb_id", "Input should be in 0..0xffff")
+    return v
+
+
+_UsbId = Annotated[
+    int,
+    BeforeValidator(_usb_id),
+    WithJsonSchema(
+        {
+            "anyOf": [
+                {"type": "integer", "minimum": 0, "maximum": 0xFFFF},
+                {"type": "string", "pattern": "^(0[xX])?[0-9a-fA-F]+$"},
+            ]
+        }
+    ),
+]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="ignore", allow_inf_nan=False, frozen=True)
+
+
+class HidField(_Model):
     """One number in a HID report: where it is, how it is encoded, and its scale.
 
     Parameters
     ----------
     byte : int
-        Offset of the first byte, counted from the first byte hidapi returns / is given.
+        Offset of the first byte, counted from the first byte hidapi returns / is given, >= 0.
     type : str
         One of int8, uint8, int16, uint16, int32, uint32, float32.
     endian : {"little", "big"}
-        Byte order.
+        Byte order (default little).
     scale : float
-        Input: metres (absolute) or m/s (rate) per count. Output: newtons per count. Non-zero.
+        Input: metres (absolute) or m/s (rate) per count. Output: newtons per count. Finite,
+        non-zero.
     offset_m : float
-        Added to an absolute input after scaling [m]; unused for outputs.
+        Added to an absolute input after scaling [m] (default 0); unused for outputs.
     """
 
-    byte: int
-    type: str
-    endian: Literal["little", "big"]
-    scale: float
-    offset_m: float = 0.0
+    byte: Annotated[int, Strict(), Field(ge=0)]
+    type: Literal["int8", "uint8", "int16", "uint16", "int32", "uint32", "float32"]
+    endian: Literal["little", "big"] = "little"
+    scale: Annotated[
+        _StrictFinite, AfterValidator(_non_zero), Field(json_schema_extra={"not": {"const": 0}})
+    ]
+    offset_m: _StrictFinite = 0.0
 
     @property
     def struct(self) -> struct.Struct:
@@ -212,22 +282,76 @@ class HidField:
         return self.byte + self.struct.size
 
 
-@dataclass(frozen=True, slots=True)
-class HidInputLayout:
-    """Where a device puts x, y, z in its input report (see the module schema)."""
-
-    report_id: int | None
-    mode: Literal["absolute", "rate"]
-    axes: tuple[HidField, HidField, HidField]
+_Axes = tuple[HidField, HidField, HidField]
 
 
-@dataclass(frozen=True, slots=True)
-class HidOutputLayout:
-    """Where a device takes fx, fy, fz in its output report (see the module schema)."""
+class HidInputLayout(_Model):
+    """Where a device puts x, y, z in its input report (see the module schema).
 
-    report_id: int | None
-    length: int
-    axes: tuple[HidField, HidField, HidField]
+    ``report_id`` (0..255) is the first byte of each report, or None for an unnumbered report;
+    ``mode`` is ``absolute`` (position = scale * count + offset_m) or ``rate`` (velocity = scale *
+    count, integrated); ``axes`` are x, y, z of the world frame.
+    """
+
+    report_id: _ReportId | None = None
+    mode: Literal["absolute", "rate"] = "absolute"
+    axes: _Axes
+
+
+class HidOutputLayout(_Model):
+    """Where a device takes fx, fy, fz in its output report (see the module schema).
+
+    ``report_id`` (0..255, None: unnumbered) is written as the first byte (0 when None);
+    ``length`` [bytes], >= 1, is the size of the report written, report id included; every axis
+    must end within it.
+    """
+
+    report_id: _ReportId | None = None
+    length: Annotated[int, Strict(), Field(ge=1)]
+    axes: _Axes
+
+    @model_validator(mode="after")
+    def _axes_fit(self) -> HidOutputLayout:
+        if any(a.end > self.length for a in self.axes):
+            raise PydanticCustomError(
+                "axes_past_length",
+                "axes run past output.length {length}",
+                {"length": self.length},
+            )
+        return self
+
+
+class HidLimits(_Model):
+    """The ``limits`` block of a profile file: the device's published limits, SI units.
+
+    Forces [N], stiffness [N/m], velocity [m/s], damping [N*s/m] and the workspace box's size [m]
+    (centred on the origin of the device frame). See :class:`~client.devices.base.DeviceLimits`.
+    """
+
+    max_force_n: _NonNegative
+    max_stiffness_n_per_m: _Positive
+    max_velocity_m_s: _Positive
+    damping_n_s_per_m: _NonNegative = 0.0
+    max_damping_n_s_per_m: _NonNegative = 0.0
+    workspace_size_m: tuple[_Positive, _Positive, _Positive]
+
+
+class HidProfileModel(_Model):
+    """The schema of a generic HID profile file (module docstring); validates a decoded file.
+
+    ``HidProfileModel.model_json_schema()`` is the file's JSON Schema (draft 2020-12); unknown keys
+    are ignored. :func:`parse_hid_profile` validates with this model and returns a
+    :class:`HidProfile`.
+    """
+
+    name: Annotated[str, Strict(), Field(min_length=1)]
+    description: str = ""
+    vendor_id: _UsbId
+    product_id: _UsbId
+    input: HidInputLayout
+    output: HidOutputLayout | None = None
+    limits: HidLimits
+    silence_timeout_s: _Positive | None = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,7 +359,8 @@ class HidProfile:
     """A generic HID device described by a JSON profile file (module docstring has the schema).
 
     ``limits`` has its workspace box centred on the origin (the device frame); ``make_device``
-    moves it into the world.
+    moves it into the world. ``silence_timeout_s`` [s]: no report for this long is a fault (None:
+    never).
     """
 
     name: str
@@ -252,133 +377,73 @@ class ProfileError(ValueError):
     """A HID profile file is missing, not JSON, or does not follow the schema."""
 
 
-def _req(d: dict[str, Any], key: str, where: str) -> Any:
-    if not isinstance(d, dict):
-        raise ProfileError(f"{where} must be an object")
-    if key not in d:
-        raise ProfileError(f"{where}: missing key {key!r}")
-    return d[key]
+def _where(loc: tuple[int | str, ...]) -> str:
+    """``("input", "axes", 0, "type")`` -> ``input.axes[0].type``."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
 
 
-def _hex_or_int(value: Any, where: str) -> int:
-    try:
-        v = int(value, 16) if isinstance(value, str) else int(value)
-    except (TypeError, ValueError):
-        raise ProfileError(f"{where} must be a hex string like '0x046d' or an int") from None
-    if not 0 <= v <= 0xFFFF:
-        raise ProfileError(f"{where} must be in 0..0xffff, got {value!r}")
-    return v
+def _problem(err: ErrorDetails) -> str:
+    """One validation error as ``path: problem, got value``."""
+    # a nested model's own name means nothing to someone writing a JSON file
+    msg = "Input should be a JSON object" if err["type"] == "model_type" else err["msg"]
+    value = err.get("input")
+    if err["type"] != "missing" and not isinstance(value, dict | list):
+        shown = repr(value)
+        msg += f", got {shown if len(shown) <= 40 else shown[:37] + '...'}"
+    where = _where(err["loc"])
+    return f"{where}: {msg}" if where else msg
 
 
-def _report_id(value: Any, where: str) -> int | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 255:
-        raise ProfileError(f"{where} must be null or an int in 0..255, got {value!r}")
-    return value
-
-
-def _field(d: Any, where: str, *, input_side: bool) -> HidField:
-    byte = _req(d, "byte", where)
-    typ = _req(d, "type", where)
-    endian = d.get("endian", "little")
-    scale = _req(d, "scale", where)
-    offset_m = d.get("offset_m", 0.0) if input_side else 0.0
-    if isinstance(byte, bool) or not isinstance(byte, int) or byte < 0:
-        raise ProfileError(f"{where}.byte must be an int >= 0, got {byte!r}")
-    if typ not in _INT_TYPES:
-        raise ProfileError(f"{where}.type must be one of {sorted(_INT_TYPES)}, got {typ!r}")
-    if endian not in ("little", "big"):
-        raise ProfileError(f"{where}.endian must be 'little' or 'big', got {endian!r}")
-    for name, v in (("scale", scale), ("offset_m", offset_m)):
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise ProfileError(f"{where}.{name} must be a finite number, got {v!r}")
-    if scale == 0:
-        raise ProfileError(f"{where}.scale must be non-zero")
-    return HidField(
-        byte=byte, type=typ, endian=endian, scale=float(scale), offset_m=float(offset_m)
-    )
-
-
-def _axes(d: Any, where: str, *, input_side: bool) -> tuple[HidField, HidField, HidField]:
-    axes = _req(d, "axes", where)
-    if not isinstance(axes, list) or len(axes) != 3:
-        raise ProfileError(f"{where}.axes must be a list of 3 fields (x, y, z)")
-    f = [_field(a, f"{where}.axes[{i}]", input_side=input_side) for i, a in enumerate(axes)]
-    return (f[0], f[1], f[2])
-
-
-def parse_hid_profile(data: dict[str, Any], source: str = "<profile>") -> HidProfile:
+def parse_hid_profile(data: Any, source: str = "<profile>") -> HidProfile:
     """Validate a decoded JSON profile (module docstring schema) into a :class:`HidProfile`.
+
+    Parameters
+    ----------
+    data : dict
+        The decoded file.
+    source : str
+        Where it came from (a path), named first in every error message.
 
     Raises
     ------
     ProfileError
-        Any missing key or out-of-range value; the message names ``source`` and the key.
+        Any missing key or invalid value. The message names ``source``, then each problem as the
+        key's path and what is wrong with it, e.g. ``f.json: input.axes[1].endian: Input should be
+        'little' or 'big', got 'middle'`` (several problems are joined with ``; ``).
     """
     try:
-        name = _req(data, "name", source)
-        if not isinstance(name, str) or not name:
-            raise ProfileError(f"{source}: name must be a non-empty string")
-        vid = _hex_or_int(_req(data, "vendor_id", source), f"{source}: vendor_id")
-        pid = _hex_or_int(_req(data, "product_id", source), f"{source}: product_id")
-        inp = _req(data, "input", source)
-        mode = inp.get("mode", "absolute") if isinstance(inp, dict) else None
-        if mode not in ("absolute", "rate"):
-            raise ProfileError(f"{source}: input.mode must be 'absolute' or 'rate', got {mode!r}")
-        in_layout = HidInputLayout(
-            report_id=_report_id(inp.get("report_id"), f"{source}: input.report_id"),
-            mode=mode,
-            axes=_axes(inp, f"{source}: input", input_side=True),
-        )
-        out_layout = None
-        out = data.get("output")
-        if out is not None:
-            axes = _axes(out, f"{source}: output", input_side=False)
-            length = _req(out, "length", f"{source}: output")
-            if isinstance(length, bool) or not isinstance(length, int) or length < 1:
-                raise ProfileError(f"{source}: output.length must be an int >= 1")
-            if any(a.end > length for a in axes):
-                raise ProfileError(f"{source}: output axes run past output.length {length}")
-            out_layout = HidOutputLayout(
-                report_id=_report_id(out.get("report_id"), f"{source}: output.report_id"),
-                length=length,
-                axes=axes,
-            )
-        lim = _req(data, "limits", source)
-        size = _req(lim, "workspace_size_m", f"{source}: limits")
-        if not isinstance(size, list) or len(size) != 3:
-            raise ProfileError(f"{source}: limits.workspace_size_m must be 3 numbers")
-        lo, hi = _box(*(float(s) for s in size))
+        model = HidProfileModel.model_validate(data)
+    except ValidationError as exc:
+        problems = "; ".join(_problem(err) for err in exc.errors(include_url=False))
+        raise ProfileError(f"{source}: {problems}") from None
+    lim = model.limits
+    lo, hi = _box(*lim.workspace_size_m)
+    try:
         limits = DeviceLimits(
-            max_force_n=float(_req(lim, "max_force_n", f"{source}: limits")),
-            max_stiffness_n_per_m=float(_req(lim, "max_stiffness_n_per_m", f"{source}: limits")),
-            max_velocity_m_s=float(_req(lim, "max_velocity_m_s", f"{source}: limits")),
-            damping_n_s_per_m=float(lim.get("damping_n_s_per_m", 0.0)),
-            max_damping_n_s_per_m=float(lim.get("max_damping_n_s_per_m", 0.0)),
+            max_force_n=lim.max_force_n,
+            max_stiffness_n_per_m=lim.max_stiffness_n_per_m,
+            max_velocity_m_s=lim.max_velocity_m_s,
+            damping_n_s_per_m=lim.damping_n_s_per_m,
+            max_damping_n_s_per_m=lim.max_damping_n_s_per_m,
             workspace_min_m=(lo[0], lo[1], lo[2]),
             workspace_max_m=(hi[0], hi[1], hi[2]),
-            has_force_output=out_layout is not None,
+            has_force_output=model.output is not None,
         )
-        silence = data.get("silence_timeout_s", 0.1)
-        if silence is not None and not (
-            isinstance(silence, int | float) and math.isfinite(silence) and silence > 0
-        ):
-            raise ProfileError(f"{source}: silence_timeout_s must be null or > 0 s")
-        return HidProfile(
-            name=name,
-            vendor_id=vid,
-            product_id=pid,
-            input=in_layout,
-            output=out_layout,
-            limits=limits,
-            silence_timeout_s=None if silence is None else float(silence),
-            description=str(data.get("description", "")),
-        )
-    except ProfileError:
-        raise
-    except (TypeError, ValueError, AttributeError) as exc:
-        raise ProfileError(f"{source}: {exc}") from exc
+    except ValueError as exc:
+        raise ProfileError(f"{source}: limits: {exc}") from None
+    return HidProfile(
+        name=model.name,
+        vendor_id=model.vendor_id,
+        product_id=model.product_id,
+        input=model.input,
+        output=model.output,
+        limits=limits,
+        silence_timeout_s=model.silence_timeout_s,
+        description=model.description,
+    )
 
 
 def load_hid_profile(name_or_path: str | Path) -> HidProfile:

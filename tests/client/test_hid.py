@@ -229,15 +229,21 @@ _RAW = (Path(__file__).parents[2] / "client/devices/profiles/example-3dof-force.
 @pytest.mark.parametrize(
     ("edit", "message"),
     [
-        (lambda d: d.pop("input"), "missing key 'input'"),
-        (lambda d: d["input"]["axes"].pop(), "3 fields"),
-        (lambda d: d["input"]["axes"][0].update(type="int24"), "type must be one of"),
+        (lambda d: d.pop("input"), "test.json: input: Field required"),
+        (lambda d: d["input"]["axes"].pop(), r"input\.axes\[2\]: Field required"),
+        (lambda d: d["input"]["axes"].append({}), "input.axes: Tuple should have at most 3 items"),
+        (
+            lambda d: d["input"]["axes"][0].update(type="int24"),
+            r"input\.axes\[0\]\.type: Input should be 'int8', .* got 'int24'",
+        ),
         (lambda d: d["input"]["axes"][1].update(endian="middle"), "endian"),
         (lambda d: d["input"]["axes"][2].update(scale=0), "non-zero"),
         (lambda d: d.update(vendor_id="0xzz"), "vendor_id"),
         (lambda d: d["output"].update(length=4), "past output.length"),
         (lambda d: d["limits"].update(max_force_n=-1), "max_force_n"),
         (lambda d: d["input"].update(mode="relative"), "input.mode"),
+        (lambda d: d["input"]["axes"][0].update(scale="1e-6"), r"axes\[0\]\.scale: .*valid number"),
+        (lambda d: d.update(output=[]), "output: Input should be a JSON object"),
     ],
 )
 def test_malformed_profiles_name_the_problem(edit, message: str) -> None:  # type: ignore[no-untyped-def]
@@ -245,6 +251,35 @@ def test_malformed_profiles_name_the_problem(edit, message: str) -> None:  # typ
     edit(data)
     with pytest.raises(ProfileError, match=message):
         parse_hid_profile(data, "test.json")
+
+
+def test_every_problem_in_a_profile_is_named_at_once() -> None:
+    data = json.loads(_RAW)
+    data["input"]["axes"][1]["endian"] = "middle"
+    data["limits"]["workspace_size_m"] = [0.1, 0.0, 0.1]
+    with pytest.raises(ProfileError) as info:
+        parse_hid_profile(data, "test.json")
+    msg = str(info.value)
+    assert msg.startswith("test.json: input.axes[1].endian: ")
+    assert "; limits.workspace_size_m[1]: Input should be greater than 0, got 0.0" in msg
+
+
+def test_a_profile_may_omit_the_optional_keys_and_carry_unknown_ones() -> None:
+    data = json.loads(_RAW)
+    for key in ("description", "output", "silence_timeout_s"):
+        data.pop(key)
+    for ax in data["input"]["axes"]:
+        ax.pop("endian")
+        ax.pop("offset_m")
+    data["input"].pop("mode")
+    data["limits"].pop("damping_n_s_per_m")
+    data["comment"] = "ignored"
+    prof = parse_hid_profile(data, "test.json")
+    assert prof.input.mode == "absolute" and prof.silence_timeout_s == 0.1
+    assert prof.output is None and not prof.limits.has_force_output
+    assert prof.limits.damping_n_s_per_m == 0.0 and prof.description == ""
+    report = bytes([1]) + struct.pack("<iii", 1, 2, 3)  # little-endian by default
+    assert decode_input(prof.input, report) == pytest.approx((1e-6, 2e-6, 3e-6))
 
 
 def test_missing_or_invalid_profile_files(tmp_path: Path) -> None:
