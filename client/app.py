@@ -222,21 +222,7 @@ def _anchor(
 
 def _sample(servo: ServoThread) -> ServoSample | None:
     snap = servo.latest()
-    if snap is None:
-        return None
-    pen = snap.penetration_m if math.isfinite(snap.penetration_m) else 0.0
-    p99 = snap.period_p99_s if math.isfinite(snap.period_p99_s) else 0.0
-    rate = snap.servo_rate_hz if math.isfinite(snap.servo_rate_hz) else 0.0
-    return ServoSample(
-        probe_m=snap.probe_m,
-        force_n=snap.force_n,
-        penetration_m=pen,
-        in_contact=snap.in_contact,
-        k_h=snap.k_h,
-        i_gain=snap.i_gain,
-        servo_rate_hz=rate,
-        period_us_p99=p99 * 1e6,
-    )
+    return None if snap is None else ServoSample.from_snapshot(snap)
 
 
 #: First and largest delay [s] between two attempts to reopen a faulted device.
@@ -445,15 +431,7 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
         servo: ServoThread | None = state["servo"]
         if servo is None:
             return
-        servo.set_patch(
-            update.primitive,
-            update.k_h,
-            update.i_gain,
-            b_h=update.b_h,
-            proxy_hold=update.proxy_hold,
-            hold_ticks=update.hold_ticks,
-            k_o=update.k_o,
-        )
+        servo.set_patch(update.model)
         updates.append(update)
 
     def sample() -> ServoSample | None:

@@ -421,13 +421,17 @@ class Link:
                 self._start_design()
             if update is not None:
                 self.on_patch(update, now)
-            elif self.session.welcome is not welcome_before and not self.connected.is_set():
+            elif (
+                (welcome := self.session.welcome) is not None
+                and welcome is not welcome_before
+                and not self.connected.is_set()
+            ):
                 # joined only on a new welcome: after a rejoin the session still holds the old
                 # one, and a refusal (room_full, rate_limited) must not count as a join
                 self.joins += 1
                 self.connected.set()
                 if self.on_welcome:
-                    self.on_welcome(self.session.welcome)
+                    self.on_welcome(welcome)
 
     async def _send_loop(self, ws: ClientConnection) -> None:
         await self.connected.wait()

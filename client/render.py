@@ -33,14 +33,11 @@ No clock, no thread, no device: time advances one servo period per :meth:`LocalR
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams
+from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import Primitive
-
-if TYPE_CHECKING:
-    from haptic_collab.client.servo import Patch
 
 _NAN = math.nan
 
@@ -58,8 +55,8 @@ class LocalRenderer:
     ----------
     model : LocalModel
         The local model L(z) (its integral and threshold state, read by the telemetry).
-    patch : Patch or None
-        The patch in use (None before the first).
+    patch : LocalModelUpdate or None
+        The local model update in use (None before the first).
     primitive : Plane or Sphere or None
         Its primitive (None before the first patch).
     k_h : float
@@ -94,7 +91,7 @@ class LocalRenderer:
     def __init__(self, params: LocalModelParams) -> None:
         T = params.servo_period_s
         self.model = LocalModel(params)
-        self.patch: Patch | None = None
+        self.patch: LocalModelUpdate | None = None
         self.primitive: Primitive | None = None
         self.k_h = 0.0
         self.i_gain = 0.0
@@ -115,13 +112,14 @@ class LocalRenderer:
         """The damper's filtered depth rate u [m/s] along the inward normal."""
         return self._u
 
-    def hand_over(self, patch: Patch, fresh: bool) -> None:
+    def hand_over(self, patch: LocalModelUpdate, fresh: bool) -> None:
         """Make ``patch`` the local model from the next :meth:`render` on.
 
         Parameters
         ----------
-        patch : Patch
-            The new primitive and gains (already validated and clamped to the device).
+        patch : LocalModelUpdate
+            The new primitive and gains (validated, and clamped to the device by
+            :meth:`client.servo.ServoCore.set_patch`).
         fresh : bool
             No surface to slide from (after a link loss): the patch replaces the old one at once
             even with ``proxy_hold="foh"``. The first patch is always fresh.

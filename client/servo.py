@@ -13,11 +13,11 @@ unit of its own that is tested without threads:
    (:class:`client.safety.SafetySupervisor`);
 3. apply to device: device.write(F); then the telemetry row and the latest-wins snapshot.
 
-The local model (primitive + gains K_h, I) is a zero-order hold of the slow simulation's output
-(eq. 1): :meth:`ServoCore.set_patch` may be called from the network thread at any time; it swaps
-one reference that the next tick picks up, so a patch is applied whole and between ticks. The
-LocalModel's integral state is kept across patches (only its gains change), so a new patch does
-not make the integral force jump.
+The local model (a :class:`shared.local_model_update.LocalModelUpdate`: primitive + gains K_h, I)
+is a zero-order hold of the slow simulation's output (eq. 1): :meth:`ServoCore.set_patch` may be
+called from the network thread at any time; it swaps one reference that the next tick picks up,
+so a patch is applied whole and between ticks. The LocalModel's integral state is kept across
+patches (only its gains change), so a new patch does not make the integral force jump.
 
 Safety, as device vendors do it (STYLE rule 9; :mod:`client.safety`):
 
@@ -48,8 +48,8 @@ import array
 import math
 import threading
 import time
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import asdict, dataclass, replace
+from typing import Any, cast
 
 from haptic_collab.client.devices.base import Device, HapticError, Vec3
 from haptic_collab.client.recorder import TelemetryRecorder
@@ -62,13 +62,15 @@ from haptic_collab.client.scheduler import (
     _switch_interval,
     try_realtime_priority,
 )
+from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams
-from haptic_collab.shared.primitives import Plane, Primitive, Sphere
+from haptic_collab.shared.local_model_update import LocalModelUpdate
+from haptic_collab.shared.primitives import Primitive
 
 __all__ = [
     "Clock",
     "DeadlineLoop",
-    "Patch",
+    "LocalModelUpdate",
     "ServoConfig",
     "ServoCore",
     "ServoEvent",
@@ -157,42 +159,6 @@ class ServoConfig:
     def ramp_step(self) -> float:
         """Change of the safety gain per tick, T / ramp_s."""
         return min(1.0, self.servo_period_s / self.ramp_s)
-
-
-@dataclass(frozen=True, slots=True)
-class Patch:
-    """The local model received from the server: primitive and gains (no pydantic inside).
-
-    Parameters
-    ----------
-    primitive : Plane or Sphere
-        Local geometric model of the surface near the probe (paper section 6, Step 1).
-    k_h : float
-        Local model stiffness K_h [N/m] (already clamped to the device's max stiffness).
-    i_gain : float
-        Integral weight I [N/(m*s)] (eq. 12).
-    b_h : float
-        Probe damper B_h [N*s/m] on the backward difference of the probe position, in contact
-        only (already clamped to the device's max damping).
-    proxy_hold : {"zoh", "foh"}
-        ``zoh``: the new surface replaces the old at once (eq. 1); ``foh``: the penetration moves
-        linearly from the old surface's to the new one's over ``hold_ticks`` servo ticks (from
-        where the previous slide had got to, if this patch arrived before it finished).
-    hold_ticks : int
-        Servo ticks of the first-order hold (N, one simulation period), >= 1.
-    recovery_m_per_n : float or None
-        1/K_o of the contact [m/N]: the local model keeps a PI contact while the probe is within
-        the deformation its integral force holds (:class:`shared.local_model.LocalModelParams`);
-        None keeps the local model's own.
-    """
-
-    primitive: Primitive
-    k_h: float
-    i_gain: float
-    b_h: float = 0.0
-    proxy_hold: str = "zoh"
-    hold_ticks: int = 1
-    recovery_m_per_n: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -394,7 +360,7 @@ class ServoCore:
         self._alpha = 1.0 if tau == 0.0 else T / (T + tau)
         self._by_button = cfg.engage_with_button
         # patch hand-over (one reference swap; see set_patch)
-        self._patch_in: Patch | None = None
+        self._patch_in: LocalModelUpdate | None = None
         # tick state
         self._ticks = 0
         self._t = 0.0
@@ -412,16 +378,21 @@ class ServoCore:
     # -- inputs from other threads ---------------------------------------------------------------
     def set_patch(
         self,
-        primitive: Primitive,
-        k_h: float,
-        i_gain: float,
+        primitive: LocalModelUpdate | Primitive,
+        k_h: float | None = None,
+        i_gain: float | None = None,
         *,
-        b_h: float = 0.0,
-        proxy_hold: str = "zoh",
-        hold_ticks: int = 1,
+        b_h: float | None = None,
+        proxy_hold: str | None = None,
+        hold_ticks: int | None = None,
         k_o: float | None = None,
-    ) -> Patch:
+    ) -> LocalModelUpdate:
         """Hand a new local model to the servo loop; applied whole at the start of the next tick.
+
+        Either ``set_patch(update)`` with a :class:`shared.local_model_update.LocalModelUpdate`
+        (what :class:`client.session.ClientSession` builds from a server patch), or
+        ``set_patch(primitive, k_h, i_gain, b_h=..., proxy_hold=..., hold_ticks=..., k_o=...)``,
+        which builds one.
 
         K_h above the device's ``max_stiffness_n_per_m`` is clamped to it (counted in
         ``status().stiffness_clamps``), B_h to ``max_damping_n_s_per_m``. The LocalModel's
@@ -432,62 +403,65 @@ class ServoCore:
 
         Parameters
         ----------
-        primitive : Plane or Sphere
-            Local geometric model [m] (:mod:`shared.primitives`).
+        primitive : LocalModelUpdate, or Plane or Sphere
+            The whole update; or the local geometric model [m] (:mod:`shared.primitives`), with
+            the gains below.
         k_h : float
-            K_h [N/m], finite and > 0.
+            K_h [N/m], finite and > 0 (required with a primitive).
         i_gain : float
-            I [N/(m*s)], finite and >= 0.
+            I [N/(m*s)], finite and >= 0 (required with a primitive).
         b_h : float
-            Probe damper B_h [N*s/m], finite and >= 0.
+            Probe damper B_h [N*s/m], finite and >= 0 (default 0).
         proxy_hold : {"zoh", "foh"}
+            Default ``"zoh"``.
         hold_ticks : int
-            Servo ticks per simulation tick N for the first-order hold, >= 1.
+            Servo ticks per simulation tick N for the first-order hold, >= 1 (default 1).
         k_o : float, optional
             The contact's K_o [N/m], > 0: sets the local model's recovery band (a PI contact is
             kept while the probe is within s/K_o of the proxy; :mod:`shared.local_model`).
 
         Returns
         -------
-        Patch
-            What will be applied.
+        LocalModelUpdate
+            What will be applied (K_h and B_h clamped to the device).
 
         Raises
         ------
         TypeError
-            ``primitive`` is not a Plane or Sphere.
+            ``primitive`` is not a LocalModelUpdate, Plane or Sphere; a primitive without
+            ``k_h`` and ``i_gain``; or an update with gains besides.
         ValueError
             Non-finite or out-of-range gains.
         """
-        if not isinstance(primitive, Plane | Sphere):
-            raise TypeError(f"primitive must be a Plane or Sphere, got {type(primitive).__name__}")
-        k = float(k_h)
-        i = float(i_gain)
-        if not (math.isfinite(k) and k > 0.0):
-            raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {k_h!r}")
-        if not (math.isfinite(i) and i >= 0.0):
-            raise ValueError(f"i_gain must be finite and >= 0 N/(m*s), got {i_gain!r}")
-        bh = float(b_h)
-        if not (math.isfinite(bh) and bh >= 0.0):
-            raise ValueError(f"b_h must be finite and >= 0 N*s/m, got {b_h!r}")
-        if proxy_hold not in ("zoh", "foh"):
-            raise ValueError(f"proxy_hold must be 'zoh' or 'foh', got {proxy_hold!r}")
-        if isinstance(hold_ticks, bool) or int(hold_ticks) != hold_ticks or hold_ticks < 1:
-            raise ValueError(f"hold_ticks must be a whole number >= 1, got {hold_ticks!r}")
+        if isinstance(primitive, LocalModelUpdate):
+            given = (k_h, i_gain, b_h, proxy_hold, hold_ticks, k_o)
+            if any(v is not None for v in given):
+                raise TypeError(
+                    "set_patch takes a LocalModelUpdate alone, or a primitive and gains"
+                )
+            update = primitive
+        else:
+            if k_h is None or i_gain is None:
+                raise TypeError("set_patch(primitive, k_h, i_gain): K_h and I are required")
+            update = LocalModelUpdate(
+                primitive,
+                k_h,
+                i_gain,
+                b_h=0.0 if b_h is None else b_h,
+                proxy_hold=cast(ProxyHold, "zoh" if proxy_hold is None else proxy_hold),
+                hold_ticks=1 if hold_ticks is None else hold_ticks,
+                k_o=k_o,
+            )
         lim = self.device.limits
-        kmax = lim.max_stiffness_n_per_m
-        if k > kmax:
-            k = kmax
+        k = update.k_h
+        if k > lim.max_stiffness_n_per_m:
+            k = lim.max_stiffness_n_per_m
             self._stiffness_clamps += 1
-        bh = min(bh, lim.max_damping_n_s_per_m)
-        rec = None
-        if k_o is not None:
-            if not (math.isfinite(k_o) and k_o > 0.0):
-                raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
-            rec = 1.0 / k_o
-        patch = Patch(primitive, k, i, bh, proxy_hold, int(hold_ticks), rec)
-        self._patch_in = patch
-        return patch
+        bh = min(update.b_h, lim.max_damping_n_s_per_m)
+        if k != update.k_h or bh != update.b_h:
+            update = replace(update, k_h=k, b_h=bh)
+        self._patch_in = update
+        return update
 
     def notify_link(self, now_s: float) -> None:
         """The server spoke (a patch or a pong arrived) at servo time ``now_s`` [s]."""
@@ -841,15 +815,15 @@ class ServoThread:
     # -- delegation for the network side -------------------------------------------------------------
     def set_patch(
         self,
-        primitive: Primitive,
-        k_h: float,
-        i_gain: float,
+        primitive: LocalModelUpdate | Primitive,
+        k_h: float | None = None,
+        i_gain: float | None = None,
         *,
-        b_h: float = 0.0,
-        proxy_hold: str = "zoh",
-        hold_ticks: int = 1,
+        b_h: float | None = None,
+        proxy_hold: str | None = None,
+        hold_ticks: int | None = None,
         k_o: float | None = None,
-    ) -> Patch:
+    ) -> LocalModelUpdate:
         """See :meth:`ServoCore.set_patch`; also counts as link activity now."""
         patch = self.core.set_patch(
             primitive,

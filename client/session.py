@@ -23,8 +23,9 @@ softer cell missed the design's decay margin in about a third of them
 the link; while it runs after a mid-contact change (new cell or delay) the nearest designed cell
 (no stiffer relative to K_o) or the gains in use stay, flagged ``verified=False``.
 
-Primitive and gains go to the servo loop as one :class:`PatchUpdate` (zero-order hold: it replaces
-the old one between servo ticks).
+Primitive and gains go to the servo loop as one
+:class:`shared.local_model_update.LocalModelUpdate`, held in a :class:`PatchUpdate` with the gain
+decision (zero-order hold: it replaces the old one between servo ticks).
 """
 
 from __future__ import annotations
@@ -32,12 +33,12 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 import numpy as np
 
 from haptic_collab.shared.coupled_loop import stiff_ratio_class
-from haptic_collab.shared.full_loop import monodromy
+from haptic_collab.shared.full_loop import ProxyHold, monodromy
 from haptic_collab.shared.gain_design import INTERIM_LADDER as INTERIM_LADDER
 from haptic_collab.shared.gain_design import (
     GainDesign,
@@ -47,7 +48,8 @@ from haptic_collab.shared.gain_design import (
 )
 from haptic_collab.shared.gain_design import interim_design as interim_design
 from haptic_collab.shared.gain_design import verify_gains as verify_gains
-from haptic_collab.shared.primitives import Primitive, make_plane, make_sphere
+from haptic_collab.shared.local_model_update import LocalModelUpdate, primitive_from_wire
+from haptic_collab.shared.primitives import Primitive
 from haptic_collab.shared.protocol import (
     PROTOCOL_VERSION,
     DeviceInfo,
@@ -56,7 +58,6 @@ from haptic_collab.shared.protocol import (
     ObjectInfo,
     Patch,
     Ping,
-    PlaneModel,
     Pong,
     ProtocolError,
     RoomState,
@@ -67,36 +68,32 @@ from haptic_collab.shared.protocol import (
 )
 from haptic_collab.shared.rates import Rates
 
+if TYPE_CHECKING:
+    from haptic_collab.client.servo import ServoSnapshot
+
 #: Pings (one every 0.5 s) over which the loop delay is estimated.
 RTT_WINDOW = 20
 
 
 @dataclass(frozen=True)
 class PatchUpdate:
-    """What the servo loop needs from one patch: the primitive and the gains, swapped atomically.
+    """The session's answer to one patch: the local model for the servo loop, and how its gains
+    were chosen.
+
+    The servo loop renders :attr:`model` (zero-order hold: it replaces the old one between servo
+    ticks); the other fields are this session's gain decision. The model's fields read through:
+    ``update.k_h`` is ``update.model.k_h``; ``k_o``, ``k_o_eff``, ``b_o`` and ``tick`` are always
+    set, the model coming from a server patch.
 
     Attributes
     ----------
-    primitive : Plane | Sphere
-        The local geometric model.
-    k_h : float
-        K_h [N/m].
-    i_gain : float
-        I [N/(m*s)].
-    tick : int
-        Simulation tick of the patch.
-    k_o, k_o_eff, b_o : float
-        As reported by the server [N/m].
+    model : LocalModelUpdate
+        Primitive, gains (K_h, I, B_h, proxy hold, N hold ticks), K_o, K_o_eff, K_o_stiff, B_o
+        and tick of the patch (:meth:`LocalModelUpdate.from_wire`).
     delay_ticks : int
         Delay assumed in the gain choice [simulation ticks].
     spectral_radius : float
         Worst full-loop spectral radius of the design over the hand box (below its decay limit).
-    b_h : float
-        Probe damper B_h [N*s/m].
-    proxy_hold : {"zoh", "foh"}
-        How the servo moves to the new surface.
-    hold_ticks : int
-        N, servo ticks per simulation tick (the first-order hold's length).
     felt_stiffness_ratio_1hz : float
         Designed felt stiffness over K_o at 1 Hz.
     fallback : bool
@@ -105,23 +102,84 @@ class PatchUpdate:
         The gains passed the full-loop check for this patch's key and K_o cell (a design, or
         verified interim gains); False only for the short while that check runs after a change
         of cell or delay in mid-contact.
+
+    Raises
+    ------
+    ValueError
+        ``model`` lacks the server's K_o, K_o_eff, B_o or tick (it was not built from a patch).
     """
 
-    primitive: Primitive
-    k_h: float
-    i_gain: float
-    tick: int
-    k_o: float
-    k_o_eff: float
-    b_o: float
+    model: LocalModelUpdate
     delay_ticks: int
     spectral_radius: float
-    b_h: float = 0.0
-    proxy_hold: str = "zoh"
-    hold_ticks: int = 1
     felt_stiffness_ratio_1hz: float = math.nan
     fallback: bool = False
     verified: bool = True
+
+    def __post_init__(self) -> None:
+        m = self.model
+        if m.k_o is None or m.k_o_eff is None or m.b_o is None or m.tick is None:
+            raise ValueError("a patch update's model needs the server's k_o, k_o_eff, b_o and tick")
+
+    @property
+    def primitive(self) -> Primitive:
+        """The local geometric model (:attr:`LocalModelUpdate.primitive`)."""
+        return self.model.primitive
+
+    @property
+    def k_h(self) -> float:
+        """K_h [N/m]."""
+        return self.model.k_h
+
+    @property
+    def i_gain(self) -> float:
+        """I [N/(m*s)]."""
+        return self.model.i_gain
+
+    @property
+    def b_h(self) -> float:
+        """Probe damper B_h [N*s/m]."""
+        return self.model.b_h
+
+    @property
+    def proxy_hold(self) -> ProxyHold:
+        """How the servo moves to the new surface: ``"zoh"`` or ``"foh"``."""
+        return self.model.proxy_hold
+
+    @property
+    def hold_ticks(self) -> int:
+        """N, servo ticks per simulation tick (the first-order hold's length)."""
+        return self.model.hold_ticks
+
+    @property
+    def tick(self) -> int:
+        """Simulation tick of the patch."""
+        return _known(self.model.tick)
+
+    @property
+    def k_o(self) -> float:
+        """K_o [N/m], as reported by the server."""
+        return _known(self.model.k_o)
+
+    @property
+    def k_o_eff(self) -> float:
+        """K_o_eff [N/m], as reported by the server."""
+        return _known(self.model.k_o_eff)
+
+    @property
+    def b_o(self) -> float:
+        """B_o [N/m], as reported by the server."""
+        return _known(self.model.b_o)
+
+
+_T = TypeVar("_T")
+
+
+def _known(value: _T | None) -> _T:
+    """A field :class:`PatchUpdate` checked is set."""
+    if value is None:  # pragma: no cover - PatchUpdate.__post_init__ refuses None
+        raise ValueError("not set")
+    return value
 
 
 def _known_gains(
@@ -164,16 +222,56 @@ def warm_up_worker() -> None:
 
 @dataclass(frozen=True)
 class ServoSample:
-    """The servo loop's latest state, as the link reports it to the server (latest wins)."""
+    """The servo loop's latest state, as the link reports it to the server (latest wins).
+
+    Attributes
+    ----------
+    probe_m : (3,) float
+        Probe position x_h [m].
+    force_n : (3,) float
+        Force [N] the device last rendered on the user.
+    penetration_m : float or None
+        Penetration e [m] into the local model; None before the first patch (no local model:
+        no penetration to speak of, which is not a zero one).
+    in_contact : bool
+        The local model was in contact.
+    k_h, i_gain : float
+        K_h [N/m] and I [N/(m*s)] in use.
+    servo_rate_hz : float
+        Achieved servo rate [Hz] (0 before it is measured).
+    period_us_p99 : float
+        99th percentile of the servo period [us] (0 before it is measured).
+    """
 
     probe_m: tuple[float, float, float]
     force_n: tuple[float, float, float]
-    penetration_m: float
+    penetration_m: float | None
     in_contact: bool
     k_h: float
     i_gain: float
     servo_rate_hz: float
     period_us_p99: float
+
+    @classmethod
+    def from_snapshot(cls, snap: ServoSnapshot) -> ServoSample:
+        """The sample of a servo snapshot (:meth:`client.servo.ServoCore.latest`).
+
+        A NaN penetration (the servo's "no patch yet") becomes None; a rate and period not
+        measured yet (NaN) become 0.
+        """
+        pen = snap.penetration_m if math.isfinite(snap.penetration_m) else None
+        p99 = snap.period_p99_s if math.isfinite(snap.period_p99_s) else 0.0
+        rate = snap.servo_rate_hz if math.isfinite(snap.servo_rate_hz) else 0.0
+        return cls(
+            probe_m=snap.probe_m,
+            force_n=snap.force_n,
+            penetration_m=pen,
+            in_contact=snap.in_contact,
+            k_h=snap.k_h,
+            i_gain=snap.i_gain,
+            servo_rate_hz=rate,
+            period_us_p99=p99 * 1e6,
+        )
 
 
 class ClientSession:
@@ -284,14 +382,20 @@ class ClientSession:
         return encode(Ping(id=self._ping_id, t_client_s=now_s))
 
     def state(self, sample: ServoSample) -> str:
-        """The ``state`` frame for the servo loop's latest sample."""
+        """The ``state`` frame for the servo loop's latest sample.
+
+        The protocol's ``penetration_m`` cannot say "unknown": a sample with no penetration yet
+        (None, before the first patch) is sent as 0 m, with ``in_contact`` false and
+        ``patch_tick`` -1 telling the server there is no local model yet.
+        """
         self._seq += 1
+        pen = sample.penetration_m
         return encode(
             State(
                 seq=self._seq,
                 probe_m=sample.probe_m,
                 force_n=sample.force_n,
-                penetration_m=sample.penetration_m,
+                penetration_m=0.0 if pen is None else pen,
                 in_contact=sample.in_contact,
                 k_h=sample.k_h,
                 i_gain=sample.i_gain,
@@ -439,7 +543,7 @@ class ClientSession:
         if lu is None:
             return None
         return _known_gains(
-            lu.k_h, lu.i_gain, lu.b_h, "foh" if lu.proxy_hold == "foh" else "zoh",
+            lu.k_h, lu.i_gain, lu.b_h, lu.proxy_hold,
             k_o_eff=lu.k_o_eff, rate_ratio=n, delay_ticks=lu.delay_ticks,
             spectral_radius=lu.spectral_radius, felt_1hz=lu.felt_stiffness_ratio_1hz,
         )  # fmt: skip
@@ -469,15 +573,8 @@ class ClientSession:
     def _patch(self, msg: Patch, now_s: float) -> PatchUpdate | None:
         if self.last_patch is not None and msg.tick <= self.last_patch.tick:
             return None  # stale
-        prim: Primitive
-        p = msg.primitive
-        try:
-            if isinstance(p, PlaneModel):
-                prim = make_plane(p.point, p.normal)
-            else:
-                prim = make_sphere(p.center, p.radius)
-        except ValueError as exc:
-            raise ProtocolError("invalid_primitive", str(exc)) from None
+        # refuse a bad primitive now (invalid_primitive), even if the patch is to wait for gains
+        primitive_from_wire(msg.primitive)
         try:
             n = self.rates.ratio
         except ValueError as exc:
@@ -526,24 +623,23 @@ class ClientSession:
                     return None
                 verified = False
                 self.unverified_patches += 1
+        model = LocalModelUpdate.from_wire(
+            msg,
+            k_h=design.k_h,
+            i_gain=design.i_gain,
+            b_h=design.b_h,
+            proxy_hold=design.proxy_hold,
+            hold_ticks=n,
+        )
         self._waiting = None
         self.last_patch = msg
         self.patches += 1
         if self.first_update_s is None:
             self.first_update_s = now_s
         self.last_update = PatchUpdate(
-            primitive=prim,
-            k_h=design.k_h,
-            i_gain=design.i_gain,
-            tick=msg.tick,
-            k_o=msg.k_o,
-            k_o_eff=msg.k_o_eff,
-            b_o=msg.b_o,
+            model=model,
             delay_ticks=d,
             spectral_radius=design.worst_spectral_radius,
-            b_h=design.b_h,
-            proxy_hold=design.proxy_hold,
-            hold_ticks=n,
             felt_stiffness_ratio_1hz=design.felt_stiffness_ratio_1hz,
             fallback=fallback,
             verified=verified,

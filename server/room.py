@@ -38,6 +38,7 @@ from haptic_collab.server.gains import GainAdvisor
 from haptic_collab.server.security import TokenBucket, TokenTable
 from haptic_collab.server.viewer_stream import ViewerStream
 from haptic_collab.server.world import ContactInput
+from haptic_collab.shared.local_model_update import primitive_to_wire
 from haptic_collab.shared.primitives import Plane, Sphere
 from haptic_collab.shared.protocol import (
     MAX_CLIENT_FRAME_BYTES,
@@ -52,12 +53,10 @@ from haptic_collab.shared.protocol import (
     ObjectInfo,
     Patch,
     Ping,
-    PlaneModel,
     Pong,
     ProtocolError,
     RecommendedGains,
     RoomState,
-    SphereModel,
     State,
     SurfacePoint,
     UserView,
@@ -825,15 +824,11 @@ def _welcome(
 
 
 def _patch(tick: int, res: ContactOutput, gains: RecommendedGains | None = None) -> Patch:
-    prim = res.primitive
-    model: PlaneModel | SphereModel
-    if prim.kind == "plane":
-        model = PlaneModel(point=prim.point, normal=prim.normal)  # type: ignore[union-attr]
-    else:
-        model = SphereModel(center=prim.center, radius=prim.radius)  # type: ignore[union-attr]
+    """The ``patch`` of one user's contact (the client's
+    :meth:`shared.local_model_update.LocalModelUpdate.from_wire` reads it back)."""
     return Patch(
         tick=tick,
-        primitive=model,
+        primitive=primitive_to_wire(res.primitive),
         proxy_m=_t3(res.proxy),
         normal=_t3(res.normal),
         penetration_m=float(res.penetration_m),

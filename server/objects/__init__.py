@@ -15,7 +15,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from haptic_collab.server.objects.balloon import Balloon, BalloonParams, Patch
+from haptic_collab.server.objects.balloon import Balloon, BalloonParams, LoadPatch
 from haptic_collab.server.objects.mesh import MeshError, default_balloon, load_mesh, repair_mesh
 
 
@@ -63,8 +63,8 @@ __all__ = [
     "AdmittanceObject",
     "Balloon",
     "BalloonParams",
+    "LoadPatch",
     "MeshError",
-    "Patch",
     "default_balloon",
     "load_mesh",
     "repair_mesh",

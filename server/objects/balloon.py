@@ -199,7 +199,7 @@ class BalloonParams:
 
 
 @dataclass(frozen=True, slots=True)
-class Patch:
+class LoadPatch:
     """A finger-pad load patch: ``indices`` (k,) int64 vertices, ``weights`` (k,) float64 beta.
 
     ``weights`` sum to 1; the load of a push ``f`` [N] is ``-weights * f`` on those vertices.
@@ -215,7 +215,7 @@ class Patch:
 class _Solve:
     """Cached solve of one patch: ``x = K^-1 beta`` and, with damping, ``xd = Kd^-1 beta``."""
 
-    patch: Patch
+    patch: LoadPatch
     x: FloatArray
     xd: FloatArray | None
 
@@ -587,7 +587,7 @@ class Balloon:
         _, i = self._centre_tree.query(q)
         return int(self._centres[int(i)])
 
-    def patch(self, key: int) -> Patch:
+    def patch(self, key: int) -> LoadPatch:
         """The load patch (vertices and weights beta) centred at vertex ``key``.
 
         Weights: ``a_i * (1 + cos(pi d_i / r)) / 2`` for rest distance ``d_i < r`` to the centre
@@ -603,7 +603,7 @@ class Balloon:
             return solved.patch
         return self._make_patch(int(key))
 
-    def _make_patch(self, key: int) -> Patch:
+    def _make_patch(self, key: int) -> LoadPatch:
         if not 0 <= key < self.n_vertices:
             raise ValueError(
                 f"patch key must be a vertex index in [0, {self.n_vertices}), got {key}"
@@ -614,7 +614,7 @@ class Balloon:
         wts = self._areas[idx] * 0.5 * (1.0 + np.cos(np.pi * np.minimum(d / r, 1.0)))
         keep = wts > 0.0
         idx, wts = idx[keep], wts[keep]
-        return Patch(key=key, indices=idx, weights=wts / wts.sum())
+        return LoadPatch(key=key, indices=idx, weights=wts / wts.sum())
 
     def _ensure(self, keys: Sequence[int]) -> list[_Solve]:
         """Cached solves for ``keys``, solving all misses in one batched call."""

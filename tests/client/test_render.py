@@ -10,9 +10,9 @@ import math
 import pytest
 
 from haptic_collab.client.render import LocalRenderer
-from haptic_collab.client.servo import Patch
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S
 from haptic_collab.shared.local_model import LocalModelParams
+from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import Plane, make_plane, make_sphere
 
 T = 1e-3
@@ -57,35 +57,37 @@ def test_plane_5mm_inside_gives_k_h_times_5mm_outward(normal: tuple[float, float
     plane = make_plane(anchor, normal)
     x, y, z = (a - 0.005 * n for a, n in zip(anchor, plane.normal, strict=True))
     rd = renderer()
-    rd.hand_over(Patch(plane, K_H, 0.0), fresh=True)
+    rd.hand_over(LocalModelUpdate(plane, K_H, 0.0), fresh=True)
     f, e, nx, ny, nz, c = rd.render(x, y, z, 0.0, 0.0, 0.0)
     assert c and e == pytest.approx(0.005)
     assert f == pytest.approx(K_H * 0.005)  # 1.5 N
     assert (nx, ny, nz) == pytest.approx(plane.normal)  # outward, as the vector f * n
-    assert (rd.k_h, rd.i_gain, rd.patch) == (K_H, 0.0, Patch(plane, K_H, 0.0))
+    assert (rd.k_h, rd.i_gain, rd.patch) == (K_H, 0.0, LocalModelUpdate(plane, K_H, 0.0))
 
 
 def test_outside_the_surface_there_is_no_force() -> None:
     rd = renderer()
-    rd.hand_over(Patch(PLANE, K_H, 0.0), fresh=True)
+    rd.hand_over(LocalModelUpdate(PLANE, K_H, 0.0), fresh=True)
     f, e, *_, c = rd.render(0.0, 0.0, 0.002, 0.0, 0.0, 0.0)
     assert f == 0.0 and e == pytest.approx(-0.002) and not c
 
 
 def test_a_sphere_pushes_radially() -> None:
     rd = renderer()
-    rd.hand_over(Patch(make_sphere((0.0, 0.0, 0.0), 0.1), K_H, 0.0), fresh=True)
+    rd.hand_over(LocalModelUpdate(make_sphere((0.0, 0.0, 0.0), 0.1), K_H, 0.0), fresh=True)
     f, e, nx, ny, nz, c = rd.render(0.0, 0.096, 0.0, 0.0, 0.0, 0.0)
     assert c and f == pytest.approx(K_H * 0.004) and (nx, ny, nz) == pytest.approx((0, 1, 0))
 
 
 def test_first_order_hold_slides_the_surface_linearly_over_hold_ticks() -> None:
     rd = renderer()
-    rd.hand_over(Patch(PLANE, K_H, 0.0), fresh=True)
+    rd.hand_over(LocalModelUpdate(PLANE, K_H, 0.0), fresh=True)
     z = -0.005
     assert still(rd, z, 3)[-1][1] == pytest.approx(0.005)
     # the surface moves 2 mm in: the penetration goes 5 -> 3 mm in HOLD equal steps
-    rd.hand_over(Patch(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD), fresh=False)
+    rd.hand_over(
+        LocalModelUpdate(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD), fresh=False
+    )
     e = [pe for _, pe in still(rd, z, HOLD + 3)]
     expected = [0.005 - 0.002 * k / HOLD for k in range(1, HOLD)] + [0.003] * 4
     assert e == pytest.approx(expected, abs=1e-12)
@@ -96,22 +98,28 @@ def test_first_order_hold_slides_the_surface_linearly_over_hold_ticks() -> None:
 def test_zero_order_hold_and_a_fresh_patch_replace_the_surface_at_once() -> None:
     for hold, fresh in (("zoh", False), ("foh", True)):
         rd = renderer()
-        rd.hand_over(Patch(PLANE, K_H, 0.0), fresh=True)
+        rd.hand_over(LocalModelUpdate(PLANE, K_H, 0.0), fresh=True)
         still(rd, -0.005, 3)
-        rd.hand_over(Patch(plane_at(0.002), K_H, 0.0, proxy_hold=hold, hold_ticks=HOLD), fresh)
+        rd.hand_over(
+            LocalModelUpdate(plane_at(0.002), K_H, 0.0, proxy_hold=hold, hold_ticks=HOLD), fresh
+        )
         assert still(rd, -0.005, 1)[0][1] == pytest.approx(0.003), (hold, fresh)
 
 
 def test_a_patch_arriving_mid_slide_slides_on_from_the_blend_reached() -> None:
     rd = renderer()
-    rd.hand_over(Patch(PLANE, K_H, 0.0), fresh=True)
+    rd.hand_over(LocalModelUpdate(PLANE, K_H, 0.0), fresh=True)
     z = -0.005
     still(rd, z, 3)
-    rd.hand_over(Patch(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD), False)
+    rd.hand_over(
+        LocalModelUpdate(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD), False
+    )
     e1 = [pe for _, pe in still(rd, z, HOLD // 2)]  # half way: 4 mm
     assert e1[-1] == pytest.approx(0.004)
     # jitter: the next surface (4 mm in, penetration 1 mm) arrives before the slide is over
-    rd.hand_over(Patch(plane_at(0.004), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD), False)
+    rd.hand_over(
+        LocalModelUpdate(plane_at(0.004), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD), False
+    )
     e2 = [pe for _, pe in still(rd, z, HOLD + 2)]
     # from 4 mm (where it was), not from the 3 mm target: linear, HOLD steps, no jump
     expected = [0.004 - 0.003 * k / HOLD for k in range(1, HOLD)] + [0.001] * 3
@@ -122,7 +130,7 @@ def test_the_probe_damper_adds_b_h_times_the_filtered_depth_rate_in_contact_only
     b_h = 5.0
     v = 0.01  # 10 mm/s inward
     rd = renderer()
-    rd.hand_over(Patch(PLANE, K_H, 0.0, b_h=b_h), fresh=True)
+    rd.hand_over(LocalModelUpdate(PLANE, K_H, 0.0, b_h=b_h), fresh=True)
     z = -0.001
     f = e = 0.0
     for _ in range(200):  # 40 filter time constants: u has settled to v
@@ -132,7 +140,7 @@ def test_the_probe_damper_adds_b_h_times_the_filtered_depth_rate_in_contact_only
     assert f == pytest.approx(K_H * e + b_h * v, rel=1e-6)
     # first tick of motion: u is one filter step of v
     rd2 = renderer()
-    rd2.hand_over(Patch(PLANE, K_H, 0.0, b_h=b_h), fresh=True)
+    rd2.hand_over(LocalModelUpdate(PLANE, K_H, 0.0, b_h=b_h), fresh=True)
     f1, e1, *_ = rd2.render(0.0, 0.0, -0.001, 0.0, 0.0, -v * T)
     assert f1 == pytest.approx(K_H * e1 + b_h * v * T / (T + DAMPER_FILTER_S))
     # out of contact, moving out fast: no pull
@@ -142,23 +150,23 @@ def test_the_probe_damper_adds_b_h_times_the_filtered_depth_rate_in_contact_only
 
 def test_a_gain_change_in_contact_is_carried_off_without_a_step() -> None:
     rd = renderer(gain_transfer_s=0.02)
-    rd.hand_over(Patch(PLANE, K_H, 0.0), fresh=True)
+    rd.hand_over(LocalModelUpdate(PLANE, K_H, 0.0), fresh=True)
     f_before = still(rd, -0.005, 5)[-1][0]
-    rd.hand_over(Patch(PLANE, 2 * K_H, 0.0), fresh=False)
+    rd.hand_over(LocalModelUpdate(PLANE, 2 * K_H, 0.0), fresh=False)
     f = [pf for pf, _ in still(rd, -0.005, 40)]
     assert f[0] == pytest.approx(f_before, rel=0.1)  # no jump to 2 * K_H * e
     assert f[-1] == pytest.approx(2 * K_H * 0.005)  # the new gain after the transfer
     # without a transfer time the force steps as eq. 12 says
     rd2 = renderer()
-    rd2.hand_over(Patch(PLANE, K_H, 0.0), fresh=True)
+    rd2.hand_over(LocalModelUpdate(PLANE, K_H, 0.0), fresh=True)
     still(rd2, -0.005, 5)
-    rd2.hand_over(Patch(PLANE, 2 * K_H, 0.0), fresh=False)
+    rd2.hand_over(LocalModelUpdate(PLANE, 2 * K_H, 0.0), fresh=False)
     assert still(rd2, -0.005, 1)[0][0] == pytest.approx(2 * K_H * 0.005)
 
 
 def test_reset_forgets_the_integral() -> None:
     rd = renderer()
-    rd.hand_over(Patch(PLANE, K_H, 1000.0), fresh=True)
+    rd.hand_over(LocalModelUpdate(PLANE, K_H, 1000.0), fresh=True)
     still(rd, -0.005, 100)
     assert rd.model.integral_n > 0.0
     rd.reset()

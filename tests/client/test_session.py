@@ -201,3 +201,47 @@ def test_hello_declares_the_opened_devices_own_limits():
     assert info.max_stiffness_n_per_m == 400.0
     sim = _device_info(ClientOptions(url="", device="sim:rest", profile="touch"))
     assert sim.profile == "touch" and sim.max_damping_n_s_per_m == 5.0
+
+
+def test_the_update_holds_the_patch_as_the_servo_renders_it():
+    from haptic_collab.shared.primitives import make_plane
+
+    s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=1000.0), mode="p")
+    s.receive(
+        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
+    )
+    up = receive_designed(s, patch(4, k_o_eff=300.0, k_o=320.0), 0.1)
+    assert up is not None
+    m = up.model
+    assert m.primitive == make_plane((0, 0, 0.1), (0, 0, 1))
+    assert (m.tick, m.k_o, m.k_o_eff, m.k_o_stiff, m.b_o) == (4, 320.0, 300.0, 320.0, 0.0)
+    assert (m.k_h, m.i_gain, m.hold_ticks) == (up.k_h, 0.0, 50)
+    assert m.recovery_m_per_n == pytest.approx(1.0 / 320.0)
+
+
+def test_no_patch_yet_is_not_reported_as_zero_penetration():
+    from haptic_collab.client.servo import ServoConfig, ServoCore
+    from haptic_collab.client.session import ServoSample
+    from haptic_collab.shared.primitives import make_plane
+    from haptic_collab.shared.protocol import State, parse_client
+    from tests.client.test_servo import FakeDevice
+
+    core = ServoCore(FakeDevice((0.0, 0.0, 0.098)), ServoConfig())
+    core.tick(0.0)
+    snap = core.latest()
+    assert snap is not None
+    before = ServoSample.from_snapshot(snap)
+    assert before.penetration_m is None and not before.in_contact
+    # the wire's penetration cannot say "unknown": the frame says no contact and no patch yet
+    s = session()
+    sent = parse_client(s.state(before))
+    assert isinstance(sent, State) and sent.patch_tick == -1 and not sent.in_contact
+
+    core.set_patch(make_plane((0.0, 0.0, 0.1), (0.0, 0.0, 1.0)), 300.0, 0.0)
+    core.tick(1e-3)
+    snap = core.latest()
+    assert snap is not None
+    after = ServoSample.from_snapshot(snap)
+    assert after.penetration_m == pytest.approx(0.002)  # 2 mm into the plane: a real depth
+    sent = parse_client(s.state(after))
+    assert isinstance(sent, State) and sent.penetration_m == pytest.approx(0.002)

@@ -1,0 +1,213 @@
+"""The local model update: one simulation tick's local model, as the servo loop renders it.
+
+Paper section 6: once per simulation tick the server fits a primitive to the current surface
+near each user's probe and reports the contact's stiffness K_o, its coupling-aware K_o_eff
+(DESIGN section 6) and damping B_o (Step 1); the client picks the local model's gains K_h, I
+below them (Step 2) and its servo loop renders the primitive with those gains until the next
+tick (zero-order hold, eq. 1, or the first-order hold of :mod:`shared.full_loop`).
+:class:`LocalModelUpdate` is that one datum, from the wire to the servo tick.
+
+Wire edge (:mod:`shared.protocol`): :meth:`LocalModelUpdate.from_wire` builds it from a ``patch``
+message and the gains the client chose; :func:`primitive_from_wire` and
+:func:`primitive_to_wire` convert the primitive both ways (the server builds its ``patch`` with
+:func:`primitive_to_wire`: the server does not choose gains, so it has no update of its own).
+
+Plain Python floats, SI units: positions [m], stiffness and B_o [N/m], I [N/(m*s)], B_h
+[N*s/m]. No sockets, threads or clocks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from haptic_collab.shared.full_loop import ProxyHold
+from haptic_collab.shared.primitives import Plane, Primitive, Sphere, make_plane, make_sphere
+from haptic_collab.shared.protocol import Patch, PlaneModel, ProtocolError, SphereModel
+
+__all__ = [
+    "LocalModelUpdate",
+    "primitive_from_wire",
+    "primitive_to_wire",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class LocalModelUpdate:
+    """One simulation tick's local model: primitive, rendering gains, and the contact's K_o.
+
+    Validated on construction; the servo loop applies it whole, between two ticks
+    (:meth:`client.servo.ServoCore.set_patch`).
+
+    Parameters
+    ----------
+    primitive : Plane or Sphere
+        Local geometric model of the surface near the probe [m] (paper section 6, Step 1).
+    k_h : float
+        Local model stiffness K_h [N/m], finite and > 0.
+    i_gain : float
+        Integral weight I [N/(m*s)] (eq. 12), finite and >= 0.
+    b_h : float
+        Probe damper B_h [N*s/m] on the backward difference of the probe position, in contact
+        only; finite and >= 0 (default 0: no damper).
+    proxy_hold : {"zoh", "foh"}
+        ``zoh``: the new surface replaces the old at once (eq. 1); ``foh``: the penetration moves
+        linearly from the old surface's to the new one's over ``hold_ticks`` servo ticks (from
+        where the previous slide had got to, if this update arrived before it finished).
+    hold_ticks : int
+        Servo ticks of the first-order hold (N, one simulation period), a whole number >= 1.
+    k_o : float or None
+        The object's local stiffness K_o at the contact [N/m], finite and > 0; it sets the local
+        model's recovery band 1/K_o (:attr:`recovery_m_per_n`). None: not known (a local model
+        set by hand, not from a server).
+    k_o_eff : float or None
+        Coupling-aware K_o_eff [N/m] (<= K_o) the gains were chosen below; None: not known.
+    k_o_stiff : float or None
+        Stiffest modal stiffness K_o_stiff [N/m] (>= K_o) of the contacts coupled to this one
+        (equal to K_o when uncoupled); None: not known.
+    b_o : float or None
+        Object damping divided by the simulation period B_o [N/m] (eq. 9), >= 0; None: not known.
+    tick : int or None
+        Simulation tick of the server's patch; None: not from a server.
+
+    Raises
+    ------
+    TypeError
+        ``primitive`` is not a Plane or Sphere.
+    ValueError
+        Non-finite or out-of-range gains, ``proxy_hold`` or ``hold_ticks``, or a K_o, K_o_eff,
+        K_o_stiff or B_o that is given but not finite and positive (B_o: >= 0).
+    """
+
+    primitive: Primitive
+    k_h: float
+    i_gain: float
+    b_h: float = 0.0
+    proxy_hold: ProxyHold = "zoh"
+    hold_ticks: int = 1
+    k_o: float | None = None
+    k_o_eff: float | None = None
+    k_o_stiff: float | None = None
+    b_o: float | None = None
+    tick: int | None = None
+
+    def __post_init__(self) -> None:
+        prim = self.primitive
+        if not isinstance(prim, Plane | Sphere):
+            raise TypeError(f"primitive must be a Plane or Sphere, got {type(prim).__name__}")
+        k = float(self.k_h)
+        i = float(self.i_gain)
+        if not (math.isfinite(k) and k > 0.0):
+            raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {self.k_h!r}")
+        if not (math.isfinite(i) and i >= 0.0):
+            raise ValueError(f"i_gain must be finite and >= 0 N/(m*s), got {self.i_gain!r}")
+        bh = float(self.b_h)
+        if not (math.isfinite(bh) and bh >= 0.0):
+            raise ValueError(f"b_h must be finite and >= 0 N*s/m, got {self.b_h!r}")
+        if self.proxy_hold not in ("zoh", "foh"):
+            raise ValueError(f"proxy_hold must be 'zoh' or 'foh', got {self.proxy_hold!r}")
+        n = self.hold_ticks
+        if isinstance(n, bool) or int(n) != n or n < 1:
+            raise ValueError(f"hold_ticks must be a whole number >= 1, got {n!r}")
+        set_ = object.__setattr__  # frozen: normalize once, here
+        set_(self, "k_h", k)
+        set_(self, "i_gain", i)
+        set_(self, "b_h", bh)
+        set_(self, "hold_ticks", int(n))
+        for name in ("k_o", "k_o_eff", "k_o_stiff"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            v = float(value)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be a finite stiffness > 0 N/m, got {value!r}")
+            set_(self, name, v)
+        if self.b_o is not None:
+            b = float(self.b_o)
+            if not (math.isfinite(b) and b >= 0.0):
+                raise ValueError(f"b_o must be finite and >= 0 N/m, got {self.b_o!r}")
+            set_(self, "b_o", b)
+        if self.tick is not None:
+            set_(self, "tick", int(self.tick))
+
+    @property
+    def recovery_m_per_n(self) -> float | None:
+        """1/K_o [m/N]: a PI contact is kept while the probe is within the deformation its
+        integral force holds (:class:`shared.local_model.LocalModelParams`); None without K_o
+        (the local model keeps its own)."""
+        return None if self.k_o is None else 1.0 / self.k_o
+
+    @classmethod
+    def from_wire(
+        cls,
+        msg: Patch,
+        *,
+        k_h: float,
+        i_gain: float,
+        b_h: float = 0.0,
+        proxy_hold: ProxyHold = "zoh",
+        hold_ticks: int = 1,
+    ) -> LocalModelUpdate:
+        """The update of a server ``patch`` rendered with the gains the client chose.
+
+        Parameters
+        ----------
+        msg : shared.protocol.Patch
+            The server's patch: primitive, ``tick``, ``k_o``, ``k_o_eff``, ``k_o_stiff`` (absent:
+            K_o, an uncoupled contact) and ``b_o``.
+        k_h, i_gain, b_h, proxy_hold, hold_ticks
+            The local model's gains and hold (see the class parameters).
+
+        Raises
+        ------
+        shared.protocol.ProtocolError
+            ``invalid_primitive``: the patch's primitive is not a valid plane or sphere.
+        ValueError
+            Invalid gains (see the class).
+        """
+        return cls(
+            primitive=primitive_from_wire(msg.primitive),
+            k_h=k_h,
+            i_gain=i_gain,
+            b_h=b_h,
+            proxy_hold=proxy_hold,
+            hold_ticks=hold_ticks,
+            k_o=msg.k_o,
+            k_o_eff=msg.k_o_eff,
+            k_o_stiff=msg.k_o_stiff_or_k_o(),
+            b_o=msg.b_o,
+            tick=msg.tick,
+        )
+
+
+def primitive_from_wire(model: PlaneModel | SphereModel) -> Primitive:
+    """The validated primitive of a patch's ``primitive`` field (a plane's normal normalized).
+
+    Raises
+    ------
+    shared.protocol.ProtocolError
+        ``invalid_primitive``: a zero normal, or a sphere radius outside
+        [:data:`shared.primitives.MIN_RADIUS_M`, :data:`shared.primitives.MAX_RADIUS_M`].
+    """
+    try:
+        if isinstance(model, PlaneModel):
+            return make_plane(model.point, model.normal)
+        return make_sphere(model.center, model.radius)
+    except ValueError as exc:
+        raise ProtocolError("invalid_primitive", str(exc)) from None
+
+
+def primitive_to_wire(primitive: Primitive) -> PlaneModel | SphereModel:
+    """A primitive as a patch's ``primitive`` field (plane: point [m] and outward unit normal;
+    sphere: centre [m] and radius [m]).
+
+    Raises
+    ------
+    TypeError
+        ``primitive`` is not a Plane or Sphere.
+    """
+    if isinstance(primitive, Plane):
+        return PlaneModel(point=primitive.point, normal=primitive.normal)
+    if isinstance(primitive, Sphere):
+        return SphereModel(center=primitive.center, radius=primitive.radius)
+    raise TypeError(f"primitive must be a Plane or Sphere, got {type(primitive).__name__}")
