@@ -23,7 +23,8 @@ import numpy as np
 from haptic_collab.client.session import ClientSession
 from haptic_collab.shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Welcome, encode
 
-_OBJ = ObjectInfo(
+#: The object a welcome describes: an octahedron of radius 0.1 m about the origin [m].
+BENCH_OBJECT = ObjectInfo(
     n_vertices=6,
     n_faces=8,
     center_m=(0, 0, 0),
@@ -37,7 +38,14 @@ _OBJ = ObjectInfo(
 )
 
 
-def _patch(tick: int, k_o: float) -> str:
+def plane_patch(
+    tick: int, k_o: float, k_o_eff: float | None = None, k_o_stiff: float | None = None
+) -> str:
+    """A ``patch`` frame: 2 mm into the top plane z = 0.1 m of :data:`BENCH_OBJECT`, in contact.
+
+    ``k_o``, ``k_o_eff`` (default ``k_o``) and ``k_o_stiff`` (default None: an uncoupled contact)
+    are the patch's stiffnesses [N/m]; ``b_o`` is 0.
+    """
     return encode(
         Patch(
             tick=tick,
@@ -47,10 +55,31 @@ def _patch(tick: int, k_o: float) -> str:
             penetration_m=0.002,
             in_contact=True,
             k_o=k_o,
-            k_o_eff=k_o,
+            k_o_eff=k_o if k_o_eff is None else k_o_eff,
+            k_o_stiff=k_o_stiff,
             b_o=0.0,
         )
     )
+
+
+def welcomed_session(
+    name: str, user_id: str, max_stiffness_n_per_m: float = 1000.0, **options: Any
+) -> ClientSession:
+    """A :class:`ClientSession` named ``name`` that received its welcome (as ``user_id``) at 0 s.
+
+    The device states ``max_stiffness_n_per_m`` [N/m]; the welcome a 20 Hz simulation of
+    :data:`BENCH_OBJECT`. ``options`` are the session's other keyword arguments.
+    """
+    s = ClientSession(
+        name, device=DeviceInfo(max_stiffness_n_per_m=max_stiffness_n_per_m), **options
+    )
+    s.receive(
+        encode(
+            Welcome(user_id=user_id, name=name, role="user", sim_rate_hz=20.0, object=BENCH_OBJECT)
+        ),
+        0.0,
+    )
+    return s
 
 
 def _pcts(values: list[float]) -> dict[str, float]:
@@ -61,18 +90,13 @@ def _pcts(values: list[float]) -> dict[str, float]:
 def run(n_patches: int = 2000, seed: int = 0) -> dict[str, Any]:
     """Run the bench; return the JSON object (module docstring)."""
     rng = np.random.default_rng(seed)
-    s = ClientSession(
-        "bench", device=DeviceInfo(max_stiffness_n_per_m=1000.0), mode="pi", b_h_max=10.0
-    )
-    s.receive(
-        encode(Welcome(user_id="u", name="bench", role="user", sim_rate_hz=20.0, object=_OBJ)), 0.0
-    )
+    s = welcomed_session("bench", "u", mode="pi", b_h_max=10.0)
     k_os = 300.0 * np.exp(rng.uniform(-0.2, 0.2, n_patches))
     # design the cells the run visits (off the measured path, as the worker process would)
     key = s.gain_key(0.0, 0)
     for k in sorted({s.gain_table.cell(float(k)) for k in k_os}):
         s.gain_table.design(key, s.gain_table.grid_point(k) * 1.0001)
-    frames = [_patch(i + 1, float(k)) for i, k in enumerate(k_os)]
+    frames = [plane_patch(i + 1, float(k)) for i, k in enumerate(k_os)]
     patch_ms = []
     for i, fr in enumerate(frames):
         t0 = time.perf_counter()

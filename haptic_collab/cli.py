@@ -16,7 +16,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 
 class CliError(Exception):
@@ -67,6 +67,40 @@ def _probability(text: str) -> float:
     if not 0.0 <= value < 1.0:
         raise argparse.ArgumentTypeError(f"must be in [0, 1), got {text!r}")
     return value
+
+
+# ----------------------------------------------------------------------------------- shared options
+#: Options that more than one subcommand takes: each one's type and default (and its help where
+#: every subcommand says the same), declared once. :func:`_add_shared` adds them.
+_SHARED: dict[str, dict[str, Any]] = {
+    "--k-o": {"type": _positive, "required": True, "help": "object stiffness K_o [N/m]"},
+    "--delay-ticks": {
+        "type": _nonneg_int,
+        "default": 0,
+        "help": "extra simulation ticks of delay (default %(default)s)",
+    },
+    "--servo-rate": {"type": _positive, "default": 1000.0},
+    "--sim-rate": {"type": _positive, "default": 20.0},
+    "--local-model": {"choices": ["p", "pi"], "default": "pi"},
+    "--profile": {"default": "phantom-desktop"},
+    "--margin": {"type": _probability, "default": 0.15},
+    "--host": {"default": "127.0.0.1"},
+    "--port": {"type": _nonneg_int, "default": 8765},
+    "--mesh": {"default": "balloon"},
+    "--mesh-scale": {"type": _positive, "default": None},
+    "--mesh-size": {"type": _positive, "default": None},
+    "--material": {"default": None, "metavar": "NAME|FILE.toml"},
+    "--subdivisions": {"type": _nonneg_int, "default": 4},
+    "--latency-ms": {"type": _nonneg, "default": 0.0, "help": "injected one-way latency [ms]"},
+    "--jitter-ms": {"type": _nonneg, "default": 0.0, "help": "injected jitter [ms]"},
+    "--loss": {"type": _probability, "default": 0.0},
+}
+
+
+def _add_shared(p: argparse._ActionsContainer, flag: str, **more: Any) -> None:
+    """Add the option ``flag`` of :data:`_SHARED` to ``p``; ``more`` (its help, a metavar) adds
+    what the subcommand says of it (a TypeError if it tries to change what is shared)."""
+    p.add_argument(flag, **_SHARED[flag], **more)
 
 
 # ---------------------------------------------------------------------------------------- stability
@@ -153,7 +187,7 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
         help="stability of the simulation loop for given K_o, K_h, I (paper eq. 8, 10, 15, 16)",
         description="Verdict on the slow-rate simulation loop z^-(1+D) L_h(z) D(z) (Fig. 6).",
     )
-    p.add_argument("--k-o", type=_positive, required=True, help="object stiffness K_o [N/m]")
+    _add_shared(p, "--k-o")
     p.add_argument("--k-h", type=_positive, required=True, help="local model stiffness K_h [N/m]")
     p.add_argument(
         "--i-gain",
@@ -167,24 +201,9 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
         default=0.0,
         help="object damping b [N*s/m] (default %(default)s)",
     )
-    p.add_argument(
-        "--servo-rate",
-        type=_positive,
-        default=1000.0,
-        help="servo rate 1/T [Hz] (default %(default)s)",
-    )
-    p.add_argument(
-        "--sim-rate",
-        type=_positive,
-        default=20.0,
-        help="simulation rate [Hz] (default %(default)s)",
-    )
-    p.add_argument(
-        "--delay-ticks",
-        type=_nonneg_int,
-        default=0,
-        help="extra simulation ticks of delay (default %(default)s)",
-    )
+    _add_shared(p, "--servo-rate", help="servo rate 1/T [Hz] (default %(default)s)")
+    _add_shared(p, "--sim-rate", help="simulation rate [Hz] (default %(default)s)")
+    _add_shared(p, "--delay-ticks")
     p.add_argument(
         "--sample-tick",
         type=_nonneg_int,
@@ -274,11 +293,10 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         description="Design K_h, I, B_h and the proxy hold for an object stiffness: stable for "
         "every hand of the hand box, every force-sampling tick and K_o' down to (1 - margin) K_o.",
     )
-    p.add_argument("--k-o", type=_positive, required=True, help="object stiffness K_o [N/m]")
-    p.add_argument(
+    _add_shared(p, "--k-o")
+    _add_shared(
+        p,
         "--local-model",
-        choices=["p", "pi"],
-        default="pi",
         help="local model: proportional or proportional-integral (default %(default)s)",
     )
     p.add_argument(
@@ -287,33 +305,16 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         default=0.0,
         help="object damping B_o [N/m] (eq. 9) (default %(default)s)",
     )
-    p.add_argument(
-        "--sim-rate",
-        type=_positive,
-        default=20.0,
-        help="simulation rate [Hz] (default %(default)s)",
-    )
-    p.add_argument(
-        "--servo-rate",
-        type=_positive,
-        default=1000.0,
-        help="servo rate [Hz] (default %(default)s)",
-    )
-    p.add_argument(
-        "--delay-ticks",
-        type=_nonneg_int,
-        default=0,
-        help="extra simulation ticks of delay (default %(default)s)",
-    )
-    p.add_argument(
+    _add_shared(p, "--sim-rate", help="simulation rate [Hz] (default %(default)s)")
+    _add_shared(p, "--servo-rate", help="servo rate [Hz] (default %(default)s)")
+    _add_shared(p, "--delay-ticks")
+    _add_shared(
+        p,
         "--profile",
-        default="phantom-desktop",
         help="device profile whose limits bound K_h and B_h (phantom-desktop | touch) "
         "(default %(default)s)",
     )
-    p.add_argument(
-        "--margin", type=_probability, default=0.15, help="K_o margin (default %(default)s)"
-    )
+    _add_shared(p, "--margin", help="K_o margin (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_gains)
 
@@ -408,31 +409,19 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="defaults for every option below from a TOML file (flags given here override it; "
         "docs/server-config.example.toml)",
     )
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=_nonneg_int, default=8765, help="TCP port (0: any free port)")
-    p.add_argument(
-        "--mesh", default="balloon", help="'balloon' or a mesh file (STL, OBJ, PLY, OFF, GLB)"
-    )
-    p.add_argument(
+    _add_shared(p, "--host")
+    _add_shared(p, "--port", help="TCP port (0: any free port)")
+    _add_shared(p, "--mesh", help="'balloon' or a mesh file (STL, OBJ, PLY, OFF, GLB)")
+    _add_shared(
+        p,
         "--material",
-        default=None,
-        metavar="NAME|FILE.toml",
         help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file "
         "(docs/materials.md; default: the built-in silicone-like balloon)",
     )
-    p.add_argument(
-        "--mesh-scale", type=_positive, default=None, help="multiply the file's coordinates by S"
-    )
-    p.add_argument(
-        "--mesh-size",
-        type=_positive,
-        default=None,
-        help="rescale so the largest extent is this [m]",
-    )
-    p.add_argument(
-        "--subdivisions", type=_nonneg_int, default=4, help="icosphere subdivisions of the balloon"
-    )
-    p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
+    _add_shared(p, "--mesh-scale", help="multiply the file's coordinates by S")
+    _add_shared(p, "--mesh-size", help="rescale so the largest extent is this [m]")
+    _add_shared(p, "--subdivisions", help="icosphere subdivisions of the balloon")
+    _add_shared(p, "--sim-rate", help="simulation rate [Hz]")
     p.add_argument(
         "--damping", type=_nonneg, default=None, help="object damping (visco-elastic, eq. 9)"
     )
@@ -440,11 +429,9 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument(
         "--primitive", choices=["plane", "sphere"], default="plane", help="local model primitive"
     )
-    p.add_argument("--latency-ms", type=_nonneg, default=0.0, help="injected one-way latency [ms]")
-    p.add_argument("--jitter-ms", type=_nonneg, default=0.0, help="injected jitter [ms]")
-    p.add_argument(
-        "--loss", type=_probability, default=0.0, help="injected loss of state frames [0, 1)"
-    )
+    _add_shared(p, "--latency-ms")
+    _add_shared(p, "--jitter-ms")
+    _add_shared(p, "--loss", help="injected loss of state frames [0, 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the latency injection")
     p.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
     sec = p.add_argument_group("security (docs/security.md)")
@@ -580,14 +567,12 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument(
         "--device", default="sim:press", help="sim:press | sim:rest | sim:replay:FILE | hid:VID:PID"
     )
-    p.add_argument(
-        "--profile", default="phantom-desktop", help="simulated device profile (see haptic devices)"
-    )
+    _add_shared(p, "--profile", help="simulated device profile (see haptic devices)")
     p.add_argument(
         "--hid-profile", default=None, help="generic HID device profile (name or JSON file)"
     )
-    p.add_argument("--local-model", choices=["p", "pi"], default="pi")
-    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo rate [Hz]")
+    _add_shared(p, "--local-model")
+    _add_shared(p, "--servo-rate", help="servo rate [Hz]")
     p.add_argument("--record", default=None, help="write the servo telemetry CSV here")
     p.add_argument("--summary", default=None, help="write a JSON summary here")
     p.add_argument("--duration", type=_positive, default=None, help="run this many seconds")
@@ -633,12 +618,7 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="time-domain passivity controller at the device port; auto = on for PI "
         "(default %(default)s)",
     )
-    p.add_argument(
-        "--margin",
-        type=_probability,
-        default=0.15,
-        help="K_o margin of the gain design (default %(default)s)",
-    )
+    _add_shared(p, "--margin", help="K_o margin of the gain design (default %(default)s)")
     p.add_argument(
         "--token",
         default=None,
@@ -841,7 +821,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help="servo bench duration; load: the measurement window after warm-up [s] "
         "(default %(default)s)",
     )
-    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo bench rate [Hz]")
+    _add_shared(p, "--servo-rate", help="servo bench rate [Hz]")
     p.add_argument(
         "--quick", action="store_true", help="fidelity: the documented subset (< 3 min, 2 cores)"
     )
@@ -866,16 +846,10 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         default=8,
         help="load: websocket viewers (default %(default)s)",
     )
-    p.add_argument(
-        "--sim-rate",
-        type=_positive,
-        default=20.0,
-        help="load: simulation rate [Hz] (default %(default)s)",
-    )
-    p.add_argument(
+    _add_shared(p, "--sim-rate", help="load: simulation rate [Hz] (default %(default)s)")
+    _add_shared(
+        p,
         "--subdivisions",
-        type=_nonneg_int,
-        default=4,
         help="load: icosphere subdivisions of the balloon (default %(default)s: 2562 vertices)",
     )
     p.add_argument(
@@ -964,39 +938,29 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
     p.add_argument("--headless", action="store_true", help="do not open a browser")
     p.add_argument("--report", default=None, help="write the JSON report here")
     p.add_argument("--plot", default=None, help="write a PNG of probe, proxy and force here")
-    p.add_argument("--sim-rate", type=_positive, default=20.0, help="simulation rate [Hz]")
-    p.add_argument("--servo-rate", type=_positive, default=1000.0, help="servo rate [Hz]")
-    p.add_argument("--latency-ms", type=_nonneg, default=0.0, help="injected one-way latency [ms]")
-    p.add_argument("--jitter-ms", type=_nonneg, default=0.0, help="injected jitter [ms]")
-    p.add_argument("--loss", type=_probability, default=0.0, help="injected loss of state frames")
-    p.add_argument("--mesh", default="balloon", help="'balloon' or a mesh file")
-    p.add_argument(
-        "--mesh-scale",
-        type=_positive,
-        default=None,
-        help="multiply the mesh file's coordinates by S",
+    _add_shared(p, "--sim-rate", help="simulation rate [Hz]")
+    _add_shared(p, "--servo-rate", help="servo rate [Hz]")
+    _add_shared(p, "--latency-ms")
+    _add_shared(p, "--jitter-ms")
+    _add_shared(p, "--loss", help="injected loss of state frames")
+    _add_shared(p, "--mesh", help="'balloon' or a mesh file")
+    _add_shared(p, "--mesh-scale", help="multiply the mesh file's coordinates by S")
+    _add_shared(
+        p, "--mesh-size", metavar="M", help="rescale the mesh file so its largest extent is M [m]"
     )
-    p.add_argument(
-        "--mesh-size",
-        type=_positive,
-        default=None,
-        metavar="M",
-        help="rescale the mesh file so its largest extent is M [m]",
-    )
-    p.add_argument(
+    _add_shared(
+        p,
         "--material",
-        default=None,
-        metavar="NAME|FILE.toml",
         help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file",
     )
-    p.add_argument("--port", type=_nonneg_int, default=8765, help="server port (0: any free port)")
-    p.add_argument(
+    _add_shared(p, "--port", help="server port (0: any free port)")
+    _add_shared(
+        p,
         "--host",
-        default="127.0.0.1",
         help="server address (0.0.0.0: every interface; the viewer URLs of this machine are "
         "printed; default %(default)s)",
     )
-    p.add_argument("--local-model", choices=["p", "pi"], default="pi")
+    _add_shared(p, "--local-model")
     p.add_argument("--workdir", default=None, help="keep logs and telemetry here")
     _add_stiffness_scale(p)
     _add_hand(p)

@@ -66,11 +66,12 @@ def _rc() -> dict[Any, Any]:
 
 
 @contextmanager
-def _figure(figsize: tuple[float, float]) -> Iterator[Figure]:
-    """A new Agg figure of ``figsize`` [in], inside this module's rc settings (restored after).
+def _figure(figsize: tuple[float, float], path: pathlib.Path) -> Iterator[Figure]:
+    """A new Agg figure of ``figsize`` [in], saved as the PNG ``path`` when the block ends.
 
-    The figure must be drawn and saved inside the ``with`` block: tick labels take the rc settings
-    when they are drawn.
+    The ``with`` block draws; on leaving it the figure is laid out (``tight_layout``) and saved,
+    still inside this module's rc settings (restored after): tick labels take the rc settings when
+    they are drawn. Nothing is saved when the block raises.
     """
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -80,6 +81,8 @@ def _figure(figsize: tuple[float, float]) -> Iterator[Figure]:
         fig = Figure(figsize=figsize)
         FigureCanvasAgg(fig)
         yield fig
+        fig.tight_layout()
+        fig.savefig(path)
 
 
 def _style(ax: Axes, xlabel: str, ylabel: str) -> None:
@@ -112,7 +115,7 @@ def plot_fig7(data: Fig7Data, path: pathlib.Path) -> None:
     step_t_s = result["probe"]["t_step_s"]
     step_m = result["probe"]["x_after_m"]
     run_s = result["run_s"]
-    with _figure((15.0, 4.9)) as fig:
+    with _figure((15.0, 4.9), path) as fig:
         axes = fig.subplots(1, 3, sharex=True)
         for ax, (name, c) in zip(axes, result["cases"].items(), strict=True):
             k_o, k_h = c["k_o"], c["k_h"]
@@ -180,8 +183,6 @@ def plot_fig7(data: Fig7Data, path: pathlib.Path) -> None:
             f"(servo {SERVO_RATE_HZ:g} Hz, simulation {SIM_RATE_HZ:g} Hz)",
             fontsize=13,
         )
-        fig.tight_layout()
-        fig.savefig(path)
 
 
 # --------------------------------------------------------------------------------------------
@@ -217,7 +218,7 @@ def plot_fig8(data: Fig8Data, path: pathlib.Path) -> None:
     rho, numeric = data.spectral_radius, data.stable
     fraction = data.result["agreement_fraction"]
     kh_max, nti_max = float(kh_r[-1]), float(nti_r[-1])
-    with _figure((15.0, 6.4)) as fig:
+    with _figure((15.0, 6.4), path) as fig:
         ax, ax2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.15, 1.0]})
         # -- left: normalised plane, numeric verdict shaded, eq. 15 boundaries drawn
         rho_plot = np.clip(rho, 0.0, 1.0)
@@ -302,8 +303,6 @@ def plot_fig8(data: Fig8Data, path: pathlib.Path) -> None:
             fontsize=11.5,
         )
         _style(ax2, r"$K_h$ [N/m]", r"$I\,N\,T$ [N/m]")
-        fig.tight_layout()
-        fig.savefig(path)
 
 
 # --------------------------------------------------------------------------------------------
@@ -329,7 +328,7 @@ def plot_fig9(data: Fig9Data, path: pathlib.Path) -> None:
     result = data.result
     k_o, k_h = result["k_o"], result["k_h"]
     run_s = result["run_s"]
-    with _figure((13.5, 5.0)) as fig:
+    with _figure((13.5, 5.0), path) as fig:
         axes = fig.subplots(1, 2, sharey=True)
         panels = (
             (
@@ -389,8 +388,6 @@ def plot_fig9(data: Fig9Data, path: pathlib.Path) -> None:
             f"({k_o:g} N/m), servo {SERVO_RATE_HZ:g} Hz, simulation {SIM_RATE_HZ:g} Hz",
             fontsize=13,
         )
-        fig.tight_layout()
-        fig.savefig(path)
 
 
 # --------------------------------------------------------------------------------------------

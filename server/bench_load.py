@@ -247,6 +247,48 @@ def _record_error(stats: _UserStats | _ViewerStats, msg: dict[str, Any]) -> None
     stats.codes[code] = stats.codes.get(code, 0) + 1
 
 
+async def _join(
+    ws: Any, hello: dict[str, Any], stats: _UserStats | _ViewerStats
+) -> dict[str, Any] | None:
+    """Send ``hello``; the server's welcome, or None when it answered otherwise (an error counted).
+
+    Raises
+    ------
+    TimeoutError
+        No answer within :data:`JOIN_TIMEOUT_S`.
+    """
+    await ws.send(json.dumps(hello))
+    welcome: dict[str, Any] = json.loads(await asyncio.wait_for(ws.recv(), JOIN_TIMEOUT_S))
+    if welcome.get("type") != "welcome":
+        if welcome.get("type") == "error":
+            _record_error(stats, welcome)
+        return None
+    stats.joined = True
+    return welcome
+
+
+async def _leave(ws: Any, receiver: asyncio.Task[None], stop: asyncio.Event) -> None:
+    """End a session whose ``receiver`` is done or ``stop`` is set.
+
+    Stopped: say bye and give the receiver 3 s to read the server's close. Otherwise the
+    connection ended by itself: re-raise how (the receiver's exception).
+    """
+    if stop.is_set():
+        with contextlib.suppress(Exception):
+            await ws.send('{"type":"bye"}')
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(asyncio.shield(receiver), 3.0)
+    else:
+        receiver.result()  # re-raise how the connection ended
+
+
+async def _cancel(task: asyncio.Task[None]) -> None:
+    """Cancel ``task`` and wait for it, whatever it raises."""
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError, Exception):
+        await task
+
+
 async def _user_session(
     ws: Any, spec: _ClientSpec, stats: _UserStats, window: _Window, stop: asyncio.Event
 ) -> None:
@@ -260,13 +302,9 @@ async def _user_session(
         "servo_rate_hz": 1000.0,
         "local_model": "p",
     }
-    await ws.send(json.dumps(hello))
-    welcome = json.loads(await asyncio.wait_for(ws.recv(), JOIN_TIMEOUT_S))
-    if welcome.get("type") != "welcome":
-        if welcome.get("type") == "error":
-            _record_error(stats, welcome)
+    welcome = await _join(ws, hello, stats)
+    if welcome is None:
         return
-    stats.joined = True
     obj = welcome["object"]
     sim_rate = float(welcome["sim_rate_hz"])
     anchor = [float(c) for c in obj[f"{spec.anchor}_m"]]
@@ -356,17 +394,9 @@ async def _user_session(
                 t_next = loop.time() + period
                 delay = period
             await asyncio.sleep(max(delay, 0.0))
-        if stop.is_set():
-            with contextlib.suppress(Exception):
-                await ws.send('{"type":"bye"}')
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(asyncio.shield(receiver), 3.0)
-        else:
-            receiver.result()  # re-raise how the connection ended
+        await _leave(ws, receiver, stop)
     finally:
-        receiver.cancel()
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await receiver
+        await _cancel(receiver)
 
 
 async def _viewer_session(
@@ -378,13 +408,9 @@ async def _viewer_session(
     ticks: dict[int, float],
 ) -> None:
     """One connection of a viewer: hello, then read every frame until ``stop``."""
-    await ws.send(json.dumps({"type": "hello", "protocol": 1, "role": "viewer", "name": spec.name}))
-    welcome = json.loads(await asyncio.wait_for(ws.recv(), JOIN_TIMEOUT_S))
-    if welcome.get("type") != "welcome":
-        if welcome.get("type") == "error":
-            _record_error(stats, welcome)
+    hello = {"type": "hello", "protocol": 1, "role": "viewer", "name": spec.name}
+    if await _join(ws, hello, stats) is None:
         return
-    stats.joined = True
 
     async def receive() -> None:
         async for frame in ws:
@@ -413,18 +439,10 @@ async def _viewer_session(
     stopper = asyncio.create_task(stop.wait())
     try:
         await asyncio.wait({receiver, stopper}, return_when=asyncio.FIRST_COMPLETED)
-        if stop.is_set():
-            with contextlib.suppress(Exception):
-                await ws.send('{"type":"bye"}')
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(asyncio.shield(receiver), 3.0)
-        else:
-            receiver.result()
+        await _leave(ws, receiver, stop)
     finally:
         stopper.cancel()
-        receiver.cancel()
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await receiver
+        await _cancel(receiver)
 
 
 async def _run_client(

@@ -107,6 +107,27 @@ REQUIRED_KEYS = ("tension_n_per_m", "bending_n_m", "foundation_n_per_m3", "bulk_
 OPTIONAL_KEYS = ("damping_pa_s_per_m", "name", "source")
 
 
+def _checked_value(where: str, key: str, value: object, *, positive: bool = False) -> float:
+    """``value`` of the numeric field ``key`` (a key of :data:`_UNITS`) as a float.
+
+    Raises
+    ------
+    MaterialError
+        ``value`` is not a number (a bool is not), not finite, or below its bound (> 0 when
+        ``positive``, else >= 0): "WHERE: KEY must be ... [UNIT], got VALUE".
+    """
+    unit = _UNITS[key]
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise MaterialError(f"{where}: {key} must be a number [{unit}], got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise MaterialError(f"{where}: {key} must be finite [{unit}], got {value!r}")
+    if not (v > 0.0 if positive else v >= 0.0):
+        bound = "> 0" if positive else ">= 0"
+        raise MaterialError(f"{where}: {key} must be {bound} [{unit}], got {value!r}")
+    return v
+
+
 @dataclass(frozen=True, slots=True)
 class Material:
     """The physical parameters of a deformable object, SI units (DESIGN section 5).
@@ -154,23 +175,12 @@ class Material:
         for f in fields(self):
             if f.name not in _UNITS:
                 continue
-            value = getattr(self, f.name)
-            unit = _UNITS[f.name]
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise MaterialError(
-                    f"material {self.name!r}: {f.name} must be a number [{unit}], got {value!r}"
-                )
-            v = float(value)
-            if not math.isfinite(v):
-                raise MaterialError(
-                    f"material {self.name!r}: {f.name} must be finite [{unit}], got {value!r}"
-                )
-            lowest_ok = v > 0.0 if f.name == "tension_n_per_m" else v >= 0.0
-            if not lowest_ok:
-                bound = "> 0" if f.name == "tension_n_per_m" else ">= 0"
-                raise MaterialError(
-                    f"material {self.name!r}: {f.name} must be {bound} [{unit}], got {value!r}"
-                )
+            v = _checked_value(
+                f"material {self.name!r}",
+                f.name,
+                getattr(self, f.name),
+                positive=f.name == "tension_n_per_m",
+            )
             object.__setattr__(self, f.name, v)
 
     def summary(self) -> str:
@@ -477,19 +487,7 @@ def material_from_mapping(data: Mapping[str, object], where: str, default_name: 
     for key in ("name", "source"):
         if key in data and not isinstance(data[key], str):
             raise MaterialError(f"{where}: {key} must be a string, got {data[key]!r}")
-    values: dict[str, float] = {}
-    for key, unit in _UNITS.items():
-        if key not in data:
-            continue
-        value = data[key]
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise MaterialError(f"{where}: {key} must be a number [{unit}], got {value!r}")
-        v = float(value)
-        if not math.isfinite(v):
-            raise MaterialError(f"{where}: {key} must be finite [{unit}], got {value!r}")
-        if v < 0.0:
-            raise MaterialError(f"{where}: {key} must be >= 0 [{unit}], got {value!r}")
-        values[key] = v
+    values = {key: _checked_value(where, key, data[key]) for key in _UNITS if key in data}
     name = str(data.get("name", default_name))
     source = str(data.get("source", f"file {where}"))
     try:

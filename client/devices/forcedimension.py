@@ -55,11 +55,8 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
-from haptic_collab.client.devices import (
-    HID_STANDOFF_M,
-    PLACEHOLDER_ANCHOR,
-    PLACEHOLDER_NORMAL,
-)
+from haptic_collab.client.devices._vendor import PLACEHOLDER_CENTER, opened_by
+from haptic_collab.client.devices._vendor import standoff_center as workspace_center
 from haptic_collab.client.devices.backends import (
     DeviceBackend,
     DeviceError,
@@ -93,19 +90,6 @@ MAX_VELOCITY_M_S = 1.0
 #: Largest workspace scale accepted in ``,scale=S``.
 MAX_SCALE = 100.0
 
-
-def workspace_center(anchor: Vec3, normal: Vec3) -> Vec3:
-    """The workspace centre for ``anchor`` [m] and outward unit ``normal``: :data:`HID_STANDOFF_M`
-    outside the anchor, like a HID device's."""
-    return (
-        anchor[0] + HID_STANDOFF_M * normal[0],
-        anchor[1] + HID_STANDOFF_M * normal[1],
-        anchor[2] + HID_STANDOFF_M * normal[2],
-    )
-
-
-#: Where the workspace centre sits before the server's welcome says where the object is.
-_PLACEHOLDER_CENTER: Vec3 = workspace_center(PLACEHOLDER_ANCHOR, PLACEHOLDER_NORMAL)
 
 _SPEC_HELP = (
     "use forcedimension (the first device), forcedimension:ID (device index 0, 1, ...; "
@@ -357,7 +341,7 @@ class ForceDimensionDevice(Device):
 
     has_buttons = True  # --engage default: the first button engages forces
 
-    def __init__(self, index: int | None, scale: float = 1.0, center: Vec3 = _PLACEHOLDER_CENTER):
+    def __init__(self, index: int | None, scale: float = 1.0, center: Vec3 = PLACEHOLDER_CENTER):
         self.index = index
         self.scale = scale
         self.center: Vec3 = center
@@ -657,9 +641,7 @@ class ForceDimensionBackend(DeviceBackend):
         return dev
 
     def place(self, device: Device, anchor: Vec3, normal: Vec3) -> Device:
-        if not isinstance(device, ForceDimensionDevice):
-            raise DeviceError(f"{device.name} was not opened by the forcedimension backend")
-        device.move_to(workspace_center(anchor, normal))
+        opened_by(self, device, ForceDimensionDevice).move_to(workspace_center(anchor, normal))
         return device
 
 

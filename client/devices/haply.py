@@ -54,11 +54,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from haptic_collab.client.devices import (
-    HID_STANDOFF_M,
-    PLACEHOLDER_ANCHOR,
-    PLACEHOLDER_NORMAL,
-)
+from haptic_collab.client.devices._vendor import PLACEHOLDER_CENTER, opened_by, standoff_center
 from haptic_collab.client.devices.backends import (
     DeviceBackend,
     DeviceError,
@@ -731,7 +727,7 @@ class HaplyBackend(DeviceBackend):
         cfg = parse_haply_args(args)
         dev = Inverse3Device(
             cfg.port,
-            center=_standoff(PLACEHOLDER_ANCHOR, PLACEHOLDER_NORMAL),
+            center=PLACEHOLDER_CENTER,
             scale=cfg.scale,
             specs=cfg.specs,
             timeout_s=cfg.timeout_s,
@@ -741,19 +737,8 @@ class HaplyBackend(DeviceBackend):
         return dev
 
     def place(self, device: Device, anchor: Vec3, normal: Vec3) -> Device:
-        if not isinstance(device, Inverse3Device):
-            raise DeviceError(f"{device.name} was not opened by the haply backend")
-        device.move_to(_standoff(anchor, normal))
+        opened_by(self, device, Inverse3Device).move_to(standoff_center(anchor, normal))
         return device
-
-
-def _standoff(anchor: Sequence[float], normal: Sequence[float]) -> Vec3:
-    """The workspace centre: :data:`HID_STANDOFF_M` outside ``anchor`` along ``normal``."""
-    return (
-        anchor[0] + HID_STANDOFF_M * normal[0],
-        anchor[1] + HID_STANDOFF_M * normal[1],
-        anchor[2] + HID_STANDOFF_M * normal[2],
-    )
 
 
 #: The backend (entry point ``haply`` in pyproject.toml, and ``BUILTIN_BACKENDS``).

@@ -69,11 +69,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from haptic_collab.client.devices import (
-    HID_STANDOFF_M,
-    PLACEHOLDER_ANCHOR,
-    PLACEHOLDER_NORMAL,
-)
+from haptic_collab.client.devices._vendor import PLACEHOLDER_CENTER, opened_by, standoff_center
 from haptic_collab.client.devices.backends import (
     DeviceBackend,
     DeviceError,
@@ -377,12 +373,6 @@ def world_limits(hd: HdLimits, scale: float, center_w: Vec3) -> DeviceLimits:
         workspace_min_m=lo,
         workspace_max_m=hi,
     ).scaled(scale)
-
-
-def standoff_center(anchor: Sequence[float], normal: Sequence[float]) -> Vec3:
-    """Where the workspace centre goes: :data:`HID_STANDOFF_M` outside ``anchor``."""
-    s = HID_STANDOFF_M
-    return (anchor[0] + s * normal[0], anchor[1] + s * normal[1], anchor[2] + s * normal[2])
 
 
 # -- spec -----------------------------------------------------------------------------------------------
@@ -1023,17 +1013,13 @@ class OpenHapticsBackend(DeviceBackend):
     def open(self, args: str, options: DeviceOptions) -> Device:
         name, scale = parse_spec(args)
         spec = f"openhaptics:{args}" if args else "openhaptics"
-        dev = OpenHapticsDevice(
-            name, scale, standoff_center(PLACEHOLDER_ANCHOR, PLACEHOLDER_NORMAL), spec=spec
-        )
+        dev = OpenHapticsDevice(name, scale, PLACEHOLDER_CENTER, spec=spec)
         if options.acquire:
             dev.acquire()  # DeviceOpenError: one line, before any network
         return dev
 
     def place(self, device: Device, anchor: Vec3, normal: Vec3) -> Device:
-        if not isinstance(device, OpenHapticsDevice):
-            raise DeviceError(f"{device.name} was not opened by the openhaptics backend")
-        device.place_at(standoff_center(anchor, normal))
+        opened_by(self, device, OpenHapticsDevice).place_at(standoff_center(anchor, normal))
         return device
 
 

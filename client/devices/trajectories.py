@@ -27,8 +27,9 @@ from __future__ import annotations
 import bisect
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from itertools import accumulate
 from pathlib import Path
 
 from haptic_collab.shared.primitives import unit_vec3, vec3
@@ -100,6 +101,32 @@ class _Waypoints:
         return (a[0] + d * n[0], a[1] + d * n[1], a[2] + d * n[2])
 
 
+def _set_path(
+    traj: Press | Rest,
+    phases: tuple[str, ...],
+    offsets: Callable[[float, float], list[float]],
+) -> None:
+    """Check a frozen :class:`Press` or :class:`Rest` and set its anchor, normal and path.
+
+    The anchor must be 3 finite numbers [m], the normal non-zero (normalized here), ``standoff_m``,
+    ``depth_m`` and the durations [s] named in ``phases`` (attributes of ``traj``, in order)
+    finite and >= 0. The way-points are at the cumulative sums of those durations, at the offsets
+    [m] along the outward normal ``offsets(standoff_m, depth_m)`` (one per phase).
+
+    Raises
+    ------
+    ValueError
+        A value that fails those checks (the first, in the order above).
+    """
+    a = vec3("anchor", traj.anchor)
+    n = unit_vec3("normal", traj.normal)
+    so, dp = _nonneg("standoff_m", traj.standoff_m), _nonneg("depth_m", traj.depth_m)
+    times = list(accumulate(_nonneg(name, getattr(traj, name)) for name in phases))
+    object.__setattr__(traj, "anchor", a)
+    object.__setattr__(traj, "normal", n)
+    object.__setattr__(traj, "_path", _Waypoints(a, n, times, offsets(so, dp)))
+
+
 @dataclass(frozen=True)
 class Press:
     """Approach, press in, hold, release and withdraw (the pressing user of the demo).
@@ -137,18 +164,11 @@ class Press:
     _path: _Waypoints = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        a = vec3("anchor", self.anchor)
-        n = unit_vec3("normal", self.normal)
-        so, dp = _nonneg("standoff_m", self.standoff_m), _nonneg("depth_m", self.depth_m)
-        t0 = _nonneg("delay_s", self.delay_s)
-        t1 = t0 + _nonneg("approach_s", self.approach_s)
-        t2 = t1 + _nonneg("press_s", self.press_s)
-        t3 = t2 + _nonneg("hold_s", self.hold_s)
-        t4 = t3 + _nonneg("release_s", self.release_s)
-        path = _Waypoints(a, n, [t0, t1, t2, t3, t4], [so, 0.0, -dp, -dp, so])
-        object.__setattr__(self, "anchor", a)
-        object.__setattr__(self, "normal", n)
-        object.__setattr__(self, "_path", path)
+        _set_path(
+            self,
+            ("delay_s", "approach_s", "press_s", "hold_s", "release_s"),
+            lambda so, dp: [so, 0.0, -dp, -dp, so],
+        )
 
     @property
     def duration_s(self) -> float:
@@ -192,14 +212,7 @@ class Rest:
     _path: _Waypoints = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        a = vec3("anchor", self.anchor)
-        n = unit_vec3("normal", self.normal)
-        so, dp = _nonneg("standoff_m", self.standoff_m), _nonneg("depth_m", self.depth_m)
-        t0 = _nonneg("delay_s", self.delay_s)
-        t1 = t0 + _nonneg("approach_s", self.approach_s)
-        object.__setattr__(self, "anchor", a)
-        object.__setattr__(self, "normal", n)
-        object.__setattr__(self, "_path", _Waypoints(a, n, [t0, t1], [so, -dp]))
+        _set_path(self, ("delay_s", "approach_s"), lambda so, dp: [so, -dp])
 
     def __call__(self, t_s: float) -> Vec3:
         """Hand target (x, y, z) [m] at time ``t_s`` [s]."""

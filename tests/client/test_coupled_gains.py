@@ -13,44 +13,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from haptic_collab.client.bench_gains import plane_patch, welcomed_session
 from haptic_collab.client.session import ClientSession, interim_design
 from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
-from haptic_collab.shared.protocol import DeviceInfo, Patch, PlaneModel, Welcome, encode
-from tests.client.test_session import OBJ
-
-
-def coupled_patch(tick: int, k_o: float, k_o_eff: float, k_o_stiff: float | None) -> str:
-    return encode(
-        Patch(
-            tick=tick,
-            primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)),
-            proxy_m=(0, 0, 0.1),
-            normal=(0, 0, 1),
-            penetration_m=0.002,
-            in_contact=True,
-            k_o=k_o,
-            k_o_eff=k_o_eff,
-            k_o_stiff=k_o_stiff,
-            b_o=0.0,
-        )  # fmt: skip
-    )
 
 
 def session() -> ClientSession:
-    s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=1000.0), b_h_max=10.0)
-    s.receive(
-        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
-    )
-    return s
+    return welcomed_session("A", "u1", b_h_max=10.0)
 
 
 def test_an_uncoupled_patch_keeps_todays_gain_key() -> None:
     s = session()
-    s.receive(coupled_patch(1, 300.0, 300.0, None), 0.1)
+    s.receive(plane_patch(1, 300.0, 300.0, None), 0.1)
     assert s.design_wanted is not None and s.design_wanted[0].stiff_ratio == 1.0
     s2 = session()
-    s2.receive(coupled_patch(1, 300.0, 300.0, 300.0), 0.1)
+    s2.receive(plane_patch(1, 300.0, 300.0, 300.0), 0.1)
     assert s2.design_wanted is not None and s2.design_wanted[0] == s.design_wanted[0]
 
 
@@ -66,12 +44,12 @@ def test_coupled_pi_users_get_gains_that_meet_the_margin_of_the_coupled_loop(
     assert k_eff[0] == pytest.approx(k_o / (1 + coupling))
     assert k_stiff[0] == pytest.approx(k_o / (1 - coupling))
     s = session()
-    s.receive(coupled_patch(1, k_o, float(k_eff[0]), float(k_stiff[0])), 0.1)
+    s.receive(plane_patch(1, k_o, float(k_eff[0]), float(k_stiff[0])), 0.1)
     assert s.design_wanted is not None
     key, k_req = s.design_wanted
     assert key.stiff_ratio >= k_stiff[0] / k_eff[0]
     s.gain_table.design(key, k_req)  # as the link's worker does
-    up = s.receive(coupled_patch(2, k_o, float(k_eff[0]), float(k_stiff[0])), 0.15)
+    up = s.receive(plane_patch(2, k_o, float(k_eff[0]), float(k_stiff[0])), 0.15)
     assert up is not None and not up.fallback and up.i_gain > 0.0
     g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold)  # type: ignore[arg-type]
     verdict = verify_coupled(c, [g, g], delay_ticks=up.delay_ticks, margin=0.15)
@@ -87,7 +65,7 @@ def test_coupled_pi_users_get_gains_that_meet_the_margin_of_the_coupled_loop(
 
 def test_a_new_coupling_class_renders_a_scaled_proportional_model_until_verified() -> None:
     s = session()
-    assert s.receive(coupled_patch(1, 300.0, 300.0, None), 0.1) is None
+    assert s.receive(plane_patch(1, 300.0, 300.0, None), 0.1) is None
     assert s.interim_wanted is not None
     key, cell, cands = s.interim_wanted
     s.interim_wanted = None
@@ -95,14 +73,14 @@ def test_a_new_coupling_class_renders_a_scaled_proportional_model_until_verified
     first = s.retry_waiting(0.15)
     assert first is not None and first.verified
     # another user presses nearby: strongly coupled, K_o_eff halves, K_o_stiff is 10x K_o
-    up = s.receive(coupled_patch(2, 300.0, 158.0, 3000.0), 0.2)
+    up = s.receive(plane_patch(2, 300.0, 158.0, 3000.0), 0.2)
     assert up is not None and not up.verified
     assert up.i_gain == 0.0
     assert up.k_h <= first.k_h * 158.0 / 300.0 + 1e-9
     # the class stays up while the coupling wavers just below it (no design per tick)
     ratio = s.stiff_ratio
-    s.receive(coupled_patch(3, 300.0, 160.0, 160.0 * ratio / 2.5), 0.25)
+    s.receive(plane_patch(3, 300.0, 160.0, 160.0 * ratio / 2.5), 0.25)
     assert s.stiff_ratio == ratio
     # and comes down once the users are apart
-    s.receive(coupled_patch(4, 300.0, 300.0, 300.0), 0.3)
+    s.receive(plane_patch(4, 300.0, 300.0, 300.0), 0.3)
     assert s.stiff_ratio == 1.0

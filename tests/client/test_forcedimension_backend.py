@@ -27,7 +27,6 @@ import json
 import os
 import platform
 import re
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -39,6 +38,7 @@ import pytest
 from haptic_collab.client.devices import DeviceError
 from haptic_collab.client.devices import forcedimension as fd
 from haptic_collab.client.devices.backends import DeviceOptions
+from tests.helpers import c_compiler, compile_shared_library
 
 ROOT = Path(__file__).resolve().parents[2]
 EMULATOR_C = Path(__file__).resolve().parent / "emulators" / "fd_sim.c"
@@ -76,11 +76,9 @@ def defined_symbols(c_source: str) -> set[str]:
 @pytest.fixture(scope="module")
 def fdsdk(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An FDSDK folder holding the emulator built as libdrd (skips without cc or the binding)."""
-    cc = shutil.which("cc")
-    if cc is None:
-        pytest.skip(
-            "no C compiler (cc) on PATH to build the libdrd emulator tests/client/emulators/fd_sim.c"
-        )
+    cc = c_compiler(
+        "no C compiler (cc) on PATH to build the libdrd emulator tests/client/emulators/fd_sim.c"
+    )
     if sys.version_info[:2] >= fd.MAX_PYTHON:
         pytest.skip("forcedimension-core supports Python < 3.13 only")
     package = _binding_dir()
@@ -100,21 +98,7 @@ def fdsdk(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
     lib_dir = root / "lib" / "release" / f"lin-{platform.machine()}-gcc"
     lib_dir.mkdir(parents=True)
-    build = subprocess.run(
-        [
-            cc,
-            "-shared",
-            "-fPIC",
-            "-O1",
-            "-o",
-            str(lib_dir / LIBRARY_NAME),
-            str(EMULATOR_C),
-            str(stubs),
-        ],
-        capture_output=True,
-        text=True,
-    )
-    assert build.returncode == 0, f"cc failed:\n{build.stderr}"
+    compile_shared_library(cc, lib_dir / LIBRARY_NAME, [EMULATOR_C, stubs])
     return root
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -440,3 +441,11 @@ def test_open_refuses_what_is_not_an_inverse3(tmp_path: Path) -> None:
         mute.set_silent(True)
         with pytest.raises(OSError, match="no wake-up reply within 50 ms"):
             Inverse3Device(mute.path, open_timeout_s=0.05).open()
+
+
+@pytest.mark.parametrize("name", ["haply", "forcedimension", "openhaptics"])
+def test_a_vendor_backend_places_only_a_device_it_opened(name: str) -> None:
+    sim = make_device("sim:rest", SIDE_ANCHOR, SIDE_NORMAL)
+    message = f"{sim.name} was not opened by the {name} backend"
+    with pytest.raises(DeviceError, match=f"^{re.escape(message)}$"):
+        backends.get_backend(name).place(sim, SIDE_ANCHOR, SIDE_NORMAL)

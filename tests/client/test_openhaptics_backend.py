@@ -31,7 +31,6 @@ import asyncio
 import ctypes
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -43,6 +42,7 @@ import pytest
 
 from haptic_collab.client.devices import HID_STANDOFF_M, DeviceError, DeviceOptions
 from haptic_collab.client.devices.openhaptics import BACKEND, OpenHapticsDevice
+from tests.helpers import c_compiler, compile_shared_library
 
 ROOT = Path(__file__).resolve().parents[2]
 EMULATOR_C = Path(__file__).resolve().parent / "emulators" / "hd_sim.c"
@@ -387,19 +387,18 @@ SCENARIOS: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
 @pytest.fixture(scope="module")
 def libhd(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A folder holding the emulator compiled as ``libHD.so``."""
-    cc = shutil.which("cc")
-    if cc is None:
-        pytest.skip(
-            "no C compiler (cc) on PATH: the libHD emulator tests/client/emulators/hd_sim.c is "
-            "compiled at test time (install gcc or clang)"
-        )
+    cc = c_compiler(
+        "no C compiler (cc) on PATH: the libHD emulator tests/client/emulators/hd_sim.c is "
+        "compiled at test time (install gcc or clang)"
+    )
     out = tmp_path_factory.mktemp("libhd")
-    build = subprocess.run(
-        [cc, "-shared", "-fPIC", "-O1", "-Wall", "-Wl,-soname,libHD.so", "-o",
-         str(out / "libHD.so"), str(EMULATOR_C), "-lpthread"],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    assert build.returncode == 0, f"cannot compile {EMULATOR_C}:\n{build.stderr}"
+    compile_shared_library(
+        cc,
+        out / "libHD.so",
+        [EMULATOR_C],
+        flags=["-Wall", "-Wl,-soname,libHD.so"],
+        libs=["-lpthread"],
+    )
     return out
 
 

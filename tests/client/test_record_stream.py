@@ -19,6 +19,7 @@ import pytest
 from haptic_collab.client.devices import make_device
 from haptic_collab.client.recorder import COLUMNS, CsvRecording, TelemetryRecorder, load_recording
 from haptic_collab.client.servo import ServoConfig, ServoCore
+from tests.helpers import resting_servo
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -204,26 +205,24 @@ def test_a_signal_flushes_the_recording_and_writes_the_summary(
 # -- haptic plot ----------------------------------------------------------------------------------
 
 
-def test_haptic_plot_draws_a_recording(tmp_path: Path) -> None:
-    anchor, normal = (0.0, 0.0, 0.05), (0.0, 0.0, 1.0)
-    dev = make_device("sim:rest", anchor, normal, trajectory_options={"approach_s": 0.2})
-    dev.open()
-    core = ServoCore(dev, ServoConfig(link_timeout_s=float("inf")))
-    core.enable_forces()
-    from haptic_collab.shared.primitives import make_plane
-
-    core.set_patch(make_plane(anchor, normal), 250.0, 0.0)
-    for k in range(800):
-        core.tick(k * 1e-3)
-    path = tmp_path / "B.csv"
-    core.recorder.write_csv(path)
-    res = subprocess.run(
+def _haptic_plot(path: Path) -> subprocess.CompletedProcess[str]:
+    """``haptic plot PATH`` run as a user runs it, its output captured."""
+    return subprocess.run(
         [sys.executable, "-m", "haptic_collab.cli", "plot", str(path)],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=120,
     )
+
+
+def test_haptic_plot_draws_a_recording(tmp_path: Path) -> None:
+    core = resting_servo((0.0, 0.0, 0.05), (0.0, 0.0, 1.0))
+    for k in range(800):
+        core.tick(k * 1e-3)
+    path = tmp_path / "B.csv"
+    core.recorder.write_csv(path)
+    res = _haptic_plot(path)
     assert res.returncode == 0, res.stderr
     png = tmp_path / "B.png"
     assert f"wrote {png}" in res.stdout
@@ -231,13 +230,7 @@ def test_haptic_plot_draws_a_recording(tmp_path: Path) -> None:
     # not a recording: exit 2 with one line
     bad = tmp_path / "hand.csv"
     bad.write_text("t_s,x_m,y_m,z_m\n0,0,0,0\n")
-    res = subprocess.run(
-        [sys.executable, "-m", "haptic_collab.cli", "plot", str(bad)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    res = _haptic_plot(bad)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "not a --record file" in lines[0]

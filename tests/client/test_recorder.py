@@ -8,10 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_collab.client.devices import make_device
 from haptic_collab.client.recorder import COLUMNS, TelemetryRecorder
-from haptic_collab.client.servo import ServoConfig, ServoCore
-from haptic_collab.shared.primitives import make_plane
+from tests.helpers import resting_servo
 
 
 def row(i: int) -> list[float]:
@@ -49,11 +47,7 @@ def test_wrong_row_length_and_unknown_column_are_refused() -> None:
 
 def test_servo_ticks_write_a_csv_with_units(tmp_path: Path) -> None:
     anchor, normal = (0.0, 0.0, 0.05), (0.0, 0.0, 1.0)
-    dev = make_device("sim:rest", anchor, normal, trajectory_options={"approach_s": 0.2})
-    dev.open()
-    core = ServoCore(dev, ServoConfig(link_timeout_s=float("inf")))
-    core.enable_forces()
-    core.set_patch(make_plane(anchor, normal), 250.0, 0.0)
+    core = resting_servo(anchor, normal, k_h=250.0)
     for k in range(600):
         core.tick(k * 1e-3)
         core.record_compute(2e-6)

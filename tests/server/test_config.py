@@ -15,6 +15,7 @@ from haptic_collab.server.config import (
     apply_server_config,
     load_server_config,
 )
+from tests.helpers import assert_broken_and_missing_toml_refused
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "server-config.example.toml"
 
@@ -118,12 +119,8 @@ def test_paths_are_relative_to_the_file_and_names_are_kept(tmp_path):
 
 
 def test_broken_or_missing_files_are_refused_naming_the_file(tmp_path):
-    path = write(tmp_path, "port = = 1\n", name="broken.toml")
-    with pytest.raises(ConfigError, match="not a valid TOML file") as err:
-        load_server_config(path)
-    assert "broken.toml" in str(err.value)
-    with pytest.raises(ConfigError, match="does not exist"):
-        load_server_config(tmp_path / "absent.toml")
+    broken = write(tmp_path, "port = = 1\n", name="broken.toml")
+    assert_broken_and_missing_toml_refused(load_server_config, ConfigError, broken)
 
 
 def test_a_key_the_parser_cannot_take_is_refused_before_anything_is_set(tmp_path):

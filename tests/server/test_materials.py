@@ -24,6 +24,7 @@ from haptic_collab.server.materials import (
 )
 from haptic_collab.server.objects.balloon import Balloon, BalloonParams
 from haptic_collab.server.objects.mesh import default_balloon
+from tests.helpers import assert_broken_and_missing_toml_refused
 
 #: K_o [N/m] (top, side) on the default mesh as docs/materials.md lists them.
 DOCUMENTED_K_O = {
@@ -215,12 +216,8 @@ def test_zero_tension_is_refused(tmp_path):
 
 
 def test_broken_toml_and_missing_files_are_refused_naming_the_file(tmp_path):
-    path = write(tmp_path, "tension_n_per_m = = 3\n", name="broken.toml")
-    with pytest.raises(MaterialError, match="not a valid TOML file") as err:
-        load_material(path)
-    assert "broken.toml" in str(err.value)
-    with pytest.raises(MaterialError, match="does not exist"):
-        load_material(tmp_path / "absent.toml")
+    broken = write(tmp_path, "tension_n_per_m = = 3\n", name="broken.toml")
+    assert_broken_and_missing_toml_refused(load_material, MaterialError, broken)
 
 
 def test_material_constructor_checks_its_fields():

@@ -384,129 +384,139 @@ def _watch(page: Any) -> list[str]:
     return problems
 
 
-@pytest.mark.browser
-@pytest.mark.timeout(120)
-async def test_viewer_shows_the_dent_users_and_coupled_force() -> None:
-    """A presses the top: the viewer colours the dent, shows A's indentation as the server has
-    it, keeps A's arrow and the dent in view, and the force it shows for B (on the side) rises."""
+@contextlib.asynccontextmanager
+async def viewer_page(
+    *users: ScriptedUser, subdivisions: int = 4, viewport: tuple[int, int] = (VIEW_W, VIEW_H)
+) -> AsyncIterator[tuple[Any, Any, list[str]]]:
+    """``(app, page, problems)``: the real server with ``users`` connected, and its viewer page
+    in chromium (``viewport`` width, height [px]) ready; ``problems`` collects the page's errors.
+
+    Skips the test, with the reason, when chromium, playwright or three.js is missing.
+    """
     reason = _browser_skip_reason()
     if reason:
         pytest.skip(reason)
     from playwright.async_api import async_playwright
 
-    a = ScriptedUser("A", "top", depth_m=-0.005)  # hovering 5 mm above the top
-    b = ScriptedUser("B", "side", depth_m=0.002)  # resting 2 mm inside the side
     async with (
-        running_server() as app,
-        scripted_users(app.port, a, b),
+        running_server(subdivisions) as app,
+        scripted_users(app.port, *users),
         async_playwright() as pw,
     ):
         browser = await _launch(pw)
         try:
-            page = await browser.new_page(viewport={"width": VIEW_W, "height": VIEW_H})
+            page = await browser.new_page(viewport={"width": viewport[0], "height": viewport[1]})
             problems = _watch(page)
             await page.goto(f"http://127.0.0.1:{app.port}/", wait_until="domcontentloaded")
             await page.wait_for_function(_READY, timeout=30_000)
-
-            # header and connection indicator
-            assert await page.locator("#conn").get_attribute("class") == "conn connected"
-            assert await page.locator("#s-rate").inner_text() == f"{SIM_RATE_HZ:.0f}"
-
-            # B at rest, A not touching yet: B's force settles and the surface stream goes quiet
-            await asyncio.sleep(1.5)
-            before = await _sample_force(page, "B", n=5, interval_s=0.1)
-            baseline = sum(before) / len(before)
-            assert baseline > 0.0
-            users = await _viewer_users(page)
-            assert users["A"]["force_n_mag"] == 0.0 and users["A"]["penetration_mm"] < 0.0
-            card_a = page.locator('#user-list section.user[data-user-name="A"]')
-            await page.wait_for_timeout(300)
-            assert await card_a.locator(".indent-value").inner_text() == "not in contact"
-            assert await card_a.locator('[data-k="penetration_mm"]').inner_text() == (
-                "not in contact"
-            )  # not a negative depth
-            # once B's contact has settled nothing moves: the surface stream is about a header a
-            # tick (float32 frames were 31 kB a tick here, 600 kB/s)
-            await page.wait_for_function(
-                "() => window.viewerState.bytesPerS < 5000", timeout=15_000
-            )
-
-            # A presses 15 mm into the top: the water pushes the side out into B's probe
-            a.target_m = 0.015
-            peak = baseline
-            loop = asyncio.get_running_loop()
-            deadline = loop.time() + 15.0
-            while loop.time() < deadline:
-                users = await _viewer_users(page)
-                peak = max(peak, float(users["B"]["force_n_mag"]))
-                if peak >= 1.15 * baseline and users["A"]["penetration_mm"] > 5.0:
-                    break
-                await asyncio.sleep(0.1)
-            users = await _viewer_users(page)
-            assert peak >= 1.10 * baseline, (
-                f"B's force shown by the viewer went {baseline:.3f} -> {peak:.3f} N "
-                f"while A pressed (expected a rise of at least 10 %)"
-            )
-            assert users["A"]["in_contact"] and users["A"]["force_n_mag"] > 0.3, users["A"]
-            assert users["A"]["penetration_mm"] > 1.0, users["A"]
-            assert users["B"]["k_o"] > 0 and users["B"]["k_o_eff"] > 0 and users["B"]["k_h"] > 0
-
-            # A holds still: the indentation shown is the server's surface displacement there
-            while a.depth_m != a.target_m and loop.time() < deadline:
-                await asyncio.sleep(0.1)
-            await asyncio.sleep(1.0)
-            users = await _viewer_users(page)
-            shown = users["A"]["indentation_mm"]
-            assert shown is not None and shown >= 0.0
-            truth = _server_indentation_mm(app, users["A"]["proxy_m"])
-            assert truth > 2.0 and abs(shown - truth) < 0.3, (shown, truth)
-            await page.wait_for_timeout(300)
-            text = await card_a.locator(".indent-value").inner_text()
-            assert abs(float(text.replace("mm", "")) - shown) < 0.05, (text, shown)
-
-            # both users have a panel showing their force, in the colour of their name
-            cards = page.locator("#user-list section.user")
-            assert await cards.count() == 2
-            for name in ("A", "B"):
-                card = page.locator(f'#user-list section.user[data-user-name="{name}"]')
-                assert await card.locator(".name").inner_text() == name
-                shown_f = float(await card.locator(".force-value").inner_text())
-                assert math.isfinite(shown_f) and shown_f > 0.0
-                assert "scripted" in await card.locator(".device").inner_text()
-                color = await card.evaluate("e => e.style.getPropertyValue('--c')")
-                assert color == users[name]["color"]
-            assert users["A"]["color"] != users["B"]["color"]
-
-            # the colour legend is there in mm and covers the dent
-            state = await page.evaluate("() => window.viewerState")
-            scale = state["colorScale"]
-            assert await page.locator("#colormap").is_visible()
-            legend = await page.locator("#cm-in").inner_text()
-            assert legend == f"−{scale['range_mm']:g} mm", legend
-            assert scale["max_in_mm"] >= shown - 0.05 and scale["range_mm"] >= scale["max_in_mm"]
-
-            # the camera shows the dent from outside, and the force arrows stay in view
-            dent = state["dent"]
-            assert dent is not None and dent["depth_mm"] >= shown - 0.05
-            assert dent["in_view"] and dent["facing"] > 0.2, dent
-            for name, arrow in state["arrows"].items():
-                assert arrow["in_view"] or not arrow["visible"], (name, arrow)
-            assert state["arrows"]["A"]["visible"]
-            # pushed in is warm on the legend: the dent is drawn in warm colours
-            r, _, blue = await page.evaluate(_COLOR_AT, dent["px"])
-            assert r > blue + 40, (r, blue)
-
-            # the balloon is drawn, in the middle of the view area
-            pixels = await page.evaluate(_CANVAS_PIXELS)
-            assert pixels["drawn"] >= 0.9 * pixels["total"], pixels
-
-            png = await page.screenshot(type="png")
-            if UPDATE_SCREENSHOT:
-                SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
-                SCREENSHOT.write_bytes(png)
-            assert not problems, problems
+            yield app, page, problems
         finally:
             await browser.close()
+
+
+@pytest.mark.browser
+@pytest.mark.timeout(120)
+async def test_viewer_shows_the_dent_users_and_coupled_force() -> None:
+    """A presses the top: the viewer colours the dent, shows A's indentation as the server has
+    it, keeps A's arrow and the dent in view, and the force it shows for B (on the side) rises."""
+    a = ScriptedUser("A", "top", depth_m=-0.005)  # hovering 5 mm above the top
+    b = ScriptedUser("B", "side", depth_m=0.002)  # resting 2 mm inside the side
+    async with viewer_page(a, b) as (app, page, problems):
+        # header and connection indicator
+        assert await page.locator("#conn").get_attribute("class") == "conn connected"
+        assert await page.locator("#s-rate").inner_text() == f"{SIM_RATE_HZ:.0f}"
+
+        # B at rest, A not touching yet: B's force settles and the surface stream goes quiet
+        await asyncio.sleep(1.5)
+        before = await _sample_force(page, "B", n=5, interval_s=0.1)
+        baseline = sum(before) / len(before)
+        assert baseline > 0.0
+        users = await _viewer_users(page)
+        assert users["A"]["force_n_mag"] == 0.0 and users["A"]["penetration_mm"] < 0.0
+        card_a = page.locator('#user-list section.user[data-user-name="A"]')
+        await page.wait_for_timeout(300)
+        assert await card_a.locator(".indent-value").inner_text() == "not in contact"
+        assert await card_a.locator('[data-k="penetration_mm"]').inner_text() == (
+            "not in contact"
+        )  # not a negative depth
+        # once B's contact has settled nothing moves: the surface stream is about a header a
+        # tick (float32 frames were 31 kB a tick here, 600 kB/s)
+        await page.wait_for_function("() => window.viewerState.bytesPerS < 5000", timeout=15_000)
+
+        # A presses 15 mm into the top: the water pushes the side out into B's probe
+        a.target_m = 0.015
+        peak = baseline
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 15.0
+        while loop.time() < deadline:
+            users = await _viewer_users(page)
+            peak = max(peak, float(users["B"]["force_n_mag"]))
+            if peak >= 1.15 * baseline and users["A"]["penetration_mm"] > 5.0:
+                break
+            await asyncio.sleep(0.1)
+        users = await _viewer_users(page)
+        assert peak >= 1.10 * baseline, (
+            f"B's force shown by the viewer went {baseline:.3f} -> {peak:.3f} N "
+            f"while A pressed (expected a rise of at least 10 %)"
+        )
+        assert users["A"]["in_contact"] and users["A"]["force_n_mag"] > 0.3, users["A"]
+        assert users["A"]["penetration_mm"] > 1.0, users["A"]
+        assert users["B"]["k_o"] > 0 and users["B"]["k_o_eff"] > 0 and users["B"]["k_h"] > 0
+
+        # A holds still: the indentation shown is the server's surface displacement there
+        while a.depth_m != a.target_m and loop.time() < deadline:
+            await asyncio.sleep(0.1)
+        await asyncio.sleep(1.0)
+        users = await _viewer_users(page)
+        shown = users["A"]["indentation_mm"]
+        assert shown is not None and shown >= 0.0
+        truth = _server_indentation_mm(app, users["A"]["proxy_m"])
+        assert truth > 2.0 and abs(shown - truth) < 0.3, (shown, truth)
+        await page.wait_for_timeout(300)
+        text = await card_a.locator(".indent-value").inner_text()
+        assert abs(float(text.replace("mm", "")) - shown) < 0.05, (text, shown)
+
+        # both users have a panel showing their force, in the colour of their name
+        cards = page.locator("#user-list section.user")
+        assert await cards.count() == 2
+        for name in ("A", "B"):
+            card = page.locator(f'#user-list section.user[data-user-name="{name}"]')
+            assert await card.locator(".name").inner_text() == name
+            shown_f = float(await card.locator(".force-value").inner_text())
+            assert math.isfinite(shown_f) and shown_f > 0.0
+            assert "scripted" in await card.locator(".device").inner_text()
+            color = await card.evaluate("e => e.style.getPropertyValue('--c')")
+            assert color == users[name]["color"]
+        assert users["A"]["color"] != users["B"]["color"]
+
+        # the colour legend is there in mm and covers the dent
+        state = await page.evaluate("() => window.viewerState")
+        scale = state["colorScale"]
+        assert await page.locator("#colormap").is_visible()
+        legend = await page.locator("#cm-in").inner_text()
+        assert legend == f"−{scale['range_mm']:g} mm", legend
+        assert scale["max_in_mm"] >= shown - 0.05 and scale["range_mm"] >= scale["max_in_mm"]
+
+        # the camera shows the dent from outside, and the force arrows stay in view
+        dent = state["dent"]
+        assert dent is not None and dent["depth_mm"] >= shown - 0.05
+        assert dent["in_view"] and dent["facing"] > 0.2, dent
+        for name, arrow in state["arrows"].items():
+            assert arrow["in_view"] or not arrow["visible"], (name, arrow)
+        assert state["arrows"]["A"]["visible"]
+        # pushed in is warm on the legend: the dent is drawn in warm colours
+        r, _, blue = await page.evaluate(_COLOR_AT, dent["px"])
+        assert r > blue + 40, (r, blue)
+
+        # the balloon is drawn, in the middle of the view area
+        pixels = await page.evaluate(_CANVAS_PIXELS)
+        assert pixels["drawn"] >= 0.9 * pixels["total"], pixels
+
+        png = await page.screenshot(type="png")
+        if UPDATE_SCREENSHOT:
+            SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+            SCREENSHOT.write_bytes(png)
+        assert not problems, problems
 
 
 @pytest.mark.browser
@@ -514,54 +524,37 @@ async def test_viewer_shows_the_dent_users_and_coupled_force() -> None:
 async def test_layout_at_900_px_shows_every_card_and_colours_follow_names() -> None:
     """At 900 x 700 nothing overlaps and three users' cards are all visible; a user who leaves
     and comes back keeps its colour; a free user reads "not in contact"."""
-    reason = _browser_skip_reason()
-    if reason:
-        pytest.skip(reason)
-    from playwright.async_api import async_playwright
-
     a = ScriptedUser("A", "top", depth_m=0.002)
     b = ScriptedUser("B", "side", depth_m=0.002)
-    async with (
-        running_server(subdivisions=3) as app,
-        scripted_users(app.port, a, b),
-        async_playwright() as pw,
-    ):
-        browser = await _launch(pw)
-        try:
-            page = await browser.new_page(viewport={"width": 900, "height": 700})
-            problems = _watch(page)
-            await page.goto(f"http://127.0.0.1:{app.port}/", wait_until="domcontentloaded")
-            await page.wait_for_function(_READY, timeout=30_000)
-            three = "() => Object.keys(window.viewerState.users).length === 3"
-            async with scripted_users(app.port, ScriptedUser("C", "side", depth_m=-0.02)):
-                await page.wait_for_function(three, timeout=10_000)
-                await page.wait_for_timeout(400)  # the panels refresh every 100 ms
-                boxes = await page.evaluate(_BOXES)
-                colors = {n: u["color"] for n, u in (await _viewer_users(page)).items()}
-                card_c = page.locator('#user-list section.user[data-user-name="C"]')
-                assert await card_c.locator(".indent-value").inner_text() == "not in contact"
-            for name in ("topbar", "users", "legend", "colormap", "view"):
-                assert _inside(boxes[name], boxes["window"]), (name, boxes[name])
-            assert not _overlap(boxes["topbar"], boxes["users"]), boxes
-            assert not _overlap(boxes["topbar"], boxes["view"]), boxes
-            assert not _overlap(boxes["users"], boxes["legend"]), boxes
-            assert not _overlap(boxes["users"], boxes["view"]), boxes
-            assert sorted(boxes["cards"]) == ["A", "B", "C"]
-            for name, card in boxes["cards"].items():
-                assert _inside(card, boxes["users"]), (name, card, boxes["users"])
-            assert len(set(colors.values())) == 3, colors
+    async with viewer_page(a, b, subdivisions=3, viewport=(900, 700)) as (app, page, problems):
+        three = "() => Object.keys(window.viewerState.users).length === 3"
+        async with scripted_users(app.port, ScriptedUser("C", "side", depth_m=-0.02)):
+            await page.wait_for_function(three, timeout=10_000)
+            await page.wait_for_timeout(400)  # the panels refresh every 100 ms
+            boxes = await page.evaluate(_BOXES)
+            colors = {n: u["color"] for n, u in (await _viewer_users(page)).items()}
+            card_c = page.locator('#user-list section.user[data-user-name="C"]')
+            assert await card_c.locator(".indent-value").inner_text() == "not in contact"
+        for name in ("topbar", "users", "legend", "colormap", "view"):
+            assert _inside(boxes[name], boxes["window"]), (name, boxes[name])
+        assert not _overlap(boxes["topbar"], boxes["users"]), boxes
+        assert not _overlap(boxes["topbar"], boxes["view"]), boxes
+        assert not _overlap(boxes["users"], boxes["legend"]), boxes
+        assert not _overlap(boxes["users"], boxes["view"]), boxes
+        assert sorted(boxes["cards"]) == ["A", "B", "C"]
+        for name, card in boxes["cards"].items():
+            assert _inside(card, boxes["users"]), (name, card, boxes["users"])
+        assert len(set(colors.values())) == 3, colors
 
-            # C leaves; C comes back (a new connection, a new user id): the same colour
-            await page.wait_for_function(
-                "() => Object.keys(window.viewerState.users).length === 2", timeout=10_000
-            )
-            async with scripted_users(app.port, ScriptedUser("C", "top", depth_m=-0.02)):
-                await page.wait_for_function(three, timeout=10_000)
-                again = (await _viewer_users(page))["C"]["color"]
-            assert again == colors["C"]
-            assert not problems, problems
-        finally:
-            await browser.close()
+        # C leaves; C comes back (a new connection, a new user id): the same colour
+        await page.wait_for_function(
+            "() => Object.keys(window.viewerState.users).length === 2", timeout=10_000
+        )
+        async with scripted_users(app.port, ScriptedUser("C", "top", depth_m=-0.02)):
+            await page.wait_for_function(three, timeout=10_000)
+            again = (await _viewer_users(page))["C"]["color"]
+        assert again == colors["C"]
+        assert not problems, problems
 
 
 _STALE = """(name) => {
@@ -580,54 +573,37 @@ async def test_a_silent_user_is_shown_stale_with_no_force() -> None:
     """B rests on the side, then stops sending states but stays connected: the viewer marks B
     stale on its card and draws no arrow for it, while A, resting just as still on the top, keeps
     its force and arrow. When B sends again it is live again."""
-    reason = _browser_skip_reason()
-    if reason:
-        pytest.skip(reason)
-    from playwright.async_api import async_playwright
-
     a = ScriptedUser("A", "top", depth_m=0.002)
     b = ScriptedUser("B", "side", depth_m=0.002)
-    async with (
-        running_server(subdivisions=3) as app,
-        scripted_users(app.port, a, b),
-        async_playwright() as pw,
-    ):
-        browser = await _launch(pw)
-        try:
-            page = await browser.new_page(viewport={"width": VIEW_W, "height": VIEW_H})
-            problems = _watch(page)
-            await page.goto(f"http://127.0.0.1:{app.port}/", wait_until="domcontentloaded")
-            await page.wait_for_function(_READY, timeout=30_000)
-            for name in ("A", "B"):
-                await page.wait_for_function(_LIVE, arg=name, timeout=10_000)
-            card_b = page.locator('#user-list section.user[data-user-name="B"]')
-            await page.wait_for_timeout(300)  # the panels refresh every 100 ms
-            assert (await card_b.locator(".badge").inner_text()).lower() != "stale"
-            assert float(await card_b.locator(".force-value").inner_text()) > 0.0
+    async with viewer_page(a, b, subdivisions=3) as (app, page, problems):
+        for name in ("A", "B"):
+            await page.wait_for_function(_LIVE, arg=name, timeout=10_000)
+        card_b = page.locator('#user-list section.user[data-user-name="B"]')
+        await page.wait_for_timeout(300)  # the panels refresh every 100 ms
+        assert (await card_b.locator(".badge").inner_text()).lower() != "stale"
+        assert float(await card_b.locator(".force-value").inner_text()) > 0.0
 
-            # B's client stalls: its last force is no longer shown, in the scene or on its card
-            b.silent = True
-            await page.wait_for_function(_STALE, arg="B", timeout=5_000)
-            await page.wait_for_timeout(300)
-            assert (await card_b.locator(".badge").inner_text()).lower() == "stale"
-            assert "stale" in (await card_b.get_attribute("class") or "").split()
-            assert await card_b.locator(".force-value").inner_text() == "–"
-            # A holds just as still, but it is still sending: it keeps its force and arrow
-            await asyncio.sleep(1.0)
-            users = await _viewer_users(page)
-            assert not users["A"]["stale"] and users["A"]["force_n_mag"] > 0.0, users["A"]
-            assert (await page.evaluate("() => window.viewerState.arrows"))["A"]["visible"]
-            card_a = page.locator('#user-list section.user[data-user-name="A"]')
-            assert (await card_a.locator(".badge").inner_text()).lower() != "stale"
+        # B's client stalls: its last force is no longer shown, in the scene or on its card
+        b.silent = True
+        await page.wait_for_function(_STALE, arg="B", timeout=5_000)
+        await page.wait_for_timeout(300)
+        assert (await card_b.locator(".badge").inner_text()).lower() == "stale"
+        assert "stale" in (await card_b.get_attribute("class") or "").split()
+        assert await card_b.locator(".force-value").inner_text() == "–"
+        # A holds just as still, but it is still sending: it keeps its force and arrow
+        await asyncio.sleep(1.0)
+        users = await _viewer_users(page)
+        assert not users["A"]["stale"] and users["A"]["force_n_mag"] > 0.0, users["A"]
+        assert (await page.evaluate("() => window.viewerState.arrows"))["A"]["visible"]
+        card_a = page.locator('#user-list section.user[data-user-name="A"]')
+        assert (await card_a.locator(".badge").inner_text()).lower() != "stale"
 
-            # B sends again: live again, with its arrow
-            b.silent = False
-            await page.wait_for_function(_LIVE, arg="B", timeout=10_000)
-            await page.wait_for_timeout(300)
-            assert (await card_b.locator(".badge").inner_text()).lower() != "stale"
-            assert not problems, problems
-        finally:
-            await browser.close()
+        # B sends again: live again, with its arrow
+        b.silent = False
+        await page.wait_for_function(_LIVE, arg="B", timeout=10_000)
+        await page.wait_for_timeout(300)
+        assert (await card_b.locator(".badge").inner_text()).lower() != "stale"
+        assert not problems, problems
 
 
 @pytest.mark.browser
@@ -640,7 +616,7 @@ async def test_viewer_reconnects_after_server_restart() -> None:
     from playwright.async_api import async_playwright
 
     async with async_playwright() as pw:
-        browser = await pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        browser = await _launch(pw)
         try:
             page = await browser.new_page(viewport={"width": VIEW_W, "height": VIEW_H})
             async with running_server(subdivisions=2) as app:
