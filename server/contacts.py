@@ -38,9 +38,7 @@ from haptic_collab.shared.primitives import (
     make_plane,
     make_sphere,
 )
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
+from haptic_collab.shared.types import FloatArray, IntArray
 
 #: Stiffness [N/m] reported for a contact that cannot move (zero compliance, e.g. a fixed base).
 K_O_MAX = 1.0e6

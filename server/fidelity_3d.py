@@ -88,7 +88,7 @@ from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from haptic_collab.client.devices.base import Vec3
 from haptic_collab.client.devices.profiles import get_sim_profile
@@ -117,8 +117,8 @@ from haptic_collab.shared.gain_design import GainKey, GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
 from haptic_collab.shared.primitives import Plane, Sphere
+from haptic_collab.shared.types import FloatArray
 
-FloatArray = NDArray[np.float64]
 DirectReference = Literal["undisturbed", "patch"]
 
 #: Servo rate 1/T [Hz].

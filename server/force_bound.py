@@ -44,8 +44,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 from haptic_collab.shared.primitives import Plane, Sphere
+from haptic_collab.shared.types import Vec3
 
-Vec3 = tuple[float, float, float]
 ClampReason = Literal["out_of_contact", "wrong_direction", "too_large"]
 
 

@@ -74,15 +74,12 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from haptic_collab.server.objects.balloon import BalloonParams
+from haptic_collab.shared.types import FloatArray
 
 if TYPE_CHECKING:
     from haptic_collab.server.objects.balloon import Balloon
-
-
-FloatArray = npt.NDArray[np.float64]
 
 
 class MaterialError(ValueError):

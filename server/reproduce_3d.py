@@ -58,13 +58,13 @@ from haptic_collab.server.world import ContactInput, ContactOutput, World
 from haptic_collab.shared.full_loop import Hand, analyze_full_loop
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
 from haptic_collab.shared.stability import eq8_stable, eq15_stable, rate_ratio
+from haptic_collab.shared.types import FloatArray
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
     from matplotlib.gridspec import SubplotSpec
 
-FloatArray = NDArray[np.float64]
 Figure3D = Literal["fig10", "fig11", "all"]
 
 #: Servo rate 1/T [Hz] of the paper's experiment.

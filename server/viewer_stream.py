@@ -63,8 +63,8 @@ import numpy as np
 import numpy.typing as npt
 
 from haptic_collab.shared.protocol import BINARY_HEADER, VERTICES_MAGIC, encode_vertices
+from haptic_collab.shared.types import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 Int16Array = npt.NDArray[np.int16]
 Int32Array = npt.NDArray[np.int32]
 Int64Array = npt.NDArray[np.int64]

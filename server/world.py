@@ -48,8 +48,7 @@ from haptic_collab.server.contacts import (
 from haptic_collab.server.objects import AdmittanceObject
 from haptic_collab.shared.primitives import Plane, Sphere
 from haptic_collab.shared.rates import Rates
-
-FloatArray = npt.NDArray[np.float64]
+from haptic_collab.shared.types import FloatArray
 
 
 @dataclass(frozen=True, eq=False)

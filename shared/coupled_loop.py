@@ -59,7 +59,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from haptic_collab.shared.full_loop import (
     DEFAULT_HAND_BOX,
@@ -77,9 +77,7 @@ from haptic_collab.shared.gain_design import (
     design_gains,
 )
 from haptic_collab.shared.rates import Rates
-
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.intp]
+from haptic_collab.shared.types import FloatArray, IndexArray
 
 #: Stiffness [N/m] that stands for a rigid differential mode (singular compliance, coupling -> 1),
 #: the same value the server reports for a contact that cannot move (server.contacts.K_O_MAX).
@@ -338,8 +336,8 @@ def _user_blocks(
 
 def _assemble(
     blocks: Sequence[_Blocks],
-    hand_idx: IntArray,
-    tick_idx: IntArray,
+    hand_idx: IndexArray,
+    tick_idx: IndexArray,
     compliance: FloatArray,
     b_o: FloatArray,
     delay_ticks: int,

@@ -55,8 +55,8 @@ from numpy.typing import NDArray
 
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, Hand, ProxyHold, _hand_zoh
 from haptic_collab.shared.gain_design import GainDesign, loop_delay_ticks
+from haptic_collab.shared.types import FloatArray
 
-FloatArray = NDArray[np.float64]
 SchemeName = Literal[
     "local-p", "local-pi", "direct", "virtual-coupling", "static-local", "direct-tdpa"
 ]

@@ -50,12 +50,11 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.linalg import expm
 
 from haptic_collab.shared.rates import Rates
+from haptic_collab.shared.types import FloatArray
 
-FloatArray = NDArray[np.float64]
 ProxyHold = Literal["zoh", "foh"]
 
 #: Spectral radii below 1 - STABILITY_TOL count as stable (guards marginal round-off).

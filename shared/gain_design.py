@@ -38,7 +38,6 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
 from haptic_collab.shared.full_loop import (
     DAMPER_FILTER_S,
@@ -49,8 +48,8 @@ from haptic_collab.shared.full_loop import (
     monodromy,
 )
 from haptic_collab.shared.rates import Rates
+from haptic_collab.shared.types import FloatArray
 
-FloatArray = NDArray[np.float64]
 Mode = Literal["p", "pi"]
 
 #: Slowest accepted decay of any *oscillating* mode of the full loop [1/s]: its eigenvalue over

@@ -24,12 +24,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from haptic_collab.shared.local_model import LocalModel
 from haptic_collab.shared.rates import Rates
-
-FloatArray = NDArray[np.float64]
+from haptic_collab.shared.types import FloatArray
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
-Vec3 = tuple[float, float, float]
+from haptic_collab.shared.types import Vec3 as Vec3
 
 #: Below this radius [m] a sphere primitive is refused; above ``MAX_RADIUS_M`` a plane is used.
 MIN_RADIUS_M = 1e-4

@@ -47,7 +47,7 @@ class _Msg(BaseModel):
 
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
-Vec3 = tuple[Finite, Finite, Finite]
+FiniteVec3 = tuple[Finite, Finite, Finite]
 Name = Annotated[str, Field(min_length=1, max_length=32, pattern=r"^[A-Za-z0-9_.-]+$")]
 
 
@@ -138,8 +138,8 @@ ClientMessage = Annotated[Hello | State | Ping | Bye, Field(discriminator="type"
 class SurfacePoint(_Msg):
     """A point on the object's rest surface [m] and its outward unit normal."""
 
-    point_m: Vec3
-    normal: Vec3
+    point_m: FiniteVec3
+    normal: FiniteVec3
 
 
 class ObjectInfo(_Msg):
@@ -152,14 +152,14 @@ class ObjectInfo(_Msg):
 
     n_vertices: int
     n_faces: int
-    center_m: Vec3
+    center_m: FiniteVec3
     radius_m: Finite
-    bounds_min_m: Vec3
-    bounds_max_m: Vec3
-    top_m: Vec3
-    top_normal: Vec3
-    side_m: Vec3
-    side_normal: Vec3
+    bounds_min_m: FiniteVec3
+    bounds_max_m: FiniteVec3
+    top_m: FiniteVec3
+    top_normal: FiniteVec3
+    side_m: FiniteVec3
+    side_normal: FiniteVec3
     sides: list[SurfacePoint] = Field(default_factory=list, max_length=16)
 
 
@@ -234,15 +234,15 @@ class PlaneModel(_Msg):
     """Plane primitive: a point on it [m] and its outward unit normal."""
 
     kind: Literal["plane"] = "plane"
-    point: Vec3
-    normal: Vec3
+    point: FiniteVec3
+    normal: FiniteVec3
 
 
 class SphereModel(_Msg):
     """Sphere primitive fitted to the local curvature: centre [m] and radius [m]."""
 
     kind: Literal["sphere"] = "sphere"
-    center: Vec3
+    center: FiniteVec3
     radius: Annotated[float, Field(gt=0, allow_inf_nan=False)]
 
 
@@ -283,8 +283,8 @@ class Patch(_Msg):
     type: Literal["patch"] = "patch"
     tick: int
     primitive: PrimitiveModel
-    proxy_m: Vec3
-    normal: Vec3
+    proxy_m: FiniteVec3
+    normal: FiniteVec3
     penetration_m: Finite
     in_contact: bool
     k_o: Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -322,10 +322,10 @@ class UserView(_Msg):
 
     user_id: str
     name: str
-    probe_m: Vec3
-    proxy_m: Vec3
-    normal: Vec3
-    force_n: Vec3
+    probe_m: FiniteVec3
+    proxy_m: FiniteVec3
+    normal: FiniteVec3
+    force_n: FiniteVec3
     penetration_m: Finite
     in_contact: bool
     k_o: Finite

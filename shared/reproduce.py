@@ -39,8 +39,8 @@ from numpy.typing import NDArray
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
 from haptic_collab.shared.multirate import StepMetrics, Trace, simulate, step_metrics
 from haptic_collab.shared.stability import STABILITY_TOL, analyze, eq15_stable, spectral_radius_grid
+from haptic_collab.shared.types import FloatArray
 
-FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 #: One figure this module computes.
 FigureId = Literal["fig7", "fig8", "fig9"]

@@ -34,8 +34,7 @@ from numpy.typing import NDArray
 from haptic_collab.shared.rates import PERIOD_RTOL, Rates
 from haptic_collab.shared.rates import dividing_rates as dividing_rates
 from haptic_collab.shared.rates import rate_ratio as rate_ratio
-
-FloatArray = NDArray[np.float64]
+from haptic_collab.shared.types import FloatArray
 
 #: Poles with magnitude below 1 - STABILITY_TOL count as stable (guards marginal round-off).
 STABILITY_TOL = 1e-9

@@ -26,8 +26,7 @@ from dataclasses import dataclass, replace
 from enum import StrEnum
 
 from haptic_collab.shared.primitives import vec3
-
-Vec3 = tuple[float, float, float]
+from haptic_collab.shared.types import Vec3 as Vec3
 
 
 class HapticError(StrEnum):

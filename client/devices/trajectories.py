@@ -33,8 +33,7 @@ from itertools import accumulate
 from pathlib import Path
 
 from haptic_collab.shared.primitives import unit_vec3, vec3
-
-Vec3 = tuple[float, float, float]
+from haptic_collab.shared.types import Vec3
 
 #: Required CSV columns of a replay file.
 REPLAY_COLUMNS = ("t_s", "x_m", "y_m", "z_m")

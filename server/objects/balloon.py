@@ -74,9 +74,7 @@ from scipy.spatial import cKDTree
 
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.mesh import MeshError, default_balloon
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
+from haptic_collab.shared.types import FloatArray, IntArray
 
 #: Relative residual above which the no-pivoting factorization is rejected (then pivoted LU).
 _FACTOR_RESIDUAL_TOL = 1e-6

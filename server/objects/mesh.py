@@ -33,7 +33,7 @@ import numpy.typing as npt
 import trimesh
 from scipy.spatial import cKDTree
 
-FloatArray = npt.NDArray[np.float64]
+from haptic_collab.shared.types import FloatArray
 
 #: File suffixes :func:`load_mesh` accepts (lower case, with the dot).
 SUPPORTED_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb")
