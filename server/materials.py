@@ -76,6 +76,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from haptic_collab.server.objects.balloon import BalloonParams
+from haptic_collab.shared.checks import positive as _positive
 from haptic_collab.shared.types import FloatArray
 
 if TYPE_CHECKING:
@@ -191,11 +192,6 @@ class Material:
 
 
 # ------------------------------------------------------------------------------ physics helpers
-def _positive(name: str, value: float) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
 
 
 def _poisson(nu: float) -> float:

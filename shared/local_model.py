@@ -71,14 +71,9 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
+from haptic_collab.shared.checks import nonneg as _finite_nonneg
+
 ThresholdMode = Literal["none", "fixed", "variable"]
-
-
-def _finite_nonneg(name: str, value: float) -> float:
-    v = float(value)
-    if not math.isfinite(v) or v < 0.0:
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True, slots=True)

@@ -10,18 +10,12 @@ Pure: no sockets, threads or clocks. Units: rates [Hz], periods [s].
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
+
+from haptic_collab.shared.checks import positive as _positive
 
 #: Relative tolerance within which two periods [s] (or a ratio and a whole number) count as equal.
 PERIOD_RTOL = 1e-9
-
-
-def _positive(name: str, value: float) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
 
 
 def dividing_rates(servo_rate_hz: float, lo_hz: float = 5.0, hi_hz: float = 500.0) -> list[float]:

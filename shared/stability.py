@@ -31,6 +31,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from haptic_collab.shared.checks import nonneg as _nonneg
+from haptic_collab.shared.checks import positive as _positive
 from haptic_collab.shared.rates import PERIOD_RTOL, Rates
 from haptic_collab.shared.rates import dividing_rates as dividing_rates
 from haptic_collab.shared.rates import rate_ratio as rate_ratio
@@ -123,20 +125,6 @@ def common_timebase(
             f"{names[1]} has {_describe_dt(b)}"
         )
     return a
-
-
-def _positive(name: str, value: float) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
-
-
-def _nonneg(name: str, value: float) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
 
 
 def local_model_state_space(k_h: float, i_gain: float, servo_period_s: float) -> StateSpace:

@@ -32,18 +32,12 @@ from dataclasses import dataclass, field
 from itertools import accumulate
 from pathlib import Path
 
+from haptic_collab.shared.checks import nonneg as _nonneg
 from haptic_collab.shared.primitives import unit_vec3, vec3
 from haptic_collab.shared.types import Vec3
 
 #: Required CSV columns of a replay file.
 REPLAY_COLUMNS = ("t_s", "x_m", "y_m", "z_m")
-
-
-def _nonneg(name: str, value: float) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
 
 
 def min_jerk(u: float) -> float:

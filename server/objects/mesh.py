@@ -33,6 +33,7 @@ import numpy.typing as npt
 import trimesh
 from scipy.spatial import cKDTree
 
+from haptic_collab.shared.checks import positive as _positive_finite
 from haptic_collab.shared.types import FloatArray
 
 #: File suffixes :func:`load_mesh` accepts (lower case, with the dot).
@@ -66,13 +67,6 @@ class MeshError(ValueError):
     unsupported format, unparsable content, no faces, non-finite coordinates, not watertight
     (with the number of open edges), or zero enclosed volume.
     """
-
-
-def _positive_finite(name: str, value: float) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
 
 
 def default_balloon(radius_m: float = 0.1, subdivisions: int = 4) -> trimesh.Trimesh:
