@@ -813,27 +813,9 @@ class ServoThread:
         return ok
 
     # -- delegation for the network side -------------------------------------------------------------
-    def set_patch(
-        self,
-        primitive: LocalModelUpdate | Primitive,
-        k_h: float | None = None,
-        i_gain: float | None = None,
-        *,
-        b_h: float | None = None,
-        proxy_hold: str | None = None,
-        hold_ticks: int | None = None,
-        k_o: float | None = None,
-    ) -> LocalModelUpdate:
-        """See :meth:`ServoCore.set_patch`; also counts as link activity now."""
-        patch = self.core.set_patch(
-            primitive,
-            k_h,
-            i_gain,
-            b_h=b_h,
-            proxy_hold=proxy_hold,
-            hold_ticks=hold_ticks,
-            k_o=k_o,
-        )
+    def set_patch(self, *args: Any, **kwargs: Any) -> LocalModelUpdate:
+        """See :meth:`ServoCore.set_patch` (same arguments); also counts as link activity now."""
+        patch = self.core.set_patch(*args, **kwargs)
         self.core.notify_link(self.clock())
         return patch
 

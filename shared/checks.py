@@ -35,3 +35,16 @@ def nonneg(name: str, value: float) -> float:
     if not (math.isfinite(v) and v >= 0.0):
         raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     return v
+
+
+def whole(name: str, value: int, minimum: int = 0) -> int:
+    """``value`` as an int if it is a whole number >= ``minimum`` (a bool is not a number).
+
+    Raises
+    ------
+    ValueError
+        ``NAME must be a whole number >= MINIMUM, got VALUE`` otherwise.
+    """
+    if isinstance(value, bool) or int(value) != value or value < minimum:
+        raise ValueError(f"{name} must be a whole number >= {minimum}, got {value!r}")
+    return int(value)

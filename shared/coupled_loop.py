@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.full_loop import (
     DEFAULT_HAND_BOX,
     STABILITY_TOL,
@@ -68,13 +69,14 @@ from haptic_collab.shared.full_loop import (
     HandBox,
     ProxyHold,
     monodromy,
+    spectral_radius_function,
 )
 from haptic_collab.shared.gain_design import (
-    CREEP_FREQUENCY_HZ,
     MIN_DECAY_RATE_PER_S,
     GainDesign,
     Mode,
     design_gains,
+    mode_radii,
 )
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.types import FloatArray, IndexArray
@@ -401,10 +403,8 @@ def _check_common(
     bo = np.broadcast_to(np.asarray(b_o, dtype=float), (m,)).copy()
     if not (np.all(np.isfinite(bo)) and np.all(bo >= 0.0)):
         raise ValueError(f"b_o must be finite and >= 0, got {b_o!r}")
-    if isinstance(rate_ratio, bool) or int(rate_ratio) != rate_ratio or rate_ratio < 1:
-        raise ValueError(f"rate_ratio must be a whole number >= 1, got {rate_ratio!r}")
-    if isinstance(delay_ticks, bool) or int(delay_ticks) != delay_ticks or delay_ticks < 0:
-        raise ValueError(f"delay_ticks must be a whole number >= 0, got {delay_ticks!r}")
+    _whole("rate_ratio", rate_ratio, 1)
+    _whole("delay_ticks", delay_ticks, 0)
     return c, bo
 
 
@@ -481,33 +481,15 @@ def coupled_monodromy(
     return Mx.reshape(B, J, *Mx.shape[1:])
 
 
-def coupled_spectral_radius(
-    *,
-    compliance: ArrayLike,
-    gains: Sequence[UserGains],
-    hands: Sequence[Sequence[Hand | None]],
-    sample_ticks: Sequence[Sequence[int]] | None = None,
-    b_o: ArrayLike = 0.0,
-    servo_period_s: float = 1e-3,
-    rate_ratio: int = 50,
-    delay_ticks: int = 0,
-) -> FloatArray:
-    """Spectral radius of the coupled loop per hand and tick combination, shape (B, J).
+coupled_spectral_radius = spectral_radius_function(
+    coupled_monodromy,
+    name="coupled_spectral_radius",
+    doc="""Spectral radius of the coupled loop per hand and tick combination, shape (B, J).
 
     Same parameters as :func:`coupled_monodromy`. Below 1: every mode of every user's hand,
     device and local model and of the object decays from one simulation period to the next.
-    """
-    M = coupled_monodromy(
-        compliance=compliance,
-        gains=gains,
-        hands=hands,
-        sample_ticks=sample_ticks,
-        b_o=b_o,
-        servo_period_s=servo_period_s,
-        rate_ratio=rate_ratio,
-        delay_ticks=delay_ticks,
-    )
-    return np.max(np.abs(np.linalg.eigvals(M)), axis=-1)
+    """,
+)
 
 
 # --------------------------------------------------------------------------------------------
@@ -569,10 +551,7 @@ class CoupledVerdict:
 
 def verification_hands(box: HandBox = DEFAULT_HAND_BOX) -> list[Hand]:
     """The hands each user takes in :func:`verify_coupled`: box corners, centre, ``extra``."""
-    centre = Hand(
-        0.5 * sum(box.mass_kg), 0.5 * sum(box.damping_n_s_per_m), 0.5 * sum(box.stiffness_n_per_m)
-    )
-    return list(dict.fromkeys([*box.corners(), centre, *box.extra]))
+    return box.screen_hands()
 
 
 def _permutation_symmetric(c: FloatArray, gains: Sequence[UserGains], b_o: FloatArray) -> bool:
@@ -680,7 +659,6 @@ def verify_coupled(
         for u in range(m)
     ]
     rho_limit = math.exp(-min_decay_rate_per_s * N * T)
-    creep_angle = 2.0 * math.pi * CREEP_FREQUENCY_HZ * N * T
     scales = [1.0] if margin == 0.0 else [1.0, 1.0 / (1.0 - margin)]
     best = (-1.0, -1.0, 0, 1.0)  # margin radius, radius, combo, scale
     K = h_idx.shape[0]
@@ -691,11 +669,7 @@ def verify_coupled(
             Mx = _assemble(
                 blocks, h_idx[sl], t_idx[sl], np.broadcast_to(c * s, (k, m, m)), bo, delay_ticks
             )
-            ev = np.linalg.eigvals(Mx)
-            mag = np.abs(ev)
-            slow = np.abs(np.angle(ev)) < creep_angle
-            marg = np.max(np.where(slow, mag * rho_limit, mag), axis=-1)
-            rad = np.max(mag, axis=-1)
+            marg, rad = mode_radii(Mx, rho_limit, N, T)
             w = int(np.argmax(marg))
             if marg[w] > best[0]:
                 best = (float(marg[w]), max(best[1], float(rad.max())), a + w, s)
@@ -837,8 +811,7 @@ def design_coupled(
     bo = np.broadcast_to(np.asarray(b_o, dtype=float), (m,)).copy()
     if not (math.isfinite(retune) and 0.0 < retune < 1.0):
         raise ValueError(f"retune must be in (0, 1), got {retune!r}")
-    if isinstance(max_rounds, bool) or int(max_rounds) != max_rounds or max_rounds < 0:
-        raise ValueError(f"max_rounds must be a whole number >= 0, got {max_rounds!r}")
+    _whole("max_rounds", max_rounds, 0)
     modal = modal_stiffness(c)
     cache: dict[tuple[float, float, float], GainDesign] = {}
     best: CoupledDesign | None = None

@@ -44,18 +44,23 @@ Everything is vectorised over a batch of hands and gains (numpy broadcasting): t
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, ParamSpec
 
 import numpy as np
 from scipy.linalg import expm
 
+from haptic_collab.shared.checks import nonneg, positive
+from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.types import FloatArray
 
 ProxyHold = Literal["zoh", "foh"]
+
+_P = ParamSpec("_P")
 
 #: Spectral radii below 1 - STABILITY_TOL count as stable (guards marginal round-off).
 STABILITY_TOL = 1e-9
@@ -166,6 +171,19 @@ class HandBox:
             for ki in self.stiffness_n_per_m
         ]
 
+    def screen_hands(self) -> list[Hand]:
+        """The 8 corners, the centre and ``extra``, without repeats.
+
+        Fewer than :meth:`hands`: the gain design's quick screen before the full check, and each
+        user's hands in :func:`shared.coupled_loop.verify_coupled`.
+        """
+        centre = Hand(
+            0.5 * sum(self.mass_kg),
+            0.5 * sum(self.damping_n_s_per_m),
+            0.5 * sum(self.stiffness_n_per_m),
+        )
+        return list(dict.fromkeys([*self.corners(), centre, *self.extra]))
+
     def as_dict(self) -> dict[str, list[float]]:
         """``{"mass_kg": [lo, hi], "stiffness_n_per_m": [lo, hi], "damping_n_s_per_m": [lo, hi]}``."""
         return {
@@ -195,6 +213,20 @@ def _hand_zoh(
     aug[:, 1, 2] = -1.0 / mu
     e = expm(aug * period_s)[inverse.reshape(-1)]
     return e[:, :2, :2], e[:, :2, 2]
+
+
+def batch_arrays(*values: float | FloatArray) -> list[FloatArray]:
+    """``values`` as contiguous float arrays broadcast to one batch shape, each at least (1,).
+
+    A scalar stands for every batch element.
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not broadcast.
+    """
+    arrays = [np.atleast_1d(np.asarray(v, dtype=float)) for v in values]
+    return [np.ascontiguousarray(a) for a in np.broadcast_arrays(*arrays)]
 
 
 def _fast_system(
@@ -316,14 +348,14 @@ def monodromy(
         hands = [hand]
     else:
         hands = list(hand)
-    arrays = [np.atleast_1d(np.asarray(a, dtype=float)) for a in (k_o, k_h, i_gain, b_h, b_o)]
+    hand_params: list[FloatArray] = []
     if hands is not None:
-        arrays += [
+        hand_params = [
             np.array([h.mass_kg for h in hands]),
             np.array([h.damping_n_s_per_m for h in hands]),
             np.array([h.stiffness_n_per_m for h in hands]),
         ]
-    arrays = [np.ascontiguousarray(a) for a in np.broadcast_arrays(*arrays)]
+    arrays = batch_arrays(k_o, k_h, i_gain, b_h, b_o, *hand_params)
     ko, kh, ig, bh, bo = arrays[:5]
     if integral is None:
         integral = bool(np.any(ig > 0.0))
@@ -386,43 +418,37 @@ def monodromy(
     return M
 
 
-def spectral_radius(
-    *,
-    hand: Hand | Sequence[Hand] | None,
-    k_o: float | FloatArray,
-    k_h: float | FloatArray,
-    i_gain: float | FloatArray = 0.0,
-    b_h: float | FloatArray = 0.0,
-    b_o: float | FloatArray = 0.0,
-    servo_period_s: float = 1e-3,
-    rate_ratio: int = 50,
-    delay_ticks: int = 0,
-    sample_ticks: Sequence[int] | None = None,
-    proxy_hold: ProxyHold = "zoh",
-    integral: bool | None = None,
-) -> FloatArray:
-    """Spectral radius of the full loop per batch element and sampling tick, shape (B, J).
+def spectral_radius_function(
+    build: Callable[_P, FloatArray], *, name: str, doc: str
+) -> Callable[_P, FloatArray]:
+    """The function ``max |eigenvalue|`` of the matrices ``build`` returns, with its parameters.
+
+    ``build`` returns monodromy matrices (..., n, n); the new function, named ``name`` with
+    docstring ``doc``, returns their spectral radii, shape (...) (zeros for 0 x 0 matrices).
+    It raises what ``build`` raises.
+    """
+
+    @functools.wraps(build)
+    def radius(*args: _P.args, **kwargs: _P.kwargs) -> FloatArray:
+        M = build(*args, **kwargs)
+        if M.shape[-1] == 0:
+            return np.zeros(M.shape[:-2])
+        return np.max(np.abs(np.linalg.eigvals(M)), axis=-1)
+
+    radius.__name__ = radius.__qualname__ = name
+    radius.__doc__ = doc
+    return radius
+
+
+spectral_radius = spectral_radius_function(
+    monodromy,
+    name="spectral_radius",
+    doc="""Spectral radius of the full loop per batch element and sampling tick, shape (B, J).
 
     Same parameters as :func:`monodromy`. A value below 1 means every mode of hand, device, local
     model and object decays from one simulation period to the next.
-    """
-    M = monodromy(
-        hand=hand,
-        k_o=k_o,
-        k_h=k_h,
-        i_gain=i_gain,
-        b_h=b_h,
-        b_o=b_o,
-        servo_period_s=servo_period_s,
-        rate_ratio=rate_ratio,
-        delay_ticks=delay_ticks,
-        sample_ticks=sample_ticks,
-        proxy_hold=proxy_hold,
-        integral=integral,
-    )
-    if M.shape[-1] == 0:
-        return np.zeros(M.shape[:2])
-    return np.max(np.abs(np.linalg.eigvals(M)), axis=-1)
+    """,
+)
 
 
 @dataclass(frozen=True)
@@ -491,14 +517,11 @@ def analyze_full_loop(
     """
     rates = Rates(servo_rate_hz, sim_rate_hz)
     n = rates.ratio
-    for name, v, lo in (("k_o", k_o, 0.0), ("k_h", k_h, 0.0)):
-        if not (math.isfinite(v) and v > lo):
-            raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    for name, v in (("k_o", k_o), ("k_h", k_h)):
+        positive(name, v)
     for name, v in (("i_gain", i_gain), ("b_h", b_h), ("damping", damping)):
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-    if isinstance(delay_ticks, bool) or int(delay_ticks) != delay_ticks or delay_ticks < 0:
-        raise ValueError(f"delay_ticks must be a whole number >= 0, got {delay_ticks!r}")
+        nonneg(name, v)
+    _whole("delay_ticks", delay_ticks, 0)
     js = list(range(n)) if sample_tick is None else [int(sample_tick)]
     rho = spectral_radius(
         hand=hand,

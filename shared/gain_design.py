@@ -39,12 +39,14 @@ from typing import Literal
 
 import numpy as np
 
+from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.full_loop import (
     DAMPER_FILTER_S,
     DEFAULT_HAND_BOX,
     Hand,
     HandBox,
     ProxyHold,
+    batch_arrays,
     monodromy,
 )
 from haptic_collab.shared.rates import Rates
@@ -162,12 +164,7 @@ def felt_stiffness(
     if not (0.0 < freq_hz < 0.5 / T):
         raise ValueError(f"freq_hz must be in (0, {0.5 / T:g}), got {freq_hz!r}")
     j = N - 1 if sample_tick is None else int(sample_tick)
-    ko, kh, ig, bh, bo = (
-        np.ascontiguousarray(a)
-        for a in np.broadcast_arrays(
-            *(np.atleast_1d(np.asarray(v, dtype=float)) for v in (k_o, k_h, i_gain, b_h, b_o))
-        )
-    )
+    ko, kh, ig, bh, bo = batch_arrays(k_o, k_h, i_gain, b_h, b_o)
     integral = bool(np.any(ig > 0.0))
     M = monodromy(
         hand=None,
@@ -221,6 +218,22 @@ def felt_stiffness(
     return f1 if complex_response else np.abs(f1)
 
 
+def mode_radii(
+    M: FloatArray, rho_limit: float, rate_ratio: int, servo_period_s: float
+) -> tuple[FloatArray, FloatArray]:
+    """``(margin_radius, radius)`` of each monodromy matrix of ``M`` (..., n, n), each shape (...).
+
+    ``radius`` is the spectral radius; ``margin_radius`` the largest eigenvalue magnitude with
+    creep eigenvalues (slower than :data:`CREEP_FREQUENCY_HZ`: angle below
+    ``2 pi CREEP_FREQUENCY_HZ N T`` per simulation period) counted as ``|lambda| * rho_limit``.
+    """
+    creep_angle = 2.0 * math.pi * CREEP_FREQUENCY_HZ * rate_ratio * servo_period_s
+    ev = np.linalg.eigvals(M)
+    mag = np.abs(ev)
+    slow = np.abs(np.angle(ev)) < creep_angle
+    return np.max(np.where(slow, mag * rho_limit, mag), axis=-1), np.max(mag, axis=-1)
+
+
 def _worst_rho(
     cand: dict[str, FloatArray],
     hold: ProxyHold,
@@ -253,7 +266,6 @@ def _worst_rho(
     ko = np.tile(np.asarray(k_os, float), g * L)
     out = np.empty(g * L * K)
     marg = np.empty(g * L * K)
-    creep_angle = 2.0 * math.pi * CREEP_FREQUENCY_HZ * rate_ratio * servo_period_s
     for a in range(0, out.size, chunk):
         sl = slice(a, a + chunk)
         M = monodromy(
@@ -270,20 +282,10 @@ def _worst_rho(
             proxy_hold=hold,
             integral=integral,
         )
-        ev = np.linalg.eigvals(M)
-        mag = np.abs(ev)
-        slow = np.abs(np.angle(ev)) < creep_angle
-        out[sl] = np.max(mag, axis=(-1, -2))
-        marg[sl] = np.max(np.where(slow, mag * rho_limit, mag), axis=(-1, -2))
+        marg_j, rad_j = mode_radii(M, rho_limit, rate_ratio, servo_period_s)  # (chunk, J)
+        out[sl] = np.max(rad_j, axis=-1)
+        marg[sl] = np.max(marg_j, axis=-1)
     return marg.reshape(g, L * K).max(axis=1), out.reshape(g, L * K).max(axis=1)
-
-
-def _screen_hands(box: HandBox) -> list[Hand]:
-    corners = box.corners()
-    c = Hand(
-        0.5 * sum(box.mass_kg), 0.5 * sum(box.damping_n_s_per_m), 0.5 * sum(box.stiffness_n_per_m)
-    )
-    return list(dict.fromkeys([*corners, c, *box.extra]))
 
 
 def design_gains(
@@ -354,8 +356,7 @@ def design_gains(
         raise ValueError(f"b_o must be finite and >= 0, got {b_o!r}")
     if not 0.0 <= margin < 1.0:
         raise ValueError(f"margin must be in [0, 1), got {margin!r}")
-    if isinstance(delay_ticks, bool) or int(delay_ticks) != delay_ticks or delay_ticks < 0:
-        raise ValueError(f"delay_ticks must be a whole number >= 0, got {delay_ticks!r}")
+    _whole("delay_ticks", delay_ticks, 0)
     if mode not in ("p", "pi"):
         raise ValueError(f"mode must be 'p' or 'pi', got {mode!r}")
     if not k_h_max > 0.0:
@@ -378,7 +379,7 @@ def design_gains(
     i_axis = lo * np.geomspace(0.02, 2.0, 16) / (N * T) if integral else np.zeros(1)
     KH, NI, BH = np.meshgrid(kh_axis, i_axis, bh_axis, indexing="ij")
     base = {"k_h": KH.ravel(), "i_gain": NI.ravel(), "b_h": BH.ravel()}
-    screen_hands = _screen_hands(hand_box)
+    screen_hands = hand_box.screen_hands()
     all_hands = hand_box.hands()
     screen_ticks = sorted({0, N // 2, N - 1})
     all_ticks = list(range(N))
@@ -781,7 +782,6 @@ def verify_gains(
     hands = [h for h in hand_box.hands() for _ in k_os]
     ko = np.tile(np.asarray(k_os, float), len(hand_box.hands()))
     rho_limit = math.exp(-MIN_DECAY_RATE_PER_S * n * T)
-    creep_angle = 2.0 * math.pi * CREEP_FREQUENCY_HZ * n * T
     worst = 0.0
     for a in range(0, len(hands), chunk):
         M = monodromy(
@@ -797,11 +797,9 @@ def verify_gains(
             proxy_hold=proxy_hold,
             integral=i_gain > 0.0,
         )
-        ev = np.linalg.eigvals(M)
-        mag = np.abs(ev)
-        slow = np.abs(np.angle(ev)) < creep_angle
-        worst = max(worst, float(mag.max()))
-        margin_r = float(np.where(slow, mag * rho_limit, mag).max())
+        marg, rad = mode_radii(M, rho_limit, n, T)
+        worst = max(worst, float(rad.max()))
+        margin_r = float(marg.max())
         if margin_r >= rho_limit or worst >= 1.0 - 1e-9:
             return False, worst
     return True, worst

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.primitives import Plane, Primitive, Sphere, make_plane, make_sphere
 from haptic_collab.shared.protocol import Patch, PlaneModel, ProtocolError, SphereModel
@@ -107,8 +108,7 @@ class LocalModelUpdate:
         if self.proxy_hold not in ("zoh", "foh"):
             raise ValueError(f"proxy_hold must be 'zoh' or 'foh', got {self.proxy_hold!r}")
         n = self.hold_ticks
-        if isinstance(n, bool) or int(n) != n or n < 1:
-            raise ValueError(f"hold_ticks must be a whole number >= 1, got {n!r}")
+        _whole("hold_ticks", n, 1)
         set_ = object.__setattr__  # frozen: normalize once, here
         set_(self, "k_h", k)
         set_(self, "i_gain", i)

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from haptic_collab.shared.checks import nonneg as _nonneg
 from haptic_collab.shared.checks import positive as _positive
+from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.rates import PERIOD_RTOL, Rates
 from haptic_collab.shared.rates import dividing_rates as dividing_rates
 from haptic_collab.shared.rates import rate_ratio as rate_ratio
@@ -406,8 +407,7 @@ def analyze(
     _positive("k_h", k_h)
     _nonneg("i_gain", i_gain)
     _nonneg("damping", damping)
-    if isinstance(delay_ticks, bool) or int(delay_ticks) != delay_ticks or delay_ticks < 0:
-        raise ValueError(f"delay_ticks must be a whole number >= 0, got {delay_ticks!r}")
+    _whole("delay_ticks", delay_ticks, 0)
     delay_ticks = int(delay_ticks)
     period = rates.servo_period_s
     b_o = damping * sim_rate_hz

@@ -16,6 +16,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from haptic_collab.client.bench_gains import BENCH_OBJECT as OBJ
 from haptic_collab.client.link import Link
 from haptic_collab.client.session import (
     INTERIM_LADDER,
@@ -27,7 +28,6 @@ from haptic_collab.client.session import (
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from haptic_collab.shared.gain_design import GainKey, GainTable
 from haptic_collab.shared.protocol import DeviceInfo, Pong, Welcome, encode
-from tests.client.test_session import OBJ
 from tests.client.test_session import patch as session_patch
 
 

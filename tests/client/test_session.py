@@ -4,48 +4,21 @@ from __future__ import annotations
 
 import pytest
 
+from haptic_collab.client.bench_gains import BENCH_OBJECT, plane_patch, welcomed_session
 from haptic_collab.client.session import ClientSession
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
-from haptic_collab.shared.protocol import (
-    DeviceInfo,
-    ObjectInfo,
-    Patch,
-    PlaneModel,
-    Pong,
-    Welcome,
-    encode,
-)
+from haptic_collab.shared.protocol import Pong, Welcome, encode
 from haptic_collab.shared.stability import analyze
-
-OBJ = ObjectInfo(
-    n_vertices=6, n_faces=8, center_m=(0, 0, 0), radius_m=0.1, bounds_min_m=(-0.1, -0.1, -0.1),
-    bounds_max_m=(0.1, 0.1, 0.1), top_m=(0, 0, 0.1), top_normal=(0, 0, 1), side_m=(0.1, 0, 0),
-    side_normal=(1, 0, 0),
-)  # fmt: skip
 
 
 def patch(tick: int, k_o_eff: float = 300.0, k_o: float = 320.0) -> str:
-    return encode(
-        Patch(
-            tick=tick,
-            primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)),
-            proxy_m=(0, 0, 0.1),
-            normal=(0, 0, 1),
-            penetration_m=0.002,
-            in_contact=True,
-            k_o=k_o,
-            k_o_eff=k_o_eff,
-            b_o=0.0,
-        )  # fmt: skip
-    )
+    """A contact patch on the top plane of :data:`BENCH_OBJECT` (these tests' default stiffnesses)."""
+    return plane_patch(tick, k_o, k_o_eff)
 
 
 def session(max_stiffness: float = 1000.0) -> ClientSession:
-    s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=max_stiffness))
-    s.receive(
-        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
-    )
-    return s
+    """User u1's session "A", welcomed at 0 s."""
+    return welcomed_session("A", "u1", max_stiffness)
 
 
 def receive_designed(s: ClientSession, frame: str, now: float):
@@ -137,7 +110,8 @@ def test_stale_patches_are_ignored_and_a_new_session_starts_afresh():
     assert receive_designed(s, patch(10), 0.1) is not None
     assert s.receive(patch(9), 0.2) is None
     s.receive(
-        encode(Welcome(user_id="u2", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 1.0
+        encode(Welcome(user_id="u2", name="A", role="user", sim_rate_hz=20.0, object=BENCH_OBJECT)),
+        1.0,
     )
     assert s.receive(patch(1), 1.1) is not None  # the restarted server counts from 1 again
 
@@ -159,7 +133,7 @@ def test_users_resting_on_a_side_spread_over_the_sides_by_join_order():
         SurfacePoint(point_m=(0, 0.1, 0), normal=(0, 1, 0)),
         SurfacePoint(point_m=(-0.1, 0, 0), normal=(-1, 0, 0)),
     ]
-    obj = OBJ.model_copy(update={"sides": sides})
+    obj = BENCH_OBJECT.model_copy(update={"sides": sides})
 
     def where(user_id: str, device: str = "sim:rest", anchor: str = "auto"):
         welcome = Welcome(
@@ -171,10 +145,10 @@ def test_users_resting_on_a_side_spread_over_the_sides_by_join_order():
     assert [where(u)[0] for u in ("u1", "u2", "u3", "u4")] == [
         (0.1, 0, 0), (0, 0.1, 0), (-0.1, 0, 0), (0.1, 0, 0),
     ]  # fmt: skip
-    assert where("u2", "sim:press") == (OBJ.top_m, OBJ.top_normal)
+    assert where("u2", "sim:press") == (BENCH_OBJECT.top_m, BENCH_OBJECT.top_normal)
     assert where("u2", "sim:press", "side")[1] == (0, 1, 0)
     # an older server without side anchors: the one side it names
-    old = OBJ.model_copy(update={"sides": []})
+    old = BENCH_OBJECT.model_copy(update={"sides": []})
     welcome = Welcome(
         protocol=1, user_id="u3", name="x", role="user", sim_rate_hz=20.0, object=old,
         link=LinkConditions(),
@@ -206,10 +180,7 @@ def test_hello_declares_the_opened_devices_own_limits():
 def test_the_update_holds_the_patch_as_the_servo_renders_it():
     from haptic_collab.shared.primitives import make_plane
 
-    s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=1000.0), mode="p")
-    s.receive(
-        encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
-    )
+    s = welcomed_session("A", "u1", mode="p")
     up = receive_designed(s, patch(4, k_o_eff=300.0, k_o=320.0), 0.1)
     assert up is not None
     m = up.model

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from haptic_collab.client.bench_gains import BENCH_OBJECT as OBJ
 from haptic_collab.client.session import ClientSession, DeviceInfo
 from haptic_collab.shared.fidelity import (
     IMPACT,
@@ -32,7 +33,6 @@ from haptic_collab.shared.gain_design import felt_stiffness
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
 from haptic_collab.shared.protocol import Welcome, encode
-from tests.client.test_session import OBJ
 
 P500 = Rendering("local-p", "coupling", k_h=500.0)
 DIRECT = Rendering("direct", "direct")
