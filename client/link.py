@@ -48,6 +48,7 @@ from haptic_collab.client.session import (
 )
 from haptic_collab.shared.gain_design import GainDesign, GainKey, design_cell
 from haptic_collab.shared.protocol import ProtocolError, Welcome
+from haptic_collab.workers import stop_pool
 
 log = logging.getLogger("haptic.client")
 
@@ -292,10 +293,10 @@ class Link:
         """Stop the workers (if this link started them)."""
         if self._own_executor:
             for ex in {id(e): e for e in (self._executor, self._checker) if e is not None}.values():
-                ex.shutdown(wait=False, cancel_futures=True)
+                stop_pool(ex)  # a running design must not hold up the client's exit
             self._executor = self._checker = None
         if self._first_pool is not None:
-            self._first_pool.shutdown(wait=False, cancel_futures=True)
+            stop_pool(self._first_pool)
             self._first_pool = None
 
     async def run(self, stop: asyncio.Event) -> None:

@@ -50,6 +50,7 @@ from haptic_collab.server.room import Outgoing, Room
 from haptic_collab.server.security import is_loopback, origin_allowed
 from haptic_collab.shared.gain_design import background_worker, warm_up
 from haptic_collab.shared.protocol import LinkConditions
+from haptic_collab.workers import stop_pool
 
 log = logging.getLogger("haptic.server")
 
@@ -215,7 +216,7 @@ class ServerApp:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         if self._own_executor and self.gain_executor is not None:
-            self.gain_executor.shutdown(wait=False, cancel_futures=True)
+            stop_pool(self.gain_executor)  # a running design must not hold up the stop
             self.gain_executor = None
         if self._server:
             self._server.close()
