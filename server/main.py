@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 import math
+import signal
 import ssl
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -250,4 +253,37 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         if on_ready:
             on_ready(port)
 
-    await app.run(opts.duration_s, on_ready=ready)
+    # Ctrl-C and SIGTERM (`docker stop`, a service manager) stop the server cleanly: every
+    # connection closed, the design workers ended. Installed here rather than left to
+    # asyncio.run's own SIGINT handling, which is absent when the server inherits SIGINT as
+    # ignored (started in the background by a non-interactive shell): Ctrl-C then did nothing.
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+
+    def on_signal(sig: signal.Signals) -> None:
+        log.info("%s: stopping (closing every connection)", sig.name)
+        stop.set()
+
+    handled: list[signal.Signals] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, on_signal, sig)  # main thread only
+            handled.append(sig)
+    serving = asyncio.ensure_future(app.run(opts.duration_s, on_ready=ready))
+    stopping = asyncio.ensure_future(stop.wait())
+    try:
+        await asyncio.wait({serving, stopping}, return_when=asyncio.FIRST_COMPLETED)
+        if not serving.done():  # a signal: app.run's own cleanup stops everything
+            serving.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await serving
+        else:
+            serving.result()  # re-raise a failure to start (a bad port, a bad certificate)
+    finally:
+        stopping.cancel()
+        if not serving.done():  # run_server itself was cancelled
+            serving.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await serving
+        for sig in handled:
+            loop.remove_signal_handler(sig)
