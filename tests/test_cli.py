@@ -230,7 +230,9 @@ def test_demo_processes_feel_each_other(tmp_path):
         # the servo loop ran the whole time (a stalled loop shows tens of Hz); how close it keeps
         # to 1 kHz is measured by `haptic bench servo` and the demo's report, not asserted here
         assert u["servo_rate_hz"] > 300.0
-    assert data["users"]["A"]["max_force_n"] > 1.0
+    # A really pressed: about 2 N with PI gains; on a loaded machine the measured delay can rule
+    # PI out for A's contact, and the verified P coupling gives K_h e alone, about 0.9 N
+    assert data["users"]["A"]["max_force_n"] > 0.5
     c = data["coupling"]
     # while A holds, B's side bulges out: the surface under B moves out, B's force rises
     assert c["b_surface_displacement_mm"] > 0.3 and c["b_force_rise_n"] > 0.01, c

@@ -136,12 +136,13 @@ export function penetration(prim, x) {
  * threshold of eq. 17 and a linear bleed of the integral on release (paper section 5.1).
  *
  * In contact (e > 0):  s += dt * I * (e - theta)   (s kept in [0, sMax], no wind-up)
- *                      f  = K_h * e + s + b_h * de/dt, never negative (a surface only pushes)
+ *                      f  = K_h * e + s + b + b_h * de/dt, never negative (a surface only pushes;
+ *                      b: the transfer force of a change of gains, see setGains)
  * Out of contact:      f  = 0; s ramps linearly to 0 over `bleedS` so a quick re-entry does
  *                      not find a wound-up integral.
  */
 export class LocalModel {
-  constructor({ bleedS = 0.1, sMax = 10 } = {}) {
+  constructor({ bleedS = 0.1, sMax = 10, transferS = 0.25 } = {}) {
     this.kH = 0;
     this.iGain = 0;
     this.bH = 0;
@@ -149,21 +150,36 @@ export class LocalModel {
     this.s = 0;
     this.bleedS = bleedS;
     this.sMax = sMax;
+    this.transferS = transferS;
+    this.b = 0; // transfer force [N] of the last change of gains, driven to zero
+    this._bStep = 0;
+    this._lastE = 0;
     this._bleedRate = 0;
     this._bleeding = false;
   }
 
-  /** Swap gains between ticks; the integral state is kept so the force does not jump. */
+  /**
+   * Swap gains between ticks without a bump (as shared/local_model.py does): the integral is
+   * kept (with I = 0 it is held, not dropped: interim P gains in mid-press must not let go of the
+   * force it carries), and in contact the step (K_h,old - K_h,new) * e becomes a transfer force
+   * driven linearly to zero over `transferS` (0: the force steps as eq. 12 says).
+   */
   setGains({ k_h, i_gain = 0, b_h = 0, theta_m = 0 }) {
+    const kOld = this.kH;
     this.kH = k_h;
     this.iGain = i_gain;
     this.bH = b_h;
     this.theta = theta_m;
-    if (!(this.iGain > 0)) this.s = 0;
+    const step = (kOld - k_h) * this._lastE;
+    if (this._lastE > 0 && this.transferS > 0 && step !== 0 && Number.isFinite(step)) {
+      this.b += step;
+      this._bStep = this.b / this.transferS;
+    }
   }
 
   reset() {
     this.s = 0;
+    this.b = 0;
     this._bleeding = false;
   }
 
@@ -174,6 +190,12 @@ export class LocalModel {
    * @returns {number} force magnitude [N] along the outward normal, >= 0
    */
   step(e, eDot, dt) {
+    const b = this.b;
+    if (b !== 0) {
+      const nb = b - this._bStep * dt;
+      this.b = nb > 0 === b > 0 && nb !== 0 ? nb : 0;
+    }
+    this._lastE = e;
     if (e > 0) {
       this._bleeding = false;
       if (this.iGain > 0) {
@@ -181,9 +203,10 @@ export class LocalModel {
         if (this.s < 0) this.s = 0;
         else if (this.s > this.sMax) this.s = this.sMax;
       }
-      const f = this.kH * e + this.s + this.bH * eDot;
+      const f = this.kH * e + this.s + b + this.bH * eDot;
       return f > 0 ? f : 0;
     }
+    this.b = 0; // no transfer out of contact
     if (this.s > 0) {
       if (!this._bleeding) {
         this._bleeding = true;

@@ -58,6 +58,30 @@ test("PI model: the integral removes the error above theta and bleeds to zero on
   assert.equal(m.s, 0);
 });
 
+test("new gains mid-press: the integral is held (even with I = 0) and K_h's step is ramped", () => {
+  const m = new LocalModel({ transferS: 0.25 });
+  m.setGains({ k_h: 40, i_gain: 400 });
+  let f = 0;
+  for (let i = 0; i < 1000; i++) f = m.step(0.005, 0, 0.001); // 1 s at e = 5 mm
+  const held = m.s;
+  assert.ok(held > 1.5);
+  // interim P gains of a new cell (I = 0, softer K_h): the force the hand holds does not drop
+  m.setGains({ k_h: 36, i_gain: 0 });
+  close(m.step(0.005, 0, 0.001), f, 1e-9);
+  assert.equal(m.s, held); // held, not dropped and not growing
+  let last = f;
+  for (let i = 0; i < 300; i++) {
+    const g = m.step(0.005, 0, 0.001);
+    assert.ok(last - g <= (4 * 0.005) / 250 + 1e-12); // at most the step / 250 per tick
+    last = g;
+  }
+  close(last, 36 * 0.005 + held, 1e-9); // then the new gains' own force
+  // leaving ends the transfer; the integral bleeds as on any release
+  m.setGains({ k_h: 100, i_gain: 0 });
+  m.step(-0.001, 0, 0.001);
+  assert.equal(m.b, 0);
+});
+
 test("servo: force ramps up after a patch, clamps, and ramps to zero when patches stop", () => {
   const dev = new SimHand({ start: [0, 0, 0.095], target: () => [0, 0, 0.095], handMass: 1e6 });
   const s = new Servo({ device: dev, maxForceN: 7.9, linkTimeoutS: 0.25, rampS: 0.05 });
