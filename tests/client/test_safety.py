@@ -232,13 +232,19 @@ def test_output_clamps_at_the_device_max_and_counts_once_per_episode() -> None:
     assert sup.output(100.0, *n, 0.0, 0.0, 0.0, tk.t, True)[3] == pytest.approx(FMAX * s)
 
 
-def test_a_held_peak_force_falls_to_the_continuous_force() -> None:
+def _engaged_with_thermal_limit() -> tuple[SafetySupervisor, Ticker]:
+    """A supervisor with forces on, for a device with a 2 N continuous force and tau = 1 s."""
     lim = limits(max_continuous_force_n=2.0, thermal_time_constant_s=1.0)
     sup = SafetySupervisor(lim, ServoConfig(ramp_s=RAMP_S, link_timeout_s=math.inf))
     sup.enable()
     sup.patch_arrived(0.0)
     tk = Ticker(sup)
     tk.run(RAMP_TICKS + 1)
+    return sup, tk
+
+
+def test_a_held_peak_force_falls_to_the_continuous_force() -> None:
+    sup, tk = _engaged_with_thermal_limit()
     assert sup.thermal is not None
     out = []
     for _ in range(10_000):  # 10 s asking for 50 N
@@ -258,12 +264,7 @@ def test_a_held_peak_force_falls_to_the_continuous_force() -> None:
 
 
 def test_forces_not_displayed_do_not_heat_the_motors() -> None:
-    lim = limits(max_continuous_force_n=2.0, thermal_time_constant_s=1.0)
-    sup = SafetySupervisor(lim, ServoConfig(ramp_s=RAMP_S, link_timeout_s=math.inf))
-    sup.enable()
-    sup.patch_arrived(0.0)
-    tk = Ticker(sup)
-    tk.run(RAMP_TICKS + 1)
+    sup, tk = _engaged_with_thermal_limit()
     for _ in range(5000):
         sup.output(50.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, tk.t, False)
     assert sup.thermal is not None and sup.thermal.heat == 0.0
