@@ -1,8 +1,7 @@
 """The server's asyncio layer: websockets, static files, the simulation schedule, latency injection.
 
 Everything that decides anything lives in :class:`server.room.Room`; this module only moves
-frames between sockets and the room, keeps the simulation on a drift-free schedule and injects
-latency. HTTP ``/`` serves the viewer (web/), ``/vendor/three/...`` the three.js package from
+frames between sockets and the room, wakes the room at its timer and injects latency. HTTP ``/`` serves the viewer (web/), ``/vendor/three/...`` the three.js package from
 web/node_modules, ``/status`` a JSON summary; the websocket endpoint is ``/ws``.
 
 With an :class:`ssl.SSLContext` everything is served as ``https://`` and ``wss://``. Browser
@@ -11,10 +10,11 @@ registered with its source address (the room budgets per address), and a consume
 buffer stays full for ``send_timeout_s`` (10 s) is dropped, viewers included.
 
 Flood control is the room's (:meth:`server.room.Room.admit`), charged when a frame arrives and
-before latency injection holds it back. When the simulation loop is behind its schedule (the
-event loop stalled), the room is told (:meth:`server.room.Room.behind_schedule`), so that the
-backlog clients sent meanwhile is not taken for a flood. After every tick the loop yields to the
-event loop, also when it is late, so the senders write each tick's frames before the next tick
+before latency injection holds it back. So is the simulation schedule: this layer sleeps until
+:meth:`server.room.Room.get_timer` and calls :meth:`server.room.Room.handle_timer` (the room
+skips missed ticks and, when the server is behind, credits the budgets so that the backlog
+clients sent meanwhile is not taken for a flood). After every tick the loop yields to the event
+loop, also when it is late, so the senders write each tick's frames before the next tick
 replaces them (latest wins). Frames are sent uncompressed (no permessage-deflate): compression
 took a fifth of the server's time at 32 users (docs/bench-load.md), and the viewer stream caps its
 own bytes (:mod:`server.viewer_stream`).
@@ -26,7 +26,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 import mimetypes
 import multiprocessing
 import ssl
@@ -176,9 +175,6 @@ class ServerApp:
         self._next_conn = 0
         self._server: Server | None = None
         self._sim_task: asyncio.Task[None] | None = None
-        self.tick = 0
-        #: When [s, event-loop time] the next simulation tick is due (inf until the loop runs).
-        self._due_s = math.inf
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
@@ -208,7 +204,7 @@ class ServerApp:
             self._sim_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._sim_task
-        self._due_s = math.inf  # no schedule any more: nothing is behind it
+        self.room.stop()  # no schedule any more: nothing is behind it
         pending = list(self._gain_tasks)
         for task in pending:
             task.cancel()
@@ -270,7 +266,7 @@ class ServerApp:
         """JSON-able summary: tick, users, viewers, tick costs, overruns, link conditions."""
         room = self.room
         return {
-            "tick": self.tick,
+            "tick": room.tick_count,
             "sim_rate_hz": room.sim_rate_hz,
             "users": len(room.users),
             "viewers": len(room.viewers),
@@ -309,8 +305,6 @@ class ServerApp:
             self._dispatch(self.room.connect(conn_id, loop.time(), address))
             async for frame in ws:  # after a refusal: keep draining for the close handshake
                 now = loop.time()
-                if now > self._due_s:  # behind schedule: this may be a backlog from a stall
-                    self.room.behind_schedule(self._due_s, now)
                 # flood control on arrival, before latency injection holds anything in memory
                 admitted, outs = self.room.admit(conn_id, frame, now)
                 if outs:
@@ -352,10 +346,10 @@ class ServerApp:
             return
         peer = self._peers.get(conn_id)
         if peer is not None and not peer.named:
-            conn = self.room._conns.get(conn_id)
-            if conn is not None and conn.hello is not None:  # welcomed: now we know who it is
+            who = self.room.describe(conn_id)
+            if who is not None:  # welcomed: now we know who it is
                 peer.named = True
-                peer.who += f" {conn.hello.role} {conn.hello.name!r} ({conn.user_id})"
+                peer.who += f" {who}"
                 log.info("connection %s: %s joined", conn_id, peer.who)
         self._dispatch(outs)
 
@@ -415,43 +409,31 @@ class ServerApp:
 
     # ------------------------------------------------------------------ simulation
     async def _sim_loop(self) -> None:
-        """Tick the room at ``sim_rate_hz`` on a drift-free schedule; count and skip overruns.
+        """Sleep until the room's timer (:meth:`Room.get_timer`), call :meth:`Room.handle_timer`.
 
-        Yields to the event loop before every tick, also when the tick is already due: the
+        The schedule (drift-free ticks, skipped overruns, crediting budgets when late) is the
+        room's; this loop measures each tick's wall-clock cost for it (:meth:`Room.tick_cost`).
+        It yields to the event loop before every tick, also when the tick is already due: the
         previous tick's frames are queued latest-wins (:meth:`_ready`), so without the yield a
         late tick would replace them before the senders had a chance to write them, and every
-        user would lose that patch. A late start is reported to the room
-        (:meth:`Room.behind_schedule`), as the connection handlers do for frames they read while
-        the loop is behind (``_due_s``).
+        user would lose that patch.
         """
         loop = asyncio.get_running_loop()
-        period = 1.0 / self.room.sim_rate_hz
-        t0 = loop.time()
-        k = 0
+        room = self.room
+        room.start(loop.time())
         while True:
-            k += 1
-            target = t0 + k * period
-            self._due_s = target
-            delay = target - loop.time()
+            delay = room.get_timer() - loop.time()
             if delay > 0:
                 await asyncio.sleep(delay)
             else:  # late: still let the senders write the last tick's frames first
                 await asyncio.sleep(0)
             start = loop.time()
-            if start > target:
-                self.room.behind_schedule(target, start)
-            behind = int((start - target) // period)
-            if behind > 0:  # missed whole ticks: skip them, never pile them up
-                k += behind
-                self.room.stats.overruns += behind
             try:
-                outs = self.room.tick(k, start)
+                outs = room.handle_timer(start)
             except Exception:  # a bug in the physics must not take every user down silently
-                log.exception("simulation tick %d failed", k)
+                log.exception("simulation tick %d failed", room.tick_count)
                 outs = []
-            cost = loop.time() - start
-            self.room.stats.record(cost * 1000.0, overran=cost > period)
-            self.tick = k
+            room.tick_cost(loop.time() - start)
             self._dispatch(outs)
             self._start_designs()
 

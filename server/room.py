@@ -9,10 +9,13 @@ haptic *user* or a *viewer*. Per simulation tick (:meth:`Room.tick`):
    (Step 1), with K_o, B_o and the coupling-aware K_o_eff (DESIGN section 6);
 3. each user gets its ``patch``; viewers get the surface (binary) and a ``room`` summary.
 
-The asyncio layer (:mod:`server.app`) only moves frames: it calls :meth:`Room.connect`,
-:meth:`Room.admit` (budgets, on arrival) and :meth:`Room.handle` (when due; :meth:`Room.receive`
-does both), :meth:`Room.disconnect` and :meth:`Room.tick` and sends what they return, and reports
-when it is behind its schedule (:meth:`Room.behind_schedule`).
+The asyncio layer (:mod:`server.app`) only moves frames and keeps one timer: it calls
+:meth:`Room.connect`, :meth:`Room.admit` (budgets, on arrival) and :meth:`Room.handle` (when due;
+:meth:`Room.receive` does both) and :meth:`Room.disconnect`, sleeps until :meth:`Room.get_timer`
+and calls :meth:`Room.handle_timer`, and sends what they return (the pattern of aioquic's
+``QuicConnection.get_timer``/``handle_timer``). The simulation schedule is the room's: which tick
+is due when, which missed ticks are skipped, and when the server is behind it, which credits the
+budgets (:meth:`Room.behind_schedule`).
 Hostile input never reaches the world: a bad frame gets an ``error`` reply on that connection only
 (and a close where the connection cannot go on); the object and every other user are unaffected.
 
@@ -193,7 +196,7 @@ class _Conn:
 
 @dataclass
 class TickStats:
-    """Simulation tick costs measured by the I/O layer (for viewers and reports)."""
+    """Simulation tick costs the I/O layer measured (:meth:`Room.tick_cost`) and ticks skipped."""
 
     window: deque[float] = field(default_factory=lambda: deque(maxlen=512))
     overruns: int = 0
@@ -324,7 +327,71 @@ class Room:
         self.gains = GainAdvisor(self.sim_rate_hz)
         self._conns: dict[str, _Conn] = {}
         self._next_user = 1
+        #: The number of the last simulation tick run (0 before the first).
         self.tick_count = 0
+        #: The schedule (:meth:`start`): tick k is due at ``_t0_s + k / sim_rate_hz`` [s].
+        self._t0_s = math.inf
+        #: A tick ran whose cost the I/O layer has not reported yet (:meth:`tick_cost`).
+        self._cost_due = False
+
+    # ------------------------------------------------------------------ schedule
+    def start(self, now_s: float) -> None:
+        """Start the simulation schedule at ``now_s`` [s]: tick k is due at ``now_s + k * N * T``.
+
+        Tick numbers go on from the last tick run, so a restarted schedule never reuses one.
+        """
+        self._t0_s = float(now_s) - self.tick_count / self.sim_rate_hz
+
+    def stop(self) -> None:
+        """End the schedule: no tick is due any more, and the server is behind nothing."""
+        self._t0_s = math.inf
+
+    def get_timer(self) -> float:
+        """When [s] the I/O layer must next call :meth:`handle_timer` (inf when not started).
+
+        The due time of the next simulation tick, on the drift-free schedule :meth:`start` set.
+        """
+        return self._t0_s + (self.tick_count + 1) / self.sim_rate_hz
+
+    def handle_timer(self, now_s: float) -> list[Outgoing]:
+        """Run what is due at ``now_s`` [s]: the next simulation tick (:meth:`tick`).
+
+        Returns the frames to send, [] when nothing is due yet. A late tick runs once: whole
+        periods missed are skipped (never piled up) and counted in ``stats.overruns``, and the
+        lateness is credited to the budgets (:meth:`behind_schedule`). The tick's number is
+        taken before it runs, so a tick that raises is not run again.
+        """
+        due_s = self.get_timer()
+        if not now_s >= due_s:
+            return []
+        period = 1.0 / self.sim_rate_hz
+        if now_s > due_s:
+            self.behind_schedule(due_s, now_s)
+        behind = int((now_s - due_s) // period)
+        if behind > 0:  # missed whole ticks: skip them
+            self.stats.overruns += behind
+        k = self.tick_count + 1 + behind
+        self.tick_count = k
+        self._cost_due = True
+        return self.tick(k, now_s)
+
+    def tick_cost(self, cost_s: float) -> None:
+        """The I/O layer's measure of the last tick's cost [s] (wall time around :meth:`handle_timer`).
+
+        Recorded once per tick run (a call after a :meth:`handle_timer` that ran nothing is
+        ignored); a tick that took longer than its period counts as an overrun.
+        """
+        if not self._cost_due:
+            return
+        self._cost_due = False
+        self.stats.record(cost_s * 1000.0, overran=cost_s > 1.0 / self.sim_rate_hz)
+
+    def describe(self, conn_id: str) -> str | None:
+        """``ROLE 'NAME' (USER_ID)`` of a welcomed connection, for logs; None before its hello."""
+        conn = self._conns.get(conn_id)
+        if conn is None or conn.hello is None:
+            return None
+        return f"{conn.hello.role} {conn.hello.name!r} ({conn.user_id})"
 
     # ------------------------------------------------------------------ connections
     @property
@@ -428,6 +495,9 @@ class Room:
     def admit(self, conn_id: str, frame: str | bytes, now_s: float) -> tuple[bool, list[Outgoing]]:
         """Charge one frame that arrived at ``now_s`` [s] to the budgets; nothing else.
 
+        A frame read while the server is behind its schedule may be a backlog from a stall: the
+        budgets are credited for it first (:meth:`behind_schedule`).
+
         Flood control: token buckets per connection (frames, bytes), then per source address
         (:meth:`_charge_address`), and the frame size limit. The I/O layer calls it when a frame
         arrives, before latency injection holds the frame back, and hands admitted frames to
@@ -438,6 +508,9 @@ class Room:
         conn = self._conns.get(conn_id)
         if conn is None or conn.closed:
             return False, []
+        due_s = self.get_timer()
+        if now_s > due_s:  # behind schedule: this may be a backlog from a stall
+            self.behind_schedule(due_s, now_s)
         size = frame_size_bytes(frame)
         if not conn.frames.take(1.0, now_s):
             return False, self._close(

@@ -51,15 +51,21 @@ def _steady_users(room: Room, n: int, address: str = "10.1.1.1") -> list[str]:
     return users
 
 
-def _steady_then_stall(room: Room, users: list[str], stall_s: float, report: bool) -> dict:
+def _steady_then_stall(
+    room: Room, users: list[str], stall_s: float, report: bool, scheduled: bool = False
+) -> dict:
     """1 s on time, then a stall of ``stall_s`` [s] whose backlog is read at once.
 
     Each user sends what the bench's users send: a state every 25 ms (twice per tick) and a ping
-    every 0.5 s. With ``report`` the reads are preceded by what the I/O layer does while it is
-    behind: it tells the room when the tick that has not run yet was due. Returns the closes.
+    every 0.5 s. With ``report`` the reads are preceded by what an I/O layer that keeps its own
+    schedule would do while behind: tell the room when the tick that has not run yet was due.
+    With ``scheduled`` the room keeps the schedule itself (:meth:`Room.start`, ticks run by
+    :meth:`Room.handle_timer` when due) and is told nothing. Returns the closes.
     """
     closed: dict[str, str] = {}
     seq = 1
+    if scheduled:
+        room.start(0.0)
     for step in range(40):  # on time: every frame read when sent, a tick every other step
         t = 0.025 * (step + 1)
         seq += 1
@@ -68,7 +74,10 @@ def _steady_then_stall(room: Room, users: list[str], stall_s: float, report: boo
             if step % 20 == 0:
                 closed |= _closes(room.receive(u, PING, t))
         if step % 2 == 1:
-            closed |= _closes(room.tick(step // 2 + 1, t))
+            if scheduled:  # the I/O layer wakes the room at its timer
+                closed |= _closes(room.handle_timer(room.get_timer()))
+            else:
+                closed |= _closes(room.tick(step // 2 + 1, t))
     due_s, resume_s = 1.0 + PERIOD, 1.0 + stall_s  # the tick due at 1.05 s runs at resume_s
     backlog = []
     for step in range(int(stall_s / 0.025)):  # sent during the stall, not read
@@ -95,6 +104,11 @@ def test_a_backlog_after_a_server_stall_does_not_close_steady_users():
     assert sorted(room.users) == users
     outs = room.tick(1001, 13.1)  # everybody still gets patches
     assert {o.conn_id for o in outs if o.stream == "patch"} == set(users)
+    # a room that keeps its own schedule knows it is behind without being told
+    own = Room(RecordingWorld(), SIM_RATE)
+    own_users = _steady_users(own, 8)
+    assert _steady_then_stall(own, own_users, 12.0, report=False, scheduled=True) == {}
+    assert sorted(own.users) == own_users
     # the same backlog, read without knowing the server was behind, reads as a flood
     control = Room(RecordingWorld(), SIM_RATE)
     closed = _steady_then_stall(control, _steady_users(control, 8), 12.0, report=False)

@@ -234,3 +234,53 @@ def test_users_resting_on_a_side_get_four_distinct_side_anchors(room):
     assert min(np.linalg.norm(points[i] - points[j]) for i in range(4) for j in range(i)) > 0.1
     for want, n in zip(([1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]), normals, strict=True):
         assert np.dot(n, want) > 0.9
+
+
+def test_the_room_keeps_the_simulation_schedule_and_skips_missed_ticks():
+    room = Room(RecordingWorld(), 20.0)  # a tick every 50 ms
+    room.connect("a", 0.0)
+    room.receive("a", hello("A"), 0.0)
+    room.receive("a", state(1), 0.0)
+    assert room.get_timer() == float("inf")  # not started: nothing is ever due
+    assert room.handle_timer(1e9) == []
+    room.start(10.0)
+    assert room.get_timer() == pytest.approx(10.05)
+    assert room.handle_timer(10.04) == [] and room.tick_count == 0  # early: nothing runs
+    room.tick_cost(0.001)  # no tick ran: nothing to record
+    assert not room.stats.window
+    patches = [o for o in room.handle_timer(10.05) if o.stream == "patch"]
+    assert [json.loads(o.data)["tick"] for o in patches] == [1]
+    room.tick_cost(0.002)
+    room.tick_cost(0.002)  # reported twice: recorded once
+    assert list(room.stats.window) == [pytest.approx(2.0)] and room.stats.overruns == 0
+    # the next tick runs 3.5 periods late: one tick, three skipped and counted, none piled up
+    patches = [o for o in room.handle_timer(10.10 + 3.5 * 0.05) if o.stream == "patch"]
+    assert [json.loads(o.data)["tick"] for o in patches] == [5]
+    assert room.stats.overruns == 3
+    assert room.get_timer() == pytest.approx(10.30)  # back on the drift-free schedule
+    room.tick_cost(0.06)  # a tick that took longer than its period is an overrun too
+    assert room.stats.overruns == 4
+    room.stop()
+    assert room.get_timer() == float("inf")
+    room.start(20.0)  # a restarted schedule goes on numbering from the last tick
+    assert room.get_timer() == pytest.approx(20.05)
+    patches = [o for o in room.handle_timer(20.05) if o.stream == "patch"]
+    assert [json.loads(o.data)["tick"] for o in patches] == [6]
+
+
+def test_a_tick_that_raises_is_not_run_again():
+    room = Room(RecordingWorld(), 20.0)
+    room.start(0.0)
+    calls = []
+
+    def broken(k, now_s):
+        calls.append(k)
+        raise RuntimeError("physics bug")
+
+    room.tick = broken  # type: ignore[method-assign]
+    with pytest.raises(RuntimeError):
+        room.handle_timer(0.05)
+    assert room.get_timer() == pytest.approx(0.10)  # the schedule moved on
+    with pytest.raises(RuntimeError):
+        room.handle_timer(0.10)
+    assert calls == [1, 2]
