@@ -2,8 +2,9 @@
 
 One row per servo tick, columns :data:`COLUMNS` (units in the names). The tick calls
 :meth:`TelemetryRecorder.append` with exactly ``len(COLUMNS)`` floats; it packs them into a
-preallocated ``array('d')`` (no allocation, no lock, no logging) and overwrites the oldest row when
-the buffer is full. Everything else (:meth:`rows`, :meth:`column`, :meth:`write_csv`) runs outside
+preallocated ``array('d')`` (the buffer never grows; no lock, no logging; CPython still makes the
+call's small objects, so "allocation-free" is not a claim made here) and overwrites the oldest row
+when the buffer is full. Everything else (:meth:`rows`, :meth:`column`, :meth:`write_csv`) runs outside
 the tick and copies; call it after the servo loop stopped for a consistent snapshot (while it runs
 the newest row may be half written).
 
@@ -100,7 +101,7 @@ class TelemetryRecorder:
         return self._count
 
     def append(self, *values: float) -> None:
-        """Store one row of ``len(COLUMNS)`` floats (called by the servo tick; allocation-free).
+        """Store one row of ``len(COLUMNS)`` floats (called by the servo tick; the ring never grows).
 
         Raises
         ------

@@ -813,9 +813,12 @@ class ServoThread:
         return ok
 
     # -- delegation for the network side -------------------------------------------------------------
-    def set_patch(self, *args: Any, **kwargs: Any) -> LocalModelUpdate:
-        """See :meth:`ServoCore.set_patch` (same arguments); also counts as link activity now."""
-        patch = self.core.set_patch(*args, **kwargs)
+    def set_patch(self, update: LocalModelUpdate) -> LocalModelUpdate:
+        """Hand ``update`` to the servo loop (:meth:`ServoCore.set_patch`); also link activity now.
+
+        Returns what will be applied (K_h and B_h clamped to the device).
+        """
+        patch = self.core.set_patch(update)
         self.core.notify_link(self.clock())
         return patch
 

@@ -384,18 +384,16 @@ class ClientSession:
     def state(self, sample: ServoSample) -> str:
         """The ``state`` frame for the servo loop's latest sample.
 
-        The protocol's ``penetration_m`` cannot say "unknown": a sample with no penetration yet
-        (None, before the first patch) is sent as 0 m, with ``in_contact`` false and
-        ``patch_tick`` -1 telling the server there is no local model yet.
+        A sample with no penetration yet (None, before the first patch) is sent with
+        ``penetration_m`` null: there is no local model to penetrate.
         """
         self._seq += 1
-        pen = sample.penetration_m
         return encode(
             State(
                 seq=self._seq,
                 probe_m=sample.probe_m,
                 force_n=sample.force_n,
-                penetration_m=0.0 if pen is None else pen,
+                penetration_m=sample.penetration_m,
                 in_contact=sample.in_contact,
                 k_h=sample.k_h,
                 i_gain=sample.i_gain,

@@ -101,13 +101,15 @@ class State(_Msg):
 
     ``force_n`` is the last force the device rendered on the user [N] (outward: it pushes the probe
     out of the object); the simulation applies its opposite (Step 3 of section 6).
+    ``penetration_m`` is the probe's penetration of its local model [m]; absent (null) before the
+    first patch, when there is no local model to penetrate (then ``patch_tick`` is -1).
     """
 
     type: Literal["state"] = "state"
     seq: Seq
     probe_m: InVec3
     force_n: ForceVec3
-    penetration_m: Annotated[StrictFinite, Field(ge=-10.0, le=10.0)] = 0.0
+    penetration_m: Annotated[StrictFinite, Field(ge=-10.0, le=10.0)] | None = None
     in_contact: StrictBool = False
     k_h: Annotated[StrictFinite, Field(ge=0, le=1e6)] = 0.0
     i_gain: Annotated[StrictFinite, Field(ge=0, le=1e8)] = 0.0
@@ -326,7 +328,8 @@ class UserView(_Msg):
     proxy_m: FiniteVec3
     normal: FiniteVec3
     force_n: FiniteVec3
-    penetration_m: Finite
+    #: None until the user's client has a local model (its ``state`` says none).
+    penetration_m: Finite | None = None
     in_contact: bool
     k_o: Finite
     k_o_eff: Finite

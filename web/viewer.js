@@ -1037,7 +1037,7 @@ function onRoom(room) {
       in_contact: u.in_contact,
       force_n: f,
       force_n_mag: Math.hypot(f[0], f[1], f[2]),
-      penetration_mm: u.penetration_m * 1000,
+      penetration_mm: u.penetration_m === null || u.penetration_m === undefined ? null : u.penetration_m * 1000,
       indentation_mm: w === null ? null : -w * 1000,
       k_o: u.k_o,
       k_o_eff: u.k_o_eff,

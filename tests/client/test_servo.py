@@ -17,6 +17,7 @@ from haptic_collab.client.devices.base import Device, DeviceLimits, HapticError,
 from haptic_collab.client.scheduler import DeadlineLoop
 from haptic_collab.client.servo import ServoConfig, ServoCore, ServoThread
 from haptic_collab.shared.local_model import LocalModelParams
+from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import make_plane, make_sphere
 
 T = 1e-3
@@ -456,7 +457,7 @@ def test_real_thread_runs_and_stops_cleanly() -> None:
     th = ServoThread(core)
     core.enable_forces()
     th.start()
-    th.set_patch(PLANE, 250.0, 0.0)
+    th.set_patch(LocalModelUpdate(PLANE, 250.0, 0.0))
     t_end = time.monotonic() + 0.3
     while time.monotonic() < t_end:
         th.notify_link()

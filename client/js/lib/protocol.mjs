@@ -39,6 +39,7 @@ export function helloMessage({ name, device, servoRateHz, localModel, token }) {
 /**
  * The `state` frame from a servo snapshot. Returns null when a number is not finite (the
  * server refuses NaN/Infinity, and JSON.stringify would turn them into null): skip the frame.
+ * Before the first patch (`patchTick` < 0) there is no local model: no `penetration_m`.
  */
 export function stateMessage({ seq, snap, rttMs }) {
   const m = {
@@ -55,6 +56,7 @@ export function stateMessage({ seq, snap, rttMs }) {
     patch_tick: snap.patchTick,
   };
   if (rttMs !== null && rttMs !== undefined) m.rtt_ms = rttMs;
+  if (!(snap.patchTick >= 0)) delete m.penetration_m;
   return allFinite(m) ? m : null;
 }
 

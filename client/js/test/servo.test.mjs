@@ -146,6 +146,10 @@ test("messages: token only when given; a state with NaN is not sent", () => {
   const st = stateMessage({ seq: 3, snap, rttMs: null });
   assert.equal(st.type, "state");
   assert.equal("rtt_ms" in st, false);
+  assert.equal(st.penetration_m, 0.002);
+  // before the first patch there is no local model: no penetration (not 0 m), even a NaN one
+  const early = stateMessage({ seq: 5, snap: { ...snap, penetration: NaN, inContact: false, patchTick: -1 }, rttMs: null });
+  assert.equal("penetration_m" in early, false);
   assert.equal(stateMessage({ seq: 4, snap: { ...snap, probe: [0, 0, NaN] }, rttMs: 1 }), null);
 });
 
