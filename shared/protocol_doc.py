@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from haptic_collab.shared.codegen import sync_generated
 from haptic_collab.shared.protocol import json_schema
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
@@ -143,19 +144,10 @@ def render(doc_text: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Rewrite the section; with ``--check``, exit 1 if it is stale."""
     args = sys.argv[1:] if argv is None else argv
-    text = DOC.read_text(encoding="utf-8")
-    new = render(text)
-    if "--check" in args:
-        if new != text:
-            print(
-                f"{DOC} is stale: run python -m haptic_collab.shared.protocol_doc", file=sys.stderr
-            )
-            return 1
-        return 0
-    if new != text:
-        DOC.write_text(new, encoding="utf-8")
-        print(f"wrote {DOC}")
-    return 0
+    text = DOC.read_text(encoding="utf-8")  # must exist: only its marked section is generated
+    return sync_generated(
+        DOC, render(text), text, "haptic_collab.shared.protocol_doc", "--check" in args
+    )
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from haptic_collab.shared import protocol
+from haptic_collab.shared.codegen import sync_generated
 
 #: Where the generated module lives, relative to the repository root.
 OUTPUT = Path(__file__).resolve().parent.parent / "web" / "protocol.js"
@@ -157,20 +158,10 @@ def generate() -> str:
 def main(argv: list[str] | None = None) -> int:
     """Write web/protocol.js; with ``--check``, only report whether it is up to date (exit 1 if not)."""
     args = sys.argv[1:] if argv is None else argv
-    text = generate()
     current = OUTPUT.read_text(encoding="utf-8") if OUTPUT.is_file() else None
-    if "--check" in args:
-        if current != text:
-            print(
-                f"{OUTPUT} is stale: run python -m haptic_collab.shared.protocol_js",
-                file=sys.stderr,
-            )
-            return 1
-        return 0
-    if current != text:
-        OUTPUT.write_text(text, encoding="utf-8")
-        print(f"wrote {OUTPUT}")
-    return 0
+    return sync_generated(
+        OUTPUT, generate(), current, "haptic_collab.shared.protocol_js", "--check" in args
+    )
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ server's welcome says where the object is, then where :meth:`DeviceBackend.place
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import TypeVar
 
@@ -17,6 +18,36 @@ from haptic_collab.client.devices.base import Device, Vec3
 __all__ = ["PLACEHOLDER_CENTER", "opened_by", "standoff_center"]
 
 _D = TypeVar("_D", bound=Device)
+
+#: Largest workspace scale a vendor spec accepts (``,scale=S``): world metres per device metre.
+MAX_SCALE = 100.0
+
+
+def workspace_scale(spec: str, text: str, hint: str = "") -> float:
+    """The workspace scale ``S`` of a ``,scale=S`` option, ``text`` as written in ``spec``.
+
+    Returns
+    -------
+    float
+        S, world metres per metre of device motion, in (0, :data:`MAX_SCALE`].
+
+    Raises
+    ------
+    DeviceError
+        ``bad workspace scale in SPEC: 'TEXT' (need a number > 0 and <= 100, world metres per
+        metre of device motion)``, then ``hint`` (e.g. the spec's form) if given.
+    """
+    try:
+        scale = float(text)
+    except ValueError:
+        scale = math.nan
+    if not (math.isfinite(scale) and 0.0 < scale <= MAX_SCALE):
+        raise DeviceError(
+            f"bad workspace scale in {spec!r}: {text.strip()!r} (need a number > 0 and <= "
+            f"{MAX_SCALE:g}, world metres per metre of device motion)"
+            + (f"; {hint}" if hint else "")
+        )
+    return scale
 
 
 def standoff_center(anchor: Sequence[float], normal: Sequence[float]) -> Vec3:

@@ -55,7 +55,7 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
-from haptic_collab.client.devices._vendor import PLACEHOLDER_CENTER, opened_by
+from haptic_collab.client.devices._vendor import PLACEHOLDER_CENTER, opened_by, workspace_scale
 from haptic_collab.client.devices._vendor import standoff_center as workspace_center
 from haptic_collab.client.devices.backends import (
     DeviceBackend,
@@ -86,9 +86,6 @@ MAX_PYTHON = (3, 13)
 #: Probe speed [m/s, device frame] above which the servo loop ramps forces down. No Force
 #: Dimension or CHAI3D source states one; this is the project's choice for desktop devices.
 MAX_VELOCITY_M_S = 1.0
-
-#: Largest workspace scale accepted in ``,scale=S``.
-MAX_SCALE = 100.0
 
 
 _SPEC_HELP = (
@@ -221,15 +218,7 @@ def parse_args(args: str) -> tuple[int | None, float]:
         key, eq, value = part.partition("=")
         key = key.strip()
         if eq and key == "scale" and scale is None:
-            try:
-                scale = float(value)
-            except ValueError:
-                scale = math.nan
-            if not (math.isfinite(scale) and 0.0 < scale <= MAX_SCALE):
-                raise DeviceError(
-                    f"bad workspace scale in {spec!r}: {value.strip()!r} (need a number > 0 and "
-                    f"<= {MAX_SCALE:g}); {_SPEC_HELP}"
-                )
+            scale = workspace_scale(spec, value, _SPEC_HELP)
         elif not eq and key.isdigit() and index is None:
             index = int(key)
             if index > 127:

@@ -54,7 +54,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from haptic_collab.client.devices._vendor import PLACEHOLDER_CENTER, opened_by, standoff_center
+from haptic_collab.client.devices._vendor import (
+    PLACEHOLDER_CENTER,
+    opened_by,
+    standoff_center,
+    workspace_scale,
+)
 from haptic_collab.client.devices.backends import (
     DeviceBackend,
     DeviceError,
@@ -245,6 +250,9 @@ def parse_haply_args(args: str) -> HaplyConfig:
                 f"unknown option {key!r} in {spec!r}; known: {', '.join(SPEC_OPTIONS)} "
                 "(docs/device-haply.md)"
             )
+        if key == "scale":
+            values[key] = workspace_scale(spec, text, "use haply:PORT[,KEY=VALUE...]")
+            continue
         try:
             value = float(text)
         except ValueError:
@@ -253,8 +261,6 @@ def parse_haply_args(args: str) -> HaplyConfig:
             raise DeviceError(f"option {key!r} in {spec!r} must be a finite number, got {text!r}")
         values[key] = value
     scale = values.pop("scale", 1.0)
-    if scale <= 0.0:
-        raise DeviceError(f"scale in {spec!r} must be > 0 (world metres per device metre)")
     timeout_ms = values.pop("timeout_ms", DEFAULT_TIMEOUT_S * 1e3)
     if not 1.0 <= timeout_ms <= 1000.0:
         raise DeviceError(f"timeout_ms in {spec!r} must be in [1, 1000], got {timeout_ms:g}")

@@ -69,7 +69,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from haptic_collab.client.devices._vendor import PLACEHOLDER_CENTER, opened_by, standoff_center
+from haptic_collab.client.devices._vendor import (
+    PLACEHOLDER_CENTER,
+    opened_by,
+    standoff_center,
+    workspace_scale,
+)
 from haptic_collab.client.devices.backends import (
     DeviceBackend,
     DeviceError,
@@ -378,15 +383,13 @@ def world_limits(hd: HdLimits, scale: float, center_w: Vec3) -> DeviceLimits:
 # -- spec -----------------------------------------------------------------------------------------------
 
 SPEC_FORM = "openhaptics[:DEVICE_NAME][,scale=S]"
-#: Largest workspace scale (as the other vendor backends).
-MAX_SCALE = 100.0
 
 
 def parse_spec(args: str) -> tuple[str, float]:
     """``(device name, scale)`` of the ``ARGS`` of ``openhaptics:ARGS``.
 
     ``ARGS`` is ``[DEVICE_NAME][,scale=S]``: comma-separated parts; a part with ``=`` is an option
-    (only ``scale``, a number in (0, :data:`MAX_SCALE`]), the other part (at most one) the device
+    (only ``scale``, a number in (0, 100]: :func:`_vendor.workspace_scale`), the other part (at most one) the device
     name. A device name cannot contain ``,`` or ``=``.
 
     Raises
@@ -405,15 +408,7 @@ def parse_spec(args: str) -> tuple[str, float]:
                     f"unknown option {key.strip()!r} in {spec!r}: the spec is {SPEC_FORM} "
                     "(see docs/device-openhaptics.md)"
                 )
-            try:
-                scale = float(value)
-            except ValueError:
-                scale = math.nan
-            if not (math.isfinite(scale) and 0.0 < scale <= MAX_SCALE):
-                raise DeviceError(
-                    f"bad scale in {spec!r}: expected a number > 0 and <= {MAX_SCALE:g} (world "
-                    f"metres per metre of stylus motion), got {value.strip()!r}"
-                )
+            scale = workspace_scale(spec, value, f"the spec is {SPEC_FORM}")
         elif part.strip():
             if name is not None:
                 raise DeviceError(

@@ -167,8 +167,10 @@ def test_the_spec_names_a_port_and_options() -> None:
     for bad, says in [
         ("/dev/a,/dev/b", "two ports"),
         ("/dev/a,speed=3", "unknown option 'speed'"),
-        ("/dev/a,scale=0", "scale"),
-        ("/dev/a,scale=nan", "finite number"),
+        ("/dev/a,scale=0", "bad workspace scale"),
+        ("/dev/a,scale=1e6", "<= 100"),  # as the other vendors: no millionfold workspace
+        ("/dev/a,scale=nan", "bad workspace scale"),
+        ("/dev/a,max_force_n=nan", "finite number"),
         ("/dev/a,timeout_ms=0", "timeout_ms"),
         ("/dev/a,max_continuous_force_n=9", "max_continuous_force_n"),
     ]:

@@ -674,10 +674,13 @@ def test_the_spec_names_the_device_and_the_scale(args: str, name: str, scale: fl
     ("args", "message"),
     [
         ("Default Device,gain=2", "unknown option 'gain' in 'openhaptics:Default Device,gain=2'"),
-        ("scale=0", "bad scale in 'openhaptics:scale=0': expected a number > 0 and <= 100"),
-        ("scale=101", "bad scale in 'openhaptics:scale=101'"),
-        ("scale=big", "bad scale in 'openhaptics:scale=big'"),
-        ("scale=inf", "bad scale"),
+        (
+            "scale=0",
+            "bad workspace scale in 'openhaptics:scale=0': '0' (need a number > 0 and <= 100",
+        ),
+        ("scale=101", "bad workspace scale in 'openhaptics:scale=101'"),
+        ("scale=big", "bad workspace scale in 'openhaptics:scale=big'"),
+        ("scale=inf", "bad workspace scale"),
         ("A,B", "names two devices"),
     ],
 )
