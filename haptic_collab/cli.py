@@ -742,9 +742,9 @@ def _add_protocol(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
 def _cmd_bench(args: argparse.Namespace) -> int:
     results: dict[str, object] = {}
     if args.what in ("server", "all"):
-        from haptic_collab.server.bench_world import run as bench_server
+        from haptic_collab.server.bench_world import measure as bench_server
 
-        results["server"] = bench_server(json_out=True)
+        results["server"] = bench_server()
     if args.what in ("servo", "all"):
         from haptic_collab.client.bench_servo import run as bench_servo
 

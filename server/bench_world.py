@@ -389,6 +389,22 @@ def bench_gain_advice(users: int = 8, lookups: int = 20_000) -> dict[str, Any]:
     }
 
 
+def measure() -> dict[str, Any]:
+    """The default benchmark (about 1-2 minutes): world ticks, the viewer stream, gain advice.
+
+    Returns
+    -------
+    dict
+        The :func:`bench_world` result with ``viewer_stream`` (:func:`bench_viewer_stream`) and
+        ``gain_advice`` (:func:`bench_gain_advice`) added. Prints nothing (``haptic bench``
+        prints it once, as JSON).
+    """
+    result = bench_world()
+    result["viewer_stream"] = bench_viewer_stream()
+    result["gain_advice"] = bench_gain_advice()
+    return result
+
+
 def run(json_out: bool) -> dict[str, Any]:
     """Run the default benchmark (about 1-2 minutes) and print JSON or a short table.
 
@@ -402,9 +418,8 @@ def run(json_out: bool) -> dict[str, Any]:
     dict
         The :func:`bench_world` result.
     """
-    result = bench_world()
-    result["viewer_stream"] = stream = bench_viewer_stream()
-    result["gain_advice"] = advice = bench_gain_advice()
+    result = measure()
+    stream, advice = result["viewer_stream"], result["gain_advice"]
     if json_out:
         print(json.dumps(result, indent=2))
     else:

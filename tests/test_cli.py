@@ -259,3 +259,15 @@ def test_a_failed_demo_keeps_its_logs_and_says_where(tmp_path):
     (kept,) = temp.iterdir()
     assert f"logs and telemetry are in {kept}" in res.stderr
     assert "broken.stl" in (kept / "server.log").read_text()
+
+
+def test_bench_server_prints_one_json_document(capsys, monkeypatch):
+    from haptic_collab.server import bench_world
+
+    # the measurements themselves take minutes; what is checked here is what gets printed
+    monkeypatch.setattr(bench_world, "bench_world", lambda: {"benchmark": "world_tick"})
+    monkeypatch.setattr(bench_world, "bench_viewer_stream", lambda: {"n_vertices": 2562})
+    monkeypatch.setattr(bench_world, "bench_gain_advice", lambda: {"users": 8})
+    assert main(["bench", "server", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)  # one document: a second copy would not parse
+    assert out["viewer_stream"] == {"n_vertices": 2562} and out["gain_advice"] == {"users": 8}
