@@ -8,7 +8,6 @@ import shlex
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -168,19 +167,16 @@ def test_client_with_a_bad_device_exits_2_before_connecting(spec: str, says: str
     with socket.create_server(("127.0.0.1", 0)) as srv:
         srv.setblocking(False)
         port = srv.getsockname()[1]
-        t0 = time.monotonic()
         res = run(
             "client", "--device", spec, "--url", f"ws://127.0.0.1:{port}/ws", "--duration", "30",
             timeout=60,
         )  # fmt: skip
-        elapsed = time.monotonic() - t0
         with pytest.raises(BlockingIOError):
             srv.accept()  # no connection was ever made
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("haptic client: error: "), res.stderr
     assert says in lines[0] and "Traceback" not in res.stderr
-    assert elapsed < 5.0  # under a second in practice (interpreter start included)
 
 
 def test_compose_services_run_valid_haptic_commands():
