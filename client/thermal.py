@@ -37,7 +37,17 @@ Nothing here reads a clock: time advances one servo period per :meth:`ThermalLim
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import Annotated
+
+from pydantic import Field
+
+from haptic_collab.shared.checks import (
+    FiniteFloat,
+    NonNegFinite,
+    PositiveFinite,
+    PositiveOrInf,
+    params_dataclass,
+)
 
 #: Thermal time constant [s] assumed for a device that states none. The winding time constants of
 #: the small ironless DC motors these devices use are of the order of ten seconds in the motor
@@ -45,7 +55,7 @@ from dataclasses import dataclass
 DEFAULT_THERMAL_TIME_CONSTANT_S = 15.0
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class ThermalParams:
     """Parameters of the peak-force time limit, SI units.
 
@@ -69,33 +79,28 @@ class ThermalParams:
 
     Raises
     ------
-    ValueError
-        Non-finite or out-of-range values.
+    pydantic.ValidationError
+        (a ValueError naming the field) Non-finite, non-numeric or out-of-range values
+        (``device_hot`` may be ``inf``: never hot), F_c above F_p, or cool not below hot.
     """
 
-    peak_force_n: float
-    continuous_force_n: float
-    time_constant_s: float = DEFAULT_THERMAL_TIME_CONSTANT_S
-    servo_period_s: float = 1e-3
-    clamp_rate_n_s: float = 1.0
-    release_heat: float = 0.8
-    device_hot: float = 0.7
-    device_cool: float = 0.5
+    peak_force_n: PositiveFinite
+    continuous_force_n: PositiveFinite
+    time_constant_s: PositiveFinite = DEFAULT_THERMAL_TIME_CONSTANT_S
+    servo_period_s: PositiveFinite = 1e-3
+    clamp_rate_n_s: PositiveFinite = 1.0
+    release_heat: Annotated[FiniteFloat, Field(ge=0, lt=1)] = 0.8
+    device_hot: PositiveOrInf = 0.7
+    device_cool: NonNegFinite = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("peak_force_n", "time_constant_s", "servo_period_s", "clamp_rate_n_s"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0.0):
-                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
         c = self.continuous_force_n
-        if not (math.isfinite(c) and 0.0 < c <= self.peak_force_n):
+        if not c <= self.peak_force_n:
             raise ValueError(
                 f"continuous_force_n must be in (0, peak_force_n = {self.peak_force_n:g}] N, "
                 f"got {c!r}"
             )
-        if not (0.0 <= self.release_heat < 1.0):
-            raise ValueError(f"release_heat must be in [0, 1), got {self.release_heat!r}")
-        if not (0.0 <= self.device_cool < self.device_hot):
+        if not self.device_cool < self.device_hot:
             raise ValueError(
                 f"device_cool ({self.device_cool!r}) must be >= 0 and below device_hot "
                 f"({self.device_hot!r})"

@@ -23,6 +23,21 @@ class CliError(Exception):
     """Bad input: printed as one line on stderr, exit status 2."""
 
 
+def _why(exc: BaseException) -> str:
+    """A bad-input exception as the one line a user sees.
+
+    A parameter class's :class:`pydantic.ValidationError` is several lines with a link; its first
+    problem is ``FIELD must be BOUND, got VALUE`` (:func:`shared.checks.describe`).
+    """
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError):
+        from haptic_collab.shared.checks import describe
+
+        return describe(exc)
+    return str(exc)
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -116,7 +131,7 @@ def _hand_from(args: argparse.Namespace) -> object | None:
     try:
         return Hand(args.hand_mass, args.hand_damping, args.hand_stiffness)
     except ValueError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(_why(exc)) from None
 
 
 def _cmd_stability(args: argparse.Namespace) -> int:
@@ -152,7 +167,7 @@ def _cmd_stability(args: argparse.Namespace) -> int:
             )
         )
     except ValueError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(_why(exc)) from None
     if args.json:
         out = res.to_json()
         out["full_loop"] = None if full is None else full.to_json()
@@ -364,7 +379,7 @@ def _cmd_server(args: argparse.Namespace) -> int:
     try:
         asyncio.run(run_server(opts))
     except ValueError as exc:  # bad mesh, bad parameters
-        raise CliError(str(exc)) from None
+        raise CliError(_why(exc)) from None
     except OSError as exc:
         raise CliError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}") from None
     return 0
@@ -480,9 +495,9 @@ def _cmd_client(args: argparse.Namespace) -> int:
     try:
         summary = asyncio.run(run_client(opts))
     except (ValueError, ConnectionError) as exc:  # DeviceError too: before any network
-        raise CliError(str(exc)) from None
+        raise CliError(_why(exc)) from None
     except OSError as exc:  # e.g. the --record file cannot be created
-        raise CliError(str(exc)) from None
+        raise CliError(_why(exc)) from None
     rate, rtt = summary.get("servo_rate_hz"), summary.get("rtt_ms_p50")
     print(
         f"{opts.name}: servo {'-' if rate is None else f'{rate:.1f}'} Hz, "
@@ -689,7 +704,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
             f"plotting needs matplotlib ({exc}): pip install 'haptic-collab[plots]'"
         ) from None
     except (ValueError, OSError) as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(_why(exc)) from None
     print(f"wrote {out}")
     return 0
 
@@ -794,7 +809,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 load_opts, log=lambda msg: print(msg, file=sys.stderr, flush=True)
             )
         except (ValueError, RuntimeError) as exc:
-            raise CliError(str(exc)) from None
+            raise CliError(_why(exc)) from None
     payload = results if args.what == "all" else results[args.what]
     text = json.dumps(payload, indent=2)
     if args.out:
@@ -925,7 +940,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     try:
         run_demo(opts)
     except ValueError as exc:
-        raise CliError(str(exc)) from None
+        raise CliError(_why(exc)) from None
     except RuntimeError as exc:
         print(f"haptic demo: failed: {exc}", file=sys.stderr)
         return 1

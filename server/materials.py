@@ -68,14 +68,16 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import replace
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
+from pydantic import AfterValidator, Field, ValidationError
 
 from haptic_collab.server.objects.balloon import BalloonParams
+from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, describe, params_dataclass
 from haptic_collab.shared.checks import positive as _positive
 from haptic_collab.shared.types import FloatArray
 
@@ -105,28 +107,13 @@ REQUIRED_KEYS = ("tension_n_per_m", "bending_n_m", "foundation_n_per_m3", "bulk_
 OPTIONAL_KEYS = ("damping_pa_s_per_m", "name", "source")
 
 
-def _checked_value(where: str, key: str, value: object, *, positive: bool = False) -> float:
-    """``value`` of the numeric field ``key`` (a key of :data:`_UNITS`) as a float.
-
-    Raises
-    ------
-    MaterialError
-        ``value`` is not a number (a bool is not), not finite, or below its bound (> 0 when
-        ``positive``, else >= 0): "WHERE: KEY must be ... [UNIT], got VALUE".
-    """
-    unit = _UNITS[key]
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise MaterialError(f"{where}: {key} must be a number [{unit}], got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise MaterialError(f"{where}: {key} must be finite [{unit}], got {value!r}")
-    if not (v > 0.0 if positive else v >= 0.0):
-        bound = "> 0" if positive else ">= 0"
-        raise MaterialError(f"{where}: {key} must be {bound} [{unit}], got {value!r}")
-    return v
+def _non_blank(name: str) -> str:
+    if not name.strip():
+        raise ValueError(f"must be a non-empty string, got {name!r}")
+    return name
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class Material:
     """The physical parameters of a deformable object, SI units (DESIGN section 5).
 
@@ -152,34 +139,20 @@ class Material:
 
     Raises
     ------
-    MaterialError
-        A field that is not a finite number, out of its range, or a name/source that is not a
-        string (the message names the field and its unit).
+    pydantic.ValidationError
+        (a ValueError naming the field) A number that is not a finite number (a bool is not
+        one) or out of its range, a name or source that is not a string, or a blank name.
+        :func:`material_from_mapping` says the same as a :class:`MaterialError` on one line,
+        with the file and the unit.
     """
 
-    name: str
-    tension_n_per_m: float
-    bending_n_m: float
-    foundation_n_per_m3: float
-    bulk_modulus_pa: float
-    damping_pa_s_per_m: float = 0.0
+    name: Annotated[str, Field(min_length=1), AfterValidator(_non_blank)]
+    tension_n_per_m: PositiveFinite
+    bending_n_m: NonNegFinite
+    foundation_n_per_m3: NonNegFinite
+    bulk_modulus_pa: NonNegFinite
+    damping_pa_s_per_m: NonNegFinite = 0.0
     source: str = ""
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not self.name.strip():
-            raise MaterialError(f"material name must be a non-empty string, got {self.name!r}")
-        if not isinstance(self.source, str):
-            raise MaterialError(f"material {self.name!r}: source must be a string")
-        for f in fields(self):
-            if f.name not in _UNITS:
-                continue
-            v = _checked_value(
-                f"material {self.name!r}",
-                f.name,
-                getattr(self, f.name),
-                positive=f.name == "tension_n_per_m",
-            )
-            object.__setattr__(self, f.name, v)
 
     def summary(self) -> str:
         """One line for a log: name, the five parameters with units, and the source."""
@@ -462,7 +435,8 @@ def material_from_mapping(data: Mapping[str, object], where: str, default_name: 
     ------
     MaterialError
         An unknown key (with the closest known one), a missing required key, a value of the
-        wrong type, NaN/inf or negative. The message starts with ``where`` and names the key.
+        wrong type, NaN/inf or negative (zero tension), or a blank name. The message starts with
+        ``where`` and names the key, e.g. ``WHERE: bending_n_m must be >= 0 [N*m], got -1e-06``.
     """
     known = REQUIRED_KEYS + OPTIONAL_KEYS
     unknown = [k for k in data if k not in known]
@@ -480,13 +454,13 @@ def material_from_mapping(data: Mapping[str, object], where: str, default_name: 
     for key in ("name", "source"):
         if key in data and not isinstance(data[key], str):
             raise MaterialError(f"{where}: {key} must be a string, got {data[key]!r}")
-    values = {key: _checked_value(where, key, data[key]) for key in _UNITS if key in data}
+    values: dict[str, Any] = {key: data[key] for key in _UNITS if key in data}
     name = str(data.get("name", default_name))
     source = str(data.get("source", f"file {where}"))
     try:
         return Material(name=name, source=source, **values)
-    except MaterialError as exc:
-        raise MaterialError(f"{where}: {exc}") from None
+    except ValidationError as exc:
+        raise MaterialError(f"{where}: {describe(exc, _UNITS)}") from None
 
 
 def load_material_file(path: str | Path) -> Material:

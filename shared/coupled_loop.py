@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.full_loop import (
     DEFAULT_HAND_BOX,
@@ -232,7 +233,7 @@ def coupled_k_o_hi(k_o_hi: float, ratio_class: float) -> float:
 # the coupled lifted loop
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class UserGains:
     """One user's local model (eq. 12 plus the probe damper), SI units.
 
@@ -248,24 +249,14 @@ class UserGains:
 
     Raises
     ------
-    ValueError
-        Out-of-range values.
+    pydantic.ValidationError
+        (a ValueError naming the field) Non-finite, non-numeric or out-of-range values.
     """
 
-    k_h: float
-    i_gain: float = 0.0
-    b_h: float = 0.0
+    k_h: PositiveFinite
+    i_gain: NonNegFinite = 0.0
+    b_h: NonNegFinite = 0.0
     proxy_hold: ProxyHold = "zoh"
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.k_h) and self.k_h > 0.0):
-            raise ValueError(f"k_h must be a finite number > 0, got {self.k_h!r}")
-        for name in ("i_gain", "b_h"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-        if self.proxy_hold not in ("zoh", "foh"):
-            raise ValueError(f"proxy_hold must be 'zoh' or 'foh', got {self.proxy_hold!r}")
 
     @classmethod
     def from_design(cls, design: GainDesign) -> UserGains:

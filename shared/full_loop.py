@@ -45,7 +45,6 @@ Everything is vectorised over a batch of hands and gains (numpy broadcasting): t
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal, ParamSpec
@@ -53,7 +52,13 @@ from typing import Literal, ParamSpec
 import numpy as np
 from scipy.linalg import expm
 
-from haptic_collab.shared.checks import nonneg, positive
+from haptic_collab.shared.checks import (
+    NonNegFinite,
+    PositiveFinite,
+    nonneg,
+    params_dataclass,
+    positive,
+)
 from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.types import FloatArray
@@ -70,7 +75,7 @@ STABILITY_TOL = 1e-9
 DAMPER_FILTER_S = 0.005
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class Hand:
     """Combined hand and device as the probe feels them, SI units (DESIGN section 6b).
 
@@ -85,21 +90,13 @@ class Hand:
 
     Raises
     ------
-    ValueError
-        Non-finite or out-of-range values.
+    pydantic.ValidationError
+        (a ValueError naming the field) Non-finite, non-numeric or out-of-range values.
     """
 
-    mass_kg: float
-    damping_n_s_per_m: float
-    stiffness_n_per_m: float
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.mass_kg) and self.mass_kg > 0.0):
-            raise ValueError(f"hand mass must be a finite number > 0 kg, got {self.mass_kg!r}")
-        for name in ("damping_n_s_per_m", "stiffness_n_per_m"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"hand {name} must be finite and >= 0, got {v!r}")
+    mass_kg: PositiveFinite
+    damping_n_s_per_m: NonNegFinite
+    stiffness_n_per_m: NonNegFinite
 
     def as_dict(self) -> dict[str, float]:
         """``{"mass_kg", "stiffness_n_per_m", "damping_n_s_per_m"}``."""
@@ -115,7 +112,7 @@ class Hand:
 DEFAULT_HAND = Hand(mass_kg=0.495, damping_n_s_per_m=5.5, stiffness_n_per_m=300.0)
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class HandBox:
     """A box of plausible combined hand + device parameters (README "The hand box" for sources).
 
@@ -128,20 +125,24 @@ class HandBox:
         Ranges [kg], [N*s/m], [N/m]; lo <= hi, lo > 0 for the mass.
     extra : tuple of Hand
         Hands checked besides the box's points (the simulated hand by default).
+
+    Raises
+    ------
+    pydantic.ValidationError
+        (a ValueError naming the field) A range that is not a tuple of two finite numbers >= 0
+        (> 0 for the mass) with lo <= hi.
     """
 
-    mass_kg: tuple[float, float] = (0.1, 0.6)
-    damping_n_s_per_m: tuple[float, float] = (2.0, 10.0)
-    stiffness_n_per_m: tuple[float, float] = (20.0, 1000.0)
+    mass_kg: tuple[PositiveFinite, PositiveFinite] = (0.1, 0.6)
+    damping_n_s_per_m: tuple[NonNegFinite, NonNegFinite] = (2.0, 10.0)
+    stiffness_n_per_m: tuple[NonNegFinite, NonNegFinite] = (20.0, 1000.0)
     extra: tuple[Hand, ...] = (DEFAULT_HAND,)
 
     def __post_init__(self) -> None:
         for name in ("mass_kg", "damping_n_s_per_m", "stiffness_n_per_m"):
             lo, hi = getattr(self, name)
-            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi):
-                raise ValueError(f"hand box {name} must be finite with 0 <= lo <= hi")
-        if self.mass_kg[0] <= 0.0:
-            raise ValueError("hand box mass must be > 0 kg")
+            if not lo <= hi:
+                raise ValueError(f"hand box {name} must have lo <= hi, got ({lo!r}, {hi!r})")
 
     def hands(self) -> list[Hand]:
         """A lattice over the box, then ``extra``: 5 masses x 3 dampings x 5 stiffnesses.

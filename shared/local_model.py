@@ -68,15 +68,21 @@ Nothing here reads a clock: time advances one servo period per :meth:`LocalModel
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import field, replace
 from typing import Literal
 
+from haptic_collab.shared.checks import (
+    NonNegFinite,
+    PositiveFinite,
+    PositiveOrInf,
+    params_dataclass,
+)
 from haptic_collab.shared.checks import nonneg as _finite_nonneg
 
 ThresholdMode = Literal["none", "fixed", "variable"]
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class ThresholdParams:
     """Integration threshold theta of section 5.1 (eq. 17 and 18). All lengths in metres.
 
@@ -105,33 +111,21 @@ class ThresholdParams:
 
     Raises
     ------
-    ValueError
-        Negative or non-finite values, unknown mode, or i_tot_bar_n <= 0 in variable mode.
+    pydantic.ValidationError
+        (a ValueError naming the field) Negative, non-finite or non-numeric values, an unknown
+        mode, or i_tot_bar_n <= 0 in variable mode.
     """
 
     mode: ThresholdMode = "fixed"
-    theta_m: float = 0.001
-    theta_1_m: float = 0.0005
-    theta_2_m: float = 0.003
-    i_tot_bar_n: float = 1.0
-    direction_deadband_m: float = 0.0
-    direction_deadband_m_s: float = 0.0
-    direction_filter_s: float = 0.02
+    theta_m: NonNegFinite = 0.001
+    theta_1_m: NonNegFinite = 0.0005
+    theta_2_m: NonNegFinite = 0.003
+    i_tot_bar_n: NonNegFinite = 1.0
+    direction_deadband_m: NonNegFinite = 0.0
+    direction_deadband_m_s: NonNegFinite = 0.0
+    direction_filter_s: PositiveFinite = 0.02
 
     def __post_init__(self) -> None:
-        if self.mode not in ("none", "fixed", "variable"):
-            raise ValueError(f"threshold mode must be none, fixed or variable, got {self.mode!r}")
-        for name in (
-            "theta_m",
-            "theta_1_m",
-            "theta_2_m",
-            "i_tot_bar_n",
-            "direction_deadband_m",
-            "direction_deadband_m_s",
-        ):
-            _finite_nonneg(name, getattr(self, name))
-        if not (math.isfinite(self.direction_filter_s) and self.direction_filter_s > 0.0):
-            raise ValueError(f"direction_filter_s must be > 0 s, got {self.direction_filter_s!r}")
         if self.mode == "variable" and self.i_tot_bar_n <= 0.0:
             raise ValueError("i_tot_bar_n must be > 0 for the variable threshold (eq. 18)")
 
@@ -171,7 +165,7 @@ def encoder_speed_bound(
     return r * q / (servo_period_s + filter_s)
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class LocalModelParams:
     """Parameters of the local model (eq. 12), SI units.
 
@@ -209,32 +203,20 @@ class LocalModelParams:
 
     Raises
     ------
-    ValueError
-        Non-finite or out-of-range values.
+    pydantic.ValidationError
+        (a ValueError naming the field) Non-finite, non-numeric or out-of-range values
+        (``integral_limit_n`` may be ``inf``).
     """
 
-    k_h: float
-    i_gain: float = 0.0
-    servo_period_s: float = 1e-3
+    k_h: PositiveFinite
+    i_gain: NonNegFinite = 0.0
+    servo_period_s: PositiveFinite = 1e-3
     threshold: ThresholdParams = field(default_factory=ThresholdParams)
-    release_time_s: float = 0.1
+    release_time_s: PositiveFinite = 0.1
     unilateral: bool = True
-    integral_limit_n: float = math.inf
-    recovery_m_per_n: float = 0.0
-    gain_transfer_s: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.k_h) and self.k_h > 0.0):
-            raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {self.k_h!r}")
-        _finite_nonneg("i_gain", self.i_gain)
-        if not (math.isfinite(self.servo_period_s) and self.servo_period_s > 0.0):
-            raise ValueError(f"servo_period_s must be > 0 s, got {self.servo_period_s!r}")
-        if not (math.isfinite(self.release_time_s) and self.release_time_s > 0.0):
-            raise ValueError(f"release_time_s must be > 0 s, got {self.release_time_s!r}")
-        _finite_nonneg("recovery_m_per_n", self.recovery_m_per_n)
-        _finite_nonneg("gain_transfer_s", self.gain_transfer_s)
-        if not (self.integral_limit_n > 0.0):
-            raise ValueError(f"integral_limit_n must be > 0 N, got {self.integral_limit_n!r}")
+    integral_limit_n: PositiveOrInf = math.inf
+    recovery_m_per_n: NonNegFinite = 0.0
+    gain_transfer_s: NonNegFinite = 0.0
 
 
 class LocalModel:
@@ -316,12 +298,15 @@ class LocalModel:
             If the gains are out of range (see :class:`LocalModelParams`).
         """
         k_old = self._k_h
-        self.params = replace(self.params, k_h=k_h, i_gain=i_gain)
+        if recovery_m_per_n is None:
+            self.params = replace(self.params, k_h=k_h, i_gain=i_gain)
+        else:  # one validated copy (all or nothing), not two: this runs inside a servo tick
+            self.params = replace(
+                self.params, k_h=k_h, i_gain=i_gain, recovery_m_per_n=recovery_m_per_n
+            )
         self._k_h = self.params.k_h
         self._ti = self.params.servo_period_s * self.params.i_gain
-        if recovery_m_per_n is not None:
-            self.params = replace(self.params, recovery_m_per_n=recovery_m_per_n)
-            self._rec = self.params.recovery_m_per_n
+        self._rec = self.params.recovery_m_per_n
         step = (k_old - self._k_h) * self._e_prev + carry_n
         transfer = self.params.gain_transfer_s
         if self._in_contact and transfer > 0.0 and step != 0.0 and math.isfinite(step):

@@ -18,10 +18,14 @@ Plain Python floats, SI units: positions [m], stiffness and B_o [N/m], I [N/(m*s
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from pydantic import SkipValidation
 
-from haptic_collab.shared.checks import whole as _whole
+from haptic_collab.shared.checks import (
+    NonNegFinite,
+    PositiveFinite,
+    WholePositive,
+    params_dataclass,
+)
 from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.primitives import Plane, Primitive, Sphere, make_plane, make_sphere
 from haptic_collab.shared.protocol import Patch, PlaneModel, ProtocolError, SphereModel
@@ -33,7 +37,7 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class LocalModelUpdate:
     """One simulation tick's local model: primitive, rendering gains, and the contact's K_o.
 
@@ -75,60 +79,28 @@ class LocalModelUpdate:
     ------
     TypeError
         ``primitive`` is not a Plane or Sphere.
-    ValueError
-        Non-finite or out-of-range gains, ``proxy_hold`` or ``hold_ticks``, or a K_o, K_o_eff,
-        K_o_stiff or B_o that is given but not finite and positive (B_o: >= 0).
+    pydantic.ValidationError
+        (a ValueError naming the field) Non-finite, non-numeric or out-of-range gains,
+        ``proxy_hold`` or ``hold_ticks`` (an int), or a K_o, K_o_eff, K_o_stiff or B_o that is
+        given but not finite and positive (B_o: >= 0).
     """
 
-    primitive: Primitive
-    k_h: float
-    i_gain: float
-    b_h: float = 0.0
+    primitive: SkipValidation[Primitive]
+    k_h: PositiveFinite
+    i_gain: NonNegFinite
+    b_h: NonNegFinite = 0.0
     proxy_hold: ProxyHold = "zoh"
-    hold_ticks: int = 1
-    k_o: float | None = None
-    k_o_eff: float | None = None
-    k_o_stiff: float | None = None
-    b_o: float | None = None
+    hold_ticks: WholePositive = 1
+    k_o: PositiveFinite | None = None
+    k_o_eff: PositiveFinite | None = None
+    k_o_stiff: PositiveFinite | None = None
+    b_o: NonNegFinite | None = None
     tick: int | None = None
 
     def __post_init__(self) -> None:
         prim = self.primitive
         if not isinstance(prim, Plane | Sphere):
             raise TypeError(f"primitive must be a Plane or Sphere, got {type(prim).__name__}")
-        k = float(self.k_h)
-        i = float(self.i_gain)
-        if not (math.isfinite(k) and k > 0.0):
-            raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {self.k_h!r}")
-        if not (math.isfinite(i) and i >= 0.0):
-            raise ValueError(f"i_gain must be finite and >= 0 N/(m*s), got {self.i_gain!r}")
-        bh = float(self.b_h)
-        if not (math.isfinite(bh) and bh >= 0.0):
-            raise ValueError(f"b_h must be finite and >= 0 N*s/m, got {self.b_h!r}")
-        if self.proxy_hold not in ("zoh", "foh"):
-            raise ValueError(f"proxy_hold must be 'zoh' or 'foh', got {self.proxy_hold!r}")
-        n = self.hold_ticks
-        _whole("hold_ticks", n, 1)
-        set_ = object.__setattr__  # frozen: normalize once, here
-        set_(self, "k_h", k)
-        set_(self, "i_gain", i)
-        set_(self, "b_h", bh)
-        set_(self, "hold_ticks", int(n))
-        for name in ("k_o", "k_o_eff", "k_o_stiff"):
-            value = getattr(self, name)
-            if value is None:
-                continue
-            v = float(value)
-            if not (math.isfinite(v) and v > 0.0):
-                raise ValueError(f"{name} must be a finite stiffness > 0 N/m, got {value!r}")
-            set_(self, name, v)
-        if self.b_o is not None:
-            b = float(self.b_o)
-            if not (math.isfinite(b) and b >= 0.0):
-                raise ValueError(f"b_o must be finite and >= 0 N/m, got {self.b_o!r}")
-            set_(self, "b_o", b)
-        if self.tick is not None:
-            set_(self, "tick", int(self.tick))
 
     @property
     def recovery_m_per_n(self) -> float | None:

@@ -52,10 +52,16 @@ so that it can run at 1 kHz in CPython.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+
+from haptic_collab.shared.checks import (
+    NonNegFinite,
+    PositiveFinite,
+    PositiveOrInf,
+    params_dataclass,
+)
 
 
-@dataclass(frozen=True, slots=True, kw_only=True)
+@params_dataclass(frozen=True, slots=True, kw_only=True)
 class PassivityParams:
     """Parameters of the passivity observer and controller, SI units.
 
@@ -80,34 +86,17 @@ class PassivityParams:
 
     Raises
     ------
-    ValueError
-        Non-boolean flags, or non-finite or out-of-range numbers.
+    pydantic.ValidationError
+        (a ValueError naming the field) Non-boolean flags, or non-finite, non-numeric or
+        out-of-range numbers (``max_force_n`` may be ``inf``).
     """
 
-    max_damping_n_s_per_m: float
+    max_damping_n_s_per_m: PositiveFinite
     enabled: bool = True
-    energy_bias_j: float = 0.0
-    servo_period_s: float = 1e-3
-    max_force_n: float = math.inf
+    energy_bias_j: NonNegFinite = 0.0
+    servo_period_s: PositiveFinite = 1e-3
+    max_force_n: PositiveOrInf = math.inf
     reset_on_release: bool = True
-
-    def __post_init__(self) -> None:
-        for name in ("enabled", "reset_on_release"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        b = self.max_damping_n_s_per_m
-        if not (math.isfinite(b) and b > 0.0):
-            raise ValueError(f"max_damping_n_s_per_m must be a finite damping > 0 N*s/m, got {b!r}")
-        if not (math.isfinite(self.energy_bias_j) and self.energy_bias_j >= 0.0):
-            raise ValueError(
-                f"energy_bias_j must be a finite energy >= 0 J, got {self.energy_bias_j!r}"
-            )
-        if not (math.isfinite(self.servo_period_s) and self.servo_period_s > 0.0):
-            raise ValueError(
-                f"servo_period_s must be a finite period > 0 s, got {self.servo_period_s!r}"
-            )
-        if not (self.max_force_n > 0.0):
-            raise ValueError(f"max_force_n must be > 0 N (inf allowed), got {self.max_force_n!r}")
 
 
 class PassivityController:

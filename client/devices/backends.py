@@ -33,7 +33,10 @@ from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from pydantic import ValidationError
+
 from haptic_collab.client.devices.base import Device, Vec3
+from haptic_collab.shared.checks import describe
 
 if TYPE_CHECKING:
     from haptic_collab.client.devices.hid import HidPort
@@ -89,7 +92,13 @@ class DeviceOpenError(OSError):
 
 
 def one_line(text: object) -> str:
-    """``text`` as one line: its non-blank lines stripped and joined with ``; ``."""
+    """``text`` as one line: its non-blank lines stripped and joined with ``; ``.
+
+    A parameter class's :class:`pydantic.ValidationError` gives its first problem,
+    ``FIELD must be BOUND, got VALUE`` (:func:`shared.checks.describe`), not pydantic's lines.
+    """
+    if isinstance(text, ValidationError):
+        return describe(text)
     return "; ".join(part.strip() for part in str(text).splitlines() if part.strip())
 
 

@@ -22,11 +22,30 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from enum import StrEnum
+from typing import Annotated, Any
 
+from pydantic import BeforeValidator, ValidationInfo
+
+from haptic_collab.shared.checks import (
+    FiniteFloat,
+    NonNegFinite,
+    PositiveFinite,
+    PositiveOrInf,
+    params_dataclass,
+)
 from haptic_collab.shared.primitives import vec3
 from haptic_collab.shared.types import Vec3 as Vec3
+
+
+def _corner(value: Any, info: ValidationInfo) -> Vec3:
+    """A workspace corner given as any 3 numbers (a list, a numpy array) as a tuple of floats."""
+    return vec3(info.field_name or "workspace corner", value)
+
+
+#: A workspace corner [m]: 3 finite numbers, stored as a tuple of floats.
+_Corner = Annotated[tuple[FiniteFloat, FiniteFloat, FiniteFloat], BeforeValidator(_corner)]
 
 
 class HapticError(StrEnum):
@@ -51,7 +70,7 @@ class HapticError(StrEnum):
     SERVO_OVERRUN = "servo_overrun"
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class DeviceLimits:
     """Limits a device publishes (CHAI3D's device specification), SI units.
 
@@ -89,49 +108,43 @@ class DeviceLimits:
 
     Raises
     ------
-    ValueError
-        Non-finite or out-of-range values, or a workspace corner not below the other.
+    pydantic.ValidationError
+        (a ValueError naming the field) Non-finite, non-numeric or out-of-range values (``inf``
+        stiffness or velocity with force output), a continuous force above the peak, or a
+        workspace corner not below the other.
     """
 
-    max_force_n: float
-    max_stiffness_n_per_m: float
-    max_velocity_m_s: float
-    damping_n_s_per_m: float
-    workspace_min_m: Vec3
-    workspace_max_m: Vec3
+    max_force_n: NonNegFinite
+    max_stiffness_n_per_m: PositiveOrInf
+    max_velocity_m_s: PositiveOrInf
+    damping_n_s_per_m: NonNegFinite
+    workspace_min_m: _Corner
+    workspace_max_m: _Corner
     has_force_output: bool = True
-    max_damping_n_s_per_m: float = 0.0
-    max_continuous_force_n: float | None = None
-    thermal_time_constant_s: float | None = None
+    max_damping_n_s_per_m: NonNegFinite = 0.0
+    max_continuous_force_n: PositiveFinite | None = None
+    thermal_time_constant_s: PositiveFinite | None = None
 
     def __post_init__(self) -> None:
-        for name in ("max_force_n", "damping_n_s_per_m", "max_damping_n_s_per_m"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-        for name in ("max_stiffness_n_per_m", "max_velocity_m_s"):
-            v = getattr(self, name)
-            if not self.has_force_output and v == math.inf:
-                continue  # a position-only input: no limit comes from the device
-            if not (math.isfinite(v) and v > 0.0):
-                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
-        lo = vec3("workspace_min_m", self.workspace_min_m)
-        hi = vec3("workspace_max_m", self.workspace_max_m)
+        if self.has_force_output:  # a position-only input may say inf: no limit from the device
+            for name in ("max_stiffness_n_per_m", "max_velocity_m_s"):
+                v = getattr(self, name)
+                if not math.isfinite(v):
+                    raise ValueError(
+                        f"{name} must be finite for a device with force output (inf only with "
+                        f"has_force_output=False), got {v!r}"
+                    )
+        lo, hi = self.workspace_min_m, self.workspace_max_m
         if not all(a < b for a, b in zip(lo, hi, strict=True)):
             raise ValueError(
                 f"workspace_min_m {lo} must be below workspace_max_m {hi} on every axis"
             )
-        object.__setattr__(self, "workspace_min_m", lo)
-        object.__setattr__(self, "workspace_max_m", hi)
         c = self.max_continuous_force_n
-        if c is not None and not (math.isfinite(c) and 0.0 < c <= self.max_force_n):
+        if c is not None and not c <= self.max_force_n:
             raise ValueError(
                 f"max_continuous_force_n must be in (0, max_force_n = {self.max_force_n:g}] N, "
                 f"got {c!r}"
             )
-        tau = self.thermal_time_constant_s
-        if tau is not None and not (math.isfinite(tau) and tau > 0.0):
-            raise ValueError(f"thermal_time_constant_s must be finite and > 0 s, got {tau!r}")
 
     def scaled(self, scale: float) -> DeviceLimits:
         """The limits seen through a workspace scale: ``scale`` world metres per device metre.

@@ -19,15 +19,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from haptic_collab.client.devices.base import Device, DeviceLimits, Vec3
 from haptic_collab.client.devices.profiles import SimProfile
+from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 
 Trajectory = Callable[[float], Vec3]
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class HandParams:
     """The simulated user's hand: a spring-damper with some mass, SI units.
 
@@ -42,21 +42,13 @@ class HandParams:
 
     Raises
     ------
-    ValueError
-        Non-finite or out-of-range values.
+    pydantic.ValidationError
+        (a ValueError naming the field) Non-finite, non-numeric or out-of-range values.
     """
 
-    stiffness_n_per_m: float = 300.0
-    damping_n_s_per_m: float = 5.0
-    mass_kg: float = 0.45
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.stiffness_n_per_m) and self.stiffness_n_per_m > 0.0):
-            raise ValueError(f"hand stiffness must be > 0 N/m, got {self.stiffness_n_per_m!r}")
-        for name in ("damping_n_s_per_m", "mass_kg"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"hand {name} must be finite and >= 0, got {v!r}")
+    stiffness_n_per_m: PositiveFinite = 300.0
+    damping_n_s_per_m: NonNegFinite = 5.0
+    mass_kg: NonNegFinite = 0.45
 
 
 class SimDevice(Device):

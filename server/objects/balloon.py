@@ -62,7 +62,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -74,6 +74,7 @@ from scipy.spatial import cKDTree
 
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.mesh import MeshError, default_balloon
+from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
 
 #: Relative residual above which the no-pivoting factorization is rejected (then pivoted LU).
@@ -86,7 +87,7 @@ _HYSTERESIS = 0.75
 _ND_LEAF = 64
 
 
-@dataclass(frozen=True, slots=True)
+@params_dataclass(frozen=True, slots=True)
 class BalloonParams:
     """Physical and numerical parameters of the water balloon (SI units; DESIGN section 5).
 
@@ -136,34 +137,21 @@ class BalloonParams:
 
     Raises
     ------
-    ValueError
-        A field that is not a finite number, or out of its range above.
+    pydantic.ValidationError
+        (a ValueError naming the class and the field) A field that is not a finite number (a
+        bool is not one), or out of its range above.
     """
 
-    tension: float = 50.0
-    bending: float = 0.05
-    foundation: float = 100.0
-    bulk: float = 1.0e12
-    damping: float = 0.0
-    patch_radius_m: float = 0.015
-    patch_spacing_m: float = 0.006
-    base_radius_m: float = 0.02
-    sim_period_s: float = 0.05
-    cache_mb: float = 128.0
-
-    def __post_init__(self) -> None:
-        positive = {"tension", "patch_radius_m", "patch_spacing_m", "sim_period_s", "cache_mb"}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ValueError(f"BalloonParams.{f.name} must be a number, got {value!r}")
-            v = float(value)
-            if not math.isfinite(v):
-                raise ValueError(f"BalloonParams.{f.name} must be finite, got {value!r}")
-            if f.name in positive and v <= 0.0:
-                raise ValueError(f"BalloonParams.{f.name} must be > 0, got {value!r}")
-            if v < 0.0:
-                raise ValueError(f"BalloonParams.{f.name} must be >= 0, got {value!r}")
+    tension: PositiveFinite = 50.0
+    bending: NonNegFinite = 0.05
+    foundation: NonNegFinite = 100.0
+    bulk: NonNegFinite = 1.0e12
+    damping: NonNegFinite = 0.0
+    patch_radius_m: PositiveFinite = 0.015
+    patch_spacing_m: PositiveFinite = 0.006
+    base_radius_m: NonNegFinite = 0.02
+    sim_period_s: PositiveFinite = 0.05
+    cache_mb: PositiveFinite = 128.0
 
     def with_stiffness_scale(self, scale: float) -> BalloonParams:
         """The same balloon with every stiffness term multiplied by ``scale`` (``--stiffness-scale``).
