@@ -11,7 +11,7 @@ import pytest
 
 from haptic_collab.client.servo import ServoCore
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
-from tests.client.test_servo_damper_hold import ScriptedDevice, make_core, plane_at, run
+from tests.helpers import ScriptedDevice, plane_at, run, scripted_core
 
 
 def _pressed(recovery: float) -> LocalModel:
@@ -48,7 +48,7 @@ def test_a_small_retreat_keeps_a_pi_contact_within_its_recovery_band() -> None:
 
 def test_the_servo_hands_the_patch_stiffness_to_the_local_model() -> None:
     dev = ScriptedDevice(lambda n: -0.003)
-    core: ServoCore = make_core(dev)
+    core: ServoCore = scripted_core(dev)
     core.set_patch(plane_at(0.0), 200.0, 1000.0, k_o=400.0)
     run(core, 2)
     assert core.local_model.params.recovery_m_per_n == pytest.approx(1.0 / 400.0)

@@ -13,12 +13,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.client.devices.base import Device, DeviceLimits, HapticError, Vec3
+from haptic_collab.client.devices.base import Device, HapticError, Vec3
 from haptic_collab.client.scheduler import DeadlineLoop
 from haptic_collab.client.servo import ServoConfig, ServoCore, ServoThread
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import make_plane, make_sphere
+from tests.helpers import lab_limits, max_step
 
 T = 1e-3
 RAMP_S = 0.05
@@ -30,14 +31,7 @@ class FakeDevice(Device):
 
     def __init__(self, position: Vec3 = (0.0, 0.0, 0.0), max_force_n: float = 7.9) -> None:
         self.name = "fake"
-        self.limits = DeviceLimits(
-            max_force_n=max_force_n,
-            max_stiffness_n_per_m=1000.0,
-            max_velocity_m_s=0.5,
-            damping_n_s_per_m=0.5,
-            workspace_min_m=(-1.0, -1.0, -1.0),
-            workspace_max_m=(1.0, 1.0, 1.0),
-        )
+        self.limits = lab_limits(max_force_n=max_force_n, max_velocity_m_s=0.5)
         self.fault: str | None = None
         self.position = position
         self.enabled = False
@@ -88,6 +82,18 @@ def run(core: ServoCore, t0: float, n: int, notify_every: int | None = None) -> 
 PLANE = make_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
 
 
+def pressing_core(ticks: int = 100, notify_every: int = 10) -> tuple[FakeDevice, ServoCore, float]:
+    """A handle 5 mm into PLANE at K_h = 300 N/m (1.5 N at full gain), forces on, the default
+    0.25 s link timeout, ticked ``ticks`` times from t = 0 with the link notified every
+    ``notify_every`` ticks; with the tick time that comes next."""
+    dev = FakeDevice((0.0, 0.0, -0.005))
+    core = make_core(dev)
+    core.enable_forces()
+    core.set_patch(PLANE, 300.0, 0.0)
+    t = run(core, 0.0, ticks, notify_every=notify_every)
+    return dev, core, t
+
+
 def test_no_force_before_first_patch_nor_before_enable() -> None:
     dev = FakeDevice((0.0, 0.0, -0.005))  # where a surface would be pushing hard
     core = make_core(dev)
@@ -127,14 +133,10 @@ def test_plane_5mm_inside_gives_k_h_times_5mm_outward(normal: Vec3) -> None:
 
 
 def test_forces_ramp_up_on_first_patch_without_a_jump() -> None:
-    dev = FakeDevice((0.0, 0.0, -0.005))
-    core = make_core(dev)
-    core.enable_forces()
-    core.set_patch(PLANE, 300.0, 0.0)
-    run(core, 0.0, 100, notify_every=10)
+    dev, _, _ = pressing_core()
     mags = [mag(w) for w in dev.writes]
     full = 1.5
-    assert max(abs(b - a) for a, b in zip(mags, mags[1:], strict=False)) <= STEP * full + 1e-12
+    assert max_step(mags) <= STEP * full + 1e-12
     assert mags[-1] == pytest.approx(full)
 
 
@@ -172,11 +174,7 @@ def test_bad_gains_are_refused_in_the_callers_thread(bad: tuple[float, float]) -
 
 
 def test_link_silence_ramps_force_to_zero_linearly_then_back_on_new_patch() -> None:
-    dev = FakeDevice((0.0, 0.0, -0.005))
-    core = make_core(dev, link_timeout_s=0.25)
-    core.enable_forces()
-    core.set_patch(PLANE, 300.0, 0.0)
-    t = run(core, 0.0, 500, notify_every=50)  # link alive for 0.5 s
+    dev, core, t = pressing_core(500, notify_every=50)  # link alive for 0.5 s, 0.25 s timeout
     last_notify = 0.45
     full = 1.5
     assert dev.displayed[2] == pytest.approx(full)
@@ -184,7 +182,7 @@ def test_link_silence_ramps_force_to_zero_linearly_then_back_on_new_patch() -> N
     t = run(core, t, 600)  # silence
     mags = [mag(w) for w in dev.writes[n0 - 1 :]]
     steps = [b - a for a, b in zip(mags, mags[1:], strict=False)]
-    assert max(abs(s) for s in steps) <= STEP * full + 1e-12  # never a jump
+    assert max_step(mags) <= STEP * full + 1e-12  # never a jump
     assert all(s <= 1e-12 for s in steps)  # monotone down
     times = [0.5 + k * T for k in range(600)]
     zero_at = next(tt for tt, m in zip(times, mags[1:], strict=True) if m == 0.0)
@@ -207,11 +205,7 @@ def test_link_silence_ramps_force_to_zero_linearly_then_back_on_new_patch() -> N
 
 
 def test_device_fault_ramps_force_to_zero() -> None:
-    dev = FakeDevice((0.0, 0.0, -0.005))
-    core = make_core(dev)
-    core.enable_forces()
-    core.set_patch(PLANE, 300.0, 0.0)
-    t = run(core, 0.0, 100, notify_every=10)
+    dev, core, t = pressing_core()
     dev.fault = "USB read failed"
     n0 = len(dev.writes)
     run(core, t, 100, notify_every=10)
@@ -225,11 +219,7 @@ def test_device_fault_ramps_force_to_zero() -> None:
 
 
 def test_non_finite_position_ramps_force_down_and_keeps_the_velocity_limit_working() -> None:
-    dev = FakeDevice((0.0, 0.0, -0.005))
-    core = make_core(dev)
-    core.enable_forces()
-    core.set_patch(PLANE, 300.0, 0.0)
-    t = run(core, 0.0, 100, notify_every=10)
+    dev, core, t = pressing_core()
     dev.position = (math.nan, 0.0, -0.005)  # one bad sample, then a stuck NaN
     n0 = len(dev.writes)
     t = run(core, t, 100, notify_every=10)
@@ -304,15 +294,10 @@ def test_new_gains_mid_press_reach_the_hand_as_a_ramp_not_a_step() -> None:
     t = run(core, 0.0, 200, notify_every=10)
     assert dev.displayed[2] == pytest.approx(50.0 * 0.006)
     core.set_patch(PLANE, 150.0, 0.0, b_h=5.0)
-    forces = []
-    for k in range(400):
-        if k % 10 == 0:
-            core.notify_link(t)
-        core.tick(t)
-        forces.append(dev.displayed[2])
-        t += T
-    steps = [b - a for a, b in zip([50.0 * 0.006, *forces], forces, strict=False)]
-    assert max(abs(x) for x in steps) <= 100.0 * 0.006 / 200 * 1.0001  # 0.6 N over 0.2 s
+    n0 = len(dev.writes)
+    run(core, t, 400, notify_every=10)
+    forces = [w[2] for w in dev.writes[n0:]]  # forces are on: each is the one displayed
+    assert max_step([50.0 * 0.006, *forces]) <= 100.0 * 0.006 / 200 * 1.0001  # 0.6 N over 0.2 s
     assert forces[-1] == pytest.approx(150.0 * 0.006)
 
 
@@ -323,15 +308,8 @@ def test_a_long_hard_press_comes_down_to_the_continuous_force_without_a_step() -
     core = make_core(dev)
     core.enable_forces()
     core.set_patch(PLANE, 500.0, 0.0)
-    forces = []
-    t = 0.0
-    for k in range(6000):
-        if k % 10 == 0:
-            core.notify_link(t)
-        core.tick(t)
-        forces.append(dev.displayed[2])
-        t += T
-    f = np.array(forces)
+    run(core, 0.0, 6000, notify_every=10)
+    f = np.array([w[2] for w in dev.writes])  # forces are on: each is the one displayed
     on = int(np.argmax(f >= 5.0 - 1e-9))  # after the safety ramp
     t_peak = -1.0 * math.log(1.0 - (1.75 / 5.0) ** 2)  # the model's budget from cold: 0.13 s
     first_lowered = int(np.argmax(f[on:] < 5.0 - 1e-9))
@@ -343,11 +321,7 @@ def test_a_long_hard_press_comes_down_to_the_continuous_force_without_a_step() -
 
 
 def test_stop_ramps_down_then_disables_the_device() -> None:
-    dev = FakeDevice((0.0, 0.0, -0.005))
-    core = make_core(dev)
-    core.enable_forces()
-    core.set_patch(PLANE, 300.0, 0.0)
-    t = run(core, 0.0, 100, notify_every=10)
+    dev, core, t = pressing_core()
     assert dev.enabled
     core.request_stop()
     n0 = len(dev.writes)
@@ -500,13 +474,13 @@ def test_the_stylus_button_engages_and_disengages_forces_with_ramps() -> None:
     t = run(core, t, 100, notify_every=10)
     assert core.status().engaged and dev.displayed[2] == pytest.approx(1.5)
     mags = [mag(w) for w in dev.writes]
-    assert max(abs(b - a) for a, b in zip(mags, mags[1:], strict=False)) <= STEP * 1.5 + 1e-12
+    assert max_step(mags) <= STEP * 1.5 + 1e-12
     dev.held = 1  # the next press disengages: a ramp down, not a jump
     n0 = len(dev.writes)
     run(core, t, 200, notify_every=10)
     mags = [mag(w) for w in dev.writes[n0 - 1 :]]
     assert not core.status().engaged and mags[-1] == 0.0
-    assert max(abs(b - a) for a, b in zip(mags, mags[1:], strict=False)) <= STEP * 1.5 + 1e-12
+    assert max_step(mags) <= STEP * 1.5 + 1e-12
 
 
 def test_without_button_engagement_buttons_are_ignored() -> None:

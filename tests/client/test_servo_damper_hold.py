@@ -10,12 +10,20 @@ from collections.abc import Callable
 
 import pytest
 
-from haptic_collab.client.devices.base import Device, DeviceLimits, Vec3
-from haptic_collab.client.servo import ServoConfig, ServoCore
-from haptic_collab.shared.primitives import Plane, make_plane, make_sphere
+from haptic_collab.client.servo import ServoCore
+from haptic_collab.shared.primitives import make_plane, make_sphere
+from tests.helpers import (
+    SERVO_PERIOD_S,
+    SERVO_RAMP_S,
+    ScriptedDevice,
+    max_step,
+    plane_at,
+    run,
+    scripted_core,
+)
 
-T = 1e-3
-RAMP_S = 0.05
+T = SERVO_PERIOD_S
+RAMP_S = SERVO_RAMP_S
 RAMP_TICKS = round(RAMP_S / T)
 SETTLE = RAMP_TICKS + 10  # ticks after which the safety gain is 1
 K_H = 300.0
@@ -24,70 +32,13 @@ ENCODER_M = 23e-6  # one Phantom Desktop encoder count
 PLANE = make_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))  # outward +z: depth is -z
 
 
-class ScriptedDevice(Device):
-    """A handle at ``path(tick index)``; records the z force written at each tick."""
-
-    def __init__(
-        self,
-        path: Callable[[int], float] = lambda n: -0.005,
-        *,
-        max_damping_n_s_per_m: float = 10.0,
-    ) -> None:
-        self.name = "scripted"
-        self.limits = DeviceLimits(
-            max_force_n=7.9,
-            max_stiffness_n_per_m=1000.0,
-            max_velocity_m_s=1.0,
-            damping_n_s_per_m=0.5,
-            workspace_min_m=(-1.0, -1.0, -1.0),
-            workspace_max_m=(1.0, 1.0, 1.0),
-            max_damping_n_s_per_m=max_damping_n_s_per_m,
-        )
-        self.fault: str | None = None
-        self.path = path
-        self.n = 0
-        self.z: list[float] = []  # where the handle was at each tick
-        self.fz: list[float] = []
-        self.writes: list[Vec3] = []
-
-    def open(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-    def read(self, t_s: float) -> Vec3:
-        z = self.path(self.n)
-        self.n += 1
-        self.z.append(z)
-        return (0.0, 0.0, z)
-
-    def write(self, fx: float, fy: float, fz: float) -> None:
-        self.writes.append((fx, fy, fz))
-        self.fz.append(fz)
-
-    def enable_forces(self) -> None:
-        pass
-
-    def disable_forces(self) -> None:
-        pass
-
-
-def make_core(dev: ScriptedDevice, *, passivity: bool = False) -> ServoCore:
-    core = ServoCore(dev, ServoConfig(ramp_s=RAMP_S, link_timeout_s=math.inf, passivity=passivity))
-    core.enable_forces()
-    return core
-
-
-def run(core: ServoCore, ticks: int) -> None:
-    for _ in range(ticks):
-        n = core.status().ticks
-        core.tick(n * T)
-
-
-def plane_at(depth_m: float) -> Plane:
-    """The surface moved ``depth_m`` outward (+z)."""
-    return make_plane((0.0, 0.0, depth_m), (0.0, 0.0, 1.0))
+def settled_core() -> tuple[ScriptedDevice, ServoCore]:
+    """A handle 5 mm into PLANE, at rest, felt through K_H with the safety gain up to 1."""
+    dev = ScriptedDevice(lambda n: -0.005)
+    core = scripted_core(dev)
+    core.set_patch(PLANE, K_H, 0.0)
+    run(core, SETTLE)
+    return dev, core
 
 
 # ------------------------------------------------------------------------------- proxy hold
@@ -96,10 +47,7 @@ HOLD = 50
 
 @pytest.mark.parametrize("hold_ticks", [HOLD, 7])
 def test_foh_slides_the_force_linearly_to_the_new_surface(hold_ticks: int) -> None:
-    dev = ScriptedDevice(lambda n: -0.005)  # 5 mm in, at rest
-    core = make_core(dev)
-    core.set_patch(PLANE, K_H, 0.0)
-    run(core, SETTLE)
+    dev, core = settled_core()
     assert dev.fz[-1] == pytest.approx(K_H * 0.005)  # 1.5 N
     core.set_patch(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=hold_ticks)
     n0 = len(dev.fz)
@@ -109,16 +57,12 @@ def test_foh_slides_the_force_linearly_to_the_new_surface(hold_ticks: int) -> No
     for i, f in enumerate(after):
         expected = K_H * 0.005 + jump * min(1.0, (i + 1) / hold_ticks)
         assert f == pytest.approx(expected, abs=1e-9), i
-    steps = [b - a for a, b in zip(dev.fz[n0 - 1 :], after, strict=False)]
-    assert max(abs(s) for s in steps) <= jump / hold_ticks + 1e-9
+    assert max_step(dev.fz[n0 - 1 :]) <= jump / hold_ticks + 1e-9
     assert after[-1] == pytest.approx(K_H * 0.007)
 
 
 def test_zoh_steps_to_the_new_surface_at_once() -> None:
-    dev = ScriptedDevice(lambda n: -0.005)
-    core = make_core(dev)
-    core.set_patch(PLANE, K_H, 0.0)
-    run(core, SETTLE)
+    dev, core = settled_core()
     core.set_patch(plane_at(0.002), K_H, 0.0, proxy_hold="zoh", hold_ticks=HOLD)
     n0 = len(dev.fz)
     run(core, 5)
@@ -128,10 +72,7 @@ def test_zoh_steps_to_the_new_surface_at_once() -> None:
 
 def test_foh_then_the_next_patch_slides_from_where_the_last_one_ended() -> None:
     """Patches every simulation period (the hold's length): the force is a continuous ramp."""
-    dev = ScriptedDevice(lambda n: -0.005)
-    core = make_core(dev)
-    core.set_patch(PLANE, K_H, 0.0)
-    run(core, SETTLE)
+    dev, core = settled_core()
     n0 = len(dev.fz)
     for k in range(1, 4):  # the surface moves out 1 mm per period
         core.set_patch(plane_at(0.001 * k), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD)
@@ -147,10 +88,7 @@ def test_foh_patch_arriving_mid_slide_slides_on_from_where_the_proxy_is(after_ti
     """Network jitter: the next patch comes before the slide to the last one is over. The proxy
     must go on from where it is (the blend reached), never jump back to the last target: no force
     step larger than the new slide's per-tick increment, and the new surface reached N ticks on."""
-    dev = ScriptedDevice(lambda n: -0.005)  # 5 mm in, at rest
-    core = make_core(dev)
-    core.set_patch(PLANE, K_H, 0.0)
-    run(core, SETTLE)
+    dev, core = settled_core()
     core.set_patch(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD)
     run(core, after_ticks)
     reached = 0.002 * after_ticks / HOLD  # where the first slide has got to [m]
@@ -164,9 +102,8 @@ def test_foh_patch_arriving_mid_slide_slides_on_from_where_the_proxy_is(after_ti
     for i, f in enumerate(after):
         expected = K_H * (0.005 + reached + (0.004 - reached) * min(1.0, (i + 1) / HOLD))
         assert f == pytest.approx(expected, abs=1e-9), i
-    steps = [abs(b - a) for a, b in zip(dev.fz[n0 - 1 :], after, strict=False)]
     # (jumping back to the last target first would be a step of K_H * (2 mm - reached))
-    assert max(steps) <= per_tick + 1e-9
+    assert max_step(dev.fz[n0 - 1 :]) <= per_tick + 1e-9
     assert after[-1] == pytest.approx(K_H * 0.009)
 
 
@@ -175,7 +112,7 @@ def test_foh_patches_every_few_ticks_keep_the_force_continuous() -> None:
     each new slide starts at the blend, so the force moves in small steps only."""
     center = (0.0, 0.0, -0.1)
     dev = ScriptedDevice(lambda n: -0.005)  # 5 mm inside a 100 mm sphere
-    core = make_core(dev)
+    core = scripted_core(dev)
     core.set_patch(make_sphere(center, 0.1), K_H, 0.0)
     run(core, SETTLE)
     n0 = len(dev.fz)
@@ -185,18 +122,14 @@ def test_foh_patches_every_few_ticks_keep_the_force_continuous() -> None:
         run(core, 7)
     run(core, 2 * HOLD)
     forces = dev.fz[n0 - 1 :]
-    steps = [abs(b - a) for a, b in zip(forces, forces[1:], strict=False)]
     # the largest slide covers at most 5 mm over HOLD ticks
-    assert max(steps) <= K_H * 0.005 / HOLD + 1e-9
+    assert max_step(forces) <= K_H * 0.005 / HOLD + 1e-9
     assert forces[-1] == pytest.approx(K_H * 0.010, abs=1e-9)
 
 
 def test_zoh_patch_mid_foh_slide_steps_at_once() -> None:
     """A zero-order-hold patch replaces the surface at once, even mid-slide (that is zoh)."""
-    dev = ScriptedDevice(lambda n: -0.005)
-    core = make_core(dev)
-    core.set_patch(PLANE, K_H, 0.0)
-    run(core, SETTLE)
+    dev, core = settled_core()
     core.set_patch(plane_at(0.002), K_H, 0.0, proxy_hold="foh", hold_ticks=HOLD)
     run(core, 20)
     core.set_patch(plane_at(0.004), K_H, 0.0, proxy_hold="zoh", hold_ticks=HOLD)
@@ -218,7 +151,7 @@ def _moving(start_depth_m: float, depth_rate_m_s: float) -> Callable[[int], floa
 def _extra_force(depth_rate: float, b_h: float, *, start: float, ticks: int = 120) -> list[float]:
     """Rendered force minus K_h * depth, from 60 ticks (12 filter time constants) into the motion."""
     dev = ScriptedDevice(_moving(start, depth_rate))
-    core = make_core(dev)
+    core = scripted_core(dev)
     patch = core.set_patch(PLANE, K_H, 0.0, b_h=b_h)
     run(core, SETTLE + ticks)
     assert patch.b_h <= dev.limits.max_damping_n_s_per_m
@@ -243,7 +176,7 @@ def test_without_a_damper_the_force_is_the_spring_alone_at_any_speed() -> None:
 @pytest.mark.parametrize("depth_rate", [+V, -V, 0.1])
 def test_damper_gives_nothing_out_of_contact(depth_rate: float) -> None:
     dev = ScriptedDevice(_moving(-0.010, depth_rate))  # 10 mm outside, moving
-    core = make_core(dev)
+    core = scripted_core(dev)
     core.set_patch(PLANE, K_H, 0.0, b_h=B_H)
     run(core, SETTLE + 80)  # at 0.1 m/s it stays 2 mm outside
     assert all(z > 0.0 for z in dev.z)
@@ -253,7 +186,7 @@ def test_damper_gives_nothing_out_of_contact(depth_rate: float) -> None:
 def test_damper_never_pulls_the_probe_into_the_surface() -> None:
     """Backing out at 0.1 m/s from 3 mm: K_h e - B_h v < 0 near the surface; the force stops at 0."""
     dev = ScriptedDevice(_moving(0.003, -0.1))
-    core = make_core(dev)
+    core = scripted_core(dev)
     core.set_patch(PLANE, K_H, 0.0, b_h=B_H)
     run(core, SETTLE + 60)
     assert min(dev.fz) >= 0.0
@@ -268,12 +201,11 @@ def test_one_count_encoder_dither_at_rest_does_not_buzz() -> None:
     """B_h * count / T = 0.23 N per tick from the raw backward difference; the filter keeps the
     force steps of a probe dithering by one count far below that."""
     dev = ScriptedDevice(lambda n: -0.005 + (ENCODER_M if n % 2 else 0.0))
-    core = make_core(dev)
+    core = scripted_core(dev)
     core.set_patch(PLANE, K_H, 0.0, b_h=B_H)
     run(core, SETTLE + 200)
     forces = dev.fz[SETTLE:]
-    steps = [abs(b - a) for a, b in zip(forces, forces[1:], strict=False)]
-    assert max(steps) < 0.1
+    assert max_step(forces) < 0.1
     assert B_H * ENCODER_M / T > 0.1  # what the unfiltered damper would do
     # and the damper does not bias the force at rest
     mean = sum(forces) / len(forces)
@@ -283,14 +215,14 @@ def test_one_count_encoder_dither_at_rest_does_not_buzz() -> None:
 def test_damper_above_the_device_maximum_is_clamped() -> None:
     extra = _extra_force(+V, 50.0, start=0.002)  # asks 50 N*s/m, the device allows 10
     assert extra == pytest.approx([10.0 * V] * len(extra), abs=1e-4)
-    core = make_core(ScriptedDevice())
+    core = scripted_core(ScriptedDevice())
     assert core.set_patch(PLANE, K_H, 0.0, b_h=50.0).b_h == 10.0
     assert core.set_patch(PLANE, K_H, 0.0, b_h=3.0).b_h == 3.0
 
 
 def test_a_device_without_virtual_damping_gets_no_damper() -> None:
     dev = ScriptedDevice(_moving(0.002, V), max_damping_n_s_per_m=0.0)
-    core = make_core(dev)
+    core = scripted_core(dev)
     assert core.set_patch(PLANE, K_H, 0.0, b_h=B_H).b_h == 0.0
     run(core, SETTLE + 100)
     extra = [f - K_H * -z for f, z in zip(dev.fz, dev.z, strict=True)][SETTLE:]
@@ -299,7 +231,7 @@ def test_a_device_without_virtual_damping_gets_no_damper() -> None:
 
 @pytest.mark.parametrize("bad", [-1.0, math.nan, math.inf])
 def test_bad_damper_or_hold_is_refused(bad: float) -> None:
-    core = make_core(ScriptedDevice())
+    core = scripted_core(ScriptedDevice())
     with pytest.raises(ValueError):
         core.set_patch(PLANE, K_H, 0.0, b_h=bad)
     with pytest.raises(ValueError):
@@ -314,7 +246,7 @@ def test_passivity_status_reports_the_energy_of_a_press() -> None:
     K_h (e2^2 - e1^2) / 2 + B_h v (e2 - e1) = 1.8 + 0.4 mJ of work, all absorbed."""
     depth_rate, ticks = V, 100  # 2 mm
     dev = ScriptedDevice(_moving(0.002, depth_rate))
-    core = make_core(dev, passivity=True)
+    core = scripted_core(dev, passivity=True)
     core.set_patch(PLANE, K_H, 0.0, b_h=B_H)
     run(core, SETTLE + ticks)
     pas = core.status().passivity
@@ -329,10 +261,10 @@ def test_passivity_status_reports_the_energy_of_a_press() -> None:
 
 
 def test_passivity_status_is_none_when_off_or_when_the_device_cannot_damp() -> None:
-    core = make_core(ScriptedDevice())
+    core = scripted_core(ScriptedDevice())
     core.set_patch(PLANE, K_H, 0.0)
     run(core, 5)
     assert core.status().passivity is None
     assert core.status().as_dict()["passivity"] is None
-    no_damping = make_core(ScriptedDevice(max_damping_n_s_per_m=0.0), passivity=True)
+    no_damping = scripted_core(ScriptedDevice(max_damping_n_s_per_m=0.0), passivity=True)
     assert no_damping.status().passivity is None

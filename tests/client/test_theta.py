@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.app import THETA_EXIT_SPEED_M_S, threshold_for
-from haptic_collab.client.devices.base import Device, DeviceLimits, Vec3
+from haptic_collab.client.devices.base import Vec3
 from haptic_collab.client.devices.profiles import get_sim_profile
 from haptic_collab.client.devices.sim import SimDevice
 from haptic_collab.client.devices.trajectories import Press
@@ -27,6 +27,7 @@ from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.shared.gain_design import GainDesign, GainKey, GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
 from haptic_collab.shared.primitives import make_plane
+from tests.helpers import ScriptedDevice
 
 T = 1e-3
 N = 50  # servo ticks per simulation tick (20 Hz)
@@ -129,44 +130,11 @@ def test_leaving_the_object_takes_eq18s_exiting_branch(designs: dict[float, Gain
 
 
 # ------------------------------------------------------------------------------ encoder noise
-class NoisyStillDevice(Device):
-    """A still probe 5 mm inside the plane z = 0, reported through a quantizing encoder."""
-
-    def __init__(self, resolution_m: float, counts: Callable[[int], int]) -> None:
-        self.name = "noisy"
-        self.limits = DeviceLimits(
-            max_force_n=7.9,
-            max_stiffness_n_per_m=1000.0,
-            max_velocity_m_s=1.0,
-            damping_n_s_per_m=0.5,
-            workspace_min_m=(-1.0, -1.0, -1.0),
-            workspace_max_m=(1.0, 1.0, 1.0),
-            max_damping_n_s_per_m=10.0,
-        )
-        self.fault: str | None = None
-        self.q = resolution_m
-        self.counts = counts
-        self.n = 0
-
-    def open(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-    def read(self, t_s: float) -> Vec3:
-        z = (round(-0.005 / self.q) + self.counts(self.n)) * self.q
-        self.n += 1
-        return (0.0, 0.0, z)
-
-    def write(self, fx: float, fy: float, fz: float) -> None:
-        pass
-
-    def enable_forces(self) -> None:
-        pass
-
-    def disable_forces(self) -> None:
-        pass
+def noisy_still(resolution_m: float, counts: Callable[[int], int]) -> Callable[[int], float]:
+    """A still probe 5 mm inside the plane z = 0, reported through a quantizing encoder: the z [m]
+    of tick ``n`` is ``counts(n)`` counts of ``resolution_m`` above the count nearest -5 mm."""
+    rest = round(-0.005 / resolution_m)
+    return lambda n: (rest + counts(n)) * resolution_m
 
 
 _rng = np.random.default_rng(7)
@@ -194,7 +162,7 @@ def test_encoder_noise_on_a_still_probe_never_reaches_the_exiting_branch(
     q = get_sim_profile(profile).encoder_resolution_m
     th = threshold_for("auto", "pi", THETA_M, q)
     assert th.mode == "variable"
-    dev = NoisyStillDevice(q, pattern)
+    dev = ScriptedDevice(noisy_still(q, pattern))
     lm = LocalModelParams(k_h=1.0, servo_period_s=T, threshold=th)
     core = ServoCore(dev, ServoConfig(link_timeout_s=math.inf), local_model=lm)
     core.enable_forces()
