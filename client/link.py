@@ -48,7 +48,7 @@ from haptic_collab.client.session import (
 )
 from haptic_collab.shared.gain_design import GainDesign, GainKey, design_cell
 from haptic_collab.shared.protocol import ProtocolError, Welcome
-from haptic_collab.workers import stop_pool
+from haptic_collab.workers import stop_pool, timed
 
 log = logging.getLogger("haptic.client")
 
@@ -148,7 +148,7 @@ class Link:
             loop = asyncio.get_running_loop()
             try:
                 design = await loop.run_in_executor(
-                    self._executor, design_cell, key, cell, table.grid_ratio, table.hand_box
+                    self._executor, timed, design_cell, key, cell, table.grid_ratio, table.hand_box
                 )
             except ValueError as exc:
                 log.error("no stable gains for K_o = %.0f N/m: %s", k_o, exc)
@@ -173,6 +173,7 @@ class Link:
                     try:
                         nd = await loop.run_in_executor(
                             self._executor,
+                            timed,
                             design_cell,
                             nk,
                             table.cell(nko),
@@ -225,6 +226,7 @@ class Link:
                 try:
                     d = await loop.run_in_executor(
                         self._first_thread() if first else self._checker,
+                        timed,
                         interim_design,
                         key,
                         cell,

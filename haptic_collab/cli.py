@@ -258,10 +258,12 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 def _cmd_gains(args: argparse.Namespace) -> int:
     from haptic_collab.client.devices.profiles import get_sim_profile
     from haptic_collab.shared.gain_design import design_gains
+    from haptic_collab.workers import timed
 
     try:
         lim = get_sim_profile(args.profile).limits
-        d = design_gains(
+        d = timed(
+            design_gains,
             args.k_o,
             b_o=args.b_o,
             servo_rate_hz=args.servo_rate,

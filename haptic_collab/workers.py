@@ -7,11 +7,31 @@ takes seconds (tens on a busy machine), so Ctrl-C on a server, or the end of a c
 it: 8.5 s in a loaded test run, where the link-loss test saw the server still answering long
 after it was told to stop. :func:`stop_pool` drops the queue and terminates the workers, so the
 process exits at once; a design cut off this way is simply never delivered.
+
+:func:`timed` runs a gain design and stamps the wall time it took (``design_ms``): the design
+code in :mod:`shared` reads no clock.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import time
+from collections.abc import Callable
 from concurrent.futures import Executor, ProcessPoolExecutor
+from typing import Any
+
+from haptic_collab.shared.gain_design import GainDesign
+
+
+def timed(design: Callable[..., GainDesign], *args: Any, **kwargs: Any) -> GainDesign:
+    """``design(*args, **kwargs)`` with its ``design_ms`` set to the wall time the call took [ms].
+
+    Module-level, so that a process pool can run it: ``executor.submit(timed, design_cell, key,
+    cell, ...)`` measures in the worker.
+    """
+    t0 = time.perf_counter()
+    result = design(*args, **kwargs)
+    return dataclasses.replace(result, design_ms=(time.perf_counter() - t0) * 1e3)
 
 
 def stop_pool(executor: Executor) -> None:
@@ -38,3 +58,40 @@ def stop_pool(executor: Executor) -> None:
                 p.terminate()
         except (OSError, ValueError, AttributeError):  # already reaped or closed
             pass
+
+
+def background_worker() -> None:
+    """Initializer of a design worker process: lowest useful priority (``nice`` 10), one BLAS
+    thread, so designs never take CPU from the simulation loop on this machine; the worker dies
+    with its parent."""
+    import os
+
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    try:
+        os.nice(10)
+    except (AttributeError, OSError):  # not on this platform: run at normal priority
+        pass
+    _die_with_parent()
+
+
+def _die_with_parent() -> None:
+    """Linux: have the kernel send this worker SIGTERM when its parent dies (``prctl``), so a
+    server or client that is killed leaves no design worker behind; elsewhere a no-op."""
+    import ctypes
+    import os
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    import multiprocessing
+
+    parent = multiprocessing.parent_process()
+    if parent is not None and os.getppid() != parent.pid:  # it died before the prctl took effect
+        os._exit(0)

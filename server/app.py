@@ -47,9 +47,9 @@ from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.room import Outgoing, Room
 from haptic_collab.server.security import is_loopback, origin_allowed
-from haptic_collab.shared.gain_design import background_worker, warm_up
+from haptic_collab.shared.gain_design import warm_up
 from haptic_collab.shared.protocol import LinkConditions
-from haptic_collab.workers import stop_pool
+from haptic_collab.workers import background_worker, stop_pool
 
 log = logging.getLogger("haptic.server")
 

@@ -37,6 +37,7 @@ from haptic_collab.shared.gain_design import (
 )
 from haptic_collab.shared.protocol import Hello, RecommendedGains
 from haptic_collab.shared.stability import rate_ratio
+from haptic_collab.workers import timed
 
 #: Round trips [s] per user over which the loop delay is estimated (its 90th percentile).
 RTT_WINDOW = 20
@@ -229,7 +230,7 @@ def run_job(job: GainJob, grid_ratio: float, hand_box: HandBox) -> GainDesign | 
     """
     try:
         if job.kind == "design":
-            return design_cell(job.key, job.cell, grid_ratio, hand_box)
-        return interim_design(job.key, job.cell, grid_ratio, hand_box, design_fallback=False)
+            return timed(design_cell, job.key, job.cell, grid_ratio, hand_box)
+        return timed(interim_design, job.key, job.cell, grid_ratio, hand_box, design_fallback=False)
     except ValueError:
         return None

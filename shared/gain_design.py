@@ -32,7 +32,6 @@ looks gains up (the design itself runs off the loop).
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -94,7 +93,9 @@ class GainDesign:
     mode : {"p", "pi"}
     hand_box : HandBox
     design_ms : float
-        Wall time the design took [ms] (informative; ``haptic bench gains`` measures properly).
+        Wall time the design took [ms], set by whoever ran it (:func:`haptic_collab.workers.timed`;
+        this module reads no clock); 0 when not measured. Informative: ``haptic bench gains``
+        measures properly.
     """
 
     k_h: float
@@ -347,7 +348,6 @@ def design_gains(
         Out-of-range input, or no candidate is stable over the box (then the box or the rates are
         beyond what any local model can render).
     """
-    t0 = time.perf_counter()
     rates = Rates(servo_rate_hz, sim_rate_hz)
     N, T = rates.ratio, rates.servo_period_s
     if not (math.isfinite(k_o) and k_o > 0.0):
@@ -503,7 +503,7 @@ def design_gains(
             f"no {mode} local model is stable over the hand box at K_o = {k_o:g} N/m, "
             f"{sim_rate_hz:g} Hz, {delay} tick(s) of delay"
         )
-    return replace(best[2], design_ms=(time.perf_counter() - t0) * 1e3)
+    return best[2]
 
 
 def loop_delay_ticks(round_trip_s: float, state_age_s: float, sim_rate_hz: float) -> int:
@@ -833,7 +833,6 @@ def interim_design(
         Nothing passed (and, with ``design_fallback``, not even a proportional design is stable
         over the box).
     """
-    t0 = time.perf_counter()
     lo, hi = cell_k_o_range(key, cell, grid_ratio)
     rates = key.rates
     n = rates.ratio
@@ -889,45 +888,7 @@ def interim_design(
             delay_ticks=key.delay_ticks,
             mode="pi" if i_gain > 0.0 else "p",
             hand_box=hand_box,
-            design_ms=(time.perf_counter() - t0) * 1e3,
         )
     if not design_fallback:
         raise ValueError(f"no known or proportional gains pass in cell {cell} of {key}")
-    d = design_cell(replace(key, mode="p"), cell, grid_ratio, hand_box)
-    return replace(d, design_ms=(time.perf_counter() - t0) * 1e3)
-
-
-def background_worker() -> None:
-    """Initializer of a design worker process: lowest useful priority (``nice`` 10), one BLAS
-    thread, so designs never take CPU from the simulation loop or a servo loop on this machine."""
-    import os
-
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
-    try:
-        os.nice(10)
-    except (AttributeError, OSError):  # not on this platform: run at normal priority
-        pass
-    _die_with_parent()
-
-
-def _die_with_parent() -> None:
-    """Linux: have the kernel send this worker SIGTERM when its parent dies (``prctl``), so a
-    server or client that is killed leaves no design worker behind; elsewhere a no-op."""
-    import ctypes
-    import os
-    import signal
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return
-    import multiprocessing
-
-    parent = multiprocessing.parent_process()
-    if parent is not None and os.getppid() != parent.pid:  # it died before the prctl took effect
-        os._exit(0)
+    return design_cell(replace(key, mode="p"), cell, grid_ratio, hand_box)

@@ -6,6 +6,8 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
+from dataclasses import replace
 
 SCRIPT = textwrap.dedent(
     """
@@ -44,3 +46,18 @@ def test_a_process_exits_without_waiting_for_its_running_design(tmp_path):
         pass
     else:
         raise AssertionError(f"design worker {worker} still running")
+
+
+def test_timed_stamps_the_design_with_the_wall_time_it_took():
+    from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
+    from haptic_collab.shared.gain_design import GainKey, design_cell
+    from haptic_collab.workers import timed
+
+    key = GainKey(1000.0, 20.0, 0, "p", 0.15, 1000.0, 10.0)
+    plain = design_cell(key, 20, 2.0**0.25, DEFAULT_HAND_BOX)
+    assert plain.design_ms == 0.0  # the design itself reads no clock
+    t0 = time.perf_counter()
+    stamped = timed(design_cell, key, 20, 2.0**0.25, DEFAULT_HAND_BOX)
+    took_ms = (time.perf_counter() - t0) * 1e3
+    assert 0.0 < stamped.design_ms <= took_ms
+    assert replace(stamped, design_ms=0.0) == plain  # the same gains

@@ -1,0 +1,39 @@
+"""shared/ is sans-I/O: no module imports a clock, a socket, a thread or an event loop.
+
+DESIGN's rule ("shared/ never touches sockets, threads or clocks; time is passed in"), checked on
+the source so that a new import cannot slip in. Whoever needs a wall time (a design's
+``design_ms``) measures it outside (``haptic_collab.workers.timed``).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SHARED_DIR = Path(__file__).resolve().parents[2] / "shared"
+FORBIDDEN = {
+    "time",
+    "socket",
+    "threading",
+    "asyncio",
+    "concurrent",
+    "multiprocessing",
+    "selectors",
+    "websockets",
+}
+
+
+def test_shared_imports_no_clock_socket_thread_or_event_loop() -> None:
+    offenders = []
+    for path in sorted(SHARED_DIR.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+            else:
+                continue
+            for name in names:
+                if name.split(".")[0] in FORBIDDEN:
+                    offenders.append(f"{path.name}:{node.lineno} imports {name}")
+    assert offenders == []
