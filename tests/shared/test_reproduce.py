@@ -3,7 +3,6 @@ for haptic_collab.plots, which draws them and writes ``haptic reproduce``'s file
 
 from __future__ import annotations
 
-import ast
 import json
 import pathlib
 import subprocess
@@ -27,7 +26,6 @@ from haptic_collab.shared.reproduce import (
 from haptic_collab.shared.stability import STABILITY_TOL
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-SHARED_DIR = pathlib.Path(__file__).resolve().parents[2] / "shared"
 
 
 def _run_python(code: str, tmp_path: pathlib.Path) -> subprocess.CompletedProcess[str]:
@@ -215,22 +213,6 @@ def test_single_figure_and_bad_name(tmp_path: pathlib.Path) -> None:
     with pytest.raises(ValueError):
         reproduce_figures("fig10", tmp_path / "bad")  # type: ignore[arg-type]
     assert not (tmp_path / "bad").exists()
-
-
-def test_shared_has_no_matplotlib_import() -> None:
-    """No module of shared/ imports matplotlib, not even for type checking."""
-    offenders = []
-    for path in sorted(SHARED_DIR.rglob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                names = [node.module or ""]
-            else:
-                continue
-            if any(n.split(".")[0] == "matplotlib" for n in names):
-                offenders.append(f"{path.name}:{node.lineno}")
-    assert offenders == []
 
 
 def test_computing_the_figures_does_not_import_matplotlib(tmp_path: pathlib.Path) -> None:

@@ -1,8 +1,9 @@
-"""shared/ is sans-I/O: no module imports a clock, a socket, a thread or an event loop.
+"""shared/ is sans-I/O: no module imports a clock, a socket, a thread, an event loop or a plot.
 
 DESIGN's rule ("shared/ never touches sockets, threads or clocks; time is passed in"), checked on
-the source so that a new import cannot slip in. Whoever needs a wall time (a design's
-``design_ms``) measures it outside (``haptic_collab.workers.timed``).
+the source (type-checking imports included) so that a new import cannot slip in. Whoever needs a
+wall time (a design's ``design_ms``) measures it outside (``haptic_collab.workers.timed``); the
+figures are drawn by ``haptic_collab.plots`` (matplotlib sets process-wide state).
 """
 
 from __future__ import annotations
@@ -20,10 +21,11 @@ FORBIDDEN = {
     "multiprocessing",
     "selectors",
     "websockets",
+    "matplotlib",
 }
 
 
-def test_shared_imports_no_clock_socket_thread_or_event_loop() -> None:
+def test_shared_imports_no_clock_socket_thread_event_loop_or_plotting() -> None:
     offenders = []
     for path in sorted(SHARED_DIR.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
