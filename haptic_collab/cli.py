@@ -895,6 +895,12 @@ def _print_fidelity_table(result: dict[str, object]) -> None:
             f"{num(row['median_felt_stiffness_ratio_8hz'])}"
         )
     print(f"local model best in {summary['local_model_best_fraction']:.1%} of conditions")
+    if "local_model_near_best_fraction" in summary:
+        print(
+            "local model within the stiffness JND "
+            f"({summary['stiffness_jnd']:.0%}) of the best in "
+            f"{summary['local_model_near_best_fraction']:.1%} of conditions"
+        )
     if "local_model_best_fraction_box" in summary:
         print(
             "stable with every hand of the box: local model best in "

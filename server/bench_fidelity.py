@@ -139,8 +139,21 @@ def _chunks(items: Sequence[Cell], size: int) -> Iterable[list[Cell]]:
         yield list(items[a : a + size])
 
 
-def _best_transparency(cells: list[dict[str, Any]], field: str, tag: str) -> None:
-    """Mark (``c[tag]``), per condition, the stable scheme whose ``field`` is closest to 1."""
+#: Relative difference in felt stiffness below which a user cannot tell two renderings apart:
+#: 10 %, under the Weber fractions measured for stiffness and compliance (15 % in Bergmann Tiest
+#: and Kappers 2009, "Cues for haptic perception of compliance"; 23 % in Jones and Hunter 1990,
+#: "A perceptual analysis of stiffness"), so the judgement errs against the local model.
+STIFFNESS_JND = 0.10
+
+
+def _best_transparency(
+    cells: list[dict[str, Any]], field: str, tag: str, within: float = 0.0
+) -> None:
+    """Mark (``c[tag]``), per condition, the stable scheme whose ``field`` is closest to 1.
+
+    With ``within`` > 0, mark every stable scheme whose ``field`` differs from that best one's by
+    at most ``within`` of it (a user could not tell it from the best: :data:`STIFFNESS_JND`).
+    """
     groups: dict[tuple[Any, ...], list[dict[str, Any]]] = defaultdict(list)
     for c in cells:
         key = (
@@ -156,8 +169,12 @@ def _best_transparency(cells: list[dict[str, Any]], field: str, tag: str) -> Non
     for group in groups.values():
         ok = [c for c in group if c["stable"] and c[field] is not None]
         best = min((abs(c[field] - 1.0) for c in ok), default=None)
+        top = min(ok, key=lambda c: abs(c[field] - 1.0))[field] if ok else None
         for c in group:
-            c[tag] = best is not None and c in ok and abs(c[field] - 1.0) <= best + 1e-6
+            if within > 0.0:
+                c[tag] = top is not None and c in ok and abs(c[field] - top) <= within * abs(top)
+            else:
+                c[tag] = best is not None and c in ok and abs(c[field] - 1.0) <= best + 1e-6
             c["_condition"] = id(group)
 
 
@@ -221,9 +238,13 @@ def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[s
     only, so the 3-D cells do not enter the transparency ranking). Plus
     ``"local_model_best_fraction"`` (1-D conditions where local-p or local-pi is the best stable
     scheme) and ``"peer_wins"`` (the conditions, grouped over hands and trajectories, where a
-    peer is best)."""
+    peer is best). ``near_best_fraction`` per scheme and ``local_model_near_best_fraction``
+    count the cells where a scheme is stable and its |dF/dx| at 1 Hz is within
+    :data:`STIFFNESS_JND` of the best stable scheme's: what a user could not tell from the best.
+    Not issue 9's ranking, which counts the strictly closest only."""
     cells = [c for c in all_cells if c["model"] == "1d"]
     _best_transparency(cells, "felt_elastic_ratio_1hz", "_best_elastic")
+    _best_transparency(cells, "felt_stiffness_ratio_1hz", "_near", within=STIFFNESS_JND)
     _best_transparency(cells, "felt_stiffness_ratio_1hz", "_best")
     out: dict[str, Any] = {}
     for s in schemes:
@@ -240,6 +261,7 @@ def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[s
             "stable_fraction": len(stable) / len(mine),
             "best_transparency_fraction": sum(c["_best"] for c in mine) / len(mine),
             "best_elastic_fraction": sum(c["_best_elastic"] for c in mine) / len(mine),
+            "near_best_fraction": sum(c["_near"] for c in mine) / len(mine),
             "median_felt_stiffness_ratio_1hz": statistics.median(felt1) if felt1 else None,
             "median_felt_stiffness_ratio_8hz": statistics.median(felt8) if felt8 else None,
             "median_felt_elastic_ratio_1hz": statistics.median(el1) if el1 else None,
@@ -252,6 +274,10 @@ def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[s
     ours = 0
     ours_elastic = sum(
         any(c["_best_elastic"] and c["scheme"] in ("local-p", "local-pi") for c in group)
+        for group in conditions.values()
+    )
+    ours_near = sum(
+        any(c["_near"] and c["scheme"] in ("local-p", "local-pi") for c in group)
         for group in conditions.values()
     )
     wins: dict[tuple[Any, ...], dict[str, Any]] = {}
@@ -283,6 +309,7 @@ def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[s
     for c in cells:
         c.pop("_best", None)
         c.pop("_best_elastic", None)
+        c.pop("_near", None)
         c.pop("_condition", None)
     out["local_model_best_fraction"] = ours / max(1, len(conditions))
     box = _hand_box_ranking(cells, schemes)
@@ -292,6 +319,8 @@ def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[s
     out["local_model_best_fraction_box"] = box["local_model_best_fraction"]
     out["box_conditions"] = box["conditions"]
     out["local_model_best_elastic_fraction"] = ours_elastic / max(1, len(conditions))
+    out["local_model_near_best_fraction"] = ours_near / max(1, len(conditions))
+    out["stiffness_jnd"] = STIFFNESS_JND
     out["conditions"] = len(conditions)
     out["peer_wins"] = sorted(
         wins.values(),

@@ -77,3 +77,32 @@ def test_the_hand_box_ranking_asks_for_stability_with_every_hand() -> None:
     r = _hand_box_ranking(cells, ["local-pi", "direct"])
     assert r["schemes"]["direct"]["best_transparency_fraction_box"] == 0.5
     assert r["local_model_best_fraction"] == 0.5
+
+
+def test_near_best_counts_what_a_user_could_not_tell_from_the_best() -> None:
+    from haptic_collab.server.bench_fidelity import STIFFNESS_JND, summarize
+
+    def cell(scheme: str, k_o: float, stable: bool, felt: float) -> dict:
+        return {
+            "model": "1d", "scheme": scheme, "k_o_n_per_m": k_o, "sim_rate_hz": 20.0,
+            "delay_ms": 0.0, "trajectory": "press", "hand": {"mass_kg": 0.1}, "stable": stable,
+            "felt_stiffness_ratio_1hz": felt, "felt_stiffness_ratio_8hz": felt,
+            "felt_elastic_ratio_1hz": felt, "hold_p2p_mm": 0.0,
+        }  # fmt: skip
+
+    assert STIFFNESS_JND <= 0.15  # never looser than the measured Weber fractions
+    cells = [
+        # a stable direct renderer is exactly K_o: it is the best; 0.95 K_o is within the JND
+        cell("direct", 300.0, True, 1.0), cell("local-pi", 300.0, True, 0.95),
+        cell("virtual-coupling", 300.0, True, 0.5),
+        # 0.85 K_o is not: a user feels the difference
+        cell("direct", 1000.0, True, 1.0), cell("local-pi", 1000.0, True, 0.85),
+        # an unstable scheme is never near the best, however stiff
+        cell("direct", 3000.0, False, 1.0), cell("local-pi", 3000.0, True, 0.7),
+    ]  # fmt: skip
+    s = summarize(cells, ["local-pi", "direct", "virtual-coupling"])
+    assert s["local_model_best_fraction"] == 1 / 3  # strictly the closest: only at 3000 N/m
+    assert s["local_model_near_best_fraction"] == 2 / 3
+    assert s["local-pi"]["near_best_fraction"] == 2 / 3
+    assert s["direct"]["near_best_fraction"] == 2 / 3
+    assert s["virtual-coupling"]["near_best_fraction"] == 0.0
