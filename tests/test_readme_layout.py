@@ -1,7 +1,9 @@
-"""The README's Layout names every module of the package (a new module is not left out of it)."""
+"""The README's Layout names every module of the package (a new module is not left out of it), and
+every module says in its docstring what it owns."""
 
 from __future__ import annotations
 
+import ast
 import re
 from pathlib import Path
 
@@ -26,3 +28,20 @@ def test_the_readme_layout_names_every_module():
             if path.stem != "__init__" and path.stem not in words:
                 missing.append(f"{folder}/{path.name}")
     assert missing == [], f"README Layout does not name: {missing}"
+
+
+def test_every_module_says_what_it_owns():
+    missing = []
+    for folder in (
+        "shared",
+        "server",
+        "server/objects",
+        "client",
+        "client/devices",
+        "haptic_collab",
+    ):
+        for path in sorted((ROOT / folder).glob("*.py")):
+            doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8")))
+            if not doc or len(doc.split()) < 8:  # a sentence, not a placeholder
+                missing.append(f"{folder}/{path.name}")
+    assert missing == [], f"modules without a docstring saying what they own: {missing}"
