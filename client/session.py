@@ -384,25 +384,25 @@ class ClientSession:
     def state(self, sample: ServoSample) -> str:
         """The ``state`` frame for the servo loop's latest sample.
 
-        A sample with no penetration yet (None, before the first patch) is sent with
-        ``penetration_m`` null: there is no local model to penetrate.
+        A sample with no penetration yet (None, before the first patch) is sent without
+        ``penetration_m``: there is no local model to penetrate. Absent fields (that one, and
+        ``rtt_ms`` before the first pong) are left out rather than sent as null, which a server
+        of the same protocol version that predates optional penetration would refuse.
         """
         self._seq += 1
-        return encode(
-            State(
-                seq=self._seq,
-                probe_m=sample.probe_m,
-                force_n=sample.force_n,
-                penetration_m=sample.penetration_m,
-                in_contact=sample.in_contact,
-                k_h=sample.k_h,
-                i_gain=sample.i_gain,
-                servo_rate_hz=sample.servo_rate_hz,
-                period_us_p99=sample.period_us_p99,
-                rtt_ms=self.rtt_ms(),
-                patch_tick=self.last_patch.tick if self.last_patch else -1,
-            )
-        )
+        return State(
+            seq=self._seq,
+            probe_m=sample.probe_m,
+            force_n=sample.force_n,
+            penetration_m=sample.penetration_m,
+            in_contact=sample.in_contact,
+            k_h=sample.k_h,
+            i_gain=sample.i_gain,
+            servo_rate_hz=sample.servo_rate_hz,
+            period_us_p99=sample.period_us_p99,
+            rtt_ms=self.rtt_ms(),
+            patch_tick=self.last_patch.tick if self.last_patch else -1,
+        ).model_dump_json(exclude_none=True)
 
     # ------------------------------------------------------------------ incoming
     def receive(self, frame: str | bytes, now_s: float) -> PatchUpdate | None:

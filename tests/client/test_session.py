@@ -205,9 +205,10 @@ def test_no_patch_yet_is_not_reported_as_zero_penetration():
     assert before.penetration_m is None and not before.in_contact
     # on the wire too: no penetration (not 0 m), no contact, no patch yet
     s = session()
-    sent = parse_client(s.state(before))
+    frame = s.state(before)
+    sent = parse_client(frame)
     assert isinstance(sent, State) and sent.patch_tick == -1 and not sent.in_contact
-    assert sent.penetration_m is None
+    assert sent.penetration_m is None and "penetration_m" not in frame  # absent, not null
 
     core.set_patch(make_plane((0.0, 0.0, 0.1), (0.0, 0.0, 1.0)), 300.0, 0.0)
     core.tick(1e-3)
