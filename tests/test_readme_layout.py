@@ -5,9 +5,25 @@ from __future__ import annotations
 
 import ast
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+PACKAGE_FOLDERS = (
+    "shared",
+    "server",
+    "server/objects",
+    "client",
+    "client/devices",
+    "haptic_collab",
+)
+
+
+def modules() -> Iterator[tuple[str, Path]]:
+    """(folder, path) of every module of the package, ``__init__`` included."""
+    for folder in PACKAGE_FOLDERS:
+        for path in sorted((ROOT / folder).glob("*.py")):
+            yield folder, path
 
 
 def test_the_readme_layout_names_every_module():
@@ -15,33 +31,18 @@ def test_the_readme_layout_names_every_module():
     layout = text[text.index("## Layout") :]
     layout = layout[: layout.index("```", layout.index("```") + 3)]
     words = set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", layout))
-    missing = []
-    for folder in (
-        "shared",
-        "server",
-        "server/objects",
-        "client",
-        "client/devices",
-        "haptic_collab",
-    ):
-        for path in sorted((ROOT / folder).glob("*.py")):
-            if path.stem != "__init__" and path.stem not in words:
-                missing.append(f"{folder}/{path.name}")
+    missing = [
+        f"{folder}/{path.name}"
+        for folder, path in modules()
+        if path.stem != "__init__" and path.stem not in words
+    ]
     assert missing == [], f"README Layout does not name: {missing}"
 
 
 def test_every_module_says_what_it_owns():
     missing = []
-    for folder in (
-        "shared",
-        "server",
-        "server/objects",
-        "client",
-        "client/devices",
-        "haptic_collab",
-    ):
-        for path in sorted((ROOT / folder).glob("*.py")):
-            doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8")))
-            if not doc or len(doc.split()) < 8:  # a sentence, not a placeholder
-                missing.append(f"{folder}/{path.name}")
+    for folder, path in modules():
+        doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8")))
+        if not doc or len(doc.split()) < 8:  # a sentence, not a placeholder
+            missing.append(f"{folder}/{path.name}")
     assert missing == [], f"modules without a docstring saying what they own: {missing}"
