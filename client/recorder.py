@@ -61,6 +61,7 @@ COLUMNS: tuple[str, ...] = (
     "b_h_n_s_per_m",
     "pc_observed_j",
     "pc_dissipated_j",
+    "own_offset_m",
 )
 _INT_COLUMNS = frozenset({"tick", "in_contact", "ramping", "fault", "force_limited"})
 _COMPUTE_COL = COLUMNS.index("compute_s")

@@ -65,6 +65,12 @@ class LocalRenderer:
         I [N/(m*s)] in use.
     b_h : float
         Probe damper B_h [N*s/m] in use.
+    own_gain : float
+        Own-force compensation C_h [m/N] in use (:mod:`shared.full_loop`; the patch's primitive
+        is already moved out by it).
+    own_offset_m : float
+        How far [m] the patch's primitive is moved out, C_h F_s: the object's surface lies that
+        far inside the rendered one (telemetry ``own_offset_m``).
 
     Notes
     -----
@@ -78,6 +84,8 @@ class LocalRenderer:
         "k_h",
         "i_gain",
         "b_h",
+        "own_gain",
+        "own_offset_m",
         "_inv_T",
         "_a_u",
         "_u",
@@ -96,6 +104,8 @@ class LocalRenderer:
         self.k_h = 0.0
         self.i_gain = 0.0
         self.b_h = 0.0
+        self.own_gain = 0.0
+        self.own_offset_m = 0.0
         self._inv_T = 1.0 / T
         self._a_u = T / (T + DAMPER_FILTER_S)  # the damper's velocity filter (shared.full_loop)
         self._u = 0.0
@@ -144,10 +154,22 @@ class LocalRenderer:
         # the damper's share of the force step is carried off with the stiffness's
         b_old = self.b_h
         carry = (b_old - patch.b_h) * self._u if b_old > 0.0 or patch.b_h > 0.0 else 0.0
-        self.model.set_gains(patch.k_h, patch.i_gain, patch.recovery_m_per_n, carry_n=carry)
+        # so is a change of own-force compensation: its surface moved by (C_old - C_new) F_s (a
+        # first-order hold already slides the surface over the simulation period)
+        if patch.own_gain != self.own_gain and not fresh and patch.proxy_hold != "foh":
+            carry += patch.k_h * (self.own_gain - patch.own_gain) * patch.own_force_n
+        self.model.set_gains(
+            patch.k_h,
+            patch.i_gain,
+            patch.recovery_m_per_n,
+            carry_n=carry,
+            drop_integral=patch.own_gain > 0.0,
+        )
         self.k_h = patch.k_h
         self.i_gain = patch.i_gain
         self.b_h = patch.b_h
+        self.own_gain = patch.own_gain
+        self.own_offset_m = patch.own_gain * patch.own_force_n
 
     def render(
         self, x: float, y: float, z: float, dx: float, dy: float, dz: float

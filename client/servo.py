@@ -259,6 +259,8 @@ class ServoSnapshot:
         K_h [N/m] in use.
     i_gain : float
         I [N/(m*s)] in use.
+    own_gain : float
+        Own-force compensation C_h [m/N] in use (0: none).
     force_scale : float
         Safety gain g in [0, 1].
     servo_rate_hz : float
@@ -275,6 +277,7 @@ class ServoSnapshot:
     in_contact: bool
     k_h: float
     i_gain: float
+    own_gain: float
     force_scale: float
     servo_rate_hz: float
     period_mean_s: float
@@ -582,8 +585,9 @@ class ServoCore:
             rd.b_h,
             pc.observed_energy_j if pc is not None else 0.0,
             pc.dissipated_energy_j if pc is not None else 0.0,
+            rd.own_offset_m,
         )
-        self._pub = (n, now_s, x, y, z, fx, fy, fz, e, in_contact, k_h, i_gain, s)
+        self._pub = (n, now_s, x, y, z, fx, fy, fz, e, in_contact, k_h, i_gain, rd.own_gain, s)
         self._ticks = n + 1
         return self._stopped
 
@@ -629,7 +633,7 @@ class ServoCore:
             rate = 1.0 / mean if mean > 0.0 else _NAN
         else:
             mean = p50 = p99 = pmax = rate = _NAN
-        n, t, x, y, z, fx, fy, fz, e, c, k_h, i_gain, s = pub
+        n, t, x, y, z, fx, fy, fz, e, c, k_h, i_gain, own, s = pub
         return ServoSnapshot(
             tick=n,
             t_s=t,
@@ -639,6 +643,7 @@ class ServoCore:
             in_contact=bool(c),
             k_h=k_h,
             i_gain=i_gain,
+            own_gain=own,
             force_scale=s,
             servo_rate_hz=rate,
             period_mean_s=mean,

@@ -193,6 +193,7 @@ def _known_gains(
     delay_ticks: int,
     spectral_radius: float = math.nan,
     felt_1hz: float = math.nan,
+    own_gain: float = 0.0,
 ) -> GainDesign:
     """Gains chosen elsewhere (in use, or recommended by the server) as a :class:`GainDesign`."""
     return GainDesign(
@@ -209,6 +210,7 @@ def _known_gains(
         rate_ratio=rate_ratio,
         delay_ticks=delay_ticks,
         mode="pi" if i_gain > 0.0 else "p",
+        own_gain=own_gain,
     )
 
 
@@ -237,6 +239,8 @@ class ServoSample:
         The local model was in contact.
     k_h, i_gain : float
         K_h [N/m] and I [N/(m*s)] in use.
+    own_gain : float
+        Own-force compensation C_h [m/N] in use.
     servo_rate_hz : float
         Achieved servo rate [Hz] (0 before it is measured).
     period_us_p99 : float
@@ -251,6 +255,7 @@ class ServoSample:
     i_gain: float
     servo_rate_hz: float
     period_us_p99: float
+    own_gain: float = 0.0
 
     @classmethod
     def from_snapshot(cls, snap: ServoSnapshot) -> ServoSample:
@@ -269,6 +274,7 @@ class ServoSample:
             in_contact=snap.in_contact,
             k_h=snap.k_h,
             i_gain=snap.i_gain,
+            own_gain=snap.own_gain,
             servo_rate_hz=rate,
             period_us_p99=p99 * 1e6,
         )
@@ -398,6 +404,7 @@ class ClientSession:
             in_contact=sample.in_contact,
             k_h=sample.k_h,
             i_gain=sample.i_gain,
+            own_gain=sample.own_gain,
             servo_rate_hz=sample.servo_rate_hz,
             period_us_p99=sample.period_us_p99,
             rtt_ms=self.rtt_ms(),
@@ -544,6 +551,7 @@ class ClientSession:
             lu.k_h, lu.i_gain, lu.b_h, lu.proxy_hold,
             k_o_eff=lu.k_o_eff, rate_ratio=n, delay_ticks=lu.delay_ticks,
             spectral_radius=lu.spectral_radius, felt_1hz=lu.felt_stiffness_ratio_1hz,
+            own_gain=lu.model.own_gain,
         )  # fmt: skip
 
     def _recommended(
@@ -566,6 +574,7 @@ class ClientSession:
         return _known_gains(
             rec.k_h, rec.i_gain, rec.b_h, rec.proxy_hold,
             k_o_eff=msg.k_o_eff, rate_ratio=n, delay_ticks=rec.delay_ticks,
+            own_gain=rec.own_gain,
         )  # fmt: skip
 
     def _patch(self, msg: Patch, now_s: float) -> PatchUpdate | None:
@@ -615,7 +624,12 @@ class ClientSession:
                     # integral force already built is kept, frozen)
                     last = self.last_update
                     scale = 1.0 if last is None else min(1.0, msg.k_o_eff / last.k_o_eff)
-                    design = replace(in_use, k_h=in_use.k_h * scale, i_gain=0.0, mode="p")
+                    k_h = in_use.k_h * scale
+                    if in_use.own_gain > 0.0:
+                        # gains of an uncoupled contact, with own-force compensation: without
+                        # it, half K_o_eff (eq. 8's K_h < K_o with margin)
+                        k_h = min(k_h, 0.5 * msg.k_o_eff)
+                    design = replace(in_use, k_h=k_h, i_gain=0.0, mode="p", own_gain=0.0)
                 if design is None or self.last_update is None:
                     self._waiting = msg
                     return None
@@ -628,6 +642,7 @@ class ClientSession:
             b_h=design.b_h,
             proxy_hold=design.proxy_hold,
             hold_ticks=n,
+            own_gain=design.own_gain,
         )
         self._waiting = None
         self.last_patch = msg

@@ -77,6 +77,13 @@ def _nonneg_int(text: str) -> int:
     return value
 
 
+def _whole_positive(text: str) -> int:
+    value = _nonneg_int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text!r}")
+    return value
+
+
 def _probability(text: str) -> float:
     value = _finite(text)
     if not 0.0 <= value < 1.0:
@@ -164,6 +171,7 @@ def _cmd_stability(args: argparse.Namespace) -> int:
                 sim_rate_hz=args.sim_rate,
                 delay_ticks=args.delay_ticks,
                 proxy_hold=args.proxy_hold,
+                own_gain=args.own_gain,
             )
         )
     except ValueError as exc:
@@ -250,6 +258,13 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
         default="zoh",
         help="proxy hold (default %(default)s)",
     )
+    hand.add_argument(
+        "--own-gain",
+        type=_nonneg,
+        default=0.0,
+        help="own-force compensation C_h [m/N] (docs/own-force.md; the paper's loop above is "
+        "without it) (default %(default)s)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_stability)
 
@@ -273,6 +288,7 @@ def _cmd_gains(args: argparse.Namespace) -> int:
             margin=args.margin,
             k_h_max=lim.max_stiffness_n_per_m,
             b_h_max=lim.max_damping_n_s_per_m,
+            own_force=not args.paper,
         )
     except (ValueError, KeyError) as exc:
         raise CliError(str(exc).strip("'\"")) from None
@@ -289,6 +305,11 @@ def _cmd_gains(args: argparse.Namespace) -> int:
         f"  K_h = {d.k_h:.1f} N/m, I = {d.i_gain:.0f} N/(m*s), B_h = {d.b_h:.2f} N*s/m, "
         f"proxy {d.proxy_hold}"
     )
+    if d.own_gain > 0.0:
+        print(
+            f"  own-force compensation C_h = {d.own_gain:.4g} m/N "
+            f"(alpha = C_h K_o = {d.own_gain * d.k_o:.2f})"
+        )
     print(
         f"  felt stiffness / K_o: {d.felt_stiffness_ratio_1hz:.3f} at 1 Hz, "
         f"{d.felt_stiffness_ratio_8hz:.3f} at 8 Hz"
@@ -332,8 +353,107 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "(default %(default)s)",
     )
     _add_shared(p, "--margin", help="K_o margin (default %(default)s)")
+    p.add_argument(
+        "--paper",
+        action="store_true",
+        help="the paper's local model only, without own-force compensation (what a contact "
+        "coupled to another user's gets)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_gains)
+
+
+#: The grid of ``haptic gains-table`` (docs/gains-table.json, the README's table).
+GAINS_TABLE_GRID = {
+    "local_model": ("p", "pi"),
+    "sim_rate_hz": (10.0, 20.0, 50.0, 100.0),
+    "delay_ticks": (0, 2, 4),
+    "k_o": (100.0, 300.0, 1000.0, 3000.0),
+}
+
+
+def _table_row(job: tuple[str, float, int, float, str, float, bool]) -> dict[str, object]:
+    """One row of ``haptic gains-table`` (a worker's job)."""
+    from haptic_collab.client.devices.profiles import get_sim_profile
+    from haptic_collab.shared.gain_design import design_gains
+    from haptic_collab.workers import timed
+
+    mode, rate, delay, k_o, profile, margin, paper = job
+    lim = get_sim_profile(profile).limits
+    d = timed(
+        design_gains,
+        k_o,
+        sim_rate_hz=rate,
+        delay_ticks=delay,
+        mode=mode,  # type: ignore[arg-type]
+        margin=margin,
+        k_h_max=lim.max_stiffness_n_per_m,
+        b_h_max=lim.max_damping_n_s_per_m,
+        own_force=not paper,
+    )
+    keep = ("k_h", "i_gain", "b_h", "proxy_hold", "own_gain", "worst_spectral_radius")
+    row: dict[str, object] = {"local_model": mode, "sim_rate_hz": rate, "delay_ticks": delay}
+    row.update({"k_o": k_o, **{k: v for k, v in d.to_json().items() if k in keep}})
+    row.update(
+        felt_stiffness_ratio_1hz=d.felt_stiffness_ratio_1hz,
+        felt_stiffness_ratio_8hz=d.felt_stiffness_ratio_8hz,
+        design_ms=d.design_ms,
+        designed_as="pi" if d.i_gain > 0.0 else "p",
+    )
+    return row
+
+
+def _cmd_gains_table(args: argparse.Namespace) -> int:
+    from concurrent.futures import ProcessPoolExecutor
+
+    from haptic_collab.client.devices.profiles import get_sim_profile
+
+    try:
+        lim = get_sim_profile(args.profile).limits
+    except KeyError as exc:
+        raise CliError(str(exc).strip("'\"")) from None
+    g = GAINS_TABLE_GRID
+    jobs = [
+        (m, r, d, k, args.profile, args.margin, args.paper)
+        for m in g["local_model"]
+        for r in g["sim_rate_hz"]
+        for d in g["delay_ticks"]
+        for k in g["k_o"]
+    ]
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        rows = list(pool.map(_table_row, jobs))
+    out = {
+        "profile": f"{args.profile} (K_h <= {lim.max_stiffness_n_per_m:g} N/m, "
+        f"B_h <= {lim.max_damping_n_s_per_m:g} N*s/m)",
+        "margin": args.margin,
+        "own_force": not args.paper,
+        "rows": rows,
+    }
+    text = json.dumps(out, indent=1) + "\n"
+    if args.out:
+        Path(args.out).write_text(text, encoding="utf-8")
+    else:
+        print(text, end="")
+    return 0
+
+
+def _add_gains_table(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "gains-table",
+        help="the product's gain designs over a grid of K_o, rates and delays (JSON)",
+        description="Design the local model for K_o 100-3000 N/m, simulation rates 10-100 Hz and "
+        "0-4 ticks of delay, P and PI, as `haptic gains` does for one (docs/gains-table.json).",
+    )
+    _add_shared(
+        p,
+        "--profile",
+        help="device profile whose limits bound K_h and B_h (default %(default)s)",
+    )
+    _add_shared(p, "--margin", help="K_o margin (default %(default)s)")
+    p.add_argument("--paper", action="store_true", help="without own-force compensation")
+    p.add_argument("--workers", type=_whole_positive, default=2, help="design processes")
+    p.add_argument("--out", help="write the JSON here instead of printing it")
+    p.set_defaults(func=_cmd_gains_table)
 
 
 # ---------------------------------------------------------------------------------------- reproduce
@@ -1027,6 +1147,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_stability(sub)
     _add_gains(sub)
+    _add_gains_table(sub)
     _add_reproduce(sub)
     for extra in _EXTRA:
         extra(sub)

@@ -555,7 +555,9 @@ def coupling_report(
     fvec = np.stack([b["force_x_n"], b["force_y_n"], b["force_z_n"]], axis=1)[w_rest]
     outward = np.nanmean(fvec, axis=0)  # the force on B's hand points out of the surface
     outward = outward / np.linalg.norm(outward)
+    # the object's surface: the rendered proxy, less any own-force compensation offset
     proxy = np.stack([b["proxy_x_m"], b["proxy_y_m"], b["proxy_z_m"]], axis=1) @ outward
+    proxy = proxy - b.get("own_offset_m", np.zeros_like(proxy))
     f_rest = float(np.nanmean(b["force_n"][w_rest]))
     f_hold = float(np.nanmean(b["force_n"][w_hold]))
     out.update(

@@ -31,7 +31,9 @@ Schemes (:func:`shared.fidelity.rendering_for` for the gains):
 
 ``local-p``, ``local-pi``, ``virtual-coupling``, ``static-local``
     :class:`client.servo.ServoCore` at 1 kHz rendering the World's patch with the scheme's
-    K_h, I, B_h and proxy hold (``hold_ticks = N``); the World receives the probe and the force
+    K_h, I, B_h, proxy hold (``hold_ticks = N``) and own-force compensation (the patch moved out by
+    C_h times the World's ``own_force_n``, as the client's
+    :meth:`shared.local_model_update.LocalModelUpdate.from_wire`); the World receives the probe and the force
     the servo rendered (Step 3 of the paper's section 6). The local models' gains are the
     product's design for the K_o at the top and the delay ticks the client would measure
     (:class:`shared.gain_design.GainTable`, margin 0.15, K_h <= the device's maximum stiffness,
@@ -116,7 +118,7 @@ from haptic_collab.shared.fidelity import (
 from haptic_collab.shared.gain_design import GainKey, GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
-from haptic_collab.shared.primitives import Plane, Sphere
+from haptic_collab.shared.primitives import Plane, Sphere, moved_out
 from haptic_collab.shared.types import FloatArray
 
 DirectReference = Literal["undisturbed", "patch"]
@@ -510,7 +512,8 @@ def run_3d_cell(
                     state = ContactInput(probe=start, force=np.zeros(3))
                 out = world.tick({_USER: state})[_USER]
                 world_k_o.append(float(out.k_o))
-                patches[n + 1 + d] = out.primitive
+                # own-force compensation: the surface moved out by C_h times the force applied
+                patches[n + 1 + d] = moved_out(out.primitive, r.own_gain * out.own_force_n)
     else:
         pc = (
             PassivityController(

@@ -21,13 +21,23 @@ of the integral and allows, along the normal n of the primitive the probe penetr
         s_max <- max(0, s_max - F_I * dt / release_s)        (the client ramps it down)
         f_max  = s_max
 
+With own-force compensation (:mod:`shared.full_loop`) the client renders against the primitive
+moved out by C_h F_s, F_s the force the server applied from this user for that patch (sent in the
+patch as ``own_force_n``), so e above is the compensated penetration ``e + C_h' F_s`` with the
+reported C_h believed up to ``C_h' = min(C_h, 1 / K_o + c_C / min(K_h, c_K K_o))``. At a fixed
+contact the surface sits F_s / K_o in from where this user's own push found it, so the allowance
+grows with F_s at most by the factor c_C < 1 per tick: however a client lies, its force stays
+within ``c_K K_o (x_rest + e_tol) / (1 - c_C)`` (plus the integral term), x_rest its probe's depth
+past the surface as it was without its own push.
+
 (the integral is fed with e - theta, and the threshold theta, 1 mm by default, absorbs the
 penetration tolerance, so the integral bound grows with e alone: at the surface it does not grow),
 where e is the largest penetration over the primitives of the last few patches (a client renders a
 patch up to a simulation period or two late: that is the tolerance for latency), e_tol a
 penetration tolerance (encoder quantization, the plane versus the true surface), c_K and c_I
 factors that keep a client from claiming gains above what any stable design for that K_o would
-choose (the designs in docs/gains-table.json have K_h / K_o < 0.8 and I / K_o < 70 1/s), and F_I
+choose (the designs in docs/gains-table.json have K_h / K_o <= 1 and I / K_o < 70 1/s; the
+design never goes above K_h = 2 K_o), and F_I
 the integral's anti-windup bound, the device's declared maximum force. A force is accepted
 unchanged when it is within ``force_tol_n`` of that bound and within a cone of half-angle
 ``cone_deg`` around n; otherwise it is replaced by its normal component clipped to [0, f_max]
@@ -64,6 +74,9 @@ class ForceBoundParams:
         c_K: a reported K_h is believed up to c_K * K_o (stable designs stay below K_o).
     integral_factor_per_s : float
         c_I [1/s]: a reported I is believed up to c_I * K_o.
+    compensation_factor : float
+        c_C, < 1: a reported own-force compensation C_h is believed up to
+        ``1 / K_o + c_C / min(K_h, c_K K_o)`` (module docstring).
     max_dt_s : float
         Longest interval [s] one update integrates over (after a silence the bound does not jump).
     cone_deg : float
@@ -80,6 +93,7 @@ class ForceBoundParams:
     force_tol_n: float = 0.5
     stiffness_factor: float = 2.0
     integral_factor_per_s: float = 100.0
+    compensation_factor: float = 0.8
     max_dt_s: float = 0.25
     cone_deg: float = 30.0
     release_s: float = 0.25
@@ -114,10 +128,11 @@ class BoundedForce:
 def bound_force(
     force_n: Sequence[float],
     probe_m: Sequence[float],
-    contacts: Sequence[tuple[Plane | Sphere, float]],
+    contacts: Sequence[tuple[Plane | Sphere, float, float]],
     *,
     k_h: float,
     i_gain: float,
+    own_gain: float = 0.0,
     integral_limit_n: float,
     integral_bound_n: float = 0.0,
     dt_s: float = 0.0,
@@ -131,10 +146,13 @@ def bound_force(
         Reported force on the user [N] (outward).
     probe_m : (3,) float
         Reported probe position [m], sampled in the same servo tick as the force.
-    contacts : sequence of (primitive, k_o)
-        Primitives of the user's latest patches with their K_o [N/m]; empty before any patch.
+    contacts : sequence of (primitive, k_o, own_force_n)
+        Primitives of the user's latest patches with their K_o [N/m] and the force F_s [N] the
+        server had applied from this user for each; empty before any patch.
     k_h : float
         Reported proportional gain K_h [N/m].
+    own_gain : float
+        Reported own-force compensation C_h [m/N] (0: none).
     i_gain : float
         Reported integral weight I [N/(m*s)]; 0 means no integral force.
     integral_limit_n : float
@@ -154,11 +172,18 @@ def bound_force(
     fx, fy, fz = (float(c) for c in force_n)
     x, y, z = (float(c) for c in probe_m)
     e, n, k_o = -math.inf, (0.0, 0.0, 0.0), 0.0
-    for prim, ko in contacts:
+    k_h_eff = max(k_h, 0.0)
+    c_h = max(own_gain, 0.0) if math.isfinite(own_gain) else 0.0
+    for prim, ko, f_s in contacts:
+        ko = float(ko)
         ei, nx, ny, nz = prim.contact(x, y, z)
+        if c_h > 0.0 and ko > 0.0:
+            stiff = min(k_h_eff, p.stiffness_factor * ko)
+            cap = 1.0 / ko + (p.compensation_factor / stiff if stiff > 0.0 else 0.0)
+            ei += min(c_h, cap) * max(float(f_s), 0.0)
         if ei > e:
             e, n = ei, (nx, ny, nz)
-        k_o = max(k_o, float(ko))
+        k_o = max(k_o, ko)
     f_i = max(0.0, integral_limit_n)
     dt = min(max(dt_s, 0.0), p.max_dt_s)
     s_max = min(max(integral_bound_n, 0.0), f_i)

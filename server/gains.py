@@ -181,6 +181,7 @@ class GainAdvisor:
             theta_m=self.theta_m if design.i_gain > 0.0 else 0.0,
             delay_ticks=key.delay_ticks,
             interim=interim,
+            own_gain=design.own_gain,
         )
 
     # ---------------------------------------------------------------- work for the worker

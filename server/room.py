@@ -187,7 +187,9 @@ class _Conn:
     closed: bool = False
     output: ContactOutput | None = None
     #: (primitive, K_o) of the latest patches, newest last (the force bound's geometry).
-    recent: deque[tuple[Plane | Sphere, float]] = field(default_factory=lambda: deque(maxlen=3))
+    recent: deque[tuple[Plane | Sphere, float, float]] = field(
+        default_factory=lambda: deque(maxlen=3)
+    )
     applied: BoundedForce | None = None
     applied_at_s: float = -math.inf
     clamps: int = 0
@@ -756,7 +758,7 @@ class Room:
             if conn is None:
                 continue
             conn.output = res
-            conn.recent.append((res.primitive, float(res.k_o)))
+            conn.recent.append((res.primitive, float(res.k_o), float(res.own_force_n)))
             rec = None
             if conn.hello is not None:
                 rec = self.gains.recommend(
@@ -796,6 +798,7 @@ class Room:
             tuple(c.recent),
             k_h=s.k_h,
             i_gain=s.i_gain,
+            own_gain=s.own_gain,
             integral_limit_n=min(device.max_force_n, MAX_REPORTED_FORCE_N),
             integral_bound_n=prev.integral_bound_n if prev is not None else 0.0,
             dt_s=now_s - c.applied_at_s,
@@ -910,5 +913,6 @@ def _patch(tick: int, res: ContactOutput, gains: RecommendedGains | None = None)
         k_o_eff=float(res.k_o_eff),
         k_o_stiff=float(res.k_o if res.k_o_stiff is None else res.k_o_stiff),
         b_o=float(res.b_o),
+        own_force_n=float(res.own_force_n),
         gains=gains,
     )

@@ -95,6 +95,10 @@ class ContactOutput:
         Object damping divided by the simulation period [N/m] (paper eq. 9); 0 without damping.
     in_contact : bool
         ``penetration_m > 0``.
+    own_force_n : float
+        Force [N] along the contact normal the object received from this user this tick (Step
+        3), >= 0: a local model with own-force compensation renders against the surface moved
+        out by C_h times it (:mod:`shared.full_loop`).
     """
 
     primitive: Plane | Sphere
@@ -106,6 +110,7 @@ class ContactOutput:
     b_o: float
     in_contact: bool
     k_o_stiff: float | None = None
+    own_force_n: float = 0.0
 
 
 #: A probe that moved more than this [m] since last tick is located exactly before loading.
@@ -288,6 +293,7 @@ class World:
         # Step 3: each user's last rendered force, opposite, on the object at its contact.
         keys: list[int] = []
         forces: list[float] = []
+        pushed: dict[str, float] = {}
         for name in names:
             inp = inputs[name]
             probe = _finite3(getattr(inp, "probe", None))
@@ -302,6 +308,7 @@ class World:
                 user = self._users.get(name)
                 keys.append(self.obj.patch_key(point, user.key if user is not None else None))
                 forces.append(push)
+                pushed[name] = push
         self.obj.step(keys, forces)
         self._current = np.asarray(self.obj.vertices, dtype=np.float64)
         self._bound = float(self.obj.max_displacement_m)
@@ -352,6 +359,7 @@ class World:
                 k_o_stiff=float(k_stiff[i]),
                 b_o=float(b_o[i]),
                 in_contact=bool(s.penetration_m > 0.0),
+                own_force_n=pushed.get(name, 0.0),
             )
         self._users = users
         return out

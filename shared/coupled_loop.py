@@ -245,6 +245,9 @@ class UserGains:
     b_h : float
         Probe damper B_h [N*s/m], >= 0.
     proxy_hold : {"zoh", "foh"}
+    own_gain : float
+        Own-force compensation C_h [m/N], >= 0 (:mod:`shared.full_loop`): the user's proxy is its
+        surface displacement less C_h times its own sampled force.
 
     Raises
     ------
@@ -256,11 +259,12 @@ class UserGains:
     i_gain: NonNegFinite = 0.0
     b_h: NonNegFinite = 0.0
     proxy_hold: ProxyHold = "zoh"
+    own_gain: NonNegFinite = 0.0
 
     @classmethod
     def from_design(cls, design: GainDesign) -> UserGains:
         """The gains of a :class:`shared.gain_design.GainDesign`."""
-        return cls(design.k_h, design.i_gain, design.b_h, design.proxy_hold)
+        return cls(design.k_h, design.i_gain, design.b_h, design.proxy_hold, design.own_gain)
 
 
 @dataclass(frozen=True)
@@ -274,6 +278,7 @@ class _Blocks:
     f_new: FloatArray  # (H, J) ... from the proxy
     f_old: FloatArray  # (H, J) ... from the previous proxy (foh)
     foh: bool
+    own_gain: float = 0.0  # C_h [m/N]: the proxy less C_h times the user's own sampled force
 
     @property
     def nf(self) -> int:
@@ -323,6 +328,7 @@ def _user_blocks(
         f_new=f_new,
         f_old=M[:, :, i_obj, nf + 1] if foh else np.zeros_like(f_new),
         foh=foh,
+        own_gain=float(gains.own_gain),
     )
 
 
@@ -369,13 +375,15 @@ def _assemble(
     for u, bl in enumerate(blocks):
         i_p, io = offs[u] + bl.nf, i_obj[u]
         Mx[:, io, :] = obj_rows[:, u]
+        # the proxy delivered: the surface less C_h times the user's own sampled force
+        proxy_row = obj_rows[:, u] - bl.own_gain * frows[u] if bl.own_gain else obj_rows[:, u]
         if D == 0:
-            Mx[:, i_p, :] = obj_rows[:, u]
+            Mx[:, i_p, :] = proxy_row
         else:
             Mx[:, i_p, io + 1] = 1.0
             for r in range(D - 1):
                 Mx[:, io + 1 + r, io + 2 + r] = 1.0
-            Mx[:, io + D, :] = obj_rows[:, u]
+            Mx[:, io + D, :] = proxy_row
     return Mx
 
 

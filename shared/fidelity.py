@@ -122,6 +122,9 @@ class Rendering:
         Time-domain passivity observer/controller at the device port.
     passivity_bias_j : float
         Energy [J] the PC tolerates before acting.
+    own_gain : float
+        Own-force compensation C_h [m/N] (``coupling`` only, :mod:`shared.full_loop`): the proxy
+        is the reported surface moved out by C_h times the force the simulation applied.
     tuning : str
         How the gains were chosen, for the report.
     """
@@ -136,6 +139,7 @@ class Rendering:
     release_time_s: float = 0.1
     passivity: bool = False
     passivity_bias_j: float = 0.0
+    own_gain: float = 0.0
     tuning: str = ""
 
 
@@ -445,6 +449,7 @@ def simulate(
     recovery = np.where(ti > 0.0, 1.0 / k_o, 0.0)  # [m/N]
     pc_on = np.array([x.passivity for x in r])
     pc_bias = np.array([x.passivity_bias_j for x in r])
+    own = np.array([x.own_gain for x in r])
     fmax = float(device.max_force_n)
     a_u = T / (T + DAMPER_FILTER_S)
 
@@ -576,7 +581,8 @@ def simulate(
             k_up = n - d_ticks
             got = np.where(k_up >= 0, up[np.where(k_up >= 0, k_up, 0) % L, cols], 0.0)
             x_o = np.where(direct, np.maximum(got, 0.0), np.maximum(got, 0.0) / k_o)
-            val_pub = np.where(direct, k_o * x_o, x_o)
+            # a local model receives the surface and the force applied (own-force compensation)
+            val_pub = np.where(direct, k_o * x_o, x_o - own * np.maximum(got, 0.0))
             pub = np.where(sim_now, val_pub, pub)
             pub_seq = pub_seq + sim_now
         down[n % L] = pub
@@ -835,6 +841,7 @@ def rendering_for(
             release_time_s=2.0 / sim_rate_hz,
             passivity=pi,
             passivity_bias_j=PRODUCT_PASSIVITY_BIAS_J,
+            own_gain=design.own_gain,
             tuning=scheme_tuning(scheme, device),
         )
     if scheme == "virtual-coupling":

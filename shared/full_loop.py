@@ -34,6 +34,13 @@ proxy hold
     ``zoh``: the proxy jumps to the new surface at the block boundary (eq. 1); ``foh``: it moves
     linearly from the previous surface to the new one over the block, reaching it at the last tick
     (``p(i) = p_old + (p_new - p_old) (i + 1) / N``), one simulation period of smoothing.
+own-force compensation (optional; not in the paper)
+    the proxy the servo renders against is the reported surface moved out by ``C_h F_s``, where
+    ``F_s`` is the force the simulation applied from this user when it computed that surface and
+    C_h [m/N] the compensation gain: with ``C_h = 1 / K_o`` the proxy is where the surface would
+    be without the user's own push (the object's rest surface for a single user), so a P local
+    model with ``K_h = K_o`` renders K_o itself and the simulation loop carries only the model's
+    error. Other users' pushes still move the proxy. ``C_h = 0`` is the paper's local model.
 
 With ``hand=None``, ``b_h = 0`` and ``zoh`` the monodromy matrix has the same non-zero eigenvalues
 as :func:`shared.stability.closed_loop_matrix` (the paper's Fig. 6 loop): tested to 1e-9.
@@ -298,6 +305,7 @@ def monodromy(
     sample_ticks: Sequence[int] | None = None,
     proxy_hold: ProxyHold = "zoh",
     integral: bool | None = None,
+    own_gain: float | FloatArray = 0.0,
 ) -> FloatArray:
     """Monodromy matrices of the full loop over one simulation period (module docstring).
 
@@ -320,6 +328,8 @@ def monodromy(
     proxy_hold : {"zoh", "foh"}
     integral : bool, optional
         Model the integral state (default: any ``i_gain > 0``). Without it I is ignored.
+    own_gain : float or (B,) array
+        Own-force compensation C_h [m/N] (module docstring), >= 0; 0: the paper's local model.
 
     Returns
     -------
@@ -356,11 +366,11 @@ def monodromy(
             np.array([h.damping_n_s_per_m for h in hands]),
             np.array([h.stiffness_n_per_m for h in hands]),
         ]
-    arrays = batch_arrays(k_o, k_h, i_gain, b_h, b_o, *hand_params)
-    ko, kh, ig, bh, bo = arrays[:5]
+    arrays = batch_arrays(k_o, k_h, i_gain, b_h, b_o, own_gain, *hand_params)
+    ko, kh, ig, bh, bo, og = arrays[:6]
     if integral is None:
         integral = bool(np.any(ig > 0.0))
-    hand_arr = None if hands is None else (arrays[5], arrays[6], arrays[7])
+    hand_arr = None if hands is None else (arrays[6], arrays[7], arrays[8])
     A, Bp, C, Dp = _fast_system(hand_arr, kh, ig, bh, T, integral)
     nb, nf = A.shape[0], A.shape[1]
     foh = proxy_hold == "foh"
@@ -409,13 +419,19 @@ def monodromy(
         obj_row[:, :, i_po] = F_old * inv[:, None]
     obj_row[:, :, i_obj] = (bo * inv)[:, None]
     M[:, :, i_obj, :] = obj_row
+    # the proxy delivered: the new surface moved out by C_h times the force sampled
+    proxy_row = obj_row.copy()
+    proxy_row[:, :, :nf] -= F_xi * og[:, None, None]
+    proxy_row[:, :, i_p] -= F_new * og[:, None]
+    if i_po is not None:
+        proxy_row[:, :, i_po] -= F_old * og[:, None]
     if D == 0:
-        M[:, :, i_p, :] = obj_row
+        M[:, :, i_p, :] = proxy_row
     else:
         M[:, :, i_p, i_q] = 1.0
         for r in range(D - 1):
             M[:, :, i_q + r, i_q + r + 1] = 1.0
-        M[:, :, i_q + D - 1, :] = obj_row
+        M[:, :, i_q + D - 1, :] = proxy_row
     return M
 
 
@@ -492,6 +508,7 @@ def analyze_full_loop(
     delay_ticks: int = 0,
     sample_tick: int | None = None,
     proxy_hold: ProxyHold = "zoh",
+    own_gain: float = 0.0,
 ) -> FullLoopAnalysis:
     """The full-loop verdict for one case, in the units of :func:`shared.stability.analyze`.
 
@@ -510,6 +527,8 @@ def analyze_full_loop(
     sample_tick : int, optional
         One sampling tick; default: the worst over all N.
     proxy_hold : {"zoh", "foh"}
+    own_gain : float
+        Own-force compensation C_h [m/N] >= 0 (module docstring).
 
     Raises
     ------
@@ -520,7 +539,7 @@ def analyze_full_loop(
     n = rates.ratio
     for name, v in (("k_o", k_o), ("k_h", k_h)):
         positive(name, v)
-    for name, v in (("i_gain", i_gain), ("b_h", b_h), ("damping", damping)):
+    for name, v in (("i_gain", i_gain), ("b_h", b_h), ("damping", damping), ("own_gain", own_gain)):
         nonneg(name, v)
     _whole("delay_ticks", delay_ticks, 0)
     js = list(range(n)) if sample_tick is None else [int(sample_tick)]
@@ -536,6 +555,7 @@ def analyze_full_loop(
         delay_ticks=int(delay_ticks),
         sample_ticks=js,
         proxy_hold=proxy_hold,
+        own_gain=own_gain,
     )[0]
     w = int(np.argmax(rho))
     r = float(rho[w])

@@ -17,7 +17,20 @@ Besides K_h (P) and K_h, I (PI), the design may use
 - a probe damper B_h on the backward difference of the probe position, in contact only, up to the
   device's ``b_h_max``;
 - a first-order-hold proxy (``foh``): the proxy moves linearly to each new surface over the next
-  simulation period instead of jumping (``zoh``).
+  simulation period instead of jumping (``zoh``);
+- own-force compensation C_h (:mod:`shared.full_loop`; not in the paper), for a proportional
+  local model: the proxy is the reported surface moved out by C_h times the force F_s the
+  simulation applied from this user, ``F = K_h (x - x_o) + C_h K_h F_s``. With C_h K_h = 1 the
+  force is the last applied one corrected by the coupling, and a held press settles with the
+  probe on the surface at ``F = K_o x``: the object's own stiffness, whatever K_h (the simulation
+  loop's static gain is ``1 - K_h / K_o``) and whatever the error in the reported K_o. At K_h =
+  K_o it is rendered at the servo rate and the simulation loop carries only the model's error,
+  so K_h is no longer bounded by K_o; above the device's stiffness the stiffness comes through
+  the (contracting) simulation loop. In general the felt stiffness at DC is ``K_h K_o / (K_o + (1
+  - C_h K_o) K_h)``. Not with an integral (it would hold the probe at the compensated surface:
+  infinitely stiff at DC). Used by the product
+  (:attr:`GainKey.own_force`); a ``pi`` design may then be a compensated P model (I = 0) when
+  that is closer to K_o at 1 Hz and at DC than any PI one.
 
 Felt stiffness is computed exactly on the lifted (N-periodic) loop: for a probe motion
 ``x(n) = Re(X e^{j w n T})`` the steady state of the lifted loop at ``z = e^{j w N T}`` gives the
@@ -31,6 +44,7 @@ looks gains up (the design itself runs off the loop).
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -58,6 +72,16 @@ Mode = Literal["p", "pi"]
 #: vibration falls to a third within a second; the box's least damped hand (0.6 kg, 2 N*s/m) alone
 #: decays at 1.7/s.
 MIN_DECAY_RATE_PER_S = 1.0
+
+#: C_h K_h values the design tries with own-force compensation (module docstring). At 1 the
+#: local model is ``F = K_h (x - x_o) + F_s``: in a held press the probe settles on the surface
+#: with ``F = K_o x``, the object's own stiffness whatever K_h and whatever the error in K_o (the
+#: simulation loop's static gain ``1 - K_h / K_o`` must stay inside (-1, 1)); for coupled users
+#: the held press is the object's own physics, the others' pushes included. Ratios below 1 feel
+#: softer in a held press; they won only at K_o above the device's stiffness, where the paper's PI
+#: does as well, and made a contact's rendering change with its coupling class (a user resting
+#: with 0.42 N felt 0.40 N while another pressed), so they are not tried.
+OWN_FORCE_RATIOS: tuple[float, ...] = (1.0,)
 
 #: Modes slower than this [Hz] are creep, not vibration (the integral slowly pushing a stiff hand
 #: out): they need only be stable (|eigenvalue| < 1), not decay at MIN_DECAY_RATE_PER_S.
@@ -96,6 +120,8 @@ class GainDesign:
         Wall time the design took [ms], set by whoever ran it (:func:`haptic_collab.workers.timed`;
         this module reads no clock); 0 when not measured. Informative: ``haptic bench gains``
         measures properly.
+    own_gain : float
+        Own-force compensation C_h [m/N] (module docstring), >= 0; 0: the paper's local model.
     """
 
     k_h: float
@@ -113,6 +139,7 @@ class GainDesign:
     mode: Mode
     hand_box: HandBox = field(default=DEFAULT_HAND_BOX, repr=False)
     design_ms: float = 0.0
+    own_gain: float = 0.0
 
     def to_json(self) -> dict[str, object]:
         """The ``haptic gains --json`` object."""
@@ -131,6 +158,7 @@ class GainDesign:
             "rate_ratio": self.rate_ratio,
             "delay_ticks": self.delay_ticks,
             "local_model": self.mode,
+            "own_gain": self.own_gain,
             "design_ms": self.design_ms,
         }
 
@@ -149,6 +177,7 @@ def felt_stiffness(
     sample_tick: int | None = None,
     proxy_hold: ProxyHold = "zoh",
     complex_response: bool = False,
+    own_gain: float | FloatArray = 0.0,
 ) -> FloatArray:
     """Felt stiffness |dF/dx| [N/m] at the probe, probe as a position source, shape (B,).
 
@@ -165,10 +194,11 @@ def felt_stiffness(
     if not (0.0 < freq_hz < 0.5 / T):
         raise ValueError(f"freq_hz must be in (0, {0.5 / T:g}), got {freq_hz!r}")
     j = N - 1 if sample_tick is None else int(sample_tick)
-    ko, kh, ig, bh, bo = batch_arrays(k_o, k_h, i_gain, b_h, b_o)
+    ko, kh, ig, bh, bo, og = batch_arrays(k_o, k_h, i_gain, b_h, b_o, own_gain)
     integral = bool(np.any(ig > 0.0))
     M = monodromy(
         hand=None,
+        own_gain=og,
         k_o=ko,
         k_h=kh,
         i_gain=ig,
@@ -203,7 +233,7 @@ def felt_stiffness(
     inv = 1.0 / (ko + bo)
     bx[:, i_obj] = fx * inv
     row_new = i_p if delay_ticks == 0 else n - 1
-    bx[:, row_new] = fx * inv
+    bx[:, row_new] = fx * (inv - og)
     Y = np.linalg.solve(z * np.eye(n)[None] - M, bx[:, :, None])[:, :, 0]
     p = Y[:, i_p]
     p_old = Y[:, nf + 1] if foh else p
@@ -263,6 +293,7 @@ def _worst_rho(
     kh = np.repeat(cand["k_h"], L * K)
     ig = np.repeat(cand["i_gain"], L * K)
     bh = np.repeat(cand["b_h"], L * K)
+    og = np.repeat(cand["own_gain"], L * K) if "own_gain" in cand else np.zeros(g * L * K)
     hs = [h for h in hands for _ in range(K)] * g
     ko = np.tile(np.asarray(k_os, float), g * L)
     out = np.empty(g * L * K)
@@ -275,6 +306,7 @@ def _worst_rho(
             k_h=kh[sl],
             i_gain=ig[sl],
             b_h=bh[sl],
+            own_gain=og[sl],
             b_o=b_o,
             servo_period_s=servo_period_s,
             rate_ratio=rate_ratio,
@@ -304,6 +336,7 @@ def design_gains(
     holds: Sequence[ProxyHold] = ("zoh", "foh"),
     hand_box: HandBox = DEFAULT_HAND_BOX,
     min_decay_rate_per_s: float = MIN_DECAY_RATE_PER_S,
+    own_force: bool = False,
 ) -> GainDesign:
     """The most transparent gains stable over the hand box (module docstring).
 
@@ -335,6 +368,11 @@ def design_gains(
         Hands the gains must be stable for.
     min_decay_rate_per_s : float
         Decay-rate margin [1/s] (:data:`MIN_DECAY_RATE_PER_S`).
+    own_force : bool
+        Also consider own-force compensation C_h = r / K_h, r in :data:`OWN_FORCE_RATIOS`
+        (module docstring), proportional only; the objective is then the felt response closest to K_o itself,
+        ``1 - |dF/dx / K_o - 1|`` (magnitude and phase: compensation can overshoot and lag K_o),
+        instead of the elastic part capped at K_o.
 
     Returns
     -------
@@ -372,22 +410,59 @@ def design_gains(
     delay = int(delay_ticks)
     integral = mode == "pi"
 
-    # candidates
+    # candidates: the paper's local model (K_h below K_o, the simulation loop's bound) ...
     kh_cap = min(k_h_max, 0.999 * lo)
     kh_axis = kh_cap * np.geomspace(0.03, 1.0, 28 if integral else 48)
     bh_axis = np.unique(np.linspace(0.0, b_h_max, 4)) if b_h_max > 0.0 else np.zeros(1)
     i_axis = lo * np.geomspace(0.02, 2.0, 16) / (N * T) if integral else np.zeros(1)
     KH, NI, BH = np.meshgrid(kh_axis, i_axis, bh_axis, indexing="ij")
-    base = {"k_h": KH.ravel(), "i_gain": NI.ravel(), "b_h": BH.ravel()}
+    paper = {
+        "k_h": KH.ravel(),
+        "i_gain": NI.ravel(),
+        "b_h": BH.ravel(),
+        "own_gain": 0.0 * KH.ravel(),
+    }
+    groups: list[tuple[dict[str, FloatArray], bool]] = [(paper, integral)]
+    if own_force:
+        # ... and proportional ones with own-force compensation, K_h up to the device's
+        # stiffness (or 2 K_o). No integral: against the compensated surface it would hold the
+        # probe at a surface its own push does not move (at DC an infinitely stiff object)
+        kh_axis_c = min(k_h_max, 2.0 * hi) * np.geomspace(0.03, 1.0, 40)
+        KH, BH, AL = np.meshgrid(kh_axis_c, bh_axis, np.asarray(OWN_FORCE_RATIOS), indexing="ij")
+        comp = {"k_h": KH.ravel(), "i_gain": 0.0 * KH.ravel(), "b_h": BH.ravel()}
+        groups.append(({**comp, "own_gain": AL.ravel() / KH.ravel()}, False))
     screen_hands = hand_box.screen_hands()
+    # the light, stiff, least damped hand and the heavy, soft, least damped one: the first to ring
+    pre_hands = list(
+        dict.fromkeys(
+            [
+                Hand(
+                    min(hand_box.mass_kg),
+                    min(hand_box.damping_n_s_per_m),
+                    max(hand_box.stiffness_n_per_m),
+                ),
+                Hand(
+                    max(hand_box.mass_kg),
+                    min(hand_box.damping_n_s_per_m),
+                    min(hand_box.stiffness_n_per_m),
+                ),
+            ]
+        )
+    )
+    pre_ticks = [N - 1]
     all_hands = hand_box.hands()
     screen_ticks = sorted({0, N // 2, N - 1})
     all_ticks = list(range(N))
+    mid_ticks = sorted({int(j) for j in np.linspace(0, N - 1, 8)})
 
     best: tuple[float, float, GainDesign] | None = None
 
     def worst(
-        cand: dict[str, FloatArray], hold: ProxyHold, hands: list[Hand], ticks: list[int]
+        cand: dict[str, FloatArray],
+        hold: ProxyHold,
+        hands: list[Hand],
+        ticks: list[int],
+        integral: bool,
     ) -> tuple[FloatArray, FloatArray]:
         return _worst_rho(
             cand,
@@ -403,7 +478,13 @@ def design_gains(
             rho_limit=rho_limit,
         )
 
-    for hold in holds:
+    for (base, with_i), hold in itertools.product(groups, holds):
+        # felt stiffness at DC over K_o: 1 with an integral, else K_h / (K_o + (1 - alpha) K_h)
+        alpha = base["own_gain"] * k_o
+        # (a denominator <= 0: the static loop K_h (alpha - 1) / K_o >= 1 runs away)
+        denom = k_o + (1.0 - alpha) * base["k_h"]
+        static = base["k_h"] / np.where(denom > 0.0, denom, 1.0)
+        felt_dc = np.where(base["i_gain"] > 0.0, 1.0, np.where(denom > 0.0, static, np.inf))
         resp1 = (
             felt_stiffness(
                 1.0,
@@ -417,26 +498,48 @@ def design_gains(
                 k_h=base["k_h"],
                 i_gain=base["i_gain"],
                 b_h=base["b_h"],
+                own_gain=base["own_gain"],
             )
             / k_o
         )
         # objective: the elastic part of the felt stiffness (a damper is felt as viscosity, not
-        # as a stiffer object), capped at the object's own
-        felt1 = np.minimum(resp1.real, 1.0)
+        # as a stiffer object), capped at the object's own. Compensation can overshoot K_o and
+        # lag it: then how far the felt response is from K_o itself, 1 - |dF/dx / K_o - 1|, at
+        # 1 Hz and in a held press (DC), whichever is further
+        if own_force:
+            felt1 = 1.0 - np.maximum(np.abs(resp1 - 1.0), np.abs(felt_dc - 1.0))
+        else:
+            felt1 = np.minimum(resp1.real, 1.0)
         if best is not None:
             felt1 = np.where(felt1 < best[0] - 1e-3, -np.inf, felt1)  # cannot win
         order = np.array([i for i in np.argsort(-felt1) if np.isfinite(felt1[i])], dtype=int)
         found = None
 
-        def passes(b: int, hold: ProxyHold = hold) -> tuple[bool, float]:
+        def passes(
+            b: int,
+            hold: ProxyHold = hold,
+            base: dict[str, FloatArray] = base,
+            with_i: bool = with_i,
+        ) -> tuple[bool, float]:
             one = {k: v[b : b + 1] for k, v in base.items()}
-            m_r, r_r = worst(one, hold, all_hands, all_ticks)
+            if len(all_ticks) > len(mid_ticks):  # most failures show at a few ticks: cheaper
+                m_r, r_r = worst(one, hold, all_hands, mid_ticks, with_i)
+                if not (m_r[0] < rho_limit and r_r[0] < 1.0 - 1e-9):
+                    return False, float(r_r[0])
+            m_r, r_r = worst(one, hold, all_hands, all_ticks, with_i)
             return bool(m_r[0] < rho_limit and r_r[0] < 1.0 - 1e-9), float(r_r[0])
 
-        # screen in order of transparency (few hands, three sampling ticks), then verify fully
+        # screen in order of transparency (two hands at one tick, then few hands at three
+        # sampling ticks), then verify fully; each stage only drops candidates a later one would
         for a in range(0, order.size, 64):
             idx = order[a : a + 64]
-            rho_s = worst({k: v[idx] for k, v in base.items()}, hold, screen_hands, screen_ticks)[0]
+            sub = {k: v[idx] for k, v in base.items()}
+            rho_p = worst(sub, hold, pre_hands, pre_ticks, with_i)[0]
+            idx = idx[rho_p < rho_limit]
+            if idx.size == 0:
+                continue
+            sub = {k: v[idx] for k, v in base.items()}
+            rho_s = worst(sub, hold, screen_hands, screen_ticks, with_i)[0]
             for b in idx[rho_s < rho_limit]:
                 ok_b, r_b = passes(int(b))
                 if ok_b:
@@ -454,6 +557,7 @@ def design_gains(
                 k_h=base["k_h"][i],
                 i_gain=base["i_gain"][i],
                 b_h=base["b_h"][i],
+                own_gain=base["own_gain"][i],
                 b_o=b_o,
                 servo_period_s=T,
                 rate_ratio=N,
@@ -477,6 +581,7 @@ def design_gains(
             delay_ticks=delay,
             mode=mode,
             hand_box=hand_box,
+            own_gain=float(base["own_gain"][i]),
         )
         key = (round(float(felt1[i]), 3), -abs(d.felt_stiffness_ratio_8hz - 1.0))
         if best is None or key > (best[0], best[1]):
@@ -497,6 +602,7 @@ def design_gains(
             holds=holds,
             hand_box=hand_box,
             min_decay_rate_per_s=min_decay_rate_per_s,
+            own_force=own_force,
         )
     if best is None:
         raise ValueError(
@@ -555,6 +661,11 @@ class GainKey:
     #: 1 uncoupled, 2, 4, ... 256 or inf (rigid) for users coupled through the object. A cell's
     #: design is checked up to ``coupled_k_o_hi(g_(i+1), stiff_ratio)`` (docs/coupled-users.md).
     stiff_ratio: float = 1.0
+    #: Let the design use own-force compensation (:func:`design_gains`). For a coupled contact
+    #: (``stiff_ratio > 1``) the design's range of K_o' covers the modal stiffnesses as for the
+    #: paper's model; tests verify the result on the coupled loop of two and three users
+    #: (:func:`shared.coupled_loop.verify_coupled`, docs/coupled-users.md).
+    own_force: bool = True
 
     @property
     def rates(self) -> Rates:
@@ -650,15 +761,19 @@ class GainTable:
         if below:
             c = max(below)
             d = self._cells[(key, c)]
+            # own-force compensation keeps its share of K_o (C_h K_o), not its C_h
+            own = d.own_gain * self.grid_point(c) / self.grid_point(i)
             if i - c > 2 and d.i_gain > 0.0:
                 # an integral designed for a much softer object may not hold on this one (a
                 # heavy, soft, lightly damped hand): render its P part until the design is done
-                return replace(d, i_gain=0.0)
-            return d
+                return replace(d, i_gain=0.0, own_gain=own)
+            return replace(d, own_gain=own) if own != d.own_gain else d
         c = min(cells)
         d = self._cells[(key, c)]
         r = self.grid_point(i) / self.grid_point(c)
-        return replace(d, k_h=d.k_h * r, i_gain=d.i_gain * r, b_h=d.b_h * r)
+        return replace(
+            d, k_h=d.k_h * r, i_gain=d.i_gain * r, b_h=d.b_h * r, own_gain=d.own_gain / r
+        )
 
     def store(self, key: GainKey, cell: int, design: GainDesign) -> None:
         """Keep ``design`` (from :func:`design_cell`) for ``cell``."""
@@ -704,6 +819,7 @@ def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -
         k_h_max=key.k_h_max,
         b_h_max=key.b_h_max,
         hand_box=hand_box,
+        own_force=key.own_force,
     )
 
 
@@ -725,6 +841,12 @@ def warm_up() -> None:
 #: but at 3000 N/m with a delay, hence 0.05.
 INTERIM_LADDER: tuple[tuple[float, float], ...] = ((0.2, 2.0), (0.2, 0.0), (0.1, 0.0), (0.05, 0.0))
 
+#: Generic interim gains with own-force compensation, tried first where the key allows it: K_h =
+#: a lo (at most the device's), C_h = 1 / K_h, the device's full damper, zero-order hold. They feel
+#: the object's own stiffness in a held press (module docstring), so a user whose contact becomes
+#: coupled to another's keeps feeling it while the coupled design runs.
+INTERIM_OWN_FORCE: tuple[float, ...] = (1.0, 0.5, 0.25)
+
 
 def verify_gains(
     key: GainKey,
@@ -737,6 +859,7 @@ def verify_gains(
     b_h: float,
     proxy_hold: Literal["zoh", "foh"],
     chunk: int = 256,
+    own_gain: float = 0.0,
 ) -> tuple[bool, float]:
     """Do these gains pass the design's acceptance test for grid cell ``cell`` of ``key``?
 
@@ -759,6 +882,8 @@ def verify_gains(
     proxy_hold : {"zoh", "foh"}
     chunk : int
         Loop cases per batch.
+    own_gain : float
+        Own-force compensation C_h [m/N] >= 0 (:mod:`shared.full_loop`).
 
     Returns
     -------
@@ -772,7 +897,7 @@ def verify_gains(
     """
     if not (math.isfinite(k_h) and k_h > 0.0):
         raise ValueError(f"k_h must be a finite stiffness > 0 N/m, got {k_h!r}")
-    for name, v in (("i_gain", i_gain), ("b_h", b_h)):
+    for name, v in (("i_gain", i_gain), ("b_h", b_h), ("own_gain", own_gain)):
         if not (math.isfinite(v) and v >= 0.0):
             raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
     rates = key.rates
@@ -790,6 +915,7 @@ def verify_gains(
             k_h=k_h,
             i_gain=i_gain,
             b_h=b_h,
+            own_gain=own_gain,
             b_o=key.b_o,
             servo_period_s=T,
             rate_ratio=n,
@@ -816,7 +942,8 @@ def interim_design(
     """Verified gains to render in grid cell ``cell`` of ``key`` until its design is done.
 
     Tries, in order, ``candidates`` (gains already known, most transparent first), then the
-    generic gains of :data:`INTERIM_LADDER`; returns the first that passes
+    generic gains of :data:`INTERIM_OWN_FORCE` (when the key allows own-force compensation) and
+    :data:`INTERIM_LADDER`; returns the first that passes
     :func:`verify_gains`. If none does and ``design_fallback``, a proportional design of the cell
     (:func:`shared.gain_design.design_cell` with ``mode="p"``, seconds). A module-level function
     so that a worker process can run it.
@@ -836,21 +963,37 @@ def interim_design(
     lo, hi = cell_k_o_range(key, cell, grid_ratio)
     rates = key.rates
     n = rates.ratio
-    tries: list[tuple[float, float, float, Literal["zoh", "foh"]]] = [
-        (c.k_h, c.i_gain, c.b_h, c.proxy_hold) for c in candidates
+    own_ok = key.own_force
+    tries: list[tuple[float, float, float, Literal["zoh", "foh"], float]] = [
+        (c.k_h, c.i_gain, c.b_h, c.proxy_hold, c.own_gain)
+        for c in candidates
+        if own_ok or c.own_gain == 0.0
     ]
+    if own_ok:
+        tries += [
+            (k, 0.0, key.b_h_max, "zoh", 1.0 / k)
+            for k in (min(a * lo, key.k_h_max) for a in INTERIM_OWN_FORCE)
+        ]
     tries += [
-        (min(a * lo, key.k_h_max), b * lo, key.b_h_max, "zoh")
+        (min(a * lo, key.k_h_max), b * lo, key.b_h_max, "zoh", 0.0)
         for a, b in INTERIM_LADDER
         if b == 0.0 or (key.mode == "pi" and key.b_h_max > 0.0)
     ]
-    seen: set[tuple[float, float, float, str]] = set()
-    for k_h, i_gain, b_h, hold in tries:
-        if (k_h, i_gain, b_h, hold) in seen or k_h > key.k_h_max or b_h > key.b_h_max:
+    seen: set[tuple[float, float, float, str, float]] = set()
+    for k_h, i_gain, b_h, hold, own in tries:
+        if (k_h, i_gain, b_h, hold, own) in seen or k_h > key.k_h_max or b_h > key.b_h_max:
             continue
-        seen.add((k_h, i_gain, b_h, hold))
+        seen.add((k_h, i_gain, b_h, hold, own))
         ok, rho = verify_gains(
-            key, cell, grid_ratio, hand_box, k_h=k_h, i_gain=i_gain, b_h=b_h, proxy_hold=hold
+            key,
+            cell,
+            grid_ratio,
+            hand_box,
+            k_h=k_h,
+            i_gain=i_gain,
+            b_h=b_h,
+            proxy_hold=hold,
+            own_gain=own,
         )
         if not ok:
             continue
@@ -868,6 +1011,7 @@ def interim_design(
                     rate_ratio=n,
                     delay_ticks=key.delay_ticks,
                     proxy_hold=hold,
+                    own_gain=own,
                 )[0]
                 / g
             )
@@ -888,6 +1032,7 @@ def interim_design(
             delay_ticks=key.delay_ticks,
             mode="pi" if i_gain > 0.0 else "p",
             hand_box=hand_box,
+            own_gain=own,
         )
     if not design_fallback:
         raise ValueError(f"no known or proportional gains pass in cell {cell} of {key}")

@@ -283,8 +283,14 @@ class LocalModel:
         recovery_m_per_n: float | None = None,
         *,
         carry_n: float = 0.0,
+        drop_integral: bool = False,
     ) -> None:
         """Replace K_h [N/m] and I [N/(m*s)] between ticks; the integral force is kept.
+
+        With ``drop_integral`` and in contact, the integral force is handed to the transfer force
+        instead (it then fades over ``gain_transfer_s``, or at once without it): a local model
+        with own-force compensation carries the force the object holds in its compensation, an
+        integral kept beside it would push the surface in for ever (:mod:`shared.full_loop`).
 
         ``recovery_m_per_n`` (1/K_o of the new patch [m/N], see :class:`LocalModelParams`)
         replaces the contact's recovery band when given. In contact, with ``gain_transfer_s`` >
@@ -308,6 +314,9 @@ class LocalModel:
         self._ti = self.params.servo_period_s * self.params.i_gain
         self._rec = self.params.recovery_m_per_n
         step = (k_old - self._k_h) * self._e_prev + carry_n
+        if drop_integral and self._in_contact and self._s != 0.0:
+            step += self._s
+            self._s = 0.0
         transfer = self.params.gain_transfer_s
         if self._in_contact and transfer > 0.0 and step != 0.0 and math.isfinite(step):
             self._b += step

@@ -18,6 +18,8 @@ Plain Python floats, SI units: positions [m], stiffness and B_o [N/m], I [N/(m*s
 
 from __future__ import annotations
 
+import math
+
 from pydantic import SkipValidation
 
 from haptic_collab.shared.checks import (
@@ -27,7 +29,14 @@ from haptic_collab.shared.checks import (
     params_dataclass,
 )
 from haptic_collab.shared.full_loop import ProxyHold
-from haptic_collab.shared.primitives import Plane, Primitive, Sphere, make_plane, make_sphere
+from haptic_collab.shared.primitives import (
+    Plane,
+    Primitive,
+    Sphere,
+    make_plane,
+    make_sphere,
+    moved_out,
+)
 from haptic_collab.shared.protocol import Patch, PlaneModel, ProtocolError, SphereModel
 
 __all__ = [
@@ -74,6 +83,12 @@ class LocalModelUpdate:
         Object damping divided by the simulation period B_o [N/m] (eq. 9), >= 0; None: not known.
     tick : int or None
         Simulation tick of the server's patch; None: not from a server.
+    own_gain : float
+        Own-force compensation C_h [m/N] >= 0 (:mod:`shared.full_loop`); ``primitive`` is
+        already the server's surface moved out by ``own_gain * own_force_n``
+        (:meth:`from_wire`). 0: the paper's local model.
+    own_force_n : float
+        The force F_s [N] >= 0 the simulation applied from this user for this surface.
 
     Raises
     ------
@@ -96,6 +111,8 @@ class LocalModelUpdate:
     k_o_stiff: PositiveFinite | None = None
     b_o: NonNegFinite | None = None
     tick: int | None = None
+    own_gain: NonNegFinite = 0.0
+    own_force_n: NonNegFinite = 0.0
 
     def __post_init__(self) -> None:
         prim = self.primitive
@@ -119,15 +136,19 @@ class LocalModelUpdate:
         b_h: float = 0.0,
         proxy_hold: ProxyHold = "zoh",
         hold_ticks: int = 1,
+        own_gain: float = 0.0,
     ) -> LocalModelUpdate:
         """The update of a server ``patch`` rendered with the gains the client chose.
+
+        With own-force compensation (``own_gain`` C_h > 0) the primitive rendered is the patch's
+        moved out by ``C_h * msg.own_force_n`` (:func:`shared.primitives.moved_out`).
 
         Parameters
         ----------
         msg : shared.protocol.Patch
             The server's patch: primitive, ``tick``, ``k_o``, ``k_o_eff``, ``k_o_stiff`` (absent:
             K_o, an uncoupled contact) and ``b_o``.
-        k_h, i_gain, b_h, proxy_hold, hold_ticks
+        k_h, i_gain, b_h, proxy_hold, hold_ticks, own_gain
             The local model's gains and hold (see the class parameters).
 
         Raises
@@ -137,8 +158,12 @@ class LocalModelUpdate:
         ValueError
             Invalid gains (see the class).
         """
+        prim = primitive_from_wire(msg.primitive)
+        own = float(own_gain)
+        if not (math.isfinite(own) and own >= 0.0):
+            raise ValueError(f"own_gain must be finite and >= 0, got {own_gain!r}")
         return cls(
-            primitive=primitive_from_wire(msg.primitive),
+            primitive=moved_out(prim, own * msg.own_force_n) if own > 0.0 else prim,
             k_h=k_h,
             i_gain=i_gain,
             b_h=b_h,
@@ -149,6 +174,8 @@ class LocalModelUpdate:
             k_o_stiff=msg.k_o_stiff_or_k_o(),
             b_o=msg.b_o,
             tick=msg.tick,
+            own_gain=own,
+            own_force_n=msg.own_force_n,
         )
 
 

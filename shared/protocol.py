@@ -113,6 +113,8 @@ class State(_Msg):
     in_contact: StrictBool = False
     k_h: Annotated[StrictFinite, Field(ge=0, le=1e6)] = 0.0
     i_gain: Annotated[StrictFinite, Field(ge=0, le=1e8)] = 0.0
+    #: Own-force compensation C_h [m/N] the local model renders with (0: none).
+    own_gain: Annotated[StrictFinite, Field(ge=0, le=1.0)] = 0.0
     servo_rate_hz: Annotated[StrictFinite, Field(ge=0, le=100_000)] = 0.0
     period_us_p99: Annotated[StrictFinite, Field(ge=0, le=1e7)] = 0.0
     rtt_ms: Annotated[StrictFinite, Field(ge=0, le=1e6)] | None = None
@@ -269,6 +271,9 @@ class RecommendedGains(_Msg):
     theta_m: Annotated[float, Field(ge=0, allow_inf_nan=False)]
     delay_ticks: Annotated[int, Field(ge=0)]
     interim: bool = False
+    #: Own-force compensation C_h [m/N] (shared.full_loop): render against the patch's primitive
+    #: moved out by ``own_gain * own_force_n``. 0 (or absent): the paper's local model.
+    own_gain: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
 
 
 class Patch(_Msg):
@@ -293,6 +298,10 @@ class Patch(_Msg):
     k_o_eff: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     b_o: Annotated[float, Field(ge=0, allow_inf_nan=False)]
     k_o_stiff: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    #: Force [N] along the normal that the simulation applied from this user in the step that
+    #: produced this surface (0: none); with own-force compensation the local model renders
+    #: against the primitive moved out by C_h times it.
+    own_force_n: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
     #: Gains the server recommends (absent until designed for this user's key and K_o cell).
     gains: RecommendedGains | None = None
 

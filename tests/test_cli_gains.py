@@ -86,7 +86,7 @@ def test_gains_from_haptic_gains_are_stable_per_haptic_stability_for_the_simulat
 ) -> None:
     g = _json(capsys, ["gains", "--k-o", "1000", "--local-model", "p", "--json"])
     args = ["stability", "--k-o", "1000", "--k-h", repr(g["k_h"]), "--b-h", repr(g["b_h"])]
-    args += ["--proxy-hold", str(g["proxy_hold"]), "--json"]
+    args += ["--proxy-hold", str(g["proxy_hold"]), "--own-gain", repr(g["own_gain"]), "--json"]
     for flag, value in HAND_FLAGS.items():
         args += [flag, value]
     out = _json(capsys, args)

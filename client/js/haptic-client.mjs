@@ -13,8 +13,8 @@ import { Worker, MessageChannel } from "node:worker_threads";
 import { parseArgs } from "node:util";
 import { writeFileSync } from "node:fs";
 import WebSocket from "ws";
-import { SNAP, primitiveFromPatch } from "./lib/servo.mjs";
-import { chooseGains, helloMessage, stateMessage } from "./lib/protocol.mjs";
+import { SNAP, movedOut, primitiveFromPatch } from "./lib/servo.mjs";
+import { chooseGains, helloMessage, ownOffsetM, stateMessage } from "./lib/protocol.mjs";
 
 const USAGE = `usage: node haptic-client.mjs [options]
 
@@ -305,6 +305,7 @@ class Client {
       this.stats.bad_patches += 1;
       return;
     }
+    prim = movedOut(prim, ownOffsetM(m, gains));
     this.lastTick = m.tick;
     const t = this.nowS();
     if (this.lastPatchAtS !== null && t - this.lastPatchAtS > this.stats.patch_gap_max_s) {
@@ -358,6 +359,7 @@ class Client {
           inContact: c[SNAP.inContact] > 0,
           kH: c[SNAP.kH],
           iGain: c[SNAP.iGain],
+          ownGain: this.stats.last_gains ? this.stats.last_gains.own_gain ?? 0 : 0,
           rateHz: c[SNAP.rateHz],
           p99Us: c[SNAP.p99Us],
           patchTick: c[SNAP.patchTick],

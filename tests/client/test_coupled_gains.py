@@ -10,6 +10,8 @@ with those gains, every hand of the verification set and every sampling-tick com
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -50,14 +52,21 @@ def test_coupled_pi_users_get_gains_that_meet_the_margin_of_the_coupled_loop(
     assert key.stiff_ratio >= k_stiff[0] / k_eff[0]
     s.gain_table.design(key, k_req)  # as the link's worker does
     up = s.receive(plane_patch(2, k_o, float(k_eff[0]), float(k_stiff[0])), 0.15)
-    assert up is not None and not up.fallback and up.i_gain > 0.0
-    g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold)  # type: ignore[arg-type]
+    assert up is not None and not up.fallback
+    # (a compensated P model here: closer to K_o than any PI the design found)
+    g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold, up.model.own_gain)  # type: ignore[arg-type]
     verdict = verify_coupled(c, [g, g], delay_ticks=up.delay_ticks, margin=0.15)
     assert verdict.meets_margin, verdict
-    # what the product did before (design for K_o_eff alone) does not meet it at 0.9
+    # the paper's PI designed over the modal range meets it too
+    pi = s.gain_table.design(replace(key, own_force=False), k_req)
+    assert pi.i_gain > 0.0
+    verdict = verify_coupled(c, [UserGains.from_design(pi)] * 2, margin=0.15)
+    assert verdict.meets_margin, verdict
+    # what the product did before (the paper's PI for K_o_eff alone) does not meet it at 0.9
     if coupling == 0.9:
         plain = s.gain_table.design(
-            s.gain_key(0.0, up.delay_ticks, stiff_ratio=1.0), float(k_eff[0])
+            replace(s.gain_key(0.0, up.delay_ticks, stiff_ratio=1.0), own_force=False),
+            float(k_eff[0]),
         )
         old = UserGains(plain.k_h, plain.i_gain, plain.b_h, plain.proxy_hold)
         assert not verify_coupled(c, [old, old], margin=0.15).meets_margin

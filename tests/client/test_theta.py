@@ -42,9 +42,13 @@ T_RELEASE = T_HOLD + 4.0
 
 @pytest.fixture(scope="module")
 def designs() -> dict[float, GainDesign]:
-    """The client's gains (its GainTable key for the simulated Phantom Desktop) for both K_o."""
+    """The client's PI gains (its GainTable key for the simulated Phantom Desktop) for both K_o.
+
+    The paper's local model, as for a contact coupled to another user's: for a single user the
+    client's design is now a compensated P model (no integral, no threshold to switch)."""
     table = GainTable()
-    key = GainKey(1000.0, 20.0, 0, "pi", 0.15, PHANTOM.limits.max_stiffness_n_per_m, 10.0)
+    key = GainKey(1000.0, 20.0, 0, "pi", 0.15, PHANTOM.limits.max_stiffness_n_per_m, 10.0,
+                  own_force=False)  # fmt: skip
     return {k_o: table.design(key, k_o) for k_o in (300.0, 1000.0)}
 
 
@@ -74,12 +78,15 @@ def hold_run(
     core.enable_forces()
     n_ticks = round((T_RELEASE + 0.5) / T)
     surface = 0.0  # object surface depth [m]
-    f_sample = 0.0
+    f_sample = f_applied = 0.0
     for n in range(n_ticks):
         if n % N == 0:
             if n:
                 surface = f_sample / k_o
-            core.set_patch(make_plane((0.0, 0.0, -surface), (0.0, 0.0, 1.0)), design.k_h,
+                f_applied = f_sample
+            # the surface as the design renders it: moved out by C_h F_s (own-force compensation)
+            shown = surface - design.own_gain * f_applied
+            core.set_patch(make_plane((0.0, 0.0, -shown), (0.0, 0.0, 1.0)), design.k_h,
                            design.i_gain, b_h=design.b_h, proxy_hold=design.proxy_hold,
                            hold_ticks=N)  # fmt: skip
         core.tick(n * T)

@@ -39,10 +39,11 @@ def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
     for s in SCHEMES:
         assert 0.0 <= summary[s]["best_transparency_fraction"] <= 1.0
     assert 0.0 <= summary["local_model_best_fraction"] <= 1.0
-    # a P local model's felt stiffness is below K_o (K_h in series), PI's closer to it
+    # with own-force compensation both local models feel the object's own stiffness at 1 Hz
+    # (the paper's P model would feel K_h K_o / (K_h + K_o) < K_o / 2), as direct rendering does
     felt = {c["scheme"]: c["felt_stiffness_ratio_1hz"] for c in cells if c["delay_ms"] == 0.0}
     assert felt["local-p"] is not None and felt["local-pi"] is not None
-    assert felt["local-p"] < felt["local-pi"] <= 1.05
+    assert 0.95 < felt["local-p"] <= 1.05 and 0.95 < felt["local-pi"] <= 1.05
     paths = plot(out, tmp_path)
     assert [p.name for p in paths] == ["fidelity-stability.png", "fidelity-transparency.png"]
     assert all(p.stat().st_size > 10_000 for p in paths)

@@ -244,23 +244,23 @@ PLANE = make_plane((0, 0, 0.1), (0, 0, 1))  # the top of an object, outward +z
 
 def test_force_out_of_contact_is_clamped_to_zero():
     r = bound_force(
-        (0, 0, 49.0), (0, 0, 0.12), [(PLANE, 400.0)], k_h=300, i_gain=0, integral_limit_n=7.9
+        (0, 0, 49.0), (0, 0, 0.12), [(PLANE, 400.0, 0.0)], k_h=300, i_gain=0, integral_limit_n=7.9
     )
     assert r.reason == "out_of_contact" and r.force_n == (0.0, 0.0, 0.0)
     # and a 49 N push at zero penetration is bounded by the model at e = 0 (+ tolerance)
     r = bound_force(
-        (0, 0, 49.0), (0, 0, 0.1), [(PLANE, 400.0)], k_h=300, i_gain=0, integral_limit_n=7.9
+        (0, 0, 49.0), (0, 0, 0.1), [(PLANE, 400.0, 0.0)], k_h=300, i_gain=0, integral_limit_n=7.9
     )
     assert r.reason == "too_large" and r.force_n[2] == pytest.approx(300 * 0.001)
 
 
 def test_force_into_the_object_or_sideways_is_refused():
     r = bound_force(
-        (0, 0, -3.0), (0, 0, 0.09), [(PLANE, 400.0)], k_h=300, i_gain=0, integral_limit_n=7.9
+        (0, 0, -3.0), (0, 0, 0.09), [(PLANE, 400.0, 0.0)], k_h=300, i_gain=0, integral_limit_n=7.9
     )
     assert r.reason == "wrong_direction" and r.force_n == (0.0, 0.0, 0.0)
     r = bound_force(
-        (3.0, 0, 0.5), (0, 0, 0.09), [(PLANE, 400.0)], k_h=300, i_gain=0, integral_limit_n=7.9
+        (3.0, 0, 0.5), (0, 0, 0.09), [(PLANE, 400.0, 0.0)], k_h=300, i_gain=0, integral_limit_n=7.9
     )
     assert r.reason == "wrong_direction" and r.force_n == (0.0, 0.0, pytest.approx(0.5))
 
@@ -268,7 +268,7 @@ def test_force_into_the_object_or_sideways_is_refused():
 def test_an_honest_force_passes_unchanged():
     # P: K_h * e; PI: plus the integral up to its anti-windup bound; sphere: radial
     r = bound_force(
-        (0, 0, 3.0), (0, 0, 0.09), [(PLANE, 400.0)], k_h=300, i_gain=0, integral_limit_n=7.9
+        (0, 0, 3.0), (0, 0, 0.09), [(PLANE, 400.0, 0.0)], k_h=300, i_gain=0, integral_limit_n=7.9
     )
     assert r.reason is None and r.force_n == (0.0, 0.0, 3.0)
     # PI held 10 mm deep for a second, sampled at 20 Hz: the integral (threshold 1 mm) winds up
@@ -276,7 +276,7 @@ def test_an_honest_force_passes_unchanged():
     s_true, s_max = 0.0, 0.0
     for _ in range(20):
         s_true = min(7.9, s_true + 4000 * 0.05 * (0.010 - 0.001))
-        r = bound_force((0, 0, 300 * 0.01 + s_true), (0, 0, 0.09), [(PLANE, 400.0)], k_h=300,
+        r = bound_force((0, 0, 300 * 0.01 + s_true), (0, 0, 0.09), [(PLANE, 400.0, 0.0)], k_h=300,
                         i_gain=4000, integral_limit_n=7.9, integral_bound_n=s_max, dt_s=0.05)  # fmt: skip
         assert r.reason is None, (s_true, r)
         s_max = r.integral_bound_n
@@ -284,22 +284,22 @@ def test_an_honest_force_passes_unchanged():
     sphere = make_sphere((0, 0, 0), 0.1)
     n = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
     probe, force = 0.095 * n, 1.4 * n
-    r = bound_force(force, probe, [(sphere, 400.0)], k_h=300, i_gain=0, integral_limit_n=7.9)
+    r = bound_force(force, probe, [(sphere, 400.0, 0.0)], k_h=300, i_gain=0, integral_limit_n=7.9)
     assert r.reason is None
 
 
 def test_latency_tolerance_and_integral_release():
     moved = make_plane((0, 0, 0.09), (0, 0, 1))  # the surface moved down 10 mm since
     # rendered against the previous patch: still within the last patches' geometry
-    r = bound_force((0, 0, 2.0), (0, 0, 0.095), [(PLANE, 400.0), (moved, 400.0)], k_h=300,
+    r = bound_force((0, 0, 2.0), (0, 0, 0.095), [(PLANE, 400.0, 0.0), (moved, 400.0, 0.0)], k_h=300,
                     i_gain=0, integral_limit_n=7.9)  # fmt: skip
     assert r.reason is None
     # the integral is ramped down after release, not dropped: a report 0.05 s later passes...
-    r = bound_force((0, 0, 5.0), (0, 0, 0.2), [(PLANE, 400.0)], k_h=300, i_gain=4000,
+    r = bound_force((0, 0, 5.0), (0, 0, 0.2), [(PLANE, 400.0, 0.0)], k_h=300, i_gain=4000,
                     integral_limit_n=7.9, integral_bound_n=7.9, dt_s=0.05)  # fmt: skip
     assert r.reason is None
     # ...but not forever
-    r = bound_force((0, 0, 5.0), (0, 0, 0.2), [(PLANE, 400.0)], k_h=300, i_gain=4000,
+    r = bound_force((0, 0, 5.0), (0, 0, 0.2), [(PLANE, 400.0, 0.0)], k_h=300, i_gain=4000,
                     integral_limit_n=7.9, integral_bound_n=7.9, dt_s=0.2)  # fmt: skip
     assert r.reason == "out_of_contact"
 
@@ -309,7 +309,7 @@ def test_a_claimed_integral_cannot_push_at_the_surface():
     # integral does not grow at the surface, and K_h is believed up to c_K K_o
     s_max = 0.0
     for _ in range(40):  # 2 s of 49 N reports
-        r = bound_force((0, 0, 49.0), (0, 0, 0.1), [(PLANE, 400.0)], k_h=1e6, i_gain=1e8,
+        r = bound_force((0, 0, 49.0), (0, 0, 0.1), [(PLANE, 400.0, 0.0)], k_h=1e6, i_gain=1e8,
                         integral_limit_n=50.0, integral_bound_n=s_max, dt_s=0.05)  # fmt: skip
         s_max = r.integral_bound_n
     assert r.reason == "too_large"
@@ -319,7 +319,7 @@ def test_a_claimed_integral_cannot_push_at_the_surface():
 
 
 def test_a_claimed_huge_k_h_is_believed_only_up_to_the_object_stiffness():
-    r = bound_force((0, 0, 20.0), (0, 0, 0.095), [(PLANE, 400.0)], k_h=1e6, i_gain=0,
+    r = bound_force((0, 0, 20.0), (0, 0, 0.095), [(PLANE, 400.0, 0.0)], k_h=1e6, i_gain=0,
                     integral_limit_n=7.9)  # fmt: skip
     assert r.reason == "too_large"
     assert r.limit_n == pytest.approx(ForceBoundParams().stiffness_factor * 400.0 * 0.006)

@@ -66,9 +66,11 @@ def _coupled(k_o: float, coupling: float, users: int, delay: int) -> CoupledDesi
 @pytest.mark.parametrize("hold", ["zoh", "foh"])
 @pytest.mark.parametrize("delay", [0, 2])
 @pytest.mark.parametrize("b_o", [0.0, 150.0])
-def test_one_user_reproduces_the_full_loop(hold: str, delay: int, b_o: float) -> None:
+@pytest.mark.parametrize("own", [0.0, 1.0 / 700.0])
+def test_one_user_reproduces_the_full_loop(hold: str, delay: int, b_o: float, own: float) -> None:
     hands = [*DEFAULT_HAND_BOX.corners(), DEFAULT_HAND]
-    g = UserGains(k_h=400.0, i_gain=3000.0, b_h=3.0, proxy_hold=hold)  # type: ignore[arg-type]
+    i_gain = 0.0 if own else 3000.0  # compensation goes with a proportional model
+    g = UserGains(k_h=400.0, i_gain=i_gain, b_h=3.0, proxy_hold=hold, own_gain=own)  # type: ignore[arg-type]
     rho = coupled_spectral_radius(
         compliance=[[1.0 / 700.0]],
         gains=[g],
@@ -80,9 +82,10 @@ def test_one_user_reproduces_the_full_loop(hold: str, delay: int, b_o: float) ->
         hand=hands,
         k_o=700.0,
         k_h=400.0,
-        i_gain=3000.0,
+        i_gain=i_gain,
         b_h=3.0,
         b_o=b_o,
+        own_gain=own,
         delay_ticks=delay,
         proxy_hold=hold,  # type: ignore[arg-type]
     )

@@ -40,6 +40,7 @@ def _simulate(
     hold: str = "zoh",
     periods: int = 60,
     substeps: int = 200,
+    own_gain: float = 0.0,
 ) -> np.ndarray:
     """Probe depth at each block start after a 1 mm push, linear bilateral contact."""
     T = 1e-3
@@ -58,7 +59,7 @@ def _simulate(
     for blk in range(periods):
         if blk > 0:
             x_obj = (f_sample + b_o * x_obj) / (k_o + b_o)
-            line.append(x_obj)
+            line.append(x_obj - own_gain * f_sample)  # own-force compensation
             p_old, p_new = p_new, line.popleft()
         out.append(math.hypot(x, v * 0.01) + abs(s) / 1000.0 + abs(p_new))
         for i in range(n):
@@ -150,6 +151,47 @@ def test_spectral_radius_matches_a_direct_time_domain_simulation(
     assert _growth(trace) == pytest.approx(rho, rel=0.03)
     # and the verdict is what a user would see: growth or decay of the hold
     assert (trace[-1] > trace[len(trace) // 2]) == (rho > 1.0)
+
+
+@pytest.mark.parametrize(
+    ("k_o", "k_h", "alpha", "b_h", "delay", "j", "hold"),
+    [
+        (300.0, 300.0, 1.0, 3.0, 2, 10, "zoh"),  # K_h = K_o: the paper's loop alone would ring
+        (3000.0, 1000.0, 3.0, 10.0, 1, 25, "foh"),  # over-compensated, K_o above the device
+        (300.0, 600.0, 1.0, 0.0, 0, 0, "zoh"),
+        (300.0, 450.0, 0.25, 0.0, 1, 40, "zoh"),  # too little compensation for K_h > K_o
+    ],
+)
+def test_own_force_compensation_matches_a_direct_time_domain_simulation(
+    k_o, k_h, alpha, b_h, delay, j, hold
+):
+    rho = spectral_radius(
+        hand=DEFAULT_HAND,
+        k_o=k_o,
+        k_h=k_h,
+        b_h=b_h,
+        own_gain=alpha / k_o,
+        rate_ratio=50,
+        delay_ticks=delay,
+        sample_ticks=[j],
+        proxy_hold=hold,  # type: ignore[arg-type]
+    )[0, 0]
+    trace = _simulate(
+        DEFAULT_HAND, k_o=k_o, k_h=k_h, b_h=b_h, delay=delay, j=j, hold=hold, own_gain=alpha / k_o
+    )
+    assert _growth(trace) == pytest.approx(rho, rel=0.03)
+    assert (trace[-1] > trace[len(trace) // 2]) == (rho > 1.0)
+
+
+def test_exact_own_force_compensation_opens_the_simulation_loop():
+    # rigid probe, K_h = K_o, C_h = 1/K_o: the proxy the servo renders is the rest surface
+    # whatever the force, so nothing circulates through the simulation (nilpotent monodromy)
+    M = monodromy(hand=None, k_o=500.0, k_h=500.0, own_gain=1 / 500.0, rate_ratio=20,
+                  delay_ticks=3)  # fmt: skip
+    assert np.max(np.abs(np.linalg.eigvals(M))) < 1e-6
+    # the paper's local model with the same K_h sits on eq. 8's margin
+    M0 = monodromy(hand=None, k_o=500.0, k_h=500.0, rate_ratio=20, delay_ticks=3)
+    assert np.max(np.abs(np.linalg.eigvals(M0))) == pytest.approx(1.0, abs=1e-6)
 
 
 def test_the_products_old_gains_oscillate_with_the_simulated_hand():

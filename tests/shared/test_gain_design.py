@@ -71,6 +71,7 @@ def _worst_on_lattice(
         k_h=d.k_h,
         i_gain=d.i_gain,
         b_h=d.b_h,
+        own_gain=d.own_gain,
         servo_period_s=T,
         rate_ratio=n,
         delay_ticks=delay_ticks,
@@ -80,7 +81,7 @@ def _worst_on_lattice(
     b, j = np.unravel_index(int(np.argmax(rho)), rho.shape)
     where = (
         f"hand {hs[b]}, K_o' = {ko[b]:g} N/m, sampling tick {j}; gains K_h = {d.k_h:g}, "
-        f"I = {d.i_gain:g}, B_h = {d.b_h:g}, {d.proxy_hold}"
+        f"I = {d.i_gain:g}, B_h = {d.b_h:g}, C_h = {d.own_gain:g}, {d.proxy_hold}"
     )
     return float(rho[b, j]), where
 
@@ -98,6 +99,7 @@ def _design(
     mode: str,
     k_h_max: float = K_H_MAX,
     b_h_max: float = B_H_MAX,
+    own_force: bool = False,
 ) -> GainDesign:
     return design_gains(
         k_o,
@@ -106,6 +108,7 @@ def _design(
         mode=mode,  # type: ignore[arg-type]
         k_h_max=k_h_max,
         b_h_max=b_h_max,
+        own_force=own_force,
     )
 
 
@@ -122,6 +125,7 @@ def _simulate_peaks(
     hold: str,
     seconds: float,
     filter_s: float = 0.005,
+    own_gain: float = 0.0,
 ) -> np.ndarray:
     """Largest |probe depth| [m] in each simulation period after a 1 mm push (linear contact).
 
@@ -129,7 +133,8 @@ def _simulate_peaks(
     for a force held over each servo tick; the local model is K_h e + s + B_h u with u the
     first-order filtered backward difference of the probe; the simulation takes the force of
     servo tick j, the object is x_o = F / K_o, ``delay`` periods later it is the new surface,
-    reached at once (zoh) or linearly over the period (foh).
+    reached at once (zoh) or linearly over the period (foh), moved out by ``own_gain`` times the
+    force sampled (own-force compensation).
     """
     m, b, k = hand.mass_kg, hand.damping_n_s_per_m, hand.stiffness_n_per_m
     e = expm(np.array([[0.0, 1.0, 0.0], [-k / m, -b / m, -1.0 / m], [0.0, 0.0, 0.0]]) * T)
@@ -141,7 +146,7 @@ def _simulate_peaks(
     peaks = []
     for blk in range(round(seconds / (n * T))):
         if blk > 0:
-            line.append(f_sample / k_o)
+            line.append(f_sample / k_o - own_gain * f_sample)
             p_old, p_new = p_new, line.popleft()
         peak = 0.0
         for i in range(n):
@@ -287,9 +292,11 @@ INTERIOR_HAND = Hand(0.1 + 0.5 / 3.0, 2.0, 1000.0)  # a lattice point on an edge
     [DEFAULT_HAND, Hand(0.6, 2.0, 1000.0), INTERIOR_HAND],
     ids=["simulated-hand", "box-corner", "box-edge"],
 )
-def test_design_decays_in_the_time_domain_for_hands_of_the_box(hand: Hand) -> None:
+@pytest.mark.parametrize("own_force", [False, True], ids=["paper", "compensated"])
+def test_design_decays_in_the_time_domain_for_hands_of_the_box(hand: Hand, own_force: bool) -> None:
     """K_o = 50 N/m at 100 Hz with 4 ticks of delay (P), at the low end of the margin."""
-    d = _design(50.0, 100.0, 4, "p")
+    d = _design(50.0, 100.0, 4, "p", own_force=own_force)
+    assert (d.own_gain > 0.0) == own_force
     peaks = _simulate_peaks(
         hand,
         k_o=(1.0 - MARGIN) * 50.0,
@@ -301,6 +308,7 @@ def test_design_decays_in_the_time_domain_for_hands_of_the_box(hand: Hand) -> No
         j=0,
         hold=d.proxy_hold,
         seconds=30.0,
+        own_gain=d.own_gain,
     )
     early, late = peaks[500:1000].max(), peaks[2500:3000].max()  # 5-10 s vs 25-30 s
     assert late < early, (

@@ -51,6 +51,7 @@ export function stateMessage({ seq, snap, rttMs }) {
     in_contact: snap.inContact,
     k_h: snap.kH,
     i_gain: snap.iGain,
+    own_gain: snap.ownGain ?? 0,
     servo_rate_hz: snap.rateHz,
     period_us_p99: snap.p99Us,
     patch_tick: snap.patchTick,
@@ -67,11 +68,15 @@ function finiteNonNeg(v, dflt) {
 /**
  * The gains to render for a patch.
  *
- * - mode "patch" and the patch carries `gains` {k_h, i_gain, b_h, proxy_hold, theta_m} with a
- *   finite k_h: those (the server designed them for this device, servo rate and delay), with
- *   K_h clamped to the device's maximum stable stiffness and I = 0 if we declared a P model;
+ * - mode "patch" and the patch carries `gains` {k_h, i_gain, b_h, proxy_hold, theta_m, own_gain}
+ *   with a finite k_h: those (the server designed them for this device, servo rate and delay),
+ *   with K_h clamped to the device's maximum stable stiffness and I = 0 if we declared a P
+ *   model; own_gain (C_h [m/N], own-force compensation) moves the patch's primitive out by
+ *   own_gain * patch.own_force_n (ownOffsetM);
  * - otherwise the fallback: K_h = 0.3 * k_o_eff (inside eq. 8's K_h < K_o with margin for the
- *   delay and the sampling tick), P only.
+ *   delay and the sampling tick), P only, with own-force compensation C_h = 1 / K_h: a held
+ *   press feels the object's own stiffness (the simulation loop's static gain 1 - K_h / K_o is
+ *   then inside (0, 0.7]), so a user whose contact waits for new gains keeps feeling the object.
  * Returns null when the patch allows neither (no positive k_o_eff/k_o): keep the previous gains.
  */
 export function chooseGains(patch, { mode, maxStiffnessNPerM, localModel, fallbackRatio = 0.3 }) {
@@ -83,17 +88,28 @@ export function chooseGains(patch, { mode, maxStiffnessNPerM, localModel, fallba
       b_h: finiteNonNeg(g.b_h, 0),
       theta_m: finiteNonNeg(g.theta_m, 0),
       proxy_hold: g.proxy_hold === "foh" ? "foh" : "zoh",
+      own_gain: finiteNonNeg(g.own_gain, 0),
       source: "patch",
     };
   }
   const kEff = Number.isFinite(patch.k_o_eff) && patch.k_o_eff > 0 ? patch.k_o_eff : patch.k_o;
   if (!(Number.isFinite(kEff) && kEff > 0)) return null;
+  const kH = Math.min(fallbackRatio * kEff, maxStiffnessNPerM);
   return {
-    k_h: Math.min(fallbackRatio * kEff, maxStiffnessNPerM),
+    k_h: kH,
     i_gain: 0,
     b_h: 0,
     theta_m: 0,
     proxy_hold: "zoh",
+    own_gain: 1 / kH,
     source: "fallback",
   };
+}
+
+/**
+ * How far [m] the local model renders the patch's primitive moved out: own-force compensation
+ * C_h * F_s, F_s the force the server applied from this user for that surface (0 without).
+ */
+export function ownOffsetM(patch, gains) {
+  return finiteNonNeg(gains.own_gain, 0) * finiteNonNeg(patch.own_force_n, 0);
 }

@@ -93,6 +93,19 @@ export function primitiveFromPatch(patch) {
 }
 
 /**
+ * The primitive moved out along its outward normals by d >= 0 [m] (own-force compensation,
+ * shared/full_loop.py): a plane shifted along its normal, a bump's sphere grown, a dent's shrunk.
+ */
+export function movedOut(prim, d) {
+  if (!(Number.isFinite(d) && d > 0)) return prim;
+  if (prim.kind === "plane") {
+    return { ...prim, point: [0, 1, 2].map((i) => prim.point[i] + d * prim.normal[i]) };
+  }
+  const radius = prim.inside ? prim.radius + d : Math.max(prim.radius - d, 1e-6);
+  return { ...prim, radius };
+}
+
+/**
  * Blend two primitives of the same kind (first-order hold of the proxy): a = 0 gives `from`,
  * a = 1 gives `to`. Different kinds or conventions: `to` (a jump).
  */
@@ -162,15 +175,21 @@ export class LocalModel {
    * Swap gains between ticks without a bump (as shared/local_model.py does): the integral is
    * kept (with I = 0 it is held, not dropped: interim P gains in mid-press must not let go of the
    * force it carries), and in contact the step (K_h,old - K_h,new) * e becomes a transfer force
-   * driven linearly to zero over `transferS` (0: the force steps as eq. 12 says).
+   * driven linearly to zero over `transferS` (0: the force steps as eq. 12 says). With own-force
+   * compensation (own_gain > 0) the integral is handed to the transfer force instead: the
+   * compensation carries the force the object holds, an integral beside it would push for ever.
    */
-  setGains({ k_h, i_gain = 0, b_h = 0, theta_m = 0 }) {
+  setGains({ k_h, i_gain = 0, b_h = 0, theta_m = 0, own_gain = 0 }) {
     const kOld = this.kH;
     this.kH = k_h;
     this.iGain = i_gain;
     this.bH = b_h;
     this.theta = theta_m;
-    const step = (kOld - k_h) * this._lastE;
+    let step = (kOld - k_h) * this._lastE;
+    if (own_gain > 0 && this._lastE > 0 && this.s !== 0) {
+      step += this.s;
+      this.s = 0;
+    }
     if (this._lastE > 0 && this.transferS > 0 && step !== 0 && Number.isFinite(step)) {
       this.b += step;
       this._bStep = this.b / this.transferS;

@@ -5,11 +5,12 @@ import {
   LocalModel,
   Servo,
   SimHand,
+  movedOut,
   penetration,
   primitiveFromPatch,
   scriptedTarget,
 } from "../lib/servo.mjs";
-import { chooseGains, helloMessage, stateMessage } from "../lib/protocol.mjs";
+import { chooseGains, helloMessage, ownOffsetM, stateMessage } from "../lib/protocol.mjs";
 
 const close = (a, b, tol = 1e-9) => assert.ok(Math.abs(a - b) <= tol, `${a} != ${b} (tol ${tol})`);
 
@@ -127,13 +128,38 @@ test("a simulated hand resting on a plane settles where hand spring and K_h bala
 test("gains: the patch's recommendation when present, else 0.3 k_o_eff and P only", () => {
   const o = { mode: "patch", maxStiffnessNPerM: 1000, localModel: "pi" };
   const g = chooseGains({ k_o: 400, k_o_eff: 300, gains: { k_h: 120, i_gain: 3000, b_h: 0.5, proxy_hold: "foh", theta_m: 0.0004 } }, o);
-  assert.deepEqual(g, { k_h: 120, i_gain: 3000, b_h: 0.5, theta_m: 0.0004, proxy_hold: "foh", source: "patch" });
+  assert.deepEqual(g, { k_h: 120, i_gain: 3000, b_h: 0.5, theta_m: 0.0004, proxy_hold: "foh", own_gain: 0, source: "patch" });
   const f = chooseGains({ k_o: 400, k_o_eff: 300 }, o);
   assert.equal(f.source, "fallback");
   close(f.k_h, 90);
   assert.equal(f.i_gain, 0);
   assert.equal(chooseGains({ k_o: 400, k_o_eff: 300, gains: { k_h: 120 } }, { ...o, mode: "fallback" }).source, "fallback");
   assert.equal(chooseGains({ k_o: 0, k_o_eff: 0 }, o), null);
+});
+
+test("own-force compensation: the patch's primitive moved out by own_gain times the force applied", () => {
+  const o = { mode: "patch", maxStiffnessNPerM: 1000, localModel: "p" };
+  const patch = {
+    k_o: 500, k_o_eff: 500, own_force_n: 2,
+    primitive: { kind: "plane", point: [0, 0, 0.1], normal: [0, 0, 1] },
+    gains: { k_h: 500, own_gain: 1 / 500 },
+  };
+  const g = chooseGains(patch, o);
+  close(g.own_gain, 1 / 500);
+  const prim = movedOut(primitiveFromPatch(patch), ownOffsetM(patch, g));
+  // the probe resting on the deformed surface still feels the 2 N that hold it there
+  close(penetration(prim, [0, 0, 0.1]).e, 0.004);
+  // fallback gains (P at 0.3 k_o_eff) compensate with C_h = 1 / K_h: F = K_h (x - x_o) + F_s
+  const fb = chooseGains(patch, { ...o, mode: "fallback" });
+  close(fb.k_h, 150);
+  close(ownOffsetM(patch, fb), 2 / 150);
+  // a bump grows, a dent shrinks: both move out along their outward normals
+  const bump = { kind: "sphere", center: [0, 0, 0], radius: 0.05, inside: true };
+  close(movedOut(bump, 0.002).radius, 0.052);
+  close(movedOut({ ...bump, inside: false }, 0.002).radius, 0.048);
+  assert.equal(movedOut(bump, -1), bump);
+  const st = stateMessage({ seq: 1, snap: { probe: [0, 0, 0.1], force: [0, 0, 2], penetration: 0.004, inContact: true, kH: 500, iGain: 0, ownGain: 0.002, rateHz: 1000, p99Us: 1010, patchTick: 5 }, rttMs: null });
+  assert.equal(st.own_gain, 0.002);
 });
 
 test("messages: token only when given; a state with NaN is not sent", () => {
