@@ -37,7 +37,7 @@ import math
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
-from haptic_collab.shared.primitives import Primitive
+from haptic_collab.shared.primitives import Primitive, moved_out
 
 _NAN = math.nan
 
@@ -151,13 +151,19 @@ class LocalRenderer:
         self._hold_n = patch.hold_ticks
         self.patch = patch
         self.primitive = patch.primitive
+        # own-force compensation carries at most the integral's limit (the device's continuous
+        # force), as the integral it replaces: beyond it the proportional part carries the rest
+        cap = self.model.params.integral_limit_n
+        excess = patch.own_force_n - cap
+        if patch.own_gain > 0.0 and excess > 0.0:
+            self.primitive = moved_out(patch.primitive, -patch.own_gain * excess)
         # the damper's share of the force step is carried off with the stiffness's
         b_old = self.b_h
         carry = (b_old - patch.b_h) * self._u if b_old > 0.0 or patch.b_h > 0.0 else 0.0
         # so is a change of own-force compensation: its surface moved by (C_old - C_new) F_s (a
         # first-order hold already slides the surface over the simulation period)
         if patch.own_gain != self.own_gain and not fresh and patch.proxy_hold != "foh":
-            carry += patch.k_h * (self.own_gain - patch.own_gain) * patch.own_force_n
+            carry += patch.k_h * (self.own_gain - patch.own_gain) * min(patch.own_force_n, cap)
         self.model.set_gains(
             patch.k_h,
             patch.i_gain,
@@ -169,7 +175,7 @@ class LocalRenderer:
         self.i_gain = patch.i_gain
         self.b_h = patch.b_h
         self.own_gain = patch.own_gain
-        self.own_offset_m = patch.own_gain * patch.own_force_n
+        self.own_offset_m = patch.own_gain * min(patch.own_force_n, cap)
 
     def render(
         self, x: float, y: float, z: float, dx: float, dy: float, dz: float

@@ -774,12 +774,13 @@ def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
     text = {
         "local-p": (
             "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
-            "client measures"
+            "client measures, own-force compensation included (docs/own-force.md)"
         ),
         "local-pi": (
             "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
-            "client measures; eq. 17 threshold 1 mm; passivity layer on (the client's default "
-            "for PI)"
+            "client measures, own-force compensation included (docs/own-force.md: a compensated "
+            "P model where that is closer to K_o); eq. 17 threshold 1 mm; passivity layer on "
+            "(the client's default for PI)"
         ),
         "virtual-coupling": (
             f"spring {k:g} N/m and damper {b:g} N*s/m: the {device.name}'s maximum stable "

@@ -128,24 +128,26 @@ Primitive = Plane | Sphere
 
 
 def moved_out(primitive: Primitive, distance_m: float) -> Primitive:
-    """``primitive`` moved out along its outward normals by ``distance_m`` [m] (>= 0): a plane
-    shifted along its normal, a sphere grown (to at most :data:`MAX_RADIUS_M`). The local model's
-    own-force compensation renders against it (:mod:`shared.full_loop`).
+    """``primitive`` moved out along its outward normals by ``distance_m`` [m] (negative: in): a
+    plane shifted along its normal, a sphere grown or shrunk (within [:data:`MIN_RADIUS_M`,
+    :data:`MAX_RADIUS_M`]). The local model's own-force compensation renders against it
+    (:mod:`shared.full_loop`).
 
     Raises
     ------
     ValueError
-        ``distance_m`` negative or not finite.
+        ``distance_m`` not finite.
     """
     d = float(distance_m)
-    if not (math.isfinite(d) and d >= 0.0):
-        raise ValueError(f"distance_m must be finite and >= 0, got {distance_m!r}")
+    if not math.isfinite(d):
+        raise ValueError(f"distance_m must be finite, got {distance_m!r}")
     if d == 0.0:
         return primitive
     if isinstance(primitive, Plane):
         p, n = primitive.point, primitive.normal
         return Plane(point=(p[0] + d * n[0], p[1] + d * n[1], p[2] + d * n[2]), normal=n)
-    return Sphere(center=primitive.center, radius=min(primitive.radius + d, MAX_RADIUS_M))
+    r = min(max(primitive.radius + d, MIN_RADIUS_M), MAX_RADIUS_M)
+    return Sphere(center=primitive.center, radius=r)
 
 
 def make_plane(point: Sequence[float], normal: Sequence[float]) -> Plane:

@@ -171,3 +171,38 @@ def test_reset_forgets_the_integral() -> None:
     assert rd.model.integral_n > 0.0
     rd.reset()
     assert rd.model.integral_n == 0.0
+
+
+def _compensated(force_n: float, c_h: float = 1.0 / K_H) -> LocalModelUpdate:
+    """The plane a 1 mm deformation away, moved back out by C_h F_s (as from_wire builds it)."""
+    return LocalModelUpdate(
+        plane_at(0.001 - c_h * force_n), K_H, 0.0, own_gain=c_h, own_force_n=force_n
+    )
+
+
+def test_own_force_compensation_carries_at_most_the_integral_limit() -> None:
+    # a probe resting on the deformed surface: the compensation alone holds the force F_s...
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, integral_limit_n=1.75))
+    rd.hand_over(_compensated(1.0), fresh=True)
+    assert still(rd, -0.001, 1)[0][0] == pytest.approx(1.0)
+    assert rd.own_offset_m == pytest.approx(1.0 / K_H)
+    # ...but no more than the device's continuous force: beyond it, K_h e carries the rest
+    rd.hand_over(_compensated(3.0), fresh=False)
+    assert still(rd, -0.001, 1)[0][0] == pytest.approx(1.75)
+    assert rd.own_offset_m == pytest.approx(1.75 / K_H)
+
+
+def test_compensation_takes_over_an_integral_without_a_step_and_without_keeping_it() -> None:
+    rd = renderer(gain_transfer_s=0.05)
+    rd.hand_over(LocalModelUpdate(PLANE, K_H, 2000.0), fresh=True)  # a PI press, 5 mm in
+    still(rd, -0.005, 300)
+    f_before = still(rd, -0.005, 1)[0][0]
+    s_before = rd.model.integral_n
+    assert s_before > 0.5
+    # compensated P gains arrive (no force applied yet, so the same plane): the integral goes
+    # to the transfer force and fades
+    rd.hand_over(LocalModelUpdate(PLANE, K_H, 0.0, own_gain=1.0 / K_H), fresh=False)
+    assert rd.model.integral_n == 0.0
+    f = [pf for pf, _ in still(rd, -0.005, 100)]
+    assert f[0] == pytest.approx(f_before, rel=0.05)  # no step
+    assert f[-1] == pytest.approx(K_H * 0.005)  # and no integral kept beside the new model

@@ -134,8 +134,11 @@ def test_coupled_users_with_compensated_designs_meet_the_coupled_margin(
     assert verdict.meets_margin, verdict
     paper = design_cell(replace(key, own_force=False), table.cell(k_eff), table.grid_ratio,
                         DEFAULT_HAND_BOX)  # fmt: skip
-    assert abs(d.felt_stiffness_ratio_1hz - 1.0) <= abs(paper.felt_stiffness_ratio_1hz - 1.0)
-    if coupling < 0.9:  # (at 0.9 and 2 ticks of delay the paper's PI is the closer)
+    if d.own_gain > 0.0:  # chosen because it is closer to K_o than the paper's best
+        assert abs(d.felt_stiffness_ratio_1hz - 1.0) < abs(paper.felt_stiffness_ratio_1hz - 1.0)
+    else:  # strong coupling: the paper's PI over the modal range
+        assert d.i_gain > 0.0
+    if coupling < 0.5:  # the balloon's coupling is 0.12-0.14 (DESIGN section 5)
         assert d.own_gain > 0.0
 
 
@@ -167,8 +170,7 @@ def test_moved_out_moves_a_plane_along_its_normal_and_grows_a_sphere():
     assert plane.penetration(0, 0, 0.1) == pytest.approx(0.002)
     sphere = moved_out(make_sphere((0, 0, 0), 0.05), 0.002)
     assert sphere.radius == pytest.approx(0.052)
-    with pytest.raises(ValueError):
-        moved_out(plane, -1e-3)
+    assert moved_out(plane, -0.002).point == pytest.approx((0, 0, 0.1))  # and back in
     with pytest.raises(ValueError):
         moved_out(plane, math.nan)
 
