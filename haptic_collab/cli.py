@@ -308,7 +308,7 @@ def _cmd_gains(args: argparse.Namespace) -> int:
     if d.own_gain > 0.0:
         print(
             f"  own-force compensation C_h = {d.own_gain:.4g} m/N "
-            f"(alpha = C_h K_o = {d.own_gain * d.k_o:.2f})"
+            f"(C_h K_h = {d.own_gain * d.k_h:.2f}; docs/own-force.md)"
         )
     print(
         f"  felt stiffness / K_o: {d.felt_stiffness_ratio_1hz:.3f} at 1 Hz, "
