@@ -24,11 +24,12 @@ of the integral and allows, along the normal n of the primitive the probe penetr
 With own-force compensation (:mod:`shared.full_loop`) the client renders against the primitive
 moved out by C_h F_s, F_s the force the server applied from this user for that patch (sent in the
 patch as ``own_force_n``), so e above is the compensated penetration ``e + C_h' F_s`` with the
-reported C_h believed up to ``C_h' = min(C_h, 1 / K_o + c_C / min(K_h, c_K K_o))``. At a fixed
-contact the surface sits F_s / K_o in from where this user's own push found it, so the allowance
-grows with F_s at most by the factor c_C < 1 per tick: however a client lies, its force stays
-within ``c_K K_o (x_rest + e_tol) / (1 - c_C)`` (plus the integral term), x_rest its probe's depth
-past the surface as it was without its own push.
+reported C_h believed up to ``C_h' = min(C_h, max(1 / K, 1 / K_o + c_C / K))``, ``K = min(K_h,
+c_K K_o)`` (the product's C_h K_h = 1 always passes). At a fixed contact the surface sits F_s / K_o
+in from where this user's own push found it, so the allowance grows with F_s at most by the
+factor ``max(1 - K / K_o, c_C)`` < 1 per tick: however a client lies, its force stays within
+``max(K_o, K / (1 - c_C)) (x_rest + e_tol)`` (plus the integral term), at most ``c_K K_o (x_rest +
+e_tol) / (1 - c_C)``, x_rest its probe's depth past the surface as it was without its own push.
 
 (the integral is fed with e - theta, and the threshold theta, 1 mm by default, absorbs the
 penetration tolerance, so the integral bound grows with e alone: at the surface it does not grow),
@@ -179,7 +180,11 @@ def bound_force(
         ei, nx, ny, nz = prim.contact(x, y, z)
         if c_h > 0.0 and ko > 0.0:
             stiff = min(k_h_eff, p.stiffness_factor * ko)
-            cap = 1.0 / ko + (p.compensation_factor / stiff if stiff > 0.0 else 0.0)
+            cap = (
+                max(1.0 / stiff, 1.0 / ko + p.compensation_factor / stiff)
+                if stiff > 0.0
+                else 1.0 / ko
+            )
             ei += min(c_h, cap) * max(float(f_s), 0.0)
         if ei > e:
             e, n = ei, (nx, ny, nz)

@@ -845,7 +845,7 @@ INTERIM_LADDER: tuple[tuple[float, float], ...] = ((0.2, 2.0), (0.2, 0.0), (0.1,
 #: a lo (at most the device's), C_h = 1 / K_h, the device's full damper, zero-order hold. They feel
 #: the object's own stiffness in a held press (module docstring), so a user whose contact becomes
 #: coupled to another's keeps feeling it while the coupled design runs.
-INTERIM_OWN_FORCE: tuple[float, ...] = (1.0, 0.5, 0.25)
+INTERIM_OWN_FORCE: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.05)
 
 
 def verify_gains(

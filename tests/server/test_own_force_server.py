@@ -99,3 +99,16 @@ def test_the_room_sends_the_force_applied_and_believes_a_compensating_client():
     room.tick(2, 0.1)
     assert room.world.inputs[-1]["a"].force[2] == pytest.approx(2.0)
     assert room.clamp_counts.get("A", 0) == 0
+
+
+def test_an_honest_client_with_a_small_k_h_keeps_the_force_its_compensation_holds():
+    # interim gains K_h = K_o / 20 with C_h = 1/K_h: F = K_h (x - x_o) + F_s; resting on the
+    # deformed surface (e = 0) it holds the 2 N the server applied, tick after tick
+    k_h = K_O / 20.0
+    f_s = 2.0
+    for _ in range(40):
+        r = bound_force((0, 0, f_s), (0, 0, REST - f_s / K_O), [(_surface(f_s), K_O, f_s)],
+                        k_h=k_h, i_gain=0, own_gain=1.0 / k_h, integral_limit_n=7.9)  # fmt: skip
+        assert r.reason is None
+        f_s = r.force_n[2]
+    assert f_s == pytest.approx(2.0)
