@@ -113,8 +113,9 @@ class State(_Msg):
     in_contact: StrictBool = False
     k_h: Annotated[StrictFinite, Field(ge=0, le=1e6)] = 0.0
     i_gain: Annotated[StrictFinite, Field(ge=0, le=1e8)] = 0.0
-    #: Own-force compensation C_h [m/N] the local model renders with (0: none).
-    own_gain: Annotated[StrictFinite, Field(ge=0, le=1.0)] = 0.0
+    #: Own-force compensation C_h [m/N] the local model renders with (0: none; 1/K_h: up to
+    #: 100 m/N for a K_h of 0.01 N/m).
+    own_gain: Annotated[StrictFinite, Field(ge=0, le=100.0)] = 0.0
     servo_rate_hz: Annotated[StrictFinite, Field(ge=0, le=100_000)] = 0.0
     period_us_p99: Annotated[StrictFinite, Field(ge=0, le=1e7)] = 0.0
     rtt_ms: Annotated[StrictFinite, Field(ge=0, le=1e6)] | None = None

@@ -61,14 +61,14 @@ def test_a_claimed_compensation_cannot_ratchet_the_force_up():
     f_s = 0.0
     for _ in range(100):
         r = bound_force((0, 0, 49.0), (0, 0, REST - 0.005), [(_surface(f_s), K_O, f_s)],
-                        k_h=1e6, i_gain=0, own_gain=1.0, integral_limit_n=50.0)  # fmt: skip
+                        k_h=1e6, i_gain=0, own_gain=100.0, integral_limit_n=50.0)  # fmt: skip
         f_s = r.force_n[2]
     ceiling = p.stiffness_factor * K_O * (0.005 + p.penetration_tol_m)
     assert f_s <= ceiling / (1.0 - p.compensation_factor) + 1e-6
     assert f_s < 49.0 / 2
     # and at the rest surface (outside the tolerance) nothing at all
     r = bound_force((0, 0, 49.0), (0, 0, REST + 0.002), [(_surface(0.0), K_O, 0.0)],
-                    k_h=1e6, i_gain=0, own_gain=1.0, integral_limit_n=50.0)  # fmt: skip
+                    k_h=1e6, i_gain=0, own_gain=100.0, integral_limit_n=50.0)  # fmt: skip
     assert r.force_n == (0.0, 0.0, 0.0)
 
 
