@@ -121,65 +121,41 @@ def test_very_heavy_hand_converges_to_the_position_source():
 
 
 @pytest.mark.parametrize(
-    ("k_o", "k_h", "i_gain", "b_h", "delay", "j", "hold"),
+    ("k_o", "k_h", "i_gain", "b_h", "delay", "j", "hold", "alpha"),
     [
-        (1000.0, 700.0, 0.0, 0.0, 0, 15, "zoh"),  # the paper's Fig. 10 gain: unstable with a hand
-        (1000.0, 300.0, 0.0, 0.0, 0, 0, "zoh"),
-        (300.0, 70.0, 3045.0, 0.0, 0, 0, "zoh"),  # the old select_gains PI pick: unstable
-        (1000.0, 500.0, 0.0, 10.0, 0, 30, "foh"),
-        (300.0, 100.0, 4000.0, 10.0, 2, 49, "foh"),
-        (300.0, 150.0, 0.0, 3.0, 1, 5, "zoh"),
+        (1000.0, 700.0, 0.0, 0.0, 0, 15, "zoh", 0.0),  # the paper's Fig. 10 gain: unstable
+        (1000.0, 300.0, 0.0, 0.0, 0, 0, "zoh", 0.0),
+        (300.0, 70.0, 3045.0, 0.0, 0, 0, "zoh", 0.0),  # the old select_gains PI pick: unstable
+        (1000.0, 500.0, 0.0, 10.0, 0, 30, "foh", 0.0),
+        (300.0, 100.0, 4000.0, 10.0, 2, 49, "foh", 0.0),
+        (300.0, 150.0, 0.0, 3.0, 1, 5, "zoh", 0.0),
+        # own-force compensation C_h = alpha / K_o
+        (300.0, 300.0, 0.0, 3.0, 2, 10, "zoh", 1.0),  # K_h = K_o: the paper's loop would ring
+        (3000.0, 1000.0, 0.0, 10.0, 1, 25, "foh", 3.0),  # K_o above the device, C_h = 1/K_h
+        (300.0, 600.0, 0.0, 0.0, 0, 0, "zoh", 1.0),
+        (300.0, 450.0, 0.0, 0.0, 1, 40, "zoh", 0.25),  # too little compensation for K_h > K_o
     ],
 )
 def test_spectral_radius_matches_a_direct_time_domain_simulation(
-    k_o, k_h, i_gain, b_h, delay, j, hold
+    k_o, k_h, i_gain, b_h, delay, j, hold, alpha
 ):
+    own = alpha / k_o
     rho = spectral_radius(
         hand=DEFAULT_HAND,
         k_o=k_o,
         k_h=k_h,
         i_gain=i_gain,
         b_h=b_h,
+        own_gain=own,
         rate_ratio=50,
         delay_ticks=delay,
         sample_ticks=[j],
         proxy_hold=hold,  # type: ignore[arg-type]
     )[0, 0]
-    trace = _simulate(
-        DEFAULT_HAND, k_o=k_o, k_h=k_h, i_gain=i_gain, b_h=b_h, delay=delay, j=j, hold=hold
-    )
+    trace = _simulate(DEFAULT_HAND, k_o=k_o, k_h=k_h, i_gain=i_gain, b_h=b_h, delay=delay, j=j,
+                      hold=hold, own_gain=own)  # fmt: skip
     assert _growth(trace) == pytest.approx(rho, rel=0.03)
     # and the verdict is what a user would see: growth or decay of the hold
-    assert (trace[-1] > trace[len(trace) // 2]) == (rho > 1.0)
-
-
-@pytest.mark.parametrize(
-    ("k_o", "k_h", "alpha", "b_h", "delay", "j", "hold"),
-    [
-        (300.0, 300.0, 1.0, 3.0, 2, 10, "zoh"),  # K_h = K_o: the paper's loop alone would ring
-        (3000.0, 1000.0, 3.0, 10.0, 1, 25, "foh"),  # over-compensated, K_o above the device
-        (300.0, 600.0, 1.0, 0.0, 0, 0, "zoh"),
-        (300.0, 450.0, 0.25, 0.0, 1, 40, "zoh"),  # too little compensation for K_h > K_o
-    ],
-)
-def test_own_force_compensation_matches_a_direct_time_domain_simulation(
-    k_o, k_h, alpha, b_h, delay, j, hold
-):
-    rho = spectral_radius(
-        hand=DEFAULT_HAND,
-        k_o=k_o,
-        k_h=k_h,
-        b_h=b_h,
-        own_gain=alpha / k_o,
-        rate_ratio=50,
-        delay_ticks=delay,
-        sample_ticks=[j],
-        proxy_hold=hold,  # type: ignore[arg-type]
-    )[0, 0]
-    trace = _simulate(
-        DEFAULT_HAND, k_o=k_o, k_h=k_h, b_h=b_h, delay=delay, j=j, hold=hold, own_gain=alpha / k_o
-    )
-    assert _growth(trace) == pytest.approx(rho, rel=0.03)
     assert (trace[-1] > trace[len(trace) // 2]) == (rho > 1.0)
 
 
