@@ -270,25 +270,37 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
 
 # ------------------------------------------------------------------------------------------- gains
-def _cmd_gains(args: argparse.Namespace) -> int:
+def _profile_design(profile: str, k_o: float, *, paper: bool, **kw: Any) -> Any:
+    """The product's design (:func:`shared.gain_design.design_gains`, timed) for K_o with the
+    stiffness and damping limits of the device profile ``profile``; ``paper``: without own-force
+    compensation. Raises KeyError (unknown profile) or ValueError (as the design)."""
     from haptic_collab.client.devices.profiles import get_sim_profile
     from haptic_collab.shared.gain_design import design_gains
     from haptic_collab.workers import timed
 
+    lim = get_sim_profile(profile).limits
+    return timed(
+        design_gains,
+        k_o,
+        k_h_max=lim.max_stiffness_n_per_m,
+        b_h_max=lim.max_damping_n_s_per_m,
+        own_force=not paper,
+        **kw,
+    )
+
+
+def _cmd_gains(args: argparse.Namespace) -> int:
     try:
-        lim = get_sim_profile(args.profile).limits
-        d = timed(
-            design_gains,
+        d = _profile_design(
+            args.profile,
             args.k_o,
+            paper=args.paper,
             b_o=args.b_o,
             servo_rate_hz=args.servo_rate,
             sim_rate_hz=args.sim_rate,
             delay_ticks=args.delay_ticks,
             mode=args.local_model,
             margin=args.margin,
-            k_h_max=lim.max_stiffness_n_per_m,
-            b_h_max=lim.max_damping_n_s_per_m,
-            own_force=not args.paper,
         )
     except (ValueError, KeyError) as exc:
         raise CliError(str(exc).strip("'\"")) from None
@@ -374,22 +386,9 @@ GAINS_TABLE_GRID = {
 
 def _table_row(job: tuple[str, float, int, float, str, float, bool]) -> dict[str, object]:
     """One row of ``haptic gains-table`` (a worker's job)."""
-    from haptic_collab.client.devices.profiles import get_sim_profile
-    from haptic_collab.shared.gain_design import design_gains
-    from haptic_collab.workers import timed
-
     mode, rate, delay, k_o, profile, margin, paper = job
-    lim = get_sim_profile(profile).limits
-    d = timed(
-        design_gains,
-        k_o,
-        sim_rate_hz=rate,
-        delay_ticks=delay,
-        mode=mode,  # type: ignore[arg-type]
-        margin=margin,
-        k_h_max=lim.max_stiffness_n_per_m,
-        b_h_max=lim.max_damping_n_s_per_m,
-        own_force=not paper,
+    d = _profile_design(
+        profile, k_o, paper=paper, sim_rate_hz=rate, delay_ticks=delay, mode=mode, margin=margin
     )
     keep = ("k_h", "i_gain", "b_h", "proxy_hold", "own_gain", "worst_spectral_radius")
     row: dict[str, object] = {"local_model": mode, "sim_rate_hz": rate, "delay_ticks": delay}

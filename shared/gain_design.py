@@ -321,6 +321,15 @@ def _worst_rho(
     return marg.reshape(g, L * K).max(axis=1), out.reshape(g, L * K).max(axis=1)
 
 
+def _felt_dc(cand: dict[str, FloatArray], k_o: float) -> FloatArray:
+    """Felt stiffness in a held press over K_o per candidate: 1 with an integral, else
+    ``K_h / (K_o + (1 - C_h K_o) K_h)`` (module docstring), inf where that denominator is <= 0
+    (the static loop gain ``K_h (C_h K_o - 1) / K_o`` >= 1 runs away)."""
+    denom = k_o + (1.0 - cand["own_gain"] * k_o) * cand["k_h"]
+    static = cand["k_h"] / np.where(denom > 0.0, denom, 1.0)
+    return np.where(cand["i_gain"] > 0.0, 1.0, np.where(denom > 0.0, static, np.inf))
+
+
 def design_gains(
     k_o: float,
     *,
@@ -478,13 +487,9 @@ def design_gains(
             rho_limit=rho_limit,
         )
 
-    for (base, with_i), hold in itertools.product(groups, holds):
-        # felt stiffness at DC over K_o: 1 with an integral, else K_h / (K_o + (1 - alpha) K_h)
-        alpha = base["own_gain"] * k_o
-        # (a denominator <= 0: the static loop K_h (alpha - 1) / K_o >= 1 runs away)
-        denom = k_o + (1.0 - alpha) * base["k_h"]
-        static = base["k_h"] / np.where(denom > 0.0, denom, 1.0)
-        felt_dc = np.where(base["i_gain"] > 0.0, 1.0, np.where(denom > 0.0, static, np.inf))
+    dc = [_felt_dc(base, k_o) for base, _ in groups]
+    for (g, (base, with_i)), hold in itertools.product(enumerate(groups), holds):
+        felt_dc = dc[g]
         resp1 = (
             felt_stiffness(
                 1.0,
