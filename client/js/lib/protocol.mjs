@@ -77,6 +77,8 @@ function finiteNonNeg(v, dflt) {
  *   delay and the sampling tick), P only, with own-force compensation C_h = 1 / K_h: a held
  *   press feels the object's own stiffness (the simulation loop's static gain 1 - K_h / K_o is
  *   then inside (0, 0.7]), so a user whose contact waits for new gains keeps feeling the object.
+ *   Like the uncompensated fallback before it, this is not checked with the hand box: it renders
+ *   only until the server's verified gains arrive.
  * Returns null when the patch allows neither (no positive k_o_eff/k_o): keep the previous gains.
  */
 export function chooseGains(patch, { mode, maxStiffnessNPerM, localModel, fallbackRatio = 0.3 }) {
