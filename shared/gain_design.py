@@ -11,7 +11,9 @@ decay-rate margin, for
   lower K_o than reported),
 
 and among those the one with the best *transparency*: the felt stiffness |dF/dx| at the probe,
-probe as a position source, relative to K_o, at 1 Hz (then 8 Hz to break ties).
+probe as a position source, relative to K_o, at 1 Hz (then 8 Hz to break ties). A
+:class:`GainTable` design serves every K_o reported in its cell, so its transparency is judged at
+the cell's two ends and middle, the worst of them counting (``felt_k_os``).
 Besides K_h (P) and K_h, I (PI), the design may use
 
 - a probe damper B_h on the backward difference of the probe position, in contact only, up to the
@@ -346,6 +348,7 @@ def design_gains(
     hand_box: HandBox = DEFAULT_HAND_BOX,
     min_decay_rate_per_s: float = MIN_DECAY_RATE_PER_S,
     own_force: bool = False,
+    felt_k_os: Sequence[float] | None = None,
 ) -> GainDesign:
     """The most transparent gains stable over the hand box (module docstring).
 
@@ -382,6 +385,13 @@ def design_gains(
         (module docstring), proportional only; the objective is then the felt response closest to K_o itself,
         ``1 - |dF/dx / K_o - 1|`` (magnitude and phase: compensation can overshoot and lag K_o),
         instead of the elastic part capped at K_o.
+    felt_k_os : sequence of float, optional
+        Object stiffnesses [N/m] the transparency is judged at, with ``own_force``: the worst of
+        them counts (default ``[k_o]``). :func:`design_cell` passes its cell's ends and middle,
+        ``g_i``, ``sqrt(g_i g_(i+1))`` and ``g_(i+1)``: every reported K_o in the cell gets the
+        design, and with a delay the felt response depends on ``K_h / K_o`` (fitted to ``g_i``
+        alone, 0.78-0.82 K_o at 1 Hz at the top of the 300 and 1000 N/m cells at 20 Hz with 8
+        ticks of delay; judged across the cell, 0.86-0.91).
 
     Returns
     -------
@@ -414,6 +424,9 @@ def design_gains(
         raise ValueError(f"holds must name 'zoh' and/or 'foh', got {holds!r}")
     hi = float(k_o if k_o_hi is None else max(k_o, k_o_hi))
     lo = (1.0 - margin) * k_o
+    felt_at = [float(k_o)] if felt_k_os is None else [float(v) for v in felt_k_os]
+    if not felt_at or not all(math.isfinite(v) and v > 0.0 for v in felt_at):
+        raise ValueError(f"felt_k_os must be finite stiffnesses > 0 N/m, got {felt_k_os!r}")
     k_os = k_o_points(lo, hi)
     rho_limit = math.exp(-min_decay_rate_per_s * N * T)
     delay = int(delay_ticks)
@@ -436,7 +449,12 @@ def design_gains(
         # ... and proportional ones with own-force compensation, K_h up to the device's
         # stiffness (or 2 K_o). No integral: against the compensated surface it would hold the
         # probe at a surface its own push does not move (at DC an infinitely stiff object)
-        kh_axis_c = min(k_h_max, 2.0 * hi) * np.geomspace(0.03, 1.0, 40)
+        kh_top = min(k_h_max, 2.0 * hi)
+        # the coarse axis, and a fine one where the most transparent K_h lies (near K_o)
+        near = np.geomspace(0.8 * min(felt_at), 1.25 * max(felt_at), 17)
+        kh_axis_c = np.unique(
+            np.concatenate((kh_top * np.geomspace(0.03, 1.0, 40), near[near < kh_top]))
+        )
         KH, BH, AL = np.meshgrid(kh_axis_c, bh_axis, np.asarray(OWN_FORCE_RATIOS), indexing="ij")
         comp = {"k_h": KH.ravel(), "i_gain": 0.0 * KH.ravel(), "b_h": BH.ravel()}
         groups.append(({**comp, "own_gain": AL.ravel() / KH.ravel()}, False))
@@ -490,29 +508,41 @@ def design_gains(
     dc = [_felt_dc(base, k_o) for base, _ in groups]
     for (g, (base, with_i)), hold in itertools.product(enumerate(groups), holds):
         felt_dc = dc[g]
-        resp1 = (
-            felt_stiffness(
-                1.0,
-                k_o=k_o,
-                servo_period_s=T,
-                rate_ratio=N,
-                delay_ticks=delay,
-                proxy_hold=hold,
-                b_o=b_o,
-                complex_response=True,
-                k_h=base["k_h"],
-                i_gain=base["i_gain"],
-                b_h=base["b_h"],
-                own_gain=base["own_gain"],
+
+        def response(
+            k: float, base: dict[str, FloatArray] = base, hold: ProxyHold = hold
+        ) -> FloatArray:
+            """Felt response dF/dx / K_o at 1 Hz (complex values) of every candidate on K_o = k."""
+            return (
+                felt_stiffness(
+                    1.0,
+                    k_o=k,
+                    servo_period_s=T,
+                    rate_ratio=N,
+                    delay_ticks=delay,
+                    proxy_hold=hold,
+                    b_o=b_o,
+                    complex_response=True,
+                    k_h=base["k_h"],
+                    i_gain=base["i_gain"],
+                    b_h=base["b_h"],
+                    own_gain=base["own_gain"],
+                )
+                / k
             )
-            / k_o
-        )
+
+        resp1 = response(k_o)
         # objective: the elastic part of the felt stiffness (a damper is felt as viscosity, not
         # as a stiffer object), capped at the object's own. Compensation can overshoot K_o and
         # lag it: then how far the felt response is from K_o itself, 1 - |dF/dx / K_o - 1|, at
         # 1 Hz and in a held press (DC), whichever is further
         if own_force:
-            felt1 = 1.0 - np.maximum(np.abs(resp1 - 1.0), np.abs(felt_dc - 1.0))
+            err1 = np.abs(resp1 - 1.0)
+            for k in felt_at:
+                if k != k_o:
+                    err1 = np.maximum(err1, np.abs(response(k) - 1.0))
+            dc_err = np.max([np.abs(_felt_dc(base, k) - 1.0) for k in felt_at], axis=0)
+            felt1 = 1.0 - np.maximum(err1, np.maximum(np.abs(felt_dc - 1.0), dc_err))
         else:
             felt1 = np.minimum(resp1.real, 1.0)
         if best is not None:
@@ -608,6 +638,7 @@ def design_gains(
             hand_box=hand_box,
             min_decay_rate_per_s=min_decay_rate_per_s,
             own_force=own_force,
+            felt_k_os=felt_k_os,
         )
     if best is None:
         raise ValueError(
@@ -825,6 +856,7 @@ def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -
         b_h_max=key.b_h_max,
         hand_box=hand_box,
         own_force=key.own_force,
+        felt_k_os=(g, g * math.sqrt(grid_ratio), g * grid_ratio),
     )
 
 

@@ -14,6 +14,7 @@ import functools
 import itertools
 import math
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -413,6 +414,58 @@ def test_table_design_covers_its_whole_cell(mode: str) -> None:
     assert d.k_h <= K_H_MAX and d.b_h <= B_H_MAX
     rho, where = _worst_on_lattice(
         d, [(1.0 - MARGIN) * g0, g0, 1000.0, g1], sim_rate_hz=20.0, delay_ticks=0
+    )
+    assert rho < 1.0, where
+
+
+def _worst_felt_error_over_cell(d: GainDesign, g0: float, g1: float, key: GainKey) -> float:
+    """max |dF/dx / K_o - 1| at 1 Hz over K_o = g0, sqrt(g0 g1), g1 (magnitude and phase)."""
+    errs = []
+    for k_o in (g0, math.sqrt(g0 * g1), g1):
+        r = felt_stiffness(
+            1.0,
+            k_o=k_o,
+            k_h=d.k_h,
+            i_gain=d.i_gain,
+            b_h=d.b_h,
+            own_gain=d.own_gain,
+            servo_period_s=T,
+            rate_ratio=key.rates.ratio,
+            delay_ticks=key.delay_ticks,
+            proxy_hold=d.proxy_hold,
+            complex_response=True,
+        )[0]
+        errs.append(abs(r / k_o - 1.0))
+    return max(errs)
+
+
+@pytest.mark.slow
+def test_table_design_feels_like_the_object_across_its_whole_cell() -> None:
+    # a table design serves every K_o reported in its cell; with 4 ticks of delay the felt
+    # response depends on K_h / K_o: a design fitted to the cell's lower end alone feels 0.87 K_o
+    # at 1 Hz at its top (300 N/m's cell at 20 Hz), one judged across the cell 0.93
+    key = replace(_key("p"), delay_ticks=4)
+    table = GainTable()
+    i = table.cell(300.0)
+    g0, g1 = table.grid_point(i), table.grid_point(i + 1)
+    d = table.design(key, 300.0)
+    lower_only = design_gains(
+        g0,
+        sim_rate_hz=20.0,
+        delay_ticks=4,
+        mode="p",
+        margin=MARGIN,
+        k_o_hi=g1,
+        k_h_max=K_H_MAX,
+        b_h_max=B_H_MAX,
+        own_force=True,
+        felt_k_os=[g0],
+    )
+    across = _worst_felt_error_over_cell(d, g0, g1, key)
+    assert across < 0.1  # within a stiffness JND everywhere in the cell
+    assert across < _worst_felt_error_over_cell(lower_only, g0, g1, key)
+    rho, where = _worst_on_lattice(
+        d, [(1.0 - MARGIN) * g0, g0, 300.0, g1], sim_rate_hz=20.0, delay_ticks=4
     )
     assert rho < 1.0, where
 
