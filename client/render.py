@@ -17,7 +17,14 @@ Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
   the force never steps;
 - the LocalModel keeps its integral state; the gain change's force step (K_h and the damper's
   (B_h,old - B_h,new) * u) is carried off by the model's gain transfer
-  (``set_gains(..., carry_n=...)``).
+  (``set_gains(..., carry_n=...)``);
+- a change of own-force compensation C_h with ``zoh`` moves the rendered surface by
+  (C_h,old - C_h,new) F_s at once: that step is added to the penetration and driven to zero over
+  the same transfer time, so the surface recedes (or comes out) gradually. A transfer *force*
+  would not do: the compensated probe rests on the object's own surface, which is where the
+  surface lands when the compensation is withdrawn, so the contact would end on the next tick and
+  the transfer with it (measured in the two-user demo: a resting user's 0.28 N fell to 0.003 N in
+  one tick when the other touched and the uncoupled gains were withdrawn).
 
 Difference equations, per servo period T, with the probe's backward difference
 d = x_h(k) - x_h(k-1):
@@ -94,6 +101,8 @@ class LocalRenderer:
         "_rebase",
         "_hold_i",
         "_hold_n",
+        "_off",
+        "_off_step",
     )
 
     def __init__(self, params: LocalModelParams) -> None:
@@ -116,6 +125,8 @@ class LocalRenderer:
         self._rebase: tuple[Primitive, float, float] | None = None
         self._hold_i = 0
         self._hold_n = 1
+        self._off = 0.0  # depth [m] added to e after a change of C_h, driven to zero
+        self._off_step = 0.0
 
     @property
     def damper_velocity_m_s(self) -> float:
@@ -160,10 +171,19 @@ class LocalRenderer:
         # the damper's share of the force step is carried off with the stiffness's
         b_old = self.b_h
         carry = (b_old - patch.b_h) * self._u if b_old > 0.0 or patch.b_h > 0.0 else 0.0
-        # so is a change of own-force compensation: its surface moved by (C_old - C_new) F_s (a
-        # first-order hold already slides the surface over the simulation period)
-        if patch.own_gain != self.own_gain and not fresh and patch.proxy_hold != "foh":
-            carry += patch.k_h * (self.own_gain - patch.own_gain) * min(patch.own_force_n, cap)
+        # a change of own-force compensation moved the surface by (C_old - C_new) F_s: it slides
+        # there over the transfer time (module docstring; a first-order hold already slides the
+        # surface over the simulation period)
+        transfer = self.model.params.gain_transfer_s
+        if fresh or transfer <= 0.0:
+            self._off = 0.0
+        elif (
+            patch.own_gain != self.own_gain and patch.proxy_hold != "foh" and self.model.in_contact
+        ):
+            self._off += (self.own_gain - patch.own_gain) * min(patch.own_force_n, cap)
+        self._off_step = (
+            self._off * self.model.params.servo_period_s / transfer if transfer > 0.0 else 0.0
+        )
         self.model.set_gains(
             patch.k_h,
             patch.i_gain,
@@ -222,11 +242,18 @@ class LocalRenderer:
                 self._hold_i = hi
                 e_old = old.contact(x, y, z)[0] + self._hold_off
                 e = e_old + (e - e_old) * (hi / self._hold_n)
+        off = self._off
+        if off != 0.0:  # a change of C_h, sliding in (hand_over)
+            e += off
+            nxt = off - self._off_step
+            self._off = nxt if (nxt > 0.0) == (off > 0.0) and nxt != 0.0 else 0.0
         # the probe's depth rate along the inward normal (backward difference, never the proxy's)
         v_in = -(dx * nx + dy * ny + dz * nz) * self._inv_T
         lm = self.model
         f = lm.step(e, v_in)
         in_contact = lm.in_contact
+        if not in_contact:
+            self._off = 0.0  # no slide out of contact (as the model's transfer force)
         u = self._u + self._a_u * (v_in - self._u)
         self._u = u
         if in_contact:
@@ -244,3 +271,4 @@ class LocalRenderer:
         """
         if self.primitive is not None:
             self.model.reset()
+            self._off = 0.0

@@ -19,6 +19,7 @@ from haptic_collab.client.bench_gains import plane_patch, welcomed_session
 from haptic_collab.client.session import ClientSession, interim_design
 from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
+from haptic_collab.shared.gain_design import felt_stiffness
 
 
 def session() -> ClientSession:
@@ -93,3 +94,37 @@ def test_a_new_coupling_class_renders_a_scaled_proportional_model_until_verified
     # and comes down once the users are apart
     s.receive(plane_patch(4, 300.0, 300.0, 300.0), 0.3)
     assert s.stiff_ratio == 1.0
+
+
+@pytest.mark.parametrize(("coupling", "k_o"), [(0.5, 300.0), (0.7, 100.0)])
+def test_a_coupled_contact_keeps_feeling_the_object_with_its_interim_gains(
+    coupling: float, k_o: float
+) -> None:
+    # until a coupled cell's design is done (seconds) the contact renders interim gains; with
+    # the zero-order-hold rungs alone they were the paper's soft P here (0.14 K_o_eff at 0.1 Hz:
+    # a resting user's force fell by half when the other touched) or a 2 N/m spring fed the
+    # whole delayed force (2.3 K_o_eff)
+    c = compliance_matrix(k_o, coupling, users=2)
+    k = np.full(2, k_o)
+    k_eff = float(effective_stiffness(c, k)[0])
+    k_stiff = float(stiff_stiffness(c, k)[0])
+    s = session()
+    assert s.receive(plane_patch(1, k_o, k_eff, k_stiff), 0.1) is None
+    assert s.interim_wanted is not None
+    key, cell, cands = s.interim_wanted
+    assert key.stiff_ratio > 2.0
+    d = interim_design(key, cell, 1.1, s.gain_table.hand_box, cands)
+    assert d.own_gain * d.k_h == pytest.approx(1.0)
+    g = UserGains(d.k_h, d.i_gain, d.b_h, d.proxy_hold, d.own_gain)
+    verdict = verify_coupled(c, [g, g], delay_ticks=key.delay_ticks, margin=0.15)
+    assert verdict.meets_margin, verdict
+    held = felt_stiffness(
+        0.1,
+        k_o=k_eff,
+        k_h=d.k_h,
+        b_h=d.b_h,
+        own_gain=d.own_gain,
+        rate_ratio=key.rates.ratio,
+        proxy_hold=d.proxy_hold,
+    )[0]
+    assert held == pytest.approx(k_eff, rel=0.05)

@@ -206,3 +206,26 @@ def test_compensation_takes_over_an_integral_without_a_step_and_without_keeping_
     f = [pf for pf, _ in still(rd, -0.005, 100)]
     assert f[0] == pytest.approx(f_before, rel=0.05)  # no step
     assert f[-1] == pytest.approx(K_H * 0.005)  # and no integral kept beside the new model
+
+
+def test_withdrawn_compensation_slides_the_surface_in_instead_of_dropping_the_force() -> None:
+    # the compensated probe rests on the object's own surface; gains without compensation (a
+    # new coupling's unverified fallback) put the rendered surface right there: as a step the
+    # contact ended on the next tick and the 1 N with it, now the surface slides in over the
+    # transfer time and the force comes down at most F / (transfer ticks) per tick
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.05))
+    rd.hand_over(_compensated(1.0), fresh=True)
+    f_before = still(rd, -0.001, 5)[-1][0]
+    assert f_before == pytest.approx(1.0)
+    rd.hand_over(LocalModelUpdate(plane_at(0.001), K_H / 2, 0.0, own_force_n=1.0), fresh=False)
+    f = [pf for pf, _ in still(rd, -0.001, 80)]
+    assert f[0] == pytest.approx(f_before, rel=0.05)
+    assert max(abs(b - a) for a, b in zip([f_before, *f], f, strict=False)) <= 1.0 / 50 + 1e-9
+    assert f[-1] == pytest.approx(0.0, abs=1e-9)  # then the probe is on the surface: no force
+    # and back, the probe 0.1 mm in: compensation restored slides the surface out again
+    f_in = still(rd, -0.0011, 5)[-1][0]
+    rd.hand_over(_compensated(1.0), fresh=False)
+    f = [pf for pf, _ in still(rd, -0.0011, 80)]
+    assert f[0] == pytest.approx(f_in, abs=0.03)
+    assert max(abs(b - a) for a, b in zip([f_in, *f], f, strict=False)) <= 1.1 / 50 + 1e-9
+    assert f[-1] == pytest.approx(1.0 + K_H * 0.0001)
