@@ -318,7 +318,14 @@ class Client {
     this.stats.gains_sources[gains.source] = (this.stats.gains_sources[gains.source] || 0) + 1;
     this.stats.last_gains = gains;
     if (this.port) {
-      this.port.postMessage({ type: "patch", prim, tick: m.tick, gains, simPeriodS: 1 / this.simRateHz });
+      this.port.postMessage({
+        type: "patch",
+        prim,
+        tick: m.tick,
+        gains,
+        simPeriodS: 1 / this.simRateHz,
+        ownForceN: m.own_force_n ?? 0,
+      });
     }
   }
 

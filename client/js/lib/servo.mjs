@@ -362,14 +362,32 @@ export class Servo {
     this.fMag = 0;
     this._xPrev = null;
     this._vFilt = [0, 0, 0];
+    this._ownGain = 0; // own-force compensation C_h [m/N] in use
+    this._off = 0; // depth [m] added to e after a change of C_h, driven to zero (setPatch)
+    this._offRate = 0;
   }
 
   /**
-   * Take a new patch (between ticks). `prim` from primitiveFromPatch; `gains` {k_h, i_gain,
-   * b_h, theta_m, proxy_hold, source}; `simPeriodS` the simulation period (for the FOH).
+   * Take a new patch (between ticks). `prim` from primitiveFromPatch, already moved out by the
+   * compensation; `gains` {k_h, i_gain, b_h, theta_m, proxy_hold, own_gain, source};
+   * `simPeriodS` the simulation period (for the FOH); `ownForceN` the patch's own_force_n.
+   *
+   * A change of own-force compensation with a zero-order hold moved the surface by
+   * (C_old - C_new) * F_s: that step is added to the penetration and driven to zero over the
+   * model's transfer time, so the surface slides (as client/render.py does). A transfer force
+   * would end with the contact, and withdrawing the compensation from a probe resting on the
+   * object's own surface puts the rendered surface right under it.
    */
-  setPatch({ prim, tick, gains, simPeriodS, tS }) {
+  setPatch({ prim, tick, gains, simPeriodS, tS, ownForceN = 0 }) {
     const foh = gains.proxy_hold === "foh";
+    const cNew = Number.isFinite(gains.own_gain) && gains.own_gain > 0 ? gains.own_gain : 0;
+    const fS = Number.isFinite(ownForceN) && ownForceN > 0 ? ownForceN : 0;
+    const transferS = this.model.transferS;
+    if (!foh && this.prim && cNew !== this._ownGain && this.model._lastE > 0 && transferS > 0) {
+      this._off += (this._ownGain - cNew) * fS;
+      this._offRate = this._off / transferS;
+    }
+    this._ownGain = cNew;
     if (foh && this.prim) {
       this.primFrom = this._currentPrimitive(tS);
       this.holdStartS = tS;
@@ -424,12 +442,21 @@ export class Servo {
     // 2. compute
     let f = 0;
     if (this.prim) {
-      const { e, n } = penetration(this._currentPrimitive(tS), x);
+      const { e: e0, n } = penetration(this._currentPrimitive(tS), x);
+      let e = e0;
+      const off = this._off;
+      if (off !== 0) {
+        // a change of C_h, sliding in (setPatch)
+        e += off;
+        const nxt = off - this._offRate * dt;
+        this._off = nxt > 0 === off > 0 && nxt !== 0 ? nxt : 0;
+      }
       this.e = e;
       this.n = n;
       const eDot = -dot(this._vFilt, n);
       if (this.g > 0) f = this.model.step(e, eDot, dt);
       else this.model.reset(); // forces withheld: no integral winds up
+      if (!(e > 0) || this.g <= 0) this._off = 0; // no slide out of contact
     }
     f = Math.min(f, this.maxForceN) * this.g;
     this.fMag = f;

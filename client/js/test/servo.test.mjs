@@ -200,3 +200,33 @@ test("first-order hold: a new surface slides in over one simulation period inste
   s.tick(t);
   close(s.fMag, 0.5, 1e-6); // zero-order hold: at once
 });
+
+test("a withdrawn compensation slides the surface in instead of dropping the force", () => {
+  // the compensated probe rests on the object's own surface (1 mm deformed, F_s = 1 N);
+  // uncompensated gains put the rendered surface right there: as a step the contact ended on
+  // the next tick and the force with it
+  const K = 300;
+  const F = 1;
+  const device = { x: [0, 0, -0.001], advance() {}, write() {} };
+  const s = new Servo({ device, linkTimeoutS: 10 });
+  const plane = primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, -0.001], normal: [0, 0, 1] } });
+  const comp = { k_h: K, own_gain: 1 / K, proxy_hold: "zoh", source: "t" };
+  s.setPatch({ prim: movedOut(plane, F / K), tick: 1, gains: comp, simPeriodS: 0.05, tS: 0, ownForceN: F });
+  let t = 0;
+  for (let k = 0; k < 200; k++) s.tick((t += 0.001));
+  close(s.fMag, F, 1e-9);
+  const plain = { k_h: K / 2, own_gain: 0, proxy_hold: "zoh", source: "t" };
+  s.setPatch({ prim: plane, tick: 2, gains: plain, simPeriodS: 0.05, tS: t, ownForceN: F });
+  let prev = F;
+  let worst = 0;
+  const forces = [];
+  for (let k = 0; k < 400; k++) {
+    s.tick((t += 0.001));
+    worst = Math.max(worst, Math.abs(s.fMag - prev));
+    prev = s.fMag;
+    forces.push(s.fMag);
+  }
+  close(forces[0], F, 0.02); // no drop at the change
+  assert.ok(worst <= (F / 0.25) * 0.001 * 1.05 + 1e-9, `largest step ${worst} N`);
+  close(forces.at(-1), 0, 1e-9); // then the probe is on the surface: no force
+});
