@@ -181,9 +181,9 @@ class LocalRenderer:
             patch.own_gain != self.own_gain and patch.proxy_hold != "foh" and self.model.in_contact
         ):
             self._off += (self.own_gain - patch.own_gain) * min(patch.own_force_n, cap)
-        self._off_step = (
-            self._off * self.model.params.servo_period_s / transfer if transfer > 0.0 else 0.0
-        )
+            # linearly to zero over the transfer time from now (patches without a change of
+            # C_h leave the slide's rate alone)
+            self._off_step = self._off * self.model.params.servo_period_s / transfer
         self.model.set_gains(
             patch.k_h,
             patch.i_gain,

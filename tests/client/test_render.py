@@ -229,3 +229,18 @@ def test_withdrawn_compensation_slides_the_surface_in_instead_of_dropping_the_fo
     assert f[0] == pytest.approx(f_in, abs=0.03)
     assert max(abs(b - a) for a, b in zip([f_in, *f], f, strict=False)) <= 1.1 / 50 + 1e-9
     assert f[-1] == pytest.approx(1.0 + K_H * 0.0001)
+
+
+def test_the_compensation_slide_ends_on_time_whatever_patches_arrive_meanwhile() -> None:
+    # patches with the same gains arrive every 10 ticks during a 50-tick slide: the slide still
+    # ends after 50 ticks (linear), not stretched into an exponential by each patch
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.05))
+    rd.hand_over(_compensated(1.0), fresh=True)
+    still(rd, -0.0011, 5)
+    plain = LocalModelUpdate(plane_at(0.001), K_H, 0.0, own_force_n=1.0)
+    rd.hand_over(plain, fresh=False)
+    f = []
+    for _ in range(6):
+        f += [pf for pf, _ in still(rd, -0.0011, 10)]
+        rd.hand_over(plain, fresh=False)
+    assert f[48] > f[50] == pytest.approx(K_H * 0.0001)  # the slide is over after 50 ticks
