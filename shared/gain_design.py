@@ -883,10 +883,10 @@ INTERIM_LADDER: tuple[tuple[float, float], ...] = ((0.2, 2.0), (0.2, 0.0), (0.1,
 #: a damper, first-order hold. They feel the object's own stiffness in a held press (module
 #: docstring), so a user whose contact becomes coupled to another's keeps feeling it while the
 #: coupled design runs. For a coupled contact (class 2 and 4, 20 Hz, 0 and 2 ticks, 100-1000 N/m,
-#: the Phantom Desktop's 10 N*s/m) only first-order holds passed, in 8 of 12 cases; without a
-#: damper no compensated gains passed there, so the first-order rungs are not tried; nor below
-#: :data:`INTERIM_OWN_FORCE_FOH` lo (a coupled contact's loop gain 1 - K_h / K_o' nears 1 as K_h
-#: falls, and a failed check delays the interim gains).
+#: the Phantom Desktop's 10 N*s/m) the zero-order rungs passed in 1 of 12 cases, with first-order
+#: ones 8; without a damper no compensated gains passed there, so the first-order rungs are not
+#: tried; nor below :data:`INTERIM_OWN_FORCE_FOH` lo (a coupled contact's loop gain
+#: 1 - K_h / K_o' nears 1 as K_h falls, and a failed check delays the interim gains).
 INTERIM_OWN_FORCE: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.05)
 INTERIM_OWN_FORCE_FOH = 0.5
 
