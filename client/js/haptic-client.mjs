@@ -46,6 +46,8 @@ hand (a spring-damper pulling the device toward a target)
 device and servo
   --max-force N          device force limit [N] (default 7.9)
   --max-stiffness N/M    device max stable stiffness [N/m] (default 1000)
+  --max-damping NS/M     device max virtual damping [N*s/m] declared in hello (default 0: none;
+                         the server's gains then use no probe damper)
   --servo-rate HZ        servo rate (default 1000)
   --loop wait|timer      servo timing: Atomics.wait on a worker (default) or setTimeout
   --local-model pi|p     local model declared in hello (default pi)
@@ -88,7 +90,7 @@ function parseCli(argv, env = process.env) {
       on: str, "rest-depth": str, standoff: str, "approach-at": str, "approach-s": str,
       "press-depth": str, "press-at": str, "press-ramp": str, "press-hold": str,
       target: str, start: str, "hand-k": str, "hand-b": str, "hand-mass": str,
-      "max-force": str, "max-stiffness": str, "servo-rate": str, loop: str,
+      "max-force": str, "max-stiffness": str, "max-damping": str, "servo-rate": str, loop: str,
       "local-model": str, gains: str, "link-timeout": str, ramp: str,
     },
   });
@@ -121,6 +123,7 @@ function parseCli(argv, env = process.env) {
     },
     maxForceN: num("max-force", v("max-force", "7.9"), { min: 0, gt: true, max: 100 }),
     maxStiffnessNPerM: num("max-stiffness", v("max-stiffness", "1000"), { min: 0, gt: true, max: 1e5 }),
+    maxDampingNsPerM: num("max-damping", v("max-damping", "0"), { min: 0, max: 1e3 }),
     servoRateHz: num("servo-rate", v("servo-rate", "1000"), { min: 10, max: 20000 }),
     loop: choice("loop", v("loop", "wait"), ["wait", "timer"]),
     localModel: choice("local-model", v("local-model", "pi"), ["pi", "p"]),
@@ -195,7 +198,12 @@ class Client {
       this.lastRxS = this.nowS();
       const hello = helloMessage({
         name: this.o.name,
-        device: { profile: "js-sim", maxForceN: this.o.maxForceN, maxStiffnessNPerM: this.o.maxStiffnessNPerM },
+        device: {
+          profile: "js-sim",
+          maxForceN: this.o.maxForceN,
+          maxStiffnessNPerM: this.o.maxStiffnessNPerM,
+          maxDampingNsPerM: this.o.maxDampingNsPerM,
+        },
         servoRateHz: this.o.servoRateHz,
         localModel: this.o.localModel,
         token: this.o.token,
@@ -299,6 +307,7 @@ class Client {
     const gains = chooseGains(m, {
       mode: this.o.gainsMode,
       maxStiffnessNPerM: this.o.maxStiffnessNPerM,
+      maxDampingNsPerM: this.o.maxDampingNsPerM,
       localModel: this.o.localModel,
     }) ?? this.stats.last_gains;
     if (!gains) {

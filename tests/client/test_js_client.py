@@ -201,8 +201,10 @@ async def test_a_js_user_feels_a_python_user_in_the_same_room(tmp_path):
     ``sim:press``) presses into the top; the force the JS client renders rises."""
     _require_node_modules()
     async with serving(subdivisions=4) as port:
+        # A declares the Python user's device limits (the Phantom Desktop's 10 N*s/m damper):
+        # with a damper a coupled contact keeps its own-force compensation (docs/own-force.md)
         a = JsUser(tmp_path, "A", port, "--on=side", "--rest-depth=0.003", "--window=0.25",
-                   f"--duration={DURATION}")  # fmt: skip
+                   "--max-damping=10", f"--duration={DURATION}")  # fmt: skip
         await a.start()
         py = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "haptic_collab.cli", "client",
@@ -233,16 +235,16 @@ async def test_a_js_user_feels_a_python_user_in_the_same_room(tmp_path):
     }  # the Python user really pressed
     # the Python hand reaches full depth about PRESS_AT + PRESS_RAMP after both started
     before = windows(sa, PRESS_AT - 4.0, PRESS_AT - 0.5)
-    during = windows(sa, PRESS_AT, DURATION - 1.5)
+    during = windows(sa, PRESS_AT + PRESS_RAMP + 1.0, DURATION - 1.5)
     assert len(before) >= 3 and len(during) >= 3, sa["force_windows"]
-    f_before = median_force(before)
-    # A feels the Python user's press: its force, over a second, rises well above its rest force.
-    # (Not its median over the whole press: once the contacts are coupled the server's new gains
-    # take seconds to design, and while its interim P gains render, without own-force
-    # compensation, A's force dips to a third for about 2 s; README, own-force compensation)
-    f_during = max(median_force(during[i : i + 4]) for i in range(len(during) - 3))
+    f_before, f_during = median_force(before), median_force(during)
+    # A feels the Python user's press: its force while P holds (the median: the change of gains
+    # when the contacts couple costs A a dip of a fraction of a second) rises well above its rest
+    # force (measured 0.42 -> 0.57 N). Without a damper declared, a coupled contact's gains
+    # cannot keep the compensation and the steady rise is lost in the softer rendering; that
+    # case is checked by test_two_js_users_feel_each_other, whose press is 4 cm deep.
     assert f_before > 0.05  # A really rests on the balloon
-    assert f_during >= 1.08 * f_before, (f_before, f_during)
+    assert f_during >= 1.15 * f_before, (f_before, f_during)
 
 
 def load_record(path: Path) -> dict[str, list[float]]:

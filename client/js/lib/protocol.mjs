@@ -32,6 +32,7 @@ export function helloMessage({ name, device, servoRateHz, localModel, token }) {
     servo_rate_hz: servoRateHz,
     local_model: localModel,
   };
+  if (device.maxDampingNsPerM > 0) m.device.max_damping_n_s_per_m = device.maxDampingNsPerM;
   if (token) m.token = token;
   return m;
 }
@@ -70,7 +71,7 @@ function finiteNonNeg(v, dflt) {
  *
  * - mode "patch" and the patch carries `gains` {k_h, i_gain, b_h, proxy_hold, theta_m, own_gain}
  *   with a finite k_h: those (the server designed them for this device, servo rate and delay),
- *   with K_h clamped to the device's maximum stable stiffness and I = 0 if we declared a P
+ *   with K_h and B_h clamped to the device's maximum stiffness and damping and I = 0 if we declared a P
  *   model; own_gain (C_h [m/N], own-force compensation) moves the patch's primitive out by
  *   own_gain * patch.own_force_n (ownOffsetM);
  * - otherwise the fallback: K_h = 0.3 * k_o_eff (inside eq. 8's K_h < K_o with margin for the
@@ -81,13 +82,16 @@ function finiteNonNeg(v, dflt) {
  *   only until the server's verified gains arrive.
  * Returns null when the patch allows neither (no positive k_o_eff/k_o): keep the previous gains.
  */
-export function chooseGains(patch, { mode, maxStiffnessNPerM, localModel, fallbackRatio = 0.3 }) {
+export function chooseGains(
+  patch,
+  { mode, maxStiffnessNPerM, maxDampingNsPerM = Infinity, localModel, fallbackRatio = 0.3 },
+) {
   const g = patch.gains;
   if (mode === "patch" && g && typeof g === "object" && Number.isFinite(g.k_h) && g.k_h >= 0) {
     return {
       k_h: Math.min(g.k_h, maxStiffnessNPerM),
       i_gain: localModel === "p" ? 0 : finiteNonNeg(g.i_gain, 0),
-      b_h: finiteNonNeg(g.b_h, 0),
+      b_h: Math.min(finiteNonNeg(g.b_h, 0), maxDampingNsPerM),
       theta_m: finiteNonNeg(g.theta_m, 0),
       proxy_hold: g.proxy_hold === "foh" ? "foh" : "zoh",
       own_gain: finiteNonNeg(g.own_gain, 0),

@@ -230,3 +230,15 @@ test("a withdrawn compensation slides the surface in instead of dropping the for
   assert.ok(worst <= (F / 0.25) * 0.001 * 1.05 + 1e-9, `largest step ${worst} N`);
   close(forces.at(-1), 0, 1e-9); // then the probe is on the surface: no force
 });
+
+test("a declared damper goes into hello and bounds the recommended B_h", () => {
+  const dev = { profile: "js-sim", maxForceN: 7.9, maxStiffnessNPerM: 1000, maxDampingNsPerM: 10 };
+  const h = helloMessage({ name: "A", device: dev, servoRateHz: 1000, localModel: "p" });
+  assert.equal(h.device.max_damping_n_s_per_m, 10);
+  const none = helloMessage({ name: "A", device: { ...dev, maxDampingNsPerM: 0 }, servoRateHz: 1000, localModel: "p" });
+  assert.equal("max_damping_n_s_per_m" in none.device, false); // no damper: the server's default 0
+  const patch = { k_o: 300, k_o_eff: 300, gains: { k_h: 300, b_h: 25, own_gain: 1 / 300 } };
+  const o = { mode: "patch", maxStiffnessNPerM: 1000, localModel: "p" };
+  assert.equal(chooseGains(patch, { ...o, maxDampingNsPerM: 10 }).b_h, 10);
+  assert.equal(chooseGains(patch, o).b_h, 25); // no limit given: as recommended
+});
