@@ -386,8 +386,8 @@ def design_gains(
         ``1 - |dF/dx / K_o - 1|`` (magnitude and phase: compensation can overshoot and lag K_o),
         instead of the elastic part capped at K_o.
     felt_k_os : sequence of float, optional
-        Object stiffnesses [N/m] the transparency is judged at, with ``own_force``: the worst of
-        them counts (default ``[k_o]``). :func:`design_cell` passes its cell's ends and middle,
+        Object stiffnesses [N/m] the transparency is also judged at, with ``own_force``: the
+        worst of them and ``k_o`` counts (default: ``k_o`` alone). :func:`design_cell` passes its cell's ends and middle,
         ``g_i``, ``sqrt(g_i g_(i+1))`` and ``g_(i+1)``: every reported K_o in the cell gets the
         design, and with a delay the felt response depends on ``K_h / K_o`` (fitted to ``g_i``
         alone, 0.78-0.82 K_o at 1 Hz at the top of the 300 and 1000 N/m cells at 20 Hz with 8
@@ -537,12 +537,12 @@ def design_gains(
         # lag it: then how far the felt response is from K_o itself, 1 - |dF/dx / K_o - 1|, at
         # 1 Hz and in a held press (DC), whichever is further
         if own_force:
-            err1 = np.abs(resp1 - 1.0)
+            err = np.maximum(np.abs(resp1 - 1.0), np.abs(felt_dc - 1.0))
             for k in felt_at:
                 if k != k_o:
-                    err1 = np.maximum(err1, np.abs(response(k) - 1.0))
-            dc_err = np.max([np.abs(_felt_dc(base, k) - 1.0) for k in felt_at], axis=0)
-            felt1 = 1.0 - np.maximum(err1, np.maximum(np.abs(felt_dc - 1.0), dc_err))
+                    err = np.maximum(err, np.abs(response(k) - 1.0))
+                    err = np.maximum(err, np.abs(_felt_dc(base, k) - 1.0))
+            felt1 = 1.0 - err
         else:
             felt1 = np.minimum(resp1.real, 1.0)
         if best is not None:
@@ -1013,13 +1013,11 @@ def interim_design(
         if own_ok or c.own_gain == 0.0
     ]
     if own_ok:
-        foh = key.b_h_max > 0.0
-        tries += [
-            (k, 0.0, key.b_h_max, hold, 1.0 / k)
-            for a in INTERIM_OWN_FORCE
-            for k in (min(a * lo, key.k_h_max),)
-            for hold in (("zoh", "foh") if foh and a >= INTERIM_OWN_FORCE_FOH else ("zoh",))
-        ]
+        for a in INTERIM_OWN_FORCE:
+            k = min(a * lo, key.k_h_max)
+            tries.append((k, 0.0, key.b_h_max, "zoh", 1.0 / k))
+            if key.b_h_max > 0.0 and a >= INTERIM_OWN_FORCE_FOH:
+                tries.append((k, 0.0, key.b_h_max, "foh", 1.0 / k))
     tries += [
         (min(a * lo, key.k_h_max), b * lo, key.b_h_max, "zoh", 0.0)
         for a, b in INTERIM_LADDER

@@ -196,6 +196,11 @@ export class LocalModel {
     }
   }
 
+  /** Whether the last tick was in contact (e > 0). */
+  get inContact() {
+    return this._lastE > 0;
+  }
+
   reset() {
     this.s = 0;
     this.b = 0;
@@ -383,7 +388,7 @@ export class Servo {
     const cNew = Number.isFinite(gains.own_gain) && gains.own_gain > 0 ? gains.own_gain : 0;
     const fS = Number.isFinite(ownForceN) && ownForceN > 0 ? ownForceN : 0;
     const transferS = this.model.transferS;
-    if (!foh && this.prim && cNew !== this._ownGain && this.model._lastE > 0 && transferS > 0) {
+    if (!foh && this.prim && cNew !== this._ownGain && this.model.inContact && transferS > 0) {
       this._off += (this._ownGain - cNew) * fS;
       this._offRate = this._off / transferS;
     }
