@@ -7,7 +7,8 @@ worker process. This bench measures, in one run on this machine:
 - ``patch_ms``: the whole ``receive`` of a ``patch`` frame with its cell designed (JSON parsing,
   primitive, lookup), p50 / p99 over 2000 patches whose K_o wanders over a few cells;
 - ``lookup_us``: the table lookup alone, p50 / p99;
-- ``design_ms``: one cell's design (what the worker process spends), p50 / p99 for P and PI over
+- ``design_ms``: one cell's design (what the worker process spends: :func:`design_cell` with the
+  session's key, own-force compensation and the cell's K_o range), p50 / p99 for P and PI over
   K_o from 50 to 5000 N/m at 20 Hz without delay.
 
 Wall-clock medians: the machine is shared, compare ratios measured side by side.
@@ -16,11 +17,13 @@ Wall-clock medians: the machine is shared, compare ratios measured side by side.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from haptic_collab.client.session import ClientSession
+from haptic_collab.shared.gain_design import design_cell
 from haptic_collab.shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Welcome, encode
 
 #: The object a welcome describes: an octahedron of radius 0.1 m about the origin [m].
@@ -108,14 +111,16 @@ def run(n_patches: int = 2000, seed: int = 0) -> dict[str, Any]:
         t0 = time.perf_counter()
         s.gain_table.lookup(key, float(k))
         lookup_us.append((time.perf_counter() - t0) * 1e6)
-    from haptic_collab.shared.gain_design import design_gains
-
+    # what the worker runs for a missing cell: design_cell with the session's key (own-force
+    # compensation, the cell's K_o range), for a P and a PI local model
+    table = s.gain_table
     design: dict[str, dict[str, float]] = {}
     for mode in ("p", "pi"):
+        key_m = replace(key, mode=mode)
         times = []
         for k_o in (50.0, 150.0, 300.0, 1000.0, 5000.0):
             t0 = time.perf_counter()
-            design_gains(k_o, mode=mode, k_h_max=1000.0, b_h_max=10.0)  # type: ignore[arg-type]
+            design_cell(key_m, table.cell(k_o), table.grid_ratio, table.hand_box)
             times.append((time.perf_counter() - t0) * 1e3)
         design[mode] = _pcts(times)
     return {
