@@ -113,9 +113,10 @@ def _gain_key(mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceMode
 
 
 def _design(key: GainKey, k_o: float) -> GainDesign:
-    """The design the product's client renders for K_o under ``key`` (a worker's job)."""
+    """The design the product's client renders for K_o under ``key`` (a worker's job): its
+    cell's, scaled to K_o (:meth:`shared.gain_design.GainTable.lookup`)."""
     table = GainTable(DEFAULT_HAND_BOX)
-    return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box)
+    return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box).at(k_o)
 
 
 def _simulate_batch(cells: list[Cell], felt: bool, device: DeviceModel) -> list[Any]:

@@ -124,6 +124,12 @@ class GainDesign:
         measures properly.
     own_gain : float
         Own-force compensation C_h [m/N] (module docstring), >= 0; 0: the paper's local model.
+    scale_max : float
+        >= 1. Above 1 the gains scale with the reported K_o (:meth:`at`): K_h and I by s =
+        K_o / ``k_o``, C_h by 1 / s, B_h unchanged, for s in [1, ``scale_max``], checked like the
+        design itself at s = 1, its middle and top (:func:`design_gains`, ``scaled``). 1: the same gains
+        for every K_o reported (interim and fallback gains, :func:`design_gains` without
+        ``scaled``).
     """
 
     k_h: float
@@ -142,6 +148,36 @@ class GainDesign:
     hand_box: HandBox = field(default=DEFAULT_HAND_BOX, repr=False)
     design_ms: float = 0.0
     own_gain: float = 0.0
+    scale_max: float = 1.0
+
+    def at(self, k_o: float) -> GainDesign:
+        """The gains to render for a reported K_o [N/m] (``scale_max``), s clamped to
+        [1, ``scale_max``]: K_h, I times s, C_h over s, B_h as designed; ``k_o`` times s and
+        the lower end of ``k_o_range`` times s (what those gains were checked over), and
+        ``scale_max`` over s, so ``d.at(k).at(k) == d.at(k)``. A design with ``scale_max == 1`` is returned as is.
+
+        Raises
+        ------
+        ValueError
+            A K_o that is not finite and > 0.
+        """
+        if not (math.isfinite(k_o) and k_o > 0.0):
+            raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
+        if self.scale_max <= 1.0:
+            return self
+        s = min(max(k_o / self.k_o, 1.0), self.scale_max)
+        if s <= 1.0 + 1e-12:  # (rounding: the design scaled to k_o is at k_o already)
+            return self
+        lo, hi = self.k_o_range
+        return replace(
+            self,
+            k_h=self.k_h * s,
+            i_gain=self.i_gain * s,
+            own_gain=self.own_gain / s,
+            k_o=self.k_o * s,
+            k_o_range=(lo * s, hi),
+            scale_max=self.scale_max / s,
+        )
 
     def to_json(self) -> dict[str, object]:
         """The ``haptic gains --json`` object."""
@@ -161,6 +197,7 @@ class GainDesign:
             "delay_ticks": self.delay_ticks,
             "local_model": self.mode,
             "own_gain": self.own_gain,
+            "scale_max": self.scale_max,
             "design_ms": self.design_ms,
         }
 
@@ -332,6 +369,16 @@ def _felt_dc(cand: dict[str, FloatArray], k_o: float) -> FloatArray:
     return np.where(cand["i_gain"] > 0.0, 1.0, np.where(denom > 0.0, static, np.inf))
 
 
+def _miss(resp: FloatArray) -> FloatArray:
+    """How far felt responses dF/dx / K_o (complex) are from the object's own stiffness: the
+    largest of the elastic part's error |Re - 1|, the felt stiffness's |abs - 1| and the active
+    share -Im (a force lagging the probe gives energy to the user). A damper's lead counts only
+    through the felt stiffness: it is felt as viscosity, not as a stiffer object, and it is safe
+    (a complex distance |resp - 1| traded a 1.4 % softer object for a 3 N*s/m damper's
+    viscosity)."""
+    return np.maximum(np.maximum(np.abs(resp.real - 1.0), np.abs(np.abs(resp) - 1.0)), -resp.imag)
+
+
 def design_gains(
     k_o: float,
     *,
@@ -349,6 +396,7 @@ def design_gains(
     min_decay_rate_per_s: float = MIN_DECAY_RATE_PER_S,
     own_force: bool = False,
     felt_k_os: Sequence[float] | None = None,
+    scaled: bool = False,
 ) -> GainDesign:
     """The most transparent gains stable over the hand box (module docstring).
 
@@ -392,6 +440,16 @@ def design_gains(
         design, and with a delay the felt response depends on ``K_h / K_o`` (fitted to ``g_i``
         alone, 0.78-0.82 K_o at 1 Hz at the top of the 300 and 1000 N/m cells at 20 Hz with 8
         ticks of delay; judged across the cell, 0.86-0.91).
+    scaled : bool
+        The gains are rendered scaled to the reported K_o (:meth:`GainDesign.at`) over
+        ``[k_o, max(felt_k_os)]``, as far as K_h stays within ``k_h_max``: transparency at each
+        of ``felt_k_os`` is judged with the gains scaled to it, and a candidate is accepted only
+        if it passes at the scales s = 1, the geometric middle and its top, each over K_o' in
+        ``[(1 - margin) s k_o, k_o_hi]`` (the margin below the reported K_o, and up to the top of
+        the range as for fixed gains, at least ``s k_o``). With own-force compensation the felt response then depends on K_h / K_o
+        alone and K_h = K_o feels the object's own stiffness across the cell (fixed gains:
+        within 10 % of it at 1 Hz with long delays; the 1-D benchmark's 100 and 300 N/m cells
+        0.97 K_o median).
 
     Returns
     -------
@@ -451,11 +509,17 @@ def design_gains(
         # probe at a surface its own push does not move (at DC an infinitely stiff object)
         kh_top = min(k_h_max, 2.0 * hi)
         # the coarse axis, and a fine one where the most transparent K_h lies (near K_o)
-        near = np.geomspace(0.8 * min(felt_at), 1.25 * max(felt_at), 17)
+        span = [float(k_o)] if scaled else felt_at
+        near = np.append(np.geomspace(0.8 * min(span), 1.25 * max(span), 17), k_o)
         kh_axis_c = np.unique(
-            np.concatenate((kh_top * np.geomspace(0.03, 1.0, 40), near[near < kh_top]))
+            np.concatenate((kh_top * np.geomspace(0.03, 1.0, 40), near[near <= kh_top]))
         )
-        KH, BH, AL = np.meshgrid(kh_axis_c, bh_axis, np.asarray(OWN_FORCE_RATIOS), indexing="ij")
+        # light dampers too: with K_h = K_o the damper only lends the hand's slowest modes the
+        # decay margin, and it is felt (as viscosity) in proportion to B_h / K_o
+        bh_axis_c = np.unique(
+            np.concatenate((bh_axis, b_h_max * np.array([0.025, 0.05, 0.1, 0.2])))
+        )
+        KH, BH, AL = np.meshgrid(kh_axis_c, bh_axis_c, np.asarray(OWN_FORCE_RATIOS), indexing="ij")
         comp = {"k_h": KH.ravel(), "i_gain": 0.0 * KH.ravel(), "b_h": BH.ravel()}
         groups.append(({**comp, "own_gain": AL.ravel() / KH.ravel()}, False))
     screen_hands = hand_box.screen_hands()
@@ -482,7 +546,7 @@ def design_gains(
     all_ticks = list(range(N))
     mid_ticks = sorted({int(j) for j in np.linspace(0, N - 1, 8)})
 
-    best: tuple[float, float, GainDesign] | None = None
+    best: tuple[float, float, float, GainDesign] | None = None
 
     def worst(
         cand: dict[str, FloatArray],
@@ -490,12 +554,13 @@ def design_gains(
         hands: list[Hand],
         ticks: list[int],
         integral: bool,
+        scale: float = 1.0,
     ) -> tuple[FloatArray, FloatArray]:
         return _worst_rho(
             cand,
             hold,
             hands,
-            k_os,
+            k_os if scale == 1.0 else k_o_points(scale * lo, max(hi, scale * k_o)),
             b_o=b_o,
             servo_period_s=T,
             rate_ratio=N,
@@ -505,14 +570,29 @@ def design_gains(
             rho_limit=rho_limit,
         )
 
-    dc = [_felt_dc(base, k_o) for base, _ in groups]
+    # the largest scale of each candidate's gains (``scaled``): to the top of felt_at, K_h within
+    # the device's stiffness
+    top = max(felt_at) / k_o if scaled else 1.0
+    smax = [np.clip(k_h_max / base["k_h"], 1.0, max(top, 1.0)) for base, _ in groups]
+
+    def at_k(base: dict[str, FloatArray], s: FloatArray) -> dict[str, FloatArray]:
+        """Every candidate's gains scaled by s (GainDesign.at)."""
+        return {
+            "k_h": base["k_h"] * s,
+            "i_gain": base["i_gain"] * s,
+            "b_h": base["b_h"],
+            "own_gain": base["own_gain"] / s,
+        }
+
     for (g, (base, with_i)), hold in itertools.product(enumerate(groups), holds):
-        felt_dc = dc[g]
+        felt_dc = _felt_dc(base, k_o)
 
         def response(
-            k: float, base: dict[str, FloatArray] = base, hold: ProxyHold = hold
+            k: float, base: dict[str, FloatArray] = base, hold: ProxyHold = hold, g: int = g
         ) -> FloatArray:
-            """Felt response dF/dx / K_o at 1 Hz (complex values) of every candidate on K_o = k."""
+            """Felt response dF/dx / K_o at 1 Hz (complex values) of every candidate on K_o = k
+            (the gains scaled to k when ``scaled``)."""
+            sc = at_k(base, np.minimum(max(k / k_o, 1.0), smax[g])) if scaled else base
             return (
                 felt_stiffness(
                     1.0,
@@ -523,10 +603,10 @@ def design_gains(
                     proxy_hold=hold,
                     b_o=b_o,
                     complex_response=True,
-                    k_h=base["k_h"],
-                    i_gain=base["i_gain"],
-                    b_h=base["b_h"],
-                    own_gain=base["own_gain"],
+                    k_h=sc["k_h"],
+                    i_gain=sc["i_gain"],
+                    b_h=sc["b_h"],
+                    own_gain=sc["own_gain"],
                 )
                 / k
             )
@@ -534,20 +614,26 @@ def design_gains(
         resp1 = response(k_o)
         # objective: the elastic part of the felt stiffness (a damper is felt as viscosity, not
         # as a stiffer object), capped at the object's own. Compensation can overshoot K_o and
-        # lag it: then how far the felt response is from K_o itself, 1 - |dF/dx / K_o - 1|, at
-        # 1 Hz and in a held press (DC), whichever is further
+        # lag it: then how far the felt response is from K_o (_miss) at 1 Hz and in a held
+        # press (DC), whichever is further; across felt_at the worst counts, then the mean (a
+        # tie of the worst: K_h at the device's stiffness is the top of a scaled K_h's range)
         if own_force:
-            err = np.maximum(np.abs(resp1 - 1.0), np.abs(felt_dc - 1.0))
+            errs = [np.maximum(_miss(resp1), np.abs(felt_dc - 1.0))]
             for k in felt_at:
                 if k != k_o:
-                    err = np.maximum(err, np.abs(response(k) - 1.0))
-                    err = np.maximum(err, np.abs(_felt_dc(base, k) - 1.0))
-            felt1 = 1.0 - err
+                    sc = at_k(base, np.minimum(max(k / k_o, 1.0), smax[g])) if scaled else base
+                    errs.append(np.maximum(_miss(response(k)), np.abs(_felt_dc(sc, k) - 1.0)))
+            felt1 = 1.0 - np.max(errs, axis=0)
+            felt_mean = np.round(1.0 - np.mean(errs, axis=0), 4)
         else:
             felt1 = np.minimum(resp1.real, 1.0)
+            felt_mean = np.zeros_like(felt1)
         if best is not None:
             felt1 = np.where(felt1 < best[0] - 1e-3, -np.inf, felt1)  # cannot win
-        order = np.array([i for i in np.argsort(-felt1) if np.isfinite(felt1[i])], dtype=int)
+        order = np.array(
+            [i for i in np.lexsort((-felt_mean, -np.round(felt1, 3))) if np.isfinite(felt1[i])],
+            dtype=int,
+        )
         found = None
 
         def passes(
@@ -555,14 +641,22 @@ def design_gains(
             hold: ProxyHold = hold,
             base: dict[str, FloatArray] = base,
             with_i: bool = with_i,
+            g: int = g,
         ) -> tuple[bool, float]:
             one = {k: v[b : b + 1] for k, v in base.items()}
-            if len(all_ticks) > len(mid_ticks):  # most failures show at a few ticks: cheaper
-                m_r, r_r = worst(one, hold, all_hands, mid_ticks, with_i)
-                if not (m_r[0] < rho_limit and r_r[0] < 1.0 - 1e-9):
-                    return False, float(r_r[0])
-            m_r, r_r = worst(one, hold, all_hands, all_ticks, with_i)
-            return bool(m_r[0] < rho_limit and r_r[0] < 1.0 - 1e-9), float(r_r[0])
+            s_top = float(smax[g][b])
+            rho = 0.0
+            # the design's own gains, then scaled to the middle and the top of its range
+            for s in dict.fromkeys((1.0, math.sqrt(s_top), s_top)):
+                sc = at_k(one, np.full(1, s)) if s != 1.0 else one
+                for ticks in (
+                    (mid_ticks, all_ticks) if len(all_ticks) > len(mid_ticks) else [all_ticks]
+                ):  # most failures show at a few ticks: cheaper first
+                    m_r, r_r = worst(sc, hold, all_hands, ticks, with_i, s)
+                    if not (m_r[0] < rho_limit and r_r[0] < 1.0 - 1e-9):
+                        return False, float(r_r[0])
+                rho = max(rho, float(r_r[0]))
+            return True, rho
 
         # screen in order of transparency (two hands at one tick, then few hands at three
         # sampling ticks), then verify fully; each stage only drops candidates a later one would
@@ -617,10 +711,15 @@ def design_gains(
             mode=mode,
             hand_box=hand_box,
             own_gain=float(base["own_gain"][i]),
+            scale_max=float(smax[g][i]),
         )
-        key = (round(float(felt1[i]), 3), -abs(d.felt_stiffness_ratio_8hz - 1.0))
-        if best is None or key > (best[0], best[1]):
-            best = (key[0], key[1], d)
+        key = (
+            round(float(felt1[i]), 3),
+            float(felt_mean[i]),
+            -abs(d.felt_stiffness_ratio_8hz - 1.0),
+        )
+        if best is None or key > best[:3]:
+            best = (*key, d)
     if best is None and integral:
         # no integral is stable here: render the best proportional local model instead
         return design_gains(
@@ -639,13 +738,14 @@ def design_gains(
             min_decay_rate_per_s=min_decay_rate_per_s,
             own_force=own_force,
             felt_k_os=felt_k_os,
+            scaled=scaled,
         )
     if best is None:
         raise ValueError(
             f"no {mode} local model is stable over the hand box at K_o = {k_o:g} N/m, "
             f"{sim_rate_hz:g} Hz, {delay} tick(s) of delay"
         )
-    return best[2]
+    return best[3]
 
 
 def loop_delay_ticks(round_trip_s: float, state_age_s: float, sim_rate_hz: float) -> int:
@@ -777,8 +877,10 @@ class GainTable:
         return self.grid_ratio**i
 
     def lookup(self, key: GainKey, k_o: float) -> GainDesign | None:
-        """The design covering ``k_o``, or None if its cell has not been designed yet."""
-        return self._cells.get((key, self.cell(k_o)))
+        """The design covering ``k_o``, scaled to it (:meth:`GainDesign.at`), or None if its
+        cell has not been designed yet."""
+        d = self._cells.get((key, self.cell(k_o)))
+        return None if d is None else d.at(k_o)
 
     def fallback(self, key: GainKey, k_o: float) -> GainDesign | None:
         """Gains to render while the cell covering ``k_o`` is being designed, or None.
@@ -787,7 +889,8 @@ class GainTable:
         missing cell's would be; more than two cells below, without its integral), else the
         nearest above with K_h, I and B_h scaled down by the ratio of the grid points (the same
         gains relative to K_o). Either keeps the local model no stiffer, relative to K_o, than a
-        verified design.
+        verified design. The design's own gains (at its grid point), never scaled to ``k_o``
+        (``scale_max`` 1).
         """
         i = self.cell(k_o)
         cells = [c for (k, c) in self._cells if k == key]
@@ -796,7 +899,7 @@ class GainTable:
         below = [c for c in cells if c <= i]
         if below:
             c = max(below)
-            d = self._cells[(key, c)]
+            d = replace(self._cells[(key, c)], scale_max=1.0)
             # own-force compensation keeps its share of K_o (C_h K_o), not its C_h
             own = d.own_gain * self.grid_point(c) / self.grid_point(i)
             if i - c > 2 and d.i_gain > 0.0:
@@ -805,7 +908,7 @@ class GainTable:
                 return replace(d, i_gain=0.0, own_gain=own)
             return replace(d, own_gain=own) if own != d.own_gain else d
         c = min(cells)
-        d = self._cells[(key, c)]
+        d = replace(self._cells[(key, c)], scale_max=1.0)
         r = self.grid_point(i) / self.grid_point(c)
         return replace(
             d, k_h=d.k_h * r, i_gain=d.i_gain * r, b_h=d.b_h * r, own_gain=d.own_gain / r
@@ -816,7 +919,8 @@ class GainTable:
         self._cells[(key, cell)] = design
 
     def design(self, key: GainKey, k_o: float) -> GainDesign:
-        """Design (slow: tens of ms to a second) and store the cell covering ``k_o``.
+        """Design (slow: tens of ms to a second) and store the cell covering ``k_o``; the design
+        scaled to ``k_o``, as :meth:`lookup` gives it.
 
         Raises
         ------
@@ -826,7 +930,7 @@ class GainTable:
         i = self.cell(k_o)
         d = design_cell(key, i, self.grid_ratio, self.hand_box)
         self.store(key, i, d)
-        return d
+        return d.at(k_o)
 
     def __len__(self) -> int:
         return len(self._cells)
@@ -857,6 +961,7 @@ def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -
         hand_box=hand_box,
         own_force=key.own_force,
         felt_k_os=(g, g * math.sqrt(grid_ratio), g * grid_ratio),
+        scaled=True,
     )
 
 
@@ -903,6 +1008,7 @@ def verify_gains(
     proxy_hold: Literal["zoh", "foh"],
     chunk: int = 256,
     own_gain: float = 0.0,
+    k_o_scale: float = 1.0,
 ) -> tuple[bool, float]:
     """Do these gains pass the design's acceptance test for grid cell ``cell`` of ``key``?
 
@@ -927,6 +1033,10 @@ def verify_gains(
         Loop cases per batch.
     own_gain : float
         Own-force compensation C_h [m/N] >= 0 (:mod:`shared.full_loop`).
+    k_o_scale : float
+        s in [1, grid_ratio]: the gains are a design scaled to a reported K_o = s g_i
+        (:meth:`GainDesign.at`), checked as the design checks its scales: K_o' from
+        ``(1 - margin) s g_i`` up to the top of the cell's range.
 
     Returns
     -------
@@ -943,10 +1053,12 @@ def verify_gains(
     for name, v in (("i_gain", i_gain), ("b_h", b_h), ("own_gain", own_gain)):
         if not (math.isfinite(v) and v >= 0.0):
             raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+    if not (math.isfinite(k_o_scale) and 1.0 <= k_o_scale <= grid_ratio):
+        raise ValueError(f"k_o_scale must be in [1, {grid_ratio:g}], got {k_o_scale!r}")
     rates = key.rates
     n, T = rates.ratio, rates.servo_period_s
     lo, hi = cell_k_o_range(key, cell, grid_ratio)
-    k_os = k_o_points(lo, hi)
+    k_os = k_o_points(k_o_scale * lo, max(hi, k_o_scale * grid_ratio**cell))
     hands = [h for h in hand_box.hands() for _ in k_os]
     ko = np.tile(np.asarray(k_os, float), len(hand_box.hands()))
     rho_limit = math.exp(-MIN_DECAY_RATE_PER_S * n * T)

@@ -33,6 +33,7 @@ from haptic_collab.shared.gain_design import (
     GainTable,
     design_gains,
     felt_stiffness,
+    verify_gains,
 )
 
 SERVO_HZ = 1000.0
@@ -398,8 +399,19 @@ def test_table_lookup_is_none_until_the_cell_is_designed() -> None:
     i = table.cell(1000.0)
     g0, g1 = table.grid_point(i), table.grid_point(i + 1)
     assert g0 <= 1000.0 < g1
+    assert table.lookup(key, 1000.0) == d
+    base = table.lookup(key, g0)
+    assert base is not None and base.scale_max > 1.0
     for k_o in (g0, 1000.0, 0.5 * (g0 + g1), g1 * (1.0 - 1e-9)):
-        assert table.lookup(key, k_o) == d  # anywhere in the cell
+        # anywhere in the cell: the cell's design scaled to the reported K_o, K_h within the
+        # device's stiffness
+        got = table.lookup(key, k_o)
+        assert got is not None and got == got.at(k_o)
+        s = min(k_o / g0, base.scale_max)
+        assert got.k_h == pytest.approx(base.k_h * s) and got.k_h <= K_H_MAX
+        assert got.own_gain * got.k_h == pytest.approx(base.own_gain * base.k_h)
+        assert (got.b_h, got.proxy_hold) == (base.b_h, base.proxy_hold)
+        assert got.k_o_range == pytest.approx((base.k_o_range[0] * s, base.k_o_range[1]))
     assert table.lookup(key, g1 * 1.0001) is None  # the next cell is not designed
     assert table.lookup(_key("pi"), 1000.0) is None  # nor another key's
     assert len(table) == 1
@@ -408,48 +420,60 @@ def test_table_lookup_is_none_until_the_cell_is_designed() -> None:
 @pytest.mark.parametrize("mode", ["p", "pi"])
 def test_table_design_covers_its_whole_cell(mode: str) -> None:
     table = GainTable()
-    d = table.design(_key(mode), 1000.0)
+    key = _key(mode)
+    table.design(key, 1000.0)
     i = table.cell(1000.0)
     g0, g1 = table.grid_point(i), table.grid_point(i + 1)
-    assert d.k_h <= K_H_MAX and d.b_h <= B_H_MAX
-    rho, where = _worst_on_lattice(
-        d, [(1.0 - MARGIN) * g0, g0, 1000.0, g1], sim_rate_hz=20.0, delay_ticks=0
-    )
-    assert rho < 1.0, where
+    for k_o in (g0, 1000.0, g1 * (1.0 - 1e-9)):  # the gains served for it, on a finer lattice
+        d = table.lookup(key, k_o)
+        assert d is not None and d.k_h <= K_H_MAX and d.b_h <= B_H_MAX
+        rho, where = _worst_on_lattice(
+            d, [(1.0 - MARGIN) * k_o, k_o, g1], sim_rate_hz=20.0, delay_ticks=0
+        )
+        assert rho < 1.0, where
 
 
-def _worst_felt_error_over_cell(d: GainDesign, g0: float, g1: float, key: GainKey) -> float:
-    """max |dF/dx / K_o - 1| at 1 Hz over K_o = g0, sqrt(g0 g1), g1 (magnitude and phase)."""
+def _worst_felt_error_over_cell(
+    d: GainDesign | GainTable, g0: float, g1: float, key: GainKey
+) -> float:
+    """The largest error of the felt stiffness |dF/dx| / K_o and of its elastic part Re(dF/dx) /
+    K_o at 1 Hz over K_o = g0, sqrt(g0 g1) and the top of the cell: fixed gains ``d``, or the
+    gains a table ``d`` serves for each K_o."""
     errs = []
-    for k_o in (g0, math.sqrt(g0 * g1), g1):
-        r = felt_stiffness(
-            1.0,
-            k_o=k_o,
-            k_h=d.k_h,
-            i_gain=d.i_gain,
-            b_h=d.b_h,
-            own_gain=d.own_gain,
-            servo_period_s=T,
-            rate_ratio=key.rates.ratio,
-            delay_ticks=key.delay_ticks,
-            proxy_hold=d.proxy_hold,
-            complex_response=True,
-        )[0]
-        errs.append(abs(r / k_o - 1.0))
+    for k_o in (g0, math.sqrt(g0 * g1), g1 * (1.0 - 1e-9)):
+        served = d.lookup(key, k_o) if isinstance(d, GainTable) else d
+        assert served is not None
+        r = (
+            felt_stiffness(
+                1.0,
+                k_o=k_o,
+                k_h=served.k_h,
+                i_gain=served.i_gain,
+                b_h=served.b_h,
+                own_gain=served.own_gain,
+                servo_period_s=T,
+                rate_ratio=key.rates.ratio,
+                delay_ticks=key.delay_ticks,
+                proxy_hold=served.proxy_hold,
+                complex_response=True,
+            )[0]
+            / k_o
+        )
+        errs += [abs(abs(r) - 1.0), abs(r.real - 1.0)]
     return max(errs)
 
 
 @pytest.mark.slow
 def test_table_design_feels_like_the_object_across_its_whole_cell() -> None:
-    # a table design serves every K_o reported in its cell; with 4 ticks of delay the felt
-    # response depends on K_h / K_o: a design fitted to the cell's lower end alone feels 0.87 K_o
-    # at 1 Hz at its top (300 N/m's cell at 20 Hz), one judged across the cell 0.93
+    # a table design serves every K_o reported in its cell, scaled to it; with 4 ticks of delay
+    # the felt response depends on K_h / K_o: the same gains for the whole cell (judged across
+    # it) feel 0.96 K_o at its lower end (300 N/m's cell at 20 Hz), scaled ones within 0.3 %
     key = replace(_key("p"), delay_ticks=4)
     table = GainTable()
     i = table.cell(300.0)
     g0, g1 = table.grid_point(i), table.grid_point(i + 1)
-    d = table.design(key, 300.0)
-    lower_only = design_gains(
+    table.design(key, 300.0)
+    fixed = design_gains(
         g0,
         sim_rate_hz=20.0,
         delay_ticks=4,
@@ -459,15 +483,65 @@ def test_table_design_feels_like_the_object_across_its_whole_cell() -> None:
         k_h_max=K_H_MAX,
         b_h_max=B_H_MAX,
         own_force=True,
-        felt_k_os=[g0],
+        felt_k_os=[g0, math.sqrt(g0 * g1), g1],
     )
-    across = _worst_felt_error_over_cell(d, g0, g1, key)
-    assert across < 0.1  # within a stiffness JND everywhere in the cell
-    assert across < _worst_felt_error_over_cell(lower_only, g0, g1, key)
-    rho, where = _worst_on_lattice(
-        d, [(1.0 - MARGIN) * g0, g0, 300.0, g1], sim_rate_hz=20.0, delay_ticks=4
+    assert fixed.scale_max == 1.0
+    across = _worst_felt_error_over_cell(table, g0, g1, key)
+    assert across < 0.01
+    assert _worst_felt_error_over_cell(fixed, g0, g1, key) > 0.03
+    for k_o in (g0, 300.0, g1 * (1.0 - 1e-9)):  # each stable on a finer hand lattice
+        d = table.lookup(key, k_o)
+        assert d is not None
+        rho, where = _worst_on_lattice(
+            d, [(1.0 - MARGIN) * k_o, k_o, g1], sim_rate_hz=20.0, delay_ticks=4
+        )
+        assert rho < 1.0, where
+
+
+def test_scaled_design_serves_the_gains_it_checked() -> None:
+    # every scale a cell's design is served at passes the design's own acceptance test, and the
+    # design's top scale keeps K_h within the device's stiffness
+    key = _key("p")
+    table = GainTable()
+    for k_o in (100.0, 900.0):
+        i = table.cell(k_o)
+        g0, g1 = table.grid_point(i), table.grid_point(i + 1)
+        table.design(key, k_o)
+        for k in (g0, math.sqrt(g0 * g1), g1 * (1.0 - 1e-9)):
+            d = table.lookup(key, k)
+            assert d is not None and d.k_h <= K_H_MAX
+            ok, rho = verify_gains(
+                key,
+                i,
+                table.grid_ratio,
+                table.hand_box,
+                k_h=d.k_h,
+                i_gain=d.i_gain,
+                b_h=d.b_h,
+                proxy_hold=d.proxy_hold,
+                own_gain=d.own_gain,
+                k_o_scale=min(k / g0, table.grid_ratio),
+            )
+            assert ok, (k_o, k, rho)
+
+
+def test_design_at_scales_and_clamps() -> None:
+    d = design_gains(100.0, mode="p", sim_rate_hz=50.0, own_force=True, k_h_max=1000.0)
+    assert d.scale_max == 1.0 and d.at(109.0) is d  # not a scaled design: the same gains
+    s = replace(d, k_o_range=(85.0, 110.0), scale_max=1.1)
+    up = s.at(105.0)
+    assert up.k_h == pytest.approx(1.05 * d.k_h) and up.own_gain == pytest.approx(d.own_gain / 1.05)
+    assert (up.b_h, up.k_o, up.k_o_range) == (
+        d.b_h,
+        pytest.approx(105.0),
+        pytest.approx((89.25, 110.0)),
     )
-    assert rho < 1.0, where
+    assert (
+        up.at(105.0) == up and s.at(100.0) is s and s.at(90.0) is s
+    )  # below the cell: as designed
+    assert s.at(200.0).k_h == pytest.approx(1.1 * d.k_h)  # clamped at the top
+    with pytest.raises(ValueError):
+        s.at(math.nan)
 
 
 def _relative(d: GainDesign, k_o: float) -> tuple[float, float, float]:
@@ -477,7 +551,10 @@ def _relative(d: GainDesign, k_o: float) -> tuple[float, float, float]:
 def test_table_fallback_is_never_stiffer_relative_to_k_o_than_a_designed_cell() -> None:
     table = GainTable()
     key = _key()
-    designed = {k: table.design(key, k) for k in (300.0, 3000.0)}
+    for k in (300.0, 3000.0):
+        table.design(key, k)
+    # each designed cell's own gains, at its grid point
+    designed = {k: table.lookup(key, table.grid_point(table.cell(k))) for k in (300.0, 3000.0)}
     for k_o in (120.0, 200.0, 299.0, 500.0, 1000.0, 2900.0, 5000.0, 20000.0):
         fb = table.fallback(key, k_o)
         assert fb is not None
@@ -486,6 +563,7 @@ def test_table_fallback_is_never_stiffer_relative_to_k_o_than_a_designed_cell() 
         assert any(
             all(a <= b * (1.0 + 1e-12) for a, b in zip(got, _relative(d, d.k_o), strict=True))
             for d in designed.values()
+            if d is not None
         ), (k_o, fb)
         assert fb.k_h <= K_H_MAX and fb.b_h <= B_H_MAX
 
