@@ -26,7 +26,7 @@ from haptic_collab.client.session import (
     verify_gains,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
-from haptic_collab.shared.gain_design import GainKey, GainTable
+from haptic_collab.shared.gain_design import GainKey, GainTable, felt_stiffness
 from haptic_collab.shared.protocol import DeviceInfo, Pong, Welcome, encode
 from tests.client.test_session import patch as session_patch
 
@@ -208,3 +208,30 @@ def test_the_link_renders_the_waiting_first_patch_as_soon_as_its_check_is_done()
     assert got[0].tick == 1 and s.first_update_s == 1.0
     assert math.isfinite(got[0].spectral_radius) and got[0].spectral_radius < 1.0
     assert np.isclose(s.first_patch_s or 0.0, 0.5)
+
+
+@pytest.mark.slow
+def test_a_designed_cell_feels_like_the_reported_object_anywhere_in_it() -> None:
+    # a user moving over the object reports K_o across a whole cell; with 110 ms of round trip
+    # (two ticks at 20 Hz) the same gains for the whole cell felt 0.95-0.99 K_o at 1 Hz, the
+    # design scaled to each reported K_o within 0.5 % of it, and stays compensated
+    s = session()
+    for i in range(20):
+        s.receive(encode(Pong(id=i, t_client_s=0.5 * i - 0.11, tick=0)), 0.5 * i)
+    assert s.delay_ticks() == 2
+    table = s.gain_table
+    i = table.cell(300.0)
+    g0, g1 = table.grid_point(i), table.grid_point(i + 1)
+    table.design(s.gain_key(0.0, 2), 300.0)
+    felt = []
+    for n, k_o in enumerate((g0 * 1.001, 300.0, g1 * 0.999)):
+        up = s.receive(patch(n + 1, k_o), 20.0 + 0.05 * n)
+        assert up is not None and up.verified and not up.fallback
+        assert up.model.own_gain * up.k_h == pytest.approx(1.0)
+        r = felt_stiffness(
+            1.0, k_o=k_o, k_h=up.k_h, b_h=up.b_h, own_gain=up.model.own_gain, rate_ratio=50,
+            delay_ticks=2, proxy_hold=up.proxy_hold, complex_response=True,  # type: ignore[arg-type]
+        )[0] / k_o  # fmt: skip
+        felt.append((abs(r), r.real))
+        assert_stable_over_the_box(up, k_o)
+    assert all(abs(m - 1.0) < 0.005 and abs(e - 1.0) < 0.005 for m, e in felt), felt
