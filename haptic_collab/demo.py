@@ -46,6 +46,10 @@ STABLE_P2P_MM = 1.0
 #: After a change of gains the hold's equilibrium moves (a stiffer coupling holds the probe nearer
 #: the proxy) for about this long [s]: the client's gain transfer (0.25 s) and the hand settling.
 GAIN_SETTLE_S = 0.5
+#: A change of K_h smaller than this share is not a change of gains for the hold judgement: a
+#: table design is rendered scaled to the reported K_o (GainDesign.at), so a K_o that drifts
+#: inside its cell moves K_h a little every patch, with the equilibrium staying put.
+GAIN_CHANGE_SHARE = 0.02
 #: B's contact counts as settled this long after its force came on [s] (the PI local model's
 #: integral takes about 1 s to reach B's resting force).
 B_SETTLE_S = 1.0
@@ -389,8 +393,8 @@ def hold_shake_mm(
     """How much a held probe shakes: peak to peak [mm] of ``x`` [m] after its trend.
 
     A hold is judged in ``window`` (t0, t1) [s] on the telemetry's clock ``t`` [s]. A change of
-    K_h (``k_h`` [N/m], one per sample) moves the hold's equilibrium: the ``settle_s`` after each
-    change are left out, and each stretch between changes is judged apart, after its own
+    K_h (``k_h`` [N/m], one per sample) by more than :data:`GAIN_CHANGE_SHARE` moves the hold's
+    equilibrium: the ``settle_s`` after each change are left out, and each stretch between changes is judged apart, after its own
     straight-line trend (a slow creep, such as the probe sinking while the PI integral stops at
     the device's continuous force, is not a shake). Stretches under 0.1 s are not judged.
 
@@ -403,7 +407,7 @@ def hold_shake_mm(
     x = np.asarray(x, float)
     k_h = np.asarray(k_h, float)
     judged = (t >= window[0]) & (t < window[1]) & np.isfinite(x)
-    changes = t[1:][np.diff(k_h) != 0.0]
+    changes = t[1:][np.abs(np.diff(k_h)) > GAIN_CHANGE_SHARE * np.abs(k_h[:-1])]
     for ts in changes:
         judged &= ~((t >= ts) & (t < ts + settle_s))
     # stretches: runs of judged samples not separated by a change of gains

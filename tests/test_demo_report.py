@@ -105,3 +105,7 @@ def test_a_hold_is_judged_for_shake_not_for_creep_nor_for_a_change_of_gains() ->
     # gains changing all the time leave nothing to judge: not a number (the demo says unstable)
     chatter = 43.0 + 10.0 * (np.floor(t / 0.2) % 2)
     assert np.isnan(hold_shake_mm(t, still, chatter, window))
+    # but gains scaled to a K_o drifting inside its cell (0.1 % every 50 ms patch) are judged
+    drift = 43.0 * (1.0 + 0.001 * np.floor(t / 0.05))
+    assert hold_shake_mm(t, still, drift, window) == pytest.approx(0.0, abs=1e-9)
+    assert hold_shake_mm(t, shake, drift, window) > 1.5
