@@ -156,7 +156,8 @@ class GainDesign:
         """The gains to render for a reported K_o [N/m] (``scale_max``), s clamped to
         [1, ``scale_max``]: K_h, I times s, C_h over s, B_h as designed; ``k_o`` times s and
         the lower end of ``k_o_range`` times s (what those gains were checked over), and
-        ``scale_max`` over s, so ``d.at(k).at(k) == d.at(k)``. A design with ``scale_max == 1`` is returned as is.
+        ``scale_max`` over s, so ``d.at(k).at(k) == d.at(k)``. A design with ``scale_max == 1``
+        is returned as is.
 
         Raises
         ------
@@ -443,17 +444,18 @@ def design_gains(
         and ``g_(i+1)``: every reported K_o in the cell gets the design, and with a delay the
         felt response depends on ``K_h / K_o`` (fixed gains fitted to ``g_i`` alone felt
         0.78-0.82 K_o at 1 Hz at the top of the 300 and 1000 N/m cells at 20 Hz with 8 ticks of
-        delay; judged across the cell, 0.86-0.91; scaled, 0.99-1.01).
+        delay; judged across the cell, 0.86-0.91; scaled, 1.005 across the 300 N/m cell and
+        0.92-0.95 across the 1000 N/m one, where K_h reaches the device's 1000 N/m).
     scaled : bool
         Compensated gains are rendered scaled to the reported K_o (:meth:`GainDesign.at`) over
         ``[k_o, max(felt_k_os)]``, as far as K_h stays within ``k_h_max``: transparency at each
         of ``felt_k_os`` is judged with the gains scaled to it, and a candidate is accepted only
         if it passes at the scales s = 1, the geometric middle and its top, each over K_o' in
         ``[(1 - margin) s k_o, k_o_hi]`` (the margin below the reported K_o, and up to the top of
-        the range as for fixed gains, at least ``s k_o``). With own-force compensation the felt response then depends on K_h / K_o
-        alone and K_h = K_o feels the object's own stiffness across the cell (fixed gains:
-        within 10 % of it at 1 Hz with long delays; the 1-D benchmark's 100 and 300 N/m cells
-        0.97 K_o median).
+        the range as for fixed gains, at least ``s k_o``). With own-force compensation the felt
+        response then depends on K_h / K_o alone and K_h = K_o feels the object's own stiffness
+        across the cell (fixed gains: within 10 % of it at 1 Hz with long delays; the 1-D
+        benchmark's 100 and 300 N/m cells 0.97 K_o median).
 
     Returns
     -------
