@@ -52,10 +52,11 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 
+from haptic_collab.shared.checks import positive as _positive
 from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.full_loop import (
     DAMPER_FILTER_S,
@@ -70,6 +71,7 @@ from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.types import FloatArray
 
 Mode = Literal["p", "pi"]
+_G = TypeVar("_G", float, FloatArray)
 
 #: Slowest accepted decay of any *oscillating* mode of the full loop [1/s]: its eigenvalue over
 #: one simulation period must have magnitude at most exp(-MIN_DECAY_RATE * N * T). 1/s: a
@@ -164,19 +166,19 @@ class GainDesign:
         ValueError
             A K_o that is not finite and > 0.
         """
-        if not (math.isfinite(k_o) and k_o > 0.0):
-            raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
+        _positive("k_o", k_o)
         if self.scale_max <= 1.0:
             return self
         s = min(max(k_o / self.k_o, 1.0), self.scale_max)
         if s <= 1.0 + 1e-12:  # (rounding: the design scaled to k_o is at k_o already)
             return self
+        k_h, i_gain, own_gain = _scaled_gains(self.k_h, self.i_gain, self.own_gain, s)
         lo, hi = self.k_o_range
         return replace(
             self,
-            k_h=self.k_h * s,
-            i_gain=self.i_gain * s,
-            own_gain=self.own_gain / s,
+            k_h=k_h,
+            i_gain=i_gain,
+            own_gain=own_gain,
             k_o=self.k_o * s,
             k_o_range=(lo * s, hi),
             scale_max=self.scale_max / s,
@@ -370,6 +372,12 @@ def _felt_dc(cand: dict[str, FloatArray], k_o: float) -> FloatArray:
     denom = k_o + (1.0 - cand["own_gain"] * k_o) * cand["k_h"]
     static = cand["k_h"] / np.where(denom > 0.0, denom, 1.0)
     return np.where(cand["i_gain"] > 0.0, 1.0, np.where(denom > 0.0, static, np.inf))
+
+
+def _scaled_gains(k_h: _G, i_gain: _G, own_gain: _G, s: _G) -> tuple[_G, _G, _G]:
+    """K_h, I and C_h of gains scaled to a K_o s times the one designed for (s >= 1): K_h and I
+    times s, C_h over s (:meth:`GainDesign.at`; B_h and the hold stay). Floats or arrays."""
+    return k_h * s, i_gain * s, own_gain / s
 
 
 def _miss(resp: FloatArray) -> FloatArray:
@@ -589,22 +597,21 @@ def design_gains(
 
     def at_k(base: dict[str, FloatArray], s: FloatArray) -> dict[str, FloatArray]:
         """Every candidate's gains scaled by s (GainDesign.at)."""
-        return {
-            "k_h": base["k_h"] * s,
-            "i_gain": base["i_gain"] * s,
-            "b_h": base["b_h"],
-            "own_gain": base["own_gain"] / s,
-        }
+        k_h, i_gain, own_gain = _scaled_gains(base["k_h"], base["i_gain"], base["own_gain"], s)
+        return {"k_h": k_h, "i_gain": i_gain, "b_h": base["b_h"], "own_gain": own_gain}
 
     for (g, (base, with_i)), hold in itertools.product(enumerate(groups), holds):
         felt_dc = _felt_dc(base, k_o)
 
-        def response(
-            k: float, base: dict[str, FloatArray] = base, hold: ProxyHold = hold, g: int = g
-        ) -> FloatArray:
-            """Felt response dF/dx / K_o at 1 Hz (complex values) of every candidate on K_o = k
-            (the gains scaled to k when ``scaled``)."""
-            sc = at_k(base, np.minimum(max(k / k_o, 1.0), smax[g])) if scaled else base
+        def served(
+            k: float, base: dict[str, FloatArray] = base, g: int = g
+        ) -> dict[str, FloatArray]:
+            """Every candidate's gains as rendered for a reported K_o = k (scaled when
+            ``scaled``)."""
+            return at_k(base, np.minimum(max(k / k_o, 1.0), smax[g])) if scaled else base
+
+        def response(k: float, sc: dict[str, FloatArray], hold: ProxyHold = hold) -> FloatArray:
+            """Felt response dF/dx / K_o at 1 Hz (complex values) of gains ``sc`` on K_o = k."""
             return (
                 felt_stiffness(
                     1.0,
@@ -623,7 +630,7 @@ def design_gains(
                 / k
             )
 
-        resp1 = response(k_o)
+        resp1 = response(k_o, base)
         # objective: the elastic part of the felt stiffness (a damper is felt as viscosity, not
         # as a stiffer object), capped at the object's own. Compensation can overshoot K_o and
         # lag it: then how far the felt response is from K_o (_miss) at 1 Hz and in a held
@@ -633,8 +640,8 @@ def design_gains(
             errs = [np.maximum(_miss(resp1), np.abs(felt_dc - 1.0))]
             for k in felt_at:
                 if k != k_o:
-                    sc = at_k(base, np.minimum(max(k / k_o, 1.0), smax[g])) if scaled else base
-                    errs.append(np.maximum(_miss(response(k)), np.abs(_felt_dc(sc, k) - 1.0)))
+                    sc = served(k)
+                    errs.append(np.maximum(_miss(response(k, sc)), np.abs(_felt_dc(sc, k) - 1.0)))
             felt1 = 1.0 - np.max(errs, axis=0)
             felt_mean = np.round(1.0 - np.mean(errs, axis=0), 4)
         else:
