@@ -5,7 +5,14 @@ Pure functions, run once per simulation tick for every user:
 - :func:`closest_point`: the point of the *current* deformed surface nearest to a probe, the
   outward normal there and the signed penetration (paper section 6, Step 1: "the local model is
   calculated ... using the current surface configuration of the deformable object, as if it was
-  static").
+  static"): where a probe that is not yet in contact meets the surface.
+- :func:`track_proxy`: a proxy in contact that *follows* the surface (god-object: Zilles and
+  Salisbury 1995; Ruspini, Kolarov and Khatib 1997): from where it was, carried by the surface's
+  deformation, it slides along the current surface down the distance to the probe and stops at
+  the first local minimum; it never jumps to a nearer point on another part of the object (the
+  far side of a thin part, the other wall of a crease). The paper's closing section names this
+  step; :func:`segment_entry` is where a probe that moved from outside to inside crossed the
+  surface, where such a proxy starts.
 - :func:`fit_plane`, :func:`fit_sphere`: the local model's geometric primitive (Adachi et al.
   1995, Balaniuk 1999) as :mod:`shared.primitives` objects.
 - :func:`spectral_radius`, :func:`effective_stiffness`, :func:`stiff_stiffness`: the coupled slow
@@ -121,12 +128,16 @@ class SurfacePoint:
         Signed depth of the probe past the surface [m]: positive inside, negative outside.
     face : int
         Index of the face holding ``point``.
+    bary : (3,) float64 or None
+        Barycentric coordinates of ``point`` in ``face``: the material point of the surface that
+        the proxy sits on, which the next tick's deformation carries along (:func:`track_proxy`).
     """
 
     point: FloatArray
     normal: FloatArray
     penetration_m: float
     face: int
+    bary: FloatArray | None = None
 
 
 #: sin^2 of the smallest angle a triangle may have to be projected on (else: its edges).
@@ -289,19 +300,196 @@ def closest_point(
     dq = q - p
     dist2 = _rowdot(dq, dq)
     j = int(np.argmin(dist2))
-    face = int(fids[j])
-    point = q[j]
-    bary = bary_all[j]
-    normal = bary @ _vertex_normals(index, cur, index.faces[face])
+    return _surface_point(index, cur, p, int(fids[j]), q[j], bary_all[j], float(dist2[j]))
+
+
+def _surface_point(
+    index: SurfaceIndex,
+    cur: FloatArray,
+    p: FloatArray,
+    face: int,
+    point: FloatArray,
+    bary: FloatArray,
+    dist2: float,
+) -> SurfacePoint:
+    """The :class:`SurfacePoint` at ``point`` (barycentric ``bary`` in ``face``) for probe ``p``.
+
+    The normal interpolates the current vertex normals (a pseudo-normal exact on smooth regions;
+    the face's own normal where they cancel); the penetration's sign says on which side of it the
+    probe is.
+    """
+    tri = index.faces[face]
+    normal = bary @ _vertex_normals(index, cur, tri)
     length = math.sqrt(float(normal @ normal))
     if length < 1e-12:
-        a, b, c = tri[j]
+        a, b, c = cur[tri]
         normal = _cross((b - a)[None, :], (c - a)[None, :])[0]
         length = math.sqrt(float(normal @ normal))
     normal = normal / length if length > 0.0 else np.array([0.0, 0.0, 1.0])
-    dist = math.sqrt(float(dist2[j]))
+    dist = math.sqrt(dist2)
     penetration = -dist if float((p - point) @ normal) >= 0.0 else dist
-    return SurfacePoint(point=point, normal=normal, penetration_m=penetration, face=face)
+    return SurfacePoint(
+        point=point, normal=normal, penetration_m=penetration, face=face, bary=bary.copy()
+    )
+
+
+#: A barycentric coordinate below this puts a proxy on the face's edge or vertex (it may slide on).
+_ON_BOUNDARY = 1e-9
+
+#: At most this many faces a proxy crosses in one :func:`track_proxy` call.
+MAX_SLIDE_FACES = 512
+
+
+def _faces_around(index: SurfaceIndex, vertices: IntArray) -> IntArray:
+    """Faces holding every one of ``vertices`` (1 or 2 vertex ids): a vertex's ring, an edge's pair."""
+    v0 = int(vertices[0])
+    ring = index.vf_faces[index.vf_indptr[v0] : index.vf_indptr[v0 + 1]]
+    for v in vertices[1:]:
+        ring = ring[np.any(index.faces[ring] == int(v), axis=1)]
+    return ring
+
+
+def track_proxy(
+    index: SurfaceIndex,
+    vertices: npt.ArrayLike,
+    probe: npt.ArrayLike,
+    face: int,
+    bary: npt.ArrayLike,
+    max_faces: int = MAX_SLIDE_FACES,
+) -> SurfacePoint:
+    """Slide a proxy along the current surface from where it was toward the probe (god-object).
+
+    The proxy starts at its material point (``bary`` in ``face``) of the *current* surface, so the
+    deformation since the last tick carries it along, and descends the distance to the probe
+    along a continuous path on the surface: the closest point of its face; when that lies on an
+    edge or a vertex, the best of the faces sharing it, while the distance strictly decreases. It
+    stops at the first local minimum of the distance on the surface (Zilles and Salisbury 1995;
+    Ruspini, Kolarov and Khatib 1997; paper section 8), so a probe pushed through a thin part or
+    into a crease keeps its proxy on the side it entered: the global closest point
+    (:func:`closest_point`) would jump to the far side. Where the surface is smooth and the probe
+    near it, the result is the closest point.
+
+    Parameters
+    ----------
+    index : SurfaceIndex
+    vertices : (n, 3) float [m]
+        Current vertex positions.
+    probe : (3,) float [m]
+        Haptic interface point x_h.
+    face : int
+        Face holding the proxy last tick.
+    bary : (3,) float
+        Its barycentric coordinates there (:attr:`SurfacePoint.bary`), >= 0, summing to 1.
+    max_faces : int
+        At most this many faces are crossed (a bound on the cost; a proxy that needs more stops
+        where it got to and goes on next tick).
+
+    Returns
+    -------
+    SurfacePoint
+        The proxy, its outward normal and the signed penetration of the probe along it.
+
+    Raises
+    ------
+    ValueError
+        ``probe`` not 3 finite numbers, ``face`` out of range, ``bary`` not 3 finite weights.
+    """
+    p = np.asarray(probe, dtype=np.float64)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"probe must be 3 finite numbers [m], got {probe!r}")
+    f = int(face)
+    if not 0 <= f < len(index.faces):
+        raise ValueError(f"face must be in [0, {len(index.faces)}), got {face!r}")
+    w = np.asarray(bary, dtype=np.float64)
+    if w.shape != (3,) or not np.all(np.isfinite(w)):
+        raise ValueError(f"bary must be 3 finite weights, got {bary!r}")
+    cur = np.asarray(vertices, dtype=np.float64)
+    tri = cur[index.faces[f]]
+    q, b = _closest_on_triangles(p, tri[0:1], tri[1:2], tri[2:3])
+    point, wts = q[0], b[0]
+    gap = point - p
+    best = float(gap @ gap)
+    for _ in range(max(1, int(max_faces))):
+        support = index.faces[f][wts > _ON_BOUNDARY]
+        if len(support) == 3:
+            break  # the minimum is inside the face: a local minimum of the surface
+        around = _faces_around(index, support)
+        around = around[around != f]
+        if len(around) == 0:
+            break
+        tris = cur[index.faces[around]]
+        qs, bs = _closest_on_triangles(p, tris[:, 0], tris[:, 1], tris[:, 2])
+        gaps = qs - p
+        d2 = _rowdot(gaps, gaps)
+        j = int(np.argmin(d2))
+        if not d2[j] < best * (1.0 - 1e-12):
+            break  # no neighbour across the edge or vertex is nearer: a local minimum
+        f, point, wts, best = int(around[j]), qs[j], bs[j], float(d2[j])
+    return _surface_point(index, cur, p, f, point, wts, best)
+
+
+def segment_entry(
+    index: SurfaceIndex,
+    vertices: npt.ArrayLike,
+    start: npt.ArrayLike,
+    end: npt.ArrayLike,
+    displacement_bound_m: float,
+) -> SurfacePoint | None:
+    """Where the segment ``start -> end`` first enters the current surface, or None.
+
+    A probe that was outside last tick and is inside now crossed the surface on the way: the
+    god-object's proxy stops there (Zilles and Salisbury 1995) and slides on from it
+    (:func:`track_proxy`). The entry is the crossing nearest ``start`` through a face whose
+    outward normal faces the motion (Moller-Trumbore over the faces near the segment).
+
+    Parameters
+    ----------
+    index : SurfaceIndex
+    vertices : (n, 3) float [m], current positions
+    start, end : (3,) float [m], the probe last tick and now
+    displacement_bound_m : float, bound [m] on the vertices' distance from rest
+
+    Returns
+    -------
+    SurfacePoint or None
+        At the entry, with the penetration of ``end`` along its normal; None when the segment
+        enters no face.
+    """
+    a = np.asarray(start, dtype=np.float64)
+    e = np.asarray(end, dtype=np.float64)
+    d = e - a
+    half = 0.5 * math.sqrt(float(d @ d))
+    if half <= 0.0:
+        return None
+    cur = np.asarray(vertices, dtype=np.float64)
+    radius = half + index.max_rest_face_radius_m + 3.0 * max(0.0, float(displacement_bound_m))
+    fids = np.asarray(
+        index.face_tree.query_ball_point(0.5 * (a + e), radius, return_sorted=False),
+        dtype=np.int64,
+    )
+    if len(fids) == 0:
+        return None
+    tri = cur[index.faces[fids]]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    dd = np.broadcast_to(d, e1.shape)
+    h = _cross(dd, e2)
+    det = _rowdot(e1, h)
+    facing = _rowdot(_cross(e1, e2), dd) < 0.0  # the motion goes against the outward normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        s = a - tri[:, 0]
+        u = _rowdot(s, h) * inv
+        qv = _cross(s, e1)
+        v = _rowdot(dd, qv) * inv
+        t = _rowdot(e2, qv) * inv
+    hit = facing & (np.abs(det) > 1e-30) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+    if not hit.any():
+        return None
+    k = int(np.flatnonzero(hit)[np.argmin(t[hit])])
+    wts = np.array([1.0 - u[k] - v[k], u[k], v[k]])
+    point = a + t[k] * d
+    gap = point - e
+    return _surface_point(index, cur, e, int(fids[k]), point, wts, float(gap @ gap))
 
 
 def fit_plane(surface: SurfacePoint) -> Plane:
@@ -331,7 +519,8 @@ def fit_sphere(
     The sphere is tangent at ``surface.point`` with outward normal ``surface.normal``; its
     curvature ``c = 1/R`` is the least-squares fit of the height function ``h = h0 - c r^2 / 2`` of
     the current vertices within ``radius_m`` (``h`` along the normal, ``r`` tangential distance;
-    ``h0`` absorbs the offset of a proxy inside a flat facet).
+    ``h0`` absorbs the offset of a proxy inside a flat facet), over the vertices whose normals
+    face the same way as the proxy's (the far side of a thin part is not fitted).
     A concave or nearly flat fit (``R`` > :data:`FLAT_RADIUS_M`), or fewer than 3 neighbours,
     gives a :class:`~shared.primitives.Plane` instead.
 
@@ -366,7 +555,9 @@ def fit_sphere(
     d = cur[cand] - p
     h = d @ n
     r2 = _rowdot(d, d) - h * h
-    keep = (r2 + h * h <= r_fit * r_fit) & (r2 > 1e-12)
+    # the sheet the proxy is on: not the far side of a part thinner than the fit radius
+    facing = _vertex_normals(index, cur, cand) @ n > 0.0
+    keep = (r2 + h * h <= r_fit * r_fit) & (r2 > 1e-12) & facing
     if int(keep.sum()) < 3:
         return fit_plane(surface)
     h, r2 = h[keep], r2[keep]

@@ -15,8 +15,14 @@ position and last rendered force, and sends each user the returned :class:`Conta
    instead drops that force at once and turns such an overshoot into a sustained period-2
    oscillation. Only probes farther than ``reach_m`` outside (a stale or bogus report) push nothing.
 2. The object steps one simulation period (eq. 6 static, or eq. 9 visco-elastic).
-3. **Step 1** - every probe is located on the *new* surface: proxy (closest point), outward normal,
-   signed penetration, and a plane or sphere primitive fitted there.
+3. **Step 1** - every probe is located on the *new* surface: proxy, outward normal, signed
+   penetration, and a plane or sphere primitive fitted there. A probe in contact keeps a proxy
+   that follows the surface (a god-object, :func:`server.contacts.track_proxy`): carried by the
+   deformation and slid from where it was down the distance to the probe, it never jumps to a
+   nearer point on another part of the object (the far side of a thin part, the other wall of a
+   crease, a part a deep compensated probe happens to be nearer). A probe that was outside and is
+   inside now starts its proxy where it crossed the surface (:func:`server.contacts.segment_entry`);
+   a probe out of contact gets the closest point of the surface.
 4. **Step 2 inputs** - per contact ``K_o = 1 / C_ii``, ``B_o`` (eq. 9) and the coupling-aware
    ``K_o_eff`` (DESIGN section 6) over the contacts that touch or nearly touch the surface.
 
@@ -43,7 +49,9 @@ from haptic_collab.server.contacts import (
     effective_stiffness,
     fit_plane,
     fit_sphere,
+    segment_entry,
     stiff_stiffness,
+    track_proxy,
 )
 from haptic_collab.server.objects import AdmittanceObject
 from haptic_collab.shared.primitives import Plane, Sphere
@@ -119,11 +127,16 @@ _RELOCATE_M = 0.01
 
 @dataclass(frozen=True, eq=False)
 class _UserState:
-    """What the world remembers of a user between ticks: last finite probe, primitive, patch."""
+    """What the world remembers of a user between ticks.
+
+    The last finite probe, the primitive sent, the load patch's key, and where the proxy was on
+    the surface (its face and barycentric coordinates, and the probe's penetration there).
+    """
 
     probe: FloatArray
     primitive: Plane | Sphere
     key: int
+    surface: SurfacePoint
 
 
 def _finite3(value: object) -> FloatArray | None:
@@ -245,7 +258,26 @@ class World:
         return self._bounds.copy()
 
     # ------------------------------------------------------------------ tick
-    def _locate(self, probe: FloatArray) -> SurfacePoint:
+    def _locate(self, probe: FloatArray, user: _UserState | None = None) -> SurfacePoint:
+        """The user's proxy on the current surface (Step 1), given what it was last tick.
+
+        In contact last tick: the proxy follows the surface from where it was
+        (:func:`server.contacts.track_proxy`) as long as the probe stays inside along it. Outside
+        last tick and inside now: the proxy starts where the probe's path crossed the surface
+        and slides on from there. Otherwise (a new user, a probe in free space): the closest
+        point of the surface.
+        """
+        if user is not None:
+            last = user.surface
+            start: SurfacePoint | None = None
+            if last.penetration_m > 0.0 and last.bary is not None:
+                start = last
+            else:
+                start = segment_entry(self._index, self._current, user.probe, probe, self._bound)
+            if start is not None and start.bary is not None:
+                here = track_proxy(self._index, self._current, probe, start.face, start.bary)
+                if here.penetration_m > 0.0:
+                    return here
         return closest_point(self._index, self._current, probe, self._bound)
 
     def _probe_for(self, name: str, inp: ContactInput) -> FloatArray:
@@ -273,7 +305,7 @@ class World:
                 e, nx, ny, nz = prim.contact(float(probe[0]), float(probe[1]), float(probe[2]))
                 proxy = np.asarray(prim.proxy(float(probe[0]), float(probe[1]), float(probe[2])))
                 return proxy, np.array([nx, ny, nz]), e
-        here = self._locate(probe)
+        here = self._locate(probe, user)
         return here.point, here.normal, here.penetration_m
 
     def tick(self, inputs: Mapping[str, ContactInput]) -> dict[str, ContactOutput]:
@@ -306,7 +338,9 @@ class World:
             push = float(force @ normal)
             if push > 0.0:
                 user = self._users.get(name)
-                keys.append(self.obj.patch_key(point, user.key if user is not None else None))
+                keys.append(
+                    self.obj.patch_key(point, user.key if user is not None else None, normal)
+                )
                 forces.append(push)
                 pushed[name] = push
         self.obj.step(keys, forces)
@@ -319,11 +353,16 @@ class World:
 
         # Step 1: every probe on the new surface.
         probes = [self._probe_for(name, inputs[name]) for name in names]
-        located = [self._locate(probe) for probe in probes]
+        located = [
+            self._locate(probe, self._users.get(name))
+            for name, probe in zip(names, probes, strict=True)
+        ]
         patch_keys = []
         for name, s in zip(names, located, strict=True):
             user = self._users.get(name)
-            patch_keys.append(self.obj.patch_key(s.point, user.key if user is not None else None))
+            patch_keys.append(
+                self.obj.patch_key(s.point, user.key if user is not None else None, s.normal)
+            )
         # Step 2 inputs: K_o, B_o and the coupling-aware K_o_eff.
         compliance = self.obj.contact_compliance(patch_keys)
         diag = np.diag(compliance)
@@ -348,7 +387,7 @@ class World:
                 )
             else:
                 prim = fit_plane(s)
-            users[name] = _UserState(probe=probes[i], primitive=prim, key=patch_keys[i])
+            users[name] = _UserState(probe=probes[i], primitive=prim, key=patch_keys[i], surface=s)
             out[name] = ContactOutput(
                 primitive=prim,
                 proxy=s.point,

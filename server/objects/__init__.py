@@ -50,7 +50,12 @@ class AdmittanceObject(Protocol):
     @property
     def patch_radius_m(self) -> float: ...
 
-    def patch_key(self, point: npt.ArrayLike, previous: int | None = None) -> int: ...
+    def patch_key(
+        self,
+        point: npt.ArrayLike,
+        previous: int | None = None,
+        normal: npt.ArrayLike | None = None,
+    ) -> int: ...
 
     def step(self, keys: Sequence[int], forces_n: npt.ArrayLike) -> None: ...
 

@@ -427,11 +427,15 @@ class Balloon:
             kd = k0_perm + sp.diags(self._damping_per_tick[self._order])
             self._damped = _Factor(sp.csc_matrix(kd), a_rows, kappa)
 
-        # Patch centres: one vertex per cubic cell of side patch_spacing_m (closest to the centre).
+        # Patch centres: one vertex per cubic cell of side patch_spacing_m (closest to the centre)
+        # and per facing (the rest normal's dominant axis and sign), so both sides of a part
+        # thinner than a cell, and both faces at an edge, have centres of their own.
         s = p.patch_spacing_m
         cell = np.floor((verts - verts.min(axis=0)) / s).astype(np.int64)
         cell_centre = (cell + 0.5) * s + verts.min(axis=0)
-        _, cell_id = np.unique(cell, axis=0, return_inverse=True)
+        axis = np.argmax(np.abs(self._normals), axis=1)
+        facing = 2 * axis + (self._normals[np.arange(n), axis] < 0.0)
+        _, cell_id = np.unique(np.column_stack([cell, facing]), axis=0, return_inverse=True)
         cell_id = cell_id.ravel()
         dist = np.linalg.norm(verts - cell_centre, axis=1)
         order = np.lexsort((dist, cell_id))
@@ -549,29 +553,53 @@ class Balloon:
             self._cache.clear()
 
     # ------------------------------------------------------------------ patches
-    def patch_key(self, point: npt.ArrayLike, previous: int | None = None) -> int:
+    def patch_key(
+        self,
+        point: npt.ArrayLike,
+        previous: int | None = None,
+        normal: npt.ArrayLike | None = None,
+    ) -> int:
         """Cache key of the load patch for a contact at ``point`` (3,) [m]: the nearest centre.
 
         With ``previous`` (the key this contact had last tick), that key is kept while the point
         stays within ``0.75 * patch_spacing_m`` of its centre along the surface: hysteresis, so a
         contact jittering on a cell boundary does not make its load jump back and forth.
 
+        With ``normal`` (3,), the contact's outward normal, only centres whose rest normal faces
+        the same way (positive dot product) are taken, when one is among the 8 nearest: a push on
+        one side of a part thinner than a patch is not put on the other side.
+
         Raises
         ------
         ValueError
-            ``point`` is not 3 finite numbers.
+            ``point`` (or ``normal``) is not 3 finite numbers.
         """
         q = np.asarray(point, dtype=np.float64)
         if q.shape != (3,) or not np.all(np.isfinite(q)):
             raise ValueError(f"point must be 3 finite numbers [m], got {point!r}")
+        nq: FloatArray | None = None
+        if normal is not None:
+            nq = np.asarray(normal, dtype=np.float64)
+            if nq.shape != (3,) or not np.all(np.isfinite(nq)):
+                raise ValueError(f"normal must be 3 finite numbers, got {normal!r}")
         if previous is not None and 0 <= previous < self.n_vertices:
             d = q - self._rest[previous]
             n = self._normals[previous]
             tangential = d - float(d @ n) * n
-            if float(tangential @ tangential) <= (_HYSTERESIS * self.params.patch_spacing_m) ** 2:
+            near = (
+                float(tangential @ tangential) <= (_HYSTERESIS * self.params.patch_spacing_m) ** 2
+            )
+            if near and (nq is None or float(n @ nq) > 0.0):
                 return int(previous)
-        _, i = self._centre_tree.query(q)
-        return int(self._centres[int(i)])
+        if nq is None:
+            _, i = self._centre_tree.query(q)
+            return int(self._centres[int(i)])
+        k = min(8, len(self._centres))
+        _, ids = self._centre_tree.query(q, k=k)
+        ids = np.atleast_1d(ids)
+        centres = self._centres[ids]
+        facing = self._normals[centres] @ nq > 0.0
+        return int(centres[int(np.argmax(facing))] if facing.any() else centres[0])
 
     def patch(self, key: int) -> LoadPatch:
         """The load patch (vertices and weights beta) centred at vertex ``key``.
@@ -598,7 +626,8 @@ class Balloon:
         idx = np.asarray(self._tree.query_ball_point(self._rest[key], r), dtype=np.int64)
         d = np.linalg.norm(self._rest[idx] - self._rest[key], axis=1)
         wts = self._areas[idx] * 0.5 * (1.0 + np.cos(np.pi * np.minimum(d / r, 1.0)))
-        keep = wts > 0.0
+        # the finger pad presses one side: not the far side of a part thinner than the patch
+        keep = (wts > 0.0) & (self._normals[idx] @ self._normals[key] > 0.0)
         idx, wts = idx[keep], wts[keep]
         return LoadPatch(key=key, indices=idx, weights=wts / wts.sum())
 
