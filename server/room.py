@@ -221,7 +221,10 @@ def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
 
     The top is the vertex with the largest z, the side the one with the largest x, and ``sides``
     the vertices furthest along +x, +y, -x and -y (so users resting on a side spread apart);
-    their normals are area-weighted vertex normals. Shapes: vertices (n, 3) [m], faces (m, 3).
+    their normals are area-weighted vertex normals. Among the vertices within 1 % of the
+    object's size of that extreme, the one nearest the bounding box's axis through it is taken:
+    the middle of a flat top or side (a box's face, not its corner), the extreme itself on a
+    rounded object. Shapes: vertices (n, 3) [m], faces (m, 3).
     """
     v = np.asarray(vertices, float)
     f = np.asarray(faces, np.int64)
@@ -232,7 +235,16 @@ def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
     vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-18)
     lo, hi = v.min(axis=0), v.max(axis=0)
     center = 0.5 * (lo + hi)
-    top, side = int(np.argmax(v[:, 2])), int(np.argmax(v[:, 0]))
+    tol = 0.01 * float(np.max(hi - lo))
+
+    def extreme(axis: int, sign: float) -> int:
+        along = sign * v[:, axis]
+        near = np.flatnonzero(along >= along.max() - tol)
+        others = [k for k in range(3) if k != axis]
+        off = v[np.ix_(near, others)] - center[others]
+        return int(near[np.argmin(np.einsum("ij,ij->i", off, off))])
+
+    top, side = extreme(2, 1.0), extreme(0, 1.0)
 
     def t3(a: np.ndarray) -> tuple[float, float, float]:
         return (float(a[0]), float(a[1]), float(a[2]))
@@ -250,12 +262,7 @@ def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
         side_normal=t3(vn[side]),
         sides=[
             SurfacePoint(point_m=t3(v[i]), normal=t3(vn[i]))
-            for i in (
-                side,
-                int(np.argmax(v[:, 1])),
-                int(np.argmin(v[:, 0])),
-                int(np.argmin(v[:, 1])),
-            )
+            for i in (side, extreme(1, 1.0), extreme(0, -1.0), extreme(1, -1.0))
         ],
     )
 

@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from haptic_collab.server.room import Room, RoomLimits
+from haptic_collab.server.room import Room, RoomLimits, object_info
 from haptic_collab.shared.primitives import make_plane
 from haptic_collab.shared.protocol import PROTOCOL_VERSION, decode_binary
 
@@ -284,3 +284,25 @@ def test_a_tick_that_raises_is_not_run_again():
     with pytest.raises(RuntimeError):
         room.handle_timer(0.10)
     assert calls == [1, 2]
+
+
+def test_users_are_anchored_on_the_middle_of_a_flat_top_and_side_not_a_corner():
+    """A box's highest vertices are a whole face: the demo's users press its middle."""
+    import trimesh
+
+    v, f = trimesh.remesh.subdivide_to_size(
+        trimesh.creation.box(extents=(0.1, 0.12, 0.08)).vertices,
+        trimesh.creation.box(extents=(0.1, 0.12, 0.08)).faces,
+        max_edge=0.01,
+    )
+    info = object_info(v, f)
+    assert np.allclose(info.top_m, (0.0, 0.0, 0.04), atol=0.006)
+    assert np.allclose(info.top_normal, (0.0, 0.0, 1.0), atol=1e-6)
+    assert np.allclose(info.side_m, (0.05, 0.0, 0.0), atol=0.006)
+    assert np.allclose(info.side_normal, (1.0, 0.0, 0.0), atol=1e-6)
+    assert [round(s.normal[k]) for s, k in zip(info.sides, (0, 1, 0, 1), strict=True)] == [
+        1,
+        1,
+        -1,
+        -1,
+    ]
