@@ -169,12 +169,17 @@ class World:
     rates : shared.rates.Rates, optional
         The servo and simulation rates the server runs at (:func:`server.main.build_rates`);
         the object's ``sim_period_s`` must be their N*T. Kept as :attr:`rates` for the room.
+    proxy : {"follow", "closest"}
+        ``follow`` (default): a proxy in contact follows the surface from where it was
+        (god-object, :func:`server.contacts.track_proxy`). ``closest``: the paper's Step 1 read
+        literally, the closest point of the current surface every tick (it jumps across thin
+        parts and creases; kept for comparison, ``haptic bench server``).
 
     Raises
     ------
     ValueError
-        Unknown primitive, ``proximity_m`` or ``reach_m`` not finite and >= 0, or an object
-        whose simulation period is not the one of ``rates``.
+        Unknown primitive or proxy, ``proximity_m`` or ``reach_m`` not finite and >= 0, or an
+        object whose simulation period is not the one of ``rates``.
     """
 
     def __init__(
@@ -184,7 +189,12 @@ class World:
         proximity_m: float = 0.005,
         reach_m: float = 0.03,
         rates: Rates | None = None,
+        proxy: Literal["follow", "closest"] = "follow",
     ) -> None:
+        if proxy not in ("follow", "closest"):
+            raise ValueError(f"proxy must be 'follow' or 'closest', got {proxy!r}")
+        #: How a proxy in contact is found: following the surface, or the closest point.
+        self.proxy = proxy
         if rates is not None:
             rates.check_sim_period(float(obj.sim_period_s), "the object")
         #: The rates the world was built for (None: only the object's own period is known).
@@ -267,7 +277,7 @@ class World:
         and slides on from there. Otherwise (a new user, a probe in free space): the closest
         point of the surface.
         """
-        if user is not None:
+        if user is not None and self.proxy == "follow":
             last = user.surface
             start: SurfacePoint | None = None
             if last.penetration_m > 0.0 and last.bary is not None:
