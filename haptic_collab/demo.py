@@ -57,6 +57,13 @@ B_SETTLE_S = 1.0
 RELEASE_SETTLE_S = 2.0
 #: B's force is "on" above this [N].
 B_FORCE_ON_N = 0.01
+#: B feels A when B's force changes by at least this share of its resting force while A holds
+#: (the force JND, about 7-10 %: Jones 1989; Pang, Tan and Durlach 1991) ...
+FEEL_FORCE_SHARE = 0.10
+#: ... the surface under B moves by at least this [mm], and the force follows the surface (up
+#: when it bulges out toward B's hand, down when it is drawn in): on a balloon the water pushes
+#: B's side out; on other shapes the membrane near A's dent may draw B's side in instead.
+FEEL_DISPLACEMENT_MM = 0.1
 #: The shortest window B's resting force and position are averaged over [s].
 MIN_REST_WINDOW_S = 0.25
 
@@ -513,6 +520,9 @@ def coupling_report(
     """How much B feels A's press, as physical quantities.
 
     ``b_force_rise_n``: B's force while A holds minus B's resting force [N].
+    ``b_feels_a``: that change is at least :data:`FEEL_FORCE_SHARE` of the resting force, the
+    surface under B moved at least :data:`FEEL_DISPLACEMENT_MM`, and the force followed the
+    surface (rose as it bulged out, fell as it was drawn in); None when not measured.
     ``b_surface_displacement_mm``: how far the surface under B (B's proxy) moves outward, along
     B's force, while A holds [mm]. Both compare the ``hold`` window with a window where B rests,
     settled (:data:`B_SETTLE_S` after B's force came on and after B's approach), before A touches
@@ -536,6 +546,7 @@ def coupling_report(
     out: dict[str, Any] = {
         "b_force_rise_n": None,
         "b_surface_displacement_mm": None,
+        "b_feels_a": None,
         "b_force_at_rest_n": None,
         "b_force_during_a_press_n": None,
         "ratio": None,
@@ -564,10 +575,15 @@ def coupling_report(
     proxy = proxy - b.get("own_offset_m", np.zeros_like(proxy))
     f_rest = float(np.nanmean(b["force_n"][w_rest]))
     f_hold = float(np.nanmean(b["force_n"][w_hold]))
+    moved_mm = float((np.nanmean(proxy[w_hold]) - np.nanmean(proxy[w_rest])) * 1000.0)
+    rise = f_hold - f_rest
     out.update(
-        b_force_rise_n=f_hold - f_rest,
-        b_surface_displacement_mm=float(
-            (np.nanmean(proxy[w_hold]) - np.nanmean(proxy[w_rest])) * 1000.0
+        b_force_rise_n=rise,
+        b_surface_displacement_mm=moved_mm,
+        b_feels_a=bool(
+            abs(rise) >= FEEL_FORCE_SHARE * f_rest
+            and abs(moved_mm) >= FEEL_DISPLACEMENT_MM
+            and rise * moved_mm > 0.0
         ),
         b_force_at_rest_n=f_rest,
         b_force_during_a_press_n=f_hold,
@@ -595,8 +611,9 @@ def print_summary(report: dict[str, Any]) -> None:
     else:
         w = c["rest_window_s"]
         ratio = "n/a" if c["ratio"] is None else f"{c['ratio']:.2f}"
+        feels = "yes" if c.get("b_feels_a") else "NO"
         print(
-            f"B feels A: while A holds, B's force rises {c['b_force_rise_n']:+.3f} N "
+            f"B feels A ({feels}): while A holds, B's force rises {c['b_force_rise_n']:+.3f} N "
             f"({c['b_force_at_rest_n']:.3f} -> {c['b_force_during_a_press_n']:.3f} N) and the "
             f"surface under B moves {c['b_surface_displacement_mm']:+.2f} mm outward\n"
             f"  (B at rest {c['baseline']}, {w[0]:.1f}-{w[1]:.1f} s; force ratio {ratio}, which "

@@ -20,7 +20,9 @@ BULGE_M = 0.0013  # how far the side moves out while A holds
 SIDE = np.array([0.1, 0.0, 0.0])  # B rests on +x: outward is +x
 
 
-def telemetry(duration_s: float, onset_s: float) -> tuple[dict[str, np.ndarray], tuple]:
+def telemetry(
+    duration_s: float, onset_s: float, hold_n: float = HOLD_N, bulge_m: float = BULGE_M
+) -> tuple[dict[str, np.ndarray], tuple]:
     """B's telemetry: force on at ``onset_s``, building up over 1 s, bulged out during A's press."""
     tl = timeline(duration_s)
     t = np.arange(0.0, duration_s, 1.0 / RATE)
@@ -30,8 +32,8 @@ def telemetry(duration_s: float, onset_s: float) -> tuple[dict[str, np.ndarray],
     bulge = press * (1.0 - release)
     on = t >= onset_s
     build_up = np.clip((t - onset_s) / 0.9, 0.0, 1.0)  # the PI integral reaching B's rest force
-    force = np.where(on, (REST_N * build_up + (HOLD_N - REST_N) * bulge), 0.0)
-    proxy = SIDE[None, :] + np.outer(BULGE_M * bulge, [1.0, 0.0, 0.0])
+    force = np.where(on, (REST_N * build_up + (hold_n - REST_N) * bulge), 0.0)
+    proxy = SIDE[None, :] + np.outer(bulge_m * bulge, [1.0, 0.0, 0.0])
     cols = {
         "t_s": t,
         "force_n": force,
@@ -60,6 +62,21 @@ def test_the_coupling_is_a_force_rise_and_a_displacement(duration_s: float) -> N
     assert c["baseline"] == "before A's press"
     rest = c["rest_window_s"]
     assert 2.2 + B_SETTLE_S <= rest[0] < 2.2 + B_SETTLE_S + 0.1 and rest[1] <= tl.contact_s
+
+
+@pytest.mark.parametrize(
+    "hold_n, bulge_m, feels",
+    [
+        (0.24, 0.0013, True),  # the side bulges out and pushes B's hand back: +20 %
+        (0.16, -0.0013, True),  # the side is drawn in (a membrane near A's dent): -20 %
+        (0.24, -0.0013, False),  # a force that does not follow the surface is not A's press
+        (0.205, 0.0013, False),  # +2.5 %: below the force JND
+        (0.24, 0.00005, False),  # the surface barely moved
+    ],
+)
+def test_b_feels_a_when_its_force_follows_the_moving_surface_by_a_jnd(hold_n, bulge_m, feels):
+    b, (tl, hold) = telemetry(12.0, onset_s=2.2, hold_n=hold_n, bulge_m=bulge_m)
+    assert coupling_report(b, tl, hold, b_approach_end_s=1.0)["b_feels_a"] is feels
 
 
 def test_a_late_contact_is_measured_after_the_release() -> None:
