@@ -137,7 +137,6 @@ class _UserState:
     primitive: Plane | Sphere
     key: int
     surface: SurfacePoint
-    k_o: float
 
 
 def _finite3(value: object) -> FloatArray | None:
@@ -269,9 +268,7 @@ class World:
         return self._bounds.copy()
 
     # ------------------------------------------------------------------ tick
-    def _locate(
-        self, probe: FloatArray, user: _UserState | None = None, own_push_n: float = 0.0
-    ) -> SurfacePoint:
+    def _locate(self, probe: FloatArray, user: _UserState | None = None) -> SurfacePoint:
         """The user's proxy on the current surface (Step 1), given what it was last tick.
 
         In contact last tick: the proxy follows the surface from where it was
@@ -279,13 +276,6 @@ class World:
         last tick and inside now: the proxy starts where the probe's path crossed the surface
         and slides on from there. Otherwise (a new user, a probe in free space): the closest
         point of the surface.
-
-        The proxy slides toward the probe lifted out of the user's own dent, ``own_push_n / K_o``
-        along last tick's normal: where the probe is against the surface as it would be without
-        its own push, which is what an own-force compensated local model renders (a probe
-        resting on it sits that much deeper in the current surface, past the centre of curvature
-        of a small part, where the nearest point of the surface is ill-defined). The penetration
-        returned is the probe's own depth along the proxy's normal.
         """
         if user is not None and self.proxy == "follow":
             last = user.surface
@@ -295,12 +285,9 @@ class World:
             else:
                 start = segment_entry(self._index, self._current, user.probe, probe, self._bound)
             if start is not None and start.bary is not None:
-                lift = own_push_n / user.k_o if start is last and user.k_o > 0.0 else 0.0
-                target = probe + lift * last.normal if lift > 0.0 else probe
-                here = track_proxy(self._index, self._current, target, start.face, start.bary)
-                depth = float((here.point - probe) @ here.normal)
-                if depth > 0.0:
-                    return SurfacePoint(here.point, here.normal, depth, here.face, here.bary)
+                here = track_proxy(self._index, self._current, probe, start.face, start.bary)
+                if here.penetration_m > 0.0:
+                    return here
         return closest_point(self._index, self._current, probe, self._bound)
 
     def _probe_for(self, name: str, inp: ContactInput) -> FloatArray:
@@ -377,7 +364,7 @@ class World:
         # Step 1: every probe on the new surface.
         probes = [self._probe_for(name, inputs[name]) for name in names]
         located = [
-            self._locate(probe, self._users.get(name), pushed.get(name, 0.0))
+            self._locate(probe, self._users.get(name))
             for name, probe in zip(names, probes, strict=True)
         ]
         patch_keys = []
@@ -410,9 +397,7 @@ class World:
                 )
             else:
                 prim = fit_plane(s)
-            users[name] = _UserState(
-                probe=probes[i], primitive=prim, key=patch_keys[i], surface=s, k_o=float(k_o[i])
-            )
+            users[name] = _UserState(probe=probes[i], primitive=prim, key=patch_keys[i], surface=s)
             out[name] = ContactOutput(
                 primitive=prim,
                 proxy=s.point,
