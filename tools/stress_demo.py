@@ -1,0 +1,192 @@
+"""Run the two-user demo and a scripted slide over the stress set of meshes; write JSON and a table.
+
+Not installed, not a test: the measurements behind docs/real-objects.md. Each demo run is the real
+``haptic demo --headless`` (server and two simulated users as processes over websockets, 12 s by
+default); the slide runs the server's World in-process.
+
+Usage (from the repository, after ``make install meshes``)::
+
+    .venv/bin/python tools/stress_demo.py --runs 3 --out docs/results/real-objects.json
+    .venv/bin/python tools/stress_demo.py --slide-only
+
+Per demo run: both users' ``stable`` verdicts and hold peak-to-peak [mm], B's largest force [N],
+whether B feels A (``b_feels_a``: a force change of a JND that follows the surface under B), and
+the resting user B's largest step of the rendered proxy in one servo tick while in contact,
+with the probe's step at that tick [mm]. Per slide: a probe slid 2 mm per simulation tick along
+the surface, 3 and 6 mm below its proxy, over edges, corners and into creases, with the proxy
+following the surface and with the closest point: the largest proxy step per tick [mm].
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+MESHES = ROOT / "tests" / "data" / "meshes"
+HAPTIC = str(Path(sys.executable).with_name("haptic"))
+
+
+def mesh_specs(tmp: Path) -> list[tuple[str, list[str]]]:
+    """(label, demo arguments) of every mesh exercised."""
+    from haptic_collab.server.objects.shapes import STRESS_MESHES, write_textured_obj
+
+    specs: list[tuple[str, list[str]]] = [("balloon", ["--mesh", "balloon"])]
+    specs += [(name, ["--mesh", name]) for name in STRESS_MESHES]
+    textured = write_textured_obj(tmp / "textured-torus.obj", "torus")
+    specs.append(("textured OBJ (torus, UV seams)", ["--mesh", str(textured)]))
+    bunny, nut = MESHES / "bunny.obj", MESHES / "nut.ply"
+    if bunny.is_file():
+        specs.append(("bunny (npm bunny) 0.2 m", ["--mesh", str(bunny), "--mesh-size", "0.2"]))
+        specs.append(("bunny x0.08 (0.8 m)", ["--mesh", str(bunny), "--mesh-scale", "0.08"]))
+    if nut.is_file():
+        specs.append(
+            (
+                "hex nut (pyvista) 0.15 m, refined",
+                ["--mesh", str(nut), "--mesh-size", "0.15", "--mesh-max-edge", "0.007"],
+            )
+        )
+    return specs
+
+
+def _largest_proxy_step(work: Path, user: str) -> tuple[float, float]:
+    """B's largest rendered-proxy step in one servo tick in contact, and the probe's then [m]."""
+    cols = np.genfromtxt(work / f"{user}.csv", delimiter=",", names=True)
+    proxy = np.stack([cols["proxy_x_m"], cols["proxy_y_m"], cols["proxy_z_m"]], axis=1)
+    probe = np.stack([cols["probe_x_m"], cols["probe_y_m"], cols["probe_z_m"]], axis=1)
+    contact = (cols["in_contact"][1:] > 0) & (cols["in_contact"][:-1] > 0)
+    dp = np.linalg.norm(np.diff(proxy, axis=0), axis=1)
+    dh = np.linalg.norm(np.diff(probe, axis=0), axis=1)
+    dp = np.where(contact & np.isfinite(dp), dp, 0.0)
+    i = int(np.argmax(dp))
+    return float(dp[i]), float(dh[i])
+
+
+def run_demo(label: str, args: list[str], run: int, latency: bool, duration: float) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp) / "work"
+        report = Path(tmp) / "report.json"
+        extra = ["--latency-ms", "50", "--jitter-ms", "10"] if latency else []
+        cmd = [HAPTIC, "demo", "--headless", "--duration", f"{duration:g}", "--port", "0"]
+        cmd += ["--report", str(report), "--workdir", str(work), *args, *extra]
+        start = time.monotonic()
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=duration + 120)
+        row: dict = {"mesh": label, "run": run, "latency": "50 +- 10 ms" if latency else "none"}
+        row["wall_s"] = round(time.monotonic() - start, 1)
+        if proc.returncode != 0 or not report.is_file():
+            row["error"] = (proc.stderr or proc.stdout).strip().splitlines()[-1:]
+            return row
+        rep = json.loads(report.read_text())
+        for name in ("A", "B"):
+            u = rep["users"][name]
+            row[f"{name}_stable"] = u["stable"]
+            row[f"{name}_hold_p2p_mm"] = round(u["hold_oscillation_mm"], 3)
+            row[f"{name}_max_force_n"] = round(u["max_force_n"], 3)
+        c = rep["coupling"]
+        row["b_feels_a"] = c.get("b_feels_a")
+        for key in ("b_force_rise_n", "b_surface_displacement_mm", "b_force_at_rest_n"):
+            row[key] = None if c.get(key) is None else round(c[key], 3)
+        step, probe_step = _largest_proxy_step(work, "B")
+        row["b_proxy_step_mm"] = round(step * 1e3, 2)
+        row["b_probe_step_at_it_mm"] = round(probe_step * 1e3, 3)
+        return row
+
+
+def slide(label: str, mesh, proxy: str, depth_m: float, ticks: int = 120) -> dict:  # type: ignore[no-untyped-def]
+    """A probe slid along the surface ``depth_m`` below its proxy, 2 mm per tick, 9 paths."""
+    from haptic_collab.server.objects.balloon import Balloon
+    from haptic_collab.server.room import object_info
+    from haptic_collab.server.world import ContactInput, World
+
+    obj = Balloon(mesh)
+    info = object_info(mesh.vertices, mesh.faces)
+    worst, jumps, steps = 0.0, 0, 0
+    for anchor, normal in [
+        (info.top_m, info.top_normal),
+        *((s.point_m, s.normal) for s in info.sides[:2]),
+    ]:
+        for direction in ((1.0, 0.3, 0.0), (0.0, 1.0, -0.4), (-0.7, 0.0, -1.0)):
+            obj.reset()
+            world = World(obj, proxy=proxy)  # type: ignore[arg-type]
+            zero = np.zeros(3)
+            d = np.asarray(direction, float)
+            probe = np.asarray(anchor) - depth_m * np.asarray(normal)
+            out = world.tick({"u": ContactInput(probe=probe, force=zero)})["u"]
+            for _ in range(ticks):
+                n = out.normal
+                t = d - float(d @ n) * n
+                t /= max(float(np.linalg.norm(t)), 1e-12)
+                probe = out.proxy + 0.002 * t - depth_m * n
+                new = world.tick({"u": ContactInput(probe=probe, force=zero)})["u"]
+                step = float(np.linalg.norm(new.proxy - out.proxy))
+                worst = max(worst, step)
+                jumps += step > 0.005
+                steps += 1
+                out = new
+    return {
+        "mesh": label,
+        "proxy": proxy,
+        "depth_mm": round(depth_m * 1e3, 1),
+        "largest_step_mm": round(worst * 1e3, 2),
+        "steps_over_5mm": int(jumps),
+        "ticks": steps,
+    }
+
+
+def slide_meshes(tmp: Path) -> list[tuple[str, object]]:
+    from haptic_collab.server.objects.mesh import default_balloon, load_mesh
+    from haptic_collab.server.objects.shapes import STRESS_MESHES, stress_mesh
+
+    out: list[tuple[str, object]] = [("balloon", default_balloon())]
+    out += [(name, stress_mesh(name)) for name in STRESS_MESHES]
+    if (MESHES / "bunny.obj").is_file():
+        out.append(("bunny 0.2 m", load_mesh(MESHES / "bunny.obj", target_size_m=0.2)))
+    if (MESHES / "nut.ply").is_file():
+        nut = load_mesh(MESHES / "nut.ply", target_size_m=0.15, max_edge_m=0.007)
+        out.append(("hex nut 0.15 m, refined", nut))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--runs", type=int, default=3, help="demo runs per mesh (the last with latency)"
+    )
+    ap.add_argument("--duration", type=float, default=12.0)
+    ap.add_argument("--out", type=Path, default=None, help="write the JSON here")
+    ap.add_argument("--slide-only", action="store_true")
+    ap.add_argument("--only", default=None, help="only meshes whose label contains this")
+    opts = ap.parse_args()
+    result: dict = {"demo": [], "slide": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, mesh in slide_meshes(Path(tmp)):
+            if opts.only and opts.only not in label:
+                continue
+            for depth in (0.003, 0.006):
+                for proxy in ("follow", "closest"):
+                    row = slide(label, mesh, proxy, depth)
+                    print(json.dumps(row), flush=True)
+                    result["slide"].append(row)
+        if not opts.slide_only:
+            for label, args in mesh_specs(Path(tmp)):
+                if opts.only and opts.only not in label:
+                    continue
+                for run in range(1, opts.runs + 1):
+                    latency = opts.runs > 1 and run == opts.runs
+                    row = run_demo(label, args, run, latency, opts.duration)
+                    print(json.dumps(row), flush=True)
+                    result["demo"].append(row)
+    if opts.out is not None:
+        opts.out.parent.mkdir(parents=True, exist_ok=True)
+        opts.out.write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
