@@ -240,7 +240,7 @@ def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
     def extreme(axis: int, sign: float) -> int:
         along = sign * v[:, axis]
         near = np.flatnonzero(along >= along.max() - tol)
-        others = [k for k in range(3) if k != axis]
+        others = np.array([k for k in range(3) if k != axis], dtype=np.int64)
         off = v[np.ix_(near, others)] - center[others]
         return int(near[np.argmin(np.einsum("ij,ij->i", off, off))])
 
