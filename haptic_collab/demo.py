@@ -91,6 +91,7 @@ class DemoOptions:
     material: str | None = None
     mesh_scale: float | None = None
     mesh_size: float | None = None
+    mesh_max_edge: float | None = None
     hand_mass_kg: float | None = None
     hand_stiffness_n_per_m: float | None = None
     hand_damping_n_s_per_m: float | None = None
@@ -263,6 +264,8 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         server_cmd += ["--mesh-scale", repr(float(opts.mesh_scale))]
     if opts.mesh_size is not None:
         server_cmd += ["--mesh-size", repr(float(opts.mesh_size))]
+    if opts.mesh_max_edge is not None:
+        server_cmd += ["--mesh-max-edge", repr(float(opts.mesh_max_edge))]
     hint = ""
     if not is_loopback(local_host(opts.host)) or opts.host in WILDCARD_HOSTS:
         # reachable from the network: the demo's users and viewers need a token (docs/security.md)

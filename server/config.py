@@ -9,8 +9,8 @@ A configuration file holds top-level keys named like the long options of ``hapti
 :func:`apply_server_config` hands that to the ``server`` subparser as defaults
 (``parser.set_defaults``), so a flag given on the command line still wins over the file.
 
-Paths in the file (``mesh``, ``material`` when it is not a preset name, ``token_file``,
-``tls_cert``, ``tls_key``) are relative to the file's folder, so a deployment can keep its
+Paths in the file (``mesh`` when it is not ``balloon`` nor a stress shape's name, ``material``
+when it is not a preset name, ``token_file``, ``tls_cert``, ``tls_key``) are relative to the file's folder, so a deployment can keep its
 configuration, mesh and certificates together.
 
 Nothing here starts a server, opens a socket or reads a clock.
@@ -93,9 +93,16 @@ def _not_empty(v: object) -> str | None:
 SERVER_OPTIONS: dict[str, _Option] = {
     "host": _Option("str", "address to listen on", _not_empty),
     "port": _Option("int", "TCP port (0: any free port)", _port),
-    "mesh": _Option("str", "'balloon' or a mesh file (STL, OBJ, PLY, OFF, GLB)", _not_empty, True),
+    "mesh": _Option(
+        "str",
+        "'balloon', a stress shape (torus, box, plate, bowl, noisy-sphere, uneven) or a mesh "
+        "file (STL, OBJ, PLY, OFF, GLB)",
+        _not_empty,
+        True,
+    ),
     "mesh_scale": _Option("float", "multiply the file's coordinates by this", _positive),
     "mesh_size": _Option("float", "rescale so the largest extent is this [m]", _positive),
+    "mesh_max_edge": _Option("float", "refine until no edge is longer than this [m]", _positive),
     "subdivisions": _Option("int", "icosphere subdivisions of the balloon", _subdivisions),
     "material": _Option("str", "material preset or TOML file", _not_empty, True),
     "sim_rate": _Option("float", "simulation rate [Hz]", _positive),
@@ -116,7 +123,8 @@ SERVER_OPTIONS: dict[str, _Option] = {
     "log_level": _Option("str", "log verbosity", _one_of("debug", "info", "warning", "error")),
 }
 
-#: Values of path keys that are names, not files (kept as they are).
+#: Values of path keys that are names, not files (kept as they are); the stress shapes'
+#: names (``mesh``) and the material presets (``material``) too, see :func:`_resolve`.
 _NOT_PATHS = {"mesh": ("balloon",)}
 
 
@@ -147,6 +155,11 @@ def _resolve(key: str, value: str, folder: Path) -> str:
     """A path value made relative to the configuration file's folder (names kept)."""
     if value in _NOT_PATHS.get(key, ()):
         return value
+    if key == "mesh":
+        from haptic_collab.server.objects.shapes import STRESS_MESHES
+
+        if value in STRESS_MESHES:
+            return value
     if key == "material":
         from haptic_collab.server.materials import PRESETS
 

@@ -10,7 +10,6 @@ import signal
 import ssl
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 from haptic_collab.server.app import ServerApp
 from haptic_collab.server.room import Room
@@ -43,6 +42,7 @@ class ServerOptions:
     mesh: str = "balloon"
     mesh_scale: float | None = None
     mesh_size: float | None = None
+    mesh_max_edge: float | None = None
     subdivisions: int = 4
     sim_rate_hz: float = 20.0
     damping: float | None = None
@@ -150,7 +150,13 @@ def build_rates(opts: ServerOptions) -> Rates:
 
 
 def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignore[no-untyped-def]
-    """The world for these options: the default balloon or a mesh file, factorized once.
+    """The world for these options: the default balloon, a stress shape or a mesh file,
+    factorized once.
+
+    ``mesh``: ``balloon`` (icosphere of ``subdivisions``), a name of
+    :data:`server.objects.shapes.STRESS_MESHES` (torus, box, plate, bowl, noisy-sphere,
+    uneven) or a mesh file; ``mesh_scale``/``mesh_size`` apply to the last two,
+    ``mesh_max_edge`` (refinement, :func:`server.objects.mesh.refine_mesh`) to all three.
 
     The balloon steps with ``rates.sim_period_s`` and the world keeps ``rates`` (default:
     :func:`build_rates` of ``opts``; given, its simulation rate must be ``opts.sim_rate_hz``).
@@ -158,12 +164,15 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     Raises
     ------
     ValueError
-        A mesh that cannot be loaded, stays open or is degenerate; bad parameters; as
+        A mesh that cannot be loaded, stays open, is not manifold or one body, is degenerate
+        or of an absurd size (:class:`server.objects.mesh.MeshError`), or a ``mesh`` that is
+        neither a known name nor an existing file; bad parameters; as
         :func:`build_rates`; ``rates`` that disagree with ``opts.sim_rate_hz``.
     """
     from haptic_collab.server.materials import load_material, material_to_params, top_side_stiffness
     from haptic_collab.server.objects.balloon import Balloon, BalloonParams
-    from haptic_collab.server.objects.mesh import default_balloon, load_mesh, mesh_warnings
+    from haptic_collab.server.objects.mesh import default_balloon, mesh_warnings, refine_mesh
+    from haptic_collab.server.objects.shapes import load_object_mesh
     from haptic_collab.server.world import World
 
     if rates is None:
@@ -176,8 +185,15 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
         if not 0 <= opts.subdivisions <= 7:
             raise ValueError("--subdivisions must be in [0, 7]")
         mesh = default_balloon(subdivisions=opts.subdivisions)
+        if opts.mesh_max_edge is not None:
+            mesh = refine_mesh(mesh, opts.mesh_max_edge, where="balloon")
     else:
-        mesh = load_mesh(Path(opts.mesh), scale=opts.mesh_scale, target_size_m=opts.mesh_size)
+        mesh = load_object_mesh(
+            opts.mesh,
+            scale=opts.mesh_scale,
+            target_size_m=opts.mesh_size,
+            max_edge_m=opts.mesh_max_edge,
+        )
     scale = float(opts.stiffness_scale)
     if not (math.isfinite(scale) and scale > 0.0):
         raise ValueError(f"--stiffness-scale must be a finite number > 0, got {scale:g}")
