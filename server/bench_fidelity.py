@@ -100,6 +100,11 @@ _SERVO_RATE_HZ = 1000.0
 _BATCH = 800
 
 
+#: Stress-set shapes (:mod:`server.objects.shapes`) whose top a user presses in the 3-D cells,
+#: besides the balloon: a flat face with sharp edges, a thin part and a genus-1 ring.
+FIDELITY_MESHES_3D = ("box", "plate", "torus")
+
+
 def _gain_key(mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceModel) -> GainKey:
     return GainKey(
         servo_rate_hz=_SERVO_RATE_HZ,
@@ -468,6 +473,14 @@ def run(
         from haptic_collab.server.fidelity_3d import run_3d_cells
 
         cells3 = run_3d_cells(schemes, device=device)
+        # objects the design was not made on: the stress set's shapes, pressed at their top
+        cells3 += run_3d_cells(
+            schemes,
+            device=device,
+            meshes=FIDELITY_MESHES_3D,
+            stiffness_scales=(1.0,),
+            trajectories=("press",),
+        )
         # felt stiffness is measured in 1-D only (the 3-D cells carry null)
         cells.extend(cells3)
         t_3d = time.perf_counter() - t3

@@ -99,6 +99,7 @@ from haptic_collab.client.recorder import TelemetryRecorder
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.reproduce_3d import combined_hand
+from haptic_collab.server.room import object_info
 from haptic_collab.server.world import ContactInput, ContactOutput, World
 from haptic_collab.shared.fidelity import (
     IMPACT,
@@ -146,12 +147,16 @@ DESIGN_MARGIN = 0.15
 _USER = "user"
 
 
-def _opts(stiffness_scale: float) -> ServerOptions:
-    return ServerOptions(sim_rate_hz=SIM_RATE_HZ, stiffness_scale=stiffness_scale)
+def _opts(stiffness_scale: float, mesh: str = "balloon") -> ServerOptions:
+    return ServerOptions(sim_rate_hz=SIM_RATE_HZ, stiffness_scale=stiffness_scale, mesh=mesh)
 
 
 def top_contact(world: World) -> tuple[ContactOutput, FloatArray, FloatArray]:
     """One World tick with the user's probe exactly at the top of the rest surface, no force.
+
+    The top is the demo's (:func:`server.room.object_info`): the highest vertex nearest the
+    vertical axis of the bounding box (the balloon's pole, the middle of a box's top face, a
+    torus's ring rather than its hole).
 
     Returns
     -------
@@ -159,21 +164,22 @@ def top_contact(world: World) -> tuple[ContactOutput, FloatArray, FloatArray]:
         The user's :class:`ContactOutput` (K_o at the top, the rest-surface patch), the top
         point (3,) [m] and the outward unit normal (3,) there (the patch's).
     """
-    top = np.array([*world.rest_center[:2], world.rest_bounds[1, 2]], dtype=np.float64)
+    info = object_info(world.vertices, world.faces)
+    top = np.array(info.top_m, dtype=np.float64)
     out = world.tick({_USER: ContactInput(probe=top, force=np.zeros(3))})[_USER]
     n = np.asarray(out.normal, dtype=np.float64)
     return out, top, n / float(np.linalg.norm(n))
 
 
-def top_k_o(stiffness_scale: float) -> float:
-    """K_o [N/m] the World reports at the top of the balloon scaled by ``stiffness_scale``.
+def top_k_o(stiffness_scale: float, mesh: str = "balloon") -> float:
+    """K_o [N/m] the World reports at the top of ``mesh`` scaled by ``stiffness_scale``.
 
     Raises
     ------
     ValueError
         A scale that is not a finite number > 0 (:func:`server.main.build_world`).
     """
-    out, _, _ = top_contact(build_world(_opts(stiffness_scale)))
+    out, _, _ = top_contact(build_world(_opts(stiffness_scale, mesh)))
     return float(out.k_o)
 
 
@@ -267,6 +273,8 @@ class Run3D:
         The 1-D description of the cell (rendering, K_o, rate, delay, combined hand, trajectory)
         whose windows the metrics use.
     stiffness_scale : float
+    mesh : str
+        The object's ``--mesh`` (``balloon`` or a stress shape's name).
     t : (n,) float
         Servo tick times [s].
     x : (n,) float
@@ -283,6 +291,7 @@ class Run3D:
 
     cell: Cell
     stiffness_scale: float
+    mesh: str
     t: FloatArray
     x: FloatArray
     f: FloatArray
@@ -304,6 +313,7 @@ class Run3D:
             "hand": c.hand.as_dict(),
             "trajectory": c.trajectory.name,
             "stiffness_scale": self.stiffness_scale,
+            "mesh": self.mesh,
             **self.metrics.to_json(),
             "felt_stiffness_ratio_1hz": None,
             "felt_stiffness_ratio_8hz": None,
@@ -361,6 +371,7 @@ def run_3d_cell(
     scheme: str,
     *,
     stiffness_scale: float = 1.0,
+    mesh: str = "balloon",
     delay_ms: float = 0.0,
     trajectory: str = "press",
     device: DeviceModel = DEFAULT_DEVICE,
@@ -378,6 +389,9 @@ def run_3d_cell(
     stiffness_scale : float
         ``--stiffness-scale`` of the balloon (1.0: K_o about 310 N/m at the top; 3.3: about
         1000 N/m, the paper's Fig. 10).
+    mesh : str
+        ``--mesh`` of the object: ``balloon`` (default) or a shape of the stress set
+        (:data:`server.objects.shapes.STRESS_MESHES`); the user presses its top.
     delay_ms : float
         One-way network delay [ms], whole servo ticks, >= 0.
     trajectory : {"press", "impact"}
@@ -418,7 +432,7 @@ def run_3d_cell(
     T = 1.0 / SERVO_RATE_HZ
     N = RATE_RATIO
 
-    world = build_world(_opts(stiffness_scale))
+    world = build_world(_opts(stiffness_scale, mesh))
     out0, top, normal = top_contact(world)
     k_o = float(out0.k_o)
     r = (
@@ -580,6 +594,7 @@ def run_3d_cell(
     return Run3D(
         cell=cell,
         stiffness_scale=float(stiffness_scale),
+        mesh=mesh,
         t=t,
         x=x,
         f=f,
@@ -592,6 +607,7 @@ def run_3d_cell(
 def _cell_job(
     scheme: str,
     scale: float,
+    mesh: str,
     delay_ms: float,
     trajectory: str,
     device: DeviceModel,
@@ -602,6 +618,7 @@ def _cell_job(
     return run_3d_cell(
         scheme,
         stiffness_scale=scale,
+        mesh=mesh,
         delay_ms=delay_ms,
         trajectory=trajectory,
         device=device,
@@ -621,12 +638,13 @@ def run_3d_cells(
     stiffness_scales: Sequence[float] = (1.0, 3.3),
     delays_ms: Sequence[float] = (0.0, 100.0),
     trajectories: Sequence[str] = ("press", "impact"),
+    meshes: Sequence[str] = ("balloon",),
     device: DeviceModel = DEFAULT_DEVICE,
     workers: int | None = 1,
     gain_table: GainTable | None = None,
     direct_reference: DirectReference = DIRECT_REFERENCE,
 ) -> list[dict[str, Any]]:
-    """Every scheme x stiffness scale x delay x trajectory on the World (module docstring).
+    """Every scheme x mesh x stiffness scale x delay x trajectory on the World (module docstring).
 
     Parameters
     ----------
@@ -637,6 +655,9 @@ def run_3d_cells(
     delays_ms : sequence of float
         One-way delays [ms], whole servo ticks.
     trajectories : sequence of {"press", "impact"}
+    meshes : sequence of str
+        Objects (``--mesh``): ``balloon`` and shapes of the stress set
+        (:data:`server.objects.shapes.STRESS_MESHES`); each cell's K_o is the mesh's at its top.
     device : DeviceModel
     workers : int or None
         Worker processes (spawn) for the designs and the runs; 1 (default) runs in this process,
@@ -673,32 +694,36 @@ def run_3d_cells(
         _check_delay(dm)
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers!r}")
-    k_o = {sc: top_k_o(sc) for sc in stiffness_scales}
+    k_o = {(sc, m): top_k_o(sc, m) for m in meshes for sc in stiffness_scales}
     combos = [
-        (s, sc, dm, name)
+        (s, sc, m, dm, name)
         for s in schemes
+        for m in meshes
         for sc in stiffness_scales
         for dm in delays_ms
         for name in trajectories
     ]
-    rend_keys = sorted({(s, sc, dm) for s, sc, dm, _ in combos}, key=str)
+    rend_keys = sorted({(s, sc, m, dm) for s, sc, m, dm, _ in combos}, key=str)
     if workers == 1:
         table = gain_table if gain_table is not None else GainTable()
         rend = {
-            (s, sc, dm): rendering_3d(s, k_o[sc], dm, device=device, gain_table=table)
-            for s, sc, dm in rend_keys
+            (s, sc, m, dm): rendering_3d(s, k_o[(sc, m)], dm, device=device, gain_table=table)
+            for s, sc, m, dm in rend_keys
         }
         return [
-            _cell_job(s, sc, dm, name, device, rend[(s, sc, dm)], direct_reference)
-            for s, sc, dm, name in combos
+            _cell_job(s, sc, m, dm, name, device, rend[(s, sc, m, dm)], direct_reference)
+            for s, sc, m, dm, name in combos
         ]
     with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
         fut_r = {
-            (s, sc, dm): pool.submit(_design_job, s, k_o[sc], dm, device) for s, sc, dm in rend_keys
+            (s, sc, m, dm): pool.submit(_design_job, s, k_o[(sc, m)], dm, device)
+            for s, sc, m, dm in rend_keys
         }
         rend = {k: v.result() for k, v in fut_r.items()}
         futs = [
-            pool.submit(_cell_job, s, sc, dm, name, device, rend[(s, sc, dm)], direct_reference)
-            for s, sc, dm, name in combos
+            pool.submit(
+                _cell_job, s, sc, m, dm, name, device, rend[(s, sc, m, dm)], direct_reference
+            )
+            for s, sc, m, dm, name in combos
         ]
         return [fu.result() for fu in futs]

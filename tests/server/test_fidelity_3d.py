@@ -28,6 +28,7 @@ CELL_KEYS = {
     "hand",
     "trajectory",
     "stiffness_scale",
+    "mesh",
     "stable",
     "hold_p2p_mm",
     "peak_penetration_mm",
@@ -168,3 +169,16 @@ def test_the_whole_3d_grid() -> None:
     for scale in (1.0, 3.3):
         for scheme in ("local-p", "local-pi"):
             assert abs(by[(scheme, scale, 0.0, "press")]["steady_state_error_mm"]) < 0.5
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mesh", ["box", "plate", "torus"])
+def test_the_local_model_holds_a_press_on_objects_it_was_not_designed_on(mesh, table):
+    """The product's design, pressed into the top of a stress-set shape through the real World."""
+    run = run_3d_cell("local-pi", mesh=mesh, delay_ms=100.0, gain_table=table)
+    cell = run.to_json()
+    assert cell["mesh"] == mesh and not run.runaway
+    assert cell["stable"], cell
+    # it pressed about 4-5 mm in with 1.5-2 N, and the surface it held was where the World put it
+    assert run.x.max() > 0.003 and run.f.max() > 1.0
+    assert abs(cell["steady_state_error_mm"]) < 0.5
