@@ -113,12 +113,19 @@ _SHARED: dict[str, dict[str, Any]] = {
     "--mesh-size": {"type": _positive, "default": None},
     "--mesh-max-edge": {"type": _positive, "default": None, "metavar": "M"},
     "--material": {"default": None, "metavar": "NAME|FILE.toml"},
+    "--object": {"choices": ["balloon", "fem"], "default": "balloon"},
     "--subdivisions": {"type": _nonneg_int, "default": 4},
     "--latency-ms": {"type": _nonneg, "default": 0.0, "help": "injected one-way latency [ms]"},
     "--jitter-ms": {"type": _nonneg, "default": 0.0, "help": "injected jitter [ms]"},
     "--loss": {"type": _probability, "default": 0.0},
 }
 
+
+#: ``--object`` of ``haptic server`` and ``haptic demo``.
+_OBJECT_HELP = (
+    "object model: balloon (the water balloon, default) or fem (a tetrahedral elastic solid of "
+    "the mesh: soft tissue, silicone; needs the fem extra, docs/fem.md)"
+)
 
 #: ``--mesh`` of ``haptic server`` and ``haptic demo``; the names are
 #: :data:`server.objects.shapes.STRESS_MESHES` (not imported here: it loads trimesh).
@@ -547,6 +554,8 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         tls_key=args.tls_key,
         insecure=args.insecure,
         material=args.material,
+        object=args.object,
+        volume_cache=args.volume_cache,
     )
 
 
@@ -562,11 +571,19 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     _add_shared(p, "--host")
     _add_shared(p, "--port", help="TCP port (0: any free port)")
     _add_shared(p, "--mesh", help=_MESH_HELP)
+    _add_shared(p, "--object", help=_OBJECT_HELP)
     _add_shared(
         p,
         "--material",
         help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file "
-        "(docs/materials.md; default: the built-in silicone-like balloon)",
+        "(docs/materials.md; default: the built-in silicone-like balloon); with --object fem: "
+        "liver, skin, ecoflex-0030, sylgard-184 or a TOML file (docs/fem.md; default liver)",
+    )
+    p.add_argument(
+        "--volume-cache",
+        default=None,
+        metavar="DIR",
+        help="folder of cached FEM volume meshes (default ~/.cache/haptic-collab/volumes)",
     )
     _add_shared(p, "--mesh-scale", help="multiply the file's coordinates by S")
     _add_shared(p, "--mesh-size", help="rescale so the largest extent is this [m]")
@@ -1072,6 +1089,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         workdir=Path(args.workdir) if args.workdir else None,
         stiffness_scale=args.stiffness_scale,
         material=args.material,
+        object=args.object,
         mesh_scale=args.mesh_scale,
         mesh_size=args.mesh_size,
         mesh_max_edge=args.mesh_max_edge,
@@ -1107,10 +1125,12 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
         p, "--mesh-size", metavar="M", help="rescale the mesh file so its largest extent is M [m]"
     )
     _add_shared(p, "--mesh-max-edge", help=_MESH_MAX_EDGE_HELP)
+    _add_shared(p, "--object", help=_OBJECT_HELP)
     _add_shared(
         p,
         "--material",
-        help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file",
+        help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file; with "
+        "--object fem: liver, skin, ecoflex-0030, sylgard-184 or a TOML file",
     )
     _add_shared(p, "--port", help="server port (0: any free port)")
     _add_shared(

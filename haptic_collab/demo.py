@@ -89,6 +89,7 @@ class DemoOptions:
     seed: int = 0
     stiffness_scale: float = 1.0
     material: str | None = None
+    object: str = "balloon"
     mesh_scale: float | None = None
     mesh_size: float | None = None
     mesh_max_edge: float | None = None
@@ -260,6 +261,8 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
     )  # fmt: skip
     if opts.material is not None:
         server_cmd += ["--material", opts.material]
+    if opts.object != "balloon":
+        server_cmd += ["--object", opts.object]
     if opts.mesh_scale is not None:
         server_cmd += ["--mesh-scale", repr(float(opts.mesh_scale))]
     if opts.mesh_size is not None:

@@ -104,7 +104,9 @@ SERVER_OPTIONS: dict[str, _Option] = {
     "mesh_size": _Option("float", "rescale so the largest extent is this [m]", _positive),
     "mesh_max_edge": _Option("float", "refine until no edge is longer than this [m]", _positive),
     "subdivisions": _Option("int", "icosphere subdivisions of the balloon", _subdivisions),
+    "object": _Option("str", "object model", _one_of("balloon", "fem")),
     "material": _Option("str", "material preset or TOML file", _not_empty, True),
+    "volume_cache": _Option("str", "folder of cached FEM volume meshes", _not_empty, True),
     "sim_rate": _Option("float", "simulation rate [Hz]", _positive),
     "damping": _Option("float", "object damping (visco-elastic, eq. 9) [Pa*s/m]", _nonneg),
     "stiffness_scale": _Option("float", "multiply every stiffness term by this", _positive),
@@ -162,8 +164,9 @@ def _resolve(key: str, value: str, folder: Path) -> str:
             return value
     if key == "material":
         from haptic_collab.server.materials import PRESETS
+        from haptic_collab.server.solid_materials import SOLID_PRESETS
 
-        if value in PRESETS:
+        if value in PRESETS or value in SOLID_PRESETS:
             return value
     p = Path(value).expanduser()
     return str(p if p.is_absolute() else folder / p)

@@ -10,6 +10,7 @@ import signal
 import ssl
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 from haptic_collab.server.app import ServerApp
 from haptic_collab.server.room import Room
@@ -60,6 +61,8 @@ class ServerOptions:
     tls_key: str | None = None
     insecure: bool = False
     material: str | None = None
+    object: str = "balloon"
+    volume_cache: str | None = None
 
 
 def build_auth(opts: ServerOptions) -> TokenTable | None:
@@ -158,7 +161,12 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     uneven) or a mesh file; ``mesh_scale``/``mesh_size`` apply to the last two,
     ``mesh_max_edge`` (refinement, :func:`server.objects.mesh.refine_mesh`) to all three.
 
-    The balloon steps with ``rates.sim_period_s`` and the world keeps ``rates`` (default:
+    ``object``: ``balloon`` (the water balloon, :mod:`server.objects.balloon`) or ``fem`` (a
+    tetrahedral elastic solid of that surface, :mod:`server.objects.fem`, whose ``material`` is
+    a solid preset or file, :mod:`server.solid_materials`; its volume mesh is cached in
+    ``volume_cache``).
+
+    The object steps with ``rates.sim_period_s`` and the world keeps ``rates`` (default:
     :func:`build_rates` of ``opts``; given, its simulation rate must be ``opts.sim_rate_hz``).
 
     Raises
@@ -198,18 +206,51 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     if not (math.isfinite(scale) and scale > 0.0):
         raise ValueError(f"--stiffness-scale must be a finite number > 0, got {scale:g}")
     base = BalloonParams(sim_period_s=rates.sim_period_s)
-    if opts.material is not None:
+    if opts.material is not None and opts.object == "balloon":
         material = load_material(opts.material)
         base = material_to_params(material, base, volume_m3=float(mesh.volume))
         log.info("material %s", material.summary())
+    if opts.object not in ("balloon", "fem"):
+        raise ValueError(f"--object must be balloon or fem, got {opts.object!r}")
+    if opts.object == "fem" and opts.damping is not None:
+        raise ValueError("--damping is the balloon's; a FEM solid's damping is its material's")
     params = base.with_stiffness_scale(scale)
     if opts.damping is not None:
         params = replace(params, damping=opts.damping)
     for warning in mesh_warnings(mesh, params.patch_radius_m, where=opts.mesh):
         log.warning("%s", warning)
+    if opts.object == "fem":
+        return World(_build_fem(opts, mesh, rates, scale), primitive=opts.primitive, rates=rates)  # type: ignore[arg-type]
     obj = Balloon(mesh, params)
     log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))
     return World(obj, primitive=opts.primitive, rates=rates)  # type: ignore[arg-type]
+
+
+def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> Any:
+    """The FEM solid of ``--object fem`` (:func:`build_world`); E is multiplied by ``scale``."""
+    from haptic_collab.server.objects.fem import FemParams, FemSolid
+    from haptic_collab.server.solid_materials import (
+        SOLID_PRESETS,
+        load_solid_material,
+        solid_to_params,
+    )
+
+    material = load_solid_material(opts.material) if opts.material else SOLID_PRESETS["liver"]
+    params = solid_to_params(material, FemParams(sim_period_s=rates.sim_period_s))
+    params = replace(params, young_pa=params.young_pa * scale)
+    log.info("FEM solid, material %s", material.summary())
+    obj = FemSolid(mesh, params, cache_dir=opts.volume_cache)
+    log.info(
+        "FEM solid: %d nodes, %d tetrahedra, %.3f kg; lowest modes %s Hz",
+        len(obj.nodes),
+        len(obj.tets),
+        obj.mass_kg,
+        ", ".join(f"{f:.1f}" for f in obj.natural_frequencies_hz[:3]),
+    )
+    from haptic_collab.server.materials import top_side_stiffness
+
+    log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))  # type: ignore[arg-type]
+    return obj
 
 
 async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None = None) -> None:

@@ -74,14 +74,12 @@ from scipy.spatial import cKDTree
 
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.mesh import MeshError, default_balloon
+from haptic_collab.server.objects.patches import PatchCentres
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
 
 #: Relative residual above which the no-pivoting factorization is rejected (then pivoted LU).
 _FACTOR_RESIDUAL_TOL = 1e-6
-
-#: A contact keeps its patch centre while within this many patch spacings of it (hysteresis).
-_HYSTERESIS = 0.75
 
 #: Nested dissection stops splitting below this many vertices.
 _ND_LEAF = 64
@@ -427,22 +425,7 @@ class Balloon:
             kd = k0_perm + sp.diags(self._damping_per_tick[self._order])
             self._damped = _Factor(sp.csc_matrix(kd), a_rows, kappa)
 
-        # Patch centres: one vertex per cubic cell of side patch_spacing_m (closest to the centre)
-        # and per facing (the rest normal's dominant axis and sign), so both sides of a part
-        # thinner than a cell, and both faces at an edge, have centres of their own.
-        s = p.patch_spacing_m
-        cell = np.floor((verts - verts.min(axis=0)) / s).astype(np.int64)
-        cell_centre = (cell + 0.5) * s + verts.min(axis=0)
-        axis = np.argmax(np.abs(self._normals), axis=1)
-        facing = 2 * axis + (self._normals[np.arange(n), axis] < 0.0)
-        _, cell_id = np.unique(np.column_stack([cell, facing]), axis=0, return_inverse=True)
-        cell_id = cell_id.ravel()
-        dist = np.linalg.norm(verts - cell_centre, axis=1)
-        order = np.lexsort((dist, cell_id))
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = cell_id[order][1:] != cell_id[order][:-1]
-        self._centres = np.sort(order[first]).astype(np.int64)
-        self._centre_tree = cKDTree(verts[self._centres])
+        self._centres = PatchCentres(verts, self._normals, p.patch_spacing_m)
 
         self._cache: OrderedDict[int, _Solve] = OrderedDict()
         per_patch = n * 8 * (2 if self._damped is not None else 1)
@@ -561,45 +544,15 @@ class Balloon:
     ) -> int:
         """Cache key of the load patch for a contact at ``point`` (3,) [m]: the nearest centre.
 
-        With ``previous`` (the key this contact had last tick), that key is kept while the point
-        stays within ``0.75 * patch_spacing_m`` of its centre along the surface: hysteresis, so a
-        contact jittering on a cell boundary does not make its load jump back and forth.
-
-        With ``normal`` (3,), the contact's outward normal, only centres whose rest normal faces
-        the same way (positive dot product) are taken, when one is among the 8 nearest: a push on
-        one side of a part thinner than a patch is not put on the other side.
+        See :meth:`server.objects.patches.PatchCentres.key` (hysteresis with ``previous``, the
+        side facing ``normal``).
 
         Raises
         ------
         ValueError
             ``point`` (or ``normal``) is not 3 finite numbers.
         """
-        q = np.asarray(point, dtype=np.float64)
-        if q.shape != (3,) or not np.all(np.isfinite(q)):
-            raise ValueError(f"point must be 3 finite numbers [m], got {point!r}")
-        nq: FloatArray | None = None
-        if normal is not None:
-            nq = np.asarray(normal, dtype=np.float64)
-            if nq.shape != (3,) or not np.all(np.isfinite(nq)):
-                raise ValueError(f"normal must be 3 finite numbers, got {normal!r}")
-        if previous is not None and 0 <= previous < self.n_vertices:
-            d = q - self._rest[previous]
-            n = self._normals[previous]
-            tangential = d - float(d @ n) * n
-            near = (
-                float(tangential @ tangential) <= (_HYSTERESIS * self.params.patch_spacing_m) ** 2
-            )
-            if near and (nq is None or float(n @ nq) > 0.0):
-                return int(previous)
-        if nq is None:
-            _, i = self._centre_tree.query(q)
-            return int(self._centres[int(i)])
-        k = min(8, len(self._centres))
-        _, ids = self._centre_tree.query(q, k=k)
-        ids = np.atleast_1d(ids)
-        centres = self._centres[ids]
-        facing = self._normals[centres] @ nq > 0.0
-        return int(centres[int(np.argmax(facing))] if facing.any() else centres[0])
+        return self._centres.key(point, previous, normal)
 
     def patch(self, key: int) -> LoadPatch:
         """The load patch (vertices and weights beta) centred at vertex ``key``.

@@ -1,0 +1,624 @@
+"""A tetrahedral finite-element solid: soft tissue or silicone, beside the water balloon (docs/fem.md).
+
+The paper's method does not depend on how the object is simulated (section 6); this is the
+second object model, a linear elastic solid meshed from a closed surface. It offers the same
+admittance interface as :class:`server.objects.balloon.Balloon` (forces in at contact patches,
+surface out, ``K_o``, ``B_o`` and the contacts' compliance matrix), so the World, the room, the
+gain design and the viewer use it unchanged.
+
+**Volume mesh.** :func:`server.objects.volume.volume_mesh` tetrahedralises the surface keeping
+its ``n`` vertices as the first ``n`` nodes, so the surface, the patches and the viewer's indices
+are the surface mesh's own.
+
+**Elasticity.** P1 (linear, four-node) tetrahedra, isotropic, small strain: Young's modulus
+``E`` [Pa] and Poisson's ratio ``nu``, Lame ``lambda = E nu / ((1 + nu)(1 - 2 nu))`` and
+``mu = E / (2 (1 + nu))``; each element's stiffness is ``V B^T D B`` (Zienkiewicz, Taylor and
+Zhu 2013, ch. 6), assembled into ``K`` (3N x 3N) [N/m]. The supported base is fixed (``u = 0``):
+the nodes within ``base_radius_m`` of the lowest point and, for an object with a flat bottom,
+every node on it. ``K`` on the free nodes is factored once at start (geometric nested
+dissection, the balloon's).
+
+**Contacts.** A push ``f`` [N] at a contact is a *rigid flat punch* of radius ``a``
+(``patch_radius_m``, the 15 mm finger pad) pressing along the patch normal ``n_p`` (the centre
+vertex's rest normal): nodal loads ``-f beta_i n_p`` on the surface vertices of the patch with
+the flat punch's pressure distribution, ``beta_i`` proportional to ``a_i / sqrt(1 - (d_i/a)^2)``
+(``a_i`` the vertex's area, ``d_i`` its distance from the centre; Boussinesq's rigid punch,
+Johnson 1985, section 3.8), summing to 1. With ``b_j`` the load vector of patch ``j``, the normal
+compliance is ``C_ij = b_i^T K^-1 b_j`` [m/N] and ``K_o,i = 1 / C_ii``: under the punch's
+pressure the weighted mean displacement is the punch's displacement, so on an elastic half-space
+``K_o = 2 a E / (1 - nu^2)`` (a rigid flat punch; Johnson 1985, eq. 3.38), and it stays finite
+as the mesh is refined (a single node's compliance does not).
+
+**Dynamics** (so the object is not the gain design's model): a lumped mass ``rho V / 4`` per node
+and per element, and Rayleigh damping ``C = alpha M + beta K`` (``beta`` is Kelvin-Voigt
+viscosity over E). The response is split by the mode-acceleration method (Craig and Kurdila
+2006, ch. 14): the ``n_modes`` lowest modes (``K phi = omega^2 M phi``, mass-normalised, found
+once by shift-invert Lanczos on the factored ``K``) move dynamically, with modal damping
+``zeta_k = alpha / (2 omega_k) + beta omega_k / 2``, stepped exactly for a force held over the
+simulation period (zero-order hold); every other mode follows statically::
+
+    u = K^-1 F + Phi (q - Lambda^-1 Phi^T F),    q'' + 2 zeta Omega q' + Lambda q = Phi^T F
+
+The statics is exact whatever ``n_modes``; modes far above the simulation rate answer a held force
+statically anyway. ``density 0`` (or ``n_modes 0``) gives the static model ``u = K^-1 F``, the
+paper's eq. (6): the limit where the object's inertia (and so its damping) plays no part.
+
+``K_o`` is the static stiffness ``1 / C_ii``. ``B_o`` follows the balloon's definition (paper eq.
+9): the first simulation tick of a step force ``f`` from rest moves the patch by
+``f / (K_o + B_o)``; here the object's mass and damping both hold it back in that tick
+(``B_o >= 0``; 0 for the static model).
+
+**Large deformation** is not modelled yet: the strain is linear, so a rotation of a part of the
+object grows its volume (co-rotational FEM, Mueller et al. 2002, is the next step; docs/fem.md
+says where the linear model ends).
+
+References
+----------
+- Johnson, K. L. (1985). *Contact Mechanics*. Cambridge University Press.
+- Zienkiewicz, O. C., Taylor, R. L., & Zhu, J. Z. (2013). *The Finite Element Method: Its Basis
+  and Fundamentals*, 7th ed. Butterworth-Heinemann.
+- Craig, R. R., & Kurdila, A. J. (2006). *Fundamentals of Structural Dynamics*, 2nd ed. Wiley.
+- Mueller, M., Dorsey, J., McMillan, L., Jagnow, R., & Cutler, B. (2002). Stable real-time
+  deformations. *Proc. ACM SIGGRAPH/Eurographics SCA*, 49-54.
+
+Nothing here uses threads, sockets or clocks (the volume mesh may come from a child process).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Annotated
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import trimesh
+from pydantic import Field
+from scipy.spatial import cKDTree
+
+from haptic_collab.server.contacts import K_O_MAX
+from haptic_collab.server.objects.balloon import _factor_spd, _nested_dissection, vertex_areas
+from haptic_collab.server.objects.mesh import MeshError
+from haptic_collab.server.objects.patches import PatchCentres
+from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
+from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
+from haptic_collab.shared.types import FloatArray, IntArray
+
+#: Poisson's ratio: above -1 and below 0.5 (0.5 is incompressible, which P1 elements cannot do).
+Poisson = Annotated[float, Field(gt=-1.0, lt=0.5, allow_inf_nan=False, strict=True)]
+
+#: A flat bottom: nodes within this share of the object's height of its lowest z are fixed.
+_FLAT_BOTTOM = 1e-6
+
+#: The punch pressure ``1 / sqrt(1 - r^2)`` is evaluated at most at this ``r = d / a`` (its rim
+#: singularity is integrable; a vertex near the rim stands for the area around it).
+_RIM = 0.95
+
+
+@params_dataclass(frozen=True, slots=True)
+class FemParams:
+    """Material and numerical parameters of the FEM solid (SI units; docs/fem.md).
+
+    Defaults: healthy liver (E 5.5 kPa by transient elastography, Roulot et al. 2008; nu 0.45;
+    1060 kg/m^3), K_o about 190 N/m under the 15 mm finger pad on a large flat surface.
+
+    Parameters
+    ----------
+    young_pa : float
+        Young's modulus E [Pa] (> 0).
+    poisson : float
+        Poisson's ratio nu, in (-1, 0.5).
+    density_kg_m3 : float
+        Mass density rho [kg/m^3] (>= 0; 0 is the static model).
+    rayleigh_alpha : float
+        Mass-proportional damping alpha [1/s] (>= 0).
+    rayleigh_beta : float
+        Stiffness-proportional (Kelvin-Voigt) damping beta [s] (>= 0): viscosity over E.
+    n_modes : int
+        Modes that move dynamically (>= 0; 0 is the static model).
+    patch_radius_m : float
+        Radius a [m] of the finger pad, a rigid flat punch (> 0).
+    patch_spacing_m : float
+        Spacing [m] of the patch centres (cache keys) (> 0).
+    base_radius_m : float
+        Nodes within this distance [m] of the lowest point are fixed (>= 0).
+    sim_period_s : float
+        Simulation period N*T [s] (> 0) of one :meth:`FemSolid.step`.
+    cache_mb : float
+        Memory budget [MB] of the patch-solve cache (> 0; at least 16 patches are kept).
+
+    Raises
+    ------
+    pydantic.ValidationError
+        (a ValueError naming the field) A field out of its range above.
+    """
+
+    young_pa: PositiveFinite = 5.5e3
+    poisson: Poisson = 0.45
+    density_kg_m3: NonNegFinite = 1060.0
+    rayleigh_alpha: NonNegFinite = 0.0
+    rayleigh_beta: NonNegFinite = 0.01
+    n_modes: Annotated[int, Field(ge=0, le=400, strict=True)] = 24
+    patch_radius_m: PositiveFinite = 0.015
+    patch_spacing_m: PositiveFinite = 0.006
+    base_radius_m: NonNegFinite = 0.02
+    sim_period_s: PositiveFinite = 0.05
+    cache_mb: PositiveFinite = 128.0
+
+    @property
+    def lame(self) -> tuple[float, float]:
+        """Lame's ``(lambda, mu)`` [Pa]."""
+        e, nu = self.young_pa, self.poisson
+        return e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), e / (2.0 * (1.0 + nu))
+
+
+@dataclass(frozen=True, slots=True)
+class PunchPatch:
+    """A finger-pad patch: ``indices`` (k,) surface vertices, ``weights`` (k,) beta, ``normal`` (3,).
+
+    The load of a push ``f`` [N] is ``-f * weights[i] * normal`` at vertex ``indices[i]``;
+    ``key`` is the centre vertex (the cache key).
+    """
+
+    key: int
+    indices: IntArray
+    weights: FloatArray
+    normal: FloatArray
+
+
+@dataclass(slots=True)
+class _Solve:
+    """One patch's cached responses: static surface displacement and modal load."""
+
+    patch: PunchPatch
+    static: FloatArray  # (3n,) K^-1 b on the surface vertices [m/N]
+    modal: FloatArray  # (m,) Phi^T b
+
+
+def element_gradients(nodes: FloatArray, tets: IntArray) -> tuple[FloatArray, FloatArray]:
+    """Shape-function gradients and volumes of P1 tetrahedra.
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]; tets : (T, 4) int, positively oriented.
+
+    Returns
+    -------
+    (grads (T, 4, 3) [1/m], volumes (T,) [m^3])
+    """
+    x = nodes[tets]
+    d = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2)  # columns
+    inv = np.linalg.inv(d)  # rows: gradients of N1, N2, N3
+    grads = np.concatenate([-inv.sum(axis=1, keepdims=True), inv], axis=1)
+    return grads, np.linalg.det(d) / 6.0
+
+
+def stiffness_matrix(nodes: FloatArray, tets: IntArray, lam: float, mu: float) -> sp.csr_matrix:
+    """Linear elastic stiffness of P1 tetrahedra, ``K`` (3N, 3N) [N/m], dof ``3 * node + axis``.
+
+    ``K_e[a i, b j] = V (lambda g_ai g_bj + mu g_aj g_bi + mu (g_a . g_b) delta_ij)``: the
+    element stiffness ``V B^T D B`` written with Lame's constants (Zienkiewicz et al. 2013).
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]; tets : (T, 4) int, positively oriented.
+    lam, mu : float
+        Lame's constants [Pa].
+    """
+    g, vol = element_gradients(nodes, tets)
+    eye = np.eye(3)
+    ke = np.empty((len(tets), 4, 3, 4, 3))
+    for a in range(4):
+        for b in range(a, 4):
+            ga, gb = g[:, a], g[:, b]
+            block = (
+                lam * ga[:, :, None] * gb[:, None, :]
+                + mu * gb[:, :, None] * ga[:, None, :]
+                + mu * np.einsum("tk,tk->t", ga, gb)[:, None, None] * eye
+            ) * vol[:, None, None]
+            ke[:, a, :, b, :] = block
+            ke[:, b, :, a, :] = block.transpose(0, 2, 1)
+    dof = (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(len(tets), 12)
+    rows = np.repeat(dof, 12, axis=1).ravel()
+    cols = np.tile(dof, (1, 12)).ravel()
+    n = 3 * len(nodes)
+    k = sp.coo_matrix((ke.reshape(-1), (rows, cols)), shape=(n, n)).tocsr()
+    return (0.5 * (k + k.T)).tocsr()
+
+
+def lumped_mass(nodes: FloatArray, tets: IntArray, density: float) -> FloatArray:
+    """Lumped nodal masses [kg], (N,): a quarter of each element's ``rho V``."""
+    _, vol = element_gradients(nodes, tets)
+    return np.asarray(
+        np.bincount(tets.ravel(), weights=np.repeat(density * vol / 4.0, 4), minlength=len(nodes)),
+        dtype=np.float64,
+    )
+
+
+def _zoh_modes(omega: FloatArray, zeta: FloatArray, h: float) -> tuple[FloatArray, FloatArray]:
+    """Exact one-step maps of ``q'' + 2 zeta w q' + w^2 q = p`` for p held over ``h`` [s].
+
+    Returns ``A`` (m, 2, 2) and ``B`` (m, 2): ``[q, q']_{k+1} = A [q, q']_k + B p_k``.
+    """
+    a_out = np.empty((len(omega), 2, 2))
+    b_out = np.empty((len(omega), 2))
+    for k, (w, z) in enumerate(zip(omega, zeta, strict=True)):
+        sys_ = np.zeros((3, 3))
+        sys_[0, 1] = 1.0
+        sys_[1, 0] = -w * w
+        sys_[1, 1] = -2.0 * z * w
+        sys_[1, 2] = 1.0
+        e = sla.expm(sys_ * h)
+        a_out[k] = e[:2, :2]
+        b_out[k] = e[:2, 2]
+    return a_out, b_out
+
+
+class FemSolid:
+    """Linear elastic tetrahedral solid: loads in, surface displacements out (module docstring).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        A closed, outward-wound, single-body surface in metres
+        (:func:`server.objects.mesh.load_mesh`).
+    params : FemParams, optional
+    volume : (nodes (N, 3), tets (T, 4)), optional
+        A volume mesh whose first ``n`` nodes are the surface's vertices; default
+        :func:`server.objects.volume.volume_mesh` (TetGen, cached).
+    cache_dir : path, optional
+        Where volume meshes are cached (:func:`server.objects.volume.default_cache_dir`).
+
+    Raises
+    ------
+    MeshError
+        The surface is not closed or not one body; no volume mesh can be made; a degenerate
+        tetrahedron; every node fixed or none.
+
+    Notes
+    -----
+    Cost at start: the volume mesh (TetGen, or the cache), one sparse factorisation of ``K`` and
+    ``n_modes`` eigenpairs (``haptic bench server --object fem`` measures them). A step is one
+    small product per loaded contact and one of the surface's modal shapes (3n x n_modes); a
+    contact whose patch is not cached costs one sparse solve (batched).
+    """
+
+    def __init__(
+        self,
+        mesh: trimesh.Trimesh,
+        params: FemParams | None = None,
+        volume: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
+        cache_dir: str | None = None,
+    ) -> None:
+        self.params = p = params if params is not None else FemParams()
+        verts = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+        faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        if len(faces) == 0 or not np.all(np.isfinite(verts)):
+            raise MeshError("FEM mesh has no faces or non-finite coordinates")
+        if not mesh.is_watertight or not float(mesh.volume) > 0.0:
+            raise MeshError("FEM mesh must be a closed surface enclosing a positive volume")
+        n = len(verts)
+        self._rest = verts
+        self._rest.setflags(write=False)
+        self._faces = faces.astype(np.int32)
+        self._faces.setflags(write=False)
+        normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+        self._normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+        self._areas = vertex_areas(verts, faces)
+        self._tree = cKDTree(verts)
+        if volume is None:
+            nodes, tets = volume_mesh(verts, faces, cache_dir=cache_dir)
+        else:
+            nodes, tets = check_volume_mesh(volume[0], volume[1], verts)
+        self.nodes, self.tets = nodes, tets
+        n_nodes = len(nodes)
+
+        # supported base: a ball around the lowest point and a flat bottom
+        z = nodes[:, 2]
+        lowest = int(np.argmin(z))
+        height = float(np.ptp(z)) or 1.0
+        fixed = (np.linalg.norm(nodes - nodes[lowest], axis=1) <= p.base_radius_m) | (
+            z - z[lowest] <= _FLAT_BOTTOM * height
+        )
+        fixed[lowest] = True
+        if fixed.all():
+            raise MeshError("FEM solid: every node is on the fixed base (base_radius_m too large)")
+        self.fixed_nodes = fixed
+
+        lam, mu = p.lame
+        k_full = stiffness_matrix(nodes, tets, lam, mu)
+        free_nodes = np.flatnonzero(~fixed)
+        adjacency = sp.coo_matrix(
+            (
+                np.ones(tets.size * 4),
+                (np.repeat(tets, 4, axis=1).ravel(), np.tile(tets, 4).ravel()),
+            ),
+            shape=(n_nodes, n_nodes),
+        ).tocsr()
+        node_order = free_nodes[
+            _nested_dissection(adjacency[free_nodes][:, free_nodes], nodes[free_nodes])
+        ]
+        self._dofs = (3 * node_order[:, None] + np.arange(3)).ravel()  # free dof of each row
+        k_free = sp.csc_matrix(k_full[self._dofs][:, self._dofs])
+        self._k_free = k_free
+        self._lu = _factor_spd(k_free)
+        # surface dof (3n) -> factored row, -1 if fixed
+        row_of = np.full(3 * n_nodes, -1, dtype=np.int64)
+        row_of[self._dofs] = np.arange(len(self._dofs))
+        self._surface_rows = row_of[: 3 * n]
+
+        # modes: K phi = w^2 M phi on the free dofs (mass-normalised)
+        self._omega = np.zeros(0)
+        self._phi_surface = np.zeros((3 * n, 0))
+        self._phi_rows = np.zeros((len(self._dofs), 0))
+        masses = lumped_mass(nodes, tets, p.density_kg_m3)
+        m_modes = min(p.n_modes, len(self._dofs) - 2)
+        if p.density_kg_m3 > 0.0 and m_modes > 0:
+            self._modes(np.repeat(masses, 3)[self._dofs], m_modes)
+        zeta = p.rayleigh_alpha / (2.0 * self._omega) + p.rayleigh_beta * self._omega / 2.0
+        self._zeta = zeta
+        self._a_modes, self._b_modes = _zoh_modes(self._omega, zeta, p.sim_period_s)
+        self._q = np.zeros((len(self._omega), 2))  # modal displacement and velocity
+        self.mass_kg = float(masses.sum())
+
+        self._centres = PatchCentres(verts, self._normals, p.patch_spacing_m)
+        self._cache: OrderedDict[int, _Solve] = OrderedDict()
+        self._cache_capacity = max(16, int(p.cache_mb * 1e6 // (3 * n * 8)))
+        self._u = np.zeros(3 * n)
+        self._max_disp = 0.0
+        self._solves = 0
+
+    def _modes(self, m_rows: FloatArray, count: int) -> None:
+        """The ``count`` lowest modes by shift-invert Lanczos (``sigma = 0``) on the factor."""
+        s = 1.0 / np.sqrt(m_rows)  # K' = M^-1/2 K M^-1/2, eigenvectors psi = M^1/2 phi
+        size = len(m_rows)
+        k_scaled = spla.LinearOperator(
+            (size, size), matvec=lambda x: s * (self._k_free @ (s * x)), dtype=np.float64
+        )
+        k_inv = spla.LinearOperator(
+            (size, size), matvec=lambda x: self._lu.solve(x / s) / s, dtype=np.float64
+        )
+        vals, vecs = spla.eigsh(k_scaled, k=count, sigma=0.0, OPinv=k_inv, which="LM")
+        order = np.argsort(vals)
+        vals, vecs = np.maximum(vals[order], 1e-12), vecs[:, order]
+        phi = vecs * s[:, None]  # mass-normalised: phi^T M phi = I
+        self._omega = np.sqrt(vals)
+        self._phi_rows = phi
+        surface = np.zeros((len(self._surface_rows), count))
+        ok = self._surface_rows >= 0
+        surface[ok] = phi[self._surface_rows[ok]]
+        self._phi_surface = surface
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def n_vertices(self) -> int:
+        """Number of surface vertices n."""
+        return len(self._rest)
+
+    @property
+    def rest_vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] surface rest positions (read-only)."""
+        return self._rest
+
+    @property
+    def rest_normals(self) -> FloatArray:
+        """(n, 3) float64 outward unit surface normals at rest."""
+        return self._normals
+
+    @property
+    def faces(self) -> npt.NDArray[np.int32]:
+        """(m, 3) int32 surface triangles, outward winding."""
+        return self._faces
+
+    @property
+    def vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] current surface positions (a new array)."""
+        return self._rest + self._u.reshape(-1, 3)
+
+    @property
+    def displacement(self) -> FloatArray:
+        """(n, 3) float64 [m] current surface displacement (a copy)."""
+        return self._u.reshape(-1, 3).copy()
+
+    @property
+    def max_displacement_m(self) -> float:
+        """Largest surface displacement [m]."""
+        return self._max_disp
+
+    @property
+    def sim_period_s(self) -> float:
+        """Simulation period N*T [s] of one :meth:`step`."""
+        return self.params.sim_period_s
+
+    @property
+    def patch_radius_m(self) -> float:
+        """Finger-pad (punch) radius a [m]."""
+        return self.params.patch_radius_m
+
+    @property
+    def natural_frequencies_hz(self) -> FloatArray:
+        """(n_modes,) the dynamic modes' natural frequencies [Hz], ascending."""
+        return self._omega / (2.0 * math.pi)
+
+    @property
+    def solve_count(self) -> int:
+        """Number of patch right-hand sides solved so far (cache misses)."""
+        return self._solves
+
+    def reset(self, clear_cache: bool = False) -> None:
+        """Return to rest (and, optionally, drop the patch cache)."""
+        self._u = np.zeros(3 * self.n_vertices)
+        self._q = np.zeros_like(self._q)
+        self._max_disp = 0.0
+        if clear_cache:
+            self._cache.clear()
+
+    # ------------------------------------------------------------------ patches
+    def patch_key(
+        self,
+        point: npt.ArrayLike,
+        previous: int | None = None,
+        normal: npt.ArrayLike | None = None,
+    ) -> int:
+        """Cache key of the patch for a contact at ``point`` (3,) [m] (the balloon's rule).
+
+        See :meth:`server.objects.patches.PatchCentres.key`.
+
+        Raises
+        ------
+        ValueError
+            ``point`` (or ``normal``) is not 3 finite numbers.
+        """
+        return self._centres.key(point, previous, normal)
+
+    def patch(self, key: int) -> PunchPatch:
+        """The punch patch centred at surface vertex ``key`` (module docstring).
+
+        Raises
+        ------
+        ValueError
+            ``key`` is not a vertex index.
+        """
+        if not 0 <= int(key) < self.n_vertices:
+            raise ValueError(
+                f"patch key must be a vertex index in [0, {self.n_vertices}), got {key}"
+            )
+        key = int(key)
+        a = self.params.patch_radius_m
+        normal = self._normals[key]
+        idx = np.asarray(self._tree.query_ball_point(self._rest[key], a), dtype=np.int64)
+        d = np.linalg.norm(self._rest[idx] - self._rest[key], axis=1)
+        keep = self._normals[idx] @ normal > 0.0  # the side pressed, not the far side
+        idx, d = idx[keep], d[keep]
+        wts = self._areas[idx] / np.sqrt(1.0 - np.minimum(d / a, _RIM) ** 2)
+        return PunchPatch(key=key, indices=idx, weights=wts / wts.sum(), normal=normal.copy())
+
+    def _load_rows(self, patches: Sequence[PunchPatch]) -> FloatArray:
+        """The patches' load vectors ``b`` on the factored rows, (rows, k)."""
+        rhs = np.zeros((len(self._dofs), len(patches)))
+        for j, pt in enumerate(patches):
+            dofs = (3 * pt.indices[:, None] + np.arange(3)).ravel()
+            vals = (pt.weights[:, None] * pt.normal[None, :]).ravel()
+            rows = self._surface_rows[dofs]
+            ok = rows >= 0
+            np.add.at(rhs[:, j], rows[ok], vals[ok])
+        return rhs
+
+    def _ensure(self, keys: Sequence[int]) -> list[_Solve]:
+        unique = list(dict.fromkeys(int(k) for k in keys))
+        missing = [k for k in unique if k not in self._cache]
+        if missing:
+            patches = [self.patch(k) for k in missing]
+            rhs = self._load_rows(patches)
+            xs = np.asarray(self._lu.solve(rhs), dtype=np.float64).reshape(len(rhs), -1)
+            modal = self._phi_rows.T @ rhs
+            self._solves += len(patches)
+            ok = self._surface_rows >= 0
+            for j, pt in enumerate(patches):
+                static = np.zeros(len(self._surface_rows))
+                static[ok] = xs[self._surface_rows[ok], j]
+                self._cache[pt.key] = _Solve(pt, static, modal[:, j].copy())
+        out = []
+        for k in keys:
+            self._cache.move_to_end(int(k))
+            out.append(self._cache[int(k)])
+        while len(self._cache) > max(self._cache_capacity, len(unique)):
+            self._cache.popitem(last=False)
+        return out
+
+    # ------------------------------------------------------------------ physics
+    def step(self, keys: Sequence[int], forces_n: npt.ArrayLike) -> None:
+        """Advance one simulation period under pushes ``forces_n`` [N] at patches ``keys``.
+
+        ``u = K^-1 F + Phi_s (q - Lambda^-1 Phi^T F)`` with the modes stepped exactly for the
+        force held over the period (module docstring); ``F = -sum_i f_i b_i``.
+
+        Parameters
+        ----------
+        keys : sequence of int, length m
+            Patch keys from :meth:`patch_key`.
+        forces_n : (m,) float [N]
+            Push magnitudes along the inward patch normal (negative values pull).
+
+        Raises
+        ------
+        ValueError
+            Lengths differ or a force is not finite. The state is unchanged.
+        """
+        f = np.asarray(forces_n, dtype=np.float64).reshape(-1)
+        if len(f) != len(keys):
+            raise ValueError(f"got {len(keys)} patch keys but {len(f)} forces")
+        if not np.all(np.isfinite(f)):
+            raise ValueError("forces must be finite")
+        solves = self._ensure(keys) if len(keys) else []
+        u = np.zeros(len(self._u))
+        p_modal = np.zeros(len(self._omega))
+        for s, fi in zip(solves, f, strict=True):
+            if fi != 0.0:
+                u -= fi * s.static
+                p_modal -= fi * s.modal
+        if len(self._omega):
+            self._q = (
+                np.einsum("kij,kj->ki", self._a_modes, self._q) + self._b_modes * p_modal[:, None]
+            )
+            u += self._phi_surface @ (self._q[:, 0] - p_modal / self._omega**2)
+        self._u = u
+        self._max_disp = float(np.max(np.linalg.norm(u.reshape(-1, 3), axis=1))) if len(u) else 0.0
+
+    def contact_compliance(self, keys: Sequence[int]) -> FloatArray:
+        """Normal compliance ``C_ij = b_i^T K^-1 b_j`` [m/N] of the contacts' punches.
+
+        Returns
+        -------
+        (m, m) float64 [m/N], symmetric positive semi-definite.
+        """
+        m = len(keys)
+        if m == 0:
+            return np.zeros((0, 0))
+        solves = self._ensure(keys)
+        c = np.empty((m, m))
+        for i, si in enumerate(solves):
+            dofs = (3 * si.patch.indices[:, None] + np.arange(3)).ravel()
+            b = (si.patch.weights[:, None] * si.patch.normal[None, :]).ravel()
+            for j, sj in enumerate(solves):
+                c[i, j] = float(b @ sj.static[dofs])
+        return 0.5 * (c + c.T)
+
+    def contact_stiffness(self, keys: Sequence[int]) -> FloatArray:
+        """``K_o,i = 1 / C_ii`` [N/m] per contact (paper eq. 6-8), at most :data:`K_O_MAX`."""
+        c = np.diag(self.contact_compliance(keys))
+        return np.where(c > 1.0 / K_O_MAX, 1.0 / np.maximum(c, 1e-300), K_O_MAX)
+
+    def contact_damping(self, keys: Sequence[int]) -> FloatArray:
+        """The paper's ``B_o`` [N/m] per contact: the one-tick stiffness less the static one.
+
+        From rest, a step push ``f`` moves the patch in one period by ``c_tick f`` with
+        ``c_tick = C_ii - psi^T Lambda^-1 psi + psi^T diag(B_q) psi`` (``psi = Phi^T b``, ``B_q``
+        the modes' zero-order-hold step response), so ``B_o = 1 / c_tick - K_o`` (>= 0; 0 for the
+        static model).
+
+        Returns
+        -------
+        (m,) float64 [N/m].
+        """
+        m = len(keys)
+        if m == 0 or len(self._omega) == 0:
+            return np.zeros(m)
+        c = np.diag(self.contact_compliance(keys))
+        solves = self._ensure(keys)
+        out = np.zeros(m)
+        for i, s in enumerate(solves):
+            psi = s.modal
+            c_tick = (
+                c[i]
+                - float(psi @ (psi / self._omega**2))
+                + float(psi @ (self._b_modes[:, 0] * psi))
+            )
+            if c[i] > 1.0 / K_O_MAX and c_tick > 0.0:
+                out[i] = max(0.0, 1.0 / c_tick - 1.0 / c[i])
+        return out

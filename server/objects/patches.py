@@ -1,0 +1,100 @@
+"""Finger-pad patch centres on a closed surface: the cache keys of contact load patches.
+
+Both deformable objects (:mod:`server.objects.balloon`, :mod:`server.objects.fem`) spread a
+contact's push over a finger-pad patch around a *patch centre*, a vertex, and cache the solve of
+each patch by that centre. Centres are one vertex per cubic cell of side ``spacing_m`` (the one
+closest to the cell's centre) and per facing (the rest normal's dominant axis and sign), so both
+sides of a part thinner than a cell, and both faces at an edge, have centres of their own.
+
+Nothing here uses threads, sockets or clocks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from haptic_collab.shared.types import FloatArray, IntArray
+
+#: A contact keeps its patch centre while within this many patch spacings of it (hysteresis).
+HYSTERESIS = 0.75
+
+
+class PatchCentres:
+    """The patch centres of a surface and the rule that picks one for a contact.
+
+    Parameters
+    ----------
+    rest : (n, 3) float [m]
+        Rest vertex positions.
+    normals : (n, 3) float
+        Outward unit rest normals.
+    spacing_m : float
+        Cell side [m] (> 0): about the distance between centres.
+    """
+
+    def __init__(self, rest: FloatArray, normals: FloatArray, spacing_m: float) -> None:
+        self._rest = rest
+        self._normals = normals
+        self._spacing = float(spacing_m)
+        n = len(rest)
+        s = self._spacing
+        cell = np.floor((rest - rest.min(axis=0)) / s).astype(np.int64)
+        cell_centre = (cell + 0.5) * s + rest.min(axis=0)
+        axis = np.argmax(np.abs(normals), axis=1)
+        facing = 2 * axis + (normals[np.arange(n), axis] < 0.0)
+        _, cell_id = np.unique(np.column_stack([cell, facing]), axis=0, return_inverse=True)
+        cell_id = cell_id.ravel()
+        dist = np.linalg.norm(rest - cell_centre, axis=1)
+        order = np.lexsort((dist, cell_id))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = cell_id[order][1:] != cell_id[order][:-1]
+        self.centres: IntArray = np.sort(order[first]).astype(np.int64)
+        self._tree = cKDTree(rest[self.centres])
+
+    def key(
+        self,
+        point: npt.ArrayLike,
+        previous: int | None = None,
+        normal: npt.ArrayLike | None = None,
+    ) -> int:
+        """The patch centre (a vertex index) for a contact at ``point`` (3,) [m].
+
+        With ``previous`` (the key this contact had last tick), that key is kept while the point
+        stays within ``0.75 * spacing_m`` of its centre along the surface: hysteresis, so a
+        contact jittering on a cell boundary does not make its load jump back and forth.
+
+        With ``normal`` (3,), the contact's outward normal, only centres whose rest normal faces
+        the same way (positive dot product) are taken, when one is among the 8 nearest: a push on
+        one side of a part thinner than a patch is not put on the other side.
+
+        Raises
+        ------
+        ValueError
+            ``point`` (or ``normal``) is not 3 finite numbers.
+        """
+        q = np.asarray(point, dtype=np.float64)
+        if q.shape != (3,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"point must be 3 finite numbers [m], got {point!r}")
+        nq: FloatArray | None = None
+        if normal is not None:
+            nq = np.asarray(normal, dtype=np.float64)
+            if nq.shape != (3,) or not np.all(np.isfinite(nq)):
+                raise ValueError(f"normal must be 3 finite numbers, got {normal!r}")
+        if previous is not None and 0 <= previous < len(self._rest):
+            d = q - self._rest[previous]
+            n = self._normals[previous]
+            tangential = d - float(d @ n) * n
+            near = float(tangential @ tangential) <= (HYSTERESIS * self._spacing) ** 2
+            if near and (nq is None or float(n @ nq) > 0.0):
+                return int(previous)
+        if nq is None:
+            _, i = self._tree.query(q)
+            return int(self.centres[int(i)])
+        k = min(8, len(self.centres))
+        _, ids = self._tree.query(q, k=k)
+        ids = np.atleast_1d(ids)
+        centres = self.centres[ids]
+        facing = self._normals[centres] @ nq > 0.0
+        return int(centres[int(np.argmax(facing))] if facing.any() else centres[0])
