@@ -14,8 +14,8 @@ are the surface mesh's own.
 ``E`` [Pa] and Poisson's ratio ``nu``, Lame ``lambda = E nu / ((1 + nu)(1 - 2 nu))`` and
 ``mu = E / (2 (1 + nu))``; each element's stiffness is ``V B^T D B`` (Zienkiewicz, Taylor and
 Zhu 2013, ch. 6), assembled into ``K`` (3N x 3N) [N/m]. The supported base is fixed (``u = 0``):
-the nodes within ``base_radius_m`` of the lowest point and, for an object with a flat bottom,
-every node on it. ``K`` on the free nodes is factored once at start (geometric nested
+every node within ``base_share`` (20 %) of the object's height of its lowest point, as if it sat
+in a cradle (a flat bottom is always fixed). ``K`` on the free nodes is factored once at start (geometric nested
 dissection, the balloon's).
 
 **Contacts.** A push ``f`` [N] at a contact is a *rigid flat punch* of radius ``a``
@@ -125,8 +125,10 @@ class FemParams:
         Radius a [m] of the finger pad, a rigid flat punch (> 0).
     patch_spacing_m : float
         Spacing [m] of the patch centres (cache keys) (> 0).
-    base_radius_m : float
-        Nodes within this distance [m] of the lowest point are fixed (>= 0).
+    base_share : float
+        The supported base: every node within this share of the object's height of its lowest
+        point is fixed, in [0, 1) (0.2: the object sits in a cradle a fifth of its height deep; a
+        solid held at a point would rock on it; at least the lowest node is always fixed).
     sim_period_s : float
         Simulation period N*T [s] (> 0) of one :meth:`FemSolid.step`.
     cache_mb : float
@@ -146,7 +148,7 @@ class FemParams:
     n_modes: Annotated[int, Field(ge=0, le=400, strict=True)] = 24
     patch_radius_m: PositiveFinite = 0.015
     patch_spacing_m: PositiveFinite = 0.006
-    base_radius_m: NonNegFinite = 0.02
+    base_share: Annotated[float, Field(ge=0.0, lt=1.0, allow_inf_nan=False, strict=True)] = 0.2
     sim_period_s: PositiveFinite = 0.05
     cache_mb: PositiveFinite = 128.0
 
@@ -322,12 +324,10 @@ class FemSolid:
         z = nodes[:, 2]
         lowest = int(np.argmin(z))
         height = float(np.ptp(z)) or 1.0
-        fixed = (np.linalg.norm(nodes - nodes[lowest], axis=1) <= p.base_radius_m) | (
-            z - z[lowest] <= _FLAT_BOTTOM * height
-        )
+        fixed = z - z[lowest] <= max(p.base_share, _FLAT_BOTTOM) * height
         fixed[lowest] = True
         if fixed.all():
-            raise MeshError("FEM solid: every node is on the fixed base (base_radius_m too large)")
+            raise MeshError("FEM solid: every node is on the fixed base (base_share too large)")
         self.fixed_nodes = fixed
 
         lam, mu = p.lame
