@@ -116,9 +116,12 @@ def test_a_push_moves_the_surface_under_another_user(ball, cache):
     assert np.linalg.norm(after - before) > 1e-4  # 1 N on the top moves a point 2 cm away
 
 
-def test_a_solid_with_mass_gives_way_over_time_and_settles_where_the_static_one_is(ball, cache):
-    static = FemSolid(ball, FemParams(n_modes=0), cache_dir=cache)
-    dynamic = FemSolid(ball, FemParams(n_modes=24, rayleigh_beta=0.02), cache_dir=cache)
+def test_a_solid_with_mass_lags_and_rings_then_settles_where_the_static_one_is(ball, cache):
+    """A soft gel ball (E 1 kPa, lowest mode 1.5 Hz) under a held 0.5 N push, 20 Hz ticks."""
+    static = FemSolid(ball, FemParams(young_pa=1.0e3, n_modes=0), cache_dir=cache)
+    dynamic = FemSolid(
+        ball, FemParams(young_pa=1.0e3, n_modes=24, rayleigh_beta=0.02), cache_dir=cache
+    )
     key = static.patch_key([0.0, 0.0, 0.05], normal=[0, 0, 1])
     assert dynamic.patch_key([0.0, 0.0, 0.05], normal=[0, 0, 1]) == key
     idx = static.patch(key).indices
@@ -128,27 +131,33 @@ def test_a_solid_with_mass_gives_way_over_time_and_settles_where_the_static_one_
 
     static.step([key], [0.5])
     track = []
-    for _ in range(60):  # 3 s at 20 Hz
+    for _ in range(60):  # 3 s
         dynamic.step([key], [0.5])
-        track.append(depth(dynamic))
-    assert depth(static) > 0.0
-    assert dynamic.natural_frequencies_hz[0] > 0.0
-    assert track[0] != pytest.approx(depth(static), rel=0.05)  # inertia: not there at once
-    assert track[-1] == pytest.approx(depth(static), rel=0.02)  # and it settles there
-    assert dynamic.contact_damping([key])[0] >= 0.0
+        track.append(depth(dynamic) / depth(static))
+    assert 1.0 < dynamic.natural_frequencies_hz[0] < 3.0
+    assert track[0] < 0.9  # inertia: not there in the first tick
+    assert max(track) > 1.05  # it overshoots and rings
+    assert track[-1] == pytest.approx(1.0, abs=0.01)  # and settles at the static dent
+    assert dynamic.contact_damping([key])[0] > 0.0  # the mass holds the first tick back: B_o
     assert static.contact_damping([key])[0] == 0.0
 
 
 def test_the_fem_solid_runs_in_the_world_with_two_users(ball, cache):
+    """Two probes held in the ball, each pushed back by half its K_o_eff (a slow-loop stable
+    coupling): both settle in contact, the object's stiffness reported where the design needs it."""
     world = World(FemSolid(ball, FemParams(n_modes=8), cache_dir=cache))
     probes = {"A": np.array([0.0, 0.0, 0.047]), "B": np.array([0.047, 0.0, 0.0])}
     force = {"A": np.zeros(3), "B": np.zeros(3)}
-    for _ in range(40):
+    depths: dict[str, list[float]] = {"A": [], "B": []}
+    for _ in range(60):
         out = world.tick({u: ContactInput(probe=probes[u], force=force[u]) for u in probes})
         for u in probes:
-            force[u] = out[u].normal * 200.0 * max(out[u].penetration_m, 0.0)
+            force[u] = out[u].normal * 0.5 * out[u].k_o_eff * max(out[u].penetration_m, 0.0)
+            depths[u].append(out[u].penetration_m)
     for u in probes:
-        assert out[u].in_contact
+        last = np.array(depths[u][-10:])
+        assert np.all(last > 0.0)  # in contact
+        assert np.ptp(last) < 1e-4  # settled, not oscillating
         assert 10.0 < out[u].k_o < 1.0e4
         assert out[u].k_o_eff <= out[u].k_o + 1e-9
         assert np.all(np.isfinite(out[u].proxy))
