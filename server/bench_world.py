@@ -222,6 +222,49 @@ def _bench_mesh(
     return {"n_vertices": n, "build_s": build_s, "runs": runs}
 
 
+def bench_fem(
+    n_vertices_list: Sequence[int] = (642, 2562, 10242),
+    users: int = 8,
+    ticks: int = 100,
+    seed: int = 0,
+    warmup: int = 3,
+) -> dict[str, Any]:
+    """Start-up and tick cost of the FEM solid (``--object fem``, liver) on icospheres.
+
+    For each surface size: the volume mesh (TetGen in its own process, not cached), the
+    assembly, the one sparse factorisation (geometric nested dissection, SuperLU without
+    pivoting) and the modes [s]; then :meth:`World.tick` with ``users`` users pressing and
+    drifting, as :func:`bench_world` [ms].
+
+    Returns
+    -------
+    dict
+        JSON-able: ``{"benchmark": "fem", "meshes": [{"n_vertices", "nodes", "tetrahedra",
+        "dofs", "volume_mesh_s", "assembly_s", "factor_s", "modes_s", "factor_nnz",
+        "users", "median_ms", "p99_ms", "max_ms", ...}]}``.
+    """
+    import tempfile
+
+    from haptic_collab.server.objects.fem import FemParams, FemSolid
+
+    meshes = []
+    with single_thread_blas() as limited, tempfile.TemporaryDirectory() as cache:
+        for n in n_vertices_list:
+            if n not in _SUBDIVISIONS:
+                raise ValueError(f"{n} is not an icosphere vertex count (10 * 4**s + 2)")
+            obj = FemSolid(default_balloon(0.1, _SUBDIVISIONS[n]), FemParams(), cache_dir=cache)
+            row: dict[str, Any] = {
+                "n_vertices": n,
+                "nodes": len(obj.nodes),
+                "tetrahedra": len(obj.tets),
+                "factor_nnz": int(obj.factor_nnz),
+                **obj.timings,
+            }
+            row.update(_run_users(World(obj), users, ticks, warmup, seed))
+            meshes.append(row)
+    return {"benchmark": "fem", "blas_libraries_single_threaded": limited, "meshes": meshes}
+
+
 #: Phases of the press :func:`bench_viewer_stream` streams: (name, seconds).
 PRESS_PHASES = (("rest", 1.0), ("press", 1.5), ("hold", 3.0), ("release", 1.0), ("after", 2.0))
 
@@ -405,10 +448,11 @@ def measure() -> dict[str, Any]:
     -------
     dict
         The :func:`bench_world` result with ``viewer_stream`` (:func:`bench_viewer_stream`) and
-        ``gain_advice`` (:func:`bench_gain_advice`) added. Prints nothing (``haptic bench``
+        ``gain_advice`` (:func:`bench_gain_advice`) and ``fem`` (:func:`bench_fem`) added. Prints nothing (``haptic bench``
         prints it once, as JSON).
     """
     result = bench_world()
+    result["fem"] = bench_fem()
     result["viewer_stream"] = bench_viewer_stream()
     result["gain_advice"] = bench_gain_advice()
     return result
@@ -440,6 +484,13 @@ def run(json_out: bool) -> dict[str, Any]:
                     f"p99 {r['p99_ms']:.2f} ms, {r['solves_per_tick']:.2f} solves/tick "
                     f"(closest point every tick: median {r['closest_median_ms']:.2f} ms)"
                 )
+        for row in result["fem"]["meshes"]:
+            print(
+                f"FEM {row['n_vertices']:>6} vertices, {row['nodes']} nodes: volume mesh "
+                f"{row['volume_mesh_s']:.1f} s, factor {row['factor_s']:.1f} s, modes "
+                f"{row['modes_s']:.1f} s; {row['users']} users: median {row['median_ms']:.2f} ms, "
+                f"p99 {row['p99_ms']:.2f} ms"
+            )
         print(
             f"viewer bytes/s at {stream['n_vertices']} vertices, {stream['sim_rate_hz']:g} Hz, "
             f"a {stream['dent_m'] * 1e3:.1f} mm press (payload / on the wire, kB/s):"

@@ -67,6 +67,7 @@ Nothing here uses threads, sockets or clocks (the volume mesh may come from a ch
 from __future__ import annotations
 
 import math
+import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -313,12 +314,16 @@ class FemSolid:
         self._normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
         self._areas = vertex_areas(verts, faces)
         self._tree = cKDTree(verts)
+        clock = time.perf_counter()
+        #: seconds of each start-up step (``haptic bench server`` reports them)
+        self.timings: dict[str, float] = {}
         if volume is None:
             nodes, tets = volume_mesh(verts, faces, cache_dir=cache_dir)
         else:
             nodes, tets = check_volume_mesh(volume[0], volume[1], verts)
         self.nodes, self.tets = nodes, tets
         n_nodes = len(nodes)
+        self.timings["volume_mesh_s"] = time.perf_counter() - clock
 
         # supported base: a ball around the lowest point and a flat bottom
         z = nodes[:, 2]
@@ -346,7 +351,10 @@ class FemSolid:
         self._dofs = (3 * node_order[:, None] + np.arange(3)).ravel()  # free dof of each row
         k_free = sp.csc_matrix(k_full[self._dofs][:, self._dofs])
         self._k_free = k_free
+        self.timings["assembly_s"] = time.perf_counter() - clock - self.timings["volume_mesh_s"]
+        clock = time.perf_counter()
         self._lu = _factor_spd(k_free)
+        self.timings["factor_s"] = time.perf_counter() - clock
         # surface dof (3n) -> factored row, -1 if fixed
         row_of = np.full(3 * n_nodes, -1, dtype=np.int64)
         row_of[self._dofs] = np.arange(len(self._dofs))
@@ -358,8 +366,10 @@ class FemSolid:
         self._phi_rows = np.zeros((len(self._dofs), 0))
         masses = lumped_mass(nodes, tets, p.density_kg_m3)
         m_modes = min(p.n_modes, len(self._dofs) - 2)
+        clock = time.perf_counter()
         if p.density_kg_m3 > 0.0 and m_modes > 0:
             self._modes(np.repeat(masses, 3)[self._dofs], m_modes)
+        self.timings["modes_s"] = time.perf_counter() - clock
         zeta = p.rayleigh_alpha / (2.0 * self._omega) + p.rayleigh_beta * self._omega / 2.0
         self._zeta = zeta
         self._a_modes, self._b_modes = _zoh_modes(self._omega, zeta, p.sim_period_s)
@@ -439,6 +449,11 @@ class FemSolid:
     def patch_radius_m(self) -> float:
         """Finger-pad (punch) radius a [m]."""
         return self.params.patch_radius_m
+
+    @property
+    def factor_nnz(self) -> int:
+        """Non-zeros of the stiffness factor (L and U) on the free degrees of freedom."""
+        return int(self._lu.L.nnz + self._lu.U.nnz)
 
     @property
     def natural_frequencies_hz(self) -> FloatArray:
