@@ -419,6 +419,37 @@ def _suggest(key: str, known: tuple[str, ...]) -> str:
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
+def check_table_keys(
+    data: Mapping[str, object],
+    where: str,
+    required: tuple[str, ...],
+    optional: tuple[str, ...],
+    units: Mapping[str, str],
+) -> None:
+    """Refuse a material table with an unknown key (naming the closest known one) or a missing one.
+
+    Raises
+    ------
+    MaterialError
+        ``WHERE: unknown key ...`` or ``WHERE: missing required key ... [unit]``.
+    """
+    known = required + optional
+    unknown = [k for k in data if k not in known]
+    if unknown:
+        k = unknown[0]
+        raise MaterialError(
+            f"{where}: unknown key {k!r}{_suggest(k, known)}; known keys: {', '.join(known)}"
+        )
+    missing = [k for k in required if k not in data]
+    if missing:
+        unit = units.get(missing[0])
+        raise MaterialError(
+            f"{where}: missing required key {missing[0]!r}"
+            + (f" [{unit}]" if unit else "")
+            + (f" (also missing: {', '.join(missing[1:])})" if len(missing) > 1 else "")
+        )
+
+
 def material_from_mapping(data: Mapping[str, object], where: str, default_name: str) -> Material:
     """A :class:`Material` from a TOML table (or any mapping), strictly checked.
 
@@ -438,19 +469,7 @@ def material_from_mapping(data: Mapping[str, object], where: str, default_name: 
         wrong type, NaN/inf or negative (zero tension), or a blank name. The message starts with
         ``where`` and names the key, e.g. ``WHERE: bending_n_m must be >= 0 [N*m], got -1e-06``.
     """
-    known = REQUIRED_KEYS + OPTIONAL_KEYS
-    unknown = [k for k in data if k not in known]
-    if unknown:
-        k = unknown[0]
-        raise MaterialError(
-            f"{where}: unknown key {k!r}{_suggest(k, known)}; known keys: {', '.join(known)}"
-        )
-    missing = [k for k in REQUIRED_KEYS if k not in data]
-    if missing:
-        raise MaterialError(
-            f"{where}: missing required key {missing[0]!r} [{_UNITS[missing[0]]}]"
-            + (f" (also missing: {', '.join(missing[1:])})" if len(missing) > 1 else "")
-        )
+    check_table_keys(data, where, REQUIRED_KEYS, OPTIONAL_KEYS, _UNITS)
     for key in ("name", "source"):
         if key in data and not isinstance(data[key], str):
             raise MaterialError(f"{where}: {key} must be a string, got {data[key]!r}")

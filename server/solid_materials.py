@@ -52,14 +52,14 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from haptic_collab.server.materials import MaterialError, _suggest
+from haptic_collab.server.materials import MaterialError, _suggest, check_table_keys
 from haptic_collab.server.objects.fem import FemParams, Poisson
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, describe, params_dataclass
 
 #: Numeric keys of a solid material file, with their units.
 _UNITS: dict[str, str] = {
     "young_pa": "Pa",
-    "poisson": "",
+    "poisson": "1",
     "density_kg_m3": "kg/m^3",
     "rayleigh_alpha_per_s": "1/s",
     "rayleigh_beta_s": "s",
@@ -154,16 +154,7 @@ def solid_from_mapping(data: Mapping[str, object], where: str, default_name: str
         material says where its numbers come from), a wrong type or a value out of range; the
         message starts with ``where`` and names the key.
     """
-    known = REQUIRED_KEYS + OPTIONAL_KEYS
-    unknown = [k for k in data if k not in known]
-    if unknown:
-        k = unknown[0]
-        raise MaterialError(
-            f"{where}: unknown key {k!r}{_suggest(k, known)}; known keys: {', '.join(known)}"
-        )
-    missing = [k for k in REQUIRED_KEYS if k not in data]
-    if missing:
-        raise MaterialError(f"{where}: missing required key {missing[0]!r}")
+    check_table_keys(data, where, REQUIRED_KEYS, OPTIONAL_KEYS, _UNITS)
     for key in ("name", "source"):
         if key in data and not (isinstance(data[key], str) and str(data[key]).strip()):
             raise MaterialError(f"{where}: {key} must be a non-empty string, got {data[key]!r}")

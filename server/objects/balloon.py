@@ -60,7 +60,6 @@ Nothing here uses threads, sockets or clocks.
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -74,7 +73,7 @@ from scipy.spatial import cKDTree
 
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.mesh import MeshError, default_balloon
-from haptic_collab.server.objects.patches import PatchCentres
+from haptic_collab.server.objects.patches import PatchCache, PatchCentres
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
 
@@ -427,12 +426,11 @@ class Balloon:
 
         self._centres = PatchCentres(verts, self._normals, p.patch_spacing_m)
 
-        self._cache: OrderedDict[int, _Solve] = OrderedDict()
         per_patch = n * 8 * (2 if self._damped is not None else 1)
-        self._cache_capacity = max(16, int(p.cache_mb * 1e6 // per_patch))
+        capacity = max(16, int(p.cache_mb * 1e6 // per_patch))
+        self._cache: PatchCache[_Solve] = PatchCache(capacity, self._solve_patches)
         self._w = np.zeros(n)
         self._max_disp = 0.0
-        self._solves = 0
 
     # ------------------------------------------------------------------ validation
     @staticmethod
@@ -526,7 +524,7 @@ class Balloon:
     @property
     def solve_count(self) -> int:
         """Number of patch right-hand sides solved so far (cache misses)."""
-        return self._solves
+        return self._cache.solves
 
     def reset(self, clear_cache: bool = False) -> None:
         """Return to the rest shape (w = 0); optionally drop the patch cache."""
@@ -565,7 +563,7 @@ class Balloon:
         ValueError
             ``key`` is not a vertex index.
         """
-        solved = self._cache.get(int(key))
+        solved = self._cache.peek(int(key))
         if solved is not None:
             return solved.patch
         return self._make_patch(int(key))
@@ -584,35 +582,25 @@ class Balloon:
         idx, wts = idx[keep], wts[keep]
         return LoadPatch(key=key, indices=idx, weights=wts / wts.sum())
 
-    def _ensure(self, keys: Sequence[int]) -> list[_Solve]:
-        """Cached solves for ``keys``, solving all misses in one batched call."""
-        unique = list(dict.fromkeys(int(k) for k in keys))
-        missing = [k for k in unique if k not in self._cache]
-        if missing:
-            patches = [self._make_patch(k) for k in missing]
-            nf = len(self._order)
-            rhs = np.zeros((nf, len(patches)))
-            for j, pt in enumerate(patches):
-                rows = self._row_of[pt.indices]
-                ok = rows >= 0
-                rhs[rows[ok], j] = pt.weights[ok]
-            xs = self._static.solve(rhs)
-            xds = self._damped.solve(rhs) if self._damped is not None else None
-            self._solves += len(patches)
-            for j, pt in enumerate(patches):
-                x = np.zeros(self.n_vertices)
-                x[self._order] = xs[:, j]
-                xd = None
-                if xds is not None:
-                    xd = np.zeros(self.n_vertices)
-                    xd[self._order] = xds[:, j]
-                self._cache[pt.key] = _Solve(pt, x, xd)
+    def _solve_patches(self, keys: list[int]) -> list[_Solve]:
+        """One batched solve of the patches centred at ``keys`` (the cache's misses)."""
+        patches = [self._make_patch(k) for k in keys]
+        rhs = np.zeros((len(self._order), len(patches)))
+        for j, pt in enumerate(patches):
+            rows = self._row_of[pt.indices]
+            ok = rows >= 0
+            rhs[rows[ok], j] = pt.weights[ok]
+        xs = self._static.solve(rhs)
+        xds = self._damped.solve(rhs) if self._damped is not None else None
         out = []
-        for k in keys:
-            self._cache.move_to_end(int(k))
-            out.append(self._cache[int(k)])
-        while len(self._cache) > max(self._cache_capacity, len(unique)):
-            self._cache.popitem(last=False)
+        for j, pt in enumerate(patches):
+            x = np.zeros(self.n_vertices)
+            x[self._order] = xs[:, j]
+            xd = None
+            if xds is not None:
+                xd = np.zeros(self.n_vertices)
+                xd[self._order] = xds[:, j]
+            out.append(_Solve(pt, x, xd))
         return out
 
     # ------------------------------------------------------------------ physics
@@ -640,7 +628,7 @@ class Balloon:
             raise ValueError(f"got {len(keys)} patch keys but {len(f)} forces")
         if not np.all(np.isfinite(f)):
             raise ValueError("forces must be finite")
-        solves = self._ensure(keys) if len(keys) else []
+        solves = self._cache.get(keys) if len(keys) else []
         if self._damped is None:
             w = np.zeros(self.n_vertices)
             for s, fi in zip(solves, f, strict=True):
@@ -675,7 +663,7 @@ class Balloon:
         m = len(keys)
         if m == 0:
             return np.zeros((0, 0))
-        solves = self._ensure(keys)
+        solves = self._cache.get(keys)
         rows = np.unique(np.concatenate([s.patch.indices for s in solves]))
         xs = np.empty((len(rows), m))  # the solves, only on the patches' vertices
         for j, s in enumerate(solves):
@@ -703,7 +691,7 @@ class Balloon:
         m = len(keys)
         if self._damped is None or m == 0:
             return np.zeros(m)
-        solves = self._ensure(keys)
+        solves = self._cache.get(keys)
         out = np.empty(m)
         for i, s in enumerate(solves):
             wts, idx = s.patch.weights, s.patch.indices

@@ -68,7 +68,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Annotated
@@ -85,7 +84,7 @@ from scipy.spatial import cKDTree
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.balloon import _factor_spd, _nested_dissection, vertex_areas
 from haptic_collab.server.objects.mesh import MeshError
-from haptic_collab.server.objects.patches import PatchCentres
+from haptic_collab.server.objects.patches import PatchCache, PatchCentres
 from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
@@ -181,6 +180,8 @@ class _Solve:
     patch: PunchPatch
     static: FloatArray  # (3n,) K^-1 b on the surface vertices [m/N]
     modal: FloatArray  # (m,) Phi^T b
+    c_static: float  # b^T K^-1 b [m/N]
+    c_tick: float  # the patch's one-tick compliance from rest [m/N] (contact_damping)
 
 
 def element_gradients(nodes: FloatArray, tets: IntArray) -> tuple[FloatArray, FloatArray]:
@@ -377,11 +378,10 @@ class FemSolid:
         self.mass_kg = float(masses.sum())
 
         self._centres = PatchCentres(verts, self._normals, p.patch_spacing_m)
-        self._cache: OrderedDict[int, _Solve] = OrderedDict()
-        self._cache_capacity = max(16, int(p.cache_mb * 1e6 // (3 * n * 8)))
+        capacity = max(16, int(p.cache_mb * 1e6 // (3 * n * 8)))
+        self._cache: PatchCache[_Solve] = PatchCache(capacity, self._solve_patches)
         self._u = np.zeros(3 * n)
         self._max_disp = 0.0
-        self._solves = 0
 
     def _modes(self, m_rows: FloatArray, count: int) -> None:
         """The ``count`` lowest modes by shift-invert Lanczos (``sigma = 0``) on the factor."""
@@ -463,7 +463,7 @@ class FemSolid:
     @property
     def solve_count(self) -> int:
         """Number of patch right-hand sides solved so far (cache misses)."""
-        return self._solves
+        return self._cache.solves
 
     def reset(self, clear_cache: bool = False) -> None:
         """Return to rest (and, optionally, drop the patch cache)."""
@@ -524,26 +524,23 @@ class FemSolid:
             np.add.at(rhs[:, j], rows[ok], vals[ok])
         return rhs
 
-    def _ensure(self, keys: Sequence[int]) -> list[_Solve]:
-        unique = list(dict.fromkeys(int(k) for k in keys))
-        missing = [k for k in unique if k not in self._cache]
-        if missing:
-            patches = [self.patch(k) for k in missing]
-            rhs = self._load_rows(patches)
-            xs = np.asarray(self._lu.solve(rhs), dtype=np.float64).reshape(len(rhs), -1)
-            modal = self._phi_rows.T @ rhs
-            self._solves += len(patches)
-            ok = self._surface_rows >= 0
-            for j, pt in enumerate(patches):
-                static = np.zeros(len(self._surface_rows))
-                static[ok] = xs[self._surface_rows[ok], j]
-                self._cache[pt.key] = _Solve(pt, static, modal[:, j].copy())
+    def _solve_patches(self, keys: list[int]) -> list[_Solve]:
+        """One batched solve of the patches centred at ``keys`` (the cache's misses)."""
+        patches = [self.patch(k) for k in keys]
+        rhs = self._load_rows(patches)
+        xs = np.asarray(self._lu.solve(rhs), dtype=np.float64).reshape(len(rhs), -1)
+        modal = self._phi_rows.T @ rhs
+        ok = self._surface_rows >= 0
         out = []
-        for k in keys:
-            self._cache.move_to_end(int(k))
-            out.append(self._cache[int(k)])
-        while len(self._cache) > max(self._cache_capacity, len(unique)):
-            self._cache.popitem(last=False)
+        for j, pt in enumerate(patches):
+            static = np.zeros(len(self._surface_rows))
+            static[ok] = xs[self._surface_rows[ok], j]
+            psi = modal[:, j].copy()
+            c_static = float(rhs[:, j] @ xs[:, j])
+            c_tick = c_static
+            if len(self._omega):
+                c_tick += float(psi @ ((self._b_modes[:, 0] - 1.0 / self._omega**2) * psi))
+            out.append(_Solve(pt, static, psi, c_static, c_tick))
         return out
 
     # ------------------------------------------------------------------ physics
@@ -570,7 +567,7 @@ class FemSolid:
             raise ValueError(f"got {len(keys)} patch keys but {len(f)} forces")
         if not np.all(np.isfinite(f)):
             raise ValueError("forces must be finite")
-        solves = self._ensure(keys) if len(keys) else []
+        solves = self._cache.get(keys) if len(keys) else []
         u = np.zeros(len(self._u))
         p_modal = np.zeros(len(self._omega))
         for s, fi in zip(solves, f, strict=True):
@@ -595,7 +592,7 @@ class FemSolid:
         m = len(keys)
         if m == 0:
             return np.zeros((0, 0))
-        solves = self._ensure(keys)
+        solves = self._cache.get(keys)
         c = np.empty((m, m))
         for i, si in enumerate(solves):
             dofs = (3 * si.patch.indices[:, None] + np.arange(3)).ravel()
@@ -615,7 +612,7 @@ class FemSolid:
         From rest, a step push ``f`` moves the patch in one period by ``c_tick f`` with
         ``c_tick = C_ii - psi^T Lambda^-1 psi + psi^T diag(B_q) psi`` (``psi = Phi^T b``, ``B_q``
         the modes' zero-order-hold step response), so ``B_o = 1 / c_tick - K_o`` (>= 0; 0 for the
-        static model).
+        static model). Both compliances are computed once, when the patch is solved.
 
         Returns
         -------
@@ -624,16 +621,8 @@ class FemSolid:
         m = len(keys)
         if m == 0 or len(self._omega) == 0:
             return np.zeros(m)
-        c = np.diag(self.contact_compliance(keys))
-        solves = self._ensure(keys)
         out = np.zeros(m)
-        for i, s in enumerate(solves):
-            psi = s.modal
-            c_tick = (
-                c[i]
-                - float(psi @ (psi / self._omega**2))
-                + float(psi @ (self._b_modes[:, 0] * psi))
-            )
-            if c[i] > 1.0 / K_O_MAX and c_tick > 0.0:
-                out[i] = max(0.0, 1.0 / c_tick - 1.0 / c[i])
+        for i, s in enumerate(self._cache.get(keys)):
+            if s.c_static > 1.0 / K_O_MAX and s.c_tick > 0.0:
+                out[i] = max(0.0, 1.0 / s.c_tick - 1.0 / s.c_static)
         return out

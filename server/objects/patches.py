@@ -11,11 +11,17 @@ Nothing here uses threads, sockets or clocks.
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from typing import Generic, TypeVar
+
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from haptic_collab.shared.types import FloatArray, IntArray
+
+_S = TypeVar("_S")
 
 #: A contact keeps its patch centre while within this many patch spacings of it (hysteresis).
 HYSTERESIS = 0.75
@@ -98,3 +104,49 @@ class PatchCentres:
         centres = self.centres[ids]
         facing = self._normals[centres] @ nq > 0.0
         return int(centres[int(np.argmax(facing))] if facing.any() else centres[0])
+
+
+class PatchCache(Generic[_S]):
+    """Least-recently-used cache of patch solves by patch key, solving misses in one batch.
+
+    Both objects keep one solve per patch centre (a sparse solve is their dearest step); this
+    is their cache. ``capacity`` entries are kept (more while one call needs them all).
+
+    Parameters
+    ----------
+    capacity : int
+        Entries kept (>= 1).
+    solve : callable
+        ``solve(keys)`` -> one entry per key, in order: the batch of missing patches.
+    """
+
+    def __init__(self, capacity: int, solve: Callable[[list[int]], list[_S]]) -> None:
+        self._entries: OrderedDict[int, _S] = OrderedDict()
+        self._capacity = int(capacity)
+        self._solve = solve
+        #: Number of patches solved so far (cache misses).
+        self.solves = 0
+
+    def peek(self, key: int) -> _S | None:
+        """The cached entry of ``key``, or None (its recency unchanged)."""
+        return self._entries.get(int(key))
+
+    def clear(self) -> None:
+        """Drop every entry."""
+        self._entries.clear()
+
+    def get(self, keys: Sequence[int]) -> list[_S]:
+        """The entries of ``keys`` (in order, repeats allowed), solving the missing ones at once."""
+        unique = list(dict.fromkeys(int(k) for k in keys))
+        missing = [k for k in unique if k not in self._entries]
+        if missing:
+            for k, entry in zip(missing, self._solve(missing), strict=True):
+                self._entries[k] = entry
+            self.solves += len(missing)
+        out = []
+        for k in keys:
+            self._entries.move_to_end(int(k))
+            out.append(self._entries[int(k)])
+        while len(self._entries) > max(self._capacity, len(unique)):
+            self._entries.popitem(last=False)
+        return out
