@@ -164,6 +164,7 @@ def volume_mesh(
                 text=True,
                 timeout=timeout_s,
                 check=False,
+                cwd=tmp,  # TetGen writes tetgen-tmpfile_skipped.* into the cwd when it fails
             )
         except subprocess.TimeoutExpired as exc:
             raise MeshError(f"TetGen did not finish within {timeout_s:g} s") from exc
