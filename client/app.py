@@ -58,7 +58,9 @@ class ClientOptions:
     record: Path | None = None
     summary: Path | None = None
     duration_s: float | None = None
-    anchor: Literal["auto", "top", "side"] = "auto"
+    #: ``auto``, ``top``, ``side`` (by join order) or ``side:N`` (the server's N-th side, 1-based;
+    #: the server lists first the sides a press on the top moves most), :func:`_anchor`.
+    anchor: str = "auto"
     trajectory: dict[str, float] = field(default_factory=dict)
     theta_m: float = 0.001
     theta_mode: Literal["auto", "fixed", "variable"] = "auto"
@@ -206,18 +208,37 @@ def _anchor(
 
     ``top`` is the object's top; ``side`` one of its side anchors, chosen by join order (the
     number in the user id: u1 on the first side, u2 on the second, ...) so that users resting on
-    a side spread apart; ``auto`` is ``side`` for ``sim:rest`` and ``top`` otherwise.
+    a side spread apart; ``side:N`` the N-th side anchor (1-based, modulo their number) whatever
+    the join order: the server lists first the sides a press on the top moves most
+    (:func:`server.room.order_sides_by_coupling`); ``auto`` is ``side`` for ``sim:rest`` and
+    ``top`` otherwise.
     """
     obj = welcome.object
-    which = opts.anchor
+    which = check_anchor(opts.anchor)
     if which == "auto":
         which = "side" if opts.device.startswith("sim:rest") else "top"
-    if which == "side":
+    if which.startswith("side"):
         sides = [(p.point_m, p.normal) for p in obj.sides] or [(obj.side_m, obj.side_normal)]
-        digits = re.search(r"(\d+)$", welcome.user_id)
-        order = int(digits.group(1)) - 1 if digits else 0
+        if which.startswith("side:"):
+            order = int(which[5:]) - 1
+        else:
+            digits = re.search(r"(\d+)$", welcome.user_id)
+            order = int(digits.group(1)) - 1 if digits else 0
         return sides[max(order, 0) % len(sides)]
     return obj.top_m, obj.top_normal
+
+
+def check_anchor(anchor: str) -> str:
+    """``anchor`` if it is ``auto``, ``top``, ``side`` or ``side:N`` (N >= 1).
+
+    Raises
+    ------
+    ValueError
+        Anything else.
+    """
+    if anchor in ("auto", "top", "side") or re.fullmatch(r"side:[1-9]\d{0,2}", anchor):
+        return anchor
+    raise ValueError(f"anchor must be auto, top, side or side:N (N >= 1), got {anchor!r}")
 
 
 def _sample(servo: ServoThread) -> ServoSample | None:

@@ -638,6 +638,15 @@ def _trajectory_options(text: str) -> dict[str, float]:
     return out
 
 
+def _anchor_option(text: str) -> str:
+    from haptic_collab.client.app import check_anchor
+
+    try:
+        return check_anchor(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
 def _cmd_client(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -745,7 +754,11 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("--summary", default=None, help="write a JSON summary here")
     p.add_argument("--duration", type=_positive, default=None, help="run this many seconds")
     p.add_argument(
-        "--anchor", choices=["auto", "top", "side"], default="auto", help="where the hand works"
+        "--anchor",
+        type=_anchor_option,
+        default="auto",
+        help="where the hand works: auto, top, side (by join order) or side:N (the server's "
+        "N-th side, those a press on the top moves most first)",
     )
     p.add_argument(
         "--trajectory",

@@ -302,7 +302,8 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
             "--duration", f"{opts.duration_s:g}", *opts.hand_args(),
         ]  # fmt: skip
         for name, device, extra in (
-            ("B", "sim:rest", []),
+            # B rests on the side a press on the top moves most (server.room), whoever joins first
+            ("B", "sim:rest", ["--anchor", "side:1"]),
             ("A", "sim:press", ["--trajectory", tl.options()]),
         ):
             procs[name] = subprocess.Popen(

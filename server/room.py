@@ -32,7 +32,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -267,6 +267,39 @@ def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
     )
 
 
+def side_coupling(info: ObjectInfo, obj: Any) -> np.ndarray:
+    """How far each side anchor's surface moves per newton pushed at the top [m/N], (len(sides),).
+
+    The off-diagonal compliance ``C_top,side`` of the object's load patches there
+    (``obj.contact_compliance``, DESIGN section 6): positive when the side is drawn in, negative
+    when it bulges out. ``obj`` is the world's object (balloon or FEM solid); empty when
+    ``info.sides`` is.
+    """
+    points = [(info.top_m, info.top_normal)] + [(s.point_m, s.normal) for s in info.sides]
+    if len(points) == 1:
+        return np.zeros(0)
+    keys = [int(obj.patch_key(np.asarray(p), None, np.asarray(n))) for p, n in points]
+    return np.asarray(obj.contact_compliance(keys)[0, 1:], dtype=np.float64)
+
+
+def order_sides_by_coupling(info: ObjectInfo, obj: Any) -> ObjectInfo:
+    """``info`` with its side anchors ordered by how much a push on the top moves them.
+
+    A user resting on a side feels a user pressing the top only as far as the object carries
+    the push there: on a balloon every side bulges out, but on a thin plate's rim, a box's face
+    or a solid far from the press the surface may hardly move (|C_top,side| 0.01 of the top's
+    own compliance on the plate's +y rim; :func:`side_coupling`). The clients place users on
+    the sides in this order (u1 on the first), so the first users to rest go where the object
+    carries a press to them; ``side_m`` stays the geometric +x side. An object without contact
+    compliance keeps the geometric order.
+    """
+    if not info.sides or not hasattr(obj, "contact_compliance"):
+        return info
+    moved = np.abs(side_coupling(info, obj))
+    order = sorted(range(len(info.sides)), key=lambda i: -float(moved[i]))  # stable on ties
+    return info.model_copy(update={"sides": [info.sides[i] for i in order]})
+
+
 def _t3(a: Iterable[float]) -> tuple[float, float, float]:
     x, y, z = (float(c) for c in a)
     return (x, y, z)
@@ -329,7 +362,9 @@ class Room:
         #: Clamped force reports per user name since the room started.
         self.clamp_counts: dict[str, int] = {}
         self.stats = TickStats()
-        self.object_info = object_info(world.vertices, world.faces)
+        self.object_info = order_sides_by_coupling(
+            object_info(world.vertices, world.faces), getattr(world, "obj", None)
+        )
         self._faces_frame = encode_faces(world.faces)
         self._viewer_stream = ViewerStream.of_world(world, self.sim_rate_hz)
         #: Recommended gains for every patch (server.gains; designs run by the I/O layer).

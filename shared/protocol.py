@@ -150,9 +150,10 @@ class SurfacePoint(_Msg):
 class ObjectInfo(_Msg):
     """The shared object, in its rest state: enough for a client to find the top and a side.
 
-    ``sides`` lists side anchors at four azimuths (the vertices furthest along +x, +y, -x, -y;
-    the first is ``side_m``) so that users resting on a side can spread apart; it may be empty
-    (an older server), then ``side_m`` is the only side.
+    ``sides`` lists side anchors at four azimuths (the vertices furthest along +x, +y, -x, -y),
+    those a push on the top moves most first (``server.room.order_sides_by_coupling``), so that
+    users resting on a side can spread apart; it may be empty (an older server), then ``side_m``
+    (the +x side) is the only side.
     """
 
     n_vertices: int

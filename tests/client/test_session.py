@@ -147,6 +147,12 @@ def test_users_resting_on_a_side_spread_over_the_sides_by_join_order():
     ]  # fmt: skip
     assert where("u2", "sim:press") == (BENCH_OBJECT.top_m, BENCH_OBJECT.top_normal)
     assert where("u2", "sim:press", "side")[1] == (0, 1, 0)
+    # side:N names the server's N-th side whoever joined first (the demo's B: side:1)
+    assert [where(u, anchor="side:1")[0] for u in ("u1", "u2", "u7")] == [(0.1, 0, 0)] * 3
+    assert where("u1", "sim:press", "side:3")[1] == (-1, 0, 0)
+    for bad in ("side:0", "side:", "side:x", "left", "side:-1"):
+        with pytest.raises(ValueError, match="anchor must be"):
+            where("u1", anchor=bad)
     # an older server without side anchors: the one side it names
     old = BENCH_OBJECT.model_copy(update={"sides": []})
     welcome = Welcome(
