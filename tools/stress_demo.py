@@ -162,11 +162,22 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=12.0)
     ap.add_argument("--out", type=Path, default=None, help="write the JSON here")
     ap.add_argument("--slide-only", action="store_true")
+    ap.add_argument(
+        "--demo-only",
+        action="store_true",
+        help="skip the slides (an existing --out file keeps its slide rows)",
+    )
+    ap.add_argument("--object", default=None, help="haptic demo --object (balloon or fem)")
+    ap.add_argument("--material", default=None, help="haptic demo --material")
     ap.add_argument("--only", default=None, help="only meshes whose label contains this")
     opts = ap.parse_args()
     result: dict = {"demo": [], "slide": []}
+    if opts.demo_only and opts.out is not None and opts.out.is_file():
+        result["slide"] = json.loads(opts.out.read_text()).get("slide", [])
+    extra = [] if opts.object is None else ["--object", opts.object]
+    extra += [] if opts.material is None else ["--material", opts.material]
     with tempfile.TemporaryDirectory() as tmp:
-        for label, mesh in slide_meshes(Path(tmp)):
+        for label, mesh in [] if opts.demo_only else slide_meshes(Path(tmp)):
             if opts.only and opts.only not in label:
                 continue
             for depth in (0.003, 0.006):
@@ -180,9 +191,14 @@ def main() -> None:
                     continue
                 for run in range(1, opts.runs + 1):
                     latency = opts.runs > 1 and run == opts.runs
-                    row = run_demo(label, args, run, latency, opts.duration)
+                    row = run_demo(label, [*args, *extra], run, latency, opts.duration)
                     print(json.dumps(row), flush=True)
                     result["demo"].append(row)
+    result["date"] = time.strftime("%Y-%m-%d")
+    result["commit"] = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
+    result["command"] = "tools/stress_demo.py " + " ".join(sys.argv[1:])
     if opts.out is not None:
         opts.out.parent.mkdir(parents=True, exist_ok=True)
         opts.out.write_text(json.dumps(result, indent=1) + "\n")
