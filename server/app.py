@@ -45,6 +45,7 @@ from websockets.http11 import Request, Response
 
 from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkShaper
+from haptic_collab.server.prefetch import PatchPrefetcher
 from haptic_collab.server.room import Outgoing, Room
 from haptic_collab.server.security import is_loopback, origin_allowed
 from haptic_collab.shared.gain_design import warm_up
@@ -175,6 +176,8 @@ class ServerApp:
         self._next_conn = 0
         self._server: Server | None = None
         self._sim_task: asyncio.Task[None] | None = None
+        #: Solves the patches next to the users' contacts between ticks (server.prefetch).
+        self.prefetcher: PatchPrefetcher | None = None
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
@@ -194,6 +197,7 @@ class ServerApp:
         )
         sock = next(iter(self._server.sockets))
         self.port = int(sock.getsockname()[1])
+        self.prefetcher = PatchPrefetcher(self.room.world)
         self._sim_task = asyncio.create_task(self._sim_loop())
         if self._own_executor:  # an injected executor (tests) is the caller's to warm
             self._gain_tasks.add(asyncio.create_task(self._warm_design_pool()))
@@ -205,6 +209,9 @@ class ServerApp:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._sim_task
         self.room.stop()  # no schedule any more: nothing is behind it
+        if self.prefetcher is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.prefetcher.close)
+            self.prefetcher = None
         pending = list(self._gain_tasks)
         for task in pending:
             task.cancel()
@@ -436,6 +443,8 @@ class ServerApp:
             room.tick_cost(loop.time() - start)
             self._dispatch(outs)
             self._start_designs()
+            if self.prefetcher is not None:
+                self.prefetcher.after_tick()
 
     def _start_designs(self) -> None:
         """Keep the design worker busy with the most urgent queued job (``GainAdvisor.next_job``:

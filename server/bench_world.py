@@ -104,7 +104,16 @@ def _directions(count: int, rng: np.random.Generator) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
-def _run_users(world: World, users: int, ticks: int, warmup: int, seed: int) -> dict[str, Any]:
+def _run_users(
+    world: World, users: int, ticks: int, warmup: int, seed: int, prefetch: bool = False
+) -> dict[str, Any]:
+    """Tick ``world`` with ``users`` pressing and drifting; with ``prefetch``, as the server
+    runs it: a :class:`server.prefetch.PatchPrefetcher` after each tick and the rest of the
+    simulation period idle (so the run takes ``ticks`` periods of wall-clock time)."""
+    from haptic_collab.server.prefetch import PatchPrefetcher
+
+    prefetcher = PatchPrefetcher(world) if prefetch else None
+    period = float(world.sim_period_s)
     rng = np.random.default_rng(seed)
     centre, radius = world.rest_center, world.rest_radius_m
     dirs = _directions(users, rng)
@@ -127,14 +136,20 @@ def _run_users(world: World, users: int, ticks: int, warmup: int, seed: int) -> 
         start = time.perf_counter()
         out = world.tick(inputs)
         times_ms.append((time.perf_counter() - start) * 1e3)
+        if prefetcher is not None:
+            prefetcher.after_tick()
+            time.sleep(max(0.0, start + period - time.perf_counter()))
         for i, n in enumerate(names):
             o = out[n]
             if gains[i] == 0.0:
                 gains[i] = 0.5 * o.k_o_eff
             forces[i] = gains[i] * max(o.penetration_m, 0.0) * o.normal
+    if prefetcher is not None:
+        prefetcher.close()
     steady = np.asarray(times_ms[warmup:])
     return {
         "users": users,
+        "prefetch": prefetch,
         "ticks": ticks,
         "median_ms": float(np.median(steady)),
         "p99_ms": float(np.percentile(steady, 99)),
@@ -260,7 +275,20 @@ def bench_fem(
                 "factor_nnz": int(obj.factor_nnz),
                 **obj.timings,
             }
+            solves = obj.solve_count
             row.update(_run_users(World(obj), users, ticks, warmup, seed))
+            row["patch_solves_on_tick"] = obj.solve_count - solves
+            # as the server runs it: the patches ahead solved between ticks (server.prefetch)
+            obj.reset(clear_cache=True)
+            solves, ahead = obj.solve_count, obj.prefetch_count
+            fetched = _run_users(World(obj), users, ticks, warmup, seed, prefetch=True)
+            row["prefetch"] = {
+                "median_ms": fetched["median_ms"],
+                "p99_ms": fetched["p99_ms"],
+                "max_ms": fetched["max_ms"],
+                "patch_solves_on_tick": obj.solve_count - solves,
+                "patches_prefetched": obj.prefetch_count - ahead,
+            }
             meshes.append(row)
     return {"benchmark": "fem", "blas_libraries_single_threaded": limited, "meshes": meshes}
 

@@ -268,35 +268,39 @@ def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
 
 
 def side_coupling(info: ObjectInfo, obj: Any) -> np.ndarray:
-    """How far each side anchor's surface moves per newton pushed at the top [m/N], (len(sides),).
+    """How much of a push on the top a user resting on each side anchor feels, (len(sides),).
 
-    The off-diagonal compliance ``C_top,side`` of the object's load patches there
-    (``obj.contact_compliance``, DESIGN section 6): positive when the side is drawn in, negative
-    when it bulges out. ``obj`` is the world's object (balloon or FEM solid); empty when
-    ``info.sides`` is.
+    ``C_top,side / C_side,side`` of the object's load patches there (``obj.contact_compliance``,
+    DESIGN section 6): a user held firmly on the side feels its force change by this share of
+    the top's push (``K_o,side`` times the side's displacement ``C_top,side F``); negative when
+    the side bulges out (the force rises), positive when it is drawn in. ``obj`` is the world's
+    object (balloon or FEM solid); empty when ``info.sides`` is.
     """
     points = [(info.top_m, info.top_normal)] + [(s.point_m, s.normal) for s in info.sides]
     if len(points) == 1:
         return np.zeros(0)
     keys = [int(obj.patch_key(np.asarray(p), None, np.asarray(n))) for p, n in points]
-    return np.asarray(obj.contact_compliance(keys)[0, 1:], dtype=np.float64)
+    c = np.asarray(obj.contact_compliance(keys), dtype=np.float64)
+    own = np.maximum(np.diag(c)[1:], 1e-300)
+    return np.asarray(c[0, 1:] / own, dtype=np.float64)
 
 
 def order_sides_by_coupling(info: ObjectInfo, obj: Any) -> ObjectInfo:
-    """``info`` with its side anchors ordered by how much a push on the top moves them.
+    """``info`` with its side anchors ordered by how much a push on the top is felt there.
 
     A user resting on a side feels a user pressing the top only as far as the object carries
-    the push there: on a balloon every side bulges out, but on a thin plate's rim, a box's face
-    or a solid far from the press the surface may hardly move (|C_top,side| 0.01 of the top's
-    own compliance on the plate's +y rim; :func:`side_coupling`). The clients place users on
-    the sides in this order (u1 on the first), so the first users to rest go where the object
-    carries a press to them; ``side_m`` stays the geometric +x side. An object without contact
-    compliance keeps the geometric order.
+    the push there: on a balloon every side bulges out (13 % of the push felt), but a thin
+    plate's +y rim hardly moves (0.3 %) and a box's far face 1 % (:func:`side_coupling`). The
+    share felt, not the displacement, sets the order: the most displaced side of a scanned bunny
+    is its soft ear (K_o 40-50 N/m), where a light touch is hard to hold still. The clients
+    place users on the sides in this order (``--anchor side:N``; ``side`` by join order), so the
+    first users to rest go where the object carries a press to them; ``side_m`` stays the
+    geometric +x side. An object without contact compliance keeps the geometric order.
     """
     if not info.sides or not hasattr(obj, "contact_compliance"):
         return info
-    moved = np.abs(side_coupling(info, obj))
-    order = sorted(range(len(info.sides)), key=lambda i: -float(moved[i]))  # stable on ties
+    felt = np.abs(side_coupling(info, obj))
+    order = sorted(range(len(info.sides)), key=lambda i: -float(felt[i]))  # stable on ties
     return info.model_copy(update={"sides": [info.sides[i] for i in order]})
 
 

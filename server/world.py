@@ -318,6 +318,15 @@ class World:
         here = self._locate(probe, user)
         return here.point, here.normal, here.penetration_m
 
+    def patches_ahead(self, limit: int = 4) -> list[int]:
+        """Up to ``limit`` uncached patch centres next to the users' current ones, for solving
+        off the tick (:class:`server.prefetch.PatchPrefetcher`); [] for an object that cannot
+        prefetch (:class:`server.objects.patches.PrefetchedPatches`)."""
+        ahead = getattr(self.obj, "patches_ahead", None)
+        if ahead is None or not self._users:
+            return []
+        return list(ahead([u.key for u in self._users.values()], int(limit)))
+
     def tick(self, inputs: Mapping[str, ContactInput]) -> dict[str, ContactOutput]:
         """Apply every user's force, step the object one period, and fit every local model.
 

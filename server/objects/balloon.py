@@ -73,7 +73,7 @@ from scipy.spatial import cKDTree
 
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.mesh import MeshError, default_balloon
-from haptic_collab.server.objects.patches import PatchCache, PatchCentres
+from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PrefetchedPatches
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
 
@@ -346,7 +346,7 @@ def _factor_spd(matrix: sp.csc_matrix) -> spla.SuperLU:
     return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A")
 
 
-class Balloon:
+class Balloon(PrefetchedPatches):
     """Water-balloon admittance model: loads in, normal displacements out (DESIGN section 5).
 
     Parameters

@@ -84,7 +84,7 @@ from scipy.spatial import cKDTree
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.balloon import _factor_spd, _nested_dissection, vertex_areas
 from haptic_collab.server.objects.mesh import MeshError
-from haptic_collab.server.objects.patches import PatchCache, PatchCentres
+from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PrefetchedPatches
 from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
@@ -263,7 +263,7 @@ def _zoh_modes(omega: FloatArray, zeta: FloatArray, h: float) -> tuple[FloatArra
     return a_out, b_out
 
 
-class FemSolid:
+class FemSolid(PrefetchedPatches):
     """Linear elastic tetrahedral solid: loads in, surface displacements out (module docstring).
 
     Parameters

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -105,6 +105,17 @@ class PatchCentres:
         facing = self._normals[centres] @ nq > 0.0
         return int(centres[int(np.argmax(facing))] if facing.any() else centres[0])
 
+    def around(self, key: int, radius_m: float) -> IntArray:
+        """The centres within ``radius_m`` [m] of centre ``key``'s rest position that face its
+        side (positive dot product of rest normals), nearest first, ``key`` excluded: where a
+        contact at ``key`` may go next (:meth:`PatchCache.missing`, prefetching)."""
+        here = self._rest[int(key)]
+        ids = np.asarray(self._tree.query_ball_point(here, float(radius_m)), dtype=np.int64)
+        centres = self.centres[ids]
+        keep = (centres != int(key)) & (self._normals[centres] @ self._normals[int(key)] > 0.0)
+        centres = centres[keep]
+        return centres[np.argsort(np.linalg.norm(self._rest[centres] - here, axis=1))]
+
 
 class PatchCache(Generic[_S]):
     """Least-recently-used cache of patch solves by patch key, solving misses in one batch.
@@ -126,6 +137,8 @@ class PatchCache(Generic[_S]):
         self._solve = solve
         #: Number of patches solved so far (cache misses).
         self.solves = 0
+        #: Number of patches stored by :meth:`put` (solved ahead, off the tick).
+        self.prefetched = 0
 
     def peek(self, key: int) -> _S | None:
         """The cached entry of ``key``, or None (its recency unchanged)."""
@@ -134,6 +147,26 @@ class PatchCache(Generic[_S]):
     def clear(self) -> None:
         """Drop every entry."""
         self._entries.clear()
+
+    def missing(self, keys: Sequence[int]) -> list[int]:
+        """The keys among ``keys`` not cached (first occurrences, in order)."""
+        return [k for k in dict.fromkeys(int(k) for k in keys) if k not in self._entries]
+
+    def solve_detached(self, keys: Sequence[int]) -> list[_S]:
+        """Solve ``keys`` without touching the cache (safe from a worker thread while the owner
+        keeps ticking: the objects' solves only read their factor); :meth:`put` stores them."""
+        return self._solve([int(k) for k in keys])
+
+    def put(self, keys: Sequence[int], entries: Sequence[_S]) -> None:
+        """Store entries solved by :meth:`solve_detached` (those already cached are kept)."""
+        added = 0
+        for k, entry in zip(keys, entries, strict=True):
+            if int(k) not in self._entries:
+                self._entries[int(k)] = entry
+                added += 1
+        self.prefetched += added
+        while len(self._entries) > self._capacity:
+            self._entries.popitem(last=False)
 
     def get(self, keys: Sequence[int]) -> list[_S]:
         """The entries of ``keys`` (in order, repeats allowed), solving the missing ones at once."""
@@ -150,3 +183,52 @@ class PatchCache(Generic[_S]):
         while len(self._entries) > max(self._capacity, len(unique)):
             self._entries.popitem(last=False)
         return out
+
+
+#: Prefetch looks for uncached patch centres within this many patch spacings of a contact's.
+AHEAD_SPACINGS = 1.6
+
+
+class PrefetchedPatches:
+    """Solving the patches a contact may move to next, off the simulation tick (a mixin).
+
+    An object with ``_centres`` (:class:`PatchCentres`), ``_cache`` (:class:`PatchCache`) and
+    ``params.patch_spacing_m`` gets: :meth:`patches_ahead` (which to solve), :meth:`solve_ahead`
+    (the solve, safe from a worker thread: it only reads the factor) and :meth:`store_ahead`
+    (into the cache, from the thread that ticks). A contact that slides onto a prefetched centre
+    costs the tick no sparse solve (``server.prefetch``).
+    """
+
+    _centres: PatchCentres
+    _cache: PatchCache[Any]
+    params: Any
+
+    def patches_ahead(self, keys: Sequence[int], limit: int) -> list[int]:
+        """Up to ``limit`` uncached centres around the patch centres ``keys``: each key's
+        nearest first, the keys taken in turn (so every contact gets its next patch)."""
+        radius = AHEAD_SPACINGS * float(self.params.patch_spacing_m)
+        rings = [self._centres.around(int(k), radius) for k in dict.fromkeys(keys)]
+        out: list[int] = []
+        seen: set[int] = set()
+        for depth in range(max((len(r) for r in rings), default=0)):
+            wanted = [int(r[depth]) for r in rings if depth < len(r)]
+            for k in self._cache.missing(wanted):
+                if k not in seen:
+                    seen.add(k)
+                    out.append(k)
+                    if len(out) >= limit:
+                        return out
+        return out
+
+    def solve_ahead(self, keys: Sequence[int]) -> list[Any]:
+        """The solves of ``keys``, the cache untouched (:meth:`PatchCache.solve_detached`)."""
+        return self._cache.solve_detached(keys)
+
+    def store_ahead(self, keys: Sequence[int], solves: Sequence[Any]) -> None:
+        """Cache solves made by :meth:`solve_ahead` (:meth:`PatchCache.put`)."""
+        self._cache.put(keys, solves)
+
+    @property
+    def prefetch_count(self) -> int:
+        """Patches solved ahead and stored so far."""
+        return self._cache.prefetched

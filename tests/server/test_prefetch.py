@@ -1,0 +1,102 @@
+"""Patches solved ahead, between ticks: a contact that slides costs the tick no sparse solve."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from haptic_collab.server.objects.balloon import Balloon
+from haptic_collab.server.prefetch import PatchPrefetcher
+from haptic_collab.server.world import ContactInput, World
+
+R = 0.1
+
+
+def _drain(prefetcher: PatchPrefetcher, world: World, timeout_s: float = 20.0) -> None:
+    """Call after_tick until nothing is left to solve around the users."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        prefetcher.after_tick()
+        if prefetcher._job is None and not world.patches_ahead(prefetcher.batch):
+            return
+        time.sleep(0.005)
+    raise AssertionError("prefetching did not finish")
+
+
+def _slide(world: World, ticks: int, step_m: float) -> int:
+    """A probe 3 mm into the balloon sliding from the top along +x; the solves on the ticks."""
+    before = world.obj.solve_count
+    for k in range(ticks):
+        phi = k * step_m / R
+        probe = (R - 0.003) * np.array([np.sin(phi), 0.0, np.cos(phi)])
+        world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})
+    return int(world.obj.solve_count - before)
+
+
+def test_a_sliding_contact_finds_its_next_patches_solved():
+    """Without prefetching, every new patch centre the contact slides onto is a sparse solve on
+    the tick; with the patches around the contact solved between ticks, none is."""
+    plain = World(Balloon())
+    on_tick_plain = _slide(plain, 40, 0.0005)
+    assert on_tick_plain >= 2  # the slide crosses several patch centres
+
+    world = World(Balloon())
+    prefetcher = PatchPrefetcher(world)
+    try:
+        _slide(world, 1, 0.0)
+        _drain(prefetcher, world)
+        on_tick = 0
+        for k in range(1, 40):
+            phi = k * 0.0005 / R
+            probe = (R - 0.003) * np.array([np.sin(phi), 0.0, np.cos(phi)])
+            before = world.obj.solve_count
+            world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})
+            on_tick += world.obj.solve_count - before
+            _drain(prefetcher, world)
+        assert on_tick == 0
+        assert world.obj.prefetch_count >= on_tick_plain
+    finally:
+        prefetcher.close()
+
+
+def test_prefetched_patches_are_the_same_solves():
+    """A patch solved ahead in the worker gives the compliance a solve on the tick gives."""
+    a, b = Balloon(), Balloon()
+    key = a.patch_key(np.array([0.0, 0.0, R]))
+    ahead = a.patches_ahead([key], 3)
+    assert len(ahead) == 3 and key not in ahead
+    a.store_ahead(ahead, a.solve_ahead(ahead))
+    assert a.solve_count == 0 and a.prefetch_count == 3
+    np.testing.assert_allclose(
+        a.contact_compliance(ahead), b.contact_compliance(ahead), rtol=1e-12, atol=0.0
+    )
+    assert a.solve_count == 0
+    assert a.patches_ahead([key], 3)[:1] != ahead[:1]  # the solved ones are not offered again
+
+
+def test_a_failing_prefetch_is_logged_and_the_tick_still_solves(caplog):
+    world = World(Balloon())
+    world.tick({"u": ContactInput(probe=np.array([0.0, 0.0, R - 0.003]), force=np.zeros(3))})
+
+    def broken(keys):
+        raise RuntimeError("worker lost")
+
+    world.obj.solve_ahead = broken  # type: ignore[method-assign]
+    prefetcher = PatchPrefetcher(world)
+    try:
+        prefetcher.after_tick()
+        time.sleep(0.05)
+        prefetcher.after_tick()
+        assert prefetcher.failures == 1
+        assert "prefetching patches" in caplog.text
+    finally:
+        prefetcher.close()
+    out = world.tick({"u": ContactInput(probe=np.array([0.003, 0, R - 0.003]), force=np.zeros(3))})
+    assert out["u"].k_o > 0.0
+
+
+def test_bad_batch_is_refused():
+    with pytest.raises(ValueError, match="batch"):
+        PatchPrefetcher(World(Balloon()), batch=0)
