@@ -533,7 +533,8 @@ def coupling_report(
     ``b_surface_displacement_mm``: how far the surface under B (B's proxy) moves outward, along
     B's force, while A holds [mm]. Both compare the ``hold`` window with a window where B rests,
     settled (:data:`B_SETTLE_S` after B's force came on and after B's approach), before A touches
-    (or, failing that, after A's release: ``baseline`` says which). ``ratio`` is B's force while
+    (or, failing that, after A's release: ``baseline`` says which). While A holds, samples where
+    B is out of contact count too (force 0): a side drawn in by A's press can leave B's finger. ``ratio`` is B's force while
     A holds over B's resting force: it depends on how hard B leans in (its hand depth beyond the
     threshold θ), not on the object; the two above are the coupling.
 
@@ -565,8 +566,11 @@ def coupling_report(
         "b_settled_s": None if onset is None else onset + B_SETTLE_S,
     }
     # samples with B in contact at full force (no ramp in or out, no fault)
-    full = (b["in_contact"] > 0) & (b.get("force_scale", np.ones_like(b["t_s"])) >= 0.999)
-    w_hold = _window(b, *hold) & full
+    steady = b.get("force_scale", np.ones_like(b["t_s"])) >= 0.999
+    full = (b["in_contact"] > 0) & steady
+    # while A holds, also the samples where the surface drew away from B's finger (B's force
+    # fell to nothing: the strongest change B can feel; the proxy is still the surface)
+    w_hold = _window(b, *hold) & steady
     found = None if onset is None else _rest_window(b, tl, onset + B_SETTLE_S)
     if found is None or not w_hold.any():
         return out

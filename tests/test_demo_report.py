@@ -79,6 +79,18 @@ def test_b_feels_a_when_its_force_follows_the_moving_surface_by_a_jnd(hold_n, bu
     assert coupling_report(b, tl, hold, b_approach_end_s=1.0)["b_feels_a"] is feels
 
 
+def test_a_surface_drawn_away_from_b_is_felt_when_b_loses_contact() -> None:
+    """A side drawn in by more than B's own dent (the hex nut's flat, the bowl's rim) leaves B's
+    finger while A holds: B's force falls to nothing, which B feels, and the report says so."""
+    b, (tl, hold) = telemetry(12.0, onset_s=2.2, hold_n=0.0, bulge_m=-0.0013)
+    lost = (b["t_s"] >= hold[0] - 0.5) & (b["t_s"] <= hold[1] + 0.1)
+    b["in_contact"] = np.where(lost, 0.0, b["in_contact"])
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["b_force_rise_n"] == pytest.approx(-REST_N, abs=2e-3)
+    assert c["b_surface_displacement_mm"] == pytest.approx(-1.3, abs=0.02)
+    assert c["b_feels_a"] is True
+
+
 def test_a_late_contact_is_measured_after_the_release() -> None:
     # B's contact comes on just before A touches (a slow network): no settled rest before the press
     b, (tl, hold) = telemetry(16.0, onset_s=tl_contact(16.0) - 0.5)

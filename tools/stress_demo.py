@@ -93,6 +93,17 @@ def run_demo(label: str, args: list[str], run: int, latency: bool, duration: flo
         row["b_feels_a"] = c.get("b_feels_a")
         for key in ("b_force_rise_n", "b_surface_displacement_mm", "b_force_at_rest_n"):
             row[key] = None if c.get(key) is None else round(c[key], 3)
+        # B's rendered stiffness where its force is compared: a change of K_h (B's gains
+        # redesigned for the coupled contact) changes B's force with no change of the surface
+        cols = np.genfromtxt(work / "B.csv", delimiter=",", names=True)
+        origin = {u: json.loads((work / f"{u}.json").read_text())["clock_origin_s"] for u in "AB"}
+        t_on_a = cols["t_s"] + origin["B"] - origin["A"]  # the windows are on A's clock
+        for name, key in (("rest", "rest_window_s"), ("hold", "hold_window_s")):
+            span = c.get(key)
+            if span is not None:
+                inside = (t_on_a >= span[0]) & (t_on_a <= span[1])
+                if inside.any():
+                    row[f"b_k_h_{name}"] = round(float(np.median(cols["k_h_n_per_m"][inside])), 1)
         step, probe_step = _largest_proxy_step(work, "B")
         row["b_proxy_step_mm"] = round(step * 1e3, 2)
         row["b_probe_step_at_it_mm"] = round(probe_step * 1e3, 3)
@@ -169,7 +180,9 @@ def main() -> None:
     )
     ap.add_argument("--object", default=None, help="haptic demo --object (balloon or fem)")
     ap.add_argument("--material", default=None, help="haptic demo --material")
-    ap.add_argument("--only", default=None, help="only meshes whose label contains this")
+    ap.add_argument(
+        "--only", default=None, help="only meshes whose label contains one of these (a,b,...)"
+    )
     opts = ap.parse_args()
     result: dict = {"demo": [], "slide": []}
     if opts.demo_only and opts.out is not None and opts.out.is_file():
@@ -178,7 +191,7 @@ def main() -> None:
     extra += [] if opts.material is None else ["--material", opts.material]
     with tempfile.TemporaryDirectory() as tmp:
         for label, mesh in [] if opts.demo_only else slide_meshes(Path(tmp)):
-            if opts.only and opts.only not in label:
+            if opts.only and not any(part in label for part in opts.only.split(",")):
                 continue
             for depth in (0.003, 0.006):
                 for proxy in ("follow", "closest"):
@@ -187,7 +200,7 @@ def main() -> None:
                     result["slide"].append(row)
         if not opts.slide_only:
             for label, args in mesh_specs(Path(tmp)):
-                if opts.only and opts.only not in label:
+                if opts.only and not any(part in label for part in opts.only.split(",")):
                     continue
                 for run in range(1, opts.runs + 1):
                     latency = opts.runs > 1 and run == opts.runs
