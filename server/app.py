@@ -139,6 +139,10 @@ class ServerApp:
         Browser origins allowed besides the server's own (``--allow-origin``; ``*``: any).
     send_timeout_s : float
         Drop a consumer whose send buffer stays full this long [s].
+    prefetch : bool
+        Solve the load patches next to the users' contacts in a worker thread between ticks
+        (:class:`server.prefetch.PatchPrefetcher`); ``haptic server`` turns it on for the FEM
+        solid.
     """
 
     def __init__(
@@ -153,8 +157,11 @@ class ServerApp:
         allowed_origins: tuple[str, ...] | frozenset[str] = (),
         send_timeout_s: float = SEND_TIMEOUT_S,
         gain_executor: Executor | None = None,
+        prefetch: bool = False,
     ) -> None:
         self.room = room
+        #: Solve the patches next to the users' contacts between ticks (server.prefetch).
+        self.prefetch = bool(prefetch)
         #: Where recommended-gain designs run (default: one spawned worker process, made on the
         #: first design; server.gains). Never the event loop's thread.
         self.gain_executor = gain_executor
@@ -197,7 +204,8 @@ class ServerApp:
         )
         sock = next(iter(self._server.sockets))
         self.port = int(sock.getsockname()[1])
-        self.prefetcher = PatchPrefetcher(self.room.world)
+        if self.prefetch:
+            self.prefetcher = PatchPrefetcher(self.room.world)
         self._sim_task = asyncio.create_task(self._sim_loop())
         if self._own_executor:  # an injected executor (tests) is the caller's to warm
             self._gain_tasks.add(asyncio.create_task(self._warm_design_pool()))

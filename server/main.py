@@ -275,6 +275,9 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         seed=opts.seed,
         ssl_context=ssl_context,
         allowed_origins=origins,
+        # the FEM solid's patch solves (50 ms at 10k vertices) are its p99; the balloon's are
+        # about 1 ms, and its demo stress set was not yet measured with a prefetching thread
+        prefetch=opts.object == "fem",
     )
     scheme = "https" if ssl_context else "http"
     if auth is None and not is_loopback(opts.host):
