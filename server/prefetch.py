@@ -34,7 +34,7 @@ class PatchPrefetcher:
     ----------
     world : server.world.World
         The world whose object is prefetched (an object without
-        :class:`server.objects.patches.PrefetchedPatches` makes this a no-op).
+        :class:`server.objects.patches.PatchedSurface` makes this a no-op).
     batch : int
         Patches per job (>= 1).
     """

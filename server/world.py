@@ -321,7 +321,7 @@ class World:
     def patches_ahead(self, limit: int = 4) -> list[int]:
         """Up to ``limit`` uncached patch centres next to the users' current ones, for solving
         off the tick (:class:`server.prefetch.PatchPrefetcher`); [] for an object that cannot
-        prefetch (:class:`server.objects.patches.PrefetchedPatches`)."""
+        prefetch (:class:`server.objects.patches.PatchedSurface`)."""
         ahead = getattr(self.obj, "patches_ahead", None)
         if ahead is None or not self._users:
             return []

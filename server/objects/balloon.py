@@ -73,7 +73,7 @@ from scipy.spatial import cKDTree
 
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.mesh import MeshError, default_balloon
-from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PrefetchedPatches
+from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PatchedSurface
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
 
@@ -346,7 +346,7 @@ def _factor_spd(matrix: sp.csc_matrix) -> spla.SuperLU:
     return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A")
 
 
-class Balloon(PrefetchedPatches):
+class Balloon(PatchedSurface):
     """Water-balloon admittance model: loads in, normal displacements out (DESIGN section 5).
 
     Parameters
@@ -456,25 +456,6 @@ class Balloon(PrefetchedPatches):
             )
 
     # ------------------------------------------------------------------ geometry
-    @property
-    def n_vertices(self) -> int:
-        """Number of vertices n."""
-        return len(self._rest)
-
-    @property
-    def rest_vertices(self) -> FloatArray:
-        """(n, 3) float64 [m] rest positions (read-only)."""
-        return self._rest
-
-    @property
-    def rest_normals(self) -> FloatArray:
-        """(n, 3) float64 outward unit normals at rest (read-only); ``w`` is along them."""
-        return self._normals
-
-    @property
-    def faces(self) -> npt.NDArray[np.int32]:
-        """(m, 3) int32 triangle vertex indices, outward (counter-clockwise) winding."""
-        return self._faces
 
     @property
     def vertex_areas(self) -> FloatArray:
@@ -485,16 +466,6 @@ class Balloon(PrefetchedPatches):
     def fixed_mask(self) -> npt.NDArray[np.bool_]:
         """(n,) bool, True for the supported base vertices (w = 0)."""
         return self._fixed
-
-    @property
-    def sim_period_s(self) -> float:
-        """Simulation period N*T [s] of one :meth:`step`."""
-        return self.params.sim_period_s
-
-    @property
-    def patch_radius_m(self) -> float:
-        """Finger-pad patch radius [m]."""
-        return self.params.patch_radius_m
 
     @property
     def displacement(self) -> FloatArray:
@@ -521,11 +492,6 @@ class Balloon(PrefetchedPatches):
         """Enclosed volume change ``a^T w`` [m^3] (about 0 for nearly incompressible water)."""
         return float(self._areas @ self._w)
 
-    @property
-    def solve_count(self) -> int:
-        """Number of patch right-hand sides solved so far (cache misses)."""
-        return self._cache.solves
-
     def reset(self, clear_cache: bool = False) -> None:
         """Return to the rest shape (w = 0); optionally drop the patch cache."""
         self._w = np.zeros(self.n_vertices)
@@ -534,24 +500,6 @@ class Balloon(PrefetchedPatches):
             self._cache.clear()
 
     # ------------------------------------------------------------------ patches
-    def patch_key(
-        self,
-        point: npt.ArrayLike,
-        previous: int | None = None,
-        normal: npt.ArrayLike | None = None,
-    ) -> int:
-        """Cache key of the load patch for a contact at ``point`` (3,) [m]: the nearest centre.
-
-        See :meth:`server.objects.patches.PatchCentres.key` (hysteresis with ``previous``, the
-        side facing ``normal``).
-
-        Raises
-        ------
-        ValueError
-            ``point`` (or ``normal``) is not 3 finite numbers.
-        """
-        return self._centres.key(point, previous, normal)
-
     def patch(self, key: int) -> LoadPatch:
         """The load patch (vertices and weights beta) centred at vertex ``key``.
 

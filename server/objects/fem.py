@@ -84,7 +84,7 @@ from scipy.spatial import cKDTree
 from haptic_collab.server.contacts import K_O_MAX
 from haptic_collab.server.objects.balloon import _factor_spd, _nested_dissection, vertex_areas
 from haptic_collab.server.objects.mesh import MeshError
-from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PrefetchedPatches
+from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PatchedSurface
 from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
@@ -263,7 +263,7 @@ def _zoh_modes(omega: FloatArray, zeta: FloatArray, h: float) -> tuple[FloatArra
     return a_out, b_out
 
 
-class FemSolid(PrefetchedPatches):
+class FemSolid(PatchedSurface):
     """Linear elastic tetrahedral solid: loads in, surface displacements out (module docstring).
 
     Parameters
@@ -405,25 +405,6 @@ class FemSolid(PrefetchedPatches):
         self._phi_surface = surface
 
     # ------------------------------------------------------------------ geometry
-    @property
-    def n_vertices(self) -> int:
-        """Number of surface vertices n."""
-        return len(self._rest)
-
-    @property
-    def rest_vertices(self) -> FloatArray:
-        """(n, 3) float64 [m] surface rest positions (read-only)."""
-        return self._rest
-
-    @property
-    def rest_normals(self) -> FloatArray:
-        """(n, 3) float64 outward unit surface normals at rest."""
-        return self._normals
-
-    @property
-    def faces(self) -> npt.NDArray[np.int32]:
-        """(m, 3) int32 surface triangles, outward winding."""
-        return self._faces
 
     @property
     def vertices(self) -> FloatArray:
@@ -441,16 +422,6 @@ class FemSolid(PrefetchedPatches):
         return self._max_disp
 
     @property
-    def sim_period_s(self) -> float:
-        """Simulation period N*T [s] of one :meth:`step`."""
-        return self.params.sim_period_s
-
-    @property
-    def patch_radius_m(self) -> float:
-        """Finger-pad (punch) radius a [m]."""
-        return self.params.patch_radius_m
-
-    @property
     def factor_nnz(self) -> int:
         """Non-zeros of the stiffness factor (L and U) on the free degrees of freedom."""
         return int(self._lu.L.nnz + self._lu.U.nnz)
@@ -459,11 +430,6 @@ class FemSolid(PrefetchedPatches):
     def natural_frequencies_hz(self) -> FloatArray:
         """(n_modes,) the dynamic modes' natural frequencies [Hz], ascending."""
         return self._omega / (2.0 * math.pi)
-
-    @property
-    def solve_count(self) -> int:
-        """Number of patch right-hand sides solved so far (cache misses)."""
-        return self._cache.solves
 
     def reset(self, clear_cache: bool = False) -> None:
         """Return to rest (and, optionally, drop the patch cache)."""
@@ -474,23 +440,6 @@ class FemSolid(PrefetchedPatches):
             self._cache.clear()
 
     # ------------------------------------------------------------------ patches
-    def patch_key(
-        self,
-        point: npt.ArrayLike,
-        previous: int | None = None,
-        normal: npt.ArrayLike | None = None,
-    ) -> int:
-        """Cache key of the patch for a contact at ``point`` (3,) [m] (the balloon's rule).
-
-        See :meth:`server.objects.patches.PatchCentres.key`.
-
-        Raises
-        ------
-        ValueError
-            ``point`` (or ``normal``) is not 3 finite numbers.
-        """
-        return self._centres.key(point, previous, normal)
-
     def patch(self, key: int) -> PunchPatch:
         """The punch patch centred at surface vertex ``key`` (module docstring).
 

@@ -189,19 +189,77 @@ class PatchCache(Generic[_S]):
 AHEAD_SPACINGS = 1.6
 
 
-class PrefetchedPatches:
-    """Solving the patches a contact may move to next, off the simulation tick (a mixin).
+class PatchedSurface:
+    """What both deformable objects share: a surface, its patch centres, the patch cache, and
+    solving the patches a contact may move to next off the simulation tick (a base class).
 
-    An object with ``_centres`` (:class:`PatchCentres`), ``_cache`` (:class:`PatchCache`) and
-    ``params.patch_spacing_m`` gets: :meth:`patches_ahead` (which to solve), :meth:`solve_ahead`
-    (the solve, safe from a worker thread: it only reads the factor) and :meth:`store_ahead`
-    (into the cache, from the thread that ticks). A contact that slides onto a prefetched centre
-    costs the tick no sparse solve (``server.prefetch``).
+    A subclass sets ``params`` (with ``sim_period_s``, ``patch_radius_m``, ``patch_spacing_m``),
+    ``_rest`` (n, 3) [m], ``_normals`` (n, 3), ``_faces`` (m, 3) int32, ``_centres``
+    (:class:`PatchCentres`) and ``_cache`` (:class:`PatchCache`). Prefetching:
+    :meth:`patches_ahead` (which to solve), :meth:`solve_ahead` (the solve, safe from a worker
+    thread: it only reads the factor) and :meth:`store_ahead` (into the cache, from the thread
+    that ticks); a contact that slides onto a prefetched centre costs the tick no sparse solve
+    (``server.prefetch``).
     """
 
+    params: Any
+    _rest: FloatArray
+    _normals: FloatArray
+    _faces: npt.NDArray[np.int32]
     _centres: PatchCentres
     _cache: PatchCache[Any]
-    params: Any
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of surface vertices n."""
+        return len(self._rest)
+
+    @property
+    def rest_vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] surface rest positions (read-only)."""
+        return self._rest
+
+    @property
+    def rest_normals(self) -> FloatArray:
+        """(n, 3) float64 outward unit surface normals at rest (read-only)."""
+        return self._normals
+
+    @property
+    def faces(self) -> npt.NDArray[np.int32]:
+        """(m, 3) int32 surface triangles, outward (counter-clockwise) winding."""
+        return self._faces
+
+    @property
+    def sim_period_s(self) -> float:
+        """Simulation period N*T [s] of one ``step``."""
+        return float(self.params.sim_period_s)
+
+    @property
+    def patch_radius_m(self) -> float:
+        """Finger-pad patch radius [m]."""
+        return float(self.params.patch_radius_m)
+
+    @property
+    def solve_count(self) -> int:
+        """Number of patch right-hand sides solved on demand so far (cache misses)."""
+        return self._cache.solves
+
+    def patch_key(
+        self,
+        point: npt.ArrayLike,
+        previous: int | None = None,
+        normal: npt.ArrayLike | None = None,
+    ) -> int:
+        """Cache key of the load patch for a contact at ``point`` (3,) [m]: the nearest centre.
+
+        See :meth:`PatchCentres.key` (hysteresis with ``previous``, the side facing ``normal``).
+
+        Raises
+        ------
+        ValueError
+            ``point`` (or ``normal``) is not 3 finite numbers.
+        """
+        return self._centres.key(point, previous, normal)
 
     def patches_ahead(self, keys: Sequence[int], limit: int) -> list[int]:
         """Up to ``limit`` uncached centres around the patch centres ``keys``: each key's
