@@ -57,6 +57,9 @@ class LocalRenderer:
     params : LocalModelParams
         Threshold, release time, contact type and period T of the local model (its gains are
         replaced by each patch's).
+    own_force_limit_n : float
+        The largest own force F_s [N] the compensation carries (default unlimited; the servo
+        passes the device's peak force). ValueError if not > 0.
 
     Attributes
     ----------
@@ -93,6 +96,7 @@ class LocalRenderer:
         "b_h",
         "own_gain",
         "own_offset_m",
+        "own_force_limit_n",
         "_inv_T",
         "_a_u",
         "_u",
@@ -105,8 +109,11 @@ class LocalRenderer:
         "_off_step",
     )
 
-    def __init__(self, params: LocalModelParams) -> None:
+    def __init__(self, params: LocalModelParams, own_force_limit_n: float = math.inf) -> None:
+        if not own_force_limit_n > 0.0:
+            raise ValueError(f"own_force_limit_n must be > 0, got {own_force_limit_n!r}")
         T = params.servo_period_s
+        self.own_force_limit_n = float(own_force_limit_n)
         self.model = LocalModel(params)
         self.patch: LocalModelUpdate | None = None
         self.primitive: Primitive | None = None
@@ -162,9 +169,13 @@ class LocalRenderer:
         self._hold_n = patch.hold_ticks
         self.patch = patch
         self.primitive = patch.primitive
-        # own-force compensation carries at most the integral's limit (the device's continuous
-        # force), as the integral it replaces: beyond it the proportional part carries the rest
-        cap = self.model.params.integral_limit_n
+        # own-force compensation carries the whole own force up to the device's peak force (the
+        # servo clamps there anyway). Capping it lower, at the continuous force as the integral
+        # is capped, left the force beyond the cap to K_h against the object without
+        # compensation: a loop the gain design does not check, unstable on a FEM torus that
+        # rings near the simulation's Nyquist frequency (docs/own-force.md). Motor heating is
+        # the thermal limit's (client/thermal.py), which lowers the force, not the compensation.
+        cap = self.own_force_limit_n
         excess = patch.own_force_n - cap
         if patch.own_gain > 0.0 and excess > 0.0:
             self.primitive = moved_out(patch.primitive, -patch.own_gain * excess)

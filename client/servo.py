@@ -356,7 +356,7 @@ class ServoCore:
         self.device = device
         self.config = cfg
         self.recorder = recorder if recorder is not None else TelemetryRecorder()
-        self.renderer = LocalRenderer(local_model)
+        self.renderer = LocalRenderer(local_model, own_force_limit_n=lim.max_force_n)
         self.local_model: LocalModel = self.renderer.model
         self.safety = SafetySupervisor(lim, cfg)
         tau = cfg.velocity_filter_s
