@@ -17,6 +17,8 @@ import logging
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
+from haptic_collab.server.objects.patches import AHEAD_SPACINGS
+
 log = logging.getLogger("haptic.server")
 
 #: Patches solved per job: small, so a job is done within a tick or two.
@@ -37,14 +39,25 @@ class PatchPrefetcher:
         :class:`server.objects.patches.PatchedSurface` makes this a no-op).
     batch : int
         Patches per job (>= 1).
+    stand_in : bool
+        A contact whose centre is not solved yet is loaded at a solved centre within the
+        prefetch ring (``AHEAD_SPACINGS`` patch spacings) until it is
+        (:attr:`server.objects.patches.PatchedSurface.stand_in_m`); False: the tick solves it.
     """
 
-    def __init__(self, world: Any, batch: int = PREFETCH_BATCH) -> None:
+    def __init__(self, world: Any, batch: int = PREFETCH_BATCH, stand_in: bool = True) -> None:
         if int(batch) < 1:
             raise ValueError(f"batch must be >= 1, got {batch}")
         self.world = world
         self.batch = int(batch)
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="patch-prefetch")
+        # a contact whose centre is not solved yet borrows a solved neighbour's meanwhile
+        # (PatchedSurface.stand_in_m), so the tick never waits for a sparse solve
+        obj = getattr(world, "obj", None)
+        if obj is not None and hasattr(obj, "stand_in_m"):
+            spacing = float(obj.params.patch_spacing_m)
+            obj.stand_in_m = AHEAD_SPACINGS * spacing if stand_in else 0.0
+
         self._job: tuple[list[int], Future[list[Any]]] | None = None
         #: Jobs whose solve raised (logged; the tick then solves those patches itself).
         self.failures = 0
@@ -69,6 +82,10 @@ class PatchPrefetcher:
             self._job = (keys, self._pool.submit(self.world.obj.solve_ahead, keys))
 
     def close(self) -> None:
-        """Stop the worker (a running job is finished and dropped)."""
+        """Stop the worker (a running job is finished and dropped); the object's contacts get
+        their own centres again."""
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._job = None
+        obj = getattr(self.world, "obj", None)
+        if obj is not None and hasattr(obj, "stand_in_m"):
+            obj.stand_in_m = 0.0

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -69,7 +70,11 @@ def _largest_proxy_step(work: Path, user: str) -> tuple[float, float]:
     return float(dp[i]), float(dh[i])
 
 
-def run_demo(label: str, args: list[str], run: int, latency: bool, duration: float) -> dict:
+def run_demo(
+    label: str, args: list[str], run: int, latency: bool, duration: float, keep: Path | None = None
+) -> dict:
+    """One ``haptic demo`` run; with ``keep``, an unstable run's workdir and report are copied
+    there (``<keep>/<label>-<run>``) for analysis."""
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp) / "work"
         report = Path(tmp) / "report.json"
@@ -107,6 +112,11 @@ def run_demo(label: str, args: list[str], run: int, latency: bool, duration: flo
         step, probe_step = _largest_proxy_step(work, "B")
         row["b_proxy_step_mm"] = round(step * 1e3, 2)
         row["b_probe_step_at_it_mm"] = round(probe_step * 1e3, 3)
+        if keep is not None and not (row["A_stable"] and row["B_stable"]):
+            dest = keep / f"{''.join(ch if ch.isalnum() else '-' for ch in label)}-{run}"
+            shutil.copytree(work, dest, dirs_exist_ok=True)
+            shutil.copy(report, dest / "report.json")
+            row["kept"] = str(dest)
         return row
 
 
@@ -183,6 +193,7 @@ def main() -> None:
     ap.add_argument(
         "--only", default=None, help="only meshes whose label contains one of these (a,b,...)"
     )
+    ap.add_argument("--keep", type=Path, default=None, help="copy an unstable run's workdir here")
     opts = ap.parse_args()
     result: dict = {"demo": [], "slide": []}
     if opts.demo_only and opts.out is not None and opts.out.is_file():
@@ -204,7 +215,7 @@ def main() -> None:
                     continue
                 for run in range(1, opts.runs + 1):
                     latency = opts.runs > 1 and run == opts.runs
-                    row = run_demo(label, [*args, *extra], run, latency, opts.duration)
+                    row = run_demo(label, [*args, *extra], run, latency, opts.duration, opts.keep)
                     print(json.dumps(row), flush=True)
                     result["demo"].append(row)
     result["date"] = time.strftime("%Y-%m-%d")

@@ -259,15 +259,43 @@ class PatchedSurface:
         ValueError
             ``point`` (or ``normal``) is not 3 finite numbers.
         """
-        return self._centres.key(point, previous, normal)
+        k = self._centres.key(point, previous, normal)
+        if self.stand_in_m > 0.0 and self._cache.peek(k) is None:
+            for c in self._centres.around(k, self.stand_in_m):
+                if self._cache.peek(int(c)) is not None:
+                    self.stand_ins += 1
+                    if self._wanted is None:
+                        self._wanted = {}
+                    self._wanted[k] = None
+                    return int(c)
+        return k
+
+    #: With patches solved ahead (``server.prefetch``): a contact whose centre is not solved yet
+    #: is loaded, for the ticks until it is, at the nearest solved centre within this distance
+    #: [m] facing its side (a stand-in), so the tick never waits for a sparse solve; its own
+    #: centre is solved ahead first. 0: off (the tick solves it).
+    stand_in_m: float = 0.0
+    #: Contacts loaded at a stand-in centre so far.
+    stand_ins: int = 0
+    #: Centres stood in for since the last :meth:`patches_ahead` (solved ahead first).
+    _wanted: dict[int, None] | None = None
 
     def patches_ahead(self, keys: Sequence[int], limit: int) -> list[int]:
-        """Up to ``limit`` uncached centres around the patch centres ``keys``: each key's
-        nearest first, the keys taken in turn (so every contact gets its next patch)."""
+        """Up to ``limit`` uncached centres: those stood in for first (:attr:`stand_in_m`), then
+        around the patch centres ``keys``, each key's nearest first, the keys taken in turn (so
+        every contact gets its next patch)."""
         radius = AHEAD_SPACINGS * float(self.params.patch_spacing_m)
         rings = [self._centres.around(int(k), radius) for k in dict.fromkeys(keys)]
         out: list[int] = []
         seen: set[int] = set()
+        for k in self._cache.missing(list(self._wanted or ())):
+            seen.add(k)
+            out.append(k)
+            if len(out) >= limit:
+                break
+        self._wanted = None
+        if len(out) >= limit:
+            return out
         for depth in range(max((len(r) for r in rings), default=0)):
             wanted = [int(r[depth]) for r in rings if depth < len(r)]
             for k in self._cache.missing(wanted):

@@ -225,3 +225,43 @@ def test_haptic_bench_server_reports_the_fem_start_up_and_tick_cost():
         assert row[key] > 0.0
     with pytest.raises(ValueError, match="icosphere"):
         bench_fem(n_vertices_list=(1000,))
+
+
+@pytest.fixture(scope="module")
+def bar():
+    """A 4 x 4 x 20 cm liver bar standing on its end (fixed at its lowest fifth), 1 cm edges."""
+    mesh = trimesh.creation.box(extents=(0.04, 0.04, 0.2))
+    mesh.apply_translation((0.0, 0.0, 0.1))
+    return refine_mesh(mesh, 0.01)
+
+
+@pytest.mark.parametrize("push_n", [0.025, 0.05])
+def test_a_bar_bent_by_centimetres_keeps_its_volume_and_its_tip_swings_down(bar, cache, push_n):
+    """A sideways push near the top bends the bar 2-4 cm. The linear model moves the tip
+    straight sideways and stretches the bar (its volume grows by percents); modal warping
+    carries each part along its rotation: the tip follows an arc and the volume is kept."""
+    results = {}
+    for warp in (False, True):
+        solid = FemSolid(bar, FemParams(density_kg_m3=0.0, warp=warp), cache_dir=cache)
+        key = solid.patch_key([0.02, 0.0, 0.18], normal=[1.0, 0.0, 0.0])
+        solid.step([key], [push_n])
+        verts = solid.vertices
+        tip = int(np.argmax(bar.vertices[:, 2] - 1e-3 * bar.vertices[:, 0]))
+        growth = trimesh.Trimesh(verts, bar.faces).volume / bar.volume - 1.0
+        results[warp] = (growth, verts[tip] - bar.vertices[tip])
+    (linear_growth, linear_tip), (warped_growth, warped_tip) = results[False], results[True]
+    assert linear_tip[0] < -0.02  # bent by centimetres (pushed towards -x)
+    assert linear_growth > 0.01  # the linear model grows the bar by more than 1 %
+    assert abs(warped_growth) < 0.2 * linear_growth  # warping keeps the volume
+    assert warped_tip[2] < linear_tip[2] - 0.001  # the tip swings down along an arc
+
+
+def test_warping_leaves_a_small_press_as_the_linear_model_has_it(ball, cache):
+    linear = FemSolid(ball, FemParams(density_kg_m3=0.0, warp=False), cache_dir=cache)
+    warped = FemSolid(ball, FemParams(density_kg_m3=0.0), cache_dir=cache)
+    key = linear.patch_key([0.0, 0.0, 0.05], normal=[0, 0, 1])
+    for solid in (linear, warped):
+        solid.step([key], [0.2])  # about 1 mm
+    d_lin, d_warp = linear.displacement, warped.displacement
+    assert np.abs(d_warp - d_lin).max() < 0.02 * np.abs(d_lin).max()
+    assert warped.contact_stiffness([key])[0] == linear.contact_stiffness([key])[0]

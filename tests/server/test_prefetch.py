@@ -100,3 +100,34 @@ def test_a_failing_prefetch_is_logged_and_the_tick_still_solves(caplog):
 def test_bad_batch_is_refused():
     with pytest.raises(ValueError, match="batch"):
         PatchPrefetcher(World(Balloon()), batch=0)
+
+
+def test_a_fast_contact_borrows_a_solved_neighbour_and_its_own_centre_is_solved_next():
+    """A contact that jumps to a centre not solved yet is loaded at the nearest solved centre
+    on its side for that tick (no sparse solve on the tick), and its own centre is the first one
+    solved ahead; the next tick it has its own."""
+    world = World(Balloon())
+    prefetcher = PatchPrefetcher(world)
+    obj = world.obj
+    try:
+        assert obj.stand_in_m > 0.0
+        _slide(world, 1, 0.0)
+        _drain(prefetcher, world)
+        # a jump of 1.3 patch spacings along the surface, past the ring already solved
+        step = 1.3 * obj.params.patch_spacing_m
+        phi = step / R
+        probe = (R - 0.003) * np.array([np.sin(phi), 0.0, np.cos(phi)])
+        own = obj.patch_key(probe, None, probe / np.linalg.norm(probe))
+        obj._cache._entries.pop(own, None)  # its own centre not solved yet
+        before, stood = obj.solve_count, obj.stand_ins
+        world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})
+        assert obj.solve_count == before  # the tick did not solve
+        assert obj.stand_ins == stood + 1
+        assert world.patches_ahead(1) == [own]  # its own centre is solved first
+        _drain(prefetcher, world)
+        world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})
+        assert obj.solve_count == before
+        assert world._users["u"].key == own
+    finally:
+        prefetcher.close()
+    assert obj.stand_in_m == 0.0  # closed: contacts get their own centres again
