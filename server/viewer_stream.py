@@ -1,12 +1,25 @@
-"""The viewer stream: the deforming surface as quantised normal displacements, sent when changed.
+"""The viewer stream: the deforming surface as quantised displacements, sent when changed.
 
-A viewer gets the surface as *displacements along the rest normals* of the vertices, ``w`` [m],
-outward positive: the surface it draws is ``rest + w * rest_normal``, exactly the balloon's own
-state (:mod:`server.objects.balloon`). Each ``w`` is an ``int16`` count of a quantum (1 um unless
-the deformation outgrows +-32.767 mm, see *Scale* below), and a vertex is sent only when the
-value the viewer holds differs from the current one by at least a quantum. At rest the stream
-costs a 20-byte header per tick; a 10 mm press on a 10k-vertex balloon stays under the per-frame
-byte budget (150 kB/s at 20 Hz by default) instead of 2.4 MB/s of float32 positions.
+A viewer gets the surface as displacements from the rest positions, in one of two forms; the
+server picks one per object (:meth:`ViewerStream.of_world`, from the object's
+``tangential_motion`` marker) and keeps it for the object's life:
+
+- **normal** (``DSP1``, the default): one value per vertex, the displacement ``w`` [m] along the
+  vertex's rest normal, outward positive. The surface the viewer draws is
+  ``rest + w * rest_normal``, exactly the water balloon's own state
+  (:mod:`server.objects.balloon`, ``tangential_motion = False``): its vertices move only along
+  their rest normals.
+- **vector** (``DSV1``): three values per vertex, the full displacement ``d`` (x, y, z) [m]; the
+  viewer draws ``rest + d``. For objects that also move vertices tangentially: the FEM solid
+  (:mod:`server.objects.fem`, ``tangential_motion = True``; a bent part swings along an arc
+  under modal warping, and a pressed solid's surface slides sideways). It costs three values
+  per vertex sent instead of one.
+
+Each value is an ``int16`` count of a quantum (1 um unless the deformation outgrows +-32.767 mm,
+see *Scale* below), and a vertex is sent only when the value the viewer holds differs from the
+current one by at least a quantum (on some axis, in vector form). At rest the stream costs a
+20-byte header per tick; a 10 mm press on a 10k-vertex balloon stays under the per-frame byte
+budget (150 kB/s at 20 Hz by default) instead of 2.4 MB/s of float32 positions.
 
 Frames (little-endian; docs/protocol.md, "Viewer stream")
 ---------------------------------------------------------
@@ -14,14 +27,17 @@ On join, three events:
 
 1. ``VTX1`` (:func:`shared.protocol.encode_vertices`, tick 0): the *rest* positions, (n, 3)
    float32 [m];
-2. ``NRM1`` (same layout): the rest unit normals, (n, 3) float32;
-3. a ``DSP1`` keyframe: every vertex's displacement (flags ``DENSE | KEY``).
+2. ``NRM1`` (same layout): the rest unit normals, (n, 3) float32 (in vector form the viewer
+   still colours the surface by the normal component ``d . rest_normal``);
+3. a keyframe (``DSP1`` or ``DSV1``): every vertex's displacement (flags ``DENSE | KEY``).
 
-Then one ``DSP1`` per simulation tick, a latest-wins state stream. ``DSP1`` header
-(:data:`DSP_HEADER`, 20 bytes): magic, uint32 tick, uint32 count, uint32 quantum [nm], uint32
-flags. Body: ``DENSE``: n int16 values (count = n); otherwise count indices (uint16, or uint32
-with ``INDEX32``) then count int16 values. A value ``v`` at vertex ``i`` means
-``w_i = v * quantum``; vertices not listed keep what the viewer has.
+Then one frame of the same form per simulation tick, a latest-wins state stream. Header
+(:data:`DSP_HEADER`, 20 bytes, both forms): magic, uint32 tick, uint32 count (vertices), uint32
+quantum [nm], uint32 flags. ``DSP1`` body: ``DENSE``: n int16 values (count = n); otherwise
+count indices (uint16, or uint32 with ``INDEX32``) then count int16 values. A value ``v`` at
+vertex ``i`` means ``w_i = v * quantum``. ``DSV1`` body: the same with three int16 per vertex
+(x, y, z, vertex after vertex): ``DENSE``: 3n int16; otherwise count indices then 3 count int16,
+``d_i = (vx, vy, vz) * quantum``. Vertices not listed keep what the viewer has.
 
 What the server guarantees
 --------------------------
@@ -32,19 +48,19 @@ its vertices again. Values are absolute, not increments, so applying any subset 
 flight leaves the viewer correct: a frame lists every vertex where the viewer's value, or the
 value of any frame still in flight, differs from the current one. Hence, with an unlimited
 budget, after each frame the viewer holds the server's displacement within half a quantum
-(the rounding), and ``rest + w * n`` is the server's surface within one quantum.
+(the rounding; per axis in vector form), and the surface it draws is the server's within one
+quantum (per axis in vector form).
 
 Byte budget: when more vertices changed than a frame may carry (``frame_budget_bytes``), the
-frame carries the largest differences first (flag ``PARTIAL``); the rest follow in the next
+frame carries the largest differences first (flag ``PARTIAL``; in vector form a vertex's
+difference is the Euclidean norm of its per-axis differences); the rest follow in the next
 frames, so during fast motion small far-field changes lag by a few ticks (under 0.5 mm in
 ``haptic bench server``) and everything is exact again within a few ticks of the motion stopping.
 
-Scale: if ``max |w|`` exceeds what int16 holds at the base quantum, the quantum doubles (up to
-2**15 base quanta, +-1 km); it halves again once the deformation fits in half of the smaller
-range (hysteresis). Values beyond even that are clamped and flagged ``CLAMPED``.
-
-Only the normal component of a vertex's motion is carried: an object that also moves vertices
-tangentially (a solid FEM model, say) would need a vector stream.
+Scale: if ``max |w|`` (in vector form, the largest ``|d|`` on any axis) exceeds what int16 holds
+at the base quantum, the quantum doubles (up to 2**15 base quanta, +-1 km); it halves again once
+the deformation fits in half of the smaller range (hysteresis). Values beyond even that are
+clamped and flagged ``CLAMPED``.
 
 Pure numpy; no sockets, no clocks. The I/O layer must deliver a viewer's frames in the order they
 were made (dropping some is fine) and call :attr:`Frame.sent` right after writing one.
@@ -69,14 +85,16 @@ Int16Array = npt.NDArray[np.int16]
 Int32Array = npt.NDArray[np.int32]
 Int64Array = npt.NDArray[np.int64]
 
-#: Displacement frame: header :data:`DSP_HEADER`, then indices and/or int16 values.
+#: Normal displacement frame: header :data:`DSP_HEADER`, then indices and/or int16 values.
 DISPLACEMENT_MAGIC = b"DSP1"
+#: Vector displacement frame: header :data:`DSP_HEADER`, then indices and/or int16 (x, y, z).
+VECTOR_MAGIC = b"DSV1"
 #: Rest normals: header :data:`shared.protocol.BINARY_HEADER`, then count x 3 float32.
 NORMALS_MAGIC = b"NRM1"
-#: ``DSP1`` header: magic, uint32 tick, uint32 count, uint32 quantum [nm], uint32 flags.
+#: ``DSP1``/``DSV1`` header: magic, uint32 tick, uint32 count, uint32 quantum [nm], uint32 flags.
 DSP_HEADER = struct.Struct("<4sIIII")
 
-#: Body is n int16 values, one per vertex (no indices).
+#: Body is one value (``DSP1``) or three (``DSV1``) per vertex, in vertex order (no indices).
 FLAG_DENSE = 1
 #: Keyframe: every vertex is listed; the viewer's earlier state no longer matters.
 FLAG_KEY = 2
@@ -137,12 +155,12 @@ class Snapshot:
         Simulation tick number.
     scale_exp : int
         The quantum is ``BASE_QUANTUM_NM * 2**scale_exp`` [nm].
-    values : (n,) int16
-        ``w`` in quanta.
-    target : (n,) int32
-        ``values * 2**scale_exp``: ``w`` in base quanta (1 um), as a viewer decodes it.
+    values : (n,) or (n, 3) int16
+        ``w`` (normal form) or ``d`` (vector form) in quanta.
+    target : (n,) or (n, 3) int32
+        ``values * 2**scale_exp``: the same in base quanta (1 um), as a viewer decodes it.
     clamped : bool
-        Some ``|w|`` exceeded the int16 range at the largest scale.
+        Some ``|w|`` (or component of ``d``) exceeded the int16 range at the largest scale.
     version : int
         Counts the distinct displacements of one stream (frames made from one snapshot for
         viewers in the same state are encoded once).
@@ -168,7 +186,7 @@ class Snapshot:
 
 @dataclass(frozen=True, eq=False)
 class Frame:
-    """One ``DSP1`` frame for one viewer.
+    """One ``DSP1`` (normal form) or ``DSV1`` (vector form) frame for one viewer.
 
     Attributes
     ----------
@@ -195,7 +213,7 @@ class _Encoded:
     """A frame's content, shared by the viewers that held the same state (read-only arrays)."""
 
     index: Int64Array | None  # None: dense, every vertex
-    target: Int32Array  # base quanta sent, same length as index (or n)
+    target: Int32Array  # base quanta sent, as many rows as index (or n); (k,) or (k, 3)
     data: bytes
     partial: bool
     #: Token of the exact state a viewer is in once it got this frame and nothing else is in
@@ -216,7 +234,7 @@ class _InFlight:
 class _Viewer:
     """What the encoder knows of one viewer."""
 
-    held: Int32Array  # (n,) base quanta the viewer holds for sure; _UNKNOWN where unknown
+    held: Int32Array  # (n,) or (n, 3) base quanta it holds for sure; _UNKNOWN where unknown
     in_flight: deque[_InFlight] = field(default_factory=deque)
     next_seq: int = 1
     last_sent_seq: int = 0
@@ -233,19 +251,23 @@ class ViewerStream:
     rest_vertices : (n, 3) float [m]
         Rest positions.
     rest_normals : (n, 3) float
-        Outward unit normals at rest; the displacement is measured along them.
+        Outward unit normals at rest; the normal form measures the displacement along them.
     frame_budget_bytes : int or None
-        Largest ``DSP1`` frame after the keyframe [bytes] (None: unlimited, every frame exact).
+        Largest frame after the keyframe [bytes] (None: unlimited, every frame exact).
     max_in_flight : int
         Frames per viewer tracked while not yet reported written; older ones are forgotten and
         their vertices resent (a viewer too slow to take frames costs a few more bytes, never
         unbounded memory).
+    vector : bool
+        False: the normal form (``DSP1``, one value per vertex, ``w`` along the rest normal);
+        True: the vector form (``DSV1``, the full displacement ``d``, three values per vertex),
+        for objects that move vertices off their normals (module docstring).
 
     Raises
     ------
     ValueError
         Shapes that do not match, an empty mesh, a non-finite rest state, a budget below a
-        header, or ``max_in_flight < 1``.
+        header and two entries, or ``max_in_flight < 1``.
     """
 
     def __init__(
@@ -254,6 +276,7 @@ class ViewerStream:
         rest_normals: npt.ArrayLike,
         frame_budget_bytes: int | None = None,
         max_in_flight: int = 8,
+        vector: bool = False,
     ) -> None:
         rest = np.array(rest_vertices, dtype=np.float64)
         normals = np.array(rest_normals, dtype=np.float64)
@@ -263,8 +286,11 @@ class ViewerStream:
             raise ValueError(f"rest_normals must be {rest.shape}, got {normals.shape}")
         if not (np.all(np.isfinite(rest)) and np.all(np.isfinite(normals))):
             raise ValueError("rest_vertices and rest_normals must be finite")
-        if frame_budget_bytes is not None and frame_budget_bytes < DSP_HEADER.size + 8:
-            raise ValueError(f"frame_budget_bytes must be >= {DSP_HEADER.size + 8}")
+        #: Values per vertex: 1 (normal form) or 3 (vector form).
+        self._axes = 3 if vector else 1
+        least = DSP_HEADER.size + 4 * self._axes + 4  # two entries of uint16 index + values
+        if frame_budget_bytes is not None and frame_budget_bytes < least:
+            raise ValueError(f"frame_budget_bytes must be >= {least}")
         if max_in_flight < 1:
             raise ValueError(f"max_in_flight must be >= 1, got {max_in_flight}")
         rest.setflags(write=False)
@@ -276,6 +302,7 @@ class ViewerStream:
         n = rest.shape[0]
         self._index_dtype = "<u2" if n <= 0x10000 else "<u4"
         self._index_flag = 0 if n <= 0x10000 else FLAG_INDEX32
+        self._magic = VECTOR_MAGIC if vector else DISPLACEMENT_MAGIC
         self._rest_frames = (
             encode_vertices(0, rest),
             BINARY_HEADER.pack(NORMALS_MAGIC, 0, n) + normals.astype("<f4").tobytes(),
@@ -296,7 +323,11 @@ class ViewerStream:
 
         Rest positions and normals are the object's (``world.obj.rest_vertices`` and
         ``rest_normals``) where it has them, else the current vertices and their area-weighted
-        normals (the world is taken to be at rest).
+        normals (the world is taken to be at rest). The form is the vector form (``DSV1``) when
+        the object says its vertices move off their rest normals (a true class attribute
+        ``tangential_motion``, as on :class:`server.objects.fem.FemSolid`), else the normal form
+        (``DSP1``; the balloon). Either way the stream takes the world's current ``vertices``:
+        the vector form carries ``vertices - rest``, the object's (n, 3) displacement.
 
         Parameters
         ----------
@@ -316,7 +347,8 @@ class ViewerStream:
         budget = None
         if bytes_per_s is not None:
             budget = max(MIN_FRAME_BUDGET_BYTES, int(bytes_per_s / max(float(rate_hz), 1e-9)))
-        return cls(rest, normals, frame_budget_bytes=budget)
+        vector = getattr(obj, "tangential_motion", False) is True
+        return cls(rest, normals, frame_budget_bytes=budget, vector=vector)
 
     # ------------------------------------------------------------------ state
     @property
@@ -335,12 +367,18 @@ class ViewerStream:
         return self._normals
 
     @property
+    def vector(self) -> bool:
+        """True for the vector form (``DSV1``), False for the normal form (``DSP1``)."""
+        return self._axes == 3
+
+    @property
     def viewers(self) -> list[str]:
         """Viewer ids the encoder keeps state for."""
         return list(self._viewers)
 
     def displacement(self, vertices: npt.ArrayLike) -> FloatArray:
-        """Normal displacement ``w = (vertices - rest) . rest_normal`` per vertex.
+        """What the stream carries of ``vertices``: ``w = (vertices - rest) . rest_normal`` per
+        vertex in the normal form, ``d = vertices - rest`` in the vector form.
 
         Parameters
         ----------
@@ -348,7 +386,8 @@ class ViewerStream:
 
         Returns
         -------
-        (n,) float64 [m], outward positive; non-finite entries become 0.
+        (n,) float64 [m] outward positive (normal form), or (n, 3) float64 [m] (vector form);
+        non-finite entries become 0.
 
         Raises
         ------
@@ -358,7 +397,8 @@ class ViewerStream:
         v = np.asarray(vertices, dtype=np.float64)
         if v.shape != self._rest.shape:
             raise ValueError(f"vertices must be {self._rest.shape}, got {v.shape}")
-        w = np.einsum("ij,ij->i", v - self._rest, self._normals)
+        d = v - self._rest
+        w = d if self._axes == 3 else np.einsum("ij,ij->i", d, self._normals)
         return np.nan_to_num(w, nan=0.0, posinf=0.0, neginf=0.0)
 
     def snapshot(self, tick: int, vertices: npt.ArrayLike) -> Snapshot:
@@ -407,8 +447,9 @@ class ViewerStream:
         Returns
         -------
         list of bytes
-            ``[VTX1 rest positions, NRM1 rest normals, DSP1 keyframe]``. The keyframe counts as
-            held by the viewer from now on: events are never dropped.
+            ``[VTX1 rest positions, NRM1 rest normals, keyframe]`` (a ``DSP1`` or ``DSV1``
+            keyframe, the stream's form). The keyframe counts as held by the viewer from now
+            on: events are never dropped.
         """
         snap = self.snapshot(tick, vertices)
         self._viewers[viewer_id] = _Viewer(held=snap.target.copy(), synced=snap.version)
@@ -465,7 +506,7 @@ class ViewerStream:
         state = self._viewers.get(viewer_id)
         if state is None:
             state = self._viewers[viewer_id] = _Viewer(
-                held=np.full(self.n_vertices, _UNKNOWN, dtype=np.int32)
+                held=np.full(snap.target.shape, _UNKNOWN, dtype=np.int32)
             )
         if state.synced is None:
             content = self._content(state, snap, shared=False)
@@ -498,23 +539,24 @@ class ViewerStream:
         that other viewers taking the same frame share.
         """
         target = snap.target
-        diff = np.abs(target.astype(np.int64) - state.held)
+        diff = _difference(target, state.held)
         for e in state.in_flight:  # a frame in flight may yet land: its values must be overwritten
             c = e.content
             if c.index is None:
-                np.maximum(diff, np.abs(target - c.target), out=diff)
+                np.maximum(diff, _difference(target, c.target), out=diff)
             else:
-                d = np.abs(target[c.index] - c.target)
+                d = _difference(target[c.index], c.target)
                 diff[c.index] = np.maximum(diff[c.index], d)
         changed = np.flatnonzero(diff)
-        n = self.n_vertices
-        entry = np.dtype(self._index_dtype).itemsize + 2
+        values_size = 2 * self._axes  # int16 per vertex
+        dense_size = values_size * self.n_vertices
+        entry = np.dtype(self._index_dtype).itemsize + values_size
         budget = self.frame_budget_bytes
         room = None if budget is None else budget - DSP_HEADER.size
-        dense_fits = room is None or 2 * n <= room
+        dense_fits = room is None or dense_size <= room
         flags = 0
         index: Int64Array | None
-        if dense_fits and 2 * n <= entry * changed.size:
+        if dense_fits and dense_size <= entry * changed.size:
             index, flags = None, FLAG_DENSE
         elif room is not None and entry * changed.size > room:
             cap = room // entry
@@ -544,10 +586,20 @@ class ViewerStream:
             count = int(index.size)
             body = index.astype(self._index_dtype).tobytes()
             body += snap.values[index].astype("<i2").tobytes()
-        head = DSP_HEADER.pack(
-            DISPLACEMENT_MAGIC, snap.tick & 0xFFFFFFFF, count, snap.quantum_nm, flags
-        )
+        head = DSP_HEADER.pack(self._magic, snap.tick & 0xFFFFFFFF, count, snap.quantum_nm, flags)
         return head + body
+
+
+def _difference(a: Int32Array, b: Int32Array) -> npt.NDArray[Any]:
+    """Per vertex, how far apart two sets of values [base quanta] are.
+
+    (n,) values (normal form): ``|a - b|``, int64. (n, 3) values (vector form): the Euclidean
+    norm of the row differences, float64 (exactly 0 only where the rows are equal).
+    """
+    d = a.astype(np.int64) - b
+    if d.ndim == 1:
+        return np.abs(d)
+    return np.sqrt(np.einsum("ij,ij->i", d, d, dtype=np.float64))
 
 
 def _mark_sent(state: _Viewer, seq: int) -> None:
@@ -578,7 +630,7 @@ def _mark_sent(state: _Viewer, seq: int) -> None:
 # ----------------------------------------------------------------------------- decoding
 @dataclass(frozen=True, eq=False)
 class DisplacementFrame:
-    """A decoded ``DSP1`` frame.
+    """A decoded ``DSP1`` or ``DSV1`` frame.
 
     Attributes
     ----------
@@ -589,8 +641,9 @@ class DisplacementFrame:
         ``FLAG_*`` bits.
     index : (count,) int64 or None
         Vertices carried (None: dense, all of them in order).
-    values : (count,) int16
-        Displacements in quanta.
+    values : (count,) or (count, 3) int16
+        Displacements in quanta: ``w`` along the rest normal (``DSP1``), or ``d`` (x, y, z)
+        (``DSV1``).
     """
 
     tick: int
@@ -599,50 +652,66 @@ class DisplacementFrame:
     index: Int64Array | None
     values: Int16Array
 
+    @property
+    def vector(self) -> bool:
+        """True for a ``DSV1`` frame (three values per vertex)."""
+        return self.values.ndim == 2
+
 
 def decode_displacement(frame: bytes) -> DisplacementFrame:
-    """Decode a ``DSP1`` frame (no mesh needed; :class:`ViewerStreamDecoder` applies it).
+    """Decode a ``DSP1`` or ``DSV1`` frame (no mesh needed; :class:`ViewerStreamDecoder`
+    applies it).
 
     Raises
     ------
     ValueError
-        Not a ``DSP1`` frame, or a length that does not match its header.
+        Neither a ``DSP1`` nor a ``DSV1`` frame, or a length that does not match its header.
     """
     if len(frame) < DSP_HEADER.size:
-        raise ValueError("DSP1 frame shorter than its header")
+        raise ValueError("displacement frame shorter than its header")
     magic, tick, count, quantum_nm, flags = DSP_HEADER.unpack_from(frame)
-    if magic != DISPLACEMENT_MAGIC:
-        raise ValueError(f"not a DSP1 frame: {magic!r}")
+    if magic not in (DISPLACEMENT_MAGIC, VECTOR_MAGIC):
+        raise ValueError(f"not a DSP1 or DSV1 frame: {magic!r}")
+    name = magic.decode()
+    axes = 3 if magic == VECTOR_MAGIC else 1
+    shape = (count, 3) if axes == 3 else (count,)
     body = memoryview(frame)[DSP_HEADER.size :]
     if flags & FLAG_DENSE:
-        if len(body) != 2 * count:
-            raise ValueError("DSP1 dense frame length does not match its count")
-        values = np.frombuffer(body, dtype="<i2").astype(np.int16)
+        if len(body) != 2 * axes * count:
+            raise ValueError(f"{name} dense frame length does not match its count")
+        values = np.frombuffer(body, dtype="<i2").astype(np.int16).reshape(shape)
         return DisplacementFrame(tick, quantum_nm * 1e-9, flags, None, values)
     width = 4 if flags & FLAG_INDEX32 else 2
-    if len(body) != (width + 2) * count:
-        raise ValueError("DSP1 sparse frame length does not match its count")
+    if len(body) != (width + 2 * axes) * count:
+        raise ValueError(f"{name} sparse frame length does not match its count")
     index = np.frombuffer(body[: width * count], dtype="<u4" if width == 4 else "<u2")
-    values = np.frombuffer(body[width * count :], dtype="<i2").astype(np.int16)
+    values = np.frombuffer(body[width * count :], dtype="<i2").astype(np.int16).reshape(shape)
     return DisplacementFrame(tick, quantum_nm * 1e-9, flags, index.astype(np.int64), values)
 
 
 class ViewerStreamDecoder:
     """What a viewer does with the stream (the reference for web/viewer.js).
 
-    Feed it every binary frame in the order received; :attr:`vertices` is then the surface.
+    Feed it every binary frame in the order received; :attr:`vertices` is then the surface. A
+    ``DSP1`` frame sets normal displacements ``w`` (drawn ``rest + w * normal``); a ``DSV1``
+    frame sets vector displacements ``d`` (drawn ``rest + d``), and ``w`` follows as their
+    normal component. A stream keeps one form; a frame of the other form switches to it (a
+    ``DSP1`` frame drops the vectors, the vertices it does not list keep their ``w``).
     """
 
     def __init__(self) -> None:
         self.rest: FloatArray | None = None
         self.normals: FloatArray | None = None
         self._w: FloatArray | None = None
+        #: (n, 3) [m] vector displacements once a ``DSV1`` frame came; None in the normal form.
+        self._d: FloatArray | None = None
         self.tick = -1
         self.frames = 0
 
     @property
     def w(self) -> FloatArray:
-        """(n,) float64 [m] the displacement the viewer holds, outward positive.
+        """(n,) float64 [m] the normal displacement the viewer holds, outward positive (in the
+        vector form, the normal component of :attr:`displacement`).
 
         Raises
         ------
@@ -651,29 +720,48 @@ class ViewerStreamDecoder:
         """
         if self._w is None:
             raise ValueError("no rest geometry yet")
+        if self._d is not None:
+            if self.normals is None:
+                raise ValueError("no rest normals yet")
+            return np.einsum("ij,ij->i", self._d, self.normals)
         return self._w
 
+    @property
+    def vector(self) -> bool:
+        """True once the stream is in the vector form (the last displacement frame was DSV1)."""
+        return self._d is not None
+
     def feed(self, frame: bytes) -> None:
-        """Apply one binary frame (``VTX1`` rest, ``NRM1``, ``DSP1``; others are ignored).
+        """Apply one binary frame (``VTX1`` rest, ``NRM1``, ``DSP1``, ``DSV1``; others are
+        ignored).
 
         Raises
         ------
         ValueError
-            A malformed frame, or a ``DSP1`` frame before the rest geometry or of another size.
+            A malformed frame, or a displacement frame before the rest geometry or of another
+            size.
         """
         magic = bytes(frame[:4])
-        if magic == DISPLACEMENT_MAGIC:
+        if magic in (DISPLACEMENT_MAGIC, VECTOR_MAGIC):
             d = decode_displacement(frame)
+            name = magic.decode()
             if self._w is None:
-                raise ValueError("DSP1 frame before the rest geometry (VTX1, NRM1)")
-            if d.index is None:
-                if d.values.size != self._w.size:
-                    raise ValueError("DSP1 dense frame of another mesh size")
-                self._w = d.values.astype(np.float64) * d.quantum_m
+                raise ValueError(f"{name} frame before the rest geometry (VTX1, NRM1)")
+            n = self._w.size
+            if d.index is None and d.values.shape[0] != n:
+                raise ValueError(f"{name} dense frame of another mesh size")
+            if d.index is not None and d.index.size and int(d.index.max()) >= n:
+                raise ValueError(f"{name} index out of range")
+            rows = slice(None) if d.index is None else d.index
+            if d.vector:
+                if self._d is None:
+                    self._d = np.zeros((n, 3))
+                self._d[rows] = d.values * d.quantum_m
             else:
-                if d.index.size and int(d.index.max()) >= self._w.size:
-                    raise ValueError("DSP1 index out of range")
-                self._w[d.index] = d.values * d.quantum_m
+                if self._d is not None:  # back to the normal form: keep the normal component
+                    self._w = self.w
+                    self._d = None
+                self._w[rows] = d.values * d.quantum_m
             self.tick = d.tick
             self.frames += 1
         elif magic in (VERTICES_MAGIC, NORMALS_MAGIC):
@@ -683,19 +771,36 @@ class ViewerStreamDecoder:
                 raise ValueError(f"{magic!r} frame length does not match its count")
             arr = np.frombuffer(body, dtype="<f4").reshape(count, 3).astype(np.float64)
             if magic == VERTICES_MAGIC:
-                self.rest, self._w = arr, np.zeros(count)
+                self.rest, self._w, self._d = arr, np.zeros(count), None
             else:
                 self.normals = arr
 
     @property
-    def vertices(self) -> FloatArray:
-        """(n, 3) float64 [m] the surface as the viewer draws it, ``rest + w * normal``.
+    def displacement(self) -> FloatArray:
+        """(n, 3) float64 [m] the displacement the viewer draws: ``d`` (vector form) or
+        ``w * normal`` (normal form).
 
         Raises
         ------
         ValueError
             Before the rest geometry arrived.
         """
-        if self.rest is None or self.normals is None or self._w is None:
+        if self.normals is None or self._w is None:
             raise ValueError("no rest geometry yet")
-        return self.rest + self._w[:, None] * self.normals
+        if self._d is not None:
+            return self._d.copy()
+        return self._w[:, None] * self.normals
+
+    @property
+    def vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] the surface as the viewer draws it, ``rest + w * normal`` (normal
+        form) or ``rest + d`` (vector form).
+
+        Raises
+        ------
+        ValueError
+            Before the rest geometry arrived.
+        """
+        if self.rest is None:
+            raise ValueError("no rest geometry yet")
+        return self.rest + self.displacement

@@ -371,6 +371,9 @@ class Balloon(PatchedSurface):
     sparse solve (batched across contacts within a call).
     """
 
+    #: Vertices move only along their rest normals: the viewer stream's normal form (``DSP1``).
+    tangential_motion: bool = False
+
     def __init__(
         self, mesh: trimesh.Trimesh | None = None, params: BalloonParams | None = None
     ) -> None:

@@ -378,6 +378,9 @@ class FemSolid(PatchedSurface):
     contact whose patch is not cached costs one sparse solve (batched).
     """
 
+    #: Vertices also move tangentially: the viewer stream's vector form (``DSV1``).
+    tangential_motion: bool = True
+
     def __init__(
         self,
         mesh: trimesh.Trimesh,
