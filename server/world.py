@@ -318,6 +318,28 @@ class World:
         here = self._locate(probe, user)
         return here.point, here.normal, here.penetration_m
 
+    def _material_of(self, s: SurfacePoint) -> tuple[FloatArray, FloatArray]:
+        """Where the surface point ``s`` was at rest, and the rest normal of its face: the patch
+        centres are rest positions, and a part that moved or turned by centimetres (a bent FEM
+        part) must be loaded at its own patch, not at the one now nearest in space."""
+        tri = self._index.rest_vertices[self.faces[s.face]]
+        bary = s.bary
+        if bary is None:
+            bary = np.full(3, 1.0 / 3.0)
+        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+        norm = float(np.linalg.norm(n))
+        return bary @ tri, (n / norm if norm > 0.0 else np.asarray(s.normal))
+
+    def _material(
+        self, point: FloatArray, normal: FloatArray, user: _UserState | None
+    ) -> tuple[FloatArray, FloatArray]:
+        """The rest-space point and normal of a load at ``point`` near the user's last located
+        surface point (moved back by that point's displacement); the point itself without one."""
+        if user is None:
+            return point, normal
+        rest_point, rest_normal = self._material_of(user.surface)
+        return point - (user.surface.point - rest_point), rest_normal
+
     def patches_ahead(self, limit: int = 4) -> list[int]:
         """Up to ``limit`` uncached patch centres next to the users' current ones, for solving
         off the tick (:class:`server.prefetch.PatchPrefetcher`); [] for an object that cannot
@@ -357,8 +379,11 @@ class World:
             push = float(force @ normal)
             if push > 0.0:
                 user = self._users.get(name)
+                rest_point, rest_normal = self._material(point, normal, user)
                 keys.append(
-                    self.obj.patch_key(point, user.key if user is not None else None, normal)
+                    self.obj.patch_key(
+                        rest_point, user.key if user is not None else None, rest_normal
+                    )
                 )
                 forces.append(push)
                 pushed[name] = push
@@ -379,8 +404,9 @@ class World:
         patch_keys = []
         for name, s in zip(names, located, strict=True):
             user = self._users.get(name)
+            rest_point, rest_normal = self._material_of(s)
             patch_keys.append(
-                self.obj.patch_key(s.point, user.key if user is not None else None, s.normal)
+                self.obj.patch_key(rest_point, user.key if user is not None else None, rest_normal)
             )
         # Step 2 inputs: K_o, B_o and the coupling-aware K_o_eff.
         compliance = self.obj.contact_compliance(patch_keys)

@@ -56,12 +56,14 @@ the tetrahedra at the surface). It is precomputed per patch and per mode, next t
 displacement, so it costs the tick one more sum and a closed-form rotation per vertex
 (:func:`warped`). The same bent bar then keeps its volume to 0.5 %.
 
-What it is not: co-rotational FEM (Mueller et al. 2002), which refactors or re-solves with each
-element's rotation every step. Here the stiffness, ``K_o``, the contacts' compliance and the
-modes stay those of the rest shape: a patch's normal and compliance do not turn with a part that
-has turned, and a press is still linear strain. Warping only corrects where the surface is drawn
-and felt. The approximation holds while the rotations stay moderate (about 0.5 rad; the bar
-above reaches 0.4) and the strain small. docs/fem.md has the measurements.
+A push is applied along its patch's rest normal and its response warped: the precomputed
+compliance warped with the patch's rotation (SOFA's precomputed constraint correction). For
+normal pushes the scalar compliances ``b_i^T K^-1 b_j`` do not change under that rotation as long
+as each patch's normal turns with it, so ``K_o`` and the coupling stay valid. What it is not:
+co-rotational FEM (Mueller et al. 2002), which re-solves with each element's rotation every
+step. The rotation is estimated from the linear solution (moderate rotations, about 0.5 rad; the
+bar above reaches 0.4), the strain stays linear, and a rotation that varies across one patch is
+not one rotation. docs/fem.md has the measurements.
 
 References
 ----------

@@ -265,3 +265,22 @@ def test_warping_leaves_a_small_press_as_the_linear_model_has_it(ball, cache):
     d_lin, d_warp = linear.displacement, warped.displacement
     assert np.abs(d_warp - d_lin).max() < 0.02 * np.abs(d_lin).max()
     assert warped.contact_stiffness([key])[0] == linear.contact_stiffness([key])[0]
+
+
+def test_a_bent_part_is_loaded_at_its_own_patch(bar, cache):
+    """A user pressing the side of the bar near its top bends it by centimetres and follows it:
+    the push stays on the patch of the material under the finger (patch centres are rest
+    positions), not on whichever rest patch is now nearest in space."""
+    solid = FemSolid(bar, FemParams(density_kg_m3=0.0), cache_dir=cache)
+    world = World(solid)
+    spacing = solid.params.patch_spacing_m
+    rest_point = np.array([0.02, 0.0, 0.18])
+    vertex = int(np.argmin(np.linalg.norm(bar.vertices - rest_point, axis=1)))
+    normal = np.array([1.0, 0.0, 0.0])
+    for _ in range(12):
+        probe = solid.vertices[vertex] - 0.002 * normal
+        out = world.tick({"u": ContactInput(probe=probe, force=0.05 * normal)})["u"]
+        normal = np.asarray(out.normal)
+    assert solid.vertices[vertex][0] - rest_point[0] < -0.03  # bent by centimetres
+    key = world._users["u"].key
+    assert np.linalg.norm(solid.rest_vertices[key] - rest_point) < 1.5 * spacing
