@@ -2,8 +2,10 @@
 //
 // Connects to ws://<page host>/ws as a `viewer` and receives the surface as the viewer stream
 // (docs/protocol.md, "Viewer stream"): on join the triangles (FAC1), the rest positions (VTX1) and
-// rest normals (NRM1) and a keyframe of displacements (DSP1); then one DSP1 per simulation tick
-// with only the displacements that changed, and a `room` summary. It draws the balloon coloured
+// rest normals (NRM1) and a keyframe of displacements; then one displacement frame per simulation
+// tick with only the displacements that changed, and a `room` summary. The displacements are
+// normal (DSP1, the balloon: drawn rest + w * normal) or vectors (DSV1, the FEM solid, whose
+// vertices also move sideways: drawn rest + d). It draws the object coloured
 // by how far each point is pushed in or bulged out (legend in mm), turns the camera toward the
 // deepest dent until the user moves it, and shows each user's probe, proxy and force (arrows
 // scaled to stay in view) and a card per user with the surface indentation at its contact.
@@ -11,7 +13,8 @@
 // (see "stale users" below). Reconnects by itself with backoff.
 //
 // Test hooks: `window.viewerState` (connection, tick, frame counts, users by name, colour scale,
-// dent, bytes per second) is updated live.
+// dent, bytes per second) is updated live; `window.viewerPositions(indices)` returns where the
+// surface vertices are drawn ([x, y, z] [m] each, from the geometry the renderer uses).
 // Protocol constants come from ./protocol.js, generated from shared/protocol.py; the viewer
 // stream's own constants (STREAM below) mirror server/viewer_stream.py, checked by a test.
 //
@@ -46,8 +49,9 @@ export const USED_FIELDS = /* USED_FIELDS:BEGIN */ {
 export const STREAM = Object.freeze({
   NORMALS_MAGIC: "NRM1", // rest unit normals: BINARY_HEADER, count x 3 float32
   DISPLACEMENT_MAGIC: "DSP1", // magic, uint32 tick, count, quantum [nm], flags; then the body
+  VECTOR_MAGIC: "DSV1", // the same header; three int16 (x, y, z) per vertex instead of one
   DSP_HEADER_BYTES: 20,
-  FLAG_DENSE: 1, // body: n int16 values in vertex order
+  FLAG_DENSE: 1, // body: n values (DSP1) or n x 3 (DSV1) int16 in vertex order
   FLAG_KEY: 2, // keyframe (every vertex)
   FLAG_INDEX32: 4, // uint32 indices (else uint16), then int16 values
   FLAG_CLAMPED: 8,
@@ -90,10 +94,11 @@ const viewerState = {
   status: "connecting",
   protocol: PROTOCOL_VERSION,
   tick: -1,
-  frames: 0, // surface frames received (DSP1 after the keyframe)
+  frames: 0, // surface frames received (DSP1 or DSV1 after the keyframe)
+  vectorFrames: 0, // of all surface frames, those with vector displacements (DSV1)
   faceFrames: 0, // FAC1 frames received
-  keyframes: 0, // DSP1 keyframes received
-  partialFrames: 0, // DSP1 frames the server's byte budget cut short
+  keyframes: 0, // DSP1/DSV1 keyframes received
+  partialFrames: 0, // DSP1/DSV1 frames the server's byte budget cut short
   roomMessages: 0,
   renders: 0,
   renderMs: null, // cost of the last render [ms]
@@ -368,13 +373,15 @@ function setColorRange(rangeMm) {
 setColorRange(COLOR_RANGES_MM[0]);
 
 // ----------------------------------------------------------------------------- surface frames
-// The surface: rest positions and normals (once), a displacement w [m] per vertex (the stream),
-// positions rest + w * normal and colours by w, written in place into the shared geometry.
+// The surface: rest positions and normals (once), a displacement per vertex (the stream): either
+// w [m] along the normal (DSP1), positions rest + w * normal, or a vector d [m] (DSV1), positions
+// rest + d and w its normal component; colours by w; written in place into the shared geometry.
 const mesh = {
   n: 0,
   rest: null, // Float32Array (3n) [m]
   normal: null, // Float32Array (3n), unit
-  w: null, // Float32Array (n) [m], outward positive
+  w: null, // Float32Array (n) [m], outward positive (with vectors, d . normal)
+  d: null, // Float32Array (3n) [m] vector displacements once a DSV1 frame came; null with DSP1
   rangeM: COLOR_RANGES_MM[0] / 1000, // colour-scale range [m]
   shrinkFrames: 0, // frames in a row the displacement would fit a smaller range
   dentIndex: -1, // vertex of the deepest dent, -1 when there is none worth showing
@@ -407,8 +414,10 @@ function onBinary(buf) {
   const now = performance.now();
   byteLog.push([now, buf.byteLength]);
   const magic = readMagic(buf);
-  if (magic === STREAM.DISPLACEMENT_MAGIC) {
-    if (!onDisplacement(buf)) console.warn("viewer: malformed DSP1 frame ignored");
+  if (magic === STREAM.DISPLACEMENT_MAGIC || magic === STREAM.VECTOR_MAGIC) {
+    if (!onDisplacement(buf, magic === STREAM.VECTOR_MAGIC)) {
+      console.warn(`viewer: malformed ${magic} frame ignored`);
+    }
     return;
   }
   const h = readHeader(buf);
@@ -427,6 +436,7 @@ function onBinary(buf) {
   } else if (magic === STREAM.NORMALS_MAGIC) {
     if (h.count === mesh.n) {
       mesh.normal = body(buf, h.count, Float32Array).slice();
+      if (mesh.d) for (let i = 0; i < mesh.n; i++) mesh.w[i] = normalPart(i);
       writeAll();
     }
   } else {
@@ -440,6 +450,7 @@ function setRest(rest) {
   mesh.n = n;
   mesh.rest = rest;
   mesh.w = new Float32Array(n);
+  mesh.d = null; // the stream's keyframe says which form follows
   if (!mesh.normal || mesh.normal.length !== 3 * n) mesh.normal = new Float32Array(3 * n);
   let pos = surface.getAttribute("position");
   if (!pos || pos.count !== n) {
@@ -455,40 +466,65 @@ function setRest(rest) {
   writeAll();
 }
 
-/** DSP1: displacements of some or all vertices. Returns false for a malformed frame. */
-function onDisplacement(buf) {
+/** DSP1 (`vector` false: w along the normals) or DSV1 (`vector` true: d, three int16 a vertex):
+ * displacements of some or all vertices. Returns false, changing nothing, for a malformed frame. */
+function onDisplacement(buf, vector) {
   if (buf.byteLength < STREAM.DSP_HEADER_BYTES || !mesh.rest) return false;
   const dv = new DataView(buf);
   const tick = dv.getUint32(4, true);
   const count = dv.getUint32(8, true);
   const quantumM = dv.getUint32(12, true) * 1e-9;
   const flags = dv.getUint32(16, true);
-  const w = mesh.w;
+  const axes = vector ? 3 : 1; // int16 values per vertex
   const off = STREAM.DSP_HEADER_BYTES;
   let index = null;
   let values;
   if (flags & STREAM.FLAG_DENSE) {
-    if (count !== mesh.n || buf.byteLength !== off + 2 * count) return false;
-    values = new Int16Array(buf, off, count);
-    for (let i = 0; i < count; i++) w[i] = values[i] * quantumM;
+    if (count !== mesh.n || buf.byteLength !== off + 2 * axes * count) return false;
+    values = new Int16Array(buf, off, axes * count);
   } else {
     const width = flags & STREAM.FLAG_INDEX32 ? 4 : 2;
-    if (buf.byteLength !== off + (width + 2) * count) return false;
+    if (buf.byteLength !== off + (width + 2 * axes) * count) return false;
     index = width === 4 ? new Uint32Array(buf, off, count) : new Uint16Array(buf, off, count);
-    values = new Int16Array(buf, off + width * count, count);
+    for (let k = 0; k < count; k++) if (index[k] >= mesh.n) return false;
+    values = new Int16Array(buf, off + width * count, axes * count);
+  }
+  const w = mesh.w;
+  let redrawAll = !index;
+  if (vector) {
+    if (!mesh.d) mesh.d = new Float32Array(3 * mesh.n);
+    const d = mesh.d;
     for (let k = 0; k < count; k++) {
-      if (index[k] >= mesh.n) return false;
-      w[index[k]] = values[k] * quantumM;
+      const i = index ? index[k] : k;
+      d[3 * i] = values[3 * k] * quantumM;
+      d[3 * i + 1] = values[3 * k + 1] * quantumM;
+      d[3 * i + 2] = values[3 * k + 2] * quantumM;
+      w[i] = normalPart(i);
     }
+    viewerState.vectorFrames += 1;
+  } else {
+    if (mesh.d) {
+      mesh.d = null; // back to normal displacements: every vertex is redrawn along its normal
+      redrawAll = true;
+    }
+    for (let k = 0; k < count; k++) w[index ? index[k] : k] = values[k] * quantumM;
   }
   if (flags & STREAM.FLAG_KEY) viewerState.keyframes += 1;
   else viewerState.frames += 1;
   if (flags & STREAM.FLAG_PARTIAL) viewerState.partialFrames += 1;
   viewerState.tick = tick;
   frameTimes.push(performance.now());
-  if (updateColorRange() || !index) writeAll();
+  if (updateColorRange() || redrawAll) writeAll();
   else writeSome(index);
   return true;
+}
+
+/** The normal component d . normal [m] of vertex i's vector displacement (outward positive). */
+function normalPart(i) {
+  const d = mesh.d;
+  const nrm = mesh.normal;
+  const j = 3 * i;
+  return d[j] * nrm[j] + d[j + 1] * nrm[j + 1] + d[j + 2] * nrm[j + 2];
 }
 
 /** Pick the colour range for the current displacement: up at once, down after 2 s. */
@@ -524,11 +560,18 @@ function updateColorRange() {
 function writeVertex(i, pos, col) {
   const w = mesh.w[i];
   const r = mesh.rest;
-  const nrm = mesh.normal;
   const j = 3 * i;
-  pos[j] = r[j] + w * nrm[j];
-  pos[j + 1] = r[j + 1] + w * nrm[j + 1];
-  pos[j + 2] = r[j + 2] + w * nrm[j + 2];
+  const d = mesh.d;
+  if (d) {
+    pos[j] = r[j] + d[j];
+    pos[j + 1] = r[j + 1] + d[j + 1];
+    pos[j + 2] = r[j + 2] + d[j + 2];
+  } else {
+    const nrm = mesh.normal;
+    pos[j] = r[j] + w * nrm[j];
+    pos[j + 1] = r[j + 1] + w * nrm[j + 1];
+    pos[j + 2] = r[j + 2] + w * nrm[j + 2];
+  }
   const t = Math.max(-1, Math.min(1, w / mesh.rangeM));
   const k = 3 * Math.round(((t + 1) / 2) * (CM_SIZE - 1));
   col[j] = CM_LUT[k];
@@ -564,6 +607,13 @@ function showSurface() {
     for (const m of [skinBack, skin, wire]) m.visible = true;
   }
 }
+
+/** Where vertices `indices` are drawn: [x, y, z] [m] each, null before the surface (a test hook). */
+window.viewerPositions = (indices) => {
+  const pos = surface.getAttribute("position");
+  if (!pos || !mesh.rest) return null;
+  return indices.map((i) => [pos.array[3 * i], pos.array[3 * i + 1], pos.array[3 * i + 2]]);
+};
 
 /** Displacement [m] of the current surface vertex nearest to a point, or null. */
 function displacementNear(p) {

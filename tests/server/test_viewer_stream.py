@@ -2,8 +2,11 @@
 
 Sans-I/O: frames go through a simulated link that drops, replaces and delays them the way the
 asyncio layer may (latest-wins queue, injected loss and latency), and the reference decoder
-(what web/viewer.js does) checks the surface after every frame it gets. At the end, one test
-drives the room with the real balloon and one runs a viewer over real websockets.
+(what web/viewer.js does) checks the surface after every frame it gets. The balloon's vertices
+move along their normals (``DSP1``); a solid whose vertices also slide sideways (the FEM solid,
+or a synthetic motion) gets vectors (``DSV1``), checked the same way per axis. At the end, tests
+drive the room with the real balloon and the real FEM solid, and one runs a viewer over real
+websockets.
 """
 
 from __future__ import annotations
@@ -14,8 +17,10 @@ from collections import deque
 
 import numpy as np
 import pytest
+import trimesh
 
 from haptic_collab.server.objects.balloon import Balloon, BalloonParams
+from haptic_collab.server.objects.fem import FemParams, FemSolid
 from haptic_collab.server.objects.mesh import default_balloon
 from haptic_collab.server.room import Room
 from haptic_collab.server.viewer_stream import (
@@ -23,6 +28,7 @@ from haptic_collab.server.viewer_stream import (
     DSP_HEADER,
     FLAG_CLAMPED,
     FLAG_DENSE,
+    FLAG_INDEX32,
     FLAG_KEY,
     FLAG_PARTIAL,
     Frame,
@@ -446,3 +452,274 @@ async def test_a_viewer_over_websockets_decodes_the_servers_surface():
     assert surface_error_m(dec, server_vertices) <= TOL_M
     # while the press is held, the frames are empty: the rest of the bytes went into the press
     assert sizes[-5:] == [DSP_HEADER.size] * 5
+
+
+# ----------------------------------------------------------------------------- the balloon's form
+def test_the_balloon_keeps_normal_displacements_at_four_bytes_a_changed_vertex(balloon_world):
+    """The balloon moves only along its normals: it gets DSP1, 2 bytes a vertex in a dense frame
+    and 4 (index + value) in a sparse one, never the three values a vertex of DSV1."""
+    world = balloon_world
+    assert Balloon.tangential_motion is False
+    top = world.obj.rest_vertices[np.argmax(world.obj.rest_vertices[:, 2])]
+    n = world.n_vertices
+    for budget in (None, 1024):  # unlimited: mostly dense; 1024 bytes: a dense frame never fits
+        stream = ViewerStream.of_world(world, SIM_RATE_HZ, None if budget is None else budget * 20)
+        assert not stream.vector and stream.frame_budget_bytes == budget
+        key = stream.join("v", 0, world.vertices)[2]
+        assert key[:4] == b"DSP1" and len(key) == DSP_HEADER.size + 2 * n
+        kinds = set()
+        for k, force in enumerate(press_profile(), start=1):
+            press(world, top, force)
+            f = stream.frames(k, world.vertices, ["v"])["v"]
+            f.sent()
+            assert f.data[:4] == b"DSP1"
+            assert len(f.data) == DSP_HEADER.size + (2 * n if f.dense else 4 * f.count)
+            kinds.add("dense" if f.dense else "sparse" if f.count else "empty")
+        assert kinds == ({"dense", "empty"} if budget is None else {"sparse", "empty"})
+
+
+# ----------------------------------------------------------------------------- vectors: the solid
+def axis_error_m(dec: ViewerStreamDecoder, vertices: np.ndarray) -> float:
+    """Largest difference on any axis [m] between the decoded surface and ``vertices``."""
+    return float(np.max(np.abs(dec.vertices - vertices)))
+
+
+def sideways_m(rest: np.ndarray, normals: np.ndarray, vertices: np.ndarray) -> float:
+    """Largest displacement [m] off the rest normal: what a DSP1 viewer would draw wrong."""
+    d = vertices - rest
+    along = np.einsum("ij,ij->i", d, normals)[:, None] * normals
+    return float(np.max(np.linalg.norm(d - along, axis=1)))
+
+
+@pytest.fixture(scope="module")
+def volume_cache(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("volumes"))
+
+
+@pytest.fixture
+def fem_world(volume_cache) -> World:
+    """A 162-vertex FEM ball (r = 5 cm, healthy liver) whose base is held."""
+    mesh = trimesh.creation.icosphere(2, 0.05)
+    params = FemParams(sim_period_s=1 / SIM_RATE_HZ)
+    return World(FemSolid(mesh, params, cache_dir=volume_cache))
+
+
+def fem_press_profile() -> list[float]:
+    """Force [N] per tick on the FEM ball: rest, a 1 s ramp to 1 N, hold, release, rest."""
+    return [0.0] * 3 + list(np.linspace(0.0, 1.0, 20)) + [1.0] * 15 + [0.0] * 25
+
+
+def test_the_room_streams_the_fem_solid_as_vectors_within_a_quantum_per_axis(fem_world):
+    """A user presses the FEM solid, whose surface also slides sideways: the viewer gets DSV1
+    (keyframe on join, then frames) and after every frame its surface is the server's within a
+    quantum on each axis, though vertices moved over a millimetre off their normals."""
+    world = fem_world
+    assert FemSolid.tangential_motion is True
+    room = Room(world, SIM_RATE_HZ)
+    top = room.object_info.top_m
+    for conn, role in (("a", "user"), ("v", "viewer")):
+        room.connect(conn, 0.0)
+        hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": role, "name": conn}
+        outs = room.receive(conn, json.dumps(hello), 0.0)
+    binaries = [o.data for o in outs if isinstance(o.data, bytes)]
+    assert [b[:4] for b in binaries] == [b"FAC1", b"VTX1", b"NRM1", b"DSV1"]
+    key = decode_displacement(binaries[3])
+    assert key.vector and key.flags & FLAG_KEY and key.flags & FLAG_DENSE
+    assert key.values.shape == (world.n_vertices, 3)
+    dec = ViewerStreamDecoder()
+    for b in binaries[1:]:
+        dec.feed(b)
+    obj = world.obj
+    sideways = 0.0
+    for k, force in enumerate(fem_press_profile(), start=1):
+        state = {
+            "type": "state",
+            "seq": k,
+            "probe_m": [top[0], top[1], top[2] - 0.004],
+            "force_n": [0.0, 0.0, force],
+            "k_h": 100.0,
+            "i_gain": 1000.0,
+        }
+        room.receive("a", json.dumps(state), k * 0.05 - 0.01)
+        (vout,) = [o for o in room.tick(k, k * 0.05) if o.conn_id == "v" and o.stream == "vertices"]
+        assert isinstance(vout.data, bytes) and vout.data[:4] == b"DSV1"
+        assert vout.on_sent is not None
+        vout.on_sent()
+        dec.feed(vout.data)
+        assert axis_error_m(dec, world.vertices) <= TOL_M, k
+        sideways = max(sideways, sideways_m(obj.rest_vertices, obj.rest_normals, world.vertices))
+    assert sideways > 1e-3  # drawn along the normals, the surface would be this far off
+    assert np.max(np.abs(dec.displacement - obj.displacement)) <= TOL_M
+
+
+def test_the_fem_solid_under_a_small_budget_is_exact_once_the_motion_stops(fem_world):
+    """Under a 300-byte budget (35 of 162 vertices a frame) the press is cut into PARTIAL frames,
+    the largest moves first; once the solid stops moving the viewer is exact per axis."""
+    world = fem_world
+    obj = world.obj
+    top = obj.rest_vertices[np.argmax(obj.rest_vertices[:, 2])]
+    budget = 300
+    stream = ViewerStream.of_world(world, SIM_RATE_HZ, budget * SIM_RATE_HZ)
+    assert stream.vector and stream.frame_budget_bytes == max(1024, budget)
+    stream = ViewerStream(obj.rest_vertices, obj.rest_normals, budget, vector=True)
+    dec = ViewerStreamDecoder()
+    for data in stream.join("v", 0, world.vertices):
+        dec.feed(data)
+    partial = 0
+    for k, force in enumerate(fem_press_profile()[:23], start=1):  # rest, then the ramp
+        press(world, top, force)
+        f = stream.frames(k, world.vertices, ["v"])["v"]
+        f.sent()
+        dec.feed(f.data)
+        assert len(f.data) <= budget
+        partial += f.partial
+        assert f.partial == bool(decode_displacement(f.data).flags & FLAG_PARTIAL)
+    # the largest changes go first: mid-ramp the most displaced vertex is never far behind
+    moved = np.linalg.norm(obj.displacement, axis=1)
+    lag = np.linalg.norm(dec.displacement - obj.displacement, axis=1)
+    assert lag.max() < 0.2 * moved.max() and lag[np.argmax(moved)] < 0.05 * moved.max()
+    assert partial > 5
+    for k in range(24, 24 + 60):  # held still: the solid settles, the viewer catches up
+        press(world, top, 1.0)
+        f = stream.frames(k, world.vertices, ["v"])["v"]
+        f.sent()
+        dec.feed(f.data)
+    assert sideways_m(obj.rest_vertices, obj.rest_normals, world.vertices) > 1e-3
+    assert axis_error_m(dec, world.vertices) <= TOL_M
+
+
+# ----------------------------------------------------------------------------- vectors: any motion
+def random_vector_step(
+    rng: np.random.Generator, rest: np.ndarray, d: np.ndarray, earlier: np.ndarray
+) -> np.ndarray:
+    """The next (n, 3) displacement, mostly off the normals: the body swings about an axis, a
+    blob slides sideways, a few vertices wiggle, or an earlier shape returns."""
+    kind = rng.integers(0, 5)
+    if kind == 0:  # a swing about a random axis through the centre (an arc: modal warping)
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        return np.sin(rng.uniform(-0.3, 0.3)) * np.cross(axis, rest)
+    if kind == 1:  # a blob slides in a random direction
+        c = rng.normal(size=3)
+        c /= np.linalg.norm(c)
+        dist = np.linalg.norm(rest / np.linalg.norm(rest, axis=1, keepdims=True) - c, axis=1)
+        shift = rng.normal(size=3) * rng.uniform(0.0005, 0.01)
+        return d + np.exp(-((dist / rng.uniform(0.2, 0.8)) ** 2))[:, None] * shift
+    if kind == 2:
+        idx = rng.choice(len(rest), 10, replace=False)
+        d = d.copy()
+        d[idx] += rng.normal(0, 2e-4, (10, 3))
+        return d
+    if kind == 3:
+        return earlier
+    return d
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_dropped_replaced_and_delayed_vector_frames_never_leave_a_viewer_wrong(seed):
+    rng = np.random.default_rng(seed)
+    rest, faces = sphere(2)
+    stream = ViewerStream(rest, vertex_normals(rest, faces), vector=True, max_in_flight=3)
+    links = {v: Link(rng, *LINKS[v][:3]) for v in LINKS}
+    decoders: dict[str, ViewerStreamDecoder] = {}
+    history = {0: np.zeros_like(rest)}
+    d = history[0]
+    checked = sideways = 0.0
+    for k in range(1, 300):
+        for v, (*_, joins) in LINKS.items():
+            if joins == k - 1:
+                decoders[v] = ViewerStreamDecoder()
+                for f in stream.join(v, k - 1, rest + d):
+                    decoders[v].feed(f)
+        earlier = history[max(0, k - int(rng.integers(1, 5)))]
+        d = history[k] = random_vector_step(rng, rest, d, earlier)
+        sideways = max(sideways, sideways_m(rest, stream.rest_normals, rest + d))
+        for v, frame in stream.frames(k, rest + d, list(decoders)).items():
+            assert frame.data[:4] == b"DSV1"
+            links[v].push(k, frame)
+        for v in decoders:
+            for made, frame in links[v].deliver(k):
+                decoders[v].feed(frame.data)
+                assert axis_error_m(decoders[v], rest + history[made]) <= TOL_M, (seed, v, k, made)
+                checked += 1
+    assert checked > 300 and sideways > 0.01
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_under_a_budget_every_vector_viewer_catches_up_once_the_surface_stops(seed):
+    rng = np.random.default_rng(seed)
+    rest, faces = sphere(2)
+    budget = 300  # 35 of the 162 vertices per frame (8 bytes each)
+    stream = ViewerStream(rest, vertex_normals(rest, faces), budget, vector=True)
+    links = {v: Link(rng, *LINKS[v][:3]) for v in LINKS}
+    decoders: dict[str, ViewerStreamDecoder] = {}
+    d = np.zeros_like(rest)
+    partial = 0
+    for k in range(1, 200):
+        for v, (*_, joins) in LINKS.items():
+            if joins == k - 1:
+                decoders[v] = ViewerStreamDecoder()
+                for f in stream.join(v, k - 1, rest + d):
+                    decoders[v].feed(f)
+        if k < 150:  # moving over a poor link, then still over a perfect one
+            d = random_vector_step(rng, rest, d, d)
+        elif k == 150:
+            for link in links.values():
+                link.loss = link.replace = link.delay = 0
+        for v, frame in stream.frames(k, rest + d, list(decoders)).items():
+            assert len(frame.data) <= budget
+            partial += frame.partial
+            links[v].push(k, frame)
+        for v in decoders:
+            for _, frame in links[v].deliver(k):
+                decoders[v].feed(frame.data)
+    assert partial > 20
+    for v, dec in decoders.items():
+        assert axis_error_m(dec, rest + d) <= TOL_M, v
+
+
+def test_vectors_beyond_int16_micrometres_double_the_quantum_and_come_back():
+    rest, faces = sphere(1)
+    normals = vertex_normals(rest, faces)
+    stream = ViewerStream(rest, normals, vector=True)
+    dec = ViewerStreamDecoder()
+    for f in stream.join("v", 0, rest):
+        dec.feed(f)
+    tangent = np.cross(normals, [0.3, 0.4, 1.0])  # off the normals everywhere on the sphere
+    shape = np.linspace(-1, 1, len(rest))[:, None] * tangent
+    shape /= np.abs(shape).max()  # the largest |d| on any axis is the amplitude
+    for k, amp in enumerate((0.050, 0.200, 0.002), start=1):
+        d = amp * shape
+        f = stream.frames(k, rest + d, ["v"])["v"]
+        f.sent()
+        dec.feed(f.data)
+        q = decode_displacement(f.data).quantum_m
+        assert q == pytest.approx({1: 2e-6, 2: 8e-6, 3: 1e-6}[k])
+        assert np.max(np.abs(dec.displacement - d)) <= q / 2 + 1e-12
+    huge = stream.frames(9, rest + 5e3 * tangent, ["v"])["v"]
+    assert decode_displacement(huge.data).flags & FLAG_CLAMPED
+
+
+def test_vector_frames_carry_three_int16_a_vertex_and_bad_ones_are_refused():
+    n = 70_000
+    rest = np.column_stack([np.arange(n) * 1e-3, np.zeros(n), np.zeros(n)])
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    stream = ViewerStream(rest, normals, vector=True)
+    stream.join("v", 0, rest)
+    moved = rest.copy()
+    moved[5] += [0.001, -0.002, 0.0]  # sideways only: no normal component
+    moved[69_999] += [0.0, 0.0, 0.003]
+    f = stream.frames(1, moved, ["v"])["v"]
+    assert len(f.data) == DSP_HEADER.size + 2 * (4 + 6)
+    d = decode_displacement(f.data)
+    assert d.vector and d.flags & FLAG_INDEX32
+    assert d.index is not None and list(d.index) == [5, 69_999]
+    assert d.values.tolist() == [[1000, -2000, 0], [0, 0, 3000]]
+    with pytest.raises(ValueError):  # a DSP1 body length under a DSV1 header
+        decode_displacement(DSP_HEADER.pack(b"DSV1", 0, 2, 1000, 0) + b"\x00" * 8)
+    with pytest.raises(ValueError):
+        decode_displacement(DSP_HEADER.pack(b"DSV1", 0, 2, 1000, FLAG_DENSE) + b"\x00" * 4)
+    with pytest.raises(ValueError):
+        decode_displacement(DSP_HEADER.pack(b"DSX1", 0, 0, 1000, 0))
+    with pytest.raises(ValueError):  # a budget that cannot hold two vector entries
+        ViewerStream(rest, normals, frame_budget_bytes=DSP_HEADER.size + 8, vector=True)

@@ -81,13 +81,29 @@ def _world(subdivisions: int) -> Any:
     return World(Balloon(mesh, BalloonParams(sim_period_s=1.0 / SIM_RATE_HZ)))
 
 
+def _fem_world(cache_dir: Path) -> Any:
+    """A small FEM solid (162 vertices, r = 5 cm): its surface also moves sideways (DSV1)."""
+    import trimesh
+
+    from haptic_collab.server.objects.fem import FemParams, FemSolid
+    from haptic_collab.server.world import World
+
+    mesh = trimesh.creation.icosphere(2, 0.05)
+    params = FemParams(sim_period_s=1.0 / SIM_RATE_HZ)
+    return World(FemSolid(mesh, params, cache_dir=str(cache_dir)))
+
+
 @contextlib.asynccontextmanager
-async def running_server(subdivisions: int = 4, port: int = 0) -> AsyncIterator[Any]:
-    """The real server (World, Room, ServerApp) on 127.0.0.1, a free port unless ``port``."""
+async def running_server(
+    subdivisions: int = 4, port: int = 0, world: Any = None
+) -> AsyncIterator[Any]:
+    """The real server (World, Room, ServerApp) on 127.0.0.1, a free port unless ``port``; the
+    balloon of ``subdivisions`` unless ``world`` is given."""
     from haptic_collab.server.app import ServerApp
     from haptic_collab.server.room import Room
 
-    app = ServerApp(Room(_world(subdivisions), SIM_RATE_HZ), "127.0.0.1", port)
+    world = world if world is not None else _world(subdivisions)
+    app = ServerApp(Room(world, SIM_RATE_HZ), "127.0.0.1", port)
     await app.start()
     try:
         yield app
@@ -270,6 +286,7 @@ def test_viewer_stream_constants_match_the_server() -> None:
     expected = {
         "NORMALS_MAGIC": f'"{vs.NORMALS_MAGIC.decode()}"',
         "DISPLACEMENT_MAGIC": f'"{vs.DISPLACEMENT_MAGIC.decode()}"',
+        "VECTOR_MAGIC": f'"{vs.VECTOR_MAGIC.decode()}"',
         "DSP_HEADER_BYTES": str(vs.DSP_HEADER.size),
         "FLAG_DENSE": str(vs.FLAG_DENSE),
         "FLAG_KEY": str(vs.FLAG_KEY),
@@ -386,10 +403,14 @@ def _watch(page: Any) -> list[str]:
 
 @contextlib.asynccontextmanager
 async def viewer_page(
-    *users: ScriptedUser, subdivisions: int = 4, viewport: tuple[int, int] = (VIEW_W, VIEW_H)
+    *users: ScriptedUser,
+    subdivisions: int = 4,
+    viewport: tuple[int, int] = (VIEW_W, VIEW_H),
+    world: Any = None,
 ) -> AsyncIterator[tuple[Any, Any, list[str]]]:
-    """``(app, page, problems)``: the real server with ``users`` connected, and its viewer page
-    in chromium (``viewport`` width, height [px]) ready; ``problems`` collects the page's errors.
+    """``(app, page, problems)``: the real server (the balloon, or ``world``) with ``users``
+    connected, and its viewer page in chromium (``viewport`` width, height [px]) ready;
+    ``problems`` collects the page's errors.
 
     Skips the test, with the reason, when chromium, playwright or three.js is missing.
     """
@@ -399,7 +420,7 @@ async def viewer_page(
     from playwright.async_api import async_playwright
 
     async with (
-        running_server(subdivisions) as app,
+        running_server(subdivisions, world=world) as app,
         scripted_users(app.port, *users),
         async_playwright() as pw,
     ):
@@ -511,6 +532,8 @@ async def test_viewer_shows_the_dent_users_and_coupled_force() -> None:
         # the balloon is drawn, in the middle of the view area
         pixels = await page.evaluate(_CANVAS_PIXELS)
         assert pixels["drawn"] >= 0.9 * pixels["total"], pixels
+        # its surface came as normal displacements (DSP1), never the dearer vectors (DSV1)
+        assert state["frames"] > 0 and state["vectorFrames"] == 0, state
 
         png = await page.screenshot(type="png")
         if UPDATE_SCREENSHOT:
@@ -603,6 +626,51 @@ async def test_a_silent_user_is_shown_stale_with_no_force() -> None:
         await page.wait_for_function(_LIVE, arg="B", timeout=10_000)
         await page.wait_for_timeout(300)
         assert (await card_b.locator(".badge").inner_text()).lower() != "stale"
+        assert not problems, problems
+
+
+#: What the viewer draws may differ from the server's surface per axis: one quantum (1 um, the
+#: half-quantum rounding and a tick of residual creep) plus float32 rounding of the positions.
+DRAWN_TOL_M = 1.0e-6 + 1.0e-7
+
+
+@pytest.mark.browser
+@pytest.mark.timeout(120)
+async def test_viewer_draws_a_solid_moving_sideways_where_the_server_has_it(tmp_path: Path) -> None:
+    """On the FEM solid, whose surface also slides sideways, A presses the top: every vertex is
+    drawn where the server has it, within a quantum per axis, including the vertices that moved a
+    millimetre or more off their rest normals (drawn along the normals they would be that far
+    off)."""
+    a = ScriptedUser("A", "top", depth_m=-0.003)  # hovering 3 mm above the top
+    b = ScriptedUser("B", "side", depth_m=0.002)
+    world = _fem_world(tmp_path)
+    async with viewer_page(a, b, subdivisions=2, world=world) as (app, page, problems):
+        a.target_m = 0.012  # 12 mm into the top
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 30.0
+        while a.depth_m != a.target_m and loop.time() < deadline:
+            await asyncio.sleep(0.1)
+        obj = app.room.world.obj
+        rest, normals = np.asarray(obj.rest_vertices), np.asarray(obj.rest_normals)
+        every = list(range(len(rest)))
+        err, sideways = math.inf, 0.0
+        while loop.time() < deadline:  # until the pressed solid settles under the held probe
+            server = np.array(app.room.world.vertices)
+            drawn = np.array(await page.evaluate("(i) => window.viewerPositions(i)", every))
+            d = server - rest
+            along = np.einsum("ij,ij->i", d, normals)[:, None] * normals
+            sideways = float(np.max(np.linalg.norm(d - along, axis=1)))
+            err = float(np.max(np.abs(drawn - server)))
+            if err <= DRAWN_TOL_M:
+                break
+            await asyncio.sleep(0.1)
+        assert sideways > 1e-3, f"the press moved vertices only {sideways * 1e3:.3f} mm sideways"
+        assert err <= DRAWN_TOL_M, f"drawn {err * 1e6:.1f} um from the server's surface"
+        state = await page.evaluate("() => window.viewerState")
+        # all of it came as vectors (DSV1): the keyframe and every frame after it
+        assert state["frames"] > 0, state
+        assert state["vectorFrames"] == state["frames"] + state["keyframes"], state
+        assert state["users"]["A"]["in_contact"] and state["colorScale"]["max_in_mm"] > 2.0
         assert not problems, problems
 
 
