@@ -628,12 +628,7 @@ class FemSolid(PatchedSurface):
         ValueError
             Lengths differ or a force is not finite. The state is unchanged.
         """
-        f = np.asarray(forces_n, dtype=np.float64).reshape(-1)
-        if len(f) != len(keys):
-            raise ValueError(f"got {len(keys)} patch keys but {len(f)} forces")
-        if not np.all(np.isfinite(f)):
-            raise ValueError("forces must be finite")
-        solves = self._cache.get(keys) if len(keys) else []
+        f, solves = self._pushes(keys, forces_n)
         warp = self._w_op is not None
         u = np.zeros(len(self._u))
         w = np.zeros(len(self._u))

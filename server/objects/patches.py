@@ -244,6 +244,22 @@ class PatchedSurface:
         """Number of patch right-hand sides solved on demand so far (cache misses)."""
         return self._cache.solves
 
+    def _pushes(self, keys: Sequence[int], forces_n: npt.ArrayLike) -> tuple[FloatArray, list[Any]]:
+        """The checked push magnitudes (m,) [N] of a ``step`` and the cached solves of their
+        patches (solving the missing ones).
+
+        Raises
+        ------
+        ValueError
+            Lengths differ or a force is not finite (nothing is solved).
+        """
+        f = np.asarray(forces_n, dtype=np.float64).reshape(-1)
+        if len(f) != len(keys):
+            raise ValueError(f"got {len(keys)} patch keys but {len(f)} forces")
+        if not np.all(np.isfinite(f)):
+            raise ValueError("forces must be finite")
+        return f, (self._cache.get(keys) if len(keys) else [])
+
     def patch_key(
         self,
         point: npt.ArrayLike,
