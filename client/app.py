@@ -534,6 +534,46 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
     return summary
 
 
+def _gain_changes(updates: list[PatchUpdate], limit: int = 200) -> list[dict[str, object]]:
+    """The patches at which the rendered gains or their standing changed, first ``limit``.
+
+    Each: the server ``tick``, K_h [N/m], integral gain [N/(m s)], own-force gain C_h [m/N],
+    whether verified / a fallback, the loop delay [ticks], K_o_eff and K_o_stiff [N/m]: when a
+    contact rendered what, for reading a demo run's haptics after the fact.
+    """
+    out: list[dict[str, object]] = []
+    last: tuple[object, ...] | None = None
+    for u in updates:
+        m = u.model
+        state = (
+            round(m.k_h, 1),
+            round(m.i_gain, 1),
+            round(m.own_gain, 6),
+            u.verified,
+            u.fallback,
+            u.delay_ticks,
+        )
+        if state == last:
+            continue
+        last = state
+        out.append(
+            {
+                "tick": m.tick,
+                "k_h": state[0],
+                "i_gain": state[1],
+                "own_gain": state[2],
+                "verified": u.verified,
+                "fallback": u.fallback,
+                "delay_ticks": u.delay_ticks,
+                "k_o_eff": round(m.k_o_eff, 1),
+                "k_o_stiff": None if m.k_o_stiff is None else round(m.k_o_stiff, 1),
+            }
+        )
+        if len(out) >= limit:
+            break
+    return out
+
+
 def _summary(
     opts: ClientOptions,
     session: ClientSession,
@@ -567,7 +607,11 @@ def _summary(
         },
         "gain_designs": link.designs,
         "interim_checks": link.checks,
+        # from a needed check's request to its verified gains: meanwhile the contact renders
+        # conservative unverified gains (client.session)
+        "interim_check_wait_ms": [round(w * 1e3, 1) for w in link.check_wait_s],
         "fallback_patches": sum(1 for u in updates if u.fallback),
+        "gain_changes": _gain_changes(updates),
         "unverified_patches": session.unverified_patches,
         "server_gain_patches": session.server_gain_patches,
         "gains_source": session.gains_source,

@@ -58,6 +58,22 @@ TOKEN_ENV = "HAPTIC_TOKEN"
 CA_FILE_ENV = "HAPTIC_CA_FILE"
 
 
+def likely_next(key: GainKey, cell: int) -> tuple[tuple[GainKey, int], ...]:
+    """The (key, cell) a contact in ``cell`` of ``key`` most likely needs next, most likely first.
+
+    The same cell coupled to another user (``stiff_ratio`` 2, the class of a second user's press
+    on a balloon or a solid, docs/coupled-users.md) when the contact is alone: without it ready,
+    the contact renders conservative unverified gains for as long as the check takes when a
+    second user arrives (1-1.5 s in the demo on 2 cores, the force halved). Then one more tick of
+    delay, and the cells just below and above (the contact moves, K_o changes).
+    """
+    out: list[tuple[GainKey, int]] = []
+    if key.stiff_ratio == 1.0:
+        out.append((replace(key, stiff_ratio=2.0), cell))
+    out += [(replace(key, delay_ticks=key.delay_ticks + 1), cell), (key, cell - 1), (key, cell + 1)]
+    return tuple(out)
+
+
 class Unauthorized(Exception):
     """The server refused this client's token (``unauthorized``): retrying cannot help."""
 
@@ -129,7 +145,12 @@ class Link:
         self._design_task: asyncio.Task[None] | None = None
         self._check_task: asyncio.Task[None] | None = None
         self._first_pool: ThreadPoolExecutor | None = None
-        self._check_queue: list[tuple[GainKey, int, tuple[GainDesign, ...], bool]] = []
+        # checks (key, cell, candidates, when asked [s]) needed now / ahead of need
+        self._check_queue: list[tuple[GainKey, int, tuple[GainDesign, ...], float]] = []
+        self._ahead_queue: list[tuple[GainKey, int, tuple[GainDesign, ...], float]] = []
+        self._ahead_task: asyncio.Task[None] | None = None
+        #: Time [s] from a needed interim check's request to its gains, per check.
+        self.check_wait_s: list[float] = []
 
     def _start_design(self) -> None:
         """Run the design the session asks for in the design executor (one at a time)."""
@@ -157,14 +178,9 @@ class Link:
             self.designs += 1
             log.debug("designed gains for K_o = %.0f N/m in %.0f ms", k_o, design.design_ms)
             self._deliver_waiting()
-            # the neighbours most likely needed next: one more tick of delay, and the cells just
-            # below and above (the contact moves, K_o changes). First check these gains there
-            # (fast, the other worker), then design them (slow, this one).
-            near = (
-                (replace(key, delay_ticks=key.delay_ticks + 1), k_o),
-                (key, table.grid_point(cell - 1)),
-                (key, table.grid_point(cell + 1) * 1.0001),
-            )
+            # the neighbours most likely needed next (:func:`likely_next`). First check these
+            # gains there (fast), then design them (slow), both in this worker.
+            near = tuple((nk, table.grid_point(nc) * 1.0001) for nk, nc in likely_next(key, cell))
             for nk, nko in near:
                 self._queue_check(nk, table.cell(nko), (design,), ahead=True)
             self._start_check()
@@ -192,70 +208,76 @@ class Link:
     def _queue_check(
         self, key: GainKey, cell: int, candidates: tuple[GainDesign, ...], *, ahead: bool
     ) -> None:
-        item = (key, cell, candidates, ahead)
         if ahead:
-            if all((k, c) != (key, cell) for k, c, _, _ in self._check_queue):
-                self._check_queue.append(item)
+            if all((k, c) != (key, cell) for k, c, _, _ in self._ahead_queue):
+                self._ahead_queue.append((key, cell, candidates, self.clock()))
         else:
-            self._check_queue.insert(0, item)  # needed now: before any check ahead
+            # needed now: the newest first (a contact moving through K_o cells needs the one it
+            # is in, not the ones it left)
+            self._check_queue.insert(0, (key, cell, candidates, self.clock()))
 
     def _start_check(self) -> None:
-        """Check interim gains (the session's request first) in the check executor, in turn."""
+        """Check interim gains: the ones the session needs now in the check executor, the ones
+        ahead of need in the design executor, each in turn.
+
+        The check worker runs only checks a rendered contact waits for: one ahead of need there
+        (0.1-0.5 s each, seconds on a busy 2-core machine) held up a needed one behind it, and
+        meanwhile the contact rendered conservative unverified gains (:mod:`client.session`).
+        """
         want = self.session.interim_wanted
         if want is not None:
             self.session.interim_wanted = None
             self._queue_check(*want, ahead=False)
-        if not self._check_queue or (self._check_task is not None and not self._check_task.done()):
-            return
-        self._ensure_executor()
+        if self._check_queue and (self._check_task is None or self._check_task.done()):
+            self._ensure_executor()
+            self._check_task = asyncio.get_running_loop().create_task(self._run_checks(False))
+        if self._ahead_queue and (self._ahead_task is None or self._ahead_task.done()):
+            self._ensure_executor()
+            self._ahead_task = asyncio.get_running_loop().create_task(self._run_checks(True))
+
+    async def _run_checks(self, ahead: bool) -> None:
         session = self.session
         table = session.gain_table
-
-        async def run() -> None:
-            loop = asyncio.get_running_loop()
-            while self._check_queue:
-                key, cell, candidates, ahead = self._check_queue.pop(0)
-                if (key, cell) in session.interim or table.lookup(
-                    key, table.grid_point(cell) * 1.0001
-                ):
-                    continue
-                # Before anything is rendered (a first contact, or after a rejoin) forces are
-                # off, so the servo thread's timing is not felt: check in a thread here, at once
-                # (the worker process may still be starting); later checks go to the worker.
-                first = not ahead and session.last_update is None
-                try:
-                    d = await loop.run_in_executor(
-                        self._first_thread() if first else self._checker,
-                        timed,
-                        interim_design,
-                        key,
-                        cell,
-                        table.grid_ratio,
-                        table.hand_box,
-                        candidates,
-                        not ahead,  # a check ahead of need never falls back to a slow design
-                    )
-                except Exception as exc:  # ValueError: nothing passed; or a broken worker
-                    if not ahead:
-                        session.interim_failed(key, cell)
-                        log.warning("no interim gains for cell %d: %s", cell, exc)
-                    continue
-                session.store_interim(key, cell, d)
-                self.checks += 1
-                log.debug(
-                    "interim gains for K_o = %.0f N/m (%s) in %.0f ms", d.k_o, d.mode, d.design_ms
+        queue = self._ahead_queue if ahead else self._check_queue
+        loop = asyncio.get_running_loop()
+        while queue:
+            key, cell, candidates, asked_s = queue.pop(0)
+            if (key, cell) in session.interim or table.lookup(key, table.grid_point(cell) * 1.0001):
+                continue
+            # Before anything is rendered (a first contact, or after a rejoin) forces are off,
+            # so the servo thread's timing is not felt: check in a thread here, at once (the
+            # worker process may still be starting); later checks go to the workers.
+            first = not ahead and session.last_update is None
+            executor = self._first_thread() if first else self._executor if ahead else self._checker
+            try:
+                d = await loop.run_in_executor(
+                    executor,
+                    timed,
+                    interim_design,
+                    key,
+                    cell,
+                    table.grid_ratio,
+                    table.hand_box,
+                    candidates,
+                    not ahead,  # a check ahead of need never falls back to a slow design
                 )
+            except Exception as exc:  # ValueError: nothing passed; or a broken worker
                 if not ahead:
-                    self._deliver_waiting()
-                    # and ahead of need: one more tick of delay, the cells below and above
-                    for nk, nc in (
-                        (replace(key, delay_ticks=key.delay_ticks + 1), cell),
-                        (key, cell - 1),
-                        (key, cell + 1),
-                    ):
-                        self._queue_check(nk, nc, (d,), ahead=True)
-
-        self._check_task = asyncio.get_running_loop().create_task(run())
+                    session.interim_failed(key, cell)
+                    log.warning("no interim gains for cell %d: %s", cell, exc)
+                continue
+            session.store_interim(key, cell, d)
+            self.checks += 1
+            log.debug(
+                "interim gains for K_o = %.0f N/m (%s) in %.0f ms", d.k_o, d.mode, d.design_ms
+            )
+            if not ahead:
+                self.check_wait_s.append(self.clock() - asked_s)
+                self._deliver_waiting()
+                # and ahead of need: where this contact is likely to go next
+                for nk, nc in likely_next(key, cell):
+                    self._queue_check(nk, nc, (d,), ahead=True)
+                self._start_check()
 
     def _first_thread(self) -> Executor:
         if self._first_pool is None:

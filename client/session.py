@@ -74,6 +74,10 @@ if TYPE_CHECKING:
 #: Pings (one every 0.5 s) over which the loop delay is estimated.
 RTT_WINDOW = 20
 
+#: A lower loop delay is designed for only after it has been measured for this long [s]
+#: (:meth:`ClientSession.delay_ticks`); a higher one at once.
+DELAY_FALL_S = 5.0
+
 
 @dataclass(frozen=True)
 class PatchUpdate:
@@ -339,6 +343,9 @@ class ClientSession:
         self._seq = 0
         self._ping_id = 0
         self.rtt_s: deque[float] = deque(maxlen=64)
+        # the loop delay the gains are designed for, and since when a lower one is measured
+        self._delay_held: int | None = None
+        self._delay_lower_since: float | None = None
         self.rtt_all_ms: list[float] = []
         self.patches = 0
         self.b_h_max = b_h_max
@@ -474,7 +481,7 @@ class ClientSession:
         """Median of recent round-trip times [ms], None before the first pong."""
         return float(np.median(self.rtt_s)) * 1000.0 if self.rtt_s else None
 
-    def delay_ticks(self) -> int:
+    def delay_ticks(self, now_s: float | None = None) -> int:
         """Extra loop delay in whole simulation ticks, from recent round trips.
 
         The force the server samples at tick k+1 reflects patch k only if the patch's trip down,
@@ -482,12 +489,33 @@ class ClientSession:
         period; every further period adds one tick (:func:`shared.gain_design.loop_delay_ticks`). The round
         trip is the 90th percentile of the last :data:`RTT_WINDOW` pings (10 s): conservative under
         steady jitter, yet one stall does not make the local model soft for long.
+
+        With ``now_s`` [s] (each patch passes its arrival time) the delay the gains are designed
+        for rises at once but falls only once the lower delay has been measured for
+        :data:`DELAY_FALL_S`: every new delay is a new gain key whose gains must be checked
+        before they are rendered (:mod:`client.session`), and a delay wavering by a tick or two
+        under load (50 +- 10 ms of injected latency beside the FEM demo on 2 cores: 2, 7, 6, 8,
+        7, 6, 5, 4 ticks in 12 s) kept a first contact waiting with its forces off for a whole
+        run, each check done for a key already left. Without ``now_s``: the larger of the
+        measured delay and the one held.
         """
-        if not self.rtt_s:
-            return 0
-        recent = list(self.rtt_s)[-RTT_WINDOW:]
-        rtt = float(np.percentile(recent, 90))
-        return loop_delay_ticks(rtt, self.state_interval_s, self.sim_rate_hz)
+        measured = 0
+        if self.rtt_s:
+            recent = list(self.rtt_s)[-RTT_WINDOW:]
+            rtt = float(np.percentile(recent, 90))
+            measured = loop_delay_ticks(rtt, self.state_interval_s, self.sim_rate_hz)
+        held = self._delay_held
+        if now_s is None:
+            return measured if held is None else max(measured, held)
+        if held is None or measured > held:
+            self._delay_held, self._delay_lower_since = measured, None
+        elif measured == held:
+            self._delay_lower_since = None
+        elif self._delay_lower_since is None:
+            self._delay_lower_since = now_s
+        elif now_s - self._delay_lower_since >= DELAY_FALL_S:
+            self._delay_held, self._delay_lower_since = measured, None
+        return self._delay_held if self._delay_held is not None else measured
 
     @property
     def state_interval_s(self) -> float:
@@ -588,7 +616,7 @@ class ClientSession:
             raise ProtocolError("unsupported_rates", str(exc)) from None
         if self.first_patch_s is None:
             self.first_patch_s = now_s
-        d = self.delay_ticks()
+        d = self.delay_ticks(now_s)
         key = self.gain_key(msg.b_o, d, self._stiff_class(msg))
         table = self.gain_table
         cell = table.cell(msg.k_o_eff)

@@ -71,10 +71,16 @@ def _largest_proxy_step(work: Path, user: str) -> tuple[float, float]:
 
 
 def run_demo(
-    label: str, args: list[str], run: int, latency: bool, duration: float, keep: Path | None = None
+    label: str,
+    args: list[str],
+    run: int,
+    latency: bool,
+    duration: float,
+    keep: Path | None = None,
+    keep_all: bool = False,
 ) -> dict:
-    """One ``haptic demo`` run; with ``keep``, an unstable run's workdir and report are copied
-    there (``<keep>/<label>-<run>``) for analysis."""
+    """One ``haptic demo`` run; with ``keep``, an unstable run's workdir and report (every run's
+    with ``keep_all``) are copied there (``<keep>/<label>-<run>``) for analysis."""
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp) / "work"
         report = Path(tmp) / "report.json"
@@ -112,7 +118,7 @@ def run_demo(
         step, probe_step = _largest_proxy_step(work, "B")
         row["b_proxy_step_mm"] = round(step * 1e3, 2)
         row["b_probe_step_at_it_mm"] = round(probe_step * 1e3, 3)
-        if keep is not None and not (row["A_stable"] and row["B_stable"]):
+        if keep is not None and (keep_all or not (row["A_stable"] and row["B_stable"])):
             dest = keep / f"{''.join(ch if ch.isalnum() else '-' for ch in label)}-{run}"
             shutil.copytree(work, dest, dirs_exist_ok=True)
             shutil.copy(report, dest / "report.json")
@@ -194,6 +200,7 @@ def main() -> None:
         "--only", default=None, help="only meshes whose label contains one of these (a,b,...)"
     )
     ap.add_argument("--keep", type=Path, default=None, help="copy an unstable run's workdir here")
+    ap.add_argument("--keep-all", action="store_true", help="with --keep: every run's workdir")
     opts = ap.parse_args()
     result: dict = {"demo": [], "slide": []}
     if opts.demo_only and opts.out is not None and opts.out.is_file():
@@ -215,7 +222,15 @@ def main() -> None:
                     continue
                 for run in range(1, opts.runs + 1):
                     latency = opts.runs > 1 and run == opts.runs
-                    row = run_demo(label, [*args, *extra], run, latency, opts.duration, opts.keep)
+                    row = run_demo(
+                        label,
+                        [*args, *extra],
+                        run,
+                        latency,
+                        opts.duration,
+                        opts.keep,
+                        opts.keep_all,
+                    )
                     print(json.dumps(row), flush=True)
                     result["demo"].append(row)
     result["date"] = time.strftime("%Y-%m-%d")

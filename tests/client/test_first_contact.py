@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
@@ -208,6 +209,48 @@ def test_the_link_renders_the_waiting_first_patch_as_soon_as_its_check_is_done()
     assert got[0].tick == 1 and s.first_update_s == 1.0
     assert math.isfinite(got[0].spectral_radius) and got[0].spectral_radius < 1.0
     assert np.isclose(s.first_patch_s or 0.0, 0.5)
+
+
+def test_a_needed_check_does_not_wait_behind_checks_ahead_of_need() -> None:
+    # checks ahead of need share the design worker; the check worker is kept for the checks a
+    # rendered contact waits for (meanwhile it renders conservative unverified gains)
+    s = session()
+    assert s.receive(patch(1), 0.1) is None
+    run_interim(s)
+    assert s.retry_waiting(0.2) is not None  # in contact, verified gains
+    gate = threading.Event()
+    design_pool, check_pool = ThreadPoolExecutor(max_workers=1), ThreadPoolExecutor(max_workers=1)
+    design_pool.submit(gate.wait, 30.0)  # the design worker is busy (a long design)
+
+    async def go() -> None:
+        link = Link(
+            "ws://127.0.0.1:1/ws", s, on_patch=lambda u, t: None, sample=lambda: None,
+            clock=lambda: 1.0, design_executor=design_pool, check_executor=check_pool,
+        )  # fmt: skip
+        key = s.gain_key(0.0, 0)
+        for c in range(3):  # checks ahead of need, queued first
+            link._queue_check(key, s.gain_table.cell(300.0) + 5 + c, (), ahead=True)
+        up = s.receive(patch(2, 150.0), 0.3)  # a softer cell: its check is needed now
+        assert up is not None and not up.verified
+        link._start_check()
+        assert link._check_task is not None
+        try:
+            await asyncio.wait_for(link._check_task, 20.0)
+        finally:
+            gate.set()
+            link.close()
+        assert len(link.check_wait_s) == 1
+        assert link._ahead_task is not None and not link._ahead_task.done()  # still queued
+
+    try:
+        asyncio.run(go())
+    finally:
+        gate.set()
+        for pool in (design_pool, check_pool):
+            pool.shutdown(wait=True, cancel_futures=True)
+    after = s.receive(patch(3, 150.0), 0.4)
+    assert after is not None and after.verified
+    assert_stable_over_the_box(after, 150.0)
 
 
 @pytest.mark.slow

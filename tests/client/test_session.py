@@ -105,6 +105,33 @@ def test_one_stall_does_not_make_the_local_model_soft_for_long():
     assert s.delay_ticks() >= 7
 
 
+def test_a_delay_wavering_under_load_keeps_one_gain_key_and_a_rise_is_taken_at_once():
+    # every new delay is a new key whose gains must be checked before they render: a delay
+    # estimate that wavers tick by tick kept a first contact waiting for the whole demo
+    s = session()
+    t = 1.0
+    for _ in range(20):
+        pong(s, 0.12, t)  # 120 ms: 2 ticks at 20 Hz
+        t += 0.5
+    assert s.delay_ticks(t) == 2
+    for _ in range(4):
+        pong(s, 0.37, t)  # a burst of 370 ms round trips: 7 ticks, designed for at once
+        t += 0.5
+    assert s.delay_ticks(t) == 7
+    seen = []
+    for i in range(40):  # the burst leaves the 90th percentile: the measured delay falls...
+        pong(s, 0.12, t)
+        t += 0.5
+        up = receive_designed(s, patch(10 + i), t)
+        assert up is not None
+        seen.append(up.delay_ticks)
+    # ...and the key follows it down only after 5 s at each lower value: no key is left sooner
+    assert seen == sorted(seen, reverse=True) and seen[0] == 7 and seen[-1] == 2
+    runs = [seen.count(d) for d in sorted(set(seen), reverse=True)]
+    assert all(n >= 10 for n in runs[:-1]), seen
+    assert s.delay_ticks() == 2
+
+
 def test_stale_patches_are_ignored_and_a_new_session_starts_afresh():
     s = session()
     assert receive_designed(s, patch(10), 0.1) is not None
