@@ -565,7 +565,7 @@ def _gain_changes(updates: list[PatchUpdate], limit: int = 200) -> list[dict[str
                 "verified": u.verified,
                 "fallback": u.fallback,
                 "delay_ticks": u.delay_ticks,
-                "k_o_eff": round(m.k_o_eff, 1),
+                "k_o_eff": None if m.k_o_eff is None else round(m.k_o_eff, 1),
                 "k_o_stiff": None if m.k_o_stiff is None else round(m.k_o_stiff, 1),
             }
         )
