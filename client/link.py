@@ -48,7 +48,7 @@ from haptic_collab.client.session import (
 )
 from haptic_collab.shared.gain_design import GainDesign, GainKey, design_cell
 from haptic_collab.shared.protocol import ProtocolError, Welcome
-from haptic_collab.workers import stop_pool, timed
+from haptic_collab.workers import background_worker, check_worker, stop_pool, timed
 
 log = logging.getLogger("haptic.client")
 
@@ -61,11 +61,12 @@ CA_FILE_ENV = "HAPTIC_CA_FILE"
 def likely_next(key: GainKey, cell: int) -> tuple[tuple[GainKey, int], ...]:
     """The (key, cell) a contact in ``cell`` of ``key`` most likely needs next, most likely first.
 
-    The same cell coupled to another user (``stiff_ratio`` 2, the class of a second user's press
-    on a balloon or a solid, docs/coupled-users.md) when the contact is alone: without it ready,
-    the contact renders conservative unverified gains for as long as the check takes when a
-    second user arrives (1-1.5 s in the demo on 2 cores, the force halved). Then one more tick of
-    delay, and the cells just below and above (the contact moves, K_o changes).
+    The same cell coupled to another user, class 2 when the contact is alone: it covers every
+    coupling up to K_o_stiff / K_o_eff = 2 (:meth:`ClientSession._covering`), the class of a
+    second user's press on a balloon or a solid box (1.2-1.4); without it ready, the contact
+    renders conservative unverified gains when a second user arrives for as long as a check
+    takes (1-1.5 s in the demo on 2 cores, the force halved). Then one more tick of delay, and
+    the cells just below and above (the contact moves, K_o changes).
     """
     out: list[tuple[GainKey, int]] = []
     if key.stiff_ratio == 1.0:
@@ -98,10 +99,12 @@ class Link:
     backoff_s : (float, float)
         First and largest reconnect delay [s].
     design_executor : Executor, optional
-        Where gain designs run (default: one worker process, started with the link, so a design
-        never holds the event loop or the servo thread's interpreter lock).
+        Where gain designs and checks ahead of need run (default: one worker process at low
+        priority, started with the link, so a design never holds the event loop or the servo
+        thread's interpreter lock).
     check_executor : Executor, optional
-        Where interim gains are checked (default: a second worker process; with a
+        Where the interim gains a contact waits for are checked (default: a second worker
+        process, at normal priority; with a
         ``design_executor`` given and no ``check_executor``, the design executor).
     token : str, optional
         Sent in ``hello`` (default: ``$HAPTIC_TOKEN``; none when unset or empty).
@@ -296,8 +299,14 @@ class Link:
             self._own_executor = True
             try:
                 ctx = multiprocessing.get_context("spawn")
-                self._executor = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
-                self._checker = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+                # designs and checks ahead of need at low priority; the checks a rendered
+                # contact waits for at normal priority (haptic_collab.workers)
+                self._executor = ProcessPoolExecutor(
+                    max_workers=1, mp_context=ctx, initializer=background_worker
+                )
+                self._checker = ProcessPoolExecutor(
+                    max_workers=1, mp_context=ctx, initializer=check_worker
+                )
                 # start both workers while the client joins
                 self._executor.submit(warm_up_worker)
                 self._checker.submit(warm_up_worker)

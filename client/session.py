@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Literal, TypeVar
 
 import numpy as np
 
-from haptic_collab.shared.coupled_loop import stiff_ratio_class
+from haptic_collab.shared.coupled_loop import covering_classes, stiff_ratio_class
 from haptic_collab.shared.full_loop import ProxyHold, monodromy
 from haptic_collab.shared.gain_design import INTERIM_LADDER as INTERIM_LADDER
 from haptic_collab.shared.gain_design import (
@@ -571,6 +571,21 @@ class ClientSession:
         msg, self._waiting = self._waiting, None
         return None if msg is None else self._patch(msg, now_s)
 
+    def _covering(self, key: GainKey, cell: int, k_o_eff: float) -> GainDesign | None:
+        """Gains designed or verified for this cell and a wider coupling class, if any: checked
+        over a K_o range containing this key's (:func:`shared.coupled_loop.covering_classes`),
+        they render at once while this key's own design is made (a second user's arrival
+        otherwise meant conservative unverified gains until a check was done)."""
+        table = self.gain_table
+        for c in covering_classes(key.stiff_ratio):
+            wider = replace(key, stiff_ratio=c)
+            d = table.lookup(wider, k_o_eff)
+            if d is None:
+                d = self.interim.get((wider, cell))
+            if d is not None:
+                return d
+        return None
+
     def _design_in_use(self, n: int) -> GainDesign | None:
         lu = self.last_update
         if lu is None:
@@ -631,6 +646,8 @@ class ClientSession:
         if design is None:
             self.design_wanted = (key, msg.k_o_eff)
             design = self.interim.get((key, cell))
+            if design is None:
+                design = self._covering(key, cell, msg.k_o_eff)
             if design is None:
                 # no gains verified for this key and cell yet: have some checked (fast), and
                 # meanwhile keep the nearest designed cell (no stiffer relative to K_o) or the

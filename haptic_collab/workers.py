@@ -66,12 +66,21 @@ def background_worker() -> None:
     with its parent."""
     import os
 
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
+    check_worker()
     try:
         os.nice(10)
     except (AttributeError, OSError):  # not on this platform: run at normal priority
         pass
+
+
+def check_worker() -> None:
+    """Initializer of a client's interim-check worker: one BLAS thread, dies with its parent, at
+    normal priority: a contact renders conservative unverified gains until its check is done,
+    so the check must not yield to the designs (niced, :func:`background_worker`)."""
+    import os
+
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
     _die_with_parent()
 
 

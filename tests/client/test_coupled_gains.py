@@ -96,6 +96,32 @@ def test_a_new_coupling_class_renders_a_scaled_proportional_model_until_verified
     assert s.stiff_ratio == 1.0
 
 
+def test_a_second_user_arriving_is_rendered_at_once_with_gains_of_a_wider_class() -> None:
+    # gains designed ahead for the contact's cell at coupling class 2 (client.link.likely_next)
+    # cover any weaker coupling: no unverified fallback, no halved force when B arrives
+    s = session()
+    assert s.receive(plane_patch(1, 300.0, 300.0, None), 0.1) is None
+    assert s.design_wanted is not None
+    s.gain_table.design(*s.design_wanted)
+    assert s.receive(plane_patch(1, 300.0, 300.0, None), 0.1) is not None
+    c = compliance_matrix(300.0, 0.1, users=2)  # a weak coupling: ratio 1.22, class sqrt(2)
+    k_eff = float(effective_stiffness(c, np.full(2, 300.0))[0])
+    k_stiff = float(stiff_stiffness(c, np.full(2, 300.0))[0])
+    s.gain_table.design(replace(s.gain_key(0.0, 0), stiff_ratio=2.0), k_eff)
+    up = s.receive(plane_patch(2, 300.0, k_eff, k_stiff), 0.2)
+    assert up is not None and up.verified and up.fallback
+    assert s.design_wanted is not None  # its own class's design is still made
+    assert up.model.own_gain * up.k_h == pytest.approx(1.0)
+    g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold, up.model.own_gain)  # type: ignore[arg-type]
+    assert verify_coupled(c, [g, g], delay_ticks=0, margin=0.15).meets_margin
+    # a coupling beyond class 2 is not covered: the conservative path, until verified
+    c = compliance_matrix(300.0, 0.5, users=2)  # ratio 3
+    k_eff = float(effective_stiffness(c, np.full(2, 300.0))[0])
+    k_stiff = float(stiff_stiffness(c, np.full(2, 300.0))[0])
+    up = s.receive(plane_patch(3, 300.0, k_eff, k_stiff), 0.25)
+    assert up is not None and not up.verified
+
+
 @pytest.mark.parametrize(("coupling", "k_o"), [(0.5, 300.0), (0.7, 100.0)])
 def test_a_coupled_contact_keeps_feeling_the_object_with_its_interim_gains(
     coupling: float, k_o: float

@@ -26,6 +26,7 @@ from haptic_collab.shared.coupled_loop import (
     coupled_k_o_hi,
     coupled_monodromy,
     coupled_spectral_radius,
+    covering_classes,
     design_coupled,
     modal_stiffness,
     stiff_ratio_class,
@@ -429,6 +430,11 @@ def test_gain_table_rule_classes() -> None:
     assert stiff_ratio_class(150.0, 30000.0) == 256.0
     assert stiff_ratio_class(101.0, 30000.0) == math.inf
     assert stiff_ratio_class(100.0, 400.0) == 4.0  # exact powers stay
+    assert stiff_ratio_class(162.0, 333.0) == pytest.approx(2.0**1.5)  # half powers up to 4
+    assert stiff_ratio_class(100.0, 141.0) == pytest.approx(2.0**0.5)
+    assert stiff_ratio_class(100.0, 500.0) == 8.0  # whole powers above
+    assert covering_classes(2.0)[:3] == (pytest.approx(2.0**1.5), 4.0, 8.0)
+    assert covering_classes(256.0) == (math.inf,) and covering_classes(math.inf) == ()
     assert coupled_k_o_hi(330.0, 1.0) == 330.0
     assert coupled_k_o_hi(330.0, 4.0) == 1320.0
     assert coupled_k_o_hi(330.0, math.inf) == K_O_RIGID
@@ -441,7 +447,14 @@ def test_gain_table_rule_classes() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("k_o", "delay", "users", "coupling"),
-    [(300.0, 0, 2, 0.2), (300.0, 0, 3, 0.99), (1000.0, 2, 2, 0.9), (300.0, 2, 3, 0.5)],
+    [
+        (300.0, 0, 2, 0.2),
+        (300.0, 0, 3, 0.99),
+        (1000.0, 2, 2, 0.9),
+        (300.0, 2, 3, 0.5),
+        (300.0, 3, 2, 0.35),  # ratio 2.08: class 2 sqrt(2)
+        (300.0, 0, 2, 0.15),  # ratio 1.35: class sqrt(2)
+    ],
 )
 def test_gain_table_rule_meets_the_margin(
     k_o: float, delay: int, users: int, coupling: float
