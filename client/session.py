@@ -20,8 +20,10 @@ one key are not safe on another without this check: one for fewer delay ticks th
 has was unstable in every case tried (spectral radius up to 1.18), one for more delay or a
 softer cell missed the design's decay margin in about a third of them
 (tests/client/test_first_contact.py). :attr:`ClientSession.interim_wanted` names the check for
-the link; while it runs after a mid-contact change (new cell or delay) the nearest designed cell
-(no stiffer relative to K_o) or the gains in use stay, flagged ``verified=False``.
+the link; while it runs after a mid-contact change (new cell, coupling class or delay) the
+nearest designed cell (no stiffer relative to K_o) renders, else the gains in use for a new cell,
+else (a new coupling class or more delay) the fallback of :data:`FALLBACK_K_RATIO`, all flagged
+``verified=False``.
 
 Primitive and gains go to the servo loop as one
 :class:`shared.local_model_update.LocalModelUpdate`, held in a :class:`PatchUpdate` with the gain
@@ -73,6 +75,15 @@ if TYPE_CHECKING:
 
 #: Pings (one every 0.5 s) over which the loop delay is estimated.
 RTT_WINDOW = 20
+
+#: K_h / K_o_eff of the unverified fallback a contact renders while the check for its new
+#: coupling class or larger delay runs: a proportional model, no own-force compensation, the
+#: device's whole damper, zero-order hold. Measured with the hand in the loop (every hand of the
+#: box, every sampling tick, the Phantom Desktop's 10 N*s/m): spectral radius at most 0.988 for
+#: K_o 30-4000 N/m and 0-8 ticks of delay (K_h capped at the device's 1 kN/m), where half K_o_eff,
+#: used before, reached 1.10 at 300 N/m and 1.40 at 1000 N/m (tests/client/test_first_contact.py).
+#: Not established for a device without a damper.
+FALLBACK_K_RATIO = 0.25
 
 #: A lower loop delay is designed for only after it has been measured for this long [s]
 #: (:meth:`ClientSession.delay_ticks`); a higher one at once.
@@ -662,19 +673,25 @@ class ClientSession:
                         tuple(c for c in (near, in_use) if c is not None),
                     )
                 design = near if near is not None else in_use
-                if near is None and in_use is not None and key.stiff_ratio > 1.0:
+                last = self.last_update
+                more_delay = last is not None and d > last.delay_ticks
+                if near is None and in_use is not None and (key.stiff_ratio > 1.0 or more_delay):
                     # the gains in use were not designed for this coupled contact's stiff
-                    # modes: until verified gains arrive, render them as a proportional model
-                    # scaled to the new K_o_eff (the K_o_eff argument holds for P; the
-                    # integral force already built is kept, frozen)
-                    last = self.last_update
+                    # modes, or for this much delay (designs for fewer ticks than the loop has
+                    # were unstable in every case tried): until verified gains arrive, render
+                    # the unverified fallback (:data:`FALLBACK_K_RATIO`; the integral force
+                    # already built is kept, frozen)
                     scale = 1.0 if last is None else min(1.0, msg.k_o_eff / last.k_o_eff)
-                    k_h = in_use.k_h * scale
-                    if in_use.own_gain > 0.0:
-                        # gains of an uncoupled contact, with own-force compensation: without
-                        # it, half K_o_eff (eq. 8's K_h < K_o with margin)
-                        k_h = min(k_h, 0.5 * msg.k_o_eff)
-                    design = replace(in_use, k_h=k_h, i_gain=0.0, mode="p", own_gain=0.0)
+                    k_h = min(in_use.k_h * scale, FALLBACK_K_RATIO * msg.k_o_eff)
+                    design = replace(
+                        in_use,
+                        k_h=k_h,
+                        i_gain=0.0,
+                        b_h=key.b_h_max,
+                        proxy_hold="zoh",
+                        mode="p",
+                        own_gain=0.0,
+                    )
                 if design is None or self.last_update is None:
                     self._waiting = msg
                     return None

@@ -20,6 +20,7 @@ import pytest
 from haptic_collab.client.bench_gains import BENCH_OBJECT as OBJ
 from haptic_collab.client.link import Link
 from haptic_collab.client.session import (
+    FALLBACK_K_RATIO,
     INTERIM_LADDER,
     ClientSession,
     PatchUpdate,
@@ -143,6 +144,25 @@ def test_a_design_for_one_delay_is_not_safe_for_another_without_the_check() -> N
     assert d.delay_ticks == 1 and d.worst_spectral_radius < 1.0
 
 
+@pytest.mark.parametrize("k_o", [30.0, 300.0, 1000.0, 4000.0])
+def test_the_unverified_fallback_is_stable_with_every_hand_at_any_delay(k_o: float) -> None:
+    # what a contact renders while its new coupling class or delay is checked: half K_o_eff
+    # (the rule before) grew by up to 1.10 per period at 300 N/m and 1.40 at 1000 N/m
+    k_h = min(FALLBACK_K_RATIO * k_o, 1000.0)
+    for d in (0, 2, 8):
+        rho = spectral_radius(
+            hand=DEFAULT_HAND_BOX.hands(), k_o=k_o, k_h=k_h, i_gain=0.0, b_h=10.0,
+            rate_ratio=50, delay_ticks=d, proxy_hold="zoh",
+        )  # fmt: skip
+        assert rho.max() < 1.0, (k_o, d, rho.max())
+    if k_o == 300.0:
+        half = spectral_radius(
+            hand=DEFAULT_HAND_BOX.hands(), k_o=k_o, k_h=0.5 * k_o, i_gain=0.0, b_h=10.0,
+            rate_ratio=50, delay_ticks=0, proxy_hold="zoh",
+        )  # fmt: skip
+        assert half.max() > 1.0
+
+
 def test_a_delay_change_in_mid_contact_gets_gains_checked_for_the_new_delay() -> None:
     s = session()
     s.receive(patch(1), 0.1)
@@ -155,6 +175,12 @@ def test_a_delay_change_in_mid_contact_gets_gains_checked_for_the_new_delay() ->
     during = s.receive(patch(2), 11.0)  # the check for the new delay is running
     assert during is not None and during.delay_ticks == 2 and not during.verified
     assert s.unverified_patches == 1
+    # meanwhile not the gains designed for no delay (unstable with more, above) but the
+    # fallback P model, stable with every hand at this delay
+    assert first.model.own_gain > 0.0
+    assert during.model.own_gain == 0.0 and during.i_gain == 0.0
+    assert during.k_h <= FALLBACK_K_RATIO * 300.0 + 1e-9 and during.b_h == 10.0
+    assert_stable_over_the_box(during, 300.0)
     assert s.interim_wanted is not None and s.interim_wanted[0].delay_ticks == 2
     assert first.k_h in [c.k_h for c in s.interim_wanted[2]]  # the gains in use are tried first
     run_interim(s)
