@@ -1030,6 +1030,7 @@ def verify_gains(
     chunk: int = 256,
     own_gain: float = 0.0,
     k_o_scale: float = 1.0,
+    probe: int = 32,
 ) -> tuple[bool, float]:
     """Do these gains pass the design's acceptance test for grid cell ``cell`` of ``key``?
 
@@ -1052,6 +1053,9 @@ def verify_gains(
     proxy_hold : {"zoh", "foh"}
     chunk : int
         Loop cases per batch.
+    probe : int
+        Cases in the first batch (the stiffest K_o' first): most candidates that fail, fail
+        there.
     own_gain : float
         Own-force compensation C_h [m/N] >= 0 (:mod:`shared.full_loop`).
     k_o_scale : float
@@ -1080,14 +1084,18 @@ def verify_gains(
     n, T = rates.ratio, rates.servo_period_s
     lo, hi = cell_k_o_range(key, cell, grid_ratio)
     k_os = k_o_points(k_o_scale * lo, max(hi, k_o_scale * grid_ratio**cell))
-    hands = [h for h in hand_box.hands() for _ in k_os]
-    ko = np.tile(np.asarray(k_os, float), len(hand_box.hands()))
+    # the stiffest K_o' first, and a first batch of ``probe`` cases: a failing candidate (most
+    # interim candidates fail) is usually refused there, at a fraction of the whole check's cost
+    k_os = sorted(k_os, reverse=True)
+    hands = [h for _ in k_os for h in hand_box.hands()]
+    ko = np.repeat(np.asarray(k_os, float), len(hand_box.hands()))
     rho_limit = math.exp(-MIN_DECAY_RATE_PER_S * n * T)
     worst = 0.0
-    for a in range(0, len(hands), chunk):
+    bounds = [0, *range(min(probe, chunk), len(hands), chunk), len(hands)]
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         M = monodromy(
-            hand=hands[a : a + chunk],
-            k_o=ko[a : a + chunk],
+            hand=hands[a:b],
+            k_o=ko[a:b],
             k_h=k_h,
             i_gain=i_gain,
             b_h=b_h,
