@@ -79,10 +79,11 @@ RTT_WINDOW = 20
 #: K_h / K_o_eff of the unverified fallback a contact renders while the check for its new
 #: coupling class or larger delay runs: a proportional model, no own-force compensation, the
 #: device's whole damper, zero-order hold. Measured with the hand in the loop (every hand of the
-#: box, every sampling tick, the Phantom Desktop's 10 N*s/m): spectral radius at most 0.988 for
-#: K_o 30-4000 N/m and 0-8 ticks of delay (K_h capped at the device's 1 kN/m), where half K_o_eff,
-#: used before, reached 1.10 at 300 N/m and 1.40 at 1000 N/m (tests/client/test_first_contact.py).
-#: Not established for a device without a damper.
+#: box, every sampling tick, the Phantom Desktop's 10 N*s/m): spectral radius at most 0.988 at
+#: K_h / K_o of 0.1, 0.15 and 0.25, K_o 30, 100, 300, 600, 1000, 2000 and 4000 N/m and 0, 1, 2, 4
+#: and 8 ticks of delay (K_h capped at the device's 1 kN/m), where half K_o_eff, used before,
+#: reached 1.10 at 300 N/m and 1.40 at 1000 N/m (tests/client/test_first_contact.py checks part
+#: of that grid). A grid, not a proof; not established for a device without a damper.
 FALLBACK_K_RATIO = 0.25
 
 #: A lower loop delay is designed for only after it has been measured for this long [s]
