@@ -196,6 +196,16 @@ def modal_stiffness(compliance: ArrayLike) -> ModalStiffness:
 MAX_STIFF_RATIO_CLASS = 256.0
 
 
+#: Every class :func:`stiff_ratio_class` returns, ascending: 1, sqrt(2), 2, 2 sqrt(2), 4, then
+#: the powers of 2 up to :data:`MAX_STIFF_RATIO_CLASS`, then ``inf``.
+STIFF_RATIO_CLASSES: tuple[float, ...] = (
+    1.0,
+    *(2.0 ** (k / 2.0) for k in range(1, 5)),
+    *(2.0**k for k in range(3, int(math.log2(MAX_STIFF_RATIO_CLASS)) + 1)),
+    math.inf,
+)
+
+
 def stiff_ratio_class(k_o_eff: float, k_o_stiff: float) -> float:
     """``K_o_stiff / K_o_eff`` rounded up to a class, for a gain-table key (SI, [N/m] in).
 
@@ -228,16 +238,6 @@ def stiff_ratio_class(k_o_eff: float, k_o_stiff: float) -> float:
         if ratio <= q * (1.0 + 1e-9):
             return q
     return math.inf
-
-
-#: Every class :func:`stiff_ratio_class` returns, ascending: 1, sqrt(2), 2, 2 sqrt(2), 4, then
-#: the powers of 2 up to :data:`MAX_STIFF_RATIO_CLASS`, then ``inf``.
-STIFF_RATIO_CLASSES: tuple[float, ...] = (
-    1.0,
-    *(2.0 ** (k / 2.0) for k in range(1, 5)),
-    *(2.0**k for k in range(3, int(math.log2(MAX_STIFF_RATIO_CLASS)) + 1)),
-    math.inf,
-)
 
 
 def covering_classes(ratio_class: float) -> tuple[float, ...]:

@@ -1087,8 +1087,9 @@ def verify_gains(
     # the stiffest K_o' first, and a first batch of ``probe`` cases: a failing candidate (most
     # interim candidates fail) is usually refused there, at a fraction of the whole check's cost
     k_os = sorted(k_os, reverse=True)
-    hands = [h for _ in k_os for h in hand_box.hands()]
-    ko = np.repeat(np.asarray(k_os, float), len(hand_box.hands()))
+    box = hand_box.hands()
+    hands = [h for _ in k_os for h in box]
+    ko = np.repeat(np.asarray(k_os, float), len(box))
     rho_limit = math.exp(-MIN_DECAY_RATE_PER_S * n * T)
     worst = 0.0
     bounds = [0, *range(min(probe, chunk), len(hands), chunk), len(hands)]

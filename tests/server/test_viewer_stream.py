@@ -333,19 +333,30 @@ def test_viewers_that_left_are_forgotten_and_each_viewer_has_its_own_state():
 
 
 # ----------------------------------------------------------------------------- scale and format
-def test_a_deformation_beyond_int16_micrometres_doubles_the_quantum_and_comes_back():
-    rest, faces = sphere(1)
-    stream, dec, normals = stream_and_decoder(rest, faces)
+def assert_quantum_follows_the_amplitude(  # type: ignore[no-untyped-def]
+    stream, dec, rest, move, expected, decoded, huge_direction
+) -> None:
+    """Deform by ``amp * move`` for amplitudes of 50, 200 and 2 mm: the frame's quantum doubles
+    from 1 um as far as int16 needs and comes back, and ``decoded()`` (what the viewer holds)
+    equals ``amp * expected`` within half a quantum; a 5 km deformation is flagged clamped."""
     for k, amp in enumerate((0.050, 0.200, 0.002), start=1):
-        w = np.linspace(-amp, amp, len(rest))
-        f = stream.frames(k, rest + w[:, None] * normals, ["v"])["v"]
+        f = stream.frames(k, rest + amp * move, ["v"])["v"]
         f.sent()
         dec.feed(f.data)
         q = decode_displacement(f.data).quantum_m
         assert q == pytest.approx({1: 2e-6, 2: 8e-6, 3: 1e-6}[k])
-        assert np.max(np.abs(dec.w - w)) <= q / 2 + 1e-12
-    huge = stream.frames(9, rest + 5e3 * normals, ["v"])["v"]
+        assert np.max(np.abs(decoded() - amp * expected)) <= q / 2 + 1e-12
+    huge = stream.frames(9, rest + 5e3 * huge_direction, ["v"])["v"]
     assert decode_displacement(huge.data).flags & FLAG_CLAMPED
+
+
+def test_a_deformation_beyond_int16_micrometres_doubles_the_quantum_and_comes_back():
+    rest, faces = sphere(1)
+    stream, dec, normals = stream_and_decoder(rest, faces)
+    w = np.linspace(-1.0, 1.0, len(rest))
+    assert_quantum_follows_the_amplitude(
+        stream, dec, rest, w[:, None] * normals, w, lambda: dec.w, normals
+    )
 
 
 def test_large_meshes_use_32_bit_indices_and_bad_frames_are_refused():
@@ -688,16 +699,9 @@ def test_vectors_beyond_int16_micrometres_double_the_quantum_and_come_back():
     tangent = np.cross(normals, [0.3, 0.4, 1.0])  # off the normals everywhere on the sphere
     shape = np.linspace(-1, 1, len(rest))[:, None] * tangent
     shape /= np.abs(shape).max()  # the largest |d| on any axis is the amplitude
-    for k, amp in enumerate((0.050, 0.200, 0.002), start=1):
-        d = amp * shape
-        f = stream.frames(k, rest + d, ["v"])["v"]
-        f.sent()
-        dec.feed(f.data)
-        q = decode_displacement(f.data).quantum_m
-        assert q == pytest.approx({1: 2e-6, 2: 8e-6, 3: 1e-6}[k])
-        assert np.max(np.abs(dec.displacement - d)) <= q / 2 + 1e-12
-    huge = stream.frames(9, rest + 5e3 * tangent, ["v"])["v"]
-    assert decode_displacement(huge.data).flags & FLAG_CLAMPED
+    assert_quantum_follows_the_amplitude(
+        stream, dec, rest, shape, shape, lambda: dec.displacement, tangent
+    )
 
 
 def test_vector_frames_carry_three_int16_a_vertex_and_bad_ones_are_refused():
