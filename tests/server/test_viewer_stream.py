@@ -263,6 +263,38 @@ def test_dropped_replaced_and_delayed_frames_never_leave_a_viewer_wrong(seed):
     assert checked > 300
 
 
+def catch_up_over_poor_links(  # type: ignore[no-untyped-def]
+    rng, stream, state, step, place, budget
+):
+    """200 ticks of ``stream`` to the viewers of :data:`LINKS`, each joining at its tick over
+    its lossy link; the surface at ``place(state)`` moves by ``state = step(state)`` for 149
+    ticks, then stands still over perfect links; every frame within ``budget`` bytes.
+
+    Returns (the decoders by viewer, the last state, how many frames were partial)."""
+    links = {v: Link(rng, *LINKS[v][:3]) for v in LINKS}
+    decoders: dict[str, ViewerStreamDecoder] = {}
+    partial = 0
+    for k in range(1, 200):
+        for v, (*_, joins) in LINKS.items():
+            if joins == k - 1:
+                decoders[v] = ViewerStreamDecoder()
+                for f in stream.join(v, k - 1, place(state)):
+                    decoders[v].feed(f)
+        if k < 150:  # moving over a poor link, then still over a perfect one
+            state = step(state)
+        elif k == 150:
+            for link in links.values():
+                link.loss = link.replace = link.delay = 0
+        for v, frame in stream.frames(k, place(state), list(decoders)).items():
+            assert len(frame.data) <= budget
+            partial += frame.partial
+            links[v].push(k, frame)
+        for v in decoders:
+            for _, frame in links[v].deliver(k):
+                decoders[v].feed(frame.data)
+    return decoders, state, partial
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_under_a_budget_every_viewer_catches_up_once_the_surface_stops(seed):
     rng = np.random.default_rng(seed)
@@ -270,28 +302,10 @@ def test_under_a_budget_every_viewer_catches_up_once_the_surface_stops(seed):
     normals = vertex_normals(rest, faces)
     budget = 200  # 45 of the 162 vertices per frame
     stream = ViewerStream(rest, normals, budget)
-    links = {v: Link(rng, *LINKS[v][:3]) for v in LINKS}
-    decoders: dict[str, ViewerStreamDecoder] = {}
-    w = np.zeros(len(rest))
-    partial = 0
-    for k in range(1, 200):
-        for v, (*_, joins) in LINKS.items():
-            if joins == k - 1:
-                decoders[v] = ViewerStreamDecoder()
-                for f in stream.join(v, k - 1, rest + w[:, None] * normals):
-                    decoders[v].feed(f)
-        if k < 150:  # moving over a poor link, then still over a perfect one
-            w = random_step(rng, rest, w, w)
-        elif k == 150:
-            for link in links.values():
-                link.loss = link.replace = link.delay = 0
-        for v, frame in stream.frames(k, rest + w[:, None] * normals, list(decoders)).items():
-            assert len(frame.data) <= budget
-            partial += frame.partial
-            links[v].push(k, frame)
-        for v in decoders:
-            for _, frame in links[v].deliver(k):
-                decoders[v].feed(frame.data)
+    decoders, w, partial = catch_up_over_poor_links(
+        rng, stream, np.zeros(len(rest)), lambda w: random_step(rng, rest, w, w),
+        lambda w: rest + w[:, None] * normals, budget,
+    )  # fmt: skip
     assert partial > 20
     for v, dec in decoders.items():
         assert surface_error_m(dec, rest + w[:, None] * normals) <= TOL_M, v
@@ -662,28 +676,10 @@ def test_under_a_budget_every_vector_viewer_catches_up_once_the_surface_stops(se
     rest, faces = sphere(2)
     budget = 300  # 35 of the 162 vertices per frame (8 bytes each)
     stream = ViewerStream(rest, vertex_normals(rest, faces), budget, vector=True)
-    links = {v: Link(rng, *LINKS[v][:3]) for v in LINKS}
-    decoders: dict[str, ViewerStreamDecoder] = {}
-    d = np.zeros_like(rest)
-    partial = 0
-    for k in range(1, 200):
-        for v, (*_, joins) in LINKS.items():
-            if joins == k - 1:
-                decoders[v] = ViewerStreamDecoder()
-                for f in stream.join(v, k - 1, rest + d):
-                    decoders[v].feed(f)
-        if k < 150:  # moving over a poor link, then still over a perfect one
-            d = random_vector_step(rng, rest, d, d)
-        elif k == 150:
-            for link in links.values():
-                link.loss = link.replace = link.delay = 0
-        for v, frame in stream.frames(k, rest + d, list(decoders)).items():
-            assert len(frame.data) <= budget
-            partial += frame.partial
-            links[v].push(k, frame)
-        for v in decoders:
-            for _, frame in links[v].deliver(k):
-                decoders[v].feed(frame.data)
+    decoders, d, partial = catch_up_over_poor_links(
+        rng, stream, np.zeros_like(rest), lambda d: random_vector_step(rng, rest, d, d),
+        lambda d: rest + d, budget,
+    )  # fmt: skip
     assert partial > 20
     for v, dec in decoders.items():
         assert axis_error_m(dec, rest + d) <= TOL_M, v
