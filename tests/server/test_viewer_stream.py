@@ -38,7 +38,7 @@ from haptic_collab.server.viewer_stream import (
     vertex_normals,
 )
 from haptic_collab.server.world import ContactInput, World
-from haptic_collab.shared.protocol import PROTOCOL_VERSION, decode_binary
+from haptic_collab.shared.protocol import PROTOCOL_VERSION, State, decode_binary, encode
 
 QUANTUM_M = BASE_QUANTUM_NM * 1e-9
 #: float32 rest positions and normals add a few nm on top of the half-quantum rounding
@@ -452,15 +452,11 @@ async def test_a_viewer_over_websockets_decodes_the_servers_surface():
             while loop.time() < end:
                 seq += 1
                 force = min(2.0, 0.1 * seq)  # ramps up over 1 s, then a steady press
-                state = {
-                    "type": "state",
-                    "seq": seq,
-                    "probe_m": [top[0], top[1], top[2] - 0.004],
-                    "force_n": [0.0, 0.0, force],
-                    "k_h": 300.0,
-                    "i_gain": 3000.0,
-                }
-                await user.send(json.dumps(state))
+                probe = (top[0], top[1], top[2] - 0.004)
+                state = State(
+                    seq=seq, probe_m=probe, force_n=(0.0, 0.0, force), k_h=300.0, i_gain=3000.0
+                )
+                await user.send(encode(state))
                 deadline = loop.time() + 0.05
                 while (left := deadline - loop.time()) > 0:
                     try:
@@ -557,15 +553,9 @@ def test_the_room_streams_the_fem_solid_as_vectors_within_a_quantum_per_axis(fem
     obj = world.obj
     sideways = 0.0
     for k, force in enumerate(fem_press_profile(), start=1):
-        state = {
-            "type": "state",
-            "seq": k,
-            "probe_m": [top[0], top[1], top[2] - 0.004],
-            "force_n": [0.0, 0.0, force],
-            "k_h": 100.0,
-            "i_gain": 1000.0,
-        }
-        room.receive("a", json.dumps(state), k * 0.05 - 0.01)
+        probe = (top[0], top[1], top[2] - 0.004)
+        state = State(seq=k, probe_m=probe, force_n=(0.0, 0.0, force), k_h=100.0, i_gain=1000.0)
+        room.receive("a", encode(state), k * 0.05 - 0.01)
         (vout,) = [o for o in room.tick(k, k * 0.05) if o.conn_id == "v" and o.stream == "vertices"]
         assert isinstance(vout.data, bytes) and vout.data[:4] == b"DSV1"
         assert vout.on_sent is not None
