@@ -71,6 +71,19 @@ def press(world: World, top: np.ndarray, force_n: float) -> None:
     world.tick({"a": ContactInput(probe=top - [0, 0, 0.002], force=np.array([0, 0, force_n]))})
 
 
+def pressed_frame(world, top, force, stream, dec, k, budget):  # type: ignore[no-untyped-def]
+    """Press ``world`` at ``top`` with ``force`` [N] (:func:`press`), stream tick ``k`` to viewer
+    ``v`` and feed its frame to ``dec``: the frame, checked to fit ``budget`` bytes and to flag
+    itself partial exactly when it is."""
+    press(world, top, force)
+    f = stream.frames(k, world.vertices, ["v"])["v"]
+    f.sent()
+    dec.feed(f.data)
+    assert len(f.data) <= budget
+    assert f.partial == bool(decode_displacement(f.data).flags & FLAG_PARTIAL)
+    return f
+
+
 def press_profile() -> list[float]:
     """Force [N] per tick: rest, a 1.5 s ramp to 4 N (about 13 mm at the top), hold, release."""
     return [0.0] * 5 + list(np.linspace(0.0, 4.0, 30)) + [4.0] * 10 + list(np.linspace(4, 0, 10))
@@ -160,13 +173,8 @@ def test_a_frame_never_exceeds_the_budget_and_catches_up_once_the_motion_stops(b
     partial = 0
     ramp = [0.0] * 2 + list(np.linspace(0.0, 4.0, 20))
     for k, force in enumerate(ramp + [4.0] * 10, start=1):
-        press(world, top, force)
-        f = stream.frames(k, world.vertices, ["v"])["v"]
-        f.sent()
-        dec.feed(f.data)
-        assert len(f.data) <= budget
+        f = pressed_frame(world, top, force, stream, dec, k, budget)
         partial += f.partial
-        assert f.partial == bool(decode_displacement(f.data).flags & FLAG_PARTIAL)
         if k == len(ramp):  # the largest changes go first: the dent itself is never far behind
             err = np.abs(dec.w - stream.displacement(world.vertices))
             assert err.max() < 0.1 * np.abs(dec.w).max()
@@ -582,13 +590,8 @@ def test_the_fem_solid_under_a_small_budget_is_exact_once_the_motion_stops(fem_w
         dec.feed(data)
     partial = 0
     for k, force in enumerate(fem_press_profile()[:23], start=1):  # rest, then the ramp
-        press(world, top, force)
-        f = stream.frames(k, world.vertices, ["v"])["v"]
-        f.sent()
-        dec.feed(f.data)
-        assert len(f.data) <= budget
+        f = pressed_frame(world, top, force, stream, dec, k, budget)
         partial += f.partial
-        assert f.partial == bool(decode_displacement(f.data).flags & FLAG_PARTIAL)
     # the largest changes go first: mid-ramp the most displaced vertex is never far behind
     moved = np.linalg.norm(obj.displacement, axis=1)
     lag = np.linalg.norm(dec.displacement - obj.displacement, axis=1)
