@@ -401,16 +401,22 @@ def test_large_meshes_use_32_bit_indices_and_bad_frames_are_refused():
 
 
 # ----------------------------------------------------------------------------- the room
-def test_room_streams_displacements_to_a_viewer_that_reports_what_was_sent():
-    world = World(Balloon(default_balloon(0.1, 2), BalloonParams(sim_period_s=1 / SIM_RATE_HZ)))
+def room_with_user_and_viewer(world: World) -> tuple[Room, list[bytes]]:
+    """A room around ``world`` that user ``a`` and then viewer ``v`` joined at 0 s, and the
+    binary frames the viewer got on joining."""
     room = Room(world, SIM_RATE_HZ)
-    top = room.object_info.top_m
     for conn, role in (("a", "user"), ("v", "viewer")):
         room.connect(conn, 0.0)
         hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": role, "name": conn}
         outs = room.receive(conn, json.dumps(hello), 0.0)
+    return room, [o.data for o in outs if isinstance(o.data, bytes)]
+
+
+def test_room_streams_displacements_to_a_viewer_that_reports_what_was_sent():
+    world = World(Balloon(default_balloon(0.1, 2), BalloonParams(sim_period_s=1 / SIM_RATE_HZ)))
+    room, binaries = room_with_user_and_viewer(world)
+    top = room.object_info.top_m
     dec = ViewerStreamDecoder()
-    binaries = [o.data for o in outs if isinstance(o.data, bytes)]
     assert [b[:4] for b in binaries] == [b"FAC1", b"VTX1", b"NRM1", b"DSP1"]
     for b in binaries[1:]:
         dec.feed(b)
@@ -544,13 +550,8 @@ def test_the_room_streams_the_fem_solid_as_vectors_within_a_quantum_per_axis(fem
     quantum on each axis, though vertices moved over a millimetre off their normals."""
     world = fem_world
     assert FemSolid.tangential_motion is True
-    room = Room(world, SIM_RATE_HZ)
+    room, binaries = room_with_user_and_viewer(world)
     top = room.object_info.top_m
-    for conn, role in (("a", "user"), ("v", "viewer")):
-        room.connect(conn, 0.0)
-        hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": role, "name": conn}
-        outs = room.receive(conn, json.dumps(hello), 0.0)
-    binaries = [o.data for o in outs if isinstance(o.data, bytes)]
     assert [b[:4] for b in binaries] == [b"FAC1", b"VTX1", b"NRM1", b"DSV1"]
     key = decode_displacement(binaries[3])
     assert key.vector and key.flags & FLAG_KEY and key.flags & FLAG_DENSE
