@@ -1,16 +1,28 @@
 """``haptic bench fidelity``: every rendering scheme side by side, in one run (README, "Fidelity").
 
-The grid (issue 9): K_o x simulation rate x one-way delay x hand x trajectory, every scheme of
-:data:`shared.fidelity.SCHEMES` on the same cells, simulated by the vectorised 1-D multirate model
-of :mod:`shared.fidelity`; the felt stiffness of each (scheme, K_o, rate, delay) is measured on the
-same simulator with the probe as a position source at 1 Hz and 8 Hz. The local models' gains come
-from the product's own design (:class:`shared.gain_design.GainTable`, the client's key), designed
-in worker processes; the simulations run in batches on the same workers.
+A *condition* is an object model x K_o x simulation rate x one-way delay. In each, every scheme
+of :data:`shared.fidelity.SCHEMES` runs on the vectorised 1-D multirate model of
+:mod:`shared.fidelity` with every hand of the box (and, reported apart, hands outside it) on every
+trajectory, and with the probe as a position source at each frequency of :data:`FELT_HZ` (the
+felt impedance). The local models render the product's own design
+(:class:`shared.gain_design.GainTable`, the client's key), made for the K_o the simulation
+reports; each peer runs every tuning of its sweep (:func:`shared.fidelity.peer_renderings`) and
+is represented by its best one in that condition (:func:`choose_variant`), so a peer is never
+judged by a tuning its users would not pick.
 
-``--quick`` runs :data:`QUICK_GRID` (under 3 minutes on 2 cores); the full :data:`FULL_GRID` runs
-in well under 30 minutes. ``--plot DIR`` writes ``fidelity-stability.png`` (each scheme's stable
-share over K_o x delay, one panel per simulation rate, like the paper's Fig. 8) and
-``fidelity-transparency.png``.
+The objects (:data:`shared.fidelity.OBJECTS`): ``spring`` is the model the product's design
+assumes; ``spring-0.8`` / ``spring-1.2`` (K_o reported 25 % high / 17 % low), ``sls``
+(viscoelastic, with mass) and ``stiffening`` are objects it did not see.
+
+Ranking (:func:`rank`): with every hand of the box in the loop, a scheme counts in a condition
+only if it is stable with every hand on every trajectory; its felt error is the largest
+``|ln |q(f)||`` over :data:`BAND_HZ`, ``q`` the felt dynamic stiffness over the object's own;
+the best is the smallest, and every scheme within the stiffness JND of it
+(:data:`STIFFNESS_JND`: ``error <= best + ln(1 + JND)``) is tied with it. The same ranking is
+also made per hand (a scheme stable with that hand on that trajectory), as issue 9 did.
+
+``--quick`` runs :data:`QUICK_GRID`; :data:`FULL_GRID` is the whole grid. ``--plot DIR`` writes
+``fidelity-stability.png`` and ``fidelity-transparency.png``.
 
 This module reads a clock only to report wall time.
 """
@@ -25,21 +37,26 @@ import time
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from haptic_collab.shared.fidelity import (
+    LOCAL_MODELS,
+    OBJECTS,
     SCHEMES,
     TRAJECTORIES,
     Cell,
     DeviceModel,
+    ObjectModel,
     Rendering,
+    RunOptions,
     cell_metrics,
     design_delay_ticks,
     felt_depth_m,
     felt_response,
     felt_trajectory,
+    peer_renderings,
     rendering_for,
     scheme_tuning,
     simulate,
@@ -47,19 +64,50 @@ from haptic_collab.shared.fidelity import (
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
 from haptic_collab.shared.gain_design import GainDesign, GainKey, GainTable, design_cell
 
-#: Frequencies [Hz] of the felt stiffness.
-FELT_HZ = (1.0, 8.0)
+#: Frequencies [Hz] of the felt impedance (the issue's 0.5-30 Hz).
+FELT_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 30.0)
+#: The frequencies the ranking judges the felt stiffness over: the band of voluntary hand motion
+#: in which people judge stiffness by pressing (Brooks 1990: up to 5-10 Hz); above it the
+#: impedance is reported, not ranked.
+BAND_HZ = (0.5, 1.0, 2.0, 4.0, 8.0)
+
+#: Relative difference in felt stiffness below which a user cannot tell two renderings apart:
+#: 10 %, under the Weber fractions measured for stiffness and compliance (15 % in Bergmann Tiest
+#: and Kappers 2009, "Cues for haptic perception of compliance"; 23 % in Jones and Hunter 1990,
+#: "A perceptual analysis of stiffness"), so the judgement errs against whoever is not the best.
+STIFFNESS_JND = 0.10
+
+_OBJECTS = {o.name: o for o in OBJECTS}
+_TRAJ = {t.name: t for t in TRAJECTORIES}
+_SERVO_RATE_HZ = 1000.0
+_BATCH = 1500
 
 
 @dataclass(frozen=True)
 class Grid:
-    """The conditions every scheme runs on (SI units; delays in ms, one way)."""
+    """The conditions every scheme runs on (SI units; delays in ms, one way).
+
+    ``objects`` names models of :data:`shared.fidelity.OBJECTS`; ``hands`` are the hand box's
+    (the ranking's), ``outside_hands`` are run and reported apart (not a claim of the product).
+    """
 
     k_o: tuple[float, ...]
     sim_rate_hz: tuple[float, ...]
     delay_ms: tuple[float, ...]
     hands: tuple[Hand, ...]
     trajectories: tuple[str, ...] = tuple(t.name for t in TRAJECTORIES)
+    objects: tuple[str, ...] = tuple(o.name for o in OBJECTS)
+    outside_hands: tuple[Hand, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in self.objects:
+            if name not in _OBJECTS:
+                raise ValueError(
+                    f"unknown object model {name!r}; expected one of {sorted(_OBJECTS)}"
+                )
+        for name in self.trajectories:
+            if name not in _TRAJ:
+                raise ValueError(f"unknown trajectory {name!r}; expected one of {sorted(_TRAJ)}")
 
     def as_dict(self) -> dict[str, Any]:
         """The grid, JSON-ready."""
@@ -68,23 +116,34 @@ class Grid:
             "sim_rate_hz": list(self.sim_rate_hz),
             "delay_ms": list(self.delay_ms),
             "hands": [h.as_dict() for h in self.hands],
+            "outside_hands": [h.as_dict() for h in self.outside_hands],
             "trajectories": list(self.trajectories),
+            "objects": list(self.objects),
         }
 
 
 #: The hands: the 8 corners of the full-loop hand box and the default simulated hand.
 GRID_HANDS: tuple[Hand, ...] = (*DEFAULT_HAND_BOX.corners(), DEFAULT_HAND)
 
-#: Issue 9's grid.
+#: Hands outside the design's box (reported apart): a stiff grip, a light fingertip hold, a
+#: lightly damped device held loosely.
+OUTSIDE_HANDS: tuple[Hand, ...] = (
+    Hand(mass_kg=0.6, damping_n_s_per_m=10.0, stiffness_n_per_m=3000.0),
+    Hand(mass_kg=0.05, damping_n_s_per_m=2.0, stiffness_n_per_m=20.0),
+    Hand(mass_kg=0.3, damping_n_s_per_m=0.5, stiffness_n_per_m=300.0),
+)
+
+#: The whole grid.
 FULL_GRID = Grid(
     k_o=(100.0, 300.0, 1000.0, 3000.0),
     sim_rate_hz=(10.0, 20.0, 50.0, 100.0),
     delay_ms=(0.0, 10.0, 50.0, 100.0, 200.0),
     hands=GRID_HANDS,
+    outside_hands=OUTSIDE_HANDS,
 )
 
-#: ``--quick``: the softest and stiffest-but-one objects, the paper's 20 Hz and a fast 50 Hz, no
-#: delay, a LAN-like 10 ms and a long 100 ms; every hand and trajectory.
+#: ``--quick``: the softest-but-one and stiffest objects, the paper's 20 Hz and a fast 50 Hz, no
+#: delay, a LAN-like 10 ms and a long 100 ms; every object model, hand of the box and trajectory.
 QUICK_GRID = Grid(
     k_o=(300.0, 3000.0),
     sim_rate_hz=(20.0, 50.0),
@@ -94,11 +153,6 @@ QUICK_GRID = Grid(
 
 #: The device of every cell (the simulated Phantom Desktop).
 DEVICE = DeviceModel()
-
-_TRAJ = {t.name: t for t in TRAJECTORIES}
-_SERVO_RATE_HZ = 1000.0
-_BATCH = 800
-
 
 #: Stress-set shapes (:mod:`server.objects.shapes`) whose top a user presses in the 3-D cells,
 #: besides the balloon: a flat face with sharp edges, a thin part and a genus-1 ring.
@@ -124,20 +178,17 @@ def _design(key: GainKey, k_o: float) -> GainDesign:
     return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box).at(k_o)
 
 
-def _simulate_batch(cells: list[Cell], felt: bool, device: DeviceModel) -> list[Any]:
-    """Simulate one batch (a worker's job): metrics, or felt-stiffness ratios."""
-    run = simulate(cells, device=device, servo_rate_hz=_SERVO_RATE_HZ)
+def _simulate_batch(
+    cells: list[Cell], felt: bool, device: DeviceModel, options: RunOptions
+) -> list[Any]:
+    """Simulate one batch (a worker's job): metrics, or felt responses ``(|q|, arg q)``."""
+    run = simulate(cells, device=device, servo_rate_hz=_SERVO_RATE_HZ, options=options)
     if felt:
-        return [None if q is None else (abs(q), q.real) for q in felt_response(run, cells)]
+        return [
+            None if q is None else (abs(q), math.atan2(q.imag, q.real))
+            for q in felt_response(run, cells)
+        ]
     return [m.to_json() for m in cell_metrics(run, cells)]
-
-
-def _mag(q: tuple[float, float] | None) -> float | None:
-    return None if q is None else q[0]
-
-
-def _re(q: tuple[float, float] | None) -> float | None:
-    return None if q is None else q[1]
 
 
 def _chunks(items: Sequence[Cell], size: int) -> Iterable[list[Cell]]:
@@ -145,193 +196,240 @@ def _chunks(items: Sequence[Cell], size: int) -> Iterable[list[Cell]]:
         yield list(items[a : a + size])
 
 
-#: Relative difference in felt stiffness below which a user cannot tell two renderings apart:
-#: 10 %, under the Weber fractions measured for stiffness and compliance (15 % in Bergmann Tiest
-#: and Kappers 2009, "Cues for haptic perception of compliance"; 23 % in Jones and Hunter 1990,
-#: "A perceptual analysis of stiffness"), so the judgement errs against the local model.
-STIFFNESS_JND = 0.10
+Felt = dict[float, "tuple[float, float] | None"]
 
 
-def _best_transparency(
-    cells: list[dict[str, Any]], field: str, tag: str, within: float = 0.0
-) -> None:
-    """Mark (``c[tag]``), per condition, the stable scheme whose ``field`` is closest to 1.
+def felt_error(felt: Felt) -> float:
+    """The largest ``|ln |q(f)||`` over :data:`BAND_HZ` (0: the object's own stiffness at every
+    frequency of the band); ``inf`` when any of them could not be measured (a limit cycle, an
+    unsettled or runaway response)."""
+    worst = 0.0
+    for hz in BAND_HZ:
+        q = felt.get(hz)
+        if q is None or not (q[0] > 0.0 and math.isfinite(q[0])):
+            return math.inf
+        worst = max(worst, abs(math.log(q[0])))
+    return worst
 
-    With ``within`` > 0, mark every stable scheme whose ``field`` differs from that best one's by
-    at most ``within`` of it (a user could not tell it from the best: :data:`STIFFNESS_JND`).
+
+@dataclass
+class Outcome:
+    """One rendering (a scheme's tuning) in one condition.
+
+    ``stable`` holds one flag per (trajectory, box hand), in the grid's order; ``outside`` one
+    per (trajectory, outside hand). ``metrics`` are the box cells' :class:`CellMetrics` JSON.
     """
-    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = defaultdict(list)
-    for c in cells:
-        key = (
-            c["model"],
-            c["k_o_n_per_m"],
-            c["sim_rate_hz"],
-            c["delay_ms"],
-            tuple(sorted(c["hand"].items())),
-            c["trajectory"],
-            c.get("stiffness_scale"),
-        )
-        groups[key].append(c)
-    for group in groups.values():
-        ok = [c for c in group if c["stable"] and c[field] is not None]
-        best = min((abs(c[field] - 1.0) for c in ok), default=None)
-        top = min(ok, key=lambda c: abs(c[field] - 1.0))[field] if ok else None
-        for c in group:
-            if within > 0.0:
-                c[tag] = top is not None and c in ok and abs(c[field] - top) <= within * abs(top)
-            else:
-                c[tag] = best is not None and c in ok and abs(c[field] - 1.0) <= best + 1e-6
-            c["_condition"] = id(group)
+
+    rendering: Rendering
+    stable: list[bool] = field(default_factory=list)
+    outside: list[bool] = field(default_factory=list)
+    metrics: list[dict[str, Any]] = field(default_factory=list)
+    impact: list[dict[str, Any]] = field(default_factory=list)
+    felt: Felt = field(default_factory=dict)
+
+    @property
+    def box_stable(self) -> bool:
+        """Stable with every hand of the box on every trajectory."""
+        return bool(self.stable) and all(self.stable)
 
 
-def _hand_box_ranking(cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, Any]:
-    """The ranking with the hand box in the loop (how the product must judge a claim).
-
-    A *box condition* is a 1-D (K_o, simulation rate, delay, trajectory) over every hand of the
-    box. A scheme is *box-stable* there when it is stable with every hand: a user's hand is not
-    known in advance, so a scheme stable with some hands only is not stable for the product.
-    Among the box-stable schemes, the best is the one whose felt stiffness at 1 Hz (the same for
-    every hand: it is measured with the probe as a position source) is closest to 1.
-
-    Returns ``{"schemes": {scheme: {"box_stable_fraction", "best_transparency_fraction_box"}},
-    "local_model_best_fraction": ..., "conditions": n}``.
-    """
-    groups: dict[tuple[Any, ...], dict[str, list[dict[str, Any]]]] = defaultdict(
-        lambda: defaultdict(list)
+def choose_variant(outcomes: Sequence[Outcome]) -> int:
+    """Index of a peer's tuning that represents it in a condition: stable with every hand of the
+    box if any is, then the most hands stable, then the smallest :func:`felt_error`."""
+    if not outcomes:
+        raise ValueError("choose_variant needs at least one outcome")
+    return min(
+        range(len(outcomes)),
+        key=lambda i: (
+            not outcomes[i].box_stable,
+            -sum(outcomes[i].stable),
+            felt_error(outcomes[i].felt),
+        ),
     )
-    for c in cells:
-        key = (c["k_o_n_per_m"], c["sim_rate_hz"], c["delay_ms"], c["trajectory"])
-        groups[key][c["scheme"]].append(c)
-    stable_n: dict[str, int] = dict.fromkeys(schemes, 0)
-    best_n: dict[str, int] = dict.fromkeys(schemes, 0)
-    ours = 0
-    for by_scheme in groups.values():
-        felt: dict[str, float] = {}
-        for s, mine in by_scheme.items():
-            if not (mine and all(c["stable"] for c in mine)):
-                continue
-            stable_n[s] = stable_n.get(s, 0) + 1
-            value = mine[0]["felt_stiffness_ratio_1hz"]
-            if value is not None:  # a felt stiffness that could not be measured is not ranked
-                felt[s] = float(value)
-        if not felt:
-            continue
-        best = min(abs(v - 1.0) for v in felt.values())
-        winners = [s for s, v in felt.items() if abs(v - 1.0) <= best + 1e-6]
-        for s in winners:
-            best_n[s] = best_n.get(s, 0) + 1
-        ours += any(s in ("local-p", "local-pi") for s in winners)
-    n = max(1, len(groups))
+
+
+def _scheme_record(o: Outcome) -> dict[str, Any]:
+    err = felt_error(o.felt)
     return {
-        "schemes": {
-            s: {
-                "box_stable_fraction": stable_n.get(s, 0) / n,
-                "best_transparency_fraction_box": best_n.get(s, 0) / n,
-            }
-            for s in schemes
-        },
-        "local_model_best_fraction": ours / n,
-        "conditions": len(groups),
+        "variant": o.rendering.variant,
+        "box_stable": o.box_stable,
+        "stable_cells": "".join("1" if s else "0" for s in o.stable),
+        "outside_stable": "".join("1" if s else "0" for s in o.outside),
+        "felt": {f"{hz:g}": (None if q is None else [q[0], q[1]]) for hz, q in o.felt.items()},
+        "felt_error": None if math.isinf(err) else err,
+        "hold_p2p_mm_max": max((m["hold_p2p_mm"] for m in o.metrics), default=None),
+        "peak_penetration_impact_mm_max": max(
+            (m["peak_penetration_mm"] for m in o.impact), default=None
+        ),
+        "energy_out_mj_max": max((m["energy_out_mj"] for m in o.metrics), default=None),
+        "force_ripple_n_max": max((m["force_ripple_n"] for m in o.metrics), default=None),
     }
 
 
-def summarize(all_cells: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, Any]:
-    """Per scheme, over the 1-D grid: ``stable_fraction``, ``best_transparency_fraction``
-    (issue 9: stable, and |dF/dx| / K_o at 1 Hz closest to 1 among the stable schemes),
-    ``best_elastic_fraction`` (the same ranking on the elastic, in-phase part Re(dF/dx) / K_o: a
-    force lagging by a long delay keeps its magnitude but is not felt as stiffness), and the
-    medians of those and of the hold p2p over its stable cells; ``stable_fraction_3d`` over the 3-D World cells (felt stiffness is measured in 1-D
-    only, so the 3-D cells do not enter the transparency ranking). Plus
-    ``"local_model_best_fraction"`` (1-D conditions where local-p or local-pi is the best stable
-    scheme) and ``"peer_wins"`` (the conditions, grouped over hands and trajectories, where a
-    peer is best). ``near_best_fraction`` per scheme and ``local_model_near_best_fraction``
-    count the cells where a scheme is stable and its |dF/dx| at 1 Hz is within
-    :data:`STIFFNESS_JND` of the best stable scheme's: what a user could not tell from the best.
-    Not issue 9's ranking, which counts the strictly closest only."""
-    cells = [c for c in all_cells if c["model"] == "1d"]
-    _best_transparency(cells, "felt_elastic_ratio_1hz", "_best_elastic")
-    _best_transparency(cells, "felt_stiffness_ratio_1hz", "_near", within=STIFFNESS_JND)
-    _best_transparency(cells, "felt_stiffness_ratio_1hz", "_best")
+def _ties(errors: dict[str, float]) -> tuple[list[str], list[str]]:
+    """(best, within the JND of the best) among schemes with a finite felt error."""
+    finite = {s: e for s, e in errors.items() if math.isfinite(e)}
+    if not finite:
+        return [], []
+    best = min(finite.values())
+    top = [s for s, e in finite.items() if e <= best + 1e-9]
+    near = [s for s, e in finite.items() if e <= best + math.log1p(STIFFNESS_JND) + 1e-12]
+    return top, near
+
+
+def rank(condition: dict[str, Any]) -> None:
+    """Rank one condition's schemes in place (module docstring): ``best`` and ``near_best``
+    with every hand of the box, and ``per_hand`` (counts over its (trajectory, hand) cells of
+    each scheme best / within the JND of the best among those stable with that hand)."""
+    recs = condition["schemes"]
+    errors = {
+        s: (r["felt_error"] if r["felt_error"] is not None else math.inf) for s, r in recs.items()
+    }
+    box = {s: e for s, e in errors.items() if recs[s]["box_stable"]}
+    condition["best"], condition["near_best"] = _ties(box)
+    n_cells = max((len(r["stable_cells"]) for r in recs.values()), default=0)
+    best_n: dict[str, int] = dict.fromkeys(recs, 0)
+    near_n: dict[str, int] = dict.fromkeys(recs, 0)
+    for k in range(n_cells):
+        ok = {s: e for s, e in errors.items() if recs[s]["stable_cells"][k : k + 1] == "1"}
+        top, near = _ties(ok)
+        for s in top:
+            best_n[s] += 1
+        for s in near:
+            near_n[s] += 1
+    condition["per_hand"] = {"cells": n_cells, "best": best_n, "near_best": near_n}
+
+
+def _frac(n: int, d: int) -> float | None:
+    return n / d if d else None
+
+
+def summarize(conditions: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, Any]:
+    """The summary of ranked conditions (:func:`rank`).
+
+    Per scheme: ``box_stable_fraction`` (conditions in which it is stable with every hand of the
+    box), ``best_fraction_box`` and ``near_best_fraction_box`` (best / within the JND of the
+    best with every hand of the box), the same on the design model (``_spring``) and on the
+    objects the design did not see (``_unseen``), the per-hand shares (``per_hand_*``),
+    ``outside_stable_fraction`` (cells with hands outside the box), the medians of ``|q|`` and
+    of its phase [rad] at each felt frequency over the conditions where it is box-stable, the
+    largest energy it gave a user [mJ], the median peak penetration on impact [mm], and which
+    tunings represented it. ``by_object``: each object's box-stable and near-best shares per
+    scheme. ``product``: the local models' shares (either of them), and ``peer_better``: the
+    conditions where a peer is better than both local models by more than the JND.
+    """
+    unseen = [c for c in conditions if c["object"] != "spring"]
+    spring = [c for c in conditions if c["object"] == "spring"]
     out: dict[str, Any] = {}
     for s in schemes:
-        mine = [c for c in cells if c["scheme"] == s]
-        mine3 = [c for c in all_cells if c["scheme"] == s and c["model"] == "3d"]
+        mine = [c for c in conditions if s in c["schemes"]]
         if not mine:
             continue
-        stable = [c for c in mine if c["stable"]]
-        felt1 = [c["felt_stiffness_ratio_1hz"] for c in stable if c["felt_stiffness_ratio_1hz"]]
-        felt8 = [c["felt_stiffness_ratio_8hz"] for c in stable if c["felt_stiffness_ratio_8hz"]]
-        el1 = [c["felt_elastic_ratio_1hz"] for c in stable if c["felt_elastic_ratio_1hz"]]
-        out[s] = {
-            "cells": len(mine),
-            "stable_fraction": len(stable) / len(mine),
-            "best_transparency_fraction": sum(c["_best"] for c in mine) / len(mine),
-            "best_elastic_fraction": sum(c["_best_elastic"] for c in mine) / len(mine),
-            "near_best_fraction": sum(c["_near"] for c in mine) / len(mine),
-            "median_felt_stiffness_ratio_1hz": statistics.median(felt1) if felt1 else None,
-            "median_felt_stiffness_ratio_8hz": statistics.median(felt8) if felt8 else None,
-            "median_felt_elastic_ratio_1hz": statistics.median(el1) if el1 else None,
-            "median_hold_p2p_mm": statistics.median(c["hold_p2p_mm"] for c in mine),
-            "stable_fraction_3d": (sum(c["stable"] for c in mine3) / len(mine3) if mine3 else None),
+        recs = [c["schemes"][s] for c in mine]
+        stable_recs = [r for r in recs if r["box_stable"]]
+        cells = sum(len(r["stable_cells"]) for r in recs)
+        outside = "".join(r["outside_stable"] for r in recs)
+        mags: dict[str, float | None] = {}
+        phases: dict[str, float | None] = {}
+        for hz in FELT_HZ:
+            key = f"{hz:g}"
+            vals = [r["felt"][key] for r in stable_recs if r["felt"].get(key) is not None]
+            mags[key] = statistics.median(v[0] for v in vals) if vals else None
+            phases[key] = statistics.median(v[1] for v in vals) if vals else None
+        errs = [r["felt_error"] for r in stable_recs if r["felt_error"] is not None]
+        variants: dict[str, int] = defaultdict(int)
+        for r in recs:
+            variants[r["variant"] or "-"] += 1
+        pen = [
+            r["peak_penetration_impact_mm_max"]
+            for r in stable_recs
+            if r["peak_penetration_impact_mm_max"] is not None
+        ]
+        row = {
+            "conditions": len(mine),
+            "box_stable_fraction": sum(r["box_stable"] for r in recs) / len(recs),
+            "best_fraction_box": sum(s in c["best"] for c in mine) / len(mine),
+            "near_best_fraction_box": sum(s in c["near_best"] for c in mine) / len(mine),
+            "per_hand_stable_fraction": _frac(
+                sum(r["stable_cells"].count("1") for r in recs), cells
+            ),
+            "per_hand_best_fraction": _frac(sum(c["per_hand"]["best"][s] for c in mine), cells),
+            "per_hand_near_best_fraction": _frac(
+                sum(c["per_hand"]["near_best"][s] for c in mine), cells
+            ),
+            "outside_stable_fraction": _frac(outside.count("1"), len(outside)),
+            "median_felt_ratio": mags,
+            "median_felt_phase_rad": phases,
+            "median_felt_error": statistics.median(errs) if errs else None,
+            "max_energy_out_mj": max(
+                (r["energy_out_mj_max"] for r in stable_recs if r["energy_out_mj_max"] is not None),
+                default=None,
+            ),
+            "median_peak_penetration_impact_mm": statistics.median(pen) if pen else None,
+            "variants": dict(variants),
         }
-    conditions: dict[int, list[dict[str, Any]]] = defaultdict(list)
-    for c in cells:
-        conditions[c["_condition"]].append(c)
-    ours = 0
-    ours_elastic = sum(
-        any(c["_best_elastic"] and c["scheme"] in ("local-p", "local-pi") for c in group)
-        for group in conditions.values()
-    )
-    ours_near = sum(
-        any(c["_near"] and c["scheme"] in ("local-p", "local-pi") for c in group)
-        for group in conditions.values()
-    )
-    wins: dict[tuple[Any, ...], dict[str, Any]] = {}
-    for group in conditions.values():
-        best = [c["scheme"] for c in group if c["_best"]]
-        if any(b in ("local-p", "local-pi") for b in best):
-            ours += 1
+        for tag, group in (("spring", spring), ("unseen", unseen)):
+            g = [c for c in group if s in c["schemes"]]
+            row[f"box_stable_fraction_{tag}"] = _frac(
+                sum(c["schemes"][s]["box_stable"] for c in g), len(g)
+            )
+            row[f"near_best_fraction_box_{tag}"] = _frac(
+                sum(s in c["near_best"] for c in g), len(g)
+            )
+        out[s] = row
+    by_object: dict[str, dict[str, Any]] = {}
+    for name in dict.fromkeys(c["object"] for c in conditions):
+        g = [c for c in conditions if c["object"] == name]
+        by_object[name] = {
+            s: {
+                "box_stable_fraction": sum(c["schemes"][s]["box_stable"] for c in g) / len(g),
+                "near_best_fraction_box": sum(s in c["near_best"] for c in g) / len(g),
+            }
+            for s in schemes
+            if all(s in c["schemes"] for c in g)
+        }
+    ours = [s for s in schemes if s in LOCAL_MODELS]
+    peer_better = []
+    for c in conditions:
+        if not ours or any(s in c["near_best"] for s in ours) or not c["best"]:
             continue
-        g = group[0]
-        key = (g["model"], g["k_o_n_per_m"], g["sim_rate_hz"], g["delay_ms"])
-        w = wins.setdefault(
-            key,
+        lm_errs = {s: c["schemes"][s]["felt_error"] for s in ours}
+        peer_better.append(
             {
-                "model": g["model"],
-                "k_o_n_per_m": g["k_o_n_per_m"],
-                "sim_rate_hz": g["sim_rate_hz"],
-                "delay_ms": g["delay_ms"],
-                "conditions": 0,
-                "winners": {},
-                "local_model_stable": 0,
-            },
+                "object": c["object"],
+                "k_o_n_per_m": c["k_o_n_per_m"],
+                "sim_rate_hz": c["sim_rate_hz"],
+                "delay_ms": c["delay_ms"],
+                "best": c["best"],
+                "best_felt_error": c["schemes"][c["best"][0]]["felt_error"],
+                "local_model_felt_error": lm_errs,
+                "local_model_box_stable": {s: c["schemes"][s]["box_stable"] for s in ours},
+            }
         )
-        w["conditions"] += 1
-        for b in best or ["none stable"]:
-            w["winners"][b] = w["winners"].get(b, 0) + 1
-        w["local_model_stable"] += any(
-            c["stable"] for c in group if c["scheme"] in ("local-p", "local-pi")
-        )
-    for c in cells:
-        c.pop("_best", None)
-        c.pop("_best_elastic", None)
-        c.pop("_near", None)
-        c.pop("_condition", None)
-    out["local_model_best_fraction"] = ours / max(1, len(conditions))
-    box = _hand_box_ranking(cells, schemes)
-    for s, v in box["schemes"].items():
-        if s in out:
-            out[s].update(v)
-    out["local_model_best_fraction_box"] = box["local_model_best_fraction"]
-    out["box_conditions"] = box["conditions"]
-    out["local_model_best_elastic_fraction"] = ours_elastic / max(1, len(conditions))
-    out["local_model_near_best_fraction"] = ours_near / max(1, len(conditions))
+
+    def share(group: list[dict[str, Any]], key: str) -> float | None:
+        if not ours:
+            return None
+        if key == "box_stable":
+            return _frac(
+                sum(all(c["schemes"][s]["box_stable"] for s in ours) for c in group), len(group)
+            )
+        return _frac(sum(any(s in c[key] for s in ours) for c in group), len(group))
+
+    out["by_object"] = by_object
+    out["product"] = {
+        "local_models": ours,
+        "box_stable_fraction": share(conditions, "box_stable"),
+        "box_stable_fraction_unseen": share(unseen, "box_stable"),
+        "near_best_fraction_box": share(conditions, "near_best"),
+        "near_best_fraction_box_spring": share(spring, "near_best"),
+        "near_best_fraction_box_unseen": share(unseen, "near_best"),
+        "best_fraction_box": share(conditions, "best"),
+        "peer_better": peer_better,
+    }
     out["stiffness_jnd"] = STIFFNESS_JND
+    out["band_hz"] = list(BAND_HZ)
     out["conditions"] = len(conditions)
-    out["peer_wins"] = sorted(
-        wins.values(),
-        key=lambda w: (w["model"], w["k_o_n_per_m"], w["sim_rate_hz"], w["delay_ms"]),
-    )
     return out
 
 
@@ -343,11 +441,12 @@ def run(
     device: DeviceModel = DEVICE,
     workers: int | None = None,
     include_3d: bool = True,
+    options: RunOptions | None = None,
     seed: int = 0,
     log: Any = None,
     design_cache: dict[tuple[str, GainKey, float], GainDesign] | None = None,
 ) -> dict[str, Any]:
-    """Run the benchmark; returns the ``--json`` document (issue 9's shape).
+    """Run the benchmark; returns the ``--json`` document.
 
     Parameters
     ----------
@@ -361,14 +460,23 @@ def run(
         Worker processes (default: the machine's cores).
     include_3d : bool
         Also run the 3-D World cells (:mod:`server.fidelity_3d`).
+    options : RunOptions, optional
+        Servo jitter and encoder quantisation for every 1-D cell (off by default); its seed
+        draws the jitter.
     seed : int
-        Recorded in the output; the simulations are deterministic (no noise is drawn), so the
-        seed changes nothing today.
+        Recorded in the output, and the jitter's seed when ``options`` has none of its own.
     log : callable, optional
         Progress lines (``print`` to stderr from the CLI).
     design_cache : dict, optional
-        Designs already made, keyed ``(mode, GainKey, K_o)``; new designs are added to it (lets a
-        caller rerun the simulations without redesigning).
+        Designs already made, keyed ``(mode, GainKey, K_o)``; new designs are added to it.
+
+    Returns
+    -------
+    dict
+        ``schemes``, ``tuning`` (each scheme's sweep, in words), ``grid``, ``device``,
+        ``options``, ``conditions`` (one record per object x K_o x rate x delay: each scheme's
+        chosen tuning, per-cell stability, felt impedance and metrics, and the ranking),
+        ``cells_3d``, ``summary`` (:func:`summarize`), ``gains``, ``wall_s``, ``workers``.
 
     Raises
     ------
@@ -379,16 +487,22 @@ def run(
         if s not in SCHEMES:
             raise ValueError(f"unknown scheme {s!r}; expected one of {', '.join(SCHEMES)}")
     g = grid if grid is not None else (QUICK_GRID if quick else FULL_GRID)
+    options = options if options is not None else RunOptions()
+    if options.seed == 0 and seed:
+        options = RunOptions(options.jitter_s, options.quantum_m, seed)
     say = log if log is not None else (lambda _msg: None)
     t0 = time.perf_counter()
     n_workers = max(1, workers if workers is not None else (os.cpu_count() or 1))
     pool: Executor = ProcessPoolExecutor(n_workers, mp_context=mp.get_context("spawn"))
+    hands = list(g.hands) + list(g.outside_hands)
+    n_box = len(g.hands)
     try:
         # 1. the product's gains for every (mode, rate, delay ticks, K_o): worker processes
         jobs: dict[tuple[str, GainKey, float], Any] = {}
-        for mode, scheme in (("p", "local-p"), ("pi", "local-pi")):
+        for scheme in LOCAL_MODELS:
             if scheme not in schemes:
                 continue
+            mode = "p" if scheme == "local-p" else "pi"
             for rate in g.sim_rate_hz:
                 for d in g.delay_ms:
                     key = _gain_key(mode, rate, d, device)
@@ -403,86 +517,121 @@ def run(
         t_design = time.perf_counter() - t0
         say(f"designed {len(designs)} gain sets in {t_design:.1f} s")
 
-        # 2. renderings and cells
-        rend: dict[tuple[str, float, float, float], Rendering] = {}
+        # 2. every scheme's renderings (a peer's whole sweep) per (K_o, rate, delay)
+        rend: dict[tuple[str, float, float, float], list[Rendering]] = {}
         for s in schemes:
             for rate in g.sim_rate_hz:
                 for d in g.delay_ms:
                     for k_o in g.k_o:
-                        design = None
-                        if s in ("local-p", "local-pi"):
+                        if s in LOCAL_MODELS:
                             mode = "p" if s == "local-p" else "pi"
                             design = designs[(mode, _gain_key(mode, rate, d, device), k_o)]
-                        rend[(s, k_o, rate, d)] = rendering_for(
-                            s, sim_rate_hz=rate, device=device, design=design
-                        )
-        hand_cells: dict[str, list[Cell]] = defaultdict(list)
-        felt_cells: dict[float, list[Cell]] = defaultdict(list)
-        for (_s, k_o, rate, d), r in rend.items():
-            for tr in g.trajectories:
-                for h in g.hands:
-                    hand_cells[tr].append(Cell(r, k_o, rate, d, h, _TRAJ[tr]))
-            for hz in FELT_HZ:
-                depth = felt_depth_m(k_o, device.max_force_n)
-                felt_cells[hz].append(Cell(r, k_o, rate, d, None, felt_trajectory(hz, depth)))
+                            rs = [rendering_for(s, sim_rate_hz=rate, device=device, design=design)]
+                        else:
+                            rs = peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
+                        rend[(s, k_o, rate, d)] = rs
 
-        # 3. simulate in batches (one trajectory per batch: equal lengths)
-        futs: list[tuple[str, Any, list[Cell], Any]] = []
-        for tr, cs in hand_cells.items():
-            for chunk in _chunks(cs, _BATCH):
-                futs.append(("hand", tr, chunk, pool.submit(_simulate_batch, chunk, False, device)))
-        for hz, cs in felt_cells.items():
-            for chunk in _chunks(cs, _BATCH):
-                futs.append(("felt", hz, chunk, pool.submit(_simulate_batch, chunk, True, device)))
-        felt: dict[tuple[str, float, float, float, float], tuple[float, float] | None] = {}
-        metrics: list[tuple[Cell, dict[str, Any]]] = []
-        for kind, what, chunk, fut in futs:
+        # 3. cells: every object x rendering x trajectory x hand, and the felt probes
+        outcomes: list[Outcome] = []
+        where: dict[tuple[str, str, float, float, float], list[int]] = {}
+        hand_cells: dict[str, list[tuple[int, int, int, Cell]]] = defaultdict(list)
+        felt_cells: dict[float, list[tuple[int, Cell]]] = defaultdict(list)
+        for name in g.objects:
+            obj = _OBJECTS[name]
+            for (s, k_o, rate, d), rs in rend.items():
+                ids = []
+                for r in rs:
+                    oid = len(outcomes)
+                    ids.append(oid)
+                    outcomes.append(Outcome(r))
+                    for ti, tr in enumerate(g.trajectories):
+                        for hi, h in enumerate(hands):
+                            hand_cells[tr].append(
+                                (oid, ti, hi, Cell(r, k_o, rate, d, h, _TRAJ[tr], obj))
+                            )
+                    depth = felt_depth_m(k_o, device.max_force_n, obj)
+                    for hz in FELT_HZ:
+                        cell = Cell(r, k_o, rate, d, None, felt_trajectory(hz, depth), obj)
+                        felt_cells[hz].append((oid, cell))
+                where[(name, s, k_o, rate, d)] = ids
+
+        # 4. simulate in batches (one trajectory per batch: equal lengths)
+        futs: list[tuple[str, Any, list[Any], Any]] = []
+        for tr, tagged in hand_cells.items():
+            for a in range(0, len(tagged), _BATCH):
+                chunk = tagged[a : a + _BATCH]
+                cs = [c for *_, c in chunk]
+                futs.append(
+                    ("hand", tr, chunk, pool.submit(_simulate_batch, cs, False, device, options))
+                )
+        for hz, tagged_f in felt_cells.items():
+            for a in range(0, len(tagged_f), _BATCH):
+                chunk_f = tagged_f[a : a + _BATCH]
+                cs = [c for _, c in chunk_f]
+                futs.append(
+                    ("felt", hz, chunk_f, pool.submit(_simulate_batch, cs, True, device, options))
+                )
+        n_sim = 0
+        for kind, what, items, fut in futs:
             res = fut.result()
-            for c, m in zip(chunk, res, strict=True):
-                if kind == "felt":
-                    felt[(c.rendering.scheme, c.k_o, c.sim_rate_hz, c.delay_ms, what)] = m
+            n_sim += len(res)
+            if kind == "felt":
+                for (oid, _c), q in zip(items, res, strict=True):
+                    outcomes[oid].felt[what] = None if q is None else (q[0], q[1])
+                continue
+            for (oid, _ti, hi, _c), m in zip(items, res, strict=True):
+                o = outcomes[oid]
+                if hi < n_box:
+                    o.stable.append(bool(m["stable"]))
+                    o.metrics.append(m)
+                    if what == "impact":
+                        o.impact.append(m)
                 else:
-                    metrics.append((c, m))
+                    o.outside.append(bool(m["stable"]))
         t_sim = time.perf_counter() - t0 - t_design
-        say(f"simulated {len(metrics)} cells in {t_sim:.1f} s")
+        say(f"simulated {n_sim} cells in {t_sim:.1f} s")
     finally:
         pool.shutdown()
 
-    cells: list[dict[str, Any]] = []
-    for c, m in metrics:
-        assert c.hand is not None
-        rkey = (c.rendering.scheme, c.k_o, c.sim_rate_hz, c.delay_ms)
-        cells.append(
-            {
-                "scheme": c.rendering.scheme,
-                "model": "1d",
-                "k_o_n_per_m": c.k_o,
-                "sim_rate_hz": c.sim_rate_hz,
-                "delay_ms": c.delay_ms,
-                "hand": c.hand.as_dict(),
-                "trajectory": c.trajectory.name,
-                **m,
-                "felt_stiffness_ratio_1hz": _mag(felt[(*rkey, 1.0)]),
-                "felt_stiffness_ratio_8hz": _mag(felt[(*rkey, 8.0)]),
-                "felt_elastic_ratio_1hz": _re(felt[(*rkey, 1.0)]),
-            }
-        )
+    # the stable flags must be in (trajectory, hand) order for the per-hand ranking: they are,
+    # because the cells of one trajectory are batched together in hand order and trajectories
+    # are collected in the grid's order
+    conditions: list[dict[str, Any]] = []
+    for name in g.objects:
+        for k_o in g.k_o:
+            for rate in g.sim_rate_hz:
+                for d in g.delay_ms:
+                    recs: dict[str, Any] = {}
+                    for s in schemes:
+                        ids = where[(name, s, k_o, rate, d)]
+                        best = ids[choose_variant([outcomes[i] for i in ids])]
+                        recs[s] = _scheme_record(outcomes[best])
+                    cond = {
+                        "object": name,
+                        "k_o_n_per_m": k_o,
+                        "sim_rate_hz": rate,
+                        "delay_ms": d,
+                        "schemes": recs,
+                    }
+                    rank(cond)
+                    conditions.append(cond)
+
+    cells3: list[dict[str, Any]] = []
     t_3d = 0.0
     if include_3d:
         t3 = time.perf_counter()
-        from haptic_collab.server.fidelity_3d import run_3d_cells
+        from haptic_collab.server.fidelity_3d import SCHEMES_3D, run_3d_cells
 
-        cells3 = run_3d_cells(schemes, device=device)
+        s3 = [s for s in schemes if s in SCHEMES_3D]
+        cells3 = run_3d_cells(s3, device=device)
         # objects the design was not made on: the stress set's shapes, pressed at their top
         cells3 += run_3d_cells(
-            schemes,
+            s3,
             device=device,
             meshes=FIDELITY_MESHES_3D,
             stiffness_scales=(1.0,),
             trajectories=("press",),
         )
-        # felt stiffness is measured in 1-D only (the 3-D cells carry null)
-        cells.extend(cells3)
         t_3d = time.perf_counter() - t3
         say(f"ran {len(cells3)} 3-D cells in {t_3d:.1f} s")
 
@@ -499,23 +648,44 @@ def run(
                 "k_h": gd.k_h,
                 "i_gain": gd.i_gain,
                 "b_h": gd.b_h,
+                "own_gain": gd.own_gain,
                 "proxy_hold": gd.proxy_hold,
                 "rendered_as": gd.mode,
             }
         )
-    tunings = {s: scheme_tuning(s, device) for s in schemes}
+    summary = summarize(conditions, schemes)
+    if cells3:
+        summary["stable_fraction_3d"] = {
+            s: sum(c["stable"] for c in cells3 if c["scheme"] == s)
+            / max(1, sum(c["scheme"] == s for c in cells3))
+            for s in dict.fromkeys(c["scheme"] for c in cells3)
+        }
     return {
         "schemes": list(schemes),
-        "tuning": tunings,
+        "tuning": {s: scheme_tuning(s, device) for s in schemes},
         "grid": {**g.as_dict(), "quick": quick and grid is None},
+        "objects": {
+            name: {
+                k: getattr(_OBJECTS[name], k)
+                for k in ObjectModel.__dataclass_fields__  # noqa: SIM118
+            }
+            for name in g.objects
+        },
+        "felt_hz": list(FELT_HZ),
         "device": {
             "name": device.name,
             "max_force_n": device.max_force_n,
             "max_stiffness_n_per_m": device.max_stiffness_n_per_m,
             "max_damping_n_s_per_m": device.max_damping_n_s_per_m,
         },
-        "cells": cells,
-        "summary": summarize(cells, schemes),
+        "options": {
+            "jitter_s": options.jitter_s,
+            "quantum_m": options.quantum_m,
+            "seed": options.seed,
+        },
+        "conditions": conditions,
+        "cells_3d": cells3,
+        "summary": summary,
         "gains": gains,
         "seed": seed,
         "wall_s": {
@@ -530,19 +700,23 @@ def run(
 
 # ------------------------------------------------------------------------------------ plots
 def plot(result: dict[str, Any], out_dir: Path) -> list[Path]:
-    """Write ``fidelity-stability.png`` and ``fidelity-transparency.png`` into ``out_dir``."""
+    """Write ``fidelity-stability.png`` (each scheme's share of object models on which it is
+    stable with every hand of the box, over K_o x delay, one panel per simulation rate) and
+    ``fidelity-transparency.png`` (median felt |q| over frequency per scheme, on the design
+    model and on the objects it did not see) into ``out_dir``."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    cells = [c for c in result["cells"] if c["model"] == "1d"]
+    conds = result["conditions"]
     schemes = result["schemes"]
     grid = result["grid"]
     k_os, rates, delays = grid["k_o_n_per_m"], grid["sim_rate_hz"], grid["delay_ms"]
     share: dict[tuple[str, float, float, float], list[bool]] = defaultdict(list)
-    for c in cells:
-        share[(c["scheme"], c["k_o_n_per_m"], c["sim_rate_hz"], c["delay_ms"])].append(c["stable"])
-    fig = Figure(figsize=(2.4 * len(rates) + 1.2, 1.9 * len(schemes) + 0.6))
+    for c in conds:
+        for s, r in c["schemes"].items():
+            share[(s, c["k_o_n_per_m"], c["sim_rate_hz"], c["delay_ms"])].append(r["box_stable"])
+    fig = Figure(figsize=(2.4 * len(rates) + 1.2, 1.7 * len(schemes) + 0.6))
     FigureCanvasAgg(fig)
     axes = fig.subplots(len(schemes), len(rates), squeeze=False)
     im = None
@@ -566,33 +740,41 @@ def plot(result: dict[str, Any], out_dir: Path) -> list[Path]:
             if i == len(schemes) - 1:
                 ax.set_xlabel("K_o [N/m]", fontsize=8)
     if im is not None:
-        fig.colorbar(im, ax=axes, shrink=0.6, label="stable share of hands x trajectories")
-    fig.suptitle("Stable region per scheme (1-D, every hand and trajectory)", fontsize=10)
+        fig.colorbar(im, ax=axes, shrink=0.6, label="share of object models stable with every hand")
+    fig.suptitle("Stable with every hand of the box (1-D, every trajectory)", fontsize=10)
     p1 = out_dir / "fidelity-stability.png"
     fig.savefig(p1, dpi=90)
 
-    fig2 = Figure(figsize=(8.0, 3.6))
+    fig2 = Figure(figsize=(9.0, 3.6))
     FigureCanvasAgg(fig2)
-    ax = fig2.subplots()
-    width = 0.8 / max(1, len(schemes))
-    for i, s in enumerate(schemes):
-        meds = []
-        for k in k_os:
-            v = [
-                c["felt_stiffness_ratio_1hz"]
-                for c in cells
-                if c["scheme"] == s
-                and c["k_o_n_per_m"] == k
-                and c["stable"]
-                and c["felt_stiffness_ratio_1hz"] is not None
-            ]
-            meds.append(statistics.median(v) if v else 0.0)
-        ax.bar([x + i * width for x in range(len(k_os))], meds, width, label=s)
-    ax.axhline(1.0, color="k", lw=0.8)
-    ax.set_xticks([x + 0.4 - width / 2 for x in range(len(k_os))], [f"{k:g}" for k in k_os])
-    ax.set_xlabel("K_o [N/m]")
-    ax.set_ylabel("median felt stiffness / K_o at 1 Hz\n(stable cells only)")
-    ax.legend(fontsize=7, ncol=3)
+    axs = fig2.subplots(1, 2, sharey=True)
+    hz = result["felt_hz"]
+    for ax, (title, pick) in zip(
+        axs,
+        (
+            ("design model (spring)", lambda c: c["object"] == "spring"),
+            ("objects the design did not see", lambda c: c["object"] != "spring"),
+        ),
+        strict=True,
+    ):
+        for s in schemes:
+            meds = []
+            for f in hz:
+                v = [
+                    c["schemes"][s]["felt"][f"{f:g}"][0]
+                    for c in conds
+                    if pick(c)
+                    and c["schemes"][s]["box_stable"]
+                    and c["schemes"][s]["felt"].get(f"{f:g}") is not None
+                ]
+                meds.append(statistics.median(v) if v else math.nan)
+            ax.plot(hz, meds, marker="o", ms=3, label=s)
+        ax.axhspan(1.0 / (1.0 + STIFFNESS_JND), 1.0 + STIFFNESS_JND, color="0.85", zorder=0)
+        ax.set_xscale("log")
+        ax.set_xlabel("frequency [Hz]")
+        ax.set_title(title, fontsize=9)
+    axs[0].set_ylabel("median felt |dF/dx| / object's own\n(box-stable conditions)")
+    axs[1].legend(fontsize=7, ncol=2)
     fig2.tight_layout()
     p2 = out_dir / "fidelity-transparency.png"
     fig2.savefig(p2, dpi=90)

@@ -29,7 +29,7 @@ network
 
 Schemes (:func:`shared.fidelity.rendering_for` for the gains):
 
-``local-p``, ``local-pi``, ``virtual-coupling``, ``static-local``
+``local-p``, ``local-pi``, ``mmt``, ``static-local`` (:data:`SCHEMES_3D`)
     :class:`client.servo.ServoCore` at 1 kHz rendering the World's patch with the scheme's
     K_h, I, B_h, proxy hold (``hold_ticks = N``) and own-force compensation (the patch moved out by
     C_h times the World's ``own_force_n``, as the client's
@@ -43,7 +43,11 @@ Schemes (:func:`shared.fidelity.rendering_for` for the gains):
     model does not have are set out of the way so that the schemes are compared as control laws:
     the force ramp at start-up is one tick (``ramp_s = T``) and the velocity limit is raised to
     :data:`VELOCITY_LIMIT_M_S`; the device's stiffness limit is raised to K_h when K_h is above it
-    (as :mod:`server.reproduce_3d` does).
+    (as :mod:`server.reproduce_3d` does). ``mmt`` renders each patch moved out by the World's
+    own-force deformation ``F / K_o`` (the rest surface it estimates) with that tick's K_o
+    (capped at the device's stiffness) and its damper; ``static-local`` keeps the first patch (the
+    rest surface) with the K_o at the top. The virtual coupling's tool and the force-jacobian
+    need a simulation side the World does not have: they run in 1-D only.
 ``direct``, ``direct-tdpa``
     the World computes the contact force from the probe it received, applies it to the object
     as the user's contact force and sends it back; the user's loop (written here: read the
@@ -63,7 +67,8 @@ Schemes (:func:`shared.fidelity.rendering_for` for the gains):
     The force acts along ``prim``'s outward normal at the probe. ``direct-tdpa`` passes the held
     force through :class:`shared.passivity.PassivityController` (alpha_max = the device's maximum
     damping, no energy bias, force limit the device's) at 1 kHz with the device velocity (backward
-    difference of the positions read), as Ryu, Kwon and Hannaford 2004.
+    difference of the positions read), as Ryu, Kwon and Hannaford 2004 (uncapped: the damping
+    limit is :data:`UNCAPPED_DAMPING_N_S_PER_M`, the force clamp acts first).
 
 Every force is clamped to the device's maximum (the servo's clamp, the World's rule above, the
 PC's limit, and :meth:`SimDevice.write`).
@@ -135,6 +140,15 @@ PROFILE = "phantom-desktop"
 #: The servo's velocity limit [m/s] during these runs (the 1-D model has none; the product's
 #: 0.6 m/s would withhold forces on a fast impact or an oscillating scheme).
 VELOCITY_LIMIT_M_S = 100.0
+#: The damping cap [N*s/m] standing in for "uncapped" in the servo's passivity controller (which
+#: needs a finite one): far above anything the 7.9 N force clamp lets act.
+UNCAPPED_DAMPING_N_S_PER_M = 1e6
+#: The schemes the World cells run: those whose simulation side the World has (the virtual
+#: coupling's tool equilibrium and the force-jacobian's stiffness about the received probe are
+#: modelled in 1-D only).
+SCHEMES_3D: tuple[str, ...] = tuple(
+    s for s in SCHEMES if s not in ("virtual-coupling", "force-jacobian")
+)
 #: Default rule of the direct schemes (module docstring).
 DIRECT_REFERENCE: DirectReference = "undisturbed"
 #: The 3-D trajectories, by name, with the 1-D windows their metrics use.
@@ -357,7 +371,7 @@ def rendering_3d(
         design = table.lookup(key, k_o)
         if design is None:
             design = table.design(key, k_o)
-    return rendering_for(scheme, sim_rate_hz=SIM_RATE_HZ, device=device, design=design)
+    return rendering_for(scheme, sim_rate_hz=SIM_RATE_HZ, device=device, design=design, k_o=k_o)
 
 
 def _check_delay(delay_ms: float) -> int:
@@ -416,8 +430,10 @@ def run_3d_cell(
         An unknown scheme or trajectory, a rendering of another scheme, a delay that is not a
         whole number of servo ticks, a bad scale or direct rule.
     """
-    if scheme not in SCHEMES:
-        raise ValueError(f"unknown scheme {scheme!r}; expected one of {', '.join(SCHEMES)}")
+    if scheme not in SCHEMES_3D:
+        raise ValueError(
+            f"unknown scheme {scheme!r} on the World; expected one of {', '.join(SCHEMES_3D)}"
+        )
     if trajectory not in TRAJECTORIES_3D:
         raise ValueError(
             f"unknown trajectory {trajectory!r}; expected one of {', '.join(TRAJECTORIES_3D)}"
@@ -477,7 +493,9 @@ def run_3d_cell(
     dev.open()
     dev.enable_forces()
 
-    if r.kind == "coupling":
+    if r.kind not in ("coupling", "mmt", "wall", "direct"):
+        raise ValueError(f"{scheme} ({r.kind}) is not modelled on the 3-D World")
+    if r.kind != "direct":
         lm = LocalModelParams(
             k_h=r.k_h,
             i_gain=r.i_gain,
@@ -499,14 +517,15 @@ def run_3d_cell(
             "hold_ticks": N,
             "k_o": k_o,
         }
-        core.set_patch(out0.primitive, r.k_h, r.i_gain, **patch_kw)
+        k_h0 = min(r.k_h, k_o) if r.kind == "mmt" else r.k_h
+        core.set_patch(out0.primitive, k_h0, r.i_gain, **patch_kw)
         core.enable_forces()
         sent: dict[int, ContactInput] = {}
-        patches: dict[int, Plane | Sphere] = {}
+        patches: dict[int, tuple[Plane | Sphere, float]] = {}
         for n in range(n_ticks):
-            prim = patches.pop(n, None)
-            if prim is not None:
-                core.set_patch(prim, r.k_h, r.i_gain, **patch_kw)
+            new = patches.pop(n, None)
+            if new is not None:
+                core.set_patch(new[0], new[1], r.i_gain, **patch_kw)
             core.tick(n * T)
             qx, qy, qz = dev.last_read
             fx, fy, fz = dev.applied_force_n
@@ -526,13 +545,30 @@ def run_3d_cell(
                     state = ContactInput(probe=start, force=np.zeros(3))
                 out = world.tick({_USER: state})[_USER]
                 world_k_o.append(float(out.k_o))
-                # own-force compensation: the surface moved out by C_h times the force applied
-                patches[n + 1 + d] = moved_out(out.primitive, r.own_gain * out.own_force_n)
+                if r.kind == "mmt":
+                    # the rest surface and stiffness the World estimates: its patch less its
+                    # own deformation F / K_o, rendered with that K_o (capped)
+                    k_est = float(out.k_o)
+                    patches[n + 1 + d] = (
+                        moved_out(out.primitive, out.own_force_n / k_est),
+                        min(r.k_h, k_est),
+                    )
+                elif r.kind == "coupling":
+                    # own-force compensation: the surface moved out by C_h times the force applied
+                    patches[n + 1 + d] = (
+                        moved_out(out.primitive, r.own_gain * out.own_force_n),
+                        r.k_h,
+                    )
+                # a wall keeps the rest surface it started with
     else:
         pc = (
             PassivityController(
                 PassivityParams(
-                    max_damping_n_s_per_m=device.max_damping_n_s_per_m,
+                    max_damping_n_s_per_m=(
+                        device.max_damping_n_s_per_m
+                        if r.passivity_max_damping is None
+                        else min(r.passivity_max_damping, UNCAPPED_DAMPING_N_S_PER_M)
+                    ),
                     energy_bias_j=r.passivity_bias_j,
                     servo_period_s=T,
                     max_force_n=fmax,
@@ -633,7 +669,7 @@ def _design_job(scheme: str, k_o: float, delay_ms: float, device: DeviceModel) -
 
 
 def run_3d_cells(
-    schemes: Sequence[str] = SCHEMES,
+    schemes: Sequence[str] = SCHEMES_3D,
     *,
     stiffness_scales: Sequence[float] = (1.0, 3.3),
     delays_ms: Sequence[float] = (0.0, 100.0),
@@ -649,7 +685,7 @@ def run_3d_cells(
     Parameters
     ----------
     schemes : sequence of str
-        Subset of :data:`shared.fidelity.SCHEMES`.
+        Subset of :data:`SCHEMES_3D`.
     stiffness_scales : sequence of float
         Balloon ``--stiffness-scale`` values (> 0).
     delays_ms : sequence of float
@@ -683,8 +719,10 @@ def run_3d_cells(
         An unknown scheme or trajectory, a bad scale or delay, or ``workers < 1``.
     """
     for s in schemes:
-        if s not in SCHEMES:
-            raise ValueError(f"unknown scheme {s!r}; expected one of {', '.join(SCHEMES)}")
+        if s not in SCHEMES_3D:
+            raise ValueError(
+                f"unknown scheme {s!r} on the World; expected one of {', '.join(SCHEMES_3D)}"
+            )
     for name in trajectories:
         if name not in TRAJECTORIES_3D:
             raise ValueError(
