@@ -939,9 +939,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             _need_matplotlib()
         from haptic_collab.server.bench_fidelity import plot as plot_fidelity
         from haptic_collab.server.bench_fidelity import run as bench_fidelity
+        from haptic_collab.shared.fidelity import RunOptions
 
+        try:
+            fid_options = RunOptions(
+                jitter_s=args.jitter_us * 1e-6, quantum_m=args.quantum_um * 1e-6, seed=args.seed
+            )
+        except ValueError as exc:
+            raise CliError(_why(exc)) from None
         results["fidelity"] = fid = bench_fidelity(
             quick=args.quick,
+            options=fid_options,
             seed=args.seed,
             workers=args.workers,
             include_3d=not args.no_3d,
@@ -1004,7 +1012,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     )
     _add_shared(p, "--servo-rate", help="servo bench rate [Hz]")
     p.add_argument(
-        "--quick", action="store_true", help="fidelity: the documented subset (< 3 min, 2 cores)"
+        "--quick", action="store_true", help="fidelity: the documented subset (< 2 min, 2 cores)"
     )
     p.add_argument("--plot", default=None, metavar="DIR", help="fidelity: write the plots here")
     p.add_argument("--seed", type=int, default=0, help="fidelity: recorded seed (deterministic)")
@@ -1015,6 +1023,18 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help="fidelity: worker processes (default: cores); load: client processes (default 4)",
     )
     p.add_argument("--no-3d", action="store_true", help="fidelity: skip the 3-D World cells")
+    p.add_argument(
+        "--jitter-us",
+        type=float,
+        default=0.0,
+        help="fidelity: servo wake-up jitter [us], each tick up to this early or late (default 0)",
+    )
+    p.add_argument(
+        "--quantum-um",
+        type=float,
+        default=0.0,
+        help="fidelity: encoder resolution [um] (Phantom Desktop: 23; default 0: exact)",
+    )
     p.add_argument(
         "--users",
         type=_nonneg_int,
@@ -1046,39 +1066,39 @@ def _print_fidelity_table(result: dict[str, object]) -> None:
     """A human-readable summary of ``haptic bench fidelity`` (``--json`` for everything)."""
     summary = result["summary"]
     assert isinstance(summary, dict)
-    print(f"{'scheme':18s} {'stable':>7s} {'best':>6s} {'felt 1Hz':>9s} {'felt 8Hz':>9s}")
+
+    def pct(v: object) -> str:
+        return f"{v:8.1%}" if isinstance(v, float) else f"{'-':>8s}"
+
+    print(
+        f"{'scheme':17s} {'stable':>8s} {'unseen':>8s} {'~best':>8s} {'~best':>8s} "
+        f"{'per hand':>8s} {'outside':>8s}"
+    )
+    print(
+        f"{'':17s} {'(box)':>8s} {'(box)':>8s} {'spring':>8s} {'unseen':>8s} "
+        f"{'~best':>8s} {'stable':>8s}"
+    )
     for s in result["schemes"]:  # type: ignore[attr-defined]
         row = summary[s]
-
-        def num(v: object) -> str:
-            return f"{v:9.2f}" if isinstance(v, float) else f"{'-':>9s}"
-
         print(
-            f"{s:18s} {row['stable_fraction']:7.1%} {row['best_transparency_fraction']:6.1%} "
-            f"{num(row['median_felt_stiffness_ratio_1hz'])} "
-            f"{num(row['median_felt_stiffness_ratio_8hz'])}"
+            f"{s:17s} {pct(row['box_stable_fraction'])} {pct(row['box_stable_fraction_unseen'])} "
+            f"{pct(row['near_best_fraction_box_spring'])} "
+            f"{pct(row['near_best_fraction_box_unseen'])} "
+            f"{pct(row['per_hand_near_best_fraction'])} {pct(row['outside_stable_fraction'])}"
         )
-    print(f"local model best in {summary['local_model_best_fraction']:.1%} of conditions")
-    if "local_model_near_best_fraction" in summary:
-        print(
-            "local model within the stiffness JND "
-            f"({summary['stiffness_jnd']:.0%}) of the best in "
-            f"{summary['local_model_near_best_fraction']:.1%} of conditions"
-        )
-    if "local_model_best_fraction_box" in summary:
-        print(
-            "stable with every hand of the box: local model best in "
-            f"{summary['local_model_best_fraction_box']:.1%} of "
-            f"{summary['box_conditions']} conditions; box-stable: "
-            + ", ".join(
-                f"{s} {summary[s]['box_stable_fraction']:.0%}"
-                for s in summary
-                if isinstance(summary[s], dict) and "box_stable_fraction" in summary[s]
-            )
-        )
+    prod = summary["product"]
+    print(
+        f"~best: within the stiffness JND ({summary['stiffness_jnd']:.0%}) of the best scheme "
+        f"stable with every hand of the box, over {summary['conditions']} conditions"
+    )
+    print(
+        f"the product (local-p or local-pi): box-stable in {pct(prod['box_stable_fraction'])}, "
+        f"~best on the spring in {pct(prod['near_best_fraction_box_spring'])}, on the objects "
+        f"the design did not see in {pct(prod['near_best_fraction_box_unseen'])}; a peer "
+        f"better in {len(prod['peer_better'])} conditions"
+    )
 
 
-# --------------------------------------------------------------------------------------------- demo
 def _cmd_demo(args: argparse.Namespace) -> int:
     from haptic_collab.demo import DemoOptions, run_demo
 

@@ -1143,7 +1143,7 @@ def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
         "mmt": (
             "model-mediated teleoperation (Mitra and Niemeyer 2008): a plane at the rest surface "
             "the simulation estimates each tick (its surface less its own deformation F / K), "
-            f"with the stiffness it estimates, capped at {k:g} N/m; probe damper "
+            f"with the stiffness it estimates, capped at {k:g} N/m; probe damper 0, "
             f"{0.25 * b:g} or {b:g} N*s/m, {swept}"
         ),
         "force-jacobian": (
@@ -1161,7 +1161,7 @@ def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
         "static-local": (
             "a plane at the object's rest surface with the K_o reported (capped at "
             f"{k:g} N/m), never updated (Mark et al. 1996's intermediate plane, placed where "
-            f"the object rests); probe damper {0.25 * b:g} or {b:g} N*s/m, {swept}"
+            f"the object rests); probe damper 0, {0.25 * b:g} or {b:g} N*s/m, {swept}"
         ),
         "direct": "the simulation's own contact force from the probe it received, held (ZOH)",
         "direct-tdpa": (
@@ -1206,13 +1206,15 @@ def peer_renderings(
         raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
     b, k = device.max_damping_n_s_per_m, device.max_stiffness_n_per_m
     dampers = (b, 0.25 * b)
+    # the planes also without a damper: what the product's design picks on soft objects
+    plane_dampers = (*dampers, 0.0)
     tune = scheme_tuning(scheme, device) if scheme in SCHEMES else ""
     if scheme in LOCAL_MODELS:
         raise ValueError(f"{scheme} is a local model: its gains come from the product's design")
     if scheme == "mmt":
         return [
             Rendering("mmt", "mmt", k_h=k, b_h=bh, variant=f"B={bh:g}", tuning=tune)
-            for bh in dampers
+            for bh in plane_dampers
         ]
     if scheme == "force-jacobian":
         return [
@@ -1246,7 +1248,7 @@ def peer_renderings(
             Rendering(
                 "static-local", "wall", k_h=min(k_o, k), b_h=bh, variant=f"B={bh:g}", tuning=tune
             )
-            for bh in dampers
+            for bh in plane_dampers
         ]
     if scheme == "direct":
         return [Rendering("direct", "direct", tuning=tune)]
