@@ -8,7 +8,9 @@ felt impedance). The local models render the product's own design
 (:class:`shared.gain_design.GainTable`, the client's key), made for the K_o the simulation
 reports; each peer runs every tuning of its sweep (:func:`shared.fidelity.peer_renderings`) and
 is represented by its best one in that condition (:func:`choose_variant`), so a peer is never
-judged by a tuning its users would not pick.
+judged by a tuning its users would not pick. That choice knows the object; the summary's
+``peers_tuned_on_the_design_model`` ranks again with each peer keeping the tuning it picks on the
+design model (what the product's design knows: the reported K_o).
 
 The objects (:data:`shared.fidelity.OBJECTS`): ``spring`` is the model the product's design
 assumes; ``spring-0.8`` / ``spring-1.2`` (K_o reported 25 % high / 17 % low), ``sls``
@@ -476,7 +478,9 @@ def run(
         ``schemes``, ``tuning`` (each scheme's sweep, in words), ``grid``, ``device``,
         ``options``, ``conditions`` (one record per object x K_o x rate x delay: each scheme's
         chosen tuning, per-cell stability, felt impedance and metrics, and the ranking),
-        ``cells_3d``, ``summary`` (:func:`summarize`), ``gains``, ``wall_s``, ``workers``.
+        ``cells_3d``, ``summary`` (:func:`summarize`; its ``peers_tuned_on_the_design_model``
+        is the same summary with each peer keeping, on every object, the tuning it picks on the
+        design model in that K_o x rate x delay), ``gains``, ``wall_s``, ``workers``.
 
     Raises
     ------
@@ -596,25 +600,37 @@ def run(
     # the stable flags must be in (trajectory, hand) order for the per-hand ranking: they are,
     # because the cells of one trajectory are batched together in hand order and trajectories
     # are collected in the grid's order
+    # each peer by its best tuning in the condition itself (the protocol: the tuning is
+    # picked knowing the object), and by the tuning it would pick on the design model (what a
+    # designer who knows only the reported K_o would ship: the product's own position)
     conditions: list[dict[str, Any]] = []
+    design_tuned: list[dict[str, Any]] = []
     for name in g.objects:
         for k_o in g.k_o:
             for rate in g.sim_rate_hz:
                 for d in g.delay_ms:
                     recs: dict[str, Any] = {}
+                    recs_d: dict[str, Any] = {}
                     for s in schemes:
                         ids = where[(name, s, k_o, rate, d)]
                         best = ids[choose_variant([outcomes[i] for i in ids])]
                         recs[s] = _scheme_record(outcomes[best])
-                    cond = {
-                        "object": name,
-                        "k_o_n_per_m": k_o,
-                        "sim_rate_hz": rate,
-                        "delay_ms": d,
-                        "schemes": recs,
-                    }
+                        if "spring" in g.objects:
+                            ref = where[("spring", s, k_o, rate, d)]
+                            pick = choose_variant([outcomes[i] for i in ref])
+                            recs_d[s] = (
+                                recs[s]
+                                if ids[pick] == best
+                                else _scheme_record(outcomes[ids[pick]])
+                            )
+                    head = {"object": name, "k_o_n_per_m": k_o, "sim_rate_hz": rate, "delay_ms": d}
+                    cond = {**head, "schemes": recs}
                     rank(cond)
                     conditions.append(cond)
+                    if recs_d:
+                        cond_d = {**head, "schemes": recs_d}
+                        rank(cond_d)
+                        design_tuned.append(cond_d)
 
     cells3: list[dict[str, Any]] = []
     t_3d = 0.0
@@ -623,11 +639,12 @@ def run(
         from haptic_collab.server.fidelity_3d import SCHEMES_3D, run_3d_cells
 
         s3 = [s for s in schemes if s in SCHEMES_3D]
-        cells3 = run_3d_cells(s3, device=device)
+        cells3 = run_3d_cells(s3, device=device, workers=n_workers)
         # objects the design was not made on: the stress set's shapes, pressed at their top
         cells3 += run_3d_cells(
             s3,
             device=device,
+            workers=n_workers,
             meshes=FIDELITY_MESHES_3D,
             stiffness_scales=(1.0,),
             trajectories=("press",),
@@ -654,6 +671,8 @@ def run(
             }
         )
     summary = summarize(conditions, schemes)
+    if design_tuned:
+        summary["peers_tuned_on_the_design_model"] = summarize(design_tuned, schemes)
     if cells3:
         summary["stable_fraction_3d"] = {
             s: sum(c["stable"] for c in cells3 if c["scheme"] == s)

@@ -66,6 +66,13 @@ def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
     summary = out["summary"]
     for s in SCHEMES:
         assert 0.0 <= summary[s]["box_stable_fraction"] <= 1.0
+    # peers kept at the tuning they pick on the design model: the same on the design model
+    tuned = summary["peers_tuned_on_the_design_model"]
+    for s in SCHEMES:
+        assert tuned[s]["box_stable_fraction_spring"] == summary[s]["box_stable_fraction_spring"]
+        assert (
+            tuned[s]["near_best_fraction_box_spring"] == summary[s]["near_best_fraction_box_spring"]
+        )
     prod = summary["product"]
     assert prod["local_models"] == ["local-p", "local-pi"]
     assert 0.0 <= prod["near_best_fraction_box_unseen"] <= 1.0
