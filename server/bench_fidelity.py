@@ -790,6 +790,8 @@ def plot(result: dict[str, Any], out_dir: Path) -> list[Path]:
             ax.plot(hz, meds, marker="o", ms=3, label=s)
         ax.axhspan(1.0 / (1.0 + STIFFNESS_JND), 1.0 + STIFFNESS_JND, color="0.85", zorder=0)
         ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_ylim(0.1, 10.0)
         ax.set_xlabel("frequency [Hz]")
         ax.set_title(title, fontsize=9)
     axs[0].set_ylabel("median felt |dF/dx| / object's own\n(box-stable conditions)")

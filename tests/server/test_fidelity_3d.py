@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from haptic_collab.server.fidelity_3d import (
-    SCHEMES_3D,
     RATE_RATIO,
+    SCHEMES_3D,
     NormalTrajectory,
     run_3d_cell,
     run_3d_cells,
