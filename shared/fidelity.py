@@ -48,7 +48,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
@@ -69,16 +69,7 @@ SchemeName = Literal[
 ]
 
 #: Every scheme, this project's first.
-SCHEMES: tuple[SchemeName, ...] = (
-    "local-p",
-    "local-pi",
-    "mmt",
-    "force-jacobian",
-    "direct",
-    "virtual-coupling",
-    "static-local",
-    "direct-tdpa",
-)
+SCHEMES: tuple[SchemeName, ...] = get_args(SchemeName)
 
 #: The schemes that are this project's local models (the rest are peers).
 LOCAL_MODELS: tuple[SchemeName, ...] = ("local-p", "local-pi")
