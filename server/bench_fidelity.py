@@ -82,7 +82,7 @@ STIFFNESS_JND = 0.10
 _OBJECTS = {o.name: o for o in OBJECTS}
 _TRAJ = {t.name: t for t in TRAJECTORIES}
 _SERVO_RATE_HZ = 1000.0
-_BATCH = 1500
+_BATCH = 4000
 
 
 @dataclass(frozen=True)
@@ -157,8 +157,9 @@ QUICK_GRID = Grid(
 DEVICE = DeviceModel()
 
 #: Stress-set shapes (:mod:`server.objects.shapes`) whose top a user presses in the 3-D cells,
-#: besides the balloon: a flat face with sharp edges, a thin part and a genus-1 ring.
-FIDELITY_MESHES_3D = ("box", "plate", "torus")
+#: besides the balloon: a flat face with sharp edges, a thin part, a genus-1 ring, and the box as
+#: a FEM solid (liver-like, :data:`server.fidelity_3d.FEM_MATERIAL_3D`).
+FIDELITY_MESHES_3D = ("box", "plate", "torus", "fem:box")
 
 
 def _gain_key(mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceModel) -> GainKey:

@@ -161,7 +161,22 @@ DESIGN_MARGIN = 0.15
 _USER = "user"
 
 
+#: Prefix of a mesh name that makes the object the FEM solid of that surface (``--object fem``),
+#: in :data:`FEM_MATERIAL_3D`: ``fem:box`` is the stress set's box as a liver-like solid.
+FEM_PREFIX = "fem:"
+#: The solid material of the FEM cells (:mod:`server.solid_materials`).
+FEM_MATERIAL_3D = "liver"
+
+
 def _opts(stiffness_scale: float, mesh: str = "balloon") -> ServerOptions:
+    if mesh.startswith(FEM_PREFIX):
+        return ServerOptions(
+            sim_rate_hz=SIM_RATE_HZ,
+            stiffness_scale=stiffness_scale,
+            object="fem",
+            mesh=mesh[len(FEM_PREFIX) :],
+            material=FEM_MATERIAL_3D,
+        )
     return ServerOptions(sim_rate_hz=SIM_RATE_HZ, stiffness_scale=stiffness_scale, mesh=mesh)
 
 
@@ -288,7 +303,8 @@ class Run3D:
         whose windows the metrics use.
     stiffness_scale : float
     mesh : str
-        The object's ``--mesh`` (``balloon`` or a stress shape's name).
+        The object's ``--mesh`` (``balloon`` or a stress shape's name; ``fem:NAME`` for the FEM
+        solid of that surface, :data:`FEM_PREFIX`).
     t : (n,) float
         Servo tick times [s].
     x : (n,) float
@@ -405,7 +421,8 @@ def run_3d_cell(
         1000 N/m, the paper's Fig. 10).
     mesh : str
         ``--mesh`` of the object: ``balloon`` (default) or a shape of the stress set
-        (:data:`server.objects.shapes.STRESS_MESHES`); the user presses its top.
+        (:data:`server.objects.shapes.STRESS_MESHES`); ``fem:NAME`` makes it the FEM solid of that
+        surface in :data:`FEM_MATERIAL_3D` (``--object fem``). The user presses its top.
     delay_ms : float
         One-way network delay [ms], whole servo ticks, >= 0.
     trajectory : {"press", "impact"}
@@ -559,7 +576,10 @@ def run_3d_cell(
                         moved_out(out.primitive, r.own_gain * out.own_force_n),
                         r.k_h,
                     )
-                # a wall keeps the rest surface it started with
+                else:
+                    # a wall keeps the rest surface it started with, sent afresh each tick (the
+                    # servo ramps out a patch that is not renewed)
+                    patches[n + 1 + d] = (out0.primitive, r.k_h)
     else:
         pc = (
             PassivityController(
@@ -693,7 +713,8 @@ def run_3d_cells(
     trajectories : sequence of {"press", "impact"}
     meshes : sequence of str
         Objects (``--mesh``): ``balloon`` and shapes of the stress set
-        (:data:`server.objects.shapes.STRESS_MESHES`); each cell's K_o is the mesh's at its top.
+        (:data:`server.objects.shapes.STRESS_MESHES`), ``fem:NAME`` for the FEM solid of one;
+        each cell's K_o is the mesh's at its top.
     device : DeviceModel
     workers : int or None
         Worker processes (spawn) for the designs and the runs; 1 (default) runs in this process,

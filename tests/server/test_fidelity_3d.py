@@ -186,3 +186,25 @@ def test_the_local_model_holds_a_press_on_objects_it_was_not_designed_on(mesh, t
     # it pressed about 4-5 mm in with 1.5-2 N, and the surface it held was where the World put it
     assert run.x.max() > 0.003 and run.f.max() > 1.0
     assert abs(cell["steady_state_error_mm"]) < 0.5
+
+
+@pytest.mark.slow
+def test_the_static_plane_pushes_back_from_the_rest_surface_with_the_reported_k_o() -> None:
+    """static-local keeps its first patch; the servo still renders it (a patch not renewed
+    ramps out: the wall is sent afresh each World tick)."""
+    run = run_3d_cell("static-local", delay_ms=100.0)
+    cell = run.to_json()
+    assert cell["stable"], cell
+    # about K_o x 5 mm: the hand's intended 10 mm against its 300 N/m grip and the 307 N/m plane
+    assert run.f[-500:].mean() > 1.0
+    assert abs(cell["steady_state_error_mm"]) < 0.1
+
+
+@pytest.mark.slow
+def test_a_fem_solid_is_a_3d_cell() -> None:
+    """``fem:box``: the stress set's box as a liver-like FEM solid through the real World."""
+    run = run_3d_cell("local-pi", mesh="fem:box", delay_ms=100.0)
+    cell = run.to_json()
+    assert cell["mesh"] == "fem:box" and 150.0 < cell["k_o_n_per_m"] < 600.0
+    assert cell["stable"], cell
+    assert run.f.max() > 1.0 and abs(cell["steady_state_error_mm"]) < 0.5
