@@ -93,6 +93,23 @@ RenderKind = Literal["coupling", "mmt", "wall", "tool", "jacobian", "direct"]
 ObjectKind = Literal["spring", "sls", "stiffening"]
 
 
+def _stiffening_force(k1: FloatArray | float, xs: FloatArray | float, x: FloatArray) -> FloatArray:
+    """``k_1 x_s (exp(x / x_s) - 1)`` [N] at depth ``x`` >= 0 [m] (the exponent capped at 50)."""
+    return np.asarray(k1 * xs * np.expm1(np.minimum(x / xs, 50.0)))
+
+
+def _stiffening_depth(k1: FloatArray | float, xs: FloatArray | float, f: FloatArray) -> FloatArray:
+    """Depth [m] at which the stiffening law holds the force ``f`` >= 0 [N] (its inverse)."""
+    return np.asarray(xs * np.log1p(f / (k1 * xs)))
+
+
+def _stiffening_tangent(
+    k1: FloatArray | float, xs: FloatArray | float, x: FloatArray
+) -> FloatArray:
+    """Tangent stiffness ``k_1 exp(x / x_s)`` [N/m] at depth ``x`` >= 0 [m]."""
+    return np.asarray(k1 * np.exp(np.minimum(x / xs, 50.0)))
+
+
 @dataclass(frozen=True, slots=True)
 class ObjectModel:
     """The simulated object along the contact normal (SI units), relative to the K_o reported.
@@ -158,7 +175,7 @@ class ObjectModel:
         k1 = k_o * self.stiffness_error
         f = np.maximum(force_n, 0.0)
         if self.kind == "stiffening":
-            return np.asarray(self.stiffening_m * np.log1p(f / (k1 * self.stiffening_m)))
+            return _stiffening_depth(k1, self.stiffening_m, f)
         return np.asarray(f / k1)
 
     def static_force_n(self, k_o: float, depth_m: FloatArray | float) -> FloatArray:
@@ -166,7 +183,7 @@ class ObjectModel:
         k1 = k_o * self.stiffness_error
         x = np.maximum(np.asarray(depth_m, dtype=float), 0.0)
         if self.kind == "stiffening":
-            return np.asarray(k1 * self.stiffening_m * np.expm1(x / self.stiffening_m))
+            return _stiffening_force(k1, self.stiffening_m, x)
         return np.asarray(k1 * x)
 
     def impedance(self, k_o: float, freq_hz: float, depth_m: float) -> complex:
@@ -175,7 +192,7 @@ class ObjectModel:
         k1 = k_o * self.stiffness_error
         w = 2.0 * math.pi * freq_hz
         if self.kind == "stiffening":
-            return complex(k1 * math.exp(depth_m / self.stiffening_m))
+            return complex(_stiffening_tangent(k1, self.stiffening_m, np.asarray(depth_m)))
         if self.kind == "sls":
             k2 = self.relax_ratio * k1
             jwt = 1j * w * self.relax_time_s
@@ -188,7 +205,7 @@ class ObjectModel:
         """The largest |dF/dx| [N/m] the object shows down to ``depth_m`` at any speed."""
         k1 = k_o * self.stiffness_error
         if self.kind == "stiffening":
-            return k1 * math.exp(depth_m / self.stiffening_m)
+            return float(_stiffening_tangent(k1, self.stiffening_m, np.asarray(depth_m)))
         if self.kind == "sls":
             return k1 * (1.0 + self.relax_ratio)
         return k1
@@ -762,14 +779,12 @@ def simulate(
     e_env_out = np.zeros(B)
     runaway = np.zeros(B, dtype=bool)
 
-    def env_force(xp: FloatArray, a: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """The object's force and surface when the simulation puts its surface at ``xp``."""
-        contact = xp > a
-        f_lin = np.where(contact, (xp - a) * D, 0.0)
-        x_lin = np.where(contact, xp, a)
-        xp_in = np.clip(xp, 0.0, RUNAWAY_M)
-        f_non = k1 * xs * np.expm1(np.minimum(xp_in / xs, 50.0))
-        return np.where(nonlin, f_non, f_lin), np.where(nonlin, xp_in, x_lin)
+    # which kinds this batch has, once (the tick skips what none of its cells needs)
+    any_jac = bool(jac.any())
+    any_pc = bool(pc_on.any())
+    any_two_port = bool(two_port.any())
+    any_tool_nonlin = bool((tool & nonlin).any())
+    all_src = bool(src.all())
 
     X = np.empty((B, n_steps))
     F = np.empty((B, n_steps))
@@ -826,13 +841,14 @@ def simulate(
         was_contact = contact
         u = u + a_u * (vel - u)
         f_lm = np.where(contact & (b_h > 0.0), np.maximum(f_lm + b_h * u, 0.0), f_lm)
-        # force-jacobian: the simulation's force and its local stiffness about x_ref
-        f_j = f_recv + np.minimum(jscale * k_recv, k_h) * (xr - x_ref)
-        f_j = np.where(f_j > 0.0, np.maximum(f_j + b_h * u, 0.0), 0.0)
-        f = np.where(direct, f_recv, np.where(jac, f_j, f_lm))
+        f = np.where(direct, f_recv, f_lm)
+        if any_jac:
+            # force-jacobian: the simulation's force and its local stiffness about x_ref
+            f_j = f_recv + np.minimum(jscale * k_recv, k_h) * (xr - x_ref)
+            f = np.where(jac, np.where(f_j > 0.0, np.maximum(f_j + b_h * u, 0.0), 0.0), f)
         f = np.clip(f, -fmax, fmax)
         # passivity layer at the device port: force ON the handle is -f, its velocity vel
-        if pc_on.any():
+        if any_pc:
             pc_e, fa, _ = passivity_step(
                 pc_e,
                 pc_fa,
@@ -846,7 +862,7 @@ def simulate(
             )
             pc_fa = np.where(pc_on, fa, pc_fa)
             f = np.where(pc_on, -fa, f)
-        if two_port.any():
+        if any_two_port:
             # two-port, the device's side: give the user no more energy than the environment
             # has given back (as far as it is known here); the power to the user is (-f) vel
             p_last = pc_fa * vel * T
@@ -863,7 +879,7 @@ def simulate(
         X[:, n] = xr
         F[:, n] = f
         # 3. write: the hand moves under the force held over the tick
-        if not src.all():
+        if not all_src:
             if options.jitter_s > 0.0:
                 phi = phis[level[n], cols]
                 gam = gams[level[n], cols]
@@ -883,10 +899,15 @@ def simulate(
             a = (m_o * (xo + h * vo) / h**2 + b_o * xo / h + k2 * alpha * qo) / D
             # a force pushes the object (the local models, MMT, the wall)
             f_in = np.maximum(got, 0.0)
-            x_f = np.where(nonlin, xs * np.log1p(f_in / (k1 * xs)), a + f_in / D)
-            # the probe position drives it (direct, force-jacobian)
-            f_p, x_p = env_force(got, a)
-            if two_port.any():
+            x_f = np.where(nonlin, _stiffening_depth(k1, xs, f_in), a + f_in / D)
+            # the probe position drives it (direct, force-jacobian): the surface put at the probe
+            contact = got > a
+            x_in = np.clip(got, 0.0, RUNAWAY_M)
+            f_p = np.where(
+                nonlin, _stiffening_force(k1, xs, x_in), np.where(contact, (got - a) * D, 0.0)
+            )
+            x_p = np.where(nonlin, x_in, np.where(contact, got, a))
+            if any_two_port:
                 # two-port, the simulation's side: the energy the object has given back
                 de = 0.5 * (f_env + f_p) * (x_p - x_used)
                 e_env_out = np.where(
@@ -898,12 +919,13 @@ def simulate(
             kc = k_h
             f_t = np.where(got > a, kc * (got - a) / (1.0 + kc / D), 0.0)
             x_t = a + f_t / D
-            if (tool & nonlin).any():
+            if any_tool_nonlin:
                 gp = np.maximum(got, 0.0)
                 z = kc * gp / (kc + k1)
-                for _ in range(8):
-                    ez = np.exp(np.minimum(z / xs, 50.0))
-                    z = z - (k1 * xs * (ez - 1.0) + kc * (z - gp)) / (k1 * ez + kc)
+                for _ in range(8):  # Newton on the convex, increasing F(z) + K_c (z - x)
+                    z = z - (_stiffening_force(k1, xs, z) + kc * (z - gp)) / (
+                        _stiffening_tangent(k1, xs, z) + kc
+                    )
                 z = np.clip(z, 0.0, gp)
                 x_t = np.where(nonlin, z, x_t)
                 f_t = np.where(nonlin, kc * (gp - z), f_t)
@@ -915,7 +937,7 @@ def simulate(
             xo = np.where(upd, x_new, xo)
             # what the simulation publishes: its stiffness estimate is the object's tangent
             # stiffness as it believes it (off by the object's stiffness error)
-            k_est = np.where(nonlin, k_o * np.exp(np.minimum(np.maximum(xo, 0.0) / xs, 50.0)), k_o)
+            k_est = np.where(nonlin, _stiffening_tangent(k_o, xs, np.maximum(xo, 0.0)), k_o)
             val = np.where(
                 fed_position & ~tool,
                 f_obj,
