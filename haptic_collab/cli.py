@@ -952,7 +952,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             options=fid_options,
             seed=args.seed,
             workers=args.workers,
-            include_3d=not args.no_3d,
+            include_3d=not (args.no_3d or args.quick),
             log=lambda msg: print(msg, file=sys.stderr, flush=True),
         )
         if args.plot:
@@ -1022,7 +1022,11 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         default=None,
         help="fidelity: worker processes (default: cores); load: client processes (default 4)",
     )
-    p.add_argument("--no-3d", action="store_true", help="fidelity: skip the 3-D World cells")
+    p.add_argument(
+        "--no-3d",
+        action="store_true",
+        help="fidelity: skip the 3-D World cells (--quick skips them too)",
+    )
     p.add_argument(
         "--jitter-us",
         type=float,

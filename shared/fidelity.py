@@ -280,6 +280,13 @@ class Rendering:
         is the reported surface moved out by C_h times the force the simulation applied.
     jacobian_scale : float
         ``jacobian``: the fraction of the simulation's local stiffness rendered.
+    follows_k_o : bool
+        ``coupling`` with ``own_gain`` > 0: the gains follow the K_o the simulation reports each
+        tick, as the product's client renders each patch with its design scaled to the patch's
+        K_o (:meth:`shared.gain_design.GainDesign.at`): K_h times s up to the device's
+        stiffness, C_h over s, s = max(K_o reported / K_o designed for, 1); B_h and the hold
+        stay. Where the reported K_o leaves the design's cell the client renders a new cell's
+        design; here the scaling continues instead.
     variant : str
         The peer's tuning among those swept (:func:`peer_renderings`), for the report.
     tuning : str
@@ -300,6 +307,7 @@ class Rendering:
     two_port: bool = False
     own_gain: float = 0.0
     jacobian_scale: float = 1.0
+    follows_k_o: bool = False
     variant: str = ""
     tuning: str = ""
 
@@ -696,6 +704,8 @@ def simulate(
         ]
     )
     own = np.array([x.own_gain for x in r])
+    follow = (kind == "coupling") & (own > 0.0) & np.array([x.follows_k_o for x in r])
+    kh_follow_max = np.maximum(k_h, float(device.max_stiffness_n_per_m))
     jscale = np.array([x.jacobian_scale for x in r])
     fmax = float(device.max_force_n)
     a_u = T / (T + DAMPER_FILTER_S)
@@ -813,7 +823,7 @@ def simulate(
             proxied = fresh & ~(direct | jac | wall)
             p_new = np.where(proxied, got[:, 0], p_new)
             f_recv = np.where(fresh & (direct | jac), got[:, 0], f_recv)
-            k_recv = np.where(fresh & (mmt | jac), got[:, 1], k_recv)
+            k_recv = np.where(fresh & (mmt | jac | follow), got[:, 1], k_recv)
             x_ref = np.where(fresh & jac, got[:, 2], x_ref)
             e_env = np.where(fresh & two_port, got[:, 3], e_env)
             hold_i = np.where(fresh, 0, hold_i + 1)
@@ -825,6 +835,9 @@ def simulate(
         proxy = p_old + (p_new - p_old) * w
         e = xr - proxy
         k_eff = np.where(mmt, np.minimum(k_recv, k_h), k_h)
+        k_eff = np.where(
+            follow, np.minimum(k_h * np.maximum(k_recv / k_o, 1.0), kh_follow_max), k_eff
+        )
         # contact: the probe past the proxy; an integral keeps it while the probe is within the
         # deformation its force holds (s / K_o: the object's surface follows a retreating probe
         # back, the proxy is a stale copy of it; shared.local_model's recovery band)
@@ -944,7 +957,11 @@ def simulate(
                 np.where(
                     mmt,
                     xo - f_obj / k_est,
-                    np.where(tool, xo, xo - own * f_obj),
+                    np.where(
+                        tool,
+                        xo,
+                        xo - np.where(follow, own / np.maximum(k_est / k_o, 1.0), own) * f_obj,
+                    ),
                 ),
             )
             new = np.stack([val, k_est, got, e_env_out], axis=1)
@@ -1327,6 +1344,7 @@ def rendering_for(
             passivity=pi,
             passivity_bias_j=PRODUCT_PASSIVITY_BIAS_J,
             own_gain=design.own_gain,
+            follows_k_o=True,
             tuning=scheme_tuning(scheme, device),
         )
     kk = k_o if k_o is not None else device.max_stiffness_n_per_m

@@ -8,10 +8,16 @@ decay-rate margin, for
 - every hand of the hand box (:class:`shared.full_loop.HandBox`),
 - every servo tick j at which the simulation may sample the force (Step 3 over a network),
 - every object stiffness K_o' in ``[(1 - margin) K_o, K_o]`` (the paper's advice to design for a
-  lower K_o than reported),
+  lower K_o than reported) and, for the product's :class:`GainTable` designs, up to
+  ``1 + stiffer_by`` times the top of the cell (:attr:`GainKey.stiffer_by`: an object stiffer
+  than reported, docs/fidelity.md),
 
 and among those the one with the best *transparency*: the felt stiffness |dF/dx| at the probe,
-probe as a position source, relative to K_o, at 1 Hz (then 8 Hz to break ties). A
+probe as a position source, relative to K_o. For the paper's models alone, at 1 Hz (then 8 Hz
+to break ties); with own-force compensation (the product), its largest error |ln |q|| over the
+band :data:`FELT_BAND_HZ` (0.5-8 Hz) and in a held press, compared in steps of
+:data:`DESIGN_TIE` (half a stiffness JND), then the same on objects ``1 + stiffer_by`` times
+softer and stiffer than reported. A
 :class:`GainTable` design serves every K_o reported in its cell, scaled to it (K_h and I in
 proportion, :meth:`GainDesign.at`; ``scaled``), so its transparency is judged at the cell's two
 ends and middle, the worst of them counting, then their mean (``felt_k_os``), and each scale is
@@ -34,7 +40,12 @@ Besides K_h (P) and K_h, I (PI), the design may use
   - C_h K_o) K_h)``. Not with an integral (it would hold the probe at the compensated surface:
   infinitely stiff at DC). Used by the product
   (:attr:`GainKey.own_force`); a ``pi`` design may then be a compensated P model (I = 0) when
-  that is closer to K_o at 1 Hz and at DC than any PI one.
+  that is closer to K_o over the band and at DC than any PI one;
+- for K_o above the device's stiffness, the plane at the rest surface the simulation's model
+  gives, C_h = 1 / K_o with K_h at (or just below) the device's stiffness: felt as K_h at every
+  frequency of the band (model-mediated teleoperation: Mitra and Niemeyer 2008), where the
+  paper's P model feels ``K_h K_o / (K_h + K_o)`` and its PI creeps toward K_o at 0.5 Hz but
+  falls to 0.2-0.3 K_o at 4 Hz.
 
 Felt stiffness is computed exactly on the lifted (N-periodic) loop: for a probe motion
 ``x(n) = Re(X e^{j w n T})`` the steady state of the lifted loop at ``z = e^{j w N T}`` gives the
@@ -88,6 +99,18 @@ MIN_DECAY_RATE_PER_S = 1.0
 #: does as well, and made a contact's rendering change with its coupling class (a user resting
 #: with 0.42 N felt 0.40 N while another pressed), so they are not tried.
 OWN_FORCE_RATIOS: tuple[float, ...] = (1.0,)
+
+#: Frequencies [Hz] the transparency of a design with own-force compensation is judged at: the
+#: band of voluntary hand motion in which people judge stiffness by pressing (0.5-8 Hz; the
+#: fidelity benchmark ranks over the same band, docs/fidelity.md). At 1 Hz alone a 10 N*s/m damper
+#: at 1000 N/m passed as 1.00 K_o while a hand felt it as 1.12-1.22 K_o at 8 Hz.
+FELT_BAND_HZ: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0, 8.0)
+
+#: Step [ln of the felt stiffness ratio] in which a design's error on the design model is
+#: compared (:func:`design_gains`): half the fidelity benchmark's tie, ln(1.1) (a stiffness JND of
+#: 10 %, docs/fidelity.md). Within a step, the design more transparent on an object stiffer or
+#: softer than reported (:attr:`GainKey.stiffer_by`) wins.
+DESIGN_TIE = 0.5 * math.log(1.1)
 
 #: Modes slower than this [Hz] are creep, not vibration (the integral slowly pushing a stiff hand
 #: out): they need only be stable (|eigenvalue| < 1), not decay at MIN_DECAY_RATE_PER_S.
@@ -234,9 +257,50 @@ def felt_stiffness(
     ValueError
         ``freq_hz`` not in (0, servo rate / 2), or as :func:`shared.full_loop.monodromy`.
     """
+    f1 = felt_responses(
+        (freq_hz,),
+        k_o=k_o,
+        k_h=k_h,
+        i_gain=i_gain,
+        b_h=b_h,
+        b_o=b_o,
+        servo_period_s=servo_period_s,
+        rate_ratio=rate_ratio,
+        delay_ticks=delay_ticks,
+        sample_tick=sample_tick,
+        proxy_hold=proxy_hold,
+        own_gain=own_gain,
+    )[0]
+    return f1 if complex_response else np.abs(f1)
+
+
+def felt_responses(
+    freqs_hz: Sequence[float],
+    *,
+    k_o: float | FloatArray,
+    k_h: float | FloatArray,
+    i_gain: float | FloatArray = 0.0,
+    b_h: float | FloatArray = 0.0,
+    b_o: float | FloatArray = 0.0,
+    servo_period_s: float = 1e-3,
+    rate_ratio: int = 50,
+    delay_ticks: int = 0,
+    sample_tick: int | None = None,
+    proxy_hold: ProxyHold = "zoh",
+    own_gain: float | FloatArray = 0.0,
+) -> FloatArray:
+    """Felt responses dF/dx [N/m] (complex) at each of ``freqs_hz``, shape (F, B): the loop's
+    monodromy computed once, then :func:`felt_stiffness` at each frequency.
+
+    Raises
+    ------
+    ValueError
+        A frequency not in (0, servo rate / 2), or as :func:`shared.full_loop.monodromy`.
+    """
     N, T = int(rate_ratio), float(servo_period_s)
-    if not (0.0 < freq_hz < 0.5 / T):
-        raise ValueError(f"freq_hz must be in (0, {0.5 / T:g}), got {freq_hz!r}")
+    for freq_hz in freqs_hz:
+        if not (0.0 < freq_hz < 0.5 / T):
+            raise ValueError(f"freq_hz must be in (0, {0.5 / T:g}), got {freq_hz!r}")
     j = N - 1 if sample_tick is None else int(sample_tick)
     ko, kh, ig, bh, bo, og = batch_arrays(k_o, k_h, i_gain, b_h, b_o, own_gain)
     integral = bool(np.any(ig > 0.0))
@@ -256,41 +320,43 @@ def felt_stiffness(
         integral=integral,
     )[:, 0]
     nb, n = M.shape[0], M.shape[1]
-    w = 2.0 * math.pi * freq_hz
+    out = np.empty((len(freqs_hz), nb), dtype=complex)
     i_ticks = np.arange(N)
-    c = np.exp(1j * w * T * i_ticks)  # probe phasor at each tick of block 0
-    z = np.exp(1j * w * N * T)
-    # (B,) damper on the filtered backward difference of the probe (shared.full_loop)
     a_f = T / (T + DAMPER_FILTER_S)
-    zi = np.exp(-1j * w * T)
-    damp = bh * a_f * (1.0 - zi) / T / (1.0 - (1.0 - a_f) * zi)
     ti = T * ig
-    # probe contributions to the sampled force and to the next slow state
-    csum = np.concatenate(([0.0], np.cumsum(c)))  # csum[i] = sum_{l<i} c_l
-    fx = kh * c[j] + (ti * csum[j] if integral else 0.0) + damp * c[j]
     nf = 1 if integral else 0
     foh = proxy_hold == "foh"
     i_p, i_obj = nf, nf + (2 if foh else 1)
-    bx = np.zeros((nb, n), dtype=complex)
-    if integral:
-        bx[:, 0] = ti * csum[N]
     inv = 1.0 / (ko + bo)
-    bx[:, i_obj] = fx * inv
     row_new = i_p if delay_ticks == 0 else n - 1
-    bx[:, row_new] = fx * (inv - og)
-    Y = np.linalg.solve(z * np.eye(n)[None] - M, bx[:, :, None])[:, :, 0]
-    p = Y[:, i_p]
-    p_old = Y[:, nf + 1] if foh else p
     w_new = (i_ticks + 1.0) / N if foh else np.ones(N)
-    prox = np.outer(p_old, 1.0 - w_new) + np.outer(p, w_new)  # (B, N)
-    e = c[None, :] - prox
-    f = kh[:, None] * e + damp[:, None] * c[None, :]
-    if integral:
-        s0 = Y[:, 0]
-        e_cum = np.concatenate((np.zeros((nb, 1)), np.cumsum(e, axis=1)[:, :-1]), axis=1)
-        f = f + s0[:, None] + ti[:, None] * e_cum
-    f1 = (f * np.conj(c)[None, :]).mean(axis=1)
-    return f1 if complex_response else np.abs(f1)
+    for q, freq_hz in enumerate(freqs_hz):
+        w = 2.0 * math.pi * freq_hz
+        c = np.exp(1j * w * T * i_ticks)  # probe phasor at each tick of block 0
+        z = np.exp(1j * w * N * T)
+        # (B,) damper on the filtered backward difference of the probe (shared.full_loop)
+        zi = np.exp(-1j * w * T)
+        damp = bh * a_f * (1.0 - zi) / T / (1.0 - (1.0 - a_f) * zi)
+        # probe contributions to the sampled force and to the next slow state
+        csum = np.concatenate(([0.0], np.cumsum(c)))  # csum[i] = sum_{l<i} c_l
+        fx = kh * c[j] + (ti * csum[j] if integral else 0.0) + damp * c[j]
+        bx = np.zeros((nb, n), dtype=complex)
+        if integral:
+            bx[:, 0] = ti * csum[N]
+        bx[:, i_obj] = fx * inv
+        bx[:, row_new] = fx * (inv - og)
+        Y = np.linalg.solve(z * np.eye(n)[None] - M, bx[:, :, None])[:, :, 0]
+        p = Y[:, i_p]
+        p_old = Y[:, nf + 1] if foh else p
+        prox = np.outer(p_old, 1.0 - w_new) + np.outer(p, w_new)  # (B, N)
+        e = c[None, :] - prox
+        f = kh[:, None] * e + damp[:, None] * c[None, :]
+        if integral:
+            s0 = Y[:, 0]
+            e_cum = np.concatenate((np.zeros((nb, 1)), np.cumsum(e, axis=1)[:, :-1]), axis=1)
+            f = f + s0[:, None] + ti[:, None] * e_cum
+        out[q] = (f * np.conj(c)[None, :]).mean(axis=1)
+    return out
 
 
 def mode_radii(
@@ -380,14 +446,20 @@ def _scaled_gains(k_h: _G, i_gain: _G, own_gain: _G, s: _G) -> tuple[_G, _G, _G]
     return k_h * s, i_gain * s, own_gain / s
 
 
-def _miss(resp: FloatArray) -> FloatArray:
-    """How far felt responses dF/dx / K_o (complex) are from the object's own stiffness: the
-    largest of the elastic part's error |Re - 1|, the felt stiffness's |abs - 1| and the active
-    share -Im (a force lagging the probe gives energy to the user). A damper's lead counts only
-    through the felt stiffness: it is felt as viscosity, not as a stiffer object, and it is safe
-    (a complex distance |resp - 1| traded a 1.4 % softer object for a 3 N*s/m damper's
-    viscosity)."""
-    return np.maximum(np.maximum(np.abs(resp.real - 1.0), np.abs(np.abs(resp) - 1.0)), -resp.imag)
+def _log_miss(ratio: FloatArray) -> FloatArray:
+    """|ln q| of felt stiffness ratios q > 0 (inf where q is not > 0 or not finite): a factor
+    too soft and the same factor too stiff miss equally (Weber's law for stiffness)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.abs(np.log(ratio))
+    return np.where(np.isfinite(out) & (ratio > 0.0), out, np.inf)
+
+
+def _band_miss(resp: FloatArray) -> FloatArray:
+    """How far felt responses (complex dF/dx / K_o, shape (F, G)) over a band of frequencies are
+    from the object's own stiffness, per candidate (G,): the largest over the band of |ln |q||
+    (:func:`_log_miss`; a damper's lead is felt as a stiffer object at the top of the band) and
+    of the active share -Im q (a force lagging the probe gives energy to the user)."""
+    return np.max(np.maximum(_log_miss(np.abs(resp)), -resp.imag), axis=0)
 
 
 def design_gains(
@@ -408,6 +480,7 @@ def design_gains(
     own_force: bool = False,
     felt_k_os: Sequence[float] | None = None,
     scaled: bool = False,
+    stiffer_by: float = 0.0,
 ) -> GainDesign:
     """The most transparent gains stable over the hand box (module docstring).
 
@@ -441,10 +514,13 @@ def design_gains(
         Decay-rate margin [1/s] (:data:`MIN_DECAY_RATE_PER_S`).
     own_force : bool
         Also consider own-force compensation C_h = r / K_h, r in :data:`OWN_FORCE_RATIOS`
-        (module docstring), proportional only; the objective is then the felt response closest
-        to K_o itself (compensation can overshoot and lag K_o): one minus the largest of the
-        elastic part's error, the felt stiffness's error and the active share at 1 Hz
-        (:func:`_miss`) and the held press's error, instead of the elastic part capped at K_o.
+        (module docstring), proportional only, and, for K_o above ``k_h_max``, the plane at the
+        rest surface (C_h = 1 / K_o, K_h up to ``k_h_max``: model-mediated teleoperation's
+        plane). The objective is then the felt response closest to K_o itself over the band
+        (compensation can overshoot and lag K_o): the largest over :data:`FELT_BAND_HZ` of
+        |ln |q|| and the active share -Im q (:func:`_band_miss`) and the held press's |ln q|,
+        in steps of :data:`DESIGN_TIE`; then the same on the objects of ``stiffer_by``; instead
+        of the elastic part at 1 Hz capped at K_o.
     felt_k_os : sequence of float, optional
         Object stiffnesses [N/m] the transparency is also judged at, with ``own_force``: the
         worst of them and ``k_o`` counts, then their mean (default: ``k_o`` alone).
@@ -454,6 +530,11 @@ def design_gains(
         0.78-0.82 K_o at 1 Hz at the top of the 300 and 1000 N/m cells at 20 Hz with 8 ticks of
         delay; judged across the cell, 0.86-0.91; scaled, 1.005 across the 300 N/m cell and
         0.92-0.95 across the 1000 N/m one, where K_h reaches the device's 1000 N/m).
+    stiffer_by : float
+        With ``own_force``, >= 0: the transparency is also judged on objects ``1 + stiffer_by``
+        times softer and stiffer than ``k_o`` (the gains made for ``k_o`` rendering them; a
+        model error), the worst counting. Stability over the stiffer object is the caller's
+        range (``k_o_hi``; :func:`cell_k_o_range` widens it by :attr:`GainKey.stiffer_by`).
     scaled : bool
         Compensated gains are rendered scaled to the reported K_o (:meth:`GainDesign.at`) over
         ``[k_o, max(felt_k_os)]``, as far as K_h stays within ``k_h_max``: transparency at each
@@ -485,6 +566,8 @@ def design_gains(
         raise ValueError(f"b_o must be finite and >= 0, got {b_o!r}")
     if not 0.0 <= margin < 1.0:
         raise ValueError(f"margin must be in [0, 1), got {margin!r}")
+    if not (math.isfinite(stiffer_by) and stiffer_by >= 0.0):
+        raise ValueError(f"stiffer_by must be finite and >= 0, got {stiffer_by!r}")
     _whole("delay_ticks", delay_ticks, 0)
     if mode not in ("p", "pi"):
         raise ValueError(f"mode must be 'p' or 'pi', got {mode!r}")
@@ -503,6 +586,10 @@ def design_gains(
     rho_limit = math.exp(-min_decay_rate_per_s * N * T)
     delay = int(delay_ticks)
     integral = mode == "pi"
+    band = list(FELT_BAND_HZ) if own_force else [1.0]
+    model_error_k_os = (
+        [k_o / (1.0 + stiffer_by), k_o * (1.0 + stiffer_by)] if own_force and stiffer_by > 0 else []
+    )
 
     # candidates: the paper's local model (K_h below K_o, the simulation loop's bound) ...
     kh_cap = min(k_h_max, 0.999 * lo)
@@ -531,11 +618,21 @@ def design_gains(
         # light dampers too: with K_h = K_o the damper only lends the hand's slowest modes the
         # decay margin, and it is felt (as viscosity) in proportion to B_h / K_o
         bh_axis_c = np.unique(
-            np.concatenate((bh_axis, b_h_max * np.array([0.025, 0.05, 0.1, 0.2])))
+            np.concatenate((bh_axis, b_h_max * np.array([0.025, 0.05, 0.1, 0.15, 0.2, 0.25, 0.5])))
         )
         KH, BH, AL = np.meshgrid(kh_axis_c, bh_axis_c, np.asarray(OWN_FORCE_RATIOS), indexing="ij")
         comp = {"k_h": KH.ravel(), "i_gain": 0.0 * KH.ravel(), "b_h": BH.ravel()}
         groups.append(({**comp, "own_gain": AL.ravel() / KH.ravel()}, False))
+        if k_h_max < k_o:
+            # ... and, for an object stiffer than the device, the plane at the rest surface the
+            # simulation's own model gives (C_h = 1 / K_o: the surface less the object's own
+            # deformation) with K_h up to the device's stiffness: model-mediated teleoperation's
+            # plane (Mitra and Niemeyer 2008), felt as K_h at every frequency of the band where
+            # the paper's models creep (PI) or feel K_h K_o / (K_h + K_o) (P)
+            kh_plane = k_h_max * np.geomspace(0.5, 1.0, 6)
+            kh_p, bh_p = (v.ravel() for v in np.meshgrid(kh_plane, bh_axis_c, indexing="ij"))
+            plane = {"k_h": kh_p, "i_gain": 0.0 * kh_p, "b_h": bh_p}
+            groups.append(({**plane, "own_gain": np.full(kh_p.size, 1.0 / k_o)}, False))
     screen_hands = hand_box.screen_hands()
     # the light, stiff, least damped hand and the heavy, soft, least damped one: the first to ring
     pre_hands = list(
@@ -560,7 +657,7 @@ def design_gains(
     all_ticks = list(range(N))
     mid_ticks = sorted({int(j) for j in np.linspace(0, N - 1, 8)})
 
-    best: tuple[float, float, float, GainDesign] | None = None
+    best: tuple[float, float, float, float, GainDesign] | None = None
 
     def worst(
         cand: dict[str, FloatArray],
@@ -611,17 +708,17 @@ def design_gains(
             return at_k(base, np.minimum(max(k / k_o, 1.0), smax[g])) if scaled else base
 
         def response(k: float, sc: dict[str, FloatArray], hold: ProxyHold = hold) -> FloatArray:
-            """Felt response dF/dx / K_o at 1 Hz (complex values) of gains ``sc`` on K_o = k."""
+            """Felt responses dF/dx / K_o (complex values, (F, G)) of gains ``sc`` on K_o = k
+            at 1 Hz and, with ``own_force``, every frequency of :data:`FELT_BAND_HZ`."""
             return (
-                felt_stiffness(
-                    1.0,
+                felt_responses(
+                    band,
                     k_o=k,
                     servo_period_s=T,
                     rate_ratio=N,
                     delay_ticks=delay,
                     proxy_hold=hold,
                     b_o=b_o,
-                    complex_response=True,
                     k_h=sc["k_h"],
                     i_gain=sc["i_gain"],
                     b_h=sc["b_h"],
@@ -630,27 +727,39 @@ def design_gains(
                 / k
             )
 
-        resp1 = response(k_o, base)
-        # objective: the elastic part of the felt stiffness (a damper is felt as viscosity, not
-        # as a stiffer object), capped at the object's own. Compensation can overshoot K_o and
-        # lag it: then how far the felt response is from K_o (_miss) at 1 Hz and in a held
-        # press (DC), whichever is further; across felt_at the worst counts, then the mean (a
-        # tie of the worst: K_h at the device's stiffness is the top of a scaled K_h's range)
+        resp_band = response(k_o, base)
+        resp1 = resp_band[band.index(1.0)]
+        # objective, with own-force compensation: how far the felt response is from K_o over
+        # the band and in a held press (DC), whichever is further (_band_miss, _log_miss);
+        # across felt_at the worst counts, in steps of DESIGN_TIE (what a hand would not feel
+        # apart); then the worst on the objects stiffer and softer than reported (model error);
+        # then the mean over felt_at (a tie of the worst: K_h at the device's stiffness is the
+        # top of a scaled K_h's range). Without it (the paper's models alone): the elastic part
+        # of the felt stiffness at 1 Hz, capped at the object's own
         if own_force:
-            errs = [np.maximum(_miss(resp1), np.abs(felt_dc - 1.0))]
+            errs = [np.maximum(_band_miss(resp_band), _log_miss(felt_dc))]
             for k in felt_at:
                 if k != k_o:
                     sc = served(k)
-                    errs.append(np.maximum(_miss(response(k, sc)), np.abs(_felt_dc(sc, k) - 1.0)))
-            felt1 = 1.0 - np.max(errs, axis=0)
+                    errs.append(np.maximum(_band_miss(response(k, sc)), _log_miss(_felt_dc(sc, k))))
+            worst_err = np.max(errs, axis=0)
+            felt1 = -np.floor(np.where(np.isfinite(worst_err), worst_err, 1e9) / DESIGN_TIE)
+            felt1 = np.where(np.isfinite(worst_err), felt1, -np.inf)
             felt_mean = np.round(1.0 - np.mean(errs, axis=0), 4)
+            # the object softer or stiffer than reported: the gains made for k_o rendering it
+            off = [
+                np.maximum(_band_miss(response(k, base)), _log_miss(_felt_dc(base, k)))
+                for k in model_error_k_os
+            ]
+            robust = np.round(-np.max(off, axis=0), 3) if off else np.zeros_like(felt1)
         else:
-            felt1 = np.minimum(resp1.real, 1.0)
+            felt1 = np.round(np.minimum(resp1.real, 1.0), 3)
             felt_mean = np.zeros_like(felt1)
+            robust = np.zeros_like(felt1)
         if best is not None:
-            felt1 = np.where(felt1 < best[0] - 1e-3, -np.inf, felt1)  # cannot win
+            felt1 = np.where(felt1 < best[0] - 1e-9, -np.inf, felt1)  # cannot win
         order = np.array(
-            [i for i in np.lexsort((-felt_mean, -np.round(felt1, 3))) if np.isfinite(felt1[i])],
+            [i for i in np.lexsort((-felt_mean, -robust, -felt1)) if np.isfinite(felt1[i])],
             dtype=int,
         )
         found = None
@@ -733,11 +842,12 @@ def design_gains(
             scale_max=float(smax[g][i]),
         )
         key = (
-            round(float(felt1[i]), 3),
+            float(felt1[i]),
+            float(robust[i]),
             float(felt_mean[i]),
             -abs(d.felt_stiffness_ratio_8hz - 1.0),
         )
-        if best is None or key > best[:3]:
+        if best is None or key > best[:4]:
             best = (*key, d)
     if best is None and integral:
         # no integral is stable here: render the best proportional local model instead
@@ -758,13 +868,14 @@ def design_gains(
             own_force=own_force,
             felt_k_os=felt_k_os,
             scaled=scaled,
+            stiffer_by=stiffer_by,
         )
     if best is None:
         raise ValueError(
             f"no {mode} local model is stable over the hand box at K_o = {k_o:g} N/m, "
             f"{sim_rate_hz:g} Hz, {delay} tick(s) of delay"
         )
-    return best[3]
+    return best[4]
 
 
 def loop_delay_ticks(round_trip_s: float, state_age_s: float, sim_rate_hz: float) -> int:
@@ -796,6 +907,10 @@ def loop_delay_ticks(round_trip_s: float, state_age_s: float, sim_rate_hz: float
     return max(0, math.ceil((round_trip_s + state_age_s) * sim_rate_hz - 1e-9) - 1)
 
 
+#: :attr:`GainKey.stiffer_by`'s default: the product's designs hold on an object up to this
+#: fraction stiffer than the K_o reported (docs/fidelity.md: objects the design did not see).
+STIFFER_BY = 0.25
+
 #: Ratio between neighbouring K_o grid points of a :class:`GainTable`.
 K_O_GRID_RATIO = 1.1
 
@@ -821,6 +936,10 @@ class GainKey:
     #: paper's model; tests verify the result on the coupled loop of two and three users
     #: (:func:`shared.coupled_loop.verify_coupled`, docs/coupled-users.md).
     own_force: bool = True
+    #: Fraction by which the object may be stiffer than the K_o reported (a model error: a
+    #: viscoelastic or strain-stiffening object, a K_o estimated low): a cell's design is checked
+    #: up to ``(1 + stiffer_by)`` times the top of its range (:func:`cell_k_o_range`).
+    stiffer_by: float = STIFFER_BY
 
     @property
     def rates(self) -> Rates:
@@ -848,15 +967,20 @@ def k_o_points(lo: float, hi: float) -> list[float]:
 def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, float]:
     """``[(1 - margin) g_i, k_o_hi]`` [N/m], the K_o range a :class:`GainTable` cell is checked over.
 
-    ``g_i = grid_ratio**cell``; ``k_o_hi`` is the next grid point, widened for a coupled contact
-    to ``coupled_k_o_hi(g_(i+1), key.stiff_ratio)`` (:mod:`shared.coupled_loop`).
+    ``g_i = grid_ratio**cell``; ``k_o_hi`` is the next grid point times ``1 + key.stiffer_by``,
+    or for a coupled contact ``coupled_k_o_hi(g_(i+1), key.stiff_ratio)`` where that is higher
+    (:mod:`shared.coupled_loop`).
     """
     from haptic_collab.shared.coupled_loop import coupled_k_o_hi
 
     g = grid_ratio**cell
-    hi = grid_ratio ** (cell + 1)
+    top = grid_ratio ** (cell + 1)
+    # an object stiffer than reported; a coupled contact's modal range already reaches beyond
+    # (the two are not stacked: a coupled press on the balloon then got the paper's PI, felt
+    # 0.79 K_o at 1 Hz, instead of a compensated model)
+    hi = top * (1.0 + key.stiffer_by)
     if key.stiff_ratio != 1.0:
-        hi = max(hi, coupled_k_o_hi(hi, key.stiff_ratio))
+        hi = max(hi, coupled_k_o_hi(top, key.stiff_ratio))
     return (1.0 - key.margin) * g, hi
 
 
@@ -983,6 +1107,7 @@ def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -
         own_force=key.own_force,
         felt_k_os=(g, g * math.sqrt(grid_ratio), g * grid_ratio),
         scaled=True,
+        stiffer_by=key.stiffer_by,
     )
 
 
