@@ -106,6 +106,13 @@ _SHARED: dict[str, dict[str, Any]] = {
     "--local-model": {"choices": ["p", "pi"], "default": "pi"},
     "--profile": {"default": "phantom-desktop"},
     "--margin": {"type": _probability, "default": 0.15},
+    "--stiffer-by": {
+        "type": _nonneg,
+        "default": None,
+        "help": "the object may be this fraction stiffer than K_o: stability is checked up to "
+        "(1 + it) K_o and transparency also on objects that much softer and stiffer (default: "
+        "the product's, shared.gain_design.STIFFER_BY)",
+    },
     "--host": {"default": "127.0.0.1"},
     "--port": {"type": _nonneg_int, "default": 8765},
     "--mesh": {"default": "balloon"},
@@ -290,21 +297,28 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
 
 # ------------------------------------------------------------------------------------------- gains
-def _profile_design(profile: str, k_o: float, *, paper: bool, **kw: Any) -> Any:
+def _profile_design(
+    profile: str, k_o: float, *, paper: bool, stiffer_by: float | None = None, **kw: Any
+) -> Any:
     """The product's design (:func:`shared.gain_design.design_gains`, timed) for K_o with the
     stiffness and damping limits of the device profile ``profile``; ``paper``: without own-force
-    compensation. Raises KeyError (unknown profile) or ValueError (as the design)."""
+    compensation; ``stiffer_by`` (default the product's :data:`shared.gain_design.STIFFER_BY`):
+    checked up to ``(1 + stiffer_by) K_o``. Raises KeyError (unknown profile) or ValueError (as
+    the design)."""
     from haptic_collab.client.devices.profiles import get_sim_profile
-    from haptic_collab.shared.gain_design import design_gains
+    from haptic_collab.shared.gain_design import STIFFER_BY, design_gains
     from haptic_collab.workers import timed
 
     lim = get_sim_profile(profile).limits
+    sb = STIFFER_BY if stiffer_by is None else float(stiffer_by)
     return timed(
         design_gains,
         k_o,
         k_h_max=lim.max_stiffness_n_per_m,
         b_h_max=lim.max_damping_n_s_per_m,
         own_force=not paper,
+        k_o_hi=k_o * (1.0 + sb),
+        stiffer_by=sb,
         **kw,
     )
 
@@ -321,6 +335,7 @@ def _cmd_gains(args: argparse.Namespace) -> int:
             delay_ticks=args.delay_ticks,
             mode=args.local_model,
             margin=args.margin,
+            stiffer_by=args.stiffer_by,
         )
     except (ValueError, KeyError) as exc:
         raise CliError(str(exc).strip("'\"")) from None
@@ -361,7 +376,8 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "gains",
         help="the most transparent local model stable with the hand in the loop (full loop)",
         description="Design K_h, I, B_h and the proxy hold for an object stiffness: stable for "
-        "every hand of the hand box, every force-sampling tick and K_o' down to (1 - margin) K_o.",
+        "every hand of the hand box, every force-sampling tick and K_o' from (1 - margin) K_o to "
+        "(1 + stiffer-by) K_o.",
     )
     _add_shared(p, "--k-o")
     _add_shared(
@@ -385,6 +401,7 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "(default %(default)s)",
     )
     _add_shared(p, "--margin", help="K_o margin (default %(default)s)")
+    _add_shared(p, "--stiffer-by")
     p.add_argument(
         "--paper",
         action="store_true",
@@ -404,11 +421,20 @@ GAINS_TABLE_GRID = {
 }
 
 
-def _table_row(job: tuple[str, float, int, float, str, float, bool]) -> dict[str, object]:
+def _table_row(
+    job: tuple[str, float, int, float, str, float, bool, float | None],
+) -> dict[str, object]:
     """One row of ``haptic gains-table`` (a worker's job)."""
-    mode, rate, delay, k_o, profile, margin, paper = job
+    mode, rate, delay, k_o, profile, margin, paper, stiffer_by = job
     d = _profile_design(
-        profile, k_o, paper=paper, sim_rate_hz=rate, delay_ticks=delay, mode=mode, margin=margin
+        profile,
+        k_o,
+        paper=paper,
+        stiffer_by=stiffer_by,
+        sim_rate_hz=rate,
+        delay_ticks=delay,
+        mode=mode,
+        margin=margin,
     )
     keep = ("k_h", "i_gain", "b_h", "proxy_hold", "own_gain", "worst_spectral_radius")
     row: dict[str, object] = {"local_model": mode, "sim_rate_hz": rate, "delay_ticks": delay}
@@ -426,6 +452,7 @@ def _cmd_gains_table(args: argparse.Namespace) -> int:
     from concurrent.futures import ProcessPoolExecutor
 
     from haptic_collab.client.devices.profiles import get_sim_profile
+    from haptic_collab.shared.gain_design import STIFFER_BY
 
     try:
         lim = get_sim_profile(args.profile).limits
@@ -433,7 +460,7 @@ def _cmd_gains_table(args: argparse.Namespace) -> int:
         raise CliError(str(exc).strip("'\"")) from None
     g = GAINS_TABLE_GRID
     jobs = [
-        (m, r, d, k, args.profile, args.margin, args.paper)
+        (m, r, d, k, args.profile, args.margin, args.paper, args.stiffer_by)
         for m in g["local_model"]
         for r in g["sim_rate_hz"]
         for d in g["delay_ticks"]
@@ -445,6 +472,7 @@ def _cmd_gains_table(args: argparse.Namespace) -> int:
         "profile": f"{args.profile} (K_h <= {lim.max_stiffness_n_per_m:g} N/m, "
         f"B_h <= {lim.max_damping_n_s_per_m:g} N*s/m)",
         "margin": args.margin,
+        "stiffer_by": STIFFER_BY if args.stiffer_by is None else args.stiffer_by,
         "own_force": not args.paper,
         "rows": rows,
     }
@@ -469,6 +497,7 @@ def _add_gains_table(sub: argparse._SubParsersAction) -> None:  # type: ignore[t
         help="device profile whose limits bound K_h and B_h (default %(default)s)",
     )
     _add_shared(p, "--margin", help="K_o margin (default %(default)s)")
+    _add_shared(p, "--stiffer-by")
     p.add_argument("--paper", action="store_true", help="without own-force compensation")
     p.add_argument("--workers", type=_whole_positive, default=2, help="design processes")
     p.add_argument("--out", help="write the JSON here instead of printing it")
