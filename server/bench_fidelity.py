@@ -174,6 +174,13 @@ def _gain_key(mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceMode
     )
 
 
+def _design_cost(job: tuple[str, GainKey, float]) -> tuple[float, float]:
+    """A design job's relative cost, for ordering: N (N + delay ticks)^3, PI before P."""
+    mode, key, _ = job
+    n = key.rates.ratio
+    return (float(n * (n + key.delay_ticks) ** 3), 1.0 if mode == "pi" else 0.0)
+
+
 def _design(key: GainKey, k_o: float) -> GainDesign:
     """The design the product's client renders for K_o under ``key`` (a worker's job): its
     cell's, scaled to K_o (:meth:`shared.gain_design.GainTable.lookup`)."""
@@ -503,7 +510,7 @@ def run(
     n_box = len(g.hands)
     try:
         # 1. the product's gains for every (mode, rate, delay ticks, K_o): worker processes
-        jobs: dict[tuple[str, GainKey, float], Any] = {}
+        wanted: set[tuple[str, GainKey, float]] = set()
         for scheme in LOCAL_MODELS:
             if scheme not in schemes:
                 continue
@@ -512,9 +519,14 @@ def run(
                 for d in g.delay_ms:
                     key = _gain_key(mode, rate, d, device)
                     for k_o in g.k_o:
-                        known = design_cache is not None and (mode, key, k_o) in design_cache
-                        if (mode, key, k_o) not in jobs and not known:
-                            jobs[(mode, key, k_o)] = pool.submit(_design, key, k_o)
+                        if design_cache is None or (mode, key, k_o) not in design_cache:
+                            wanted.add((mode, key, k_o))
+        # the longest designs first, so that no worker is left with one at the end: a design
+        # checks N sampling ticks of a loop of about N + delay states (eigenvalues: cubic)
+        jobs: dict[tuple[str, GainKey, float], Any] = {
+            w: pool.submit(_design, w[1], w[2])
+            for w in sorted(wanted, key=_design_cost, reverse=True)
+        }
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
         designs.update({k: f.result() for k, f in jobs.items()})
         if design_cache is not None:

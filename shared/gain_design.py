@@ -79,7 +79,7 @@ from haptic_collab.shared.full_loop import (
     monodromy,
 )
 from haptic_collab.shared.rates import Rates
-from haptic_collab.shared.types import FloatArray
+from haptic_collab.shared.types import FloatArray, IndexArray
 
 Mode = Literal["p", "pi"]
 _G = TypeVar("_G", float, FloatArray)
@@ -656,8 +656,10 @@ def design_gains(
     screen_ticks = sorted({0, N // 2, N - 1})
     all_ticks = list(range(N))
     mid_ticks = sorted({int(j) for j in np.linspace(0, N - 1, 8)})
+    rest_ticks = [j for j in all_ticks if j not in mid_ticks]
 
     best: tuple[float, float, float, float, GainDesign] | None = None
+    ALL = slice(None)
 
     def worst(
         cand: dict[str, FloatArray],
@@ -666,12 +668,14 @@ def design_gains(
         ticks: list[int],
         integral: bool,
         scale: float = 1.0,
+        part: slice = slice(None),
     ) -> tuple[FloatArray, FloatArray]:
+        ks = k_os if scale == 1.0 else k_o_points(scale * lo, max(hi, scale * k_o))
         return _worst_rho(
             cand,
             hold,
             hands,
-            k_os if scale == 1.0 else k_o_points(scale * lo, max(hi, scale * k_o)),
+            ks[part],
             b_o=b_o,
             servo_period_s=T,
             rate_ratio=N,
@@ -746,22 +750,32 @@ def design_gains(
             felt1 = -np.floor(np.where(np.isfinite(worst_err), worst_err, 1e9) / DESIGN_TIE)
             felt1 = np.where(np.isfinite(worst_err), felt1, -np.inf)
             felt_mean = np.round(1.0 - np.mean(errs, axis=0), 4)
-            # the object softer or stiffer than reported: the gains made for k_o rendering it
-            off = [
-                np.maximum(_band_miss(response(k, base)), _log_miss(_felt_dc(base, k)))
-                for k in model_error_k_os
-            ]
-            robust = np.round(-np.max(off, axis=0), 3) if off else np.zeros_like(felt1)
         else:
             felt1 = np.round(np.minimum(resp1.real, 1.0), 3)
             felt_mean = np.zeros_like(felt1)
-            robust = np.zeros_like(felt1)
+        robust = np.zeros_like(felt1)
         if best is not None:
             felt1 = np.where(felt1 < best[0] - 1e-9, -np.inf, felt1)  # cannot win
-        order = np.array(
-            [i for i in np.lexsort((-felt_mean, -robust, -felt1)) if np.isfinite(felt1[i])],
-            dtype=int,
-        )
+
+        def robustness(idx: IndexArray, base: dict[str, FloatArray] = base) -> FloatArray:
+            """The worst error on the objects softer and stiffer than reported (the gains made
+            for k_o rendering them), negated and rounded, for candidates ``idx``: computed only
+            for the steps of the objective the search reaches."""
+            if not model_error_k_os:
+                return np.zeros(idx.size)
+            sub = {k: v[idx] for k, v in base.items()}
+            off = [
+                np.maximum(_band_miss(response(k, sub)), _log_miss(_felt_dc(sub, k)))
+                for k in model_error_k_os
+            ]
+            return np.round(-np.max(off, axis=0), 3)
+
+        # the search goes step by step of the objective, the best first, when a step's order
+        # depends on the model-error check (computed as the search reaches it)
+        if model_error_k_os:
+            steps = [np.flatnonzero(felt1 == v) for v in np.unique(felt1[np.isfinite(felt1)])[::-1]]
+        else:
+            steps = [np.flatnonzero(np.isfinite(felt1))]
         found = None
 
         def passes(
@@ -777,30 +791,39 @@ def design_gains(
             # the design's own gains, then scaled to the middle and the top of its range
             for s in dict.fromkeys((1.0, math.sqrt(s_top), s_top)):
                 sc = at_k(one, np.full(1, s)) if s != 1.0 else one
-                for ticks in (
-                    (mid_ticks, all_ticks) if len(all_ticks) > len(mid_ticks) else [all_ticks]
-                ):  # most failures show at a few ticks: cheaper first
-                    m_r, r_r = worst(sc, hold, all_hands, ticks, with_i, s)
+                # most failures show at a few ticks and at the softest K_o' (a compensated model
+                # with K_h above it): cheaper first
+                for ticks, part in (
+                    [(mid_ticks, slice(0, 1)), (mid_ticks, slice(1, None)), (rest_ticks, ALL)]
+                    if len(all_ticks) > len(mid_ticks)
+                    else [(all_ticks, ALL)]
+                ):
+                    m_r, r_r = worst(sc, hold, all_hands, ticks, with_i, s, part)
                     if not (m_r[0] < rho_limit and r_r[0] < 1.0 - 1e-9):
                         return False, float(r_r[0])
-                rho = max(rho, float(r_r[0]))
+                    rho = max(rho, float(r_r[0]))
             return True, rho
 
         # screen in order of transparency (two hands at one tick, then few hands at three
         # sampling ticks), then verify fully; each stage only drops candidates a later one would
-        for a in range(0, order.size, 64):
-            idx = order[a : a + 64]
-            sub = {k: v[idx] for k, v in base.items()}
-            rho_p = worst(sub, hold, pre_hands, pre_ticks, with_i)[0]
-            idx = idx[rho_p < rho_limit]
-            if idx.size == 0:
-                continue
-            sub = {k: v[idx] for k, v in base.items()}
-            rho_s = worst(sub, hold, screen_hands, screen_ticks, with_i)[0]
-            for b in idx[rho_s < rho_limit]:
-                ok_b, r_b = passes(int(b))
-                if ok_b:
-                    found = (int(b), r_b)
+        for in_step in steps:
+            robust[in_step] = robustness(in_step)
+            order = in_step[np.lexsort((-felt_mean[in_step], -robust[in_step], -felt1[in_step]))]
+            for a in range(0, order.size, 64):
+                idx = order[a : a + 64]
+                sub = {k: v[idx] for k, v in base.items()}
+                rho_p = worst(sub, hold, pre_hands, pre_ticks, with_i)[0]
+                idx = idx[rho_p < rho_limit]
+                if idx.size == 0:
+                    continue
+                sub = {k: v[idx] for k, v in base.items()}
+                rho_s = worst(sub, hold, screen_hands, screen_ticks, with_i)[0]
+                for b in idx[rho_s < rho_limit]:
+                    ok_b, r_b = passes(int(b))
+                    if ok_b:
+                        found = (int(b), r_b)
+                        break
+                if found is not None:
                     break
             if found is not None:
                 break
