@@ -110,8 +110,8 @@ _SHARED: dict[str, dict[str, Any]] = {
         "type": _nonneg,
         "default": None,
         "help": "the object may be this fraction stiffer than K_o: stability is checked up to "
-        "(1 + it) K_o and transparency also on objects that much softer and stiffer (default: "
-        "the product's, shared.gain_design.STIFFER_BY)",
+        "(1 + it) K_o and transparency also on objects that much softer and stiffer; when not "
+        "given, the product's shared.gain_design.STIFFER_BY (default: none)",
     },
     "--host": {"default": "127.0.0.1"},
     "--port": {"type": _nonneg_int, "default": 8765},
