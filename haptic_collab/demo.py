@@ -66,6 +66,12 @@ FEEL_FORCE_SHARE = 0.10
 FEEL_DISPLACEMENT_MM = 0.1
 #: The shortest window B's resting force and position are averaged over [s].
 MIN_REST_WINDOW_S = 0.25
+#: B's resting samples count only with the K_h B renders while A holds, this long after B last
+#: rendered another [s] (a gain change's transfer ramp, 0.25 s, and the slow loop's settling): B
+#: resting with a quarter-K_o fallback (its delay had risen) dents the surface less, and compared
+#: with the hold under its designed gains that read as B's side barely moving (0.14-0.30 mm
+#: against 0.65).
+GAIN_SETTLE_S = 0.3
 
 
 @dataclass
@@ -501,21 +507,44 @@ _REST_APPROACH_S = Rest((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)).approach_s
 
 
 def _rest_window(
-    b: dict[str, np.ndarray], tl: Timeline, settled_s: float
+    b: dict[str, np.ndarray], tl: Timeline, settled_s: float, usable: np.ndarray | None = None
 ) -> tuple[str, tuple[float, float]] | None:
     """Where B rests undisturbed: (which, (t0, t1)) on A's clock, or None if nowhere.
 
     Before A touches, from B's settled contact on; if that is too short (B's contact came on
-    late), from :data:`RELEASE_SETTLE_S` after A's release to B's last samples.
+    late), from :data:`RELEASE_SETTLE_S` after A's release to B's last samples. With ``usable``
+    (a mask of B's samples), a window counts only from its first usable sample on and only if
+    its usable samples span :data:`MIN_REST_WINDOW_S`.
     """
-    before = (settled_s, tl.contact_s - 0.1)
-    if before[1] - before[0] >= MIN_REST_WINDOW_S:
-        return "before A's press", before
     end = float(b["t_s"][-1]) - 0.2 if b["t_s"].size else -np.inf
-    after = (max(settled_s, tl.hold_end_s + tl.release_s + RELEASE_SETTLE_S), end)
-    if after[1] - after[0] >= MIN_REST_WINDOW_S:
-        return "after A's release", after
+    windows = [
+        ("before A's press", (settled_s, tl.contact_s - 0.1)),
+        (
+            "after A's release",
+            (max(settled_s, tl.hold_end_s + tl.release_s + RELEASE_SETTLE_S), end),
+        ),
+    ]
+    for which, (t0, t1) in windows:
+        if usable is not None:
+            ts = b["t_s"][_window(b, t0, t1) & usable]
+            if ts.size == 0:
+                continue
+            t0 = max(t0, float(ts[0]))
+        if t1 - t0 >= MIN_REST_WINDOW_S:
+            return which, (t0, t1)
     return None
+
+
+def _same_gains(b: dict[str, np.ndarray], hold_mask: np.ndarray) -> np.ndarray | None:
+    """B's samples rendered with the K_h B renders while A holds, :data:`GAIN_SETTLE_S` after
+    B last rendered another (None without K_h telemetry or hold samples)."""
+    kh = b.get("k_h_n_per_m")
+    if kh is None or not hold_mask.any():
+        return None
+    k_hold = float(np.median(kh[hold_mask]))
+    same = np.abs(kh - k_hold) <= GAIN_CHANGE_SHARE * max(k_hold, 1.0)
+    last_other = np.maximum.accumulate(np.where(same, -np.inf, b["t_s"]))
+    return same & (b["t_s"] - last_other >= GAIN_SETTLE_S)
 
 
 def coupling_report(
@@ -571,11 +600,14 @@ def coupling_report(
     # while A holds, also the samples where the surface drew away from B's finger (B's force
     # fell to nothing: the strongest change B can feel; the proxy is still the surface)
     w_hold = _window(b, *hold) & steady
-    found = None if onset is None else _rest_window(b, tl, onset + B_SETTLE_S)
+    usable = _same_gains(b, w_hold)
+    found = None if onset is None else _rest_window(b, tl, onset + B_SETTLE_S, usable)
     if found is None or not w_hold.any():
         return out
     baseline, rest = found
     w_rest = _window(b, *rest) & full
+    if usable is not None:
+        w_rest &= usable
     if not w_rest.any():
         return out
     fvec = np.stack([b["force_x_n"], b["force_y_n"], b["force_z_n"]], axis=1)[w_rest]

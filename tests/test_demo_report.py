@@ -138,3 +138,21 @@ def test_a_hold_is_judged_for_shake_not_for_creep_nor_for_a_change_of_gains() ->
     drift = 43.0 * (1.0 + 0.001 * np.floor(t / 0.05))
     assert hold_shake_mm(t, still, drift, window) == pytest.approx(0.0, abs=1e-9)
     assert hold_shake_mm(t, shake, drift, window) > 1.5
+
+
+def test_b_resting_with_other_gains_is_not_the_baseline() -> None:
+    # B's delay rose while it rested: it rendered a quarter-K_o fallback (a lighter rest, a
+    # shallower dent) until its checked gains came back 0.6 s before A's press. Compared with
+    # the hold under the designed gains, that stretch read as B's side barely moving; only the
+    # rest under the gains B renders while A holds, settled, counts
+    b, (tl, hold) = telemetry(12.0, onset_s=1.0)
+    t = b["t_s"]
+    fallback = (t >= 2.5) & (t < tl.contact_s - 0.6)
+    b["k_h_n_per_m"] = np.where(fallback, 67.6, 213.9)
+    b["force_n"] = np.where(fallback, 0.09, b["force_n"])
+    b["force_x_n"] = b["force_n"]
+    b["proxy_x_m"] = np.where(fallback, b["proxy_x_m"] - 0.0007, b["proxy_x_m"])  # less dent
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["b_force_at_rest_n"] == pytest.approx(REST_N, abs=2e-3)
+    assert c["b_surface_displacement_mm"] == pytest.approx(BULGE_M * 1000.0, abs=0.02)
+    assert c["b_feels_a"] is True
