@@ -793,6 +793,7 @@ def simulate(
     any_jac = bool(jac.any())
     any_pc = bool(pc_on.any())
     any_two_port = bool(two_port.any())
+    any_follow = bool(follow.any())
     any_tool_nonlin = bool((tool & nonlin).any())
     all_src = bool(src.all())
 
@@ -835,9 +836,10 @@ def simulate(
         proxy = p_old + (p_new - p_old) * w
         e = xr - proxy
         k_eff = np.where(mmt, np.minimum(k_recv, k_h), k_h)
-        k_eff = np.where(
-            follow, np.minimum(k_h * np.maximum(k_recv / k_o, 1.0), kh_follow_max), k_eff
-        )
+        if any_follow:
+            k_eff = np.where(
+                follow, np.minimum(k_h * np.maximum(k_recv / k_o, 1.0), kh_follow_max), k_eff
+            )
         # contact: the probe past the proxy; an integral keeps it while the probe is within the
         # deformation its force holds (s / K_o: the object's surface follows a retreating probe
         # back, the proxy is a stale copy of it; shared.local_model's recovery band)
@@ -951,6 +953,10 @@ def simulate(
             # what the simulation publishes: its stiffness estimate is the object's tangent
             # stiffness as it believes it (off by the object's stiffness error)
             k_est = np.where(nonlin, _stiffening_tangent(k_o, xs, np.maximum(xo, 0.0)), k_o)
+            # own-force compensation of a local model that follows the reported K_o: C_h / s
+            own_eff = (
+                np.where(follow, own / np.maximum(k_est / k_o, 1.0), own) if any_follow else own
+            )
             val = np.where(
                 fed_position & ~tool,
                 f_obj,
@@ -960,7 +966,7 @@ def simulate(
                     np.where(
                         tool,
                         xo,
-                        xo - np.where(follow, own / np.maximum(k_est / k_o, 1.0), own) * f_obj,
+                        xo - own_eff * f_obj,
                     ),
                 ),
             )

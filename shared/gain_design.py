@@ -97,7 +97,9 @@ MIN_DECAY_RATE_PER_S = 1.0
 #: the held press is the object's own physics, the others' pushes included. Ratios below 1 feel
 #: softer in a held press; they won only at K_o above the device's stiffness, where the paper's PI
 #: does as well, and made a contact's rendering change with its coupling class (a user resting
-#: with 0.42 N felt 0.40 N while another pressed), so they are not tried.
+#: with 0.42 N felt 0.40 N while another pressed), so they are not tried. The one exception is
+#: the plane above the device's stiffness (C_h = 1 / K_o with K_h capped below K_o,
+#: :func:`design_gains`): there no ratio of 1 can be rendered.
 OWN_FORCE_RATIOS: tuple[float, ...] = (1.0,)
 
 #: Frequencies [Hz] the transparency of a design with own-force compensation is judged at: the

@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from haptic_collab.server.bench_fidelity import _design, _gain_key
 from haptic_collab.shared.fidelity import (
     IMPACT,
     OBJECTS,
@@ -26,7 +27,6 @@ from haptic_collab.shared.fidelity import (
     Rendering,
     RunOptions,
     cell_metrics,
-    design_delay_ticks,
     felt_depth_m,
     felt_response,
     felt_trajectory,
@@ -36,7 +36,6 @@ from haptic_collab.shared.fidelity import (
     simulate,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
-from haptic_collab.shared.gain_design import GainKey, GainTable, design_cell
 
 DIRECT = Rendering("direct", "direct")
 FMAX = 7.9
@@ -184,21 +183,11 @@ def test_absurd_object_models_are_refused() -> None:
 
 
 def _product(mode: str, k_o: float, rate: float, delay_ms: float, **key_changes) -> Rendering:
-    """The product's rendering of ``mode`` for K_o, as the client would render it (its key, its
-    table cell scaled to K_o), with ``key_changes`` applied to the key."""
-    key = GainKey(
-        servo_rate_hz=1000.0,
-        sim_rate_hz=rate,
-        delay_ticks=design_delay_ticks(delay_ms * 1e-3, rate),
-        mode="pi" if mode == "local-pi" else "p",
-        margin=0.15,
-        k_h_max=DeviceModel().max_stiffness_n_per_m,
-        b_h_max=DeviceModel().max_damping_n_s_per_m,
-    )
-    key = replace(key, **key_changes)
-    table = GainTable(DEFAULT_HAND_BOX)
-    d = design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box).at(k_o)
-    return rendering_for(mode, sim_rate_hz=rate, design=d)
+    """The product's rendering of ``mode`` for K_o, as the benchmark renders it (the client's key
+    and its table cell scaled to K_o), with ``key_changes`` applied to the key."""
+    kind = "pi" if mode == "local-pi" else "p"
+    key = replace(_gain_key(kind, rate, delay_ms, DeviceModel()), **key_changes)
+    return rendering_for(mode, sim_rate_hz=rate, design=_design(key, k_o))
 
 
 def _box_stable(r: Rendering, obj: ObjectModel, k_o: float, rate: float, delay_ms: float) -> bool:
