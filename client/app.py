@@ -1,4 +1,4 @@
-"""``haptic client``: one user's process — device, 1 kHz servo thread, network link.
+"""``haptic client``: one user — device and 1 kHz servo loop in their own process, network link.
 
 Sequence: check the ``--device`` spec and open the device (a HID device's port) *before* any
 network, so a bad spec or an absent device fails at once with one line; start streaming
@@ -19,14 +19,14 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 import re
 import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import numpy as np
 
@@ -36,9 +36,23 @@ from haptic_collab.client.devices.hid import HidPort
 from haptic_collab.client.devices.profiles import get_sim_profile
 from haptic_collab.client.link import Link
 from haptic_collab.client.recorder import CsvRecording, TelemetryRecorder
-from haptic_collab.client.servo import ServoConfig, ServoCore, ServoThread
+from haptic_collab.client.servo import (
+    ServoConfig,
+    ServoCore,
+    ServoSnapshot,
+    ServoStatus,
+    ServoThread,
+)
+from haptic_collab.client.servo_process import (
+    BuiltDevice,
+    ServoProcess,
+    ServoProcessError,
+    built_device,
+    watch_device,
+)
 from haptic_collab.client.session import ClientSession, PatchUpdate, ServoSample
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
+from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import DeviceInfo, Welcome
 from haptic_collab.shared.stability import rate_ratio
 
@@ -85,6 +99,10 @@ class ClientOptions:
     #: CA file [PEM] a ``wss://`` server is verified against (None: ``$HAPTIC_CA_FILE``, else
     #: the system's CAs).
     ca_file: str | None = None
+    #: ``process``: the servo loop (device, local model, safety, telemetry) runs in a process of
+    #: its own (client.servo_process); ``thread``: in a thread of this process; ``auto``:
+    #: ``process`` unless ``hid_opener`` is given (a fake port cannot cross processes).
+    servo: Literal["auto", "process", "thread"] = "auto"
 
 
 def _device_info(opts: ClientOptions, limits: DeviceLimits | None = None) -> DeviceInfo:
@@ -182,25 +200,6 @@ def threshold_for(
     )
 
 
-def _encoder_resolution(device: Device) -> float:
-    """Position quantum [m] of the device: a simulated profile's encoder, or the coarsest integer
-    axis of an absolute-position HID profile (metres per count); 0 when unknown."""
-    profile = getattr(device, "profile", None)
-    res = getattr(profile, "encoder_resolution_m", None)
-    if isinstance(res, int | float) and math.isfinite(res):
-        return float(res)
-    layout = getattr(profile, "input", None)
-    if getattr(layout, "mode", None) == "absolute":
-        scales = [
-            abs(float(ax.scale))
-            for ax in getattr(layout, "axes", ())
-            if getattr(ax, "type", "float32") != "float32"
-        ]
-        if scales and all(math.isfinite(v) for v in scales):
-            return max(scales)
-    return 0.0
-
-
 def _anchor(
     opts: ClientOptions, welcome: Welcome
 ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
@@ -241,52 +240,95 @@ def check_anchor(anchor: str) -> str:
     raise ValueError(f"anchor must be auto, top, side or side:N (N >= 1), got {anchor!r}")
 
 
-def _sample(servo: ServoThread) -> ServoSample | None:
+def _sample(servo: ServoHandle) -> ServoSample | None:
     snap = servo.latest()
     return None if snap is None else ServoSample.from_snapshot(snap)
 
 
-#: First and largest delay [s] between two attempts to reopen a faulted device.
-DEVICE_REOPEN_BACKOFF_S = (0.5, 5.0)
-#: How often [s] the client looks at the device's fault flag.
-DEVICE_WATCH_PERIOD_S = 0.05
+class ServoHandle(Protocol):
+    """What the link side uses of a running servo loop (:class:`client.servo.ServoThread` or
+    :class:`client.servo_process.ServoProcess`)."""
+
+    def set_patch(self, update: LocalModelUpdate) -> LocalModelUpdate: ...
+    def enable_forces(self) -> None: ...
+    def latest(self) -> ServoSnapshot | None: ...
+    def status(self) -> ServoStatus: ...
+    def stop(self, timeout_s: float | None = None) -> bool: ...
+
+    @property
+    def overruns(self) -> int: ...
 
 
-async def _watch_device(state: dict[str, Any], counters: dict[str, int]) -> None:
-    """Reopen the device with backoff while it reports a fault (it was unplugged).
+class _ThreadServo:
+    """The servo loop as a thread of this process (``--servo thread``): the device opened here
+    (:class:`client.devices.DeviceOpener`), a :class:`client.servo.ServoThread` and a thread that
+    reopens a faulted device (:func:`client.servo_process.watch_device`). The same set-up calls
+    as :class:`client.servo_process.ServoProcess`."""
 
-    A device fault is the device's business: the servo loop already ramps forces to zero while
-    :attr:`Device.fault` is set and back up once it clears; the network link is not touched. A
-    device that cannot be reopened (:meth:`Device.reopen` returns False, e.g. simulated) is left
-    faulted, forces off, and logged once.
-    """
-    while True:
-        await asyncio.sleep(DEVICE_WATCH_PERIOD_S)
-        device: Device | None = state["device"]
-        if device is None or device.fault is None:
-            continue
-        counters["device_faults"] += 1
-        log.warning(
-            "device fault: %s; forces ramp to zero, reopening the device (the server link stays)",
-            device.fault,
-        )
-        delay = DEVICE_REOPEN_BACKOFF_S[0]
-        while device.fault is not None:
-            await asyncio.sleep(delay)
-            try:
-                ok = device.reopen()
-            except OSError as exc:
-                delay = min(DEVICE_REOPEN_BACKOFF_S[1], 2.0 * delay)
-                log.info("device still unavailable (%s); next try in %.1f s", exc, delay)
-                continue
-            if not ok:
-                if device.fault is not None:
-                    log.error("device %s cannot be reopened; forces stay off", device.name)
-                    while device.fault is not None:
-                        await asyncio.sleep(DEVICE_WATCH_PERIOD_S)
-                break
-            counters["device_reopens"] += 1
-            log.warning("device %s is back; forces ramp up again", device.name)
+    def __init__(self, opener: DeviceOpener, capacity: int, clock: Callable[[], float]) -> None:
+        self.opener = opener
+        self.recorder = TelemetryRecorder(capacity=capacity)
+        self.clock = clock
+        self.counters = {"device_faults": 0, "device_reopens": 0}
+        self.realtime = False
+        self.death: str | None = None
+        self.device: Device | None = None
+        self.servo: ServoThread | None = None
+        self._watch_stop = threading.Event()
+
+    def check(self) -> None:
+        self.opener.check()
+
+    @property
+    def limits(self) -> DeviceLimits | None:
+        return self.opener.limits
+
+    def build(self, anchor: tuple[float, ...], normal: tuple[float, ...]) -> BuiltDevice:
+        self.device = self.opener.build(anchor, normal)
+        return built_device(self.device)
+
+    def start(self, config: ServoConfig, local_model: LocalModelParams) -> ServoThread:
+        assert self.device is not None
+        core = ServoCore(self.device, config, local_model=local_model, recorder=self.recorder)
+        self.servo = ServoThread(core, clock=self.clock)
+        self.servo.start()
+        self.realtime = self.servo.realtime
+        threading.Thread(
+            target=watch_device,
+            args=(self.device, self.counters, self._watch_stop),
+            name="device-watch",
+            daemon=True,
+        ).start()
+        return self.servo
+
+    def close(self) -> None:
+        self._watch_stop.set()
+        if self.servo is not None:
+            self.servo.stop()
+        if self.device is not None:
+            self.device.close()
+        self.opener.close()
+
+
+def _servo_host(opts: ClientOptions, origin_s: float, capacity: int) -> _ThreadServo | ServoProcess:
+    """Where the servo loop will run (``opts.servo``), not started yet."""
+    kwargs: dict[str, Any] = {
+        "spec": opts.device,
+        "profile": opts.profile,
+        "trajectory_options": opts.trajectory or None,
+        "servo_rate_hz": opts.servo_rate_hz,
+        "hid_profile": opts.hid_profile,
+    }
+    if opts.servo == "process" or (opts.servo == "auto" and opts.hid_opener is None):
+        if opts.hid_opener is not None:
+            raise ValueError("--servo process opens the device in the servo process: no hid_opener")
+        return ServoProcess(kwargs, clock_origin_s=origin_s, capacity=capacity)
+    opener = DeviceOpener(kwargs.pop("spec"), hid_opener=opts.hid_opener, **kwargs)
+
+    def clock() -> float:
+        return time.perf_counter() - origin_s
+
+    return _ThreadServo(opener, capacity, clock)
 
 
 async def run_client(opts: ClientOptions) -> dict[str, Any]:
@@ -294,9 +336,12 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
 
     The device is checked and (a HID device) opened before any network: a bad ``--device`` or
     a device that cannot be opened raises :class:`client.devices.DeviceError` at once, with no
-    connection made. ``--record`` streams to its file while the client runs
-    (:class:`client.recorder.CsvRecording`); the recording and the summary are written however
-    the run ends (duration, SIGINT or SIGTERM with ``stop_on_signals``, cancellation, error).
+    connection made. With the servo in its own process (``opts.servo``), that process is
+    started first and opens the device; a simulated device's spec is also checked here at
+    once, and the client joins while the servo process starts. ``--record`` streams to its file
+    while the client runs (:class:`client.recorder.CsvRecording`); the recording and the summary
+    are written however the run ends (duration, SIGINT or SIGTERM with ``stop_on_signals``,
+    cancellation, error).
 
     Returns
     -------
@@ -311,26 +356,39 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
         Bad options (profile, trajectory option, server URL).
     ConnectionError
         The server could not be joined within ``join_timeout_s``.
+    ServoProcessError
+        The servo process could not be started, or died while the client ran.
     OSError
         The recording file cannot be created.
     """
-    opener = DeviceOpener(
-        opts.device,
-        profile=opts.profile,
-        trajectory_options=opts.trajectory or None,
-        servo_rate_hz=opts.servo_rate_hz,
-        hid_profile=opts.hid_profile,
-        hid_opener=opts.hid_opener,
-    )
-    opener.check()  # before any network: DeviceError with one line
+    origin_s = time.perf_counter()
+    # bounded memory: the ring holds the last two minutes; --record streams everything to disk
+    capacity = int(opts.servo_rate_hz * min(opts.duration_s or 120.0, 120.0)) + 2000
+    host = _servo_host(opts, origin_s, capacity)
     try:
-        return await _run(opts, opener)
+        if isinstance(host, ServoProcess):
+            host.spawn()
+            if opts.device.startswith("sim:"):
+                # nothing to hold: check the spec here at once, join while the process starts
+                DeviceOpener(
+                    opts.device,
+                    profile=opts.profile,
+                    trajectory_options=opts.trajectory or None,
+                    servo_rate_hz=opts.servo_rate_hz,
+                ).check()
+            else:  # hardware: opened by the servo process before any network
+                await asyncio.to_thread(host.wait_checked)
+        else:
+            host.check()  # before any network: DeviceError with one line
+        return await _run(opts, host, origin_s)
     finally:
-        opener.close()
+        host.close()
 
 
-async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
-    info = _device_info(opts, opener.limits)
+async def _run(
+    opts: ClientOptions, host: _ThreadServo | ServoProcess, origin_s: float
+) -> dict[str, Any]:
+    info = _device_info(opts, host.limits)
     session = ClientSession(
         opts.name,
         servo_rate_hz=opts.servo_rate_hz,
@@ -340,18 +398,13 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
         b_h_max=info.max_damping_n_s_per_m,
         gains=opts.gains,
     )
-    origin_s = time.perf_counter()
 
     def clock() -> float:
         """Servo and link time [s] since this client started (scripted hands start at 0)."""
         return time.perf_counter() - origin_s
 
-    state: dict[str, Any] = {"servo": None, "device": None, "error": None}
-    counters = {"device_faults": 0, "device_reopens": 0}
-    # bounded memory: the ring holds the last two minutes; --record streams everything to disk
-    recorder = TelemetryRecorder(
-        capacity=int(opts.servo_rate_hz * min(opts.duration_s or 120.0, 120.0)) + 2000
-    )
+    state: dict[str, Any] = {"servo": None, "starting": None, "error": None}
+    recorder = host.recorder
     recording = None if opts.record is None else CsvRecording(recorder, opts.record)
     if recording is not None:
         recording.start()
@@ -372,16 +425,31 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
                 loop.add_signal_handler(sig, on_signal, sig)
                 signals.append(sig)
 
-    def on_welcome(welcome: Welcome) -> None:
-        if state["servo"] is not None or state["error"] is not None:
-            return  # a reconnection: keep the running device and servo loop
-        try:
-            start_servo(welcome)
-        except Exception as exc:  # never a network retry: the client stops with this error
+    def fail(exc: BaseException) -> None:
+        if state["error"] is None:
             state["error"] = exc
-            halt.set()
+        halt.set()
 
-    def start_servo(welcome: Welcome) -> None:
+    def on_servo_death(reason: str) -> None:  # from the servo monitor's thread
+        # the link reports the last force ramping to zero meanwhile (ServoProcess.latest)
+        ramp = ServoConfig().ramp_s
+        loop.call_soon_threadsafe(loop.call_later, ramp + 0.05, fail, ServoProcessError(reason))
+
+    if isinstance(host, ServoProcess):
+        host.on_death = on_servo_death
+
+    def on_welcome(welcome: Welcome) -> None:
+        if state["starting"] is not None or state["error"] is not None:
+            return  # a reconnection: keep the running device and servo loop
+        state["starting"] = asyncio.ensure_future(start_servo(welcome))
+
+    async def start_servo(welcome: Welcome) -> None:
+        try:
+            await _start_servo(welcome)
+        except Exception as exc:  # never a network retry: the client stops with this error
+            fail(exc)
+
+    async def _start_servo(welcome: Welcome) -> None:
         try:  # N must be whole: the local model's lifted loop (paper section 3)
             rate_ratio(opts.servo_rate_hz, welcome.sim_rate_hz)
         except ValueError:
@@ -395,8 +463,11 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
             ) from None
         anchor, normal = _anchor(opts, welcome)
         state["anchor"] = {"point_m": list(anchor), "normal": list(normal)}
-        device: Device = opener.build(anchor, normal)
-        state["device"] = device
+        if isinstance(host, ServoProcess):
+            await asyncio.to_thread(host.wait_checked)
+            device = await asyncio.to_thread(host.build, anchor, normal)
+        else:
+            device = host.build(anchor, normal)
         lim = device.limits
         # gains are designed for this device's real limits (a HID profile's, not the defaults)
         session.device = DeviceInfo(
@@ -414,7 +485,7 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
                 opts.theta_mode,
                 opts.local_model,
                 opts.theta_m,
-                _encoder_resolution(device),
+                device.encoder_resolution_m,
                 period,
             ),
             release_time_s=2.0 / welcome.sim_rate_hz,
@@ -427,36 +498,39 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
         passivity = opts.passivity == "on" or (
             opts.passivity == "auto" and opts.local_model == "pi"
         )
-        by_button = opts.engage == "button" or (
-            opts.engage == "default" and getattr(device, "has_buttons", False)
-        )
+        by_button = opts.engage == "button" or (opts.engage == "default" and device.has_buttons)
         if by_button:
             log.info("press the device's first button to engage forces (again to disengage)")
-        core = ServoCore(
-            device,
-            ServoConfig(
-                servo_rate_hz=opts.servo_rate_hz, passivity=passivity, engage_with_button=by_button
-            ),
-            local_model=lm,
-            recorder=recorder,
+        config = ServoConfig(
+            servo_rate_hz=opts.servo_rate_hz, passivity=passivity, engage_with_button=by_button
         )
-        servo = ServoThread(core, clock=clock)
-        servo.start()
+        servo: ServoHandle
+        if isinstance(host, ServoProcess):
+            await asyncio.to_thread(host.start, config, lm)
+            servo = host
+        else:
+            servo = host.start(config, lm)
         servo.enable_forces()
         state["servo"] = servo
         log.info(
-            "%s joined as %s; device %s on %s", opts.name, welcome.user_id, opts.device, anchor
+            "%s joined as %s; device %s on %s (servo in its own %s%s)",
+            opts.name,
+            welcome.user_id,
+            opts.device,
+            anchor,
+            "process" if isinstance(host, ServoProcess) else "thread",
+            ", real-time priority" if host.realtime else "",
         )
 
     def on_patch(update: PatchUpdate, now_s: float) -> None:
-        servo: ServoThread | None = state["servo"]
+        servo: ServoHandle | None = state["servo"]
         if servo is None:
             return
         servo.set_patch(update.model)
         updates.append(update)
 
     def sample() -> ServoSample | None:
-        servo: ServoThread | None = state["servo"]
+        servo: ServoHandle | None = state["servo"]
         return None if servo is None else _sample(servo)
 
     link = Link(
@@ -471,7 +545,6 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
     )
     stop = asyncio.Event()
     link_task = asyncio.create_task(link.run(stop))
-    watcher = asyncio.create_task(_watch_device(state, counters))
     joined = asyncio.create_task(link.connected.wait())
     halted = asyncio.create_task(halt.wait())
     t_start = clock()
@@ -499,17 +572,18 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
             if link_task in done:
                 link_task.result()
     finally:
-        for task in (joined, halted, watcher):
+        for task in (joined, halted):
             task.cancel()
+        starting = state["starting"]
+        if starting is not None and not starting.done():
+            with contextlib.suppress(Exception, asyncio.CancelledError):
+                await asyncio.wait_for(starting, 5.0)
         servo = state["servo"]
         if servo is not None:
-            servo.stop()
+            await asyncio.to_thread(servo.stop)
         stop.set()
         with contextlib.suppress(Exception, asyncio.CancelledError):
             await asyncio.wait_for(link_task, 3.0)
-        device = state["device"]
-        if device is not None:
-            device.close()
         for sig in signals:
             loop.remove_signal_handler(sig)
         if recording is not None:
@@ -520,7 +594,10 @@ async def _run(opts: ClientOptions, opener: DeviceOpener) -> dict[str, Any]:
         summary["stopped_by"] = state.get("signal") or (
             "error" if state["error"] is not None else "end"
         )
-        summary.update(counters)
+        summary["servo_rate_hz_set"] = opts.servo_rate_hz
+        summary["servo_host"] = "process" if isinstance(host, ServoProcess) else "thread"
+        summary["servo_realtime"] = host.realtime
+        summary.update(host.counters)
         if recording is not None:
             summary["record"] = {
                 "path": str(opts.record),
@@ -578,7 +655,7 @@ def _summary(
     opts: ClientOptions,
     session: ClientSession,
     link: Link,
-    servo: ServoThread | None,
+    servo: ServoHandle | None,
     recorder: TelemetryRecorder,
     updates: list[PatchUpdate],
 ) -> dict[str, Any]:
@@ -633,7 +710,7 @@ def _summary(
     if servo is not None:
         status = servo.status().as_dict()
         out["servo"] = status
-        out["servo_overruns"] = servo.loop.overruns
+        out["servo_overruns"] = servo.overruns
     if len(recorder):
         period = recorder.column("period_s")
         period = period[np.isfinite(period) & (period > 0)]

@@ -92,7 +92,12 @@ def _minimal(duration_s: float, rate_hz: float, spin_s: float) -> dict[str, Any]
     loop = DeadlineLoop(1.0 / rate_hz, spin_s=spin_s)
     loop.run(tick, max_ticks=n)
     t = np.frombuffer(times, dtype=np.float64)[: count[0]]
-    return {**_period_stats(t, rate_hz), "missed_deadlines": loop.overruns}
+    span = float(t[-1] - t[0]) if t.size > 1 else math.nan
+    return {
+        **_period_stats(t, rate_hz),
+        "missed_deadlines": loop.overruns,
+        "missed_per_s": loop.overruns / span if span > 0 else math.nan,
+    }
 
 
 def _servo(duration_s: float, rate_hz: float, spin_s: float, profile: str) -> dict[str, Any]:
@@ -225,7 +230,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--no-realtime", action="store_true", help="do not ask for SCHED_FIFO (ordinary threads)"
     )
+    ap.add_argument(
+        "--minimal-only",
+        action="store_true",
+        help="run only the do-nothing loop, in this process's main thread (the reference "
+        "``haptic demo --reference-loop`` runs beside the users)",
+    )
     args = ap.parse_args(argv)
+    if args.minimal_only:
+        prio = None if args.no_realtime else 10
+        granted = try_realtime_priority(prio) if prio is not None else False
+        res = {**_minimal(args.duration, args.rate, args.spin_us * 1e-6), "realtime": granted}
+        print(json.dumps(res, indent=2))
+        return 0
     res = run(
         args.duration,
         args.rate,

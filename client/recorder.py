@@ -74,23 +74,57 @@ class TelemetryRecorder:
     ----------
     capacity : int
         Rows kept, >= 1 (default 120000: two minutes at 1 kHz, about 23 MB).
+    buffer, counter : memoryview, optional
+        Shared memory to keep the rows in (:meth:`nbytes` bytes) and the count of rows ever
+        appended (an int64 view): the servo process writes a ring that the client's link process
+        reads (:mod:`client.servo_process`). Default: private memory.
 
     Raises
     ------
     ValueError
-        ``capacity < 1``.
+        ``capacity < 1``; a buffer too small, or one without its counter.
     """
 
     columns = COLUMNS
 
-    def __init__(self, capacity: int = 120_000) -> None:
+    def __init__(
+        self,
+        capacity: int = 120_000,
+        *,
+        buffer: memoryview | None = None,
+        counter: memoryview | None = None,
+    ) -> None:
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1 row, got {capacity!r}")
         self.capacity = int(capacity)
         self._ncols = len(COLUMNS)
         self._row = struct.Struct(f"{self._ncols}d")
-        self._buf = array.array("d", bytes(8 * self._ncols * self.capacity))
-        self._count = 0
+        size = 8 * self._ncols * self.capacity
+        if (buffer is None) != (counter is None):
+            raise ValueError("buffer and counter go together")
+        if buffer is None or counter is None:
+            self._buf: Any = array.array("d", bytes(size))
+            self._meta: Any = array.array("q", [0])
+        else:
+            if buffer.nbytes < size or counter.format != "q" or len(counter) < 1:
+                raise ValueError(
+                    f"a shared ring of {self.capacity} rows needs {size} bytes and an int64 counter"
+                )
+            self._buf = buffer.cast("B")[:size].cast("d")
+            self._meta = counter
+
+    @property
+    def _count(self) -> int:
+        return int(self._meta[0])
+
+    @_count.setter
+    def _count(self, n: int) -> None:
+        self._meta[0] = n
+
+    @classmethod
+    def nbytes(cls, capacity: int) -> int:
+        """Bytes of the ring of ``capacity`` rows (the size of a shared ``buffer``)."""
+        return 8 * len(COLUMNS) * int(capacity)
 
     def __len__(self) -> int:
         """Rows held now (at most ``capacity``)."""
@@ -109,9 +143,10 @@ class TelemetryRecorder:
         struct.error
             Wrong number of values (a programming error, not a runtime condition).
         """
-        n = self._count
+        meta = self._meta
+        n = meta[0]
         self._row.pack_into(self._buf, 8 * self._ncols * (n % self.capacity), *values)
-        self._count = n + 1
+        meta[0] = n + 1
 
     def set_compute_s(self, compute_s: float) -> None:
         """Overwrite ``compute_s`` [s] of the newest row (measured after the tick returned)."""

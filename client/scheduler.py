@@ -178,3 +178,23 @@ def try_realtime_priority(priority: int) -> bool:
     except (OSError, ValueError):
         return False
     return True
+
+
+def ordinary_priority() -> bool:
+    """Put the calling thread back under the ordinary policy (SCHED_OTHER), e.g. a helper thread
+    started by a real-time thread (a new thread inherits its creator's policy).
+
+    Returns
+    -------
+    bool
+        True if done; False where unsupported or not permitted.
+    """
+    setsched = getattr(os, "sched_setscheduler", None)
+    other = getattr(os, "SCHED_OTHER", None)
+    if setsched is None or other is None:
+        return False
+    try:
+        setsched(0, other, os.sched_param(0))
+    except (OSError, ValueError):
+        return False
+    return True

@@ -51,7 +51,7 @@ import time
 from dataclasses import asdict, dataclass, replace
 from typing import Any, cast
 
-from haptic_collab.client.devices.base import Device, HapticError, Vec3
+from haptic_collab.client.devices.base import Device, DeviceLimits, HapticError, Vec3
 from haptic_collab.client.recorder import TelemetryRecorder
 from haptic_collab.client.render import LocalRenderer
 from haptic_collab.client.safety import SafetySupervisor, ServoEvent
@@ -292,6 +292,58 @@ class ServoSnapshot:
 
 _NAN = math.nan
 
+#: Values of a published tick, in order (:attr:`ServoCore.published`): tick, t [s], probe x, y, z
+#: [m], force x, y, z [N], penetration [m], in contact, K_h [N/m], I [N/(m*s)], C_h [m/N], g.
+PUBLISHED = 14
+
+
+def snapshot_of(
+    pub: tuple[float, ...] | list[float], periods: Any, n_periods: int
+) -> ServoSnapshot:
+    """A :class:`ServoSnapshot` from a published tick (:data:`PUBLISHED` values) and the ring of
+    the last periods [s] (``n_periods`` ever written; any sequence of floats)."""
+    m = min(int(n_periods), len(periods))
+    if m:
+        v = sorted(periods[:m])
+        mean = sum(v) / m
+        p50, p99, pmax = v[(m - 1) // 2], v[int(0.99 * (m - 1))], v[-1]
+        rate = 1.0 / mean if mean > 0.0 else _NAN
+    else:
+        mean = p50 = p99 = pmax = rate = _NAN
+    n, t, x, y, z, fx, fy, fz, e, c, k_h, i_gain, own, s = pub
+    return ServoSnapshot(
+        tick=int(n),
+        t_s=t,
+        probe_m=(x, y, z),
+        force_n=(fx, fy, fz),
+        penetration_m=e,
+        in_contact=bool(c),
+        k_h=k_h,
+        i_gain=i_gain,
+        own_gain=own,
+        force_scale=s,
+        servo_rate_hz=rate,
+        period_mean_s=mean,
+        period_p50_s=p50,
+        period_p99_s=p99,
+        period_max_s=pmax,
+    )
+
+
+def clamp_to_device(
+    update: LocalModelUpdate, limits: DeviceLimits
+) -> tuple[LocalModelUpdate, bool]:
+    """``update`` with K_h clamped to ``limits.max_stiffness_n_per_m`` and B_h to
+    ``limits.max_damping_n_s_per_m``, and whether K_h was clamped (what the servo applies)."""
+    k = update.k_h
+    clamped = k > limits.max_stiffness_n_per_m
+    if clamped:
+        k = limits.max_stiffness_n_per_m
+    bh = min(update.b_h, limits.max_damping_n_s_per_m)
+    if k != update.k_h or bh != update.b_h:
+        update = replace(update, k_h=k, b_h=bh)
+    return update, clamped
+
 
 class ServoCore:
     """Sans-I/O servo core: one :meth:`tick` reads the device, renders the local model, writes.
@@ -308,6 +360,9 @@ class ServoCore:
         model with no threshold.
     recorder : TelemetryRecorder, optional
         Where each tick writes its telemetry row (default: a new 120000-row recorder).
+    period_buffer : memoryview, optional
+        Where the last ``config.period_window`` periods are kept (8 bytes each; shared memory
+        that another process reads, :mod:`client.servo_process`). Default: private memory.
 
     Attributes
     ----------
@@ -340,6 +395,7 @@ class ServoCore:
         *,
         local_model: LocalModelParams | None = None,
         recorder: TelemetryRecorder | None = None,
+        period_buffer: memoryview | None = None,
     ) -> None:
         cfg = config if config is not None else ServoConfig()
         T = cfg.servo_period_s
@@ -375,7 +431,11 @@ class ServoCore:
         self._stiffness_clamps = 0
         # latest-wins publication and period window
         self._pub: tuple[Any, ...] | None = None
-        self._periods = array.array("d", bytes(8 * cfg.period_window))
+        self._periods: Any = (
+            array.array("d", bytes(8 * cfg.period_window))
+            if period_buffer is None
+            else period_buffer.cast("B")[: 8 * cfg.period_window].cast("d")
+        )
         self._n_periods = 0
 
     # -- inputs from other threads ---------------------------------------------------------------
@@ -455,14 +515,8 @@ class ServoCore:
                 hold_ticks=1 if hold_ticks is None else hold_ticks,
                 k_o=k_o,
             )
-        lim = self.device.limits
-        k = update.k_h
-        if k > lim.max_stiffness_n_per_m:
-            k = lim.max_stiffness_n_per_m
-            self._stiffness_clamps += 1
-        bh = min(update.b_h, lim.max_damping_n_s_per_m)
-        if k != update.k_h or bh != update.b_h:
-            update = replace(update, k_h=k, b_h=bh)
+        update, stiffness_clamped = clamp_to_device(update, self.device.limits)
+        self._stiffness_clamps += stiffness_clamped
         self._patch_in = update
         return update
 
@@ -486,6 +540,11 @@ class ServoCore:
     def stopped(self) -> bool:
         """True once a requested stop finished (forces at zero and disabled)."""
         return self._stopped
+
+    @property
+    def published(self) -> tuple[Any, ...] | None:
+        """The newest tick's :data:`PUBLISHED` values (None before the first tick)."""
+        return self._pub
 
     # -- the tick ----------------------------------------------------------------------------------
     def tick(self, now_s: float) -> bool:
@@ -625,32 +684,7 @@ class ServoCore:
         pub = self._pub
         if pub is None:
             return None
-        m = min(self._n_periods, len(self._periods))
-        if m:
-            v = sorted(self._periods[:m])
-            mean = sum(v) / m
-            p50, p99, pmax = v[(m - 1) // 2], v[int(0.99 * (m - 1))], v[-1]
-            rate = 1.0 / mean if mean > 0.0 else _NAN
-        else:
-            mean = p50 = p99 = pmax = rate = _NAN
-        n, t, x, y, z, fx, fy, fz, e, c, k_h, i_gain, own, s = pub
-        return ServoSnapshot(
-            tick=n,
-            t_s=t,
-            probe_m=(x, y, z),
-            force_n=(fx, fy, fz),
-            penetration_m=e,
-            in_contact=bool(c),
-            k_h=k_h,
-            i_gain=i_gain,
-            own_gain=own,
-            force_scale=s,
-            servo_rate_hz=rate,
-            period_mean_s=mean,
-            period_p50_s=p50,
-            period_p99_s=p99,
-            period_max_s=pmax,
-        )
+        return snapshot_of(pub, self._periods, self._n_periods)
 
     def status(self) -> ServoStatus:
         """Counters per :class:`HapticError`, the last event and the safety switches."""
@@ -734,6 +768,11 @@ class ServoThread:
     def servo_rate_hz(self) -> float:
         """Set servo rate [Hz]."""
         return self.core.config.servo_rate_hz
+
+    @property
+    def overruns(self) -> int:
+        """Deadlines the loop missed and skipped so far."""
+        return self.loop.overruns
 
     @property
     def running(self) -> bool:

@@ -738,6 +738,7 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         ca_file=args.ca_file,
         gains=args.gains,
         engage=args.engage,
+        servo=args.servo,
     )
 
 
@@ -813,6 +814,14 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="how forces come on: with the device's first button (button: a press engages, the "
         "next disengages, as vendor examples do), with the first checked patch (auto), or button "
         "for a device that has buttons and auto otherwise (default %(default)s)",
+    )
+    p.add_argument(
+        "--servo",
+        choices=["auto", "process", "thread"],
+        default="auto",
+        help="run the 1 kHz servo loop (device, local model, safety) in a process of its own, "
+        "off the network link's interpreter lock (process), or in a thread of the client "
+        "(thread); auto = process (default %(default)s)",
     )
     p.add_argument(
         "--theta-mode",
@@ -1163,6 +1172,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         hand_stiffness_n_per_m=args.hand_stiffness,
         hand_damping_n_s_per_m=args.hand_damping,
         log_level=getattr(args, "log_level", "info"),
+        reference_loop=args.reference_loop,
     )
     try:
         run_demo(opts)
@@ -1180,6 +1190,12 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
     p.add_argument("--headless", action="store_true", help="do not open a browser")
     p.add_argument("--report", default=None, help="write the JSON report here")
     p.add_argument("--plot", default=None, help="write a PNG of probe, proxy and force here")
+    p.add_argument(
+        "--reference-loop",
+        action="store_true",
+        help="run a do-nothing 1 kHz loop beside the users and report its timing next to "
+        "theirs (what this machine gives any loop; it takes about a third of a core)",
+    )
     _add_shared(p, "--sim-rate", help="simulation rate [Hz]")
     _add_shared(p, "--servo-rate", help="servo rate [Hz]")
     _add_shared(p, "--latency-ms")

@@ -103,6 +103,10 @@ class DemoOptions:
     hand_stiffness_n_per_m: float | None = None
     hand_damping_n_s_per_m: float | None = None
     log_level: str = "info"
+    #: Run a do-nothing 1 kHz loop (``bench_servo --minimal-only``) beside the users for the
+    #: demo's duration: what this machine's scheduler gives any loop, for the users' servo
+    #: timing to be read against (it takes about a third of a core).
+    reference_loop: bool = False
 
     def hand_args(self) -> list[str]:
         """``haptic client`` flags for the simulated hand values that were given (both users)."""
@@ -284,6 +288,8 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         hint = f"#token={token}"
     logs = {k: open(work / f"{k}.log", "w") for k in ("server", "A", "B")}  # noqa: SIM115
     procs: dict[str, subprocess.Popen[bytes]] = {}
+    reference: subprocess.Popen[bytes] | None = None
+    reference_stats: dict[str, Any] | None = None
     try:
         procs["server"] = subprocess.Popen(
             server_cmd, stdout=logs["server"], stderr=subprocess.STDOUT, env=env
@@ -332,6 +338,22 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                 stderr=subprocess.STDOUT,
                 env=env,
             )
+        if opts.reference_loop:
+            reference = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "haptic_collab.client.bench_servo",
+                    "--minimal-only",
+                    "--duration",
+                    f"{opts.duration_s:g}",
+                    "--rate",
+                    f"{opts.servo_rate_hz:g}",
+                ],  # fmt: skip
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                env=env,
+            )
         _progress(opts, procs, port, tl)
         for name in ("A", "B"):
             rc = procs[name].wait(timeout=60.0)
@@ -341,7 +363,13 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                     + (work / f"{name}.log").read_text()[-3000:]
                 )
         server_status = _status(opts.host, port) or {}
+        if reference is not None:
+            out, _ = reference.communicate(timeout=opts.duration_s + 30.0)
+            with contextlib.suppress(ValueError):
+                reference_stats = json.loads(out)
     finally:
+        if reference is not None and reference.poll() is None:
+            reference.kill()
         for p in procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
@@ -353,6 +381,15 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         for f in logs.values():
             f.close()
     report = build_report(work, tl, server_status, opts)
+    if reference_stats is not None:
+        report["reference_loop"] = {
+            k: reference_stats.get(k)
+            for k in ("rate_hz", "period_p99_us", "period_max_us", "missed_per_s", "realtime")
+        }
+        ref_p99 = reference_stats.get("period_p99_us")
+        for u in report["users"].values():
+            p99 = u.get("period_us_p99")
+            u["period_p99_vs_reference"] = p99 / ref_p99 if p99 and ref_p99 else None
     report["workdir"] = str(work) if opts.workdir is not None else None  # a temp one is deleted
     if opts.report:
         opts.report.parent.mkdir(parents=True, exist_ok=True)
@@ -444,6 +481,22 @@ def hold_shake_mm(
     return worst
 
 
+def missed_per_s(
+    t_s: np.ndarray, period_s: np.ndarray, servo_rate_hz: float, skip_s: float = 1.0
+) -> float:
+    """Servo deadlines missed per second after the first ``skip_s`` [s] of the recording: a
+    period of k > 1.5 servo periods skipped round(k) - 1 deadlines (the scheduler's late
+    tolerance, :class:`client.scheduler.DeadlineLoop`)."""
+    if t_s.size < 2:
+        return float("nan")
+    keep = (t_s > t_s[0] + skip_s) & np.isfinite(period_s)
+    span = float(t_s[keep][-1] - t_s[keep][0]) if keep.sum() > 1 else 0.0
+    if span <= 0.0:
+        return float("nan")
+    k = period_s[keep] * servo_rate_hz
+    return float(np.sum(np.where(k > 1.5, np.round(k) - 1.0, 0.0)) / span)
+
+
 def _user_report(
     cols: dict[str, np.ndarray], summary: dict[str, Any], hold: tuple[float, float]
 ) -> dict[str, Any]:
@@ -458,6 +511,11 @@ def _user_report(
         "stable": bool(np.isfinite(p2p) and p2p < STABLE_P2P_MM and faults == 0),
         "mean_force_during_hold_n": float(np.nanmean(cols["force_n"][w])) if w.any() else None,
         "servo_overruns": summary.get("servo_overruns"),
+        "servo_missed_per_s": missed_per_s(
+            cols["t_s"], cols["period_s"], float(summary.get("servo_rate_hz_set") or 1000.0)
+        ),
+        "servo_host": summary.get("servo_host"),
+        "servo_realtime": summary.get("servo_realtime"),
         "patches": summary.get("patches"),
         "delay_ticks_last": summary.get("delay_ticks_last"),
     }
@@ -640,13 +698,25 @@ def coupling_report(
 def print_summary(report: dict[str, Any]) -> None:
     """A readable table of the report."""
     print()
-    print(f"{'user':<6}{'servo Hz':>10}{'p99 us':>9}{'max N':>8}{'hold p2p mm':>13}{'stable':>8}")
+    print(
+        f"{'user':<6}{'servo Hz':>10}{'p99 us':>9}{'missed/s':>10}{'max N':>8}"
+        f"{'hold p2p mm':>13}{'stable':>8}"
+    )
     for name, u in report["users"].items():
         rate = u["servo_rate_hz"] or float("nan")
         p99 = u["period_us_p99"] or float("nan")
+        missed = u.get("servo_missed_per_s")
+        missed = float("nan") if missed is None else missed
         print(
-            f"{name:<6}{rate:>10.1f}{p99:>9.0f}{u['max_force_n']:>8.2f}"
+            f"{name:<6}{rate:>10.1f}{p99:>9.0f}{missed:>10.2f}{u['max_force_n']:>8.2f}"
             f"{u['hold_oscillation_mm']:>13.3f}{'yes' if u['stable'] else 'NO':>8}"
+        )
+    ref = report.get("reference_loop")
+    if ref:
+        print(
+            f"{'ref':<6}{ref.get('rate_hz') or float('nan'):>10.1f}"
+            f"{ref.get('period_p99_us') or float('nan'):>9.0f}"
+            f"{ref.get('missed_per_s') or 0.0:>10.2f}  (a do-nothing loop beside the users)"
         )
     c = report["coupling"]
     if c["b_force_rise_n"] is None:

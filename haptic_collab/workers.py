@@ -81,10 +81,10 @@ def check_worker() -> None:
 
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
-    _die_with_parent()
+    die_with_parent()
 
 
-def _die_with_parent() -> None:
+def die_with_parent() -> None:
     """Linux: have the kernel send this worker SIGTERM when its parent dies (``prctl``), so a
     server or client that is killed leaves no design worker behind; elsewhere a no-op."""
     import ctypes
