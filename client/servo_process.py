@@ -475,10 +475,12 @@ def _servo_main(
     logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s servo: %(message)s")
     die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the link process's to handle
-    stop_asked = threading.Event()
+    # a plain flag: a signal handler must take no lock (a second SIGTERM arriving while the
+    # first handler held an Event's lock deadlocked the servo process)
+    stop_asked = [False]
 
     def on_term(signum: int, frame: object) -> None:
-        stop_asked.set()
+        stop_asked[0] = True
 
     signal.signal(signal.SIGTERM, on_term)
     block = SharedBlock(capacity, period_window, name=block_name)
@@ -539,7 +541,7 @@ def _run_loop(
     clock_origin_s: float,
     parent_pid: int,
     realtime_priority: int | None,
-    stop_asked: threading.Event,
+    stop_asked: list[bool],
 ) -> None:
     perf = time.perf_counter
 
@@ -566,7 +568,7 @@ def _run_loop(
         realtime = try_realtime_priority(realtime_priority)
 
     def tick(now_s: float) -> bool:
-        if stop_asked.is_set() and not bridge.stop_seen:
+        if stop_asked[0] and not bridge.stop_seen:
             bridge.stop_seen = True
             core.request_stop()
         if device.fault is not None and not (reopening and reopening[0].is_alive()):
