@@ -34,7 +34,7 @@ from haptic_collab.client.devices import DeviceLimits, DeviceOpener
 from haptic_collab.client.devices.base import Device
 from haptic_collab.client.devices.hid import HidPort
 from haptic_collab.client.devices.profiles import get_sim_profile
-from haptic_collab.client.link import Link
+from haptic_collab.client.link import DesignWorkers, Link
 from haptic_collab.client.recorder import CsvRecording, TelemetryRecorder
 from haptic_collab.client.servo import (
     ServoConfig,
@@ -55,6 +55,7 @@ from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, 
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import DeviceInfo, Welcome
 from haptic_collab.shared.stability import rate_ratio
+from haptic_collab.workers import stop_pool
 
 log = logging.getLogger("haptic.client")
 
@@ -337,8 +338,8 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
     The device is checked and (a HID device) opened before any network: a bad ``--device`` or
     a device that cannot be opened raises :class:`client.devices.DeviceError` at once, with no
     connection made. With the servo in its own process (``opts.servo``), that process is
-    started first and opens the device; a simulated device's spec is also checked here at
-    once, and the client joins while the servo process starts. ``--record`` streams to its file
+    started first (forked: in a few milliseconds) and opens the device. ``--record`` streams to
+    its file
     while the client runs (:class:`client.recorder.CsvRecording`); the recording and the summary
     are written however the run ends (duration, SIGINT or SIGTERM with ``stop_on_signals``,
     cancellation, error).
@@ -365,28 +366,31 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
     # bounded memory: the ring holds the last two minutes; --record streams everything to disk
     capacity = int(opts.servo_rate_hz * min(opts.duration_s or 120.0, 120.0)) + 2000
     host = _servo_host(opts, origin_s, capacity)
+    workers: DesignWorkers | None = None
     try:
         if isinstance(host, ServoProcess):
             host.spawn()
-            if opts.device.startswith("sim:"):
-                # nothing to hold: check the spec here at once, join while the process starts
-                DeviceOpener(
-                    opts.device,
-                    profile=opts.profile,
-                    trajectory_options=opts.trajectory or None,
-                    servo_rate_hz=opts.servo_rate_hz,
-                ).check()
-            else:  # hardware: opened by the servo process before any network
-                await asyncio.to_thread(host.wait_checked)
+        try:  # forked while this process has one thread: the first check runs there at once
+            workers = DesignWorkers.start()
+        except (RuntimeError, OSError) as exc:
+            log.warning("gain design runs in a thread, not a worker process: %s", exc)
+        if isinstance(host, ServoProcess):  # it checks and opens the device before any network
+            await asyncio.to_thread(host.wait_checked)
         else:
             host.check()  # before any network: DeviceError with one line
-        return await _run(opts, host, origin_s)
+        return await _run(opts, host, origin_s, workers)
     finally:
+        if workers is not None:  # the link stops them too; this covers a link never run
+            stop_pool(workers.design)
+            stop_pool(workers.check)
         host.close()
 
 
 async def _run(
-    opts: ClientOptions, host: _ThreadServo | ServoProcess, origin_s: float
+    opts: ClientOptions,
+    host: _ThreadServo | ServoProcess,
+    origin_s: float,
+    workers: DesignWorkers | None,
 ) -> dict[str, Any]:
     info = _device_info(opts, host.limits)
     session = ClientSession(
@@ -542,6 +546,7 @@ async def _run(
         on_welcome=on_welcome,
         token=opts.token,
         ca_file=opts.ca_file,
+        workers=workers,
     )
     stop = asyncio.Event()
     link_task = asyncio.create_task(link.run(stop))

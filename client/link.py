@@ -7,14 +7,15 @@ loop through ``on_patch``, and reconnects with exponential backoff when the serv
 servo loop never waits on any of this: when the link falls silent it ramps its forces to zero by its
 own timeout.
 
-Two worker processes (spawned when the link starts) keep the numerical work off the event loop
-and off the servo thread's interpreter lock: one runs gain designs (a second or more each, then
-the likely next cells), the other the short checks of interim gains
-(:func:`client.session.interim_design`, about 0.1 s), so a check is never queued behind a
-design. After each design or check the checker verifies gains for the neighbouring cells and one
-more tick of delay ahead of need. The one exception is the check a first contact waits for:
-nothing is rendered yet (forces are off), so it runs at once in a thread of this process rather
-than waiting for a worker to start.
+Two worker processes (:class:`DesignWorkers`; ``haptic client`` forks them first thing, before
+it has other threads, so they start with the design code imported) keep the numerical work off
+the event loop: one runs gain designs (a second or more each, then the likely next cells) at low
+priority, the other the short checks of interim gains (:func:`client.session.interim_design`,
+about 0.1 s) at normal priority, so a check is never queued behind a design. After each design
+or check the checker verifies gains for the neighbouring cells and one more tick of delay ahead
+of need. Spawned workers (a link started without them, after other threads exist) import the
+design code first; the check a first contact waits for then runs in a thread of this process
+rather than waiting for that.
 
 Security: the link presents a token in ``hello`` (``token=`` or the ``HAPTIC_TOKEN`` environment
 variable) and never logs it; a ``wss://`` URL is verified against the system's CAs or ``ca_file``
@@ -32,9 +33,10 @@ import multiprocessing
 import os
 import random
 import ssl
+import threading
 from collections.abc import Callable
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
@@ -75,6 +77,53 @@ def likely_next(key: GainKey, cell: int) -> tuple[tuple[GainKey, int], ...]:
     return tuple(out)
 
 
+@dataclass
+class DesignWorkers:
+    """The link's two worker processes: gain designs and checks ahead of need (niced), and the
+    checks a contact waits for (normal priority), each one process with one job at a time.
+
+    Built with :meth:`start`. While the client process has a single thread (``haptic client``
+    starts them first thing, right after the servo process) they are forked: they start with
+    the design code already imported, so even a first contact's check runs in a worker at once,
+    never in the link's process. Otherwise they are spawned (forking a process whose other
+    threads may hold locks is unsafe) and import the design code while the client joins.
+
+    Attributes
+    ----------
+    design, check : ProcessPoolExecutor
+        The two pools.
+    check_warm : Future
+        Done once the check worker can take a check (at once when forked).
+    forked : bool
+        The workers were forked.
+    """
+
+    design: Executor
+    check: Executor
+    check_warm: Future[None]
+    forked: bool
+
+    @classmethod
+    def start(cls) -> DesignWorkers:
+        """Start both workers now.
+
+        Raises
+        ------
+        RuntimeError, OSError
+            They could not be started (e.g. spawned from a script without a ``__main__`` guard).
+        """
+        fork = threading.active_count() == 1 and "fork" in multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("fork" if fork else "spawn")
+        # the check worker first: forked while this process still has one thread (the design
+        # pool's fork comes after the check pool's manager thread started; it touches nothing
+        # of that pool)
+        check = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=check_worker)
+        warm = check.submit(warm_up_worker)
+        design = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=background_worker)
+        design.submit(warm_up_worker)
+        return cls(design=design, check=check, check_warm=warm, forked=fork)
+
+
 class Unauthorized(Exception):
     """The server refused this client's token (``unauthorized``): retrying cannot help."""
 
@@ -111,6 +160,10 @@ class Link:
     ca_file : str, optional
         PEM file of the CA that signed a ``wss://`` server's certificate (default:
         ``$HAPTIC_CA_FILE``, else the system's CAs).
+    workers : DesignWorkers, optional
+        Worker processes started earlier (:meth:`DesignWorkers.start`, forked before the client
+        had other threads); the link uses them as its own and stops them on close. Default:
+        started with the link. Ignored with a ``design_executor``.
     """
 
     def __init__(
@@ -127,8 +180,10 @@ class Link:
         check_executor: Executor | None = None,
         token: str | None = None,
         ca_file: str | None = None,
+        workers: DesignWorkers | None = None,
     ) -> None:
         self.url = url
+        self._workers = workers
         self._token = token if token is not None else (os.environ.get(TOKEN_ENV) or None)
         self.ca_file = ca_file if ca_file is not None else (os.environ.get(CA_FILE_ENV) or None)
         self.session = session
@@ -249,11 +304,12 @@ class Link:
             key, cell, candidates, asked_s = queue.pop(0)
             if (key, cell) in session.interim or table.lookup(key, table.grid_point(cell) * 1.0001):
                 continue
-            # Before anything is rendered (a first contact, or after a rejoin) forces are off,
-            # so the servo thread's timing is not felt: while the check worker is still starting
-            # check in a thread here, at once; once it is up, there (in the thread the check
-            # shares the interpreter lock with the servo thread: 0.7 s for a check of 0.1 s in
-            # the FEM demo, 3.5 s and more on Ecoflex's K_o of 3.4 kN/m).
+            # Before anything is rendered (a first contact, or after a rejoin) forces are off:
+            # while a spawned check worker is still importing, check in a thread here, at once
+            # (a forked worker is ready at once and this never happens). With the servo as a
+            # thread of this process that thread shares the servo's interpreter lock (0.7 s for
+            # a check of 0.1 s in the FEM demo, 3.5 s and more on Ecoflex's K_o of 3.4 kN/m);
+            # with the servo in its own process it holds up only this link.
             first = not ahead and session.last_update is None and not self._checker_ready()
             executor = self._first_thread() if first else self._executor if ahead else self._checker
             try:
@@ -307,18 +363,12 @@ class Link:
         if self._executor is None:
             self._own_executor = True
             try:
-                ctx = multiprocessing.get_context("spawn")
                 # designs and checks ahead of need at low priority; the checks a rendered
                 # contact waits for at normal priority (haptic_collab.workers)
-                self._executor = ProcessPoolExecutor(
-                    max_workers=1, mp_context=ctx, initializer=background_worker
-                )
-                self._checker = ProcessPoolExecutor(
-                    max_workers=1, mp_context=ctx, initializer=check_worker
-                )
-                # start both workers while the client joins
-                self._executor.submit(warm_up_worker)
-                self._checker_warm = self._checker.submit(warm_up_worker)
+                workers = self._workers if self._workers is not None else DesignWorkers.start()
+                self._workers = None
+                self._executor, self._checker = workers.design, workers.check
+                self._checker_warm = workers.check_warm
             except (RuntimeError, OSError) as exc:
                 # e.g. a script without the ``if __name__ == "__main__"`` guard: design in a
                 # thread instead (it then shares the interpreter lock with the servo thread)
@@ -332,7 +382,11 @@ class Link:
             self._checker = self._executor
 
     def close(self) -> None:
-        """Stop the workers (if this link started them)."""
+        """Stop the workers (if this link started them, or was handed them)."""
+        if self._workers is not None:  # handed over but never used
+            stop_pool(self._workers.design)
+            stop_pool(self._workers.check)
+            self._workers = None
         if self._own_executor:
             for ex in {id(e): e for e in (self._executor, self._checker) if e is not None}.values():
                 stop_pool(ex)  # a running design must not hold up the client's exit

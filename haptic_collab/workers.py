@@ -77,10 +77,20 @@ def check_worker() -> None:
     """Initializer of a client's interim-check worker: one BLAS thread, dies with its parent, at
     normal priority: a contact renders conservative unverified gains until its check is done,
     so the check must not yield to the designs (niced, :func:`background_worker`)."""
+    import gc
     import os
+    import signal
 
+    gc.freeze()  # a forked worker: what it inherited is never scanned (nor copied by the scan)
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
+    # Ctrl-C reaches the whole process group: the parent stops its workers itself (stop_pool);
+    # a forked worker must not answer it with its parent's asyncio handler or wake-up fd
+    try:
+        signal.set_wakeup_fd(-1)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread (a thread pool standing in for a worker)
+        pass
     die_with_parent()
 
 
