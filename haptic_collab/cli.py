@@ -680,12 +680,15 @@ def _cmd_client(args: argparse.Namespace) -> int:
     import asyncio
 
     from haptic_collab.client.app import run_client
+    from haptic_collab.client.servo_process import ServoProcessError
 
     _configure_logging(args)
     opts = _client_options(args)
     try:
         summary = asyncio.run(run_client(opts))
     except (ValueError, ConnectionError) as exc:  # DeviceError too: before any network
+        raise CliError(_why(exc)) from None
+    except ServoProcessError as exc:  # the servo process died (summary and recording written)
         raise CliError(_why(exc)) from None
     except OSError as exc:  # e.g. the --record file cannot be created
         raise CliError(_why(exc)) from None

@@ -266,3 +266,52 @@ def test_the_servo_tick_holds_no_new_memory_and_never_needs_the_collector() -> N
         device.close()
         block.release()
         block.shm.unlink()
+
+
+async def test_a_client_whose_servo_process_is_killed_stops_with_the_reason(tmp_path: Path) -> None:
+    """``haptic client`` end to end: the servo process killed mid-press ends the client with an
+    error naming the signal; the force it reported to the server ramped to zero first, and the
+    summary and recording are written."""
+    import asyncio
+
+    from haptic_collab.client.app import ClientOptions, run_client
+    from haptic_collab.client.recorder import load_recording
+    from haptic_collab.client.servo_process import ServoProcessError
+    from haptic_collab.server.app import ServerApp
+    from haptic_collab.server.main import ServerOptions, build_world
+    from haptic_collab.server.room import Room
+
+    world = build_world(ServerOptions(sim_rate_hz=20.0, subdivisions=3))
+    app = ServerApp(Room(world, 20.0), "127.0.0.1", 0)
+    await app.start()
+    record, summary = tmp_path / "A.csv", tmp_path / "A.json"
+    opts = ClientOptions(
+        url=f"ws://127.0.0.1:{app.port}/ws", name="A", device="sim:rest", anchor="top",
+        record=record, summary=summary, duration_s=60.0, servo="process",
+    )  # fmt: skip
+    client = asyncio.create_task(run_client(opts))
+    try:
+        t_end = time.monotonic() + 60.0
+        while time.monotonic() < t_end:
+            await asyncio.sleep(0.1)
+            if record.exists():
+                rows = load_recording(record)
+                if rows["force_n"].size > 300 and np.all(rows["force_n"][-300:] > 0.05):
+                    break
+        else:
+            raise AssertionError("the client never rested on the object with forces on")
+        import multiprocessing
+
+        servo = [p for p in multiprocessing.active_children() if p.name == "haptic-servo"]
+        assert len(servo) == 1 and servo[0].pid is not None
+        os.kill(servo[0].pid, signal.SIGKILL)
+        with pytest.raises(ServoProcessError, match="SIGKILL"):
+            await asyncio.wait_for(client, 10.0)
+    finally:
+        if not client.done():
+            client.cancel()
+        await app.stop()
+    s = json.loads(summary.read_text())
+    assert s["stopped_by"] == "error" and s["servo_host"] == "process"
+    assert "SIGKILL" in (s["servo"]["error"] or "")
+    assert s["record"]["rows"] > 300
