@@ -156,3 +156,20 @@ def test_b_resting_with_other_gains_is_not_the_baseline() -> None:
     assert c["b_force_at_rest_n"] == pytest.approx(REST_N, abs=2e-3)
     assert c["b_surface_displacement_mm"] == pytest.approx(BULGE_M * 1000.0, abs=0.02)
     assert c["b_feels_a"] is True
+
+
+def test_b_designed_coupled_gains_during_the_hold_still_have_a_baseline() -> None:
+    # B's designed gains for its side coupled to A's press (194 N/m) arrive while A presses and
+    # replace the uncoupled ones (214 N/m) it rested with: 9 % apart, they leave B's rest as the
+    # baseline (the lower K_h lowers B's force in the hold: it can only hide a rise), reported
+    # with both K_h; a quarter-K_o fallback stays out (the test above)
+    b, (tl, hold) = telemetry(12.0, onset_s=1.0)
+    t = b["t_s"]
+    coupled = t >= tl.contact_s + 0.3
+    b["k_h_n_per_m"] = np.where(coupled, 194.4, 213.9)
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["baseline"] == "before A's press"
+    assert c["b_k_h_at_rest_n_per_m"] == pytest.approx(213.9)
+    assert c["b_k_h_during_a_press_n_per_m"] == pytest.approx(194.4)
+    assert c["b_force_rise_n"] == pytest.approx(HOLD_N - REST_N, abs=2e-3)
+    assert c["b_feels_a"] is True
