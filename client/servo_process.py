@@ -37,8 +37,8 @@ Loss of the other side:
   reports the death at once (:attr:`ServoProcess.died_at_s`, ``on_death``); from then on
   :meth:`ServoProcess.latest` reports the last force ramping to zero over ``ramp_s``, so the
   object the server simulates is released smoothly, and ``haptic client`` stops with an error.
-  The device itself is then in its own hands: a vendor driver's watchdog (OpenHaptics'
-  scheduler, a HID device's timeout) stops its forces; a simulated device has none to stop.
+  The device itself is then in its own hands: the vendor driver's or the device's own watchdog
+  stops its forces once the process holding it is gone; a simulated device has none to stop.
 
 The seqlock relies on the stores of one process being seen in order by the other (x86-64's
 memory model); each store here is one aligned 8-byte write made by CPython's C code.
