@@ -315,3 +315,26 @@ async def test_a_client_whose_servo_process_is_killed_stops_with_the_reason(tmp_
     assert s["stopped_by"] == "error" and s["servo_host"] == "process"
     assert "SIGKILL" in (s["servo"]["error"] or "")
     assert s["record"]["rows"] > 300
+
+
+def test_a_bad_device_is_refused_by_the_servo_process_before_the_network() -> None:
+    """The servo process opens the device; a spec it cannot use still stops ``haptic client``
+    with the one-line error before any connection is made."""
+    import asyncio
+    import socket
+
+    from haptic_collab.client.app import ClientOptions, run_client
+    from haptic_collab.client.devices import DeviceError
+
+    with socket.create_server(("127.0.0.1", 0)) as srv:
+        srv.setblocking(False)
+        opts = ClientOptions(
+            url=f"ws://127.0.0.1:{srv.getsockname()[1]}/ws",
+            device="sim:juggle",
+            servo="process",
+            join_timeout_s=30.0,
+        )
+        with pytest.raises(DeviceError, match="unknown simulated device 'sim:juggle'"):
+            asyncio.run(run_client(opts))
+        with pytest.raises(BlockingIOError):
+            srv.accept()  # no connection was ever made
