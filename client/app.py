@@ -272,7 +272,6 @@ class _ThreadServo:
         self.clock = clock
         self.counters = {"device_faults": 0, "device_reopens": 0}
         self.realtime = False
-        self.death: str | None = None
         self.device: Device | None = None
         self.servo: ServoThread | None = None
         self._watch_stop = threading.Event()
@@ -434,13 +433,16 @@ async def _run(
             state["error"] = exc
         halt.set()
 
-    def on_servo_death(reason: str) -> None:  # from the servo monitor's thread
-        # the link reports the last force ramping to zero meanwhile (ServoProcess.latest)
-        ramp = ServoConfig().ramp_s
-        loop.call_soon_threadsafe(loop.call_later, ramp + 0.05, fail, ServoProcessError(reason))
-
     if isinstance(host, ServoProcess):
-        host.on_death = on_servo_death
+        process = host
+
+        def on_servo_death(reason: str) -> None:  # from the servo monitor's thread
+            # the link reports the last force ramping to zero meanwhile (ServoProcess.latest)
+            loop.call_soon_threadsafe(
+                loop.call_later, process.ramp_s + 0.05, fail, ServoProcessError(reason)
+            )
+
+        process.on_death = on_servo_death
 
     def on_welcome(welcome: Welcome) -> None:
         if state["starting"] is not None or state["error"] is not None:
@@ -467,8 +469,7 @@ async def _run(
             ) from None
         anchor, normal = _anchor(opts, welcome)
         state["anchor"] = {"point_m": list(anchor), "normal": list(normal)}
-        if isinstance(host, ServoProcess):
-            await asyncio.to_thread(host.wait_checked)
+        if isinstance(host, ServoProcess):  # checked before the network (run_client)
             device = await asyncio.to_thread(host.build, anchor, normal)
         else:
             device = host.build(anchor, normal)

@@ -94,14 +94,11 @@ class DesignWorkers:
         The two pools.
     check_warm : Future
         Done once the check worker can take a check (at once when forked).
-    forked : bool
-        The workers were forked.
     """
 
     design: Executor
     check: Executor
     check_warm: Future[None]
-    forked: bool
 
     @classmethod
     def start(cls) -> DesignWorkers:
@@ -121,7 +118,7 @@ class DesignWorkers:
         warm = check.submit(warm_up_worker)
         design = ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=background_worker)
         design.submit(warm_up_worker)
-        return cls(design=design, check=check, check_warm=warm, forked=fork)
+        return cls(design=design, check=check, check_warm=warm)
 
 
 class Unauthorized(Exception):

@@ -99,7 +99,7 @@ class TelemetryRecorder:
         self.capacity = int(capacity)
         self._ncols = len(COLUMNS)
         self._row = struct.Struct(f"{self._ncols}d")
-        size = 8 * self._ncols * self.capacity
+        size = self.nbytes(self.capacity)
         if (buffer is None) != (counter is None):
             raise ValueError("buffer and counter go together")
         if buffer is None or counter is None:

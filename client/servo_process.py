@@ -915,7 +915,7 @@ class ServoProcess:
         snap = snapshot_of(pub, periods, int(pub[0]))
         if self.died_at_s is None:
             return snap
-        ramp = self._config.ramp_s if self._config is not None else ServoConfig().ramp_s
+        ramp = self.ramp_s
         g = max(0.0, 1.0 - (self._clock() - self.died_at_s) / ramp)
         fx, fy, fz = snap.force_n
         return replace(snap, force_n=(g * fx, g * fy, g * fz), force_scale=g * snap.force_scale)
@@ -959,6 +959,12 @@ class ServoProcess:
         return status
 
     @property
+    def ramp_s(self) -> float:
+        """The loop's force ramp time [s] (``ServoConfig.ramp_s``; the default before
+        :meth:`start`)."""
+        return (self._config or ServoConfig()).ramp_s
+
+    @property
     def overruns(self) -> int:
         """Deadlines the loop missed and skipped so far."""
         return int(self.block.hdr[_OVERRUNS])
@@ -978,8 +984,8 @@ class ServoProcess:
         bool
             True if the process ended by itself (False: it had to be terminated).
         """
-        self._stopping = self.died_at_s is None
-        ramp = self._config.ramp_s if self._config is not None else ServoConfig().ramp_s
+        self._stopping = True  # an end from here on is no death (one already seen was reported)
+        ramp = self.ramp_s
         wait = ramp + 1.0 if timeout_s is None else timeout_s
         proc = self._proc
         ok = True
