@@ -173,3 +173,17 @@ def test_b_designed_coupled_gains_during_the_hold_still_have_a_baseline() -> Non
     assert c["b_k_h_during_a_press_n_per_m"] == pytest.approx(194.4)
     assert c["b_force_rise_n"] == pytest.approx(HOLD_N - REST_N, abs=2e-3)
     assert c["b_feels_a"] is True
+
+
+def test_missed_deadlines_count_the_skipped_periods_after_the_first_second() -> None:
+    from haptic_collab.demo import missed_per_s
+
+    t = np.arange(0.0, 5.0, 1e-3)
+    period = np.full_like(t, 1e-3)
+    period[0] = np.nan
+    period[500] = 4e-3  # in the first second: start-up, not counted
+    period[2000] = 2e-3  # one deadline skipped
+    period[3000] = 3.1e-3  # two skipped
+    period[3500] = 1.4e-3  # late but within the tolerance: none
+    span = t[-1] - t[t > 1.0][0]
+    assert missed_per_s(t, period, 1000.0) == pytest.approx(3.0 / span)
