@@ -374,10 +374,7 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
         except (RuntimeError, OSError) as exc:
             log.warning("gain design runs in a thread, not a worker process: %s", exc)
         if isinstance(host, ServoProcess):  # it checks and opens the device before any network
-            if host.answered():  # usually: it came while the workers were forked
-                host.wait_checked()  # no thread to start (5 ms of a cold start)
-            else:  # a device that takes long to open: Ctrl-C still ends the wait
-                await asyncio.to_thread(host.wait_checked)
+            await asyncio.to_thread(host.wait_checked)
         else:
             host.check()  # before any network: DeviceError with one line
         return await _run(opts, host, origin_s, workers)

@@ -804,15 +804,6 @@ class ServoProcess:
         child.close()
         self._proc, self._conn = proc, parent
 
-    def answered(self) -> bool:
-        """Whether the servo process's next answer (e.g. the device check's) is already waiting,
-        so that :meth:`wait_checked` returns without blocking (False before :meth:`spawn`)."""
-        conn = self._conn
-        try:
-            return conn is not None and self._monitor is None and conn.poll(0)
-        except (OSError, EOFError):
-            return True  # the process is gone: wait_checked says why at once
-
     def wait_checked(self) -> None:
         """Wait until the servo process checked and opened the device (:meth:`spawn` first);
         returns at once once it has.

@@ -318,28 +318,6 @@ async def test_a_client_whose_servo_process_is_killed_stops_with_the_reason(tmp_
     assert s["record"]["rows"] > 300
 
 
-def test_the_device_check_is_taken_without_waiting_once_it_has_come() -> None:
-    """``haptic client`` takes the servo process's device check on its own thread when it is
-    already there (no thread to start at a cold start): ``answered`` says so, and only then."""
-    sp = ServoProcess(
-        {"spec": "sim:press", "servo_rate_hz": 1000.0},
-        clock_origin_s=time.perf_counter(),
-        capacity=2_000,
-    )
-    try:
-        assert not sp.answered()  # nothing spawned, nothing to take
-        sp.spawn()
-        deadline = time.monotonic() + 30.0
-        while not sp.answered():
-            assert time.monotonic() < deadline, "the servo process never answered its check"
-            time.sleep(0.005)
-        sp.wait_checked()
-        assert sp.limits is not None and sp.limits.max_force_n > 0.0
-        assert not sp.answered()  # checked once; later answers belong to build and start
-    finally:
-        sp.close()
-
-
 def test_a_bad_device_is_refused_by_the_servo_process_before_the_network() -> None:
     """The servo process opens the device; a spec it cannot use still stops ``haptic client``
     with the one-line error before any connection is made."""
