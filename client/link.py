@@ -60,19 +60,29 @@ TOKEN_ENV = "HAPTIC_TOKEN"
 CA_FILE_ENV = "HAPTIC_CA_FILE"
 
 
+#: Cells of the gain table below a lone contact's own that its coupled class is checked for ahead
+#: of need (:func:`likely_next`): a second user's press lowered K_o_eff by 12 % in the demo, two
+#: cells of 10 %.
+COUPLED_CELLS_BELOW = 2
+
+
 def likely_next(key: GainKey, cell: int) -> tuple[tuple[GainKey, int], ...]:
     """The (key, cell) a contact in ``cell`` of ``key`` most likely needs next, most likely first.
 
-    The same cell coupled to another user, class 2 when the contact is alone: it covers every
-    coupling up to K_o_stiff / K_o_eff = 2 (:meth:`ClientSession._covering`), the class of a
-    second user's press on a balloon or a solid box (1.2-1.4); without it ready, the contact
-    renders conservative unverified gains when a second user arrives for as long as a check
-    takes (1-1.5 s in the demo on 2 cores, the force halved). Then one more tick of delay, and
-    the cells just below and above (the contact moves, K_o changes).
+    The same cell coupled to another user, class 2 when the contact is alone, and the two
+    cells below (:data:`COUPLED_CELLS_BELOW`): class 2 covers every coupling up to K_o_stiff /
+    K_o_eff = 2 (:meth:`ClientSession._covering`), the class of a second user's press on a
+    balloon or a solid box (1.2-1.4), and that press lowers K_o_eff by 12 % in the demo: two
+    cells of the gain table. Without them ready the contact renders conservative unverified
+    gains when a second user arrives, for as long as a check takes (0.15-0.3 s in the demo on 2
+    cores: no own-force compensation, so the surface gives way under the user's own push, 12 mm
+    on the balloon, and the force falls). Then one more tick of delay, and the cells just below
+    and above (the contact moves, K_o changes).
     """
     out: list[tuple[GainKey, int]] = []
     if key.stiff_ratio == 1.0:
-        out.append((replace(key, stiff_ratio=2.0), cell))
+        coupled = replace(key, stiff_ratio=2.0)
+        out += [(coupled, cell - j) for j in range(COUPLED_CELLS_BELOW + 1)]
     out += [(replace(key, delay_ticks=key.delay_ticks + 1), cell), (key, cell - 1), (key, cell + 1)]
     return tuple(out)
 
@@ -277,28 +287,64 @@ class Link:
         """Check interim gains: the ones the session needs now in the check executor, the ones
         ahead of need in the design executor, each in turn.
 
-        The check worker runs only checks a rendered contact waits for: one ahead of need there
+        The check worker runs the checks a rendered contact waits for: one ahead of need there
         (0.1-0.5 s each, seconds on a busy 2-core machine) held up a needed one behind it, and
         meanwhile the contact rendered conservative unverified gains (:mod:`client.session`).
+        The one exception are the coupled classes ahead of need (:func:`likely_next`): they go to
+        the check worker while no needed check waits, one at a time. Behind the design worker's
+        full designs (seconds each) they came 5-15 s after the first contact, after a second
+        user's press in the demo, which then rendered unverified gains; a needed check now waits
+        behind at most one of them.
         """
         want = self.session.interim_wanted
         if want is not None:
             self.session.interim_wanted = None
             self._queue_check(*want, ahead=False)
-        if self._check_queue and (self._check_task is None or self._check_task.done()):
+        if (self._check_queue or self._coupled_ahead() is not None) and (
+            self._check_task is None or self._check_task.done()
+        ):
             self._ensure_executor()
             self._check_task = asyncio.get_running_loop().create_task(self._run_checks(False))
         if self._ahead_queue and (self._ahead_task is None or self._ahead_task.done()):
             self._ensure_executor()
             self._ahead_task = asyncio.get_running_loop().create_task(self._run_checks(True))
 
-    async def _run_checks(self, ahead: bool) -> None:
+    def _to_checker(self, key: GainKey) -> bool:
+        """Whether a check of ``key`` ahead of need is the check worker's: a coupled class, when
+        the checks have a worker of their own (:meth:`_start_check`)."""
+        return key.stiff_ratio > 1.0 and not (
+            self._checker is not None and self._checker is self._executor
+        )
+
+    def _coupled_ahead(self) -> int | None:
+        """Index of the first check ahead of need that is the check worker's, if any."""
+        for i, (key, _, _, _) in enumerate(self._ahead_queue):
+            if self._to_checker(key):
+                return i
+        return None
+
+    def _next_check(
+        self, ahead_task: bool
+    ) -> tuple[tuple[GainKey, int, tuple[GainDesign, ...], float], bool] | None:
+        """The next check of the check task (``ahead_task`` False: the needed ones, then the
+        coupled classes ahead of need) or of the ahead-of-need task (the others), and whether it
+        is ahead of need."""
+        if not ahead_task:
+            if self._check_queue:
+                return self._check_queue.pop(0), False
+            i = self._coupled_ahead()
+            return None if i is None else (self._ahead_queue.pop(i), True)
+        for j, (key, _, _, _) in enumerate(self._ahead_queue):
+            if not self._to_checker(key):
+                return self._ahead_queue.pop(j), True
+        return None
+
+    async def _run_checks(self, ahead_task: bool) -> None:
         session = self.session
         table = session.gain_table
-        queue = self._ahead_queue if ahead else self._check_queue
         loop = asyncio.get_running_loop()
-        while queue:
-            key, cell, candidates, asked_s = queue.pop(0)
+        while (nxt := self._next_check(ahead_task)) is not None:
+            (key, cell, candidates, asked_s), ahead = nxt
             if (key, cell) in session.interim or table.lookup(key, table.grid_point(cell) * 1.0001):
                 continue
             # Before anything is rendered (a first contact, or after a rejoin) forces are off:
@@ -308,7 +354,9 @@ class Link:
             # a check of 0.1 s in the FEM demo, 3.5 s and more on Ecoflex's K_o of 3.4 kN/m);
             # with the servo in its own process it holds up only this link.
             first = not ahead and session.last_update is None and not self._checker_ready()
-            executor = self._first_thread() if first else self._executor if ahead else self._checker
+            executor = (
+                self._first_thread() if first else self._executor if ahead_task else self._checker
+            )
             try:
                 d = await loop.run_in_executor(
                     executor,
@@ -329,7 +377,11 @@ class Link:
             session.store_interim(key, cell, d)
             self.checks += 1
             log.debug(
-                "interim gains for K_o = %.0f N/m (%s) in %.0f ms", d.k_o, d.mode, d.design_ms
+                "interim gains for K_o = %.0f N/m (%s%s) in %.0f ms",
+                d.k_o,
+                d.mode,
+                ", ahead of need" if ahead else "",
+                d.design_ms,
             )
             if not ahead:
                 self.check_wait_s.append(self.clock() - asked_s)

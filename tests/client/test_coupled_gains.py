@@ -10,13 +10,17 @@ with those gains, every hand of the verification set and every sampling-tick com
 
 from __future__ import annotations
 
+import asyncio
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from haptic_collab.client.bench_gains import plane_patch, welcomed_session
-from haptic_collab.client.session import ClientSession, interim_design
+from haptic_collab.client.link import Link
+from haptic_collab.client.session import ClientSession, PatchUpdate, interim_design
 from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
 from haptic_collab.shared.gain_design import felt_stiffness
@@ -154,3 +158,46 @@ def test_a_coupled_contact_keeps_feeling_the_object_with_its_interim_gains(
         proxy_hold=d.proxy_hold,
     )[0]
     assert held == pytest.approx(k_eff, rel=0.05)
+
+
+def test_a_second_users_press_soon_after_the_first_contact_is_rendered_with_checked_gains() -> None:
+    # In the demo B rests on the balloon and A's press couples the two contacts and lowers B's
+    # K_o_eff by 12 % (two cells of the gain table). B used to render unverified gains for the
+    # 0.15-0.3 s of a check (no own-force compensation: B's resting force fell from 0.28 to
+    # 0.07-0.11 N just as A arrived): the coupled class's checks ahead of need waited behind the
+    # design worker's full designs, seconds each. They now run in the check worker while no
+    # needed check waits, for the contact's cell and the two below.
+    s = session()
+    gate = threading.Event()
+    design_pool, check_pool = ThreadPoolExecutor(max_workers=1), ThreadPoolExecutor(max_workers=1)
+    design_pool.submit(gate.wait, 60.0)  # the design worker is busy with a long design
+    got: list[PatchUpdate] = []
+
+    async def go() -> None:
+        link = Link(
+            "ws://127.0.0.1:1/ws", s, on_patch=lambda u, t: got.append(u), sample=lambda: None,
+            clock=lambda: 1.0, design_executor=design_pool, check_executor=check_pool,
+        )  # fmt: skip
+        assert s.receive(plane_patch(1, 300.0, 300.0, None), 0.1) is None  # the first contact
+        link._start_check()
+        assert link._check_task is not None
+        try:
+            await asyncio.wait_for(link._check_task, 60.0)  # its check, then the coupled ones
+        finally:
+            link.close()
+        assert len(link.check_wait_s) == 1  # one check was needed; the others came ahead
+
+    try:
+        asyncio.run(go())
+        assert not gate.is_set()  # all of it while the design worker stayed busy
+        assert len(got) == 1 and got[0].verified  # the first contact, rendered once checked
+        for k_eff in (300.0, 0.88 * 300.0):  # the same cell, and two cells below
+            up = s.receive(plane_patch(2 if k_eff == 300.0 else 3, 300.0, k_eff, 1.33 * k_eff), 0.2)
+            assert up is not None and up.verified, k_eff
+            assert s.gain_table.cell(k_eff) <= s.gain_table.cell(300.0)
+            # own-force compensated: the surface does not give way under the user's own push
+            assert up.model.own_gain * up.k_h == pytest.approx(1.0)
+    finally:
+        gate.set()
+        for pool in (design_pool, check_pool):
+            pool.shutdown(wait=True, cancel_futures=True)
