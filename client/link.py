@@ -290,7 +290,7 @@ class Link:
         The check worker runs the checks a rendered contact waits for: one ahead of need there
         (0.1-0.5 s each, seconds on a busy 2-core machine) held up a needed one behind it, and
         meanwhile the contact rendered conservative unverified gains (:mod:`client.session`).
-        The one exception are the coupled classes ahead of need (:func:`likely_next`): they go to
+        The one exception is the coupled classes ahead of need (:func:`likely_next`): they go to
         the check worker while no needed check waits, one at a time. Behind the design worker's
         full designs (seconds each) they came 5-15 s after the first contact, after a second
         user's press in the demo, which then rendered unverified gains; a needed check now waits
