@@ -486,7 +486,8 @@ def run(
         ``schemes``, ``tuning`` (each scheme's sweep, in words), ``grid``, ``device``,
         ``options``, ``conditions`` (one record per object x K_o x rate x delay: each scheme's
         chosen tuning, per-cell stability, felt impedance and metrics, and the ranking),
-        ``cells_3d``, ``summary`` (:func:`summarize`; its ``peers_tuned_on_the_design_model``
+        ``cells_3d``, ``pairs_3d`` (two users: :func:`server.fidelity_3d.run_3d_pairs`),
+        ``summary`` (:func:`summarize`; its ``peers_tuned_on_the_design_model``
         is the same summary with each peer keeping, on every object, the tuning it picks on the
         design model in that K_o x rate x delay), ``gains``, ``wall_s``, ``workers``.
 
@@ -646,10 +647,16 @@ def run(
                         design_tuned.append(cond_d)
 
     cells3: list[dict[str, Any]] = []
+    pairs3: list[dict[str, Any]] = []
     t_3d = 0.0
     if include_3d:
         t3 = time.perf_counter()
-        from haptic_collab.server.fidelity_3d import SCHEMES_3D, run_3d_cells
+        from haptic_collab.server.fidelity_3d import (
+            PAIR_SCHEMES,
+            SCHEMES_3D,
+            run_3d_cells,
+            run_3d_pairs,
+        )
 
         s3 = [s for s in schemes if s in SCHEMES_3D]
         cells3 = run_3d_cells(s3, device=device, workers=n_workers)
@@ -662,8 +669,12 @@ def run(
             stiffness_scales=(1.0,),
             trajectories=("press",),
         )
+        # two users on the balloon: B rests on its side while A presses the top
+        pairs3 = run_3d_pairs(
+            [s for s in schemes if s in PAIR_SCHEMES], device=device, workers=n_workers
+        )
         t_3d = time.perf_counter() - t3
-        say(f"ran {len(cells3)} 3-D cells in {t_3d:.1f} s")
+        say(f"ran {len(cells3)} 3-D cells and {len(pairs3)} two-user cells in {t_3d:.1f} s")
 
     gains = []
     for (mode, gkey, k_o), gd in sorted(
@@ -692,6 +703,19 @@ def run(
             / max(1, sum(c["scheme"] == s for c in cells3))
             for s in dict.fromkeys(c["scheme"] for c in cells3)
         }
+    if pairs3:
+        summary["two_users_3d"] = {
+            s: {
+                "settled_fraction": sum(p["settled"] for p in ps) / len(ps),
+                "b_feels_a_fraction": sum(p["b_feels_a"] for p in ps) / len(ps),
+                "median_b_force_rise_n": statistics.median(p["b_force_rise_n"] for p in ps),
+                "median_object_force_rise_n": statistics.median(
+                    p["object_force_rise_n"] for p in ps
+                ),
+            }
+            for s in dict.fromkeys(p["scheme"] for p in pairs3)
+            for ps in [[p for p in pairs3 if p["scheme"] == s]]
+        }
     return {
         "schemes": list(schemes),
         "tuning": {s: scheme_tuning(s, device) for s in schemes},
@@ -717,6 +741,7 @@ def run(
         },
         "conditions": conditions,
         "cells_3d": cells3,
+        "pairs_3d": pairs3,
         "summary": summary,
         "gains": gains,
         "seed": seed,

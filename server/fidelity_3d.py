@@ -390,6 +390,92 @@ def rendering_3d(
     return rendering_for(scheme, sim_rate_hz=SIM_RATE_HZ, device=device, design=design, k_o=k_o)
 
 
+def _device(
+    r: Rendering,
+    point: FloatArray,
+    normal: FloatArray,
+    tr: Trajectory,
+    device: DeviceModel,
+    hand: HandParams,
+) -> _PortDevice:
+    """The simulated Phantom Desktop of one user, its workspace centred on ``point`` and its hand
+    following ``tr`` along ``normal`` (module docstring), opened with forces enabled."""
+    prof = get_sim_profile(PROFILE)
+    limits = replace(
+        prof.limits,
+        max_force_n=device.max_force_n,
+        max_stiffness_n_per_m=max(device.max_stiffness_n_per_m, r.k_h),
+        max_damping_n_s_per_m=device.max_damping_n_s_per_m,
+        max_velocity_m_s=VELOCITY_LIMIT_M_S,
+        # the schemes are compared on their loops over seconds-long presses, as the 1-D model
+        # compares them: no motor-heating limit (client/thermal.py) lowers any scheme's force
+        max_continuous_force_n=None,
+    ).centered_at((float(point[0]), float(point[1]), float(point[2])))
+    target = NormalTrajectory(tr, point, normal)
+    dev = _PortDevice(
+        prof,
+        target,
+        hand,
+        limits=limits,
+        servo_period_s=1.0 / SERVO_RATE_HZ,
+        initial_velocity=target.initial_velocity_m_s,
+    )
+    dev.open()
+    dev.enable_forces()
+    return dev
+
+
+def _servo(
+    r: Rendering, dev: _PortDevice, device: DeviceModel, k_o: float, out0: ContactOutput
+) -> tuple[ServoCore, dict[str, Any]]:
+    """The servo loop of a servo-side scheme on ``dev``, holding the rest patch ``out0``, with
+    the keyword arguments of its later ``set_patch`` calls (module docstring)."""
+    T = 1.0 / SERVO_RATE_HZ
+    lm = LocalModelParams(
+        k_h=r.k_h,
+        i_gain=r.i_gain,
+        servo_period_s=T,
+        threshold=ThresholdParams(mode="fixed", theta_m=r.theta_m),
+        release_time_s=r.release_time_s,
+        integral_limit_n=device.max_force_n,
+    )
+    cfg = ServoConfig(
+        servo_rate_hz=SERVO_RATE_HZ,
+        ramp_s=T,
+        passivity=r.passivity,
+        passivity_energy_bias_j=r.passivity_bias_j if r.passivity else 1e-3,
+    )
+    core = ServoCore(dev, cfg, local_model=lm, recorder=TelemetryRecorder(capacity=64))
+    patch_kw: dict[str, Any] = {
+        "b_h": r.b_h,
+        "proxy_hold": r.proxy_hold,
+        "hold_ticks": RATE_RATIO,
+        "k_o": k_o,
+    }
+    k_h0 = min(r.k_h, k_o) if r.kind == "mmt" else r.k_h
+    core.set_patch(out0.primitive, k_h0, r.i_gain, **patch_kw)
+    core.enable_forces()
+    return core, patch_kw
+
+
+def _renewed_patch(
+    r: Rendering, out: ContactOutput, out0: ContactOutput
+) -> tuple[Plane | Sphere, float]:
+    """The patch and K_h [N/m] a servo-side scheme renders after a World tick gave ``out``
+    (``out0``: the user's first output, the rest surface)."""
+    if r.kind == "mmt":
+        # the rest surface and stiffness the World estimates: its patch less its own
+        # deformation F / K_o, rendered with that K_o (capped)
+        k_est = float(out.k_o)
+        return moved_out(out.primitive, out.own_force_n / k_est), min(r.k_h, k_est)
+    if r.kind == "coupling":
+        # own-force compensation: the surface moved out by C_h times the force applied
+        return moved_out(out.primitive, r.own_gain * out.own_force_n), r.k_h
+    # a wall keeps the rest surface it started with, sent afresh each tick (the servo ramps out
+    # a patch that is not renewed)
+    return out0.primitive, r.k_h
+
+
 def _check_delay(delay_ms: float) -> int:
     dq = delay_ms * 1e-3 * SERVO_RATE_HZ
     if not (math.isfinite(delay_ms) and delay_ms >= 0.0 and abs(dq - round(dq)) < 1e-9):
@@ -476,26 +562,7 @@ def run_3d_cell(
     if r.scheme != scheme:
         raise ValueError(f"rendering is for {r.scheme!r}, not {scheme!r}")
 
-    prof = get_sim_profile(PROFILE)
-    limits = replace(
-        prof.limits,
-        max_force_n=device.max_force_n,
-        max_stiffness_n_per_m=max(device.max_stiffness_n_per_m, r.k_h),
-        max_damping_n_s_per_m=device.max_damping_n_s_per_m,
-        max_velocity_m_s=VELOCITY_LIMIT_M_S,
-        # the schemes are compared on their loops over seconds-long presses, as the 1-D model
-        # compares them: no motor-heating limit (client/thermal.py) lowers any scheme's force
-        max_continuous_force_n=None,
-    ).centered_at((float(top[0]), float(top[1]), float(top[2])))
-    target = NormalTrajectory(tr, top, normal)
-    dev = _PortDevice(
-        prof,
-        target,
-        hand,
-        limits=limits,
-        servo_period_s=T,
-        initial_velocity=target.initial_velocity_m_s,
-    )
+    dev = _device(r, top, normal, tr, device, hand)
     n_ticks = round(tr.duration_s * SERVO_RATE_HZ)
     x = np.empty(n_ticks)
     f = np.empty(n_ticks)
@@ -506,37 +573,12 @@ def run_3d_cell(
     world_k_o: list[float] = []
 
     # what the World sees before tick d: the starting probe, no force
-    start = np.asarray(target(0.0), dtype=np.float64)
-    dev.open()
-    dev.enable_forces()
+    start = np.asarray(dev.trajectory(0.0), dtype=np.float64)
 
     if r.kind not in ("coupling", "mmt", "wall", "direct"):
         raise ValueError(f"{scheme} ({r.kind}) is not modelled on the 3-D World")
     if r.kind != "direct":
-        lm = LocalModelParams(
-            k_h=r.k_h,
-            i_gain=r.i_gain,
-            servo_period_s=T,
-            threshold=ThresholdParams(mode="fixed", theta_m=r.theta_m),
-            release_time_s=r.release_time_s,
-            integral_limit_n=device.max_force_n,
-        )
-        cfg = ServoConfig(
-            servo_rate_hz=SERVO_RATE_HZ,
-            ramp_s=T,
-            passivity=r.passivity,
-            passivity_energy_bias_j=r.passivity_bias_j if r.passivity else 1e-3,
-        )
-        core = ServoCore(dev, cfg, local_model=lm, recorder=TelemetryRecorder(capacity=64))
-        patch_kw: dict[str, Any] = {
-            "b_h": r.b_h,
-            "proxy_hold": r.proxy_hold,
-            "hold_ticks": N,
-            "k_o": k_o,
-        }
-        k_h0 = min(r.k_h, k_o) if r.kind == "mmt" else r.k_h
-        core.set_patch(out0.primitive, k_h0, r.i_gain, **patch_kw)
-        core.enable_forces()
+        core, patch_kw = _servo(r, dev, device, k_o, out0)
         sent: dict[int, ContactInput] = {}
         patches: dict[int, tuple[Plane | Sphere, float]] = {}
         for n in range(n_ticks):
@@ -562,24 +604,7 @@ def run_3d_cell(
                     state = ContactInput(probe=start, force=np.zeros(3))
                 out = world.tick({_USER: state})[_USER]
                 world_k_o.append(float(out.k_o))
-                if r.kind == "mmt":
-                    # the rest surface and stiffness the World estimates: its patch less its
-                    # own deformation F / K_o, rendered with that K_o (capped)
-                    k_est = float(out.k_o)
-                    patches[n + 1 + d] = (
-                        moved_out(out.primitive, out.own_force_n / k_est),
-                        min(r.k_h, k_est),
-                    )
-                elif r.kind == "coupling":
-                    # own-force compensation: the surface moved out by C_h times the force applied
-                    patches[n + 1 + d] = (
-                        moved_out(out.primitive, r.own_gain * out.own_force_n),
-                        r.k_h,
-                    )
-                else:
-                    # a wall keeps the rest surface it started with, sent afresh each tick (the
-                    # servo ramps out a patch that is not renewed)
-                    patches[n + 1 + d] = (out0.primitive, r.k_h)
+                patches[n + 1 + d] = _renewed_patch(r, out, out0)
     else:
         pc = (
             PassivityController(
@@ -658,6 +683,253 @@ def run_3d_cell(
         metrics=metrics,
         world_k_o=np.asarray(world_k_o),
     )
+
+
+#: The schemes of the two-user cells: those whose servo renders a patch the World renews (the
+#: direct schemes hold the World's force, which is already the object's, coupling included).
+PAIR_SCHEMES: tuple[str, ...] = ("local-p", "local-pi", "mmt", "static-local")
+#: Length [s] of a two-user cell.
+PAIR_DURATION_S = 8.0
+#: B's intention: from 2 mm outside the side of the object to 3 mm in, from 0.1 s over 0.4 s,
+#: then rest there (the demo's resting user).
+PAIR_REST = Trajectory(
+    "rest",
+    duration_s=PAIR_DURATION_S,
+    y0_m=-2e-3,
+    y1_m=3e-3,
+    ramp_start_s=0.1,
+    ramp_s=0.4,
+    hold_window_s=(7.0, 8.0),
+    energy_window_s=(0.0, PAIR_DURATION_S),
+)
+#: A's intention: :data:`shared.fidelity.PRESS` (10 mm into the top) started at 3 s, held to 8 s.
+PAIR_PRESS = replace(
+    PRESS,
+    duration_s=PAIR_DURATION_S,
+    ramp_start_s=3.0,
+    hold_window_s=(7.0, 8.0),
+    energy_window_s=(0.0, PAIR_DURATION_S),
+)
+#: Where B rests before A touches, and where A holds [s].
+PAIR_REST_WINDOW_S = (2.0, 3.0)
+PAIR_HOLD_WINDOW_S = (7.0, 8.0)
+#: A hold whose probe moves more than this peak to peak [m] in its window is not settled.
+PAIR_SETTLED_P2P_M = 0.5e-3
+#: B feels A when its force rises by at least this share of ``object_force_rise_n``. B's hand
+#: yields, so even the object itself is felt as about half of that rise (0.106 of 0.202 N on the
+#: balloon through the product's local model); a surface that does not move gives none.
+PAIR_FEELS_SHARE = 0.25
+
+
+@dataclass(frozen=True)
+class Pair3D:
+    """One two-user cell: B rests on the side of the object while A presses its top.
+
+    Attributes
+    ----------
+    scheme, mesh : str
+    stiffness_scale, delay_ms : float
+    k_o_a, k_o_b : float
+        K_o [N/m] the World reports at A's and B's rest contacts.
+    b_force_rise_n : float
+        B's force along its outward normal while A holds, less while B rests before A touches
+        (means over :data:`PAIR_HOLD_WINDOW_S` and :data:`PAIR_REST_WINDOW_S`) [N]: what B feels
+        of A's press.
+    b_surface_out_mm : float
+        How far the World's surface under B's rest point moves outward over the same windows
+        (B's own dent included) [mm].
+    object_force_rise_n : float
+        ``k_o_b`` times the outward motion of the surface under B that is not B's own dent (the
+        World's patch moved out by B's own force over K_o): the rise a probe held still there
+        would feel [N].
+    a_hold_p2p_mm, b_hold_p2p_mm : float
+        Peak-to-peak probe depth in the hold window [mm].
+    runaway : bool
+        A probe reached the workspace end stop or went non-finite.
+    settled : bool
+        No runaway and both holds within :data:`PAIR_SETTLED_P2P_M`.
+    b_feels_a : bool
+        ``b_force_rise_n`` is at least :data:`PAIR_FEELS_SHARE` of ``object_force_rise_n``.
+    """
+
+    scheme: str
+    mesh: str
+    stiffness_scale: float
+    delay_ms: float
+    k_o_a: float
+    k_o_b: float
+    b_force_rise_n: float
+    b_surface_out_mm: float
+    object_force_rise_n: float
+    a_hold_p2p_mm: float
+    b_hold_p2p_mm: float
+    runaway: bool
+    settled: bool
+    b_feels_a: bool
+
+    def to_json(self) -> dict[str, Any]:
+        """The cell object of ``haptic bench fidelity --json`` (``pairs_3d``)."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def side_point(world: World) -> FloatArray:
+    """B's rest point (3,) [m]: the vertex of the rest surface farthest along -x (the side of the
+    balloon, where the demo's resting user is)."""
+    v = np.asarray(world.vertices, dtype=np.float64)
+    return np.asarray(v[int(np.argmin(v[:, 0]))], dtype=np.float64)
+
+
+def run_3d_pair(
+    scheme: str,
+    *,
+    stiffness_scale: float = 1.0,
+    mesh: str = "balloon",
+    delay_ms: float = 0.0,
+    device: DeviceModel = DEFAULT_DEVICE,
+    gain_table: GainTable | None = None,
+) -> Pair3D:
+    """Two users of one scheme on the World: B rests on the side while A presses the top.
+
+    Both users are the one-user cell's (:func:`run_3d_cell`: servo, simulated Phantom Desktop,
+    default hand, the same delay both ways), each with the scheme's rendering for the K_o at its
+    own rest contact. B follows :data:`PAIR_REST`, A :data:`PAIR_PRESS`; the World ticks with
+    both users' latest state. Whether B feels A is ``b_force_rise_n`` against
+    ``object_force_rise_n``.
+
+    Raises
+    ------
+    ValueError
+        A scheme not in :data:`PAIR_SCHEMES`, a bad scale or delay.
+    """
+    if scheme not in PAIR_SCHEMES:
+        raise ValueError(
+            f"unknown two-user scheme {scheme!r}; expected one of {', '.join(PAIR_SCHEMES)}"
+        )
+    d = _check_delay(delay_ms)
+    T, N = 1.0 / SERVO_RATE_HZ, RATE_RATIO
+    world = build_world(_opts(stiffness_scale, mesh))
+    info = object_info(world.vertices, world.faces)
+    points = {"a": np.array(info.top_m, dtype=np.float64), "b": side_point(world)}
+    out0 = world.tick({u: ContactInput(probe=p, force=np.zeros(3)) for u, p in points.items()})
+    trs = {"a": PAIR_PRESS, "b": PAIR_REST}
+    users = {}
+    for u in ("a", "b"):
+        nrm = np.asarray(out0[u].normal, dtype=np.float64)
+        nrm = nrm / float(np.linalg.norm(nrm))
+        k_o = float(out0[u].k_o)
+        r = rendering_3d(scheme, k_o, delay_ms, device=device, gain_table=gain_table)
+        dev = _device(r, points[u], nrm, trs[u], device, HandParams())
+        core, kw = _servo(r, dev, device, k_o, out0[u])
+        users[u] = (r, dev, core, kw, nrm, np.asarray(dev.trajectory(0.0), dtype=np.float64))
+    n_ticks = round(PAIR_DURATION_S * SERVO_RATE_HZ)
+    x = {u: np.empty(n_ticks) for u in users}
+    f = {u: np.empty(n_ticks) for u in users}
+    sent: dict[str, dict[int, ContactInput]] = {u: {} for u in users}
+    patches: dict[str, dict[int, tuple[Plane | Sphere, float]]] = {u: {} for u in users}
+    surf_t: list[float] = []
+    surf_b: list[float] = []
+    rest_b: list[float] = []
+    hit = False
+    bx, by, bz = (float(c) for c in points["b"])
+    for n in range(n_ticks):
+        for u, (r, dev, core, kw, nrm, _) in users.items():
+            new = patches[u].pop(n, None)
+            if new is not None:
+                core.set_patch(new[0], new[1], r.i_gain, **kw)
+            core.tick(n * T)
+            q = np.asarray(dev.last_read, dtype=np.float64)
+            x[u][n] = float(np.dot(points[u] - q, nrm))
+            f[u][n] = float(np.dot(np.asarray(dev.applied_force_n), nrm))
+            hit = hit or dev.at_end_stop()
+            if (n + d) % N == 0:
+                snap = core.latest()
+                if snap is not None:
+                    sent[u][n + d] = ContactInput(
+                        probe=np.asarray(snap.probe_m, dtype=np.float64),
+                        force=np.asarray(snap.force_n, dtype=np.float64),
+                    )
+        if n % N == 0:
+            states = {
+                u: sent[u].pop(n) if n in sent[u] else ContactInput(users[u][5], np.zeros(3))
+                for u in users
+            }
+            out = world.tick(states)
+            for u, (r, *_rest) in users.items():
+                patches[u][n + 1 + d] = _renewed_patch(r, out[u], out0[u])
+            ob = out["b"]
+            surf_t.append(n * T)
+            surf_b.append(ob.primitive.contact(bx, by, bz)[0])
+            rest = moved_out(ob.primitive, ob.own_force_n / float(ob.k_o))
+            rest_b.append(rest.contact(bx, by, bz)[0])
+    t = np.arange(n_ticks, dtype=np.float64) * T
+    rw = (t >= PAIR_REST_WINDOW_S[0]) & (t < PAIR_REST_WINDOW_S[1])
+    hw = (t >= PAIR_HOLD_WINDOW_S[0]) & (t < PAIR_HOLD_WINDOW_S[1])
+    ts = np.asarray(surf_t)
+    srw = (ts >= PAIR_REST_WINDOW_S[0]) & (ts < PAIR_REST_WINDOW_S[1])
+    shw = (ts >= PAIR_HOLD_WINDOW_S[0]) & (ts < PAIR_HOLD_WINDOW_S[1])
+    sb, rb = np.asarray(surf_b), np.asarray(rest_b)
+    finite = all(np.isfinite(v).all() for v in (*x.values(), *f.values()))
+    runaway = bool(hit or not finite)
+    p2p = {u: float(np.ptp(x[u][hw])) if finite else math.inf for u in users}
+    k_o_b = float(out0["b"].k_o)
+    rise = float(np.mean(f["b"][hw]) - np.mean(f["b"][rw]))
+    object_rise = k_o_b * float(np.mean(rb[shw]) - np.mean(rb[srw]))
+    return Pair3D(
+        scheme=scheme,
+        mesh=mesh,
+        stiffness_scale=float(stiffness_scale),
+        delay_ms=float(delay_ms),
+        k_o_a=float(out0["a"].k_o),
+        k_o_b=k_o_b,
+        b_force_rise_n=rise,
+        b_surface_out_mm=float(np.mean(sb[shw]) - np.mean(sb[srw])) * 1e3,
+        object_force_rise_n=object_rise,
+        a_hold_p2p_mm=p2p["a"] * 1e3,
+        b_hold_p2p_mm=p2p["b"] * 1e3,
+        runaway=runaway,
+        settled=not runaway and max(p2p.values()) <= PAIR_SETTLED_P2P_M,
+        b_feels_a=bool(rise >= PAIR_FEELS_SHARE * object_rise and object_rise > 0.0),
+    )
+
+
+def run_3d_pairs(
+    schemes: Sequence[str] = PAIR_SCHEMES,
+    *,
+    stiffness_scales: Sequence[float] = (1.0,),
+    delays_ms: Sequence[float] = (0.0, 100.0),
+    device: DeviceModel = DEFAULT_DEVICE,
+    workers: int | None = 1,
+) -> list[dict[str, Any]]:
+    """Every two-user cell (:func:`run_3d_pair`) of ``schemes`` x scale x delay on the balloon.
+
+    ``workers`` as :func:`run_3d_cells` (each cell designs its own two renderings). Returns each
+    cell's :meth:`Pair3D.to_json`, in the order scheme, scale, delay.
+
+    Raises
+    ------
+    ValueError
+        A scheme not in :data:`PAIR_SCHEMES`, a bad delay, or ``workers < 1``.
+    """
+    for s in schemes:
+        if s not in PAIR_SCHEMES:
+            raise ValueError(
+                f"unknown two-user scheme {s!r}; expected one of {', '.join(PAIR_SCHEMES)}"
+            )
+    for dm in delays_ms:
+        _check_delay(dm)
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers!r}")
+    combos = [(s, sc, dm) for s in schemes for sc in stiffness_scales for dm in delays_ms]
+    if workers == 1:
+        return [_pair_job(s, sc, dm, device) for s, sc, dm in combos]
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+        futs = [pool.submit(_pair_job, s, sc, dm, device) for s, sc, dm in combos]
+        return [fu.result() for fu in futs]
+
+
+def _pair_job(scheme: str, scale: float, delay_ms: float, device: DeviceModel) -> dict[str, Any]:
+    """One two-user cell's JSON (a worker's job)."""
+    return run_3d_pair(scheme, stiffness_scale=scale, delay_ms=delay_ms, device=device).to_json()
 
 
 def _cell_job(

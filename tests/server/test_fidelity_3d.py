@@ -14,6 +14,7 @@ from haptic_collab.server.fidelity_3d import (
     NormalTrajectory,
     run_3d_cell,
     run_3d_cells,
+    run_3d_pair,
     top_contact,
 )
 from haptic_collab.server.main import ServerOptions, build_world
@@ -208,3 +209,25 @@ def test_a_fem_solid_is_a_3d_cell() -> None:
     assert cell["mesh"] == "fem:box" and 150.0 < cell["k_o_n_per_m"] < 600.0
     assert cell["stable"], cell
     assert run.f.max() > 1.0 and abs(cell["steady_state_error_mm"]) < 0.5
+
+
+@pytest.mark.slow
+def test_two_users_b_feels_a_through_the_local_model_and_not_through_a_static_plane(
+    table: GainTable,
+) -> None:
+    """B rests on the balloon's side while A presses its top (the demo's two users): the
+    product's local model renders the surface that A's press moves under B, a plane kept at the
+    rest surface does not."""
+    product = run_3d_pair("local-p", delay_ms=100.0, gain_table=table)
+    static = run_3d_pair("static-local", delay_ms=100.0, gain_table=table)
+    for p in (product, static):
+        assert p.settled and not p.runaway, p
+        # the object itself: A's press moves the surface under B outward (the balloon's pressure)
+        assert p.object_force_rise_n > 0.1, p
+    # B's force rises by about half of what a probe held still there would feel (B's hand yields)
+    assert product.b_feels_a and product.b_force_rise_n > 0.3 * product.object_force_rise_n
+    # the static plane: B feels nothing of A
+    assert not static.b_feels_a and abs(static.b_force_rise_n) < 0.01
+    json.dumps(product.to_json(), allow_nan=False)
+    with pytest.raises(ValueError, match="two-user scheme"):
+        run_3d_pair("direct")
