@@ -476,6 +476,19 @@ def _renewed_patch(
     return out0.primitive, r.k_h
 
 
+def _check_known(names: Sequence[str], known: Sequence[str], what: str) -> None:
+    for name in names:
+        if name not in known:
+            raise ValueError(f"unknown {what} {name!r}; expected one of {', '.join(known)}")
+
+
+def _check_runs(delays_ms: Sequence[float], workers: int | None) -> None:
+    for dm in delays_ms:
+        _check_delay(dm)
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers!r}")
+
+
 def _check_delay(delay_ms: float) -> int:
     dq = delay_ms * 1e-3 * SERVO_RATE_HZ
     if not (math.isfinite(delay_ms) and delay_ms >= 0.0 and abs(dq - round(dq)) < 1e-9):
@@ -910,15 +923,8 @@ def run_3d_pairs(
     ValueError
         A scheme not in :data:`PAIR_SCHEMES`, a bad delay, or ``workers < 1``.
     """
-    for s in schemes:
-        if s not in PAIR_SCHEMES:
-            raise ValueError(
-                f"unknown two-user scheme {s!r}; expected one of {', '.join(PAIR_SCHEMES)}"
-            )
-    for dm in delays_ms:
-        _check_delay(dm)
-    if workers is not None and workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers!r}")
+    _check_known(schemes, PAIR_SCHEMES, "two-user scheme")
+    _check_runs(delays_ms, workers)
     combos = [(s, sc, dm) for s in schemes for sc in stiffness_scales for dm in delays_ms]
     if workers == 1:
         return [_pair_job(s, sc, dm, device) for s, sc, dm in combos]
@@ -1011,20 +1017,9 @@ def run_3d_cells(
     ValueError
         An unknown scheme or trajectory, a bad scale or delay, or ``workers < 1``.
     """
-    for s in schemes:
-        if s not in SCHEMES_3D:
-            raise ValueError(
-                f"unknown scheme {s!r} on the World; expected one of {', '.join(SCHEMES_3D)}"
-            )
-    for name in trajectories:
-        if name not in TRAJECTORIES_3D:
-            raise ValueError(
-                f"unknown trajectory {name!r}; expected one of {', '.join(TRAJECTORIES_3D)}"
-            )
-    for dm in delays_ms:
-        _check_delay(dm)
-    if workers is not None and workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers!r}")
+    _check_known(schemes, SCHEMES_3D, "scheme")
+    _check_known(trajectories, tuple(TRAJECTORIES_3D), "trajectory")
+    _check_runs(delays_ms, workers)
     k_o = {(sc, m): top_k_o(sc, m) for m in meshes for sc in stiffness_scales}
     combos = [
         (s, sc, m, dm, name)
