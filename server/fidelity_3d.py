@@ -79,6 +79,11 @@ to the device along the top's outward normal [N] (positive pushing the probe out
 clock ``t = n T`` with the windows of the matching :data:`shared.fidelity.PRESS` /
 :data:`shared.fidelity.IMPACT`.
 
+Two users (:func:`run_3d_pairs`): the same blocks twice on one World, the demo's scene. B rests
+on the balloon's side (:data:`PAIR_REST`) while A presses its top from 3 s (:data:`PAIR_PRESS`);
+what B feels of A's press is compared with what a probe held still there would feel
+(:class:`Pair3D`). Only the schemes whose servo renders a patch run there (:data:`PAIR_SCHEMES`).
+
 Usage::
 
     from haptic_collab.server.fidelity_3d import run_3d_cells
