@@ -72,6 +72,11 @@ FEEL_FORCE_SHARE = 0.10
 FEEL_DISPLACEMENT_MM = 0.1
 #: The shortest window B's resting force and position are averaged over [s].
 MIN_REST_WINDOW_S = 0.25
+#: How long after A touches B's lowest force is looked for [s] (A's press takes 1.5 s). When the
+#: contacts couple, a client without checked gains for the new coupling renders a conservative
+#: fallback for the 0.15-0.3 s of a check: B's resting force fell from 0.28 to 0.07-0.11 N then,
+#: just as A arrived, where it should only rise.
+ARRIVAL_WINDOW_S = 1.0
 #: B's resting samples count only with the K_h B renders while A holds (:data:`REST_GAIN_SHARE`),
 #: this long after B last rendered another [s] (a gain change's transfer ramp, 0.25 s, and the
 #: slow loop's settling): B resting with a quarter-K_o fallback (its delay had risen) dents the
@@ -629,7 +634,10 @@ def coupling_report(
     B's force, while A holds [mm]. Both compare the ``hold`` window with a window where B rests,
     settled (:data:`B_SETTLE_S` after B's force came on and after B's approach), before A touches
     (or, failing that, after A's release: ``baseline`` says which). While A holds, samples where
-    B is out of contact count too (force 0): a side drawn in by A's press can leave B's finger. ``ratio`` is B's force while
+    B is out of contact count too (force 0): a side drawn in by A's press can leave B's finger.
+    ``b_force_lowest_as_a_arrives_n``: B's lowest force in the :data:`ARRIVAL_WINDOW_S` after A
+    touches, and ``b_force_dip_as_a_arrives_n`` how far that is below B's resting force [N] (only
+    with the rest before A's press; about 0 when B feels only A's push). ``ratio`` is B's force while
     A holds over B's resting force: it depends on how hard B leans in (its hand depth beyond the
     threshold θ), not on the object; the two above are the coupling.
 
@@ -658,6 +666,8 @@ def coupling_report(
         "baseline": None,
         "rest_window_s": None,
         "hold_window_s": [hold[0], hold[1]],
+        "b_force_lowest_as_a_arrives_n": None,
+        "b_force_dip_as_a_arrives_n": None,
         "b_settled_s": None if onset is None else onset + B_SETTLE_S,
     }
     # samples with B in contact at full force (no ramp in or out, no fault)
@@ -686,6 +696,10 @@ def coupling_report(
     f_hold = float(np.nanmean(b["force_n"][w_hold]))
     moved_mm = float((np.nanmean(proxy[w_hold]) - np.nanmean(proxy[w_rest])) * 1000.0)
     rise = f_hold - f_rest
+    w_arrive = _window(b, tl.contact_s, tl.contact_s + ARRIVAL_WINDOW_S)
+    if baseline == "before A's press" and w_arrive.any():
+        lowest = float(np.nanmin(b["force_n"][w_arrive]))
+        out.update(b_force_lowest_as_a_arrives_n=lowest, b_force_dip_as_a_arrives_n=f_rest - lowest)
     out.update(
         b_force_rise_n=rise,
         b_surface_displacement_mm=moved_mm,
@@ -746,6 +760,11 @@ def print_summary(report: dict[str, Any]) -> None:
             f"  (B at rest {c['baseline']}, {w[0]:.1f}-{w[1]:.1f} s; force ratio {ratio}, which "
             "depends on how hard B rests)"
         )
+        if c.get("b_force_lowest_as_a_arrives_n") is not None:
+            print(
+                f"  as A arrived B's force was at least {c['b_force_lowest_as_a_arrives_n']:.3f} N "
+                f"(a dip of {c['b_force_dip_as_a_arrives_n']:+.3f} N below its rest)"
+            )
     s, n = report["server"], report["network"]
     print(
         f"server: {s['sim_rate_hz']:g} Hz, tick p50 {s['tick_ms_p50'] or 0:.2f} ms, p99 {s['tick_ms_p99'] or 0:.2f} ms, "

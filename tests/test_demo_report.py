@@ -187,3 +187,23 @@ def test_missed_deadlines_count_the_skipped_periods_after_the_first_second() -> 
     period[3500] = 1.4e-3  # late but within the tolerance: none
     span = t[-1] - t[t > 1.0][0]
     assert missed_per_s(t, period, 1000.0) == pytest.approx(3.0 / span)
+
+
+@pytest.mark.parametrize(("dip_to_n", "dip"), [(None, 0.0), (0.07, REST_N - 0.07)])
+def test_the_report_says_how_far_b_s_force_fell_as_a_arrived(dip_to_n, dip) -> None:
+    """B resting should feel only A's push as A arrives. A client that rendered unchecked
+    fallback gains when the contacts coupled let B's force fall (0.28 to 0.07-0.11 N in the demo
+    before the coupled checks ran ahead of need): the report measures that dip."""
+    b, (tl, hold) = telemetry(12.0, onset_s=2.2)
+    if dip_to_n is not None:  # 0.2 s of a fallback, 0.1 s after A touches
+        w = (b["t_s"] >= tl.contact_s + 0.1) & (b["t_s"] < tl.contact_s + 0.3)
+        b["force_n"] = np.where(w, dip_to_n, b["force_n"])
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["b_force_dip_as_a_arrives_n"] == pytest.approx(dip, abs=2e-3)
+    assert c["b_force_lowest_as_a_arrives_n"] == pytest.approx(REST_N - dip, abs=2e-3)
+    # measured only against a rest before A's press
+    late, (tl2, hold2) = telemetry(16.0, onset_s=tl_contact(16.0) - 0.5)
+    assert (
+        coupling_report(late, tl2, hold2, b_approach_end_s=1.0)["b_force_dip_as_a_arrives_n"]
+        is None
+    )
