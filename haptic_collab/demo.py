@@ -636,8 +636,9 @@ def coupling_report(
     (or, failing that, after A's release: ``baseline`` says which). While A holds, samples where
     B is out of contact count too (force 0): a side drawn in by A's press can leave B's finger.
     ``b_force_lowest_as_a_arrives_n``: B's lowest force in the :data:`ARRIVAL_WINDOW_S` after A
-    touches, and ``b_force_dip_as_a_arrives_n`` how far that is below B's resting force [N] (only
-    with the rest before A's press; about 0 when B feels only A's push). ``ratio`` is B's force while
+    touches, and ``b_force_dip_as_a_arrives_n`` how far that is below
+    ``b_force_before_a_arrives_n``, B's force in the half second before [N] (only when B had
+    settled by then; about 0 when B feels only A's push). ``ratio`` is B's force while
     A holds over B's resting force: it depends on how hard B leans in (its hand depth beyond the
     threshold θ), not on the object; the two above are the coupling.
 
@@ -666,6 +667,7 @@ def coupling_report(
         "baseline": None,
         "rest_window_s": None,
         "hold_window_s": [hold[0], hold[1]],
+        "b_force_before_a_arrives_n": None,
         "b_force_lowest_as_a_arrives_n": None,
         "b_force_dip_as_a_arrives_n": None,
         "b_settled_s": None if onset is None else onset + B_SETTLE_S,
@@ -676,6 +678,17 @@ def coupling_report(
     # while A holds, also the samples where the surface drew away from B's finger (B's force
     # fell to nothing: the strongest change B can feel; the proxy is still the surface)
     w_hold = _window(b, *hold) & steady
+    # as A arrives: B's force just before, against its lowest in the second after
+    w_pre = _window(b, tl.contact_s - 0.5, tl.contact_s - 0.05) & full
+    w_arrive = _window(b, tl.contact_s, tl.contact_s + ARRIVAL_WINDOW_S)
+    if onset is not None and onset + B_SETTLE_S <= tl.contact_s - 0.5 and w_pre.any():
+        before = float(np.nanmean(b["force_n"][w_pre]))
+        lowest = float(np.nanmin(b["force_n"][w_arrive])) if w_arrive.any() else before
+        out.update(
+            b_force_before_a_arrives_n=before,
+            b_force_lowest_as_a_arrives_n=lowest,
+            b_force_dip_as_a_arrives_n=before - lowest,
+        )
     usable = _same_gains(b, w_hold)
     found = None if onset is None else _rest_window(b, tl, onset + B_SETTLE_S, usable)
     if found is None or not w_hold.any():
@@ -696,10 +709,6 @@ def coupling_report(
     f_hold = float(np.nanmean(b["force_n"][w_hold]))
     moved_mm = float((np.nanmean(proxy[w_hold]) - np.nanmean(proxy[w_rest])) * 1000.0)
     rise = f_hold - f_rest
-    w_arrive = _window(b, tl.contact_s, tl.contact_s + ARRIVAL_WINDOW_S)
-    if baseline == "before A's press" and w_arrive.any():
-        lowest = float(np.nanmin(b["force_n"][w_arrive]))
-        out.update(b_force_lowest_as_a_arrives_n=lowest, b_force_dip_as_a_arrives_n=f_rest - lowest)
     out.update(
         b_force_rise_n=rise,
         b_surface_displacement_mm=moved_mm,
