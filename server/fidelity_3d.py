@@ -791,10 +791,13 @@ class Pair3D:
 
 
 def side_point(world: World) -> FloatArray:
-    """B's rest point (3,) [m]: the vertex of the rest surface farthest along -x (the side of the
-    balloon, where the demo's resting user is)."""
+    """B's rest point (3,) [m]: of the rest surface's vertices within 1 mm of its smallest x, the
+    one nearest the middle of the bounding box in y and z (the balloon's side at mid-height,
+    where the demo's resting user is; the middle of a box's -x face, not an edge)."""
     v = np.asarray(world.vertices, dtype=np.float64)
-    return np.asarray(v[int(np.argmin(v[:, 0]))], dtype=np.float64)
+    side = v[v[:, 0] <= v[:, 0].min() + 1e-3]
+    mid = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    return np.asarray(side[int(np.argmin(np.hypot(*(side[:, 1:] - mid[1:]).T)))], np.float64)
 
 
 def run_3d_pair(
@@ -915,13 +918,15 @@ def run_3d_pairs(
     *,
     stiffness_scales: Sequence[float] = (1.0,),
     delays_ms: Sequence[float] = (0.0, 100.0),
+    meshes: Sequence[str] = ("balloon", "fem:box"),
     device: DeviceModel = DEFAULT_DEVICE,
     workers: int | None = 1,
 ) -> list[dict[str, Any]]:
-    """Every two-user cell (:func:`run_3d_pair`) of ``schemes`` x scale x delay on the balloon.
+    """Every two-user cell (:func:`run_3d_pair`) of ``schemes`` x mesh x scale x delay: the
+    balloon and the box as a FEM solid by default.
 
     ``workers`` as :func:`run_3d_cells` (each cell designs its own two renderings). Returns each
-    cell's :meth:`Pair3D.to_json`, in the order scheme, scale, delay.
+    cell's :meth:`Pair3D.to_json`, in the order scheme, mesh, scale, delay.
 
     Raises
     ------
@@ -930,17 +935,27 @@ def run_3d_pairs(
     """
     _check_known(schemes, PAIR_SCHEMES, "two-user scheme")
     _check_runs(delays_ms, workers)
-    combos = [(s, sc, dm) for s in schemes for sc in stiffness_scales for dm in delays_ms]
+    combos = [
+        (s, m, sc, dm)
+        for s in schemes
+        for m in meshes
+        for sc in stiffness_scales
+        for dm in delays_ms
+    ]
     if workers == 1:
-        return [_pair_job(s, sc, dm, device) for s, sc, dm in combos]
+        return [_pair_job(*c, device) for c in combos]
     with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
-        futs = [pool.submit(_pair_job, s, sc, dm, device) for s, sc, dm in combos]
+        futs = [pool.submit(_pair_job, *c, device) for c in combos]
         return [fu.result() for fu in futs]
 
 
-def _pair_job(scheme: str, scale: float, delay_ms: float, device: DeviceModel) -> dict[str, Any]:
+def _pair_job(
+    scheme: str, mesh: str, scale: float, delay_ms: float, device: DeviceModel
+) -> dict[str, Any]:
     """One two-user cell's JSON (a worker's job)."""
-    return run_3d_pair(scheme, stiffness_scale=scale, delay_ms=delay_ms, device=device).to_json()
+    return run_3d_pair(
+        scheme, mesh=mesh, stiffness_scale=scale, delay_ms=delay_ms, device=device
+    ).to_json()
 
 
 def _cell_job(
