@@ -772,7 +772,8 @@ def print_summary(report: dict[str, Any]) -> None:
         if c.get("b_force_lowest_as_a_arrives_n") is not None:
             print(
                 f"  as A arrived B's force was at least {c['b_force_lowest_as_a_arrives_n']:.3f} N "
-                f"(a dip of {c['b_force_dip_as_a_arrives_n']:+.3f} N below its rest)"
+                f"({c['b_force_dip_as_a_arrives_n']:.3f} N below its "
+                f"{c['b_force_before_a_arrives_n']:.3f} N just before)"
             )
     s, n = report["server"], report["network"]
     print(
