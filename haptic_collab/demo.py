@@ -681,9 +681,14 @@ def coupling_report(
     # as A arrives: B's force just before, against its lowest in the second after
     w_pre = _window(b, tl.contact_s - 0.5, tl.contact_s - 0.05) & full
     w_arrive = _window(b, tl.contact_s, tl.contact_s + ARRIVAL_WINDOW_S)
-    if onset is not None and onset + B_SETTLE_S <= tl.contact_s - 0.5 and w_pre.any():
+    if (
+        onset is not None
+        and onset + B_SETTLE_S <= tl.contact_s - 0.5
+        and w_pre.any()
+        and w_arrive.any()
+    ):
         before = float(np.nanmean(b["force_n"][w_pre]))
-        lowest = float(np.nanmin(b["force_n"][w_arrive])) if w_arrive.any() else before
+        lowest = float(np.nanmin(b["force_n"][w_arrive]))
         out.update(
             b_force_before_a_arrives_n=before,
             b_force_lowest_as_a_arrives_n=lowest,

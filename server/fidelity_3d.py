@@ -822,10 +822,7 @@ def run_3d_pair(
     ValueError
         A scheme not in :data:`PAIR_SCHEMES`, a bad scale or delay.
     """
-    if scheme not in PAIR_SCHEMES:
-        raise ValueError(
-            f"unknown two-user scheme {scheme!r}; expected one of {', '.join(PAIR_SCHEMES)}"
-        )
+    _check_known((scheme,), PAIR_SCHEMES, "two-user scheme")
     d = _check_delay(delay_ms)
     T, N = 1.0 / SERVO_RATE_HZ, RATE_RATIO
     world = build_world(_opts(stiffness_scale, mesh))

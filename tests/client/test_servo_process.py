@@ -8,10 +8,12 @@ device pressing a plane patch the test hands over; times are the servo clock's
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -20,6 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from haptic_collab.client.app import ClientOptions, run_client
+from haptic_collab.client.devices import DeviceError
 from haptic_collab.client.recorder import COLUMNS
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.client.servo_process import (
@@ -273,9 +277,6 @@ async def test_a_client_whose_servo_process_is_killed_stops_with_the_reason(tmp_
     """``haptic client`` end to end: the servo process killed mid-press ends the client with an
     error naming the signal; the force it reported to the server ramped to zero first, and the
     summary and recording are written."""
-    import asyncio
-
-    from haptic_collab.client.app import ClientOptions, run_client
     from haptic_collab.client.recorder import load_recording
     from haptic_collab.client.servo_process import ServoProcessError
     from haptic_collab.server.app import ServerApp
@@ -321,12 +322,6 @@ async def test_a_client_whose_servo_process_is_killed_stops_with_the_reason(tmp_
 def test_a_bad_device_is_refused_by_the_servo_process_before_the_network() -> None:
     """The servo process opens the device; a spec it cannot use still stops ``haptic client``
     with the one-line error before any connection is made."""
-    import asyncio
-    import socket
-
-    from haptic_collab.client.app import ClientOptions, run_client
-    from haptic_collab.client.devices import DeviceError
-
     with socket.create_server(("127.0.0.1", 0)) as srv:
         srv.setblocking(False)
         opts = ClientOptions(
