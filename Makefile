@@ -7,7 +7,7 @@ WEBSTAMP := web/node_modules/.installed
 JSSTAMP := client/js/node_modules/.installed
 MESHSTAMP := tests/data/meshes/.fetched
 
-.PHONY: all install web-install js-install browser meshes test lint typecheck unit demo bench reproduce clean wheel
+.PHONY: all install web-install js-install browser meshes test lint typecheck generated unit demo bench reproduce clean wheel
 
 all: test
 
@@ -56,7 +56,7 @@ wheel: $(STAMP) $(WEBSTAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/ruff format --check shared server client tests haptic_collab/*.py
+	$(BIN)/ruff format --check shared server client tests haptic_collab tools
 
 typecheck: $(STAMP)
 	$(BIN)/mypy
@@ -64,7 +64,12 @@ typecheck: $(STAMP)
 unit: $(STAMP) $(WEBSTAMP) $(JSSTAMP) $(MESHSTAMP) browser
 	$(BIN)/pytest -q
 
-test: lint typecheck unit
+# The files generated from the protocol's schema (web/protocol.js, docs/protocol.md's field
+# reference) are up to date; `python -m tools.codegen` rewrites them.
+generated: $(STAMP)
+	$(BIN)/python -m tools.codegen --check
+
+test: lint typecheck generated unit
 
 demo: $(STAMP) $(WEBSTAMP)
 	$(BIN)/haptic demo --report demo-out/report.json --plot demo-out/demo.png $(DEMO_ARGS)

@@ -9,7 +9,7 @@ Everything installs under this one name (nothing else lands at the top of site-p
 - :mod:`haptic_collab.server`: the authoritative asyncio server and the global deformable object;
 - :mod:`haptic_collab.client`: the 1 kHz local-model servo, devices and the network link;
 - :mod:`haptic_collab.cli`: the ``haptic`` command; :mod:`haptic_collab.demo`: ``haptic demo``;
-  :mod:`haptic_collab.plots`: the figures of ``haptic reproduce`` (matplotlib, the ``plots`` extra);
+  :mod:`haptic_collab.research.plots`: the figures of ``haptic reproduce`` (matplotlib, the ``plots`` extra);
 - ``haptic_collab/web``: the browser viewer (package data, found with :mod:`importlib.resources`).
 
 In the source tree the folders ``server/``, ``client/``, ``shared/`` and ``web/`` stay at the top

@@ -506,13 +506,13 @@ def _add_gains_table(sub: argparse._SubParsersAction) -> None:  # type: ignore[t
 
 # ---------------------------------------------------------------------------------------- reproduce
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from haptic_collab.plots import reproduce_figures
+    from haptic_collab.research.plots import reproduce_figures
 
     results: dict[str, object] = {}
     if args.figure not in ("fig10", "fig11"):  # Fig. 7-9: the 1-D multirate simulator
         results.update(reproduce_figures(args.figure, Path(args.out)))
     if args.figure in ("fig10", "fig11", "all"):  # Fig. 10-11 need the server's 3-D object
-        from haptic_collab.server.reproduce_3d import reproduce_3d
+        from haptic_collab.research.reproduce_3d import reproduce_3d
 
         results.update(reproduce_3d(args.figure, Path(args.out)))
     for name in results:
@@ -964,23 +964,23 @@ def _add_protocol(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
 def _cmd_bench(args: argparse.Namespace) -> int:
     results: dict[str, object] = {}
     if args.what in ("server", "all"):
-        from haptic_collab.server.bench_world import measure as bench_server
+        from haptic_collab.bench.world import measure as bench_server
 
         results["server"] = bench_server()
     if args.what in ("servo", "all"):
-        from haptic_collab.client.bench_servo import run as bench_servo
+        from haptic_collab.bench.servo import run as bench_servo
 
         results["servo"] = bench_servo(duration_s=args.duration, rate_hz=args.servo_rate)
     if args.what in ("gains", "all"):
-        from haptic_collab.client.bench_gains import run as bench_gains
+        from haptic_collab.bench.gains import run as bench_gains
 
         results["gains"] = bench_gains()
     if args.what == "fidelity":
         if args.plot:
             _need_matplotlib()
-        from haptic_collab.server.bench_fidelity import plot as plot_fidelity
-        from haptic_collab.server.bench_fidelity import run as bench_fidelity
-        from haptic_collab.shared.fidelity import RunOptions
+        from haptic_collab.bench.fidelity import plot as plot_fidelity
+        from haptic_collab.bench.fidelity import run as bench_fidelity
+        from haptic_collab.research.fidelity_1d import RunOptions
 
         try:
             fid_options = RunOptions(
@@ -1003,8 +1003,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             _print_fidelity_table(fid)
             return 0
     if args.what == "load":
-        from haptic_collab.server.bench_load import LoadOptions, subdivisions_for_vertices
-        from haptic_collab.server.bench_load import run as bench_load
+        from haptic_collab.bench.load import LoadOptions, subdivisions_for_vertices
+        from haptic_collab.bench.load import run as bench_load
 
         try:
             subdivisions = (

@@ -355,7 +355,7 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                 [
                     sys.executable,
                     "-m",
-                    "haptic_collab.client.bench_servo",
+                    "haptic_collab.bench.servo",
                     "--minimal-only",
                     "--duration",
                     f"{opts.duration_s:g}",

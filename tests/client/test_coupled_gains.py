@@ -18,12 +18,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.client.bench_gains import plane_patch, welcomed_session
 from haptic_collab.client.link import Link
 from haptic_collab.client.session import ClientSession, PatchUpdate, interim_design
 from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
 from haptic_collab.shared.gain_design import felt_stiffness
+from tests.support.sessions import plane_patch, welcomed_session
 
 
 def session() -> ClientSession:

@@ -17,7 +17,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.client.bench_gains import BENCH_OBJECT as OBJ
 from haptic_collab.client.link import Link
 from haptic_collab.client.session import (
     FALLBACK_K_RATIO,
@@ -30,7 +29,8 @@ from haptic_collab.client.session import (
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from haptic_collab.shared.gain_design import DESIGN_TIE, GainKey, GainTable, felt_stiffness
 from haptic_collab.shared.protocol import DeviceInfo, Pong, Welcome, encode
-from tests.client.test_session import patch as session_patch
+from tests.support.sessions import WELCOME_OBJECT as OBJ
+from tests.support.sessions import session_patch
 
 
 def patch(tick: int, k_o_eff: float = 300.0) -> str:

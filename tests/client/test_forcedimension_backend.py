@@ -3,7 +3,7 @@ emulator of the Force Dimension SDK's library.
 
 What runs: the installed forcedimension-core Python code (its library search, its version check,
 its ctypes declarations of every symbol, its dhd functions) and our backend, against
-tests/client/emulators/fd_sim.c, our own C emulator of libdrd written from the public function
+tests/support/emulators/fd_sim.c, our own C emulator of libdrd written from the public function
 signatures. The fixture compiles it with ``cc``, adds ``int NAME(void){return -1;}`` for every
 other dhd*/drd* symbol the installed binding binds (found by scanning its source, so a new binding
 version still loads), and installs the result where the binding looks for the SDK:
@@ -38,10 +38,10 @@ import pytest
 from haptic_collab.client.devices import DeviceError
 from haptic_collab.client.devices import forcedimension as fd
 from haptic_collab.client.devices.backends import DeviceOptions
-from tests.helpers import c_compiler, compile_shared_library
+from tests.support.helpers import c_compiler, compile_shared_library
 
 ROOT = Path(__file__).resolve().parents[2]
-EMULATOR_C = Path(__file__).resolve().parent / "emulators" / "fd_sim.c"
+EMULATOR_C = Path(__file__).resolve().parents[1] / "support" / "emulators" / "fd_sim.c"
 #: The file name the binding accepts (libdrd.so.*, SDK 3.16 or newer; the emulator says 3.17.6).
 LIBRARY_NAME = "libdrd.so.3.17.6"
 INSTALL = "pip install 'haptic-collab[forcedimension]'"
@@ -77,7 +77,7 @@ def defined_symbols(c_source: str) -> set[str]:
 def fdsdk(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An FDSDK folder holding the emulator built as libdrd (skips without cc or the binding)."""
     cc = c_compiler(
-        "no C compiler (cc) on PATH to build the libdrd emulator tests/client/emulators/fd_sim.c"
+        "no C compiler (cc) on PATH to build the libdrd emulator tests/support/emulators/fd_sim.c"
     )
     if sys.version_info[:2] >= fd.MAX_PYTHON:
         pytest.skip("forcedimension-core supports Python < 3.13 only")

@@ -1,6 +1,6 @@
 """The ``haply`` backend: the real, unmodified HaplyHardwareAPI binding against our Inverse3 emulator.
 
-The emulator (tests/client/emulators/inverse3.py) serves the master side of a pseudo-terminal
+The emulator (tests/support/emulators/inverse3.py) serves the master side of a pseudo-terminal
 from a separate process; the backend opens the slave side by path through the compiled binding,
 exactly as it opens ``/dev/ttyACM0``. What is asserted is what a user would notice: the backend
 says what to install when the binding is missing, opens the port before the network, reports the
@@ -45,7 +45,7 @@ from haptic_collab.client.devices.haply import (
 )
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.shared.primitives import make_plane
-from tests.client.emulators.inverse3 import Inverse3Emulator
+from tests.support.emulators.inverse3 import Inverse3Emulator
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -1,7 +1,7 @@
 """The openhaptics backend (client/devices/openhaptics.py) driving the real pyOpenHaptics binding
 against an emulator of libHD.
 
-The emulator is our own C (tests/client/emulators/hd_sim.c, written from the public HD API
+The emulator is our own C (tests/support/emulators/hd_sim.c, written from the public HD API
 signatures): a simulated device, a 1 kHz scheduler thread, frames, an error FIFO, the driver's
 safety errors, and hooks to set the stylus and read the force at the "motors". It is compiled
 here with ``cc`` (skipped without one) into a temporary folder as ``libHD.so``.
@@ -42,10 +42,10 @@ import pytest
 
 from haptic_collab.client.devices import HID_STANDOFF_M, DeviceError, DeviceOptions
 from haptic_collab.client.devices.openhaptics import BACKEND, OpenHapticsDevice
-from tests.helpers import c_compiler, compile_shared_library
+from tests.support.helpers import c_compiler, compile_shared_library
 
 ROOT = Path(__file__).resolve().parents[2]
-EMULATOR_C = Path(__file__).resolve().parent / "emulators" / "hd_sim.c"
+EMULATOR_C = Path(__file__).resolve().parents[1] / "support" / "emulators" / "hd_sim.c"
 RESULT = "RESULT "
 ANCHOR = (0.01, -0.02, 0.1)
 NORMAL = (0.0, 0.0, 1.0)
@@ -388,7 +388,7 @@ SCENARIOS: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
 def libhd(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A folder holding the emulator compiled as ``libHD.so``."""
     cc = c_compiler(
-        "no C compiler (cc) on PATH: the libHD emulator tests/client/emulators/hd_sim.c is "
+        "no C compiler (cc) on PATH: the libHD emulator tests/support/emulators/hd_sim.c is "
         "compiled at test time (install gcc or clang)"
     )
     out = tmp_path_factory.mktemp("libhd")
@@ -722,7 +722,7 @@ async def test_haptic_client_with_an_openhaptics_device_feels_the_object(
     from haptic_collab.server.app import ServerApp
     from haptic_collab.server.main import ServerOptions, build_world
     from haptic_collab.server.room import Room
-    from tests.processes import haptic, load_csv
+    from tests.support.processes import haptic, load_csv
 
     world = build_world(ServerOptions(sim_rate_hz=20.0, subdivisions=3))
     app = ServerApp(Room(world, 20.0), "127.0.0.1", 0)

@@ -19,7 +19,7 @@ import pytest
 from haptic_collab.client.devices import make_device
 from haptic_collab.client.recorder import COLUMNS, CsvRecording, TelemetryRecorder, load_recording
 from haptic_collab.client.servo import ServoConfig, ServoCore
-from tests.helpers import resting_servo
+from tests.support.helpers import resting_servo
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.recorder import COLUMNS, TelemetryRecorder
-from tests.helpers import resting_servo
+from tests.support.helpers import resting_servo
 
 
 def row(i: int) -> list[float]:

@@ -11,7 +11,7 @@ import pytest
 
 from haptic_collab.client.servo import ServoCore
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
-from tests.helpers import ScriptedDevice, plane_at, run, scripted_core
+from tests.support.helpers import ScriptedDevice, plane_at, run, scripted_core
 
 
 def _pressed(recovery: float) -> LocalModel:

@@ -13,51 +13,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.client.devices.base import Device, HapticError, Vec3
+from haptic_collab.client.devices.base import HapticError, Vec3
 from haptic_collab.client.scheduler import DeadlineLoop
 from haptic_collab.client.servo import ServoConfig, ServoCore, ServoThread
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import make_plane, make_sphere
-from tests.helpers import lab_limits, max_step
+from tests.support.helpers import FakeDevice, max_step
 
 T = 1e-3
 RAMP_S = 0.05
 STEP = T / RAMP_S  # safety-gain change per tick
-
-
-class FakeDevice(Device):
-    """A device whose handle is wherever the test puts it; records every write."""
-
-    def __init__(self, position: Vec3 = (0.0, 0.0, 0.0), max_force_n: float = 7.9) -> None:
-        self.name = "fake"
-        self.limits = lab_limits(max_force_n=max_force_n, max_velocity_m_s=0.5)
-        self.fault: str | None = None
-        self.position = position
-        self.enabled = False
-        self.writes: list[Vec3] = []
-        self.displayed: Vec3 = (0.0, 0.0, 0.0)
-
-    def open(self) -> None:
-        pass
-
-    def close(self) -> None:
-        self.disable_forces()
-
-    def read(self, t_s: float) -> Vec3:
-        return self.position
-
-    def write(self, fx: float, fy: float, fz: float) -> None:
-        self.writes.append((fx, fy, fz))
-        if self.enabled:
-            self.displayed = (fx, fy, fz)
-
-    def enable_forces(self) -> None:
-        self.enabled = True
-
-    def disable_forces(self) -> None:
-        self.enabled = False
-        self.displayed = (0.0, 0.0, 0.0)
 
 
 def make_core(dev: FakeDevice, link_timeout_s: float = 0.25) -> ServoCore:

@@ -12,7 +12,7 @@ import pytest
 
 from haptic_collab.client.servo import ServoCore
 from haptic_collab.shared.primitives import make_plane, make_sphere
-from tests.helpers import (
+from tests.support.helpers import (
     SERVO_PERIOD_S,
     SERVO_RAMP_S,
     ScriptedDevice,

@@ -4,16 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from haptic_collab.client.bench_gains import BENCH_OBJECT, plane_patch, welcomed_session
 from haptic_collab.client.session import ClientSession
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from haptic_collab.shared.protocol import Pong, Welcome, encode
 from haptic_collab.shared.stability import analyze
-
-
-def patch(tick: int, k_o_eff: float = 300.0, k_o: float = 320.0) -> str:
-    """A contact patch on the top plane of :data:`BENCH_OBJECT` (these tests' default stiffnesses)."""
-    return plane_patch(tick, k_o, k_o_eff)
+from tests.support.sessions import WELCOME_OBJECT, welcomed_session
+from tests.support.sessions import session_patch as patch
 
 
 def session(max_stiffness: float = 1000.0) -> ClientSession:
@@ -141,7 +137,9 @@ def test_stale_patches_are_ignored_and_a_new_session_starts_afresh():
     assert receive_designed(s, patch(10), 0.1) is not None
     assert s.receive(patch(9), 0.2) is None
     s.receive(
-        encode(Welcome(user_id="u2", name="A", role="user", sim_rate_hz=20.0, object=BENCH_OBJECT)),
+        encode(
+            Welcome(user_id="u2", name="A", role="user", sim_rate_hz=20.0, object=WELCOME_OBJECT)
+        ),
         1.0,
     )
     assert s.receive(patch(1), 1.1) is not None  # the restarted server counts from 1 again
@@ -164,7 +162,7 @@ def test_users_resting_on_a_side_spread_over_the_sides_by_join_order():
         SurfacePoint(point_m=(0, 0.1, 0), normal=(0, 1, 0)),
         SurfacePoint(point_m=(-0.1, 0, 0), normal=(-1, 0, 0)),
     ]
-    obj = BENCH_OBJECT.model_copy(update={"sides": sides})
+    obj = WELCOME_OBJECT.model_copy(update={"sides": sides})
 
     def where(user_id: str, device: str = "sim:rest", anchor: str = "auto"):
         welcome = Welcome(
@@ -176,7 +174,7 @@ def test_users_resting_on_a_side_spread_over_the_sides_by_join_order():
     assert [where(u)[0] for u in ("u1", "u2", "u3", "u4")] == [
         (0.1, 0, 0), (0, 0.1, 0), (-0.1, 0, 0), (0.1, 0, 0),
     ]  # fmt: skip
-    assert where("u2", "sim:press") == (BENCH_OBJECT.top_m, BENCH_OBJECT.top_normal)
+    assert where("u2", "sim:press") == (WELCOME_OBJECT.top_m, WELCOME_OBJECT.top_normal)
     assert where("u2", "sim:press", "side")[1] == (0, 1, 0)
     # side:N names the server's N-th side whoever joined first (the demo's B: side:1)
     assert [where(u, anchor="side:1")[0] for u in ("u1", "u2", "u7")] == [(0.1, 0, 0)] * 3
@@ -185,7 +183,7 @@ def test_users_resting_on_a_side_spread_over_the_sides_by_join_order():
         with pytest.raises(ValueError, match="anchor must be"):
             where("u1", anchor=bad)
     # an older server without side anchors: the one side it names
-    old = BENCH_OBJECT.model_copy(update={"sides": []})
+    old = WELCOME_OBJECT.model_copy(update={"sides": []})
     welcome = Welcome(
         protocol=1, user_id="u3", name="x", role="user", sim_rate_hz=20.0, object=old,
         link=LinkConditions(),
@@ -232,7 +230,7 @@ def test_no_patch_yet_is_not_reported_as_zero_penetration():
     from haptic_collab.client.session import ServoSample
     from haptic_collab.shared.primitives import make_plane
     from haptic_collab.shared.protocol import State, parse_client
-    from tests.client.test_servo import FakeDevice
+    from tests.support.helpers import FakeDevice
 
     core = ServoCore(FakeDevice((0.0, 0.0, 0.098)), ServoConfig())
     core.tick(0.0)

@@ -27,7 +27,7 @@ from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.shared.gain_design import GainDesign, GainKey, GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
 from haptic_collab.shared.primitives import make_plane
-from tests.helpers import ScriptedDevice
+from tests.support.helpers import ScriptedDevice
 
 T = 1e-3
 N = 50  # servo ticks per simulation tick (20 Hz)

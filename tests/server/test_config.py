@@ -15,7 +15,7 @@ from haptic_collab.server.config import (
     apply_server_config,
     load_server_config,
 )
-from tests.helpers import assert_broken_and_missing_toml_refused
+from tests.support.helpers import assert_broken_and_missing_toml_refused
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "server-config.example.toml"
 

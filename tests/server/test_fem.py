@@ -216,7 +216,7 @@ def test_a_surface_that_cannot_be_tetrahedralised_is_one_clear_error(tmp_path):
 
 
 def test_haptic_bench_server_reports_the_fem_start_up_and_tick_cost():
-    from haptic_collab.server.bench_world import bench_fem
+    from haptic_collab.bench.world import bench_fem
 
     result = bench_fem(n_vertices_list=(642,), users=2, ticks=4, warmup=1)
     (row,) = result["meshes"]

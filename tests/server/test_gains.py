@@ -12,7 +12,6 @@ import json
 import numpy as np
 import pytest
 
-from haptic_collab.client.bench_gains import BENCH_OBJECT as OBJ
 from haptic_collab.client.session import ClientSession
 from haptic_collab.server.gains import GainAdvisor, GainJob, run_job
 from haptic_collab.server.objects.balloon import Balloon
@@ -30,6 +29,7 @@ from haptic_collab.shared.protocol import (
     Welcome,
     encode,
 )
+from tests.support.sessions import WELCOME_OBJECT as OBJ
 
 PHANTOM = DeviceInfo(
     profile="phantom-desktop",

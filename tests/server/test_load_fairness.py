@@ -29,7 +29,7 @@ from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Outgoing, Room, RoomLimits
 from haptic_collab.server.security import TokenBucket
 from haptic_collab.shared.protocol import LinkConditions
-from tests.server.test_room import RecordingWorld, hello, prime, state, texts
+from tests.support.rooms import RecordingWorld, hello, prime, state, texts
 
 SIM_RATE = 20.0
 PERIOD = 1.0 / SIM_RATE

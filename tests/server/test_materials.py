@@ -24,7 +24,7 @@ from haptic_collab.server.materials import (
 )
 from haptic_collab.server.objects.balloon import Balloon, BalloonParams
 from haptic_collab.server.objects.mesh import default_balloon
-from tests.helpers import assert_broken_and_missing_toml_refused
+from tests.support.helpers import assert_broken_and_missing_toml_refused
 
 #: K_o [N/m] (top, side) on the default mesh as docs/materials.md lists them.
 DOCUMENTED_K_O = {

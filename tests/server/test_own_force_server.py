@@ -12,13 +12,13 @@ from dataclasses import replace
 
 import pytest
 
-from haptic_collab.server.fidelity_3d import top_contact
+from haptic_collab.research.fidelity_3d import top_contact
 from haptic_collab.server.force_bound import ForceBoundParams, bound_force
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Room
 from haptic_collab.server.world import ContactInput
 from haptic_collab.shared.primitives import make_plane
-from tests.server.test_room import RecordingWorld, hello, prime, state, texts
+from tests.support.rooms import RecordingWorld, hello, prime, state, texts
 
 
 def test_the_world_reports_the_normal_force_it_applied_from_each_user():

@@ -16,7 +16,7 @@ from haptic_collab.server.main import ServerOptions, build_auth
 from haptic_collab.server.room import Room, RoomLimits
 from haptic_collab.server.security import TokenBucket, TokenTable, is_loopback, origin_allowed
 from haptic_collab.shared.primitives import make_plane, make_sphere
-from tests.server.test_room import RecordingWorld, prime, state, texts
+from tests.support.rooms import RecordingWorld, prime, state, texts
 
 ALICE = "alice-token-0123456789"
 VIEW = "viewer-token-0123456789"

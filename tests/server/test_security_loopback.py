@@ -24,7 +24,7 @@ from haptic_collab.server.app import ServerApp
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Room
 from haptic_collab.server.security import TokenTable
-from tests.test_loopback import _good_user
+from tests.support.processes import good_user
 
 pytestmark = pytest.mark.slow
 
@@ -188,7 +188,7 @@ async def test_padded_floods_from_one_address_do_not_cost_a_user_its_patch_rate(
 
     try:
         good, _ = await asyncio.gather(
-            _good_user(url, 5.0), asyncio.gather(*(flooder(i) for i in range(12)))
+            good_user(url, 5.0), asyncio.gather(*(flooder(i) for i in range(12)))
         )
         overruns = app.room.stats.overruns
     finally:
@@ -208,7 +208,7 @@ async def test_a_viewer_that_never_reads_is_dropped_and_a_user_keeps_its_rate():
     try:
         async with connect(url, sock=sock, max_queue=1) as ws:  # reads nothing after hello
             await ws.send(hello("stuck", role="viewer"))
-            good = await _good_user(url, 6.0)  # meanwhile, 6 s of a normal user
+            good = await good_user(url, 6.0)  # meanwhile, 6 s of a normal user
             for _ in range(400):  # the stuck viewer is dropped (generous bound: 40 s)
                 if not app.room.viewers:
                     break

@@ -18,7 +18,7 @@ from haptic_collab.server.objects.shapes import (
     stress_mesh,
     write_textured_obj,
 )
-from tests.test_cli import run
+from tests.support.processes import run
 
 
 @pytest.mark.parametrize("name", STRESS_MESHES)

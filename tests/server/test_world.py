@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from haptic_collab.server.bench_world import bench_world
+from haptic_collab.bench.world import bench_world
 from haptic_collab.server.objects.balloon import Balloon
 from haptic_collab.server.world import ContactInput, ContactOutput, World
 from haptic_collab.shared.primitives import Plane, Sphere

@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
+from haptic_collab.research.multirate import simulate, step_metrics
 from haptic_collab.shared.local_model import (
     LocalModel,
     LocalModelParams,
     ThresholdParams,
     encoder_speed_bound,
 )
-from haptic_collab.shared.multirate import simulate, step_metrics
 from haptic_collab.shared.primitives import make_plane, make_sphere
 
 

@@ -13,14 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
-from haptic_collab.shared.coupled_loop import (
-    UserGains,
-    compliance_matrix,
-    stiff_ratio_class,
-    verify_coupled,
-)
-from haptic_collab.shared.fidelity import (
+from haptic_collab.research.fidelity_1d import (
     PRESS,
     Cell,
     DeviceModel,
@@ -29,6 +22,13 @@ from haptic_collab.shared.fidelity import (
     felt_trajectory,
     rendering_for,
     simulate,
+)
+from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
+from haptic_collab.shared.coupled_loop import (
+    UserGains,
+    compliance_matrix,
+    stiff_ratio_class,
+    verify_coupled,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX
 from haptic_collab.shared.gain_design import (

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from haptic_collab.research.multirate import simulate
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
-from haptic_collab.shared.multirate import simulate
 from haptic_collab.shared.stability import (
     StateSpace,
     analyze,

@@ -1,0 +1,840 @@
+"""``haptic bench fidelity``: every rendering scheme side by side, in one run (README, "Fidelity").
+
+A *condition* is an object model x K_o x simulation rate x one-way delay. In each, every scheme
+of :data:`haptic_collab.research.fidelity_1d.SCHEMES` runs on the vectorised 1-D multirate model of
+:mod:`haptic_collab.research.fidelity_1d` with every hand of the box (and, reported apart, hands outside it) on every
+trajectory, and with the probe as a position source at each frequency of :data:`FELT_HZ` (the
+felt impedance). The local models render the product's own design
+(:class:`shared.gain_design.GainTable`, the client's key), made for the K_o the simulation
+reports; each peer runs every tuning of its sweep (:func:`haptic_collab.research.fidelity_1d.peer_renderings`) and
+is represented by its best one in that condition (:func:`choose_variant`), so a peer is never
+judged by a tuning its users would not pick. That choice knows the object; the summary's
+``peers_tuned_on_the_design_model`` ranks again with each peer keeping the tuning it picks on the
+design model (what the product's design knows: the reported K_o).
+
+The objects (:data:`haptic_collab.research.fidelity_1d.OBJECTS`): ``spring`` is the model the product's design
+assumes; ``spring-0.8`` / ``spring-1.2`` (K_o reported 25 % high / 17 % low), ``sls``
+(viscoelastic, with mass) and ``stiffening`` are objects it did not see.
+
+Ranking (:func:`rank`): with every hand of the box in the loop, a scheme counts in a condition
+only if it is stable with every hand on every trajectory; its felt error is the largest
+``|ln |q(f)||`` over :data:`BAND_HZ`, ``q`` the felt dynamic stiffness over the object's own;
+the best is the smallest, and every scheme within the stiffness JND of it
+(:data:`STIFFNESS_JND`: ``error <= best + ln(1 + JND)``) is tied with it. The same ranking is
+also made per hand (a scheme stable with that hand on that trajectory), as issue 9 did.
+
+``--quick`` runs :data:`QUICK_GRID`; :data:`FULL_GRID` is the whole grid. ``--plot DIR`` writes
+``fidelity-stability.png`` and ``fidelity-transparency.png``.
+
+This module reads a clock only to report wall time.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import statistics
+import time
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from haptic_collab.research.fidelity_1d import (
+    LOCAL_MODELS,
+    OBJECTS,
+    SCHEMES,
+    TRAJECTORIES,
+    Cell,
+    DeviceModel,
+    ObjectModel,
+    Rendering,
+    RunOptions,
+    cell_metrics,
+    design_delay_ticks,
+    felt_depth_m,
+    felt_response,
+    felt_trajectory,
+    peer_renderings,
+    rendering_for,
+    scheme_tuning,
+    simulate,
+)
+from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
+from haptic_collab.shared.gain_design import GainDesign, GainKey, GainTable, design_cell
+
+#: Frequencies [Hz] of the felt impedance (the issue's 0.5-30 Hz).
+FELT_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 30.0)
+#: The frequencies the ranking judges the felt stiffness over: the band of voluntary hand motion
+#: in which people judge stiffness by pressing (Brooks 1990: up to 5-10 Hz); above it the
+#: impedance is reported, not ranked.
+BAND_HZ = (0.5, 1.0, 2.0, 4.0, 8.0)
+
+#: Relative difference in felt stiffness below which a user cannot tell two renderings apart:
+#: 10 %, under the Weber fractions measured for stiffness and compliance (15 % in Bergmann Tiest
+#: and Kappers 2009, "Cues for haptic perception of compliance"; 23 % in Jones and Hunter 1990,
+#: "A perceptual analysis of stiffness"), so the judgement errs against whoever is not the best.
+STIFFNESS_JND = 0.10
+
+_OBJECTS = {o.name: o for o in OBJECTS}
+_TRAJ = {t.name: t for t in TRAJECTORIES}
+_SERVO_RATE_HZ = 1000.0
+_BATCH = 4000
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The conditions every scheme runs on (SI units; delays in ms, one way).
+
+    ``objects`` names models of :data:`haptic_collab.research.fidelity_1d.OBJECTS`; ``hands`` are the hand box's
+    (the ranking's), ``outside_hands`` are run and reported apart (not a claim of the product).
+    """
+
+    k_o: tuple[float, ...]
+    sim_rate_hz: tuple[float, ...]
+    delay_ms: tuple[float, ...]
+    hands: tuple[Hand, ...]
+    trajectories: tuple[str, ...] = tuple(t.name for t in TRAJECTORIES)
+    objects: tuple[str, ...] = tuple(o.name for o in OBJECTS)
+    outside_hands: tuple[Hand, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in self.objects:
+            if name not in _OBJECTS:
+                raise ValueError(
+                    f"unknown object model {name!r}; expected one of {sorted(_OBJECTS)}"
+                )
+        for name in self.trajectories:
+            if name not in _TRAJ:
+                raise ValueError(f"unknown trajectory {name!r}; expected one of {sorted(_TRAJ)}")
+
+    def as_dict(self) -> dict[str, Any]:
+        """The grid, JSON-ready."""
+        return {
+            "k_o_n_per_m": list(self.k_o),
+            "sim_rate_hz": list(self.sim_rate_hz),
+            "delay_ms": list(self.delay_ms),
+            "hands": [h.as_dict() for h in self.hands],
+            "outside_hands": [h.as_dict() for h in self.outside_hands],
+            "trajectories": list(self.trajectories),
+            "objects": list(self.objects),
+        }
+
+
+#: The hands: the 8 corners of the full-loop hand box and the default simulated hand.
+GRID_HANDS: tuple[Hand, ...] = (*DEFAULT_HAND_BOX.corners(), DEFAULT_HAND)
+
+#: Hands outside the design's box (reported apart): a stiff grip, a light fingertip hold, a
+#: lightly damped device held loosely.
+OUTSIDE_HANDS: tuple[Hand, ...] = (
+    Hand(mass_kg=0.6, damping_n_s_per_m=10.0, stiffness_n_per_m=3000.0),
+    Hand(mass_kg=0.05, damping_n_s_per_m=2.0, stiffness_n_per_m=20.0),
+    Hand(mass_kg=0.3, damping_n_s_per_m=0.5, stiffness_n_per_m=300.0),
+)
+
+#: The whole grid.
+FULL_GRID = Grid(
+    k_o=(100.0, 300.0, 1000.0, 3000.0),
+    sim_rate_hz=(10.0, 20.0, 50.0, 100.0),
+    delay_ms=(0.0, 10.0, 50.0, 100.0, 200.0),
+    hands=GRID_HANDS,
+    outside_hands=OUTSIDE_HANDS,
+)
+
+#: ``--quick``: the softest-but-one and stiffest objects, the paper's 20 Hz and a fast 50 Hz, no
+#: delay, a LAN-like 10 ms and a long 100 ms; every object model, hand of the box and trajectory.
+QUICK_GRID = Grid(
+    k_o=(300.0, 3000.0),
+    sim_rate_hz=(20.0, 50.0),
+    delay_ms=(0.0, 10.0, 100.0),
+    hands=GRID_HANDS,
+)
+
+#: The device of every cell (the simulated Phantom Desktop).
+DEVICE = DeviceModel()
+
+#: Stress-set shapes (:mod:`server.objects.shapes`) whose top a user presses in the 3-D cells,
+#: besides the balloon: a flat face with sharp edges, a thin part, a genus-1 ring, and the box as
+#: a FEM solid (liver-like, :data:`haptic_collab.research.fidelity_3d.FEM_MATERIAL_3D`).
+FIDELITY_MESHES_3D = ("box", "plate", "torus", "fem:box")
+
+
+def _gain_key(mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceModel) -> GainKey:
+    return GainKey(
+        servo_rate_hz=_SERVO_RATE_HZ,
+        sim_rate_hz=sim_rate_hz,
+        delay_ticks=design_delay_ticks(delay_ms * 1e-3, sim_rate_hz),
+        mode="pi" if mode == "pi" else "p",
+        margin=0.15,
+        k_h_max=device.max_stiffness_n_per_m,
+        b_h_max=device.max_damping_n_s_per_m,
+    )
+
+
+def _design_cost(job: tuple[str, GainKey, float]) -> tuple[float, float]:
+    """A design job's relative cost, for ordering: N (N + delay ticks)^3, PI before P."""
+    mode, key, _ = job
+    n = key.rates.ratio
+    return (float(n * (n + key.delay_ticks) ** 3), 1.0 if mode == "pi" else 0.0)
+
+
+def _design(key: GainKey, k_o: float) -> GainDesign:
+    """The design the product's client renders for K_o under ``key`` (a worker's job): its
+    cell's, scaled to K_o (:meth:`shared.gain_design.GainTable.lookup`)."""
+    table = GainTable(DEFAULT_HAND_BOX)
+    return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box).at(k_o)
+
+
+def _simulate_batch(
+    cells: list[Cell], felt: bool, device: DeviceModel, options: RunOptions
+) -> list[Any]:
+    """Simulate one batch (a worker's job): metrics, or felt responses ``(|q|, arg q)``."""
+    run = simulate(cells, device=device, servo_rate_hz=_SERVO_RATE_HZ, options=options)
+    if felt:
+        return [
+            None if q is None else (abs(q), math.atan2(q.imag, q.real))
+            for q in felt_response(run, cells)
+        ]
+    return [m.to_json() for m in cell_metrics(run, cells)]
+
+
+def _chunks(items: Sequence[Cell], size: int) -> Iterable[list[Cell]]:
+    for a in range(0, len(items), size):
+        yield list(items[a : a + size])
+
+
+Felt = dict[float, "tuple[float, float] | None"]
+
+
+def felt_error(felt: Felt) -> float:
+    """The largest ``|ln |q(f)||`` over :data:`BAND_HZ` (0: the object's own stiffness at every
+    frequency of the band); ``inf`` when any of them could not be measured (a limit cycle, an
+    unsettled or runaway response)."""
+    worst = 0.0
+    for hz in BAND_HZ:
+        q = felt.get(hz)
+        if q is None or not (q[0] > 0.0 and math.isfinite(q[0])):
+            return math.inf
+        worst = max(worst, abs(math.log(q[0])))
+    return worst
+
+
+@dataclass
+class Outcome:
+    """One rendering (a scheme's tuning) in one condition.
+
+    ``stable`` holds one flag per (trajectory, box hand), in the grid's order; ``outside`` one
+    per (trajectory, outside hand). ``metrics`` are the box cells' :class:`CellMetrics` JSON.
+    """
+
+    rendering: Rendering
+    stable: list[bool] = field(default_factory=list)
+    outside: list[bool] = field(default_factory=list)
+    metrics: list[dict[str, Any]] = field(default_factory=list)
+    impact: list[dict[str, Any]] = field(default_factory=list)
+    felt: Felt = field(default_factory=dict)
+
+    @property
+    def box_stable(self) -> bool:
+        """Stable with every hand of the box on every trajectory."""
+        return bool(self.stable) and all(self.stable)
+
+
+def choose_variant(outcomes: Sequence[Outcome]) -> int:
+    """Index of a peer's tuning that represents it in a condition: stable with every hand of the
+    box if any is, then the most hands stable, then the smallest :func:`felt_error`."""
+    if not outcomes:
+        raise ValueError("choose_variant needs at least one outcome")
+    return min(
+        range(len(outcomes)),
+        key=lambda i: (
+            not outcomes[i].box_stable,
+            -sum(outcomes[i].stable),
+            felt_error(outcomes[i].felt),
+        ),
+    )
+
+
+def _scheme_record(o: Outcome) -> dict[str, Any]:
+    err = felt_error(o.felt)
+    return {
+        "variant": o.rendering.variant,
+        "box_stable": o.box_stable,
+        "stable_cells": "".join("1" if s else "0" for s in o.stable),
+        "outside_stable": "".join("1" if s else "0" for s in o.outside),
+        "felt": {f"{hz:g}": (None if q is None else [q[0], q[1]]) for hz, q in o.felt.items()},
+        "felt_error": None if math.isinf(err) else err,
+        "hold_p2p_mm_max": max((m["hold_p2p_mm"] for m in o.metrics), default=None),
+        "peak_penetration_impact_mm_max": max(
+            (m["peak_penetration_mm"] for m in o.impact), default=None
+        ),
+        "energy_out_mj_max": max((m["energy_out_mj"] for m in o.metrics), default=None),
+        "force_ripple_n_max": max((m["force_ripple_n"] for m in o.metrics), default=None),
+    }
+
+
+def _ties(errors: dict[str, float]) -> tuple[list[str], list[str]]:
+    """(best, within the JND of the best) among schemes with a finite felt error."""
+    finite = {s: e for s, e in errors.items() if math.isfinite(e)}
+    if not finite:
+        return [], []
+    best = min(finite.values())
+    top = [s for s, e in finite.items() if e <= best + 1e-9]
+    near = [s for s, e in finite.items() if e <= best + math.log1p(STIFFNESS_JND) + 1e-12]
+    return top, near
+
+
+def rank(condition: dict[str, Any]) -> None:
+    """Rank one condition's schemes in place (module docstring): ``best`` and ``near_best``
+    with every hand of the box, and ``per_hand`` (counts over its (trajectory, hand) cells of
+    each scheme best / within the JND of the best among those stable with that hand)."""
+    recs = condition["schemes"]
+    errors = {
+        s: (r["felt_error"] if r["felt_error"] is not None else math.inf) for s, r in recs.items()
+    }
+    box = {s: e for s, e in errors.items() if recs[s]["box_stable"]}
+    condition["best"], condition["near_best"] = _ties(box)
+    n_cells = max((len(r["stable_cells"]) for r in recs.values()), default=0)
+    best_n: dict[str, int] = dict.fromkeys(recs, 0)
+    near_n: dict[str, int] = dict.fromkeys(recs, 0)
+    for k in range(n_cells):
+        ok = {s: e for s, e in errors.items() if recs[s]["stable_cells"][k : k + 1] == "1"}
+        top, near = _ties(ok)
+        for s in top:
+            best_n[s] += 1
+        for s in near:
+            near_n[s] += 1
+    condition["per_hand"] = {"cells": n_cells, "best": best_n, "near_best": near_n}
+
+
+def _frac(n: int, d: int) -> float | None:
+    return n / d if d else None
+
+
+def summarize(conditions: list[dict[str, Any]], schemes: Sequence[str]) -> dict[str, Any]:
+    """The summary of ranked conditions (:func:`rank`).
+
+    Per scheme: ``box_stable_fraction`` (conditions in which it is stable with every hand of the
+    box), ``best_fraction_box`` and ``near_best_fraction_box`` (best / within the JND of the
+    best with every hand of the box), the same on the design model (``_spring``) and on the
+    objects the design did not see (``_unseen``), the per-hand shares (``per_hand_*``),
+    ``outside_stable_fraction`` (cells with hands outside the box), the medians of ``|q|`` and
+    of its phase [rad] at each felt frequency over the conditions where it is box-stable, the
+    largest energy it gave a user [mJ], the median peak penetration on impact [mm], and which
+    tunings represented it. ``by_object``: each object's box-stable and near-best shares per
+    scheme. ``product``: the local models' shares (either of them), and ``peer_better``: the
+    conditions where a peer is better than both local models by more than the JND.
+    """
+    unseen = [c for c in conditions if c["object"] != "spring"]
+    spring = [c for c in conditions if c["object"] == "spring"]
+    out: dict[str, Any] = {}
+    for s in schemes:
+        mine = [c for c in conditions if s in c["schemes"]]
+        if not mine:
+            continue
+        recs = [c["schemes"][s] for c in mine]
+        stable_recs = [r for r in recs if r["box_stable"]]
+        cells = sum(len(r["stable_cells"]) for r in recs)
+        outside = "".join(r["outside_stable"] for r in recs)
+        mags: dict[str, float | None] = {}
+        phases: dict[str, float | None] = {}
+        for hz in FELT_HZ:
+            key = f"{hz:g}"
+            vals = [r["felt"][key] for r in stable_recs if r["felt"].get(key) is not None]
+            mags[key] = statistics.median(v[0] for v in vals) if vals else None
+            phases[key] = statistics.median(v[1] for v in vals) if vals else None
+        errs = [r["felt_error"] for r in stable_recs if r["felt_error"] is not None]
+        variants: dict[str, int] = defaultdict(int)
+        for r in recs:
+            variants[r["variant"] or "-"] += 1
+        pen = [
+            r["peak_penetration_impact_mm_max"]
+            for r in stable_recs
+            if r["peak_penetration_impact_mm_max"] is not None
+        ]
+        row = {
+            "conditions": len(mine),
+            "box_stable_fraction": sum(r["box_stable"] for r in recs) / len(recs),
+            "best_fraction_box": sum(s in c["best"] for c in mine) / len(mine),
+            "near_best_fraction_box": sum(s in c["near_best"] for c in mine) / len(mine),
+            "per_hand_stable_fraction": _frac(
+                sum(r["stable_cells"].count("1") for r in recs), cells
+            ),
+            "per_hand_best_fraction": _frac(sum(c["per_hand"]["best"][s] for c in mine), cells),
+            "per_hand_near_best_fraction": _frac(
+                sum(c["per_hand"]["near_best"][s] for c in mine), cells
+            ),
+            "outside_stable_fraction": _frac(outside.count("1"), len(outside)),
+            "median_felt_ratio": mags,
+            "median_felt_phase_rad": phases,
+            "median_felt_error": statistics.median(errs) if errs else None,
+            "max_energy_out_mj": max(
+                (r["energy_out_mj_max"] for r in stable_recs if r["energy_out_mj_max"] is not None),
+                default=None,
+            ),
+            "median_peak_penetration_impact_mm": statistics.median(pen) if pen else None,
+            "variants": dict(variants),
+        }
+        for tag, group in (("spring", spring), ("unseen", unseen)):
+            g = [c for c in group if s in c["schemes"]]
+            row[f"box_stable_fraction_{tag}"] = _frac(
+                sum(c["schemes"][s]["box_stable"] for c in g), len(g)
+            )
+            row[f"near_best_fraction_box_{tag}"] = _frac(
+                sum(s in c["near_best"] for c in g), len(g)
+            )
+        out[s] = row
+    by_object: dict[str, dict[str, Any]] = {}
+    for name in dict.fromkeys(c["object"] for c in conditions):
+        g = [c for c in conditions if c["object"] == name]
+        by_object[name] = {
+            s: {
+                "box_stable_fraction": sum(c["schemes"][s]["box_stable"] for c in g) / len(g),
+                "near_best_fraction_box": sum(s in c["near_best"] for c in g) / len(g),
+            }
+            for s in schemes
+            if all(s in c["schemes"] for c in g)
+        }
+    ours = [s for s in schemes if s in LOCAL_MODELS]
+    peer_better = []
+    for c in conditions:
+        if not ours or any(s in c["near_best"] for s in ours) or not c["best"]:
+            continue
+        lm_errs = {s: c["schemes"][s]["felt_error"] for s in ours}
+        peer_better.append(
+            {
+                "object": c["object"],
+                "k_o_n_per_m": c["k_o_n_per_m"],
+                "sim_rate_hz": c["sim_rate_hz"],
+                "delay_ms": c["delay_ms"],
+                "best": c["best"],
+                "best_felt_error": c["schemes"][c["best"][0]]["felt_error"],
+                "local_model_felt_error": lm_errs,
+                "local_model_box_stable": {s: c["schemes"][s]["box_stable"] for s in ours},
+            }
+        )
+
+    def share(group: list[dict[str, Any]], key: str) -> float | None:
+        if not ours:
+            return None
+        if key == "box_stable":
+            return _frac(
+                sum(all(c["schemes"][s]["box_stable"] for s in ours) for c in group), len(group)
+            )
+        return _frac(sum(any(s in c[key] for s in ours) for c in group), len(group))
+
+    out["by_object"] = by_object
+    out["product"] = {
+        "local_models": ours,
+        "box_stable_fraction": share(conditions, "box_stable"),
+        "box_stable_fraction_unseen": share(unseen, "box_stable"),
+        "near_best_fraction_box": share(conditions, "near_best"),
+        "near_best_fraction_box_spring": share(spring, "near_best"),
+        "near_best_fraction_box_unseen": share(unseen, "near_best"),
+        "best_fraction_box": share(conditions, "best"),
+        "peer_better": peer_better,
+    }
+    out["stiffness_jnd"] = STIFFNESS_JND
+    out["band_hz"] = list(BAND_HZ)
+    out["conditions"] = len(conditions)
+    return out
+
+
+def run(
+    *,
+    quick: bool = False,
+    grid: Grid | None = None,
+    schemes: Sequence[str] = SCHEMES,
+    device: DeviceModel = DEVICE,
+    workers: int | None = None,
+    include_3d: bool = True,
+    options: RunOptions | None = None,
+    seed: int = 0,
+    log: Any = None,
+    design_cache: dict[tuple[str, GainKey, float], GainDesign] | None = None,
+) -> dict[str, Any]:
+    """Run the benchmark; returns the ``--json`` document.
+
+    Parameters
+    ----------
+    quick : bool
+        :data:`QUICK_GRID` instead of :data:`FULL_GRID` (ignored when ``grid`` is given).
+    grid : Grid, optional
+    schemes : sequence of str
+        Subset of :data:`haptic_collab.research.fidelity_1d.SCHEMES`.
+    device : DeviceModel
+    workers : int, optional
+        Worker processes (default: the machine's cores).
+    include_3d : bool
+        Also run the 3-D World cells (:mod:`haptic_collab.research.fidelity_3d`).
+    options : RunOptions, optional
+        Servo jitter and encoder quantisation for every 1-D cell (off by default); its seed
+        draws the jitter.
+    seed : int
+        Recorded in the output, and the jitter's seed when ``options`` has none of its own.
+    log : callable, optional
+        Progress lines (``print`` to stderr from the CLI).
+    design_cache : dict, optional
+        Designs already made, keyed ``(mode, GainKey, K_o)``; new designs are added to it.
+
+    Returns
+    -------
+    dict
+        ``schemes``, ``tuning`` (each scheme's sweep, in words), ``grid``, ``device``,
+        ``options``, ``conditions`` (one record per object x K_o x rate x delay: each scheme's
+        chosen tuning, per-cell stability, felt impedance and metrics, and the ranking),
+        ``cells_3d``, ``pairs_3d`` (two users: :func:`haptic_collab.research.fidelity_3d.run_3d_pairs`),
+        ``summary`` (:func:`summarize`; its ``peers_tuned_on_the_design_model``
+        is the same summary with each peer keeping, on every object, the tuning it picks on the
+        design model in that K_o x rate x delay), ``gains``, ``wall_s``, ``workers``.
+
+    Raises
+    ------
+    ValueError
+        An unknown scheme.
+    """
+    for s in schemes:
+        if s not in SCHEMES:
+            raise ValueError(f"unknown scheme {s!r}; expected one of {', '.join(SCHEMES)}")
+    g = grid if grid is not None else (QUICK_GRID if quick else FULL_GRID)
+    options = options if options is not None else RunOptions()
+    if options.seed == 0 and seed:
+        options = RunOptions(options.jitter_s, options.quantum_m, seed)
+    say = log if log is not None else (lambda _msg: None)
+    t0 = time.perf_counter()
+    n_workers = max(1, workers if workers is not None else (os.cpu_count() or 1))
+    pool: Executor = ProcessPoolExecutor(n_workers, mp_context=mp.get_context("spawn"))
+    hands = list(g.hands) + list(g.outside_hands)
+    n_box = len(g.hands)
+    try:
+        # 1. the product's gains for every (mode, rate, delay ticks, K_o): worker processes
+        wanted: set[tuple[str, GainKey, float]] = set()
+        for scheme in LOCAL_MODELS:
+            if scheme not in schemes:
+                continue
+            mode = "p" if scheme == "local-p" else "pi"
+            for rate in g.sim_rate_hz:
+                for d in g.delay_ms:
+                    key = _gain_key(mode, rate, d, device)
+                    for k_o in g.k_o:
+                        if design_cache is None or (mode, key, k_o) not in design_cache:
+                            wanted.add((mode, key, k_o))
+        # the longest designs first, so that no worker is left with one at the end: a design
+        # checks N sampling ticks of a loop of about N + delay states (eigenvalues: cubic)
+        jobs: dict[tuple[str, GainKey, float], Any] = {
+            w: pool.submit(_design, w[1], w[2])
+            for w in sorted(wanted, key=_design_cost, reverse=True)
+        }
+        designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
+        designs.update({k: f.result() for k, f in jobs.items()})
+        if design_cache is not None:
+            design_cache.update(designs)
+        t_design = time.perf_counter() - t0
+        say(f"designed {len(designs)} gain sets in {t_design:.1f} s")
+
+        # 2. every scheme's renderings (a peer's whole sweep) per (K_o, rate, delay)
+        rend: dict[tuple[str, float, float, float], list[Rendering]] = {}
+        for s in schemes:
+            for rate in g.sim_rate_hz:
+                for d in g.delay_ms:
+                    for k_o in g.k_o:
+                        if s in LOCAL_MODELS:
+                            mode = "p" if s == "local-p" else "pi"
+                            design = designs[(mode, _gain_key(mode, rate, d, device), k_o)]
+                            rs = [rendering_for(s, sim_rate_hz=rate, device=device, design=design)]
+                        else:
+                            rs = peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
+                        rend[(s, k_o, rate, d)] = rs
+
+        # 3. cells: every object x rendering x trajectory x hand, and the felt probes
+        outcomes: list[Outcome] = []
+        where: dict[tuple[str, str, float, float, float], list[int]] = {}
+        hand_cells: dict[str, list[tuple[int, int, int, Cell]]] = defaultdict(list)
+        felt_cells: dict[float, list[tuple[int, Cell]]] = defaultdict(list)
+        for name in g.objects:
+            obj = _OBJECTS[name]
+            for (s, k_o, rate, d), rs in rend.items():
+                ids = []
+                for r in rs:
+                    oid = len(outcomes)
+                    ids.append(oid)
+                    outcomes.append(Outcome(r))
+                    for ti, tr in enumerate(g.trajectories):
+                        for hi, h in enumerate(hands):
+                            hand_cells[tr].append(
+                                (oid, ti, hi, Cell(r, k_o, rate, d, h, _TRAJ[tr], obj))
+                            )
+                    depth = felt_depth_m(k_o, device.max_force_n, obj)
+                    for hz in FELT_HZ:
+                        cell = Cell(r, k_o, rate, d, None, felt_trajectory(hz, depth), obj)
+                        felt_cells[hz].append((oid, cell))
+                where[(name, s, k_o, rate, d)] = ids
+
+        # 4. simulate in batches (one trajectory per batch: equal lengths)
+        futs: list[tuple[str, Any, list[Any], Any]] = []
+        for tr, tagged in hand_cells.items():
+            for a in range(0, len(tagged), _BATCH):
+                chunk = tagged[a : a + _BATCH]
+                cs = [c for *_, c in chunk]
+                futs.append(
+                    ("hand", tr, chunk, pool.submit(_simulate_batch, cs, False, device, options))
+                )
+        for hz, tagged_f in felt_cells.items():
+            for a in range(0, len(tagged_f), _BATCH):
+                chunk_f = tagged_f[a : a + _BATCH]
+                cs = [c for _, c in chunk_f]
+                futs.append(
+                    ("felt", hz, chunk_f, pool.submit(_simulate_batch, cs, True, device, options))
+                )
+        n_sim = 0
+        for kind, what, items, fut in futs:
+            res = fut.result()
+            n_sim += len(res)
+            if kind == "felt":
+                for (oid, _c), q in zip(items, res, strict=True):
+                    outcomes[oid].felt[what] = None if q is None else (q[0], q[1])
+                continue
+            for (oid, _ti, hi, _c), m in zip(items, res, strict=True):
+                o = outcomes[oid]
+                if hi < n_box:
+                    o.stable.append(bool(m["stable"]))
+                    o.metrics.append(m)
+                    if what == "impact":
+                        o.impact.append(m)
+                else:
+                    o.outside.append(bool(m["stable"]))
+        t_sim = time.perf_counter() - t0 - t_design
+        say(f"simulated {n_sim} cells in {t_sim:.1f} s")
+    finally:
+        pool.shutdown()
+
+    # the stable flags must be in (trajectory, hand) order for the per-hand ranking: they are,
+    # because the cells of one trajectory are batched together in hand order and trajectories
+    # are collected in the grid's order
+    # each peer by its best tuning in the condition itself (the issue's protocol: the tuning is
+    # picked knowing the object), and by the tuning it would pick on the design model (what a
+    # designer who knows only the reported K_o would ship: the product's own position)
+    conditions: list[dict[str, Any]] = []
+    design_tuned: list[dict[str, Any]] = []
+    for name in g.objects:
+        for k_o in g.k_o:
+            for rate in g.sim_rate_hz:
+                for d in g.delay_ms:
+                    recs: dict[str, Any] = {}
+                    recs_d: dict[str, Any] = {}
+                    for s in schemes:
+                        ids = where[(name, s, k_o, rate, d)]
+                        best = ids[choose_variant([outcomes[i] for i in ids])]
+                        recs[s] = _scheme_record(outcomes[best])
+                        if "spring" in g.objects:
+                            ref = where[("spring", s, k_o, rate, d)]
+                            pick = choose_variant([outcomes[i] for i in ref])
+                            recs_d[s] = (
+                                recs[s]
+                                if ids[pick] == best
+                                else _scheme_record(outcomes[ids[pick]])
+                            )
+                    head = {"object": name, "k_o_n_per_m": k_o, "sim_rate_hz": rate, "delay_ms": d}
+                    cond = {**head, "schemes": recs}
+                    rank(cond)
+                    conditions.append(cond)
+                    if recs_d:
+                        cond_d = {**head, "schemes": recs_d}
+                        rank(cond_d)
+                        design_tuned.append(cond_d)
+
+    cells3: list[dict[str, Any]] = []
+    pairs3: list[dict[str, Any]] = []
+    t_3d = 0.0
+    if include_3d:
+        t3 = time.perf_counter()
+        from haptic_collab.research.fidelity_3d import (
+            PAIR_SCHEMES,
+            SCHEMES_3D,
+            run_3d_cells,
+            run_3d_pairs,
+        )
+
+        s3 = [s for s in schemes if s in SCHEMES_3D]
+        cells3 = run_3d_cells(s3, device=device, workers=n_workers)
+        # objects the design was not made on: the stress set's shapes, pressed at their top
+        cells3 += run_3d_cells(
+            s3,
+            device=device,
+            workers=n_workers,
+            meshes=FIDELITY_MESHES_3D,
+            stiffness_scales=(1.0,),
+            trajectories=("press",),
+        )
+        # two users on the balloon: B rests on its side while A presses the top
+        pairs3 = run_3d_pairs(
+            [s for s in schemes if s in PAIR_SCHEMES], device=device, workers=n_workers
+        )
+        t_3d = time.perf_counter() - t3
+        say(f"ran {len(cells3)} 3-D cells and {len(pairs3)} two-user cells in {t_3d:.1f} s")
+
+    gains = []
+    for (mode, gkey, k_o), gd in sorted(
+        designs.items(), key=lambda kv: (kv[0][0], kv[0][1].sim_rate_hz, kv[0][1].delay_ticks)
+    ):
+        gains.append(
+            {
+                "local_model": mode,
+                "k_o_n_per_m": k_o,
+                "sim_rate_hz": gkey.sim_rate_hz,
+                "delay_ticks": gkey.delay_ticks,
+                "k_h": gd.k_h,
+                "i_gain": gd.i_gain,
+                "b_h": gd.b_h,
+                "own_gain": gd.own_gain,
+                "proxy_hold": gd.proxy_hold,
+                "rendered_as": gd.mode,
+            }
+        )
+    summary = summarize(conditions, schemes)
+    if design_tuned:
+        summary["peers_tuned_on_the_design_model"] = summarize(design_tuned, schemes)
+    if cells3:
+        summary["stable_fraction_3d"] = {
+            s: sum(c["stable"] for c in cells3 if c["scheme"] == s)
+            / max(1, sum(c["scheme"] == s for c in cells3))
+            for s in dict.fromkeys(c["scheme"] for c in cells3)
+        }
+    if pairs3:
+        summary["two_users_3d"] = {
+            s: {
+                "settled_fraction": sum(p["settled"] for p in ps) / len(ps),
+                "b_feels_a_fraction": sum(p["b_feels_a"] for p in ps) / len(ps),
+                "median_b_force_rise_n": statistics.median(p["b_force_rise_n"] for p in ps),
+                "median_object_force_rise_n": statistics.median(
+                    p["object_force_rise_n"] for p in ps
+                ),
+            }
+            for s in dict.fromkeys(p["scheme"] for p in pairs3)
+            for ps in [[p for p in pairs3 if p["scheme"] == s]]
+        }
+    return {
+        "schemes": list(schemes),
+        "tuning": {s: scheme_tuning(s, device) for s in schemes},
+        "grid": {**g.as_dict(), "quick": quick and grid is None},
+        "objects": {
+            name: {
+                k: getattr(_OBJECTS[name], k)
+                for k in ObjectModel.__dataclass_fields__  # noqa: SIM118
+            }
+            for name in g.objects
+        },
+        "felt_hz": list(FELT_HZ),
+        "device": {
+            "name": device.name,
+            "max_force_n": device.max_force_n,
+            "max_stiffness_n_per_m": device.max_stiffness_n_per_m,
+            "max_damping_n_s_per_m": device.max_damping_n_s_per_m,
+        },
+        "options": {
+            "jitter_s": options.jitter_s,
+            "quantum_m": options.quantum_m,
+            "seed": options.seed,
+        },
+        "conditions": conditions,
+        "cells_3d": cells3,
+        "pairs_3d": pairs3,
+        "summary": summary,
+        "gains": gains,
+        "seed": seed,
+        "wall_s": {
+            "design": t_design,
+            "simulate_1d": t_sim,
+            "world_3d": t_3d,
+            "total": time.perf_counter() - t0,
+        },
+        "workers": n_workers,
+    }
+
+
+# ------------------------------------------------------------------------------------ plots
+def plot(result: dict[str, Any], out_dir: Path) -> list[Path]:
+    """Write ``fidelity-stability.png`` (each scheme's share of object models on which it is
+    stable with every hand of the box, over K_o x delay, one panel per simulation rate) and
+    ``fidelity-transparency.png`` (median felt |q| over frequency per scheme, on the design
+    model and on the objects it did not see) into ``out_dir``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    conds = result["conditions"]
+    schemes = result["schemes"]
+    grid = result["grid"]
+    k_os, rates, delays = grid["k_o_n_per_m"], grid["sim_rate_hz"], grid["delay_ms"]
+    share: dict[tuple[str, float, float, float], list[bool]] = defaultdict(list)
+    for c in conds:
+        for s, r in c["schemes"].items():
+            share[(s, c["k_o_n_per_m"], c["sim_rate_hz"], c["delay_ms"])].append(r["box_stable"])
+    fig = Figure(figsize=(2.4 * len(rates) + 1.2, 1.7 * len(schemes) + 0.6))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(schemes), len(rates), squeeze=False)
+    im = None
+    for i, s in enumerate(schemes):
+        for j, rate in enumerate(rates):
+            ax = axes[i][j]
+            data = [
+                [
+                    (lambda v: sum(v) / len(v) if v else math.nan)(share.get((s, k, rate, d), []))
+                    for k in k_os
+                ]
+                for d in delays
+            ]
+            im = ax.imshow(data, origin="lower", vmin=0.0, vmax=1.0, cmap="RdYlGn", aspect="auto")
+            ax.set_xticks(range(len(k_os)), [f"{k:g}" for k in k_os], fontsize=7)
+            ax.set_yticks(range(len(delays)), [f"{d:g}" for d in delays], fontsize=7)
+            if i == 0:
+                ax.set_title(f"{rate:g} Hz", fontsize=9)
+            if j == 0:
+                ax.set_ylabel(f"{s}\ndelay [ms]", fontsize=8)
+            if i == len(schemes) - 1:
+                ax.set_xlabel("K_o [N/m]", fontsize=8)
+    if im is not None:
+        fig.colorbar(im, ax=axes, shrink=0.6, label="share of object models stable with every hand")
+    fig.suptitle("Stable with every hand of the box (1-D, every trajectory)", fontsize=10)
+    p1 = out_dir / "fidelity-stability.png"
+    fig.savefig(p1, dpi=90)
+
+    fig2 = Figure(figsize=(9.0, 3.6))
+    FigureCanvasAgg(fig2)
+    axs = fig2.subplots(1, 2, sharey=True)
+    hz = result["felt_hz"]
+    for ax, (title, pick) in zip(
+        axs,
+        (
+            ("design model (spring)", lambda c: c["object"] == "spring"),
+            ("objects the design did not see", lambda c: c["object"] != "spring"),
+        ),
+        strict=True,
+    ):
+        for s in schemes:
+            meds = []
+            for f in hz:
+                v = [
+                    c["schemes"][s]["felt"][f"{f:g}"][0]
+                    for c in conds
+                    if pick(c)
+                    and c["schemes"][s]["box_stable"]
+                    and c["schemes"][s]["felt"].get(f"{f:g}") is not None
+                ]
+                meds.append(statistics.median(v) if v else math.nan)
+            ax.plot(hz, meds, marker="o", ms=3, label=s)
+        ax.axhspan(1.0 / (1.0 + STIFFNESS_JND), 1.0 + STIFFNESS_JND, color="0.85", zorder=0)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_ylim(0.1, 10.0)
+        ax.set_xlabel("frequency [Hz]")
+        ax.set_title(title, fontsize=9)
+    axs[0].set_ylabel("median felt |dF/dx| / object's own\n(box-stable conditions)")
+    axs[1].legend(fontsize=7, ncol=2)
+    fig2.tight_layout()
+    p2 = out_dir / "fidelity-transparency.png"
+    fig2.savefig(p2, dpi=90)
+    return [p1, p2]

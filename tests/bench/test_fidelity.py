@@ -1,0 +1,163 @@
+"""``haptic bench fidelity`` end to end on a small grid: the JSON a user gets, and the plots; the
+ranking's rules on conditions with a known answer."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from haptic_collab.bench.fidelity import (
+    BAND_HZ,
+    STIFFNESS_JND,
+    Grid,
+    Outcome,
+    choose_variant,
+    felt_error,
+    plot,
+    rank,
+    run,
+    summarize,
+)
+from haptic_collab.research.fidelity_1d import SCHEMES, Rendering, peer_renderings
+from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand
+
+
+def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
+    grid = Grid(
+        k_o=(1000.0,),
+        sim_rate_hz=(20.0,),
+        delay_ms=(0.0, 50.0),
+        hands=(DEFAULT_HAND, Hand(0.1, 2.0, 1000.0)),
+        objects=("spring", "sls"),
+        outside_hands=(Hand(0.3, 0.5, 300.0),),
+    )
+    out = run(grid=grid, include_3d=False, workers=2)
+    json.dumps(out, allow_nan=False)  # serialisable, no NaN
+    assert out["schemes"] == list(SCHEMES)
+    assert set(out["tuning"]) == set(SCHEMES)
+    conds = out["conditions"]
+    assert [(c["object"], c["delay_ms"]) for c in conds] == [
+        ("spring", 0.0), ("spring", 50.0), ("sls", 0.0), ("sls", 50.0),
+    ]  # fmt: skip
+    for c in conds:
+        assert set(c["schemes"]) == set(SCHEMES)
+        for s, r in c["schemes"].items():
+            assert len(r["stable_cells"]) == 2 * 3  # box hands x trajectories
+            assert len(r["outside_stable"]) == 1 * 3
+            assert set(r["felt"]) == {f"{hz:g}" for hz in out["felt_hz"]}
+            if not s.startswith("local"):
+                # a peer is represented by one of its own tunings
+                sweep = peer_renderings(s, k_o=1000.0, sim_rate_hz=20.0)
+                assert r["variant"] in {x.variant for x in sweep}
+    spring = {c["delay_ms"]: c for c in conds if c["object"] == "spring"}
+    # the paper's claim on its design model: the local models hold, direct rendering does not
+    for d in (0.0, 50.0):
+        assert spring[d]["schemes"]["local-p"]["box_stable"]
+        assert spring[d]["schemes"]["local-pi"]["box_stable"]
+    assert not spring[50.0]["schemes"]["direct"]["box_stable"]
+    # with own-force compensation the local models feel the object's own stiffness at 1 Hz (the
+    # device caps K_h at 1000 N/m = K_o; the slow loop carries the rest)
+    q = spring[0.0]["schemes"]["local-p"]["felt"]["1"]
+    assert q is not None and 0.95 < q[0] < 1.05
+    summary = out["summary"]
+    for s in SCHEMES:
+        assert 0.0 <= summary[s]["box_stable_fraction"] <= 1.0
+    # peers kept at the tuning they pick on the design model: the same on the design model
+    tuned = summary["peers_tuned_on_the_design_model"]
+    for s in SCHEMES:
+        assert tuned[s]["box_stable_fraction_spring"] == summary[s]["box_stable_fraction_spring"]
+        assert (
+            tuned[s]["near_best_fraction_box_spring"] == summary[s]["near_best_fraction_box_spring"]
+        )
+    prod = summary["product"]
+    assert prod["local_models"] == ["local-p", "local-pi"]
+    assert 0.0 <= prod["near_best_fraction_box_unseen"] <= 1.0
+    paths = plot(out, tmp_path)
+    assert [p.name for p in paths] == ["fidelity-stability.png", "fidelity-transparency.png"]
+    assert all(p.stat().st_size > 10_000 for p in paths)
+
+
+def _felt(q: float) -> dict[float, tuple[float, float] | None]:
+    return {hz: (q, 0.0) for hz in BAND_HZ}
+
+
+def test_the_felt_error_is_the_worst_of_the_band() -> None:
+    f = _felt(1.0)
+    assert felt_error(f) == 0.0
+    f[8.0] = (1.5, 0.3)
+    f[30.0] = (5.0, 0.0)  # above the band: reported, not ranked
+    assert felt_error(f) == pytest.approx(math.log(1.5))
+    f[0.5] = None  # a limit cycle or an unsettled response cannot be ranked
+    assert math.isinf(felt_error(f))
+
+
+def _rec(box_stable: bool, err: float | None, cells: str = "11") -> dict[str, Any]:
+    return {"box_stable": box_stable, "felt_error": err, "stable_cells": cells}
+
+
+def test_ties_within_the_jnd_and_stability_with_every_hand() -> None:
+    assert STIFFNESS_JND <= 0.15  # never looser than the measured Weber fractions
+    jnd = math.log1p(STIFFNESS_JND)
+    cond: dict[str, Any] = {
+        "schemes": {
+            # renders the object exactly but is unstable with one hand: not in the box ranking
+            "direct": _rec(False, 0.0, "10"),
+            "local-pi": _rec(True, 0.9 * jnd),  # within the JND of the best: a tie
+            "mmt": _rec(True, 0.0),
+            "virtual-coupling": _rec(True, 1.1 * jnd),  # a user would feel it
+        }
+    }
+    rank(cond)
+    assert cond["best"] == ["mmt"]
+    assert sorted(cond["near_best"]) == ["local-pi", "mmt"]
+    # per hand: with the first hand direct is stable and ties for the best
+    per = cond["per_hand"]
+    assert per["cells"] == 2
+    assert per["best"]["direct"] == 1 and per["best"]["mmt"] == 2
+    assert per["near_best"]["local-pi"] == 2 and per["near_best"]["virtual-coupling"] == 0
+
+
+def test_a_peer_is_represented_by_its_best_tuning() -> None:
+    r = Rendering("mmt", "mmt")
+    unstable_but_close = Outcome(r, stable=[True, False], felt=_felt(1.0))
+    stable_far = Outcome(r, stable=[True, True], felt=_felt(0.5))
+    stable_near = Outcome(r, stable=[True, True], felt=_felt(0.9))
+    assert choose_variant([unstable_but_close, stable_far, stable_near]) == 2
+    assert choose_variant([unstable_but_close, Outcome(r, [False, False], felt=_felt(1.0))]) == 0
+    with pytest.raises(ValueError):
+        choose_variant([])
+
+
+def test_the_summary_separates_the_design_model_from_the_unseen_objects() -> None:
+    def cond(obj: str, lp: dict[str, Any], peer: dict[str, Any]) -> dict[str, Any]:
+        c: dict[str, Any] = {
+            "object": obj, "k_o_n_per_m": 300.0, "sim_rate_hz": 20.0, "delay_ms": 0.0,
+            "schemes": {},
+        }  # fmt: skip
+        for s, r in (("local-p", lp), ("mmt", peer)):
+            c["schemes"][s] = {
+                **r, "variant": "", "outside_stable": "", "felt": {},
+                "hold_p2p_mm_max": 0.0, "peak_penetration_impact_mm_max": 1.0,
+                "energy_out_mj_max": 0.0, "force_ripple_n_max": 0.0,
+            }  # fmt: skip
+        rank(c)
+        return c
+
+    conds = [
+        cond("spring", _rec(True, 0.0), _rec(True, 0.0)),
+        cond("sls", _rec(False, 0.0, "10"), _rec(True, 0.05)),
+        cond("stiffening", _rec(True, 0.5), _rec(True, 0.05)),
+    ]
+    s = summarize(conds, ["local-p", "mmt"])
+    assert s["local-p"]["box_stable_fraction_unseen"] == 0.5
+    assert s["local-p"]["near_best_fraction_box_spring"] == 1.0
+    assert s["local-p"]["near_best_fraction_box_unseen"] == 0.0
+    assert s["mmt"]["near_best_fraction_box_unseen"] == 1.0
+    prod = s["product"]
+    assert prod["box_stable_fraction_unseen"] == 0.5
+    assert [p["object"] for p in prod["peer_better"]] == ["sls", "stiffening"]
+    assert s["by_object"]["sls"]["local-p"]["box_stable_fraction"] == 0.0

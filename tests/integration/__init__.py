@@ -1,0 +1,1 @@
+"""Tests across processes and packages: server and clients over loopback, the wheel, the wire."""

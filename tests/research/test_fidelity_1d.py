@@ -1,0 +1,269 @@
+"""The fidelity benchmark's 1-D simulator, schemes and metrics on cases with a known answer."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from haptic_collab.client.session import ClientSession, DeviceInfo
+from haptic_collab.research.fidelity_1d import (
+    IMPACT,
+    PRESS,
+    SCHEMES,
+    TAP,
+    Cell,
+    DeviceModel,
+    Rendering,
+    Trajectory,
+    cell_metrics,
+    design_delay_ticks,
+    felt_depth_m,
+    felt_stiffness_ratio,
+    felt_trajectory,
+    passivity_step,
+    rendering_for,
+    scheme_tuning,
+    simulate,
+)
+from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand, spectral_radius
+from haptic_collab.shared.gain_design import felt_stiffness
+from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
+from haptic_collab.shared.passivity import PassivityController, PassivityParams
+from haptic_collab.shared.protocol import Welcome, encode
+from tests.support.sessions import WELCOME_OBJECT as OBJ
+
+P500 = Rendering("local-p", "coupling", k_h=500.0)
+DIRECT = Rendering("direct", "direct")
+
+
+def _felt(r: Rendering, k_o: float, rate: float, delay_ms: float, hz: float) -> float | None:
+    cell = Cell(r, k_o, rate, delay_ms, None, felt_trajectory(hz, felt_depth_m(k_o, 7.9)))
+    return felt_stiffness_ratio(simulate([cell]), [cell])[0]
+
+
+def test_p_coupling_on_a_rigid_probe_feels_k_h_in_series_with_k_o() -> None:
+    # the paper's steady state: f = K_h K_o / (K_h + K_o) x
+    got = _felt(P500, 1000.0, 100.0, 0.0, 1.0)
+    assert got is not None
+    assert got == pytest.approx(500.0 / 1500.0, rel=2e-3)
+
+
+def test_felt_stiffness_matches_the_exact_lifted_analysis() -> None:
+    # probe damper, first-order hold and two ticks of delay at 8 Hz: the simulator measures what
+    # shared.gain_design.felt_stiffness computes exactly for the linear loop
+    r = Rendering("local-p", "coupling", k_h=300.0, b_h=8.0, proxy_hold="foh")
+    got = _felt(r, 1000.0, 20.0, 50.0, 8.0)
+    # 50 ms each way at 20 Hz: the force the simulation reads left the servo 2 periods earlier
+    want = felt_stiffness(
+        8.0,
+        k_o=1000.0,
+        k_h=300.0,
+        b_h=8.0,
+        rate_ratio=50,
+        delay_ticks=2,
+        proxy_hold="foh",
+        sample_tick=48,
+    )[0]
+    assert got is not None
+    assert got == pytest.approx(want / 1000.0, rel=0.01)
+
+
+def test_direct_rendering_at_zero_delay_and_high_rate_approaches_k_o() -> None:
+    got = _felt(DIRECT, 1000.0, 100.0, 0.0, 1.0)
+    assert got is not None
+    assert got == pytest.approx(1.0, abs=0.01)
+
+
+def test_a_saturated_force_is_not_read_as_stiffness() -> None:
+    # the felt-stiffness depth keeps K_o x inside the device's force on a stiff object
+    assert 3000.0 * (felt_depth_m(3000.0, 7.9) + 0.25e-3) <= 0.8 * 7.9 + 1e-9
+    assert felt_depth_m(100.0, 7.9) == pytest.approx(5e-3)
+
+
+def test_an_unsettled_response_has_no_felt_stiffness() -> None:
+    # P with K_h above K_o violates eq. 8 (paper Fig. 11): the unilateral contact bounds the
+    # divergence into a limit cycle, and no stiffness can be read from it
+    cell = Cell(Rendering("local-p", "coupling", k_h=1500.0), 1000.0, 20.0, 0.0, None,
+                felt_trajectory(1.0, 2e-3))  # fmt: skip
+    assert felt_stiffness_ratio(simulate([cell]), [cell]) == [None]
+
+
+def test_passivity_step_is_the_products_controller() -> None:
+    rng = np.random.default_rng(3)
+    params = PassivityParams(max_damping_n_s_per_m=10.0, energy_bias_j=1e-4, max_force_n=7.9)
+    pc = PassivityController(params)
+    e, fa = np.zeros(1), np.zeros(1)
+    for n in range(400):
+        f_d = 0.0 if n % 97 < 5 else float(rng.normal(0.0, 4.0))
+        v = float(rng.normal(0.0, 0.05))
+        want = pc.step(f_d, 0.0, 0.0, v, 0.0, 0.0)[0]
+        e, fa, _ = passivity_step(
+            e,
+            fa,
+            np.array([f_d]),
+            np.array([v]),
+            servo_period_s=1e-3,
+            max_damping_n_s_per_m=10.0,
+            energy_bias_j=1e-4,
+            max_force_n=7.9,
+        )
+        assert fa[0] == pytest.approx(want, abs=1e-12)
+        assert e[0] == pytest.approx(pc.observed_energy_j, abs=1e-12)
+
+
+def test_the_local_model_is_the_products_local_model() -> None:
+    """A PI coupling with eq. 17's threshold and the release ramp, probe as a position source:
+    the vectorised simulator against shared.local_model.LocalModel driven by an independently
+    written 20 Hz object with 10 ms of delay each way."""
+    k_o, rate, d = 400.0, 20.0, 10
+    r = Rendering(
+        "local-pi",
+        "coupling",
+        k_h=120.0,
+        i_gain=2000.0,
+        theta_m=1e-3,
+        release_time_s=0.1,
+    )
+    # in, hold, out (release), back in
+    tr = Trajectory(
+        "in-out",
+        duration_s=2.0,
+        y0_m=-2e-3,
+        y1_m=6e-3,
+        ramp_start_s=0.1,
+        ramp_s=0.3,
+        sine_amplitude_m=7e-3,
+        sine_hz=1.0,
+        sine_start_s=1.0,
+        sine_end_s=2.0,
+    )
+    cell = Cell(r, k_o, rate, float(d), None, tr)
+    run = simulate([cell])
+    lm = LocalModel(
+        LocalModelParams(
+            k_h=120.0,
+            i_gain=2000.0,
+            threshold=ThresholdParams(mode="fixed", theta_m=1e-3),
+            release_time_s=0.1,
+            integral_limit_n=7.9,
+            recovery_m_per_n=1.0 / k_o,
+        )
+    )
+    n_ratio = 50
+    sent: list[float] = []
+    published: list[tuple[int, float]] = []  # (servo tick from which the servo sees it, x_o)
+    proxy = 0.0
+    forces = []
+    for n in range(run.t.size):
+        for tick, x_o in published:
+            if tick == n:
+                proxy = x_o
+        x = float(run.x[0, n])
+        f = min(max(lm.step(x - proxy), -7.9), 7.9)
+        forces.append(f)
+        sent.append(f)
+        if n % n_ratio == 0:
+            got = sent[n - d] if n - d >= 0 else 0.0
+            published.append((n + 1 + d, max(got, 0.0) / k_o))
+    np.testing.assert_allclose(run.f[0], forces, atol=1e-9)
+    assert max(forces) > 1.0  # the case exercised contact
+
+
+def test_the_delay_is_honoured_both_ways() -> None:
+    # direct rendering: the probe enters at t0; the force comes back after the uplink delay, the
+    # wait for the next simulation tick, one tick of computation and the downlink delay
+    step = Trajectory("step", duration_s=1.0, y0_m=-1e-3, y1_m=2e-3, ramp_start_s=0.2, ramp_s=1e-3)
+    cells = [Cell(DIRECT, 1000.0, 100.0, float(d), None, step) for d in (0, 50)]
+    run = simulate(cells)
+    t_in = run.t[np.argmax(run.x[0] > 0.0)]
+    first = [run.t[np.argmax(run.f[i] > 0.0)] - t_in for i in range(2)]
+    assert 0.0 < first[0] <= 0.012
+    assert 0.1 <= first[1] <= 0.112
+
+
+@pytest.mark.parametrize("hand", [DEFAULT_HAND, Hand(0.1, 2.0, 1000.0)])
+def test_the_hand_in_the_loop_agrees_with_the_full_loop_analysis(hand: Hand) -> None:
+    # with no delay the simulation takes the freshest force (servo tick N - 1 of the block the new
+    # surface replaces): the lifted full loop's verdict at that tick is the simulator's
+    k_h = np.array([800.0, 1500.0])
+    rho = spectral_radius(hand=hand, k_o=1000.0, k_h=k_h, rate_ratio=50, sample_ticks=[49])[:, 0]
+    cells = [
+        Cell(Rendering("local-p", "coupling", k_h=float(k)), 1000.0, 20.0, 0.0, hand, PRESS)
+        for k in k_h
+    ]
+    run = simulate(cells)
+    m = cell_metrics(run, cells)
+    assert rho[0] < 1.0 and m[0].stable and m[0].hold_p2p_mm < 0.01
+    assert rho[1] > 1.0 and not m[1].stable and m[1].hold_p2p_mm > 3.0
+    # P steady state: the probe sits f / K_h past the surface the simulation reports
+    assert m[0].steady_state_error_mm == pytest.approx(run.f[0, -1] / 800.0 * 1e3, rel=0.01)
+
+
+def test_delayed_direct_rendering_is_active_and_penetrates_on_impact() -> None:
+    # the paper's footnote 4: a delayed rendering lets the user in too far, and gives energy
+    hand = Hand(0.3, 5.0, 300.0)
+    cells = [
+        Cell(DIRECT, 1000.0, 20.0, 100.0, hand, IMPACT),
+        Cell(P500, 1000.0, 20.0, 0.0, hand, IMPACT),
+        Cell(DIRECT, 1000.0, 20.0, 100.0, hand, TAP),
+    ]
+    m = cell_metrics(simulate(cells), cells)
+    assert m[0].peak_penetration_mm > 2.0 * m[1].peak_penetration_mm
+    assert m[2].energy_out_mj > 0.0
+    assert not m[0].stable
+
+
+def test_every_scheme_has_a_rendering_and_a_stated_tuning() -> None:
+    dev = DeviceModel()
+    for s in SCHEMES:
+        assert scheme_tuning(s, dev)
+        if s.startswith("local"):
+            with pytest.raises(ValueError, match="design"):
+                rendering_for(s, sim_rate_hz=20.0, device=dev)
+        else:
+            r = rendering_for(s, sim_rate_hz=20.0, device=dev)
+            assert r.scheme == s
+    vc = rendering_for("virtual-coupling", sim_rate_hz=20.0, device=dev)
+    assert (vc.k_h, vc.b_h) == (dev.max_stiffness_n_per_m, dev.max_damping_n_s_per_m)
+    with pytest.raises(ValueError, match="unknown scheme"):
+        rendering_for("teleport", sim_rate_hz=20.0)
+
+
+@pytest.mark.parametrize(
+    ("delay_ms", "rate", "ticks"),
+    [(0.0, 20.0, 0), (10.0, 20.0, 0), (50.0, 20.0, 2), (100.0, 20.0, 4), (200.0, 20.0, 8),
+     (10.0, 100.0, 2), (50.0, 10.0, 1)],
+)  # fmt: skip
+def test_design_delay_ticks_is_what_the_client_measures(
+    delay_ms: float, rate: float, ticks: int
+) -> None:
+    # a round trip of twice the delay plus half a period of state age, in whole periods, minus the
+    # one the loop always has: e.g. 20 Hz, 50 ms each way: 100 + 25 ms -> 3 periods -> 2 extra
+    assert design_delay_ticks(delay_ms * 1e-3, rate) == ticks
+    s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=1000.0))
+    s.receive(
+        encode(Welcome(user_id="u", name="A", role="user", sim_rate_hz=rate, object=OBJ)), 0.0
+    )
+    for _ in range(10):
+        s.rtt_s.append(2.0 * delay_ms * 1e-3)
+    assert s.delay_ticks() == ticks
+
+
+def test_bad_input_is_refused() -> None:
+    with pytest.raises(ValueError, match="at least one"):
+        simulate([])
+    with pytest.raises(ValueError, match="whole"):
+        simulate([Cell(P500, 1000.0, 30.0, 0.0, None, PRESS)])
+    with pytest.raises(ValueError, match="delay"):
+        simulate([Cell(P500, 1000.0, 20.0, 0.5, None, PRESS)])
+    with pytest.raises(ValueError, match="k_o"):
+        simulate([Cell(P500, math.nan, 20.0, 0.0, None, PRESS)])
+    with pytest.raises(ValueError, match="position-source"):
+        felt_stiffness_ratio(
+            simulate([Cell(P500, 1000.0, 20.0, 0.0, DEFAULT_HAND, PRESS)]),
+            [Cell(P500, 1000.0, 20.0, 0.0, DEFAULT_HAND, PRESS)],
+        )
+    with pytest.raises(ValueError):
+        design_delay_ticks(-1.0, 20.0)
