@@ -48,7 +48,8 @@ from haptic_collab.client.session import (
     interim_design,
     warm_up_worker,
 )
-from haptic_collab.shared.gain_design import GainDesign, GainKey, design_cell
+from haptic_collab.shared.gain_design import GainDesign, design_cell
+from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.protocol import ProtocolError, Welcome
 from haptic_collab.workers import background_worker, check_worker, stop_pool, timed
 

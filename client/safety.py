@@ -32,18 +32,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from haptic_collab.client.devices.base import DeviceLimits, HapticError
+from haptic_collab.client.servo_config import ServoConfig
 from haptic_collab.client.thermal import (
     DEFAULT_THERMAL_TIME_CONSTANT_S,
     ThermalLimit,
     ThermalParams,
 )
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
-
-if TYPE_CHECKING:
-    from haptic_collab.client.servo import ServoConfig
 
 
 @dataclass(frozen=True, slots=True)

@@ -39,17 +39,18 @@ from typing import TYPE_CHECKING, Literal, TypeVar
 
 import numpy as np
 
-from haptic_collab.shared.coupled_loop import covering_classes, stiff_ratio_class
 from haptic_collab.shared.full_loop import ProxyHold, monodromy
 from haptic_collab.shared.gain_design import INTERIM_LADDER as INTERIM_LADDER
-from haptic_collab.shared.gain_design import (
-    GainDesign,
-    GainKey,
-    GainTable,
-    loop_delay_ticks,
-)
+from haptic_collab.shared.gain_design import GainDesign, GainTable
 from haptic_collab.shared.gain_design import interim_design as interim_design
 from haptic_collab.shared.gain_design import verify_gains as verify_gains
+from haptic_collab.shared.gain_key import (
+    GainKey,
+    covering_classes,
+    held_stiff_ratio,
+    loop_delay_ticks,
+    make_gain_key,
+)
 from haptic_collab.shared.local_model_update import LocalModelUpdate, primitive_from_wire
 from haptic_collab.shared.primitives import Primitive
 from haptic_collab.shared.protocol import (
@@ -498,7 +499,7 @@ class ClientSession:
 
         The force the server samples at tick k+1 reflects patch k only if the patch's trip down,
         the state's age (up to :attr:`state_interval_s`) and its trip up fit in one simulation
-        period; every further period adds one tick (:func:`shared.gain_design.loop_delay_ticks`). The round
+        period; every further period adds one tick (:func:`shared.gain_key.loop_delay_ticks`). The round
         trip is the 90th percentile of the last :data:`RTT_WINDOW` pings (10 s): conservative under
         steady jitter, yet one stall does not make the local model soft for long.
 
@@ -539,31 +540,27 @@ class ClientSession:
 
         B_o is quantized *down* to 1 N/m steps (a design for less object damping).
         ``stiff_ratio`` is the class of ``K_o_stiff / K_o_eff`` of a contact coupled to other
-        users (1 uncoupled; :func:`shared.coupled_loop.stiff_ratio_class`).
+        users (1 uncoupled; :func:`shared.gain_key.stiff_ratio_class`).
         """
-        return GainKey(
-            servo_rate_hz=float(self.servo_rate_hz),
-            sim_rate_hz=float(self.sim_rate_hz),
-            delay_ticks=int(delay_ticks),
+        return make_gain_key(
+            servo_rate_hz=self.servo_rate_hz,
+            sim_rate_hz=self.sim_rate_hz,
+            delay_ticks=delay_ticks,
             mode=self.mode,
-            margin=float(self.margin),
-            k_h_max=float(self.device.max_stiffness_n_per_m),
-            b_h_max=float(self.b_h_max),
-            b_o=float(math.floor(max(0.0, b_o))),
-            stiff_ratio=float(stiff_ratio),
+            margin=self.margin,
+            k_h_max=self.device.max_stiffness_n_per_m,
+            b_h_max=self.b_h_max,
+            b_o=b_o,
+            stiff_ratio=stiff_ratio,
         )
 
     def _stiff_class(self, msg: Patch) -> float:
         """The ratio class to design for, from the patch's ``k_o_eff`` and ``k_o_stiff``.
 
-        Rises to a new class at once (a design for a wider K_o range is the safe side) and
-        falls only when the measured class is a quarter of the one in use, so that a coupling
-        that wavers around a class boundary does not ask for a new design every tick.
+        Rises to a new class at once and falls only when the measured class is a quarter of the
+        one in use (:func:`shared.gain_key.held_stiff_ratio`, the server's advisor's rule too).
         """
-        new = stiff_ratio_class(msg.k_o_eff, max(msg.k_o_eff, msg.k_o_stiff_or_k_o()))
-        cur = self.stiff_ratio
-        if new > cur or new * 4.0 <= cur:
-            self.stiff_ratio = new
+        self.stiff_ratio = held_stiff_ratio(self.stiff_ratio, msg.k_o_eff, msg.k_o_stiff_or_k_o())
         return self.stiff_ratio
 
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
@@ -585,7 +582,7 @@ class ClientSession:
 
     def _covering(self, key: GainKey, cell: int, k_o_eff: float) -> GainDesign | None:
         """Gains designed or verified for this cell and a wider coupling class, if any: checked
-        over a K_o range containing this key's (:func:`shared.coupled_loop.covering_classes`),
+        over a K_o range containing this key's (:func:`shared.gain_key.covering_classes`),
         they render at once while this key's own design is made (a second user's arrival
         otherwise meant conservative unverified gains until a check was done)."""
         table = self.gain_table

@@ -111,7 +111,7 @@ _SHARED: dict[str, dict[str, Any]] = {
         "default": None,
         "help": "the object may be this fraction stiffer than K_o: stability is checked up to "
         "(1 + it) K_o and transparency also on objects that much softer and stiffer; when not "
-        "given, the product's shared.gain_design.STIFFER_BY (default: none)",
+        "given, the product's shared.gain_key.STIFFER_BY (default: none)",
     },
     "--host": {"default": "127.0.0.1"},
     "--port": {"type": _nonneg_int, "default": 8765},
@@ -302,11 +302,12 @@ def _profile_design(
 ) -> Any:
     """The product's design (:func:`shared.gain_design.design_gains`, timed) for K_o with the
     stiffness and damping limits of the device profile ``profile``; ``paper``: without own-force
-    compensation; ``stiffer_by`` (default the product's :data:`shared.gain_design.STIFFER_BY`):
+    compensation; ``stiffer_by`` (default the product's :data:`shared.gain_key.STIFFER_BY`):
     checked up to ``(1 + stiffer_by) K_o``. Raises KeyError (unknown profile) or ValueError (as
     the design)."""
     from haptic_collab.client.devices.profiles import get_sim_profile
-    from haptic_collab.shared.gain_design import STIFFER_BY, design_gains
+    from haptic_collab.shared.gain_design import design_gains
+    from haptic_collab.shared.gain_key import STIFFER_BY
     from haptic_collab.workers import timed
 
     lim = get_sim_profile(profile).limits
@@ -452,7 +453,7 @@ def _cmd_gains_table(args: argparse.Namespace) -> int:
     from concurrent.futures import ProcessPoolExecutor
 
     from haptic_collab.client.devices.profiles import get_sim_profile
-    from haptic_collab.shared.gain_design import STIFFER_BY
+    from haptic_collab.shared.gain_key import STIFFER_BY
 
     try:
         lim = get_sim_profile(args.profile).limits

@@ -21,26 +21,14 @@ from __future__ import annotations
 import argparse
 import difflib
 import math
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-
-def read_toml(path: Path, what: str, error: type[ValueError]) -> dict[str, Any]:
-    """The table of TOML file ``path``; ``error`` (a ValueError) naming the file and ``what`` it
-    is (``"configuration"``, ``"material"``) when it is missing, unreadable or not TOML."""
-    where = str(path)
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
-        raise error(f"{where}: {what} file does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise error(f"{where}: not a valid TOML file ({exc})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"{where}: cannot read the {what} file ({exc})") from None
+from haptic_collab.server.materials import PRESETS
+from haptic_collab.server.objects.shapes import STRESS_MESHES
+from haptic_collab.server.solid_materials import SOLID_PRESETS
+from haptic_collab.server.toml_file import read_toml
 
 
 class ConfigError(ValueError):
@@ -157,17 +145,10 @@ def _resolve(key: str, value: str, folder: Path) -> str:
     """A path value made relative to the configuration file's folder (names kept)."""
     if value in _NOT_PATHS.get(key, ()):
         return value
-    if key == "mesh":
-        from haptic_collab.server.objects.shapes import STRESS_MESHES
-
-        if value in STRESS_MESHES:
-            return value
-    if key == "material":
-        from haptic_collab.server.materials import PRESETS
-        from haptic_collab.server.solid_materials import SOLID_PRESETS
-
-        if value in PRESETS or value in SOLID_PRESETS:
-            return value
+    if key == "mesh" and value in STRESS_MESHES:
+        return value
+    if key == "material" and (value in PRESETS or value in SOLID_PRESETS):
+        return value
     p = Path(value).expanduser()
     return str(p if p.is_absolute() else folder / p)
 

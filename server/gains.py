@@ -24,16 +24,14 @@ from typing import Literal
 
 import numpy as np
 
-from haptic_collab.shared.coupled_loop import stiff_ratio_class
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from haptic_collab.shared.gain_design import (
+from haptic_collab.shared.gain_design import GainDesign, GainTable, design_cell, interim_design
+from haptic_collab.shared.gain_key import (
     K_O_GRID_RATIO,
-    GainDesign,
     GainKey,
-    GainTable,
-    design_cell,
-    interim_design,
+    held_stiff_ratio,
     loop_delay_ticks,
+    make_gain_key,
 )
 from haptic_collab.shared.protocol import Hello, RecommendedGains
 from haptic_collab.shared.stability import rate_ratio
@@ -129,21 +127,17 @@ class GainAdvisor:
         """The gain key of ``user`` for this patch (raises ValueError for unsupported rates)."""
         rate_ratio(hello.servo_rate_hz, self.sim_rate_hz)  # N must be whole
         u = self._users.setdefault(user, _User())
-        new = stiff_ratio_class(k_o_eff, max(k_o_eff, k_o_stiff))
-        if new > u.stiff_ratio or new * 4.0 <= u.stiff_ratio:  # the client's hysteresis
-            u.stiff_ratio = new
+        u.stiff_ratio = held_stiff_ratio(u.stiff_ratio, k_o_eff, k_o_stiff)  # the client's rule
         device = hello.device
-        k_h_max = 1000.0 if device is None else float(device.max_stiffness_n_per_m)
-        b_h_max = 0.0 if device is None else float(device.max_damping_n_s_per_m)
-        return GainKey(
-            servo_rate_hz=float(hello.servo_rate_hz),
+        return make_gain_key(
+            servo_rate_hz=hello.servo_rate_hz,
             sim_rate_hz=self.sim_rate_hz,
             delay_ticks=self.delay_ticks(user),
             mode=hello.local_model,
             margin=self.margin,
-            k_h_max=k_h_max,
-            b_h_max=b_h_max,
-            b_o=float(math.floor(max(0.0, b_o))),
+            k_h_max=1000.0 if device is None else device.max_stiffness_n_per_m,
+            b_h_max=0.0 if device is None else device.max_damping_n_s_per_m,
+            b_o=b_o,
             stiff_ratio=u.stiff_ratio,
         )
 

@@ -77,6 +77,7 @@ import numpy as np
 from pydantic import AfterValidator, Field, ValidationError
 
 from haptic_collab.server.objects.balloon import BalloonParams
+from haptic_collab.server.toml_file import read_toml
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, describe, params_dataclass
 from haptic_collab.shared.checks import positive as _positive
 from haptic_collab.shared.types import FloatArray
@@ -501,8 +502,6 @@ def load_material_file(path: str | Path) -> Material:
         The file is missing or unreadable, is not valid TOML (the parser's line and column are
         given), or :func:`material_from_mapping` refuses its content.
     """
-    from haptic_collab.server.config import read_toml
-
     p = Path(path)
     data = read_toml(p, "material", MaterialError)
     return material_from_mapping(data, str(p), default_name=p.stem)

@@ -54,6 +54,7 @@ from pydantic import ValidationError
 
 from haptic_collab.server.materials import MaterialError, _suggest, check_table_keys
 from haptic_collab.server.objects.fem import FemParams, Poisson
+from haptic_collab.server.toml_file import read_toml
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, describe, params_dataclass
 
 #: Numeric keys of a solid material file, with their units.
@@ -184,8 +185,6 @@ def load_solid_material(spec: str | Path) -> SolidMaterial:
         return SOLID_PRESETS[spec]
     p = Path(spec)
     if p.suffix.lower() == ".toml" or p.exists():
-        from haptic_collab.server.config import read_toml
-
         data = read_toml(p, "material", MaterialError)
         return solid_from_mapping(data, str(p), default_name=p.stem)
     names = tuple(SOLID_PRESETS)

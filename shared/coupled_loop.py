@@ -74,16 +74,12 @@ from haptic_collab.shared.full_loop import (
 from haptic_collab.shared.gain_design import (
     MIN_DECAY_RATE_PER_S,
     GainDesign,
-    Mode,
     design_gains,
     mode_radii,
 )
+from haptic_collab.shared.gain_key import K_O_RIGID, Mode
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.types import FloatArray, IndexArray
-
-#: Stiffness [N/m] that stands for a rigid differential mode (singular compliance, coupling -> 1),
-#: the same value the server reports for a contact that cannot move (server.contacts.K_O_MAX).
-K_O_RIGID = 1.0e6
 
 #: Batch size of coupled monodromy matrices per eigenvalue call (bounds memory: 4096 x 30 x 30).
 _CHUNK = 4096
@@ -190,70 +186,6 @@ def modal_stiffness(compliance: ArrayLike) -> ModalStiffness:
     rigid = np.maximum(K_O_RIGID, k)
     stiff = np.minimum(k / lo, rigid) if lo > 0.0 else rigid
     return ModalStiffness(k_o=k, k_o_eff=k / hi, k_o_stiff=stiff)
-
-
-#: Ratio classes above this are designed as rigid (:func:`stiff_ratio_class`).
-MAX_STIFF_RATIO_CLASS = 256.0
-
-
-#: Every class :func:`stiff_ratio_class` returns, ascending: 1, sqrt(2), 2, 2 sqrt(2), 4, then
-#: the powers of 2 up to :data:`MAX_STIFF_RATIO_CLASS`, then ``inf``.
-STIFF_RATIO_CLASSES: tuple[float, ...] = (
-    1.0,
-    *(2.0 ** (k / 2.0) for k in range(1, 5)),
-    *(2.0**k for k in range(3, int(math.log2(MAX_STIFF_RATIO_CLASS)) + 1)),
-    math.inf,
-)
-
-
-def stiff_ratio_class(k_o_eff: float, k_o_stiff: float) -> float:
-    """``K_o_stiff / K_o_eff`` rounded up to a class, for a gain-table key (SI, [N/m] in).
-
-    1 for an uncoupled contact (ratio 1), else sqrt(2), 2, 2 sqrt(2), 4, 8, 16, ...,
-    :data:`MAX_STIFF_RATIO_CLASS`, and ``inf`` (design against a rigid proxy) beyond
-    (:data:`STIFF_RATIO_CLASSES`). A design checked up to :func:`coupled_k_o_hi` covers every
-    modal stiffness of the contact's coupled group, and every lower class too (its range is a
-    superset: :func:`covering_classes`).
-
-    Half powers of 2 up to 4: on the liver FEM torus two users coupled at a ratio of 2.05 were
-    designed for 4 with whole powers, and with 3 ticks of delay no compensated model passed
-    there (a PI of K_h 41 N/m felt 0.72 of the object), whereas for 2.83 a compensated P of
-    145 N/m passed (felt 1.02). Whole powers above 4, as checked against the coupled loop of 2
-    and 3 users (docs/coupled-users.md): with half powers there, the paper's PI for a coupling
-    of 0.9 (ratio 19, class 22.6) missed the coupled loop's margin by 0.001.
-
-    Raises
-    ------
-    ValueError
-        Non-positive or non-finite ``k_o_eff``; ``k_o_stiff`` below ``k_o_eff`` or NaN.
-    """
-    if not (math.isfinite(k_o_eff) and k_o_eff > 0.0):
-        raise ValueError(f"k_o_eff must be a finite stiffness > 0 N/m, got {k_o_eff!r}")
-    if not k_o_stiff >= k_o_eff * (1.0 - 1e-9):
-        raise ValueError(f"k_o_stiff must be >= k_o_eff, got {k_o_stiff!r} < {k_o_eff!r}")
-    ratio = k_o_stiff / k_o_eff
-    if ratio <= 1.0 + 1e-9:
-        return 1.0
-    for q in STIFF_RATIO_CLASSES[1:]:
-        if ratio <= q * (1.0 + 1e-9):
-            return q
-    return math.inf
-
-
-def covering_classes(ratio_class: float) -> tuple[float, ...]:
-    """The classes above ``ratio_class``, narrowest first: a design for any of them was checked
-    over a K_o range that contains this class's (:func:`coupled_k_o_hi` grows with the class),
-    so it may be rendered for this class without a further check."""
-    return tuple(c for c in STIFF_RATIO_CLASSES if c > ratio_class)
-
-
-def coupled_k_o_hi(k_o_hi: float, ratio_class: float) -> float:
-    """Upper end [N/m] of the K_o range a coupled contact's design must be checked over.
-
-    ``min(K_O_RIGID, k_o_hi * ratio_class)``: ``k_o_hi`` the upper end the single-user design
-    would use (the gain table's next grid point), ``ratio_class`` from :func:`stiff_ratio_class`.
-    """
-    return float(min(K_O_RIGID, k_o_hi * ratio_class))
 
 
 # --------------------------------------------------------------------------------------------

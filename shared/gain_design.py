@@ -78,10 +78,15 @@ from haptic_collab.shared.full_loop import (
     batch_arrays,
     monodromy,
 )
+from haptic_collab.shared.gain_key import (
+    K_O_GRID_RATIO,
+    GainKey,
+    Mode,
+    coupled_k_o_hi,
+)
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.types import FloatArray, IndexArray
 
-Mode = Literal["p", "pi"]
 _G = TypeVar("_G", float, FloatArray)
 
 #: Slowest accepted decay of any *oscillating* mode of the full loop [1/s]: its eigenvalue over
@@ -903,75 +908,6 @@ def design_gains(
     return best[4]
 
 
-def loop_delay_ticks(round_trip_s: float, state_age_s: float, sim_rate_hz: float) -> int:
-    """Extra loop delay D [whole simulation ticks] a design must cover.
-
-    The force the server samples at tick k+1 reflects patch k only if the patch's trip down, the
-    age of the client's state and its trip up fit in one simulation period; every further period
-    adds one tick: ``ceil((round_trip + state_age) * rate) - 1``, at least 0.
-
-    Parameters
-    ----------
-    round_trip_s : float
-        Network round trip [s], >= 0.
-    state_age_s : float
-        Oldest age [s] of the state the server samples (the client's send interval), >= 0.
-    sim_rate_hz : float
-        Simulation rate [Hz], > 0.
-
-    Raises
-    ------
-    ValueError
-        Negative or non-finite times, or a non-positive rate.
-    """
-    for name, v in (("round_trip_s", round_trip_s), ("state_age_s", state_age_s)):
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{name} must be finite and >= 0 s, got {v!r}")
-    if not (math.isfinite(sim_rate_hz) and sim_rate_hz > 0.0):
-        raise ValueError(f"sim_rate_hz must be > 0, got {sim_rate_hz!r}")
-    return max(0, math.ceil((round_trip_s + state_age_s) * sim_rate_hz - 1e-9) - 1)
-
-
-#: :attr:`GainKey.stiffer_by`'s default: the product's designs hold on an object up to this
-#: fraction stiffer than the K_o reported (docs/fidelity.md: objects the design did not see).
-STIFFER_BY = 0.25
-
-#: Ratio between neighbouring K_o grid points of a :class:`GainTable`.
-K_O_GRID_RATIO = 1.1
-
-
-@dataclass(frozen=True)
-class GainKey:
-    """What a design depends on besides K_o (hashable; one :class:`GainTable` row per key)."""
-
-    servo_rate_hz: float
-    sim_rate_hz: float
-    delay_ticks: int
-    mode: Mode
-    margin: float
-    k_h_max: float
-    b_h_max: float
-    b_o: float = 0.0
-    #: ``K_o_stiff / K_o_eff`` class of the contact (:func:`shared.coupled_loop.stiff_ratio_class`):
-    #: 1 uncoupled, 2, 4, ... 256 or inf (rigid) for users coupled through the object. A cell's
-    #: design is checked up to ``coupled_k_o_hi(g_(i+1), stiff_ratio)`` (docs/coupled-users.md).
-    stiff_ratio: float = 1.0
-    #: Let the design use own-force compensation (:func:`design_gains`). For a coupled contact
-    #: (``stiff_ratio > 1``) the design's range of K_o' covers the modal stiffnesses as for the
-    #: paper's model; tests verify the result on the coupled loop of two and three users
-    #: (:func:`shared.coupled_loop.verify_coupled`, docs/coupled-users.md).
-    own_force: bool = True
-    #: Fraction by which the object may be stiffer than the K_o reported (a model error: a
-    #: viscoelastic or strain-stiffening object, a K_o estimated low): a cell's design is checked
-    #: up to ``(1 + stiffer_by)`` times the top of its range (:func:`cell_k_o_range`).
-    stiffer_by: float = STIFFER_BY
-
-    @property
-    def rates(self) -> Rates:
-        """The key's servo and simulation rates (raises ValueError when N is not whole)."""
-        return Rates(self.servo_rate_hz, self.sim_rate_hz)
-
-
 #: Largest ratio between neighbouring K_o points a design is checked at (:func:`k_o_points`).
 K_O_CHECK_RATIO = 4.0
 
@@ -996,8 +932,6 @@ def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, f
     or for a coupled contact ``coupled_k_o_hi(g_(i+1), key.stiff_ratio)`` where that is higher
     (:mod:`shared.coupled_loop`).
     """
-    from haptic_collab.shared.coupled_loop import coupled_k_o_hi
-
     g = grid_ratio**cell
     top = grid_ratio ** (cell + 1)
     # an object stiffer than reported; a coupled contact's modal range already reaches beyond

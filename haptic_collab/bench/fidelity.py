@@ -64,7 +64,8 @@ from haptic_collab.research.fidelity_1d import (
     simulate,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
-from haptic_collab.shared.gain_design import GainDesign, GainKey, GainTable, design_cell
+from haptic_collab.shared.gain_design import GainDesign, GainTable, design_cell
+from haptic_collab.shared.gain_key import GainKey
 
 #: Frequencies [Hz] of the felt impedance (the issue's 0.5-30 Hz).
 FELT_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 30.0)

@@ -54,7 +54,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, Hand, ProxyHold, _hand_zoh
-from haptic_collab.shared.gain_design import GainDesign, loop_delay_ticks
+from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gain_key import loop_delay_ticks
 from haptic_collab.shared.types import FloatArray
 
 SchemeName = Literal[
@@ -1143,7 +1144,7 @@ def design_delay_ticks(one_way_delay_s: float, sim_rate_hz: float) -> int:
 
     :meth:`client.session.ClientSession.delay_ticks` with a steady round trip of twice the delay
     and a state sent every half simulation period
-    (:func:`shared.gain_design.loop_delay_ticks`).
+    (:func:`shared.gain_key.loop_delay_ticks`).
 
     Raises
     ------

@@ -126,7 +126,8 @@ from haptic_collab.research.reproduce_3d import combined_hand
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import object_info
 from haptic_collab.server.world import ContactInput, ContactOutput, World
-from haptic_collab.shared.gain_design import GainKey, GainTable
+from haptic_collab.shared.gain_design import GainTable
+from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
 from haptic_collab.shared.primitives import Plane, Sphere, moved_out

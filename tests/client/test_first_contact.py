@@ -27,7 +27,8 @@ from haptic_collab.client.session import (
     verify_gains,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
-from haptic_collab.shared.gain_design import DESIGN_TIE, GainKey, GainTable, felt_stiffness
+from haptic_collab.shared.gain_design import DESIGN_TIE, GainTable, felt_stiffness
+from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.protocol import DeviceInfo, Pong, Welcome, encode
 from tests.support.sessions import WELCOME_OBJECT as OBJ
 from tests.support.sessions import session_patch

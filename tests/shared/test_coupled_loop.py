@@ -19,22 +19,24 @@ import pytest
 
 from haptic_collab.server.contacts import effective_stiffness
 from haptic_collab.shared.coupled_loop import (
-    K_O_RIGID,
     CoupledDesign,
     UserGains,
     compliance_matrix,
-    coupled_k_o_hi,
     coupled_monodromy,
     coupled_spectral_radius,
-    covering_classes,
     design_coupled,
     modal_stiffness,
-    stiff_ratio_class,
     verification_hands,
     verify_coupled,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand, spectral_radius
 from haptic_collab.shared.gain_design import GainDesign, design_gains
+from haptic_collab.shared.gain_key import (
+    K_O_RIGID,
+    coupled_k_o_hi,
+    covering_classes,
+    stiff_ratio_class,
+)
 
 #: The simulated Phantom Desktop's limits (client.devices.profiles "phantom-desktop"): the gains
 #: the product renders for it.

@@ -29,7 +29,6 @@ from haptic_collab.shared.full_loop import (
 )
 from haptic_collab.shared.gain_design import (
     GainDesign,
-    GainKey,
     GainTable,
     cell_k_o_range,
     design_gains,
@@ -37,6 +36,7 @@ from haptic_collab.shared.gain_design import (
     felt_stiffness,
     verify_gains,
 )
+from haptic_collab.shared.gain_key import GainKey
 
 SERVO_HZ = 1000.0
 T = 1.0 / SERVO_HZ

@@ -24,20 +24,10 @@ from haptic_collab.research.fidelity_1d import (
     simulate,
 )
 from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
-from haptic_collab.shared.coupled_loop import (
-    UserGains,
-    compliance_matrix,
-    stiff_ratio_class,
-    verify_coupled,
-)
+from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX
-from haptic_collab.shared.gain_design import (
-    GainKey,
-    GainTable,
-    design_cell,
-    felt_stiffness,
-    verify_gains,
-)
+from haptic_collab.shared.gain_design import GainTable, design_cell, felt_stiffness, verify_gains
+from haptic_collab.shared.gain_key import GainKey, stiff_ratio_class
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import make_plane, make_sphere, moved_out
 from haptic_collab.shared.protocol import Patch, PlaneModel
