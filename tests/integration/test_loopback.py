@@ -228,11 +228,16 @@ def test_link_loss_ramps_force_to_zero_and_the_client_rejoins(tmp_path):
     runs = list(zip(edges[::2], edges[1::2], strict=True))
     assert runs, "the force never reached zero after the loss"
     start, end = max(runs, key=lambda r: r[1] - r[0])
-    assert t[start] < t_gone - t_loss + 0.5, (t[start], t_gone - t_loss)
-    assert t[end - 1] - t[start] > t_back - t_gone - 0.2  # nothing rendered while it was gone
+    # nothing rendered while it was gone: once the link timeout and the ramp have passed after
+    # the server exited, the force stays at zero until the second server is back (the client's
+    # own safety rule, whatever the machine's speed)
+    cfg = ServoConfig()
+    gone = (t >= t_gone - t_loss + cfg.link_timeout_s + cfg.ramp_s + 0.01) & (t <= t_back - t_loss)
+    assert gone.any() and np.all(f[gone] == 0.0), f[gone].max(initial=0.0)
+    assert t[start] <= t_gone - t_loss + cfg.link_timeout_s + cfg.ramp_s + 0.01
+    assert t[end - 1] >= t_back - t_loss  # the longest zero stretch is the outage
     # a ramp, not a jump: the force falls in small steps over ramp_s of servo ticks (counted
     # in ticks, not wall time) into the outage
-    cfg = ServoConfig()
     ramp = np.flatnonzero(ramping[:start] == 0)
     ramp_start = ramp[-1] + 1 if ramp.size else 0
     assert 0 < start - ramp_start <= cfg.ramp_s * 1000.0 + 5, start - ramp_start
