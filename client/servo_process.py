@@ -63,8 +63,9 @@ from dataclasses import dataclass, replace
 from multiprocessing.shared_memory import SharedMemory
 from typing import Any
 
-from haptic_collab.client.devices import DeviceError, DeviceLimits, DeviceOpener
-from haptic_collab.client.devices.base import Device
+from haptic_collab.client.devices.backends import DeviceError
+from haptic_collab.client.devices.base import Device, DeviceLimits
+from haptic_collab.client.devices.opener import DeviceOpener
 from haptic_collab.client.recorder import TelemetryRecorder
 from haptic_collab.client.scheduler import DeadlineLoop, ordinary_priority, try_realtime_priority
 from haptic_collab.client.servo import (

@@ -1,8 +1,9 @@
 """What the vendor device backends (forcedimension, openhaptics, haply) share.
 
-Each of them places the device's workspace centre :data:`~client.devices.HID_STANDOFF_M` outside
-the anchor along the anchor's outward normal, like a HID device's: at a placeholder before the
-server's welcome says where the object is, then where :meth:`DeviceBackend.place` is told.
+Each of them places the device's workspace centre
+:data:`~client.devices.backends.HID_STANDOFF_M` outside the anchor along the anchor's outward
+normal, like a HID device's: at a placeholder before the server's welcome says where the object
+is, then where :meth:`DeviceBackend.place` is told.
 """
 
 from __future__ import annotations
@@ -11,8 +12,13 @@ import math
 from collections.abc import Sequence
 from typing import TypeVar
 
-from haptic_collab.client.devices import HID_STANDOFF_M, PLACEHOLDER_ANCHOR, PLACEHOLDER_NORMAL
-from haptic_collab.client.devices.backends import DeviceBackend, DeviceError
+from haptic_collab.client.devices.backends import (
+    HID_STANDOFF_M,
+    PLACEHOLDER_ANCHOR,
+    PLACEHOLDER_NORMAL,
+    DeviceBackend,
+    DeviceError,
+)
 from haptic_collab.client.devices.base import Device, Vec3
 
 __all__ = ["PLACEHOLDER_CENTER", "opened_by", "standoff_center"]

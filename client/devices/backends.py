@@ -14,7 +14,7 @@ The built-in ``sim`` and ``hid`` backends are declared the same way in this pack
 pyproject.toml and are also found through :data:`BUILTIN_BACKENDS` when no entry point names them
 (a source checkout that was not reinstalled).
 
-How the client uses a backend (:class:`client.devices.DeviceOpener`):
+How the client uses a backend (:class:`client.devices.opener.DeviceOpener`):
 
 1. before any network: :meth:`DeviceBackend.available` (a message is a :class:`DeviceError`),
    then :meth:`DeviceBackend.open` with the ``ARGS`` text and the :class:`DeviceOptions`;
@@ -50,6 +50,9 @@ __all__ = [
     "DeviceOpenError",
     "DeviceOptions",
     "ENTRY_POINT_GROUP",
+    "HID_STANDOFF_M",
+    "PLACEHOLDER_ANCHOR",
+    "PLACEHOLDER_NORMAL",
     "backend_names",
     "get_backend",
     "list_backends",
@@ -63,8 +66,8 @@ ENTRY_POINT_GROUP = "haptic_collab.devices"
 #: The built-in backends, as their entry points in pyproject.toml say (``module:attribute``);
 #: used for a name no installed entry point provides.
 BUILTIN_BACKENDS: dict[str, str] = {
-    "hid": "haptic_collab.client.devices:HID_BACKEND",
-    "sim": "haptic_collab.client.devices:SIM_BACKEND",
+    "hid": "haptic_collab.client.devices.hid_backend:HID_BACKEND",
+    "sim": "haptic_collab.client.devices.sim_backend:SIM_BACKEND",
     "openhaptics": "haptic_collab.client.devices.openhaptics:BACKEND",
     "forcedimension": "haptic_collab.client.devices.forcedimension:BACKEND",
     "haply": "haptic_collab.client.devices.haply:BACKEND",
@@ -72,6 +75,15 @@ BUILTIN_BACKENDS: dict[str, str] = {
 
 #: What every backend object has (:class:`DeviceBackend`).
 BACKEND_MEMBERS = ("name", "description", "available", "detect", "open", "place")
+
+#: Distance [m] outside the anchor of a HID device's workspace centre (the vendor backends place
+#: theirs the same way: :mod:`client.devices._vendor`).
+HID_STANDOFF_M = 0.02
+
+#: Where :meth:`DeviceBackend.open` builds a device before the server says where the object is
+#: (:meth:`DeviceBackend.place` builds or moves it around the real anchor after the welcome).
+PLACEHOLDER_ANCHOR: Vec3 = (0.0, 0.0, 0.0)
+PLACEHOLDER_NORMAL: Vec3 = (0.0, 0.0, 1.0)
 
 
 class DeviceError(ValueError):
@@ -85,9 +97,9 @@ class DeviceError(ValueError):
 class DeviceOpenError(OSError):
     """An ``OSError`` from :meth:`Device.open` whose message is already the whole line to show.
 
-    :class:`client.devices.DeviceOpener` shows any other ``OSError`` from :meth:`Device.open` as
-    ``cannot open SPEC: <the error>``; raise this one to say it your own way (what is wrong and
-    what to do, starting with ``cannot open SPEC:``).
+    :class:`client.devices.opener.DeviceOpener` shows any other ``OSError`` from
+    :meth:`Device.open` as ``cannot open SPEC: <the error>``; raise this one to say it your own way
+    (what is wrong and what to do, starting with ``cannot open SPEC:``).
     """
 
 
@@ -114,7 +126,7 @@ class DeviceOptions:
         ``--profile``: the simulated device profile (``phantom-desktop``, ``touch``).
     trajectory_options : mapping
         ``--trajectory`` and ``--hand-*`` values of a simulated hand (see
-        :func:`client.devices.make_device`).
+        :func:`client.devices.opener.make_device`).
     hand : HandParams or None
         The simulated hand (None: the default).
     servo_rate_hz : float
@@ -127,7 +139,7 @@ class DeviceOptions:
     acquire : bool
         True when the client is about to run the device (``haptic client``, before it connects):
         make sure the hardware answers now, and keep hold of it, so that an absent or busy device
-        fails before any network. False from :func:`client.devices.make_device`, which only
+        fails before any network. False from :func:`client.devices.opener.make_device`, which only
         builds the device object (tests, benchmarks): do not touch the hardware.
     """
 

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from haptic_collab.client.devices import make_device
+from haptic_collab.client.devices.opener import make_device
 from haptic_collab.client.recorder import TelemetryRecorder
 from haptic_collab.client.scheduler import DeadlineLoop, try_realtime_priority
 from haptic_collab.client.servo import ServoConfig, ServoCore

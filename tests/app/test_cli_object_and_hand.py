@@ -7,8 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from haptic_collab.cli import _client_options, _server_options, build_parser, main
-from haptic_collab.client.devices import HandParams, SimDevice, make_device
+from haptic_collab.cli import build_parser, main
+from haptic_collab.cli.run import _client_options, _server_options
+from haptic_collab.client.devices.opener import make_device
+from haptic_collab.client.devices.sim import HandParams, SimDevice
 from haptic_collab.demo import DemoOptions
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.objects.balloon import BalloonParams

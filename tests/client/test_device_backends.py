@@ -23,19 +23,14 @@ import pytest
 
 from haptic_collab.cli import main
 from haptic_collab.client.app import ClientOptions, run_client
-from haptic_collab.client.devices import (
-    HID_BACKEND,
-    SIM_BACKEND,
-    DeviceError,
-    DeviceOpener,
-    Press,
-    Rest,
-    SimDevice,
-    backends,
-    list_devices,
-    make_device,
-)
+from haptic_collab.client.devices import backends
+from haptic_collab.client.devices.backends import DeviceError
 from haptic_collab.client.devices.hid import ProfileHidDevice
+from haptic_collab.client.devices.hid_backend import HID_BACKEND
+from haptic_collab.client.devices.opener import DeviceOpener, list_devices, make_device
+from haptic_collab.client.devices.sim import SimDevice
+from haptic_collab.client.devices.sim_backend import SIM_BACKEND
+from haptic_collab.client.devices.trajectories import Press, Rest
 
 ROOT = Path(__file__).resolve().parents[2]
 ANCHOR = (0.01, -0.02, 0.1)
@@ -366,7 +361,8 @@ def test_the_builtins_work(builtins_found_by: str) -> None:
         entry = backend_entry(devices, name)
         assert entry["available"] is True
         if builtins_found_by == "entry points only":
-            assert entry["entry_point"] == f"haptic_collab.client.devices:{name.upper()}_BACKEND"
+            module = f"haptic_collab.client.devices.{name}_backend"
+            assert entry["entry_point"] == f"{module}:{name.upper()}_BACKEND"
         else:
             assert entry["entry_point"] is None
     assert {d["profile"] for d in devices if d["kind"] == "sim"} == {"phantom-desktop", "touch"}

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.app import ClientOptions, run_client
-from haptic_collab.client.devices import DeviceError, DeviceOpener
+from haptic_collab.client.devices.backends import DeviceError
 from haptic_collab.client.devices.hid import ProfileHidDevice, open_error_message
+from haptic_collab.client.devices.opener import DeviceOpener
 from haptic_collab.client.recorder import load_recording
 
 # -- the one line -----------------------------------------------------------------------------------

@@ -9,19 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_collab.client.devices import (
-    HandParams,
+from haptic_collab.client.devices.hid_backend import parse_hid_ids
+from haptic_collab.client.devices.opener import list_devices, make_device
+from haptic_collab.client.devices.profiles import SIM_PROFILES, get_sim_profile, sim_profile_names
+from haptic_collab.client.devices.sim import HandParams, SimDevice
+from haptic_collab.client.devices.trajectories import (
     Press,
     Replay,
     ReplayError,
     Rest,
-    SimDevice,
     hand_depth_for,
-    list_devices,
-    make_device,
-    parse_hid_ids,
 )
-from haptic_collab.client.devices.profiles import SIM_PROFILES, get_sim_profile, sim_profile_names
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.primitives import make_plane

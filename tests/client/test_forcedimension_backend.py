@@ -35,9 +35,8 @@ from typing import Any
 
 import pytest
 
-from haptic_collab.client.devices import DeviceError
 from haptic_collab.client.devices import forcedimension as fd
-from haptic_collab.client.devices.backends import DeviceOptions
+from haptic_collab.client.devices.backends import DeviceError, DeviceOptions
 from tests.support.helpers import c_compiler, compile_shared_library
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -129,8 +128,8 @@ def force():
 HARNESS = """
 import dataclasses, json
 
-from haptic_collab.client.devices import DeviceError, DeviceOpener, make_device
-from haptic_collab.client.devices.backends import list_backends
+from haptic_collab.client.devices.backends import DeviceError, list_backends
+from haptic_collab.client.devices.opener import DeviceOpener, make_device
 from haptic_collab.client.devices.forcedimension import BACKEND
 
 ANCHOR = (0.01, -0.02, 0.1)

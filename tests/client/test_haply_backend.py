@@ -25,17 +25,10 @@ from pathlib import Path
 
 import pytest
 
-from haptic_collab.client.devices import (
-    HID_STANDOFF_M,
-    DeviceError,
-    DeviceLimits,
-    DeviceOpener,
-    backends,
-    list_devices,
-    make_device,
-)
+from haptic_collab.client.devices import backends
 from haptic_collab.client.devices import haply as haply_mod
-from haptic_collab.client.devices.base import HapticError
+from haptic_collab.client.devices.backends import HID_STANDOFF_M, DeviceError
+from haptic_collab.client.devices.base import DeviceLimits, HapticError
 from haptic_collab.client.devices.haply import (
     BACKEND,
     INSTALL_HINT,
@@ -43,6 +36,7 @@ from haptic_collab.client.devices.haply import (
     Inverse3Specs,
     parse_haply_args,
 )
+from haptic_collab.client.devices.opener import DeviceOpener, list_devices, make_device
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.shared.primitives import make_plane
 from tests.support.emulators.inverse3 import Inverse3Emulator

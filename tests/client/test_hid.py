@@ -16,7 +16,6 @@ from typing import Any
 
 import pytest
 
-from haptic_collab.client.devices import make_device, parse_hid_ids
 from haptic_collab.client.devices.hid import (
     ProfileHidDevice,
     SpaceMouseDevice,
@@ -27,6 +26,8 @@ from haptic_collab.client.devices.hid import (
     parse_spacemouse_report,
     spacemouse_position,
 )
+from haptic_collab.client.devices.hid_backend import parse_hid_ids
+from haptic_collab.client.devices.opener import make_device
 from haptic_collab.client.devices.profiles import ProfileError, load_hid_profile, parse_hid_profile
 
 CENTER = (0.0, 0.0, 0.1)

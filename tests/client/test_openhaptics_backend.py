@@ -40,7 +40,7 @@ from typing import Any
 
 import pytest
 
-from haptic_collab.client.devices import HID_STANDOFF_M, DeviceError, DeviceOptions
+from haptic_collab.client.devices.backends import HID_STANDOFF_M, DeviceError, DeviceOptions
 from haptic_collab.client.devices.openhaptics import BACKEND, OpenHapticsDevice
 from tests.support.helpers import c_compiler, compile_shared_library
 
@@ -140,7 +140,7 @@ def _limits(dev: Any) -> dict[str, Any]:
 
 
 def _opened(spec: str, anchor: Any = ANCHOR, normal: Any = NORMAL) -> Any:
-    from haptic_collab.client.devices import DeviceOpener
+    from haptic_collab.client.devices.opener import DeviceOpener
 
     opener = DeviceOpener(spec)
     opener.check()
@@ -167,7 +167,8 @@ def scenario_lazy(args: dict[str, Any]) -> dict[str, Any]:
 def scenario_unavailable(args: dict[str, Any]) -> dict[str, Any]:
     if args.get("block_binding"):
         sys.modules["pyOpenHaptics"] = None  # type: ignore[assignment]  # as if not installed
-    from haptic_collab.client.devices import DeviceError, DeviceOpener, list_devices
+    from haptic_collab.client.devices.backends import DeviceError
+    from haptic_collab.client.devices.opener import DeviceOpener, list_devices
     from haptic_collab.client.devices.openhaptics import BACKEND
 
     out: dict[str, Any] = {"available": BACKEND.available()}
@@ -187,7 +188,7 @@ def scenario_open_read_write(args: dict[str, Any]) -> dict[str, Any]:
     lib.sim_set_position(*args["position_mm"])
     lib.sim_set_velocity(*args["velocity_mm_s"])
     lib.sim_set_buttons(args["buttons"])
-    from haptic_collab.client.devices import DeviceOpener
+    from haptic_collab.client.devices.opener import DeviceOpener
 
     out: dict[str, Any] = {}
     opener = DeviceOpener(args["spec"])
@@ -233,7 +234,7 @@ def scenario_limits(args: dict[str, Any]) -> dict[str, Any]:
     lib.sim_set_model(args["model"].encode())
     lib.sim_set_limits(*args["limits"])
     lib.sim_set_usable_workspace((ctypes.c_double * 6)(*args["workspace_mm"]))
-    from haptic_collab.client.devices import DeviceOpener
+    from haptic_collab.client.devices.opener import DeviceOpener
 
     opener = DeviceOpener(args["spec"])
     opener.check()
@@ -320,7 +321,8 @@ def scenario_frozen(args: dict[str, Any]) -> dict[str, Any]:
 
 def scenario_init_failure(args: dict[str, Any]) -> dict[str, Any]:
     lib = _emulator()
-    from haptic_collab.client.devices import DeviceError, DeviceOpener
+    from haptic_collab.client.devices.backends import DeviceError
+    from haptic_collab.client.devices.opener import DeviceOpener
 
     out: dict[str, Any] = {}
     for case, spec, unplug in (
@@ -350,7 +352,7 @@ def scenario_init_failure(args: dict[str, Any]) -> dict[str, Any]:
 
 def scenario_unplaced(args: dict[str, Any]) -> dict[str, Any]:
     lib = _emulator()
-    from haptic_collab.client.devices import DeviceOpener
+    from haptic_collab.client.devices.opener import DeviceOpener
 
     opener = DeviceOpener("openhaptics")
     opener.check()
@@ -362,7 +364,7 @@ def scenario_unplaced(args: dict[str, Any]) -> dict[str, Any]:
 
 def scenario_detect(args: dict[str, Any]) -> dict[str, Any]:
     lib = _emulator()
-    from haptic_collab.client.devices import list_devices
+    from haptic_collab.client.devices.opener import list_devices
 
     found = list_devices()
     return {

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from haptic_collab.client.devices import make_device
+from haptic_collab.client.devices.opener import make_device
 from haptic_collab.client.recorder import COLUMNS, CsvRecording, TelemetryRecorder, load_recording
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from tests.support.helpers import resting_servo

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.app import ClientOptions, run_client
-from haptic_collab.client.devices import DeviceError
+from haptic_collab.client.devices.backends import DeviceError
 from haptic_collab.client.recorder import COLUMNS
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.client.servo_process import (
@@ -225,7 +225,7 @@ def test_the_servo_ramps_forces_down_and_ends_when_its_link_process_is_killed(
 def test_the_servo_tick_holds_no_new_memory_and_never_needs_the_collector() -> None:
     """The servo process's tick with its shared-memory exchange: after a warm-up, thousands of
     ticks leave the interpreter's allocated blocks where they were, with the collector off."""
-    from haptic_collab.client.devices import DeviceOpener
+    from haptic_collab.client.devices.opener import DeviceOpener
 
     opener = DeviceOpener("sim:rest")  # approaches in 1 s, then rests on the plane for ever
     opener.check()

@@ -12,8 +12,8 @@ from typing import Any
 
 import pytest
 
-from haptic_collab.client.devices import make_device
 from haptic_collab.client.devices.base import Device, DeviceLimits
+from haptic_collab.client.devices.opener import make_device
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.shared.primitives import Plane, make_plane
 

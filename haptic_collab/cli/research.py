@@ -1,0 +1,291 @@
+"""The research and tooling subcommands: ``haptic reproduce``, ``plot``, ``protocol`` and ``bench``.
+
+Each command's handler (``_cmd_*``) and parser (``_add_*``), and the human-readable table of
+``haptic bench fidelity``. The figures, the benchmarks and the research drivers (matplotlib among
+them) are imported inside the handlers, so that they stay off every other command's start-up path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from haptic_collab.cli.args import (
+    CliError,
+    _add_shared,
+    _need_matplotlib,
+    _nonneg_int,
+    _positive,
+    _why,
+)
+
+
+# ---------------------------------------------------------------------------------------- reproduce
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    from haptic_collab.research.plots import reproduce_figures
+
+    results: dict[str, object] = {}
+    if args.figure not in ("fig10", "fig11"):  # Fig. 7-9: the 1-D multirate simulator
+        results.update(reproduce_figures(args.figure, Path(args.out)))
+    if args.figure in ("fig10", "fig11", "all"):  # Fig. 10-11 need the server's 3-D object
+        from haptic_collab.research.reproduce_3d import reproduce_3d
+
+        results.update(reproduce_3d(args.figure, Path(args.out)))
+    for name in results:
+        print(f"wrote {Path(args.out) / (name + '.png')} and {name}.json")
+    return 0
+
+
+def _add_reproduce(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("reproduce", help="reproduce the paper's Fig. 7 to 11 (PNG + JSON)")
+    p.add_argument("figure", choices=["fig7", "fig8", "fig9", "fig10", "fig11", "all"])
+    p.add_argument("--out", default="out/figures", help="output directory")
+    p.set_defaults(func=_cmd_reproduce)
+
+
+# --------------------------------------------------------------------------------------------- plot
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from haptic_collab.client.recorder import plot_recording
+
+    files = [Path(f) for f in args.files]
+    out = Path(args.out) if args.out else files[0].with_suffix(".png")
+    try:
+        plot_recording(files, out)
+    except ImportError as exc:
+        raise CliError(
+            f"plotting needs matplotlib ({exc}): pip install 'haptic-collab[plots]'"
+        ) from None
+    except (ValueError, OSError) as exc:
+        raise CliError(_why(exc)) from None
+    print(f"wrote {out}")
+    return 0
+
+
+def _add_plot(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "plot",
+        help="draw --record files: probe and proxy along the contact normal, and the force",
+        description="Draw one or more `haptic client --record` CSV files like the demo plot: per "
+        "file, probe and proxy along the contact normal [mm]; then the force on each user [N].",
+    )
+    p.add_argument("files", nargs="+", metavar="FILE", help="--record CSV file(s)")
+    p.add_argument(
+        "--out", default=None, metavar="PNG", help="PNG to write (default: FILE with .png)"
+    )
+    p.set_defaults(func=_cmd_plot)
+
+
+# ----------------------------------------------------------------------------------------- protocol
+def _cmd_protocol(args: argparse.Namespace) -> int:
+    from haptic_collab.shared.protocol import json_schema
+
+    print(json.dumps(json_schema(args.direction), indent=2))
+    return 0
+
+
+def _add_protocol(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    from haptic_collab.shared.protocol import SCHEMA_DIRECTIONS
+
+    p = sub.add_parser(
+        "protocol",
+        help="print the wire protocol's JSON Schema",
+        description="Print one JSON Schema (draft 2020-12) of the JSON text frames: every message "
+        "and nested model in $defs, and a top-level oneOf of the messages, discriminated by "
+        "`type`. Validate a frame against it as is; docs/protocol.md describes the binary frames.",
+    )
+    p.add_argument("--schema", action="store_true", help="print the JSON Schema (the default)")
+    p.add_argument(
+        "--direction",
+        choices=SCHEMA_DIRECTIONS,
+        default="both",
+        help="which messages the top-level oneOf admits: both directions, client -> server only "
+        "(hello, state, ping, bye) or server -> client only (welcome, patch, pong, error, room) "
+        "(default %(default)s)",
+    )
+    p.set_defaults(func=_cmd_protocol)
+
+
+# -------------------------------------------------------------------------------------------- bench
+def _cmd_bench(args: argparse.Namespace) -> int:
+    results: dict[str, object] = {}
+    if args.what in ("server", "all"):
+        from haptic_collab.bench.world import measure as bench_server
+
+        results["server"] = bench_server()
+    if args.what in ("servo", "all"):
+        from haptic_collab.bench.servo import run as bench_servo
+
+        results["servo"] = bench_servo(duration_s=args.duration, rate_hz=args.servo_rate)
+    if args.what in ("gains", "all"):
+        from haptic_collab.bench.gains import run as bench_gains
+
+        results["gains"] = bench_gains()
+    if args.what == "fidelity":
+        if args.plot:
+            _need_matplotlib()
+        from haptic_collab.bench.fidelity import plot as plot_fidelity
+        from haptic_collab.bench.fidelity import run as bench_fidelity
+        from haptic_collab.research.fidelity_1d import RunOptions
+
+        try:
+            fid_options = RunOptions(
+                jitter_s=args.jitter_us * 1e-6, quantum_m=args.quantum_um * 1e-6, seed=args.seed
+            )
+        except ValueError as exc:
+            raise CliError(_why(exc)) from None
+        results["fidelity"] = fid = bench_fidelity(
+            quick=args.quick,
+            options=fid_options,
+            seed=args.seed,
+            workers=args.workers,
+            include_3d=not (args.no_3d or args.quick),
+            log=lambda msg: print(msg, file=sys.stderr, flush=True),
+        )
+        if args.plot:
+            for path in plot_fidelity(fid, Path(args.plot)):
+                print(f"wrote {path}", file=sys.stderr)
+        if not args.json and not args.out:
+            _print_fidelity_table(fid)
+            return 0
+    if args.what == "load":
+        from haptic_collab.bench.load import LoadOptions, subdivisions_for_vertices
+        from haptic_collab.bench.load import run as bench_load
+
+        try:
+            subdivisions = (
+                subdivisions_for_vertices(args.vertices)
+                if args.vertices is not None
+                else args.subdivisions
+            )
+            load_opts = LoadOptions(
+                users=args.users,
+                viewers=args.viewers,
+                duration_s=args.duration,
+                sim_rate_hz=args.sim_rate,
+                subdivisions=subdivisions,
+                workers=args.workers or 4,
+            )
+            results["load"] = bench_load(
+                load_opts, log=lambda msg: print(msg, file=sys.stderr, flush=True)
+            )
+        except (ValueError, RuntimeError) as exc:
+            raise CliError(_why(exc)) from None
+    payload = results if args.what == "all" else results[args.what]
+    text = json.dumps(payload, indent=2)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text)
+    print(text if args.json or not args.out else f"wrote {args.out}")
+    return 0
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "bench",
+        help="measure speed (JSON): server tick cost, servo loop timing, gain lookups; "
+        "'fidelity': every rendering scheme side by side; 'load': users and viewers against a "
+        "server process",
+    )
+    p.add_argument("what", choices=["server", "servo", "gains", "fidelity", "load", "all"])
+    p.add_argument("--json", action="store_true", help="print JSON (always JSON; kept for scripts)")
+    p.add_argument("--out", default=None, help="also write the JSON here")
+    p.add_argument(
+        "--duration",
+        type=_positive,
+        default=5.0,
+        help="servo bench duration; load: the measurement window after warm-up [s] "
+        "(default %(default)s)",
+    )
+    _add_shared(p, "--servo-rate", help="servo bench rate [Hz]")
+    p.add_argument(
+        "--quick", action="store_true", help="fidelity: the documented subset (< 2 min, 2 cores)"
+    )
+    p.add_argument("--plot", default=None, metavar="DIR", help="fidelity: write the plots here")
+    p.add_argument("--seed", type=int, default=0, help="fidelity: recorded seed (deterministic)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="fidelity: worker processes (default: cores); load: client processes (default 4)",
+    )
+    p.add_argument(
+        "--no-3d",
+        action="store_true",
+        help="fidelity: skip the 3-D World cells (--quick skips them too)",
+    )
+    p.add_argument(
+        "--jitter-us",
+        type=float,
+        default=0.0,
+        help="fidelity: servo wake-up jitter [us], each tick up to this early or late (default 0)",
+    )
+    p.add_argument(
+        "--quantum-um",
+        type=float,
+        default=0.0,
+        help="fidelity: encoder resolution [um] (Phantom Desktop: 23; default 0: exact)",
+    )
+    p.add_argument(
+        "--users",
+        type=_nonneg_int,
+        default=32,
+        help="load: websocket users, at most 32 (default %(default)s)",
+    )
+    p.add_argument(
+        "--viewers",
+        type=_nonneg_int,
+        default=8,
+        help="load: websocket viewers (default %(default)s)",
+    )
+    _add_shared(p, "--sim-rate", help="load: simulation rate [Hz] (default %(default)s)")
+    _add_shared(
+        p,
+        "--subdivisions",
+        help="load: icosphere subdivisions of the balloon (default %(default)s: 2562 vertices)",
+    )
+    p.add_argument(
+        "--vertices",
+        type=_nonneg_int,
+        default=None,
+        help="load: the balloon's vertex count instead (2562, 10242, 40962, ...)",
+    )
+    p.set_defaults(func=_cmd_bench)
+
+
+def _print_fidelity_table(result: dict[str, object]) -> None:
+    """A human-readable summary of ``haptic bench fidelity`` (``--json`` for everything)."""
+    summary = result["summary"]
+    assert isinstance(summary, dict)
+
+    def pct(v: object) -> str:
+        return f"{v:8.1%}" if isinstance(v, float) else f"{'-':>8s}"
+
+    print(
+        f"{'scheme':17s} {'stable':>8s} {'unseen':>8s} {'~best':>8s} {'~best':>8s} "
+        f"{'per hand':>8s} {'outside':>8s}"
+    )
+    print(
+        f"{'':17s} {'(box)':>8s} {'(box)':>8s} {'spring':>8s} {'unseen':>8s} "
+        f"{'~best':>8s} {'stable':>8s}"
+    )
+    for s in result["schemes"]:  # type: ignore[attr-defined]
+        row = summary[s]
+        print(
+            f"{s:17s} {pct(row['box_stable_fraction'])} {pct(row['box_stable_fraction_unseen'])} "
+            f"{pct(row['near_best_fraction_box_spring'])} "
+            f"{pct(row['near_best_fraction_box_unseen'])} "
+            f"{pct(row['per_hand_near_best_fraction'])} {pct(row['outside_stable_fraction'])}"
+        )
+    prod = summary["product"]
+    print(
+        f"~best: within the stiffness JND ({summary['stiffness_jnd']:.0%}) of the best scheme "
+        f"stable with every hand of the box, over {summary['conditions']} conditions"
+    )
+    print(
+        f"the product (local-p or local-pi): box-stable in {pct(prod['box_stable_fraction'])}, "
+        f"~best on the spring in {pct(prod['near_best_fraction_box_spring'])}, on the objects "
+        f"the design did not see in {pct(prod['near_best_fraction_box_unseen'])}; a peer "
+        f"better in {len(prod['peer_better'])} conditions"
+    )

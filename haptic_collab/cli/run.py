@@ -1,0 +1,528 @@
+"""The subcommands that run the system: ``haptic server``, ``client``, ``demo`` and ``devices``.
+
+Each command's handler (``_cmd_*``) and parser (``_add_*``), the options they share (the object and
+its mesh, the stiffness scale, the simulated hand), and the logging of the commands that log
+(``--log-level``). The server, the client and the demo are imported when their command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from haptic_collab.cli.args import (
+    CliError,
+    _add_shared,
+    _finite,
+    _need_matplotlib,
+    _nonneg,
+    _positive,
+    _why,
+)
+
+# ----------------------------------------------------------------------------------- object options
+#: ``--object`` of ``haptic server`` and ``haptic demo``.
+_OBJECT_HELP = (
+    "object model: balloon (the water balloon, default) or fem (a tetrahedral elastic solid of "
+    "the mesh: soft tissue, silicone; needs the fem extra, docs/fem.md)"
+)
+
+#: ``--mesh`` of ``haptic server`` and ``haptic demo``; the names are
+#: :data:`server.objects.shapes.STRESS_MESHES` (not imported here: it loads trimesh).
+_MESH_HELP = (
+    "'balloon', a stress shape (torus, box, plate, bowl, noisy-sphere, uneven) or a mesh file "
+    "(STL, OBJ, PLY, OFF, GLB)"
+)
+_MESH_MAX_EDGE_HELP = (
+    "refine the object (split edges at their midpoints, shape and sharp edges kept) until no "
+    "edge is longer than M [m], e.g. 0.0075 for a 15 mm finger pad"
+)
+
+
+# ------------------------------------------------------------------------------------------ logging
+#: ``--log-level`` choices (Python logging levels).
+LOG_LEVELS = ("debug", "info", "warning", "error")
+#: Subcommands that log (and take ``--log-level`` after their name as well as before).
+_LOGGING_COMMANDS = ("server", "client", "demo")
+
+
+def _configure_logging(args: argparse.Namespace) -> None:
+    """Log to stderr at ``--log-level`` (default info) with time, logger name and level."""
+    import logging
+
+    level = getattr(logging, str(getattr(args, "log_level", "info")).upper(), logging.INFO)
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.getLogger().setLevel(level)
+
+
+def _add_log_level(p: argparse.ArgumentParser, *, top: bool) -> None:
+    if "--log-level" in p._option_string_actions:
+        return
+    p.add_argument(
+        "--log-level",
+        choices=LOG_LEVELS,
+        # after the subcommand it overrides the top-level value only when given
+        default="info" if top else argparse.SUPPRESS,
+        help="log verbosity of server, client and demo (default info)",
+    )
+
+
+# ------------------------------------------------------------------------------------------- server
+def _add_stiffness_scale(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--stiffness-scale",
+        type=_positive,
+        default=1.0,
+        metavar="S",
+        help="multiply every stiffness term of the object by S (K_o scales by S; default 1)",
+    )
+
+
+def _cmd_server(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+
+    from haptic_collab.server.main import run_server
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    opts = _server_options(args)
+    try:
+        asyncio.run(run_server(opts))
+    except ValueError as exc:  # bad mesh, bad parameters
+        raise CliError(_why(exc)) from None
+    except OSError as exc:
+        raise CliError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}") from None
+    return 0
+
+
+def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """The :class:`server.main.ServerOptions` of parsed ``haptic server`` arguments."""
+    from haptic_collab.server.main import ServerOptions
+
+    return ServerOptions(
+        host=args.host,
+        port=args.port,
+        mesh=args.mesh,
+        mesh_scale=args.mesh_scale,
+        mesh_size=args.mesh_size,
+        mesh_max_edge=args.mesh_max_edge,
+        sim_rate_hz=args.sim_rate,
+        latency_ms=args.latency_ms,
+        jitter_ms=args.jitter_ms,
+        loss=args.loss,
+        seed=args.seed,
+        primitive=args.primitive,
+        damping=args.damping,
+        stiffness_scale=args.stiffness_scale,
+        subdivisions=args.subdivisions,
+        duration_s=args.duration,
+        token_file=args.token_file,
+        token=args.token,
+        allow_origins=tuple(args.allow_origin),
+        tls_cert=args.tls_cert,
+        tls_key=args.tls_key,
+        insecure=args.insecure,
+        material=args.material,
+        object=args.object,
+        volume_cache=args.volume_cache,
+    )
+
+
+def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("server", help="run the authoritative server (object, simulation, viewer)")
+    p.add_argument(
+        "--config",
+        default=None,
+        metavar="FILE.toml",
+        help="defaults for every option below from a TOML file (flags given here override it; "
+        "docs/server-config.example.toml)",
+    )
+    _add_shared(p, "--host")
+    _add_shared(p, "--port", help="TCP port (0: any free port)")
+    _add_shared(p, "--mesh", help=_MESH_HELP)
+    _add_shared(p, "--object", help=_OBJECT_HELP)
+    _add_shared(
+        p,
+        "--material",
+        help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file "
+        "(docs/materials.md; default: the built-in silicone-like balloon); with --object fem: "
+        "liver, skin, ecoflex-0030, sylgard-184 or a TOML file (docs/fem.md; default liver)",
+    )
+    p.add_argument(
+        "--volume-cache",
+        default=None,
+        metavar="DIR",
+        help="folder of cached FEM volume meshes (default ~/.cache/haptic-collab/volumes)",
+    )
+    _add_shared(p, "--mesh-scale", help="multiply the file's coordinates by S")
+    _add_shared(p, "--mesh-size", help="rescale so the largest extent is this [m]")
+    _add_shared(p, "--mesh-max-edge", help=_MESH_MAX_EDGE_HELP)
+    _add_shared(p, "--subdivisions", help="icosphere subdivisions of the balloon")
+    _add_shared(p, "--sim-rate", help="simulation rate [Hz]")
+    p.add_argument(
+        "--damping", type=_nonneg, default=None, help="object damping (visco-elastic, eq. 9)"
+    )
+    _add_stiffness_scale(p)
+    p.add_argument(
+        "--primitive", choices=["plane", "sphere"], default="plane", help="local model primitive"
+    )
+    _add_shared(p, "--latency-ms")
+    _add_shared(p, "--jitter-ms")
+    _add_shared(p, "--loss", help="injected loss of state frames [0, 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the latency injection")
+    p.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
+    sec = p.add_argument_group("security (docs/security.md)")
+    sec.add_argument(
+        "--token-file",
+        default=None,
+        metavar="FILE",
+        help="accepted tokens, one per line: TOKEN ROLE [NAME] (role user or viewer; NAME binds)",
+    )
+    sec.add_argument("--token", default=None, help="one accepted token, role user (may also watch)")
+    sec.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        metavar="ORIGIN",
+        help="browser origin allowed besides the server's own, e.g. https://lab.example (repeat)",
+    )
+    sec.add_argument("--tls-cert", default=None, metavar="PEM", help="serve https and wss")
+    sec.add_argument("--tls-key", default=None, metavar="PEM", help="the certificate's key")
+    sec.add_argument(
+        "--insecure",
+        action="store_true",
+        help="listen off loopback without tokens (anyone who can reach it may push)",
+    )
+    p.set_defaults(func=_cmd_server)
+
+
+# ------------------------------------------------------------------------------------------- client
+def _trajectory_options(text: str) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise argparse.ArgumentTypeError(f"expected key=value, got {item!r}")
+        out[key.strip()] = _finite(value)
+    return out
+
+
+def _anchor_option(text: str) -> str:
+    from haptic_collab.client.app import check_anchor
+
+    try:
+        return check_anchor(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
+def _cmd_client(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from haptic_collab.client.app import run_client
+    from haptic_collab.client.servo_process import ServoProcessError
+
+    _configure_logging(args)
+    opts = _client_options(args)
+    try:
+        summary = asyncio.run(run_client(opts))
+    except (ValueError, ConnectionError) as exc:  # DeviceError too: before any network
+        raise CliError(_why(exc)) from None
+    except ServoProcessError as exc:  # the servo process died (summary and recording written)
+        raise CliError(_why(exc)) from None
+    except OSError as exc:  # e.g. the --record file cannot be created
+        raise CliError(_why(exc)) from None
+    rate, rtt = summary.get("servo_rate_hz"), summary.get("rtt_ms_p50")
+    print(
+        f"{opts.name}: servo {'-' if rate is None else f'{rate:.1f}'} Hz, "
+        f"max force {summary.get('max_force_n', 0.0):.2f} N, patches {summary['patches']}, "
+        f"rtt p50 {'-' if rtt is None else f'{rtt:.1f}'} ms"
+    )
+    return 0
+
+
+def _hand_trajectory_options(args: argparse.Namespace) -> dict[str, float]:
+    """``--hand-*`` values as :data:`client.devices.sim_backend.HAND_OPTIONS` keys (only those given)."""
+    given = {
+        "hand_mass_kg": args.hand_mass,
+        "hand_stiffness_n_per_m": args.hand_stiffness,
+        "hand_damping_n_s_per_m": args.hand_damping,
+    }
+    return {k: v for k, v in given.items() if v is not None}
+
+
+def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """The :class:`client.app.ClientOptions` of parsed ``haptic client`` arguments.
+
+    The ``--hand-*`` flags travel in the trajectory options (the simulated hand pulls the device
+    along the trajectory); :func:`client.devices.opener.make_device` takes them out into the hand.
+    """
+    from haptic_collab.client.app import ClientOptions
+
+    return ClientOptions(
+        url=args.url,
+        name=args.name,
+        device=args.device,
+        profile=args.profile,
+        local_model=args.local_model,
+        servo_rate_hz=args.servo_rate,
+        record=Path(args.record) if args.record else None,
+        summary=Path(args.summary) if args.summary else None,
+        duration_s=args.duration,
+        anchor=args.anchor,
+        trajectory={**args.trajectory, **_hand_trajectory_options(args)},
+        theta_m=args.theta_mm / 1000.0,
+        theta_mode=args.theta_mode,
+        passivity=args.passivity,
+        margin=args.margin,
+        hid_profile=args.hid_profile,
+        stop_on_signals=True,
+        token=args.token,
+        ca_file=args.ca_file,
+        gains=args.gains,
+        engage=args.engage,
+        servo=args.servo,
+    )
+
+
+def _add_hand(p: argparse.ArgumentParser) -> None:
+    """``--hand-mass``, ``--hand-stiffness``, ``--hand-damping``: the simulated hand's own values."""
+    p.add_argument(
+        "--hand-mass",
+        type=_nonneg,
+        default=None,
+        metavar="KG",
+        help="simulated hand mass [kg] (default 0.45; the device's 0.045 kg is added)",
+    )
+    p.add_argument(
+        "--hand-stiffness",
+        type=_positive,
+        default=None,
+        metavar="N_PER_M",
+        help="simulated hand stiffness [N/m] (default 300)",
+    )
+    p.add_argument(
+        "--hand-damping",
+        type=_nonneg,
+        default=None,
+        metavar="N_S_PER_M",
+        help="simulated hand damping [N*s/m] (default 5; the device's own is added)",
+    )
+
+
+def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("client", help="run one haptic user: device, 1 kHz servo loop, link")
+    p.add_argument("--url", default="ws://127.0.0.1:8765/ws")
+    p.add_argument("--name", default="A", help="user name shown to others")
+    p.add_argument(
+        "--device", default="sim:press", help="sim:press | sim:rest | sim:replay:FILE | hid:VID:PID"
+    )
+    _add_shared(p, "--profile", help="simulated device profile (see haptic devices)")
+    p.add_argument(
+        "--hid-profile", default=None, help="generic HID device profile (name or JSON file)"
+    )
+    _add_shared(p, "--local-model")
+    _add_shared(p, "--servo-rate", help="servo rate [Hz]")
+    p.add_argument("--record", default=None, help="write the servo telemetry CSV here")
+    p.add_argument("--summary", default=None, help="write a JSON summary here")
+    p.add_argument("--duration", type=_positive, default=None, help="run this many seconds")
+    p.add_argument(
+        "--anchor",
+        type=_anchor_option,
+        default="auto",
+        help="where the hand works: auto, top, side (by join order) or side:N (the server's "
+        "N-th side, those a press on the top moves most first)",
+    )
+    p.add_argument(
+        "--trajectory",
+        type=_trajectory_options,
+        default={},
+        help="scripted hand options, e.g. delay_s=4,depth_m=0.02,hold_s=6",
+    )
+    p.add_argument(
+        "--theta-mm", type=_nonneg, default=1.0, help="integration threshold theta (eq. 17) [mm]"
+    )
+    p.add_argument(
+        "--gains",
+        choices=["server", "local"],
+        default="server",
+        help="render the server's recommended gains when they fit this device and no better "
+        "design of its own is ready (server), or always design them here (local) "
+        "(default %(default)s)",
+    )
+    p.add_argument(
+        "--engage",
+        choices=["default", "button", "auto"],
+        default="default",
+        help="how forces come on: with the device's first button (button: a press engages, the "
+        "next disengages, as vendor examples do), with the first checked patch (auto), or button "
+        "for a device that has buttons and auto otherwise (default %(default)s)",
+    )
+    p.add_argument(
+        "--servo",
+        choices=["auto", "process", "thread"],
+        default="auto",
+        help="run the 1 kHz servo loop (device, local model, safety) in a process of its own, "
+        "off the network link's interpreter lock (process), or in a thread of the client "
+        "(thread); auto = process (default %(default)s)",
+    )
+    p.add_argument(
+        "--theta-mode",
+        choices=["auto", "fixed", "variable"],
+        default="auto",
+        help="threshold: fixed (eq. 17) or variable (eq. 18); auto = variable for PI, fixed for P "
+        "(default %(default)s)",
+    )
+    p.add_argument(
+        "--passivity",
+        choices=["auto", "on", "off"],
+        default="auto",
+        help="time-domain passivity controller at the device port; auto = on for PI "
+        "(default %(default)s)",
+    )
+    _add_shared(p, "--margin", help="K_o margin of the gain design (default %(default)s)")
+    p.add_argument(
+        "--token",
+        default=None,
+        help="the server's token (default: $HAPTIC_TOKEN; prefer the variable: it stays out of ps)",
+    )
+    p.add_argument(
+        "--ca-file",
+        default=None,
+        metavar="PEM",
+        help="trust this CA for a wss:// server (default: the system's CAs)",
+    )
+    _add_hand(p)
+    p.set_defaults(func=_cmd_client)
+
+
+# ------------------------------------------------------------------------------------------ devices
+def _cmd_devices(args: argparse.Namespace) -> int:
+    from haptic_collab.client.devices.opener import list_devices
+
+    devices = list_devices()
+    if args.json:
+        print(json.dumps(devices, indent=2))
+        return 0
+    backends = [d for d in devices if d.get("kind") == "backend"]
+    sims = [d for d in devices if d.get("kind") == "sim"]
+    hid = [d for d in devices if d.get("backend") == "hid"]
+    print("Simulated devices (--device sim:press|sim:rest|sim:replay:FILE --profile NAME):")
+    for d in {d["profile"]: d for d in sims}.values():
+        print(
+            f"  {d['profile']:<16} max force {d['max_force_n']:.1f} N, "
+            f"max stiffness {d['max_stiffness_n_per_m']:.0f} N/m"
+        )
+    print("HID devices (--device hid:VID:PID):")
+    if not hid:
+        print("  none found")
+    for d in hid:
+        print(
+            f"  {d.get('spec', '?'):<16} {d.get('manufacturer', '')} {d.get('product', '')}".rstrip()
+        )
+    print("Device backends (--device NAME:ARGS; docs/devices.md says how to add one):")
+    for b in backends:
+        what = b["description"] if b["available"] else f"not available: {b['message']}"
+        print(f"  {b['name']:<16} {what}".rstrip())
+        if b["name"] not in ("sim", "hid"):  # their devices are listed above
+            for d in b["devices"]:
+                print(f"  {'':<16} {d.get('spec', '?')}")
+    return 0
+
+
+def _add_devices(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "devices", help="list device backends, HID devices and simulated device profiles"
+    )
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_cmd_devices)
+
+
+# --------------------------------------------------------------------------------------------- demo
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from haptic_collab.demo import DemoOptions, run_demo
+
+    if args.plot:
+        _need_matplotlib()  # before the run, not after it
+
+    opts = DemoOptions(
+        duration_s=args.duration,
+        headless=args.headless,
+        report=Path(args.report) if args.report else None,
+        plot=Path(args.plot) if args.plot else None,
+        sim_rate_hz=args.sim_rate,
+        servo_rate_hz=args.servo_rate,
+        latency_ms=args.latency_ms,
+        jitter_ms=args.jitter_ms,
+        loss=args.loss,
+        mesh=args.mesh,
+        port=args.port,
+        host=args.host,
+        local_model=args.local_model,
+        workdir=Path(args.workdir) if args.workdir else None,
+        stiffness_scale=args.stiffness_scale,
+        material=args.material,
+        object=args.object,
+        mesh_scale=args.mesh_scale,
+        mesh_size=args.mesh_size,
+        mesh_max_edge=args.mesh_max_edge,
+        hand_mass_kg=args.hand_mass,
+        hand_stiffness_n_per_m=args.hand_stiffness,
+        hand_damping_n_s_per_m=args.hand_damping,
+        log_level=getattr(args, "log_level", "info"),
+        reference_loop=args.reference_loop,
+    )
+    try:
+        run_demo(opts)
+    except ValueError as exc:
+        raise CliError(_why(exc)) from None
+    except RuntimeError as exc:
+        print(f"haptic demo: failed: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("demo", help="server + two simulated users on a shared water balloon")
+    p.add_argument("--duration", type=_positive, default=20.0, help="run length [s] (>= 12)")
+    p.add_argument("--headless", action="store_true", help="do not open a browser")
+    p.add_argument("--report", default=None, help="write the JSON report here")
+    p.add_argument("--plot", default=None, help="write a PNG of probe, proxy and force here")
+    p.add_argument(
+        "--reference-loop",
+        action="store_true",
+        help="run a do-nothing 1 kHz loop beside the users and report its timing next to "
+        "theirs (what this machine gives any loop; it takes about a third of a core)",
+    )
+    _add_shared(p, "--sim-rate", help="simulation rate [Hz]")
+    _add_shared(p, "--servo-rate", help="servo rate [Hz]")
+    _add_shared(p, "--latency-ms")
+    _add_shared(p, "--jitter-ms")
+    _add_shared(p, "--loss", help="injected loss of state frames")
+    _add_shared(p, "--mesh", help=_MESH_HELP)
+    _add_shared(p, "--mesh-scale", help="multiply the mesh file's coordinates by S")
+    _add_shared(
+        p, "--mesh-size", metavar="M", help="rescale the mesh file so its largest extent is M [m]"
+    )
+    _add_shared(p, "--mesh-max-edge", help=_MESH_MAX_EDGE_HELP)
+    _add_shared(p, "--object", help=_OBJECT_HELP)
+    _add_shared(
+        p,
+        "--material",
+        help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file; with "
+        "--object fem: liver, skin, ecoflex-0030, sylgard-184 or a TOML file",
+    )
+    _add_shared(p, "--port", help="server port (0: any free port)")
+    _add_shared(
+        p,
+        "--host",
+        help="server address (0.0.0.0: every interface; the viewer URLs of this machine are "
+        "printed; default %(default)s)",
+    )
+    _add_shared(p, "--local-model")
+    p.add_argument("--workdir", default=None, help="keep logs and telemetry here")
+    _add_stiffness_scale(p)
+    _add_hand(p)
+    p.set_defaults(func=_cmd_demo)
