@@ -48,7 +48,7 @@ from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.prefetch import PatchPrefetcher
 from haptic_collab.server.room import Outgoing, Room
 from haptic_collab.server.security import is_loopback, origin_allowed
-from haptic_collab.shared.gain_design import warm_up
+from haptic_collab.shared.gain_table import warm_up
 from haptic_collab.shared.protocol import LinkConditions
 from haptic_collab.workers import background_worker, stop_pool
 

@@ -3,7 +3,7 @@
 A client in any language may render the gains the server sends in each patch
 (``patch.gains``, :class:`shared.protocol.RecommendedGains`) instead of porting the full-loop
 design (issue 14). The server designs them exactly as :class:`client.session.ClientSession` does:
-one :class:`shared.gain_design.GainTable` keyed by the user's declared device (maximum stiffness
+one :class:`shared.gain_table.GainTable` keyed by the user's declared device (maximum stiffness
 and damping, servo rate, P or PI local model), its loop delay in whole simulation ticks (from the
 round trips the user reports in ``state``), the object damping ``b_o`` and the coupling class
 ``K_o_stiff / K_o_eff`` (docs/coupled-users.md), with a grid cell per ``K_o_eff``.
@@ -11,7 +11,7 @@ round trips the user reports in ``state``), the object damping ``b_o`` and the c
 Pure and cheap: :meth:`GainAdvisor.recommend` is a dictionary lookup, never a design. A missing
 cell is queued (:meth:`GainAdvisor.next_job` hands out the most urgent first); the I/O layer runs
 the jobs in a worker process (:func:`run_job`) and hands the results back with :meth:`GainAdvisor.store`. Until then the
-patch carries verified interim gains (:func:`shared.gain_design.interim_design`, a fraction of
+patch carries verified interim gains (:func:`shared.interim_gains.interim_design`, a fraction of
 a second) or, for the very first moment of a new key, no gains at all.
 """
 
@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from haptic_collab.shared.gain_design import GainDesign, GainTable, design_cell, interim_design
+from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import (
     K_O_GRID_RATIO,
     GainKey,
@@ -33,6 +33,8 @@ from haptic_collab.shared.gain_key import (
     loop_delay_ticks,
     make_gain_key,
 )
+from haptic_collab.shared.gain_table import GainTable, design_cell
+from haptic_collab.shared.interim_gains import interim_design
 from haptic_collab.shared.protocol import Hello, RecommendedGains
 from haptic_collab.shared.stability import rate_ratio
 from haptic_collab.workers import timed

@@ -71,14 +71,10 @@ from haptic_collab.shared.full_loop import (
     monodromy,
     spectral_radius_function,
 )
-from haptic_collab.shared.gain_design import (
-    MIN_DECAY_RATE_PER_S,
-    GainDesign,
-    design_gains,
-    mode_radii,
-)
+from haptic_collab.shared.gain_design import GainDesign, design_gains
 from haptic_collab.shared.gain_key import K_O_RIGID, Mode
 from haptic_collab.shared.rates import Rates
+from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S, mode_radii
 from haptic_collab.shared.types import FloatArray, IndexArray
 
 #: Batch size of coupled monodromy matrices per eigenvalue call (bounds memory: 4096 x 30 x 30).
@@ -464,7 +460,7 @@ class CoupledVerdict:
         Largest spectral radius of the coupled monodromy.
     margin_radius : float
         Largest oscillating eigenvalue magnitude, creep eigenvalues (slower than
-        :data:`shared.gain_design.CREEP_FREQUENCY_HZ`) counted as ``|lambda| * rho_limit``: the
+        :data:`shared.stability_margin.CREEP_FREQUENCY_HZ`) counted as ``|lambda| * rho_limit``: the
         quantity :func:`shared.gain_design.design_gains` holds below ``rho_limit``.
     rho_limit : float
         ``exp(-min_decay_rate * N * T)``, the single-user design's bound.
@@ -566,7 +562,7 @@ def verify_coupled(
     hand_combos, tick_combos : (B, M) and (J, M) nested sequences, optional
         Explicit combinations instead of the products above (then no symmetry reduction).
     min_decay_rate_per_s : float
-        Decay-rate margin [1/s] (:data:`shared.gain_design.MIN_DECAY_RATE_PER_S`).
+        Decay-rate margin [1/s] (:data:`shared.stability_margin.MIN_DECAY_RATE_PER_S`).
 
     Raises
     ------

@@ -1,6 +1,6 @@
 """The gain key: what a local model's design depends on besides K_o, and its rules, once.
 
-A :class:`GainKey` names one row of a :class:`shared.gain_design.GainTable`. The client session
+A :class:`GainKey` names one row of a :class:`shared.gain_table.GainTable`. The client session
 (:class:`client.session.ClientSession`) and the server's gain advisor
 (:class:`server.gains.GainAdvisor`) build theirs with the same function, :func:`make_gain_key`, from the
 same rules:

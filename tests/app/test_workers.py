@@ -50,8 +50,8 @@ def test_a_process_exits_without_waiting_for_its_running_design(tmp_path):
 
 def test_timed_stamps_the_design_with_the_wall_time_it_took():
     from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
-    from haptic_collab.shared.gain_design import design_cell
     from haptic_collab.shared.gain_key import GainKey
+    from haptic_collab.shared.gain_table import design_cell
     from haptic_collab.workers import timed
 
     key = GainKey(1000.0, 20.0, 0, "p", 0.15, 1000.0, 10.0)

@@ -18,14 +18,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.client.app import THETA_EXIT_SPEED_M_S, threshold_for
 from haptic_collab.client.devices.base import Vec3
 from haptic_collab.client.devices.profiles import get_sim_profile
 from haptic_collab.client.devices.sim import SimDevice
 from haptic_collab.client.devices.trajectories import Press
 from haptic_collab.client.servo import ServoConfig, ServoCore
-from haptic_collab.shared.gain_design import GainDesign, GainTable
+from haptic_collab.client.theta import THETA_EXIT_SPEED_M_S, threshold_for
+from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
 from haptic_collab.shared.primitives import make_plane
 from tests.support.helpers import ScriptedDevice

@@ -1,0 +1,79 @@
+"""Felt stiffness |dF/dx| at the probe (shared.felt_stiffness), checked against closed forms: springs
+in series for a P local model, the object itself for PI, a damper felt as viscosity."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from haptic_collab.shared.felt_stiffness import felt_stiffness
+from haptic_collab.shared.full_loop import ProxyHold
+
+
+# ----------------------------------------------------------------------------- felt stiffness
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+@pytest.mark.parametrize(("n", "delay"), [(50, 0), (50, 3), (10, 0)])
+@pytest.mark.parametrize(("k_o", "k_h"), [(1000.0, 300.0), (300.0, 200.0), (50.0, 40.0)])
+def test_p_coupling_feels_like_springs_in_series_at_low_frequency(
+    k_o: float, k_h: float, n: int, delay: int, hold: ProxyHold
+) -> None:
+    felt = felt_stiffness(0.05, k_o=k_o, k_h=k_h, rate_ratio=n, delay_ticks=delay, proxy_hold=hold)
+    assert felt.shape == (1,)
+    assert felt[0] == pytest.approx(k_h * k_o / (k_h + k_o), rel=5e-3)
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+@pytest.mark.parametrize("delay", [0, 2])
+@pytest.mark.parametrize(
+    ("k_o", "k_h", "i_gain"), [(1000.0, 300.0, 7000.0), (300.0, 100.0, 3000.0)]
+)
+def test_pi_coupling_feels_the_object_itself_at_low_frequency(
+    k_o: float, k_h: float, i_gain: float, delay: int, hold: ProxyHold
+) -> None:
+    felt = felt_stiffness(
+        0.05, k_o=k_o, k_h=k_h, i_gain=i_gain, rate_ratio=50, delay_ticks=delay, proxy_hold=hold
+    )
+    assert felt[0] == pytest.approx(k_o, rel=0.02)
+    # while P with the same K_h feels much softer: the integral is what brings K_o back
+    p_only = felt_stiffness(0.05, k_o=k_o, k_h=k_h, rate_ratio=50, delay_ticks=delay)
+    assert p_only[0] < 0.8 * k_o
+
+
+@pytest.mark.parametrize("freq_hz", [0.05, 1.0])
+@pytest.mark.parametrize("k_o", [100.0, 1000.0, 5000.0])
+def test_simulation_at_servo_rate_with_k_h_near_k_o(k_o: float, freq_hz: float) -> None:
+    k_h = 0.99 * k_o
+    felt = felt_stiffness(freq_hz, k_o=k_o, k_h=k_h, rate_ratio=1)
+    assert felt[0] == pytest.approx(k_h * k_o / (k_h + k_o), rel=5e-3)  # about K_o / 2
+
+
+def test_felt_stiffness_is_vectorised_over_gains() -> None:
+    k_h = np.array([100.0, 300.0, 600.0])
+    felt = felt_stiffness(0.05, k_o=1000.0, k_h=k_h)
+    assert felt == pytest.approx(k_h * 1000.0 / (k_h + 1000.0), rel=5e-3)
+    assert np.all(np.diff(felt) > 0)  # stiffer coupling, stiffer feel
+
+
+@pytest.mark.parametrize(("k_o", "k_h"), [(1000.0, 300.0), (5000.0, 10.0)])
+@pytest.mark.parametrize("b_h", [2.0, 10.0])
+def test_probe_damper_is_felt_as_viscosity_not_stiffness(
+    k_o: float, k_h: float, b_h: float
+) -> None:
+    """Quasi-statically F = (K_h + j w B_h) x - K_h p with p = F / K_o, so the damper adds
+    j w B_h K_o / (K_h + K_o) (-> j w B_h when K_h << K_o) and leaves the real part alone."""
+    f = 0.05
+    w = 2.0 * math.pi * f
+    with_damper = felt_stiffness(f, k_o=k_o, k_h=k_h, b_h=b_h, complex_response=True)[0]
+    without = felt_stiffness(f, k_o=k_o, k_h=k_h, complex_response=True)[0]
+    assert (with_damper - without).imag == pytest.approx(b_h * w * k_o / (k_h + k_o), rel=0.01)
+    assert with_damper.real == pytest.approx(without.real, rel=1e-3)
+    if k_h < 0.01 * k_o:
+        assert (with_damper - without).imag == pytest.approx(b_h * w, rel=0.01)
+
+
+@pytest.mark.parametrize("freq_hz", [0.0, -1.0, 500.0, 2000.0])
+def test_felt_stiffness_refuses_frequencies_outside_the_servo_band(freq_hz: float) -> None:
+    with pytest.raises(ValueError):
+        felt_stiffness(freq_hz, k_o=1000.0, k_h=300.0)
