@@ -28,11 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
-import numpy as np
-
-from haptic_collab.client.devices import DeviceLimits, DeviceOpener
-from haptic_collab.client.devices.base import Device
+from haptic_collab.client.devices.base import Device, DeviceLimits
 from haptic_collab.client.devices.hid import HidPort
+from haptic_collab.client.devices.opener import DeviceOpener
 from haptic_collab.client.devices.profiles import get_sim_profile
 from haptic_collab.client.link import DesignWorkers, Link
 from haptic_collab.client.recorder import CsvRecording, TelemetryRecorder
@@ -50,8 +48,10 @@ from haptic_collab.client.servo_process import (
     built_device,
     watch_device,
 )
-from haptic_collab.client.session import ClientSession, PatchUpdate, ServoSample
-from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
+from haptic_collab.client.session import ClientSession, ServoSample
+from haptic_collab.client.summary import client_summary
+from haptic_collab.client.theta import threshold_for
+from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import DeviceInfo, Welcome
 from haptic_collab.shared.stability import rate_ratio
@@ -121,84 +121,11 @@ def _device_info(opts: ClientOptions, limits: DeviceLimits | None = None) -> Dev
     )
 
 
-#: Filter time constant [s] on the probe's depth rate that decides eq. 18's branch: 20 ms, an
-#: 8 Hz corner, above the 1-5 Hz of a hand deliberately leaving an object.
-THETA_DIRECTION_FILTER_S = 0.02
-
-#: Encoder counts the quantization noise of a still probe may span (a position between two
-#: counts plus a little tremor); eq. 18's deadband is set 20 % above what that can make of the
-#: filtered speed (:func:`shared.local_model.encoder_speed_bound`; the bound is reached only by
-#: the worst pattern, a long plateau then a drop of all the counts in one tick).
-THETA_ENCODER_NOISE_COUNTS = 3.0
-THETA_ENCODER_MARGIN = 1.2
-
-#: Slowest outward probe speed [m/s] taken as the user leaving (eq. 18's exiting branch), unless
-#: the encoder needs more. Measured with the simulated hand and the hand box's extremes holding a
-#: press on 300 and 1000 N/m objects and nudged: below about 7 mm/s the hand's own ringing after
-#: a nudge reaches the exiting branch now and then (0.5-0.7 mm peak to peak with 5 mm/s); from
-#: 7.5 mm/s on the hold stays below 0.5 mm for every hand tried. A deliberate exit is faster
-#: (tens of mm/s).
-THETA_EXIT_SPEED_M_S = 0.01
-
 #: Time [s] over which the force step of new gains in the middle of a press is carried off
 #: (:class:`shared.local_model.LocalModelParams`): long enough that the hand feels a change of
 #: stiffness, not a tap (the demo's hold saw a 0.56 N step in one tick without it), short next to
 #: the seconds a new cell's design takes.
 GAIN_TRANSFER_S = 0.25
-
-
-def threshold_for(
-    mode: Literal["auto", "fixed", "variable"],
-    local_model: Literal["p", "pi"],
-    theta_m: float,
-    encoder_resolution_m: float,
-    servo_period_s: float = 1e-3,
-) -> ThresholdParams:
-    """The integration threshold theta (eq. 17 or 18) the client renders with.
-
-    ``auto`` is eq. 18 (variable) for a PI local model and eq. 17 (fixed) otherwise (a P model
-    has no integral: theta does nothing). Eq. 18: theta_1 = theta_m / 2 while pressing in or
-    holding, up to theta_2 = 3 theta_m while leaving (reached at 1 N of integral force). The
-    branch is a memoryless function of the probe's own speed along the normal (never the proxy's
-    jumps), low-pass filtered over :data:`THETA_DIRECTION_FILTER_S`: leaving while the filtered
-    outward speed exceeds the deadband ``max(1.2 R q / (T + tau), THETA_EXIT_SPEED_M_S)``, R =
-    :data:`THETA_ENCODER_NOISE_COUNTS` counts of the device's encoder q [m] (quantization noise
-    cannot reach it, :func:`shared.local_model.encoder_speed_bound`; 3.9 mm/s for a 23 um
-    encoder, 9.4 mm/s for 55 um), and at least the speed of a deliberate exit.
-
-    Parameters
-    ----------
-    mode : {"auto", "fixed", "variable"}
-    local_model : {"p", "pi"}
-    theta_m : float
-        theta_bar [m] of eq. 17 (and the scale of eq. 18's thresholds), >= 0.
-    encoder_resolution_m : float
-        The device's position quantum [m], >= 0 (0: unknown or none).
-    servo_period_s : float
-        Servo period T [s].
-
-    Raises
-    ------
-    ValueError
-        Out-of-range values.
-    """
-    variable = mode == "variable" or (mode == "auto" and local_model == "pi")
-    if not variable:
-        return ThresholdParams(mode="fixed", theta_m=theta_m)
-    tau = THETA_DIRECTION_FILTER_S
-    noise = THETA_ENCODER_MARGIN * encoder_speed_bound(
-        encoder_resolution_m, THETA_ENCODER_NOISE_COUNTS, tau, servo_period_s
-    )
-    return ThresholdParams(
-        mode="variable",
-        theta_m=theta_m,
-        theta_1_m=0.5 * theta_m,
-        theta_2_m=3.0 * theta_m,
-        i_tot_bar_n=1.0,
-        direction_deadband_m=THETA_ENCODER_NOISE_COUNTS * encoder_resolution_m,
-        direction_deadband_m_s=max(noise, THETA_EXIT_SPEED_M_S),
-        direction_filter_s=tau,
-    )
 
 
 def _anchor(
@@ -391,84 +318,103 @@ async def _run(
     origin_s: float,
     workers: DesignWorkers | None,
 ) -> dict[str, Any]:
-    info = _device_info(opts, host.limits)
-    session = ClientSession(
-        opts.name,
-        servo_rate_hz=opts.servo_rate_hz,
-        device=info,
-        mode=opts.local_model,
-        margin=opts.margin,
-        b_h_max=info.max_damping_n_s_per_m,
-        gains=opts.gains,
-    )
+    return await _ClientRun(opts, host, origin_s, workers).run()
 
-    def clock() -> float:
+
+class _ClientRun:
+    """One run of :func:`run_client` once the device is checked: the session, the link, the
+    servo started at the ``welcome``, and what stopped the run.
+
+    The link calls :meth:`on_welcome`, :meth:`on_patch` and :meth:`sample` from the event loop;
+    :meth:`run` waits for the join and then the duration, a stop signal or a fault, and always
+    ends with forces ramped to zero, the recording closed and the summary written.
+    """
+
+    def __init__(
+        self,
+        opts: ClientOptions,
+        host: _ThreadServo | ServoProcess,
+        origin_s: float,
+        workers: DesignWorkers | None,
+    ) -> None:
+        self.opts = opts
+        self.host = host
+        self.origin_s = origin_s
+        self.workers = workers
+        info = _device_info(opts, host.limits)
+        self.session = ClientSession(
+            opts.name,
+            servo_rate_hz=opts.servo_rate_hz,
+            device=info,
+            mode=opts.local_model,
+            margin=opts.margin,
+            b_h_max=info.max_damping_n_s_per_m,
+            gains=opts.gains,
+        )
+        #: The servo once started (at the first ``welcome``), and the task starting it.
+        self.servo: ServoHandle | None = None
+        self.starting: asyncio.Future[None] | None = None
+        #: What stops the run: the first fault, or the name of a stop signal.
+        self.error: BaseException | None = None
+        self.signal: str | None = None
+        #: Where the scripted hand works: {"point_m", "normal"} once placed.
+        self.anchor: dict[str, list[float]] | None = None
+        self.updates: list[LocalModelUpdate] = []
+        self.halt = asyncio.Event()  # a stop signal or a fault
+        self.loop = asyncio.get_running_loop()
+
+    def clock(self) -> float:
         """Servo and link time [s] since this client started (scripted hands start at 0)."""
-        return time.perf_counter() - origin_s
+        return time.perf_counter() - self.origin_s
 
-    state: dict[str, Any] = {"servo": None, "starting": None, "error": None}
-    recorder = host.recorder
-    recording = None if opts.record is None else CsvRecording(recorder, opts.record)
-    if recording is not None:
-        recording.start()
-        log.info("recording every servo tick to %s", opts.record)
-    updates: list[PatchUpdate] = []
-    halt = asyncio.Event()  # a stop signal or a device that could not be placed
-    loop = asyncio.get_running_loop()
-    signals: list[signal.Signals] = []
-
-    def on_signal(sig: signal.Signals) -> None:
+    # -- what stops the run -----------------------------------------------------------------------
+    def on_signal(self, sig: signal.Signals) -> None:
         log.info("%s: stopping (forces ramp to zero, recording and summary are written)", sig.name)
-        state["signal"] = sig.name
-        halt.set()
+        self.signal = sig.name
+        self.halt.set()
 
-    if opts.stop_on_signals:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.add_signal_handler(sig, on_signal, sig)
-                signals.append(sig)
+    def fail(self, exc: BaseException) -> None:
+        """Stop the run with ``exc`` (the first fault wins)."""
+        if self.error is None:
+            self.error = exc
+        self.halt.set()
 
-    def fail(exc: BaseException) -> None:
-        if state["error"] is None:
-            state["error"] = exc
-        halt.set()
+    def on_servo_death(self, reason: str) -> None:
+        """The servo process died (called from the servo monitor's thread): the run stops once
+        the last force has ramped to zero (the link reports it meanwhile, ServoProcess.latest)."""
+        host = self.host
+        assert isinstance(host, ServoProcess)
+        self.loop.call_soon_threadsafe(
+            self.loop.call_later, host.ramp_s + 0.05, self.fail, ServoProcessError(reason)
+        )
 
-    if isinstance(host, ServoProcess):
-        process = host
-
-        def on_servo_death(reason: str) -> None:  # from the servo monitor's thread
-            # the link reports the last force ramping to zero meanwhile (ServoProcess.latest)
-            loop.call_soon_threadsafe(
-                loop.call_later, process.ramp_s + 0.05, fail, ServoProcessError(reason)
-            )
-
-        process.on_death = on_servo_death
-
-    def on_welcome(welcome: Welcome) -> None:
-        if state["starting"] is not None or state["error"] is not None:
+    # -- the link's callbacks ---------------------------------------------------------------------
+    def on_welcome(self, welcome: Welcome) -> None:
+        if self.starting is not None or self.error is not None:
             return  # a reconnection: keep the running device and servo loop
-        state["starting"] = asyncio.ensure_future(start_servo(welcome))
+        self.starting = asyncio.ensure_future(self._start_servo_or_fail(welcome))
 
-    async def start_servo(welcome: Welcome) -> None:
+    def on_patch(self, update: LocalModelUpdate, now_s: float) -> None:
+        if self.servo is None:
+            return
+        self.servo.set_patch(update)
+        self.updates.append(update)
+
+    def sample(self) -> ServoSample | None:
+        return None if self.servo is None else _sample(self.servo)
+
+    # -- the servo, started at the welcome --------------------------------------------------------
+    async def _start_servo_or_fail(self, welcome: Welcome) -> None:
         try:
-            await _start_servo(welcome)
+            await self._start_servo(welcome)
         except Exception as exc:  # never a network retry: the client stops with this error
-            fail(exc)
+            self.fail(exc)
 
-    async def _start_servo(welcome: Welcome) -> None:
-        try:  # N must be whole: the local model's lifted loop (paper section 3)
-            rate_ratio(opts.servo_rate_hz, welcome.sim_rate_hz)
-        except ValueError:
-            sim = welcome.sim_rate_hz
-            fit = max(1, round(opts.servo_rate_hz / sim)) * sim
-            raise ValueError(
-                f"the server simulates at {sim:g} Hz and this client's servo rate "
-                f"{opts.servo_rate_hz:g} Hz is not a whole multiple of it; run the client with "
-                f"--servo-rate {fit:g}, or the server at a rate that divides "
-                f"{opts.servo_rate_hz:g} Hz"
-            ) from None
+    async def _start_servo(self, welcome: Welcome) -> None:
+        opts, host, session = self.opts, self.host, self.session
+        _check_whole_rate_ratio(opts.servo_rate_hz, welcome.sim_rate_hz)
         anchor, normal = _anchor(opts, welcome)
-        state["anchor"] = {"point_m": list(anchor), "normal": list(normal)}
+        self.anchor = {"point_m": list(anchor), "normal": list(normal)}
         if isinstance(host, ServoProcess):  # checked before the network (run_client)
             device = await asyncio.to_thread(host.build, anchor, normal)
         else:
@@ -482,24 +428,7 @@ async def _run(
             max_damping_n_s_per_m=min(1e3, lim.max_damping_n_s_per_m),
         )
         session.b_h_max = min(1e3, lim.max_damping_n_s_per_m)
-        period = 1.0 / opts.servo_rate_hz
-        lm = LocalModelParams(
-            k_h=1.0,
-            servo_period_s=period,
-            threshold=threshold_for(
-                opts.theta_mode,
-                opts.local_model,
-                opts.theta_m,
-                device.encoder_resolution_m,
-                period,
-            ),
-            release_time_s=2.0 / welcome.sim_rate_hz,
-            # anti-windup at what the device may display for long: its continuous force when it
-            # states one (a hold must not ask for the peak force for seconds), else its peak
-            integral_limit_n=lim.max_continuous_force_n or lim.max_force_n,
-            # new gains in the middle of a press change the force smoothly, never in one tick
-            gain_transfer_s=GAIN_TRANSFER_S,
-        )
+        lm = _local_model_params(opts, device, welcome.sim_rate_hz)
         passivity = opts.passivity == "on" or (
             opts.passivity == "auto" and opts.local_model == "pi"
         )
@@ -516,7 +445,7 @@ async def _run(
         else:
             servo = host.start(config, lm)
         servo.enable_forces()
-        state["servo"] = servo
+        self.servo = servo
         log.info(
             "%s joined as %s; device %s on %s (servo in its own %s%s)",
             opts.name,
@@ -527,79 +456,106 @@ async def _run(
             ", real-time priority" if host.realtime else "",
         )
 
-    def on_patch(update: PatchUpdate, now_s: float) -> None:
-        servo: ServoHandle | None = state["servo"]
-        if servo is None:
-            return
-        servo.set_patch(update.model)
-        updates.append(update)
+    # -- the run ----------------------------------------------------------------------------------
+    async def run(self) -> dict[str, Any]:
+        """Join, run until the duration, a stop signal or a fault, then stop and summarise.
 
-    def sample() -> ServoSample | None:
-        servo: ServoHandle | None = state["servo"]
-        return None if servo is None else _sample(servo)
-
-    link = Link(
-        opts.url,
-        session,
-        on_patch=on_patch,
-        sample=sample,
-        clock=clock,
-        on_welcome=on_welcome,
-        token=opts.token,
-        ca_file=opts.ca_file,
-        workers=workers,
-    )
-    stop = asyncio.Event()
-    link_task = asyncio.create_task(link.run(stop))
-    joined = asyncio.create_task(link.connected.wait())
-    halted = asyncio.create_task(halt.wait())
-    t_start = clock()
-    try:
-        done, _ = await asyncio.wait(
-            {joined, halted, link_task},
-            timeout=opts.join_timeout_s,
-            return_when=asyncio.FIRST_COMPLETED,
-        )
-        if state["error"] is not None:
-            raise state["error"]
-        if link_task in done:
-            link_task.result()  # e.g. ValueError: a bad URL
-        if not done:
-            raise ConnectionError(f"could not join {opts.url} within {opts.join_timeout_s:g} s")
-        if not halt.is_set():
-            remaining = (
-                None if opts.duration_s is None else max(0.0, opts.duration_s - (clock() - t_start))
-            )
-            done, _ = await asyncio.wait(
-                {halted, link_task}, timeout=remaining, return_when=asyncio.FIRST_COMPLETED
-            )
-            if state["error"] is not None:
-                raise state["error"]
-            if link_task in done:
-                link_task.result()
-    finally:
-        for task in (joined, halted):
-            task.cancel()
-        starting = state["starting"]
-        if starting is not None and not starting.done():
-            with contextlib.suppress(Exception, asyncio.CancelledError):
-                await asyncio.wait_for(starting, 5.0)
-        servo = state["servo"]
-        if servo is not None:
-            await asyncio.to_thread(servo.stop)
-        stop.set()
-        with contextlib.suppress(Exception, asyncio.CancelledError):
-            await asyncio.wait_for(link_task, 3.0)
-        for sig in signals:
-            loop.remove_signal_handler(sig)
+        Raises what stopped the run (a fault, the link's error, ConnectionError when the
+        server could not be joined within ``join_timeout_s``); the summary is written anyway.
+        """
+        opts, host, loop = self.opts, self.host, self.loop
+        recording = None if opts.record is None else CsvRecording(host.recorder, opts.record)
         if recording is not None:
-            recording.close()
-        summary = _summary(opts, session, link, state["servo"], recorder, updates)
-        summary["anchor"] = state.get("anchor")  # where the scripted hand worked
-        summary["clock_origin_s"] = origin_s  # time.perf_counter() (CLOCK_MONOTONIC) at t_s = 0
-        summary["stopped_by"] = state.get("signal") or (
-            "error" if state["error"] is not None else "end"
+            recording.start()
+            log.info("recording every servo tick to %s", opts.record)
+        signals: list[signal.Signals] = []
+        if opts.stop_on_signals:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                    loop.add_signal_handler(sig, self.on_signal, sig)
+                    signals.append(sig)
+        if isinstance(host, ServoProcess):
+            host.on_death = self.on_servo_death
+        link = Link(
+            opts.url,
+            self.session,
+            on_patch=self.on_patch,
+            sample=self.sample,
+            clock=self.clock,
+            on_welcome=self.on_welcome,
+            token=opts.token,
+            ca_file=opts.ca_file,
+            workers=self.workers,
         )
+        stop = asyncio.Event()
+        link_task = asyncio.create_task(link.run(stop))
+        try:
+            await self._until_done(link, link_task)
+        finally:
+            starting = self.starting
+            if starting is not None and not starting.done():
+                with contextlib.suppress(Exception, asyncio.CancelledError):
+                    await asyncio.wait_for(starting, 5.0)
+            if self.servo is not None:
+                await asyncio.to_thread(self.servo.stop)
+            stop.set()
+            with contextlib.suppress(Exception, asyncio.CancelledError):
+                await asyncio.wait_for(link_task, 3.0)
+            for sig in signals:
+                loop.remove_signal_handler(sig)
+            if recording is not None:
+                recording.close()
+            summary = self._summary(link, recording)
+        return summary
+
+    async def _until_done(self, link: Link, link_task: asyncio.Task[None]) -> None:
+        """Wait for the join, then for the duration, a halt or the link's end; raise a fault."""
+        opts = self.opts
+        joined = asyncio.create_task(link.connected.wait())
+        halted = asyncio.create_task(self.halt.wait())
+        t_start = self.clock()
+        try:
+            done, _ = await asyncio.wait(
+                {joined, halted, link_task},
+                timeout=opts.join_timeout_s,
+                return_when=asyncio.FIRST_COMPLETED,
+            )
+            if self.error is not None:
+                raise self.error
+            if link_task in done:
+                link_task.result()  # e.g. ValueError: a bad URL
+            if not done:
+                raise ConnectionError(f"could not join {opts.url} within {opts.join_timeout_s:g} s")
+            if not self.halt.is_set():
+                remaining = (
+                    None
+                    if opts.duration_s is None
+                    else max(0.0, opts.duration_s - (self.clock() - t_start))
+                )
+                done, _ = await asyncio.wait(
+                    {halted, link_task}, timeout=remaining, return_when=asyncio.FIRST_COMPLETED
+                )
+                if self.error is not None:
+                    raise self.error
+                if link_task in done:
+                    link_task.result()
+        finally:
+            for task in (joined, halted):
+                task.cancel()
+
+    def _summary(self, link: Link, recording: CsvRecording | None) -> dict[str, Any]:
+        """The run's summary (:func:`client.summary.client_summary`), written to ``--summary``."""
+        opts, host = self.opts, self.host
+        head = {
+            "name": opts.name,
+            "device": opts.device,
+            "profile": opts.profile,
+            "local_model": opts.local_model,
+        }
+        summary = client_summary(head, self.session, link, self.servo, host.recorder, self.updates)
+        summary["anchor"] = self.anchor  # where the scripted hand worked
+        summary["clock_origin_s"] = self.origin_s  # time.perf_counter() at t_s = 0
+        summary["stopped_by"] = self.signal or ("error" if self.error is not None else "end")
         summary["servo_rate_hz_set"] = opts.servo_rate_hz
         summary["servo_host"] = "process" if isinstance(host, ServoProcess) else "thread"
         summary["servo_realtime"] = host.realtime
@@ -614,115 +570,50 @@ async def _run(
         if opts.summary is not None:
             opts.summary.parent.mkdir(parents=True, exist_ok=True)
             opts.summary.write_text(json.dumps(summary, indent=2))
-    return summary
+        return summary
 
 
-def _gain_changes(updates: list[PatchUpdate], limit: int = 200) -> list[dict[str, object]]:
-    """The patches at which the rendered gains or their standing changed, first ``limit``.
+def _check_whole_rate_ratio(servo_rate_hz: float, sim_rate_hz: float) -> None:
+    """N must be whole: the local model's lifted loop (paper section 3).
 
-    Each: the server ``tick``, K_h [N/m], integral gain [N/(m s)], own-force gain C_h [m/N],
-    whether verified / a fallback, the loop delay [ticks], K_o_eff and K_o_stiff [N/m]: when a
-    contact rendered what, for reading a demo run's haptics after the fact.
+    Raises
+    ------
+    ValueError
+        The servo rate is not a whole multiple of the server's simulation rate; the message
+        names the ``--servo-rate`` that would fit.
     """
-    out: list[dict[str, object]] = []
-    last: tuple[object, ...] | None = None
-    for u in updates:
-        m = u.model
-        state = (
-            round(m.k_h, 1),
-            round(m.i_gain, 1),
-            round(m.own_gain, 6),
-            u.verified,
-            u.fallback,
-            u.delay_ticks,
-        )
-        if state == last:
-            continue
-        last = state
-        out.append(
-            {
-                "tick": m.tick,
-                "k_h": state[0],
-                "i_gain": state[1],
-                "own_gain": state[2],
-                "verified": u.verified,
-                "fallback": u.fallback,
-                "delay_ticks": u.delay_ticks,
-                "k_o_eff": None if m.k_o_eff is None else round(m.k_o_eff, 1),
-                "k_o_stiff": None if m.k_o_stiff is None else round(m.k_o_stiff, 1),
-            }
-        )
-        if len(out) >= limit:
-            break
-    return out
+    try:
+        rate_ratio(servo_rate_hz, sim_rate_hz)
+    except ValueError:
+        fit = max(1, round(servo_rate_hz / sim_rate_hz)) * sim_rate_hz
+        raise ValueError(
+            f"the server simulates at {sim_rate_hz:g} Hz and this client's servo rate "
+            f"{servo_rate_hz:g} Hz is not a whole multiple of it; run the client with "
+            f"--servo-rate {fit:g}, or the server at a rate that divides "
+            f"{servo_rate_hz:g} Hz"
+        ) from None
 
 
-def _summary(
-    opts: ClientOptions,
-    session: ClientSession,
-    link: Link,
-    servo: ServoHandle | None,
-    recorder: TelemetryRecorder,
-    updates: list[PatchUpdate],
-) -> dict[str, Any]:
-    rtt = np.asarray(session.rtt_all_ms, float)
-    out: dict[str, Any] = {
-        "name": opts.name,
-        "device": opts.device,
-        "profile": opts.profile,
-        "local_model": opts.local_model,
-        "joins": link.joins,
-        "patches": session.patches,
-        "server_errors": [e.model_dump() for e in session.errors[-10:]],
-        "rtt_ms_p50": float(np.percentile(rtt, 50)) if rtt.size else None,
-        "rtt_ms_p99": float(np.percentile(rtt, 99)) if rtt.size else None,
-        "rtt_ms_samples": [float(x) for x in rtt[-2000:]],
-        "delay_ticks_last": updates[-1].delay_ticks if updates else None,
-        "spectral_radius_last": updates[-1].spectral_radius if updates else None,
-        "gains_last": None
-        if not updates
-        else {
-            "k_h": updates[-1].k_h,
-            "i_gain": updates[-1].i_gain,
-            "b_h": updates[-1].b_h,
-            "proxy_hold": updates[-1].proxy_hold,
-            "felt_stiffness_ratio_1hz": updates[-1].felt_stiffness_ratio_1hz,
-        },
-        "gain_designs": link.designs,
-        "interim_checks": link.checks,
-        # from a needed check's request to its verified gains: meanwhile the contact renders
-        # conservative unverified gains (client.session)
-        "interim_check_wait_ms": [round(w * 1e3, 1) for w in link.check_wait_s],
-        "fallback_patches": sum(1 for u in updates if u.fallback),
-        "gain_changes": _gain_changes(updates),
-        "unverified_patches": session.unverified_patches,
-        "server_gain_patches": session.server_gain_patches,
-        "gains_source": session.gains_source,
-        "first_patch_s": session.first_patch_s,
-        "first_gains_s": session.first_update_s,
-        "first_contact_wait_ms": None
-        if session.first_patch_s is None or session.first_update_s is None
-        else (session.first_update_s - session.first_patch_s) * 1e3,
-        "first_gains": None
-        if not updates
-        else {
-            "k_h": updates[0].k_h,
-            "i_gain": updates[0].i_gain,
-            "b_h": updates[0].b_h,
-            "proxy_hold": updates[0].proxy_hold,
-            "fallback": updates[0].fallback,
-        },
-    }
-    if servo is not None:
-        status = servo.status().as_dict()
-        out["servo"] = status
-        out["servo_overruns"] = servo.overruns
-    if len(recorder):
-        period = recorder.column("period_s")
-        period = period[np.isfinite(period) & (period > 0)]
-        force = recorder.column("force_n")
-        out["servo_rate_hz"] = float(1.0 / np.nanmean(period)) if period.size else None
-        out["period_us_p50"] = float(np.percentile(period, 50) * 1e6) if period.size else None
-        out["period_us_p99"] = float(np.percentile(period, 99) * 1e6) if period.size else None
-        out["max_force_n"] = float(np.nanmax(force)) if force.size else 0.0
-    return out
+def _local_model_params(
+    opts: ClientOptions, device: BuiltDevice, sim_rate_hz: float
+) -> LocalModelParams:
+    """The local model's fixed parameters for this device (gains come with each patch)."""
+    lim = device.limits
+    period = 1.0 / opts.servo_rate_hz
+    return LocalModelParams(
+        k_h=1.0,
+        servo_period_s=period,
+        threshold=threshold_for(
+            opts.theta_mode,
+            opts.local_model,
+            opts.theta_m,
+            device.encoder_resolution_m,
+            period,
+        ),
+        release_time_s=2.0 / sim_rate_hz,
+        # anti-windup at what the device may display for long: its continuous force when it
+        # states one (a hold must not ask for the peak force for seconds), else its peak
+        integral_limit_n=lim.max_continuous_force_n or lim.max_force_n,
+        # new gains in the middle of a press change the force smoothly, never in one tick
+        gain_transfer_s=GAIN_TRANSFER_S,
+    )

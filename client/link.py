@@ -43,13 +43,14 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from haptic_collab.client.session import (
     ClientSession,
-    PatchUpdate,
     ServoSample,
     interim_design,
     warm_up_worker,
 )
-from haptic_collab.shared.gain_design import GainDesign, design_cell
+from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.gain_table import design_cell
+from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import ProtocolError, Welcome
 from haptic_collab.workers import background_worker, check_worker, stop_pool, timed
 
@@ -145,7 +146,7 @@ class Link:
         ``ws://HOST:PORT/ws``.
     session : ClientSession
         Protocol state.
-    on_patch : callable(PatchUpdate, float)
+    on_patch : callable(LocalModelUpdate, float)
         Called with each new patch and the local time [s] it arrived (hand it to the servo loop).
     sample : callable() -> ServoSample or None
         The servo loop's latest sample (None: nothing to report yet).
@@ -179,7 +180,7 @@ class Link:
         url: str,
         session: ClientSession,
         *,
-        on_patch: Callable[[PatchUpdate, float], None],
+        on_patch: Callable[[LocalModelUpdate, float], None],
         sample: Callable[[], ServoSample | None],
         clock: Callable[[], float],
         on_welcome: Callable[[Welcome], None] | None = None,

@@ -65,7 +65,7 @@ from haptic_collab.client.scheduler import (
 from haptic_collab.client.servo_config import ServoConfig
 from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams
-from haptic_collab.shared.local_model_update import LocalModelUpdate
+from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.primitives import Primitive
 
 __all__ = [
@@ -403,7 +403,8 @@ class ServoCore:
             Servo ticks per simulation tick N for the first-order hold, >= 1 (default 1).
         k_o : float, optional
             The contact's K_o [N/m], > 0: sets the local model's recovery band (a PI contact is
-            kept while the probe is within s/K_o of the proxy; :mod:`shared.local_model`).
+            kept while the probe is within s/K_o of the proxy; :mod:`shared.local_model`),
+            through a surface patch made by hand (:meth:`SurfacePatch.of`).
 
         Returns
         -------
@@ -435,7 +436,7 @@ class ServoCore:
                 b_h=0.0 if b_h is None else b_h,
                 proxy_hold=cast(ProxyHold, "zoh" if proxy_hold is None else proxy_hold),
                 hold_ticks=1 if hold_ticks is None else hold_ticks,
-                k_o=k_o,
+                surface=None if k_o is None else SurfacePatch.of(primitive, k_o),
             )
         update, stiffness_clamped = clamp_to_device(update, self.device.limits)
         self._stiffness_clamps += stiffness_clamped

@@ -25,9 +25,10 @@ nearest designed cell (no stiffer relative to K_o) renders, else the gains in us
 else (a new coupling class or more delay) the fallback of :data:`FALLBACK_K_RATIO`, all flagged
 ``verified=False``.
 
-Primitive and gains go to the servo loop as one
-:class:`shared.local_model_update.LocalModelUpdate`, held in a :class:`PatchUpdate` with the gain
-decision (zero-order hold: it replaces the old one between servo ticks).
+The patch is read once into a :class:`shared.local_model_update.SurfacePatch`; it goes to the servo
+loop inside one :class:`shared.local_model_update.LocalModelUpdate` with the gains and how they
+were chosen (:class:`shared.local_model_update.GainChoice`; zero-order hold: it replaces the old
+one between servo ticks).
 """
 
 from __future__ import annotations
@@ -35,15 +36,12 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Literal, TypeVar
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from haptic_collab.shared.full_loop import ProxyHold, monodromy
-from haptic_collab.shared.gain_design import INTERIM_LADDER as INTERIM_LADDER
-from haptic_collab.shared.gain_design import GainDesign, GainTable
-from haptic_collab.shared.gain_design import interim_design as interim_design
-from haptic_collab.shared.gain_design import verify_gains as verify_gains
+from haptic_collab.shared.full_loop import monodromy
+from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import (
     GainKey,
     covering_classes,
@@ -51,8 +49,11 @@ from haptic_collab.shared.gain_key import (
     loop_delay_ticks,
     make_gain_key,
 )
-from haptic_collab.shared.local_model_update import LocalModelUpdate, primitive_from_wire
-from haptic_collab.shared.primitives import Primitive
+from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.interim_gains import INTERIM_LADDER as INTERIM_LADDER
+from haptic_collab.shared.interim_gains import interim_design as interim_design
+from haptic_collab.shared.interim_gains import verify_gains as verify_gains
+from haptic_collab.shared.local_model_update import GainChoice, LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.protocol import (
     PROTOCOL_VERSION,
     DeviceInfo,
@@ -92,111 +93,17 @@ FALLBACK_K_RATIO = 0.25
 DELAY_FALL_S = 5.0
 
 
-@dataclass(frozen=True)
-class PatchUpdate:
-    """The session's answer to one patch: the local model for the servo loop, and how its gains
-    were chosen.
-
-    The servo loop renders :attr:`model` (zero-order hold: it replaces the old one between servo
-    ticks); the other fields are this session's gain decision. The model's fields read through:
-    ``update.k_h`` is ``update.model.k_h``; ``k_o``, ``k_o_eff``, ``b_o`` and ``tick`` are always
-    set, the model coming from a server patch.
-
-    Attributes
-    ----------
-    model : LocalModelUpdate
-        Primitive, gains (K_h, I, B_h, proxy hold, N hold ticks), K_o, K_o_eff, K_o_stiff, B_o
-        and tick of the patch (:meth:`LocalModelUpdate.from_wire`).
-    delay_ticks : int
-        Delay assumed in the gain choice [simulation ticks].
-    spectral_radius : float
-        Worst full-loop spectral radius of the design over the hand box (below its decay limit).
-    felt_stiffness_ratio_1hz : float
-        Designed felt stiffness over K_o at 1 Hz.
-    fallback : bool
-        True while the exact design for this K_o is still being computed (interim gains).
-    verified : bool
-        The gains passed the full-loop check for this patch's key and K_o cell (a design, or
-        verified interim gains); False only for the short while that check runs after a change
-        of cell or delay in mid-contact.
+def rendered(update: LocalModelUpdate) -> tuple[SurfacePatch, GainChoice]:
+    """The surface patch and the gain choice of an update this session returned.
 
     Raises
     ------
     ValueError
-        ``model`` lacks the server's K_o, K_o_eff, B_o or tick (it was not built from a patch).
+        ``update`` was not made by a session (no surface patch or no gain choice).
     """
-
-    model: LocalModelUpdate
-    delay_ticks: int
-    spectral_radius: float
-    felt_stiffness_ratio_1hz: float = math.nan
-    fallback: bool = False
-    verified: bool = True
-
-    def __post_init__(self) -> None:
-        m = self.model
-        if m.k_o is None or m.k_o_eff is None or m.b_o is None or m.tick is None:
-            raise ValueError("a patch update's model needs the server's k_o, k_o_eff, b_o and tick")
-
-    @property
-    def primitive(self) -> Primitive:
-        """The local geometric model (:attr:`LocalModelUpdate.primitive`)."""
-        return self.model.primitive
-
-    @property
-    def k_h(self) -> float:
-        """K_h [N/m]."""
-        return self.model.k_h
-
-    @property
-    def i_gain(self) -> float:
-        """I [N/(m*s)]."""
-        return self.model.i_gain
-
-    @property
-    def b_h(self) -> float:
-        """Probe damper B_h [N*s/m]."""
-        return self.model.b_h
-
-    @property
-    def proxy_hold(self) -> ProxyHold:
-        """How the servo moves to the new surface: ``"zoh"`` or ``"foh"``."""
-        return self.model.proxy_hold
-
-    @property
-    def hold_ticks(self) -> int:
-        """N, servo ticks per simulation tick (the first-order hold's length)."""
-        return self.model.hold_ticks
-
-    @property
-    def tick(self) -> int:
-        """Simulation tick of the patch."""
-        return _known(self.model.tick)
-
-    @property
-    def k_o(self) -> float:
-        """K_o [N/m], as reported by the server."""
-        return _known(self.model.k_o)
-
-    @property
-    def k_o_eff(self) -> float:
-        """K_o_eff [N/m], as reported by the server."""
-        return _known(self.model.k_o_eff)
-
-    @property
-    def b_o(self) -> float:
-        """B_o [N/m], as reported by the server."""
-        return _known(self.model.b_o)
-
-
-_T = TypeVar("_T")
-
-
-def _known(value: _T | None) -> _T:
-    """A field :class:`PatchUpdate` checked is set."""
-    if value is None:  # pragma: no cover - PatchUpdate.__post_init__ refuses None
-        raise ValueError("not set")
-    return value
+    if update.surface is None or update.choice is None:
+        raise ValueError("a session's update carries its surface patch and gain choice")
+    return update.surface, update.choice
 
 
 def _known_gains(
@@ -349,8 +256,8 @@ class ClientSession:
         self.margin = margin
         self.role: Literal["user", "viewer"] = role
         self.welcome: Welcome | None = None
-        self.last_patch: Patch | None = None
-        self.last_update: PatchUpdate | None = None
+        self.last_patch: SurfacePatch | None = None
+        self.last_update: LocalModelUpdate | None = None
         self.errors: list[ErrorMsg] = []
         self.room: RoomState | None = None
         self._seq = 0
@@ -377,7 +284,7 @@ class ClientSession:
         self.first_update_s: float | None = None
         #: Patches rendered with gains not (yet) verified for their key and cell.
         self.unverified_patches = 0
-        self._waiting: Patch | None = None
+        self._waiting: tuple[Patch, SurfacePatch] | None = None
         self._hello_s: float | None = None
         #: The coupled contact's K_o_stiff / K_o_eff class in use (GainKey.stiff_ratio), with
         #: hysteresis: it rises at once and falls only when the ratio is 4x below it.
@@ -432,7 +339,7 @@ class ClientSession:
         ).model_dump_json(exclude_none=True)
 
     # ------------------------------------------------------------------ incoming
-    def receive(self, frame: str | bytes, now_s: float) -> PatchUpdate | None:
+    def receive(self, frame: str | bytes, now_s: float) -> LocalModelUpdate | None:
         """Handle one server frame at local time ``now_s`` [s]; return a patch update if any.
 
         Raises
@@ -554,13 +461,13 @@ class ClientSession:
             stiff_ratio=stiff_ratio,
         )
 
-    def _stiff_class(self, msg: Patch) -> float:
+    def _stiff_class(self, surface: SurfacePatch) -> float:
         """The ratio class to design for, from the patch's ``k_o_eff`` and ``k_o_stiff``.
 
         Rises to a new class at once and falls only when the measured class is a quarter of the
         one in use (:func:`shared.gain_key.held_stiff_ratio`, the server's advisor's rule too).
         """
-        self.stiff_ratio = held_stiff_ratio(self.stiff_ratio, msg.k_o_eff, msg.k_o_stiff_or_k_o())
+        self.stiff_ratio = held_stiff_ratio(self.stiff_ratio, surface.k_o_eff, surface.k_o_stiff)
         return self.stiff_ratio
 
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
@@ -571,14 +478,14 @@ class ClientSession:
         """No interim gains were found for (key, cell): its patches wait for the design."""
         self._interim_asked.add((key, cell))
 
-    def retry_waiting(self, now_s: float) -> PatchUpdate | None:
+    def retry_waiting(self, now_s: float) -> LocalModelUpdate | None:
         """Render the newest patch that waited for gains, now that some may be ready.
 
         The link calls this when a design or interim gains arrive, so the first contact does not
         also wait for the next patch. Returns None if nothing waited or it still cannot render.
         """
-        msg, self._waiting = self._waiting, None
-        return None if msg is None else self._patch(msg, now_s)
+        waiting, self._waiting = self._waiting, None
+        return None if waiting is None else self._render(*waiting, now_s)
 
     def _covering(self, key: GainKey, cell: int, k_o_eff: float) -> GainDesign | None:
         """Gains designed or verified for this cell and a wider coupling class, if any: checked
@@ -599,11 +506,12 @@ class ClientSession:
         lu = self.last_update
         if lu is None:
             return None
+        surface, choice = rendered(lu)
         return _known_gains(
             lu.k_h, lu.i_gain, lu.b_h, lu.proxy_hold,
-            k_o_eff=lu.k_o_eff, rate_ratio=n, delay_ticks=lu.delay_ticks,
-            spectral_radius=lu.spectral_radius, felt_1hz=lu.felt_stiffness_ratio_1hz,
-            own_gain=lu.model.own_gain,
+            k_o_eff=surface.k_o_eff, rate_ratio=n, delay_ticks=choice.delay_ticks,
+            spectral_radius=choice.spectral_radius, felt_1hz=choice.felt_stiffness_ratio_1hz,
+            own_gain=lu.own_gain,
         )  # fmt: skip
 
     def _recommended(
@@ -629,11 +537,16 @@ class ClientSession:
             own_gain=rec.own_gain,
         )  # fmt: skip
 
-    def _patch(self, msg: Patch, now_s: float) -> PatchUpdate | None:
+    def _patch(self, msg: Patch, now_s: float) -> LocalModelUpdate | None:
         if self.last_patch is not None and msg.tick <= self.last_patch.tick:
             return None  # stale
-        # refuse a bad primitive now (invalid_primitive), even if the patch is to wait for gains
-        primitive_from_wire(msg.primitive)
+        # read once; a bad primitive is refused now (invalid_primitive), even if the patch is
+        # to wait for gains
+        return self._render(msg, SurfacePatch.from_wire(msg), now_s)
+
+    def _render(self, msg: Patch, surface: SurfacePatch, now_s: float) -> LocalModelUpdate | None:
+        """The update rendering ``surface`` (of ``msg``, for its recommended gains), or None
+        while it waits for verified gains."""
         try:
             n = self.rates.ratio
         except ValueError as exc:
@@ -641,10 +554,11 @@ class ClientSession:
         if self.first_patch_s is None:
             self.first_patch_s = now_s
         d = self.delay_ticks(now_s)
-        key = self.gain_key(msg.b_o, d, self._stiff_class(msg))
+        k_o_eff = surface.k_o_eff
+        key = self.gain_key(surface.b_o, d, self._stiff_class(surface))
         table = self.gain_table
-        cell = table.cell(msg.k_o_eff)
-        own = table.lookup(key, msg.k_o_eff)
+        cell = table.cell(k_o_eff)
+        own = table.lookup(key, k_o_eff)
         design = self._recommended(msg, n, d, own)
         if design is not None:
             self.server_gain_patches += 1
@@ -653,15 +567,15 @@ class ClientSession:
         fallback = design is None
         verified = True
         if design is None:
-            self.design_wanted = (key, msg.k_o_eff)
+            self.design_wanted = (key, k_o_eff)
             design = self.interim.get((key, cell))
             if design is None:
-                design = self._covering(key, cell, msg.k_o_eff)
+                design = self._covering(key, cell, k_o_eff)
             if design is None:
                 # no gains verified for this key and cell yet: have some checked (fast), and
                 # meanwhile keep the nearest designed cell (no stiffer relative to K_o) or the
                 # gains in use -- never for a first contact, which waits with forces off
-                near = table.fallback(key, msg.k_o_eff)
+                near = table.fallback(key, k_o_eff)
                 in_use = self._design_in_use(n)
                 if (key, cell) not in self._interim_asked:
                     self._interim_asked.add((key, cell))
@@ -671,16 +585,16 @@ class ClientSession:
                         tuple(c for c in (near, in_use) if c is not None),
                     )
                 design = near if near is not None else in_use
-                last = self.last_update
-                more_delay = last is not None and d > last.delay_ticks
+                last = None if self.last_update is None else rendered(self.last_update)
+                more_delay = last is not None and d > last[1].delay_ticks
                 if near is None and in_use is not None and (key.stiff_ratio > 1.0 or more_delay):
                     # the gains in use were not designed for this coupled contact's stiff
                     # modes, or for this much delay (designs for fewer ticks than the loop has
                     # were unstable in every case tried): until verified gains arrive, render
                     # the unverified fallback (:data:`FALLBACK_K_RATIO`; the integral force
                     # already built is kept, frozen)
-                    scale = 1.0 if last is None else min(1.0, msg.k_o_eff / last.k_o_eff)
-                    k_h = min(in_use.k_h * scale, FALLBACK_K_RATIO * msg.k_o_eff)
+                    scale = 1.0 if last is None else min(1.0, k_o_eff / last[0].k_o_eff)
+                    k_h = min(in_use.k_h * scale, FALLBACK_K_RATIO * k_o_eff)
                     design = replace(
                         in_use,
                         k_h=k_h,
@@ -691,30 +605,29 @@ class ClientSession:
                         own_gain=0.0,
                     )
                 if design is None or self.last_update is None:
-                    self._waiting = msg
+                    self._waiting = (msg, surface)
                     return None
                 verified = False
                 self.unverified_patches += 1
-        model = LocalModelUpdate.from_wire(
-            msg,
+        self.last_update = LocalModelUpdate.from_surface(
+            surface,
             k_h=design.k_h,
             i_gain=design.i_gain,
             b_h=design.b_h,
             proxy_hold=design.proxy_hold,
             hold_ticks=n,
             own_gain=design.own_gain,
+            choice=GainChoice(
+                delay_ticks=d,
+                spectral_radius=design.worst_spectral_radius,
+                felt_stiffness_ratio_1hz=design.felt_stiffness_ratio_1hz,
+                fallback=fallback,
+                verified=verified,
+            ),
         )
         self._waiting = None
-        self.last_patch = msg
+        self.last_patch = surface
         self.patches += 1
         if self.first_update_s is None:
             self.first_update_s = now_s
-        self.last_update = PatchUpdate(
-            model=model,
-            delay_ticks=d,
-            spectral_radius=design.worst_spectral_radius,
-            felt_stiffness_ratio_1hz=design.felt_stiffness_ratio_1hz,
-            fallback=fallback,
-            verified=verified,
-        )
         return self.last_update

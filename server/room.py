@@ -30,21 +30,22 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from haptic_collab.server.admission import FloodControl, Refusal, RoomLimits
 from haptic_collab.server.force_bound import BoundedForce, ForceBoundParams, bound_force
 from haptic_collab.server.gains import GainAdvisor
+from haptic_collab.server.object_info import object_info, order_sides_by_coupling
 from haptic_collab.server.security import TokenBucket, TokenTable
 from haptic_collab.server.viewer_stream import ViewerStream
 from haptic_collab.server.world import ContactInput
-from haptic_collab.shared.local_model_update import primitive_to_wire
+from haptic_collab.shared.local_model_update import SurfacePatch
 from haptic_collab.shared.primitives import Plane, Sphere
 from haptic_collab.shared.protocol import (
-    MAX_CLIENT_FRAME_BYTES,
     MAX_PROBE_DISTANCE_M,
     MAX_REPORTED_FORCE_N,
     PROTOCOL_VERSION,
@@ -54,14 +55,11 @@ from haptic_collab.shared.protocol import (
     Hello,
     LinkConditions,
     ObjectInfo,
-    Patch,
     Ping,
     Pong,
     ProtocolError,
-    RecommendedGains,
     RoomState,
     State,
-    SurfacePoint,
     UserView,
     Welcome,
     client_stream_frame,
@@ -73,7 +71,7 @@ from haptic_collab.shared.protocol import (
 from haptic_collab.shared.rates import PERIOD_RTOL, Rates
 
 if TYPE_CHECKING:
-    from haptic_collab.server.world import ContactOutput, World
+    from haptic_collab.server.world import World
 
 
 @dataclass(frozen=True)
@@ -96,82 +94,6 @@ class Outgoing:
     on_sent: Callable[[], None] | None = field(default=None, compare=False, repr=False)
 
 
-@dataclass(frozen=True)
-class RoomLimits:
-    """Abuse limits per connection and per source address.
-
-    Attributes
-    ----------
-    max_users : int
-        Haptic users in the room at once.
-    max_viewers : int
-        Viewers at once.
-    max_pending : int
-        Connections that have not sent ``hello`` yet, in total. When full, a newcomer from an
-        address with fewer pending connections evicts the oldest pending connection of the
-        address that holds the most.
-    max_pending_per_address : int
-        Connections from one source address that have not sent ``hello`` yet.
-    hello_timeout_s : float
-        A connection that has not sent ``hello`` within this [s] is closed.
-    max_connections : int
-        Users, viewers and pending connections together.
-    max_connections_per_address : int
-        Connections from one source address (a NAT may hide a lab behind one).
-    rate_per_s, burst : float
-        Token bucket on incoming frames of one connection: sustained frames/s and burst size.
-    bytes_per_s, bytes_burst : float
-        Token bucket on incoming bytes of one connection [bytes/s, bytes].
-    address_rate_per_s, address_burst : float
-        Frames/s and burst of all connections from one source address together.
-    address_bytes_per_s, address_bytes_burst : float
-        Bytes/s and burst of all connections from one source address together.
-    stall_credit_max_s : float
-        The longest time [s] the server may have been behind its schedule that is credited to
-        the budgets (:meth:`Room.behind_schedule`): no budget then holds more than ``burst +
-        rate * stall_credit_max_s``.
-    stall_credit_keep_s : float
-        How long [s] the credit for a stall is kept after it, at least (as long as the stall
-        lasted, when longer), for the backlog to be read; then it lapses.
-    stale_after_s : float
-        A user whose last state is older than this [s] no longer loads the object.
-    max_errors : int
-        Non-fatal errors on one connection before it is closed.
-    clamp_report_interval_s : float
-        At most one ``force_clamped`` error per user per this interval [s] (clamps are all
-        counted, see :meth:`Room.force_clamps`).
-    """
-
-    max_users: int = 32
-    max_viewers: int = 64
-    max_pending: int = 32
-    max_pending_per_address: int = 8
-    hello_timeout_s: float = 5.0
-    max_connections: int = 128
-    max_connections_per_address: int = 64
-    rate_per_s: float = 400.0
-    burst: float = 400.0
-    bytes_per_s: float = 64 * 1024
-    bytes_burst: float = 64 * 1024
-    address_rate_per_s: float = 2000.0
-    address_burst: float = 2000.0
-    address_bytes_per_s: float = 1024 * 1024
-    address_bytes_burst: float = 1024 * 1024
-    stall_credit_max_s: float = 30.0
-    stall_credit_keep_s: float = 2.0
-    stale_after_s: float = 0.5
-    max_errors: int = 50
-    clamp_report_interval_s: float = 1.0
-
-
-@dataclass
-class _Address:
-    """Budgets shared by every connection from one source address."""
-
-    frames: TokenBucket
-    bytes: TokenBucket
-
-
 @dataclass
 class _Conn:
     conn_id: str
@@ -185,7 +107,7 @@ class _Conn:
     state_at_s: float = -math.inf
     errors: int = 0
     closed: bool = False
-    output: ContactOutput | None = None
+    output: SurfacePatch | None = None
     #: (primitive, K_o) of the latest patches, newest last (the force bound's geometry).
     recent: deque[tuple[Plane | Sphere, float, float]] = field(
         default_factory=lambda: deque(maxlen=3)
@@ -214,99 +136,6 @@ class TickStats:
     def percentile(self, q: float) -> float:
         """Percentile ``q`` in [0, 100] of recent tick costs [ms] (0 when none)."""
         return float(np.percentile(np.fromiter(self.window, float), q)) if self.window else 0.0
-
-
-def object_info(vertices: np.ndarray, faces: np.ndarray) -> ObjectInfo:
-    """Rest-state description of the object: bounds, bounding radius, a top and side anchors.
-
-    The top is the vertex with the largest z, the side the one with the largest x, and ``sides``
-    the vertices furthest along +x, +y, -x and -y (so users resting on a side spread apart);
-    their normals are area-weighted vertex normals. Among the vertices within 1 % of the
-    object's size of that extreme, the one nearest the bounding box's axis through it is taken:
-    the middle of a flat top or side (a box's face, not its corner), the extreme itself on a
-    rounded object. Shapes: vertices (n, 3) [m], faces (m, 3).
-    """
-    v = np.asarray(vertices, float)
-    f = np.asarray(faces, np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    vn = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(vn, f[:, k], fn)
-    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-18)
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    center = 0.5 * (lo + hi)
-    tol = 0.01 * float(np.max(hi - lo))
-
-    def extreme(axis: int, sign: float) -> int:
-        along = sign * v[:, axis]
-        near = np.flatnonzero(along >= along.max() - tol)
-        others = np.array([k for k in range(3) if k != axis], dtype=np.int64)
-        off = v[np.ix_(near, others)] - center[others]
-        return int(near[np.argmin(np.einsum("ij,ij->i", off, off))])
-
-    top, side = extreme(2, 1.0), extreme(0, 1.0)
-
-    def t3(a: np.ndarray) -> tuple[float, float, float]:
-        return (float(a[0]), float(a[1]), float(a[2]))
-
-    return ObjectInfo(
-        n_vertices=int(v.shape[0]),
-        n_faces=int(f.shape[0]),
-        center_m=t3(center),
-        radius_m=float(np.max(np.linalg.norm(v - center, axis=1))),
-        bounds_min_m=t3(lo),
-        bounds_max_m=t3(hi),
-        top_m=t3(v[top]),
-        top_normal=t3(vn[top]),
-        side_m=t3(v[side]),
-        side_normal=t3(vn[side]),
-        sides=[
-            SurfacePoint(point_m=t3(v[i]), normal=t3(vn[i]))
-            for i in (side, extreme(1, 1.0), extreme(0, -1.0), extreme(1, -1.0))
-        ],
-    )
-
-
-def side_coupling(info: ObjectInfo, obj: Any) -> np.ndarray:
-    """How much of a push on the top a user resting on each side anchor feels, (len(sides),).
-
-    ``C_top,side / C_side,side`` of the object's load patches there (``obj.contact_compliance``,
-    DESIGN section 6): a user held firmly on the side feels its force change by this share of
-    the top's push (``K_o,side`` times the side's displacement ``C_top,side F``); negative when
-    the side bulges out (the force rises), positive when it is drawn in. ``obj`` is the world's
-    object (balloon or FEM solid); empty when ``info.sides`` is.
-    """
-    points = [(info.top_m, info.top_normal)] + [(s.point_m, s.normal) for s in info.sides]
-    if len(points) == 1:
-        return np.zeros(0)
-    keys = [int(obj.patch_key(np.asarray(p), None, np.asarray(n))) for p, n in points]
-    c = np.asarray(obj.contact_compliance(keys), dtype=np.float64)
-    own = np.maximum(np.diag(c)[1:], 1e-300)
-    return np.asarray(c[0, 1:] / own, dtype=np.float64)
-
-
-def order_sides_by_coupling(info: ObjectInfo, obj: Any) -> ObjectInfo:
-    """``info`` with its side anchors ordered by how much a push on the top is felt there.
-
-    A user resting on a side feels a user pressing the top only as far as the object carries
-    the push there: on a balloon every side bulges out (13 % of the push felt), but a thin
-    plate's +y rim hardly moves (0.3 %) and a box's far face 1 % (:func:`side_coupling`). The
-    share felt, not the displacement, sets the order: the most displaced side of a scanned bunny
-    is its soft ear (K_o 40-50 N/m), where a light touch is hard to hold still. The clients
-    place users on the sides in this order (``--anchor side:N``; ``side`` by join order), so the
-    first users to rest go where the object carries a press to them; ``side_m`` stays the
-    geometric +x side. An object without contact compliance keeps the geometric order.
-    """
-    if not info.sides or not hasattr(obj, "contact_compliance"):
-        return info
-    felt = np.abs(side_coupling(info, obj))
-    order = sorted(range(len(info.sides)), key=lambda i: -float(felt[i]))  # stable on ties
-    return info.model_copy(update={"sides": [info.sides[i] for i in order]})
-
-
-def _t3(a: Iterable[float]) -> tuple[float, float, float]:
-    x, y, z = (float(c) for c in a)
-    return (x, y, z)
 
 
 class Room:
@@ -360,9 +189,8 @@ class Room:
         self.limits = limits or RoomLimits()
         self.auth = auth
         self.force_bound = force_bound or ForceBoundParams()
-        self._addresses: dict[str, _Address] = {}
-        #: Up to when [s] the budgets have been credited for the server being behind schedule.
-        self._credited_to_s = -math.inf
+        #: Connection and address budgets (:mod:`server.admission`).
+        self.flood = FloodControl(self.limits, 1.0 / self.sim_rate_hz)
         #: Clamped force reports per user name since the room started.
         self.clamp_counts: dict[str, int] = {}
         self.stats = TickStats()
@@ -460,59 +288,24 @@ class Room:
         ``max_pending_per_address`` connections, or when ``max_pending`` connections wait in
         total and no address holds more of them than ``address`` does; otherwise, with the
         pending total full, the oldest pending connection of the address holding the most is
-        closed to make room (the returned frames include its error).
+        closed to make room (the returned frames include its error); see
+        :meth:`server.admission.FloodControl.connect`.
         """
-        lim = self.limits
-        if len(self._conns) >= lim.max_connections:
-            return [self._error(conn_id, "room_full", "too many connections", fatal=True)]
-        same = [c for c in self._conns.values() if c.address == address]
-        if len(same) >= lim.max_connections_per_address:
-            return [
-                self._error(
-                    conn_id,
-                    "too_many_connections",
-                    f"at most {lim.max_connections_per_address} connections per address",
-                    fatal=True,
-                )
-            ]
-        if sum(1 for c in same if c.hello is None) >= lim.max_pending_per_address:
-            return [
-                self._error(
-                    conn_id,
-                    "too_many_pending",
-                    f"at most {lim.max_pending_per_address} connections per address may wait "
-                    "for hello",
-                    fatal=True,
-                )
-            ]
+        verdict = self.flood.connect(self._conns.values(), address)
+        if isinstance(verdict, Refusal):
+            return [self._error(conn_id, verdict.code, verdict.message, fatal=True)]
         out: list[Outgoing] = []
-        pending: dict[str, list[_Conn]] = {}
-        for c in self._conns.values():
-            if c.hello is None:
-                pending.setdefault(c.address, []).append(c)
-        if sum(len(v) for v in pending.values()) >= lim.max_pending:
-            heavy = max(pending.values(), key=len)
-            if len(heavy) <= len(pending.get(address, [])) + 1:
-                return [
-                    self._error(
-                        conn_id, "too_many_pending", "too many connections wait for hello", True
-                    )
-                ]
-            oldest = min(heavy, key=lambda c: c.connected_at_s)
-            out += self._close(oldest, "too_many_pending", "evicted: too many waiting for hello")
+        if verdict is not None:
+            out += self._close(verdict, "too_many_pending", "evicted: too many waiting for hello")
+        frames, nbytes = self.flood.open(address, now_s)
         self._conns[conn_id] = _Conn(
             conn_id,
             now_s,
             address,
-            TokenBucket(lim.rate_per_s, lim.burst, now_s),
-            TokenBucket(lim.bytes_per_s, lim.bytes_burst, now_s),
+            frames,
+            nbytes,
             recent=deque(maxlen=max(1, self.force_bound.history_patches)),
         )
-        if address not in self._addresses:
-            self._addresses[address] = _Address(
-                TokenBucket(lim.address_rate_per_s, lim.address_burst, now_s),
-                TokenBucket(lim.address_bytes_per_s, lim.address_bytes_burst, now_s),
-            )
         return out
 
     def disconnect(self, conn_id: str) -> None:
@@ -546,8 +339,8 @@ class Room:
         A frame read while the server is behind its schedule may be a backlog from a stall: the
         budgets are credited for it first (:meth:`behind_schedule`).
 
-        Flood control: token buckets per connection (frames, bytes), then per source address
-        (:meth:`_charge_address`), and the frame size limit. The I/O layer calls it when a frame
+        Flood control (:mod:`server.admission`): token buckets per connection (frames, bytes),
+        then per source address, and the frame size limit. The I/O layer calls it when a frame
         arrives, before latency injection holds the frame back, and hands admitted frames to
         :meth:`handle` when they are due. Returns whether the frame is admitted and the frames to
         send (a fatal ``rate_limited`` or ``frame_too_large`` for this connection, or for the
@@ -560,17 +353,17 @@ class Room:
         if now_s > due_s:  # behind schedule: this may be a backlog from a stall
             self.behind_schedule(due_s, now_s)
         size = frame_size_bytes(frame)
-        if not conn.frames.take(1.0, now_s):
-            return False, self._close(
-                conn, "rate_limited", "too many messages; slow down to the simulation rate"
+        refusal = self.flood.charge(conn, size, now_s)
+        if refusal is not None:
+            return False, self._close(conn, refusal.code, refusal.message)
+        heavy = self.flood.charge_address(conn, self._conns.values(), size, now_s)
+        out: list[Outgoing] = []
+        if heavy is not None:
+            out = self._close(
+                heavy,
+                "rate_limited",
+                "this address sends too much; its busiest connection is closed",
             )
-        if size > MAX_CLIENT_FRAME_BYTES:
-            return False, self._close(
-                conn, "frame_too_large", f"frames are limited to {MAX_CLIENT_FRAME_BYTES} bytes"
-            )
-        if not conn.bytes.take(size, now_s):
-            return False, self._close(conn, "rate_limited", "too many bytes; slow down")
-        out = self._charge_address(conn, size, now_s)
         return not conn.closed, out
 
     @staticmethod
@@ -595,70 +388,10 @@ class Room:
         return self._handle(conn, frame, now_s)
 
     def behind_schedule(self, due_s: float, now_s: float) -> None:
-        """The simulation tick due at ``due_s`` [s] has not run by ``now_s`` [s]: credit budgets.
-
-        The budgets are charged when the server reads a frame. While the server is behind its
-        own schedule (its event loop blocked, or waiting for a CPU on a busy machine) it reads
-        nothing, and everything the clients sent meanwhile arrives at once when it resumes. A
-        bucket that was full at the start of such a stall would have refilled no further, so a
-        client sending steadily below its rate (a state twice per tick) reads as a flood once the
-        stall holds back more than a burst of its frames or bytes, and was closed with
-        ``rate_limited``: punished for the server's stall. So every budget (per connection and
-        per address, frames and bytes) is refilled over the stall *without* its burst cap
-        (:meth:`TokenBucket.lift`): the backlog is charged as if it had been read on time.
-
-        Why this and not another fix:
-
-        - It is exact where it matters and changes nothing elsewhere. A bucket that was being
-          spent during the stall (a flooder) gains exactly the refill it always gets: it is
-          still cut off when it sends faster than ``rate`` (``lift`` never credits a stretch
-          twice). Only a bucket that would have hit its cap gains more, and by no more than
-          ``rate`` times the stall: over any stretch of time that contains the stall a client
-          is admitted at most ``burst + rate * stretch``, as on a server that never stalls.
-        - The credit is bounded: it covers at most ``stall_credit_max_s`` of a stall and lapses
-          ``stall_credit_keep_s`` after the stall (or as long as the stall lasted, when longer),
-          so a quiet connection cannot save it up for later.
-        - The room stays sans-I/O: the I/O layer says when the tick was due and what time it is
-          now (it knows its schedule); the room reads no clock. A server that keeps its schedule
-          never falls a period behind, so a flood there is cut off exactly as before.
-        - Dropping superseded ``state`` frames uncounted (latest wins at the input as at the
-          output) would leave a ``state`` flood unbudgeted, although parsing every frame is
-          exactly what a flood costs the server, and would not help ``ping`` or byte budgets.
-
-        Lateness below one simulation period is jitter, not a stall, and is not credited;
-        credits are given in steps of at least one period (each step touches every budget).
-        """
-        period = 1.0 / self.sim_rate_hz
-        start = max(due_s, self._credited_to_s)
-        if now_s - due_s < period or now_s - start < period:
-            return
-        lim = self.limits
-        keep_until_s = now_s + max(lim.stall_credit_keep_s, now_s - due_s)
-        buckets = [b for c in self._conns.values() for b in (c.frames, c.bytes)]
-        buckets += [b for a in self._addresses.values() for b in (a.frames, a.bytes)]
-        for bucket in buckets:
-            bucket.lift(start, now_s, keep_until_s, lim.stall_credit_max_s)
-        self._credited_to_s = now_s
-
-    def _charge_address(self, conn: _Conn, size: int, now_s: float) -> list[Outgoing]:
-        """Charge one frame of ``size`` bytes to the connection's source address.
-
-        When the address has spent its budget, its heaviest connection (the one that spent the
-        largest share of its own budget) is closed with ``rate_limited``; the frame at hand is
-        still admitted when it came from another, lighter connection.
-        """
-        addr = self._addresses.get(conn.address)
-        if addr is None:  # pragma: no cover - created in connect
-            return []
-        if addr.frames.take(1.0, now_s) & addr.bytes.take(size, now_s):
-            return []
-        same = [c for c in self._conns.values() if c.address == conn.address]
-        heavy = min(same, key=lambda c: min(c.frames.fill, c.bytes.fill))
-        addr.frames.level -= 1.0
-        addr.bytes.level -= size
-        return self._close(
-            heavy, "rate_limited", "this address sends too much; its busiest connection is closed"
-        )
+        """The simulation tick due at ``due_s`` [s] has not run by ``now_s`` [s]: credit every
+        budget for the stall, so a backlog read at once is charged as if read on time
+        (:meth:`server.admission.FloodControl.credit_stall` says why and how far)."""
+        self.flood.credit_stall(self._conns.values(), due_s, now_s)
 
     def _handle(self, conn: _Conn, frame: str | bytes, now_s: float) -> list[Outgoing]:
         conn_id = conn.conn_id
@@ -791,14 +524,14 @@ class Room:
                 out += self._close(
                     c, "hello_timeout", f"no hello within {self.limits.hello_timeout_s:g} s"
                 )
-        self._forget_idle_addresses(now_s)
+        self.flood.forget_idle(self._conns.values(), now_s)
         inputs: dict[str, ContactInput] = {}
         for c in self._conns.values():
             if c.state is None or c.hello is None or c.hello.role != "user":
                 continue
             force = self._bounded_force(c, now_s, out)
             inputs[c.conn_id] = ContactInput(probe=np.array(c.state.probe_m), force=np.array(force))
-        outputs = self.world.tick(inputs)
+        outputs = self.world.tick(inputs, tick)
         for conn_id, res in outputs.items():
             conn = self._conns.get(conn_id)
             if conn is None:
@@ -811,10 +544,10 @@ class Room:
                     conn_id,
                     conn.hello,
                     k_o_eff=float(res.k_o_eff),
-                    k_o_stiff=float(res.k_o if res.k_o_stiff is None else res.k_o_stiff),
+                    k_o_stiff=float(res.k_o_stiff),
                     b_o=float(res.b_o),
                 )
-            out.append(Outgoing(conn_id, encode(_patch(tick, res, rec)), stream="patch"))
+            out.append(Outgoing(conn_id, encode(res.to_wire(rec)), stream="patch"))
         viewers = self.viewers
         vframes = self._viewer_stream.frames(tick, self.world.vertices, viewers)
         if viewers:
@@ -865,16 +598,6 @@ class Room:
                 out.append(self._error(c.conn_id, "force_clamped", msg))
         return res.force_n
 
-    def _forget_idle_addresses(self, now_s: float) -> None:
-        """Drop the budgets of addresses with no connection once they have refilled."""
-        live = {c.address for c in self._conns.values()}
-        for address in [a for a in self._addresses if a not in live]:
-            budget = self._addresses[address]
-            if budget.frames.refill(now_s) >= budget.frames.burst and (
-                budget.bytes.refill(now_s) >= budget.bytes.burst
-            ):
-                del self._addresses[address]
-
     def room_state(self, tick: int) -> RoomState:
         """The summary viewers get each tick."""
         users = []
@@ -887,8 +610,8 @@ class Room:
                     user_id=c.user_id,
                     name=c.hello.name,
                     probe_m=s.probe_m,
-                    proxy_m=_t3(res.proxy) if res is not None else s.probe_m,
-                    normal=_t3(res.normal) if res is not None else (0.0, 0.0, 1.0),
+                    proxy_m=res.proxy if res is not None else s.probe_m,
+                    normal=res.normal if res is not None else (0.0, 0.0, 1.0),
                     # the force the server applied (bounded; zero for a silent user)
                     force_n=c.applied.force_n if c.applied is not None else s.force_n,
                     penetration_m=s.penetration_m,
@@ -942,23 +665,4 @@ def _welcome(
         Welcome(
             user_id=user_id, name=name, role=role, sim_rate_hz=sim_rate_hz, object=info, link=link
         )
-    )
-
-
-def _patch(tick: int, res: ContactOutput, gains: RecommendedGains | None = None) -> Patch:
-    """The ``patch`` of one user's contact (the client's
-    :meth:`shared.local_model_update.LocalModelUpdate.from_wire` reads it back)."""
-    return Patch(
-        tick=tick,
-        primitive=primitive_to_wire(res.primitive),
-        proxy_m=_t3(res.proxy),
-        normal=_t3(res.normal),
-        penetration_m=float(res.penetration_m),
-        in_contact=bool(res.in_contact),
-        k_o=float(res.k_o),
-        k_o_eff=float(res.k_o_eff),
-        k_o_stiff=float(res.k_o if res.k_o_stiff is None else res.k_o_stiff),
-        b_o=float(res.b_o),
-        own_force_n=float(res.own_force_n),
-        gains=gains,
     )

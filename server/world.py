@@ -1,8 +1,8 @@
 """The sans-I/O simulation core: one deformable object, every user's contact, once per tick.
 
 The room calls :meth:`World.tick` once per simulation period N*T with each user's latest probe
-position and last rendered force, and sends each user the returned :class:`ContactOutput`
-(DESIGN section 4). One tick is paper section 6:
+position and last rendered force, and sends each user the returned surface patch
+(:class:`shared.local_model_update.SurfacePatch`; DESIGN section 4). One tick is paper section 6:
 
 1. **Step 3** - each user's last force rendered *on the user* (outward) is applied to the object
    as a push ``f = max(0, force . n)`` along the inward normal ``-n``, spread over a finger-pad
@@ -54,9 +54,10 @@ from haptic_collab.server.contacts import (
     track_proxy,
 )
 from haptic_collab.server.objects import AdmittanceObject
+from haptic_collab.shared.local_model_update import SurfacePatch
 from haptic_collab.shared.primitives import Plane, Sphere
 from haptic_collab.shared.rates import Rates
-from haptic_collab.shared.types import FloatArray
+from haptic_collab.shared.types import FloatArray, Vec3
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,51 +75,6 @@ class ContactInput:
 
     probe: FloatArray
     force: FloatArray
-
-
-@dataclass(frozen=True, eq=False)
-class ContactOutput:
-    """One user's local model for the next ticks (section 6, Steps 1-2).
-
-    Attributes
-    ----------
-    primitive : shared.primitives.Plane or Sphere
-        Local geometric model fitted to the current surface at the proxy.
-    proxy : (3,) float64 [m]
-        Closest point of the current surface to the probe (x_o).
-    normal : (3,) float64
-        Outward unit surface normal at the proxy.
-    penetration_m : float
-        Signed depth of the probe past the surface [m], positive inside.
-    k_o : float
-        Object stiffness at the contact, ``1 / C_ii`` [N/m] (paper eq. 6-8).
-    k_o_eff : float
-        Coupling-aware stiffness [N/m], ``<= k_o`` (DESIGN section 6): choosing ``K_h < k_o_eff``
-        keeps the coupled slow loop of all nearby contacts stable.
-    k_o_stiff : float
-        Stiffest modal stiffness of the contact's coupled group [N/m], ``>= k_o`` (equal when
-        uncoupled; None means uncoupled): a PI local model must be stable for every K_o' in
-        ``[k_o_eff, k_o_stiff]`` (docs/coupled-users.md).
-    b_o : float
-        Object damping divided by the simulation period [N/m] (paper eq. 9); 0 without damping.
-    in_contact : bool
-        ``penetration_m > 0``.
-    own_force_n : float
-        Force [N] along the contact normal the object received from this user this tick (Step
-        3), >= 0: a local model with own-force compensation renders against the surface moved
-        out by C_h times it (:mod:`shared.full_loop`).
-    """
-
-    primitive: Plane | Sphere
-    proxy: FloatArray
-    normal: FloatArray
-    penetration_m: float
-    k_o: float
-    k_o_eff: float
-    b_o: float
-    in_contact: bool
-    k_o_stiff: float | None = None
-    own_force_n: float = 0.0
 
 
 #: A probe that moved more than this [m] since last tick is located exactly before loading.
@@ -349,7 +305,9 @@ class World:
             return []
         return list(ahead([u.key for u in self._users.values()], int(limit)))
 
-    def tick(self, inputs: Mapping[str, ContactInput]) -> dict[str, ContactOutput]:
+    def tick(
+        self, inputs: Mapping[str, ContactInput], tick: int | None = None
+    ) -> dict[str, SurfacePatch]:
         """Apply every user's force, step the object one period, and fit every local model.
 
         Parameters
@@ -357,10 +315,14 @@ class World:
         inputs : mapping user id -> ContactInput
             Users absent from the mapping neither push nor get an output (their state is
             forgotten).
+        tick : int, optional
+            The number the patches carry (the room's schedule, which skips ticks it missed);
+            default: this world's count of ticks (:attr:`tick_count`) after this one.
 
         Returns
         -------
-        dict user id -> ContactOutput, same keys (and order) as ``inputs``.
+        dict user id -> shared.local_model_update.SurfacePatch, same keys (and order) as
+        ``inputs``.
         """
         names = list(inputs)
         # Step 3: each user's last rendered force, opposite, on the object at its contact.
@@ -422,7 +384,8 @@ class World:
             k_eff[near] = effective_stiffness(c_near, k_o[near])
             k_stiff[near] = stiff_stiffness(c_near, k_o[near])
 
-        out: dict[str, ContactOutput] = {}
+        number = self._tick if tick is None else int(tick)
+        out: dict[str, SurfacePatch] = {}
         users: dict[str, _UserState] = {}
         for i, (name, s) in enumerate(zip(names, located, strict=True)):
             prim: Plane | Sphere
@@ -433,10 +396,11 @@ class World:
             else:
                 prim = fit_plane(s)
             users[name] = _UserState(probe=probes[i], primitive=prim, key=patch_keys[i], surface=s)
-            out[name] = ContactOutput(
+            out[name] = SurfacePatch(
+                tick=number,
                 primitive=prim,
-                proxy=s.point,
-                normal=s.normal,
+                proxy=_t3(s.point),
+                normal=_t3(s.normal),
                 penetration_m=float(s.penetration_m),
                 k_o=float(k_o[i]),
                 k_o_eff=float(k_eff[i]),
@@ -447,3 +411,8 @@ class World:
             )
         self._users = users
         return out
+
+
+def _t3(a: FloatArray) -> Vec3:
+    """A (3,) array [m] as the surface patch's tuple of floats."""
+    return (float(a[0]), float(a[1]), float(a[2]))

@@ -1,24 +1,30 @@
-"""The local model update: one simulation tick's local model, as the servo loop renders it.
+"""The surface patch and the local model update: one simulation tick's local model, from the
+World through the wire to the servo tick.
 
 Paper section 6: once per simulation tick the server fits a primitive to the current surface
 near each user's probe and reports the contact's stiffness K_o, its coupling-aware K_o_eff
 (DESIGN section 6) and damping B_o (Step 1); the client picks the local model's gains K_h, I
 below them (Step 2) and its servo loop renders the primitive with those gains until the next
 tick (zero-order hold, eq. 1, or the first-order hold of :mod:`shared.full_loop`).
-:class:`LocalModelUpdate` is that one datum, from the wire to the servo tick.
 
-Wire edge (:mod:`shared.protocol`): :meth:`LocalModelUpdate.from_wire` builds it from a ``patch``
-message and the gains the client chose; :func:`primitive_from_wire` and
-:func:`primitive_to_wire` convert the primitive both ways (the server builds its ``patch`` with
-:func:`primitive_to_wire`: the server does not choose gains, so it has no update of its own).
+One datum, two stages:
 
-Plain Python floats, SI units: positions [m], stiffness and B_o [N/m], I [N/(m*s)], B_h
-[N*s/m]. No sockets, threads or clocks.
+- :class:`SurfacePatch`: what the server's World computes for a user each tick (primitive,
+  proxy, normal, penetration, K_o, K_o_eff, K_o_stiff, B_o, the force it applied). The wire's
+  ``patch`` message (:class:`shared.protocol.Patch`) is its encoding:
+  :meth:`SurfacePatch.to_wire` on the server, :meth:`SurfacePatch.from_wire` on the client (the
+  primitive is validated there, once, and an absent K_o_stiff resolved to K_o, once).
+- :class:`LocalModelUpdate`: that surface patch with the gains the client chose (and how it
+  chose them, :class:`GainChoice`), as the servo loop renders it.
+
+Plain Python floats, SI units: positions [m], stiffness and B_o [N/m], I
+[N/(m*s)], B_h [N*s/m]. No sockets, threads or clocks.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from pydantic import SkipValidation
 
@@ -37,18 +43,212 @@ from haptic_collab.shared.primitives import (
     make_sphere,
     moved_out,
 )
-from haptic_collab.shared.protocol import Patch, PlaneModel, ProtocolError, SphereModel
+from haptic_collab.shared.protocol import (
+    Patch,
+    PlaneModel,
+    ProtocolError,
+    RecommendedGains,
+    SphereModel,
+)
+from haptic_collab.shared.types import Vec3
 
 __all__ = [
+    "GainChoice",
     "LocalModelUpdate",
+    "SurfacePatch",
     "primitive_from_wire",
     "primitive_to_wire",
 ]
 
 
+@dataclass(frozen=True, slots=True)
+class SurfacePatch:
+    """One user's surface patch for the next simulation period (section 6, Steps 1-2).
+
+    Built by the server's World each tick, sent as a ``patch`` message (:meth:`to_wire`), read
+    back by the client (:meth:`from_wire`).
+
+    Attributes
+    ----------
+    tick : int
+        Simulation tick that produced this surface (latest wins on the wire).
+    primitive : shared.primitives.Plane or Sphere
+        Local geometric model fitted to the current surface at the proxy [m].
+    proxy : (3,) tuple of float [m]
+        Closest point of the current surface to the probe (x_o).
+    normal : (3,) tuple of float
+        Outward unit surface normal at the proxy.
+    penetration_m : float
+        Signed depth of the probe past the surface [m], positive inside.
+    in_contact : bool
+        ``penetration_m > 0``.
+    k_o : float
+        Object stiffness at the contact, ``1 / C_ii`` [N/m] (paper eq. 6-8), > 0.
+    k_o_eff : float
+        Coupling-aware stiffness [N/m], ``<= k_o`` (DESIGN section 6): choosing ``K_h < k_o_eff``
+        keeps the coupled slow loop of all nearby contacts stable.
+    k_o_stiff : float
+        Stiffest modal stiffness of the contact's coupled group [N/m], ``>= k_o`` (equal to
+        ``k_o`` when uncoupled): a PI local model must be stable for every K_o' in
+        ``[k_o_eff, k_o_stiff]`` (docs/coupled-users.md).
+    b_o : float
+        Object damping divided by the simulation period [N/m] (paper eq. 9); 0 without damping.
+    own_force_n : float
+        Force [N] along the contact normal the object received from this user in the step that
+        produced this surface (Step 3), >= 0: a local model with own-force compensation renders
+        against the surface moved out by C_h times it (:mod:`shared.full_loop`).
+
+    Raises
+    ------
+    TypeError
+        ``primitive`` is not a Plane or Sphere.
+    ValueError
+        A stiffness not finite and > 0, or B_o or the force not finite and >= 0.
+    """
+
+    tick: int
+    primitive: Plane | Sphere
+    proxy: Vec3
+    normal: Vec3
+    penetration_m: float
+    in_contact: bool
+    k_o: float
+    k_o_eff: float
+    k_o_stiff: float
+    b_o: float
+    own_force_n: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.primitive, Plane | Sphere):
+            raise TypeError(
+                f"primitive must be a Plane or Sphere, got {type(self.primitive).__name__}"
+            )
+        for name in ("k_o", "k_o_eff", "k_o_stiff"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be a finite number > 0 [N/m], got {v!r}")
+        for name in ("b_o", "own_force_n"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+
+    @classmethod
+    def of(cls, primitive: Primitive, k_o: float) -> SurfacePatch:
+        """A surface patch made by hand (not by a server): ``primitive`` with stiffness ``k_o``
+        [N/m], uncoupled (K_o_eff = K_o_stiff = K_o), undamped, tick 0, nothing pushed, the
+        proxy at the plane's point (a sphere's top).
+
+        Raises
+        ------
+        ValueError
+            ``k_o`` not a finite number > 0.
+        TypeError
+            ``primitive`` is not a Plane or Sphere.
+        """
+        k = float(k_o)
+        if isinstance(primitive, Sphere):
+            cx, cy, cz = primitive.center
+            proxy: Vec3 = (cx, cy, cz + primitive.radius)
+            normal: Vec3 = (0.0, 0.0, 1.0)
+        elif isinstance(primitive, Plane):
+            proxy, normal = primitive.point, primitive.normal
+        else:
+            raise TypeError(f"primitive must be a Plane or Sphere, got {type(primitive).__name__}")
+        return cls(
+            tick=0,
+            primitive=primitive,
+            proxy=proxy,
+            normal=normal,
+            penetration_m=0.0,
+            in_contact=False,
+            k_o=k,
+            k_o_eff=k,
+            k_o_stiff=k,
+            b_o=0.0,
+        )
+
+    def to_wire(self, gains: RecommendedGains | None = None) -> Patch:
+        """This surface patch as the ``patch`` message, with the server's recommended gains.
+
+        Raises
+        ------
+        pydantic.ValidationError
+            A field out of the message's range (non-finite, K_o not > 0, ...).
+        """
+        return Patch(
+            tick=int(self.tick),
+            primitive=primitive_to_wire(self.primitive),
+            proxy_m=self.proxy,
+            normal=self.normal,
+            penetration_m=float(self.penetration_m),
+            in_contact=bool(self.in_contact),
+            k_o=float(self.k_o),
+            k_o_eff=float(self.k_o_eff),
+            k_o_stiff=float(self.k_o_stiff),
+            b_o=float(self.b_o),
+            own_force_n=float(self.own_force_n),
+            gains=gains,
+        )
+
+    @classmethod
+    def from_wire(cls, msg: Patch) -> SurfacePatch:
+        """The surface patch of a server ``patch`` message (its ``gains`` are not part of it).
+
+        An absent ``k_o_stiff`` (an uncoupled contact, or an older server) is ``k_o``; one below
+        ``k_o`` counts as ``k_o``.
+
+        Raises
+        ------
+        shared.protocol.ProtocolError
+            ``invalid_primitive``: the patch's primitive is not a valid plane or sphere.
+        """
+        k_o_stiff = msg.k_o if msg.k_o_stiff is None else max(msg.k_o_stiff, msg.k_o)
+        return cls(
+            tick=msg.tick,
+            primitive=primitive_from_wire(msg.primitive),
+            proxy=msg.proxy_m,
+            normal=msg.normal,
+            penetration_m=msg.penetration_m,
+            in_contact=msg.in_contact,
+            k_o=msg.k_o,
+            k_o_eff=msg.k_o_eff,
+            k_o_stiff=k_o_stiff,
+            b_o=msg.b_o,
+            own_force_n=msg.own_force_n,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class GainChoice:
+    """How a client chose the gains of a :class:`LocalModelUpdate` (the session's decision).
+
+    Attributes
+    ----------
+    delay_ticks : int
+        Delay assumed in the gain choice [simulation ticks].
+    spectral_radius : float
+        Worst full-loop spectral radius of the design over the hand box (below its decay limit).
+    felt_stiffness_ratio_1hz : float
+        Designed felt stiffness over K_o at 1 Hz (NaN: not known).
+    fallback : bool
+        True while the exact design for this K_o is still being computed (interim gains).
+    verified : bool
+        The gains passed the full-loop check for this patch's key and K_o cell (a design, or
+        verified interim gains); False only for the short while that check runs after a change
+        of cell or delay in mid-contact.
+    """
+
+    delay_ticks: int
+    spectral_radius: float
+    felt_stiffness_ratio_1hz: float = math.nan
+    fallback: bool = False
+    verified: bool = True
+
+
 @params_dataclass(frozen=True, slots=True)
 class LocalModelUpdate:
-    """One simulation tick's local model: primitive, rendering gains, and the contact's K_o.
+    """One simulation tick's local model: the primitive rendered, the gains, and the surface patch
+    it comes from.
 
     Validated on construction; the servo loop applies it whole, between two ticks
     (:meth:`client.servo.ServoCore.set_patch`).
@@ -56,7 +256,9 @@ class LocalModelUpdate:
     Parameters
     ----------
     primitive : Plane or Sphere
-        Local geometric model of the surface near the probe [m] (paper section 6, Step 1).
+        Local geometric model of the surface near the probe [m] (paper section 6, Step 1), as
+        rendered: with own-force compensation, the surface patch's primitive moved out by
+        ``own_gain * surface.own_force_n`` (:meth:`from_surface`).
     k_h : float
         Local model stiffness K_h [N/m], finite and > 0.
     i_gain : float
@@ -70,34 +272,24 @@ class LocalModelUpdate:
         where the previous slide had got to, if this update arrived before it finished).
     hold_ticks : int
         Servo ticks of the first-order hold (N, one simulation period), a whole number >= 1.
-    k_o : float or None
-        The object's local stiffness K_o at the contact [N/m], finite and > 0; it sets the local
-        model's recovery band 1/K_o (:attr:`recovery_m_per_n`). None: not known (a local model
-        set by hand, not from a server).
-    k_o_eff : float or None
-        Coupling-aware K_o_eff [N/m] (<= K_o) the gains were chosen below; None: not known.
-    k_o_stiff : float or None
-        Stiffest modal stiffness K_o_stiff [N/m] (>= K_o) of the contacts coupled to this one
-        (equal to K_o when uncoupled); None: not known.
-    b_o : float or None
-        Object damping divided by the simulation period B_o [N/m] (eq. 9), >= 0; None: not known.
-    tick : int or None
-        Simulation tick of the server's patch; None: not from a server.
     own_gain : float
-        Own-force compensation C_h [m/N] >= 0 (:mod:`shared.full_loop`); ``primitive`` is
-        already the server's surface moved out by ``own_gain * own_force_n``
-        (:meth:`from_wire`). 0: the paper's local model.
-    own_force_n : float
-        The force F_s [N] >= 0 the simulation applied from this user for this surface.
+        Own-force compensation C_h [m/N] >= 0 (:mod:`shared.full_loop`). 0: the paper's local
+        model.
+    surface : SurfacePatch or None
+        The server's surface patch this update renders (K_o, K_o_eff, K_o_stiff, B_o, tick, the
+        force the simulation applied); None: a local model set by hand, not from a server.
+    choice : GainChoice or None
+        How the client chose the gains (:class:`client.session.ClientSession`); None: not chosen
+        by a session.
 
     Raises
     ------
     TypeError
-        ``primitive`` is not a Plane or Sphere.
+        ``primitive`` is not a Plane or Sphere, ``surface`` not a SurfacePatch or ``choice`` not
+        a GainChoice.
     pydantic.ValidationError
         (a ValueError naming the field) Non-finite, non-numeric or out-of-range gains,
-        ``proxy_hold`` or ``hold_ticks`` (an int), or a K_o, K_o_eff, K_o_stiff or B_o that is
-        given but not finite and positive (B_o: >= 0).
+        ``proxy_hold`` or ``hold_ticks`` (an int).
     """
 
     primitive: SkipValidation[Primitive]
@@ -106,30 +298,36 @@ class LocalModelUpdate:
     b_h: NonNegFinite = 0.0
     proxy_hold: ProxyHold = "zoh"
     hold_ticks: WholePositive = 1
-    k_o: PositiveFinite | None = None
-    k_o_eff: PositiveFinite | None = None
-    k_o_stiff: PositiveFinite | None = None
-    b_o: NonNegFinite | None = None
-    tick: int | None = None
     own_gain: NonNegFinite = 0.0
-    own_force_n: NonNegFinite = 0.0
+    surface: SkipValidation[SurfacePatch | None] = None
+    choice: SkipValidation[GainChoice | None] = None
 
     def __post_init__(self) -> None:
         prim = self.primitive
         if not isinstance(prim, Plane | Sphere):
             raise TypeError(f"primitive must be a Plane or Sphere, got {type(prim).__name__}")
+        if self.surface is not None and not isinstance(self.surface, SurfacePatch):
+            raise TypeError(f"surface must be a SurfacePatch, got {type(self.surface).__name__}")
+        if self.choice is not None and not isinstance(self.choice, GainChoice):
+            raise TypeError(f"choice must be a GainChoice, got {type(self.choice).__name__}")
 
     @property
     def recovery_m_per_n(self) -> float | None:
         """1/K_o [m/N]: a PI contact is kept while the probe is within the deformation its
-        integral force holds (:class:`shared.local_model.LocalModelParams`); None without K_o
-        (the local model keeps its own)."""
-        return None if self.k_o is None else 1.0 / self.k_o
+        integral force holds (:class:`shared.local_model.LocalModelParams`); None without a
+        surface patch (the local model keeps its own)."""
+        return None if self.surface is None else 1.0 / self.surface.k_o
+
+    @property
+    def own_force_n(self) -> float:
+        """The force F_s [N] >= 0 the simulation applied from this user for this surface (0
+        without a surface patch)."""
+        return 0.0 if self.surface is None else self.surface.own_force_n
 
     @classmethod
-    def from_wire(
+    def from_surface(
         cls,
-        msg: Patch,
+        surface: SurfacePatch,
         *,
         k_h: float,
         i_gain: float,
@@ -137,45 +335,39 @@ class LocalModelUpdate:
         proxy_hold: ProxyHold = "zoh",
         hold_ticks: int = 1,
         own_gain: float = 0.0,
+        choice: GainChoice | None = None,
     ) -> LocalModelUpdate:
-        """The update of a server ``patch`` rendered with the gains the client chose.
+        """The update of a server surface patch rendered with the gains the client chose.
 
         With own-force compensation (``own_gain`` C_h > 0) the primitive rendered is the patch's
-        moved out by ``C_h * msg.own_force_n`` (:func:`shared.primitives.moved_out`).
+        moved out by ``C_h * surface.own_force_n`` (:func:`shared.primitives.moved_out`).
 
         Parameters
         ----------
-        msg : shared.protocol.Patch
-            The server's patch: primitive, ``tick``, ``k_o``, ``k_o_eff``, ``k_o_stiff`` (absent:
-            K_o, an uncoupled contact) and ``b_o``.
-        k_h, i_gain, b_h, proxy_hold, hold_ticks, own_gain
-            The local model's gains and hold (see the class parameters).
+        surface : SurfacePatch
+            The server's patch (:meth:`SurfacePatch.from_wire`).
+        k_h, i_gain, b_h, proxy_hold, hold_ticks, own_gain, choice
+            The local model's gains, hold and how they were chosen (see the class parameters).
 
         Raises
         ------
-        shared.protocol.ProtocolError
-            ``invalid_primitive``: the patch's primitive is not a valid plane or sphere.
         ValueError
             Invalid gains (see the class).
         """
-        prim = primitive_from_wire(msg.primitive)
+        prim = surface.primitive
         own = float(own_gain)
         if not (math.isfinite(own) and own >= 0.0):
             raise ValueError(f"own_gain must be finite and >= 0, got {own_gain!r}")
         return cls(
-            primitive=moved_out(prim, own * msg.own_force_n) if own > 0.0 else prim,
+            primitive=moved_out(prim, own * surface.own_force_n) if own > 0.0 else prim,
             k_h=k_h,
             i_gain=i_gain,
             b_h=b_h,
             proxy_hold=proxy_hold,
             hold_ticks=hold_ticks,
-            k_o=msg.k_o,
-            k_o_eff=msg.k_o_eff,
-            k_o_stiff=msg.k_o_stiff_or_k_o(),
-            b_o=msg.b_o,
-            tick=msg.tick,
             own_gain=own,
-            own_force_n=msg.own_force_n,
+            surface=surface,
+            choice=choice,
         )
 
 

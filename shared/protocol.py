@@ -284,7 +284,8 @@ class Patch(_Msg):
     ``k_o`` is the object's local stiffness at the contact, ``k_o_eff`` <= ``k_o`` the
     coupling-aware value (DESIGN section 6) the client must choose its gains below;
     ``k_o_stiff`` >= ``k_o`` the stiffest modal stiffness of the contacts coupled to this one
-    (absent or equal to ``k_o``: uncoupled): a PI local model must be stable for every K_o' in
+    (absent or equal to ``k_o``: uncoupled; :meth:`shared.local_model_update.SurfacePatch.from_wire`
+    reads an absent one as ``k_o``): a PI local model must be stable for every K_o' in
     ``[k_o_eff, k_o_stiff]`` (docs/coupled-users.md); ``b_o`` the object damping divided by the
     simulation period (eq. 9).
     """
@@ -306,10 +307,6 @@ class Patch(_Msg):
     own_force_n: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
     #: Gains the server recommends (absent until designed for this user's key and K_o cell).
     gains: RecommendedGains | None = None
-
-    def k_o_stiff_or_k_o(self) -> float:
-        """``k_o_stiff``, or ``k_o`` when the server sent none (an uncoupled contact) [N/m]."""
-        return self.k_o if self.k_o_stiff is None else max(self.k_o_stiff, self.k_o)
 
 
 class Pong(_Msg):

@@ -128,8 +128,8 @@ def run_demo(
 
 def slide(label: str, mesh, proxy: str, depth_m: float, ticks: int = 120) -> dict:  # type: ignore[no-untyped-def]
     """A probe slid along the surface ``depth_m`` below its proxy, 2 mm per tick, 9 paths."""
+    from haptic_collab.server.object_info import object_info
     from haptic_collab.server.objects.balloon import Balloon
-    from haptic_collab.server.room import object_info
     from haptic_collab.server.world import ContactInput, World
 
     obj = Balloon(mesh)
@@ -147,12 +147,12 @@ def slide(label: str, mesh, proxy: str, depth_m: float, ticks: int = 120) -> dic
             probe = np.asarray(anchor) - depth_m * np.asarray(normal)
             out = world.tick({"u": ContactInput(probe=probe, force=zero)})["u"]
             for _ in range(ticks):
-                n = out.normal
+                n = np.asarray(out.normal)
                 t = d - float(d @ n) * n
                 t /= max(float(np.linalg.norm(t)), 1e-12)
-                probe = out.proxy + 0.002 * t - depth_m * n
+                probe = np.asarray(out.proxy) + 0.002 * t - depth_m * n
                 new = world.tick({"u": ContactInput(probe=probe, force=zero)})["u"]
-                step = float(np.linalg.norm(new.proxy - out.proxy))
+                step = float(np.linalg.norm(np.subtract(new.proxy, out.proxy)))
                 worst = max(worst, step)
                 jumps += step > 0.005
                 steps += 1

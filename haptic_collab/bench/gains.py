@@ -1,6 +1,6 @@
 """``haptic bench gains``: what a gain update costs the client's network loop, and what a design costs.
 
-A patch's gains are a :class:`shared.gain_design.GainTable` lookup inside
+A patch's gains are a :class:`shared.gain_table.GainTable` lookup inside
 :meth:`client.session.ClientSession.receive` (on the asyncio loop); a missing cell is designed in a
 worker process. This bench measures, in one run on this machine:
 
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from haptic_collab.client.session import ClientSession
-from haptic_collab.shared.gain_design import design_cell
+from haptic_collab.shared.gain_table import design_cell
 from haptic_collab.shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Welcome, encode
 
 #: The object the bench's welcome describes: an octahedron of radius 0.1 m about the origin [m].
@@ -80,7 +80,7 @@ def run(n_patches: int = 2000, seed: int = 0) -> dict[str, Any]:
         t0 = time.perf_counter()
         up = s.receive(fr, 1.0 + 0.05 * i)
         patch_ms.append((time.perf_counter() - t0) * 1e3)
-        assert up is not None and not up.fallback
+        assert up is not None and up.choice is not None and not up.choice.fallback
     lookup_us = []
     for k in k_os[:500]:
         t0 = time.perf_counter()

@@ -150,7 +150,7 @@ def _run_users(
             o = out[n]
             if gains[i] == 0.0:
                 gains[i] = 0.5 * o.k_o_eff
-            forces[i] = gains[i] * max(o.penetration_m, 0.0) * o.normal
+            forces[i] = gains[i] * max(o.penetration_m, 0.0) * np.asarray(o.normal)
     if prefetcher is not None:
         prefetcher.close()
     steady = np.asarray(times_ms[warmup:])

@@ -19,10 +19,11 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.link import Link
-from haptic_collab.client.session import ClientSession, PatchUpdate, interim_design
+from haptic_collab.client.session import ClientSession, interim_design
 from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
-from haptic_collab.shared.gain_design import felt_stiffness
+from haptic_collab.shared.felt_stiffness import felt_stiffness
+from haptic_collab.shared.local_model_update import LocalModelUpdate
 from tests.support.sessions import plane_patch, welcomed_session
 
 
@@ -57,10 +58,10 @@ def test_coupled_pi_users_get_gains_that_meet_the_margin_of_the_coupled_loop(
     assert key.stiff_ratio >= k_stiff[0] / k_eff[0]
     s.gain_table.design(key, k_req)  # as the link's worker does
     up = s.receive(plane_patch(2, k_o, float(k_eff[0]), float(k_stiff[0])), 0.15)
-    assert up is not None and not up.fallback
+    assert up is not None and not up.choice.fallback
     # (a compensated P model here: closer to K_o than any PI the design found)
-    g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold, up.model.own_gain)  # type: ignore[arg-type]
-    verdict = verify_coupled(c, [g, g], delay_ticks=up.delay_ticks, margin=0.15)
+    g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold, up.own_gain)  # type: ignore[arg-type]
+    verdict = verify_coupled(c, [g, g], delay_ticks=up.choice.delay_ticks, margin=0.15)
     assert verdict.meets_margin, verdict
     # the paper's PI designed over the modal range meets it too
     pi = s.gain_table.design(replace(key, own_force=False), k_req)
@@ -70,7 +71,7 @@ def test_coupled_pi_users_get_gains_that_meet_the_margin_of_the_coupled_loop(
     # what the product did before (the paper's PI for K_o_eff alone) does not meet it at 0.9
     if coupling == 0.9:
         plain = s.gain_table.design(
-            replace(s.gain_key(0.0, up.delay_ticks, stiff_ratio=1.0), own_force=False),
+            replace(s.gain_key(0.0, up.choice.delay_ticks, stiff_ratio=1.0), own_force=False),
             float(k_eff[0]),
         )
         old = UserGains(plain.k_h, plain.i_gain, plain.b_h, plain.proxy_hold)
@@ -85,10 +86,10 @@ def test_a_new_coupling_class_renders_a_scaled_proportional_model_until_verified
     s.interim_wanted = None
     s.store_interim(key, cell, interim_design(key, cell, 1.1, s.gain_table.hand_box, cands))
     first = s.retry_waiting(0.15)
-    assert first is not None and first.verified
+    assert first is not None and first.choice.verified
     # another user presses nearby: strongly coupled, K_o_eff halves, K_o_stiff is 10x K_o
     up = s.receive(plane_patch(2, 300.0, 158.0, 3000.0), 0.2)
-    assert up is not None and not up.verified
+    assert up is not None and not up.choice.verified
     assert up.i_gain == 0.0
     assert up.k_h <= first.k_h * 158.0 / 300.0 + 1e-9
     # the class stays up while the coupling wavers just below it (no design per tick)
@@ -113,17 +114,17 @@ def test_a_second_user_arriving_is_rendered_at_once_with_gains_of_a_wider_class(
     k_stiff = float(stiff_stiffness(c, np.full(2, 300.0))[0])
     s.gain_table.design(replace(s.gain_key(0.0, 0), stiff_ratio=2.0), k_eff)
     up = s.receive(plane_patch(2, 300.0, k_eff, k_stiff), 0.2)
-    assert up is not None and up.verified and up.fallback
+    assert up is not None and up.choice.verified and up.choice.fallback
     assert s.design_wanted is not None  # its own class's design is still made
-    assert up.model.own_gain * up.k_h == pytest.approx(1.0)
-    g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold, up.model.own_gain)  # type: ignore[arg-type]
+    assert up.own_gain * up.k_h == pytest.approx(1.0)
+    g = UserGains(up.k_h, up.i_gain, up.b_h, up.proxy_hold, up.own_gain)  # type: ignore[arg-type]
     assert verify_coupled(c, [g, g], delay_ticks=0, margin=0.15).meets_margin
     # a coupling beyond class 2 is not covered: the conservative path, until verified
     c = compliance_matrix(300.0, 0.5, users=2)  # ratio 3
     k_eff = float(effective_stiffness(c, np.full(2, 300.0))[0])
     k_stiff = float(stiff_stiffness(c, np.full(2, 300.0))[0])
     up = s.receive(plane_patch(3, 300.0, k_eff, k_stiff), 0.25)
-    assert up is not None and not up.verified
+    assert up is not None and not up.choice.verified
 
 
 @pytest.mark.parametrize(("coupling", "k_o"), [(0.5, 300.0), (0.7, 100.0)])
@@ -171,7 +172,7 @@ def test_a_second_users_press_soon_after_the_first_contact_is_rendered_with_chec
     gate = threading.Event()
     design_pool, check_pool = ThreadPoolExecutor(max_workers=1), ThreadPoolExecutor(max_workers=1)
     design_pool.submit(gate.wait, 60.0)  # the design worker is busy with a long design
-    got: list[PatchUpdate] = []
+    got: list[LocalModelUpdate] = []
 
     async def go() -> None:
         link = Link(
@@ -190,13 +191,13 @@ def test_a_second_users_press_soon_after_the_first_contact_is_rendered_with_chec
     try:
         asyncio.run(go())
         assert not gate.is_set()  # all of it while the design worker stayed busy
-        assert len(got) == 1 and got[0].verified  # the first contact, rendered once checked
+        assert len(got) == 1 and got[0].choice.verified  # the first contact, rendered once checked
         for k_eff in (300.0, 0.88 * 300.0):  # the same cell, and two cells below
             up = s.receive(plane_patch(2 if k_eff == 300.0 else 3, 300.0, k_eff, 1.33 * k_eff), 0.2)
-            assert up is not None and up.verified, k_eff
+            assert up is not None and up.choice.verified, k_eff
             assert s.gain_table.cell(k_eff) <= s.gain_table.cell(300.0)
             # own-force compensated: the surface does not give way under the user's own push
-            assert up.model.own_gain * up.k_h == pytest.approx(1.0)
+            assert up.own_gain * up.k_h == pytest.approx(1.0)
     finally:
         gate.set()
         for pool in (design_pool, check_pool):

@@ -22,13 +22,15 @@ from haptic_collab.client.session import (
     FALLBACK_K_RATIO,
     INTERIM_LADDER,
     ClientSession,
-    PatchUpdate,
     interim_design,
     verify_gains,
 )
+from haptic_collab.shared.felt_stiffness import felt_stiffness
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
-from haptic_collab.shared.gain_design import DESIGN_TIE, GainTable, felt_stiffness
 from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.gain_search import DESIGN_TIE
+from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import DeviceInfo, Pong, Welcome, encode
 from tests.support.sessions import WELCOME_OBJECT as OBJ
 from tests.support.sessions import session_patch
@@ -60,13 +62,13 @@ def run_interim(s: ClientSession) -> None:
     )
 
 
-def assert_stable_over_the_box(up: PatchUpdate, k_o: float, margin: float = 0.15) -> None:
+def assert_stable_over_the_box(up: LocalModelUpdate, k_o: float, margin: float = 0.15) -> None:
     """Independent check: every hand of the box, every sampling tick, K_o and (1 - margin) K_o."""
     for k in (k_o, (1.0 - margin) * k_o):
         rho = spectral_radius(
             hand=DEFAULT_HAND_BOX.hands(), k_o=k, k_h=up.k_h, i_gain=up.i_gain, b_h=up.b_h,
-            rate_ratio=50, delay_ticks=up.delay_ticks, proxy_hold=up.proxy_hold,  # type: ignore[arg-type]
-            own_gain=up.model.own_gain,
+            rate_ratio=50, delay_ticks=up.choice.delay_ticks, proxy_hold=up.proxy_hold,  # type: ignore[arg-type]
+            own_gain=up.own_gain,
         )  # fmt: skip
         assert rho.max() < 1.0, (k, rho.max())
 
@@ -81,21 +83,21 @@ def test_the_first_patch_renders_with_verified_interim_gains_without_waiting_for
     assert s.first_patch_s == 0.10 and s.first_update_s is None
     run_interim(s)  # a check or two, not a design
     up = s.retry_waiting(0.25)  # the link re-delivers the patch that waited
-    assert up is not None and up.fallback and up.verified
+    assert up is not None and up.choice.fallback and up.choice.verified
     # the generic compensated P interim gains (C_h K_h = 1): a held press settles on the surface
-    assert up.i_gain == 0.0 and up.model.own_gain * up.k_h == pytest.approx(1.0)
+    assert up.i_gain == 0.0 and up.own_gain * up.k_h == pytest.approx(1.0)
     assert s.first_update_s == 0.25
     assert s.unverified_patches == 0
     assert s.gain_table.lookup(s.gain_key(0.0, 0), k_o) is None  # the design is still to come
     assert_stable_over_the_box(up, k_o)
     # later patches of the same cell render the same interim gains until the design lands
     nxt = s.receive(patch(2, k_o), 0.30)
-    assert nxt is not None and (nxt.k_h, nxt.i_gain) == (up.k_h, up.i_gain) and nxt.verified
+    assert nxt is not None and (nxt.k_h, nxt.i_gain) == (up.k_h, up.i_gain) and nxt.choice.verified
     key, k = s.design_wanted or (None, None)
     assert key is not None and k == k_o
     s.gain_table.design(key, k_o)
     final = s.receive(patch(3, k_o), 0.35)
-    assert final is not None and not final.fallback and final.verified
+    assert final is not None and not final.choice.fallback and final.choice.verified
 
 
 def test_verify_gains_agrees_with_the_spectral_radius() -> None:
@@ -178,24 +180,24 @@ def test_a_delay_change_in_mid_contact_gets_gains_checked_for_the_new_delay() ->
     s.receive(patch(1), 0.1)
     run_interim(s)
     first = s.retry_waiting(0.2)
-    assert first is not None and first.delay_ticks == 0
+    assert first is not None and first.choice.delay_ticks == 0
     for i in range(20):  # the round trip grows to 110 ms: two ticks of delay at 20 Hz
         s.receive(encode(Pong(id=i, t_client_s=1.0 + 0.5 * i - 0.11, tick=0)), 1.0 + 0.5 * i)
     assert s.delay_ticks() == 2
     during = s.receive(patch(2), 11.0)  # the check for the new delay is running
-    assert during is not None and during.delay_ticks == 2 and not during.verified
+    assert during is not None and during.choice.delay_ticks == 2 and not during.choice.verified
     assert s.unverified_patches == 1
     # meanwhile not the gains designed for no delay (unstable with more, above) but the
     # fallback P model, stable with every hand at this delay
-    assert first.model.own_gain > 0.0
-    assert during.model.own_gain == 0.0 and during.i_gain == 0.0
+    assert first.own_gain > 0.0
+    assert during.own_gain == 0.0 and during.i_gain == 0.0
     assert during.k_h <= FALLBACK_K_RATIO * 300.0 + 1e-9 and during.b_h == 10.0
     assert_stable_over_the_box(during, 300.0)
     assert s.interim_wanted is not None and s.interim_wanted[0].delay_ticks == 2
     assert first.k_h in [c.k_h for c in s.interim_wanted[2]]  # the gains in use are tried first
     run_interim(s)
     after = s.receive(patch(3), 11.1)
-    assert after is not None and after.verified and after.delay_ticks == 2
+    assert after is not None and after.choice.verified and after.choice.delay_ticks == 2
     assert_stable_over_the_box(after, 300.0)
 
 
@@ -220,7 +222,7 @@ def test_the_interim_ladder_ends_in_a_proportional_model_without_a_damper() -> N
 
 def test_the_link_renders_the_waiting_first_patch_as_soon_as_its_check_is_done() -> None:
     s = session()
-    got: list[PatchUpdate] = []
+    got: list[LocalModelUpdate] = []
     pool = ThreadPoolExecutor(max_workers=1)
 
     async def go() -> None:
@@ -241,9 +243,9 @@ def test_the_link_renders_the_waiting_first_patch_as_soon_as_its_check_is_done()
         asyncio.run(go())
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
-    assert len(got) == 1 and got[0].verified and got[0].fallback
-    assert got[0].tick == 1 and s.first_update_s == 1.0
-    assert math.isfinite(got[0].spectral_radius) and got[0].spectral_radius < 1.0
+    assert len(got) == 1 and got[0].choice.verified and got[0].choice.fallback
+    assert got[0].surface.tick == 1 and s.first_update_s == 1.0
+    assert math.isfinite(got[0].choice.spectral_radius) and got[0].choice.spectral_radius < 1.0
     assert np.isclose(s.first_patch_s or 0.0, 0.5)
 
 
@@ -267,7 +269,7 @@ def test_a_needed_check_does_not_wait_behind_checks_ahead_of_need() -> None:
         for c in range(3):  # checks ahead of need, queued first
             link._queue_check(key, s.gain_table.cell(300.0) + 5 + c, (), ahead=True)
         up = s.receive(patch(2, 150.0), 0.3)  # a softer cell: its check is needed now
-        assert up is not None and not up.verified
+        assert up is not None and not up.choice.verified
         link._start_check()
         assert link._check_task is not None
         try:
@@ -285,7 +287,7 @@ def test_a_needed_check_does_not_wait_behind_checks_ahead_of_need() -> None:
         for pool in (design_pool, check_pool):
             pool.shutdown(wait=True, cancel_futures=True)
     after = s.receive(patch(3, 150.0), 0.4)
-    assert after is not None and after.verified
+    assert after is not None and after.choice.verified
     assert_stable_over_the_box(after, 150.0)
 
 
@@ -305,10 +307,10 @@ def test_a_designed_cell_feels_like_the_reported_object_anywhere_in_it() -> None
     felt = []
     for n, k_o in enumerate((g0 * 1.001, 300.0, g1 * 0.999)):
         up = s.receive(patch(n + 1, k_o), 20.0 + 0.05 * n)
-        assert up is not None and up.verified and not up.fallback
-        assert up.model.own_gain * up.k_h == pytest.approx(1.0)
+        assert up is not None and up.choice.verified and not up.choice.fallback
+        assert up.own_gain * up.k_h == pytest.approx(1.0)
         r = felt_stiffness(
-            1.0, k_o=k_o, k_h=up.k_h, b_h=up.b_h, own_gain=up.model.own_gain, rate_ratio=50,
+            1.0, k_o=k_o, k_h=up.k_h, b_h=up.b_h, own_gain=up.own_gain, rate_ratio=50,
             delay_ticks=2, proxy_hold=up.proxy_hold, complex_response=True,  # type: ignore[arg-type]
         )[0] / k_o  # fmt: skip
         felt.append((abs(r), r.real))

@@ -6,13 +6,14 @@ No device, no safety, no thread: positions in, force along the normal out.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 
 from haptic_collab.client.render import LocalRenderer
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S
 from haptic_collab.shared.local_model import LocalModelParams
-from haptic_collab.shared.local_model_update import LocalModelUpdate
+from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.primitives import Plane, make_plane, make_sphere
 
 T = 1e-3
@@ -173,10 +174,15 @@ def test_reset_forgets_the_integral() -> None:
     assert rd.model.integral_n == 0.0
 
 
+def pushed(force_n: float) -> SurfacePatch:
+    """The server's surface 1 mm deformed, after it applied ``force_n`` [N] from this user."""
+    return replace(SurfacePatch.of(plane_at(0.001), K_H), own_force_n=force_n)
+
+
 def _compensated(force_n: float, c_h: float = 1.0 / K_H) -> LocalModelUpdate:
     """The plane a 1 mm deformation away, moved back out by C_h F_s (as from_wire builds it)."""
     return LocalModelUpdate(
-        plane_at(0.001 - c_h * force_n), K_H, 0.0, own_gain=c_h, own_force_n=force_n
+        plane_at(0.001 - c_h * force_n), K_H, 0.0, own_gain=c_h, surface=pushed(force_n)
     )
 
 
@@ -229,7 +235,7 @@ def test_withdrawn_compensation_slides_the_surface_in_instead_of_dropping_the_fo
     rd.hand_over(_compensated(1.0), fresh=True)
     f_before = still(rd, -0.001, 5)[-1][0]
     assert f_before == pytest.approx(1.0)
-    rd.hand_over(LocalModelUpdate(plane_at(0.001), K_H / 2, 0.0, own_force_n=1.0), fresh=False)
+    rd.hand_over(LocalModelUpdate(plane_at(0.001), K_H / 2, 0.0, surface=pushed(1.0)), fresh=False)
     f = [pf for pf, _ in still(rd, -0.001, 80)]
     assert f[0] == pytest.approx(f_before, rel=0.05)
     assert max(abs(b - a) for a, b in zip([f_before, *f], f, strict=False)) <= 1.0 / 50 + 1e-9
@@ -249,7 +255,7 @@ def test_the_compensation_slide_ends_on_time_whatever_patches_arrive_meanwhile()
     rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.05))
     rd.hand_over(_compensated(1.0), fresh=True)
     still(rd, -0.0011, 5)
-    plain = LocalModelUpdate(plane_at(0.001), K_H, 0.0, own_force_n=1.0)
+    plain = LocalModelUpdate(plane_at(0.001), K_H, 0.0, surface=pushed(1.0))
     rd.hand_over(plain, fresh=False)
     f = []
     for _ in range(6):

@@ -38,11 +38,11 @@ def test_the_first_patch_waits_for_its_design_then_gains_are_stable_with_every_h
     assert s.receive(patch(1, k_o_eff=400.0), 0.1) is None  # no gains yet: forces stay off
     assert s.design_wanted is not None
     up = receive_designed(s, patch(1, k_o_eff=400.0), 0.1)
-    assert up is not None and up.k_h <= 150.0 and not up.fallback
+    assert up is not None and up.k_h <= 150.0 and not up.choice.fallback
     assert up.hold_ticks == 50
     # an object stiffer than the device: the plane at the rest surface (C_h = 1 / K_o_eff, felt
     # as K_h over the band) or the paper's PI (its integral builds the rest)
-    assert up.i_gain > 0.0 or up.model.own_gain * 400.0 == pytest.approx(1.0)
+    assert up.i_gain > 0.0 or up.own_gain * 400.0 == pytest.approx(1.0)
     # stable with the hand in the loop for every hand of the box and every sampling tick, also if
     # K_o_eff was overestimated by the margin (15 %) or underestimated by STIFFER_BY (25 %)
     for k_o in (0.85 * 400.0, 400.0, 1.25 * 400.0):
@@ -52,12 +52,12 @@ def test_the_first_patch_waits_for_its_design_then_gains_are_stable_with_every_h
             k_h=up.k_h,
             i_gain=up.i_gain,
             b_h=up.b_h,
-            own_gain=up.model.own_gain,
+            own_gain=up.own_gain,
             rate_ratio=50,
             proxy_hold=up.proxy_hold,
         )
         assert rho.max() < 1.0
-    if up.model.own_gain == 0.0:  # the paper's simulation loop is stable too
+    if up.own_gain == 0.0:  # the paper's simulation loop is stable too
         assert analyze(400.0, up.k_h, i_gain=up.i_gain).stable
 
 
@@ -66,7 +66,7 @@ def test_while_a_new_stiffness_is_designed_the_local_model_is_no_stiffer():
     first = receive_designed(s, patch(1, k_o_eff=300.0), 0.1)
     assert first is not None
     softer = s.receive(patch(2, k_o_eff=150.0), 0.2)  # a cell not designed yet
-    assert softer is not None and softer.fallback
+    assert softer is not None and softer.choice.fallback
     table = s.gain_table
     g_new, g_old = table.grid_point(table.cell(150.0)), table.grid_point(table.cell(300.0))
     assert softer.k_h / g_new <= first.k_h / g_old * 1.0001  # the same K_h / K_o, never more
@@ -79,7 +79,7 @@ def test_measured_delay_is_counted_in_whole_ticks_and_makes_gains_safe():
         pong(s, 0.22, 1.0 + 0.5 * i)  # 220 ms round trip at 20 Hz
     assert s.delay_ticks() == 4  # ceil((0.22 + 0.025) * 20) - 1
     up = receive_designed(s, patch(2), 20.0)
-    assert up is not None and up.delay_ticks == 4
+    assert up is not None and up.choice.delay_ticks == 4
     assert analyze(300.0, up.k_h, i_gain=up.i_gain, delay_ticks=4).stable
     rho = spectral_radius(
         hand=DEFAULT_HAND_BOX.hands(),
@@ -124,7 +124,7 @@ def test_a_delay_wavering_under_load_keeps_one_gain_key_and_a_rise_is_taken_at_o
         t += 0.5
         up = receive_designed(s, patch(10 + i), t)
         assert up is not None
-        seen.append(up.delay_ticks)
+        seen.append(up.choice.delay_ticks)
     # ...and the key follows it down only after 5 s at each lower value: no key is left sooner
     assert seen == sorted(seen, reverse=True) and seen[0] == 7 and seen[-1] == 2
     runs = [seen.count(d) for d in sorted(set(seen), reverse=True)]
@@ -217,12 +217,12 @@ def test_the_update_holds_the_patch_as_the_servo_renders_it():
 
     s = welcomed_session("A", "u1", mode="p")
     up = receive_designed(s, patch(4, k_o_eff=300.0, k_o=320.0), 0.1)
-    assert up is not None
-    m = up.model
-    assert m.primitive == make_plane((0, 0, 0.1), (0, 0, 1))
+    assert up is not None and up.surface is not None
+    m = up.surface
+    assert up.primitive == m.primitive == make_plane((0, 0, 0.1), (0, 0, 1))
     assert (m.tick, m.k_o, m.k_o_eff, m.k_o_stiff, m.b_o) == (4, 320.0, 300.0, 320.0, 0.0)
-    assert (m.k_h, m.i_gain, m.hold_ticks) == (up.k_h, 0.0, 50)
-    assert m.recovery_m_per_n == pytest.approx(1.0 / 320.0)
+    assert (up.i_gain, up.hold_ticks) == (0.0, 50)
+    assert up.recovery_m_per_n == pytest.approx(1.0 / 320.0)
 
 
 def test_no_patch_yet_is_not_reported_as_zero_penetration():

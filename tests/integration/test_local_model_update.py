@@ -1,7 +1,7 @@
 """The local model update from the server's contact to the servo's force, through the wire.
 
-The room encodes a real world's contact as a ``patch``; the client reads it back as a
-:class:`LocalModelUpdate` and the servo renders it: the force the user feels must be the one of
+The room encodes a real world's surface patch as a ``patch``; the client reads the same
+:class:`SurfacePatch` back, wraps it in a :class:`LocalModelUpdate` and the servo renders it: the force the user feels must be the one of
 the server's own primitive, K_h times the probe's depth along its normal, for a plane and for a
 sphere, and the same as the servo rendered when handed the primitive and gains one by one.
 """
@@ -9,6 +9,7 @@ sphere, and the same as the servo rendered when handed the primitive and gains o
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -18,9 +19,10 @@ from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.server.objects.balloon import Balloon, BalloonParams
 from haptic_collab.server.objects.mesh import default_balloon
 from haptic_collab.server.room import Room
-from haptic_collab.server.world import ContactOutput, World
+from haptic_collab.server.world import World
 from haptic_collab.shared.local_model_update import (
     LocalModelUpdate,
+    SurfacePatch,
     primitive_from_wire,
     primitive_to_wire,
 )
@@ -46,17 +48,17 @@ class RecordingWorld:
 
     def __init__(self, world: World) -> None:
         self.world = world
-        self.outputs: dict[str, ContactOutput] = {}
+        self.outputs: dict[str, SurfacePatch] = {}
 
-    def tick(self, inputs: Any) -> dict[str, ContactOutput]:
-        self.outputs = self.world.tick(inputs)
+    def tick(self, inputs: Any, tick: int | None = None) -> dict[str, SurfacePatch]:
+        self.outputs = self.world.tick(inputs, tick)
         return self.outputs
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.world, name)
 
 
-def server_patch(primitive: str) -> tuple[ContactOutput, Patch]:
+def server_patch(primitive: str) -> tuple[SurfacePatch, Patch]:
     """One user's contact after a tick of a real balloon, and the patch the room sent for it."""
     world = RecordingWorld(
         World(
@@ -94,16 +96,18 @@ def rendered_force(set_patch: Any) -> np.ndarray:
 def test_the_servo_renders_the_servers_contact_through_the_wire(primitive: str) -> None:
     res, msg = server_patch(primitive)
     assert isinstance(res.primitive, Sphere if primitive == "sphere" else Plane)
-    update = LocalModelUpdate.from_wire(msg, k_h=K_H, i_gain=0.0, hold_ticks=50)
+    surface = SurfacePatch.from_wire(msg)
+    assert surface == res  # one type: the world's surface patch is what the client reads back
+    update = LocalModelUpdate.from_surface(surface, k_h=K_H, i_gain=0.0, hold_ticks=50)
 
     assert type(update.primitive) is type(res.primitive)
-    assert (update.tick, update.k_o, update.k_o_eff, update.b_o) == (
+    assert update.surface is not None
+    assert (update.surface.tick, update.surface.k_o, update.surface.k_o_eff) == (
         1,
         res.k_o,
         res.k_o_eff,
-        res.b_o,
     )
-    assert update.k_o_stiff == res.k_o_stiff
+    assert (update.surface.b_o, update.surface.k_o_stiff) == (res.b_o, res.k_o_stiff)
     assert update.recovery_m_per_n == pytest.approx(1.0 / res.k_o)
 
     # the server's own primitive: K_h times the probe's depth, along the outward normal
@@ -142,14 +146,16 @@ def test_an_uncoupled_patch_reads_back_k_o_as_its_stiffest_stiffness() -> None:
         tick=3, primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)), proxy_m=(0, 0, 0.1),
         normal=(0, 0, 1), penetration_m=0.001, in_contact=True, k_o=400.0, k_o_eff=380.0, b_o=2.0,
     )  # fmt: skip
-    update = LocalModelUpdate.from_wire(msg, k_h=200.0, i_gain=1000.0, b_h=1.0, proxy_hold="foh")
-    assert update.k_o_stiff == 400.0
+    update = LocalModelUpdate.from_surface(
+        SurfacePatch.from_wire(msg), k_h=200.0, i_gain=1000.0, b_h=1.0, proxy_hold="foh"
+    )
+    assert update.surface is not None and update.surface.k_o_stiff == 400.0
     assert (update.k_h, update.i_gain, update.b_h, update.proxy_hold) == (200.0, 1000.0, 1.0, "foh")
 
 
 def test_an_update_set_by_hand_knows_no_object_stiffness() -> None:
     update = LocalModelUpdate(make_plane((0, 0, 0), (0, 0, 1)), 300.0, 0.0)
-    assert update.k_o is None and update.recovery_m_per_n is None and update.tick is None
+    assert update.surface is None and update.recovery_m_per_n is None
 
 
 @pytest.mark.parametrize(
@@ -160,9 +166,6 @@ def test_an_update_set_by_hand_knows_no_object_stiffness() -> None:
         {"b_h": float("nan")},
         {"proxy_hold": "soh"},
         {"hold_ticks": 0},
-        {"k_o": 0.0},
-        {"k_o_eff": float("inf")},
-        {"b_o": -1.0},
     ],
 )
 def test_bad_values_are_refused_when_the_update_is_built(bad: dict[str, Any]) -> None:
@@ -171,11 +174,28 @@ def test_bad_values_are_refused_when_the_update_is_built(bad: dict[str, Any]) ->
         LocalModelUpdate(make_plane((0, 0, 0), (0, 0, 1)), **args)
 
 
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"k_o": 0.0},
+        {"k_o_eff": float("inf")},
+        {"k_o_stiff": float("nan")},
+        {"b_o": -1.0},
+        {"own_force_n": -0.5},
+    ],
+)
+def test_bad_values_are_refused_when_the_surface_patch_is_built(bad: dict[str, Any]) -> None:
+    good = SurfacePatch.of(make_plane((0, 0, 0), (0, 0, 1)), 400.0)
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        replace(good, **bad)
+
+
 def test_the_servo_takes_an_update_or_a_primitive_with_gains_but_not_both() -> None:
     core = ServoCore(FakeDevice(), ServoConfig())
-    update = LocalModelUpdate(make_plane((0, 0, 0), (0, 0, 1)), 5000.0, 0.0, k_o=400.0)
+    plane = make_plane((0, 0, 0), (0, 0, 1))
+    update = LocalModelUpdate(plane, 5000.0, 0.0, surface=SurfacePatch.of(plane, 400.0))
     applied = core.set_patch(update)
-    assert applied.k_h == 1000.0 and applied.k_o == 400.0  # clamped to the device
+    assert applied.k_h == 1000.0 and applied.surface == update.surface  # clamped to the device
     with pytest.raises(TypeError):
         core.set_patch(update, 300.0, 0.0)
     with pytest.raises(TypeError):

@@ -152,7 +152,9 @@ def test_the_fem_solid_runs_in_the_world_with_two_users(ball, cache):
     for _ in range(60):
         out = world.tick({u: ContactInput(probe=probes[u], force=force[u]) for u in probes})
         for u in probes:
-            force[u] = out[u].normal * 0.5 * out[u].k_o_eff * max(out[u].penetration_m, 0.0)
+            force[u] = (
+                np.asarray(out[u].normal) * 0.5 * out[u].k_o_eff * max(out[u].penetration_m, 0.0)
+            )
             depths[u].append(out[u].penetration_m)
     for u in probes:
         last = np.array(depths[u][-10:])

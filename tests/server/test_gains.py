@@ -142,7 +142,8 @@ def test_the_room_sends_the_recommendation_in_the_patch_and_the_client_renders_i
         encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
     )
     up = s.receive(encode(p), 0.1)
-    assert up is not None and not up.fallback and s.server_gain_patches == 1
+    assert up is not None and up.choice is not None and not up.choice.fallback
+    assert s.server_gain_patches == 1
     assert (up.k_h, up.i_gain, up.b_h) == (p.gains.k_h, p.gains.i_gain, p.gains.b_h)
     # ... unless it is beyond this device: a softer device designs its own
     soft = ClientSession(

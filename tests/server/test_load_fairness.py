@@ -23,10 +23,11 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as sync_connect
 
+from haptic_collab.server.admission import RoomLimits
 from haptic_collab.server.app import ServerApp, _Peer
 from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.main import ServerOptions, build_world
-from haptic_collab.server.room import Outgoing, Room, RoomLimits
+from haptic_collab.server.room import Outgoing, Room
 from haptic_collab.server.security import TokenBucket
 from haptic_collab.shared.protocol import LinkConditions
 from tests.support.rooms import RecordingWorld, hello, prime, state, texts

@@ -75,8 +75,8 @@ def test_a_claimed_compensation_cannot_ratchet_the_force_up():
 class _PushedWorld(RecordingWorld):
     """The recording world, reporting the normal force each user applied as ``own_force_n``."""
 
-    def tick(self, inputs):
-        out = super().tick(inputs)
+    def tick(self, inputs, tick=None):
+        out = super().tick(inputs, tick)
         return {
             k: replace(o, own_force_n=max(0.0, float(inputs[k].force[2]))) for k, o in out.items()
         }

@@ -116,12 +116,12 @@ def _slide(
     proxy_steps, probe_steps = [], []
     probe = start
     for _ in range(ticks):
-        n = out.normal
+        n = np.asarray(out.normal)
         t = direction - float(direction @ n) * n
         t /= max(np.linalg.norm(t), 1e-12)
-        new_probe = out.proxy + step_m * t - depth_m * n
+        new_probe = np.asarray(out.proxy) + step_m * t - depth_m * n
         new = world.tick({"u": ContactInput(probe=new_probe, force=NO_FORCE)})["u"]
-        proxy_steps.append(np.linalg.norm(new.proxy - out.proxy))
+        proxy_steps.append(np.linalg.norm(np.subtract(new.proxy, out.proxy)))
         probe_steps.append(np.linalg.norm(new_probe - probe))
         probe, out = new_probe, new
     return np.array(proxy_steps), np.array(probe_steps)
@@ -177,7 +177,7 @@ def test_a_probe_slid_6_mm_deep_over_every_stress_mesh_never_jumps(build):
     in one tick on the box, plate, bowl, bunny and nut (docs/real-objects.md); a jump to another
     part of the object is at least the thickness of the thinnest part (9 mm, the plate).
     """
-    from haptic_collab.server.room import object_info
+    from haptic_collab.server.object_info import object_info
 
     mesh = build()
     obj = Balloon(mesh)

@@ -11,7 +11,9 @@ import json
 import numpy as np
 import pytest
 
-from haptic_collab.server.room import Room, RoomLimits, object_info
+from haptic_collab.server.admission import RoomLimits
+from haptic_collab.server.object_info import object_info
+from haptic_collab.server.room import Room
 from haptic_collab.shared.protocol import decode_binary
 from tests.support.rooms import RecordingWorld, hello, prime, state, texts
 
@@ -257,9 +259,9 @@ def test_the_first_side_anchor_is_where_a_press_on_the_top_reaches():
     """On the 9 mm plate a push on the top hardly moves its +y rim: a user resting there could
     not feel it. The room lists the sides by the share of the top's push felt there, most
     first."""
+    from haptic_collab.server.object_info import order_sides_by_coupling, side_coupling
     from haptic_collab.server.objects.balloon import Balloon, BalloonParams
     from haptic_collab.server.objects.shapes import stress_mesh
-    from haptic_collab.server.room import order_sides_by_coupling, side_coupling
 
     mesh = stress_mesh("plate")
     obj = Balloon(mesh, BalloonParams())

@@ -11,9 +11,10 @@ import json
 import numpy as np
 import pytest
 
+from haptic_collab.server.admission import RoomLimits
 from haptic_collab.server.force_bound import ForceBoundParams, bound_force
 from haptic_collab.server.main import ServerOptions, build_auth
-from haptic_collab.server.room import Room, RoomLimits
+from haptic_collab.server.room import Room
 from haptic_collab.server.security import TokenBucket, TokenTable, is_loopback, origin_allowed
 from haptic_collab.shared.primitives import make_plane, make_sphere
 from tests.support.rooms import RecordingWorld, prime, state, texts

@@ -25,10 +25,12 @@ from haptic_collab.research.fidelity_1d import (
 )
 from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
+from haptic_collab.shared.felt_stiffness import felt_stiffness
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX
-from haptic_collab.shared.gain_design import GainTable, design_cell, felt_stiffness, verify_gains
 from haptic_collab.shared.gain_key import GainKey, stiff_ratio_class
-from haptic_collab.shared.local_model_update import LocalModelUpdate
+from haptic_collab.shared.gain_table import GainTable, design_cell
+from haptic_collab.shared.interim_gains import verify_gains
+from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.primitives import make_plane, make_sphere, moved_out
 from haptic_collab.shared.protocol import Patch, PlaneModel
 
@@ -171,11 +173,12 @@ def test_the_wire_patch_is_rendered_moved_out_by_c_h_times_the_applied_force():
         normal=(0, 0, 1), penetration_m=0.0, in_contact=True, k_o=500.0, k_o_eff=500.0, b_o=0.0,
         own_force_n=2.0,
     )  # fmt: skip
-    up = LocalModelUpdate.from_wire(patch, k_h=500.0, i_gain=0.0, own_gain=1.0 / 500.0)
+    surface = SurfacePatch.from_wire(patch)
+    up = LocalModelUpdate.from_surface(surface, k_h=500.0, i_gain=0.0, own_gain=1.0 / 500.0)
     # the probe resting on the deformed surface still feels the 2 N that hold it there
     assert up.primitive.penetration(0, 0, 0.1) == pytest.approx(2.0 / 500.0)
     assert (up.own_gain, up.own_force_n) == (pytest.approx(1 / 500.0), 2.0)
-    plain = LocalModelUpdate.from_wire(patch, k_h=200.0, i_gain=0.0)
+    plain = LocalModelUpdate.from_surface(surface, k_h=200.0, i_gain=0.0)
     assert plain.primitive.penetration(0, 0, 0.1) == 0.0
     with pytest.raises(ValueError):
-        LocalModelUpdate.from_wire(patch, k_h=200.0, i_gain=0.0, own_gain=-1.0)
+        LocalModelUpdate.from_surface(surface, k_h=200.0, i_gain=0.0, own_gain=-1.0)

@@ -27,7 +27,7 @@ from haptic_collab.shared.checks import describe
 from haptic_collab.shared.coupled_loop import UserGains
 from haptic_collab.shared.full_loop import Hand, HandBox
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
-from haptic_collab.shared.local_model_update import LocalModelUpdate
+from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.passivity import PassivityParams
 from haptic_collab.shared.primitives import make_plane
 
@@ -130,7 +130,8 @@ def test_an_int_or_a_numpy_number_is_a_float() -> None:
     assert (p.tension, p.sim_period_s, p.cache_mb) == (50.0, 0.02, 64.0)
     assert all(type(v) is float for v in (p.tension, p.sim_period_s, p.cache_mb))
     assert type(Hand(np.float64(0.5), 5, 300).stiffness_n_per_m) is float
-    assert LocalModelUpdate(PLANE, 300, 0, k_o=np.float64(400.0), hold_ticks=50).k_o == 400.0
+    assert LocalModelUpdate(PLANE, np.float64(300.0), 0, hold_ticks=50).k_h == 300.0
+    assert type(SurfacePatch.of(PLANE, np.float64(400.0)).k_o) is float
 
 
 def test_inf_only_where_a_field_allows_it() -> None:

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from haptic_collab.server.world import ContactOutput
+from haptic_collab.shared.local_model_update import SurfacePatch
 from haptic_collab.shared.primitives import make_plane
 from haptic_collab.shared.protocol import PROTOCOL_VERSION
 
@@ -25,20 +25,22 @@ class RecordingWorld:
         self.inputs: list[dict] = []
         self.sim_period_s = 0.05  # a 20 Hz object, as the rooms below
 
-    def tick(self, inputs):
+    def tick(self, inputs, tick=None):
         self.inputs.append(dict(inputs))
         out = {}
         for key, inp in inputs.items():
             assert np.all(np.isfinite(inp.probe)) and np.all(np.isfinite(inp.force))
-            out[key] = ContactOutput(
+            out[key] = SurfacePatch(
+                tick=len(self.inputs) if tick is None else tick,
                 primitive=make_plane((0, 0, 0.1), (0, 0, 1)),
-                proxy=np.array([inp.probe[0], inp.probe[1], 0.1]),
-                normal=np.array([0.0, 0.0, 1.0]),
+                proxy=(float(inp.probe[0]), float(inp.probe[1]), 0.1),
+                normal=(0.0, 0.0, 1.0),
                 penetration_m=0.1 - float(inp.probe[2]),
+                in_contact=True,
                 k_o=400.0,
                 k_o_eff=380.0,
+                k_o_stiff=400.0,
                 b_o=0.0,
-                in_contact=True,
             )
         return out
 
