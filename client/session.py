@@ -1,7 +1,7 @@
 """A haptic user's side of the protocol, sans-I/O: server frames and times in, frames and patches out.
 
 The asyncio link (:mod:`client.link`) pumps bytes; this class decides. On each ``patch`` it looks
-the local model's gains up in a :class:`shared.gain_design.GainTable`: the full-loop design (hand in
+the local model's gains up in a :class:`shared.gain_table.GainTable`: the full-loop design (hand in
 the loop, every sampling tick, a K_o margin) for the patch's K_o_eff, the rate ratio N and the
 *measured* delay (round-trip time in whole simulation ticks), within the device's maximum stiffness
 and damping (Step 2 of section 6). A lookup is a dict access; a cell not designed yet is named in
@@ -11,7 +11,7 @@ PI, up to ten).
 Interim gains. Until that design is done the cell renders *verified interim gains*: gains that
 pass exactly the design's acceptance test for the cell (:func:`verify_gains`: every hand of the
 box, every sampling tick, K_o' over the cell's range with the margin, oscillations decaying at
-:data:`shared.gain_design.MIN_DECAY_RATE_PER_S`), found by :func:`interim_design` among gains
+:data:`shared.stability_margin.MIN_DECAY_RATE_PER_S`), found by :func:`interim_design` among gains
 already known (the nearest designed cell, the gains in use) and a short ladder of generic gains
 (:data:`INTERIM_LADDER`), a P design as the last resort. That takes one or a few checks of
 0.1-0.5 s of CPU each (a PI design takes 2-3 s on the same machine), so the first contact no
