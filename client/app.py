@@ -9,7 +9,7 @@ Ctrl-C or SIGTERM; on exit the servo ramps forces to zero, the link says ``bye``
 is flushed and closed and the summary written.
 
 A device that faults while running (unplugged) is the device's business: the servo loop ramps
-forces to zero and the client reopens the device with backoff (:data:`DEVICE_REOPEN_BACKOFF_S`);
+forces to zero and the client reopens the device with backoff (:data:`client.servo_device.DEVICE_REOPEN_BACKOFF_S`);
 the network link is never restarted for it.
 """
 
@@ -39,15 +39,10 @@ from haptic_collab.client.servo import (
     ServoCore,
     ServoSnapshot,
     ServoStatus,
-    ServoThread,
 )
-from haptic_collab.client.servo_process import (
-    BuiltDevice,
-    ServoProcess,
-    ServoProcessError,
-    built_device,
-    watch_device,
-)
+from haptic_collab.client.servo_device import BuiltDevice, built_device, watch_device
+from haptic_collab.client.servo_process import ServoProcess, ServoProcessError
+from haptic_collab.client.servo_thread import ServoThread
 from haptic_collab.client.session import ClientSession, ServoSample
 from haptic_collab.client.summary import client_summary
 from haptic_collab.client.theta import threshold_for
@@ -174,7 +169,7 @@ def _sample(servo: ServoHandle) -> ServoSample | None:
 
 
 class ServoHandle(Protocol):
-    """What the link side uses of a running servo loop (:class:`client.servo.ServoThread` or
+    """What the link side uses of a running servo loop (:class:`client.servo_thread.ServoThread` or
     :class:`client.servo_process.ServoProcess`)."""
 
     def set_patch(self, update: LocalModelUpdate) -> LocalModelUpdate: ...
@@ -189,8 +184,8 @@ class ServoHandle(Protocol):
 
 class _ThreadServo:
     """The servo loop as a thread of this process (``--servo thread``): the device opened here
-    (:class:`client.devices.DeviceOpener`), a :class:`client.servo.ServoThread` and a thread that
-    reopens a faulted device (:func:`client.servo_process.watch_device`). The same set-up calls
+    (:class:`client.devices.DeviceOpener`), a :class:`client.servo_thread.ServoThread` and a thread that
+    reopens a faulted device (:func:`client.servo_device.watch_device`). The same set-up calls
     as :class:`client.servo_process.ServoProcess`."""
 
     def __init__(self, opener: DeviceOpener, capacity: int, clock: Callable[[], float]) -> None:

@@ -6,7 +6,7 @@ deadline missed by more than ``late_tolerance`` periods is counted and skipped, 
 Clock and sleep are injected.
 
 :func:`try_realtime_priority` and the switch-interval counter change the process or the calling
-thread (SCHED_FIFO, :func:`sys.setswitchinterval`); :class:`client.servo.ServoThread` uses them
+thread (SCHED_FIFO, :func:`sys.setswitchinterval`); :class:`client.servo_thread.ServoThread` uses them
 while it runs.
 """
 

@@ -18,7 +18,7 @@ Frames. The SDK reports positions in the device's frame: x toward the user, y to
 right, z up (H3D's HAPI, src/ForceDimensionHapticsDevice.cpp, reads ``dhdGetPosition(&z, &x, &y)`` into
 its x-right, y-up, z-toward-the-user frame; CHAI3D 3.3.0 passes the positions through unchanged,
 adding only a per-model workspace offset, src/devices/CDeltaDevices.cpp:1299-1304). The client's
-device convention is x right, y away from the user, z up (:class:`client.devices.hid.SpaceMouseMapping`),
+device convention is x right, y away from the user, z up (:class:`client.devices.hid_reports.SpaceMouseMapping`),
 so world = centre + S * (y_d, -x_d, z_d) with S the workspace scale and (x_d, y_d, z_d) the
 position plus the model's workspace offset; a world force (fx, fy, fz) is sent as (-fy, fx, fz),
 unscaled. The workspace centre is placed :data:`HID_STANDOFF_M` outside the anchor, like a HID

@@ -1,6 +1,6 @@
 """Servo-loop benchmark: does the 1 kHz loop keep time, and what does a tick cost?
 
-Two loops run one after the other on the same scheduler (:class:`client.servo.DeadlineLoop`, real
+Two loops run one after the other on the same scheduler (:class:`client.scheduler.DeadlineLoop`, real
 clock, the calling thread):
 
 1. *minimal*: the scheduler alone, each tick only stores its time: what this machine and Python
@@ -174,11 +174,11 @@ def run(
     rate_hz : float
         Servo rate [Hz], > 0.
     spin_s : float
-        Busy-wait margin [s] before each deadline (see :class:`client.servo.DeadlineLoop`).
+        Busy-wait margin [s] before each deadline (see :class:`client.scheduler.DeadlineLoop`).
     profile : str
         Simulated device profile of the servo run.
     realtime_priority : int or None
-        SCHED_FIFO priority asked for the benchmark threads, as :class:`client.servo.ServoThread`
+        SCHED_FIFO priority asked for the benchmark threads, as :class:`client.servo_thread.ServoThread`
         does by default; None runs them as ordinary threads. ``realtime`` in each result says
         whether it was granted.
 

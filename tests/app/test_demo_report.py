@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from haptic_collab.demo import (
+from haptic_collab.demo_report import (
     B_SETTLE_S,
     RELEASE_SETTLE_S,
     coupling_report,
@@ -176,7 +176,7 @@ def test_b_designed_coupled_gains_during_the_hold_still_have_a_baseline() -> Non
 
 
 def test_missed_deadlines_count_the_skipped_periods_after_the_first_second() -> None:
-    from haptic_collab.demo import missed_per_s
+    from haptic_collab.demo_report import missed_per_s
 
     t = np.arange(0.0, 5.0, 1e-3)
     period = np.full_like(t, 1e-3)

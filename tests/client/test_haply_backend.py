@@ -29,13 +29,8 @@ from haptic_collab.client.devices import backends
 from haptic_collab.client.devices import haply as haply_mod
 from haptic_collab.client.devices.backends import HID_STANDOFF_M, DeviceError
 from haptic_collab.client.devices.base import DeviceLimits, HapticError
-from haptic_collab.client.devices.haply import (
-    BACKEND,
-    INSTALL_HINT,
-    Inverse3Device,
-    Inverse3Specs,
-    parse_haply_args,
-)
+from haptic_collab.client.devices.haply import BACKEND, INSTALL_HINT, Inverse3Device
+from haptic_collab.client.devices.haply_spec import Inverse3Specs, parse_haply_args
 from haptic_collab.client.devices.opener import DeviceOpener, list_devices, make_device
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.shared.primitives import make_plane

@@ -16,17 +16,15 @@ from typing import Any
 
 import pytest
 
-from haptic_collab.client.devices.hid import (
-    ProfileHidDevice,
-    SpaceMouseDevice,
+from haptic_collab.client.devices.hid import ProfileHidDevice, SpaceMouseDevice, list_devices
+from haptic_collab.client.devices.hid_backend import parse_hid_ids
+from haptic_collab.client.devices.hid_reports import (
     SpaceMouseMapping,
     decode_input,
     encode_output,
-    list_devices,
     parse_spacemouse_report,
     spacemouse_position,
 )
-from haptic_collab.client.devices.hid_backend import parse_hid_ids
 from haptic_collab.client.devices.opener import make_device
 from haptic_collab.client.devices.profiles import ProfileError, load_hid_profile, parse_hid_profile
 

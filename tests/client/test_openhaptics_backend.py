@@ -693,7 +693,7 @@ def test_a_bad_spec_is_a_one_line_device_error(args: str, message: str) -> None:
 
 
 def test_limits_scale_like_the_world_the_user_feels() -> None:
-    from haptic_collab.client.devices.openhaptics import HdLimits, world_limits
+    from haptic_collab.client.devices.openhaptics_limits import HdLimits, world_limits
 
     base = HdLimits.from_sdk(
         "Touch",

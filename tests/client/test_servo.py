@@ -15,7 +15,8 @@ import pytest
 
 from haptic_collab.client.devices.base import HapticError, Vec3
 from haptic_collab.client.scheduler import DeadlineLoop
-from haptic_collab.client.servo import ServoConfig, ServoCore, ServoThread
+from haptic_collab.client.servo import ServoConfig, ServoCore
+from haptic_collab.client.servo_thread import ServoThread
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import make_plane, make_sphere

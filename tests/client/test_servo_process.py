@@ -26,12 +26,10 @@ from haptic_collab.client.app import ClientOptions, run_client
 from haptic_collab.client.devices.backends import DeviceError
 from haptic_collab.client.recorder import COLUMNS
 from haptic_collab.client.servo import ServoConfig, ServoCore
-from haptic_collab.client.servo_process import (
-    ServoProcess,
-    SharedBlock,
-    _Bridge,
-    built_device,
-)
+from haptic_collab.client.servo_block import SharedBlock
+from haptic_collab.client.servo_child import _Bridge
+from haptic_collab.client.servo_device import built_device
+from haptic_collab.client.servo_process import ServoProcess
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import make_plane

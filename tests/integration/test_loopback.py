@@ -24,7 +24,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from haptic_collab.client.servo import ServoConfig
-from haptic_collab.demo import hold_shake_mm
+from haptic_collab.demo_report import hold_shake_mm
 from haptic_collab.server.app import ServerApp
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Room
@@ -124,7 +124,7 @@ def test_two_users_feel_each_other_over_websockets(tmp_path):
     # and the probe then sinks until the proportional part carries the rest; B's surface moves
     # out under it): judge the motion left after a straight-line trend
     # (the 0.5 s after a change of gains, interim -> designed arriving late on a busy machine,
-    # are left out: the equilibrium moves, smoothly, there; haptic_collab.demo.hold_shake_mm)
+    # are left out: the equilibrium moves, smoothly, there; haptic_collab.demo_report.hold_shake_mm)
     for cols, normal in ((a, info.top_normal), (b, side_n)):
         probe = along(cols, "probe", np.asarray(normal))
         window = (hold_end - 1.0, hold_end)

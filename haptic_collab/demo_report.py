@@ -1,0 +1,518 @@
+"""The ``haptic demo`` report: what the users' telemetry and the server's status say about a run.
+
+Timeline for a run of D seconds (D >= 12): B approaches at once and rests; A waits 0.2 D,
+approaches (1 s), presses (1.5 s), holds until 0.75 D, releases (1 s) and withdraws
+(:func:`timeline`).
+
+The report's coupling (:func:`coupling_report`) compares the last second of A's hold with a window
+where B rests settled (1 s after B's force came on), before A touches, or after A's release when
+B's contact came on too late: B's force rise [N] and the outward displacement of the surface under
+B [mm]. Each user's hold is judged stable or not (:func:`hold_shake_mm`) and the servo's missed
+deadlines are counted (:func:`missed_per_s`); :func:`build_report` assembles the ``--report``
+JSON from the run's folder, :func:`print_summary` prints its table and :func:`plot_demo` draws
+the ``--plot`` PNG. The processes that make the telemetry are run by :mod:`haptic_collab.demo`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from haptic_collab.client.devices.trajectories import Rest
+
+#: A hold is stable when the peak-to-peak penetration over its last second, after its straight-line
+#: trend, stays below this [mm] (:func:`hold_shake_mm`).
+STABLE_P2P_MM = 1.0
+#: After a change of gains the hold's equilibrium moves (a stiffer coupling holds the probe nearer
+#: the proxy) for about this long [s]: the client's gain transfer (0.25 s) and the hand settling.
+GAIN_SETTLE_S = 0.5
+#: A change of K_h smaller than this share is not a change of gains for the hold judgement: a
+#: table design is rendered scaled to the reported K_o (GainDesign.at), so a K_o that drifts
+#: inside its cell moves K_h a little every patch, with the equilibrium staying put.
+GAIN_CHANGE_SHARE = 0.02
+#: B's resting samples count when B renders a K_h within this share of the K_h it renders while
+#: A holds. The designed gains of the coupled class (B's side coupled to A's press) replace the
+#: uncoupled ones while A holds, 9 % apart on the balloon (194 and 214 N/m; with a faster design
+#: worker they now arrive within the demo's run): a lower K_h lowers B's force in the hold, so it
+#: can only hide a rise, never make one. A quarter-K_o fallback (75 % apart) stays out.
+REST_GAIN_SHARE = 0.15
+#: B's contact counts as settled this long after its force came on [s] (the PI local model's
+#: integral takes about 1 s to reach B's resting force).
+B_SETTLE_S = 1.0
+#: After A's release the surface and B's integral relax for about this long [s].
+RELEASE_SETTLE_S = 2.0
+#: B's force is "on" above this [N].
+B_FORCE_ON_N = 0.01
+#: B feels A when B's force changes by at least this share of its resting force while A holds
+#: (the force JND, about 7-10 %: Jones 1989; Pang, Tan and Durlach 1991) ...
+FEEL_FORCE_SHARE = 0.10
+#: ... the surface under B moves by at least this [mm], and the force follows the surface (up
+#: when it bulges out toward B's hand, down when it is drawn in): on a balloon the water pushes
+#: B's side out; on other shapes the membrane near A's dent may draw B's side in instead.
+FEEL_DISPLACEMENT_MM = 0.1
+#: The shortest window B's resting force and position are averaged over [s].
+MIN_REST_WINDOW_S = 0.25
+#: How long after A touches B's lowest force is looked for [s] (A's press takes 1.5 s). When the
+#: contacts couple, a client without checked gains for the new coupling renders a conservative
+#: fallback for the 0.15-0.3 s of a check: B's resting force fell from 0.28 to 0.07-0.11 N then,
+#: just as A arrived, where it should only rise.
+ARRIVAL_WINDOW_S = 1.0
+#: B's resting samples count only with the K_h B renders while A holds (:data:`REST_GAIN_SHARE`),
+#: this long after B last rendered another [s] (a gain change's transfer ramp, 0.25 s, and the
+#: slow loop's settling): B resting with a quarter-K_o fallback (its delay had risen) dents the
+#: surface less, and compared with the hold under its designed gains that read as B's side barely
+#: moving (0.14-0.30 mm against 0.65). (Named apart from :data:`GAIN_SETTLE_S`, which it had
+#: overwritten: the hold judgement left out 0.3 s after a change of gains, not the 0.5 s stated.)
+REST_GAIN_SETTLE_S = 0.3
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """A's scripted press, in seconds from the start of A's client."""
+
+    delay_s: float
+    approach_s: float
+    press_s: float
+    hold_s: float
+    release_s: float
+
+    @property
+    def contact_s(self) -> float:
+        """When A's hand reaches the surface."""
+        return self.delay_s + self.approach_s
+
+    @property
+    def hold_end_s(self) -> float:
+        """When A's hold ends (the release begins)."""
+        return self.delay_s + self.approach_s + self.press_s + self.hold_s
+
+    def options(self) -> str:
+        """``--trajectory`` value for A's client."""
+        return (
+            f"delay_s={self.delay_s:g},approach_s={self.approach_s:g},press_s={self.press_s:g},"
+            f"hold_s={self.hold_s:g},release_s={self.release_s:g}"
+        )
+
+
+def timeline(duration_s: float) -> Timeline:
+    """A's press for a run of ``duration_s`` seconds (module docstring)."""
+    # B's forces come on once its first gains are checked (a few hundred ms after its first patch;
+    # before interim checks, 1-2.5 s): A waits at least 4 s, so the "before" window sees B resting
+    delay = max(4.0, 0.2 * duration_s)
+    approach, press, release = 1.0, 1.5, 1.0
+    hold = max(2.0, 0.75 * duration_s - delay - approach - press)
+    return Timeline(delay, approach, press, hold, release)
+
+
+class RunSettings(Protocol):
+    """What :func:`build_report` reads of the run's options (a
+    :class:`haptic_collab.demo.DemoOptions`).
+
+    Attributes
+    ----------
+    sim_rate_hz : float
+        The server's simulation rate [Hz].
+    stiffness_scale : float
+        The factor every stiffness term of the object is multiplied by.
+    latency_ms, jitter_ms : float
+        The server's injected one-way latency and its jitter [ms].
+    loss : float
+        The server's injected loss of state frames, a share in [0, 1).
+    duration_s : float
+        The run's length [s].
+    """
+
+    sim_rate_hz: float
+    stiffness_scale: float
+    latency_ms: float
+    jitter_ms: float
+    loss: float
+    duration_s: float
+
+
+def _load(work: Path, name: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    summary = json.loads((work / f"{name}.json").read_text())
+    with open(work / f"{name}.csv") as f:
+        header = f.readline().strip().split(",")
+    data = np.loadtxt(work / f"{name}.csv", delimiter=",", skiprows=1, ndmin=2)
+    cols = {h: data[:, i] for i, h in enumerate(header)}
+    return cols, summary
+
+
+def _window(cols: dict[str, np.ndarray], t0: float, t1: float) -> np.ndarray:
+    t = cols["t_s"]
+    return (t >= t0) & (t < t1)
+
+
+def hold_shake_mm(
+    t: np.ndarray,
+    x: np.ndarray,
+    k_h: np.ndarray,
+    window: tuple[float, float],
+    settle_s: float = GAIN_SETTLE_S,
+) -> float:
+    """How much a held probe shakes: peak to peak [mm] of ``x`` [m] after its trend.
+
+    A hold is judged in ``window`` (t0, t1) [s] on the telemetry's clock ``t`` [s]. A change of
+    K_h (``k_h`` [N/m], one per sample) by more than :data:`GAIN_CHANGE_SHARE` moves the hold's
+    equilibrium: the ``settle_s`` after each change are left out, and each stretch between changes is judged apart, after its own
+    straight-line trend (a slow creep, such as the probe sinking while the PI integral stops at
+    the device's continuous force, is not a shake). Stretches under 0.1 s are not judged.
+
+    Returns
+    -------
+    float
+        The largest peak to peak [mm] of a stretch; NaN if no stretch could be judged.
+    """
+    t = np.asarray(t, float)
+    x = np.asarray(x, float)
+    k_h = np.asarray(k_h, float)
+    judged = (t >= window[0]) & (t < window[1]) & np.isfinite(x)
+    changes = t[1:][np.abs(np.diff(k_h)) > GAIN_CHANGE_SHARE * np.abs(k_h[:-1])]
+    for ts in changes:
+        judged &= ~((t >= ts) & (t < ts + settle_s))
+    # stretches: runs of judged samples not separated by a change of gains
+    stretch = np.searchsorted(changes, t, side="right")
+    worst = float("nan")
+    for k in np.unique(stretch[judged]):
+        m = judged & (stretch == k)
+        tk, xk = t[m], x[m]
+        if tk.size < 3 or tk[-1] - tk[0] < 0.1:
+            continue
+        shake = xk - np.polyval(np.polyfit(tk, xk, 1), tk)
+        p2p = float(np.ptp(shake) * 1000.0)
+        worst = p2p if not np.isfinite(worst) else max(worst, p2p)
+    return worst
+
+
+def missed_per_s(
+    t_s: np.ndarray, period_s: np.ndarray, servo_rate_hz: float, skip_s: float = 1.0
+) -> float:
+    """Servo deadlines missed per second after the first ``skip_s`` [s] of the recording: a
+    period of k > 1.5 servo periods skipped round(k) - 1 deadlines (the scheduler's late
+    tolerance, :class:`client.scheduler.DeadlineLoop`)."""
+    if t_s.size < 2:
+        return float("nan")
+    keep = (t_s > t_s[0] + skip_s) & np.isfinite(period_s)
+    span = float(t_s[keep][-1] - t_s[keep][0]) if keep.sum() > 1 else 0.0
+    if span <= 0.0:
+        return float("nan")
+    k = period_s[keep] * servo_rate_hz
+    return float(np.sum(np.where(k > 1.5, np.round(k) - 1.0, 0.0)) / span)
+
+
+def _user_report(
+    cols: dict[str, np.ndarray], summary: dict[str, Any], hold: tuple[float, float]
+) -> dict[str, Any]:
+    w = _window(cols, *hold)
+    p2p = hold_shake_mm(cols["t_s"], cols["penetration_m"], cols["k_h_n_per_m"], hold)
+    faults = int(np.nansum(cols["fault"])) if "fault" in cols else 0
+    return {
+        "servo_rate_hz": summary.get("servo_rate_hz"),
+        "period_us_p99": summary.get("period_us_p99"),
+        "max_force_n": float(np.nanmax(cols["force_n"])) if cols["force_n"].size else 0.0,
+        "hold_oscillation_mm": p2p,
+        "stable": bool(np.isfinite(p2p) and p2p < STABLE_P2P_MM and faults == 0),
+        "mean_force_during_hold_n": float(np.nanmean(cols["force_n"][w])) if w.any() else None,
+        "servo_overruns": summary.get("servo_overruns"),
+        "servo_missed_per_s": missed_per_s(
+            cols["t_s"], cols["period_s"], float(summary.get("servo_rate_hz_set") or 1000.0)
+        ),
+        "servo_host": summary.get("servo_host"),
+        "servo_realtime": summary.get("servo_realtime"),
+        "patches": summary.get("patches"),
+        "delay_ticks_last": summary.get("delay_ticks_last"),
+    }
+
+
+def build_report(
+    work: Path, tl: Timeline, server_status: dict[str, Any], opts: RunSettings
+) -> dict[str, Any]:
+    """The ``--report`` JSON from the clients' telemetry and summaries and the server's status."""
+    a, a_sum = _load(work, "A")
+    b, b_sum = _load(work, "B")
+    # B's telemetry on A's clock (both clocks are CLOCK_MONOTONIC with a per-process origin)
+    shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
+    b = dict(b)
+    b["t_s"] = b["t_s"] + shift
+    hold = (tl.hold_end_s - 1.0, tl.hold_end_s)
+    rtts = np.array(a_sum.get("rtt_ms_samples", []) + b_sum.get("rtt_ms_samples", []), float)
+    coupling = coupling_report(b, tl, hold, b_approach_end_s=shift + _REST_APPROACH_S)
+    return {
+        "users": {"A": _user_report(a, a_sum, hold), "B": _user_report(b, b_sum, hold)},
+        "coupling": coupling,
+        "server": {
+            "sim_rate_hz": opts.sim_rate_hz,
+            "stiffness_scale": opts.stiffness_scale,
+            "tick_ms_p50": server_status.get("tick_ms_p50"),
+            "tick_ms_p99": server_status.get("tick_ms_p99"),
+            "overruns": server_status.get("overruns"),
+        },
+        "network": {
+            "rtt_ms_p50": float(np.percentile(rtts, 50)) if rtts.size else None,
+            "rtt_ms_p99": float(np.percentile(rtts, 99)) if rtts.size else None,
+            "latency_ms": opts.latency_ms,
+            "jitter_ms": opts.jitter_ms,
+            "loss": opts.loss,
+        },
+        "timeline_s": {
+            "b_settled": coupling["b_settled_s"],
+            "a_contact": tl.contact_s,
+            "a_hold_end": tl.hold_end_s,
+            "duration": opts.duration_s,
+        },
+    }
+
+
+#: When B's hand reaches the side [s from B's start]: the sim:rest approach (it starts at once).
+_REST_APPROACH_S = Rest((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)).approach_s
+
+
+def _rest_window(
+    b: dict[str, np.ndarray], tl: Timeline, settled_s: float, usable: np.ndarray | None = None
+) -> tuple[str, tuple[float, float]] | None:
+    """Where B rests undisturbed: (which, (t0, t1)) on A's clock, or None if nowhere.
+
+    Before A touches, from B's settled contact on; if that is too short (B's contact came on
+    late), from :data:`RELEASE_SETTLE_S` after A's release to B's last samples. With ``usable``
+    (a mask of B's samples), a window counts only from its first usable sample on and only if
+    its usable samples span :data:`MIN_REST_WINDOW_S`.
+    """
+    end = float(b["t_s"][-1]) - 0.2 if b["t_s"].size else -np.inf
+    windows = [
+        ("before A's press", (settled_s, tl.contact_s - 0.1)),
+        (
+            "after A's release",
+            (max(settled_s, tl.hold_end_s + tl.release_s + RELEASE_SETTLE_S), end),
+        ),
+    ]
+    for which, (t0, t1) in windows:
+        if usable is not None:
+            ts = b["t_s"][_window(b, t0, t1) & usable]
+            if ts.size == 0:
+                continue
+            t0 = max(t0, float(ts[0]))
+        if t1 - t0 >= MIN_REST_WINDOW_S:
+            return which, (t0, t1)
+    return None
+
+
+def _same_gains(b: dict[str, np.ndarray], hold_mask: np.ndarray) -> np.ndarray | None:
+    """B's samples rendered with a K_h within :data:`REST_GAIN_SHARE` of the K_h B renders while
+    A holds, :data:`REST_GAIN_SETTLE_S` after B last rendered another (None without K_h telemetry or
+    hold samples)."""
+    kh = b.get("k_h_n_per_m")
+    if kh is None or not hold_mask.any():
+        return None
+    k_hold = float(np.median(kh[hold_mask]))
+    same = np.abs(kh - k_hold) <= REST_GAIN_SHARE * max(k_hold, 1.0)
+    last_other = np.maximum.accumulate(np.where(same, -np.inf, b["t_s"]))
+    return same & (b["t_s"] - last_other >= REST_GAIN_SETTLE_S)
+
+
+def coupling_report(
+    b: dict[str, np.ndarray],
+    tl: Timeline,
+    hold: tuple[float, float],
+    b_approach_end_s: float,
+) -> dict[str, Any]:
+    """How much B feels A's press, as physical quantities.
+
+    ``b_force_rise_n``: B's force while A holds minus B's resting force [N].
+    ``b_feels_a``: that change is at least :data:`FEEL_FORCE_SHARE` of the resting force, the
+    surface under B moved at least :data:`FEEL_DISPLACEMENT_MM`, and the force followed the
+    surface (rose as it bulged out, fell as it was drawn in); None when not measured.
+    ``b_surface_displacement_mm``: how far the surface under B (B's proxy) moves outward, along
+    B's force, while A holds [mm]. Both compare the ``hold`` window with a window where B rests,
+    settled (:data:`B_SETTLE_S` after B's force came on and after B's approach), before A touches
+    (or, failing that, after A's release: ``baseline`` says which). While A holds, samples where
+    B is out of contact count too (force 0): a side drawn in by A's press can leave B's finger.
+    ``b_force_lowest_as_a_arrives_n``: B's lowest force in the :data:`ARRIVAL_WINDOW_S` after A
+    touches, and ``b_force_dip_as_a_arrives_n`` how far that is below
+    ``b_force_before_a_arrives_n``, B's force in the half second before [N] (only when B had
+    settled by then; about 0 when B feels only A's push). ``ratio`` is B's force while
+    A holds over B's resting force: it depends on how hard B leans in (its hand depth beyond the
+    threshold θ), not on the object; the two above are the coupling.
+
+    Parameters
+    ----------
+    b : dict of (m,) arrays
+        B's telemetry, times on A's clock.
+    tl : Timeline
+        A's press.
+    hold : (t0, t1)
+        The end of A's hold [s, A's clock].
+    b_approach_end_s : float
+        When B's hand reaches the side [s, A's clock].
+    """
+    on = (b["in_contact"] > 0) & (b["force_n"] > B_FORCE_ON_N) & (b["t_s"] >= b_approach_end_s)
+    onset = float(b["t_s"][np.argmax(on)]) if on.any() else None
+    out: dict[str, Any] = {
+        "b_force_rise_n": None,
+        "b_surface_displacement_mm": None,
+        "b_feels_a": None,
+        "b_force_at_rest_n": None,
+        "b_force_during_a_press_n": None,
+        "ratio": None,
+        "ratio_is": "B's force while A holds / B's force at rest; set by how hard B rests (its "
+        "hand depth beyond the threshold theta), not by the object",
+        "baseline": None,
+        "rest_window_s": None,
+        "hold_window_s": [hold[0], hold[1]],
+        "b_force_before_a_arrives_n": None,
+        "b_force_lowest_as_a_arrives_n": None,
+        "b_force_dip_as_a_arrives_n": None,
+        "b_settled_s": None if onset is None else onset + B_SETTLE_S,
+    }
+    # samples with B in contact at full force (no ramp in or out, no fault)
+    steady = b.get("force_scale", np.ones_like(b["t_s"])) >= 0.999
+    full = (b["in_contact"] > 0) & steady
+    # while A holds, also the samples where the surface drew away from B's finger (B's force
+    # fell to nothing: the strongest change B can feel; the proxy is still the surface)
+    w_hold = _window(b, *hold) & steady
+    # as A arrives: B's force just before, against its lowest in the second after
+    w_pre = _window(b, tl.contact_s - 0.5, tl.contact_s - 0.05) & full
+    w_arrive = _window(b, tl.contact_s, tl.contact_s + ARRIVAL_WINDOW_S)
+    if (
+        onset is not None
+        and onset + B_SETTLE_S <= tl.contact_s - 0.5
+        and w_pre.any()
+        and w_arrive.any()
+    ):
+        before = float(np.nanmean(b["force_n"][w_pre]))
+        lowest = float(np.nanmin(b["force_n"][w_arrive]))
+        out.update(
+            b_force_before_a_arrives_n=before,
+            b_force_lowest_as_a_arrives_n=lowest,
+            b_force_dip_as_a_arrives_n=before - lowest,
+        )
+    usable = _same_gains(b, w_hold)
+    found = None if onset is None else _rest_window(b, tl, onset + B_SETTLE_S, usable)
+    if found is None or not w_hold.any():
+        return out
+    baseline, rest = found
+    w_rest = _window(b, *rest) & full
+    if usable is not None:
+        w_rest &= usable
+    if not w_rest.any():
+        return out
+    fvec = np.stack([b["force_x_n"], b["force_y_n"], b["force_z_n"]], axis=1)[w_rest]
+    outward = np.nanmean(fvec, axis=0)  # the force on B's hand points out of the surface
+    outward = outward / np.linalg.norm(outward)
+    # the object's surface: the rendered proxy, less any own-force compensation offset
+    proxy = np.stack([b["proxy_x_m"], b["proxy_y_m"], b["proxy_z_m"]], axis=1) @ outward
+    proxy = proxy - b.get("own_offset_m", np.zeros_like(proxy))
+    f_rest = float(np.nanmean(b["force_n"][w_rest]))
+    f_hold = float(np.nanmean(b["force_n"][w_hold]))
+    moved_mm = float((np.nanmean(proxy[w_hold]) - np.nanmean(proxy[w_rest])) * 1000.0)
+    rise = f_hold - f_rest
+    out.update(
+        b_force_rise_n=rise,
+        b_surface_displacement_mm=moved_mm,
+        b_feels_a=bool(
+            abs(rise) >= FEEL_FORCE_SHARE * f_rest
+            and abs(moved_mm) >= FEEL_DISPLACEMENT_MM
+            and rise * moved_mm > 0.0
+        ),
+        b_force_at_rest_n=f_rest,
+        b_force_during_a_press_n=f_hold,
+        ratio=f_hold / f_rest if f_rest > 1e-9 else None,
+        baseline=baseline,
+        rest_window_s=[rest[0], rest[1]],
+        b_k_h_at_rest_n_per_m=float(np.nanmedian(b["k_h_n_per_m"][w_rest]))
+        if "k_h_n_per_m" in b
+        else None,
+        b_k_h_during_a_press_n_per_m=float(np.nanmedian(b["k_h_n_per_m"][w_hold]))
+        if "k_h_n_per_m" in b
+        else None,
+    )
+    return out
+
+
+def print_summary(report: dict[str, Any]) -> None:
+    """A readable table of the report."""
+    print()
+    print(
+        f"{'user':<6}{'servo Hz':>10}{'p99 us':>9}{'missed/s':>10}{'max N':>8}"
+        f"{'hold p2p mm':>13}{'stable':>8}"
+    )
+    for name, u in report["users"].items():
+        rate = u["servo_rate_hz"] or float("nan")
+        p99 = u["period_us_p99"] or float("nan")
+        missed = u.get("servo_missed_per_s")
+        missed = float("nan") if missed is None else missed
+        print(
+            f"{name:<6}{rate:>10.1f}{p99:>9.0f}{missed:>10.2f}{u['max_force_n']:>8.2f}"
+            f"{u['hold_oscillation_mm']:>13.3f}{'yes' if u['stable'] else 'NO':>8}"
+        )
+    ref = report.get("reference_loop")
+    if ref:
+        print(
+            f"{'ref':<6}{ref.get('rate_hz') or float('nan'):>10.1f}"
+            f"{ref.get('period_p99_us') or float('nan'):>9.0f}"
+            f"{ref.get('missed_per_s') or 0.0:>10.2f}  (a do-nothing loop beside the users)"
+        )
+    c = report["coupling"]
+    if c["b_force_rise_n"] is None:
+        print("B feels A: not measured (B's contact never settled outside A's press)")
+    else:
+        w = c["rest_window_s"]
+        ratio = "n/a" if c["ratio"] is None else f"{c['ratio']:.2f}"
+        feels = "yes" if c.get("b_feels_a") else "NO"
+        print(
+            f"B feels A ({feels}): while A holds, B's force rises {c['b_force_rise_n']:+.3f} N "
+            f"({c['b_force_at_rest_n']:.3f} -> {c['b_force_during_a_press_n']:.3f} N) and the "
+            f"surface under B moves {c['b_surface_displacement_mm']:+.2f} mm outward\n"
+            f"  (B at rest {c['baseline']}, {w[0]:.1f}-{w[1]:.1f} s; force ratio {ratio}, which "
+            "depends on how hard B rests)"
+        )
+        if c.get("b_force_lowest_as_a_arrives_n") is not None:
+            print(
+                f"  as A arrived B's force was at least {c['b_force_lowest_as_a_arrives_n']:.3f} N "
+                f"({c['b_force_dip_as_a_arrives_n']:.3f} N below its "
+                f"{c['b_force_before_a_arrives_n']:.3f} N just before)"
+            )
+    s, n = report["server"], report["network"]
+    print(
+        f"server: {s['sim_rate_hz']:g} Hz, tick p50 {s['tick_ms_p50'] or 0:.2f} ms, p99 {s['tick_ms_p99'] or 0:.2f} ms, "
+        f"overruns {s['overruns']}; network rtt p50 {n['rtt_ms_p50'] or 0:.1f} ms, p99 {n['rtt_ms_p99'] or 0:.1f} ms"
+    )
+
+
+def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
+    """PNG of both users' probe, proxy and force over time (A's press and B's response)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from haptic_collab.client.recorder import plot_probe_proxy
+
+    a, a_sum = _load(work, "A")
+    b, b_sum = _load(work, "B")
+    shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
+    fig, axes = plt.subplots(3, 1, figsize=(11, 9), sharex=True)
+    for ax, cols, name, dt in (
+        (axes[0], a, "A (presses the top)", 0.0),
+        (axes[1], b, "B (rests on the side)", shift),
+    ):
+        plot_probe_proxy(ax, cols, dt)
+        ax.set_title(f"user {name}")
+    axes[2].plot(a["t_s"], a["force_n"], label="A", color="tab:purple")
+    axes[2].plot(b["t_s"] + shift, b["force_n"], label="B", color="tab:green")
+    axes[2].set_ylabel("force on the user [N]")
+    axes[2].set_xlabel("time [s] (A's clock)")
+    axes[2].grid(alpha=0.3)
+    axes[2].legend(loc="upper left")
+    for ax in axes:
+        ax.axvspan(tl.contact_s, tl.hold_end_s, color="0.9", zorder=0)
+    axes[0].text(tl.contact_s + 0.1, axes[0].get_ylim()[1] * 0.9, "A presses and holds", va="top")
+    fig.suptitle("Two users on a shared water balloon: B feels A's press")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
