@@ -2,8 +2,12 @@
 
 The product's claim (the paper's section 1 and footnote 4) is that an adaptive local model renders
 a slow (tens of Hz), delayed simulation stably and stiffly where the usual approaches do not. This
-module measures it: one vectorised multirate simulator runs every scheme against the same hands,
-objects, network delays and trajectories (``haptic bench fidelity``, :mod:`haptic_collab.bench.fidelity`).
+module owns the vectorised multirate simulator that measures it (:func:`simulate`, with
+:func:`passivity_step`): it runs every scheme against the same hands, objects, network delays and
+trajectories (``haptic bench fidelity``, :mod:`haptic_collab.bench.fidelity`). The cells it runs
+are :mod:`haptic_collab.research.fidelity_cases`, the schemes and their tunings
+:mod:`haptic_collab.research.fidelity_schemes`, the metrics
+:mod:`haptic_collab.research.fidelity_metrics`; their names are re-exported here.
 
 The 1-D world, along the contact normal, depths in metres (positive into the object):
 
@@ -41,539 +45,133 @@ Schemes (:func:`rendering_for` says how each is tuned):
 
 Every scheme's force is clamped to the device's maximum force. Nothing here reads a clock, a
 socket or a thread: time is the servo tick index.
+
+Why the simulator has its own copy of the local model and of the passivity controller. The
+servo side of :func:`simulate` restates :class:`shared.local_model.LocalModel` (eq. 12, eq. 17's
+threshold, the release ramp, the recovery band, the integral limit) and :func:`passivity_step`
+restates :class:`shared.passivity.PassivityController`, as numpy operations over the whole batch
+(4000 cells per call in the benchmark, with the probe damper, proxy holds and own-force
+compensation of :mod:`client.render` in the same arrays). The product's classes step one user
+with plain floats; calling them per cell costs more than the simulator's whole tick (measured
+with 4000 cells: about 1 ms per tick for :func:`simulate`, 1.4-2 ms for the 4000
+``LocalModel.step`` calls alone and 2.5-3.6 ms for the ``PassivityController.step`` calls), so
+the benchmark would take two to four times as long. The copies are checked against the product's
+classes on batches of cells that reach every branch (tests/research/test_fidelity_1d.py:
+``test_passivity_step_is_the_products_controller``,
+``test_the_local_model_is_the_products_local_model``); the copy of the controller also takes an
+uncapped damping (``math.inf``, which :class:`shared.passivity.PassivityParams` refuses) for
+``direct-tdpa``.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
 
-from haptic_collab.shared.full_loop import DAMPER_FILTER_S, Hand, ProxyHold, _hand_zoh
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import loop_delay_ticks
+from haptic_collab.research.fidelity_cases import (
+    FELT_AMPLITUDE_M,
+    FELT_DEPTH_M,
+    IMPACT,
+    OBJECTS,
+    PRESS,
+    RUNAWAY_M,
+    SLS,
+    SPRING,
+    SPRING_SOFTER,
+    SPRING_STIFFER,
+    STIFFENING,
+    TAP,
+    TRAJECTORIES,
+    Cell,
+    ObjectKind,
+    ObjectModel,
+    Run,
+    RunOptions,
+    Trajectory,
+    felt_depth_m,
+    felt_trajectory,
+    felt_window_s,
+    stiffening_depth,
+    stiffening_force,
+    stiffening_tangent,
+)
+from haptic_collab.research.fidelity_metrics import (
+    FELT_FIT_TOLERANCE,
+    STABLE_HOLD_P2P_M,
+    CellMetrics,
+    cell_metrics,
+    felt_response,
+    felt_stiffness_ratio,
+)
+from haptic_collab.research.fidelity_schemes import (
+    LOCAL_MODELS,
+    PRODUCT_PASSIVITY_BIAS_J,
+    PRODUCT_THETA_M,
+    SCHEMES,
+    DeviceModel,
+    Rendering,
+    RenderKind,
+    SchemeName,
+    design_delay_ticks,
+    peer_renderings,
+    rendering_for,
+    scheme_tuning,
+)
+from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
 from haptic_collab.shared.types import FloatArray
 
-SchemeName = Literal[
-    "local-p",
-    "local-pi",
-    "mmt",
-    "force-jacobian",
-    "direct",
-    "virtual-coupling",
-    "static-local",
-    "direct-tdpa",
+__all__ = [
+    "FELT_AMPLITUDE_M",
+    "FELT_DEPTH_M",
+    "FELT_FIT_TOLERANCE",
+    "IMPACT",
+    "LOCAL_MODELS",
+    "OBJECTS",
+    "PRESS",
+    "PRODUCT_PASSIVITY_BIAS_J",
+    "PRODUCT_THETA_M",
+    "RUNAWAY_M",
+    "SCHEMES",
+    "SLS",
+    "SPRING",
+    "SPRING_SOFTER",
+    "SPRING_STIFFER",
+    "STABLE_HOLD_P2P_M",
+    "STIFFENING",
+    "TAP",
+    "TRAJECTORIES",
+    "Cell",
+    "CellMetrics",
+    "DeviceModel",
+    "ObjectKind",
+    "ObjectModel",
+    "RenderKind",
+    "Rendering",
+    "Run",
+    "RunOptions",
+    "SchemeName",
+    "Trajectory",
+    "cell_metrics",
+    "design_delay_ticks",
+    "felt_depth_m",
+    "felt_response",
+    "felt_stiffness_ratio",
+    "felt_trajectory",
+    "felt_window_s",
+    "passivity_step",
+    "peer_renderings",
+    "rendering_for",
+    "scheme_tuning",
+    "simulate",
 ]
 
-#: Every scheme, this project's first.
-SCHEMES: tuple[SchemeName, ...] = get_args(SchemeName)
 
-#: The schemes that are this project's local models (the rest are peers).
-LOCAL_MODELS: tuple[SchemeName, ...] = ("local-p", "local-pi")
-
-#: Probe peak-to-peak [m] during the hold below which a cell counts as stable (issue 9).
-STABLE_HOLD_P2P_M = 0.5e-3
-
-#: A probe further than this from the surface [m] (or not finite) has run away.
-RUNAWAY_M = 0.5
-
-#: The way each scheme's renderer is fed (:class:`Rendering`'s ``kind``):
-#: ``coupling`` the product's local model (a spring, integral and damper to the proxy the
-#: simulation reports, the simulation receiving the force); ``mmt`` a plane at the rest surface
-#: the simulation estimates, with the stiffness it estimates, the simulation receiving the force;
-#: ``wall`` a plane at the rest surface with a fixed stiffness, never updated; ``tool`` a
-#: spring-damper to a simulated tool whose equilibrium with the object the simulation solves
-#: from the probe position it receives; ``jacobian`` the simulation's force and its local
-#: stiffness, ``f_s + K (x - x_s)``; ``direct`` the simulation's force, held.
-RenderKind = Literal["coupling", "mmt", "wall", "tool", "jacobian", "direct"]
-
-ObjectKind = Literal["spring", "sls", "stiffening"]
-
-
-def _stiffening_force(k1: FloatArray | float, xs: FloatArray | float, x: FloatArray) -> FloatArray:
-    """``k_1 x_s (exp(x / x_s) - 1)`` [N] at depth ``x`` >= 0 [m] (the exponent capped at 50)."""
-    return np.asarray(k1 * xs * np.expm1(np.minimum(x / xs, 50.0)))
-
-
-def _stiffening_depth(k1: FloatArray | float, xs: FloatArray | float, f: FloatArray) -> FloatArray:
-    """Depth [m] at which the stiffening law holds the force ``f`` >= 0 [N] (its inverse)."""
-    return np.asarray(xs * np.log1p(f / (k1 * xs)))
-
-
-def _stiffening_tangent(
-    k1: FloatArray | float, xs: FloatArray | float, x: FloatArray
-) -> FloatArray:
-    """Tangent stiffness ``k_1 exp(x / x_s)`` [N/m] at depth ``x`` >= 0 [m]."""
-    return np.asarray(k1 * np.exp(np.minimum(x / xs, 50.0)))
-
-
-@dataclass(frozen=True, slots=True)
-class ObjectModel:
-    """The simulated object along the contact normal (SI units), relative to the K_o reported.
-
-    The simulation reports K_o (what the product's gain design and every scheme that uses a
-    stiffness is given); the object itself is ``stiffness_error`` times stiffer, and may have
-    dynamics the design does not model:
-
-    ``spring``
-        ``F = k_1 x`` (eq. 6 with B_o = 0): what the product's design assumes.
-    ``sls``
-        a standard linear solid with a surface mass: ``m x'' + b x' + k_1 x + k_2 (x - q) = F``
-        with the Maxwell arm ``c_2 q' = k_2 (x - q)``, ``c_2 = k_2 tau``: instantaneous stiffness
-        ``k_1 + k_2``, relaxing to ``k_1`` with time constant ``tau`` (Fung, "Biomechanics",
-        1993, ch. 2). Stepped by implicit Euler at the simulation rate, as a slow simulation does.
-    ``stiffening``
-        ``F = k_1 x_s (exp(x / x_s) - 1)``: the exponential strain stiffening of soft tissue
-        (Fung 1993), tangent stiffness ``k_1 exp(x / x_s)``; quasi-static.
-
-    with ``k_1 = stiffness_error K_o`` and ``k_2 = relax_ratio k_1``. The contact is unilateral.
-
-    Attributes
-    ----------
-    name : str
-    kind : {"spring", "sls", "stiffening"}
-    stiffness_error : float
-        True static stiffness over the K_o reported, > 0 (1.2: the object is 20 % stiffer).
-    mass_kg, damping_n_s_per_m : float
-        Surface mass [kg] and damping [N*s/m] (``sls``).
-    relax_ratio : float
-        ``k_2 / k_1`` (``sls``).
-    relax_time_s : float
-        ``tau`` [s] (``sls``).
-    stiffening_m : float
-        ``x_s`` [m] (``stiffening``).
-    """
-
-    name: str = "spring"
-    kind: ObjectKind = "spring"
-    stiffness_error: float = 1.0
-    mass_kg: float = 0.0
-    damping_n_s_per_m: float = 0.0
-    relax_ratio: float = 0.0
-    relax_time_s: float = 0.0
-    stiffening_m: float = 0.0
-
-    def __post_init__(self) -> None:
-        ok = (
-            math.isfinite(self.stiffness_error)
-            and self.stiffness_error > 0.0
-            and all(
-                math.isfinite(v) and v >= 0.0
-                for v in (self.mass_kg, self.damping_n_s_per_m, self.relax_ratio)
-            )
-            and (self.kind != "sls" or self.relax_time_s > 0.0)
-            and (self.kind != "stiffening" or self.stiffening_m > 0.0)
-        )
-        if not ok:
-            raise ValueError(f"object model {self.name!r} has an absurd parameter: {self!r}")
-
-    def static_depth_m(self, k_o: float, force_n: FloatArray) -> FloatArray:
-        """Depth [m] at which the relaxed object holds ``force_n`` [N] (>= 0) still."""
-        k1 = k_o * self.stiffness_error
-        f = np.maximum(force_n, 0.0)
-        if self.kind == "stiffening":
-            return _stiffening_depth(k1, self.stiffening_m, f)
-        return np.asarray(f / k1)
-
-    def static_force_n(self, k_o: float, depth_m: FloatArray | float) -> FloatArray:
-        """Force [N] with which the relaxed object holds a depth ``depth_m`` [m] (0 outside)."""
-        k1 = k_o * self.stiffness_error
-        x = np.maximum(np.asarray(depth_m, dtype=float), 0.0)
-        if self.kind == "stiffening":
-            return _stiffening_force(k1, self.stiffening_m, x)
-        return np.asarray(k1 * x)
-
-    def impedance(self, k_o: float, freq_hz: float, depth_m: float) -> complex:
-        """The object's own dynamic stiffness dF/dx [N/m] at ``freq_hz`` about ``depth_m``: what
-        an ideal rendering would make the hand feel (the reference of :func:`felt_response`)."""
-        k1 = k_o * self.stiffness_error
-        w = 2.0 * math.pi * freq_hz
-        if self.kind == "stiffening":
-            return complex(_stiffening_tangent(k1, self.stiffening_m, np.asarray(depth_m)))
-        if self.kind == "sls":
-            k2 = self.relax_ratio * k1
-            jwt = 1j * w * self.relax_time_s
-            return (
-                k1 + k2 * jwt / (1.0 + jwt) - self.mass_kg * w * w + 1j * w * self.damping_n_s_per_m
-            )
-        return complex(k1)
-
-    def peak_stiffness(self, k_o: float, depth_m: float) -> float:
-        """The largest |dF/dx| [N/m] the object shows down to ``depth_m`` at any speed."""
-        k1 = k_o * self.stiffness_error
-        if self.kind == "stiffening":
-            return float(_stiffening_tangent(k1, self.stiffening_m, np.asarray(depth_m)))
-        if self.kind == "sls":
-            return k1 * (1.0 + self.relax_ratio)
-        return k1
-
-
-#: The design model: a spring of exactly the K_o reported.
-SPRING = ObjectModel()
-#: The spring, 20 % softer / stiffer than the K_o reported (an estimate off by 20 %).
-SPRING_SOFTER = ObjectModel("spring-0.8", stiffness_error=0.8)
-SPRING_STIFFER = ObjectModel("spring-1.2", stiffness_error=1.2)
-#: A viscoelastic object with mass: twice as stiff to a quick press as at rest, relaxing with
-#: a 0.1 s time constant (corner 1.6 Hz, inside the band a hand judges stiffness in), 20 g
-#: of surface mass.
-SLS = ObjectModel("sls", "sls", mass_kg=0.02, relax_ratio=1.0, relax_time_s=0.1)
-#: Strain stiffening: 1.65 times stiffer at 5 mm, 2.7 times at 10 mm.
-STIFFENING = ObjectModel("stiffening", "stiffening", stiffening_m=10e-3)
-#: Every object model of the benchmark, the design model first.
-OBJECTS: tuple[ObjectModel, ...] = (SPRING, SPRING_SOFTER, SPRING_STIFFER, SLS, STIFFENING)
-
-
-@dataclass(frozen=True, slots=True)
-class DeviceModel:
-    """The device every scheme renders on (the simulated Phantom Desktop's limits), SI units.
-
-    Attributes
-    ----------
-    name : str
-    max_force_n : float
-        Force clamp [N].
-    max_stiffness_n_per_m : float
-        Largest stiffness [N/m] the device renders stably on its own (the virtual coupling's gain).
-    max_damping_n_s_per_m : float
-        Largest virtual damping [N*s/m] (the virtual coupling's damper, the PC's alpha_max).
-    """
-
-    name: str = "phantom-desktop"
-    max_force_n: float = 7.9
-    max_stiffness_n_per_m: float = 1000.0
-    max_damping_n_s_per_m: float = 10.0
-
-
-@dataclass(frozen=True, slots=True)
-class Rendering:
-    """How one scheme renders one object (SI units).
-
-    Attributes
-    ----------
-    scheme : str
-        One of :data:`SCHEMES`.
-    kind : str
-        How the renderer is fed (:data:`RenderKind`).
-    k_h, i_gain, b_h : float
-        Spring K_h [N/m] (``coupling``, ``wall``, ``tool``; the cap [N/m] on the estimated
-        stiffness for ``mmt`` and ``jacobian``), integral I [N/(m*s)] (``coupling``), probe damper
-        [N*s/m] (every kind but ``direct``).
-    proxy_hold : {"zoh", "foh"}
-    theta_m : float
-        Integration threshold of eq. 17 [m] (used when ``i_gain > 0``).
-    release_time_s : float
-        Ramp [s] driving the integral force to zero on release (section 5.1).
-    passivity : bool
-        Time-domain passivity observer/controller at the device port.
-    passivity_bias_j : float
-        Energy [J] the PC tolerates before acting.
-    passivity_max_damping : float or None
-        The PC's largest damping [N*s/m]; None: the device's maximum; ``math.inf``: uncapped
-        (only the force clamp limits it).
-    two_port : bool
-        ``direct`` with ``passivity``: the two-port form for a delayed channel (module docstring).
-    own_gain : float
-        Own-force compensation C_h [m/N] (``coupling`` only, :mod:`shared.full_loop`): the proxy
-        is the reported surface moved out by C_h times the force the simulation applied.
-    jacobian_scale : float
-        ``jacobian``: the fraction of the simulation's local stiffness rendered.
-    follows_k_o : bool
-        ``coupling`` with ``own_gain`` > 0: the gains follow the K_o the simulation reports each
-        tick, as the product's client renders each patch with its design scaled to the patch's
-        K_o (:meth:`shared.gain_design.GainDesign.at`): K_h times s up to the device's
-        stiffness, C_h over s, s = max(K_o reported / K_o designed for, 1); B_h and the hold
-        stay. Where the reported K_o leaves the design's cell the client renders a new cell's
-        design; here the scaling continues instead.
-    variant : str
-        The peer's tuning among those swept (:func:`peer_renderings`), for the report.
-    tuning : str
-        How the gains were chosen, for the report.
-    """
-
-    scheme: str
-    kind: RenderKind
-    k_h: float = 0.0
-    i_gain: float = 0.0
-    b_h: float = 0.0
-    proxy_hold: ProxyHold = "zoh"
-    theta_m: float = 0.0
-    release_time_s: float = 0.1
-    passivity: bool = False
-    passivity_bias_j: float = 0.0
-    passivity_max_damping: float | None = None
-    two_port: bool = False
-    own_gain: float = 0.0
-    jacobian_scale: float = 1.0
-    follows_k_o: bool = False
-    variant: str = ""
-    tuning: str = ""
-
-
-@dataclass(frozen=True, slots=True)
-class Trajectory:
-    """The user's intended probe depth y(t) [m] (module docstring), and where metrics are taken.
-
-    ``y(t) = y0 + (y1 - y0) r(t) + a sin(2 pi f (t - t_s))`` for ``t_s <= t < t_e`` (whole
-    cycles), with the ramp ``r`` going 0 -> 1 from ``ramp_start_s`` over ``ramp_s``, minimum-jerk
-    (``ramp="smooth"``) or at constant speed (``"linear"``, the hand already moving at that speed
-    at t = 0: an impact).
-
-    Attributes
-    ----------
-    name : str
-        ``press``, ``tap``, ``impact``, or ``sine`` (position source, felt stiffness).
-    duration_s : float
-    y0_m, y1_m : float
-        Start and end depth [m] (negative: outside the object).
-    ramp_start_s, ramp_s : float
-    ramp : {"smooth", "linear"}
-    sine_amplitude_m, sine_hz, sine_start_s, sine_end_s : float
-    hold_window_s : (float, float)
-        Where hold p2p, force ripple and the steady-state error are measured.
-    energy_window_s : (float, float)
-        Where the energy given to the user is summed.
-    """
-
-    name: str
-    duration_s: float
-    y0_m: float
-    y1_m: float
-    ramp_start_s: float = 0.0
-    ramp_s: float = 0.0
-    ramp: Literal["smooth", "linear"] = "smooth"
-    sine_amplitude_m: float = 0.0
-    sine_hz: float = 0.0
-    sine_start_s: float = 0.0
-    sine_end_s: float = 0.0
-    hold_window_s: tuple[float, float] = (0.0, 0.0)
-    energy_window_s: tuple[float, float] = (0.0, 0.0)
-
-    def target(self, t: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """``(y, y')`` [m], [m/s] at times ``t`` [s] (any shape)."""
-        y = np.full_like(t, self.y0_m)
-        yd = np.zeros_like(t)
-        dy = self.y1_m - self.y0_m
-        if self.ramp_s > 0.0:
-            u = np.clip((t - self.ramp_start_s) / self.ramp_s, 0.0, 1.0)
-            inside = (u > 0.0) & (u < 1.0)
-            if self.ramp == "smooth":
-                y = y + dy * (10 * u**3 - 15 * u**4 + 6 * u**5)
-                yd = yd + np.where(inside, dy * 30 * u**2 * (1 - u) ** 2 / self.ramp_s, 0.0)
-            else:
-                y = y + dy * u
-                moving = (t >= self.ramp_start_s) & (t < self.ramp_start_s + self.ramp_s)
-                yd = yd + np.where(moving, dy / self.ramp_s, 0.0)
-        else:
-            y = np.full_like(t, self.y1_m)
-        if self.sine_amplitude_m > 0.0:
-            on = (t >= self.sine_start_s) & (t < self.sine_end_s)
-            w = 2.0 * math.pi * self.sine_hz
-            ph = w * (t - self.sine_start_s)
-            y = y + np.where(on, self.sine_amplitude_m * np.sin(ph), 0.0)
-            yd = yd + np.where(on, self.sine_amplitude_m * w * np.cos(ph), 0.0)
-        return y, yd
-
-
-#: Press 10 mm into the object (from 2 mm outside, over 0.4 s) and hold.
-PRESS = Trajectory(
-    "press",
-    duration_s=4.0,
-    y0_m=-2e-3,
-    y1_m=10e-3,
-    ramp_start_s=0.1,
-    ramp_s=0.4,
-    hold_window_s=(3.0, 4.0),
-    energy_window_s=(0.0, 4.0),
-)
-#: Press as above, settle, tap at 4 Hz with 1 mm amplitude for 2 s (8 cycles), hold (the hold
-#: is judged a second after the last tap: the box's lightest-damped hand rings that long alone).
-TAP = replace(
-    PRESS,
-    name="tap",
-    duration_s=6.0,
-    sine_amplitude_m=1e-3,
-    sine_hz=4.0,
-    sine_start_s=2.0,
-    sine_end_s=4.0,
-    hold_window_s=(5.0, 6.0),
-    energy_window_s=(2.0, 4.0),
-)
-#: Approach from 20 mm outside at 0.3 m/s (the hand already moving) to an intended 10 mm; hold
-#: (judged from 4 s: a soft, light-damped hand bounces off and needs that long even on an ideal
-#: object).
-IMPACT = Trajectory(
-    "impact",
-    duration_s=5.0,
-    y0_m=-20e-3,
-    y1_m=10e-3,
-    ramp_start_s=0.0,
-    ramp_s=0.1,
-    ramp="linear",
-    hold_window_s=(4.0, 5.0),
-    energy_window_s=(0.0, 5.0),
-)
-#: The trajectories of the benchmark grid.
-TRAJECTORIES: tuple[Trajectory, ...] = (PRESS, TAP, IMPACT)
-
-#: Deepest point [m] about which the position-source probe oscillates to measure felt stiffness.
-FELT_DEPTH_M = 5e-3
-#: Amplitude [m] of that oscillation.
-FELT_AMPLITUDE_M = 0.25e-3
-
-
-def felt_depth_m(k_o: float, max_force_n: float, obj: ObjectModel | None = None) -> float:
-    """Depth [m] of the felt-stiffness oscillation on an object reported at ``k_o`` [N/m]: at
-    most :data:`FELT_DEPTH_M`, shallow enough that the object's force at the bottom of the
-    oscillation (its static force there plus its stiffest response to the oscillation) stays
-    within 80 % of the device's force ``max_force_n`` [N] (a saturated force would read as no
-    stiffness at all); ``obj`` defaults to the design model (``K_o x``)."""
-    o = obj if obj is not None else SPRING
-    amp = FELT_AMPLITUDE_M
-
-    def peak(d: float) -> float:
-        return float(o.static_force_n(k_o, d)) + o.peak_stiffness(k_o, d + amp) * amp
-
-    lo, hi = 2.0 * amp, FELT_DEPTH_M
-    if peak(hi) <= 0.8 * max_force_n:
-        return hi
-    if peak(lo) >= 0.8 * max_force_n:
-        return lo
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if peak(mid) <= 0.8 * max_force_n else (lo, mid)
-    return lo
-
-
-def felt_window_s(freq_hz: float) -> float:
-    """Length [s] of the window the felt stiffness at ``freq_hz`` is fitted over: the shortest
-    multiple of 0.2 s holding an even number of whole cycles, at least 2 below 1 Hz, 4 below
-    4 Hz and 8 above (each half is then whole cycles of the probe and of every simulation rate
-    of the grid, so the multirate ripple drops out of the fit).
-
-    Raises
-    ------
-    ValueError
-        A frequency that is not positive, or that no window up to 20 s fits.
-    """
-    if not (math.isfinite(freq_hz) and freq_hz > 0.0):
-        raise ValueError(f"felt frequency must be > 0 Hz, got {freq_hz!r}")
-    least = 2 if freq_hz < 1.0 else (4 if freq_hz < 4.0 else 8)
-    for k in range(1, 101):
-        n = freq_hz * 0.2 * k
-        if abs(n - round(n)) < 1e-6 and round(n) % 2 == 0 and round(n) >= least:
-            return 0.2 * k
-    raise ValueError(f"no fitting window of whole cycles up to 20 s for {freq_hz!r} Hz")
-
-
-def felt_trajectory(freq_hz: float, depth_m: float = FELT_DEPTH_M) -> Trajectory:
-    """Position-source probe: ramp to ``depth_m`` (:func:`felt_depth_m`), settle 3.5 s, then
-    oscillate at ``freq_hz`` by :data:`FELT_AMPLITUDE_M`; the felt stiffness is fitted over
-    :func:`felt_window_s` after 2 s of settling (a 400 ms round trip needs them).
-
-    Raises
-    ------
-    ValueError
-        As :func:`felt_window_s`.
-    """
-    t_s = 4.0
-    t_fit = t_s + 2.0
-    t_e = t_fit + felt_window_s(freq_hz)
-    return Trajectory(
-        f"sine-{freq_hz:g}hz",
-        duration_s=t_e,
-        y0_m=0.0,
-        y1_m=depth_m,
-        ramp_start_s=0.0,
-        ramp_s=0.5,
-        sine_amplitude_m=FELT_AMPLITUDE_M,
-        sine_hz=freq_hz,
-        sine_start_s=t_s,
-        sine_end_s=t_e + 1.0,
-        hold_window_s=(t_fit, t_e),
-        energy_window_s=(t_s, t_e),
-    )
-
-
-@dataclass(frozen=True, slots=True)
-class Cell:
-    """One simulation: a scheme's rendering of one object, rate, delay, hand and trajectory.
-
-    Attributes
-    ----------
-    rendering : Rendering
-    k_o : float
-        Object stiffness K_o the simulation reports [N/m], > 0 (the object itself is ``obj``).
-    sim_rate_hz : float
-        Simulation rate [Hz]; the servo rate over it must be a whole number.
-    delay_ms : float
-        One-way network delay [ms], a whole number of servo ticks, >= 0.
-    hand : Hand or None
-        None: the probe is a position source (it follows the trajectory exactly).
-    trajectory : Trajectory
-    obj : ObjectModel
-        The object (default: the design model, a spring of exactly K_o).
-    """
-
-    rendering: Rendering
-    k_o: float
-    sim_rate_hz: float
-    delay_ms: float
-    hand: Hand | None
-    trajectory: Trajectory
-    obj: ObjectModel = SPRING
-
-
-@dataclass(frozen=True, slots=True)
-class RunOptions:
-    """Imperfections of the servo a run may add (SI units; all off by default).
-
-    Attributes
-    ----------
-    jitter_s : float
-        Servo wake-up jitter [s]: each tick starts up to this early or late (uniform, drawn
-        from ``seed``), so a period lasts ``T`` plus the difference of two draws; the servo
-        still computes with the nominal ``T`` (as the client does).
-    quantum_m : float
-        Encoder resolution [m]: the servo reads the probe rounded to it (Phantom Desktop:
-        0.023 mm, ~0.055 mm for a Novint Falcon).
-    seed : int
-    """
-
-    jitter_s: float = 0.0
-    quantum_m: float = 0.0
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.jitter_s) and 0.0 <= self.jitter_s < 0.5e-3):
-            raise ValueError(f"jitter_s must be in [0, 0.5 ms), got {self.jitter_s!r}")
-        if not (math.isfinite(self.quantum_m) and 0.0 <= self.quantum_m <= 1e-3):
-            raise ValueError(f"quantum_m must be in [0, 1 mm], got {self.quantum_m!r}")
-
-
-@dataclass(slots=True)
-class Run:
-    """Servo-rate record of a batch of cells, shapes (B, n_ticks).
-
-    Attributes
-    ----------
-    t : (n_ticks,) float
-        Time [s] of each servo tick.
-    x : (B, n_ticks) float
-        Probe depth [m] at the start of each tick (what the servo read).
-    f : (B, n_ticks) float
-        Force [N] the device wrote that tick (outward, held over the tick).
-    runaway : (B,) bool
-        The probe left :data:`RUNAWAY_M` or went non-finite (frozen from then on).
-    """
-
-    t: FloatArray
-    x: FloatArray
-    f: FloatArray
-    runaway: NDArray[np.bool_]
+#: The defaults of :func:`simulate`: the simulated Phantom Desktop, no servo imperfections.
+_DEVICE = DeviceModel()
+_NO_OPTIONS = RunOptions()
 
 
 def passivity_step(
@@ -633,9 +231,9 @@ def passivity_step(
 def simulate(
     cells: Sequence[Cell],
     *,
-    device: DeviceModel = DeviceModel(),
+    device: DeviceModel = _DEVICE,
     servo_rate_hz: float = 1000.0,
-    options: RunOptions = RunOptions(),
+    options: RunOptions = _NO_OPTIONS,
 ) -> Run:
     """Run a batch of cells side by side at the servo rate (module docstring for the model).
 
@@ -915,12 +513,12 @@ def simulate(
             a = (m_o * (xo + h * vo) / h**2 + b_o * xo / h + k2 * alpha * qo) / D
             # a force pushes the object (the local models, MMT, the wall)
             f_in = np.maximum(got, 0.0)
-            x_f = np.where(nonlin, _stiffening_depth(k1, xs, f_in), a + f_in / D)
+            x_f = np.where(nonlin, stiffening_depth(k1, xs, f_in), a + f_in / D)
             # the probe position drives it (direct, force-jacobian): the surface put at the probe
             contact = got > a
             x_in = np.clip(got, 0.0, RUNAWAY_M)
             f_p = np.where(
-                nonlin, _stiffening_force(k1, xs, x_in), np.where(contact, (got - a) * D, 0.0)
+                nonlin, stiffening_force(k1, xs, x_in), np.where(contact, (got - a) * D, 0.0)
             )
             x_p = np.where(nonlin, x_in, np.where(contact, got, a))
             if any_two_port:
@@ -939,8 +537,8 @@ def simulate(
                 gp = np.maximum(got, 0.0)
                 z = kc * gp / (kc + k1)
                 for _ in range(8):  # Newton on the convex, increasing F(z) + K_c (z - x)
-                    z = z - (_stiffening_force(k1, xs, z) + kc * (z - gp)) / (
-                        _stiffening_tangent(k1, xs, z) + kc
+                    z = z - (stiffening_force(k1, xs, z) + kc * (z - gp)) / (
+                        stiffening_tangent(k1, xs, z) + kc
                     )
                 z = np.clip(z, 0.0, gp)
                 x_t = np.where(nonlin, z, x_t)
@@ -953,7 +551,7 @@ def simulate(
             xo = np.where(upd, x_new, xo)
             # what the simulation publishes: its stiffness estimate is the object's tangent
             # stiffness as it believes it (off by the object's stiffness error)
-            k_est = np.where(nonlin, _stiffening_tangent(k_o, xs, np.maximum(xo, 0.0)), k_o)
+            k_est = np.where(nonlin, stiffening_tangent(k_o, xs, np.maximum(xo, 0.0)), k_o)
             # own-force compensation of a local model that follows the reported K_o: C_h / s
             own_eff = (
                 np.where(follow, own / np.maximum(k_est / k_o, 1.0), own) if any_follow else own
@@ -977,382 +575,3 @@ def simulate(
         down[n % L] = pub
         down_seq[n % L] = pub_seq
     return Run(t=t, x=X, f=F, runaway=runaway)
-
-
-@dataclass(frozen=True, slots=True)
-class CellMetrics:
-    """What a user would notice in one cell (issue 9's metrics), SI-derived units as named.
-
-    Attributes
-    ----------
-    stable : bool
-        Bounded (no runaway) and ``hold_p2p_mm`` below :data:`STABLE_HOLD_P2P_M`.
-    hold_p2p_mm : float
-        Probe peak to peak [mm] over the trajectory's hold window.
-    peak_penetration_mm : float
-        Largest ``x - x_s(f)`` [mm], ``x_s(f)`` the depth at which the relaxed object holds the
-        force ``f`` (:meth:`ObjectModel.static_depth_m`; ``f / K_o`` for the design model): how
-        far the probe went past the surface of the object pushing back with the force the user
-        actually feels (0 for an ideal rendering; for a coupling it includes the steady-state
-        error).
-    steady_state_error_mm : float
-        Mean of ``x - x_s(f)`` [mm] over the last half of the hold window (the probe-proxy gap of
-        a P coupling, f / K_h; eq. 17's theta for PI).
-    energy_out_mj : float
-        Energy the device port gave the user over the trajectory's energy window [mJ]
-        (``sum -f (x(n+1) - x(n))``); > 0 is active.
-    force_ripple_n : float
-        Force peak to peak [N] over the hold window.
-    """
-
-    stable: bool
-    hold_p2p_mm: float
-    peak_penetration_mm: float
-    steady_state_error_mm: float
-    energy_out_mj: float
-    force_ripple_n: float
-
-    def to_json(self) -> dict[str, object]:
-        """The cell's metric fields of ``haptic bench fidelity --json``."""
-        return {
-            "stable": self.stable,
-            "hold_p2p_mm": self.hold_p2p_mm,
-            "peak_penetration_mm": self.peak_penetration_mm,
-            "steady_state_error_mm": self.steady_state_error_mm,
-            "energy_out_mj": self.energy_out_mj,
-            "force_ripple_n": self.force_ripple_n,
-        }
-
-
-def _window(t: FloatArray, w: tuple[float, float]) -> NDArray[np.bool_]:
-    return (t >= w[0] - 1e-9) & (t < w[1] - 1e-9)
-
-
-def cell_metrics(run: Run, cells: Sequence[Cell]) -> list[CellMetrics]:
-    """The :class:`CellMetrics` of every cell of a :func:`simulate` run, in order."""
-    out: list[CellMetrics] = []
-    for i, c in enumerate(cells):
-        tr = c.trajectory
-        n_i = round(tr.duration_s / (run.t[1] - run.t[0])) if run.t.size > 1 else 1
-        t = run.t[:n_i]
-        x = run.x[i, :n_i]
-        f = run.f[i, :n_i]
-        hold = _window(t, tr.hold_window_s)
-        half = _window(t, (0.5 * (tr.hold_window_s[0] + tr.hold_window_s[1]), tr.hold_window_s[1]))
-        pen = x - c.obj.static_depth_m(c.k_o, f)
-        hold_p2p = float(np.ptp(x[hold]))
-        ew = _window(t, tr.energy_window_s)
-        dx = np.diff(x, append=x[-1])
-        energy = float(np.sum(-f[ew] * dx[ew]))
-        finite = bool(np.isfinite(x).all() and np.isfinite(f).all())
-        stable = finite and not bool(run.runaway[i]) and hold_p2p < STABLE_HOLD_P2P_M
-        out.append(
-            CellMetrics(
-                stable=stable,
-                hold_p2p_mm=hold_p2p * 1e3,
-                peak_penetration_mm=float(np.max(pen)) * 1e3,
-                steady_state_error_mm=float(np.mean(pen[half])) * 1e3,
-                energy_out_mj=energy * 1e3,
-                force_ripple_n=float(np.ptp(f[hold])),
-            )
-        )
-    return out
-
-
-#: Felt-stiffness fits over the two halves of the window that differ by more than this fraction
-#: are not a steady response (the loop has not settled, or it is growing): no number is reported.
-FELT_FIT_TOLERANCE = 0.05
-
-
-def _fundamental(t: FloatArray, y: FloatArray, w: float) -> complex:
-    A = np.stack([np.ones_like(t), t - t[0], np.cos(w * t), np.sin(w * t)], axis=1)
-    c = np.linalg.lstsq(A, y, rcond=None)[0]
-    return complex(c[2], -c[3])
-
-
-def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
-    """Felt dynamic stiffness over the object's own, ``(dF/dx) / Z_o`` (complex: magnitude and
-    phase at the probe frequency), of position-source cells (:func:`felt_trajectory`), in
-    order; ``Z_o`` is :meth:`ObjectModel.impedance` at that frequency and depth (K_o for the
-    design model), so 1 is an ideal rendering of the object. :func:`felt_stiffness_ratio` is its
-    magnitude, its real part the elastic share (a lagging force is partly felt as damping, or,
-    lagging by a long delay, as an active push).
-
-    Least-squares fit of ``a + b t + c cos(w t) + d sin(w t)`` to the probe position and to the
-    force over the trajectory's hold window (whole cycles of the probe and of every simulation
-    rate of the grid; the multirate ripple is not at w and drops out); the ratio of the
-    fundamentals over Z_o, as :func:`shared.gain_design.felt_stiffness` computes it exactly for
-    the linear loop. None when the cell ran away, the fits over the two halves of the window
-    differ by more than :data:`FELT_FIT_TOLERANCE` (not a steady response), or the force still
-    ripples by more than that fraction of the response's peak to peak while the probe is held
-    still before the oscillation (a limit cycle).
-
-    Raises
-    ------
-    ValueError
-        A cell that is not a position source oscillating at a frequency.
-    """
-    out: list[complex | None] = []
-    resp: complex = 0j
-    dt = run.t[1] - run.t[0]
-    for i, c in enumerate(cells):
-        tr = c.trajectory
-        if c.hand is not None or tr.sine_hz <= 0.0:
-            raise ValueError("felt stiffness needs a position-source cell on a sine trajectory")
-        n_i = round(tr.duration_s / dt)
-        t = run.t[:n_i]
-        w = 2.0 * math.pi * tr.sine_hz
-        z_obj = c.obj.impedance(c.k_o, tr.sine_hz, tr.y1_m)
-        a, b = tr.hold_window_s
-        mid = 0.5 * (a + b)
-        ratios = []
-        for lo, hi in ((a, b), (a, mid), (mid, b)):
-            m = _window(t, (lo, hi))
-            x1 = _fundamental(t[m], run.x[i, :n_i][m], w)
-            f1 = _fundamental(t[m], run.f[i, :n_i][m], w)
-            q = f1 / x1 / z_obj if abs(x1) > 0.0 else complex(math.nan)
-            if hi == b and lo == a:
-                resp = q
-            ratios.append(abs(q))
-        whole, h1, h2 = ratios
-        steady = all(math.isfinite(q) for q in ratios) and abs(h1 - h2) <= FELT_FIT_TOLERANCE * max(
-            abs(whole), 1e-9
-        )
-        # a still probe must feel a still force: a limit cycle (the unilateral contact bounds an
-        # unstable loop) is periodic too, but it is there before the probe moves
-        still = _window(t, (tr.sine_start_s - 0.5, tr.sine_start_s))
-        ripple = float(np.ptp(run.f[i, :n_i][still]))
-        quiet = ripple <= FELT_FIT_TOLERANCE * 2.0 * whole * abs(z_obj) * tr.sine_amplitude_m
-        out.append(resp if steady and quiet and not run.runaway[i] else None)
-    return out
-
-
-def felt_stiffness_ratio(run: Run, cells: Sequence[Cell]) -> list[float | None]:
-    """Felt stiffness |dF/dx| / K_o of position-source cells, in order (:func:`felt_response`)."""
-    return [None if q is None else abs(q) for q in felt_response(run, cells)]
-
-
-#: Integration threshold of eq. 17 the product's client renders with (``haptic client
-#: --theta``, default 1 mm).
-PRODUCT_THETA_M = 1e-3
-#: Energy [J] the product's passivity layer tolerates (client.servo.ServoConfig's default).
-PRODUCT_PASSIVITY_BIAS_J = 1e-3
-
-
-def design_delay_ticks(one_way_delay_s: float, sim_rate_hz: float) -> int:
-    """Delay ticks the product's client designs for over a network of this one-way delay.
-
-    :meth:`client.session.ClientSession.delay_ticks` with a steady round trip of twice the delay
-    and a state sent every half simulation period
-    (:func:`shared.gain_key.loop_delay_ticks`).
-
-    Raises
-    ------
-    ValueError
-        A negative or non-finite delay, or a non-positive rate.
-    """
-    if not sim_rate_hz > 0.0:
-        raise ValueError(f"sim_rate_hz must be > 0, got {sim_rate_hz!r}")
-    return loop_delay_ticks(2.0 * one_way_delay_s, 0.5 / sim_rate_hz, sim_rate_hz)
-
-
-def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
-    """How ``scheme`` is tuned, in one sentence (the benchmark's report).
-
-    Raises
-    ------
-    ValueError
-        An unknown scheme.
-    """
-    b, k = device.max_damping_n_s_per_m, device.max_stiffness_n_per_m
-    swept = "the best of the sweep per condition (every hand of the box stable, then felt closest)"
-    text = {
-        "local-p": (
-            "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
-            "client measures, own-force compensation included (docs/own-force.md)"
-        ),
-        "local-pi": (
-            "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
-            "client measures, own-force compensation included (docs/own-force.md: a compensated "
-            "P model where that is closer to K_o); eq. 17 threshold 1 mm; passivity layer on "
-            "(the client's default for PI)"
-        ),
-        "mmt": (
-            "model-mediated teleoperation (Mitra and Niemeyer 2008): a plane at the rest surface "
-            "the simulation estimates each tick (its surface less its own deformation F / K), "
-            f"with the stiffness it estimates, capped at {k:g} N/m; probe damper 0, "
-            f"{0.25 * b:g} or {b:g} N*s/m, {swept}"
-        ),
-        "force-jacobian": (
-            "the simulation's force and local stiffness at the probe it received, f_s + K (x - "
-            f"x_s) at 1 kHz (Cavusoglu and Tendick 2000); K times 0.5 or 1, capped at {k:g} N/m; "
-            f"probe damper {0.25 * b:g} or {b:g} N*s/m, {swept}"
-        ),
-        "virtual-coupling": (
-            "a spring-damper to a simulated tool whose equilibrium with the object the "
-            "simulation solves from the probe it receives (Colgate, Stanley and Brown 1995; "
-            "Adams and Hannaford 1999; the light-tool limit); coupling "
-            f"{0.5 * k:g} or {k:g} N/m (the device's passive range for its own damping) and "
-            f"{0.25 * b:g} or {b:g} N*s/m, {swept}"
-        ),
-        "static-local": (
-            "a plane at the object's rest surface with the K_o reported (capped at "
-            f"{k:g} N/m), never updated (Mark et al. 1996's intermediate plane, placed where "
-            f"the object rests); probe damper 0, {0.25 * b:g} or {b:g} N*s/m, {swept}"
-        ),
-        "direct": "the simulation's own contact force from the probe it received, held (ZOH)",
-        "direct-tdpa": (
-            "direct with time-domain passivity, force clamp only (no damping cap): the one-port "
-            "observer at the device (Ryu, Kwon and Hannaford 2004) or the two-port form for a "
-            "delayed channel, its device side (Artigas et al. 2010: the device gives the user no "
-            "more energy than the object has given back, as far as it is known there), "
-            f"{swept}"
-        ),
-    }
-    if scheme not in text:
-        raise ValueError(f"unknown scheme {scheme!r}; expected one of {', '.join(SCHEMES)}")
-    return text[scheme]
-
-
-def peer_renderings(
-    scheme: str,
-    *,
-    k_o: float,
-    sim_rate_hz: float,
-    device: DeviceModel = DeviceModel(),
-) -> list[Rendering]:
-    """Every tuning of a peer that the benchmark sweeps (:func:`scheme_tuning`), the default
-    (the one :func:`rendering_for` gives) first.
-
-    Parameters
-    ----------
-    scheme : str
-        A peer of :data:`SCHEMES` (not a local model).
-    k_o : float
-        The K_o reported [N/m] (the static plane's stiffness).
-    sim_rate_hz : float
-        Simulation rate [Hz] (unused by today's peers; kept for tunings that depend on it).
-    device : DeviceModel
-
-    Raises
-    ------
-    ValueError
-        An unknown scheme, a local model, or a non-positive K_o.
-    """
-    if not (math.isfinite(k_o) and k_o > 0.0):
-        raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
-    b, k = device.max_damping_n_s_per_m, device.max_stiffness_n_per_m
-    dampers = (b, 0.25 * b)
-    # the planes also without a damper: what the product's design picks on soft objects
-    plane_dampers = (*dampers, 0.0)
-    tune = scheme_tuning(scheme, device) if scheme in SCHEMES else ""
-    if scheme in LOCAL_MODELS:
-        raise ValueError(f"{scheme} is a local model: its gains come from the product's design")
-    if scheme == "mmt":
-        return [
-            Rendering("mmt", "mmt", k_h=k, b_h=bh, variant=f"B={bh:g}", tuning=tune)
-            for bh in plane_dampers
-        ]
-    if scheme == "force-jacobian":
-        return [
-            Rendering(
-                "force-jacobian",
-                "jacobian",
-                k_h=k,
-                b_h=bh,
-                jacobian_scale=sc,
-                variant=f"K x{sc:g}, B={bh:g}",
-                tuning=tune,
-            )
-            for sc in (1.0, 0.5)
-            for bh in dampers
-        ]
-    if scheme == "virtual-coupling":
-        return [
-            Rendering(
-                "virtual-coupling",
-                "tool",
-                k_h=kc,
-                b_h=bh,
-                variant=f"K_c={kc:g}, B_c={bh:g}",
-                tuning=tune,
-            )
-            for kc in (k, 0.5 * k)
-            for bh in dampers
-        ]
-    if scheme == "static-local":
-        return [
-            Rendering(
-                "static-local", "wall", k_h=min(k_o, k), b_h=bh, variant=f"B={bh:g}", tuning=tune
-            )
-            for bh in plane_dampers
-        ]
-    if scheme == "direct":
-        return [Rendering("direct", "direct", tuning=tune)]
-    if scheme == "direct-tdpa":
-        return [
-            Rendering(
-                "direct-tdpa",
-                "direct",
-                passivity=True,
-                passivity_max_damping=math.inf,
-                two_port=tp,
-                variant="two-port" if tp else "one-port",
-                tuning=tune,
-            )
-            for tp in (False, True)
-        ]
-    raise ValueError(f"unknown scheme {scheme!r}; expected one of {', '.join(SCHEMES)}")
-
-
-def rendering_for(
-    scheme: str,
-    *,
-    sim_rate_hz: float,
-    device: DeviceModel = DeviceModel(),
-    design: GainDesign | None = None,
-    k_o: float | None = None,
-) -> Rendering:
-    """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
-    model's design, or a peer's default tuning (:func:`peer_renderings`).
-
-    Parameters
-    ----------
-    scheme : str
-        One of :data:`SCHEMES`.
-    sim_rate_hz : float
-        Simulation rate [Hz] (the local models' release ramp is two simulation periods).
-    device : DeviceModel
-        Limits the peers are tuned to.
-    design : GainDesign, optional
-        The product's gains for this object, rate and delay (required for ``local-p`` and
-        ``local-pi``): :class:`shared.gain_design.GainTable` with the client's key.
-    k_o : float, optional
-        The K_o reported [N/m] (``static-local``'s plane; default the device's stiffness).
-
-    Raises
-    ------
-    ValueError
-        An unknown scheme, or a local model without its design.
-    """
-    if scheme in LOCAL_MODELS:
-        if design is None:
-            raise ValueError(f"{scheme} needs the product's gain design")
-        pi = scheme == "local-pi"
-        return Rendering(
-            scheme,
-            "coupling",
-            k_h=design.k_h,
-            i_gain=design.i_gain,
-            b_h=design.b_h,
-            proxy_hold=design.proxy_hold,
-            theta_m=PRODUCT_THETA_M,
-            release_time_s=2.0 / sim_rate_hz,
-            passivity=pi,
-            passivity_bias_j=PRODUCT_PASSIVITY_BIAS_J,
-            own_gain=design.own_gain,
-            follows_k_o=True,
-            tuning=scheme_tuning(scheme, device),
-        )
-    kk = k_o if k_o is not None else device.max_stiffness_n_per_m
-    return peer_renderings(scheme, k_o=kk, sim_rate_hz=sim_rate_hz, device=device)[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -27,8 +28,8 @@ from haptic_collab.research.fidelity_1d import (
     scheme_tuning,
     simulate,
 )
+from haptic_collab.shared.felt_stiffness import felt_stiffness
 from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand, spectral_radius
-from haptic_collab.shared.gain_design import felt_stiffness
 from haptic_collab.shared.local_model import LocalModel, LocalModelParams, ThresholdParams
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
 from haptic_collab.shared.protocol import Welcome, encode
@@ -52,7 +53,7 @@ def test_p_coupling_on_a_rigid_probe_feels_k_h_in_series_with_k_o() -> None:
 
 def test_felt_stiffness_matches_the_exact_lifted_analysis() -> None:
     # probe damper, first-order hold and two ticks of delay at 8 Hz: the simulator measures what
-    # shared.gain_design.felt_stiffness computes exactly for the linear loop
+    # shared.felt_stiffness.felt_stiffness computes exactly for the linear loop
     r = Rendering("local-p", "coupling", k_h=300.0, b_h=8.0, proxy_hold="foh")
     got = _felt(r, 1000.0, 20.0, 50.0, 8.0)
     # 50 ms each way at 20 Hz: the force the simulation reads left the servo 2 periods earlier
@@ -91,43 +92,112 @@ def test_an_unsettled_response_has_no_felt_stiffness() -> None:
 
 
 def test_passivity_step_is_the_products_controller() -> None:
+    """The simulator's vectorised copy of the passivity observer and controller (kept for speed:
+    fidelity_1d's docstring) against shared.passivity.PassivityController, one controller per
+    cell of a batch, each with its own damping cap, energy bias and switch, on every tick; the
+    inputs reach every branch of the controller."""
     rng = np.random.default_rng(3)
-    params = PassivityParams(max_damping_n_s_per_m=10.0, energy_bias_j=1e-4, max_force_n=7.9)
-    pc = PassivityController(params)
-    e, fa = np.zeros(1), np.zeros(1)
-    for n in range(400):
-        f_d = 0.0 if n % 97 < 5 else float(rng.normal(0.0, 4.0))
-        v = float(rng.normal(0.0, 0.05))
-        want = pc.step(f_d, 0.0, 0.0, v, 0.0, 0.0)[0]
-        e, fa, _ = passivity_step(
+    caps = np.array([10.0, 2.0, 40.0, 10.0, 10.0])
+    biases = np.array([1e-4, 0.0, 1e-3, 1e-4, 0.0])
+    on = np.array([True, True, True, False, True])
+    fmax, T = 7.9, 1e-3
+    pcs = [
+        PassivityController(
+            PassivityParams(
+                max_damping_n_s_per_m=float(c),
+                energy_bias_j=float(b),
+                servo_period_s=T,
+                max_force_n=fmax,
+                enabled=bool(o),
+            )
+        )
+        for c, b, o in zip(caps, biases, on, strict=True)
+    ]
+    e, fa = np.zeros(caps.size), np.zeros(caps.size)
+    seen = dict.fromkeys(("capped", "below_cap", "clamped", "reset", "still", "off"), 0)
+    for _ in range(3000):
+        f_d = rng.normal(0.0, 5.0, caps.size)
+        f_d = np.where(rng.random(caps.size) < 0.05, 0.0, f_d)  # out of contact: reset
+        v = rng.normal(0.0, 0.05, caps.size)
+        v = np.where(rng.random(caps.size) < 0.05, 0.0, v)  # a still handle: nothing to damp
+        before = [pc.dissipated_energy_j for pc in pcs]
+        want = [
+            pc.step(f, 0.0, 0.0, vi, 0.0, 0.0)[0] for pc, f, vi in zip(pcs, f_d, v, strict=True)
+        ]
+        e, fa, dissipated = passivity_step(
             e,
             fa,
-            np.array([f_d]),
-            np.array([v]),
-            servo_period_s=1e-3,
-            max_damping_n_s_per_m=10.0,
-            energy_bias_j=1e-4,
-            max_force_n=7.9,
+            f_d,
+            v,
+            servo_period_s=T,
+            max_damping_n_s_per_m=caps,
+            energy_bias_j=biases,
+            max_force_n=fmax,
+            on=on,
         )
-        assert fa[0] == pytest.approx(want, abs=1e-12)
-        assert e[0] == pytest.approx(pc.observed_energy_j, abs=1e-12)
+        np.testing.assert_allclose(fa, want, rtol=0.0, atol=1e-12)
+        np.testing.assert_allclose(e, [pc.observed_energy_j for pc in pcs], rtol=0.0, atol=1e-12)
+        np.testing.assert_allclose(
+            dissipated,
+            [pc.dissipated_energy_j - d0 for pc, d0 in zip(pcs, before, strict=True)],
+            rtol=0.0,
+            atol=1e-15,
+        )
+        alpha = np.array([pc.alpha_n_s_per_m for pc in pcs])
+        seen["capped"] += int(np.sum((alpha > 0.0) & (alpha == caps)))
+        seen["below_cap"] += int(np.sum((alpha > 0.0) & (alpha < caps)))
+        seen["clamped"] += int(np.sum((alpha > 0.0) & (np.abs(fa) == fmax)))
+        seen["reset"] += int(np.sum((f_d == 0.0) & (e == 0.0)))
+        seen["still"] += int(np.sum((v == 0.0) & (f_d != 0.0)))
+        seen["off"] += int(np.sum(~on & (fa != np.clip(f_d, -fmax, fmax))))
+    assert seen.pop("off") == 0  # a controller that is off only clamps the force
+    assert all(k > 0 for k in seen.values()), seen
+
+
+def _local_model_reference(
+    run_x: np.ndarray, r: Rendering, k_o: float, n_ratio: int, d: int
+) -> tuple[list[float], dict[str, int]]:
+    """shared.local_model.LocalModel, probe as a position source, against an independently written
+    spring object at the simulation rate with ``d`` servo ticks of delay each way; the forces and
+    how often each branch of the model was taken."""
+    lm = LocalModel(
+        LocalModelParams(
+            k_h=r.k_h,
+            i_gain=r.i_gain,
+            threshold=ThresholdParams(mode="fixed", theta_m=r.theta_m),
+            release_time_s=r.release_time_s,
+            integral_limit_n=7.9,
+            recovery_m_per_n=1.0 / k_o if r.i_gain > 0.0 else 0.0,
+        )
+    )
+    sent: list[float] = []
+    published: dict[int, float] = {}  # servo tick from which the servo sees it: x_o
+    proxy = 0.0
+    forces = []
+    seen = dict.fromkeys(("released", "recovery_band", "integral_limit", "force_clamp"), 0)
+    for n, x in enumerate(run_x.tolist()):
+        proxy = published.pop(n, proxy)
+        was = lm.in_contact
+        f_lm = lm.step(x - proxy)
+        f = min(max(f_lm, -7.9), 7.9)
+        forces.append(f)
+        sent.append(f)
+        seen["released"] += int(was and not lm.in_contact and lm.integral_n > 0.0)
+        seen["recovery_band"] += int(lm.in_contact and x - proxy <= 0.0)
+        seen["integral_limit"] += int(lm.integral_n == 7.9)
+        seen["force_clamp"] += int(f != f_lm)
+        if n % n_ratio == 0:
+            got = sent[n - d] if n - d >= 0 else 0.0
+            published[n + 1 + d] = max(got, 0.0) / k_o
+    return forces, seen
 
 
 def test_the_local_model_is_the_products_local_model() -> None:
-    """A PI coupling with eq. 17's threshold and the release ramp, probe as a position source:
-    the vectorised simulator against shared.local_model.LocalModel driven by an independently
-    written 20 Hz object with 10 ms of delay each way."""
-    k_o, rate, d = 400.0, 20.0, 10
-    r = Rendering(
-        "local-pi",
-        "coupling",
-        k_h=120.0,
-        i_gain=2000.0,
-        theta_m=1e-3,
-        release_time_s=0.1,
-    )
-    # in, hold, out (release), back in
-    tr = Trajectory(
+    """The simulator's vectorised copy of the local model (kept for speed: fidelity_1d's
+    docstring) against shared.local_model.LocalModel, cell by cell of one batch of P and PI
+    couplings with their own gains, thresholds, release times, rates and delays: eq. 12, eq. 17's
+    threshold, the release ramp, the recovery band and the integral limit are all reached."""
+    in_out = Trajectory(  # in, hold, out (release), back in
         "in-out",
         duration_s=2.0,
         y0_m=-2e-3,
@@ -139,36 +209,56 @@ def test_the_local_model_is_the_products_local_model() -> None:
         sine_start_s=1.0,
         sine_end_s=2.0,
     )
-    cell = Cell(r, k_o, rate, float(d), None, tr)
-    run = simulate([cell])
-    lm = LocalModel(
-        LocalModelParams(
-            k_h=120.0,
-            i_gain=2000.0,
-            threshold=ThresholdParams(mode="fixed", theta_m=1e-3),
-            release_time_s=0.1,
-            integral_limit_n=7.9,
-            recovery_m_per_n=1.0 / k_o,
-        )
-    )
-    n_ratio = 50
-    sent: list[float] = []
-    published: list[tuple[int, float]] = []  # (servo tick from which the servo sees it, x_o)
-    proxy = 0.0
-    forces = []
-    for n in range(run.t.size):
-        for tick, x_o in published:
-            if tick == n:
-                proxy = x_o
-        x = float(run.x[0, n])
-        f = min(max(lm.step(x - proxy), -7.9), 7.9)
-        forces.append(f)
-        sent.append(f)
-        if n % n_ratio == 0:
-            got = sent[n - d] if n - d >= 0 else 0.0
-            published.append((n + 1 + d, max(got, 0.0) / k_o))
-    np.testing.assert_allclose(run.f[0], forces, atol=1e-9)
-    assert max(forces) > 1.0  # the case exercised contact
+    deep = replace(in_out, name="deep", y1_m=25e-3, sine_amplitude_m=26e-3, sine_hz=0.75)
+    cases = [  # rendering, K_o, simulation rate, one-way delay [ticks], trajectory
+        (
+            Rendering("local-pi", "coupling", k_h=120.0, i_gain=2000.0, theta_m=1e-3),
+            400.0,
+            20.0,
+            10,
+            in_out,
+        ),
+        (Rendering("local-p", "coupling", k_h=300.0), 400.0, 20.0, 10, in_out),
+        (
+            Rendering(
+                "local-pi",
+                "coupling",
+                k_h=200.0,
+                i_gain=5000.0,
+                theta_m=0.5e-3,
+                release_time_s=0.05,
+            ),
+            400.0,
+            50.0,
+            0,
+            deep,
+        ),
+        (
+            Rendering(
+                "local-pi",
+                "coupling",
+                k_h=60.0,
+                i_gain=800.0,
+                theta_m=2e-3,
+                release_time_s=0.3,
+            ),
+            150.0,
+            10.0,
+            30,
+            in_out,
+        ),
+    ]
+    cells = [Cell(r, k_o, rate, float(d), None, tr) for r, k_o, rate, d, tr in cases]
+    run = simulate(cells)
+    seen_all: dict[str, int] = {}
+    for i, (r, k_o, rate, d, tr) in enumerate(cases):
+        n_i = round(tr.duration_s * 1000.0)
+        forces, seen = _local_model_reference(run.x[i, :n_i], r, k_o, round(1000.0 / rate), d)
+        np.testing.assert_allclose(run.f[i, :n_i], forces, rtol=0.0, atol=1e-9)
+        assert max(forces) > 1.0  # the case exercised contact
+        for k, v in seen.items():
+            seen_all[k] = seen_all.get(k, 0) + v
+    assert all(v > 0 for v in seen_all.values()), seen_all
 
 
 def test_the_delay_is_honoured_both_ways() -> None:

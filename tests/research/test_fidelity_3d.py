@@ -19,7 +19,7 @@ from haptic_collab.research.fidelity_3d import (
     top_contact,
 )
 from haptic_collab.server.main import ServerOptions, build_world
-from haptic_collab.shared.gain_design import GainTable
+from haptic_collab.shared.gain_table import GainTable
 
 CELL_KEYS = {
     "scheme",

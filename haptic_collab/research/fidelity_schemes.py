@@ -1,0 +1,358 @@
+"""The rendering schemes the fidelity benchmark compares, the device they render on, and how each
+is tuned (the product's design for the local models, a sweep for each peer).
+
+:mod:`haptic_collab.research.fidelity_1d` documents the schemes and simulates them;
+:class:`Rendering` says how one scheme renders one object (its :data:`RenderKind` is how the
+renderer is fed), :func:`rendering_for` gives a local model's rendering from the product's gain
+design or a peer's default tuning, :func:`peer_renderings` every tuning of a peer the benchmark
+sweeps and :func:`scheme_tuning` the sentence the report prints for each.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+from haptic_collab.shared.full_loop import ProxyHold
+from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gain_key import loop_delay_ticks
+
+SchemeName = Literal[
+    "local-p",
+    "local-pi",
+    "mmt",
+    "force-jacobian",
+    "direct",
+    "virtual-coupling",
+    "static-local",
+    "direct-tdpa",
+]
+
+#: Every scheme, this project's first.
+SCHEMES: tuple[SchemeName, ...] = get_args(SchemeName)
+
+#: The schemes that are this project's local models (the rest are peers).
+LOCAL_MODELS: tuple[SchemeName, ...] = ("local-p", "local-pi")
+
+#: The way each scheme's renderer is fed (:class:`Rendering`'s ``kind``):
+#: ``coupling`` the product's local model (a spring, integral and damper to the proxy the
+#: simulation reports, the simulation receiving the force); ``mmt`` a plane at the rest surface
+#: the simulation estimates, with the stiffness it estimates, the simulation receiving the force;
+#: ``wall`` a plane at the rest surface with a fixed stiffness, never updated; ``tool`` a
+#: spring-damper to a simulated tool whose equilibrium with the object the simulation solves
+#: from the probe position it receives; ``jacobian`` the simulation's force and its local
+#: stiffness, ``f_s + K (x - x_s)``; ``direct`` the simulation's force, held.
+RenderKind = Literal["coupling", "mmt", "wall", "tool", "jacobian", "direct"]
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceModel:
+    """The device every scheme renders on (the simulated Phantom Desktop's limits), SI units.
+
+    Attributes
+    ----------
+    name : str
+    max_force_n : float
+        Force clamp [N].
+    max_stiffness_n_per_m : float
+        Largest stiffness [N/m] the device renders stably on its own (the virtual coupling's gain).
+    max_damping_n_s_per_m : float
+        Largest virtual damping [N*s/m] (the virtual coupling's damper, the PC's alpha_max).
+    """
+
+    name: str = "phantom-desktop"
+    max_force_n: float = 7.9
+    max_stiffness_n_per_m: float = 1000.0
+    max_damping_n_s_per_m: float = 10.0
+
+
+@dataclass(frozen=True, slots=True)
+class Rendering:
+    """How one scheme renders one object (SI units).
+
+    Attributes
+    ----------
+    scheme : str
+        One of :data:`SCHEMES`.
+    kind : str
+        How the renderer is fed (:data:`RenderKind`).
+    k_h, i_gain, b_h : float
+        Spring K_h [N/m] (``coupling``, ``wall``, ``tool``; the cap [N/m] on the estimated
+        stiffness for ``mmt`` and ``jacobian``), integral I [N/(m*s)] (``coupling``), probe damper
+        [N*s/m] (every kind but ``direct``).
+    proxy_hold : {"zoh", "foh"}
+    theta_m : float
+        Integration threshold of eq. 17 [m] (used when ``i_gain > 0``).
+    release_time_s : float
+        Ramp [s] driving the integral force to zero on release (section 5.1).
+    passivity : bool
+        Time-domain passivity observer/controller at the device port.
+    passivity_bias_j : float
+        Energy [J] the PC tolerates before acting.
+    passivity_max_damping : float or None
+        The PC's largest damping [N*s/m]; None: the device's maximum; ``math.inf``: uncapped
+        (only the force clamp limits it).
+    two_port : bool
+        ``direct`` with ``passivity``: the two-port form for a delayed channel (module docstring).
+    own_gain : float
+        Own-force compensation C_h [m/N] (``coupling`` only, :mod:`shared.full_loop`): the proxy
+        is the reported surface moved out by C_h times the force the simulation applied.
+    jacobian_scale : float
+        ``jacobian``: the fraction of the simulation's local stiffness rendered.
+    follows_k_o : bool
+        ``coupling`` with ``own_gain`` > 0: the gains follow the K_o the simulation reports each
+        tick, as the product's client renders each patch with its design scaled to the patch's
+        K_o (:meth:`shared.gain_design.GainDesign.at`): K_h times s up to the device's
+        stiffness, C_h over s, s = max(K_o reported / K_o designed for, 1); B_h and the hold
+        stay. Where the reported K_o leaves the design's cell the client renders a new cell's
+        design; here the scaling continues instead.
+    variant : str
+        The peer's tuning among those swept (:func:`peer_renderings`), for the report.
+    tuning : str
+        How the gains were chosen, for the report.
+    """
+
+    scheme: str
+    kind: RenderKind
+    k_h: float = 0.0
+    i_gain: float = 0.0
+    b_h: float = 0.0
+    proxy_hold: ProxyHold = "zoh"
+    theta_m: float = 0.0
+    release_time_s: float = 0.1
+    passivity: bool = False
+    passivity_bias_j: float = 0.0
+    passivity_max_damping: float | None = None
+    two_port: bool = False
+    own_gain: float = 0.0
+    jacobian_scale: float = 1.0
+    follows_k_o: bool = False
+    variant: str = ""
+    tuning: str = ""
+
+
+#: Integration threshold of eq. 17 the product's client renders with (``haptic client
+#: --theta``, default 1 mm).
+PRODUCT_THETA_M = 1e-3
+#: Energy [J] the product's passivity layer tolerates (client.servo.ServoConfig's default).
+PRODUCT_PASSIVITY_BIAS_J = 1e-3
+
+
+def design_delay_ticks(one_way_delay_s: float, sim_rate_hz: float) -> int:
+    """Delay ticks the product's client designs for over a network of this one-way delay.
+
+    :meth:`client.session.ClientSession.delay_ticks` with a steady round trip of twice the delay
+    and a state sent every half simulation period
+    (:func:`shared.gain_key.loop_delay_ticks`).
+
+    Raises
+    ------
+    ValueError
+        A negative or non-finite delay, or a non-positive rate.
+    """
+    if not sim_rate_hz > 0.0:
+        raise ValueError(f"sim_rate_hz must be > 0, got {sim_rate_hz!r}")
+    return loop_delay_ticks(2.0 * one_way_delay_s, 0.5 / sim_rate_hz, sim_rate_hz)
+
+
+def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
+    """How ``scheme`` is tuned, in one sentence (the benchmark's report).
+
+    Raises
+    ------
+    ValueError
+        An unknown scheme.
+    """
+    b, k = device.max_damping_n_s_per_m, device.max_stiffness_n_per_m
+    swept = "the best of the sweep per condition (every hand of the box stable, then felt closest)"
+    text = {
+        "local-p": (
+            "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
+            "client measures, own-force compensation included (docs/own-force.md)"
+        ),
+        "local-pi": (
+            "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
+            "client measures, own-force compensation included (docs/own-force.md: a compensated "
+            "P model where that is closer to K_o); eq. 17 threshold 1 mm; passivity layer on "
+            "(the client's default for PI)"
+        ),
+        "mmt": (
+            "model-mediated teleoperation (Mitra and Niemeyer 2008): a plane at the rest surface "
+            "the simulation estimates each tick (its surface less its own deformation F / K), "
+            f"with the stiffness it estimates, capped at {k:g} N/m; probe damper 0, "
+            f"{0.25 * b:g} or {b:g} N*s/m, {swept}"
+        ),
+        "force-jacobian": (
+            "the simulation's force and local stiffness at the probe it received, f_s + K (x - "
+            f"x_s) at 1 kHz (Cavusoglu and Tendick 2000); K times 0.5 or 1, capped at {k:g} N/m; "
+            f"probe damper {0.25 * b:g} or {b:g} N*s/m, {swept}"
+        ),
+        "virtual-coupling": (
+            "a spring-damper to a simulated tool whose equilibrium with the object the "
+            "simulation solves from the probe it receives (Colgate, Stanley and Brown 1995; "
+            "Adams and Hannaford 1999; the light-tool limit); coupling "
+            f"{0.5 * k:g} or {k:g} N/m (the device's passive range for its own damping) and "
+            f"{0.25 * b:g} or {b:g} N*s/m, {swept}"
+        ),
+        "static-local": (
+            "a plane at the object's rest surface with the K_o reported (capped at "
+            f"{k:g} N/m), never updated (Mark et al. 1996's intermediate plane, placed where "
+            f"the object rests); probe damper 0, {0.25 * b:g} or {b:g} N*s/m, {swept}"
+        ),
+        "direct": "the simulation's own contact force from the probe it received, held (ZOH)",
+        "direct-tdpa": (
+            "direct with time-domain passivity, force clamp only (no damping cap): the one-port "
+            "observer at the device (Ryu, Kwon and Hannaford 2004) or the two-port form for a "
+            "delayed channel, its device side (Artigas et al. 2010: the device gives the user no "
+            "more energy than the object has given back, as far as it is known there), "
+            f"{swept}"
+        ),
+    }
+    if scheme not in text:
+        raise ValueError(f"unknown scheme {scheme!r}; expected one of {', '.join(SCHEMES)}")
+    return text[scheme]
+
+
+def peer_renderings(
+    scheme: str,
+    *,
+    k_o: float,
+    sim_rate_hz: float,
+    device: DeviceModel = DeviceModel(),
+) -> list[Rendering]:
+    """Every tuning of a peer that the benchmark sweeps (:func:`scheme_tuning`), the default
+    (the one :func:`rendering_for` gives) first.
+
+    Parameters
+    ----------
+    scheme : str
+        A peer of :data:`SCHEMES` (not a local model).
+    k_o : float
+        The K_o reported [N/m] (the static plane's stiffness).
+    sim_rate_hz : float
+        Simulation rate [Hz] (unused by today's peers; kept for tunings that depend on it).
+    device : DeviceModel
+
+    Raises
+    ------
+    ValueError
+        An unknown scheme, a local model, or a non-positive K_o.
+    """
+    if not (math.isfinite(k_o) and k_o > 0.0):
+        raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
+    b, k = device.max_damping_n_s_per_m, device.max_stiffness_n_per_m
+    dampers = (b, 0.25 * b)
+    # the planes also without a damper: what the product's design picks on soft objects
+    plane_dampers = (*dampers, 0.0)
+    tune = scheme_tuning(scheme, device) if scheme in SCHEMES else ""
+    if scheme in LOCAL_MODELS:
+        raise ValueError(f"{scheme} is a local model: its gains come from the product's design")
+    if scheme == "mmt":
+        return [
+            Rendering("mmt", "mmt", k_h=k, b_h=bh, variant=f"B={bh:g}", tuning=tune)
+            for bh in plane_dampers
+        ]
+    if scheme == "force-jacobian":
+        return [
+            Rendering(
+                "force-jacobian",
+                "jacobian",
+                k_h=k,
+                b_h=bh,
+                jacobian_scale=sc,
+                variant=f"K x{sc:g}, B={bh:g}",
+                tuning=tune,
+            )
+            for sc in (1.0, 0.5)
+            for bh in dampers
+        ]
+    if scheme == "virtual-coupling":
+        return [
+            Rendering(
+                "virtual-coupling",
+                "tool",
+                k_h=kc,
+                b_h=bh,
+                variant=f"K_c={kc:g}, B_c={bh:g}",
+                tuning=tune,
+            )
+            for kc in (k, 0.5 * k)
+            for bh in dampers
+        ]
+    if scheme == "static-local":
+        return [
+            Rendering(
+                "static-local", "wall", k_h=min(k_o, k), b_h=bh, variant=f"B={bh:g}", tuning=tune
+            )
+            for bh in plane_dampers
+        ]
+    if scheme == "direct":
+        return [Rendering("direct", "direct", tuning=tune)]
+    if scheme == "direct-tdpa":
+        return [
+            Rendering(
+                "direct-tdpa",
+                "direct",
+                passivity=True,
+                passivity_max_damping=math.inf,
+                two_port=tp,
+                variant="two-port" if tp else "one-port",
+                tuning=tune,
+            )
+            for tp in (False, True)
+        ]
+    raise ValueError(f"unknown scheme {scheme!r}; expected one of {', '.join(SCHEMES)}")
+
+
+def rendering_for(
+    scheme: str,
+    *,
+    sim_rate_hz: float,
+    device: DeviceModel = DeviceModel(),
+    design: GainDesign | None = None,
+    k_o: float | None = None,
+) -> Rendering:
+    """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
+    model's design, or a peer's default tuning (:func:`peer_renderings`).
+
+    Parameters
+    ----------
+    scheme : str
+        One of :data:`SCHEMES`.
+    sim_rate_hz : float
+        Simulation rate [Hz] (the local models' release ramp is two simulation periods).
+    device : DeviceModel
+        Limits the peers are tuned to.
+    design : GainDesign, optional
+        The product's gains for this object, rate and delay (required for ``local-p`` and
+        ``local-pi``): :class:`shared.gain_table.GainTable` with the client's key.
+    k_o : float, optional
+        The K_o reported [N/m] (``static-local``'s plane; default the device's stiffness).
+
+    Raises
+    ------
+    ValueError
+        An unknown scheme, or a local model without its design.
+    """
+    if scheme in LOCAL_MODELS:
+        if design is None:
+            raise ValueError(f"{scheme} needs the product's gain design")
+        pi = scheme == "local-pi"
+        return Rendering(
+            scheme,
+            "coupling",
+            k_h=design.k_h,
+            i_gain=design.i_gain,
+            b_h=design.b_h,
+            proxy_hold=design.proxy_hold,
+            theta_m=PRODUCT_THETA_M,
+            release_time_s=2.0 / sim_rate_hz,
+            passivity=pi,
+            passivity_bias_j=PRODUCT_PASSIVITY_BIAS_J,
+            own_gain=design.own_gain,
+            follows_k_o=True,
+            tuning=scheme_tuning(scheme, device),
+        )
+    kk = k_o if k_o is not None else device.max_stiffness_n_per_m
+    return peer_renderings(scheme, k_o=kk, sim_rate_hz=sim_rate_hz, device=device)[0]
