@@ -461,8 +461,9 @@ def run(
 
     gains = []
     for (mode, gkey, k_o), gd in sorted(
-        designs.items(), key=lambda kv: (kv[0][0], kv[0][1].sim_rate_hz, kv[0][1].delay_ticks)
-    ):
+        designs.items(),
+        key=lambda kv: (kv[0][0], kv[0][1].sim_rate_hz, kv[0][1].delay_ticks, kv[0][2]),
+    ):  # K_o last: the order of the JSON's designs is the same in every run
         gains.append(
             {
                 "local_model": mode,
