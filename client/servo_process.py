@@ -1,6 +1,6 @@
 """The servo in its own process: device, local model, safety and telemetry off the link's GIL.
 
-Why (issue 27): with the servo as a thread of the client, 98 % of its missed deadlines were waits
+Why: with the servo as a thread of the client, 98 % of its missed deadlines were waits
 to retake the interpreter lock after its sleep, held by the link's thread (patch parsing, the
 sample, the recorder) while that thread was preempted on a busy machine. A process has its own
 interpreter lock; the servo process runs nothing but the loop.

@@ -2,7 +2,7 @@
 
 A client in any language may render the gains the server sends in each patch
 (``patch.gains``, :class:`shared.protocol.RecommendedGains`) instead of porting the full-loop
-design (issue 14). The server designs them exactly as :class:`client.session.ClientSession` does:
+design. The server designs them exactly as :class:`client.session.ClientSession` does:
 one :class:`shared.gain_table.GainTable` keyed by the user's declared device (maximum stiffness
 and damping, servo rate, P or PI local model), its loop delay in whole simulation ticks (from the
 round trips the user reports in ``state``), the object damping ``b_o`` and the coupling class

@@ -21,7 +21,7 @@ only if it is stable with every hand on every trajectory; its felt error is the 
 ``|ln |q(f)||`` over :data:`BAND_HZ`, ``q`` the felt dynamic stiffness over the object's own;
 the best is the smallest, and every scheme within the stiffness JND of it
 (:data:`STIFFNESS_JND`: ``error <= best + ln(1 + JND)``) is tied with it. The same ranking is
-also made per hand (a scheme stable with that hand on that trajectory), as issue 9 did.
+also made per hand (a scheme stable with that hand on that trajectory).
 
 ``--quick`` runs :data:`QUICK_GRID`; :data:`FULL_GRID` is the whole grid. ``--plot DIR`` writes
 ``fidelity-stability.png`` and ``fidelity-transparency.png``.
@@ -399,7 +399,7 @@ def run(
     # the stable flags must be in (trajectory, hand) order for the per-hand ranking: they are,
     # because the cells of one trajectory are batched together in hand order and trajectories
     # are collected in the grid's order
-    # each peer by its best tuning in the condition itself (the issue's protocol: the tuning is
+    # each peer by its best tuning in the condition itself (docs/fidelity.md: the tuning is
     # picked knowing the object), and by the tuning it would pick on the design model (what a
     # designer who knows only the reported K_o would ship: the product's own position)
     conditions: list[dict[str, Any]] = []

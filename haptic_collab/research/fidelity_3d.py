@@ -1,6 +1,6 @@
 """The fidelity benchmark's schemes on the 3-D World: the product's own object, servo and hand.
 
-Issue 9 (``haptic bench fidelity``): the 1-D multirate simulator of :mod:`haptic_collab.research.fidelity_1d` carries
+``haptic bench fidelity``: the 1-D multirate simulator of :mod:`haptic_collab.research.fidelity_1d` carries
 the full grid; the same schemes also run here on the server's :class:`server.world.World`
 (the default water balloon, ``--stiffness-scale``, 20 Hz) without the network, one user pressing
 the top with the default simulated hand. Every block is the product's code run in-process, tick

@@ -1,7 +1,7 @@
 """What a user would notice in each cell of the fidelity benchmark: stability, penetration,
 energy, force ripple, and the felt dynamic stiffness over the object's own.
 
-:func:`cell_metrics` takes issue 9's metrics (:class:`CellMetrics`) from a
+:func:`cell_metrics` takes the benchmark's metrics (:class:`CellMetrics`) from a
 :func:`haptic_collab.research.fidelity_1d.simulate` run (or a 3-D cell's record in the same
 shape); :func:`felt_response` fits the felt impedance of position-source cells on a sine
 trajectory, :func:`felt_stiffness_ratio` its magnitude.
@@ -19,13 +19,13 @@ from numpy.typing import NDArray
 from haptic_collab.research.fidelity_cases import Cell, Run
 from haptic_collab.shared.types import FloatArray
 
-#: Probe peak-to-peak [m] during the hold below which a cell counts as stable (issue 9).
+#: Probe peak-to-peak [m] during the hold below which a cell counts as stable (docs/fidelity.md).
 STABLE_HOLD_P2P_M = 0.5e-3
 
 
 @dataclass(frozen=True, slots=True)
 class CellMetrics:
-    """What a user would notice in one cell (issue 9's metrics), SI-derived units as named.
+    """What a user would notice in one cell (docs/fidelity.md), SI-derived units as named.
 
     Attributes
     ----------

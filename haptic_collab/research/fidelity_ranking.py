@@ -21,7 +21,7 @@ from typing import Any
 
 from haptic_collab.research.fidelity_schemes import LOCAL_MODELS, Rendering
 
-#: Frequencies [Hz] of the felt impedance (the issue's 0.5-30 Hz).
+#: Frequencies [Hz] of the felt impedance (0.5-30 Hz, docs/fidelity.md).
 FELT_HZ = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 30.0)
 #: The frequencies the ranking judges the felt stiffness over: the band of voluntary hand motion
 #: in which people judge stiffness by pressing (Brooks 1990: up to 5-10 Hz); above it the

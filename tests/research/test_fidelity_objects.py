@@ -1,4 +1,4 @@
-"""The honest fidelity benchmark's 1-D parts (issue 25): objects the design did not see, peers
+"""The honest fidelity benchmark's 1-D parts (docs/fidelity.md): objects the design did not see, peers
 with the local model's information and their tunings, servo imperfections."""
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def test_the_objects_differ_from_the_design_model_as_stated() -> None:
 
 
 def test_mmt_is_the_compensated_p_model_with_k_h_equal_to_k_o() -> None:
-    # what the issue measured: for K_o within the device's stiffness the product's design is a
+    # what a re-analysis of the benchmark measured: for K_o within the device's stiffness the product's design is a
     # plane at the rest surface with K_o, the same information MMT renders
     k = 300.0
     mmt = Rendering("mmt", "mmt", k_h=1000.0, b_h=2.5)
@@ -198,7 +198,7 @@ def _box_stable(r: Rendering, obj: ObjectModel, k_o: float, rate: float, delay_m
 
 @pytest.mark.slow
 def test_the_product_holds_an_object_a_fifth_stiffer_than_reported() -> None:
-    # issue 25: designed for the K_o reported alone, the local model rang with a heavy, lightly
+    # designed for the K_o reported alone, the local model rang with a heavy, lightly
     # damped hand on an object 20 % stiffer (300 N/m, 20 Hz, no delay); the design now holds on
     # one up to 25 % stiffer than the top of its cell, every hand of the box, every trajectory
     k, rate = 300.0, 20.0

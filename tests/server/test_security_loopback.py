@@ -1,4 +1,4 @@
-"""The attacks of issue 13 against a real server on loopback, each next to a well-behaved user.
+"""The attacks of docs/security.md against a real server on loopback, each next to a well-behaved user.
 
 Distinct source addresses are real: the attackers bind to 127.0.0.2 (all of 127.0.0.0/8 is
 loopback on Linux), the well-behaved users connect from 127.0.0.1.

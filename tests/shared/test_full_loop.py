@@ -171,7 +171,7 @@ def test_exact_own_force_compensation_opens_the_simulation_loop():
 
 
 def test_the_products_old_gains_oscillate_with_the_simulated_hand():
-    # the issue's measurement: select_gains' PI at K_o = 300, 500, 1000 N/m is unstable in full
+    # the measurement that started the full-loop design: select_gains' PI at K_o = 300, 500, 1000 N/m is unstable in full
     radii = [
         analyze_full_loop(DEFAULT_HAND, k_o=k, k_h=k_h, i_gain=i).spectral_radius
         for k, k_h, i in ((300.0, 70.0, 3045.0), (500.0, 116.7, 5075.0), (1000.0, 233.3, 10150.0))
