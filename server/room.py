@@ -1,5 +1,10 @@
 """The room: the server's sans-I/O core. Frames and times in, frames out; the tick number passed in.
 
+Why one module: :class:`Room` is one state machine (connections, the simulation schedule, the
+tick) whose methods share its per-connection records and tick state, so it does not split by
+method; what stands alone has moved out (admission budgets to :mod:`server.admission`, the
+object's description to :mod:`server.object_info`).
+
 One room owns one :class:`server.world.World` (the global deformable object). Each connection is a
 haptic *user* or a *viewer*. Per simulation tick (:meth:`Room.tick`):
 

@@ -1,5 +1,9 @@
 """The viewer stream: the deforming surface as quantised displacements, sent when changed.
 
+Why one module: it is one encoder, whose quantisation (:class:`Snapshot`), frame format and
+per-viewer record of what each viewer holds share their constants and state, and this docstring
+is the stream's specification; the viewer's side, the decoder, is :mod:`server.viewer_decoder`.
+
 A viewer gets the surface as displacements from the rest positions, in one of two forms; the
 server picks one per object (:meth:`ViewerStream.of_world`, from the object's
 ``tangential_motion`` marker) and keeps it for the object's life:
@@ -78,7 +82,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from haptic_collab.shared.protocol import BINARY_HEADER, VERTICES_MAGIC, encode_vertices
+from haptic_collab.shared.protocol import BINARY_HEADER, encode_vertices
 from haptic_collab.shared.types import FloatArray
 
 Int16Array = npt.NDArray[np.int16]
@@ -625,182 +629,3 @@ def _mark_sent(state: _Viewer, seq: int) -> None:
             state.held[c.index] = c.target
         if not state.in_flight:
             state.synced = c.result  # the exact state the viewer is in (None: not known)
-
-
-# ----------------------------------------------------------------------------- decoding
-@dataclass(frozen=True, eq=False)
-class DisplacementFrame:
-    """A decoded ``DSP1`` or ``DSV1`` frame.
-
-    Attributes
-    ----------
-    tick : int
-    quantum_m : float
-        Quantum of :attr:`values` [m].
-    flags : int
-        ``FLAG_*`` bits.
-    index : (count,) int64 or None
-        Vertices carried (None: dense, all of them in order).
-    values : (count,) or (count, 3) int16
-        Displacements in quanta: ``w`` along the rest normal (``DSP1``), or ``d`` (x, y, z)
-        (``DSV1``).
-    """
-
-    tick: int
-    quantum_m: float
-    flags: int
-    index: Int64Array | None
-    values: Int16Array
-
-    @property
-    def vector(self) -> bool:
-        """True for a ``DSV1`` frame (three values per vertex)."""
-        return self.values.ndim == 2
-
-
-def decode_displacement(frame: bytes) -> DisplacementFrame:
-    """Decode a ``DSP1`` or ``DSV1`` frame (no mesh needed; :class:`ViewerStreamDecoder`
-    applies it).
-
-    Raises
-    ------
-    ValueError
-        Neither a ``DSP1`` nor a ``DSV1`` frame, or a length that does not match its header.
-    """
-    if len(frame) < DSP_HEADER.size:
-        raise ValueError("displacement frame shorter than its header")
-    magic, tick, count, quantum_nm, flags = DSP_HEADER.unpack_from(frame)
-    if magic not in (DISPLACEMENT_MAGIC, VECTOR_MAGIC):
-        raise ValueError(f"not a DSP1 or DSV1 frame: {magic!r}")
-    name = magic.decode()
-    axes = 3 if magic == VECTOR_MAGIC else 1
-    shape = (count, 3) if axes == 3 else (count,)
-    body = memoryview(frame)[DSP_HEADER.size :]
-    if flags & FLAG_DENSE:
-        if len(body) != 2 * axes * count:
-            raise ValueError(f"{name} dense frame length does not match its count")
-        values = np.frombuffer(body, dtype="<i2").astype(np.int16).reshape(shape)
-        return DisplacementFrame(tick, quantum_nm * 1e-9, flags, None, values)
-    width = 4 if flags & FLAG_INDEX32 else 2
-    if len(body) != (width + 2 * axes) * count:
-        raise ValueError(f"{name} sparse frame length does not match its count")
-    index = np.frombuffer(body[: width * count], dtype="<u4" if width == 4 else "<u2")
-    values = np.frombuffer(body[width * count :], dtype="<i2").astype(np.int16).reshape(shape)
-    return DisplacementFrame(tick, quantum_nm * 1e-9, flags, index.astype(np.int64), values)
-
-
-class ViewerStreamDecoder:
-    """What a viewer does with the stream (the reference for web/viewer.js).
-
-    Feed it every binary frame in the order received; :attr:`vertices` is then the surface. A
-    ``DSP1`` frame sets normal displacements ``w`` (drawn ``rest + w * normal``); a ``DSV1``
-    frame sets vector displacements ``d`` (drawn ``rest + d``), and ``w`` follows as their
-    normal component. A stream keeps one form; a frame of the other form switches to it (a
-    ``DSP1`` frame drops the vectors, the vertices it does not list keep their ``w``).
-    """
-
-    def __init__(self) -> None:
-        self.rest: FloatArray | None = None
-        self.normals: FloatArray | None = None
-        self._w: FloatArray | None = None
-        #: (n, 3) [m] vector displacements once a ``DSV1`` frame came; None in the normal form.
-        self._d: FloatArray | None = None
-        self.tick = -1
-        self.frames = 0
-
-    @property
-    def w(self) -> FloatArray:
-        """(n,) float64 [m] the normal displacement the viewer holds, outward positive (in the
-        vector form, the normal component of :attr:`displacement`).
-
-        Raises
-        ------
-        ValueError
-            Before the rest geometry arrived.
-        """
-        if self._w is None:
-            raise ValueError("no rest geometry yet")
-        if self._d is not None:
-            if self.normals is None:
-                raise ValueError("no rest normals yet")
-            return np.einsum("ij,ij->i", self._d, self.normals)
-        return self._w
-
-    @property
-    def vector(self) -> bool:
-        """True once the stream is in the vector form (the last displacement frame was DSV1)."""
-        return self._d is not None
-
-    def feed(self, frame: bytes) -> None:
-        """Apply one binary frame (``VTX1`` rest, ``NRM1``, ``DSP1``, ``DSV1``; others are
-        ignored).
-
-        Raises
-        ------
-        ValueError
-            A malformed frame, or a displacement frame before the rest geometry or of another
-            size.
-        """
-        magic = bytes(frame[:4])
-        if magic in (DISPLACEMENT_MAGIC, VECTOR_MAGIC):
-            d = decode_displacement(frame)
-            name = magic.decode()
-            if self._w is None:
-                raise ValueError(f"{name} frame before the rest geometry (VTX1, NRM1)")
-            n = self._w.size
-            if d.index is None and d.values.shape[0] != n:
-                raise ValueError(f"{name} dense frame of another mesh size")
-            if d.index is not None and d.index.size and int(d.index.max()) >= n:
-                raise ValueError(f"{name} index out of range")
-            rows = slice(None) if d.index is None else d.index
-            if d.vector:
-                if self._d is None:
-                    self._d = np.zeros((n, 3))
-                self._d[rows] = d.values * d.quantum_m
-            else:
-                if self._d is not None:  # back to the normal form: keep the normal component
-                    self._w = self.w
-                    self._d = None
-                self._w[rows] = d.values * d.quantum_m
-            self.tick = d.tick
-            self.frames += 1
-        elif magic in (VERTICES_MAGIC, NORMALS_MAGIC):
-            _, _, count = BINARY_HEADER.unpack_from(frame)
-            body = memoryview(frame)[BINARY_HEADER.size :]
-            if len(body) != 12 * count:
-                raise ValueError(f"{magic!r} frame length does not match its count")
-            arr = np.frombuffer(body, dtype="<f4").reshape(count, 3).astype(np.float64)
-            if magic == VERTICES_MAGIC:
-                self.rest, self._w, self._d = arr, np.zeros(count), None
-            else:
-                self.normals = arr
-
-    @property
-    def displacement(self) -> FloatArray:
-        """(n, 3) float64 [m] the displacement the viewer draws: ``d`` (vector form) or
-        ``w * normal`` (normal form).
-
-        Raises
-        ------
-        ValueError
-            Before the rest geometry arrived.
-        """
-        if self.normals is None or self._w is None:
-            raise ValueError("no rest geometry yet")
-        if self._d is not None:
-            return self._d.copy()
-        return self._w[:, None] * self.normals
-
-    @property
-    def vertices(self) -> FloatArray:
-        """(n, 3) float64 [m] the surface as the viewer draws it, ``rest + w * normal`` (normal
-        form) or ``rest + d`` (vector form).
-
-        Raises
-        ------
-        ValueError
-            Before the rest geometry arrived.
-        """
-        if self.rest is None:
-            raise ValueError("no rest geometry yet")
-        return self.rest + self.displacement

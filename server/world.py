@@ -41,16 +41,14 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from haptic_collab.server.contact_stiffness import K_O_MAX, effective_stiffness, stiff_stiffness
 from haptic_collab.server.contacts import (
-    K_O_MAX,
     SurfaceIndex,
     SurfacePoint,
     closest_point,
-    effective_stiffness,
     fit_plane,
     fit_sphere,
     segment_entry,
-    stiff_stiffness,
     track_proxy,
 )
 from haptic_collab.server.objects import AdmittanceObject

@@ -28,8 +28,8 @@ single-user spectral radius over the *modal stiffnesses* ``1 / lambda_i(C)``. Wi
 ``S = K^1/2 C K^1/2`` (``K = diag(K_o,i)``, ``K_o,i = 1 / C_ii``, unit diagonal) they range over
 
 - ``K_o_eff = K_o / lambda_max(S)``: the common mode, all users pressing together on a softer
-  object; what the server reports today (:func:`server.contacts.effective_stiffness`). The
-  paper's P argument (eq. 8 for each mode: ``rho(C diag K_h) < 1``) needs only this one.
+  object; what the server reports today (:func:`server.contact_stiffness.effective_stiffness`).
+  The paper's P argument (eq. 8 for each mode: ``rho(C diag K_h) < 1``) needs only this one.
 - ``K_o_stiff = K_o / lambda_min(S)``: the differential mode, one user pressing, another pushed
   back; at coupling c -> 1 the object transmits the push rigidly (``K_o_stiff -> inf``).
 
@@ -41,11 +41,16 @@ PI loop is roughly ``m s^3 + (b + B_h) s^2 + (k + K_h) s + I`` (continuous time,
 damper filter), unstable for a heavy, lightly damped hand once ``I > (b + B_h)(k + K_h) / m``. An
 integral chosen for the soft K_o_eff breaks that (docs/coupled-users.md: coupled spectral radius
 up to 1.10 with the Phantom's limits). So each user's gains must be designed over the whole modal
-range ``[(1 - margin) K_o_eff, K_o_stiff]`` (:func:`design_coupled`), then verified on the coupled
-loop with *different* hands and sampling ticks per user, which the modal argument does not cover
-(:func:`verify_coupled`). A proportional local model (I = 0) needs only K_o_eff (measured, same
-document). :func:`stiff_ratio_class` and :func:`coupled_k_o_hi` are the product's form of the rule
-for a gain table keyed on K_o_eff.
+range ``[(1 - margin) K_o_eff, K_o_stiff]`` (:func:`shared.coupled_design.design_coupled`), then
+verified on the coupled loop with *different* hands and sampling ticks per user, which the modal
+argument does not cover (:func:`verify_coupled`). A proportional local model (I = 0) needs only
+K_o_eff (measured, same document). :func:`stiff_ratio_class` and :func:`coupled_k_o_hi` are the
+product's form of the rule for a gain table keyed on K_o_eff.
+
+This module owns the coupled loop and its verification (:func:`coupled_monodromy`,
+:func:`verify_coupled`); the compliance matrix and its modal stiffnesses are
+:mod:`shared.coupled_compliance`, the per-user design over the modal range
+:mod:`shared.coupled_design`.
 
 Units SI throughout; depths along each contact's inward normal [m]; forces [N].
 """
@@ -62,6 +67,7 @@ from numpy.typing import ArrayLike
 
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.checks import whole as _whole
+from haptic_collab.shared.coupled_compliance import check_compliance
 from haptic_collab.shared.full_loop import (
     DEFAULT_HAND_BOX,
     STABILITY_TOL,
@@ -71,117 +77,13 @@ from haptic_collab.shared.full_loop import (
     monodromy,
     spectral_radius_function,
 )
-from haptic_collab.shared.gain_design import GainDesign, design_gains
-from haptic_collab.shared.gain_key import K_O_RIGID, Mode
+from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S, mode_radii
 from haptic_collab.shared.types import FloatArray, IndexArray
 
 #: Batch size of coupled monodromy matrices per eigenvalue call (bounds memory: 4096 x 30 x 30).
 _CHUNK = 4096
-
-
-# --------------------------------------------------------------------------------------------
-# the compliance and its modal stiffnesses
-
-
-def compliance_matrix(k_o: float | Sequence[float], coupling: float, users: int = 2) -> FloatArray:
-    """The contacts' compliance with equal pairwise coupling, (M, M) [m/N].
-
-    ``C_ii = 1 / K_o,i`` and ``C_ij = c / sqrt(K_o,i K_o,j)`` for i != j (the product's
-    parametrisation: c is the cross compliance as a fraction of the diagonal, DESIGN section 5).
-
-    Parameters
-    ----------
-    k_o : float or sequence of M floats
-        Each contact's own stiffness K_o,i = 1 / C_ii [N/m], > 0.
-    coupling : float
-        c in [0, 1): 0 uncoupled contacts; about 0.9 for two contacts 2 cm apart on the default
-        balloon (server.objects.balloon).
-    users : int
-        M >= 1 (ignored when ``k_o`` is a sequence).
-
-    Raises
-    ------
-    ValueError
-        Non-positive stiffness, c outside [0, 1), M < 1.
-    """
-    k = np.atleast_1d(np.asarray(k_o, dtype=float))
-    if k.ndim != 1:
-        raise ValueError(f"k_o must be a float or a 1-D sequence, got shape {k.shape}")
-    if k.size == 1 and not isinstance(k_o, Sequence | np.ndarray):
-        if int(users) < 1:
-            raise ValueError(f"users must be >= 1, got {users!r}")
-        k = np.full(int(users), float(k[0]))
-    if k.size < 1 or not np.all(np.isfinite(k)) or np.any(k <= 0.0):
-        raise ValueError(f"k_o must be finite stiffnesses > 0 N/m, got {k_o!r}")
-    if not (math.isfinite(coupling) and 0.0 <= coupling < 1.0):
-        raise ValueError(f"coupling must be in [0, 1), got {coupling!r}")
-    s = 1.0 / np.sqrt(k)
-    c = coupling * np.outer(s, s)
-    np.fill_diagonal(c, 1.0 / k)
-    return c
-
-
-def _check_compliance(compliance: ArrayLike) -> FloatArray:
-    c = np.asarray(compliance, dtype=float)
-    if c.ndim != 2 or c.shape[0] != c.shape[1] or c.shape[0] < 1:
-        raise ValueError(f"compliance must be a square (M, M) matrix, got shape {c.shape}")
-    if not np.all(np.isfinite(c)):
-        raise ValueError("compliance must be finite")
-    scale = float(np.max(np.abs(c)))
-    if not np.allclose(c, c.T, rtol=0.0, atol=1e-12 * scale):
-        raise ValueError("compliance must be symmetric")
-    c = 0.5 * (c + c.T)
-    if np.any(np.diag(c) <= 0.0):
-        raise ValueError("compliance must have a positive diagonal (every contact can move)")
-    d = 1.0 / np.sqrt(np.diag(c))
-    if np.linalg.eigvalsh(d[:, None] * c * d[None, :])[0] < -1e-12:
-        raise ValueError("compliance must be positive semi-definite")
-    return c
-
-
-@dataclass(frozen=True)
-class ModalStiffness:
-    """Per-contact stiffnesses of a compliance matrix (module docstring), each (M,) [N/m].
-
-    Attributes
-    ----------
-    k_o : contact's own stiffness ``1 / C_ii``.
-    k_o_eff : ``K_o / lambda_max(S)``, the softest mode seen at the contact (the server's K_o_eff).
-    k_o_stiff : ``K_o / lambda_min(S)``, the stiffest mode, capped at :data:`K_O_RIGID`.
-    """
-
-    k_o: FloatArray
-    k_o_eff: FloatArray
-    k_o_stiff: FloatArray
-
-
-def modal_stiffness(compliance: ArrayLike) -> ModalStiffness:
-    """Softest and stiffest modal stiffness of the contacts (module docstring), SI units.
-
-    Parameters
-    ----------
-    compliance : (M, M) float [m/N], symmetric positive semi-definite, positive diagonal
-
-    Raises
-    ------
-    ValueError
-        Not square, not finite, not symmetric, not PSD, or a zero diagonal entry.
-    """
-    c = _check_compliance(compliance)
-    k = 1.0 / np.diag(c)
-    d = np.sqrt(k)
-    lam = np.linalg.eigvalsh(d[:, None] * c * d[None, :])
-    # S has a unit diagonal, so lambda_min <= 1 <= lambda_max; round-off must not move an
-    # uncoupled contact off K_o
-    hi = max(float(lam[-1]), 1.0)
-    lo = min(float(lam[0]), 1.0)
-    hi = 1.0 if hi - 1.0 < 1e-12 else hi
-    lo = 1.0 if 1.0 - lo < 1e-12 else lo
-    rigid = np.maximum(K_O_RIGID, k)
-    stiff = np.minimum(k / lo, rigid) if lo > 0.0 else rigid
-    return ModalStiffness(k_o=k, k_o_eff=k / hi, k_o_stiff=stiff)
 
 
 # --------------------------------------------------------------------------------------------
@@ -350,7 +252,7 @@ def _check_common(
     rate_ratio: int,
     delay_ticks: int,
 ) -> tuple[FloatArray, FloatArray]:
-    c = _check_compliance(compliance)
+    c = check_compliance(compliance)
     m = c.shape[0]
     if len(gains) != m:
         raise ValueError(f"{m} users in the compliance but {len(gains)} gains")
@@ -649,173 +551,3 @@ def _ticks_ok(ticks: Sequence[int], rate_ratio: int) -> list[int]:
     if not out or any(not 0 <= j < rate_ratio for j in out):
         raise ValueError(f"sample ticks must be in [0, {rate_ratio}), got {list(ticks)!r}")
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# design
-
-
-@dataclass(frozen=True)
-class CoupledDesign:
-    """Per-user gains for M coupled contacts, verified on the coupled loop (SI units).
-
-    Attributes
-    ----------
-    designs : tuple of M GainDesign
-        Each user's single-user design (:func:`shared.gain_design.design_gains`), made for
-        ``k_o = design_k_o[u]`` and checked up to ``k_o_hi = modal.k_o_stiff[u]``.
-    gains : tuple of M UserGains
-        The same gains, ready for :func:`coupled_monodromy`.
-    modal : ModalStiffness
-        K_o, K_o_eff and K_o_stiff of every contact.
-    design_k_o : tuple of M floats
-        The stiffness [N/m] each user designed for: ``K_o_eff * retune**rounds``.
-    verdict : CoupledVerdict
-        The coupled loop's worst case (:func:`verify_coupled`).
-    rounds : int
-        Retuning rounds taken (0: the modal-range design met the margin at once).
-    design_ms : float
-        Wall time [ms] (informative), set by whoever ran the design and measured it (this module
-        reads no clock); 0 when not measured.
-    """
-
-    designs: tuple[GainDesign, ...]
-    gains: tuple[UserGains, ...]
-    modal: ModalStiffness
-    design_k_o: tuple[float, ...]
-    verdict: CoupledVerdict
-    rounds: int
-    design_ms: float = 0.0
-
-    def to_json(self) -> dict[str, object]:
-        """Plain JSON-able dict."""
-        return {
-            "users": [d.to_json() for d in self.designs],
-            "k_o": self.modal.k_o.tolist(),
-            "k_o_eff": self.modal.k_o_eff.tolist(),
-            "k_o_stiff": self.modal.k_o_stiff.tolist(),
-            "design_k_o": list(self.design_k_o),
-            "verdict": self.verdict.to_json(),
-            "rounds": self.rounds,
-            "design_ms": self.design_ms,
-        }
-
-
-def design_coupled(
-    compliance: ArrayLike,
-    *,
-    b_o: ArrayLike = 0.0,
-    servo_rate_hz: float = 1000.0,
-    sim_rate_hz: float = 20.0,
-    delay_ticks: int = 0,
-    mode: Mode = "pi",
-    margin: float = 0.15,
-    k_h_max: float = math.inf,
-    b_h_max: float = 0.0,
-    holds: Sequence[ProxyHold] = ("zoh", "foh"),
-    hand_box: HandBox = DEFAULT_HAND_BOX,
-    retune: float = 0.85,
-    max_rounds: int = 4,
-    sample_ticks: Sequence[int] | None = None,
-    min_decay_rate_per_s: float = MIN_DECAY_RATE_PER_S,
-) -> CoupledDesign:
-    """Gains for M users coupled through C with the same margin as one user (module docstring).
-
-    1. Each user u designs (:func:`shared.gain_design.design_gains`) for its softest modal
-       stiffness ``K_o_eff,u`` with the usual ``margin`` below it, *and* up to its stiffest modal
-       stiffness ``K_o_stiff,u`` (``k_o_hi``): for identical users this covers every mode of the
-       coupled loop exactly (modal decomposition).
-    2. The coupled loop is verified (:func:`verify_coupled`) with every user taking every hand of
-       :func:`verification_hands` and its own sampling tick, C as given and scaled by
-       ``1 / (1 - margin)``, against the single-user ``rho_limit``.
-    3. If it fails, every user re-designs for ``K_o_eff * retune**r`` (r = 1, 2, ...: a softer
-       object, hence lower gains) up to ``max_rounds``.
-
-    Parameters
-    ----------
-    compliance : (M, M) float [m/N]
-        The contacts' normal compliance (symmetric PSD, positive diagonal).
-    b_o : float or (M,) [N/m]
-        Object damping per contact (eq. 9).
-    servo_rate_hz, sim_rate_hz, delay_ticks, mode, margin, k_h_max, b_h_max, holds, hand_box,
-    min_decay_rate_per_s
-        As :func:`shared.gain_design.design_gains` (the same for every user).
-    retune : float
-        Factor in (0, 1) by which the design stiffness drops per retuning round.
-    max_rounds : int
-        Retuning rounds allowed, >= 0.
-    sample_ticks : sequence of int, optional
-        Per-user sampling ticks verified (default ``{0, N/2, N-1}``).
-
-    Returns
-    -------
-    CoupledDesign
-        The first design meeting the margin; if none does within ``max_rounds``, the one with the
-        smallest coupled margin radius, with ``verdict.meets_margin`` False (the caller decides:
-        the numbers say by how much).
-
-    Raises
-    ------
-    ValueError
-        Bad compliance or parameters, or as :func:`shared.gain_design.design_gains` (no local
-        model stable over the hand box for some user).
-    """
-    c = _check_compliance(compliance)
-    m = c.shape[0]
-    bo = np.broadcast_to(np.asarray(b_o, dtype=float), (m,)).copy()
-    if not (math.isfinite(retune) and 0.0 < retune < 1.0):
-        raise ValueError(f"retune must be in (0, 1), got {retune!r}")
-    _whole("max_rounds", max_rounds, 0)
-    modal = modal_stiffness(c)
-    cache: dict[tuple[float, float, float], GainDesign] = {}
-    best: CoupledDesign | None = None
-    for r in range(int(max_rounds) + 1):
-        k_design = tuple(float(k) * retune**r for k in modal.k_o_eff)
-        designs = []
-        for u in range(m):
-            key = (k_design[u], float(modal.k_o_stiff[u]), float(bo[u]))
-            if key not in cache:
-                cache[key] = design_gains(
-                    key[0],
-                    b_o=key[2],
-                    servo_rate_hz=servo_rate_hz,
-                    sim_rate_hz=sim_rate_hz,
-                    delay_ticks=delay_ticks,
-                    mode=mode,
-                    margin=margin,
-                    k_o_hi=key[1],
-                    k_h_max=k_h_max,
-                    b_h_max=b_h_max,
-                    holds=holds,
-                    hand_box=hand_box,
-                    min_decay_rate_per_s=min_decay_rate_per_s,
-                )
-            designs.append(cache[key])
-        gains = tuple(UserGains.from_design(d) for d in designs)
-        verdict = verify_coupled(
-            c,
-            gains,
-            b_o=bo,
-            servo_rate_hz=servo_rate_hz,
-            sim_rate_hz=sim_rate_hz,
-            delay_ticks=delay_ticks,
-            margin=margin,
-            hands=verification_hands(hand_box),
-            sample_ticks=sample_ticks,
-            min_decay_rate_per_s=min_decay_rate_per_s,
-        )
-        cand = CoupledDesign(
-            designs=tuple(designs),
-            gains=gains,
-            modal=modal,
-            design_k_o=k_design,
-            verdict=verdict,
-            rounds=r,
-        )
-        if best is None or verdict.margin_radius < best.verdict.margin_radius:
-            best = cand
-        if verdict.meets_margin:
-            best = cand
-            break
-    assert best is not None
-    return best

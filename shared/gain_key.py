@@ -27,7 +27,7 @@ from haptic_collab.shared.rates import Rates
 Mode = Literal["p", "pi"]
 
 #: Stiffness [N/m] that stands for a rigid differential mode (singular compliance, coupling -> 1),
-#: the same value the server reports for a contact that cannot move (server.contacts.K_O_MAX).
+#: the same value the server reports for a contact that cannot move (server.contact_stiffness.K_O_MAX).
 K_O_RIGID = 1.0e6
 
 

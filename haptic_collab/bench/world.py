@@ -33,10 +33,10 @@ import numpy as np
 
 from haptic_collab.server.objects.balloon import Balloon, BalloonParams
 from haptic_collab.server.objects.mesh import default_balloon
+from haptic_collab.server.viewer_decoder import ViewerStreamDecoder
 from haptic_collab.server.viewer_stream import (
     DEFAULT_BYTES_PER_S,
     ViewerStream,
-    ViewerStreamDecoder,
 )
 from haptic_collab.server.world import ContactInput, World
 from haptic_collab.shared.protocol import encode_faces, encode_vertices

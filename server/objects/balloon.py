@@ -23,7 +23,8 @@ A supported base holds the balloon: vertices within ``base_radius_m`` of the low
 
 The sparse part ``K0 = tau L + D L A^-1 L + k_f A`` (free vertices only) is factored ONCE at
 construction with a geometric nested-dissection ordering (splits by median planes, separators
-ordered last), and the water term is applied by Sherman-Morrison::
+ordered last; :mod:`server.objects.sparse_factor`), and the water term is applied by
+Sherman-Morrison::
 
     K^-1 q = K0^-1 q - kappa (a^T K0^-1 q) / (1 + kappa a^T K0^-1 a) * K0^-1 a
 
@@ -66,22 +67,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 import trimesh
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from haptic_collab.server.contacts import K_O_MAX
+from haptic_collab.server.contact_stiffness import K_O_MAX
 from haptic_collab.server.objects.mesh import MeshError, default_balloon
 from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PatchedSurface
+from haptic_collab.server.objects.sparse_factor import SpdFactor, nested_dissection
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
-
-#: Relative residual above which the no-pivoting factorization is rejected (then pivoted LU).
-_FACTOR_RESIDUAL_TOL = 1e-6
-
-#: Nested dissection stops splitting below this many vertices.
-_ND_LEAF = 64
 
 
 @params_dataclass(frozen=True, slots=True)
@@ -155,7 +150,7 @@ class BalloonParams:
 
         Tension, bending, foundation and water bulk are all multiplied, so ``K`` becomes
         ``scale * K``: the compliance ``C = K^-1`` scales by ``1 / scale`` and every contact's
-        ``K_o = 1 / C_ii`` by ``scale`` (up to :data:`server.contacts.K_O_MAX`); the shape of a
+        ``K_o = 1 / C_ii`` by ``scale`` (up to :data:`server.contact_stiffness.K_O_MAX`); the shape of a
         dent under a given push depth is unchanged. Damping ``b`` (eq. 9) is not a stiffness and
         is kept.
 
@@ -260,92 +255,6 @@ def vertex_areas(vertices: FloatArray, faces: npt.ArrayLike) -> FloatArray:
     return np.asarray(areas, dtype=np.float64)
 
 
-def _nested_dissection(graph: sp.csr_matrix, points: FloatArray, leaf: int = _ND_LEAF) -> IntArray:
-    """Fill-reducing ordering by geometric nested dissection.
-
-    Recursively splits the vertex set by the median plane across its largest extent; the
-    vertices on one side adjacent to the other (the smaller such set) form the separator,
-    ordered after both halves. For a surface mesh the separators are curves of O(sqrt(n))
-    vertices, so the Cholesky/LU fill is O(n log n).
-
-    Parameters
-    ----------
-    graph : (n, n) sparse, symmetric sparsity pattern of the matrix to factor.
-    points : (n, 3) float, coordinates of the unknowns.
-    leaf : int, subsets at most this big are not split.
-
-    Returns
-    -------
-    (n,) int64 permutation: ``order[k]`` is the unknown eliminated k-th.
-    """
-    g = sp.csr_matrix(graph, copy=True)
-    g.data[:] = 1.0
-    out: list[IntArray] = []
-
-    def split(subset: IntArray) -> None:
-        if len(subset) <= leaf:
-            out.append(subset)
-            return
-        q = points[subset]
-        axis = int(np.argmax(q.max(axis=0) - q.min(axis=0)))
-        median = float(np.median(q[:, axis]))
-        lower = q[:, axis] < median
-        left, right = subset[lower], subset[~lower]
-        if len(left) == 0 or len(right) == 0:
-            out.append(subset)
-            return
-        touches_right = np.diff(g[left][:, right].indptr) > 0
-        touches_left = np.diff(g[right][:, left].indptr) > 0
-        if touches_right.sum() <= touches_left.sum():
-            separator, left = left[touches_right], left[~touches_right]
-        else:
-            separator, right = right[touches_left], right[~touches_left]
-        split(left)
-        split(right)
-        out.append(separator)
-
-    split(np.arange(g.shape[0], dtype=np.int64))
-    return np.concatenate(out).astype(np.int64)
-
-
-class _Factor:
-    """One symmetric positive definite sparse matrix factored once, plus a Sherman-Morrison term.
-
-    Solves ``(M + kappa a a^T) x = b`` for the free unknowns, in the matrix's own row order.
-    """
-
-    def __init__(self, matrix: sp.csc_matrix, a: FloatArray, kappa: float) -> None:
-        self.lu = _factor_spd(matrix)
-        self.z = self.lu.solve(a)
-        self.a = a
-        self.kappa = kappa
-        self.denominator = 1.0 + kappa * float(a @ self.z)
-
-    def solve(self, rhs: FloatArray) -> FloatArray:
-        """``(M + kappa a a^T)^-1 rhs`` for rhs (nf,) or (nf, k)."""
-        y = np.asarray(self.lu.solve(rhs), dtype=np.float64)
-        if self.kappa == 0.0:
-            return y
-        coef = self.kappa * (self.a @ y) / self.denominator
-        if y.ndim == 1:
-            return y - coef * self.z
-        return y - np.outer(self.z, coef)
-
-
-def _factor_spd(matrix: sp.csc_matrix) -> spla.SuperLU:
-    """Factor an SPD matrix already in fill-reducing order, without pivoting (checked)."""
-    lu = spla.splu(
-        matrix, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-    )
-    probe = np.ones(matrix.shape[0])
-    x = lu.solve(probe)
-    residual = np.linalg.norm(matrix @ x - probe) / np.linalg.norm(probe)
-    if np.all(np.isfinite(x)) and residual < _FACTOR_RESIDUAL_TOL:
-        return lu
-    # Not expected for an SPD matrix; fall back to threshold pivoting with its own ordering.
-    return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A")
-
-
 class Balloon(PatchedSurface):
     """Water-balloon admittance model: loads in, normal displacements out (DESIGN section 5).
 
@@ -412,20 +321,20 @@ class Balloon(PatchedSurface):
             k0 = k0 + p.bending * (lap @ inv_a @ lap)
         k0_free = sp.csr_matrix(k0)[free][:, free]
         k0_free = 0.5 * (k0_free + k0_free.T)
-        perm = _nested_dissection(k0_free.tocsr(), verts[free])
+        perm = nested_dissection(k0_free.tocsr(), verts[free])
         self._order = free[perm]  # vertex index of each factored row
         self._row_of = np.full(n, -1, dtype=np.int64)
         self._row_of[self._order] = np.arange(len(self._order))
         a_rows = self._areas[self._order]
         k0_perm = sp.csc_matrix(k0_free[perm][:, perm])
         kappa = float(p.bulk)
-        self._static = _Factor(k0_perm, a_rows, kappa)
-        self._damped: _Factor | None = None
+        self._static = SpdFactor(k0_perm, a_rows, kappa)
+        self._damped: SpdFactor | None = None
         self._damping_per_tick = np.zeros(0)
         if p.damping > 0.0:
             self._damping_per_tick = p.damping * self._areas / p.sim_period_s
             kd = k0_perm + sp.diags(self._damping_per_tick[self._order])
-            self._damped = _Factor(sp.csc_matrix(kd), a_rows, kappa)
+            self._damped = SpdFactor(sp.csc_matrix(kd), a_rows, kappa)
 
         self._centres = PatchCentres(verts, self._normals, p.patch_spacing_m)
 

@@ -1,5 +1,9 @@
 """Closed triangle meshes for deformable objects: the default balloon and validated mesh files.
 
+Why one module: it is one pipeline (read, repair, validate, scale, refine, warn) whose steps
+share the size limits, the unit hints and the topology checks, and this docstring is the one list
+of what is repaired and what is refused, kept beside the code that does it.
+
 DESIGN section 5: the default object is "any closed triangle mesh (icosphere from trimesh by
 default, or a mesh file)". An admittance model needs a *closed* (watertight), consistently wound
 surface enclosing a positive volume: the water term of the balloon is the enclosed volume, and the

@@ -9,7 +9,7 @@ import pytest
 import scipy.sparse as sp
 import trimesh
 
-from haptic_collab.server.contacts import K_O_MAX
+from haptic_collab.server.contact_stiffness import K_O_MAX
 from haptic_collab.server.objects.balloon import (
     Balloon,
     BalloonParams,

@@ -6,16 +6,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from haptic_collab.server.contacts import (
+from haptic_collab.server.contact_stiffness import (
     K_O_MAX,
-    SurfaceIndex,
-    closest_point,
     effective_stiffness,
-    fit_plane,
-    fit_sphere,
     spectral_radius,
     stiff_stiffness,
 )
+from haptic_collab.server.contacts import SurfaceIndex, closest_point, fit_plane, fit_sphere
 from haptic_collab.server.objects.balloon import Balloon
 from haptic_collab.shared.primitives import Plane, Sphere
 
@@ -197,7 +194,7 @@ def test_two_close_contacts_are_unstable_at_095_k_o_but_stable_at_095_k_o_eff(ba
 
 
 def test_stiff_stiffness_is_the_stiffest_mode_of_each_coupled_group() -> None:
-    from haptic_collab.shared.coupled_loop import compliance_matrix, modal_stiffness
+    from haptic_collab.shared.coupled_compliance import compliance_matrix, modal_stiffness
 
     k_o = 300.0
     for c in (0.0, 0.5, 0.9):
@@ -217,7 +214,7 @@ def test_stiff_stiffness_is_the_stiffest_mode_of_each_coupled_group() -> None:
 
 
 def test_interleaved_coupled_groups_are_stabilised_separately() -> None:
-    from haptic_collab.shared.coupled_loop import compliance_matrix
+    from haptic_collab.shared.coupled_compliance import compliance_matrix
 
     # contacts 0 and 2 share one dent, 1 and 3 another, 4 is alone: a group's stiffness must
     # not depend on the other contacts, wherever they sit in the list

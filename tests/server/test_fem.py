@@ -19,7 +19,8 @@ import trimesh
 from pydantic import ValidationError
 
 from haptic_collab.server.materials import MaterialError
-from haptic_collab.server.objects.fem import FemParams, FemSolid, stiffness_matrix
+from haptic_collab.server.objects.fem import FemParams, FemSolid
+from haptic_collab.server.objects.fem_elements import stiffness_matrix
 from haptic_collab.server.objects.mesh import MeshError, refine_mesh
 from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
 from haptic_collab.server.solid_materials import (

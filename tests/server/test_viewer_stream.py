@@ -23,6 +23,7 @@ from haptic_collab.server.objects.balloon import Balloon, BalloonParams
 from haptic_collab.server.objects.fem import FemParams, FemSolid
 from haptic_collab.server.objects.mesh import default_balloon
 from haptic_collab.server.room import Room
+from haptic_collab.server.viewer_decoder import ViewerStreamDecoder, decode_displacement
 from haptic_collab.server.viewer_stream import (
     BASE_QUANTUM_NM,
     DSP_HEADER,
@@ -33,8 +34,6 @@ from haptic_collab.server.viewer_stream import (
     FLAG_PARTIAL,
     Frame,
     ViewerStream,
-    ViewerStreamDecoder,
-    decode_displacement,
     vertex_normals,
 )
 from haptic_collab.server.world import ContactInput, World

@@ -17,15 +17,13 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
-from haptic_collab.server.contacts import effective_stiffness
+from haptic_collab.server.contact_stiffness import effective_stiffness
+from haptic_collab.shared.coupled_compliance import compliance_matrix, modal_stiffness
+from haptic_collab.shared.coupled_design import CoupledDesign, design_coupled
 from haptic_collab.shared.coupled_loop import (
-    CoupledDesign,
     UserGains,
-    compliance_matrix,
     coupled_monodromy,
     coupled_spectral_radius,
-    design_coupled,
-    modal_stiffness,
     verification_hands,
     verify_coupled,
 )

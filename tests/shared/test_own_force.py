@@ -23,8 +23,9 @@ from haptic_collab.research.fidelity_1d import (
     rendering_for,
     simulate,
 )
-from haptic_collab.server.contacts import effective_stiffness, stiff_stiffness
-from haptic_collab.shared.coupled_loop import UserGains, compliance_matrix, verify_coupled
+from haptic_collab.server.contact_stiffness import effective_stiffness, stiff_stiffness
+from haptic_collab.shared.coupled_compliance import compliance_matrix
+from haptic_collab.shared.coupled_loop import UserGains, verify_coupled
 from haptic_collab.shared.felt_stiffness import felt_stiffness
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX
 from haptic_collab.shared.gain_key import GainKey, stiff_ratio_class
