@@ -1,4 +1,4 @@
-"""Several PI users coupled through the object's compliance (issue 8, item 7: "Several PI users").
+"""Several PI users coupled through the object's compliance (docs/coupled-users.md).
 
 The time-domain reference below is written independently of shared.coupled_loop and
 shared.full_loop: its own hand integrator (semi-implicit Euler with fine sub-steps), its own local
