@@ -10,7 +10,7 @@ own timeout.
 Two worker processes (:class:`DesignWorkers`; ``haptic client`` forks them first thing, before
 it has other threads, so they start with the design code imported) keep the numerical work off
 the event loop: one runs gain designs (a second or more each, then the likely next cells) at low
-priority, the other the short checks of interim gains (:func:`client.session.interim_design`,
+priority, the other the short checks of interim gains (:func:`shared.interim_gains.interim_design`,
 about 0.1 s) at normal priority, so a check is never queued behind a design. After each design
 or check the checker verifies gains for the neighbouring cells and one more tick of delay ahead
 of need. Spawned workers (a link started without them, after other threads exist) import the
@@ -41,15 +41,11 @@ from dataclasses import dataclass, replace
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
-from haptic_collab.client.session import (
-    ClientSession,
-    ServoSample,
-    interim_design,
-    warm_up_worker,
-)
+from haptic_collab.client.session import ClientSession, ServoSample, warm_up_worker
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import design_cell
+from haptic_collab.shared.interim_gains import interim_design
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import ProtocolError, Welcome
 from haptic_collab.workers import background_worker, check_worker, stop_pool, timed

@@ -9,11 +9,11 @@ and damping (Step 2 of section 6). A lookup is a dict access; a cell not designe
 PI, up to ten).
 
 Interim gains. Until that design is done the cell renders *verified interim gains*: gains that
-pass exactly the design's acceptance test for the cell (:func:`verify_gains`: every hand of the
+pass exactly the design's acceptance test for the cell (:func:`shared.interim_gains.verify_gains`: every hand of the
 box, every sampling tick, K_o' over the cell's range with the margin, oscillations decaying at
-:data:`shared.stability_margin.MIN_DECAY_RATE_PER_S`), found by :func:`interim_design` among gains
+:data:`shared.stability_margin.MIN_DECAY_RATE_PER_S`), found by :func:`shared.interim_gains.interim_design` among gains
 already known (the nearest designed cell, the gains in use) and a short ladder of generic gains
-(:data:`INTERIM_LADDER`), a P design as the last resort. That takes one or a few checks of
+(:data:`shared.interim_gains.INTERIM_LADDER`), a P design as the last resort. That takes one or a few checks of
 0.1-0.5 s of CPU each (a PI design takes 2-3 s on the same machine), so the first contact no
 longer waits for the PI design; forces stay off only until the first verified gains. Designs for
 one key are not safe on another without this check: one for fewer delay ticks than the loop now
@@ -50,9 +50,6 @@ from haptic_collab.shared.gain_key import (
     make_gain_key,
 )
 from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.interim_gains import INTERIM_LADDER as INTERIM_LADDER
-from haptic_collab.shared.interim_gains import interim_design as interim_design
-from haptic_collab.shared.interim_gains import verify_gains as verify_gains
 from haptic_collab.shared.local_model_update import GainChoice, LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.protocol import (
     PROTOCOL_VERSION,
@@ -272,7 +269,7 @@ class ClientSession:
         self.gain_table = gain_table if gain_table is not None else GainTable()
         #: (key, K_o) of a design the table lacks; the link designs it off the event loop.
         self.design_wanted: tuple[GainKey, float] | None = None
-        #: (key, cell, candidates) of interim gains to verify (:func:`interim_design`); the link
+        #: (key, cell, candidates) of interim gains to verify (:func:`shared.interim_gains.interim_design`); the link
         #: runs it off the event loop and calls :meth:`store_interim` or :meth:`interim_failed`.
         self.interim_wanted: tuple[GainKey, int, tuple[GainDesign, ...]] | None = None
         #: Verified interim gains per (key, cell), until the cell's design is in the table.
@@ -471,7 +468,7 @@ class ClientSession:
         return self.stiff_ratio
 
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
-        """Keep verified interim gains (from :func:`interim_design`) for (key, cell)."""
+        """Keep verified interim gains (from :func:`shared.interim_gains.interim_design`) for (key, cell)."""
         self.interim[(key, cell)] = design
 
     def interim_failed(self, key: GainKey, cell: int) -> None:

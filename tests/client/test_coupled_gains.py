@@ -19,11 +19,12 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.link import Link
-from haptic_collab.client.session import ClientSession, interim_design
+from haptic_collab.client.session import ClientSession
 from haptic_collab.server.contact_stiffness import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_compliance import compliance_matrix
 from haptic_collab.shared.coupled_loop import UserGains, verify_coupled
 from haptic_collab.shared.felt_stiffness import felt_stiffness
+from haptic_collab.shared.interim_gains import interim_design
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from tests.support.sessions import plane_patch, welcomed_session
 
