@@ -1,24 +1,24 @@
 """``haptic bench fidelity``: every rendering scheme side by side, in one run (README, "Fidelity").
 
 A *condition* is an object model x K_o x simulation rate x one-way delay. In each, every scheme
-of :data:`haptic_collab.research.fidelity_1d.SCHEMES` runs on the vectorised 1-D multirate model of
+of :data:`haptic_collab.research.fidelity_schemes.SCHEMES` runs on the vectorised 1-D multirate model of
 :mod:`haptic_collab.research.fidelity_1d` with every hand of the box (and, reported apart, hands outside it) on every
 trajectory, and with the probe as a position source at each frequency of :data:`FELT_HZ` (the
 felt impedance). The local models render the product's own design
 (:class:`shared.gain_table.GainTable`, the client's key), made for the K_o the simulation
-reports; each peer runs every tuning of its sweep (:func:`haptic_collab.research.fidelity_1d.peer_renderings`) and
+reports; each peer runs every tuning of its sweep (:func:`haptic_collab.research.fidelity_schemes.peer_renderings`) and
 is represented by its best one in that condition (:func:`choose_variant`), so a peer is never
 judged by a tuning its users would not pick. That choice knows the object; the summary's
 ``peers_tuned_on_the_design_model`` ranks again with each peer keeping the tuning it picks on the
 design model (what the product's design knows: the reported K_o).
 
-The objects (:data:`haptic_collab.research.fidelity_1d.OBJECTS`): ``spring`` is the model the product's design
+The objects (:data:`haptic_collab.research.fidelity_cases.OBJECTS`): ``spring`` is the model the product's design
 assumes; ``spring-0.8`` / ``spring-1.2`` (K_o reported 25 % high / 17 % low), ``sls``
 (viscoelastic, with mass) and ``stiffening`` are objects it did not see.
 
 Ranking (:func:`rank`, :mod:`haptic_collab.research.fidelity_ranking`): with every hand of the box in the loop, a scheme counts in a condition
 only if it is stable with every hand on every trajectory; its felt error is the largest
-``|ln |q(f)||`` over :data:`BAND_HZ`, ``q`` the felt dynamic stiffness over the object's own;
+``|ln |q(f)||`` over :data:`haptic_collab.research.fidelity_ranking.BAND_HZ`, ``q`` the felt dynamic stiffness over the object's own;
 the best is the smallest, and every scheme within the stiffness JND of it
 (:data:`STIFFNESS_JND`: ``error <= best + ln(1 + JND)``) is tied with it. The same ranking is
 also made per hand (a scheme stable with that hand on that trajectory).
@@ -43,37 +43,35 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from haptic_collab.research.fidelity_1d import (
-    LOCAL_MODELS,
+from haptic_collab.research.fidelity_1d import simulate
+from haptic_collab.research.fidelity_cases import (
     OBJECTS,
-    SCHEMES,
     TRAJECTORIES,
     Cell,
-    DeviceModel,
     ObjectModel,
-    Rendering,
     RunOptions,
-    cell_metrics,
-    design_delay_ticks,
     felt_depth_m,
-    felt_response,
     felt_trajectory,
-    peer_renderings,
-    rendering_for,
-    scheme_tuning,
-    simulate,
 )
+from haptic_collab.research.fidelity_metrics import cell_metrics, felt_response
 from haptic_collab.research.fidelity_ranking import (
-    BAND_HZ,
     FELT_HZ,
     STIFFNESS_JND,
-    Felt,
     Outcome,
     choose_variant,
-    felt_error,
     rank,
     scheme_record,
     summarize,
+)
+from haptic_collab.research.fidelity_schemes import (
+    LOCAL_MODELS,
+    SCHEMES,
+    DeviceModel,
+    Rendering,
+    design_delay_ticks,
+    peer_renderings,
+    rendering_for,
+    scheme_tuning,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
 from haptic_collab.shared.gain_design import GainDesign
@@ -81,24 +79,15 @@ from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import GainTable, design_cell
 
 __all__ = [
-    "BAND_HZ",
     "DEVICE",
-    "FELT_HZ",
     "FIDELITY_MESHES_3D",
     "FULL_GRID",
     "GRID_HANDS",
     "OUTSIDE_HANDS",
     "QUICK_GRID",
-    "STIFFNESS_JND",
-    "Felt",
     "Grid",
-    "Outcome",
-    "choose_variant",
-    "felt_error",
     "plot",
-    "rank",
     "run",
-    "summarize",
 ]
 
 _OBJECTS = {o.name: o for o in OBJECTS}
@@ -111,7 +100,7 @@ _BATCH = 4000
 class Grid:
     """The conditions every scheme runs on (SI units; delays in ms, one way).
 
-    ``objects`` names models of :data:`haptic_collab.research.fidelity_1d.OBJECTS`; ``hands`` are the hand box's
+    ``objects`` names models of :data:`haptic_collab.research.fidelity_cases.OBJECTS`; ``hands`` are the hand box's
     (the ranking's), ``outside_hands`` are run and reported apart (not a claim of the product).
     """
 
@@ -180,7 +169,7 @@ DEVICE = DeviceModel()
 
 #: Stress-set shapes (:mod:`server.objects.shapes`) whose top a user presses in the 3-D cells,
 #: besides the balloon: a flat face with sharp edges, a thin part, a genus-1 ring, and the box as
-#: a FEM solid (liver-like, :data:`haptic_collab.research.fidelity_3d.FEM_MATERIAL_3D`).
+#: a FEM solid (liver-like, :data:`haptic_collab.research.harness_3d.FEM_MATERIAL_3D`).
 FIDELITY_MESHES_3D = ("box", "plate", "torus", "fem:box")
 
 
@@ -249,7 +238,7 @@ def run(
         :data:`QUICK_GRID` instead of :data:`FULL_GRID` (ignored when ``grid`` is given).
     grid : Grid, optional
     schemes : sequence of str
-        Subset of :data:`haptic_collab.research.fidelity_1d.SCHEMES`.
+        Subset of :data:`haptic_collab.research.fidelity_schemes.SCHEMES`.
     device : DeviceModel
     workers : int, optional
         Worker processes (default: the machine's cores).
@@ -271,7 +260,7 @@ def run(
         ``schemes``, ``tuning`` (each scheme's sweep, in words), ``grid``, ``device``,
         ``options``, ``conditions`` (one record per object x K_o x rate x delay: each scheme's
         chosen tuning, per-cell stability, felt impedance and metrics, and the ranking),
-        ``cells_3d``, ``pairs_3d`` (two users: :func:`haptic_collab.research.fidelity_3d.run_3d_pairs`),
+        ``cells_3d``, ``pairs_3d`` (two users: :func:`haptic_collab.research.fidelity_pairs_3d.run_3d_pairs`),
         ``summary`` (:func:`summarize`; its ``peers_tuned_on_the_design_model``
         is the same summary with each peer keeping, on every object, the tuning it picks on the
         design model in that K_o x rate x delay), ``gains``, ``wall_s``, ``workers``.
@@ -434,12 +423,9 @@ def run(
     t_3d = 0.0
     if include_3d:
         t3 = time.perf_counter()
-        from haptic_collab.research.fidelity_3d import (
-            PAIR_SCHEMES,
-            SCHEMES_3D,
-            run_3d_cells,
-            run_3d_pairs,
-        )
+        from haptic_collab.research.fidelity_3d import run_3d_cells
+        from haptic_collab.research.fidelity_pairs_3d import PAIR_SCHEMES, run_3d_pairs
+        from haptic_collab.research.fidelity_users_3d import SCHEMES_3D
 
         s3 = [s for s in schemes if s in SCHEMES_3D]
         cells3 = run_3d_cells(s3, device=device, workers=n_workers)

@@ -127,7 +127,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             _need_matplotlib()
         from haptic_collab.bench.fidelity import plot as plot_fidelity
         from haptic_collab.bench.fidelity import run as bench_fidelity
-        from haptic_collab.research.fidelity_1d import RunOptions
+        from haptic_collab.research.fidelity_cases import RunOptions
 
         try:
             fid_options = RunOptions(

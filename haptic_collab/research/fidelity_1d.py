@@ -7,7 +7,8 @@ module owns the vectorised multirate simulator that measures it (:func:`simulate
 trajectories (``haptic bench fidelity``, :mod:`haptic_collab.bench.fidelity`). The cells it runs
 are :mod:`haptic_collab.research.fidelity_cases`, the schemes and their tunings
 :mod:`haptic_collab.research.fidelity_schemes`, the metrics
-:mod:`haptic_collab.research.fidelity_metrics`; their names are re-exported here.
+:mod:`haptic_collab.research.fidelity_metrics`; their names live there and are imported from
+there (this module defines only :func:`simulate` and :func:`passivity_step`).
 
 The 1-D world, along the contact normal, depths in metres (positive into the object):
 
@@ -24,7 +25,7 @@ network
     tick ``n`` reads what the servo sent at ``n - d``; what it publishes reaches the servo from tick
     ``n + 1 + d`` (one tick of computation).
 
-Schemes (:func:`rendering_for` says how each is tuned):
+Schemes (:func:`haptic_collab.research.fidelity_schemes.rendering_for` says how each is tuned):
 
 ``local-p``, ``local-pi`` (this project)
     the local model of eq. 12 with the product's threshold (eq. 17), release ramp, probe damper,
@@ -72,101 +73,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from haptic_collab.research.fidelity_cases import (
-    FELT_AMPLITUDE_M,
-    FELT_DEPTH_M,
-    IMPACT,
-    OBJECTS,
-    PRESS,
     RUNAWAY_M,
-    SLS,
-    SPRING,
-    SPRING_SOFTER,
-    SPRING_STIFFER,
-    STIFFENING,
-    TAP,
-    TRAJECTORIES,
     Cell,
-    ObjectKind,
-    ObjectModel,
     Run,
     RunOptions,
     Trajectory,
-    felt_depth_m,
-    felt_trajectory,
-    felt_window_s,
     stiffening_depth,
     stiffening_force,
     stiffening_tangent,
 )
-from haptic_collab.research.fidelity_metrics import (
-    FELT_FIT_TOLERANCE,
-    STABLE_HOLD_P2P_M,
-    CellMetrics,
-    cell_metrics,
-    felt_response,
-    felt_stiffness_ratio,
-)
-from haptic_collab.research.fidelity_schemes import (
-    LOCAL_MODELS,
-    PRODUCT_PASSIVITY_BIAS_J,
-    PRODUCT_THETA_M,
-    SCHEMES,
-    DeviceModel,
-    Rendering,
-    RenderKind,
-    SchemeName,
-    design_delay_ticks,
-    peer_renderings,
-    rendering_for,
-    scheme_tuning,
-)
+from haptic_collab.research.fidelity_schemes import DeviceModel
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
 from haptic_collab.shared.types import FloatArray
 
-__all__ = [
-    "FELT_AMPLITUDE_M",
-    "FELT_DEPTH_M",
-    "FELT_FIT_TOLERANCE",
-    "IMPACT",
-    "LOCAL_MODELS",
-    "OBJECTS",
-    "PRESS",
-    "PRODUCT_PASSIVITY_BIAS_J",
-    "PRODUCT_THETA_M",
-    "RUNAWAY_M",
-    "SCHEMES",
-    "SLS",
-    "SPRING",
-    "SPRING_SOFTER",
-    "SPRING_STIFFER",
-    "STABLE_HOLD_P2P_M",
-    "STIFFENING",
-    "TAP",
-    "TRAJECTORIES",
-    "Cell",
-    "CellMetrics",
-    "DeviceModel",
-    "ObjectKind",
-    "ObjectModel",
-    "RenderKind",
-    "Rendering",
-    "Run",
-    "RunOptions",
-    "SchemeName",
-    "Trajectory",
-    "cell_metrics",
-    "design_delay_ticks",
-    "felt_depth_m",
-    "felt_response",
-    "felt_stiffness_ratio",
-    "felt_trajectory",
-    "felt_window_s",
-    "passivity_step",
-    "peer_renderings",
-    "rendering_for",
-    "scheme_tuning",
-    "simulate",
-]
+__all__ = ["passivity_step", "simulate"]
 
 
 #: The defaults of :func:`simulate`: the simulated Phantom Desktop, no servo imperfections.

@@ -16,11 +16,12 @@ object
     user holds before the run starts (the 1-D servo likewise knows the rest surface at t = 0).
 user
     :class:`client.devices.sim.SimDevice`, profile ``phantom-desktop`` with the
-    :class:`haptic_collab.research.fidelity_1d.DeviceModel`'s force, stiffness and damping limits, default
+    :class:`haptic_collab.research.fidelity_schemes.DeviceModel`'s force, stiffness and damping limits, default
     :class:`client.devices.sim.HandParams`; the hand target moves along the top's inward normal
-    exactly as the 1-D trajectory ``y(t)`` (:class:`NormalTrajectory`); for ``impact`` the handle
+    exactly as the 1-D trajectory ``y(t)``
+    (:class:`haptic_collab.research.fidelity_users_3d.NormalTrajectory`); for ``impact`` the handle
     starts with the hand's velocity, as in the 1-D model. The probe hitting the device's
-    workspace end stop counts as a runaway (the 1-D model's :data:`haptic_collab.research.fidelity_1d.RUNAWAY_M`
+    workspace end stop counts as a runaway (the 1-D model's :data:`haptic_collab.research.fidelity_cases.RUNAWAY_M`
     cannot be reached inside the 120 mm workspace).
 network
     one-way delay ``d`` whole servo ticks both ways, as the 1-D model: the World ticking at servo
@@ -29,7 +30,7 @@ network
     it every half simulation period), and its output reaches the servo from tick ``n + 1 + d``.
     Before tick ``d`` the World sees the user's starting probe and no force.
 
-Schemes (:func:`haptic_collab.research.fidelity_1d.rendering_for` for the gains):
+Schemes (:func:`haptic_collab.research.fidelity_schemes.rendering_for` for the gains):
 
 ``local-p``, ``local-pi``, ``mmt``, ``static-local`` (:data:`SCHEMES_3D`)
     :class:`client.servo.ServoCore` at 1 kHz rendering the World's patch with the scheme's
@@ -44,7 +45,8 @@ Schemes (:func:`haptic_collab.research.fidelity_1d.rendering_for` for the gains)
     (``ServoConfig(passivity=True)``, 1 mJ bias). Two safety features of the servo that the 1-D
     model does not have are set out of the way so that the schemes are compared as control laws:
     the force ramp at start-up is one tick (``ramp_s = T``) and the velocity limit is raised to
-    :data:`VELOCITY_LIMIT_M_S`; the device's stiffness limit is raised to K_h when K_h is above it
+    :data:`haptic_collab.research.fidelity_users_3d.VELOCITY_LIMIT_M_S`; the device's stiffness
+    limit is raised to K_h when K_h is above it
     (as :mod:`haptic_collab.research.reproduce_3d` does). ``mmt`` renders each patch moved out by the World's
     own-force deformation ``F / K_o`` (the rest surface it estimates) with that tick's K_o
     (capped at the device's stiffness) and its damper; ``static-local`` keeps the first patch (the
@@ -75,14 +77,14 @@ Schemes (:func:`haptic_collab.research.fidelity_1d.rendering_for` for the gains)
 Every force is clamped to the device's maximum (the servo's clamp, the World's rule above, the
 PC's limit, and :meth:`SimDevice.write`).
 
-Metrics (:func:`haptic_collab.research.fidelity_1d.cell_metrics`) are taken on ``x`` = the probe position read by
+Metrics (:func:`haptic_collab.research.fidelity_metrics.cell_metrics`) are taken on ``x`` = the probe position read by
 the servo, as depth below the rest top along the inward normal [m], and ``f`` = the force written
 to the device along the top's outward normal [N] (positive pushing the probe out), on the servo
-clock ``t = n T`` with the windows of the matching :data:`haptic_collab.research.fidelity_1d.PRESS` /
-:data:`haptic_collab.research.fidelity_1d.IMPACT`.
+clock ``t = n T`` with the windows of the matching :data:`haptic_collab.research.fidelity_cases.PRESS` /
+:data:`haptic_collab.research.fidelity_cases.IMPACT`.
 
-Two users (:func:`run_3d_pairs`, :mod:`haptic_collab.research.fidelity_pairs_3d`): the same
-blocks twice on one World, the demo's scene. B rests
+Two users (:func:`run_3d_pairs` of :mod:`haptic_collab.research.fidelity_pairs_3d`, where the
+names of this paragraph live): the same blocks twice on one World, the demo's scene. B rests
 on the balloon's side (:data:`PAIR_REST`) while A presses its top from 3 s (:data:`PAIR_PRESS`);
 what B feels of A's press is compared with what a probe held still there would feel
 (:class:`Pair3D`). Only the schemes whose servo renders a patch run there (:data:`PAIR_SCHEMES`).
@@ -104,52 +106,22 @@ from typing import Any
 import numpy as np
 
 from haptic_collab.client.devices.sim import HandParams
-from haptic_collab.research.fidelity_1d import (
-    RUNAWAY_M,
-    Cell,
-    CellMetrics,
-    DeviceModel,
-    Rendering,
-    Run,
-    cell_metrics,
-)
-from haptic_collab.research.fidelity_pairs_3d import (
-    PAIR_DURATION_S,
-    PAIR_FEELS_SHARE,
-    PAIR_HOLD_WINDOW_S,
-    PAIR_PRESS,
-    PAIR_REST,
-    PAIR_REST_WINDOW_S,
-    PAIR_SCHEMES,
-    PAIR_SETTLED_P2P_M,
-    Pair3D,
-    run_3d_pair,
-    run_3d_pairs,
-    side_point,
-)
+from haptic_collab.research.fidelity_cases import RUNAWAY_M, Cell, Run
+from haptic_collab.research.fidelity_metrics import CellMetrics, cell_metrics
+from haptic_collab.research.fidelity_schemes import DeviceModel, Rendering
 from haptic_collab.research.fidelity_users_3d import (
     DEFAULT_DEVICE,
-    DESIGN_MARGIN,
     DIRECT_REFERENCE,
-    FEM_MATERIAL_3D,
-    FEM_PREFIX,
-    PROFILE,
-    RATE_RATIO,
     SCHEMES_3D,
-    SERVO_RATE_HZ,
-    SIM_RATE_HZ,
     TRAJECTORIES_3D,
     UNCAPPED_DAMPING_N_S_PER_M,
     USER,
-    VELOCITY_LIMIT_M_S,
     DirectPort,
     DirectReference,
-    NormalTrajectory,
     PortDevice,
     check_delay,
     check_known,
     check_runs,
-    gain_key,
     rendering_3d,
     renewed_patch,
     scheme_device,
@@ -158,6 +130,10 @@ from haptic_collab.research.fidelity_users_3d import (
     top_k_o,
 )
 from haptic_collab.research.harness_3d import (
+    PROFILE,
+    RATE_RATIO,
+    SERVO_RATE_HZ,
+    SIM_RATE_HZ,
     ServoPort,
     Timing,
     combined_hand,
@@ -169,42 +145,7 @@ from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
 from haptic_collab.shared.types import FloatArray
 
-__all__ = [
-    "DEFAULT_DEVICE",
-    "DESIGN_MARGIN",
-    "DIRECT_REFERENCE",
-    "FEM_MATERIAL_3D",
-    "FEM_PREFIX",
-    "PAIR_DURATION_S",
-    "PAIR_FEELS_SHARE",
-    "PAIR_HOLD_WINDOW_S",
-    "PAIR_PRESS",
-    "PAIR_REST",
-    "PAIR_REST_WINDOW_S",
-    "PAIR_SCHEMES",
-    "PAIR_SETTLED_P2P_M",
-    "PROFILE",
-    "RATE_RATIO",
-    "SCHEMES_3D",
-    "SERVO_RATE_HZ",
-    "SIM_RATE_HZ",
-    "TRAJECTORIES_3D",
-    "UNCAPPED_DAMPING_N_S_PER_M",
-    "VELOCITY_LIMIT_M_S",
-    "DirectReference",
-    "NormalTrajectory",
-    "Pair3D",
-    "Run3D",
-    "gain_key",
-    "rendering_3d",
-    "run_3d_cell",
-    "run_3d_cells",
-    "run_3d_pair",
-    "run_3d_pairs",
-    "side_point",
-    "top_contact",
-    "top_k_o",
-]
+__all__ = ["Run3D", "run_3d_cell", "run_3d_cells"]
 
 
 @dataclass
@@ -219,7 +160,7 @@ class Run3D:
     stiffness_scale : float
     mesh : str
         The object's ``--mesh`` (``balloon`` or a stress shape's name; ``fem:NAME`` for the FEM
-        solid of that surface, :data:`FEM_PREFIX`).
+        solid of that surface, :data:`haptic_collab.research.harness_3d.FEM_PREFIX`).
     t : (n,) float
         Servo tick times [s].
     x : (n,) float
@@ -227,7 +168,7 @@ class Run3D:
     f : (n,) float
         Force [N] written to the device along the top's outward normal (pushing the probe out).
     runaway : bool
-        The probe reached the workspace end stop, left :data:`haptic_collab.research.fidelity_1d.RUNAWAY_M` or went
+        The probe reached the workspace end stop, left :data:`haptic_collab.research.fidelity_cases.RUNAWAY_M` or went
         non-finite.
     metrics : CellMetrics
     world_k_o : (m,) float
@@ -308,14 +249,14 @@ def run_3d_cell(
     Parameters
     ----------
     scheme : str
-        One of :data:`haptic_collab.research.fidelity_1d.SCHEMES`.
+        One of :data:`haptic_collab.research.fidelity_schemes.SCHEMES`.
     stiffness_scale : float
         ``--stiffness-scale`` of the balloon (1.0: K_o about 310 N/m at the top; 3.3: about
         1000 N/m, the paper's Fig. 10).
     mesh : str
         ``--mesh`` of the object: ``balloon`` (default) or a shape of the stress set
         (:data:`server.objects.shapes.STRESS_MESHES`); ``fem:NAME`` makes it the FEM solid of that
-        surface in :data:`FEM_MATERIAL_3D` (``--object fem``). The user presses its top.
+        surface in :data:`haptic_collab.research.harness_3d.FEM_MATERIAL_3D` (``--object fem``). The user presses its top.
     delay_ms : float
         One-way network delay [ms], whole servo ticks, >= 0.
     trajectory : {"press", "impact"}
@@ -519,7 +460,7 @@ def run_3d_cells(
         ``model`` (``"3d"``), ``k_o_n_per_m`` (K_o at the top), ``sim_rate_hz`` (20),
         ``delay_ms``, ``hand`` (hand + device as the probe feels them: ``mass_kg``,
         ``stiffness_n_per_m``, ``damping_n_s_per_m``), ``trajectory``, ``stiffness_scale``, the
-        :class:`haptic_collab.research.fidelity_1d.CellMetrics` fields, and ``felt_stiffness_ratio_1hz`` /
+        :class:`haptic_collab.research.fidelity_metrics.CellMetrics` fields, and ``felt_stiffness_ratio_1hz`` /
         ``_8hz`` (None: measured in 1-D only).
 
     Raises

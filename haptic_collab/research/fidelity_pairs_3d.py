@@ -20,11 +20,10 @@ from typing import Any
 import numpy as np
 
 from haptic_collab.client.devices.sim import HandParams
-from haptic_collab.research.fidelity_1d import PRESS, DeviceModel, Trajectory
+from haptic_collab.research.fidelity_cases import PRESS, Trajectory
+from haptic_collab.research.fidelity_schemes import DeviceModel
 from haptic_collab.research.fidelity_users_3d import (
     DEFAULT_DEVICE,
-    RATE_RATIO,
-    SERVO_RATE_HZ,
     check_delay,
     check_known,
     check_runs,
@@ -33,7 +32,14 @@ from haptic_collab.research.fidelity_users_3d import (
     scheme_device,
     scheme_servo,
 )
-from haptic_collab.research.harness_3d import ServoPort, Timing, object_world, run_multirate
+from haptic_collab.research.harness_3d import (
+    RATE_RATIO,
+    SERVO_RATE_HZ,
+    ServoPort,
+    Timing,
+    object_world,
+    run_multirate,
+)
 from haptic_collab.server.object_info import object_info
 from haptic_collab.server.world import ContactInput, World
 from haptic_collab.shared.gain_table import GainTable
@@ -57,7 +63,7 @@ PAIR_REST = Trajectory(
     hold_window_s=(7.0, 8.0),
     energy_window_s=(0.0, PAIR_DURATION_S),
 )
-#: A's intention: :data:`haptic_collab.research.fidelity_1d.PRESS` (10 mm into the top) started at 3 s, held to 8 s.
+#: A's intention: :data:`haptic_collab.research.fidelity_cases.PRESS` (10 mm into the top) started at 3 s, held to 8 s.
 PAIR_PRESS = replace(
     PRESS,
     duration_s=PAIR_DURATION_S,

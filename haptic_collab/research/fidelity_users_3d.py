@@ -22,20 +22,15 @@ from numpy.typing import ArrayLike
 from haptic_collab.client.devices.base import Vec3
 from haptic_collab.client.devices.sim import HandParams, SimDevice
 from haptic_collab.client.servo import ServoCore
-from haptic_collab.research.fidelity_1d import (
-    IMPACT,
-    PRESS,
+from haptic_collab.research.fidelity_cases import IMPACT, PRESS, Trajectory
+from haptic_collab.research.fidelity_schemes import (
     SCHEMES,
     DeviceModel,
     Rendering,
-    Trajectory,
     design_delay_ticks,
     rendering_for,
 )
 from haptic_collab.research.harness_3d import (
-    FEM_MATERIAL_3D,
-    FEM_PREFIX,
-    PROFILE,
     RATE_RATIO,
     SERVO_RATE_HZ,
     SIM_RATE_HZ,
@@ -58,13 +53,7 @@ __all__ = [
     "DEFAULT_DEVICE",
     "DESIGN_MARGIN",
     "DIRECT_REFERENCE",
-    "FEM_MATERIAL_3D",
-    "FEM_PREFIX",
-    "PROFILE",
-    "RATE_RATIO",
     "SCHEMES_3D",
-    "SERVO_RATE_HZ",
-    "SIM_RATE_HZ",
     "TRAJECTORIES_3D",
     "UNCAPPED_DAMPING_N_S_PER_M",
     "USER",
@@ -145,7 +134,7 @@ def top_k_o(stiffness_scale: float, mesh: str = "balloon") -> float:
 
 
 class NormalTrajectory:
-    """The 1-D intention ``y(t)`` (:class:`haptic_collab.research.fidelity_1d.Trajectory`) as a hand target in 3-D.
+    """The 1-D intention ``y(t)`` (:class:`haptic_collab.research.fidelity_cases.Trajectory`) as a hand target in 3-D.
 
     ``target(t) = top - y(t) normal`` [m] (``y`` positive inside), the callable
     :class:`client.devices.sim.SimDevice` pulls the hand toward; tabulated on the servo ticks
@@ -245,7 +234,7 @@ def rendering_3d(
     device: DeviceModel = DEFAULT_DEVICE,
     gain_table: GainTable | None = None,
 ) -> Rendering:
-    """:func:`haptic_collab.research.fidelity_1d.rendering_for` at 20 Hz, designing the local models' gains for
+    """:func:`haptic_collab.research.fidelity_schemes.rendering_for` at 20 Hz, designing the local models' gains for
     ``k_o`` [N/m] and ``delay_ms`` [ms] (seconds per design; ``gain_table`` caches them).
 
     Raises

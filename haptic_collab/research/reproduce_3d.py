@@ -30,14 +30,11 @@ from typing import Any, Literal
 
 from haptic_collab.client.devices.profiles import get_sim_profile
 from haptic_collab.client.devices.sim import HandParams
+from haptic_collab.research.harness_3d import PROFILE, SERVO_RATE_HZ, SIM_RATE_HZ, combined_hand
 from haptic_collab.research.plots_3d import plot_fig10, plot_fig11
 from haptic_collab.research.press_3d import (
-    K_O_TARGET,
     PAPER_CASES,
     PROBE_DEPTH_M,
-    PROFILE,
-    SERVO_RATE_HZ,
-    SIM_RATE_HZ,
     STABLE_HOLD_P2P_MM,
     THETA_M,
     Case3D,
@@ -45,38 +42,13 @@ from haptic_collab.research.press_3d import (
     StiffBalloon,
     Timeline3D,
     case_result,
-    combined_hand,
     hand_json,
     product_cases,
     run_case,
     stiff_balloon,
-    target_probe_depth_m,
 )
 
-__all__ = [
-    "K_O_TARGET",
-    "PAPER_CASES",
-    "PROBE_DEPTH_M",
-    "PROFILE",
-    "SERVO_RATE_HZ",
-    "SIM_RATE_HZ",
-    "STABLE_HOLD_P2P_MM",
-    "THETA_M",
-    "Case3D",
-    "CaseRun",
-    "Figure3D",
-    "StiffBalloon",
-    "Timeline3D",
-    "case_result",
-    "combined_hand",
-    "fig10",
-    "fig11",
-    "product_cases",
-    "reproduce_3d",
-    "run_case",
-    "stiff_balloon",
-    "target_probe_depth_m",
-]
+__all__ = ["Figure3D", "fig10", "fig11", "reproduce_3d"]
 
 Figure3D = Literal["fig10", "fig11", "all"]
 

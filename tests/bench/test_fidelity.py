@@ -10,19 +10,17 @@ from typing import Any
 
 import pytest
 
-from haptic_collab.bench.fidelity import (
+from haptic_collab.bench.fidelity import Grid, plot, run
+from haptic_collab.research.fidelity_ranking import (
     BAND_HZ,
     STIFFNESS_JND,
-    Grid,
     Outcome,
     choose_variant,
     felt_error,
-    plot,
     rank,
-    run,
     summarize,
 )
-from haptic_collab.research.fidelity_1d import SCHEMES, Rendering, peer_renderings
+from haptic_collab.research.fidelity_schemes import SCHEMES, Rendering, peer_renderings
 from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand
 
 

@@ -9,24 +9,24 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.session import ClientSession, DeviceInfo
-from haptic_collab.research.fidelity_1d import (
+from haptic_collab.research.fidelity_1d import passivity_step, simulate
+from haptic_collab.research.fidelity_cases import (
     IMPACT,
     PRESS,
-    SCHEMES,
     TAP,
     Cell,
+    Trajectory,
+    felt_depth_m,
+    felt_trajectory,
+)
+from haptic_collab.research.fidelity_metrics import cell_metrics, felt_stiffness_ratio
+from haptic_collab.research.fidelity_schemes import (
+    SCHEMES,
     DeviceModel,
     Rendering,
-    Trajectory,
-    cell_metrics,
     design_delay_ticks,
-    felt_depth_m,
-    felt_stiffness_ratio,
-    felt_trajectory,
-    passivity_step,
     rendering_for,
     scheme_tuning,
-    simulate,
 )
 from haptic_collab.shared.felt_stiffness import felt_stiffness
 from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand, spectral_radius

@@ -8,16 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from haptic_collab.research.fidelity_1d import IMPACT, STABLE_HOLD_P2P_M, cell_metrics, simulate
-from haptic_collab.research.fidelity_3d import (
-    RATE_RATIO,
-    SCHEMES_3D,
-    NormalTrajectory,
-    run_3d_cell,
-    run_3d_cells,
-    run_3d_pair,
-    top_contact,
-)
+from haptic_collab.research.fidelity_1d import simulate
+from haptic_collab.research.fidelity_3d import run_3d_cell, run_3d_cells
+from haptic_collab.research.fidelity_cases import IMPACT
+from haptic_collab.research.fidelity_metrics import STABLE_HOLD_P2P_M, cell_metrics
+from haptic_collab.research.fidelity_pairs_3d import run_3d_pair
+from haptic_collab.research.fidelity_users_3d import SCHEMES_3D, NormalTrajectory, top_contact
+from haptic_collab.research.harness_3d import RATE_RATIO
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.shared.gain_table import GainTable
 

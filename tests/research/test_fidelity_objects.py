@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from haptic_collab.bench.fidelity import _design, _gain_key
-from haptic_collab.research.fidelity_1d import (
+from haptic_collab.research.fidelity_1d import simulate
+from haptic_collab.research.fidelity_cases import (
     IMPACT,
     OBJECTS,
     PRESS,
-    SCHEMES,
     SLS,
     SPRING,
     SPRING_SOFTER,
@@ -22,18 +22,19 @@ from haptic_collab.research.fidelity_1d import (
     STIFFENING,
     TAP,
     Cell,
-    DeviceModel,
     ObjectModel,
-    Rendering,
     RunOptions,
-    cell_metrics,
     felt_depth_m,
-    felt_response,
     felt_trajectory,
     felt_window_s,
+)
+from haptic_collab.research.fidelity_metrics import cell_metrics, felt_response
+from haptic_collab.research.fidelity_schemes import (
+    SCHEMES,
+    DeviceModel,
+    Rendering,
     peer_renderings,
     rendering_for,
-    simulate,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
 

@@ -8,14 +8,14 @@ from typing import Any
 
 import pytest
 
-from haptic_collab.research.reproduce_3d import (
+from haptic_collab.research.press_3d import (
     K_O_TARGET,
     STABLE_HOLD_P2P_MM,
     Timeline3D,
     product_cases,
-    reproduce_3d,
     stiff_balloon,
 )
+from haptic_collab.research.reproduce_3d import reproduce_3d
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 #: A shortened press: 0.3 s approach, 0.7 s press, 1.5 s hold (2.5 s per case).

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import pytest
 
-from haptic_collab.research.fidelity_3d import top_contact
+from haptic_collab.research.fidelity_users_3d import top_contact
 from haptic_collab.server.force_bound import ForceBoundParams, bound_force
 from haptic_collab.server.main import ServerOptions, build_world
 from haptic_collab.server.room import Room

@@ -13,16 +13,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.research.fidelity_1d import (
-    PRESS,
-    Cell,
-    DeviceModel,
-    cell_metrics,
-    felt_response,
-    felt_trajectory,
-    rendering_for,
-    simulate,
-)
+from haptic_collab.research.fidelity_1d import simulate
+from haptic_collab.research.fidelity_cases import PRESS, Cell, felt_trajectory
+from haptic_collab.research.fidelity_metrics import cell_metrics, felt_response
+from haptic_collab.research.fidelity_schemes import DeviceModel, rendering_for
 from haptic_collab.server.contact_stiffness import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_compliance import compliance_matrix
 from haptic_collab.shared.coupled_loop import UserGains, verify_coupled
