@@ -31,6 +31,7 @@ This module reads a clock only to report wall time.
 
 from __future__ import annotations
 
+import itertools
 import math
 import multiprocessing as mp
 import os
@@ -173,7 +174,10 @@ DEVICE = DeviceModel()
 FIDELITY_MESHES_3D = ("box", "plate", "torus", "fem:box")
 
 
-def _gain_key(mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceModel) -> GainKey:
+def _gain_key(
+    mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceModel, b_o: float = 0.0
+) -> GainKey:
+    """The key the product's client builds: B_o [N/m] quantized down as ``make_gain_key`` does."""
     return GainKey(
         servo_rate_hz=_SERVO_RATE_HZ,
         sim_rate_hz=sim_rate_hz,
@@ -182,7 +186,14 @@ def _gain_key(mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceMode
         margin=0.15,
         k_h_max=device.max_stiffness_n_per_m,
         b_h_max=device.max_damping_n_s_per_m,
+        b_o=float(math.floor(max(0.0, b_o))),
     )
+
+
+def _reported_b_o(name: str, k_o: float, sim_rate_hz: float) -> float:
+    """The B_o [N/m] the simulation reports for object ``name`` (its one-tick stiffness less the
+    static one, as the product's World reports it), quantized as the client's key does."""
+    return float(math.floor(_OBJECTS[name].reported_b_o(k_o, sim_rate_hz)))
 
 
 def _design_cost(job: tuple[str, GainKey, float]) -> tuple[float, float]:
@@ -292,10 +303,11 @@ def run(
             mode = "p" if scheme == "local-p" else "pi"
             for rate in g.sim_rate_hz:
                 for d in g.delay_ms:
-                    key = _gain_key(mode, rate, d, device)
                     for k_o in g.k_o:
-                        if design_cache is None or (mode, key, k_o) not in design_cache:
-                            wanted.add((mode, key, k_o))
+                        for b_o in {_reported_b_o(name, k_o, rate) for name in g.objects}:
+                            key = _gain_key(mode, rate, d, device, b_o)
+                            if design_cache is None or (mode, key, k_o) not in design_cache:
+                                wanted.add((mode, key, k_o))
         # the longest designs first, so that no worker is left with one at the end: a design
         # checks N sampling ticks of a loop of about N + delay states (eigenvalues: cubic)
         jobs: dict[tuple[str, GainKey, float], Any] = {
@@ -309,19 +321,16 @@ def run(
         t_design = time.perf_counter() - t0
         say(f"designed {len(designs)} gain sets in {t_design:.1f} s")
 
-        # 2. every scheme's renderings (a peer's whole sweep) per (K_o, rate, delay)
-        rend: dict[tuple[str, float, float, float], list[Rendering]] = {}
-        for s in schemes:
-            for rate in g.sim_rate_hz:
-                for d in g.delay_ms:
-                    for k_o in g.k_o:
-                        if s in LOCAL_MODELS:
-                            mode = "p" if s == "local-p" else "pi"
-                            design = designs[(mode, _gain_key(mode, rate, d, device), k_o)]
-                            rs = [rendering_for(s, sim_rate_hz=rate, device=device, design=design)]
-                        else:
-                            rs = peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
-                        rend[(s, k_o, rate, d)] = rs
+        # 2. every scheme's renderings (a peer's whole sweep) per (K_o, rate, delay); the local
+        # models' per object too, for the B_o the simulation reports with it
+        def renderings(name: str, s: str, k_o: float, rate: float, d: float) -> list[Rendering]:
+            if s not in LOCAL_MODELS:
+                return peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
+            mode = "p" if s == "local-p" else "pi"
+            key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate))
+            return [
+                rendering_for(s, sim_rate_hz=rate, device=device, design=designs[(mode, key, k_o)])
+            ]
 
         # 3. cells: every object x rendering x trajectory x hand, and the felt probes
         outcomes: list[Outcome] = []
@@ -330,7 +339,8 @@ def run(
         felt_cells: dict[float, list[tuple[int, Cell]]] = defaultdict(list)
         for name in g.objects:
             obj = _OBJECTS[name]
-            for (s, k_o, rate, d), rs in rend.items():
+            for s, k_o, rate, d in itertools.product(schemes, g.k_o, g.sim_rate_hz, g.delay_ms):
+                rs = renderings(name, s, k_o, rate, d)
                 ids = []
                 for r in rs:
                     oid = len(outcomes)
@@ -448,7 +458,13 @@ def run(
     gains = []
     for (mode, gkey, k_o), gd in sorted(
         designs.items(),
-        key=lambda kv: (kv[0][0], kv[0][1].sim_rate_hz, kv[0][1].delay_ticks, kv[0][2]),
+        key=lambda kv: (
+            kv[0][0],
+            kv[0][1].sim_rate_hz,
+            kv[0][1].delay_ticks,
+            kv[0][1].b_o,
+            kv[0][2],
+        ),
     ):  # K_o last: the order of the JSON's designs is the same in every run
         gains.append(
             {
@@ -456,6 +472,7 @@ def run(
                 "k_o_n_per_m": k_o,
                 "sim_rate_hz": gkey.sim_rate_hz,
                 "delay_ticks": gkey.delay_ticks,
+                "b_o_n_per_m": gkey.b_o,
                 "k_h": gd.k_h,
                 "i_gain": gd.i_gain,
                 "b_h": gd.b_h,

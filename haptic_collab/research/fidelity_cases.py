@@ -134,6 +134,45 @@ class ObjectModel:
             )
         return complex(k1)
 
+    def one_tick_stiffness(self, k_o: float, sim_rate_hz: float) -> float:
+        """The stiffness [N/m] the object shows over the first simulation tick of a step push
+        from rest: ``m / h^2 + b / h + k_1 + k_2 tau / (tau + h)`` with ``h`` the simulation
+        period (the implicit-Euler step the simulator takes); ``k_1`` for the quasi-static
+        objects (their tangent at rest).
+
+        Raises
+        ------
+        ValueError
+            Non-positive or non-finite ``k_o`` or ``sim_rate_hz``.
+        """
+        if not (
+            math.isfinite(k_o) and k_o > 0.0 and math.isfinite(sim_rate_hz) and sim_rate_hz > 0
+        ):
+            raise ValueError(f"k_o and sim_rate_hz must be > 0, got {k_o!r}, {sim_rate_hz!r}")
+        k1 = k_o * self.stiffness_error
+        if self.kind != "sls":
+            return k1
+        h = 1.0 / sim_rate_hz
+        k2 = self.relax_ratio * k1
+        tau = self.relax_time_s
+        return self.mass_kg / h**2 + self.damping_n_s_per_m / h + k1 + k2 * tau / (tau + h)
+
+    def reported_b_o(self, k_o: float, sim_rate_hz: float) -> float:
+        """The paper's ``B_o`` [N/m] (eq. 9) the simulation reports beside ``k_o``, defined as the
+        product's World defines it for its damped and massive objects
+        (``server.objects.fem.FemSolid.contact_damping``): the one-tick stiffness from rest less
+        the static one. The simulation's model of the object is off by ``stiffness_error`` as its
+        K_o is, so both are scaled by it: ``(one_tick - k_1) / stiffness_error`` (0 for the
+        springs and the quasi-static stiffening object).
+
+        Raises
+        ------
+        ValueError
+            As :meth:`one_tick_stiffness`.
+        """
+        k1 = k_o * self.stiffness_error
+        return max(0.0, (self.one_tick_stiffness(k_o, sim_rate_hz) - k1) / self.stiffness_error)
+
     def peak_stiffness(self, k_o: float, depth_m: float) -> float:
         """The largest |dF/dx| [N/m] the object shows down to ``depth_m`` at any speed."""
         k1 = k_o * self.stiffness_error

@@ -79,6 +79,24 @@ def test_the_objects_differ_from_the_design_model_as_stated() -> None:
         assert m.stable, obj.name
 
 
+def test_the_simulation_reports_b_o_as_the_worlds_objects_do() -> None:
+    # B_o is the first tick's stiffness from rest less the static one (the FEM solid's and the
+    # balloon's contact_damping). For the viscoelastic object with mass, one implicit-Euler tick
+    # of a step push F from rest solves m x/h^2 + k_1 x + k_2 (x - q) = F, q = h/(tau+h) x
+    k, rate, f = 300.0, 50.0, 1.0
+    h, tau, m = 1.0 / rate, SLS.relax_time_s, SLS.mass_kg
+    x1 = f / (m / h**2 + k + k * (1.0 - h / (tau + h)))
+    assert SLS.one_tick_stiffness(k, rate) == pytest.approx(f / x1)
+    assert SLS.reported_b_o(k, rate) == pytest.approx(f / x1 - k)
+    # the surface mass dominates at a fast simulation: 200 N/m at 100 Hz, 2 N/m at 10 Hz
+    assert SLS.reported_b_o(100.0, 100.0) - SLS.reported_b_o(100.0, 10.0) > 150.0
+    # springs and the quasi-static stiffening object answer at once: no B_o, whatever their error
+    for obj in (SPRING, SPRING_SOFTER, SPRING_STIFFER, STIFFENING):
+        assert obj.reported_b_o(k, rate) == 0.0
+    with pytest.raises(ValueError):
+        SLS.one_tick_stiffness(k, 0.0)
+
+
 def test_mmt_is_the_compensated_p_model_with_k_h_equal_to_k_o() -> None:
     # what a re-analysis of the benchmark measured: for K_o within the device's stiffness the product's design is a
     # plane at the rest surface with K_o, the same information MMT renders
