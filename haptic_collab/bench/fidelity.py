@@ -69,6 +69,7 @@ from haptic_collab.research.fidelity_schemes import (
     SCHEMES,
     DeviceModel,
     Rendering,
+    TableCell,
     design_delay_ticks,
     peer_renderings,
     rendering_for,
@@ -196,6 +197,22 @@ def _reported_b_o(name: str, k_o: float, sim_rate_hz: float) -> float:
     return float(math.floor(_OBJECTS[name].reported_b_o(k_o, sim_rate_hz)))
 
 
+def _k_o_designed(obj: ObjectModel, k_o: float, device: DeviceModel, reached: bool) -> list[float]:
+    """The K_o [N/m] whose gain-table cells the run designs for ``obj`` reported at ``k_o``:
+    ``k_o``, and with ``reached`` one K_o in each cell above it up to the K_o the object reports
+    at the trajectories' held depth (the middle of each cell)."""
+    ks = [k_o]
+    if reached:
+        table = GainTable()
+        top = obj.reported_k_o(k_o, max(t.y1_m for t in TRAJECTORIES))
+        r = table.grid_ratio
+        ks += [
+            table.grid_point(c) * math.sqrt(r)
+            for c in range(table.cell(k_o) + 1, table.cell(top) + 1)
+        ]
+    return ks
+
+
 def _design_cost(job: tuple[str, GainKey, float]) -> tuple[float, float]:
     """A design job's relative cost, for ordering: N (N + delay ticks)^3, PI before P."""
     mode, key, _ = job
@@ -203,11 +220,29 @@ def _design_cost(job: tuple[str, GainKey, float]) -> tuple[float, float]:
     return (float(n * (n + key.delay_ticks) ** 3), 1.0 if mode == "pi" else 0.0)
 
 
-def _design(key: GainKey, k_o: float) -> GainDesign:
-    """The design the product's client renders for K_o under ``key`` (a worker's job): its
-    cell's, scaled to K_o (:meth:`shared.gain_table.GainTable.lookup`)."""
+def _design_cell(key: GainKey, k_o: float) -> GainDesign:
+    """The design of the client's gain-table cell holding K_o under ``key`` (a worker's job),
+    unscaled (:func:`shared.gain_table.design_cell`)."""
     table = GainTable(DEFAULT_HAND_BOX)
-    return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box).at(k_o)
+    return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box)
+
+
+def _design(key: GainKey, k_o: float) -> GainDesign:
+    """The design the product's client renders for K_o under ``key``: its cell's, scaled to K_o
+    (:meth:`shared.gain_table.GainTable.lookup`)."""
+    return _design_cell(key, k_o).at(k_o)
+
+
+def _table(
+    designs: dict[tuple[str, GainKey, float], GainDesign], mode: str, key: GainKey
+) -> tuple[TableCell, ...]:
+    """The cells the run designed for ``(mode, key)``: the client's gain table for that key."""
+    t = GainTable(DEFAULT_HAND_BOX)
+    return tuple(
+        TableCell.from_design(t.cell(k_o), d, t.grid_ratio)
+        for (m, k, k_o), d in sorted(designs.items(), key=lambda kv: kv[0][2])
+        if m == mode and k == key
+    )
 
 
 def _simulate_batch(
@@ -240,6 +275,7 @@ def run(
     seed: int = 0,
     log: Any = None,
     design_cache: dict[tuple[str, GainKey, float], GainDesign] | None = None,
+    design_reached: bool = False,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the ``--json`` document.
 
@@ -252,7 +288,9 @@ def run(
         Subset of :data:`haptic_collab.research.fidelity_schemes.SCHEMES`.
     device : DeviceModel
     workers : int, optional
-        Worker processes (default: the machine's cores).
+        Worker processes (default: the machine's cores), each with one BLAS thread: this sets
+        ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` and ``MKL_NUM_THREADS`` to 1 in the calling
+        process's environment where they are not set, before the workers are spawned.
     include_3d : bool
         Also run the 3-D World cells (:mod:`haptic_collab.research.fidelity_3d`).
     options : RunOptions, optional
@@ -263,7 +301,16 @@ def run(
     log : callable, optional
         Progress lines (``print`` to stderr from the CLI).
     design_cache : dict, optional
-        Designs already made, keyed ``(mode, GainKey, K_o)``; new designs are added to it.
+        Designs already made, keyed ``(mode, GainKey, K_o)``: the design of the gain-table cell
+        holding K_o, unscaled (:func:`shared.gain_table.design_cell`); new designs are added to
+        it.
+    design_reached : bool
+        Also design every gain-table cell between the K_o an object is reported at and the K_o
+        it reports at the trajectories' held depth (the stiffening object's), as a client has
+        them once it has pressed there (slow: about ten more designs per condition). Without
+        them the local models render the nearest designed cell below
+        (:meth:`shared.gain_table.GainTable.fallback`), as the client does while such a cell is
+        being designed.
 
     Returns
     -------
@@ -291,6 +338,12 @@ def run(
     say = log if log is not None else (lambda _msg: None)
     t0 = time.perf_counter()
     n_workers = max(1, workers if workers is not None else (os.cpu_count() or 1))
+    # one BLAS thread in each worker (they inherit the environment when spawned): with the
+    # default one thread per core, two workers' designs oversubscribed a 2-core machine and took
+    # nine times as long (the --quick grid's 40 designs: 175 s against 19.5 s, side by side,
+    # 2026-11-25); the CLI sets this already, a caller of run() may not have
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     pool: Executor = ProcessPoolExecutor(n_workers, mp_context=mp.get_context("spawn"))
     hands = list(g.hands) + list(g.outside_hands)
     n_box = len(g.hands)
@@ -304,14 +357,15 @@ def run(
             for rate in g.sim_rate_hz:
                 for d in g.delay_ms:
                     for k_o in g.k_o:
-                        for b_o in {_reported_b_o(name, k_o, rate) for name in g.objects}:
-                            key = _gain_key(mode, rate, d, device, b_o)
-                            if design_cache is None or (mode, key, k_o) not in design_cache:
-                                wanted.add((mode, key, k_o))
+                        for name in g.objects:
+                            key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate))
+                            for k in _k_o_designed(_OBJECTS[name], k_o, device, design_reached):
+                                if design_cache is None or (mode, key, k) not in design_cache:
+                                    wanted.add((mode, key, k))
         # the longest designs first, so that no worker is left with one at the end: a design
         # checks N sampling ticks of a loop of about N + delay states (eigenvalues: cubic)
         jobs: dict[tuple[str, GainKey, float], Any] = {
-            w: pool.submit(_design, w[1], w[2])
+            w: pool.submit(_design_cell, w[1], w[2])
             for w in sorted(wanted, key=_design_cost, reverse=True)
         }
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
@@ -321,6 +375,8 @@ def run(
         t_design = time.perf_counter() - t0
         say(f"designed {len(designs)} gain sets in {t_design:.1f} s")
 
+        tables: dict[tuple[str, GainKey], tuple[TableCell, ...]] = {}
+
         # 2. every scheme's renderings (a peer's whole sweep) per (K_o, rate, delay); the local
         # models' per object too, for the B_o the simulation reports with it
         def renderings(name: str, s: str, k_o: float, rate: float, d: float) -> list[Rendering]:
@@ -328,8 +384,16 @@ def run(
                 return peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
             mode = "p" if s == "local-p" else "pi"
             key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate))
+            if (mode, key) not in tables:
+                tables[(mode, key)] = _table(designs, mode, key)
             return [
-                rendering_for(s, sim_rate_hz=rate, device=device, design=designs[(mode, key, k_o)])
+                rendering_for(
+                    s,
+                    sim_rate_hz=rate,
+                    device=device,
+                    design=designs[(mode, key, k_o)].at(k_o),
+                    table=tables[(mode, key)],
+                )
             ]
 
         # 3. cells: every object x rendering x trajectory x hand, and the felt probes
@@ -456,7 +520,7 @@ def run(
         say(f"ran {len(cells3)} 3-D cells and {len(pairs3)} two-user cells in {t_3d:.1f} s")
 
     gains = []
-    for (mode, gkey, k_o), gd in sorted(
+    for (mode, gkey, k_o), cell_design in sorted(
         designs.items(),
         key=lambda kv: (
             kv[0][0],
@@ -466,6 +530,7 @@ def run(
             kv[0][2],
         ),
     ):  # K_o last: the order of the JSON's designs is the same in every run
+        gd = cell_design.at(k_o)
         gains.append(
             {
                 "local_model": mode,

@@ -141,6 +141,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             seed=args.seed,
             workers=args.workers,
             include_3d=not (args.no_3d or args.quick),
+            design_reached=args.design_reached,
             log=lambda msg: print(msg, file=sys.stderr, flush=True),
         )
         if args.plot:
@@ -214,6 +215,14 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "--no-3d",
         action="store_true",
         help="fidelity: skip the 3-D World cells (--quick skips them too)",
+    )
+    p.add_argument(
+        "--design-reached",
+        action="store_true",
+        help=(
+            "fidelity: also design every gain-table cell an object's reported K_o reaches (the "
+            "stiffening object's), as a client has them once it has pressed there"
+        ),
     )
     p.add_argument(
         "--jitter-us",

@@ -82,7 +82,7 @@ from haptic_collab.research.fidelity_cases import (
     stiffening_force,
     stiffening_tangent,
 )
-from haptic_collab.research.fidelity_schemes import DeviceModel
+from haptic_collab.research.fidelity_schemes import DeviceModel, TableGains
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
 from haptic_collab.shared.types import FloatArray
 
@@ -207,7 +207,8 @@ def simulate(
     ti = T * np.array([x.i_gain for x in r])
     b_h = np.array([x.b_h for x in r])
     foh = np.array([x.proxy_hold == "foh" for x in r])
-    theta = np.where(ti > 0.0, np.array([x.theta_m for x in r]), 0.0)
+    theta_m = np.array([x.theta_m for x in r])
+    theta = np.where(ti > 0.0, theta_m, 0.0)
     rel_per_tick = T / np.array([x.release_time_s for x in r])
     recovery = np.where(ti > 0.0, 1.0 / k_o, 0.0)  # [m/N]
     pc_any = np.array([x.passivity for x in r])
@@ -223,8 +224,10 @@ def simulate(
         ]
     )
     own = np.array([x.own_gain for x in r])
-    follow = (kind == "coupling") & (own > 0.0) & np.array([x.follows_k_o for x in r])
-    kh_follow_max = np.maximum(k_h, float(device.max_stiffness_n_per_m))
+    # the local models' gains follow the K_o reported through the client's gain table
+    follow = (kind == "coupling") & np.array([x.follows_k_o and bool(x.table) for x in r])
+    table = TableGains([x.table if f else () for x, f in zip(r, follow, strict=True)])
+    k_h_now, ti_now, b_h_now = k_h.copy(), ti.copy(), b_h.copy()
     jscale = np.array([x.jacobian_scale for x in r])
     fmax = float(device.max_force_n)
     a_u = T / (T + DAMPER_FILTER_S)
@@ -348,17 +351,22 @@ def simulate(
             e_env = np.where(fresh & two_port, got[:, 3], e_env)
             hold_i = np.where(fresh, 0, hold_i + 1)
             seq_seen = seq
+            if any_follow:
+                re_gain = fresh & follow
+                if re_gain.any():
+                    kg, ig, bg, _ = table.gains(k_recv)
+                    k_h_now = np.where(re_gain, kg, k_h_now)
+                    ti_now = np.where(re_gain, T * ig, ti_now)
+                    b_h_now = np.where(re_gain, bg, b_h_now)
+                    theta = np.where(ti_now > 0.0, theta_m, 0.0)
+                    recovery = np.where(ti_now > 0.0, 1.0 / k_o, 0.0)
         else:
             hold_i = hold_i + 1
         # 2. compute
         w = np.where(foh, np.minimum(1.0, (hold_i + 1.0) / n_ratio), 1.0)
         proxy = p_old + (p_new - p_old) * w
         e = xr - proxy
-        k_eff = np.where(mmt, np.minimum(k_recv, k_h), k_h)
-        if any_follow:
-            k_eff = np.where(
-                follow, np.minimum(k_h * np.maximum(k_recv / k_o, 1.0), kh_follow_max), k_eff
-            )
+        k_eff = np.where(mmt, np.minimum(k_recv, k_h), k_h_now)
         # contact: the probe past the proxy; an integral keeps it while the probe is within the
         # deformation its force holds (s / K_o: the object's surface follows a retreating probe
         # back, the proxy is a stale copy of it; shared.local_model's recovery band)
@@ -369,12 +377,12 @@ def simulate(
         rel_step = np.where(contact, 0.0, np.where(start_rel, s * rel_per_tick, rel_step))
         s = np.where(
             contact,
-            np.clip(s + ti * (e - theta), 0.0, fmax),
+            np.clip(s + ti_now * (e - theta), 0.0, fmax),
             np.maximum(s - rel_step, 0.0),
         )
         was_contact = contact
         u = u + a_u * (vel - u)
-        f_lm = np.where(contact & (b_h > 0.0), np.maximum(f_lm + b_h * u, 0.0), f_lm)
+        f_lm = np.where(contact & (b_h_now > 0.0), np.maximum(f_lm + b_h_now * u, 0.0), f_lm)
         f = np.where(direct, f_recv, f_lm)
         if any_jac:
             # force-jacobian: the simulation's force and its local stiffness about x_ref
@@ -472,10 +480,9 @@ def simulate(
             # what the simulation publishes: its stiffness estimate is the object's tangent
             # stiffness as it believes it (off by the object's stiffness error)
             k_est = np.where(nonlin, stiffening_tangent(k_o, xs, np.maximum(xo, 0.0)), k_o)
-            # own-force compensation of a local model that follows the reported K_o: C_h / s
-            own_eff = (
-                np.where(follow, own / np.maximum(k_est / k_o, 1.0), own) if any_follow else own
-            )
+            # own-force compensation of a local model that follows the reported K_o: the C_h
+            # its client renders for it
+            own_eff = np.where(follow, table.gains(k_est)[3], own) if any_follow else own
             val = np.where(
                 fed_position & ~tool,
                 f_obj,

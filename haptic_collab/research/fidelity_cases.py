@@ -173,6 +173,15 @@ class ObjectModel:
         k1 = k_o * self.stiffness_error
         return max(0.0, (self.one_tick_stiffness(k_o, sim_rate_hz) - k1) / self.stiffness_error)
 
+    def reported_k_o(self, k_o: float, depth_m: float) -> float:
+        """The K_o [N/m] the simulation reports with its surface at ``depth_m`` [m] (as
+        :func:`haptic_collab.research.fidelity_1d.simulate` publishes it): the stiffening
+        object's tangent stiffness as the simulation believes it; ``k_o`` for every other."""
+        if self.kind == "stiffening":
+            d = max(float(depth_m), 0.0)
+            return float(stiffening_tangent(k_o, self.stiffening_m, np.asarray(d)))
+        return float(k_o)
+
     def peak_stiffness(self, k_o: float, depth_m: float) -> float:
         """The largest |dF/dx| [N/m] the object shows down to ``depth_m`` at any speed."""
         k1 = k_o * self.stiffness_error

@@ -11,12 +11,16 @@ sweeps and :func:`scheme_tuning` the sentence the report prints for each.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal, get_args
+
+import numpy as np
 
 from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import loop_delay_ticks
+from haptic_collab.shared.types import FloatArray
 
 SchemeName = Literal[
     "local-p",
@@ -68,6 +72,46 @@ class DeviceModel:
 
 
 @dataclass(frozen=True, slots=True)
+class TableCell:
+    """One designed cell of the product's gain table (:class:`shared.gain_table.GainTable`): the
+    design of grid point ``g_c = grid_ratio**cell`` [N/m], unscaled (SI units).
+
+    Attributes
+    ----------
+    cell : int
+        The grid index c (:meth:`shared.gain_table.GainTable.cell`).
+    grid_ratio : float
+        The table's grid ratio (> 1).
+    k_h, i_gain, b_h, own_gain : float
+        K_h [N/m], I [N/(m*s)], B_h [N*s/m], C_h [m/N] as designed for ``g_c``.
+    scale_max : float
+        How far the design scales with the K_o reported (:attr:`shared.gain_design.GainDesign.scale_max`).
+    """
+
+    cell: int
+    grid_ratio: float
+    k_h: float
+    i_gain: float
+    b_h: float
+    own_gain: float
+    scale_max: float
+
+    @classmethod
+    def from_design(cls, cell: int, design: GainDesign, grid_ratio: float) -> TableCell:
+        """The cell ``cell`` of a table of grid ratio ``grid_ratio`` holding ``design`` (as
+        :func:`shared.gain_table.design_cell` made it, unscaled)."""
+        return cls(
+            cell,
+            float(grid_ratio),
+            design.k_h,
+            design.i_gain,
+            design.b_h,
+            design.own_gain,
+            design.scale_max,
+        )
+
+
+@dataclass(frozen=True, slots=True)
 class Rendering:
     """How one scheme renders one object (SI units).
 
@@ -101,12 +145,15 @@ class Rendering:
     jacobian_scale : float
         ``jacobian``: the fraction of the simulation's local stiffness rendered.
     follows_k_o : bool
-        ``coupling`` with ``own_gain`` > 0: the gains follow the K_o the simulation reports each
-        tick, as the product's client renders each patch with its design scaled to the patch's
-        K_o (:meth:`shared.gain_design.GainDesign.at`): K_h times s up to the device's
-        stiffness, C_h over s, s = max(K_o reported / K_o designed for, 1); B_h and the hold
-        stay. Where the reported K_o leaves the design's cell the client renders a new cell's
-        design; here the scaling continues instead.
+        ``coupling``: the gains follow the K_o the simulation reports each tick, looked up in
+        ``table`` as the product's client looks each patch's K_o up in its gain table
+        (:meth:`shared.gain_table.GainTable.lookup`, else
+        :meth:`shared.gain_table.GainTable.fallback`, :func:`table_gains`): in a designed cell,
+        that cell's design scaled to the K_o reported (:meth:`shared.gain_design.GainDesign.at`);
+        in a cell not designed, the nearest designed cell below it, unscaled, its own-force
+        compensation keeping its share of K_o, as the client renders while that cell is designed.
+    table : tuple of TableCell
+        The designed cells of the client's gain table for this rendering's key (``follows_k_o``).
     variant : str
         The peer's tuning among those swept (:func:`peer_renderings`), for the report.
     tuning : str
@@ -128,6 +175,7 @@ class Rendering:
     own_gain: float = 0.0
     jacobian_scale: float = 1.0
     follows_k_o: bool = False
+    table: tuple[TableCell, ...] = ()
     variant: str = ""
     tuning: str = ""
 
@@ -305,6 +353,64 @@ def peer_renderings(
     raise ValueError(f"unknown scheme {scheme!r}; expected one of {', '.join(SCHEMES)}")
 
 
+class TableGains:
+    """The gain tables of a batch of renderings as arrays, looked up with :meth:`gains`.
+
+    Parameters
+    ----------
+    tables : sequence of tuple of TableCell
+        One table per rendering (B of them); an empty table renders its own gains (``gains``
+        gives NaN there).
+    """
+
+    def __init__(self, tables: Sequence[tuple[TableCell, ...]]):
+        b = len(tables)
+        m = max(1, max((len(t) for t in tables), default=1))
+        self.valid = np.zeros((b, m), dtype=bool)
+        self.cell = np.zeros((b, m), dtype=np.int64)
+        self.ratio = np.full(b, 1.1)
+        self.gain = np.full((5, b, m), np.nan)  # k_h, i_gain, b_h, own_gain, scale_max
+        for i, t in enumerate(tables):
+            for j, c in enumerate(t):
+                self.valid[i, j] = True
+                self.cell[i, j] = c.cell
+                self.ratio[i] = c.grid_ratio
+                self.gain[:, i, j] = (c.k_h, c.i_gain, c.b_h, c.own_gain, c.scale_max)
+        self.any = self.valid.any(axis=1)
+
+    def gains(self, k_o: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """K_h [N/m], I [N/(m*s)], B_h [N*s/m] and C_h [m/N] each rendering's client renders for
+        the K_o [N/m] reported (shape (B,), > 0): :meth:`shared.gain_table.GainTable.lookup`
+        where its cell is designed, else :meth:`shared.gain_table.GainTable.fallback` (the
+        nearest designed cell below, unscaled, C_h keeping its share of K_o and, more than two
+        cells below, no integral; with none below, the nearest above scaled down to the cell's
+        grid point). NaN for an empty table."""
+        lr = np.log(self.ratio)
+        i = np.floor(np.log(k_o) / lr + 1e-12).astype(np.int64)
+        big = np.iinfo(np.int64).max
+        below = self.valid & (self.cell <= i[:, None])
+        has_below = below.any(axis=1)
+        j = np.where(
+            has_below,
+            np.argmax(np.where(below, self.cell, -big), axis=1),
+            np.argmin(np.where(self.valid, self.cell, big), axis=1),
+        )
+        rows = np.arange(len(k_o))
+        c = self.cell[rows, j]
+        k_h, ig, b_h, own, smax = self.gain[:, rows, j]
+        g_c = self.ratio**c
+        g_i = self.ratio**i
+        exact = has_below & (c == i)
+        s = np.where(smax > 1.0, np.clip(k_o / g_c, 1.0, np.maximum(smax, 1.0)), 1.0)
+        r = g_i / g_c  # > 1 below, < 1 above
+        far = (i - c > 2) & (ig > 0.0)
+        k_out = np.where(exact, k_h * s, np.where(has_below, k_h, k_h * r))
+        i_out = np.where(exact, ig * s, np.where(has_below, np.where(far, 0.0, ig), ig * r))
+        b_out = np.where(exact | has_below, b_h, b_h * r)
+        own_out = np.where(exact, own / s, own / r)
+        return k_out, i_out, b_out, own_out
+
+
 def rendering_for(
     scheme: str,
     *,
@@ -312,6 +418,7 @@ def rendering_for(
     device: DeviceModel = DeviceModel(),
     design: GainDesign | None = None,
     k_o: float | None = None,
+    table: Sequence[TableCell] = (),
 ) -> Rendering:
     """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
     model's design, or a peer's default tuning (:func:`peer_renderings`).
@@ -329,6 +436,10 @@ def rendering_for(
         ``local-pi``): :class:`shared.gain_table.GainTable` with the client's key.
     k_o : float, optional
         The K_o reported [N/m] (``static-local``'s plane; default the device's stiffness).
+    table : sequence of TableCell
+        The client's designed cells for this key (``design``'s among them): the local model's
+        gains follow the K_o the simulation reports through them (``Rendering.follows_k_o``).
+        Empty: the gains of ``design`` throughout.
 
     Raises
     ------
@@ -351,7 +462,8 @@ def rendering_for(
             passivity=pi,
             passivity_bias_j=PRODUCT_PASSIVITY_BIAS_J,
             own_gain=design.own_gain,
-            follows_k_o=True,
+            follows_k_o=bool(table),
+            table=tuple(table),
             tuning=scheme_tuning(scheme, device),
         )
     kk = k_o if k_o is not None else device.max_stiffness_n_per_m

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.bench.fidelity import _design, _gain_key
+from haptic_collab.bench.fidelity import _design_cell, _gain_key, _k_o_designed, _table
 from haptic_collab.research.fidelity_1d import simulate
 from haptic_collab.research.fidelity_cases import (
     IMPACT,
@@ -33,10 +33,14 @@ from haptic_collab.research.fidelity_schemes import (
     SCHEMES,
     DeviceModel,
     Rendering,
+    TableCell,
+    TableGains,
     peer_renderings,
     rendering_for,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
+from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gain_table import GainTable
 
 DIRECT = Rendering("direct", "direct")
 FMAX = 7.9
@@ -201,12 +205,27 @@ def test_absurd_object_models_are_refused() -> None:
         replace(STIFFENING, stiffening_m=math.nan)
 
 
-def _product(mode: str, k_o: float, rate: float, delay_ms: float, **key_changes) -> Rendering:
-    """The product's rendering of ``mode`` for K_o, as the benchmark renders it (the client's key
-    and its table cell scaled to K_o), with ``key_changes`` applied to the key."""
+def _product(
+    mode: str,
+    k_o: float,
+    rate: float,
+    delay_ms: float,
+    *,
+    reached: ObjectModel | None = None,
+    **key_changes,
+) -> Rendering:
+    """The product's rendering of ``mode`` for K_o, as the benchmark renders it (the client's key,
+    its table cell scaled to K_o, its gains following the K_o reported through the cells
+    designed), with ``key_changes`` applied to the key; with ``reached``, every cell that object
+    reaches is designed too (``--design-reached``)."""
     kind = "pi" if mode == "local-pi" else "p"
     key = replace(_gain_key(kind, rate, delay_ms, DeviceModel()), **key_changes)
-    return rendering_for(mode, sim_rate_hz=rate, design=_design(key, k_o))
+    ks = [k_o] if reached is None else _k_o_designed(reached, k_o, DeviceModel(), True)
+    designs = {(kind, key, k): _design_cell(key, k) for k in ks}
+    design = designs[(kind, key, k_o)].at(k_o)
+    return rendering_for(
+        mode, sim_rate_hz=rate, design=design, table=_table(designs, kind, key)
+    )  # fmt: skip
 
 
 def _box_stable(r: Rendering, obj: ObjectModel, k_o: float, rate: float, delay_ms: float) -> bool:
@@ -254,14 +273,65 @@ def test_above_the_device_stiffness_the_product_renders_a_flat_plane() -> None:
     assert min(q_paper) < min(q)
 
 
+def _fake_design(
+    cell: int, k_h: float, i_gain: float, b_h: float, own: float, scale_max: float
+) -> GainDesign:
+    g = GainTable().grid_point(cell)  # a cell's design is made for its grid point
+    return GainDesign(
+        k_h=k_h, i_gain=i_gain, b_h=b_h, proxy_hold="foh", worst_spectral_radius=0.9,
+        rho_limit=0.95, felt_stiffness_ratio_1hz=1.0, felt_stiffness_ratio_8hz=1.0, k_o=g,
+        k_o_range=(0.85 * g, 1.4 * g), rate_ratio=20, delay_ticks=0, mode="pi",
+        own_gain=own, scale_max=scale_max,
+    )  # fmt: skip
+
+
+def test_the_local_models_gains_follow_the_k_o_reported_as_the_clients_gain_table_gives_them() -> (
+    None
+):
+    # the 1-D run looks each reported K_o up as the client does: a designed cell scaled to it,
+    # else the nearest designed cell below (C_h keeping its share of K_o, no integral more than
+    # two cells below), or with none below the nearest above scaled down
+    key = _gain_key("pi", 20.0, 0.0, DeviceModel())
+    table = GainTable()
+    cells = {48: _fake_design(48, 90.0, 900.0, 0.5, 0.011, 1.08),
+             52: _fake_design(52, 135.0, 0.0, 2.0, 0.0074, 1.0),
+             59: _fake_design(59, 270.0, 2700.0, 5.0, 0.0036, 1.1)}  # fmt: skip
+    for c, d in cells.items():
+        table.store(key, c, d)
+    rows = tuple(TableCell.from_design(c, d, table.grid_ratio) for c, d in cells.items())
+    k = np.geomspace(40.0, 2000.0, 400)
+    got = TableGains([rows] * len(k)).gains(k)
+    for j, kj in enumerate(k):
+        want = table.lookup(key, float(kj)) or table.fallback(key, float(kj))
+        assert want is not None
+        expect = (want.k_h, want.i_gain, want.b_h, want.own_gain)
+        assert [float(g[j]) for g in got] == pytest.approx(expect, rel=1e-9), kj
+
+
+def test_on_the_stiffening_object_the_product_renders_its_clients_fallback_and_holds() -> None:
+    # a heavy, stiff, lightly damped hand tapping the stiffening object (100 N/m, 50 Hz, 100 ms)
+    # as it stiffens to 2.7 K_o. The earlier benchmark scaled the 100 N/m design's K_h with the
+    # K_o reported and kept its 0.5 N*s/m damper, a rendering the client never makes: the hold
+    # rang at the 0.5 mm limit. With only its first cell designed, the client renders that cell's
+    # own gains beyond it (its C_h keeping its share of K_o), and every hand of the box holds
+    k, rate, delay = 100.0, 50.0, 100.0
+    r = _product("local-p", k, rate, delay)
+    assert _box_stable(r, STIFFENING, k, rate, delay)
+    k_h, _, _, own = TableGains([r.table]).gains(np.array([2.7 * k]))
+    assert k_h[0] < 1.1 * r.k_h
+    assert own[0] * 2.7 * k == pytest.approx(r.own_gain * k, rel=0.1)
+
+
+@pytest.mark.slow
 def test_the_product_follows_the_reported_stiffness_into_a_stiffening_object() -> None:
-    # the client renders every patch with its design scaled to the patch's K_o: on the
-    # strain-stiffening object the local model feels the tangent stiffness over the band, as MMT
-    # does. With the gains of the first K_o alone only a held press feels the object (own-force
-    # compensation); at 20 Hz a 4 Hz press felt about half of it
+    # with the cells the stiffening object reaches designed (a client that has pressed there),
+    # the local model feels the object's tangent stiffness at 0.5-1 Hz, as MMT does; with only
+    # the first K_o's cell, the client renders the nearest designed cell's gains while it
+    # designs the next, and a press feels about half the object
     k, rate = 300.0, 20.0
-    r = _product("local-p", k, rate, 0.0)
-    fixed = replace(r, follows_k_o=False)
-    for hz in (1.0, 4.0):
-        assert abs(_felt(r, STIFFENING, k, rate, 0.0, hz)) == pytest.approx(1.0, abs=0.05)
-    assert abs(_felt(fixed, STIFFENING, k, rate, 0.0, 4.0)) < 0.7
+    full = _product("local-p", k, rate, 0.0, reached=STIFFENING)
+    assert len(full.table) > 5
+    for hz in (0.5, 1.0):
+        assert abs(_felt(full, STIFFENING, k, rate, 0.0, hz)) == pytest.approx(1.0, abs=0.05)
+    first = _product("local-p", k, rate, 0.0)
+    assert abs(_felt(first, STIFFENING, k, rate, 0.0, 1.0)) < 0.6
