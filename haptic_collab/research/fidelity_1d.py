@@ -228,7 +228,6 @@ def simulate(
     follow = (kind == "coupling") & np.array([x.follows_k_o and bool(x.table) for x in r])
     table = TableGains([x.table if f else () for x, f in zip(r, follow, strict=True)])
     k_h_now, ti_now, b_h_now = k_h.copy(), ti.copy(), b_h.copy()
-    held = np.full(B, -1, dtype=np.int64)  # the table entry whose design renders
     jscale = np.array([x.jacobian_scale for x in r])
     fmax = float(device.max_force_n)
     a_u = T / (T + DAMPER_FILTER_S)
@@ -355,11 +354,7 @@ def simulate(
             if any_follow:
                 re_gain = fresh & follow
                 if re_gain.any():
-                    # the client's gains for the K_o received, then its own-force compensation
-                    # of the force the simulation applied (the surface arrives uncompensated)
-                    kg, ig, bg, og, held_next = table.gains(k_recv, held)
-                    held = np.where(re_gain, held_next, held)
-                    p_new = np.where(re_gain, got[:, 0] - og * np.maximum(got[:, 2], 0.0), p_new)
+                    kg, ig, bg, _ = table.gains(k_recv)
                     k_h_now = np.where(re_gain, kg, k_h_now)
                     ti_now = np.where(re_gain, T * ig, ti_now)
                     b_h_now = np.where(re_gain, bg, b_h_now)
@@ -485,9 +480,9 @@ def simulate(
             # what the simulation publishes: its stiffness estimate is the object's tangent
             # stiffness as it believes it (off by the object's stiffness error)
             k_est = np.where(nonlin, stiffening_tangent(k_o, xs, np.maximum(xo, 0.0)), k_o)
-            # own-force compensation: a local model that follows the reported K_o applies its
-            # client's C_h on arrival (above)
-            own_eff = np.where(follow, 0.0, own) if any_follow else own
+            # own-force compensation of a local model that follows the reported K_o: the C_h
+            # its client renders for it
+            own_eff = np.where(follow, table.gains(k_est)[3], own) if any_follow else own
             val = np.where(
                 fed_position & ~tool,
                 f_obj,

@@ -20,7 +20,7 @@ import numpy as np
 from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import loop_delay_ticks
-from haptic_collab.shared.types import FloatArray, IntArray
+from haptic_collab.shared.types import FloatArray
 
 SchemeName = Literal[
     "local-p",
@@ -86,9 +86,6 @@ class TableCell:
         K_h [N/m], I [N/(m*s)], B_h [N*s/m], C_h [m/N] as designed for ``g_c``.
     scale_max : float
         How far the design scales with the K_o reported (:attr:`shared.gain_design.GainDesign.scale_max`).
-    k_o_lo, k_o_hi : float
-        The K_o range [N/m] the design was checked over (its ``k_o_range``): the client keeps
-        the cell in use while the K_o reported stays in it (:meth:`shared.gain_table.GainTable.lookup`).
     """
 
     cell: int
@@ -98,8 +95,6 @@ class TableCell:
     b_h: float
     own_gain: float
     scale_max: float
-    k_o_lo: float = 0.0
-    k_o_hi: float = 0.0
 
     @classmethod
     def from_design(cls, cell: int, design: GainDesign, grid_ratio: float) -> TableCell:
@@ -113,8 +108,6 @@ class TableCell:
             design.b_h,
             design.own_gain,
             design.scale_max,
-            design.k_o_range[0],
-            design.k_o_range[1],
         )
 
 
@@ -376,42 +369,22 @@ class TableGains:
         self.valid = np.zeros((b, m), dtype=bool)
         self.cell = np.zeros((b, m), dtype=np.int64)
         self.ratio = np.full(b, 1.1)
-        # k_h, i_gain, b_h, own_gain, scale_max, k_o_lo, k_o_hi
-        self.gain = np.full((7, b, m), np.nan)
+        self.gain = np.full((5, b, m), np.nan)  # k_h, i_gain, b_h, own_gain, scale_max
         for i, t in enumerate(tables):
             for j, c in enumerate(t):
                 self.valid[i, j] = True
                 self.cell[i, j] = c.cell
                 self.ratio[i] = c.grid_ratio
-                self.gain[:, i, j] = (
-                    c.k_h, c.i_gain, c.b_h, c.own_gain, c.scale_max, c.k_o_lo, c.k_o_hi
-                )  # fmt: skip
+                self.gain[:, i, j] = (c.k_h, c.i_gain, c.b_h, c.own_gain, c.scale_max)
         self.any = self.valid.any(axis=1)
 
-    def gains(
-        self, k_o: FloatArray, held: IntArray | None = None
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, IntArray]:
+    def gains(self, k_o: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """K_h [N/m], I [N/(m*s)], B_h [N*s/m] and C_h [m/N] each rendering's client renders for
-        the K_o [N/m] reported (shape (B,), > 0), and the table entry held next.
-
-        ``held`` (shape (B,), -1 for none) is the entry whose design renders now: it is kept,
-        scaled to K_o within [1, ``scale_max``], while K_o stays in the range it was checked
-        over. Otherwise :meth:`shared.gain_table.GainTable.lookup` where K_o's cell is designed
-        (that entry is held next), else :meth:`shared.gain_table.GainTable.fallback` (the nearest
-        designed cell below, unscaled, C_h keeping its share of K_o and, more than two cells
-        below, no integral; with none below, the nearest above scaled down to the cell's grid
-        point; the entry held stays). NaN for an empty table.
-        """
-        rows = np.arange(len(k_o))
-        if held is None:
-            held = np.full(len(k_o), -1, dtype=np.int64)
-        hc = np.maximum(held, 0)
-        keep = (
-            (held >= 0)
-            & self.valid[rows, hc]
-            & (self.gain[5, rows, hc] <= k_o)
-            & (k_o <= self.gain[6, rows, hc])
-        )
+        the K_o [N/m] reported (shape (B,), > 0): :meth:`shared.gain_table.GainTable.lookup`
+        where its cell is designed, else :meth:`shared.gain_table.GainTable.fallback` (the
+        nearest designed cell below, unscaled, C_h keeping its share of K_o and, more than two
+        cells below, no integral; with none below, the nearest above scaled down to the cell's
+        grid point). NaN for an empty table."""
         lr = np.log(self.ratio)
         i = np.floor(np.log(k_o) / lr + 1e-12).astype(np.int64)
         big = np.iinfo(np.int64).max
@@ -422,14 +395,12 @@ class TableGains:
             np.argmax(np.where(below, self.cell, -big), axis=1),
             np.argmin(np.where(self.valid, self.cell, big), axis=1),
         )
-        exact = has_below & (self.cell[rows, j] == i)
-        j = np.where(keep, hc, j)
-        exact = keep | exact
-        has_below = keep | has_below
+        rows = np.arange(len(k_o))
         c = self.cell[rows, j]
-        k_h, ig, b_h, own, smax = self.gain[:5, rows, j]
+        k_h, ig, b_h, own, smax = self.gain[:, rows, j]
         g_c = self.ratio**c
         g_i = self.ratio**i
+        exact = has_below & (c == i)
         s = np.where(smax > 1.0, np.clip(k_o / g_c, 1.0, np.maximum(smax, 1.0)), 1.0)
         r = g_i / g_c  # > 1 below, < 1 above
         far = (i - c > 2) & (ig > 0.0)
@@ -437,7 +408,7 @@ class TableGains:
         i_out = np.where(exact, ig * s, np.where(has_below, np.where(far, 0.0, ig), ig * r))
         b_out = np.where(exact | has_below, b_h, b_h * r)
         own_out = np.where(exact, own / s, own / r)
-        return k_out, i_out, b_out, own_out, np.where(exact, j, held)
+        return k_out, i_out, b_out, own_out
 
 
 def rendering_for(
