@@ -286,9 +286,6 @@ class ClientSession:
         #: The coupled contact's K_o_stiff / K_o_eff class in use (GainKey.stiff_ratio), with
         #: hysteresis: it rises at once and falls only when the ratio is 4x below it.
         self.stiff_ratio = 1.0
-        #: (key, cell) of the table design rendered last: kept while the K_o reported stays in
-        #: the range it was checked over (:meth:`shared.gain_table.GainTable.lookup`'s ``held``)
-        self._held: tuple[GainKey, int] | None = None
 
     # ------------------------------------------------------------------ outgoing
     def hello(self, now_s: float | None = None) -> str:
@@ -558,10 +555,7 @@ class ClientSession:
         key = self.gain_key(surface.b_o, d, self._stiff_class(surface))
         table = self.gain_table
         cell = table.cell(k_o_eff)
-        held = self._held[1] if self._held is not None and self._held[0] == key else None
-        own = table.lookup(key, k_o_eff, held)
-        if own is not None:
-            self._held = (key, table.held_cell(key, k_o_eff, held))
+        own = table.lookup(key, k_o_eff)
         design = self._recommended(msg, n, d, own)
         if design is not None:
             self.server_gain_patches += 1

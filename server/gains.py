@@ -60,8 +60,6 @@ class _User:
     stiff_ratio: float = 1.0
     delay_ticks: int = 0
     stale: bool = False
-    #: (key, cell) of the design last recommended: kept while the K_o stays in its checked range
-    held: tuple[GainKey, int] | None = None
 
 
 class GainAdvisor:
@@ -160,11 +158,7 @@ class GainAdvisor:
         except ValueError:
             return None
         cell = self.table.cell(k_o_eff)
-        u = self._users.setdefault(user, _User())
-        held = u.held[1] if u.held is not None and u.held[0] == key else None
-        design = self.table.lookup(key, k_o_eff, held)
-        if design is not None:
-            u.held = (key, self.table.held_cell(key, k_o_eff, held))
+        design = self.table.lookup(key, k_o_eff)
         interim = design is None
         if design is None:
             self._want("design", key, cell)

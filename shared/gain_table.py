@@ -73,30 +73,11 @@ class GainTable:
         """g_i [N/m]."""
         return self.grid_ratio**i
 
-    def lookup(self, key: GainKey, k_o: float, held: int | None = None) -> GainDesign | None:
+    def lookup(self, key: GainKey, k_o: float) -> GainDesign | None:
         """The design covering ``k_o``, scaled to it (:meth:`GainDesign.at`), or None if its
-        cell has not been designed yet.
-
-        ``held`` is the cell whose design renders now (:meth:`held_cell`): its design is kept,
-        scaled to ``k_o`` within [1, ``scale_max``], while ``k_o`` stays inside the K_o range it
-        was checked over (``k_o_range``), so a K_o reported near a cell boundary does not switch
-        the gains back and forth. Without it, each cell boundary is a step in K_h and in the
-        own-force compensation C_h K_o (the designs of neighbouring cells pick them apart), and
-        on an object whose K_o follows the press (the fidelity benchmark's stiffening object)
-        that step closed a relay-like limit cycle of about 1 mm (docs/fidelity.md).
-        """
-        d = self._cells.get((key, self.held_cell(key, k_o, held)))
+        cell has not been designed yet."""
+        d = self._cells.get((key, self.cell(k_o)))
         return None if d is None else d.at(k_o)
-
-    def held_cell(self, key: GainKey, k_o: float, held: int | None = None) -> int:
-        """The cell whose design renders ``k_o`` [N/m] (:meth:`lookup`): ``held`` while it is
-        designed for ``key`` and ``k_o`` lies in the K_o range its design was checked over,
-        else :meth:`cell` of ``k_o``."""
-        if held is not None:
-            d = self._cells.get((key, held))
-            if d is not None and d.k_o_range[0] <= k_o <= d.k_o_range[1]:
-                return held
-        return self.cell(k_o)
 
     def fallback(self, key: GainKey, k_o: float) -> GainDesign | None:
         """Gains to render while the cell covering ``k_o`` is being designed, or None.
