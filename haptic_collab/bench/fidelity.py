@@ -197,7 +197,7 @@ def _reported_b_o(name: str, k_o: float, sim_rate_hz: float) -> float:
     return float(math.floor(_OBJECTS[name].reported_b_o(k_o, sim_rate_hz)))
 
 
-def _k_o_designed(obj: ObjectModel, k_o: float, device: DeviceModel, reached: bool) -> list[float]:
+def _k_o_designed(obj: ObjectModel, k_o: float, reached: bool) -> list[float]:
     """The K_o [N/m] whose gain-table cells the run designs for ``obj`` reported at ``k_o``:
     ``k_o``, and with ``reached`` one K_o in each cell above it up to the K_o the object reports
     at the trajectories' held depth (the middle of each cell)."""
@@ -359,7 +359,7 @@ def run(
                     for k_o in g.k_o:
                         for name in g.objects:
                             key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate))
-                            for k in _k_o_designed(_OBJECTS[name], k_o, device, design_reached):
+                            for k in _k_o_designed(_OBJECTS[name], k_o, design_reached):
                                 if design_cache is None or (mode, key, k) not in design_cache:
                                     wanted.add((mode, key, k))
         # the longest designs first, so that no worker is left with one at the end: a design

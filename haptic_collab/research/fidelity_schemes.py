@@ -376,7 +376,6 @@ class TableGains:
                 self.cell[i, j] = c.cell
                 self.ratio[i] = c.grid_ratio
                 self.gain[:, i, j] = (c.k_h, c.i_gain, c.b_h, c.own_gain, c.scale_max)
-        self.any = self.valid.any(axis=1)
 
     def gains(self, k_o: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """K_h [N/m], I [N/(m*s)], B_h [N*s/m] and C_h [m/N] each rendering's client renders for

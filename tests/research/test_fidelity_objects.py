@@ -220,7 +220,7 @@ def _product(
     reaches is designed too (``--design-reached``)."""
     kind = "pi" if mode == "local-pi" else "p"
     key = replace(_gain_key(kind, rate, delay_ms, DeviceModel()), **key_changes)
-    ks = [k_o] if reached is None else _k_o_designed(reached, k_o, DeviceModel(), True)
+    ks = [k_o] if reached is None else _k_o_designed(reached, k_o, True)
     designs = {(kind, key, k): _design_cell(key, k) for k in ks}
     design = designs[(kind, key, k_o)].at(k_o)
     return rendering_for(
