@@ -32,7 +32,7 @@ import numpy as np
 
 log = logging.getLogger("haptic.client")
 
-#: Column names of a telemetry row, with units: [m], [N], [N/m], [N/(m*s)], [s]; flags are 0/1.
+#: Column names of a telemetry row, with units: [m], [N], [N/m], [N/(m*s)], [s], [m/N]; flags are 0/1.
 COLUMNS: tuple[str, ...] = (
     "tick",
     "t_s",
@@ -62,6 +62,7 @@ COLUMNS: tuple[str, ...] = (
     "pc_observed_j",
     "pc_dissipated_j",
     "own_offset_m",
+    "own_gain_m_per_n",
 )
 _INT_COLUMNS = frozenset({"tick", "in_contact", "ramping", "fault", "force_limited"})
 _COMPUTE_COL = COLUMNS.index("compute_s")

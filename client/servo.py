@@ -557,6 +557,7 @@ class ServoCore:
             pc.observed_energy_j if pc is not None else 0.0,
             pc.dissipated_energy_j if pc is not None else 0.0,
             rd.own_offset_m,
+            rd.own_gain,
         )
         self._pub = (n, now_s, x, y, z, fx, fy, fz, e, in_contact, k_h, i_gain, rd.own_gain, s)
         self._ticks = n + 1

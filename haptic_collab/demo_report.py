@@ -34,12 +34,15 @@ GAIN_SETTLE_S = 0.5
 #: table design is rendered scaled to the reported K_o (GainDesign.at), so a K_o that drifts
 #: inside its cell moves K_h a little every patch, with the equilibrium staying put.
 GAIN_CHANGE_SHARE = 0.02
-#: B's resting samples count when B renders a K_h within this share of the K_h it renders while
-#: A holds. The designed gains of the coupled class (B's side coupled to A's press) replace the
-#: uncoupled ones while A holds, 9 % apart on the balloon (194 and 214 N/m; with a faster design
-#: worker they now arrive within the demo's run): a lower K_h lowers B's force in the hold, so it
-#: can only hide a rise, never make one. A quarter-K_o fallback (75 % apart) stays out.
-REST_GAIN_SHARE = 0.15
+#: B's resting samples count when B's coupling holds B's hand as it does while A holds: its
+#: steady compliance (:func:`steady_coupling_compliance`) within this share of 1/K_h (the K_h B
+#: renders while A holds) of the hold's. At rest a P local model adds 1/K_h in series with the
+#: object and own-force compensation takes C_h back (docs/own-force.md); the designs render
+#: C_h K_h = 1, so a design replaced by another (the coupled class's, 146 N/m on the balloon, for
+#: the uncoupled 176 N/m, 17 % apart) leaves B's resting force where it was (0.281 N under both,
+#: measured in six demos), while a quarter-K_o fallback without compensation (4/K_o more) stays out.
+#: Without compensation the rule is the K_h within about 15 % it replaced.
+REST_COUPLING_SHARE = 0.15
 #: B's contact counts as settled this long after its force came on [s] (the PI local model's
 #: integral takes about 1 s to reach B's resting force).
 B_SETTLE_S = 1.0
@@ -61,12 +64,13 @@ MIN_REST_WINDOW_S = 0.25
 #: fallback for the 0.15-0.3 s of a check: B's resting force fell from 0.28 to 0.07-0.11 N then,
 #: just as A arrived, where it should only rise.
 ARRIVAL_WINDOW_S = 1.0
-#: B's resting samples count only with the K_h B renders while A holds (:data:`REST_GAIN_SHARE`),
-#: this long after B last rendered another [s] (a gain change's transfer ramp, 0.25 s, and the
-#: slow loop's settling): B resting with a quarter-K_o fallback (its delay had risen) dents the
-#: surface less, and compared with the hold under its designed gains that read as B's side barely
-#: moving (0.14-0.30 mm against 0.65). (Named apart from :data:`GAIN_SETTLE_S`, which it had
-#: overwritten: the hold judgement left out 0.3 s after a change of gains, not the 0.5 s stated.)
+#: B's resting samples count only with the coupling B renders while A holds
+#: (:data:`REST_COUPLING_SHARE`), and this long after B's gains last changed [s] (a gain change's
+#: transfer ramp, 0.25 s, and the slow loop's settling): B resting with a quarter-K_o fallback (its
+#: delay had risen) dents the surface less, and compared with the hold under its designed gains
+#: that read as B's side barely moving (0.14-0.30 mm against 0.65). (Named apart from
+#: :data:`GAIN_SETTLE_S`, which it had overwritten: the hold judgement left out 0.3 s after a
+#: change of gains, not the 0.5 s stated.)
 REST_GAIN_SETTLE_S = 0.3
 
 
@@ -301,16 +305,42 @@ def _rest_window(
     return None
 
 
-def _same_gains(b: dict[str, np.ndarray], hold_mask: np.ndarray) -> np.ndarray | None:
-    """B's samples rendered with a K_h within :data:`REST_GAIN_SHARE` of the K_h B renders while
-    A holds, :data:`REST_GAIN_SETTLE_S` after B last rendered another (None without K_h telemetry or
-    hold samples)."""
+def steady_coupling_compliance(
+    k_h: np.ndarray, i_gain: np.ndarray, own_gain: np.ndarray | None
+) -> np.ndarray:
+    """The compliance [m/N] B's coupling adds in series with the object and the hand at rest.
+
+    A P local model holds the probe F/K_h inside the proxy; an integral (I > 0) drives that to
+    the threshold theta whatever K_h (:mod:`shared.local_model`); own-force compensation moves
+    the proxy out by C_h F (docs/own-force.md). So at rest: ``1/K_h - C_h`` (P) or ``-C_h`` (PI),
+    and a resting hand's force depends on the gains only through it (0 for every design, which
+    renders C_h K_h = 1). Shapes: (m,) arrays in, (m,) out; K_h <= 0 (no patch yet) gives inf.
+    """
+    with np.errstate(divide="ignore"):
+        p_part = np.where(k_h > 0.0, 1.0 / np.where(k_h > 0.0, k_h, 1.0), np.inf)
+    c = np.where(i_gain > 0.0, 0.0, p_part)
+    return c - (0.0 if own_gain is None else own_gain)
+
+
+def _same_coupling(b: dict[str, np.ndarray], hold_mask: np.ndarray) -> np.ndarray | None:
+    """B's samples whose coupling holds B's hand as it does while A holds
+    (:data:`REST_COUPLING_SHARE`), :data:`REST_GAIN_SETTLE_S` after B's gains last changed (by
+    more than :data:`GAIN_CHANGE_SHARE` of K_h, or to a coupling that differs); None without K_h
+    telemetry or hold samples. Telemetry without ``own_gain_m_per_n`` (recorded before it was
+    kept) is taken as uncompensated."""
     kh = b.get("k_h_n_per_m")
     if kh is None or not hold_mask.any():
         return None
+    c = steady_coupling_compliance(
+        kh, b.get("i_gain_n_per_m_s", np.zeros_like(kh)), b.get("own_gain_m_per_n")
+    )
     k_hold = float(np.median(kh[hold_mask]))
-    same = np.abs(kh - k_hold) <= REST_GAIN_SHARE * max(k_hold, 1.0)
-    last_other = np.maximum.accumulate(np.where(same, -np.inf, b["t_s"]))
+    c_hold = float(np.median(c[hold_mask]))
+    with np.errstate(invalid="ignore"):
+        same = np.abs(c - c_hold) <= REST_COUPLING_SHARE / max(k_hold, 1.0)
+    prev = np.concatenate([kh[:1], kh[:-1]])
+    stepped = np.abs(kh - prev) > GAIN_CHANGE_SHARE * np.maximum(np.abs(prev), 1.0)
+    last_other = np.maximum.accumulate(np.where(same & ~stepped, -np.inf, b["t_s"]))
     return same & (b["t_s"] - last_other >= REST_GAIN_SETTLE_S)
 
 
@@ -390,7 +420,7 @@ def coupling_report(
             b_force_lowest_as_a_arrives_n=lowest,
             b_force_dip_as_a_arrives_n=before - lowest,
         )
-    usable = _same_gains(b, w_hold)
+    usable = _same_coupling(b, w_hold)
     found = None if onset is None else _rest_window(b, tl, onset + B_SETTLE_S, usable)
     if found is None or not w_hold.any():
         return out

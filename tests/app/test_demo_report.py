@@ -175,6 +175,48 @@ def test_b_designed_coupled_gains_during_the_hold_still_have_a_baseline() -> Non
     assert c["b_feels_a"] is True
 
 
+@pytest.mark.parametrize(("compensated", "baseline"), [(True, "before A's press"), (False, None)])
+def test_a_design_replaced_by_the_coupled_class_s_keeps_b_s_rest_as_baseline(
+    compensated: bool, baseline: str | None
+) -> None:
+    """The demo's CI failure: B rested with its uncoupled design (176.4 N/m) and held with the
+    coupled class's (146.2 N/m, 17 % apart, which on a fast design worker arrives before A's hold
+    ends); every design renders C_h K_h = 1, so B's resting force was 0.281 N under both, but the
+    report compared K_h alone and found no rest "with the same gains". With compensation the
+    rest counts; the same K_h pair without it (a resting force that does depend on K_h) does not."""
+    b, (tl, hold) = telemetry(12.0, onset_s=1.0)
+    t = b["t_s"]
+    coupled = t >= tl.contact_s + 2.8  # the coupled design arrives in A's hold
+    b["k_h_n_per_m"] = np.where(coupled, 146.2, 176.4)
+    if compensated:
+        b["own_gain_m_per_n"] = 1.0 / b["k_h_n_per_m"]
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["baseline"] == baseline
+    if compensated:
+        assert c["b_k_h_at_rest_n_per_m"] == pytest.approx(176.4)
+        assert c["b_k_h_during_a_press_n_per_m"] == pytest.approx(146.2)
+        assert c["b_force_rise_n"] == pytest.approx(HOLD_N - REST_N, abs=2e-3)
+        assert c["b_surface_displacement_mm"] == pytest.approx(BULGE_M * 1000.0, abs=0.02)
+        assert c["b_feels_a"] is True
+    else:
+        assert c["b_feels_a"] is None
+
+
+def test_the_rest_leaves_out_the_settling_after_any_change_of_gains() -> None:
+    # designs with the same steady coupling still hand over with a transfer ramp: B's force is
+    # disturbed for a moment, which the rest window must not average in
+    b, (tl, hold) = telemetry(12.0, onset_s=1.0)
+    t = b["t_s"]
+    change = tl.contact_s - 0.4  # the uncoupled design arrives 0.4 s before A touches
+    b["k_h_n_per_m"] = np.where(t >= change, 176.4, 213.9)
+    b["own_gain_m_per_n"] = 1.0 / b["k_h_n_per_m"]
+    bump = (t >= change) & (t < change + 0.2)
+    b["force_n"] = np.where(bump, b["force_n"] + 0.1, b["force_n"])
+    b["force_x_n"] = b["force_n"]
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert c["b_force_at_rest_n"] == pytest.approx(REST_N, abs=2e-3)
+
+
 def test_missed_deadlines_count_the_skipped_periods_after_the_first_second() -> None:
     from haptic_collab.demo_report import missed_per_s
 
