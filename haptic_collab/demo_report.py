@@ -37,12 +37,17 @@ GAIN_CHANGE_SHARE = 0.02
 #: B's resting samples count when B's coupling holds B's hand as it does while A holds: its
 #: steady compliance (:func:`steady_coupling_compliance`) within this share of 1/K_h (the K_h B
 #: renders while A holds) of the hold's. At rest a P local model adds 1/K_h in series with the
-#: object and own-force compensation takes C_h back (docs/own-force.md); the designs render
-#: C_h K_h = 1, so a design replaced by another (the coupled class's, 146 N/m on the balloon, for
-#: the uncoupled 176 N/m, 17 % apart) leaves B's resting force where it was (0.281 N under both,
-#: measured in six demos), while a quarter-K_o fallback without compensation (4/K_o more) stays out.
-#: Without compensation the rule is the K_h within about 15 % it replaced.
+#: object and own-force compensation takes C_h back (docs/own-force.md); B's P designs on the
+#: balloon all have C_h K_h = 1, so a design replaced by another (the coupled class's, 146 N/m,
+#: for the uncoupled 176 N/m, 17 % apart) leaves B's resting force where it was (0.281 N under
+#: both, measured in six demos), while a quarter-K_o fallback without compensation (4/K_o more)
+#: stays out. Without compensation the rule is the K_h within about 15 % it replaced (and, like
+#: it, lets a resting force differ by up to about that share: the compliances that occur are 0,
+#: 1/K_h and 4/K_o, far apart).
 REST_COUPLING_SHARE = 0.15
+#: An integral carrying force holds the probe theta inside the proxy: B's rest counts only with
+#: the threshold B has while A holds, within this [m] (theta is a setting, 0.5-3 mm, never near).
+REST_THETA_M = 1e-5
 #: B's contact counts as settled this long after its force came on [s] (the PI local model's
 #: integral takes about 1 s to reach B's resting force).
 B_SETTLE_S = 1.0
@@ -306,40 +311,71 @@ def _rest_window(
 
 
 def steady_coupling_compliance(
-    k_h: np.ndarray, i_gain: np.ndarray, own_gain: np.ndarray | None
+    k_h: np.ndarray,
+    i_gain: np.ndarray,
+    own_gain: np.ndarray | None,
+    integral_n: np.ndarray | None = None,
 ) -> np.ndarray:
     """The compliance [m/N] B's coupling adds in series with the object and the hand at rest.
 
-    A P local model holds the probe F/K_h inside the proxy; an integral (I > 0) drives that to
-    the threshold theta whatever K_h (:mod:`shared.local_model`); own-force compensation moves
-    the proxy out by C_h F (docs/own-force.md). So at rest: ``1/K_h - C_h`` (P) or ``-C_h`` (PI),
-    and a resting hand's force depends on the gains only through it (0 for every design, which
-    renders C_h K_h = 1). Shapes: (m,) arrays in, (m,) out; K_h <= 0 (no patch yet) gives inf.
+    A P local model holds the probe F/K_h inside the proxy; an integral (I > 0) that holds a force
+    (``integral_n`` > 0) drives that to the threshold theta whatever K_h (:mod:`shared.local_model`:
+    an offset, compared apart); own-force compensation moves the proxy out by C_h F
+    (docs/own-force.md). So at rest: ``1/K_h - C_h`` (P, or an integral at 0) or ``-C_h`` (an
+    integral holding force), and a resting hand's force depends on the gains only through it and
+    theta (0 for the P designs B renders on the balloon, which all have C_h K_h = 1; an integral at
+    its limit is taken as holding force). Shapes: (m,) arrays in, (m,) out; K_h <= 0 (no patch
+    yet) gives inf.
     """
     with np.errstate(divide="ignore"):
         p_part = np.where(k_h > 0.0, 1.0 / np.where(k_h > 0.0, k_h, 1.0), np.inf)
-    c = np.where(i_gain > 0.0, 0.0, p_part)
+    c = np.where(_integral_holds(i_gain, integral_n), 0.0, p_part)
     return c - (0.0 if own_gain is None else own_gain)
 
 
+def _integral_holds(i_gain: np.ndarray, integral_n: np.ndarray | None) -> np.ndarray:
+    """Samples whose integral carries force (I > 0 and, with the column, a positive integral)."""
+    holds = i_gain > 0.0
+    return holds if integral_n is None else holds & (integral_n > 0.0)
+
+
+def _stepped(x: np.ndarray) -> np.ndarray:
+    """Samples where ``x`` changed by more than :data:`GAIN_CHANGE_SHARE` from the one before."""
+    prev = np.concatenate([x[:1], x[:-1]])
+    with np.errstate(invalid="ignore"):
+        return np.abs(x - prev) > GAIN_CHANGE_SHARE * np.maximum(np.abs(prev), 1e-12)
+
+
 def _same_coupling(b: dict[str, np.ndarray], hold_mask: np.ndarray) -> np.ndarray | None:
-    """B's samples whose coupling holds B's hand as it does while A holds
-    (:data:`REST_COUPLING_SHARE`), :data:`REST_GAIN_SETTLE_S` after B's gains last changed (by
-    more than :data:`GAIN_CHANGE_SHARE` of K_h, or to a coupling that differs); None without K_h
-    telemetry or hold samples. Telemetry without ``own_gain_m_per_n`` (recorded before it was
-    kept) is taken as uncompensated."""
+    """B's samples whose coupling holds B's hand as it does while A holds, :data:`REST_GAIN_SETTLE_S`
+    after B's gains last changed; None without K_h telemetry or hold samples.
+
+    The same: the integral carrying force or not as in most of the hold, with the same threshold
+    theta when it does (within :data:`REST_THETA_M`), and the steady compliance
+    (:func:`steady_coupling_compliance`) within :data:`REST_COUPLING_SHARE` / K_h of the hold's
+    (medians). A change: K_h, I or C_h by more than :data:`GAIN_CHANGE_SHARE`, or to a coupling
+    that differs. Telemetry without ``own_gain_m_per_n`` (recorded before it was kept) is taken
+    as uncompensated.
+    """
     kh = b.get("k_h_n_per_m")
     if kh is None or not hold_mask.any():
         return None
-    c = steady_coupling_compliance(
-        kh, b.get("i_gain_n_per_m_s", np.zeros_like(kh)), b.get("own_gain_m_per_n")
-    )
+    ig = b.get("i_gain_n_per_m_s", np.zeros_like(kh))
+    own = b.get("own_gain_m_per_n")
+    holds = _integral_holds(ig, b.get("integral_n"))
+    c = steady_coupling_compliance(kh, ig, own, b.get("integral_n"))
     k_hold = float(np.median(kh[hold_mask]))
     c_hold = float(np.median(c[hold_mask]))
+    holds_hold = bool(np.mean(holds[hold_mask]) >= 0.5)
     with np.errstate(invalid="ignore"):
-        same = np.abs(c - c_hold) <= REST_COUPLING_SHARE / max(k_hold, 1.0)
-    prev = np.concatenate([kh[:1], kh[:-1]])
-    stepped = np.abs(kh - prev) > GAIN_CHANGE_SHARE * np.maximum(np.abs(prev), 1.0)
+        same = (np.abs(c - c_hold) <= REST_COUPLING_SHARE / max(k_hold, 1.0)) & (
+            holds == holds_hold
+        )
+    theta = b.get("theta_m")
+    if holds_hold and theta is not None:
+        th_hold = float(np.median(theta[hold_mask]))
+        same &= np.abs(theta - th_hold) <= REST_THETA_M
+    stepped = _stepped(kh) | _stepped(ig) | (_stepped(own) if own is not None else False)
     last_other = np.maximum.accumulate(np.where(same & ~stepped, -np.inf, b["t_s"]))
     return same & (b["t_s"] - last_other >= REST_GAIN_SETTLE_S)
 

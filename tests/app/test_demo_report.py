@@ -202,6 +202,42 @@ def test_a_design_replaced_by_the_coupled_class_s_keeps_b_s_rest_as_baseline(
         assert c["b_feels_a"] is None
 
 
+@pytest.mark.parametrize(
+    ("rest", "counts"),
+    [
+        ("pi", True),  # the same PI coupling: the integral holds the probe theta inside
+        ("pi-other-theta", False),  # theta is an offset: 0.5 mm against B's ~2 mm hand depth
+        ("p-compensated", False),  # compliance 0 too, but no theta offset: a heavier rest
+        ("pi-integral-empty", False),  # an integral at 0 is a P coupling: 1/K_h in series
+    ],
+)
+def test_with_an_integral_the_rest_counts_only_with_the_same_integral_and_theta(
+    rest: str, counts: bool
+) -> None:
+    """A review's finding: an integral carrying force drives the penetration to theta whatever
+    K_h, so a PI rest and a compensated P hold (both of compliance 0) rest differently (0.225
+    against 0.300 N for one hand), and so do two thresholds."""
+    b, (tl, hold) = telemetry(12.0, onset_s=1.0)
+    t = b["t_s"]
+    at_rest = t < tl.contact_s
+    b["k_h_n_per_m"] = np.full_like(t, 421.0)
+    b["i_gain_n_per_m_s"] = np.full_like(t, 4214.0)
+    b["integral_n"] = np.where(b["in_contact"] > 0, 0.2, 0.0)
+    b["theta_m"] = np.full_like(t, 0.0005)
+    b["own_gain_m_per_n"] = np.zeros_like(t)
+    if rest == "pi-other-theta":
+        b["theta_m"] = np.where(at_rest, 0.001, 0.0005)
+    elif rest == "p-compensated":
+        b["i_gain_n_per_m_s"] = np.where(at_rest, 0.0, 4214.0)
+        b["integral_n"] = np.where(at_rest, 0.0, b["integral_n"])
+        b["own_gain_m_per_n"] = np.where(at_rest, 1.0 / 421.0, 0.0)
+    elif rest == "pi-integral-empty":
+        b["integral_n"] = np.where(at_rest, 0.0, b["integral_n"])
+    c = coupling_report(b, tl, hold, b_approach_end_s=1.0)
+    assert (c["baseline"] == "before A's press") is counts
+    assert (c["b_feels_a"] is True) is counts
+
+
 def test_the_rest_leaves_out_the_settling_after_any_change_of_gains() -> None:
     # designs with the same steady coupling still hand over with a transfer ramp: B's force is
     # disturbed for a moment, which the rest window must not average in
