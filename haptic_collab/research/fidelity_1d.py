@@ -228,6 +228,17 @@ def simulate(
     follow = (kind == "coupling") & np.array([x.follows_k_o and bool(x.table) for x in r])
     table = TableGains([x.table if f else () for x, f in zip(r, follow, strict=True)])
     k_h_now, ti_now, b_h_now = k_h.copy(), ti.copy(), b_h.copy()
+    # the client's bumpless change of gains (shared.local_model.LocalModel.set_gains): the force
+    # step of new gains in contact is a transfer force b, driven linearly to zero
+    transfer_s = np.where(follow, np.array([x.gain_transfer_s for x in r]), 0.0)
+    b_tr = np.zeros(B)  # transfer force [N]
+    b_tr_step = np.zeros(B)  # its decrement per tick [N]
+    e_last = np.zeros(B)  # the last tick's penetration [m]
+    # ... and each patch rendered with its design's proxy hold; a change of C_h under a
+    # zero-order hold slides in over the transfer time (client.render.LocalRenderer.hand_over)
+    own_now = own.copy()  # C_h of the last patch [m/N]
+    off_e = np.zeros(B)  # depth [m] added to the penetration, driven to zero
+    off_step = np.zeros(B)
     jscale = np.array([x.jacobian_scale for x in r])
     fmax = float(device.max_force_n)
     a_u = T / (T + DAMPER_FILTER_S)
@@ -354,7 +365,29 @@ def simulate(
             if any_follow:
                 re_gain = fresh & follow
                 if re_gain.any():
-                    kg, ig, bg, _ = table.gains(k_recv)
+                    kg, ig, bg, og, fg = table.gains_and_hold(k_recv)
+                    slide = re_gain & was_contact & (transfer_s > 0.0) & ~fg & (og != own_now)
+                    off_e = np.where(
+                        slide, off_e + (own_now - og) * np.maximum(got[:, 2], 0.0), off_e
+                    )
+                    off_step = np.where(
+                        slide, off_e * T / np.where(transfer_s > 0.0, transfer_s, 1.0), off_step
+                    )
+                    own_now = np.where(re_gain, og, own_now)
+                    foh = np.where(re_gain, fg, foh)
+                    # the step of K_h e and of the damper's B_h u, and, with own-force
+                    # compensation, the integral force, are handed to the transfer force
+                    step = (k_h_now - kg) * e_last
+                    step = step + np.where((b_h_now > 0.0) | (bg > 0.0), (b_h_now - bg) * u, 0.0)
+                    drop = re_gain & was_contact & (og > 0.0)
+                    step = step + np.where(drop, s, 0.0)
+                    s = np.where(drop, 0.0, s)
+                    go = re_gain & was_contact & (transfer_s > 0.0) & (step != 0.0)
+                    go &= np.isfinite(step)
+                    b_tr = np.where(go, b_tr + step, b_tr)
+                    b_tr_step = np.where(
+                        go, b_tr * T / np.where(transfer_s > 0.0, transfer_s, 1.0), b_tr_step
+                    )
                     k_h_now = np.where(re_gain, kg, k_h_now)
                     ti_now = np.where(re_gain, T * ig, ti_now)
                     b_h_now = np.where(re_gain, bg, b_h_now)
@@ -366,13 +399,26 @@ def simulate(
         w = np.where(foh, np.minimum(1.0, (hold_i + 1.0) / n_ratio), 1.0)
         proxy = p_old + (p_new - p_old) * w
         e = xr - proxy
+        if any_follow:
+            e = e + off_e
+            nxt = off_e - off_step
+            keep = (off_e != 0.0) & (nxt != 0.0) & ((nxt > 0.0) == (off_e > 0.0))
+            off_e = np.where(keep, nxt, 0.0)
         k_eff = np.where(mmt, np.minimum(k_recv, k_h), k_h_now)
         # contact: the probe past the proxy; an integral keeps it while the probe is within the
         # deformation its force holds (s / K_o: the object's surface follows a retreating probe
         # back, the proxy is a stale copy of it; shared.local_model's recovery band)
         contact = (e > 0.0) | (was_contact & (e > -s * recovery))
-        # local model, eq. 12 with eq. 17's threshold and the release ramp (shared.local_model)
-        f_lm = np.where(contact, np.maximum(k_eff * e + s, 0.0), s)
+        # local model, eq. 12 with eq. 17's threshold and the release ramp (shared.local_model),
+        # plus the transfer force of a change of gains (this tick's, then driven down; none out
+        # of contact)
+        b_use = np.where(contact, b_tr, 0.0)
+        off_e = np.where(contact, off_e, 0.0)  # no slide out of contact
+        if any_follow:
+            nb = b_tr - b_tr_step
+            keep = contact & (b_tr != 0.0) & (nb != 0.0) & ((nb > 0.0) == (b_tr > 0.0))
+            b_tr = np.where(keep, nb, 0.0)
+        f_lm = np.where(contact, np.maximum(k_eff * e + s + b_use, 0.0), s)
         start_rel = ~contact & (was_contact | (rel_step == 0.0))
         rel_step = np.where(contact, 0.0, np.where(start_rel, s * rel_per_tick, rel_step))
         s = np.where(
@@ -420,6 +466,7 @@ def simulate(
             pc_fa = np.where(two_port, -f, pc_fa)
         X[:, n] = xr
         F[:, n] = f
+        e_last = np.where(np.isfinite(e), e, -1.0)
         # 3. write: the hand moves under the force held over the tick
         if not all_src:
             if options.jitter_s > 0.0:

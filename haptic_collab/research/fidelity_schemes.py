@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Literal, get_args
 
 import numpy as np
+from numpy.typing import NDArray
 
 from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.gain_design import GainDesign
@@ -86,6 +87,8 @@ class TableCell:
         K_h [N/m], I [N/(m*s)], B_h [N*s/m], C_h [m/N] as designed for ``g_c``.
     scale_max : float
         How far the design scales with the K_o reported (:attr:`shared.gain_design.GainDesign.scale_max`).
+    proxy_hold : {"zoh", "foh"}
+        The proxy hold the design was checked with (the client renders each patch with its own).
     """
 
     cell: int
@@ -95,6 +98,7 @@ class TableCell:
     b_h: float
     own_gain: float
     scale_max: float
+    proxy_hold: ProxyHold = "zoh"
 
     @classmethod
     def from_design(cls, cell: int, design: GainDesign, grid_ratio: float) -> TableCell:
@@ -108,6 +112,7 @@ class TableCell:
             design.b_h,
             design.own_gain,
             design.scale_max,
+            design.proxy_hold,
         )
 
 
@@ -154,6 +159,12 @@ class Rendering:
         compensation keeping its share of K_o, as the client renders while that cell is designed.
     table : tuple of TableCell
         The designed cells of the client's gain table for this rendering's key (``follows_k_o``).
+    gain_transfer_s : float
+        ``coupling`` following K_o: the time [s] over which the force step of a change of gains
+        in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
+        transfer force, and a zero-order hold's change of C_h sliding in); 0: the new gains act
+        at once (each patch still with its design's proxy hold, and an integral still handed
+        off with C_h > 0, as :meth:`shared.local_model.LocalModel.set_gains` does).
     variant : str
         The peer's tuning among those swept (:func:`peer_renderings`), for the report.
     tuning : str
@@ -176,6 +187,7 @@ class Rendering:
     jacobian_scale: float = 1.0
     follows_k_o: bool = False
     table: tuple[TableCell, ...] = ()
+    gain_transfer_s: float = 0.0
     variant: str = ""
     tuning: str = ""
 
@@ -185,6 +197,9 @@ class Rendering:
 PRODUCT_THETA_M = 1e-3
 #: Energy [J] the product's passivity layer tolerates (client.servo.ServoConfig's default).
 PRODUCT_PASSIVITY_BIAS_J = 1e-3
+#: Time [s] over which the product's client carries off the force step of new gains in contact
+#: (``client.app.GAIN_TRANSFER_S``; a test keeps the two equal).
+PRODUCT_GAIN_TRANSFER_S = 0.25
 
 
 def design_delay_ticks(one_way_delay_s: float, sim_rate_hz: float) -> int:
@@ -370,20 +385,30 @@ class TableGains:
         self.cell = np.zeros((b, m), dtype=np.int64)
         self.ratio = np.full(b, 1.1)
         self.gain = np.full((5, b, m), np.nan)  # k_h, i_gain, b_h, own_gain, scale_max
+        self.foh = np.zeros((b, m), dtype=bool)
         for i, t in enumerate(tables):
             for j, c in enumerate(t):
                 self.valid[i, j] = True
                 self.cell[i, j] = c.cell
                 self.ratio[i] = c.grid_ratio
                 self.gain[:, i, j] = (c.k_h, c.i_gain, c.b_h, c.own_gain, c.scale_max)
+                self.foh[i, j] = c.proxy_hold == "foh"
 
     def gains(self, k_o: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The first four of :meth:`gains_and_hold`."""
+        k_h, i_gain, b_h, own, _ = self.gains_and_hold(k_o)
+        return k_h, i_gain, b_h, own
+
+    def gains_and_hold(
+        self, k_o: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
         """K_h [N/m], I [N/(m*s)], B_h [N*s/m] and C_h [m/N] each rendering's client renders for
         the K_o [N/m] reported (shape (B,), > 0): :meth:`shared.gain_table.GainTable.lookup`
         where its cell is designed, else :meth:`shared.gain_table.GainTable.fallback` (the
         nearest designed cell below, unscaled, C_h keeping its share of K_o and, more than two
         cells below, no integral; with none below, the nearest above scaled down to the cell's
-        grid point). NaN for an empty table."""
+        grid point). NaN for an empty table. Last, whether the design rendered was checked with
+        a first-order hold ((B,) bool): the client renders each patch with its design's hold."""
         lr = np.log(self.ratio)
         i = np.floor(np.log(k_o) / lr + 1e-12).astype(np.int64)
         big = np.iinfo(np.int64).max
@@ -407,7 +432,7 @@ class TableGains:
         i_out = np.where(exact, ig * s, np.where(has_below, np.where(far, 0.0, ig), ig * r))
         b_out = np.where(exact | has_below, b_h, b_h * r)
         own_out = np.where(exact, own / s, own / r)
-        return k_out, i_out, b_out, own_out
+        return k_out, i_out, b_out, own_out, self.foh[rows, j]
 
 
 def rendering_for(
@@ -463,6 +488,7 @@ def rendering_for(
             own_gain=design.own_gain,
             follows_k_o=bool(table),
             table=tuple(table),
+            gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
             tuning=scheme_tuning(scheme, device),
         )
     kk = k_o if k_o is not None else device.max_stiffness_n_per_m

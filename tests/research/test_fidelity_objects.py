@@ -30,6 +30,7 @@ from haptic_collab.research.fidelity_cases import (
 )
 from haptic_collab.research.fidelity_metrics import cell_metrics, felt_response
 from haptic_collab.research.fidelity_schemes import (
+    PRODUCT_GAIN_TRANSFER_S,
     SCHEMES,
     DeviceModel,
     Rendering,
@@ -38,7 +39,7 @@ from haptic_collab.research.fidelity_schemes import (
     peer_renderings,
     rendering_for,
 )
-from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
+from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand, ProxyHold
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_table import GainTable
 
@@ -274,11 +275,12 @@ def test_above_the_device_stiffness_the_product_renders_a_flat_plane() -> None:
 
 
 def _fake_design(
-    cell: int, k_h: float, i_gain: float, b_h: float, own: float, scale_max: float
-) -> GainDesign:
+    cell: int, k_h: float, i_gain: float, b_h: float, own: float, scale_max: float,
+    hold: ProxyHold = "foh",
+) -> GainDesign:  # fmt: skip
     g = GainTable().grid_point(cell)  # a cell's design is made for its grid point
     return GainDesign(
-        k_h=k_h, i_gain=i_gain, b_h=b_h, proxy_hold="foh", worst_spectral_radius=0.9,
+        k_h=k_h, i_gain=i_gain, b_h=b_h, proxy_hold=hold, worst_spectral_radius=0.9,
         rho_limit=0.95, felt_stiffness_ratio_1hz=1.0, felt_stiffness_ratio_8hz=1.0, k_o=g,
         k_o_range=(0.85 * g, 1.4 * g), rate_ratio=20, delay_ticks=0, mode="pi",
         own_gain=own, scale_max=scale_max,
@@ -294,18 +296,21 @@ def test_the_local_models_gains_follow_the_k_o_reported_as_the_clients_gain_tabl
     key = _gain_key("pi", 20.0, 0.0, DeviceModel())
     table = GainTable()
     cells = {48: _fake_design(48, 90.0, 900.0, 0.5, 0.011, 1.08),
-             52: _fake_design(52, 135.0, 0.0, 2.0, 0.0074, 1.0),
+             52: _fake_design(52, 135.0, 0.0, 2.0, 0.0074, 1.0, "zoh"),
              59: _fake_design(59, 270.0, 2700.0, 5.0, 0.0036, 1.1)}  # fmt: skip
     for c, d in cells.items():
         table.store(key, c, d)
     rows = tuple(TableCell.from_design(c, d, table.grid_ratio) for c, d in cells.items())
     k = np.geomspace(40.0, 2000.0, 400)
-    got = TableGains([rows] * len(k)).gains(k)
+    *got, foh = TableGains([rows] * len(k)).gains_and_hold(k)
     for j, kj in enumerate(k):
         want = table.lookup(key, float(kj)) or table.fallback(key, float(kj))
         assert want is not None
         expect = (want.k_h, want.i_gain, want.b_h, want.own_gain)
         assert [float(g[j]) for g in got] == pytest.approx(expect, rel=1e-9), kj
+        # and each patch is rendered with the hold its design was checked with
+        assert bool(foh[j]) == (want.proxy_hold == "foh"), kj
+    assert not foh.all() and foh.any()
 
 
 def test_on_the_stiffening_object_the_product_renders_its_clients_fallback_and_holds() -> None:
@@ -322,16 +327,60 @@ def test_on_the_stiffening_object_the_product_renders_its_clients_fallback_and_h
     assert own[0] * 2.7 * k == pytest.approx(r.own_gain * k, rel=0.1)
 
 
+def test_the_benchmark_hands_gains_over_in_the_clients_time() -> None:
+    from haptic_collab.client.app import GAIN_TRANSFER_S
+
+    assert PRODUCT_GAIN_TRANSFER_S == GAIN_TRANSFER_S
+    r = _product("local-p", 100.0, 20.0, 0.0)
+    assert r.gain_transfer_s == GAIN_TRANSFER_S
+
+
+@pytest.mark.slow
+def test_pressing_through_the_stiffening_objects_cells_changes_gains_without_a_jolt() -> None:
+    # with every cell the object reaches designed, a 10 mm press crosses about ten of them, each
+    # design with its own K_h, damper, C_h and proxy hold. The client hands each over in 0.25 s
+    # (a transfer force, and a zero-order hold's C_h sliding in); the benchmark switched them at
+    # once, and the press, probe as a position source, stepped the force by 0.48 N in one tick.
+    # Rendered as the client renders it, the largest step in one tick is 0.04 N
+    k, rate = 100.0, 20.0
+    r = _product("local-p", k, rate, 0.0, reached=STIFFENING)
+    holds = {c.proxy_hold for c in r.table}
+    assert len(r.table) > 5 and holds == {"zoh", "foh"}
+
+    def largest_step_n(rendering: Rendering) -> float:
+        run = simulate([Cell(rendering, k, rate, 0.0, None, PRESS, STIFFENING)])
+        return float(np.max(np.abs(np.diff(run.f[0]))))
+
+    assert largest_step_n(r) < 0.1
+    assert largest_step_n(replace(r, gain_transfer_s=0.0)) > 0.3
+
+
 @pytest.mark.slow
 def test_the_product_follows_the_reported_stiffness_into_a_stiffening_object() -> None:
     # with the cells the stiffening object reaches designed (a client that has pressed there),
-    # the local model feels the object's tangent stiffness at 0.5-1 Hz, as MMT does; with only
-    # the first K_o's cell, the client renders the nearest designed cell's gains while it
-    # designs the next, and a press feels about half the object
+    # each switched in at once, the local model feels the object's tangent stiffness at 0.5-1 Hz,
+    # as MMT does; with only the first K_o's cell, the client renders the nearest designed cell's
+    # gains while it designs the next, and a press feels about half the object
     k, rate = 300.0, 20.0
     full = _product("local-p", k, rate, 0.0, reached=STIFFENING)
     assert len(full.table) > 5
+    at_once = replace(full, gain_transfer_s=0.0)
     for hz in (0.5, 1.0):
-        assert abs(_felt(full, STIFFENING, k, rate, 0.0, hz)) == pytest.approx(1.0, abs=0.05)
+        assert abs(_felt(at_once, STIFFENING, k, rate, 0.0, hz)) == pytest.approx(1.0, abs=0.05)
     first = _product("local-p", k, rate, 0.0)
     assert abs(_felt(first, STIFFENING, k, rate, 0.0, 1.0)) < 0.6
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limit (docs/fidelity.md, Options): handed over in 0.25 s as the client does, a "
+    "press held where the reported K_o sits on a cell boundary chatters between the two cells' "
+    "designs (1.82-1.98 N about a 1.95 N hold, probe as a position source): no steady felt "
+    "response",
+)
+def test_handed_over_as_the_client_does_the_designed_cells_feel_the_stiffening_object() -> None:
+    k, rate = 300.0, 20.0
+    full = _product("local-p", k, rate, 0.0, reached=STIFFENING)
+    for hz in (0.5, 1.0):
+        assert abs(_felt(full, STIFFENING, k, rate, 0.0, hz)) == pytest.approx(1.0, abs=0.05)

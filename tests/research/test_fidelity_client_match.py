@@ -1,0 +1,184 @@
+"""The 1-D benchmark's local model is the client's: the vectorised simulator
+(:func:`haptic_collab.research.fidelity_1d.simulate`) renders, tick for tick, the force the
+product's own :class:`client.render.LocalRenderer` renders on the same object, network and gain
+table, through every hand-over (transfer force, damper carry, each design's proxy hold, a
+zero-order hold's C_h sliding in)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+
+from haptic_collab.client.render import LocalRenderer
+from haptic_collab.research.fidelity_1d import simulate
+from haptic_collab.research.fidelity_cases import (
+    PRESS,
+    STIFFENING,
+    TAP,
+    Cell,
+    ObjectModel,
+    Trajectory,
+    stiffening_depth,
+    stiffening_tangent,
+)
+from haptic_collab.research.fidelity_schemes import (
+    PRODUCT_GAIN_TRANSFER_S,
+    PRODUCT_THETA_M,
+    DeviceModel,
+    Rendering,
+    TableCell,
+    TableGains,
+)
+from haptic_collab.shared.full_loop import ProxyHold
+from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
+
+SERVO_HZ = 1000.0
+FMAX = DeviceModel().max_force_n
+
+
+class _Plane:
+    """A 1-D surface at depth ``p`` [m] (depth positive inward, outward normal -x)."""
+
+    def __init__(self, p: float) -> None:
+        self.p = p
+
+    def contact(self, x: float, y: float, z: float) -> tuple[float, float, float, float]:
+        return x - self.p, -1.0, 0.0, 0.0
+
+
+@dataclass
+class _Patch:
+    primitive: _Plane
+    k_h: float
+    i_gain: float
+    b_h: float
+    proxy_hold: str
+    hold_ticks: int
+    own_gain: float
+    own_force_n: float
+    recovery_m_per_n: float
+
+
+def _client_forces(
+    r: Rendering, k_o: float, rate: float, delay_ms: float, traj: Trajectory, obj: ObjectModel
+) -> np.ndarray:
+    """The force [N] per servo tick of the client's renderer, the probe a position source, on the
+    simulator's object (implicit Euler, the stiffening object's tangent as its K_o) and network."""
+    T = 1.0 / SERVO_HZ
+    N = round(SERVO_HZ / rate)
+    d = round(delay_ms * 1e-3 * SERVO_HZ)
+    table = TableGains([r.table])
+    k1 = k_o * obj.stiffness_error
+    xs = obj.stiffening_m
+    nonlin = obj.kind == "stiffening"
+    assert obj.mass_kg == 0.0 and obj.relax_ratio == 0.0 and obj.damping_n_s_per_m == 0.0
+    params = LocalModelParams(
+        k_h=r.k_h,
+        i_gain=r.i_gain,
+        servo_period_s=T,
+        threshold=ThresholdParams(mode="fixed", theta_m=r.theta_m),
+        release_time_s=r.release_time_s,
+        integral_limit_n=FMAX,
+        gain_transfer_s=r.gain_transfer_s,
+    )
+    rd = LocalRenderer(params, own_force_limit_n=FMAX)
+    L = d + 2
+    up = np.zeros(L)
+    down: list[tuple[float, float, float]] = [(0.0, k_o, 0.0)] * L
+    down_seq = np.zeros(L, dtype=int)
+    pub, pub_seq, seen, xo = (0.0, k_o, 0.0), 0, 0, 0.0
+    n_steps = round(traj.duration_s * SERVO_HZ)
+    y, _ = traj.target(np.arange(n_steps, dtype=np.float64) * T)
+    out = np.empty(n_steps)
+    x_prev = y[0]
+    for n in range(n_steps):
+        x = float(y[n])
+        k = n - 1 - d
+        if k >= 0 and down_seq[k % L] != seen:
+            seen = int(down_seq[k % L])
+            val, k_est, got = down[k % L]
+            kg, ig, bg, og, fg = (float(a[0]) for a in table.gains_and_hold(np.array([k_est])))
+            hold = "foh" if fg else "zoh"
+            rec = 1.0 / k_o if ig > 0.0 else 0.0
+            patch = _Patch(_Plane(val), kg, ig, bg, hold, N, og, max(got, 0.0), rec)
+            rd.hand_over(patch, False)  # type: ignore[arg-type]
+        f = min(max(rd.render(x, 0.0, 0.0, x - x_prev, 0.0, 0.0)[0], -FMAX), FMAX)
+        out[n] = f
+        x_prev = x
+        up[n % L] = f
+        if n % N == 0:  # the simulation's tick: the force that arrived pushes the object
+            got = float(up[(n - d) % L]) if n >= d else 0.0
+            f_in = max(got, 0.0)
+            xo = float(stiffening_depth(k1, xs, np.array(f_in))) if nonlin else f_in / k1
+            k_est = float(stiffening_tangent(k_o, xs, np.array(max(xo, 0.0)))) if nonlin else k_o
+            own = float(table.gains(np.array([k_est]))[3][0])
+            pub, pub_seq = (xo - own * f_in, k_est, got), pub_seq + 1
+        down[n % L] = pub
+        down_seq[n % L] = pub_seq
+    return out
+
+
+def _mixed_table(seed: int) -> tuple[TableCell, ...]:
+    """Designed cells 40-74 with random gains: P and PI, dampers or none, C_h or none, and zero-
+    or first-order holds, so a press through them hands over every kind of change."""
+    g = GainTable()
+    rng = np.random.default_rng(seed)
+    cells = []
+    for c in range(40, 75):
+        gp = g.grid_point(c)
+        hold: ProxyHold = "foh" if rng.random() < 0.5 else "zoh"
+        d = GainDesign(
+            k_h=gp * rng.uniform(0.3, 1.0),
+            i_gain=gp * rng.uniform(0.0, 10.0) * (rng.random() < 0.6),
+            b_h=rng.uniform(0.0, 5.0) * (rng.random() < 0.7),
+            proxy_hold=hold,
+            worst_spectral_radius=0.9,
+            rho_limit=0.95,
+            felt_stiffness_ratio_1hz=1.0,
+            felt_stiffness_ratio_8hz=1.0,
+            k_o=gp,
+            k_o_range=(0.85 * gp, 1.4 * gp),
+            rate_ratio=20,
+            delay_ticks=0,
+            mode="pi",
+            own_gain=rng.uniform(0.0, 1.0) / gp * (rng.random() < 0.8),
+            scale_max=rng.uniform(1.0, 1.1),
+        )
+        cells.append(TableCell.from_design(c, d, g.grid_ratio))
+    return tuple(cells)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize(("traj", "rate", "delay_ms"), [(PRESS, 20.0, 0.0), (TAP, 50.0, 20.0)])
+def test_the_simulators_local_model_renders_what_the_client_renders(
+    seed: int, traj: Trajectory, rate: float, delay_ms: float
+) -> None:
+    cells = _mixed_table(seed)
+    first = cells[4]
+    k_o = GainTable().grid_point(44)
+    r = Rendering(
+        "local-p",
+        "coupling",
+        k_h=first.k_h,
+        i_gain=first.i_gain,
+        b_h=first.b_h,
+        proxy_hold=first.proxy_hold,
+        theta_m=PRODUCT_THETA_M,
+        release_time_s=2.0 / rate,
+        own_gain=first.own_gain,
+        follows_k_o=True,
+        table=cells,
+        gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
+    )
+    for rendering in (r, replace(r, gain_transfer_s=0.0)):
+        sim = simulate([Cell(rendering, k_o, rate, delay_ms, None, traj, STIFFENING)]).f[0]
+        client = _client_forces(rendering, k_o, rate, delay_ms, traj, STIFFENING)
+        # the press went through several cells: the K_o reported at its deepest is cells above
+        deepest = stiffening_depth(k_o, STIFFENING.stiffening_m, np.array(sim.max()))
+        k_top = float(stiffening_tangent(k_o, STIFFENING.stiffening_m, deepest))
+        assert GainTable().cell(k_top) - GainTable().cell(k_o) >= 3
+        np.testing.assert_allclose(sim, client, rtol=0.0, atol=1e-9)
