@@ -25,11 +25,11 @@ from haptic_collab.research.fidelity_cases import (
 )
 from haptic_collab.research.fidelity_schemes import (
     PRODUCT_GAIN_TRANSFER_S,
-    PRODUCT_THETA_M,
     DeviceModel,
     Rendering,
     TableCell,
     TableGains,
+    rendering_for,
 )
 from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.gain_design import GainDesign
@@ -122,12 +122,12 @@ def _client_forces(
     return out
 
 
-def _mixed_table(seed: int) -> tuple[TableCell, ...]:
+def _mixed_table(seed: int) -> dict[int, GainDesign]:
     """Designed cells 40-74 with random gains: P and PI, dampers or none, C_h or none, and zero-
     or first-order holds, so a press through them hands over every kind of change."""
     g = GainTable()
     rng = np.random.default_rng(seed)
-    cells = []
+    cells = {}
     for c in range(40, 75):
         gp = g.grid_point(c)
         hold: ProxyHold = "foh" if rng.random() < 0.5 else "zoh"
@@ -148,8 +148,8 @@ def _mixed_table(seed: int) -> tuple[TableCell, ...]:
             own_gain=rng.uniform(0.0, 1.0) / gp * (rng.random() < 0.8),
             scale_max=rng.uniform(1.0, 1.1),
         )
-        cells.append(TableCell.from_design(c, d, g.grid_ratio))
-    return tuple(cells)
+        cells[c] = d
+    return cells
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -157,23 +157,13 @@ def _mixed_table(seed: int) -> tuple[TableCell, ...]:
 def test_the_simulators_local_model_renders_what_the_client_renders(
     seed: int, traj: Trajectory, rate: float, delay_ms: float
 ) -> None:
-    cells = _mixed_table(seed)
-    first = cells[4]
-    k_o = GainTable().grid_point(44)
-    r = Rendering(
-        "local-p",
-        "coupling",
-        k_h=first.k_h,
-        i_gain=first.i_gain,
-        b_h=first.b_h,
-        proxy_hold=first.proxy_hold,
-        theta_m=PRODUCT_THETA_M,
-        release_time_s=2.0 / rate,
-        own_gain=first.own_gain,
-        follows_k_o=True,
-        table=cells,
-        gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
-    )
+    designs = _mixed_table(seed)
+    g = GainTable()
+    table = [TableCell.from_design(c, d, g.grid_ratio) for c, d in designs.items()]
+    k_o = g.grid_point(44)
+    # the product's rendering of the design for K_o (its cell's, unscaled at the grid point)
+    r = rendering_for("local-p", sim_rate_hz=rate, design=designs[44], table=table)
+    assert r.gain_transfer_s == PRODUCT_GAIN_TRANSFER_S > 0.0 and not r.passivity
     for rendering in (r, replace(r, gain_transfer_s=0.0)):
         sim = simulate([Cell(rendering, k_o, rate, delay_ms, None, traj, STIFFENING)]).f[0]
         client = _client_forces(rendering, k_o, rate, delay_ms, traj, STIFFENING)
