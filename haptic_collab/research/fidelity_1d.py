@@ -148,6 +148,13 @@ def passivity_step(
     return energy, fa_c, dissipated
 
 
+def _ramp_down(x: FloatArray, step: FloatArray) -> FloatArray:
+    """``x`` one tick further on its linear ramp to zero by ``step`` (a transfer force or a
+    sliding offset, as the client drives them): 0 once the ramp would cross zero."""
+    nxt = x - step
+    return np.where((x != 0.0) & (nxt != 0.0) & ((nxt > 0.0) == (x > 0.0)), nxt, 0.0)
+
+
 def simulate(
     cells: Sequence[Cell],
     *,
@@ -231,6 +238,7 @@ def simulate(
     # the client's bumpless change of gains (shared.local_model.LocalModel.set_gains): the force
     # step of new gains in contact is a transfer force b, driven linearly to zero
     transfer_s = np.where(follow, np.array([x.gain_transfer_s for x in r]), 0.0)
+    per_tick = T / np.where(transfer_s > 0.0, transfer_s, 1.0)  # share of a step driven off
     b_tr = np.zeros(B)  # transfer force [N]
     b_tr_step = np.zeros(B)  # its decrement per tick [N]
     e_last = np.zeros(B)  # the last tick's penetration [m]
@@ -370,9 +378,7 @@ def simulate(
                     off_e = np.where(
                         slide, off_e + (own_now - og) * np.maximum(got[:, 2], 0.0), off_e
                     )
-                    off_step = np.where(
-                        slide, off_e * T / np.where(transfer_s > 0.0, transfer_s, 1.0), off_step
-                    )
+                    off_step = np.where(slide, off_e * per_tick, off_step)
                     own_now = np.where(re_gain, og, own_now)
                     foh = np.where(re_gain, fg, foh)
                     # the step of K_h e and of the damper's B_h u, and, with own-force
@@ -385,9 +391,7 @@ def simulate(
                     go = re_gain & was_contact & (transfer_s > 0.0) & (step != 0.0)
                     go &= np.isfinite(step)
                     b_tr = np.where(go, b_tr + step, b_tr)
-                    b_tr_step = np.where(
-                        go, b_tr * T / np.where(transfer_s > 0.0, transfer_s, 1.0), b_tr_step
-                    )
+                    b_tr_step = np.where(go, b_tr * per_tick, b_tr_step)
                     k_h_now = np.where(re_gain, kg, k_h_now)
                     ti_now = np.where(re_gain, T * ig, ti_now)
                     b_h_now = np.where(re_gain, bg, b_h_now)
@@ -401,9 +405,7 @@ def simulate(
         e = xr - proxy
         if any_follow:
             e = e + off_e
-            nxt = off_e - off_step
-            keep = (off_e != 0.0) & (nxt != 0.0) & ((nxt > 0.0) == (off_e > 0.0))
-            off_e = np.where(keep, nxt, 0.0)
+            off_e = _ramp_down(off_e, off_step)
         k_eff = np.where(mmt, np.minimum(k_recv, k_h), k_h_now)
         # contact: the probe past the proxy; an integral keeps it while the probe is within the
         # deformation its force holds (s / K_o: the object's surface follows a retreating probe
@@ -412,13 +414,13 @@ def simulate(
         # local model, eq. 12 with eq. 17's threshold and the release ramp (shared.local_model),
         # plus the transfer force of a change of gains (this tick's, then driven down; none out
         # of contact)
-        b_use = np.where(contact, b_tr, 0.0)
-        off_e = np.where(contact, off_e, 0.0)  # no slide out of contact
         if any_follow:
-            nb = b_tr - b_tr_step
-            keep = contact & (b_tr != 0.0) & (nb != 0.0) & ((nb > 0.0) == (b_tr > 0.0))
-            b_tr = np.where(keep, nb, 0.0)
-        f_lm = np.where(contact, np.maximum(k_eff * e + s + b_use, 0.0), s)
+            b_use = np.where(contact, b_tr, 0.0)
+            b_tr = np.where(contact, _ramp_down(b_tr, b_tr_step), 0.0)
+            off_e = np.where(contact, off_e, 0.0)  # no slide out of contact
+            f_lm = np.where(contact, np.maximum(k_eff * e + s + b_use, 0.0), s)
+        else:
+            f_lm = np.where(contact, np.maximum(k_eff * e + s, 0.0), s)
         start_rel = ~contact & (was_contact | (rel_step == 0.0))
         rel_step = np.where(contact, 0.0, np.where(start_rel, s * rel_per_tick, rel_step))
         s = np.where(
@@ -466,7 +468,8 @@ def simulate(
             pc_fa = np.where(two_port, -f, pc_fa)
         X[:, n] = xr
         F[:, n] = f
-        e_last = np.where(np.isfinite(e), e, -1.0)
+        if any_follow:
+            e_last = np.where(np.isfinite(e), e, -1.0)
         # 3. write: the hand moves under the force held over the tick
         if not all_src:
             if options.jitter_s > 0.0:
