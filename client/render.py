@@ -18,9 +18,12 @@ Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
 - the LocalModel keeps its integral state; the gain change's force step (K_h and the damper's
   (B_h,old - B_h,new) * u) is carried off by the model's gain transfer
   (``set_gains(..., carry_n=...)``);
-- a change of own-force compensation C_h with ``zoh`` moves the rendered surface by
-  (C_h,old - C_h,new) F_s at once: that step is added to the penetration and driven to zero over
-  the same transfer time, so the surface recedes (or comes out) gradually. A transfer *force*
+- a change of own-force compensation C_h moves the rendered surface by (C_h,old - C_h,new) F_s
+  at once, F_s the last patch's own force: that step is added to the penetration and driven to zero over the same transfer
+  time, so the surface recedes (or comes out) gradually. With ``foh`` the slide over the
+  simulation period starts from the old surface with the new compensation, so it carries the
+  surface's motion alone (carrying the change of C_h too, on top of the transfer force of the
+  K_h step, it rendered 5.45 N for a held 3 N). A transfer *force*
   would not do: the compensated probe rests on the object's own surface, which is where the
   surface lands when the compensation is withdrawn, so the contact would end on the next tick and
   the transfer with it (measured in the two-user demo: a resting user's 0.28 N fell to 0.003 N in
@@ -102,11 +105,13 @@ class LocalRenderer:
         "_u",
         "_prim_old",
         "_hold_off",
+        "_hold_comp",
         "_rebase",
         "_hold_i",
         "_hold_n",
         "_off",
         "_off_step",
+        "_own_force_n",
     )
 
     def __init__(self, params: LocalModelParams, own_force_limit_n: float = math.inf) -> None:
@@ -127,12 +132,16 @@ class LocalRenderer:
         self._u = 0.0
         self._prim_old: Primitive | None = None  # the surface a first-order hold moves away from
         self._hold_off = 0.0  # depth [m] added to _prim_old: where the slide really starts
+        # depth [m] added to _prim_old for a change of C_h: the old surface with the new
+        # compensation, so the slide carries the surface's motion alone (hand_over)
+        self._hold_comp = 0.0
         # a patch that arrived mid-slide: (start surface, its offset, weight reached); the new
         # slide's start offset is computed from it on the next render, once the probe is read
         self._rebase: tuple[Primitive, float, float] | None = None
         self._hold_i = 0
         self._hold_n = 1
         self._off = 0.0  # depth [m] added to e after a change of C_h, driven to zero
+        self._own_force_n = 0.0  # F_s [N] the last patch's compensation carried (capped)
         self._off_step = 0.0
 
     @property
@@ -161,10 +170,13 @@ class LocalRenderer:
             # a patch arriving before the last slide finished (network jitter) slides on from
             # the blend reached, not from the last target (that would be a step)
             self._rebase = (
-                None if old is None else (old, self._hold_off, self._hold_i / self._hold_n)
+                None
+                if old is None
+                else (old, self._hold_off + self._hold_comp, self._hold_i / self._hold_n)
             )
             self._prim_old = self.primitive
             self._hold_off = 0.0
+        self._hold_comp = 0.0
         self._hold_i = 0
         self._hold_n = patch.hold_ticks
         self.patch = patch
@@ -183,15 +195,21 @@ class LocalRenderer:
         b_old = self.b_h
         carry = (b_old - patch.b_h) * self._u if b_old > 0.0 or patch.b_h > 0.0 else 0.0
         # a change of own-force compensation moved the surface by (C_old - C_new) F_s: it slides
-        # there over the transfer time (module docstring; a first-order hold already slides the
-        # surface over the simulation period)
+        # there over the transfer time (module docstring), whatever the hold. A first-order hold
+        # slides from the old surface with the new compensation: its slide over the simulation
+        # period carried the change too, and with the K_h step's transfer force on top the force
+        # rose by 80 % in one simulation period, the probe still (C_h K_h = 1 at 580 and 67 N/m)
         transfer = self.model.params.gain_transfer_s
         if fresh or transfer <= 0.0:
             self._off = 0.0
-        elif (
-            patch.own_gain != self.own_gain and patch.proxy_hold != "foh" and self.model.in_contact
-        ):
-            self._off += (self.own_gain - patch.own_gain) * min(patch.own_force_n, cap)
+        elif patch.own_gain != self.own_gain and self.model.in_contact:
+            # at the last patch's F_s: the change of F_s since is the new design's to render
+            # with its own hold and C_h (at this F_s a zero-order hold stepped by C_h,old dF_s
+            # whatever the new design: 0.21 N in one tick, a press into the stiffening object)
+            step = (self.own_gain - patch.own_gain) * self._own_force_n
+            self._off += step
+            if self._prim_old is not None:
+                self._hold_comp = -step
             # linearly to zero over the transfer time from now (patches without a change of
             # C_h leave the slide's rate alone)
             self._off_step = self._off * self.model.params.servo_period_s / transfer
@@ -206,7 +224,8 @@ class LocalRenderer:
         self.i_gain = patch.i_gain
         self.b_h = patch.b_h
         self.own_gain = patch.own_gain
-        self.own_offset_m = patch.own_gain * min(patch.own_force_n, cap)
+        self._own_force_n = min(patch.own_force_n, cap)
+        self.own_offset_m = patch.own_gain * self._own_force_n
 
     def render(
         self, x: float, y: float, z: float, dx: float, dy: float, dz: float
@@ -251,7 +270,7 @@ class LocalRenderer:
                 self._prim_old = None
             else:
                 self._hold_i = hi
-                e_old = old.contact(x, y, z)[0] + self._hold_off
+                e_old = old.contact(x, y, z)[0] + self._hold_off + self._hold_comp
                 e = e_old + (e - e_old) * (hi / self._hold_n)
         off = self._off
         if off != 0.0:  # a change of C_h, sliding in (hand_over)

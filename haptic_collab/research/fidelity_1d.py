@@ -247,6 +247,7 @@ def simulate(
     own_now = own.copy()  # C_h of the last patch [m/N]
     off_e = np.zeros(B)  # depth [m] added to the penetration, driven to zero
     off_step = np.zeros(B)
+    f_s_last = np.zeros(B)  # F_s [N] the last patch's compensation carried
     jscale = np.array([x.jacobian_scale for x in r])
     fmax = float(device.max_force_n)
     a_u = T / (T + DAMPER_FILTER_S)
@@ -374,10 +375,14 @@ def simulate(
                 re_gain = fresh & follow
                 if re_gain.any():
                     kg, ig, bg, og, fg = table.gains_and_hold(k_recv)
-                    slide = re_gain & was_contact & (transfer_s > 0.0) & ~fg & (og != own_now)
-                    off_e = np.where(
-                        slide, off_e + (own_now - og) * np.maximum(got[:, 2], 0.0), off_e
-                    )
+                    # a change of C_h slides in over the transfer time whatever the hold, at
+                    # the last patch's F_s; a first-order hold slides from the old surface with
+                    # the new compensation
+                    slide = re_gain & was_contact & (transfer_s > 0.0) & (og != own_now)
+                    c_step = np.where(slide, (own_now - og) * f_s_last, 0.0)
+                    off_e = off_e + c_step
+                    p_old = np.where(slide & fg, p_old + c_step, p_old)
+                    f_s_last = np.where(re_gain, np.maximum(got[:, 2], 0.0), f_s_last)
                     off_step = np.where(slide, off_e * per_tick, off_step)
                     own_now = np.where(re_gain, og, own_now)
                     foh = np.where(re_gain, fg, foh)

@@ -262,3 +262,35 @@ def test_the_compensation_slide_ends_on_time_whatever_patches_arrive_meanwhile()
         f += [pf for pf, _ in still(rd, -0.0011, 10)]
         rd.hand_over(plain, fresh=False)
     assert f[48] > f[50] == pytest.approx(K_H * 0.0001)  # the slide is over after 50 ticks
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+def test_new_gains_with_their_own_compensation_keep_a_held_press_steady_whatever_the_hold(
+    hold: str,
+) -> None:
+    # a probe held on the object's surface, 3 N rendered by K_h 580 N/m with C_h K_h = 1; the
+    # next cell's design (K_h 67 N/m, C_h K_h = 1, as neighbouring cells of the stiffening
+    # object at 300 N/m, 50 Hz) renders the same 3 N once handed over. With a first-order hold
+    # the slide over the simulation period carried the change of C_h while the transfer force
+    # still carried the K_h step: the force rose to 5.45 N in 20 ms, the probe still, and a
+    # stiff grip rang at 6-18 mm. Either hold now stays at the held force
+    F, n = 3.0, 20
+    surface = replace(SurfacePatch.of(plane_at(0.001), 500.0), own_force_n=F)
+
+    def design(k_h: float, proxy_hold: str) -> LocalModelUpdate:
+        c_h = 1.0 / k_h
+        return LocalModelUpdate(
+            plane_at(0.001 - c_h * F), k_h, 0.0, own_gain=c_h, surface=surface,
+            proxy_hold=proxy_hold, hold_ticks=n,
+        )  # fmt: skip
+
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
+    rd.hand_over(design(580.0, "zoh"), fresh=True)
+    assert still(rd, -0.001, 5)[-1][0] == pytest.approx(F)
+    rd.hand_over(design(67.0, hold), fresh=False)
+    f = [pf for pf, _ in still(rd, -0.001, 400)]
+    assert max(abs(pf - F) for pf in f) < 0.01 * F
+    # and back to the stiffer design
+    rd.hand_over(design(580.0, hold), fresh=False)
+    f = [pf for pf, _ in still(rd, -0.001, 400)]
+    assert max(abs(pf - F) for pf in f) < 0.01 * F

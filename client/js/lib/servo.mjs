@@ -97,7 +97,12 @@ export function primitiveFromPatch(patch) {
  * shared/full_loop.py): a plane shifted along its normal, a bump's sphere grown, a dent's shrunk.
  */
 export function movedOut(prim, d) {
-  if (!(Number.isFinite(d) && d > 0)) return prim;
+  return Number.isFinite(d) && d > 0 ? shiftedOut(prim, d) : prim;
+}
+
+/** The primitive moved out along its outward normals by d [m], d < 0 moving it in. */
+export function shiftedOut(prim, d) {
+  if (!(Number.isFinite(d) && d !== 0)) return prim;
   if (prim.kind === "plane") {
     return { ...prim, point: [0, 1, 2].map((i) => prim.point[i] + d * prim.normal[i]) };
   }
@@ -370,6 +375,7 @@ export class Servo {
     this._ownGain = 0; // own-force compensation C_h [m/N] in use
     this._off = 0; // depth [m] added to e after a change of C_h, driven to zero (setPatch)
     this._offRate = 0;
+    this._ownForceN = 0; // F_s [N] the last patch's compensation carried
   }
 
   /**
@@ -377,24 +383,31 @@ export class Servo {
    * compensation; `gains` {k_h, i_gain, b_h, theta_m, proxy_hold, own_gain, source};
    * `simPeriodS` the simulation period (for the FOH); `ownForceN` the patch's own_force_n.
    *
-   * A change of own-force compensation with a zero-order hold moved the surface by
-   * (C_old - C_new) * F_s: that step is added to the penetration and driven to zero over the
-   * model's transfer time, so the surface slides (as client/render.py does). A transfer force
-   * would end with the contact, and withdrawing the compensation from a probe resting on the
-   * object's own surface puts the rendered surface right under it.
+   * A change of own-force compensation moved the surface by (C_old - C_new) * F_s, F_s the last
+   * patch's own force: that step is added to the penetration and driven to zero over the model's
+   * transfer time, so the surface slides (as client/render.py does). A transfer force would end
+   * with the contact, and withdrawing the compensation from a probe resting on the
+   * object's own surface puts the rendered surface right under it. With a first-order hold the
+   * slide over the simulation period starts from the old surface with the new compensation, so
+   * it carries the surface's motion alone: carrying the change of C_h too, on top of the transfer
+   * force of the K_h step, it rendered 5.45 N for a held 3 N (K_h 580 -> 67 N/m, C_h K_h = 1).
    */
   setPatch({ prim, tick, gains, simPeriodS, tS, ownForceN = 0 }) {
     const foh = gains.proxy_hold === "foh";
     const cNew = Number.isFinite(gains.own_gain) && gains.own_gain > 0 ? gains.own_gain : 0;
     const fS = Number.isFinite(ownForceN) && ownForceN > 0 ? ownForceN : 0;
     const transferS = this.model.transferS;
-    if (!foh && this.prim && cNew !== this._ownGain && this.model.inContact && transferS > 0) {
-      this._off += (this._ownGain - cNew) * fS;
+    let cStep = 0; // the change of C_h's step of the surface [m], slid in
+    if (this.prim && cNew !== this._ownGain && this.model.inContact && transferS > 0) {
+      // at the last patch's F_s: the change of F_s since is the new design's to render
+      cStep = (this._ownGain - cNew) * this._ownForceN;
+      this._off += cStep;
       this._offRate = this._off / transferS;
     }
     this._ownGain = cNew;
+    this._ownForceN = fS;
     if (foh && this.prim) {
-      this.primFrom = this._currentPrimitive(tS);
+      this.primFrom = shiftedOut(this._currentPrimitive(tS), -cStep);
       this.holdStartS = tS;
       this.holdS = simPeriodS;
     } else {

@@ -231,6 +231,33 @@ test("a withdrawn compensation slides the surface in instead of dropping the for
   close(forces.at(-1), 0, 1e-9); // then the probe is on the surface: no force
 });
 
+for (const hold of ["zoh", "foh"]) {
+  test(`new gains with their own compensation keep a held press steady (${hold})`, () => {
+    // 3 N held by K_h 580 N/m with C_h K_h = 1; the next cell's design, K_h 67 N/m with C_h K_h =
+    // 1, renders the same 3 N. With a first-order hold the slide carried the change of C_h on top
+    // of the K_h step's transfer force: 5.45 N in 20 ms, the probe still (client/render.py)
+    const F = 3;
+    const device = { x: [0, 0, -0.001], advance() {}, write() {} };
+    const s = new Servo({ device, linkTimeoutS: 10 });
+    const plane = primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, -0.001], normal: [0, 0, 1] } });
+    const design = (k, proxyHold) => ({ k_h: k, own_gain: 1 / k, proxy_hold: proxyHold, source: "t" });
+    s.setPatch({ prim: movedOut(plane, F / 580), tick: 1, gains: design(580, "zoh"), simPeriodS: 0.02, tS: 0, ownForceN: F });
+    let t = 0;
+    for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+    close(s.fMag, F, 1e-6);
+    let tick = 2;
+    for (const k of [67, 580]) {
+      s.setPatch({ prim: movedOut(plane, F / k), tick: tick++, gains: design(k, hold), simPeriodS: 0.02, tS: t, ownForceN: F });
+      let worst = 0;
+      for (let i = 0; i < 400; i++) {
+        s.tick((t += 0.001));
+        worst = Math.max(worst, Math.abs(s.fMag - F));
+      }
+      assert.ok(worst < 0.01 * F, `K_h ${k} N/m, ${hold}: the force strayed ${worst} N from ${F} N`);
+    }
+  });
+}
+
 test("a declared damper goes into hello and bounds the recommended B_h", () => {
   const dev = { profile: "js-sim", maxForceN: 7.9, maxStiffnessNPerM: 1000, maxDampingNsPerM: 10 };
   const h = helloMessage({ name: "A", device: dev, servoRateHz: 1000, localModel: "p" });
