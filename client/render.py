@@ -18,16 +18,19 @@ Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
 - the LocalModel keeps its integral state; the gain change's force step (K_h and the damper's
   (B_h,old - B_h,new) * u) is carried off by the model's gain transfer
   (``set_gains(..., carry_n=...)``);
-- a change of own-force compensation C_h moves the rendered surface by (C_h,old - C_h,new) F_s
-  at once, F_s the last patch's own force: that step is added to the penetration and driven to zero over the same transfer
-  time, so the surface recedes (or comes out) gradually. With ``foh`` the slide over the
-  simulation period starts from the old surface with the new compensation, so it carries the
-  surface's motion alone (carrying the change of C_h too, on top of the transfer force of the
-  K_h step, it rendered 5.45 N for a held 3 N). A transfer *force*
-  would not do: the compensated probe rests on the object's own surface, which is where the
-  surface lands when the compensation is withdrawn, so the contact would end on the next tick and
-  the transfer with it (measured in the two-user demo: a resting user's 0.28 N fell to 0.003 N in
-  one tick when the other touched and the uncoupled gains were withdrawn).
+- a change of own-force compensation C_h in contact moves the rendered surface by
+  (C_h,old - C_h,new) F_s at once, F_s the last patch's own force (the change of F_s since is the
+  new design's to render): that step is added to the penetration and driven to zero over the same
+  transfer time, so the surface recedes (or comes out) gradually, and the K_h step of its next
+  decrement is carried off with the gains'. With ``foh`` the slide over the simulation period
+  starts from the old surface with the new compensation, so it carries the surface's motion alone
+  (carrying the change of C_h too, on top of the transfer force of the K_h step, it rendered
+  5.45 N for a held 3 N). Out of contact a slide that deepens the surface ends; one that holds it
+  back runs on (dropped, it would put the surface out at once, into a retreating probe). A
+  transfer *force* would not do: the compensated probe rests on the object's own surface, which
+  is where the surface lands when the compensation is withdrawn, so the contact would end on the
+  next tick and the transfer with it (measured in the two-user demo: a resting user's 0.28 N fell
+  to 0.003 N in one tick when the other touched and the uncoupled gains were withdrawn).
 
 Difference equations, per servo period T, with the probe's backward difference
 d = x_h(k) - x_h(k-1):
@@ -112,6 +115,7 @@ class LocalRenderer:
         "_off",
         "_off_step",
         "_own_force_n",
+        "_off_used",
     )
 
     def __init__(self, params: LocalModelParams, own_force_limit_n: float = math.inf) -> None:
@@ -142,6 +146,7 @@ class LocalRenderer:
         self._hold_n = 1
         self._off = 0.0  # depth [m] added to e after a change of C_h, driven to zero
         self._own_force_n = 0.0  # F_s [N] the last patch's compensation carried (capped)
+        self._off_used = 0.0  # the slide's depth [m] in the last tick's penetration
         self._off_step = 0.0
 
     @property
@@ -194,6 +199,10 @@ class LocalRenderer:
         # the damper's share of the force step is carried off with the stiffness's
         b_old = self.b_h
         carry = (b_old - patch.b_h) * self._u if b_old > 0.0 or patch.b_h > 0.0 else 0.0
+        # and so is the K_h step of the slide's next decrement, already taken from _off: the
+        # model's step is on the last tick's penetration (without it, designs 7 ticks apart
+        # stepped a held 3 N by up to 0.2 N)
+        carry += (self.k_h - patch.k_h) * (self._off - self._off_used)
         # a change of own-force compensation moved the surface by (C_old - C_new) F_s: it slides
         # there over the transfer time (module docstring), whatever the hold. A first-order hold
         # slides from the old surface with the new compensation: its slide over the simulation
@@ -273,6 +282,7 @@ class LocalRenderer:
                 e_old = old.contact(x, y, z)[0] + self._hold_off + self._hold_comp
                 e = e_old + (e - e_old) * (hi / self._hold_n)
         off = self._off
+        self._off_used = off
         if off != 0.0:  # a change of C_h, sliding in (hand_over)
             e += off
             nxt = off - self._off_step
@@ -282,8 +292,12 @@ class LocalRenderer:
         lm = self.model
         f = lm.step(e, v_in)
         in_contact = lm.in_contact
-        if not in_contact:
-            self._off = 0.0  # no slide out of contact (as the model's transfer force)
+        if not in_contact and off > 0.0:
+            # a slide that deepens the surface ends with the contact (as the model's transfer
+            # force); one that holds it back (C_h rose) runs on: dropped, it put the surface
+            # |off| out at once, into a retreating probe (3 N held at 580 N/m handed to 67
+            # N/m, retracted at 0.5 m/s: 2.06 N, 0, then 2.0 N again)
+            self._off = 0.0
         u = self._u + self._a_u * (v_in - self._u)
         self._u = u
         if in_contact:

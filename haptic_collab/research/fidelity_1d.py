@@ -242,12 +242,13 @@ def simulate(
     b_tr = np.zeros(B)  # transfer force [N]
     b_tr_step = np.zeros(B)  # its decrement per tick [N]
     e_last = np.zeros(B)  # the last tick's penetration [m]
-    # ... and each patch rendered with its design's proxy hold; a change of C_h under a
-    # zero-order hold slides in over the transfer time (client.render.LocalRenderer.hand_over)
+    # ... and each patch rendered with its design's proxy hold; a change of C_h slides in over
+    # the transfer time, whatever the hold (client.render.LocalRenderer.hand_over)
     own_now = own.copy()  # C_h of the last patch [m/N]
     off_e = np.zeros(B)  # depth [m] added to the penetration, driven to zero
     off_step = np.zeros(B)
     f_s_last = np.zeros(B)  # F_s [N] the last patch's compensation carried
+    off_used = np.zeros(B)  # the slide's depth [m] in the last tick's penetration
     jscale = np.array([x.jacobian_scale for x in r])
     fmax = float(device.max_force_n)
     a_u = T / (T + DAMPER_FILTER_S)
@@ -379,6 +380,7 @@ def simulate(
                     # the last patch's F_s; a first-order hold slides from the old surface with
                     # the new compensation
                     slide = re_gain & was_contact & (transfer_s > 0.0) & (og != own_now)
+                    pending = off_e - off_used  # the slide's next decrement, already taken
                     c_step = np.where(slide, (own_now - og) * f_s_last, 0.0)
                     off_e = off_e + c_step
                     p_old = np.where(slide & fg, p_old + c_step, p_old)
@@ -386,9 +388,10 @@ def simulate(
                     off_step = np.where(slide, off_e * per_tick, off_step)
                     own_now = np.where(re_gain, og, own_now)
                     foh = np.where(re_gain, fg, foh)
-                    # the step of K_h e and of the damper's B_h u, and, with own-force
-                    # compensation, the integral force, are handed to the transfer force
-                    step = (k_h_now - kg) * e_last
+                    # the step of K_h e (e with the slide's pending decrement) and of the
+                    # damper's B_h u, and, with own-force compensation, the integral force, are
+                    # handed to the transfer force
+                    step = (k_h_now - kg) * (e_last + pending)
                     step = step + np.where((b_h_now > 0.0) | (bg > 0.0), (b_h_now - bg) * u, 0.0)
                     drop = re_gain & was_contact & (og > 0.0)
                     step = step + np.where(drop, s, 0.0)
@@ -410,6 +413,7 @@ def simulate(
         e = xr - proxy
         if any_follow:
             e = e + off_e
+            off_used = off_e
             off_e = _ramp_down(off_e, off_step)
         k_eff = np.where(mmt, np.minimum(k_recv, k_h), k_h_now)
         # contact: the probe past the proxy; an integral keeps it while the probe is within the
@@ -422,7 +426,8 @@ def simulate(
         if any_follow:
             b_use = np.where(contact, b_tr, 0.0)
             b_tr = np.where(contact, _ramp_down(b_tr, b_tr_step), 0.0)
-            off_e = np.where(contact, off_e, 0.0)  # no slide out of contact
+            # out of contact a slide that deepens the surface ends, one holding it back runs on
+            off_e = np.where(contact | (off_e < 0.0), off_e, 0.0)
             f_lm = np.where(contact, np.maximum(k_eff * e + s + b_use, 0.0), s)
         else:
             f_lm = np.where(contact, np.maximum(k_eff * e + s, 0.0), s)

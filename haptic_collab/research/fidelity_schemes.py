@@ -162,7 +162,7 @@ class Rendering:
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
-        transfer force, and a zero-order hold's change of C_h sliding in); 0: the new gains act
+        transfer force, and a change of C_h sliding in); 0: the new gains act
         at once (each patch still with its design's proxy hold, and an integral still handed
         off with C_h > 0, as :meth:`shared.local_model.LocalModel.set_gains` does).
     variant : str

@@ -272,8 +272,8 @@ def test_new_gains_with_their_own_compensation_keep_a_held_press_steady_whatever
     # next cell's design (K_h 67 N/m, C_h K_h = 1, as neighbouring cells of the stiffening
     # object at 300 N/m, 50 Hz) renders the same 3 N once handed over. With a first-order hold
     # the slide over the simulation period carried the change of C_h while the transfer force
-    # still carried the K_h step: the force rose to 5.45 N in 20 ms, the probe still, and a
-    # stiff grip rang at 6-18 mm. Either hold now stays at the held force
+    # still carried the K_h step: the force rose to 5.45 N in 20 ms, the probe still, and the
+    # stiff grips of the box rang at 3.7-12.7 mm. Either hold now stays at the held force
     F, n = 3.0, 20
     surface = replace(SurfacePatch.of(plane_at(0.001), 500.0), own_force_n=F)
 
@@ -294,3 +294,65 @@ def test_new_gains_with_their_own_compensation_keep_a_held_press_steady_whatever
     rd.hand_over(design(580.0, hold), fresh=False)
     f = [pf for pf, _ in still(rd, -0.001, 400)]
     assert max(abs(pf - F) for pf in f) < 0.01 * F
+
+
+def _compensated_design(
+    k_h: float, force_n: float, depth_m: float, proxy_hold: str = "zoh", n: int = 20
+) -> LocalModelUpdate:
+    """C_h = 1 / K_h: the surface ``depth_m`` deformed by ``force_n``, moved back out by C_h F_s."""
+    surface = replace(SurfacePatch.of(plane_at(depth_m), 500.0), own_force_n=force_n)
+    return LocalModelUpdate(
+        plane_at(depth_m - force_n / k_h), k_h, 0.0, own_gain=1.0 / k_h, surface=surface,
+        proxy_hold=proxy_hold, hold_ticks=n,
+    )  # fmt: skip
+
+
+def test_a_new_design_steps_the_force_as_it_would_itself_at_the_new_own_force() -> None:
+    # a 500 N/m spring pressed with 2 N, rendered by K_h 250 N/m; the next patch brings the
+    # object's K_h = K_o design and the surface under 3 N. The change of C_h slides in at the
+    # last patch's 2 N: the change of F_s is the new design's to render, and with K_h = K_o its
+    # surface and compensation move together, so a probe held still feels no step. Taken at the
+    # new 3 N the old C_h rendered that 1 N change: 2 N -> 3 N in one tick, then back
+    k_o, f1, f2 = 500.0, 2.0, 3.0
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
+    rd.hand_over(_compensated_design(250.0, f1, f1 / k_o), fresh=True)
+    z = -f1 / k_o  # the probe resting on the deformed surface
+    assert still(rd, z, 5)[-1][0] == pytest.approx(f1)
+    rd.hand_over(_compensated_design(k_o, f2, f2 / k_o), fresh=False)
+    f = [pf for pf, _ in still(rd, z, 400)]
+    assert max(abs(pf - f1) for pf in f) < 0.01 * f1
+
+
+def test_compensated_designs_arriving_mid_slide_keep_a_held_press_steady() -> None:
+    # first-order-hold patches every 7 ticks of a 20-tick slide, each another design (C_h K_h =
+    # 1): each slide starts from the blend reached, the change of C_h kept out of it, and the
+    # K_h step of the slide's pending decrement is carried off too (without it: up to 3.2 N)
+    F = 3.0
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
+    rd.hand_over(_compensated_design(580.0, F, 0.001), fresh=True)
+    still(rd, -0.001, 5)
+    f = []
+    for k_h in (67.0, 934.0, 200.0, 580.0, 67.0, 400.0):
+        rd.hand_over(_compensated_design(k_h, F, 0.001, "foh"), fresh=False)
+        f += [pf for pf, _ in still(rd, -0.001, 7)]
+    f += [pf for pf, _ in still(rd, -0.001, 300)]
+    assert max(abs(pf - F) for pf in f) < 0.01 * F
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+def test_a_probe_leaving_during_the_slide_is_not_pushed_again(hold: str) -> None:
+    # C_h rose (580 -> 67 N/m, C_h K_h = 1): the slide holds the surface back, and the probe is
+    # withdrawn at 0.5 m/s meanwhile. Dropped with the contact, the slide put the surface tens
+    # of mm out at once, into the retreating probe: 2.06 N, 0, then 2.0 N again
+    F = 3.0
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
+    rd.hand_over(_compensated_design(580.0, F, 0.001), fresh=True)
+    still(rd, -0.001, 5)
+    rd.hand_over(_compensated_design(67.0, F, 0.001, hold), fresh=False)
+    z, f = -0.001, []
+    for _ in range(300):
+        z_next = z + 0.5 * T
+        f.append(rd.render(0.0, 0.0, z_next, 0.0, 0.0, z_next - z)[0])
+        z = z_next
+    left = next(i for i, pf in enumerate(f) if pf == 0.0)
+    assert max(f[left:]) == 0.0

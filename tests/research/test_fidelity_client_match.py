@@ -2,7 +2,7 @@
 (:func:`haptic_collab.research.fidelity_1d.simulate`) renders, tick for tick, the force the
 product's own :class:`client.render.LocalRenderer` renders on the same object, network and gain
 table, through every hand-over (transfer force, damper carry, each design's proxy hold, a
-zero-order hold's C_h sliding in)."""
+change of C_h sliding in with either hold)."""
 
 from __future__ import annotations
 

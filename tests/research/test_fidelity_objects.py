@@ -339,9 +339,9 @@ def test_the_benchmark_hands_gains_over_in_the_clients_time() -> None:
 def test_pressing_through_the_stiffening_objects_cells_changes_gains_without_a_jolt() -> None:
     # with every cell the object reaches designed, a 10 mm press crosses about ten of them, each
     # design with its own K_h, damper, C_h and proxy hold. The client hands each over in 0.25 s
-    # (a transfer force, and a zero-order hold's C_h sliding in); the benchmark switched them at
+    # (a transfer force, and the change of C_h sliding in); the benchmark switched them at
     # once, and the press, probe as a position source, stepped the force by 0.48 N in one tick.
-    # Rendered as the client renders it, the largest step in one tick is 0.04 N
+    # Rendered as the client renders it, the largest step in one tick is 0.07 N
     k, rate = 100.0, 20.0
     r = _product("local-p", k, rate, 0.0, reached=STIFFENING)
     holds = {c.proxy_hold for c in r.table}
@@ -374,9 +374,9 @@ def test_the_product_follows_the_reported_stiffness_into_a_stiffening_object() -
 @pytest.mark.slow
 def test_handed_over_as_the_client_does_the_designed_cells_feel_the_stiffening_object() -> None:
     # a press held where the reported K_o sits on the boundary of cells 64 and 65 (first-order
-    # holds, K_h 372 and 427 N/m, C_h K_h = 1 both) chattered between their designs, 1.82-1.98 N about a
-    # 1.95 N hold, with no steady felt response: the first-order hold's slide carried the change
-    # of C_h on top of the K_h step's transfer force. Handed over as the client now does, the
+    # holds, K_h 372 and 427 N/m, C_h K_h = 1 both) chattered between their designs, 1.82-1.98
+    # N about a 1.95 N hold, with no steady felt response: the first-order hold's slide carried
+    # the change of C_h on top of the K_h step's transfer force. Handed over as the client now does, the
     # designed cells feel the object's tangent stiffness
     k, rate = 300.0, 20.0
     full = _product("local-p", k, rate, 0.0, reached=STIFFENING)
@@ -388,8 +388,8 @@ def test_handed_over_as_the_client_does_the_designed_cells_feel_the_stiffening_o
 def test_neighbouring_cells_of_mixed_holds_hold_every_hand_of_the_box() -> None:
     # at 300 N/m, 50 Hz, no delay, the cells a press into the stiffening object crosses mix zero-
     # and first-order holds with K_h from 67 to 934 N/m (C_h K_h = 1 each): handed over with the
-    # first-order hold's slide carrying the change of C_h, the stiff grips of the box rang at 6-18
-    # mm; each design alone was stable. Every hand on every trajectory now settles
+    # first-order hold's slide carrying the change of C_h, the four stiff grips of the box rang at
+    # 3.7-12.7 mm; each design alone was stable. Every hand on every trajectory now settles
     k, rate = 300.0, 50.0
     r = _product("local-p", k, rate, 0.0, reached=STIFFENING)
     assert {c.proxy_hold for c in r.table} == {"zoh", "foh"}

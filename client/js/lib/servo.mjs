@@ -183,14 +183,15 @@ export class LocalModel {
    * driven linearly to zero over `transferS` (0: the force steps as eq. 12 says). With own-force
    * compensation (own_gain > 0) the integral is handed to the transfer force instead: the
    * compensation carries the force the object holds, an integral beside it would push for ever.
+   * `carryN` [N]: the step of a force the caller adds to e, carried off with it.
    */
-  setGains({ k_h, i_gain = 0, b_h = 0, theta_m = 0, own_gain = 0 }) {
+  setGains({ k_h, i_gain = 0, b_h = 0, theta_m = 0, own_gain = 0 }, carryN = 0) {
     const kOld = this.kH;
     this.kH = k_h;
     this.iGain = i_gain;
     this.bH = b_h;
     this.theta = theta_m;
-    let step = (kOld - k_h) * this._lastE;
+    let step = (kOld - k_h) * this._lastE + (Number.isFinite(carryN) ? carryN : 0);
     if (own_gain > 0 && this._lastE > 0 && this.s !== 0) {
       step += this.s;
       this.s = 0;
@@ -376,6 +377,7 @@ export class Servo {
     this._off = 0; // depth [m] added to e after a change of C_h, driven to zero (setPatch)
     this._offRate = 0;
     this._ownForceN = 0; // F_s [N] the last patch's compensation carried
+    this._offUsed = 0; // the slide's depth [m] in the last tick's penetration
   }
 
   /**
@@ -397,6 +399,9 @@ export class Servo {
     const cNew = Number.isFinite(gains.own_gain) && gains.own_gain > 0 ? gains.own_gain : 0;
     const fS = Number.isFinite(ownForceN) && ownForceN > 0 ? ownForceN : 0;
     const transferS = this.model.transferS;
+    // the K_h step of the slide's next decrement, already taken from _off, is carried off too
+    // (the model's step is on the last tick's penetration)
+    const carry = (this.model.kH - gains.k_h) * (this._off - this._offUsed);
     let cStep = 0; // the change of C_h's step of the surface [m], slid in
     if (this.prim && cNew !== this._ownGain && this.model.inContact && transferS > 0) {
       // at the last patch's F_s: the change of F_s since is the new design's to render
@@ -418,7 +423,7 @@ export class Servo {
     this.patchTick = tick;
     this.patchAtS = tS;
     this.gains = gains;
-    this.model.setGains(gains);
+    this.model.setGains(gains, carry);
     this.waitingForPatch = false;
   }
 
@@ -463,6 +468,7 @@ export class Servo {
       const { e: e0, n } = penetration(this._currentPrimitive(tS), x);
       let e = e0;
       const off = this._off;
+      this._offUsed = off;
       if (off !== 0) {
         // a change of C_h, sliding in (setPatch)
         e += off;
@@ -474,7 +480,9 @@ export class Servo {
       const eDot = -dot(this._vFilt, n);
       if (this.g > 0) f = this.model.step(e, eDot, dt);
       else this.model.reset(); // forces withheld: no integral winds up
-      if (!(e > 0) || this.g <= 0) this._off = 0; // no slide out of contact
+      // out of contact a slide that deepens the surface ends; one that holds it back runs on
+      // (dropped, it put the surface out at once, into a retreating probe: client/render.py)
+      if ((!(e > 0) || this.g <= 0) && this._off > 0) this._off = 0;
     }
     f = Math.min(f, this.maxForceN) * this.g;
     this.fMag = f;

@@ -258,6 +258,80 @@ for (const hold of ["zoh", "foh"]) {
   });
 }
 
+function compensatedServo(F) {
+  const device = { x: [0, 0, -0.001], advance() {}, write() {} };
+  const s = new Servo({ device, linkTimeoutS: 10 });
+  const plane = primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, -0.001], normal: [0, 0, 1] } });
+  return { s, device, at: (k) => movedOut(plane, F / k) };
+}
+
+test("a new design steps the force as it would itself at the new own force", () => {
+  // a 500 N/m spring pressed with 2 N under K_h 250 N/m; the next patch brings K_h = K_o and the
+  // surface under 3 N. The change of C_h slides in at the last patch's 2 N: the change of F_s is
+  // the new design's, which with K_h = K_o feels no step (client/render.py)
+  const kO = 500;
+  const device = { x: [0, 0, -2 / kO], advance() {}, write() {} };
+  const s = new Servo({ device, linkTimeoutS: 10 });
+  const surface = (f) => primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, -f / kO], normal: [0, 0, 1] } });
+  const design = (k) => ({ k_h: k, own_gain: 1 / k, proxy_hold: "zoh", source: "t" });
+  s.setPatch({ prim: movedOut(surface(2), 2 / 250), tick: 1, gains: design(250), simPeriodS: 0.02, tS: 0, ownForceN: 2 });
+  let t = 0;
+  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  close(s.fMag, 2, 1e-6);
+  s.setPatch({ prim: movedOut(surface(3), 3 / kO), tick: 2, gains: design(kO), simPeriodS: 0.02, tS: t, ownForceN: 3 });
+  let worst = 0;
+  for (let k = 0; k < 400; k++) {
+    s.tick((t += 0.001));
+    worst = Math.max(worst, Math.abs(s.fMag - 2));
+  }
+  assert.ok(worst < 0.02, `the force strayed ${worst} N from 2 N`);
+});
+
+test("compensated designs arriving mid-slide keep a held press steady", () => {
+  const F = 3;
+  const { s, at } = compensatedServo(F);
+  const design = (k, hold) => ({ k_h: k, own_gain: 1 / k, proxy_hold: hold, source: "t" });
+  s.setPatch({ prim: at(580), tick: 1, gains: design(580, "zoh"), simPeriodS: 0.02, tS: 0, ownForceN: F });
+  let t = 0;
+  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  let worst = 0;
+  let tick = 2;
+  for (const k of [67, 934, 200, 580, 67, 400]) {
+    s.setPatch({ prim: at(k), tick: tick++, gains: design(k, "foh"), simPeriodS: 0.02, tS: t, ownForceN: F });
+    for (let i = 0; i < 7; i++) {
+      s.tick((t += 0.001));
+      worst = Math.max(worst, Math.abs(s.fMag - F));
+    }
+  }
+  for (let i = 0; i < 300; i++) {
+    s.tick((t += 0.001));
+    worst = Math.max(worst, Math.abs(s.fMag - F));
+  }
+  assert.ok(worst < 0.01 * F, `the force strayed ${worst} N from ${F} N`);
+});
+
+for (const hold of ["zoh", "foh"]) {
+  test(`a probe leaving during the slide is not pushed again (${hold})`, () => {
+    // C_h rose (580 -> 67 N/m): the slide holds the surface back while the probe is withdrawn
+    // at 0.5 m/s; dropped with the contact, it put the surface out at once, into the probe
+    const F = 3;
+    const { s, device, at } = compensatedServo(F);
+    const design = (k, h) => ({ k_h: k, own_gain: 1 / k, proxy_hold: h, source: "t" });
+    s.setPatch({ prim: at(580), tick: 1, gains: design(580, "zoh"), simPeriodS: 0.02, tS: 0, ownForceN: F });
+    let t = 0;
+    for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+    s.setPatch({ prim: at(67), tick: 2, gains: design(67, hold), simPeriodS: 0.02, tS: t, ownForceN: F });
+    const forces = [];
+    for (let k = 0; k < 300; k++) {
+      device.x = [0, 0, device.x[2] + 0.0005];
+      s.tick((t += 0.001));
+      forces.push(s.fMag);
+    }
+    const left = forces.findIndex((f) => f === 0);
+    assert.ok(left > 0 && Math.max(...forces.slice(left)) === 0, `pushed again: ${Math.max(...forces.slice(left))} N`);
+  });
+}
+
 test("a declared damper goes into hello and bounds the recommended B_h", () => {
   const dev = { profile: "js-sim", maxForceN: 7.9, maxStiffnessNPerM: 1000, maxDampingNsPerM: 10 };
   const h = helloMessage({ name: "A", device: dev, servoRateHz: 1000, localModel: "p" });
