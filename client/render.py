@@ -26,7 +26,8 @@ Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
   starts from the old surface with the new compensation, so it carries the surface's motion alone
   (carrying the change of C_h too, on top of the transfer force of the K_h step, it rendered
   5.45 N for a held 3 N). Out of contact a slide that deepens the surface ends; one that holds it
-  back runs on (dropped, it would put the surface out at once, into a retreating probe). A
+  back holds it no further back than the probe has left (dropped, it would put the surface out
+  at once, into a retreating probe; kept whole, a returning probe met the surface deep inside). A
   transfer *force* would not do: the compensated probe rests on the object's own surface, which
   is where the surface lands when the compensation is withdrawn, so the contact would end on the
   next tick and the transfer with it (measured in the two-user demo: a resting user's 0.28 N fell
@@ -217,6 +218,7 @@ class LocalRenderer:
             # whatever the new design: 0.21 N in one tick, a press into the stiffening object)
             step = (self.own_gain - patch.own_gain) * self._own_force_n
             self._off += step
+            self._off_used += step  # not a decrement: a second patch before the next tick
             if self._prim_old is not None:
                 self._hold_comp = -step
             # linearly to zero over the transfer time from now (patches without a change of
@@ -292,12 +294,13 @@ class LocalRenderer:
         lm = self.model
         f = lm.step(e, v_in)
         in_contact = lm.in_contact
-        if not in_contact and off > 0.0:
+        if not in_contact and off != 0.0:
             # a slide that deepens the surface ends with the contact (as the model's transfer
-            # force); one that holds it back (C_h rose) runs on: dropped, it put the surface
-            # |off| out at once, into a retreating probe (3 N held at 580 N/m handed to 67
-            # N/m, retracted at 0.5 m/s: 2.06 N, 0, then 2.0 N again)
-            self._off = 0.0
+            # force). One that holds it back (C_h rose) holds it back no further than the probe
+            # has left: dropped, it put the surface out at once, into a retreating probe (3 N
+            # held at 580 N/m handed to 67 N/m, retracted at 0.5 m/s: 2.53 N, 0, then 2.46 N
+            # again); kept whole, the probe met the surface 12.5 mm deep on its way back
+            self._off = 0.0 if off > 0.0 else min(0.0, max(self._off, off - e))
         u = self._u + self._a_u * (v_in - self._u)
         self._u = u
         if in_contact:

@@ -383,6 +383,7 @@ def simulate(
                     pending = off_e - off_used  # the slide's next decrement, already taken
                     c_step = np.where(slide, (own_now - og) * f_s_last, 0.0)
                     off_e = off_e + c_step
+                    off_used = off_used + c_step  # not a decrement (the client's two patches)
                     p_old = np.where(slide & fg, p_old + c_step, p_old)
                     f_s_last = np.where(re_gain, np.maximum(got[:, 2], 0.0), f_s_last)
                     off_step = np.where(slide, off_e * per_tick, off_step)
@@ -426,8 +427,9 @@ def simulate(
         if any_follow:
             b_use = np.where(contact, b_tr, 0.0)
             b_tr = np.where(contact, _ramp_down(b_tr, b_tr_step), 0.0)
-            # out of contact a slide that deepens the surface ends, one holding it back runs on
-            off_e = np.where(contact | (off_e < 0.0), off_e, 0.0)
+            # out of contact a slide that deepens the surface ends; one holding it back holds it
+            # no further back than the probe has left (client.render.LocalRenderer.render)
+            off_e = np.where(contact, off_e, np.minimum(0.0, np.maximum(off_e, off_used - e)))
             f_lm = np.where(contact, np.maximum(k_eff * e + s + b_use, 0.0), s)
         else:
             f_lm = np.where(contact, np.maximum(k_eff * e + s, 0.0), s)

@@ -343,7 +343,7 @@ def test_compensated_designs_arriving_mid_slide_keep_a_held_press_steady() -> No
 def test_a_probe_leaving_during_the_slide_is_not_pushed_again(hold: str) -> None:
     # C_h rose (580 -> 67 N/m, C_h K_h = 1): the slide holds the surface back, and the probe is
     # withdrawn at 0.5 m/s meanwhile. Dropped with the contact, the slide put the surface tens
-    # of mm out at once, into the retreating probe: 2.06 N, 0, then 2.0 N again
+    # of mm out at once, into the retreating probe: 2.53 N, 0, then 2.46 N again
     F = 3.0
     rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
     rd.hand_over(_compensated_design(580.0, F, 0.001), fresh=True)
@@ -356,3 +356,39 @@ def test_a_probe_leaving_during_the_slide_is_not_pushed_again(hold: str) -> None
         z = z_next
     left = next(i for i, pf in enumerate(f) if pf == 0.0)
     assert max(f[left:]) == 0.0
+
+
+def test_two_patches_between_ticks_keep_a_held_press_steady() -> None:
+    # the JS client's worker hands over every queued patch before its next tick: the second
+    # change of C_h took the first one's step of the surface for the slide's pending decrement
+    # and carried a K_h step of it off (a held 3 N rose to 13 N)
+    F = 3.0
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
+    rd.hand_over(_compensated_design(580.0, F, 0.001), fresh=True)
+    still(rd, -0.001, 5)
+    rd.hand_over(_compensated_design(67.0, F, 0.001, "foh"), fresh=False)
+    rd.hand_over(_compensated_design(400.0, F, 0.001), fresh=False)
+    f = [pf for pf, _ in still(rd, -0.001, 300)]
+    assert max(abs(pf - F) for pf in f) < 0.01 * F
+
+
+def test_a_probe_coming_back_meets_the_surface_where_it_is() -> None:
+    # C_h rose (580 -> 67 N/m) and the probe left at 0.5 m/s; then the object, released, is at
+    # rest (F_s = 0) and the probe comes back at 0.1 m/s. The slide that held the surface back
+    # holds it no further back than the probe has gone: kept whole, the probe met the surface
+    # 12.5 mm deep
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
+    rd.hand_over(_compensated_design(580.0, 3.0, 0.001), fresh=True)
+    still(rd, -0.001, 5)
+    rd.hand_over(_compensated_design(67.0, 3.0, 0.001), fresh=False)
+    z = -0.001
+    for _ in range(40):
+        rd.render(0.0, 0.0, z + 0.5 * T, 0.0, 0.0, 0.5 * T)
+        z += 0.5 * T
+    rd.hand_over(_compensated_design(67.0, 0.0, 0.0), fresh=False)  # at rest, z = 0
+    while True:
+        f, *_ = rd.render(0.0, 0.0, z - 0.1 * T, 0.0, 0.0, -0.1 * T)
+        z -= 0.1 * T
+        if f > 0.0:
+            break
+    assert -z < 2e-4  # the first force within 0.2 mm of the object's surface

@@ -37,6 +37,8 @@ from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
 
 SERVO_HZ = 1000.0
+#: a tap deep enough to leave the object and come back, through cells whose C_h rises and falls
+LEAVING = replace(TAP, name="leaving tap", sine_amplitude_m=14e-3, sine_hz=3.0)
 FMAX = DeviceModel().max_force_n
 
 
@@ -153,7 +155,9 @@ def _mixed_table(seed: int) -> dict[int, GainDesign]:
 
 
 @pytest.mark.parametrize("seed", [1, 2])
-@pytest.mark.parametrize(("traj", "rate", "delay_ms"), [(PRESS, 20.0, 0.0), (TAP, 50.0, 20.0)])
+@pytest.mark.parametrize(
+    ("traj", "rate", "delay_ms"), [(PRESS, 20.0, 0.0), (TAP, 50.0, 20.0), (LEAVING, 20.0, 0.0)]
+)
 def test_the_simulators_local_model_renders_what_the_client_renders(
     seed: int, traj: Trajectory, rate: float, delay_ms: float
 ) -> None:

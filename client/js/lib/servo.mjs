@@ -183,7 +183,8 @@ export class LocalModel {
    * driven linearly to zero over `transferS` (0: the force steps as eq. 12 says). With own-force
    * compensation (own_gain > 0) the integral is handed to the transfer force instead: the
    * compensation carries the force the object holds, an integral beside it would push for ever.
-   * `carryN` [N]: the step of a force the caller adds to e, carried off with it.
+   * `carryN` [N]: a further force step to carry off (the K_h step of a depth the caller adds to
+   * e, as the own-force slide's next decrement).
    */
   setGains({ k_h, i_gain = 0, b_h = 0, theta_m = 0, own_gain = 0 }, carryN = 0) {
     const kOld = this.kH;
@@ -210,6 +211,7 @@ export class LocalModel {
   reset() {
     this.s = 0;
     this.b = 0;
+    this._lastE = 0; // and the contact (as shared/local_model.py's reset)
     this._bleeding = false;
   }
 
@@ -407,6 +409,7 @@ export class Servo {
       // at the last patch's F_s: the change of F_s since is the new design's to render
       cStep = (this._ownGain - cNew) * this._ownForceN;
       this._off += cStep;
+      this._offUsed += cStep; // not a decrement: a second patch before the next tick
       this._offRate = this._off / transferS;
     }
     this._ownGain = cNew;
@@ -480,9 +483,14 @@ export class Servo {
       const eDot = -dot(this._vFilt, n);
       if (this.g > 0) f = this.model.step(e, eDot, dt);
       else this.model.reset(); // forces withheld: no integral winds up
-      // out of contact a slide that deepens the surface ends; one that holds it back runs on
-      // (dropped, it put the surface out at once, into a retreating probe: client/render.py)
-      if ((!(e > 0) || this.g <= 0) && this._off > 0) this._off = 0;
+      // forces withheld: no slide (the Python client's reset). Out of contact a slide that
+      // deepens the surface ends; one that holds it back holds it no further back than the
+      // probe has left (dropped, it put the surface out at once, into a retreating probe; kept
+      // whole, the probe met the surface deep inside on its way back: client/render.py)
+      if (this.g <= 0) this._off = 0;
+      else if (!(e > 0) && this._off !== 0) {
+        this._off = this._off > 0 ? 0 : Math.min(0, Math.max(this._off, off - e));
+      }
     }
     f = Math.min(f, this.maxForceN) * this.g;
     this.fMag = f;

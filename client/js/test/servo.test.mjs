@@ -332,6 +332,48 @@ for (const hold of ["zoh", "foh"]) {
   });
 }
 
+test("two patches between ticks keep a held press steady", () => {
+  // the worker hands over every queued patch before its next tick: the second change of C_h
+  // took the first one's surface step for the slide's pending decrement (3 N rose to 7.9 N)
+  const F = 3;
+  const { s, at } = compensatedServo(F);
+  const design = (k, hold) => ({ k_h: k, own_gain: 1 / k, proxy_hold: hold, source: "t" });
+  s.setPatch({ prim: at(580), tick: 1, gains: design(580, "zoh"), simPeriodS: 0.02, tS: 0, ownForceN: F });
+  let t = 0;
+  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  s.setPatch({ prim: at(67), tick: 2, gains: design(67, "foh"), simPeriodS: 0.02, tS: t, ownForceN: F });
+  s.setPatch({ prim: at(400), tick: 3, gains: design(400, "zoh"), simPeriodS: 0.02, tS: t, ownForceN: F });
+  let worst = 0;
+  for (let k = 0; k < 300; k++) {
+    s.tick((t += 0.001));
+    worst = Math.max(worst, Math.abs(s.fMag - F));
+  }
+  assert.ok(worst < 0.01 * F, `the force strayed ${worst} N from ${F} N`);
+});
+
+test("a probe coming back meets the surface where it is", () => {
+  // C_h rose (580 -> 67 N/m), the probe left at 0.5 m/s; the object, released, is at rest and
+  // the probe comes back at 0.1 m/s: the first force within 0.2 mm of the object's surface
+  const F = 3;
+  const { s, device, at } = compensatedServo(F);
+  const design = (k) => ({ k_h: k, own_gain: 1 / k, proxy_hold: "zoh", source: "t" });
+  s.setPatch({ prim: at(580), tick: 1, gains: design(580), simPeriodS: 0.02, tS: 0, ownForceN: F });
+  let t = 0;
+  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  s.setPatch({ prim: at(67), tick: 2, gains: design(67), simPeriodS: 0.02, tS: t, ownForceN: F });
+  for (let k = 0; k < 40; k++) {
+    device.x = [0, 0, device.x[2] + 0.0005];
+    s.tick((t += 0.001));
+  }
+  const rest = primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, 0], normal: [0, 0, 1] } });
+  s.setPatch({ prim: rest, tick: 3, gains: design(67), simPeriodS: 0.02, tS: t, ownForceN: 0 });
+  for (let k = 0; k < 1000 && s.fMag === 0; k++) {
+    device.x = [0, 0, device.x[2] - 0.0001];
+    s.tick((t += 0.001));
+  }
+  assert.ok(s.fMag > 0 && -device.x[2] < 2e-4, `the first force at ${-device.x[2]} m deep`);
+});
+
 test("a declared damper goes into hello and bounds the recommended B_h", () => {
   const dev = { profile: "js-sim", maxForceN: 7.9, maxStiffnessNPerM: 1000, maxDampingNsPerM: 10 };
   const h = helloMessage({ name: "A", device: dev, servoRateHz: 1000, localModel: "p" });
