@@ -18,9 +18,9 @@ Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
 - the LocalModel keeps its integral state; the gain change's force step (K_h and the damper's
   (B_h,old - B_h,new) * u) is carried off by the model's gain transfer
   (``set_gains(..., carry_n=...)``);
-- a change of own-force compensation C_h in contact moves the rendered surface by
-  (C_h,old - C_h,new) F_s at once, F_s the last patch's own force (the change of F_s since is the
-  new design's to render): that step is added to the penetration and driven to zero over the same
+- a change of own-force compensation C_h in contact (out of contact, a rise of it) moves the
+  rendered surface by (C_h,old - C_h,new) F_s at once, F_s the last patch's own force (the change
+  of F_s since is the new design's to render): that step is added to the penetration and driven to zero over the same
   transfer time, so the surface recedes (or comes out) gradually, and the K_h step of its next
   decrement is carried off with the gains'. With ``foh`` the slide over the simulation period
   starts from the old surface with the new compensation, so it carries the surface's motion alone
@@ -212,10 +212,14 @@ class LocalRenderer:
         transfer = self.model.params.gain_transfer_s
         if fresh or transfer <= 0.0:
             self._off = 0.0
-        elif patch.own_gain != self.own_gain and self.model.in_contact:
+        elif patch.own_gain != self.own_gain and (
+            self.model.in_contact or patch.own_gain > self.own_gain
+        ):
             # at the last patch's F_s: the change of F_s since is the new design's to render
             # with its own hold and C_h (at this F_s a zero-order hold stepped by C_h,old dF_s
-            # whatever the new design: 0.21 N in one tick, a press into the stiffening object)
+            # whatever the new design: 0.21 N in one tick, a press into the stiffening object).
+            # Out of contact only a rise of C_h slides (it moves the surface out, toward the
+            # probe that just left; render holds it no further back than the probe)
             step = (self.own_gain - patch.own_gain) * self._own_force_n
             self._off += step
             self._off_used += step  # not a decrement: a second patch before the next tick

@@ -379,7 +379,9 @@ def simulate(
                     # a change of C_h slides in over the transfer time whatever the hold, at
                     # the last patch's F_s; a first-order hold slides from the old surface with
                     # the new compensation
-                    slide = re_gain & was_contact & (transfer_s > 0.0) & (og != own_now)
+                    # (out of contact only a rise of C_h, which moves the surface out)
+                    slide = re_gain & (was_contact | (og > own_now)) & (transfer_s > 0.0)
+                    slide &= og != own_now
                     pending = off_e - off_used  # the slide's next decrement, already taken
                     c_step = np.where(slide, (own_now - og) * f_s_last, 0.0)
                     off_e = off_e + c_step

@@ -392,3 +392,19 @@ def test_a_probe_coming_back_meets_the_surface_where_it_is() -> None:
         if f > 0.0:
             break
     assert -z < 2e-4  # the first force within 0.2 mm of the object's surface
+
+
+def test_a_rise_of_compensation_out_of_contact_does_not_jump_into_the_probe() -> None:
+    # the probe has just left a 3 N press (580 N/m, C_h K_h = 1) by 0.8 mm when the next cell's
+    # design (67 N/m) arrives, its F_s still the delayed 3 N: its surface is 39 mm further out.
+    # It used to land there at once, 38.8 mm into the probe (2.6 N in one tick); now it comes
+    # out no faster than the slide
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
+    rd.hand_over(_compensated_design(580.0, 3.0, 0.001), fresh=True)
+    still(rd, -0.001, 5)
+    z = -0.001 + 3.0 / 580.0 + 0.0008  # 0.8 mm outside the compensated surface
+    assert still(rd, z, 3)[-1][0] == 0.0
+    rd.hand_over(_compensated_design(67.0, 3.0, 0.001), fresh=False)
+    f = [pf for pf, _ in still(rd, z, 300)]
+    assert f[0] < 0.02
+    assert max(abs(b - a) for a, b in zip(f, f[1:], strict=False)) < 0.02

@@ -405,7 +405,8 @@ export class Servo {
     // (the model's step is on the last tick's penetration)
     const carry = (this.model.kH - gains.k_h) * (this._off - this._offUsed);
     let cStep = 0; // the change of C_h's step of the surface [m], slid in
-    if (this.prim && cNew !== this._ownGain && this.model.inContact && transferS > 0) {
+    const slides = this.model.inContact || cNew > this._ownGain; // out of contact: a rise only
+    if (this.prim && cNew !== this._ownGain && slides && transferS > 0) {
       // at the last patch's F_s: the change of F_s since is the new design's to render
       cStep = (this._ownGain - cNew) * this._ownForceN;
       this._off += cStep;

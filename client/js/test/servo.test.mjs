@@ -374,6 +374,29 @@ test("a probe coming back meets the surface where it is", () => {
   assert.ok(s.fMag > 0 && -device.x[2] < 2e-4, `the first force at ${-device.x[2]} m deep`);
 });
 
+test("a rise of compensation out of contact does not jump into the probe", () => {
+  // the probe just left a 3 N press (580 N/m) by 0.8 mm; the next design (67 N/m, F_s still 3 N)
+  // puts the surface 39 mm further out: it comes out no faster than the slide (client/render.py)
+  const F = 3;
+  const { s, device, at } = compensatedServo(F);
+  const design = (k) => ({ k_h: k, own_gain: 1 / k, proxy_hold: "zoh", source: "t" });
+  s.setPatch({ prim: at(580), tick: 1, gains: design(580), simPeriodS: 0.02, tS: 0, ownForceN: F });
+  let t = 0;
+  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  device.x = [0, 0, -0.001 + F / 580 + 0.0008];
+  for (let k = 0; k < 3; k++) s.tick((t += 0.001));
+  close(s.fMag, 0);
+  s.setPatch({ prim: at(67), tick: 2, gains: design(67), simPeriodS: 0.02, tS: t, ownForceN: F });
+  let prev = 0;
+  let worst = 0;
+  for (let k = 0; k < 300; k++) {
+    s.tick((t += 0.001));
+    worst = Math.max(worst, Math.abs(s.fMag - prev));
+    prev = s.fMag;
+  }
+  assert.ok(worst < 0.02, `the force stepped by ${worst} N`);
+});
+
 test("a declared damper goes into hello and bounds the recommended B_h", () => {
   const dev = { profile: "js-sim", maxForceN: 7.9, maxStiffnessNPerM: 1000, maxDampingNsPerM: 10 };
   const h = helloMessage({ name: "A", device: dev, servoRateHz: 1000, localModel: "p" });
