@@ -19,19 +19,20 @@ Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
   (B_h,old - B_h,new) * u) is carried off by the model's gain transfer
   (``set_gains(..., carry_n=...)``);
 - a change of own-force compensation C_h in contact (out of contact, a rise of it) moves the
-  rendered surface by (C_h,old - C_h,new) F_s at once, F_s the last patch's own force (the change
-  of F_s since is the new design's to render): that step is added to the penetration and driven to zero over the same
-  transfer time, so the surface recedes (or comes out) gradually, and the K_h step of its next
-  decrement is carried off with the gains'. With ``foh`` the slide over the simulation period
-  starts from the old surface with the new compensation, so it carries the surface's motion alone
-  (carrying the change of C_h too, on top of the transfer force of the K_h step, it rendered
-  5.45 N for a held 3 N). Out of contact a slide that deepens the surface ends; one that holds it
-  back holds it no further back than the probe has left (dropped, it would put the surface out
-  at once, into a retreating probe; kept whole, a returning probe met the surface deep inside). A
-  transfer *force* would not do: the compensated probe rests on the object's own surface, which
-  is where the surface lands when the compensation is withdrawn, so the contact would end on the
-  next tick and the transfer with it (measured in the two-user demo: a resting user's 0.28 N fell
-  to 0.003 N in one tick when the other touched and the uncoupled gains were withdrawn).
+  rendered surface by (C_h,old - C_h,new) F_s at once, F_s the own force of the patch rendered
+  last (the change of F_s since is the new design's to render): that step is added to the
+  penetration and driven to zero over the same transfer time, so the surface recedes (or comes
+  out) gradually, and the K_h step of its next decrement is carried off with the gains'. With
+  ``foh`` the slide over the simulation period starts from the old surface with the new
+  compensation, so it carries the surface's motion alone (carrying the change of C_h too, on top
+  of the transfer force of the K_h step, it rendered 5.45 N for a held 3 N). Out of contact a
+  slide that deepens the surface ends; one that holds it back holds it no further back than the
+  probe has left (dropped, it would put the surface out at once, into a retreating probe; kept
+  whole, a returning probe met the surface deep inside). A transfer *force* would not do: the
+  compensated probe rests on the object's own surface, which is where the surface lands when the
+  compensation is withdrawn, so the contact would end on the next tick and the transfer with it
+  (measured in the two-user demo: a resting user's 0.28 N fell to 0.003 N in one tick when the
+  other touched and the uncoupled gains were withdrawn).
 
 Difference equations, per servo period T, with the probe's backward difference
 d = x_h(k) - x_h(k-1):
@@ -117,6 +118,7 @@ class LocalRenderer:
         "_off_step",
         "_own_force_n",
         "_off_used",
+        "_fs_rendered",
     )
 
     def __init__(self, params: LocalModelParams, own_force_limit_n: float = math.inf) -> None:
@@ -148,6 +150,7 @@ class LocalRenderer:
         self._off = 0.0  # depth [m] added to e after a change of C_h, driven to zero
         self._own_force_n = 0.0  # F_s [N] the last patch's compensation carried (capped)
         self._off_used = 0.0  # the slide's depth [m] in the last tick's penetration
+        self._fs_rendered = 0.0  # F_s [N] of the patch the last tick rendered (capped)
         self._off_step = 0.0
 
     @property
@@ -205,7 +208,8 @@ class LocalRenderer:
         # stepped a held 3 N by up to 0.2 N)
         carry += (self.k_h - patch.k_h) * (self._off - self._off_used)
         # a change of own-force compensation moved the surface by (C_old - C_new) F_s: it slides
-        # there over the transfer time (module docstring), whatever the hold. A first-order hold
+        # there over the transfer time (module docstring), whatever the hold (out of contact
+        # only a rise of C_h, which moves the surface out). A first-order hold
         # slides from the old surface with the new compensation: its slide over the simulation
         # period carried the change too, and with the K_h step's transfer force on top the force
         # rose by 80 % in one simulation period, the probe still (C_h K_h = 1 at 580 and 67 N/m)
@@ -220,7 +224,9 @@ class LocalRenderer:
             # whatever the new design: 0.21 N in one tick, a press into the stiffening object).
             # Out of contact only a rise of C_h slides (it moves the surface out, toward the
             # probe that just left; render holds it no further back than the probe)
-            step = (self.own_gain - patch.own_gain) * self._own_force_n
+            # (the F_s of the last tick's patch: with two patches before a tick the first one's
+            # was never rendered, and JS's worker hands over every queued patch: 8.9 N for 1.2)
+            step = (self.own_gain - patch.own_gain) * self._fs_rendered
             self._off += step
             self._off_used += step  # not a decrement: a second patch before the next tick
             if self._prim_old is not None:
@@ -289,6 +295,7 @@ class LocalRenderer:
                 e = e_old + (e - e_old) * (hi / self._hold_n)
         off = self._off
         self._off_used = off
+        self._fs_rendered = self._own_force_n
         if off != 0.0:  # a change of C_h, sliding in (hand_over)
             e += off
             nxt = off - self._off_step
@@ -303,7 +310,7 @@ class LocalRenderer:
             # force). One that holds it back (C_h rose) holds it back no further than the probe
             # has left: dropped, it put the surface out at once, into a retreating probe (3 N
             # held at 580 N/m handed to 67 N/m, retracted at 0.5 m/s: 2.53 N, 0, then 2.46 N
-            # again); kept whole, the probe met the surface 12.5 mm deep on its way back
+            # again); kept whole, a probe coming back met the surface 1.3-12.5 mm deep
             self._off = 0.0 if off > 0.0 else min(0.0, max(self._off, off - e))
         u = self._u + self._a_u * (v_in - self._u)
         self._u = u

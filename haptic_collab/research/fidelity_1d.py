@@ -385,7 +385,6 @@ def simulate(
                     pending = off_e - off_used  # the slide's next decrement, already taken
                     c_step = np.where(slide, (own_now - og) * f_s_last, 0.0)
                     off_e = off_e + c_step
-                    off_used = off_used + c_step  # not a decrement (the client's two patches)
                     p_old = np.where(slide & fg, p_old + c_step, p_old)
                     f_s_last = np.where(re_gain, np.maximum(got[:, 2], 0.0), f_s_last)
                     off_step = np.where(slide, off_e * per_tick, off_step)

@@ -361,7 +361,7 @@ def test_a_probe_leaving_during_the_slide_is_not_pushed_again(hold: str) -> None
 def test_two_patches_between_ticks_keep_a_held_press_steady() -> None:
     # the JS client's worker hands over every queued patch before its next tick: the second
     # change of C_h took the first one's step of the surface for the slide's pending decrement
-    # and carried a K_h step of it off (a held 3 N rose to 13 N)
+    # and carried a K_h step of it off (a held 3 N rose to 16 N)
     F = 3.0
     rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
     rd.hand_over(_compensated_design(580.0, F, 0.001), fresh=True)
@@ -376,7 +376,7 @@ def test_a_probe_coming_back_meets_the_surface_where_it_is() -> None:
     # C_h rose (580 -> 67 N/m) and the probe left at 0.5 m/s; then the object, released, is at
     # rest (F_s = 0) and the probe comes back at 0.1 m/s. The slide that held the surface back
     # holds it no further back than the probe has gone: kept whole, the probe met the surface
-    # 12.5 mm deep
+    # 1.3 mm deep
     rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
     rd.hand_over(_compensated_design(580.0, 3.0, 0.001), fresh=True)
     still(rd, -0.001, 5)
@@ -386,12 +386,13 @@ def test_a_probe_coming_back_meets_the_surface_where_it_is() -> None:
         rd.render(0.0, 0.0, z + 0.5 * T, 0.0, 0.0, 0.5 * T)
         z += 0.5 * T
     rd.hand_over(_compensated_design(67.0, 0.0, 0.0), fresh=False)  # at rest, z = 0
-    while True:
+    f = 0.0
+    for _ in range(1000):
         f, *_ = rd.render(0.0, 0.0, z - 0.1 * T, 0.0, 0.0, -0.1 * T)
         z -= 0.1 * T
         if f > 0.0:
             break
-    assert -z < 2e-4  # the first force within 0.2 mm of the object's surface
+    assert f > 0.0 and -z < 2e-4  # the first force within 0.2 mm of the object's surface
 
 
 def test_a_rise_of_compensation_out_of_contact_does_not_jump_into_the_probe() -> None:
@@ -408,3 +409,20 @@ def test_a_rise_of_compensation_out_of_contact_does_not_jump_into_the_probe() ->
     f = [pf for pf, _ in still(rd, z, 300)]
     assert f[0] < 0.02
     assert max(abs(b - a) for a, b in zip(f, f[1:], strict=False)) < 0.02
+
+
+def test_patches_between_ticks_add_up_to_the_newest_one_alone() -> None:
+    # two patches before one tick, each with its own C_h and F_s: the first was never rendered,
+    # so the change of C_h is taken at the F_s of the patch the last tick rendered, and the two
+    # render as the newest alone would (the first's F_s: 1.55 N went to 8.9 N in one tick)
+    def run(patches: list[LocalModelUpdate]) -> list[float]:
+        rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.25))
+        rd.hand_over(_compensated_design(580.0, 3.0, 0.001), fresh=True)
+        still(rd, -0.001, 5)
+        for p in patches:
+            rd.hand_over(p, fresh=False)
+        return [pf for pf, _ in still(rd, -0.001, 300)]
+
+    newest = _compensated_design(580.0, 5.0, 0.001)
+    both = run([_compensated_design(67.0, 4.0, 0.001), newest])
+    assert both == pytest.approx(run([newest]), abs=1e-9)

@@ -380,6 +380,7 @@ export class Servo {
     this._offRate = 0;
     this._ownForceN = 0; // F_s [N] the last patch's compensation carried
     this._offUsed = 0; // the slide's depth [m] in the last tick's penetration
+    this._fsRendered = 0; // F_s [N] of the patch the last tick rendered
   }
 
   /**
@@ -387,8 +388,8 @@ export class Servo {
    * compensation; `gains` {k_h, i_gain, b_h, theta_m, proxy_hold, own_gain, source};
    * `simPeriodS` the simulation period (for the FOH); `ownForceN` the patch's own_force_n.
    *
-   * A change of own-force compensation moved the surface by (C_old - C_new) * F_s, F_s the last
-   * patch's own force: that step is added to the penetration and driven to zero over the model's
+   * A change of own-force compensation (out of contact, a rise of it) moved the surface by
+   * (C_old - C_new) * F_s, F_s the own force of the patch rendered last: that step is added to the penetration and driven to zero over the model's
    * transfer time, so the surface slides (as client/render.py does). A transfer force would end
    * with the contact, and withdrawing the compensation from a probe resting on the
    * object's own surface puts the rendered surface right under it. With a first-order hold the
@@ -408,7 +409,8 @@ export class Servo {
     const slides = this.model.inContact || cNew > this._ownGain; // out of contact: a rise only
     if (this.prim && cNew !== this._ownGain && slides && transferS > 0) {
       // at the last patch's F_s: the change of F_s since is the new design's to render
-      cStep = (this._ownGain - cNew) * this._ownForceN;
+      // (the last tick's: queued patches handed over together add up to the newest alone)
+      cStep = (this._ownGain - cNew) * this._fsRendered;
       this._off += cStep;
       this._offUsed += cStep; // not a decrement: a second patch before the next tick
       this._offRate = this._off / transferS;
@@ -473,6 +475,7 @@ export class Servo {
       let e = e0;
       const off = this._off;
       this._offUsed = off;
+      this._fsRendered = this._ownForceN;
       if (off !== 0) {
         // a change of C_h, sliding in (setPatch)
         e += off;

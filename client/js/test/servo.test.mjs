@@ -397,6 +397,57 @@ test("a rise of compensation out of contact does not jump into the probe", () =>
   assert.ok(worst < 0.02, `the force stepped by ${worst} N`);
 });
 
+test("patches queued between ticks add up to the newest one alone", () => {
+  // the worker hands over every queued patch before its next tick: the change of C_h is taken
+  // at the F_s of the patch the last tick rendered (the first's F_s: 1.55 N went to 8.9 N)
+  const run = (patches) => {
+    const { s, at } = compensatedServo(3);
+    const design = (k) => ({ k_h: k, own_gain: 1 / k, proxy_hold: "zoh", source: "t" });
+    s.setPatch({ prim: at(580), tick: 1, gains: design(580), simPeriodS: 0.02, tS: 0, ownForceN: 3 });
+    let t = 0;
+    for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+    let tick = 2;
+    for (const [k, f] of patches) {
+      const prim = movedOut(primitiveFromPatch({ primitive: { kind: "plane", point: [0, 0, -0.001], normal: [0, 0, 1] } }), f / k);
+      s.setPatch({ prim, tick: tick++, gains: design(k), simPeriodS: 0.02, tS: t, ownForceN: f });
+    }
+    const out = [];
+    for (let k = 0; k < 300; k++) {
+      s.tick((t += 0.001));
+      out.push(s.fMag);
+    }
+    return out;
+  };
+  const both = run([[67, 4], [580, 5]]);
+  const newest = run([[580, 5]]);
+  for (let k = 0; k < both.length; k++) close(both[k], newest[k], 1e-9);
+});
+
+test("forces withheld end the slide and forget the contact", () => {
+  // a link loss ramps the force to zero: no slide and no transfer force from the old contact
+  // are left for the patch that comes after it (as the Python client's reset)
+  const F = 3;
+  const { at } = compensatedServo(F);
+  const device = { x: [0, 0, -0.001], advance() {}, write() {} };
+  const s = new Servo({ device, linkTimeoutS: 0.02, rampS: 0.01 });
+  const design = (k) => ({ k_h: k, own_gain: 1 / k, proxy_hold: "zoh", source: "t" });
+  let t = 0;
+  s.setPatch({ prim: at(580), tick: 1, gains: design(580), simPeriodS: 0.02, tS: t, ownForceN: F });
+  for (let k = 0; k < 300; k++) {
+    if (k % 10 === 0) s.setPatch({ prim: at(580), tick: 1 + k, gains: design(580), simPeriodS: 0.02, tS: t, ownForceN: F });
+    s.tick((t += 0.001));
+  }
+  s.setPatch({ prim: at(67), tick: 400, gains: design(67), simPeriodS: 0.02, tS: t, ownForceN: F });
+  s.tick((t += 0.001));
+  assert.ok(s._off < 0 && s.model.b !== 0); // a slide and a transfer force under way
+  while (s.g > 0) s.tick((t += 0.001)); // the link falls silent: the force ramps to zero
+  s.tick((t += 0.001));
+  assert.ok(t < 0.35, "withheld before the slide's own end");
+  assert.equal(s._off, 0);
+  assert.equal(s.model.inContact, false);
+  assert.equal(s.model.b, 0);
+});
+
 test("a declared damper goes into hello and bounds the recommended B_h", () => {
   const dev = { profile: "js-sim", maxForceN: 7.9, maxStiffnessNPerM: 1000, maxDampingNsPerM: 10 };
   const h = helloMessage({ name: "A", device: dev, servoRateHz: 1000, localModel: "p" });
