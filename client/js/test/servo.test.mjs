@@ -265,6 +265,18 @@ function compensatedServo(F) {
   return { s, device, at: (k) => movedOut(plane, F / k) };
 }
 
+/** A compensated design (C_h K_h = 1). */
+const compDesign = (k, hold = "zoh") => ({ k_h: k, own_gain: 1 / k, proxy_hold: hold, source: "t" });
+
+/** F [N] held at 580 N/m for 0.3 s, the probe still on the object's surface 1 mm deep. */
+function heldPress(F) {
+  const { s, device, at } = compensatedServo(F);
+  s.setPatch({ prim: at(580), tick: 1, gains: compDesign(580), simPeriodS: 0.02, tS: 0, ownForceN: F });
+  let t = 0;
+  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  return { s, device, at, t };
+}
+
 test("a new design steps the force as it would itself at the new own force", () => {
   // a 500 N/m spring pressed with 2 N under K_h 250 N/m; the next patch brings K_h = K_o and the
   // surface under 3 N. The change of C_h slides in at the last patch's 2 N: the change of F_s is
@@ -289,11 +301,10 @@ test("a new design steps the force as it would itself at the new own force", () 
 
 test("compensated designs arriving mid-slide keep a held press steady", () => {
   const F = 3;
-  const { s, at } = compensatedServo(F);
-  const design = (k, hold) => ({ k_h: k, own_gain: 1 / k, proxy_hold: hold, source: "t" });
-  s.setPatch({ prim: at(580), tick: 1, gains: design(580, "zoh"), simPeriodS: 0.02, tS: 0, ownForceN: F });
-  let t = 0;
-  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  const design = compDesign;
+  const held = heldPress(F);
+  const { s, at } = held;
+  let { t } = held;
   let worst = 0;
   let tick = 2;
   for (const k of [67, 934, 200, 580, 67, 400]) {
@@ -315,11 +326,10 @@ for (const hold of ["zoh", "foh"]) {
     // C_h rose (580 -> 67 N/m): the slide holds the surface back while the probe is withdrawn
     // at 0.5 m/s; dropped with the contact, it put the surface out at once, into the probe
     const F = 3;
-    const { s, device, at } = compensatedServo(F);
-    const design = (k, h) => ({ k_h: k, own_gain: 1 / k, proxy_hold: h, source: "t" });
-    s.setPatch({ prim: at(580), tick: 1, gains: design(580, "zoh"), simPeriodS: 0.02, tS: 0, ownForceN: F });
-    let t = 0;
-    for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+    const design = compDesign;
+    const held = heldPress(F);
+    const { s, device, at } = held;
+    let { t } = held;
     s.setPatch({ prim: at(67), tick: 2, gains: design(67, hold), simPeriodS: 0.02, tS: t, ownForceN: F });
     const forces = [];
     for (let k = 0; k < 300; k++) {
@@ -336,11 +346,10 @@ test("two patches between ticks keep a held press steady", () => {
   // the worker hands over every queued patch before its next tick: the second change of C_h
   // took the first one's surface step for the slide's pending decrement (3 N rose to 7.9 N)
   const F = 3;
-  const { s, at } = compensatedServo(F);
-  const design = (k, hold) => ({ k_h: k, own_gain: 1 / k, proxy_hold: hold, source: "t" });
-  s.setPatch({ prim: at(580), tick: 1, gains: design(580, "zoh"), simPeriodS: 0.02, tS: 0, ownForceN: F });
-  let t = 0;
-  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  const design = compDesign;
+  const held = heldPress(F);
+  const { s, at } = held;
+  let { t } = held;
   s.setPatch({ prim: at(67), tick: 2, gains: design(67, "foh"), simPeriodS: 0.02, tS: t, ownForceN: F });
   s.setPatch({ prim: at(400), tick: 3, gains: design(400, "zoh"), simPeriodS: 0.02, tS: t, ownForceN: F });
   let worst = 0;
@@ -355,11 +364,10 @@ test("a probe coming back meets the surface where it is", () => {
   // C_h rose (580 -> 67 N/m), the probe left at 0.5 m/s; the object, released, is at rest and
   // the probe comes back at 0.1 m/s: the first force within 0.2 mm of the object's surface
   const F = 3;
-  const { s, device, at } = compensatedServo(F);
-  const design = (k) => ({ k_h: k, own_gain: 1 / k, proxy_hold: "zoh", source: "t" });
-  s.setPatch({ prim: at(580), tick: 1, gains: design(580), simPeriodS: 0.02, tS: 0, ownForceN: F });
-  let t = 0;
-  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  const design = compDesign;
+  const held = heldPress(F);
+  const { s, device, at } = held;
+  let { t } = held;
   s.setPatch({ prim: at(67), tick: 2, gains: design(67), simPeriodS: 0.02, tS: t, ownForceN: F });
   for (let k = 0; k < 40; k++) {
     device.x = [0, 0, device.x[2] + 0.0005];
@@ -378,11 +386,10 @@ test("a rise of compensation out of contact does not jump into the probe", () =>
   // the probe just left a 3 N press (580 N/m) by 0.8 mm; the next design (67 N/m, F_s still 3 N)
   // puts the surface 39 mm further out: it comes out no faster than the slide (client/render.py)
   const F = 3;
-  const { s, device, at } = compensatedServo(F);
-  const design = (k) => ({ k_h: k, own_gain: 1 / k, proxy_hold: "zoh", source: "t" });
-  s.setPatch({ prim: at(580), tick: 1, gains: design(580), simPeriodS: 0.02, tS: 0, ownForceN: F });
-  let t = 0;
-  for (let k = 0; k < 300; k++) s.tick((t += 0.001));
+  const design = compDesign;
+  const held = heldPress(F);
+  const { s, device, at } = held;
+  let { t } = held;
   device.x = [0, 0, -0.001 + F / 580 + 0.0008];
   for (let k = 0; k < 3; k++) s.tick((t += 0.001));
   close(s.fMag, 0);
