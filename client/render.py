@@ -208,24 +208,23 @@ class LocalRenderer:
         # stepped a held 3 N by up to 0.2 N)
         carry += (self.k_h - patch.k_h) * (self._off - self._off_used)
         # a change of own-force compensation moved the surface by (C_old - C_new) F_s: it slides
-        # there over the transfer time (module docstring), whatever the hold (out of contact
-        # only a rise of C_h, which moves the surface out). A first-order hold
-        # slides from the old surface with the new compensation: its slide over the simulation
-        # period carried the change too, and with the K_h step's transfer force on top the force
-        # rose by 80 % in one simulation period, the probe still (C_h K_h = 1 at 580 and 67 N/m)
+        # there over the transfer time (module docstring), whatever the hold; out of contact only
+        # a rise of C_h, which moves the surface out toward a probe that just left (render holds
+        # it no further back than the probe). A first-order hold slides from the old surface with
+        # the new compensation: its slide over the simulation period carried the change too, and
+        # with the K_h step's transfer force on top the force rose by 80 % in one simulation
+        # period, the probe still (C_h K_h = 1 at 580 and 67 N/m)
         transfer = self.model.params.gain_transfer_s
         if fresh or transfer <= 0.0:
             self._off = 0.0
         elif patch.own_gain != self.own_gain and (
             self.model.in_contact or patch.own_gain > self.own_gain
         ):
-            # at the last patch's F_s: the change of F_s since is the new design's to render
-            # with its own hold and C_h (at this F_s a zero-order hold stepped by C_h,old dF_s
-            # whatever the new design: 0.21 N in one tick, a press into the stiffening object).
-            # Out of contact only a rise of C_h slides (it moves the surface out, toward the
-            # probe that just left; render holds it no further back than the probe)
-            # (the F_s of the last tick's patch: with two patches before a tick the first one's
-            # was never rendered, and JS's worker hands over every queued patch: 8.9 N for 1.2)
+            # at the F_s of the patch the last tick rendered: the change of F_s since is the new
+            # design's to render with its own hold and C_h (at the new F_s a zero-order hold
+            # stepped by C_h,old dF_s whatever the new design: 0.21 N in one tick, a press into
+            # the stiffening object), and patches handed over between two ticks add up to the
+            # newest one alone (JS's worker hands over every queued patch: 8.9 N for 1.2)
             step = (self.own_gain - patch.own_gain) * self._fs_rendered
             self._off += step
             self._off_used += step  # not a decrement: a second patch before the next tick
