@@ -322,6 +322,10 @@ class GainSearch:
             if scale == 1.0
             else k_o_points(scale * self.lo, max(self.hi, scale * self.k_o))
         )
+        if not ks[part]:
+            # a range of one K_o' (no margin either way) has no points past the first: none fails
+            g = cand["k_h"].shape[0]
+            return np.zeros(g), np.zeros(g)
         return _worst_rho(
             cand,
             hold,

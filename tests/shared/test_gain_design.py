@@ -225,6 +225,23 @@ def test_design_without_a_damper_never_uses_one() -> None:
     assert d.k_h < 1000.0
 
 
+@pytest.mark.parametrize("rate", [20.0, 100.0])
+def test_with_no_model_error_allowed_the_design_is_the_objects_own_plane(rate: float) -> None:
+    # a range of one K_o' (no margin, not stiffer) once crashed the check of the range's other
+    # points ("zero-size array"); with the object known exactly the most transparent stable
+    # design is model-mediated teleoperation's plane: K_h = K_o, C_h K_h = 1, no damper, felt
+    # as the object at every frequency of the band
+    d = design_gains(
+        300.0, sim_rate_hz=rate, mode="p", margin=0.0, own_force=True, k_h_max=K_H_MAX,
+        b_h_max=B_H_MAX,
+    )  # fmt: skip
+    assert d.k_o_range == (300.0, 300.0)
+    assert d.k_h == pytest.approx(300.0) and d.own_gain * d.k_h == pytest.approx(1.0)
+    assert d.b_h == 0.0
+    assert d.felt_stiffness_ratio_8hz == pytest.approx(1.0, abs=1e-6)
+    assert d.worst_spectral_radius < d.rho_limit
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [
