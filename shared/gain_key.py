@@ -128,6 +128,11 @@ def loop_delay_ticks(round_trip_s: float, state_age_s: float, sim_rate_hz: float
 #: fraction stiffer than the K_o reported (docs/fidelity.md: objects the design did not see).
 STIFFER_BY = 0.25
 
+#: The product's design margin: its clients' designs hold on an object this fraction softer than
+#: the bottom of the cell (the paper's advice to design for a lower K_o than reported;
+#: ``ClientSession.margin``, ``GainAdvisor.margin``).
+DESIGN_MARGIN = 0.15
+
 #: Ratio between neighbouring K_o grid points of a :class:`GainTable`.
 K_O_GRID_RATIO = 1.1
 

@@ -77,7 +77,7 @@ from haptic_collab.research.fidelity_schemes import (
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
 from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY, GainKey
 from haptic_collab.shared.gain_table import GainTable, design_cell
 
 __all__ = [
@@ -176,18 +176,27 @@ FIDELITY_MESHES_3D = ("box", "plate", "torus", "fem:box")
 
 
 def _gain_key(
-    mode: str, sim_rate_hz: float, delay_ms: float, device: DeviceModel, b_o: float = 0.0
+    mode: str,
+    sim_rate_hz: float,
+    delay_ms: float,
+    device: DeviceModel,
+    b_o: float = 0.0,
+    *,
+    margin: float = DESIGN_MARGIN,
+    stiffer_by: float = STIFFER_BY,
 ) -> GainKey:
-    """The key the product's client builds: B_o [N/m] quantized down as ``make_gain_key`` does."""
+    """The key the product's client builds: B_o [N/m] quantized down as ``make_gain_key`` does;
+    ``margin`` and ``stiffer_by`` the product's unless a run asks for others (``run``)."""
     return GainKey(
         servo_rate_hz=_SERVO_RATE_HZ,
         sim_rate_hz=sim_rate_hz,
         delay_ticks=design_delay_ticks(delay_ms * 1e-3, sim_rate_hz),
         mode="pi" if mode == "pi" else "p",
-        margin=0.15,
+        margin=margin,
         k_h_max=device.max_stiffness_n_per_m,
         b_h_max=device.max_damping_n_s_per_m,
         b_o=float(math.floor(max(0.0, b_o))),
+        stiffer_by=stiffer_by,
     )
 
 
@@ -276,6 +285,8 @@ def run(
     log: Any = None,
     design_cache: dict[tuple[str, GainKey, float], GainDesign] | None = None,
     design_reached: bool = False,
+    design_margin: float = DESIGN_MARGIN,
+    design_stiffer_by: float = STIFFER_BY,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the ``--json`` document.
 
@@ -311,6 +322,12 @@ def run(
         them the local models render the nearest designed cell below
         (:meth:`shared.gain_table.GainTable.fallback`), as the client does while such a cell is
         being designed.
+    design_margin, design_stiffer_by : float
+        The local models' design range, as fractions of the K_o reported: their gains are checked
+        on objects from ``1 - design_margin`` times the bottom of the cell to ``1 +
+        design_stiffer_by`` times its top (:class:`shared.gain_key.GainKey`). The product's
+        (0.15, 0.25) by default; narrower, they measure what knowing the object's stiffness that
+        well would buy on the spring, and what it costs on the objects the design did not see.
 
     Returns
     -------
@@ -331,6 +348,11 @@ def run(
     for s in schemes:
         if s not in SCHEMES:
             raise ValueError(f"unknown scheme {s!r}; expected one of {', '.join(SCHEMES)}")
+    if not (math.isfinite(design_margin) and 0.0 <= design_margin < 1.0):
+        raise ValueError(f"design_margin must be in [0, 1), got {design_margin!r}")
+    if not (math.isfinite(design_stiffer_by) and design_stiffer_by >= 0.0):
+        raise ValueError(f"design_stiffer_by must be finite and >= 0, got {design_stiffer_by!r}")
+    key_range = {"margin": design_margin, "stiffer_by": design_stiffer_by}
     g = grid if grid is not None else (QUICK_GRID if quick else FULL_GRID)
     options = options if options is not None else RunOptions()
     if options.seed == 0 and seed:
@@ -358,7 +380,9 @@ def run(
                 for d in g.delay_ms:
                     for k_o in g.k_o:
                         for name in g.objects:
-                            key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate))
+                            key = _gain_key(
+                                mode, rate, d, device, _reported_b_o(name, k_o, rate), **key_range
+                            )
                             for k in _k_o_designed(_OBJECTS[name], k_o, design_reached):
                                 if design_cache is None or (mode, key, k) not in design_cache:
                                     wanted.add((mode, key, k))
@@ -383,7 +407,7 @@ def run(
             if s not in LOCAL_MODELS:
                 return peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
             mode = "p" if s == "local-p" else "pi"
-            key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate))
+            key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate), **key_range)
             if (mode, key) not in tables:
                 tables[(mode, key)] = _table(designs, mode, key)
             return [
@@ -590,6 +614,9 @@ def run(
             "jitter_s": options.jitter_s,
             "quantum_m": options.quantum_m,
             "seed": options.seed,
+            "design_reached": design_reached,
+            "design_margin": design_margin,
+            "design_stiffer_by": design_stiffer_by,
         },
         "conditions": conditions,
         "cells_3d": cells3,

@@ -108,6 +108,10 @@ def _add_protocol(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
 
 
 # -------------------------------------------------------------------------------------------- bench
+def _or(value: float | None, default: float) -> float:
+    return default if value is None else value
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     results: dict[str, object] = {}
     if args.what in ("server", "all"):
@@ -128,6 +132,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from haptic_collab.bench.fidelity import plot as plot_fidelity
         from haptic_collab.bench.fidelity import run as bench_fidelity
         from haptic_collab.research.fidelity_cases import RunOptions
+        from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY
 
         try:
             fid_options = RunOptions(
@@ -142,6 +147,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             workers=args.workers,
             include_3d=not (args.no_3d or args.quick),
             design_reached=args.design_reached,
+            design_margin=_or(args.design_margin, DESIGN_MARGIN),
+            design_stiffer_by=_or(args.design_stiffer_by, STIFFER_BY),
             log=lambda msg: print(msg, file=sys.stderr, flush=True),
         )
         if args.plot:
@@ -222,6 +229,22 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help=(
             "fidelity: also design every gain-table cell an object's reported K_o reaches (the "
             "stiffening object's), as a client has them once it has pressed there"
+        ),
+    )
+    p.add_argument(
+        "--design-margin",
+        type=float,
+        help=(
+            "fidelity: the local models' designs hold on objects this fraction softer than the "
+            "bottom of their cell (default: the product's, shared.gain_key.DESIGN_MARGIN)"
+        ),
+    )
+    p.add_argument(
+        "--design-stiffer-by",
+        type=float,
+        help=(
+            "fidelity: ... and this fraction stiffer than its top (default: the product's, "
+            "shared.gain_key.STIFFER_BY; narrower, what knowing the object that well would buy)"
         ),
     )
     p.add_argument(

@@ -79,6 +79,43 @@ def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
     assert all(p.stat().st_size > 10_000 for p in paths)
 
 
+def test_a_narrower_design_range_is_what_knowing_the_object_would_buy() -> None:
+    # the local models' design holds on an object 15 % softer than the bottom of its cell to 25 %
+    # stiffer than its top; run with no range beyond the cell (the object known that well) the
+    # product renders nearly model-mediated teleoperation's plane and is felt as the spring
+    # itself, tied with mmt; its own design pays for the range with a damper felt over the band
+    grid = Grid(
+        k_o=(300.0,),
+        sim_rate_hz=(20.0,),
+        delay_ms=(0.0,),
+        hands=(DEFAULT_HAND, Hand(0.6, 2.0, 20.0)),
+        objects=("spring",),
+        outside_hands=(),
+    )
+    schemes = ("local-p", "mmt")
+    product = run(grid=grid, schemes=schemes, include_3d=False, workers=1)
+    known = run(
+        grid=grid, schemes=schemes, include_3d=False, workers=1, design_margin=0.0,
+        design_stiffer_by=0.0,
+    )  # fmt: skip
+    assert product["options"]["design_margin"] == 0.15
+    assert product["options"]["design_stiffer_by"] == 0.25
+    assert (known["options"]["design_margin"], known["options"]["design_stiffer_by"]) == (0.0, 0.0)
+    (g,), (g0,) = known["gains"], product["gains"]
+    # the client's gain-table cell is 10 % wide: its design holds over it, scaled to K_o
+    assert g["k_h"] == pytest.approx(300.0, rel=0.05)
+    assert g["own_gain"] * g["k_h"] == pytest.approx(1.0)
+    assert g["b_h"] <= 1.0 < g0["b_h"]
+    (c,), (c0,) = known["conditions"], product["conditions"]
+    assert c["schemes"]["local-p"]["box_stable"] and c0["schemes"]["local-p"]["box_stable"]
+    err, err0 = c["schemes"]["local-p"]["felt_error"], c0["schemes"]["local-p"]["felt_error"]
+    assert err < 0.25 * math.log1p(STIFFNESS_JND) and 3.0 * err < err0
+    assert "local-p" in c["near_best"]
+    for bad in ({"design_margin": 1.0}, {"design_margin": -0.1}, {"design_stiffer_by": math.nan}):
+        with pytest.raises(ValueError, match="design_"):
+            run(grid=grid, schemes=schemes, include_3d=False, workers=1, **bad)  # type: ignore[arg-type]
+
+
 def _felt(q: float) -> dict[float, tuple[float, float] | None]:
     return {hz: (q, 0.0) for hz in BAND_HZ}
 
