@@ -6,7 +6,8 @@ A :class:`GainKey` names one row of a :class:`shared.gain_table.GainTable`. The 
 same rules:
 
 - the loop delay in whole simulation ticks (:func:`loop_delay_ticks`) from the round trip;
-- the object damping B_o quantized down to 1 N·s/m steps (a design for less object damping);
+- the object damping B_o (eq. 9: the damping over the simulation period, in N/m) quantized down
+  to 1 N/m steps (a design for less object damping);
 - the coupling class of ``K_o_stiff / K_o_eff`` (:func:`stiff_ratio_class`, docs/coupled-users.md)
   with its hysteresis (:func:`held_stiff_ratio`): it rises at once and falls only when the
   measured class is :data:`STIFF_CLASS_FALL` times lower;
@@ -204,7 +205,8 @@ def make_gain_key(
 ) -> GainKey:
     """The :class:`GainKey` of one user now: rates [Hz], loop delay [ticks], local model form,
     design margin, the device's K_h and B_h limits [N/m, N·s/m], the object damping ``b_o``
-    [N·s/m] (quantized down to whole N·s/m, negative counts as 0) and the coupling class.
+    [N/m] (eq. 9: the damping over the simulation period; quantized down to whole N/m, negative
+    counts as 0) and the coupling class.
     """
     return GainKey(
         servo_rate_hz=float(servo_rate_hz),
