@@ -1,0 +1,222 @@
+"""Does the object yield to this user's own force as the K_o reported says? (the own-response check)
+
+The product's gain design holds on objects from 15 % softer than the K_o reported to 25 % stiffer
+(:class:`shared.gain_key.GainKey`), because a reported K_o may be wrong (a nonlinear or
+viscoelastic object, a stiffness estimated cheaply). That robustness is paid for in transparency
+on an object whose K_o is right: a damper, or a K_h away from K_o, felt over the band
+(docs/fidelity.md). This module measures, from what every patch already carries, whether the
+object answers this user's own force as a spring of the K_o reported does; only then may the
+client render the plane checked for a K_o known to within a few percent
+(:func:`shared.verified_plane.verified_plane`).
+
+Each patch gives the surface's depth along the contact normal ``x_s`` [m] (positive into the
+object), the force the simulation applied from this user ``F_s`` [N] and the K_o reported [N/m].
+On a spring of stiffness K' pressed by this user alone, ``x_s = r + F_s / K'`` with ``r`` the rest
+surface. The rest surface the reported K_o implies, ``r_hat = x_s - F_s / K_o``, then moves with
+the force by ``(1 / K' - 1 / K_o) F_s``: a least-squares line of ``r_hat`` against ``F_s``,
+weighted by ``exp(-age / window_s)``, has slope ``s`` and gives ``rho = K' / K_o = 1 / (1 + s
+K_o)`` (model-mediated teleoperation's estimate of the rest surface, Mitra and Niemeyer 2008,
+turned into a check of the stiffness its plane needs). Another user's push moves ``r_hat``
+without this user's force and adds to the line's residual, not its slope, as long as the two are
+not correlated; the client only runs the check on an uncoupled contact.
+
+The verdict (:attr:`OwnResponse.verified`):
+
+- *verified* once the forces in the window spread by at least ``min_force_spread_n`` (standard
+  deviation), the line explains ``r_hat`` to within ``max_residual`` of the deformation that spread
+  causes, and ``|rho - 1| <= tolerance``;
+- *refused* at once when ``|rho - 1| > refuse_tolerance`` or the residual is too large, with the
+  spread met; without that spread (a held press, no contact) the last verdict stands: the object
+  has not shown anything new.
+
+The state is a few weighted sums (:data:`SUMS`); :func:`update_sums` and :func:`verdict` work on
+arrays of any shape, so a batch of contacts (the fidelity benchmark's simulator,
+:mod:`haptic_collab.research.fidelity_1d`) runs the same arithmetic as one client. Pure: time is
+passed in, no clocks, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from haptic_collab.shared.types import FloatArray
+
+#: The weighted sums the check keeps, in this order along the last axis: weight W, sum F, sum r,
+#: sum F^2, sum F r, sum r^2 (F [N], r the rest-surface estimate [m]).
+SUMS = 6
+
+#: Window [s] of the check: a sample's weight falls by e every window.
+WINDOW_S = 2.0
+#: |rho - 1| at or below which the object counts as the K_o reported (inside the +/- 5 % the
+#: verified plane is checked over, :data:`shared.verified_plane.VERIFIED_RANGE`).
+TOLERANCE = 0.04
+#: |rho - 1| above which a verdict is withdrawn at once (the hysteresis keeps a contact near the
+#: tolerance from switching designs on every patch).
+REFUSE_TOLERANCE = 0.05
+#: Least standard deviation [N] of the forces in the window for a verdict: a 0.3 N spread on a
+#: 1000 N/m object is 0.3 mm of deformation to read the slope from.
+MIN_FORCE_SPREAD_N = 0.3
+#: Largest rms residual of the line, as a fraction of the deformation the force spread causes
+#: (spread / K_o): a viscoelastic or strain-stiffening response is not a line.
+MAX_RESIDUAL = 0.1
+
+
+def empty_sums(shape: tuple[int, ...] = ()) -> FloatArray:
+    """Zeroed sums for contacts of ``shape``: shape ``shape + (SUMS,)``."""
+    return np.zeros((*shape, SUMS))
+
+
+def update_sums(
+    sums: FloatArray,
+    *,
+    dt_s: float | FloatArray,
+    surface_m: float | FloatArray,
+    force_n: float | FloatArray,
+    k_o: float | FloatArray,
+    window_s: float = WINDOW_S,
+) -> FloatArray:
+    """The sums after one patch: the old ones aged by ``dt_s`` [s] (the time since the last
+    patch), plus this patch's ``(F_s, r_hat = x_s - F_s / K_o)``; shape as ``sums``.
+
+    ``surface_m``: the surface's depth along the contact normal [m]; ``force_n``: the force the
+    simulation applied from this user [N]; ``k_o``: the K_o reported with them [N/m], > 0. Where
+    an input is not finite the contact's sums are returned unchanged.
+    """
+    f = np.asarray(force_n, dtype=float)
+    r = np.asarray(surface_m, dtype=float) - f / np.asarray(k_o, dtype=float)
+    a = np.exp(-np.asarray(dt_s, dtype=float) / window_s)
+    new = np.stack(np.broadcast_arrays(np.ones_like(r), f, r, f * f, f * r, r * r), axis=-1)
+    out = sums * np.asarray(a)[..., None] + new
+    ok = np.isfinite(new).all(axis=-1) & np.isfinite(a)
+    return np.where(ok[..., None], out, sums)
+
+
+def fit(sums: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(slope, force spread, residual)`` of the weighted line ``r_hat = a + s F_s``: ``s``
+    [m/N], the forces' weighted standard deviation [N] and the rms residual [m], each of shape
+    ``sums.shape[:-1]``; NaN where the window holds fewer than two distinct forces."""
+    w = sums[..., 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mf, mr = sums[..., 1] / w, sums[..., 2] / w
+        vff = np.maximum(sums[..., 3] / w - mf * mf, 0.0)
+        vfr = sums[..., 4] / w - mf * mr
+        vrr = np.maximum(sums[..., 5] / w - mr * mr, 0.0)
+        s = np.where(vff > 0.0, vfr / vff, np.nan)
+        res = np.sqrt(np.maximum(vrr - np.where(vff > 0.0, vfr * s, np.nan), 0.0))
+    return s, np.sqrt(vff), res
+
+
+def ratio(sums: FloatArray, k_o: float | FloatArray) -> FloatArray:
+    """``rho = K' / K_o`` the window shows (NaN where it cannot tell, inf where the object showed
+    no stiffness at all), shape ``sums.shape[:-1]``."""
+    s, _, _ = fit(sums)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = 1.0 + s * np.asarray(k_o, dtype=float)
+        return np.where(d > 0.0, 1.0 / d, np.where(np.isnan(d), np.nan, np.inf))
+
+
+def verdict(
+    sums: FloatArray,
+    k_o: float | FloatArray,
+    last: bool | np.ndarray,
+    *,
+    tolerance: float = TOLERANCE,
+    refuse_tolerance: float = REFUSE_TOLERANCE,
+    min_force_spread_n: float = MIN_FORCE_SPREAD_N,
+    max_residual: float = MAX_RESIDUAL,
+) -> np.ndarray:
+    """Verified (bool, shape ``sums.shape[:-1]``): the module's rules, ``last`` the verdict so
+    far."""
+    s, spread, res = fit(sums)
+    k = np.asarray(k_o, dtype=float)
+    rho = ratio(sums, k)
+    shown = spread >= min_force_spread_n
+    with np.errstate(invalid="ignore"):
+        line = res <= max_residual * spread / k
+        off = np.abs(rho - 1.0)
+        good = shown & line & (off <= tolerance)
+        bad = shown & (~line | ~(off <= refuse_tolerance))
+    return np.where(good, True, np.where(bad, False, np.asarray(last, dtype=bool)))
+
+
+@dataclass
+class OwnResponse:
+    """The own-response check of one contact (module docstring).
+
+    Call :meth:`update` with each patch of the contact, :meth:`reset` when the contact's K_o
+    moves to another gain-table cell, becomes coupled to another user's, or the object reports
+    a B_o > 0 (a viscoelastic object's response depends on how fast it is pressed: the check
+    does not apply).
+
+    Raises
+    ------
+    ValueError
+        Non-positive or non-finite parameters.
+    """
+
+    window_s: float = WINDOW_S
+    tolerance: float = TOLERANCE
+    refuse_tolerance: float = REFUSE_TOLERANCE
+    min_force_spread_n: float = MIN_FORCE_SPREAD_N
+    max_residual: float = MAX_RESIDUAL
+    sums: FloatArray = field(default_factory=empty_sums, repr=False)
+    verified: bool = False
+    k_o: float = math.nan
+
+    def __post_init__(self) -> None:
+        for name in ("window_s", "tolerance", "refuse_tolerance", "min_force_spread_n"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        if not (math.isfinite(self.max_residual) and self.max_residual > 0.0):
+            raise ValueError(f"max_residual must be finite and > 0, got {self.max_residual!r}")
+        if self.refuse_tolerance < self.tolerance:
+            raise ValueError("refuse_tolerance must be at least tolerance")
+
+    def reset(self) -> None:
+        """Forget the window and the verdict."""
+        self.sums = empty_sums()
+        self.verified = False
+        self.k_o = math.nan
+
+    def update(self, *, dt_s: float, surface_m: float, force_n: float, k_o: float) -> bool:
+        """Add one patch (:func:`update_sums`) and return the verdict.
+
+        Raises
+        ------
+        ValueError
+            ``dt_s`` negative or ``k_o`` not a finite stiffness > 0 N/m (the sums are unchanged).
+        """
+        if not (math.isfinite(dt_s) and dt_s >= 0.0):
+            raise ValueError(f"dt_s must be finite and >= 0 s, got {dt_s!r}")
+        if not (math.isfinite(k_o) and k_o > 0.0):
+            raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
+        self.sums = update_sums(
+            self.sums,
+            dt_s=dt_s,
+            surface_m=surface_m,
+            force_n=force_n,
+            k_o=k_o,
+            window_s=self.window_s,
+        )
+        self.k_o = float(k_o)
+        self.verified = bool(
+            verdict(
+                self.sums,
+                k_o,
+                self.verified,
+                tolerance=self.tolerance,
+                refuse_tolerance=self.refuse_tolerance,
+                min_force_spread_n=self.min_force_spread_n,
+                max_residual=self.max_residual,
+            )
+        )
+        return self.verified
+
+    @property
+    def ratio(self) -> float:
+        """``rho = K' / K_o`` the window shows (NaN: it cannot tell yet)."""
+        return float(ratio(self.sums, self.k_o)) if math.isfinite(self.k_o) else math.nan

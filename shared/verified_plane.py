@@ -1,0 +1,138 @@
+"""The verified plane: the object's own plane, checked for a K_o known to within a few percent.
+
+The product's designs hold on objects from 15 % softer than the K_o reported to 25 % stiffer
+(:class:`shared.gain_key.GainKey`), and pay for it with a damper or a K_h away from K_o, felt over
+the band. Where the own-response check (:mod:`shared.own_response`) has seen the object yield to
+this user's force as a spring of the K_o reported does, the client may render instead the plane
+at the rest surface with the object's stiffness: K_h = K_o and C_h = 1 / K_o (own-force
+compensation, ``F = K_h (x - x_o) + F_s``; :mod:`shared.gain_design`), which is model-mediated
+teleoperation's plane (Mitra and Niemeyer 2008) and is felt as the object itself at every
+frequency. It is rendered only as verified here: the lightest probe damper of
+:data:`PLANE_DAMPERS` (and the proxy hold) with which the plane passes the design's own acceptance
+test (:func:`shared.interim_gains.verify_gains`: every hand of the box, every sampling tick,
+oscillations decaying at 1/s) on objects :data:`VERIFIED_RANGE` softer than the bottom of the
+cell to as much stiffer than its top, at its own K_o and scaled to the middle and top of the cell.
+
+Measured with the fidelity benchmark's grid (2026-11-25, 1 kHz servo, the Phantom Desktop's
+limits): on the spring from 100 to 1000 N/m at 10-100 Hz and 0-200 ms such a plane passed in 58
+of 60 conditions, with a damper of at most 2.5 N*s/m and a felt error of at most 0.086 (ln) over
+0.5-8 Hz; the product's own designs are felt up to 0.51 off there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Literal
+
+from haptic_collab.shared.felt_stiffness import felt_responses
+from haptic_collab.shared.full_loop import HandBox
+from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.interim_gains import verify_gains
+from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S
+
+#: How far the object may be off the K_o reported for the verified plane: it is checked from this
+#: fraction softer than the bottom of its cell to this fraction stiffer than its top (the own-response
+#: check verifies to :data:`shared.own_response.TOLERANCE`, inside it).
+VERIFIED_RANGE = 0.05
+
+#: Probe dampers the plane is tried with, lightest first, as fractions of the device's B_h limit.
+PLANE_DAMPERS: tuple[float, ...] = (0.0, 0.025, 0.05, 0.1, 0.15, 0.25)
+
+_HOLDS: tuple[Literal["zoh", "foh"], ...] = ("zoh", "foh")
+
+
+def verified_key(key: GainKey) -> GainKey:
+    """``key`` with the verified plane's range (:data:`VERIFIED_RANGE` either way)."""
+    return replace(key, margin=VERIFIED_RANGE, stiffer_by=VERIFIED_RANGE)
+
+
+def plane_applies(key: GainKey) -> bool:
+    """Whether a contact of ``key`` may render a verified plane: own-force compensation allowed,
+    uncoupled (``stiff_ratio`` 1) and no object damping reported (B_o = 0; a viscoelastic
+    object's response depends on how fast it is pressed)."""
+    return key.own_force and key.stiff_ratio == 1.0 and key.b_o == 0.0
+
+
+def verified_plane(
+    key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox
+) -> GainDesign | None:
+    """The plane of grid cell ``cell`` (g = grid_ratio**cell [N/m]) with the lightest damper
+    that passes the check (module docstring), as a design scaled across the cell
+    (``scale_max = grid_ratio``: K_h = K_o, C_h = 1 / K_o for every K_o reported in the cell);
+    None if none passes, if the cell's grid point is stiffer than the device (``key.k_h_max``;
+    within the cell K_h stops there), or if the key does not allow it (:func:`plane_applies`).
+
+    Raises
+    ------
+    ValueError
+        A grid ratio not above 1, or as :func:`shared.interim_gains.verify_gains`.
+    """
+    if not (math.isfinite(grid_ratio) and grid_ratio > 1.0):
+        raise ValueError(f"grid_ratio must be > 1, got {grid_ratio!r}")
+    if not plane_applies(key):
+        return None
+    g = grid_ratio**cell
+    if g > key.k_h_max:
+        return None
+    # K_h follows K_o across the cell up to the device's stiffness
+    top = min(grid_ratio, key.k_h_max / g)
+    vkey = verified_key(key)
+    rates = key.rates
+    n, T = rates.ratio, rates.servo_period_s
+    scales = tuple(dict.fromkeys((1.0, math.sqrt(top), top)))
+    for frac in PLANE_DAMPERS:
+        b_h = frac * key.b_h_max
+        if frac > 0.0 and b_h <= 0.0:
+            break
+        for hold in _HOLDS:
+            worst = 0.0
+            for s in scales:
+                ok, rho = verify_gains(
+                    vkey,
+                    cell,
+                    grid_ratio,
+                    hand_box,
+                    k_h=s * g,
+                    i_gain=0.0,
+                    b_h=b_h,
+                    proxy_hold=hold,
+                    own_gain=1.0 / (s * g),
+                    k_o_scale=s,
+                )
+                worst = max(worst, rho)
+                if not ok:
+                    break
+            else:
+                q1, q8 = felt_responses(
+                    (1.0, 8.0),
+                    k_o=g,
+                    k_h=g,
+                    b_h=b_h,
+                    servo_period_s=T,
+                    rate_ratio=n,
+                    delay_ticks=key.delay_ticks,
+                    proxy_hold=hold,
+                    own_gain=1.0 / g,
+                )[:, 0]
+                lo = (1.0 - VERIFIED_RANGE) * g
+                return GainDesign(
+                    k_h=g,
+                    i_gain=0.0,
+                    b_h=b_h,
+                    proxy_hold=hold,
+                    worst_spectral_radius=worst,
+                    rho_limit=math.exp(-MIN_DECAY_RATE_PER_S * n * T),
+                    felt_stiffness_ratio_1hz=float(abs(q1)) / g,
+                    felt_stiffness_ratio_8hz=float(abs(q8)) / g,
+                    k_o=g,
+                    k_o_range=(lo, (1.0 + VERIFIED_RANGE) * g * grid_ratio),
+                    rate_ratio=n,
+                    delay_ticks=key.delay_ticks,
+                    mode="p",
+                    hand_box=hand_box,
+                    own_gain=1.0 / g,
+                    scale_max=top,
+                )
+    return None

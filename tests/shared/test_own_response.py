@@ -1,0 +1,103 @@
+"""The own-response check (shared.own_response): whether the object yields to this user's force as
+a spring of the K_o reported does, from the surface and force each patch carries."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from haptic_collab.shared.own_response import OwnResponse, empty_sums, update_sums, verdict
+
+K_O = 300.0
+DT = 0.05  # 20 Hz patches
+
+
+def _press(k_true: float, seconds: float = 1.0, f_max: float = 3.0, rest: float = 0.0):
+    """Patches of a press ramping to ``f_max`` [N] on a spring of ``k_true`` [N/m]."""
+    n = round(seconds / DT)
+    for f in np.linspace(0.0, f_max, n):
+        yield rest + f / k_true, float(f)
+
+
+def _run(check: OwnResponse, patches) -> list[bool]:
+    return [check.update(dt_s=DT, surface_m=x, force_n=f, k_o=K_O) for x, f in patches]
+
+
+def test_a_press_on_the_object_as_reported_is_verified_within_a_second() -> None:
+    c = OwnResponse()
+    seen = _run(c, _press(K_O, rest=0.012))
+    assert seen[-1] and c.ratio == pytest.approx(1.0, abs=1e-9)
+    assert not seen[0]  # nothing to tell from the first patch
+
+
+@pytest.mark.parametrize("error", [0.8, 1.2, 0.94, 1.06])
+def test_an_object_off_its_reported_k_o_is_not_verified_and_its_ratio_is_measured(
+    error: float,
+) -> None:
+    c = OwnResponse()
+    assert not any(_run(c, _press(error * K_O)))
+    assert c.ratio == pytest.approx(error, rel=1e-6)
+
+
+def test_a_held_press_keeps_the_verdict_and_a_changed_object_withdraws_it() -> None:
+    c = OwnResponse()
+    _run(c, _press(K_O))
+    # held at 3 N for 10 s: no new information, the verdict stands
+    assert all(_run(c, [(3.0 / K_O, 3.0)] * 200))
+    # the object turns 20 % softer (another grip, a material change) and the user presses again
+    back = [(f / (0.8 * K_O), f) for f in np.linspace(3.0, 0.0, 10)]
+    seen = _run(c, back + list(_press(0.8 * K_O)))
+    assert not any(seen[5:])  # withdrawn within 0.25 s of the first new patch
+    # a few more presses and the window reads the new object
+    for _ in range(4):
+        seen = _run(c, back + list(_press(0.8 * K_O)))
+        assert not any(seen)
+    assert c.ratio == pytest.approx(0.8, rel=0.05)
+
+
+def test_a_viscoelastic_lag_is_refused_even_at_the_reported_stiffness() -> None:
+    # the surface lags the force by 30 ms (a damper in the object): on average it yields as K_o
+    # says (ratio 1), but r_hat moves with the force's rate, and the line's residual refuses it
+    c = OwnResponse()
+    seen = []
+    for k in range(200):
+        t, w = k * DT, 2 * math.pi * 1.0
+        f = 1.5 + 1.5 * math.sin(w * t)
+        x = (f - 0.03 * 1.5 * w * math.cos(w * t)) / K_O
+        seen.append(c.update(dt_s=DT, surface_m=x, force_n=f, k_o=K_O))
+    assert c.ratio == pytest.approx(1.0, abs=0.01)
+    assert not any(seen)
+
+
+def test_another_users_push_uncorrelated_with_this_users_force_leaves_the_ratio() -> None:
+    # a slow push of 1 mm by someone else while this user presses up and down at 1 Hz
+    c = OwnResponse(max_residual=1.0)
+    for k in range(200):
+        t = k * DT
+        f = 1.5 + 1.5 * math.sin(2 * math.pi * t)
+        other = 1e-3 * math.sin(2 * math.pi * 0.13 * t)
+        c.update(dt_s=DT, surface_m=f / K_O + other, force_n=f, k_o=K_O)
+    assert c.ratio == pytest.approx(1.0, abs=0.1)
+
+
+def test_batches_run_the_same_arithmetic_and_bad_input_changes_nothing() -> None:
+    sums = empty_sums((2,))
+    one = OwnResponse()
+    for x, f in _press(K_O):
+        sums = update_sums(sums, dt_s=DT, surface_m=np.array([x, x]), force_n=f, k_o=K_O)
+        one.update(dt_s=DT, surface_m=x, force_n=f, k_o=K_O)
+    assert np.allclose(sums[0], one.sums) and np.allclose(sums[1], one.sums)
+    assert verdict(sums, K_O, np.array([False, True])).tolist() == [True, True]
+    before = sums.copy()
+    after = update_sums(sums, dt_s=DT, surface_m=np.array([math.nan, 0.0]), force_n=1.0, k_o=K_O)
+    assert np.array_equal(after[0], before[0]) and not np.array_equal(after[1], before[1])
+    with pytest.raises(ValueError, match="k_o"):
+        one.update(dt_s=DT, surface_m=0.0, force_n=1.0, k_o=0.0)
+    with pytest.raises(ValueError, match="dt_s"):
+        one.update(dt_s=-1.0, surface_m=0.0, force_n=1.0, k_o=K_O)
+    with pytest.raises(ValueError, match="refuse_tolerance"):
+        OwnResponse(tolerance=0.1, refuse_tolerance=0.05)
+    one.reset()
+    assert not one.verified and math.isnan(one.ratio)
