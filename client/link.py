@@ -48,6 +48,7 @@ from haptic_collab.shared.gain_table import design_cell
 from haptic_collab.shared.interim_gains import interim_design
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import ProtocolError, Welcome
+from haptic_collab.shared.verified_plane import verified_plane
 from haptic_collab.workers import background_worker, check_worker, stop_pool, timed
 
 log = logging.getLogger("haptic.client")
@@ -206,6 +207,9 @@ class Link:
         self._checker = check_executor if check_executor is not None else design_executor
         self._own_executor = False
         self._design_task: asyncio.Task[None] | None = None
+        self._plane_task: asyncio.Task[None] | None = None
+        #: Verified planes checked (:func:`shared.verified_plane.verified_plane`).
+        self.plane_checks = 0
         self._check_task: asyncio.Task[None] | None = None
         self._first_pool: ThreadPoolExecutor | None = None
         # checks (key, cell, candidates, when asked [s]) needed now / ahead of need
@@ -269,6 +273,33 @@ class Link:
                     break  # something is needed now: let the next patch start it
 
         self._design_task = asyncio.get_running_loop().create_task(run())
+
+    def _start_plane(self) -> None:
+        """Check the verified plane the session asks for (:attr:`ClientSession.plane_wanted`)
+        in the design worker, one at a time: nothing waits for it (the contact renders its
+        design meanwhile), so it never holds up a check a contact needs."""
+        want = self.session.plane_wanted
+        if want is None or (self._plane_task is not None and not self._plane_task.done()):
+            return
+        self.session.plane_wanted = None
+        key, cell = want
+        table = self.session.gain_table
+        self._ensure_executor()
+
+        async def run() -> None:
+            loop = asyncio.get_running_loop()
+            try:
+                plane = await loop.run_in_executor(
+                    self._executor, verified_plane, key, cell, table.grid_ratio, table.hand_box
+                )
+            except Exception as exc:  # ValueError, or a broken worker: render the design
+                log.warning("no verified plane for cell %d: %s", cell, exc)
+                plane = None
+            self.session.store_plane(key, cell, plane)
+            self.plane_checks += 1
+            log.debug("verified plane for cell %d: %s", cell, "none" if plane is None else plane)
+
+        self._plane_task = asyncio.get_running_loop().create_task(run())
 
     def _queue_check(
         self, key: GainKey, cell: int, candidates: tuple[GainDesign, ...], *, ahead: bool
@@ -563,6 +594,8 @@ class Link:
                 self._start_check()
             if self.session.design_wanted is not None:
                 self._start_design()
+            if self.session.plane_wanted is not None:
+                self._start_plane()
             if update is not None:
                 self.on_patch(update, now)
             elif (

@@ -51,6 +51,7 @@ from haptic_collab.shared.gain_key import (
 )
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.local_model_update import GainChoice, LocalModelUpdate, SurfacePatch
+from haptic_collab.shared.own_response import OwnResponse
 from haptic_collab.shared.protocol import (
     PROTOCOL_VERSION,
     DeviceInfo,
@@ -68,6 +69,7 @@ from haptic_collab.shared.protocol import (
     parse_server,
 )
 from haptic_collab.shared.rates import Rates
+from haptic_collab.shared.verified_plane import plane_applies
 
 if TYPE_CHECKING:
     from haptic_collab.client.servo import ServoSnapshot
@@ -286,6 +288,19 @@ class ClientSession:
         #: The coupled contact's K_o_stiff / K_o_eff class in use (GainKey.stiff_ratio), with
         #: hysteresis: it rises at once and falls only when the ratio is 4x below it.
         self.stiff_ratio = 1.0
+        #: The own-response check of the contact (:mod:`shared.own_response`), the gain-table
+        #: cell it is for, the proxy it measures depth from [m] and its last patch's tick.
+        self.own_response = OwnResponse()
+        self._own_cell: int | None = None
+        self._own_ref: np.ndarray | None = None
+        self._own_tick: int | None = None
+        #: Verified planes per (key, cell) (:func:`shared.verified_plane.verified_plane`; None:
+        #: none passed), and the one the link is to check off the event loop.
+        self.planes: dict[tuple[GainKey, int], GainDesign | None] = {}
+        self.plane_wanted: tuple[GainKey, int] | None = None
+        self._plane_asked: set[tuple[GainKey, int]] = set()
+        #: Patches rendered with a verified plane.
+        self.plane_patches = 0
 
     # ------------------------------------------------------------------ outgoing
     def hello(self, now_s: float | None = None) -> str:
@@ -467,6 +482,38 @@ class ClientSession:
         self.stiff_ratio = held_stiff_ratio(self.stiff_ratio, surface.k_o_eff, surface.k_o_stiff)
         return self.stiff_ratio
 
+    def store_plane(self, key: GainKey, cell: int, design: GainDesign | None) -> None:
+        """Keep the verified plane of (key, cell), or None: none passed its check."""
+        self.planes[(key, cell)] = design
+
+    def _object_as_reported(self, surface: SurfacePatch, key: GainKey, cell: int) -> bool:
+        """Feed the own-response check this patch and return its verdict: has the object
+        yielded to this user's force as a spring of the K_o reported (:mod:`shared.own_response`)?
+
+        Only an uncoupled contact on an object without B_o is checked (:func:`plane_applies`);
+        the check starts over in each gain-table cell. It reads the depth of the surface along
+        the contact normal from the proxy it started at, and the force the simulation applied
+        from this user, on patches with that force; the time between patches is their ticks'.
+        """
+        check = self.own_response
+        if not plane_applies(key) or self._own_cell != cell:
+            check.reset()
+            self._own_cell = cell if plane_applies(key) else None
+            self._own_ref, self._own_tick = None, None
+            if self._own_cell is None:
+                return False
+        if surface.own_force_n <= 0.0:
+            return check.verified
+        proxy = np.asarray(surface.proxy, dtype=float)
+        if self._own_ref is None:
+            self._own_ref = proxy
+        dt = 0.0 if self._own_tick is None else (surface.tick - self._own_tick) / self.sim_rate_hz
+        self._own_tick = surface.tick
+        depth = float(np.dot(self._own_ref - proxy, np.asarray(surface.normal, dtype=float)))
+        return check.update(
+            dt_s=max(dt, 0.0), surface_m=depth, force_n=surface.own_force_n, k_o=surface.k_o_eff
+        )
+
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
         """Keep verified interim gains (from :func:`shared.interim_gains.interim_design`) for (key, cell)."""
         self.interim[(key, cell)] = design
@@ -561,6 +608,16 @@ class ClientSession:
             self.server_gain_patches += 1
         else:
             design = own
+        if self._object_as_reported(surface, key, cell):
+            # the object yields as the K_o reported says: the plane verified for that (the
+            # lightest damper, K_h = K_o) replaces the design made for an object off by 25 %
+            if (key, cell) not in self.planes:
+                if (key, cell) not in self._plane_asked:
+                    self._plane_asked.add((key, cell))
+                    self.plane_wanted = (key, cell)
+            elif (plane := self.planes[(key, cell)]) is not None:
+                design = plane.at(k_o_eff)
+                self.plane_patches += 1
         fallback = design is None
         verified = True
         if design is None:

@@ -40,7 +40,7 @@ import time
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +79,7 @@ from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY, GainKey
 from haptic_collab.shared.gain_table import GainTable, design_cell
+from haptic_collab.shared.verified_plane import plane_applies, verified_plane
 
 __all__ = [
     "DEVICE",
@@ -229,6 +230,19 @@ def _design_cost(job: tuple[str, GainKey, float]) -> tuple[float, float]:
     return (float(n * (n + key.delay_ticks) ** 3), 1.0 if mode == "pi" else 0.0)
 
 
+def _plane_cell(key: GainKey, k_o: float) -> GainDesign | None:
+    """The verified plane of the client's gain-table cell holding K_o under ``key`` (a worker's
+    job; :func:`shared.verified_plane.verified_plane`), or None."""
+    table = GainTable(DEFAULT_HAND_BOX)
+    return verified_plane(key, table.cell(k_o), table.grid_ratio, table.hand_box)
+
+
+def _plane_key(key: GainKey) -> GainKey:
+    """What a verified plane depends on of ``key`` (not the local model's form: the plane is
+    proportional either way)."""
+    return replace(key, mode="p")
+
+
 def _design_cell(key: GainKey, k_o: float) -> GainDesign:
     """The design of the client's gain-table cell holding K_o under ``key`` (a worker's job),
     unscaled (:func:`shared.gain_table.design_cell`)."""
@@ -252,6 +266,27 @@ def _table(
         for (m, k, k_o), d in sorted(designs.items(), key=lambda kv: kv[0][2])
         if m == mode and k == key
     )
+
+
+def _planes(
+    planes: dict[tuple[GainKey, float], GainDesign | None], key: GainKey
+) -> tuple[TableCell, ...]:
+    """The verified planes the run found for ``key``'s cells, as table cells."""
+    t = GainTable(DEFAULT_HAND_BOX)
+    pk = _plane_key(key)
+    return tuple(
+        TableCell.from_design(t.cell(k_o), d, t.grid_ratio)
+        for (k, k_o), d in sorted(planes.items(), key=lambda kv: kv[0][1])
+        if k == pk and d is not None
+    )
+
+
+def _plane_json(plane: GainDesign | None, k_o: float) -> dict[str, Any] | None:
+    """A verified plane as the JSON's ``gains`` record gives it (None: none, or none passed)."""
+    if plane is None:
+        return None
+    p = plane.at(k_o)
+    return {"k_h": p.k_h, "b_h": p.b_h, "own_gain": p.own_gain, "proxy_hold": p.proxy_hold}
 
 
 def _simulate_batch(
@@ -392,12 +427,24 @@ def run(
             w: pool.submit(_design_cell, w[1], w[2])
             for w in sorted(wanted, key=_design_cost, reverse=True)
         }
+        # ... and the verified plane of each cell whose key allows one (short checks, last)
+        plane_wanted = {
+            (_plane_key(key), k)
+            for (_, key, k) in [*wanted, *(design_cache or {})]
+            if plane_applies(key)
+        }
+        plane_jobs = {w: pool.submit(_plane_cell, *w) for w in sorted(plane_wanted, key=str)}
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
         designs.update({k: f.result() for k, f in jobs.items()})
+        planes = {k: f.result() for k, f in plane_jobs.items()}
         if design_cache is not None:
             design_cache.update(designs)
         t_design = time.perf_counter() - t0
-        say(f"designed {len(designs)} gain sets in {t_design:.1f} s")
+        n_planes = sum(p is not None for p in planes.values())
+        say(
+            f"designed {len(designs)} gain sets and checked {len(planes)} verified planes "
+            f"({n_planes} passed) in {t_design:.1f} s"
+        )
 
         tables: dict[tuple[str, GainKey], tuple[TableCell, ...]] = {}
 
@@ -417,6 +464,7 @@ def run(
                     device=device,
                     design=designs[(mode, key, k_o)].at(k_o),
                     table=tables[(mode, key)],
+                    planes=_planes(planes, key),
                 )
             ]
 
@@ -568,6 +616,7 @@ def run(
                 "own_gain": gd.own_gain,
                 "proxy_hold": gd.proxy_hold,
                 "rendered_as": gd.mode,
+                "verified_plane": _plane_json(planes.get((_plane_key(gkey), k_o)), k_o),
             }
         )
     summary = summarize(conditions, schemes)

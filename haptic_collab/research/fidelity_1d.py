@@ -84,6 +84,7 @@ from haptic_collab.research.fidelity_cases import (
 )
 from haptic_collab.research.fidelity_schemes import DeviceModel, TableGains
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
+from haptic_collab.shared.own_response import empty_sums, update_sums, verdict
 from haptic_collab.shared.types import FloatArray
 
 __all__ = ["passivity_step", "simulate"]
@@ -92,6 +93,50 @@ __all__ = ["passivity_step", "simulate"]
 #: The defaults of :func:`simulate`: the simulated Phantom Desktop, no servo imperfections.
 _DEVICE = DeviceModel()
 _NO_OPTIONS = RunOptions()
+
+
+def _verified_plane_gains(
+    mask: NDArray[np.bool_],
+    gains: tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]],
+    planes: TableGains,
+    k_o: FloatArray,
+    *,
+    sums: FloatArray,
+    cell: NDArray[np.int64],
+    seq_last: NDArray[np.int64],
+    ok: NDArray[np.bool_],
+    seq: NDArray[np.int64],
+    surface: FloatArray,
+    force: FloatArray,
+    sim_rate_hz: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """The gains (K_h, I, B_h, C_h, first-order hold) the client renders for the patches of
+    ``mask`` once they have fed its own-response check, as
+    :meth:`client.session.ClientSession._render` does: the check (``sums``, ``cell``,
+    ``seq_last``, ``ok``, updated in place) starts over in each gain-table cell of the K_o
+    reported, takes the patches with a force from this user (the surface's depth ``surface``
+    [m], ``force`` [N], the time between patches from their ticks ``seq``), and where it has
+    verified the K_o reported and the cell has a verified plane (``planes``), that plane scaled
+    to K_o replaces ``gains``."""
+    c = np.floor(np.log(k_o) / np.log(planes.ratio) + 1e-12).astype(np.int64)
+    moved = mask & (c != cell)
+    sums[moved] = 0.0
+    ok[moved] = False
+    seq_last[moved] = -1
+    cell[moved] = c[moved]
+    push = mask & (force > 0.0)
+    if push.any():
+        dt = np.where(seq_last >= 0, (seq - seq_last) / sim_rate_hz, 0.0)
+        new = update_sums(sums, dt_s=dt, surface_m=surface, force_n=force, k_o=k_o)
+        sums[push] = new[push]
+        seq_last[push] = seq[push]
+        ok[push] = verdict(sums, k_o, ok)[push]
+    use = mask & ok & planes.has_cell(k_o)
+    if not use.any():
+        return gains
+    plane = planes.gains_and_hold(k_o)
+    kg, ig, bg, og, fg = (np.where(use, p, g) for p, g in zip(plane, gains, strict=True))
+    return kg, ig, bg, og, fg
 
 
 def passivity_step(
@@ -203,6 +248,7 @@ def simulate(
         n_ratio[i] = round(q)
         d_ticks[i] = round(dq)
     k_o = np.array([c.k_o for c in cells])
+    sim_hz = float(servo_rate_hz) / n_ratio
     kind = np.array([x.kind for x in r])
     direct = kind == "direct"
     jac = kind == "jacobian"
@@ -234,6 +280,14 @@ def simulate(
     # the local models' gains follow the K_o reported through the client's gain table
     follow = (kind == "coupling") & np.array([x.follows_k_o and bool(x.table) for x in r])
     table = TableGains([x.table if f else () for x, f in zip(r, follow, strict=True)])
+    # ... and where the own-response check verifies the K_o reported, the verified plane of
+    # the cell (client.session: shared.own_response, shared.verified_plane)
+    checks = follow & np.array([bool(x.planes) for x in r])
+    planes = TableGains([x.planes if c else () for x, c in zip(r, checks, strict=True)])
+    own_sums = empty_sums((B,))
+    own_cell = np.full(B, np.iinfo(np.int64).min)
+    own_seq = np.full(B, -1, dtype=np.int64)
+    own_ok = np.zeros(B, dtype=bool)
     k_h_now, ti_now, b_h_now = k_h.copy(), ti.copy(), b_h.copy()
     # the client's bumpless change of gains (shared.local_model.LocalModel.set_gains): the force
     # step of new gains in contact is a transfer force b, driven linearly to zero
@@ -321,9 +375,10 @@ def simulate(
     # network: ring buffers on the servo clock
     L = int(d_ticks.max()) + 2
     up = np.zeros((L, B))  # what the servo sent at tick n (force, or probe position)
-    down = np.zeros((L, B, 4))  # latest (value, stiffness, x_ref, energy) published by tick n
+    # latest (value, stiffness, x_ref or force, energy, surface) published by tick n
+    down = np.zeros((L, B, 5))
     down_seq = np.zeros((L, B), dtype=np.int64)
-    pub = np.zeros((B, 4))
+    pub = np.zeros((B, 5))
     pub[:, 1] = k_o
     pub_seq = np.zeros(B, dtype=np.int64)
     # two-port, the simulation's side: the probe it used, its force, the energy given back
@@ -376,6 +431,21 @@ def simulate(
                 re_gain = fresh & follow
                 if re_gain.any():
                     kg, ig, bg, og, fg = table.gains_and_hold(k_recv)
+                    if checks.any():
+                        kg, ig, bg, og, fg = _verified_plane_gains(
+                            re_gain & checks,
+                            (kg, ig, bg, og, fg),
+                            planes,
+                            k_recv,
+                            sums=own_sums,
+                            cell=own_cell,
+                            seq_last=own_seq,
+                            ok=own_ok,
+                            seq=seq,
+                            surface=got[:, 4],
+                            force=np.maximum(got[:, 2], 0.0),
+                            sim_rate_hz=sim_hz,
+                        )
                     # a change of C_h slides in over the transfer time whatever the hold, at
                     # the last patch's F_s; a first-order hold slides from the old surface with
                     # the new compensation
@@ -389,6 +459,9 @@ def simulate(
                     f_s_last = np.where(re_gain, np.maximum(got[:, 2], 0.0), f_s_last)
                     off_step = np.where(slide, off_e * per_tick, off_step)
                     own_now = np.where(re_gain, og, own_now)
+                    # the patch's surface moved out by the C_h rendered for it (the client's
+                    # SurfacePatch.from_wire; a verified plane's C_h is not the table's)
+                    p_new = np.where(re_gain, got[:, 4] - og * f_s_last, p_new)
                     foh = np.where(re_gain, fg, foh)
                     # the step of K_h e (e with the slide's pending decrement) and of the
                     # damper's B_h u, and, with own-force compensation, the integral force, are
@@ -559,7 +632,7 @@ def simulate(
                     ),
                 ),
             )
-            new = np.stack([val, k_est, got, e_env_out], axis=1)
+            new = np.stack([val, k_est, got, e_env_out, xo], axis=1)
             pub = np.where(sim_now[:, None], new, pub)
             pub_seq = pub_seq + sim_now
         down[n % L] = pub

@@ -159,6 +159,11 @@ class Rendering:
         compensation keeping its share of K_o, as the client renders while that cell is designed.
     table : tuple of TableCell
         The designed cells of the client's gain table for this rendering's key (``follows_k_o``).
+    planes : tuple of TableCell
+        ``follows_k_o``: the verified planes (:func:`shared.verified_plane.verified_plane`) of
+        cells of that table. Where the client's own-response check (:mod:`shared.own_response`)
+        verifies the K_o reported in such a cell, its plane renders instead of the table's
+        design, as :meth:`client.session.ClientSession._render` does. Empty: never.
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
@@ -187,6 +192,7 @@ class Rendering:
     jacobian_scale: float = 1.0
     follows_k_o: bool = False
     table: tuple[TableCell, ...] = ()
+    planes: tuple[TableCell, ...] = ()
     gain_transfer_s: float = 0.0
     variant: str = ""
     tuning: str = ""
@@ -394,6 +400,12 @@ class TableGains:
                 self.gain[:, i, j] = (c.k_h, c.i_gain, c.b_h, c.own_gain, c.scale_max)
                 self.foh[i, j] = c.proxy_hold == "foh"
 
+    def has_cell(self, k_o: FloatArray) -> NDArray[np.bool_]:
+        """Whether each rendering's table holds the cell of the K_o [N/m] reported (shape (B,),
+        > 0): :meth:`gains_and_hold` then gives that cell's design scaled to it."""
+        i = np.floor(np.log(k_o) / np.log(self.ratio) + 1e-12).astype(np.int64)
+        return np.asarray((self.valid & (self.cell == i[:, None])).any(axis=1))
+
     def gains(self, k_o: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """The first four of :meth:`gains_and_hold`."""
         k_h, i_gain, b_h, own, _ = self.gains_and_hold(k_o)
@@ -443,6 +455,7 @@ def rendering_for(
     design: GainDesign | None = None,
     k_o: float | None = None,
     table: Sequence[TableCell] = (),
+    planes: Sequence[TableCell] = (),
 ) -> Rendering:
     """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
     model's design, or a peer's default tuning (:func:`peer_renderings`).
@@ -464,6 +477,8 @@ def rendering_for(
         The client's designed cells for this key (``design``'s among them): the local model's
         gains follow the K_o the simulation reports through them (``Rendering.follows_k_o``).
         Empty: the gains of ``design`` throughout.
+    planes : sequence of TableCell
+        The verified planes of cells of ``table`` (:attr:`Rendering.planes`).
 
     Raises
     ------
@@ -488,6 +503,7 @@ def rendering_for(
             own_gain=design.own_gain,
             follows_k_o=bool(table),
             table=tuple(table),
+            planes=tuple(planes) if table else (),
             gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
             tuning=scheme_tuning(scheme, device),
         )

@@ -1,0 +1,79 @@
+"""The client renders the verified plane once the object has yielded to its own force as the K_o
+reported says (client.session with shared.own_response and shared.verified_plane), and keeps
+its design otherwise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from haptic_collab.client.session import ClientSession
+from haptic_collab.shared.protocol import Patch, PlaneModel, encode
+from haptic_collab.shared.verified_plane import verified_plane
+from tests.support.sessions import welcomed_session
+
+K_O = 300.0
+
+
+def _press_patch(tick: int, force_n: float, k_true: float, b_o: float = 0.0) -> str:
+    """A patch of a press on the top plane z = 0.1 m of a spring of ``k_true`` [N/m] reported
+    at :data:`K_O`: the surface pushed in by the force the simulation applied from this user."""
+    z = 0.1 - force_n / k_true
+    return encode(
+        Patch(
+            tick=tick,
+            primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)),
+            proxy_m=(0, 0, z),
+            normal=(0, 0, 1),
+            penetration_m=0.001,
+            in_contact=True,
+            k_o=K_O,
+            k_o_eff=K_O,
+            b_o=b_o,
+            own_force_n=force_n,
+        )
+    )
+
+
+def _session_pressing(k_true: float, b_o: float = 0.0, seconds: float = 2.0) -> ClientSession:
+    """A session whose gains are designed, after ``seconds`` of 20 Hz patches of a press going
+    up and down between 0 and 3 N, with the link's jobs run as its workers would."""
+    s = welcomed_session("A", "u1", b_h_max=10.0)
+    for tick in range(1, round(20 * seconds) + 1):
+        f = 1.5 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0)
+        s.receive(_press_patch(tick, float(f), k_true, b_o), tick / 20.0)
+        if s.design_wanted is not None:
+            key, k_o = s.design_wanted
+            s.gain_table.design(key, k_o)
+            s.design_wanted = None
+        if s.plane_wanted is not None:
+            key, cell = s.plane_wanted
+            table = s.gain_table
+            s.store_plane(key, cell, verified_plane(key, cell, table.grid_ratio, table.hand_box))
+            s.plane_wanted = None
+    return s
+
+
+def test_on_the_object_as_reported_the_client_renders_its_plane() -> None:
+    s = _session_pressing(K_O)
+    up = s.last_update
+    assert up is not None
+    assert s.own_response.verified and s.plane_patches > 0
+    # the object's own stiffness at the rest surface, K_h = K_o and C_h K_h = 1, light damper
+    assert up.k_h == pytest.approx(K_O) and up.own_gain * up.k_h == pytest.approx(1.0)
+    assert up.i_gain == 0.0 and up.b_h <= 2.5
+    # where the design for an object that may be 25 % off renders something else
+    design = s.gain_table.lookup(s.gain_key(0.0, up.choice.delay_ticks), K_O)
+    assert design is not None and (design.k_h, design.b_h) != pytest.approx((up.k_h, up.b_h))
+
+
+@pytest.mark.parametrize("error", [0.8, 1.2])
+def test_an_object_off_its_reported_k_o_keeps_the_design(error: float) -> None:
+    s = _session_pressing(error * K_O)
+    assert not s.own_response.verified and s.plane_patches == 0
+    assert s.own_response.ratio == pytest.approx(error, rel=0.01)
+
+
+def test_an_object_with_damping_is_not_checked() -> None:
+    s = _session_pressing(K_O, b_o=50.0)
+    assert not s.own_response.verified and s.plane_patches == 0 and not s.planes
