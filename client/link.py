@@ -289,8 +289,16 @@ class Link:
         async def run() -> None:
             loop = asyncio.get_running_loop()
             try:
+                # the cell's own design, if made: the plane renders only if felt closer
+                design = table.lookup(key, table.grid_point(cell) * 1.0001)
                 plane = await loop.run_in_executor(
-                    self._executor, verified_plane, key, cell, table.grid_ratio, table.hand_box
+                    self._executor,
+                    verified_plane,
+                    key,
+                    cell,
+                    table.grid_ratio,
+                    table.hand_box,
+                    design,
                 )
             except Exception as exc:  # ValueError, or a broken worker: render the design
                 log.warning("no verified plane for cell %d: %s", cell, exc)

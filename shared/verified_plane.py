@@ -25,7 +25,9 @@ import math
 from dataclasses import replace
 from typing import Literal
 
-from haptic_collab.shared.felt_stiffness import felt_responses
+import numpy as np
+
+from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
 from haptic_collab.shared.full_loop import HandBox
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
@@ -43,6 +45,30 @@ PLANE_DAMPERS: tuple[float, ...] = (0.0, 0.025, 0.05, 0.1, 0.15, 0.25)
 _HOLDS: tuple[Literal["zoh", "foh"], ...] = ("zoh", "foh")
 
 
+def _band_error(q: np.ndarray, k_o: float) -> float:
+    """The largest ``|ln |q / K_o||`` over the band of felt responses ``q`` [N/m]."""
+    return float(np.max(np.abs(np.log(np.abs(q) / k_o))))
+
+
+def _design_band_error(design: GainDesign, g: float, key: GainKey) -> float:
+    """:func:`_band_error` of ``design`` scaled to K_o = ``g`` [N/m] (the paper's models: as is)."""
+    d = design.at(g)
+    q = felt_responses(
+        FELT_BAND_HZ,
+        k_o=g,
+        k_h=d.k_h,
+        i_gain=d.i_gain,
+        b_h=d.b_h,
+        b_o=key.b_o,
+        servo_period_s=key.rates.servo_period_s,
+        rate_ratio=key.rates.ratio,
+        delay_ticks=key.delay_ticks,
+        proxy_hold=d.proxy_hold,
+        own_gain=d.own_gain,
+    )[:, 0]
+    return _band_error(q, g)
+
+
 def verified_key(key: GainKey) -> GainKey:
     """``key`` with the verified plane's range (:data:`VERIFIED_RANGE` either way)."""
     return replace(key, margin=VERIFIED_RANGE, stiffer_by=VERIFIED_RANGE)
@@ -56,13 +82,21 @@ def plane_applies(key: GainKey) -> bool:
 
 
 def verified_plane(
-    key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox
+    key: GainKey,
+    cell: int,
+    grid_ratio: float,
+    hand_box: HandBox,
+    design: GainDesign | None = None,
 ) -> GainDesign | None:
     """The plane of grid cell ``cell`` (g = grid_ratio**cell [N/m]) with the lightest damper
     that passes the check (module docstring), as a design scaled across the cell
     (``scale_max = grid_ratio``: K_h = K_o, C_h = 1 / K_o for every K_o reported in the cell);
     None if none passes, if the cell's grid point is stiffer than the device (``key.k_h_max``;
-    within the cell K_h stops there), or if the key does not allow it (:func:`plane_applies`).
+    within the cell K_h stops there), if the key does not allow it (:func:`plane_applies`), or
+    if it is felt no closer to the object than ``design`` (the cell's own design, as
+    :func:`shared.gain_table.design_cell` made it): the largest ``|ln |q||`` over
+    :data:`shared.felt_stiffness.FELT_BAND_HZ` at the cell's grid point, the measure the
+    design ranks by.
 
     Raises
     ------
@@ -105,8 +139,8 @@ def verified_plane(
                 if not ok:
                     break
             else:
-                q1, q8 = felt_responses(
-                    (1.0, 8.0),
+                q = felt_responses(
+                    FELT_BAND_HZ,
                     k_o=g,
                     k_h=g,
                     b_h=b_h,
@@ -116,6 +150,9 @@ def verified_plane(
                     proxy_hold=hold,
                     own_gain=1.0 / g,
                 )[:, 0]
+                if design is not None and _band_error(q, g) >= _design_band_error(design, g, key):
+                    return None
+                q1, q8 = q[FELT_BAND_HZ.index(1.0)], q[FELT_BAND_HZ.index(8.0)]
                 lo = (1.0 - VERIFIED_RANGE) * g
                 return GainDesign(
                     k_h=g,

@@ -40,7 +40,7 @@ import time
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -230,17 +230,12 @@ def _design_cost(job: tuple[str, GainKey, float]) -> tuple[float, float]:
     return (float(n * (n + key.delay_ticks) ** 3), 1.0 if mode == "pi" else 0.0)
 
 
-def _plane_cell(key: GainKey, k_o: float) -> GainDesign | None:
-    """The verified plane of the client's gain-table cell holding K_o under ``key`` (a worker's
-    job; :func:`shared.verified_plane.verified_plane`), or None."""
+def _plane_cell(key: GainKey, k_o: float, design: GainDesign | None) -> GainDesign | None:
+    """The verified plane of the client's gain-table cell holding K_o under ``key`` where it is
+    felt closer to the object than that cell's ``design`` (a worker's job;
+    :func:`shared.verified_plane.verified_plane`), or None."""
     table = GainTable(DEFAULT_HAND_BOX)
-    return verified_plane(key, table.cell(k_o), table.grid_ratio, table.hand_box)
-
-
-def _plane_key(key: GainKey) -> GainKey:
-    """What a verified plane depends on of ``key`` (not the local model's form: the plane is
-    proportional either way)."""
-    return replace(key, mode="p")
+    return verified_plane(key, table.cell(k_o), table.grid_ratio, table.hand_box, design)
 
 
 def _design_cell(key: GainKey, k_o: float) -> GainDesign:
@@ -269,15 +264,14 @@ def _table(
 
 
 def _planes(
-    planes: dict[tuple[GainKey, float], GainDesign | None], key: GainKey
+    planes: dict[tuple[str, GainKey, float], GainDesign | None], mode: str, key: GainKey
 ) -> tuple[TableCell, ...]:
-    """The verified planes the run found for ``key``'s cells, as table cells."""
+    """The verified planes the run found for ``(mode, key)``'s cells, as table cells."""
     t = GainTable(DEFAULT_HAND_BOX)
-    pk = _plane_key(key)
     return tuple(
         TableCell.from_design(t.cell(k_o), d, t.grid_ratio)
-        for (k, k_o), d in sorted(planes.items(), key=lambda kv: kv[0][1])
-        if k == pk and d is not None
+        for (m, k, k_o), d in sorted(planes.items(), key=lambda kv: kv[0][2])
+        if m == mode and k == key and d is not None
     )
 
 
@@ -427,15 +421,14 @@ def run(
             w: pool.submit(_design_cell, w[1], w[2])
             for w in sorted(wanted, key=_design_cost, reverse=True)
         }
-        # ... and the verified plane of each cell whose key allows one (short checks, last)
-        plane_wanted = {
-            (_plane_key(key), k)
-            for (_, key, k) in [*wanted, *(design_cache or {})]
-            if plane_applies(key)
-        }
-        plane_jobs = {w: pool.submit(_plane_cell, *w) for w in sorted(plane_wanted, key=str)}
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
         designs.update({k: f.result() for k, f in jobs.items()})
+        # ... then the verified plane of each cell whose key allows one (short checks)
+        plane_jobs = {
+            w: pool.submit(_plane_cell, w[1], w[2], d)
+            for w, d in sorted(designs.items(), key=lambda kv: str(kv[0]))
+            if plane_applies(w[1])
+        }
         planes = {k: f.result() for k, f in plane_jobs.items()}
         if design_cache is not None:
             design_cache.update(designs)
@@ -464,7 +457,7 @@ def run(
                     device=device,
                     design=designs[(mode, key, k_o)].at(k_o),
                     table=tables[(mode, key)],
-                    planes=_planes(planes, key),
+                    planes=_planes(planes, mode, key),
                 )
             ]
 
@@ -616,7 +609,7 @@ def run(
                 "own_gain": gd.own_gain,
                 "proxy_hold": gd.proxy_hold,
                 "rendered_as": gd.mode,
-                "verified_plane": _plane_json(planes.get((_plane_key(gkey), k_o)), k_o),
+                "verified_plane": _plane_json(planes.get((mode, gkey, k_o)), k_o),
             }
         )
     summary = summarize(conditions, schemes)

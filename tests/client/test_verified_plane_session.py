@@ -49,7 +49,9 @@ def _session_pressing(k_true: float, b_o: float = 0.0, seconds: float = 2.0) -> 
         if s.plane_wanted is not None:
             key, cell = s.plane_wanted
             table = s.gain_table
-            s.store_plane(key, cell, verified_plane(key, cell, table.grid_ratio, table.hand_box))
+            design = table.lookup(key, table.grid_point(cell) * 1.0001)
+            plane = verified_plane(key, cell, table.grid_ratio, table.hand_box, design)
+            s.store_plane(key, cell, plane)
             s.plane_wanted = None
     return s
 

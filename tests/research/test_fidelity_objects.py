@@ -9,7 +9,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.bench.fidelity import _design_cell, _gain_key, _k_o_designed, _table
+from haptic_collab.bench.fidelity import (
+    _design_cell,
+    _gain_key,
+    _k_o_designed,
+    _plane_cell,
+    _planes,
+    _table,
+)
 from haptic_collab.research.fidelity_1d import simulate
 from haptic_collab.research.fidelity_cases import (
     IMPACT,
@@ -206,6 +213,9 @@ def test_absurd_object_models_are_refused() -> None:
         replace(STIFFENING, stiffening_m=math.nan)
 
 
+BAND = (0.5, 1.0, 2.0, 4.0, 8.0)  # the felt band the ranking judges (Hz)
+
+
 def _product(
     mode: str,
     k_o: float,
@@ -213,19 +223,23 @@ def _product(
     delay_ms: float,
     *,
     reached: ObjectModel | None = None,
+    planes: bool = True,
     **key_changes,
 ) -> Rendering:
     """The product's rendering of ``mode`` for K_o, as the benchmark renders it (the client's key,
     its table cell scaled to K_o, its gains following the K_o reported through the cells
-    designed), with ``key_changes`` applied to the key; with ``reached``, every cell that object
-    reaches is designed too (``--design-reached``)."""
+    designed, the verified plane of each where the own-response check verifies the K_o
+    reported), with ``key_changes`` applied to the key; with ``reached``, every cell that object
+    reaches is designed too (``--design-reached``); without ``planes``, no verified plane."""
     kind = "pi" if mode == "local-pi" else "p"
     key = replace(_gain_key(kind, rate, delay_ms, DeviceModel()), **key_changes)
     ks = [k_o] if reached is None else _k_o_designed(reached, k_o, True)
     designs = {(kind, key, k): _design_cell(key, k) for k in ks}
     design = designs[(kind, key, k_o)].at(k_o)
+    found = {w: _plane_cell(w[1], w[2], d) for w, d in designs.items()} if planes else {}
     return rendering_for(
-        mode, sim_rate_hz=rate, design=design, table=_table(designs, kind, key)
+        mode, sim_rate_hz=rate, design=design, table=_table(designs, kind, key),
+        planes=_planes(found, kind, key),
     )  # fmt: skip
 
 
@@ -233,6 +247,38 @@ def _box_stable(r: Rendering, obj: ObjectModel, k_o: float, rate: float, delay_m
     hands = (*DEFAULT_HAND_BOX.corners(), DEFAULT_HAND)
     cells = [Cell(r, k_o, rate, delay_ms, h, tr, obj) for h in hands for tr in (PRESS, TAP, IMPACT)]
     return all(m.stable for m in cell_metrics(simulate(cells), cells))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("rate", "delay_ms"), [(20.0, 0.0), (20.0, 100.0)])
+def test_on_the_spring_the_verified_plane_is_felt_as_the_object_with_every_hand_stable(
+    rate: float, delay_ms: float
+) -> None:
+    # the design for an object up to 25 % off is felt up to 0.2 (ln) off the spring over the
+    # band; once the client's own-response check has seen the object yield as reported, the
+    # verified plane renders: felt within the stiffness JND at every frequency, every hand
+    # of the box stable through the switch
+    k = 300.0
+    product, design_only = (
+        _product("local-pi", k, rate, delay_ms, planes=p) for p in (True, False)
+    )
+    assert product.planes and not design_only.planes
+    assert _box_stable(product, SPRING, k, rate, delay_ms)
+    errs = [abs(math.log(abs(_felt(product, SPRING, k, rate, delay_ms, hz)))) for hz in BAND]
+    assert max(errs) < math.log(1.1)
+    before = [abs(math.log(abs(_felt(design_only, SPRING, k, rate, delay_ms, hz)))) for hz in BAND]
+    assert max(before) > 1.5 * max(errs)
+    # an object 20 % softer than reported is never verified: the design renders, as before
+    for hz in (1.0, 8.0):
+        q, q0 = (_felt(r, SPRING_SOFTER, k, rate, delay_ms, hz) for r in (product, design_only))
+        assert q == pytest.approx(q0, rel=1e-9)
+
+
+def test_where_the_design_is_felt_closer_than_the_plane_it_stays() -> None:
+    # 300 N/m, 50 Hz, 10 ms: the cell's design is felt 0.07 off the spring over the band, its
+    # verified plane 0.09: the product has no plane there
+    assert not _product("local-pi", 300.0, 50.0, 10.0).planes
+    assert _product("local-pi", 300.0, 20.0, 0.0).planes
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ import pytest
 from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
 from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gain_table import GainTable, design_cell
 from haptic_collab.shared.verified_plane import VERIFIED_RANGE, verified_key, verified_plane
 from tests.support.hand_lattice import worst_on_lattice
 
@@ -60,6 +60,19 @@ def test_off_the_verified_range_the_plane_is_not_safe() -> None:
     assert plane is not None
     rho, where = worst_on_lattice(plane.at(k_o), [0.8 * k_o], sim_rate_hz=rate, delay_ticks=ticks)
     assert rho > 1.0, where
+
+
+def test_the_plane_renders_only_where_it_is_felt_closer_than_the_cells_design() -> None:
+    # at 50 Hz with one tick of delay the cell's own design is felt a little closer to the object
+    # over the band (0.07 against 0.09 in ln): the check then gives no plane; at 20 Hz it does
+    cell = TABLE.cell(300.0)
+    args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
+    for rate, ticks, wins in ((50.0, 1, False), (20.0, 0, True)):
+        key = _key(rate, ticks)
+        design = design_cell(key, cell, *args)
+        plane = verified_plane(key, cell, *args, design)
+        assert (plane is not None) == wins
+        assert verified_plane(key, cell, *args) is not None  # without a design to beat
 
 
 def test_only_an_uncoupled_contact_on_an_undamped_object_below_the_device_gets_one() -> None:
