@@ -278,12 +278,14 @@ class Link:
         """Check the verified plane the session asks for (:attr:`ClientSession.plane_wanted`)
         in the design worker, one at a time: nothing waits for it (the contact renders its
         design meanwhile), so it never holds up a check a contact needs."""
-        want = self.session.plane_wanted
-        if want is None or (self._plane_task is not None and not self._plane_task.done()):
+        session = self.session
+        busy = self._plane_task is not None and not self._plane_task.done()
+        designing = self._design_task is not None and not self._design_task.done()
+        # after the designs: a plane check (a second or more) must not hold up a design needed
+        if not session.plane_wanted or busy or designing or session.design_wanted is not None:
             return
-        self.session.plane_wanted = None
-        key, cell = want
-        table = self.session.gain_table
+        key, cell = session.plane_wanted.pop(0)
+        table = session.gain_table
         self._ensure_executor()
 
         async def run() -> None:
@@ -300,12 +302,17 @@ class Link:
                     table.hand_box,
                     design,
                 )
-            except Exception as exc:  # ValueError, or a broken worker: render the design
+            except ValueError as exc:  # gains or rates it cannot check: render the design
                 log.warning("no verified plane for cell %d: %s", cell, exc)
                 plane = None
-            self.session.store_plane(key, cell, plane)
+            except Exception as exc:  # a broken worker: render the design, ask again later
+                log.warning("verified plane for cell %d not checked: %s", cell, exc)
+                session.plane_failed(key, cell)
+                return
+            session.store_plane(key, cell, plane)
             self.plane_checks += 1
             log.debug("verified plane for cell %d: %s", cell, "none" if plane is None else plane)
+            self._start_plane()  # the next one asked meanwhile
 
         self._plane_task = asyncio.get_running_loop().create_task(run())
 
@@ -602,7 +609,7 @@ class Link:
                 self._start_check()
             if self.session.design_wanted is not None:
                 self._start_design()
-            if self.session.plane_wanted is not None:
+            if self.session.plane_wanted:
                 self._start_plane()
             if update is not None:
                 self.on_patch(update, now)

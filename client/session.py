@@ -77,6 +77,11 @@ if TYPE_CHECKING:
 #: Pings (one every 0.5 s) over which the loop delay is estimated.
 RTT_WINDOW = 20
 
+#: Distance [m] the proxy may slide along the surface before the own-response check starts over
+#: (:meth:`ClientSession._object_as_reported`): on a 5 cm radius, 0.5 mm of slide deepens the
+#: measured surface by 2.5 um, under a hundredth of what a 0.3 N spread shows on 1000 N/m.
+OWN_RESPONSE_SLIDE_M = 0.5e-3
+
 #: K_h / K_o_eff of the unverified fallback a contact renders while the check for its new
 #: coupling class or larger delay runs: a proportional model, no own-force compensation, the
 #: device's whole damper, zero-order hold. Measured with the hand in the loop (every hand of the
@@ -297,7 +302,8 @@ class ClientSession:
         #: Verified planes per (key, cell) (:func:`shared.verified_plane.verified_plane`; None:
         #: none passed), and the one the link is to check off the event loop.
         self.planes: dict[tuple[GainKey, int], GainDesign | None] = {}
-        self.plane_wanted: tuple[GainKey, int] | None = None
+        #: (key, cell) whose verified plane the link is to check, oldest first.
+        self.plane_wanted: list[tuple[GainKey, int]] = []
         self._plane_asked: set[tuple[GainKey, int]] = set()
         #: Patches rendered with a verified plane.
         self.plane_patches = 0
@@ -371,6 +377,7 @@ class ClientSession:
             self.welcome = msg
             self.last_patch = None  # a new session: its ticks start afresh
             self.last_update = None  # and its first patch waits for verified gains again
+            self._reset_own_response()  # and the object must show its K_o again
             return None
         if isinstance(msg, Pong):
             rtt = now_s - msg.t_client_s
@@ -486,32 +493,53 @@ class ClientSession:
         """Keep the verified plane of (key, cell), or None: none passed its check."""
         self.planes[(key, cell)] = design
 
+    def plane_failed(self, key: GainKey, cell: int) -> None:
+        """The check of (key, cell)'s plane could not run (a broken worker): it may be asked
+        again."""
+        self._plane_asked.discard((key, cell))
+
+    def _reset_own_response(self, cell: int | None = None) -> None:
+        self.own_response.reset()
+        self._own_cell = cell
+        self._own_ref, self._own_tick = None, None
+
     def _object_as_reported(self, surface: SurfacePatch, key: GainKey, cell: int) -> bool:
         """Feed the own-response check this patch and return its verdict: has the object
         yielded to this user's force as a spring of the K_o reported (:mod:`shared.own_response`)?
 
-        Only an uncoupled contact on an object without B_o is checked (:func:`plane_applies`);
-        the check starts over in each gain-table cell. It reads the depth of the surface along
-        the contact normal from the proxy it started at, and the force the simulation applied
-        from this user, on patches with that force; the time between patches is their ticks'.
+        Only an uncoupled contact on an object without B_o is checked (:func:`plane_applies`).
+        The check reads the depth of the surface along the contact normal from the proxy it
+        started at, and the force the simulation applied from this user; the time between
+        patches is their ticks'. It starts over in each gain-table cell, after a welcome, when
+        the contact ends (a patch without this user's force), when the proxy has slid
+        :data:`OWN_RESPONSE_SLIDE_M` along the surface from where it started (on a curved surface
+        the depth would carry the curvature), and when the ticks go back.
         """
         check = self.own_response
-        if not plane_applies(key) or self._own_cell != cell:
-            check.reset()
-            self._own_cell = cell if plane_applies(key) else None
-            self._own_ref, self._own_tick = None, None
-            if self._own_cell is None:
-                return False
-        if surface.own_force_n <= 0.0:
-            return check.verified
+        if not plane_applies(key):
+            self._reset_own_response()
+            return False
+        if self._own_cell != cell or surface.own_force_n <= 0.0:
+            self._reset_own_response(cell)
+            return False
+        if self._own_tick is not None and surface.tick == self._own_tick:
+            return check.verified  # the same patch again (a retried render)
         proxy = np.asarray(surface.proxy, dtype=float)
+        normal = np.asarray(surface.normal, dtype=float)
+        if self._own_ref is not None:
+            moved = proxy - self._own_ref
+            slid = moved - float(np.dot(moved, normal)) * normal
+            if float(np.linalg.norm(slid)) > OWN_RESPONSE_SLIDE_M or (
+                self._own_tick is not None and surface.tick < self._own_tick
+            ):
+                self._reset_own_response(cell)
         if self._own_ref is None:
             self._own_ref = proxy
         dt = 0.0 if self._own_tick is None else (surface.tick - self._own_tick) / self.sim_rate_hz
         self._own_tick = surface.tick
-        depth = float(np.dot(self._own_ref - proxy, np.asarray(surface.normal, dtype=float)))
+        depth = float(np.dot(self._own_ref - proxy, normal))
         return check.update(
-            dt_s=max(dt, 0.0), surface_m=depth, force_n=surface.own_force_n, k_o=surface.k_o_eff
+            dt_s=dt, surface_m=depth, force_n=surface.own_force_n, k_o=surface.k_o_eff
         )
 
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
@@ -611,10 +639,11 @@ class ClientSession:
         if self._object_as_reported(surface, key, cell):
             # the object yields as the K_o reported says: the plane verified for that (the
             # lightest damper, K_h = K_o) replaces the design made for an object off by 25 %
+            # where it is felt closer (checked against that design: asked once it is made)
             if (key, cell) not in self.planes:
-                if (key, cell) not in self._plane_asked:
+                if (key, cell) not in self._plane_asked and own is not None:
                     self._plane_asked.add((key, cell))
-                    self.plane_wanted = (key, cell)
+                    self.plane_wanted.append((key, cell))
             elif (plane := self.planes[(key, cell)]) is not None:
                 design = plane.at(k_o_eff)
                 self.plane_patches += 1

@@ -23,11 +23,12 @@ not correlated; the client only runs the check on an uncoupled contact.
 The verdict (:attr:`OwnResponse.verified`):
 
 - *verified* once the forces in the window spread by at least ``min_force_spread_n`` (standard
-  deviation), the line explains ``r_hat`` to within ``max_residual`` of the deformation that spread
+  deviation) or by what deforms the object ``min_depth_spread_m``, the line explains ``r_hat`` to within ``max_residual`` of the deformation that spread
   causes, and ``|rho - 1| <= tolerance``;
 - *refused* at once when ``|rho - 1| > refuse_tolerance`` or the residual is too large, with the
-  spread met; without that spread (a held press, no contact) the last verdict stands: the object
-  has not shown anything new.
+  spread met, or when the newest patch lies off the line by more than ``refuse_tolerance F_s /
+  K_o`` (an object that changed under a held force); otherwise, without that spread (a held
+  press), the last verdict stands. The client starts the check over when the contact ends.
 
 The state is a few weighted sums (:data:`SUMS`); :func:`update_sums` and :func:`verdict` work on
 arrays of any shape, so a batch of contacts (the fidelity benchmark's simulator,
@@ -57,8 +58,11 @@ TOLERANCE = 0.04
 #: tolerance from switching designs on every patch).
 REFUSE_TOLERANCE = 0.05
 #: Least standard deviation [N] of the forces in the window for a verdict: a 0.3 N spread on a
-#: 1000 N/m object is 0.3 mm of deformation to read the slope from.
+#: 1000 N/m object is 0.3 mm of deformation to read the slope from ...
 MIN_FORCE_SPREAD_N = 0.3
+#: ... or [m] of the deformation they cause (spread / K_o): on a soft object a press deforms it
+#: by millimetres with a tenth of a newton (100 N/m: 1 mm is 0.1 N).
+MIN_DEPTH_SPREAD_M = 1e-3
 #: Largest rms residual of the line, as a fraction of the deformation the force spread causes
 #: (spread / K_o): a viscoelastic or strain-stiffening response is not a line.
 MAX_RESIDUAL = 0.1
@@ -123,23 +127,35 @@ def verdict(
     k_o: float | FloatArray,
     last: bool | np.ndarray,
     *,
+    newest: tuple[float | FloatArray, float | FloatArray] | None = None,
     tolerance: float = TOLERANCE,
     refuse_tolerance: float = REFUSE_TOLERANCE,
     min_force_spread_n: float = MIN_FORCE_SPREAD_N,
+    min_depth_spread_m: float = MIN_DEPTH_SPREAD_M,
     max_residual: float = MAX_RESIDUAL,
 ) -> np.ndarray:
     """Verified (bool, shape ``sums.shape[:-1]``): the module's rules, ``last`` the verdict so
-    far."""
+    far. With ``newest`` = (F_s [N], surface depth [m]) of the patch just added, the verdict is
+    also withdrawn when that patch's ``r_hat`` is off the window's line by more than
+    ``refuse_tolerance F_s / K_o``: an object that changed under a held force (no spread to read
+    a new slope from) shows there first."""
     s, spread, res = fit(sums)
     k = np.asarray(k_o, dtype=float)
     rho = ratio(sums, k)
-    shown = spread >= min_force_spread_n
+    shown = (spread >= min_force_spread_n) | (spread / k >= min_depth_spread_m)
     with np.errstate(invalid="ignore"):
         line = res <= max_residual * spread / k
         off = np.abs(rho - 1.0)
         good = shown & line & (off <= tolerance)
         bad = shown & (~line | ~(off <= refuse_tolerance))
-    return np.where(good, True, np.where(bad, False, np.asarray(last, dtype=bool)))
+        if newest is not None:
+            f = np.asarray(newest[0], dtype=float)
+            r = np.asarray(newest[1], dtype=float) - f / k
+            w = sums[..., 0]
+            mf, mr = sums[..., 1] / w, sums[..., 2] / w
+            fitted = mr + np.where(np.isfinite(s), s, 0.0) * (f - mf)
+            bad = bad | (np.abs(r - fitted) > refuse_tolerance * f / k)
+    return np.where(good & ~bad, True, np.where(bad, False, np.asarray(last, dtype=bool)))
 
 
 @dataclass
@@ -161,13 +177,20 @@ class OwnResponse:
     tolerance: float = TOLERANCE
     refuse_tolerance: float = REFUSE_TOLERANCE
     min_force_spread_n: float = MIN_FORCE_SPREAD_N
+    min_depth_spread_m: float = MIN_DEPTH_SPREAD_M
     max_residual: float = MAX_RESIDUAL
     sums: FloatArray = field(default_factory=empty_sums, repr=False)
     verified: bool = False
     k_o: float = math.nan
 
     def __post_init__(self) -> None:
-        for name in ("window_s", "tolerance", "refuse_tolerance", "min_force_spread_n"):
+        for name in (
+            "window_s",
+            "tolerance",
+            "refuse_tolerance",
+            "min_force_spread_n",
+            "min_depth_spread_m",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -208,9 +231,11 @@ class OwnResponse:
                 self.sums,
                 k_o,
                 self.verified,
+                newest=(force_n, surface_m),
                 tolerance=self.tolerance,
                 refuse_tolerance=self.refuse_tolerance,
                 min_force_spread_n=self.min_force_spread_n,
+                min_depth_spread_m=self.min_depth_spread_m,
                 max_residual=self.max_residual,
             )
         )

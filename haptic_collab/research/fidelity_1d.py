@@ -114,12 +114,13 @@ def _verified_plane_gains(
     ``mask`` once they have fed its own-response check, as
     :meth:`client.session.ClientSession._render` does: the check (``sums``, ``cell``,
     ``seq_last``, ``ok``, updated in place) starts over in each gain-table cell of the K_o
-    reported, takes the patches with a force from this user (the surface's depth ``surface``
-    [m], ``force`` [N], the time between patches from their ticks ``seq``), and where it has
+    reported and when the contact ends (a patch without a force from this user), takes the
+    patches with that force (the surface's depth ``surface`` [m], ``force`` [N], the time
+    between patches from their ticks ``seq``), and where it has
     verified the K_o reported and the cell has a verified plane (``planes``), that plane scaled
     to K_o replaces ``gains``."""
     c = np.floor(np.log(k_o) / np.log(planes.ratio) + 1e-12).astype(np.int64)
-    moved = mask & (c != cell)
+    moved = mask & ((c != cell) | ~(force > 0.0))  # a new cell, or the contact ended
     sums[moved] = 0.0
     ok[moved] = False
     seq_last[moved] = -1
@@ -130,7 +131,7 @@ def _verified_plane_gains(
         new = update_sums(sums, dt_s=dt, surface_m=surface, force_n=force, k_o=k_o)
         sums[push] = new[push]
         seq_last[push] = seq[push]
-        ok[push] = verdict(sums, k_o, ok)[push]
+        ok[push] = verdict(sums, k_o, ok, newest=(force, surface))[push]
     use = mask & ok & planes.has_cell(k_o)
     if not use.any():
         return gains

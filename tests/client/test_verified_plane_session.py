@@ -4,15 +4,20 @@ its design otherwise."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from haptic_collab.client.session import ClientSession
+from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.protocol import Patch, PlaneModel, encode
 from haptic_collab.shared.verified_plane import verified_plane
 from tests.support.sessions import welcomed_session
 
 K_O = 300.0
+#: One gain table for every session here: the cells are designed once (a design takes seconds).
+TABLE = GainTable()
 
 
 def _press_patch(tick: int, force_n: float, k_true: float, b_o: float = 0.0) -> str:
@@ -35,24 +40,29 @@ def _press_patch(tick: int, force_n: float, k_true: float, b_o: float = 0.0) -> 
     )
 
 
+def _check_planes(s: ClientSession) -> None:
+    """Run the plane checks the session asks for, as the link's design worker does."""
+    while s.plane_wanted:
+        key, cell = s.plane_wanted.pop(0)
+        table = s.gain_table
+        design = table.lookup(key, table.grid_point(cell) * 1.0001)
+        s.store_plane(
+            key, cell, verified_plane(key, cell, table.grid_ratio, table.hand_box, design)
+        )
+
+
 def _session_pressing(k_true: float, b_o: float = 0.0, seconds: float = 2.0) -> ClientSession:
     """A session whose gains are designed, after ``seconds`` of 20 Hz patches of a press going
-    up and down between 0 and 3 N, with the link's jobs run as its workers would."""
-    s = welcomed_session("A", "u1", b_h_max=10.0)
+    up and down between 0.1 and 3.1 N, with the link's jobs run as its workers would."""
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
     for tick in range(1, round(20 * seconds) + 1):
-        f = 1.5 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0)
+        f = 1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0)  # in contact throughout
         s.receive(_press_patch(tick, float(f), k_true, b_o), tick / 20.0)
         if s.design_wanted is not None:
             key, k_o = s.design_wanted
             s.gain_table.design(key, k_o)
             s.design_wanted = None
-        if s.plane_wanted is not None:
-            key, cell = s.plane_wanted
-            table = s.gain_table
-            design = table.lookup(key, table.grid_point(cell) * 1.0001)
-            plane = verified_plane(key, cell, table.grid_ratio, table.hand_box, design)
-            s.store_plane(key, cell, plane)
-            s.plane_wanted = None
+        _check_planes(s)
     return s
 
 
@@ -79,3 +89,57 @@ def test_an_object_off_its_reported_k_o_keeps_the_design(error: float) -> None:
 def test_an_object_with_damping_is_not_checked() -> None:
     s = _session_pressing(K_O, b_o=50.0)
     assert not s.own_response.verified and s.plane_patches == 0 and not s.planes
+
+
+def _verified_then(s: ClientSession, patches: list[str], t0: float) -> list[float]:
+    """Feed ``patches`` (20 Hz from ``t0``), the link's jobs run; the K_h rendered for each."""
+    k_h = []
+    for i, frame in enumerate(patches):
+        up = s.receive(frame, t0 + i / 20.0)
+        _check_planes(s)
+        if up is not None:
+            k_h.append(up.k_h)
+    return k_h
+
+
+def _held(tick0: int, n: int, force_n: float, k_true: float) -> list[str]:
+    return [_press_patch(tick0 + i, force_n, k_true) for i in range(n)]
+
+
+def test_a_contact_regained_on_a_softer_object_gets_the_design_back() -> None:
+    s = _session_pressing(K_O)
+    assert s.own_response.verified
+    design = s.gain_table.lookup(s.gain_key(0.0, s.last_update.choice.delay_ticks), K_O)
+    assert design is not None
+    # the user lets go (no force from it), then holds 2 N on an object 25 % softer in the
+    # same cell: the plane was checked for 5 % only, so the design must render again
+    gap = [_press_patch(41 + i, 0.0, K_O) for i in range(20)]
+    k_h = _verified_then(s, gap + _held(61, 40, 2.0, 0.75 * K_O), 2.1)
+    assert not s.own_response.verified
+    assert k_h[-1] == pytest.approx(design.k_h) and k_h[-1] != pytest.approx(K_O)
+
+
+def test_an_object_that_yields_more_under_a_held_force_withdraws_the_plane() -> None:
+    s = _session_pressing(K_O)
+    f = 1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * 40 / 20.0)
+    # the same force, the surface now as a 20 % softer object holds it: off the line at once
+    k_h = _verified_then(s, _held(41, 3, float(f), 0.8 * K_O), 2.1)
+    assert not s.own_response.verified and k_h[-1] != pytest.approx(K_O)
+
+
+def test_a_new_welcome_and_a_slide_start_the_check_over() -> None:
+    s = _session_pressing(K_O)
+    assert s.own_response.verified
+    s.receive(encode(s.welcome), 3.0)  # a rejoin  # type: ignore[arg-type]
+    assert not s.own_response.verified
+    s = _session_pressing(K_O)
+    # the proxy slides 1 mm along the surface: the depth it reads would carry the curvature
+    slid = encode(
+        Patch(
+            tick=41, primitive=PlaneModel(point=(1e-3, 0, 0.1), normal=(0, 0, 1)),
+            proxy_m=(1e-3, 0, 0.1), normal=(0, 0, 1), penetration_m=0.001, in_contact=True,
+            k_o=K_O, k_o_eff=K_O, b_o=0.0, own_force_n=0.5,
+        )
+    )  # fmt: skip
+    s.receive(slid, 2.1)
+    assert not s.own_response.verified and math.isnan(s.own_response.ratio)

@@ -101,3 +101,21 @@ def test_batches_run_the_same_arithmetic_and_bad_input_changes_nothing() -> None
         OwnResponse(tolerance=0.1, refuse_tolerance=0.05)
     one.reset()
     assert not one.verified and math.isnan(one.ratio)
+
+
+def test_a_press_on_a_soft_object_is_read_by_the_deformation_it_causes() -> None:
+    # 100 N/m pressed from 0 to 1 N: a 0.29 N spread, under the 0.3 N asked of a stiff object,
+    # is 2.9 mm of deformation; 0.05 N (0.5 mm) alone is not enough
+    soft = 100.0
+    c = OwnResponse()
+    seen = [
+        c.update(dt_s=DT, surface_m=f / soft, force_n=float(f), k_o=soft)
+        for f in np.linspace(0.0, 1.0, 10)
+    ]
+    assert seen[-1]
+    c2 = OwnResponse()
+    seen2 = [
+        c2.update(dt_s=DT, surface_m=f / soft, force_n=float(f), k_o=soft)
+        for f in np.linspace(0.0, 0.17, 10)
+    ]
+    assert not any(seen2)
