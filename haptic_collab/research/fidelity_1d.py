@@ -105,6 +105,8 @@ def _verified_plane_gains(
     cell: NDArray[np.int64],
     seq_last: NDArray[np.int64],
     ok: NDArray[np.bool_],
+    since: NDArray[np.int64],
+    delay_s: FloatArray,
     seq: NDArray[np.int64],
     surface: FloatArray,
     force: FloatArray,
@@ -118,12 +120,14 @@ def _verified_plane_gains(
     patches with that force (the surface's depth ``surface`` [m], ``force`` [N], the time
     between patches from their ticks ``seq``), and where it has
     verified the K_o reported and the cell has a verified plane (``planes``), that plane scaled
-    to K_o replaces ``gains``."""
+    to K_o replaces ``gains`` from ``delay_s`` [s] after the check first verified the cell (the
+    time the client's worker takes to check the plane; ``since`` holds that tick)."""
     c = np.floor(np.log(k_o) / np.log(planes.ratio) + 1e-12).astype(np.int64)
     moved = mask & ((c != cell) | ~(force > 0.0))  # a new cell, or the contact ended
     sums[moved] = 0.0
     ok[moved] = False
     seq_last[moved] = -1
+    since[moved] = -1
     cell[moved] = c[moved]
     push = mask & (force > 0.0)
     if push.any():
@@ -132,7 +136,10 @@ def _verified_plane_gains(
         sums[push] = new[push]
         seq_last[push] = seq[push]
         ok[push] = verdict(sums, k_o, ok, newest=(force, surface))[push]
-    use = mask & ok & planes.has_cell(k_o)
+    # the client checks the cell's plane once its check first verifies there, in its worker
+    since[mask & ok & (since < 0)] = seq[mask & ok & (since < 0)]
+    ready = (since >= 0) & ((seq - since) / sim_rate_hz >= delay_s)
+    use = mask & ok & ready & planes.has_cell(k_o)
     if not use.any():
         return gains
     plane = planes.gains_and_hold(k_o)
@@ -289,6 +296,8 @@ def simulate(
     own_cell = np.full(B, np.iinfo(np.int64).min)
     own_seq = np.full(B, -1, dtype=np.int64)
     own_ok = np.zeros(B, dtype=bool)
+    own_since = np.full(B, -1, dtype=np.int64)  # tick the check verified the cell at
+    plane_delay = np.array([x.plane_delay_s for x in r])
     k_h_now, ti_now, b_h_now = k_h.copy(), ti.copy(), b_h.copy()
     # the client's bumpless change of gains (shared.local_model.LocalModel.set_gains): the force
     # step of new gains in contact is a transfer force b, driven linearly to zero
@@ -442,6 +451,8 @@ def simulate(
                             cell=own_cell,
                             seq_last=own_seq,
                             ok=own_ok,
+                            since=own_since,
+                            delay_s=plane_delay,
                             seq=seq,
                             surface=got[:, 4],
                             force=np.maximum(got[:, 2], 0.0),

@@ -164,6 +164,9 @@ class Rendering:
         cells of that table. Where the client's own-response check (:mod:`shared.own_response`)
         verifies the K_o reported in such a cell, its plane renders instead of the table's
         design, as :meth:`client.session.ClientSession._render` does. Empty: never.
+    plane_delay_s : float
+        Time [s] from the check's first verdict in a cell to its plane rendering: the client
+        checks the plane then, in its design worker (:data:`PRODUCT_PLANE_CHECK_S`).
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
@@ -193,6 +196,7 @@ class Rendering:
     follows_k_o: bool = False
     table: tuple[TableCell, ...] = ()
     planes: tuple[TableCell, ...] = ()
+    plane_delay_s: float = 0.0
     gain_transfer_s: float = 0.0
     variant: str = ""
     tuning: str = ""
@@ -206,6 +210,13 @@ PRODUCT_PASSIVITY_BIAS_J = 1e-3
 #: Time [s] over which the product's client carries off the force step of new gains in contact
 #: (``client.app.GAIN_TRANSFER_S``; a test keeps the two equal).
 PRODUCT_GAIN_TRANSFER_S = 0.25
+
+
+#: Time [s] the product's client takes to check a cell's verified plane once its own-response
+#: check has verified the cell (:func:`shared.verified_plane.verified_plane` in the link's design
+#: worker): measured 0.3-1.0 s per check on this 2-core machine idle (2026-11-25), 6-9 s beside a
+#: benchmark; the simulator renders the plane this long after the verdict.
+PRODUCT_PLANE_CHECK_S = 2.0
 
 
 def design_delay_ticks(one_way_delay_s: float, sim_rate_hz: float) -> int:
@@ -504,6 +515,7 @@ def rendering_for(
             follows_k_o=bool(table),
             table=tuple(table),
             planes=tuple(planes) if table else (),
+            plane_delay_s=PRODUCT_PLANE_CHECK_S,
             gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
             tuning=scheme_tuning(scheme, device),
         )
