@@ -305,9 +305,8 @@ class Link:
             except ValueError as exc:  # gains or rates it cannot check: render the design
                 log.warning("no verified plane for cell %d: %s", cell, exc)
                 plane = None
-            except Exception as exc:  # a broken worker: render the design, ask again later
+            except Exception as exc:  # a broken worker: the design renders (not asked again)
                 log.warning("verified plane for cell %d not checked: %s", cell, exc)
-                session.plane_failed(key, cell)
                 return
             session.store_plane(key, cell, plane)
             self.plane_checks += 1

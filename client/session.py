@@ -493,11 +493,6 @@ class ClientSession:
         """Keep the verified plane of (key, cell), or None: none passed its check."""
         self.planes[(key, cell)] = design
 
-    def plane_failed(self, key: GainKey, cell: int) -> None:
-        """The check of (key, cell)'s plane could not run (a broken worker): it may be asked
-        again."""
-        self._plane_asked.discard((key, cell))
-
     def _reset_own_response(self, cell: int | None = None) -> None:
         self.own_response.reset()
         self._own_cell = cell
@@ -641,7 +636,11 @@ class ClientSession:
             # lightest damper, K_h = K_o) replaces the design made for an object off by 25 %
             # where it is felt closer (checked against that design: asked once it is made)
             if (key, cell) not in self.planes:
-                if (key, cell) not in self._plane_asked and own is not None:
+                if own is None:
+                    # the server's gains render (or none yet): design the cell here too, the
+                    # plane is checked against it
+                    self.design_wanted = (key, k_o_eff)
+                elif (key, cell) not in self._plane_asked:
                     self._plane_asked.add((key, cell))
                     self.plane_wanted.append((key, cell))
             elif (plane := self.planes[(key, cell)]) is not None:

@@ -124,10 +124,12 @@ def _verified_plane_gains(
     time the client's worker takes to check the plane; ``since`` holds that tick)."""
     c = np.floor(np.log(k_o) / np.log(planes.ratio) + 1e-12).astype(np.int64)
     moved = mask & ((c != cell) | ~(force > 0.0))  # a new cell, or the contact ended
+    # (the client keeps a cell's checked plane for the session: only a new cell starts its
+    # check time over)
+    since[mask & (c != cell)] = -1
     sums[moved] = 0.0
     ok[moved] = False
     seq_last[moved] = -1
-    since[moved] = -1
     cell[moved] = c[moved]
     push = mask & (force > 0.0)
     if push.any():
@@ -137,7 +139,8 @@ def _verified_plane_gains(
         seq_last[push] = seq[push]
         ok[push] = verdict(sums, k_o, ok, newest=(force, surface))[push]
     # the client checks the cell's plane once its check first verifies there, in its worker
-    since[mask & ok & (since < 0)] = seq[mask & ok & (since < 0)]
+    first = mask & ok & (since < 0)
+    since[first] = seq[first]
     ready = (since >= 0) & ((seq - since) / sim_rate_hz >= delay_s)
     use = mask & ok & ready & planes.has_cell(k_o)
     if not use.any():

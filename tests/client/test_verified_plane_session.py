@@ -11,7 +11,7 @@ import pytest
 
 from haptic_collab.client.session import ClientSession
 from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.protocol import Patch, PlaneModel, encode
+from haptic_collab.shared.protocol import Patch, PlaneModel, RecommendedGains, encode
 from haptic_collab.shared.verified_plane import verified_plane
 from tests.support.sessions import welcomed_session
 
@@ -20,7 +20,13 @@ K_O = 300.0
 TABLE = GainTable()
 
 
-def _press_patch(tick: int, force_n: float, k_true: float, b_o: float = 0.0) -> str:
+def _press_patch(
+    tick: int,
+    force_n: float,
+    k_true: float,
+    b_o: float = 0.0,
+    gains: RecommendedGains | None = None,
+) -> str:
     """A patch of a press on the top plane z = 0.1 m of a spring of ``k_true`` [N/m] reported
     at :data:`K_O`: the surface pushed in by the force the simulation applied from this user."""
     z = 0.1 - force_n / k_true
@@ -36,6 +42,7 @@ def _press_patch(tick: int, force_n: float, k_true: float, b_o: float = 0.0) -> 
             k_o_eff=K_O,
             b_o=b_o,
             own_force_n=force_n,
+            gains=gains,
         )
     )
 
@@ -143,3 +150,26 @@ def test_a_new_welcome_and_a_slide_start_the_check_over() -> None:
     )  # fmt: skip
     s.receive(slid, 2.1)
     assert not s.own_response.verified and math.isnan(s.own_response.ratio)
+
+
+def test_with_the_servers_gains_the_client_designs_the_cell_and_renders_its_plane() -> None:
+    # the client's default renders the gains the server recommends; once its check verifies,
+    # it designs the cell itself (the plane is checked against that design) and renders the plane
+    rec = RecommendedGains(
+        k_h=214.0, i_gain=0.0, b_h=5.0, proxy_hold="foh", theta_m=0.0, delay_ticks=0,
+        own_gain=1 / 214.0,
+    )  # fmt: skip
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    assert s.gains_source == "server"
+    rendered = []
+    for tick in range(1, 81):
+        f = 1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0)
+        up = s.receive(_press_patch(tick, float(f), K_O, gains=rec), tick / 20.0)
+        rendered.append(None if up is None else up.k_h)
+        if s.design_wanted is not None:
+            key, k_o = s.design_wanted
+            s.gain_table.design(key, k_o)
+            s.design_wanted = None
+        _check_planes(s)
+    assert rendered[5] == pytest.approx(214.0)  # the server's, before the check verifies
+    assert s.plane_patches > 0 and rendered[-1] == pytest.approx(K_O)
