@@ -45,28 +45,36 @@ PLANE_DAMPERS: tuple[float, ...] = (0.0, 0.025, 0.05, 0.1, 0.15, 0.25)
 _HOLDS: tuple[Literal["zoh", "foh"], ...] = ("zoh", "foh")
 
 
-def _band_error(q: np.ndarray, k_o: float) -> float:
-    """The largest ``|ln |q / K_o||`` over the band of felt responses ``q`` [N/m]."""
-    return float(np.max(np.abs(np.log(np.abs(q) / k_o))))
-
-
-def _design_band_error(design: GainDesign, g: float, key: GainKey) -> float:
-    """:func:`_band_error` of ``design`` scaled to K_o = ``g`` [N/m] (the paper's models: as is)."""
-    d = design.at(g)
-    q = felt_responses(
+def _band_response(
+    key: GainKey,
+    k_o: float,
+    *,
+    k_h: float,
+    b_h: float,
+    proxy_hold: Literal["zoh", "foh"],
+    own_gain: float,
+    i_gain: float = 0.0,
+) -> np.ndarray:
+    """Felt responses dF/dx [N/m] over :data:`shared.felt_stiffness.FELT_BAND_HZ` of these gains
+    on an object of ``k_o`` [N/m] under ``key`` (its rates, delay and B_o), shape (F,)."""
+    return felt_responses(
         FELT_BAND_HZ,
-        k_o=g,
-        k_h=d.k_h,
-        i_gain=d.i_gain,
-        b_h=d.b_h,
+        k_o=k_o,
+        k_h=k_h,
+        i_gain=i_gain,
+        b_h=b_h,
         b_o=key.b_o,
         servo_period_s=key.rates.servo_period_s,
         rate_ratio=key.rates.ratio,
         delay_ticks=key.delay_ticks,
-        proxy_hold=d.proxy_hold,
-        own_gain=d.own_gain,
+        proxy_hold=proxy_hold,
+        own_gain=own_gain,
     )[:, 0]
-    return _band_error(q, g)
+
+
+def _band_error(q: np.ndarray, k_o: float) -> float:
+    """The largest ``|ln |q / K_o||`` over the band of felt responses ``q`` [N/m]."""
+    return float(np.max(np.abs(np.log(np.abs(q) / k_o))))
 
 
 def verified_key(key: GainKey) -> GainKey:
@@ -139,19 +147,15 @@ def verified_plane(
                 if not ok:
                     break
             else:
-                q = felt_responses(
-                    FELT_BAND_HZ,
-                    k_o=g,
-                    k_h=g,
-                    b_h=b_h,
-                    servo_period_s=T,
-                    rate_ratio=n,
-                    delay_ticks=key.delay_ticks,
-                    proxy_hold=hold,
-                    own_gain=1.0 / g,
-                )[:, 0]
-                if design is not None and _band_error(q, g) >= _design_band_error(design, g, key):
-                    return None
+                q = _band_response(key, g, k_h=g, b_h=b_h, proxy_hold=hold, own_gain=1.0 / g)
+                if design is not None:
+                    d = design.at(g)  # the cell's design at its grid point
+                    q_d = _band_response(
+                        key, g, k_h=d.k_h, i_gain=d.i_gain, b_h=d.b_h, proxy_hold=d.proxy_hold,
+                        own_gain=d.own_gain,
+                    )  # fmt: skip
+                    if _band_error(q, g) >= _band_error(q_d, g):
+                        return None
                 q1, q8 = q[FELT_BAND_HZ.index(1.0)], q[FELT_BAND_HZ.index(8.0)]
                 lo = (1.0 - VERIFIED_RANGE) * g
                 return GainDesign(
