@@ -284,15 +284,16 @@ class Link:
         # after the designs: a plane check (a second or more) must not hold up a design needed
         if not session.plane_wanted or busy or designing or session.design_wanted is not None:
             return
-        key, cell = session.plane_wanted.pop(0)
+        key, cell, design_cell = session.plane_wanted.pop(0)
         table = session.gain_table
         self._ensure_executor()
 
         async def run() -> None:
             loop = asyncio.get_running_loop()
             try:
-                # the cell's own design, if made: the plane renders only if felt closer
-                design = table.lookup(key, table.grid_point(cell) * 1.0001)
+                # the design of the K_o reported's cell, if made: the plane (of the cell of the
+                # stiffness identified) renders only if felt closer on that object
+                design = table.lookup(key, table.grid_point(design_cell) * 1.0001)
                 plane = await loop.run_in_executor(
                     self._executor,
                     verified_plane,
@@ -308,7 +309,7 @@ class Link:
             except Exception as exc:  # a broken worker: the design renders (not asked again)
                 log.warning("verified plane for cell %d not checked: %s", cell, exc)
                 return
-            session.store_plane(key, cell, plane)
+            session.store_plane(key, cell, plane, design_cell)
             self.plane_checks += 1
             log.debug("verified plane for cell %d: %s", cell, "none" if plane is None else plane)
             self._start_plane()  # the next one asked meanwhile

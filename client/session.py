@@ -299,12 +299,15 @@ class ClientSession:
         self._own_cell: int | None = None
         self._own_ref: np.ndarray | None = None
         self._own_tick: int | None = None
-        #: Verified planes per (key, cell) (:func:`shared.verified_plane.verified_plane`; None:
+        #: Verified planes per (key, plane cell, design cell): the plane of the cell holding the
+        #: stiffness the own-response check holds the object to, checked against the design of
+        #: the cell of the K_o reported (:func:`shared.verified_plane.verified_plane`; None:
         #: none passed), and the one the link is to check off the event loop.
-        self.planes: dict[tuple[GainKey, int], GainDesign | None] = {}
-        #: (key, cell) whose verified plane the link is to check, oldest first.
-        self.plane_wanted: list[tuple[GainKey, int]] = []
-        self._plane_asked: set[tuple[GainKey, int]] = set()
+        self.planes: dict[tuple[GainKey, int, int], GainDesign | None] = {}
+        #: (key, plane cell, design cell) whose verified plane the link is to check, oldest
+        #: first.
+        self.plane_wanted: list[tuple[GainKey, int, int]] = []
+        self._plane_asked: set[tuple[GainKey, int, int]] = set()
         #: Patches rendered with a verified plane.
         self.plane_patches = 0
 
@@ -489,9 +492,12 @@ class ClientSession:
         self.stiff_ratio = held_stiff_ratio(self.stiff_ratio, surface.k_o_eff, surface.k_o_stiff)
         return self.stiff_ratio
 
-    def store_plane(self, key: GainKey, cell: int, design: GainDesign | None) -> None:
-        """Keep the verified plane of (key, cell), or None: none passed its check."""
-        self.planes[(key, cell)] = design
+    def store_plane(
+        self, key: GainKey, cell: int, design: GainDesign | None, design_cell: int | None = None
+    ) -> None:
+        """Keep the verified plane of (key, cell) checked against the design of ``design_cell``
+        (default: ``cell``'s own), or None: none passed its check."""
+        self.planes[(key, cell, cell if design_cell is None else design_cell)] = design
 
     def _reset_own_response(self, cell: int | None = None) -> None:
         self.own_response.reset()
@@ -500,7 +506,9 @@ class ClientSession:
 
     def _object_as_reported(self, surface: SurfacePatch, key: GainKey, cell: int) -> bool:
         """Feed the own-response check this patch and return its verdict: has the object
-        yielded to this user's force as a spring of the K_o reported (:mod:`shared.own_response`)?
+        yielded to this user's force as a spring of the stiffness the check holds it to, the K_o
+        reported or the one it identified (``own_response.identified_ratio`` times K_o;
+        :mod:`shared.own_response`)?
 
         Only an uncoupled contact on an object without B_o is checked (:func:`plane_applies`).
         The check reads the depth of the surface along the contact normal from the proxy it
@@ -632,19 +640,22 @@ class ClientSession:
         else:
             design = own
         if self._object_as_reported(surface, key, cell):
-            # the object yields as the K_o reported says: the plane verified for that (the
-            # lightest damper, K_h = K_o) replaces the design made for an object off by 25 %
-            # where it is felt closer (checked against that design: asked once it is made)
-            if (key, cell) not in self.planes:
+            # the object yields to this user's force as a spring: of the K_o reported, or of
+            # the stiffness the check identified. The plane verified for that stiffness (the
+            # lightest damper, K_h = K') replaces the design made for an object off by 25 %
+            # where it is felt closer than the design (checked against it: asked once made)
+            k_id = self.own_response.identified_ratio * k_o_eff
+            plane_key = (key, table.cell(k_id), cell)
+            if plane_key not in self.planes:
                 if own is None:
                     # the server's gains render (or none yet): design the cell here too, the
                     # plane is checked against it
                     self.design_wanted = (key, k_o_eff)
-                elif (key, cell) not in self._plane_asked:
-                    self._plane_asked.add((key, cell))
-                    self.plane_wanted.append((key, cell))
-            elif (plane := self.planes[(key, cell)]) is not None:
-                design = plane.at(k_o_eff)
+                elif plane_key not in self._plane_asked:
+                    self._plane_asked.add(plane_key)
+                    self.plane_wanted.append(plane_key)
+            elif (plane := self.planes[plane_key]) is not None:
+                design = plane.at(k_id)
                 self.plane_patches += 1
         fallback = design is None
         verified = True

@@ -1,13 +1,13 @@
-"""Does the object yield to this user's own force as the K_o reported says? (the own-response check)
+"""How stiff is the object to this user's own force? (the own-response check)
 
 The product's gain design holds on objects from 15 % softer than the K_o reported to 25 % stiffer
 (:class:`shared.gain_key.GainKey`), because a reported K_o may be wrong (a nonlinear or
 viscoelastic object, a stiffness estimated cheaply). That robustness is paid for in transparency
 on an object whose K_o is right: a damper, or a K_h away from K_o, felt over the band
 (docs/fidelity.md). This module measures, from what every patch already carries, whether the
-object answers this user's own force as a spring of the K_o reported does; only then may the
-client render the plane checked for a K_o known to within a few percent
-(:func:`shared.verified_plane.verified_plane`).
+object answers this user's own force as a spring, and of which stiffness K' (the K_o reported, or
+another it identifies); only then may the client render the plane checked for a stiffness known
+to within a few percent (:func:`shared.verified_plane.verified_plane`).
 
 Each patch gives the surface's depth along the contact normal ``x_s`` [m] (positive into the
 object), the force the simulation applied from this user ``F_s`` [N] and the K_o reported [N/m].
@@ -20,15 +20,28 @@ turned into a check of the stiffness its plane needs). Another user's push moves
 without this user's force and adds to the line's residual, not its slope, as long as the two are
 not correlated; the client only runs the check on an uncoupled contact.
 
-The verdict (:attr:`OwnResponse.verified`):
+The verdict (:attr:`OwnResponse.verified`) holds the object to a stiffness ``ref K_o``
+(:attr:`OwnResponse.identified`, ``ref`` 1 at the start: the K_o reported):
 
 - *verified* once the forces in the window spread by at least ``min_force_spread_n`` (standard
-  deviation) or by what deforms the object ``min_depth_spread_m``, the line explains ``r_hat`` to within ``max_residual`` of the deformation that spread
-  causes, and ``|rho - 1| <= tolerance``;
-- *refused* at once when ``|rho - 1| > refuse_tolerance`` or the residual is too large, with the
-  spread met, or when the newest patch lies off the line by more than ``refuse_tolerance F_s /
-  K_o`` (an object that changed under a held force); otherwise, without that spread (a held
-  press), the last verdict stands. The client starts the check over when the contact ends.
+  deviation) or by what deforms the object ``min_depth_spread_m``, the line explains ``r_hat``
+  to within ``max_residual`` of the deformation that spread causes, and ``|rho / ref - 1| <=
+  tolerance``;
+- *refused* at once when ``|rho / ref - 1| > refuse_tolerance`` or the residual is too large,
+  with the spread met, or when the newest patch lies off the line by more than
+  ``refuse_tolerance F_s / (ref K_o)`` (an object that changed under a held force); otherwise,
+  without that spread (a held press), the last verdict stands. The client starts the check over
+  (``ref`` back to 1) when the contact ends;
+- *identified* (:func:`identify`): once the check has read the contact for
+  :data:`IDENTIFY_AFTER_S` and :data:`IDENTIFY_MIN_SAMPLES` patches, and no patch since it
+  started moved the force by more than :data:`IDENTIFY_MAX_STEP` times the window's spread (a
+  line through two levels of force held apart by a jump says nothing of what lies between: a
+  surface that moved with the jump, an object that changed), where the spread is met and the
+  line explains ``r_hat`` but ``rho`` is more than ``refuse_tolerance`` off ``ref``, and within :data:`IDENTIFY_RANGE` of
+  the K_o reported, ``ref`` moves to ``rho`` and the object is verified as that stiffness (the
+  K_o reported may be wrong: a stiffness estimated cheaply, a linearised FEM; model-mediated
+  teleoperation renders the stiffness it estimates, Mitra and Niemeyer 2008). The hysteresis
+  keeps ``ref`` where it is while ``rho`` stays within ``refuse_tolerance`` of it.
 
 The state is a few weighted sums (:data:`SUMS`); :func:`update_sums` and :func:`verdict` work on
 arrays of any shape, so a batch of contacts (the fidelity benchmark's simulator,
@@ -66,6 +79,24 @@ MIN_DEPTH_SPREAD_M = 1e-3
 #: Largest rms residual of the line, as a fraction of the deformation the force spread causes
 #: (spread / K_o): a viscoelastic or strain-stiffening response is not a line.
 MAX_RESIDUAL = 0.1
+#: The stiffness the check may identify, K' / K_o, lies within this factor of the K_o reported
+#: (from half to twice it): further off, the report or the contact is in doubt (another user's
+#: push correlated with this one's, a grasp) and the check refuses rather than identify.
+IDENTIFY_RANGE = 2.0
+#: Time [s] the check must have read the contact before it may identify a stiffness other than
+#: the one it holds the object to: a few patches of a viscoelastic press lie on a line of any
+#: slope; a cycle of the hand's motion (about 1 Hz) shows the loop the residual refuses.
+IDENTIFY_AFTER_S = 1.0
+#: ... and the weight of patches (their count, each aged by ``exp(-age / window_s)``) it must
+#: hold: three patches around a stalled second are not a reading.
+IDENTIFY_MIN_SAMPLES = 5.0
+#: Largest change of force between two patches since the check started, as a multiple of the
+#: window's force spread (standard deviation), with which it may identify: two levels held
+#: apart by one jump have a spread of at most half the jump (ratio 2 or more); a press over
+#: four patches or more stays under 1, and a 0.5 s press read at 10 Hz through 100-200 ms of
+#: delay under 1.5 (the fidelity benchmark's felt cells). A heuristic against the plainest
+#: uninformative window only: one patch between the two levels already passes it.
+IDENTIFY_MAX_STEP = 1.5
 
 
 def empty_sums(shape: tuple[int, ...] = ()) -> FloatArray:
@@ -127,6 +158,7 @@ def verdict(
     k_o: float | FloatArray,
     last: bool | np.ndarray,
     *,
+    ref: float | FloatArray = 1.0,
     newest: tuple[float | FloatArray, float | FloatArray] | None = None,
     tolerance: float = TOLERANCE,
     refuse_tolerance: float = REFUSE_TOLERANCE,
@@ -134,18 +166,20 @@ def verdict(
     min_depth_spread_m: float = MIN_DEPTH_SPREAD_M,
     max_residual: float = MAX_RESIDUAL,
 ) -> np.ndarray:
-    """Verified (bool, shape ``sums.shape[:-1]``): the module's rules, ``last`` the verdict so
-    far. With ``newest`` = (F_s [N], surface depth [m]) of the patch just added, the verdict is
-    also withdrawn when that patch's ``r_hat`` is off the window's line by more than
-    ``refuse_tolerance F_s / K_o``: an object that changed under a held force (no spread to read
-    a new slope from) shows there first."""
+    """Verified (bool, shape ``sums.shape[:-1]``): is the object the spring of ``ref`` times
+    the K_o reported (default 1: K_o itself)? The module's rules, ``last`` the verdict so far.
+    With ``newest`` = (F_s [N], surface depth [m]) of the patch just added, the verdict is also
+    withdrawn when that patch's ``r_hat`` is off the window's line by more than
+    ``refuse_tolerance F_s / (ref K_o)``: an object that changed under a held force (no spread
+    to read a new slope from) shows there first."""
     s, spread, res = fit(sums)
     k = np.asarray(k_o, dtype=float)
+    ref_a = np.asarray(ref, dtype=float)
     rho = ratio(sums, k)
     shown = (spread >= min_force_spread_n) | (spread / k >= min_depth_spread_m)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):
         line = res <= max_residual * spread / k
-        off = np.abs(rho - 1.0)
+        off = np.abs(rho / ref_a - 1.0)
         good = shown & line & (off <= tolerance)
         bad = shown & (~line | ~(off <= refuse_tolerance))
         if newest is not None:
@@ -154,8 +188,73 @@ def verdict(
             w = sums[..., 0]
             mf, mr = sums[..., 1] / w, sums[..., 2] / w
             fitted = mr + np.where(np.isfinite(s), s, 0.0) * (f - mf)
-            bad = bad | (np.abs(r - fitted) > refuse_tolerance * f / k)
+            bad = bad | (np.abs(r - fitted) > refuse_tolerance * f / (ref_a * k))
     return np.where(good & ~bad, True, np.where(bad, False, np.asarray(last, dtype=bool)))
+
+
+def identify(
+    sums: FloatArray,
+    k_o: float | FloatArray,
+    last: bool | np.ndarray,
+    ref: float | FloatArray,
+    *,
+    elapsed_s: float | FloatArray = math.inf,
+    step_n: float | FloatArray = 0.0,
+    newest: tuple[float | FloatArray, float | FloatArray] | None = None,
+    identify_range: float = IDENTIFY_RANGE,
+    identify_after_s: float = IDENTIFY_AFTER_S,
+    identify_min_samples: float = IDENTIFY_MIN_SAMPLES,
+    identify_max_step: float = IDENTIFY_MAX_STEP,
+    tolerance: float = TOLERANCE,
+    refuse_tolerance: float = REFUSE_TOLERANCE,
+    min_force_spread_n: float = MIN_FORCE_SPREAD_N,
+    min_depth_spread_m: float = MIN_DEPTH_SPREAD_M,
+    max_residual: float = MAX_RESIDUAL,
+) -> tuple[np.ndarray, FloatArray]:
+    """``(verified, ref)``, each of shape ``sums.shape[:-1]``: :func:`verdict` against ``ref``
+    (K' / K_o the check holds the object to so far), except where the check has read the contact
+    for ``elapsed_s`` [s] >= ``identify_after_s`` (to a nanosecond) and a weight of
+    ``identify_min_samples`` patches, its largest change of force between two patches
+    ``step_n`` [N] is at most ``identify_max_step`` times the window's spread, and the window
+    shows a line (spread met, residual small) whose ``rho`` is more than ``refuse_tolerance``
+    off ``ref`` and within ``identify_range`` of 1 (``1 / identify_range <= rho <=
+    identify_range``): there
+    ``ref`` becomes ``rho`` and the verdict is :func:`verdict` against it (the module
+    docstring's *identified*; the newest patch must lie on the line as always).
+
+    Raises
+    ------
+    ValueError
+        ``identify_range`` not finite and >= 1.
+    """
+    if not (math.isfinite(identify_range) and identify_range >= 1.0):
+        raise ValueError(f"identify_range must be finite and >= 1, got {identify_range!r}")
+    k = np.asarray(k_o, dtype=float)
+    ref_a = np.broadcast_to(np.asarray(ref, dtype=float), sums.shape[:-1])
+    _, spread, res = fit(sums)
+    rho = ratio(sums, k)
+    shown = (spread >= min_force_spread_n) | (spread / k >= min_depth_spread_m)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        line = shown & (res <= max_residual * spread / k)
+        moved = line & (np.abs(rho / ref_a - 1.0) > refuse_tolerance)
+        moved &= (rho >= 1.0 / identify_range) & (rho <= identify_range)
+        moved &= np.asarray(elapsed_s, dtype=float) >= identify_after_s - 1e-9
+        moved &= sums[..., 0] >= identify_min_samples
+        moved &= np.asarray(step_n, dtype=float) <= identify_max_step * spread
+    new_ref = np.where(moved, rho, ref_a)
+    ok = verdict(
+        sums,
+        k,
+        np.where(moved, False, last),
+        ref=new_ref,
+        newest=newest,
+        tolerance=tolerance,
+        refuse_tolerance=refuse_tolerance,
+        min_force_spread_n=min_force_spread_n,
+        min_depth_spread_m=min_depth_spread_m,
+        max_residual=max_residual,
+    )
+    return ok, new_ref
 
 
 @dataclass
@@ -179,9 +278,20 @@ class OwnResponse:
     min_force_spread_n: float = MIN_FORCE_SPREAD_N
     min_depth_spread_m: float = MIN_DEPTH_SPREAD_M
     max_residual: float = MAX_RESIDUAL
+    identify_range: float = IDENTIFY_RANGE
     sums: FloatArray = field(default_factory=empty_sums, repr=False)
     verified: bool = False
     k_o: float = math.nan
+    identify_after_s: float = IDENTIFY_AFTER_S
+    identify_min_samples: float = IDENTIFY_MIN_SAMPLES
+    identify_max_step: float = IDENTIFY_MAX_STEP
+    #: K' / K_o the verdict holds the object to (1: the K_o reported; :func:`identify`).
+    identified_ratio: float = 1.0
+    #: Time [s] the check has read the contact since it started (the patches' dt summed).
+    elapsed_s: float = 0.0
+    #: Largest change of force [N] between two of its patches, and the last patch's force.
+    step_n: float = 0.0
+    last_force_n: float = math.nan
 
     def __post_init__(self) -> None:
         for name in (
@@ -198,15 +308,30 @@ class OwnResponse:
             raise ValueError(f"max_residual must be finite and > 0, got {self.max_residual!r}")
         if self.refuse_tolerance < self.tolerance:
             raise ValueError("refuse_tolerance must be at least tolerance")
+        for name in ("identify_min_samples", "identify_max_step"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        if not (math.isfinite(self.identify_after_s) and self.identify_after_s >= 0.0):
+            raise ValueError(
+                f"identify_after_s must be finite and >= 0, got {self.identify_after_s!r}"
+            )
+        if not (math.isfinite(self.identify_range) and self.identify_range >= 1.0):
+            raise ValueError(f"identify_range must be finite and >= 1, got {self.identify_range!r}")
 
     def reset(self) -> None:
-        """Forget the window and the verdict."""
+        """Forget the window, the verdict and the stiffness identified."""
         self.sums = empty_sums()
         self.verified = False
         self.k_o = math.nan
+        self.identified_ratio = 1.0
+        self.elapsed_s = 0.0
+        self.step_n = 0.0
+        self.last_force_n = math.nan
 
     def update(self, *, dt_s: float, surface_m: float, force_n: float, k_o: float) -> bool:
-        """Add one patch (:func:`update_sums`) and return the verdict.
+        """Add one patch (:func:`update_sums`) and return the verdict (:func:`identify`):
+        the object is a spring of :attr:`identified` [N/m] to within ``tolerance``.
 
         Raises
         ------
@@ -226,22 +351,39 @@ class OwnResponse:
             window_s=self.window_s,
         )
         self.k_o = float(k_o)
-        self.verified = bool(
-            verdict(
-                self.sums,
-                k_o,
-                self.verified,
-                newest=(force_n, surface_m),
-                tolerance=self.tolerance,
-                refuse_tolerance=self.refuse_tolerance,
-                min_force_spread_n=self.min_force_spread_n,
-                min_depth_spread_m=self.min_depth_spread_m,
-                max_residual=self.max_residual,
-            )
+        self.elapsed_s += dt_s
+        if math.isfinite(self.last_force_n) and math.isfinite(force_n):
+            self.step_n = max(self.step_n, abs(force_n - self.last_force_n))
+        self.last_force_n = force_n
+        ok, ref = identify(
+            self.sums,
+            k_o,
+            self.verified,
+            self.identified_ratio,
+            elapsed_s=self.elapsed_s,
+            step_n=self.step_n,
+            newest=(force_n, surface_m),
+            identify_range=self.identify_range,
+            identify_after_s=self.identify_after_s,
+            identify_min_samples=self.identify_min_samples,
+            identify_max_step=self.identify_max_step,
+            tolerance=self.tolerance,
+            refuse_tolerance=self.refuse_tolerance,
+            min_force_spread_n=self.min_force_spread_n,
+            min_depth_spread_m=self.min_depth_spread_m,
+            max_residual=self.max_residual,
         )
+        self.verified = bool(ok)
+        self.identified_ratio = float(ref)
         return self.verified
 
     @property
     def ratio(self) -> float:
         """``rho = K' / K_o`` the window shows (NaN: it cannot tell yet)."""
         return float(ratio(self.sums, self.k_o)) if math.isfinite(self.k_o) else math.nan
+
+    @property
+    def identified(self) -> float:
+        """The stiffness [N/m] the verdict holds the object to: :attr:`identified_ratio` times
+        the latest K_o reported (NaN before the first patch)."""
+        return self.identified_ratio * self.k_o

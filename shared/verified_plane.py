@@ -89,22 +89,16 @@ def plane_applies(key: GainKey) -> bool:
     return key.own_force and key.stiff_ratio == 1.0 and key.b_o == 0.0
 
 
-def verified_plane(
-    key: GainKey,
-    cell: int,
-    grid_ratio: float,
-    hand_box: HandBox,
-    design: GainDesign | None = None,
+def checked_plane(
+    key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox
 ) -> GainDesign | None:
     """The plane of grid cell ``cell`` (g = grid_ratio**cell [N/m]) with the lightest damper
     that passes the check (module docstring), as a design scaled across the cell
     (``scale_max = grid_ratio``: K_h = K_o, C_h = 1 / K_o for every K_o reported in the cell);
     None if none passes, if the cell's grid point is stiffer than the device (``key.k_h_max``;
-    within the cell K_h stops there), if the key does not allow it (:func:`plane_applies`), or
-    if it is felt no closer to the object than ``design`` (the cell's own design, as
-    :func:`shared.gain_table.design_cell` made it): the largest ``|ln |q||`` over
-    :data:`shared.felt_stiffness.FELT_BAND_HZ` at the cell's grid point, the measure the
-    design ranks by.
+    within the cell K_h stops there) or if the key does not allow it (:func:`plane_applies`).
+    It does not depend on ``key.mode`` (a plane has no integral). :func:`verified_plane` adds
+    the comparison with the cell's design.
 
     Raises
     ------
@@ -148,14 +142,6 @@ def verified_plane(
                     break
             else:
                 q = _band_response(key, g, k_h=g, b_h=b_h, proxy_hold=hold, own_gain=1.0 / g)
-                if design is not None:
-                    d = design.at(g)  # the cell's design at its grid point
-                    q_d = _band_response(
-                        key, g, k_h=d.k_h, i_gain=d.i_gain, b_h=d.b_h, proxy_hold=d.proxy_hold,
-                        own_gain=d.own_gain,
-                    )  # fmt: skip
-                    if _band_error(q, g) >= _band_error(q_d, g):
-                        return None
                 q1, q8 = q[FELT_BAND_HZ.index(1.0)], q[FELT_BAND_HZ.index(8.0)]
                 lo = (1.0 - VERIFIED_RANGE) * g
                 return GainDesign(
@@ -177,3 +163,43 @@ def verified_plane(
                     scale_max=top,
                 )
     return None
+
+
+def felt_closer(plane: GainDesign, key: GainKey, design: GainDesign) -> bool:
+    """Whether ``plane`` (:func:`checked_plane`) is felt closer to an object of its grid point
+    g than ``design`` rendered there (``design.at(g)``, clamped to the range it was checked
+    over): the largest ``|ln |q||`` over :data:`shared.felt_stiffness.FELT_BAND_HZ` under
+    ``key`` (its rates, delay and B_o), the measure the design ranks by."""
+    g = plane.k_o
+    q = _band_response(
+        key, g, k_h=g, b_h=plane.b_h, proxy_hold=plane.proxy_hold, own_gain=plane.own_gain
+    )
+    d = design.at(g)
+    q_d = _band_response(
+        key, g, k_h=d.k_h, i_gain=d.i_gain, b_h=d.b_h, proxy_hold=d.proxy_hold,
+        own_gain=d.own_gain,
+    )  # fmt: skip
+    return _band_error(q, g) < _band_error(q_d, g)
+
+
+def verified_plane(
+    key: GainKey,
+    cell: int,
+    grid_ratio: float,
+    hand_box: HandBox,
+    design: GainDesign | None = None,
+) -> GainDesign | None:
+    """:func:`checked_plane`, or None if it is felt no closer to the object than ``design``
+    (:func:`felt_closer`; the cell's own design, as :func:`shared.gain_table.design_cell` made
+    it, or the design of the cell of the K_o reported where the plane is of a stiffness the
+    own-response check identified).
+
+    Raises
+    ------
+    ValueError
+        As :func:`checked_plane`.
+    """
+    plane = checked_plane(key, cell, grid_ratio, hand_box)
+    if plane is None or (design is not None and not felt_closer(plane, key, design)):
+        return None
+    return plane

@@ -1,6 +1,6 @@
-"""The client renders the verified plane once the object has yielded to its own force as the K_o
-reported says (client.session with shared.own_response and shared.verified_plane), and keeps
-its design otherwise."""
+"""The client renders the verified plane once the object has yielded to its own force as a spring,
+of the K_o reported or of the stiffness the check identified (client.session with
+shared.own_response and shared.verified_plane), and keeps its design otherwise."""
 
 from __future__ import annotations
 
@@ -50,12 +50,11 @@ def _press_patch(
 def _check_planes(s: ClientSession) -> None:
     """Run the plane checks the session asks for, as the link's design worker does."""
     while s.plane_wanted:
-        key, cell = s.plane_wanted.pop(0)
+        key, cell, design_cell = s.plane_wanted.pop(0)
         table = s.gain_table
-        design = table.lookup(key, table.grid_point(cell) * 1.0001)
-        s.store_plane(
-            key, cell, verified_plane(key, cell, table.grid_ratio, table.hand_box, design)
-        )
+        design = table.lookup(key, table.grid_point(design_cell) * 1.0001)
+        plane = verified_plane(key, cell, table.grid_ratio, table.hand_box, design)
+        s.store_plane(key, cell, plane, design_cell)
 
 
 def _session_pressing(k_true: float, b_o: float = 0.0, seconds: float = 2.0) -> ClientSession:
@@ -87,10 +86,30 @@ def test_on_the_object_as_reported_the_client_renders_its_plane() -> None:
 
 
 @pytest.mark.parametrize("error", [0.8, 1.2])
-def test_an_object_off_its_reported_k_o_keeps_the_design(error: float) -> None:
+def test_an_object_off_its_reported_k_o_is_rendered_as_the_stiffness_it_showed(
+    error: float,
+) -> None:
+    # the K_o reported is 25 % too high / 17 % too low: the check identifies the object's own
+    # stiffness, and the plane of that stiffness's cell renders (K_h = K', C_h K' = 1), checked
+    # on objects 5 % either side of K' rather than on the K_o reported
     s = _session_pressing(error * K_O)
-    assert not s.own_response.verified and s.plane_patches == 0
+    up = s.last_update
+    assert up is not None
     assert s.own_response.ratio == pytest.approx(error, rel=0.01)
+    assert s.own_response.verified and s.plane_patches > 0
+    assert s.own_response.identified_ratio == pytest.approx(error, rel=0.01)
+    assert up.k_h == pytest.approx(error * K_O, rel=0.01) and up.own_gain * up.k_h == (
+        pytest.approx(1.0)
+    )
+    (key, plane_cell, design_cell) = next(iter(s.planes))
+    assert plane_cell == s.gain_table.cell(error * K_O) and design_cell == s.gain_table.cell(K_O)
+
+
+def test_an_object_twice_as_soft_as_reported_is_refused_and_keeps_the_design() -> None:
+    # beyond the range the check may identify (a half to twice K_o): the report is in doubt
+    s = _session_pressing(0.45 * K_O)
+    assert not s.own_response.verified and s.plane_patches == 0 and not s.planes
+    assert s.own_response.ratio == pytest.approx(0.45, rel=0.01)
 
 
 def test_an_object_with_damping_is_not_checked() -> None:
