@@ -40,7 +40,7 @@ import time
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +79,12 @@ from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY, GainKey
 from haptic_collab.shared.gain_table import GainTable, design_cell
-from haptic_collab.shared.verified_plane import plane_applies, verified_plane
+from haptic_collab.shared.verified_plane import (
+    checked_plane,
+    felt_closer,
+    plane_applies,
+    verified_plane,
+)
 
 __all__ = [
     "DEVICE",
@@ -232,10 +237,48 @@ def _design_cost(job: tuple[str, GainKey, float]) -> tuple[float, float]:
 
 def _plane_cell(key: GainKey, k_o: float, design: GainDesign | None) -> GainDesign | None:
     """The verified plane of the client's gain-table cell holding K_o under ``key`` where it is
-    felt closer to the object than that cell's ``design`` (a worker's job;
+    felt closer to the object than ``design`` (that cell's, or the design of the cell of the K_o
+    reported where K_o is a stiffness the own-response check identified; a worker's job;
     :func:`shared.verified_plane.verified_plane`), or None."""
     table = GainTable(DEFAULT_HAND_BOX)
     return verified_plane(key, table.cell(k_o), table.grid_ratio, table.hand_box, design)
+
+
+def _plane_check_key(key: GainKey, k_o: float) -> tuple[GainKey, int]:
+    """What a plane's check depends on: the key but its local model, and the cell of K_o."""
+    return replace(key, mode="p"), GainTable(DEFAULT_HAND_BOX).cell(k_o)
+
+
+def _checked_plane_cell(key: GainKey, k_o: float) -> GainDesign | None:
+    """The plane of the client's gain-table cell holding K_o under ``key`` that passes its
+    check, before any comparison with a design (a worker's job;
+    :func:`shared.verified_plane.checked_plane`), or None."""
+    table = GainTable(DEFAULT_HAND_BOX)
+    return checked_plane(key, table.cell(k_o), table.grid_ratio, table.hand_box)
+
+
+def _closer(plane: GainDesign | None, key: GainKey, design: GainDesign) -> GainDesign | None:
+    """``plane`` where it is felt closer to the object than ``design`` under ``key``
+    (:func:`shared.verified_plane.felt_closer`), else None."""
+    return plane if plane is not None and felt_closer(plane, key, design) else None
+
+
+def _identified_plane_jobs(
+    designs: dict[tuple[str, GainKey, float], GainDesign],
+    errors: Sequence[float],
+    k_os: Sequence[float],
+) -> dict[tuple[str, GainKey, float], tuple[GainKey, float, GainDesign]]:
+    """The plane checks a client makes once its own-response check identifies an object
+    ``error`` times the K_o reported (:func:`shared.own_response.identify`): for each design of
+    a K_o of ``k_os`` whose key allows a plane, ``(mode, key, error K_o)`` -> ``(key, error
+    K_o, that design)``, the plane of the identified stiffness's cell checked against the
+    design of the cell reported (:func:`_plane_cell`)."""
+    return {
+        (w[0], w[1], e * w[2]): (w[1], e * w[2], d)
+        for w, d in sorted(designs.items(), key=lambda kv: str(kv[0]))
+        if plane_applies(w[1]) and w[2] in k_os
+        for e in errors
+    }
 
 
 def _design_cell(key: GainKey, k_o: float) -> GainDesign:
@@ -424,19 +467,37 @@ def run(
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
         designs.update({k: f.result() for k, f in jobs.items()})
         # ... then the verified plane of each cell whose key allows one (short checks)
-        plane_jobs = {
-            w: pool.submit(_plane_cell, w[1], w[2], d)
+        wanted_planes = {
+            w: (w[1], w[2], d)
             for w, d in sorted(designs.items(), key=lambda kv: str(kv[0]))
             if plane_applies(w[1])
         }
-        planes = {k: f.result() for k, f in plane_jobs.items()}
+        # ... and the plane of the cell of the stiffness the own-response check identifies on
+        # an object whose K_o is reported wrong (spring-0.8, spring-1.2), checked against the
+        # design of the cell reported, as the client checks it once identified: the cache the
+        # client fills on demand (the simulator renders it the check time after the verdict)
+        errors = sorted({_OBJECTS[n].stiffness_error for n in g.objects} - {1.0})
+        for w_id, job in _identified_plane_jobs(designs, errors, g.k_o).items():
+            wanted_planes.setdefault(w_id, job)
+        # a plane's check does not depend on the local model (it has no integral): each is
+        # checked once for both, and compared with each one's design here
+        check_jobs: dict[tuple[GainKey, int], Any] = {}
+        for key, k, _d in wanted_planes.values():
+            ck = _plane_check_key(key, k)
+            if ck not in check_jobs:
+                check_jobs[ck] = pool.submit(_checked_plane_cell, key, k)
+        checked = {ck: f.result() for ck, f in check_jobs.items()}
+        planes = {
+            w: _closer(checked[_plane_check_key(key, k)], key, d)
+            for w, (key, k, d) in wanted_planes.items()
+        }
         if design_cache is not None:
             design_cache.update(designs)
         t_design = time.perf_counter() - t0
         n_planes = sum(p is not None for p in planes.values())
         say(
-            f"designed {len(designs)} gain sets and checked {len(planes)} verified planes "
-            f"({n_planes} passed) in {t_design:.1f} s"
+            f"designed {len(designs)} gain sets and checked {len(checked)} verified planes "
+            f"for {len(planes)} cells ({n_planes} render) in {t_design:.1f} s"
         )
 
         tables: dict[tuple[str, GainKey], tuple[TableCell, ...]] = {}

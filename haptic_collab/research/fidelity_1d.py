@@ -84,7 +84,7 @@ from haptic_collab.research.fidelity_cases import (
 )
 from haptic_collab.research.fidelity_schemes import DeviceModel, TableGains
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
-from haptic_collab.shared.own_response import empty_sums, update_sums, verdict
+from haptic_collab.shared.own_response import empty_sums, identify, update_sums
 from haptic_collab.shared.types import FloatArray
 
 __all__ = ["passivity_step", "simulate"]
@@ -105,6 +105,9 @@ def _verified_plane_gains(
     cell: NDArray[np.int64],
     seq_last: NDArray[np.int64],
     ok: NDArray[np.bool_],
+    ref: FloatArray,
+    start: NDArray[np.int64],
+    steps: FloatArray,
     since: NDArray[np.int64],
     delay_s: FloatArray,
     seq: NDArray[np.int64],
@@ -115,20 +118,27 @@ def _verified_plane_gains(
     """The gains (K_h, I, B_h, C_h, first-order hold) the client renders for the patches of
     ``mask`` once they have fed its own-response check, as
     :meth:`client.session.ClientSession._render` does: the check (``sums``, ``cell``,
-    ``seq_last``, ``ok``, updated in place) starts over in each gain-table cell of the K_o
-    reported and when the contact ends (a patch without a force from this user), takes the
-    patches with that force (the surface's depth ``surface`` [m], ``force`` [N], the time
-    between patches from their ticks ``seq``), and where it has
-    verified the K_o reported and the cell has a verified plane (``planes``), that plane scaled
-    to K_o replaces ``gains`` from ``delay_s`` [s] after the check first verified the cell (the
-    time the client's worker takes to check the plane; ``since`` holds that tick)."""
+    ``seq_last``, ``ok``, ``ref``, ``start`` (the tick it started at) and ``steps`` (its largest
+    change of force between two patches and the last patch's force, shape (B, 2)), updated in
+    place) starts over in each gain-table cell of the K_o reported and when the contact ends (a
+    patch without a force from this user), takes the patches with that force (the surface's
+    depth ``surface`` [m], ``force`` [N], the time between patches from their ticks ``seq``),
+    and where it has verified the object as a spring of ``ref`` times the K_o reported (1, or
+    the stiffness it identified: :func:`shared.own_response.identify`) and the cell of that
+    stiffness has a verified plane (``planes``), that plane scaled to the stiffness replaces
+    ``gains`` from ``delay_s`` [s] after the check first verified in that plane cell (the time
+    the client's worker takes to check the plane; ``since`` holds that tick and the plane
+    cell, shape (B, 2); a new cell of the K_o reported forgets it)."""
     c = np.floor(np.log(k_o) / np.log(planes.ratio) + 1e-12).astype(np.int64)
     moved = mask & ((c != cell) | ~(force > 0.0))  # a new cell, or the contact ended
     # (the client keeps a cell's checked plane for the session: only a new cell starts its
     # check time over)
-    since[mask & (c != cell)] = -1
+    since[mask & (c != cell), 0] = -1
     sums[moved] = 0.0
     ok[moved] = False
+    ref[moved] = 1.0
+    start[moved] = -1
+    steps[moved] = (0.0, np.nan)
     seq_last[moved] = -1
     cell[moved] = c[moved]
     push = mask & (force > 0.0)
@@ -137,15 +147,30 @@ def _verified_plane_gains(
         new = update_sums(sums, dt_s=dt, surface_m=surface, force_n=force, k_o=k_o)
         sums[push] = new[push]
         seq_last[push] = seq[push]
-        ok[push] = verdict(sums, k_o, ok, newest=(force, surface))[push]
-    # the client checks the cell's plane once its check first verifies there, in its worker
-    first = mask & ok & (since < 0)
-    since[first] = seq[first]
-    ready = (since >= 0) & ((seq - since) / sim_rate_hz >= delay_s)
-    use = mask & ok & ready & planes.has_cell(k_o)
+        start[push & (start < 0)] = seq[push & (start < 0)]
+        elapsed = (seq - start) / sim_rate_hz
+        jump = np.abs(force - steps[:, 1])
+        steps[push, 0] = np.where(np.isfinite(jump), np.maximum(steps[:, 0], jump), steps[:, 0])[
+            push
+        ]
+        steps[push, 1] = force[push]
+        got_ok, got_ref = identify(
+            sums, k_o, ok, ref, elapsed_s=elapsed, step_n=steps[:, 0], newest=(force, surface)
+        )
+        ok[push] = got_ok[push]
+        ref[push] = got_ref[push]
+    # the client checks the plane of the stiffness verified once its check first verifies
+    # there, in its worker: a plane cell not checked before starts the check time over
+    k_id = ref * k_o
+    pc = np.floor(np.log(k_id) / np.log(planes.ratio) + 1e-12).astype(np.int64)
+    first = mask & ok & ((since[:, 0] < 0) | (since[:, 1] != pc))
+    since[first, 0] = seq[first]
+    since[first, 1] = pc[first]
+    ready = (since[:, 0] >= 0) & ((seq - since[:, 0]) / sim_rate_hz >= delay_s)
+    use = mask & ok & ready & planes.has_cell(k_id)
     if not use.any():
         return gains
-    plane = planes.gains_and_hold(k_o)
+    plane = planes.gains_and_hold(k_id)
     kg, ig, bg, og, fg = (np.where(use, p, g) for p, g in zip(plane, gains, strict=True))
     return kg, ig, bg, og, fg
 
@@ -299,7 +324,11 @@ def simulate(
     own_cell = np.full(B, np.iinfo(np.int64).min)
     own_seq = np.full(B, -1, dtype=np.int64)
     own_ok = np.zeros(B, dtype=bool)
-    own_since = np.full(B, -1, dtype=np.int64)  # tick the check verified the cell at
+    own_ratio = np.ones(B)  # K' / K_o the check holds the object to
+    own_start = np.full(B, -1, dtype=np.int64)  # tick the check started at
+    own_steps = np.tile([0.0, np.nan], (B, 1))  # its largest force change, the last force
+    # tick the check verified the cell at, and the plane cell then
+    own_since = np.full((B, 2), -1, dtype=np.int64)
     plane_delay = np.array([x.plane_delay_s for x in r])
     k_h_now, ti_now, b_h_now = k_h.copy(), ti.copy(), b_h.copy()
     # the client's bumpless change of gains (shared.local_model.LocalModel.set_gains): the force
@@ -454,6 +483,9 @@ def simulate(
                             cell=own_cell,
                             seq_last=own_seq,
                             ok=own_ok,
+                            ref=own_ratio,
+                            start=own_start,
+                            steps=own_steps,
                             since=own_since,
                             delay_s=plane_delay,
                             seq=seq,
