@@ -308,8 +308,10 @@ class ClientSession:
         #: first.
         self.plane_wanted: list[tuple[GainKey, int, int]] = []
         self._plane_asked: set[tuple[GainKey, int, int]] = set()
-        #: Patches rendered with a verified plane.
+        #: Patches rendered with a verified plane, and of those with the plane of a stiffness
+        #: the own-response check identified other than the K_o reported.
         self.plane_patches = 0
+        self.identified_plane_patches = 0
 
     # ------------------------------------------------------------------ outgoing
     def hello(self, now_s: float | None = None) -> str:
@@ -657,6 +659,7 @@ class ClientSession:
             elif (plane := self.planes[plane_key]) is not None:
                 design = plane.at(k_id)
                 self.plane_patches += 1
+                self.identified_plane_patches += self.own_response.identified_ratio != 1.0
         fallback = design is None
         verified = True
         if design is None:

@@ -98,6 +98,10 @@ def client_summary(
         "rtt_ms_p99": float(np.percentile(rtt, 99)) if rtt.size else None,
         "rtt_ms_samples": [float(x) for x in rtt[-2000:]],
         "delay_ticks_last": choices[-1].delay_ticks if updates else None,
+        # patches rendered with a verified plane (the own-response check, shared.own_response),
+        # and of those, with the plane of a stiffness it identified other than the K_o reported
+        "plane_patches": session.plane_patches,
+        "identified_plane_patches": session.identified_plane_patches,
         "spectral_radius_last": choices[-1].spectral_radius if updates else None,
         "gains_last": None
         if not updates

@@ -235,6 +235,8 @@ def _user_report(
         "servo_realtime": summary.get("servo_realtime"),
         "patches": summary.get("patches"),
         "delay_ticks_last": summary.get("delay_ticks_last"),
+        "plane_patches": summary.get("plane_patches"),
+        "identified_plane_patches": summary.get("identified_plane_patches"),
     }
 
 

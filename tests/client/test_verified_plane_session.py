@@ -76,7 +76,7 @@ def test_on_the_object_as_reported_the_client_renders_its_plane() -> None:
     s = _session_pressing(K_O)
     up = s.last_update
     assert up is not None
-    assert s.own_response.verified and s.plane_patches > 0
+    assert s.own_response.verified and s.plane_patches > 0 and s.identified_plane_patches == 0
     # the object's own stiffness at the rest surface, K_h = K_o and C_h K_h = 1, light damper
     assert up.k_h == pytest.approx(K_O) and up.own_gain * up.k_h == pytest.approx(1.0)
     assert up.i_gain == 0.0 and up.b_h <= 2.5
@@ -97,6 +97,7 @@ def test_an_object_off_its_reported_k_o_is_rendered_as_the_stiffness_it_showed(
     assert up is not None
     assert s.own_response.ratio == pytest.approx(error, rel=0.01)
     assert s.own_response.verified and s.plane_patches > 0
+    assert s.identified_plane_patches == s.plane_patches
     assert s.own_response.identified_ratio == pytest.approx(error, rel=0.01)
     assert up.k_h == pytest.approx(error * K_O, rel=0.01) and up.own_gain * up.k_h == (
         pytest.approx(1.0)
