@@ -33,10 +33,11 @@ The verdict (:attr:`OwnResponse.verified`) holds the object to a stiffness ``ref
   without that spread (a held press), the last verdict stands. The client starts the check over
   (``ref`` back to 1) when the contact ends;
 - *identified* (:func:`identify`): once the check has read the contact for
-  :data:`IDENTIFY_AFTER_S` and :data:`IDENTIFY_MIN_SAMPLES` patches, and no patch since it
-  started moved the force by more than :data:`IDENTIFY_MAX_STEP` times the window's spread (a
-  line through two levels of force held apart by a jump says nothing of what lies between: a
-  surface that moved with the jump, an object that changed), where the spread is met and the
+  :data:`IDENTIFY_AFTER_S` and :data:`IDENTIFY_MIN_SAMPLES` patches, and no change of force
+  between two patches carried more than :data:`IDENTIFY_MAX_JUMP_SHARE` of the force's movement
+  (a line through two levels of force held apart by a jump, or by a few patches, says nothing of
+  what lies between: a surface that moved with the jump, an object that changed;
+  :func:`update_jumps`), where the spread is met and the
   line explains ``r_hat`` but ``rho`` is more than ``refuse_tolerance`` off ``ref``, and within :data:`IDENTIFY_RANGE` of
   the K_o reported, ``ref`` moves to ``rho`` and the object is verified as that stiffness (the
   K_o reported may be wrong: a stiffness estimated cheaply, a linearised FEM; model-mediated
@@ -90,13 +91,53 @@ IDENTIFY_AFTER_S = 1.0
 #: ... and the weight of patches (their count, each aged by ``exp(-age / window_s)``) it must
 #: hold: three patches around a stalled second are not a reading.
 IDENTIFY_MIN_SAMPLES = 5.0
-#: Largest change of force between two patches since the check started, as a multiple of the
-#: window's force spread (standard deviation), with which it may identify: two levels held
-#: apart by one jump have a spread of at most half the jump (ratio 2 or more); a press over
-#: four patches or more stays under 1, and a 0.5 s press read at 10 Hz through 100-200 ms of
-#: delay under 1.5 (the fidelity benchmark's felt cells). A heuristic against the plainest
-#: uninformative window only: one patch between the two levels already passes it.
-IDENTIFY_MAX_STEP = 1.5
+#: Largest share of the force's movement one change between two patches may carry for the
+#: check to identify: the largest ``dF^2`` over their sum, both aged like the window
+#: (:func:`update_jumps`). A jump between two held levels carries all of it, spread over two or
+#: three patches a half or a third: refused; over four patches or more a quarter or less. At
+#: 0.2 the fidelity benchmark's half-second press, read at 20 Hz through the loop, was refused
+#: where it is identified at 0.3 (300 N/m, no delay; 100 N/m, 100 ms).
+IDENTIFY_MAX_JUMP_SHARE = 0.3
+
+#: The jump sums the check keeps, in this order along the last axis: the largest ``dF^2``
+#: [N^2], the sum of ``dF^2`` [N^2] (both aged by ``exp(-dt / window_s)``), the last force [N].
+JUMPS = 3
+
+
+def empty_jumps(shape: tuple[int, ...] = ()) -> FloatArray:
+    """Jump sums of contacts of ``shape`` before their first patch: shape ``shape + (JUMPS,)``."""
+    out = np.zeros((*shape, JUMPS))
+    out[..., 2] = np.nan
+    return out
+
+
+def update_jumps(
+    jumps: FloatArray,
+    *,
+    dt_s: float | FloatArray,
+    force_n: float | FloatArray,
+    window_s: float = WINDOW_S,
+) -> FloatArray:
+    """The jump sums (:data:`JUMPS`) after one patch of force ``force_n`` [N], ``dt_s`` [s]
+    after the last; shape as ``jumps``. Where the force is not finite the contact's sums are
+    returned unchanged (the next finite force is compared with the last finite one)."""
+    f = np.asarray(force_n, dtype=float)
+    a = np.exp(-np.asarray(dt_s, dtype=float) / window_s)
+    d2 = np.square(f - jumps[..., 2])
+    d2 = np.where(np.isfinite(d2), d2, 0.0)
+    out = np.stack(
+        np.broadcast_arrays(np.maximum(jumps[..., 0] * a, d2), jumps[..., 1] * a + d2, f),
+        axis=-1,
+    )
+    ok = np.isfinite(f) & np.isfinite(a)
+    return np.where(np.asarray(ok)[..., None], out, jumps)
+
+
+def jump_share(jumps: FloatArray) -> FloatArray:
+    """The largest change of force's share of the movement (:func:`update_jumps`), shape
+    ``jumps.shape[:-1]``: 1 where the force never moved."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(jumps[..., 1] > 0.0, jumps[..., 0] / jumps[..., 1], 1.0)
 
 
 def empty_sums(shape: tuple[int, ...] = ()) -> FloatArray:
@@ -199,12 +240,12 @@ def identify(
     ref: float | FloatArray,
     *,
     elapsed_s: float | FloatArray = math.inf,
-    step_n: float | FloatArray = 0.0,
+    jumps: FloatArray | None = None,
     newest: tuple[float | FloatArray, float | FloatArray] | None = None,
     identify_range: float = IDENTIFY_RANGE,
     identify_after_s: float = IDENTIFY_AFTER_S,
     identify_min_samples: float = IDENTIFY_MIN_SAMPLES,
-    identify_max_step: float = IDENTIFY_MAX_STEP,
+    identify_max_jump_share: float = IDENTIFY_MAX_JUMP_SHARE,
     tolerance: float = TOLERANCE,
     refuse_tolerance: float = REFUSE_TOLERANCE,
     min_force_spread_n: float = MIN_FORCE_SPREAD_N,
@@ -214,8 +255,9 @@ def identify(
     """``(verified, ref)``, each of shape ``sums.shape[:-1]``: :func:`verdict` against ``ref``
     (K' / K_o the check holds the object to so far), except where the check has read the contact
     for ``elapsed_s`` [s] >= ``identify_after_s`` (to a nanosecond) and a weight of
-    ``identify_min_samples`` patches, its largest change of force between two patches
-    ``step_n`` [N] is at most ``identify_max_step`` times the window's spread, and the window
+    ``identify_min_samples`` patches, the largest change of force between two patches carries
+    at most ``identify_max_jump_share`` of the force's movement (``jumps``:
+    :func:`update_jumps`; None: not asked), and the window
     shows a line (spread met, residual small) whose ``rho`` is more than ``refuse_tolerance``
     off ``ref`` and within ``identify_range`` of 1 (``1 / identify_range <= rho <=
     identify_range``): there
@@ -240,7 +282,8 @@ def identify(
         moved &= (rho >= 1.0 / identify_range) & (rho <= identify_range)
         moved &= np.asarray(elapsed_s, dtype=float) >= identify_after_s - 1e-9
         moved &= sums[..., 0] >= identify_min_samples
-        moved &= np.asarray(step_n, dtype=float) <= identify_max_step * spread
+        if jumps is not None:
+            moved &= jump_share(jumps) <= identify_max_jump_share
     new_ref = np.where(moved, rho, ref_a)
     ok = verdict(
         sums,
@@ -284,14 +327,13 @@ class OwnResponse:
     k_o: float = math.nan
     identify_after_s: float = IDENTIFY_AFTER_S
     identify_min_samples: float = IDENTIFY_MIN_SAMPLES
-    identify_max_step: float = IDENTIFY_MAX_STEP
+    identify_max_jump_share: float = IDENTIFY_MAX_JUMP_SHARE
     #: K' / K_o the verdict holds the object to (1: the K_o reported; :func:`identify`).
     identified_ratio: float = 1.0
     #: Time [s] the check has read the contact since it started (the patches' dt summed).
     elapsed_s: float = 0.0
-    #: Largest change of force [N] between two of its patches, and the last patch's force.
-    step_n: float = 0.0
-    last_force_n: float = math.nan
+    #: The changes of force between its patches (:func:`update_jumps`).
+    jumps: FloatArray = field(default_factory=empty_jumps, repr=False)
 
     def __post_init__(self) -> None:
         for name in (
@@ -308,7 +350,7 @@ class OwnResponse:
             raise ValueError(f"max_residual must be finite and > 0, got {self.max_residual!r}")
         if self.refuse_tolerance < self.tolerance:
             raise ValueError("refuse_tolerance must be at least tolerance")
-        for name in ("identify_min_samples", "identify_max_step"):
+        for name in ("identify_min_samples", "identify_max_jump_share"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
@@ -326,8 +368,7 @@ class OwnResponse:
         self.k_o = math.nan
         self.identified_ratio = 1.0
         self.elapsed_s = 0.0
-        self.step_n = 0.0
-        self.last_force_n = math.nan
+        self.jumps = empty_jumps()
 
     def update(self, *, dt_s: float, surface_m: float, force_n: float, k_o: float) -> bool:
         """Add one patch (:func:`update_sums`) and return the verdict (:func:`identify`):
@@ -352,21 +393,19 @@ class OwnResponse:
         )
         self.k_o = float(k_o)
         self.elapsed_s += dt_s
-        if math.isfinite(self.last_force_n) and math.isfinite(force_n):
-            self.step_n = max(self.step_n, abs(force_n - self.last_force_n))
-        self.last_force_n = force_n
+        self.jumps = update_jumps(self.jumps, dt_s=dt_s, force_n=force_n, window_s=self.window_s)
         ok, ref = identify(
             self.sums,
             k_o,
             self.verified,
             self.identified_ratio,
             elapsed_s=self.elapsed_s,
-            step_n=self.step_n,
+            jumps=self.jumps,
             newest=(force_n, surface_m),
             identify_range=self.identify_range,
             identify_after_s=self.identify_after_s,
             identify_min_samples=self.identify_min_samples,
-            identify_max_step=self.identify_max_step,
+            identify_max_jump_share=self.identify_max_jump_share,
             tolerance=self.tolerance,
             refuse_tolerance=self.refuse_tolerance,
             min_force_spread_n=self.min_force_spread_n,

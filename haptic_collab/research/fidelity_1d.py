@@ -84,7 +84,13 @@ from haptic_collab.research.fidelity_cases import (
 )
 from haptic_collab.research.fidelity_schemes import DeviceModel, TableGains
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
-from haptic_collab.shared.own_response import empty_sums, identify, update_sums
+from haptic_collab.shared.own_response import (
+    empty_jumps,
+    empty_sums,
+    identify,
+    update_jumps,
+    update_sums,
+)
 from haptic_collab.shared.types import FloatArray
 
 __all__ = ["passivity_step", "simulate"]
@@ -107,7 +113,7 @@ def _verified_plane_gains(
     ok: NDArray[np.bool_],
     ref: FloatArray,
     start: NDArray[np.int64],
-    steps: FloatArray,
+    jumps: FloatArray,
     since: NDArray[np.int64],
     delay_s: FloatArray,
     seq: NDArray[np.int64],
@@ -118,9 +124,8 @@ def _verified_plane_gains(
     """The gains (K_h, I, B_h, C_h, first-order hold) the client renders for the patches of
     ``mask`` once they have fed its own-response check, as
     :meth:`client.session.ClientSession._render` does: the check (``sums``, ``cell``,
-    ``seq_last``, ``ok``, ``ref``, ``start`` (the tick it started at) and ``steps`` (its largest
-    change of force between two patches and the last patch's force, shape (B, 2)), updated in
-    place) starts over in each gain-table cell of the K_o reported and when the contact ends (a
+    ``seq_last``, ``ok``, ``ref``, ``start`` (the tick it started at) and ``jumps``
+    (:func:`shared.own_response.update_jumps`), updated in place) starts over in each gain-table cell of the K_o reported and when the contact ends (a
     patch without a force from this user), takes the patches with that force (the surface's
     depth ``surface`` [m], ``force`` [N], the time between patches from their ticks ``seq``),
     and where it has verified the object as a spring of ``ref`` times the K_o reported (1, or
@@ -138,7 +143,7 @@ def _verified_plane_gains(
     ok[moved] = False
     ref[moved] = 1.0
     start[moved] = -1
-    steps[moved] = (0.0, np.nan)
+    jumps[moved] = empty_jumps()
     seq_last[moved] = -1
     cell[moved] = c[moved]
     push = mask & (force > 0.0)
@@ -149,13 +154,9 @@ def _verified_plane_gains(
         seq_last[push] = seq[push]
         start[push & (start < 0)] = seq[push & (start < 0)]
         elapsed = (seq - start) / sim_rate_hz
-        jump = np.abs(force - steps[:, 1])
-        steps[push, 0] = np.where(np.isfinite(jump), np.maximum(steps[:, 0], jump), steps[:, 0])[
-            push
-        ]
-        steps[push, 1] = force[push]
+        jumps[push] = update_jumps(jumps, dt_s=dt, force_n=force)[push]
         got_ok, got_ref = identify(
-            sums, k_o, ok, ref, elapsed_s=elapsed, step_n=steps[:, 0], newest=(force, surface)
+            sums, k_o, ok, ref, elapsed_s=elapsed, jumps=jumps, newest=(force, surface)
         )
         ok[push] = got_ok[push]
         ref[push] = got_ref[push]
@@ -326,7 +327,7 @@ def simulate(
     own_ok = np.zeros(B, dtype=bool)
     own_ratio = np.ones(B)  # K' / K_o the check holds the object to
     own_start = np.full(B, -1, dtype=np.int64)  # tick the check started at
-    own_steps = np.tile([0.0, np.nan], (B, 1))  # its largest force change, the last force
+    own_jumps = empty_jumps((B,))  # the changes of force between its patches
     # tick the check verified the cell at, and the plane cell then
     own_since = np.full((B, 2), -1, dtype=np.int64)
     plane_delay = np.array([x.plane_delay_s for x in r])
@@ -485,7 +486,7 @@ def simulate(
                             ok=own_ok,
                             ref=own_ratio,
                             start=own_start,
-                            steps=own_steps,
+                            jumps=own_jumps,
                             since=own_since,
                             delay_s=plane_delay,
                             seq=seq,

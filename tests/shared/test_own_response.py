@@ -13,8 +13,10 @@ from haptic_collab.shared.own_response import (
     IDENTIFY_RANGE,
     TOLERANCE,
     OwnResponse,
+    empty_jumps,
     empty_sums,
     identify,
+    update_jumps,
     update_sums,
     verdict,
 )
@@ -171,17 +173,32 @@ def test_a_press_on_a_soft_object_is_read_by_the_deformation_it_causes() -> None
     assert not any(seen2)
 
 
-def test_a_surface_that_moves_with_a_jump_of_force_is_not_identified_as_a_stiffness() -> None:
+@pytest.mark.parametrize("between", [0, 1, 2])
+def test_a_surface_that_moves_with_a_jump_of_force_is_not_identified_as_a_stiffness(
+    between: int,
+) -> None:
     # the object is as reported; this user holds 1 N, then the surface under it moves out
-    # 1.1 mm (someone else's push, a change of the object) in the same patch as its force
-    # jumps to 2 N. The two levels lie on a line of 1.5 K_o: never rendered as that stiffness
+    # 1.1 mm (someone else's push, a change of the object) while its force goes to 2 N, at
+    # once or over ``between`` patches. The two levels lie on a line of 1.5 K_o: never
+    # rendered as that stiffness
     c = OwnResponse()
     hold1 = [(1.0 / K_O, 1.0)] * 40
+    ramp = [
+        (-0.0011 * a + (1.0 + a) / K_O, 1.0 + a) for a in np.linspace(0.0, 1.0, between + 2)[1:-1]
+    ]
     hold2 = [(-0.0011 + 2.0 / K_O, 2.0)] * 30
-    for x, f in hold1 + hold2:
+    for x, f in hold1 + ramp + hold2:
         ok = c.update(dt_s=DT, surface_m=x, force_n=f, k_o=K_O)
         assert not ok or abs(c.identified_ratio - 1.0) <= 0.05, c.identified_ratio
     assert c.ratio == pytest.approx(1.49, abs=0.01)  # what the line alone says
+
+
+def test_a_force_that_is_not_a_number_does_not_hide_a_jump() -> None:
+    # the same jump at once, with a patch carrying no finite force between the two levels
+    c = OwnResponse()
+    for x, f in [(1.0 / K_O, 1.0)] * 40 + [(0.0, math.nan)] + [(-0.0011 + 2.0 / K_O, 2.0)] * 30:
+        ok = c.update(dt_s=DT, surface_m=x, force_n=f, k_o=K_O)
+        assert not ok or abs(c.identified_ratio - 1.0) <= 0.05, c.identified_ratio
 
 
 def test_a_few_patches_around_a_stall_are_not_a_reading() -> None:
@@ -200,15 +217,13 @@ def test_identify_on_a_batch_runs_what_each_contact_runs() -> None:
     ks = np.array([K_O, 0.8 * K_O])
     checks = [OwnResponse(), OwnResponse()]
     sums, ok, ref = empty_sums((2,)), np.zeros(2, dtype=bool), np.ones(2)
-    step, last = np.zeros(2), np.full(2, math.nan)
+    jumps = empty_jumps((2,))
     forces = np.concatenate([np.linspace(0.1, 3.0, 30), np.linspace(3.0, 0.1, 30)])
     for i, f in enumerate(forces):
         x = f / ks
         sums = update_sums(sums, dt_s=0.0 if i == 0 else DT, surface_m=x, force_n=f, k_o=K_O)
-        if i:
-            step = np.maximum(step, np.abs(f - last))
-        last = np.full(2, f)
-        ok, ref = identify(sums, K_O, ok, ref, elapsed_s=i * DT, step_n=step, newest=(f, x))
+        jumps = update_jumps(jumps, dt_s=0.0 if i == 0 else DT, force_n=np.full(2, f))
+        ok, ref = identify(sums, K_O, ok, ref, elapsed_s=i * DT, jumps=jumps, newest=(f, x))
         for j, c in enumerate(checks):
             assert c.update(dt_s=0.0 if i == 0 else DT, surface_m=x[j], force_n=f, k_o=K_O) == ok[j]
             assert c.identified_ratio == pytest.approx(ref[j], rel=1e-12)
