@@ -185,6 +185,24 @@ def fit(sums: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     return s, np.sqrt(vff), res
 
 
+def _reading(
+    sums: FloatArray,
+    k: FloatArray,
+    min_force_spread_n: float,
+    min_depth_spread_m: float,
+    max_residual: float,
+) -> tuple[FloatArray, FloatArray, np.ndarray, np.ndarray]:
+    """What the window shows, shape ``sums.shape[:-1]`` each: the line's slope [m/N], ``rho``,
+    whether the force spread is met, and whether the line explains ``r_hat`` (the module's
+    rules; :func:`verdict` and :func:`identify` read the same)."""
+    s, spread, res = fit(sums)
+    rho = ratio(sums, k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shown = (spread >= min_force_spread_n) | (spread / k >= min_depth_spread_m)
+        line = res <= max_residual * spread / k
+    return s, rho, shown, line
+
+
 def ratio(sums: FloatArray, k_o: float | FloatArray) -> FloatArray:
     """``rho = K' / K_o`` the window shows (NaN where it cannot tell, inf where the object showed
     no stiffness at all), shape ``sums.shape[:-1]``."""
@@ -213,13 +231,10 @@ def verdict(
     withdrawn when that patch's ``r_hat`` is off the window's line by more than
     ``refuse_tolerance F_s / (ref K_o)``: an object that changed under a held force (no spread
     to read a new slope from) shows there first."""
-    s, spread, res = fit(sums)
     k = np.asarray(k_o, dtype=float)
     ref_a = np.asarray(ref, dtype=float)
-    rho = ratio(sums, k)
-    shown = (spread >= min_force_spread_n) | (spread / k >= min_depth_spread_m)
+    s, rho, shown, line = _reading(sums, k, min_force_spread_n, min_depth_spread_m, max_residual)
     with np.errstate(invalid="ignore", divide="ignore"):
-        line = res <= max_residual * spread / k
         off = np.abs(rho / ref_a - 1.0)
         good = shown & line & (off <= tolerance)
         bad = shown & (~line | ~(off <= refuse_tolerance))
@@ -257,12 +272,11 @@ def identify(
     for ``elapsed_s`` [s] >= ``identify_after_s`` (to a nanosecond) and a weight of
     ``identify_min_samples`` patches, the largest change of force between two patches carries
     at most ``identify_max_jump_share`` of the force's movement (``jumps``:
-    :func:`update_jumps`; None: not asked), and the window
-    shows a line (spread met, residual small) whose ``rho`` is more than ``refuse_tolerance``
-    off ``ref`` and within ``identify_range`` of 1 (``1 / identify_range <= rho <=
-    identify_range``): there
-    ``ref`` becomes ``rho`` and the verdict is :func:`verdict` against it (the module
-    docstring's *identified*; the newest patch must lie on the line as always).
+    :func:`update_jumps`; None: not asked), and the window shows a line (spread met, residual
+    small) whose ``rho`` is more than ``refuse_tolerance`` off ``ref`` and within
+    ``identify_range`` of 1 (``1 / identify_range <= rho <= identify_range``): there ``ref``
+    becomes ``rho`` and the verdict is :func:`verdict` against it (the module docstring's
+    *identified*; the newest patch must lie on the line as always).
 
     Raises
     ------
@@ -273,12 +287,9 @@ def identify(
         raise ValueError(f"identify_range must be finite and >= 1, got {identify_range!r}")
     k = np.asarray(k_o, dtype=float)
     ref_a = np.broadcast_to(np.asarray(ref, dtype=float), sums.shape[:-1])
-    _, spread, res = fit(sums)
-    rho = ratio(sums, k)
-    shown = (spread >= min_force_spread_n) | (spread / k >= min_depth_spread_m)
+    _, rho, shown, line = _reading(sums, k, min_force_spread_n, min_depth_spread_m, max_residual)
     with np.errstate(invalid="ignore", divide="ignore"):
-        line = shown & (res <= max_residual * spread / k)
-        moved = line & (np.abs(rho / ref_a - 1.0) > refuse_tolerance)
+        moved = shown & line & (np.abs(rho / ref_a - 1.0) > refuse_tolerance)
         moved &= (rho >= 1.0 / identify_range) & (rho <= identify_range)
         moved &= np.asarray(elapsed_s, dtype=float) >= identify_after_s - 1e-9
         moved &= sums[..., 0] >= identify_min_samples
