@@ -196,7 +196,7 @@ def _reading(
     whether the force spread is met, and whether the line explains ``r_hat`` (the module's
     rules; :func:`verdict` and :func:`identify` read the same)."""
     s, spread, res = fit(sums)
-    rho = ratio(sums, k)
+    rho = _slope_ratio(s, k)
     with np.errstate(invalid="ignore", divide="ignore"):
         shown = (spread >= min_force_spread_n) | (spread / k >= min_depth_spread_m)
         line = res <= max_residual * spread / k
@@ -206,7 +206,11 @@ def _reading(
 def ratio(sums: FloatArray, k_o: float | FloatArray) -> FloatArray:
     """``rho = K' / K_o`` the window shows (NaN where it cannot tell, inf where the object showed
     no stiffness at all), shape ``sums.shape[:-1]``."""
-    s, _, _ = fit(sums)
+    return _slope_ratio(fit(sums)[0], k_o)
+
+
+def _slope_ratio(s: FloatArray, k_o: float | FloatArray) -> FloatArray:
+    """``rho = 1 / (1 + s K_o)`` of the line's slope ``s`` [m/N] (:func:`ratio`)."""
     with np.errstate(invalid="ignore", divide="ignore"):
         d = 1.0 + s * np.asarray(k_o, dtype=float)
         return np.where(d > 0.0, 1.0 / d, np.where(np.isnan(d), np.nan, np.inf))
