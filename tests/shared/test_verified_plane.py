@@ -9,11 +9,20 @@ from dataclasses import replace
 
 import pytest
 
+from haptic_collab.shared import verified_plane as verified_plane_module
 from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import GainTable, design_cell
-from haptic_collab.shared.verified_plane import VERIFIED_RANGE, verified_key, verified_plane
+from haptic_collab.shared.verified_plane import (
+    CAPPED_PLANE_MAX,
+    PLANE_DAMPERS,
+    VERIFIED_RANGE,
+    checked_plane,
+    felt_closer,
+    verified_key,
+    verified_plane,
+)
 from tests.support.hand_lattice import worst_on_lattice
 
 TABLE = GainTable(DEFAULT_HAND_BOX)
@@ -89,3 +98,65 @@ def test_only_an_uncoupled_contact_on_an_undamped_object_below_the_device_gets_o
     assert verified_key(_key(20.0, 0)).margin == verified_key(_key(20.0, 0)).stiffer_by == 0.05
     with pytest.raises(ValueError, match="grid_ratio"):
         verified_plane(_key(20.0, 0), cell, 1.0, DEFAULT_HAND_BOX)
+
+
+def _band_error(d, k_o: float, rate: float, ticks: int) -> float:
+    q = felt_responses(
+        FELT_BAND_HZ, k_o=k_o, k_h=d.k_h, i_gain=d.i_gain, b_h=d.b_h,
+        rate_ratio=round(1000 / rate), delay_ticks=ticks, proxy_hold=d.proxy_hold,
+        own_gain=d.own_gain,
+    )[:, 0]  # fmt: skip
+    return max(abs(math.log(abs(v) / k_o)) for v in q)
+
+
+def test_at_the_devices_stiffness_a_heavier_damper_lets_the_plane_beat_the_design(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 1000 N/m, 50 Hz, no delay: no plane passes with at most 2.5 N*s/m, one with 3.5 does; on
+    # an object this stiff that damper is felt little: within the JND of the object over the
+    # band, where the cell's design (6.7 N*s/m) is felt 0.13 off
+    rate, ticks = 50.0, 0
+    key, cell = _key(rate, ticks), TABLE.cell(1000.0)
+    args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
+    design = design_cell(key, cell, *args)
+    plane = verified_plane(key, cell, *args, design)
+    assert plane is not None and 2.5 < plane.b_h <= 5.0
+    g = plane.k_o
+    assert _band_error(plane, g, rate, ticks) < JND < _band_error(design.at(g), g, rate, ticks)
+    # every hand of the finer lattice decays at 1/s on objects 5 % either way, K_h up to 1000
+    top = plane.at(1000.0)
+    limit = math.exp(-1.0 * round(1000 / rate) * 1e-3)
+    for d, k_os in ((plane, [0.95 * g, g]), (top, [1000.0, 1.05 * TABLE.grid_ratio * g])):
+        rho, where = worst_on_lattice(d, k_os, sim_rate_hz=rate, delay_ticks=ticks)
+        assert rho < limit, where
+    # with the old ladder (up to a quarter of the device's damping) there was none
+    light = tuple(f for f in PLANE_DAMPERS if f <= 0.25)
+    monkeypatch.setattr(verified_plane_module, "PLANE_DAMPERS", light)
+    assert checked_plane(key, cell, *args) is None
+
+
+def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surface() -> None:
+    # a spring 20 % stiffer than the 1000 N/m reported (the cell of 1200 N/m), 20 Hz, 4 ticks:
+    # K_h stops at the device's 1000 N/m while C_h stays the object's compliance, so the plane
+    # stays at the rest surface and is felt as the device's stiffness at every frequency
+    rate, ticks = 20.0, 4
+    key, cell = _key(rate, ticks), TABLE.cell(1200.0)
+    args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
+    plane = checked_plane(key, cell, *args)
+    assert plane is not None
+    g = plane.k_o
+    assert g > 1000.0 and plane.k_h == 1000.0 and plane.own_gain == pytest.approx(1.0 / g)
+    assert plane.at(1.09 * g) == plane  # one set of gains across the cell
+    assert abs(_band_error(plane, g, rate, ticks) - math.log(g / 1000.0)) < 0.03
+    limit = math.exp(-1.0 * round(1000 / rate) * 1e-3)
+    k_os = [(1 - VERIFIED_RANGE) * g, g, (1 + VERIFIED_RANGE) * TABLE.grid_ratio * g]
+    rho, where = worst_on_lattice(plane, k_os, sim_rate_hz=rate, delay_ticks=ticks)
+    assert rho < limit, where
+    # closer to that object than the design of the cell of the 1000 N/m reported (K_h 871 N/m
+    # and 10 N*s/m there: 0.26 off), which is what renders without it
+    reported = design_cell(key, TABLE.cell(1000.0), *args)
+    assert felt_closer(plane, key, reported)
+    assert _band_error(reported.at(g), g, rate, ticks) > _band_error(plane, g, rate, ticks) + JND
+    # further up no check is spent: the designs there are capped planes already
+    above = TABLE.cell(CAPPED_PLANE_MAX * 1000.0 * TABLE.grid_ratio)
+    assert checked_plane(key, above, *args) is None
