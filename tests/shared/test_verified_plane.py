@@ -137,8 +137,9 @@ def test_at_the_devices_stiffness_a_heavier_damper_lets_the_plane_beat_the_desig
 
 def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surface() -> None:
     # a spring 20 % stiffer than the 1000 N/m reported (the cell of 1200 N/m), 20 Hz, 4 ticks:
-    # K_h stops at the device's 1000 N/m while C_h stays the object's compliance, so the plane
-    # stays at the rest surface and is felt as the device's stiffness at every frequency
+    # K_h stops at the device's 1000 N/m while C_h stays the compliance of the cell's grid point,
+    # so on that object the plane stays at the rest surface and is felt as the device's
+    # stiffness at every frequency
     rate, ticks = 20.0, 4
     key, cell = _key(rate, ticks), TABLE.cell(1200.0)
     args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
@@ -152,11 +153,24 @@ def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surfac
     k_os = [(1 - VERIFIED_RANGE) * g, g, (1 + VERIFIED_RANGE) * TABLE.grid_ratio * g]
     rho, where = worst_on_lattice(plane, k_os, sim_rate_hz=rate, delay_ticks=ticks)
     assert rho < limit, where
-    # closer to that object than the design of the cell of the 1000 N/m reported (K_h 871 N/m
-    # and 10 N*s/m there: 0.26 off), which is what renders without it
+    # closer across its cell than the design of the cell of the 1000 N/m reported (K_h 871 N/m
+    # and 10 N*s/m there: 0.26 off at g), which is what renders without it
     reported = design_cell(key, TABLE.cell(1000.0), *args)
     assert felt_closer(plane, key, reported)
     assert _band_error(reported.at(g), g, rate, ticks) > _band_error(plane, g, rate, ticks) + JND
+    # its C_h is right at g only, so it is compared across the cell: the cell's own design (0.28
+    # off throughout) is felt farther at g (0.145) but closer at the cell's top, where C_h
+    # over-compensates (0.31); the design stays
+    own = design_cell(key, cell, *args)
+    assert _band_error(own.at(g), g, rate, ticks) > _band_error(plane, g, rate, ticks)
+    assert not felt_closer(plane, key, own)
+    # with the plane's own K_h: with no delay the cell's own design is felt closer (0.03 against
+    # 0.145 at g), and the plane does not render
+    key0 = _key(rate, 0)
+    plane0 = checked_plane(key0, cell, *args)
+    assert plane0 is not None and plane0.k_h == 1000.0
+    assert not felt_closer(plane0, key0, design_cell(key0, cell, *args))
+    assert verified_plane(key0, cell, *args, design_cell(key0, cell, *args)) is None
     # further up no check is spent: the designs there are capped planes already
     above = TABLE.cell(CAPPED_PLANE_MAX * 1000.0 * TABLE.grid_ratio)
     assert checked_plane(key, above, *args) is None
