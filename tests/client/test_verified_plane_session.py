@@ -26,9 +26,11 @@ def _press_patch(
     k_true: float,
     b_o: float = 0.0,
     gains: RecommendedGains | None = None,
+    k_o: float = K_O,
 ) -> str:
     """A patch of a press on the top plane z = 0.1 m of a spring of ``k_true`` [N/m] reported
-    at :data:`K_O`: the surface pushed in by the force the simulation applied from this user."""
+    at ``k_o`` (:data:`K_O`): the surface pushed in by the force the simulation applied from
+    this user."""
     z = 0.1 - force_n / k_true
     return encode(
         Patch(
@@ -38,8 +40,8 @@ def _press_patch(
             normal=(0, 0, 1),
             penetration_m=0.001,
             in_contact=True,
-            k_o=K_O,
-            k_o_eff=K_O,
+            k_o=k_o,
+            k_o_eff=k_o,
             b_o=b_o,
             own_force_n=force_n,
             gains=gains,
@@ -57,13 +59,23 @@ def _check_planes(s: ClientSession) -> None:
         s.store_plane(key, cell, plane, design_cell)
 
 
-def _session_pressing(k_true: float, b_o: float = 0.0, seconds: float = 2.0) -> ClientSession:
+def _session_pressing(
+    k_true: float,
+    b_o: float = 0.0,
+    seconds: float = 2.0,
+    k_o: float = K_O,
+    rtt_s: float | None = None,
+) -> ClientSession:
     """A session whose gains are designed, after ``seconds`` of 20 Hz patches of a press going
-    up and down between 0.1 and 3.1 N, with the link's jobs run as its workers would."""
+    up and down between 0.1 and 3.1 N on an object reported at ``k_o`` [N/m], with the link's
+    jobs run as its workers would; ``rtt_s`` [s]: the round trips it has measured."""
     s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    if rtt_s is not None:
+        s.rtt_s.clear()
+        s.rtt_s.extend([rtt_s] * 8)
     for tick in range(1, round(20 * seconds) + 1):
         f = 1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0)  # in contact throughout
-        s.receive(_press_patch(tick, float(f), k_true, b_o), tick / 20.0)
+        s.receive(_press_patch(tick, float(f), k_true, b_o, k_o=k_o), tick / 20.0)
         if s.design_wanted is not None:
             key, k_o = s.design_wanted
             s.gain_table.design(key, k_o)
@@ -104,6 +116,23 @@ def test_an_object_off_its_reported_k_o_is_rendered_as_the_stiffness_it_showed(
     )
     (key, plane_cell, design_cell) = next(iter(s.planes))
     assert plane_cell == s.gain_table.cell(error * K_O) and design_cell == s.gain_table.cell(K_O)
+
+
+def test_a_spring_stiffer_than_the_device_is_rendered_with_the_capped_plane() -> None:
+    # reported at the device's 1000 N/m, 20 % stiffer in truth, 200 ms round trips: the check
+    # identifies 1200 N/m, above what the device renders. The plane of that cell is capped: K_h
+    # stays the device's, C_h is the object's compliance at the cell's grid point, so the user's
+    # own force moves the surface back by what the object yields and the plane holds the rest
+    # surface; it renders because it is felt closer to that object than the design for 1000 N/m
+    s = _session_pressing(1200.0, k_o=1000.0, rtt_s=0.2)
+    up = s.last_update
+    assert up is not None and up.choice.delay_ticks > 0
+    assert s.own_response.identified_ratio == pytest.approx(1.2, rel=0.01)
+    assert s.identified_plane_patches > 0
+    g = s.gain_table.grid_point(s.gain_table.cell(1200.0))
+    assert g > 1000.0
+    assert up.k_h == pytest.approx(1000.0) and up.own_gain == pytest.approx(1.0 / g)
+    assert up.i_gain == 0.0
 
 
 def test_an_object_twice_as_soft_as_reported_is_refused_and_keeps_the_design() -> None:
