@@ -114,8 +114,50 @@ def plane_applies(key: GainKey) -> bool:
     return key.own_force and key.stiff_ratio == 1.0 and key.b_o == 0.0
 
 
+def _plane(
+    key: GainKey,
+    g: float,
+    grid_ratio: float,
+    hand_box: HandBox,
+    *,
+    k_h: float,
+    b_h: float,
+    hold: Literal["zoh", "foh"],
+    top: float,
+    worst: float,
+) -> GainDesign:
+    """The plane of the cell of grid point ``g`` [N/m] with these gains, as a design (its worst
+    spectral radius ``worst``; ``top`` its ``scale_max``)."""
+    rates = key.rates
+    n, T = rates.ratio, rates.servo_period_s
+    q = _band_response(key, g, k_h=k_h, b_h=b_h, proxy_hold=hold, own_gain=1.0 / g)
+    q1, q8 = q[FELT_BAND_HZ.index(1.0)], q[FELT_BAND_HZ.index(8.0)]
+    return GainDesign(
+        k_h=k_h,
+        i_gain=0.0,
+        b_h=b_h,
+        proxy_hold=hold,
+        worst_spectral_radius=worst,
+        rho_limit=math.exp(-MIN_DECAY_RATE_PER_S * n * T),
+        felt_stiffness_ratio_1hz=float(abs(q1)) / g,
+        felt_stiffness_ratio_8hz=float(abs(q8)) / g,
+        k_o=g,
+        k_o_range=((1.0 - VERIFIED_RANGE) * g, (1.0 + VERIFIED_RANGE) * g * grid_ratio),
+        rate_ratio=n,
+        delay_ticks=key.delay_ticks,
+        mode="p",
+        hand_box=hand_box,
+        own_gain=1.0 / g,
+        scale_max=top,
+    )
+
+
 def checked_plane(
-    key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox
+    key: GainKey,
+    cell: int,
+    grid_ratio: float,
+    hand_box: HandBox,
+    design: GainDesign | None = None,
 ) -> GainDesign | None:
     """The plane of grid cell ``cell`` (g = grid_ratio**cell [N/m]) with the lightest damper
     that passes the check (module docstring), as a design scaled across the cell
@@ -126,6 +168,11 @@ def checked_plane(
     stiffness. None if none passes, above that, or if the key does not allow it
     (:func:`plane_applies`). It does not depend on ``key.mode`` (a plane has no integral).
     :func:`verified_plane` adds the comparison with the cell's design.
+
+    With ``design``, the search stops (None) as soon as no rung left, checked or not, would be
+    felt closer than it (:func:`felt_closer`: cheap, where a check takes 0.1-10 s): the plane
+    it would find could not render anyway. The result is then None exactly where
+    :func:`felt_closer` would refuse the plane found without it.
 
     Raises
     ------
@@ -145,53 +192,56 @@ def checked_plane(
     top = 1.0 if capped else min(grid_ratio, key.k_h_max / g)
     k_h = min(g, key.k_h_max)
     vkey = verified_key(key)
-    rates = key.rates
-    n, T = rates.ratio, rates.servo_period_s
     scales = tuple(dict.fromkeys((1.0, math.sqrt(top), top)))
-    for frac in PLANE_DAMPERS:
-        b_h = frac * key.b_h_max
-        if frac > 0.0 and b_h <= 0.0:
-            break
-        for hold in _HOLDS:
-            worst = 0.0
-            for s in scales:
-                ok, rho = verify_gains(
-                    vkey,
-                    cell,
-                    grid_ratio,
-                    hand_box,
-                    k_h=s * k_h,
-                    i_gain=0.0,
-                    b_h=b_h,
-                    proxy_hold=hold,
-                    own_gain=1.0 / (s * g),
-                    k_o_scale=s,
-                )
-                worst = max(worst, rho)
-                if not ok:
-                    break
-            else:
-                q = _band_response(key, g, k_h=k_h, b_h=b_h, proxy_hold=hold, own_gain=1.0 / g)
-                q1, q8 = q[FELT_BAND_HZ.index(1.0)], q[FELT_BAND_HZ.index(8.0)]
-                lo = (1.0 - VERIFIED_RANGE) * g
-                return GainDesign(
-                    k_h=k_h,
-                    i_gain=0.0,
-                    b_h=b_h,
-                    proxy_hold=hold,
-                    worst_spectral_radius=worst,
-                    rho_limit=math.exp(-MIN_DECAY_RATE_PER_S * n * T),
-                    felt_stiffness_ratio_1hz=float(abs(q1)) / g,
-                    felt_stiffness_ratio_8hz=float(abs(q8)) / g,
-                    k_o=g,
-                    k_o_range=(lo, (1.0 + VERIFIED_RANGE) * g * grid_ratio),
-                    rate_ratio=n,
-                    delay_ticks=key.delay_ticks,
-                    mode="p",
-                    hand_box=hand_box,
-                    own_gain=1.0 / g,
-                    scale_max=top,
-                )
+    rungs = [
+        (frac * key.b_h_max, hold)
+        for frac in PLANE_DAMPERS
+        if frac == 0.0 or frac * key.b_h_max > 0.0
+        for hold in _HOLDS
+    ]
+    # the first rung at or after i that would be felt closer than the design (found lazily:
+    # the lightest usually is, and the search then costs one comparison)
+    closer_at = -1
+    for i, (b_h, hold) in enumerate(rungs):
+        if design is not None and closer_at < i:
+            closer_at = next(
+                (
+                    j
+                    for j in range(i, len(rungs))
+                    if felt_closer(
+                        _plane(
+                            key, g, grid_ratio, hand_box, k_h=k_h, b_h=rungs[j][0],
+                            hold=rungs[j][1], top=top, worst=0.0,
+                        ),
+                        key,
+                        design,
+                    )
+                ),
+                len(rungs),
+            )  # fmt: skip
+            if closer_at == len(rungs):
+                return None  # whichever rung passed from here, the design is felt closer
+        worst = 0.0
+        for s in scales:
+            ok, rho = verify_gains(
+                vkey,
+                cell,
+                grid_ratio,
+                hand_box,
+                k_h=s * k_h,
+                i_gain=0.0,
+                b_h=b_h,
+                proxy_hold=hold,
+                own_gain=1.0 / (s * g),
+                k_o_scale=s,
+            )
+            worst = max(worst, rho)
+            if not ok:
+                break
+        else:
+            return _plane(
+                key, g, grid_ratio, hand_box, k_h=k_h, b_h=b_h, hold=hold, top=top, worst=worst
+            )
     return None
 
 
@@ -235,7 +285,7 @@ def verified_plane(
     ValueError
         As :func:`checked_plane`.
     """
-    plane = checked_plane(key, cell, grid_ratio, hand_box)
+    plane = checked_plane(key, cell, grid_ratio, hand_box, design)
     if plane is None or (design is not None and not felt_closer(plane, key, design)):
         return None
     return plane

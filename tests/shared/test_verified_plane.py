@@ -174,3 +174,32 @@ def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surfac
     # further up no check is spent: the designs there are capped planes already
     above = TABLE.cell(CAPPED_PLANE_MAX * 1000.0 * TABLE.grid_ratio)
     assert checked_plane(key, above, *args) is None
+
+
+def test_the_search_stops_once_no_damper_left_could_beat_the_design(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 1000 N/m, 20 Hz, no delay: the cell's design is felt closer than the plane with any
+    # damper of the ladder. The client's worker then spends no stability check on the plane
+    # (each takes 0.1-10 s, and a design asked meanwhile waits), and the answer is the one the
+    # full search and the comparison give
+    key, cell = _key(20.0, 0), TABLE.cell(1000.0)
+    args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
+    design = design_cell(key, cell, *args)
+    calls: list[int] = []
+    real = verified_plane_module.verify_gains
+
+    def counted(*a: object, **k: object) -> tuple[bool, float]:
+        calls.append(1)
+        return real(*a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(verified_plane_module, "verify_gains", counted)
+    assert verified_plane(key, cell, *args, design) is None
+    spent = len(calls)
+    plane = checked_plane(key, cell, *args)
+    assert plane is not None and not felt_closer(plane, key, design)
+    assert spent == 0 < len(calls)
+    # where the plane is closer, the search finds the same plane as without the design
+    key2 = _key(50.0, 0)
+    design2 = design_cell(key2, cell, *args)
+    assert verified_plane(key2, cell, *args, design2) == checked_plane(key2, cell, *args)
