@@ -35,6 +35,7 @@ hence :data:`PLANE_DAMPERS` up to half the device's damping: on 1000 N/m 5 N*s/m
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 from typing import Literal
@@ -169,10 +170,10 @@ def checked_plane(
     (:func:`plane_applies`). It does not depend on ``key.mode`` (a plane has no integral).
     :func:`verified_plane` adds the comparison with the cell's design.
 
-    With ``design``, the search stops (None) as soon as no rung left, checked or not, would be
-    felt closer than it (:func:`felt_closer`: cheap, where a check takes 0.1-10 s): the plane
-    it would find could not render anyway. The result is then None exactly where
-    :func:`felt_closer` would refuse the plane found without it.
+    With ``design``, the search stops (None) as soon as no rung left to try would be felt
+    closer than it (:func:`felt_closer`: cheap, where a check takes 0.1-10 s). The result is
+    then the plane found without ``design``, or None where that plane (if any) would be
+    refused by :func:`felt_closer`: :func:`verified_plane`'s answer is the same either way.
 
     Raises
     ------
@@ -193,12 +194,9 @@ def checked_plane(
     k_h = min(g, key.k_h_max)
     vkey = verified_key(key)
     scales = tuple(dict.fromkeys((1.0, math.sqrt(top), top)))
-    rungs = [
-        (frac * key.b_h_max, hold)
-        for frac in PLANE_DAMPERS
-        if frac == 0.0 or frac * key.b_h_max > 0.0
-        for hold in _HOLDS
-    ]
+    # without a damper to give (a device without one) only the undamped rung
+    fracs = itertools.takewhile(lambda f: f == 0.0 or f * key.b_h_max > 0.0, PLANE_DAMPERS)
+    rungs = [(frac * key.b_h_max, hold) for frac in fracs for hold in _HOLDS]
     # the first rung at or after i that would be felt closer than the design (found lazily:
     # the lightest usually is, and the search then costs one comparison)
     closer_at = -1

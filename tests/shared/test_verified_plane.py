@@ -7,11 +7,13 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from haptic_collab.shared import verified_plane as verified_plane_module
 from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
+from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import GainTable, design_cell
 from haptic_collab.shared.verified_plane import (
@@ -202,4 +204,39 @@ def test_the_search_stops_once_no_damper_left_could_beat_the_design(
     # where the plane is closer, the search finds the same plane as without the design
     key2 = _key(50.0, 0)
     design2 = design_cell(key2, cell, *args)
-    assert verified_plane(key2, cell, *args, design2) == checked_plane(key2, cell, *args)
+    found = checked_plane(key2, cell, *args)
+    assert found is not None and verified_plane(key2, cell, *args, design2) == found
+
+
+def test_the_early_stop_never_changes_the_answer(monkeypatch: pytest.MonkeyPatch) -> None:
+    # every pattern of rungs that pass their check and rungs felt closer than the design (the
+    # two expensive and the cheap test replaced by tables): the search with the design gives
+    # what the full search followed by the comparison gives, with no more checks
+    key, cell = _key(20.0, 0), TABLE.cell(300.0)
+    args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
+    rungs = [(f * key.b_h_max, h) for f in PLANE_DAMPERS for h in ("zoh", "foh")]
+    design = design_cell(key, cell, *args)
+    state: dict[str, dict[tuple[float, str], bool]] = {}
+    checks: list[tuple[float, str]] = []
+
+    def fake_check(*a: object, b_h: float, proxy_hold: str, **k: object) -> tuple[bool, float]:
+        checks.append((b_h, proxy_hold))
+        return state["passes"][(b_h, proxy_hold)], 0.5
+
+    def fake_closer(plane: GainDesign, *a: object) -> bool:
+        return state["closer"][(plane.b_h, plane.proxy_hold)]
+
+    monkeypatch.setattr(verified_plane_module, "verify_gains", fake_check)
+    monkeypatch.setattr(verified_plane_module, "felt_closer", fake_closer)
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        draws = rng.random((2, len(rungs))) < 0.3
+        state["passes"] = dict(zip(rungs, draws[0], strict=True))
+        state["closer"] = dict(zip(rungs, draws[1], strict=True))
+        checks.clear()
+        full = checked_plane(key, cell, *args)
+        n_full = len(checks)
+        want = full if full is not None and fake_closer(full) else None
+        checks.clear()
+        assert verified_plane(key, cell, *args, design) == want
+        assert len(checks) <= n_full
