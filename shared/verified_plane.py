@@ -23,14 +23,13 @@ checked the same way, and must be felt closer than the design across its cell
 (:func:`felt_closer`).
 
 Measured with the fidelity benchmark's grid (2026-11-25, 1 kHz servo, its simulated device:
-1000 N/m, 10 N*s/m): on the spring from 100 to 1000 N/m at 10-100 Hz and 0-200 ms such a plane passed in 58
-of 60 conditions, with a damper of at most 2.5 N*s/m and a felt error of at most 0.086 (ln) over
-0.5-8 Hz; the product's own designs are felt up to 0.51 off there. At 1000 N/m eight of the 20
-planes need 3.5-5 N*s/m (felt 0.06-0.09 off at the grid point; the designs there carry 6.7-10
-N*s/m, 0.03-0.25 off),
-hence :data:`PLANE_DAMPERS` up to half the device's damping: on 1000 N/m 5 N*s/m is felt as
-``|1 + j 2 pi 8 Hz B / K_o|`` = 1.03 at 8 Hz, and where a damper is felt more (a softer cell)
-:func:`felt_closer` keeps the design.
+1000 N/m, 10 N*s/m): on the spring from 100 to 1000 N/m at 10-100 Hz and 0-200 ms such a plane
+passed in 58 of 60 conditions, with a damper of at most 2.5 N*s/m and a felt error of at most
+0.086 (ln) over 0.5-8 Hz; the product's own designs are felt up to 0.51 off there. At 1000 N/m
+eight of the 20 planes need 3.5-5 N*s/m (felt 0.06-0.09 off at the grid point; the designs there
+carry 6.7-10 N*s/m, 0.03-0.25 off), hence :data:`PLANE_DAMPERS` up to half the device's damping:
+on 1000 N/m 5 N*s/m is felt as ``|1 + j 2 pi 8 Hz B / K_o|`` = 1.03 at 8 Hz, and where a damper
+is felt more (a softer cell) :func:`felt_closer` keeps the design.
 """
 
 from __future__ import annotations
@@ -58,10 +57,11 @@ VERIFIED_RANGE = 0.05
 #: error at the grid point, ln(g / K_h) <= 0.22 (up to about 0.3 at the top of the cell), is of
 #: the order of what the cell's design gives up to its damper and a K_h below the device's (at
 #: 1200 N/m on the benchmark's device, 1000 N/m and 10 N*s/m, 20 conditions: the capped plane
-#: 0.145 at its grid point against the design's 0.08-0.27). Further up every rendering
-#: is held to the device's stiffness, the designs are capped planes already (K_h the device's,
-#: C_h = 1 / K_o) and their damper is felt little: at 3000 N/m the capped plane was closer at
-#: its grid point in none of 20 conditions (1.098 against 0.96-1.098), so the client does not spend the check.
+#: 0.145 at its grid point against the design's 0.08-0.27). Further up every rendering is held
+#: to the device's stiffness, the designs are capped planes already (K_h the device's, C_h =
+#: 1 / K_o) and their damper is felt little: at 3000 N/m the capped plane was closer at its grid
+#: point in none of 20 conditions (1.098 against 0.96-1.098), so the client does not spend the
+#: check.
 CAPPED_PLANE_MAX = 1.25
 
 #: Probe dampers the plane is tried with, lightest first, as fractions of the device's B_h limit
