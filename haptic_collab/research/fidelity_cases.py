@@ -317,6 +317,19 @@ TRAJECTORIES: tuple[Trajectory, ...] = (PRESS, TAP, IMPACT)
 FELT_DEPTH_M = 5e-3
 #: Amplitude [m] of that oscillation.
 FELT_AMPLITUDE_M = 0.25e-3
+#: Time [s] from the start of the felt probe's press to its oscillation: the probe holds still
+#: from the end of its half-second ramp until then.
+FELT_SINE_START_S = 4.0
+#: Settling [s] from the start of the oscillation to the start of the felt fit.
+FELT_SETTLE_S = 2.0
+#: What the second felt measurement adds to both the hold and the settling [s]. It is made only
+#: of a response the first found not steady or not still while held
+#: (:func:`haptic_collab.research.fidelity_metrics.felt_response`), for every scheme alike: a
+#: rendering that changes once, as the product's does 2 s after its own-response check
+#: identifies the object, is then measured after the change, and a limit cycle still is not.
+#: With 2 s every such condition of the full grid traced on 2026-11-25 was measured (the change
+#: came at 3.2-8.8 s); with 4 s the same.
+FELT_RETRY_EXTRA_S = 2.0
 
 
 def felt_depth_m(k_o: float, max_force_n: float, obj: ObjectModel | None = None) -> float:
@@ -363,21 +376,27 @@ def felt_window_s(freq_hz: float) -> float:
     raise ValueError(f"no fitting window of whole cycles up to 20 s for {freq_hz!r} Hz")
 
 
-def felt_trajectory(freq_hz: float, depth_m: float = FELT_DEPTH_M) -> Trajectory:
-    """Position-source probe: ramp to ``depth_m`` (:func:`felt_depth_m`), settle 3.5 s, then
-    oscillate at ``freq_hz`` by :data:`FELT_AMPLITUDE_M`; the felt stiffness is fitted over
-    :func:`felt_window_s` after 2 s of settling (a 400 ms round trip needs them).
+def felt_trajectory(
+    freq_hz: float, depth_m: float = FELT_DEPTH_M, *, longer: bool = False
+) -> Trajectory:
+    """Position-source probe: ramp to ``depth_m`` (:func:`felt_depth_m`), hold still until
+    :data:`FELT_SINE_START_S`, then oscillate at ``freq_hz`` by :data:`FELT_AMPLITUDE_M`; the
+    felt stiffness is fitted over :func:`felt_window_s` after :data:`FELT_SETTLE_S` of settling
+    (a 400 ms round trip needs them). ``longer``: the hold and the settling each
+    :data:`FELT_RETRY_EXTRA_S` longer (the second measurement of a response the first did not
+    find steady: :func:`haptic_collab.bench.fidelity.run`).
 
     Raises
     ------
     ValueError
         As :func:`felt_window_s`.
     """
-    t_s = 4.0
-    t_fit = t_s + 2.0
+    extra = FELT_RETRY_EXTRA_S if longer else 0.0
+    t_s = FELT_SINE_START_S + extra
+    t_fit = t_s + FELT_SETTLE_S + extra
     t_e = t_fit + felt_window_s(freq_hz)
     return Trajectory(
-        f"sine-{freq_hz:g}hz",
+        f"sine-{freq_hz:g}hz" + ("-longer" if longer else ""),
         duration_s=t_e,
         y0_m=0.0,
         y1_m=depth_m,

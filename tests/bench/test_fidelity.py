@@ -35,6 +35,8 @@ def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
     )
     out = run(grid=grid, include_3d=False, workers=2)
     json.dumps(out, allow_nan=False)  # serialisable, no NaN
+    again = out["felt_probe"]
+    assert again["retry_extra_s"] > 0.0 and 0 <= again["read_again"] <= again["measured_again"]
     assert out["schemes"] == list(SCHEMES)
     assert set(out["tuning"]) == set(SCHEMES)
     conds = out["conditions"]

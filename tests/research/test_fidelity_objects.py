@@ -298,6 +298,27 @@ def test_an_object_whose_k_o_is_reported_wrong_is_felt_as_itself_once_identified
     assert max(errs) < math.log(1.1) < max(before)
 
 
+@pytest.mark.slow
+def test_a_rendering_that_changes_once_while_held_is_read_on_the_longer_probe() -> None:
+    # 1000 N/m reported on a spring 20 % stiffer, 20 Hz, 200 ms each way: the own-response check
+    # identifies the object during the felt probe's ramp, and the capped plane of its stiffness
+    # arrives 2 s later, 3.2 s into the press, while the probe is held still. The force settles
+    # through the 400 ms round trip after the change, which the standard probe cannot tell from
+    # a limit cycle; on the longer probe the change is over before the hold ends, and the plane
+    # is read: felt about as the device's stiffness (1000 of 1200 N/m), steadily
+    k, rate, delay_ms = 1000.0, 20.0, 200.0
+    product = _product("local-pi", k, rate, delay_ms, identified=(1.2,))
+    depth = felt_depth_m(k, FMAX, SPRING_STIFFER)
+    cells = [
+        Cell(product, k, rate, delay_ms, None, felt_trajectory(1.0, depth, longer=longer),
+             SPRING_STIFFER)
+        for longer in (False, True)
+    ]  # fmt: skip
+    short, longer = (felt_response(simulate([c]), [c])[0] for c in cells)
+    assert short is None
+    assert longer is not None and 0.75 < abs(longer) < 0.95
+
+
 def test_where_the_design_is_felt_closer_than_the_plane_it_stays() -> None:
     # 300 N/m, 50 Hz, 10 ms: the cell's design is felt 0.07 off the spring over the band, its
     # verified plane 0.09: the product has no plane there
