@@ -284,7 +284,9 @@ class Link:
         # after the designs: a plane check (a second or more) must not hold up a design needed
         if not session.plane_wanted or busy or designing or session.design_wanted is not None:
             return
-        key, cell, design_cell = session.plane_wanted.pop(0)
+        # the newest first: a press through a stiffening object asks for each cell it crosses,
+        # and is likeliest still in the last
+        key, cell, design_cell = session.plane_wanted.pop()
         table = session.gain_table
         self._ensure_executor()
 

@@ -293,10 +293,9 @@ class ClientSession:
         #: The coupled contact's K_o_stiff / K_o_eff class in use (GainKey.stiff_ratio), with
         #: hysteresis: it rises at once and falls only when the ratio is 4x below it.
         self.stiff_ratio = 1.0
-        #: The own-response check of the contact (:mod:`shared.own_response`), the gain-table
-        #: cell it is for, the proxy it measures depth from [m] and its last patch's tick.
+        #: The own-response check of the contact (:mod:`shared.own_response`), the proxy it
+        #: measures depth from [m] and its last patch's tick.
         self.own_response = OwnResponse()
-        self._own_cell: int | None = None
         self._own_ref: np.ndarray | None = None
         self._own_tick: int | None = None
         #: Verified planes per (key, plane cell, design cell): the plane of the cell holding the
@@ -304,8 +303,8 @@ class ClientSession:
         #: the cell of the K_o reported (:func:`shared.verified_plane.verified_plane`; None:
         #: none passed), and the one the link is to check off the event loop.
         self.planes: dict[tuple[GainKey, int, int], GainDesign | None] = {}
-        #: (key, plane cell, design cell) whose verified plane the link is to check, oldest
-        #: first.
+        #: (key, plane cell, design cell) whose verified plane the link is to check, in the
+        #: order asked (the link takes the newest first).
         self.plane_wanted: list[tuple[GainKey, int, int]] = []
         self._plane_asked: set[tuple[GainKey, int, int]] = set()
         #: Patches rendered with a verified plane, and of those with the plane of a stiffness
@@ -501,12 +500,11 @@ class ClientSession:
         (default: ``cell``'s own), or None: none passed its check."""
         self.planes[(key, cell, cell if design_cell is None else design_cell)] = design
 
-    def _reset_own_response(self, cell: int | None = None) -> None:
+    def _reset_own_response(self) -> None:
         self.own_response.reset()
-        self._own_cell = cell
         self._own_ref, self._own_tick = None, None
 
-    def _object_as_reported(self, surface: SurfacePatch, key: GainKey, cell: int) -> bool:
+    def _object_as_reported(self, surface: SurfacePatch, key: GainKey) -> bool:
         """Feed the own-response check this patch and return its verdict: has the object
         yielded to this user's force as a spring of the stiffness the check holds it to, the K_o
         reported or the one it identified (``own_response.identified_ratio`` times K_o;
@@ -514,18 +512,19 @@ class ClientSession:
 
         Only an uncoupled contact on an object without B_o is checked (:func:`plane_applies`).
         The check reads the depth of the surface along the contact normal from the proxy it
-        started at, and the force the simulation applied from this user; the time between
-        patches is their ticks'. It starts over in each gain-table cell, after a welcome, when
-        the contact ends (a patch without this user's force), when the proxy has slid
-        :data:`OWN_RESPONSE_SLIDE_M` along the surface from where it started (on a curved surface
-        the depth would carry the curvature), and when the ticks go back.
+        started at, the force the simulation applied from this user and the K_o reported, read
+        as the object's tangent stiffness (so it goes on across gain-table cells as a
+        stiffening object is pressed); the time between patches is their ticks'. It starts over
+        after a welcome, when the contact ends (a patch without this user's force), when the
+        proxy has slid :data:`OWN_RESPONSE_SLIDE_M` along the surface from where it started (on
+        a curved surface the depth would carry the curvature), and when the ticks go back.
         """
         check = self.own_response
         if not plane_applies(key):
             self._reset_own_response()
             return False
-        if self._own_cell != cell or surface.own_force_n <= 0.0:
-            self._reset_own_response(cell)
+        if surface.own_force_n <= 0.0:
+            self._reset_own_response()
             return False
         if self._own_tick is not None and surface.tick == self._own_tick:
             return check.verified  # the same patch again (a retried render)
@@ -537,7 +536,7 @@ class ClientSession:
             if float(np.linalg.norm(slid)) > OWN_RESPONSE_SLIDE_M or (
                 self._own_tick is not None and surface.tick < self._own_tick
             ):
-                self._reset_own_response(cell)
+                self._reset_own_response()
         if self._own_ref is None:
             self._own_ref = proxy
         dt = 0.0 if self._own_tick is None else (surface.tick - self._own_tick) / self.sim_rate_hz
@@ -641,7 +640,7 @@ class ClientSession:
             self.server_gain_patches += 1
         else:
             design = own
-        if self._object_as_reported(surface, key, cell):
+        if self._object_as_reported(surface, key):
             # the object yields to this user's force as a spring: of the K_o reported, or of
             # the stiffness the check identified. The plane verified for that stiffness (the
             # lightest damper, K_h = K') replaces the design made for an object off by 25 %

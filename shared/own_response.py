@@ -11,27 +11,35 @@ to within a few percent (:func:`shared.verified_plane.verified_plane`).
 
 Each patch gives the surface's depth along the contact normal ``x_s`` [m] (positive into the
 object), the force the simulation applied from this user ``F_s`` [N] and the K_o reported [N/m].
-On a spring of stiffness K' pressed by this user alone, ``x_s = r + F_s / K'`` with ``r`` the rest
-surface. The rest surface the reported K_o implies, ``r_hat = x_s - F_s / K_o``, then moves with
-the force by ``(1 / K' - 1 / K_o) F_s``: a least-squares line of ``r_hat`` against ``F_s``,
-weighted by ``exp(-age / window_s)``, has slope ``s`` and gives ``rho = K' / K_o = 1 / (1 + s
-K_o)`` (model-mediated teleoperation's estimate of the rest surface, Mitra and Niemeyer 2008,
-turned into a check of the stiffness its plane needs). Another user's push moves ``r_hat``
-without this user's force and adds to the line's residual, not its slope, as long as the two are
-not correlated; the client only runs the check on an uncoupled contact.
+The K_o reported is the object's tangent stiffness there, and may move as the object is pressed
+(a strain-stiffening object: Fung's exponential law). The deformation it predicts, ``u``, adds up
+each change of force over the K_o reported across it, ``du = dF_s / K_o``, with K_o taken to vary
+linearly with the force between two patches, as it does on Fung's law (``K_t = k_1 + F / x_s``):
+``du = dF_s ln(K_1 / K_0) / (K_1 - K_0)``, the change over the logarithmic mean of the two K_o
+(:func:`update_deformation`); ``u = F_s / K_o`` at the first patch. On a spring, ``u = F_s /
+K_o``. On an object whose tangent is ``K' / K_o`` times the one reported, pressed by this user
+alone, ``x_s = r + u / rho`` with ``r`` the rest surface and ``rho = K' / K_o``. The rest surface
+the reports imply, ``r_hat = x_s - u``, then moves with ``u`` by ``(1 / rho - 1) u``: a
+least-squares line of ``r_hat`` against ``u``, weighted by ``exp(-age / window_s)``, has slope
+``s`` and gives ``rho = 1 / (1 + s)`` (model-mediated teleoperation's estimate of the rest
+surface, Mitra and Niemeyer 2008, turned into a check of the stiffness its plane needs). Forces
+are read from ``u`` with the newest K_o reported (a spread of ``u`` of 1 mm on 300 N/m is 0.3 N).
+Another user's push moves ``r_hat`` without this user's force and adds to the line's residual,
+not its slope, as long as the two are not correlated; the client only runs the check on an
+uncoupled contact.
 
 The verdict (:attr:`OwnResponse.verified`) holds the object to a stiffness ``ref K_o``
 (:attr:`OwnResponse.identified`, ``ref`` 1 at the start: the K_o reported):
 
-- *verified* once the forces in the window spread by at least ``min_force_spread_n`` (standard
-  deviation) or by what deforms the object ``min_depth_spread_m``, the line explains ``r_hat``
-  to within ``max_residual`` of the deformation that spread causes, and ``|rho / ref - 1| <=
+- *verified* once the deformations ``u`` in the window spread by at least ``min_depth_spread_m``
+  (standard deviation) or by what takes ``min_force_spread_n`` on the K_o reported, the line
+  explains ``r_hat`` to within ``max_residual`` of that spread, and ``|rho / ref - 1| <=
   tolerance``;
 - *refused* at once when ``|rho / ref - 1| > refuse_tolerance`` or the residual is too large,
   with the spread met, or when the newest patch lies off the line by more than
-  ``refuse_tolerance F_s / (ref K_o)`` (an object that changed under a held force); otherwise,
-  without that spread (a held press), the last verdict stands. The client starts the check over
-  (``ref`` back to 1) when the contact ends;
+  ``refuse_tolerance u / ref`` (an object that changed under a held force); otherwise, without
+  that spread (a held press), the last verdict stands. The client starts the check over (``ref``
+  back to 1) when the contact ends;
 - *identified* (:func:`identify`): once the check has read the contact for
   :data:`IDENTIFY_AFTER_S` and :data:`IDENTIFY_MIN_SAMPLES` patches, and no change of force
   between two patches carried more than :data:`IDENTIFY_MAX_JUMP_SHARE` of the force's movement
@@ -59,9 +67,13 @@ import numpy as np
 
 from haptic_collab.shared.types import FloatArray
 
-#: The weighted sums the check keeps, in this order along the last axis: weight W, sum F, sum r,
-#: sum F^2, sum F r, sum r^2 (F [N], r the rest-surface estimate [m]).
+#: The weighted sums the check keeps, in this order along the last axis: weight W, sum u, sum r,
+#: sum u^2, sum u r, sum r^2 (u the deformation the K_o reported predicts [m], r the rest-surface
+#: estimate [m]).
 SUMS = 6
+#: The deformation state the check keeps, in this order along the last axis: ``u`` [m], the last
+#: force [N] and the last K_o reported [N/m] (:func:`update_deformation`).
+DEFORMATION = 3
 
 #: Window [s] of the check: a sample's weight falls by e every window.
 WINDOW_S = 2.0
@@ -145,35 +157,65 @@ def empty_sums(shape: tuple[int, ...] = ()) -> FloatArray:
     return np.zeros((*shape, SUMS))
 
 
+def empty_deformation(shape: tuple[int, ...] = ()) -> FloatArray:
+    """Deformation state of contacts of ``shape`` before their first patch: shape ``shape +
+    (DEFORMATION,)``."""
+    out = np.full((*shape, DEFORMATION), np.nan)
+    out[..., 0] = 0.0
+    return out
+
+
+def update_deformation(
+    state: FloatArray, *, force_n: float | FloatArray, k_o: float | FloatArray
+) -> FloatArray:
+    """The deformation state (:data:`DEFORMATION`) after one patch of force ``force_n`` [N]
+    with the K_o reported ``k_o`` [N/m] > 0; shape as ``state``. ``u`` grows by the change of
+    force over the logarithmic mean of the last K_o and this one (the module docstring: exact
+    where the tangent stiffness is linear in the force, as on Fung's exponential law; ``dF /
+    K_o`` where K_o did not change), and is ``F / K_o`` at the first patch. Where an input is not
+    finite the contact's state is returned unchanged."""
+    f = np.asarray(force_n, dtype=float)
+    k = np.asarray(k_o, dtype=float)
+    f0, k0 = state[..., 1], state[..., 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dk = k - k0
+        # the logarithmic mean of k0 and k; k itself where they (nearly) agree
+        lm = np.where(np.abs(dk) > 1e-9 * k, dk / np.log(k / k0), k)
+        u = np.where(np.isfinite(f0) & np.isfinite(k0), state[..., 0] + (f - f0) / lm, f / k)
+    out = np.stack(np.broadcast_arrays(u, f, k), axis=-1)
+    ok = np.isfinite(out).all(axis=-1) & (k > 0.0)
+    return np.where(np.asarray(ok)[..., None], out, state)
+
+
 def update_sums(
     sums: FloatArray,
     *,
     dt_s: float | FloatArray,
     surface_m: float | FloatArray,
-    force_n: float | FloatArray,
-    k_o: float | FloatArray,
+    deformation_m: float | FloatArray,
     window_s: float = WINDOW_S,
 ) -> FloatArray:
     """The sums after one patch: the old ones aged by ``dt_s`` [s] (the time since the last
-    patch), plus this patch's ``(F_s, r_hat = x_s - F_s / K_o)``; shape as ``sums``.
+    patch), plus this patch's ``(u, r_hat = x_s - u)``; shape as ``sums``.
 
-    ``surface_m``: the surface's depth along the contact normal [m]; ``force_n``: the force the
-    simulation applied from this user [N]; ``k_o``: the K_o reported with them [N/m], > 0. Where
-    an input is not finite the contact's sums are returned unchanged.
+    ``surface_m``: the surface's depth along the contact normal [m]; ``deformation_m``: the
+    deformation ``u`` the K_o reported predicts for the force the simulation applied from this
+    user [m] (:func:`update_deformation`; ``F_s / K_o`` on a spring). Where an input is not
+    finite the contact's sums are returned unchanged.
     """
-    f = np.asarray(force_n, dtype=float)
-    r = np.asarray(surface_m, dtype=float) - f / np.asarray(k_o, dtype=float)
+    u = np.asarray(deformation_m, dtype=float)
+    r = np.asarray(surface_m, dtype=float) - u
     a = np.exp(-np.asarray(dt_s, dtype=float) / window_s)
-    new = np.stack(np.broadcast_arrays(np.ones_like(r), f, r, f * f, f * r, r * r), axis=-1)
+    new = np.stack(np.broadcast_arrays(np.ones_like(r), u, r, u * u, u * r, r * r), axis=-1)
     out = sums * np.asarray(a)[..., None] + new
     ok = np.isfinite(new).all(axis=-1) & np.isfinite(a)
     return np.where(ok[..., None], out, sums)
 
 
 def fit(sums: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """``(slope, force spread, residual)`` of the weighted line ``r_hat = a + s F_s``: ``s``
-    [m/N], the forces' weighted standard deviation [N] and the rms residual [m], each of shape
-    ``sums.shape[:-1]``; NaN where the window holds fewer than two distinct forces."""
+    """``(slope, spread, residual)`` of the weighted line ``r_hat = a + s u``: ``s`` (no unit),
+    the weighted standard deviation of ``u`` [m] and the rms residual [m], each of shape
+    ``sums.shape[:-1]``; NaN where the window holds fewer than two distinct ``u``."""
     w = sums[..., 0]
     with np.errstate(invalid="ignore", divide="ignore"):
         mf, mr = sums[..., 1] / w, sums[..., 2] / w
@@ -192,27 +234,27 @@ def _reading(
     min_depth_spread_m: float,
     max_residual: float,
 ) -> tuple[FloatArray, FloatArray, np.ndarray, np.ndarray]:
-    """What the window shows, shape ``sums.shape[:-1]`` each: the line's slope [m/N], ``rho``,
-    whether the force spread is met, and whether the line explains ``r_hat`` (the module's
-    rules; :func:`verdict` and :func:`identify` read the same)."""
+    """What the window shows, shape ``sums.shape[:-1]`` each: the line's slope, ``rho``,
+    whether the spread is met (``k`` the K_o reported reads it as a force), and whether the line
+    explains ``r_hat`` (the module's rules; :func:`verdict` and :func:`identify` read the same)."""
     s, spread, res = fit(sums)
-    rho = _slope_ratio(s, k)
+    rho = _slope_ratio(s)
     with np.errstate(invalid="ignore", divide="ignore"):
-        shown = (spread >= min_force_spread_n) | (spread / k >= min_depth_spread_m)
-        line = res <= max_residual * spread / k
+        shown = (spread * k >= min_force_spread_n) | (spread >= min_depth_spread_m)
+        line = res <= max_residual * spread
     return s, rho, shown, line
 
 
-def ratio(sums: FloatArray, k_o: float | FloatArray) -> FloatArray:
+def ratio(sums: FloatArray) -> FloatArray:
     """``rho = K' / K_o`` the window shows (NaN where it cannot tell, inf where the object showed
     no stiffness at all), shape ``sums.shape[:-1]``."""
-    return _slope_ratio(fit(sums)[0], k_o)
+    return _slope_ratio(fit(sums)[0])
 
 
-def _slope_ratio(s: FloatArray, k_o: float | FloatArray) -> FloatArray:
-    """``rho = 1 / (1 + s K_o)`` of the line's slope ``s`` [m/N] (:func:`ratio`)."""
+def _slope_ratio(s: FloatArray) -> FloatArray:
+    """``rho = 1 / (1 + s)`` of the line's slope ``s`` (:func:`ratio`)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        d = 1.0 + s * np.asarray(k_o, dtype=float)
+        d = 1.0 + s
         return np.where(d > 0.0, 1.0 / d, np.where(np.isnan(d), np.nan, np.inf))
 
 
@@ -231,10 +273,10 @@ def verdict(
 ) -> np.ndarray:
     """Verified (bool, shape ``sums.shape[:-1]``): is the object the spring of ``ref`` times
     the K_o reported (default 1: K_o itself)? The module's rules, ``last`` the verdict so far.
-    With ``newest`` = (F_s [N], surface depth [m]) of the patch just added, the verdict is also
+    With ``newest`` = (``u`` [m], surface depth [m]) of the patch just added, the verdict is also
     withdrawn when that patch's ``r_hat`` is off the window's line by more than
-    ``refuse_tolerance F_s / (ref K_o)``: an object that changed under a held force (no spread
-    to read a new slope from) shows there first."""
+    ``refuse_tolerance u / ref``: an object that changed under a held force (no spread to read
+    a new slope from) shows there first."""
     k = np.asarray(k_o, dtype=float)
     ref_a = np.asarray(ref, dtype=float)
     s, rho, shown, line = _reading(sums, k, min_force_spread_n, min_depth_spread_m, max_residual)
@@ -243,12 +285,12 @@ def verdict(
         good = shown & line & (off <= tolerance)
         bad = shown & (~line | ~(off <= refuse_tolerance))
         if newest is not None:
-            f = np.asarray(newest[0], dtype=float)
-            r = np.asarray(newest[1], dtype=float) - f / k
+            u = np.asarray(newest[0], dtype=float)
+            r = np.asarray(newest[1], dtype=float) - u
             w = sums[..., 0]
-            mf, mr = sums[..., 1] / w, sums[..., 2] / w
-            fitted = mr + np.where(np.isfinite(s), s, 0.0) * (f - mf)
-            bad = bad | (np.abs(r - fitted) > refuse_tolerance * f / (ref_a * k))
+            mu, mr = sums[..., 1] / w, sums[..., 2] / w
+            fitted = mr + np.where(np.isfinite(s), s, 0.0) * (u - mu)
+            bad = bad | (np.abs(r - fitted) > refuse_tolerance * u / ref_a)
     return np.where(good & ~bad, True, np.where(bad, False, np.asarray(last, dtype=bool)))
 
 
@@ -319,10 +361,11 @@ def identify(
 class OwnResponse:
     """The own-response check of one contact (module docstring).
 
-    Call :meth:`update` with each patch of the contact, :meth:`reset` when the contact's K_o
-    moves to another gain-table cell, becomes coupled to another user's, or the object reports
-    a B_o > 0 (a viscoelastic object's response depends on how fast it is pressed: the check
-    does not apply).
+    Call :meth:`update` with each patch of the contact, :meth:`reset` when the contact ends,
+    becomes coupled to another user's, or the object reports a B_o > 0 (a viscoelastic object's
+    response depends on how fast it is pressed: the check does not apply). A K_o reported that
+    moves as the object is pressed (a stiffening object) is read as its tangent
+    (:func:`update_deformation`): the check goes on across gain-table cells.
 
     Raises
     ------
@@ -349,6 +392,8 @@ class OwnResponse:
     elapsed_s: float = 0.0
     #: The changes of force between its patches (:func:`update_jumps`).
     jumps: FloatArray = field(default_factory=empty_jumps, repr=False)
+    #: The deformation the K_o reported predicts (:func:`update_deformation`).
+    deformation: FloatArray = field(default_factory=empty_deformation, repr=False)
 
     def __post_init__(self) -> None:
         for name in (
@@ -384,10 +429,12 @@ class OwnResponse:
         self.identified_ratio = 1.0
         self.elapsed_s = 0.0
         self.jumps = empty_jumps()
+        self.deformation = empty_deformation()
 
     def update(self, *, dt_s: float, surface_m: float, force_n: float, k_o: float) -> bool:
-        """Add one patch (:func:`update_sums`) and return the verdict (:func:`identify`):
-        the object is a spring of :attr:`identified` [N/m] to within ``tolerance``.
+        """Add one patch (:func:`update_deformation`, :func:`update_sums`) and return the
+        verdict (:func:`identify`): the object yields as a tangent of :attr:`identified` [N/m]
+        to within ``tolerance``.
 
         Raises
         ------
@@ -398,13 +445,10 @@ class OwnResponse:
             raise ValueError(f"dt_s must be finite and >= 0 s, got {dt_s!r}")
         if not (math.isfinite(k_o) and k_o > 0.0):
             raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
+        self.deformation = update_deformation(self.deformation, force_n=force_n, k_o=k_o)
+        u = float(self.deformation[0]) if math.isfinite(force_n) else math.nan
         self.sums = update_sums(
-            self.sums,
-            dt_s=dt_s,
-            surface_m=surface_m,
-            force_n=force_n,
-            k_o=k_o,
-            window_s=self.window_s,
+            self.sums, dt_s=dt_s, surface_m=surface_m, deformation_m=u, window_s=self.window_s
         )
         self.k_o = float(k_o)
         self.elapsed_s += dt_s
@@ -416,7 +460,7 @@ class OwnResponse:
             self.identified_ratio,
             elapsed_s=self.elapsed_s,
             jumps=self.jumps,
-            newest=(force_n, surface_m),
+            newest=(u, surface_m),
             identify_range=self.identify_range,
             identify_after_s=self.identify_after_s,
             identify_min_samples=self.identify_min_samples,
@@ -434,7 +478,7 @@ class OwnResponse:
     @property
     def ratio(self) -> float:
         """``rho = K' / K_o`` the window shows (NaN: it cannot tell yet)."""
-        return float(ratio(self.sums, self.k_o)) if math.isfinite(self.k_o) else math.nan
+        return float(ratio(self.sums)) if math.isfinite(self.k_o) else math.nan
 
     @property
     def identified(self) -> float:

@@ -85,9 +85,11 @@ from haptic_collab.research.fidelity_cases import (
 from haptic_collab.research.fidelity_schemes import DeviceModel, TableGains
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
 from haptic_collab.shared.own_response import (
+    empty_deformation,
     empty_jumps,
     empty_sums,
     identify,
+    update_deformation,
     update_jumps,
     update_sums,
 )
@@ -101,14 +103,20 @@ _DEVICE = DeviceModel()
 _NO_OPTIONS = RunOptions()
 
 
+#: Plane cells the simulator keeps a check time for, per contact (gain-table cells 0 to this, at
+#: the table's 10 % steps up to 1.1**255 N/m; stiffer ones share the last).
+_PLANE_CELLS = 256
+
+
 def _verified_plane_gains(
     mask: NDArray[np.bool_],
     gains: tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]],
     planes: TableGains,
     k_o: FloatArray,
     *,
+    designed: NDArray[np.bool_],
     sums: FloatArray,
-    cell: NDArray[np.int64],
+    deform: FloatArray,
     seq_last: NDArray[np.int64],
     ok: NDArray[np.bool_],
     ref: FloatArray,
@@ -123,51 +131,53 @@ def _verified_plane_gains(
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
     """The gains (K_h, I, B_h, C_h, first-order hold) the client renders for the patches of
     ``mask`` once they have fed its own-response check, as
-    :meth:`client.session.ClientSession._render` does: the check (``sums``, ``cell``,
-    ``seq_last``, ``ok``, ``ref``, ``start`` (the tick it started at) and ``jumps``
-    (:func:`shared.own_response.update_jumps`), updated in place) starts over in each gain-table cell of the K_o reported and when the contact ends (a
-    patch without a force from this user), takes the patches with that force (the surface's
-    depth ``surface`` [m], ``force`` [N], the time between patches from their ticks ``seq``),
-    and where it has verified the object as a spring of ``ref`` times the K_o reported (1, or
-    the stiffness it identified: :func:`shared.own_response.identify`) and the cell of that
-    stiffness has a verified plane (``planes``), that plane scaled to the stiffness replaces
-    ``gains`` from ``delay_s`` [s] after the check first verified in that plane cell (the time
-    the client's worker takes to check the plane; ``since`` holds that tick and the plane
-    cell, shape (B, 2); a new cell of the K_o reported forgets it)."""
-    c = np.floor(np.log(k_o) / np.log(planes.ratio) + 1e-12).astype(np.int64)
-    moved = mask & ((c != cell) | ~(force > 0.0))  # a new cell, or the contact ended
-    # (the client keeps a cell's checked plane for the session: only a new cell starts its
-    # check time over)
-    since[mask & (c != cell), 0] = -1
-    sums[moved] = 0.0
-    ok[moved] = False
-    ref[moved] = 1.0
-    start[moved] = -1
-    jumps[moved] = empty_jumps()
-    seq_last[moved] = -1
-    cell[moved] = c[moved]
+    :meth:`client.session.ClientSession._render` does: the check (``sums``, ``deform``
+    (:func:`shared.own_response.update_deformation`), ``seq_last``, ``ok``, ``ref``, ``start``
+    (the tick it started at) and ``jumps`` (:func:`shared.own_response.update_jumps`), updated in
+    place) starts over when the contact ends (a patch without a force from this user), takes the
+    patches with that force (the surface's depth ``surface`` [m], ``force`` [N], the K_o
+    reported ``k_o`` read as the object's tangent, the time between patches from their ticks
+    ``seq``), and where it has verified the object as ``ref`` times the K_o reported (1, or the
+    stiffness it identified: :func:`shared.own_response.identify`) and the cell of that stiffness
+    has a verified plane (``planes``), that plane scaled to the stiffness replaces ``gains`` from
+    ``delay_s`` [s] after the check first verified in that plane cell with the cell of the K_o
+    reported ``designed`` (the client checks a plane against that cell's design, once it has it;
+    ``delay_s`` is the time its worker takes; ``since``, shape (B, :data:`_PLANE_CELLS`), holds
+    that tick per plane cell, -1 before: the client keeps a checked plane for the session)."""
+    ended = mask & ~(force > 0.0)
+    sums[ended] = 0.0
+    deform[ended] = empty_deformation()
+    ok[ended] = False
+    ref[ended] = 1.0
+    start[ended] = -1
+    jumps[ended] = empty_jumps()
+    seq_last[ended] = -1
     push = mask & (force > 0.0)
     if push.any():
         dt = np.where(seq_last >= 0, (seq - seq_last) / sim_rate_hz, 0.0)
-        new = update_sums(sums, dt_s=dt, surface_m=surface, force_n=force, k_o=k_o)
+        deform[push] = update_deformation(deform, force_n=force, k_o=k_o)[push]
+        u = deform[:, 0]
+        new = update_sums(sums, dt_s=dt, surface_m=surface, deformation_m=u)
         sums[push] = new[push]
         seq_last[push] = seq[push]
         start[push & (start < 0)] = seq[push & (start < 0)]
         elapsed = (seq - start) / sim_rate_hz
         jumps[push] = update_jumps(jumps, dt_s=dt, force_n=force)[push]
         got_ok, got_ref = identify(
-            sums, k_o, ok, ref, elapsed_s=elapsed, jumps=jumps, newest=(force, surface)
+            sums, k_o, ok, ref, elapsed_s=elapsed, jumps=jumps, newest=(u, surface)
         )
         ok[push] = got_ok[push]
         ref[push] = got_ref[push]
     # the client checks the plane of the stiffness verified once its check first verifies
-    # there, in its worker: a plane cell not checked before starts the check time over
+    # there, in its worker, and keeps it: a plane cell not checked before starts its check time
     k_id = ref * k_o
-    pc = np.floor(np.log(k_id) / np.log(planes.ratio) + 1e-12).astype(np.int64)
-    first = mask & ok & ((since[:, 0] < 0) | (since[:, 1] != pc))
-    since[first, 0] = seq[first]
-    since[first, 1] = pc[first]
-    ready = (since[:, 0] >= 0) & ((seq - since[:, 0]) / sim_rate_hz >= delay_s)
+    pc = np.floor(np.log(k_id) / np.log(planes.ratio) + 1e-12)
+    pc = np.clip(pc, 0, _PLANE_CELLS - 1).astype(np.int64)
+    rows = np.arange(len(pc))
+    first = mask & ok & designed & (since[rows, pc] < 0)
+    since[rows[first], pc[first]] = seq[first]
+    at = since[rows, pc]
+    ready = (at >= 0) & ((seq - at) / sim_rate_hz >= delay_s)
     use = mask & ok & ready & planes.has_cell(k_id)
     if not use.any():
         return gains
@@ -322,14 +332,14 @@ def simulate(
     checks = follow & np.array([bool(x.planes) for x in r])
     planes = TableGains([x.planes if c else () for x, c in zip(r, checks, strict=True)])
     own_sums = empty_sums((B,))
-    own_cell = np.full(B, np.iinfo(np.int64).min)
+    own_deform = empty_deformation((B,))  # the deformation the K_o reported predicts
     own_seq = np.full(B, -1, dtype=np.int64)
     own_ok = np.zeros(B, dtype=bool)
     own_ratio = np.ones(B)  # K' / K_o the check holds the object to
     own_start = np.full(B, -1, dtype=np.int64)  # tick the check started at
     own_jumps = empty_jumps((B,))  # the changes of force between its patches
-    # tick the check verified the cell at, and the plane cell then
-    own_since = np.full((B, 2), -1, dtype=np.int64)
+    # tick the check first verified in each plane cell at
+    own_since = np.full((B, _PLANE_CELLS), -1, dtype=np.int64)
     plane_delay = np.array([x.plane_delay_s for x in r])
     k_h_now, ti_now, b_h_now = k_h.copy(), ti.copy(), b_h.copy()
     # the client's bumpless change of gains (shared.local_model.LocalModel.set_gains): the force
@@ -480,8 +490,9 @@ def simulate(
                             (kg, ig, bg, og, fg),
                             planes,
                             k_recv,
+                            designed=table.has_cell(k_recv),
                             sums=own_sums,
-                            cell=own_cell,
+                            deform=own_deform,
                             seq_last=own_seq,
                             ok=own_ok,
                             ref=own_ratio,

@@ -52,7 +52,7 @@ def _press_patch(
 def _check_planes(s: ClientSession) -> None:
     """Run the plane checks the session asks for, as the link's design worker does."""
     while s.plane_wanted:
-        key, cell, design_cell = s.plane_wanted.pop(0)
+        key, cell, design_cell = s.plane_wanted.pop()
         table = s.gain_table
         design = table.lookup(key, table.grid_point(design_cell) * 1.0001)
         plane = verified_plane(key, cell, table.grid_ratio, table.hand_box, design)
@@ -222,3 +222,37 @@ def test_with_the_servers_gains_the_client_designs_the_cell_and_renders_its_plan
         _check_planes(s)
     assert rendered[5] == pytest.approx(214.0)  # the server's, before the check verifies
     assert s.plane_patches > 0 and rendered[-1] == pytest.approx(K_O)
+
+
+@pytest.mark.slow
+def test_on_a_stiffening_object_the_plane_follows_the_tangent_reported() -> None:
+    # Fung's law (300 N/m at rest, x_s = 10 mm) pressed from 0.5 to 6 mm in 1.5 s and held: the
+    # K_o reported is the tangent, 300 -> 547 N/m through seven gain-table cells. Read as the
+    # tangent, the check goes on from cell to cell and the client renders the plane of the cell
+    # it holds in: K_h the tangent there, C_h K_h = 1 (the plane at MMT's rest surface).
+    # Started over in each cell, as it was, the held press showed no spread to read and the
+    # design (or the fallback) rendered throughout
+    xs = 10e-3
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    depth = np.concatenate([np.linspace(0.5e-3, 6e-3, 30), np.full(50, 6e-3)])
+    up = None
+    for tick, x in enumerate(depth, start=1):
+        f, k = K_O * xs * math.expm1(x / xs), K_O * math.exp(x / xs)
+        z = 0.1 - x
+        msg = Patch(
+            tick=tick, primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)), proxy_m=(0, 0, z),
+            normal=(0, 0, 1), penetration_m=0.001, in_contact=True, k_o=k, k_o_eff=k, b_o=0.0,
+            own_force_n=f,
+        )  # fmt: skip
+        up = s.receive(encode(msg), tick / 20.0)
+        if s.design_wanted is not None:
+            key, k_o = s.design_wanted
+            s.gain_table.design(key, k_o)
+            s.design_wanted = None
+        _check_planes(s)
+    k_held = K_O * math.exp(6e-3 / xs)
+    assert up is not None and s.own_response.verified
+    assert s.own_response.identified_ratio == 1.0 and s.plane_patches > 0
+    assert up.k_h == pytest.approx(k_held) and up.own_gain * up.k_h == pytest.approx(1.0)
+    # verified on the way in, cell after cell (each crossed in a fifth of a second)
+    assert len({c for (_, c, _) in s.planes}) > 3

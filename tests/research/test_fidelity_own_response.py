@@ -6,8 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from haptic_collab.research.fidelity_1d import _verified_plane_gains
-from haptic_collab.shared.own_response import OwnResponse, empty_jumps, empty_sums
+from haptic_collab.research.fidelity_1d import _PLANE_CELLS, _verified_plane_gains
+from haptic_collab.shared.own_response import (
+    OwnResponse,
+    empty_deformation,
+    empty_jumps,
+    empty_sums,
+)
 
 K_O = 300.0
 RATE_HZ = 20.0
@@ -46,13 +51,13 @@ def _patches() -> list[tuple[int, float, float]]:
 def test_the_simulator_identifies_as_the_client_does_patch_by_patch() -> None:
     state = {
         "sums": empty_sums((1,)),
-        "cell": np.full(1, np.iinfo(np.int64).min),
+        "deform": empty_deformation((1,)),
         "seq_last": np.full(1, -1),
         "ok": np.zeros(1, dtype=bool),
         "ref": np.ones(1),
         "start": np.full(1, -1),
         "jumps": empty_jumps((1,)),
-        "since": np.full((1, 2), -1),
+        "since": np.full((1, _PLANE_CELLS), -1),
     }
     gains = (np.zeros(1),) * 4 + (np.zeros(1, dtype=bool),)
     client, last_tick = OwnResponse(), None
@@ -60,7 +65,8 @@ def test_the_simulator_identifies_as_the_client_does_patch_by_patch() -> None:
     for tick, f, x in _patches():
         _verified_plane_gains(
             np.ones(1, dtype=bool), gains, _EveryCellHasAPlane(), np.array([K_O]),
-            delay_s=np.zeros(1), seq=np.array([tick]), surface=np.array([x]),
+            designed=np.ones(1, dtype=bool), delay_s=np.zeros(1), seq=np.array([tick]),
+            surface=np.array([x]),
             force=np.array([f]), sim_rate_hz=np.array([RATE_HZ]), **state,
         )  # fmt: skip
         if f <= 0.0:  # the client starts over when the contact ends

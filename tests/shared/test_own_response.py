@@ -13,9 +13,11 @@ from haptic_collab.shared.own_response import (
     IDENTIFY_RANGE,
     TOLERANCE,
     OwnResponse,
+    empty_deformation,
     empty_jumps,
     empty_sums,
     identify,
+    update_deformation,
     update_jumps,
     update_sums,
     verdict,
@@ -132,14 +134,14 @@ def test_batches_run_the_same_arithmetic_and_bad_input_changes_nothing() -> None
     sums = empty_sums((2,))
     one = OwnResponse()
     for x, f in _press(K_O):
-        sums = update_sums(sums, dt_s=DT, surface_m=np.array([x, x]), force_n=f, k_o=K_O)
+        sums = update_sums(sums, dt_s=DT, surface_m=np.array([x, x]), deformation_m=f / K_O)
         one.update(dt_s=DT, surface_m=x, force_n=f, k_o=K_O)
     assert np.allclose(sums[0], one.sums) and np.allclose(sums[1], one.sums)
     assert verdict(sums, K_O, np.array([False, True])).tolist() == [True, True]
     ok, ref = identify(sums, K_O, np.array([False, True]), np.array([1.0, 0.8]))
     assert ok.tolist() == [True, True] and ref.tolist() == pytest.approx([1.0, 1.0])
     before = sums.copy()
-    after = update_sums(sums, dt_s=DT, surface_m=np.array([math.nan, 0.0]), force_n=1.0, k_o=K_O)
+    after = update_sums(sums, dt_s=DT, surface_m=np.array([math.nan, 0.0]), deformation_m=1 / K_O)
     assert np.array_equal(after[0], before[0]) and not np.array_equal(after[1], before[1])
     with pytest.raises(ValueError, match="k_o"):
         one.update(dt_s=DT, surface_m=0.0, force_n=1.0, k_o=0.0)
@@ -221,10 +223,57 @@ def test_identify_on_a_batch_runs_what_each_contact_runs() -> None:
     forces = np.concatenate([np.linspace(0.1, 3.0, 30), np.linspace(3.0, 0.1, 30)])
     for i, f in enumerate(forces):
         x = f / ks
-        sums = update_sums(sums, dt_s=0.0 if i == 0 else DT, surface_m=x, force_n=f, k_o=K_O)
+        sums = update_sums(sums, dt_s=0.0 if i == 0 else DT, surface_m=x, deformation_m=f / K_O)
         jumps = update_jumps(jumps, dt_s=0.0 if i == 0 else DT, force_n=np.full(2, f))
-        ok, ref = identify(sums, K_O, ok, ref, elapsed_s=i * DT, jumps=jumps, newest=(f, x))
+        ok, ref = identify(sums, K_O, ok, ref, elapsed_s=i * DT, jumps=jumps, newest=(f / K_O, x))
         for j, c in enumerate(checks):
             assert c.update(dt_s=0.0 if i == 0 else DT, surface_m=x[j], force_n=f, k_o=K_O) == ok[j]
             assert c.identified_ratio == pytest.approx(ref[j], rel=1e-12)
     assert ok.tolist() == [True, True] and ref == pytest.approx([1.0, 0.8])
+
+
+def _fung(k1: float, xs: float, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Force [N] and tangent stiffness [N/m] of Fung's exponential law at ``depth`` [m]."""
+    return k1 * xs * np.expm1(depth / xs), k1 * np.exp(depth / xs)
+
+
+def test_the_deformation_a_stiffening_objects_tangent_predicts_is_its_depth() -> None:
+    # Fung's law, 300 N/m at rest, x_s = 10 mm, pressed from 0.5 to 10 mm in 8 patches (2.6
+    # times stiffer there): over the logarithmic mean of the tangents reported, the changes of
+    # force add up to the changes of depth exactly (the first patch reads F / K_o, the line's
+    # intercept takes the rest); each change over the newest tangent alone misses by 6.5 %, more
+    # than the check's tolerance
+    depth = np.linspace(0.5e-3, 10e-3, 8)
+    f, k = _fung(K_O, 10e-3, depth)
+    state = empty_deformation()
+    naive, u = f[0] / k[0], []
+    for i in range(len(depth)):
+        state = update_deformation(state, force_n=f[i], k_o=k[i])
+        u.append(float(state[0]))
+        if i:
+            naive += (f[i] - f[i - 1]) / k[i]
+    assert np.subtract(u, u[0]) == pytest.approx(depth - depth[0], rel=1e-9)
+    assert naive - u[0] < (1.0 - 1.5 * TOLERANCE) * (depth[-1] - depth[0])
+    # a force that is not a number, or a K_o that is not a stiffness, changes nothing
+    for bad in ({"force_n": math.nan, "k_o": K_O}, {"force_n": 1.0, "k_o": 0.0}):
+        assert np.array_equal(update_deformation(state, **bad), state)
+
+
+@pytest.mark.parametrize("error", [1.0, 0.8])
+def test_a_stiffening_object_is_verified_as_the_tangent_reported(error: float) -> None:
+    # pressed from 0.5 to 8 mm in 1 s and held: 300 -> 668 N/m, through nine gain-table cells.
+    # Read as its tangent the object is verified as reported (or identified 20 % softer where
+    # it is); read as one spring of the newest K_o, the same press is not a line at all
+    c = OwnResponse()
+    depth = np.concatenate([np.linspace(0.5e-3, 8e-3, 20), np.full(20, 8e-3)])
+    f, k = _fung(error * K_O, 10e-3, depth)
+    seen = [
+        c.update(dt_s=DT, surface_m=float(x), force_n=float(fi), k_o=float(ki) / error)
+        for x, fi, ki in zip(depth, f, k, strict=True)
+    ]
+    assert all(seen[-20:]) and c.ratio == pytest.approx(error, rel=1e-3)
+    assert c.identified_ratio == pytest.approx(error, rel=1e-3)
+    spring = empty_sums()
+    for x, fi in zip(depth, f, strict=True):
+        spring = update_sums(spring, dt_s=DT, surface_m=float(x), deformation_m=fi / k[-1] * error)
+    assert not verdict(spring, k[-1] / error, False)
