@@ -218,13 +218,13 @@ def fit(sums: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     ``sums.shape[:-1]``; NaN where the window holds fewer than two distinct ``u``."""
     w = sums[..., 0]
     with np.errstate(invalid="ignore", divide="ignore"):
-        mf, mr = sums[..., 1] / w, sums[..., 2] / w
-        vff = np.maximum(sums[..., 3] / w - mf * mf, 0.0)
-        vfr = sums[..., 4] / w - mf * mr
+        mu, mr = sums[..., 1] / w, sums[..., 2] / w
+        vuu = np.maximum(sums[..., 3] / w - mu * mu, 0.0)
+        vur = sums[..., 4] / w - mu * mr
         vrr = np.maximum(sums[..., 5] / w - mr * mr, 0.0)
-        s = np.where(vff > 0.0, vfr / vff, np.nan)
-        res = np.sqrt(np.maximum(vrr - np.where(vff > 0.0, vfr * s, np.nan), 0.0))
-    return s, np.sqrt(vff), res
+        s = np.where(vuu > 0.0, vur / vuu, np.nan)
+        res = np.sqrt(np.maximum(vrr - np.where(vuu > 0.0, vur * s, np.nan), 0.0))
+    return s, np.sqrt(vuu), res
 
 
 def _reading(
