@@ -107,11 +107,39 @@ def cell_metrics(run: Run, cells: Sequence[Cell]) -> list[CellMetrics]:
 #: are not a steady response (the loop has not settled, or it is growing): no number is reported.
 FELT_FIT_TOLERANCE = 0.05
 
+#: Largest distortion of the force over the window (:func:`force_distortion`: the RMS of what the
+#: fit leaves over the RMS of the fundamental) at which its fundamental is read as a stiffness.
+#: Above 1 the force has more power off the probe's frequency than at it: the hand feels a
+#: chatter, and the ratio of the fundamentals says nothing of it (an uncapped passivity
+#: controller switching its damping between the force clamp and zero at 3000 N/m, 200 ms each
+#: way, read 2.3 times the object at 0.5 Hz and 0.6 times at 1 Hz with distortions of 1.4 and
+#: 4.9). The linear renderings stay far below it: in ``haptic bench fidelity --quick`` every
+#: read response over the ranked band was at most 0.26 for the local models and 0.63 for any
+#: peer (docs/fidelity.md).
+FELT_DISTORTION_MAX = 1.0
 
-def _fundamental(t: FloatArray, y: FloatArray, w: float) -> complex:
+
+def _fit(t: FloatArray, y: FloatArray, w: float) -> tuple[complex, float]:
+    """The fundamental of ``y`` at ``w`` [rad/s] (offset and drift removed) and the RMS of what
+    the fit leaves."""
     A = np.stack([np.ones_like(t), t - t[0], np.cos(w * t), np.sin(w * t)], axis=1)
     c = np.linalg.lstsq(A, y, rcond=None)[0]
-    return complex(c[2], -c[3])
+    return complex(c[2], -c[3]), float(np.sqrt(np.mean((y - A @ c) ** 2)))
+
+
+def _fundamental(t: FloatArray, y: FloatArray, w: float) -> complex:
+    return _fit(t, y, w)[0]
+
+
+def force_distortion(t: FloatArray, f: FloatArray, freq_hz: float) -> float:
+    """How far the force ``f`` [N] sampled at ``t`` [s] is from a sine at ``freq_hz`` [Hz] on an
+    offset and a drift: the RMS of the rest over the RMS of that sine (0 for a linear response,
+    ``inf`` when it has no fundamental). A multirate staircase adds a little; a force switching
+    between two levels adds more than its fundamental (:data:`FELT_DISTORTION_MAX`)."""
+    f1, rest = _fit(t, f, 2.0 * math.pi * freq_hz)
+    fund = abs(f1) / math.sqrt(2.0)
+    # below rounding of the force, no fundamental
+    return rest / fund if fund > 1e-12 * max(1.0, float(np.max(np.abs(f)))) else math.inf
 
 
 def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
@@ -127,9 +155,10 @@ def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
     rate of the grid; the multirate ripple is not at w and drops out); the ratio of the
     fundamentals over Z_o, as :func:`shared.felt_stiffness.felt_stiffness` computes it exactly for
     the linear loop. None when the cell ran away, the fits over the two halves of the window
-    differ by more than :data:`FELT_FIT_TOLERANCE` (not a steady response), or the force still
+    differ by more than :data:`FELT_FIT_TOLERANCE` (not a steady response), the force still
     ripples by more than that fraction of the response's peak to peak while the probe is held
-    still before the oscillation (a limit cycle).
+    still before the oscillation (a limit cycle), or the force over the window is distorted beyond
+    :data:`FELT_DISTORTION_MAX` (:func:`force_distortion`: a chatter, not a stiffness).
 
     Raises
     ------
@@ -150,6 +179,7 @@ def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
         a, b = tr.hold_window_s
         mid = 0.5 * (a + b)
         ratios = []
+        linear = True
         for lo, hi in ((a, b), (a, mid), (mid, b)):
             m = _window(t, (lo, hi))
             x1 = _fundamental(t[m], run.x[i, :n_i][m], w)
@@ -157,6 +187,9 @@ def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
             q = f1 / x1 / z_obj if abs(x1) > 0.0 else complex(math.nan)
             if hi == b and lo == a:
                 resp = q
+                linear = (
+                    force_distortion(t[m], run.f[i, :n_i][m], tr.sine_hz) <= FELT_DISTORTION_MAX
+                )
             ratios.append(abs(q))
         whole, h1, h2 = ratios
         steady = all(math.isfinite(q) for q in ratios) and abs(h1 - h2) <= FELT_FIT_TOLERANCE * max(
@@ -167,7 +200,7 @@ def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
         still = _window(t, (tr.sine_start_s - 0.5, tr.sine_start_s))
         ripple = float(np.ptp(run.f[i, :n_i][still]))
         quiet = ripple <= FELT_FIT_TOLERANCE * 2.0 * whole * abs(z_obj) * tr.sine_amplitude_m
-        out.append(resp if steady and quiet and not run.runaway[i] else None)
+        out.append(resp if steady and quiet and linear and not run.runaway[i] else None)
     return out
 
 

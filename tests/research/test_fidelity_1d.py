@@ -19,12 +19,19 @@ from haptic_collab.research.fidelity_cases import (
     felt_depth_m,
     felt_trajectory,
 )
-from haptic_collab.research.fidelity_metrics import cell_metrics, felt_stiffness_ratio
+from haptic_collab.research.fidelity_metrics import (
+    FELT_DISTORTION_MAX,
+    cell_metrics,
+    felt_response,
+    felt_stiffness_ratio,
+    force_distortion,
+)
 from haptic_collab.research.fidelity_schemes import (
     SCHEMES,
     DeviceModel,
     Rendering,
     design_delay_ticks,
+    peer_renderings,
     rendering_for,
     scheme_tuning,
 )
@@ -94,6 +101,43 @@ def test_an_unsettled_response_has_no_felt_stiffness() -> None:
     ]  # fmt: skip
     assert cells[1].trajectory.duration_s > cells[0].trajectory.duration_s
     assert [felt_stiffness_ratio(simulate([c]), [c]) for c in cells] == [[None], [None]]
+
+
+def test_the_distortion_of_a_force_is_what_is_not_at_the_probes_frequency() -> None:
+    t = np.arange(0.0, 4.0, 1e-3)
+    w = 2.0 * math.pi * 0.5
+    spring = 3.0 + 0.1 * t + 0.75 * np.sin(w * t)
+    assert force_distortion(t, spring, 0.5) < 1e-9
+    # a chatter at 40 Hz with the fundamental's power: the limit of what is read
+    chatter = spring + 0.75 / math.sqrt(2.0) * np.sign(np.sin(2.0 * math.pi * 40.0 * t))
+    assert force_distortion(t, chatter, 0.5) == pytest.approx(1.0, rel=0.02)
+    assert force_distortion(t, np.full_like(t, 2.0), 0.5) == math.inf
+
+
+def test_a_chattering_force_is_not_read_as_a_stiffness() -> None:
+    # the uncapped one-port passivity controller on 3000 N/m at 20 Hz, 200 ms each way: the
+    # force switches between the clamp's 6.3 N and zero; its fundamental read 2.3 times the
+    # object at 0.5 Hz and 0.6 times at 1 Hz, and ranked it best on the spring. It is refused;
+    # the plane beside it, whose force follows the probe, is read
+    dev = DeviceModel()
+    tdpa = peer_renderings("direct-tdpa", k_o=3000.0, sim_rate_hz=20.0, device=dev)[0]
+    wall = peer_renderings("static-local", k_o=3000.0, sim_rate_hz=20.0, device=dev)[0]
+    depth = felt_depth_m(3000.0, dev.max_force_n)
+    cells = [
+        Cell(r, 3000.0, 20.0, 200.0, None, felt_trajectory(hz, depth))
+        for r in (tdpa, wall)
+        for hz in (0.5, 1.0)
+    ]
+    run = simulate(cells)
+    got = felt_response(run, cells)
+    assert got[:2] == [None, None]
+    assert got[2] is not None and got[3] is not None
+    assert abs(got[2]) == pytest.approx(1000.0 / 3000.0, rel=0.01)
+    for i, c in enumerate(cells):
+        a, b = c.trajectory.hold_window_s
+        m = (run.t >= a) & (run.t < b)
+        d = force_distortion(run.t[m], run.f[i][m], c.trajectory.sine_hz)
+        assert (d > FELT_DISTORTION_MAX) == (i < 2)
 
 
 def test_passivity_step_is_the_products_controller() -> None:
