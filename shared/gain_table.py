@@ -87,7 +87,11 @@ class GainTable:
         nearest above with K_h, I and B_h scaled down by the ratio of the grid points (the same
         gains relative to K_o). Either keeps the local model no stiffer, relative to K_o, than a
         verified design. The design's own gains (at its grid point), never scaled to ``k_o``
-        (``scale_max`` 1).
+        (``scale_max`` 1), but for the cell below's own-force compensation, which keeps its
+        share of the K_o reported, ``C_h k_o``: a function of ``k_o`` without steps, so a press
+        held where the K_o reported crosses a cell boundary is not pushed back and forth across
+        it (with C_h stepping at the boundaries, a press into a strain-stiffening object held
+        still at 1000 N/m, 20 Hz rang at 5 Hz; tests/shared/test_gain_table.py).
         """
         i = self.cell(k_o)
         cells = [c for (k, c) in self._cells if k == key]
@@ -97,8 +101,8 @@ class GainTable:
         if below:
             c = max(below)
             d = replace(self._cells[(key, c)], scale_max=1.0)
-            # own-force compensation keeps its share of K_o (C_h K_o), not its C_h
-            own = d.own_gain * self.grid_point(c) / self.grid_point(i)
+            # own-force compensation keeps its share of the K_o reported (C_h K_o), not its C_h
+            own = d.own_gain * self.grid_point(c) / k_o
             if i - c > 2 and d.i_gain > 0.0:
                 # an integral designed for a much softer object may not hold on this one (a
                 # heavy, soft, lightly damped hand): render its P part until the design is done

@@ -428,7 +428,7 @@ class TableGains:
         """K_h [N/m], I [N/(m*s)], B_h [N*s/m] and C_h [m/N] each rendering's client renders for
         the K_o [N/m] reported (shape (B,), > 0): :meth:`shared.gain_table.GainTable.lookup`
         where its cell is designed, else :meth:`shared.gain_table.GainTable.fallback` (the
-        nearest designed cell below, unscaled, C_h keeping its share of K_o and, more than two
+        nearest designed cell below, unscaled, C_h keeping its share of the K_o reported and, more than two
         cells below, no integral; with none below, the nearest above scaled down to the cell's
         grid point). NaN for an empty table. Last, whether the design rendered was checked with
         a first-order hold ((B,) bool): the client renders each patch with its design's hold."""
@@ -454,7 +454,8 @@ class TableGains:
         k_out = np.where(exact, k_h * s, np.where(has_below, k_h, k_h * r))
         i_out = np.where(exact, ig * s, np.where(has_below, np.where(far, 0.0, ig), ig * r))
         b_out = np.where(exact | has_below, b_h, b_h * r)
-        own_out = np.where(exact, own / s, own / r)
+        # below: C_h keeps its share of the K_o reported (no steps at the cell boundaries)
+        own_out = np.where(exact, own / s, np.where(has_below, own * g_c / k_o, own / r))
         return k_out, i_out, b_out, own_out, self.foh[rows, j]
 
 

@@ -418,6 +418,24 @@ def test_on_the_stiffening_object_the_product_renders_its_clients_fallback_and_h
     assert own[0] * 2.7 * k == pytest.approx(r.own_gain * k, rel=0.1)
 
 
+@pytest.mark.slow
+def test_a_press_held_in_the_fallback_past_a_cell_boundary_holds_still() -> None:
+    # the stiffening object reported at 1000 N/m, 20 Hz, no delay, only its first cell designed:
+    # a press held 4.6 mm in leaves the object's surface where the K_o reported (about 1400 N/m)
+    # sits on a cell boundary. With the fallback's C_h stepping from cell to cell the held force
+    # rang at 5 Hz, 0.045 N peak to peak, and no felt response could be read; with C_h keeping
+    # its share of the K_o reported itself, the force is still and the response is read
+    k, rate = 1000.0, 20.0
+    r = _product("local-pi", k, rate, 0.0)
+    cell = Cell(
+        r, k, rate, 0.0, None, felt_trajectory(1.0, felt_depth_m(k, FMAX, STIFFENING)), STIFFENING
+    )
+    run = simulate([cell])
+    held = (run.t >= 1.5) & (run.t < cell.trajectory.sine_start_s)
+    assert float(np.ptp(run.f[0][held])) < 0.005
+    assert felt_response(run, [cell])[0] is not None
+
+
 def test_the_benchmark_hands_gains_over_in_the_clients_time() -> None:
     from haptic_collab.client.app import GAIN_TRANSFER_S
 

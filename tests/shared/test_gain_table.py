@@ -192,6 +192,22 @@ def test_table_fallback_is_never_stiffer_relative_to_k_o_than_a_designed_cell() 
         assert fb.k_h <= K_H_MAX and fb.b_h <= B_H_MAX
 
 
+def test_table_fallback_compensation_has_no_step_at_a_cell_boundary() -> None:
+    # the cell below's C_h keeps its share of the K_o reported itself: a K_o crossing a cell
+    # boundary (a press held into a stiffening object) sees the same C_h K_o on both sides
+    table = GainTable()
+    key = _key()
+    table.design(key, 300.0)
+    d = table.lookup(key, table.grid_point(table.cell(300.0)))
+    assert d is not None and d.own_gain > 0.0
+    share = d.own_gain * d.k_o
+    for up in (2, 3, 5):
+        edge = table.grid_point(table.cell(300.0) + up)
+        for k in (edge * (1.0 - 1e-9), edge, edge * 1.05):
+            fb = table.fallback(key, k)
+            assert fb is not None and fb.own_gain * k == pytest.approx(share, rel=1e-9)
+
+
 @pytest.mark.parametrize("mode", ["p", "pi"])
 def test_table_fallback_gains_are_stable_for_the_box_at_the_stiffness_they_are_served_for(
     mode: str,
