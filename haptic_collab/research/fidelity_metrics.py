@@ -131,15 +131,19 @@ def _fundamental(t: FloatArray, y: FloatArray, w: float) -> complex:
     return _fit(t, y, w)[0]
 
 
+def _distortion(f1: complex, rest: float, f: FloatArray) -> float:
+    """The RMS ``rest`` [N] a fit left over the RMS of its fundamental ``f1`` [N] of force ``f``."""
+    fund = abs(f1) / math.sqrt(2.0)
+    # below rounding of the force, no fundamental
+    return rest / fund if fund > 1e-12 * max(1.0, float(np.max(np.abs(f)))) else math.inf
+
+
 def force_distortion(t: FloatArray, f: FloatArray, freq_hz: float) -> float:
     """How far the force ``f`` [N] sampled at ``t`` [s] is from a sine at ``freq_hz`` [Hz] on an
     offset and a drift: the RMS of the rest over the RMS of that sine (0 for a linear response,
     ``inf`` when it has no fundamental). A multirate staircase adds a little; a force switching
     between two levels adds more than its fundamental (:data:`FELT_DISTORTION_MAX`)."""
-    f1, rest = _fit(t, f, 2.0 * math.pi * freq_hz)
-    fund = abs(f1) / math.sqrt(2.0)
-    # below rounding of the force, no fundamental
-    return rest / fund if fund > 1e-12 * max(1.0, float(np.max(np.abs(f)))) else math.inf
+    return _distortion(*_fit(t, f, 2.0 * math.pi * freq_hz), f)
 
 
 def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
@@ -183,13 +187,11 @@ def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
         for lo, hi in ((a, b), (a, mid), (mid, b)):
             m = _window(t, (lo, hi))
             x1 = _fundamental(t[m], run.x[i, :n_i][m], w)
-            f1 = _fundamental(t[m], run.f[i, :n_i][m], w)
+            f1, rest = _fit(t[m], run.f[i, :n_i][m], w)
             q = f1 / x1 / z_obj if abs(x1) > 0.0 else complex(math.nan)
             if hi == b and lo == a:
                 resp = q
-                linear = (
-                    force_distortion(t[m], run.f[i, :n_i][m], tr.sine_hz) <= FELT_DISTORTION_MAX
-                )
+                linear = _distortion(f1, rest, run.f[i, :n_i][m]) <= FELT_DISTORTION_MAX
             ratios.append(abs(q))
         whole, h1, h2 = ratios
         steady = all(math.isfinite(q) for q in ratios) and abs(h1 - h2) <= FELT_FIT_TOLERANCE * max(

@@ -428,9 +428,9 @@ class TableGains:
         """K_h [N/m], I [N/(m*s)], B_h [N*s/m] and C_h [m/N] each rendering's client renders for
         the K_o [N/m] reported (shape (B,), > 0): :meth:`shared.gain_table.GainTable.lookup`
         where its cell is designed, else :meth:`shared.gain_table.GainTable.fallback` (the
-        nearest designed cell below, unscaled, C_h keeping its share of the K_o reported and, more than two
-        cells below, no integral; with none below, the nearest above scaled down to the cell's
-        grid point). NaN for an empty table. Last, whether the design rendered was checked with
+        nearest designed cell below, unscaled, C_h keeping its share of the K_o reported and,
+        more than two cells below, no integral; with none below, the nearest above scaled down
+        to the cell's grid point). NaN for an empty table. Last, whether the design rendered was checked with
         a first-order hold ((B,) bool): the client renders each patch with its design's hold."""
         lr = np.log(self.ratio)
         i = np.floor(np.log(k_o) / lr + 1e-12).astype(np.int64)
