@@ -91,7 +91,7 @@ class GainTable:
         share of the K_o reported, ``C_h k_o``: a function of ``k_o`` without steps, so a press
         held where the K_o reported crosses a cell boundary is not pushed back and forth across
         it (with C_h stepping at the boundaries, a press into a strain-stiffening object held
-        still at 1000 N/m, 20 Hz rang at 5 Hz; tests/shared/test_gain_table.py).
+        still at 1000 N/m, 20 Hz rang at 5 Hz; tests/research/test_fidelity_objects.py).
         """
         i = self.cell(k_o)
         cells = [c for (k, c) in self._cells if k == key]
