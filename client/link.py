@@ -41,14 +41,14 @@ from dataclasses import dataclass, replace
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
-from haptic_collab.client.session import ClientSession, ServoSample, warm_up_worker
+from haptic_collab.client.session import PLANE_ALONE, ClientSession, ServoSample, warm_up_worker
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import design_cell
 from haptic_collab.shared.interim_gains import interim_design
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import ProtocolError, Welcome
-from haptic_collab.shared.verified_plane import verified_plane
+from haptic_collab.shared.verified_plane import plane_against, verified_plane
 from haptic_collab.workers import background_worker, check_worker, stop_pool, timed
 
 log = logging.getLogger("haptic.client")
@@ -275,19 +275,38 @@ class Link:
         self._design_task = asyncio.get_running_loop().create_task(run())
 
     def _start_plane(self) -> None:
-        """Check the verified plane the session asks for (:attr:`ClientSession.plane_wanted`)
-        in the design worker, one at a time: nothing waits for it (the contact renders its
-        design meanwhile), so it never holds up a check a contact needs."""
+        """Check the verified plane the session asks for (:attr:`ClientSession.plane_wanted`),
+        or else the next one it checks ahead (:meth:`ClientSession.next_plane_ahead`), in the
+        design worker, one at a time: nothing waits for it (the contact renders its design
+        meanwhile), so it never holds up a check a contact needs."""
         session = self.session
         busy = self._plane_task is not None and not self._plane_task.done()
         designing = self._design_task is not None and not self._design_task.done()
-        # after the designs: a plane check (a second or more) must not hold up a design needed
-        if not session.plane_wanted or busy or designing or session.design_wanted is not None:
+        if busy or designing:
             return
-        # the newest first: a press through a stiffening object asks for each cell it crosses,
-        # and is likeliest still in the last
-        key, cell, design_cell = session.plane_wanted.pop()
+        want: tuple[GainKey, int, int] | None = None
+        while want is None and session.plane_wanted:
+            # after the designs: a plane check (a second or more) must not hold up a design
+            # needed, but for a plane asked alone (a contact verified in a cell not designed
+            # yet): it renders until the design is made, and a design may take many seconds
+            if session.design_wanted is not None and session.plane_wanted[-1][2] != PLANE_ALONE:
+                return
+            # the newest first: a press through a stiffening object asks for each cell it
+            # crosses, and is likeliest still in the last
+            want = session.plane_wanted.pop()
+            if want in session.planes:
+                want = None  # checked ahead meanwhile
+        if want is None and session.design_wanted is None:
+            ahead = session.next_plane_ahead()
+            if ahead is not None:
+                want = (*ahead, PLANE_ALONE)
+        if want is None:
+            return
+        key, cell, design_cell = want
         table = session.gain_table
+        # a plane checked alone before is only compared with the design now made
+        checked_alone = (key, cell, PLANE_ALONE) in session.planes
+        alone = session.planes.get((key, cell, PLANE_ALONE))
         self._ensure_executor()
 
         async def run() -> None:
@@ -295,16 +314,25 @@ class Link:
             try:
                 # the design of the K_o reported's cell, if made: the plane (of the cell of the
                 # stiffness identified) renders only if felt closer on that object
-                design = table.lookup(key, table.grid_point(design_cell) * 1.0001)
-                plane = await loop.run_in_executor(
-                    self._executor,
-                    verified_plane,
-                    key,
-                    cell,
-                    table.grid_ratio,
-                    table.hand_box,
-                    design,
+                design = (
+                    None
+                    if design_cell == PLANE_ALONE
+                    else table.lookup(key, table.grid_point(design_cell) * 1.0001)
                 )
+                if checked_alone:
+                    plane = await loop.run_in_executor(
+                        self._executor, plane_against, alone, key, design
+                    )
+                else:
+                    plane = await loop.run_in_executor(
+                        self._executor,
+                        verified_plane,
+                        key,
+                        cell,
+                        table.grid_ratio,
+                        table.hand_box,
+                        design,
+                    )
             except ValueError as exc:  # gains or rates it cannot check: render the design
                 log.warning("no verified plane for cell %d: %s", cell, exc)
                 plane = None
@@ -314,7 +342,8 @@ class Link:
             session.store_plane(key, cell, plane, design_cell)
             self.plane_checks += 1
             log.debug("verified plane for cell %d: %s", cell, "none" if plane is None else plane)
-            self._start_plane()  # the next one asked meanwhile
+            # the next one asked meanwhile, or checked ahead, once this task is done
+            loop.call_soon(self._start_plane)
 
         self._plane_task = asyncio.get_running_loop().create_task(run())
 
@@ -611,7 +640,7 @@ class Link:
                 self._start_check()
             if self.session.design_wanted is not None:
                 self._start_design()
-            if self.session.plane_wanted:
+            if self.session.plane_wanted or self.session.plane_ahead:
                 self._start_plane()
             if update is not None:
                 self.on_patch(update, now)

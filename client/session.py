@@ -69,7 +69,7 @@ from haptic_collab.shared.protocol import (
     parse_server,
 )
 from haptic_collab.shared.rates import Rates
-from haptic_collab.shared.verified_plane import plane_applies
+from haptic_collab.shared.verified_plane import ahead_cells, plane_applies
 
 if TYPE_CHECKING:
     from haptic_collab.client.servo import ServoSnapshot
@@ -91,6 +91,11 @@ OWN_RESPONSE_SLIDE_M = 0.5e-3
 #: reached 1.10 at 300 N/m and 1.40 at 1000 N/m (tests/client/test_first_contact.py checks part
 #: of that grid). A grid, not a proof; not established for a device without a damper.
 FALLBACK_K_RATIO = 0.25
+
+#: The design cell of a verified plane checked alone (:attr:`ClientSession.planes`): the cell of
+#: the K_o reported had no design when the own-response check verified there. The plane renders
+#: (it passed its check in its cell) until that design is made and it is compared with it.
+PLANE_ALONE = -1
 
 #: A lower loop delay is designed for only after it has been measured for this long [s]
 #: (:meth:`ClientSession.delay_ticks`); a higher one at once.
@@ -301,12 +306,18 @@ class ClientSession:
         #: Verified planes per (key, plane cell, design cell): the plane of the cell holding the
         #: stiffness the own-response check holds the object to, checked against the design of
         #: the cell of the K_o reported (:func:`shared.verified_plane.verified_plane`; None:
-        #: none passed), and the one the link is to check off the event loop.
+        #: none passed), or alone while that cell has no design (design cell
+        #: :data:`PLANE_ALONE`), and the one the link is to check off the event loop.
         self.planes: dict[tuple[GainKey, int, int], GainDesign | None] = {}
         #: (key, plane cell, design cell) whose verified plane the link is to check, in the
         #: order asked (the link takes the newest first).
         self.plane_wanted: list[tuple[GainKey, int, int]] = []
         self._plane_asked: set[tuple[GainKey, int, int]] = set()
+        #: (key, cell) whose plane the link is to check alone in the background once nothing
+        #: above is asked, in this order: the cells around the K_o the patches report
+        #: (:func:`shared.verified_plane.ahead_cells`), so that a press finds them checked.
+        self.plane_ahead: list[tuple[GainKey, int]] = []
+        self._ahead_around: tuple[GainKey, int] | None = None
         #: Patches rendered with a verified plane, and of those with the plane of a stiffness
         #: the own-response check identified other than the K_o reported.
         self.plane_patches = 0
@@ -500,6 +511,29 @@ class ClientSession:
         (default: ``cell``'s own), or None: none passed its check."""
         self.planes[(key, cell, cell if design_cell is None else design_cell)] = design
 
+    def _plan_ahead(self, key: GainKey, cell: int) -> None:
+        """Have the planes around ``cell`` (the cell of the K_o reported) checked alone in the
+        background, nearest first (:attr:`plane_ahead`), those not checked or asked yet."""
+        if self._ahead_around == (key, cell):
+            return
+        self._ahead_around = (key, cell)
+        self.plane_ahead = [
+            (key, c)
+            for c in ahead_cells(key, cell, self.gain_table.grid_ratio)
+            if (key, c, PLANE_ALONE) not in self.planes
+            and (key, c, PLANE_ALONE) not in self._plane_asked
+        ]
+
+    def next_plane_ahead(self) -> tuple[GainKey, int] | None:
+        """The next plane to check ahead (:attr:`plane_ahead`), marked asked, or None."""
+        while self.plane_ahead:
+            key, c = self.plane_ahead.pop(0)
+            alone = (key, c, PLANE_ALONE)
+            if alone not in self.planes and alone not in self._plane_asked:
+                self._plane_asked.add(alone)
+                return key, c
+        return None
+
     def _reset_own_response(self) -> None:
         self.own_response.reset()
         self._own_ref, self._own_tick = None, None
@@ -640,22 +674,29 @@ class ClientSession:
             self.server_gain_patches += 1
         else:
             design = own
+        self._plan_ahead(key, cell)
         if self._object_as_reported(surface, key):
             # the object yields to this user's force as a spring: of the K_o reported, or of
             # the stiffness the check identified. The plane verified for that stiffness (the
             # lightest damper, K_h = K') replaces the design made for an object off by 25 %
-            # where it is felt closer than the design (checked against it: asked once made)
+            # where it is felt closer than the design (checked against it once made). In a cell
+            # not designed yet (a press into a stiffening object crosses a cell in a fraction of
+            # a second; a design may take seconds) the plane checked alone renders meanwhile
             k_id = self.own_response.identified_ratio * k_o_eff
-            plane_key = (key, table.cell(k_id), cell)
-            if plane_key not in self.planes:
+            plane_cell = table.cell(k_id)
+            plane_key = (key, plane_cell, cell if own is not None else PLANE_ALONE)
+            if plane_key in self.planes:
+                plane = self.planes[plane_key]
+            else:
                 if own is None:
-                    # the server's gains render (or none yet): design the cell here too, the
-                    # plane is checked against it
+                    # the server's gains render (or the fallback): design the cell here too,
+                    # the plane is then compared with that design
                     self.design_wanted = (key, k_o_eff)
-                elif plane_key not in self._plane_asked:
+                if plane_key not in self._plane_asked:
                     self._plane_asked.add(plane_key)
                     self.plane_wanted.append(plane_key)
-            elif (plane := self.planes[plane_key]) is not None:
+                plane = self.planes.get((key, plane_cell, PLANE_ALONE))
+            if plane is not None:
                 design = plane.at(k_id)
                 self.plane_patches += 1
                 self.identified_plane_patches += self.own_response.identified_ratio != 1.0

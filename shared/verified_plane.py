@@ -115,6 +115,46 @@ def plane_applies(key: GainKey) -> bool:
     return key.own_force and key.stiff_ratio == 1.0 and key.b_o == 0.0
 
 
+#: The cells whose planes a client checks ahead, in the background, around the cell of the K_o
+#: its patches report: from this factor of that K_o ...
+AHEAD_SOFTER = 0.5
+#: ... to this factor of it (up to :data:`CAPPED_PLANE_MAX` times the device's stiffness). A press
+#: into an exponentially stiffening object (Fung 1993) 10 mm deep reports 2.7 times its K_o at
+#: rest (docs/fidelity.md); a spring reported 20 % off is identified within one to three cells.
+AHEAD_STIFFER = 3.0
+
+
+def ahead_cells(key: GainKey, cell: int, grid_ratio: float) -> tuple[int, ...]:
+    """The gain-table cells whose verified planes a client checks ahead around ``cell`` (the
+    cell of the K_o reported), nearest first and, at the same distance, the stiffer first: from
+    :data:`AHEAD_SOFTER` to :data:`AHEAD_STIFFER` times the cell's grid point, none above
+    :data:`CAPPED_PLANE_MAX` times ``key.k_h_max`` (no plane there), none below cell 0, and none
+    if the key allows no plane (:func:`plane_applies`).
+
+    A plane's check (:func:`checked_plane`) does not depend on the press, so a client may run it
+    before a contact reaches the cell: a press into a stiffening object then finds each cell's
+    plane checked, where a check started on arrival (0.3-1 s idle) would leave it rendering the
+    fallback and hunting between cells (docs/fidelity.md, "not covered").
+
+    Raises
+    ------
+    ValueError
+        A grid ratio not above 1, or a negative cell.
+    """
+    if not (math.isfinite(grid_ratio) and grid_ratio > 1.0):
+        raise ValueError(f"grid_ratio must be > 1, got {grid_ratio!r}")
+    if cell < 0:
+        raise ValueError(f"cell must be >= 0, got {cell!r}")
+    if not plane_applies(key):
+        return ()
+    step = math.log(grid_ratio)
+    lo = max(0, cell + math.floor(math.log(AHEAD_SOFTER) / step + 1e-9))
+    hi = cell + math.floor(math.log(AHEAD_STIFFER) / step + 1e-9)
+    top = math.floor(math.log(CAPPED_PLANE_MAX * key.k_h_max) / step + 1e-9)
+    hi = min(hi, top)
+    return tuple(sorted(range(lo, hi + 1), key=lambda c: (abs(c - cell), c < cell)))
+
+
 def _plane(
     key: GainKey,
     g: float,
@@ -284,6 +324,19 @@ def verified_plane(
         As :func:`checked_plane`.
     """
     plane = checked_plane(key, cell, grid_ratio, hand_box, design)
+    if plane is None or (design is not None and not felt_closer(plane, key, design)):
+        return None
+    return plane
+
+
+def plane_against(
+    plane: GainDesign | None, key: GainKey, design: GainDesign | None
+) -> GainDesign | None:
+    """A plane already checked (:func:`checked_plane`, without a design: the client checks one
+    alone while the cell of the K_o reported has no design) held against ``design`` once it is
+    made: ``plane`` if felt closer (:func:`felt_closer`) or if there is no design, else None.
+    The same answer as :func:`verified_plane` with that design, without checking the plane again
+    (a comparison of felt responses, where a check takes 0.1-10 s)."""
     if plane is None or (design is not None and not felt_closer(plane, key, design)):
         return None
     return plane

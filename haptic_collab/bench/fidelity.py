@@ -284,6 +284,26 @@ def _identified_plane_jobs(
     }
 
 
+def _alone_plane_jobs(
+    designs: dict[tuple[str, GainKey, float], GainDesign],
+    objects: Sequence[str],
+    k_os: Sequence[float],
+) -> dict[tuple[str, GainKey, float], tuple[GainKey, float]]:
+    """The planes a client checks alone: for each design of a grid K_o of ``k_os`` whose key
+    allows a plane, ``(mode, key, K)`` -> ``(key, K)`` for each K (the middle of a cell) that an
+    object of ``objects`` reports on the way to the trajectories' held depth and that
+    ``designs`` has no design for (:func:`_k_o_designed`: the stiffening object's cells above
+    the K_o reported at rest)."""
+    return {
+        (mode, key, k): (key, k)
+        for (mode, key, k_o) in sorted(designs, key=str)
+        if plane_applies(key) and k_o in k_os
+        for name in objects
+        for k in _k_o_designed(_OBJECTS[name], k_o, True)[1:]
+        if (mode, key, k) not in designs
+    }
+
+
 def _design_cell(key: GainKey, k_o: float) -> GainDesign:
     """The design of the client's gain-table cell holding K_o under ``key`` (a worker's job),
     unscaled (:func:`shared.gain_table.design_cell`)."""
@@ -362,6 +382,7 @@ def run(
     design_reached: bool = False,
     design_margin: float = DESIGN_MARGIN,
     design_stiffer_by: float = STIFFER_BY,
+    plane_check_s: float = 0.0,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the ``--json`` document.
 
@@ -403,6 +424,13 @@ def run(
         design_stiffer_by`` times its top (:class:`shared.gain_key.GainKey`). The product's
         (0.15, 0.25) by default; narrower, they measure what knowing the object's stiffness that
         well would buy on the spring, and what it costs on the objects the design did not see.
+    plane_check_s : float
+        Time [s] from the own-response check's first verdict in a cell to that cell's verified
+        plane rendering (:attr:`haptic_collab.research.fidelity_schemes.Rendering.plane_delay_s`).
+        0 (default): the client has checked the planes around the K_o reported ahead, in the
+        background (:func:`shared.verified_plane.ahead_cells`), before the press reaches them;
+        :data:`haptic_collab.research.fidelity_schemes.PRODUCT_PLANE_CHECK_S` (2 s): a client
+        that checks each plane on arrival (its first seconds after a welcome).
 
     Returns
     -------
@@ -418,7 +446,7 @@ def run(
     Raises
     ------
     ValueError
-        An unknown scheme.
+        An unknown scheme, or a design range or plane check time out of its domain.
     """
     for s in schemes:
         if s not in SCHEMES:
@@ -427,6 +455,8 @@ def run(
         raise ValueError(f"design_margin must be in [0, 1), got {design_margin!r}")
     if not (math.isfinite(design_stiffer_by) and design_stiffer_by >= 0.0):
         raise ValueError(f"design_stiffer_by must be finite and >= 0, got {design_stiffer_by!r}")
+    if not (math.isfinite(plane_check_s) and plane_check_s >= 0.0):
+        raise ValueError(f"plane_check_s must be finite and >= 0 s, got {plane_check_s!r}")
     key_range = {"margin": design_margin, "stiffer_by": design_stiffer_by}
     g = grid if grid is not None else (QUICK_GRID if quick else FULL_GRID)
     options = options if options is not None else RunOptions()
@@ -482,10 +512,14 @@ def run(
         errors = sorted({_OBJECTS[n].stiffness_error for n in g.objects} - {1.0})
         for w_id, job in _identified_plane_jobs(designs, errors, g.k_o).items():
             wanted_planes.setdefault(w_id, job)
+        # ... and the plane of each cell an object's K_o reaches that is not designed (the
+        # stiffening object's, without design_reached), checked alone, as the client checks it
+        # once its own-response check verifies there, before that cell's design is made
+        alone = _alone_plane_jobs(designs, g.objects, g.k_o)
         # a plane's check does not depend on the local model (it has no integral): each is
         # checked once for both, and compared with each one's design here
         check_jobs: dict[tuple[GainKey, int], Any] = {}
-        for key, k, _d in wanted_planes.values():
+        for key, k in (*((key, k) for key, k, _d in wanted_planes.values()), *alone.values()):
             ck = _plane_check_key(key, k)
             if ck not in check_jobs:
                 check_jobs[ck] = pool.submit(_checked_plane_cell, key, k)
@@ -494,13 +528,16 @@ def run(
             w: _closer(checked[_plane_check_key(key, k)], key, d)
             for w, (key, k, d) in wanted_planes.items()
         }
+        alone_planes = {w: checked[_plane_check_key(key, k)] for w, (key, k) in alone.items()}
         if design_cache is not None:
             design_cache.update(designs)
         t_design = time.perf_counter() - t0
         n_planes = sum(p is not None for p in planes.values())
+        n_alone = sum(p is not None for p in alone_planes.values())
         say(
             f"designed {len(designs)} gain sets and checked {len(checked)} verified planes "
-            f"for {len(planes)} cells ({n_planes} render) in {t_design:.1f} s"
+            f"for {len(planes)} cells ({n_planes} render) and {len(alone_planes)} cells a press "
+            f"reaches undesigned ({n_alone} render) in {t_design:.1f} s"
         )
 
         tables: dict[tuple[str, GainKey], tuple[TableCell, ...]] = {}
@@ -514,6 +551,14 @@ def run(
             key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate), **key_range)
             if (mode, key) not in tables:
                 tables[(mode, key)] = _table(designs, mode, key)
+            # the planes checked against designs, and those a press into this object checks
+            # alone in the cells it reaches that are not designed (these are its own: each is
+            # the plane of the K_o reported there, where a spring reported wrong is checked
+            # against the design of the cell reported)
+            reached = set(_k_o_designed(_OBJECTS[name], k_o, True)[1:])
+            by_cell = {c.cell: c for c in _planes(planes, mode, key)}
+            own = {w: p for w, p in alone_planes.items() if w[2] in reached}
+            by_cell.update({c.cell: c for c in _planes(own, mode, key)})
             return [
                 rendering_for(
                     s,
@@ -521,7 +566,8 @@ def run(
                     device=device,
                     design=designs[(mode, key, k_o)].at(k_o),
                     table=tables[(mode, key)],
-                    planes=_planes(planes, mode, key),
+                    planes=tuple(by_cell[c] for c in sorted(by_cell)),
+                    plane_check_s=plane_check_s,
                 )
             ]
 
@@ -761,6 +807,7 @@ def run(
             "design_reached": design_reached,
             "design_margin": design_margin,
             "design_stiffer_by": design_stiffer_by,
+            "plane_check_s": plane_check_s,
         },
         "conditions": conditions,
         "cells_3d": cells3,

@@ -149,6 +149,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             design_reached=args.design_reached,
             design_margin=_or(args.design_margin, DESIGN_MARGIN),
             design_stiffer_by=_or(args.design_stiffer_by, STIFFER_BY),
+            plane_check_s=args.plane_check_s,
             log=lambda msg: print(msg, file=sys.stderr, flush=True),
         )
         if args.plot:
@@ -245,6 +246,16 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help=(
             "fidelity: ... and this fraction stiffer than its top (default: the product's, "
             "shared.gain_key.STIFFER_BY; narrower, what knowing the object that well would buy)"
+        ),
+    )
+    p.add_argument(
+        "--plane-check-s",
+        type=float,
+        default=0.0,
+        help=(
+            "fidelity: a verified plane renders this long after the own-response check first "
+            "verifies its cell, as a client that checks it on arrival (default 0: checked ahead, "
+            "in the background; the client's check takes about 2 s)"
         ),
     )
     p.add_argument(

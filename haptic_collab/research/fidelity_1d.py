@@ -114,7 +114,6 @@ def _verified_plane_gains(
     planes: TableGains,
     k_o: FloatArray,
     *,
-    designed: NDArray[np.bool_],
     sums: FloatArray,
     deform: FloatArray,
     seq_last: NDArray[np.int64],
@@ -140,10 +139,13 @@ def _verified_plane_gains(
     ``seq``), and where it has verified the object as ``ref`` times the K_o reported (1, or the
     stiffness it identified: :func:`shared.own_response.identify`) and the cell of that stiffness
     has a verified plane (``planes``), that plane scaled to the stiffness replaces ``gains`` from
-    ``delay_s`` [s] after the check first verified in that plane cell with the cell of the K_o
-    reported ``designed`` (the client checks a plane against that cell's design, once it has it;
-    ``delay_s`` is the time its worker takes; ``since``, shape (B, :data:`_PLANE_CELLS`), holds
-    that tick per plane cell, -1 before: the client keeps a checked plane for the session)."""
+    ``delay_s`` [s] after the check first verified in that plane cell: 0 where the client has
+    checked the plane ahead, in the background (:func:`shared.verified_plane.ahead_cells`), or
+    the time its worker takes to check it on arrival. ``planes`` holds each plane as the run
+    checked it: against the design of the cell of the K_o reported where that cell is designed,
+    alone where it is not, as :meth:`client.session.ClientSession._render` renders it.
+    ``since``, shape (B, :data:`_PLANE_CELLS`), holds that tick per plane cell, -1 before: the
+    client keeps a checked plane for the session."""
     ended = mask & ~(force > 0.0)
     sums[ended] = 0.0
     deform[ended] = empty_deformation()
@@ -169,12 +171,13 @@ def _verified_plane_gains(
         ok[push] = got_ok[push]
         ref[push] = got_ref[push]
     # the client checks the plane of the stiffness verified once its check first verifies
-    # there, in its worker, and keeps it: a plane cell not checked before starts its check time
+    # there, in its worker (alone in a cell not designed yet), and keeps it: a plane cell not
+    # checked before starts its check time
     k_id = ref * k_o
     pc = np.floor(np.log(k_id) / np.log(planes.ratio) + 1e-12)
     pc = np.clip(pc, 0, _PLANE_CELLS - 1).astype(np.int64)
     rows = np.arange(len(pc))
-    first = mask & ok & designed & (since[rows, pc] < 0)
+    first = mask & ok & (since[rows, pc] < 0)
     since[rows[first], pc[first]] = seq[first]
     at = since[rows, pc]
     ready = (at >= 0) & ((seq - at) / sim_rate_hz >= delay_s)
@@ -490,7 +493,6 @@ def simulate(
                             (kg, ig, bg, og, fg),
                             planes,
                             k_recv,
-                            designed=table.has_cell(k_recv),
                             sums=own_sums,
                             deform=own_deform,
                             seq_last=own_seq,

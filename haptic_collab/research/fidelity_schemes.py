@@ -161,12 +161,15 @@ class Rendering:
         The designed cells of the client's gain table for this rendering's key (``follows_k_o``).
     planes : tuple of TableCell
         ``follows_k_o``: the verified planes (:func:`shared.verified_plane.verified_plane`) of
-        cells of that table. Where the client's own-response check (:mod:`shared.own_response`)
-        verifies the K_o reported in such a cell, its plane renders instead of the table's
-        design, as :meth:`client.session.ClientSession._render` does. Empty: never.
+        cells of that table, and of cells a press reaches that the table has not designed
+        (checked alone: :func:`shared.verified_plane.checked_plane`). Where the client's
+        own-response check (:mod:`shared.own_response`) verifies the K_o reported in such a
+        cell, its plane renders instead of the table's design or fallback, as
+        :meth:`client.session.ClientSession._render` does. Empty: never.
     plane_delay_s : float
-        Time [s] from the check's first verdict in a cell to its plane rendering: the client
-        checks the plane then, in its design worker (:data:`PRODUCT_PLANE_CHECK_S`).
+        Time [s] from the check's first verdict in a cell to its plane rendering: 0 where the
+        client checked that plane ahead, in the background (the default run); the time a check
+        takes (:data:`PRODUCT_PLANE_CHECK_S`) where it checks the plane on arrival.
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
@@ -212,10 +215,12 @@ PRODUCT_PASSIVITY_BIAS_J = 1e-3
 PRODUCT_GAIN_TRANSFER_S = 0.25
 
 
-#: Time [s] the product's client takes to check a cell's verified plane once its own-response
-#: check has verified the cell (:func:`shared.verified_plane.verified_plane` in the link's design
-#: worker): measured 0.3-1.0 s per check on this 2-core machine idle (2026-11-25), 6-9 s beside a
-#: benchmark; the simulator renders the plane this long after the verdict.
+#: Time [s] the product's client takes to check a cell's verified plane
+#: (:func:`shared.verified_plane.verified_plane` in the link's design worker): measured 0.3-1.0 s
+#: per check on this 2-core machine idle (2026-11-25), 6-9 s beside a benchmark. The client
+#: checks the planes around the K_o reported ahead, in the background; with
+#: ``haptic bench fidelity --plane-check-s`` the simulator renders each plane this long after
+#: the own-response check first verifies its cell instead (a check on arrival).
 PRODUCT_PLANE_CHECK_S = 2.0
 
 
@@ -468,6 +473,7 @@ def rendering_for(
     k_o: float | None = None,
     table: Sequence[TableCell] = (),
     planes: Sequence[TableCell] = (),
+    plane_check_s: float = 0.0,
 ) -> Rendering:
     """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
     model's design, or a peer's default tuning (:func:`peer_renderings`).
@@ -490,7 +496,13 @@ def rendering_for(
         gains follow the K_o the simulation reports through them (``Rendering.follows_k_o``).
         Empty: the gains of ``design`` throughout.
     planes : sequence of TableCell
-        The verified planes of cells of ``table`` (:attr:`Rendering.planes`).
+        The verified planes of cells of ``table`` and of cells a press reaches that ``table``
+        has not designed (:attr:`Rendering.planes`).
+    plane_check_s : float
+        :attr:`Rendering.plane_delay_s` [s]: 0 (default), each plane checked before the press
+        reaches its cell, as the client checks the cells around the K_o reported ahead
+        (:func:`shared.verified_plane.ahead_cells`); :data:`PRODUCT_PLANE_CHECK_S`, a client
+        whose background checks have not reached the cell yet, which checks it on arrival.
 
     Raises
     ------
@@ -516,7 +528,7 @@ def rendering_for(
             follows_k_o=bool(table),
             table=tuple(table),
             planes=tuple(planes) if table else (),
-            plane_delay_s=PRODUCT_PLANE_CHECK_S,
+            plane_delay_s=plane_check_s,
             gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
             tuning=scheme_tuning(scheme, device),
         )

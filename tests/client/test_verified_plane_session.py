@@ -4,15 +4,18 @@ shared.own_response and shared.verified_plane), and keeps its design otherwise."
 
 from __future__ import annotations
 
+import asyncio
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
-from haptic_collab.client.session import ClientSession
+from haptic_collab.client.link import Link
+from haptic_collab.client.session import PLANE_ALONE, ClientSession
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.protocol import Patch, PlaneModel, RecommendedGains, encode
-from haptic_collab.shared.verified_plane import verified_plane
+from haptic_collab.shared.verified_plane import plane_against, verified_plane
 from tests.support.sessions import welcomed_session
 
 K_O = 300.0
@@ -50,12 +53,21 @@ def _press_patch(
 
 
 def _check_planes(s: ClientSession) -> None:
-    """Run the plane checks the session asks for, as the link's design worker does."""
+    """Run the plane checks the session asks for, as the link's design worker does
+    (client.link.Link._start_plane): alone while the cell has no design, and a plane checked
+    alone before only compared with the design once made."""
     while s.plane_wanted:
         key, cell, design_cell = s.plane_wanted.pop()
         table = s.gain_table
-        design = table.lookup(key, table.grid_point(design_cell) * 1.0001)
-        plane = verified_plane(key, cell, table.grid_ratio, table.hand_box, design)
+        design = (
+            None
+            if design_cell == PLANE_ALONE
+            else table.lookup(key, table.grid_point(design_cell) * 1.0001)
+        )
+        if (key, cell, PLANE_ALONE) in s.planes:
+            plane = plane_against(s.planes[(key, cell, PLANE_ALONE)], key, design)
+        else:
+            plane = verified_plane(key, cell, table.grid_ratio, table.hand_box, design)
         s.store_plane(key, cell, plane, design_cell)
 
 
@@ -256,3 +268,149 @@ def test_on_a_stiffening_object_the_plane_follows_the_tangent_reported() -> None
     assert up.k_h == pytest.approx(k_held) and up.own_gain * up.k_h == pytest.approx(1.0)
     # verified on the way in, cell after cell (each crossed in a fifth of a second)
     assert len({c for (_, c, _) in s.planes}) > 3
+
+
+def test_in_a_cell_not_designed_yet_the_plane_checked_alone_renders_until_the_design() -> None:
+    # a contact verified where the gain table has no design (the design worker busy, or a press
+    # into a stiffening object crossing cells faster than they are designed): its plane is
+    # checked alone and renders, even on a first contact, which would otherwise wait with
+    # forces off; once the cell is designed the plane is compared with that design, not
+    # checked again, and the answer is the one a check against the design gives
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=GainTable())
+    rendered = []
+    for tick in range(1, 41):
+        f = 1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0)
+        up = s.receive(_press_patch(tick, float(f), K_O), tick / 20.0)
+        rendered.append(up)
+        _check_planes(s)  # the plane checks run; the designs do not
+    key = s.gain_key(0.0, 0)
+    cell = s.gain_table.cell(K_O)
+    assert s.gain_table.lookup(key, K_O) is None and s.design_wanted is not None
+    assert rendered[0] is None  # a first contact waits with forces off ...
+    up = rendered[-1]
+    assert up is not None and s.plane_patches > 0  # ... until the plane checked alone arrives
+    assert up.k_h == pytest.approx(K_O) and up.own_gain * up.k_h == pytest.approx(1.0)
+    assert up.choice.verified and not up.choice.fallback
+    alone = s.planes[(key, cell, PLANE_ALONE)]
+    assert alone is not None
+    # the design made: compared with it (cheaply), as verified_plane would decide
+    s.gain_table.design(key, K_O)
+    s.design_wanted = None
+    up = s.receive(_press_patch(41, 1.0, K_O), 41 / 20.0)
+    assert (key, cell, cell) in s._plane_asked and up is not None and up.k_h == pytest.approx(K_O)
+    _check_planes(s)
+    design = s.gain_table.lookup(key, K_O)
+    assert s.planes[(key, cell, cell)] == verified_plane(
+        key, cell, s.gain_table.grid_ratio, s.gain_table.hand_box, design
+    )
+
+
+def _check_ahead(s: ClientSession) -> int:
+    """Run the plane checks the session has planned ahead (:meth:`ClientSession.next_plane_ahead`),
+    alone, as the link's design worker does when nothing else is asked; returns how many."""
+    n = 0
+    while (want := s.next_plane_ahead()) is not None:
+        key, cell = want
+        table = s.gain_table
+        s.store_plane(key, cell, verified_plane(key, cell, table.grid_ratio, table.hand_box), -1)
+        n += 1
+    return n
+
+
+def test_a_press_into_a_stiffening_object_finds_each_cells_plane_checked_ahead() -> None:
+    # Fung's law (300 N/m at rest, x_s = 10 mm) pressed from 0.5 to 6 mm in 1.5 s and held, as
+    # above. While the user reaches for it the client checks the planes around the K_o reported
+    # (0.5-3 times it) in the background; the press then crosses seven cells, and from the
+    # patch the check verifies on, each patch renders the plane of its own cell, the tangent
+    # there, with no plane check left to wait for: only the cheap comparison with a design
+    # made. A plane checked on arrival took 0.3-1 s per cell, idle, and rendered the fallback
+    # meanwhile (in the benchmark's simulator the press hunted between cells for 6-8 s)
+    xs = 10e-3
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    key = s.gain_key(0.0, 0)
+    away = Patch(
+        tick=1, primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)), proxy_m=(0, 0, 0.1),
+        normal=(0, 0, 1), penetration_m=0.0, in_contact=False, k_o=K_O, k_o_eff=K_O, b_o=0.0,
+        own_force_n=0.0,
+    )  # fmt: skip
+    s.receive(encode(away), 0.05)
+    cells = [c for (_, c) in s.plane_ahead]
+    table = s.gain_table
+    assert cells[0] == table.cell(K_O) and table.cell(K_O * math.exp(0.6)) in cells
+    assert _check_ahead(s) == len(cells)
+    ahead = {c for (_, c, d) in s.planes if d == PLANE_ALONE}
+    assert ahead == set(cells)
+
+    depth = np.concatenate([np.linspace(0.5e-3, 6e-3, 30), np.full(50, 6e-3)])
+    checked_on_arrival = []
+    rendered = []
+    for tick, x in enumerate(depth, start=2):
+        f, k = K_O * xs * math.expm1(x / xs), K_O * math.exp(x / xs)
+        z = 0.1 - x
+        msg = Patch(
+            tick=tick, primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)), proxy_m=(0, 0, z),
+            normal=(0, 0, 1), penetration_m=0.001, in_contact=True, k_o=k, k_o_eff=k, b_o=0.0,
+            own_force_n=f,
+        )  # fmt: skip
+        up = s.receive(encode(msg), tick / 20.0)
+        if s.own_response.verified:
+            rendered.append((up, k))
+        if s.design_wanted is not None:
+            s.gain_table.design(*s.design_wanted)
+            s.design_wanted = None
+        checked_on_arrival += [
+            w for w in s.plane_wanted if (w[0], w[1], PLANE_ALONE) not in s.planes
+        ]
+        _check_planes(s)
+    assert not checked_on_arrival  # every plane the press needed was checked ahead
+    assert len(rendered) > 20 and len({table.cell(k) for _, k in rendered}) > 3
+    for up, k in rendered:
+        # each verified patch renders its own cell's plane at once, designed cell or not
+        assert (
+            up is not None and up.k_h == pytest.approx(k) and up.own_gain * k == pytest.approx(1.0)
+        )
+    assert key == s.gain_key(0.0, 0)
+
+
+def test_no_plane_is_checked_ahead_for_an_object_with_damping() -> None:
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    s.receive(_press_patch(1, 1.0, K_O, b_o=40.0), 0.05)
+    assert s.plane_ahead == [] and s.next_plane_ahead() is None
+
+
+def test_the_link_checks_the_planes_ahead_when_nothing_else_is_asked() -> None:
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    s.receive(_press_patch(1, 1.0, K_O), 0.05)
+    if s.design_wanted is not None:
+        s.gain_table.design(*s.design_wanted)
+        s.design_wanted = None
+    s.plane_ahead = s.plane_ahead[:2]  # two of them: each takes about a second
+    wanted = list(s.plane_ahead)
+    pool = ThreadPoolExecutor(max_workers=1)
+
+    async def go() -> None:
+        link = Link(
+            "ws://127.0.0.1:1/ws", s, on_patch=lambda u, t: None, sample=lambda: None,
+            clock=lambda: 1.0, design_executor=pool,
+        )  # fmt: skip
+        try:
+            link._start_plane()
+            tasks = []
+            while link._plane_task is not None and link._plane_task not in tasks:
+                tasks.append(link._plane_task)
+                await asyncio.wait_for(link._plane_task, 60.0)
+                await asyncio.sleep(0)  # the next one starts once this one is done
+            assert len(tasks) == 2 and not s.plane_ahead
+        finally:
+            link.close()
+        assert link.plane_checks == 2
+
+    try:
+        asyncio.run(go())
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    table = s.gain_table
+    for key, c in wanted:
+        assert s.planes[(key, c, PLANE_ALONE)] == verified_plane(
+            key, c, table.grid_ratio, table.hand_box
+        )

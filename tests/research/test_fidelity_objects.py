@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from haptic_collab.bench.fidelity import (
+    _alone_plane_jobs,
+    _checked_plane_cell,
     _design_cell,
     _gain_key,
     _identified_plane_jobs,
@@ -39,6 +41,7 @@ from haptic_collab.research.fidelity_cases import (
 from haptic_collab.research.fidelity_metrics import cell_metrics, felt_response
 from haptic_collab.research.fidelity_schemes import (
     PRODUCT_GAIN_TRANSFER_S,
+    PRODUCT_PLANE_CHECK_S,
     SCHEMES,
     DeviceModel,
     Rendering,
@@ -226,6 +229,8 @@ def _product(
     reached: ObjectModel | None = None,
     planes: bool = True,
     identified: tuple[float, ...] = (),
+    ahead: ObjectModel | None = None,
+    plane_check_s: float = 0.0,
     **key_changes,
 ) -> Rendering:
     """The product's rendering of ``mode`` for K_o, as the benchmark renders it (the client's key,
@@ -233,7 +238,9 @@ def _product(
     designed, the verified plane of each where the own-response check verifies the K_o
     reported, and of the cells of ``identified`` times K_o where it identifies that), with
     ``key_changes`` applied to the key; with ``reached``, every cell that object reaches is
-    designed too (``--design-reached``); without ``planes``, no verified plane."""
+    designed too (``--design-reached``); without ``planes``, no verified plane; with ``ahead``,
+    the planes of the cells that object reaches undesigned, checked alone (ahead, as the client
+    checks them); ``plane_check_s``: each plane renders that long after its cell verifies."""
     kind = "pi" if mode == "local-pi" else "p"
     key = replace(_gain_key(kind, rate, delay_ms, DeviceModel()), **key_changes)
     ks = [k_o] if reached is None else _k_o_designed(reached, k_o, True)
@@ -243,9 +250,12 @@ def _product(
     if planes:
         jobs = _identified_plane_jobs(designs, identified, [k_o])
         found.update({w: _plane_cell(*job) for w, job in jobs.items()})
+    if planes and ahead is not None:
+        alone = _alone_plane_jobs(designs, [ahead.name], [k_o])
+        found.update({w: _checked_plane_cell(*job) for w, job in alone.items()})
     return rendering_for(
         mode, sim_rate_hz=rate, design=design, table=_table(designs, kind, key),
-        planes=_planes(found, kind, key),
+        planes=_planes(found, kind, key), plane_check_s=plane_check_s,
     )  # fmt: skip
 
 
@@ -301,13 +311,15 @@ def test_an_object_whose_k_o_is_reported_wrong_is_felt_as_itself_once_identified
 @pytest.mark.slow
 def test_a_rendering_that_changes_once_while_held_is_read_on_the_longer_probe() -> None:
     # 1000 N/m reported on a spring 20 % stiffer, 20 Hz, 200 ms each way: the own-response check
-    # identifies the object during the felt probe's ramp, and the capped plane of its stiffness
-    # arrives 2 s later, 3.2 s into the press, while the probe is held still. The force settles
+    # identifies the object during the felt probe's ramp, and the capped plane of its stiffness,
+    # checked on arrival (not ahead), arrives 2 s later, 3.2 s into the press, while the probe is held still. The force settles
     # through the 400 ms round trip after the change, which the standard probe cannot tell from
     # a limit cycle; on the longer probe the change is over before the hold ends, and the plane
     # is read: felt about as the device's stiffness (1000 of 1200 N/m), steadily
     k, rate, delay_ms = 1000.0, 20.0, 200.0
-    product = _product("local-pi", k, rate, delay_ms, identified=(1.2,))
+    product = _product(
+        "local-pi", k, rate, delay_ms, identified=(1.2,), plane_check_s=PRODUCT_PLANE_CHECK_S
+    )
     depth = felt_depth_m(k, FMAX, SPRING_STIFFER)
     cells = [
         Cell(product, k, rate, delay_ms, None, felt_trajectory(1.0, depth, longer=longer),
@@ -504,3 +516,25 @@ def test_neighbouring_cells_of_mixed_holds_hold_every_hand_of_the_box() -> None:
     assert {c.proxy_hold for c in r.table} == {"zoh", "foh"}
     assert max(c.k_h for c in r.table) > 5 * min(c.k_h for c in r.table)
     assert _box_stable(r, STIFFENING, k, rate, 0.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("rate", "delay_ms"), [(20.0, 0.0), (50.0, 100.0)])
+def test_with_each_cells_plane_checked_ahead_a_press_feels_the_stiffening_object(
+    rate: float, delay_ms: float
+) -> None:
+    # the stiffening object at 300 N/m, only its first cell designed (the default run). With the
+    # fallback between the cells a press is felt 0.46-0.74 off the object (ln, over the band).
+    # With the plane of each cell the press reaches checked ahead, as the client checks the
+    # cells around the K_o reported in the background, each renders as soon as the own-response
+    # check verifies the tangent there: felt within 0.1 of the object at every frequency of the
+    # band, and every hand of the box holds. Checked on arrival instead, each new cell rendered
+    # the fallback for the check's 2 s and the press hunted between cells for 6-8 s
+    k = 300.0
+    ahead = _product("local-pi", k, rate, delay_ms, ahead=STIFFENING)
+    fallback = _product("local-pi", k, rate, delay_ms)
+    assert len(ahead.planes) > len(fallback.planes) + 5
+    assert _box_stable(ahead, STIFFENING, k, rate, delay_ms)
+    errs = [abs(math.log(abs(_felt(ahead, STIFFENING, k, rate, delay_ms, hz)))) for hz in BAND]
+    before = [abs(math.log(abs(_felt(fallback, STIFFENING, k, rate, delay_ms, hz)))) for hz in BAND]
+    assert max(errs) < 0.1 and max(before) > 4 * max(errs)

@@ -17,9 +17,12 @@ from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import GainTable, design_cell
 from haptic_collab.shared.verified_plane import (
+    AHEAD_SOFTER,
+    AHEAD_STIFFER,
     CAPPED_PLANE_MAX,
     PLANE_DAMPERS,
     VERIFIED_RANGE,
+    ahead_cells,
     checked_plane,
     felt_closer,
     verified_key,
@@ -100,6 +103,33 @@ def test_only_an_uncoupled_contact_on_an_undamped_object_below_the_device_gets_o
     assert verified_key(_key(20.0, 0)).margin == verified_key(_key(20.0, 0)).stiffer_by == 0.05
     with pytest.raises(ValueError, match="grid_ratio"):
         verified_plane(_key(20.0, 0), cell, 1.0, DEFAULT_HAND_BOX)
+
+
+def test_the_planes_checked_ahead_cover_a_stiffening_press_and_a_spring_reported_wrong() -> None:
+    key = _key(20.0, 0)
+    c = TABLE.cell(300.0)
+    cells = ahead_cells(key, c, TABLE.grid_ratio)
+    # nearest first, the stiffer first at the same distance
+    assert cells[:3] == (c, c + 1, c - 1)
+    dist = [abs(x - c) for x in cells]
+    assert dist == sorted(dist) and len(set(cells)) == len(cells)
+    # Fung's exponential 10 mm deep (2.7 times its K_o at rest), springs 20 % off either way
+    g = TABLE.grid_point(c)
+    for k in (300.0 * math.e, 240.0, 360.0, AHEAD_SOFTER * g * 1.01, AHEAD_STIFFER * g / 1.01):
+        assert TABLE.cell(k) in cells
+    assert TABLE.cell(AHEAD_STIFFER * g * 1.11) not in cells
+    assert TABLE.cell(AHEAD_SOFTER * g / 1.11) not in cells
+    # no plane above the capped plane's reach, nor for an object with damping or a coupling
+    near_top = ahead_cells(key, TABLE.cell(1000.0), TABLE.grid_ratio)
+    assert max(near_top) == TABLE.cell(CAPPED_PLANE_MAX * 1000.0)
+    assert ahead_cells(key, TABLE.cell(3000.0), TABLE.grid_ratio) == ()
+    assert ahead_cells(_key(20.0, 0, b_o=100.0), c, TABLE.grid_ratio) == ()
+    assert ahead_cells(_key(20.0, 0, stiff_ratio=2.0), c, TABLE.grid_ratio) == ()
+    assert min(ahead_cells(key, 3, TABLE.grid_ratio)) == 0
+    with pytest.raises(ValueError, match="grid_ratio"):
+        ahead_cells(key, c, 1.0)
+    with pytest.raises(ValueError, match="cell"):
+        ahead_cells(key, -1, TABLE.grid_ratio)
 
 
 def _band_error(d, k_o: float, rate: float, ticks: int) -> float:
