@@ -116,6 +116,11 @@ def test_a_narrower_design_range_is_what_knowing_the_object_would_buy() -> None:
     for bad in ({"design_margin": 1.0}, {"design_margin": -0.1}, {"design_stiffer_by": math.nan}):
         with pytest.raises(ValueError, match="design_"):
             run(grid=grid, schemes=schemes, include_3d=False, workers=1, **bad)  # type: ignore[arg-type]
+    # a plane rendered before its cell verifies, or a NaN wait, is no option
+    assert product["options"]["plane_check_s"] == 0.0
+    for wait in (-1.0, math.nan):
+        with pytest.raises(ValueError, match="plane_check_s"):
+            run(grid=grid, schemes=schemes, include_3d=False, workers=1, plane_check_s=wait)
 
 
 def _felt(q: float) -> dict[float, tuple[float, float] | None]:
