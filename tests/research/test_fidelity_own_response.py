@@ -65,7 +65,7 @@ def test_the_simulator_identifies_as_the_client_does_patch_by_patch() -> None:
     for tick, f, x in _patches():
         _verified_plane_gains(
             np.ones(1, dtype=bool), gains, _EveryCellHasAPlane(), np.array([K_O]),
-            designed=np.ones(1, dtype=bool), delay_s=np.zeros(1), seq=np.array([tick]),
+            delay_s=np.zeros(1), seq=np.array([tick]),
             surface=np.array([x]),
             force=np.array([f]), sim_rate_hz=np.array([RATE_HZ]), **state,
         )  # fmt: skip
