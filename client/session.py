@@ -695,7 +695,9 @@ class ClientSession:
                 if plane_key not in self._plane_asked:
                     self._plane_asked.add(plane_key)
                     self.plane_wanted.append(plane_key)
-                plane = self.planes.get((key, plane_cell, PLANE_ALONE))
+                # a plane checked alone renders where the cell has no design; where it has one,
+                # only once compared with it (milliseconds: the design renders meanwhile)
+                plane = None if own is not None else self.planes.get((key, plane_cell, PLANE_ALONE))
             if plane is not None:
                 design = plane.at(k_id)
                 self.plane_patches += 1

@@ -293,16 +293,21 @@ def test_in_a_cell_not_designed_yet_the_plane_checked_alone_renders_until_the_de
     assert up.choice.verified and not up.choice.fallback
     alone = s.planes[(key, cell, PLANE_ALONE)]
     assert alone is not None
-    # the design made: compared with it (cheaply), as verified_plane would decide
+    # the design made: the plane is compared with it (cheaply), as verified_plane would decide,
+    # and renders only if felt closer; the design renders until that comparison is done
     s.gain_table.design(key, K_O)
     s.design_wanted = None
-    up = s.receive(_press_patch(41, 1.0, K_O), 41 / 20.0)
-    assert (key, cell, cell) in s._plane_asked and up is not None and up.k_h == pytest.approx(K_O)
-    _check_planes(s)
     design = s.gain_table.lookup(key, K_O)
-    assert s.planes[(key, cell, cell)] == verified_plane(
-        key, cell, s.gain_table.grid_ratio, s.gain_table.hand_box, design
-    )
+    assert design is not None
+    up = s.receive(_press_patch(41, 1.0, K_O), 41 / 20.0)
+    assert (key, cell, cell) in s._plane_asked and up is not None
+    assert up.k_h == pytest.approx(design.at(K_O).k_h)
+    _check_planes(s)
+    decided = verified_plane(key, cell, s.gain_table.grid_ratio, s.gain_table.hand_box, design)
+    assert s.planes[(key, cell, cell)] == decided
+    up = s.receive(_press_patch(42, 1.0, K_O), 42 / 20.0)
+    assert up is not None
+    assert up.k_h == pytest.approx((decided or design).at(K_O).k_h)
 
 
 def _check_ahead(s: ClientSession) -> int:
