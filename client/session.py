@@ -513,16 +513,12 @@ class ClientSession:
 
     def _plan_ahead(self, key: GainKey, cell: int) -> None:
         """Have the planes around ``cell`` (the cell of the K_o reported) checked alone in the
-        background, nearest first (:attr:`plane_ahead`), those not checked or asked yet."""
+        background, nearest first (:attr:`plane_ahead`; :meth:`next_plane_ahead` skips those
+        checked or asked already)."""
         if self._ahead_around == (key, cell):
             return
         self._ahead_around = (key, cell)
-        self.plane_ahead = [
-            (key, c)
-            for c in ahead_cells(key, cell, self.gain_table.grid_ratio)
-            if (key, c, PLANE_ALONE) not in self.planes
-            and (key, c, PLANE_ALONE) not in self._plane_asked
-        ]
+        self.plane_ahead = [(key, c) for c in ahead_cells(key, cell, self.gain_table.grid_ratio)]
 
     def next_plane_ahead(self) -> tuple[GainKey, int] | None:
         """The next plane to check ahead (:attr:`plane_ahead`), marked asked, or None."""

@@ -323,10 +323,7 @@ def verified_plane(
     ValueError
         As :func:`checked_plane`.
     """
-    plane = checked_plane(key, cell, grid_ratio, hand_box, design)
-    if plane is None or (design is not None and not felt_closer(plane, key, design)):
-        return None
-    return plane
+    return plane_against(checked_plane(key, cell, grid_ratio, hand_box, design), key, design)
 
 
 def plane_against(

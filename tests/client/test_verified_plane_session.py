@@ -237,6 +237,19 @@ def test_with_the_servers_gains_the_client_designs_the_cell_and_renders_its_plan
 
 
 @pytest.mark.slow
+def _stiffening_patch(tick: int, x: float, xs: float = 10e-3) -> tuple[str, float]:
+    """A patch of a press ``x`` [m] into Fung's law (:data:`K_O` at rest, stiffening length
+    ``xs`` [m]) on the top plane z = 0.1 m, and the tangent K_o it reports [N/m]."""
+    f, k = K_O * xs * math.expm1(x / xs), K_O * math.exp(x / xs)
+    z = 0.1 - x
+    msg = Patch(
+        tick=tick, primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)), proxy_m=(0, 0, z),
+        normal=(0, 0, 1), penetration_m=0.001, in_contact=True, k_o=k, k_o_eff=k, b_o=0.0,
+        own_force_n=f,
+    )  # fmt: skip
+    return encode(msg), k
+
+
 def test_on_a_stiffening_object_the_plane_follows_the_tangent_reported() -> None:
     # Fung's law (300 N/m at rest, x_s = 10 mm) pressed from 0.5 to 6 mm in 1.5 s and held: the
     # K_o reported is the tangent, 300 -> 547 N/m through seven gain-table cells. Read as the
@@ -244,25 +257,18 @@ def test_on_a_stiffening_object_the_plane_follows_the_tangent_reported() -> None
     # it holds in: K_h the tangent there, C_h K_h = 1 (the plane at MMT's rest surface).
     # Started over in each cell, as it was, the held press showed no spread to read and the
     # design (or the fallback) rendered throughout
-    xs = 10e-3
     s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
     depth = np.concatenate([np.linspace(0.5e-3, 6e-3, 30), np.full(50, 6e-3)])
     up = None
     for tick, x in enumerate(depth, start=1):
-        f, k = K_O * xs * math.expm1(x / xs), K_O * math.exp(x / xs)
-        z = 0.1 - x
-        msg = Patch(
-            tick=tick, primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)), proxy_m=(0, 0, z),
-            normal=(0, 0, 1), penetration_m=0.001, in_contact=True, k_o=k, k_o_eff=k, b_o=0.0,
-            own_force_n=f,
-        )  # fmt: skip
-        up = s.receive(encode(msg), tick / 20.0)
+        msg, k = _stiffening_patch(tick, x)
+        up = s.receive(msg, tick / 20.0)
         if s.design_wanted is not None:
             key, k_o = s.design_wanted
             s.gain_table.design(key, k_o)
             s.design_wanted = None
         _check_planes(s)
-    k_held = K_O * math.exp(6e-3 / xs)
+    k_held = K_O * math.exp(6e-3 / 10e-3)
     assert up is not None and s.own_response.verified
     assert s.own_response.identified_ratio == 1.0 and s.plane_patches > 0
     assert up.k_h == pytest.approx(k_held) and up.own_gain * up.k_h == pytest.approx(1.0)
@@ -331,7 +337,6 @@ def test_a_press_into_a_stiffening_object_finds_each_cells_plane_checked_ahead()
     # tangent there, with no plane check left to wait for. A plane checked on arrival took
     # 0.3-1 s per cell, idle, and the fallback rendered meanwhile (in the benchmark's simulator
     # the press hunted between cells for 6-8 s)
-    xs = 10e-3
     s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=GainTable())
     away = Patch(
         tick=1, primitive=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)), proxy_m=(0, 0, 0.1),
@@ -353,14 +358,8 @@ def test_a_press_into_a_stiffening_object_finds_each_cells_plane_checked_ahead()
     checked_on_arrival = []
     rendered = []
     for tick, x in enumerate(depth, start=2):
-        f, k = K_O * xs * math.expm1(x / xs), K_O * math.exp(x / xs)
-        z = 0.1 - x
-        msg = Patch(
-            tick=tick, primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)), proxy_m=(0, 0, z),
-            normal=(0, 0, 1), penetration_m=0.001, in_contact=True, k_o=k, k_o_eff=k, b_o=0.0,
-            own_force_n=f,
-        )  # fmt: skip
-        up = s.receive(encode(msg), tick / 20.0)
+        msg, k = _stiffening_patch(tick, x)
+        up = s.receive(msg, tick / 20.0)
         if s.own_response.verified and table.lookup(s.gain_key(0.0, 0), k) is None:
             rendered.append((up, k))
         s.design_wanted = None  # the designs of the cells crossed are not done yet
