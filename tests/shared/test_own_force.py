@@ -28,6 +28,7 @@ from haptic_collab.shared.interim_gains import verify_gains
 from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.primitives import make_plane, make_sphere, moved_out
 from haptic_collab.shared.protocol import Patch, PlaneModel
+from haptic_collab.shared.verified_plane import verified_key
 
 DEVICE = DeviceModel()
 
@@ -177,3 +178,50 @@ def test_the_wire_patch_is_rendered_moved_out_by_c_h_times_the_applied_force():
     assert plain.primitive.penetration(0, 0, 0.1) == 0.0
     with pytest.raises(ValueError):
         LocalModelUpdate.from_surface(surface, k_h=200.0, i_gain=0.0, own_gain=-1.0)
+
+
+@pytest.mark.parametrize(
+    ("k_o", "sim_rate_hz", "delay_ticks"), [(700.0, 50.0, 5), (700.0, 20.0, 0)]
+)
+def test_the_staged_check_gives_the_verdict_of_every_tick_at_once(
+    k_o: float, sim_rate_hz: float, delay_ticks: int
+):
+    # the verified plane's damper ladder at a stiffness where the light rungs fail with a few
+    # hands at some ticks only (at 20 Hz, first-order hold: ticks 39-48 of 50): checked two ticks
+    # first, then the rest, each rung gets the verdict and, passing, the worst radius of all
+    # ticks checked together
+    table = GainTable(DEFAULT_HAND_BOX)
+    key, cell = verified_key(_key(sim_rate_hz, delay_ticks, "p", True)), table.cell(k_o)
+    g = table.grid_point(cell)
+    n = key.rates.ratio
+    verdicts = []
+    for b_h in (0.0, 0.25, 0.5, 1.0, 1.5, 2.5, 3.5):
+        for hold in ("zoh", "foh"):
+            kw = dict(k_h=g, i_gain=0.0, b_h=b_h, proxy_hold=hold, own_gain=1.0 / g)
+            staged = verify_gains(key, cell, table.grid_ratio, DEFAULT_HAND_BOX, **kw)
+            whole = verify_gains(key, cell, table.grid_ratio, DEFAULT_HAND_BOX, probe_ticks=n,
+                                 **kw)  # fmt: skip
+            assert staged[0] == whole[0]
+            if whole[0]:
+                assert staged[1] == whole[1]
+            verdicts.append(whole[0])
+    assert any(verdicts) and not all(verdicts)  # the ladder crosses the boundary
+
+
+def test_a_designs_worst_radius_is_the_worst_of_every_tick_hand_and_k_o():
+    # the design's full check runs in stages (one tick first); the worst spectral radius it
+    # reports is the one of every sampling tick, hand and K_o' of its range, at each scale
+    table = GainTable(DEFAULT_HAND_BOX)
+    key, cell = _key(50.0, 5, "p", True), table.cell(300.0)
+    d = design_cell(key, cell, table.grid_ratio, DEFAULT_HAND_BOX)
+    n = key.rates.ratio
+    worst = 0.0
+    for s in dict.fromkeys((1.0, math.sqrt(d.scale_max), d.scale_max)):
+        ok, rho = verify_gains(
+            key, cell, table.grid_ratio, DEFAULT_HAND_BOX, k_h=s * d.k_h, i_gain=s * d.i_gain,
+            b_h=d.b_h, proxy_hold=d.proxy_hold, own_gain=d.own_gain / s, k_o_scale=s,
+            probe_ticks=n,
+        )  # fmt: skip
+        assert ok
+        worst = max(worst, rho)
+    assert d.worst_spectral_radius == worst
