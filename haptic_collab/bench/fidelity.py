@@ -362,6 +362,14 @@ def _simulate_batch(
     return [m.to_json() for m in cell_metrics(run, cells)]
 
 
+def _batch_class(cell: Cell) -> tuple[str, bool, bool, bool, bool]:
+    """What of the simulator's servo tick a cell needs (:func:`simulate` skips what none of a
+    batch's cells needs): its rendering's kind, passivity layer, two-port form, gain table and
+    verified planes."""
+    r = cell.rendering
+    return (r.kind, r.passivity, r.two_port, r.follows_k_o and bool(r.table), bool(r.planes))
+
+
 def _chunks(items: Sequence[Cell], size: int) -> Iterable[list[Cell]]:
     for a in range(0, len(items), size):
         yield list(items[a : a + size])
@@ -596,7 +604,14 @@ def run(
                         felt_cells[hz].append((oid, cell))
                 where[(name, s, k_o, rate, d)] = ids
 
-        # 4. simulate in batches (one trajectory per batch: equal lengths)
+        # 4. simulate in batches (one trajectory per batch: equal lengths), each of one kind of
+        # rendering as far as it goes: a batch's servo tick skips what none of its cells needs
+        # (a third faster for a peer's cells alone). The sort is stable, so each rendering's
+        # cells keep their hand order
+        for tagged_h in hand_cells.values():
+            tagged_h.sort(key=lambda item: _batch_class(item[-1]))
+        for tagged_f in felt_cells.values():
+            tagged_f.sort(key=lambda item: _batch_class(item[-1]))
         futs: list[tuple[str, Any, list[Any], Any]] = []
         for tr, tagged in hand_cells.items():
             for a in range(0, len(tagged), _BATCH):
