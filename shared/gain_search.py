@@ -22,7 +22,7 @@ import numpy as np
 
 from haptic_collab.shared.felt_stiffness import felt_responses, felt_stiffness
 from haptic_collab.shared.full_loop import Hand, HandBox, ProxyHold, monodromy
-from haptic_collab.shared.stability_margin import k_o_points, mode_radii
+from haptic_collab.shared.stability_margin import group_mode_radii, k_o_points
 from haptic_collab.shared.types import FloatArray, IndexArray
 
 _G = TypeVar("_G", float, FloatArray)
@@ -86,9 +86,10 @@ def _worst_rho(
     og = np.repeat(cand["own_gain"], L * K) if "own_gain" in cand else np.zeros(g * L * K)
     hs = [h for h in hands for _ in range(K)] * g
     ko = np.tile(np.asarray(k_os, float), g * L)
-    out = np.empty(g * L * K)
-    marg = np.empty(g * L * K)
-    for a in range(0, out.size, chunk):
+    per = L * K  # cases per candidate
+    out = np.zeros(g)
+    marg = np.zeros(g)
+    for a in range(0, g * per, chunk):
         sl = slice(a, a + chunk)
         M = monodromy(
             hand=hs[sl],
@@ -105,10 +106,21 @@ def _worst_rho(
             proxy_hold=hold,
             integral=integral,
         )
-        marg_j, rad_j = mode_radii(M, rho_limit, rate_ratio, servo_period_s)  # (chunk, J)
-        out[sl] = np.max(rad_j, axis=-1)
-        marg[sl] = np.max(marg_j, axis=-1)
-    return marg.reshape(g, L * K).max(axis=1), out.reshape(g, L * K).max(axis=1)
+        # each case's candidate, and each matrix's (chunk, J)
+        first = a // per
+        cand_of = np.arange(a, a + M.shape[0]) // per - first
+        n_c = int(cand_of[-1]) + 1
+        marg_c, rad_c = group_mode_radii(
+            M.reshape(-1, *M.shape[-2:]),
+            rho_limit,
+            rate_ratio,
+            servo_period_s,
+            np.repeat(cand_of, M.shape[1]),
+            n_c,
+        )
+        out[first : first + n_c] = np.maximum(out[first : first + n_c], rad_c)
+        marg[first : first + n_c] = np.maximum(marg[first : first + n_c], marg_c)
+    return marg, out
 
 
 def _felt_dc(cand: dict[str, FloatArray], k_o: float) -> FloatArray:

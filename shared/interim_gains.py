@@ -22,7 +22,11 @@ from haptic_collab.shared.full_loop import HandBox, monodromy
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import cell_k_o_range, design_cell
-from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S, k_o_points, mode_radii
+from haptic_collab.shared.stability_margin import (
+    MIN_DECAY_RATE_PER_S,
+    group_mode_radii,
+    k_o_points,
+)
 
 #: Generic interim gains tried when no known gains pass, in order: (K_h, I) as multiples of the
 #: cell's lowest K_o, lo = (1 - margin) g_i [N/m], i.e. K_h = a lo [N/m] and I = b lo [N/(m*s)],
@@ -152,9 +156,10 @@ def verify_gains(
                 proxy_hold=proxy_hold,
                 integral=i_gain > 0.0,
             )
-            marg, rad = mode_radii(M, rho_limit, n, T)
-            worst = max(worst, float(rad.max()))
-            margin_r = float(marg.max())
+            Mf = M.reshape(-1, *M.shape[-2:])
+            marg, rad = group_mode_radii(Mf, rho_limit, n, T, np.zeros(len(Mf), np.intp), 1)
+            worst = max(worst, float(rad[0]))
+            margin_r = float(marg[0])
             if margin_r >= rho_limit or worst >= 1.0 - 1e-9:
                 return False, worst
     return True, worst
