@@ -362,12 +362,21 @@ def _simulate_batch(
     return [m.to_json() for m in cell_metrics(run, cells)]
 
 
-def _batch_class(cell: Cell) -> tuple[str, bool, bool, bool, bool]:
+def _batch_class(cell: Cell) -> tuple[str, bool, bool, bool, bool, float, float]:
     """What of the simulator's servo tick a cell needs (:func:`simulate` skips what none of a
     batch's cells needs): its rendering's kind, passivity layer, two-port form, gain table and
-    verified planes."""
+    verified planes; then its simulation rate and delay, which set the ticks a patch arrives at
+    (a tick at which none of a batch's cells receives one skips the gains' update)."""
     r = cell.rendering
-    return (r.kind, r.passivity, r.two_port, r.follows_k_o and bool(r.table), bool(r.planes))
+    return (
+        r.kind,
+        r.passivity,
+        r.two_port,
+        r.follows_k_o and bool(r.table),
+        bool(r.planes),
+        cell.sim_rate_hz,
+        cell.delay_ms,
+    )
 
 
 def _chunks(items: Sequence[Cell], size: int) -> Iterable[list[Cell]]:
@@ -605,9 +614,9 @@ def run(
                 where[(name, s, k_o, rate, d)] = ids
 
         # 4. simulate in batches (one trajectory per batch: equal lengths), each of one kind of
-        # rendering as far as it goes: a batch's servo tick skips what none of its cells needs
-        # (a third faster for a peer's cells alone). The sort is stable, so each rendering's
-        # cells keep their hand order
+        # rendering, rate and delay as far as it goes: a batch's servo tick skips what none of
+        # its cells needs (a third faster for a peer's cells alone). The sort is stable, so each
+        # rendering's cells keep their hand order
         for tagged_h in hand_cells.values():
             tagged_h.sort(key=lambda item: _batch_class(item[-1]))
         for tagged_f in felt_cells.values():
