@@ -111,11 +111,13 @@ def group_mode_radii(
 
     solve(np.flatnonzero(~(b_up < rho_limit)))
     m_star = group_max(marg)
-    # a group none of whose matrices had to be solved: the one bounded highest
-    top = np.full(n_groups, -1)
-    order = np.argsort(b_up, kind="stable")
-    top[group[order]] = order  # the last written is the largest bound
-    solve(np.array([top[g] for g in range(n_groups) if top[g] >= 0 and m_star[g] == -np.inf], int))
+    # a group none of whose matrices had to be solved: the one bounded highest (the first of
+    # equals)
+    best = np.full(n_groups, -np.inf)
+    np.maximum.at(best, group, b_up)
+    at_best = np.flatnonzero((b_up == best[group]) & (m_star[group] == -np.inf))
+    _, first = np.unique(group[at_best], return_index=True)
+    solve(at_best[first])
     m_star = group_max(marg)
     solve(np.flatnonzero(~solved & (b_up >= m_star[group])))
     return np.maximum(group_max(marg), 0.0), np.maximum(group_max(rad), 0.0)
