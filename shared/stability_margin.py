@@ -5,8 +5,10 @@ A design (:func:`shared.gain_design.design_gains`), interim gains
 (:func:`shared.coupled_loop.verify_coupled`) are accepted only if every *oscillating* mode of the
 full loop (:mod:`shared.full_loop`) decays at :data:`MIN_DECAY_RATE_PER_S` or faster, while creep
 (modes slower than :data:`CREEP_FREQUENCY_HZ`) need only be stable. This module owns that margin,
-the eigenvalue measure of it (:func:`mode_radii`) and the object stiffnesses K_o' a range of K_o is
-checked at (:func:`k_o_points`).
+the eigenvalue measure of it (:func:`mode_radii`), the same measure's maxima over groups of
+matrices with eigenvalues solved only where a norm bound cannot rule a matrix out
+(:func:`group_mode_radii`, :func:`radius_bounds`: Gelfand's formula; docs/gains.md, "What a check
+costs") and the object stiffnesses K_o' a range of K_o is checked at (:func:`k_o_points`).
 """
 
 from __future__ import annotations
