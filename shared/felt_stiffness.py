@@ -28,6 +28,36 @@ from haptic_collab.shared.types import FloatArray
 FELT_BAND_HZ: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0, 8.0)
 
 
+def object_stiffness(
+    freqs_hz: Sequence[float],
+    *,
+    k_o: float | FloatArray,
+    b_o: float | FloatArray = 0.0,
+    sim_period_s: float,
+) -> FloatArray:
+    """The paper's object's own dynamic stiffness dF/dx [N/m] (complex) at each of ``freqs_hz``,
+    shape (F, B): the inverse of eq. 9's ``D(z) = (K_o + B_o (z - 1) / z)^-1`` at ``z = e^{j w
+    N T}`` (``N T = sim_period_s``), ``K_o + B_o (1 - e^{-j w N T})``. What a transparent
+    rendering of the object the simulation reports is felt as: ``K_o`` at DC and for an elastic
+    object (B_o = 0), stiffer and leading towards the simulation's Nyquist rate for a damped or
+    massive one (the one-tick stiffness ``K_o + B_o`` of a step push from rest,
+    ``server.objects.fem.FemSolid.contact_damping``).
+
+    Raises
+    ------
+    ValueError
+        A non-positive ``sim_period_s`` or frequency.
+    """
+    if not (math.isfinite(sim_period_s) and sim_period_s > 0.0):
+        raise ValueError(f"sim_period_s must be > 0, got {sim_period_s!r}")
+    if not all(math.isfinite(f) and f > 0.0 for f in freqs_hz):
+        raise ValueError(f"frequencies must be > 0 Hz, got {freqs_hz!r}")
+    ko, bo = batch_arrays(k_o, b_o)
+    w = 2.0 * math.pi * np.asarray(freqs_hz, dtype=float)
+    lag = 1.0 - np.exp(-1j * w * sim_period_s)
+    return ko[None, :] + bo[None, :] * lag[:, None]
+
+
 def felt_stiffness(
     freq_hz: float,
     *,

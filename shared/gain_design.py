@@ -15,7 +15,10 @@ decay-rate margin, for
 and among those the one with the best *transparency*: the felt stiffness |dF/dx| at the probe,
 probe as a position source, relative to K_o. For the paper's models alone, at 1 Hz (then 8 Hz
 to break ties); with own-force compensation (the product), its largest error |ln |q|| over the
-band :data:`shared.felt_stiffness.FELT_BAND_HZ` (0.5-8 Hz) and in a held press, compared in steps
+band :data:`shared.felt_stiffness.FELT_BAND_HZ` (0.5-8 Hz), q relative to the object's own
+dynamic stiffness there (eq. 9's ``K_o + B_o (1 - e^{-j w N T})``,
+:func:`shared.felt_stiffness.object_stiffness`: K_o where B_o = 0, stiffer to a quick press on a
+damped or massive object), and in a held press (relative to K_o), compared in steps
 of :data:`DESIGN_TIE` (half a stiffness JND), then the same on objects ``1 + stiffer_by`` times
 softer and stiffer than reported. A
 :class:`shared.gain_table.GainTable` design serves every K_o reported in its cell, scaled to it (K_h
@@ -242,7 +245,8 @@ def design_gains(
         :data:`shared.gain_search.OWN_FORCE_RATIOS` (module docstring), proportional only, and,
         for K_o above ``k_h_max``, the plane at the rest surface (C_h = 1 / K_o, K_h up to
         ``k_h_max``: model-mediated teleoperation's plane). The objective is then the felt
-        response closest to K_o itself over the band (compensation can overshoot and lag K_o):
+        response closest to the object's own over the band (eq. 9 with ``b_o``; K_o itself where
+        B_o = 0: compensation can overshoot and lag it):
         the largest over :data:`shared.felt_stiffness.FELT_BAND_HZ` of |ln |q|| and the active
         share -Im q (:mod:`shared.gain_search`) and the held press's |ln q|, in steps of
         :data:`shared.gain_search.DESIGN_TIE`; then the same on the objects of ``stiffer_by``;

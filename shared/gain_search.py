@@ -20,7 +20,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from haptic_collab.shared.felt_stiffness import felt_responses, felt_stiffness
+from haptic_collab.shared.felt_stiffness import felt_responses, felt_stiffness, object_stiffness
 from haptic_collab.shared.full_loop import Hand, HandBox, ProxyHold, monodromy
 from haptic_collab.shared.stability_margin import group_mode_radii, k_o_points
 from haptic_collab.shared.types import FloatArray, IndexArray
@@ -363,10 +363,19 @@ class GainSearch:
         each up to its ``s_max``)."""
         return _at_scale(base, np.minimum(max(k / self.k_o, 1.0), s_max)) if self.scaled else base
 
+    def _own(self, k: float) -> FloatArray:
+        """|the object's own dynamic stiffness| [N/m] at K_o = k over ``band``, (F, 1): eq. 9's
+        ``|K_o + B_o (1 - e^{-j w N T})|`` (:func:`shared.felt_stiffness.object_stiffness`), K_o
+        itself where B_o = 0. Real: the active share -Im of a response over it keeps its sign."""
+        z = object_stiffness(self.band, k_o=k, b_o=self.b_o, sim_period_s=self.N * self.T)
+        return np.abs(z)
+
     def _response(self, k: float, sc: dict[str, FloatArray], hold: ProxyHold) -> FloatArray:
-        """Felt responses dF/dx / K_o (complex values, (F, G)) of gains ``sc`` on K_o = k
-        at 1 Hz and, with ``own_force``, every frequency of ``band``
-        (:data:`shared.felt_stiffness.FELT_BAND_HZ`)."""
+        """Felt responses dF/dx (complex values, (F, G)) of gains ``sc`` on K_o = k at 1 Hz
+        and, with ``own_force``, every frequency of ``band``
+        (:data:`shared.felt_stiffness.FELT_BAND_HZ`), each over the magnitude of the object's own
+        dynamic stiffness there with ``own_force`` (:meth:`_own`), else over K_o."""
+        own = self._own(k) if self.own_force else np.full((len(self.band), 1), k)
         return (
             felt_responses(
                 self.band,
@@ -381,7 +390,7 @@ class GainSearch:
                 b_h=sc["b_h"],
                 own_gain=sc["own_gain"],
             )
-            / k
+            / own
         )
 
     def _robustness(
@@ -451,8 +460,8 @@ class GainSearch:
         felt_dc = _felt_dc(base, k_o)
         resp_band = self._response(k_o, base, hold)
         resp1 = resp_band[self.band.index(1.0)]
-        # objective, with own-force compensation: how far the felt response is from K_o over
-        # the band and in a held press (DC), whichever is further (_band_miss, _log_miss);
+        # objective, with own-force compensation: how far the felt response is from the
+        # object's own (eq. 9: K_o where B_o = 0) over the band and from K_o in a held press (DC), whichever is further (_band_miss, _log_miss);
         # across felt_at the worst counts, in steps of DESIGN_TIE (what a hand would not feel
         # apart); then the worst on the objects stiffer and softer than reported (model error);
         # then the mean over felt_at (a tie of the worst: K_h at the device's stiffness is the
@@ -489,6 +498,7 @@ class GainSearch:
         if found is None:
             return None
         i, rho_full = found
+        own1 = float(self._own(k_o)[self.band.index(1.0), 0]) if self.own_force else k_o
         felt8 = float(
             felt_stiffness(
                 8.0,
@@ -512,7 +522,7 @@ class GainSearch:
             own_gain=float(base["own_gain"][i]),
             proxy_hold=hold,
             worst_spectral_radius=rho_full,
-            felt_stiffness_ratio_1hz=float(abs(resp1[i])),
+            felt_stiffness_ratio_1hz=float(abs(resp1[i]) * own1 / k_o),
             felt_stiffness_ratio_8hz=felt8,
             scale_max=float(s_max[i]),
             rank=(float(felt1[i]), float(robust[i]), float(felt_mean[i]), -abs(felt8 - 1.0)),

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from haptic_collab.shared.felt_stiffness import felt_stiffness
+from haptic_collab.shared.felt_stiffness import felt_stiffness, object_stiffness
 from haptic_collab.shared.full_loop import ProxyHold
 
 
@@ -77,3 +77,26 @@ def test_probe_damper_is_felt_as_viscosity_not_stiffness(
 def test_felt_stiffness_refuses_frequencies_outside_the_servo_band(freq_hz: float) -> None:
     with pytest.raises(ValueError):
         felt_stiffness(freq_hz, k_o=1000.0, k_h=300.0)
+
+
+def test_the_objects_own_stiffness_is_the_inverse_of_eq_9() -> None:
+    # D(z) = (K_o + B_o (z - 1) / z)^-1 at z = e^{j w N T}: the deformation per newton; its
+    # inverse is what a transparent rendering is felt as. A spring (B_o = 0) is K_o at every
+    # frequency; a damped one K_o at DC, K_o + 2 B_o at the simulation's Nyquist rate
+    freqs = (0.5, 2.0, 8.0, 10.0)
+    got = object_stiffness(freqs, k_o=300.0, b_o=[0.0, 200.0], sim_period_s=0.05)
+    assert got.shape == (4, 2)
+    for f, row in zip(freqs, got, strict=True):
+        z = complex(math.cos(2 * math.pi * f * 0.05), math.sin(2 * math.pi * f * 0.05))
+        d = 1.0 / (300.0 + 200.0 * (z - 1.0) / z)
+        assert row[0] == pytest.approx(300.0)
+        assert row[1] == pytest.approx(1.0 / d, rel=1e-12)
+    assert got[-1, 1] == pytest.approx(700.0)
+    assert abs(object_stiffness((1e-4,), k_o=300.0, b_o=200.0, sim_period_s=0.05)[0, 0]) == (
+        pytest.approx(300.0, rel=1e-5)
+    )
+    for bad in ({"sim_period_s": 0.0}, {"sim_period_s": math.nan}):
+        with pytest.raises(ValueError, match="sim_period_s"):
+            object_stiffness((1.0,), k_o=300.0, **bad)
+    with pytest.raises(ValueError, match="frequencies"):
+        object_stiffness((0.0,), k_o=300.0, sim_period_s=0.05)

@@ -20,7 +20,12 @@ from haptic_collab.research.fidelity_schemes import DeviceModel, rendering_for
 from haptic_collab.server.contact_stiffness import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_compliance import compliance_matrix
 from haptic_collab.shared.coupled_loop import UserGains, verify_coupled
-from haptic_collab.shared.felt_stiffness import felt_stiffness
+from haptic_collab.shared.felt_stiffness import (
+    FELT_BAND_HZ,
+    felt_responses,
+    felt_stiffness,
+    object_stiffness,
+)
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, monodromy
 from haptic_collab.shared.gain_key import GainKey, stiff_ratio_class
 from haptic_collab.shared.gain_table import GainTable, cell_k_o_range, design_cell
@@ -87,6 +92,24 @@ def test_the_design_with_compensation_is_near_k_o_and_stable_over_the_box(
         own_gain=with_c.own_gain,
     )  # fmt: skip
     assert ok and rho < 1.0
+
+
+def test_on_a_damped_object_the_design_is_felt_as_the_object_not_as_its_rest_stiffness():
+    # eq. 9's object with B_o > 0 is stiffer to a quick press than at rest: the design is judged
+    # against that (object_stiffness), so it renders the stiffening (felt within 0.15 of it over
+    # the band, 0.96 off K_o); judged against K_o it made its gains softer to cancel it
+    key = replace(_key(20.0, 0, "p", True), b_o=74.0)
+    table = GainTable(DEFAULT_HAND_BOX)
+    cell = table.cell(100.0)
+    d = design_cell(key, cell, table.grid_ratio, DEFAULT_HAND_BOX).at(100.0)
+    q = np.abs(felt_responses(FELT_BAND_HZ, k_o=100.0, k_h=d.k_h, b_h=d.b_h, b_o=74.0,
+                              rate_ratio=50, proxy_hold=d.proxy_hold, own_gain=d.own_gain)[:, 0])  # fmt: skip
+    own = np.abs(object_stiffness(FELT_BAND_HZ, k_o=100.0, b_o=74.0, sim_period_s=0.05)[:, 0])
+    assert np.max(np.abs(np.log(q / own))) < 0.15
+    assert np.max(np.abs(np.log(q / 100.0))) > 0.5
+    ok, _ = verify_gains(key, cell, table.grid_ratio, DEFAULT_HAND_BOX, k_h=d.k_h, i_gain=0.0,
+                         b_h=d.b_h, proxy_hold=d.proxy_hold, own_gain=d.own_gain)  # fmt: skip
+    assert ok
 
 
 def test_the_same_gains_without_their_compensation_are_unstable():
