@@ -181,7 +181,6 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     from haptic_collab.server.objects.balloon import Balloon, BalloonParams
     from haptic_collab.server.objects.mesh import default_balloon, mesh_warnings, refine_mesh
     from haptic_collab.server.objects.shapes import load_object_mesh
-    from haptic_collab.server.world import World
 
     if rates is None:
         rates = build_rates(opts)
@@ -220,10 +219,29 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     for warning in mesh_warnings(mesh, params.patch_radius_m, where=opts.mesh):
         log.warning("%s", warning)
     if opts.object == "fem":
-        return World(_build_fem(opts, mesh, rates, scale), primitive=opts.primitive, rates=rates)  # type: ignore[arg-type]
+        return world_around(_build_fem(opts, mesh, rates, scale), opts, rates)
     obj = Balloon(mesh, params)
     log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))
-    return World(obj, primitive=opts.primitive, rates=rates)  # type: ignore[arg-type]
+    return world_around(obj, opts, rates)
+
+
+def world_around(obj: Any, opts: ServerOptions, rates: Rates | None = None):  # type: ignore[no-untyped-def]
+    """A new World around an object :func:`build_world` built for ``opts`` (its primitive and
+    rates; ``rates`` default :func:`build_rates` of ``opts``). The object is used as it is: one
+    reused for another World must be reset first (``obj.reset``).
+
+    Raises
+    ------
+    ValueError
+        As :func:`build_rates`, or an object stepping at another period than the rates'.
+    """
+    from haptic_collab.server.world import World
+
+    return World(
+        obj,
+        primitive=opts.primitive,  # type: ignore[arg-type]
+        rates=rates if rates is not None else build_rates(opts),
+    )
 
 
 def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> Any:

@@ -137,7 +137,7 @@ from haptic_collab.research.harness_3d import (
     ServoPort,
     Timing,
     combined_hand,
-    object_world,
+    reused_world,
     run_multirate,
 )
 from haptic_collab.server.world import ContactInput
@@ -298,7 +298,7 @@ def run_3d_cell(
     hand = hand if hand is not None else HandParams()
     T = 1.0 / SERVO_RATE_HZ
 
-    world = object_world(stiffness_scale, mesh)
+    world = reused_world(stiffness_scale, mesh)
     out0, top, normal = top_contact(world)
     k_o = float(out0.k_o)
     r = (

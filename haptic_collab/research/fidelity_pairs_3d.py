@@ -37,7 +37,7 @@ from haptic_collab.research.harness_3d import (
     SERVO_RATE_HZ,
     ServoPort,
     Timing,
-    object_world,
+    reused_world,
     run_multirate,
 )
 from haptic_collab.server.object_info import object_info
@@ -183,7 +183,7 @@ def run_3d_pair(
     check_known((scheme,), PAIR_SCHEMES, "two-user scheme")
     d = check_delay(delay_ms)
     T = 1.0 / SERVO_RATE_HZ
-    world = object_world(stiffness_scale, mesh)
+    world = reused_world(stiffness_scale, mesh)
     info = object_info(world.vertices, world.faces)
     points = {"a": np.array(info.top_m, dtype=np.float64), "b": side_point(world)}
     out0 = world.tick({u: ContactInput(probe=p, force=np.zeros(3)) for u, p in points.items()})

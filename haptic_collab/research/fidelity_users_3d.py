@@ -36,8 +36,8 @@ from haptic_collab.research.harness_3d import (
     SIM_RATE_HZ,
     experiment_limits,
     local_model,
-    object_world,
     place_device,
+    reused_world,
     servo_core,
 )
 from haptic_collab.server.object_info import object_info
@@ -129,7 +129,7 @@ def top_k_o(stiffness_scale: float, mesh: str = "balloon") -> float:
     ValueError
         A scale that is not a finite number > 0 (:func:`server.main.build_world`).
     """
-    out, _, _ = top_contact(object_world(stiffness_scale, mesh))
+    out, _, _ = top_contact(reused_world(stiffness_scale, mesh))
     return float(out.k_o)
 
 

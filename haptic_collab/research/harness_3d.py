@@ -9,7 +9,8 @@ thread (time is ``tick / rate``):
 object
     :func:`object_world`: :func:`server.main.build_world` around ``--mesh`` (the default water
     balloon) with ``--stiffness-scale``, stepped at :data:`SIM_RATE_HZ` (``fem:NAME``: the FEM
-    solid of that surface in :data:`FEM_MATERIAL_3D`).
+    solid of that surface in :data:`FEM_MATERIAL_3D`); :func:`reused_world` the same with its
+    object built once per process and reset for each run (the fidelity cells).
 user
     :func:`place_device`: a :class:`client.devices.sim.SimDevice` on the :data:`PROFILE` profile
     with a :class:`client.devices.sim.HandParams` hand following a target, its workspace centred on
@@ -39,7 +40,7 @@ from haptic_collab.client.devices.profiles import get_sim_profile
 from haptic_collab.client.devices.sim import HandParams, SimDevice
 from haptic_collab.client.recorder import TelemetryRecorder
 from haptic_collab.client.servo import ServoConfig, ServoCore
-from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.main import ServerOptions, build_world, world_around
 from haptic_collab.server.world import ContactInput, World
 from haptic_collab.shared.full_loop import Hand
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
@@ -83,6 +84,36 @@ def object_world(stiffness_scale: float = 1.0, mesh: str = "balloon") -> World:
     """
     world: World = build_world(world_options(stiffness_scale, mesh))
     return world
+
+
+#: Objects :func:`reused_world` built in this process, by (stiffness scale, mesh).
+_BUILT: dict[tuple[float, str], Any] = {}
+
+
+def reused_world(stiffness_scale: float = 1.0, mesh: str = "balloon") -> World:
+    """:func:`object_world`, its object built once in this process and reset to rest for every
+    later call with the same arguments: a FEM solid's start-up (volume mesh, factorisation,
+    modes) takes 4-5 s on the test machine, a 3-D fidelity cell's run about 0.5 s. The patch cache
+    is kept: its solves are the object's own whichever run made them, and a fresh object starts
+    with the two its build solved (the top and the side, for the log), which a cleared cache
+    would solve again in another batch, a few ulps apart (enough to move an unstable cell's
+    energy by 2 %). For callers that use one World at a time: a World from an earlier call must
+    not be ticked after the next call (they share the object).
+
+    Raises
+    ------
+    ValueError
+        As :func:`object_world`.
+    """
+    key = (float(stiffness_scale), mesh)
+    obj = _BUILT.get(key)
+    if obj is None:
+        world = object_world(stiffness_scale, mesh)
+        _BUILT[key] = world.obj
+        return world
+    obj.reset()
+    again: World = world_around(obj, world_options(stiffness_scale, mesh))
+    return again
 
 
 def combined_hand(hand: HandParams, profile: str = PROFILE) -> Hand:
