@@ -10,6 +10,7 @@ trajectory, :func:`felt_stiffness_ratio` its magnitude.
 from __future__ import annotations
 
 import math
+from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -127,8 +128,13 @@ def _fit(t: FloatArray, y: FloatArray, w: float) -> tuple[complex, float]:
     return complex(c[2], -c[3]), float(np.sqrt(np.mean((y - A @ c) ** 2)))
 
 
-def _fundamental(t: FloatArray, y: FloatArray, w: float) -> complex:
-    return _fit(t, y, w)[0]
+def _fits(t: FloatArray, y: FloatArray, w: float) -> tuple[NDArray[np.complex128], FloatArray]:
+    """:func:`_fit` of every row of ``y`` (G, n) sampled at the same ``t`` (n,): one least-squares
+    solve for all of them; the fundamentals and the RMS of what each fit leaves, (G,) each."""
+    A = np.stack([np.ones_like(t), t - t[0], np.cos(w * t), np.sin(w * t)], axis=1)
+    c = np.linalg.lstsq(A, y.T, rcond=None)[0]  # (4, G)
+    rest = np.sqrt(np.mean((y.T - A @ c) ** 2, axis=0))
+    return c[2] - 1j * c[3], rest
 
 
 def _distortion(f1: complex, rest: float, f: FloatArray) -> float:
@@ -169,40 +175,54 @@ def felt_response(run: Run, cells: Sequence[Cell]) -> list[complex | None]:
     ValueError
         A cell that is not a position source oscillating at a frequency.
     """
-    out: list[complex | None] = []
-    resp: complex = 0j
     dt = run.t[1] - run.t[0]
+    # cells on the same probe (frequency, windows, length) are fitted together
+    groups: dict[tuple[int, float, tuple[float, float], float], list[int]] = defaultdict(list)
     for i, c in enumerate(cells):
         tr = c.trajectory
         if c.hand is not None or tr.sine_hz <= 0.0:
             raise ValueError("felt stiffness needs a position-source cell on a sine trajectory")
         n_i = round(tr.duration_s / dt)
+        groups[(n_i, tr.sine_hz, tr.hold_window_s, tr.sine_start_s)].append(i)
+    out: list[complex | None] = [None] * len(cells)
+    for (n_i, hz, (a, b), start), idx in groups.items():
         t = run.t[:n_i]
-        w = 2.0 * math.pi * tr.sine_hz
-        z_obj = c.obj.impedance(c.k_o, tr.sine_hz, tr.y1_m)
-        a, b = tr.hold_window_s
+        w = 2.0 * math.pi * hz
+        x, f = run.x[idx, :n_i], run.f[idx, :n_i]
+        z_obj = np.array(
+            [cells[i].obj.impedance(cells[i].k_o, hz, cells[i].trajectory.y1_m) for i in idx]
+        )
         mid = 0.5 * (a + b)
         ratios = []
-        linear = True
         for lo, hi in ((a, b), (a, mid), (mid, b)):
             m = _window(t, (lo, hi))
-            x1 = _fundamental(t[m], run.x[i, :n_i][m], w)
-            f1, rest = _fit(t[m], run.f[i, :n_i][m], w)
-            q = f1 / x1 / z_obj if abs(x1) > 0.0 else complex(math.nan)
-            if hi == b and lo == a:
+            x1 = _fits(t[m], x[:, m], w)[0]
+            f1, rest = _fits(t[m], f[:, m], w)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                q = np.where(np.abs(x1) > 0.0, f1 / x1 / z_obj, complex(math.nan))
+            if lo == a and hi == b:
                 resp = q
-                linear = _distortion(f1, rest, run.f[i, :n_i][m]) <= FELT_DISTORTION_MAX
-            ratios.append(abs(q))
+                linear = [
+                    _distortion(complex(f1[j]), float(rest[j]), f[j, m]) <= FELT_DISTORTION_MAX
+                    for j in range(len(idx))
+                ]
+            ratios.append(np.abs(q))
         whole, h1, h2 = ratios
-        steady = all(math.isfinite(q) for q in ratios) and abs(h1 - h2) <= FELT_FIT_TOLERANCE * max(
-            abs(whole), 1e-9
+        steady = (
+            np.isfinite(whole)
+            & np.isfinite(h1)
+            & np.isfinite(h2)
+            & (np.abs(h1 - h2) <= FELT_FIT_TOLERANCE * np.maximum(np.abs(whole), 1e-9))
         )
         # a still probe must feel a still force: a limit cycle (the unilateral contact bounds an
         # unstable loop) is periodic too, but it is there before the probe moves
-        still = _window(t, (tr.sine_start_s - 0.5, tr.sine_start_s))
-        ripple = float(np.ptp(run.f[i, :n_i][still]))
-        quiet = ripple <= FELT_FIT_TOLERANCE * 2.0 * whole * abs(z_obj) * tr.sine_amplitude_m
-        out.append(resp if steady and quiet and linear and not run.runaway[i] else None)
+        still = _window(t, (start - 0.5, start))
+        ripple = np.ptp(f[:, still], axis=1)
+        amp = np.array([cells[i].trajectory.sine_amplitude_m for i in idx])
+        quiet = ripple <= FELT_FIT_TOLERANCE * 2.0 * whole * np.abs(z_obj) * amp
+        for j, i in enumerate(idx):
+            if steady[j] and quiet[j] and linear[j] and not run.runaway[i]:
+                out[i] = complex(resp[j])
     return out
 
 
