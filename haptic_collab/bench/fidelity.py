@@ -732,20 +732,35 @@ def run(
         from haptic_collab.research.fidelity_users_3d import SCHEMES_3D
 
         s3 = [s for s in schemes if s in SCHEMES_3D]
-        cells3 = run_3d_cells(s3, device=device, workers=n_workers)
-        # objects the design was not made on: the stress set's shapes, pressed at their top
-        cells3 += run_3d_cells(
-            s3,
-            device=device,
-            workers=n_workers,
-            meshes=FIDELITY_MESHES_3D,
-            stiffness_scales=(1.0,),
-            trajectories=("press",),
+        # one pool for the three grids: its workers build each object once (a FEM solid's
+        # start-up is 4-5 s) and import once
+        pool3 = (
+            ProcessPoolExecutor(n_workers, mp_context=mp.get_context("spawn"))
+            if n_workers > 1
+            else None
         )
-        # two users on the balloon: B rests on its side while A presses the top
-        pairs3 = run_3d_pairs(
-            [s for s in schemes if s in PAIR_SCHEMES], device=device, workers=n_workers
-        )
+        try:
+            cells3 = run_3d_cells(s3, device=device, workers=n_workers, pool=pool3)
+            # objects the design was not made on: the stress set's shapes, pressed at their top
+            cells3 += run_3d_cells(
+                s3,
+                device=device,
+                workers=n_workers,
+                meshes=FIDELITY_MESHES_3D,
+                stiffness_scales=(1.0,),
+                trajectories=("press",),
+                pool=pool3,
+            )
+            # two users on the balloon: B rests on its side while A presses the top
+            pairs3 = run_3d_pairs(
+                [s for s in schemes if s in PAIR_SCHEMES],
+                device=device,
+                workers=n_workers,
+                pool=pool3,
+            )
+        finally:
+            if pool3 is not None:
+                pool3.shutdown()
         t_3d = time.perf_counter() - t3
         say(f"ran {len(cells3)} 3-D cells and {len(pairs3)} two-user cells in {t_3d:.1f} s")
 

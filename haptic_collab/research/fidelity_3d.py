@@ -99,7 +99,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -412,9 +412,13 @@ def _cell_job(
     ).to_json()
 
 
-def _design_job(scheme: str, k_o: float, delay_ms: float, device: DeviceModel) -> Rendering:
-    """One local model's rendering (a worker's job: the design takes seconds)."""
-    return rendering_3d(scheme, k_o, delay_ms, device=device)
+def _design_job(
+    scheme: str, scale: float, mesh: str, delay_ms: float, device: DeviceModel
+) -> Rendering:
+    """One scheme's rendering for the K_o at the top of ``mesh`` scaled by ``scale`` (a worker's
+    job: a local model's design takes seconds, and so does a FEM solid's start-up, which the
+    worker then keeps for its cells: :func:`haptic_collab.research.harness_3d.reused_world`)."""
+    return rendering_3d(scheme, top_k_o(scale, mesh), delay_ms, device=device)
 
 
 def run_3d_cells(
@@ -428,6 +432,7 @@ def run_3d_cells(
     workers: int | None = 1,
     gain_table: GainTable | None = None,
     direct_reference: DirectReference = DIRECT_REFERENCE,
+    pool: Executor | None = None,
 ) -> list[dict[str, Any]]:
     """Every scheme x mesh x stiffness scale x delay x trajectory on the World (module docstring).
 
@@ -452,6 +457,9 @@ def run_3d_cells(
         Cache of the local models' designs (in-process runs only).
     direct_reference : {"undisturbed", "patch"}
         The direct schemes' force rule.
+    pool : Executor, optional
+        Run the designs and the cells there (``workers`` unused), and leave it open: a caller
+        running several grids keeps its workers, their imports and the objects they built.
 
     Returns
     -------
@@ -471,7 +479,6 @@ def run_3d_cells(
     check_known(schemes, SCHEMES_3D, "scheme")
     check_known(trajectories, tuple(TRAJECTORIES_3D), "trajectory")
     check_runs(delays_ms, workers)
-    k_o = {(sc, m): top_k_o(sc, m) for m in meshes for sc in stiffness_scales}
     combos = [
         (s, sc, m, dm, name)
         for s in schemes
@@ -481,7 +488,8 @@ def run_3d_cells(
         for name in trajectories
     ]
     rend_keys = sorted({(s, sc, m, dm) for s, sc, m, dm, _ in combos}, key=str)
-    if workers == 1:
+    if workers == 1 and pool is None:
+        k_o = {(sc, m): top_k_o(sc, m) for m in meshes for sc in stiffness_scales}
         table = gain_table if gain_table is not None else GainTable()
         rend = {
             (s, sc, m, dm): rendering_3d(s, k_o[(sc, m)], dm, device=device, gain_table=table)
@@ -491,16 +499,22 @@ def run_3d_cells(
             _cell_job(s, sc, m, dm, name, device, rend[(s, sc, m, dm)], direct_reference)
             for s, sc, m, dm, name in combos
         ]
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+    ex = (
+        pool
+        if pool is not None
+        else ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
+    )
+    try:
         fut_r = {
-            (s, sc, m, dm): pool.submit(_design_job, s, k_o[(sc, m)], dm, device)
+            (s, sc, m, dm): ex.submit(_design_job, s, sc, m, dm, device)
             for s, sc, m, dm in rend_keys
         }
         rend = {k: v.result() for k, v in fut_r.items()}
         futs = [
-            pool.submit(
-                _cell_job, s, sc, m, dm, name, device, rend[(s, sc, m, dm)], direct_reference
-            )
+            ex.submit(_cell_job, s, sc, m, dm, name, device, rend[(s, sc, m, dm)], direct_reference)
             for s, sc, m, dm, name in combos
         ]
         return [fu.result() for fu in futs]
+    finally:
+        if pool is None:
+            ex.shutdown()

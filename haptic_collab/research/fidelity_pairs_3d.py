@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -260,12 +260,14 @@ def run_3d_pairs(
     meshes: Sequence[str] = ("balloon", "fem:box"),
     device: DeviceModel = DEFAULT_DEVICE,
     workers: int | None = 1,
+    pool: Executor | None = None,
 ) -> list[dict[str, Any]]:
     """Every two-user cell (:func:`run_3d_pair`) of ``schemes`` x mesh x scale x delay: the
     balloon and the box as a FEM solid by default.
 
-    ``workers`` as :func:`run_3d_cells` (each cell designs its own two renderings). Returns each
-    cell's :meth:`Pair3D.to_json`, in the order scheme, mesh, scale, delay.
+    ``workers`` and ``pool`` as :func:`haptic_collab.research.fidelity_3d.run_3d_cells` (each
+    cell designs its own two renderings). Returns each cell's :meth:`Pair3D.to_json`, in the
+    order scheme, mesh, scale, delay.
 
     Raises
     ------
@@ -281,11 +283,19 @@ def run_3d_pairs(
         for sc in stiffness_scales
         for dm in delays_ms
     ]
-    if workers == 1:
+    if workers == 1 and pool is None:
         return [_pair_job(*c, device) for c in combos]
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
-        futs = [pool.submit(_pair_job, *c, device) for c in combos]
+    ex = (
+        pool
+        if pool is not None
+        else ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
+    )
+    try:
+        futs = [ex.submit(_pair_job, *c, device) for c in combos]
         return [fu.result() for fu in futs]
+    finally:
+        if pool is None:
+            ex.shutdown()
 
 
 def _pair_job(
