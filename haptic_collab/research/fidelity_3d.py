@@ -97,9 +97,8 @@ Usage::
 
 from __future__ import annotations
 
-import multiprocessing as mp
 from collections.abc import Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
 
@@ -122,6 +121,7 @@ from haptic_collab.research.fidelity_users_3d import (
     check_delay,
     check_known,
     check_runs,
+    executor,
     rendering_3d,
     renewed_patch,
     scheme_device,
@@ -499,12 +499,7 @@ def run_3d_cells(
             _cell_job(s, sc, m, dm, name, device, rend[(s, sc, m, dm)], direct_reference)
             for s, sc, m, dm, name in combos
         ]
-    ex = (
-        pool
-        if pool is not None
-        else ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
-    )
-    try:
+    with executor(pool, workers) as ex:
         fut_r = {
             (s, sc, m, dm): ex.submit(_design_job, s, sc, m, dm, device)
             for s, sc, m, dm in rend_keys
@@ -515,6 +510,3 @@ def run_3d_cells(
             for s, sc, m, dm, name in combos
         ]
         return [fu.result() for fu in futs]
-    finally:
-        if pool is None:
-            ex.shutdown()

@@ -11,9 +11,8 @@ servo renders a patch run here (:data:`PAIR_SCHEMES`).
 from __future__ import annotations
 
 import math
-import multiprocessing as mp
 from collections.abc import Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -27,6 +26,7 @@ from haptic_collab.research.fidelity_users_3d import (
     check_delay,
     check_known,
     check_runs,
+    executor,
     rendering_3d,
     renewed_patch,
     scheme_device,
@@ -285,17 +285,9 @@ def run_3d_pairs(
     ]
     if workers == 1 and pool is None:
         return [_pair_job(*c, device) for c in combos]
-    ex = (
-        pool
-        if pool is not None
-        else ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
-    )
-    try:
+    with executor(pool, workers) as ex:
         futs = [ex.submit(_pair_job, *c, device) for c in combos]
         return [fu.result() for fu in futs]
-    finally:
-        if pool is None:
-            ex.shutdown()
 
 
 def _pair_job(

@@ -13,7 +13,10 @@ two-user cells (:mod:`haptic_collab.research.fidelity_pairs_3d`) use the same bl
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+import multiprocessing as mp
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor
+from contextlib import contextmanager
 from typing import Any, Literal
 
 import numpy as np
@@ -339,6 +342,17 @@ def check_known(names: Sequence[str], known: Sequence[str], what: str) -> None:
     for name in names:
         if name not in known:
             raise ValueError(f"unknown {what} {name!r}; expected one of {', '.join(known)}")
+
+
+@contextmanager
+def executor(pool: Executor | None, workers: int | None) -> Iterator[Executor]:
+    """``pool`` as it is (the caller's, left open), else a pool of ``workers`` spawned worker
+    processes (None: every core), shut down on leaving."""
+    if pool is not None:
+        yield pool
+        return
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as own:
+        yield own
 
 
 def check_runs(delays_ms: Sequence[float], workers: int | None) -> None:
