@@ -21,6 +21,7 @@ from haptic_collab.cli.args import (
     _whole_positive,
     _why,
 )
+from haptic_collab.shared.felt_stiffness import object_stiffness
 
 
 # ---------------------------------------------------------------------------------------- stability
@@ -229,10 +230,22 @@ def _cmd_gains(args: argparse.Namespace) -> int:
             f"  own-force compensation C_h = {d.own_gain:.4g} m/N "
             f"(C_h K_h = {d.own_gain * d.k_h:.2f}; docs/own-force.md)"
         )
-    print(
+    felt = (
         f"  felt stiffness / K_o: {d.felt_stiffness_ratio_1hz:.3f} at 1 Hz, "
         f"{d.felt_stiffness_ratio_8hz:.3f} at 8 Hz"
     )
+    if args.b_o > 0.0:
+        # what a transparent rendering of the damped object is felt as (eq. 9; docs/gains.md)
+        own = (
+            abs(
+                object_stiffness(
+                    (1.0, 8.0), k_o=args.k_o, b_o=args.b_o, sim_period_s=1.0 / args.sim_rate
+                )
+            )[:, 0]
+            / args.k_o
+        )
+        felt += f" (the object itself, eq. 9: {own[0]:.3f} and {own[1]:.3f})"
+    print(felt)
     box = d.hand_box
     print(
         f"  worst spectral radius {d.worst_spectral_radius:.4f} over hands {box.mass_kg[0]:g}-"

@@ -216,3 +216,19 @@ def test_stability_probe_damper_and_foh_change_the_full_loop_verdict(capsys) -> 
     assert isinstance(bare, dict) and isinstance(damped, dict)
     assert bare["stable"] is False
     assert damped["stable"] is True and damped["spectral_radius"] < 1.0
+
+
+def test_a_damped_object_is_shown_beside_what_its_design_is_felt_as(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # with B_o the design is judged against eq. 9's object, stiffer to a quick press: the text
+    # says how stiff that object is, so 1.7 K_o at 8 Hz does not read as a fault
+    assert main(["gains", "--k-o", "300", "--local-model", "p", "--b-o", "200"]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if "felt stiffness / K_o" in x)
+    own = line.split("eq. 9: ")[1].rstrip(")").split(" and ")
+    # |K_o + B_o (1 - e^{-j w / 20 Hz})| / K_o at 1 and 8 Hz
+    assert float(own[0]) == pytest.approx(1.053, abs=1e-3)
+    assert float(own[1]) == pytest.approx(2.241, abs=1e-3)
+    assert main(["gains", "--k-o", "300", "--local-model", "p"]) == 0
+    assert "eq. 9" not in capsys.readouterr().out
