@@ -461,7 +461,8 @@ class GainSearch:
         resp_band = self._response(k_o, base, hold)
         resp1 = resp_band[self.band.index(1.0)]
         # objective, with own-force compensation: how far the felt response is from the
-        # object's own (eq. 9: K_o where B_o = 0) over the band and from K_o in a held press (DC), whichever is further (_band_miss, _log_miss);
+        # object's own (eq. 9: K_o where B_o = 0) over the band and from K_o in a held press
+        # (DC), whichever is further (_band_miss, _log_miss);
         # across felt_at the worst counts, in steps of DESIGN_TIE (what a hand would not feel
         # apart); then the worst on the objects stiffer and softer than reported (model error);
         # then the mean over felt_at (a tie of the worst: K_h at the device's stiffness is the

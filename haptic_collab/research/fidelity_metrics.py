@@ -123,9 +123,8 @@ FELT_DISTORTION_MAX = 1.0
 def _fit(t: FloatArray, y: FloatArray, w: float) -> tuple[complex, float]:
     """The fundamental of ``y`` at ``w`` [rad/s] (offset and drift removed) and the RMS of what
     the fit leaves."""
-    A = np.stack([np.ones_like(t), t - t[0], np.cos(w * t), np.sin(w * t)], axis=1)
-    c = np.linalg.lstsq(A, y, rcond=None)[0]
-    return complex(c[2], -c[3]), float(np.sqrt(np.mean((y - A @ c) ** 2)))
+    f1, rest = _fits(t, y[None, :], w)
+    return complex(f1[0]), float(rest[0])
 
 
 def _fits(t: FloatArray, y: FloatArray, w: float) -> tuple[NDArray[np.complex128], FloatArray]:
