@@ -65,6 +65,7 @@ def verify_gains(
     k_o_scale: float = 1.0,
     probe: int = 32,
     probe_ticks: int = 2,
+    k_o_range: tuple[float, float] | None = None,
 ) -> tuple[bool, float]:
     """Do these gains pass the design's acceptance test for grid cell ``cell`` of ``key``?
 
@@ -103,6 +104,11 @@ def verify_gains(
         s in [1, grid_ratio]: the gains are a design scaled to a reported K_o = s g_i
         (:meth:`GainDesign.at`), checked as the design checks its scales: K_o' from
         ``(1 - margin) s g_i`` up to the top of the cell's range.
+    k_o_range : (float, float), optional
+        ``(lo, hi)`` [N/m], 0 < lo <= hi: check K_o' over this range instead of the cell's (the
+        verified plane, scaled to each K_o reported, is checked at each scale over the few
+        percent the own-response check holds the object to:
+        :func:`shared.verified_plane.checked_plane`). ``k_o_scale`` is then unused.
 
     Returns
     -------
@@ -123,8 +129,14 @@ def verify_gains(
         raise ValueError(f"k_o_scale must be in [1, {grid_ratio:g}], got {k_o_scale!r}")
     rates = key.rates
     n, T = rates.ratio, rates.servo_period_s
-    lo, hi = cell_k_o_range(key, cell, grid_ratio)
-    k_os = k_o_points(k_o_scale * lo, max(hi, k_o_scale * grid_ratio**cell))
+    if k_o_range is None:
+        lo, hi = cell_k_o_range(key, cell, grid_ratio)
+        k_os = k_o_points(k_o_scale * lo, max(hi, k_o_scale * grid_ratio**cell))
+    else:
+        lo, hi = k_o_range
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi):
+            raise ValueError(f"k_o_range must be 0 < lo <= hi N/m, got {k_o_range!r}")
+        k_os = k_o_points(lo, hi)
     # the stiffest K_o' first, and a first batch of ``probe`` cases: a failing candidate (most
     # interim candidates fail) is usually refused there, at a fraction of the whole check's cost
     k_os = sorted(k_os, reverse=True)
