@@ -29,14 +29,14 @@ checked the same way (one set of gains: on objects from 5 % below g to 5 % above
 and must be felt closer than the design across its cell
 (:func:`felt_closer`).
 
-Measured with the fidelity benchmark's grid (2026-11-25, 1 kHz servo, its simulated device:
+Measured with the fidelity benchmark's grid (2026-11-26, 1 kHz servo, its simulated device:
 1000 N/m, 10 N*s/m): on the spring from 100 to 1000 N/m at 10-100 Hz and 0-200 ms such a plane
-passed in 58 of 60 conditions, with a damper of at most 2.5 N*s/m and a felt error of at most
-0.086 (ln) over 0.5-8 Hz; the product's own designs are felt up to 0.51 off there. At 1000 N/m
-eight of the 20 planes need 3.5-5 N*s/m (felt 0.06-0.09 off at the grid point; the designs there
-carry 6.7-10 N*s/m, 0.03-0.25 off), hence :data:`PLANE_DAMPERS` up to half the device's damping:
-on 1000 N/m 5 N*s/m is felt as ``|1 + j 2 pi 8 Hz B / K_o|`` = 1.03 at 8 Hz, and where a damper
-is felt more (a softer cell) :func:`felt_closer` keeps the design.
+passes in all 60 conditions: at 100 N/m without a damper in all 20, at 300 N/m with at most
+0.5 N*s/m (felt at most 0.026 (ln) off over 0.5-8 Hz across the cell), at 1000 N/m with
+0.25-3.5 N*s/m (at most 0.096 off across the cell, where K_h stops at the device's); the
+product's own designs are felt up to 0.51 off there. :data:`PLANE_DAMPERS` reach half the
+device's damping: on 1000 N/m 5 N*s/m is felt as ``|1 + j 2 pi 8 Hz B / K_o|`` = 1.03 at 8 Hz,
+and where a damper is felt more (a softer cell) :func:`felt_closer` keeps the design.
 """
 
 from __future__ import annotations
