@@ -38,11 +38,11 @@ import os
 import statistics
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from haptic_collab.research.fidelity_1d import simulate
 from haptic_collab.research.fidelity_cases import (
@@ -266,11 +266,15 @@ def _closer(plane: GainDesign | None, key: GainKey, design: GainDesign) -> GainD
     return plane if plane is not None and felt_closer(plane, key, design) else None
 
 
+#: A design, or a placeholder where only the keys are read.
+_D = TypeVar("_D")
+
+
 def _identified_plane_jobs(
-    designs: dict[tuple[str, GainKey, float], GainDesign],
+    designs: Mapping[tuple[str, GainKey, float], _D],
     errors: Sequence[float],
     k_os: Sequence[float],
-) -> dict[tuple[str, GainKey, float], tuple[GainKey, float, GainDesign]]:
+) -> dict[tuple[str, GainKey, float], tuple[GainKey, float, _D]]:
     """The plane checks a client makes once its own-response check identifies an object
     ``error`` times the K_o reported (:func:`shared.own_response.identify`): for each design of
     a K_o of ``k_os`` whose key allows a plane, ``(mode, key, error K_o)`` -> ``(key, error
@@ -285,7 +289,7 @@ def _identified_plane_jobs(
 
 
 def _alone_plane_jobs(
-    designs: dict[tuple[str, GainKey, float], GainDesign],
+    designs: Mapping[tuple[str, GainKey, float], object],
     objects: Sequence[str],
     k_os: Sequence[float],
 ) -> dict[tuple[str, GainKey, float], tuple[GainKey, float]]:
@@ -514,6 +518,21 @@ def run(
             w: pool.submit(_design_cell, w[1], w[2])
             for w in sorted(wanted, key=_design_cost, reverse=True)
         }
+        # a plane's check does not depend on the local model (it has no integral) nor on the
+        # design it is then compared with (below): each is checked once for both, queued behind
+        # the designs (the longest first), so the workers go on to them as the designs run out
+        planned = dict.fromkeys([*(design_cache or {}), *wanted])
+        errors = sorted({_OBJECTS[n].stiffness_error for n in g.objects} - {1.0})
+        to_check = [
+            *((w[1], w[2]) for w in sorted(planned, key=str) if plane_applies(w[1])),
+            *((key, k) for key, k, _d in _identified_plane_jobs(planned, errors, g.k_o).values()),
+            *_alone_plane_jobs(planned, g.objects, g.k_o).values(),
+        ]
+        check_jobs: dict[tuple[GainKey, int], Any] = {}
+        for key, k in sorted(to_check, key=lambda c: _design_cost(("p", *c)), reverse=True):
+            ck = _plane_check_key(key, k)
+            if ck not in check_jobs:
+                check_jobs[ck] = pool.submit(_checked_plane_cell, key, k)
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
         designs.update({k: f.result() for k, f in jobs.items()})
         # ... then the verified plane of each cell whose key allows one (short checks)
@@ -526,20 +545,13 @@ def run(
         # an object whose K_o is reported wrong (spring-0.8, spring-1.2), checked against the
         # design of the cell reported, as the client checks it once identified: the cache the
         # client fills on demand (the simulator renders it the check time after the verdict)
-        errors = sorted({_OBJECTS[n].stiffness_error for n in g.objects} - {1.0})
         for w_id, job in _identified_plane_jobs(designs, errors, g.k_o).items():
             wanted_planes.setdefault(w_id, job)
         # ... and the plane of each cell an object's K_o reaches that is not designed (the
         # stiffening object's, without design_reached), checked alone, as the client checks it
         # once its own-response check verifies there, before that cell's design is made
         alone = _alone_plane_jobs(designs, g.objects, g.k_o)
-        # a plane's check does not depend on the local model (it has no integral): each is
-        # checked once for both, and compared with each one's design here
-        check_jobs: dict[tuple[GainKey, int], Any] = {}
-        for key, k in (*((key, k) for key, k, _d in wanted_planes.values()), *alone.values()):
-            ck = _plane_check_key(key, k)
-            if ck not in check_jobs:
-                check_jobs[ck] = pool.submit(_checked_plane_cell, key, k)
+        # each plane checked (queued above) is compared with each one's design here
         checked = {ck: f.result() for ck, f in check_jobs.items()}
         planes = {
             w: _closer(checked[_plane_check_key(key, k)], key, d)
