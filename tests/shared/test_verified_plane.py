@@ -16,6 +16,7 @@ from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import GainTable, design_cell
+from haptic_collab.shared.interim_gains import verify_gains
 from haptic_collab.shared.verified_plane import (
     AHEAD_SOFTER,
     AHEAD_STIFFER,
@@ -86,6 +87,14 @@ def test_the_plane_is_checked_on_the_objects_it_renders_for() -> None:
     # gains across the cell would meet: there the slowest hand no longer decays at 1/s
     rho, where = worst_on_lattice(plane, [1.155 * g], sim_rate_hz=rate, delay_ticks=ticks)
     assert rho > limit, where
+
+
+def test_a_range_to_check_that_is_not_one_is_refused() -> None:
+    key, cell = _key(20.0, 0), TABLE.cell(300.0)
+    gains = dict(k_h=300.0, i_gain=0.0, b_h=0.0, proxy_hold="zoh", own_gain=1 / 300.0)
+    for bad in ((0.0, 300.0), (320.0, 300.0), (float("nan"), 300.0), (280.0, float("inf"))):
+        with pytest.raises(ValueError, match="k_o_range"):
+            verify_gains(key, cell, TABLE.grid_ratio, DEFAULT_HAND_BOX, k_o_range=bad, **gains)
 
 
 def test_off_the_verified_range_the_plane_is_not_safe() -> None:
