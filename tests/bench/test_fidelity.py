@@ -21,6 +21,7 @@ from haptic_collab.research.fidelity_ranking import (
     summarize,
 )
 from haptic_collab.research.fidelity_schemes import SCHEMES, Rendering, peer_renderings
+from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand
 
 
@@ -84,8 +85,10 @@ def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
 def test_a_narrower_design_range_is_what_knowing_the_object_would_buy() -> None:
     # the local models' design holds on an object 15 % softer than the bottom of its cell to 25 %
     # stiffer than its top; run with no range beyond the cell (the object known that well) the
-    # product renders nearly model-mediated teleoperation's plane and is felt as the spring
-    # itself, tied with mmt; its own design pays for the range with a damper felt over the band
+    # design is nearly model-mediated teleoperation's plane and is felt as the spring itself,
+    # tied with mmt; the product's own design pays for the range with a damper felt over the
+    # band, and the product is felt as the spring only through the verified plane it renders
+    # once its own-response check has seen the spring (no damper: checked on objects 5 % off)
     grid = Grid(
         k_o=(300.0,),
         sim_rate_hz=(20.0,),
@@ -111,7 +114,19 @@ def test_a_narrower_design_range_is_what_knowing_the_object_would_buy() -> None:
     (c,), (c0,) = known["conditions"], product["conditions"]
     assert c["schemes"]["local-p"]["box_stable"] and c0["schemes"]["local-p"]["box_stable"]
     err, err0 = c["schemes"]["local-p"]["felt_error"], c0["schemes"]["local-p"]["felt_error"]
-    assert err < 0.25 * math.log1p(STIFFNESS_JND) and 3.0 * err < err0
+    assert err < 0.25 * math.log1p(STIFFNESS_JND) and err0 < 0.25 * math.log1p(STIFFNESS_JND)
+    assert g0["verified_plane"] is not None and g0["verified_plane"]["b_h"] == 0.0
+
+    def design_error(d: dict[str, Any]) -> float:
+        # the design's felt error over the band on the spring, where no plane renders
+        q = felt_responses(
+            FELT_BAND_HZ, k_o=300.0, k_h=d["k_h"], b_h=d["b_h"], rate_ratio=50, delay_ticks=0,
+            proxy_hold=d["proxy_hold"], own_gain=d["own_gain"],
+        )[:, 0]  # fmt: skip
+        return max(abs(math.log(abs(v) / 300.0)) for v in q)
+
+    known_error, product_error = design_error(g), design_error(g0)
+    assert known_error < 0.25 * math.log1p(STIFFNESS_JND) and 3.0 * known_error < product_error
     assert "local-p" in c["near_best"]
     for bad in ({"design_margin": 1.0}, {"design_margin": -0.1}, {"design_stiffer_by": math.nan}):
         with pytest.raises(ValueError, match="design_"):
