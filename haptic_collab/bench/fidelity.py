@@ -266,7 +266,7 @@ def _closer(plane: GainDesign | None, key: GainKey, design: GainDesign) -> GainD
     return plane if plane is not None and felt_closer(plane, key, design) else None
 
 
-#: A design, or a placeholder where only the keys are read.
+#: What a job is held against: a design, or the key of the design it will be.
 _D = TypeVar("_D")
 
 
@@ -518,16 +518,24 @@ def run(
             w: pool.submit(_design_cell, w[1], w[2])
             for w in sorted(wanted, key=_design_cost, reverse=True)
         }
-        # a plane's check does not depend on the local model (it has no integral) nor on the
-        # design it is then compared with (below): each is checked once for both, queued behind
-        # the designs (the longest first), so the workers go on to them as the designs run out
-        planned = dict.fromkeys([*(design_cache or {}), *wanted])
+        # the verified plane of each cell whose key allows one, each held against its design (by
+        # the design's key: a plane's check needs neither the design nor the local model) ...
+        planned = {w: w for w in sorted({*(design_cache or {}), *wanted}, key=str)}
+        wanted_planes = {w: (w[1], w[2], w) for w in planned if plane_applies(w[1])}
+        # ... and the plane of the cell of the stiffness the own-response check identifies on
+        # an object whose K_o is reported wrong (spring-0.8, spring-1.2), checked against the
+        # design of the cell reported, as the client checks it once identified: the cache the
+        # client fills on demand (the simulator renders it the check time after the verdict)
         errors = sorted({_OBJECTS[n].stiffness_error for n in g.objects} - {1.0})
-        to_check = [
-            *((w[1], w[2]) for w in sorted(planned, key=str) if plane_applies(w[1])),
-            *((key, k) for key, k, _d in _identified_plane_jobs(planned, errors, g.k_o).values()),
-            *_alone_plane_jobs(planned, g.objects, g.k_o).values(),
-        ]
+        for w_id, job in _identified_plane_jobs(planned, errors, g.k_o).items():
+            wanted_planes.setdefault(w_id, job)
+        # ... and the plane of each cell an object's K_o reaches that is not designed (the
+        # stiffening object's, without design_reached), checked alone, as the client checks it
+        # once its own-response check verifies there, before that cell's design is made
+        alone = _alone_plane_jobs(planned, g.objects, g.k_o)
+        # each plane checked once for both local models, queued behind the designs (the longest
+        # first), so that the workers go on to the checks as the designs run out
+        to_check = [*((key, k) for key, k, _w in wanted_planes.values()), *alone.values()]
         check_jobs: dict[tuple[GainKey, int], Any] = {}
         for key, k in sorted(to_check, key=lambda c: _design_cost(("p", *c)), reverse=True):
             ck = _plane_check_key(key, k)
@@ -535,27 +543,10 @@ def run(
                 check_jobs[ck] = pool.submit(_checked_plane_cell, key, k)
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
         designs.update({k: f.result() for k, f in jobs.items()})
-        # ... then the verified plane of each cell whose key allows one (short checks)
-        wanted_planes = {
-            w: (w[1], w[2], d)
-            for w, d in sorted(designs.items(), key=lambda kv: str(kv[0]))
-            if plane_applies(w[1])
-        }
-        # ... and the plane of the cell of the stiffness the own-response check identifies on
-        # an object whose K_o is reported wrong (spring-0.8, spring-1.2), checked against the
-        # design of the cell reported, as the client checks it once identified: the cache the
-        # client fills on demand (the simulator renders it the check time after the verdict)
-        for w_id, job in _identified_plane_jobs(designs, errors, g.k_o).items():
-            wanted_planes.setdefault(w_id, job)
-        # ... and the plane of each cell an object's K_o reaches that is not designed (the
-        # stiffening object's, without design_reached), checked alone, as the client checks it
-        # once its own-response check verifies there, before that cell's design is made
-        alone = _alone_plane_jobs(designs, g.objects, g.k_o)
-        # each plane checked (queued above) is compared with each one's design here
         checked = {ck: f.result() for ck, f in check_jobs.items()}
         planes = {
-            w: _closer(checked[_plane_check_key(key, k)], key, d)
-            for w, (key, k, d) in wanted_planes.items()
+            w: _closer(checked[_plane_check_key(key, k)], key, designs[dw])
+            for w, (key, k, dw) in wanted_planes.items()
         }
         alone_planes = {w: checked[_plane_check_key(key, k)] for w, (key, k) in alone.items()}
         if design_cache is not None:
