@@ -195,6 +195,34 @@ def test_a_surface_that_moves_with_a_jump_of_force_is_not_identified_as_a_stiffn
     assert c.ratio == pytest.approx(1.49, abs=0.01)  # what the line alone says
 
 
+@pytest.mark.parametrize("error", [0.8, 1.2])
+def test_a_half_second_press_read_at_10_hz_is_identified(error: float) -> None:
+    # a minimum-jerk press to 3 N over half a second, read in patches 0.1 s apart (a 10 Hz
+    # simulation), then held: its middle change carries about half the movement (more than a
+    # jump over three patches gives any one of them) but it lies on the line through four more
+    c = OwnResponse()
+    u = np.clip((np.arange(30) * 0.1 - 0.05) / 0.5, 0.0, 1.0)
+    forces = 0.1 + 2.9 * (10 * u**3 - 15 * u**4 + 6 * u**5)
+    seen = [
+        c.update(dt_s=0.1, surface_m=f / (error * K_O), force_n=float(f), k_o=K_O) for f in forces
+    ]
+    assert seen[-1] and c.identified_ratio == pytest.approx(error, rel=1e-6)
+
+
+def test_a_jump_between_two_trembling_holds_is_not_identified_as_a_stiffness() -> None:
+    # the jump of the test above at once, each hold trembling by 0.03 N (a hand's tremor): the
+    # small changes spread the movement's sum of |dF| over many patches, but the jump still
+    # carries most of its sum of squares
+    rng = np.random.default_rng(3)
+    c = OwnResponse()
+    levels = [1.0] * 40 + [2.0] * 30
+    for i, f0 in enumerate(levels):
+        f = f0 + 0.03 * rng.standard_normal()
+        x = f / K_O - (0.0011 if i >= 40 else 0.0)
+        ok = c.update(dt_s=DT, surface_m=x, force_n=f, k_o=K_O)
+        assert not ok or abs(c.identified_ratio - 1.0) <= 0.05, c.identified_ratio
+
+
 def test_a_force_that_is_not_a_number_does_not_hide_a_jump() -> None:
     # the same jump at once, with a patch carrying no finite force between the two levels
     c = OwnResponse()
