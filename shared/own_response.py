@@ -45,9 +45,7 @@ The verdict (:attr:`OwnResponse.verified`) holds the object to a stiffness ``ref
   between two patches carried more than :data:`IDENTIFY_MAX_JUMP_SHARE` of the force's movement
   (a line through two levels of force held apart by a jump, or by a few patches, says nothing of
   what lies between: a surface that moved with the jump, an object that changed;
-  :func:`update_jumps`; up to :data:`IDENTIFY_SPREAD_JUMP_SHARE` where the movement is spread
-  over :data:`IDENTIFY_MIN_CHANGES` changes' worth, :func:`jumps_spread`), where the spread is
-  met and the
+  :func:`update_jumps`), where the spread is met and the
   line explains ``r_hat`` but ``rho`` is more than ``refuse_tolerance`` off ``ref``, and within :data:`IDENTIFY_RANGE` of
   the K_o reported, ``ref`` moves to ``rho`` and the object is verified as that stiffness (the
   K_o reported may be wrong: a stiffness estimated cheaply, a linearised FEM; model-mediated
@@ -112,24 +110,10 @@ IDENTIFY_MIN_SAMPLES = 5.0
 #: 0.2 the fidelity benchmark's half-second press, read at 20 Hz through the loop, was refused
 #: where it is identified at 0.3 (300 N/m, no delay; 100 N/m, 100 ms).
 IDENTIFY_MAX_JUMP_SHARE = 0.3
-#: ... or up to this share where the movement is spread over at least
-#: :data:`IDENTIFY_MIN_CHANGES` changes' worth (:func:`jump_changes`): a smooth press read in
-#: five patches (a half-second press at 10 Hz) carries about 0.48 of it in its middle change,
-#: with four more on either side (3.7 changes' worth), where a jump spread evenly over three
-#: patches carries a third in each (3 changes' worth) and over two, a half (2).
-IDENTIFY_SPREAD_JUMP_SHARE = 0.5
-#: Least number of changes' worth, ``(sum |dF|)^2 / sum dF^2`` (the participation ratio: n for
-#: a movement in n equal changes), with which a change may carry up to
-#: :data:`IDENTIFY_SPREAD_JUMP_SHARE`: between a jump over three patches (3) and a smooth press
-#: read in five (3.7); four equal changes (4) pass the share of
-#: :data:`IDENTIFY_MAX_JUMP_SHARE` already.
-IDENTIFY_MIN_CHANGES = 3.5
 
 #: The jump sums the check keeps, in this order along the last axis: the largest ``dF^2``
-#: [N^2], the sum of ``dF^2`` [N^2] (both aged by ``exp(-dt / window_s)``), the last force [N],
-#: the sum of ``|dF|`` [N] (aged by the square root of that, so that :func:`jump_changes` does not
-#: change as the window ages).
-JUMPS = 4
+#: [N^2], the sum of ``dF^2`` [N^2] (both aged by ``exp(-dt / window_s)``), the last force [N].
+JUMPS = 3
 
 
 def empty_jumps(shape: tuple[int, ...] = ()) -> FloatArray:
@@ -151,16 +135,10 @@ def update_jumps(
     returned unchanged (the next finite force is compared with the last finite one)."""
     f = np.asarray(force_n, dtype=float)
     a = np.exp(-np.asarray(dt_s, dtype=float) / window_s)
-    d1 = np.abs(f - jumps[..., 2])
-    d1 = np.where(np.isfinite(d1), d1, 0.0)
-    d2 = np.square(d1)
+    d2 = np.square(f - jumps[..., 2])
+    d2 = np.where(np.isfinite(d2), d2, 0.0)
     out = np.stack(
-        np.broadcast_arrays(
-            np.maximum(jumps[..., 0] * a, d2),
-            jumps[..., 1] * a + d2,
-            f,
-            jumps[..., 3] * np.sqrt(a) + d1,
-        ),
+        np.broadcast_arrays(np.maximum(jumps[..., 0] * a, d2), jumps[..., 1] * a + d2, f),
         axis=-1,
     )
     ok = np.isfinite(f) & np.isfinite(a)
@@ -172,24 +150,6 @@ def jump_share(jumps: FloatArray) -> FloatArray:
     ``jumps.shape[:-1]``: 1 where the force never moved."""
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(jumps[..., 1] > 0.0, jumps[..., 0] / jumps[..., 1], 1.0)
-
-
-def jump_changes(jumps: FloatArray) -> FloatArray:
-    """How many changes' worth the force's movement is spread over (:func:`update_jumps`):
-    ``(sum |dF|)^2 / sum dF^2``, n for n equal changes, shape ``jumps.shape[:-1]``; 0 where the
-    force never moved."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(jumps[..., 1] > 0.0, np.square(jumps[..., 3]) / jumps[..., 1], 0.0)
-
-
-def jumps_spread(jumps: FloatArray, max_share: float = IDENTIFY_MAX_JUMP_SHARE) -> FloatArray:
-    """Whether the force's movement is spread enough over the patches to identify a stiffness
-    from it (:func:`update_jumps`), shape ``jumps.shape[:-1]``: no change carries more than
-    ``max_share`` of it, or none more than :data:`IDENTIFY_SPREAD_JUMP_SHARE` with the movement
-    spread over at least :data:`IDENTIFY_MIN_CHANGES` changes' worth (:func:`jump_changes`)."""
-    share = jump_share(jumps)
-    spread = (share <= IDENTIFY_SPREAD_JUMP_SHARE) & (jump_changes(jumps) >= IDENTIFY_MIN_CHANGES)
-    return np.asarray((share <= max_share) | spread)
 
 
 def empty_sums(shape: tuple[int, ...] = ()) -> FloatArray:
@@ -357,9 +317,8 @@ def identify(
     (K' / K_o the check holds the object to so far), except where the check has read the contact
     for ``elapsed_s`` [s] >= ``identify_after_s`` (to a nanosecond) and a weight of
     ``identify_min_samples`` patches, the largest change of force between two patches carries
-    at most ``identify_max_jump_share`` of the force's movement, or a spread movement at most
-    :data:`IDENTIFY_SPREAD_JUMP_SHARE` (``jumps``: :func:`jumps_spread`; None: not asked), and
-    the window shows a line (spread met, residual
+    at most ``identify_max_jump_share`` of the force's movement (``jumps``:
+    :func:`update_jumps`; None: not asked), and the window shows a line (spread met, residual
     small) whose ``rho`` is more than ``refuse_tolerance`` off ``ref`` and within
     ``identify_range`` of 1 (``1 / identify_range <= rho <= identify_range``): there ``ref``
     becomes ``rho`` and the verdict is :func:`verdict` against it (the module docstring's
@@ -381,7 +340,7 @@ def identify(
         moved &= np.asarray(elapsed_s, dtype=float) >= identify_after_s - 1e-9
         moved &= sums[..., 0] >= identify_min_samples
         if jumps is not None:
-            moved &= jumps_spread(jumps, identify_max_jump_share)
+            moved &= jump_share(jumps) <= identify_max_jump_share
     new_ref = np.where(moved, rho, ref_a)
     ok = verdict(
         sums,

@@ -195,31 +195,24 @@ def test_a_surface_that_moves_with_a_jump_of_force_is_not_identified_as_a_stiffn
     assert c.ratio == pytest.approx(1.49, abs=0.01)  # what the line alone says
 
 
-@pytest.mark.parametrize("error", [0.8, 1.2])
-def test_a_half_second_press_read_at_10_hz_is_identified(error: float) -> None:
-    # a minimum-jerk press to 3 N over half a second, read in patches 0.1 s apart (a 10 Hz
-    # simulation), then held: its middle change carries about half the movement (more than a
-    # jump over three patches gives any one of them) but it lies on the line through four more
-    c = OwnResponse()
-    u = np.clip((np.arange(30) * 0.1 - 0.05) / 0.5, 0.0, 1.0)
-    forces = 0.1 + 2.9 * (10 * u**3 - 15 * u**4 + 6 * u**5)
-    seen = [
-        c.update(dt_s=0.1, surface_m=f / (error * K_O), force_n=float(f), k_o=K_O) for f in forces
-    ]
-    assert seen[-1] and c.identified_ratio == pytest.approx(error, rel=1e-6)
-
-
-def test_a_jump_between_two_trembling_holds_is_not_identified_as_a_stiffness() -> None:
-    # the jump of the test above at once, each hold trembling by 0.03 N (a hand's tremor): the
-    # small changes spread the movement's sum of |dF| over many patches, but the jump still
-    # carries most of its sum of squares
+@pytest.mark.parametrize("between", [0, 1, 2])
+def test_a_jump_between_trembling_holds_is_not_identified_as_a_stiffness(between: int) -> None:
+    # the jump of the test above, each patch's force trembling by 10 mN (a hand's tremor), the
+    # surface following the tremor as the object does. A rule that let a change carry up to half
+    # of the force's movement where the movement is spread over 3.5 changes' worth or more
+    # ((sum |dF|)^2 / sum dF^2; tried 2026-11-26 for a half-second press read at 10 Hz in five
+    # patches) identified this as 1.49 K_o in every seed over three patches: the tremor's small
+    # changes count as spread
     rng = np.random.default_rng(3)
     c = OwnResponse()
-    levels = [1.0] * 40 + [2.0] * 30
-    for i, f0 in enumerate(levels):
-        f = f0 + 0.03 * rng.standard_normal()
-        x = f / K_O - (0.0011 if i >= 40 else 0.0)
-        ok = c.update(dt_s=DT, surface_m=x, force_n=f, k_o=K_O)
+    hold1 = [(1.0 / K_O, 1.0)] * 40
+    ramp = [
+        (-0.0011 * a + (1.0 + a) / K_O, 1.0 + a) for a in np.linspace(0.0, 1.0, between + 2)[1:-1]
+    ]
+    hold2 = [(-0.0011 + 2.0 / K_O, 2.0)] * 30
+    for x, f in hold1 + ramp + hold2:
+        tremor = 0.01 * rng.standard_normal()
+        ok = c.update(dt_s=DT, surface_m=x + tremor / K_O, force_n=f + tremor, k_o=K_O)
         assert not ok or abs(c.identified_ratio - 1.0) <= 0.05, c.identified_ratio
 
 
