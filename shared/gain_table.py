@@ -11,11 +11,12 @@ is being designed, and the warm-up of a worker process (:func:`warm_up`).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import replace
 
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from haptic_collab.shared.gain_design import GainDesign, design_gains
-from haptic_collab.shared.gain_key import K_O_GRID_RATIO, GainKey, coupled_k_o_hi
+from haptic_collab.shared.gain_design import GainDesign, design_gains, design_gains_modes
+from haptic_collab.shared.gain_key import K_O_GRID_RATIO, GainKey, Mode, coupled_k_o_hi
 
 
 def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, float]:
@@ -147,14 +148,34 @@ def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -
     ValueError
         As :func:`shared.gain_design.design_gains`.
     """
+    return design_cell_modes(key, cell, grid_ratio, hand_box, (key.mode,))[key.mode]
+
+
+def design_cell_modes(
+    key: GainKey,
+    cell: int,
+    grid_ratio: float,
+    hand_box: HandBox,
+    modes: Sequence[Mode] = ("p", "pi"),
+) -> dict[Mode, GainDesign]:
+    """:func:`design_cell` of ``key`` with each local model of ``modes`` (``key.mode``
+    ignored), ``{mode: design}``, their common candidates searched once
+    (:func:`shared.gain_design.design_gains_modes`): what the fidelity benchmark designs for the
+    keys of both local models.
+
+    Raises
+    ------
+    ValueError
+        As :func:`shared.gain_design.design_gains_modes`.
+    """
     g = grid_ratio**cell
-    return design_gains(
+    return design_gains_modes(
         g,
+        modes=modes,
         b_o=key.b_o,
         servo_rate_hz=key.servo_rate_hz,
         sim_rate_hz=key.sim_rate_hz,
         delay_ticks=key.delay_ticks,
-        mode=key.mode,
         margin=key.margin,
         k_o_hi=cell_k_o_range(key, cell, grid_ratio)[1],
         k_h_max=key.k_h_max,

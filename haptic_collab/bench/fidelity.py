@@ -80,8 +80,8 @@ from haptic_collab.research.fidelity_schemes import (
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
 from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY, GainKey
-from haptic_collab.shared.gain_table import GainTable, design_cell
+from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY, GainKey, Mode
+from haptic_collab.shared.gain_table import GainTable, design_cell, design_cell_modes
 from haptic_collab.shared.verified_plane import (
     checked_plane,
     felt_closer,
@@ -315,6 +315,16 @@ def _design_cell(key: GainKey, k_o: float) -> GainDesign:
     return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box)
 
 
+def _design_cells(key: GainKey, k_o: float, modes: tuple[str, ...]) -> dict[str, GainDesign]:
+    """:func:`_design_cell` of ``key`` with each local model of ``modes``, ``{mode: design}``,
+    their common candidates searched once (a worker's job;
+    :func:`shared.gain_table.design_cell_modes`)."""
+    table = GainTable(DEFAULT_HAND_BOX)
+    ms: tuple[Mode, ...] = tuple("pi" if m == "pi" else "p" for m in modes)
+    out = design_cell_modes(key, table.cell(k_o), table.grid_ratio, table.hand_box, ms)
+    return {m: out["pi" if m == "pi" else "p"] for m in modes}
+
+
 def _design(key: GainKey, k_o: float) -> GainDesign:
     """The design the product's client renders for K_o under ``key``: its cell's, scaled to K_o
     (:meth:`shared.gain_table.GainTable.lookup`)."""
@@ -512,11 +522,18 @@ def run(
                             for k in _k_o_designed(_OBJECTS[name], k_o, design_reached):
                                 if design_cache is None or (mode, key, k) not in design_cache:
                                     wanted.add((mode, key, k))
-        # the longest designs first, so that no worker is left with one at the end: a design
-        # checks N sampling ticks of a loop of about N + delay states (eigenvalues: cubic)
-        jobs: dict[tuple[str, GainKey, float], Any] = {
-            w: pool.submit(_design_cell, w[1], w[2])
-            for w in sorted(wanted, key=_design_cost, reverse=True)
+        # both local models' designs of a key and K_o in one job (their compensated candidates
+        # are the same: searched once), the longest first, so that no worker is left with one
+        # at the end: a design checks N sampling ticks of a loop of about N + delay states
+        # (eigenvalues: cubic)
+        pairs: dict[tuple[GainKey, float], list[tuple[str, GainKey, float]]] = defaultdict(list)
+        for w in sorted(wanted, key=str):
+            pairs[(replace(w[1], mode="p"), w[2])].append(w)
+        jobs: dict[tuple[GainKey, float], Any] = {
+            pk: pool.submit(_design_cells, pk[0], pk[1], tuple(w[0] for w in ws))
+            for pk, ws in sorted(
+                pairs.items(), key=lambda kv: sum(_design_cost(w)[0] for w in kv[1]), reverse=True
+            )
         }
         # the verified plane of each cell whose key allows one, each held against its design (by
         # the design's key: a plane's check needs neither the design nor the local model) ...
@@ -542,7 +559,9 @@ def run(
             if ck not in check_jobs:
                 check_jobs[ck] = pool.submit(_checked_plane_cell, key, k)
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
-        designs.update({k: f.result() for k, f in jobs.items()})
+        for pk, f in jobs.items():
+            both = f.result()
+            designs.update({w: both[w[0]] for w in pairs[pk]})
         checked = {ck: f.result() for ck, f in check_jobs.items()}
         planes = {
             w: _closer(checked[_plane_check_key(key, k)], key, designs[dw])

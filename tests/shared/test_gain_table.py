@@ -12,9 +12,14 @@ import pytest
 
 from haptic_collab.shared.felt_stiffness import felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
-from haptic_collab.shared.gain_design import GainDesign, design_gains
+from haptic_collab.shared.gain_design import GainDesign, design_gains, design_gains_modes
 from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import GainTable, cell_k_o_range
+from haptic_collab.shared.gain_table import (
+    GainTable,
+    cell_k_o_range,
+    design_cell,
+    design_cell_modes,
+)
 from haptic_collab.shared.interim_gains import verify_gains
 from tests.support.hand_lattice import SERVO_HZ, T, worst_on_lattice
 
@@ -29,7 +34,7 @@ def _key(mode: str = "p") -> GainKey:
         servo_rate_hz=SERVO_HZ,
         sim_rate_hz=20.0,
         delay_ticks=0,
-        mode=mode,  # type: ignore[arg-type]
+        mode=mode,
         margin=MARGIN,
         k_h_max=K_H_MAX,
         b_h_max=B_H_MAX,
@@ -235,3 +240,36 @@ def test_table_refuses_bad_grid_and_stiffness() -> None:
             table.cell(bad)
         with pytest.raises(ValueError):
             table.lookup(_key(), bad)
+
+
+@pytest.mark.parametrize(
+    ("k_o", "sim_rate_hz", "delay_ticks", "b_o"),
+    [(300.0, 100.0, 5, 0.0), (3000.0, 10.0, 1, 0.0), (300.0, 100.0, 1, 391.0)],
+)
+def test_both_local_models_designed_at_once_are_each_the_design_made_alone(
+    k_o: float, sim_rate_hz: float, delay_ticks: int, b_o: float
+) -> None:
+    # the fidelity benchmark designs P and PI together, searching their common (compensated)
+    # candidates once: each must be exactly the design the client makes for its own key
+    # (a cell below, above the device's stiffness with the plane's candidates, and with a B_o)
+    key = replace(
+        _key(), sim_rate_hz=sim_rate_hz, delay_ticks=delay_ticks, b_o=b_o, stiffer_by=0.25
+    )
+    table = GainTable()
+    cell = table.cell(k_o)
+    both = design_cell_modes(key, cell, table.grid_ratio, table.hand_box)
+    for mode in ("p", "pi"):
+        alone = design_cell(replace(key, mode=mode), cell, table.grid_ratio, table.hand_box)
+        assert both[mode] == alone
+    assert both["p"].mode == "p" and both["p"].i_gain == 0.0
+
+
+def test_a_pi_design_with_no_stable_integral_is_the_p_design_when_both_are_made() -> None:
+    # no damper and 4 ticks of delay: no integral holds the box, and PI renders the P design
+    # (as design_gains does for PI alone)
+    args = {"sim_rate_hz": 20.0, "delay_ticks": 4, "b_h_max": 0.0, "k_h_max": K_H_MAX}
+    both = design_gains_modes(300.0, **args)
+    assert both["pi"] == both["p"] == design_gains(300.0, mode="pi", **args)
+    assert both["pi"].mode == "p"
+    with pytest.raises(ValueError, match="mode"):
+        design_gains_modes(300.0, modes=())
