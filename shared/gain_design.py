@@ -345,6 +345,7 @@ def design_gains_modes(
         As :func:`design_gains`, or ``modes`` empty or naming another local model.
     """
 
+    params = dict(locals())  # the arguments, for the fallback of PI to P below
     rates = Rates(servo_rate_hz, sim_rate_hz)
     N, T = rates.ratio, rates.servo_period_s
     if not (math.isfinite(k_o) and k_o > 0.0):
@@ -452,27 +453,7 @@ def design_gains_modes(
         if found is None and m == "pi":
             # no integral is stable here: render the best proportional local model instead
             out[m] = (
-                out["p"]
-                if "p" in out
-                else design_gains_modes(
-                    k_o,
-                    modes=("p",),
-                    b_o=b_o,
-                    servo_rate_hz=servo_rate_hz,
-                    sim_rate_hz=sim_rate_hz,
-                    delay_ticks=delay,
-                    margin=margin,
-                    k_o_hi=k_o_hi,
-                    k_h_max=k_h_max,
-                    b_h_max=b_h_max,
-                    holds=holds,
-                    hand_box=hand_box,
-                    min_decay_rate_per_s=min_decay_rate_per_s,
-                    own_force=own_force,
-                    felt_k_os=felt_k_os,
-                    scaled=scaled,
-                    stiffer_by=stiffer_by,
-                )["p"]
+                out["p"] if "p" in out else design_gains_modes(**{**params, "modes": ("p",)})["p"]
             )
             continue
         if found is None:
