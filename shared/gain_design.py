@@ -419,10 +419,7 @@ def design_gains_modes(
     # limit, and checking them scaled dropped PI designs that felt 8 % stiffer (3000 N/m, 100 Hz,
     # 40 ticks: 0.42 against 0.46 K_o at 1 Hz)
     top = max(felt_at) / k_o if scaled else 1.0
-    smax = [
-        np.clip(k_h_max / base["k_h"], 1.0, max(top, 1.0)) if g > 0 else np.ones_like(base["k_h"])
-        for g, (base, _) in enumerate(groups)
-    ]
+    smax = [np.clip(k_h_max / base["k_h"], 1.0, max(top, 1.0)) for base, _ in groups[1:]]
 
     best: dict[Mode, Candidate | None] = dict.fromkeys(by_mode)
 
@@ -437,11 +434,13 @@ def design_gains_modes(
             b_m = best[m]
             bound = None if b_m is None else b_m.rank[0]
             keep(m, search.best_in_group(paper, with_i, hold, np.ones_like(paper["k_h"]), bound))
-    for (g, (base, with_i)), hold in itertools.product(enumerate(groups[1:], 1), holds):
+    for ((base, with_i), s_max), hold in itertools.product(
+        zip(groups[1:], smax, strict=True), holds
+    ):
         # pruned below the least transparent best so far: no mode's best can lie there
         bests = list(best.values())
         bound = None if any(x is None for x in bests) else min(x.rank[0] for x in bests if x)
-        found = search.best_in_group(base, with_i, hold, smax[g], bound)
+        found = search.best_in_group(base, with_i, hold, s_max, bound)
         for m in best:
             keep(m, found)
 

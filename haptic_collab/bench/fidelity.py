@@ -315,14 +315,12 @@ def _design_cell(key: GainKey, k_o: float) -> GainDesign:
     return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box)
 
 
-def _design_cells(key: GainKey, k_o: float, modes: tuple[str, ...]) -> dict[str, GainDesign]:
+def _design_cells(key: GainKey, k_o: float, modes: tuple[Mode, ...]) -> dict[Mode, GainDesign]:
     """:func:`_design_cell` of ``key`` with each local model of ``modes``, ``{mode: design}``,
     their common candidates searched once (a worker's job;
     :func:`shared.gain_table.design_cell_modes`)."""
     table = GainTable(DEFAULT_HAND_BOX)
-    ms: tuple[Mode, ...] = tuple("pi" if m == "pi" else "p" for m in modes)
-    out = design_cell_modes(key, table.cell(k_o), table.grid_ratio, table.hand_box, ms)
-    return {m: out["pi" if m == "pi" else "p"] for m in modes}
+    return design_cell_modes(key, table.cell(k_o), table.grid_ratio, table.hand_box, modes)
 
 
 def _design(key: GainKey, k_o: float) -> GainDesign:
@@ -530,7 +528,7 @@ def run(
         for w in sorted(wanted, key=str):
             pairs[(replace(w[1], mode="p"), w[2])].append(w)
         jobs: dict[tuple[GainKey, float], Any] = {
-            pk: pool.submit(_design_cells, pk[0], pk[1], tuple(w[0] for w in ws))
+            pk: pool.submit(_design_cells, pk[0], pk[1], tuple(w[1].mode for w in ws))
             for pk, ws in sorted(
                 pairs.items(), key=lambda kv: sum(_design_cost(w)[0] for w in kv[1]), reverse=True
             )
@@ -561,7 +559,7 @@ def run(
         designs: dict[tuple[str, GainKey, float], GainDesign] = dict(design_cache or {})
         for pk, f in jobs.items():
             both = f.result()
-            designs.update({w: both[w[0]] for w in pairs[pk]})
+            designs.update({w: both[w[1].mode] for w in pairs[pk]})
         checked = {ck: f.result() for ck, f in check_jobs.items()}
         planes = {
             w: _closer(checked[_plane_check_key(key, k)], key, designs[dw])
