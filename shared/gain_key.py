@@ -161,7 +161,8 @@ class GainKey:
     own_force: bool = True
     #: Fraction by which the object may be stiffer than the K_o reported (a model error: a
     #: viscoelastic or strain-stiffening object, a K_o estimated low): a cell's design is checked
-    #: up to ``(1 + stiffer_by)`` times the top of its range (:func:`cell_k_o_range`).
+    #: up to ``(1 + stiffer_by)`` times the top of its range, or up to that top plus ``b_o``
+    #: where that is higher (:func:`cell_k_o_range`).
     stiffer_by: float = STIFFER_BY
 
     @property

@@ -23,15 +23,21 @@ def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, f
     """``[(1 - margin) g_i, k_o_hi]`` [N/m], the K_o range a :class:`GainTable` cell is checked over.
 
     ``g_i = grid_ratio**cell``; ``k_o_hi`` is the next grid point times ``1 + key.stiffer_by``,
-    or for a coupled contact ``coupled_k_o_hi(g_(i+1), key.stiff_ratio)`` where that is higher
-    (:mod:`shared.coupled_loop`).
+    or its one-tick stiffness ``g_(i+1) + key.b_o`` where that is higher (an object with mass
+    or relaxation: eq. 9's B_o, docs/gains.md), or for a coupled contact
+    ``coupled_k_o_hi(g_(i+1), key.stiff_ratio)`` where that is higher (:mod:`shared.coupled_loop`).
     """
     g = grid_ratio**cell
     top = grid_ratio ** (cell + 1)
     # an object stiffer than reported; a coupled contact's modal range already reaches beyond
     # (the two are not stacked: a coupled press on the balloon then got the paper's PI, felt
-    # 0.79 K_o at 1 Hz, instead of a compensated model)
-    hi = top * (1.0 + key.stiffer_by)
+    # 0.79 K_o at 1 Hz, instead of a compensated model). An object with mass or relaxation is
+    # as stiff as K_o + B_o to a step push over its first simulation period, and a relaxing one
+    # (a standard linear solid, a FEM solid's slow modes) stays near that for many periods where
+    # eq. 9 lets it relax within one or two: checked only up to 1.25 K_o, a P design (300 N/m,
+    # 100 Hz, 2 ticks, B_o 472 N/m) held the heavy loose hand in a 4.5 Hz, 0.75 mm ring on the
+    # fidelity benchmark's viscoelastic object (docs/fidelity.md)
+    hi = max(top * (1.0 + key.stiffer_by), top + key.b_o)
     if key.stiff_ratio != 1.0:
         hi = max(hi, coupled_k_o_hi(top, key.stiff_ratio))
     return (1.0 - key.margin) * g, hi

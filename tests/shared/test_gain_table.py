@@ -231,6 +231,23 @@ def test_table_fallback_gains_are_stable_for_the_box_at_the_stiffness_they_are_s
     assert rho < 1.0, f"fallback unstable (spectral radius {rho:.4f}) for {where}"
 
 
+def test_a_cell_is_checked_up_to_the_one_tick_stiffness_of_a_massive_or_relaxing_object() -> None:
+    # a spring's cell is checked up to 1.25 times its top; an object that reports B_o is as stiff
+    # as K_o + B_o over a step push's first simulation period, and its cell is checked up to
+    # that where it is higher (docs/gains.md)
+    table = GainTable()
+    i = table.cell(300.0)
+    top = table.grid_point(i + 1)
+    key = replace(_key(), stiffer_by=0.25)
+    assert cell_k_o_range(key, i, table.grid_ratio)[1] == pytest.approx(1.25 * top)
+    assert cell_k_o_range(replace(key, b_o=50.0), i, table.grid_ratio)[1] == pytest.approx(
+        1.25 * top
+    )
+    lo, hi = cell_k_o_range(replace(key, b_o=472.0), i, table.grid_ratio)
+    assert hi == pytest.approx(top + 472.0)
+    assert lo == pytest.approx((1.0 - MARGIN) * table.grid_point(i))
+
+
 def test_table_refuses_bad_grid_and_stiffness() -> None:
     with pytest.raises(ValueError):
         GainTable(grid_ratio=1.0)

@@ -96,8 +96,10 @@ def test_the_design_with_compensation_is_near_k_o_and_stable_over_the_box(
 
 def test_on_a_damped_object_the_design_is_felt_as_the_object_not_as_its_rest_stiffness():
     # eq. 9's object with B_o > 0 is stiffer to a quick press than at rest: the design is judged
-    # against that (object_stiffness), so it renders the stiffening (felt within 0.15 of it over
-    # the band, 0.96 off K_o); judged against K_o it made its gains softer to cancel it
+    # against that (object_stiffness), so it renders the stiffening (felt within 0.25 of it over
+    # the band, 0.64 off K_o); judged against K_o it made its gains softer to cancel it. (Within
+    # 0.15 while its cell was checked up to 1.25 K_o; up to the one-tick stiffness K_o + B_o,
+    # 1.8 K_o here, it is a softer K_h with more compensation: docs/gains.md)
     key = replace(_key(20.0, 0, "p", True), b_o=74.0)
     table = GainTable(DEFAULT_HAND_BOX)
     cell = table.cell(100.0)
@@ -105,7 +107,7 @@ def test_on_a_damped_object_the_design_is_felt_as_the_object_not_as_its_rest_sti
     q = np.abs(felt_responses(FELT_BAND_HZ, k_o=100.0, k_h=d.k_h, b_h=d.b_h, b_o=74.0,
                               rate_ratio=50, proxy_hold=d.proxy_hold, own_gain=d.own_gain)[:, 0])  # fmt: skip
     own = np.abs(object_stiffness(FELT_BAND_HZ, k_o=100.0, b_o=74.0, sim_period_s=0.05)[:, 0])
-    assert np.max(np.abs(np.log(q / own))) < 0.15
+    assert np.max(np.abs(np.log(q / own))) < 0.3
     assert np.max(np.abs(np.log(q / 100.0))) > 0.5
     ok, _ = verify_gains(key, cell, table.grid_ratio, DEFAULT_HAND_BOX, k_h=d.k_h, i_gain=0.0,
                          b_h=d.b_h, proxy_hold=d.proxy_hold, own_gain=d.own_gain)  # fmt: skip
