@@ -175,8 +175,9 @@ def _profile_design(
     """The product's design (:func:`shared.gain_design.design_gains`, timed) for K_o with the
     stiffness and damping limits of the device profile ``profile``; ``paper``: without own-force
     compensation; ``stiffer_by`` (default the product's :data:`shared.gain_key.STIFFER_BY`):
-    checked up to ``(1 + stiffer_by) K_o``. Raises KeyError (unknown profile) or ValueError (as
-    the design)."""
+    checked up to ``(1 + stiffer_by) K_o``, or up to the one-tick stiffness ``K_o + B_o`` where
+    that is higher (as :func:`shared.gain_table.cell_k_o_range` checks a cell). Raises KeyError
+    (unknown profile) or ValueError (as the design)."""
     from haptic_collab.client.devices.profiles import get_sim_profile
     from haptic_collab.shared.gain_design import design_gains
     from haptic_collab.shared.gain_key import STIFFER_BY
@@ -190,7 +191,7 @@ def _profile_design(
         k_h_max=lim.max_stiffness_n_per_m,
         b_h_max=lim.max_damping_n_s_per_m,
         own_force=not paper,
-        k_o_hi=k_o * (1.0 + sb),
+        k_o_hi=max(k_o * (1.0 + sb), k_o + float(kw.get("b_o", 0.0))),
         stiffer_by=sb,
         **kw,
     )
@@ -262,7 +263,7 @@ def _add_gains(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help="the most transparent local model stable with the hand in the loop (full loop)",
         description="Design K_h, I, B_h and the proxy hold for an object stiffness: stable for "
         "every hand of the hand box, every force-sampling tick and K_o' from (1 - margin) K_o to "
-        "(1 + stiffer-by) K_o.",
+        "(1 + stiffer-by) K_o, or to K_o + B_o where that is higher.",
     )
     _add_shared(p, "--k-o")
     _add_shared(

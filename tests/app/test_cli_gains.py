@@ -232,3 +232,13 @@ def test_a_damped_object_is_shown_beside_what_its_design_is_felt_as(
     assert float(own[1]) == pytest.approx(2.241, abs=1e-3)
     assert main(["gains", "--k-o", "300", "--local-model", "p"]) == 0
     assert "eq. 9" not in capsys.readouterr().out
+
+
+def test_a_design_for_a_damped_object_holds_up_to_its_one_tick_stiffness(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # as a client's gain-table cell (shared.gain_table.cell_k_o_range): checked up to 1.25 K_o,
+    # or up to K_o + B_o where that is higher (docs/gains.md)
+    base = ["gains", "--k-o", "300", "--local-model", "p", "--sim-rate", "100", "--json"]
+    assert _json(capsys, [*base, "--b-o", "472"])["k_o_range"] == pytest.approx([255.0, 772.0])
+    assert _json(capsys, [*base, "--b-o", "50"])["k_o_range"] == pytest.approx([255.0, 375.0])
