@@ -19,6 +19,13 @@ from haptic_collab.shared.gain_design import GainDesign, design_gains, design_ga
 from haptic_collab.shared.gain_key import K_O_GRID_RATIO, GainKey, Mode, coupled_k_o_hi
 
 
+def stiffest_k_o(k_o: float, stiffer_by: float, b_o: float) -> float:
+    """The stiffest object [N/m] a design for ``k_o`` [N/m] is checked on: ``(1 + stiffer_by)
+    k_o`` (an object stiffer than reported), or its one-tick stiffness ``k_o + b_o`` where that
+    is higher (an object with mass or relaxation: eq. 9's B_o [N/m], docs/gains.md)."""
+    return max(k_o * (1.0 + stiffer_by), k_o + b_o)
+
+
 def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, float]:
     """``[(1 - margin) g_i, k_o_hi]`` [N/m], the K_o range a :class:`GainTable` cell is checked over.
 
@@ -37,7 +44,7 @@ def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, f
     # eq. 9 lets it relax within one or two: checked only up to 1.25 K_o, a P design (300 N/m,
     # 100 Hz, 2 ticks, B_o 472 N/m) held the heavy loose hand in a 4.5 Hz, 0.75 mm ring on the
     # fidelity benchmark's viscoelastic object (docs/fidelity.md)
-    hi = max(top * (1.0 + key.stiffer_by), top + key.b_o)
+    hi = stiffest_k_o(top, key.stiffer_by, key.b_o)
     if key.stiff_ratio != 1.0:
         hi = max(hi, coupled_k_o_hi(top, key.stiff_ratio))
     return (1.0 - key.margin) * g, hi

@@ -176,11 +176,12 @@ def _profile_design(
     stiffness and damping limits of the device profile ``profile``; ``paper``: without own-force
     compensation; ``stiffer_by`` (default the product's :data:`shared.gain_key.STIFFER_BY`):
     checked up to ``(1 + stiffer_by) K_o``, or up to the one-tick stiffness ``K_o + B_o`` where
-    that is higher (as :func:`shared.gain_table.cell_k_o_range` checks a cell). Raises KeyError
+    that is higher (:func:`shared.gain_table.stiffest_k_o`, as a cell is checked). Raises KeyError
     (unknown profile) or ValueError (as the design)."""
     from haptic_collab.client.devices.profiles import get_sim_profile
     from haptic_collab.shared.gain_design import design_gains
     from haptic_collab.shared.gain_key import STIFFER_BY
+    from haptic_collab.shared.gain_table import stiffest_k_o
     from haptic_collab.workers import timed
 
     lim = get_sim_profile(profile).limits
@@ -191,7 +192,7 @@ def _profile_design(
         k_h_max=lim.max_stiffness_n_per_m,
         b_h_max=lim.max_damping_n_s_per_m,
         own_force=not paper,
-        k_o_hi=max(k_o * (1.0 + sb), k_o + float(kw.get("b_o", 0.0))),
+        k_o_hi=stiffest_k_o(k_o, sb, float(kw.get("b_o", 0.0))),
         stiffer_by=sb,
         **kw,
     )
