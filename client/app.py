@@ -86,6 +86,9 @@ class ClientOptions:
     #: design of the client's own is ready (an interim recommendation yields to a full design);
     #: ``local``: always design the gains here (client.session.ClientSession).
     gains: Literal["server", "local"] = "server"
+    #: Render the rest plane a patch carries while the user is alone on the object
+    #: (shared.rest_plane; ``haptic client --no-rest-plane``: never).
+    rest_plane: bool = True
     #: ``button``: the user engages forces with the device's first button (a stylus button, as
     #: vendor examples do); ``auto``: forces come on with the first checked patch; ``default``:
     #: ``button`` for a device with buttons (``Device.has_buttons``), ``auto`` otherwise.
@@ -345,6 +348,7 @@ class _ClientRun:
             margin=opts.margin,
             b_h_max=info.max_damping_n_s_per_m,
             gains=opts.gains,
+            rest_plane=opts.rest_plane,
         )
         #: The servo once started (at the first ``welcome``), and the task starting it.
         self.servo: ServoHandle | None = None

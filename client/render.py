@@ -33,6 +33,12 @@ Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
   compensation is withdrawn, so the contact would end on the next tick and the transfer with it
   (measured in the two-user demo: a resting user's 0.28 N fell to 0.003 N in one tick when the
   other touched and the uncoupled gains were withdrawn).
+- a change between the rest plane (a user alone: :mod:`shared.rest_plane`) and the current
+  surface in contact puts the probe at another depth at once (the surface a press deformed lies
+  F / K_o inside the rest plane): the step between what the old patch renders next at the last
+  probe position and what the new one would is added to the penetration and slid off over the
+  transfer time, as one slide (the change of C_h in it; no first-order hold across it). Out of
+  contact only a new surface further out slides, held back no further than the probe has left.
 
 Difference equations, per servo period T, with the probe's backward difference
 d = x_h(k) - x_h(k-1):
@@ -119,6 +125,9 @@ class LocalRenderer:
         "_own_force_n",
         "_off_used",
         "_fs_rendered",
+        "_rest",
+        "_probe",
+        "_e_base",
     )
 
     def __init__(self, params: LocalModelParams, own_force_limit_n: float = math.inf) -> None:
@@ -152,6 +161,9 @@ class LocalRenderer:
         self._off_used = 0.0  # the slide's depth [m] in the last tick's penetration
         self._fs_rendered = 0.0  # F_s [N] of the patch the last tick rendered (capped)
         self._off_step = 0.0
+        self._rest = False  # the patch in use renders the rest plane (shared.rest_plane)
+        self._probe = (0.0, 0.0, 0.0)  # the probe [m] the last tick rendered at
+        self._e_base = 0.0  # that tick's penetration [m] before the slide's depth
 
     @property
     def damper_velocity_m_s(self) -> float:
@@ -171,8 +183,22 @@ class LocalRenderer:
             even with ``proxy_hold="foh"``. The first patch is always fresh.
         """
         fresh = fresh or self.primitive is None
+        transfer = self.model.params.gain_transfer_s
+        # a change between the rest plane and the current surface: the step between what the old
+        # patch renders next at the probe and what the new one would is slid off over the transfer
+        # time, in contact (out of contact only a new surface further out, held back no further
+        # than the probe has left, as a rise of C_h below); no first-order hold across it
+        switch_step: float | None = None
+        if not fresh and transfer > 0.0 and patch.rest_plane != self._rest:
+            new_prim = patch.primitive
+            cap = self.own_force_limit_n
+            if patch.own_gain > 0.0 and patch.own_force_n > cap:
+                new_prim = moved_out(new_prim, -patch.own_gain * (patch.own_force_n - cap))
+            step = self._e_base + self._off - new_prim.contact(*self._probe)[0]
+            if self.model.in_contact or step < 0.0:
+                switch_step = step
         old = self._prim_old
-        if fresh or patch.proxy_hold != "foh":
+        if fresh or patch.proxy_hold != "foh" or switch_step is not None:
             self._prim_old = None
             self._rebase = None
         else:
@@ -214,9 +240,14 @@ class LocalRenderer:
         # the new compensation: its slide over the simulation period carried the change too, and
         # with the K_h step's transfer force on top the force rose by 80 % in one simulation
         # period, the probe still (C_h K_h = 1 at 580 and 67 N/m)
-        transfer = self.model.params.gain_transfer_s
         if fresh or transfer <= 0.0:
             self._off = 0.0
+        elif switch_step is not None:
+            # the whole step, C_h's change in it; no decrement pending (the K_h step is on the
+            # rendered penetration, which the slide keeps)
+            self._off = switch_step
+            self._off_used = switch_step
+            self._off_step = switch_step * self.model.params.servo_period_s / transfer
         elif patch.own_gain != self.own_gain and (
             self.model.in_contact or patch.own_gain > self.own_gain
         ):
@@ -246,6 +277,7 @@ class LocalRenderer:
         self.own_gain = patch.own_gain
         self._own_force_n = min(patch.own_force_n, cap)
         self.own_offset_m = patch.own_gain * self._own_force_n
+        self._rest = patch.rest_plane
 
     def render(
         self, x: float, y: float, z: float, dx: float, dy: float, dz: float
@@ -295,6 +327,8 @@ class LocalRenderer:
         off = self._off
         self._off_used = off
         self._fs_rendered = self._own_force_n
+        self._probe = (x, y, z)
+        self._e_base = e
         if off != 0.0:  # a change of C_h, sliding in (hand_over)
             e += off
             nxt = off - self._off_step

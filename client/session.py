@@ -25,6 +25,16 @@ nearest designed cell (no stiffer relative to K_o) renders, else the gains in us
 else (a new coupling class or more delay) the fallback of :data:`FALLBACK_K_RATIO`, all flagged
 ``verified=False``.
 
+The rest plane. A patch for a user alone on the object (no other user pushes or is near) carries
+the object's rest surface at the contact; where no verified plane renders and none has in this
+contact, the session renders that plane with the gains of :func:`shared.rest_plane.rest_plane_gains`
+(K_h = min(K_o, the device's), the damper closest to eq. 9's object, no integral, no own-force
+compensation): at once, with nothing to design or check first, since its force does not go
+through the simulation. When another user comes near, the patch comes without it and the design
+renders the simulation's surface again; the renderer slides the surface's step off over the gain
+transfer time (:meth:`client.render.LocalRenderer.hand_over`). ``rest_plane=False`` never renders
+it.
+
 The patch is read once into a :class:`shared.local_model_update.SurfacePatch`; it goes to the servo
 loop inside one :class:`shared.local_model_update.LocalModelUpdate` with the gains and how they
 were chosen (:class:`shared.local_model_update.GainChoice`; zero-order hold: it replaces the old
@@ -69,6 +79,7 @@ from haptic_collab.shared.protocol import (
     parse_server,
 )
 from haptic_collab.shared.rates import Rates
+from haptic_collab.shared.rest_plane import rest_plane_gains
 from haptic_collab.shared.verified_plane import ahead_cells, plane_applies
 
 if TYPE_CHECKING:
@@ -238,6 +249,11 @@ class ClientSession:
         by the same code for this device) when they are within this device's limits, this local
         model kind and cover at least the delay this client measures; else design locally.
         ``local``: always design locally.
+    rest_plane : bool
+        Render the rest plane a patch carries (the user alone on the object;
+        :mod:`shared.rest_plane`) where no verified plane renders and none has in this contact
+        (default True); False: the designs through the simulation loop everywhere (the paper's
+        local model alone).
     """
 
     def __init__(
@@ -252,6 +268,7 @@ class ClientSession:
         b_h_max: float = 0.0,
         gain_table: GainTable | None = None,
         gains: Literal["server", "local"] = "server",
+        rest_plane: bool = True,
     ) -> None:
         if gains not in ("server", "local"):
             raise ValueError(f"gains must be 'server' or 'local', got {gains!r}")
@@ -322,6 +339,12 @@ class ClientSession:
         #: the own-response check identified other than the K_o reported.
         self.plane_patches = 0
         self.identified_plane_patches = 0
+        #: Whether a rest plane a patch carries may render (the ``rest_plane`` parameter).
+        self.rest_plane = bool(rest_plane)
+        #: Patches rendered with their rest plane (:mod:`shared.rest_plane`).
+        self.rest_plane_patches = 0
+        # a verified plane rendered in this contact: the rest plane waits for the next one
+        self._plane_in_contact = False
 
     # ------------------------------------------------------------------ outgoing
     def hello(self, now_s: float | None = None) -> str:
@@ -671,6 +694,7 @@ class ClientSession:
         else:
             design = own
         self._plan_ahead(key, cell)
+        plane_renders = False
         if self._object_as_reported(surface, key):
             # the object yields to this user's force as a spring: of the K_o reported, or of
             # the stiffness the check identified. The plane verified for that stiffness (the
@@ -696,8 +720,46 @@ class ClientSession:
                 plane = None if own is not None else self.planes.get((key, plane_cell, PLANE_ALONE))
             if plane is not None:
                 design = plane.at(k_id)
+                plane_renders = True
                 self.plane_patches += 1
                 self.identified_plane_patches += self.own_response.identified_ratio != 1.0
+        if surface.in_contact or surface.own_force_n > 0.0:
+            self._plane_in_contact |= plane_renders
+        else:
+            self._plane_in_contact = False
+        if (
+            self.rest_plane
+            and surface.rest_plane is not None
+            and not (plane_renders or self._plane_in_contact)
+        ):
+            # the user alone on the object, no verified plane: the rest plane, with gains of
+            # the patch alone (nothing to wait for); a press that crossed from it to verified
+            # planes and back every cycle rang on a stiffening object, so once a verified
+            # plane renders in a contact this waits for the next contact
+            if design is None:
+                self.design_wanted = (key, k_o_eff)  # for when another user comes near
+            rest = rest_plane_gains(
+                surface.k_o, surface.b_o, self.sim_rate_hz,
+                self.device.max_stiffness_n_per_m, self.b_h_max,
+            )  # fmt: skip
+            self.rest_plane_patches += 1
+            return self._rendered(
+                LocalModelUpdate.from_surface(
+                    surface,
+                    k_h=rest.k_h,
+                    i_gain=0.0,
+                    b_h=rest.b_h,
+                    hold_ticks=n,
+                    choice=GainChoice(
+                        delay_ticks=d,
+                        spectral_radius=0.0,  # its force does not go through the simulation
+                        felt_stiffness_ratio_1hz=rest.k_h / surface.k_o,
+                    ),
+                    rest=True,
+                ),
+                surface,
+                now_s,
+            )
         fallback = design is None
         verified = True
         if design is None:
@@ -743,7 +805,7 @@ class ClientSession:
                     return None
                 verified = False
                 self.unverified_patches += 1
-        self.last_update = LocalModelUpdate.from_surface(
+        update = LocalModelUpdate.from_surface(
             surface,
             k_h=design.k_h,
             i_gain=design.i_gain,
@@ -759,9 +821,16 @@ class ClientSession:
                 verified=verified,
             ),
         )
+        return self._rendered(update, surface, now_s)
+
+    def _rendered(
+        self, update: LocalModelUpdate, surface: SurfacePatch, now_s: float
+    ) -> LocalModelUpdate:
+        """``update`` (of ``surface``, at ``now_s``) as the one in use."""
+        self.last_update = update
         self._waiting = None
         self.last_patch = surface
         self.patches += 1
         if self.first_update_s is None:
             self.first_update_s = now_s
-        return self.last_update
+        return update

@@ -294,6 +294,22 @@ def closest_point(
     return _surface_point(index, cur, p, int(fids[j]), q[j], bary_all[j], float(dist2[j]))
 
 
+def surface_normal(
+    index: SurfaceIndex, vertices: FloatArray, face: int, bary: FloatArray
+) -> FloatArray:
+    """Outward unit normal (3,) float64 of the surface ``vertices`` (n, 3) [m] at barycentric
+    ``bary`` (3,) in ``face``: the interpolated vertex normals (a pseudo-normal exact on smooth
+    regions), the face's own where they cancel, +z for a degenerate face."""
+    tri = index.faces[face]
+    normal = bary @ _vertex_normals(index, vertices, tri)
+    length = math.sqrt(float(normal @ normal))
+    if length < 1e-12:
+        a, b, c = vertices[tri]
+        normal = _cross((b - a)[None, :], (c - a)[None, :])[0]
+        length = math.sqrt(float(normal @ normal))
+    return normal / length if length > 0.0 else np.array([0.0, 0.0, 1.0])
+
+
 def _surface_point(
     index: SurfaceIndex,
     cur: FloatArray,
@@ -309,14 +325,7 @@ def _surface_point(
     the face's own normal where they cancel); the penetration's sign says on which side of it the
     probe is.
     """
-    tri = index.faces[face]
-    normal = bary @ _vertex_normals(index, cur, tri)
-    length = math.sqrt(float(normal @ normal))
-    if length < 1e-12:
-        a, b, c = cur[tri]
-        normal = _cross((b - a)[None, :], (c - a)[None, :])[0]
-        length = math.sqrt(float(normal @ normal))
-    normal = normal / length if length > 0.0 else np.array([0.0, 0.0, 1.0])
+    normal = surface_normal(index, cur, face, bary)
     dist = math.sqrt(dist2)
     penetration = -dist if float((p - point) @ normal) >= 0.0 else dist
     return SurfacePoint(

@@ -113,8 +113,9 @@ class _Conn:
     errors: int = 0
     closed: bool = False
     output: SurfacePatch | None = None
-    #: (primitive, K_o) of the latest patches, newest last (the force bound's geometry).
-    recent: deque[tuple[Plane | Sphere, float, float]] = field(
+    #: (primitive, K_o, F_s) of the latest patches, newest last, each with its rest plane as
+    #: (rest plane, K_o, 0) when it had one (the force bound's geometry).
+    recent: deque[tuple[tuple[Plane | Sphere, float, float], ...]] = field(
         default_factory=lambda: deque(maxlen=3)
     )
     applied: BoundedForce | None = None
@@ -542,7 +543,10 @@ class Room:
             if conn is None:
                 continue
             conn.output = res
-            conn.recent.append((res.primitive, float(res.k_o), float(res.own_force_n)))
+            k_o = float(res.k_o)
+            sent = (res.primitive, k_o, float(res.own_force_n))
+            rest = res.rest_plane
+            conn.recent.append((sent,) if rest is None else (sent, (rest, k_o, 0.0)))
             rec = None
             if conn.hello is not None:
                 rec = self.gains.recommend(
@@ -579,7 +583,7 @@ class Room:
         res = bound_force(
             s.force_n,
             s.probe_m,
-            tuple(c.recent),
+            tuple(contact for patch in c.recent for contact in patch),
             k_h=s.k_h,
             i_gain=s.i_gain,
             own_gain=s.own_gain,

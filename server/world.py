@@ -25,6 +25,10 @@ position and last rendered force, and sends each user the returned surface patch
    a probe out of contact gets the closest point of the surface.
 4. **Step 2 inputs** - per contact ``K_o = 1 / C_ii``, ``B_o`` (eq. 9) and the coupling-aware
    ``K_o_eff`` (DESIGN section 6) over the contacts that touch or nearly touch the surface.
+5. **The rest plane** - to a user no other user pushes with nor is near (within
+   ``proximity_m``), the object's rest surface at the contact: the plane through the proxy's
+   material point at rest with its face's rest normal (:mod:`shared.rest_plane`; the client may
+   render it instead of the current surface while alone).
 
 Nothing here uses sockets, threads, asyncio or clocks; time advances one tick per call.
 Bad values never crash a tick: a non-finite probe or force skips that user's load, and the
@@ -49,11 +53,12 @@ from haptic_collab.server.contacts import (
     fit_plane,
     fit_sphere,
     segment_entry,
+    surface_normal,
     track_proxy,
 )
 from haptic_collab.server.objects import AdmittanceObject
 from haptic_collab.shared.local_model_update import SurfacePatch
-from haptic_collab.shared.primitives import Plane, Sphere
+from haptic_collab.shared.primitives import Plane, Sphere, make_plane
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.types import FloatArray, Vec3
 
@@ -284,6 +289,15 @@ class World:
         norm = float(np.linalg.norm(n))
         return bary @ tri, (n / norm if norm > 0.0 else np.asarray(s.normal))
 
+    def _rest_plane(self, s: SurfacePoint, rest_point: FloatArray) -> Plane | None:
+        """The rest surface's tangent plane at the material point ``rest_point`` of ``s``, with
+        the rest vertex normals interpolated there (as the current surface's patch); None where
+        ``s`` has no barycentric coordinates."""
+        if s.bary is None:
+            return None
+        n = surface_normal(self._index, self._index.rest_vertices, s.face, s.bary)
+        return make_plane(_t3(rest_point), _t3(n))
+
     def _material(
         self, point: FloatArray, normal: FloatArray, user: _UserState | None
     ) -> tuple[FloatArray, FloatArray]:
@@ -362,9 +376,11 @@ class World:
             for name, probe in zip(names, probes, strict=True)
         ]
         patch_keys = []
+        rest_planes: list[Plane | None] = []
         for name, s in zip(names, located, strict=True):
             user = self._users.get(name)
             rest_point, rest_normal = self._material_of(s)
+            rest_planes.append(self._rest_plane(s, rest_point))
             patch_keys.append(
                 self.obj.patch_key(rest_point, user.key if user is not None else None, rest_normal)
             )
@@ -381,6 +397,10 @@ class World:
             c_near = compliance[np.ix_(near, near)]
             k_eff[near] = effective_stiffness(c_near, k_o[near])
             k_stiff[near] = stiff_stiffness(c_near, k_o[near])
+
+        # a user is alone when every other user neither pushed this tick nor is near the surface
+        busy = (pen > -self.proximity_m) | np.array([name in pushed for name in names])
+        n_busy = int(busy.sum())
 
         number = self._tick if tick is None else int(tick)
         out: dict[str, SurfacePatch] = {}
@@ -406,6 +426,7 @@ class World:
                 b_o=float(b_o[i]),
                 in_contact=bool(s.penetration_m > 0.0),
                 own_force_n=pushed.get(name, 0.0),
+                rest_plane=rest_planes[i] if n_busy - int(busy[i]) == 0 else None,
             )
         self._users = users
         return out

@@ -97,11 +97,14 @@ class SurfacePatch:
         Force [N] along the contact normal the object received from this user in the step that
         produced this surface (Step 3), >= 0: a local model with own-force compensation renders
         against the surface moved out by C_h times it (:mod:`shared.full_loop`).
+    rest_plane : shared.primitives.Plane or None
+        The object's rest surface at the contact, sent while no other user pushes on the object
+        or is near it (:mod:`shared.rest_plane`); None otherwise.
 
     Raises
     ------
     TypeError
-        ``primitive`` is not a Plane or Sphere.
+        ``primitive`` is not a Plane or Sphere, ``rest_plane`` not a Plane or None.
     ValueError
         A stiffness not finite and > 0, or B_o or the force not finite and >= 0.
     """
@@ -117,11 +120,16 @@ class SurfacePatch:
     k_o_stiff: float
     b_o: float
     own_force_n: float = 0.0
+    rest_plane: Plane | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.primitive, Plane | Sphere):
             raise TypeError(
                 f"primitive must be a Plane or Sphere, got {type(self.primitive).__name__}"
+            )
+        if self.rest_plane is not None and not isinstance(self.rest_plane, Plane):
+            raise TypeError(
+                f"rest_plane must be a Plane or None, got {type(self.rest_plane).__name__}"
             )
         for name in ("k_o", "k_o_eff", "k_o_stiff"):
             v = getattr(self, name)
@@ -188,6 +196,9 @@ class SurfacePatch:
             b_o=float(self.b_o),
             own_force_n=float(self.own_force_n),
             gains=gains,
+            rest_plane=None
+            if self.rest_plane is None
+            else PlaneModel(point=self.rest_plane.point, normal=self.rest_plane.normal),
         )
 
     @classmethod
@@ -200,9 +211,11 @@ class SurfacePatch:
         Raises
         ------
         shared.protocol.ProtocolError
-            ``invalid_primitive``: the patch's primitive is not a valid plane or sphere.
+            ``invalid_primitive``: the patch's primitive or rest plane is not a valid plane or
+            sphere.
         """
         k_o_stiff = msg.k_o if msg.k_o_stiff is None else max(msg.k_o_stiff, msg.k_o)
+        rest = None if msg.rest_plane is None else primitive_from_wire(msg.rest_plane)
         return cls(
             tick=msg.tick,
             primitive=primitive_from_wire(msg.primitive),
@@ -215,6 +228,7 @@ class SurfacePatch:
             k_o_stiff=k_o_stiff,
             b_o=msg.b_o,
             own_force_n=msg.own_force_n,
+            rest_plane=rest if isinstance(rest, Plane) else None,
         )
 
 
@@ -281,6 +295,10 @@ class LocalModelUpdate:
     choice : GainChoice or None
         How the client chose the gains (:class:`client.session.ClientSession`); None: not chosen
         by a session.
+    rest_plane : bool
+        ``primitive`` is the surface patch's rest plane (:mod:`shared.rest_plane`), not the
+        current surface: at a change between the two in contact the renderer slides the surface's
+        step off over the gain transfer time (:meth:`client.render.LocalRenderer.hand_over`).
 
     Raises
     ------
@@ -301,6 +319,7 @@ class LocalModelUpdate:
     own_gain: NonNegFinite = 0.0
     surface: SkipValidation[SurfacePatch | None] = None
     choice: SkipValidation[GainChoice | None] = None
+    rest_plane: bool = False
 
     def __post_init__(self) -> None:
         prim = self.primitive
@@ -336,11 +355,13 @@ class LocalModelUpdate:
         hold_ticks: int = 1,
         own_gain: float = 0.0,
         choice: GainChoice | None = None,
+        rest: bool = False,
     ) -> LocalModelUpdate:
         """The update of a server surface patch rendered with the gains the client chose.
 
         With own-force compensation (``own_gain`` C_h > 0) the primitive rendered is the patch's
-        moved out by ``C_h * surface.own_force_n`` (:func:`shared.primitives.moved_out`).
+        moved out by ``C_h * surface.own_force_n`` (:func:`shared.primitives.moved_out`); with
+        ``rest`` it is the patch's rest plane, never compensated.
 
         Parameters
         ----------
@@ -348,16 +369,23 @@ class LocalModelUpdate:
             The server's patch (:meth:`SurfacePatch.from_wire`).
         k_h, i_gain, b_h, proxy_hold, hold_ticks, own_gain, choice
             The local model's gains, hold and how they were chosen (see the class parameters).
+        rest : bool
+            Render the surface patch's rest plane (:mod:`shared.rest_plane`).
 
         Raises
         ------
         ValueError
-            Invalid gains (see the class).
+            Invalid gains (see the class); ``rest`` with own-force compensation or for a surface
+            patch without a rest plane.
         """
-        prim = surface.primitive
+        prim: Primitive = surface.primitive
         own = float(own_gain)
         if not (math.isfinite(own) and own >= 0.0):
             raise ValueError(f"own_gain must be finite and >= 0, got {own_gain!r}")
+        if rest:
+            if surface.rest_plane is None or own > 0.0:
+                raise ValueError("rest needs a surface patch with a rest plane and own_gain 0")
+            prim = surface.rest_plane
         return cls(
             primitive=moved_out(prim, own * surface.own_force_n) if own > 0.0 else prim,
             k_h=k_h,
@@ -368,6 +396,7 @@ class LocalModelUpdate:
             own_gain=own,
             surface=surface,
             choice=choice,
+            rest_plane=bool(rest),
         )
 
 

@@ -307,6 +307,10 @@ class Patch(_Msg):
     own_force_n: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
     #: Gains the server recommends (absent until designed for this user's key and K_o cell).
     gains: RecommendedGains | None = None
+    #: The object's rest surface at this contact (the tangent plane at the contact's material
+    #: point), sent only while no other user pushes on the object or is near it: a client may
+    #: render it with the object's stiffness (:mod:`shared.rest_plane`); absent otherwise.
+    rest_plane: PlaneModel | None = None
 
 
 class Pong(_Msg):

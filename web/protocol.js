@@ -29,7 +29,7 @@ export const MESSAGE_FIELDS = Object.freeze({
   "ping": ["type", "id", "t_client_s"],
   "bye": ["type"],
   "welcome": ["type", "protocol", "user_id", "name", "role", "sim_rate_hz", "object", "link"],
-  "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff", "own_force_n", "gains"],
+  "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff", "own_force_n", "gains", "rest_plane"],
   "pong": ["type", "id", "t_client_s", "tick"],
   "error": ["type", "code", "message", "fatal"],
   "room": ["type", "tick", "sim_rate_hz", "tick_ms", "tick_ms_p99", "overruns", "link", "users"],
@@ -51,7 +51,7 @@ export const MODEL_FIELDS = Object.freeze({
 export const NESTED_MODELS = Object.freeze({
   "hello": {"device": "DeviceInfo"},
   "welcome": {"object": "ObjectInfo", "link": "LinkConditions"},
-  "patch": {"gains": "RecommendedGains"},
+  "patch": {"gains": "RecommendedGains", "rest_plane": "PlaneModel"},
   "room": {"link": "LinkConditions", "users": "UserView"},
   "ObjectInfo": {"sides": "SurfacePoint"},
 });

@@ -282,6 +282,7 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         token=args.token,
         ca_file=args.ca_file,
         gains=args.gains,
+        rest_plane=not args.no_rest_plane,
         engage=args.engage,
         servo=args.servo,
     )
@@ -351,6 +352,12 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="render the server's recommended gains when they fit this device and no better "
         "design of its own is ready (server), or always design them here (local) "
         "(default %(default)s)",
+    )
+    p.add_argument(
+        "--no-rest-plane",
+        action="store_true",
+        help="alone on the object, render the simulation's surface with the designed gains "
+        "instead of the object's rest plane with its stiffness (shared.rest_plane)",
     )
     p.add_argument(
         "--engage",

@@ -426,3 +426,62 @@ def test_patches_between_ticks_add_up_to_the_newest_one_alone() -> None:
     newest = _compensated_design(580.0, 5.0, 0.001)
     both = run([_compensated_design(67.0, 4.0, 0.001), newest])
     assert both == pytest.approx(run([newest]), abs=1e-9)
+
+
+def _rest(k_h: float, force_n: float, depth_m: float = 0.001) -> LocalModelUpdate:
+    """The rest plane (z = 0) of a surface ``depth_m`` deformed by ``force_n`` [N] from this user,
+    rendered with ``k_h`` and no compensation (ClientSession's rendering of a user alone)."""
+    surface = replace(
+        SurfacePatch.of(plane_at(depth_m), K_H), own_force_n=force_n, rest_plane=PLANE
+    )
+    return LocalModelUpdate.from_surface(surface, k_h=k_h, i_gain=0.0, rest=True)
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+def test_a_change_to_and_from_the_rest_plane_slides_the_surface_without_a_force_step(
+    hold: str,
+) -> None:
+    # a held press rendered on the deformed surface 1 mm in (the paper's local model without
+    # compensation: 0.3 N at 2 mm), handed to the rest plane (another user left): the rest plane
+    # puts the probe 3 mm deep, 0.9 N with K_h 300 N/m at once; instead the step slides in
+    # over the transfer time, then the rest plane's force holds. And back (another user came)
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.05))
+    design = LocalModelUpdate(
+        plane_at(0.001), K_H, 0.0, surface=pushed(0.3), proxy_hold=hold, hold_ticks=HOLD
+    )
+    rd.hand_over(design, fresh=True)
+    f_before = still(rd, -0.003, 20)[-1][0]
+    assert f_before == pytest.approx(K_H * 0.002)
+    rd.hand_over(_rest(K_H, 0.3), fresh=False)
+    assert rd.primitive == PLANE
+    f = [pf for pf, _ in still(rd, -0.003, 80)]
+    assert f[0] == pytest.approx(f_before, rel=0.05)
+    steps = [abs(b - a) for a, b in zip([f_before, *f], f, strict=False)]
+    assert max(steps) <= K_H * 0.001 / 50 + 1e-9  # the 1 mm step over 50 ticks
+    assert f[-1] == pytest.approx(K_H * 0.003)
+    rd.hand_over(design, fresh=False)
+    f = [pf for pf, _ in still(rd, -0.003, 80)]
+    assert f[0] == pytest.approx(K_H * 0.003, rel=0.05)
+    assert f[-1] == pytest.approx(K_H * 0.002)
+    # without a transfer time the surface steps, as every other change does
+    rd2 = renderer()
+    rd2.hand_over(design, fresh=True)
+    still(rd2, -0.003, 20)
+    rd2.hand_over(_rest(K_H, 0.3), fresh=False)
+    assert still(rd2, -0.003, 1)[0][0] == pytest.approx(K_H * 0.003)
+
+
+def test_a_rest_plane_out_of_contact_does_not_jump_into_a_probe_just_outside() -> None:
+    # the probe 0.5 mm over the deformed surface, out of contact; the rest plane of a surface
+    # that is 1 mm out (another user's push let go) would put the probe 0.5 mm deep at once
+    # (0.15 N in one tick): it comes out no faster than the slide, 1 mm over 50 ticks
+    rd = LocalRenderer(LocalModelParams(k_h=1.0, servo_period_s=T, gain_transfer_s=0.05))
+    rd.hand_over(LocalModelUpdate(plane_at(0.001), K_H, 0.0, surface=pushed(0.0)), fresh=True)
+    still(rd, -0.0005, 5)
+    out = make_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    surface = replace(SurfacePatch.of(plane_at(0.001), K_H), rest_plane=out)
+    rd.hand_over(LocalModelUpdate.from_surface(surface, k_h=K_H, i_gain=0.0, rest=True), False)
+    f = [pf for pf, _ in still(rd, -0.0005, 80)]
+    assert f[0] == 0.0
+    assert max(abs(b - a) for a, b in zip(f, f[1:], strict=False)) <= K_H * 0.001 / 50 + 1e-9
+    assert f[-1] == pytest.approx(K_H * 0.0005)

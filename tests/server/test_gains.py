@@ -136,8 +136,10 @@ def test_the_room_sends_the_recommendation_in_the_patch_and_the_client_renders_i
     p = patch(2)
     assert p.gains is not None
     assert_stable_over_the_box(p.gains, p.k_o_eff)
-    # the Python client renders it as it is
-    s = ClientSession("A", device=PHANTOM, b_h_max=10.0)
+    # the Python client renders it as it is where it renders the simulation's surface (alone on
+    # the object, as here, it renders the rest plane the patch carries: test_rest_plane.py)
+    assert p.rest_plane is not None
+    s = ClientSession("A", device=PHANTOM, b_h_max=10.0, rest_plane=False)
     s.receive(
         encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0
     )
@@ -147,7 +149,10 @@ def test_the_room_sends_the_recommendation_in_the_patch_and_the_client_renders_i
     assert (up.k_h, up.i_gain, up.b_h) == (p.gains.k_h, p.gains.i_gain, p.gains.b_h)
     # ... unless it is beyond this device: a softer device designs its own
     soft = ClientSession(
-        "A", device=DeviceInfo(max_stiffness_n_per_m=0.5 * p.gains.k_h), b_h_max=10.0
+        "A",
+        device=DeviceInfo(max_stiffness_n_per_m=0.5 * p.gains.k_h),
+        b_h_max=10.0,
+        rest_plane=False,
     )
     soft.receive(
         encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=OBJ)), 0.0

@@ -112,3 +112,45 @@ def test_an_honest_client_with_a_small_k_h_keeps_the_force_its_compensation_hold
         assert r.reason is None
         f_s = r.force_n[2]
     assert f_s == pytest.approx(2.0)
+
+
+def test_the_room_believes_a_user_alone_on_its_rest_plane_and_still_bounds_a_liar():
+    # a user alone renders the rest plane the patch carries with K_h = K_o and no compensation
+    # (shared.rest_plane): its force is K_o times the depth under the rest surface, while the
+    # current surface has given way by F / K_o under it. The bound must allow that force (by the
+    # current surface alone it allowed K_o times the depth under it: a fraction), and no more
+    world = build_world(ServerOptions(sim_rate_hz=20.0))
+    room = Room(world, 20.0)
+    room.connect("a", 0.0)
+    room.receive("a", hello("A"), 0.0)
+    info = room.object_info
+    top = info.top_m
+    depth = 0.004
+    z = top[2] - depth
+
+    def step(seq: int, force: float, k_h: float) -> dict:
+        msg = json.loads(state(seq, z=z, force=force, k_h=k_h))
+        msg["probe_m"] = [top[0], top[1], z]
+        room.receive("a", json.dumps(msg), 0.05 * seq)
+        (patch,) = [m for m in texts(room.tick(seq, 0.05 * seq), "a") if m["type"] == "patch"]
+        return patch
+
+    patch = step(0, 0.0, 100.0)
+    force = 0.0
+    for seq in range(1, 40):
+        assert patch["rest_plane"] is not None
+        k_o = patch["k_o"]
+        force = k_o * (patch["rest_plane"]["point"][2] - z)
+        patch = step(seq, force, k_o)
+    assert patch["own_force_n"] == pytest.approx(force, rel=1e-6)
+    assert force > 0.5 and room.clamp_counts.get("A", 0) == 0
+    # the surface gave way under the push: by the surface alone the force is far off
+    surface_depth = patch["primitive"]["point"][2] - z
+    assert patch["k_o"] * surface_depth < 0.5 * force
+    # twice that force is more than the rest plane allows: clamped to K_o times the depth
+    # under it, with the bound's penetration tolerance
+    k_o, rest_depth = patch["k_o"], patch["rest_plane"]["point"][2] - z
+    patch = step(40, 2.0 * force, k_o)
+    assert room.clamp_counts.get("A", 0) == 1
+    tol = ForceBoundParams().penetration_tol_m
+    assert patch["own_force_n"] <= k_o * (rest_depth + tol) + 1e-6 < 1.5 * force

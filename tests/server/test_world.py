@@ -175,3 +175,47 @@ def test_bench_returns_json_able_timings():
     assert result["meshes"][0]["build_s"] > 0.0
     with pytest.raises(ValueError, match="icosphere"):
         bench_world(n_vertices_list=(1000,), users_list=(1,), ticks=1)
+
+
+class RestUser(PUser):
+    """A user alone rendering the rest plane the World sends (K_h = K_o, no compensation) where
+    it gets one, the current surface with ``fraction`` K_o otherwise."""
+
+    def update(self, out: SurfacePatch) -> None:
+        if out.rest_plane is None:
+            super().update(out)
+            return
+        e, nx, ny, nz = out.rest_plane.contact(*(float(c) for c in self.probe))
+        self.magnitude = out.k_o * max(e, 0.0)
+        self.force = self.magnitude * np.array([nx, ny, nz])
+
+
+def test_a_user_alone_gets_the_rest_surface_and_feels_the_object_stiffness_there(world):
+    # 3 mm into the top of the balloon: the surface gives way under the push, the rest plane
+    # stays where the top was, tangent to it, and K_o times the depth under it is the force the
+    # object holds the probe with (the surface sits F / K_o in)
+    a = RestUser([0.0, 0.0, R - 0.003])
+    out = run(world, {"A": a}, 40)["A"]
+    rest = out.rest_plane
+    assert rest is not None
+    assert rest.point[2] == pytest.approx(R, abs=2e-4)
+    assert rest.normal == pytest.approx((0.0, 0.0, 1.0), abs=0.02)
+    assert out.primitive.point[2] < R - 0.0005  # the current surface gave way
+    depth_surface = R - out.proxy[2]
+    assert depth_surface == pytest.approx(a.magnitude / out.k_o, rel=0.15)
+
+
+def test_the_rest_plane_is_withheld_while_another_user_pushes_or_is_near(world):
+    far = PUser([0.0, 0.0, -R - 0.05])  # 5 cm under the bottom: neither near nor pushing
+    a = RestUser([0.0, 0.0, R - 0.002])
+    out = run(world, {"A": a, "far": far}, 5)
+    assert out["A"].rest_plane is not None
+    near = PUser([R + 0.002, 0.0, 0.0])  # 2 mm off the equator: near, not touching
+    out = run(world, {"A": a, "near": near}, 5)
+    assert out["A"].rest_plane is None and out["near"].rest_plane is None
+    pushing = PUser([R - 0.002, 0.0, 0.0])  # pressing the equator
+    out = run(world, {"A": a, "B": pushing}, 5)
+    assert out["A"].rest_plane is None and out["B"].rest_plane is None
+    # when the other user has gone, it comes back
+    out = run(world, {"A": a}, 1)
+    assert out["A"].rest_plane is not None

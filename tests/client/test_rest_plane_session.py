@@ -1,0 +1,108 @@
+"""A user alone on the object renders the rest plane the patch carries (shared.rest_plane).
+
+At once (no design to wait for), with the object's stiffness; the simulation's surface with the
+design again when another user comes near (the patch without a rest plane); and not again in a
+contact that has rendered a verified plane (a press crossing between the two rang on a
+stiffening object).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.primitives import make_plane
+from haptic_collab.shared.protocol import Patch, PlaneModel, encode
+from tests.client.test_verified_plane_session import TABLE, _check_planes
+from tests.support.sessions import welcomed_session
+
+K_O = 300.0
+REST = PlaneModel(point=(0.0, 0.0, 0.1), normal=(0.0, 0.0, 1.0))
+
+
+def _patch(
+    tick: int, force_n: float, k_true: float = K_O, *, rest: bool = True, b_o: float = 0.0
+) -> str:
+    """A patch of a press on the top plane z = 0.1 m of a spring of ``k_true`` reported at
+    :data:`K_O`: the surface pushed in by the force the simulation applied from this user; the
+    rest plane z = 0.1 with it when ``rest``."""
+    z = 0.1 - force_n / k_true
+    return encode(
+        Patch(
+            tick=tick,
+            primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)),
+            proxy_m=(0, 0, z),
+            normal=(0, 0, 1),
+            penetration_m=0.001 if force_n > 0.0 else -0.01,
+            in_contact=force_n > 0.0,
+            k_o=K_O,
+            k_o_eff=K_O,
+            b_o=b_o,
+            own_force_n=force_n,
+            rest_plane=REST if rest else None,
+        )
+    )
+
+
+def test_alone_the_first_contact_renders_the_rest_plane_at_once() -> None:
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=GainTable())  # nothing designed
+    up = s.receive(_patch(1, 1.0), 0.05)
+    assert up is not None  # no design, no check to wait for: forces need not stay off
+    assert up.rest_plane and up.primitive == make_plane((0.0, 0.0, 0.1), (0.0, 0.0, 1.0))
+    assert (up.k_h, up.i_gain, up.b_h, up.own_gain) == (K_O, 0.0, 0.0, 0.0)
+    assert up.choice is not None and up.choice.verified and not up.choice.fallback
+    assert s.rest_plane_patches == 1
+    # the design is still asked for, for when another user comes near
+    assert s.design_wanted is not None
+
+
+def test_a_damped_object_gets_a_damper_and_a_stiff_one_the_devices_stiffness() -> None:
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    up = s.receive(_patch(1, 1.0, b_o=400.0), 0.05)
+    assert up is not None and up.rest_plane and up.b_h > 0.0
+    stiff = welcomed_session("A", "u1", max_stiffness_n_per_m=200.0, b_h_max=10.0)
+    up = stiff.receive(_patch(1, 1.0), 0.05)
+    assert up is not None and up.rest_plane and up.k_h == 200.0
+
+
+def test_without_the_rest_plane_or_with_it_turned_off_the_design_renders() -> None:
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    s.gain_table.design(s.gain_key(0.0, 0), K_O)
+    assert s.receive(_patch(1, 1.0), 0.05).rest_plane
+    # another user comes near: the patch has no rest plane, the design renders the surface
+    up = s.receive(_patch(2, 1.0, rest=False), 0.1)
+    assert up is not None and not up.rest_plane
+    assert up.primitive.point[2] == pytest.approx(0.1 - 1.0 / K_O + up.own_gain * 1.0)
+    off = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE, rest_plane=False)
+    up = off.receive(_patch(1, 1.0), 0.05)
+    assert up is not None and not up.rest_plane and off.rest_plane_patches == 0
+
+
+def test_after_a_verified_plane_the_rest_plane_waits_for_the_next_contact() -> None:
+    s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    rest_then_plane = []
+    for tick in range(1, 41):  # a press between 0.1 and 3.1 N, in contact throughout
+        f = float(1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0))
+        up = s.receive(_patch(tick, f), tick / 20.0)
+        if s.design_wanted is not None:
+            key, k_o = s.design_wanted
+            s.gain_table.design(key, k_o)
+            s.design_wanted = None
+        _check_planes(s)
+        rest_then_plane.append(up.rest_plane)
+    # the rest plane first; once the own-response check holds the object, its verified plane
+    assert rest_then_plane[0] and not rest_then_plane[-1]
+    assert s.own_response.verified and s.plane_patches > 0
+    # the object yields more under the same force: the plane is withdrawn, and the design (not
+    # the rest plane) renders for the rest of this contact
+    f = float(1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * 40 / 20.0))
+    for tick in range(41, 44):
+        up = s.receive(_patch(tick, f, 0.8 * K_O), tick / 20.0)
+        _check_planes(s)
+    assert not s.own_response.verified
+    assert not up.rest_plane and up.k_h != pytest.approx(K_O)
+    # let go: the next contact starts on the rest plane again
+    s.receive(_patch(44, 0.0), 44 / 20.0)
+    up = s.receive(_patch(45, 0.5), 45 / 20.0)
+    assert up.rest_plane and up.k_h == K_O
