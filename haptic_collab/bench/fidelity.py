@@ -412,6 +412,7 @@ def run(
     design_margin: float = DESIGN_MARGIN,
     design_stiffer_by: float = STIFFER_BY,
     plane_check_s: float = 0.0,
+    rest_plane: bool = True,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the ``--json`` document.
 
@@ -460,6 +461,10 @@ def run(
         background (:func:`shared.verified_plane.ahead_cells`), before the press reaches them;
         :data:`haptic_collab.research.fidelity_schemes.PRODUCT_PLANE_CHECK_S` (2 s): a client
         that checks each plane on arrival (its first seconds after a welcome).
+    rest_plane : bool
+        The local models render the rest plane where no verified plane does (the client alone
+        on the object, :mod:`shared.rest_plane`; default True, as the client); False: the
+        designs and verified planes alone (``haptic client --no-rest-plane``).
 
     Returns
     -------
@@ -605,6 +610,7 @@ def run(
                     table=tables[(mode, key)],
                     planes=tuple(by_cell[c] for c in sorted(by_cell)),
                     plane_check_s=plane_check_s,
+                    rest_plane=rest_plane,
                 )
             ]
 
@@ -760,7 +766,9 @@ def run(
             else None
         )
         try:
-            cells3 = run_3d_cells(s3, device=device, workers=n_workers, pool=pool3)
+            cells3 = run_3d_cells(
+                s3, device=device, workers=n_workers, pool=pool3, rest_plane=rest_plane
+            )
             # objects the design was not made on: the stress set's shapes, pressed at their top
             cells3 += run_3d_cells(
                 s3,
@@ -770,6 +778,7 @@ def run(
                 stiffness_scales=(1.0,),
                 trajectories=("press",),
                 pool=pool3,
+                rest_plane=rest_plane,
             )
             # two users on the balloon: B rests on its side while A presses the top
             pairs3 = run_3d_pairs(
@@ -867,6 +876,7 @@ def run(
             "design_margin": design_margin,
             "design_stiffer_by": design_stiffer_by,
             "plane_check_s": plane_check_s,
+            "rest_plane": rest_plane,
         },
         "conditions": conditions,
         "cells_3d": cells3,

@@ -150,6 +150,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             design_margin=_or(args.design_margin, DESIGN_MARGIN),
             design_stiffer_by=_or(args.design_stiffer_by, STIFFER_BY),
             plane_check_s=args.plane_check_s,
+            rest_plane=not args.no_rest_plane,
             log=lambda msg: print(msg, file=sys.stderr, flush=True),
         )
         if args.plot:
@@ -256,6 +257,14 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
             "fidelity: a verified plane renders this long after the own-response check first "
             "verifies its cell, as a client that checks it on arrival (default 0: checked ahead, "
             "in the background; the client's check takes about 2 s)"
+        ),
+    )
+    p.add_argument(
+        "--no-rest-plane",
+        action="store_true",
+        help=(
+            "fidelity: the local models never render the rest plane (the client alone on the "
+            "object does by default: shared.rest_plane), as haptic client --no-rest-plane"
         ),
     )
     p.add_argument(

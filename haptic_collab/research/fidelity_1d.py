@@ -93,6 +93,7 @@ from haptic_collab.shared.own_response import (
     update_jumps,
     update_sums,
 )
+from haptic_collab.shared.rest_plane import rest_plane_gains
 from haptic_collab.shared.types import FloatArray
 
 __all__ = ["passivity_step", "simulate"]
@@ -127,9 +128,11 @@ def _verified_plane_gains(
     surface: FloatArray,
     force: FloatArray,
     sim_rate_hz: FloatArray,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+) -> tuple[
+    tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]], NDArray[np.bool_]
+]:
     """The gains (K_h, I, B_h, C_h, first-order hold) the client renders for the patches of
-    ``mask`` once they have fed its own-response check, as
+    ``mask`` once they have fed its own-response check, and where a verified plane renders, as
     :meth:`client.session.ClientSession._render` does: the check (``sums``, ``deform``
     (:func:`shared.own_response.update_deformation`), ``seq_last``, ``ok``, ``ref``, ``start``
     (the tick it started at) and ``jumps`` (:func:`shared.own_response.update_jumps`), updated in
@@ -183,10 +186,10 @@ def _verified_plane_gains(
     ready = (at >= 0) & ((seq - at) / sim_rate_hz >= delay_s)
     use = mask & ok & ready & planes.has_cell(k_id)
     if not use.any():
-        return gains
+        return gains, use
     plane = planes.gains_and_hold(k_id)
     kg, ig, bg, og, fg = (np.where(use, p, g) for p, g in zip(plane, gains, strict=True))
-    return kg, ig, bg, og, fg
+    return (kg, ig, bg, og, fg), use
 
 
 def passivity_step(
@@ -334,6 +337,26 @@ def simulate(
     # the cell (client.session: shared.own_response, shared.verified_plane)
     checks = follow & np.array([bool(x.planes) for x in r])
     planes = TableGains([x.planes if c else () for x, c in zip(r, checks, strict=True)])
+    # ... and, the user alone, the rest plane where no verified plane renders and none has in
+    # the contact (client.session: shared.rest_plane), at the rest surface (depth 0)
+    rest_on = follow & np.array([x.rest_plane for x in r])
+    b_rest = np.array(
+        [
+            rest_plane_gains(
+                c.k_o,
+                c.obj.reported_b_o(c.k_o, c.sim_rate_hz),
+                c.sim_rate_hz,
+                device.max_stiffness_n_per_m,
+                device.max_damping_n_s_per_m,
+            ).b_h
+            if on
+            else 0.0
+            for c, on in zip(cells, rest_on, strict=True)
+        ]
+    )
+    rest_now = np.zeros(B, dtype=bool)  # the last patch rendered the rest plane
+    proxy_last = np.zeros(B)  # the surface [m] the last tick rendered, before the slide
+    plane_seen = np.zeros(B, dtype=bool)  # a verified plane rendered in this contact
     own_sums = empty_sums((B,))
     own_deform = empty_deformation((B,))  # the deformation the K_o reported predicts
     own_seq = np.full(B, -1, dtype=np.int64)
@@ -487,8 +510,9 @@ def simulate(
                 re_gain = fresh & follow
                 if re_gain.any():
                     kg, ig, bg, og, fg = table.gains_and_hold(k_recv)
+                    plane_on = np.zeros(B, dtype=bool)
                     if checks.any():
-                        kg, ig, bg, og, fg = _verified_plane_gains(
+                        (kg, ig, bg, og, fg), plane_on = _verified_plane_gains(
                             re_gain & checks,
                             (kg, ig, bg, og, fg),
                             planes,
@@ -507,12 +531,32 @@ def simulate(
                             force=np.maximum(got[:, 2], 0.0),
                             sim_rate_hz=sim_hz,
                         )
+                    # the rest plane, alone on the object, where no verified plane renders and
+                    # none has in this contact (a patch with a force from this user)
+                    touching = got[:, 2] > 0.0
+                    plane_seen = np.where(re_gain, touching & (plane_seen | plane_on), plane_seen)
+                    rest_new = re_gain & rest_on & ~plane_on & ~plane_seen
+                    kg = np.where(rest_new, np.minimum(k_recv, device.max_stiffness_n_per_m), kg)
+                    ig = np.where(rest_new, 0.0, ig)
+                    bg = np.where(rest_new, b_rest, bg)
+                    og = np.where(rest_new, 0.0, og)
+                    fg = np.where(rest_new, False, fg)
+                    # a change between it and the surface: the step at the probe of what the
+                    # old patch renders next and the new one would slides off over the transfer
+                    # time, in contact (out of contact only toward the probe), as one slide
+                    # without a first-order hold (client.render.LocalRenderer.hand_over)
+                    switch = re_gain & (rest_new != rest_now) & (transfer_s > 0.0)
+                    rest_now = np.where(re_gain, rest_new, rest_now)
+                    f_new = np.maximum(got[:, 2], 0.0)
+                    target = np.where(rest_new, 0.0, got[:, 4] - og * f_new)
+                    sw_step = target - proxy_last + off_e
+                    switch &= was_contact | (sw_step < 0.0)
                     # a change of C_h slides in over the transfer time whatever the hold, at
                     # the last patch's F_s; a first-order hold slides from the old surface with
                     # the new compensation
                     # (out of contact only a rise of C_h, which moves the surface out)
                     slide = re_gain & (was_contact | (og > own_now)) & (transfer_s > 0.0)
-                    slide &= og != own_now
+                    slide &= (og != own_now) & ~switch
                     pending = off_e - off_used  # the slide's next decrement, already taken
                     c_step = np.where(slide, (own_now - og) * f_s_last, 0.0)
                     off_e = off_e + c_step
@@ -522,7 +566,11 @@ def simulate(
                     own_now = np.where(re_gain, og, own_now)
                     # the patch's surface moved out by the C_h rendered for it (the client's
                     # SurfacePatch.from_wire; a verified plane's C_h is not the table's)
-                    p_new = np.where(re_gain, got[:, 4] - og * f_s_last, p_new)
+                    p_new = np.where(re_gain, target, p_new)
+                    off_e = np.where(switch, sw_step, off_e)
+                    off_used = np.where(switch, sw_step, off_used)
+                    off_step = np.where(switch, sw_step * per_tick, off_step)
+                    p_old = np.where(switch, p_new, p_old)
                     foh = np.where(re_gain, fg, foh)
                     # the step of K_h e (e with the slide's pending decrement) and of the
                     # damper's B_h u, and, with own-force compensation, the integral force, are
@@ -546,6 +594,7 @@ def simulate(
         # 2. compute
         w = np.where(foh, np.minimum(1.0, (hold_i + 1.0) / n_ratio), 1.0)
         proxy = p_old + (p_new - p_old) * w
+        proxy_last = proxy
         e = xr - proxy
         if any_follow:
             e = e + off_e

@@ -243,6 +243,7 @@ def run_3d_cell(
     rendering: Rendering | None = None,
     gain_table: GainTable | None = None,
     direct_reference: DirectReference = DIRECT_REFERENCE,
+    rest_plane: bool = True,
 ) -> Run3D:
     """Run one scheme on the World (module docstring): one user pressing the top.
 
@@ -270,6 +271,10 @@ def run_3d_cell(
         Cache of the local models' designs.
     direct_reference : {"undisturbed", "patch"}
         The direct schemes' force rule (module docstring).
+    rest_plane : bool
+        A local model renders the rest plane the World sends the user alone (default True, as
+        the client: :func:`haptic_collab.research.fidelity_users_3d.rendering_3d`); False: its
+        design against the current surface.
 
     Returns
     -------
@@ -304,7 +309,15 @@ def run_3d_cell(
     r = (
         rendering
         if rendering is not None
-        else rendering_3d(scheme, k_o, delay_ms, device=device, gain_table=gain_table)
+        else rendering_3d(
+            scheme,
+            k_o,
+            delay_ms,
+            device=device,
+            gain_table=gain_table,
+            rest_plane=rest_plane,
+            b_o=float(out0.b_o),
+        )
     )
     if r.scheme != scheme:
         raise ValueError(f"rendering is for {r.scheme!r}, not {scheme!r}")
@@ -413,12 +426,14 @@ def _cell_job(
 
 
 def _design_job(
-    scheme: str, scale: float, mesh: str, delay_ms: float, device: DeviceModel
+    scheme: str, scale: float, mesh: str, delay_ms: float, device: DeviceModel, rest_plane: bool
 ) -> Rendering:
     """One scheme's rendering for the K_o at the top of ``mesh`` scaled by ``scale`` (a worker's
     job: a local model's design takes seconds, and so does a FEM solid's start-up, which the
     worker then keeps for its cells: :func:`haptic_collab.research.harness_3d.reused_world`)."""
-    return rendering_3d(scheme, top_k_o(scale, mesh), delay_ms, device=device)
+    return rendering_3d(
+        scheme, top_k_o(scale, mesh), delay_ms, device=device, rest_plane=rest_plane
+    )
 
 
 def run_3d_cells(
@@ -433,6 +448,7 @@ def run_3d_cells(
     gain_table: GainTable | None = None,
     direct_reference: DirectReference = DIRECT_REFERENCE,
     pool: Executor | None = None,
+    rest_plane: bool = True,
 ) -> list[dict[str, Any]]:
     """Every scheme x mesh x stiffness scale x delay x trajectory on the World (module docstring).
 
@@ -460,6 +476,10 @@ def run_3d_cells(
     pool : Executor, optional
         Run the designs and the cells there (``workers`` unused), and leave it open: a caller
         running several grids keeps its workers, their imports and the objects they built.
+    rest_plane : bool
+        The local models render the rest plane the World sends the user alone (default True, as
+        the client; :func:`haptic_collab.research.fidelity_users_3d.rendering_3d`); False: their
+        designs against the current surface.
 
     Returns
     -------
@@ -492,7 +512,9 @@ def run_3d_cells(
         k_o = {(sc, m): top_k_o(sc, m) for m in meshes for sc in stiffness_scales}
         table = gain_table if gain_table is not None else GainTable()
         rend = {
-            (s, sc, m, dm): rendering_3d(s, k_o[(sc, m)], dm, device=device, gain_table=table)
+            (s, sc, m, dm): rendering_3d(
+                s, k_o[(sc, m)], dm, device=device, gain_table=table, rest_plane=rest_plane
+            )
             for s, sc, m, dm in rend_keys
         }
         return [
@@ -501,7 +523,7 @@ def run_3d_cells(
         ]
     with executor(pool, workers) as ex:
         fut_r = {
-            (s, sc, m, dm): ex.submit(_design_job, s, sc, m, dm, device)
+            (s, sc, m, dm): ex.submit(_design_job, s, sc, m, dm, device, rest_plane)
             for s, sc, m, dm in rend_keys
         }
         rend = {k: v.result() for k, v in fut_r.items()}

@@ -170,6 +170,11 @@ class Rendering:
         Time [s] from the check's first verdict in a cell to its plane rendering: 0 where the
         client checked that plane ahead, in the background (the default run); the time a check
         takes (:data:`PRODUCT_PLANE_CHECK_S`) where it checks the plane on arrival.
+    rest_plane : bool
+        ``follows_k_o``: the user, alone on the object, renders the rest plane the patch carries
+        (:mod:`shared.rest_plane`: K_h = min(K_o reported, the device's), its damper, no integral
+        or compensation, the object's rest surface) where no verified plane renders and none has
+        in this contact, as :meth:`client.session.ClientSession._render` does.
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
@@ -200,6 +205,7 @@ class Rendering:
     table: tuple[TableCell, ...] = ()
     planes: tuple[TableCell, ...] = ()
     plane_delay_s: float = 0.0
+    rest_plane: bool = False
     gain_transfer_s: float = 0.0
     variant: str = ""
     tuning: str = ""
@@ -474,6 +480,7 @@ def rendering_for(
     table: Sequence[TableCell] = (),
     planes: Sequence[TableCell] = (),
     plane_check_s: float = 0.0,
+    rest_plane: bool = True,
 ) -> Rendering:
     """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
     model's design, or a peer's default tuning (:func:`peer_renderings`).
@@ -503,6 +510,9 @@ def rendering_for(
         reaches its cell, as the client checks the cells around the K_o reported ahead
         (:func:`shared.verified_plane.ahead_cells`); :data:`PRODUCT_PLANE_CHECK_S`, a client
         whose background checks have not reached the cell yet, which checks it on arrival.
+    rest_plane : bool
+        :attr:`Rendering.rest_plane` for a local model following K_o (default True, as the
+        client; False: the designs and verified planes alone).
 
     Raises
     ------
@@ -529,6 +539,7 @@ def rendering_for(
             table=tuple(table),
             planes=tuple(planes) if table else (),
             plane_delay_s=plane_check_s,
+            rest_plane=rest_plane and bool(table),
             gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
             tuning=scheme_tuning(scheme, device),
         )

@@ -17,6 +17,7 @@ import multiprocessing as mp
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from contextlib import contextmanager
+from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
@@ -50,6 +51,7 @@ from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.local_model_update import SurfacePatch
 from haptic_collab.shared.passivity import PassivityController
 from haptic_collab.shared.primitives import Plane, Sphere, moved_out
+from haptic_collab.shared.rest_plane import rest_plane_gains
 from haptic_collab.shared.types import FloatArray
 
 __all__ = [
@@ -236,15 +238,31 @@ def rendering_3d(
     *,
     device: DeviceModel = DEFAULT_DEVICE,
     gain_table: GainTable | None = None,
+    rest_plane: bool = False,
+    b_o: float = 0.0,
 ) -> Rendering:
     """:func:`haptic_collab.research.fidelity_schemes.rendering_for` at 20 Hz, designing the local models' gains for
     ``k_o`` [N/m] and ``delay_ms`` [ms] (seconds per design; ``gain_table`` caches them).
+
+    With ``rest_plane`` a local model is the client alone on the object: the rest plane each
+    patch carries (:mod:`shared.rest_plane`), with the gains of ``k_o`` (K_h = min(K_o, the
+    device's), its damper for ``b_o`` [N/m] (the balloon and the FEM box report 0 at the top),
+    no integral or compensation, zero-order hold; :func:`renewed_patch`). Without, its design
+    against the current surface, as with another user near.
 
     Raises
     ------
     ValueError
         An unknown scheme, or a K_o the design refuses.
     """
+    if rest_plane and scheme in ("local-p", "local-pi"):
+        g = rest_plane_gains(
+            k_o, b_o, SIM_RATE_HZ, device.max_stiffness_n_per_m, device.max_damping_n_s_per_m
+        )
+        r = rendering_for(scheme, sim_rate_hz=SIM_RATE_HZ, device=device, design=None, k_o=k_o)
+        return replace(
+            r, k_h=g.k_h, i_gain=0.0, b_h=g.b_h, proxy_hold="zoh", own_gain=0.0, rest_plane=True
+        )
     design = None
     if scheme in ("local-p", "local-pi"):
         mode: Literal["p", "pi"] = "pi" if scheme == "local-pi" else "p"
@@ -329,6 +347,9 @@ def renewed_patch(
         # deformation F / K_o, rendered with that K_o (capped)
         k_est = float(out.k_o)
         return moved_out(out.primitive, out.own_force_n / k_est), min(r.k_h, k_est)
+    if r.rest_plane and out.rest_plane is not None:
+        # the client alone: the rest plane the World sends, with the gains of the top's K_o
+        return out.rest_plane, r.k_h
     if r.kind == "coupling":
         # own-force compensation: the surface moved out by C_h times the force applied
         return moved_out(out.primitive, r.own_gain * out.own_force_n), r.k_h
