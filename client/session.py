@@ -26,12 +26,13 @@ else (a new coupling class or more delay) the fallback of :data:`FALLBACK_K_RATI
 ``verified=False``.
 
 The rest plane. A patch for a user alone on the object (no other user pushes or is near) carries
-the object's rest surface at the contact; where no verified plane renders and none has in this
-contact, the session renders that plane with the gains of :func:`shared.rest_plane.rest_plane_gains`
+the object's rest surface at the contact; where no verified plane renders (and, in a contact that
+has rendered one, none has for :data:`shared.rest_plane.HOLD_BACK_S`), the session renders that plane with the gains of :func:`shared.rest_plane.rest_plane_gains`
 (K_h = min(K_o, the device's), the damper closest to eq. 9's object, no integral, no own-force
 compensation): at once, with nothing to design or check first, since its force does not go
 through the simulation. When another user comes near, the patch comes without it and the design
-renders the simulation's surface again; the renderer slides the surface's step off over the gain
+renders the simulation's surface again; after a verified plane in a contact it waits
+:data:`shared.rest_plane.HOLD_BACK_S` without one. The renderer slides the surface's step off over the gain
 transfer time (:meth:`client.render.LocalRenderer.hand_over`). ``rest_plane=False`` never renders
 it.
 
@@ -79,6 +80,7 @@ from haptic_collab.shared.protocol import (
     parse_server,
 )
 from haptic_collab.shared.rates import Rates
+from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.rest_plane import rest_plane_gains
 from haptic_collab.shared.verified_plane import ahead_cells, plane_applies
 
@@ -251,9 +253,10 @@ class ClientSession:
         ``local``: always design locally.
     rest_plane : bool
         Render the rest plane a patch carries (the user alone on the object;
-        :mod:`shared.rest_plane`) where no verified plane renders and none has in this contact
-        (default True); False: the designs through the simulation loop everywhere (the paper's
-        local model alone).
+        :mod:`shared.rest_plane`) where no verified plane renders
+        (default True; after a verified plane in a contact, only once none has rendered for
+        :data:`shared.rest_plane.HOLD_BACK_S`); False: the designs through the simulation loop
+        everywhere (the paper's local model alone).
     """
 
     def __init__(
@@ -343,8 +346,8 @@ class ClientSession:
         self.rest_plane = bool(rest_plane)
         #: Patches rendered with their rest plane (:mod:`shared.rest_plane`).
         self.rest_plane_patches = 0
-        # a verified plane rendered in this contact: the rest plane waits for the next one
-        self._plane_in_contact = False
+        # the tick of the last patch a verified plane rendered in this contact (None: none)
+        self._plane_tick: int | None = None
 
     # ------------------------------------------------------------------ outgoing
     def hello(self, now_s: float | None = None) -> str:
@@ -723,19 +726,19 @@ class ClientSession:
                 plane_renders = True
                 self.plane_patches += 1
                 self.identified_plane_patches += self.own_response.identified_ratio != 1.0
-        if surface.in_contact or surface.own_force_n > 0.0:
-            self._plane_in_contact |= plane_renders
-        else:
-            self._plane_in_contact = False
-        if (
-            self.rest_plane
-            and surface.rest_plane is not None
-            and not (plane_renders or self._plane_in_contact)
-        ):
+        if not (surface.in_contact or surface.own_force_n > 0.0):
+            self._plane_tick = None
+        elif plane_renders:
+            self._plane_tick = surface.tick
+        held_back = (
+            self._plane_tick is not None
+            and (surface.tick - self._plane_tick) / self.sim_rate_hz < REST_HOLD_BACK_S
+        )
+        if self.rest_plane and surface.rest_plane is not None and not (plane_renders or held_back):
             # the user alone on the object, no verified plane: the rest plane, with gains of
             # the patch alone (nothing to wait for); a press that crossed from it to verified
-            # planes and back every cycle rang on a stiffening object, so once a verified
-            # plane renders in a contact this waits for the next contact
+            # planes and back every cycle rang on a stiffening object, so after a verified
+            # plane in a contact it waits until none has rendered for a while
             if design is None:
                 self.design_wanted = (key, k_o_eff)  # for when another user comes near
             rest = rest_plane_gains(

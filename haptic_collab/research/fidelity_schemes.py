@@ -174,7 +174,7 @@ class Rendering:
         ``follows_k_o``: the user, alone on the object, renders the rest plane the patch carries
         (:mod:`shared.rest_plane`: K_h = min(K_o reported, the device's), its damper, no integral
         or compensation, the object's rest surface) where no verified plane renders and none has
-        in this contact, as :meth:`client.session.ClientSession._render` does.
+        for :data:`shared.rest_plane.HOLD_BACK_S` in this contact, as :meth:`client.session.ClientSession._render` does.
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s

@@ -1,9 +1,9 @@
 """A user alone on the object renders the rest plane the patch carries (shared.rest_plane).
 
 At once (no design to wait for), with the object's stiffness; the simulation's surface with the
-design again when another user comes near (the patch without a rest plane); and not again in a
-contact that has rendered a verified plane (a press crossing between the two rang on a
-stiffening object).
+design again when another user comes near (the patch without a rest plane); and, in a contact
+that has rendered a verified plane, only once none has for HOLD_BACK_S (a press crossing between
+the two every cycle rang on a stiffening object).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import pytest
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.primitives import make_plane
 from haptic_collab.shared.protocol import Patch, PlaneModel, encode
+from haptic_collab.shared.rest_plane import HOLD_BACK_S
 from tests.client.test_verified_plane_session import TABLE, _check_planes
 from tests.support.sessions import welcomed_session
 
@@ -79,7 +80,7 @@ def test_without_the_rest_plane_or_with_it_turned_off_the_design_renders() -> No
     assert up is not None and not up.rest_plane and off.rest_plane_patches == 0
 
 
-def test_after_a_verified_plane_the_rest_plane_waits_for_the_next_contact() -> None:
+def test_after_a_verified_plane_the_rest_plane_waits_a_while_without_one() -> None:
     s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
     rest_then_plane = []
     for tick in range(1, 41):  # a press between 0.1 and 3.1 N, in contact throughout
@@ -95,14 +96,23 @@ def test_after_a_verified_plane_the_rest_plane_waits_for_the_next_contact() -> N
     assert rest_then_plane[0] and not rest_then_plane[-1]
     assert s.own_response.verified and s.plane_patches > 0
     # the object yields more under the same force: the plane is withdrawn, and the design (not
-    # the rest plane) renders for the rest of this contact
+    # the rest plane) renders until no verified plane has for HOLD_BACK_S (20 patches at 20 Hz)
     f = float(1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * 40 / 20.0))
-    for tick in range(41, 44):
+    wait = round(HOLD_BACK_S * 20)
+    rest = []
+    for tick in range(41, 41 + wait + 2):
         up = s.receive(_patch(tick, f, 0.8 * K_O), tick / 20.0)
         _check_planes(s)
+        rest.append(up.rest_plane)
     assert not s.own_response.verified
-    assert not up.rest_plane and up.k_h != pytest.approx(K_O)
-    # let go: the next contact starts on the rest plane again
-    s.receive(_patch(44, 0.0), 44 / 20.0)
-    up = s.receive(_patch(45, 0.5), 45 / 20.0)
+    assert rest == [False] * (wait - 1) + [True] * 3
+    # a verified plane again in this contact holds it back again; letting go ends the wait
+    s2 = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
+    for tick in range(1, 41):
+        f = float(1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0))
+        up = s2.receive(_patch(tick, f), tick / 20.0)
+        _check_planes(s2)
+    assert not up.rest_plane
+    s2.receive(_patch(41, 0.0), 41 / 20.0)
+    up = s2.receive(_patch(42, 0.5), 42 / 20.0)
     assert up.rest_plane and up.k_h == K_O
