@@ -13,10 +13,10 @@ import pytest
 
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.primitives import make_plane
-from haptic_collab.shared.protocol import Patch, PlaneModel, encode
+from haptic_collab.shared.protocol import PlaneModel
 from haptic_collab.shared.rest_plane import HOLD_BACK_S
 from tests.client.test_verified_plane_session import TABLE, _check_planes
-from tests.support.sessions import welcomed_session
+from tests.support.sessions import press_patch, welcomed_session
 
 K_O = 300.0
 REST = PlaneModel(point=(0.0, 0.0, 0.1), normal=(0.0, 0.0, 1.0))
@@ -25,24 +25,16 @@ REST = PlaneModel(point=(0.0, 0.0, 0.1), normal=(0.0, 0.0, 1.0))
 def _patch(
     tick: int, force_n: float, k_true: float = K_O, *, rest: bool = True, b_o: float = 0.0
 ) -> str:
-    """A patch of a press on the top plane z = 0.1 m of a spring of ``k_true`` reported at
-    :data:`K_O`: the surface pushed in by the force the simulation applied from this user; the
-    rest plane z = 0.1 with it when ``rest``."""
-    z = 0.1 - force_n / k_true
-    return encode(
-        Patch(
-            tick=tick,
-            primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)),
-            proxy_m=(0, 0, z),
-            normal=(0, 0, 1),
-            penetration_m=0.001 if force_n > 0.0 else -0.01,
-            in_contact=force_n > 0.0,
-            k_o=K_O,
-            k_o_eff=K_O,
-            b_o=b_o,
-            own_force_n=force_n,
-            rest_plane=REST if rest else None,
-        )
+    """A patch of a press on a spring of ``k_true`` reported at :data:`K_O`, with the rest plane
+    z = 0.1 m when ``rest``; out of contact without a force."""
+    return press_patch(
+        tick,
+        force_n,
+        k_true,
+        k_o=K_O,
+        b_o=b_o,
+        rest_plane=REST if rest else None,
+        in_contact=force_n > 0.0,
     )
 
 

@@ -16,7 +16,7 @@ from haptic_collab.client.session import PLANE_ALONE, ClientSession
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.protocol import Patch, PlaneModel, RecommendedGains, encode
 from haptic_collab.shared.verified_plane import plane_against, verified_plane
-from tests.support.sessions import welcomed_session
+from tests.support.sessions import press_patch, welcomed_session
 
 K_O = 300.0
 #: One gain table for every session here: the cells are designed once (a design takes seconds).
@@ -31,25 +31,9 @@ def _press_patch(
     gains: RecommendedGains | None = None,
     k_o: float = K_O,
 ) -> str:
-    """A patch of a press on the top plane z = 0.1 m of a spring of ``k_true`` [N/m] reported
-    at ``k_o`` (:data:`K_O`): the surface pushed in by the force the simulation applied from
-    this user."""
-    z = 0.1 - force_n / k_true
-    return encode(
-        Patch(
-            tick=tick,
-            primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)),
-            proxy_m=(0, 0, z),
-            normal=(0, 0, 1),
-            penetration_m=0.001,
-            in_contact=True,
-            k_o=k_o,
-            k_o_eff=k_o,
-            b_o=b_o,
-            own_force_n=force_n,
-            gains=gains,
-        )
-    )
+    """A patch of a press on a spring of ``k_true`` [N/m] reported at ``k_o`` (:data:`K_O`)
+    (:func:`tests.support.sessions.press_patch`)."""
+    return press_patch(tick, force_n, k_true, k_o=k_o, b_o=b_o, gains=gains)
 
 
 def _check_planes(s: ClientSession) -> None:

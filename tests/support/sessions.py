@@ -6,7 +6,15 @@ from __future__ import annotations
 from typing import Any
 
 from haptic_collab.client.session import ClientSession
-from haptic_collab.shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Welcome, encode
+from haptic_collab.shared.protocol import (
+    DeviceInfo,
+    ObjectInfo,
+    Patch,
+    PlaneModel,
+    RecommendedGains,
+    Welcome,
+    encode,
+)
 
 #: The object a welcome describes: an octahedron of radius 0.1 m about the origin [m].
 WELCOME_OBJECT = ObjectInfo(
@@ -73,3 +81,37 @@ def session_patch(tick: int, k_o_eff: float = 300.0, k_o: float = 320.0) -> str:
     """A contact patch on the top plane of :data:`WELCOME_OBJECT` (the session tests' default
     stiffnesses, K_o 320 N/m and K_o,eff 300 N/m)."""
     return plane_patch(tick, k_o, k_o_eff)
+
+
+def press_patch(
+    tick: int,
+    force_n: float,
+    k_true: float,
+    *,
+    k_o: float,
+    b_o: float = 0.0,
+    gains: RecommendedGains | None = None,
+    rest_plane: PlaneModel | None = None,
+    in_contact: bool = True,
+) -> str:
+    """A patch of a press on the top plane z = 0.1 m of :data:`WELCOME_OBJECT`, a spring of
+    ``k_true`` [N/m] reported at ``k_o``: the surface pushed in by the force ``force_n`` [N] the
+    simulation applied from this user, with ``b_o``, ``gains`` and ``rest_plane`` as given;
+    out of contact (``in_contact`` False) the probe 10 mm outside."""
+    z = 0.1 - force_n / k_true
+    return encode(
+        Patch(
+            tick=tick,
+            primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)),
+            proxy_m=(0, 0, z),
+            normal=(0, 0, 1),
+            penetration_m=0.001 if in_contact else -0.01,
+            in_contact=in_contact,
+            k_o=k_o,
+            k_o_eff=k_o,
+            b_o=b_o,
+            own_force_n=force_n,
+            gains=gains,
+            rest_plane=rest_plane,
+        )
+    )
