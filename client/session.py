@@ -25,12 +25,12 @@ nearest designed cell (no stiffer relative to K_o) renders, else the gains in us
 else (a new coupling class or more delay) the fallback of :data:`FALLBACK_K_RATIO`, all flagged
 ``verified=False``.
 
-The rest plane. A patch for a user alone on the object (no other user pushes or is near) carries
+The rest plane. A patch for a user alone on the object (the only user in the room) carries
 the object's rest surface at the contact; where no verified plane renders (and, in a contact that
 has rendered one, none has for :data:`shared.rest_plane.HOLD_BACK_S`), the session renders that plane with the gains of :func:`shared.rest_plane.rest_plane_gains`
 (K_h = min(K_o, the device's), the damper closest to eq. 9's object, no integral, no own-force
 compensation): at once, with nothing to design or check first, since its force does not go
-through the simulation. When another user comes near, the patch comes without it and the design
+through the simulation. When another user joins, the patch comes without it and the design
 renders the simulation's surface again; after a verified plane in a contact it waits
 :data:`shared.rest_plane.HOLD_BACK_S` without one. The renderer slides the surface's step off over the gain
 transfer time (:meth:`client.render.LocalRenderer.hand_over`). ``rest_plane=False`` never renders
@@ -740,7 +740,7 @@ class ClientSession:
             # planes and back every cycle rang on a stiffening object, so after a verified
             # plane in a contact it waits until none has rendered for a while
             if design is None:
-                self.design_wanted = (key, k_o_eff)  # for when another user comes near
+                self.design_wanted = (key, k_o_eff)  # for when another user joins
             rest = rest_plane_gains(
                 surface.k_o, surface.b_o, self.sim_rate_hz,
                 self.device.max_stiffness_n_per_m, self.b_h_max,

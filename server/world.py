@@ -25,10 +25,11 @@ position and last rendered force, and sends each user the returned surface patch
    a probe out of contact gets the closest point of the surface.
 4. **Step 2 inputs** - per contact ``K_o = 1 / C_ii``, ``B_o`` (eq. 9) and the coupling-aware
    ``K_o_eff`` (DESIGN section 6) over the contacts that touch or nearly touch the surface.
-5. **The rest plane** - to a user no other user pushes with nor is near (within
-   ``proximity_m``), the object's rest surface at the contact: the plane through the proxy's
-   material point at rest with its face's rest normal (:mod:`shared.rest_plane`; the client may
-   render it instead of the current surface while alone).
+5. **The rest plane** - to the only user of the tick, the object's rest surface at the contact:
+   the plane through the proxy's material point at rest with the rest normal there
+   (:mod:`shared.rest_plane`; the client may render it instead of the current surface while
+   alone). With another user in the room, none: a user whose rendering switched whenever another
+   came near would feel the switch, and would feel the other's push only through the design.
 
 Nothing here uses sockets, threads, asyncio or clocks; time advances one tick per call.
 Bad values never crash a tick: a non-finite probe or force skips that user's load, and the
@@ -380,7 +381,7 @@ class World:
         for name, s in zip(names, located, strict=True):
             user = self._users.get(name)
             rest_point, rest_normal = self._material_of(s)
-            rest_planes.append(self._rest_plane(s, rest_point))
+            rest_planes.append(self._rest_plane(s, rest_point) if len(names) == 1 else None)
             patch_keys.append(
                 self.obj.patch_key(rest_point, user.key if user is not None else None, rest_normal)
             )
@@ -397,10 +398,6 @@ class World:
             c_near = compliance[np.ix_(near, near)]
             k_eff[near] = effective_stiffness(c_near, k_o[near])
             k_stiff[near] = stiff_stiffness(c_near, k_o[near])
-
-        # a user is alone when every other user neither pushed this tick nor is near the surface
-        busy = (pen > -self.proximity_m) | np.array([name in pushed for name in names])
-        n_busy = int(busy.sum())
 
         number = self._tick if tick is None else int(tick)
         out: dict[str, SurfacePatch] = {}
@@ -426,7 +423,7 @@ class World:
                 b_o=float(b_o[i]),
                 in_contact=bool(s.penetration_m > 0.0),
                 own_force_n=pushed.get(name, 0.0),
-                rest_plane=rest_planes[i] if n_busy - int(busy[i]) == 0 else None,
+                rest_plane=rest_planes[i],
             )
         self._users = users
         return out

@@ -98,8 +98,8 @@ class SurfacePatch:
         produced this surface (Step 3), >= 0: a local model with own-force compensation renders
         against the surface moved out by C_h times it (:mod:`shared.full_loop`).
     rest_plane : shared.primitives.Plane or None
-        The object's rest surface at the contact, sent while no other user pushes on the object
-        or is near it (:mod:`shared.rest_plane`); None otherwise.
+        The object's rest surface at the contact, sent while this user is the only one in the
+        room (:mod:`shared.rest_plane`); None otherwise.
 
     Raises
     ------

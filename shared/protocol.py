@@ -308,7 +308,7 @@ class Patch(_Msg):
     #: Gains the server recommends (absent until designed for this user's key and K_o cell).
     gains: RecommendedGains | None = None
     #: The object's rest surface at this contact (the tangent plane at the contact's material
-    #: point), sent only while no other user pushes on the object or is near it: a client may
+    #: point), sent only while this user is the only one in the room: a client may
     #: render it with the object's stiffness (:mod:`shared.rest_plane`); absent otherwise.
     rest_plane: PlaneModel | None = None
 

@@ -1,9 +1,8 @@
 """The rest plane: what a user alone on the object renders where no verified plane does.
 
-While no other user pushes on the object or is near it, the server knows where this user's
-contact would be without this user's own push: the object's rest surface, the tangent plane at the
-contact's material point (:meth:`server.world.World.tick`), and sends it with the patch
-(``rest_plane``). Rendered with the object's stiffness, ``F = K_h (x_rest - x) + B_h u`` with
+While a user is the only one in the room, the server knows where this user's contact would be
+without this user's own push: the object's rest surface, the tangent plane at the contact's
+material point (:meth:`server.world.World.tick`), and sends it with the patch (``rest_plane``). Rendered with the object's stiffness, ``F = K_h (x_rest - x) + B_h u`` with
 ``K_h = min(K_o, K_h,max)``, no integral and no own-force compensation, it is ``static-local``'s
 plane of the fidelity benchmark (a local model of the object held at the client, as model-mediated
 teleoperation's: Mitra and Niemeyer 2008): felt as a linear object is statically at every

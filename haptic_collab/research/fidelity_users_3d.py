@@ -17,7 +17,6 @@ import multiprocessing as mp
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from contextlib import contextmanager
-from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
@@ -28,11 +27,15 @@ from haptic_collab.client.devices.sim import HandParams, SimDevice
 from haptic_collab.client.servo import ServoCore
 from haptic_collab.research.fidelity_cases import IMPACT, PRESS, Trajectory
 from haptic_collab.research.fidelity_schemes import (
+    PRODUCT_GAIN_TRANSFER_S,
+    PRODUCT_PASSIVITY_BIAS_J,
+    PRODUCT_THETA_M,
     SCHEMES,
     DeviceModel,
     Rendering,
     design_delay_ticks,
     rendering_for,
+    scheme_tuning,
 )
 from haptic_collab.research.harness_3d import (
     RATE_RATIO,
@@ -259,9 +262,19 @@ def rendering_3d(
         g = rest_plane_gains(
             k_o, b_o, SIM_RATE_HZ, device.max_stiffness_n_per_m, device.max_damping_n_s_per_m
         )
-        r = rendering_for(scheme, sim_rate_hz=SIM_RATE_HZ, device=device, design=None, k_o=k_o)
-        return replace(
-            r, k_h=g.k_h, i_gain=0.0, b_h=g.b_h, proxy_hold="zoh", own_gain=0.0, rest_plane=True
+        # the client's local model (rendering_for's), with the rest plane's gains
+        return Rendering(
+            scheme,
+            "coupling",
+            k_h=g.k_h,
+            b_h=g.b_h,
+            theta_m=PRODUCT_THETA_M,
+            release_time_s=2.0 / SIM_RATE_HZ,
+            passivity=scheme == "local-pi",
+            passivity_bias_j=PRODUCT_PASSIVITY_BIAS_J,
+            rest_plane=True,
+            gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
+            tuning=f"{scheme_tuning(scheme, device)}; alone: the rest plane (shared.rest_plane)",
         )
     design = None
     if scheme in ("local-p", "local-pi"):

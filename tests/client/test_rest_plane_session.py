@@ -1,7 +1,7 @@
 """A user alone on the object renders the rest plane the patch carries (shared.rest_plane).
 
 At once (no design to wait for), with the object's stiffness; the simulation's surface with the
-design again when another user comes near (the patch without a rest plane); and, in a contact
+design again when another user joins (the patch without a rest plane); and, in a contact
 that has rendered a verified plane, only once none has for HOLD_BACK_S (a press crossing between
 the two every cycle rang on a stiffening object).
 """
@@ -46,7 +46,7 @@ def test_alone_the_first_contact_renders_the_rest_plane_at_once() -> None:
     assert (up.k_h, up.i_gain, up.b_h, up.own_gain) == (K_O, 0.0, 0.0, 0.0)
     assert up.choice is not None and up.choice.verified and not up.choice.fallback
     assert s.rest_plane_patches == 1
-    # the design is still asked for, for when another user comes near
+    # the design is still asked for, for when another user joins
     assert s.design_wanted is not None
 
 
@@ -63,7 +63,7 @@ def test_without_the_rest_plane_or_with_it_turned_off_the_design_renders() -> No
     s = welcomed_session("A", "u1", b_h_max=10.0, gain_table=TABLE)
     s.gain_table.design(s.gain_key(0.0, 0), K_O)
     assert s.receive(_patch(1, 1.0), 0.05).rest_plane
-    # another user comes near: the patch has no rest plane, the design renders the surface
+    # another user joins: the patch has no rest plane, the design renders the surface
     up = s.receive(_patch(2, 1.0, rest=False), 0.1)
     assert up is not None and not up.rest_plane
     assert up.primitive.point[2] == pytest.approx(0.1 - 1.0 / K_O + up.own_gain * 1.0)

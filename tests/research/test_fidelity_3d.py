@@ -51,7 +51,10 @@ def _first_force_tick(f: np.ndarray) -> int:
 
 
 def test_local_p_holds_still_on_the_surface(table: GainTable) -> None:
-    run = run_3d_cell("local-p", stiffness_scale=1.0, delay_ms=0.0, gain_table=table)
+    # the design through the simulation, as with another user near (no rest plane)
+    run = run_3d_cell(
+        "local-p", stiffness_scale=1.0, delay_ms=0.0, gain_table=table, rest_plane=False
+    )
     m = run.metrics
     assert not run.runaway
     assert m.stable and m.hold_p2p_mm < STABLE_HOLD_P2P_M * 1e3
@@ -73,6 +76,26 @@ def test_local_p_holds_still_on_the_surface(table: GainTable) -> None:
     assert m1.stable
     assert m.steady_state_error_mm == pytest.approx(m1.steady_state_error_mm, abs=0.2)
     assert m.peak_penetration_mm == pytest.approx(m1.peak_penetration_mm, abs=0.3)
+
+
+def test_alone_local_p_renders_the_rest_plane_the_world_sends(table: GainTable) -> None:
+    # alone on the balloon, the client renders the rest plane with K_h = K_o: the probe sits
+    # F / K_o under the rest top, on the surface the press deformed (F / K_o in); stable, and
+    # no design through the simulation is made for it
+    run = run_3d_cell("local-p", stiffness_scale=1.0, delay_ms=100.0)
+    m, r = run.metrics, run.cell.rendering
+    assert r.rest_plane and r.own_gain == 0.0 and r.k_h == pytest.approx(run.cell.k_o)
+    assert not run.runaway and m.stable and m.hold_p2p_mm < STABLE_HOLD_P2P_M * 1e3
+    hold = run.t >= 3.5
+    f_hold = float(np.mean(run.f[hold]))
+    assert 0.5 < f_hold < 7.9
+    assert abs(m.steady_state_error_mm) < 0.5
+    # with 100 ms each way the design through the simulation holds the press less still
+    near = run_3d_cell(
+        "local-p", stiffness_scale=1.0, delay_ms=100.0, gain_table=table, rest_plane=False
+    )
+    assert not near.cell.rendering.rest_plane
+    assert m.hold_p2p_mm <= near.metrics.hold_p2p_mm + 1e-6
 
 
 def test_direct_at_100_ms_on_the_stiff_balloon_is_far_worse_than_local_p(

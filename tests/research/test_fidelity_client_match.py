@@ -2,7 +2,7 @@
 (:func:`haptic_collab.research.fidelity_1d.simulate`) renders, tick for tick, the force the
 product's own :class:`client.render.LocalRenderer` renders on the same object, network and gain
 table, through every hand-over (transfer force, damper carry, each design's proxy hold, a
-change of C_h sliding in with either hold)."""
+change of C_h sliding in with either hold), and the rest plane a user alone renders."""
 
 from __future__ import annotations
 
@@ -35,11 +35,14 @@ from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
+from haptic_collab.shared.rest_plane import rest_plane_gains
 
 SERVO_HZ = 1000.0
 #: a tap deep enough to leave the object and come back, through cells whose C_h rises and falls
 LEAVING = replace(TAP, name="leaving tap", sine_amplitude_m=14e-3, sine_hz=3.0)
 FMAX = DeviceModel().max_force_n
+DEVICE_K = DeviceModel().max_stiffness_n_per_m
+DEVICE_B = DeviceModel().max_damping_n_s_per_m
 
 
 class _Plane:
@@ -63,6 +66,7 @@ class _Patch:
     own_gain: float
     own_force_n: float
     recovery_m_per_n: float
+    rest_plane: bool = False
 
 
 def _client_forces(
@@ -104,9 +108,12 @@ def _client_forces(
             seen = int(down_seq[k % L])
             val, k_est, got = down[k % L]
             kg, ig, bg, og, fg = (float(a[0]) for a in table.gains_and_hold(np.array([k_est])))
+            if r.rest_plane:  # alone, no verified plane: the rest plane at depth 0
+                rest = rest_plane_gains(k_est, 0.0, rate, DEVICE_K, DEVICE_B)
+                kg, ig, bg, og, fg, val = rest.k_h, 0.0, rest.b_h, 0.0, False, 0.0
             hold = "foh" if fg else "zoh"
             rec = 1.0 / k_o if ig > 0.0 else 0.0
-            patch = _Patch(_Plane(val), kg, ig, bg, hold, N, og, max(got, 0.0), rec)
+            patch = _Patch(_Plane(val), kg, ig, bg, hold, N, og, max(got, 0.0), rec, r.rest_plane)
             rd.hand_over(patch, False)  # type: ignore[arg-type]
         f = min(max(rd.render(x, 0.0, 0.0, x - x_prev, 0.0, 0.0)[0], -FMAX), FMAX)
         out[n] = f
@@ -165,8 +172,11 @@ def test_the_simulators_local_model_renders_what_the_client_renders(
     g = GainTable()
     table = [TableCell.from_design(c, d, g.grid_ratio) for c, d in designs.items()]
     k_o = g.grid_point(44)
-    # the product's rendering of the design for K_o (its cell's, unscaled at the grid point)
-    r = rendering_for("local-p", sim_rate_hz=rate, design=designs[44], table=table)
+    # the product's rendering of the design for K_o (its cell's, unscaled at the grid point),
+    # with another user near (no rest plane)
+    r = rendering_for(
+        "local-p", sim_rate_hz=rate, design=designs[44], table=table, rest_plane=False
+    )
     assert r.gain_transfer_s == PRODUCT_GAIN_TRANSFER_S > 0.0 and not r.passivity
     for rendering in (r, replace(r, gain_transfer_s=0.0)):
         sim = simulate([Cell(rendering, k_o, rate, delay_ms, None, traj, STIFFENING)]).f[0]
@@ -176,3 +186,25 @@ def test_the_simulators_local_model_renders_what_the_client_renders(
         k_top = float(stiffening_tangent(k_o, STIFFENING.stiffening_m, deepest))
         assert GainTable().cell(k_top) - GainTable().cell(k_o) >= 3
         np.testing.assert_allclose(sim, client, rtol=0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize(("traj", "rate", "delay_ms"), [(PRESS, 20.0, 0.0), (LEAVING, 50.0, 20.0)])
+def test_alone_the_simulator_renders_the_rest_plane_as_the_client(
+    traj: Trajectory, rate: float, delay_ms: float
+) -> None:
+    # a press into the stiffening object, the user alone: the rest plane with the tangent K_o
+    # reported in every patch, as the client renders it; no design's surface, no compensation
+    designs = _mixed_table(1)
+    g = GainTable()
+    table = [TableCell.from_design(c, d, g.grid_ratio) for c, d in designs.items()]
+    k_o = g.grid_point(44)
+    r = rendering_for("local-p", sim_rate_hz=rate, design=designs[44], table=table)
+    assert r.rest_plane
+    sim = simulate([Cell(r, k_o, rate, delay_ms, None, traj, STIFFENING)]).f[0]
+    client = _client_forces(r, k_o, rate, delay_ms, traj, STIFFENING)
+    np.testing.assert_allclose(sim, client, rtol=0.0, atol=1e-9)
+    # and it is not the design's rendering
+    other = simulate(
+        [Cell(replace(r, rest_plane=False), k_o, rate, delay_ms, None, traj, STIFFENING)]
+    )
+    assert np.max(np.abs(other.f[0] - sim)) > 0.05

@@ -88,8 +88,9 @@ def test_schema_lists_every_message_and_model_field() -> None:
         assert s["MODEL_FIELDS"][model.__name__] == list(model.model_fields)
     assert s["NESTED_MODELS"]["room"] == {"link": "LinkConditions", "users": "UserView"}
     assert s["NESTED_MODELS"]["welcome"] == {"object": "ObjectInfo", "link": "LinkConditions"}
-    # the recommended gains are one model; the plane-or-sphere union is no single model
-    assert s["NESTED_MODELS"]["patch"] == {"gains": "RecommendedGains"}
+    # the recommended gains and the rest plane are one model each; the primitive's
+    # plane-or-sphere union is no single model
+    assert s["NESTED_MODELS"]["patch"] == {"gains": "RecommendedGains", "rest_plane": "PlaneModel"}
 
 
 def test_main_writes_and_checks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
