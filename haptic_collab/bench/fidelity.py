@@ -82,6 +82,7 @@ from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY, GainKey, Mode
 from haptic_collab.shared.gain_table import GainTable, design_cell, design_cell_modes
+from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.verified_plane import (
     checked_plane,
     felt_closer,
@@ -413,6 +414,7 @@ def run(
     design_stiffer_by: float = STIFFER_BY,
     plane_check_s: float = 0.0,
     rest_plane: bool = True,
+    rest_hold_back_s: float = REST_HOLD_BACK_S,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the ``--json`` document.
 
@@ -465,6 +467,10 @@ def run(
         The local models render the rest plane where no verified plane does (the client alone
         on the object, :mod:`shared.rest_plane`; default True, as the client); False: the
         designs and verified planes alone (``haptic client --no-rest-plane``).
+    rest_hold_back_s : float
+        After a verified plane in a contact, the rest plane waits this long [s] without one
+        (default the client's, :data:`shared.rest_plane.HOLD_BACK_S`; 0: it renders whenever no
+        verified plane does).
 
     Returns
     -------
@@ -489,6 +495,8 @@ def run(
         raise ValueError(f"design_margin must be in [0, 1), got {design_margin!r}")
     if not (math.isfinite(design_stiffer_by) and design_stiffer_by >= 0.0):
         raise ValueError(f"design_stiffer_by must be finite and >= 0, got {design_stiffer_by!r}")
+    if not (math.isfinite(rest_hold_back_s) and rest_hold_back_s >= 0.0):
+        raise ValueError(f"rest_hold_back_s must be finite and >= 0 s, got {rest_hold_back_s!r}")
     if not (math.isfinite(plane_check_s) and plane_check_s >= 0.0):
         raise ValueError(f"plane_check_s must be finite and >= 0 s, got {plane_check_s!r}")
     key_range = {"margin": design_margin, "stiffer_by": design_stiffer_by}
@@ -611,6 +619,7 @@ def run(
                     planes=tuple(by_cell[c] for c in sorted(by_cell)),
                     plane_check_s=plane_check_s,
                     rest_plane=rest_plane,
+                    rest_hold_back_s=rest_hold_back_s,
                 )
             ]
 
@@ -877,6 +886,7 @@ def run(
             "design_stiffer_by": design_stiffer_by,
             "plane_check_s": plane_check_s,
             "rest_plane": rest_plane,
+            "rest_hold_back_s": rest_hold_back_s,
         },
         "conditions": conditions,
         "cells_3d": cells3,

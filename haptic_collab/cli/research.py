@@ -20,6 +20,7 @@ from haptic_collab.cli.args import (
     _positive,
     _why,
 )
+from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 
 
 # ---------------------------------------------------------------------------------------- reproduce
@@ -151,6 +152,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             design_stiffer_by=_or(args.design_stiffer_by, STIFFER_BY),
             plane_check_s=args.plane_check_s,
             rest_plane=not args.no_rest_plane,
+            rest_hold_back_s=args.rest_hold_back_s,
             log=lambda msg: print(msg, file=sys.stderr, flush=True),
         )
         if args.plot:
@@ -257,6 +259,15 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
             "fidelity: a verified plane renders this long after the own-response check first "
             "verifies its cell, as a client that checks it on arrival (default 0: checked ahead, "
             "in the background; the client's check takes about 2 s)"
+        ),
+    )
+    p.add_argument(
+        "--rest-hold-back-s",
+        type=float,
+        default=REST_HOLD_BACK_S,
+        help=(
+            "fidelity: after a verified plane in a contact the rest plane waits this long without "
+            "one (default %(default)s s, the client's; 0: whenever no verified plane renders)"
         ),
     )
     p.add_argument(

@@ -93,7 +93,6 @@ from haptic_collab.shared.own_response import (
     update_jumps,
     update_sums,
 )
-from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.rest_plane import rest_plane_gains
 from haptic_collab.shared.types import FloatArray
 
@@ -359,6 +358,7 @@ def simulate(
     proxy_last = np.zeros(B)  # the surface [m] the last tick rendered, before the slide
     plane_seen = np.zeros(B, dtype=bool)  # a verified plane rendered in this contact
     plane_at = np.zeros(B, dtype=np.int64)  # the patch it last rendered for
+    hold_back_s = np.array([x.rest_hold_back_s for x in r])
     own_sums = empty_sums((B,))
     own_deform = empty_deformation((B,))  # the deformation the K_o reported predicts
     own_seq = np.full(B, -1, dtype=np.int64)
@@ -539,7 +539,7 @@ def simulate(
                     touching = got[:, 2] > 0.0
                     plane_seen = np.where(re_gain, touching & (plane_seen | plane_on), plane_seen)
                     plane_at = np.where(re_gain & plane_on, seq, plane_at)
-                    held = plane_seen & ((seq - plane_at) / sim_hz < REST_HOLD_BACK_S)
+                    held = plane_seen & ((seq - plane_at) / sim_hz < hold_back_s)
                     rest_new = re_gain & rest_on & ~plane_on & ~held
                     kg = np.where(rest_new, np.minimum(k_recv, device.max_stiffness_n_per_m), kg)
                     ig = np.where(rest_new, 0.0, ig)

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import loop_delay_ticks
+from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.types import FloatArray
 
 SchemeName = Literal[
@@ -174,7 +175,10 @@ class Rendering:
         ``follows_k_o``: the user, alone on the object, renders the rest plane the patch carries
         (:mod:`shared.rest_plane`: K_h = min(K_o reported, the device's), its damper, no integral
         or compensation, the object's rest surface) where no verified plane renders and none has
-        for :data:`shared.rest_plane.HOLD_BACK_S` in this contact, as :meth:`client.session.ClientSession._render` does.
+        for ``rest_hold_back_s`` in this contact, as
+        :meth:`client.session.ClientSession._render` does.
+    rest_hold_back_s : float
+        That time [s] (:data:`shared.rest_plane.HOLD_BACK_S`, the client's).
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
@@ -206,6 +210,7 @@ class Rendering:
     planes: tuple[TableCell, ...] = ()
     plane_delay_s: float = 0.0
     rest_plane: bool = False
+    rest_hold_back_s: float = REST_HOLD_BACK_S
     gain_transfer_s: float = 0.0
     variant: str = ""
     tuning: str = ""
@@ -481,6 +486,7 @@ def rendering_for(
     planes: Sequence[TableCell] = (),
     plane_check_s: float = 0.0,
     rest_plane: bool = True,
+    rest_hold_back_s: float = REST_HOLD_BACK_S,
 ) -> Rendering:
     """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
     model's design, or a peer's default tuning (:func:`peer_renderings`).
@@ -513,6 +519,8 @@ def rendering_for(
     rest_plane : bool
         :attr:`Rendering.rest_plane` for a local model following K_o (default True, as the
         client; False: the designs and verified planes alone).
+    rest_hold_back_s : float
+        :attr:`Rendering.rest_hold_back_s` [s] (default the client's).
 
     Raises
     ------
@@ -540,6 +548,7 @@ def rendering_for(
             planes=tuple(planes) if table else (),
             plane_delay_s=plane_check_s,
             rest_plane=rest_plane and bool(table),
+            rest_hold_back_s=rest_hold_back_s,
             gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
             tuning=scheme_tuning(scheme, device),
         )
