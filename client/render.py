@@ -126,7 +126,9 @@ class LocalRenderer:
         "_off_used",
         "_fs_rendered",
         "_rest",
-        "_probe",
+        "_px",
+        "_py",
+        "_pz",
         "_e_base",
     )
 
@@ -162,7 +164,8 @@ class LocalRenderer:
         self._fs_rendered = 0.0  # F_s [N] of the patch the last tick rendered (capped)
         self._off_step = 0.0
         self._rest = False  # the patch in use renders the rest plane (shared.rest_plane)
-        self._probe = (0.0, 0.0, 0.0)  # the probe [m] the last tick rendered at
+        # the probe [m] the last tick rendered at
+        self._px = self._py = self._pz = 0.0
         self._e_base = 0.0  # that tick's penetration [m] before the slide's depth
 
     @property
@@ -194,7 +197,7 @@ class LocalRenderer:
             cap = self.own_force_limit_n
             if patch.own_gain > 0.0 and patch.own_force_n > cap:
                 new_prim = moved_out(new_prim, -patch.own_gain * (patch.own_force_n - cap))
-            step = self._e_base + self._off - new_prim.contact(*self._probe)[0]
+            step = self._e_base + self._off - new_prim.contact(self._px, self._py, self._pz)[0]
             if self.model.in_contact or step < 0.0:
                 switch_step = step
         old = self._prim_old
@@ -327,7 +330,7 @@ class LocalRenderer:
         off = self._off
         self._off_used = off
         self._fs_rendered = self._own_force_n
-        self._probe = (x, y, z)
+        self._px, self._py, self._pz = x, y, z  # plain stores: no tuple per tick
         self._e_base = e
         if off != 0.0:  # a change of C_h, sliding in (hand_over)
             e += off

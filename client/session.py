@@ -25,16 +25,15 @@ nearest designed cell (no stiffer relative to K_o) renders, else the gains in us
 else (a new coupling class or more delay) the fallback of :data:`FALLBACK_K_RATIO`, all flagged
 ``verified=False``.
 
-The rest plane. A patch for a user alone on the object (the only user in the room) carries
-the object's rest surface at the contact; where no verified plane renders (and, in a contact that
-has rendered one, none has for :data:`shared.rest_plane.HOLD_BACK_S`), the session renders that plane with the gains of :func:`shared.rest_plane.rest_plane_gains`
-(K_h = min(K_o, the device's), the damper closest to eq. 9's object, no integral, no own-force
-compensation): at once, with nothing to design or check first, since its force does not go
-through the simulation. When another user joins, the patch comes without it and the design
-renders the simulation's surface again; after a verified plane in a contact it waits
-:data:`shared.rest_plane.HOLD_BACK_S` without one. The renderer slides the surface's step off over the gain
-transfer time (:meth:`client.render.LocalRenderer.hand_over`). ``rest_plane=False`` never renders
-it.
+The rest plane. A patch for a user alone on the object (the only user in the room) carries the
+object's rest surface at the contact. Where no verified plane renders (and, in a contact that has
+rendered one, none has for :data:`shared.rest_plane.HOLD_BACK_S`), the session renders that plane
+with the gains of :func:`shared.rest_plane.rest_plane_gains` (K_h = min(K_o, the device's), the
+damper closest to eq. 9's object, no integral, no own-force compensation): at once, with nothing
+to design or check first, since its force does not go through the simulation. When another user
+joins, the patch comes without it and the design renders the simulation's surface again. The
+renderer slides the surface's step off over the gain transfer time
+(:meth:`client.render.LocalRenderer.hand_over`). ``rest_plane=False`` never renders it.
 
 The patch is read once into a :class:`shared.local_model_update.SurfacePatch`; it goes to the servo
 loop inside one :class:`shared.local_model_update.LocalModelUpdate` with the gains and how they
@@ -736,9 +735,9 @@ class ClientSession:
         )
         if self.rest_plane and surface.rest_plane is not None and not (plane_renders or held_back):
             # the user alone on the object, no verified plane: the rest plane, with gains of
-            # the patch alone (nothing to wait for); a press that crossed from it to verified
-            # planes and back every cycle rang on a stiffening object, so after a verified
-            # plane in a contact it waits until none has rendered for a while
+            # the patch alone (nothing to wait for); after a verified plane in a contact it
+            # waits HOLD_BACK_S without one (crossing back at once, a press into the stiffening
+            # object lost box-stability in one benchmark condition)
             if design is None:
                 self.design_wanted = (key, k_o_eff)  # for when another user joins
             rest = rest_plane_gains(

@@ -102,6 +102,8 @@ def client_summary(
         # and of those, with the plane of a stiffness it identified other than the K_o reported
         "plane_patches": session.plane_patches,
         "identified_plane_patches": session.identified_plane_patches,
+        # patches rendered with their rest plane: the user alone in the room (shared.rest_plane)
+        "rest_plane_patches": session.rest_plane_patches,
         "spectral_radius_last": choices[-1].spectral_radius if updates else None,
         "gains_last": None
         if not updates
