@@ -237,6 +237,7 @@ def _user_report(
         "delay_ticks_last": summary.get("delay_ticks_last"),
         "plane_patches": summary.get("plane_patches"),
         "identified_plane_patches": summary.get("identified_plane_patches"),
+        "rest_plane_patches": summary.get("rest_plane_patches"),
     }
 
 
