@@ -337,8 +337,9 @@ def simulate(
     # the cell (client.session: shared.own_response, shared.verified_plane)
     checks = follow & np.array([bool(x.planes) for x in r])
     planes = TableGains([x.planes if c else () for x, c in zip(r, checks, strict=True)])
-    # ... and, the user alone, the rest plane where no verified plane renders and none has in
-    # the contact (client.session: shared.rest_plane), at the rest surface (depth 0)
+    # ... and, the user alone, the rest plane where no verified plane renders and none has for
+    # rest_hold_back_s in the contact (client.session: shared.rest_plane), at the rest surface
+    # (depth 0)
     rest_on = follow & np.array([x.rest_plane for x in r])
     b_rest = np.array(
         [
