@@ -102,3 +102,11 @@ def test_bad_values_exit_2_with_one_line(
     captured = capsys.readouterr()
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1 and "error" in lines[0] and captured.out == ""
+
+
+def test_no_rest_plane_reaches_the_client_options() -> None:
+    # alone in the room the client renders the rest plane the server sends; --no-rest-plane
+    # keeps the design through the simulation (client.app passes it to ClientSession)
+    parse = build_parser().parse_args
+    assert _client_options(parse(["client"])).rest_plane is True
+    assert _client_options(parse(["client", "--no-rest-plane"])).rest_plane is False
