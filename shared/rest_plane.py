@@ -32,6 +32,8 @@ import cmath
 import math
 from dataclasses import dataclass
 
+from haptic_collab.shared.checks import nonneg, positive
+
 #: After a verified plane has rendered in a contact, the rest plane renders again only once none
 #: has for this long [s] (the patches' ticks). A press that crossed from the rest plane to the
 #: verified planes of a stiffening object and back every cycle rang (7 Hz, 8 mm peak to peak,
@@ -69,13 +71,6 @@ class RestPlaneGains:
     felt_error: float
 
 
-def _positive(name: str, value: float) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
-
-
 def rest_plane_gains(
     k_o: float, b_o: float, sim_rate_hz: float, k_h_max: float, b_h_max: float
 ) -> RestPlaneGains:
@@ -103,14 +98,11 @@ def rest_plane_gains(
     ValueError
         A stiffness or rate not finite and > 0, a damping not finite and >= 0.
     """
-    k = _positive("k_o", k_o)
-    rate = _positive("sim_rate_hz", sim_rate_hz)
-    k_h = min(k, _positive("k_h_max", k_h_max))
-    damping = float(b_o)
-    b_max = float(b_h_max)
-    for name, v in (("b_o", damping), ("b_h_max", b_max)):
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+    k = positive("k_o", k_o)
+    rate = positive("sim_rate_hz", sim_rate_hz)
+    k_h = min(k, positive("k_h_max", k_h_max))
+    damping = nonneg("b_o", b_o)
+    b_max = nonneg("b_h_max", b_h_max)
     best_err, best_b = math.inf, 0.0
     for frac in DAMPER_FRACTIONS:
         b = frac * b_max
