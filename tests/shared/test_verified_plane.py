@@ -203,9 +203,9 @@ def test_at_the_devices_stiffness_a_heavier_damper_lets_the_plane_beat_the_desig
 
 def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surface() -> None:
     # a spring 20 % stiffer than the 1000 N/m reported (the cell of 1200 N/m), 20 Hz, 4 ticks:
-    # K_h stops at the device's 1000 N/m while C_h stays the compliance of the cell's grid point,
-    # so on that object the plane stays at the rest surface and is felt as the device's
-    # stiffness at every frequency
+    # K_h stops at the device's 1000 N/m; with this much delay no step of C_h beyond the
+    # compliance of the cell's grid point is felt closer and passes, so on that object the plane
+    # stays at the rest surface and is felt as the device's stiffness at every frequency
     rate, ticks = 20.0, 4
     key, cell = _key(rate, ticks), TABLE.cell(1200.0)
     args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
@@ -240,6 +240,32 @@ def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surfac
     # further up no check is spent: the designs there are capped planes already
     above = TABLE.cell(CAPPED_PLANE_MAX * 1000.0 * TABLE.grid_ratio)
     assert checked_plane(key, above, *args) is None
+
+
+def test_without_delay_the_capped_plane_renders_the_objects_stiffness_above_the_devices() -> None:
+    # the spring 20 % stiffer than the 1000 N/m reported (1200 N/m), 100 Hz, no delay: with C_h
+    # moved from the object's compliance towards the device's (C_h K_h up to 1) the surface moves
+    # out by more than the object yields, and the simulation's force is felt on top of the
+    # device's stiffness: the object's own stiffness, where C_h = 1 / g holds the plane at the
+    # rest surface and is felt as the device's (0.15-0.18 off)
+    rate, ticks = 100.0, 0
+    key, cell = _key(rate, ticks), TABLE.cell(1200.0)
+    args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
+    plane = checked_plane(key, cell, *args)
+    assert plane is not None
+    g = plane.k_o
+    assert plane.k_h == 1000.0 and 1.0 / g < plane.own_gain <= 1.0 / 1000.0 + 1e-12
+    at_rest = replace(plane, own_gain=1.0 / g, b_h=0.0)
+    assert _band_error(at_rest, 1200.0, rate, ticks) > 0.14
+    assert _band_error(plane, 1200.0, rate, ticks) < JND
+    # and it holds every hand of a finer lattice than the check's across the cell, at 1/s
+    limit = math.exp(-1.0 * round(1000 / rate) * 1e-3)
+    k_os = [(1 - VERIFIED_RANGE) * g, g, (1 + VERIFIED_RANGE) * TABLE.grid_ratio * g]
+    rho, where = worst_on_lattice(plane, k_os, sim_rate_hz=rate, delay_ticks=ticks)
+    assert rho < limit, where
+    # ... and it is felt closer than the design of the cell reported, so it renders
+    reported = design_cell(key, TABLE.cell(1000.0), *args)
+    assert verified_plane(key, cell, *args, reported) == plane
 
 
 def test_the_search_stops_once_no_damper_left_could_beat_the_design(
