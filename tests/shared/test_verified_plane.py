@@ -201,24 +201,38 @@ def test_at_the_devices_stiffness_a_heavier_damper_lets_the_plane_beat_the_desig
     assert checked_plane(key, cell, *args) is None
 
 
+def _capped_plane(rate: float, ticks: int) -> tuple[GainKey, int, GainDesign]:
+    """The key, the cell of 1200 N/m and its plane at this rate and delay (the device's 1000
+    N/m: a capped plane)."""
+    key, cell = _key(rate, ticks), TABLE.cell(1200.0)
+    plane = checked_plane(key, cell, TABLE.grid_ratio, DEFAULT_HAND_BOX)
+    assert plane is not None and plane.k_o > 1000.0 and plane.k_h == 1000.0
+    return key, cell, plane
+
+
+def _holds_every_hand_across_the_cell(plane: GainDesign, rate: float, ticks: int) -> None:
+    """Every hand of a finer lattice than the check's decays at 1/s on objects from 5 % below
+    the plane's grid point to 5 % above its cell's top."""
+    g = plane.k_o
+    limit = math.exp(-1.0 * round(1000 / rate) * 1e-3)
+    k_os = [(1 - VERIFIED_RANGE) * g, g, (1 + VERIFIED_RANGE) * TABLE.grid_ratio * g]
+    rho, where = worst_on_lattice(plane, k_os, sim_rate_hz=rate, delay_ticks=ticks)
+    assert rho < limit, where
+
+
 def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surface() -> None:
     # a spring 20 % stiffer than the 1000 N/m reported (the cell of 1200 N/m), 20 Hz, 4 ticks:
     # K_h stops at the device's 1000 N/m; with this much delay no step of C_h beyond the
     # compliance of the cell's grid point is felt closer and passes, so on that object the plane
     # stays at the rest surface and is felt as the device's stiffness at every frequency
     rate, ticks = 20.0, 4
-    key, cell = _key(rate, ticks), TABLE.cell(1200.0)
     args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
-    plane = checked_plane(key, cell, *args)
-    assert plane is not None
+    key, cell, plane = _capped_plane(rate, ticks)
     g = plane.k_o
-    assert g > 1000.0 and plane.k_h == 1000.0 and plane.own_gain == pytest.approx(1.0 / g)
+    assert plane.own_gain == pytest.approx(1.0 / g)
     assert plane.at(1.09 * g) == plane  # one set of gains across the cell
     assert abs(_band_error(plane, g, rate, ticks) - math.log(g / 1000.0)) < 0.03
-    limit = math.exp(-1.0 * round(1000 / rate) * 1e-3)
-    k_os = [(1 - VERIFIED_RANGE) * g, g, (1 + VERIFIED_RANGE) * TABLE.grid_ratio * g]
-    rho, where = worst_on_lattice(plane, k_os, sim_rate_hz=rate, delay_ticks=ticks)
-    assert rho < limit, where
+    _holds_every_hand_across_the_cell(plane, rate, ticks)
     # closer across its cell than the design of the cell of the 1000 N/m reported (K_h 871 N/m
     # and 10 N*s/m there: 0.26 off at g), which is what renders without it
     reported = design_cell(key, TABLE.cell(1000.0), *args)
@@ -230,11 +244,9 @@ def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surfac
     own = design_cell(key, cell, *args)
     assert _band_error(own.at(g), g, rate, ticks) > _band_error(plane, g, rate, ticks)
     assert not felt_closer(plane, key, own)
-    # with the plane's own K_h: with no delay the cell's own design is felt closer (0.03 against
-    # 0.145 at g), and the plane does not render
-    key0 = _key(rate, 0)
-    plane0 = checked_plane(key0, cell, *args)
-    assert plane0 is not None and plane0.k_h == 1000.0
+    # with no delay the cell's own design is felt closer across the cell (at g 0.030 against
+    # the plane's 0.036, C_h K_h = 1 there with 5 N*s/m), and the plane does not render
+    key0, _, plane0 = _capped_plane(rate, 0)
     assert not felt_closer(plane0, key0, design_cell(key0, cell, *args))
     assert verified_plane(key0, cell, *args, design_cell(key0, cell, *args)) is None
     # further up no check is spent: the designs there are capped planes already
@@ -249,21 +261,14 @@ def test_without_delay_the_capped_plane_renders_the_objects_stiffness_above_the_
     # device's stiffness: the object's own stiffness, where C_h = 1 / g holds the plane at the
     # rest surface and is felt as the device's (0.15-0.18 off)
     rate, ticks = 100.0, 0
-    key, cell = _key(rate, ticks), TABLE.cell(1200.0)
-    args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
-    plane = checked_plane(key, cell, *args)
-    assert plane is not None
-    g = plane.k_o
-    assert plane.k_h == 1000.0 and 1.0 / g < plane.own_gain <= 1.0 / 1000.0 + 1e-12
-    at_rest = replace(plane, own_gain=1.0 / g, b_h=0.0)
+    key, cell, plane = _capped_plane(rate, ticks)
+    assert 1.0 / plane.k_o < plane.own_gain <= 1.0 / 1000.0 + 1e-12
+    at_rest = replace(plane, own_gain=1.0 / plane.k_o, b_h=0.0)
     assert _band_error(at_rest, 1200.0, rate, ticks) > 0.14
     assert _band_error(plane, 1200.0, rate, ticks) < JND
-    # and it holds every hand of a finer lattice than the check's across the cell, at 1/s
-    limit = math.exp(-1.0 * round(1000 / rate) * 1e-3)
-    k_os = [(1 - VERIFIED_RANGE) * g, g, (1 + VERIFIED_RANGE) * TABLE.grid_ratio * g]
-    rho, where = worst_on_lattice(plane, k_os, sim_rate_hz=rate, delay_ticks=ticks)
-    assert rho < limit, where
+    _holds_every_hand_across_the_cell(plane, rate, ticks)
     # ... and it is felt closer than the design of the cell reported, so it renders
+    args = (TABLE.grid_ratio, DEFAULT_HAND_BOX)
     reported = design_cell(key, TABLE.cell(1000.0), *args)
     assert verified_plane(key, cell, *args, reported) == plane
 
