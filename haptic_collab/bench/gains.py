@@ -9,7 +9,11 @@ worker process. This bench measures, in one run on this machine:
 - ``lookup_us``: the table lookup alone, p50 / p99;
 - ``design_ms``: one cell's design (what the worker process spends: :func:`design_cell` with the
   session's key, own-force compensation and the cell's K_o range), p50 / p99 for P and PI over
-  K_o from 50 to 5000 N/m at 20 Hz without delay.
+  K_o from 50 to 5000 N/m at 20 Hz without delay;
+- ``plane_check_ms``: one verified plane's check (what the worker spends on a plane it checks
+  ahead: :func:`shared.verified_plane.checked_plane`), p50 / p99 over the cells of
+  :data:`PLANE_CHECK_K_OS` at 20 Hz with 0, 2 and 4 ticks of delay, the capped planes of the
+  cells above the device's stiffness included.
 
 Wall-clock medians: the machine is shared, compare ratios measured side by side.
 """
@@ -23,8 +27,14 @@ from typing import Any
 import numpy as np
 
 from haptic_collab.client.session import ClientSession
-from haptic_collab.shared.gain_table import design_cell
+from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.gain_table import GainTable, design_cell
 from haptic_collab.shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Welcome, encode
+from haptic_collab.shared.verified_plane import checked_plane
+
+#: The K_o [N/m] whose cells' verified planes ``plane_check_ms`` times: soft, at the bench
+#: device's stiffness (1000 N/m) and the two capped cells above it.
+PLANE_CHECK_K_OS: tuple[float, ...] = (100.0, 300.0, 1000.0, 1100.0, 1200.0)
 
 #: The object the bench's welcome describes: an octahedron of radius 0.1 m about the origin [m].
 _OBJECT = ObjectInfo(
@@ -65,6 +75,22 @@ def _pcts(values: list[float]) -> dict[str, float]:
     return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99))}
 
 
+def plane_check_ms(
+    table: GainTable, key: GainKey, k_os: tuple[float, ...] = PLANE_CHECK_K_OS
+) -> list[float]:
+    """Wall time [ms] of :func:`shared.verified_plane.checked_plane` for the cell of each of
+    ``k_os`` under ``key`` with 0, 2 and 4 ticks of delay, in that order (K_o major)."""
+    times = []
+    for k_o in k_os:
+        for ticks in (0, 2, 4):
+            t0 = time.perf_counter()
+            checked_plane(
+                replace(key, delay_ticks=ticks), table.cell(k_o), table.grid_ratio, table.hand_box
+            )
+            times.append((time.perf_counter() - t0) * 1e3)
+    return times
+
+
 def run(n_patches: int = 2000, seed: int = 0) -> dict[str, Any]:
     """Run the bench; return the JSON object (module docstring)."""
     rng = np.random.default_rng(seed)
@@ -103,5 +129,6 @@ def run(n_patches: int = 2000, seed: int = 0) -> dict[str, Any]:
         "patch_ms": _pcts(patch_ms),
         "lookup_us": _pcts(lookup_us),
         "design_ms": design,
+        "plane_check_ms": _pcts(plane_check_ms(table, key)),
         "cells_designed": len(s.gain_table),
     }
