@@ -131,6 +131,22 @@ def test_a_spring_stiffer_than_the_device_is_rendered_with_the_capped_plane() ->
     assert up.i_gain == 0.0
 
 
+def test_without_delay_the_capped_plane_renders_the_springs_own_stiffness() -> None:
+    # the same spring with round trips of 2 ms: the capped plane's C_h steps beyond the object's
+    # compliance at the grid point, so the user's push moves the surface out by more than the
+    # object yields and the spring's 1200 N/m is felt (statically) through the simulation's
+    # force, not the device's 1000 N/m
+    s = _session_pressing(1200.0, k_o=1000.0, rtt_s=0.002)
+    up = s.last_update
+    assert up is not None and up.choice.delay_ticks == 0
+    assert s.own_response.identified_ratio == pytest.approx(1.2, rel=0.01)
+    assert s.identified_plane_patches > 0
+    g = s.gain_table.grid_point(s.gain_table.cell(1200.0))
+    assert up.k_h == pytest.approx(1000.0) and up.own_gain > 1.01 / g
+    felt = up.k_h / (1.0 + up.k_h / 1200.0 - up.k_h * up.own_gain)
+    assert abs(math.log(felt / 1200.0)) < math.log(1.1) < math.log(1200.0 / 1000.0)
+
+
 def test_an_object_twice_as_soft_as_reported_is_refused_and_keeps_the_design() -> None:
     # beyond the range the check may identify (a half to twice K_o): the report is in doubt
     s = _session_pressing(0.45 * K_O)
