@@ -743,6 +743,7 @@ class ClientSession:
             rest = rest_plane_gains(
                 surface.k_o, surface.b_o, self.sim_rate_hz,
                 self.device.max_stiffness_n_per_m, self.b_h_max,
+                servo_period_s=1.0 / self.servo_rate_hz,
             )  # fmt: skip
             self.rest_plane_patches += 1
             return self._rendered(

@@ -93,7 +93,7 @@ from haptic_collab.shared.own_response import (
     update_jumps,
     update_sums,
 )
-from haptic_collab.shared.rest_plane import rest_plane_gains
+from haptic_collab.shared.rest_plane import rest_plane_dampers
 from haptic_collab.shared.types import FloatArray
 
 __all__ = ["passivity_step", "simulate"]
@@ -339,19 +339,11 @@ def simulate(
     planes = TableGains([x.planes if c else () for x, c in zip(r, checks, strict=True)])
     # ... and, the user alone, the rest plane where no verified plane renders and none has for
     # rest_hold_back_s in the contact (client.session: shared.rest_plane), at the rest surface
-    # (depth 0)
+    # (depth 0), with the gains of each patch's K_o and the B_o reported
     rest_on = follow & np.array([x.rest_plane for x in r])
-    b_rest = np.array(
+    b_o_rest = np.array(
         [
-            rest_plane_gains(
-                c.k_o,
-                c.obj.reported_b_o(c.k_o, c.sim_rate_hz),
-                c.sim_rate_hz,
-                device.max_stiffness_n_per_m,
-                device.max_damping_n_s_per_m,
-            ).b_h
-            if on
-            else 0.0
+            c.obj.reported_b_o(c.k_o, c.sim_rate_hz) if on else 0.0
             for c, on in zip(cells, rest_on, strict=True)
         ]
     )
@@ -542,9 +534,14 @@ def simulate(
                     plane_at = np.where(re_gain & plane_on, seq, plane_at)
                     held = plane_seen & ((seq - plane_at) / sim_hz < hold_back_s)
                     rest_new = re_gain & rest_on & ~plane_on & ~held
-                    kg = np.where(rest_new, np.minimum(k_recv, device.max_stiffness_n_per_m), kg)
+                    if rest_new.any():
+                        k_rest, b_rest, _ = rest_plane_dampers(
+                            k_recv, b_o_rest, sim_hz, device.max_stiffness_n_per_m,
+                            device.max_damping_n_s_per_m, servo_period_s=T,
+                        )  # fmt: skip
+                        kg = np.where(rest_new, k_rest, kg)
+                        bg = np.where(rest_new, b_rest, bg)
                     ig = np.where(rest_new, 0.0, ig)
-                    bg = np.where(rest_new, b_rest, bg)
                     og = np.where(rest_new, 0.0, og)
                     fg = np.where(rest_new, False, fg)
                     # a change between it and the surface: the step at the probe of what the

@@ -260,8 +260,9 @@ def rendering_3d(
     """
     if rest_plane and scheme in ("local-p", "local-pi"):
         g = rest_plane_gains(
-            k_o, b_o, SIM_RATE_HZ, device.max_stiffness_n_per_m, device.max_damping_n_s_per_m
-        )
+            k_o, b_o, SIM_RATE_HZ, device.max_stiffness_n_per_m, device.max_damping_n_s_per_m,
+            servo_period_s=1.0 / SERVO_RATE_HZ,
+        )  # fmt: skip
         # the client's local model (rendering_for's), with the rest plane's gains
         return Rendering(
             scheme,

@@ -43,7 +43,10 @@ def test_alone_the_first_contact_renders_the_rest_plane_at_once() -> None:
     up = s.receive(_patch(1, 1.0), 0.05)
     assert up is not None  # no design, no check to wait for: forces need not stay off
     assert up.rest_plane and up.primitive == make_plane((0.0, 0.0, 0.1), (0.0, 0.0, 1.0))
-    assert (up.k_h, up.i_gain, up.b_h, up.own_gain) == (K_O, 0.0, 0.0, 0.0)
+    # the object's stiffness, the least damper (K_h T / 2 at the session's 1 kHz servo), no
+    # integral and no compensation
+    assert (up.k_h, up.i_gain, up.own_gain) == (K_O, 0.0, 0.0)
+    assert up.b_h == pytest.approx(0.5 * K_O / s.servo_rate_hz)
     assert up.choice is not None and up.choice.verified and not up.choice.fallback
     assert s.rest_plane_patches == 1
     # the design is still asked for, for when another user joins

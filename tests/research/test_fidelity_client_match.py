@@ -109,7 +109,7 @@ def _client_forces(
             val, k_est, got = down[k % L]
             kg, ig, bg, og, fg = (float(a[0]) for a in table.gains_and_hold(np.array([k_est])))
             if r.rest_plane:  # alone, no verified plane: the rest plane at depth 0
-                rest = rest_plane_gains(k_est, 0.0, rate, DEVICE_K, DEVICE_B)
+                rest = rest_plane_gains(k_est, 0.0, rate, DEVICE_K, DEVICE_B, servo_period_s=T)
                 kg, ig, bg, og, fg, val = rest.k_h, 0.0, rest.b_h, 0.0, False, 0.0
             hold = "foh" if fg else "zoh"
             rec = 1.0 / k_o if ig > 0.0 else 0.0

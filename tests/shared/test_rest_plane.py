@@ -8,15 +8,18 @@ import pytest
 
 from haptic_collab.shared.rest_plane import rest_plane_gains
 
+T = 1e-3  # the servo period [s]
 
-def test_a_spring_is_rendered_with_its_own_stiffness_and_no_damper() -> None:
-    g = rest_plane_gains(300.0, 0.0, 20.0, 1000.0, 10.0)
-    assert (g.k_h, g.b_h) == (300.0, 0.0)
-    assert g.felt_error == pytest.approx(0.0, abs=1e-12)
+
+def test_a_spring_is_rendered_with_its_own_stiffness_and_the_least_damper() -> None:
+    g = rest_plane_gains(300.0, 0.0, 20.0, 1000.0, 10.0, servo_period_s=T)
+    # the least damper, K_h T / 2 (0.15 N*s/m), felt 1.0003 times the spring at 8 Hz
+    assert (g.k_h, g.b_h) == (300.0, pytest.approx(0.5 * 300.0 * T))
+    assert g.felt_error < 1e-3
 
 
 def test_a_spring_stiffer_than_the_device_stops_at_the_devices_stiffness() -> None:
-    g = rest_plane_gains(3000.0, 0.0, 20.0, 1000.0, 10.0)
+    g = rest_plane_gains(3000.0, 0.0, 20.0, 1000.0, 10.0, servo_period_s=T)
     assert g.k_h == 1000.0
     # felt a third of the object at 0.5 Hz whatever the damper; the whole damper brings 8 Hz a
     # little closer to it
@@ -27,17 +30,23 @@ def test_a_spring_stiffer_than_the_device_stops_at_the_devices_stiffness() -> No
 def test_a_damped_object_gets_the_damper_that_is_felt_closest_to_it() -> None:
     # eq. 9's object at 100 N/m with B_o = 200 N/m at 100 Hz resists a 8 Hz push about 1.5 times
     # its spring; the plane without a damper is felt 0.4 (ln) off, with the closest damper less
-    none = rest_plane_gains(100.0, 0.0, 100.0, 1000.0, 10.0)
-    g = rest_plane_gains(100.0, 200.0, 100.0, 1000.0, 10.0)
+    none = rest_plane_gains(100.0, 0.0, 100.0, 1000.0, 10.0, servo_period_s=T)
+    g = rest_plane_gains(100.0, 200.0, 100.0, 1000.0, 10.0, servo_period_s=T)
     assert g.k_h == 100.0 and g.b_h > 0.0
-    assert none.b_h == 0.0
+    assert none.b_h == pytest.approx(0.5 * 100.0 * T)
     obj = abs(
         100.0 + 200.0 * (1.0 - complex(math.cos(2 * math.pi * 0.08), -math.sin(2 * math.pi * 0.08)))
     )
     assert math.log(obj / 100.0) > 0.35  # without a damper it would be felt this far off
     assert g.felt_error < 0.6 * math.log(obj / 100.0)
     # and a device without a damper renders none
-    assert rest_plane_gains(100.0, 200.0, 100.0, 1000.0, 0.0).b_h == 0.0
+    assert rest_plane_gains(100.0, 200.0, 100.0, 1000.0, 0.0, servo_period_s=T).b_h == 0.0
+
+
+def test_a_servo_period_that_is_not_a_period_is_refused() -> None:
+    for bad in (0.0, -1e-3, math.nan):
+        with pytest.raises(ValueError):
+            rest_plane_gains(300.0, 0.0, 20.0, 1000.0, 10.0, servo_period_s=bad)
 
 
 @pytest.mark.parametrize(
@@ -53,4 +62,4 @@ def test_a_damped_object_gets_the_damper_that_is_felt_closest_to_it() -> None:
 )
 def test_absurd_parameters_are_refused(args: tuple[float, ...]) -> None:
     with pytest.raises(ValueError):
-        rest_plane_gains(*args)
+        rest_plane_gains(*args, servo_period_s=T)
