@@ -29,7 +29,8 @@ The rest plane. A patch for a user alone on the object (the only user in the roo
 object's rest surface at the contact. Where no verified plane renders (and, in a contact that has
 rendered one, none has for :data:`shared.rest_plane.HOLD_BACK_S`), the session renders that plane
 with the gains of :func:`shared.rest_plane.rest_plane_gains` (K_h = min(K_o, the device's), the
-damper closest to eq. 9's object, no integral, no own-force compensation): at once, with nothing
+damper closest to eq. 9's object and at least K_h T / 2 at the session's servo period, no
+integral, no own-force compensation): at once, with nothing
 to design or check first, since its force does not go through the simulation. When another user
 joins, the patch comes without it and the design renders the simulation's surface again. The
 renderer slides the surface's step off over the gain transfer time
