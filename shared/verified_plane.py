@@ -51,6 +51,7 @@ and where a damper is felt more (a softer cell) :func:`felt_closer` keeps the de
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import replace
@@ -272,29 +273,34 @@ def checked_plane(
     # without a damper to give (a device without one) only the undamped rung
     fracs = itertools.takewhile(lambda f: f == 0.0 or f * key.b_h_max > 0.0, PLANE_DAMPERS)
     c_hs = [(1.0 - c) / g + c / k_h for c in CAPPED_COMPENSATION] if capped else [1.0 / g]
-    rungs = [
-        _plane(
-            key, g, grid_ratio, hand_box, k_h=k_h, b_h=frac * key.b_h_max, hold=hold, top=top,
-            worst=0.0, own_gain=c_h,
-        )
-        for frac in fracs
-        for hold in _HOLDS
-        for c_h in c_hs
-    ]  # fmt: skip
+    params = [(frac * key.b_h_max, hold, c_h) for frac in fracs for hold in _HOLDS for c_h in c_hs]
+
+    @functools.cache
+    def rung(j: int) -> GainDesign:
+        """The plane of rung ``params[j]``, made when first needed (a felt response)."""
+        b_h, hold, c_h = params[j]
+        return _plane(
+            key, g, grid_ratio, hand_box, k_h=k_h, b_h=b_h, hold=hold, top=top, worst=0.0,
+            own_gain=c_h,
+        )  # fmt: skip
+
+    order = list(range(len(params)))  # the lightest damper first ...
     if capped:
-        # the capped plane felt closest to the object across its cell first (module docstring)
-        rungs.sort(key=lambda p: _cell_errors(p, key, _cell_points(p)))
+        # ... and the capped plane felt closest to the object across its cell first (module
+        # docstring)
+        order.sort(key=lambda j: _cell_errors(rung(j), key, _cell_points(rung(j))))
     # the first rung at or after i that would be felt closer than the design (found lazily:
     # the first usually is, and the search then costs one comparison)
     closer_at = -1
-    for i, rung in enumerate(rungs):
+    for i, j_i in enumerate(order):
         if design is not None and closer_at < i:
             closer_at = next(
-                (j for j in range(i, len(rungs)) if felt_closer(rungs[j], key, design)),
-                len(rungs),
+                (j for j in range(i, len(order)) if felt_closer(rung(order[j]), key, design)),
+                len(order),
             )
-            if closer_at == len(rungs):
+            if closer_at == len(order):
                 return None  # whichever rung passed from here, the design is felt closer
+        b_h, hold, c_h = params[j_i]
         worst = 0.0
         for s in scales:
             ok, rho = verify_gains(
@@ -304,16 +310,16 @@ def checked_plane(
                 hand_box,
                 k_h=s * k_h,
                 i_gain=0.0,
-                b_h=rung.b_h,
-                proxy_hold=rung.proxy_hold,
-                own_gain=rung.own_gain / s,
+                b_h=b_h,
+                proxy_hold=hold,
+                own_gain=c_h / s,
                 k_o_range=_scale_range(s, top, g, grid_ratio),
             )
             worst = max(worst, rho)
             if not ok:
                 break
         else:
-            return replace(rung, worst_spectral_radius=worst)
+            return replace(rung(j_i), worst_spectral_radius=worst)
     return None
 
 
