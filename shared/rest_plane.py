@@ -119,14 +119,10 @@ def rest_plane_gains(
     ValueError
         A stiffness or rate not finite and > 0, a damping not finite and >= 0.
     """
-    k = positive("k_o", k_o)
-    rate = positive("sim_rate_hz", sim_rate_hz)
-    positive("k_h_max", k_h_max)
-    nonneg("b_o", b_o)
-    nonneg("b_h_max", b_h_max)
-    positive("servo_period_s", servo_period_s)
+    # the object's own values checked here, by name; the device's and the period where batched
     k_h, b_h, err = rest_plane_dampers(
-        np.array([k]), np.array([b_o]), np.array([rate]), k_h_max, b_h_max,
+        np.array([positive("k_o", k_o)]), np.array([nonneg("b_o", b_o)]),
+        np.array([positive("sim_rate_hz", sim_rate_hz)]), k_h_max, b_h_max,
         servo_period_s=servo_period_s,
     )  # fmt: skip
     return RestPlaneGains(k_h=float(k_h[0]), b_h=float(b_h[0]), felt_error=float(err[0]))
