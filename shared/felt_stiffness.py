@@ -18,7 +18,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from haptic_collab.shared.full_loop import DAMPER_FILTER_S, ProxyHold, batch_arrays, monodromy
+from haptic_collab.shared.full_loop import (
+    DAMPER_FILTER_S,
+    NO_DYNAMICS,
+    ContactDynamics,
+    ProxyHold,
+    batch_arrays,
+    monodromy,
+    object_coefficients,
+    slow_layout,
+)
 from haptic_collab.shared.types import FloatArray
 
 #: Frequencies [Hz] the transparency of a design with own-force compensation is judged at: the
@@ -34,6 +43,7 @@ def object_stiffness(
     k_o: float | FloatArray,
     b_o: float | FloatArray = 0.0,
     sim_period_s: float,
+    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> FloatArray:
     """The paper's object's own dynamic stiffness dF/dx [N/m] (complex) at each of ``freqs_hz``,
     shape (F, B): the inverse of eq. 9's ``D(z) = (K_o + B_o (z - 1) / z)^-1`` at ``z = e^{j w
@@ -41,7 +51,10 @@ def object_stiffness(
     rendering of the object the simulation reports is felt as: ``K_o`` at DC and for an elastic
     object (B_o = 0), stiffer and leading towards the simulation's Nyquist rate for a damped or
     massive one (the one-tick stiffness ``K_o + B_o`` of a step push from rest,
-    ``server.objects.fem.FemSolid.contact_damping``).
+    ``server.objects.fem.FemSolid.contact_damping``). With the contact's ``dynamics`` (the part
+    of B_o that is mass and a relaxing arm, :mod:`shared.full_loop`), the implicit-Euler
+    object's: ``K_o + b (1 - z^-1) + (m_o / h^2) (1 - z^-1)^2 + k_r a (1 - z^-1) / (1 - a
+    z^-1)`` (``h = sim_period_s``, ``a = tau_r / (tau_r + h)``, b the rest of B_o).
 
     Raises
     ------
@@ -53,9 +66,16 @@ def object_stiffness(
     if not all(math.isfinite(f) and f > 0.0 for f in freqs_hz):
         raise ValueError(f"frequencies must be > 0 Hz, got {freqs_hz!r}")
     ko, bo = batch_arrays(k_o, b_o)
-    w = 2.0 * math.pi * np.asarray(freqs_hz, dtype=float)
-    lag = 1.0 - np.exp(-1j * w * sim_period_s)
-    return ko[None, :] + bo[None, :] * lag[:, None]
+    d = dynamics
+    _, c_x, c_xp, c_q, a = object_coefficients(
+        ko, bo, sim_period_s, d.mass_kg, d.relax_stiffness_n_per_m, d.relax_time_s
+    )
+    zi = np.exp(-1j * 2.0 * math.pi * np.asarray(freqs_hz, dtype=float) * sim_period_s)[:, None]
+    lag = 1.0 - zi
+    mh = -c_xp  # m_o / h^2
+    damper = c_x - 2.0 * mh
+    arm = c_q * lag / (1.0 - a * zi)
+    return ko[None, :] + damper * lag + mh * lag**2 + arm
 
 
 def felt_stiffness(
@@ -73,6 +93,7 @@ def felt_stiffness(
     proxy_hold: ProxyHold = "zoh",
     complex_response: bool = False,
     own_gain: float | FloatArray = 0.0,
+    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> FloatArray:
     """Felt stiffness |dF/dx| [N/m] at the probe, probe as a position source, shape (B,).
 
@@ -98,6 +119,7 @@ def felt_stiffness(
         sample_tick=sample_tick,
         proxy_hold=proxy_hold,
         own_gain=own_gain,
+        dynamics=dynamics,
     )[0]
     return f1 if complex_response else np.abs(f1)
 
@@ -116,6 +138,7 @@ def felt_responses(
     sample_tick: int | None = None,
     proxy_hold: ProxyHold = "zoh",
     own_gain: float | FloatArray = 0.0,
+    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> FloatArray:
     """Felt responses dF/dx [N/m] (complex) at each of ``freqs_hz``, shape (F, B): the loop's
     monodromy computed once, then :func:`felt_stiffness` at each frequency.
@@ -146,6 +169,7 @@ def felt_responses(
         sample_ticks=[j],
         proxy_hold=proxy_hold,
         integral=integral,
+        dynamics=dynamics,
     )[:, 0]
     nb, n = M.shape[0], M.shape[1]
     out = np.empty((len(freqs_hz), nb), dtype=complex)
@@ -154,8 +178,12 @@ def felt_responses(
     ti = T * ig
     nf = 1 if integral else 0
     foh = proxy_hold == "foh"
-    i_p, i_obj = nf, nf + (2 if foh else 1)
-    inv = 1.0 / (ko + bo)
+    lay = slow_layout(nf, foh, dynamics, delay_ticks)
+    i_p, i_obj = lay.proxy, lay.obj
+    d = dynamics
+    inv, _, _, _, alpha = object_coefficients(
+        ko, bo, N * T, d.mass_kg, d.relax_stiffness_n_per_m, d.relax_time_s
+    )
     row_new = i_p if delay_ticks == 0 else n - 1
     w_new = (i_ticks + 1.0) / N if foh else np.ones(N)
     for q, freq_hz in enumerate(freqs_hz):
@@ -172,6 +200,8 @@ def felt_responses(
         if integral:
             bx[:, 0] = ti * csum[N]
         bx[:, i_obj] = fx * inv
+        if lay.arm is not None:
+            bx[:, lay.arm] = (1.0 - alpha) * fx * inv
         bx[:, row_new] = fx * (inv - og)
         Y = np.linalg.solve(z * np.eye(n)[None] - M, bx[:, :, None])[:, :, 0]
         p = Y[:, i_p]

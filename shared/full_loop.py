@@ -27,7 +27,15 @@ local model (servo rate, eq. 12 plus an optional probe damper)
 decimation (Step 3 of section 6)
     the simulation takes the force of servo tick ``j`` (``sample_tick``) of each block.
 object (simulation rate), eq. 6 / eq. 9
-    ``x_o(k+1) = (F(k) + B_o x_o(k)) / (K_o + B_o)``.
+    ``x_o(k+1) = (F(k) + B_o x_o(k)) / (K_o + B_o)``; optionally with the contact's dynamics
+    (:class:`ContactDynamics`): a mass m_o and a relaxing (Maxwell) arm of stiffness k_r and time
+    constant tau_r, stepped by implicit Euler over the simulation period h as a slow simulation
+    steps them, ``(m_o / h^2 + b + K_o + k_r a) x_o(k+1) = F(k) + (m_o / h^2) (2 x_o(k) -
+    x_o(k-1)) + b x_o(k) + k_r a q(k)``, ``q(k+1) = a q(k) + (1 - a) x_o(k+1)``, ``a = tau_r /
+    (tau_r + h)``, ``b = B_o - m_o / h^2 - k_r a`` (>= 0) the rest of the reported B_o: the
+    standard linear solid with a surface mass (Fung, "Biomechanics", 1993, ch. 2). B_o keeps its
+    meaning, the one-tick stiffness of a step push from rest less K_o; the dynamics say what
+    part of it is mass and relaxation, which eq. 9 lumps into a damper.
 delay
     ``D`` whole extra simulation ticks (network, computation) before ``x_o`` reaches the servo.
 proxy hold
@@ -205,6 +213,88 @@ class HandBox:
 DEFAULT_HAND_BOX = HandBox()
 
 
+@params_dataclass(frozen=True, slots=True)
+class ContactDynamics:
+    """What the simulation reports of the object's dynamics at a contact beyond K_o and B_o.
+
+    Eq. 9 models the object's one-tick stiffness beyond K_o (B_o) as a damper. A solid gets it
+    from its mass and a relaxing arm too, which hold a push over more than one tick (module
+    docstring, "object"). All zero: eq. 9's object.
+
+    Parameters
+    ----------
+    mass_kg : float
+        The contact's mass m_o [kg], >= 0.
+    relax_stiffness_n_per_m : float
+        The relaxing (Maxwell) arm's stiffness k_r [N/m], >= 0: the object is ``K_o + k_r``
+        stiff to a push much quicker than ``relax_time_s``, K_o at rest.
+    relax_time_s : float
+        Its relaxation time tau_r [s], >= 0 (0: no arm).
+
+    Raises
+    ------
+    pydantic.ValidationError
+        (a ValueError naming the field) Negative, non-finite or non-numeric values.
+    """
+
+    mass_kg: NonNegFinite = 0.0
+    relax_stiffness_n_per_m: NonNegFinite = 0.0
+    relax_time_s: NonNegFinite = 0.0
+
+    @property
+    def none(self) -> bool:
+        """No mass and no arm: eq. 9's object."""
+        return self.mass_kg == 0.0 and (
+            self.relax_stiffness_n_per_m == 0.0 or self.relax_time_s == 0.0
+        )
+
+    def one_tick_part(self, sim_period_s: float) -> float:
+        """The part [N/m] of the one-tick stiffness of a step push from rest that is mass and
+        arm over a simulation period h [s]: ``m_o / h^2 + k_r tau_r / (tau_r + h)``."""
+        h = positive("sim_period_s", sim_period_s)
+        arm = self.relax_stiffness_n_per_m * self.relax_time_s / (self.relax_time_s + h)
+        return self.mass_kg / h**2 + arm
+
+
+#: Eq. 9's object: no mass, no relaxing arm.
+NO_DYNAMICS = ContactDynamics()
+
+
+def object_coefficients(
+    k_o: FloatArray | float,
+    b_o: FloatArray | float,
+    sim_period_s: FloatArray | float,
+    m_o: FloatArray | float = 0.0,
+    k_r: FloatArray | float = 0.0,
+    tau_r: FloatArray | float = 0.0,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The object's implicit-Euler step (module docstring, "object"), broadcast over arrays:
+    for K_o [N/m], B_o [N/m], the simulation period h [s] and the contact's mass m_o [kg] and
+    arm k_r [N/m], tau_r [s] (:class:`ContactDynamics`), ``inv = 1 / (m_o / h^2 + b + K_o +
+    k_r a)`` and the coefficients ``c_x``, ``c_xp``, ``c_q`` of ``x_o(k)``, ``x_o(k-1)`` and
+    ``q(k)`` in ``x_o(k+1) = inv (F + c_x x_o(k) + c_xp x_o(k-1) + c_q q(k))``, and ``a`` (0
+    without an arm). Eq. 9 where ``m_o`` and ``k_r`` are 0: ``inv = 1 / (K_o + B_o)``, ``c_x =
+    B_o``."""
+    ko, bo, h, m, kr, tau = np.broadcast_arrays(
+        *(np.asarray(v, dtype=float) for v in (k_o, b_o, sim_period_s, m_o, k_r, tau_r))
+    )
+    mh = m / h**2
+    a = np.where((kr > 0.0) & (tau > 0.0), tau / (tau + h), 0.0)
+    damper = np.maximum(bo - mh - kr * a, 0.0)
+    inv = 1.0 / (mh + damper + ko + kr * a)
+    return inv, 2.0 * mh + damper, -mh, kr * a, a
+
+
+def _object_step(
+    ko: FloatArray, bo: FloatArray, dynamics: ContactDynamics, sim_period_s: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`object_coefficients` for a batch of K_o and B_o and one contact's dynamics."""
+    d = dynamics
+    return object_coefficients(
+        ko, bo, sim_period_s, d.mass_kg, d.relax_stiffness_n_per_m, d.relax_time_s
+    )
+
+
 def _hand_zoh(
     m: FloatArray, b: FloatArray, k: FloatArray, period_s: float
 ) -> tuple[FloatArray, FloatArray]:
@@ -306,6 +396,7 @@ def monodromy(
     proxy_hold: ProxyHold = "zoh",
     integral: bool | None = None,
     own_gain: float | FloatArray = 0.0,
+    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> FloatArray:
     """Monodromy matrices of the full loop over one simulation period (module docstring).
 
@@ -330,12 +421,16 @@ def monodromy(
         Model the integral state (default: any ``i_gain > 0``). Without it I is ignored.
     own_gain : float or (B,) array
         Own-force compensation C_h [m/N] (module docstring), >= 0; 0: the paper's local model.
+    dynamics : ContactDynamics
+        The contact's mass and relaxing arm, part of B_o (module docstring, "object");
+        :data:`NO_DYNAMICS`: eq. 9.
 
     Returns
     -------
     (B, J, n, n) float array
         One monodromy matrix per batch element and sampling tick; the state is
-        [fast states, proxy, (previous proxy), object, delay line].
+        [fast states, proxy, (previous proxy), object, (its previous depth), (its arm), delay
+        line] (:func:`slow_layout`).
 
     Raises
     ------
@@ -397,27 +492,32 @@ def monodromy(
         Phi = A @ Phi
         Gn = np.einsum("bnm,bm->bn", A, Gn) + Bp * w_new[i]
         Go = np.einsum("bnm,bm->bn", A, Go) + Bp * w_old[i]
-    # slow state: [xi (nf), p, (p_old), x_obj, q_1..q_D]
+    # slow state: [xi (nf), p, (p_old), x_obj, (x_obj_prev), (q_arm), q_1..q_D]
     D = int(delay_ticks)
-    i_p = nf
-    i_po = nf + 1 if foh else None
-    i_obj = nf + (2 if foh else 1)
-    i_q = i_obj + 1
-    n = i_q + D
+    lay = slow_layout(nf, foh, dynamics, D)
+    i_p, i_po, i_obj, i_q, n = lay.proxy, lay.proxy_old, lay.obj, lay.delay, lay.n
     M = np.zeros((nb, len(js), n, n))
     M[:, :, :nf, :nf] = Phi[:, None]
     M[:, :, :nf, i_p] = Gn[:, None]
     if i_po is not None:
         M[:, :, :nf, i_po] = Go[:, None]
         M[:, :, i_po, i_p] = 1.0
-    # object: x_obj' = (F + B_o x_obj) / (K_o + B_o), F = F_xi xi + F_new p + F_old p_old
-    inv = 1.0 / (ko + bo)
+    # object: x_obj' = inv (F + c_x x_obj + c_xp x_obj_prev + c_q q_arm) (eq. 9: c_x = B_o,
+    # inv = 1 / (K_o + B_o)), F = F_xi xi + F_new p + F_old p_old
+    inv, c_x, c_xp, c_q, alpha = _object_step(ko, bo, dynamics, N * T)
     obj_row = np.zeros((nb, len(js), n))
     obj_row[:, :, :nf] = F_xi * inv[:, None, None]
     obj_row[:, :, i_p] = F_new * inv[:, None]
     if i_po is not None:
         obj_row[:, :, i_po] = F_old * inv[:, None]
-    obj_row[:, :, i_obj] = (bo * inv)[:, None]
+    obj_row[:, :, i_obj] = (c_x * inv)[:, None]
+    if lay.obj_prev is not None:
+        obj_row[:, :, lay.obj_prev] = (c_xp * inv)[:, None]
+        M[:, :, lay.obj_prev, i_obj] = 1.0
+    if lay.arm is not None:
+        obj_row[:, :, lay.arm] = (c_q * inv)[:, None]
+        M[:, :, lay.arm, :] = (1.0 - alpha)[:, None, None] * obj_row
+        M[:, :, lay.arm, lay.arm] += alpha[:, None]
     M[:, :, i_obj, :] = obj_row
     # the proxy delivered: the new surface moved out by C_h times the force sampled
     proxy_row = obj_row.copy()
@@ -433,6 +533,31 @@ def monodromy(
             M[:, :, i_q + r, i_q + r + 1] = 1.0
         M[:, :, i_q + D - 1, :] = proxy_row
     return M
+
+
+@dataclass(frozen=True)
+class SlowLayout:
+    """Where each slow state is in :func:`monodromy`'s matrices (None: absent); ``n`` states."""
+
+    proxy: int
+    proxy_old: int | None
+    obj: int
+    obj_prev: int | None
+    arm: int | None
+    delay: int
+    n: int
+
+
+def slow_layout(nf: int, foh: bool, dynamics: ContactDynamics, delay_ticks: int) -> SlowLayout:
+    """The slow state's layout after ``nf`` fast states (:func:`monodromy`): the proxy, the
+    previous proxy (``foh``), the object's depth, its previous depth (a mass), its arm (a
+    relaxing arm) and ``delay_ticks`` delay-line states, in that order."""
+    i = nf + (2 if foh else 1)
+    prev = i + 1 if dynamics.mass_kg > 0.0 else None
+    has_arm = dynamics.relax_stiffness_n_per_m > 0.0 and dynamics.relax_time_s > 0.0
+    arm = i + 1 + (prev is not None) if has_arm else None
+    delay = i + 1 + (prev is not None) + (arm is not None)
+    return SlowLayout(nf, nf + 1 if foh else None, i, prev, arm, delay, delay + int(delay_ticks))
 
 
 def spectral_radius_function(
