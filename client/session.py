@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from haptic_collab.shared.full_loop import monodromy
+from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics, monodromy
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import (
     GainKey,
@@ -502,12 +502,19 @@ class ClientSession:
         """Interval [s] at which the link sends ``state``: half a simulation period."""
         return 0.5 / self.sim_rate_hz
 
-    def gain_key(self, b_o: float, delay_ticks: int, stiff_ratio: float = 1.0) -> GainKey:
+    def gain_key(
+        self,
+        b_o: float,
+        delay_ticks: int,
+        stiff_ratio: float = 1.0,
+        dynamics: ContactDynamics = NO_DYNAMICS,
+    ) -> GainKey:
         """What the gain design depends on besides K_o, for this user now.
 
         B_o is quantized *down* to 1 N/m steps (a design for less object damping).
         ``stiff_ratio`` is the class of ``K_o_stiff / K_o_eff`` of a contact coupled to other
-        users (1 uncoupled; :func:`shared.gain_key.stiff_ratio_class`).
+        users (1 uncoupled; :func:`shared.gain_key.stiff_ratio_class`); ``dynamics`` the part of
+        B_o the patch says is the contact's mass and relaxing arm.
         """
         return make_gain_key(
             servo_rate_hz=self.servo_rate_hz,
@@ -519,6 +526,7 @@ class ClientSession:
             b_h_max=self.b_h_max,
             b_o=b_o,
             stiff_ratio=stiff_ratio,
+            dynamics=dynamics,
         )
 
     def _stiff_class(self, surface: SurfacePatch) -> float:
@@ -687,7 +695,7 @@ class ClientSession:
             self.first_patch_s = now_s
         d = self.delay_ticks(now_s)
         k_o_eff = surface.k_o_eff
-        key = self.gain_key(surface.b_o, d, self._stiff_class(surface))
+        key = self.gain_key(surface.b_o, d, self._stiff_class(surface), surface.dynamics)
         table = self.gain_table
         cell = table.cell(k_o_eff)
         own = table.lookup(key, k_o_eff)
@@ -744,7 +752,7 @@ class ClientSession:
             rest = rest_plane_gains(
                 surface.k_o, surface.b_o, self.sim_rate_hz,
                 self.device.max_stiffness_n_per_m, self.b_h_max,
-                servo_period_s=1.0 / self.servo_rate_hz,
+                servo_period_s=1.0 / self.servo_rate_hz, dynamics=surface.dynamics,
             )  # fmt: skip
             self.rest_plane_patches += 1
             return self._rendered(

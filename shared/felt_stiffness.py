@@ -26,6 +26,7 @@ from haptic_collab.shared.full_loop import (
     batch_arrays,
     monodromy,
     object_coefficients,
+    object_impedance,
     slow_layout,
 )
 from haptic_collab.shared.types import FloatArray
@@ -67,15 +68,11 @@ def object_stiffness(
         raise ValueError(f"frequencies must be > 0 Hz, got {freqs_hz!r}")
     ko, bo = batch_arrays(k_o, b_o)
     d = dynamics
-    _, c_x, c_xp, c_q, a = object_coefficients(
-        ko, bo, sim_period_s, d.mass_kg, d.relax_stiffness_n_per_m, d.relax_time_s
-    )
-    zi = np.exp(-1j * 2.0 * math.pi * np.asarray(freqs_hz, dtype=float) * sim_period_s)[:, None]
-    lag = 1.0 - zi
-    mh = -c_xp  # m_o / h^2
-    damper = c_x - 2.0 * mh
-    arm = c_q * lag / (1.0 - a * zi)
-    return ko[None, :] + damper * lag + mh * lag**2 + arm
+    f = np.asarray(freqs_hz, dtype=float)[:, None]
+    return object_impedance(
+        f, ko[None, :], bo[None, :], sim_period_s, d.mass_kg, d.relax_stiffness_n_per_m,
+        d.relax_time_s,
+    )  # fmt: skip
 
 
 def felt_stiffness(

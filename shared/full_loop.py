@@ -285,6 +285,51 @@ def object_coefficients(
     return inv, 2.0 * mh + damper, -mh, kr * a, a
 
 
+def object_impedance(
+    freq_hz: FloatArray | float,
+    k_o: FloatArray | float,
+    b_o: FloatArray | float,
+    sim_period_s: FloatArray | float,
+    m_o: FloatArray | float = 0.0,
+    k_r: FloatArray | float = 0.0,
+    tau_r: FloatArray | float = 0.0,
+) -> FloatArray:
+    """The stepped object's dynamic stiffness dF/dx [N/m] (complex) at ``freq_hz`` [Hz],
+    broadcast over arrays as :func:`object_coefficients`: ``K_o + b (1 - z^-1) + (m_o / h^2) (1
+    - z^-1)^2 + k_r a (1 - z^-1) / (1 - a z^-1)`` at ``z = e^{j w h}``; eq. 9's ``K_o + B_o (1
+    - z^-1)`` without mass and arm."""
+    _, c_x, c_xp, c_q, a = object_coefficients(k_o, b_o, sim_period_s, m_o, k_r, tau_r)
+    zi = np.exp(-2j * np.pi * np.asarray(freq_hz, dtype=float) * np.asarray(sim_period_s))
+    lag = 1.0 - zi
+    mh = -c_xp
+    return np.asarray(k_o) + (c_x - 2.0 * mh) * lag + mh * lag**2 + c_q * lag / (1.0 - a * zi)
+
+
+def solid_impedance(
+    freq_hz: FloatArray | float,
+    k_o: FloatArray | float,
+    b_o: FloatArray | float,
+    sim_period_s: FloatArray | float,
+    m_o: FloatArray | float = 0.0,
+    k_r: FloatArray | float = 0.0,
+    tau_r: FloatArray | float = 0.0,
+) -> FloatArray:
+    """The dynamic stiffness dF/dx [N/m] (complex) at ``freq_hz`` [Hz] of the solid the
+    simulation steps (module docstring, "object"), continuous in time: ``K_o + j w b h + k_r j w
+    tau_r / (1 + j w tau_r) - m_o w^2`` (b h the rest of B_o as a damper [N*s/m], h the
+    simulation period): the standard linear solid with a surface mass (Fung 1993), the object
+    a hand should feel, which :func:`object_impedance` approximates, increasingly stiff towards
+    the simulation's Nyquist rate. Broadcast over arrays as :func:`object_coefficients`."""
+    _, c_x, c_xp, c_q, a = object_coefficients(k_o, b_o, sim_period_s, m_o, k_r, tau_r)
+    h = np.asarray(sim_period_s, dtype=float)
+    w = 2.0 * np.pi * np.asarray(freq_hz, dtype=float)
+    mh = -c_xp
+    damper = (c_x - 2.0 * mh) * h
+    jwt = 1j * w * np.asarray(tau_r, dtype=float)
+    arm = np.where(a > 0.0, np.asarray(k_r, dtype=float) * jwt / (1.0 + jwt), 0.0)
+    return np.asarray(k_o) + 1j * w * damper + arm - mh * h**2 * w**2
+
+
 def _object_step(
     ko: FloatArray, bo: FloatArray, dynamics: ContactDynamics, sim_period_s: float
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:

@@ -78,9 +78,21 @@ from haptic_collab.research.fidelity_schemes import (
     rendering_for,
     scheme_tuning,
 )
-from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand
+from haptic_collab.shared.full_loop import (
+    DEFAULT_HAND,
+    DEFAULT_HAND_BOX,
+    NO_DYNAMICS,
+    ContactDynamics,
+    Hand,
+)
 from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY, GainKey, Mode
+from haptic_collab.shared.gain_key import (
+    DESIGN_MARGIN,
+    STIFFER_BY,
+    GainKey,
+    Mode,
+    quantized_dynamics,
+)
 from haptic_collab.shared.gain_table import GainTable, design_cell, design_cell_modes
 from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.verified_plane import (
@@ -194,9 +206,11 @@ def _gain_key(
     *,
     margin: float = DESIGN_MARGIN,
     stiffer_by: float = STIFFER_BY,
+    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> GainKey:
-    """The key the product's client builds: B_o [N/m] quantized down as ``make_gain_key`` does;
-    ``margin`` and ``stiffer_by`` the product's unless a run asks for others (``run``)."""
+    """The key the product's client builds: B_o [N/m] and the contact's ``dynamics`` quantized
+    down as ``make_gain_key`` does; ``margin`` and ``stiffer_by`` the product's unless a run
+    asks for others (``run``)."""
     return GainKey(
         servo_rate_hz=_SERVO_RATE_HZ,
         sim_rate_hz=sim_rate_hz,
@@ -207,6 +221,7 @@ def _gain_key(
         b_h_max=device.max_damping_n_s_per_m,
         b_o=float(math.floor(max(0.0, b_o))),
         stiffer_by=stiffer_by,
+        dynamics=quantized_dynamics(dynamics),
     )
 
 
@@ -528,8 +543,9 @@ def run(
                     for k_o in g.k_o:
                         for name in g.objects:
                             key = _gain_key(
-                                mode, rate, d, device, _reported_b_o(name, k_o, rate), **key_range
-                            )
+                                mode, rate, d, device, _reported_b_o(name, k_o, rate),
+                                dynamics=_OBJECTS[name].reported_dynamics(k_o), **key_range,
+                            )  # fmt: skip
                             for k in _k_o_designed(_OBJECTS[name], k_o, design_reached):
                                 if design_cache is None or (mode, key, k) not in design_cache:
                                     wanted.add((mode, key, k))
@@ -598,7 +614,10 @@ def run(
             if s not in LOCAL_MODELS:
                 return peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
             mode = "p" if s == "local-p" else "pi"
-            key = _gain_key(mode, rate, d, device, _reported_b_o(name, k_o, rate), **key_range)
+            key = _gain_key(
+                mode, rate, d, device, _reported_b_o(name, k_o, rate),
+                dynamics=_OBJECTS[name].reported_dynamics(k_o), **key_range,
+            )  # fmt: skip
             if (mode, key) not in tables:
                 tables[(mode, key)] = _table(designs, mode, key)
             # the planes checked against designs, and those a press into this object checks

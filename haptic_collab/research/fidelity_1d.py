@@ -347,6 +347,12 @@ def simulate(
             for c, on in zip(cells, rest_on, strict=True)
         ]
     )
+    # ... and what part of that B_o the patch says is the contact's mass and relaxing arm
+    dyn_rest = [c.obj.reported_dynamics(c.k_o) for c in cells]
+    m_rest, kr_rest, tau_rest = (
+        np.array([getattr(d, f) for d in dyn_rest])
+        for f in ("mass_kg", "relax_stiffness_n_per_m", "relax_time_s")
+    )
     rest_now = np.zeros(B, dtype=bool)  # the last patch rendered the rest plane
     proxy_last = np.zeros(B)  # the surface [m] the last tick rendered, before the slide
     plane_seen = np.zeros(B, dtype=bool)  # a verified plane rendered in this contact
@@ -537,7 +543,8 @@ def simulate(
                     if rest_new.any():
                         k_rest, b_rest, _ = rest_plane_dampers(
                             k_recv, b_o_rest, sim_hz, device.max_stiffness_n_per_m,
-                            device.max_damping_n_s_per_m, servo_period_s=T,
+                            device.max_damping_n_s_per_m, servo_period_s=T, mass_kg=m_rest,
+                            relax_stiffness_n_per_m=kr_rest, relax_time_s=tau_rest,
                         )  # fmt: skip
                         kg = np.where(rest_new, k_rest, kg)
                         bg = np.where(rest_new, b_rest, bg)
