@@ -82,7 +82,12 @@ from haptic_collab.shared.protocol import (
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.rest_plane import rest_plane_gains
-from haptic_collab.shared.verified_plane import ahead_cells, plane_applies
+from haptic_collab.shared.verified_plane import (
+    ahead_cells,
+    plane_applies,
+    plane_felt_error,
+    yields_to_rest_plane,
+)
 
 if TYPE_CHECKING:
     from haptic_collab.client.servo import ServoSnapshot
@@ -329,6 +334,8 @@ class ClientSession:
         #: none passed), or alone while that cell has no design (design cell
         #: :data:`PLANE_ALONE`), and the one the link is to check off the event loop.
         self.planes: dict[tuple[GainKey, int, int], GainDesign | None] = {}
+        # each solid's verified plane's felt error (shared.verified_plane.plane_felt_error)
+        self._plane_errors: dict[tuple[GainKey, GainDesign], float] = {}
         #: (key, plane cell, design cell) whose verified plane the link is to check, in the
         #: order asked (the link takes the newest first).
         self.plane_wanted: list[tuple[GainKey, int, int]] = []
@@ -545,6 +552,22 @@ class ClientSession:
         (default: ``cell``'s own), or None: none passed its check."""
         self.planes[(key, cell, cell if design_cell is None else design_cell)] = design
 
+    def _plane_yields(self, plane: GainDesign, key: GainKey, surface: SurfacePatch) -> bool:
+        """Whether the rest plane renders instead of ``plane`` for this patch: the user alone
+        on a solid, where it is felt as close to the solid
+        (:func:`shared.verified_plane.yields_to_rest_plane`; the plane's felt error computed
+        once per plane)."""
+        if not self.rest_plane or surface.rest_plane is None or key.dynamics.none:
+            return False
+        err = self._plane_errors.get((key, plane))
+        if err is None:
+            err = self._plane_errors[(key, plane)] = plane_felt_error(plane, key)
+        rest = rest_plane_gains(
+            surface.k_o, surface.b_o, self.sim_rate_hz, self.device.max_stiffness_n_per_m,
+            self.b_h_max, servo_period_s=1.0 / self.servo_rate_hz, dynamics=surface.dynamics,
+        )  # fmt: skip
+        return yields_to_rest_plane(key, err, rest.felt_error)
+
     def _plan_ahead(self, key: GainKey, cell: int) -> None:
         """Have the planes around ``cell`` (the cell of the K_o reported) checked alone in the
         background, nearest first (:attr:`plane_ahead`; :meth:`next_plane_ahead` skips those
@@ -574,7 +597,9 @@ class ClientSession:
         reported or the one it identified (``own_response.identified_ratio`` times K_o;
         :mod:`shared.own_response`)?
 
-        Only an uncoupled contact on an object without B_o is checked (:func:`plane_applies`).
+        Only an uncoupled contact on an object without B_o, or whose patch says what its B_o
+        is (a solid's mass and relaxing arm, read as that solid), is checked
+        (:func:`plane_applies`).
         The check reads the depth of the surface along the contact normal from the proxy it
         started at, the force the simulation applied from this user and the K_o reported, read
         as the object's tangent stiffness (so it goes on across gain-table cells as a
@@ -607,8 +632,9 @@ class ClientSession:
         self._own_tick = surface.tick
         depth = float(np.dot(self._own_ref - proxy, normal))
         return check.update(
-            dt_s=dt, surface_m=depth, force_n=surface.own_force_n, k_o=surface.k_o_eff
-        )
+            dt_s=dt, surface_m=depth, force_n=surface.own_force_n, k_o=surface.k_o_eff,
+            b_o=surface.b_o, sim_period_s=1.0 / self.sim_rate_hz, dynamics=surface.dynamics,
+        )  # fmt: skip
 
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
         """Keep verified interim gains (from :func:`shared.interim_gains.interim_design`) for (key, cell)."""
@@ -729,6 +755,8 @@ class ClientSession:
                 # a plane checked alone renders where the cell has no design; where it has one,
                 # only once compared with it (milliseconds: the design renders meanwhile)
                 plane = None if own is not None else self.planes.get((key, plane_cell, PLANE_ALONE))
+            if plane is not None and self._plane_yields(plane, key, surface):
+                plane = None
             if plane is not None:
                 design = plane.at(k_id)
                 plane_renders = True

@@ -60,7 +60,7 @@ from typing import Literal
 import numpy as np
 
 from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
-from haptic_collab.shared.full_loop import HandBox
+from haptic_collab.shared.full_loop import HandBox, solid_impedance
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.interim_gains import verify_gains
@@ -119,12 +119,27 @@ def _band_response(
         delay_ticks=key.delay_ticks,
         proxy_hold=proxy_hold,
         own_gain=own_gain,
+        dynamics=key.dynamics,
     )[:, 0]
 
 
-def _band_error(q: np.ndarray, k_o: float) -> float:
-    """The largest ``|ln |q / K_o||`` over the band of felt responses ``q`` [N/m]."""
-    return float(np.max(np.abs(np.log(np.abs(q) / k_o))))
+def _own(key: GainKey, k_o: float) -> np.ndarray | float:
+    """The object's own dynamic stiffness [N/m] over the band under ``key``: K_o (a spring:
+    planes apply only there or on a solid) or, where the key has the contact's dynamics, the
+    solid's (:func:`shared.full_loop.solid_impedance`), shape (F,)."""
+    if key.dynamics.none:
+        return k_o
+    d = key.dynamics
+    return solid_impedance(
+        np.asarray(FELT_BAND_HZ), k_o, key.b_o, 1.0 / key.sim_rate_hz, d.mass_kg,
+        d.relax_stiffness_n_per_m, d.relax_time_s,
+    )  # fmt: skip
+
+
+def _band_error(q: np.ndarray, own: np.ndarray | float) -> float:
+    """The largest ``|ln |q / own||`` over the band of felt responses ``q`` [N/m] against the
+    object's own ``own`` [N/m] (:func:`_own`)."""
+    return float(np.max(np.abs(np.log(np.abs(q) / np.abs(own)))))
 
 
 def verified_key(key: GainKey) -> GainKey:
@@ -134,9 +149,11 @@ def verified_key(key: GainKey) -> GainKey:
 
 def plane_applies(key: GainKey) -> bool:
     """Whether a contact of ``key`` may render a verified plane: own-force compensation allowed,
-    uncoupled (``stiff_ratio`` 1) and no object damping reported (B_o = 0; a viscoelastic
-    object's response depends on how fast it is pressed)."""
-    return key.own_force and key.stiff_ratio == 1.0 and key.b_o == 0.0
+    uncoupled (``stiff_ratio`` 1) and no object damping reported (B_o = 0), or the patch says
+    what its B_o is (the contact's mass and relaxing arm: the plane is checked on that solid,
+    and the own-response check reads it as that solid). Eq. 9's damper alone does not say how
+    a viscoelastic object answers a press over more than one tick."""
+    return key.own_force and key.stiff_ratio == 1.0 and (key.b_o == 0.0 or not key.dynamics.none)
 
 
 #: The cells whose planes a client checks ahead, in the background, around the cell of the K_o
@@ -314,6 +331,7 @@ def checked_plane(
                 proxy_hold=hold,
                 own_gain=c_h / s,
                 k_o_range=_scale_range(s, top, g, grid_ratio),
+                dynamics=key.dynamics,
             )
             worst = max(worst, rho)
             if not ok:
@@ -341,7 +359,7 @@ def _cell_errors(d: GainDesign, key: GainKey, k_os: tuple[float, ...]) -> tuple[
             key, k, k_h=a.k_h, i_gain=a.i_gain, b_h=a.b_h, proxy_hold=a.proxy_hold,
             own_gain=a.own_gain,
         )  # fmt: skip
-        errs.append(_band_error(q, k))
+        errs.append(_band_error(q, _own(key, k)))
     return max(errs), sum(errs) / len(errs)
 
 
@@ -356,6 +374,29 @@ def felt_closer(plane: GainDesign, key: GainKey, design: GainDesign) -> bool:
     stiffness at most, so it must win across the cell, not at g alone."""
     k_os = _cell_points(plane)
     return _cell_errors(plane, key, k_os) < _cell_errors(design, key, k_os)
+
+
+def plane_felt_error(plane: GainDesign, key: GainKey) -> float:
+    """How far ``plane`` is felt from the object across its cell: the worst over its cell's grid
+    point, middle and top of the largest ``|ln |q / own||`` over the band (the measure
+    :func:`felt_closer` ranks by first; ``own`` the object's own, the solid's where the key has
+    the contact's dynamics). A client computes it once per plane (three felt responses)."""
+    return _cell_errors(plane, key, _cell_points(plane))[0]
+
+
+def yields_to_rest_plane(key: GainKey, plane_error: float, rest_error: float) -> bool:
+    """Whether a user alone on a solid (the key has the contact's dynamics) should render the
+    rest plane (:mod:`shared.rest_plane`, felt ``rest_error`` off the solid) instead of a
+    verified plane felt ``plane_error`` off it across its cell (:func:`plane_felt_error`).
+
+    The plane renders the solid through the simulation, relaxation and all, and its delay with
+    it; the rest plane is a spring and a damper at the servo rate, felt the same at any delay.
+    Measured with the fidelity benchmark (2026-11-27, its viscoelastic object): at 100 N/m with
+    50-200 ms the verified plane was felt 0.65-0.76 (ln) off where the rest plane is 0.44 off;
+    at 300 N/m and 100 Hz without delay 0.12 where the rest plane is 0.41. On a spring the
+    verified plane keeps its place (it renders the stiffness the own-response check
+    identified; the rest plane the K_o reported)."""
+    return not key.dynamics.none and rest_error <= plane_error
 
 
 def verified_plane(

@@ -99,6 +99,7 @@ from haptic_collab.shared.verified_plane import (
     checked_plane,
     felt_closer,
     plane_applies,
+    plane_felt_error,
     verified_plane,
 )
 
@@ -360,10 +361,16 @@ def _table(
 def _planes(
     planes: dict[tuple[str, GainKey, float], GainDesign | None], mode: str, key: GainKey
 ) -> tuple[TableCell, ...]:
-    """The verified planes the run found for ``(mode, key)``'s cells, as table cells."""
+    """The verified planes the run found for ``(mode, key)``'s cells, as table cells (on a
+    solid, with their felt error: :func:`shared.verified_plane.plane_felt_error`)."""
     t = GainTable(DEFAULT_HAND_BOX)
     return tuple(
-        TableCell.from_design(t.cell(k_o), d, t.grid_ratio)
+        TableCell.from_design(
+            t.cell(k_o),
+            d,
+            t.grid_ratio,
+            math.nan if key.dynamics.none else plane_felt_error(d, key),
+        )  # fmt: skip
         for (m, k, k_o), d in sorted(planes.items(), key=lambda kv: kv[0][2])
         if m == mode and k == key and d is not None
     )

@@ -128,6 +128,8 @@ def _verified_plane_gains(
     surface: FloatArray,
     force: FloatArray,
     sim_rate_hz: FloatArray,
+    dynamics: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+    rest_error: FloatArray,
 ) -> tuple[
     tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]], NDArray[np.bool_]
 ]:
@@ -148,7 +150,11 @@ def _verified_plane_gains(
     checked it: against the design of the cell of the K_o reported where that cell is designed,
     alone where it is not, as :meth:`client.session.ClientSession._render` renders it.
     ``since``, shape (B, :data:`_PLANE_CELLS`), holds that tick per plane cell, -1 before: the
-    client keeps a checked plane for the session."""
+    client keeps a checked plane for the session. ``dynamics`` = (B_o [N/m], mass [kg], arm
+    stiffness [N/m], relaxation time [s]) as each patch reports them: the check reads a solid
+    whose patch says what its B_o is as that solid. ``rest_error``: the felt error of the rest
+    plane each patch would render (inf where none would): a solid's plane felt no closer than
+    it yields to it (:func:`shared.verified_plane.yields_to_rest_plane`)."""
     ended = mask & ~(force > 0.0)
     sums[ended] = 0.0
     deform[ended] = empty_deformation()
@@ -160,7 +166,12 @@ def _verified_plane_gains(
     push = mask & (force > 0.0)
     if push.any():
         dt = np.where(seq_last >= 0, (seq - seq_last) / sim_rate_hz, 0.0)
-        deform[push] = update_deformation(deform, force_n=force, k_o=k_o)[push]
+        b_o, m_o, k_r, tau_r = dynamics
+        deform[push] = update_deformation(
+            deform, force_n=force, k_o=k_o, b_o=b_o, sim_period_s=1.0 / sim_rate_hz, mass_kg=m_o,
+            relax_stiffness_n_per_m=k_r, relax_time_s=tau_r,
+            ticks=np.where(push & (seq_last >= 0), np.maximum(seq - seq_last, 1), 1),
+        )[push]  # fmt: skip
         u = deform[:, 0]
         new = update_sums(sums, dt_s=dt, surface_m=surface, deformation_m=u)
         sums[push] = new[push]
@@ -184,7 +195,7 @@ def _verified_plane_gains(
     since[rows[first], pc[first]] = seq[first]
     at = since[rows, pc]
     ready = (at >= 0) & ((seq - at) / sim_rate_hz >= delay_s)
-    use = mask & ok & ready & planes.has_cell(k_id)
+    use = mask & ok & ready & planes.has_cell(k_id) & ~(planes.felt_error_at(k_id) >= rest_error)
     if not use.any():
         return gains, use
     plane = planes.gains_and_hold(k_id)
@@ -347,7 +358,9 @@ def simulate(
             for c, on in zip(cells, rest_on, strict=True)
         ]
     )
-    # ... and what part of that B_o the patch says is the contact's mass and relaxing arm
+    # ... and what part of that B_o the patch says is the contact's mass and relaxing arm (the
+    # own-response check reads the object as that solid too)
+    b_o_all = np.array([c.obj.reported_b_o(c.k_o, c.sim_rate_hz) for c in cells])
     dyn_rest = [c.obj.reported_dynamics(c.k_o) for c in cells]
     m_rest, kr_rest, tau_rest = (
         np.array([getattr(d, f) for d in dyn_rest])
@@ -531,6 +544,22 @@ def simulate(
                             surface=got[:, 4],
                             force=np.maximum(got[:, 2], 0.0),
                             sim_rate_hz=sim_hz,
+                            dynamics=(b_o_all, m_rest, kr_rest, tau_rest),
+                            rest_error=np.where(
+                                rest_on,
+                                rest_plane_dampers(
+                                    k_recv,
+                                    b_o_rest,
+                                    sim_hz,
+                                    device.max_stiffness_n_per_m,
+                                    device.max_damping_n_s_per_m,
+                                    servo_period_s=T,
+                                    mass_kg=m_rest,
+                                    relax_stiffness_n_per_m=kr_rest,
+                                    relax_time_s=tau_rest,
+                                )[2],
+                                np.inf,
+                            ),
                         )
                     # the rest plane, alone on the object, where no verified plane renders and
                     # none has for HOLD_BACK_S in this contact (patches with a force from this

@@ -90,6 +90,10 @@ class TableCell:
         How far the design scales with the K_o reported (:attr:`shared.gain_design.GainDesign.scale_max`).
     proxy_hold : {"zoh", "foh"}
         The proxy hold the design was checked with (the client renders each patch with its own).
+    felt_error : float
+        A verified plane on a solid: how far it is felt from the solid across its cell
+        (:func:`shared.verified_plane.plane_felt_error`), which the rest plane's must beat to
+        render instead (:func:`shared.verified_plane.yields_to_rest_plane`); NaN otherwise.
     """
 
     cell: int
@@ -100,11 +104,15 @@ class TableCell:
     own_gain: float
     scale_max: float
     proxy_hold: ProxyHold = "zoh"
+    felt_error: float = math.nan
 
     @classmethod
-    def from_design(cls, cell: int, design: GainDesign, grid_ratio: float) -> TableCell:
+    def from_design(
+        cls, cell: int, design: GainDesign, grid_ratio: float, felt_error: float = math.nan
+    ) -> TableCell:
         """The cell ``cell`` of a table of grid ratio ``grid_ratio`` holding ``design`` (as
-        :func:`shared.gain_table.design_cell` made it, unscaled)."""
+        :func:`shared.gain_table.design_cell` made it, unscaled), a verified plane felt
+        ``felt_error`` off a solid."""
         return cls(
             cell,
             float(grid_ratio),
@@ -114,6 +122,7 @@ class TableCell:
             design.own_gain,
             design.scale_max,
             design.proxy_hold,
+            felt_error,
         )
 
 
@@ -419,6 +428,7 @@ class TableGains:
         self.ratio = np.full(b, 1.1)
         self.gain = np.full((5, b, m), np.nan)  # k_h, i_gain, b_h, own_gain, scale_max
         self.foh = np.zeros((b, m), dtype=bool)
+        self.felt_error = np.full((b, m), np.nan)
         for i, t in enumerate(tables):
             for j, c in enumerate(t):
                 self.valid[i, j] = True
@@ -426,6 +436,16 @@ class TableGains:
                 self.ratio[i] = c.grid_ratio
                 self.gain[:, i, j] = (c.k_h, c.i_gain, c.b_h, c.own_gain, c.scale_max)
                 self.foh[i, j] = c.proxy_hold == "foh"
+                self.felt_error[i, j] = c.felt_error
+
+    def felt_error_at(self, k_o: FloatArray) -> FloatArray:
+        """The :attr:`TableCell.felt_error` of the cell holding each K_o [N/m] (shape (B,));
+        NaN where the table does not hold that cell."""
+        i = np.floor(np.log(k_o) / np.log(self.ratio) + 1e-12).astype(np.int64)
+        hit = self.valid & (self.cell == i[:, None])
+        return np.where(
+            hit.any(axis=1), self.felt_error[np.arange(len(k_o)), hit.argmax(axis=1)], np.nan
+        )
 
     def has_cell(self, k_o: FloatArray) -> NDArray[np.bool_]:
         """Whether each rendering's table holds the cell of the K_o [N/m] reported (shape (B,),

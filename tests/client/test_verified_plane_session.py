@@ -13,10 +13,19 @@ import pytest
 
 from haptic_collab.client.link import Link
 from haptic_collab.client.session import PLANE_ALONE, ClientSession
+from haptic_collab.shared.full_loop import ContactDynamics
 from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.protocol import Patch, PlaneModel, RecommendedGains, encode
+from haptic_collab.shared.protocol import (
+    ContactDynamicsModel,
+    DeviceInfo,
+    Patch,
+    PlaneModel,
+    RecommendedGains,
+    Welcome,
+    encode,
+)
 from haptic_collab.shared.verified_plane import plane_against, verified_plane
-from tests.support.sessions import press_patch, welcomed_session
+from tests.support.sessions import WELCOME_OBJECT, press_patch, welcomed_session
 
 K_O = 300.0
 #: One gain table for every session here: the cells are designed once (a design takes seconds).
@@ -419,3 +428,70 @@ def test_the_link_checks_the_planes_ahead_when_nothing_else_is_asked() -> None:
         assert s.planes[(key, c, PLANE_ALONE)] == verified_plane(
             key, c, table.grid_ratio, table.hand_box
         )
+
+
+# ------------------------------------------------------------------------------------ on a solid
+def _solid_session(
+    k_o: float, rate_hz: float, rtt_s: float, seconds: float = 3.0, told: bool = True
+) -> ClientSession:
+    """A user alone on the fidelity benchmark's viscoelastic object at ``k_o`` [N/m] (20 g, a
+    relaxing arm of ``k_o`` with 0.1 s) simulated at ``rate_hz``, pressing between 0.1 and
+    3.1 N at 0.5 Hz for ``seconds``: each patch carries the solid's surface (stepped by
+    implicit Euler as the simulation steps it), the B_o it reports, the rest plane and, with
+    ``told``, what part of that B_o is its mass and relaxing arm."""
+    s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=1000.0), b_h_max=10.0,
+                      gain_table=TABLE)  # fmt: skip
+    s.receive(encode(Welcome(user_id="u1", name="A", role="user", sim_rate_hz=rate_hz,
+                             object=WELCOME_OBJECT)), 0.0)  # fmt: skip
+    s.rtt_s.clear()
+    s.rtt_s.extend([rtt_s] * 8)
+    dyn = ContactDynamics(mass_kg=0.02, relax_stiffness_n_per_m=k_o, relax_time_s=0.1)
+    h = 1.0 / rate_hz
+    a = 0.1 / (0.1 + h)
+    b_o = dyn.one_tick_part(h)
+    x = xp = q = 0.0
+    for tick in range(1, round(seconds * rate_hz) + 1):
+        f = 1.6 - 1.5 * math.cos(2 * math.pi * 0.5 * tick / rate_hz)
+        x, xp = (f + 0.02 / h**2 * (2 * x - xp) + k_o * a * q) / (0.02 / h**2 + k_o + k_o * a), x
+        q = a * q + (1 - a) * x
+        z = 0.1 - x
+        patch = Patch(
+            tick=tick, primitive=PlaneModel(point=(0, 0, z), normal=(0, 0, 1)), proxy_m=(0, 0, z),
+            normal=(0, 0, 1), penetration_m=0.001, in_contact=True, k_o=k_o, k_o_eff=k_o,
+            b_o=b_o, own_force_n=f, rest_plane=PlaneModel(point=(0, 0, 0.1), normal=(0, 0, 1)),
+            dynamics=ContactDynamicsModel(mass_kg=0.02, relax_stiffness_n_per_m=k_o,
+                                          relax_time_s=0.1) if told else None,
+        )  # fmt: skip
+        s.receive(encode(patch), tick / rate_hz)
+        if s.design_wanted is not None:
+            key, k = s.design_wanted
+            s.gain_table.design(key, k)
+            s.design_wanted = None
+        _check_planes(s)
+    return s
+
+
+def test_on_a_solid_that_says_what_it_is_the_client_renders_its_plane() -> None:
+    # 300 N/m at 100 Hz, no delay: the plane renders the solid through the simulation (felt
+    # 0.12 off it by the fidelity benchmark), where the rest plane, a spring, is 0.41 off
+    s = _solid_session(300.0, 100.0, rtt_s=0.002)
+    up = s.last_update
+    assert up is not None and s.own_response.verified and s.plane_patches > 0
+    assert up.k_h == pytest.approx(300.0) and up.own_gain * up.k_h == pytest.approx(1.0)
+    assert up.i_gain == 0.0 and not up.rest_plane
+    # told nothing of its B_o, the solid gets no plane (eq. 9's damper does not say how it
+    # answers a press over more than one tick): the rest plane renders
+    blind = _solid_session(300.0, 100.0, rtt_s=0.002, told=False)
+    assert blind.plane_patches == 0 and not blind.planes
+    assert blind.last_update is not None and blind.last_update.rest_plane
+
+
+def test_a_solids_plane_yields_to_the_rest_plane_where_that_is_felt_as_close() -> None:
+    # 100 N/m at 20 Hz with 50 ms each way: a plane passes its check and is felt closer than
+    # the cell's design, but through the delayed simulation it is felt further from the solid
+    # (0.65 by the fidelity benchmark) than the rest plane held at the servo rate (0.44): the
+    # rest plane renders
+    s = _solid_session(100.0, 20.0, rtt_s=0.1)
+    assert any(p is not None for p in s.planes.values())
+    assert s.own_response.verified and s.plane_patches == 0 and s.rest_plane_patches > 0
+    assert s.last_update is not None and s.last_update.rest_plane

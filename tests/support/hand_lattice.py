@@ -10,7 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand, spectral_radius
+from haptic_collab.shared.full_loop import (
+    DEFAULT_HAND,
+    DEFAULT_HAND_BOX,
+    NO_DYNAMICS,
+    ContactDynamics,
+    Hand,
+    spectral_radius,
+)
 from haptic_collab.shared.gain_design import GainDesign
 
 SERVO_HZ = 1000.0
@@ -36,8 +43,11 @@ def worst_on_lattice(
     sim_rate_hz: float,
     delay_ticks: int,
     hands: list[Hand] = FINE_HANDS,
+    b_o: float = 0.0,
+    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> tuple[float, str]:
-    """Largest full-loop spectral radius over hands x K_o' x every sampling tick, and where."""
+    """Largest full-loop spectral radius over hands x K_o' x every sampling tick, and where (on
+    an object of B_o ``b_o`` [N/m] whose ``dynamics`` are part of it: :mod:`shared.full_loop`)."""
     n = round(SERVO_HZ / sim_rate_hz)
     hs = [h for h in hands for _ in k_os]
     ko = np.tile(np.asarray(k_os, float), len(hands))
@@ -53,6 +63,8 @@ def worst_on_lattice(
         delay_ticks=delay_ticks,
         proxy_hold=d.proxy_hold,
         integral=d.i_gain > 0.0,
+        b_o=b_o,
+        dynamics=dynamics,
     )
     b, j = np.unravel_index(int(np.argmax(rho)), rho.shape)
     where = (
