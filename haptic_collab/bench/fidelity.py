@@ -437,6 +437,7 @@ def run(
     plane_check_s: float = 0.0,
     rest_plane: bool = True,
     rest_hold_back_s: float = REST_HOLD_BACK_S,
+    both_phases: bool = True,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the ``--json`` document.
 
@@ -493,6 +494,12 @@ def run(
         After a verified plane in a contact, the rest plane waits this long [s] without one
         (default the client's, :data:`shared.rest_plane.HOLD_BACK_S`; 0: it renders whenever no
         verified plane does).
+    both_phases : bool
+        Run every hand cell at both ends of the sampling phase (the simulation taking the force
+        of the last or of the first servo tick of its period: :attr:`Cell.stale_sample`); a
+        rendering is stable with a hand only if it is at both (the servo's and the
+        simulation's clocks are not synchronised). False: the last tick's only, as before
+        2026-11-27.
 
     Returns
     -------
@@ -653,6 +660,8 @@ def run(
         outcomes: list[Outcome] = []
         where: dict[tuple[str, str, float, float, float], list[int]] = {}
         hand_cells: dict[str, list[tuple[int, int, int, Cell]]] = defaultdict(list)
+        # each hand cell again at the other end of the sampling phase (Cell.stale_sample)
+        stale_cells: list[tuple[int, int, int, Cell]] = []
         felt_cells: dict[float, list[tuple[int, Cell]]] = defaultdict(list)
         for name in g.objects:
             obj = _OBJECTS[name]
@@ -665,9 +674,10 @@ def run(
                     outcomes.append(Outcome(r))
                     for ti, tr in enumerate(g.trajectories):
                         for hi, h in enumerate(hands):
-                            hand_cells[tr].append(
-                                (oid, ti, hi, Cell(r, k_o, rate, d, h, _TRAJ[tr], obj))
-                            )
+                            cell = Cell(r, k_o, rate, d, h, _TRAJ[tr], obj)
+                            hand_cells[tr].append((oid, ti, hi, cell))
+                            if both_phases:
+                                stale_cells.append((oid, ti, hi, replace(cell, stale_sample=True)))
                     depth = felt_depth_m(k_o, device.max_force_n, obj)
                     for hz in FELT_HZ:
                         cell = Cell(r, k_o, rate, d, None, felt_trajectory(hz, depth), obj)
@@ -682,6 +692,8 @@ def run(
             tagged_h.sort(key=lambda item: _batch_class(item[-1]))
         for tagged_f in felt_cells.values():
             tagged_f.sort(key=lambda item: _batch_class(item[-1]))
+        # the stale phase's cells by trajectory too (a batch is of one length)
+        stale_cells.sort(key=lambda item: (item[-1].trajectory.name, _batch_class(item[-1])))
         futs: list[tuple[str, Any, list[Any], Any]] = []
         for tr, tagged in hand_cells.items():
             for a in range(0, len(tagged), _BATCH):
@@ -689,6 +701,14 @@ def run(
                 cs = [c for *_, c in chunk]
                 futs.append(
                     ("hand", tr, chunk, pool.submit(_simulate_batch, cs, False, device, options))
+                )
+        for a in range(0, len(stale_cells), _BATCH):
+            chunk_s = stale_cells[a : a + _BATCH]
+            for tr in dict.fromkeys(c.trajectory.name for *_, c in chunk_s):
+                part = [item for item in chunk_s if item[-1].trajectory.name == tr]
+                cs = [c for *_, c in part]
+                futs.append(
+                    ("stale", tr, part, pool.submit(_simulate_batch, cs, False, device, options))
                 )
         for hz, tagged_f in felt_cells.items():
             for a in range(0, len(tagged_f), _BATCH):
@@ -698,12 +718,19 @@ def run(
                     ("felt", hz, chunk_f, pool.submit(_simulate_batch, cs, True, device, options))
                 )
         n_sim = 0
+        # (outcome, trajectory, hand) unstable at the stale phase
+        stale_unstable: set[tuple[int, int, int]] = set()
         for kind, what, items, fut in futs:
             res = fut.result()
             n_sim += len(res)
             if kind == "felt":
                 for (oid, _c), q in zip(items, res, strict=True):
                     outcomes[oid].felt[what] = None if q is None else (q[0], q[1])
+                continue
+            if kind == "stale":
+                for (oid, ti, hi, _c), m in zip(items, res, strict=True):
+                    if not m["stable"]:
+                        stale_unstable.add((oid, ti, hi))
                 continue
             for (oid, _ti, hi, _c), m in zip(items, res, strict=True):
                 o = outcomes[oid]
@@ -714,6 +741,15 @@ def run(
                         o.impact.append(m)
                 else:
                     o.outside.append(bool(m["stable"]))
+        # stable only if stable at both ends of the sampling phase (the flags are in
+        # (trajectory, hand) order)
+        n_out = len(hands) - n_box
+        for oid, ti, hi in stale_unstable:
+            o = outcomes[oid]
+            if hi < n_box:
+                o.stable[ti * n_box + hi] = False
+            else:
+                o.outside[ti * n_out + hi - n_box] = False
         # a felt response the probe did not find steady, or still while held, is measured
         # again on the longer probe, every scheme's alike: a rendering that changes once (the
         # product's, when its own-response check identifies the object) is then read after the
@@ -913,6 +949,7 @@ def run(
             "plane_check_s": plane_check_s,
             "rest_plane": rest_plane,
             "rest_hold_back_s": rest_hold_back_s,
+            "both_sampling_phases": both_phases,
         },
         "conditions": conditions,
         "cells_3d": cells3,

@@ -466,7 +466,10 @@ def simulate(
     pc_e = np.zeros(B)
     pc_fa = np.zeros(B)
     # network: ring buffers on the servo clock
-    L = int(d_ticks.max()) + 2
+    # the force the simulation takes: the last servo tick's of its period, or the first's
+    # (Cell.stale_sample: the other end of the sampling phase)
+    lag = np.array([n_ratio[i] - 1 if c.stale_sample else 0 for i, c in enumerate(cells)])
+    L = int((d_ticks + lag).max()) + 2
     up = np.zeros((L, B))  # what the servo sent at tick n (force, or probe position)
     # latest (value, stiffness, x_ref or force, energy, surface) published by tick n
     down = np.zeros((L, B, 5))
@@ -720,7 +723,7 @@ def simulate(
         up[n % L] = np.where(fed_position, xr, f)
         sim_now = (n % n_ratio) == 0
         if sim_now.any():
-            k_up = n - d_ticks
+            k_up = n - d_ticks - lag
             slot_up = np.where(k_up >= 0, k_up, 0) % L
             got = np.where(k_up >= 0, up[slot_up, cols], 0.0)
             a = (m_o * (xo + h * vo) / h**2 + b_o * xo / h + k2 * alpha * qo) / D

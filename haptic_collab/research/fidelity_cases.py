@@ -442,6 +442,12 @@ class Cell:
     trajectory : Trajectory
     obj : ObjectModel
         The object (default: the design model, a spring of exactly K_o).
+    stale_sample : bool
+        The simulation takes the force the servo sent at the first servo tick of each of its
+        periods, N - 1 ticks before the last (the default, the paper's Step 3): the other end
+        of the sampling phase. The servo's and the simulation's clocks are not synchronised,
+        so a rendering runs at every phase in use (the product's designs are checked at every
+        one, :mod:`shared.full_loop`).
     """
 
     rendering: Rendering
@@ -451,6 +457,7 @@ class Cell:
     hand: Hand | None
     trajectory: Trajectory
     obj: ObjectModel = SPRING
+    stale_sample: bool = False
 
 
 @dataclass(frozen=True, slots=True)
