@@ -287,21 +287,34 @@ def _closer(plane: GainDesign | None, key: GainKey, design: GainDesign) -> GainD
 _D = TypeVar("_D")
 
 
+def _keyed_by(name: str, key: GainKey, k_o: float) -> bool:
+    """Whether object ``name`` reported at ``k_o`` [N/m] gives the client ``key``'s B_o and
+    contact dynamics (the springs and the stiffening object share their keys; the
+    viscoelastic object's are its own)."""
+    obj = _OBJECTS[name]
+    return _reported_b_o(name, k_o, key.sim_rate_hz) == key.b_o and (
+        quantized_dynamics(obj.reported_dynamics(k_o)) == key.dynamics
+    )
+
+
 def _identified_plane_jobs(
     designs: Mapping[tuple[str, GainKey, float], _D],
-    errors: Sequence[float],
+    objects: Sequence[str],
     k_os: Sequence[float],
 ) -> dict[tuple[str, GainKey, float], tuple[GainKey, float, _D]]:
     """The plane checks a client makes once its own-response check identifies an object
-    ``error`` times the K_o reported (:func:`shared.own_response.identify`): for each design of
-    a K_o of ``k_os`` whose key allows a plane, ``(mode, key, error K_o)`` -> ``(key, error
-    K_o, that design)``, the plane of the identified stiffness's cell checked against the
-    design of the cell reported (:func:`_plane_cell`)."""
+    ``error`` times the K_o reported (:func:`shared.own_response.identify`), ``error`` the
+    stiffness error of an object of ``objects`` that gives that key (:func:`_keyed_by`): for
+    each design of a K_o of ``k_os`` whose key allows a plane, ``(mode, key, error K_o)`` ->
+    ``(key, error K_o, that design)``, the plane of the identified stiffness's cell checked
+    against the design of the cell reported (:func:`_plane_cell`)."""
     return {
         (w[0], w[1], e * w[2]): (w[1], e * w[2], d)
         for w, d in sorted(designs.items(), key=lambda kv: str(kv[0]))
         if plane_applies(w[1]) and w[2] in k_os
-        for e in errors
+        for e in sorted(
+            {_OBJECTS[n].stiffness_error for n in objects if _keyed_by(n, w[1], w[2])} - {1.0}
+        )
     }
 
 
@@ -312,7 +325,8 @@ def _alone_plane_jobs(
 ) -> dict[tuple[str, GainKey, float], tuple[GainKey, float]]:
     """The planes a client checks alone: for each design of a grid K_o of ``k_os`` whose key
     allows a plane, ``(mode, key, K)`` -> ``(key, K)`` for each K (the middle of a cell) that an
-    object of ``objects`` reports on the way to the trajectories' held depth and that
+    object of ``objects`` giving that key (:func:`_keyed_by`) reports on the way to the
+    trajectories' held depth and that
     ``designs`` has no design for (:func:`_k_o_designed`: the stiffening object's cells above
     the K_o reported at rest)."""
     return {
@@ -320,6 +334,7 @@ def _alone_plane_jobs(
         for (mode, key, k_o) in sorted(designs, key=str)
         if plane_applies(key) and k_o in k_os
         for name in objects
+        if _keyed_by(name, key, k_o)
         for k in _k_o_designed(_OBJECTS[name], k_o, True)[1:]
         if (mode, key, k) not in designs
     }
@@ -584,8 +599,7 @@ def run(
         # an object whose K_o is reported wrong (spring-0.8, spring-1.2), checked against the
         # design of the cell reported, as the client checks it once identified: the cache the
         # client fills on demand (the simulator renders it the check time after the verdict)
-        errors = sorted({_OBJECTS[n].stiffness_error for n in g.objects} - {1.0})
-        for w_id, job in _identified_plane_jobs(planned, errors, g.k_o).items():
+        for w_id, job in _identified_plane_jobs(planned, g.objects, g.k_o).items():
             wanted_planes.setdefault(w_id, job)
         # ... and the plane of each cell an object's K_o reaches that is not designed (the
         # stiffening object's, without design_reached), checked alone, as the client checks it

@@ -228,7 +228,7 @@ def _product(
     *,
     reached: ObjectModel | None = None,
     planes: bool = True,
-    identified: tuple[float, ...] = (),
+    identified: tuple[str, ...] = (),
     ahead: ObjectModel | None = None,
     plane_check_s: float = 0.0,
     rest_plane: bool = False,
@@ -238,7 +238,7 @@ def _product(
     """The product's rendering of ``mode`` for K_o, as the benchmark renders it (the client's key,
     its table cell scaled to K_o, its gains following the K_o reported through the cells
     designed, the verified plane of each where the own-response check verifies the K_o
-    reported, and of the cells of ``identified`` times K_o where it identifies that), with
+    reported, and of the cells the objects ``identified`` (named) are identified at), with
     ``key_changes`` applied to the key; with ``reached``, every cell that object reaches is
     designed too (``--design-reached``); without ``planes``, no verified plane; with ``ahead``,
     the planes of the cells that object reaches undesigned, checked alone (ahead, as the client
@@ -307,7 +307,7 @@ def test_an_object_whose_k_o_is_reported_wrong_is_felt_as_itself_once_identified
     # off the object (ln); once the own-response check has identified the object's stiffness,
     # the plane of that stiffness's cell renders, felt within the JND with every hand stable
     k, rate, delay_ms = 300.0, 20.0, 100.0
-    product = _product("local-pi", k, rate, delay_ms, identified=(obj.stiffness_error,))
+    product = _product("local-pi", k, rate, delay_ms, identified=(obj.name,))
     design_only = _product("local-pi", k, rate, delay_ms, planes=False)
     assert _box_stable(product, obj, k, rate, delay_ms)
     errs = [abs(math.log(abs(_felt(product, obj, k, rate, delay_ms, hz)))) for hz in BAND]
@@ -325,7 +325,7 @@ def test_a_rendering_that_changes_once_while_held_is_read_on_the_longer_probe() 
     # is read: felt about as the device's stiffness (1000 of 1200 N/m), steadily
     k, rate, delay_ms = 1000.0, 20.0, 200.0
     product = _product(
-        "local-pi", k, rate, delay_ms, identified=(1.2,), plane_check_s=PRODUCT_PLANE_CHECK_S
+        "local-pi", k, rate, delay_ms, identified=("spring-1.2",), plane_check_s=PRODUCT_PLANE_CHECK_S
     )
     depth = felt_depth_m(k, FMAX, SPRING_STIFFER)
     cells = [
