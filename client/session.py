@@ -84,8 +84,10 @@ from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.rest_plane import rest_plane_gains
 from haptic_collab.shared.verified_plane import (
     ahead_cells,
+    felt_error_at,
     plane_applies,
     plane_felt_error,
+    rest_plane_closer,
     yields_to_rest_plane,
 )
 
@@ -336,6 +338,8 @@ class ClientSession:
         self.planes: dict[tuple[GainKey, int, int], GainDesign | None] = {}
         # each solid's verified plane's felt error (shared.verified_plane.plane_felt_error)
         self._plane_errors: dict[tuple[GainKey, GainDesign], float] = {}
+        # a solid's design's felt error at the K_o reported (rest plane or design)
+        self._design_errors: dict[tuple[GainKey, GainDesign, float], float] = {}
         #: (key, plane cell, design cell) whose verified plane the link is to check, in the
         #: order asked (the link takes the newest first).
         self.plane_wanted: list[tuple[GainKey, int, int]] = []
@@ -551,6 +555,17 @@ class ClientSession:
         """Keep the verified plane of (key, cell) checked against the design of ``design_cell``
         (default: ``cell``'s own), or None: none passed its check."""
         self.planes[(key, cell, cell if design_cell is None else design_cell)] = design
+
+    def _felt_error(self, d: GainDesign, key: GainKey, k_o: float) -> float:
+        """:func:`shared.verified_plane.felt_error_at` of ``d`` at the K_o reported ``k_o``
+        [N/m] under ``key`` (kept: a solid's K_o reported rarely changes; at most 64 kept)."""
+        ident = (key, d, k_o)
+        err = self._design_errors.get(ident)
+        if err is None:
+            if len(self._design_errors) >= 64:
+                self._design_errors.clear()
+            err = self._design_errors[ident] = felt_error_at(d, key, k_o)
+        return err
 
     def _plane_yields(self, plane: GainDesign, key: GainKey, surface: SurfacePatch) -> bool:
         """Whether the rest plane renders instead of ``plane`` for this patch: the user alone
@@ -782,24 +797,30 @@ class ClientSession:
                 self.device.max_stiffness_n_per_m, self.b_h_max,
                 servo_period_s=1.0 / self.servo_rate_hz, dynamics=surface.dynamics,
             )  # fmt: skip
-            self.rest_plane_patches += 1
-            return self._rendered(
-                LocalModelUpdate.from_surface(
-                    surface,
-                    k_h=rest.k_h,
-                    i_gain=0.0,
-                    b_h=rest.b_h,
-                    hold_ticks=n,
-                    choice=GainChoice(
-                        delay_ticks=d,
-                        spectral_radius=0.0,  # its force does not go through the simulation
-                        felt_stiffness_ratio_1hz=rest.k_h / surface.k_o,
+            # on a solid that says what its B_o is, only where felt as close as the design
+            if (
+                design is None
+                or key.dynamics.none
+                or rest_plane_closer(key, rest.felt_error, self._felt_error(design, key, k_o_eff))
+            ):
+                self.rest_plane_patches += 1
+                return self._rendered(
+                    LocalModelUpdate.from_surface(
+                        surface,
+                        k_h=rest.k_h,
+                        i_gain=0.0,
+                        b_h=rest.b_h,
+                        hold_ticks=n,
+                        choice=GainChoice(
+                            delay_ticks=d,
+                            spectral_radius=0.0,  # its force does not go through the simulation
+                            felt_stiffness_ratio_1hz=rest.k_h / surface.k_o,
+                        ),
+                        rest=True,
                     ),
-                    rest=True,
-                ),
-                surface,
-                now_s,
-            )
+                    surface,
+                    now_s,
+                )
         fallback = design is None
         verified = True
         if design is None:

@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 from haptic_collab.shared.felt_stiffness import felt_stiffness
-from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics, HandBox, monodromy
+from haptic_collab.shared.full_loop import HandBox, monodromy
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import cell_k_o_range, design_cell
@@ -66,7 +66,6 @@ def verify_gains(
     probe: int = 32,
     probe_ticks: int = 2,
     k_o_range: tuple[float, float] | None = None,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> tuple[bool, float]:
     """Do these gains pass the design's acceptance test for grid cell ``cell`` of ``key``?
 
@@ -81,7 +80,8 @@ def verify_gains(
     Parameters
     ----------
     key : GainKey
-        Rates, delay ticks, margin and object damping B_o [N/m] to check at.
+        Rates, delay ticks, margin and object damping B_o [N/m] to check at, on the solid its
+        contact dynamics describe where it has them (:mod:`shared.full_loop`).
     cell, grid_ratio : int, float
         The K_o grid cell (g_i = grid_ratio**cell [N/m]).
     hand_box : HandBox
@@ -110,10 +110,6 @@ def verify_gains(
         verified plane, scaled to each K_o reported, is checked at each scale over the few
         percent the own-response check holds the object to:
         :func:`shared.verified_plane.checked_plane`). ``k_o_scale`` is then unused.
-    dynamics : ContactDynamics
-        The part of ``key.b_o`` that is the contact's mass and relaxing arm, checked as that
-        solid (:mod:`shared.full_loop`); :data:`shared.full_loop.NO_DYNAMICS` (the designs'
-        test): eq. 9.
 
     Returns
     -------
@@ -172,7 +168,7 @@ def verify_gains(
                 sample_ticks=ticks,
                 proxy_hold=proxy_hold,
                 integral=i_gain > 0.0,
-                dynamics=dynamics,
+                dynamics=key.dynamics,
             )
             Mf = M.reshape(-1, *M.shape[-2:])
             marg, rad = group_mode_radii(Mf, rho_limit, n, T, np.zeros(len(Mf), np.intp), 1)
@@ -265,6 +261,7 @@ def interim_design(
                     delay_ticks=key.delay_ticks,
                     proxy_hold=hold,
                     own_gain=own,
+                    dynamics=key.dynamics,
                 )[0]
                 / g
             )

@@ -331,7 +331,6 @@ def checked_plane(
                 proxy_hold=hold,
                 own_gain=c_h / s,
                 k_o_range=_scale_range(s, top, g, grid_ratio),
-                dynamics=key.dynamics,
             )
             worst = max(worst, rho)
             if not ok:
@@ -384,6 +383,14 @@ def plane_felt_error(plane: GainDesign, key: GainKey) -> float:
     return _cell_errors(plane, key, _cell_points(plane))[0]
 
 
+def felt_error_at(d: GainDesign, key: GainKey, k_o: float) -> float:
+    """How far ``d``, rendering as it does for the K_o reported ``k_o`` [N/m] (``d.at(k_o)``),
+    is felt from the object under ``key``: the largest ``|ln |q / own||`` over the band
+    (:func:`felt_closer`'s measure; the solid's own where the key has the contact's dynamics).
+    One felt response."""
+    return _cell_errors(d, key, (k_o,))[0]
+
+
 def yields_to_rest_plane(key: GainKey, plane_error: float, rest_error: float) -> bool:
     """Whether a user alone on a solid (the key has the contact's dynamics) should render the
     rest plane (:mod:`shared.rest_plane`, felt ``rest_error`` off the solid) instead of a
@@ -397,6 +404,22 @@ def yields_to_rest_plane(key: GainKey, plane_error: float, rest_error: float) ->
     verified plane keeps its place (it renders the stiffness the own-response check
     identified; the rest plane the K_o reported)."""
     return not key.dynamics.none and rest_error <= plane_error
+
+
+def rest_plane_closer(key: GainKey, rest_error: float, design_error: float) -> bool:
+    """Whether a user alone renders the rest plane (:mod:`shared.rest_plane`, felt
+    ``rest_error`` off the object) rather than the cell's design (felt ``design_error`` off it
+    at the K_o reported: :func:`felt_error_at`) where no verified plane renders: always on a
+    spring (the rest plane is the object's own plane there), on a solid whose patch says what
+    its B_o is only where it is felt at least as close to the solid as the design. The design
+    renders the solid's relaxation through the simulation, checked on the solid
+    (:func:`shared.gain_table.design_cell` with the key's dynamics); the rest plane cannot.
+    Measured with the fidelity benchmark (2026-11-27, its viscoelastic object with the rest
+    plane withheld): the design felt 0.15-0.23 (ln) off the solid at 300 N/m and 10-50 Hz
+    without delay, where the rest plane is 0.41 off, and 1.51-1.56 at 3000 N/m and 50-100 Hz
+    with 0-10 ms, where the rest plane is 1.67; with 50-200 ms it is 0.5-1.6, the rest plane
+    0.41-1.67."""
+    return key.dynamics.none or rest_error <= design_error
 
 
 def verified_plane(

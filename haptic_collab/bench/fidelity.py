@@ -98,6 +98,7 @@ from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.verified_plane import (
     checked_plane,
     felt_closer,
+    felt_error_at,
     plane_applies,
     plane_felt_error,
     verified_plane,
@@ -667,6 +668,9 @@ def run(
                     plane_check_s=plane_check_s,
                     rest_plane=rest_plane,
                     rest_hold_back_s=rest_hold_back_s,
+                    design_felt_error=math.nan
+                    if key.dynamics.none
+                    else felt_error_at(designs[(mode, key, k_o)], key, k_o),
                 )
             ]
 

@@ -358,6 +358,9 @@ def simulate(
             for c, on in zip(cells, rest_on, strict=True)
         ]
     )
+    # ... but on a solid that says what its B_o is, only where felt as close as the design
+    # (Rendering.design_felt_error; NaN: a spring, never compared)
+    design_err = np.array([x.design_felt_error for x in r])
     # ... and what part of that B_o the patch says is the contact's mass and relaxing arm (the
     # own-response check reads the object as that solid too)
     b_o_all = np.array([c.obj.reported_b_o(c.k_o, c.sim_rate_hz) for c in cells])
@@ -528,6 +531,14 @@ def simulate(
                 if re_gain.any():
                     kg, ig, bg, og, fg = table.gains_and_hold(k_recv)
                     plane_on = np.zeros(B, dtype=bool)
+                    # the rest plane's gains for this patch, and how far it is felt from the
+                    # object (shared.rest_plane)
+                    k_rest, b_rest, err_rest = rest_plane_dampers(
+                        k_recv, b_o_rest, sim_hz, device.max_stiffness_n_per_m,
+                        device.max_damping_n_s_per_m, servo_period_s=T, mass_kg=m_rest,
+                        relax_stiffness_n_per_m=kr_rest, relax_time_s=tau_rest,
+                    )  # fmt: skip
+                    err_rest = np.where(rest_on, err_rest, np.inf)
                     if checks.any():
                         (kg, ig, bg, og, fg), plane_on = _verified_plane_gains(
                             re_gain & checks,
@@ -548,21 +559,7 @@ def simulate(
                             force=np.maximum(got[:, 2], 0.0),
                             sim_rate_hz=sim_hz,
                             dynamics=(b_o_all, m_rest, kr_rest, tau_rest),
-                            rest_error=np.where(
-                                rest_on,
-                                rest_plane_dampers(
-                                    k_recv,
-                                    b_o_rest,
-                                    sim_hz,
-                                    device.max_stiffness_n_per_m,
-                                    device.max_damping_n_s_per_m,
-                                    servo_period_s=T,
-                                    mass_kg=m_rest,
-                                    relax_stiffness_n_per_m=kr_rest,
-                                    relax_time_s=tau_rest,
-                                )[2],
-                                np.inf,
-                            ),
+                            rest_error=err_rest,
                         )
                     # the rest plane, alone on the object, where no verified plane renders and
                     # none has for HOLD_BACK_S in this contact (patches with a force from this
@@ -571,15 +568,11 @@ def simulate(
                     plane_seen = np.where(re_gain, touching & (plane_seen | plane_on), plane_seen)
                     plane_at = np.where(re_gain & plane_on, seq, plane_at)
                     held = plane_seen & ((seq - plane_at) / sim_hz < hold_back_s)
-                    rest_new = re_gain & rest_on & ~plane_on & ~held
-                    if rest_new.any():
-                        k_rest, b_rest, _ = rest_plane_dampers(
-                            k_recv, b_o_rest, sim_hz, device.max_stiffness_n_per_m,
-                            device.max_damping_n_s_per_m, servo_period_s=T, mass_kg=m_rest,
-                            relax_stiffness_n_per_m=kr_rest, relax_time_s=tau_rest,
-                        )  # fmt: skip
-                        kg = np.where(rest_new, k_rest, kg)
-                        bg = np.where(rest_new, b_rest, bg)
+                    # (on a solid that says what its B_o is, only where felt as close as the
+                    # design: shared.verified_plane.rest_plane_closer)
+                    rest_new = re_gain & rest_on & ~plane_on & ~held & ~(design_err < err_rest)
+                    kg = np.where(rest_new, k_rest, kg)
+                    bg = np.where(rest_new, b_rest, bg)
                     ig = np.where(rest_new, 0.0, ig)
                     og = np.where(rest_new, 0.0, og)
                     fg = np.where(rest_new, False, fg)

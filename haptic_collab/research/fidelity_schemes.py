@@ -188,6 +188,11 @@ class Rendering:
         :meth:`client.session.ClientSession._render` does.
     rest_hold_back_s : float
         That time [s] (:data:`shared.rest_plane.HOLD_BACK_S`, the client's).
+    design_felt_error : float
+        On a solid whose patch says what its B_o is: how far the design is felt from it at the
+        K_o reported (:func:`shared.verified_plane.felt_error_at`); the rest plane renders
+        only where it is felt at least as close (:func:`shared.verified_plane
+        .rest_plane_closer`; the object's K_o reported is constant). NaN: never compared.
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
@@ -220,6 +225,7 @@ class Rendering:
     plane_delay_s: float = 0.0
     rest_plane: bool = False
     rest_hold_back_s: float = REST_HOLD_BACK_S
+    design_felt_error: float = math.nan
     gain_transfer_s: float = 0.0
     variant: str = ""
     tuning: str = ""
@@ -507,6 +513,7 @@ def rendering_for(
     plane_check_s: float = 0.0,
     rest_plane: bool = True,
     rest_hold_back_s: float = REST_HOLD_BACK_S,
+    design_felt_error: float = math.nan,
 ) -> Rendering:
     """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
     model's design, or a peer's default tuning (:func:`peer_renderings`).
@@ -541,6 +548,8 @@ def rendering_for(
         client; False: the designs and verified planes alone).
     rest_hold_back_s : float
         :attr:`Rendering.rest_hold_back_s` [s] (default the client's).
+    design_felt_error : float
+        :attr:`Rendering.design_felt_error` (on a solid that says what its B_o is).
 
     Raises
     ------
@@ -569,6 +578,7 @@ def rendering_for(
             plane_delay_s=plane_check_s,
             rest_plane=rest_plane and bool(table),
             rest_hold_back_s=rest_hold_back_s,
+            design_felt_error=design_felt_error,
             gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
             tuning=scheme_tuning(scheme, device),
         )
