@@ -495,3 +495,21 @@ def test_a_solids_plane_yields_to_the_rest_plane_where_that_is_felt_as_close() -
     assert any(p is not None for p in s.planes.values())
     assert s.own_response.verified and s.plane_patches == 0 and s.rest_plane_patches > 0
     assert s.last_update is not None and s.last_update.rest_plane
+
+
+def test_alone_on_a_solid_the_design_renders_where_it_is_felt_closer_than_the_rest_plane() -> None:
+    # 300 N/m at 20 Hz without delay: no verified plane passes its check, and the cell's design,
+    # made for the solid, renders its relaxation through the simulation (0.12 off it by the
+    # fidelity benchmark) where the rest plane, a spring and a damper, is 0.41 off
+    s = _solid_session(300.0, 20.0, rtt_s=0.002)
+    up = s.last_update
+    assert up is not None and not up.rest_plane and s.plane_patches == 0
+    surf = up.surface
+    assert surf is not None
+    key = s.gain_key(surf.b_o, up.choice.delay_ticks, 1.0, surf.dynamics)  # the patch's key
+    design = s.gain_table.lookup(key, 300.0)
+    assert design is not None and not key.dynamics.none
+    assert (up.k_h, up.b_h, up.own_gain) == pytest.approx((design.k_h, design.b_h, design.own_gain))
+    # the same solid told nothing of its B_o: the rest plane, as on any object
+    blind = _solid_session(300.0, 20.0, rtt_s=0.002, told=False)
+    assert blind.last_update is not None and blind.last_update.rest_plane

@@ -325,7 +325,12 @@ def test_a_rendering_that_changes_once_while_held_is_read_on_the_longer_probe() 
     # is read: felt about as the device's stiffness (1000 of 1200 N/m), steadily
     k, rate, delay_ms = 1000.0, 20.0, 200.0
     product = _product(
-        "local-pi", k, rate, delay_ms, identified=("spring-1.2",), plane_check_s=PRODUCT_PLANE_CHECK_S
+        "local-pi",
+        k,
+        rate,
+        delay_ms,
+        identified=("spring-1.2",),
+        plane_check_s=PRODUCT_PLANE_CHECK_S,
     )
     depth = felt_depth_m(k, FMAX, SPRING_STIFFER)
     cells = [

@@ -29,6 +29,7 @@ from haptic_collab.shared.verified_plane import (
     felt_closer,
     plane_applies,
     plane_felt_error,
+    rest_plane_closer,
     verified_key,
     verified_plane,
     yields_to_rest_plane,
@@ -388,3 +389,16 @@ def test_a_solids_plane_yields_to_the_rest_plane_where_that_is_felt_as_close() -
     assert not yields_to_rest_plane(solid, 0.3, 0.45)
     # on a spring the verified plane keeps its place (it renders the stiffness identified)
     assert not yields_to_rest_plane(spring, 0.6, 0.45)
+
+
+def test_a_user_alone_on_a_solid_gets_the_rest_plane_only_where_felt_as_close_as_the_design() -> (
+    None
+):
+    solid, spring = _solid_key(300.0, 50.0, 0), _key(50.0, 0)
+    assert not rest_plane_closer(solid, 0.41, 0.15)
+    assert rest_plane_closer(solid, 0.41, 0.55)
+    # within a JND of it the rest plane keeps its place (its force is not the simulation's)
+    assert rest_plane_closer(solid, 0.41, 0.41 - 0.9 * math.log(1.1))
+    assert not rest_plane_closer(solid, 0.41, 0.41 - 1.1 * math.log(1.1))
+    # on a spring the rest plane is the object's own plane: always
+    assert rest_plane_closer(spring, 0.41, 0.15)
