@@ -94,6 +94,7 @@ from haptic_collab.shared.own_response import (
     update_sums,
 )
 from haptic_collab.shared.rest_plane import rest_plane_dampers
+from haptic_collab.shared.verified_plane import DESIGN_OVER_REST
 from haptic_collab.shared.types import FloatArray
 
 __all__ = ["passivity_step", "simulate"]
@@ -358,8 +359,8 @@ def simulate(
             for c, on in zip(cells, rest_on, strict=True)
         ]
     )
-    # ... but on a solid that says what its B_o is, only where felt as close as the design
-    # (Rendering.design_felt_error; NaN: a spring, never compared)
+    # ... but on a solid that says what its B_o is, not where the design is felt closer by more
+    # than a JND (Rendering.design_felt_error; NaN: a spring, never compared)
     design_err = np.array([x.design_felt_error for x in r])
     # ... and what part of that B_o the patch says is the contact's mass and relaxing arm (the
     # own-response check reads the object as that solid too)
@@ -568,9 +569,10 @@ def simulate(
                     plane_seen = np.where(re_gain, touching & (plane_seen | plane_on), plane_seen)
                     plane_at = np.where(re_gain & plane_on, seq, plane_at)
                     held = plane_seen & ((seq - plane_at) / sim_hz < hold_back_s)
-                    # (on a solid that says what its B_o is, only where felt as close as the
-                    # design: shared.verified_plane.rest_plane_closer)
-                    rest_new = re_gain & rest_on & ~plane_on & ~held & ~(design_err < err_rest)
+                    # (on a solid that says what its B_o is, not where the design is felt
+                    # closer by more than a JND: shared.verified_plane.rest_plane_closer)
+                    design_closer = design_err + DESIGN_OVER_REST < err_rest
+                    rest_new = re_gain & rest_on & ~plane_on & ~held & ~design_closer
                     kg = np.where(rest_new, k_rest, kg)
                     bg = np.where(rest_new, b_rest, bg)
                     ig = np.where(rest_new, 0.0, ig)
