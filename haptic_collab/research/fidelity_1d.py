@@ -94,8 +94,8 @@ from haptic_collab.shared.own_response import (
     update_sums,
 )
 from haptic_collab.shared.rest_plane import rest_plane_dampers
-from haptic_collab.shared.verified_plane import DESIGN_OVER_REST
 from haptic_collab.shared.types import FloatArray
+from haptic_collab.shared.verified_plane import DESIGN_OVER_REST
 
 __all__ = ["passivity_step", "simulate"]
 
