@@ -427,9 +427,9 @@ def rest_plane_closer(key: GainKey, rest_error: float, design_error: float) -> b
     Measured with the fidelity benchmark (2026-11-27, its viscoelastic object, the design made
     for the solid): chosen so, the design renders at 300 N/m and 10-50 Hz with 0-10 ms, felt
     0.04-0.15 (ln) off the solid where the rest plane is 0.41 off, and at 3000 N/m and 20-100 Hz,
-    1.50-1.56 where 1.67; 9 more of its 80 conditions within the JND of the best scheme, one
-    fewer with `local-p` (300 N/m, 100 Hz, 50 ms: the rest plane renders, 0.41, where
-    `local-pi`'s design is 0.29)."""
+    1.50-1.56 where 1.67: 9 (`local-p`) and 10 (`local-pi`) more of its 80 conditions within
+    the JND of the best scheme, net of one `local-p` lost (300 N/m, 100 Hz, 50 ms: its rest
+    plane, 0.41, where `local-pi`'s design is 0.29)."""
     return key.dynamics.none or rest_error <= design_error + DESIGN_OVER_REST
 
 
