@@ -797,7 +797,7 @@ class ClientSession:
                 self.device.max_stiffness_n_per_m, self.b_h_max,
                 servo_period_s=1.0 / self.servo_rate_hz, dynamics=surface.dynamics,
             )  # fmt: skip
-            # on a solid that says what its B_o is, only where felt as close as the design
+            # on a solid that says what its B_o is, not where its design is felt closer by a JND
             if (
                 design is None
                 or key.dynamics.none

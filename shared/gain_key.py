@@ -167,8 +167,9 @@ class GainKey:
     stiffer_by: float = STIFFER_BY
     #: The part of ``b_o`` that is the contact's mass and relaxing arm, where the patch says
     #: (:class:`shared.full_loop.ContactDynamics`, quantized by :func:`quantized_dynamics`).
-    #: The cell's design is eq. 9's (the paper's object); the verified plane is checked, and the
-    #: rest plane matched, on the solid (:mod:`shared.verified_plane`, :mod:`shared.rest_plane`).
+    #: The cell's design and the verified plane are checked and felt on that solid, and the rest
+    #: plane matched to it (:func:`shared.gain_design.design_gains`, :mod:`shared.verified_plane`,
+    #: :mod:`shared.rest_plane`); without it, eq. 9's object (the paper's).
     dynamics: ContactDynamics = NO_DYNAMICS
 
     @property

@@ -78,6 +78,11 @@ SUMS = 6
 #: (:func:`update_deformation`).
 DEFORMATION = 5
 
+#: The most simulation ticks a solid's deformation is stepped over between two patches
+#: (:meth:`OwnResponse.update`): a gap longer than that (10 s at 100 Hz) leaves the solid at rest
+#: under the held force as it is, and its stepping would cost the link's thread.
+MAX_TICKS = 1000
+
 #: Window [s] of the check: a sample's weight falls by e every window.
 WINDOW_S = 2.0
 #: |rho - 1| at or below which the object counts as the K_o reported (inside the +/- 5 % the
@@ -501,7 +506,7 @@ class OwnResponse:
         self.deformation = update_deformation(
             self.deformation, force_n=force_n, k_o=k_o, b_o=b_o, sim_period_s=sim_period_s,
             mass_kg=dynamics.mass_kg, relax_stiffness_n_per_m=dynamics.relax_stiffness_n_per_m,
-            relax_time_s=dynamics.relax_time_s, ticks=max(1, round(dt_s / sim_period_s)),
+            relax_time_s=dynamics.relax_time_s, ticks=min(MAX_TICKS, max(1, round(dt_s / sim_period_s))),
         )  # fmt: skip
         u = float(self.deformation[0]) if math.isfinite(force_n) else math.nan
         self.sums = update_sums(

@@ -20,8 +20,8 @@ time (:func:`shared.full_loop.solid_impedance`): eq. 9 turns a solid's relaxing 
 and the solid stepped at the simulation rate is stiffer than itself towards the simulation's
 Nyquist rate; either overstates how stiff it is to a quick push (the fidelity benchmark's
 viscoelastic object at 100 N/m and 20 Hz: 2.4 times K_o at 8 Hz by eq. 9, 1.5 times as the
-solid), and the plane then took a damper felt 0.67 (ln) off the object where none is felt 0.44
-off. The rest plane is not stepped: it can be felt as the solid itself.
+solid), and the plane then took a 5 N*s/m damper, felt 0.67 (ln) off the object, where 2.5 N*s/m
+is felt 0.44 off. The rest plane is not stepped: it can be felt as the solid itself.
 Each is at least :data:`MIN_DAMPER_PER_STIFFNESS_PERIOD` ``K_h T`` (T the servo period), the
 sampled spring's energy leak per unit of speed in Colgate and Schenkel's condition: on a spring
 0.5 N*s/m at 1000 N/m, felt as ``|1 + j 2 pi 8 Hz B_h / K_h|`` = 1.0003 at 8 Hz. Without it the

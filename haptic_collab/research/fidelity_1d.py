@@ -84,6 +84,7 @@ from haptic_collab.research.fidelity_cases import (
 )
 from haptic_collab.research.fidelity_schemes import DeviceModel, TableGains
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
+from haptic_collab.shared.own_response import MAX_TICKS as OWN_RESPONSE_MAX_TICKS
 from haptic_collab.shared.own_response import (
     empty_deformation,
     empty_jumps,
@@ -171,7 +172,9 @@ def _verified_plane_gains(
         deform[push] = update_deformation(
             deform, force_n=force, k_o=k_o, b_o=b_o, sim_period_s=1.0 / sim_rate_hz, mass_kg=m_o,
             relax_stiffness_n_per_m=k_r, relax_time_s=tau_r,
-            ticks=np.where(push & (seq_last >= 0), np.maximum(seq - seq_last, 1), 1),
+            ticks=np.where(
+                push & (seq_last >= 0), np.clip(seq - seq_last, 1, OWN_RESPONSE_MAX_TICKS), 1
+            ),
         )[push]  # fmt: skip
         u = deform[:, 0]
         new = update_sums(sums, dt_s=dt, surface_m=surface, deformation_m=u)

@@ -81,12 +81,17 @@ def _session_pressing(
     for tick in range(1, round(20 * seconds) + 1):
         f = 1.6 - 1.5 * np.cos(2 * np.pi * 0.5 * tick / 20.0)  # in contact throughout
         s.receive(_press_patch(tick, float(f), k_true, b_o, k_o=k_o), tick / 20.0)
-        if s.design_wanted is not None:
-            key, k_o = s.design_wanted
-            s.gain_table.design(key, k_o)
-            s.design_wanted = None
-        _check_planes(s)
+        _run_link_jobs(s)
     return s
+
+
+def _run_link_jobs(s: ClientSession) -> None:
+    """Design the cell the session asks for and check its planes, as the link's workers do."""
+    if s.design_wanted is not None:
+        key, k = s.design_wanted
+        s.gain_table.design(key, k)
+        s.design_wanted = None
+    _check_planes(s)
 
 
 def test_on_the_object_as_reported_the_client_renders_its_plane() -> None:
@@ -463,11 +468,7 @@ def _solid_session(
                                           relax_time_s=0.1) if told else None,
         )  # fmt: skip
         s.receive(encode(patch), tick / rate_hz)
-        if s.design_wanted is not None:
-            key, k = s.design_wanted
-            s.gain_table.design(key, k)
-            s.design_wanted = None
-        _check_planes(s)
+        _run_link_jobs(s)
     return s
 
 
