@@ -488,11 +488,10 @@ def test_on_a_solid_that_says_what_it_is_the_client_renders_its_plane() -> None:
 
 
 def test_a_solids_plane_yields_to_the_rest_plane_where_that_is_felt_as_close() -> None:
-    # 100 N/m at 20 Hz with 50 ms each way: a plane passes its check and is felt closer than
+    # 100 N/m at 20 Hz with 200 ms each way: a plane passes its check and is felt closer than
     # the cell's design, but through the delayed simulation it is felt further from the solid
-    # (0.65 by the fidelity benchmark) than the rest plane held at the servo rate (0.44): the
-    # rest plane renders
-    s = _solid_session(100.0, 20.0, rtt_s=0.1)
+    # than the rest plane held at the servo rate: the rest plane renders
+    s = _solid_session(100.0, 20.0, rtt_s=0.4)
     assert any(p is not None for p in s.planes.values())
     assert s.own_response.verified and s.plane_patches == 0 and s.rest_plane_patches > 0
     assert s.last_update is not None and s.last_update.rest_plane
