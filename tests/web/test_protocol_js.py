@@ -90,7 +90,11 @@ def test_schema_lists_every_message_and_model_field() -> None:
     assert s["NESTED_MODELS"]["welcome"] == {"object": "ObjectInfo", "link": "LinkConditions"}
     # the recommended gains and the rest plane are one model each; the primitive's
     # plane-or-sphere union is no single model
-    assert s["NESTED_MODELS"]["patch"] == {"gains": "RecommendedGains", "rest_plane": "PlaneModel"}
+    assert s["NESTED_MODELS"]["patch"] == {
+        "gains": "RecommendedGains",
+        "rest_plane": "PlaneModel",
+        "dynamics": "ContactDynamicsModel",
+    }
 
 
 def test_main_writes_and_checks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
