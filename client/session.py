@@ -81,7 +81,7 @@ from haptic_collab.shared.protocol import (
 )
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
-from haptic_collab.shared.rest_plane import rest_plane_gains
+from haptic_collab.shared.rest_plane import RestPlaneGains, rest_plane_gains
 from haptic_collab.shared.verified_plane import (
     ahead_cells,
     felt_error_at,
@@ -567,20 +567,16 @@ class ClientSession:
             err = self._design_errors[ident] = felt_error_at(d, key, k_o)
         return err
 
-    def _plane_yields(self, plane: GainDesign, key: GainKey, surface: SurfacePatch) -> bool:
-        """Whether the rest plane renders instead of ``plane`` for this patch: the user alone
-        on a solid, where it is felt as close to the solid
-        (:func:`shared.verified_plane.yields_to_rest_plane`; the plane's felt error computed
-        once per plane)."""
-        if not self.rest_plane or surface.rest_plane is None or key.dynamics.none:
+    def _plane_yields(self, plane: GainDesign, key: GainKey, rest: RestPlaneGains | None) -> bool:
+        """Whether the rest plane (``rest``: its gains for this patch, None where it cannot
+        render) renders instead of ``plane``: the user alone on a solid, where it is felt as
+        close to the solid (:func:`shared.verified_plane.yields_to_rest_plane`; the plane's felt
+        error computed once per plane)."""
+        if rest is None or key.dynamics.none:
             return False
         err = self._plane_errors.get((key, plane))
         if err is None:
             err = self._plane_errors[(key, plane)] = plane_felt_error(plane, key)
-        rest = rest_plane_gains(
-            surface.k_o, surface.b_o, self.sim_rate_hz, self.device.max_stiffness_n_per_m,
-            self.b_h_max, servo_period_s=1.0 / self.servo_rate_hz, dynamics=surface.dynamics,
-        )  # fmt: skip
         return yields_to_rest_plane(key, err, rest.felt_error)
 
     def _plan_ahead(self, key: GainKey, cell: int) -> None:
@@ -746,6 +742,20 @@ class ClientSession:
         else:
             design = own
         self._plan_ahead(key, cell)
+        # the user alone on the object: the rest plane's gains for this patch (shared.rest_plane)
+        rest = (
+            rest_plane_gains(
+                surface.k_o,
+                surface.b_o,
+                self.sim_rate_hz,
+                self.device.max_stiffness_n_per_m,
+                self.b_h_max,
+                servo_period_s=1.0 / self.servo_rate_hz,
+                dynamics=surface.dynamics,
+            )  # fmt: skip
+            if self.rest_plane and surface.rest_plane is not None
+            else None
+        )
         plane_renders = False
         if self._object_as_reported(surface, key):
             # the object yields to this user's force as a spring: of the K_o reported, or of
@@ -770,7 +780,7 @@ class ClientSession:
                 # a plane checked alone renders where the cell has no design; where it has one,
                 # only once compared with it (milliseconds: the design renders meanwhile)
                 plane = None if own is not None else self.planes.get((key, plane_cell, PLANE_ALONE))
-            if plane is not None and self._plane_yields(plane, key, surface):
+            if plane is not None and self._plane_yields(plane, key, rest):
                 plane = None
             if plane is not None:
                 design = plane.at(k_id)
@@ -785,18 +795,13 @@ class ClientSession:
             self._plane_tick is not None
             and (surface.tick - self._plane_tick) / self.sim_rate_hz < REST_HOLD_BACK_S
         )
-        if self.rest_plane and surface.rest_plane is not None and not (plane_renders or held_back):
+        if rest is not None and not (plane_renders or held_back):
             # the user alone on the object, no verified plane: the rest plane, with gains of
             # the patch alone (nothing to wait for); after a verified plane in a contact it
             # waits HOLD_BACK_S without one (crossing back at once, a press into the stiffening
             # object lost box-stability in one benchmark condition)
             if design is None:
                 self.design_wanted = (key, k_o_eff)  # for when another user joins
-            rest = rest_plane_gains(
-                surface.k_o, surface.b_o, self.sim_rate_hz,
-                self.device.max_stiffness_n_per_m, self.b_h_max,
-                servo_period_s=1.0 / self.servo_rate_hz, dynamics=surface.dynamics,
-            )  # fmt: skip
             # on a solid that says what its B_o is, not where its design is felt closer by a JND
             if (
                 design is None

@@ -24,8 +24,8 @@ from haptic_collab.shared.full_loop import (
     ContactDynamics,
     ProxyHold,
     batch_arrays,
+    dynamics_coefficients,
     monodromy,
-    object_coefficients,
     object_impedance,
     slow_layout,
 )
@@ -67,12 +67,8 @@ def object_stiffness(
     if not all(math.isfinite(f) and f > 0.0 for f in freqs_hz):
         raise ValueError(f"frequencies must be > 0 Hz, got {freqs_hz!r}")
     ko, bo = batch_arrays(k_o, b_o)
-    d = dynamics
     f = np.asarray(freqs_hz, dtype=float)[:, None]
-    return object_impedance(
-        f, ko[None, :], bo[None, :], sim_period_s, d.mass_kg, d.relax_stiffness_n_per_m,
-        d.relax_time_s,
-    )  # fmt: skip
+    return object_impedance(f, ko[None, :], bo[None, :], sim_period_s, *dynamics.params)
 
 
 def felt_stiffness(
@@ -177,10 +173,7 @@ def felt_responses(
     foh = proxy_hold == "foh"
     lay = slow_layout(nf, foh, dynamics, delay_ticks)
     i_p, i_obj = lay.proxy, lay.obj
-    d = dynamics
-    inv, _, _, _, alpha = object_coefficients(
-        ko, bo, N * T, d.mass_kg, d.relax_stiffness_n_per_m, d.relax_time_s
-    )
+    inv, _, _, _, alpha = dynamics_coefficients(ko, bo, dynamics, N * T)
     row_new = i_p if delay_ticks == 0 else n - 1
     w_new = (i_ticks + 1.0) / N if foh else np.ones(N)
     for q, freq_hz in enumerate(freqs_hz):

@@ -248,6 +248,12 @@ class ContactDynamics:
             self.relax_stiffness_n_per_m == 0.0 or self.relax_time_s == 0.0
         )
 
+    @property
+    def params(self) -> tuple[float, float, float]:
+        """``(m_o, k_r, tau_r)``: the trailing arguments of :func:`object_coefficients` and
+        :func:`own_impedance`."""
+        return self.mass_kg, self.relax_stiffness_n_per_m, self.relax_time_s
+
     def one_tick_part(self, sim_period_s: float) -> float:
         """The part [N/m] of the one-tick stiffness of a step push from rest that is mass and
         arm over a simulation period h [s]: ``m_o / h^2 + k_r tau_r / (tau_r + h)``."""
@@ -305,7 +311,7 @@ def object_impedance(
     return np.asarray(k_o) + (c_x - 2.0 * mh) * lag + mh * lag**2 + c_q * lag / (1.0 - a * zi)
 
 
-def solid_impedance(
+def own_impedance(
     freq_hz: FloatArray | float,
     k_o: FloatArray | float,
     b_o: FloatArray | float,
@@ -314,12 +320,14 @@ def solid_impedance(
     k_r: FloatArray | float = 0.0,
     tau_r: FloatArray | float = 0.0,
 ) -> FloatArray:
-    """The dynamic stiffness dF/dx [N/m] (complex) at ``freq_hz`` [Hz] of the solid the
-    simulation steps (module docstring, "object"), continuous in time: ``K_o + j w b h + k_r j w
-    tau_r / (1 + j w tau_r) - m_o w^2`` (b h the rest of B_o as a damper [N*s/m], h the
-    simulation period): the standard linear solid with a surface mass (Fung 1993), the object
-    a hand should feel, which :func:`object_impedance` approximates, increasingly stiff towards
-    the simulation's Nyquist rate. Broadcast over arrays as :func:`object_coefficients`."""
+    """The object's own dynamic stiffness dF/dx [N/m] (complex) at ``freq_hz`` [Hz], what a
+    transparent rendering is felt as, broadcast over arrays as :func:`object_coefficients`:
+    eq. 9's ``K_o + B_o (1 - z^-1)`` at ``z = e^{j w h}`` where no mass or arm is reported
+    (:func:`object_impedance`); where one is, the solid the simulation steps (module docstring,
+    "object"), continuous in time, ``K_o + j w b h + k_r j w tau_r / (1 + j w tau_r) - m_o
+    w^2`` (b h the rest of B_o as a damper [N*s/m], h the simulation period): the standard
+    linear solid with a surface mass (Fung 1993), which its stepped impedance approximates,
+    increasingly stiff towards the simulation's Nyquist rate."""
     _, c_x, c_xp, c_q, a = object_coefficients(k_o, b_o, sim_period_s, m_o, k_r, tau_r)
     h = np.asarray(sim_period_s, dtype=float)
     w = 2.0 * np.pi * np.asarray(freq_hz, dtype=float)
@@ -327,17 +335,16 @@ def solid_impedance(
     damper = (c_x - 2.0 * mh) * h
     jwt = 1j * w * np.asarray(tau_r, dtype=float)
     arm = np.where(a > 0.0, np.asarray(k_r, dtype=float) * jwt / (1.0 + jwt), 0.0)
-    return np.asarray(k_o) + 1j * w * damper + arm - mh * h**2 * w**2
+    solid = np.asarray(k_o) + 1j * w * damper + arm - mh * h**2 * w**2
+    stepped = object_impedance(freq_hz, k_o, b_o, sim_period_s, m_o, k_r, tau_r)
+    return np.where((mh > 0.0) | (a > 0.0), solid, stepped)
 
 
-def _object_step(
+def dynamics_coefficients(
     ko: FloatArray, bo: FloatArray, dynamics: ContactDynamics, sim_period_s: float
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """:func:`object_coefficients` for a batch of K_o and B_o and one contact's dynamics."""
-    d = dynamics
-    return object_coefficients(
-        ko, bo, sim_period_s, d.mass_kg, d.relax_stiffness_n_per_m, d.relax_time_s
-    )
+    return object_coefficients(ko, bo, sim_period_s, *dynamics.params)
 
 
 def _hand_zoh(
@@ -549,7 +556,7 @@ def monodromy(
         M[:, :, i_po, i_p] = 1.0
     # object: x_obj' = inv (F + c_x x_obj + c_xp x_obj_prev + c_q q_arm) (eq. 9: c_x = B_o,
     # inv = 1 / (K_o + B_o)), F = F_xi xi + F_new p + F_old p_old
-    inv, c_x, c_xp, c_q, alpha = _object_step(ko, bo, dynamics, N * T)
+    inv, c_x, c_xp, c_q, alpha = dynamics_coefficients(ko, bo, dynamics, N * T)
     obj_row = np.zeros((nb, len(js), n))
     obj_row[:, :, :nf] = F_xi * inv[:, None, None]
     obj_row[:, :, i_p] = F_new * inv[:, None]

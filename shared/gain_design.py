@@ -276,7 +276,7 @@ def design_gains(
     dynamics : ContactDynamics
         The part of ``b_o`` that is the contact's mass and relaxing arm
         (:class:`shared.full_loop.ContactDynamics`): the candidates are checked on that solid
-        and felt against its own impedance (:func:`shared.full_loop.solid_impedance`);
+        and felt against its own impedance (:func:`shared.full_loop.own_impedance`);
         :data:`shared.full_loop.NO_DYNAMICS`: eq. 9's object.
     scaled : bool
         Compensated gains are rendered scaled to the reported K_o (:meth:`GainDesign.at`) over

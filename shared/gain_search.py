@@ -20,7 +20,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from haptic_collab.shared.felt_stiffness import felt_responses, felt_stiffness, object_stiffness
+from haptic_collab.shared.felt_stiffness import felt_responses, felt_stiffness
 from haptic_collab.shared.full_loop import (
     NO_DYNAMICS,
     ContactDynamics,
@@ -28,7 +28,7 @@ from haptic_collab.shared.full_loop import (
     HandBox,
     ProxyHold,
     monodromy,
-    solid_impedance,
+    own_impedance,
 )
 from haptic_collab.shared.stability_margin import group_mode_radii, k_o_points
 from haptic_collab.shared.types import FloatArray, IndexArray
@@ -377,20 +377,13 @@ class GainSearch:
         return _at_scale(base, np.minimum(max(k / self.k_o, 1.0), s_max)) if self.scaled else base
 
     def _own(self, k: float) -> FloatArray:
-        """|the object's own dynamic stiffness| [N/m] at K_o = k over ``band``, (F, 1): eq. 9's
-        ``|K_o + B_o (1 - e^{-j w N T})|`` (:func:`shared.felt_stiffness.object_stiffness`), K_o
-        itself where B_o = 0; with the contact's dynamics, the solid's, continuous in time
-        (:func:`shared.full_loop.solid_impedance`). Real: the active share -Im of a response
+        """|the object's own dynamic stiffness| [N/m] at K_o = k over ``band``, (F, 1)
+        (:func:`shared.full_loop.own_impedance`): eq. 9's ``|K_o + B_o (1 - e^{-j w N T})|``,
+        K_o itself where B_o = 0; with the contact's dynamics, the solid's, continuous in time. Real: the active share -Im of a response
         over it keeps its sign."""
-        h = self.N * self.T
-        if self.dynamics.none:
-            z = object_stiffness(self.band, k_o=k, b_o=self.b_o, sim_period_s=h)
-        else:
-            d = self.dynamics
-            z = solid_impedance(
-                np.asarray(self.band)[:, None], k, self.b_o, h, d.mass_kg,
-                d.relax_stiffness_n_per_m, d.relax_time_s,
-            )  # fmt: skip
+        z = own_impedance(
+            np.asarray(self.band)[:, None], k, self.b_o, self.N * self.T, *self.dynamics.params
+        )
         return np.abs(z)
 
     def _response(self, k: float, sc: dict[str, FloatArray], hold: ProxyHold) -> FloatArray:

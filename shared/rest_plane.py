@@ -16,7 +16,7 @@ object's own as the simulation renders it, ``K_o + B_o (1 - exp(-j w / f_s))`` (
 object damping divided by the simulation period): more the more the object resists a fast push.
 Where the patch says what part of B_o is the contact's mass and a relaxing arm
 (:class:`shared.full_loop.ContactDynamics`), the object's own is the solid's, continuous in
-time (:func:`shared.full_loop.solid_impedance`): eq. 9 turns a solid's relaxing arm into a damper,
+time (:func:`shared.full_loop.own_impedance`): eq. 9 turns a solid's relaxing arm into a damper,
 and the solid stepped at the simulation rate is stiffer than itself towards the simulation's
 Nyquist rate; either overstates how stiff it is to a quick push (the fidelity benchmark's
 viscoelastic object at 100 N/m and 20 Hz: 2.4 times K_o at 8 Hz by eq. 9, 1.5 times as the
@@ -49,12 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from haptic_collab.shared.checks import nonneg, positive
-from haptic_collab.shared.full_loop import (
-    NO_DYNAMICS,
-    ContactDynamics,
-    object_impedance,
-    solid_impedance,
-)
+from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics, own_impedance
 from haptic_collab.shared.types import FloatArray
 
 #: After a verified plane has rendered in a contact, the rest plane renders again only once none
@@ -188,9 +183,7 @@ def rest_plane_dampers(
         MIN_DAMPER_PER_STIFFNESS_PERIOD * k_h * positive("servo_period_s", servo_period_s), b_max
     )
     w = 2.0 * np.pi * np.asarray(DAMPER_BAND_HZ)[(...,) + (None,) * k.ndim]
-    own = (w / (2.0 * np.pi), k, damping, 1.0 / rate, m_o, k_r, tau_r)
-    told = (m_o > 0.0) | ((k_r > 0.0) & (tau_r > 0.0))
-    obj = np.abs(np.where(told, solid_impedance(*own), object_impedance(*own)))
+    obj = np.abs(own_impedance(w / (2.0 * np.pi), k, damping, 1.0 / rate, m_o, k_r, tau_r))
     best_err = np.full(k.shape, np.inf)
     best_b = np.zeros(k.shape)
     for frac in DAMPER_FRACTIONS:

@@ -60,7 +60,7 @@ from typing import Literal
 import numpy as np
 
 from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
-from haptic_collab.shared.full_loop import HandBox, solid_impedance
+from haptic_collab.shared.full_loop import HandBox, own_impedance
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.interim_gains import verify_gains
@@ -123,20 +123,16 @@ def _band_response(
     )[:, 0]
 
 
-def _own(key: GainKey, k_o: float) -> np.ndarray | float:
-    """The object's own dynamic stiffness [N/m] over the band under ``key``: K_o (a spring:
-    planes apply only there or on a solid) or, where the key has the contact's dynamics, the
-    solid's (:func:`shared.full_loop.solid_impedance`), shape (F,)."""
-    if key.dynamics.none:
-        return k_o
-    d = key.dynamics
-    return solid_impedance(
-        np.asarray(FELT_BAND_HZ), k_o, key.b_o, 1.0 / key.sim_rate_hz, d.mass_kg,
-        d.relax_stiffness_n_per_m, d.relax_time_s,
-    )  # fmt: skip
+def _own(key: GainKey, k_o: float) -> np.ndarray:
+    """The object's own dynamic stiffness [N/m] over the band under ``key``
+    (:func:`shared.full_loop.own_impedance`: K_o itself on the undamped objects planes apply to
+    without dynamics; the solid's where the key has the contact's dynamics), shape (F,)."""
+    return own_impedance(
+        np.asarray(FELT_BAND_HZ), k_o, key.b_o, 1.0 / key.sim_rate_hz, *key.dynamics.params
+    )
 
 
-def _band_error(q: np.ndarray, own: np.ndarray | float) -> float:
+def _band_error(q: np.ndarray, own: np.ndarray) -> float:
     """The largest ``|ln |q / own||`` over the band of felt responses ``q`` [N/m] against the
     object's own ``own`` [N/m] (:func:`_own`)."""
     return float(np.max(np.abs(np.log(np.abs(q) / np.abs(own)))))
