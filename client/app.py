@@ -32,6 +32,7 @@ from haptic_collab.client.devices.base import Device, DeviceLimits
 from haptic_collab.client.devices.hid import HidPort
 from haptic_collab.client.devices.opener import DeviceOpener
 from haptic_collab.client.devices.profiles import get_sim_profile
+from haptic_collab.client.gain_store import preload, save_cache
 from haptic_collab.client.link import DesignWorkers, Link
 from haptic_collab.client.recorder import CsvRecording, TelemetryRecorder
 from haptic_collab.client.servo import (
@@ -46,6 +47,7 @@ from haptic_collab.client.servo_thread import ServoThread
 from haptic_collab.client.session import ClientSession, ServoSample
 from haptic_collab.client.summary import client_summary
 from haptic_collab.client.theta import threshold_for
+from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import DeviceInfo, Welcome
@@ -102,6 +104,9 @@ class ClientOptions:
     #: its own (client.servo_process); ``thread``: in a thread of this process; ``auto``:
     #: ``process`` unless ``hid_opener`` is given (a fake port cannot cross processes).
     servo: Literal["auto", "process", "thread"] = "auto"
+    #: Keep the gain designs this client makes in its cache and start from it
+    #: (client.gain_store; ``haptic client --no-gain-cache``: the shipped tables only).
+    gain_cache: bool = True
 
 
 def _device_info(opts: ClientOptions, limits: DeviceLimits | None = None) -> DeviceInfo:
@@ -350,6 +355,10 @@ class _ClientRun:
             gains=opts.gains,
             rest_plane=opts.rest_plane,
         )
+        #: What the session's gain table started with (client.gain_store.preload), and its
+        #: cells then: the designs made after them go to the cache when the run ends.
+        self.gain_preload = preload(self.session.gain_table, cache=opts.gain_cache)
+        self._preloaded = {(k, c) for k, c, _ in self.session.gain_table.cells()}
         #: The servo once started (at the first ``welcome``), and the task starting it.
         self.servo: ServoHandle | None = None
         self.starting: asyncio.Future[None] | None = None
@@ -504,8 +513,21 @@ class _ClientRun:
                 loop.remove_signal_handler(sig)
             if recording is not None:
                 recording.close()
+            if opts.gain_cache:
+                await asyncio.to_thread(self._save_designs)
             summary = self._summary(link, recording)
         return summary
+
+    def _save_designs(self) -> None:
+        """Add the designs this run made to the cache (client.gain_store.save_cache)."""
+        table = self.session.gain_table
+        new = GainTable(table.hand_box, table.grid_ratio)
+        for key, cell, design in table.cells():
+            if (key, cell) not in self._preloaded:
+                new.store(key, cell, design)
+        if len(new):
+            save_cache(new, str(self.gain_preload["design_code"]))
+        self.gain_preload["saved"] = len(new)
 
     async def _until_done(self, link: Link, link_task: asyncio.Task[None]) -> None:
         """Wait for the join, then for the duration, a halt or the link's end; raise a fault."""
@@ -552,6 +574,7 @@ class _ClientRun:
             "local_model": opts.local_model,
         }
         summary = client_summary(head, self.session, link, self.servo, host.recorder, self.updates)
+        summary["gain_tables"] = self.gain_preload  # shipped and cached designs loaded
         summary["anchor"] = self.anchor  # where the scripted hand worked
         summary["clock_origin_s"] = self.origin_s  # time.perf_counter() at t_s = 0
         summary["stopped_by"] = self.signal or ("error" if self.error is not None else "end")

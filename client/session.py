@@ -57,9 +57,9 @@ from haptic_collab.shared.gain_key import (
     GainKey,
     covering_classes,
     held_stiff_ratio,
-    loop_delay_ticks,
     make_gain_key,
 )
+from haptic_collab.shared.gain_policy import DelayHold, measured_delay_ticks
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.local_model_update import GainChoice, LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.own_response import OwnResponse
@@ -94,9 +94,6 @@ from haptic_collab.shared.verified_plane import (
 if TYPE_CHECKING:
     from haptic_collab.client.servo import ServoSnapshot
 
-#: Pings (one every 0.5 s) over which the loop delay is estimated.
-RTT_WINDOW = 20
-
 #: Distance [m] the proxy may slide along the surface before the own-response check starts over
 #: (:meth:`ClientSession._object_as_reported`): on a 5 cm radius, 0.5 mm of slide deepens the
 #: measured surface by 2.5 um, under a hundredth of what a 0.3 N spread shows on 1000 N/m.
@@ -116,10 +113,6 @@ FALLBACK_K_RATIO = 0.25
 #: the K_o reported had no design when the own-response check verified there. The plane renders
 #: (it passed its check in its cell) until that design is made and it is compared with it.
 PLANE_ALONE = -1
-
-#: A lower loop delay is designed for only after it has been measured for this long [s]
-#: (:meth:`ClientSession.delay_ticks`); a higher one at once.
-DELAY_FALL_S = 5.0
 
 
 def rendered(update: LocalModelUpdate) -> tuple[SurfacePatch, GainChoice]:
@@ -299,9 +292,8 @@ class ClientSession:
         self._seq = 0
         self._ping_id = 0
         self.rtt_s: deque[float] = deque(maxlen=64)
-        # the loop delay the gains are designed for, and since when a lower one is measured
-        self._delay_held: int | None = None
-        self._delay_lower_since: float | None = None
+        # the loop delay the gains are designed for (rises at once, falls only out of contact)
+        self._delay = DelayHold()
         self.rtt_all_ms: list[float] = []
         self.patches = 0
         self.b_h_max = b_h_max
@@ -472,41 +464,28 @@ class ClientSession:
         """Median of recent round-trip times [ms], None before the first pong."""
         return float(np.median(self.rtt_s)) * 1000.0 if self.rtt_s else None
 
-    def delay_ticks(self, now_s: float | None = None) -> int:
+    def delay_ticks(self, now_s: float | None = None, in_contact: bool = False) -> int:
         """Extra loop delay in whole simulation ticks, from recent round trips.
 
         The force the server samples at tick k+1 reflects patch k only if the patch's trip down,
         the state's age (up to :attr:`state_interval_s`) and its trip up fit in one simulation
-        period; every further period adds one tick (:func:`shared.gain_key.loop_delay_ticks`). The round
-        trip is the 90th percentile of the last :data:`RTT_WINDOW` pings (10 s): conservative under
-        steady jitter, yet one stall does not make the local model soft for long.
+        period; every further period adds one tick (:func:`shared.gain_policy.measured_delay_ticks`:
+        the 90th percentile of the last 20 round trips, 10 s of pings).
 
-        With ``now_s`` [s] (each patch passes its arrival time) the delay the gains are designed
-        for rises at once but falls only once the lower delay has been measured for
-        :data:`DELAY_FALL_S`: every new delay is a new gain key whose gains must be checked
-        before they are rendered (:mod:`client.session`), and a delay wavering by a tick or two
-        under load (50 +- 10 ms of injected latency beside the FEM demo on 2 cores: 2, 7, 6, 8,
-        7, 6, 5, 4 ticks in 12 s) kept a first contact waiting with its forces off for a whole
-        run, each check done for a key already left. Without ``now_s``: the larger of the
-        measured delay and the one held.
+        With ``now_s`` [s] (each patch passes its arrival time, and whether the user is
+        ``in_contact``) the delay the gains are designed for rises at once but falls only out of
+        contact, once the lower delay has been measured for
+        :data:`shared.gain_policy.DELAY_FALL_S` (:class:`shared.gain_policy.DelayHold`): every
+        new delay is a new gain key whose gains must be checked before they are rendered, and
+        a delay wavering by a tick or two under load kept a first contact waiting with its
+        forces off, or changed the stiffness a steady hold felt. Without ``now_s``: the larger
+        of the measured delay and the one held.
         """
-        measured = 0
-        if self.rtt_s:
-            recent = list(self.rtt_s)[-RTT_WINDOW:]
-            rtt = float(np.percentile(recent, 90))
-            measured = loop_delay_ticks(rtt, self.state_interval_s, self.sim_rate_hz)
-        held = self._delay_held
+        measured = measured_delay_ticks(list(self.rtt_s), self.state_interval_s, self.sim_rate_hz)
+        held = self._delay.held
         if now_s is None:
             return measured if held is None else max(measured, held)
-        if held is None or measured > held:
-            self._delay_held, self._delay_lower_since = measured, None
-        elif measured == held:
-            self._delay_lower_since = None
-        elif self._delay_lower_since is None:
-            self._delay_lower_since = now_s
-        elif now_s - self._delay_lower_since >= DELAY_FALL_S:
-            self._delay_held, self._delay_lower_since = measured, None
-        return self._delay_held if self._delay_held is not None else measured
+        return self._delay.update(measured, now_s, in_contact)
 
     @property
     def state_interval_s(self) -> float:
@@ -730,7 +709,7 @@ class ClientSession:
             raise ProtocolError("unsupported_rates", str(exc)) from None
         if self.first_patch_s is None:
             self.first_patch_s = now_s
-        d = self.delay_ticks(now_s)
+        d = self.delay_ticks(now_s, in_contact=surface.in_contact or surface.own_force_n > 0.0)
         k_o_eff = surface.k_o_eff
         key = self.gain_key(surface.b_o, d, self._stiff_class(surface), surface.dynamics)
         table = self.gain_table

@@ -22,25 +22,21 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
-import numpy as np
-
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import (
     K_O_GRID_RATIO,
     GainKey,
     held_stiff_ratio,
-    loop_delay_ticks,
     make_gain_key,
 )
+from haptic_collab.shared.gain_policy import RTT_WINDOW, DelayHold, measured_delay_ticks
 from haptic_collab.shared.gain_table import GainTable, design_cell
+from haptic_collab.shared.gain_table_file import load_shipped
 from haptic_collab.shared.interim_gains import interim_design
 from haptic_collab.shared.protocol import Hello, RecommendedGains
 from haptic_collab.shared.stability import rate_ratio
 from haptic_collab.workers import timed
-
-#: Round trips [s] per user over which the loop delay is estimated (its 90th percentile).
-RTT_WINDOW = 20
 
 JobKind = Literal["interim", "design"]
 
@@ -58,8 +54,9 @@ class GainJob:
 class _User:
     rtt_s: deque[float] = field(default_factory=lambda: deque(maxlen=RTT_WINDOW))
     stiff_ratio: float = 1.0
-    delay_ticks: int = 0
+    measured: int = 0
     stale: bool = False
+    delay: DelayHold = field(default_factory=DelayHold)
 
 
 class GainAdvisor:
@@ -78,6 +75,9 @@ class GainAdvisor:
         Hands every design is stable for.
     grid_ratio : float
         K_o grid ratio of the gain table.
+    shipped : bool
+        Start the table with the shipped tables (:func:`shared.gain_table_file.load_shipped`:
+        the built-in device profiles' designs, made offline); their files are read here, once.
     """
 
     def __init__(
@@ -88,11 +88,14 @@ class GainAdvisor:
         theta_m: float = 0.001,
         hand_box: HandBox = DEFAULT_HAND_BOX,
         grid_ratio: float = K_O_GRID_RATIO,
+        shipped: bool = True,
     ) -> None:
         self.sim_rate_hz = float(sim_rate_hz)
         self.margin = float(margin)
         self.theta_m = float(theta_m)
         self.table = GainTable(hand_box, grid_ratio)
+        #: The shipped tables loaded into it ({file: cells, or why it was refused}).
+        self.shipped = load_shipped(self.table) if shipped else {}
         self.interim: dict[tuple[GainKey, int], GainDesign] = {}
         self._queued: dict[tuple[JobKind, GainKey, int], None] = {}
         self._asked: set[tuple[JobKind, GainKey, int]] = set()
@@ -114,19 +117,36 @@ class GainAdvisor:
         """The user left."""
         self._users.pop(user, None)
 
-    def delay_ticks(self, user: str) -> int:
-        """The user's loop delay [whole simulation ticks], as :meth:`ClientSession.delay_ticks`."""
+    def delay_ticks(self, user: str, tick: int | None = None, in_contact: bool = False) -> int:
+        """The user's loop delay [whole simulation ticks], by the client's rule: measured as
+        :func:`shared.gain_policy.measured_delay_ticks`, and with the simulation ``tick`` (its
+        time) held as :class:`shared.gain_policy.DelayHold` holds it (rises at once, falls only
+        out of contact, after :data:`shared.gain_policy.DELAY_FALL_S`); without ``tick``, the
+        larger of the measured delay and the one held."""
         u = self._users.get(user)
         if u is None:
             return 0
         if u.stale:
-            rtt = float(np.percentile(u.rtt_s, 90))
-            u.delay_ticks = loop_delay_ticks(rtt, 0.5 / self.sim_rate_hz, self.sim_rate_hz)
+            u.measured = measured_delay_ticks(
+                list(u.rtt_s), 0.5 / self.sim_rate_hz, self.sim_rate_hz
+            )
             u.stale = False
-        return u.delay_ticks
+        if tick is None:
+            return u.measured if u.delay.held is None else max(u.measured, u.delay.held)
+        return u.delay.update(u.measured, tick / self.sim_rate_hz, in_contact)
 
-    def key(self, user: str, hello: Hello, b_o: float, k_o_eff: float, k_o_stiff: float) -> GainKey:
-        """The gain key of ``user`` for this patch (raises ValueError for unsupported rates)."""
+    def key(
+        self,
+        user: str,
+        hello: Hello,
+        b_o: float,
+        k_o_eff: float,
+        k_o_stiff: float,
+        tick: int | None = None,
+        in_contact: bool = False,
+    ) -> GainKey:
+        """The gain key of ``user`` for this patch at simulation ``tick`` (raises ValueError for
+        unsupported rates)."""
         rate_ratio(hello.servo_rate_hz, self.sim_rate_hz)  # N must be whole
         u = self._users.setdefault(user, _User())
         u.stiff_ratio = held_stiff_ratio(u.stiff_ratio, k_o_eff, k_o_stiff)  # the client's rule
@@ -134,7 +154,7 @@ class GainAdvisor:
         return make_gain_key(
             servo_rate_hz=hello.servo_rate_hz,
             sim_rate_hz=self.sim_rate_hz,
-            delay_ticks=self.delay_ticks(user),
+            delay_ticks=self.delay_ticks(user, tick, in_contact),
             mode=hello.local_model,
             margin=self.margin,
             k_h_max=1000.0 if device is None else device.max_stiffness_n_per_m,
@@ -144,9 +164,19 @@ class GainAdvisor:
         )
 
     def recommend(
-        self, user: str, hello: Hello, *, k_o_eff: float, k_o_stiff: float, b_o: float
+        self,
+        user: str,
+        hello: Hello,
+        *,
+        k_o_eff: float,
+        k_o_stiff: float,
+        b_o: float,
+        tick: int | None = None,
+        in_contact: bool = False,
     ) -> RecommendedGains | None:
-        """The gains to send ``user`` with this patch, or None while none are verified yet.
+        """The gains to send ``user`` with this patch of simulation ``tick`` (the user
+        ``in_contact`` or not: the loop delay's hold, :meth:`delay_ticks`), or None while none
+        are verified yet.
 
         A dictionary lookup; a missing cell queues an interim check and a design
         (:meth:`next_job`). Never raises for a hostile or odd user: unsupported rates give None.
@@ -154,7 +184,7 @@ class GainAdvisor:
         if not (math.isfinite(k_o_eff) and k_o_eff > 0.0):
             return None
         try:
-            key = self.key(user, hello, b_o, k_o_eff, k_o_stiff)
+            key = self.key(user, hello, b_o, k_o_eff, k_o_stiff, tick, in_contact)
         except ValueError:
             return None
         cell = self.table.cell(k_o_eff)

@@ -150,6 +150,14 @@ class GainTable:
     def __len__(self) -> int:
         return len(self._cells)
 
+    def cells(self) -> list[tuple[GainKey, int, GainDesign]]:
+        """Every designed cell as ``(key, cell, design)``, in the order stored."""
+        return [(k, c, d) for (k, c), d in self._cells.items()]
+
+    def has(self, key: GainKey, cell: int) -> bool:
+        """Whether ``cell`` of ``key`` is designed."""
+        return (key, cell) in self._cells
+
 
 def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -> GainDesign:
     """Design grid cell ``cell`` of a :class:`GainTable`: K_o = ratio**cell, checked up to the next.

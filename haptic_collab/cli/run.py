@@ -283,6 +283,7 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         ca_file=args.ca_file,
         gains=args.gains,
         rest_plane=not args.no_rest_plane,
+        gain_cache=not args.no_gain_cache,
         engage=args.engage,
         servo=args.servo,
     )
@@ -358,6 +359,12 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         action="store_true",
         help="alone on the object, render the simulation's surface with the designed gains "
         "instead of the object's rest plane with its stiffness (shared.rest_plane)",
+    )
+    p.add_argument(
+        "--no-gain-cache",
+        action="store_true",
+        help="neither read nor write this machine's cache of gain designs "
+        "($HAPTIC_GAIN_CACHE, else ~/.cache/haptic-collab; the shipped tables still load)",
     )
     p.add_argument(
         "--engage",

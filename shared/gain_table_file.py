@@ -1,0 +1,315 @@
+"""A gain table as a file: the shipped tables and a client's own cache of designs.
+
+A :class:`shared.gain_table.GainTable` holds full-loop designs, each a second or more of CPU
+(:func:`shared.gain_table.design_cell`). Designed during a session they arrive late on a busy
+machine, and meanwhile a contact renders interim or fallback gains that feel different
+(docs/gains.md). Written to a file, they are designed once: offline for the built-in device
+profiles (``haptic gains-table build``, shipped as package data), or by a client for itself
+(its cache).
+
+A table's file is valid only for the design code that made it: :func:`design_code_hash` hashes
+the code (docstrings and comments aside) of every module a cell's design runs, and a document of
+another hash is refused (:func:`load_table_document`). This module is not among them, so its
+format can change without invalidating the designs; :data:`TABLE_FORMAT` says which format a
+document has.
+
+Pure but for :func:`design_code_modules` and :func:`design_code_hash`, which read the design
+modules' source files.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import importlib.util
+import json
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from haptic_collab.shared.full_loop import ContactDynamics, HandBox
+from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.gain_table import GainTable
+
+#: The version of a gain table's file (:func:`table_document`).
+TABLE_FORMAT = 1
+
+#: The module whose designs a table holds: :func:`design_code_hash` starts there.
+DESIGN_ROOTS = ("haptic_collab.shared.gain_table",)
+
+
+def key_record(key: GainKey) -> dict[str, Any]:
+    """``key`` as a JSON-ready dict (:func:`key_from_record` reads it back; a ``stiff_ratio`` of
+    inf is written as the string ``"inf"``, which strict JSON can carry)."""
+    dyn = key.dynamics
+    return {
+        "servo_rate_hz": key.servo_rate_hz,
+        "sim_rate_hz": key.sim_rate_hz,
+        "delay_ticks": key.delay_ticks,
+        "mode": key.mode,
+        "margin": key.margin,
+        "k_h_max": key.k_h_max,
+        "b_h_max": key.b_h_max,
+        "b_o": key.b_o,
+        "stiff_ratio": "inf" if math.isinf(key.stiff_ratio) else key.stiff_ratio,
+        "own_force": key.own_force,
+        "stiffer_by": key.stiffer_by,
+        "dynamics": [dyn.mass_kg, dyn.relax_stiffness_n_per_m, dyn.relax_time_s],
+    }
+
+
+def key_from_record(rec: Mapping[str, Any]) -> GainKey:
+    """The :class:`GainKey` :func:`key_record` wrote.
+
+    Raises
+    ------
+    ValueError
+        A missing field or a value of the wrong kind.
+    """
+    try:
+        mode = rec["mode"]
+        if mode not in ("p", "pi"):
+            raise ValueError(f"mode must be 'p' or 'pi', got {mode!r}")
+        m, k_r, tau = (float(v) for v in rec["dynamics"])
+        return GainKey(
+            servo_rate_hz=float(rec["servo_rate_hz"]),
+            sim_rate_hz=float(rec["sim_rate_hz"]),
+            delay_ticks=int(rec["delay_ticks"]),
+            mode=mode,
+            margin=float(rec["margin"]),
+            k_h_max=float(rec["k_h_max"]),
+            b_h_max=float(rec["b_h_max"]),
+            b_o=float(rec["b_o"]),
+            stiff_ratio=float(rec["stiff_ratio"]),
+            own_force=bool(rec["own_force"]),
+            stiffer_by=float(rec["stiffer_by"]),
+            dynamics=ContactDynamics(mass_kg=m, relax_stiffness_n_per_m=k_r, relax_time_s=tau),
+        )
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"not a gain key record: {exc!r}") from None
+
+
+#: The fields of :class:`GainDesign` a record carries (the hand box is the table's; the time a
+#: design took is not kept).
+DESIGN_FIELDS = (
+    "k_h",
+    "i_gain",
+    "b_h",
+    "proxy_hold",
+    "worst_spectral_radius",
+    "rho_limit",
+    "felt_stiffness_ratio_1hz",
+    "felt_stiffness_ratio_8hz",
+    "k_o",
+    "k_o_range",
+    "rate_ratio",
+    "delay_ticks",
+    "mode",
+    "own_gain",
+    "scale_max",
+)
+
+
+def design_record(design: GainDesign) -> dict[str, Any]:
+    """``design`` as a JSON-ready dict of :data:`DESIGN_FIELDS` (:func:`design_from_record`)."""
+    out = {f: getattr(design, f) for f in DESIGN_FIELDS}
+    out["k_o_range"] = list(design.k_o_range)
+    return out
+
+
+def design_from_record(rec: Mapping[str, Any], hand_box: HandBox) -> GainDesign:
+    """The design :func:`design_record` wrote, for the table's ``hand_box``.
+
+    Raises
+    ------
+    ValueError
+        A missing field, a value of the wrong kind, gains that are not finite and >= 0 (K_h >
+        0), or a worst spectral radius that is not below 1: a record that is not a stable
+        design is never rendered.
+    """
+    try:
+        hold, mode = rec["proxy_hold"], rec["mode"]
+        if hold not in ("zoh", "foh") or mode not in ("p", "pi"):
+            raise ValueError(f"bad proxy_hold {hold!r} or mode {mode!r}")
+        lo, hi = (float(v) for v in rec["k_o_range"])
+        floats = {
+            f: float(rec[f])
+            for f in DESIGN_FIELDS
+            if f not in ("proxy_hold", "mode", "k_o_range", "rate_ratio", "delay_ticks")
+        }
+        d = GainDesign(
+            proxy_hold=hold,
+            mode=mode,
+            k_o_range=(lo, hi),
+            rate_ratio=int(rec["rate_ratio"]),
+            delay_ticks=int(rec["delay_ticks"]),
+            hand_box=hand_box,
+            **floats,
+        )
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"not a gain design record: {exc!r}") from None
+    gains = (d.k_h, d.i_gain, d.b_h, d.own_gain, d.k_o, d.scale_max)
+    if not (all(math.isfinite(g) and g >= 0.0 for g in gains) and d.k_h > 0.0):
+        raise ValueError(f"a gain design record with gains out of range: {gains!r}")
+    if not d.worst_spectral_radius < 1.0:
+        raise ValueError(f"a gain design record that is not stable: {d.worst_spectral_radius!r}")
+    return d
+
+
+def design_code_modules(roots: Iterable[str] = DESIGN_ROOTS) -> tuple[str, ...]:
+    """The modules of :mod:`haptic_collab.shared` that ``roots`` import, directly or not, and
+    ``roots`` themselves, sorted (read from their source with :mod:`ast`, not imported).
+
+    Raises
+    ------
+    ValueError
+        A module that cannot be found.
+    """
+    todo, seen = list(roots), set()
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        for node in ast.walk(_module_ast(name)):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                todo.append(node.module)
+            elif isinstance(node, ast.Import):
+                todo += [a.name for a in node.names]
+        todo = [m for m in todo if m.startswith("haptic_collab.shared.")]
+    return tuple(sorted(seen))
+
+
+def _module_ast(name: str) -> ast.Module:
+    spec = importlib.util.find_spec(name)
+    if spec is None or spec.origin is None:
+        raise ValueError(f"design module {name!r} not found")
+    with open(spec.origin, "rb") as f:
+        return ast.parse(f.read())
+
+
+def _without_docstrings(tree: ast.Module) -> ast.Module:
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
+            body = node.body
+            if (
+                body
+                and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)
+            ):
+                node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+def design_code_hash(roots: Iterable[str] = DESIGN_ROOTS) -> str:
+    """16 hex digits of SHA-256 over the code of :func:`design_code_modules` (their syntax
+    trees without docstrings; comments and formatting never reach the tree): a gain table's
+    file holds for the design code of this hash only. ``tools/codegen --check`` checks the
+    shipped tables with it; a client's cache of designs is keyed by it.
+
+    Raises
+    ------
+    ValueError
+        As :func:`design_code_modules`.
+    """
+    h = hashlib.sha256()
+    for name in design_code_modules(roots):
+        dump = ast.dump(_without_docstrings(_module_ast(name)), include_attributes=False)
+        h.update(name.encode() + b"\0" + dump.encode() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def table_document(table: GainTable, design_code: str) -> dict[str, Any]:
+    """``table``'s designs as a JSON-ready document: its format, the design code's hash
+    (:func:`design_code_hash`), the hand box and grid ratio the designs hold for, and one record
+    per cell (:func:`key_record`, :func:`design_record`), sorted so that the same designs give
+    the same document."""
+    cells = [
+        {"key": key_record(k), "cell": c, "design": design_record(d)} for k, c, d in table.cells()
+    ]
+    cells.sort(key=lambda r: (json.dumps(r["key"], sort_keys=True), r["cell"]))
+    return {
+        "format": TABLE_FORMAT,
+        "design_code": design_code,
+        "hand_box": repr(table.hand_box),
+        "grid_ratio": table.grid_ratio,
+        "cells": cells,
+    }
+
+
+def load_table_document(table: GainTable, doc: Any, design_code: str) -> int:
+    """Store the cells of ``doc`` (:func:`table_document`) in ``table``; the number stored.
+
+    Cells ``table`` has already are kept as they are.
+
+    Raises
+    ------
+    ValueError
+        ``doc`` is of another format, design code, hand box or grid ratio than ``table`` and
+        ``design_code``, or a record is malformed: nothing is stored then.
+    """
+    if not isinstance(doc, Mapping):
+        raise ValueError("a gain table document is a JSON object")
+    if doc.get("format") != TABLE_FORMAT:
+        raise ValueError(f"gain table format {doc.get('format')!r}, expected {TABLE_FORMAT}")
+    if doc.get("design_code") != design_code:
+        raise ValueError(
+            f"gain table of design code {doc.get('design_code')!r}, this code is {design_code!r}"
+        )
+    if doc.get("hand_box") != repr(table.hand_box):
+        raise ValueError("gain table made for another hand box")
+    if doc.get("grid_ratio") != table.grid_ratio:
+        raise ValueError(f"gain table of grid ratio {doc.get('grid_ratio')!r}")
+    cells = doc.get("cells")
+    if not isinstance(cells, list):
+        raise ValueError("a gain table document's cells are a list")
+    parsed = []
+    for rec in cells:
+        if not isinstance(rec, Mapping):
+            raise ValueError("a gain table cell is a JSON object")
+        key = key_from_record(rec.get("key", {}))
+        cell = rec.get("cell")
+        if not isinstance(cell, int) or isinstance(cell, bool):
+            raise ValueError(f"a gain table cell's index is an integer, got {cell!r}")
+        parsed.append((key, cell, design_from_record(rec.get("design", {}), table.hand_box)))
+    added = 0
+    for key, cell, design in parsed:
+        if not table.has(key, cell):
+            table.store(key, cell, design)
+            added += 1
+    return added
+
+
+#: The package folder of the shipped tables (one ``<profile>.json`` per built-in profile, made by
+#: ``haptic gains-table --ship``).
+SHIPPED_PACKAGE = "haptic_collab.shared.gain_tables"
+
+
+def load_shipped(table: GainTable, design_code: str | None = None) -> dict[str, int | str]:
+    """Load every shipped table (:data:`SHIPPED_PACKAGE`) into ``table``: ``{file: cells
+    stored}``, or ``{file: reason}`` for a file refused (another design code or hand box, or
+    malformed). Never raises for a bad file: a session without a shipped table designs its
+    cells as before. Reads package data."""
+    import importlib.resources
+
+    code = design_code_hash() if design_code is None else design_code
+    out: dict[str, int | str] = {}
+    try:
+        files = sorted(
+            (
+                f
+                for f in importlib.resources.files(SHIPPED_PACKAGE).iterdir()
+                if f.name.endswith(".json")
+            ),
+            key=lambda f: f.name,
+        )
+    except (ModuleNotFoundError, FileNotFoundError, NotADirectoryError):
+        return out
+    for f in files:
+        try:
+            out[f.name] = load_table_document(table, json.loads(f.read_text("utf-8")), code)
+        except (ValueError, OSError) as exc:  # json.JSONDecodeError is a ValueError
+            out[f.name] = str(exc)
+    return out
