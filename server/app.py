@@ -56,6 +56,14 @@ log = logging.getLogger("haptic.server")
 
 #: websockets' own frame limit; the room answers frames above its smaller limit with an error.
 WS_MAX_SIZE = 64 * 1024
+#: The name of the one room a server runs today (rooms by URL come later; every per-room figure,
+#: the Agones ``rooms`` list and the metrics' ``room`` label already name it).
+DEFAULT_ROOM = "default"
+#: A room whose next tick is overdue by more than this many periods (and at least
+#: :data:`STALL_MIN_S`) counts as stalled (:meth:`ServerApp.room_reports`).
+STALL_PERIODS = 3.0
+#: The shortest overdue time [s] that counts as a stall.
+STALL_MIN_S = 1.0
 #: Worker processes that design recommended gains (niced; :func:`background_worker`).
 DESIGN_WORKERS = 1
 #: A consumer whose send buffer stays full this long [s] is dropped.
@@ -65,6 +73,30 @@ SEND_TIMEOUT_S = 10.0
 #: files the page loads in a wheel).
 WEB_DIR = Path(str(resources.files("haptic_collab") / "web"))
 _STATIC_SUFFIXES = {".html", ".js", ".mjs", ".css", ".json", ".png", ".svg", ".ico", ".map"}
+
+
+@dataclass(frozen=True)
+class RoomReport:
+    """What the orchestration layer needs of one room, read on the event loop's thread.
+
+    Attributes
+    ----------
+    name : str
+        The room's name (:data:`DEFAULT_ROOM` today).
+    ticks : int
+        Simulation ticks run so far (0 before the first).
+    alive : bool
+        Its simulation loop runs and is on schedule: the loop task has not ended and the next
+        tick is overdue by less than ``max(STALL_MIN_S, STALL_PERIODS / sim_rate_hz)``.
+    users, viewers : int
+        Connections welcomed as users and as viewers.
+    """
+
+    name: str
+    ticks: int
+    alive: bool
+    users: int
+    viewers: int
 
 
 @dataclass
@@ -276,6 +308,39 @@ class ServerApp:
             "node_modules/three/build/three.module.js",
         )
         return [rel for rel in need if not (self.web_dir / rel).is_file()]
+
+    def rooms(self) -> dict[str, Room]:
+        """The rooms this server runs, by name: today one, :data:`DEFAULT_ROOM`.
+
+        The Agones agent (:mod:`server.agones`) and the metrics (:mod:`server.metrics`) read
+        every room through this mapping, so that a server of several rooms only changes it.
+        """
+        return {DEFAULT_ROOM: self.room}
+
+    def room_reports(self) -> list[RoomReport]:
+        """A :class:`RoomReport` of every room of :meth:`rooms`; call it on the event loop.
+
+        A room is alive while the simulation task runs and its next tick is not overdue by
+        more than ``max(STALL_MIN_S, STALL_PERIODS / sim_rate_hz)`` [s]: a dead loop (task ended)
+        or one whose ticks stopped (a tick that never returns blocks this very call, which is
+        how a caller on another thread sees a blocked loop: no answer).
+        """
+        now = asyncio.get_running_loop().time()
+        running = self._sim_task is not None and not self._sim_task.done()
+        out = []
+        for name, room in self.rooms().items():
+            stall_s = max(STALL_MIN_S, STALL_PERIODS / room.sim_rate_hz)
+            on_time = now - room.get_timer() < stall_s
+            out.append(
+                RoomReport(
+                    name=name,
+                    ticks=room.tick_count,
+                    alive=running and on_time,
+                    users=len(room.users),
+                    viewers=len(room.viewers),
+                )
+            )
+        return out
 
     def status(self) -> dict[str, Any]:
         """JSON-able summary: tick, users, viewers, tick costs, overruns, link conditions."""

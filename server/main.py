@@ -12,11 +12,18 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
+from haptic_collab.server.agones import (
+    EMPTY_SHUTDOWN_S,
+    AgonesAgent,
+    AgonesOptions,
+    AgonesSDK,
+    start_agones,
+)
 from haptic_collab.server.app import ServerApp
 from haptic_collab.server.room import Room
 from haptic_collab.server.security import TokenTable, is_loopback, normalize_origin
 from haptic_collab.server.urls import viewer_urls
-from haptic_collab.shared.protocol import LinkConditions
+from haptic_collab.shared.protocol import PROTOCOL_VERSION, LinkConditions
 from haptic_collab.shared.rates import Rates, dividing_rates
 
 #: The clients' servo rate the simulation rate must divide [Hz] (``haptic client``'s default).
@@ -36,6 +43,10 @@ class ServerOptions:
     token, role user) make every connection authenticate; a ``host`` that is not loopback
     requires one of them unless ``insecure``. ``tls_cert`` and ``tls_key`` (PEM files) serve
     https and wss. ``allow_origins`` are browser origins allowed besides the server's own.
+
+    Agones (docs/deploy.md): with ``$AGONES_SDK_HTTP_PORT`` set the server reports to the SDK
+    sidecar (:mod:`server.agones`) and asks to be shut down once it has been empty for
+    ``agones_empty_shutdown_s`` [s] (None or 0: never).
     """
 
     host: str = "127.0.0.1"
@@ -63,6 +74,7 @@ class ServerOptions:
     material: str | None = None
     object: str = "balloon"
     volume_cache: str | None = None
+    agones_empty_shutdown_s: float | None = EMPTY_SHUTDOWN_S
 
 
 def build_auth(opts: ServerOptions) -> TokenTable | None:
@@ -123,6 +135,28 @@ def build_link(opts: ServerOptions) -> LinkConditions:
         message names the setting (:meth:`shared.protocol.LinkConditions.checked`).
     """
     return LinkConditions.checked(opts.latency_ms, opts.jitter_ms, opts.loss)
+
+
+def build_agones(opts: ServerOptions) -> AgonesOptions:
+    """The Agones agent's options (used only under Agones: ``$AGONES_SDK_HTTP_PORT`` set).
+
+    Labels the GameServer with the object model (``agones.dev/sdk-object``: balloon or fem) and
+    the protocol version (``agones.dev/sdk-protocol``), so that an allocation can select on them.
+
+    Raises
+    ------
+    ValueError
+        ``agones_empty_shutdown_s`` negative or not finite, or ``$AGONES_SDK_HTTP_PORT`` set to
+        something that is not a port (:meth:`server.agones.AgonesSDK.from_environ`).
+    """
+    empty = opts.agones_empty_shutdown_s
+    if empty is not None and not (math.isfinite(empty) and empty >= 0.0):
+        raise ValueError(f"--agones-empty-shutdown must be a number of seconds >= 0, got {empty}")
+    AgonesSDK.from_environ()
+    return AgonesOptions(
+        empty_shutdown_s=empty or None,
+        labels={"object": opts.object, "protocol": str(PROTOCOL_VERSION)},
+    )
 
 
 def build_rates(opts: ServerOptions) -> Rates:
@@ -274,6 +308,7 @@ def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> An
 async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None = None) -> None:
     """Build everything, listen, and serve until cancelled or ``duration_s`` elapses."""
     link = build_link(opts)
+    agones = build_agones(opts)
     auth = build_auth(opts)
     ssl_context = build_ssl(opts)
     origins = tuple(normalize_origin(o) for o in opts.allow_origins)
@@ -303,7 +338,12 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     elif ssl_context is None and not is_loopback(opts.host):
         log.warning("no TLS: tokens and forces cross the network in clear (give --tls-cert)")
 
+    agents: list[AgonesAgent] = []
+
     def ready(port: int) -> None:
+        agent = start_agones(app.room_reports, agones)
+        if agent is not None:
+            agents.append(agent)
         info = room.object_info
         log.info(
             "serving %d-vertex object at %g Hz on %s://%s:%d/ (websocket /ws, %s)%s",
@@ -358,6 +398,8 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         else:
             serving.result()  # re-raise a failure to start (a bad port, a bad certificate)
     finally:
+        for agent in agents:
+            await asyncio.to_thread(agent.stop)
         stopping.cancel()
         if not serving.done():  # run_server itself was cancelled
             serving.cancel()

@@ -1,0 +1,530 @@
+"""Agones: the server as a GameServer, through the SDK sidecar's REST gateway.
+
+Agones (agones.dev) runs game servers on Kubernetes; each pod has an SDK sidecar that the game
+server tells when it is ready, that it is healthy, and when it is done. This module speaks the
+sidecar's REST gateway, plain HTTP and JSON on ``localhost:$AGONES_SDK_HTTP_PORT``, with the
+standard library (no Agones package). The contract is Agones' own OpenAPI files
+(``sdk.swagger.json`` and ``beta.swagger.json``; copies in tests/data/agones/):
+
+=========================================  =======  =========================================
+path                                       method   body
+=========================================  =======  =========================================
+``/ready``, ``/health``, ``/shutdown``     POST     ``{}`` (``sdkEmpty``)
+``/metadata/label``                        PUT      ``{"key": K, "value": V}`` (``sdkKeyValue``)
+``/gameserver``                            GET      (answers ``sdkGameServer``)
+``/v1beta1/lists/{name}:addValue``         POST     ``{"value": V}`` (``SDKAddListValueBody``)
+``/v1beta1/lists/{name}:removeValue``      POST     ``{"value": V}`` (``SDKRemoveListValueBody``)
+``/v1beta1/counters/{name}``               PATCH    the ``CounterUpdateRequest`` itself:
+                                                    ``{"count": "3"}`` (int64 as a string)
+=========================================  =======  =========================================
+
+The counter's PATCH body is the request's fields, not an object wrapping them: the swagger
+file marks ``counterUpdateRequest`` as required inside that body schema, which is how the
+gRPC gateway's generator writes a body bound to one field (``body: "counter_update_request"``),
+not a property to send. The count is set (``count``), never incremented (``countDiff``), so a
+call repeated after a lost answer cannot count a user twice.
+
+:class:`AgonesAgent` runs in a thread of its own, off the simulation's event loop, and reads the
+rooms through a probe it schedules on that loop (:meth:`server.app.ServerApp.room_reports`). A
+probe that gets no answer within ``probe_timeout_s`` means the loop is blocked. The agent:
+
+1. waits until every room has ticked, then calls Ready, retrying with backoff (the sidecar may
+   start after the server);
+2. sets its labels (``/metadata/label``; Agones prefixes them ``agones.dev/sdk-``);
+3. adds every room's name to the list ``rooms`` and removes the names of rooms that are gone;
+4. keeps the counter ``users`` at the number of users in all rooms;
+5. calls Health every ``health_period_s`` only while every room's loop is alive (the probe
+   answered and no room is overdue; :class:`server.app.RoomReport`), so Agones marks a server
+   whose loop hangs or died Unhealthy and replaces it;
+6. calls Shutdown once the server has been empty (no user, no viewer) for ``empty_shutdown_s``
+   after someone was in it, or after the GameServer was Allocated (a fresh Ready server waiting
+   in the fleet is never shut down for being empty).
+
+Sources: Agones' SDK reference (agones.dev/site/docs/guides/client-sdks/, "REST") and the
+swagger files named above.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import json
+import logging
+import math
+import os
+import threading
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+log = logging.getLogger("haptic.agones")
+
+#: The environment variable Agones sets to the sidecar's REST port.
+PORT_ENV = "AGONES_SDK_HTTP_PORT"
+#: The Agones list holding the names of the rooms this server runs.
+ROOMS_LIST = "rooms"
+#: The Agones counter holding the number of users in all rooms.
+USERS_COUNTER = "users"
+#: Default time [s] the server may stay empty before it asks to be shut down.
+EMPTY_SHUTDOWN_S = 300.0
+
+
+class SidecarError(Exception):
+    """The sidecar answered with an error, or could not be reached (``status`` 0).
+
+    Attributes
+    ----------
+    status : int
+        The HTTP status (409: ALREADY_EXISTS, 404: NOT_FOUND, 400: OUT_OF_RANGE or
+        INVALID_ARGUMENT, as the gRPC gateway maps them), 0 when no answer came.
+    """
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+class AgonesSDK:
+    """The SDK sidecar's REST gateway: one blocking HTTP call per method.
+
+    Parameters
+    ----------
+    port : int
+        The sidecar's REST port (``$AGONES_SDK_HTTP_PORT``).
+    host : str
+        Where the sidecar listens: ``localhost`` in an Agones pod.
+    timeout_s : float
+        Time allowed for each call [s].
+
+    Raises
+    ------
+    ValueError
+        A port outside 1..65535 or a timeout that is not > 0.
+    """
+
+    def __init__(self, port: int, host: str = "localhost", timeout_s: float = 2.0) -> None:
+        if not 0 < int(port) < 65536:
+            raise ValueError(f"{PORT_ENV} must be a port in 1..65535, got {port}")
+        if not timeout_s > 0:
+            raise ValueError("timeout_s must be > 0")
+        self.base = f"http://{host}:{int(port)}"
+        self.timeout_s = float(timeout_s)
+
+    @classmethod
+    def from_environ(cls, environ: Mapping[str, str] | None = None) -> AgonesSDK | None:
+        """The sidecar named by ``$AGONES_SDK_HTTP_PORT``; None when it is not set or empty.
+
+        Raises
+        ------
+        ValueError
+            A value that is not a port number.
+        """
+        env = os.environ if environ is None else environ
+        text = env.get(PORT_ENV, "").strip()
+        if not text:
+            return None
+        try:
+            port = int(text)
+        except ValueError:
+            raise ValueError(f"{PORT_ENV} must be a port number, got {text!r}") from None
+        return cls(port)
+
+    def call(self, method: str, path: str, body: dict[str, Any] | None = None) -> dict[str, Any]:
+        """One call: ``method`` on ``path`` with the JSON ``body``; returns the JSON answer.
+
+        Raises
+        ------
+        SidecarError
+            An HTTP error status (its gRPC status message in the text), no answer, or an
+            answer that is not a JSON object.
+        """
+        data = None if body is None else json.dumps(body).encode()
+        req = urllib.request.Request(self.base + path, data=data, method=method)
+        req.add_header("Accept", "application/json")
+        if data is not None:
+            req.add_header("Content-Type", "application/json")
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout_s) as resp:
+                raw = resp.read()
+        except urllib.error.HTTPError as exc:
+            detail = exc.read(2000).decode("utf-8", "replace")
+            try:
+                detail = str(json.loads(detail).get("message", detail))
+            except (ValueError, AttributeError):
+                pass
+            raise SidecarError(exc.code, f"{method} {path}: HTTP {exc.code}: {detail}") from None
+        except (urllib.error.URLError, OSError) as exc:
+            reason = getattr(exc, "reason", exc)
+            raise SidecarError(0, f"{method} {path}: no answer: {reason}") from None
+        try:
+            answer = json.loads(raw or b"{}")
+        except ValueError:
+            raise SidecarError(200, f"{method} {path}: an answer that is not JSON") from None
+        if not isinstance(answer, dict):
+            raise SidecarError(200, f"{method} {path}: an answer that is not a JSON object")
+        return answer
+
+    def ready(self) -> None:
+        """Ready: the server accepts connections (POST ``/ready``)."""
+        self.call("POST", "/ready", {})
+
+    def health(self) -> None:
+        """One health ping (POST ``/health``)."""
+        self.call("POST", "/health", {})
+
+    def shutdown(self) -> None:
+        """Ask Agones to shut this server down (POST ``/shutdown``)."""
+        self.call("POST", "/shutdown", {})
+
+    def set_label(self, key: str, value: str) -> None:
+        """Label the GameServer ``agones.dev/sdk-KEY: VALUE`` (PUT ``/metadata/label``)."""
+        self.call("PUT", "/metadata/label", {"key": key, "value": value})
+
+    def game_server(self) -> dict[str, Any]:
+        """The GameServer as the sidecar sees it (GET ``/gameserver``; ``status.state``...)."""
+        return self.call("GET", "/gameserver")
+
+    def add_list_value(self, name: str, value: str) -> dict[str, Any]:
+        """Add ``value`` to the list ``name``; the list after it (409 when already there)."""
+        return self.call("POST", f"/v1beta1/lists/{_segment(name)}:addValue", {"value": value})
+
+    def remove_list_value(self, name: str, value: str) -> dict[str, Any]:
+        """Remove ``value`` from the list ``name``; the list after it (404 when absent)."""
+        return self.call("POST", f"/v1beta1/lists/{_segment(name)}:removeValue", {"value": value})
+
+    def set_counter(self, name: str, count: int) -> dict[str, Any]:
+        """Set the counter ``name`` to ``count`` (PATCH with a ``CounterUpdateRequest``).
+
+        Returns the counter after it. int64 values travel as strings (proto3 JSON).
+        """
+        return self.call("PATCH", f"/v1beta1/counters/{_segment(name)}", {"count": str(int(count))})
+
+
+def _segment(name: str) -> str:
+    return urllib.parse.quote(name, safe="")
+
+
+class _RoomReport(Protocol):
+    """What the agent reads of a room (:class:`server.app.RoomReport`)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def ticks(self) -> int: ...
+    @property
+    def alive(self) -> bool: ...
+    @property
+    def users(self) -> int: ...
+    @property
+    def viewers(self) -> int: ...
+
+
+@dataclass
+class AgonesOptions:
+    """How the agent behaves (times in seconds).
+
+    Attributes
+    ----------
+    health_period_s : float
+        Time between health pings (the Fleet's ``health.periodSeconds`` must be at least this).
+    empty_shutdown_s : float or None
+        Shut down after the server has been empty this long (None: never).
+    probe_timeout_s : float
+        A probe of the event loop unanswered this long means the loop is blocked.
+    poll_s : float
+        Time between two looks at the rooms (list and counter follow within it).
+    ready_backoff_s : tuple of float
+        First and largest wait between Ready attempts; the wait doubles between them.
+    labels : dict of str to str
+        Labels to set once Ready (without Agones' ``agones.dev/sdk-`` prefix).
+    """
+
+    health_period_s: float = 2.0
+    empty_shutdown_s: float | None = EMPTY_SHUTDOWN_S
+    probe_timeout_s: float = 1.0
+    poll_s: float = 0.25
+    ready_backoff_s: tuple[float, float] = (0.25, 8.0)
+    labels: dict[str, str] = field(default_factory=dict)
+
+
+class AgonesAgent:
+    """Tells the Agones sidecar what the server's rooms are doing; a thread of its own.
+
+    Parameters
+    ----------
+    sdk : AgonesSDK
+        The sidecar.
+    loop : asyncio.AbstractEventLoop
+        The event loop the rooms run on; ``probe`` is called on it.
+    probe : callable
+        Returns a report per room (:meth:`server.app.ServerApp.room_reports`); called on
+        ``loop``'s thread only.
+    options : AgonesOptions
+    clock : callable
+        Monotonic time [s] (``time.monotonic``).
+
+    Attributes
+    ----------
+    state : str
+        ``starting``, ``ready`` or ``shutdown``.
+    ready_attempts, health_sent, health_withheld : int
+        Ready calls tried, health pings sent, health periods in which no ping was sent
+        because a room's loop was blocked, dead or stalled.
+    """
+
+    def __init__(
+        self,
+        sdk: AgonesSDK,
+        loop: asyncio.AbstractEventLoop,
+        probe: Callable[[], Sequence[_RoomReport]],
+        options: AgonesOptions | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.sdk = sdk
+        self.loop = loop
+        self.probe = probe
+        self.options = options or AgonesOptions()
+        self.clock = clock
+        self.state = "starting"
+        self.ready_attempts = 0
+        self.health_sent = 0
+        self.health_withheld = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._listed: set[str] = set()
+        self._labelled: set[str] = set()
+        self._users_reported: int | None = None
+        self._occupied = False
+        self._allocated = False
+        self._empty_since: float | None = None
+        self._next_allocated_check = -float("inf")
+        self._undeclared: set[str] = set()
+        self._warned: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Start the agent's thread (daemon: it never holds the process up)."""
+        self._thread = threading.Thread(target=self._run, name="agones", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop the thread and wait for it (at most ``timeout_s`` [s]); blocking."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    # ------------------------------------------------------------------ the rooms
+    def look(self) -> list[_RoomReport] | None:
+        """The rooms' reports, read on the event loop; None when the loop did not answer
+        within ``probe_timeout_s`` (blocked) or is closed."""
+        fut: concurrent.futures.Future[list[_RoomReport]] = concurrent.futures.Future()
+
+        def run() -> None:
+            if not fut.set_running_or_notify_cancel():
+                return
+            try:
+                fut.set_result(list(self.probe()))
+            except BaseException as exc:  # noqa: BLE001 - handed to the waiting thread
+                fut.set_exception(exc)
+
+        try:
+            self.loop.call_soon_threadsafe(run)
+        except RuntimeError:  # the loop is closed
+            return None
+        try:
+            return fut.result(timeout=self.options.probe_timeout_s)
+        except concurrent.futures.TimeoutError:
+            fut.cancel()
+            return None
+        except Exception:
+            log.exception("reading the rooms failed")
+            return None
+
+    # ------------------------------------------------------------------ the thread
+    def _run(self) -> None:
+        try:
+            if self._await_ticking() and self._ready():
+                self._serve()
+        except Exception:  # the agent must never take the server down
+            log.exception("the Agones agent stopped")
+
+    def _await_ticking(self) -> bool:
+        """Wait until every room has ticked and is alive; False when stopped first."""
+        while not self._stop.is_set():
+            reports = self.look()
+            if reports and all(r.ticks > 0 and r.alive for r in reports):
+                return True
+            self._stop.wait(self.options.poll_s)
+        return False
+
+    def _ready(self) -> bool:
+        """Call Ready until it is taken, with doubling waits; False when stopped first."""
+        first, most = self.options.ready_backoff_s
+        wait = first
+        while not self._stop.is_set():
+            self.ready_attempts += 1
+            try:
+                self.sdk.ready()
+            except SidecarError as exc:
+                if self.ready_attempts == 1 or self.ready_attempts % 10 == 0:
+                    log.warning(
+                        "Agones Ready not taken yet (attempt %d): %s", self.ready_attempts, exc
+                    )
+                self._stop.wait(wait)
+                wait = min(most, wait * 2.0)
+                continue
+            self.state = "ready"
+            log.info("Agones: Ready (after %d attempts)", self.ready_attempts)
+            return True
+        return False
+
+    def _serve(self) -> None:
+        opts = self.options
+        next_health = self.clock()
+        withholding = False
+        while not self._stop.is_set() and self.state == "ready":
+            reports = self.look()
+            now = self.clock()
+            if reports is not None:
+                self._sync(reports, now)
+            if now >= next_health:
+                next_health = max(next_health + opts.health_period_s, now)
+                alive = bool(reports) and all(r.alive for r in reports)  # type: ignore[union-attr]
+                if alive:
+                    if self._try(self.sdk.health):
+                        self.health_sent += 1
+                    if withholding:
+                        log.info("Agones: every room ticks again, health pings resumed")
+                    withholding = False
+                else:
+                    self.health_withheld += 1
+                    if not withholding:
+                        why = "blocked (no answer)" if reports is None else _stalled(reports)
+                        log.warning("Agones: no health ping: the simulation loop is %s", why)
+                    withholding = True
+            if self.state == "ready":
+                self._stop.wait(max(0.0, min(opts.poll_s, next_health - self.clock())))
+
+    def _sync(self, reports: Sequence[_RoomReport], now: float) -> None:
+        """Labels, the rooms list, the users counter and the empty timer from one look."""
+        for key, value in self.options.labels.items():
+            if key not in self._labelled and self._try(self.sdk.set_label, key, value):
+                self._labelled.add(key)
+        names = {r.name for r in reports}
+        if ROOMS_LIST not in self._undeclared:
+            for name in sorted(names - self._listed):
+                if self._try(
+                    self.sdk.add_list_value, ROOMS_LIST, name, ok=(409,), declares=ROOMS_LIST
+                ):
+                    self._listed.add(name)
+            for name in sorted(self._listed - names):
+                if self._try(self.sdk.remove_list_value, ROOMS_LIST, name, ok=(404,)):
+                    self._listed.discard(name)
+        users = sum(r.users for r in reports)
+        if (
+            USERS_COUNTER not in self._undeclared
+            and users != self._users_reported
+            and self._try(self.sdk.set_counter, USERS_COUNTER, users, declares=USERS_COUNTER)
+        ):
+            self._users_reported = users
+        self._empty_timer(reports, now)
+
+    def _empty_timer(self, reports: Sequence[_RoomReport], now: float) -> None:
+        limit = self.options.empty_shutdown_s
+        empty = all(r.users == 0 and r.viewers == 0 for r in reports)
+        if not empty:
+            self._occupied = True
+            self._empty_since = None
+            return
+        if limit is None:
+            return
+        if not (self._occupied or self._allocated):
+            # a Ready server waits in the fleet for players: empty only counts once Allocated
+            # (asked at most once a health period)
+            if now < self._next_allocated_check:
+                return
+            self._next_allocated_check = now + self.options.health_period_s
+            try:
+                state = self.sdk.game_server().get("status", {}).get("state")
+            except SidecarError:
+                state = None
+            self._allocated = state == "Allocated"
+            if not self._allocated:
+                return
+        if self._empty_since is None:
+            self._empty_since = now
+            log.info("Agones: the server is empty; Shutdown in %g s unless someone joins", limit)
+        if now - self._empty_since >= limit and self._try(self.sdk.shutdown):
+            self.state = "shutdown"
+            log.info("Agones: empty for %g s, Shutdown", now - self._empty_since)
+
+    def _try(
+        self, fn: Callable[..., Any], *args: Any, ok: tuple[int, ...] = (), declares: str = ""
+    ) -> bool:
+        """Call the sidecar; True when it took the call (or answered a status in ``ok``).
+
+        A NOT_FOUND (404) for the list or counter ``declares`` means the GameServer does not
+        declare it (the Fleet's ``counters``/``lists``): said once, and never asked again. The
+        same failure is logged at most once a minute (the agent retries every poll).
+        """
+        try:
+            fn(*args)
+        except SidecarError as exc:
+            if exc.status in ok:
+                return True
+            if declares and exc.status == 404:
+                self._undeclared.add(declares)
+                log.warning(
+                    "Agones: the GameServer declares no %r (%s); not asked again", declares, exc
+                )
+                return False
+            now = self.clock()
+            key = str(exc) if exc.status else "unreachable"
+            if now - self._warned.get(key, -math.inf) >= 60.0:
+                self._warned[key] = now
+                log.warning("Agones: %s", exc)
+            return False
+        return True
+
+
+def _stalled(reports: Sequence[_RoomReport]) -> str:
+    names = ", ".join(r.name for r in reports if not r.alive)
+    return f"stalled or stopped (rooms {names})" if names else "without rooms"
+
+
+def start_agones(
+    probe: Callable[[], Sequence[_RoomReport]],
+    options: AgonesOptions | None = None,
+    environ: Mapping[str, str] | None = None,
+) -> AgonesAgent | None:
+    """Start an :class:`AgonesAgent` when ``$AGONES_SDK_HTTP_PORT`` is set; call on the loop.
+
+    Parameters
+    ----------
+    probe : callable
+        The rooms' reports (:meth:`server.app.ServerApp.room_reports`).
+    options : AgonesOptions, optional
+    environ : mapping, optional
+        The environment (default ``os.environ``).
+
+    Returns
+    -------
+    AgonesAgent or None
+        The running agent; None when the variable is not set (not under Agones).
+
+    Raises
+    ------
+    ValueError
+        A variable that is not a port number.
+    """
+    sdk = AgonesSDK.from_environ(environ)
+    if sdk is None:
+        return None
+    agent = AgonesAgent(sdk, asyncio.get_running_loop(), probe, options)
+    agent.start()
+    log.info("Agones: SDK sidecar at %s", sdk.base)
+    return agent

@@ -1,0 +1,223 @@
+"""The server under Agones: what the SDK sidecar hears from it during a session.
+
+The sidecar is the stand-in of tests/support/agones_sidecar.py, built from Agones' swagger files
+(it validates every request body against them); the server is the real one, in this process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import socket
+import time
+from collections.abc import Callable
+
+from websockets.asyncio.client import ClientConnection, connect
+
+from haptic_collab.server.agones import PORT_ENV, AgonesAgent, AgonesOptions, start_agones
+from haptic_collab.server.app import DEFAULT_ROOM, ServerApp
+from haptic_collab.server.main import ServerOptions, build_world, run_server
+from haptic_collab.server.room import Room
+from tests.support.agones_sidecar import Sidecar
+
+SIM_RATE = 20.0
+#: A short health period and probe timeout keep the test short; the defaults are 2 s and 1 s.
+FAST = {"health_period_s": 0.5, "probe_timeout_s": 0.25, "poll_s": 0.05}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def until(predicate: Callable[[], object], timeout_s: float = 60.0) -> None:
+    """Let the event loop (and the server on it) run until ``predicate()`` holds."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out waiting"
+        await asyncio.sleep(0.02)
+
+
+def block_until(predicate: Callable[[], bool], timeout_s: float = 60.0) -> None:
+    """Hold the event loop's thread (the simulation's) until ``predicate()`` holds."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out while blocking the loop"
+        time.sleep(0.01)
+
+
+async def start_app() -> ServerApp:
+    world = build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2))
+    app = ServerApp(Room(world, SIM_RATE), "127.0.0.1", 0)
+    await app.start()
+    return app
+
+
+class User:
+    """A websocket user that joins and reads every frame (so its send buffer never fills)."""
+
+    def __init__(self, ws: ClientConnection) -> None:
+        self.ws = ws
+        self.reader = asyncio.create_task(self._drain())
+
+    async def _drain(self) -> None:
+        with contextlib.suppress(Exception):
+            async for _ in self.ws:
+                pass
+
+    @classmethod
+    async def join(cls, port: int, name: str, role: str = "user") -> User:
+        ws = await connect(f"ws://127.0.0.1:{port}/ws")
+        await ws.send(json.dumps({"type": "hello", "protocol": 1, "role": role, "name": name}))
+        assert json.loads(await asyncio.wait_for(ws.recv(), 30.0))["type"] == "welcome"
+        return cls(ws)
+
+    async def leave(self) -> None:
+        await self.ws.close()
+        await asyncio.wait_for(self.reader, 10.0)
+
+
+def counts(sc: Sidecar) -> list[int]:
+    return [int(c.body["count"]) for c in sc.of("PATCH", "/v1beta1/counters/users")]
+
+
+async def test_a_session_as_the_sidecar_hears_it():
+    port = free_port()  # the sidecar starts after the server, as it may in a pod
+    app = await start_app()
+    agent = start_agones(
+        app.room_reports,
+        AgonesOptions(empty_shutdown_s=1.0, labels={"object": "balloon"}, **FAST),
+        environ={PORT_ENV: str(port)},
+    )
+    assert agent is not None
+    users: list[User] = []
+    try:
+        await until(lambda: agent.ready_attempts >= 2)  # refused, retried
+        with Sidecar(port, lists={"rooms": 4}, counters={"users": 8}) as sc:
+            health = lambda: len(sc.of("POST", "/health"))  # noqa: E731
+            await until(lambda: counts(sc) == [0] and health() >= 1)
+            assert agent.state == "ready"
+            ready = sc.of("POST", "/ready")
+            added = sc.of("POST", "/v1beta1/lists/rooms:addValue")
+            assert len(ready) == 1 and [c.body for c in added] == [{"value": DEFAULT_ROOM}]
+            assert ready[0].seq < added[0].seq
+            assert sc.lists["rooms"]["values"] == [DEFAULT_ROOM]
+            assert sc.labels == {"agones.dev/sdk-object": "balloon"}
+
+            users.append(await User.join(app.port, "A"))
+            await until(lambda: counts(sc)[-1] == 1)
+            users.append(await User.join(app.port, "B"))
+            viewer = await User.join(app.port, "V", role="viewer")  # a viewer is no user
+            await until(lambda: counts(sc)[-1] == 2)
+
+            # the tick loop blocked: no health ping while it is, pings again after
+            withheld = agent.health_withheld
+            block_until(lambda: agent.health_withheld >= withheld + 1)
+            pings_at_first_withheld = health()
+            block_until(lambda: agent.health_withheld >= withheld + 3)
+            assert health() == pings_at_first_withheld
+            pings = health()
+            await until(lambda: health() > pings)
+
+            await users.pop(0).leave()
+            await until(lambda: counts(sc)[-1] == 1)
+            await users.pop(0).leave()
+            await viewer.leave()
+            await until(lambda: sc.of("POST", "/shutdown"), 30.0)
+
+            assert counts(sc) == [0, 1, 2, 1, 0]
+            shutdown = sc.of("POST", "/shutdown")
+            last_count = sc.of("PATCH", "/v1beta1/counters/users")[-1]
+            assert len(shutdown) == 1 and shutdown[0].t - last_count.t >= 1.0
+            assert sc.state == "Shutdown" and agent.state == "shutdown"
+            assert [c for c in sc.calls if c.errors or c.status != 200] == []
+    finally:
+        for u in users:
+            await u.leave()
+        await asyncio.to_thread(agent.stop)
+        await app.stop()
+
+
+async def test_no_health_once_the_simulation_loop_is_dead():
+    app = await start_app()
+    with Sidecar(lists={"rooms": 1}, counters={"users": 8}) as sc:
+        agent = start_agones(app.room_reports, AgonesOptions(**FAST), {PORT_ENV: str(sc.port)})
+        assert agent is not None
+        try:
+            await until(lambda: len(sc.of("POST", "/health")) >= 2)
+            assert app._sim_task is not None
+            app._sim_task.cancel()  # the loop dies; the event loop and the agent go on
+            withheld = agent.health_withheld
+            await until(lambda: agent.health_withheld >= withheld + 1)
+            pings = len(sc.of("POST", "/health"))
+            await until(lambda: agent.health_withheld >= withheld + 3)
+            assert len(sc.of("POST", "/health")) == pings
+        finally:
+            await asyncio.to_thread(agent.stop)
+            await app.stop()
+
+
+async def test_a_ready_server_nobody_joined_waits_until_it_is_allocated():
+    app = await start_app()
+    with Sidecar(lists={"rooms": 1}, counters={"users": 8}) as sc:
+        options = AgonesOptions(empty_shutdown_s=0.2, **FAST)
+        agent = start_agones(app.room_reports, options, {PORT_ENV: str(sc.port)})
+        assert isinstance(agent, AgonesAgent)
+        try:
+            # it asks whether it was allocated, and stays up while it was not
+            await until(lambda: len(sc.of("GET", "/gameserver")) >= 3)
+            assert sc.of("POST", "/shutdown") == []
+            sc.allocate()
+            await until(lambda: sc.of("POST", "/shutdown"))
+            assert sc.state == "Shutdown"
+        finally:
+            await asyncio.to_thread(agent.stop)
+            await app.stop()
+
+
+async def test_haptic_server_reports_to_the_sidecar_named_by_the_environment(monkeypatch):
+    with Sidecar(lists={"rooms": 1}, counters={"users": 8}) as sc:
+        monkeypatch.setenv(PORT_ENV, str(sc.port))
+        opts = ServerOptions(port=0, sim_rate_hz=SIM_RATE, subdivisions=2)
+        server = asyncio.create_task(run_server(opts))
+        try:
+            await until(lambda: sc.of("POST", "/health") and len(sc.labels) == 2)
+            assert sc.of("POST", "/ready") and sc.lists["rooms"]["values"] == [DEFAULT_ROOM]
+            assert sc.labels == {"agones.dev/sdk-object": "balloon", "agones.dev/sdk-protocol": "1"}
+        finally:
+            server.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await server
+        assert [c for c in sc.calls if c.errors or c.status != 200] == []
+
+
+async def test_a_port_that_is_not_a_number_stops_the_server_before_it_listens(monkeypatch):
+    monkeypatch.setenv(PORT_ENV, "sidecar")
+    opts = ServerOptions(port=0, sim_rate_hz=SIM_RATE, subdivisions=2)
+    try:
+        await run_server(opts)
+    except ValueError as exc:
+        assert PORT_ENV in str(exc)
+    else:
+        raise AssertionError("the server started with a bad sidecar port")
+
+
+async def test_a_counter_the_fleet_does_not_declare_is_asked_for_once(caplog):
+    app = await start_app()
+    with Sidecar(lists={"rooms": 1}) as sc:  # no "users" counter in this GameServer
+        agent = start_agones(app.room_reports, AgonesOptions(**FAST), {PORT_ENV: str(sc.port)})
+        assert agent is not None
+        try:
+            await until(lambda: len(sc.of("POST", "/health")) >= 1)
+            user = await User.join(app.port, "A")
+            await until(lambda: len(sc.of("POST", "/health")) >= 3)
+            await user.leave()
+            patches = sc.of("PATCH", "/v1beta1/counters/users")
+            assert [c.status for c in patches] == [404]
+            assert sum("declares no 'users'" in r.getMessage() for r in caplog.records) == 1
+            assert sc.lists["rooms"]["values"] == [DEFAULT_ROOM]  # the list still works
+        finally:
+            await asyncio.to_thread(agent.stop)
+            await app.stop()
