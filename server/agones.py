@@ -9,7 +9,8 @@ standard library (no Agones package). The contract is Agones' own OpenAPI files
 =========================================  =======  =========================================
 path                                       method   body
 =========================================  =======  =========================================
-``/ready``, ``/health``, ``/shutdown``     POST     ``{}`` (``sdkEmpty``)
+``/ready``, ``/health``, ``/allocate``,    POST     ``{}`` (``sdkEmpty``)
+``/shutdown``
 ``/metadata/label``                        PUT      ``{"key": K, "value": V}`` (``sdkKeyValue``)
 ``/gameserver``                            GET      (answers ``sdkGameServer``)
 ``/v1beta1/lists/{name}:addValue``         POST     ``{"value": V}`` (``SDKAddListValueBody``)
@@ -31,8 +32,13 @@ probe that gets no answer within ``probe_timeout_s`` means the loop is blocked. 
 1. waits until every room has ticked, then calls Ready, retrying with backoff (the sidecar may
    start after the server);
 2. sets its labels (``/metadata/label``; Agones prefixes them ``agones.dev/sdk-``);
-3. adds every room's name to the list ``rooms`` and removes the names of rooms that are gone;
-4. keeps the counter ``users`` at the number of users in all rooms;
+3. keeps the names of the rooms in use (someone in them) in the list ``rooms``: a room's name is
+   added when the first user or viewer joins it and removed when the last leaves, so the list's
+   free capacity is the rooms this server can still open, which a FleetAutoscaler's List policy
+   keeps a buffer of (the list's capacity is the rooms a process may run: one today);
+4. keeps the counter ``users`` at the number of users in all rooms, and on the first arrival at
+   a server that is only Ready calls Allocate (people who came straight to its address, past any
+   allocator), so that a scale-down never deletes it under them;
 5. calls Health every ``health_period_s`` only while every room's loop is alive (the probe
    answered and no room is overdue; :class:`server.app.RoomReport`), so Agones marks a server
    whose loop hangs or died Unhealthy and replaces it;
@@ -175,6 +181,10 @@ class AgonesSDK:
     def health(self) -> None:
         """One health ping (POST ``/health``)."""
         self.call("POST", "/health", {})
+
+    def allocate(self) -> None:
+        """Mark this GameServer Allocated (POST ``/allocate``)."""
+        self.call("POST", "/allocate", {})
 
     def shutdown(self) -> None:
         """Ask Agones to shut this server down (POST ``/shutdown``)."""
@@ -414,7 +424,7 @@ class AgonesAgent:
         for key, value in self.options.labels.items():
             if key not in self._labelled and self._try(self.sdk.set_label, key, value):
                 self._labelled.add(key)
-        names = {r.name for r in reports}
+        names = {r.name for r in reports if r.users or r.viewers}  # rooms in use
         if ROOMS_LIST not in self._undeclared:
             for name in sorted(names - self._listed):
                 if self._try(
@@ -437,6 +447,11 @@ class AgonesAgent:
         limit = self.options.empty_shutdown_s
         empty = all(r.users == 0 and r.viewers == 0 for r in reports)
         if not empty:
+            if not (self._occupied or self._allocated) and self._try(self.sdk.allocate):
+                # people came straight to a Ready server: Allocated, so that the fleet does
+                # not scale it down under them
+                self._allocated = True
+                log.info("Agones: someone joined a Ready server, Allocate")
             self._occupied = True
             self._empty_since = None
             return

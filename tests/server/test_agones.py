@@ -98,16 +98,18 @@ async def test_a_session_as_the_sidecar_hears_it():
         with Sidecar(port, lists={"rooms": 4}, counters={"users": 8}) as sc:
             health = lambda: len(sc.of("POST", "/health"))  # noqa: E731
             await until(lambda: counts(sc) == [0] and health() >= 1)
-            assert agent.state == "ready"
-            ready = sc.of("POST", "/ready")
-            added = sc.of("POST", "/v1beta1/lists/rooms:addValue")
-            assert len(ready) == 1 and [c.body for c in added] == [{"value": DEFAULT_ROOM}]
-            assert ready[0].seq < added[0].seq
-            assert sc.lists["rooms"]["values"] == [DEFAULT_ROOM]
+            assert agent.state == "ready" and sc.state == "Ready"
+            assert len(sc.of("POST", "/ready")) == 1
             assert sc.labels == {"agones.dev/sdk-object": "balloon"}
+            assert sc.lists["rooms"]["values"] == []  # no room in use yet
 
             users.append(await User.join(app.port, "A"))
             await until(lambda: counts(sc)[-1] == 1)
+            # the first arrival: the room is in use, and the server Allocated (no scale-down)
+            added = sc.of("POST", "/v1beta1/lists/rooms:addValue")
+            assert [c.body for c in added] == [{"value": DEFAULT_ROOM}]
+            assert sc.of("POST", "/ready")[0].seq < added[0].seq
+            assert sc.lists["rooms"]["values"] == [DEFAULT_ROOM] and sc.state == "Allocated"
             users.append(await User.join(app.port, "B"))
             viewer = await User.join(app.port, "V", role="viewer")  # a viewer is no user
             await until(lambda: counts(sc)[-1] == 2)
@@ -128,6 +130,10 @@ async def test_a_session_as_the_sidecar_hears_it():
             await until(lambda: sc.of("POST", "/shutdown"), 30.0)
 
             assert counts(sc) == [0, 1, 2, 1, 0]
+            assert len(sc.of("POST", "/allocate")) == 1
+            removed = sc.of("POST", "/v1beta1/lists/rooms:removeValue")
+            assert [c.body for c in removed] == [{"value": DEFAULT_ROOM}]
+            assert sc.lists["rooms"]["values"] == []
             shutdown = sc.of("POST", "/shutdown")
             last_count = sc.of("PATCH", "/v1beta1/counters/users")[-1]
             assert len(shutdown) == 1 and shutdown[0].t - last_count.t >= 1.0
@@ -184,7 +190,7 @@ async def test_haptic_server_reports_to_the_sidecar_named_by_the_environment(mon
         server = asyncio.create_task(run_server(opts))
         try:
             await until(lambda: sc.of("POST", "/health") and len(sc.labels) == 2)
-            assert sc.of("POST", "/ready") and sc.lists["rooms"]["values"] == [DEFAULT_ROOM]
+            assert sc.of("POST", "/ready") and sc.state == "Ready"
             assert sc.labels == {"agones.dev/sdk-object": "balloon", "agones.dev/sdk-protocol": "1"}
         finally:
             server.cancel()
@@ -217,7 +223,8 @@ async def test_a_counter_the_fleet_does_not_declare_is_asked_for_once(caplog):
             patches = sc.of("PATCH", "/v1beta1/counters/users")
             assert [c.status for c in patches] == [404]
             assert sum("declares no 'users'" in r.getMessage() for r in caplog.records) == 1
-            assert sc.lists["rooms"]["values"] == [DEFAULT_ROOM]  # the list still works
+            added = sc.of("POST", "/v1beta1/lists/rooms:addValue")  # the list still works
+            assert [(c.body, c.status) for c in added] == [({"value": DEFAULT_ROOM}, 200)]
         finally:
             await asyncio.to_thread(agent.stop)
             await app.stop()

@@ -18,7 +18,7 @@ Two deliberate readings of the swagger files:
   (``countdiff``) fails a test instead of silently doing nothing.
 
 State follows the SDK's documented behaviour: Ready sets ``status.state`` Ready, Shutdown sets
-Shutdown, :meth:`Sidecar.allocate` plays the allocator; lists answer ALREADY_EXISTS (409) for a
+Shutdown, Allocate and :meth:`Sidecar.allocate` (the allocator) set Allocated; lists answer ALREADY_EXISTS (409) for a
 value already there, NOT_FOUND (404) for an absent value or list, OUT_OF_RANGE (400) past the
 capacity; a counter refuses a count outside [0, capacity]; labels must be valid Kubernetes
 label values and names once prefixed ``agones.dev/sdk-``.
@@ -268,7 +268,10 @@ class Sidecar:
         if template == "/ready":
             self.state = "Ready" if self.state != "Allocated" else self.state
             return {}
-        if template in ("/health", "/allocate"):
+        if template == "/health":
+            return {}
+        if template == "/allocate":  # the SDK's self-allocation
+            self.state = "Allocated"
             return {}
         if template == "/shutdown":
             self.state = "Shutdown"
