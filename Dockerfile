@@ -18,7 +18,17 @@ FROM python:3.11-slim
 RUN apt-get update && apt-get install -y --no-install-recommends libhidapi-hidraw0 \
     && rm -rf /var/lib/apt/lists/*
 COPY --from=build /dist /dist
-RUN pip install --no-cache-dir /dist/haptic_collab-*.whl && rm -rf /dist
+RUN pip install --no-cache-dir /dist/haptic_collab-*.whl && rm -rf /dist \
+    && useradd --uid 10001 --user-group --create-home --home-dir /home/haptic \
+       --shell /usr/sbin/nologin haptic
+# One BLAS / OpenMP thread per process: the simulation, its gain design worker and the clients
+# are processes of their own already, and a thread pool per process would fight them for the
+# same cores (a Kubernetes pod gets a CPU request, not a machine).
+ENV OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMEXPR_NUM_THREADS=1 \
+    PYTHONUNBUFFERED=1
+# Not root; numeric, so that Kubernetes' runAsNonRoot can verify it.
+USER 10001:10001
+WORKDIR /home/haptic
 
 EXPOSE 8765
 ENTRYPOINT ["haptic"]

@@ -1,0 +1,193 @@
+"""deploy/agones/: every manifest is valid against the schema of its Agones kind.
+
+The schemas are the openAPIV3Schema of Agones' CustomResourceDefinitions (Fleet and
+FleetAutoscaler; tests/data/agones/fleet-crds.yaml.gz, the first two documents of Agones'
+install.yaml, Apache-2.0). The Fleet's schema carries the whole Kubernetes pod template, so the
+pod spec is checked too. Two things Kubernetes adds to a CRD's schema are added here: the
+``apiVersion``/``kind``/``metadata`` every object has, and strict field validation (what
+``kubectl apply`` does by default since Kubernetes 1.27: a field the schema does not name is an
+error, except under ``x-kubernetes-preserve-unknown-fields``). ``nullable`` is read as allowing
+null. No cluster is needed: this is the schema check the API server makes, not admission.
+"""
+
+from __future__ import annotations
+
+import copy
+import gzip
+import shlex
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pytest
+import yaml
+
+from haptic_collab.cli import build_parser
+from haptic_collab.server.agones import ROOMS_LIST, USERS_COUNTER, AgonesOptions
+
+ROOT = Path(__file__).resolve().parents[2]
+DEPLOY = ROOT / "deploy" / "agones"
+CRDS = ROOT / "tests" / "data" / "agones" / "fleet-crds.yaml.gz"
+
+#: What the API server knows of every object besides its CRD's schema (ObjectMeta, in part).
+_OBJECT_META = {
+    "type": "object",
+    "properties": {
+        "name": {
+            "type": "string",
+            "pattern": r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?$",
+            "maxLength": 253,
+        },
+        "namespace": {"type": "string"},
+        "labels": {"type": "object", "additionalProperties": {"type": "string"}},
+        "annotations": {"type": "object", "additionalProperties": {"type": "string"}},
+    },
+    "additionalProperties": False,
+}
+
+
+def _kube_schema(node: Any) -> Any:
+    """An openAPIV3Schema read as Kubernetes reads it, as a JSON Schema."""
+    if isinstance(node, list):
+        return [_kube_schema(n) for n in node]
+    if not isinstance(node, dict):
+        return node
+    out = {k: _kube_schema(v) for k, v in node.items()}
+    if out.get("type") == "object" and "properties" in out:
+        if (
+            not out.get("x-kubernetes-preserve-unknown-fields")
+            and "additionalProperties" not in out
+        ):
+            out["additionalProperties"] = False
+    if out.pop("nullable", False) and isinstance(out.get("type"), str):
+        out["type"] = [out["type"], "null"]
+    return out
+
+
+def crd_schemas() -> dict[tuple[str, str], dict[str, Any]]:
+    """``{(apiVersion, kind): JSON Schema}`` of every served version of the CRDs."""
+    out = {}
+    with gzip.open(CRDS, "rt") as f:
+        for crd in yaml.safe_load_all(f):
+            if not crd or crd.get("kind") != "CustomResourceDefinition":
+                continue
+            group, kind = crd["spec"]["group"], crd["spec"]["names"]["kind"]
+            for version in crd["spec"]["versions"]:
+                schema = copy.deepcopy(version["schema"]["openAPIV3Schema"])
+                schema["properties"] = {
+                    "apiVersion": {"type": "string", "enum": [f"{group}/{version['name']}"]},
+                    "kind": {"type": "string", "enum": [kind]},
+                    "metadata": _OBJECT_META,
+                    **schema["properties"],
+                }
+                schema["required"] = ["apiVersion", "kind", "metadata", "spec"]
+                out[(f"{group}/{version['name']}", kind)] = _kube_schema(schema)
+    return out
+
+
+def errors(doc: dict[str, Any], schemas: dict[tuple[str, str], dict[str, Any]]) -> list[str]:
+    schema = schemas.get((doc.get("apiVersion"), doc.get("kind")))
+    if schema is None:
+        return [f"no schema for {doc.get('apiVersion')} {doc.get('kind')}"]
+    validator = jsonschema.Draft7Validator(schema)
+    return [
+        f"{'.'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(doc)
+    ]
+
+
+def manifests() -> dict[str, dict[str, Any]]:
+    """``{kind: document}`` of every YAML file in deploy/agones/."""
+    out = {}
+    for path in sorted(DEPLOY.glob("*.yaml")):
+        for doc in yaml.safe_load_all(path.read_text()):
+            assert doc["kind"] not in out, f"two {doc['kind']} manifests"
+            out[doc["kind"]] = doc
+    return out
+
+
+@pytest.fixture(scope="module")
+def schemas() -> dict[tuple[str, str], dict[str, Any]]:
+    return crd_schemas()
+
+
+def test_every_manifest_is_valid_for_its_agones_kind(schemas):
+    docs = manifests()
+    assert set(docs) == {"Fleet", "FleetAutoscaler"}
+    for kind, doc in docs.items():
+        assert errors(doc, schemas) == [], kind
+
+
+@pytest.mark.parametrize(
+    ("where", "value", "says"),
+    [
+        (("spec", "template", "spec", "ports", 0, "portPolicy"), "dynamic", "is not one of"),
+        (("spec", "template", "spec", "health", "periodSecond"), 5, "Additional properties"),
+        (("spec", "template", "spec", "lists", "rooms", "capacity"), "1", "is not of type"),
+        (
+            ("spec", "template", "spec", "template", "spec", "containers", 0, "resource"),
+            {},
+            "Additional properties",
+        ),
+    ],
+)
+def test_the_check_catches_a_mistake_in_the_fleet(schemas, where, value, says):
+    fleet = copy.deepcopy(manifests()["Fleet"])
+    node = fleet
+    for key in where[:-1]:
+        node = node[key]
+    node[where[-1]] = value
+    assert any(says in e for e in errors(fleet, schemas))
+
+
+def test_the_fleet_and_its_autoscaler_agree_with_the_server():
+    docs = manifests()
+    fleet, fas = docs["Fleet"], docs["FleetAutoscaler"]
+    gs = fleet["spec"]["template"]["spec"]
+    # the autoscaler scales this fleet on the list the server keeps
+    assert fas["spec"]["fleetName"] == fleet["metadata"]["name"]
+    assert fas["spec"]["policy"]["list"]["key"] == ROOMS_LIST and ROOMS_LIST in gs["lists"]
+    assert USERS_COUNTER in gs["counters"]
+    # Agones waits periodSeconds for a ping; the server pings every health_period_s
+    assert gs["health"]["periodSeconds"] > AgonesOptions().health_period_s
+    pod = gs["template"]["spec"]
+    (container,) = [c for c in pod["containers"] if c["name"] == gs["container"]]
+    args = build_parser().parse_args(container["args"])
+    assert args.command == "server" and args.host == "0.0.0.0"
+    assert gs["ports"][0]["containerPort"] == args.port
+    assert args.token_file and any(
+        args.token_file.startswith(m["mountPath"] + "/") for m in container["volumeMounts"]
+    )
+    # a CPU request, and no CPU limit (throttling would stall ticks)
+    resources = container["resources"]
+    assert "cpu" in resources["requests"] and "cpu" not in resources.get("limits", {})
+    env = {e["name"]: e["value"] for e in container["env"]}
+    assert env["OPENBLAS_NUM_THREADS"] == "1" and env["OMP_NUM_THREADS"] == "1"
+
+
+def _dockerfile_instructions() -> list[tuple[str, str]]:
+    """(INSTRUCTION, arguments) of the Dockerfile, continuation lines joined."""
+    text = (ROOT / "Dockerfile").read_text().replace("\\\n", " ")
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), rest.strip()))
+    return out
+
+
+def test_the_image_runs_the_server_as_a_numeric_non_root_user_with_one_blas_thread():
+    steps = _dockerfile_instructions()
+    final = steps[max(i for i, (w, _) in enumerate(steps) if w == "FROM") :]
+    users = [rest for word, rest in final if word == "USER"]
+    assert users, "the final stage sets no USER: it runs as root"
+    uid = users[-1].split(":")[0]
+    assert uid.isdigit() and int(uid) != 0  # numeric: runAsNonRoot can check it
+    fleet_pod = manifests()["Fleet"]["spec"]["template"]["spec"]["template"]["spec"]
+    assert fleet_pod["securityContext"]["runAsUser"] == int(uid)
+    env = " ".join(rest for word, rest in final if word == "ENV")
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        assert f"{var}=1" in shlex.split(env)
+    # the user is made in a RUN before USER switches to it
+    made = [i for i, (w, r) in enumerate(final) if w == "RUN" and f"--uid {uid}" in r]
+    assert made and made[0] < [w for w, _ in final].index("USER")
