@@ -149,16 +149,34 @@ def _haptic(*args: str) -> list[str]:
     return [sys.executable, "-m", "haptic_collab.cli", *args]
 
 
+class DemoVerdictError(RuntimeError):
+    """The run finished and its report was written, but not every user was stable.
+
+    ``exit_code`` is the run's exit status (:data:`haptic_collab.demo_report.EXIT_CODES`): 1 when
+    a user was unstable or never rendered, 3 when the machine was too loaded to judge; ``report``
+    the report dict.
+    """
+
+    def __init__(self, message: str, exit_code: int, report: dict[str, Any]) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+        self.report = report
+
+
 def run_demo(opts: DemoOptions) -> dict[str, Any]:
-    """Run the demo; return the report dict.
+    """Run the demo; return the report dict when every user was stable.
 
     The processes' logs and telemetry go to ``opts.workdir``, kept; without it, to a temporary
-    folder that is deleted after a good run and kept (its path printed) when the run fails.
+    folder that is deleted after a good run and kept (its path printed) when the run fails or a
+    user was not judged stable.
 
     Raises
     ------
     ValueError
         Bad options (duration shorter than 12 s, port in use).
+    DemoVerdictError
+        The run finished, its report, plot and summary written, but a user was unstable, never
+        rendered, or could not be judged (the machine too loaded); its ``exit_code`` says which.
     RuntimeError
         A process failed (its output is shown).
     """
@@ -176,6 +194,13 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     except BaseException:
         print(f"haptic demo: logs and telemetry are in {work}", file=sys.stderr, flush=True)
         raise
+    verdict = report["verdict"]
+    if verdict["exit_code"] != 0:
+        print(f"haptic demo: logs and telemetry are in {work}", file=sys.stderr, flush=True)
+        failed = ", ".join(f"{n} {v}" for n, v in verdict["users"].items() if v != "stable")
+        raise DemoVerdictError(
+            f"{verdict['verdict']} ({failed})", int(verdict["exit_code"]), report
+        )
     if opts.workdir is None:  # a temporary folder (5-8 MB of telemetry): gone after a good run
         shutil.rmtree(work, ignore_errors=True)
     return report
@@ -214,6 +239,7 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
     procs: dict[str, subprocess.Popen[bytes]] = {}
     reference: subprocess.Popen[bytes] | None = None
     reference_stats: dict[str, Any] | None = None
+    status_samples: list[dict[str, Any]] = []
     try:
         procs["server"] = subprocess.Popen(
             server_cmd, stdout=logs["server"], stderr=subprocess.STDOUT, env=env
@@ -278,7 +304,7 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                 stderr=subprocess.DEVNULL,
                 env=env,
             )
-        _progress(opts, procs, port, tl)
+        status_samples = _progress(opts, procs, port, tl)
         for name in ("A", "B"):
             rc = procs[name].wait(timeout=60.0)
             if rc != 0:
@@ -287,6 +313,14 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                     + (work / f"{name}.log").read_text()[-3000:]
                 )
         server_status = _status(opts.host, port) or {}
+        if "tick" in server_status and "overruns" in server_status:
+            status_samples.append(
+                {
+                    "t_clock_s": time.perf_counter(),
+                    "tick": server_status["tick"],
+                    "overruns": server_status["overruns"],
+                }
+            )
         if reference is not None:
             out, _ = reference.communicate(timeout=opts.duration_s + 30.0)
             with contextlib.suppress(ValueError):
@@ -304,7 +338,7 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                 p.kill()
         for f in logs.values():
             f.close()
-    report = build_report(work, tl, server_status, opts)
+    report = build_report(work, tl, server_status, opts, status_samples)
     if reference_stats is not None:
         report["reference_loop"] = {
             k: reference_stats.get(k)
@@ -324,16 +358,37 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
     return report
 
 
+#: How often the demo polls the server's status while the users run [s].
+_POLL_S = 0.5
+
+
 def _progress(
     opts: DemoOptions, procs: dict[str, subprocess.Popen[bytes]], port: int, tl: Timeline
-) -> None:
+) -> list[dict[str, Any]]:
+    """Print the run's progress every 2 s while the users run; return the server's status
+    polled every :data:`_POLL_S` (``t_clock_s``, ``time.perf_counter()`` at the poll [s], the
+    clock of the clients' ``clock_origin_s``; ``tick``, ``overruns``): the report's server
+    overruns during each user's hold."""
     t0 = time.monotonic()
     last = -1.0
+    polled = -1.0
+    samples: list[dict[str, Any]] = []
+    st: dict[str, Any] = {}
     while any(procs[n].poll() is None for n in ("A", "B")):
         t = time.monotonic() - t0
+        if t - polled >= _POLL_S:
+            polled = t
+            st = _status(opts.host, port) or {}
+            if "tick" in st and "overruns" in st:
+                samples.append(
+                    {
+                        "t_clock_s": time.perf_counter(),
+                        "tick": st["tick"],
+                        "overruns": st["overruns"],
+                    }
+                )
         if t - last >= 2.0:
             last = t
-            st = _status(opts.host, port) or {}
             phase = (
                 "B resting, A waiting" if t < tl.delay_s
                 else "A approaching" if t < tl.contact_s
@@ -346,4 +401,5 @@ def _progress(
                 f"tick cost p50 {st.get('tick_ms_p50', 0):.2f} ms  overruns {st.get('overruns', '?')}",
                 flush=True,
             )
-        time.sleep(0.2)
+        time.sleep(0.1)
+    return samples

@@ -7,15 +7,20 @@ approaches (1 s), presses (1.5 s), holds until 0.75 D, releases (1 s) and withdr
 The report's coupling (:func:`coupling_report`) compares the last second of A's hold with a window
 where B rests settled (1 s after B's force came on), before A touches, or after A's release when
 B's contact came on too late: B's force rise [N] and the outward displacement of the surface under
-B [mm]. Each user's hold is judged stable or not (:func:`hold_shake_mm`) and the servo's missed
-deadlines are counted (:func:`missed_per_s`); :func:`build_report` assembles the ``--report``
-JSON from the run's folder, :func:`print_summary` prints its table and :func:`plot_demo` draws
-the ``--plot`` PNG. The processes that make the telemetry are run by :mod:`haptic_collab.demo`.
+B [mm]. Each user's whole hold is judged (:func:`judge_user`): how far the probe shook
+(:func:`largest_p2p`), how far the felt stiffness stepped (:func:`felt_stiffness_step`, against
+the stiffness JND), whether the user ever rendered a model, and whether the machine was too loaded
+to judge (:func:`machine_load`); the run's verdict and exit status are :func:`run_verdict`'s. The
+servo's missed deadlines are counted (:func:`missed_per_s`); :func:`build_report` assembles the
+``--report`` JSON from the run's folder, :func:`print_summary` prints its table and the verdicts,
+and :func:`plot_demo` draws the ``--plot`` PNG. The processes that make the telemetry are run by
+:mod:`haptic_collab.demo`.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -23,9 +28,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from haptic_collab.client.devices.trajectories import Rest
+from haptic_collab.shared.verified_plane import DESIGN_OVER_REST
 
-#: A hold is stable when the peak-to-peak penetration over its last second, after its straight-line
-#: trend, stays below this [mm] (:func:`hold_shake_mm`).
+#: A hold is stable when the probe's largest peak to peak over its whole hold, each second after
+#: its straight-line trend (:func:`largest_p2p`), stays below this [mm] (and :func:`hold_shake_mm`,
+#: the penetration's, in the loopback test).
 STABLE_P2P_MM = 1.0
 #: After a change of gains the hold's equilibrium moves (a stiffer coupling holds the probe nearer
 #: the proxy) for about this long [s]: the client's gain transfer (0.25 s) and the hand settling.
@@ -148,6 +155,8 @@ def _load(work: Path, name: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]
     with open(work / f"{name}.csv") as f:
         header = f.readline().strip().split(",")
     data = np.loadtxt(work / f"{name}.csv", delimiter=",", skiprows=1, ndmin=2)
+    if data.shape[1] != len(header):  # a header and no rows: the user's servo never ticked
+        data = np.zeros((0, len(header)))
     cols = {h: data[:, i] for i, h in enumerate(header)}
     return cols, summary
 
@@ -214,26 +223,448 @@ def missed_per_s(
     return float(np.sum(np.where(k > 1.5, np.round(k) - 1.0, 0.0)) / span)
 
 
-def _user_report(
-    cols: dict[str, np.ndarray], summary: dict[str, Any], hold: tuple[float, float]
+# --------------------------------------------------------------------------- the hold's verdict
+#: The stiffness JND [share]: two stiffnesses further apart than this ratio less one are told
+#: apart by a hand. The project's one value, shared.verified_plane.DESIGN_OVER_REST = ln(1.1)
+#: (docs/fidelity.md), read back as a share (0.10).
+STIFFNESS_JND = math.expm1(DESIGN_OVER_REST)
+#: A's hold is judged from this long after its press ends [s] (the hand settling on the surface).
+HOLD_SETTLE_S = 0.5
+#: The probe's and the force's peak to peak are taken over windows this long [s], each after its
+#: own straight-line trend (a slow creep, such as the probe sinking while the device's force is
+#: held at its continuous limit, is not a shake), :data:`SHAKE_HOP_S` apart.
+SHAKE_WINDOW_S = 0.5
+#: See :data:`SHAKE_WINDOW_S` [s].
+SHAKE_HOP_S = 0.125
+#: The felt stiffness is summarised (lowest, highest) over blocks this long [s]: one simulation
+#: tick at 20 Hz, at most one patch's gains.
+FELT_BLOCK_S = 0.05
+#: A felt-stiffness step is the largest ratio between two blocks at most this far apart [s]: a
+#: change a still hand feels as a step, not a drift over seconds.
+FELT_STEP_WINDOW_S = 0.5
+#: Too loaded to judge: the server overran more than this share of its ticks during the hold ...
+LOADED_OVERRUN_SHARE = 0.10
+#: ... or the user's servo missed more than this many deadlines per second during it (5 % at
+#: 1 kHz) ...
+LOADED_MISSED_PER_S = 50.0
+#: ... or the user's round trip's median exceeded the injected one (twice the latency and the
+#: jitter) by more than this [ms] (the processes' event loops starved) ...
+LOADED_RTT_EXTRA_MS = 50.0
+#: ... or no gain design finished in the user's run and it rendered fallback gains for at least
+#: this share of its patches (the design worker starved: the run never showed the designed gains).
+LOADED_FALLBACK_SHARE = 0.9
+
+#: The verdicts, worst first (:func:`run_verdict`).
+VERDICTS = ("never rendered", "unstable", "could not judge", "stable")
+#: ``haptic demo``'s exit status per verdict: 1 when a user is unstable or never rendered (the
+#: demo did not work), 3 when no user failed but one could not be judged (the machine was too
+#: loaded: run it again on a quieter one), 0 when every user was stable. (2 is a usage error.)
+EXIT_CODES = {"never rendered": 1, "unstable": 1, "could not judge": 3, "stable": 0}
+#: What each exit status means, as the demo's last line says it.
+EXIT_MEANING = {
+    0: "every user stable",
+    1: "a user unstable or never rendered",
+    3: "the machine was too loaded to judge; run it again on a quieter machine",
+}
+
+
+def largest_p2p(
+    t: np.ndarray,
+    x: np.ndarray,
+    mask: np.ndarray,
+    window_s: float = SHAKE_WINDOW_S,
+    hop_s: float = SHAKE_HOP_S,
+) -> tuple[float, float | None]:
+    """The largest peak to peak of ``x`` over any window of the masked samples, after its trend.
+
+    Windows of ``window_s`` [s] start every ``hop_s`` [s] from the first masked sample; each is
+    judged after its own straight-line fit, so a slow creep is not a peak to peak. Windows with
+    fewer than 3 samples or spanning under half ``window_s`` are not judged.
+
+    Parameters
+    ----------
+    t : (m,) array
+        Sample times [s].
+    x : (m,) array
+        The signal (any unit; the result is in that unit).
+    mask : (m,) bool array
+        The samples judged (non-finite ``x`` are left out too).
+
+    Returns
+    -------
+    (float, float or None)
+        The largest peak to peak (NaN if no window was judged) and the start of its window [s].
+    """
+    keep = mask & np.isfinite(x)
+    tk, xk = t[keep], x[keep]
+    worst, at = float("nan"), None
+    if tk.size < 3:
+        return worst, at
+    starts = np.arange(tk[0], max(tk[-1] - 0.5 * window_s, tk[0]) + 1e-9, hop_s)
+    for t0 in starts:
+        i0, i1 = np.searchsorted(tk, [t0, t0 + window_s])
+        tw, xw = tk[i0:i1], xk[i0:i1]
+        if tw.size < 3 or tw[-1] - tw[0] < 0.5 * window_s:
+            continue
+        p2p = float(np.ptp(xw - np.polyval(np.polyfit(tw - tw[0], xw, 1), tw - tw[0])))
+        if not p2p <= worst:  # the first, or a larger one
+            worst, at = p2p, float(t0)
+    return worst, at
+
+
+def contact_normal(cols: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray | None:
+    """The contact's outward unit normal: the mean direction of the force on the hand over the
+    masked samples (the force pushes the hand out of the surface); None without force there."""
+    f = np.stack([cols["force_x_n"], cols["force_y_n"], cols["force_z_n"]], axis=1)[mask]
+    mean = np.nanmean(f, axis=0) if f.size else np.zeros(3)
+    norm = float(np.linalg.norm(mean)) if np.all(np.isfinite(mean)) else 0.0
+    return mean / norm if norm > 1e-9 else None
+
+
+def felt_stiffness(
+    cols: dict[str, np.ndarray], mask: np.ndarray, k_o: float, block_s: float = FELT_BLOCK_S
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The stiffness a still hand feels through the rendered coupling, per block of ``block_s``.
+
+    At rest a coupling adds the compliance c in series with the object's 1/K_o
+    (:func:`steady_coupling_compliance`: ``1/K_h - C_h`` for a P coupling or an integral at 0,
+    ``-C_h`` for an integral carrying force), so the hand feels K_f = 1 / (c + 1/K_o): K_o
+    itself under a design with C_h K_h = 1, K_o/5 under a quarter-K_o fallback without
+    compensation. K_h, I, C_h and the integral are each sample's rendered ones; K_o is the
+    object's at the contact (:func:`object_stiffness`). It is computed from the gains rather
+    than from the measured force and depth: the recorded own-force offset is the server's
+    sampled force times C_h, which steps at every patch (0.2 mm on a resting hand) and at once
+    at a change of gains while the rendered proxy ramps, so a measured depth per newton read
+    25 % steps on holds whose force and probe did not move. What the rendering's lags do to the
+    hand shows in the probe's peak to peak (:func:`largest_p2p`). Samples count where masked,
+    in contact with a model (K_h > 0), at full force (no engage or release ramp) and without
+    a fault; K_f is capped at 10 K_o (a coupling stiffer than the object, c < -0.9/K_o).
+
+    Parameters
+    ----------
+    cols : dict of (m,) arrays
+        The user's telemetry (``t_s``, ``k_h_n_per_m``, ``in_contact`` and, when recorded,
+        ``i_gain_n_per_m_s``, ``integral_n``, ``own_gain_m_per_n``, ``force_scale``, ``fault``).
+    mask : (m,) bool array
+        The samples judged.
+    k_o : float
+        The object's stiffness at the contact [N/m].
+
+    Returns
+    -------
+    (t, low, high) : (n,) arrays
+        Each block's start [s] and its lowest and highest felt stiffness [N/m] (blocks without
+        a counted sample are left out).
+    """
+    t = cols["t_s"]
+    kh = cols["k_h_n_per_m"]
+    ok = mask & (cols["in_contact"] > 0) & (kh > 0.0)
+    if "force_scale" in cols:
+        ok &= cols["force_scale"] >= 0.999
+    if "fault" in cols:
+        ok &= cols["fault"] == 0
+    if not ok.any() or not k_o > 0.0:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    c = steady_coupling_compliance(
+        kh[ok],
+        cols.get("i_gain_n_per_m_s", np.zeros_like(t))[ok],
+        cols["own_gain_m_per_n"][ok] if "own_gain_m_per_n" in cols else None,
+        cols["integral_n"][ok] if "integral_n" in cols else None,
+    )
+    k_f = 1.0 / np.maximum(c + 1.0 / k_o, 0.1 / k_o)
+    block = np.floor((t[ok] - t[ok][0]) / block_s).astype(np.int64)
+    edges = np.r_[0, np.nonzero(np.diff(block))[0] + 1]
+    return (
+        t[ok][0] + block_s * block[edges],
+        np.minimum.reduceat(k_f, edges),
+        np.maximum.reduceat(k_f, edges),
+    )
+
+
+def felt_stiffness_step(
+    t_b: np.ndarray, low: np.ndarray, high: np.ndarray, window_s: float = FELT_STEP_WINDOW_S
+) -> dict[str, float] | None:
+    """The largest step of the felt stiffness: the largest ratio of the highest to the lowest
+    felt stiffness [N/m] within ``window_s`` [s] (:func:`felt_stiffness`'s (n,) block starts
+    [s], lows and highs).
+
+    Returns
+    -------
+    dict or None
+        ``ratio`` (high / low, >= 1), ``low_n_per_m``, ``high_n_per_m``, ``step_n_per_m``
+        (high - low) and ``at_s`` (the window's first block); None without a block.
+    """
+    if t_b.size == 0:
+        return None
+    best: dict[str, float] | None = None
+    for i in range(t_b.size):
+        j1 = max(int(np.searchsorted(t_b, t_b[i] + window_s, side="right")), i + 1)
+        lo, hi = float(np.min(low[i:j1])), float(np.max(high[i:j1]))
+        if best is None or hi / lo > best["ratio"]:
+            best = {
+                "ratio": hi / lo,
+                "low_n_per_m": lo,
+                "high_n_per_m": hi,
+                "step_n_per_m": hi - lo,
+                "at_s": float(t_b[i]),
+            }
+    return best
+
+
+def object_stiffness(summary: dict[str, Any]) -> float | None:
+    """The object's stiffness at the user's contact [N/m]: the median K_o_eff of the patches at
+    which the user's gains changed (the client summary's ``gain_changes``); None without any."""
+    k = [float(g["k_o_eff"]) for g in summary.get("gain_changes") or [] if g.get("k_o_eff")]
+    return float(np.median(k)) if k else None
+
+
+def server_overrun_share(
+    samples: list[dict[str, float]] | None, status: dict[str, Any], window: tuple[float, float]
+) -> tuple[float | None, str]:
+    """The share of the server's ticks that overran in ``window`` [s, A's clock].
+
+    ``samples`` are the server's status polled during the run (``t_s`` on A's clock, ``tick``,
+    ``overruns``): the counts at the last sample at or before the window's start and the first
+    at or after its end are differenced. Without two such samples, the final ``status``'s
+    totals (which count the start-up's too). Returns (share or None, which of the two).
+    """
+    pts = sorted(
+        (s for s in samples or [] if s.get("tick") is not None and s.get("overruns") is not None),
+        key=lambda s: s["t_s"],
+    )
+    before = [s for s in pts if s["t_s"] <= window[0]]
+    after = [s for s in pts if s["t_s"] >= window[1]]
+    if before and after and after[0]["tick"] > before[-1]["tick"]:
+        d_over = after[0]["overruns"] - before[-1]["overruns"]
+        return d_over / (after[0]["tick"] - before[-1]["tick"]), "during the hold"
+    tick, over = status.get("tick"), status.get("overruns")
+    if tick and over is not None:
+        return over / tick, "over the whole run"
+    return None, "not measured"
+
+
+def machine_load(
+    summary: dict[str, Any],
+    missed_in_hold_per_s: float,
+    overrun_share: float | None,
+    injected_rtt_ms: float,
+) -> list[str]:
+    """Why the machine was too loaded to judge this user's hold, in plain words ([] if not).
+
+    Any of: the server overran more than :data:`LOADED_OVERRUN_SHARE` of its ticks during the
+    hold; the user's servo missed more than :data:`LOADED_MISSED_PER_S` deadlines per second in
+    it; the user's median round trip exceeded ``injected_rtt_ms`` by more than
+    :data:`LOADED_RTT_EXTRA_MS`; no gain design finished and at least
+    :data:`LOADED_FALLBACK_SHARE` of the patches were rendered with fallback gains.
+    """
+    out: list[str] = []
+    if overrun_share is not None and overrun_share > LOADED_OVERRUN_SHARE:
+        out.append(f"the server overran {overrun_share:.0%} of its ticks")
+    if np.isfinite(missed_in_hold_per_s) and missed_in_hold_per_s > LOADED_MISSED_PER_S:
+        out.append(f"the servo missed {missed_in_hold_per_s:.0f} deadlines per second")
+    rtt = summary.get("rtt_ms_p50")
+    if rtt is not None and rtt > injected_rtt_ms + LOADED_RTT_EXTRA_MS:
+        out.append(f"the round trip took {rtt:.0f} ms (median; {injected_rtt_ms:.0f} ms injected)")
+    patches = int(summary.get("patches") or 0)
+    fallback = int(summary.get("fallback_patches") or 0)
+    if not summary.get("gain_designs") and patches and fallback >= LOADED_FALLBACK_SHARE * patches:
+        out.append(f"no gain design finished (fallback gains for {fallback} of {patches} patches)")
+    return out
+
+
+def hold_window(
+    name: str, tl: Timeline, cols: dict[str, np.ndarray], settled_s: float | None
+) -> list[tuple[float, float]]:
+    """The user's hold phase: its stretches (t0, t1) [s, A's clock].
+
+    A's: from :data:`HOLD_SETTLE_S` after its press to its release. B rests the whole run, and
+    A's press and release move the surface under B by design (the coupling): B's hold is its
+    rest while A is still, in up to three stretches: from B's settled contact (``settled_s``;
+    without it B's hold begins at A's hold) to A's contact, A's hold, and from
+    :data:`RELEASE_SETTLE_S` after A's release to 0.2 s before B's last sample.
+    """
+    a_hold = (tl.contact_s + tl.press_s + HOLD_SETTLE_S, tl.hold_end_s)
+    if name == "A":
+        return [a_hold]
+    end = float(cols["t_s"][-1]) - 0.2 if cols["t_s"].size else tl.hold_end_s
+    spans = [
+        (tl.contact_s if settled_s is None else settled_s, tl.contact_s),
+        a_hold,
+        (tl.hold_end_s + tl.release_s + RELEASE_SETTLE_S, end),
+    ]
+    starts_after = -np.inf if settled_s is None else settled_s
+    spans = [(max(t0, starts_after), t1) for t0, t1 in spans]
+    return [(t0, t1) for t0, t1 in spans if t1 - t0 > 0.1]
+
+
+def judge_user(
+    cols: dict[str, np.ndarray],
+    summary: dict[str, Any],
+    hold: list[tuple[float, float]],
+    load: list[str],
 ) -> dict[str, Any]:
-    w = _window(cols, *hold)
-    p2p = hold_shake_mm(cols["t_s"], cols["penetration_m"], cols["k_h_n_per_m"], hold)
-    faults = int(np.nansum(cols["fault"])) if "fault" in cols else 0
+    """The verdict on one user's hold (``hold``: its stretches (t0, t1) [s] on the telemetry's
+    clock, :func:`hold_window`; each judged apart, the worst reported).
+
+    - ``never rendered``: no local model arrived (no sample with K_h > 0), none during the hold,
+      or the user never touched the object during it: the user felt nothing, loaded machine or
+      not (its load is named among the reasons).
+    - ``could not judge``: the machine was too loaded (``load``, :func:`machine_load`, not
+      empty); what was measured is still reported.
+    - ``unstable``: over the whole hold the probe (along the contact normal) shook
+      :data:`STABLE_P2P_MM` or more peak to peak (:func:`largest_p2p`), the felt stiffness
+      stepped by more than the stiffness JND (:func:`felt_stiffness_step`), or a fault occurred.
+    - ``stable``: none of those.
+
+    Returns
+    -------
+    dict
+        ``verdict``, ``verdict_reasons`` (plain words), ``hold_window_s``,
+        ``hold_oscillation_mm`` and ``hold_oscillation_at_s`` (the probe), ``hold_force_p2p_n``,
+        ``felt_stiffness`` (:func:`felt_stiffness_step`'s dict with ``k_o_n_per_m`` and
+        ``jnd``, or None), ``model_share_of_hold`` and ``contact_share_of_hold``.
+    """
+    t = cols["t_s"]
+    w = np.zeros(t.shape, bool)
+    for span in hold:
+        w |= _window(cols, *span)
+    kh = cols.get("k_h_n_per_m", np.zeros_like(t))
+    model = kh > 0.0
+    contact = w & model & (cols["in_contact"] > 0)
+    n_hold = max(int(w.sum()), 1)
+    out: dict[str, Any] = {
+        "hold_window_s": [[t0, t1] for t0, t1 in hold],
+        "hold_oscillation_mm": None,
+        "hold_oscillation_at_s": None,
+        "hold_force_p2p_n": None,
+        "felt_stiffness": None,
+        "model_share_of_hold": float((w & model).sum() / n_hold),
+        "contact_share_of_hold": float(contact.sum() / n_hold),
+        "force_limited_share_of_hold": float(np.sum(w & (cols["force_limited"] > 0)) / n_hold)
+        if "force_limited" in cols
+        else None,
+    }
+    reasons: list[str] = []
+    if not model.any():
+        reasons.append(
+            f"no local model arrived ({int(summary.get('patches') or 0)} patches): "
+            "it rendered no force"
+        )
+    elif not (w & model).any():
+        reasons.append("no local model during its hold")
+    elif not contact.any():
+        reasons.append("it never touched the object during its hold")
+    if reasons:  # a load explains it, but the user still felt nothing: the demo did not work
+        if load:
+            reasons.append("the machine was loaded: " + ", ".join(load))
+        return {**out, "verdict": "never rendered", "verdict_reasons": reasons}
+    normal = contact_normal(cols, contact)
+    if normal is not None:
+        probe = np.stack([cols["probe_x_m"], cols["probe_y_m"], cols["probe_z_m"]], axis=1)
+        p2p, at = _worst_p2p(cols, probe @ normal, hold)
+        out["hold_oscillation_mm"] = p2p * 1000.0 if np.isfinite(p2p) else None
+        out["hold_oscillation_at_s"] = at
+    f_p2p, _ = _worst_p2p(cols, cols["force_n"], hold)
+    out["hold_force_p2p_n"] = f_p2p if np.isfinite(f_p2p) else None
+    k_o = object_stiffness(summary)
+    if k_o is not None:
+        step = felt_stiffness_step(*felt_stiffness(cols, w, k_o))
+        if step is not None:
+            out["felt_stiffness"] = {**step, "k_o_n_per_m": k_o, "jnd": STIFFNESS_JND}
+    shake = out["hold_oscillation_mm"]
+    if shake is not None and shake >= STABLE_P2P_MM:
+        reasons.append(
+            f"the probe shook {shake:.2f} mm peak to peak (in the {SHAKE_WINDOW_S:g} s from "
+            f"{out['hold_oscillation_at_s']:.1f} s; under {STABLE_P2P_MM:g} mm is steady)"
+        )
+    felt = out["felt_stiffness"]
+    if felt is not None and felt["ratio"] > 1.0 + STIFFNESS_JND:
+        reasons.append(
+            f"the felt stiffness stepped x{felt['ratio']:.2f} ({felt['low_n_per_m']:.0f} <-> "
+            f"{felt['high_n_per_m']:.0f} N/m, within {FELT_STEP_WINDOW_S:g} s from "
+            f"{felt['at_s']:.1f} s; a hand tells {STIFFNESS_JND:.0%} apart)"
+        )
+    faults = int(np.nansum(cols["fault"][w])) if "fault" in cols else 0
+    if faults:
+        reasons.append(f"{faults} servo ticks with a fault")
+    if shake is None and felt is None:
+        reasons.append("nothing of the hold could be measured")
+    if load:
+        measured = "; measured anyway: " + ("; ".join(reasons) if reasons else "a steady hold")
+        return {
+            **out,
+            "verdict": "could not judge",
+            "verdict_reasons": ["machine too loaded: " + ", ".join(load) + measured],
+        }
+    if reasons:
+        return {**out, "verdict": "unstable", "verdict_reasons": reasons}
+    return {**out, "verdict": "stable", "verdict_reasons": []}
+
+
+def _worst_p2p(
+    cols: dict[str, np.ndarray], x: np.ndarray, hold: list[tuple[float, float]]
+) -> tuple[float, float | None]:
+    """:func:`largest_p2p` of ``x`` in each stretch of ``hold`` apart: the largest, and where."""
+    worst, at = float("nan"), None
+    for span in hold:
+        p2p, t0 = largest_p2p(cols["t_s"], x, _window(cols, *span))
+        if np.isfinite(p2p) and not p2p <= worst:
+            worst, at = p2p, t0
+    return worst, at
+
+
+def run_verdict(users: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The run's verdict from its users' (``verdict`` each): the worst of them
+    (:data:`VERDICTS`) and its exit status (:data:`EXIT_CODES`)."""
+    worst = min((u["verdict"] for u in users.values()), key=VERDICTS.index, default="stable")
     return {
+        "verdict": worst,
+        "exit_code": EXIT_CODES[worst],
+        "users": {name: u["verdict"] for name, u in users.items()},
+    }
+
+
+def _user_report(
+    cols: dict[str, np.ndarray],
+    summary: dict[str, Any],
+    hold: list[tuple[float, float]],
+    overrun_share: float | None,
+    injected_rtt_ms: float,
+) -> dict[str, Any]:
+    """One user's part of the report: servo timing, gains, and the verdict on its ``hold``
+    (:func:`hold_window`'s stretches)."""
+    rate_set = float(summary.get("servo_rate_hz_set") or 1000.0)
+    whole = _window(cols, hold[0][0], hold[-1][1]) if hold else np.zeros(cols["t_s"].shape, bool)
+    missed_hold = (
+        missed_per_s(cols["t_s"][whole], cols["period_s"][whole], rate_set, skip_s=0.0)
+        if whole.sum() > 1
+        else float("nan")
+    )
+    w = np.zeros(cols["t_s"].shape, bool)
+    for span in hold:
+        w |= _window(cols, *span)
+    load = machine_load(summary, missed_hold, overrun_share, injected_rtt_ms)
+    judged = judge_user(cols, summary, hold, load)
+    force = cols["force_n"]
+    return {
+        "verdict": judged["verdict"],
+        "verdict_reasons": judged["verdict_reasons"],
+        "stable": judged["verdict"] == "stable",
         "servo_rate_hz": summary.get("servo_rate_hz"),
         "period_us_p99": summary.get("period_us_p99"),
-        "max_force_n": float(np.nanmax(cols["force_n"])) if cols["force_n"].size else 0.0,
-        "hold_oscillation_mm": p2p,
-        "stable": bool(np.isfinite(p2p) and p2p < STABLE_P2P_MM and faults == 0),
-        "mean_force_during_hold_n": float(np.nanmean(cols["force_n"][w])) if w.any() else None,
+        "max_force_n": float(np.nanmax(force)) if force.size else 0.0,
+        **{k: v for k, v in judged.items() if not k.startswith("verdict")},
+        "mean_force_during_hold_n": float(np.nanmean(force[w])) if w.any() else None,
+        "machine_load": load,
         "servo_overruns": summary.get("servo_overruns"),
-        "servo_missed_per_s": missed_per_s(
-            cols["t_s"], cols["period_s"], float(summary.get("servo_rate_hz_set") or 1000.0)
-        ),
+        "servo_missed_per_s": missed_per_s(cols["t_s"], cols["period_s"], rate_set),
+        "servo_missed_per_s_in_hold": missed_hold if np.isfinite(missed_hold) else None,
         "servo_host": summary.get("servo_host"),
         "servo_realtime": summary.get("servo_realtime"),
+        "rtt_ms_p50": summary.get("rtt_ms_p50"),
         "patches": summary.get("patches"),
+        "fallback_patches": summary.get("fallback_patches"),
+        "gain_designs": summary.get("gain_designs"),
         "delay_ticks_last": summary.get("delay_ticks_last"),
         "plane_patches": summary.get("plane_patches"),
         "identified_plane_patches": summary.get("identified_plane_patches"),
@@ -242,9 +673,19 @@ def _user_report(
 
 
 def build_report(
-    work: Path, tl: Timeline, server_status: dict[str, Any], opts: RunSettings
+    work: Path,
+    tl: Timeline,
+    server_status: dict[str, Any],
+    opts: RunSettings,
+    status_samples: list[dict[str, float]] | None = None,
 ) -> dict[str, Any]:
-    """The ``--report`` JSON from the clients' telemetry and summaries and the server's status."""
+    """The ``--report`` JSON from the clients' telemetry and summaries and the server's status.
+
+    ``status_samples``: the server's status polled during the run (``t_clock_s``,
+    ``time.perf_counter()`` at the poll [s], the clock of the clients' ``clock_origin_s``;
+    ``tick``, ``overruns``), for its overruns during each user's hold
+    (:func:`server_overrun_share`).
+    """
     a, a_sum = _load(work, "A")
     b, b_sum = _load(work, "B")
     # B's telemetry on A's clock (both clocks are CLOCK_MONOTONIC with a per-process origin)
@@ -254,8 +695,24 @@ def build_report(
     hold = (tl.hold_end_s - 1.0, tl.hold_end_s)
     rtts = np.array(a_sum.get("rtt_ms_samples", []) + b_sum.get("rtt_ms_samples", []), float)
     coupling = coupling_report(b, tl, hold, b_approach_end_s=shift + _REST_APPROACH_S)
+    samples = [
+        {**s, "t_s": s["t_clock_s"] - a_sum["clock_origin_s"]}
+        for s in status_samples or []
+        if "t_clock_s" in s
+    ]
+    injected_rtt_ms = 2.0 * (opts.latency_ms + opts.jitter_ms)
+    users: dict[str, dict[str, Any]] = {}
+    holds: dict[str, Any] = {}
+    for name, cols, summary in (("A", a, a_sum), ("B", b, b_sum)):
+        window = hold_window(name, tl, cols, coupling["b_settled_s"])
+        whole = (window[0][0], window[-1][1]) if window else (tl.contact_s, tl.hold_end_s)
+        share, share_is = server_overrun_share(samples, server_status, whole)
+        holds[name] = {"share": share, "is": share_is}
+        users[name] = _user_report(cols, summary, window, share, injected_rtt_ms)
+        users[name]["server_overrun_share_in_hold"] = share
     return {
-        "users": {"A": _user_report(a, a_sum, hold), "B": _user_report(b, b_sum, hold)},
+        "verdict": run_verdict(users),
+        "users": users,
         "coupling": coupling,
         "server": {
             "sim_rate_hz": opts.sim_rate_hz,
@@ -263,6 +720,8 @@ def build_report(
             "tick_ms_p50": server_status.get("tick_ms_p50"),
             "tick_ms_p99": server_status.get("tick_ms_p99"),
             "overruns": server_status.get("overruns"),
+            "ticks": server_status.get("tick"),
+            "overrun_share_in_hold_measured": holds["A"]["is"],
         },
         "network": {
             "rtt_ms_p50": float(np.percentile(rtts, 50)) if rtts.size else None,
@@ -502,21 +961,47 @@ def coupling_report(
     return out
 
 
+def verdict_line(name: str, u: dict[str, Any]) -> str:
+    """One user's verdict in plain words (the last lines ``haptic demo`` prints)."""
+    verdict = u.get("verdict", "stable" if u.get("stable") else "unstable")
+    reasons = "; ".join(u.get("verdict_reasons") or [])
+    if verdict == "stable":
+        spans = u.get("hold_window_s") or []
+        held = sum(t1 - t0 for t0, t1 in spans)
+        shake = u.get("hold_oscillation_mm")
+        felt = u.get("felt_stiffness")
+        parts = [f"over its {held:.1f} s hold"]
+        if shake is not None:
+            parts.append(f"the probe stayed within {shake:.2f} mm peak to peak")
+        if felt is not None:
+            parts.append(
+                f"the felt stiffness within x{felt['ratio']:.2f} "
+                f"({felt['low_n_per_m']:.0f}-{felt['high_n_per_m']:.0f} N/m; "
+                f"a hand tells {felt['jnd']:.0%} apart)"
+            )
+        return f"{name}: stable: " + ", ".join(parts)
+    return f"{name}: {verdict.upper()}: {reasons}"
+
+
 def print_summary(report: dict[str, Any]) -> None:
-    """A readable table of the report."""
+    """A readable table of the report, ending with each user's verdict in plain words."""
     print()
     print(
         f"{'user':<6}{'servo Hz':>10}{'p99 us':>9}{'missed/s':>10}{'max N':>8}"
-        f"{'hold p2p mm':>13}{'stable':>8}"
+        f"{'hold p2p mm':>13}{'felt step':>11}  verdict"
     )
     for name, u in report["users"].items():
         rate = u["servo_rate_hz"] or float("nan")
         p99 = u["period_us_p99"] or float("nan")
         missed = u.get("servo_missed_per_s")
         missed = float("nan") if missed is None else missed
+        shake = u.get("hold_oscillation_mm")
+        felt = u.get("felt_stiffness")
+        shake_s = "-" if shake is None else f"{shake:.3f}"
+        felt_s = "-" if felt is None else f"x{felt['ratio']:.2f}"
         print(
             f"{name:<6}{rate:>10.1f}{p99:>9.0f}{missed:>10.2f}{u['max_force_n']:>8.2f}"
-            f"{u['hold_oscillation_mm']:>13.3f}{'yes' if u['stable'] else 'NO':>8}"
+            f"{shake_s:>13}{felt_s:>11}  {u.get('verdict', '?')}"
         )
     ref = report.get("reference_loop")
     if ref:
@@ -550,6 +1035,13 @@ def print_summary(report: dict[str, Any]) -> None:
         f"server: {s['sim_rate_hz']:g} Hz, tick p50 {s['tick_ms_p50'] or 0:.2f} ms, p99 {s['tick_ms_p99'] or 0:.2f} ms, "
         f"overruns {s['overruns']}; network rtt p50 {n['rtt_ms_p50'] or 0:.1f} ms, p99 {n['rtt_ms_p99'] or 0:.1f} ms"
     )
+    for name, u in report["users"].items():
+        print(verdict_line(name, u))
+    v = report.get("verdict")
+    if v is not None:
+        print(
+            f"verdict: {v['verdict']} (exit status {v['exit_code']}: {EXIT_MEANING[v['exit_code']]})"
+        )
 
 
 def plot_demo(work: Path, tl: Timeline, path: Path) -> None:

@@ -1,0 +1,359 @@
+"""The demo's verdict on each user's whole hold, on synthetic recordings and summaries.
+
+What a user of ``haptic demo`` notices: a hold whose rendered gains flip between a fallback and a
+design (70 / 210 N/m: the force on a still hand jumps 1 N, 3 N, 1 N, 3 N) is not called steady;
+a user that never got a model is said to have felt nothing, not ``0.00 nan NO``, and the demo
+exits non-zero; a run on a machine too loaded to judge says so instead of calling a user
+unstable, with its own exit status.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from haptic_collab import demo as haptic_demo
+from haptic_collab.client.recorder import COLUMNS, CSV_HEADER, format_rows
+from haptic_collab.demo_report import (
+    EXIT_CODES,
+    STIFFNESS_JND,
+    build_report,
+    hold_window,
+    judge_user,
+    machine_load,
+    print_summary,
+    run_verdict,
+    timeline,
+)
+
+RATE = 1000.0
+DURATION = 20.0
+TL = timeline(DURATION)
+K_O = 280.0  # the object's stiffness at A's contact [N/m]
+TOP = np.array([0.0, 0.0, 0.1])  # A presses the top: outward +z
+SIDE = np.array([-0.1, 0.0, 0.0])  # B rests on the side: outward -x
+
+
+def user(
+    name: str,
+    k_h: Any = 210.0,
+    own_gain: Any = None,
+    force_n: Any = None,
+    probe_wobble_m: Any = 0.0,
+) -> dict[str, np.ndarray]:
+    """A user's telemetry over the whole run, every recorder column (SI units).
+
+    A approaches, presses 10 mm into the top and holds until its release; B rests 1.5 mm into
+    the side from 1 s on. ``k_h`` and ``own_gain`` (default 1/K_h: a design with C_h K_h = 1)
+    are numbers or functions of time; ``force_n`` overrides the force on the hand;
+    ``probe_wobble_m`` is added to the probe's depth (a function of time or a number).
+    """
+    t = np.arange(0.0, DURATION, 1.0 / RATE)
+    cols = {c: np.zeros_like(t) for c in COLUMNS}
+    cols["tick"] = np.arange(t.size, dtype=float)
+    cols["t_s"] = t
+
+    def at(v: Any) -> np.ndarray:
+        return np.asarray(v(t) if callable(v) else np.full_like(t, float(v)), float)
+
+    if name == "A":
+        anchor, normal = TOP, np.array([0.0, 0.0, 1.0])
+        press = np.clip((t - TL.contact_s) / TL.press_s, 0.0, 1.0)
+        release = np.clip((t - TL.hold_end_s) / TL.release_s, 0.0, 1.0)
+        depth = 0.010 * press * (1.0 - release) - 0.02 * (t < TL.contact_s)
+    else:
+        anchor, normal = SIDE, np.array([-1.0, 0.0, 0.0])
+        depth = np.where(t >= 1.0, 0.0015, -0.02)
+    depth = depth + at(probe_wobble_m)
+    kh = at(k_h)
+    own = 1.0 / kh if own_gain is None else at(own_gain)
+    contact = depth > 0.0
+    force = np.where(contact, K_O * depth, 0.0) if force_n is None else at(force_n)
+    probe = anchor[None, :] - np.outer(depth, normal)
+    for i, ax in enumerate("xyz"):
+        cols[f"probe_{ax}_m"] = probe[:, i]
+        cols[f"proxy_{ax}_m"] = anchor[i] + np.zeros_like(t)
+        cols[f"force_{ax}_n"] = force * normal[i]
+    cols["force_n"] = force
+    cols["penetration_m"] = depth
+    cols["k_h_n_per_m"] = kh
+    cols["own_gain_m_per_n"] = own
+    cols["own_offset_m"] = own * force
+    cols["in_contact"] = contact.astype(float)
+    cols["force_scale"] = np.ones_like(t)
+    cols["period_s"] = np.full_like(t, 1.0 / RATE)
+    return cols
+
+
+def summary(name: str, **over: Any) -> dict[str, Any]:
+    """A client's summary (``haptic client --summary``) with the fields the verdict reads."""
+    out: dict[str, Any] = {
+        "name": name,
+        "patches": 390,
+        "fallback_patches": 40,
+        "gain_designs": 4,
+        "rtt_ms_p50": 2.0,
+        "rtt_ms_samples": [2.0] * 10,
+        "gain_changes": [{"tick": 30, "k_h": 210.0, "k_o_eff": K_O}],
+        "servo_rate_hz": 999.9,
+        "servo_rate_hz_set": 1000.0,
+        "period_us_p99": 1001.0,
+        "clock_origin_s": 100.0,
+    }
+    out.update(over)
+    return out
+
+
+def a_hold() -> list[tuple[float, float]]:
+    return hold_window("A", TL, user("A"), None)
+
+
+def flipping(t: np.ndarray) -> np.ndarray:
+    """Fallback 70 N/m and a designed 210 N/m, each for 0.4 s, in the first half of A's hold;
+    the designed gains alone in its last seconds (which the demo used to judge alone)."""
+    hold0 = TL.contact_s + TL.press_s
+    flips = (t >= hold0) & (t < hold0 + 4.0) & (np.floor((t - hold0) / 0.4) % 2 == 0)
+    return np.where(flips, 70.0, 210.0)
+
+
+def test_gains_flipping_between_a_fallback_and_a_design_are_a_felt_stiffness_step() -> None:
+    """The issue's hold: the fallback renders 70 N/m without own-force compensation, the design
+    210 N/m with C_h = 1/K_h; the hand holds still. A still hand feels K_o through the design and
+    1/(1/70 + 1/K_o) = 56 N/m through the fallback: a step of x5, far beyond the JND."""
+    cols = user("A", k_h=flipping, own_gain=lambda t: np.where(flipping(t) < 100.0, 0.0, 1 / 210))
+    judged = judge_user(cols, summary("A"), a_hold(), load=[])
+    felt = judged["felt_stiffness"]
+    fallback_felt = 1.0 / (1.0 / 70.0 + 1.0 / K_O)
+    assert felt["low_n_per_m"] == pytest.approx(fallback_felt, rel=1e-6)
+    assert felt["high_n_per_m"] == pytest.approx(K_O, rel=1e-6)
+    assert felt["ratio"] == pytest.approx(K_O / fallback_felt, rel=1e-6)
+    assert felt["step_n_per_m"] == pytest.approx(K_O - fallback_felt, rel=1e-6)
+    assert felt["jnd"] == pytest.approx(0.10)  # shared.verified_plane's ln(1.1), as a share
+    assert judged["hold_oscillation_mm"] < 0.01  # the probe never moved
+    assert judged["verdict"] == "unstable"
+    (reason,) = judged["verdict_reasons"]
+    assert "felt stiffness stepped x5.00 (56 <-> 280 N/m" in reason
+    # the last second of the hold, all the demo used to judge, is steady: judged alone it passes
+    last = [(TL.hold_end_s - 1.0, TL.hold_end_s)]
+    assert judge_user(cols, summary("A"), last, load=[])["verdict"] == "stable"
+
+
+def test_designs_with_own_force_compensation_feel_the_same_whatever_their_k_h() -> None:
+    """Both gains compensated (C_h K_h = 1, as every P design on the balloon): the hand feels the
+    object's own K_o through either, so the same flips are no step and the hold is stable."""
+    judged = judge_user(user("A", k_h=flipping), summary("A"), a_hold(), load=[])
+    assert judged["felt_stiffness"]["ratio"] == pytest.approx(1.0)
+    assert judged["verdict"] == "stable" and judged["verdict_reasons"] == []
+
+
+def test_a_felt_step_within_the_jnd_is_steady() -> None:
+    """A felt stiffness 5 % off for a second is within the stiffness JND (10 %); 40 % is not."""
+    hold0 = TL.contact_s + TL.press_s
+
+    def softer(c: float):  # coupling compliance c/K_o for one second mid-hold
+        return lambda t: np.where((t >= hold0 + 2.0) & (t < hold0 + 3.0), c / K_O, 0.0)
+
+    inside = user("A", k_h=1e9, own_gain=lambda t: -softer(0.05)(t))  # K_h ~ inf: c = -C_h
+    outside = user("A", k_h=1e9, own_gain=lambda t: -softer(0.4)(t))
+    j_in = judge_user(inside, summary("A"), a_hold(), load=[])
+    j_out = judge_user(outside, summary("A"), a_hold(), load=[])
+    assert j_in["felt_stiffness"]["ratio"] == pytest.approx(1.05, rel=1e-3)
+    assert j_in["felt_stiffness"]["ratio"] < 1.0 + STIFFNESS_JND
+    assert j_in["verdict"] == "stable"
+    assert j_out["felt_stiffness"]["ratio"] == pytest.approx(1.4, rel=1e-3)
+    assert j_out["verdict"] == "unstable"
+
+
+def test_the_whole_hold_is_judged_for_shake_not_for_creep() -> None:
+    hold0 = TL.contact_s + TL.press_s
+    early = lambda t: np.where(  # noqa: E731  a 6 Hz, 1.6 mm shake in the hold's first seconds
+        (t >= hold0 + 1.0) & (t < hold0 + 2.5), 0.0008 * np.sin(2 * np.pi * 6.0 * t), 0.0
+    )
+    shaky = judge_user(user("A", probe_wobble_m=early), summary("A"), a_hold(), load=[])
+    assert shaky["verdict"] == "unstable"
+    assert 1.4 < shaky["hold_oscillation_mm"] < 2.0  # 1.6 mm; each window's trend moves it a little
+    assert hold0 + 0.5 <= shaky["hold_oscillation_at_s"] < hold0 + 2.5
+    assert "the probe shook" in shaky["verdict_reasons"][0]
+    # the probe sinking 4 mm in 1.5 s (the device held at its continuous force limit) is a creep
+    creep = lambda t: 0.004 * np.clip((t - hold0 - 4.0) / 1.5, 0.0, 1.0)  # noqa: E731
+    steady = judge_user(user("A", probe_wobble_m=creep), summary("A"), a_hold(), load=[])
+    assert steady["hold_oscillation_mm"] < 1.0 and steady["verdict"] == "stable"
+
+
+def test_a_user_that_never_got_a_model_is_never_rendered_and_fails_the_run(capsys) -> None:
+    """The issue's heaviest load: no patch, no force, the probe 47 mm inside the object. The
+    demo printed `0.00 nan NO` and exited 0."""
+    none = user("A", k_h=0.0, own_gain=0.0, force_n=0.0, probe_wobble_m=0.037)
+    none["in_contact"] = np.zeros_like(none["t_s"])
+    judged = judge_user(none, summary("A", patches=0, gain_changes=[]), a_hold(), load=[])
+    assert judged["verdict"] == "never rendered"
+    assert judged["verdict_reasons"] == ["no local model arrived (0 patches): it rendered no force"]
+    assert judged["hold_oscillation_mm"] is None and judged["felt_stiffness"] is None
+    stable_b = {"verdict": "stable"}
+    verdict = run_verdict({"A": judged, "B": stable_b})
+    assert verdict == {
+        "verdict": "never rendered",
+        "exit_code": 1,
+        "users": {"A": "never rendered", "B": "stable"},
+    }
+    # on a loaded machine too: the load is named, and the user still felt nothing
+    loaded = judge_user(none, summary("A", patches=0), a_hold(), load=["the server overran 40%"])
+    assert loaded["verdict"] == "never rendered"
+    assert loaded["verdict_reasons"][1] == "the machine was loaded: the server overran 40%"
+    # a model, but the probe never met the surface during the hold: the user felt nothing either
+    away = user("A", probe_wobble_m=-0.05)
+    assert judge_user(away, summary("A"), a_hold(), load=[])["verdict_reasons"] == [
+        "it never touched the object during its hold"
+    ]
+
+
+def test_a_loaded_machine_could_not_judge_and_says_why() -> None:
+    """The issue's load ~7: fallback gains for 194 of 194 patches, no design done; the demo said
+    `stable yes`. And a loaded hold that shook is not called unstable."""
+    starved = summary("A", patches=194, fallback_patches=194, gain_designs=0)
+    reasons = machine_load(starved, missed_in_hold_per_s=0.4, overrun_share=0.0, injected_rtt_ms=0)
+    assert reasons == ["no gain design finished (fallback gains for 194 of 194 patches)"]
+    judged = judge_user(user("A"), starved, a_hold(), load=reasons)
+    assert judged["verdict"] == "could not judge"
+    assert judged["verdict_reasons"] == [
+        "machine too loaded: no gain design finished (fallback gains for 194 of 194 patches); "
+        "measured anyway: a steady hold"
+    ]
+    # the server overran a quarter of its ticks, the servo missed 120 deadlines a second, the
+    # round trip took 400 ms through a 100 ms link: each is a reason; the shake is still measured
+    slow = summary("A", rtt_ms_p50=400.0)
+    reasons = machine_load(
+        slow, missed_in_hold_per_s=120.0, overrun_share=0.25, injected_rtt_ms=240
+    )
+    assert reasons == [
+        "the server overran 25% of its ticks",
+        "the servo missed 120 deadlines per second",
+        "the round trip took 400 ms (median; 240 ms injected)",
+    ]
+    hold0 = TL.contact_s + TL.press_s
+    shake = lambda t: np.where(t > hold0 + 1.0, 0.001 * np.sin(2 * np.pi * 8.0 * t), 0.0)  # noqa: E731
+    judged = judge_user(user("A", probe_wobble_m=shake), slow, a_hold(), load=reasons)
+    assert judged["verdict"] == "could not judge"
+    assert "measured anyway: the probe shook" in judged["verdict_reasons"][0]
+    verdict = run_verdict({"A": judged, "B": {"verdict": "stable"}})
+    assert verdict["exit_code"] == 3 and verdict["verdict"] == "could not judge"
+    # an unstable or unrendered user outranks one that could not be judged
+    assert run_verdict({"A": judged, "B": {"verdict": "unstable"}})["exit_code"] == 1
+    # a quiet machine gives no reason
+    assert machine_load(summary("A"), 1.0, 0.01, 0.0) == []
+
+
+def write_run(work: Path, a: dict, b: dict, a_sum: dict, b_sum: dict) -> None:
+    """A demo's folder as its clients leave it: telemetry CSV and summary JSON per user."""
+    work.mkdir(parents=True, exist_ok=True)
+    for name, cols, summ in (("A", a, a_sum), ("B", b, b_sum)):
+        rows = np.stack([cols[c] for c in COLUMNS], axis=1)
+        (work / f"{name}.csv").write_text(CSV_HEADER + format_rows(rows))
+        (work / f"{name}.json").write_text(json.dumps(summ))
+
+
+class Settings:
+    sim_rate_hz = 20.0
+    stiffness_scale = 1.0
+    latency_ms = 0.0
+    jitter_ms = 0.0
+    loss = 0.0
+    duration_s = DURATION
+
+
+def overrun_samples(share_in_hold: float) -> list[dict[str, float]]:
+    """The server's status polled every 0.5 s on the clients' clock (origin 100 s): 20 ticks a
+    second, ``share_in_hold`` of them overrun from A's contact on."""
+    out, over = [], 0.0
+    for k, t in enumerate(np.arange(0.0, DURATION + 0.5, 0.5)):
+        if t > TL.contact_s:
+            over += 10 * share_in_hold
+        out.append({"t_clock_s": 100.0 + t, "tick": 10 * k, "overruns": round(over)})
+    return out
+
+
+def test_the_report_carries_the_verdict_and_the_console_ends_with_it(tmp_path, capsys) -> None:
+    work = tmp_path / "run"
+    a = user("A", k_h=flipping, own_gain=lambda t: np.where(flipping(t) < 100.0, 0.0, 1 / 210))
+    write_run(work, a, user("B"), summary("A"), summary("B", gain_changes=[{"k_o_eff": 270.0}]))
+    status = {"tick": 400, "overruns": 0, "tick_ms_p50": 3.0, "tick_ms_p99": 6.0}
+    report = build_report(work, TL, status, Settings(), overrun_samples(0.0))
+    json.dumps(report)  # JSON-able, as --report writes it
+    assert report["verdict"] == {
+        "verdict": "unstable",
+        "exit_code": 1,
+        "users": {"A": "unstable", "B": "stable"},
+    }
+    ua, ub = report["users"]["A"], report["users"]["B"]
+    assert ua["stable"] is False and ub["stable"] is True
+    assert ua["felt_stiffness"]["ratio"] == pytest.approx(5.0, rel=1e-3)
+    assert ua["hold_window_s"] == [[TL.contact_s + TL.press_s + 0.5, TL.hold_end_s]]
+    assert ua["server_overrun_share_in_hold"] == 0.0 and ua["machine_load"] == []
+    # B is judged while A is still: before A touches, during A's hold, after A's release
+    assert [w[1] for w in ub["hold_window_s"]][:2] == [TL.contact_s, TL.hold_end_s]
+    print_summary(report)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert "nan" not in "\n".join(lines)
+    assert lines[-3].startswith("A: UNSTABLE: the felt stiffness stepped x5.00")
+    assert lines[-2].startswith("B: stable: over its ")
+    assert lines[-1] == "verdict: unstable (exit status 1: a user unstable or never rendered)"
+
+
+def test_a_run_whose_server_overran_during_the_hold_could_not_be_judged(tmp_path, capsys) -> None:
+    work = tmp_path / "run"
+    write_run(work, user("A"), user("B"), summary("A"), summary("B"))
+    status = {"tick": 400, "overruns": 120}
+    report = build_report(work, TL, status, Settings(), overrun_samples(0.3))
+    assert report["verdict"]["verdict"] == "could not judge"
+    assert report["verdict"]["exit_code"] == EXIT_CODES["could not judge"] == 3
+    ua = report["users"]["A"]
+    assert ua["server_overrun_share_in_hold"] == pytest.approx(0.3, abs=0.02)
+    assert ua["machine_load"] == ["the server overran 30% of its ticks"]
+    assert report["server"]["overrun_share_in_hold_measured"] == "during the hold"
+    print_summary(report)
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out[-3].startswith("A: COULD NOT JUDGE: machine too loaded: the server overran 30%")
+    assert out[-1].startswith("verdict: could not judge (exit status 3: the machine was too loaded")
+
+
+def test_a_user_that_never_rendered_makes_haptic_demo_exit_non_zero(
+    tmp_path, monkeypatch, capsys
+) -> None:
+    """End to end through the command line, the processes replaced by a finished run's folder:
+    the report is written, the folder kept, and ``haptic demo`` exits 1."""
+    from haptic_collab.cli import main
+
+    none = user("B", k_h=0.0, own_gain=0.0, force_n=0.0)
+    none["in_contact"] = np.zeros_like(none["t_s"])
+    run = tmp_path / "run"
+    write_run(run, user("A"), none, summary("A"), summary("B", patches=0, gain_changes=[]))
+    report_path = tmp_path / "out" / "report.json"
+
+    def finished_run(work: Path, port: int, opts: haptic_demo.DemoOptions) -> dict[str, Any]:
+        report = build_report(run, TL, {"tick": 400, "overruns": 0}, opts, [])
+        assert opts.report is not None
+        opts.report.parent.mkdir(parents=True, exist_ok=True)
+        opts.report.write_text(json.dumps(report))
+        return report
+
+    monkeypatch.setattr(haptic_demo, "_run_in", finished_run)
+    work = tmp_path / "work"
+    args = ["demo", "--headless", "--port", "0", "--workdir", str(work)]
+    assert main([*args, "--report", str(report_path)]) == 1
+    saved = json.loads(report_path.read_text())
+    assert saved["users"]["B"]["verdict"] == "never rendered"
+    assert saved["verdict"]["exit_code"] == 1
+    # without --workdir the temporary folder is kept after such a run, and named
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    with pytest.raises(haptic_demo.DemoVerdictError) as err:
+        haptic_demo.run_demo(haptic_demo.DemoOptions(port=0, report=report_path))
+    assert err.value.exit_code == 1 and "B never rendered" in str(err.value)
+    (kept,) = temp.iterdir()
+    assert f"logs and telemetry are in {kept}" in capsys.readouterr().err
