@@ -113,7 +113,8 @@ def tl_contact(duration_s: float) -> float:
 
 
 def test_a_hold_is_judged_for_shake_not_for_creep_nor_for_a_change_of_gains() -> None:
-    """The demo's `stable`: a shaking hold fails, a creeping one and a moved equilibrium pass."""
+    """hold_shake_mm (the loopback test's judgement of a hold; the demo judges the whole hold
+    in test_demo_verdict.py): a shaking hold fails, a creeping one and a moved equilibrium pass."""
     t = np.arange(0.0, 3.0, 1.0 / RATE)
     window = (2.0, 3.0)
     k_h = np.full_like(t, 43.0)
@@ -131,7 +132,7 @@ def test_a_hold_is_judged_for_shake_not_for_creep_nor_for_a_change_of_gains() ->
     assert hold_shake_mm(t, moved, k_h2, window) == pytest.approx(0.0, abs=1e-9)
     # a shake on either side of the change is still seen
     assert hold_shake_mm(t, moved + shake - still, k_h2, window) > 1.0
-    # gains changing all the time leave nothing to judge: not a number (the demo says unstable)
+    # gains changing all the time leave nothing to judge: not a number
     chatter = 43.0 + 10.0 * (np.floor(t / 0.2) % 2)
     assert np.isnan(hold_shake_mm(t, still, chatter, window))
     # but gains scaled to a K_o drifting inside its cell (0.1 % every 50 ms patch) are judged
