@@ -38,6 +38,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
@@ -45,9 +46,10 @@ from websockets.http11 import Request, Response
 
 from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkShaper
+from haptic_collab.server.metrics import RoomFigures, ServerCollector, scrape_allowed
 from haptic_collab.server.prefetch import PatchPrefetcher
 from haptic_collab.server.room import Outgoing, Room
-from haptic_collab.server.security import is_loopback, origin_allowed
+from haptic_collab.server.security import TokenTable, is_loopback, origin_allowed
 from haptic_collab.shared.gain_table import warm_up
 from haptic_collab.shared.protocol import LinkConditions
 from haptic_collab.workers import background_worker, stop_pool
@@ -110,6 +112,8 @@ class _Peer:
     #: Who, for log lines: "HOST:PORT", then "HOST:PORT user 'A' (u1)" once welcomed.
     who: str = ""
     named: bool = False
+    #: The figures of the room it is in (patches and viewer bytes its sender writes).
+    figures: RoomFigures = field(default_factory=RoomFigures)
 
 
 def _static_response(web_dir: Path, path: str) -> Response:
@@ -175,6 +179,9 @@ class ServerApp:
         Solve the load patches next to the users' contacts in a worker thread between ticks
         (:class:`server.prefetch.PatchPrefetcher`); ``haptic server`` turns it on for the FEM
         solid.
+    metrics_token : TokenTable, optional
+        The token a scrape of ``/metrics`` must carry (``Authorization: Bearer``); without one
+        only a server on loopback answers it (:func:`server.metrics.scrape_allowed`).
     """
 
     def __init__(
@@ -190,8 +197,15 @@ class ServerApp:
         send_timeout_s: float = SEND_TIMEOUT_S,
         gain_executor: Executor | None = None,
         prefetch: bool = False,
+        metrics_token: TokenTable | None = None,
     ) -> None:
         self.room = room
+        #: What this layer counts per room, by name (:mod:`server.metrics`).
+        self.figures: dict[str, RoomFigures] = {DEFAULT_ROOM: RoomFigures()}
+        self.metrics_token = metrics_token
+        #: The registry ``/metrics`` exposes: one collector reading the rooms when scraped.
+        self.metrics_registry = CollectorRegistry(auto_describe=False)
+        self.metrics_registry.register(ServerCollector(self))
         #: Solve the patches next to the users' contacts between ticks (server.prefetch).
         self.prefetch = bool(prefetch)
         #: Where recommended-gain designs run (default: one spawned worker process, made on the
@@ -295,9 +309,30 @@ class ServerApp:
         if path == "/status":
             body = json.dumps(self.status())
             return _text(HTTPStatus.OK, body, "application/json")
+        if path == "/metrics":
+            return self._metrics(request)
         if request.headers.get("Upgrade", "").lower() == "websocket":
             return _text(HTTPStatus.NOT_FOUND, "the websocket endpoint is /ws\n")
         return _static_response(self.web_dir, path)
+
+    def _metrics(self, request: Request) -> Response:
+        """``/metrics``: the Prometheus text format, for those :func:`scrape_allowed` admits."""
+        auth = request.headers.get("Authorization")
+        if not scrape_allowed(is_loopback(self.host), auth, self.metrics_token):
+            if self.metrics_token is None:
+                return _text(
+                    HTTPStatus.FORBIDDEN,
+                    "/metrics off loopback needs a metrics token (docs/security.md)\n",
+                )
+            return Response(
+                HTTPStatus.UNAUTHORIZED.value,
+                HTTPStatus.UNAUTHORIZED.phrase,
+                Headers([("WWW-Authenticate", 'Bearer realm="metrics"'), ("Content-Length", "0")]),
+                b"",
+            )
+        return _text(
+            HTTPStatus.OK, generate_latest(self.metrics_registry).decode(), CONTENT_TYPE_LATEST
+        )
 
     def viewer_missing(self) -> list[str]:
         """The viewer's files that are not there (relative to :attr:`web_dir`); [] when complete."""
@@ -373,6 +408,7 @@ class ServerApp:
             up=LinkShaper(self.link, seed=f"{self.seed}:{conn_id}:up"),
             down=LinkShaper(self.link, seed=f"{self.seed}:{conn_id}:down"),
         )
+        peer.figures = self.figures[DEFAULT_ROOM]
         self._peers[conn_id] = peer
         loop = asyncio.get_running_loop()
         sender = asyncio.create_task(self._sender(peer))
@@ -469,6 +505,10 @@ class ServerApp:
                     out = peer.ready.popleft()
                     if out.data is not None:
                         await asyncio.wait_for(peer.ws.send(out.data), self.send_timeout_s)
+                        if out.stream == "patch":
+                            peer.figures.patches_sent += 1
+                        elif isinstance(out.data, bytes):  # the viewers' surface stream
+                            peer.figures.viewer_bytes_sent += len(out.data)
                         if out.on_sent is not None:  # the viewer stream tracks what was sent
                             out.on_sent()
                     if out.close:
@@ -500,20 +540,27 @@ class ServerApp:
         """
         loop = asyncio.get_running_loop()
         room = self.room
+        figures = self.figures[DEFAULT_ROOM]
         room.start(loop.time())
         while True:
-            delay = room.get_timer() - loop.time()
+            due = room.get_timer()
+            delay = due - loop.time()
             if delay > 0:
                 await asyncio.sleep(delay)
             else:  # late: still let the senders write the last tick's frames first
                 await asyncio.sleep(0)
             start = loop.time()
+            before = room.tick_count
             try:
                 outs = room.handle_timer(start)
             except Exception:  # a bug in the physics must not take every user down silently
                 log.exception("simulation tick %d failed", room.tick_count)
                 outs = []
-            room.tick_cost(loop.time() - start)
+            cost = loop.time() - start
+            room.tick_cost(cost)
+            if room.tick_count != before:  # a tick ran (not an early wake-up)
+                figures.tick_s.add(cost)  # the metrics' share: two integer histograms
+                figures.lateness_s.add(max(0.0, start - due))
             self._dispatch(outs)
             self._start_designs()
             if self.prefetcher is not None:

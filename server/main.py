@@ -10,6 +10,7 @@ import signal
 import ssl
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 from haptic_collab.server.agones import (
@@ -47,6 +48,9 @@ class ServerOptions:
     Agones (docs/deploy.md): with ``$AGONES_SDK_HTTP_PORT`` set the server reports to the SDK
     sidecar (:mod:`server.agones`) and asks to be shut down once it has been empty for
     ``agones_empty_shutdown_s`` [s] (None or 0: never).
+
+    ``metrics_token_file`` holds the token a Prometheus scrape of ``/metrics`` must present
+    (``Authorization: Bearer``); without it only a server on loopback serves ``/metrics``.
     """
 
     host: str = "127.0.0.1"
@@ -75,6 +79,7 @@ class ServerOptions:
     object: str = "balloon"
     volume_cache: str | None = None
     agones_empty_shutdown_s: float | None = EMPTY_SHUTDOWN_S
+    metrics_token_file: str | None = None
 
 
 def build_auth(opts: ServerOptions) -> TokenTable | None:
@@ -99,6 +104,30 @@ def build_auth(opts: ServerOptions) -> TokenTable | None:
             "--tls-key), or --insecure to accept that risk (docs/security.md)"
         )
     return auth
+
+
+def build_metrics_token(opts: ServerOptions) -> TokenTable | None:
+    """The token of ``metrics_token_file`` (its one line, whitespace stripped); None without.
+
+    Raises
+    ------
+    ValueError
+        A file that cannot be read, or whose content is not one token (16-256 printable
+        characters without spaces or ``#``); the message never shows the file's content.
+    """
+    if not opts.metrics_token_file:
+        return None
+    try:
+        text = Path(opts.metrics_token_file).read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"cannot read the metrics token file: {exc}") from None
+    try:
+        return TokenTable.single(text)
+    except ValueError:
+        raise ValueError(
+            f"{opts.metrics_token_file}: the metrics token file must hold one token of 16-256 "
+            "printable characters without spaces or #"
+        ) from None
 
 
 def build_ssl(opts: ServerOptions) -> ssl.SSLContext | None:
@@ -310,6 +339,7 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     link = build_link(opts)
     agones = build_agones(opts)
     auth = build_auth(opts)
+    metrics_token = build_metrics_token(opts)
     ssl_context = build_ssl(opts)
     origins = tuple(normalize_origin(o) for o in opts.allow_origins)
     rates = build_rates(opts)
@@ -331,6 +361,7 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         # the FEM solid's patch solves (50 ms at 10k vertices) are its p99; the balloon's are
         # about 1 ms, and its demo stress set was not yet measured with a prefetching thread
         prefetch=opts.object == "fem",
+        metrics_token=metrics_token,
     )
     scheme = "https" if ssl_context else "http"
     if auth is None and not is_loopback(opts.host):
