@@ -555,6 +555,8 @@ class Room:
                     k_o_eff=float(res.k_o_eff),
                     k_o_stiff=float(res.k_o_stiff),
                     b_o=float(res.b_o),
+                    tick=tick,
+                    in_contact=bool(res.in_contact or res.own_force_n > 0.0),
                 )
             out.append(Outgoing(conn_id, encode(res.to_wire(rec)), stream="patch"))
         viewers = self.viewers

@@ -101,14 +101,20 @@ def ship_jobs(
 def _design_job(job: tuple[GainKey, int]) -> tuple[GainKey, int, dict[Mode, GainDesign] | None]:
     key, cell = job
     try:
-        os.nice(5)
-    except OSError:
-        pass
-    try:
         out = design_cell_modes(key, cell, K_O_GRID_RATIO, DEFAULT_HAND_BOX, ("p", "pi"))
     except ValueError:  # no stable gains for this cell: the session designs (and reports) it
         return key, cell, None
     return key, cell, dict(out)
+
+
+def _lower_priority() -> None:
+    """A build worker's initializer: ``nice`` 5, one BLAS thread (a build runs beside other work)."""
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    try:
+        os.nice(5)
+    except OSError:  # not permitted here: run at the normal priority
+        pass
 
 
 def _write(path: Path, table: GainTable, code: str) -> None:
@@ -144,7 +150,7 @@ def build_table(
     ]
     todo = jobs if max_jobs is None else jobs[:max_jobs]
     done = 0
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with ProcessPoolExecutor(max_workers=workers, initializer=_lower_priority) as pool:
         pending: set[Future[Any]] = set()
         it = iter(todo)
         for job in it:

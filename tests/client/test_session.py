@@ -8,7 +8,7 @@ from haptic_collab.client.session import ClientSession
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from haptic_collab.shared.protocol import Pong, Welcome, encode
 from haptic_collab.shared.stability import analyze
-from tests.support.sessions import WELCOME_OBJECT, welcomed_session
+from tests.support.sessions import WELCOME_OBJECT, press_patch, welcomed_session
 from tests.support.sessions import session_patch as patch
 
 
@@ -107,7 +107,8 @@ def test_one_stall_does_not_make_the_local_model_soft_for_long():
 
 def test_a_delay_wavering_under_load_keeps_one_gain_key_and_a_rise_is_taken_at_once():
     # every new delay is a new key whose gains must be checked before they render: a delay
-    # estimate that wavers tick by tick kept a first contact waiting for the whole demo
+    # estimate that wavers tick by tick kept a first contact waiting for the whole demo, and one
+    # that fell and rose again within a steady hold changed the stiffness the hand felt
     s = session()
     t = 1.0
     for _ in range(20):
@@ -118,18 +119,32 @@ def test_a_delay_wavering_under_load_keeps_one_gain_key_and_a_rise_is_taken_at_o
         pong(s, 0.37, t)  # a burst of 370 ms round trips: 7 ticks, designed for at once
         t += 0.5
     assert s.delay_ticks(t) == 7
-    seen = []
+    held = []
     for i in range(40):  # the burst leaves the 90th percentile: the measured delay falls...
         pong(s, 0.12, t)
         t += 0.5
         up = receive_designed(s, patch(10 + i), t)
         assert up is not None
+        held.append(up.choice.delay_ticks)
+    # ...but in contact the key does not follow it down: one key for the whole hold
+    assert set(held) == {7}
+    seen = []
+    for i in range(40):  # out of contact it follows, only after 5 s at each lower value
+        pong(s, 0.12, t)
+        t += 0.5
+        up = receive_designed(s, press_patch(60 + i, 0.0, 300.0, k_o=300.0, in_contact=False), t)
+        assert up is not None
         seen.append(up.choice.delay_ticks)
-    # ...and the key follows it down only after 5 s at each lower value: no key is left sooner
     assert seen == sorted(seen, reverse=True) and seen[0] == 7 and seen[-1] == 2
     runs = [seen.count(d) for d in sorted(set(seen), reverse=True)]
     assert all(n >= 10 for n in runs[:-1]), seen
     assert s.delay_ticks() == 2
+    # and a rise in contact is taken at once
+    for _ in range(4):
+        pong(s, 0.37, t)
+        t += 0.5
+    up = receive_designed(s, patch(200), t)
+    assert up is not None and up.choice.delay_ticks == 7
 
 
 def test_stale_patches_are_ignored_and_a_new_session_starts_afresh():

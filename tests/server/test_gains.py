@@ -228,3 +228,23 @@ def test_an_interim_recommendation_yields_to_the_clients_own_full_design() -> No
     own = s.gain_table.lookup(key, 300.0)
     assert up is not None and own is not None and s.server_gain_patches == 1
     assert (up.k_h, up.i_gain) == (own.k_h, own.i_gain) != (rec.k_h, rec.i_gain)
+
+
+def test_the_advisor_holds_the_delay_through_a_contact_as_the_client_does() -> None:
+    # the advisor's recommendation changes key only as the client's own would: a steady hold
+    # whose round trips waver under load keeps one key (shared.gain_policy.DelayHold)
+    adv = GainAdvisor(20.0, shipped=False)
+    h = hello("pi")
+    for _ in range(20):
+        adv.observe_rtt("u1", 320.0)  # 6 ticks at 20 Hz
+    keys = [adv.key("u1", h, 0.0, 300.0, 300.0, tick=0, in_contact=True).delay_ticks]
+    for i in range(1, 400):  # 20 s of patches while the round trip falls to 20 ms
+        adv.observe_rtt("u1", 20.0)
+        keys.append(adv.key("u1", h, 0.0, 300.0, 300.0, tick=i, in_contact=True).delay_ticks)
+    assert set(keys) == {6}
+    # released: the lower delay is designed for once it has lasted 5 s (100 ticks)
+    after = [
+        adv.key("u1", h, 0.0, 300.0, 300.0, tick=400 + i, in_contact=False).delay_ticks
+        for i in range(101)
+    ]
+    assert after[0] == 6 and after[99] == 6 and after[100] == 0

@@ -1,0 +1,103 @@
+"""A client's table starts from the shipped tables and this machine's cache of designs, and adds
+its own designs to the cache (client.gain_store)."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+
+from haptic_collab.client.gain_store import cache_path, load_cache, preload, save_cache
+from haptic_collab.shared.gain_key import make_gain_key
+from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gain_table_file import design_code_hash
+
+
+def _key(delay: int):
+    return make_gain_key(
+        servo_rate_hz=1000.0,
+        sim_rate_hz=100.0,
+        delay_ticks=delay,
+        mode="p",
+        margin=0.15,
+        k_h_max=1000.0,
+        b_h_max=10.0,
+        b_o=0.0,
+        stiff_ratio=1.0,
+    )
+
+
+@pytest.fixture(scope="module")
+def designs() -> GainTable:
+    """Two designed cells (delay 0 and 1), made once for the module."""
+    table = GainTable()
+    table.design(_key(0), 300.0)
+    table.design(_key(1), 300.0)
+    return table
+
+
+def _table(designs: GainTable, *delays: int) -> GainTable:
+    """A new table with the designs of ``delays`` (as if this session had made them)."""
+    out = GainTable()
+    for key, cell, design in designs.cells():
+        if key.delay_ticks in delays:
+            out.store(key, cell, design)
+    return out
+
+
+@pytest.fixture
+def cache_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("HAPTIC_GAIN_CACHE", str(tmp_path))
+    return tmp_path
+
+
+def test_a_design_made_in_one_session_is_there_at_the_next_sessions_first_patch(
+    cache_dir, designs
+) -> None:
+    code = design_code_hash()
+    first = _table(designs, 0)
+    expected = first.lookup(_key(0), 300.0)
+    assert expected is not None
+    assert save_cache(first, code) == 1
+    second = GainTable()
+    info = preload(second)
+    assert info["cached"] == 1 and info["design_code"] == code
+    assert second.lookup(_key(0), 300.0) == expected  # no design to wait for
+
+
+def test_two_clients_writing_the_cache_keep_both_designs(cache_dir, designs) -> None:
+    code = design_code_hash()
+    a, b = _table(designs, 0), _table(designs, 1)
+    save_cache(a, code)
+    assert save_cache(b, code) == 2
+    merged = GainTable()
+    assert load_cache(merged, code) == 2
+
+
+def test_a_broken_cache_is_ignored_with_a_warning_and_written_anew(
+    cache_dir, caplog, designs
+) -> None:
+    code = design_code_hash()
+    cache_path(code).write_text("{not json")
+    table = GainTable()
+    with caplog.at_level(logging.WARNING):
+        assert load_cache(table, code) == 0
+    assert "not used" in caplog.text and len(table) == 0
+    table = _table(designs, 0)
+    assert save_cache(table, code) == 1
+    assert json.loads(cache_path(code).read_text())["design_code"] == code
+
+
+def test_a_cache_of_other_design_code_is_not_read(cache_dir, designs) -> None:
+    table = _table(designs, 0)
+    save_cache(table, "0123456789abcdef")
+    assert load_cache(GainTable(), design_code_hash()) == 0
+    assert preload(GainTable(), cache=True)["cached"] == 0
+
+
+def test_an_unwritable_cache_does_not_stop_the_client(tmp_path, monkeypatch, designs) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setenv("HAPTIC_GAIN_CACHE", str(blocker / "sub"))  # under a file: cannot exist
+    assert save_cache(_table(designs, 0), design_code_hash()) == -1
