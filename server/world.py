@@ -90,13 +90,17 @@ class _UserState:
     """What the world remembers of a user between ticks.
 
     The last finite probe, the primitive sent, the load patch's key, and where the proxy was on
-    the surface (its face and barycentric coordinates, and the probe's penetration there).
+    the surface (its face and barycentric coordinates, and the probe's penetration there), with
+    that point's material point and rest normal (:meth:`World._material_of`), which the next
+    tick's load (Step 3) starts from.
     """
 
     probe: FloatArray
     primitive: Plane | Sphere
     key: int
     surface: SurfacePoint
+    rest_point: FloatArray
+    rest_normal: FloatArray
 
 
 def _finite3(value: object) -> FloatArray | None:
@@ -175,6 +179,15 @@ class World:
         self._faces = np.ascontiguousarray(obj.faces, dtype=np.int32)
         self._faces.setflags(write=False)
         rest = self._index.rest_vertices
+        # every face's rest unit normal (zero for a degenerate face), once: the rest surface
+        # never changes, and the material point of every contact needs its face's
+        tri = rest[self._index.faces]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.sqrt(np.einsum("ij,ij->i", n, n))
+        self._rest_normals = np.divide(
+            n, length[:, None], out=np.zeros_like(n), where=length[:, None] > 0.0
+        )
+        self._rest_normal_ok = length > 0.0
         lo, hi = rest.min(axis=0), rest.max(axis=0)
         self._bounds = np.stack([lo, hi])
         self._center = 0.5 * (lo + hi)
@@ -282,13 +295,13 @@ class World:
         """Where the surface point ``s`` was at rest, and the rest normal of its face: the patch
         centres are rest positions, and a part that moved or turned by centimetres (a bent FEM
         part) must be loaded at its own patch, not at the one now nearest in space."""
-        tri = self._index.rest_vertices[self.faces[s.face]]
+        face = int(s.face)
+        tri = self._index.rest_vertices[self._index.faces[face]]
         bary = s.bary
         if bary is None:
             bary = np.full(3, 1.0 / 3.0)
-        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
-        norm = float(np.linalg.norm(n))
-        return bary @ tri, (n / norm if norm > 0.0 else np.asarray(s.normal))
+        normal = self._rest_normals[face] if self._rest_normal_ok[face] else np.asarray(s.normal)
+        return bary @ tri, normal
 
     def _rest_plane(self, s: SurfacePoint, rest_point: FloatArray) -> Plane | None:
         """The rest surface's tangent plane at the material point ``rest_point`` of ``s``, with
@@ -306,8 +319,7 @@ class World:
         surface point (moved back by that point's displacement); the point itself without one."""
         if user is None:
             return point, normal
-        rest_point, rest_normal = self._material_of(user.surface)
-        return point - (user.surface.point - rest_point), rest_normal
+        return point - (user.surface.point - user.rest_point), user.rest_normal
 
     def patches_ahead(self, limit: int = 4) -> list[int]:
         """Up to ``limit`` uncached patch centres next to the users' current ones, for solving
@@ -378,9 +390,9 @@ class World:
         ]
         patch_keys = []
         rest_planes: list[Plane | None] = []
-        for name, s in zip(names, located, strict=True):
+        materials = [self._material_of(s) for s in located]
+        for name, s, (rest_point, rest_normal) in zip(names, located, materials, strict=True):
             user = self._users.get(name)
-            rest_point, rest_normal = self._material_of(s)
             rest_planes.append(self._rest_plane(s, rest_point) if len(names) == 1 else None)
             patch_keys.append(
                 self.obj.patch_key(rest_point, user.key if user is not None else None, rest_normal)
@@ -410,7 +422,14 @@ class World:
                 )
             else:
                 prim = fit_plane(s)
-            users[name] = _UserState(probe=probes[i], primitive=prim, key=patch_keys[i], surface=s)
+            users[name] = _UserState(
+                probe=probes[i],
+                primitive=prim,
+                key=patch_keys[i],
+                surface=s,
+                rest_point=materials[i][0],
+                rest_normal=materials[i][1],
+            )
             out[name] = SurfacePatch(
                 tick=number,
                 primitive=prim,
