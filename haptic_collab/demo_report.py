@@ -443,11 +443,50 @@ def server_overrun_share(
     return None, "not measured"
 
 
+def delay_rise_in_hold(
+    summary: dict[str, Any],
+    hold: list[tuple[float, float]],
+    tick_times: tuple[np.ndarray, np.ndarray] | None,
+) -> tuple[int, float] | None:
+    """Whether the user's measured delay rose and unchecked fallback gains were rendered in its
+    hold: (the delay [simulation ticks], the fallback's K_h [N/m]) of the first such gains, or
+    None.
+
+    The client summary's ``gain_changes`` say, per change of the rendered gains, the server
+    tick, K_h, whether the gains were checked (``verified``) or a ``fallback``, and the loop
+    delay the client measured (``delay_ticks``). A delay above the run's lowest, on the demo's
+    loopback link whose injected latency does not change, is the machine's load (the event loops
+    late to answer), and gains unchecked for it are the quarter-K_o fallback the client renders
+    until a check for the new delay arrives: a hand feels them as the object going soft. Each
+    change holds until the next; ``tick_times`` ((k,) server ticks, (k,) times [s, A's clock],
+    from the server's polled status) place them in time; without it every change of the run
+    counts.
+    """
+    changes = [g for g in summary.get("gain_changes") or [] if g.get("tick") is not None]
+    delays = [int(g.get("delay_ticks") or 0) for g in changes]
+    if not changes:
+        return None
+    if tick_times is not None and tick_times[0].size >= 2:
+        starts = np.interp([float(g["tick"]) for g in changes], *tick_times)
+        ends = np.r_[starts[1:], np.inf]
+    else:
+        starts = np.full(len(changes), -np.inf)
+        ends = np.full(len(changes), np.inf)
+    lowest = min(delays)
+    for g, d, t0, t1 in zip(changes, delays, starts, ends, strict=True):
+        in_hold = any(t0 < h1 and t1 > h0 for h0, h1 in hold)
+        unchecked = g.get("fallback") and not g.get("verified", True)
+        if in_hold and unchecked and d > lowest:
+            return d, float(g.get("k_h") or 0.0)
+    return None
+
+
 def machine_load(
     summary: dict[str, Any],
     missed_in_hold_per_s: float,
     overrun_share: float | None,
     injected_rtt_ms: float,
+    delay_rise: tuple[int, float] | None = None,
 ) -> list[str]:
     """Why the machine was too loaded to judge this user's hold, in plain words ([] if not).
 
@@ -455,7 +494,9 @@ def machine_load(
     hold; the user's servo missed more than :data:`LOADED_MISSED_PER_S` deadlines per second in
     it; the user's median round trip exceeded ``injected_rtt_ms`` by more than
     :data:`LOADED_RTT_EXTRA_MS`; no gain design finished and at least
-    :data:`LOADED_FALLBACK_SHARE` of the patches were rendered with fallback gains.
+    :data:`LOADED_FALLBACK_SHARE` of the patches were rendered with fallback gains; the user's
+    measured delay rose and it rendered unchecked fallback gains in its hold (``delay_rise``,
+    :func:`delay_rise_in_hold`).
     """
     out: list[str] = []
     if overrun_share is not None and overrun_share > LOADED_OVERRUN_SHARE:
@@ -469,6 +510,12 @@ def machine_load(
     fallback = int(summary.get("fallback_patches") or 0)
     if not summary.get("gain_designs") and patches and fallback >= LOADED_FALLBACK_SHARE * patches:
         out.append(f"no gain design finished (fallback gains for {fallback} of {patches} patches)")
+    if delay_rise is not None:
+        out.append(
+            f"its measured delay rose to {delay_rise[0]} simulation "
+            f"tick{'' if delay_rise[0] == 1 else 's'} and it rendered unchecked fallback gains "
+            f"({delay_rise[1]:.0f} N/m) in its hold"
+        )
     return out
 
 
@@ -630,9 +677,10 @@ def _user_report(
     hold: list[tuple[float, float]],
     overrun_share: float | None,
     injected_rtt_ms: float,
+    tick_times: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """One user's part of the report: servo timing, gains, and the verdict on its ``hold``
-    (:func:`hold_window`'s stretches)."""
+    (:func:`hold_window`'s stretches; ``tick_times``: :func:`delay_rise_in_hold`'s)."""
     rate_set = float(summary.get("servo_rate_hz_set") or 1000.0)
     whole = _window(cols, hold[0][0], hold[-1][1]) if hold else np.zeros(cols["t_s"].shape, bool)
     missed_hold = (
@@ -643,7 +691,8 @@ def _user_report(
     w = np.zeros(cols["t_s"].shape, bool)
     for span in hold:
         w |= _window(cols, *span)
-    load = machine_load(summary, missed_hold, overrun_share, injected_rtt_ms)
+    delay_rise = delay_rise_in_hold(summary, hold, tick_times)
+    load = machine_load(summary, missed_hold, overrun_share, injected_rtt_ms, delay_rise)
     judged = judge_user(cols, summary, hold, load)
     force = cols["force_n"]
     return {
@@ -701,6 +750,12 @@ def build_report(
         if "t_clock_s" in s
     ]
     injected_rtt_ms = 2.0 * (opts.latency_ms + opts.jitter_ms)
+    polled = sorted((float(s["tick"]), float(s["t_s"])) for s in samples if "tick" in s)
+    tick_times = (
+        (np.array([k for k, _ in polled]), np.array([t for _, t in polled]))
+        if len(polled) >= 2
+        else None
+    )
     users: dict[str, dict[str, Any]] = {}
     holds: dict[str, Any] = {}
     for name, cols, summary in (("A", a, a_sum), ("B", b, b_sum)):
@@ -708,7 +763,7 @@ def build_report(
         whole = (window[0][0], window[-1][1]) if window else (tl.contact_s, tl.hold_end_s)
         share, share_is = server_overrun_share(samples, server_status, whole)
         holds[name] = {"share": share, "is": share_is}
-        users[name] = _user_report(cols, summary, window, share, injected_rtt_ms)
+        users[name] = _user_report(cols, summary, window, share, injected_rtt_ms, tick_times)
         users[name]["server_overrun_share_in_hold"] = share
     return {
         "verdict": run_verdict(users),
@@ -979,7 +1034,13 @@ def verdict_line(name: str, u: dict[str, Any]) -> str:
                 f"({felt['low_n_per_m']:.0f}-{felt['high_n_per_m']:.0f} N/m; "
                 f"a hand tells {felt['jnd']:.0%} apart)"
             )
-        return f"{name}: stable: " + ", ".join(parts)
+        line = f"{name}: stable: " + ", ".join(parts)
+        if felt is not None and felt["high_n_per_m"] * (1.0 + felt["jnd"]) < felt["k_o_n_per_m"]:
+            line += (
+                f"; softer than the object throughout ({felt['k_o_n_per_m']:.0f} N/m): "
+                "conservative gains"
+            )
+        return line
     return f"{name}: {verdict.upper()}: {reasons}"
 
 

@@ -23,6 +23,7 @@ from haptic_collab.demo_report import (
     EXIT_CODES,
     STIFFNESS_JND,
     build_report,
+    delay_rise_in_hold,
     hold_window,
     judge_user,
     machine_load,
@@ -357,3 +358,65 @@ def test_a_user_that_never_rendered_makes_haptic_demo_exit_non_zero(
     assert err.value.exit_code == 1 and "B never rendered" in str(err.value)
     (kept,) = temp.iterdir()
     assert f"logs and telemetry are in {kept}" in capsys.readouterr().err
+
+
+def fallback_changes(unchecked_tick: int) -> list[dict[str, Any]]:
+    """A client's gain changes: designs at delay 0, then at ``unchecked_tick`` (server ticks,
+    20 a second from the run's start) the delay measured rises to 2 ticks and the client renders
+    the unchecked quarter-K_o fallback (59 N/m) until a check for it brings checked gains back
+    two seconds later."""
+    design = {"k_h": 146.2, "verified": True, "fallback": False, "k_o_eff": 237.1}
+    return [
+        {**design, "tick": 30, "delay_ticks": 0},
+        {
+            "tick": unchecked_tick,
+            "k_h": 59.3,
+            "verified": False,
+            "fallback": True,
+            "delay_ticks": 2,
+            "k_o_eff": 237.1,
+        },
+        {**design, "tick": unchecked_tick + 40, "fallback": True, "delay_ticks": 2},
+    ]
+
+
+def test_a_delay_risen_on_loopback_with_unchecked_fallback_gains_is_the_machine_s_load() -> None:
+    """The 12 s demo beside a load of 10: B's measured delay rose from 0 to 1-3 ticks on a
+    loopback link, and B rendered the unchecked fallback in A's hold: its felt stiffness stepped
+    x5. That is the machine's load, not B's instability: the demo could not judge B."""
+    # the status polled: tick k at k / 20 s on A's clock
+    tick_times = (np.array([0.0, 400.0]), np.array([0.0, 20.0]))
+    in_hold = fallback_changes(unchecked_tick=int(20 * (TL.contact_s + TL.press_s + 1.0)))
+    hold = a_hold()
+    assert delay_rise_in_hold(summary("B", gain_changes=in_hold), hold, tick_times) == (2, 59.3)
+    # the same before the hold (back to checked gains by then) is not in it
+    before = fallback_changes(unchecked_tick=20)
+    assert delay_rise_in_hold(summary("B", gain_changes=before), hold, tick_times) is None
+    # with the injected latency's delay from the start (2 ticks throughout) nothing rose
+    steady = [{**g, "delay_ticks": 2} for g in in_hold]
+    assert delay_rise_in_hold(summary("B", gain_changes=steady), hold, tick_times) is None
+    reasons = machine_load(summary("B"), 0.5, 0.0, 0.0, delay_rise=(2, 59.3))
+    assert reasons == [
+        "its measured delay rose to 2 simulation ticks and it rendered unchecked fallback "
+        "gains (59 N/m) in its hold"
+    ]
+
+
+def test_a_report_with_a_risen_delay_in_the_hold_could_not_judge(tmp_path) -> None:
+    hold0 = TL.contact_s + TL.press_s
+    unchecked = lambda t: (t >= hold0 + 1.0) & (t < hold0 + 3.0)  # noqa: E731
+    a = user(
+        "A",
+        k_h=lambda t: np.where(unchecked(t), 59.3, 210.0),
+        own_gain=lambda t: np.where(unchecked(t), 0.0, 1.0 / 210.0),
+    )
+    changes = fallback_changes(unchecked_tick=int(20 * (hold0 + 1.0)))
+    work = tmp_path / "run"
+    write_run(work, a, user("B"), summary("A", gain_changes=changes), summary("B"))
+    report = build_report(work, TL, {"tick": 400, "overruns": 0}, Settings(), overrun_samples(0))
+    ua = report["users"]["A"]
+    assert ua["verdict"] == "could not judge"
+    assert ua["felt_stiffness"]["ratio"] > 4.0  # measured and reported all the same
+    assert "its measured delay rose to 2 simulation ticks" in ua["verdict_reasons"][0]
+    assert "measured anyway: the felt stiffness stepped" in ua["verdict_reasons"][0]
+    assert report["verdict"]["exit_code"] == 3
