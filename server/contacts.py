@@ -28,6 +28,7 @@ the few faces whose bounds can still hold the minimum.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -189,6 +190,72 @@ def _closest_on_triangles(
     return points, bary
 
 
+def _closest_on_triangle(
+    p: Sequence[float], a: Sequence[float], b: Sequence[float], c: Sequence[float]
+) -> tuple[tuple[float, float, float], tuple[float, float, float], float]:
+    """:func:`_closest_on_triangles` for one triangle, in plain floats.
+
+    A proxy that follows the surface tests one face, then the few around an edge or a vertex, a
+    few times per user per tick: on so few faces numpy's per-call overhead is most of the cost.
+    The same arithmetic in the same order (and the same first minimum among the edges), so the
+    same numbers.
+
+    Parameters
+    ----------
+    p, a, b, c : sequences of 3 floats [m]
+        The point and the triangle's corners.
+
+    Returns
+    -------
+    point : tuple of 3 floats [m]
+    bary : tuple of 3 floats, barycentric coordinates of ``point`` w.r.t. (a, b, c)
+    dist2 : float, squared distance [m^2] from ``p`` to ``point``
+    """
+    px, py, pz = p
+    ax, ay, az = a
+    bx, by, bz = b
+    cx, cy, cz = c
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d00 = abx * abx + aby * aby + abz * abz
+    d01 = abx * acx + aby * acy + abz * acz
+    d11 = acx * acx + acy * acy + acz * acz
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    den = d00 * d11 - d01 * d01
+    if den > _FLAT_SIN2 * d00 * d11:  # den > 0: a triangle with an interior to project on
+        v = (d11 * d1 - d01 * d2) / den
+        w = (d00 * d2 - d01 * d1) / den
+        if v >= 0.0 and w >= 0.0 and v + w <= 1.0:
+            qx = ax + v * abx + w * acx
+            qy = ay + v * aby + w * acy
+            qz = az + v * abz + w * acz
+            gx, gy, gz = qx - px, qy - py, qz - pz
+            return (qx, qy, qz), (1.0 - v - w, v, w), gx * gx + gy * gy + gz * gz
+    # the edges a->b, b->c, c->a: the first of the nearest clamped projections
+    best, best_g2, best_t, best_q = -1, math.inf, 0.0, (ax, ay, az)
+    for j, (sx, sy, sz, ex, ey, ez) in enumerate(
+        (
+            (ax, ay, az, abx, aby, abz),
+            (bx, by, bz, cx - bx, cy - by, cz - bz),
+            (cx, cy, cz, ax - cx, ay - cy, az - cz),
+        )
+    ):
+        e2 = ex * ex + ey * ey + ez * ez
+        t = ((px - sx) * ex + (py - sy) * ey + (pz - sz) * ez) / e2 if e2 > 0.0 else 0.0
+        t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
+        qx, qy, qz = sx + t * ex, sy + t * ey, sz + t * ez
+        gx, gy, gz = qx - px, qy - py, qz - pz
+        g2 = gx * gx + gy * gy + gz * gz
+        if best < 0 or g2 < best_g2:
+            best, best_g2, best_t, best_q = j, g2, t, (qx, qy, qz)
+    wts = [0.0, 0.0, 0.0]
+    wts[best] = 1.0 - best_t
+    wts[(best + 1) % 3] = best_t
+    return best_q, (wts[0], wts[1], wts[2]), best_g2
+
+
 def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
     """Row-wise dot product (k,) of (k, 3) arrays (cheaper than einsum for small k)."""
     return np.asarray((a * b).sum(axis=1), dtype=np.float64)
@@ -340,7 +407,7 @@ _ON_BOUNDARY = 1e-9
 MAX_SLIDE_FACES = 512
 
 
-def _faces_around(index: SurfaceIndex, vertices: IntArray) -> IntArray:
+def _faces_around(index: SurfaceIndex, vertices: Sequence[int]) -> IntArray:
     """Faces holding every one of ``vertices`` (1 or 2 vertex ids): a vertex's ring, an edge's pair."""
     v0 = int(vertices[0])
     ring = index.vf_faces[index.vf_indptr[v0] : index.vf_indptr[v0 + 1]]
@@ -404,28 +471,30 @@ def track_proxy(
     if w.shape != (3,) or not np.all(np.isfinite(w)):
         raise ValueError(f"bary must be 3 finite weights, got {bary!r}")
     cur = np.asarray(vertices, dtype=np.float64)
-    tri = cur[index.faces[f]]
-    q, b = _closest_on_triangles(p, tri[0:1], tri[1:2], tri[2:3])
-    point, wts = q[0], b[0]
-    gap = point - p
+    # one face, then the few around an edge or a vertex: plain floats (_closest_on_triangle)
+    pt = p.tolist()
+    a, b, c = cur[index.faces[f]].tolist()
+    point, wts, _ = _closest_on_triangle(pt, a, b, c)
+    gap = np.array(point) - p
     best = float(gap @ gap)
     for _ in range(max(1, int(max_faces))):
-        support = index.faces[f][wts > _ON_BOUNDARY]
+        corners = index.faces[f].tolist()
+        support = [v for v, wt in zip(corners, wts, strict=True) if wt > _ON_BOUNDARY]
         if len(support) == 3:
             break  # the minimum is inside the face: a local minimum of the surface
         around = _faces_around(index, support)
         around = around[around != f]
         if len(around) == 0:
             break
-        tris = cur[index.faces[around]]
-        qs, bs = _closest_on_triangles(p, tris[:, 0], tris[:, 1], tris[:, 2])
-        gaps = qs - p
-        d2 = _rowdot(gaps, gaps)
-        j = int(np.argmin(d2))
-        if not d2[j] < best * (1.0 - 1e-12):
+        j, d2 = -1, math.inf
+        for i, (a, b, c) in enumerate(cur[index.faces[around]].tolist()):
+            qi, bi, di = _closest_on_triangle(pt, a, b, c)
+            if j < 0 or di < d2:
+                j, d2, q, bq = i, di, qi, bi
+        if not d2 < best * (1.0 - 1e-12):
             break  # no neighbour across the edge or vertex is nearer: a local minimum
-        f, point, wts, best = int(around[j]), qs[j], bs[j], float(d2[j])
-    return _surface_point(index, cur, p, f, point, wts, best)
+        f, point, wts, best = int(around[j]), q, bq, d2
+    return _surface_point(index, cur, p, f, np.array(point), np.array(wts), best)
 
 
 def segment_entry(

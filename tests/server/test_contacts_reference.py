@@ -11,7 +11,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from haptic_collab.server.contacts import SurfaceIndex, _closest_on_triangles, closest_point
+from haptic_collab.server.contacts import (
+    SurfaceIndex,
+    _closest_on_triangle,
+    _closest_on_triangles,
+    closest_point,
+)
 from haptic_collab.server.objects.balloon import Balloon
 
 R = 0.1
@@ -70,6 +75,25 @@ def test_a_face_squashed_flat_gives_its_nearest_edge_point_not_a_point_centimetr
         np.abs(bary[:, 0, None] * a + bary[:, 1, None] * b + bary[:, 2, None] * c - points).max()
         < 1e-12
     )
+
+
+def test_the_one_triangle_routine_gives_the_same_numbers_as_the_batch():
+    """track_proxy's plain-float routine against the vectorized one (and trimesh): the same
+    points, barycentrics and distances to the last bit, on ordinary, degenerate and squashed
+    triangles, with the probe off every region of them."""
+    rng = np.random.default_rng(5)
+    tri = rng.normal(size=(1200, 3, 3)) * 0.01 + rng.normal(size=(1200, 1, 3)) * 0.01
+    tri[100:200, 1] = tri[100:200, 0]  # two corners coincide
+    tri[200:300, 1:] = tri[200:300, :1]  # a point
+    tri[300:400, 2] = tri[300:400, 0] + 0.3 * (tri[300:400, 1] - tri[300:400, 0])  # a segment
+    for p in (np.zeros(3), rng.normal(size=3) * 0.01):
+        points, bary = _closest_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
+        gaps = points - p
+        for i, (a, b, c) in enumerate(tri.tolist()):
+            q, w, d2 = _closest_on_triangle(p.tolist(), a, b, c)
+            assert q == tuple(points[i]) and w == tuple(bary[i])
+            assert d2 == float((gaps[i] * gaps[i]).sum())
+        assert np.abs(points - trimesh_closest(p, tri)).max() < 1e-12
 
 
 def test_proxy_is_trimeshs_nearest_point_on_a_deformed_balloon():
