@@ -111,6 +111,12 @@ SERVER_OPTIONS: dict[str, _Option] = {
     "tls_key": _Option("str", "TLS key (PEM)", _not_empty, True),
     "insecure": _Option("bool", "listen off loopback without tokens"),
     "log_level": _Option("str", "log verbosity", _one_of("debug", "info", "warning", "error")),
+    "agones_empty_shutdown": _Option(
+        "float", "seconds empty before Agones Shutdown (0: never)", _nonneg
+    ),
+    "metrics_token_file": _Option(
+        "str", "file holding the /metrics bearer token", _not_empty, True
+    ),
 }
 
 #: Values of path keys that are names, not files (kept as they are); the stress shapes'

@@ -127,6 +127,8 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         material=args.material,
         object=args.object,
         volume_cache=args.volume_cache,
+        agones_empty_shutdown_s=args.agones_empty_shutdown,
+        metrics_token_file=args.metrics_token_file,
     )
 
 
@@ -194,6 +196,21 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "--insecure",
         action="store_true",
         help="listen off loopback without tokens (anyone who can reach it may push)",
+    )
+    sec.add_argument(
+        "--metrics-token-file",
+        default=None,
+        metavar="FILE",
+        help="token a /metrics scrape must carry (Authorization: Bearer); without it only a "
+        "server on loopback serves /metrics",
+    )
+    p.add_argument(
+        "--agones-empty-shutdown",
+        type=float,
+        default=300.0,
+        metavar="S",
+        help="under Agones (AGONES_SDK_HTTP_PORT set): ask for Shutdown after S seconds empty "
+        "(0: never; default %(default)s)",
     )
     p.set_defaults(func=_cmd_server)
 
@@ -456,7 +473,7 @@ def _add_devices(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
 
 # --------------------------------------------------------------------------------------------- demo
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from haptic_collab.demo import DemoOptions, run_demo
+    from haptic_collab.demo import DemoOptions, DemoVerdictError, run_demo
 
     if args.plot:
         _need_matplotlib()  # before the run, not after it
@@ -492,6 +509,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         run_demo(opts)
     except ValueError as exc:
         raise CliError(_why(exc)) from None
+    except DemoVerdictError as exc:  # the report is written; the verdict is the exit status
+        return exc.exit_code
     except RuntimeError as exc:
         print(f"haptic demo: failed: {exc}", file=sys.stderr)
         return 1
