@@ -91,13 +91,15 @@ def run_demo(
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=duration + 120)
         row: dict = {"mesh": label, "run": run, "latency": "50 +- 10 ms" if latency else "none"}
         row["wall_s"] = round(time.monotonic() - start, 1)
-        if proc.returncode != 0 or not report.is_file():
+        if not report.is_file():  # exit 1 or 3 with a report is a verdict, not an error
             row["error"] = (proc.stderr or proc.stdout).strip().splitlines()[-1:]
             return row
+        row["exit"] = proc.returncode
         rep = json.loads(report.read_text())
         for name in ("A", "B"):
             u = rep["users"][name]
             row[f"{name}_stable"] = u["stable"]
+            row[f"{name}_verdict"] = u.get("verdict")
             row[f"{name}_hold_p2p_mm"] = round(u["hold_oscillation_mm"], 3)
             row[f"{name}_max_force_n"] = round(u["max_force_n"], 3)
         c = rep["coupling"]

@@ -191,6 +191,8 @@ def test_demo_processes_feel_each_other(tmp_path):
         "demo", "--headless", "--duration", "12", "--port", "0", "--report", str(report), "--plot", str(plot),
         timeout=180, tmpdir=temp,
     )  # fmt: skip
+    if res.returncode == 3:  # the demo says the machine was too loaded to judge
+        pytest.skip(res.stdout.strip().splitlines()[-1])
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     assert "viewer: http://127.0.0.1:" in res.stdout and "B feels A" in res.stdout
     assert list(temp.iterdir()) == []  # no --workdir: the logs and telemetry are gone

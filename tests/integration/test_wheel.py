@@ -128,7 +128,8 @@ def test_the_demo_runs_beside_a_labs_own_server_py(installed: Path, tmp_path: Pa
          "--report", str(report)],
         cwd=tmp_path, capture_output=True, text=True, timeout=240,
     )  # fmt: skip
-    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    # 3: the demo ran but says the machine was too loaded to judge its users
+    assert res.returncode in (0, 3), res.stdout[-2000:] + res.stderr[-2000:]
     data = json.loads(report.read_text())
     # the installed processes ran and talked (how strongly B felt A is tests/app/test_cli.py's job:
     # on a loaded machine B's contact may settle too late for the 12 s run to measure it)
