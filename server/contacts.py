@@ -274,9 +274,9 @@ def _vertex_normals(index: SurfaceIndex, vertices: FloatArray, ids: IntArray) ->
     """Area-weighted outward unit normals (k, 3) of the current surface at vertices ``ids``."""
     starts = index.vf_indptr[ids]
     counts = index.vf_indptr[ids + 1] - starts
-    group_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    group_start = np.concatenate([[0], counts.cumsum()[:-1]])
     total = int(counts.sum())
-    gather = np.repeat(starts - group_start, counts) + np.arange(total)
+    gather = (starts - group_start).repeat(counts) + np.arange(total)
     fs = index.faces[index.vf_faces[gather]]
     p0 = vertices[fs[:, 0]]
     fn = _cross(vertices[fs[:, 1]] - p0, vertices[fs[:, 2]] - p0)
@@ -324,7 +324,7 @@ def closest_point(
         ``probe`` not 3 finite numbers, or a negative/non-finite ``displacement_bound_m``.
     """
     p = np.asarray(probe, dtype=np.float64)
-    if p.shape != (3,) or not np.all(np.isfinite(p)):
+    if p.shape != (3,) or not np.isfinite(p).all():
         raise ValueError(f"probe must be 3 finite numbers [m], got {probe!r}")
     bound = float(displacement_bound_m)
     if not (math.isfinite(bound) and bound >= 0.0):
@@ -412,7 +412,7 @@ def _faces_around(index: SurfaceIndex, vertices: Sequence[int]) -> IntArray:
     v0 = int(vertices[0])
     ring = index.vf_faces[index.vf_indptr[v0] : index.vf_indptr[v0 + 1]]
     for v in vertices[1:]:
-        ring = ring[np.any(index.faces[ring] == int(v), axis=1)]
+        ring = ring[(index.faces[ring] == int(v)).any(axis=1)]
     return ring
 
 
@@ -462,13 +462,13 @@ def track_proxy(
         ``probe`` not 3 finite numbers, ``face`` out of range, ``bary`` not 3 finite weights.
     """
     p = np.asarray(probe, dtype=np.float64)
-    if p.shape != (3,) or not np.all(np.isfinite(p)):
+    if p.shape != (3,) or not np.isfinite(p).all():
         raise ValueError(f"probe must be 3 finite numbers [m], got {probe!r}")
     f = int(face)
     if not 0 <= f < len(index.faces):
         raise ValueError(f"face must be in [0, {len(index.faces)}), got {face!r}")
     w = np.asarray(bary, dtype=np.float64)
-    if w.shape != (3,) or not np.all(np.isfinite(w)):
+    if w.shape != (3,) or not np.isfinite(w).all():
         raise ValueError(f"bary must be 3 finite weights, got {bary!r}")
     cur = np.asarray(vertices, dtype=np.float64)
     # one face, then the few around an edge or a vertex: plain floats (_closest_on_triangle)

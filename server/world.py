@@ -109,7 +109,7 @@ def _finite3(value: object) -> FloatArray | None:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
         return None
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+    if arr.shape != (3,) or not np.isfinite(arr).all():
         return None
     return arr
 

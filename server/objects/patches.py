@@ -81,12 +81,12 @@ class PatchCentres:
             ``point`` (or ``normal``) is not 3 finite numbers.
         """
         q = np.asarray(point, dtype=np.float64)
-        if q.shape != (3,) or not np.all(np.isfinite(q)):
+        if q.shape != (3,) or not np.isfinite(q).all():
             raise ValueError(f"point must be 3 finite numbers [m], got {point!r}")
         nq: FloatArray | None = None
         if normal is not None:
             nq = np.asarray(normal, dtype=np.float64)
-            if nq.shape != (3,) or not np.all(np.isfinite(nq)):
+            if nq.shape != (3,) or not np.isfinite(nq).all():
                 raise ValueError(f"normal must be 3 finite numbers, got {normal!r}")
         if previous is not None and 0 <= previous < len(self._rest):
             d = q - self._rest[previous]
@@ -256,7 +256,7 @@ class PatchedSurface:
         f = np.asarray(forces_n, dtype=np.float64).reshape(-1)
         if len(f) != len(keys):
             raise ValueError(f"got {len(keys)} patch keys but {len(f)} forces")
-        if not np.all(np.isfinite(f)):
+        if not np.isfinite(f).all():
             raise ValueError("forces must be finite")
         return f, (self._cache.get(keys) if len(keys) else [])
 
