@@ -19,6 +19,7 @@ import os
 import sys
 from collections.abc import Sequence
 
+from haptic_collab.cli import blas_threads  # noqa: F401  (first: before numpy is imported)
 from haptic_collab.cli.args import CliError, _Parser
 from haptic_collab.cli.design import _add_gains, _add_gains_table, _add_stability
 from haptic_collab.cli.research import _add_bench, _add_plot, _add_protocol, _add_reproduce
