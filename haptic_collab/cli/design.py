@@ -335,8 +335,33 @@ def _table_row(
     return row
 
 
+def _cmd_ship_table(args: argparse.Namespace) -> int:
+    """``haptic gains-table --ship``: build (or complete) a profile's shipped table."""
+    from haptic_collab.cli.shipped_tables import build_table, progress_bar, shipped_dir
+    from haptic_collab.client.devices.profiles import get_sim_profile
+
+    try:
+        lim = get_sim_profile(args.profile).limits
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    out = Path(args.out) if args.out else shipped_dir() / f"{args.profile}.json"
+    done, left = build_table(
+        args.profile,
+        lim.max_stiffness_n_per_m,
+        lim.max_damping_n_s_per_m,
+        out=out,
+        workers=args.workers,
+        progress=progress_bar(args.profile),
+    )
+    print(f"{out}: {done} cells designed now; {left} without a stable design")
+    return 0
+
+
 def _cmd_gains_table(args: argparse.Namespace) -> int:
     from concurrent.futures import ProcessPoolExecutor
+
+    if args.ship:
+        return _cmd_ship_table(args)
 
     from haptic_collab.client.devices.profiles import get_sim_profile
     from haptic_collab.shared.gain_key import STIFFER_BY
@@ -388,4 +413,11 @@ def _add_gains_table(sub: argparse._SubParsersAction) -> None:  # type: ignore[t
     p.add_argument("--paper", action="store_true", help="without own-force compensation")
     p.add_argument("--workers", type=_whole_positive, default=2, help="design processes")
     p.add_argument("--out", help="write the JSON here instead of printing it")
+    p.add_argument(
+        "--ship",
+        action="store_true",
+        help="build the profile's shipped table instead (shared/gain_tables/PROFILE.json, or "
+        "--out): every cell of its grid, both local models; resumes a partial file "
+        "(docs/gains.md, 'Shipped tables')",
+    )
     p.set_defaults(func=_cmd_gains_table)

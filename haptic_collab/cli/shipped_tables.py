@@ -132,6 +132,7 @@ def build_table(
     workers: int = 1,
     max_jobs: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    grid: dict[str, Any] = SHIP_GRID,
 ) -> tuple[int, int]:
     """Design the cells of :func:`ship_jobs` the file ``out`` lacks and write it; returns
     (cells designed now, jobs left). Writes every 20 jobs, so an interrupted build keeps them."""
@@ -145,7 +146,7 @@ def build_table(
             table = GainTable()
     jobs = [
         (k, c)
-        for k, c in ship_jobs(k_h_max, b_h_max)
+        for k, c in ship_jobs(k_h_max, b_h_max, grid)
         if not (table.has(k, c) and table.has(replace(k, mode="pi"), c))
     ]
     todo = jobs if max_jobs is None else jobs[:max_jobs]
