@@ -155,6 +155,75 @@ def _penetration(patch: dict[str, Any], probe: list[float]) -> tuple[float, list
     return _dot(_sub(prim["point"], probe), n), n
 
 
+def user_hello(spec: ClientSpec) -> dict[str, Any]:
+    """The ``hello`` of a scripted user: a 1 kHz desktop device with a proportional local model."""
+    return {
+        "type": "hello",
+        "protocol": 1,
+        "role": "user",
+        "name": spec.name,
+        "device": {"profile": "bench-load", "max_force_n": 7.9, "max_stiffness_n_per_m": 1000.0},
+        "servo_rate_hz": 1000.0,
+        "local_model": "p",
+    }
+
+
+def user_spot(spec: ClientSpec, obj: dict[str, Any]) -> tuple[list[float], list[float]]:
+    """Where a scripted user rests [m] and the outward normal there, from the welcome's
+    ``object``: slot 0 on its anchor, then rings of 8 at 5 % of the radius apart, along the
+    surface."""
+    anchor = [float(c) for c in obj[f"{spec.anchor}_m"]]
+    normal = _unit([float(c) for c in obj[f"{spec.anchor}_normal"]])
+    t1, t2 = _tangents(normal)
+    ring, k = (0, 0) if spec.slot == 0 else (1 + (spec.slot - 1) // 8, (spec.slot - 1) % 8)
+    r_off = 0.05 * float(obj["radius_m"]) * ring
+    phi = 2.0 * math.pi * k / 8.0 + 0.3 * ring
+    base = [anchor[i] + r_off * (math.cos(phi) * t1[i] + math.sin(phi) * t2[i]) for i in range(3)]
+    return base, normal
+
+
+def user_state(
+    spec: ClientSpec,
+    spot: tuple[list[float], list[float]],
+    elapsed_s: float,
+    patch: dict[str, Any] | None,
+    seq: int,
+    rtt_ms: float | None,
+) -> dict[str, Any]:
+    """A scripted user's ``state`` ``elapsed_s`` [s] after it started: its probe 2 mm in at its
+    ``spot`` (pressing 3 mm deeper at 0.25 Hz for a pressing user), the force ``K_h e`` of a
+    proportional local model with ``K_h = 0.5 K_o_eff`` against its last ``patch``."""
+    base, normal = spot
+    depth = REST_DEPTH_M
+    if spec.press:  # pressing users are out of step with each other
+        phase = 0.37 * spec.slot
+        depth += (
+            PRESS_DEPTH_M * 0.5 * (1.0 - math.cos(2 * math.pi * PRESS_RATE_HZ * elapsed_s + phase))
+        )
+    probe = [base[i] - normal[i] * depth for i in range(3)]
+    e, n, k_h = 0.0, normal, 0.0
+    if patch is not None:
+        e, n = _penetration(patch, probe)
+        k_h = 0.5 * float(patch["k_o_eff"])
+    f = min(k_h * max(e, 0.0), MAX_FORCE_N)
+    state: dict[str, Any] = {
+        "type": "state",
+        "seq": seq,
+        "probe_m": probe,
+        "force_n": [f * c for c in n],
+        "penetration_m": e,
+        "in_contact": e > 0.0,
+        "k_h": k_h,
+        "i_gain": 0.0,
+        "servo_rate_hz": 1000.0,
+        "period_us_p99": 1000.0,
+        "patch_tick": int(patch["tick"]) if patch is not None else -1,
+    }
+    if rtt_ms is not None:
+        state["rtt_ms"] = rtt_ms
+    return state
+
+
 def _record_error(stats: _UserStats | _ViewerStats, msg: dict[str, Any]) -> None:
     stats.errors += 1
     code = str(msg.get("code", "?"))
@@ -207,28 +276,11 @@ async def _user_session(
     ws: Any, spec: ClientSpec, stats: _UserStats, window: _Window, stop: asyncio.Event
 ) -> None:
     """One connection of a user: hello, welcome, then states, pings and patches until ``stop``."""
-    hello = {
-        "type": "hello",
-        "protocol": 1,
-        "role": "user",
-        "name": spec.name,
-        "device": {"profile": "bench-load", "max_force_n": 7.9, "max_stiffness_n_per_m": 1000.0},
-        "servo_rate_hz": 1000.0,
-        "local_model": "p",
-    }
-    welcome = await _join(ws, hello, stats)
+    welcome = await _join(ws, user_hello(spec), stats)
     if welcome is None:
         return
-    obj = welcome["object"]
     sim_rate = float(welcome["sim_rate_hz"])
-    anchor = [float(c) for c in obj[f"{spec.anchor}_m"]]
-    normal = _unit([float(c) for c in obj[f"{spec.anchor}_normal"]])
-    t1, t2 = _tangents(normal)
-    # slot 0 on the anchor, then rings of 8 at 5 % of the radius apart, along the surface
-    ring, k = (0, 0) if spec.slot == 0 else (1 + (spec.slot - 1) // 8, (spec.slot - 1) % 8)
-    r_off = 0.05 * float(obj["radius_m"]) * ring
-    phi = 2.0 * math.pi * k / 8.0 + 0.3 * ring
-    base = [anchor[i] + r_off * (math.cos(phi) * t1[i] + math.sin(phi) * t2[i]) for i in range(3)]
+    spot = user_spot(spec, welcome["object"])
     loop = asyncio.get_running_loop()
     patch: dict[str, Any] | None = None
     last_patch_t: float | None = None
@@ -262,40 +314,12 @@ async def _user_session(
     t_next = t_start
     next_ping = t_start
     seq = ping_id = 0
-    phase = 0.37 * spec.slot  # pressing users are out of step with each other
     try:
         while not stop.is_set() and not receiver.done():
             now = loop.time()
-            depth = REST_DEPTH_M
-            if spec.press:
-                depth += (
-                    PRESS_DEPTH_M
-                    * 0.5
-                    * (1.0 - math.cos(2 * math.pi * PRESS_RATE_HZ * (now - t_start) + phase))
-                )
-            probe = [base[i] - normal[i] * depth for i in range(3)]
-            e, n, k_h = 0.0, normal, 0.0
-            if patch is not None:
-                e, n = _penetration(patch, probe)
-                k_h = 0.5 * float(patch["k_o_eff"])
-            f = min(k_h * max(e, 0.0), MAX_FORCE_N)
             seq += 1
             rtt = stats.rtt_ms[-1] if stats.rtt_ms else None
-            state: dict[str, Any] = {
-                "type": "state",
-                "seq": seq,
-                "probe_m": probe,
-                "force_n": [f * c for c in n],
-                "penetration_m": e,
-                "in_contact": e > 0.0,
-                "k_h": k_h,
-                "i_gain": 0.0,
-                "servo_rate_hz": 1000.0,
-                "period_us_p99": 1000.0,
-                "patch_tick": int(patch["tick"]) if patch is not None else -1,
-            }
-            if rtt is not None:
-                state["rtt_ms"] = rtt
+            state = user_state(spec, spot, now - t_start, patch, seq, rtt)
             await ws.send(json.dumps(state))
             if now >= next_ping:
                 ping_id += 1

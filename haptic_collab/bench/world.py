@@ -11,6 +11,11 @@ the same object and the same motion: with the proxy following the surface (the p
 ``median_ms``) and with the closest point of the surface every tick (the paper's Step 1 read
 literally, ``closest_median_ms``); ``proxy_cost_ratio`` is the first over the second.
 
+:func:`bench_room` times the server's whole simulation tick (:meth:`server.room.Room.tick`:
+forces bounded, the world, gain advice, patches and viewer frames encoded) with ``haptic bench
+load``'s scripted users and viewers but no sockets, in CPU time as well as wall time, so that a
+slower room can be told from a busier machine.
+
 :func:`bench_viewer_stream` measures what one viewer receives per second while a user presses a
 10k-vertex balloon: the float32 positions sent every tick before (``VTX1``) against the
 displacement stream (:mod:`server.viewer_stream`), as payload and as wire bytes (payload plus
@@ -481,17 +486,152 @@ def bench_gain_advice(users: int = 8, lookups: int = 20_000) -> dict[str, Any]:
     }
 
 
+def bench_room(
+    users: int = 32,
+    viewers: int = 8,
+    subdivisions: int = 4,
+    ticks: int = 200,
+    warmup: int = 30,
+    sim_rate_hz: float = 20.0,
+) -> dict[str, Any]:
+    """Cost [ms] of :meth:`server.room.Room.tick` with ``haptic bench load``'s users and viewers,
+    without sockets: the whole simulation tick of ``haptic server`` (forces bounded, the world
+    ticked, gains recommended, patches, viewer frames and the room summary encoded) on one core.
+
+    The room is built as ``haptic server`` builds it (:func:`server.main.build_world`); the users
+    are :mod:`haptic_collab.bench.load_clients`' scripted users (resting 2 mm in at the top and
+    side points, half of them pressing 3 mm more at 0.25 Hz, ``K_h = 0.5 K_o_eff``), each sending
+    two ``state`` frames per tick with a 1 ms round trip; the viewers take every frame. The gain
+    designs the ticks ask for are made during the warm-up (as the server's worker makes them), so
+    the timed ticks find them. Wall time (``time.perf_counter``) and the thread's CPU time
+    (``time.thread_time``: what the tick costs on a busy machine, less the time it waited for a
+    core) are both reported, and the CPU time of the world's tick and of the gain advice apart.
+
+    Parameters
+    ----------
+    users, viewers : int
+        Scripted users (at most 32: the load bench's placements) and viewers.
+    subdivisions : int
+        Icosphere subdivisions of the default balloon (4: 2562 vertices).
+    ticks, warmup : int
+        Timed ticks, and ticks run before them.
+    sim_rate_hz : float
+        Simulation rate [Hz].
+
+    Returns
+    -------
+    dict
+        JSON-able: ``users``, ``viewers``, ``n_vertices``, ``ticks``; ``tick_ms_p50``,
+        ``tick_ms_p99`` (wall), ``tick_cpu_ms_p50``, ``tick_cpu_ms_p99``, ``world_cpu_ms_p50``,
+        ``gains_cpu_ms_p50`` [ms]; ``gain_hits``, ``gain_misses`` over the timed ticks.
+
+    Raises
+    ------
+    ValueError
+        More than 32 or fewer than 1 users, or a bad rate or mesh size (as ``haptic server``).
+    """
+    from haptic_collab.bench.load_clients import client_specs, user_hello, user_spot, user_state
+    from haptic_collab.server.gains import run_job
+    from haptic_collab.server.main import ServerOptions, build_rates, build_world
+    from haptic_collab.server.room import Room
+
+    if not 1 <= users <= 32:
+        raise ValueError(f"users must be in [1, 32], got {users}")
+    opts = ServerOptions(subdivisions=subdivisions, sim_rate_hz=sim_rate_hz)
+    rates = build_rates(opts)
+    room = Room(build_world(opts, rates), rates)
+    period = 1.0 / room.sim_rate_hz
+    obj = room.object_info.model_dump()
+    specs = client_specs(users, viewers)
+    spots = {}
+    for i, spec in enumerate(specs):
+        room.connect(spec.name, 0.0, address=f"127.0.0.{2 + i % 4}")
+        if spec.role == "user":
+            room.receive(spec.name, json.dumps(user_hello(spec)), 0.0)
+            spots[spec.name] = user_spot(spec, obj)
+        else:
+            hello = {"type": "hello", "protocol": 1, "role": "viewer", "name": spec.name}
+            room.receive(spec.name, json.dumps(hello), 0.0)
+    user_specs = [s for s in specs if s.role == "user"]
+    patches: dict[str, dict[str, Any] | None] = {s.name: None for s in user_specs}
+    world, gains = room.world, room.gains
+    cost = {"world": 0.0, "gains": 0.0}
+
+    def timed(name: str, fn: Any) -> Any:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            start = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                cost[name] += time.thread_time() - start
+
+        return call
+
+    world.tick = timed("world", world.tick)  # type: ignore[method-assign]
+    gains.recommend = timed("gains", gains.recommend)  # type: ignore[method-assign]
+    wall, cpu, world_ms, gains_ms = [], [], [], []
+    seq = 0
+    hits = misses = 0
+    with single_thread_blas():
+        room.start(0.0)
+        for t in range(1, warmup + ticks + 1):
+            seq += 1
+            for half in (0.25, 0.75):  # two states per user per tick
+                at = (t - 1 + half) * period
+                for spec in user_specs:
+                    state = user_state(
+                        spec, spots[spec.name], at, patches[spec.name], seq, 1.0 + 0.1 * (seq % 7)
+                    )
+                    room.receive(spec.name, json.dumps(state), at)
+                seq += 1
+            if t == warmup + 1:
+                hits, misses = gains.hits, gains.misses
+            cost["world"] = cost["gains"] = 0.0
+            start, start_cpu = time.perf_counter(), time.thread_time()
+            out = room.tick(t, t * period)
+            cpu.append((time.thread_time() - start_cpu) * 1e3)
+            wall.append((time.perf_counter() - start) * 1e3)
+            world_ms.append(cost["world"] * 1e3)
+            gains_ms.append(cost["gains"] * 1e3)
+            for o in out:
+                if o.on_sent is not None:
+                    o.on_sent()
+                if o.stream == "patch" and isinstance(o.data, str):
+                    patches[o.conn_id] = json.loads(o.data)
+            if t <= warmup:  # the designs the server's worker would have made by now
+                for job in gains.take_jobs():
+                    gains.store(job, run_job(job, gains.table.grid_ratio, gains.table.hand_box))
+    steady = slice(warmup, None)
+    return {
+        "benchmark": "room_tick",
+        "users": users,
+        "viewers": viewers,
+        "n_vertices": int(world.n_vertices),
+        "ticks": ticks,
+        "tick_ms_p50": float(np.median(wall[steady])),
+        "tick_ms_p99": float(np.percentile(wall[steady], 99)),
+        "tick_cpu_ms_p50": float(np.median(cpu[steady])),
+        "tick_cpu_ms_p99": float(np.percentile(cpu[steady], 99)),
+        "world_cpu_ms_p50": float(np.median(world_ms[steady])),
+        "gains_cpu_ms_p50": float(np.median(gains_ms[steady])),
+        "gain_hits": gains.hits - hits,
+        "gain_misses": gains.misses - misses,
+    }
+
+
 def measure() -> dict[str, Any]:
     """The default benchmark (about 1-2 minutes): world ticks, the viewer stream, gain advice.
 
     Returns
     -------
     dict
-        The :func:`bench_world` result with ``viewer_stream`` (:func:`bench_viewer_stream`) and
-        ``gain_advice`` (:func:`bench_gain_advice`) and ``fem`` (:func:`bench_fem`) added. Prints nothing (``haptic bench``
+        The :func:`bench_world` result with ``room`` (:func:`bench_room`), ``viewer_stream``
+        (:func:`bench_viewer_stream`), ``gain_advice`` (:func:`bench_gain_advice`) and ``fem``
+        (:func:`bench_fem`) added. Prints nothing (``haptic bench``
         prints it once, as JSON).
     """
     result = bench_world()
+    result["room"] = bench_room()
     result["fem"] = bench_fem()
     result["viewer_stream"] = bench_viewer_stream()
     result["gain_advice"] = bench_gain_advice()
@@ -512,7 +652,7 @@ def run(json_out: bool) -> dict[str, Any]:
         The :func:`bench_world` result.
     """
     result = measure()
-    stream, advice = result["viewer_stream"], result["gain_advice"]
+    stream, advice, room = result["viewer_stream"], result["gain_advice"], result["room"]
     if json_out:
         print(json.dumps(result, indent=2))
     else:
@@ -524,6 +664,12 @@ def run(json_out: bool) -> dict[str, Any]:
                     f"p99 {r['p99_ms']:.2f} ms, {r['solves_per_tick']:.2f} solves/tick "
                     f"(closest point every tick: median {r['closest_median_ms']:.2f} ms)"
                 )
+        print(
+            f"room tick, {room['users']} users and {room['viewers']} viewers at "
+            f"{room['n_vertices']} vertices: CPU median {room['tick_cpu_ms_p50']:.2f} ms (world "
+            f"{room['world_cpu_ms_p50']:.2f}, gains {room['gains_cpu_ms_p50']:.2f}), p99 "
+            f"{room['tick_cpu_ms_p99']:.2f} ms; wall median {room['tick_ms_p50']:.2f} ms"
+        )
         for row in result["fem"]["meshes"]:
             print(
                 f"FEM {row['n_vertices']:>6} vertices, {row['nodes']} nodes: volume mesh "
