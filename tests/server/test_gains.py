@@ -86,7 +86,7 @@ def test_recommended_gains_are_the_design_and_stable_over_the_hand_box(mode: str
 
 
 def test_the_delay_the_user_reports_makes_the_gains_cover_it() -> None:
-    adv = GainAdvisor(20.0)
+    adv = GainAdvisor(20.0, shipped=False)  # the online design, not the shipped table
     h = hello("pi")
     for _ in range(5):
         adv.observe_rtt("u1", 120.0)  # 120 ms round trip at 20 Hz: 2 extra ticks
@@ -99,7 +99,7 @@ def test_the_delay_the_user_reports_makes_the_gains_cover_it() -> None:
 
 
 def test_odd_users_get_no_recommendation_and_cost_nothing() -> None:
-    adv = GainAdvisor(20.0)
+    adv = GainAdvisor(20.0, shipped=False)  # the online design, not the shipped table
     odd = Hello(protocol=1, role="user", name="B", servo_rate_hz=1001.0)  # N = 50.05
     assert adv.recommend("b", odd, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
     assert adv.take_jobs() == []
@@ -183,7 +183,7 @@ def test_a_recommendation_for_a_shorter_delay_than_measured_is_not_used() -> Non
 def test_the_most_urgent_job_goes_first_interim_checks_then_the_newest_cell() -> None:
     """A user sweeping over the object asks for one K_o cell after another: its forces come on
     with an interim check, and the cell it is in now is designed before the ones it left."""
-    adv = GainAdvisor(20.0)
+    adv = GainAdvisor(20.0, shipped=False)  # the online design, not the shipped table
     h = hello("pi")
     for k_o in (200.0, 260.0, 340.0):  # three cells, in the order the user met them
         assert adv.recommend("u1", h, k_o_eff=k_o, k_o_stiff=k_o, b_o=0.0) is None
@@ -200,7 +200,7 @@ def test_the_most_urgent_job_goes_first_interim_checks_then_the_newest_cell() ->
 def test_an_interim_recommendation_yields_to_the_clients_own_full_design() -> None:
     """The server flags interim gains; a client with its own full design for the contact renders
     that, and renders the server's interim gains only while it has nothing designed itself."""
-    adv = GainAdvisor(20.0)
+    adv = GainAdvisor(20.0, shipped=False)  # the online design, not the shipped table
     h = hello("pi")
     assert adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
     job = adv.next_job()
@@ -248,3 +248,21 @@ def test_the_advisor_holds_the_delay_through_a_contact_as_the_client_does() -> N
         for i in range(101)
     ]
     assert after[0] == 6 and after[99] == 6 and after[100] == 0
+
+
+def test_with_the_shipped_table_the_first_patch_carries_the_sessions_own_design() -> None:
+    # a covered key (the Phantom Desktop, 20 Hz, no delay, the balloon's stiffness): a design
+    # from the first patch, the one the client would make itself, with no job for the worker
+    adv = GainAdvisor(20.0)
+    assert adv.shipped and all(isinstance(n, int) and n > 0 for n in adv.shipped.values())
+    h = hello("pi")
+    rec = adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0, tick=0)
+    assert rec is not None and not rec.interim and adv.take_jobs() == []
+    key = adv.key("u1", h, 0.0, 300.0, 300.0)
+    own = GainAdvisor(20.0, shipped=False).table.design(key, 300.0)
+    assert (rec.k_h, rec.i_gain, rec.b_h, rec.own_gain) == (
+        own.k_h,
+        own.i_gain,
+        own.b_h,
+        own.own_gain,
+    )
