@@ -172,6 +172,7 @@ def test_bench_returns_json_able_timings():
     assert [r["users"] for r in runs] == [1, 3]
     # every run measured its ticks (a broken timer would give 0 or NaN); the sizes are not judged
     assert all(0.0 < r["median_ms"] < 1e4 and math.isfinite(r["p99_ms"]) for r in runs)
+    assert all(0.0 < r["cpu_median_ms"] < 1e4 for r in runs)  # the CPU clock read too
     assert result["meshes"][0]["build_s"] > 0.0
     with pytest.raises(ValueError, match="icosphere"):
         bench_world(n_vertices_list=(1000,), users_list=(1,), ticks=1)
