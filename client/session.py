@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics, monodromy
+from haptic_collab.shared.full_loop import monodromy
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import (
     GainKey,
@@ -81,15 +81,8 @@ from haptic_collab.shared.protocol import (
 )
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
-from haptic_collab.shared.rest_plane import RestPlaneGains, rest_plane_gains
-from haptic_collab.shared.verified_plane import (
-    ahead_cells,
-    felt_error_at,
-    plane_applies,
-    plane_felt_error,
-    rest_plane_closer,
-    yields_to_rest_plane,
-)
+from haptic_collab.shared.rest_plane import rest_plane_gains
+from haptic_collab.shared.verified_plane import ahead_cells, plane_applies
 
 if TYPE_CHECKING:
     from haptic_collab.client.servo import ServoSnapshot
@@ -328,10 +321,6 @@ class ClientSession:
         #: none passed), or alone while that cell has no design (design cell
         #: :data:`PLANE_ALONE`), and the one the link is to check off the event loop.
         self.planes: dict[tuple[GainKey, int, int], GainDesign | None] = {}
-        # each solid's verified plane's felt error (shared.verified_plane.plane_felt_error)
-        self._plane_errors: dict[tuple[GainKey, GainDesign], float] = {}
-        # a solid's design's felt error at the K_o reported (rest plane or design)
-        self._design_errors: dict[tuple[GainKey, GainDesign, float], float] = {}
         #: (key, plane cell, design cell) whose verified plane the link is to check, in the
         #: order asked (the link takes the newest first).
         self.plane_wanted: list[tuple[GainKey, int, int]] = []
@@ -497,14 +486,12 @@ class ClientSession:
         b_o: float,
         delay_ticks: int,
         stiff_ratio: float = 1.0,
-        dynamics: ContactDynamics = NO_DYNAMICS,
     ) -> GainKey:
         """What the gain design depends on besides K_o, for this user now.
 
         B_o is quantized *down* to 1 N/m steps (a design for less object damping).
         ``stiff_ratio`` is the class of ``K_o_stiff / K_o_eff`` of a contact coupled to other
-        users (1 uncoupled; :func:`shared.gain_key.stiff_ratio_class`); ``dynamics`` the part of
-        B_o the patch says is the contact's mass and relaxing arm.
+        users (1 uncoupled; :func:`shared.gain_key.stiff_ratio_class`).
         """
         return make_gain_key(
             servo_rate_hz=self.servo_rate_hz,
@@ -516,7 +503,6 @@ class ClientSession:
             b_h_max=self.b_h_max,
             b_o=b_o,
             stiff_ratio=stiff_ratio,
-            dynamics=dynamics,
         )
 
     def _stiff_class(self, surface: SurfacePatch) -> float:
@@ -534,29 +520,6 @@ class ClientSession:
         """Keep the verified plane of (key, cell) checked against the design of ``design_cell``
         (default: ``cell``'s own), or None: none passed its check."""
         self.planes[(key, cell, cell if design_cell is None else design_cell)] = design
-
-    def _felt_error(self, d: GainDesign, key: GainKey, k_o: float) -> float:
-        """:func:`shared.verified_plane.felt_error_at` of ``d`` at the K_o reported ``k_o``
-        [N/m] under ``key`` (kept: a solid's K_o reported rarely changes; at most 64 kept)."""
-        ident = (key, d, k_o)
-        err = self._design_errors.get(ident)
-        if err is None:
-            if len(self._design_errors) >= 64:
-                self._design_errors.clear()
-            err = self._design_errors[ident] = felt_error_at(d, key, k_o)
-        return err
-
-    def _plane_yields(self, plane: GainDesign, key: GainKey, rest: RestPlaneGains | None) -> bool:
-        """Whether the rest plane (``rest``: its gains for this patch, None where it cannot
-        render) renders instead of ``plane``: the user alone on a solid, where it is felt as
-        close to the solid (:func:`shared.verified_plane.yields_to_rest_plane`; the plane's felt
-        error computed once per plane)."""
-        if rest is None or key.dynamics.none:
-            return False
-        err = self._plane_errors.get((key, plane))
-        if err is None:
-            err = self._plane_errors[(key, plane)] = plane_felt_error(plane, key)
-        return yields_to_rest_plane(key, err, rest.felt_error)
 
     def _plan_ahead(self, key: GainKey, cell: int) -> None:
         """Have the planes around ``cell`` (the cell of the K_o reported) checked alone in the
@@ -587,9 +550,7 @@ class ClientSession:
         reported or the one it identified (``own_response.identified_ratio`` times K_o;
         :mod:`shared.own_response`)?
 
-        Only an uncoupled contact on an object without B_o, or whose patch says what its B_o
-        is (a solid's mass and relaxing arm, read as that solid), is checked
-        (:func:`plane_applies`).
+        Only an uncoupled contact on an object without B_o is checked (:func:`plane_applies`).
         The check reads the depth of the surface along the contact normal from the proxy it
         started at, the force the simulation applied from this user and the K_o reported, read
         as the object's tangent stiffness (so it goes on across gain-table cells as a
@@ -622,8 +583,7 @@ class ClientSession:
         self._own_tick = surface.tick
         depth = float(np.dot(self._own_ref - proxy, normal))
         return check.update(
-            dt_s=dt, surface_m=depth, force_n=surface.own_force_n, k_o=surface.k_o_eff,
-            b_o=surface.b_o, sim_period_s=1.0 / self.sim_rate_hz, dynamics=surface.dynamics,
+            dt_s=dt, surface_m=depth, force_n=surface.own_force_n, k_o=surface.k_o_eff
         )  # fmt: skip
 
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
@@ -711,7 +671,7 @@ class ClientSession:
             self.first_patch_s = now_s
         d = self.delay_ticks(now_s, in_contact=surface.in_contact or surface.own_force_n > 0.0)
         k_o_eff = surface.k_o_eff
-        key = self.gain_key(surface.b_o, d, self._stiff_class(surface), surface.dynamics)
+        key = self.gain_key(surface.b_o, d, self._stiff_class(surface))
         table = self.gain_table
         cell = table.cell(k_o_eff)
         own = table.lookup(key, k_o_eff)
@@ -730,7 +690,6 @@ class ClientSession:
                 self.device.max_stiffness_n_per_m,
                 self.b_h_max,
                 servo_period_s=1.0 / self.servo_rate_hz,
-                dynamics=surface.dynamics,
             )  # fmt: skip
             if self.rest_plane and surface.rest_plane is not None
             else None
@@ -759,8 +718,6 @@ class ClientSession:
                 # a plane checked alone renders where the cell has no design; where it has one,
                 # only once compared with it (milliseconds: the design renders meanwhile)
                 plane = None if own is not None else self.planes.get((key, plane_cell, PLANE_ALONE))
-            if plane is not None and self._plane_yields(plane, key, rest):
-                plane = None
             if plane is not None:
                 design = plane.at(k_id)
                 plane_renders = True
@@ -781,30 +738,24 @@ class ClientSession:
             # object lost box-stability in one benchmark condition)
             if design is None:
                 self.design_wanted = (key, k_o_eff)  # for when another user joins
-            # on a solid that says what its B_o is, not where its design is felt closer by a JND
-            if (
-                design is None
-                or key.dynamics.none
-                or rest_plane_closer(key, rest.felt_error, self._felt_error(design, key, k_o_eff))
-            ):
-                self.rest_plane_patches += 1
-                return self._rendered(
-                    LocalModelUpdate.from_surface(
-                        surface,
-                        k_h=rest.k_h,
-                        i_gain=0.0,
-                        b_h=rest.b_h,
-                        hold_ticks=n,
-                        choice=GainChoice(
-                            delay_ticks=d,
-                            spectral_radius=0.0,  # its force does not go through the simulation
-                            felt_stiffness_ratio_1hz=rest.k_h / surface.k_o,
-                        ),
-                        rest=True,
-                    ),
+            self.rest_plane_patches += 1
+            return self._rendered(
+                LocalModelUpdate.from_surface(
                     surface,
-                    now_s,
-                )
+                    k_h=rest.k_h,
+                    i_gain=0.0,
+                    b_h=rest.b_h,
+                    hold_ticks=n,
+                    choice=GainChoice(
+                        delay_ticks=d,
+                        spectral_radius=0.0,  # its force does not go through the simulation
+                        felt_stiffness_ratio_1hz=rest.k_h / surface.k_o,
+                    ),
+                    rest=True,
+                ),
+                surface,
+                now_s,
+            )
         fallback = design is None
         verified = True
         if design is None:

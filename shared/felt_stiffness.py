@@ -20,12 +20,10 @@ import numpy as np
 
 from haptic_collab.shared.full_loop import (
     DAMPER_FILTER_S,
-    NO_DYNAMICS,
-    ContactDynamics,
     ProxyHold,
     batch_arrays,
-    dynamics_coefficients,
     monodromy,
+    object_coefficients,
     object_impedance,
     slow_layout,
 )
@@ -44,7 +42,6 @@ def object_stiffness(
     k_o: float | FloatArray,
     b_o: float | FloatArray = 0.0,
     sim_period_s: float,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> FloatArray:
     """The paper's object's own dynamic stiffness dF/dx [N/m] (complex) at each of ``freqs_hz``,
     shape (F, B): the inverse of eq. 9's ``D(z) = (K_o + B_o (z - 1) / z)^-1`` at ``z = e^{j w
@@ -52,10 +49,7 @@ def object_stiffness(
     rendering of the object the simulation reports is felt as: ``K_o`` at DC and for an elastic
     object (B_o = 0), stiffer and leading towards the simulation's Nyquist rate for a damped or
     massive one (the one-tick stiffness ``K_o + B_o`` of a step push from rest,
-    ``server.objects.fem.FemSolid.contact_damping``). With the contact's ``dynamics`` (the part
-    of B_o that is mass and a relaxing arm, :mod:`shared.full_loop`), the implicit-Euler
-    object's: ``K_o + b (1 - z^-1) + (m_o / h^2) (1 - z^-1)^2 + k_r a (1 - z^-1) / (1 - a
-    z^-1)`` (``h = sim_period_s``, ``a = tau_r / (tau_r + h)``, b the rest of B_o).
+    ``server.objects.fem.FemSolid.contact_damping``).
 
     Raises
     ------
@@ -68,7 +62,7 @@ def object_stiffness(
         raise ValueError(f"frequencies must be > 0 Hz, got {freqs_hz!r}")
     ko, bo = batch_arrays(k_o, b_o)
     f = np.asarray(freqs_hz, dtype=float)[:, None]
-    return object_impedance(f, ko[None, :], bo[None, :], sim_period_s, *dynamics.params)
+    return object_impedance(f, ko[None, :], bo[None, :], sim_period_s)
 
 
 def felt_stiffness(
@@ -86,7 +80,6 @@ def felt_stiffness(
     proxy_hold: ProxyHold = "zoh",
     complex_response: bool = False,
     own_gain: float | FloatArray = 0.0,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> FloatArray:
     """Felt stiffness |dF/dx| [N/m] at the probe, probe as a position source, shape (B,).
 
@@ -112,7 +105,6 @@ def felt_stiffness(
         sample_tick=sample_tick,
         proxy_hold=proxy_hold,
         own_gain=own_gain,
-        dynamics=dynamics,
     )[0]
     return f1 if complex_response else np.abs(f1)
 
@@ -131,7 +123,6 @@ def felt_responses(
     sample_tick: int | None = None,
     proxy_hold: ProxyHold = "zoh",
     own_gain: float | FloatArray = 0.0,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> FloatArray:
     """Felt responses dF/dx [N/m] (complex) at each of ``freqs_hz``, shape (F, B): the loop's
     monodromy computed once, then :func:`felt_stiffness` at each frequency.
@@ -162,7 +153,6 @@ def felt_responses(
         sample_ticks=[j],
         proxy_hold=proxy_hold,
         integral=integral,
-        dynamics=dynamics,
     )[:, 0]
     nb, n = M.shape[0], M.shape[1]
     out = np.empty((len(freqs_hz), nb), dtype=complex)
@@ -171,9 +161,9 @@ def felt_responses(
     ti = T * ig
     nf = 1 if integral else 0
     foh = proxy_hold == "foh"
-    lay = slow_layout(nf, foh, dynamics, delay_ticks)
+    lay = slow_layout(nf, foh, delay_ticks)
     i_p, i_obj = lay.proxy, lay.obj
-    inv, _, _, _, alpha = dynamics_coefficients(ko, bo, dynamics, N * T)
+    inv, _ = object_coefficients(ko, bo)
     row_new = i_p if delay_ticks == 0 else n - 1
     w_new = (i_ticks + 1.0) / N if foh else np.ones(N)
     for q, freq_hz in enumerate(freqs_hz):
@@ -190,8 +180,6 @@ def felt_responses(
         if integral:
             bx[:, 0] = ti * csum[N]
         bx[:, i_obj] = fx * inv
-        if lay.arm is not None:
-            bx[:, lay.arm] = (1.0 - alpha) * fx * inv
         bx[:, row_new] = fx * (inv - og)
         Y = np.linalg.solve(z * np.eye(n)[None] - M, bx[:, :, None])[:, :, 0]
         p = Y[:, i_p]

@@ -27,15 +27,9 @@ local model (servo rate, eq. 12 plus an optional probe damper)
 decimation (Step 3 of section 6)
     the simulation takes the force of servo tick ``j`` (``sample_tick``) of each block.
 object (simulation rate), eq. 6 / eq. 9
-    ``x_o(k+1) = (F(k) + B_o x_o(k)) / (K_o + B_o)``; optionally with the contact's dynamics
-    (:class:`ContactDynamics`): a mass m_o and a relaxing (Maxwell) arm of stiffness k_r and time
-    constant tau_r, stepped by implicit Euler over the simulation period h as a slow simulation
-    steps them, ``(m_o / h^2 + b + K_o + k_r a) x_o(k+1) = F(k) + (m_o / h^2) (2 x_o(k) -
-    x_o(k-1)) + b x_o(k) + k_r a q(k)``, ``q(k+1) = a q(k) + (1 - a) x_o(k+1)``, ``a = tau_r /
-    (tau_r + h)``, ``b = B_o - m_o / h^2 - k_r a`` (>= 0) the rest of the reported B_o: the
-    standard linear solid with a surface mass (Fung, "Biomechanics", 1993, ch. 2). B_o keeps its
-    meaning, the one-tick stiffness of a step push from rest less K_o; the dynamics say what
-    part of it is mass and relaxation, which eq. 9 lumps into a damper.
+    ``x_o(k+1) = (F(k) + B_o x_o(k)) / (K_o + B_o)``: K_o and B_o are what the server reports
+    of the object at a contact, and all the local model knows of it (the protocol carries no
+    more); eq. 9 lumps whatever holds a push beyond one tick (mass, relaxation) into the damper.
 delay
     ``D`` whole extra simulation ticks (network, computation) before ``x_o`` reaches the servo.
 proxy hold
@@ -213,82 +207,15 @@ class HandBox:
 DEFAULT_HAND_BOX = HandBox()
 
 
-@params_dataclass(frozen=True, slots=True)
-class ContactDynamics:
-    """What the simulation reports of the object's dynamics at a contact beyond K_o and B_o.
-
-    Eq. 9 models the object's one-tick stiffness beyond K_o (B_o) as a damper. A solid gets it
-    from its mass and a relaxing arm too, which hold a push over more than one tick (module
-    docstring, "object"). All zero: eq. 9's object.
-
-    Parameters
-    ----------
-    mass_kg : float
-        The contact's mass m_o [kg], >= 0.
-    relax_stiffness_n_per_m : float
-        The relaxing (Maxwell) arm's stiffness k_r [N/m], >= 0: the object is ``K_o + k_r``
-        stiff to a push much quicker than ``relax_time_s``, K_o at rest.
-    relax_time_s : float
-        Its relaxation time tau_r [s], >= 0 (0: no arm).
-
-    Raises
-    ------
-    pydantic.ValidationError
-        (a ValueError naming the field) Negative, non-finite or non-numeric values.
-    """
-
-    mass_kg: NonNegFinite = 0.0
-    relax_stiffness_n_per_m: NonNegFinite = 0.0
-    relax_time_s: NonNegFinite = 0.0
-
-    @property
-    def none(self) -> bool:
-        """No mass and no arm: eq. 9's object."""
-        return self.mass_kg == 0.0 and (
-            self.relax_stiffness_n_per_m == 0.0 or self.relax_time_s == 0.0
-        )
-
-    @property
-    def params(self) -> tuple[float, float, float]:
-        """``(m_o, k_r, tau_r)``: the trailing arguments of :func:`object_coefficients` and
-        :func:`own_impedance`."""
-        return self.mass_kg, self.relax_stiffness_n_per_m, self.relax_time_s
-
-    def one_tick_part(self, sim_period_s: float) -> float:
-        """The part [N/m] of the one-tick stiffness of a step push from rest that is mass and
-        arm over a simulation period h [s]: ``m_o / h^2 + k_r tau_r / (tau_r + h)``."""
-        h = positive("sim_period_s", sim_period_s)
-        arm = self.relax_stiffness_n_per_m * self.relax_time_s / (self.relax_time_s + h)
-        return self.mass_kg / h**2 + arm
-
-
-#: Eq. 9's object: no mass, no relaxing arm.
-NO_DYNAMICS = ContactDynamics()
-
-
 def object_coefficients(
-    k_o: FloatArray | float,
-    b_o: FloatArray | float,
-    sim_period_s: FloatArray | float,
-    m_o: FloatArray | float = 0.0,
-    k_r: FloatArray | float = 0.0,
-    tau_r: FloatArray | float = 0.0,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """The object's implicit-Euler step (module docstring, "object"), broadcast over arrays:
-    for K_o [N/m], B_o [N/m], the simulation period h [s] and the contact's mass m_o [kg] and
-    arm k_r [N/m], tau_r [s] (:class:`ContactDynamics`), ``inv = 1 / (m_o / h^2 + b + K_o +
-    k_r a)`` and the coefficients ``c_x``, ``c_xp``, ``c_q`` of ``x_o(k)``, ``x_o(k-1)`` and
-    ``q(k)`` in ``x_o(k+1) = inv (F + c_x x_o(k) + c_xp x_o(k-1) + c_q q(k))``, and ``a`` (0
-    without an arm). Eq. 9 where ``m_o`` and ``k_r`` are 0: ``inv = 1 / (K_o + B_o)``, ``c_x =
-    B_o``."""
-    ko, bo, h, m, kr, tau = np.broadcast_arrays(
-        *(np.asarray(v, dtype=float) for v in (k_o, b_o, sim_period_s, m_o, k_r, tau_r))
-    )
-    mh = m / h**2
-    a = np.where((kr > 0.0) & (tau > 0.0), tau / (tau + h), 0.0)
-    damper = np.maximum(bo - mh - kr * a, 0.0)
-    inv = 1.0 / (mh + damper + ko + kr * a)
-    return inv, 2.0 * mh + damper, -mh, kr * a, a
+    k_o: FloatArray | float, b_o: FloatArray | float
+) -> tuple[FloatArray, FloatArray]:
+    """The object's step (eq. 9, module docstring "object"), broadcast over arrays: for K_o
+    [N/m] and B_o [N/m] (negative counts as 0), ``inv = 1 / (K_o + B_o)`` and the coefficient
+    ``c_x = B_o`` of ``x_o(k)`` in ``x_o(k+1) = inv (F + c_x x_o(k))``."""
+    ko, bo = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (k_o, b_o)))
+    damper = np.maximum(bo, 0.0)
+    return 1.0 / (damper + ko), damper
 
 
 def object_impedance(
@@ -296,55 +223,13 @@ def object_impedance(
     k_o: FloatArray | float,
     b_o: FloatArray | float,
     sim_period_s: FloatArray | float,
-    m_o: FloatArray | float = 0.0,
-    k_r: FloatArray | float = 0.0,
-    tau_r: FloatArray | float = 0.0,
 ) -> FloatArray:
-    """The stepped object's dynamic stiffness dF/dx [N/m] (complex) at ``freq_hz`` [Hz],
-    broadcast over arrays as :func:`object_coefficients`: ``K_o + b (1 - z^-1) + (m_o / h^2) (1
-    - z^-1)^2 + k_r a (1 - z^-1) / (1 - a z^-1)`` at ``z = e^{j w h}``; eq. 9's ``K_o + B_o (1
-    - z^-1)`` without mass and arm."""
-    _, c_x, c_xp, c_q, a = object_coefficients(k_o, b_o, sim_period_s, m_o, k_r, tau_r)
+    """The stepped object's dynamic stiffness dF/dx [N/m] (complex) at ``freq_hz`` [Hz], what a
+    transparent rendering is felt as, broadcast over arrays: eq. 9's ``K_o + B_o (1 - z^-1)`` at
+    ``z = e^{j w h}``, h the simulation period [s] (B_o negative counts as 0)."""
+    _, c_x = object_coefficients(k_o, b_o)
     zi = np.exp(-2j * np.pi * np.asarray(freq_hz, dtype=float) * np.asarray(sim_period_s))
-    lag = 1.0 - zi
-    mh = -c_xp
-    return np.asarray(k_o) + (c_x - 2.0 * mh) * lag + mh * lag**2 + c_q * lag / (1.0 - a * zi)
-
-
-def own_impedance(
-    freq_hz: FloatArray | float,
-    k_o: FloatArray | float,
-    b_o: FloatArray | float,
-    sim_period_s: FloatArray | float,
-    m_o: FloatArray | float = 0.0,
-    k_r: FloatArray | float = 0.0,
-    tau_r: FloatArray | float = 0.0,
-) -> FloatArray:
-    """The object's own dynamic stiffness dF/dx [N/m] (complex) at ``freq_hz`` [Hz], what a
-    transparent rendering is felt as, broadcast over arrays as :func:`object_coefficients`:
-    eq. 9's ``K_o + B_o (1 - z^-1)`` at ``z = e^{j w h}`` where no mass or arm is reported
-    (:func:`object_impedance`); where one is, the solid the simulation steps (module docstring,
-    "object"), continuous in time, ``K_o + j w b h + k_r j w tau_r / (1 + j w tau_r) - m_o
-    w^2`` (b h the rest of B_o as a damper [N*s/m], h the simulation period): the standard
-    linear solid with a surface mass (Fung 1993), which its stepped impedance approximates,
-    increasingly stiff towards the simulation's Nyquist rate."""
-    _, c_x, c_xp, c_q, a = object_coefficients(k_o, b_o, sim_period_s, m_o, k_r, tau_r)
-    h = np.asarray(sim_period_s, dtype=float)
-    w = 2.0 * np.pi * np.asarray(freq_hz, dtype=float)
-    mh = -c_xp
-    damper = (c_x - 2.0 * mh) * h
-    jwt = 1j * w * np.asarray(tau_r, dtype=float)
-    arm = np.where(a > 0.0, np.asarray(k_r, dtype=float) * jwt / (1.0 + jwt), 0.0)
-    solid = np.asarray(k_o) + 1j * w * damper + arm - mh * h**2 * w**2
-    stepped = object_impedance(freq_hz, k_o, b_o, sim_period_s, m_o, k_r, tau_r)
-    return np.where((mh > 0.0) | (a > 0.0), solid, stepped)
-
-
-def dynamics_coefficients(
-    ko: FloatArray, bo: FloatArray, dynamics: ContactDynamics, sim_period_s: float
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """:func:`object_coefficients` for a batch of K_o and B_o and one contact's dynamics."""
-    return object_coefficients(ko, bo, sim_period_s, *dynamics.params)
+    return np.asarray(k_o) + c_x * (1.0 - zi)
 
 
 def _hand_zoh(
@@ -448,7 +333,6 @@ def monodromy(
     proxy_hold: ProxyHold = "zoh",
     integral: bool | None = None,
     own_gain: float | FloatArray = 0.0,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> FloatArray:
     """Monodromy matrices of the full loop over one simulation period (module docstring).
 
@@ -473,16 +357,12 @@ def monodromy(
         Model the integral state (default: any ``i_gain > 0``). Without it I is ignored.
     own_gain : float or (B,) array
         Own-force compensation C_h [m/N] (module docstring), >= 0; 0: the paper's local model.
-    dynamics : ContactDynamics
-        The contact's mass and relaxing arm, part of B_o (module docstring, "object");
-        :data:`NO_DYNAMICS`: eq. 9.
 
     Returns
     -------
     (B, J, n, n) float array
         One monodromy matrix per batch element and sampling tick; the state is
-        [fast states, proxy, (previous proxy), object, (its previous depth), (its arm), delay
-        line] (:func:`slow_layout`).
+        [fast states, proxy, (previous proxy), object, delay line] (:func:`slow_layout`).
 
     Raises
     ------
@@ -544,9 +424,9 @@ def monodromy(
         Phi = A @ Phi
         Gn = np.einsum("bnm,bm->bn", A, Gn) + Bp * w_new[i]
         Go = np.einsum("bnm,bm->bn", A, Go) + Bp * w_old[i]
-    # slow state: [xi (nf), p, (p_old), x_obj, (x_obj_prev), (q_arm), q_1..q_D]
+    # slow state: [xi (nf), p, (p_old), x_obj, q_1..q_D]
     D = int(delay_ticks)
-    lay = slow_layout(nf, foh, dynamics, D)
+    lay = slow_layout(nf, foh, D)
     i_p, i_po, i_obj, i_q, n = lay.proxy, lay.proxy_old, lay.obj, lay.delay, lay.n
     M = np.zeros((nb, len(js), n, n))
     M[:, :, :nf, :nf] = Phi[:, None]
@@ -554,22 +434,15 @@ def monodromy(
     if i_po is not None:
         M[:, :, :nf, i_po] = Go[:, None]
         M[:, :, i_po, i_p] = 1.0
-    # object: x_obj' = inv (F + c_x x_obj + c_xp x_obj_prev + c_q q_arm) (eq. 9: c_x = B_o,
-    # inv = 1 / (K_o + B_o)), F = F_xi xi + F_new p + F_old p_old
-    inv, c_x, c_xp, c_q, alpha = dynamics_coefficients(ko, bo, dynamics, N * T)
+    # object: x_obj' = inv (F + c_x x_obj) (eq. 9: c_x = B_o, inv = 1 / (K_o + B_o)),
+    # F = F_xi xi + F_new p + F_old p_old
+    inv, c_x = object_coefficients(ko, bo)
     obj_row = np.zeros((nb, len(js), n))
     obj_row[:, :, :nf] = F_xi * inv[:, None, None]
     obj_row[:, :, i_p] = F_new * inv[:, None]
     if i_po is not None:
         obj_row[:, :, i_po] = F_old * inv[:, None]
     obj_row[:, :, i_obj] = (c_x * inv)[:, None]
-    if lay.obj_prev is not None:
-        obj_row[:, :, lay.obj_prev] = (c_xp * inv)[:, None]
-        M[:, :, lay.obj_prev, i_obj] = 1.0
-    if lay.arm is not None:
-        obj_row[:, :, lay.arm] = (c_q * inv)[:, None]
-        M[:, :, lay.arm, :] = (1.0 - alpha)[:, None, None] * obj_row
-        M[:, :, lay.arm, lay.arm] += alpha[:, None]
     M[:, :, i_obj, :] = obj_row
     # the proxy delivered: the new surface moved out by C_h times the force sampled
     proxy_row = obj_row.copy()
@@ -594,22 +467,16 @@ class SlowLayout:
     proxy: int
     proxy_old: int | None
     obj: int
-    obj_prev: int | None
-    arm: int | None
     delay: int
     n: int
 
 
-def slow_layout(nf: int, foh: bool, dynamics: ContactDynamics, delay_ticks: int) -> SlowLayout:
+def slow_layout(nf: int, foh: bool, delay_ticks: int) -> SlowLayout:
     """The slow state's layout after ``nf`` fast states (:func:`monodromy`): the proxy, the
-    previous proxy (``foh``), the object's depth, its previous depth (a mass), its arm (a
-    relaxing arm) and ``delay_ticks`` delay-line states, in that order."""
+    previous proxy (``foh``), the object's depth and ``delay_ticks`` delay-line states, in that
+    order."""
     i = nf + (2 if foh else 1)
-    prev = i + 1 if dynamics.mass_kg > 0.0 else None
-    has_arm = dynamics.relax_stiffness_n_per_m > 0.0 and dynamics.relax_time_s > 0.0
-    arm = i + 1 + (prev is not None) if has_arm else None
-    delay = i + 1 + (prev is not None) + (arm is not None)
-    return SlowLayout(nf, nf + 1 if foh else None, i, prev, arm, delay, delay + int(delay_ticks))
+    return SlowLayout(nf, nf + 1 if foh else None, i, i + 1, i + 1 + int(delay_ticks))
 
 
 def spectral_radius_function(

@@ -72,8 +72,6 @@ from haptic_collab.shared.checks import whole as _whole
 from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ
 from haptic_collab.shared.full_loop import (
     DEFAULT_HAND_BOX,
-    NO_DYNAMICS,
-    ContactDynamics,
     HandBox,
     ProxyHold,
 )
@@ -215,7 +213,6 @@ def design_gains(
     felt_k_os: Sequence[float] | None = None,
     scaled: bool = False,
     stiffer_by: float = 0.0,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> GainDesign:
     """The most transparent gains stable over the hand box (module docstring).
 
@@ -273,11 +270,6 @@ def design_gains(
         model error), the worst counting. Stability over the stiffer object is the caller's
         range (``k_o_hi``; :func:`shared.gain_table.cell_k_o_range` widens it by
         :attr:`GainKey.stiffer_by`).
-    dynamics : ContactDynamics
-        The part of ``b_o`` that is the contact's mass and relaxing arm
-        (:class:`shared.full_loop.ContactDynamics`): the candidates are checked on that solid
-        and felt against its own impedance (:func:`shared.full_loop.own_impedance`);
-        :data:`shared.full_loop.NO_DYNAMICS`: eq. 9's object.
     scaled : bool
         Compensated gains are rendered scaled to the reported K_o (:meth:`GainDesign.at`) over
         ``[k_o, max(felt_k_os)]``, as far as K_h stays within ``k_h_max``: transparency at each
@@ -319,7 +311,6 @@ def design_gains(
         felt_k_os=felt_k_os,
         scaled=scaled,
         stiffer_by=stiffer_by,
-        dynamics=dynamics,
     )[mode]
 
 
@@ -342,7 +333,6 @@ def design_gains_modes(
     felt_k_os: Sequence[float] | None = None,
     scaled: bool = False,
     stiffer_by: float = 0.0,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> dict[Mode, GainDesign]:
     """:func:`design_gains` for each local model of ``modes`` at once, ``{mode: design}``, each
     design the one :func:`design_gains` gives with that ``mode`` and the other arguments.
@@ -422,7 +412,6 @@ def design_gains_modes(
         band=band,
         felt_at=felt_at,
         model_error_k_os=model_error_k_os,
-        dynamics=dynamics,
         own_force=own_force,
         scaled=scaled,
         hand_box=hand_box,

@@ -22,7 +22,6 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics
 from haptic_collab.shared.rates import Rates
 
 #: The local model's form: proportional (eq. 12 with I = 0) or proportional-integral.
@@ -165,12 +164,6 @@ class GainKey:
     #: up to ``(1 + stiffer_by)`` times the top of its range, or up to that top plus ``b_o``
     #: where that is higher (:func:`cell_k_o_range`).
     stiffer_by: float = STIFFER_BY
-    #: The part of ``b_o`` that is the contact's mass and relaxing arm, where the patch says
-    #: (:class:`shared.full_loop.ContactDynamics`, quantized by :func:`quantized_dynamics`).
-    #: The cell's design and the verified plane are checked and felt on that solid, and the rest
-    #: plane matched to it (:func:`shared.gain_design.design_gains`, :mod:`shared.verified_plane`,
-    #: :mod:`shared.rest_plane`); without it, eq. 9's object (the paper's).
-    dynamics: ContactDynamics = NO_DYNAMICS
 
     @property
     def rates(self) -> Rates:
@@ -199,18 +192,6 @@ def held_stiff_ratio(current: float, k_o_eff: float, k_o_stiff: float) -> float:
     return new if new > current or new * STIFF_CLASS_FALL <= current else current
 
 
-def quantized_dynamics(dynamics: ContactDynamics) -> ContactDynamics:
-    """``dynamics`` rounded down to whole grams, N/m and milliseconds (as B_o to whole N/m), so
-    that a contact's key does not change from tick to tick with a solid whose reports waver in
-    their last digits; :data:`NO_DYNAMICS` where nothing is left."""
-    q = ContactDynamics(
-        mass_kg=math.floor(dynamics.mass_kg * 1e3) / 1e3,
-        relax_stiffness_n_per_m=float(math.floor(dynamics.relax_stiffness_n_per_m)),
-        relax_time_s=math.floor(dynamics.relax_time_s * 1e3) / 1e3,
-    )
-    return NO_DYNAMICS if q.none else q
-
-
 def make_gain_key(
     *,
     servo_rate_hz: float,
@@ -222,13 +203,11 @@ def make_gain_key(
     b_h_max: float,
     b_o: float,
     stiff_ratio: float,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> GainKey:
     """The :class:`GainKey` of one user now: rates [Hz], loop delay [ticks], local model form,
     design margin, the device's K_h and B_h limits [N/m, N·s/m], the object damping ``b_o``
     [N/m] (eq. 9: the damping over the simulation period; quantized down to whole N/m, negative
-    counts as 0), the coupling class and the part of ``b_o`` that is the contact's mass and
-    relaxing arm (:func:`quantized_dynamics`).
+    counts as 0) and the coupling class.
     """
     return GainKey(
         servo_rate_hz=float(servo_rate_hz),
@@ -240,5 +219,4 @@ def make_gain_key(
         b_h_max=float(b_h_max),
         b_o=float(math.floor(max(0.0, b_o))),
         stiff_ratio=float(stiff_ratio),
-        dynamics=quantized_dynamics(dynamics),
     )

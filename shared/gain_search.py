@@ -22,13 +22,11 @@ import numpy as np
 
 from haptic_collab.shared.felt_stiffness import felt_responses, felt_stiffness
 from haptic_collab.shared.full_loop import (
-    NO_DYNAMICS,
-    ContactDynamics,
     Hand,
     HandBox,
     ProxyHold,
     monodromy,
-    own_impedance,
+    object_impedance,
 )
 from haptic_collab.shared.stability_margin import group_mode_radii, k_o_points
 from haptic_collab.shared.types import FloatArray, IndexArray
@@ -76,7 +74,6 @@ def _worst_rho(
     integral: bool,
     rho_limit: float = 1.0,
     chunk: int = 4096,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> tuple[FloatArray, FloatArray]:
     """Worst full-loop spectral radius per candidate over hands x K_o' x sampling ticks, (G,).
 
@@ -114,7 +111,6 @@ def _worst_rho(
             sample_ticks=sample_ticks,
             proxy_hold=hold,
             integral=integral,
-            dynamics=dynamics,
         )
         # each case's candidate, and each matrix's (chunk, J)
         first = a // per
@@ -293,11 +289,9 @@ class GainSearch:
         own_force: bool,
         scaled: bool,
         hand_box: HandBox,
-        dynamics: ContactDynamics = NO_DYNAMICS,
     ) -> None:
         N = rate_ratio
         self.k_o, self.lo, self.hi, self.b_o = k_o, lo, hi, b_o
-        self.dynamics = dynamics
         self.N, self.T, self.delay = N, servo_period_s, delay_ticks
         self.rho_limit, self.band, self.felt_at = rho_limit, band, felt_at
         self.model_error_k_os, self.own_force, self.scaled = model_error_k_os, own_force, scaled
@@ -366,7 +360,6 @@ class GainSearch:
             sample_ticks=ticks,
             integral=integral,
             rho_limit=self.rho_limit,
-            dynamics=self.dynamics,
         )
 
     def _served(
@@ -378,13 +371,12 @@ class GainSearch:
 
     def _own(self, k: float) -> FloatArray:
         """|the object's own dynamic stiffness| [N/m] at K_o = k over ``band``, (F, 1)
-        (:func:`shared.full_loop.own_impedance`): eq. 9's ``|K_o + B_o (1 - e^{-j w N T})|``,
-        K_o itself where B_o = 0; with the contact's dynamics, the solid's, continuous in time. Real: the active share -Im of a response
-        over it keeps its sign."""
-        z = own_impedance(
-            np.asarray(self.band)[:, None], k, self.b_o, self.N * self.T, *self.dynamics.params
+        (:func:`shared.full_loop.object_impedance`): eq. 9's ``|K_o + B_o (1 - e^{-j w N T})|``,
+        K_o itself where B_o = 0. Real: the active share -Im of a response over it keeps its
+        sign."""
+        return np.abs(
+            object_impedance(np.asarray(self.band)[:, None], k, self.b_o, self.N * self.T)
         )
-        return np.abs(z)
 
     def _response(self, k: float, sc: dict[str, FloatArray], hold: ProxyHold) -> FloatArray:
         """Felt responses dF/dx (complex values, (F, G)) of gains ``sc`` on K_o = k at 1 Hz
@@ -405,7 +397,6 @@ class GainSearch:
                 i_gain=sc["i_gain"],
                 b_h=sc["b_h"],
                 own_gain=sc["own_gain"],
-                dynamics=self.dynamics,
             )
             / own
         )
@@ -530,7 +521,6 @@ class GainSearch:
                 rate_ratio=self.N,
                 delay_ticks=self.delay,
                 proxy_hold=hold,
-                dynamics=self.dynamics,
             )[0]
             / k_o
         )

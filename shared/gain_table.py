@@ -206,7 +206,6 @@ def design_cell_modes(
         felt_k_os=(g, g * math.sqrt(grid_ratio), g * grid_ratio),
         scaled=True,
         stiffer_by=key.stiffer_by,
-        dynamics=key.dynamics,
     )
 
 

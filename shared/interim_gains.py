@@ -80,8 +80,7 @@ def verify_gains(
     Parameters
     ----------
     key : GainKey
-        Rates, delay ticks, margin and object damping B_o [N/m] to check at, on the solid its
-        contact dynamics describe where it has them (:mod:`shared.full_loop`).
+        Rates, delay ticks, margin and object damping B_o [N/m] to check at.
     cell, grid_ratio : int, float
         The K_o grid cell (g_i = grid_ratio**cell [N/m]).
     hand_box : HandBox
@@ -168,7 +167,6 @@ def verify_gains(
                 sample_ticks=ticks,
                 proxy_hold=proxy_hold,
                 integral=i_gain > 0.0,
-                dynamics=key.dynamics,
             )
             Mf = M.reshape(-1, *M.shape[-2:])
             marg, rad = group_mode_radii(Mf, rho_limit, n, T, np.zeros(len(Mf), np.intp), 1)
@@ -261,7 +259,6 @@ def interim_design(
                     delay_ticks=key.delay_ticks,
                     proxy_hold=hold,
                     own_gain=own,
-                    dynamics=key.dynamics,
                 )[0]
                 / g
             )

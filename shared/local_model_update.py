@@ -34,7 +34,7 @@ from haptic_collab.shared.checks import (
     WholePositive,
     params_dataclass,
 )
-from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics, ProxyHold
+from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.primitives import (
     Plane,
     Primitive,
@@ -44,7 +44,6 @@ from haptic_collab.shared.primitives import (
     moved_out,
 )
 from haptic_collab.shared.protocol import (
-    ContactDynamicsModel,
     Patch,
     PlaneModel,
     ProtocolError,
@@ -101,9 +100,6 @@ class SurfacePatch:
     rest_plane : shared.primitives.Plane or None
         The object's rest surface at the contact, sent while this user is the only one in the
         room (:mod:`shared.rest_plane`); None otherwise.
-    dynamics : shared.full_loop.ContactDynamics
-        The part of ``b_o`` that is the contact's mass and relaxing arm (:data:`NO_DYNAMICS`:
-        eq. 9's damper, all of it).
 
     Raises
     ------
@@ -125,7 +121,6 @@ class SurfacePatch:
     b_o: float
     own_force_n: float = 0.0
     rest_plane: Plane | None = None
-    dynamics: ContactDynamics = NO_DYNAMICS
 
     def __post_init__(self) -> None:
         if not isinstance(self.primitive, Plane | Sphere):
@@ -204,13 +199,6 @@ class SurfacePatch:
             rest_plane=None
             if self.rest_plane is None
             else PlaneModel(point=self.rest_plane.point, normal=self.rest_plane.normal),
-            dynamics=None
-            if self.dynamics == NO_DYNAMICS
-            else ContactDynamicsModel(
-                mass_kg=self.dynamics.mass_kg,
-                relax_stiffness_n_per_m=self.dynamics.relax_stiffness_n_per_m,
-                relax_time_s=self.dynamics.relax_time_s,
-            ),
         )
 
     @classmethod
@@ -241,13 +229,6 @@ class SurfacePatch:
             b_o=msg.b_o,
             own_force_n=msg.own_force_n,
             rest_plane=rest if isinstance(rest, Plane) else None,
-            dynamics=NO_DYNAMICS
-            if msg.dynamics is None
-            else ContactDynamics(
-                mass_kg=msg.dynamics.mass_kg,
-                relax_stiffness_n_per_m=msg.dynamics.relax_stiffness_n_per_m,
-                relax_time_s=msg.dynamics.relax_time_s,
-            ),
         )
 
 

@@ -65,7 +65,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics, object_coefficients
 from haptic_collab.shared.types import FloatArray
 
 #: The weighted sums the check keeps, in this order along the last axis: weight W, sum u, sum r,
@@ -73,15 +72,8 @@ from haptic_collab.shared.types import FloatArray
 #: estimate [m]).
 SUMS = 6
 #: The deformation state the check keeps, in this order along the last axis: ``u`` [m], the last
-#: force [N], the last K_o reported [N/m], and for a solid whose patch reports its dynamics
-#: ``u`` one simulation tick before [m] and its relaxing arm's state [m]
-#: (:func:`update_deformation`).
-DEFORMATION = 5
-
-#: The most simulation ticks a solid's deformation is stepped over between two patches
-#: (:meth:`OwnResponse.update`): a gap longer than that (10 s at 100 Hz) leaves the solid at rest
-#: under the held force as it is, and its stepping would cost the link's thread.
-MAX_TICKS = 1000
+#: force [N] and the last K_o reported [N/m] (:func:`update_deformation`).
+DEFORMATION = 3
 
 #: Window [s] of the check: a sample's weight falls by e every window.
 WINDOW_S = 2.0
@@ -178,12 +170,6 @@ def update_deformation(
     *,
     force_n: float | FloatArray,
     k_o: float | FloatArray,
-    b_o: float | FloatArray = 0.0,
-    sim_period_s: float | FloatArray = 1.0,
-    mass_kg: float | FloatArray = 0.0,
-    relax_stiffness_n_per_m: float | FloatArray = 0.0,
-    relax_time_s: float | FloatArray = 0.0,
-    ticks: int | np.ndarray = 1,
 ) -> FloatArray:
     """The deformation state (:data:`DEFORMATION`) after one patch of force ``force_n`` [N]
     with the K_o reported ``k_o`` [N/m] > 0; shape as ``state``. ``u`` grows by the change of
@@ -191,14 +177,6 @@ def update_deformation(
     where the tangent stiffness is linear in the force, as on Fung's exponential law; ``dF /
     K_o`` where K_o did not change), and is ``F / K_o`` at the first patch. Where an input is not
     finite the contact's state is returned unchanged.
-
-    Where the patch says what part of its B_o ``b_o`` [N/m] is the contact's mass ``mass_kg``
-    and relaxing arm (:class:`shared.full_loop.ContactDynamics`), ``u`` is the solid's: stepped
-    ``ticks`` simulation periods of ``sim_period_s`` [s] (the ticks since the last patch) under
-    this force by implicit Euler as the simulation steps it (:func:`shared.full_loop
-    .object_coefficients`), the elastic force ``K_o u`` of the newest K_o; at the first patch
-    at rest under that force (``F / K_o``, the arm relaxed). On the solid it describes, ``u``
-    is then the depth of the surface less the rest surface, as ``F / K_o`` is on a spring.
     """
     f = np.asarray(force_n, dtype=float)
     k = np.asarray(k_o, dtype=float)
@@ -209,25 +187,7 @@ def update_deformation(
         # the logarithmic mean of k0 and k; k itself where they (nearly) agree
         lm = np.where(np.abs(dk) > 1e-9 * k, dk / np.log(k / k0), k)
         u = np.where(first, f / k, state[..., 0] + (f - f0) / lm)
-        m, kr, tau = (
-            np.asarray(v, dtype=float) for v in (mass_kg, relax_stiffness_n_per_m, relax_time_s)
-        )
-        solid = (m > 0.0) | ((kr > 0.0) & (tau > 0.0))
-        u_prev, q = u, u
-        if np.any(solid):
-            inv, _, c_xp, c_q, a = object_coefficients(k, b_o, sim_period_s, m, kr, tau)
-            x = np.where(first, f / k, state[..., 0])
-            xp = np.where(first, x, state[..., 3])
-            qa = np.where(first, x, state[..., 4])
-            n = np.broadcast_to(np.where(first, 0, np.asarray(ticks)), np.shape(x))
-            for i in range(int(np.max(n, initial=0))):
-                step = i < n
-                dx = inv * (f - k * x - c_xp * (x - xp) - c_q * (x - qa))
-                xp, x = np.where(step, x, xp), np.where(step, x + dx, x)
-                qa = np.where(step, a * qa + (1.0 - a) * x, qa)
-            u = np.where(solid, x, u)
-            u_prev, q = np.where(solid, xp, u), np.where(solid, qa, u)
-    out = np.stack(np.broadcast_arrays(u, f, k, u_prev, q), axis=-1)
+    out = np.stack(np.broadcast_arrays(u, f, k), axis=-1)
     ok = np.isfinite(out).all(axis=-1) & (k > 0.0)
     return np.where(np.asarray(ok)[..., None], out, state)
 
@@ -407,10 +367,9 @@ class OwnResponse:
     """The own-response check of one contact (module docstring).
 
     Call :meth:`update` with each patch of the contact, :meth:`reset` when the contact ends,
-    becomes coupled to another user's, or the object reports a B_o > 0 without saying what part
-    of it is mass and relaxation (a viscoelastic object's response depends on how fast it is
-    pressed: the check reads it as the solid the patch describes, or not at all). A K_o reported that
-    moves as the object is pressed (a stiffening object) is read as its tangent
+    becomes coupled to another user's, or the object reports a B_o > 0 (a viscoelastic
+    object's response depends on how fast it is pressed, which the K_o and B_o reported do not
+    say: the check does not read it). A K_o reported that moves as the object is pressed (a stiffening object) is read as its tangent
     (:func:`update_deformation`): the check goes on across gain-table cells.
 
     Raises
@@ -484,15 +443,10 @@ class OwnResponse:
         surface_m: float,
         force_n: float,
         k_o: float,
-        b_o: float = 0.0,
-        sim_period_s: float = 1.0,
-        dynamics: ContactDynamics = NO_DYNAMICS,
     ) -> bool:
         """Add one patch (:func:`update_deformation`, :func:`update_sums`) and return the
         verdict (:func:`identify`): the object yields as a tangent of :attr:`identified` [N/m]
-        to within ``tolerance``. With the patch's ``dynamics`` (and its ``b_o`` [N/m], the
-        simulation period ``sim_period_s`` [s]) the deformation is the solid's, stepped over the
-        ``dt_s`` since the last patch in whole simulation ticks.
+        to within ``tolerance``.
 
         Raises
         ------
@@ -503,11 +457,7 @@ class OwnResponse:
             raise ValueError(f"dt_s must be finite and >= 0 s, got {dt_s!r}")
         if not (math.isfinite(k_o) and k_o > 0.0):
             raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
-        self.deformation = update_deformation(
-            self.deformation, force_n=force_n, k_o=k_o, b_o=b_o, sim_period_s=sim_period_s,
-            mass_kg=dynamics.mass_kg, relax_stiffness_n_per_m=dynamics.relax_stiffness_n_per_m,
-            relax_time_s=dynamics.relax_time_s, ticks=min(MAX_TICKS, max(1, round(dt_s / sim_period_s))),
-        )  # fmt: skip
+        self.deformation = update_deformation(self.deformation, force_n=force_n, k_o=k_o)
         u = float(self.deformation[0]) if math.isfinite(force_n) else math.nan
         self.sums = update_sums(
             self.sums, dt_s=dt_s, surface_m=surface_m, deformation_m=u, window_s=self.window_s

@@ -278,17 +278,6 @@ class RecommendedGains(_Msg):
     own_gain: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
 
 
-class ContactDynamicsModel(_Msg):
-    """What part of a patch's ``b_o`` is the contact's mass and a relaxing arm (SI units;
-    :class:`shared.full_loop.ContactDynamics`): the object along the contact normal is
-    ``m x'' + b x' + k_o x + k_r (x - q) = F``, ``tau_r q' = x - q``, stepped by implicit Euler
-    at the simulation rate; ``b_o`` stays the one-tick stiffness less ``k_o``."""
-
-    mass_kg: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
-    relax_stiffness_n_per_m: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
-    relax_time_s: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
-
-
 class Patch(_Msg):
     """A user's local model for the next simulation period (latest wins).
 
@@ -322,9 +311,6 @@ class Patch(_Msg):
     #: point), sent only while this user is the only one in the room: a client may
     #: render it with the object's stiffness (:mod:`shared.rest_plane`); absent otherwise.
     rest_plane: PlaneModel | None = None
-    #: The part of ``b_o`` that is the contact's mass and a relaxing arm, where the simulation
-    #: knows it (absent: eq. 9's damper, all of ``b_o``).
-    dynamics: ContactDynamicsModel | None = None
 
 
 class Pong(_Msg):

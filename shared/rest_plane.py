@@ -13,31 +13,20 @@ simulation: a wall at the servo rate, passive when the device's own damping exce
 The probe damper B_h is the one of :data:`DAMPER_FRACTIONS` (of the device's damping) whose felt
 impedance ``K_h + j w B_h`` is closest over :data:`DAMPER_BAND_HZ` (largest |ln| ratio) to the
 object's own as the simulation renders it, ``K_o + B_o (1 - exp(-j w / f_s))`` (eq. 9, B_o the
-object damping divided by the simulation period): more the more the object resists a fast push.
-Where the patch says what part of B_o is the contact's mass and a relaxing arm
-(:class:`shared.full_loop.ContactDynamics`), the object's own is the solid's, continuous in
-time (:func:`shared.full_loop.own_impedance`): eq. 9 turns a solid's relaxing arm into a damper,
-and the solid stepped at the simulation rate is stiffer than itself towards the simulation's
-Nyquist rate; either overstates how stiff it is to a quick push (the fidelity benchmark's
-viscoelastic object at 100 N/m and 20 Hz: 2.4 times K_o at 8 Hz by eq. 9, 1.5 times as the
-solid), and the plane then took a 5 N*s/m damper, felt 0.67 (ln) off the object, where 2.5 N*s/m
-is felt 0.44 off. The rest plane is not stepped: it can be felt as the solid itself.
+object damping divided by the simulation period): more the more the object resists a fast push
+(:func:`shared.full_loop.object_impedance`; K_o and B_o are all the patch says of the object).
 Each is at least :data:`MIN_DAMPER_PER_STIFFNESS_PERIOD` ``K_h T`` (T the servo period), the
 sampled spring's energy leak per unit of speed in Colgate and Schenkel's condition: on a spring
 0.5 N*s/m at 1000 N/m, felt as ``|1 + j 2 pi 8 Hz B_h / K_h|`` = 1.0003 at 8 Hz. Without it the
 light hand's and the lightly damped device's impacts bounced on the plane (hands outside the
 design's box; the virtual damper is not a passivity guarantee, Colgate and Schenkel's condition
-counts it against the device's damping, but a damped hand on a damped probe settles): measured
-with the fidelity benchmark's 1-D simulator (2026-11-26, the springs and the stiffening object
-at 100-1000 N/m, every rate and delay, against none), the cells with those hands stable went
-from 1933 to 1996 of 2160 (`local-pi`), nothing else moved; twice that damper, 2006.
+counts it against the device's damping, but a damped hand on a damped probe settles; measured
+with the fidelity benchmark's 1-D simulator, docs/results/).
 
-Measured with the fidelity benchmark's 1-D simulator (docs/fidelity.md, "The rest plane"): against
-the product's designs and verified planes alone, the unseen objects within the JND of the best
-scheme rose from 70 % to 88 %, the spring from 76 and 80 of 80 to 80 of 80 with either local
-model; a press that crossed from the rest plane to the verified planes of a stiffening object and
-back every cycle rang (7 Hz, 8 mm), so after a verified plane the rest plane waits
-:data:`HOLD_BACK_S` without one in the contact (:class:`client.session.ClientSession`).
+A press that crossed from the rest plane to the verified planes of a stiffening object and back
+every cycle rang (7 Hz, 8 mm), so after a verified plane the rest plane waits :data:`HOLD_BACK_S`
+without one in the contact (:class:`client.session.ClientSession`; docs/fidelity.md, "The rest
+plane", for what the benchmark measured).
 
 Pure functions: no clock, no I/O.
 """
@@ -49,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from haptic_collab.shared.checks import nonneg, positive
-from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics, own_impedance
+from haptic_collab.shared.full_loop import object_impedance
 from haptic_collab.shared.types import FloatArray
 
 #: After a verified plane has rendered in a contact, the rest plane renders again only once none
@@ -101,7 +90,6 @@ def rest_plane_gains(
     b_h_max: float,
     *,
     servo_period_s: float,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> RestPlaneGains:
     """The gains of the rest plane for an object of ``k_o`` and ``b_o`` (module docstring).
 
@@ -119,8 +107,6 @@ def rest_plane_gains(
         The largest probe damper the client renders [N*s/m], >= 0.
     servo_period_s : float
         The servo period T [s], > 0.
-    dynamics : ContactDynamics
-        The part of ``b_o`` that is the contact's mass and relaxing arm (the patch's).
 
     Returns
     -------
@@ -135,9 +121,7 @@ def rest_plane_gains(
     k_h, b_h, err = rest_plane_dampers(
         np.array([positive("k_o", k_o)]), np.array([nonneg("b_o", b_o)]),
         np.array([positive("sim_rate_hz", sim_rate_hz)]), k_h_max, b_h_max,
-        servo_period_s=servo_period_s, mass_kg=dynamics.mass_kg,
-        relax_stiffness_n_per_m=dynamics.relax_stiffness_n_per_m,
-        relax_time_s=dynamics.relax_time_s,
+        servo_period_s=servo_period_s,
     )  # fmt: skip
     return RestPlaneGains(k_h=float(k_h[0]), b_h=float(b_h[0]), felt_error=float(err[0]))
 
@@ -150,15 +134,10 @@ def rest_plane_dampers(
     b_h_max: float,
     *,
     servo_period_s: float,
-    mass_kg: FloatArray | float = 0.0,
-    relax_stiffness_n_per_m: FloatArray | float = 0.0,
-    relax_time_s: FloatArray | float = 0.0,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """:func:`rest_plane_gains` over a batch: K_h [N/m], B_h [N*s/m] and the felt error for
-    each of the objects ``k_o`` [N/m], ``b_o`` [N/m] at ``sim_rate_hz`` [Hz], with the
-    contact's dynamics ``mass_kg`` [kg], ``relax_stiffness_n_per_m`` [N/m], ``relax_time_s``
-    [s] (:class:`shared.full_loop.ContactDynamics`; arrays of one shape, broadcast; the
-    simulator of the fidelity benchmark renders each patch's rest plane with it, as the client
+    each of the objects ``k_o`` [N/m], ``b_o`` [N/m] at ``sim_rate_hz`` [Hz] (arrays of one
+    shape, broadcast; the simulator of the fidelity benchmark renders each patch's rest plane with it, as the client
     does with :func:`rest_plane_gains`).
 
     Raises
@@ -166,24 +145,20 @@ def rest_plane_dampers(
     ValueError
         As :func:`rest_plane_gains`, for any element.
     """
-    k, damping, rate, m_o, k_r, tau_r = np.broadcast_arrays(
-        *(
-            np.asarray(v, dtype=float)
-            for v in (k_o, b_o, sim_rate_hz, mass_kg, relax_stiffness_n_per_m, relax_time_s)
-        )
+    k, damping, rate = np.broadcast_arrays(
+        *(np.asarray(v, dtype=float) for v in (k_o, b_o, sim_rate_hz))
     )
     if not (np.all(np.isfinite(k) & (k > 0.0)) and np.all(np.isfinite(rate) & (rate > 0.0))):
         raise ValueError("k_o and sim_rate_hz must be finite and > 0")
-    for name, v in (("b_o", damping), ("the contact's dynamics", np.stack([m_o, k_r, tau_r]))):
-        if not np.all(np.isfinite(v) & (v >= 0.0)):
-            raise ValueError(f"{name} must be finite and >= 0")
+    if not np.all(np.isfinite(damping) & (damping >= 0.0)):
+        raise ValueError("b_o must be finite and >= 0")
     k_h = np.minimum(k, positive("k_h_max", k_h_max))
     b_max = nonneg("b_h_max", b_h_max)
     least = np.minimum(
         MIN_DAMPER_PER_STIFFNESS_PERIOD * k_h * positive("servo_period_s", servo_period_s), b_max
     )
     w = 2.0 * np.pi * np.asarray(DAMPER_BAND_HZ)[(...,) + (None,) * k.ndim]
-    obj = np.abs(own_impedance(w / (2.0 * np.pi), k, damping, 1.0 / rate, m_o, k_r, tau_r))
+    obj = np.abs(object_impedance(w / (2.0 * np.pi), k, damping, 1.0 / rate))
     best_err = np.full(k.shape, np.inf)
     best_b = np.zeros(k.shape)
     for frac in DAMPER_FRACTIONS:

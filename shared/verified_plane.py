@@ -60,7 +60,7 @@ from typing import Literal
 import numpy as np
 
 from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
-from haptic_collab.shared.full_loop import HandBox, own_impedance
+from haptic_collab.shared.full_loop import HandBox, object_impedance
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.interim_gains import verify_gains
@@ -119,17 +119,14 @@ def _band_response(
         delay_ticks=key.delay_ticks,
         proxy_hold=proxy_hold,
         own_gain=own_gain,
-        dynamics=key.dynamics,
     )[:, 0]
 
 
 def _own(key: GainKey, k_o: float) -> np.ndarray:
     """The object's own dynamic stiffness [N/m] over the band under ``key``
-    (:func:`shared.full_loop.own_impedance`: K_o itself on the undamped objects planes apply to
-    without dynamics; the solid's where the key has the contact's dynamics), shape (F,)."""
-    return own_impedance(
-        np.asarray(FELT_BAND_HZ), k_o, key.b_o, 1.0 / key.sim_rate_hz, *key.dynamics.params
-    )
+    (:func:`shared.full_loop.object_impedance`: K_o itself on the undamped objects planes apply
+    to), shape (F,)."""
+    return object_impedance(np.asarray(FELT_BAND_HZ), k_o, key.b_o, 1.0 / key.sim_rate_hz)
 
 
 def _band_error(q: np.ndarray, own: np.ndarray) -> float:
@@ -145,11 +142,10 @@ def verified_key(key: GainKey) -> GainKey:
 
 def plane_applies(key: GainKey) -> bool:
     """Whether a contact of ``key`` may render a verified plane: own-force compensation allowed,
-    uncoupled (``stiff_ratio`` 1) and no object damping reported (B_o = 0), or the patch says
-    what its B_o is (the contact's mass and relaxing arm: the plane is checked on that solid,
-    and the own-response check reads it as that solid). Eq. 9's damper alone does not say how
-    a viscoelastic object answers a press over more than one tick."""
-    return key.own_force and key.stiff_ratio == 1.0 and (key.b_o == 0.0 or not key.dynamics.none)
+    uncoupled (``stiff_ratio`` 1) and no object damping reported (B_o = 0). Eq. 9's damper
+    does not say how a viscoelastic object answers a press over more than one tick, and the K_o
+    and B_o a patch carries are all the client knows of the object."""
+    return key.own_force and key.stiff_ratio == 1.0 and key.b_o == 0.0
 
 
 #: The cells whose planes a client checks ahead, in the background, around the cell of the K_o
@@ -371,62 +367,15 @@ def felt_closer(plane: GainDesign, key: GainKey, design: GainDesign) -> bool:
     return _cell_errors(plane, key, k_os) < _cell_errors(design, key, k_os)
 
 
-def plane_felt_error(plane: GainDesign, key: GainKey) -> float:
-    """How far ``plane`` is felt from the object across its cell: the worst over its cell's grid
-    point, middle and top of the largest ``|ln |q / own||`` over the band (the measure
-    :func:`felt_closer` ranks by first; ``own`` the object's own, the solid's where the key has
-    the contact's dynamics). A client computes it once per plane (three felt responses)."""
-    return _cell_errors(plane, key, _cell_points(plane))[0]
-
-
 def felt_error_at(d: GainDesign, key: GainKey, k_o: float) -> float:
     """How far ``d``, rendering as it does for the K_o reported ``k_o`` [N/m] (``d.at(k_o)``),
     is felt from the object under ``key``: the largest ``|ln |q / own||`` over the band
-    (:func:`felt_closer`'s measure; the solid's own where the key has the contact's dynamics).
-    One felt response."""
+    (:func:`felt_closer`'s measure). One felt response."""
     return _cell_errors(d, key, (k_o,))[0]
 
 
-def yields_to_rest_plane(key: GainKey, plane_error: float, rest_error: float) -> bool:
-    """Whether a user alone on a solid (the key has the contact's dynamics) should render the
-    rest plane (:mod:`shared.rest_plane`, felt ``rest_error`` off the solid) instead of a
-    verified plane felt ``plane_error`` off it across its cell (:func:`plane_felt_error`).
-
-    The plane renders the solid through the simulation, relaxation and all, and its delay with
-    it; the rest plane is a spring and a damper at the servo rate, felt the same at any delay.
-    Measured with the fidelity benchmark (2026-11-27, its viscoelastic object): at 100 N/m with
-    50-200 ms the verified plane was felt 0.65-0.76 (ln) off where the rest plane is 0.44 off;
-    at 300 N/m and 100 Hz without delay 0.12 where the rest plane is 0.41. On a spring the
-    verified plane keeps its place (it renders the stiffness the own-response check
-    identified; the rest plane the K_o reported)."""
-    return not key.dynamics.none and rest_error <= plane_error
-
-
-#: How much closer [ln] to a solid the cell's design must be felt than the rest plane for a user
-#: alone to render it instead (:func:`rest_plane_closer`): a stiffness JND of 10 %
-#: (docs/fidelity.md), a difference a hand can feel.
+#: A stiffness JND of 10 % (docs/fidelity.md) as a felt error [ln]: a difference a hand can feel.
 DESIGN_OVER_REST = math.log(1.1)
-
-
-def rest_plane_closer(key: GainKey, rest_error: float, design_error: float) -> bool:
-    """Whether a user alone renders the rest plane (:mod:`shared.rest_plane`, felt
-    ``rest_error`` off the object) rather than the cell's design (felt ``design_error`` off it
-    at the K_o reported: :func:`felt_error_at`) where no verified plane renders: always on a
-    spring (the rest plane is the object's own plane there), on a solid whose patch says what
-    its B_o is unless the design is felt closer to the solid by more than
-    :data:`DESIGN_OVER_REST`. The design renders the solid's relaxation through the simulation,
-    checked on the solid (:func:`shared.gain_table.design_cell` with the key's dynamics); the
-    rest plane cannot, but its force does not go through the simulation: where a hand could not
-    tell them apart it keeps its place (chosen by the least difference alone, the PI design on
-    the benchmark's solid at 3000 N/m, 10 Hz and 100 ms each way, predicted 0.07 closer, gave
-    the user 7.0 mJ where the rest plane gives none and its felt response could not be read).
-    Measured with the fidelity benchmark (2026-11-27, its viscoelastic object, the design made
-    for the solid): chosen so, the design renders at 300 N/m and 10-50 Hz with 0-10 ms, felt
-    0.04-0.15 (ln) off the solid where the rest plane is 0.41 off, and at 3000 N/m and 20-100 Hz,
-    1.50-1.56 where 1.67: 9 (`local-p`) and 10 (`local-pi`) more of its 80 conditions within
-    the JND of the best scheme, net of one `local-p` lost (300 N/m, 100 Hz, 50 ms: its rest
-    plane, 0.41, where `local-pi`'s design is 0.29)."""
-    return key.dynamics.none or rest_error <= design_error + DESIGN_OVER_REST
 
 
 def verified_plane(
