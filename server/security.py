@@ -11,6 +11,12 @@ Token file format (``haptic server --token-file FILE``), one token per line::
 given, binds the token to that name: a connection with this token is always called ``NAME``, and
 no other connection may take it. A token is 16-256 printable characters without spaces or ``#``;
 make one with ``python -c "import secrets; print(secrets.token_urlsafe(24))"``.
+
+Room tokens (``haptic server --token-secret-file FILE``; made with ``haptic token``) are signed
+and expire: ``hcr1.ROOM.ROLE.EXPIRES.MAC`` with an HMAC-SHA256 over room, role and expiry under
+the server's secret (:func:`make_room_token`, :func:`check_room_token`, :class:`RoomTokens`). A
+room token is valid only in its room, only in its role, and only until it expires; the
+server-wide tokens above stay valid in every room.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import hmac
 import ipaddress
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -290,3 +297,159 @@ class TokenBucket:
     def fill(self) -> float:
         """Level over size: 1 when full, lower when spent (above 1 while a stall is credited)."""
         return self.level / self.burst
+
+
+# ------------------------------------------------------------------------------ room tokens
+#: The first field of a room token (its format's version).
+ROOM_TOKEN_PREFIX = "hcr1"
+#: The shortest token secret accepted [bytes of the file, whitespace stripped].
+MIN_SECRET_BYTES = 32
+#: The longest lifetime a room token may be made with [s] (30 days).
+MAX_TOKEN_TTL_S = 30 * 24 * 3600.0
+_ROOM_TOKEN_RE = re.compile(
+    r"^hcr1\.(?P<room>[a-z0-9](?:[a-z0-9-]{0,30}[a-z0-9])?)\.(?P<role>user|viewer)"
+    r"\.(?P<exp>[0-9]{1,12})\.(?P<mac>[0-9a-f]{64})$"
+)
+
+
+def load_secret(path: str | Path) -> bytes:
+    """The token secret of a file: its bytes with surrounding whitespace stripped.
+
+    Make one with ``python -c "import secrets; print(secrets.token_urlsafe(48))" > FILE``.
+
+    Raises
+    ------
+    ValueError
+        A file that cannot be read, or a secret shorter than :data:`MIN_SECRET_BYTES` bytes (the
+        message never shows the file's content).
+    """
+    try:
+        secret = Path(path).read_bytes().strip()
+    except OSError as exc:
+        raise ValueError(
+            f"cannot read the token secret file {path}: {exc.strerror or exc}"
+        ) from None
+    if len(secret) < MIN_SECRET_BYTES:
+        raise ValueError(
+            f"{path}: a token secret is at least {MIN_SECRET_BYTES} bytes (make one with "
+            'python -c "import secrets; print(secrets.token_urlsafe(48))")'
+        )
+    return secret
+
+
+def _room_mac(secret: bytes, room: str, role: str, expires: int) -> str:
+    message = f"{ROOM_TOKEN_PREFIX}\n{room}\n{role}\n{expires}".encode()
+    return hmac.new(secret, message, hashlib.sha256).hexdigest()
+
+
+def make_room_token(secret: bytes, room: str, role: Role, expires_s: float) -> str:
+    """A signed token for ``role`` in room ``room`` that expires at ``expires_s``.
+
+    The token is ``hcr1.ROOM.ROLE.EXPIRES.MAC``: EXPIRES the Unix time [s, whole] after which it
+    is refused, MAC the HMAC-SHA256 (RFC 2104) of the prefix, room, role and expiry under the
+    server's ``secret``, in hex. Whoever holds the secret can make tokens; whoever holds a token
+    can only join that room in that role until it expires. Nothing is stored on the server.
+
+    Parameters
+    ----------
+    secret : bytes
+        The server's token secret (:func:`load_secret`).
+    room : str
+        A room name (:func:`server.urls.valid_room_name`).
+    role : {"user", "viewer"}
+    expires_s : float
+        Unix time [s] from which the token is refused (rounded down to a whole second).
+
+    Raises
+    ------
+    ValueError
+        A bad room name or role, an expiry that is not a finite time after 1970, or a secret
+        shorter than :data:`MIN_SECRET_BYTES`.
+    """
+    if len(secret) < MIN_SECRET_BYTES:
+        raise ValueError(f"a token secret is at least {MIN_SECRET_BYTES} bytes")
+    if role not in ("user", "viewer"):
+        raise ValueError(f"role must be 'user' or 'viewer', got {role!r}")
+    if not (math.isfinite(expires_s) and 0 < expires_s < 1e12):
+        raise ValueError(f"expiry must be a Unix time [s], got {expires_s!r}")
+    expires = int(expires_s)
+    token = f"{ROOM_TOKEN_PREFIX}.{room}.{role}.{expires}.{_room_mac(secret, room, role, expires)}"
+    if not _ROOM_TOKEN_RE.match(token):
+        raise ValueError(
+            f"room name {room!r} must be 1-32 of a-z, 0-9 and -, starting and ending with a "
+            "letter or digit"
+        )
+    return token
+
+
+def check_room_token(token: str, secret: bytes, room: str, now_s: float) -> TokenEntry | None:
+    """The rights of a room token in room ``room`` at Unix time ``now_s`` [s], or None.
+
+    None when the token is not a room token, is for another room, has expired
+    (``now_s >= EXPIRES``) or its MAC does not match (compared with
+    :func:`hmac.compare_digest`). A token's room and role are in the signed message, so a token
+    for room a cannot be turned into one for room b, nor a viewer's into a user's.
+    """
+    m = _ROOM_TOKEN_RE.match(token)
+    if m is None:
+        return None
+    role, expires = m["role"], int(m["exp"])
+    good = hmac.compare_digest(m["mac"], _room_mac(secret, m["room"], role, expires))
+    if not good or m["room"] != room or not now_s < expires:
+        return None
+    return TokenEntry(role)  # type: ignore[arg-type]
+
+
+class RoomTokens(TokenTable):
+    """The tokens one room accepts: the server's :class:`TokenTable` and its room tokens.
+
+    A room's ``auth`` (:class:`server.room.Room` asks :meth:`check` in every ``hello``): a
+    server-wide token (``--token-file``, ``--token``) is valid in every room; a room token
+    (:func:`make_room_token`, ``haptic token``) only in the room it names, and only until it
+    expires. The expiry is checked against ``clock()`` (Unix time [s]: ``time.time`` in the
+    server) when ``hello`` arrives; a connection already in stays in after its token expires.
+
+    Parameters
+    ----------
+    room : str
+        The room's name.
+    table : TokenTable, optional
+        The server-wide tokens (None: none).
+    secret : bytes, optional
+        The token secret (None: no room tokens).
+    clock : callable
+        Returns the current Unix time [s].
+
+    Raises
+    ------
+    ValueError
+        Neither a table nor a secret.
+    """
+
+    def __init__(
+        self,
+        room: str,
+        table: TokenTable | None,
+        secret: bytes | None,
+        clock: Callable[[], float],
+    ) -> None:
+        if table is None and secret is None:
+            raise ValueError("a room's tokens need a token table or a secret")
+        self.room = room
+        self._table = table
+        self._secret = secret
+        self._clock = clock
+        self._entries = list(table._entries) if table is not None else []
+        self.bound_names = table.bound_names if table is not None else frozenset()
+
+    def __len__(self) -> int:
+        return len(self._entries) + (1 if self._secret is not None else 0)
+
+    def check(self, token: str | None) -> TokenEntry | None:
+        """The rights of ``token`` in this room now, or None (missing, unknown, other room,
+        expired)."""
+        if token is None:
+            return None
+        if self._secret is not None and token.startswith(ROOM_TOKEN_PREFIX + "."):
+            return check_room_token(token, self._secret, self.room, self._clock())
+        return self._table.check(token) if self._table is not None else None

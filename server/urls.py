@@ -2,12 +2,19 @@
 
 ``haptic server`` and ``haptic demo`` print the viewer's URLs with :func:`viewer_urls`: a wildcard
 bind (``0.0.0.0``, ``::``) lists loopback and this machine's LAN addresses, never ``0.0.0.0``.
+
+A server runs rooms by name (:func:`room_path`): ``/ws`` and ``/`` are the default room's
+websocket and viewer page, ``/rooms/NAME/ws`` and ``/rooms/NAME/`` room NAME's (the viewer derives
+its websocket URL from the page's path, web/viewer.js). A name is a short slug
+(:func:`valid_room_name`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import re
 import socket
+from dataclasses import dataclass
 
 #: Bind addresses that mean "every interface".
 WILDCARD_HOSTS = frozenset({"", "0.0.0.0", "::"})
@@ -75,3 +82,63 @@ def viewer_urls(host: str, port: int, scheme: str = "http") -> list[str]:
     ...]`` (:func:`reachable_addresses`), never ``http://0.0.0.0:8765/``.
     """
     return [f"{scheme}://{url_host(ip)}:{port}/" for ip in reachable_addresses(host)]
+
+
+#: The room ``/ws`` and ``/`` reach; the other rooms are under ``/rooms/<name>/``.
+DEFAULT_ROOM = "default"
+#: A room name: 1-32 of lower-case letters, digits and ``-``, starting and ending with a letter
+#: or digit (a slug: safe in a URL path, a log line, a metrics label and an Agones list).
+ROOM_NAME_RE = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,30}[a-z0-9])?$")
+#: Where a room's pages and websocket live: ``/rooms/<name>/`` and ``/rooms/<name>/ws``.
+ROOMS_PREFIX = "/rooms/"
+
+
+def valid_room_name(name: str) -> bool:
+    """Whether ``name`` is a room name (:data:`ROOM_NAME_RE`)."""
+    return bool(ROOM_NAME_RE.match(name))
+
+
+@dataclass(frozen=True)
+class RoomPath:
+    """An HTTP path split into the room it names and what it asks of that room.
+
+    Attributes
+    ----------
+    room : str
+        The room's name as written (check it with :func:`valid_room_name`).
+    rest : str
+        The path after the room's prefix: ``ws`` (its websocket), ``""`` (its viewer page) or
+        another file of the viewer; ``None`` for ``/rooms/<name>`` without the slash (redirect).
+    """
+
+    room: str
+    rest: str | None
+
+
+def room_path(path: str) -> RoomPath | None:
+    """The room a request path addresses, None when it is not a room's path.
+
+    ``/ws`` and ``/`` are :data:`DEFAULT_ROOM`'s websocket and page; ``/rooms/NAME/ws`` and
+    ``/rooms/NAME/`` are room NAME's. Any other path is None (static files, ``/status``...).
+    The query string is ignored; the name is returned unchecked (see :func:`valid_room_name`).
+    """
+    path = path.split("?", 1)[0]
+    if path in ("/ws", "/ws/"):
+        return RoomPath(DEFAULT_ROOM, "ws")
+    if not path.startswith(ROOMS_PREFIX):
+        return None
+    name, slash, rest = path[len(ROOMS_PREFIX) :].partition("/")
+    if not slash:
+        return RoomPath(name, None)
+    rest = rest.rstrip("/") if rest in ("ws/",) else rest
+    return RoomPath(name, rest)
+
+
+def room_ws_path(name: str) -> str:
+    """The websocket path of room ``name`` (``/ws`` for :data:`DEFAULT_ROOM`)."""
+    return "/ws" if name == DEFAULT_ROOM else f"{ROOMS_PREFIX}{name}/ws"
+
+
+def room_page_path(name: str) -> str:
+    """The viewer page's path of room ``name`` (``/`` for :data:`DEFAULT_ROOM`)."""
+    return "/" if name == DEFAULT_ROOM else f"{ROOMS_PREFIX}{name}/"
