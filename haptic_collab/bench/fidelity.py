@@ -81,8 +81,6 @@ from haptic_collab.research.fidelity_schemes import (
 from haptic_collab.shared.full_loop import (
     DEFAULT_HAND,
     DEFAULT_HAND_BOX,
-    NO_DYNAMICS,
-    ContactDynamics,
     Hand,
 )
 from haptic_collab.shared.gain_design import GainDesign
@@ -91,16 +89,13 @@ from haptic_collab.shared.gain_key import (
     STIFFER_BY,
     GainKey,
     Mode,
-    quantized_dynamics,
 )
 from haptic_collab.shared.gain_table import GainTable, design_cell, design_cell_modes
 from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.verified_plane import (
     checked_plane,
     felt_closer,
-    felt_error_at,
     plane_applies,
-    plane_felt_error,
     verified_plane,
 )
 
@@ -208,10 +203,8 @@ def _gain_key(
     *,
     margin: float = DESIGN_MARGIN,
     stiffer_by: float = STIFFER_BY,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> GainKey:
-    """The key the product's client builds: B_o [N/m] and the contact's ``dynamics`` quantized
-    down as ``make_gain_key`` does; ``margin`` and ``stiffer_by`` the product's unless a run
+    """The key the product's client builds: B_o [N/m] quantized down as ``make_gain_key`` does; ``margin`` and ``stiffer_by`` the product's unless a run
     asks for others (``run``)."""
     return GainKey(
         servo_rate_hz=_SERVO_RATE_HZ,
@@ -223,7 +216,6 @@ def _gain_key(
         b_h_max=device.max_damping_n_s_per_m,
         b_o=float(math.floor(max(0.0, b_o))),
         stiffer_by=stiffer_by,
-        dynamics=quantized_dynamics(dynamics),
     )
 
 
@@ -289,13 +281,9 @@ _D = TypeVar("_D")
 
 
 def _keyed_by(name: str, key: GainKey, k_o: float) -> bool:
-    """Whether object ``name`` reported at ``k_o`` [N/m] gives the client ``key``'s B_o and
-    contact dynamics (the springs and the stiffening object share their keys; the
-    viscoelastic object's are its own)."""
-    obj = _OBJECTS[name]
-    return _reported_b_o(name, k_o, key.sim_rate_hz) == key.b_o and (
-        quantized_dynamics(obj.reported_dynamics(k_o)) == key.dynamics
-    )
+    """Whether object ``name`` reported at ``k_o`` [N/m] gives the client ``key``'s B_o (the
+    springs and the stiffening object share their keys; the viscoelastic object's are its own)."""
+    return _reported_b_o(name, k_o, key.sim_rate_hz) == key.b_o
 
 
 def _identified_plane_jobs(
@@ -377,16 +365,10 @@ def _table(
 def _planes(
     planes: dict[tuple[str, GainKey, float], GainDesign | None], mode: str, key: GainKey
 ) -> tuple[TableCell, ...]:
-    """The verified planes the run found for ``(mode, key)``'s cells, as table cells (on a
-    solid, with their felt error: :func:`shared.verified_plane.plane_felt_error`)."""
+    """The verified planes the run found for ``(mode, key)``'s cells, as table cells."""
     t = GainTable(DEFAULT_HAND_BOX)
     return tuple(
-        TableCell.from_design(
-            t.cell(k_o),
-            d,
-            t.grid_ratio,
-            math.nan if key.dynamics.none else plane_felt_error(d, key),
-        )  # fmt: skip
+        TableCell.from_design(t.cell(k_o), d, t.grid_ratio)
         for (m, k, k_o), d in sorted(planes.items(), key=lambda kv: kv[0][2])
         if m == mode and k == key and d is not None
     )
@@ -574,7 +556,7 @@ def run(
                         for name in g.objects:
                             key = _gain_key(
                                 mode, rate, d, device, _reported_b_o(name, k_o, rate),
-                                dynamics=_OBJECTS[name].reported_dynamics(k_o), **key_range,
+                                **key_range,
                             )  # fmt: skip
                             for k in _k_o_designed(_OBJECTS[name], k_o, design_reached):
                                 if design_cache is None or (mode, key, k) not in design_cache:
@@ -644,8 +626,7 @@ def run(
                 return peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
             mode = "p" if s == "local-p" else "pi"
             key = _gain_key(
-                mode, rate, d, device, _reported_b_o(name, k_o, rate),
-                dynamics=_OBJECTS[name].reported_dynamics(k_o), **key_range,
+                mode, rate, d, device, _reported_b_o(name, k_o, rate), **key_range
             )  # fmt: skip
             if (mode, key) not in tables:
                 tables[(mode, key)] = _table(designs, mode, key)
@@ -668,9 +649,6 @@ def run(
                     plane_check_s=plane_check_s,
                     rest_plane=rest_plane,
                     rest_hold_back_s=rest_hold_back_s,
-                    design_felt_error=math.nan
-                    if key.dynamics.none
-                    else felt_error_at(designs[(mode, key, k_o)], key, k_o),
                 )
             ]
 

@@ -84,7 +84,6 @@ from haptic_collab.research.fidelity_cases import (
 )
 from haptic_collab.research.fidelity_schemes import DeviceModel, TableGains
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
-from haptic_collab.shared.own_response import MAX_TICKS as OWN_RESPONSE_MAX_TICKS
 from haptic_collab.shared.own_response import (
     empty_deformation,
     empty_jumps,
@@ -96,7 +95,6 @@ from haptic_collab.shared.own_response import (
 )
 from haptic_collab.shared.rest_plane import rest_plane_dampers
 from haptic_collab.shared.types import FloatArray
-from haptic_collab.shared.verified_plane import DESIGN_OVER_REST
 
 __all__ = ["passivity_step", "simulate"]
 
@@ -130,8 +128,6 @@ def _verified_plane_gains(
     surface: FloatArray,
     force: FloatArray,
     sim_rate_hz: FloatArray,
-    dynamics: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
-    rest_error: FloatArray,
 ) -> tuple[
     tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]], NDArray[np.bool_]
 ]:
@@ -152,11 +148,7 @@ def _verified_plane_gains(
     checked it: against the design of the cell of the K_o reported where that cell is designed,
     alone where it is not, as :meth:`client.session.ClientSession._render` renders it.
     ``since``, shape (B, :data:`_PLANE_CELLS`), holds that tick per plane cell, -1 before: the
-    client keeps a checked plane for the session. ``dynamics`` = (B_o [N/m], mass [kg], arm
-    stiffness [N/m], relaxation time [s]) as each patch reports them: the check reads a solid
-    whose patch says what its B_o is as that solid. ``rest_error``: the felt error of the rest
-    plane each patch would render (inf where none would): a solid's plane felt no closer than
-    it yields to it (:func:`shared.verified_plane.yields_to_rest_plane`)."""
+    client keeps a checked plane for the session."""
     ended = mask & ~(force > 0.0)
     sums[ended] = 0.0
     deform[ended] = empty_deformation()
@@ -168,14 +160,7 @@ def _verified_plane_gains(
     push = mask & (force > 0.0)
     if push.any():
         dt = np.where(seq_last >= 0, (seq - seq_last) / sim_rate_hz, 0.0)
-        b_o, m_o, k_r, tau_r = dynamics
-        deform[push] = update_deformation(
-            deform, force_n=force, k_o=k_o, b_o=b_o, sim_period_s=1.0 / sim_rate_hz, mass_kg=m_o,
-            relax_stiffness_n_per_m=k_r, relax_time_s=tau_r,
-            ticks=np.where(
-                push & (seq_last >= 0), np.clip(seq - seq_last, 1, OWN_RESPONSE_MAX_TICKS), 1
-            ),
-        )[push]  # fmt: skip
+        deform[push] = update_deformation(deform, force_n=force, k_o=k_o)[push]
         u = deform[:, 0]
         new = update_sums(sums, dt_s=dt, surface_m=surface, deformation_m=u)
         sums[push] = new[push]
@@ -199,7 +184,7 @@ def _verified_plane_gains(
     since[rows[first], pc[first]] = seq[first]
     at = since[rows, pc]
     ready = (at >= 0) & ((seq - at) / sim_rate_hz >= delay_s)
-    use = mask & ok & ready & planes.has_cell(k_id) & ~(planes.felt_error_at(k_id) >= rest_error)
+    use = mask & ok & ready & planes.has_cell(k_id)
     if not use.any():
         return gains, use
     plane = planes.gains_and_hold(k_id)
@@ -361,17 +346,6 @@ def simulate(
             c.obj.reported_b_o(c.k_o, c.sim_rate_hz) if on else 0.0
             for c, on in zip(cells, rest_on, strict=True)
         ]
-    )
-    # ... but on a solid that says what its B_o is, not where the design is felt closer by more
-    # than a JND (Rendering.design_felt_error; NaN: a spring, never compared)
-    design_err = np.array([x.design_felt_error for x in r])
-    # ... and what part of that B_o the patch says is the contact's mass and relaxing arm (the
-    # own-response check reads the object as that solid too)
-    b_o_all = np.array([c.obj.reported_b_o(c.k_o, c.sim_rate_hz) for c in cells])
-    dyn_rest = [c.obj.reported_dynamics(c.k_o) for c in cells]
-    m_rest, kr_rest, tau_rest = (
-        np.array([getattr(d, f) for d in dyn_rest])
-        for f in ("mass_kg", "relax_stiffness_n_per_m", "relax_time_s")
     )
     rest_now = np.zeros(B, dtype=bool)  # the last patch rendered the rest plane
     proxy_last = np.zeros(B)  # the surface [m] the last tick rendered, before the slide
@@ -535,14 +509,11 @@ def simulate(
                 if re_gain.any():
                     kg, ig, bg, og, fg = table.gains_and_hold(k_recv)
                     plane_on = np.zeros(B, dtype=bool)
-                    # the rest plane's gains for this patch, and how far it is felt from the
-                    # object (shared.rest_plane)
-                    k_rest, b_rest, err_rest = rest_plane_dampers(
+                    # the rest plane's gains for this patch (shared.rest_plane)
+                    k_rest, b_rest, _ = rest_plane_dampers(
                         k_recv, b_o_rest, sim_hz, device.max_stiffness_n_per_m,
-                        device.max_damping_n_s_per_m, servo_period_s=T, mass_kg=m_rest,
-                        relax_stiffness_n_per_m=kr_rest, relax_time_s=tau_rest,
+                        device.max_damping_n_s_per_m, servo_period_s=T,
                     )  # fmt: skip
-                    err_rest = np.where(rest_on, err_rest, np.inf)
                     if checks.any():
                         (kg, ig, bg, og, fg), plane_on = _verified_plane_gains(
                             re_gain & checks,
@@ -562,8 +533,6 @@ def simulate(
                             surface=got[:, 4],
                             force=np.maximum(got[:, 2], 0.0),
                             sim_rate_hz=sim_hz,
-                            dynamics=(b_o_all, m_rest, kr_rest, tau_rest),
-                            rest_error=err_rest,
                         )
                     # the rest plane, alone on the object, where no verified plane renders and
                     # none has for HOLD_BACK_S in this contact (patches with a force from this
@@ -572,10 +541,7 @@ def simulate(
                     plane_seen = np.where(re_gain, touching & (plane_seen | plane_on), plane_seen)
                     plane_at = np.where(re_gain & plane_on, seq, plane_at)
                     held = plane_seen & ((seq - plane_at) / sim_hz < hold_back_s)
-                    # (on a solid that says what its B_o is, not where the design is felt
-                    # closer by more than a JND: shared.verified_plane.rest_plane_closer)
-                    design_closer = design_err + DESIGN_OVER_REST < err_rest
-                    rest_new = re_gain & rest_on & ~plane_on & ~held & ~design_closer
+                    rest_new = re_gain & rest_on & ~plane_on & ~held
                     kg = np.where(rest_new, k_rest, kg)
                     bg = np.where(rest_new, b_rest, bg)
                     ig = np.where(rest_new, 0.0, ig)

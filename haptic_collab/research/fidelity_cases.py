@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from haptic_collab.research.fidelity_schemes import Rendering
-from haptic_collab.shared.full_loop import NO_DYNAMICS, ContactDynamics, Hand
+from haptic_collab.shared.full_loop import Hand
 from haptic_collab.shared.types import FloatArray
 
 #: A probe further than this from the surface [m] (or not finite) has run away.
@@ -48,8 +48,9 @@ class ObjectModel:
     """The simulated object along the contact normal (SI units), relative to the K_o reported.
 
     The simulation reports K_o (what the product's gain design and every scheme that uses a
-    stiffness is given); the object itself is ``stiffness_error`` times stiffer, and may have
-    dynamics the design does not model:
+    stiffness is given) and B_o (:meth:`reported_b_o`), as the product's World does, and
+    nothing more; the object itself is ``stiffness_error`` times stiffer, and may have dynamics
+    the design does not model:
 
     ``spring``
         ``F = k_1 x`` (eq. 6 with B_o = 0): what the product's design assumes.
@@ -172,19 +173,6 @@ class ObjectModel:
         """
         k1 = k_o * self.stiffness_error
         return max(0.0, (self.one_tick_stiffness(k_o, sim_rate_hz) - k1) / self.stiffness_error)
-
-    def reported_dynamics(self, k_o: float) -> ContactDynamics:
-        """The part of :meth:`reported_b_o` that the simulation reports as the contact's mass
-        and relaxing arm (:class:`shared.full_loop.ContactDynamics`), scaled as B_o is: the
-        mass over ``stiffness_error``, the arm ``relax_ratio k_o`` with its ``relax_time_s``
-        (the rest of B_o is the damper); none for the springs and the stiffening object."""
-        if self.kind != "sls":
-            return NO_DYNAMICS
-        return ContactDynamics(
-            mass_kg=self.mass_kg / self.stiffness_error,
-            relax_stiffness_n_per_m=self.relax_ratio * k_o,
-            relax_time_s=self.relax_time_s,
-        )
 
     def reported_k_o(self, k_o: float, depth_m: float) -> float:
         """The K_o [N/m] the simulation reports with its surface at ``depth_m`` [m] (as

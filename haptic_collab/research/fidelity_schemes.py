@@ -90,10 +90,6 @@ class TableCell:
         How far the design scales with the K_o reported (:attr:`shared.gain_design.GainDesign.scale_max`).
     proxy_hold : {"zoh", "foh"}
         The proxy hold the design was checked with (the client renders each patch with its own).
-    felt_error : float
-        A verified plane on a solid: how far it is felt from the solid across its cell
-        (:func:`shared.verified_plane.plane_felt_error`), which the rest plane's must beat to
-        render instead (:func:`shared.verified_plane.yields_to_rest_plane`); NaN otherwise.
     """
 
     cell: int
@@ -104,15 +100,11 @@ class TableCell:
     own_gain: float
     scale_max: float
     proxy_hold: ProxyHold = "zoh"
-    felt_error: float = math.nan
 
     @classmethod
-    def from_design(
-        cls, cell: int, design: GainDesign, grid_ratio: float, felt_error: float = math.nan
-    ) -> TableCell:
+    def from_design(cls, cell: int, design: GainDesign, grid_ratio: float) -> TableCell:
         """The cell ``cell`` of a table of grid ratio ``grid_ratio`` holding ``design`` (as
-        :func:`shared.gain_table.design_cell` made it, unscaled), a verified plane felt
-        ``felt_error`` off a solid."""
+        :func:`shared.gain_table.design_cell` made it, unscaled)."""
         return cls(
             cell,
             float(grid_ratio),
@@ -122,7 +114,6 @@ class TableCell:
             design.own_gain,
             design.scale_max,
             design.proxy_hold,
-            felt_error,
         )
 
 
@@ -188,11 +179,6 @@ class Rendering:
         :meth:`client.session.ClientSession._render` does.
     rest_hold_back_s : float
         That time [s] (:data:`shared.rest_plane.HOLD_BACK_S`, the client's).
-    design_felt_error : float
-        On a solid whose patch says what its B_o is: how far the design is felt from it at the
-        K_o reported (:func:`shared.verified_plane.felt_error_at`); the rest plane renders
-        only where it is felt at least as close (:func:`shared.verified_plane
-        .rest_plane_closer`; the object's K_o reported is constant). NaN: never compared.
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
@@ -225,7 +211,6 @@ class Rendering:
     plane_delay_s: float = 0.0
     rest_plane: bool = False
     rest_hold_back_s: float = REST_HOLD_BACK_S
-    design_felt_error: float = math.nan
     gain_transfer_s: float = 0.0
     variant: str = ""
     tuning: str = ""
@@ -434,7 +419,6 @@ class TableGains:
         self.ratio = np.full(b, 1.1)
         self.gain = np.full((5, b, m), np.nan)  # k_h, i_gain, b_h, own_gain, scale_max
         self.foh = np.zeros((b, m), dtype=bool)
-        self.felt_error = np.full((b, m), np.nan)
         for i, t in enumerate(tables):
             for j, c in enumerate(t):
                 self.valid[i, j] = True
@@ -442,16 +426,6 @@ class TableGains:
                 self.ratio[i] = c.grid_ratio
                 self.gain[:, i, j] = (c.k_h, c.i_gain, c.b_h, c.own_gain, c.scale_max)
                 self.foh[i, j] = c.proxy_hold == "foh"
-                self.felt_error[i, j] = c.felt_error
-
-    def felt_error_at(self, k_o: FloatArray) -> FloatArray:
-        """The :attr:`TableCell.felt_error` of the cell holding each K_o [N/m] (shape (B,));
-        NaN where the table does not hold that cell."""
-        i = np.floor(np.log(k_o) / np.log(self.ratio) + 1e-12).astype(np.int64)
-        hit = self.valid & (self.cell == i[:, None])
-        return np.where(
-            hit.any(axis=1), self.felt_error[np.arange(len(k_o)), hit.argmax(axis=1)], np.nan
-        )
 
     def has_cell(self, k_o: FloatArray) -> NDArray[np.bool_]:
         """Whether each rendering's table holds the cell of the K_o [N/m] reported (shape (B,),
@@ -513,7 +487,6 @@ def rendering_for(
     plane_check_s: float = 0.0,
     rest_plane: bool = True,
     rest_hold_back_s: float = REST_HOLD_BACK_S,
-    design_felt_error: float = math.nan,
 ) -> Rendering:
     """How ``scheme`` renders an object simulated at ``sim_rate_hz`` (module docstring): a local
     model's design, or a peer's default tuning (:func:`peer_renderings`).
@@ -548,8 +521,6 @@ def rendering_for(
         client; False: the designs and verified planes alone).
     rest_hold_back_s : float
         :attr:`Rendering.rest_hold_back_s` [s] (default the client's).
-    design_felt_error : float
-        :attr:`Rendering.design_felt_error` (on a solid that says what its B_o is).
 
     Raises
     ------
@@ -578,7 +549,6 @@ def rendering_for(
             plane_delay_s=plane_check_s,
             rest_plane=rest_plane and bool(table),
             rest_hold_back_s=rest_hold_back_s,
-            design_felt_error=design_felt_error,
             gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
             tuning=scheme_tuning(scheme, device),
         )
