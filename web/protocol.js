@@ -29,7 +29,7 @@ export const MESSAGE_FIELDS = Object.freeze({
   "ping": ["type", "id", "t_client_s"],
   "bye": ["type"],
   "welcome": ["type", "protocol", "user_id", "name", "role", "sim_rate_hz", "object", "link"],
-  "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff", "own_force_n", "gains", "rest_plane", "dynamics"],
+  "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff", "own_force_n", "gains", "rest_plane"],
   "pong": ["type", "id", "t_client_s", "tick"],
   "error": ["type", "code", "message", "fatal"],
   "room": ["type", "tick", "sim_rate_hz", "tick_ms", "tick_ms_p99", "overruns", "link", "users"],
@@ -44,7 +44,6 @@ export const MODEL_FIELDS = Object.freeze({
   "PlaneModel": ["kind", "point", "normal"],
   "SphereModel": ["kind", "center", "radius"],
   "RecommendedGains": ["k_h", "i_gain", "b_h", "proxy_hold", "theta_m", "delay_ticks", "interim", "own_gain"],
-  "ContactDynamicsModel": ["mass_kg", "relax_stiffness_n_per_m", "relax_time_s"],
   "UserView": ["user_id", "name", "probe_m", "proxy_m", "normal", "force_n", "penetration_m", "in_contact", "k_o", "k_o_eff", "k_h", "i_gain", "servo_rate_hz", "rtt_ms", "device"],
 });
 
@@ -52,7 +51,7 @@ export const MODEL_FIELDS = Object.freeze({
 export const NESTED_MODELS = Object.freeze({
   "hello": {"device": "DeviceInfo"},
   "welcome": {"object": "ObjectInfo", "link": "LinkConditions"},
-  "patch": {"gains": "RecommendedGains", "rest_plane": "PlaneModel", "dynamics": "ContactDynamicsModel"},
+  "patch": {"gains": "RecommendedGains", "rest_plane": "PlaneModel"},
   "room": {"link": "LinkConditions", "users": "UserView"},
   "ObjectInfo": {"sides": "SurfacePoint"},
 });

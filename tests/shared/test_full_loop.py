@@ -17,7 +17,6 @@ from haptic_collab.shared.full_loop import (
     DAMPER_FILTER_S,
     DEFAULT_HAND,
     DEFAULT_HAND_BOX,
-    ContactDynamics,
     Hand,
     HandBox,
     analyze_full_loop,
@@ -42,14 +41,8 @@ def _simulate(
     periods: int = 60,
     substeps: int = 200,
     own_gain: float = 0.0,
-    m_o: float = 0.0,
-    k_r: float = 0.0,
-    tau_r: float = 0.0,
 ) -> np.ndarray:
-    """Probe depth at each block start after a 1 mm push, linear bilateral contact. With a
-    mass ``m_o`` or a relaxing arm ``k_r``, ``tau_r``, the object is the standard linear solid
-    with a surface mass stepped by implicit Euler over the simulation period, ``b_o`` then its
-    damper alone (N*s/m over the period)."""
+    """Probe depth at each block start after a 1 mm push, linear bilateral contact."""
     T = 1e-3
     m, b, k = hand.mass_kg, hand.damping_n_s_per_m, hand.stiffness_n_per_m
     x, v = 0.001, 0.0  # the hand starts 1 mm in, target at 0: a disturbance
@@ -57,9 +50,7 @@ def _simulate(
     u = 0.0  # the damper's filtered probe velocity
     a_u = T / (T + DAMPER_FILTER_S)
     s = 0.0
-    x_obj = x_obj_prev = q_arm = 0.0
-    hs = n * 1e-3
-    alpha = tau_r / (tau_r + hs) if tau_r > 0.0 else 0.0
+    x_obj = 0.0
     line: deque[float] = deque([0.0] * delay)
     p_new = p_old = 0.0
     f_sample = 0.0
@@ -67,12 +58,7 @@ def _simulate(
     h = T / substeps
     for blk in range(periods):
         if blk > 0:
-            x_new = (
-                f_sample + m_o / hs**2 * (2.0 * x_obj - x_obj_prev) + b_o * x_obj
-                + k_r * alpha * q_arm
-            ) / (m_o / hs**2 + b_o + k_o + k_r * alpha)  # fmt: skip
-            x_obj_prev, x_obj = x_obj, x_new
-            q_arm = alpha * q_arm + (1.0 - alpha) * x_obj
+            x_obj = (f_sample + b_o * x_obj) / (k_o + b_o)  # eq. 9
             line.append(x_obj - own_gain * f_sample)  # own-force compensation
             p_old, p_new = p_new, line.popleft()
         out.append(math.hypot(x, v * 0.01) + abs(s) / 1000.0 + abs(p_new))
@@ -233,68 +219,3 @@ def test_bad_box_and_analysis_inputs_are_refused():
         analyze_full_loop(DEFAULT_HAND, k_o=100.0, k_h=100.0, sim_rate_hz=30.0)
     with pytest.raises(ValueError):
         monodromy(hand=DEFAULT_HAND, k_o=1.0, k_h=1.0, rate_ratio=10, sample_ticks=[10])
-
-
-# the fidelity benchmark's viscoelastic object (haptic_collab.research.fidelity_cases.SLS) at
-# K_o: 20 g of surface mass, a relaxing arm as stiff as K_o with a 0.1 s time constant
-def _sls(k_o: float) -> ContactDynamics:
-    return ContactDynamics(mass_kg=0.02, relax_stiffness_n_per_m=k_o, relax_time_s=0.1)
-
-
-@pytest.mark.parametrize(
-    ("k_o", "n", "delay", "b_h", "j"),
-    [
-        (1000.0, 10, 0, 1.0, 9),  # eq. 9 calls it stable (0.987): the solid rings
-        (1000.0, 10, 1, 2.5, 9),
-        (300.0, 100, 1, 0.0, 99),
-        (300.0, 50, 0, 0.0, 49),
-        (100.0, 20, 0, 0.0, 10),
-    ],
-)
-def test_a_solid_with_mass_and_relaxation_matches_the_simulated_loop(k_o, n, delay, b_h, j):
-    # the plane at the rest surface (K_h = K_o, C_h = 1 / K_o) on the viscoelastic object: the
-    # monodromy with the contact's dynamics grows or decays as the loop stepped tick by tick
-    dyn = _sls(k_o)
-    b_o = dyn.one_tick_part(n * 1e-3)  # what the simulation reports: one-tick less static
-    rho = spectral_radius(
-        hand=DEFAULT_HAND, k_o=k_o, k_h=k_o, b_h=b_h, b_o=b_o, own_gain=1.0 / k_o,
-        rate_ratio=n, delay_ticks=delay, sample_ticks=[j], dynamics=dyn,
-    )[0, 0]  # fmt: skip
-    trace = _simulate(DEFAULT_HAND, k_o=k_o, k_h=k_o, b_h=b_h, n=n, delay=delay, j=j,
-                      own_gain=1.0 / k_o, m_o=0.02, k_r=k_o, tau_r=0.1, periods=200)  # fmt: skip
-    assert _growth(trace) == pytest.approx(rho, rel=0.01)
-    assert (trace[-1] > trace[len(trace) // 2]) == (rho > 1.0)
-
-
-def test_eq9_calls_the_ringing_solid_stable_its_dynamics_do_not():
-    # 1000 N/m at 100 Hz: eq. 9 lumps the solid's mass and relaxing arm into a damper of the same
-    # one-tick stiffness and finds the loop decaying; with them it grows, as the stepped loop does
-    dyn = _sls(1000.0)
-    b_o = dyn.one_tick_part(0.01)
-    kw = dict(hand=DEFAULT_HAND, k_o=1000.0, k_h=1000.0, b_h=1.0, b_o=b_o, own_gain=1e-3,
-              rate_ratio=10)  # fmt: skip
-    assert np.max(spectral_radius(**kw)) < 1.0  # type: ignore[arg-type]
-    assert np.max(spectral_radius(**kw, dynamics=dyn)) > 1.0  # type: ignore[arg-type]
-    trace = _simulate(DEFAULT_HAND, k_o=1000.0, k_h=1000.0, b_h=1.0, n=10, j=9,
-                      own_gain=1e-3, m_o=0.02, k_r=1000.0, tau_r=0.1, periods=200)  # fmt: skip
-    assert trace[-1] > trace[len(trace) // 2]
-
-
-def test_no_dynamics_is_eq9_and_the_layout_grows_by_the_states_it_needs():
-    kw = dict(hand=DEFAULT_HAND, k_o=300.0, k_h=200.0, b_h=1.0, b_o=40.0, rate_ratio=20,
-              delay_ticks=2, proxy_hold="foh")  # fmt: skip
-    plain = monodromy(**kw)  # type: ignore[arg-type]
-    assert np.array_equal(plain, monodromy(**kw, dynamics=ContactDynamics()))  # type: ignore[arg-type]
-    # an arm without a relaxation time is no arm
-    no_arm = ContactDynamics(relax_stiffness_n_per_m=300.0)
-    assert no_arm.none
-    assert np.array_equal(plain, monodromy(**kw, dynamics=no_arm))  # type: ignore[arg-type]
-    both = monodromy(**kw, dynamics=_sls(300.0))  # type: ignore[arg-type]
-    assert both.shape[-1] == plain.shape[-1] + 2
-
-
-@pytest.mark.parametrize("bad", [-0.01, math.nan, math.inf])
-def test_absurd_contact_dynamics_are_refused(bad):
-    for field in ("mass_kg", "relax_stiffness_n_per_m", "relax_time_s"):
-        with pytest.raises(ValueError, match=field):
-            ContactDynamics(**{field: bad})

@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 
-from haptic_collab.shared.full_loop import ContactDynamics
 from haptic_collab.shared.own_response import (
     IDENTIFY_RANGE,
     TOLERANCE,
@@ -288,7 +287,7 @@ def test_a_stiffening_object_is_verified_as_the_tangent_reported(error: float) -
     assert not verdict(spring, k[-1] / error, False)
 
 
-# ------------------------------------------------------------------ a solid that says what its B_o is
+# ------------------------------------------------------------------------ a viscoelastic solid
 def _solid_press(k: float, rate_hz: float, seconds: float = 3.0):
     """Patches (depth [m], force [N]) of a press cycling between 0.1 and 3.1 N at 0.5 Hz on the
     fidelity benchmark's viscoelastic object at ``k`` [N/m] (20 g, a relaxing arm of ``k`` with
@@ -305,46 +304,12 @@ def _solid_press(k: float, rate_hz: float, seconds: float = 3.0):
     return out
 
 
-def test_the_deformation_of_a_solid_that_says_its_dynamics_is_its_depth() -> None:
-    # stepped as the simulation steps it, the solid's deformation is the surface's depth from
-    # its rest surface, patch for patch (the first read at rest under its force)
+def test_a_relaxing_solid_is_not_verified_as_a_spring_of_its_k_o() -> None:
+    # the K_o and B_o a patch carries do not say the object relaxes: read as a spring, the solid
+    # is stiffer than its K_o by far more than the check's tolerance, nothing to render a plane
+    # of K_o on
     rate = 50.0
-    patches = _solid_press(K_O, rate)
-    dyn = {"mass_kg": 0.02, "relax_stiffness_n_per_m": K_O, "relax_time_s": 0.1}
-    b_o = ContactDynamics(**dyn).one_tick_part(1 / rate)
-    state = empty_deformation()
-    us = []
-    for _x, f in patches:
-        state = update_deformation(state, force_n=f, k_o=K_O, b_o=b_o, sim_period_s=1 / rate, **dyn)
-        us.append(float(state[0]))
-    depth = np.array([x for x, _ in patches])
-    # the first patch reads F / K_o (the object was not at rest under it): the line's
-    # intercept takes the offset, its decay ...
-    off = np.array(us) - depth
-    assert abs(off[-1]) < 0.02 * abs(off[0])
-    # ... and a patch lost on the way is stepped over by its ticks
-    state2 = empty_deformation()
-    for i, (_x, f) in enumerate(patches[:40]):
-        if i == 20:
-            continue
-        state2 = update_deformation(
-            state2, force_n=f, k_o=K_O, b_o=b_o, sim_period_s=1 / rate, ticks=2 if i == 21 else 1,
-            **dyn,
-        )  # fmt: skip
-    assert float(state2[0]) == pytest.approx(us[39], rel=0.02)
-
-
-def test_a_solid_is_verified_as_itself_only_when_its_patch_says_what_it_is() -> None:
-    rate = 50.0
-    dyn = ContactDynamics(mass_kg=0.02, relax_stiffness_n_per_m=K_O, relax_time_s=0.1)
-    b_o = dyn.one_tick_part(1 / rate)
-    told, blind = OwnResponse(), OwnResponse()
+    check = OwnResponse()
     for x, f in _solid_press(K_O, rate):
-        told.update(dt_s=1 / rate, surface_m=x, force_n=f, k_o=K_O, b_o=b_o,
-                    sim_period_s=1 / rate, dynamics=dyn)  # fmt: skip
-        blind.update(dt_s=1 / rate, surface_m=x, force_n=f, k_o=K_O)
-    assert told.verified and told.identified_ratio == 1.0
-    assert told.ratio == pytest.approx(1.0, abs=0.01)
-    # read as a spring the relaxing solid is stiffer than its K_o by far more than the check's
-    # tolerance: nothing to render a plane of K_o on
-    assert not (blind.verified and blind.identified_ratio == 1.0)
+        check.update(dt_s=1 / rate, surface_m=x, force_n=f, k_o=K_O)
+    assert not (check.verified and check.identified_ratio == 1.0)

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from haptic_collab.shared.full_loop import ContactDynamics
 from haptic_collab.shared.rest_plane import rest_plane_dampers, rest_plane_gains
 
 T = 1e-3  # the servo period [s]
@@ -67,35 +66,10 @@ def test_absurd_parameters_are_refused(args: tuple[float, ...]) -> None:
         rest_plane_gains(*args, servo_period_s=T)
 
 
-def test_a_solid_whose_patch_says_what_its_b_o_is_gets_the_damper_felt_closest_to_the_solid() -> (
-    None
-):
-    # the fidelity benchmark's viscoelastic object at 100 N/m and 20 Hz: 20 g, a relaxing arm as
-    # stiff as K_o (0.1 s). Eq. 9 reads its one-tick stiffness as a damper and asks for a large
-    # one; told what the B_o is, the plane takes the damper felt closest to the solid itself
-    solid = ContactDynamics(mass_kg=0.02, relax_stiffness_n_per_m=100.0, relax_time_s=0.1)
-    b_o = solid.one_tick_part(0.05)
-    eq9 = rest_plane_gains(100.0, b_o, 20.0, 1000.0, 10.0, servo_period_s=T)
-    told = rest_plane_gains(100.0, b_o, 20.0, 1000.0, 10.0, servo_period_s=T, dynamics=solid)
-    assert told.b_h < eq9.b_h
-
-    def off(b_h: float) -> float:
-        # against the continuous standard linear solid, over the band a hand judges stiffness in
-        errs = []
-        for f in (0.5, 1.0, 2.0, 4.0, 8.0):
-            w = 2.0 * math.pi * f
-            jwt = 1j * w * 0.1
-            own = 100.0 + 100.0 * jwt / (1.0 + jwt) - 0.02 * w * w
-            errs.append(abs(math.log(abs((100.0 + 1j * w * b_h) / own))))
-        return max(errs)
-
-    assert off(told.b_h) < off(eq9.b_h) - 0.1
-
-
 @pytest.mark.parametrize("bad", [-1.0, math.nan, math.inf])
-def test_absurd_contact_dynamics_are_refused(bad: float) -> None:
-    with pytest.raises(ValueError, match="dynamics"):
+def test_a_batch_with_an_absurd_b_o_is_refused(bad: float) -> None:
+    with pytest.raises(ValueError, match="b_o"):
         rest_plane_dampers(
-            np.array([100.0]), np.array([10.0]), np.array([20.0]), 1000.0, 10.0,
-            servo_period_s=T, mass_kg=np.array([bad]),
+            np.array([100.0, 300.0]), np.array([10.0, bad]), np.array([20.0, 20.0]), 1000.0, 10.0,
+            servo_period_s=T,
         )  # fmt: skip

@@ -13,8 +13,6 @@ import numpy as np
 from haptic_collab.shared.full_loop import (
     DEFAULT_HAND,
     DEFAULT_HAND_BOX,
-    NO_DYNAMICS,
-    ContactDynamics,
     Hand,
     spectral_radius,
 )
@@ -44,10 +42,9 @@ def worst_on_lattice(
     delay_ticks: int,
     hands: list[Hand] = FINE_HANDS,
     b_o: float = 0.0,
-    dynamics: ContactDynamics = NO_DYNAMICS,
 ) -> tuple[float, str]:
     """Largest full-loop spectral radius over hands x K_o' x every sampling tick, and where (on
-    an object of B_o ``b_o`` [N/m] whose ``dynamics`` are part of it: :mod:`shared.full_loop`)."""
+    an object of B_o ``b_o`` [N/m], eq. 9: :mod:`shared.full_loop`)."""
     n = round(SERVO_HZ / sim_rate_hz)
     hs = [h for h in hands for _ in k_os]
     ko = np.tile(np.asarray(k_os, float), len(hands))
@@ -64,7 +61,6 @@ def worst_on_lattice(
         proxy_hold=d.proxy_hold,
         integral=d.i_gain > 0.0,
         b_o=b_o,
-        dynamics=dynamics,
     )
     b, j = np.unravel_index(int(np.argmax(rho)), rho.shape)
     where = (

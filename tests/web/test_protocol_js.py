@@ -93,7 +93,6 @@ def test_schema_lists_every_message_and_model_field() -> None:
     assert s["NESTED_MODELS"]["patch"] == {
         "gains": "RecommendedGains",
         "rest_plane": "PlaneModel",
-        "dynamics": "ContactDynamicsModel",
     }
 
 
