@@ -1,0 +1,153 @@
+"""Test-wide set-up: each test's own caches, and the gain designs made once per test process.
+
+**Caches.** The client keeps the gain designs it made in a cache file
+(:mod:`haptic_collab.client.gain_store`) and the server keeps TetGen's volume meshes
+(:mod:`haptic_collab.server.objects.volume`), both under ``~/.cache/haptic-collab`` by default.
+A test run must neither read what an earlier run (or the user) left there nor leave anything:
+each test gets its own empty ``HAPTIC_GAIN_CACHE`` (a client that finds a design cached renders
+differently from one that must design it), and the whole run one ``XDG_CACHE_HOME`` in a
+temporary folder, shared by the pytest-xdist workers and the processes the tests start, removed
+at the end (volume meshes are pure functions of the surface, so sharing them is safe).
+
+**Designs.** :func:`haptic_collab.shared.gain_table.design_cell_modes` (what
+``design_cell`` and so ``GainTable.design`` run) is a pure function of its arguments (a gain
+key, a cell, the grid ratio, a hand box and the local models: frozen values; the result frozen
+:class:`~haptic_collab.shared.gain_design.GainDesign` values) that costs a second to a minute of
+CPU. Dozens of tests design the same cells (``GainTable(...).design``, ``design_cell``); this
+module replaces it, before any test module imports it, by the same function with its results
+kept:
+
+- in this process (the very object the first call returned), and
+- on disk, one file per cell, in ``$HAPTIC_TEST_DESIGNS`` or ``.pytest_cache/haptic-designs``
+  of this checkout, in a folder named by
+  :func:`~haptic_collab.shared.gain_table_file.design_code_hash` (the code of every module a
+  design runs): so pytest-xdist workers design each cell once between them (a lock file per
+  cell), later runs of the same design code reuse them, and any change to that code starts an
+  empty folder. A cell is read back with
+  :func:`~haptic_collab.shared.gain_table_file.design_from_record`, which refuses a malformed or
+  unstable record (then the cell is designed again).
+
+Every test still gets the design the current code makes for its arguments. Processes the tests
+start (``haptic server``, ``haptic client``, spawned workers) import the module afresh and design
+as users' do.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import functools
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import pytest
+
+import haptic_collab.shared.gain_table as _gain_table
+from haptic_collab.shared.full_loop import HandBox
+from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gain_key import GainKey, Mode
+from haptic_collab.shared.gain_table_file import (
+    design_code_hash,
+    design_from_record,
+    design_record,
+    key_record,
+)
+
+_ROOT = Path(__file__).resolve().parents[1]
+_design_cell_modes = _gain_table.design_cell_modes
+
+
+@functools.cache
+def _design_dir() -> Path:
+    """The folder of this design code's cells (module docstring), made if missing."""
+    base = os.environ.get("HAPTIC_TEST_DESIGNS") or str(_ROOT / ".pytest_cache" / "haptic-designs")
+    path = Path(base) / design_code_hash()
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _read_cell(path: Path, hand_box: HandBox) -> dict[Mode, GainDesign] | None:
+    try:
+        doc = json.loads(path.read_text("utf-8"))
+        return {m: design_from_record(rec, hand_box) for m, rec in doc.items()}
+    except (OSError, ValueError, AttributeError):
+        return None  # missing, torn or refused: designed again
+
+
+@functools.cache
+def _kept(
+    key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox, modes: tuple[Mode, ...]
+) -> tuple[tuple[Mode, GainDesign], ...]:
+    what = json.dumps([key_record(key), cell, repr(float(grid_ratio)), repr(hand_box), modes])
+    path = _design_dir() / f"{hashlib.sha256(what.encode()).hexdigest()[:24]}.json"
+    designs = _read_cell(path, hand_box)
+    if designs is None:
+        with open(path.with_suffix(".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # another worker designing this cell: wait for it
+            designs = _read_cell(path, hand_box)
+            if designs is None:
+                designs = _design_cell_modes(key, cell, grid_ratio, hand_box, modes)
+                fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
+                with os.fdopen(fd, "w", encoding="utf-8") as f:
+                    json.dump({m: design_record(d) for m, d in designs.items()}, f)
+                os.replace(tmp, path)
+    return tuple(designs.items())
+
+
+@functools.wraps(_design_cell_modes)
+def _kept_design_cell_modes(
+    key: GainKey,
+    cell: int,
+    grid_ratio: float,
+    hand_box: HandBox,
+    modes: Sequence[Mode] = ("p", "pi"),
+) -> dict[Mode, GainDesign]:
+    """:func:`haptic_collab.shared.gain_table.design_cell_modes`, its results kept (module
+    docstring); a new dict each call, of the same frozen designs."""
+    return dict(_kept(key, cell, float(grid_ratio), hand_box, tuple(modes)))
+
+
+# design_cell and the fidelity benchmark reach it through the module, so they get it too
+_gain_table.design_cell_modes = _kept_design_cell_modes
+
+_RUN_CACHE_ENV = "HAPTIC_TEST_RUN_CACHE"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """One ``XDG_CACHE_HOME`` for the run: made by the first process (the xdist controller, or
+    a plain pytest), inherited by its workers and every process a test starts."""
+    if os.environ.get(_RUN_CACHE_ENV):
+        return  # an xdist worker: the controller made it
+    path = tempfile.mkdtemp(prefix="haptic-test-cache-")
+    os.environ[_RUN_CACHE_ENV] = path
+    os.environ["XDG_CACHE_HOME"] = path
+    config.stash[_run_cache_key] = path
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    path = config.stash.get(_run_cache_key, None)
+    if path is not None:
+        shutil.rmtree(path, ignore_errors=True)
+        os.environ.pop(_RUN_CACHE_ENV, None)
+
+
+_run_cache_key = pytest.StashKey[str]()
+
+
+@pytest.fixture(autouse=True)
+def _own_gain_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """An empty client gain cache for each test (``HAPTIC_GAIN_CACHE``), made when first written."""
+    path = tmp_path_factory.mktemp("gain-cache", numbered=True)
+    old = os.environ.get("HAPTIC_GAIN_CACHE")
+    os.environ["HAPTIC_GAIN_CACHE"] = str(path)
+    try:
+        yield path
+    finally:
+        if old is None:
+            os.environ.pop("HAPTIC_GAIN_CACHE", None)
+        else:
+            os.environ["HAPTIC_GAIN_CACHE"] = old
