@@ -1,8 +1,25 @@
-"""The server's asyncio layer: websockets, static files, the simulation schedule, latency injection.
+"""The server's asyncio layer: websockets, static files, the simulation schedules, latency injection.
 
 Everything that decides anything lives in :class:`server.room.Room`; this module only moves
-frames between sockets and the room, wakes the room at its timer and injects latency. HTTP ``/`` serves the viewer (web/), ``/vendor/three/...`` the three.js package from
-web/node_modules, ``/status`` a JSON summary; the websocket endpoint is ``/ws``.
+frames between sockets and the rooms, wakes each room at its timer and injects latency. HTTP
+``/`` serves the viewer (web/), ``/vendor/three/...`` the three.js package from web/node_modules,
+``/status`` a JSON summary; the websocket endpoint is ``/ws``.
+
+Rooms: a server runs several rooms by name, each its own :class:`server.room.Room` (object,
+rates, caps, tokens) with its own simulation loop task, so no room waits for another's tick
+(:class:`_Slot`). ``/ws`` and ``/`` are the default room's (:data:`DEFAULT_ROOM`);
+``/rooms/NAME/ws`` and ``/rooms/NAME/`` room NAME's (:mod:`server.urls`). Rooms are given at the
+start (the configuration's ``[rooms.NAME]``) or built on demand by a :class:`RoomMaker` (its
+``[room_templates]``) when a client first joins a name it allows, up to ``max_rooms``; an
+on-demand room is closed after ``room_idle_s`` without a connection. A bad name is answered 400,
+a name no room has and no template allows 404, a full server 503. The routing of connections to
+rooms is all in :meth:`ServerApp._process_request` and :meth:`ServerApp._handler`, and a room is
+reached only through its slot, so that a room can later run in a process of its own.
+
+Across rooms, one source address shares one budget (:data:`ADDRESS_LIMITS`, the router's
+:attr:`ServerApp.flood`): its connections and its frames and bytes in every room together, at
+most :data:`ADDRESS_ROOMS_FACTOR` times what one room allows it, so an address cannot multiply
+its budget by spreading over rooms. Each room keeps its own budgets as before.
 
 With an :class:`ssl.SSLContext` everything is served as ``https://`` and ``wss://``. Browser
 handshakes are checked by ``Origin`` (:func:`server.security.origin_allowed`), each connection is
@@ -30,13 +47,13 @@ import mimetypes
 import multiprocessing
 import ssl
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from websockets.asyncio.server import Server, ServerConnection, serve
@@ -44,23 +61,48 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
+from haptic_collab.server.admission import FloodControl, Refusal, RoomLimits
 from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.metrics import RoomFigures, ServerCollector, scrape_allowed
 from haptic_collab.server.prefetch import PatchPrefetcher
 from haptic_collab.server.room import Outgoing, Room
-from haptic_collab.server.security import TokenTable, is_loopback, origin_allowed
+from haptic_collab.server.security import TokenBucket, TokenTable, is_loopback, origin_allowed
+from haptic_collab.server.urls import (
+    DEFAULT_ROOM,
+    RoomPath,
+    room_page_path,
+    room_path,
+    room_ws_path,
+    valid_room_name,
+)
 from haptic_collab.shared.gain_table import warm_up
-from haptic_collab.shared.protocol import LinkConditions
+from haptic_collab.shared.protocol import ErrorMsg, LinkConditions, encode, frame_size_bytes
 from haptic_collab.workers import background_worker, stop_pool
 
 log = logging.getLogger("haptic.server")
 
 #: websockets' own frame limit; the room answers frames above its smaller limit with an error.
 WS_MAX_SIZE = 64 * 1024
-#: The name of the one room a server runs today (rooms by URL come later; every per-room figure,
-#: the Agones ``rooms`` list and the metrics' ``room`` label already name it).
-DEFAULT_ROOM = "default"
+#: Rooms a server runs at most unless told otherwise (``haptic server --max-rooms``).
+MAX_ROOMS = 16
+#: An on-demand room without a connection for this long [s] is closed.
+ROOM_IDLE_S = 300.0
+#: How many times one room's per-address budget a source address may spend in all rooms.
+ADDRESS_ROOMS_FACTOR = 2
+#: The router's budgets of one source address across every room (:attr:`ServerApp.flood`): its
+#: connections, frames/s and bytes/s in all rooms together, :data:`ADDRESS_ROOMS_FACTOR` times
+#: a room's (:class:`server.admission.RoomLimits`). Totals and pending counts stay the rooms'.
+ADDRESS_LIMITS = RoomLimits(
+    max_connections=1 << 30,
+    max_pending=1 << 30,
+    max_pending_per_address=1 << 30,
+    max_connections_per_address=ADDRESS_ROOMS_FACTOR * RoomLimits.max_connections_per_address,
+    address_rate_per_s=ADDRESS_ROOMS_FACTOR * RoomLimits.address_rate_per_s,
+    address_burst=ADDRESS_ROOMS_FACTOR * RoomLimits.address_burst,
+    address_bytes_per_s=ADDRESS_ROOMS_FACTOR * RoomLimits.address_bytes_per_s,
+    address_bytes_burst=ADDRESS_ROOMS_FACTOR * RoomLimits.address_bytes_burst,
+)
 #: A room whose next tick is overdue by more than this many periods (and at least
 #: :data:`STALL_MIN_S`) counts as stalled (:meth:`ServerApp.room_reports`).
 STALL_PERIODS = 3.0
@@ -84,7 +126,7 @@ class RoomReport:
     Attributes
     ----------
     name : str
-        The room's name (:data:`DEFAULT_ROOM` today).
+        The room's name (:data:`DEFAULT_ROOM`, a configured room's or an on-demand one's).
     ticks : int
         Simulation ticks run so far (0 before the first).
     alive : bool
@@ -101,19 +143,66 @@ class RoomReport:
     viewers: int
 
 
+class RoomMaker(Protocol):
+    """Builds rooms on demand (``[room_templates]``; :class:`server.main.RoomTemplates`)."""
+
+    def allows(self, name: str) -> bool:
+        """Whether a room of this (valid) name may be built."""
+        ...
+
+    def build(self, name: str) -> Room:
+        """A new room of this name; called in a worker thread. Raises ValueError."""
+        ...
+
+
+@dataclass
+class _Slot:
+    """One room as the I/O layer runs it: its own loop task, prefetcher and figures."""
+
+    name: str
+    room: Room
+    figures: RoomFigures = field(default_factory=RoomFigures)
+    on_demand: bool = False
+    task: asyncio.Task[None] | None = None
+    prefetcher: PatchPrefetcher | None = None
+    #: Connections routed to it that are open.
+    peers: int = 0
+    #: Since when [s, loop time] it has had no connection (None: it has one).
+    empty_since_s: float | None = None
+
+
+class _RoomRefused(Exception):
+    """A request for a room that cannot be served: the HTTP status and the reason."""
+
+    def __init__(self, status: HTTPStatus, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
 @dataclass
 class _Peer:
     conn_id: str
     ws: ServerConnection
     up: LinkShaper
     down: LinkShaper
+    #: The room it is in (None: the default room).
+    slot: _Slot | None = None
+    address: str = "unknown"
+    connected_at_s: float = 0.0
+    #: Its budgets in the router's across-rooms accounting (:attr:`ServerApp.flood`).
+    frames: TokenBucket = field(default_factory=lambda: TokenBucket(1.0, 1.0, 0.0))
+    bytes: TokenBucket = field(default_factory=lambda: TokenBucket(1.0, 1.0, 0.0))
     ready: deque[Outgoing] = field(default_factory=deque)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     #: Who, for log lines: "HOST:PORT", then "HOST:PORT user 'A' (u1)" once welcomed.
     who: str = ""
     named: bool = False
-    #: The figures of the room it is in (patches and viewer bytes its sender writes).
-    figures: RoomFigures = field(default_factory=RoomFigures)
+    closed: bool = False
+
+    @property
+    def hello(self) -> object | None:
+        """Truthy once its room welcomed it (what :class:`FloodControl` reads as pending)."""
+        return True if self.named else None
 
 
 def _static_response(web_dir: Path, path: str) -> Response:
@@ -154,17 +243,17 @@ def _text(status: HTTPStatus, text: str, ctype: str = "text/plain; charset=utf-8
 
 
 class ServerApp:
-    """Runs one room over websockets.
+    """Runs rooms over websockets: the default room, configured rooms and on-demand rooms.
 
     Parameters
     ----------
     room : Room
-        The sans-I/O core.
+        The default room's sans-I/O core (``/ws``, ``/``); also :attr:`room`.
     host, port : str, int
         Where to listen (port 0 picks a free port; see :attr:`port` after start).
     link : LinkConditions, optional
         Latency injection applied to each direction of each connection (default: none). Give
-        the room's ``link``: the room announces its own to clients in ``welcome`` and ``room``.
+        the rooms' ``link``: a room announces its own to clients in ``welcome`` and ``room``.
     seed : int
         Seed of the latency injection's random draws (reproducible runs).
     web_dir : Path
@@ -175,13 +264,29 @@ class ServerApp:
         Browser origins allowed besides the server's own (``--allow-origin``; ``*``: any).
     send_timeout_s : float
         Drop a consumer whose send buffer stays full this long [s].
-    prefetch : bool
+    prefetch : bool or callable
         Solve the load patches next to the users' contacts in a worker thread between ticks
-        (:class:`server.prefetch.PatchPrefetcher`); ``haptic server`` turns it on for the FEM
-        solid.
+        (:class:`server.prefetch.PatchPrefetcher`, one per room); a callable says it per room
+        (``haptic server`` turns it on for the FEM solids).
     metrics_token : TokenTable, optional
         The token a scrape of ``/metrics`` must carry (``Authorization: Bearer``); without one
         only a server on loopback answers it (:func:`server.metrics.scrape_allowed`).
+    rooms : mapping of str to Room, optional
+        More rooms by name (``[rooms.NAME]``), reached at ``/rooms/NAME/``.
+    room_maker : RoomMaker, optional
+        Builds a room on demand when a client joins a name it allows (``[room_templates]``).
+    max_rooms : int
+        Rooms this server runs at most, the default one included (>= 1).
+    room_idle_s : float
+        An on-demand room without a connection this long [s] is closed.
+    address_limits : RoomLimits
+        The router's budgets of one source address across every room (:data:`ADDRESS_LIMITS`).
+
+    Raises
+    ------
+    ValueError
+        A bad room name, a room named :data:`DEFAULT_ROOM` among ``rooms``, or more rooms than
+        ``max_rooms``.
     """
 
     def __init__(
@@ -196,23 +301,46 @@ class ServerApp:
         allowed_origins: tuple[str, ...] | frozenset[str] = (),
         send_timeout_s: float = SEND_TIMEOUT_S,
         gain_executor: Executor | None = None,
-        prefetch: bool = False,
+        prefetch: bool | Callable[[Room], bool] = False,
         metrics_token: TokenTable | None = None,
+        rooms: Mapping[str, Room] | None = None,
+        room_maker: RoomMaker | None = None,
+        max_rooms: int = MAX_ROOMS,
+        room_idle_s: float = ROOM_IDLE_S,
+        address_limits: RoomLimits = ADDRESS_LIMITS,
     ) -> None:
         self.room = room
+        self._slots: dict[str, _Slot] = {DEFAULT_ROOM: _Slot(DEFAULT_ROOM, room)}
+        for name, extra in (rooms or {}).items():
+            if not valid_room_name(name) or name == DEFAULT_ROOM:
+                raise ValueError(f"bad room name {name!r} (a slug, not {DEFAULT_ROOM!r})")
+            self._slots[name] = _Slot(name, extra)
+        if not (isinstance(max_rooms, int) and max_rooms >= 1):
+            raise ValueError(f"max_rooms must be a whole number >= 1, got {max_rooms!r}")
+        if len(self._slots) > max_rooms:
+            raise ValueError(
+                f"{len(self._slots)} rooms configured, more than max_rooms {max_rooms}"
+            )
+        self.room_maker = room_maker
+        self.max_rooms = max_rooms
+        self.room_idle_s = float(room_idle_s)
+        self._building: dict[str, asyncio.Future[_Slot]] = {}
         #: What this layer counts per room, by name (:mod:`server.metrics`).
-        self.figures: dict[str, RoomFigures] = {DEFAULT_ROOM: RoomFigures()}
+        self.figures: dict[str, RoomFigures] = {n: s.figures for n, s in self._slots.items()}
+        #: The router's budgets of each source address across every room.
+        self.flood = FloodControl(address_limits, self._shortest_period())
         self.metrics_token = metrics_token
         #: The registry ``/metrics`` exposes: one collector reading the rooms when scraped.
         self.metrics_registry = CollectorRegistry(auto_describe=False)
         self.metrics_registry.register(ServerCollector(self))
         #: Solve the patches next to the users' contacts between ticks (server.prefetch).
-        self.prefetch = bool(prefetch)
+        self.prefetch = prefetch
         #: Where recommended-gain designs run (default: one spawned worker process, made on the
         #: first design; server.gains). Never the event loop's thread.
         self.gain_executor = gain_executor
         self._own_executor = gain_executor is None
         self._gain_tasks: set[asyncio.Task[None]] = set()
+        self._design_turn = 0
         self.host = host
         self.port = port
         self.link = link if link is not None else LinkConditions()
@@ -228,13 +356,28 @@ class ServerApp:
         self._peers: dict[str, _Peer] = {}
         self._next_conn = 0
         self._server: Server | None = None
-        self._sim_task: asyncio.Task[None] | None = None
-        #: Solves the patches next to the users' contacts between ticks (server.prefetch).
-        self.prefetcher: PatchPrefetcher | None = None
+        self._started = False
+
+    @property
+    def prefetcher(self) -> PatchPrefetcher | None:
+        """The default room's patch prefetcher (None without ``prefetch`` or before start)."""
+        return self._slots[DEFAULT_ROOM].prefetcher
+
+    @property
+    def _sim_task(self) -> asyncio.Task[None] | None:
+        """The default room's simulation loop task (None before start)."""
+        return self._slots[DEFAULT_ROOM].task
+
+    def _slot(self, peer: _Peer) -> _Slot:
+        """The room a peer is in."""
+        return peer.slot if peer.slot is not None else self._slots[DEFAULT_ROOM]
+
+    def _shortest_period(self) -> float:
+        return min(1.0 / s.room.sim_rate_hz for s in self._slots.values())
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
-        """Listen and start the simulation loop."""
+        """Listen and start every room's simulation loop."""
         self._server = await serve(
             self._handler,
             self.host,
@@ -250,26 +393,42 @@ class ServerApp:
         )
         sock = next(iter(self._server.sockets))
         self.port = int(sock.getsockname()[1])
-        if self.prefetch:
-            self.prefetcher = PatchPrefetcher(self.room.world)
-        self._sim_task = asyncio.create_task(self._sim_loop())
+        self._started = True
+        for slot in self._slots.values():
+            self._start_slot(slot)
         if self._own_executor:  # an injected executor (tests) is the caller's to warm
             self._gain_tasks.add(asyncio.create_task(self._warm_design_pool()))
 
-    async def stop(self) -> None:
-        """Stop the simulation and close every connection."""
-        if self._sim_task:
-            self._sim_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._sim_task
-        self.room.stop()  # no schedule any more: nothing is behind it
-        if self.prefetcher is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self.prefetcher.close)
-            self.prefetcher = None
-        pending = list(self._gain_tasks)
-        for task in pending:
+    def _start_slot(self, slot: _Slot) -> None:
+        """Start one room's simulation loop (and its prefetcher)."""
+        want = self.prefetch(slot.room) if callable(self.prefetch) else self.prefetch
+        if want:
+            slot.prefetcher = PatchPrefetcher(slot.room.world)
+        slot.empty_since_s = asyncio.get_running_loop().time() if slot.peers == 0 else None
+        slot.task = asyncio.create_task(self._sim_loop(slot), name=f"room {slot.name}")
+
+    async def _stop_slot(self, slot: _Slot) -> None:
+        """Stop one room's loop, its schedule and its prefetcher."""
+        task = slot.task
+        if task is not None and task is not asyncio.current_task():
             task.cancel()
-        for task in pending:  # let them finish their cancellation while the loop still runs
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        slot.room.stop()  # no schedule any more: nothing is behind it
+        if slot.prefetcher is not None:
+            await asyncio.get_running_loop().run_in_executor(None, slot.prefetcher.close)
+            slot.prefetcher = None
+
+    async def stop(self) -> None:
+        """Stop every room's simulation and close every connection."""
+        for pending in list(self._building.values()):
+            pending.cancel()
+        for slot in list(self._slots.values()):
+            await self._stop_slot(slot)
+        pending_tasks = list(self._gain_tasks)
+        for task in pending_tasks:
+            task.cancel()
+        for task in pending_tasks:  # let them finish their cancellation while the loop still runs
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         if self._own_executor and self.gain_executor is not None:
@@ -294,26 +453,198 @@ class ServerApp:
         finally:
             await self.stop()
 
+    # ------------------------------------------------------------------ rooms
+    def rooms(self) -> dict[str, Room]:
+        """The rooms this server runs now, by name: the default one first, then the configured
+        ones, then those made on demand (in the order they were made).
+
+        The Agones agent (:mod:`server.agones`) and the metrics (:mod:`server.metrics`) read
+        every room through this mapping.
+        """
+        return {name: slot.room for name, slot in self._slots.items()}
+
+    async def _room_for(self, name: str) -> _Slot:
+        """The running room ``name``, built now from a template when one allows it.
+
+        Raises
+        ------
+        _RoomRefused
+            404 when no room has that name and no template allows it, 503 when the server runs
+            ``max_rooms`` rooms already, 500 when building it failed (logged).
+        """
+        slot = self._slots.get(name)
+        if slot is not None:
+            return slot
+        if self.room_maker is None or not self.room_maker.allows(name):
+            raise _RoomRefused(HTTPStatus.NOT_FOUND, f"no room {name!r} on this server\n")
+        pending = self._building.get(name)
+        if pending is None:
+            if len(self._slots) + len(self._building) >= self.max_rooms:
+                raise _RoomRefused(
+                    HTTPStatus.SERVICE_UNAVAILABLE,
+                    f"this server runs its most rooms ({self.max_rooms}); try another server\n",
+                )
+            pending = asyncio.ensure_future(self._build_room(name))
+            self._building[name] = pending
+        return await asyncio.shield(pending)
+
+    async def _build_room(self, name: str) -> _Slot:
+        """Build an on-demand room in a worker thread (a FEM solid takes seconds), start it."""
+        assert self.room_maker is not None
+        try:
+            room = await asyncio.to_thread(self.room_maker.build, name)
+        except Exception as exc:
+            log.exception("room %r could not be built", name)
+            raise _RoomRefused(
+                HTTPStatus.INTERNAL_SERVER_ERROR, f"room {name!r} could not be built\n"
+            ) from exc
+        finally:
+            self._building.pop(name, None)
+        slot = _Slot(name, room, on_demand=True)
+        self._slots[name] = slot
+        self.figures[name] = slot.figures
+        self.flood.sim_period_s = self._shortest_period()
+        if self._started:
+            self._start_slot(slot)
+        log.info(
+            "room %r made on demand (%d of at most %d rooms)",
+            name,
+            len(self._slots),
+            self.max_rooms,
+        )
+        return slot
+
+    async def _retire(self, slot: _Slot) -> None:
+        """Close an on-demand room nobody used for ``room_idle_s``."""
+        log.info("room %r closed: no connection for %g s", slot.name, self.room_idle_s)
+        self._slots.pop(slot.name, None)
+        self.figures.pop(slot.name, None)
+        await self._stop_slot(slot)
+
+    def room_reports(self) -> list[RoomReport]:
+        """A :class:`RoomReport` of every room of :meth:`rooms`; call it on the event loop.
+
+        A room is alive while its simulation task runs and its next tick is not overdue by
+        more than ``max(STALL_MIN_S, STALL_PERIODS / sim_rate_hz)`` [s]: a dead loop (task ended)
+        or one whose ticks stopped (a tick that never returns blocks this very call, which is
+        how a caller on another thread sees a blocked loop: no answer).
+        """
+        now = asyncio.get_running_loop().time()
+        out = []
+        for name, slot in list(self._slots.items()):
+            room = slot.room
+            running = slot.task is not None and not slot.task.done()
+            stall_s = max(STALL_MIN_S, STALL_PERIODS / room.sim_rate_hz)
+            on_time = now - room.get_timer() < stall_s
+            out.append(
+                RoomReport(
+                    name=name,
+                    ticks=room.tick_count,
+                    alive=running and on_time,
+                    users=len(room.users),
+                    viewers=len(room.viewers),
+                )
+            )
+        return out
+
+    @staticmethod
+    def _room_status(room: Room) -> dict[str, Any]:
+        return {
+            "tick": room.tick_count,
+            "sim_rate_hz": room.sim_rate_hz,
+            "users": len(room.users),
+            "viewers": len(room.viewers),
+            "max_users": room.limits.max_users,
+            "tick_ms_p50": room.stats.percentile(50),
+            "tick_ms_p99": room.stats.percentile(99),
+            "overruns": room.stats.overruns,
+            "auth": room.auth is not None,
+            "force_clamps": sum(room.clamp_counts.values()),
+        }
+
+    def status(self) -> dict[str, Any]:
+        """JSON-able summary: the default room's tick, users, viewers, tick costs, overruns at
+        the top level (as before rooms), the link conditions, and ``rooms``: every room's own
+        figures by name with its websocket and page paths."""
+        room = self.room
+        rooms = {}
+        for name, slot in list(self._slots.items()):
+            rooms[name] = {
+                **self._room_status(slot.room),
+                "on_demand": slot.on_demand,
+                "ws": room_ws_path(name),
+                "page": room_page_path(name),
+            }
+        return {
+            **self._room_status(room),
+            "latency_ms": self.link.latency_ms,
+            "jitter_ms": self.link.jitter_ms,
+            "loss": self.link.loss,
+            "tls": self.ssl_context is not None,
+            "send_timeouts": self.send_timeouts,
+            "origins_refused": self.origins_refused,
+            "rooms": rooms,
+            "max_rooms": self.max_rooms,
+            "rooms_on_demand": self.room_maker is not None,
+        }
+
     # ------------------------------------------------------------------ HTTP
-    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+    async def _process_request(
+        self, connection: ServerConnection, request: Request
+    ) -> Response | None:
         path = request.path.split("?", 1)[0]
-        if path in ("/ws", "/ws/"):
-            origin = request.headers.get("Origin")
-            if origin_allowed(
-                origin, request.headers.get("Host"), self.allowed_origins, is_loopback(self.host)
-            ):
-                return None
-            self.origins_refused += 1
-            log.warning("refused a websocket handshake from origin %.100r", origin)
-            return _text(HTTPStatus.FORBIDDEN, "origin not allowed (see --allow-origin)\n")
+        where = room_path(path)
+        if where is not None:
+            return await self._room_request(request, where)
         if path == "/status":
             body = json.dumps(self.status())
             return _text(HTTPStatus.OK, body, "application/json")
         if path == "/metrics":
             return self._metrics(request)
         if request.headers.get("Upgrade", "").lower() == "websocket":
-            return _text(HTTPStatus.NOT_FOUND, "the websocket endpoint is /ws\n")
+            return _text(
+                HTTPStatus.NOT_FOUND, "the websocket endpoints are /ws and /rooms/NAME/ws\n"
+            )
         return _static_response(self.web_dir, path)
+
+    async def _room_request(self, request: Request, where: RoomPath) -> Response | None:
+        """A request under a room's path: its websocket (routed, made on demand), its page, or a
+        redirect of ``/rooms/NAME`` to ``/rooms/NAME/``."""
+        name = where.room
+        if not valid_room_name(name):
+            return _text(
+                HTTPStatus.BAD_REQUEST,
+                "a room name is 1-32 of a-z, 0-9 and -, starting and ending with a letter or "
+                "digit\n",
+            )
+        if where.rest == "ws":
+            origin = request.headers.get("Origin")
+            if not origin_allowed(
+                origin, request.headers.get("Host"), self.allowed_origins, is_loopback(self.host)
+            ):
+                self.origins_refused += 1
+                log.warning("refused a websocket handshake from origin %.100r", origin)
+                return _text(HTTPStatus.FORBIDDEN, "origin not allowed (see --allow-origin)\n")
+            try:
+                await self._room_for(name)
+            except _RoomRefused as exc:
+                return _text(exc.status, str(exc))
+            return None
+        known = name in self._slots or (
+            self.room_maker is not None and self.room_maker.allows(name)
+        )
+        if not known:
+            return _text(HTTPStatus.NOT_FOUND, f"no room {name!r} on this server\n")
+        if where.rest is None:
+            return Response(
+                HTTPStatus.MOVED_PERMANENTLY.value,
+                HTTPStatus.MOVED_PERMANENTLY.phrase,
+                Headers([("Location", room_page_path(name)), ("Content-Length", "0")]),
+                b"",
+            )
+        if request.headers.get("Upgrade", "").lower() == "websocket":
+            return _text(HTTPStatus.NOT_FOUND, f"the websocket endpoint is {room_ws_path(name)}\n")
+        return _static_response(self.web_dir, "/" + where.rest)
 
     def _metrics(self, request: Request) -> Response:
         """``/metrics``: the Prometheus text format, for those :func:`scrape_allowed` admits."""
@@ -344,93 +675,61 @@ class ServerApp:
         )
         return [rel for rel in need if not (self.web_dir / rel).is_file()]
 
-    def rooms(self) -> dict[str, Room]:
-        """The rooms this server runs, by name: today one, :data:`DEFAULT_ROOM`.
-
-        The Agones agent (:mod:`server.agones`) and the metrics (:mod:`server.metrics`) read
-        every room through this mapping, so that a server of several rooms only changes it.
-        """
-        return {DEFAULT_ROOM: self.room}
-
-    def room_reports(self) -> list[RoomReport]:
-        """A :class:`RoomReport` of every room of :meth:`rooms`; call it on the event loop.
-
-        A room is alive while the simulation task runs and its next tick is not overdue by
-        more than ``max(STALL_MIN_S, STALL_PERIODS / sim_rate_hz)`` [s]: a dead loop (task ended)
-        or one whose ticks stopped (a tick that never returns blocks this very call, which is
-        how a caller on another thread sees a blocked loop: no answer).
-        """
-        now = asyncio.get_running_loop().time()
-        running = self._sim_task is not None and not self._sim_task.done()
-        out = []
-        for name, room in self.rooms().items():
-            stall_s = max(STALL_MIN_S, STALL_PERIODS / room.sim_rate_hz)
-            on_time = now - room.get_timer() < stall_s
-            out.append(
-                RoomReport(
-                    name=name,
-                    ticks=room.tick_count,
-                    alive=running and on_time,
-                    users=len(room.users),
-                    viewers=len(room.viewers),
-                )
-            )
-        return out
-
-    def status(self) -> dict[str, Any]:
-        """JSON-able summary: tick, users, viewers, tick costs, overruns, link conditions."""
-        room = self.room
-        return {
-            "tick": room.tick_count,
-            "sim_rate_hz": room.sim_rate_hz,
-            "users": len(room.users),
-            "viewers": len(room.viewers),
-            "tick_ms_p50": room.stats.percentile(50),
-            "tick_ms_p99": room.stats.percentile(99),
-            "overruns": room.stats.overruns,
-            "latency_ms": self.link.latency_ms,
-            "jitter_ms": self.link.jitter_ms,
-            "loss": self.link.loss,
-            "tls": self.ssl_context is not None,
-            "auth": room.auth is not None,
-            "force_clamps": sum(room.clamp_counts.values()),
-            "send_timeouts": self.send_timeouts,
-            "origins_refused": self.origins_refused,
-        }
-
     # ------------------------------------------------------------------ websockets
     async def _handler(self, ws: ServerConnection) -> None:
         self._next_conn += 1
         conn_id = f"c{self._next_conn}"
+        loop = asyncio.get_running_loop()
+        where = room_path(ws.request.path) if ws.request is not None else None
+        slot = self._slots.get(where.room if where is not None else DEFAULT_ROOM)
+        if slot is None:  # closed between the handshake and now (idle on-demand room)
+            await ws.close(1013, "room closed, join again")
+            return
         peer = _Peer(
             conn_id,
             ws,
             up=LinkShaper(self.link, seed=f"{self.seed}:{conn_id}:up"),
             down=LinkShaper(self.link, seed=f"{self.seed}:{conn_id}:down"),
+            slot=slot,
+            address=_address(ws),
+            connected_at_s=loop.time(),
         )
-        peer.figures = self.figures[DEFAULT_ROOM]
+        room = slot.room
         self._peers[conn_id] = peer
-        loop = asyncio.get_running_loop()
+        slot.peers += 1
+        slot.empty_since_s = None
         sender = asyncio.create_task(self._sender(peer))
-        address = _address(ws)
+        address = peer.address
         remote = ws.remote_address
         port = remote[1] if isinstance(remote, tuple) and len(remote) > 1 else None
         peer.who = address if port is None else f"{address}:{port}"
+        if slot.name != DEFAULT_ROOM:
+            peer.who += f" room {slot.name}"
         log.info("connection %s open: %s", conn_id, peer.who)
         try:
-            self._dispatch(self.room.connect(conn_id, loop.time(), address))
+            others = [p for p in self._peers.values() if p is not peer and not p.closed]
+            refusal = self.flood.connect(others, address)
+            if isinstance(refusal, Refusal):  # the address holds too many in all rooms
+                self._refuse(peer, refusal.code, refusal.message + " in all rooms together")
+            else:
+                peer.frames, peer.bytes = self.flood.open(address, peer.connected_at_s)
+                self._dispatch(room.connect(conn_id, loop.time(), address))
             async for frame in ws:  # after a refusal: keep draining for the close handshake
                 now = loop.time()
+                if peer.closed:
+                    continue
                 # flood control on arrival, before latency injection holds anything in memory
-                admitted, outs = self.room.admit(conn_id, frame, now)
+                admitted, outs = room.admit(conn_id, frame, now)
                 if outs:
                     self._dispatch(outs)
+                if admitted:
+                    admitted = self._charge_address(peer, frame, now)
                 if not admitted:
                     continue
                 if not self.link.active:
                     self._deliver(conn_id, frame)
                     continue
-                at = peer.up.schedule(now, droppable=self.room.droppable(frame))
+                at = peer.up.schedule(now, droppable=room.droppable(frame))
                 if at is not None:  # strictly increasing times: the timers fire in order
                     loop.call_at(at, self._deliver, conn_id, frame)
         except ConnectionClosed:
@@ -443,26 +742,64 @@ class ServerApp:
                 "" if peer.named else " (before hello)",
                 ws.close_code,
             )
-            self.room.disconnect(conn_id)
+            room.disconnect(conn_id)
+            peer.closed = True
             self._peers.pop(conn_id, None)
+            slot.peers -= 1
+            if slot.peers == 0:
+                slot.empty_since_s = loop.time()
             sender.cancel()
             # bounded: on Python 3.11 a cancel that lands as the sender's wait_for(send) finishes
             # is swallowed, and an unbounded await would never return
             with contextlib.suppress(asyncio.CancelledError, ConnectionClosed, TimeoutError):
                 await asyncio.wait_for(sender, 5.0)
 
+    def _refuse(self, peer: _Peer, code: str, message: str) -> None:
+        """Close a connection for the router (its room forgets it): a fatal ``error`` frame."""
+        peer.closed = True
+        self._slot(peer).room.disconnect(peer.conn_id)
+        frame = encode(ErrorMsg(code=code, message=message, fatal=True))
+        self._dispatch([Outgoing(peer.conn_id, frame, close=True)])
+
+    def _charge_address(self, peer: _Peer, frame: str | bytes, now: float) -> bool:
+        """Charge a frame its room admitted to its address's budget across every room.
+
+        When the address has spent it (:data:`ADDRESS_LIMITS`), its heaviest connection in any
+        room is closed with ``rate_limited``. Returns whether the frame is still admitted (False
+        when its own connection was the one closed).
+        """
+        slot = self._slot(peer)
+        if now > slot.room.get_timer():  # behind schedule: the backlog of a stall is credited
+            self.flood.credit_stall(self._live_peers(), slot.room.get_timer(), now)
+        size = frame_size_bytes(frame)
+        self.flood.charge(peer, size, now)  # its share, to find the heaviest; the room decides
+        heavy = self.flood.charge_address(peer, self._live_peers(), size, now)
+        if heavy is None:
+            return True
+        log.warning("address %s sends too much in all rooms: closing %s", peer.address, heavy.who)
+        self._refuse(
+            heavy,
+            "rate_limited",
+            "this address sends too much in all rooms together; its busiest connection is closed",
+        )
+        return heavy is not peer
+
+    def _live_peers(self) -> list[_Peer]:
+        return [p for p in self._peers.values() if not p.closed]
+
     def _deliver(self, conn_id: str, frame: str | bytes) -> None:
-        """Hand an admitted frame to the room when it is due (after any injected latency)."""
-        if conn_id not in self._peers:
+        """Hand an admitted frame to its room when it is due (after any injected latency)."""
+        peer = self._peers.get(conn_id)
+        if peer is None or peer.closed:
             return
+        room = self._slot(peer).room
         try:
-            outs = self.room.handle(conn_id, frame, asyncio.get_running_loop().time())
+            outs = room.handle(conn_id, frame, asyncio.get_running_loop().time())
         except Exception:  # a bug must cost one frame, not the connection or the room
             log.exception("frame from %s could not be handled", conn_id)
             return
-        peer = self._peers.get(conn_id)
-        if peer is not None and not peer.named:
-            who = self.room.describe(conn_id)
+        if not peer.named:
+            who = room.describe(conn_id)
             if who is not None:  # welcomed: now we know who it is
                 peer.named = True
                 peer.who += f" {who}"
@@ -497,6 +834,7 @@ class ServerApp:
         A send that cannot complete within ``send_timeout_s`` (the peer does not read and its
         buffer stays full) drops the peer: the room forgets it and the socket is aborted.
         """
+        figures = self._slot(peer).figures
         try:
             while True:
                 await peer.wake.wait()
@@ -506,9 +844,9 @@ class ServerApp:
                     if out.data is not None:
                         await asyncio.wait_for(peer.ws.send(out.data), self.send_timeout_s)
                         if out.stream == "patch":
-                            peer.figures.patches_sent += 1
+                            figures.patches_sent += 1
                         elif isinstance(out.data, bytes):  # the viewers' surface stream
-                            peer.figures.viewer_bytes_sent += len(out.data)
+                            figures.viewer_bytes_sent += len(out.data)
                         if out.on_sent is not None:  # the viewer stream tracks what was sent
                             out.on_sent()
                     if out.close:
@@ -524,23 +862,26 @@ class ServerApp:
                 peer.conn_id,
                 self.send_timeout_s,
             )
-            self.room.disconnect(peer.conn_id)
+            self._slot(peer).room.disconnect(peer.conn_id)
             peer.ws.transport.abort()
 
     # ------------------------------------------------------------------ simulation
-    async def _sim_loop(self) -> None:
-        """Sleep until the room's timer (:meth:`Room.get_timer`), call :meth:`Room.handle_timer`.
+    async def _sim_loop(self, slot: _Slot) -> None:
+        """One room's loop: sleep until its timer (:meth:`Room.get_timer`), call
+        :meth:`Room.handle_timer`; each room has its own, so no room waits for another's tick.
 
         The schedule (drift-free ticks, skipped overruns, crediting budgets when late) is the
         room's; this loop measures each tick's wall-clock cost for it (:meth:`Room.tick_cost`).
         It yields to the event loop before every tick, also when the tick is already due: the
         previous tick's frames are queued latest-wins (:meth:`_ready`), so without the yield a
         late tick would replace them before the senders had a chance to write them, and every
-        user would lose that patch.
+        user would lose that patch. A late tick also credits the router's across-rooms address
+        budgets for the stall (:meth:`FloodControl.credit_stall`). An on-demand room without a
+        connection for ``room_idle_s`` ends its loop and is closed (:meth:`_retire`).
         """
         loop = asyncio.get_running_loop()
-        room = self.room
-        figures = self.figures[DEFAULT_ROOM]
+        room = slot.room
+        figures = slot.figures
         room.start(loop.time())
         while True:
             due = room.get_timer()
@@ -551,10 +892,12 @@ class ServerApp:
                 await asyncio.sleep(0)
             start = loop.time()
             before = room.tick_count
+            if start > due:
+                self.flood.credit_stall(self._live_peers(), due, start)
             try:
                 outs = room.handle_timer(start)
             except Exception:  # a bug in the physics must not take every user down silently
-                log.exception("simulation tick %d failed", room.tick_count)
+                log.exception("room %r: simulation tick %d failed", slot.name, room.tick_count)
                 outs = []
             cost = loop.time() - start
             room.tick_cost(cost)
@@ -563,18 +906,31 @@ class ServerApp:
                 figures.lateness_s.add(max(0.0, start - due))
             self._dispatch(outs)
             self._start_designs()
-            if self.prefetcher is not None:
-                self.prefetcher.after_tick()
+            if slot.prefetcher is not None:
+                slot.prefetcher.after_tick()
+            if slot.name == DEFAULT_ROOM:  # once per default tick is often enough
+                self.flood.forget_idle(self._live_peers(), start)
+            idle = slot.empty_since_s
+            if slot.on_demand and idle is not None and start - idle >= self.room_idle_s:
+                await self._retire(slot)
+                return
 
     def _start_designs(self) -> None:
         """Keep the design worker busy with the most urgent queued job (``GainAdvisor.next_job``:
         interim checks first, then the newest designs), one job per worker at a time, so that an
-        urgent check never waits behind a queue of designs already handed to the pool."""
+        urgent check never waits behind a queue of designs already handed to the pool. The
+        rooms take turns: each call starts with the room after the one served last."""
         while len(self._gain_tasks) < DESIGN_WORKERS:
-            job = self.room.gains.next_job()
-            if job is None:
+            slots = list(self._slots.values())
+            for i in range(len(slots)):
+                slot = slots[(self._design_turn + i) % len(slots)]
+                job = slot.room.gains.next_job()
+                if job is not None:
+                    self._design_turn = (self._design_turn + i + 1) % len(slots)
+                    self._gain_tasks.add(asyncio.create_task(self._design(slot.room, job)))
+                    break
+            else:
                 return
-            self._gain_tasks.add(asyncio.create_task(self._design(job)))
 
     def _design_pool(self) -> Executor:
         """The design workers (started once, at the server's start or on the first job)."""
@@ -599,10 +955,11 @@ class ServerApp:
             self._gain_tasks.discard(me)  # type: ignore[arg-type]
         self._start_designs()
 
-    async def _design(self, job: GainJob) -> None:
-        """Run one gain design off the simulation loop (a worker process) and hand it back."""
+    async def _design(self, room: Room, job: GainJob) -> None:
+        """Run one gain design of ``room`` off the simulation loop (a worker process) and hand
+        it back."""
         self._design_pool()
-        table = self.room.gains.table
+        table = room.gains.table
         loop = asyncio.get_running_loop()
         me = asyncio.current_task()
         try:
@@ -614,7 +971,7 @@ class ServerApp:
             design = None
         finally:
             self._gain_tasks.discard(me)  # type: ignore[arg-type]
-        self.room.gains.store(job, design)
+        room.gains.store(job, design)
         self._start_designs()
 
 

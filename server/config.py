@@ -5,6 +5,13 @@ A configuration file holds top-level keys named like the long options of ``hapti
 ``--allow-origin URL`` (repeatable) is ``allow_origin = ["URL", ...]``, ``--insecure`` is
 ``insecure = true``. docs/server-config.example.toml lists them all.
 
+Rooms (docs/usage.md): ``[rooms.NAME]`` tables name the rooms the server runs besides the
+default one (its object, mesh, material, rate and caps: :data:`ROOM_OPTIONS`; a key not given is
+the top-level one), and ``[room_templates.NAME]`` tables let a client make a room on demand by
+joining ``/rooms/NAME/ws``: a name starting with the template's ``prefix`` is built from it, up
+to ``max_rooms`` rooms in all. Their values reach ``haptic server`` as the defaults ``rooms``
+and ``room_templates`` (``{name: {key: value}}``).
+
 :func:`load_server_config` reads and checks a file and returns ``{dest: value}``;
 :func:`apply_server_config` hands that to the ``server`` subparser as defaults
 (``parser.set_defaults``), so a flag given on the command line still wins over the file.
@@ -29,6 +36,7 @@ from haptic_collab.server.materials import PRESETS
 from haptic_collab.server.objects.shapes import STRESS_MESHES
 from haptic_collab.server.solid_materials import SOLID_PRESETS
 from haptic_collab.server.toml_file import read_toml
+from haptic_collab.server.urls import valid_room_name
 
 
 class ConfigError(ValueError):
@@ -70,6 +78,10 @@ def _one_of(*choices: str) -> Callable[[object], str | None]:
         return None if v in choices else f"must be one of {', '.join(choices)}"
 
     return check
+
+
+def _at_least_one(v: object) -> str | None:
+    return None if isinstance(v, int) and v >= 1 else "must be >= 1"
 
 
 def _not_empty(v: object) -> str | None:
@@ -117,7 +129,44 @@ SERVER_OPTIONS: dict[str, _Option] = {
     "metrics_token_file": _Option(
         "str", "file holding the /metrics bearer token", _not_empty, True
     ),
+    "token_secret_file": _Option(
+        "str", "file holding the secret room tokens are signed with", _not_empty, True
+    ),
+    "max_rooms": _Option("int", "rooms this server runs at most", _at_least_one),
+    "room_idle": _Option(
+        "float", "seconds an empty on-demand room lives before it is closed", _positive
+    ),
 }
+
+#: Keys of a ``[rooms.NAME]`` or ``[room_templates.NAME]`` table: what one room's object, rates
+#: and caps are made of (anything not given is the top-level value of the same key).
+ROOM_OPTIONS: dict[str, _Option] = {
+    **{
+        k: SERVER_OPTIONS[k]
+        for k in (
+            "object",
+            "mesh",
+            "mesh_scale",
+            "mesh_size",
+            "mesh_max_edge",
+            "subdivisions",
+            "material",
+            "sim_rate",
+            "damping",
+            "stiffness_scale",
+            "primitive",
+        )
+    },
+    "max_users": _Option("int", "haptic users in the room at once", _at_least_one),
+    "max_viewers": _Option("int", "viewers in the room at once", _at_least_one),
+}
+#: Keys of a ``[room_templates.NAME]`` table besides :data:`ROOM_OPTIONS`.
+TEMPLATE_OPTIONS: dict[str, _Option] = {
+    **ROOM_OPTIONS,
+    "prefix": _Option("str", "room names made from this template start with this ('': any name)"),
+}
+#: The tables a configuration file may hold: ``[rooms.NAME]`` and ``[room_templates.NAME]``.
+ROOM_TABLES = {"rooms": ROOM_OPTIONS, "room_templates": TEMPLATE_OPTIONS}
 
 #: Values of path keys that are names, not files (kept as they are); the stress shapes'
 #: names (``mesh``) and the material presets (``material``) too, see :func:`_resolve`.
@@ -186,35 +235,69 @@ def load_server_config(path: str | Path) -> dict[str, object]:
     where = str(p)
     data = read_toml(p, "configuration", ConfigError)
 
-    known = tuple(SERVER_OPTIONS)
     out: dict[str, object] = {}
     for key, value in data.items():
-        option = SERVER_OPTIONS.get(key)
-        if option is None:
-            dashed = key.replace("-", "_").lstrip("_")
-            if dashed in SERVER_OPTIONS:
-                hint = f" (write {dashed!r}: option names with '_' for '-')"
-            else:
-                close = difflib.get_close_matches(key, known, n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ConfigError(f"{where}: unknown key {key!r}{hint}; known keys: {', '.join(known)}")
-        if not _type_ok(option.kind, value):
+        if key in ROOM_TABLES:
+            out[key] = _room_tables(where, key, value, p.parent)
+            continue
+        out[key] = _checked(where, key, value, SERVER_OPTIONS, p.parent)
+    return out
+
+
+def _checked(
+    where: str, key: str, value: object, options: dict[str, _Option], folder: Path, table: str = ""
+) -> object:
+    """One key's value checked against ``options`` (converted, paths resolved)."""
+    option = options.get(key)
+    name = f"{table}{key}"
+    if option is None:
+        known = tuple(options) + (tuple(ROOM_TABLES) if not table else ())
+        dashed = key.replace("-", "_").lstrip("_")
+        if dashed in options:
+            hint = f" (write {dashed!r}: option names with '_' for '-')"
+        else:
+            close = difflib.get_close_matches(key, known, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ConfigError(f"{where}: unknown key {name!r}{hint}; known keys: {', '.join(known)}")
+    if not _type_ok(option.kind, value):
+        raise ConfigError(
+            f"{where}: {name} must be {_KIND_WORDS[option.kind]} ({option.doc}), got {value!r}"
+        )
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"{where}: {name} must be finite, got {value!r}")
+    if option.check is not None:
+        problem = option.check(value)
+        if problem is not None:
+            raise ConfigError(f"{where}: {name} {problem} ({option.doc}), got {value!r}")
+    if option.kind == "float":
+        value = float(value)  # type: ignore[arg-type]
+    elif option.kind == "list[str]":
+        value = list(value)  # type: ignore[call-overload]
+    if option.path:
+        value = _resolve(key, str(value), folder)
+    return value
+
+
+def _room_tables(where: str, key: str, value: object, folder: Path) -> dict[str, dict[str, object]]:
+    """The ``[rooms.NAME]`` or ``[room_templates.NAME]`` tables, checked (:data:`ROOM_TABLES`)."""
+    if not isinstance(value, dict):
+        raise ConfigError(f"{where}: {key} must be tables [{key}.NAME], got {value!r}")
+    out: dict[str, dict[str, object]] = {}
+    for name, table in value.items():
+        if not valid_room_name(name):
             raise ConfigError(
-                f"{where}: {key} must be {_KIND_WORDS[option.kind]} ({option.doc}), got {value!r}"
+                f"{where}: [{key}.{name}]: a name is 1-32 of a-z, 0-9 and -, starting and "
+                "ending with a letter or digit"
             )
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ConfigError(f"{where}: {key} must be finite, got {value!r}")
-        if option.check is not None:
-            problem = option.check(value)
-            if problem is not None:
-                raise ConfigError(f"{where}: {key} {problem} ({option.doc}), got {value!r}")
-        if option.kind == "float":
-            value = float(value)  # type: ignore[arg-type]
-        elif option.kind == "list[str]":
-            value = list(value)  # type: ignore[call-overload]
-        if option.path:
-            value = _resolve(key, str(value), p.parent)
-        out[key] = value
+        if not isinstance(table, dict):
+            raise ConfigError(f"{where}: {key}.{name} must be a table [{key}.{name}]")
+        out[name] = {
+            k: _checked(where, k, v, ROOM_TABLES[key], folder, f"{key}.{name}.")
+            for k, v in table.items()
+        }
+    prefixes = [str(t.get("prefix", "")) for t in out.values()] if key == "room_templates" else []
+    if len(set(prefixes)) != len(prefixes):
+        raise ConfigError(f"{where}: two [room_templates] have the same prefix")
     return out
 
 
@@ -245,7 +328,7 @@ def apply_server_config(parser: argparse.ArgumentParser, path: str | Path) -> di
         ``material`` before ``--material`` exists).
     """
     config = load_server_config(path)
-    dests = {a.dest for a in parser._actions}
+    dests = {a.dest for a in parser._actions} | set(ROOM_TABLES)
     missing = [k for k in config if k not in dests]
     if missing:
         raise ConfigError(

@@ -1,4 +1,10 @@
-"""``haptic server``: build the object and the room, serve them over websockets."""
+"""``haptic server``: build the objects and the rooms, serve them over websockets.
+
+The default room is built from the top-level options; each ``[rooms.NAME]`` of the configuration
+(``ServerOptions.rooms``) is a room of its own built from the same options with that table's
+keys on top (:func:`build_room`), and ``[room_templates.NAME]`` make rooms on demand
+(:class:`RoomTemplates`).
+"""
 
 from __future__ import annotations
 
@@ -8,11 +14,13 @@ import logging
 import math
 import signal
 import ssl
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from haptic_collab.server.admission import RoomLimits
 from haptic_collab.server.agones import (
     EMPTY_SHUTDOWN_S,
     AgonesAgent,
@@ -20,10 +28,16 @@ from haptic_collab.server.agones import (
     AgonesSDK,
     start_agones,
 )
-from haptic_collab.server.app import ServerApp
+from haptic_collab.server.app import MAX_ROOMS, ROOM_IDLE_S, ServerApp
 from haptic_collab.server.room import Room
-from haptic_collab.server.security import TokenTable, is_loopback, normalize_origin
-from haptic_collab.server.urls import viewer_urls
+from haptic_collab.server.security import (
+    RoomTokens,
+    TokenTable,
+    is_loopback,
+    load_secret,
+    normalize_origin,
+)
+from haptic_collab.server.urls import DEFAULT_ROOM, room_page_path, valid_room_name, viewer_urls
 from haptic_collab.shared.protocol import PROTOCOL_VERSION, LinkConditions
 from haptic_collab.shared.rates import Rates, dividing_rates
 
@@ -51,6 +65,12 @@ class ServerOptions:
 
     ``metrics_token_file`` holds the token a Prometheus scrape of ``/metrics`` must present
     (``Authorization: Bearer``); without it only a server on loopback serves ``/metrics``.
+
+    Rooms (docs/usage.md): ``rooms`` maps a room name to its keys (``[rooms.NAME]`` of the
+    configuration file: :data:`server.config.ROOM_OPTIONS`), ``room_templates`` a template's
+    name to its keys and ``prefix`` (``[room_templates.NAME]``); ``max_rooms`` caps the rooms,
+    the default one included; an on-demand room empty for ``room_idle_s`` [s] is closed.
+    ``token_secret_file`` holds the secret room tokens are signed with (``haptic token``).
     """
 
     host: str = "127.0.0.1"
@@ -80,6 +100,145 @@ class ServerOptions:
     volume_cache: str | None = None
     agones_empty_shutdown_s: float | None = EMPTY_SHUTDOWN_S
     metrics_token_file: str | None = None
+    rooms: dict[str, dict[str, Any]] = field(default_factory=dict)
+    room_templates: dict[str, dict[str, Any]] = field(default_factory=dict)
+    max_rooms: int = MAX_ROOMS
+    room_idle_s: float = ROOM_IDLE_S
+    token_secret_file: str | None = None
+
+
+#: ``[rooms.NAME]`` keys that name a :class:`ServerOptions` field differently.
+_ROOM_KEY_FIELDS = {"sim_rate": "sim_rate_hz"}
+#: ``[rooms.NAME]`` keys that are the room's caps (:class:`server.admission.RoomLimits`).
+_ROOM_LIMIT_KEYS = ("max_users", "max_viewers")
+
+
+def room_options(opts: ServerOptions, keys: Mapping[str, object]) -> ServerOptions:
+    """The options of one room: ``opts`` with the room's keys (``[rooms.NAME]``) on top.
+
+    Raises
+    ------
+    ValueError
+        A key that is not a room's (:data:`server.config.ROOM_OPTIONS`).
+    """
+    changes: dict[str, object] = {}
+    for key, value in keys.items():
+        if key in _ROOM_LIMIT_KEYS or key == "prefix":
+            continue
+        name = _ROOM_KEY_FIELDS.get(key, key)
+        if name not in ServerOptions.__dataclass_fields__:
+            raise ValueError(f"{key!r} is not a room's option")
+        changes[name] = value
+    return replace(opts, **changes)  # type: ignore[arg-type]
+
+
+def build_secret(opts: ServerOptions) -> bytes | None:
+    """The room-token secret of ``token_secret_file`` (None without one).
+
+    Raises
+    ------
+    ValueError
+        As :func:`server.security.load_secret`.
+    """
+    return load_secret(opts.token_secret_file) if opts.token_secret_file else None
+
+
+def build_room(
+    opts: ServerOptions,
+    name: str,
+    keys: Mapping[str, object],
+    link: LinkConditions,
+    auth: TokenTable | None,
+    secret: bytes | None,
+) -> Room:
+    """The room ``name``: its object, rates and caps from ``opts`` with ``keys`` on top.
+
+    Its tokens are the server's (``auth``) and, with a ``secret``, the room tokens for ``name``
+    (:class:`server.security.RoomTokens`, checked against the wall clock).
+
+    Raises
+    ------
+    ValueError
+        As :func:`room_options`, :func:`build_rates`, :func:`build_world`.
+    """
+    ropts = room_options(opts, keys)
+    rates = build_rates(ropts)
+    world = build_world(ropts, rates)
+    caps = {k: int(keys[k]) for k in _ROOM_LIMIT_KEYS if k in keys}  # type: ignore[call-overload]
+    room_auth: TokenTable | None = auth
+    if secret is not None:
+        room_auth = RoomTokens(name, auth, secret, time.time)
+    return Room(world, rates, link=link, limits=RoomLimits(**caps), auth=room_auth)
+
+
+class RoomTemplates:
+    """Makes rooms on demand from ``[room_templates]`` (:class:`server.app.RoomMaker`).
+
+    A name is allowed when it starts with a template's ``prefix`` ('' or no prefix: any name);
+    the template with the longest matching prefix builds it (:func:`build_room`).
+
+    Parameters
+    ----------
+    opts : ServerOptions
+        The server's options (a template's keys go on top of them).
+    templates : mapping of str to mapping
+        Template name -> its keys and optional ``prefix``.
+    link, auth, secret
+        As :func:`build_room`.
+    """
+
+    def __init__(
+        self,
+        opts: ServerOptions,
+        templates: Mapping[str, Mapping[str, object]],
+        link: LinkConditions,
+        auth: TokenTable | None,
+        secret: bytes | None,
+    ) -> None:
+        self.opts = opts
+        self.templates = dict(templates)
+        self.link = link
+        self.auth = auth
+        self.secret = secret
+
+    def template(self, name: str) -> str | None:
+        """The template that builds room ``name`` (None: no template allows it)."""
+        if not valid_room_name(name):
+            return None
+        best: tuple[int, str] | None = None
+        for tname, keys in self.templates.items():
+            prefix = str(keys.get("prefix", ""))
+            if name.startswith(prefix) and (best is None or len(prefix) > best[0]):
+                best = (len(prefix), tname)
+        return best[1] if best is not None else None
+
+    def allows(self, name: str) -> bool:
+        """Whether some template builds room ``name``."""
+        return self.template(name) is not None
+
+    def build(self, name: str) -> Room:
+        """Room ``name`` from its template. Raises ValueError (no template, bad keys)."""
+        tname = self.template(name)
+        if tname is None:
+            raise ValueError(f"no room template allows the name {name!r}")
+        log.info("building room %r from template %r", name, tname)
+        return build_room(self.opts, name, self.templates[tname], self.link, self.auth, self.secret)
+
+
+def check_templates(opts: ServerOptions) -> None:
+    """Build nothing, but check every template's keys once at the start (a bad template must
+    fail the start, not the first join).
+
+    Raises
+    ------
+    ValueError
+        As :func:`room_options` and :func:`build_rates` for a template's keys.
+    """
+    for tname, keys in opts.room_templates.items():
+        try:
+            build_rates(room_options(opts, keys))
+        except ValueError as exc:
+            raise ValueError(f"[room_templates.{tname}]: {exc}") from None
 
 
 def build_auth(opts: ServerOptions) -> TokenTable | None:
@@ -97,11 +256,17 @@ def build_auth(opts: ServerOptions) -> TokenTable | None:
         auth = TokenTable.load(opts.token_file)
     elif opts.token:
         auth = TokenTable.single(opts.token)
-    if auth is None and not is_loopback(opts.host) and not opts.insecure:
+    if (
+        auth is None
+        and not opts.token_secret_file
+        and not is_loopback(opts.host)
+        and not opts.insecure
+    ):
         raise ValueError(
             f"refusing to listen on {opts.host} without tokens: anyone who can reach it could "
-            "push every user's hand. Give --token-file FILE or --token TOKEN (and --tls-cert/"
-            "--tls-key), or --insecure to accept that risk (docs/security.md)"
+            "push every user's hand. Give --token-file FILE, --token TOKEN or "
+            "--token-secret-file FILE (and --tls-cert/--tls-key), or --insecure to accept that "
+            "risk (docs/security.md)"
         )
     return auth
 
@@ -334,6 +499,13 @@ def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> An
     return obj
 
 
+def _is_fem(room: Room) -> bool:
+    """Whether a room's object is a FEM solid (its patches are prefetched)."""
+    from haptic_collab.server.objects.fem import FemSolid
+
+    return isinstance(getattr(room.world, "obj", None), FemSolid)
+
+
 async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None = None) -> None:
     """Build everything, listen, and serve until cancelled or ``duration_s`` elapses."""
     link = build_link(opts)
@@ -342,13 +514,27 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     metrics_token = build_metrics_token(opts)
     ssl_context = build_ssl(opts)
     origins = tuple(normalize_origin(o) for o in opts.allow_origins)
-    rates = build_rates(opts)
-    world = build_world(opts, rates)
-    room = Room(
-        world,
-        rates,
-        link=link,
-        auth=auth,
+    secret = build_secret(opts)
+    if DEFAULT_ROOM in opts.rooms:
+        raise ValueError(f"[rooms.{DEFAULT_ROOM}]: the default room is the top-level options'")
+    if 1 + len(opts.rooms) > opts.max_rooms:
+        raise ValueError(
+            f"{1 + len(opts.rooms)} rooms (the default one and {len(opts.rooms)} [rooms]) but "
+            f"max_rooms is {opts.max_rooms}"
+        )
+    check_templates(opts)
+    room = build_room(opts, DEFAULT_ROOM, {}, link, auth, secret)
+    rooms = {}
+    for name, keys in opts.rooms.items():
+        try:
+            rooms[name] = build_room(opts, name, keys, link, auth, secret)
+        except ValueError as exc:
+            raise ValueError(f"[rooms.{name}]: {exc}") from None
+    rates = room.rates if room.rates is not None else build_rates(opts)
+    templates = (
+        RoomTemplates(opts, opts.room_templates, link, auth, secret)
+        if opts.room_templates
+        else None
     )
     app = ServerApp(
         room,
@@ -360,8 +546,12 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         allowed_origins=origins,
         # the FEM solid's patch solves (50 ms at 10k vertices) are its p99; the balloon's are
         # about 1 ms, and its demo stress set was not yet measured with a prefetching thread
-        prefetch=opts.object == "fem",
+        prefetch=_is_fem,
         metrics_token=metrics_token,
+        rooms=rooms,
+        room_maker=templates,
+        max_rooms=opts.max_rooms,
+        room_idle_s=opts.room_idle_s,
     )
     scheme = "https" if ssl_context else "http"
     if auth is None and not is_loopback(opts.host):
@@ -399,6 +589,14 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
             )
         for url in viewer_urls(opts.host, port, scheme):
             print(f"viewer: {url}{hint}", flush=True)
+        for name in rooms:
+            log.info("room %r: %s%s", name, room_page_path(name), hint)
+        if templates is not None:
+            log.info(
+                "rooms on demand from templates %s (at most %d rooms)",
+                ", ".join(f"{t!r}" for t in opts.room_templates),
+                opts.max_rooms,
+            )
         if on_ready:
             on_ready(port)
 

@@ -1,6 +1,7 @@
 // Live browser viewer of the shared deformable object (three.js, one ES module, no build step).
 //
-// Connects to ws://<page host>/ws as a `viewer` and receives the surface as the viewer stream
+// Connects to ws://<page host>/ws as a `viewer` (on the page /rooms/NAME/: /rooms/NAME/ws, that
+// room's) and receives the surface as the viewer stream
 // (docs/protocol.md, "Viewer stream"): on join the triangles (FAC1), the rest positions (VTX1) and
 // rest normals (NRM1) and a keyframe of displacements; then one displacement frame per simulation
 // tick with only the displacements that changed, and a `room` summary. The displacements are
@@ -1163,10 +1164,18 @@ let ws = null;
 let reconnectAttempt = 0;
 let reconnectTimer = 0;
 
+// The page's room: /rooms/NAME/ is room NAME (its websocket /rooms/NAME/ws), any other path the
+// default room (/ws); server/urls.py routes the same paths.
+function roomWsPath(pathname) {
+  const m = /^\/rooms\/([a-z0-9](?:[a-z0-9-]{0,30}[a-z0-9])?)\//.exec(pathname);
+  return m ? `/rooms/${m[1]}/ws` : "/ws";
+}
+
 function wsUrl() {
   const override = params.get("ws");
   if (override) return override;
-  return `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`;
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  return `${scheme}://${location.host}${roomWsPath(location.pathname)}`;
 }
 dom.clientHint.textContent = `haptic client --name alice --url ${wsUrl()}`;
 

@@ -129,6 +129,11 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         volume_cache=args.volume_cache,
         agones_empty_shutdown_s=args.agones_empty_shutdown,
         metrics_token_file=args.metrics_token_file,
+        rooms=dict(args.rooms or {}),
+        room_templates=dict(args.room_templates or {}),
+        max_rooms=args.max_rooms,
+        room_idle_s=args.room_idle,
+        token_secret_file=args.token_secret_file,
     )
 
 
@@ -204,6 +209,29 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="token a /metrics scrape must carry (Authorization: Bearer); without it only a "
         "server on loopback serves /metrics",
     )
+    sec.add_argument(
+        "--token-secret-file",
+        default=None,
+        metavar="FILE",
+        help="secret that room tokens are signed with (haptic token); a room token admits to "
+        "one room in one role until it expires",
+    )
+    rooms = p.add_argument_group("rooms ([rooms.NAME] and [room_templates.NAME] in --config)")
+    rooms.add_argument(
+        "--max-rooms",
+        type=_at_least_one,
+        default=16,
+        metavar="N",
+        help="rooms this server runs at most, the default one included (default %(default)s)",
+    )
+    rooms.add_argument(
+        "--room-idle",
+        type=_positive,
+        default=300.0,
+        metavar="S",
+        help="close a room made on demand after S seconds without a connection "
+        "(default %(default)s)",
+    )
     p.add_argument(
         "--agones-empty-shutdown",
         type=float,
@@ -212,7 +240,52 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="under Agones (AGONES_SDK_HTTP_PORT set): ask for Shutdown after S seconds empty "
         "(0: never; default %(default)s)",
     )
-    p.set_defaults(func=_cmd_server)
+    p.set_defaults(func=_cmd_server, rooms={}, room_templates={})
+    _add_token(sub)  # here: the token command belongs to the server's security
+
+
+def _at_least_one(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _cmd_token(args: argparse.Namespace) -> int:
+    """``haptic token``: print a room token signed with the server's secret."""
+    import time
+
+    from haptic_collab.server.security import MAX_TOKEN_TTL_S, load_secret, make_room_token
+
+    if not 0.0 < args.ttl <= MAX_TOKEN_TTL_S:
+        raise CliError(f"--ttl must be in (0, {MAX_TOKEN_TTL_S:g}] s, got {args.ttl:g}")
+    try:
+        secret = load_secret(args.secret_file)
+        token = make_room_token(secret, args.room, args.role, time.time() + args.ttl)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    print(token)
+    return 0
+
+
+def _add_token(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "token",
+        help="print a signed, expiring token for one room and one role (docs/security.md)",
+    )
+    p.add_argument("--room", required=True, help="the room's name (default: the room at /ws)")
+    p.add_argument("--role", choices=["user", "viewer"], default="user", help="what it may do")
+    p.add_argument("--ttl", type=_positive, default=3600.0, metavar="S", help="valid for S seconds")
+    p.add_argument(
+        "--secret-file",
+        required=True,
+        metavar="FILE",
+        help="the server's --token-secret-file",
+    )
+    p.set_defaults(func=_cmd_token)
 
 
 # ------------------------------------------------------------------------------------------- client
