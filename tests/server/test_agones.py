@@ -68,8 +68,8 @@ class User:
                 pass
 
     @classmethod
-    async def join(cls, port: int, name: str, role: str = "user") -> User:
-        ws = await connect(f"ws://127.0.0.1:{port}/ws")
+    async def join(cls, port: int, name: str, role: str = "user", path: str = "/ws") -> User:
+        ws = await connect(f"ws://127.0.0.1:{port}{path}")
         await ws.send(json.dumps({"type": "hello", "protocol": 1, "role": role, "name": name}))
         assert json.loads(await asyncio.wait_for(ws.recv(), 30.0))["type"] == "welcome"
         return cls(ws)
@@ -161,6 +161,37 @@ async def test_no_health_once_the_simulation_loop_is_dead():
             await until(lambda: agent.health_withheld >= withheld + 3)
             assert len(sc.of("POST", "/health")) == pings
         finally:
+            await asyncio.to_thread(agent.stop)
+            await app.stop()
+
+
+async def test_the_rooms_list_and_users_counter_cover_every_room():
+    world = build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=1))
+    app = ServerApp(
+        Room(build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=1)), SIM_RATE),
+        "127.0.0.1",
+        0,
+        rooms={"lab": Room(world, SIM_RATE)},
+    )
+    await app.start()
+    users: list[User] = []
+    with Sidecar(lists={"rooms": 4}, counters={"users": 8}) as sc:
+        options = AgonesOptions(empty_shutdown_s=None, **FAST)
+        agent = start_agones(app.room_reports, options, {PORT_ENV: str(sc.port)})
+        assert isinstance(agent, AgonesAgent)
+        try:
+            await until(lambda: sc.state == "Ready")
+            users.append(await User.join(app.port, "A", path="/rooms/lab/ws"))
+            await until(lambda: sc.lists["rooms"]["values"] == ["lab"] and counts(sc)[-1:] == [1])
+            users.append(await User.join(app.port, "B"))
+            await until(lambda: counts(sc)[-1:] == [2])
+            assert sorted(sc.lists["rooms"]["values"]) == sorted([DEFAULT_ROOM, "lab"])
+            await users.pop(0).leave()  # lab empty: off the list, one user left
+            await until(lambda: sc.lists["rooms"]["values"] == [DEFAULT_ROOM])
+            assert counts(sc)[-1] == 1
+        finally:
+            for u in users:
+                await u.leave()
             await asyncio.to_thread(agent.stop)
             await app.stop()
 

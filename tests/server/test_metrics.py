@@ -165,3 +165,26 @@ def test_buckets_count_a_value_on_a_bound_in_that_bound():
         b.add(v)
     assert b.cumulative() == [("0.01", 2.0), ("0.02", 3.0), ("+Inf", 4.0)]
     assert b.total == pytest.approx(0.53)
+
+
+async def test_a_scrape_shows_every_room_each_with_its_own_figures():
+    world = build_world(ServerOptions(sim_rate_hz=50.0, subdivisions=1))
+    app = await start_app(rooms={"lab": Room(world, 50.0)})
+    try:
+        async with connect(f"ws://127.0.0.1:{app.port}/rooms/lab/ws") as user:
+            await user.send(
+                json.dumps({"type": "hello", "protocol": 1, "role": "user", "name": "A"})
+            )
+            await asyncio.wait_for(user.recv(), 10.0)  # welcome
+            lab = app.rooms()["lab"]
+            for _ in range(500):  # bounded: until the room has ticked
+                if lab.tick_count >= 1:
+                    break
+                await asyncio.sleep(0.02)
+            got = await scrape(app.port)
+        assert got["haptic_room_users{room=lab}"] == 1 and got[f"haptic_room_users{{{R}}}"] == 0
+        assert got["haptic_room_sim_rate_hertz{room=lab}"] == 50.0
+        assert got[f"haptic_room_sim_rate_hertz{{{R}}}"] == SIM_RATE
+        assert got["haptic_room_ticks_total{room=lab}"] >= 1
+    finally:
+        await app.stop()
