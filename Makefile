@@ -7,7 +7,7 @@ WEBSTAMP := web/node_modules/.installed
 JSSTAMP := client/js/node_modules/.installed
 MESHSTAMP := tests/data/meshes/.fetched
 
-.PHONY: all install web-install js-install browser meshes test lint typecheck generated unit demo bench reproduce clean wheel
+.PHONY: all install web-install js-install browser meshes test test-slow lint typecheck generated unit unit-slow demo bench reproduce clean wheel
 
 all: test
 
@@ -61,8 +61,22 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
-unit: $(STAMP) $(WEBSTAMP) $(JSSTAMP) $(MESHSTAMP) browser
-	$(BIN)/pytest -q
+# pytest-xdist: one worker per CPU (`make test PYTEST_WORKERS=0` runs in one process), tests
+# handed out one by one but for those of an `xdist_group` (kept on one worker). Exit status 5
+# (no test selected, e.g. `make unit PYTEST_ARGS='-k nothing'`) is not a failure; any other is.
+PYTEST_WORKERS ?= logical
+PYTEST_ARGS ?=
+PYTEST  = $(BIN)/pytest -q -n $(PYTEST_WORKERS) --dist loadgroup $(PYTEST_ARGS)
+UNITDEPS = $(STAMP) $(WEBSTAMP) $(JSSTAMP) $(MESHSTAMP) browser
+NOTESTS_OK = rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests selected"; exit 0; fi; exit $$rc
+
+# Every test but those marked `slow` (benchmark-shaped: fidelity grids, soaks, long runs end to end).
+unit: $(UNITDEPS)
+	$(PYTEST) -m "not slow"; $(NOTESTS_OK)
+
+# The tests marked `slow`; CI runs them after `make test` (.ci/run).
+unit-slow: $(UNITDEPS)
+	$(PYTEST) -m slow; $(NOTESTS_OK)
 
 # The files generated from the protocol's schema (web/protocol.js, docs/protocol.md's field
 # reference) are up to date; `python -m tools.codegen` rewrites them.
@@ -70,6 +84,8 @@ generated: $(STAMP)
 	$(BIN)/python -m tools.codegen --check
 
 test: lint typecheck generated unit
+
+test-slow: unit-slow
 
 demo: $(STAMP) $(WEBSTAMP)
 	$(BIN)/haptic demo --report demo-out/report.json --plot demo-out/demo.png $(DEMO_ARGS)
