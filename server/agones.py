@@ -35,7 +35,8 @@ probe that gets no answer within ``probe_timeout_s`` means the loop is blocked. 
 3. keeps the names of the rooms in use (someone in them) in the list ``rooms``: a room's name is
    added when the first user or viewer joins it and removed when the last leaves, so the list's
    free capacity is the rooms this server can still open, which a FleetAutoscaler's List policy
-   keeps a buffer of (the list's capacity is the rooms a process may run: one today);
+   keeps a buffer of (the list's capacity is the rooms a process may run: ``haptic server
+   --max-rooms``; every room of :meth:`server.app.ServerApp.rooms`, on demand ones included);
 4. keeps the counter ``users`` at the number of users in all rooms, and on the first arrival at
    a server that is only Ready calls Allocate (people who came straight to its address, past any
    allocator), so that a scale-down never deletes it under them;
