@@ -277,8 +277,19 @@ def _add_token(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help="print a signed, expiring token for one room and one role (docs/security.md)",
     )
     p.add_argument("--room", required=True, help="the room's name (default: the room at /ws)")
-    p.add_argument("--role", choices=["user", "viewer"], default="user", help="what it may do")
-    p.add_argument("--ttl", type=_positive, default=3600.0, metavar="S", help="valid for S seconds")
+    p.add_argument(
+        "--role",
+        choices=["user", "viewer"],
+        default="user",
+        help="user: push and watch; viewer: watch (default %(default)s)",
+    )
+    p.add_argument(
+        "--ttl",
+        type=_positive,
+        default=3600.0,
+        metavar="S",
+        help="valid for S seconds from now (default %(default)g, at most 30 days)",
+    )
     p.add_argument(
         "--secret-file",
         required=True,
