@@ -130,8 +130,7 @@ def room_path(path: str) -> RoomPath | None:
     name, slash, rest = path[len(ROOMS_PREFIX) :].partition("/")
     if not slash:
         return RoomPath(name, None)
-    rest = rest.rstrip("/") if rest in ("ws/",) else rest
-    return RoomPath(name, rest)
+    return RoomPath(name, "ws" if rest == "ws/" else rest)
 
 
 def room_ws_path(name: str) -> str:
