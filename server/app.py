@@ -47,7 +47,7 @@ import mimetypes
 import multiprocessing
 import ssl
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from http import HTTPStatus
@@ -784,8 +784,9 @@ class ServerApp:
         )
         return heavy is not peer
 
-    def _live_peers(self) -> list[_Peer]:
-        return [p for p in self._peers.values() if not p.closed]
+    def _live_peers(self) -> Iterator[_Peer]:
+        """The open connections of every room (lazily: most frames never read them)."""
+        return (p for p in self._peers.values() if not p.closed)
 
     def _deliver(self, conn_id: str, frame: str | bytes) -> None:
         """Hand an admitted frame to its room when it is due (after any injected latency)."""
