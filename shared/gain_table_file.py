@@ -27,13 +27,14 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from haptic_collab.shared.full_loop import ContactDynamics, HandBox
+from haptic_collab.shared.full_loop import HandBox
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
 from haptic_collab.shared.gain_table import GainTable
 
-#: The version of a gain table's file (:func:`table_document`).
-TABLE_FORMAT = 1
+#: The version of a gain table's file (:func:`table_document`): 2 since the key lost the
+#: contact's dynamics.
+TABLE_FORMAT = 2
 
 #: The module whose designs a table holds: :func:`design_code_hash` starts there.
 DESIGN_ROOTS = ("haptic_collab.shared.gain_table",)
@@ -42,7 +43,6 @@ DESIGN_ROOTS = ("haptic_collab.shared.gain_table",)
 def key_record(key: GainKey) -> dict[str, Any]:
     """``key`` as a JSON-ready dict (:func:`key_from_record` reads it back; a ``stiff_ratio`` of
     inf is written as the string ``"inf"``, which strict JSON can carry)."""
-    dyn = key.dynamics
     return {
         "servo_rate_hz": key.servo_rate_hz,
         "sim_rate_hz": key.sim_rate_hz,
@@ -55,7 +55,6 @@ def key_record(key: GainKey) -> dict[str, Any]:
         "stiff_ratio": "inf" if math.isinf(key.stiff_ratio) else key.stiff_ratio,
         "own_force": key.own_force,
         "stiffer_by": key.stiffer_by,
-        "dynamics": [dyn.mass_kg, dyn.relax_stiffness_n_per_m, dyn.relax_time_s],
     }
 
 
@@ -71,7 +70,6 @@ def key_from_record(rec: Mapping[str, Any]) -> GainKey:
         mode = rec["mode"]
         if mode not in ("p", "pi"):
             raise ValueError(f"mode must be 'p' or 'pi', got {mode!r}")
-        m, k_r, tau = (float(v) for v in rec["dynamics"])
         return GainKey(
             servo_rate_hz=float(rec["servo_rate_hz"]),
             sim_rate_hz=float(rec["sim_rate_hz"]),
@@ -84,7 +82,6 @@ def key_from_record(rec: Mapping[str, Any]) -> GainKey:
             stiff_ratio=float(rec["stiff_ratio"]),
             own_force=bool(rec["own_force"]),
             stiffer_by=float(rec["stiffer_by"]),
-            dynamics=ContactDynamics(mass_kg=m, relax_stiffness_n_per_m=k_r, relax_time_s=tau),
         )
     except (KeyError, TypeError) as exc:
         raise ValueError(f"not a gain key record: {exc!r}") from None
