@@ -867,7 +867,7 @@ class ServerApp:
             peer.ws.transport.abort()
 
     # ------------------------------------------------------------------ simulation
-    async def _sim_loop(self, slot: _Slot) -> None:
+    async def _sim_loop(self, slot: _Slot | None = None) -> None:
         """One room's loop: sleep until its timer (:meth:`Room.get_timer`), call
         :meth:`Room.handle_timer`; each room has its own, so no room waits for another's tick.
 
@@ -879,7 +879,10 @@ class ServerApp:
         user would lose that patch. A late tick also credits the router's across-rooms address
         budgets for the stall (:meth:`FloodControl.credit_stall`). An on-demand room without a
         connection for ``room_idle_s`` ends its loop and is closed (:meth:`_retire`).
+        ``slot`` None is the default room.
         """
+        if slot is None:
+            slot = self._slots[DEFAULT_ROOM]
         loop = asyncio.get_running_loop()
         room = slot.room
         figures = slot.figures
