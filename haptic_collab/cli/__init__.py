@@ -30,6 +30,7 @@ from haptic_collab.cli.run import (
     _add_devices,
     _add_log_level,
     _add_server,
+    _add_token,
     _configure_logging,
 )
 
@@ -55,7 +56,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_EXTRA = [_add_server, _add_client, _add_demo, _add_devices, _add_plot, _add_protocol, _add_bench]
+_EXTRA = [
+    _add_server,
+    _add_token,
+    _add_client,
+    _add_demo,
+    _add_devices,
+    _add_plot,
+    _add_protocol,
+    _add_bench,
+]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -241,7 +241,6 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "(0: never; default %(default)s)",
     )
     p.set_defaults(func=_cmd_server, rooms={}, room_templates={})
-    _add_token(sub)  # here: the token command belongs to the server's security
 
 
 def _at_least_one(text: str) -> int:
