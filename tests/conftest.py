@@ -50,12 +50,6 @@ import haptic_collab.shared.gain_table as _gain_table
 from haptic_collab.shared.full_loop import HandBox
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey, Mode
-from haptic_collab.shared.gain_table_file import (
-    design_code_hash,
-    design_from_record,
-    design_record,
-    key_record,
-)
 
 _ROOT = Path(__file__).resolve().parents[1]
 _design_cell_modes = _gain_table.design_cell_modes
@@ -65,12 +59,16 @@ _design_cell_modes = _gain_table.design_cell_modes
 def _design_dir() -> Path:
     """The folder of this design code's cells (module docstring), made if missing."""
     base = os.environ.get("HAPTIC_TEST_DESIGNS") or str(_ROOT / ".pytest_cache" / "haptic-designs")
+    from haptic_collab.shared.gain_table_file import design_code_hash
+
     path = Path(base) / design_code_hash()
     path.mkdir(parents=True, exist_ok=True)
     return path
 
 
 def _read_cell(path: Path, hand_box: HandBox) -> dict[Mode, GainDesign] | None:
+    from haptic_collab.shared.gain_table_file import design_from_record
+
     try:
         doc = json.loads(path.read_text("utf-8"))
         return {m: design_from_record(rec, hand_box) for m, rec in doc.items()}
@@ -82,7 +80,11 @@ def _read_cell(path: Path, hand_box: HandBox) -> dict[Mode, GainDesign] | None:
 def _kept(
     key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox, modes: tuple[Mode, ...]
 ) -> tuple[tuple[Mode, GainDesign], ...]:
-    what = json.dumps([key_record(key), cell, repr(float(grid_ratio)), repr(hand_box), modes])
+    # imported here: a broken gain_table_file fails the tests that design, not the whole run
+    from haptic_collab.shared.gain_table_file import design_record
+
+    # every field of the frozen arguments (their reprs: floats exactly), not a file's record
+    what = json.dumps([repr(key), cell, repr(float(grid_ratio)), repr(hand_box), modes])
     path = _design_dir() / f"{hashlib.sha256(what.encode()).hexdigest()[:24]}.json"
     designs = _read_cell(path, hand_box)
     if designs is None:
