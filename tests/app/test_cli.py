@@ -249,6 +249,8 @@ def test_bench_server_prints_one_json_document(capsys, monkeypatch):
     monkeypatch.setattr(bench_world, "bench_world", lambda: {"benchmark": "world_tick"})
     monkeypatch.setattr(bench_world, "bench_viewer_stream", lambda: {"n_vertices": 2562})
     monkeypatch.setattr(bench_world, "bench_gain_advice", lambda: {"users": 8})
+    monkeypatch.setattr(bench_world, "bench_room", lambda: {"users": 32})
+    monkeypatch.setattr(bench_world, "bench_fem", lambda: {"n_vertices": 642})
     assert main(["bench", "server", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)  # one document: a second copy would not parse
     assert out["viewer_stream"] == {"n_vertices": 2562} and out["gain_advice"] == {"users": 8}

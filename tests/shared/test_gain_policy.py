@@ -62,3 +62,16 @@ def test_the_measured_delay_is_the_90th_percentile_of_the_recent_round_trips() -
     assert measured_delay_ticks([0.22] * RTT_WINDOW, 0.025, 20.0) == 4
     # only the last RTT_WINDOW count
     assert measured_delay_ticks([0.5] * 50 + [0.001] * RTT_WINDOW, 0.025, 20.0) == 0
+
+
+def test_the_percentile_is_numpys_on_random_windows() -> None:
+    import numpy as np
+
+    from haptic_collab.shared.gain_key import loop_delay_ticks
+
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 7, 19, 20, 35):
+        for _ in range(300):
+            rtts = list(rng.exponential(0.08, size=n))
+            expected = loop_delay_ticks(float(np.percentile(rtts[-RTT_WINDOW:], 90)), 0.025, 20.0)
+            assert measured_delay_ticks(rtts, 0.025, 20.0) == expected
