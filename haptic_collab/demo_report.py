@@ -253,6 +253,10 @@ LOADED_RTT_EXTRA_MS = 50.0
 #: ... or no gain design finished in the user's run and it rendered fallback gains for at least
 #: this share of its patches (the design worker starved: the run never showed the designed gains).
 LOADED_FALLBACK_SHARE = 0.9
+#: ... or the link fell silent and the servo ramped the forces to zero for safety in the hold or
+#: this long [s] before it (the hand then falls into the object and is pushed back: a shake
+#: that the stall made, not the loop).
+LINK_LOST_BEFORE_HOLD_S = 1.0
 
 #: The verdicts, worst first (:func:`run_verdict`).
 VERDICTS = ("never rendered", "unstable", "could not judge", "stable")
@@ -481,12 +485,34 @@ def delay_rise_in_hold(
     return None
 
 
+def link_lost_in_hold(
+    cols: dict[str, np.ndarray], summary: dict[str, Any], hold: list[tuple[float, float]]
+) -> float:
+    """How long [s] the servo's forces were ramped below full in the hold (or in the
+    :data:`LINK_LOST_BEFORE_HOLD_S` before it) because the link fell silent, or 0.
+
+    The telemetry's ``force_scale`` says a safety ramp ran; the summary's ``servo.counts`` say
+    why over the run. The ramp counts as the link's only when the run had link losses and no
+    velocity-limit or device-fault ramps (an oscillating probe can trip the velocity limit: that
+    ramp must not excuse an unstable loop).
+    """
+    counts = (summary.get("servo") or {}).get("counts") or {}
+    if not counts.get("link_lost") or counts.get("velocity_limit") or counts.get("device_fault"):
+        return 0.0
+    if "force_scale" not in cols or not hold or cols["t_s"].size < 2:
+        return 0.0
+    w = _window(cols, hold[0][0] - LINK_LOST_BEFORE_HOLD_S, hold[-1][1])
+    ramped = w & (cols["force_scale"] < 0.999)
+    return float(ramped.sum()) * float(np.median(np.diff(cols["t_s"])))
+
+
 def machine_load(
     summary: dict[str, Any],
     missed_in_hold_per_s: float,
     overrun_share: float | None,
     injected_rtt_ms: float,
     delay_rise: tuple[int, float] | None = None,
+    link_lost_s: float = 0.0,
 ) -> list[str]:
     """Why the machine was too loaded to judge this user's hold, in plain words ([] if not).
 
@@ -496,7 +522,8 @@ def machine_load(
     :data:`LOADED_RTT_EXTRA_MS`; no gain design finished and at least
     :data:`LOADED_FALLBACK_SHARE` of the patches were rendered with fallback gains; the user's
     measured delay rose and it rendered unchecked fallback gains in its hold (``delay_rise``,
-    :func:`delay_rise_in_hold`).
+    :func:`delay_rise_in_hold`); the link fell silent and the forces ramped down for safety in
+    or just before the hold (``link_lost_s`` [s], :func:`link_lost_in_hold`).
     """
     out: list[str] = []
     if overrun_share is not None and overrun_share > LOADED_OVERRUN_SHARE:
@@ -515,6 +542,11 @@ def machine_load(
             f"its measured delay rose to {delay_rise[0]} simulation "
             f"tick{'' if delay_rise[0] == 1 else 's'} and it rendered unchecked fallback gains "
             f"({delay_rise[1]:.0f} N/m) in its hold"
+        )
+    if link_lost_s > 0.0:
+        out.append(
+            f"the link fell silent (a stalled server or network) and its forces were ramped "
+            f"down for safety for {link_lost_s:.2f} s in or just before its hold"
         )
     return out
 
@@ -692,7 +724,14 @@ def _user_report(
     for span in hold:
         w |= _window(cols, *span)
     delay_rise = delay_rise_in_hold(summary, hold, tick_times)
-    load = machine_load(summary, missed_hold, overrun_share, injected_rtt_ms, delay_rise)
+    load = machine_load(
+        summary,
+        missed_hold,
+        overrun_share,
+        injected_rtt_ms,
+        delay_rise,
+        link_lost_in_hold(cols, summary, hold),
+    )
     judged = judge_user(cols, summary, hold, load)
     force = cols["force_n"]
     return {

@@ -26,6 +26,7 @@ from haptic_collab.demo_report import (
     delay_rise_in_hold,
     hold_window,
     judge_user,
+    link_lost_in_hold,
     machine_load,
     print_summary,
     run_verdict,
@@ -420,3 +421,27 @@ def test_a_report_with_a_risen_delay_in_the_hold_could_not_judge(tmp_path) -> No
     assert "its measured delay rose to 2 simulation ticks" in ua["verdict_reasons"][0]
     assert "measured anyway: the felt stiffness stepped" in ua["verdict_reasons"][0]
     assert report["verdict"]["exit_code"] == 3
+
+
+def test_forces_ramped_down_for_a_silent_link_are_the_machine_s_load_not_the_loop() -> None:
+    # a stalled server: the servo ramps the forces to zero just before A's hold, the hand falls
+    # 20 mm in and is pushed back when the link returns; the shake is the stall's
+    hold = a_hold()
+    h0 = hold[0][0]
+    a = user("A", probe_wobble_m=lambda t: np.where((t > h0) & (t < h0 + 0.5), 0.008, 0.0))
+    a["force_scale"] = np.where((a["t_s"] > h0 - 0.3) & (a["t_s"] < h0 + 0.2), 0.0, 1.0)
+    lost = summary("A", servo={"counts": {"link_lost": 2, "velocity_limit": 0}})
+    seconds = link_lost_in_hold(a, lost, hold)
+    assert seconds == pytest.approx(0.5, abs=0.01)
+    reasons = machine_load(lost, 0.4, 0.0, 0.0, None, seconds)
+    assert reasons and "link fell silent" in reasons[0]
+    assert judge_user(a, lost, hold, load=reasons)["verdict"] == "could not judge"
+    # the same ramp in a run that also tripped the velocity limit excuses nothing: an
+    # oscillating probe trips it, and that must stay "unstable"
+    fast = summary("A", servo={"counts": {"link_lost": 2, "velocity_limit": 3}})
+    assert link_lost_in_hold(a, fast, hold) == 0.0
+    assert (
+        judge_user(a, fast, hold, load=machine_load(fast, 0.4, 0.0, 0.0))["verdict"] == "unstable"
+    )
+    # no ramp: nothing to excuse
+    assert link_lost_in_hold(user("A"), lost, hold) == 0.0
