@@ -44,6 +44,7 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 from haptic_collab.client.session import PLANE_ALONE, ClientSession, ServoSample, warm_up_worker
 from haptic_collab.shared.gain_design import GainDesign
 from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.gain_policy import COUPLED_CELLS_BELOW
 from haptic_collab.shared.gain_table import design_cell
 from haptic_collab.shared.interim_gains import interim_design
 from haptic_collab.shared.local_model_update import LocalModelUpdate
@@ -59,17 +60,11 @@ TOKEN_ENV = "HAPTIC_TOKEN"
 CA_FILE_ENV = "HAPTIC_CA_FILE"
 
 
-#: Cells of the gain table below a lone contact's own that its coupled class is checked for ahead
-#: of need (:func:`likely_next`): a second user's press lowered K_o_eff by 12 % in the demo, two
-#: cells of 10 %.
-COUPLED_CELLS_BELOW = 2
-
-
 def likely_next(key: GainKey, cell: int) -> tuple[tuple[GainKey, int], ...]:
     """The (key, cell) a contact in ``cell`` of ``key`` most likely needs next, most likely first.
 
     The same cell coupled to another user, class 2 when the contact is alone, and the two
-    cells below (:data:`COUPLED_CELLS_BELOW`): class 2 covers every coupling up to K_o_stiff /
+    cells below (:data:`shared.gain_policy.COUPLED_CELLS_BELOW`): class 2 covers every coupling up to K_o_stiff /
     K_o_eff = 2 (:meth:`ClientSession._covering`), the class of a second user's press on a
     balloon or a solid box (1.2-1.4), and that press lowers K_o_eff by 12 % in the demo: two
     cells of the gain table. Without them ready the contact renders conservative unverified

@@ -22,7 +22,7 @@ softer cell missed the design's decay margin in about a third of them
 (tests/client/test_first_contact.py). :attr:`ClientSession.interim_wanted` names the check for
 the link; while it runs after a mid-contact change (new cell, coupling class or delay) the
 nearest designed cell (no stiffer relative to K_o) renders, else the gains in use for a new cell,
-else (a new coupling class or more delay) the fallback of :data:`FALLBACK_K_RATIO`, all flagged
+else (a new coupling class or more delay) the fallback of :data:`shared.gain_policy.FALLBACK_K_RATIO`, all flagged
 ``verified=False``.
 
 The rest plane. A patch for a user alone on the object (the only user in the room) carries the
@@ -59,7 +59,12 @@ from haptic_collab.shared.gain_key import (
     held_stiff_ratio,
     make_gain_key,
 )
-from haptic_collab.shared.gain_policy import DelayHold, measured_delay_ticks
+from haptic_collab.shared.gain_policy import (
+    FALLBACK_K_RATIO,
+    OWN_RESPONSE_SLIDE_M,
+    DelayHold,
+    measured_delay_ticks,
+)
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.local_model_update import GainChoice, LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.own_response import OwnResponse
@@ -86,21 +91,6 @@ from haptic_collab.shared.verified_plane import ahead_cells, plane_applies
 
 if TYPE_CHECKING:
     from haptic_collab.client.servo import ServoSnapshot
-
-#: Distance [m] the proxy may slide along the surface before the own-response check starts over
-#: (:meth:`ClientSession._object_as_reported`): on a 5 cm radius, 0.5 mm of slide deepens the
-#: measured surface by 2.5 um, under a hundredth of what a 0.3 N spread shows on 1000 N/m.
-OWN_RESPONSE_SLIDE_M = 0.5e-3
-
-#: K_h / K_o_eff of the unverified fallback a contact renders while the check for its new
-#: coupling class or larger delay runs: a proportional model, no own-force compensation, the
-#: device's whole damper, zero-order hold. Measured with the hand in the loop (every hand of the
-#: box, every sampling tick, the Phantom Desktop's 10 N*s/m): spectral radius at most 0.988 at
-#: K_h / K_o of 0.1, 0.15 and 0.25, K_o 30, 100, 300, 600, 1000, 2000 and 4000 N/m and 0, 1, 2, 4
-#: and 8 ticks of delay (K_h capped at the device's 1 kN/m), where half K_o_eff, used before,
-#: reached 1.10 at 300 N/m and 1.40 at 1000 N/m (tests/client/test_first_contact.py checks part
-#: of that grid). A grid, not a proof; not established for a device without a damper.
-FALLBACK_K_RATIO = 0.25
 
 #: The design cell of a verified plane checked alone (:attr:`ClientSession.planes`): the cell of
 #: the K_o reported had no design when the own-response check verified there. The plane renders
@@ -556,7 +546,7 @@ class ClientSession:
         as the object's tangent stiffness (so it goes on across gain-table cells as a
         stiffening object is pressed); the time between patches is their ticks'. It starts over
         after a welcome, when the contact ends (a patch without this user's force), when the
-        proxy has slid :data:`OWN_RESPONSE_SLIDE_M` along the surface from where it started (on
+        proxy has slid :data:`shared.gain_policy.OWN_RESPONSE_SLIDE_M` along the surface from where it started (on
         a curved surface the depth would carry the curvature), and when the ticks go back.
         """
         check = self.own_response
@@ -783,7 +773,7 @@ class ClientSession:
                     # the gains in use were not designed for this coupled contact's stiff
                     # modes, or for this much delay (designs for fewer ticks than the loop has
                     # were unstable in every case tried): until verified gains arrive, render
-                    # the unverified fallback (:data:`FALLBACK_K_RATIO`; the integral force
+                    # the unverified fallback (:data:`shared.gain_policy.FALLBACK_K_RATIO`; the integral force
                     # already built is kept, frozen)
                     scale = 1.0 if last is None else min(1.0, k_o_eff / last[0].k_o_eff)
                     k_h = min(in_use.k_h * scale, FALLBACK_K_RATIO * k_o_eff)

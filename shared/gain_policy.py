@@ -1,4 +1,8 @@
-"""The rules that pick which gain key a contact renders, in one place: the loop delay's hold.
+"""The rules that pick which gain key a contact renders and what renders while its gains are
+checked, and their tuning constants, in one place (the design's own constants, which the shipped
+gain tables depend on, stay with the design: :mod:`shared.gain_key`, :mod:`shared.gain_design`).
+
+The loop delay's hold.
 
 A design holds for one loop delay in whole simulation ticks (:class:`shared.gain_key.GainKey`).
 Gains designed for fewer ticks than the loop has were unstable in every case tried (spectral
@@ -33,6 +37,32 @@ RTT_PERCENTILE = 90.0
 #: A lower loop delay is designed for only after it has been measured for this long [s], and
 #: only out of contact (:class:`DelayHold`).
 DELAY_FALL_S = 5.0
+
+#: K_h / K_o_eff of the unverified fallback a contact renders while the check for its new
+#: coupling class or larger delay runs (:class:`client.session.ClientSession`): a proportional
+#: model, no own-force compensation, the device's whole damper, zero-order hold. Measured with
+#: the hand in the loop (every hand of the box, every sampling tick, the Phantom Desktop's
+#: 10 N*s/m): spectral radius at most 0.988 at K_h / K_o of 0.1, 0.15 and 0.25, K_o 30, 100,
+#: 300, 600, 1000, 2000 and 4000 N/m and 0, 1, 2, 4 and 8 ticks of delay (K_h capped at the
+#: device's 1 kN/m), where half K_o_eff, used before, reached 1.10 at 300 N/m and 1.40 at
+#: 1000 N/m (tests/client/test_first_contact.py checks part of that grid). It is felt about a
+#: fifth as stiff as the object; a compensated fallback (C_h = 1/K_h, felt as the object in a
+#: held press) is not stable without its own check: at K_h / K_o of 0.1 and 0.25 it passed the
+#: design's test in 5 of 75 cases at 20 Hz (K_o 30-3000 N/m, 0-8 ticks, coupling classes 1-4),
+#: spectral radius up to 1.42 with a tick or more of delay (2026-11-27). A grid, not a proof;
+#: not established for a device without a damper.
+FALLBACK_K_RATIO = 0.25
+
+#: Distance [m] the proxy may slide along the surface before the own-response check starts over
+#: (:meth:`client.session.ClientSession._object_as_reported`): on a 5 cm radius, 0.5 mm of slide
+#: deepens the measured surface by 2.5 um, under a hundredth of what a 0.3 N spread shows on
+#: 1000 N/m.
+OWN_RESPONSE_SLIDE_M = 0.5e-3
+
+#: Cells of the gain table below a lone contact's own that its coupled class is checked for ahead
+#: of need (:func:`client.link.likely_next`): a second user's press lowered K_o_eff by 12 % in the
+#: demo, two cells of 10 %.
+COUPLED_CELLS_BELOW = 2
 
 
 def measured_delay_ticks(rtts_s: Sequence[float], state_age_s: float, sim_rate_hz: float) -> int:

@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.link import Link
-from haptic_collab.client.session import FALLBACK_K_RATIO, ClientSession
+from haptic_collab.client.session import ClientSession
 from haptic_collab.shared.felt_stiffness import felt_stiffness
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
 from haptic_collab.shared.gain_key import GainKey
+from haptic_collab.shared.gain_policy import FALLBACK_K_RATIO
 from haptic_collab.shared.gain_search import DESIGN_TIE
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.interim_gains import INTERIM_LADDER, interim_design, verify_gains
