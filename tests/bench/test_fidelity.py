@@ -25,6 +25,7 @@ from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand
 
 
+@pytest.mark.slow  # a fidelity grid run: benchmark-shaped
 def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
     grid = Grid(
         k_o=(1000.0,),
@@ -82,6 +83,7 @@ def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
     assert all(p.stat().st_size > 10_000 for p in paths)
 
 
+@pytest.mark.slow  # a fidelity grid run: benchmark-shaped
 def test_a_narrower_design_range_is_what_knowing_the_object_would_buy() -> None:
     # the local models' design holds on an object 15 % softer than the bottom of its cell to 25 %
     # stiffer than its top; run with no range beyond the cell (the object known that well) the
