@@ -52,7 +52,7 @@ SHIP_GRID: dict[str, Any] = {
 }
 
 #: The built-in profiles that get a shipped table (client.devices.profiles.SIM_PROFILES).
-SHIP_PROFILES = ("phantom-desktop",)
+SHIP_PROFILES = ("phantom-desktop", "touch")
 
 
 def shipped_dir() -> Path:
