@@ -10,7 +10,14 @@ from haptic_collab.cli.shipped_tables import SHIP_GRID, build_table, ship_jobs
 from haptic_collab.shared.gain_table import GainTable
 from haptic_collab.shared.gain_table_file import design_code_hash, load_table_document
 
-TINY = {**SHIP_GRID, "delay_ticks": (1,), "stiff_ratio": (1.0,), "k_o_n_per_m": (300.0, 330.0)}
+# two cells at 100 Hz (N = 10: a design's loop is a fifth of 20 Hz's), one tick of delay
+TINY = {
+    **SHIP_GRID,
+    "sim_rate_hz": (100.0,),
+    "delay_ticks": (1,),
+    "stiff_ratio": (1.0,),
+    "k_o_n_per_m": (300.0, 330.0),
+}
 
 
 def test_a_built_table_holds_the_sessions_own_designs_and_a_second_build_resumes(tmp_path) -> None:

@@ -62,7 +62,7 @@ def assert_stable_over_the_box(g: RecommendedGains, k_o: float, rate_ratio: int 
 
 @pytest.mark.parametrize("mode", ["p", "pi"])
 def test_recommended_gains_are_the_design_and_stable_over_the_hand_box(mode: str) -> None:
-    adv = GainAdvisor(20.0)
+    adv = GainAdvisor(20.0, shipped=False)  # the online design, not the shipped table
     h = hello(mode)
     assert adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
     jobs = run_jobs(adv)
@@ -116,6 +116,7 @@ def test_odd_users_get_no_recommendation_and_cost_nothing() -> None:
 def test_the_room_sends_the_recommendation_in_the_patch_and_the_client_renders_it() -> None:
     world = World(Balloon(default_balloon(subdivisions=3)))
     room = Room(world, 20.0)
+    room.gains = GainAdvisor(20.0, shipped=False)  # the online design (shipped: a test below)
     room.connect("c1", 0.0)
     room.receive("c1", encode(hello("pi")), 0.0)
     top = room.object_info.top_m
