@@ -36,8 +36,10 @@ def gain_changes(updates: list[LocalModelUpdate], limit: int = 200) -> list[dict
     """The patches at which the rendered gains or their standing changed, first ``limit``.
 
     Each: the server ``tick``, K_h [N/m], integral gain [N/(m s)], own-force gain C_h [m/N],
-    whether verified / a fallback, the loop delay [ticks], K_o_eff and K_o_stiff [N/m]: when a
-    contact rendered what, for reading a demo run's haptics after the fact.
+    whether verified / a fallback, the loop delay [ticks], K_o_eff and K_o_stiff [N/m], and
+    whether it rendered the rest plane (``rest``: felt as K_h itself, its force does not go
+    through the simulation): when a contact rendered what, for reading a demo run's haptics
+    after the fact.
     """
     out: list[dict[str, object]] = []
     last: tuple[object, ...] | None = None
@@ -50,6 +52,7 @@ def gain_changes(updates: list[LocalModelUpdate], limit: int = 200) -> list[dict
             choice.verified,
             choice.fallback,
             choice.delay_ticks,
+            u.rest_plane,
         )
         if state == last:
             continue
@@ -65,6 +68,7 @@ def gain_changes(updates: list[LocalModelUpdate], limit: int = 200) -> list[dict
                 "delay_ticks": choice.delay_ticks,
                 "k_o_eff": round(surface.k_o_eff, 1),
                 "k_o_stiff": round(surface.k_o_stiff, 1),
+                "rest": u.rest_plane,
             }
         )
         if len(out) >= limit:

@@ -325,8 +325,20 @@ def contact_normal(cols: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray 
     return mean / norm if norm > 1e-9 else None
 
 
+def rest_plane_k_h(summary: dict[str, Any]) -> np.ndarray:
+    """The K_h [N/m] of every rest-plane rendering in the client summary's ``gain_changes``
+    (rounded there to 0.1 N/m)."""
+    return np.array(
+        [float(g.get("k_h") or 0.0) for g in summary.get("gain_changes") or [] if g.get("rest")]
+    )
+
+
 def felt_stiffness(
-    cols: dict[str, np.ndarray], mask: np.ndarray, k_o: float, block_s: float = FELT_BLOCK_S
+    cols: dict[str, np.ndarray],
+    mask: np.ndarray,
+    k_o: float,
+    block_s: float = FELT_BLOCK_S,
+    rest_k_h: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The stiffness a still hand feels through the rendered coupling, per block of ``block_s``.
 
@@ -342,7 +354,10 @@ def felt_stiffness(
     25 % steps on holds whose force and probe did not move. What the rendering's lags do to the
     hand shows in the probe's peak to peak (:func:`largest_p2p`). Samples count where masked,
     in contact with a model (K_h > 0), at full force (no engage or release ramp) and without
-    a fault; K_f is capped at 10 K_o (a coupling stiffer than the object, c < -0.9/K_o).
+    a fault; K_f is capped at 10 K_o (a coupling stiffer than the object, c < -0.9/K_o). A
+    sample rendered against the rest plane (a user alone; ``rest_k_h``, :func:`rest_plane_k_h`:
+    its K_h within the summary's rounding, no integral, no compensation) is felt as K_h itself:
+    its force does not go through the simulation, so the object's compliance is not in series.
 
     Parameters
     ----------
@@ -376,6 +391,12 @@ def felt_stiffness(
         cols["integral_n"][ok] if "integral_n" in cols else None,
     )
     k_f = 1.0 / np.maximum(c + 1.0 / k_o, 0.1 / k_o)
+    if rest_k_h is not None and rest_k_h.size:
+        own = cols["own_gain_m_per_n"][ok] if "own_gain_m_per_n" in cols else np.zeros(ok.sum())
+        ig = cols.get("i_gain_n_per_m_s", np.zeros_like(t))[ok]
+        near = np.min(np.abs(kh[ok][:, None] - rest_k_h[None, :]), axis=1) <= 0.051
+        rest = near & (own == 0.0) & (ig == 0.0)
+        k_f = np.where(rest, kh[ok], k_f)
     block = np.floor((t[ok] - t[ok][0]) / block_s).astype(np.int64)
     edges = np.r_[0, np.nonzero(np.diff(block))[0] + 1]
     return (
@@ -647,7 +668,7 @@ def judge_user(
     out["hold_force_p2p_n"] = f_p2p if np.isfinite(f_p2p) else None
     k_o = object_stiffness(summary)
     if k_o is not None:
-        step = felt_stiffness_step(*felt_stiffness(cols, w, k_o))
+        step = felt_stiffness_step(*felt_stiffness(cols, w, k_o, rest_k_h=rest_plane_k_h(summary)))
         if step is not None:
             out["felt_stiffness"] = {**step, "k_o_n_per_m": k_o, "jnd": STIFFNESS_JND}
     shake = out["hold_oscillation_mm"]

@@ -24,11 +24,14 @@ from haptic_collab.demo_report import (
     STIFFNESS_JND,
     build_report,
     delay_rise_in_hold,
+    felt_stiffness,
+    felt_stiffness_step,
     hold_window,
     judge_user,
     link_lost_in_hold,
     machine_load,
     print_summary,
+    rest_plane_k_h,
     run_verdict,
     timeline,
 )
@@ -445,3 +448,24 @@ def test_forces_ramped_down_for_a_silent_link_are_the_machine_s_load_not_the_loo
     )
     # no ramp: nothing to excuse
     assert link_lost_in_hold(user("A"), lost, hold) == 0.0
+
+
+def test_a_user_left_alone_on_the_rest_plane_feels_its_k_h_not_a_step() -> None:
+    # B's contact goes from a compensated design (felt as the object, 270 N/m) to the rest plane
+    # with K_h = K_o when A leaves: the rest plane's force does not go through the simulation, so
+    # B feels 270 N/m throughout; read as a coupling in series with the object it was 135 N/m,
+    # a false x2 step that called B unstable
+    k_o = 270.0
+    b = user("B", k_h=lambda t: np.where(t < 12.0, 240.0, k_o))
+    b["own_gain_m_per_n"] = np.where(b["t_s"] < 12.0, 1.0 / 240.0, 0.0)
+    changes = [
+        {"tick": 30, "k_h": 240.0, "own_gain": round(1 / 240.0, 6), "k_o_eff": k_o},
+        {"tick": 240, "k_h": k_o, "own_gain": 0.0, "k_o_eff": k_o, "rest": True},
+    ]
+    rest = summary("B", gain_changes=changes)
+    w = b["t_s"] > 10.0
+    step = felt_stiffness_step(*felt_stiffness(b, w, k_o, rest_k_h=rest_plane_k_h(rest)))
+    assert step is not None and step["ratio"] == pytest.approx(1.0, abs=1e-6)
+    # without the summary's rest flag the same samples read as a coupling: the false step
+    plain = felt_stiffness_step(*felt_stiffness(b, w, k_o))
+    assert plain is not None and plain["ratio"] == pytest.approx(2.0, rel=1e-3)
