@@ -138,6 +138,18 @@ def _status(host: str, port: int) -> dict[str, Any] | None:
         return None
 
 
+def _status_sample(status: dict[str, Any]) -> dict[str, Any] | None:
+    """A polled server status as a sample of the overrun count (when the server reports its
+    tick and overruns): this process's clock [s], the tick, the overruns so far."""
+    if "tick" not in status or "overruns" not in status:
+        return None
+    return {
+        "t_clock_s": time.perf_counter(),
+        "tick": status["tick"],
+        "overruns": status["overruns"],
+    }
+
+
 def _has_display() -> bool:
     """Whether a graphical browser can open here (never hand the terminal to a text browser)."""
     if sys.platform in ("darwin", "win32"):
@@ -313,14 +325,8 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                     + (work / f"{name}.log").read_text()[-3000:]
                 )
         server_status = _status(opts.host, port) or {}
-        if "tick" in server_status and "overruns" in server_status:
-            status_samples.append(
-                {
-                    "t_clock_s": time.perf_counter(),
-                    "tick": server_status["tick"],
-                    "overruns": server_status["overruns"],
-                }
-            )
+        if (sample := _status_sample(server_status)) is not None:
+            status_samples.append(sample)
         if reference is not None:
             out, _ = reference.communicate(timeout=opts.duration_s + 30.0)
             with contextlib.suppress(ValueError):
@@ -379,14 +385,8 @@ def _progress(
         if t - polled >= _POLL_S:
             polled = t
             st = _status(opts.host, port) or {}
-            if "tick" in st and "overruns" in st:
-                samples.append(
-                    {
-                        "t_clock_s": time.perf_counter(),
-                        "tick": st["tick"],
-                        "overruns": st["overruns"],
-                    }
-                )
+            if (sample := _status_sample(st)) is not None:
+                samples.append(sample)
         if t - last >= 2.0:
             last = t
             phase = (

@@ -275,7 +275,7 @@ def _add_token(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "token",
         help="print a signed, expiring token for one room and one role (docs/security.md)",
     )
-    p.add_argument("--room", required=True, help="the room's name (default: the room at /ws)")
+    p.add_argument("--room", required=True, help="the room's name (the room at /rooms/NAME/ws)")
     p.add_argument(
         "--role",
         choices=["user", "viewer"],
