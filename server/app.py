@@ -76,7 +76,7 @@ from haptic_collab.server.urls import (
     room_ws_path,
     valid_room_name,
 )
-from haptic_collab.shared.gain_table import warm_up
+from haptic_collab.shared.gains.table import warm_up
 from haptic_collab.shared.protocol import ErrorMsg, LinkConditions, encode, frame_size_bytes
 from haptic_collab.workers import background_worker, stop_pool
 

@@ -27,7 +27,7 @@ position and last rendered force, and sends each user the returned surface patch
    ``K_o_eff`` (DESIGN section 6) over the contacts that touch or nearly touch the surface.
 5. **The rest plane** - to the only user of the tick, the object's rest surface at the contact:
    the plane through the proxy's material point at rest with the rest normal there
-   (:mod:`shared.rest_plane`; the client may render it instead of the current surface while
+   (:mod:`shared.gains.rest_plane`; the client may render it instead of the current surface while
    alone). With another user in the room, none: a user whose rendering switched whenever another
    came near would feel the switch, and would feel the other's push only through the design.
 

@@ -258,7 +258,7 @@ PrimitiveModel = Annotated[PlaneModel | SphereModel, Field(discriminator="kind")
 class RecommendedGains(_Msg):
     """Gains the server recommends for a user's local model (SI units; docs/protocol.md).
 
-    Designed with :func:`shared.gain_design.design_gains` (the Python client's own design) for the
+    Designed with :func:`shared.gains.design.design_gains` (the Python client's own design) for the
     user's declared device (``max_stiffness_n_per_m``, ``max_damping_n_s_per_m``, servo rate,
     ``local_model``), its reported round trip and the patch's ``k_o_eff``/``k_o_stiff``/``b_o``:
     stable over the hand box at every sampling tick, with the design's margin. ``interim``: these
@@ -309,7 +309,7 @@ class Patch(_Msg):
     gains: RecommendedGains | None = None
     #: The object's rest surface at this contact (the tangent plane at the contact's material
     #: point), sent only while this user is the only one in the room: a client may
-    #: render it with the object's stiffness (:mod:`shared.rest_plane`); absent otherwise.
+    #: render it with the object's stiffness (:mod:`shared.gains.rest_plane`); absent otherwise.
     rest_plane: PlaneModel | None = None
 
 
