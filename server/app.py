@@ -61,6 +61,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
+from haptic_collab.client.workers import background_worker, stop_pool
 from haptic_collab.server.admission import FloodControl, Refusal, RoomLimits
 from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkShaper
@@ -78,7 +79,6 @@ from haptic_collab.server.urls import (
 )
 from haptic_collab.shared.gains.table import warm_up
 from haptic_collab.shared.protocol import ErrorMsg, LinkConditions, encode, frame_size_bytes
-from haptic_collab.workers import background_worker, stop_pool
 
 log = logging.getLogger("haptic.server")
 
