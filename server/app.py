@@ -43,6 +43,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import mimetypes
 import multiprocessing
 import ssl
@@ -62,6 +63,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from haptic_collab.client.workers import background_worker, stop_pool
+from haptic_collab.server import snapshots
 from haptic_collab.server.admission import FloodControl, Refusal, RoomLimits
 from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkShaper
@@ -112,10 +114,28 @@ STALL_MIN_S = 1.0
 DESIGN_WORKERS = 1
 #: A consumer whose send buffer stays full this long [s] is dropped.
 SEND_TIMEOUT_S = 10.0
+#: How long a drain may take at most [s], SIGTERM to exit (``haptic server --drain-grace-s``): well
+#: under Kubernetes' default ``terminationGracePeriodSeconds`` (30 s), after which it kills.
+DRAIN_GRACE_S = 10.0
+#: The part of the grace [s] kept for stopping after the clients are gone (at most half of it).
+DRAIN_STOP_RESERVE_S = 1.0
+#: The error code every client gets when the server drains, before close code 1012.
+DRAINING_CODE = "server_draining"
+#: Websocket close code of a drain: 1012 "service restart" (IANA's registry).
+DRAIN_CLOSE_CODE = 1012
+#: The drain's error message: what a client (or its user) should do.
+DRAINING_MESSAGE = (
+    "the server is shutting down (restart or scale-down); join again in a moment, or ask the "
+    "lobby for another server"
+)
 #: The viewer's files: the package data ``haptic_collab/web`` (in a source checkout a link to
 #: ``web/``); three.js is served from its ``node_modules/three`` (npm's copy in a checkout, the
 #: files the page loads in a wheel).
 WEB_DIR = Path(str(resources.files("haptic_collab") / "web"))
+#: The reason sent with a close code (others: "closed by server, see error").
+_CLOSE_REASONS = {1000: "bye", DRAIN_CLOSE_CODE: "server draining, see error"}
+#: The HTTP body of a room refused because the server drains.
+_DRAINING_TEXT = "the server is draining (shutting down); try again or another server\n"
 _STATIC_SUFFIXES = {".html", ".js", ".mjs", ".css", ".json", ".png", ".svg", ".ico", ".map"}
 
 
@@ -153,6 +173,28 @@ class RoomMaker(Protocol):
     def build(self, name: str) -> Room:
         """A new room of this name; called in a worker thread. Raises ValueError."""
         ...
+
+
+@dataclass(frozen=True)
+class DrainReport:
+    """What a drain did (:meth:`ServerApp.drain`).
+
+    Attributes
+    ----------
+    told : int
+        Connections told ``server_draining`` and closed with code 1012.
+    left_open : int
+        Of those, connections still open when the grace ran out (aborted).
+    snapshots : tuple of Path
+        The snapshot files written, one per room (none without a snapshot directory).
+    seconds : float
+        How long the drain took [s].
+    """
+
+    told: int
+    left_open: int
+    snapshots: tuple[Path, ...]
+    seconds: float
 
 
 @dataclass
@@ -281,6 +323,9 @@ class ServerApp:
         An on-demand room without a connection this long [s] is closed.
     address_limits : RoomLimits
         The router's budgets of one source address across every room (:data:`ADDRESS_LIMITS`).
+    snapshot_dir : path, optional
+        Where :meth:`drain` writes each room's snapshot and where a room made (at the start or
+        on demand) looks for its own (:mod:`server.snapshots`); None: no snapshots.
 
     Raises
     ------
@@ -308,6 +353,7 @@ class ServerApp:
         max_rooms: int = MAX_ROOMS,
         room_idle_s: float = ROOM_IDLE_S,
         address_limits: RoomLimits = ADDRESS_LIMITS,
+        snapshot_dir: str | Path | None = None,
     ) -> None:
         self.room = room
         self._slots: dict[str, _Slot] = {DEFAULT_ROOM: _Slot(DEFAULT_ROOM, room)}
@@ -357,6 +403,14 @@ class ServerApp:
         self._next_conn = 0
         self._server: Server | None = None
         self._started = False
+        #: Where rooms are snapshotted at a drain and resumed from (None: nowhere).
+        self.snapshot_dir = Path(snapshot_dir) if snapshot_dir is not None else None
+        #: Set by :meth:`drain`: no new connection or room from then on.
+        self.draining = False
+        self._drain: asyncio.Future[DrainReport] | None = None
+        #: Set whenever no connection is open (what a drain waits for).
+        self._no_peers = asyncio.Event()
+        self._no_peers.set()
 
     @property
     def prefetcher(self) -> PatchPrefetcher | None:
@@ -395,9 +449,17 @@ class ServerApp:
         self.port = int(sock.getsockname()[1])
         self._started = True
         for slot in self._slots.values():
+            self._resume(slot.name, slot.room)
             self._start_slot(slot)
         if self._own_executor:  # an injected executor (tests) is the caller's to warm
             self._gain_tasks.add(asyncio.create_task(self._warm_design_pool()))
+
+    def _resume(self, name: str, room: Room) -> bool:
+        """Start room ``name`` from its snapshot when the snapshot directory holds one
+        (:func:`server.snapshots.restore`: checked, consumed, logged; never raises)."""
+        if self.snapshot_dir is None:
+            return False
+        return snapshots.restore(self.snapshot_dir, name, room)
 
     def _start_slot(self, slot: _Slot) -> None:
         """Start one room's simulation loop (and its prefetcher)."""
@@ -420,7 +482,10 @@ class ServerApp:
             slot.prefetcher = None
 
     async def stop(self) -> None:
-        """Stop every room's simulation and close every connection."""
+        """Stop every room's simulation and close every connection (a drain still running is
+        cut short)."""
+        if self._drain is not None and not self._drain.done():
+            self._drain.cancel()
         for pending in list(self._building.values()):
             pending.cancel()
         for slot in list(self._slots.values()):
@@ -437,6 +502,113 @@ class ServerApp:
         if self._server:
             self._server.close()
             await self._server.wait_closed()
+
+    async def drain(self, grace_s: float = DRAIN_GRACE_S) -> DrainReport:
+        """Drain the server for a shutdown (SIGTERM, :func:`server.main.run_server`).
+
+        In order: no new connection or room from now on (a websocket that opens during the
+        drain gets the same ``server_draining`` error and close; a room being built is refused
+        with HTTP 503); every room's simulation stops, so the state kept is the one its users
+        last felt; each room's state is taken (:func:`server.snapshots.capture`); every
+        connection gets an ``error`` ``server_draining`` (fatal) and is closed with code 1012
+        (service restart), before any frame still queued for it, without injected latency; the
+        snapshots are written (one file per room, atomically, off the event loop's thread) while
+        the clients close. It waits for every connection to close until ``grace_s`` less a
+        reserve for stopping (:data:`DRAIN_STOP_RESERVE_S`, at most half) has passed since the
+        drain began, then aborts those left. The listening socket, the gain workers and the
+        rooms' prefetchers are :meth:`stop`'s. Calling it again waits for the same drain.
+
+        Parameters
+        ----------
+        grace_s : float
+            The time [s] a drain and the stop after it may take (> 0; default
+            :data:`DRAIN_GRACE_S`).
+
+        Returns
+        -------
+        DrainReport
+
+        Raises
+        ------
+        ValueError
+            ``grace_s`` not a finite number > 0.
+        """
+        if not (isinstance(grace_s, int | float) and math.isfinite(grace_s) and grace_s > 0.0):
+            raise ValueError(f"the drain's grace must be a number of seconds > 0, got {grace_s!r}")
+        if self._drain is None:
+            self._drain = asyncio.ensure_future(self._drain_now(float(grace_s)))
+        return await asyncio.shield(self._drain)
+
+    async def _drain_now(self, grace_s: float) -> DrainReport:
+        loop = asyncio.get_running_loop()
+        began = loop.time()
+        self.draining = True
+        slots = list(self._slots.values())
+        for slot in slots:  # no tick after this: the state kept is the one users felt last
+            task = slot.task
+            if task is not None and not task.done():
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+            slot.room.stop()
+        taken: list[snapshots.Snapshot] = []
+        if self.snapshot_dir is not None:
+            for slot in slots:
+                try:
+                    taken.append(snapshots.capture(slot.name, slot.room))
+                except Exception:  # noqa: BLE001 - one room's state must not stop the drain
+                    log.exception("room %r: its state could not be taken", slot.name)
+        peers = [p for p in self._peers.values() if not p.closed]  # not already being closed
+        for peer in peers:
+            self._tell_draining(peer)
+        log.info(
+            "draining: no new connection or room; %d connections told %s (close %d); %s",
+            len(peers),
+            DRAINING_CODE,
+            DRAIN_CLOSE_CODE,
+            f"{len(taken)} rooms snapshotted to {self.snapshot_dir}"
+            if self.snapshot_dir is not None
+            else "no snapshot directory",
+        )
+        writing = asyncio.ensure_future(
+            asyncio.to_thread(snapshots.write_all, self.snapshot_dir, taken)
+            if taken and self.snapshot_dir is not None
+            else asyncio.sleep(0, result=[])
+        )
+        reserve = min(DRAIN_STOP_RESERVE_S, 0.5 * grace_s)
+        wait_s = max(0.0, began + grace_s - reserve - loop.time())
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._no_peers.wait(), wait_s)
+        left = list(self._peers.values())
+        for peer in left:  # not closed within the grace: the pod is going away anyway
+            log.warning("drain: %s did not close within the grace; aborting it", peer.who)
+            peer.ws.transport.abort()
+        written: list[Path] = await writing
+        for path in written:
+            log.info("drain: snapshot %s written", path)
+        report = DrainReport(
+            told=len(peers),
+            left_open=len(left),
+            snapshots=tuple(written),
+            seconds=loop.time() - began,
+        )
+        log.info(
+            "drained in %.3f s: %d of %d connections closed by their clients",
+            report.seconds,
+            report.told - report.left_open,
+            report.told,
+        )
+        return report
+
+    def _tell_draining(self, peer: _Peer) -> None:
+        """Queue ``server_draining`` and a close with code 1012 for a connection, ahead of every
+        state frame still queued for it (patches and surfaces are stale now), with no injected
+        latency (the drain has a deadline); its room forgets it."""
+        peer.closed = True
+        self._slot(peer).room.disconnect(peer.conn_id)
+        peer.ready = deque(o for o in peer.ready if o.stream is None and not o.close)
+        frame = encode(ErrorMsg(code=DRAINING_CODE, message=DRAINING_MESSAGE, fatal=True))
+        self._ready(peer, Outgoing(peer.conn_id, frame, close=True, close_code=DRAIN_CLOSE_CODE))
 
     async def run(
         self, duration_s: float | None = None, on_ready: Callable[[int], None] | None = None
@@ -479,6 +651,8 @@ class ServerApp:
             raise _RoomRefused(HTTPStatus.NOT_FOUND, f"no room {name!r} on this server\n")
         pending = self._building.get(name)
         if pending is None:
+            if self.draining:
+                raise _RoomRefused(HTTPStatus.SERVICE_UNAVAILABLE, _DRAINING_TEXT)
             if len(self._slots) + len(self._building) >= self.max_rooms:
                 raise _RoomRefused(
                     HTTPStatus.SERVICE_UNAVAILABLE,
@@ -492,7 +666,7 @@ class ServerApp:
         """Build an on-demand room in a worker thread (a FEM solid takes seconds), start it."""
         assert self.room_maker is not None
         try:
-            room = await asyncio.to_thread(self.room_maker.build, name)
+            room = await asyncio.to_thread(self._make_room, name)
         except Exception as exc:
             log.exception("room %r could not be built", name)
             raise _RoomRefused(
@@ -500,6 +674,8 @@ class ServerApp:
             ) from exc
         finally:
             self._building.pop(name, None)
+        if self.draining:  # built while the server began to drain: never started
+            raise _RoomRefused(HTTPStatus.SERVICE_UNAVAILABLE, _DRAINING_TEXT)
         slot = _Slot(name, room, on_demand=True)
         self._slots[name] = slot
         self.figures[name] = slot.figures
@@ -513,6 +689,13 @@ class ServerApp:
             self.max_rooms,
         )
         return slot
+
+    def _make_room(self, name: str) -> Room:
+        """Build an on-demand room and resume its snapshot (in a worker thread)."""
+        assert self.room_maker is not None
+        room = self.room_maker.build(name)
+        self._resume(name, room)
+        return room
 
     async def _retire(self, slot: _Slot) -> None:
         """Close an on-demand room nobody used for ``room_idle_s``."""
@@ -586,6 +769,7 @@ class ServerApp:
             "rooms": rooms,
             "max_rooms": self.max_rooms,
             "rooms_on_demand": self.room_maker is not None,
+            "draining": self.draining,
         }
 
     # ------------------------------------------------------------------ HTTP
@@ -625,6 +809,8 @@ class ServerApp:
                 self.origins_refused += 1
                 log.warning("refused a websocket handshake from origin %.100r", origin)
                 return _text(HTTPStatus.FORBIDDEN, "origin not allowed (see --allow-origin)\n")
+            if self.draining:  # no new room: the handler tells it server_draining
+                return None
             try:
                 await self._room_for(name)
             except _RoomRefused as exc:
@@ -680,6 +866,9 @@ class ServerApp:
         self._next_conn += 1
         conn_id = f"c{self._next_conn}"
         loop = asyncio.get_running_loop()
+        if self.draining:
+            await self._refuse_draining(ws)
+            return
         where = room_path(ws.request.path) if ws.request is not None else None
         slot = self._slots.get(where.room if where is not None else DEFAULT_ROOM)
         if slot is None:  # closed between the handshake and now (idle on-demand room)
@@ -696,6 +885,7 @@ class ServerApp:
         )
         room = slot.room
         self._peers[conn_id] = peer
+        self._no_peers.clear()
         slot.peers += 1
         slot.empty_since_s = None
         sender = asyncio.create_task(self._sender(peer))
@@ -745,6 +935,8 @@ class ServerApp:
             room.disconnect(conn_id)
             peer.closed = True
             self._peers.pop(conn_id, None)
+            if not self._peers:
+                self._no_peers.set()
             slot.peers -= 1
             if slot.peers == 0:
                 slot.empty_since_s = loop.time()
@@ -753,6 +945,14 @@ class ServerApp:
             # is swallowed, and an unbounded await would never return
             with contextlib.suppress(asyncio.CancelledError, ConnectionClosed, TimeoutError):
                 await asyncio.wait_for(sender, 5.0)
+
+    async def _refuse_draining(self, ws: ServerConnection) -> None:
+        """A connection that opened while the server drains: ``server_draining``, close 1012."""
+        log.info("connection from %s refused: the server is draining", _address(ws))
+        frame = encode(ErrorMsg(code=DRAINING_CODE, message=DRAINING_MESSAGE, fatal=True))
+        with contextlib.suppress(ConnectionClosed, TimeoutError):
+            await asyncio.wait_for(ws.send(frame), self.send_timeout_s)
+            await ws.close(DRAIN_CLOSE_CODE, _CLOSE_REASONS[DRAIN_CLOSE_CODE])
 
     def _refuse(self, peer: _Peer, code: str, message: str) -> None:
         """Close a connection for the router (its room forgets it): a fatal ``error`` frame."""
@@ -851,7 +1051,7 @@ class ServerApp:
                         if out.on_sent is not None:  # the viewer stream tracks what was sent
                             out.on_sent()
                     if out.close:
-                        reason = "bye" if out.close_code == 1000 else "closed by server, see error"
+                        reason = _CLOSE_REASONS.get(out.close_code, "closed by server, see error")
                         await peer.ws.close(out.close_code, reason)
                         return
         except ConnectionClosed:

@@ -28,7 +28,7 @@ from haptic_collab.server.agones import (
     AgonesSDK,
     start_agones,
 )
-from haptic_collab.server.app import MAX_ROOMS, ROOM_IDLE_S, ServerApp
+from haptic_collab.server.app import DRAIN_GRACE_S, MAX_ROOMS, ROOM_IDLE_S, ServerApp
 from haptic_collab.server.room import Room
 from haptic_collab.server.security import (
     RoomTokens,
@@ -37,6 +37,7 @@ from haptic_collab.server.security import (
     load_secret,
     normalize_origin,
 )
+from haptic_collab.server.snapshots import check_directory
 from haptic_collab.server.urls import DEFAULT_ROOM, room_page_path, valid_room_name, viewer_urls
 from haptic_collab.shared.protocol import PROTOCOL_VERSION, LinkConditions
 from haptic_collab.shared.rates import Rates, dividing_rates
@@ -71,6 +72,11 @@ class ServerOptions:
     name to its keys and ``prefix`` (``[room_templates.NAME]``); ``max_rooms`` caps the rooms,
     the default one included; an on-demand room empty for ``room_idle_s`` [s] is closed.
     ``token_secret_file`` holds the secret room tokens are signed with (``haptic token``).
+
+    Drain (docs/deploy.md): on SIGTERM or Ctrl-C the server drains
+    (:meth:`server.app.ServerApp.drain`) within ``drain_grace_s`` [s]; with ``snapshot_dir``
+    each room's object state is saved there, and a room made again resumes it
+    (:mod:`server.snapshots`).
     """
 
     host: str = "127.0.0.1"
@@ -105,6 +111,8 @@ class ServerOptions:
     max_rooms: int = MAX_ROOMS
     room_idle_s: float = ROOM_IDLE_S
     token_secret_file: str | None = None
+    snapshot_dir: str | None = None
+    drain_grace_s: float = DRAIN_GRACE_S
 
 
 #: ``[rooms.NAME]`` keys that name a :class:`ServerOptions` field differently.
@@ -499,6 +507,30 @@ def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> An
     return obj
 
 
+async def _drain(
+    app: ServerApp, grace_s: float, serving: asyncio.Future[None], again: asyncio.Event
+) -> None:
+    """Drain ``app`` after a signal (:meth:`server.app.ServerApp.drain`), for at most
+    ``grace_s`` [s]; a second signal (``again`` set again) or the server's own end cuts it
+    short. Never raises: the stop follows whatever happened."""
+    again.clear()
+    draining = asyncio.ensure_future(app.drain(grace_s))
+    second = asyncio.ensure_future(again.wait())
+    try:
+        waits: set[asyncio.Future[Any]] = {draining, second, serving}
+        await asyncio.wait(waits, timeout=grace_s, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        second.cancel()
+        if not draining.done():
+            draining.cancel()
+            log.warning("the drain did not end within %g s: stopping now", grace_s)
+        with contextlib.suppress(asyncio.CancelledError):
+            try:
+                await draining
+            except Exception:  # noqa: BLE001 - the stop must follow
+                log.exception("the drain failed")
+
+
 def _is_fem(room: Room) -> bool:
     """Whether a room's object is a FEM solid (its patches are prefetched)."""
     from haptic_collab.server.objects.fem import FemSolid
@@ -523,6 +555,10 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
             f"max_rooms is {opts.max_rooms}"
         )
     check_templates(opts)
+    grace = float(opts.drain_grace_s)
+    if not (math.isfinite(grace) and grace > 0.0):
+        raise ValueError(f"--drain-grace-s must be a number of seconds > 0, got {grace:g}")
+    snapshot_dir = check_directory(opts.snapshot_dir) if opts.snapshot_dir else None
     room = build_room(opts, DEFAULT_ROOM, {}, link, auth, secret)
     rooms = {}
     for name, keys in opts.rooms.items():
@@ -552,6 +588,7 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         room_maker=templates,
         max_rooms=opts.max_rooms,
         room_idle_s=opts.room_idle_s,
+        snapshot_dir=snapshot_dir,
     )
     scheme = "https" if ssl_context else "http"
     if auth is None and not is_loopback(opts.host):
@@ -600,15 +637,22 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         if on_ready:
             on_ready(port)
 
-    # Ctrl-C and SIGTERM (`docker stop`, a service manager) stop the server cleanly: every
-    # connection closed, the design workers ended. Installed here rather than left to
-    # asyncio.run's own SIGINT handling, which is absent when the server inherits SIGINT as
-    # ignored (started in the background by a non-interactive shell): Ctrl-C then did nothing.
+    # Ctrl-C and SIGTERM (`docker stop`, Kubernetes, a service manager) drain the server: no
+    # new connection or room, every room's state saved (--snapshot-dir), every client told
+    # server_draining and closed with code 1012, then the stop, all within --drain-grace-s; a
+    # second signal stops at once. Installed here rather than left to asyncio.run's own SIGINT
+    # handling, which is absent when the server inherits SIGINT as ignored (started in the
+    # background by a non-interactive shell): Ctrl-C then did nothing.
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
+    signals: list[signal.Signals] = []
 
     def on_signal(sig: signal.Signals) -> None:
-        log.info("%s: stopping (closing every connection)", sig.name)
+        signals.append(sig)
+        if len(signals) == 1:
+            log.info("%s: stopping (draining within %g s)", sig.name, grace)
+        else:
+            log.warning("%s again: stopping now", sig.name)
         stop.set()
 
     handled: list[signal.Signals] = []
@@ -620,7 +664,8 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     stopping = asyncio.ensure_future(stop.wait())
     try:
         await asyncio.wait({serving, stopping}, return_when=asyncio.FIRST_COMPLETED)
-        if not serving.done():  # a signal: app.run's own cleanup stops everything
+        if not serving.done():  # a signal: drain, then app.run's own cleanup stops everything
+            await _drain(app, grace, serving, stop)
             serving.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await serving

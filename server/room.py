@@ -224,6 +224,19 @@ class Room:
         """
         self._t0_s = float(now_s) - self.tick_count / self.sim_rate_hz
 
+    def restored(self, tick: int) -> None:
+        """The world's object was given a saved state (:func:`server.snapshots.restore`) whose
+        last tick was ``tick``: the world takes its surface, and the tick numbers go on from
+        there. Call it before :meth:`start`, with no connection.
+
+        Raises
+        ------
+        ValueError
+            ``tick`` negative.
+        """
+        self.world.restore(tick)
+        self.tick_count = int(tick)
+
     def stop(self) -> None:
         """End the schedule: no tick is due any more, and the server is behind nothing."""
         self._t0_s = math.inf

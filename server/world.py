@@ -240,6 +240,25 @@ class World:
         """(2, 3) float64 [m] rest bounding box ``[min, max]``; the top is ``max[2]``."""
         return self._bounds.copy()
 
+    def restore(self, tick: int) -> None:
+        """Take the object's surface as it is now and go on counting from tick number ``tick``.
+
+        For an object whose state was set from outside between ticks (a room made again from
+        its snapshot, :mod:`server.snapshots`): the surface the users and viewers get is then
+        the object's, and every user is forgotten (a restored room has none yet).
+
+        Raises
+        ------
+        ValueError
+            ``tick`` negative.
+        """
+        if int(tick) < 0:
+            raise ValueError(f"tick must be >= 0, got {tick}")
+        self._current = np.asarray(self.obj.vertices, dtype=np.float64)
+        self._bound = float(self.obj.max_displacement_m)
+        self._tick = int(tick)
+        self._users = {}
+
     # ------------------------------------------------------------------ tick
     def _locate(self, probe: FloatArray, user: _UserState | None = None) -> SurfacePoint:
         """The user's proxy on the current surface (Step 1), given what it was last tick.

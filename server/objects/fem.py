@@ -84,7 +84,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -434,6 +434,46 @@ class FemSolid(PatchedSurface):
         self._max_disp = 0.0
         if clear_cache:
             self._cache.clear()
+
+    def state(self) -> dict[str, FloatArray]:
+        """The solid's whole dynamic state (copies), what a step goes on from: saved by a
+        draining server (:mod:`server.snapshots`) and given back by :meth:`set_state`.
+
+        Returns
+        -------
+        dict
+            ``u`` (3n,) [m] the surface's linear displacement, ``w`` (3n,) [rad] its vertices'
+            small rotations (zeros without warping), ``q`` (n_modes, 2) the modes' displacement
+            and velocity (mass-normalised modal coordinates [m*kg^0.5] and [m*kg^0.5/s]).
+        """
+        return {"u": self._u.copy(), "w": self._w.copy(), "q": self._q.copy()}
+
+    def set_state(self, state: Mapping[str, npt.ArrayLike]) -> None:
+        """Take a state :meth:`state` returned (of this same solid): the surface shown and the
+        next step are then those of the solid it was taken from, to the last bit.
+
+        Raises
+        ------
+        ValueError
+            A key missing, an array of another shape or with a non-finite value. The state is
+            unchanged.
+        """
+        arrays = {}
+        for key, like in (("u", self._u), ("w", self._w), ("q", self._q)):
+            if key not in state:
+                raise ValueError(f"FEM state: {key!r} missing")
+            arr = np.array(state[key], dtype=np.float64)
+            if arr.shape != like.shape:
+                raise ValueError(f"FEM state: {key!r} has shape {arr.shape}, expected {like.shape}")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"FEM state: {key!r} holds a non-finite value")
+            arrays[key] = arr
+        self._u, self._w, self._q = arrays["u"], arrays["w"], arrays["q"]
+        shown = self._u.reshape(-1, 3)
+        self._shown = warped(shown, self._w.reshape(-1, 3)) if self._w_op is not None else shown
+        self._max_disp = (
+            float(np.max(np.linalg.norm(self._shown, axis=1))) if len(self._shown) else 0.0
+        )
 
     # ------------------------------------------------------------------ patches
     def patch(self, key: int) -> PunchPatch:
