@@ -439,36 +439,59 @@ class FemSolid(PatchedSurface):
         """The solid's whole dynamic state (copies), what a step goes on from: saved by a
         draining server (:mod:`server.snapshots`) and given back by :meth:`set_state`.
 
+        The modes' part is given in space, not as modal coordinates: the modes of a solid built
+        again are the same subspace but may come out with other signs, or turned within a group
+        of equal frequencies (the eigensolver starts from a random vector).
+
         Returns
         -------
         dict
             ``u`` (3n,) [m] the surface's linear displacement, ``w`` (3n,) [rad] its vertices'
-            small rotations (zeros without warping), ``q`` (n_modes, 2) the modes' displacement
-            and velocity (mass-normalised modal coordinates [m*kg^0.5] and [m*kg^0.5/s]).
+            small rotations (zeros without warping), ``modal_x`` and ``modal_v`` (3N,) [m] and
+            [m/s] the modes' displacement and velocity at every node (N nodes; zeros on the
+            fixed base and for the static model).
         """
-        return {"u": self._u.copy(), "w": self._w.copy(), "q": self._q.copy()}
+        dyn = np.zeros((3 * len(self.nodes), 2))
+        dyn[self._dofs] = self._phi_rows @ self._q
+        return {
+            "u": self._u.copy(),
+            "w": self._w.copy(),
+            "modal_x": dyn[:, 0].copy(),
+            "modal_v": dyn[:, 1].copy(),
+        }
 
     def set_state(self, state: Mapping[str, npt.ArrayLike]) -> None:
-        """Take a state :meth:`state` returned (of this same solid): the surface shown and the
-        next step are then those of the solid it was taken from, to the last bit.
+        """Take a state :meth:`state` returned (of this same solid, or one built alike): the
+        surface shown is then that solid's to the last bit, and the steps that follow agree
+        with its own to rounding (the modal coordinates are found again by least squares).
 
         Raises
         ------
         ValueError
-            A key missing, an array of another shape or with a non-finite value. The state is
-            unchanged.
+            A key missing, an array of another shape or with a non-finite value, or a motion
+            that is not one of this solid's modes (more than 1e-6 of it off their span). The
+            state is unchanged.
         """
+        n_all = 3 * len(self.nodes)
         arrays = {}
-        for key, like in (("u", self._u), ("w", self._w), ("q", self._q)):
+        for key, size in (("u", len(self._u)), ("w", len(self._w)), ("modal_x", n_all),
+                          ("modal_v", n_all)):  # fmt: skip
             if key not in state:
                 raise ValueError(f"FEM state: {key!r} missing")
             arr = np.array(state[key], dtype=np.float64)
-            if arr.shape != like.shape:
-                raise ValueError(f"FEM state: {key!r} has shape {arr.shape}, expected {like.shape}")
+            if arr.shape != (size,):
+                raise ValueError(f"FEM state: {key!r} has shape {arr.shape}, expected ({size},)")
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"FEM state: {key!r} holds a non-finite value")
             arrays[key] = arr
-        self._u, self._w, self._q = arrays["u"], arrays["w"], arrays["q"]
+        rows = np.stack([arrays["modal_x"][self._dofs], arrays["modal_v"][self._dofs]], axis=1)
+        q = np.zeros_like(self._q)
+        if len(self._omega):
+            q = np.linalg.lstsq(self._phi_rows, rows, rcond=None)[0]
+        off = float(np.linalg.norm(rows - self._phi_rows @ q))
+        if not off <= 1e-6 * float(np.linalg.norm(rows)) + 1e-300:
+            raise ValueError("FEM state: the modal motion is not one of this solid's modes")
+        self._u, self._w, self._q = arrays["u"], arrays["w"], q
         shown = self._u.reshape(-1, 3)
         self._shown = warped(shown, self._w.reshape(-1, 3)) if self._w_op is not None else shown
         self._max_disp = (
