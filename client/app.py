@@ -47,12 +47,12 @@ from haptic_collab.client.servo_thread import ServoThread
 from haptic_collab.client.session import ClientSession, ServoSample
 from haptic_collab.client.summary import client_summary
 from haptic_collab.client.theta import threshold_for
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.client.workers import stop_pool
+from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import DeviceInfo, Welcome
 from haptic_collab.shared.stability import rate_ratio
-from haptic_collab.workers import stop_pool
 
 log = logging.getLogger("haptic.client")
 
@@ -89,7 +89,7 @@ class ClientOptions:
     #: ``local``: always design the gains here (client.session.ClientSession).
     gains: Literal["server", "local"] = "server"
     #: Render the rest plane a patch carries while the user is alone on the object
-    #: (shared.rest_plane; ``haptic client --no-rest-plane``: never).
+    #: (shared.gains.rest_plane; ``haptic client --no-rest-plane``: never).
     rest_plane: bool = True
     #: ``button``: the user engages forces with the device's first button (a stylus button, as
     #: vendor examples do); ``auto``: forces come on with the first checked patch; ``default``:

@@ -4,10 +4,10 @@ and the client's own cache.
 A cell the table lacks is designed in a worker during the session: a second or more of CPU, many
 seconds on a busy machine, while the contact renders interim or fallback gains that feel
 different (docs/gains.md). So the session's table starts with the tables shipped for the
-built-in device profiles (:func:`shared.gain_table_file.load_shipped`) and with the designs this
+built-in device profiles (:func:`shared.gains.table_file.load_shipped`) and with the designs this
 machine made in earlier sessions (:func:`load_cache`), and the designs of this session are added
 to that cache when it ends (:func:`save_cache`). Both hold only for the design code of their
-hash (:func:`shared.gain_table_file.design_code_hash`): a cache of other code is ignored, and a
+hash (:func:`shared.gains.table_file.design_code_hash`): a cache of other code is ignored, and a
 new file is started beside it.
 
 The cache is a JSON file in ``$HAPTIC_GAIN_CACHE`` (a folder), else
@@ -24,8 +24,8 @@ import os
 import tempfile
 from pathlib import Path
 
-from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.gain_table_file import (
+from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.gains.table_file import (
     design_code_hash,
     load_shipped,
     load_table_document,

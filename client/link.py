@@ -10,7 +10,7 @@ own timeout.
 Two worker processes (:class:`DesignWorkers`; ``haptic client`` forks them first thing, before
 it has other threads, so they start with the design code imported) keep the numerical work off
 the event loop: one runs gain designs (a second or more each, then the likely next cells) at low
-priority, the other the short checks of interim gains (:func:`shared.interim_gains.interim_design`,
+priority, the other the short checks of interim gains (:func:`shared.gains.interim.interim_design`,
 about 0.1 s) at normal priority, so a check is never queued behind a design. After each design
 or check the checker verifies gains for the neighbouring cells and one more tick of delay ahead
 of need. Spawned workers (a link started without them, after other threads exist) import the
@@ -36,21 +36,21 @@ import ssl
 import threading
 from collections.abc import Callable
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
-from haptic_collab.client.session import PLANE_ALONE, ClientSession, ServoSample, warm_up_worker
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_policy import COUPLED_CELLS_BELOW
-from haptic_collab.shared.gain_table import design_cell
-from haptic_collab.shared.interim_gains import interim_design
+from haptic_collab.client.session import ClientSession, ServoSample, warm_up_worker
+from haptic_collab.client.workers import background_worker, check_worker, stop_pool, timed
+from haptic_collab.shared.gains.choose import PLANE_ALONE, likely_next
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.interim import interim_design
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.table import design_cell
+from haptic_collab.shared.gains.verified_plane import plane_against, verified_plane
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import ProtocolError, Welcome
-from haptic_collab.shared.verified_plane import plane_against, verified_plane
-from haptic_collab.workers import background_worker, check_worker, stop_pool, timed
 
 log = logging.getLogger("haptic.client")
 
@@ -58,27 +58,6 @@ PING_INTERVAL_S = 0.5
 #: Environment variables read when no token or CA file is given.
 TOKEN_ENV = "HAPTIC_TOKEN"
 CA_FILE_ENV = "HAPTIC_CA_FILE"
-
-
-def likely_next(key: GainKey, cell: int) -> tuple[tuple[GainKey, int], ...]:
-    """The (key, cell) a contact in ``cell`` of ``key`` most likely needs next, most likely first.
-
-    The same cell coupled to another user, class 2 when the contact is alone, and the two
-    cells below (:data:`shared.gain_policy.COUPLED_CELLS_BELOW`): class 2 covers every coupling up to K_o_stiff /
-    K_o_eff = 2 (:meth:`ClientSession._covering`), the class of a second user's press on a
-    balloon or a solid box (1.2-1.4), and that press lowers K_o_eff by 12 % in the demo: two
-    cells of the gain table. Without them ready the contact renders conservative unverified
-    gains when a second user arrives, for as long as a check takes (0.15-0.3 s in the demo on 2
-    cores: no own-force compensation, so the surface gives way under the user's own push, 12 mm
-    on the balloon, and the force falls). Then one more tick of delay, and the cells just below
-    and above (the contact moves, K_o changes).
-    """
-    out: list[tuple[GainKey, int]] = []
-    if key.stiff_ratio == 1.0:
-        coupled = replace(key, stiff_ratio=2.0)
-        out += [(coupled, cell - j) for j in range(COUPLED_CELLS_BELOW + 1)]
-    out += [(replace(key, delay_ticks=key.delay_ticks + 1), cell), (key, cell - 1), (key, cell + 1)]
-    return tuple(out)
 
 
 @dataclass
@@ -203,7 +182,7 @@ class Link:
         self._own_executor = False
         self._design_task: asyncio.Task[None] | None = None
         self._plane_task: asyncio.Task[None] | None = None
-        #: Verified planes checked (:func:`shared.verified_plane.verified_plane`).
+        #: Verified planes checked (:func:`shared.gains.verified_plane.verified_plane`).
         self.plane_checks = 0
         self._check_task: asyncio.Task[None] | None = None
         self._first_pool: ThreadPoolExecutor | None = None
@@ -483,7 +462,7 @@ class Link:
             self._own_executor = True
             try:
                 # designs and checks ahead of need at low priority; the checks a rendered
-                # contact waits for at normal priority (haptic_collab.workers)
+                # contact waits for at normal priority (haptic_collab.client.workers)
                 workers = self._workers if self._workers is not None else DesignWorkers.start()
                 self._workers = None
                 self._executor, self._checker = workers.design, workers.check

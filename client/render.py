@@ -33,7 +33,7 @@ Patch hand-over (:meth:`LocalRenderer.hand_over`), between ticks:
   compensation is withdrawn, so the contact would end on the next tick and the transfer with it
   (measured in the two-user demo: a resting user's 0.28 N fell to 0.003 N in one tick when the
   other touched and the uncoupled gains were withdrawn).
-- a change between the rest plane (a user alone: :mod:`shared.rest_plane`) and the current
+- a change between the rest plane (a user alone: :mod:`shared.gains.rest_plane`) and the current
   surface in contact puts the probe at another depth at once (the surface a press deformed lies
   F / K_o inside the rest plane): the step between what the old patch renders next at the last
   probe position and what the new one would is added to the penetration and slid off over the
@@ -163,7 +163,7 @@ class LocalRenderer:
         self._off_used = 0.0  # the slide's depth [m] in the last tick's penetration
         self._fs_rendered = 0.0  # F_s [N] of the patch the last tick rendered (capped)
         self._off_step = 0.0
-        self._rest = False  # the patch in use renders the rest plane (shared.rest_plane)
+        self._rest = False  # the patch in use renders the rest plane (shared.gains.rest_plane)
         # the probe [m] the last tick rendered at
         self._px = self._py = self._pz = 0.0
         self._e_base = 0.0  # that tick's penetration [m] before the slide's depth

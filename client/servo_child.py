@@ -161,7 +161,7 @@ def servo_main(
     log_level : int
         The ``logging`` level of this process.
     """
-    from haptic_collab.workers import die_with_parent
+    from haptic_collab.client.workers import die_with_parent
 
     # a forked child inherits the link's heap: never scan it (a full collection of it took
     # 36 ms, and would copy every page it touched)

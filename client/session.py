@@ -1,73 +1,61 @@
 """A haptic user's side of the protocol, sans-I/O: server frames and times in, frames and patches out.
 
-The asyncio link (:mod:`client.link`) pumps bytes; this class decides. On each ``patch`` it looks
-the local model's gains up in a :class:`shared.gain_table.GainTable`: the full-loop design (hand in
-the loop, every sampling tick, a K_o margin) for the patch's K_o_eff, the rate ratio N and the
-*measured* delay (round-trip time in whole simulation ticks), within the device's maximum stiffness
-and damping (Step 2 of section 6). A lookup is a dict access; a cell not designed yet is named in
-:attr:`ClientSession.design_wanted` for the link to design off its event loop (about a second for
-PI, up to ten).
+The asyncio link (:mod:`client.link`) pumps bytes; this class keeps the protocol's state and the
+contact's past, and asks :func:`shared.gains.choose.choose` which gains render each ``patch``
+(the gain policy has that one home; its sources, in order: the rest plane of a user alone, a
+verified plane, the server's recommended gains, the cell's design, checked interim gains,
+covering gains, and unverified gains for the moment a check runs). The choice comes with jobs
+(a design, a check, a plane to verify) that this session hands to the link through
+:attr:`ClientSession.design_wanted`, :attr:`ClientSession.interim_wanted` and
+:attr:`ClientSession.plane_wanted`, each check and plane once; the link runs them off its event
+loop and stores the results where the next choice finds them (the gain table,
+:attr:`ClientSession.interim`, :attr:`ClientSession.planes`).
 
-Interim gains. Until that design is done the cell renders *verified interim gains*: gains that
-pass exactly the design's acceptance test for the cell (:func:`shared.interim_gains.verify_gains`: every hand of the
-box, every sampling tick, K_o' over the cell's range with the margin, oscillations decaying at
-:data:`shared.stability_margin.MIN_DECAY_RATE_PER_S`), found by :func:`shared.interim_gains.interim_design` among gains
-already known (the nearest designed cell, the gains in use) and a short ladder of generic gains
-(:data:`shared.interim_gains.INTERIM_LADDER`), a P design as the last resort. That takes one or a few checks of
-0.1-0.5 s of CPU each (a PI design takes 2-3 s on the same machine), so the first contact no
-longer waits for the PI design; forces stay off only until the first verified gains. Designs for
-one key are not safe on another without this check: one for fewer delay ticks than the loop now
-has was unstable in every case tried (spectral radius up to 1.18), one for more delay or a
-softer cell missed the design's decay margin in about a third of them
-(tests/client/test_first_contact.py). :attr:`ClientSession.interim_wanted` names the check for
-the link; while it runs after a mid-contact change (new cell, coupling class or delay) the
-nearest designed cell (no stiffer relative to K_o) renders, else the gains in use for a new cell,
-else (a new coupling class or more delay) the fallback of :data:`shared.gain_policy.FALLBACK_K_RATIO`, all flagged
-``verified=False``.
+What the session keeps for the policy: the loop delay the gains are designed for, measured from
+the round trips and held through a contact (:class:`shared.gains.delay.DelayHold`); the coupling
+class with its hysteresis (:func:`shared.gains.key.held_stiff_ratio`); the own-response check of
+the contact (:mod:`shared.gains.own_response`), which it feeds each patch; the update in use; and
+the tick of the last verified plane in this contact. A patch that cannot render yet (a first
+contact with no verified gains) waits with forces off and is retried when gains arrive
+(:meth:`ClientSession.retry_waiting`).
 
-The rest plane. A patch for a user alone on the object (the only user in the room) carries the
-object's rest surface at the contact. Where no verified plane renders (and, in a contact that has
-rendered one, none has for :data:`shared.rest_plane.HOLD_BACK_S`), the session renders that plane
-with the gains of :func:`shared.rest_plane.rest_plane_gains` (K_h = min(K_o, the device's), the
-damper closest to eq. 9's object and at least K_h T / 2 at the session's servo period, no
-integral, no own-force compensation): at once, with nothing
-to design or check first, since its force does not go through the simulation. When another user
-joins, the patch comes without it and the design renders the simulation's surface again. The
-renderer slides the surface's step off over the gain transfer time
-(:meth:`client.render.LocalRenderer.hand_over`). ``rest_plane=False`` never renders it.
+The designs themselves come from the shipped tables of the built-in device profiles and this
+client's cache of designs (:mod:`client.gain_store`); a key outside them is designed by the link.
 
 The patch is read once into a :class:`shared.local_model_update.SurfacePatch`; it goes to the servo
 loop inside one :class:`shared.local_model_update.LocalModelUpdate` with the gains and how they
-were chosen (:class:`shared.local_model_update.GainChoice`; zero-order hold: it replaces the old
-one between servo ticks).
+were chosen (:class:`shared.local_model_update.GainChoice`, with its ``source``; zero-order hold:
+it replaces the old one between servo ticks).
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from haptic_collab.shared.full_loop import monodromy
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import (
-    GainKey,
-    covering_classes,
-    held_stiff_ratio,
-    make_gain_key,
+from haptic_collab.shared.gains.choose import (
+    PLANE_ALONE,
+    CheckJob,
+    Contact,
+    DesignJob,
+    Job,
+    Known,
+    Options,
+    choose,
 )
-from haptic_collab.shared.gain_policy import (
-    FALLBACK_K_RATIO,
-    OWN_RESPONSE_SLIDE_M,
-    DelayHold,
-    measured_delay_ticks,
-)
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.delay import DelayHold, measured_delay_ticks
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import GainKey, held_stiff_ratio, make_gain_key
+from haptic_collab.shared.gains.own_response import OwnResponse
+from haptic_collab.shared.gains.policy import OWN_RESPONSE_SLIDE_M
+from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.gains.verified_plane import ahead_cells, plane_applies
 from haptic_collab.shared.local_model_update import GainChoice, LocalModelUpdate, SurfacePatch
-from haptic_collab.shared.own_response import OwnResponse
 from haptic_collab.shared.protocol import (
     PROTOCOL_VERSION,
     DeviceInfo,
@@ -85,17 +73,9 @@ from haptic_collab.shared.protocol import (
     parse_server,
 )
 from haptic_collab.shared.rates import Rates
-from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
-from haptic_collab.shared.rest_plane import rest_plane_gains
-from haptic_collab.shared.verified_plane import ahead_cells, plane_applies
 
 if TYPE_CHECKING:
     from haptic_collab.client.servo import ServoSnapshot
-
-#: The design cell of a verified plane checked alone (:attr:`ClientSession.planes`): the cell of
-#: the K_o reported had no design when the own-response check verified there. The plane renders
-#: (it passed its check in its cell) until that design is made and it is compared with it.
-PLANE_ALONE = -1
 
 
 def rendered(update: LocalModelUpdate) -> tuple[SurfacePatch, GainChoice]:
@@ -109,38 +89,6 @@ def rendered(update: LocalModelUpdate) -> tuple[SurfacePatch, GainChoice]:
     if update.surface is None or update.choice is None:
         raise ValueError("a session's update carries its surface patch and gain choice")
     return update.surface, update.choice
-
-
-def _known_gains(
-    k_h: float,
-    i_gain: float,
-    b_h: float,
-    proxy_hold: Literal["zoh", "foh"],
-    *,
-    k_o_eff: float,
-    rate_ratio: int,
-    delay_ticks: int,
-    spectral_radius: float = math.nan,
-    felt_1hz: float = math.nan,
-    own_gain: float = 0.0,
-) -> GainDesign:
-    """Gains chosen elsewhere (in use, or recommended by the server) as a :class:`GainDesign`."""
-    return GainDesign(
-        k_h=k_h,
-        i_gain=i_gain,
-        b_h=b_h,
-        proxy_hold=proxy_hold,
-        worst_spectral_radius=spectral_radius,
-        rho_limit=math.nan,
-        felt_stiffness_ratio_1hz=felt_1hz,
-        felt_stiffness_ratio_8hz=math.nan,
-        k_o=k_o_eff,
-        k_o_range=(k_o_eff, k_o_eff),
-        rate_ratio=rate_ratio,
-        delay_ticks=delay_ticks,
-        mode="pi" if i_gain > 0.0 else "p",
-        own_gain=own_gain,
-    )
 
 
 def warm_up_worker() -> None:
@@ -236,9 +184,9 @@ class ClientSession:
         ``local``: always design locally.
     rest_plane : bool
         Render the rest plane a patch carries (the user alone on the object;
-        :mod:`shared.rest_plane`) where no verified plane renders
+        :mod:`shared.gains.rest_plane`) where no verified plane renders
         (default True; after a verified plane in a contact, only once none has rendered for
-        :data:`shared.rest_plane.HOLD_BACK_S`); False: the designs through the simulation loop
+        :data:`shared.gains.policy.HOLD_BACK_S`); False: the designs through the simulation loop
         everywhere (the paper's local model alone).
     """
 
@@ -283,7 +231,7 @@ class ClientSession:
         self.gain_table = gain_table if gain_table is not None else GainTable()
         #: (key, K_o) of a design the table lacks; the link designs it off the event loop.
         self.design_wanted: tuple[GainKey, float] | None = None
-        #: (key, cell, candidates) of interim gains to verify (:func:`shared.interim_gains.interim_design`); the link
+        #: (key, cell, candidates) of interim gains to verify (:func:`shared.gains.interim.interim_design`); the link
         #: runs it off the event loop and calls :meth:`store_interim` or :meth:`interim_failed`.
         self.interim_wanted: tuple[GainKey, int, tuple[GainDesign, ...]] | None = None
         #: Verified interim gains per (key, cell), until the cell's design is in the table.
@@ -300,14 +248,14 @@ class ClientSession:
         #: The coupled contact's K_o_stiff / K_o_eff class in use (GainKey.stiff_ratio), with
         #: hysteresis: it rises at once and falls only when the ratio is 4x below it.
         self.stiff_ratio = 1.0
-        #: The own-response check of the contact (:mod:`shared.own_response`), the proxy it
+        #: The own-response check of the contact (:mod:`shared.gains.own_response`), the proxy it
         #: measures depth from [m] and its last patch's tick.
         self.own_response = OwnResponse()
         self._own_ref: np.ndarray | None = None
         self._own_tick: int | None = None
         #: Verified planes per (key, plane cell, design cell): the plane of the cell holding the
         #: stiffness the own-response check holds the object to, checked against the design of
-        #: the cell of the K_o reported (:func:`shared.verified_plane.verified_plane`; None:
+        #: the cell of the K_o reported (:func:`shared.gains.verified_plane.verified_plane`; None:
         #: none passed), or alone while that cell has no design (design cell
         #: :data:`PLANE_ALONE`), and the one the link is to check off the event loop.
         self.planes: dict[tuple[GainKey, int, int], GainDesign | None] = {}
@@ -317,7 +265,7 @@ class ClientSession:
         self._plane_asked: set[tuple[GainKey, int, int]] = set()
         #: (key, cell) whose plane the link is to check alone in the background once nothing
         #: above is asked, in this order: the cells around the K_o the patches report
-        #: (:func:`shared.verified_plane.ahead_cells`), so that a press finds them checked.
+        #: (:func:`shared.gains.verified_plane.ahead_cells`), so that a press finds them checked.
         self.plane_ahead: list[tuple[GainKey, int]] = []
         self._ahead_around: tuple[GainKey, int] | None = None
         #: Patches rendered with a verified plane, and of those with the plane of a stiffness
@@ -326,7 +274,7 @@ class ClientSession:
         self.identified_plane_patches = 0
         #: Whether a rest plane a patch carries may render (the ``rest_plane`` parameter).
         self.rest_plane = bool(rest_plane)
-        #: Patches rendered with their rest plane (:mod:`shared.rest_plane`).
+        #: Patches rendered with their rest plane (:mod:`shared.gains.rest_plane`).
         self.rest_plane_patches = 0
         # the tick of the last patch a verified plane rendered in this contact (None: none)
         self._plane_tick: int | None = None
@@ -448,13 +396,13 @@ class ClientSession:
 
         The force the server samples at tick k+1 reflects patch k only if the patch's trip down,
         the state's age (up to :attr:`state_interval_s`) and its trip up fit in one simulation
-        period; every further period adds one tick (:func:`shared.gain_policy.measured_delay_ticks`:
+        period; every further period adds one tick (:func:`shared.gains.delay.measured_delay_ticks`:
         the 90th percentile of the last 20 round trips, 10 s of pings).
 
         With ``now_s`` [s] (each patch passes its arrival time, and whether the user is
         ``in_contact``) the delay the gains are designed for rises at once but falls only out of
         contact, once the lower delay has been measured for
-        :data:`shared.gain_policy.DELAY_FALL_S` (:class:`shared.gain_policy.DelayHold`): every
+        :data:`shared.gains.policy.DELAY_FALL_S` (:class:`shared.gains.delay.DelayHold`): every
         new delay is a new gain key whose gains must be checked before they are rendered, and
         a delay wavering by a tick or two under load kept a first contact waiting with its
         forces off, or changed the stiffness a steady hold felt. Without ``now_s``: the larger
@@ -481,7 +429,7 @@ class ClientSession:
 
         B_o is quantized *down* to 1 N/m steps (a design for less object damping).
         ``stiff_ratio`` is the class of ``K_o_stiff / K_o_eff`` of a contact coupled to other
-        users (1 uncoupled; :func:`shared.gain_key.stiff_ratio_class`).
+        users (1 uncoupled; :func:`shared.gains.key.stiff_ratio_class`).
         """
         return make_gain_key(
             servo_rate_hz=self.servo_rate_hz,
@@ -499,7 +447,7 @@ class ClientSession:
         """The ratio class to design for, from the patch's ``k_o_eff`` and ``k_o_stiff``.
 
         Rises to a new class at once and falls only when the measured class is a quarter of the
-        one in use (:func:`shared.gain_key.held_stiff_ratio`, the server's advisor's rule too).
+        one in use (:func:`shared.gains.key.held_stiff_ratio`, the server's advisor's rule too).
         """
         self.stiff_ratio = held_stiff_ratio(self.stiff_ratio, surface.k_o_eff, surface.k_o_stiff)
         return self.stiff_ratio
@@ -538,7 +486,7 @@ class ClientSession:
         """Feed the own-response check this patch and return its verdict: has the object
         yielded to this user's force as a spring of the stiffness the check holds it to, the K_o
         reported or the one it identified (``own_response.identified_ratio`` times K_o;
-        :mod:`shared.own_response`)?
+        :mod:`shared.gains.own_response`)?
 
         Only an uncoupled contact on an object without B_o is checked (:func:`plane_applies`).
         The check reads the depth of the surface along the contact normal from the proxy it
@@ -546,7 +494,7 @@ class ClientSession:
         as the object's tangent stiffness (so it goes on across gain-table cells as a
         stiffening object is pressed); the time between patches is their ticks'. It starts over
         after a welcome, when the contact ends (a patch without this user's force), when the
-        proxy has slid :data:`shared.gain_policy.OWN_RESPONSE_SLIDE_M` along the surface from where it started (on
+        proxy has slid :data:`shared.gains.policy.OWN_RESPONSE_SLIDE_M` along the surface from where it started (on
         a curved surface the depth would carry the curvature), and when the ticks go back.
         """
         check = self.own_response
@@ -577,7 +525,7 @@ class ClientSession:
         )  # fmt: skip
 
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
-        """Keep verified interim gains (from :func:`shared.interim_gains.interim_design`) for (key, cell)."""
+        """Keep verified interim gains (from :func:`shared.gains.interim.interim_design`) for (key, cell)."""
         self.interim[(key, cell)] = design
 
     def interim_failed(self, key: GainKey, cell: int) -> None:
@@ -593,56 +541,6 @@ class ClientSession:
         waiting, self._waiting = self._waiting, None
         return None if waiting is None else self._render(*waiting, now_s)
 
-    def _covering(self, key: GainKey, cell: int, k_o_eff: float) -> GainDesign | None:
-        """Gains designed or verified for this cell and a wider coupling class, if any: checked
-        over a K_o range containing this key's (:func:`shared.gain_key.covering_classes`),
-        they render at once while this key's own design is made (a second user's arrival
-        otherwise meant conservative unverified gains until a check was done)."""
-        table = self.gain_table
-        for c in covering_classes(key.stiff_ratio):
-            wider = replace(key, stiff_ratio=c)
-            d = table.lookup(wider, k_o_eff)
-            if d is None:
-                d = self.interim.get((wider, cell))
-            if d is not None:
-                return d
-        return None
-
-    def _design_in_use(self, n: int) -> GainDesign | None:
-        lu = self.last_update
-        if lu is None:
-            return None
-        surface, choice = rendered(lu)
-        return _known_gains(
-            lu.k_h, lu.i_gain, lu.b_h, lu.proxy_hold,
-            k_o_eff=surface.k_o_eff, rate_ratio=n, delay_ticks=choice.delay_ticks,
-            spectral_radius=choice.spectral_radius, felt_1hz=choice.felt_stiffness_ratio_1hz,
-            own_gain=lu.own_gain,
-        )  # fmt: skip
-
-    def _recommended(
-        self, msg: Patch, n: int, delay_ticks: int, own: GainDesign | None
-    ) -> GainDesign | None:
-        """The server's recommended gains as a design, if this client may render them and has
-        nothing better: interim recommendations yield to a full design of its own (``own``)."""
-        rec = msg.gains
-        if self.gains_source != "server" or rec is None:
-            return None
-        if rec.interim and own is not None:
-            return None
-        if (
-            rec.k_h > self.device.max_stiffness_n_per_m
-            or rec.b_h > self.b_h_max + 1e-9
-            or (self.mode == "p" and rec.i_gain > 0.0)
-            or rec.delay_ticks < delay_ticks
-        ):
-            return None  # designed for another device, kind or a shorter delay: design here
-        return _known_gains(
-            rec.k_h, rec.i_gain, rec.b_h, rec.proxy_hold,
-            k_o_eff=msg.k_o_eff, rate_ratio=n, delay_ticks=rec.delay_ticks,
-            own_gain=rec.own_gain,
-        )  # fmt: skip
-
     def _patch(self, msg: Patch, now_s: float) -> LocalModelUpdate | None:
         if self.last_patch is not None and msg.tick <= self.last_patch.tick:
             return None  # stale
@@ -652,7 +550,8 @@ class ClientSession:
 
     def _render(self, msg: Patch, surface: SurfacePatch, now_s: float) -> LocalModelUpdate | None:
         """The update rendering ``surface`` (of ``msg``, for its recommended gains), or None
-        while it waits for verified gains."""
+        while it waits for verified gains: :func:`shared.gains.choose.choose` decides, this
+        keeps the contact's past for it and hands its jobs to the link."""
         try:
             n = self.rates.ratio
         except ValueError as exc:
@@ -660,137 +559,45 @@ class ClientSession:
         if self.first_patch_s is None:
             self.first_patch_s = now_s
         d = self.delay_ticks(now_s, in_contact=surface.in_contact or surface.own_force_n > 0.0)
-        k_o_eff = surface.k_o_eff
         key = self.gain_key(surface.b_o, d, self._stiff_class(surface))
-        table = self.gain_table
-        cell = table.cell(k_o_eff)
-        own = table.lookup(key, k_o_eff)
-        design = self._recommended(msg, n, d, own)
-        if design is not None:
-            self.server_gain_patches += 1
-        else:
-            design = own
-        self._plan_ahead(key, cell)
-        # the user alone on the object: the rest plane's gains for this patch (shared.rest_plane)
-        rest = (
-            rest_plane_gains(
-                surface.k_o,
-                surface.b_o,
-                self.sim_rate_hz,
-                self.device.max_stiffness_n_per_m,
-                self.b_h_max,
-                servo_period_s=1.0 / self.servo_rate_hz,
-            )  # fmt: skip
-            if self.rest_plane and surface.rest_plane is not None
-            else None
+        self._plan_ahead(key, self.gain_table.cell(surface.k_o_eff))
+        contact = Contact(
+            key=key,
+            own_response=self._object_as_reported(surface, key),
+            identified_ratio=self.own_response.identified_ratio,
+            in_use=self.last_update,
+            plane_tick=self._plane_tick,
         )
-        plane_renders = False
-        if self._object_as_reported(surface, key):
-            # the object yields to this user's force as a spring: of the K_o reported, or of
-            # the stiffness the check identified. The plane verified for that stiffness (the
-            # lightest damper, K_h = K') replaces the design made for an object off by 25 %
-            # where it is felt closer than the design (checked against it once made). In a cell
-            # not designed yet (a press into a stiffening object crosses a cell in a fraction of
-            # a second; a design may take seconds) the plane checked alone renders meanwhile
-            k_id = self.own_response.identified_ratio * k_o_eff
-            plane_cell = table.cell(k_id)
-            plane_key = (key, plane_cell, cell if own is not None else PLANE_ALONE)
-            if plane_key in self.planes:
-                plane = self.planes[plane_key]
-            else:
-                if own is None:
-                    # the server's gains render (or the fallback): design the cell here too,
-                    # the plane is then compared with that design
-                    self.design_wanted = (key, k_o_eff)
-                if plane_key not in self._plane_asked:
-                    self._plane_asked.add(plane_key)
-                    self.plane_wanted.append(plane_key)
-                # a plane checked alone renders where the cell has no design; where it has one,
-                # only once compared with it (milliseconds: the design renders meanwhile)
-                plane = None if own is not None else self.planes.get((key, plane_cell, PLANE_ALONE))
-            if plane is not None:
-                design = plane.at(k_id)
-                plane_renders = True
-                self.plane_patches += 1
-                self.identified_plane_patches += self.own_response.identified_ratio != 1.0
-        if not (surface.in_contact or surface.own_force_n > 0.0):
-            self._plane_tick = None
-        elif plane_renders:
-            self._plane_tick = surface.tick
-        held_back = (
-            self._plane_tick is not None
-            and (surface.tick - self._plane_tick) / self.sim_rate_hz < REST_HOLD_BACK_S
-        )
-        if rest is not None and not (plane_renders or held_back):
-            # the user alone on the object, no verified plane: the rest plane, with gains of
-            # the patch alone (nothing to wait for); after a verified plane in a contact it
-            # waits HOLD_BACK_S without one (crossing back at once, a press into the stiffening
-            # object lost box-stability in one benchmark condition)
-            if design is None:
-                self.design_wanted = (key, k_o_eff)  # for when another user joins
+        known = Known(self.gain_table, self.interim, self.planes)
+        choice = choose(surface, msg.gains, contact, known, self._options())
+        self._plane_tick = choice.plane_tick
+        self._take_jobs(choice.jobs)
+        if choice.source is None:
+            self._waiting = (msg, surface)
+            return None
+        self.server_gain_patches += choice.source == "server"
+        self.plane_patches += choice.source == "plane"
+        self.identified_plane_patches += choice.identified
+        self.unverified_patches += not choice.verified
+        if choice.rest is not None:
             self.rest_plane_patches += 1
-            return self._rendered(
-                LocalModelUpdate.from_surface(
-                    surface,
-                    k_h=rest.k_h,
-                    i_gain=0.0,
-                    b_h=rest.b_h,
-                    hold_ticks=n,
-                    choice=GainChoice(
-                        delay_ticks=d,
-                        spectral_radius=0.0,  # its force does not go through the simulation
-                        felt_stiffness_ratio_1hz=rest.k_h / surface.k_o,
-                    ),
-                    rest=True,
-                ),
+            update = LocalModelUpdate.from_surface(
                 surface,
-                now_s,
+                k_h=choice.rest.k_h,
+                i_gain=0.0,
+                b_h=choice.rest.b_h,
+                hold_ticks=n,
+                choice=GainChoice(
+                    delay_ticks=d,
+                    spectral_radius=0.0,  # its force does not go through the simulation
+                    felt_stiffness_ratio_1hz=choice.rest.k_h / surface.k_o,
+                    source="rest",
+                ),
+                rest=True,
             )
-        fallback = design is None
-        verified = True
-        if design is None:
-            self.design_wanted = (key, k_o_eff)
-            design = self.interim.get((key, cell))
-            if design is None:
-                design = self._covering(key, cell, k_o_eff)
-            if design is None:
-                # no gains verified for this key and cell yet: have some checked (fast), and
-                # meanwhile keep the nearest designed cell (no stiffer relative to K_o) or the
-                # gains in use -- never for a first contact, which waits with forces off
-                near = table.fallback(key, k_o_eff)
-                in_use = self._design_in_use(n)
-                if (key, cell) not in self._interim_asked:
-                    self._interim_asked.add((key, cell))
-                    self.interim_wanted = (
-                        key,
-                        cell,
-                        tuple(c for c in (near, in_use) if c is not None),
-                    )
-                design = near if near is not None else in_use
-                last = None if self.last_update is None else rendered(self.last_update)
-                more_delay = last is not None and d > last[1].delay_ticks
-                if near is None and in_use is not None and (key.stiff_ratio > 1.0 or more_delay):
-                    # the gains in use were not designed for this coupled contact's stiff
-                    # modes, or for this much delay (designs for fewer ticks than the loop has
-                    # were unstable in every case tried): until verified gains arrive, render
-                    # the unverified fallback (:data:`shared.gain_policy.FALLBACK_K_RATIO`; the integral force
-                    # already built is kept, frozen)
-                    scale = 1.0 if last is None else min(1.0, k_o_eff / last[0].k_o_eff)
-                    k_h = min(in_use.k_h * scale, FALLBACK_K_RATIO * k_o_eff)
-                    design = replace(
-                        in_use,
-                        k_h=k_h,
-                        i_gain=0.0,
-                        b_h=key.b_h_max,
-                        proxy_hold="zoh",
-                        mode="p",
-                        own_gain=0.0,
-                    )
-                if design is None or self.last_update is None:
-                    self._waiting = (msg, surface)
-                    return None
-                verified = False
-                self.unverified_patches += 1
+            return self._rendered(update, surface, now_s)
+        design = choice.gains
+        assert design is not None  # a source other than the rest plane names its gains
         update = LocalModelUpdate.from_surface(
             surface,
             k_h=design.k_h,
@@ -803,11 +610,39 @@ class ClientSession:
                 delay_ticks=d,
                 spectral_radius=design.worst_spectral_radius,
                 felt_stiffness_ratio_1hz=design.felt_stiffness_ratio_1hz,
-                fallback=fallback,
-                verified=verified,
+                fallback=choice.fallback,
+                verified=choice.verified,
+                source=choice.source,
             ),
         )
         return self._rendered(update, surface, now_s)
+
+    def _options(self) -> Options:
+        return Options(
+            servo_rate_hz=self.servo_rate_hz,
+            sim_rate_hz=self.sim_rate_hz,
+            k_h_max=self.device.max_stiffness_n_per_m,
+            b_h_max=self.b_h_max,
+            mode=self.mode,
+            gains=self.gains_source,
+            rest_plane=self.rest_plane,
+        )
+
+    def _take_jobs(self, jobs: tuple[Job, ...]) -> None:
+        """Hand ``jobs`` to the link (:attr:`design_wanted`, :attr:`interim_wanted`,
+        :attr:`plane_wanted`), each check and plane once."""
+        for job in jobs:
+            if isinstance(job, DesignJob):
+                self.design_wanted = (job.key, job.k_o)
+            elif isinstance(job, CheckJob):
+                if (job.key, job.cell) not in self._interim_asked:
+                    self._interim_asked.add((job.key, job.cell))
+                    self.interim_wanted = (job.key, job.cell, job.candidates)
+            else:
+                plane_key = (job.key, job.cell, job.design_cell)
+                if plane_key not in self._plane_asked:
+                    self._plane_asked.add(plane_key)
+                    self.plane_wanted.append(plane_key)
 
     def _rendered(
         self, update: LocalModelUpdate, surface: SurfacePatch, now_s: float

@@ -38,8 +38,9 @@ def gain_changes(updates: list[LocalModelUpdate], limit: int = 200) -> list[dict
     Each: the server ``tick``, K_h [N/m], integral gain [N/(m s)], own-force gain C_h [m/N],
     whether verified / a fallback, the loop delay [ticks], K_o_eff and K_o_stiff [N/m], and
     whether it rendered the rest plane (``rest``: felt as K_h itself, its force does not go
-    through the simulation): when a contact rendered what, for reading a demo run's haptics
-    after the fact.
+    through the simulation) and where the gains came from (``source``,
+    :func:`shared.gains.choose.choose`): when a contact rendered what, and why, for reading a
+    demo run's haptics after the fact.
     """
     out: list[dict[str, object]] = []
     last: tuple[object, ...] | None = None
@@ -53,6 +54,7 @@ def gain_changes(updates: list[LocalModelUpdate], limit: int = 200) -> list[dict
             choice.fallback,
             choice.delay_ticks,
             u.rest_plane,
+            choice.source,
         )
         if state == last:
             continue
@@ -69,6 +71,7 @@ def gain_changes(updates: list[LocalModelUpdate], limit: int = 200) -> list[dict
                 "k_o_eff": round(surface.k_o_eff, 1),
                 "k_o_stiff": round(surface.k_o_stiff, 1),
                 "rest": u.rest_plane,
+                "source": choice.source,
             }
         )
         if len(out) >= limit:
@@ -102,11 +105,11 @@ def client_summary(
         "rtt_ms_p99": float(np.percentile(rtt, 99)) if rtt.size else None,
         "rtt_ms_samples": [float(x) for x in rtt[-2000:]],
         "delay_ticks_last": choices[-1].delay_ticks if updates else None,
-        # patches rendered with a verified plane (the own-response check, shared.own_response),
+        # patches rendered with a verified plane (the own-response check, shared.gains.own_response),
         # and of those, with the plane of a stiffness it identified other than the K_o reported
         "plane_patches": session.plane_patches,
         "identified_plane_patches": session.identified_plane_patches,
-        # patches rendered with their rest plane: the user alone in the room (shared.rest_plane)
+        # patches rendered with their rest plane: the user alone in the room (shared.gains.rest_plane)
         "rest_plane_patches": session.rest_plane_patches,
         "spectral_radius_last": choices[-1].spectral_radius if updates else None,
         "gains_last": None

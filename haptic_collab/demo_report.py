@@ -28,7 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from haptic_collab.client.devices.trajectories import Rest
-from haptic_collab.shared.verified_plane import DESIGN_OVER_REST
+from haptic_collab.shared.gains.policy import DESIGN_OVER_REST
 
 #: A hold is stable when the probe's largest peak to peak over its whole hold, each second after
 #: its straight-line trend (:func:`largest_p2p`), stays below this [mm] (and :func:`hold_shake_mm`,
@@ -225,7 +225,7 @@ def missed_per_s(
 
 # --------------------------------------------------------------------------- the hold's verdict
 #: The stiffness JND [share]: two stiffnesses further apart than this ratio less one are told
-#: apart by a hand. The project's one value, shared.verified_plane.DESIGN_OVER_REST = ln(1.1)
+#: apart by a hand. The project's one value, shared.gains.policy.DESIGN_OVER_REST = ln(1.1)
 #: (docs/fidelity.md), read back as a share (0.10).
 STIFFNESS_JND = math.expm1(DESIGN_OVER_REST)
 #: A's hold is judged from this long after its press ends [s] (the hand settling on the surface).

@@ -3,7 +3,7 @@
 A client in any language may render the gains the server sends in each patch
 (``patch.gains``, :class:`shared.protocol.RecommendedGains`) instead of porting the full-loop
 design. The server designs them exactly as :class:`client.session.ClientSession` does:
-one :class:`shared.gain_table.GainTable` keyed by the user's declared device (maximum stiffness
+one :class:`shared.gains.table.GainTable` keyed by the user's declared device (maximum stiffness
 and damping, servo rate, P or PI local model), its loop delay in whole simulation ticks (from the
 round trips the user reports in ``state``), the object damping ``b_o`` and the coupling class
 ``K_o_stiff / K_o_eff`` (docs/coupled-users.md), with a grid cell per ``K_o_eff``.
@@ -11,7 +11,7 @@ round trips the user reports in ``state``), the object damping ``b_o`` and the c
 Pure and cheap: :meth:`GainAdvisor.recommend` is a dictionary lookup, never a design. A missing
 cell is queued (:meth:`GainAdvisor.next_job` hands out the most urgent first); the I/O layer runs
 the jobs in a worker process (:func:`run_job`) and hands the results back with :meth:`GainAdvisor.store`. Until then the
-patch carries verified interim gains (:func:`shared.interim_gains.interim_design`, a fraction of
+patch carries verified interim gains (:func:`shared.gains.interim.interim_design`, a fraction of
 a second) or, for the very first moment of a new key, no gains at all.
 """
 
@@ -22,21 +22,18 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
+from haptic_collab.client.workers import timed
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import (
-    K_O_GRID_RATIO,
-    GainKey,
-    held_stiff_ratio,
-    make_gain_key,
-)
-from haptic_collab.shared.gain_policy import RTT_WINDOW, DelayHold, measured_delay_ticks
-from haptic_collab.shared.gain_table import GainTable, design_cell
-from haptic_collab.shared.gain_table_file import load_shipped
-from haptic_collab.shared.interim_gains import interim_design
+from haptic_collab.shared.gains.choose import VERIFIED_SOURCES, DesignJob, Known, without_design
+from haptic_collab.shared.gains.delay import DelayHold, measured_delay_ticks
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.interim import interim_design
+from haptic_collab.shared.gains.key import GainKey, held_stiff_ratio, make_gain_key
+from haptic_collab.shared.gains.policy import K_O_GRID_RATIO, RTT_WINDOW
+from haptic_collab.shared.gains.table import GainTable, design_cell
+from haptic_collab.shared.gains.table_file import load_shipped
 from haptic_collab.shared.protocol import Hello, RecommendedGains
 from haptic_collab.shared.stability import rate_ratio
-from haptic_collab.workers import timed
 
 JobKind = Literal["interim", "design"]
 
@@ -76,7 +73,7 @@ class GainAdvisor:
     grid_ratio : float
         K_o grid ratio of the gain table.
     shipped : bool
-        Start the table with the shipped tables (:func:`shared.gain_table_file.load_shipped`:
+        Start the table with the shipped tables (:func:`shared.gains.table_file.load_shipped`:
         the built-in device profiles' designs, made offline); their files are read here, once.
     """
 
@@ -119,9 +116,9 @@ class GainAdvisor:
 
     def delay_ticks(self, user: str, tick: int | None = None, in_contact: bool = False) -> int:
         """The user's loop delay [whole simulation ticks], by the client's rule: measured as
-        :func:`shared.gain_policy.measured_delay_ticks`, and with the simulation ``tick`` (its
-        time) held as :class:`shared.gain_policy.DelayHold` holds it (rises at once, falls only
-        out of contact, after :data:`shared.gain_policy.DELAY_FALL_S`); without ``tick``, the
+        :func:`shared.gains.delay.measured_delay_ticks`, and with the simulation ``tick`` (its
+        time) held as :class:`shared.gains.delay.DelayHold` holds it (rises at once, falls only
+        out of contact, after :data:`shared.gains.policy.DELAY_FALL_S`); without ``tick``, the
         larger of the measured delay and the one held."""
         u = self._users.get(user)
         if u is None:
@@ -191,10 +188,15 @@ class GainAdvisor:
         design = self.table.lookup(key, k_o_eff)
         interim = design is None
         if design is None:
-            self._want("design", key, cell)
-            design = self.interim.get((key, cell))
-            if design is None:
-                self._want("interim", key, cell)
+            # the client's own rule for a cell without a design (shared.gains.choose), of which
+            # the server recommends only verified gains: checked interim or covering gains
+            known = Known(self.table, self.interim, {})
+            n = rate_ratio(hello.servo_rate_hz, self.sim_rate_hz)
+            design, source, jobs = without_design(key, k_o_eff, known, None, n)
+            for job in jobs:
+                self._want("design" if isinstance(job, DesignJob) else "interim", key, cell)
+            if source not in VERIFIED_SOURCES:
+                design = None
         if design is None:
             self.misses += 1
             return None

@@ -13,7 +13,7 @@ design works with (:func:`modal_stiffness`). With ``S = K^1/2 C K^1/2`` (``K = d
 - ``K_o_eff = K_o / lambda_max(S)``: the common mode, all users pressing together on a softer
   object (what the server reports, :func:`server.contact_stiffness.effective_stiffness`);
 - ``K_o_stiff = K_o / lambda_min(S)``: the differential mode, one user pressing, another pushed
-  back; capped at :data:`shared.gain_key.K_O_RIGID`.
+  back; capped at :data:`shared.gains.key.K_O_RIGID`.
 
 For ``C = (1/K_o) ((1 - c) I + c 1 1^T)``: ``K_o_eff = K_o / (1 + (M-1) c)`` and
 ``K_o_stiff = K_o / (1 - c)``. Why a PI user needs the whole range between them is the modal
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from haptic_collab.shared.gain_key import K_O_RIGID
+from haptic_collab.shared.gains.key import K_O_RIGID
 from haptic_collab.shared.types import FloatArray
 
 

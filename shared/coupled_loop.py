@@ -41,7 +41,7 @@ PI loop is roughly ``m s^3 + (b + B_h) s^2 + (k + K_h) s + I`` (continuous time,
 damper filter), unstable for a heavy, lightly damped hand once ``I > (b + B_h)(k + K_h) / m``. An
 integral chosen for the soft K_o_eff breaks that (docs/coupled-users.md: coupled spectral radius
 up to 1.10 with the Phantom's limits). So each user's gains must be designed over the whole modal
-range ``[(1 - margin) K_o_eff, K_o_stiff]`` (:func:`shared.coupled_design.design_coupled`), then
+range ``[(1 - margin) K_o_eff, K_o_stiff]`` (:func:`shared.gains.coupled_design.design_coupled`), then
 verified on the coupled loop with *different* hands and sampling ticks per user, which the modal
 argument does not cover (:func:`verify_coupled`). A proportional local model (I = 0) needs only
 K_o_eff (measured, same document). :func:`stiff_ratio_class` and :func:`coupled_k_o_hi` are the
@@ -50,7 +50,7 @@ product's form of the rule for a gain table keyed on K_o_eff.
 This module owns the coupled loop and its verification (:func:`coupled_monodromy`,
 :func:`verify_coupled`); the compliance matrix and its modal stiffnesses are
 :mod:`shared.coupled_compliance`, the per-user design over the modal range
-:mod:`shared.coupled_design`.
+:mod:`shared.gains.coupled_design`.
 
 Units SI throughout; depths along each contact's inward normal [m]; forces [N].
 """
@@ -77,9 +77,10 @@ from haptic_collab.shared.full_loop import (
     monodromy,
     spectral_radius_function,
 )
-from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
 from haptic_collab.shared.rates import Rates
-from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S, mode_radii
+from haptic_collab.shared.stability_margin import mode_radii
 from haptic_collab.shared.types import FloatArray, IndexArray
 
 #: Batch size of coupled monodromy matrices per eigenvalue call (bounds memory: 4096 x 30 x 30).
@@ -121,7 +122,7 @@ class UserGains:
 
     @classmethod
     def from_design(cls, design: GainDesign) -> UserGains:
-        """The gains of a :class:`shared.gain_design.GainDesign`."""
+        """The gains of a :class:`shared.gains.design.GainDesign`."""
         return cls(design.k_h, design.i_gain, design.b_h, design.proxy_hold, design.own_gain)
 
 
@@ -362,8 +363,8 @@ class CoupledVerdict:
         Largest spectral radius of the coupled monodromy.
     margin_radius : float
         Largest oscillating eigenvalue magnitude, creep eigenvalues (slower than
-        :data:`shared.stability_margin.CREEP_FREQUENCY_HZ`) counted as ``|lambda| * rho_limit``: the
-        quantity :func:`shared.gain_design.design_gains` holds below ``rho_limit``.
+        :data:`shared.gains.policy.CREEP_FREQUENCY_HZ`) counted as ``|lambda| * rho_limit``: the
+        quantity :func:`shared.gains.design.design_gains` holds below ``rho_limit``.
     rho_limit : float
         ``exp(-min_decay_rate * N * T)``, the single-user design's bound.
     meets_margin : bool
@@ -444,7 +445,7 @@ def verify_coupled(
     damping, equal diagonal and off-diagonal compliance -- only one combination per multiset of
     (hand, tick) pairs, which is exact). The compliance is checked as given and scaled by
     ``1 / (1 - margin)`` (every K_o overestimated by ``margin``, as
-    :func:`shared.gain_design.design_gains` checks).
+    :func:`shared.gains.design.design_gains` checks).
 
     Parameters
     ----------
@@ -464,7 +465,7 @@ def verify_coupled(
     hand_combos, tick_combos : (B, M) and (J, M) nested sequences, optional
         Explicit combinations instead of the products above (then no symmetry reduction).
     min_decay_rate_per_s : float
-        Decay-rate margin [1/s] (:data:`shared.stability_margin.MIN_DECAY_RATE_PER_S`).
+        Decay-rate margin [1/s] (:data:`shared.gains.policy.MIN_DECAY_RATE_PER_S`).
 
     Raises
     ------

@@ -1,6 +1,6 @@
 """Felt stiffness: the force a user feels per unit of probe motion through the full loop.
 
-The transparency measure of local-model gains (:mod:`shared.gain_design`): |dF/dx| at the probe,
+The transparency measure of local-model gains (:mod:`shared.gains.design`): |dF/dx| at the probe,
 probe as a position source, compared with the object's own stiffness K_o.
 
 Felt stiffness is computed exactly on the lifted (N-periodic) loop: for a probe motion
@@ -28,12 +28,6 @@ from haptic_collab.shared.full_loop import (
     slow_layout,
 )
 from haptic_collab.shared.types import FloatArray
-
-#: Frequencies [Hz] the transparency of a design with own-force compensation is judged at: the
-#: band of voluntary hand motion in which people judge stiffness by pressing (0.5-8 Hz; the
-#: fidelity benchmark ranks over the same band, docs/fidelity.md). At 1 Hz alone a 10 N*s/m damper
-#: at 1000 N/m passed as 1.00 K_o while a hand felt it as 1.12-1.22 K_o at 8 Hz.
-FELT_BAND_HZ: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0, 8.0)
 
 
 def object_stiffness(

@@ -48,7 +48,7 @@ With ``hand=None``, ``b_h = 0`` and ``zoh`` the monodromy matrix has the same no
 as :func:`shared.stability.closed_loop_matrix` (the paper's Fig. 6 loop): tested to 1e-9.
 
 Everything is vectorised over a batch of hands and gains (numpy broadcasting): the gain design
-(:mod:`shared.gain_design`) evaluates thousands of candidates at once.
+(:mod:`shared.gains.design`) evaluates thousands of candidates at once.
 """
 
 from __future__ import annotations

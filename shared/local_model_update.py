@@ -99,7 +99,7 @@ class SurfacePatch:
         against the surface moved out by C_h times it (:mod:`shared.full_loop`).
     rest_plane : shared.primitives.Plane or None
         The object's rest surface at the contact, sent while this user is the only one in the
-        room (:mod:`shared.rest_plane`); None otherwise.
+        room (:mod:`shared.gains.rest_plane`); None otherwise.
 
     Raises
     ------
@@ -250,6 +250,9 @@ class GainChoice:
         The gains passed the full-loop check for this patch's key and K_o cell (a design, or
         verified interim gains); False only for the short while that check runs after a change
         of cell or delay in mid-contact.
+    source : str
+        Where the gains come from (:data:`shared.gains.choose.Source`: ``design``, ``server``,
+        ``plane``, ``rest``, ``interim``, ``covering``, ``near``, ``in-use``, ``fallback``).
     """
 
     delay_ticks: int
@@ -257,6 +260,7 @@ class GainChoice:
     felt_stiffness_ratio_1hz: float = math.nan
     fallback: bool = False
     verified: bool = True
+    source: str = "design"
 
 
 @params_dataclass(frozen=True, slots=True)
@@ -296,7 +300,7 @@ class LocalModelUpdate:
         How the client chose the gains (:class:`client.session.ClientSession`); None: not chosen
         by a session.
     rest_plane : bool
-        ``primitive`` is the surface patch's rest plane (:mod:`shared.rest_plane`), not the
+        ``primitive`` is the surface patch's rest plane (:mod:`shared.gains.rest_plane`), not the
         current surface: at a change between the two in contact the renderer slides the surface's
         step off over the gain transfer time (:meth:`client.render.LocalRenderer.hand_over`).
 
@@ -370,7 +374,7 @@ class LocalModelUpdate:
         k_h, i_gain, b_h, proxy_hold, hold_ticks, own_gain, choice
             The local model's gains, hold and how they were chosen (see the class parameters).
         rest : bool
-            Render the surface patch's rest plane (:mod:`shared.rest_plane`).
+            Render the surface patch's rest plane (:mod:`shared.gains.rest_plane`).
 
         Raises
         ------

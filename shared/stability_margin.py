@@ -1,7 +1,7 @@
 """The stability margin every local model's gains are held to on the full loop.
 
-A design (:func:`shared.gain_design.design_gains`), interim gains
-(:func:`shared.interim_gains.verify_gains`) and coupled users' gains
+A design (:func:`shared.gains.design.design_gains`), interim gains
+(:func:`shared.gains.interim.verify_gains`) and coupled users' gains
 (:func:`shared.coupled_loop.verify_coupled`) are accepted only if every *oscillating* mode of the
 full loop (:mod:`shared.full_loop`) decays at :data:`MIN_DECAY_RATE_PER_S` or faster, while creep
 (modes slower than :data:`CREEP_FREQUENCY_HZ`) need only be stable. This module owns that margin,
@@ -17,20 +17,11 @@ import math
 
 import numpy as np
 
+from haptic_collab.shared.gains.policy import (
+    CREEP_FREQUENCY_HZ,
+    K_O_CHECK_RATIO,
+)
 from haptic_collab.shared.types import FloatArray, IndexArray
-
-#: Slowest accepted decay of any *oscillating* mode of the full loop [1/s]: its eigenvalue over
-#: one simulation period must have magnitude at most exp(-MIN_DECAY_RATE * N * T). 1/s: a
-#: vibration falls to a third within a second; the box's least damped hand (0.6 kg, 2 N*s/m) alone
-#: decays at 1.7/s.
-MIN_DECAY_RATE_PER_S = 1.0
-
-#: Modes slower than this [Hz] are creep, not vibration (the integral slowly pushing a stiff hand
-#: out): they need only be stable (|eigenvalue| < 1), not decay at MIN_DECAY_RATE_PER_S.
-CREEP_FREQUENCY_HZ = 0.5
-
-#: Largest ratio between neighbouring K_o points a design is checked at (:func:`k_o_points`).
-K_O_CHECK_RATIO = 4.0
 
 
 def mode_radii(

@@ -9,10 +9,10 @@ differently from one that must design it), and the whole run one ``XDG_CACHE_HOM
 temporary folder, shared by the pytest-xdist workers and the processes the tests start, removed
 at the end (volume meshes are pure functions of the surface, so sharing them is safe).
 
-**Designs.** :func:`haptic_collab.shared.gain_table.design_cell_modes` (what
+**Designs.** :func:`haptic_collab.shared.gains.table.design_cell_modes` (what
 ``design_cell`` and so ``GainTable.design`` run) is a pure function of its arguments (a gain
 key, a cell, the grid ratio, a hand box and the local models: frozen values; the result frozen
-:class:`~haptic_collab.shared.gain_design.GainDesign` values) that costs a second to a minute of
+:class:`~haptic_collab.shared.gains.design.GainDesign` values) that costs a second to a minute of
 CPU. Dozens of tests design the same cells (``GainTable(...).design``, ``design_cell``); this
 module replaces it, before any test module imports it, by the same function with its results
 kept:
@@ -20,11 +20,11 @@ kept:
 - in this process (the very object the first call returned), and
 - on disk, one file per cell, in ``$HAPTIC_TEST_DESIGNS`` or ``.pytest_cache/haptic-designs``
   of this checkout, in a folder named by
-  :func:`~haptic_collab.shared.gain_table_file.design_code_hash` (the code of every module a
+  :func:`~haptic_collab.shared.gains.table_file.design_code_hash` (the code of every module a
   design runs): so pytest-xdist workers design each cell once between them (a lock file per
   cell), later runs of the same design code reuse them, and any change to that code starts an
   empty folder. A cell is read back with
-  :func:`~haptic_collab.shared.gain_table_file.design_from_record`, which refuses a malformed or
+  :func:`~haptic_collab.shared.gains.table_file.design_from_record`, which refuses a malformed or
   unstable record (then the cell is designed again).
 
 Every test still gets the design the current code makes for its arguments. Processes the tests
@@ -46,10 +46,10 @@ from pathlib import Path
 
 import pytest
 
-import haptic_collab.shared.gain_table as _gain_table
+import haptic_collab.shared.gains.table as _gain_table
 from haptic_collab.shared.full_loop import HandBox
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import GainKey, Mode
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import GainKey, Mode
 
 _ROOT = Path(__file__).resolve().parents[1]
 _design_cell_modes = _gain_table.design_cell_modes
@@ -59,7 +59,7 @@ _design_cell_modes = _gain_table.design_cell_modes
 def _design_dir() -> Path:
     """The folder of this design code's cells (module docstring), made if missing."""
     base = os.environ.get("HAPTIC_TEST_DESIGNS") or str(_ROOT / ".pytest_cache" / "haptic-designs")
-    from haptic_collab.shared.gain_table_file import design_code_hash
+    from haptic_collab.shared.gains.table_file import design_code_hash
 
     path = Path(base) / design_code_hash()
     path.mkdir(parents=True, exist_ok=True)
@@ -67,7 +67,7 @@ def _design_dir() -> Path:
 
 
 def _read_cell(path: Path, hand_box: HandBox) -> dict[Mode, GainDesign] | None:
-    from haptic_collab.shared.gain_table_file import design_from_record
+    from haptic_collab.shared.gains.table_file import design_from_record
 
     try:
         doc = json.loads(path.read_text("utf-8"))
@@ -81,7 +81,7 @@ def _kept(
     key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox, modes: tuple[Mode, ...]
 ) -> tuple[tuple[Mode, GainDesign], ...]:
     # imported here: a broken gain_table_file fails the tests that design, not the whole run
-    from haptic_collab.shared.gain_table_file import design_record
+    from haptic_collab.shared.gains.table_file import design_record
 
     # every field of the frozen arguments (their reprs: floats exactly), not a file's record
     what = json.dumps([repr(key), cell, repr(float(grid_ratio)), repr(hand_box), modes])
@@ -108,7 +108,7 @@ def _kept_design_cell_modes(
     hand_box: HandBox,
     modes: Sequence[Mode] = ("p", "pi"),
 ) -> dict[Mode, GainDesign]:
-    """:func:`haptic_collab.shared.gain_table.design_cell_modes`, its results kept (module
+    """:func:`haptic_collab.shared.gains.table.design_cell_modes`, its results kept (module
     docstring); a new dict each call, of the same frozen designs."""
     return dict(_kept(key, cell, float(grid_ratio), hand_box, tuple(modes)))
 

@@ -5,7 +5,7 @@ of :data:`haptic_collab.research.fidelity_schemes.SCHEMES` runs on the vectorise
 :mod:`haptic_collab.research.fidelity_1d` with every hand of the box (and, reported apart, hands outside it) on every
 trajectory, and with the probe as a position source at each frequency of :data:`FELT_HZ` (the
 felt impedance). The local models render the product's own design
-(:class:`shared.gain_table.GainTable`, the client's key), made for the K_o the simulation
+(:class:`shared.gains.table.GainTable`, the client's key), made for the K_o the simulation
 reports; each peer runs every tuning of its sweep (:func:`haptic_collab.research.fidelity_schemes.peer_renderings`) and
 is represented by its best one in that condition (:func:`choose_variant`), so a peer is never
 judged by a tuning its users would not pick. That choice knows the object; the summary's
@@ -83,16 +83,12 @@ from haptic_collab.shared.full_loop import (
     DEFAULT_HAND_BOX,
     Hand,
 )
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import (
-    DESIGN_MARGIN,
-    STIFFER_BY,
-    GainKey,
-    Mode,
-)
-from haptic_collab.shared.gain_table import GainTable, design_cell, design_cell_modes
-from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
-from haptic_collab.shared.verified_plane import (
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import GainKey, Mode
+from haptic_collab.shared.gains.policy import DESIGN_MARGIN, STIFFER_BY
+from haptic_collab.shared.gains.policy import HOLD_BACK_S as REST_HOLD_BACK_S
+from haptic_collab.shared.gains.table import GainTable, design_cell, design_cell_modes
+from haptic_collab.shared.gains.verified_plane import (
     checked_plane,
     felt_closer,
     plane_applies,
@@ -252,7 +248,7 @@ def _plane_cell(key: GainKey, k_o: float, design: GainDesign | None) -> GainDesi
     """The verified plane of the client's gain-table cell holding K_o under ``key`` where it is
     felt closer to the object than ``design`` (that cell's, or the design of the cell of the K_o
     reported where K_o is a stiffness the own-response check identified; a worker's job;
-    :func:`shared.verified_plane.verified_plane`), or None."""
+    :func:`shared.gains.verified_plane.verified_plane`), or None."""
     table = GainTable(DEFAULT_HAND_BOX)
     return verified_plane(key, table.cell(k_o), table.grid_ratio, table.hand_box, design)
 
@@ -265,14 +261,14 @@ def _plane_check_key(key: GainKey, k_o: float) -> tuple[GainKey, int]:
 def _checked_plane_cell(key: GainKey, k_o: float) -> GainDesign | None:
     """The plane of the client's gain-table cell holding K_o under ``key`` that passes its
     check, before any comparison with a design (a worker's job;
-    :func:`shared.verified_plane.checked_plane`), or None."""
+    :func:`shared.gains.verified_plane.checked_plane`), or None."""
     table = GainTable(DEFAULT_HAND_BOX)
     return checked_plane(key, table.cell(k_o), table.grid_ratio, table.hand_box)
 
 
 def _closer(plane: GainDesign | None, key: GainKey, design: GainDesign) -> GainDesign | None:
     """``plane`` where it is felt closer to the object than ``design`` under ``key``
-    (:func:`shared.verified_plane.felt_closer`), else None."""
+    (:func:`shared.gains.verified_plane.felt_closer`), else None."""
     return plane if plane is not None and felt_closer(plane, key, design) else None
 
 
@@ -292,7 +288,7 @@ def _identified_plane_jobs(
     k_os: Sequence[float],
 ) -> dict[tuple[str, GainKey, float], tuple[GainKey, float, _D]]:
     """The plane checks a client makes once its own-response check identifies an object
-    ``error`` times the K_o reported (:func:`shared.own_response.identify`), ``error`` the
+    ``error`` times the K_o reported (:func:`shared.gains.own_response.identify`), ``error`` the
     stiffness error of an object of ``objects`` that gives that key (:func:`_keyed_by`): for
     each design of a K_o of ``k_os`` whose key allows a plane, ``(mode, key, error K_o)`` ->
     ``(key, error K_o, that design)``, the plane of the identified stiffness's cell checked
@@ -331,7 +327,7 @@ def _alone_plane_jobs(
 
 def _design_cell(key: GainKey, k_o: float) -> GainDesign:
     """The design of the client's gain-table cell holding K_o under ``key`` (a worker's job),
-    unscaled (:func:`shared.gain_table.design_cell`)."""
+    unscaled (:func:`shared.gains.table.design_cell`)."""
     table = GainTable(DEFAULT_HAND_BOX)
     return design_cell(key, table.cell(k_o), table.grid_ratio, table.hand_box)
 
@@ -339,14 +335,14 @@ def _design_cell(key: GainKey, k_o: float) -> GainDesign:
 def _design_cells(key: GainKey, k_o: float, modes: tuple[Mode, ...]) -> dict[Mode, GainDesign]:
     """:func:`_design_cell` of ``key`` with each local model of ``modes``, ``{mode: design}``,
     their common candidates searched once (a worker's job;
-    :func:`shared.gain_table.design_cell_modes`)."""
+    :func:`shared.gains.table.design_cell_modes`)."""
     table = GainTable(DEFAULT_HAND_BOX)
     return design_cell_modes(key, table.cell(k_o), table.grid_ratio, table.hand_box, modes)
 
 
 def _design(key: GainKey, k_o: float) -> GainDesign:
     """The design the product's client renders for K_o under ``key``: its cell's, scaled to K_o
-    (:meth:`shared.gain_table.GainTable.lookup`)."""
+    (:meth:`shared.gains.table.GainTable.lookup`)."""
     return _design_cell(key, k_o).at(k_o)
 
 
@@ -462,35 +458,35 @@ def run(
         Progress lines (``print`` to stderr from the CLI).
     design_cache : dict, optional
         Designs already made, keyed ``(mode, GainKey, K_o)``: the design of the gain-table cell
-        holding K_o, unscaled (:func:`shared.gain_table.design_cell`); new designs are added to
+        holding K_o, unscaled (:func:`shared.gains.table.design_cell`); new designs are added to
         it.
     design_reached : bool
         Also design every gain-table cell between the K_o an object is reported at and the K_o
         it reports at the trajectories' held depth (the stiffening object's), as a client has
         them once it has pressed there (slow: about ten more designs per condition). Without
         them the local models render the nearest designed cell below
-        (:meth:`shared.gain_table.GainTable.fallback`), as the client does while such a cell is
+        (:meth:`shared.gains.table.GainTable.fallback`), as the client does while such a cell is
         being designed.
     design_margin, design_stiffer_by : float
         The local models' design range, as fractions of the K_o reported: their gains are checked
         on objects from ``1 - design_margin`` times the bottom of the cell to ``1 +
-        design_stiffer_by`` times its top (:class:`shared.gain_key.GainKey`). The product's
+        design_stiffer_by`` times its top (:class:`shared.gains.key.GainKey`). The product's
         (0.15, 0.25) by default; narrower, they measure what knowing the object's stiffness that
         well would buy on the spring, and what it costs on the objects the design did not see.
     plane_check_s : float
         Time [s] from the own-response check's first verdict in a cell to that cell's verified
         plane rendering (:attr:`haptic_collab.research.fidelity_schemes.Rendering.plane_delay_s`).
         0 (default): the client has checked the planes around the K_o reported ahead, in the
-        background (:func:`shared.verified_plane.ahead_cells`), before the press reaches them;
+        background (:func:`shared.gains.verified_plane.ahead_cells`), before the press reaches them;
         :data:`haptic_collab.research.fidelity_schemes.PRODUCT_PLANE_CHECK_S` (2 s): a client
         that checks each plane on arrival (its first seconds after a welcome).
     rest_plane : bool
         The local models render the rest plane where no verified plane does (the client alone
-        on the object, :mod:`shared.rest_plane`; default True, as the client); False: the
+        on the object, :mod:`shared.gains.rest_plane`; default True, as the client); False: the
         designs and verified planes alone (``haptic client --no-rest-plane``).
     rest_hold_back_s : float
         After a verified plane in a contact, the rest plane waits this long [s] without one
-        (default the client's, :data:`shared.rest_plane.HOLD_BACK_S`; 0: it renders whenever no
+        (default the client's, :data:`shared.gains.policy.HOLD_BACK_S`; 0: it renders whenever no
         verified plane does).
     both_phases : bool
         Run every hand cell at both ends of the sampling phase (the simulation taking the force

@@ -1,6 +1,6 @@
 """``haptic bench gains``: what a gain update costs the client's network loop, and what a design costs.
 
-A patch's gains are a :class:`shared.gain_table.GainTable` lookup inside
+A patch's gains are a :class:`shared.gains.table.GainTable` lookup inside
 :meth:`client.session.ClientSession.receive` (on the asyncio loop); a missing cell is designed in a
 worker process. This bench measures, in one run on this machine:
 
@@ -11,7 +11,7 @@ worker process. This bench measures, in one run on this machine:
   session's key, own-force compensation and the cell's K_o range), p50 / p99 for P and PI over
   K_o from 50 to 5000 N/m at 20 Hz without delay;
 - ``plane_check_ms``: one verified plane's check (what the worker spends on a plane it checks
-  ahead: :func:`shared.verified_plane.checked_plane`), p50 / p99 over the cells of
+  ahead: :func:`shared.gains.verified_plane.checked_plane`), p50 / p99 over the cells of
   :data:`PLANE_CHECK_K_OS` at 20 Hz with 0, 2 and 4 ticks of delay, the capped planes of the
   cells above the device's stiffness included.
 
@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 
 from haptic_collab.client.session import ClientSession
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import GainTable, design_cell
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.table import GainTable, design_cell
+from haptic_collab.shared.gains.verified_plane import checked_plane
 from haptic_collab.shared.protocol import DeviceInfo, ObjectInfo, Patch, PlaneModel, Welcome, encode
-from haptic_collab.shared.verified_plane import checked_plane
 
 #: The K_o [N/m] whose cells' verified planes ``plane_check_ms`` times: soft, at the bench
 #: device's stiffness (1000 N/m) and the two capped cells above it.
@@ -78,7 +78,7 @@ def _pcts(values: list[float]) -> dict[str, float]:
 def plane_check_ms(
     table: GainTable, key: GainKey, k_os: tuple[float, ...] = PLANE_CHECK_K_OS
 ) -> list[float]:
-    """Wall time [ms] of :func:`shared.verified_plane.checked_plane` for the cell of each of
+    """Wall time [ms] of :func:`shared.gains.verified_plane.checked_plane` for the cell of each of
     ``k_os`` under ``key`` with 0, 2 and 4 ticks of delay, in that order (K_o major)."""
     times = []
     for k_o in k_os:

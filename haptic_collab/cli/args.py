@@ -105,7 +105,7 @@ _SHARED: dict[str, dict[str, Any]] = {
         "default": None,
         "help": "the object may be this fraction stiffer than K_o: stability is checked up to "
         "(1 + it) K_o and transparency also on objects that much softer and stiffer; when not "
-        "given, the product's shared.gain_key.STIFFER_BY (default: none)",
+        "given, the product's shared.gains.policy.STIFFER_BY (default: none)",
     },
     "--host": {"default": "127.0.0.1"},
     "--port": {"type": _nonneg_int, "default": 8765},

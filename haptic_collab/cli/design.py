@@ -1,6 +1,6 @@
 """The design subcommands: ``haptic stability``, ``haptic gains`` and ``haptic gains-table``.
 
-They judge and design the local model (shared.stability, shared.full_loop, shared.gain_design):
+They judge and design the local model (shared.stability, shared.full_loop, shared.gains.design):
 each command's handler (``_cmd_*``) and its parser (``_add_*``). Their implementation is imported
 when the command runs, not when the parser is built.
 """
@@ -172,17 +172,17 @@ def _add_stability(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 def _profile_design(
     profile: str, k_o: float, *, paper: bool, stiffer_by: float | None = None, **kw: Any
 ) -> Any:
-    """The product's design (:func:`shared.gain_design.design_gains`, timed) for K_o with the
+    """The product's design (:func:`shared.gains.design.design_gains`, timed) for K_o with the
     stiffness and damping limits of the device profile ``profile``; ``paper``: without own-force
-    compensation; ``stiffer_by`` (default the product's :data:`shared.gain_key.STIFFER_BY`):
+    compensation; ``stiffer_by`` (default the product's :data:`shared.gains.policy.STIFFER_BY`):
     checked up to ``(1 + stiffer_by) K_o``, or up to the one-tick stiffness ``K_o + B_o`` where
-    that is higher (:func:`shared.gain_table.stiffest_k_o`, as a cell is checked). Raises KeyError
+    that is higher (:func:`shared.gains.table.stiffest_k_o`, as a cell is checked). Raises KeyError
     (unknown profile) or ValueError (as the design)."""
     from haptic_collab.client.devices.profiles import get_sim_profile
-    from haptic_collab.shared.gain_design import design_gains
-    from haptic_collab.shared.gain_key import STIFFER_BY
-    from haptic_collab.shared.gain_table import stiffest_k_o
-    from haptic_collab.workers import timed
+    from haptic_collab.client.workers import timed
+    from haptic_collab.shared.gains.design import design_gains
+    from haptic_collab.shared.gains.policy import STIFFER_BY
+    from haptic_collab.shared.gains.table import stiffest_k_o
 
     lim = get_sim_profile(profile).limits
     sb = STIFFER_BY if stiffer_by is None else float(stiffer_by)
@@ -364,7 +364,7 @@ def _cmd_gains_table(args: argparse.Namespace) -> int:
         return _cmd_ship_table(args)
 
     from haptic_collab.client.devices.profiles import get_sim_profile
-    from haptic_collab.shared.gain_key import STIFFER_BY
+    from haptic_collab.shared.gains.policy import STIFFER_BY
 
     try:
         lim = get_sim_profile(args.profile).limits
@@ -416,7 +416,7 @@ def _add_gains_table(sub: argparse._SubParsersAction) -> None:  # type: ignore[t
     p.add_argument(
         "--ship",
         action="store_true",
-        help="build the profile's shipped table instead (shared/gain_tables/PROFILE.json, or "
+        help="build the profile's shipped table instead (shared/gains/tables/PROFILE.json, or "
         "--out): every cell of its grid, both local models; resumes a partial file "
         "(docs/gains.md, 'Shipped tables')",
     )

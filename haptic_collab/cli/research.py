@@ -20,7 +20,7 @@ from haptic_collab.cli.args import (
     _positive,
     _why,
 )
-from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
+from haptic_collab.shared.gains.policy import HOLD_BACK_S as REST_HOLD_BACK_S
 
 
 # ---------------------------------------------------------------------------------------- reproduce
@@ -133,7 +133,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from haptic_collab.bench.fidelity import plot as plot_fidelity
         from haptic_collab.bench.fidelity import run as bench_fidelity
         from haptic_collab.research.fidelity_cases import RunOptions
-        from haptic_collab.shared.gain_key import DESIGN_MARGIN, STIFFER_BY
+        from haptic_collab.shared.gains.policy import DESIGN_MARGIN, STIFFER_BY
 
         try:
             fid_options = RunOptions(
@@ -240,7 +240,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         type=float,
         help=(
             "fidelity: the local models' designs hold on objects this fraction softer than the "
-            "bottom of their cell (default: the product's, shared.gain_key.DESIGN_MARGIN)"
+            "bottom of their cell (default: the product's, shared.gains.policy.DESIGN_MARGIN)"
         ),
     )
     p.add_argument(
@@ -248,7 +248,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         type=float,
         help=(
             "fidelity: ... and this fraction stiffer than its top (default: the product's, "
-            "shared.gain_key.STIFFER_BY; narrower, what knowing the object that well would buy)"
+            "shared.gains.policy.STIFFER_BY; narrower, what knowing the object that well would buy)"
         ),
     )
     p.add_argument(
@@ -275,7 +275,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         action="store_true",
         help=(
             "fidelity: the local models never render the rest plane (the client alone on the "
-            "object does by default: shared.rest_plane), as haptic client --no-rest-plane"
+            "object does by default: shared.gains.rest_plane), as haptic client --no-rest-plane"
         ),
     )
     p.add_argument(

@@ -458,7 +458,7 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "--no-rest-plane",
         action="store_true",
         help="alone on the object, render the simulation's surface with the designed gains "
-        "instead of the object's rest plane with its stiffness (shared.rest_plane)",
+        "instead of the object's rest plane with its stiffness (shared.gains.rest_plane)",
     )
     p.add_argument(
         "--no-gain-cache",

@@ -1,7 +1,7 @@
 """``haptic gains-table --ship``: the gain tables shipped for the built-in device profiles.
 
 A session renders designed, verified gains from its first contact when its table already holds
-the cell (``shared/gain_tables/<profile>.json``, loaded by the client and the server's gain
+the cell (``shared/gains/tables/<profile>.json``, loaded by the client and the server's gain
 advisor): the designs are made here, offline, not during a session (docs/gains.md, "Shipped
 tables"). What a table covers is :data:`SHIP_GRID`; a key outside it is designed during the
 session as before. The build resumes: cells already in the file are kept, so it can be run in
@@ -22,16 +22,11 @@ from pathlib import Path
 from typing import Any
 
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import (
-    DESIGN_MARGIN,
-    K_O_GRID_RATIO,
-    GainKey,
-    Mode,
-    make_gain_key,
-)
-from haptic_collab.shared.gain_table import GainTable, design_cell_modes
-from haptic_collab.shared.gain_table_file import (
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import GainKey, Mode, make_gain_key
+from haptic_collab.shared.gains.policy import DESIGN_MARGIN, K_O_GRID_RATIO
+from haptic_collab.shared.gains.table import GainTable, design_cell_modes
+from haptic_collab.shared.gains.table_file import (
     design_code_hash,
     load_table_document,
     table_document,
@@ -56,10 +51,10 @@ SHIP_PROFILES = ("phantom-desktop", "touch")
 
 
 def shipped_dir() -> Path:
-    """The folder of the shipped tables: ``gain_tables/`` beside :mod:`haptic_collab.shared`."""
-    import haptic_collab.shared as shared
+    """The folder of the shipped tables: ``tables/`` of :mod:`haptic_collab.shared.gains`."""
+    import haptic_collab.shared.gains as gains
 
-    return Path(shared.__file__).resolve().parent / "gain_tables"
+    return Path(gains.__file__).resolve().parent / "tables"
 
 
 def ship_jobs(

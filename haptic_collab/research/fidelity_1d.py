@@ -30,7 +30,7 @@ Schemes (:func:`haptic_collab.research.fidelity_schemes.rendering_for` says how 
 ``local-p``, ``local-pi`` (this project)
     the local model of eq. 12 with the product's threshold (eq. 17), release ramp, probe damper,
     proxy hold and, for PI, passivity layer (:mod:`shared.passivity`), gains from the product's own
-    full-loop design (:mod:`shared.gain_design`) for the delay the client would measure; the
+    full-loop design (:mod:`shared.gains.design`) for the delay the client would measure; the
     simulation receives the force rendered and returns the surface.
 ``virtual-coupling`` (Colgate, Stanley and Brown 1995; CHAI3D's way)
     the same coupling structure with a fixed spring-damper at the device's maximum stiffness and
@@ -84,7 +84,7 @@ from haptic_collab.research.fidelity_cases import (
 )
 from haptic_collab.research.fidelity_schemes import DeviceModel, TableGains
 from haptic_collab.shared.full_loop import DAMPER_FILTER_S, _hand_zoh
-from haptic_collab.shared.own_response import (
+from haptic_collab.shared.gains.own_response import (
     empty_deformation,
     empty_jumps,
     empty_sums,
@@ -93,7 +93,7 @@ from haptic_collab.shared.own_response import (
     update_jumps,
     update_sums,
 )
-from haptic_collab.shared.rest_plane import rest_plane_dampers
+from haptic_collab.shared.gains.rest_plane import rest_plane_dampers
 from haptic_collab.shared.types import FloatArray
 
 __all__ = ["passivity_step", "simulate"]
@@ -134,16 +134,16 @@ def _verified_plane_gains(
     """The gains (K_h, I, B_h, C_h, first-order hold) the client renders for the patches of
     ``mask`` once they have fed its own-response check, and where a verified plane renders, as
     :meth:`client.session.ClientSession._render` does: the check (``sums``, ``deform``
-    (:func:`shared.own_response.update_deformation`), ``seq_last``, ``ok``, ``ref``, ``start``
-    (the tick it started at) and ``jumps`` (:func:`shared.own_response.update_jumps`), updated in
+    (:func:`shared.gains.own_response.update_deformation`), ``seq_last``, ``ok``, ``ref``, ``start``
+    (the tick it started at) and ``jumps`` (:func:`shared.gains.own_response.update_jumps`), updated in
     place) starts over when the contact ends (a patch without a force from this user), takes the
     patches with that force (the surface's depth ``surface`` [m], ``force`` [N], the K_o
     reported ``k_o`` read as the object's tangent, the time between patches from their ticks
     ``seq``), and where it has verified the object as ``ref`` times the K_o reported (1, or the
-    stiffness it identified: :func:`shared.own_response.identify`) and the cell of that stiffness
+    stiffness it identified: :func:`shared.gains.own_response.identify`) and the cell of that stiffness
     has a verified plane (``planes``), that plane scaled to the stiffness replaces ``gains`` from
     ``delay_s`` [s] after the check first verified in that plane cell: 0 where the client has
-    checked the plane ahead, in the background (:func:`shared.verified_plane.ahead_cells`), or
+    checked the plane ahead, in the background (:func:`shared.gains.verified_plane.ahead_cells`), or
     the time its worker takes to check it on arrival. ``planes`` holds each plane as the run
     checked it: against the design of the cell of the K_o reported where that cell is designed,
     alone where it is not, as :meth:`client.session.ClientSession._render` renders it.
@@ -334,11 +334,11 @@ def simulate(
     follow = (kind == "coupling") & np.array([x.follows_k_o and bool(x.table) for x in r])
     table = TableGains([x.table if f else () for x, f in zip(r, follow, strict=True)])
     # ... and where the own-response check verifies the K_o reported, the verified plane of
-    # the cell (client.session: shared.own_response, shared.verified_plane)
+    # the cell (client.session: shared.gains.own_response, shared.gains.verified_plane)
     checks = follow & np.array([bool(x.planes) for x in r])
     planes = TableGains([x.planes if c else () for x, c in zip(r, checks, strict=True)])
     # ... and, the user alone, the rest plane where no verified plane renders and none has for
-    # rest_hold_back_s in the contact (client.session: shared.rest_plane), at the rest surface
+    # rest_hold_back_s in the contact (client.session: shared.gains.rest_plane), at the rest surface
     # (depth 0), with the gains of each patch's K_o and the B_o reported
     rest_on = follow & np.array([x.rest_plane for x in r])
     b_o_rest = np.array(
@@ -509,7 +509,7 @@ def simulate(
                 if re_gain.any():
                     kg, ig, bg, og, fg = table.gains_and_hold(k_recv)
                     plane_on = np.zeros(B, dtype=bool)
-                    # the rest plane's gains for this patch (shared.rest_plane)
+                    # the rest plane's gains for this patch (shared.gains.rest_plane)
                     k_rest, b_rest, _ = rest_plane_dampers(
                         k_recv, b_o_rest, sim_hz, device.max_stiffness_n_per_m,
                         device.max_damping_n_s_per_m, servo_period_s=T,

@@ -39,7 +39,7 @@ Schemes (:func:`haptic_collab.research.fidelity_schemes.rendering_for` for the g
     :meth:`shared.local_model_update.SurfacePatch.from_wire`); the World receives the probe and the force
     the servo rendered (Step 3 of the paper's section 6). The local models' gains are the
     product's design for the K_o at the top and the delay ticks the client would measure
-    (:class:`shared.gain_table.GainTable`, margin 0.15, K_h <= the device's maximum stiffness,
+    (:class:`shared.gains.table.GainTable`, margin 0.15, K_h <= the device's maximum stiffness,
     B_h <= its maximum damping); eq. 17 threshold fixed at 1 mm, release over two simulation
     periods, integral limited to the device's maximum force; passivity layer on for PI
     (``ServoConfig(passivity=True)``, 1 mJ bias). Two safety features of the servo that the 1-D
@@ -141,7 +141,7 @@ from haptic_collab.research.harness_3d import (
     run_multirate,
 )
 from haptic_collab.server.world import ContactInput
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.passivity import PassivityController, PassivityParams
 from haptic_collab.shared.types import FloatArray
 

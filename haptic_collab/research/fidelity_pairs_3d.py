@@ -42,7 +42,7 @@ from haptic_collab.research.harness_3d import (
 )
 from haptic_collab.server.object_info import object_info
 from haptic_collab.server.world import ContactInput, World
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.primitives import moved_out
 from haptic_collab.shared.types import FloatArray
 

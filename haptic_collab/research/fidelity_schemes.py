@@ -19,9 +19,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from haptic_collab.shared.full_loop import ProxyHold
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import loop_delay_ticks
-from haptic_collab.shared.rest_plane import HOLD_BACK_S as REST_HOLD_BACK_S
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import loop_delay_ticks
+from haptic_collab.shared.gains.policy import HOLD_BACK_S as REST_HOLD_BACK_S
 from haptic_collab.shared.types import FloatArray
 
 SchemeName = Literal[
@@ -75,19 +75,19 @@ class DeviceModel:
 
 @dataclass(frozen=True, slots=True)
 class TableCell:
-    """One designed cell of the product's gain table (:class:`shared.gain_table.GainTable`): the
+    """One designed cell of the product's gain table (:class:`shared.gains.table.GainTable`): the
     design of grid point ``g_c = grid_ratio**cell`` [N/m], unscaled (SI units).
 
     Attributes
     ----------
     cell : int
-        The grid index c (:meth:`shared.gain_table.GainTable.cell`).
+        The grid index c (:meth:`shared.gains.table.GainTable.cell`).
     grid_ratio : float
         The table's grid ratio (> 1).
     k_h, i_gain, b_h, own_gain : float
         K_h [N/m], I [N/(m*s)], B_h [N*s/m], C_h [m/N] as designed for ``g_c``.
     scale_max : float
-        How far the design scales with the K_o reported (:attr:`shared.gain_design.GainDesign.scale_max`).
+        How far the design scales with the K_o reported (:attr:`shared.gains.design.GainDesign.scale_max`).
     proxy_hold : {"zoh", "foh"}
         The proxy hold the design was checked with (the client renders each patch with its own).
     """
@@ -104,7 +104,7 @@ class TableCell:
     @classmethod
     def from_design(cls, cell: int, design: GainDesign, grid_ratio: float) -> TableCell:
         """The cell ``cell`` of a table of grid ratio ``grid_ratio`` holding ``design`` (as
-        :func:`shared.gain_table.design_cell` made it, unscaled)."""
+        :func:`shared.gains.table.design_cell` made it, unscaled)."""
         return cls(
             cell,
             float(grid_ratio),
@@ -153,18 +153,18 @@ class Rendering:
     follows_k_o : bool
         ``coupling``: the gains follow the K_o the simulation reports each tick, looked up in
         ``table`` as the product's client looks each patch's K_o up in its gain table
-        (:meth:`shared.gain_table.GainTable.lookup`, else
-        :meth:`shared.gain_table.GainTable.fallback`, :func:`table_gains`): in a designed cell,
-        that cell's design scaled to the K_o reported (:meth:`shared.gain_design.GainDesign.at`);
+        (:meth:`shared.gains.table.GainTable.lookup`, else
+        :meth:`shared.gains.table.GainTable.fallback`, :func:`table_gains`): in a designed cell,
+        that cell's design scaled to the K_o reported (:meth:`shared.gains.design.GainDesign.at`);
         in a cell not designed, the nearest designed cell below it, unscaled, its own-force
         compensation keeping its share of K_o, as the client renders while that cell is designed.
     table : tuple of TableCell
         The designed cells of the client's gain table for this rendering's key (``follows_k_o``).
     planes : tuple of TableCell
-        ``follows_k_o``: the verified planes (:func:`shared.verified_plane.verified_plane`) of
+        ``follows_k_o``: the verified planes (:func:`shared.gains.verified_plane.verified_plane`) of
         cells of that table, and of cells a press reaches that the table has not designed
-        (checked alone: :func:`shared.verified_plane.checked_plane`). Where the client's
-        own-response check (:mod:`shared.own_response`) verifies the K_o reported in such a
+        (checked alone: :func:`shared.gains.verified_plane.checked_plane`). Where the client's
+        own-response check (:mod:`shared.gains.own_response`) verifies the K_o reported in such a
         cell, its plane renders instead of the table's design or fallback, as
         :meth:`client.session.ClientSession._render` does. Empty: never.
     plane_delay_s : float
@@ -173,12 +173,12 @@ class Rendering:
         takes (:data:`PRODUCT_PLANE_CHECK_S`) where it checks the plane on arrival.
     rest_plane : bool
         ``follows_k_o``: the user, alone on the object, renders the rest plane the patch carries
-        (:mod:`shared.rest_plane`: K_h = min(K_o reported, the device's), its damper, no integral
+        (:mod:`shared.gains.rest_plane`: K_h = min(K_o reported, the device's), its damper, no integral
         or compensation, the object's rest surface) where no verified plane renders and none has
         for ``rest_hold_back_s`` in this contact, as
         :meth:`client.session.ClientSession._render` does.
     rest_hold_back_s : float
-        That time [s] (:data:`shared.rest_plane.HOLD_BACK_S`, the client's).
+        That time [s] (:data:`shared.gains.policy.HOLD_BACK_S`, the client's).
     gain_transfer_s : float
         ``coupling`` following K_o: the time [s] over which the force step of a change of gains
         in contact is carried off, as the client does (:class:`shared.local_model.LocalModel`'s
@@ -227,7 +227,7 @@ PRODUCT_GAIN_TRANSFER_S = 0.25
 
 
 #: Time [s] the product's client takes to check a cell's verified plane
-#: (:func:`shared.verified_plane.verified_plane` in the link's design worker): measured 0.3-1.0 s
+#: (:func:`shared.gains.verified_plane.verified_plane` in the link's design worker): measured 0.3-1.0 s
 #: per check on this 2-core machine idle (2026-11-25), 6-9 s beside a benchmark. The client
 #: checks the planes around the K_o reported ahead, in the background; with
 #: ``haptic bench fidelity --plane-check-s`` the simulator renders each plane this long after
@@ -240,7 +240,7 @@ def design_delay_ticks(one_way_delay_s: float, sim_rate_hz: float) -> int:
 
     :meth:`client.session.ClientSession.delay_ticks` with a steady round trip of twice the delay
     and a state sent every half simulation period
-    (:func:`shared.gain_key.loop_delay_ticks`).
+    (:func:`shared.gains.key.loop_delay_ticks`).
 
     Raises
     ------
@@ -442,8 +442,8 @@ class TableGains:
         self, k_o: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
         """K_h [N/m], I [N/(m*s)], B_h [N*s/m] and C_h [m/N] each rendering's client renders for
-        the K_o [N/m] reported (shape (B,), > 0): :meth:`shared.gain_table.GainTable.lookup`
-        where its cell is designed, else :meth:`shared.gain_table.GainTable.fallback` (the
+        the K_o [N/m] reported (shape (B,), > 0): :meth:`shared.gains.table.GainTable.lookup`
+        where its cell is designed, else :meth:`shared.gains.table.GainTable.fallback` (the
         nearest designed cell below, unscaled, C_h keeping its share of the K_o reported and,
         more than two cells below, no integral; with none below, the nearest above scaled down
         to the cell's grid point). NaN for an empty table. Last, whether the design rendered was checked with
@@ -501,7 +501,7 @@ def rendering_for(
         Limits the peers are tuned to.
     design : GainDesign, optional
         The product's gains for this object, rate and delay (required for ``local-p`` and
-        ``local-pi``): :class:`shared.gain_table.GainTable` with the client's key.
+        ``local-pi``): :class:`shared.gains.table.GainTable` with the client's key.
     k_o : float, optional
         The K_o reported [N/m] (``static-local``'s plane; default the device's stiffness).
     table : sequence of TableCell
@@ -514,7 +514,7 @@ def rendering_for(
     plane_check_s : float
         :attr:`Rendering.plane_delay_s` [s]: 0 (default), each plane checked before the press
         reaches its cell, as the client checks the cells around the K_o reported ahead
-        (:func:`shared.verified_plane.ahead_cells`); :data:`PRODUCT_PLANE_CHECK_S`, a client
+        (:func:`shared.gains.verified_plane.ahead_cells`); :data:`PRODUCT_PLANE_CHECK_S`, a client
         whose background checks have not reached the cell yet, which checks it on arrival.
     rest_plane : bool
         :attr:`Rendering.rest_plane` for a local model following K_o (default True, as the

@@ -49,12 +49,12 @@ from haptic_collab.research.harness_3d import (
 )
 from haptic_collab.server.object_info import object_info
 from haptic_collab.server.world import ContactInput, World
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.rest_plane import rest_plane_gains
+from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.local_model_update import SurfacePatch
 from haptic_collab.shared.passivity import PassivityController
 from haptic_collab.shared.primitives import Plane, Sphere, moved_out
-from haptic_collab.shared.rest_plane import rest_plane_gains
 from haptic_collab.shared.types import FloatArray
 
 __all__ = [
@@ -248,7 +248,7 @@ def rendering_3d(
     ``k_o`` [N/m] and ``delay_ms`` [ms] (seconds per design; ``gain_table`` caches them).
 
     With ``rest_plane`` a local model is the client alone on the object: the rest plane each
-    patch carries (:mod:`shared.rest_plane`), with the gains of ``k_o`` (K_h = min(K_o, the
+    patch carries (:mod:`shared.gains.rest_plane`), with the gains of ``k_o`` (K_h = min(K_o, the
     device's), its damper for ``b_o`` [N/m] (the balloon and the FEM box report 0 at the top),
     no integral or compensation, zero-order hold; :func:`renewed_patch`). Without, its design
     against the current surface, as with another user near.
@@ -275,7 +275,7 @@ def rendering_3d(
             passivity_bias_j=PRODUCT_PASSIVITY_BIAS_J,
             rest_plane=True,
             gain_transfer_s=PRODUCT_GAIN_TRANSFER_S,
-            tuning=f"{scheme_tuning(scheme, device)}; alone: the rest plane (shared.rest_plane)",
+            tuning=f"{scheme_tuning(scheme, device)}; alone: the rest plane (shared.gains.rest_plane)",
         )
     design = None
     if scheme in ("local-p", "local-pi"):

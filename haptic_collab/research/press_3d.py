@@ -134,7 +134,7 @@ class Case3D:
     name : str
         Key in the JSON (``kh600``, ``product_p``...).
     source : {"paper", "product"}
-        A gain of the paper's Fig. 10-11, or what :func:`shared.gain_design.design_gains` picks.
+        A gain of the paper's Fig. 10-11, or what :func:`shared.gains.design.design_gains` picks.
     mode : {"p", "pi"}
         Proportional or proportional-integral local model.
     k_h : float
@@ -518,22 +518,22 @@ def hand_json(hand: HandParams) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------------------------
-# the product's own gains (shared.gain_design, when present)
+# the product's own gains (shared.gains.design, when present)
 # --------------------------------------------------------------------------------------------
 
 
 def product_cases(k_o: float) -> tuple[list[Case3D], list[str]]:
     """The gains the product's design picks for ``k_o`` [N/m], modes P and PI.
 
-    Uses ``shared.gain_design.design_gains`` when it exists (no delay, the device's stiffness
+    Uses ``shared.gains.design.design_gains`` when it exists (no delay, the device's stiffness
     and damping limits as ``k_h_max`` and ``b_h_max`` as the client passes them, the design's
     other defaults). Returns the cases and notes on anything
     skipped (a missing design module, a servo without the probe damper or the first-order hold).
     """
     try:
-        design = importlib.import_module("haptic_collab.shared.gain_design").design_gains
+        design = importlib.import_module("haptic_collab.shared.gains.design").design_gains
     except (ImportError, AttributeError):
-        return [], ["shared.gain_design.design_gains is not available: product cases skipped"]
+        return [], ["shared.gains.design.design_gains is not available: product cases skipped"]
     limits = get_sim_profile(PROFILE).limits
     k_h_max = limits.max_stiffness_n_per_m
     # as client.app does: the probe damper is bounded by what the device can render

@@ -313,7 +313,7 @@ def reproduce_3d(
     hand : HandParams, optional
         The simulated hand (default :class:`HandParams`).
     product : bool
-        Also run the product's own gains (Fig. 10), when ``shared.gain_design`` exists.
+        Also run the product's own gains (Fig. 10), when ``shared.gains.design`` exists.
     sample_tick : int
         Servo tick of each period whose force the world takes (default 0, the paper's
         decimator; see :func:`run_case`).

@@ -237,7 +237,7 @@ def test_a_damped_object_is_shown_beside_what_its_design_is_felt_as(
 def test_a_design_for_a_damped_object_holds_up_to_its_one_tick_stiffness(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    # as a client's gain-table cell (shared.gain_table.cell_k_o_range): checked up to 1.25 K_o,
+    # as a client's gain-table cell (shared.gains.table.cell_k_o_range): checked up to 1.25 K_o,
     # or up to K_o + B_o where that is higher (docs/gains.md)
     base = ["gains", "--k-o", "300", "--local-model", "p", "--sim-rate", "100", "--json"]
     assert _json(capsys, [*base, "--b-o", "472"])["k_o_range"] == pytest.approx([255.0, 772.0])

@@ -138,7 +138,7 @@ def test_gains_flipping_between_a_fallback_and_a_design_are_a_felt_stiffness_ste
     assert felt["high_n_per_m"] == pytest.approx(K_O, rel=1e-6)
     assert felt["ratio"] == pytest.approx(K_O / fallback_felt, rel=1e-6)
     assert felt["step_n_per_m"] == pytest.approx(K_O - fallback_felt, rel=1e-6)
-    assert felt["jnd"] == pytest.approx(0.10)  # shared.verified_plane's ln(1.1), as a share
+    assert felt["jnd"] == pytest.approx(0.10)  # shared.gains.verified_plane's ln(1.1), as a share
     assert judged["hold_oscillation_mm"] < 0.01  # the probe never moved
     assert judged["verdict"] == "unstable"
     (reason,) = judged["verdict_reasons"]

@@ -7,8 +7,8 @@ import json
 from dataclasses import replace
 
 from haptic_collab.cli.shipped_tables import SHIP_GRID, build_table, ship_jobs
-from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.gain_table_file import design_code_hash, load_table_document
+from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.gains.table_file import design_code_hash, load_table_document
 
 # two cells at 100 Hz (N = 10: a design's loop is a fifth of 20 Hz's), one tick of delay
 TINY = {

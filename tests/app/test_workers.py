@@ -13,7 +13,7 @@ SCRIPT = textwrap.dedent(
     """
     import multiprocessing, sys, time
     from concurrent.futures import ProcessPoolExecutor
-    from haptic_collab.workers import stop_pool
+    from haptic_collab.client.workers import stop_pool
 
     def design():  # stands for a PI design on a busy machine
         time.sleep(300.0)
@@ -49,10 +49,10 @@ def test_a_process_exits_without_waiting_for_its_running_design(tmp_path):
 
 
 def test_timed_stamps_the_design_with_the_wall_time_it_took():
+    from haptic_collab.client.workers import timed
     from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
-    from haptic_collab.shared.gain_key import GainKey
-    from haptic_collab.shared.gain_table import design_cell
-    from haptic_collab.workers import timed
+    from haptic_collab.shared.gains.key import GainKey
+    from haptic_collab.shared.gains.table import design_cell
 
     key = GainKey(1000.0, 20.0, 0, "p", 0.15, 1000.0, 10.0)
     plain = design_cell(key, 20, 2.0**0.25, DEFAULT_HAND_BOX)

@@ -21,8 +21,9 @@ from haptic_collab.research.fidelity_ranking import (
     summarize,
 )
 from haptic_collab.research.fidelity_schemes import SCHEMES, Rendering, peer_renderings
-from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
+from haptic_collab.shared.felt_stiffness import felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand
+from haptic_collab.shared.gains.policy import FELT_BAND_HZ
 
 
 @pytest.mark.slow  # a fidelity grid run: benchmark-shaped

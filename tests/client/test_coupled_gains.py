@@ -24,7 +24,7 @@ from haptic_collab.server.contact_stiffness import effective_stiffness, stiff_st
 from haptic_collab.shared.coupled_compliance import compliance_matrix
 from haptic_collab.shared.coupled_loop import UserGains, verify_coupled
 from haptic_collab.shared.felt_stiffness import felt_stiffness
-from haptic_collab.shared.interim_gains import interim_design
+from haptic_collab.shared.gains.interim import interim_design
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from tests.support.sessions import plane_patch, welcomed_session
 
@@ -104,7 +104,7 @@ def test_a_new_coupling_class_renders_a_scaled_proportional_model_until_verified
 
 
 def test_a_second_user_arriving_is_rendered_at_once_with_gains_of_a_wider_class() -> None:
-    # gains designed ahead for the contact's cell at coupling class 2 (client.link.likely_next)
+    # gains designed ahead for the contact's cell at coupling class 2 (shared.gains.choose.likely_next)
     # cover any weaker coupling: no unverified fallback, no halved force when B arrives
     s = session()
     assert s.receive(plane_patch(1, 300.0, 300.0, None), 0.1) is None

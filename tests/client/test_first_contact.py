@@ -1,7 +1,7 @@
 """The first contact renders promptly, with gains verified for its key; interim gains are checked.
 
 A first patch no longer waits for the PI design (about a second, up to ten): it waits for one
-or a few full-loop checks of known or generic gains (:func:`shared.interim_gains.interim_design`).
+or a few full-loop checks of known or generic gains (:func:`shared.gains.interim.interim_design`).
 Whatever the session renders as interim gains passes the design's own acceptance test for the
 patch's key and K_o cell, re-checked here independently with :func:`shared.full_loop.spectral_radius`.
 """
@@ -21,11 +21,10 @@ from haptic_collab.client.link import Link
 from haptic_collab.client.session import ClientSession
 from haptic_collab.shared.felt_stiffness import felt_stiffness
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, spectral_radius
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_policy import FALLBACK_K_RATIO
-from haptic_collab.shared.gain_search import DESIGN_TIE
-from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.interim_gains import INTERIM_LADDER, interim_design, verify_gains
+from haptic_collab.shared.gains.interim import interim_design, verify_gains
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.policy import DESIGN_TIE, FALLBACK_K_RATIO, INTERIM_LADDER
+from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.protocol import DeviceInfo, Pong, Welcome, encode
 from tests.support.sessions import WELCOME_OBJECT as OBJ

@@ -9,9 +9,9 @@ import logging
 import pytest
 
 from haptic_collab.client.gain_store import cache_path, load_cache, preload, save_cache
-from haptic_collab.shared.gain_key import make_gain_key
-from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.gain_table_file import design_code_hash
+from haptic_collab.shared.gains.key import make_gain_key
+from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.gains.table_file import design_code_hash
 
 
 def _key(delay: int):

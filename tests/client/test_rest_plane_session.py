@@ -1,4 +1,4 @@
-"""A user alone on the object renders the rest plane the patch carries (shared.rest_plane).
+"""A user alone on the object renders the rest plane the patch carries (shared.gains.rest_plane).
 
 At once (no design to wait for), with the object's stiffness; the simulation's surface with the
 design again when another user joins (the patch without a rest plane); and, in a contact
@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.policy import HOLD_BACK_S
+from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.primitives import make_plane
 from haptic_collab.shared.protocol import PlaneModel
-from haptic_collab.shared.rest_plane import HOLD_BACK_S
 from tests.client.test_verified_plane_session import TABLE, _check_planes
 from tests.support.sessions import press_patch, welcomed_session
 

@@ -24,9 +24,9 @@ from haptic_collab.client.devices.sim import SimDevice
 from haptic_collab.client.devices.trajectories import Press
 from haptic_collab.client.servo import ServoConfig, ServoCore
 from haptic_collab.client.theta import THETA_EXIT_SPEED_M_S, threshold_for
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams, encoder_speed_bound
 from haptic_collab.shared.primitives import make_plane
 from tests.support.helpers import ScriptedDevice

@@ -1,6 +1,6 @@
 """The client renders the verified plane once the object has yielded to its own force as a spring,
 of the K_o reported or of the stiffness the check identified (client.session with
-shared.own_response and shared.verified_plane), and keeps its design otherwise."""
+shared.gains.own_response and shared.gains.verified_plane), and keeps its design otherwise."""
 
 from __future__ import annotations
 
@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from haptic_collab.client.link import Link
-from haptic_collab.client.session import PLANE_ALONE, ClientSession
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.client.session import ClientSession
+from haptic_collab.shared.gains.choose import PLANE_ALONE
+from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.gains.verified_plane import plane_against, verified_plane
 from haptic_collab.shared.protocol import (
     DeviceInfo,
     Patch,
@@ -22,7 +24,6 @@ from haptic_collab.shared.protocol import (
     Welcome,
     encode,
 )
-from haptic_collab.shared.verified_plane import plane_against, verified_plane
 from tests.support.sessions import WELCOME_OBJECT, press_patch, welcomed_session
 
 K_O = 300.0

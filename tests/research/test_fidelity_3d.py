@@ -17,7 +17,7 @@ from haptic_collab.research.fidelity_pairs_3d import run_3d_pair
 from haptic_collab.research.fidelity_users_3d import SCHEMES_3D, NormalTrajectory, top_contact
 from haptic_collab.research.harness_3d import RATE_RATIO
 from haptic_collab.server.main import ServerOptions, build_world
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.table import GainTable
 
 CELL_KEYS = {
     "scheme",

@@ -32,10 +32,10 @@ from haptic_collab.research.fidelity_schemes import (
     rendering_for,
 )
 from haptic_collab.shared.full_loop import ProxyHold
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.rest_plane import rest_plane_gains
+from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.local_model import LocalModelParams, ThresholdParams
-from haptic_collab.shared.rest_plane import rest_plane_gains
 
 SERVO_HZ = 1000.0
 #: a tap deep enough to leave the object and come back, through cells whose C_h rises and falls

@@ -51,8 +51,8 @@ from haptic_collab.research.fidelity_schemes import (
     rendering_for,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand, ProxyHold
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.table import GainTable
 
 DIRECT = Rendering("direct", "direct")
 FMAX = 7.9

@@ -1,13 +1,13 @@
 """The benchmark's simulator runs the client's own-response check: its batch bookkeeping
 (haptic_collab.research.fidelity_1d._verified_plane_gains) gives the verdicts and the
-stiffness identified that shared.own_response.OwnResponse gives the client, patch by patch."""
+stiffness identified that shared.gains.own_response.OwnResponse gives the client, patch by patch."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from haptic_collab.research.fidelity_1d import _PLANE_CELLS, _verified_plane_gains
-from haptic_collab.shared.own_response import (
+from haptic_collab.shared.gains.own_response import (
     OwnResponse,
     empty_deformation,
     empty_jumps,

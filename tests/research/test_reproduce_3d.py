@@ -95,7 +95,7 @@ def test_product_cases_are_skipped_with_a_note_without_the_design(
     real = importlib.import_module
 
     def missing(name: str, *args: Any, **kwargs: Any) -> Any:
-        if name == "haptic_collab.shared.gain_design":
+        if name == "haptic_collab.shared.gains.design":
             raise ImportError(name)
         return real(name, *args, **kwargs)
 

@@ -233,7 +233,7 @@ def test_an_interim_recommendation_yields_to_the_clients_own_full_design() -> No
 
 def test_the_advisor_holds_the_delay_through_a_contact_as_the_client_does() -> None:
     # the advisor's recommendation changes key only as the client's own would: a steady hold
-    # whose round trips waver under load keeps one key (shared.gain_policy.DelayHold)
+    # whose round trips waver under load keeps one key (shared.gains.delay.DelayHold)
     adv = GainAdvisor(20.0, shipped=False)
     h = hello("pi")
     for _ in range(20):

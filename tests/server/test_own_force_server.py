@@ -116,7 +116,7 @@ def test_an_honest_client_with_a_small_k_h_keeps_the_force_its_compensation_hold
 
 def test_the_room_believes_a_user_alone_on_its_rest_plane_and_still_bounds_a_liar():
     # a user alone renders the rest plane the patch carries with K_h = K_o and no compensation
-    # (shared.rest_plane): its force is K_o times the depth under the rest surface, while the
+    # (shared.gains.rest_plane): its force is K_o times the depth under the rest surface, while the
     # current surface has given way by F / K_o under it. The bound must allow that force (by the
     # current surface alone it allowed K_o times the depth under it: a fraction), and no more
     world = build_world(ServerOptions(sim_rate_hz=20.0))

@@ -19,7 +19,6 @@ import pytest
 
 from haptic_collab.server.contact_stiffness import effective_stiffness
 from haptic_collab.shared.coupled_compliance import compliance_matrix, modal_stiffness
-from haptic_collab.shared.coupled_design import CoupledDesign, design_coupled
 from haptic_collab.shared.coupled_loop import (
     UserGains,
     coupled_monodromy,
@@ -28,8 +27,9 @@ from haptic_collab.shared.coupled_loop import (
     verify_coupled,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, Hand, spectral_radius
-from haptic_collab.shared.gain_design import GainDesign, design_gains
-from haptic_collab.shared.gain_key import (
+from haptic_collab.shared.gains.coupled_design import CoupledDesign, design_coupled
+from haptic_collab.shared.gains.design import GainDesign, design_gains
+from haptic_collab.shared.gains.key import (
     K_O_RIGID,
     coupled_k_o_hi,
     covering_classes,

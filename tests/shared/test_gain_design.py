@@ -1,6 +1,6 @@
 """Gain design with the hand in the loop, checked independently of how it was designed.
 
-The design (shared.gain_design) checks its candidates on the hands of ``HandBox.hands()`` (the
+The design (shared.gains.design) checks its candidates on the hands of ``HandBox.hands()`` (the
 box's corners, face centres and centre). Here every design is re-checked on a *finer* lattice of
 hands spanning the same ranges (4 x 4 x 4 points plus the simulated hand,
 :mod:`tests.support.hand_lattice`), at every force-sampling tick and at K_o' = (1 - margin) K_o,
@@ -22,7 +22,7 @@ import pytest
 from scipy.linalg import expm
 
 from haptic_collab.shared.full_loop import DEFAULT_HAND, Hand
-from haptic_collab.shared.gain_design import GainDesign, design_gains
+from haptic_collab.shared.gains.design import GainDesign, design_gains
 from tests.support.hand_lattice import T, worst_on_lattice
 
 MARGIN = 0.15  # design_gains' default

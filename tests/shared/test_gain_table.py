@@ -1,4 +1,4 @@
-"""The table of gain designs (shared.gain_table), its designs re-checked on a finer lattice of hands
+"""The table of gain designs (shared.gains.table), its designs re-checked on a finer lattice of hands
 than the design's own (:mod:`tests.support.hand_lattice`): lookups, scaling across a cell,
 fallbacks while a cell is designed, and refused input."""
 
@@ -12,15 +12,15 @@ import pytest
 
 from haptic_collab.shared.felt_stiffness import felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
-from haptic_collab.shared.gain_design import GainDesign, design_gains, design_gains_modes
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import (
+from haptic_collab.shared.gains.design import GainDesign, design_gains, design_gains_modes
+from haptic_collab.shared.gains.interim import verify_gains
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.table import (
     GainTable,
     cell_k_o_range,
     design_cell,
     design_cell_modes,
 )
-from haptic_collab.shared.interim_gains import verify_gains
 from tests.support.hand_lattice import SERVO_HZ, T, worst_on_lattice
 
 MARGIN = 0.15  # design_gains' default

@@ -1,4 +1,4 @@
-"""A gain table as a file (shared.gain_table_file): what a session loads renders the same gains,
+"""A gain table as a file (shared.gains.table_file): what a session loads renders the same gains,
 and a file of other design code, another hand box or a broken record is refused whole."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import math
 import pytest
 
 from haptic_collab.shared.full_loop import HandBox
-from haptic_collab.shared.gain_key import make_gain_key
-from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.gain_table_file import (
+from haptic_collab.shared.gains.key import make_gain_key
+from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.gains.table_file import (
     _without_docstrings,
     design_code_hash,
     design_code_modules,
@@ -112,8 +112,8 @@ def test_the_design_code_hash_ignores_docstrings_but_not_code() -> None:
     dump = [ast.dump(_without_docstrings(t)) for t in (a, b, c)]
     assert dump[0] == dump[1] != dump[2]
     mods = design_code_modules()
-    assert "haptic_collab.shared.gain_search" in mods and "haptic_collab.shared.full_loop" in mods
-    assert "haptic_collab.shared.gain_table_file" not in mods  # its format is not the designs'
+    assert "haptic_collab.shared.gains.search" in mods and "haptic_collab.shared.full_loop" in mods
+    assert "haptic_collab.shared.gains.table_file" not in mods  # its format is not the designs'
     assert len(design_code_hash()) == 16
 
 

@@ -20,21 +20,17 @@ from haptic_collab.research.fidelity_schemes import DeviceModel, rendering_for
 from haptic_collab.server.contact_stiffness import effective_stiffness, stiff_stiffness
 from haptic_collab.shared.coupled_compliance import compliance_matrix
 from haptic_collab.shared.coupled_loop import UserGains, verify_coupled
-from haptic_collab.shared.felt_stiffness import (
-    FELT_BAND_HZ,
-    felt_responses,
-    felt_stiffness,
-    object_stiffness,
-)
+from haptic_collab.shared.felt_stiffness import felt_responses, felt_stiffness, object_stiffness
 from haptic_collab.shared.full_loop import DEFAULT_HAND, DEFAULT_HAND_BOX, monodromy
-from haptic_collab.shared.gain_key import GainKey, stiff_ratio_class
-from haptic_collab.shared.gain_table import GainTable, cell_k_o_range, design_cell
-from haptic_collab.shared.interim_gains import verify_gains
+from haptic_collab.shared.gains.interim import verify_gains
+from haptic_collab.shared.gains.key import GainKey, stiff_ratio_class
+from haptic_collab.shared.gains.policy import FELT_BAND_HZ, MIN_DECAY_RATE_PER_S
+from haptic_collab.shared.gains.table import GainTable, cell_k_o_range, design_cell
+from haptic_collab.shared.gains.verified_plane import verified_key
 from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.primitives import make_plane, make_sphere, moved_out
 from haptic_collab.shared.protocol import Patch, PlaneModel
-from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S, k_o_points, mode_radii
-from haptic_collab.shared.verified_plane import verified_key
+from haptic_collab.shared.stability_margin import k_o_points, mode_radii
 
 DEVICE = DeviceModel()
 

@@ -1,4 +1,4 @@
-"""The own-response check (shared.own_response): whether the object yields to this user's force as
+"""The own-response check (shared.gains.own_response): whether the object yields to this user's force as
 a spring of the K_o reported does, or of which other stiffness, from the surface and force each
 patch carries."""
 
@@ -9,9 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from haptic_collab.shared.own_response import (
-    IDENTIFY_RANGE,
-    TOLERANCE,
+from haptic_collab.shared.gains.own_response import (
     OwnResponse,
     empty_deformation,
     empty_jumps,
@@ -22,6 +20,7 @@ from haptic_collab.shared.own_response import (
     update_sums,
     verdict,
 )
+from haptic_collab.shared.gains.policy import IDENTIFY_RANGE, TOLERANCE
 
 K_O = 300.0
 DT = 0.05  # 20 Hz patches

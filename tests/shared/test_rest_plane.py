@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from haptic_collab.shared.rest_plane import rest_plane_dampers, rest_plane_gains
+from haptic_collab.shared.gains.rest_plane import rest_plane_dampers, rest_plane_gains
 
 T = 1e-3  # the servo period [s]
 

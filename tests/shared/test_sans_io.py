@@ -2,7 +2,7 @@
 
 DESIGN's rule ("shared/ never touches sockets, threads or clocks; time is passed in"), checked on
 the source (type-checking imports included) so that a new import cannot slip in. Whoever needs a
-wall time (a design's ``design_ms``) measures it outside (``haptic_collab.workers.timed``); the
+wall time (a design's ``design_ms``) measures it outside (``haptic_collab.client.workers.timed``); the
 figures are drawn by ``haptic_collab.research.plots`` (matplotlib sets process-wide state).
 """
 

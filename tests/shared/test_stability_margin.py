@@ -12,12 +12,8 @@ import math
 import numpy as np
 
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, monodromy
-from haptic_collab.shared.stability_margin import (
-    MIN_DECAY_RATE_PER_S,
-    group_mode_radii,
-    mode_radii,
-    radius_bounds,
-)
+from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
+from haptic_collab.shared.stability_margin import group_mode_radii, mode_radii, radius_bounds
 
 
 def _loops() -> tuple[np.ndarray, float, int, float]:

@@ -1,4 +1,4 @@
-"""The verified plane (shared.verified_plane): the object's own plane, checked for a K_o known to
+"""The verified plane (shared.gains.verified_plane): the object's own plane, checked for a K_o known to
 within 5 %, re-checked here on a finer lattice of hands than the design's, and shown to be what
 needs the own-response check: off that range some hand rings or runs away."""
 
@@ -10,19 +10,22 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from haptic_collab.shared import verified_plane as verified_plane_module
-from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
+from haptic_collab.shared.felt_stiffness import felt_responses
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import GainTable, design_cell
-from haptic_collab.shared.interim_gains import verify_gains
-from haptic_collab.shared.verified_plane import (
+from haptic_collab.shared.gains import verified_plane as verified_plane_module
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.interim import verify_gains
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.policy import (
     AHEAD_SOFTER,
     AHEAD_STIFFER,
     CAPPED_PLANE_MAX,
+    FELT_BAND_HZ,
     PLANE_DAMPERS,
     VERIFIED_RANGE,
+)
+from haptic_collab.shared.gains.table import GainTable, design_cell
+from haptic_collab.shared.gains.verified_plane import (
     ahead_cells,
     checked_plane,
     felt_closer,

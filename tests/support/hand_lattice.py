@@ -1,7 +1,7 @@
 """A lattice of hands finer than the design's hand box, and the full loop's worst spectral radius
 over it: the independent re-check the gain design and gain table tests apply to designed gains.
 
-The design (shared.gain_design) checks its candidates on the hands of ``HandBox.hands()`` (the
+The design (shared.gains.design) checks its candidates on the hands of ``HandBox.hands()`` (the
 box's corners, face centres and centre); :data:`FINE_HANDS` spans the same ranges with 4 x 4 x 4
 points plus the simulated hand, and :func:`worst_on_lattice` checks every force-sampling tick.
 """
@@ -16,7 +16,7 @@ from haptic_collab.shared.full_loop import (
     Hand,
     spectral_radius,
 )
-from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gains.design import GainDesign
 
 SERVO_HZ = 1000.0
 T = 1.0 / SERVO_HZ

@@ -1,7 +1,7 @@
-"""The shipped gain tables (``shared/gain_tables/<profile>.json``) against the design code.
+"""The shipped gain tables (``shared/gains/tables/<profile>.json``) against the design code.
 
 A shipped table holds only for the design code of its hash
-(:func:`shared.gain_table_file.design_code_hash`). ``--check`` fails when a built-in profile of
+(:func:`shared.gains.table_file.design_code_hash`). ``--check`` fails when a built-in profile of
 :data:`haptic_collab.cli.shipped_tables.SHIP_PROFILES` has no table or one of other code, and
 says how many of its grid's cells are missing (a cell with no stable design is never in it);
 without ``--check`` the stale or missing tables are built (``haptic gains-table --ship``:
@@ -21,8 +21,8 @@ from haptic_collab.cli.shipped_tables import (
     shipped_dir,
 )
 from haptic_collab.client.devices.profiles import get_sim_profile
-from haptic_collab.shared.gain_table import GainTable
-from haptic_collab.shared.gain_table_file import design_code_hash, load_table_document
+from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.gains.table_file import design_code_hash, load_table_document
 
 
 def stale_tables() -> list[str]:

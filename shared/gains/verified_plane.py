@@ -1,15 +1,15 @@
 """The verified plane: the object's own plane, checked for a K_o known to within a few percent.
 
 The product's designs hold on objects from 15 % softer than the K_o reported to 25 % stiffer
-(:class:`shared.gain_key.GainKey`), and pay for it with a damper or a K_h away from K_o, felt over
-the band. Where the own-response check (:mod:`shared.own_response`) has seen the object yield to
+(:class:`shared.gains.key.GainKey`), and pay for it with a damper or a K_h away from K_o, felt over
+the band. Where the own-response check (:mod:`shared.gains.own_response`) has seen the object yield to
 this user's force as a spring of the K_o reported does, the client may render instead the plane
 at the rest surface with the object's stiffness: K_h = K_o and C_h = 1 / K_o (own-force
-compensation, ``F = K_h (x - x_o) + F_s``; :mod:`shared.gain_design`), which is model-mediated
+compensation, ``F = K_h (x - x_o) + F_s``; :mod:`shared.gains.design`), which is model-mediated
 teleoperation's plane (Mitra and Niemeyer 2008) and is felt as the object itself at every
 frequency. It is rendered only as verified here: the lightest probe damper of
 :data:`PLANE_DAMPERS` (and the proxy hold) with which the plane passes the design's own acceptance
-test (:func:`shared.interim_gains.verify_gains`: every hand of the box, every sampling tick,
+test (:func:`shared.gains.interim.verify_gains`: every hand of the box, every sampling tick,
 oscillations decaying at 1/s) on the objects it is rendered for: scaled to the K_o reported
 (K_h = K_o, C_h = 1 / K_o), on objects :data:`VERIFIED_RANGE` either side of that K_o, where the
 own-response check holds the object, at the cell's grid point, middle and top (the top also up to
@@ -59,38 +59,21 @@ from typing import Literal
 
 import numpy as np
 
-from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ, felt_responses
+from haptic_collab.shared.felt_stiffness import felt_responses
 from haptic_collab.shared.full_loop import HandBox, object_impedance
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.interim_gains import verify_gains
-from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S
-
-#: How far the object may be off the K_o reported for the verified plane: it is checked from this
-#: fraction softer than the bottom of its cell to this fraction stiffer than its top (the own-response
-#: check verifies to :data:`shared.own_response.TOLERANCE`, inside it).
-VERIFIED_RANGE = 0.05
-
-#: The capped plane is tried in cells up to this factor above the device's stiffness: its felt
-#: error at the grid point, ln(g / K_h) <= 0.22 (up to about 0.3 at the top of the cell), is of
-#: the order of what the cell's design gives up to its damper and a K_h below the device's (at
-#: 1200 N/m on the benchmark's device, 1000 N/m and 10 N*s/m, 20 conditions: the capped plane
-#: 0.145 at its grid point against the design's 0.08-0.27). Further up every rendering is held
-#: to the device's stiffness, the designs are capped planes already (K_h the device's, C_h =
-#: 1 / K_o) and their damper is felt little: at 3000 N/m the capped plane was closer at its grid
-#: point in none of 20 conditions (1.098 against 0.96-1.098), so the client does not spend the
-#: check.
-CAPPED_PLANE_MAX = 1.25
-
-#: The capped plane's compensation steps c: ``C_h = (1 - c) / g + c / K_max`` (module docstring),
-#: from the object's compliance at the cell's grid point (c = 0: the plane stays at the rest
-#: surface, felt as the device's stiffness) to the device's (c = 1: the object's own stiffness
-#: felt statically, through the simulation loop).
-CAPPED_COMPENSATION: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
-
-#: Probe dampers the plane is tried with, lightest first, as fractions of the device's B_h limit
-#: (0 to 5 N*s/m on the benchmark's 10 N*s/m device; 0 to 2.5 on a 5 N*s/m one).
-PLANE_DAMPERS: tuple[float, ...] = (0.0, 0.025, 0.05, 0.1, 0.15, 0.25, 0.35, 0.5)
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.interim import verify_gains
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.policy import (
+    AHEAD_SOFTER,
+    AHEAD_STIFFER,
+    CAPPED_COMPENSATION,
+    CAPPED_PLANE_MAX,
+    FELT_BAND_HZ,
+    MIN_DECAY_RATE_PER_S,
+    PLANE_DAMPERS,
+    VERIFIED_RANGE,
+)
 
 _HOLDS: tuple[Literal["zoh", "foh"], ...] = ("zoh", "foh")
 
@@ -105,7 +88,7 @@ def _band_response(
     own_gain: float,
     i_gain: float = 0.0,
 ) -> np.ndarray:
-    """Felt responses dF/dx [N/m] over :data:`shared.felt_stiffness.FELT_BAND_HZ` of these gains
+    """Felt responses dF/dx [N/m] over :data:`shared.gains.policy.FELT_BAND_HZ` of these gains
     on an object of ``k_o`` [N/m] under ``key`` (its rates, delay and B_o), shape (F,)."""
     return felt_responses(
         FELT_BAND_HZ,
@@ -146,15 +129,6 @@ def plane_applies(key: GainKey) -> bool:
     does not say how a viscoelastic object answers a press over more than one tick, and the K_o
     and B_o a patch carries are all the client knows of the object."""
     return key.own_force and key.stiff_ratio == 1.0 and key.b_o == 0.0
-
-
-#: The cells whose planes a client checks ahead, in the background, around the cell of the K_o
-#: its patches report: from this factor of that K_o ...
-AHEAD_SOFTER = 0.5
-#: ... to this factor of it (up to :data:`CAPPED_PLANE_MAX` times the device's stiffness). A press
-#: into an exponentially stiffening object (Fung 1993) 10 mm deep reports 2.7 times its K_o at
-#: rest (docs/fidelity.md); a spring reported 20 % off is identified within one to three cells.
-AHEAD_STIFFER = 3.0
 
 
 def ahead_cells(key: GainKey, cell: int, grid_ratio: float) -> tuple[int, ...]:
@@ -263,7 +237,7 @@ def checked_plane(
     Raises
     ------
     ValueError
-        A grid ratio not above 1, or as :func:`shared.interim_gains.verify_gains`.
+        A grid ratio not above 1, or as :func:`shared.gains.interim.verify_gains`.
     """
     if not (math.isfinite(grid_ratio) and grid_ratio > 1.0):
         raise ValueError(f"grid_ratio must be > 1, got {grid_ratio!r}")
@@ -359,7 +333,7 @@ def felt_closer(plane: GainDesign, key: GainKey, design: GainDesign) -> bool:
     across the plane's cell: on objects at its grid point g, its middle and its top (g, sqrt(r)
     g and r g, r the grid ratio, read from the range the plane was checked over), each rendering
     as it is there (``plane.at(k)``, ``design.at(k)``, clamped to the range each was checked
-    over), the largest ``|ln |q / k||`` over :data:`shared.felt_stiffness.FELT_BAND_HZ` under
+    over), the largest ``|ln |q / k||`` over :data:`shared.gains.policy.FELT_BAND_HZ` under
     ``key`` (its rates, delay and B_o), the measure the design ranks by; the worst of the three
     first, then their mean. A capped plane's gains are one set across its cell, right at one
     stiffness at most, so it must win across the cell, not at g alone."""
@@ -374,10 +348,6 @@ def felt_error_at(d: GainDesign, key: GainKey, k_o: float) -> float:
     return _cell_errors(d, key, (k_o,))[0]
 
 
-#: A stiffness JND of 10 % (docs/fidelity.md) as a felt error [ln]: a difference a hand can feel.
-DESIGN_OVER_REST = math.log(1.1)
-
-
 def verified_plane(
     key: GainKey,
     cell: int,
@@ -386,7 +356,7 @@ def verified_plane(
     design: GainDesign | None = None,
 ) -> GainDesign | None:
     """:func:`checked_plane`, or None if it is felt no closer to the object than ``design``
-    (:func:`felt_closer`; the cell's own design, as :func:`shared.gain_table.design_cell` made
+    (:func:`felt_closer`; the cell's own design, as :func:`shared.gains.table.design_cell` made
     it, or the design of the cell of the K_o reported where the plane is of a stiffness the
     own-response check identified).
 

@@ -39,26 +39,12 @@ import numpy as np
 
 from haptic_collab.shared.checks import nonneg, positive
 from haptic_collab.shared.full_loop import object_impedance
+from haptic_collab.shared.gains.policy import (
+    DAMPER_BAND_HZ,
+    DAMPER_FRACTIONS,
+    MIN_DAMPER_PER_STIFFNESS_PERIOD,
+)
 from haptic_collab.shared.types import FloatArray
-
-#: After a verified plane has rendered in a contact, the rest plane renders again only once none
-#: has for this long [s] (the patches' ticks). A press that crossed from the rest plane to the
-#: verified planes of a stiffening object and back every cycle rang (7 Hz, 8 mm peak to peak,
-#: the heavy stiff hand, 100 N/m at 50 Hz with 50 ms); never coming back in the contact lost
-#: the rest plane where the verified planes stop (the stiffening object at 1000 N/m, beyond the
-#: capped plane's reach: 14 conditions of 80). Measured with the fidelity benchmark's 1-D
-#: simulator, 2026-11-26: with 1 s, stable with every hand of the box in all 80 stiffening
-#: conditions and both local models, and within the JND of the best in 76.
-HOLD_BACK_S = 1.0
-
-#: The probe dampers tried, as fractions of the device's damping (B_h,max).
-DAMPER_FRACTIONS = (0.0, 0.25, 0.5, 1.0)
-
-#: The least probe damper, as a multiple of K_h T [N*s/m per N/m*s] (module docstring).
-MIN_DAMPER_PER_STIFFNESS_PERIOD = 0.5
-
-#: The frequencies [Hz] over which the damper's felt impedance is matched to the object's.
-DAMPER_BAND_HZ = (0.5, 1.0, 2.0, 4.0, 8.0)
 
 
 @dataclass(frozen=True, slots=True)

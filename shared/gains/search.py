@@ -1,6 +1,6 @@
-"""The candidate search behind :func:`shared.gain_design.design_gains`.
+"""The candidate search behind :func:`shared.gains.design.design_gains`.
 
-:mod:`shared.gain_design` states what a design must satisfy and which one wins; this module owns
+:mod:`shared.gains.design` states what a design must satisfy and which one wins; this module owns
 how the candidates are found: the candidate gains (:func:`candidate_groups`: the paper's local
 model, proportional models with own-force compensation, the plane above the device's stiffness),
 the transparency objective they are ranked by (the felt response over the band and in a held
@@ -28,6 +28,10 @@ from haptic_collab.shared.full_loop import (
     monodromy,
     object_impedance,
 )
+from haptic_collab.shared.gains.policy import (
+    DESIGN_TIE,
+    OWN_FORCE_RATIOS,
+)
 from haptic_collab.shared.stability_margin import group_mode_radii, k_o_points
 from haptic_collab.shared.types import FloatArray, IndexArray
 
@@ -36,28 +40,9 @@ _G = TypeVar("_G", float, FloatArray)
 
 def scaled_gains(k_h: _G, i_gain: _G, own_gain: _G, s: _G) -> tuple[_G, _G, _G]:
     """K_h, I and C_h of gains scaled to a K_o s times the one designed for (s >= 1): K_h and I
-    times s, C_h over s (:meth:`shared.gain_design.GainDesign.at`; B_h and the hold stay).
+    times s, C_h over s (:meth:`shared.gains.design.GainDesign.at`; B_h and the hold stay).
     Floats or arrays (of one value per candidate)."""
     return k_h * s, i_gain * s, own_gain / s
-
-
-#: C_h K_h values the design tries with own-force compensation (:mod:`shared.gain_design`). At 1
-#: the local model is ``F = K_h (x - x_o) + F_s``: in a held press the probe settles on the surface
-#: with ``F = K_o x``, the object's own stiffness whatever K_h and whatever the error in K_o (the
-#: simulation loop's static gain ``1 - K_h / K_o`` must stay inside (-1, 1)); for coupled users
-#: the held press is the object's own physics, the others' pushes included. Ratios below 1 feel
-#: softer in a held press; they won only at K_o above the device's stiffness, where the paper's PI
-#: does as well, and made a contact's rendering change with its coupling class (a user resting
-#: with 0.42 N felt 0.40 N while another pressed), so they are not tried. The one exception is
-#: the plane above the device's stiffness (C_h = 1 / K_o with K_h capped below K_o,
-#: :func:`shared.gain_design.design_gains`): there no ratio of 1 can be rendered.
-OWN_FORCE_RATIOS: tuple[float, ...] = (1.0,)
-
-#: Step [ln of the felt stiffness ratio] in which a design's error on the design model is
-#: compared (:func:`shared.gain_design.design_gains`): half the fidelity benchmark's tie, ln(1.1)
-#: (a stiffness JND of 10 %, docs/fidelity.md). Within a step, the design more transparent on an
-#: object stiffer or softer than reported (:attr:`shared.gain_key.GainKey.stiffer_by`) wins.
-DESIGN_TIE = 0.5 * math.log(1.1)
 
 
 def _worst_rho(
@@ -79,7 +64,7 @@ def _worst_rho(
 
     Returns ``(margin_radius, radius)``: ``radius`` the true spectral radius; ``margin_radius``
     the largest oscillating eigenvalue magnitude, with creep eigenvalues (slower than
-    :data:`shared.stability_margin.CREEP_FREQUENCY_HZ`) counted as ``|lambda| * rho_limit``, so
+    :data:`shared.gains.policy.CREEP_FREQUENCY_HZ`) counted as ``|lambda| * rho_limit``, so
     that ``margin_radius < rho_limit`` means "oscillations decay at the required rate and creep is
     stable".
     """
@@ -131,7 +116,7 @@ def _worst_rho(
 
 def _felt_dc(cand: dict[str, FloatArray], k_o: float) -> FloatArray:
     """Felt stiffness in a held press over K_o per candidate: 1 with an integral, else
-    ``K_h / (K_o + (1 - C_h K_o) K_h)`` (:mod:`shared.gain_design`), inf where that denominator
+    ``K_h / (K_o + (1 - C_h K_o) K_h)`` (:mod:`shared.gains.design`), inf where that denominator
     is <= 0 (the static loop gain ``K_h (C_h K_o - 1) / K_o`` >= 1 runs away)."""
     denom = k_o + (1.0 - cand["own_gain"] * k_o) * cand["k_h"]
     static = cand["k_h"] / np.where(denom > 0.0, denom, 1.0)
@@ -155,7 +140,7 @@ def _band_miss(resp: FloatArray) -> FloatArray:
 
 
 def _at_scale(base: dict[str, FloatArray], s: FloatArray) -> dict[str, FloatArray]:
-    """Every candidate's gains scaled by s (:meth:`shared.gain_design.GainDesign.at`)."""
+    """Every candidate's gains scaled by s (:meth:`shared.gains.design.GainDesign.at`)."""
     k_h, i_gain, own_gain = scaled_gains(base["k_h"], base["i_gain"], base["own_gain"], s)
     return {"k_h": k_h, "i_gain": i_gain, "b_h": base["b_h"], "own_gain": own_gain}
 
@@ -174,7 +159,7 @@ def candidate_groups(
     scaled: bool,
     felt_at: Sequence[float],
 ) -> list[tuple[dict[str, FloatArray], bool]]:
-    """The candidate gains of :func:`shared.gain_design.design_gains`, in groups ``(gains, with
+    """The candidate gains of :func:`shared.gains.design.design_gains`, in groups ``(gains, with
     an integral)``.
 
     The paper's local model first (K_h below ``lo``, with an integral when ``integral``), then,
@@ -194,7 +179,7 @@ def candidate_groups(
     k_h_max, b_h_max : float
         The device's maximum stiffness [N/m] and virtual damping [N*s/m].
     own_force, scaled, felt_at
-        As :func:`shared.gain_design.design_gains` (``felt_at``: its ``felt_k_os``, or
+        As :func:`shared.gains.design.design_gains` (``felt_at``: its ``felt_k_os``, or
         ``[k_o]``).
     """
     N, T = rate_ratio, servo_period_s
@@ -246,7 +231,7 @@ def candidate_groups(
 @dataclass(frozen=True)
 class Candidate:
     """The candidate :meth:`GainSearch.best_in_group` found: its gains (SI units, as
-    :class:`shared.gain_design.GainDesign`), the worst spectral radius of its full check, its felt
+    :class:`shared.gains.design.GainDesign`), the worst spectral radius of its full check, its felt
     stiffness over K_o at 1 and 8 Hz, its largest scale, and its ``rank`` among the groups' and
     holds' candidates (higher wins): the objective, the model-error robustness, the mean over
     ``felt_at`` and closeness to K_o at 8 Hz."""
@@ -264,7 +249,7 @@ class Candidate:
 
 
 class GainSearch:
-    """One :func:`shared.gain_design.design_gains` problem: where its candidates are checked
+    """One :func:`shared.gains.design.design_gains` problem: where its candidates are checked
     (hands, sampling ticks, K_o'), how they are judged (felt responses over the band, on the
     objects of ``felt_at`` and of the model error), and the staged search of one candidate group
     (:meth:`best_in_group`).
@@ -381,7 +366,7 @@ class GainSearch:
     def _response(self, k: float, sc: dict[str, FloatArray], hold: ProxyHold) -> FloatArray:
         """Felt responses dF/dx (complex values, (F, G)) of gains ``sc`` on K_o = k at 1 Hz
         and, with ``own_force``, every frequency of ``band``
-        (:data:`shared.felt_stiffness.FELT_BAND_HZ`), each over the magnitude of the object's own
+        (:data:`shared.gains.policy.FELT_BAND_HZ`), each over the magnitude of the object's own
         dynamic stiffness there with ``own_force`` (:meth:`_own`), else over K_o."""
         own = self._own(k) if self.own_force else np.full((len(self.band), 1), k)
         return (

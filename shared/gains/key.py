@@ -1,6 +1,6 @@
 """The gain key: what a local model's design depends on besides K_o, and its rules, once.
 
-A :class:`GainKey` names one row of a :class:`shared.gain_table.GainTable`. The client session
+A :class:`GainKey` names one row of a :class:`shared.gains.table.GainTable`. The client session
 (:class:`client.session.ClientSession`) and the server's gain advisor
 (:class:`server.gains.GainAdvisor`) build theirs with the same function, :func:`make_gain_key`, from the
 same rules:
@@ -22,6 +22,11 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+from haptic_collab.shared.gains.policy import (
+    STIFF_CLASS_FALL,
+    STIFF_RATIO_CLASSES,
+    STIFFER_BY,
+)
 from haptic_collab.shared.rates import Rates
 
 #: The local model's form: proportional (eq. 12 with I = 0) or proportional-integral.
@@ -30,20 +35,6 @@ Mode = Literal["p", "pi"]
 #: Stiffness [N/m] that stands for a rigid differential mode (singular compliance, coupling -> 1),
 #: the same value the server reports for a contact that cannot move (server.contact_stiffness.K_O_MAX).
 K_O_RIGID = 1.0e6
-
-
-#: Ratio classes above this are designed as rigid (:func:`stiff_ratio_class`).
-MAX_STIFF_RATIO_CLASS = 256.0
-
-
-#: Every class :func:`stiff_ratio_class` returns, ascending: 1, sqrt(2), 2, 2 sqrt(2), 4, then
-#: the powers of 2 up to :data:`MAX_STIFF_RATIO_CLASS`, then ``inf``.
-STIFF_RATIO_CLASSES: tuple[float, ...] = (
-    1.0,
-    *(2.0 ** (k / 2.0) for k in range(1, 5)),
-    *(2.0**k for k in range(3, int(math.log2(MAX_STIFF_RATIO_CLASS)) + 1)),
-    math.inf,
-)
 
 
 def stiff_ratio_class(k_o_eff: float, k_o_stiff: float) -> float:
@@ -125,19 +116,6 @@ def loop_delay_ticks(round_trip_s: float, state_age_s: float, sim_rate_hz: float
     return max(0, math.ceil((round_trip_s + state_age_s) * sim_rate_hz - 1e-9) - 1)
 
 
-#: :attr:`GainKey.stiffer_by`'s default: the product's designs hold on an object up to this
-#: fraction stiffer than the K_o reported (docs/fidelity.md: objects the design did not see).
-STIFFER_BY = 0.25
-
-#: The product's design margin: its clients' designs hold on an object this fraction softer than
-#: the bottom of the cell (the paper's advice to design for a lower K_o than reported;
-#: ``ClientSession.margin``, ``GainAdvisor.margin``).
-DESIGN_MARGIN = 0.15
-
-#: Ratio between neighbouring K_o grid points of a :class:`GainTable`.
-K_O_GRID_RATIO = 1.1
-
-
 @dataclass(frozen=True)
 class GainKey:
     """What a design depends on besides K_o (hashable; one :class:`GainTable` row per key)."""
@@ -169,10 +147,6 @@ class GainKey:
     def rates(self) -> Rates:
         """The key's servo and simulation rates (raises ValueError when N is not whole)."""
         return Rates(self.servo_rate_hz, self.sim_rate_hz)
-
-
-#: The coupling class in use falls only when the measured one is this many times lower.
-STIFF_CLASS_FALL = 4.0
 
 
 def held_stiff_ratio(current: float, k_o_eff: float, k_o_stiff: float) -> float:

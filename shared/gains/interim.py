@@ -1,6 +1,6 @@
 """Interim gains: verified gains to render in a K_o grid cell while its design runs.
 
-A design (:func:`shared.gain_table.design_cell`) takes tens of milliseconds to seconds; until it
+A design (:func:`shared.gains.table.design_cell`) takes tens of milliseconds to seconds; until it
 is done a contact renders interim gains checked in a fraction of a second. This module owns the
 policy that picks them (:func:`interim_design`: gains already known, then the generic rungs of
 :data:`INTERIM_OWN_FORCE` and :data:`INTERIM_LADDER`, then a proportional design) and the check
@@ -19,35 +19,16 @@ import numpy as np
 
 from haptic_collab.shared.felt_stiffness import felt_stiffness
 from haptic_collab.shared.full_loop import HandBox, monodromy
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import cell_k_o_range, design_cell
-from haptic_collab.shared.stability_margin import (
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.policy import (
+    INTERIM_LADDER,
+    INTERIM_OWN_FORCE,
+    INTERIM_OWN_FORCE_FOH,
     MIN_DECAY_RATE_PER_S,
-    group_mode_radii,
-    k_o_points,
 )
-
-#: Generic interim gains tried when no known gains pass, in order: (K_h, I) as multiples of the
-#: cell's lowest K_o, lo = (1 - margin) g_i [N/m], i.e. K_h = a lo [N/m] and I = b lo [N/(m*s)],
-#: with the device's full damper B_h and a zero-order hold. The PI one only with a damper and a
-#: PI key: with a 10 N*s/m damper at 1 kHz / 20 Hz it passed at K_o = 30 to 3000 N/m and 0 to 3
-#: ticks of delay, and no integral passed without a damper; P with K_h = 0.1 lo passed everywhere
-#: but at 3000 N/m with a delay, hence 0.05.
-INTERIM_LADDER: tuple[tuple[float, float], ...] = ((0.2, 2.0), (0.2, 0.0), (0.1, 0.0), (0.05, 0.0))
-
-#: Generic interim gains with own-force compensation, tried first where the key allows it: K_h =
-#: a lo (at most the device's), C_h = 1 / K_h, the device's full damper, zero-order hold and, with
-#: a damper, first-order hold. They feel the object's own stiffness in a held press
-#: (:mod:`shared.gain_design`), so a user whose contact becomes coupled to another's keeps
-#: feeling it while the coupled design runs. For a coupled contact (class 2 and 4, 20 Hz, 0 and 2
-#: ticks, 100-1000 N/m, the Phantom Desktop's 10 N*s/m) the zero-order rungs passed in 1 of 12
-#: cases, with first-order ones 8; without a damper no compensated gains passed there, so the
-#: first-order rungs are not tried; nor below :data:`INTERIM_OWN_FORCE_FOH` lo (a coupled
-#: contact's loop gain 1 - K_h / K_o' nears 1 as K_h falls, and a failed check delays the interim
-#: gains).
-INTERIM_OWN_FORCE: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.05)
-INTERIM_OWN_FORCE_FOH = 0.5
+from haptic_collab.shared.gains.table import cell_k_o_range, design_cell
+from haptic_collab.shared.stability_margin import group_mode_radii, k_o_points
 
 
 def verify_gains(
@@ -69,12 +50,12 @@ def verify_gains(
 ) -> tuple[bool, float]:
     """Do these gains pass the design's acceptance test for grid cell ``cell`` of ``key``?
 
-    The test :func:`shared.gain_design.design_gains` applies to its chosen gains: the full loop
+    The test :func:`shared.gains.design.design_gains` applies to its chosen gains: the full loop
     (:func:`shared.full_loop.monodromy`) for every hand of ``hand_box.hands()``, every sampling
     tick j in [0, N) and K_o' in {lo, sqrt(lo hi), hi}, ``(lo, hi) = ((1 - margin) g_i,
-    g_(i+1))`` (the range :func:`shared.gain_table.design_cell` covers) has spectral radius below
+    g_(i+1))`` (the range :func:`shared.gains.table.design_cell` covers) has spectral radius below
     1 and every oscillating mode (faster than
-    :data:`shared.stability_margin.CREEP_FREQUENCY_HZ`) below ``exp(-MIN_DECAY_RATE_PER_S N T)``.
+    :data:`shared.gains.policy.CREEP_FREQUENCY_HZ`) below ``exp(-MIN_DECAY_RATE_PER_S N T)``.
     Stops at the first failing batch.
 
     Parameters
@@ -108,7 +89,7 @@ def verify_gains(
         ``(lo, hi)`` [N/m], 0 < lo <= hi: check K_o' over this range instead of the cell's (the
         verified plane, scaled to each K_o reported, is checked at each scale over the few
         percent the own-response check holds the object to:
-        :func:`shared.verified_plane.checked_plane`). ``k_o_scale`` is then unused.
+        :func:`shared.gains.verified_plane.checked_plane`). ``k_o_scale`` is then unused.
 
     Returns
     -------
@@ -191,7 +172,7 @@ def interim_design(
     generic gains of :data:`INTERIM_OWN_FORCE` (when the key allows own-force compensation) and
     :data:`INTERIM_LADDER`; returns the first that passes
     :func:`verify_gains`. If none does and ``design_fallback``, a proportional design of the cell
-    (:func:`shared.gain_table.design_cell` with ``mode="p"``, seconds). A module-level function
+    (:func:`shared.gains.table.design_cell` with ``mode="p"``, seconds). A module-level function
     so that a worker process can run it.
 
     Returns

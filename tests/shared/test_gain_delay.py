@@ -1,15 +1,11 @@
-"""The loop delay a contact's gains are designed for: held through a contact (shared.gain_policy)."""
+"""The loop delay a contact's gains are designed for: held through a contact (shared.gains.delay)."""
 
 from __future__ import annotations
 
 import pytest
 
-from haptic_collab.shared.gain_policy import (
-    DELAY_FALL_S,
-    RTT_WINDOW,
-    DelayHold,
-    measured_delay_ticks,
-)
+from haptic_collab.shared.gains.delay import DelayHold, measured_delay_ticks
+from haptic_collab.shared.gains.policy import DELAY_FALL_S, RTT_WINDOW
 
 
 def test_a_rise_is_designed_for_at_once_in_contact_or_not() -> None:
@@ -67,7 +63,7 @@ def test_the_measured_delay_is_the_90th_percentile_of_the_recent_round_trips() -
 def test_the_percentile_is_numpys_on_random_windows() -> None:
     import numpy as np
 
-    from haptic_collab.shared.gain_key import loop_delay_ticks
+    from haptic_collab.shared.gains.key import loop_delay_ticks
 
     rng = np.random.default_rng(7)
     for n in (1, 2, 7, 19, 20, 35):

@@ -8,20 +8,20 @@ decay-rate margin, for
 - every hand of the hand box (:class:`shared.full_loop.HandBox`),
 - every servo tick j at which the simulation may sample the force (Step 3 over a network),
 - every object stiffness K_o' in ``[(1 - margin) K_o, K_o]`` (the paper's advice to design for a
-  lower K_o than reported) and, for the product's :class:`shared.gain_table.GainTable` designs, up
+  lower K_o than reported) and, for the product's :class:`shared.gains.table.GainTable` designs, up
   to ``1 + stiffer_by`` times the top of the cell (:attr:`GainKey.stiffer_by`: an object stiffer
   than reported, docs/fidelity.md),
 
 and among those the one with the best *transparency*: the felt stiffness |dF/dx| at the probe,
 probe as a position source, relative to K_o. For the paper's models alone, at 1 Hz (then 8 Hz
 to break ties); with own-force compensation (the product), its largest error |ln |q|| over the
-band :data:`shared.felt_stiffness.FELT_BAND_HZ` (0.5-8 Hz), q relative to the object's own
+band :data:`shared.gains.policy.FELT_BAND_HZ` (0.5-8 Hz), q relative to the object's own
 dynamic stiffness there (eq. 9's ``K_o + B_o (1 - e^{-j w N T})``,
 :func:`shared.felt_stiffness.object_stiffness`: K_o where B_o = 0, stiffer to a quick press on a
 damped or massive object), and in a held press (relative to K_o), compared in steps
 of :data:`DESIGN_TIE` (half a stiffness JND), then the same on objects ``1 + stiffer_by`` times
 softer and stiffer than reported. A
-:class:`shared.gain_table.GainTable` design serves every K_o reported in its cell, scaled to it (K_h
+:class:`shared.gains.table.GainTable` design serves every K_o reported in its cell, scaled to it (K_h
 and I in proportion, :meth:`GainDesign.at`; ``scaled``), so its transparency is judged at the
 cell's two ends and middle, the worst of them counting, then their mean (``felt_k_os``), and each
 scale is checked like the design.
@@ -54,8 +54,8 @@ The felt stiffness is computed exactly on the lifted loop (:mod:`shared.felt_sti
 decay-rate margin and the K_o' a range is checked at are :mod:`shared.stability_margin`'s. This
 module owns the design: :func:`design_gains` (what the gains must satisfy and which candidate
 wins) and its result :class:`GainDesign`; how candidates are found and checked is
-:mod:`shared.gain_search`'s. The table of designs on a grid of K_o is :mod:`shared.gain_table`; the
-interim gains rendered while a design runs, :mod:`shared.interim_gains`.
+:mod:`shared.gains.search`'s. The table of designs on a grid of K_o is :mod:`shared.gains.table`; the
+interim gains rendered while a design runs, :mod:`shared.gains.interim`.
 """
 
 from __future__ import annotations
@@ -69,16 +69,15 @@ import numpy as np
 
 from haptic_collab.shared.checks import positive as _positive
 from haptic_collab.shared.checks import whole as _whole
-from haptic_collab.shared.felt_stiffness import FELT_BAND_HZ
 from haptic_collab.shared.full_loop import (
     DEFAULT_HAND_BOX,
     HandBox,
     ProxyHold,
 )
-from haptic_collab.shared.gain_key import Mode
-from haptic_collab.shared.gain_search import Candidate, GainSearch, candidate_groups, scaled_gains
+from haptic_collab.shared.gains.key import Mode
+from haptic_collab.shared.gains.policy import FELT_BAND_HZ, MIN_DECAY_RATE_PER_S
+from haptic_collab.shared.gains.search import Candidate, GainSearch, candidate_groups, scaled_gains
 from haptic_collab.shared.rates import Rates
-from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S
 
 
 @dataclass(frozen=True)
@@ -110,7 +109,7 @@ class GainDesign:
     mode : {"p", "pi"}
     hand_box : HandBox
     design_ms : float
-        Wall time the design took [ms], set by whoever ran it (:func:`haptic_collab.workers.timed`;
+        Wall time the design took [ms], set by whoever ran it (:func:`haptic_collab.client.workers.timed`;
         this module reads no clock); 0 when not measured. Informative: ``haptic bench gains``
         measures properly.
     own_gain : float
@@ -232,7 +231,7 @@ def design_gains(
         Fraction in [0, 1) by which K_o may be overestimated: stability is checked down to
         ``(1 - margin) K_o``.
     k_o_hi : float, optional
-        Upper end of the K_o range checked (default ``k_o``; :class:`shared.gain_table.GainTable`
+        Upper end of the K_o range checked (default ``k_o``; :class:`shared.gains.table.GainTable`
         passes the next grid point so a design covers its whole cell).
     k_h_max : float
         The device's maximum stable stiffness [N/m].
@@ -243,22 +242,22 @@ def design_gains(
     hand_box : HandBox
         Hands the gains must be stable for.
     min_decay_rate_per_s : float
-        Decay-rate margin [1/s] (:data:`shared.stability_margin.MIN_DECAY_RATE_PER_S`).
+        Decay-rate margin [1/s] (:data:`shared.gains.policy.MIN_DECAY_RATE_PER_S`).
     own_force : bool
         Also consider own-force compensation C_h = r / K_h, r in
-        :data:`shared.gain_search.OWN_FORCE_RATIOS` (module docstring), proportional only, and,
+        :data:`shared.gains.policy.OWN_FORCE_RATIOS` (module docstring), proportional only, and,
         for K_o above ``k_h_max``, the plane at the rest surface (C_h = 1 / K_o, K_h up to
         ``k_h_max``: model-mediated teleoperation's plane). The objective is then the felt
         response closest to the object's own over the band (eq. 9 with ``b_o``; K_o itself where
         B_o = 0: compensation can overshoot and lag it):
-        the largest over :data:`shared.felt_stiffness.FELT_BAND_HZ` of |ln |q|| and the active
-        share -Im q (:mod:`shared.gain_search`) and the held press's |ln q|, in steps of
-        :data:`shared.gain_search.DESIGN_TIE`; then the same on the objects of ``stiffer_by``;
+        the largest over :data:`shared.gains.policy.FELT_BAND_HZ` of |ln |q|| and the active
+        share -Im q (:mod:`shared.gains.search`) and the held press's |ln q|, in steps of
+        :data:`shared.gains.policy.DESIGN_TIE`; then the same on the objects of ``stiffer_by``;
         instead of the elastic part at 1 Hz capped at K_o.
     felt_k_os : sequence of float, optional
         Object stiffnesses [N/m] the transparency is also judged at, with ``own_force``: the
         worst of them and ``k_o`` counts, then their mean (default: ``k_o`` alone).
-        :func:`shared.gain_table.design_cell` passes its cell's ends and middle, ``g_i``,
+        :func:`shared.gains.table.design_cell` passes its cell's ends and middle, ``g_i``,
         ``sqrt(g_i g_(i+1))`` and ``g_(i+1)``: every reported K_o in the cell gets the design, and
         with a delay the felt response depends on ``K_h / K_o`` (fixed gains fitted to ``g_i``
         alone felt 0.78-0.82 K_o at 1 Hz at the top of the 300 and 1000 N/m cells at 20 Hz with 8
@@ -268,7 +267,7 @@ def design_gains(
         With ``own_force``, >= 0: the transparency is also judged on objects ``1 + stiffer_by``
         times softer and stiffer than ``k_o`` (the gains made for ``k_o`` rendering them; a
         model error), the worst counting. Stability over the stiffer object is the caller's
-        range (``k_o_hi``; :func:`shared.gain_table.cell_k_o_range` widens it by
+        range (``k_o_hi``; :func:`shared.gains.table.cell_k_o_range` widens it by
         :attr:`GainKey.stiffer_by`).
     scaled : bool
         Compensated gains are rendered scaled to the reported K_o (:meth:`GainDesign.at`) over
@@ -338,7 +337,7 @@ def design_gains_modes(
     design the one :func:`design_gains` gives with that ``mode`` and the other arguments.
 
     The candidates with own-force compensation are proportional models, the same for P and PI
-    (:func:`shared.gain_search.candidate_groups`): they are searched once for all ``modes``
+    (:func:`shared.gains.search.candidate_groups`): they are searched once for all ``modes``
     (pruned only below the least transparent of the modes' best so far, so that each mode's
     search finds what it finds alone), which spares a P and PI pair 15-30 % of the time of its
     two designs (the fidelity benchmark designs both for every key).

@@ -1,7 +1,7 @@
 """A gain table as a file: the shipped tables and a client's own cache of designs.
 
-A :class:`shared.gain_table.GainTable` holds full-loop designs, each a second or more of CPU
-(:func:`shared.gain_table.design_cell`). Designed during a session they arrive late on a busy
+A :class:`shared.gains.table.GainTable` holds full-loop designs, each a second or more of CPU
+(:func:`shared.gains.table.design_cell`). Designed during a session they arrive late on a busy
 machine, and meanwhile a contact renders interim or fallback gains that feel different
 (docs/gains.md). Written to a file, they are designed once: offline for the built-in device
 profiles (``haptic gains-table build``, shipped as package data), or by a client for itself
@@ -28,16 +28,16 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from haptic_collab.shared.full_loop import HandBox
-from haptic_collab.shared.gain_design import GainDesign
-from haptic_collab.shared.gain_key import GainKey
-from haptic_collab.shared.gain_table import GainTable
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import GainKey
+from haptic_collab.shared.gains.table import GainTable
 
 #: The version of a gain table's file (:func:`table_document`): 2 since the key lost the
 #: contact's dynamics.
 TABLE_FORMAT = 2
 
 #: The module whose designs a table holds: :func:`design_code_hash` starts there.
-DESIGN_ROOTS = ("haptic_collab.shared.gain_table",)
+DESIGN_ROOTS = ("haptic_collab.shared.gains.table",)
 
 
 def key_record(key: GainKey) -> dict[str, Any]:
@@ -281,7 +281,7 @@ def load_table_document(table: GainTable, doc: Any, design_code: str) -> int:
 
 #: The package folder of the shipped tables (one ``<profile>.json`` per built-in profile, made by
 #: ``haptic gains-table --ship``).
-SHIPPED_PACKAGE = "haptic_collab.shared.gain_tables"
+SHIPPED_PACKAGE = "haptic_collab.shared.gains.tables"
 
 
 def load_shipped(table: GainTable, design_code: str | None = None) -> dict[str, int | str]:

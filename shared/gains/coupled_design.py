@@ -4,7 +4,7 @@ The design step of :mod:`shared.coupled_loop` (whose docstring has the modal arg
 users coupled through the object's compliance ``C``, a PI local model designed for the softest
 modal stiffness ``K_o_eff`` alone can make the coupled loop unstable, because the differential
 mode is much stiffer. :func:`design_coupled` therefore has each user design
-(:func:`shared.gain_design.design_gains`) over its whole modal range
+(:func:`shared.gains.design.design_gains`) over its whole modal range
 ``[(1 - margin) K_o_eff, K_o_stiff]`` (:func:`shared.coupled_compliance.modal_stiffness`),
 verifies the result on the coupled loop with different hands and sampling ticks per user
 (:func:`shared.coupled_loop.verify_coupled`, against the single-user margin), and retunes to a
@@ -35,9 +35,9 @@ from haptic_collab.shared.coupled_loop import (
     verify_coupled,
 )
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox, ProxyHold
-from haptic_collab.shared.gain_design import GainDesign, design_gains
-from haptic_collab.shared.gain_key import Mode
-from haptic_collab.shared.stability_margin import MIN_DECAY_RATE_PER_S
+from haptic_collab.shared.gains.design import GainDesign, design_gains
+from haptic_collab.shared.gains.key import Mode
+from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,7 @@ class CoupledDesign:
     Attributes
     ----------
     designs : tuple of M GainDesign
-        Each user's single-user design (:func:`shared.gain_design.design_gains`), made for
+        Each user's single-user design (:func:`shared.gains.design.design_gains`), made for
         ``k_o = design_k_o[u]`` and checked up to ``k_o_hi = modal.k_o_stiff[u]``.
     gains : tuple of M UserGains
         The same gains, ready for :func:`shared.coupled_loop.coupled_monodromy`.
@@ -107,7 +107,7 @@ def design_coupled(
     """Gains for M users coupled through C with the same margin as one user (modal argument:
     :mod:`shared.coupled_loop`).
 
-    1. Each user u designs (:func:`shared.gain_design.design_gains`) for its softest modal
+    1. Each user u designs (:func:`shared.gains.design.design_gains`) for its softest modal
        stiffness ``K_o_eff,u`` with the usual ``margin`` below it, *and* up to its stiffest modal
        stiffness ``K_o_stiff,u`` (``k_o_hi``): for identical users this covers every mode of the
        coupled loop exactly (modal decomposition).
@@ -126,7 +126,7 @@ def design_coupled(
         Object damping per contact (eq. 9).
     servo_rate_hz, sim_rate_hz, delay_ticks, mode, margin, k_h_max, b_h_max, holds, hand_box,
     min_decay_rate_per_s
-        As :func:`shared.gain_design.design_gains` (the same for every user).
+        As :func:`shared.gains.design.design_gains` (the same for every user).
     retune : float
         Factor in (0, 1) by which the design stiffness drops per retuning round.
     max_rounds : int
@@ -144,7 +144,7 @@ def design_coupled(
     Raises
     ------
     ValueError
-        Bad compliance or parameters, or as :func:`shared.gain_design.design_gains` (no local
+        Bad compliance or parameters, or as :func:`shared.gains.design.design_gains` (no local
         model stable over the hand box for some user).
     """
     c = check_compliance(compliance)

@@ -1,6 +1,6 @@
 """The table of gain designs on a geometric grid of object stiffness K_o.
 
-:class:`GainTable` caches designs (:func:`shared.gain_design.design_gains`) on a geometric grid of
+:class:`GainTable` caches designs (:func:`shared.gains.design.design_gains`) on a geometric grid of
 K_o so that a client's network loop only looks gains up (the design itself runs off the loop, in a
 thread or a worker process: :func:`design_cell`). This module owns the grid: the K_o range a cell
 is checked over (:func:`cell_k_o_range`, widened for an object stiffer than reported and for a
@@ -15,8 +15,9 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from haptic_collab.shared.gain_design import GainDesign, design_gains, design_gains_modes
-from haptic_collab.shared.gain_key import K_O_GRID_RATIO, GainKey, Mode, coupled_k_o_hi
+from haptic_collab.shared.gains.design import GainDesign, design_gains, design_gains_modes
+from haptic_collab.shared.gains.key import GainKey, Mode, coupled_k_o_hi
+from haptic_collab.shared.gains.policy import K_O_GRID_RATIO
 
 
 def stiffest_k_o(k_o: float, stiffer_by: float, b_o: float) -> float:
@@ -140,7 +141,7 @@ class GainTable:
         Raises
         ------
         ValueError
-            As :func:`shared.gain_design.design_gains`.
+            As :func:`shared.gains.design.design_gains`.
         """
         i = self.cell(k_o)
         d = design_cell(key, i, self.grid_ratio, self.hand_box)
@@ -167,7 +168,7 @@ def design_cell(key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox) -
     Raises
     ------
     ValueError
-        As :func:`shared.gain_design.design_gains`.
+        As :func:`shared.gains.design.design_gains`.
     """
     return design_cell_modes(key, cell, grid_ratio, hand_box, (key.mode,))[key.mode]
 
@@ -181,13 +182,13 @@ def design_cell_modes(
 ) -> dict[Mode, GainDesign]:
     """:func:`design_cell` of ``key`` with each local model of ``modes`` (``key.mode``
     ignored), ``{mode: design}``, their common candidates searched once
-    (:func:`shared.gain_design.design_gains_modes`): what the fidelity benchmark designs for the
+    (:func:`shared.gains.design.design_gains_modes`): what the fidelity benchmark designs for the
     keys of both local models.
 
     Raises
     ------
     ValueError
-        As :func:`shared.gain_design.design_gains_modes`.
+        As :func:`shared.gains.design.design_gains_modes`.
     """
     g = grid_ratio**cell
     return design_gains_modes(

@@ -1,4 +1,5 @@
-"""Worker processes that never hold up a stop: the gain-design pools of the server and client.
+"""Worker processes that never hold up a stop: the gain-design pools of the client and the server
+(whose gain advisor runs the Python client's design, :mod:`server.gains`).
 
 A :class:`concurrent.futures.ProcessPoolExecutor` cannot cancel a job a worker has started, and
 ``shutdown(wait=False, cancel_futures=True)`` only drops the queued ones: at interpreter exit
@@ -20,7 +21,7 @@ from collections.abc import Callable
 from concurrent.futures import Executor, ProcessPoolExecutor
 from typing import Any
 
-from haptic_collab.shared.gain_design import GainDesign
+from haptic_collab.shared.gains.design import GainDesign
 
 
 def timed(design: Callable[..., GainDesign], *args: Any, **kwargs: Any) -> GainDesign:

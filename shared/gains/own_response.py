@@ -1,13 +1,13 @@
 """How stiff is the object to this user's own force? (the own-response check)
 
 The product's gain design holds on objects from 15 % softer than the K_o reported to 25 % stiffer
-(:class:`shared.gain_key.GainKey`), because a reported K_o may be wrong (a nonlinear or
+(:class:`shared.gains.key.GainKey`), because a reported K_o may be wrong (a nonlinear or
 viscoelastic object, a stiffness estimated cheaply). That robustness is paid for in transparency
 on an object whose K_o is right: a damper, or a K_h away from K_o, felt over the band
 (docs/fidelity.md). This module measures, from what every patch already carries, whether the
 object answers this user's own force as a spring, and of which stiffness K' (the K_o reported, or
 another it identifies); only then may the client render the plane checked for a stiffness known
-to within a few percent (:func:`shared.verified_plane.verified_plane`).
+to within a few percent (:func:`shared.gains.verified_plane.verified_plane`).
 
 Each patch gives the surface's depth along the contact normal ``x_s`` [m] (positive into the
 object), the force the simulation applied from this user ``F_s`` [N] and the K_o reported [N/m].
@@ -65,6 +65,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from haptic_collab.shared.gains.policy import (
+    IDENTIFY_AFTER_S,
+    IDENTIFY_MAX_JUMP_SHARE,
+    IDENTIFY_MIN_SAMPLES,
+    IDENTIFY_RANGE,
+    MAX_RESIDUAL,
+    MIN_DEPTH_SPREAD_M,
+    MIN_FORCE_SPREAD_N,
+    REFUSE_TOLERANCE,
+    TOLERANCE,
+    WINDOW_S,
+)
 from haptic_collab.shared.types import FloatArray
 
 #: The weighted sums the check keeps, in this order along the last axis: weight W, sum u, sum r,
@@ -74,42 +86,6 @@ SUMS = 6
 #: The deformation state the check keeps, in this order along the last axis: ``u`` [m], the last
 #: force [N] and the last K_o reported [N/m] (:func:`update_deformation`).
 DEFORMATION = 3
-
-#: Window [s] of the check: a sample's weight falls by e every window.
-WINDOW_S = 2.0
-#: |rho - 1| at or below which the object counts as the K_o reported (inside the +/- 5 % the
-#: verified plane is checked over, :data:`shared.verified_plane.VERIFIED_RANGE`).
-TOLERANCE = 0.04
-#: |rho - 1| above which a verdict is withdrawn at once (the hysteresis keeps a contact near the
-#: tolerance from switching designs on every patch).
-REFUSE_TOLERANCE = 0.05
-#: Least standard deviation [N] of the forces in the window for a verdict: a 0.3 N spread on a
-#: 1000 N/m object is 0.3 mm of deformation to read the slope from ...
-MIN_FORCE_SPREAD_N = 0.3
-#: ... or [m] of the deformation they cause (spread / K_o): on a soft object a press deforms it
-#: by millimetres with a tenth of a newton (100 N/m: 1 mm is 0.1 N).
-MIN_DEPTH_SPREAD_M = 1e-3
-#: Largest rms residual of the line, as a fraction of the deformation the force spread causes
-#: (spread / K_o): a viscoelastic or strain-stiffening response is not a line.
-MAX_RESIDUAL = 0.1
-#: The stiffness the check may identify, K' / K_o, lies within this factor of the K_o reported
-#: (from half to twice it): further off, the report or the contact is in doubt (another user's
-#: push correlated with this one's, a grasp) and the check refuses rather than identify.
-IDENTIFY_RANGE = 2.0
-#: Time [s] the check must have read the contact before it may identify a stiffness other than
-#: the one it holds the object to: a few patches of a viscoelastic press lie on a line of any
-#: slope; a cycle of the hand's motion (about 1 Hz) shows the loop the residual refuses.
-IDENTIFY_AFTER_S = 1.0
-#: ... and the weight of patches (their count, each aged by ``exp(-age / window_s)``) it must
-#: hold: three patches around a stalled second are not a reading.
-IDENTIFY_MIN_SAMPLES = 5.0
-#: Largest share of the force's movement one change between two patches may carry for the
-#: check to identify: the largest ``dF^2`` over their sum, both aged like the window
-#: (:func:`update_jumps`). A jump between two held levels carries all of it, spread over two or
-#: three patches a half or a third: refused; over four patches or more a quarter or less. At
-#: 0.2 the fidelity benchmark's half-second press, read at 20 Hz through the loop, was refused
-#: where it is identified at 0.3 (300 N/m, no delay; 100 N/m, 100 ms).
-IDENTIFY_MAX_JUMP_SHARE = 0.3
 
 #: The jump sums the check keeps, in this order along the last axis: the largest ``dF^2``
 #: [N^2], the sum of ``dF^2`` [N^2] (both aged by ``exp(-dt / window_s)``), the last force [N].

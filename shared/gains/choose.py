@@ -1,0 +1,446 @@
+"""Which gains render for one patch, and why: :func:`choose`, the gain policy in one function.
+
+A patch arrives; the client session (:class:`client.session.ClientSession`) holds the contact's
+past (the loop delay it designs for, the coupling class, the own-response check, the update in
+use) and asks :func:`choose` what to render. The answer, :class:`Choice`, names the gains, their
+source, and the work that would make a better answer possible next time (:data:`Job`: a design,
+a check, a plane to verify). The session hands the jobs to its link, which only runs them (in a
+worker process) and stores their results where the next call finds them (:class:`Known`). Pure:
+no I/O, no clock, nothing kept between calls; the same inputs give the same choice.
+
+The sources, in the order they are tried (docs/gains.md, "Which gains render"):
+
+1. ``rest``: a user alone on the object, where no verified plane renders (nor has for
+   :data:`shared.gains.policy.HOLD_BACK_S` in this contact): the object's rest plane with
+   :func:`shared.gains.rest_plane.rest_plane_gains`; its force does not go through the simulation,
+   so it needs no design.
+2. ``plane``: the own-response check holds the object to a spring (:mod:`shared.gains.own_response`):
+   the plane verified for that stiffness (:func:`shared.gains.verified_plane.verified_plane`), once
+   checked (against the cell's design, if the cell has one).
+3. ``server``: the server's recommended gains (``patch.gains``: the same design, made by the
+   server), where this device may render them and they cover the delay measured here; interim
+   recommendations yield to a design of this client's own.
+4. ``design``: the cell's design in the table (shipped, cached or made this session).
+5. ``interim``: gains checked for this key and cell (:func:`shared.gains.interim.interim_design`).
+6. ``covering``: a design or check of this cell for a wider coupling class
+   (:func:`shared.gains.key.covering_classes`), checked over a range containing this key's.
+7. Unverified, while a check runs (:class:`CheckJob`): ``near``, the nearest designed cell no
+   stiffer relative to K_o (:meth:`shared.gains.table.GainTable.fallback`), else ``in-use``, the
+   gains in use; or ``fallback``, :data:`shared.gains.policy.FALLBACK_K_RATIO` times K_o with no
+   integral, where the gains in use were made for fewer delay ticks or an uncoupled contact.
+   Never for a first contact: with nothing in use it waits with forces off (``source`` None).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.key import GainKey, covering_classes
+from haptic_collab.shared.gains.policy import COUPLED_CELLS_BELOW, FALLBACK_K_RATIO, HOLD_BACK_S
+from haptic_collab.shared.gains.rest_plane import RestPlaneGains, rest_plane_gains
+from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
+from haptic_collab.shared.protocol import RecommendedGains
+
+#: The design cell of a verified plane checked alone (:class:`Known` ``planes``): the cell of the
+#: K_o reported had no design when the own-response check verified there. The plane renders (it
+#: passed its check in its cell) until that design is made and it is compared with it.
+PLANE_ALONE = -1
+
+Source = Literal[
+    "rest", "plane", "server", "design", "interim", "covering", "near", "in-use", "fallback"
+]
+#: The sources whose gains passed the full-loop check for the patch's key and cell (or, for the
+#: rest plane, need none).
+VERIFIED_SOURCES: frozenset[str] = frozenset(
+    {"rest", "plane", "server", "design", "interim", "covering"}
+)
+
+
+@dataclass(frozen=True)
+class DesignJob:
+    """Design the cell of ``k_o`` [N/m] for ``key`` (:func:`shared.gains.table.design_cell`)."""
+
+    key: GainKey
+    k_o: float
+
+
+@dataclass(frozen=True)
+class CheckJob:
+    """Check gains for ``cell`` of ``key``: ``candidates`` first, then the generic ladder
+    (:func:`shared.gains.interim.interim_design`). Asked once per (key, cell)."""
+
+    key: GainKey
+    cell: int
+    candidates: tuple[GainDesign, ...]
+
+
+@dataclass(frozen=True)
+class PlaneJob:
+    """Verify the plane of ``cell`` of ``key`` against the design of ``design_cell`` (or alone,
+    :data:`PLANE_ALONE`) (:func:`shared.gains.verified_plane.verified_plane`)."""
+
+    key: GainKey
+    cell: int
+    design_cell: int
+
+
+Job = DesignJob | CheckJob | PlaneJob
+
+
+@dataclass(frozen=True)
+class Options:
+    """What the user declared: its device, local model and wishes.
+
+    Attributes
+    ----------
+    servo_rate_hz, sim_rate_hz : float
+        The servo rate 1/T and the server's simulation rate [Hz].
+    k_h_max : float
+        The device's largest stable stiffness [N/m].
+    b_h_max : float
+        The device's largest virtual damping [N*s/m].
+    mode : {"p", "pi"}
+        The local model kind.
+    gains : {"server", "local"}
+        Whether the server's recommended gains may render.
+    rest_plane : bool
+        Whether a rest plane a patch carries may render.
+    """
+
+    servo_rate_hz: float
+    sim_rate_hz: float
+    k_h_max: float
+    b_h_max: float
+    mode: Literal["p", "pi"] = "pi"
+    gains: Literal["server", "local"] = "server"
+    rest_plane: bool = True
+
+    @property
+    def rate_ratio(self) -> int:
+        """N = servo rate / simulation rate (whole: :class:`shared.rates.Rates` checks it)."""
+        return round(self.servo_rate_hz / self.sim_rate_hz)
+
+
+@dataclass(frozen=True)
+class Contact:
+    """The contact's past as the session holds it, for one patch.
+
+    Attributes
+    ----------
+    key : GainKey
+        The key this patch's gains are for (the delay held through the contact,
+        :class:`shared.gains.delay.DelayHold`; the coupling class with its hysteresis,
+        :func:`shared.gains.key.held_stiff_ratio`).
+    own_response : bool
+        The own-response check's verdict with this patch: the object yields to this user's force
+        as a spring (:mod:`shared.gains.own_response`).
+    identified_ratio : float
+        The stiffness the check holds the object to, over the K_o reported (1: the K_o reported).
+    in_use : LocalModelUpdate or None
+        The update rendering now (None: nothing yet, forces off).
+    plane_tick : int or None
+        The tick of the last patch a verified plane rendered in this contact.
+    """
+
+    key: GainKey
+    own_response: bool = False
+    identified_ratio: float = 1.0
+    in_use: LocalModelUpdate | None = None
+    plane_tick: int | None = None
+
+
+@dataclass(frozen=True)
+class Known:
+    """What has been designed or checked: the table of designs, the checked interim gains per
+    (key, cell) and the verified planes per (key, plane cell, design cell) (None: none passed)."""
+
+    table: GainTable
+    interim: Mapping[tuple[GainKey, int], GainDesign]
+    planes: Mapping[tuple[GainKey, int, int], GainDesign | None]
+
+
+@dataclass(frozen=True)
+class Choice:
+    """What renders for one patch.
+
+    Attributes
+    ----------
+    gains : GainDesign or None
+        The gains (None for the rest plane, whose gains are ``rest``, and while waiting).
+    source : Source or None
+        Where they come from (module docstring); None: nothing may render yet (forces off).
+    jobs : tuple of Job
+        Work that would give better gains for this patch's key and cell.
+    rest : RestPlaneGains or None
+        The rest plane's gains when ``source == "rest"``.
+    plane_tick : int or None
+        The contact's new ``plane_tick`` (:class:`Contact`).
+    identified : bool
+        A verified plane of a stiffness the own-response check identified renders.
+    """
+
+    gains: GainDesign | None
+    source: Source | None
+    jobs: tuple[Job, ...] = ()
+    rest: RestPlaneGains | None = None
+    plane_tick: int | None = None
+    identified: bool = False
+
+    @property
+    def verified(self) -> bool:
+        """The gains passed the full-loop check for this patch's key and cell."""
+        return self.source in VERIFIED_SOURCES
+
+    @property
+    def fallback(self) -> bool:
+        """No design (of this client's or the server's) nor verified plane renders."""
+        return self.source not in ("rest", "plane", "server", "design")
+
+
+def known_gains(
+    k_h: float,
+    i_gain: float,
+    b_h: float,
+    proxy_hold: Literal["zoh", "foh"],
+    *,
+    k_o_eff: float,
+    rate_ratio: int,
+    delay_ticks: int,
+    spectral_radius: float = math.nan,
+    felt_1hz: float = math.nan,
+    own_gain: float = 0.0,
+) -> GainDesign:
+    """Gains chosen elsewhere (in use, or recommended by the server) as a :class:`GainDesign`."""
+    return GainDesign(
+        k_h=k_h,
+        i_gain=i_gain,
+        b_h=b_h,
+        proxy_hold=proxy_hold,
+        worst_spectral_radius=spectral_radius,
+        rho_limit=math.nan,
+        felt_stiffness_ratio_1hz=felt_1hz,
+        felt_stiffness_ratio_8hz=math.nan,
+        k_o=k_o_eff,
+        k_o_range=(k_o_eff, k_o_eff),
+        rate_ratio=rate_ratio,
+        delay_ticks=delay_ticks,
+        mode="pi" if i_gain > 0.0 else "p",
+        own_gain=own_gain,
+    )
+
+
+def in_use_design(update: LocalModelUpdate | None, rate_ratio: int) -> GainDesign | None:
+    """The gains of the update in use as a design (None if nothing renders)."""
+    if update is None or update.surface is None or update.choice is None:
+        return None
+    return known_gains(
+        update.k_h, update.i_gain, update.b_h, update.proxy_hold,
+        k_o_eff=update.surface.k_o_eff, rate_ratio=rate_ratio,
+        delay_ticks=update.choice.delay_ticks, spectral_radius=update.choice.spectral_radius,
+        felt_1hz=update.choice.felt_stiffness_ratio_1hz, own_gain=update.own_gain,
+    )  # fmt: skip
+
+
+def recommended(
+    rec: RecommendedGains | None,
+    options: Options,
+    k_o_eff: float,
+    delay_ticks: int,
+    own: GainDesign | None,
+) -> GainDesign | None:
+    """The server's recommended gains ``rec`` as a design, if this user may render them and has
+    nothing better: within the device's stiffness and damping, of its local model kind, for at
+    least ``delay_ticks``; an interim recommendation yields to a design of its own (``own``)."""
+    if options.gains != "server" or rec is None:
+        return None
+    if rec.interim and own is not None:
+        return None
+    if (
+        rec.k_h > options.k_h_max
+        or rec.b_h > options.b_h_max + 1e-9
+        or (options.mode == "p" and rec.i_gain > 0.0)
+        or rec.delay_ticks < delay_ticks
+    ):
+        return None  # designed for another device, kind or a shorter delay
+    return known_gains(
+        rec.k_h, rec.i_gain, rec.b_h, rec.proxy_hold,
+        k_o_eff=k_o_eff, rate_ratio=options.rate_ratio, delay_ticks=rec.delay_ticks,
+        own_gain=rec.own_gain,
+    )  # fmt: skip
+
+
+def covering(known: Known, key: GainKey, cell: int, k_o_eff: float) -> GainDesign | None:
+    """Gains designed or checked for this cell and a wider coupling class, if any: checked over a
+    K_o range containing this key's (:func:`shared.gains.key.covering_classes`)."""
+    for c in covering_classes(key.stiff_ratio):
+        wider = replace(key, stiff_ratio=c)
+        d = known.table.lookup(wider, k_o_eff)
+        if d is None:
+            d = known.interim.get((wider, cell))
+        if d is not None:
+            return d
+    return None
+
+
+def likely_next(key: GainKey, cell: int) -> tuple[tuple[GainKey, int], ...]:
+    """The (key, cell) a contact in ``cell`` of ``key`` most likely needs next, most likely first:
+    what the link designs and checks ahead of need.
+
+    The same cell coupled to another user, class 2 when the contact is alone, and the
+    :data:`shared.gains.policy.COUPLED_CELLS_BELOW` cells below (class 2 covers every coupling up
+    to K_o_stiff / K_o_eff = 2, :func:`covering`, and a second user's press lowers K_o_eff);
+    then one more tick of delay, and the cells just below and above (the contact moves, K_o
+    changes).
+    """
+    out: list[tuple[GainKey, int]] = []
+    if key.stiff_ratio == 1.0:
+        coupled = replace(key, stiff_ratio=2.0)
+        out += [(coupled, cell - j) for j in range(COUPLED_CELLS_BELOW + 1)]
+    out += [(replace(key, delay_ticks=key.delay_ticks + 1), cell), (key, cell - 1), (key, cell + 1)]
+    return tuple(out)
+
+
+def choose(
+    surface: SurfacePatch,
+    rec: RecommendedGains | None,
+    contact: Contact,
+    known: Known,
+    options: Options,
+) -> Choice:
+    """The gains to render ``surface`` with, their source and the jobs that would improve them.
+
+    Parameters
+    ----------
+    surface : SurfacePatch
+        The patch as read from the wire.
+    rec : RecommendedGains or None
+        The server's recommended gains carried by the patch.
+    contact : Contact
+        The contact's past (the key, the own-response verdict, the update in use).
+    known : Known
+        The designs, checks and planes made so far.
+    options : Options
+        The user's device and local model.
+
+    Returns
+    -------
+    Choice
+        See the module docstring for the order of the sources.
+
+    Raises
+    ------
+    ValueError
+        ``surface.k_o_eff`` is not a finite stiffness > 0 (:meth:`GainTable.cell`).
+    """
+    key = contact.key
+    d = key.delay_ticks
+    k_o_eff = surface.k_o_eff
+    table = known.table
+    cell = table.cell(k_o_eff)
+    own = table.lookup(key, k_o_eff)
+    jobs: list[Job] = []
+    gains: GainDesign | None = recommended(rec, options, k_o_eff, d, own)
+    source: Source | None = "server" if gains is not None else "design" if own is not None else None
+    if gains is None:
+        gains = own
+    identified = False
+    plane_renders = False
+    if contact.own_response:
+        # the object yields to this user's force as a spring: of the K_o reported, or of the
+        # stiffness the check identified. The plane verified for that stiffness replaces the
+        # design made for an object off by 25 % where it is felt closer than the design. In a
+        # cell not designed yet the plane checked alone renders meanwhile
+        k_id = contact.identified_ratio * k_o_eff
+        plane_cell = table.cell(k_id)
+        plane_key = (key, plane_cell, cell if own is not None else PLANE_ALONE)
+        if plane_key in known.planes:
+            plane = known.planes[plane_key]
+        else:
+            if own is None:
+                jobs.append(DesignJob(key, k_o_eff))  # the plane is compared with it once made
+            jobs.append(PlaneJob(*plane_key))
+            # where the cell has a design the plane renders only once compared with it
+            plane = None if own is not None else known.planes.get((key, plane_cell, PLANE_ALONE))
+        if plane is not None:
+            gains, source, plane_renders = plane.at(k_id), "plane", True
+            identified = contact.identified_ratio != 1.0
+    in_contact = surface.in_contact or surface.own_force_n > 0.0
+    plane_tick = None if not in_contact else surface.tick if plane_renders else contact.plane_tick
+    held_back = (
+        plane_tick is not None and (surface.tick - plane_tick) / options.sim_rate_hz < HOLD_BACK_S
+    )
+    if options.rest_plane and surface.rest_plane is not None and not (plane_renders or held_back):
+        # the user alone on the object, no verified plane (nor one for HOLD_BACK_S in this
+        # contact): the rest plane, with gains of the patch alone
+        if gains is None:
+            jobs.append(DesignJob(key, k_o_eff))  # for when another user joins
+        rest = rest_plane_gains(
+            surface.k_o, surface.b_o, options.sim_rate_hz, options.k_h_max, options.b_h_max,
+            servo_period_s=1.0 / options.servo_rate_hz,
+        )  # fmt: skip
+        return Choice(None, "rest", tuple(jobs), rest=rest, plane_tick=plane_tick)
+    if gains is None:
+        gains, source, more = without_design(
+            key, k_o_eff, known, contact.in_use, options.rate_ratio
+        )
+        jobs += more
+        if gains is None or (source not in VERIFIED_SOURCES and contact.in_use is None):
+            # a first contact renders only verified gains: it waits with forces off
+            return Choice(None, None, tuple(jobs), plane_tick=plane_tick)
+    return Choice(gains, source, tuple(jobs), plane_tick=plane_tick, identified=identified)
+
+
+def without_design(
+    key: GainKey,
+    k_o_eff: float,
+    known: Known,
+    in_use: LocalModelUpdate | None,
+    rate_ratio: int,
+) -> tuple[GainDesign | None, Source | None, tuple[Job, ...]]:
+    """The gains for ``k_o_eff`` [N/m] of ``key`` while its cell has no design (steps 5-7 of the
+    module docstring), their source and the jobs to ask: the cell's design always, and a check
+    where nothing verified renders. The server's gain advisor (:class:`server.gains.GainAdvisor`)
+    asks this too and recommends only verified gains (:data:`VERIFIED_SOURCES`).
+
+    Returns ``(None, None, jobs)`` when nothing is known for the cell and nothing is in use.
+    """
+    table = known.table
+    cell = table.cell(k_o_eff)
+    jobs: list[Job] = [DesignJob(key, k_o_eff)]
+    interim = known.interim.get((key, cell))
+    if interim is not None:
+        return interim, "interim", tuple(jobs)
+    wider = covering(known, key, cell, k_o_eff)
+    if wider is not None:
+        return wider, "covering", tuple(jobs)
+    # nothing verified for this key and cell: have gains checked (fast) and meanwhile keep the
+    # nearest designed cell (no stiffer relative to K_o) or the gains in use
+    near = table.fallback(key, k_o_eff)
+    current = in_use_design(in_use, rate_ratio)
+    jobs.append(CheckJob(key, cell, tuple(c for c in (near, current) if c is not None)))
+    if near is not None:
+        return near, "near", tuple(jobs)
+    if current is None:
+        return None, None, tuple(jobs)
+    assert in_use is not None and in_use.choice is not None and in_use.surface is not None
+    if key.stiff_ratio > 1.0 or key.delay_ticks > in_use.choice.delay_ticks:
+        # the gains in use were not designed for this coupled contact's stiff modes or for this
+        # much delay (designs for fewer ticks than the loop has were unstable in every case
+        # tried): the unverified fallback, without its integral
+        scale = min(1.0, k_o_eff / in_use.surface.k_o_eff)
+        fallback = replace(
+            current,
+            k_h=min(current.k_h * scale, FALLBACK_K_RATIO * k_o_eff),
+            i_gain=0.0,
+            b_h=key.b_h_max,
+            proxy_hold="zoh",
+            mode="p",
+            own_gain=0.0,
+        )
+        return fallback, "fallback", tuple(jobs)
+    return current, "in-use", tuple(jobs)
