@@ -26,6 +26,12 @@ handshakes are checked by ``Origin`` (:func:`server.security.origin_allowed`), e
 registered with its source address (the room budgets per address), and a consumer whose send
 buffer stays full for ``send_timeout_s`` (10 s) is dropped, viewers included.
 
+Stopping: :meth:`ServerApp.drain` (what SIGTERM runs, :func:`server.main.run_server`) takes no
+new connection or room, stops every room's tick, saves each room's object state to the snapshot
+directory (:mod:`server.snapshots`), tells every client ``server_draining`` and closes it with
+code 1012, all within a grace period; a room made with a snapshot of its own in that directory
+starts from it.
+
 Flood control is the room's (:meth:`server.room.Room.admit`), charged when a frame arrives and
 before latency injection holds it back. So is the simulation schedule: this layer sleeps until
 :meth:`server.room.Room.get_timer` and calls :meth:`server.room.Room.handle_timer` (the room
