@@ -606,7 +606,14 @@ class Link:
                 continue
             if len(self.session.errors) > n_errors:
                 err = self.session.errors[-1]
-                level = logging.ERROR if err.fatal else logging.WARNING
+                # a draining server (SIGTERM) is a restart, not a fault: the link retries
+                level = (
+                    logging.INFO
+                    if err.code == "server_draining"
+                    else logging.ERROR
+                    if err.fatal
+                    else logging.WARNING
+                )
                 log.log(level, "server: %s (%s)", err.message, err.code)
                 if err.fatal and err.code == "unauthorized":
                     raise Unauthorized(f"{err.message} (unauthorized)")

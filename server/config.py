@@ -132,6 +132,8 @@ SERVER_OPTIONS: dict[str, _Option] = {
     "token_secret_file": _Option(
         "str", "file holding the secret room tokens are signed with", _not_empty, True
     ),
+    "snapshot_dir": _Option("str", "folder of the rooms' snapshots", _not_empty, True),
+    "drain_grace_s": _Option("float", "seconds from SIGTERM to exit at most", _positive),
     "max_rooms": _Option("int", "rooms this server runs at most", _at_least_one),
     "room_idle": _Option(
         "float", "seconds an empty on-demand room lives before it is closed", _positive

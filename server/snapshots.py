@@ -196,8 +196,8 @@ def describe(obj: Any) -> dict[str, str | int]:
 
 
 def object_state(obj: Any) -> dict[str, np.ndarray]:
-    """The object's dynamic state (copies): ``obj.state()`` where it has one (the FEM solid),
-    the balloon's normal displacement ``w`` (n,) [m] otherwise.
+    """The object's dynamic state (copies): ``obj.state()`` (the balloon's normal displacement
+    ``w`` (n,) [m]; the FEM solid's, :meth:`server.objects.fem.FemSolid.state`).
 
     Raises
     ------
@@ -207,8 +207,6 @@ def object_state(obj: Any) -> dict[str, np.ndarray]:
     state = getattr(obj, "state", None)
     if callable(state):
         return {k: np.array(v, dtype=np.float64) for k, v in state().items()}
-    if _kind(obj) == "balloon":
-        return {"w": np.array(obj.displacement, dtype=np.float64)}
     raise SnapshotError(f"no snapshot for a {type(obj).__name__} object")
 
 
@@ -221,23 +219,12 @@ def set_object_state(obj: Any, state: Mapping[str, np.ndarray]) -> None:
         A key missing or extra, an array of another shape, a non-finite value.
     """
     setter = getattr(obj, "set_state", None)
-    if callable(setter):
-        try:
-            setter(state)
-        except ValueError as exc:
-            raise SnapshotError(str(exc)) from None
-        return
-    if _kind(obj) != "balloon":
+    if not callable(setter):
         raise SnapshotError(f"no snapshot for a {type(obj).__name__} object")
-    if set(state) != {"w"}:
-        raise SnapshotError(f"balloon state: keys {sorted(state)}, expected ['w']")
-    w = np.array(state["w"], dtype=np.float64)
-    if w.shape != (obj.n_vertices,) or not np.all(np.isfinite(w)):
-        raise SnapshotError(f"balloon state: w of shape {w.shape}, expected ({obj.n_vertices},)")
-    # the balloon keeps its displacement and its bound as a step leaves them (no setter of its
-    # own yet: server/objects/balloon.py is another module's)
-    obj._w = w
-    obj._max_disp = float(np.max(np.abs(w))) if len(w) else 0.0
+    try:
+        setter(state)
+    except ValueError as exc:
+        raise SnapshotError(str(exc)) from None
 
 
 def capture(name: str, room: Room) -> Snapshot:

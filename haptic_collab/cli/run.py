@@ -134,6 +134,8 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         max_rooms=args.max_rooms,
         room_idle_s=args.room_idle,
         token_secret_file=args.token_secret_file,
+        snapshot_dir=args.snapshot_dir,
+        drain_grace_s=args.drain_grace_s,
     )
 
 
@@ -230,6 +232,20 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         default=300.0,
         metavar="S",
         help="close a room made on demand after S seconds without a connection "
+        "(default %(default)s)",
+    )
+    p.add_argument(
+        "--snapshot-dir",
+        default=None,
+        metavar="DIR",
+        help="on SIGTERM save each room's object state here; a room made again resumes it",
+    )
+    p.add_argument(
+        "--drain-grace-s",
+        type=_positive,
+        default=10.0,
+        metavar="S",
+        help="on SIGTERM: tell clients server_draining, close 1012, exit within S s "
         "(default %(default)s)",
     )
     p.add_argument(

@@ -404,6 +404,28 @@ class Balloon(PatchedSurface):
         """Enclosed volume change ``a^T w`` [m^3] (about 0 for nearly incompressible water)."""
         return float(self._areas @ self._w)
 
+    def state(self) -> dict[str, FloatArray]:
+        """The dynamic state a snapshot keeps (:mod:`server.snapshots`): ``w`` (n,) [m], a copy."""
+        return {"w": self._w.copy()}
+
+    def set_state(self, state: dict[str, FloatArray]) -> None:
+        """Take a state :meth:`state` gave of this balloon (the same mesh).
+
+        Raises
+        ------
+        ValueError
+            Keys other than ``w``, a ``w`` of another shape, or a value not finite.
+        """
+        if set(state) != {"w"}:
+            raise ValueError(f"balloon state: keys {sorted(state)}, expected ['w']")
+        w = np.array(state["w"], dtype=np.float64)
+        if w.shape != (self.n_vertices,) or not np.all(np.isfinite(w)):
+            raise ValueError(
+                f"balloon state: w of shape {w.shape}, expected ({self.n_vertices},), all finite"
+            )
+        self._w = w
+        self._max_disp = float(np.max(np.abs(w))) if len(w) else 0.0
+
     def reset(self, clear_cache: bool = False) -> None:
         """Return to the rest shape (w = 0); optionally drop the patch cache."""
         self._w = np.zeros(self.n_vertices)

@@ -288,21 +288,27 @@ def test_a_snapshot_that_does_not_fit_is_refused_and_the_room_starts_from_rest(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["default.npz.refused"]
 
 
-LAUNCH = (
-    "import asyncio, logging, sys\n"
-    "from haptic_collab.server.main import ServerOptions, run_server\n"
-    "logging.basicConfig(level=logging.INFO, format='%(levelname)s %(message)s')\n"
-    "opts = ServerOptions(host='127.0.0.1', port=0, subdivisions=2, snapshot_dir=sys.argv[1])\n"
-    "asyncio.run(run_server(opts))\n"
-)
-
-
 def _server(snapshot_dir: Path, log: Path) -> tuple[subprocess.Popen[str], int]:
-    """``run_server`` (what ``haptic server`` runs) in a process of its own; its port."""
+    """``haptic server --snapshot-dir DIR --drain-grace-s 10`` in a process of its own; its port."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", OPENBLAS_NUM_THREADS="1")
     with open(log, "w") as err:
         proc = subprocess.Popen(
-            [sys.executable, "-c", LAUNCH, str(snapshot_dir)],
+            [
+                sys.executable,
+                "-m",
+                "haptic_collab.cli",
+                "server",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--subdivisions",
+                "2",
+                "--snapshot-dir",
+                str(snapshot_dir),
+                "--drain-grace-s",
+                "10",
+            ],  # fmt: skip
             stdout=subprocess.PIPE,
             stderr=err,
             text=True,
