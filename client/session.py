@@ -48,7 +48,7 @@ from haptic_collab.shared.gains.choose import (
     Options,
     choose,
 )
-from haptic_collab.shared.gains.delay import DelayHold, measured_delay_ticks
+from haptic_collab.shared.gains.delay import DelayHold, delay_rtt_s, measured_delay_ticks
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.key import GainKey, held_stiff_ratio, make_gain_key
 from haptic_collab.shared.gains.own_response import OwnResponse
@@ -324,6 +324,7 @@ class ClientSession:
             servo_rate_hz=sample.servo_rate_hz,
             period_us_p99=sample.period_us_p99,
             rtt_ms=self.rtt_ms(),
+            delay_rtt_ms=self.delay_rtt_ms(),
             patch_tick=self.last_patch.tick if self.last_patch else -1,
         ).model_dump_json(exclude_none=True)
 
@@ -390,6 +391,12 @@ class ClientSession:
     def rtt_ms(self) -> float | None:
         """Median of recent round-trip times [ms], None before the first pong."""
         return float(np.median(self.rtt_s)) * 1000.0 if self.rtt_s else None
+
+    def delay_rtt_ms(self) -> float | None:
+        """The round trip [ms] the loop delay is measured from (:func:`delay_rtt_s`), None
+        before the first round trip; sent in ``state`` for the server's advisor."""
+        rtt = delay_rtt_s(list(self.rtt_s))
+        return None if rtt is None else rtt * 1000.0
 
     def delay_ticks(self, now_s: float | None = None, in_contact: bool = False) -> int:
         """Extra loop delay in whole simulation ticks, from recent round trips.

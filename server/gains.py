@@ -28,7 +28,12 @@ from haptic_collab.shared.gains.choose import VERIFIED_SOURCES, DesignJob, Known
 from haptic_collab.shared.gains.delay import DelayHold, measured_delay_ticks
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.interim import interim_design
-from haptic_collab.shared.gains.key import GainKey, held_stiff_ratio, make_gain_key
+from haptic_collab.shared.gains.key import (
+    GainKey,
+    held_stiff_ratio,
+    loop_delay_ticks,
+    make_gain_key,
+)
 from haptic_collab.shared.gains.policy import K_O_GRID_RATIO, RTT_WINDOW
 from haptic_collab.shared.gains.table import GainTable, design_cell
 from haptic_collab.shared.gains.table_file import load_shipped
@@ -53,6 +58,8 @@ class _User:
     stiff_ratio: float = 1.0
     measured: int = 0
     stale: bool = False
+    #: The round trip [s] the client measures its delay from (``state.delay_rtt_ms``).
+    delay_rtt_s: float | None = None
     delay: DelayHold = field(default_factory=DelayHold)
 
 
@@ -102,11 +109,20 @@ class GainAdvisor:
         self.misses = 0
 
     # ---------------------------------------------------------------- per user
-    def observe_rtt(self, user: str, rtt_ms: float | None) -> None:
-        """Record a round trip [ms] the user reported in ``state`` (None or non-finite: none)."""
+    def observe_rtt(
+        self, user: str, rtt_ms: float | None, delay_rtt_ms: float | None = None
+    ) -> None:
+        """Record the round trips [ms] the user reported in ``state``: ``delay_rtt_ms``, the one
+        the client measures its loop delay from, is used as it is (the advisor then designs for
+        the delay the client does); a client that does not send it has the delay measured from
+        its reported ``rtt_ms`` over the last :data:`shared.gains.policy.RTT_WINDOW` states.
+        None, negative or non-finite: not recorded."""
+        u = self._users.setdefault(user, _User())
+        if delay_rtt_ms is not None and math.isfinite(delay_rtt_ms) and delay_rtt_ms >= 0.0:
+            u.delay_rtt_s = min(delay_rtt_ms, 10_000.0) / 1e3
+            u.stale = True
         if rtt_ms is None or not math.isfinite(rtt_ms) or rtt_ms < 0.0:
             return
-        u = self._users.setdefault(user, _User())
         u.rtt_s.append(min(rtt_ms, 10_000.0) / 1e3)
         u.stale = True  # the delay is recomputed when the next patch asks for it
 
@@ -124,9 +140,11 @@ class GainAdvisor:
         if u is None:
             return 0
         if u.stale:
-            u.measured = measured_delay_ticks(
-                list(u.rtt_s), 0.5 / self.sim_rate_hz, self.sim_rate_hz
-            )
+            age = 0.5 / self.sim_rate_hz  # the client's state interval
+            if u.delay_rtt_s is not None:
+                u.measured = loop_delay_ticks(u.delay_rtt_s, age, self.sim_rate_hz)
+            else:
+                u.measured = measured_delay_ticks(list(u.rtt_s), age, self.sim_rate_hz)
             u.stale = False
         if tick is None:
             return u.measured if u.delay.held is None else max(u.measured, u.delay.held)

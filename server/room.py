@@ -526,7 +526,7 @@ class Room:
         if conn.state is not None and msg.seq <= conn.state.seq:
             return []  # older than what we have: latest wins
         conn.state = msg
-        self.gains.observe_rtt(conn.conn_id, msg.rtt_ms)
+        self.gains.observe_rtt(conn.conn_id, msg.rtt_ms, msg.delay_rtt_ms)
         conn.state_at_s = now_s
         return []
 

@@ -119,6 +119,10 @@ class State(_Msg):
     servo_rate_hz: Annotated[StrictFinite, Field(ge=0, le=100_000)] = 0.0
     period_us_p99: Annotated[StrictFinite, Field(ge=0, le=1e7)] = 0.0
     rtt_ms: Annotated[StrictFinite, Field(ge=0, le=1e6)] | None = None
+    #: The round trip [ms] the client measures its loop delay from (the 90th percentile of its
+    #: last 20 round trips, :func:`shared.gains.delay.delay_rtt_s`): the server's gain advisor
+    #: designs for the delay of the same round trip (absent: from the reported ``rtt_ms``).
+    delay_rtt_ms: Annotated[StrictFinite, Field(ge=0, le=1e6)] | None = None
     patch_tick: Annotated[int, Strict(), Field(ge=-1, lt=MAX_SEQ)] = -1
 
 

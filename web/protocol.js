@@ -25,7 +25,7 @@ export const SERVER_MESSAGE_TYPES = Object.freeze(["welcome", "patch", "pong", "
 /** Field names of each message, by `type` tag. */
 export const MESSAGE_FIELDS = Object.freeze({
   "hello": ["type", "protocol", "role", "name", "device", "servo_rate_hz", "local_model", "token"],
-  "state": ["type", "seq", "probe_m", "force_n", "penetration_m", "in_contact", "k_h", "i_gain", "own_gain", "servo_rate_hz", "period_us_p99", "rtt_ms", "patch_tick"],
+  "state": ["type", "seq", "probe_m", "force_n", "penetration_m", "in_contact", "k_h", "i_gain", "own_gain", "servo_rate_hz", "period_us_p99", "rtt_ms", "delay_rtt_ms", "patch_tick"],
   "ping": ["type", "id", "t_client_s"],
   "bye": ["type"],
   "welcome": ["type", "protocol", "user_id", "name", "role", "sim_rate_hz", "object", "link"],

@@ -26,28 +26,35 @@ from haptic_collab.shared.gains.key import loop_delay_ticks
 from haptic_collab.shared.gains.policy import DELAY_FALL_S, RTT_PERCENTILE, RTT_WINDOW
 
 
-def measured_delay_ticks(rtts_s: Sequence[float], state_age_s: float, sim_rate_hz: float) -> int:
-    """The loop delay [whole simulation ticks] of the last :data:`RTT_WINDOW` round trips
-    ``rtts_s`` [s] (oldest first) at their :data:`RTT_PERCENTILE`; 0 without any
-    (:func:`shared.gains.key.loop_delay_ticks`).
-
-    Raises
-    ------
-    ValueError
-        As :func:`shared.gains.key.loop_delay_ticks`.
-    """
+def delay_rtt_s(rtts_s: Sequence[float]) -> float | None:
+    """The round trip [s] the loop delay is measured from: the
+    :data:`shared.gains.policy.RTT_PERCENTILE` of the last :data:`shared.gains.policy.RTT_WINDOW`
+    round trips ``rtts_s`` [s] (oldest first); None without any. The client sends it in every
+    ``state`` (``delay_rtt_ms``), so the server's advisor measures the delay the client does."""
     if not rtts_s:
-        return 0
-    # numpy.percentile's linear method in plain floats (the server runs this for every user
-    # every tick: 40 us with numpy's machinery for 20 values)
+        return None
+    # numpy.percentile's linear method in plain floats (40 us with numpy's machinery for 20
+    # values, for every user every tick)
     xs = sorted(float(v) for v in rtts_s[-RTT_WINDOW:])
     pos = (RTT_PERCENTILE / 100.0) * (len(xs) - 1)
     lo = math.floor(pos)
     hi = min(lo + 1, len(xs) - 1)
     t = pos - lo
     a, b = xs[lo], xs[hi]
-    rtt = b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
-    return loop_delay_ticks(rtt, state_age_s, sim_rate_hz)
+    return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
+
+
+def measured_delay_ticks(rtts_s: Sequence[float], state_age_s: float, sim_rate_hz: float) -> int:
+    """The loop delay [whole simulation ticks] of the round trips ``rtts_s`` [s] (oldest first):
+    :func:`shared.gains.key.loop_delay_ticks` of their :func:`delay_rtt_s`; 0 without any.
+
+    Raises
+    ------
+    ValueError
+        As :func:`shared.gains.key.loop_delay_ticks`.
+    """
+    rtt = delay_rtt_s(rtts_s)
+    return 0 if rtt is None else loop_delay_ticks(rtt, state_age_s, sim_rate_hz)
 
 
 @dataclass

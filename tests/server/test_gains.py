@@ -24,6 +24,7 @@ from haptic_collab.shared.protocol import (
     Hello,
     Patch,
     PlaneModel,
+    Pong,
     RecommendedGains,
     State,
     Welcome,
@@ -267,3 +268,31 @@ def test_with_the_shipped_table_the_first_patch_carries_the_sessions_own_design(
         own.b_h,
         own.own_gain,
     )
+
+
+def test_the_advisor_designs_for_the_delay_the_client_measures_from_its_state() -> None:
+    """The client's delay is the 90th percentile of its last 20 pings; its ``state`` carries
+    that round trip (``delay_rtt_ms``), so the advisor's key has the client's delay on a trace
+    that wavers under load, where a window of the states' median round trips did not."""
+    from haptic_collab.client.session import ServoSample
+    from tests.support.sessions import welcomed_session
+
+    sample = ServoSample(
+        probe_m=(0.0, 0.0, 0.2), force_n=(0.0, 0.0, 0.0), penetration_m=None, in_contact=False,
+        k_h=0.0, i_gain=0.0, servo_rate_hz=1000.0, period_us_p99=0.0,
+    )  # fmt: skip
+    rng = np.random.default_rng(59)
+    s = welcomed_session("A", "u1")
+    adv = GainAdvisor(20.0, shipped=False)
+    median_only = GainAdvisor(20.0, shipped=False)
+    differ = 0
+    for i in range(200):  # pings every 0.5 s: a loaded loopback, mostly quick, stalls now and then
+        rtt = float(rng.choice([0.02, 0.03, 0.05, 0.4]))
+        t = 0.5 * i
+        s.receive(encode(Pong(id=i + 1, t_client_s=t, tick=i)), t + rtt)
+        st = State.model_validate_json(s.state(sample))
+        adv.observe_rtt("u1", st.rtt_ms, st.delay_rtt_ms)
+        median_only.observe_rtt("u1", st.rtt_ms)
+        assert adv.delay_ticks("u1") == s.delay_ticks()
+        differ += median_only.delay_ticks("u1") != s.delay_ticks()
+    assert differ > 0  # the states' medians alone give another delay on this trace
