@@ -32,7 +32,7 @@ from haptic_collab.client.devices.base import Device, DeviceLimits
 from haptic_collab.client.devices.hid import HidPort
 from haptic_collab.client.devices.opener import DeviceOpener
 from haptic_collab.client.devices.profiles import get_sim_profile
-from haptic_collab.client.gain_store import preload, save_cache
+from haptic_collab.client.gain_store import device_coverage, preload, save_cache
 from haptic_collab.client.link import DesignWorkers, Link
 from haptic_collab.client.recorder import CsvRecording, TelemetryRecorder
 from haptic_collab.client.servo import (
@@ -418,6 +418,33 @@ class _ClientRun:
         except Exception as exc:  # never a network retry: the client stops with this error
             self.fail(exc)
 
+    def _report_coverage(self, sim_rate_hz: float) -> None:
+        """Say whether this device's gains are designed ahead (the shipped tables and the
+        cache, :func:`client.gain_store.device_coverage`), and if not how to make them so: the
+        cells missing are designed during contact, and feel different until each is ready."""
+        s = self.session
+        k_h_max, b_h_max = s.device.max_stiffness_n_per_m, s.b_h_max
+        held, of = device_coverage(
+            s.gain_table, k_h_max=k_h_max, b_h_max=b_h_max, mode=s.mode,
+            servo_rate_hz=s.servo_rate_hz, sim_rate_hz=sim_rate_hz,
+        )  # fmt: skip
+        self.gain_preload["device_cells"] = {"held": held, "of": of}
+        if of == 0:
+            log.info(
+                "gains: no table is built for %g Hz servo / %g Hz simulation; cells are "
+                "designed as contacts need them",
+                s.servo_rate_hz,
+                sim_rate_hz,
+            )
+        elif held < of:
+            log.warning(
+                "gains: %d of %d cells of this device's table are designed (K_h <= %g N/m, "
+                "B_h <= %g N*s/m); the others are designed as contacts need them and feel "
+                "different until ready. Build them once (minutes, cached): haptic gains-table "
+                "--cache --max-stiffness %g --max-damping %g",
+                held, of, k_h_max, b_h_max, k_h_max, b_h_max,
+            )  # fmt: skip
+
     async def _start_servo(self, welcome: Welcome) -> None:
         opts, host, session = self.opts, self.host, self.session
         _check_whole_rate_ratio(opts.servo_rate_hz, welcome.sim_rate_hz)
@@ -436,6 +463,7 @@ class _ClientRun:
             max_damping_n_s_per_m=min(1e3, lim.max_damping_n_s_per_m),
         )
         session.b_h_max = min(1e3, lim.max_damping_n_s_per_m)
+        self._report_coverage(welcome.sim_rate_hz)
         lm = _local_model_params(opts, device, welcome.sim_rate_hz)
         passivity = opts.passivity == "on" or (
             opts.passivity == "auto" and opts.local_model == "pi"

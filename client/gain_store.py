@@ -22,13 +22,16 @@ import json
 import logging
 import os
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
+from haptic_collab.shared.gains.key import Mode
 from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.gains.table_file import (
     design_code_hash,
     load_shipped,
     load_table_document,
+    ship_jobs,
     table_document,
 )
 
@@ -81,6 +84,26 @@ def save_cache(table: GainTable, design_code: str) -> int:
         log.warning("gain cache %s not written: %s", path, exc)
         return -1
     return len(merged)
+
+
+def device_coverage(
+    table: GainTable,
+    *,
+    k_h_max: float,
+    b_h_max: float,
+    mode: Mode,
+    servo_rate_hz: float,
+    sim_rate_hz: float,
+) -> tuple[int, int]:
+    """How many cells of the shipped grid (:data:`shared.gains.table_file.SHIP_GRID`) ``table``
+    holds for this device [N/m, N*s/m], local model and rates [Hz]: ``(held, of)``; ``of`` is 0
+    where the grid does not apply (another servo or simulation rate)."""
+    keys = [
+        (replace(k, mode=mode), c)
+        for k, c in ship_jobs(k_h_max, b_h_max)
+        if k.servo_rate_hz == servo_rate_hz and k.sim_rate_hz == sim_rate_hz
+    ]
+    return sum(1 for k, c in keys if table.has(k, c)), len(keys)
 
 
 def preload(table: GainTable, *, cache: bool = True) -> dict[str, object]:

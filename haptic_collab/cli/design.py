@@ -336,22 +336,42 @@ def _table_row(
 
 
 def _cmd_ship_table(args: argparse.Namespace) -> int:
-    """``haptic gains-table --ship``: build (or complete) a profile's shipped table."""
+    """``haptic gains-table --ship``: build (or complete) a profile's shipped table;
+    ``--cache``: the same grid for this device (a profile, or ``--max-stiffness`` and
+    ``--max-damping``) into the client's cache of designs (client.gain_store)."""
     from haptic_collab.cli.shipped_tables import build_table, progress_bar, shipped_dir
     from haptic_collab.client.devices.profiles import get_sim_profile
+    from haptic_collab.client.gain_store import cache_path
+    from haptic_collab.shared.gains.table_file import design_code_hash
 
     try:
         lim = get_sim_profile(args.profile).limits
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    out = Path(args.out) if args.out else shipped_dir() / f"{args.profile}.json"
+    k_h_max, b_h_max = lim.max_stiffness_n_per_m, lim.max_damping_n_s_per_m
+    label = args.profile
+    if args.max_stiffness is not None or args.max_damping is not None:
+        if args.ship:
+            raise CliError("--ship builds a built-in profile's table: use --cache for a device")
+        if args.max_stiffness is None or args.max_damping is None:
+            raise CliError("give both --max-stiffness and --max-damping")
+        k_h_max, b_h_max = args.max_stiffness, args.max_damping
+        label = f"K_h<={k_h_max:g} B_h<={b_h_max:g}"
+    if args.out:
+        out = Path(args.out)
+    elif args.cache:
+        out = cache_path(design_code_hash())
+        out.parent.mkdir(parents=True, exist_ok=True)
+    else:
+        out = shipped_dir() / f"{args.profile}.json"
     done, left = build_table(
-        args.profile,
-        lim.max_stiffness_n_per_m,
-        lim.max_damping_n_s_per_m,
+        label,
+        k_h_max,
+        b_h_max,
         out=out,
         workers=args.workers,
-        progress=progress_bar(args.profile),
+        max_jobs=args.max_jobs,
+        progress=progress_bar(label),
     )
     print(f"{out}: {done} cells designed now; {left} without a stable design")
     return 0
@@ -360,7 +380,7 @@ def _cmd_ship_table(args: argparse.Namespace) -> int:
 def _cmd_gains_table(args: argparse.Namespace) -> int:
     from concurrent.futures import ProcessPoolExecutor
 
-    if args.ship:
+    if args.ship or args.cache:
         return _cmd_ship_table(args)
 
     from haptic_collab.client.devices.profiles import get_sim_profile
@@ -419,5 +439,33 @@ def _add_gains_table(sub: argparse._SubParsersAction) -> None:  # type: ignore[t
         help="build the profile's shipped table instead (shared/gains/tables/PROFILE.json, or "
         "--out): every cell of its grid, both local models; resumes a partial file "
         "(docs/gains.md, 'Shipped tables')",
+    )
+    p.add_argument(
+        "--cache",
+        action="store_true",
+        help="build the same grid for this device into the client's cache of designs "
+        "($HAPTIC_GAIN_CACHE or ~/.cache/haptic-collab): a device without a shipped table "
+        "then renders designed gains from its first contact too; resumes",
+    )
+    p.add_argument(
+        "--max-stiffness",
+        type=_positive,
+        default=None,
+        metavar="N_PER_M",
+        help="with --cache: the device's largest stable stiffness [N/m] (instead of --profile)",
+    )
+    p.add_argument(
+        "--max-damping",
+        type=_nonneg,
+        default=None,
+        metavar="N_S_PER_M",
+        help="with --cache: the device's largest virtual damping [N*s/m] (instead of --profile)",
+    )
+    p.add_argument(
+        "--max-jobs",
+        type=_whole_positive,
+        default=None,
+        metavar="N",
+        help="with --ship or --cache: design at most N cells now (the next run goes on)",
     )
     p.set_defaults(func=_cmd_gains_table)

@@ -11,7 +11,6 @@ parts (``--max-jobs``).
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import time
@@ -23,28 +22,16 @@ from typing import Any
 
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
 from haptic_collab.shared.gains.design import GainDesign
-from haptic_collab.shared.gains.key import GainKey, Mode, make_gain_key
-from haptic_collab.shared.gains.policy import DESIGN_MARGIN, K_O_GRID_RATIO
+from haptic_collab.shared.gains.key import GainKey, Mode
+from haptic_collab.shared.gains.policy import K_O_GRID_RATIO
 from haptic_collab.shared.gains.table import GainTable, design_cell_modes
 from haptic_collab.shared.gains.table_file import (
+    SHIP_GRID,
     design_code_hash,
     load_table_document,
+    ship_jobs,
     table_document,
 )
-
-#: What a shipped table covers, for each built-in profile: the servo rate [Hz], the simulation
-#: rates [Hz], the loop delays [ticks], the coupling classes (K_o_stiff / K_o_eff), the K_o range
-#: [N/m] (every grid cell from the one holding the lower end to the one holding the upper), both
-#: local models, the product's design margin, an object without damping (B_o 0: the balloon and
-#: any mesh; the FEM solid reports B_o and is designed during the session).
-SHIP_GRID: dict[str, Any] = {
-    "servo_rate_hz": 1000.0,
-    "sim_rate_hz": (20.0,),
-    "delay_ticks": tuple(range(0, 6)),
-    "stiff_ratio": (1.0, math.sqrt(2.0), 2.0),
-    "k_o_n_per_m": (50.0, 2000.0),
-    "margin": DESIGN_MARGIN,
-}
 
 #: The built-in profiles that get a shipped table (client.devices.profiles.SIM_PROFILES).
 SHIP_PROFILES = ("phantom-desktop", "touch")
@@ -55,42 +42,6 @@ def shipped_dir() -> Path:
     import haptic_collab.shared.gains as gains
 
     return Path(gains.__file__).resolve().parent / "tables"
-
-
-def ship_jobs(
-    k_h_max: float, b_h_max: float, grid: dict[str, Any] = SHIP_GRID
-) -> list[tuple[GainKey, int]]:
-    """The (key, cell) of a table for a device of these limits [N/m, N*s/m], P keys (each job
-    designs both local models), the cells around the default balloon's K_o (300 N/m) first."""
-    table = GainTable()
-    lo, hi = grid["k_o_n_per_m"]
-    cells = range(table.cell(lo), table.cell(hi) + 1)
-    mid = table.cell(300.0)
-    jobs = [
-        (
-            make_gain_key(
-                servo_rate_hz=grid["servo_rate_hz"],
-                sim_rate_hz=rate,
-                delay_ticks=d,
-                mode="p",
-                margin=grid["margin"],
-                k_h_max=k_h_max,
-                b_h_max=b_h_max,
-                b_o=0.0,
-                stiff_ratio=sr,
-            ),
-            c,
-        )
-        for rate in grid["sim_rate_hz"]
-        for d in grid["delay_ticks"]
-        for sr in grid["stiff_ratio"]
-        for c in cells
-    ]
-    # the balloon's neighbourhood (+-4 cells, 200-450 N/m) at every delay and class first
-    jobs.sort(
-        key=lambda j: (abs(j[1] - mid) > 4, j[0].delay_ticks, j[0].stiff_ratio, abs(j[1] - mid))
-    )
-    return jobs
 
 
 def _design_job(job: tuple[GainKey, int]) -> tuple[GainKey, int, dict[Mode, GainDesign] | None]:

@@ -101,3 +101,31 @@ def test_an_unwritable_cache_does_not_stop_the_client(tmp_path, monkeypatch, des
     blocker.write_text("")
     monkeypatch.setenv("HAPTIC_GAIN_CACHE", str(blocker / "sub"))  # under a file: cannot exist
     assert save_cache(_table(designs, 0), design_code_hash()) == -1
+
+
+def test_a_built_in_device_is_covered_and_a_custom_one_is_built_into_the_cache(
+    cache_dir, capsys
+) -> None:
+    """The Phantom Desktop's shipped table holds every cell of the grid at 20 Hz; a device of
+    other limits holds none until ``haptic gains-table --cache`` builds its cells, which the
+    next session's table then starts with."""
+    from haptic_collab.cli import main
+    from haptic_collab.client.gain_store import device_coverage
+
+    def coverage(k_h_max: float, b_h_max: float) -> tuple[int, int]:
+        table = GainTable()
+        preload(table)
+        return device_coverage(
+            table, k_h_max=k_h_max, b_h_max=b_h_max, mode="pi", servo_rate_hz=1000.0,
+            sim_rate_hz=20.0,
+        )  # fmt: skip
+
+    held, of = coverage(1000.0, 10.0)
+    assert of > 0 and held == of
+    assert coverage(1500.0, 8.0) == (0, of)
+    assert device_coverage(GainTable(), k_h_max=1000.0, b_h_max=10.0, mode="p",
+                           servo_rate_hz=1000.0, sim_rate_hz=50.0)[1] == 0  # fmt: skip
+    argv = ["gains-table", "--cache", "--max-stiffness", "1500", "--max-damping", "8"]
+    assert main([*argv, "--max-jobs", "2", "--workers", "1"]) == 0
+    assert "2 cells designed now" in capsys.readouterr().out
+    assert coverage(1500.0, 8.0) == (2, of)  # and the next run goes on from there
