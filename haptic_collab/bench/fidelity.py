@@ -44,18 +44,26 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
+
 from haptic_collab.research.fidelity_1d import simulate
 from haptic_collab.research.fidelity_cases import (
     FELT_RETRY_EXTRA_S,
     FELT_SETTLE_S,
     FELT_SINE_START_S,
+    FOLLOW_WINDOWS_S,
     OBJECTS,
+    OTHER_USER,
+    OTHER_USER_FOLLOW,
     TRAJECTORIES,
     Cell,
     ObjectModel,
+    Run,
     RunOptions,
     felt_depth_m,
     felt_trajectory,
+    follow_depth_m,
+    follow_trajectory,
 )
 from haptic_collab.research.fidelity_metrics import cell_metrics, felt_response
 from haptic_collab.research.fidelity_ranking import (
@@ -63,6 +71,7 @@ from haptic_collab.research.fidelity_ranking import (
     STIFFNESS_JND,
     Outcome,
     choose_variant,
+    follow_error,
     rank,
     scheme_record,
     summarize,
@@ -378,17 +387,194 @@ def _plane_json(plane: GainDesign | None, k_o: float) -> dict[str, Any] | None:
     return {"k_h": p.k_h, "b_h": p.b_h, "own_gain": p.own_gain, "proxy_hold": p.proxy_hold}
 
 
+def _follow_errors(run: Run, cells: Sequence[Cell]) -> list[float]:
+    """The follow error (:func:`haptic_collab.research.fidelity_ranking.follow_error`) of each
+    follow probe of a run (:func:`haptic_collab.research.fidelity_cases.follow_trajectory`):
+    the mean force before, while and after the other user holds (:data:`FOLLOW_WINDOWS_S`)
+    against the relaxed object's own rise at the probe's depth; ``inf`` for a runaway."""
+    out = []
+    for i, c in enumerate(cells):
+        if c.other is None or c.hand is not None:
+            raise ValueError("a follow probe is a position source with another user")
+        f = run.f[i]
+        means = []
+        for lo, hi in FOLLOW_WINDOWS_S:
+            m = (run.t >= lo - 1e-9) & (run.t < hi - 1e-9)
+            means.append(float(np.mean(f[m])))
+        lo, hi = FOLLOW_WINDOWS_S[1]
+        held = (run.t >= lo - 1e-9) & (run.t < hi - 1e-9)
+        depth = c.trajectory.y1_m
+        rise = float(
+            c.obj.static_force_n(c.k_o, depth + c.other.bulge_m)
+            - c.obj.static_force_n(c.k_o, depth)
+        )
+        ripple = float(np.ptp(f[held]))
+        before, during, after = means
+        err = math.inf if run.runaway[i] else follow_error(before, during, after, rise, ripple)
+        out.append(err)
+    return out
+
+
 def _simulate_batch(
-    cells: list[Cell], felt: bool, device: DeviceModel, options: RunOptions
+    cells: list[Cell], felt: bool | str, device: DeviceModel, options: RunOptions
 ) -> list[Any]:
-    """Simulate one batch (a worker's job): metrics, or felt responses ``(|q|, arg q)``."""
+    """Simulate one batch (a worker's job): metrics, felt responses ``(|q|, arg q)`` (``felt``
+    True) or follow errors (``felt`` ``"follow"``)."""
     run = simulate(cells, device=device, servo_rate_hz=_SERVO_RATE_HZ, options=options)
+    if felt == "follow":
+        return _follow_errors(run, cells)
     if felt:
         return [
             None if q is None else (abs(q), math.atan2(q.imag, q.real))
             for q in felt_response(run, cells)
         ]
     return [m.to_json() for m in cell_metrics(run, cells)]
+
+
+def _run_outcomes(
+    pool: Executor,
+    entries: Sequence[tuple[int, bool, str, float, float, float]],
+    outcomes: list[Outcome],
+    *,
+    hands: Sequence[Hand],
+    n_box: int,
+    trajectories: Sequence[str],
+    device: DeviceModel,
+    options: RunOptions,
+    both_phases: bool,
+) -> tuple[int, int, int]:
+    """Simulate every cell of ``entries`` (``(outcome id, two users, object, K_o, rate,
+    delay)``) in the pool and fill in their outcomes: each rendering with every hand of
+    ``hands`` (the first ``n_box`` the box's; with another user the box's only) on every
+    trajectory, at both ends of the sampling phase (``both_phases``); alone, the felt probes
+    (measured again on the longer probe where not read and the rendering is box-stable); with
+    another user, the follow probe. Returns the cells simulated, the felt probes measured again
+    and those of them read."""
+    hand_cells: dict[str, list[tuple[int, int, int, Cell]]] = defaultdict(list)
+    stale_cells: list[tuple[int, int, int, Cell]] = []
+    felt_cells: dict[float, list[tuple[int, Cell]]] = defaultdict(list)
+    follow_cells: list[tuple[int, Cell]] = []
+    for oid, two, name, k_o, rate, d in entries:
+        r = outcomes[oid].rendering
+        obj = _OBJECTS[name]
+        other = OTHER_USER if two else None
+        for ti, tr in enumerate(trajectories):
+            for hi, h in enumerate(hands[:n_box] if two else hands):
+                cell = Cell(r, k_o, rate, d, h, _TRAJ[tr], obj, other=other)
+                hand_cells[tr].append((oid, ti, hi, cell))
+                if both_phases:
+                    stale_cells.append((oid, ti, hi, replace(cell, stale_sample=True)))
+        if two:
+            depth = follow_depth_m(k_o, device.max_force_n, obj, OTHER_USER_FOLLOW.bulge_m)
+            cell = Cell(r, k_o, rate, d, None, follow_trajectory(depth), obj,
+                        other=OTHER_USER_FOLLOW)  # fmt: skip
+            follow_cells.append((oid, cell))
+            continue
+        depth = felt_depth_m(k_o, device.max_force_n, obj)
+        for hz in FELT_HZ:
+            cell = Cell(r, k_o, rate, d, None, felt_trajectory(hz, depth), obj)
+            felt_cells[hz].append((oid, cell))
+    # simulate in batches (one trajectory per batch: equal lengths), each of one kind of
+    # rendering, rate and delay as far as it goes: a batch's servo tick skips what none of its
+    # cells needs. The sort is stable, so each rendering's cells keep their hand order
+    for tagged_h in hand_cells.values():
+        tagged_h.sort(key=lambda item: _batch_class(item[-1]))
+    for tagged_f in felt_cells.values():
+        tagged_f.sort(key=lambda item: _batch_class(item[-1]))
+    follow_cells.sort(key=lambda item: _batch_class(item[-1]))
+    stale_cells.sort(key=lambda item: (item[-1].trajectory.name, _batch_class(item[-1])))
+    futs: list[tuple[str, Any, list[Any], Any]] = []
+    for tr, tagged in hand_cells.items():
+        for a in range(0, len(tagged), _BATCH):
+            chunk = tagged[a : a + _BATCH]
+            cs = [c for *_, c in chunk]
+            futs.append(
+                ("hand", tr, chunk, pool.submit(_simulate_batch, cs, False, device, options))
+            )
+    for a in range(0, len(stale_cells), _BATCH):
+        chunk_s = stale_cells[a : a + _BATCH]
+        for tr in dict.fromkeys(c.trajectory.name for *_, c in chunk_s):
+            part = [item for item in chunk_s if item[-1].trajectory.name == tr]
+            cs = [c for *_, c in part]
+            futs.append(
+                ("stale", tr, part, pool.submit(_simulate_batch, cs, False, device, options))
+            )
+    for hz, tagged_f in felt_cells.items():
+        for a in range(0, len(tagged_f), _BATCH):
+            chunk_f = tagged_f[a : a + _BATCH]
+            cs = [c for _, c in chunk_f]
+            futs.append(
+                ("felt", hz, chunk_f, pool.submit(_simulate_batch, cs, True, device, options))
+            )
+    for a in range(0, len(follow_cells), _BATCH):
+        chunk_w = follow_cells[a : a + _BATCH]
+        cs = [c for _, c in chunk_w]
+        futs.append(
+            ("follow", None, chunk_w, pool.submit(_simulate_batch, cs, "follow", device, options))
+        )
+    n_sim = 0
+    n_hands = len(hands)
+    # (outcome, trajectory, hand) unstable at the stale phase
+    stale_unstable: set[tuple[int, int, int]] = set()
+    for kind, what, items, fut in futs:
+        res = fut.result()
+        n_sim += len(res)
+        if kind == "felt":
+            for (oid, _c), q in zip(items, res, strict=True):
+                outcomes[oid].felt[what] = None if q is None else (q[0], q[1])
+            continue
+        if kind == "follow":
+            for (oid, _c), err in zip(items, res, strict=True):
+                outcomes[oid].follow_error = err
+            continue
+        if kind == "stale":
+            for (oid, ti, hi, _c), m in zip(items, res, strict=True):
+                if not m["stable"]:
+                    stale_unstable.add((oid, ti, hi))
+            continue
+        for (oid, _ti, hi, _c), m in zip(items, res, strict=True):
+            o = outcomes[oid]
+            if hi < n_box:
+                o.stable.append(bool(m["stable"]))
+                o.metrics.append(m)
+                if what == "impact":
+                    o.impact.append(m)
+            else:
+                o.outside.append(bool(m["stable"]))
+    # stable only if stable at both ends of the sampling phase (the flags are in
+    # (trajectory, hand) order: the cells of one trajectory are batched together in hand order
+    # and trajectories are collected in the grid's order)
+    n_out = n_hands - n_box
+    for oid, ti, hi in stale_unstable:
+        o = outcomes[oid]
+        if hi < n_box:
+            o.stable[ti * n_box + hi] = False
+        else:
+            o.outside[ti * n_out + hi - n_box] = False
+    # a felt response the probe did not find steady, or still while held, is measured again on
+    # the longer probe, every scheme's alike: a rendering that changes once (the product's, when
+    # its own-response check identifies the object) is then read after the change; a limit
+    # cycle or a growing response is refused again. Only renderings stable with every hand of
+    # the box are ranked, so only theirs are measured again
+    again: dict[float, list[tuple[int, Cell]]] = defaultdict(list)
+    for hz, tagged_f in felt_cells.items():
+        for oid, c in tagged_f:
+            if outcomes[oid].felt.get(hz) is None and outcomes[oid].box_stable:
+                longer = felt_trajectory(hz, c.trajectory.y1_m, longer=True)
+                again[hz].append((oid, replace(c, trajectory=longer)))
+    futs_again = [
+        (hz, chunk_f, pool.submit(_simulate_batch, [c for _, c in chunk_f], True, device, options))
+        for hz, tagged_f in again.items()
+        for chunk_f in (tagged_f[a : a + _BATCH] for a in range(0, len(tagged_f), _BATCH))
+    ]
+    n_again = n_again_read = 0
+    for hz, items_f, fut in futs_again:
+        for (oid, _c), q in zip(items_f, fut.result(), strict=True):
+            n_again += 1
+            if q is not None:
+                n_again_read += 1
+                outcomes[oid].felt[hz] = (q[0], q[1])
+    return n_sim + n_again, n_again, n_again_read
 
 
 def _batch_class(cell: Cell) -> tuple[str, bool, bool, bool, bool, float, float]:
@@ -432,6 +618,7 @@ def run(
     rest_plane: bool = True,
     rest_hold_back_s: float = REST_HOLD_BACK_S,
     both_phases: bool = True,
+    two_users: bool = True,
 ) -> dict[str, Any]:
     """Run the benchmark; returns the ``--json`` document.
 
@@ -494,6 +681,11 @@ def run(
         rendering is stable with a hand only if it is at both (the servo's and the
         simulation's clocks are not synchronised). False: the last tick's only, as before
         2026-11-27.
+    two_users : bool
+        Also run the two-user grid (every condition again with another user pressing and
+        letting go: :class:`haptic_collab.research.fidelity_cases.OtherUser`; no rest plane is
+        sent), ranked by how the user held still follows the other's press
+        (:func:`haptic_collab.research.fidelity_ranking.follow_error`), reported apart.
 
     Returns
     -------
@@ -615,11 +807,13 @@ def run(
 
         tables: dict[tuple[str, GainKey], tuple[TableCell, ...]] = {}
 
-        # 2. every scheme's renderings (a peer's whole sweep) per (K_o, rate, delay); the local
-        # models' per object too, for the B_o the simulation reports with it
-        def renderings(name: str, s: str, k_o: float, rate: float, d: float) -> list[Rendering]:
+        # 2. every scheme's renderings (a peer's whole sweep) per (K_o, rate, delay, user count);
+        # the local models' per object too, for the B_o the simulation reports with it
+        def renderings(
+            name: str, s: str, k_o: float, rate: float, d: float, two: bool
+        ) -> list[Rendering]:
             if s not in LOCAL_MODELS:
-                return peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device)
+                return peer_renderings(s, k_o=k_o, sim_rate_hz=rate, device=device, alone=not two)
             mode = "p" if s == "local-p" else "pi"
             key = _gain_key(
                 mode, rate, d, device, _reported_b_o(name, k_o, rate), **key_range
@@ -643,133 +837,58 @@ def run(
                     table=tables[(mode, key)],
                     planes=tuple(by_cell[c] for c in sorted(by_cell)),
                     plane_check_s=plane_check_s,
-                    rest_plane=rest_plane,
+                    # the server sends the rest plane only to a user alone
+                    rest_plane=rest_plane and not two,
                     rest_hold_back_s=rest_hold_back_s,
                 )
             ]
 
-        # 3. cells: every object x rendering x trajectory x hand, and the felt probes
+        # 3. the grids: the user alone, and (two_users) with another user pressing and letting
+        # go. Each peer's tuning is picked as its user would pick it, from what the wire carries:
+        # on the spring of the K_o reported (the nominal object), at that rate, delay and user
+        # count, every tuning of its sweep is run; the one stable with every hand of the box,
+        # then felt closest (choose_variant), is then run on every other object. First the
+        # spring's cells (every tuning), then the other objects' (the tuning picked)
+        grids = [False, True] if two_users else [False]
         outcomes: list[Outcome] = []
-        where: dict[tuple[str, str, float, float, float], list[int]] = {}
-        hand_cells: dict[str, list[tuple[int, int, int, Cell]]] = defaultdict(list)
-        # each hand cell again at the other end of the sampling phase (Cell.stale_sample)
-        stale_cells: list[tuple[int, int, int, Cell]] = []
-        felt_cells: dict[float, list[tuple[int, Cell]]] = defaultdict(list)
-        for name in g.objects:
-            obj = _OBJECTS[name]
+        where: dict[tuple[bool, str, str, float, float, float], list[int]] = {}
+        first: list[tuple[int, bool, str, float, float, float]] = []
+        for two in grids:
             for s, k_o, rate, d in itertools.product(schemes, g.k_o, g.sim_rate_hz, g.delay_ms):
-                rs = renderings(name, s, k_o, rate, d)
                 ids = []
-                for r in rs:
-                    oid = len(outcomes)
-                    ids.append(oid)
+                for r in renderings("spring", s, k_o, rate, d, two):
+                    ids.append(len(outcomes))
+                    first.append((len(outcomes), two, "spring", k_o, rate, d))
                     outcomes.append(Outcome(r))
-                    for ti, tr in enumerate(g.trajectories):
-                        for hi, h in enumerate(hands):
-                            cell = Cell(r, k_o, rate, d, h, _TRAJ[tr], obj)
-                            hand_cells[tr].append((oid, ti, hi, cell))
-                            if both_phases:
-                                stale_cells.append((oid, ti, hi, replace(cell, stale_sample=True)))
-                    depth = felt_depth_m(k_o, device.max_force_n, obj)
-                    for hz in FELT_HZ:
-                        cell = Cell(r, k_o, rate, d, None, felt_trajectory(hz, depth), obj)
-                        felt_cells[hz].append((oid, cell))
-                where[(name, s, k_o, rate, d)] = ids
+                where[(two, "spring", s, k_o, rate, d)] = ids
 
-        # 4. simulate in batches (one trajectory per batch: equal lengths), each of one kind of
-        # rendering, rate and delay as far as it goes: a batch's servo tick skips what none of
-        # its cells needs (a third faster for a peer's cells alone). The sort is stable, so each
-        # rendering's cells keep their hand order
-        for tagged_h in hand_cells.values():
-            tagged_h.sort(key=lambda item: _batch_class(item[-1]))
-        for tagged_f in felt_cells.values():
-            tagged_f.sort(key=lambda item: _batch_class(item[-1]))
-        # the stale phase's cells by trajectory too (a batch is of one length)
-        stale_cells.sort(key=lambda item: (item[-1].trajectory.name, _batch_class(item[-1])))
-        futs: list[tuple[str, Any, list[Any], Any]] = []
-        for tr, tagged in hand_cells.items():
-            for a in range(0, len(tagged), _BATCH):
-                chunk = tagged[a : a + _BATCH]
-                cs = [c for *_, c in chunk]
-                futs.append(
-                    ("hand", tr, chunk, pool.submit(_simulate_batch, cs, False, device, options))
-                )
-        for a in range(0, len(stale_cells), _BATCH):
-            chunk_s = stale_cells[a : a + _BATCH]
-            for tr in dict.fromkeys(c.trajectory.name for *_, c in chunk_s):
-                part = [item for item in chunk_s if item[-1].trajectory.name == tr]
-                cs = [c for *_, c in part]
-                futs.append(
-                    ("stale", tr, part, pool.submit(_simulate_batch, cs, False, device, options))
-                )
-        for hz, tagged_f in felt_cells.items():
-            for a in range(0, len(tagged_f), _BATCH):
-                chunk_f = tagged_f[a : a + _BATCH]
-                cs = [c for _, c in chunk_f]
-                futs.append(
-                    ("felt", hz, chunk_f, pool.submit(_simulate_batch, cs, True, device, options))
-                )
-        n_sim = 0
-        # (outcome, trajectory, hand) unstable at the stale phase
-        stale_unstable: set[tuple[int, int, int]] = set()
-        for kind, what, items, fut in futs:
-            res = fut.result()
-            n_sim += len(res)
-            if kind == "felt":
-                for (oid, _c), q in zip(items, res, strict=True):
-                    outcomes[oid].felt[what] = None if q is None else (q[0], q[1])
-                continue
-            if kind == "stale":
-                for (oid, ti, hi, _c), m in zip(items, res, strict=True):
-                    if not m["stable"]:
-                        stale_unstable.add((oid, ti, hi))
-                continue
-            for (oid, _ti, hi, _c), m in zip(items, res, strict=True):
-                o = outcomes[oid]
-                if hi < n_box:
-                    o.stable.append(bool(m["stable"]))
-                    o.metrics.append(m)
-                    if what == "impact":
-                        o.impact.append(m)
-                else:
-                    o.outside.append(bool(m["stable"]))
-        # stable only if stable at both ends of the sampling phase (the flags are in
-        # (trajectory, hand) order)
-        n_out = len(hands) - n_box
-        for oid, ti, hi in stale_unstable:
-            o = outcomes[oid]
-            if hi < n_box:
-                o.stable[ti * n_box + hi] = False
-            else:
-                o.outside[ti * n_out + hi - n_box] = False
-        # a felt response the probe did not find steady, or still while held, is measured
-        # again on the longer probe, every scheme's alike: a rendering that changes once (the
-        # product's, when its own-response check identifies the object) is then read after the
-        # change; a limit cycle or a growing response is refused again. Only renderings stable
-        # with every hand of the box are ranked, so only theirs are measured again
-        again: dict[float, list[tuple[int, Cell]]] = defaultdict(list)
-        for hz, tagged_f in felt_cells.items():
-            for oid, c in tagged_f:
-                if outcomes[oid].felt.get(hz) is None and outcomes[oid].box_stable:
-                    longer = felt_trajectory(hz, c.trajectory.y1_m, longer=True)
-                    again[hz].append((oid, replace(c, trajectory=longer)))
-        futs_again = [
-            (
-                hz,
-                chunk_f,
-                pool.submit(_simulate_batch, [c for _, c in chunk_f], True, device, options),
-            )
-            for hz, tagged_f in again.items()
-            for chunk_f in (tagged_f[a : a + _BATCH] for a in range(0, len(tagged_f), _BATCH))
-        ]
-        n_again = n_again_read = 0
-        for hz, items_f, fut in futs_again:
-            for (oid, _c), q in zip(items_f, fut.result(), strict=True):
-                n_again += 1
-                if q is not None:
-                    n_again_read += 1
-                    outcomes[oid].felt[hz] = (q[0], q[1])
-        n_sim += n_again
+        def simulate_all(
+            items: list[tuple[int, bool, str, float, float, float]],
+        ) -> tuple[int, ...]:
+            return _run_outcomes(
+                pool, items, outcomes, hands=hands, n_box=n_box, trajectories=g.trajectories,
+                device=device, options=options, both_phases=both_phases,
+            )  # fmt: skip
+
+        counts = simulate_all(first)
+        pick: dict[tuple[bool, str, float, float, float], int] = {}
+        for two in grids:
+            for s, k_o, rate, d in itertools.product(schemes, g.k_o, g.sim_rate_hz, g.delay_ms):
+                ids = where[(two, "spring", s, k_o, rate, d)]
+                pick[(two, s, k_o, rate, d)] = choose_variant([outcomes[i] for i in ids])
+        second: list[tuple[int, bool, str, float, float, float]] = []
+        for two in grids:
+            for name in g.objects:
+                if name == "spring":
+                    continue
+                for s, k_o, rate, d in itertools.product(schemes, g.k_o, g.sim_rate_hz, g.delay_ms):
+                    rs = renderings(name, s, k_o, rate, d, two)
+                    r = rs[0] if s in LOCAL_MODELS else rs[pick[(two, s, k_o, rate, d)]]
+                    where[(two, name, s, k_o, rate, d)] = [len(outcomes)]
+                    second.append((len(outcomes), two, name, k_o, rate, d))
+                    outcomes.append(Outcome(r))
+        more = simulate_all(second)
+        n_sim, n_again, n_again_read = (x + y for x, y in zip(counts, more, strict=True))
         t_sim = time.perf_counter() - t0 - t_design
         say(
             f"simulated {n_sim} cells in {t_sim:.1f} s ({n_again} felt probes measured again "
@@ -778,38 +897,30 @@ def run(
     finally:
         pool.shutdown()
 
-    # the stable flags must be in (trajectory, hand) order for the per-hand ranking: they are,
-    # because the cells of one trajectory are batched together in hand order and trajectories
-    # are collected in the grid's order
-    # each peer by its best tuning in the condition itself (docs/fidelity.md: the tuning is
-    # picked knowing the object), and by the tuning it would pick on the design model (what a
-    # designer who knows only the reported K_o would ship: the product's own position)
-    conditions: list[dict[str, Any]] = []
-    design_tuned: list[dict[str, Any]] = []
-    for name in g.objects:
-        for k_o in g.k_o:
-            for rate in g.sim_rate_hz:
-                for d in g.delay_ms:
-                    recs: dict[str, Any] = {}
-                    recs_d: dict[str, Any] = {}
-                    for s in schemes:
-                        ids = where[(name, s, k_o, rate, d)]
-                        best = ids[choose_variant([outcomes[i] for i in ids])]
-                        recs[s] = scheme_record(outcomes[best])
-                        if "spring" in g.objects:
-                            ref = where[("spring", s, k_o, rate, d)]
-                            pick = choose_variant([outcomes[i] for i in ref])
-                            recs_d[s] = (
-                                recs[s] if ids[pick] == best else scheme_record(outcomes[ids[pick]])
-                            )
-                    head = {"object": name, "k_o_n_per_m": k_o, "sim_rate_hz": rate, "delay_ms": d}
-                    cond = {**head, "schemes": recs}
-                    rank(cond)
-                    conditions.append(cond)
-                    if recs_d:
-                        cond_d = {**head, "schemes": recs_d}
-                        rank(cond_d)
-                        design_tuned.append(cond_d)
+    # each condition's records: a local model's rendering, a peer's tuning picked on the
+    # nominal spring (the spring's own condition: that tuning among its sweep)
+    by_grid: dict[bool, list[dict[str, Any]]] = {two: [] for two in grids}
+    for two in grids:
+        for name in g.objects:
+            for k_o in g.k_o:
+                for rate in g.sim_rate_hz:
+                    for d in g.delay_ms:
+                        recs: dict[str, Any] = {}
+                        for s in schemes:
+                            ids = where[(two, name, s, k_o, rate, d)]
+                            i = ids[pick[(two, s, k_o, rate, d)]] if name == "spring" else ids[0]
+                            recs[s] = scheme_record(outcomes[i])
+                        cond = {
+                            "object": name,
+                            "k_o_n_per_m": k_o,
+                            "sim_rate_hz": rate,
+                            "delay_ms": d,
+                            "schemes": recs,
+                        }
+                        rank(cond)
+                        by_grid[two].append(cond)
+    conditions = by_grid[False]
+    conditions_two = by_grid.get(True, [])
 
     cells3: list[dict[str, Any]] = []
     pairs3: list[dict[str, Any]] = []
@@ -885,8 +996,8 @@ def run(
             }
         )
     summary = summarize(conditions, schemes)
-    if design_tuned:
-        summary["peers_tuned_on_the_design_model"] = summarize(design_tuned, schemes)
+    if conditions_two:
+        summary["two_users"] = summarize(conditions_two, schemes)
     if cells3:
         summary["stable_fraction_3d"] = {
             s: sum(c["stable"] for c in cells3 if c["scheme"] == s)
@@ -942,8 +1053,26 @@ def run(
             "rest_plane": rest_plane,
             "rest_hold_back_s": rest_hold_back_s,
             "both_sampling_phases": both_phases,
+            "two_users": two_users,
         },
+        "peer_tuning": (
+            "picked on the spring of the K_o reported, per K_o, rate, delay and user count "
+            "(stable with every hand of the box, then the least error), then judged on every "
+            "object"
+        ),
+        "stale_sample": "the state N // 2 servo ticks old (the client's state every half period)",
+        "two_users": (
+            None
+            if not conditions_two
+            else {
+                "other_user_hands": OTHER_USER.__repr__(),
+                "other_user_follow": OTHER_USER_FOLLOW.__repr__(),
+                "trajectories": list(g.trajectories),
+                "error": "follow error: |ln| of the felt rise and fall over the object's own",
+            }
+        ),
         "conditions": conditions,
+        "conditions_two_users": conditions_two,
         "cells_3d": cells3,
         "pairs_3d": pairs3,
         "summary": summary,

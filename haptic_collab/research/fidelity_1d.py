@@ -78,6 +78,7 @@ from haptic_collab.research.fidelity_cases import (
     Run,
     RunOptions,
     Trajectory,
+    stale_ticks,
     stiffening_depth,
     stiffening_force,
     stiffening_tangent,
@@ -149,6 +150,50 @@ def _verified_plane_gains(
     alone where it is not, as :meth:`client.session.ClientSession._render` renders it.
     ``since``, shape (B, :data:`_PLANE_CELLS`), holds that tick per plane cell, -1 before: the
     client keeps a checked plane for the session."""
+    _own_response_check(
+        mask, k_o, sums=sums, deform=deform, seq_last=seq_last, ok=ok, ref=ref, start=start,
+        jumps=jumps, seq=seq, surface=surface, force=force, sim_rate_hz=sim_rate_hz,
+    )  # fmt: skip
+    # the client checks the plane of the stiffness verified once its check first verifies
+    # there, in its worker (alone in a cell not designed yet), and keeps it: a plane cell not
+    # checked before starts its check time
+    k_id = ref * k_o
+    pc = np.floor(np.log(k_id) / np.log(planes.ratio) + 1e-12)
+    pc = np.clip(pc, 0, _PLANE_CELLS - 1).astype(np.int64)
+    rows = np.arange(len(pc))
+    first = mask & ok & (since[rows, pc] < 0)
+    since[rows[first], pc[first]] = seq[first]
+    at = since[rows, pc]
+    ready = (at >= 0) & ((seq - at) / sim_rate_hz >= delay_s)
+    use = mask & ok & ready & planes.has_cell(k_id)
+    if not use.any():
+        return gains, use
+    plane = planes.gains_and_hold(k_id)
+    kg, ig, bg, og, fg = (np.where(use, p, g) for p, g in zip(plane, gains, strict=True))
+    return (kg, ig, bg, og, fg), use
+
+
+def _own_response_check(
+    mask: NDArray[np.bool_],
+    k_o: FloatArray,
+    *,
+    sums: FloatArray,
+    deform: FloatArray,
+    seq_last: NDArray[np.int64],
+    ok: NDArray[np.bool_],
+    ref: FloatArray,
+    start: NDArray[np.int64],
+    jumps: FloatArray,
+    seq: NDArray[np.int64],
+    surface: FloatArray,
+    force: FloatArray,
+    sim_rate_hz: FloatArray,
+) -> None:
+    """The client's own-response check (:mod:`shared.gains.own_response`, as
+    :meth:`client.session.ClientSession._render` runs it) for the patches of ``mask``, its state
+    updated in place (the arguments of :func:`_verified_plane_gains`): it starts over when the
+    contact ends (a patch without a force from this user); ``ok`` says where it verifies the
+    object, ``ref`` the stiffness it holds the object to over the K_o reported ``k_o``."""
     ended = mask & ~(force > 0.0)
     sums[ended] = 0.0
     deform[ended] = empty_deformation()
@@ -173,23 +218,6 @@ def _verified_plane_gains(
         )
         ok[push] = got_ok[push]
         ref[push] = got_ref[push]
-    # the client checks the plane of the stiffness verified once its check first verifies
-    # there, in its worker (alone in a cell not designed yet), and keeps it: a plane cell not
-    # checked before starts its check time
-    k_id = ref * k_o
-    pc = np.floor(np.log(k_id) / np.log(planes.ratio) + 1e-12)
-    pc = np.clip(pc, 0, _PLANE_CELLS - 1).astype(np.int64)
-    rows = np.arange(len(pc))
-    first = mask & ok & (since[rows, pc] < 0)
-    since[rows[first], pc[first]] = seq[first]
-    at = since[rows, pc]
-    ready = (at >= 0) & ((seq - at) / sim_rate_hz >= delay_s)
-    use = mask & ok & ready & planes.has_cell(k_id)
-    if not use.any():
-        return gains, use
-    plane = planes.gains_and_hold(k_id)
-    kg, ig, bg, og, fg = (np.where(use, p, g) for p, g in zip(plane, gains, strict=True))
-    return (kg, ig, bg, og, fg), use
 
 
 def passivity_step(
@@ -307,7 +335,17 @@ def simulate(
     jac = kind == "jacobian"
     tool = kind == "tool"
     mmt = kind == "mmt"
+    mmt_id = mmt & np.array([x.identifies for x in r])
     wall = kind == "wall"
+    # alone on the object (the server sends the rest surface), or with another user pressing
+    alone = np.array([c.other is None for c in cells])
+    others = [c.other for c in cells if c.other is not None]
+    any_other = bool(others)
+    o_rows = np.flatnonzero(~alone)
+    o_bulge = np.array([o.bulge_m for o in others])
+    o_start = np.array([o.start_s for o in others])
+    o_ramp = np.array([max(o.ramp_s, 1e-12) for o in others])
+    o_release = np.array([o.release_s for o in others])
     fed_position = direct | jac | tool  # the simulation receives the probe, not a force
     k_h = np.array([x.k_h for x in r])
     ti = T * np.array([x.i_gain for x in r])
@@ -340,7 +378,7 @@ def simulate(
     # ... and, the user alone, the rest plane where no verified plane renders and none has for
     # rest_hold_back_s in the contact (client.session: shared.gains.rest_plane), at the rest surface
     # (depth 0), with the gains of each patch's K_o and the B_o reported
-    rest_on = follow & np.array([x.rest_plane for x in r])
+    rest_on = follow & np.array([x.rest_plane for x in r]) & alone
     b_o_rest = np.array(
         [
             c.obj.reported_b_o(c.k_o, c.sim_rate_hz) if on else 0.0
@@ -378,6 +416,8 @@ def simulate(
     f_s_last = np.zeros(B)  # F_s [N] the last patch's compensation carried
     off_used = np.zeros(B)  # the slide's depth [m] in the last tick's penetration
     jscale = np.array([x.jacobian_scale for x in r])
+    m_t = np.array([x.tool_mass_kg for x in r])
+    b_t = np.array([x.tool_damping_n_s_per_m for x in r])
     fmax = float(device.max_force_n)
     a_u = T / (T + DAMPER_FILTER_S)
 
@@ -396,6 +436,11 @@ def simulate(
     xo = np.zeros(B)
     vo = np.zeros(B)
     qo = np.zeros(B)
+    # the virtual tool (virtual coupling): position and velocity relative to the rest surface,
+    # and the probe position the simulation received last
+    xt = np.zeros(B)
+    vt = np.zeros(B)
+    p_prev = np.full(B, np.nan)
 
     # hands: exact ZOH of m x'' = -b (x' - y') - k (x - y) - f  (input f - k y - b y')
     src = np.array([c.hand is None for c in cells])
@@ -441,6 +486,7 @@ def simulate(
     f_recv = np.zeros(B)  # direct, jacobian: force received
     k_recv = k_o.copy()  # mmt, jacobian: stiffness estimate received (the rest value at first)
     x_ref = np.zeros(B)  # jacobian: the probe position the force received belongs to
+    v_recv = np.zeros(B)  # tool: the tool velocity received [m/s]
     e_env = np.zeros(B)  # two-port: energy the environment has given back, as received [J]
     e_out = np.zeros(B)  # two-port: energy the port has given the user [J]
     seq_seen = np.zeros(B, dtype=np.int64)
@@ -449,7 +495,7 @@ def simulate(
     # network: ring buffers on the servo clock
     # the force the simulation takes: the last servo tick's of its period, or the first's
     # (Cell.stale_sample: the other end of the sampling phase)
-    lag = np.array([n_ratio[i] - 1 if c.stale_sample else 0 for i, c in enumerate(cells)])
+    lag = np.array([stale_ticks(n_ratio[i]) if c.stale_sample else 0 for i, c in enumerate(cells)])
     L = int((d_ticks + lag).max()) + 2
     up = np.zeros((L, B))  # what the servo sent at tick n (force, or probe position)
     # latest (value, stiffness, x_ref or force, energy, surface) published by tick n
@@ -469,7 +515,9 @@ def simulate(
     any_pc = bool(pc_on.any())
     any_two_port = bool(two_port.any())
     any_follow = bool(follow.any())
+    any_tool = bool(tool.any())
     any_tool_nonlin = bool((tool & nonlin).any())
+    any_mmt_id = bool(mmt_id.any())
     all_src = bool(src.all())
 
     X = np.empty((B, n_steps))
@@ -499,19 +547,37 @@ def simulate(
             proxied = fresh & ~(direct | jac | wall)
             p_new = np.where(proxied, got[:, 0], p_new)
             f_recv = np.where(fresh & (direct | jac), got[:, 0], f_recv)
-            k_recv = np.where(fresh & (mmt | jac | follow), got[:, 1], k_recv)
+            k_recv = np.where(fresh & (mmt | jac | follow | tool), got[:, 1], k_recv)
             x_ref = np.where(fresh & jac, got[:, 2], x_ref)
+            v_recv = np.where(fresh & tool, got[:, 3], v_recv)
+            if any_mmt_id:
+                # mmt-id: the client's own-response check on each patch, as the product's
+                ident = fresh & mmt_id
+                if ident.any():
+                    _own_response_check(
+                        ident, np.where(ident, k_recv, k_o), sums=own_sums, deform=own_deform, seq_last=own_seq,
+                        ok=own_ok, ref=own_ratio, start=own_start, jumps=own_jumps, seq=seq,
+                        surface=got[:, 4], force=np.maximum(got[:, 2], 0.0), sim_rate_hz=sim_hz,
+                    )  # fmt: skip
+                    # with another user the plane is at the rest surface the patch implies with
+                    # the stiffness identified (alone, the server's rest surface: published)
+                    k_hat = np.where(ident, np.where(own_ok, own_ratio, 1.0) * k_recv, 1.0)
+                    implied = got[:, 4] - np.maximum(got[:, 2], 0.0) / k_hat
+                    p_new = np.where(ident & ~alone, implied, p_new)
             e_env = np.where(fresh & two_port, got[:, 3], e_env)
             hold_i = np.where(fresh, 0, hold_i + 1)
             seq_seen = seq
             if any_follow:
                 re_gain = fresh & follow
                 if re_gain.any():
-                    kg, ig, bg, og, fg = table.gains_and_hold(k_recv)
+                    # the K_o each local model's patch reports (the other kinds' are not read:
+                    # a force-jacobian's or a tool's may be 0)
+                    k_recv_f = np.where(follow, k_recv, k_o)
+                    kg, ig, bg, og, fg = table.gains_and_hold(k_recv_f)
                     plane_on = np.zeros(B, dtype=bool)
                     # the rest plane's gains for this patch (shared.gains.rest_plane)
                     k_rest, b_rest, _ = rest_plane_dampers(
-                        k_recv, b_o_rest, sim_hz, device.max_stiffness_n_per_m,
+                        k_recv_f, b_o_rest, sim_hz, device.max_stiffness_n_per_m,
                         device.max_damping_n_s_per_m, servo_period_s=T,
                     )  # fmt: skip
                     if checks.any():
@@ -519,7 +585,7 @@ def simulate(
                             re_gain & checks,
                             (kg, ig, bg, og, fg),
                             planes,
-                            k_recv,
+                            k_recv_f,
                             sums=own_sums,
                             deform=own_deform,
                             seq_last=own_seq,
@@ -606,7 +672,8 @@ def simulate(
             e = e + off_e
             off_used = off_e
             off_e = _ramp_down(off_e, off_step)
-        k_eff = np.where(mmt, np.minimum(k_recv, k_h), k_h_now)
+        k_hat = np.where(mmt_id & own_ok, own_ratio, 1.0) * k_recv if any_mmt_id else k_recv
+        k_eff = np.where(mmt, np.minimum(k_hat, k_h), k_h_now)
         # contact: the probe past the proxy; an integral keeps it while the probe is within the
         # deformation its force holds (s / K_o: the object's surface follows a retreating probe
         # back, the proxy is a stale copy of it; shared.local_model's recovery band)
@@ -638,6 +705,11 @@ def simulate(
             # force-jacobian: the simulation's force and its local stiffness about x_ref
             f_j = f_recv + np.minimum(jscale * k_recv, k_h) * (xr - x_ref)
             f = np.where(jac, np.where(f_j > 0.0, np.maximum(f_j + b_h * u, 0.0), 0.0), f)
+        if any_tool:
+            # virtual coupling: the spring-damper to the tool received, while the tool touches
+            # the object (k_recv: 1 in contact, 0 out of it), pushing only
+            f_c = k_h * (xr - p_new) + b_h * (u - v_recv)
+            f = np.where(tool, np.where(k_recv > 0.0, np.maximum(f_c, 0.0), 0.0), f)
         f = np.clip(f, -fmax, fmax)
         # passivity layer at the device port: force ON the handle is -f, its velocity vel
         if any_pc:
@@ -690,17 +762,30 @@ def simulate(
             k_up = n - d_ticks - lag
             slot_up = np.where(k_up >= 0, k_up, 0) % L
             got = np.where(k_up >= 0, up[slot_up, cols], 0.0)
+            # another user moves the rest surface under this contact (OtherUser): the object's
+            # state is kept relative to it, what it publishes is absolute
+            rest = np.zeros(B)
+            if any_other:
+                u_on = np.clip((n * T - o_start) / o_ramp, 0.0, 1.0)
+                u_off = np.clip((n * T - o_release) / o_ramp, 0.0, 1.0)
+                on = 10 * u_on**3 - 15 * u_on**4 + 6 * u_on**5
+                off = 10 * u_off**3 - 15 * u_off**4 + 6 * u_off**5
+                rest[o_rows] = -o_bulge * (on - off)
+            got_rel = np.where(fed_position, got - rest, got)
             a = (m_o * (xo + h * vo) / h**2 + b_o * xo / h + k2 * alpha * qo) / D
             # a force pushes the object (the local models, MMT, the wall)
-            f_in = np.maximum(got, 0.0)
+            f_in = np.maximum(got_rel, 0.0)
             x_f = np.where(nonlin, stiffening_depth(k1, xs, f_in), a + f_in / D)
             # the probe position drives it (direct, force-jacobian): the surface put at the probe
-            contact = got > a
-            x_in = np.clip(got, 0.0, RUNAWAY_M)
+            # where the probe is in it, else where the object is (x_s clipped to the surface)
+            contact = np.where(nonlin, got_rel > 0.0, got_rel > a)
+            x_in = np.clip(got_rel, 0.0, RUNAWAY_M)
             f_p = np.where(
-                nonlin, stiffening_force(k1, xs, x_in), np.where(contact, (got - a) * D, 0.0)
+                nonlin,
+                stiffening_force(k1, xs, x_in),
+                np.where(contact, (got_rel - a) * D, 0.0),
             )
-            x_p = np.where(nonlin, x_in, np.where(contact, got, a))
+            x_p = np.where(nonlin, x_in, np.where(contact, got_rel, a))
             if any_two_port:
                 # two-port, the simulation's side: the energy the object has given back
                 de = 0.5 * (f_env + f_p) * (x_p - x_used)
@@ -709,22 +794,47 @@ def simulate(
                 )
                 x_used = np.where(two_port & sim_now, x_p, x_used)
                 f_env = np.where(two_port & sim_now, f_p, f_env)
-            # the tool (virtual coupling): its equilibrium between the coupling and the object
-            kc = k_h
-            f_t = np.where(got > a, kc * (got - a) / (1.0 + kc / D), 0.0)
-            x_t = a + f_t / D
-            if any_tool_nonlin:
-                gp = np.maximum(got, 0.0)
-                z = kc * gp / (kc + k1)
-                for _ in range(8):  # Newton on the convex, increasing F(z) + K_c (z - x)
-                    z = z - (stiffening_force(k1, xs, z) + kc * (z - gp)) / (
-                        stiffening_tangent(k1, xs, z) + kc
-                    )
-                z = np.clip(z, 0.0, gp)
-                x_t = np.where(nonlin, z, x_t)
-                f_t = np.where(nonlin, kc * (gp - z), f_t)
-            x_new = np.where(tool, x_t, np.where(fed_position, x_p, x_f))
-            f_obj = np.where(tool, f_t, np.where(fed_position, f_p, f_in))
+            x_new = np.where(fed_position, x_p, x_f)
+            f_obj = np.where(fed_position, f_p, f_in)
+            touch = contact
+            if any_tool:
+                # the virtual tool (mass m_t, damping b_t to ground) pulled by the coupling
+                # (K_c, B_c) toward the probe received, against the object: implicit Euler at
+                # the simulation rate, the tool and the object's surface one point in contact.
+                # The coupling on the tool is K_c (p - z) + B_c (p' - (z - x_t) / h) = Kc (p_c
+                # - z); the tool's inertia and damping are M (z - a_t), as the object's D (z - a)
+                pd = np.where(np.isfinite(p_prev), (got_rel - p_prev) / h, 0.0)
+                p_prev = np.where(sim_now & tool, got_rel, p_prev)
+                big_m = m_t / h**2 + b_t / h
+                a_t = np.where(
+                    big_m > 0.0,
+                    (m_t * (xt + h * vt) / h**2 + b_t * xt / h) / np.maximum(big_m, 1e-300),
+                    0.0,
+                )
+                kc = np.where(tool, k_h + b_h / h, 1.0)
+                p_c = (k_h * got_rel + b_h * pd + b_h * xt / h) / kc
+                z_free = (big_m * a_t + kc * p_c) / (big_m + kc)
+                k_tot = big_m + kc
+                z_lin = (big_m * a_t + kc * p_c + D * a) / (k_tot + D)
+                t_touch = np.where(nonlin, z_free > 0.0, z_free > a)
+                z_t = np.where(t_touch, z_lin, z_free)
+                f_t = np.where(t_touch, D * (z_lin - a), 0.0)
+                if any_tool_nonlin:
+                    zp = np.maximum(z_free, 0.0)
+                    z = k_tot * zp / (k_tot + k1)
+                    for _ in range(8):  # Newton on the convex, increasing F(z) + K (z - z_free)
+                        z = z - (stiffening_force(k1, xs, z) + k_tot * (z - zp)) / (
+                            stiffening_tangent(k1, xs, z) + k_tot
+                        )
+                    z = np.clip(z, 0.0, zp)
+                    z_t = np.where(nonlin, np.where(t_touch, z, z_free), z_t)
+                    f_t = np.where(nonlin & t_touch, stiffening_force(k1, xs, z), f_t)
+                x_new = np.where(tool, np.where(t_touch, z_t, x_f), x_new)
+                f_obj = np.where(tool, f_t, f_obj)
+                touch = np.where(tool, t_touch, touch)
+                upd_t = sim_now & tool & ~runaway
+                vt = np.where(upd_t, (z_t - xt) / h, vt)
+                xt = np.where(upd_t, z_t, xt)
             upd = sim_now & ~runaway
             vo = np.where(upd, (x_new - xo) / h, vo)
             qo = np.where(upd, alpha * qo + (1.0 - alpha) * x_new, qo)
@@ -735,20 +845,23 @@ def simulate(
             # own-force compensation of a local model that follows the reported K_o: the C_h
             # its client renders for it
             own_eff = np.where(follow, table.gains(k_est)[3], own) if any_follow else own
+            xo_abs = xo + rest
             val = np.where(
                 fed_position & ~tool,
                 f_obj,
                 np.where(
                     mmt,
-                    xo - f_obj / k_est,
-                    np.where(
-                        tool,
-                        xo,
-                        xo - own_eff * f_obj,
-                    ),
+                    # alone: the server's rest surface (as the product's rest plane); with
+                    # another user the rest surface the simulation estimates
+                    np.where(alone, rest, xo_abs - f_obj / k_est),
+                    np.where(tool, xt + rest, xo_abs - own_eff * f_obj),
                 ),
             )
-            new = np.stack([val, k_est, got, e_env_out, xo], axis=1)
+            # force-jacobian: its stiffness in contact only; the tool: whether it touches
+            k_pub = np.where(jac & ~touch, 0.0, np.where(tool, touch.astype(float), k_est))
+            col2 = np.where(jac, x_p + rest, got)
+            col3 = np.where(tool, vt, e_env_out)
+            new = np.stack([val, k_pub, col2, col3, xo_abs], axis=1)
             pub = np.where(sim_now[:, None], new, pub)
             pub_seq = pub_seq + sim_now
         down[n % L] = pub

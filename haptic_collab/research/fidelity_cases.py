@@ -413,6 +413,102 @@ def felt_trajectory(
 
 
 @dataclass(frozen=True, slots=True)
+class OtherUser:
+    """A second user pressing and releasing on the same object, as the 1-D model sees it from the
+    first user's contact (SI units).
+
+    The 1-D model has one contact. Another user's press reaches it through the object's
+    compliance: pressing elsewhere on a closed object (the demo's balloon, A on the top while B
+    rests on the side) bulges the surface under this user outward. That is modelled here, and only
+    that: the rest surface under this user's contact moves outward by ``bulge_m`` times a
+    minimum-jerk ramp while the other presses (from ``start_s`` over ``ramp_s``, held until
+    ``release_s``, back over ``ramp_s``), and the object's law about its rest surface is unchanged
+    (its force is a function of the depth past the moved rest surface; the viscoelastic object's
+    mass and arms act on that relative depth). One way only: this user's force does not move the
+    other (the other is a prescribed motion, not a second hand). The server sends no rest plane
+    while two users are in the room, so no scheme is told where the rest surface has moved.
+
+    Attributes
+    ----------
+    bulge_m : float
+        Outward displacement [m] of the rest surface under this user while the other holds, > 0.
+    start_s, ramp_s, release_s : float
+        Start of the press [s], its ramp [s] and the start of the release [s].
+    """
+
+    bulge_m: float = 1e-3
+    start_s: float = 1.0
+    ramp_s: float = 0.3
+    release_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        ok = all(
+            math.isfinite(v) and v >= 0.0
+            for v in (self.bulge_m, self.start_s, self.ramp_s, self.release_s)
+        )
+        if not (ok and self.bulge_m > 0.0 and self.release_s >= self.start_s + self.ramp_s):
+            raise ValueError(f"an absurd other user: {self!r}")
+
+    def rest_depth_m(self, t: FloatArray) -> FloatArray:
+        """Depth [m] of the rest surface under this user at times ``t`` [s] (0 alone, negative:
+        moved outward, toward the probe)."""
+
+        def ramp(t0: float) -> FloatArray:
+            if self.ramp_s <= 0.0:
+                return np.asarray(t >= t0, dtype=float)
+            u = np.clip((t - t0) / self.ramp_s, 0.0, 1.0)
+            return np.asarray(10 * u**3 - 15 * u**4 + 6 * u**5)
+
+        return np.asarray(-self.bulge_m * (ramp(self.start_s) - ramp(self.release_s)))
+
+
+#: The other user of the two-user hand cells: presses from 1 s, holds, and has let go by 2.3 s,
+#: before every trajectory's hold window (the press and tap are judged after it).
+OTHER_USER = OtherUser()
+
+#: The other user of the two-user follow probe (:func:`follow_trajectory`): the probe held still
+#: from 0.5 s, the other pressing from 1.5 s, holding until 3 s, let go by 3.3 s.
+OTHER_USER_FOLLOW = OtherUser(start_s=1.5, release_s=3.0)
+
+#: The windows [s] of the follow probe: before the other presses, while it holds, after it let go.
+FOLLOW_WINDOWS_S = ((1.0, 1.5), (2.5, 3.0), (4.0, 4.5))
+
+
+def follow_depth_m(k_o: float, max_force_n: float, obj: ObjectModel, bulge_m: float) -> float:
+    """Depth [m] the follow probe holds at on an object reported at ``k_o`` [N/m]: at most
+    :data:`FELT_DEPTH_M`, at least 0.5 mm, shallow enough that the relaxed object's force with
+    the other user's bulge (``bulge_m`` [m]) stays within 80 % of ``max_force_n`` [N]."""
+    lo, hi = 0.5e-3, FELT_DEPTH_M
+
+    def force(d: float) -> float:
+        return float(obj.static_force_n(k_o, d + bulge_m))
+
+    if force(hi) <= 0.8 * max_force_n:
+        return hi
+    if force(lo) >= 0.8 * max_force_n:
+        return lo
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if force(mid) <= 0.8 * max_force_n else (lo, mid)
+    return lo
+
+
+def follow_trajectory(depth_m: float) -> Trajectory:
+    """Position-source probe of the two-user grid: ramp to ``depth_m`` over 0.5 s and hold still
+    to 4.5 s while :data:`OTHER_USER_FOLLOW` presses and lets go (:data:`FOLLOW_WINDOWS_S`)."""
+    return Trajectory(
+        "follow",
+        duration_s=4.5,
+        y0_m=0.0,
+        y1_m=depth_m,
+        ramp_start_s=0.0,
+        ramp_s=0.5,
+        hold_window_s=(2.5, 3.0),
+        energy_window_s=(0.0, 4.5),
+    )
+
+
+@dataclass(frozen=True, slots=True)
 class Cell:
     """One simulation: a scheme's rendering of one object, rate, delay, hand and trajectory.
 
@@ -431,11 +527,16 @@ class Cell:
     obj : ObjectModel
         The object (default: the design model, a spring of exactly K_o).
     stale_sample : bool
-        The simulation takes the force the servo sent at the first servo tick of each of its
-        periods, N - 1 ticks before the last (the default, the paper's Step 3): the other end
-        of the sampling phase. The servo's and the simulation's clocks are not synchronised,
-        so a rendering runs at every phase in use (the product's designs are checked at every
-        one, :mod:`shared.full_loop`).
+        The simulation takes what the servo sent :func:`stale_ticks` servo ticks before its
+        freshest (False, the default: the last servo tick's, the paper's Step 3): the other end
+        of the sampling phase. The client sends its state every half simulation period
+        (``client.session.ClientSession.state_interval_s``), so the state the simulation reads
+        is at most N/2 servo ticks old (N the servo ticks per simulation period); the servo's
+        and the simulation's clocks are not synchronised, so a rendering runs at every age in
+        between.
+    other : OtherUser or None
+        A second user on the object (None: this user is alone, and the server sends the rest
+        plane).
     """
 
     rendering: Rendering
@@ -446,6 +547,14 @@ class Cell:
     trajectory: Trajectory
     obj: ObjectModel = SPRING
     stale_sample: bool = False
+    other: OtherUser | None = None
+
+
+def stale_ticks(rate_ratio: int) -> int:
+    """Servo ticks [-] by which the state the simulation reads is older at the stale end of the
+    sampling phase: N // 2 for N servo ticks per simulation period (the client's state every half
+    simulation period, ``client.session.ClientSession.state_interval_s``)."""
+    return int(rate_ratio) // 2
 
 
 @dataclass(frozen=True, slots=True)

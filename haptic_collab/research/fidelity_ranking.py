@@ -56,6 +56,8 @@ class Outcome:
 
     ``stable`` holds one flag per (trajectory, box hand), in the grid's order; ``outside`` one
     per (trajectory, outside hand). ``metrics`` are the box cells' :class:`CellMetrics` JSON.
+    ``follow_error`` is set in the two-user grid (:func:`follow_error`): it is then the error the
+    outcome is ranked by, in place of the felt error.
     """
 
     rendering: Rendering
@@ -64,6 +66,15 @@ class Outcome:
     metrics: list[dict[str, Any]] = field(default_factory=list)
     impact: list[dict[str, Any]] = field(default_factory=list)
     felt: Felt = field(default_factory=dict)
+    follow_error: float | None = None
+
+    @property
+    def error(self) -> float:
+        """The error it is ranked by: :attr:`follow_error` in the two-user grid, else the
+        :func:`felt_error` of its felt response."""
+        if self.follow_error is not None:
+            return self.follow_error
+        return felt_error(self.felt)
 
     @property
     def box_stable(self) -> bool:
@@ -81,13 +92,13 @@ def choose_variant(outcomes: Sequence[Outcome]) -> int:
         key=lambda i: (
             not outcomes[i].box_stable,
             -sum(outcomes[i].stable),
-            felt_error(outcomes[i].felt),
+            outcomes[i].error,
         ),
     )
 
 
 def scheme_record(o: Outcome) -> dict[str, Any]:
-    err = felt_error(o.felt)
+    err = o.error
     return {
         "variant": o.rendering.variant,
         "box_stable": o.box_stable,
@@ -102,6 +113,23 @@ def scheme_record(o: Outcome) -> dict[str, Any]:
         "energy_out_mj_max": max((m["energy_out_mj"] for m in o.metrics), default=None),
         "force_ripple_n_max": max((m["force_ripple_n"] for m in o.metrics), default=None),
     }
+
+
+def follow_error(
+    before_n: float, during_n: float, after_n: float, object_rise_n: float, ripple_n: float
+) -> float:
+    """How far a user held still feels another user's press from what the object does
+    (the two-user grid): the largest ``|ln|`` of the force's rise while the other holds
+    (``during_n - before_n`` [N]) and of its fall once the other let go (``during_n - after_n``)
+    over the object's own rise ``object_rise_n`` [N] (> 0); ``inf`` where the felt rise or fall
+    is not positive or the force is not still while held (``ripple_n`` [N], its peak to peak in
+    the held window, more than 10 % of the object's rise: a ringing, not a press felt)."""
+    rise, fall = during_n - before_n, during_n - after_n
+    if not (object_rise_n > 0.0 and rise > 0.0 and fall > 0.0):
+        return math.inf
+    if not (math.isfinite(ripple_n) and ripple_n <= 0.1 * object_rise_n):
+        return math.inf
+    return max(abs(math.log(rise / object_rise_n)), abs(math.log(fall / object_rise_n)))
 
 
 def _ties(errors: dict[str, float]) -> tuple[list[str], list[str]]:

@@ -22,12 +22,14 @@ from haptic_collab.shared.full_loop import ProxyHold
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.key import loop_delay_ticks
 from haptic_collab.shared.gains.policy import HOLD_BACK_S as REST_HOLD_BACK_S
+from haptic_collab.shared.gains.policy import PLANE_DAMPERS
 from haptic_collab.shared.types import FloatArray
 
 SchemeName = Literal[
     "local-p",
     "local-pi",
     "mmt",
+    "mmt-id",
     "force-jacobian",
     "direct",
     "virtual-coupling",
@@ -43,12 +45,15 @@ LOCAL_MODELS: tuple[SchemeName, ...] = ("local-p", "local-pi")
 
 #: The way each scheme's renderer is fed (:class:`Rendering`'s ``kind``):
 #: ``coupling`` the product's local model (a spring, integral and damper to the proxy the
-#: simulation reports, the simulation receiving the force); ``mmt`` a plane at the rest surface
-#: the simulation estimates, with the stiffness it estimates, the simulation receiving the force;
-#: ``wall`` a plane at the rest surface with a fixed stiffness, never updated; ``tool`` a
-#: spring-damper to a simulated tool whose equilibrium with the object the simulation solves
-#: from the probe position it receives; ``jacobian`` the simulation's force and its local
-#: stiffness, ``f_s + K (x - x_s)``; ``direct`` the simulation's force, held.
+#: simulation reports, the simulation receiving the force); ``mmt`` a plane with the stiffness
+#: the simulation reports (or the client identifies: :attr:`Rendering.identifies`), at the
+#: server's rest surface while the user is alone (as the product's rest plane) and at the rest
+#: surface the patch implies (its surface less F / K) with another user, the simulation receiving
+#: the force; ``wall`` a plane at the rest surface with a fixed stiffness, never updated;
+#: ``tool`` a spring-damper to a simulated tool with mass and damping that the simulation moves
+#: against the object from the probe position it receives; ``jacobian`` the simulation's force
+#: and its local stiffness in contact, ``f_s + K (x - x_s)``, nothing out of contact;
+#: ``direct`` the simulation's force, held.
 RenderKind = Literal["coupling", "mmt", "wall", "tool", "jacobian", "direct"]
 
 
@@ -185,6 +190,13 @@ class Rendering:
         transfer force, and a change of C_h sliding in); 0: the new gains act
         at once (each patch still with its design's proxy hold, and an integral still handed
         off with C_h > 0, as :meth:`shared.local_model.LocalModel.set_gains` does).
+    identifies : bool
+        ``mmt``: the plane's stiffness is the one the client's own-response check identifies
+        (:func:`shared.gains.own_response.identify`: the K_o reported until it verifies the
+        object, then the stiffness it holds the object to), capped at ``k_h``; else the K_o
+        reported.
+    tool_mass_kg, tool_damping_n_s_per_m : float
+        ``tool``: the virtual tool's mass [kg] and its damping to ground [N*s/m].
     variant : str
         The peer's tuning among those swept (:func:`peer_renderings`), for the report.
     tuning : str
@@ -212,6 +224,9 @@ class Rendering:
     rest_plane: bool = False
     rest_hold_back_s: float = REST_HOLD_BACK_S
     gain_transfer_s: float = 0.0
+    identifies: bool = False
+    tool_mass_kg: float = 0.0
+    tool_damping_n_s_per_m: float = 0.0
     variant: str = ""
     tuning: str = ""
 
@@ -252,6 +267,26 @@ def design_delay_ticks(one_way_delay_s: float, sim_rate_hz: float) -> int:
     return loop_delay_ticks(2.0 * one_way_delay_s, 0.5 / sim_rate_hz, sim_rate_hz)
 
 
+#: The virtual tool's masses [kg] ``virtual-coupling`` is swept over: a stylus tip and a
+#: hand-held instrument. Its damping to ground makes the tool critically damped on the coupling
+#: (:func:`tool_damping`).
+TOOL_MASSES_KG = (0.02, 0.1)
+
+
+def tool_damping(k_c: float, b_c: float, mass_kg: float) -> float:
+    """The virtual tool's damping to ground [N*s/m]: what the coupling's own damper ``b_c``
+    [N*s/m] lacks of critical damping of the tool of ``mass_kg`` [kg] on the coupling spring
+    ``k_c`` [N/m], ``max(0, 2 sqrt(k_c m) - b_c)`` (the tool settles on the coupling without
+    ringing, the virtual environment stays passive)."""
+    return max(0.0, 2.0 * math.sqrt(k_c * mass_kg) - b_c)
+
+
+def plane_dampers(device: DeviceModel) -> tuple[float, ...]:
+    """The probe dampers [N*s/m] every plane peer is swept over: the grid of the product's
+    verified planes, :data:`shared.gains.policy.PLANE_DAMPERS` times the device's damping."""
+    return tuple(f * device.max_damping_n_s_per_m for f in PLANE_DAMPERS)
+
+
 def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
     """How ``scheme`` is tuned, in one sentence (the benchmark's report).
 
@@ -261,7 +296,17 @@ def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
         An unknown scheme.
     """
     b, k = device.max_damping_n_s_per_m, device.max_stiffness_n_per_m
-    swept = "the best of the sweep per condition (every hand of the box stable, then felt closest)"
+    grid = ", ".join(f"{x:g}" for x in plane_dampers(device))
+    swept = (
+        "one tuning per K_o, rate, delay and user count, picked without knowing the object: the "
+        "one stable with every hand of the box, then felt closest, on the spring of the K_o "
+        "reported (the nominal object), then judged on every object"
+    )
+    planes = (
+        f"capped at {k:g} N/m; probe damper {grid} N*s/m (the product's plane grid), zero- or "
+        f"first-order proxy hold with another user; {swept}"
+    )
+    masses = " or ".join(f"{m:g}" for m in TOOL_MASSES_KG)
     text = {
         "local-p": (
             "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
@@ -274,34 +319,42 @@ def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
             "(the client's default for PI)"
         ),
         "mmt": (
-            "model-mediated teleoperation (Mitra and Niemeyer 2008): a plane at the rest surface "
-            "the simulation estimates each tick (its surface less its own deformation F / K), "
-            f"with the stiffness it estimates, capped at {k:g} N/m; probe damper 0, "
-            f"{0.25 * b:g} or {b:g} N*s/m, {swept}"
+            "model-mediated teleoperation (Mitra and Niemeyer 2008): a plane with the stiffness "
+            "the simulation reports each tick, at the server's rest surface while the user is "
+            "alone (what the product's rest plane gets) and at the rest surface the patch implies "
+            f"(its surface less F / K) with another user; {planes}"
+        ),
+        "mmt-id": (
+            "mmt with the stiffness identified online by the product's own-response check "
+            "(shared.gains.own_response: the K_o reported until it verifies the object, then "
+            f"the stiffness it holds the object to); {planes}"
         ),
         "force-jacobian": (
             "the simulation's force and local stiffness at the probe it received, f_s + K (x - "
-            f"x_s) at 1 kHz (Cavusoglu and Tendick 2000); K times 0.5 or 1, capped at {k:g} N/m; "
-            f"probe damper {0.25 * b:g} or {b:g} N*s/m, {swept}"
+            "x_s) at 1 kHz in contact, nothing out of contact (x_s clipped to the surface, no K "
+            f"sent out of contact; Cavusoglu and Tendick 2000); K times 0.5 or 1, capped at {k:g} "
+            f"N/m; probe damper {0.25 * b:g} or {b:g} N*s/m; {swept}"
         ),
         "virtual-coupling": (
-            "a spring-damper to a simulated tool whose equilibrium with the object the "
-            "simulation solves from the probe it receives (Colgate, Stanley and Brown 1995; "
-            "Adams and Hannaford 1999; the light-tool limit); coupling "
-            f"{0.5 * k:g} or {k:g} N/m (the device's passive range for its own damping) and "
-            f"{0.25 * b:g} or {b:g} N*s/m, {swept}"
+            "a spring-damper to a virtual tool with mass and damping that the simulation moves "
+            "against the object from the probe it receives (Colgate, Stanley and Brown 1995); "
+            "the coupling is the largest impedance of the device's Z-width, "
+            f"{k:g} N/m and {b:g} N*s/m, the rule of Adams and Hannaford 1999 (the device and "
+            "coupling two-port absolutely stable, so any passive tool and object behind it is); "
+            f"tool {masses} kg, critically damped on the coupling; rendered in contact only; "
+            f"{swept}"
         ),
         "static-local": (
-            "a plane at the object's rest surface with the K_o reported (capped at "
-            f"{k:g} N/m), never updated (Mark et al. 1996's intermediate plane, placed where "
-            f"the object rests); probe damper 0, {0.25 * b:g} or {b:g} N*s/m, {swept}"
+            "a plane at the object's rest surface with the K_o reported at the start, never "
+            "updated (Mark et al. 1996's intermediate plane, placed where the object rests); "
+            f"{planes}"
         ),
         "direct": "the simulation's own contact force from the probe it received, held (ZOH)",
         "direct-tdpa": (
             "direct with time-domain passivity, force clamp only (no damping cap): the one-port "
             "observer at the device (Ryu, Kwon and Hannaford 2004) or the two-port form for a "
             "delayed channel, its device side (Artigas et al. 2010: the device gives the user no "
-            "more energy than the object has given back, as far as it is known there), "
+            "more energy than the object has given back, as far as it is known there); "
             f"{swept}"
         ),
     }
@@ -316,6 +369,7 @@ def peer_renderings(
     k_o: float,
     sim_rate_hz: float,
     device: DeviceModel = DeviceModel(),
+    alone: bool = True,
 ) -> list[Rendering]:
     """Every tuning of a peer that the benchmark sweeps (:func:`scheme_tuning`), the default
     (the one :func:`rendering_for` gives) first.
@@ -329,6 +383,10 @@ def peer_renderings(
     sim_rate_hz : float
         Simulation rate [Hz] (unused by today's peers; kept for tunings that depend on it).
     device : DeviceModel
+    alone : bool
+        The user is alone on the object (the planes stay at the server's rest surface, so their
+        proxy hold does not matter); False: another user is there, and the planes that follow
+        the patch are swept over both proxy holds.
 
     Raises
     ------
@@ -339,15 +397,25 @@ def peer_renderings(
         raise ValueError(f"k_o must be a finite stiffness > 0 N/m, got {k_o!r}")
     b, k = device.max_damping_n_s_per_m, device.max_stiffness_n_per_m
     dampers = (b, 0.25 * b)
-    # the planes also without a damper: what the product's design picks on soft objects
-    plane_dampers = (*dampers, 0.0)
+    pd = plane_dampers(device)
+    holds: tuple[ProxyHold, ...] = ("zoh",) if alone else ("zoh", "foh")
     tune = scheme_tuning(scheme, device) if scheme in SCHEMES else ""
     if scheme in LOCAL_MODELS:
         raise ValueError(f"{scheme} is a local model: its gains come from the product's design")
-    if scheme == "mmt":
+    if scheme in ("mmt", "mmt-id"):
         return [
-            Rendering("mmt", "mmt", k_h=k, b_h=bh, variant=f"B={bh:g}", tuning=tune)
-            for bh in plane_dampers
+            Rendering(
+                scheme,
+                "mmt",
+                k_h=k,
+                b_h=bh,
+                proxy_hold=hold,
+                identifies=scheme == "mmt-id",
+                variant=f"B={bh:g}" + ("" if alone else f", {hold}"),
+                tuning=tune,
+            )
+            for hold in holds
+            for bh in pd
         ]
     if scheme == "force-jacobian":
         return [
@@ -368,20 +436,21 @@ def peer_renderings(
             Rendering(
                 "virtual-coupling",
                 "tool",
-                k_h=kc,
-                b_h=bh,
-                variant=f"K_c={kc:g}, B_c={bh:g}",
+                k_h=k,
+                b_h=b,
+                tool_mass_kg=m,
+                tool_damping_n_s_per_m=tool_damping(k, b, m),
+                variant=f"m_t={m:g}",
                 tuning=tune,
             )
-            for kc in (k, 0.5 * k)
-            for bh in dampers
+            for m in TOOL_MASSES_KG
         ]
     if scheme == "static-local":
         return [
             Rendering(
                 "static-local", "wall", k_h=min(k_o, k), b_h=bh, variant=f"B={bh:g}", tuning=tune
             )
-            for bh in plane_dampers
+            for bh in pd
         ]
     if scheme == "direct":
         return [Rendering("direct", "direct", tuning=tune)]

@@ -91,10 +91,10 @@ VELOCITY_LIMIT_M_S = 100.0
 #: needs a finite one): far above anything the 7.9 N force clamp lets act.
 UNCAPPED_DAMPING_N_S_PER_M = 1e6
 #: The schemes the World cells run: those whose simulation side the World has (the virtual
-#: coupling's tool equilibrium and the force-jacobian's stiffness about the received probe are
-#: modelled in 1-D only).
+#: coupling's tool, the force-jacobian's stiffness about the received probe and mmt-id's online
+#: identification are modelled in 1-D only).
 SCHEMES_3D: tuple[str, ...] = tuple(
-    s for s in SCHEMES if s not in ("virtual-coupling", "force-jacobian")
+    s for s in SCHEMES if s not in ("virtual-coupling", "force-jacobian", "mmt-id")
 )
 #: Default rule of the direct schemes (module docstring).
 DIRECT_REFERENCE: DirectReference = "undisturbed"
