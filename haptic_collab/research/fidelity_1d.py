@@ -484,7 +484,9 @@ def simulate(
     p_old = np.zeros(B)  # FOH start
     hold_i = np.zeros(B, dtype=np.int64)
     f_recv = np.zeros(B)  # direct, jacobian: force received
-    k_recv = k_o.copy()  # mmt, jacobian: stiffness estimate received (the rest value at first)
+    # mmt, jacobian: stiffness estimate received (the rest value at first); the tool: whether it
+    # touches the object (not before the first patch)
+    k_recv = np.where(tool, 0.0, k_o)
     x_ref = np.zeros(B)  # jacobian: the probe position the force received belongs to
     v_recv = np.zeros(B)  # tool: the tool velocity received [m/s]
     e_env = np.zeros(B)  # two-port: energy the environment has given back, as received [J]
