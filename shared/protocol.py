@@ -38,6 +38,9 @@ MAX_SEQ = 2**53
 #: valid message has fewer than 10 and 40; the cap bounds nesting depth and array lengths.
 MAX_FRAME_CONTAINERS = 64
 MAX_FRAME_COMMAS = 512
+#: Longest resume token [characters] a ``hello`` may carry (the server's are 32: 24 random bytes
+#: in URL-safe base64, :func:`server.security.new_resume_token`).
+MAX_RESUME_TOKEN_CHARS = 128
 
 Role = Literal["user", "viewer"]
 
@@ -82,6 +85,12 @@ class Hello(_Msg):
     ``token`` authenticates the connection when the server requires tokens (``haptic server
     --token-file`` or ``--token``); browsers cannot set headers on a websocket, so it travels
     here. It is never shown in a ``repr`` or log.
+
+    ``resume`` is the ``resume_token`` of the last ``welcome`` this user got in this room: a
+    user whose link dropped gets its seat back (the same ``user_id``, name and contact) when it
+    comes back within the server's hold time (30 s; docs/protocol.md, "Rejoin"). A token that
+    is wrong, used, expired or another room's is not an error: the user joins as a new one.
+    Ignored for viewers; never shown in a ``repr`` or log.
     """
 
     type: Literal["hello"] = "hello"
@@ -94,6 +103,9 @@ class Hello(_Msg):
     token: Annotated[str, Strict(), Field(min_length=1, max_length=256)] | None = Field(
         default=None, repr=False
     )
+    resume: (
+        Annotated[str, Strict(), Field(min_length=1, max_length=MAX_RESUME_TOKEN_CHARS)] | None
+    ) = Field(default=None, repr=False)
 
 
 class State(_Msg):
@@ -228,7 +240,13 @@ class LinkConditions(_Msg):
 
 
 class Welcome(_Msg):
-    """Answer to ``hello``."""
+    """Answer to ``hello``.
+
+    Users get a ``resume_token`` (opaque, unguessable, one use): sent back as ``hello.resume``
+    after a dropped link, within the server's hold time, it gives back the same seat
+    (``user_id``, name, contact) and that ``welcome`` has ``resumed`` true and a fresh token.
+    Viewers get none. Both are absent from an older server's welcome.
+    """
 
     type: Literal["welcome"] = "welcome"
     protocol: int = PROTOCOL_VERSION
@@ -238,6 +256,10 @@ class Welcome(_Msg):
     sim_rate_hz: Finite
     object: ObjectInfo
     link: LinkConditions = LinkConditions()
+    resume_token: Annotated[str, Field(min_length=1, max_length=MAX_RESUME_TOKEN_CHARS)] | None = (
+        Field(default=None, repr=False)
+    )
+    resumed: bool = False
 
 
 class PlaneModel(_Msg):

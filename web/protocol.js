@@ -24,11 +24,11 @@ export const SERVER_MESSAGE_TYPES = Object.freeze(["welcome", "patch", "pong", "
 
 /** Field names of each message, by `type` tag. */
 export const MESSAGE_FIELDS = Object.freeze({
-  "hello": ["type", "protocol", "role", "name", "device", "servo_rate_hz", "local_model", "token"],
+  "hello": ["type", "protocol", "role", "name", "device", "servo_rate_hz", "local_model", "token", "resume"],
   "state": ["type", "seq", "probe_m", "force_n", "penetration_m", "in_contact", "k_h", "i_gain", "own_gain", "servo_rate_hz", "period_us_p99", "rtt_ms", "delay_rtt_ms", "patch_tick"],
   "ping": ["type", "id", "t_client_s"],
   "bye": ["type"],
-  "welcome": ["type", "protocol", "user_id", "name", "role", "sim_rate_hz", "object", "link"],
+  "welcome": ["type", "protocol", "user_id", "name", "role", "sim_rate_hz", "object", "link", "resume_token", "resumed"],
   "patch": ["type", "tick", "primitive", "proxy_m", "normal", "penetration_m", "in_contact", "k_o", "k_o_eff", "b_o", "k_o_stiff", "own_force_n", "gains", "rest_plane"],
   "pong": ["type", "id", "t_client_s", "tick"],
   "error": ["type", "code", "message", "fatal"],
