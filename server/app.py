@@ -75,7 +75,7 @@ from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.metrics import RoomFigures, ServerCollector, scrape_allowed
 from haptic_collab.server.prefetch import PatchPrefetcher
-from haptic_collab.server.room import Outgoing, Room
+from haptic_collab.server.room import Outgoing, Room, is_bye
 from haptic_collab.server.security import TokenBucket, TokenTable, is_loopback, origin_allowed
 from haptic_collab.server.urls import (
     DEFAULT_ROOM,
@@ -246,6 +246,9 @@ class _Peer:
     who: str = ""
     named: bool = False
     closed: bool = False
+    #: It sent ``bye`` (seen on arrival, before latency injection delays it): its seat is not
+    #: held when its socket closes.
+    said_bye: bool = False
 
     @property
     def hello(self) -> object | None:
@@ -611,7 +614,7 @@ class ServerApp:
         state frame still queued for it (patches and surfaces are stale now), with no injected
         latency (the drain has a deadline); its room forgets it."""
         peer.closed = True
-        self._slot(peer).room.disconnect(peer.conn_id)
+        self._slot(peer).room.disconnect(peer.conn_id, hold=False)  # the server is going
         peer.ready = deque(o for o in peer.ready if o.stream is None and not o.close)
         frame = encode(ErrorMsg(code=DRAINING_CODE, message=DRAINING_MESSAGE, fatal=True))
         self._ready(peer, Outgoing(peer.conn_id, frame, close=True, close_code=DRAIN_CLOSE_CODE))
@@ -744,6 +747,8 @@ class ServerApp:
             "users": len(room.users),
             "viewers": len(room.viewers),
             "max_users": room.limits.max_users,
+            "held_seats": len(room.held_seats),
+            "resumes": room.resumes,
             "tick_ms_p50": room.stats.percentile(50),
             "tick_ms_p99": room.stats.percentile(99),
             "overruns": room.stats.overruns,
@@ -925,6 +930,8 @@ class ServerApp:
                 if not self.link.active:
                     self._deliver(conn_id, frame)
                     continue
+                if not peer.said_bye and is_bye(frame):
+                    peer.said_bye = True
                 at = peer.up.schedule(now, droppable=room.droppable(frame))
                 if at is not None:  # strictly increasing times: the timers fire in order
                     loop.call_at(at, self._deliver, conn_id, frame)
@@ -938,7 +945,9 @@ class ServerApp:
                 "" if peer.named else " (before hello)",
                 ws.close_code,
             )
-            room.disconnect(conn_id)
+            # a user gone without bye keeps its seat for a while (Room.disconnect); a bye still
+            # held back by latency injection is a bye all the same
+            room.disconnect(conn_id, loop.time(), hold=not peer.said_bye)
             peer.closed = True
             self._peers.pop(conn_id, None)
             if not self._peers:
@@ -963,7 +972,7 @@ class ServerApp:
     def _refuse(self, peer: _Peer, code: str, message: str) -> None:
         """Close a connection for the router (its room forgets it): a fatal ``error`` frame."""
         peer.closed = True
-        self._slot(peer).room.disconnect(peer.conn_id)
+        self._slot(peer).room.disconnect(peer.conn_id, hold=False)  # closed on purpose
         frame = encode(ErrorMsg(code=code, message=message, fatal=True))
         self._dispatch([Outgoing(peer.conn_id, frame, close=True)])
 
@@ -1069,7 +1078,8 @@ class ServerApp:
                 peer.conn_id,
                 self.send_timeout_s,
             )
-            self._slot(peer).room.disconnect(peer.conn_id)
+            # not reading is not leaving: the seat is held for a resume
+            self._slot(peer).room.disconnect(peer.conn_id, asyncio.get_running_loop().time())
             peer.ws.transport.abort()
 
     # ------------------------------------------------------------------ simulation

@@ -24,6 +24,13 @@ budgets (:meth:`Room.behind_schedule`).
 Hostile input never reaches the world: a bad frame gets an ``error`` reply on that connection only
 (and a close where the connection cannot go on); the object and every other user are unaffected.
 
+Rejoin: a user whose connection closes without ``bye`` keeps its *seat* for
+:data:`RESUME_HOLD_S`: its user id, name, force-bound history and its contact in the world,
+which goes on seeing it as a released probe (zero force, as a silent user). A ``hello`` whose
+``resume`` is the seat's resume token (one use, rotated at every welcome) takes it back
+(:meth:`Room._resume_seat`); a token that matches nothing joins as a new user. A held seat counts
+against ``max_users``.
+
 Safety (DESIGN section 7b): with a :class:`server.security.TokenTable` every ``hello`` must carry
 a valid token (``unauthorized`` otherwise); every reported force is bounded by what that user's
 local model could render at the penetration the server computes (:mod:`server.force_bound`,
@@ -33,11 +40,13 @@ besides each connection's, so one address cannot lock others out or saturate the
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -45,7 +54,13 @@ from haptic_collab.server.admission import FloodControl, Refusal, RoomLimits
 from haptic_collab.server.force_bound import BoundedForce, ForceBoundParams, bound_force
 from haptic_collab.server.gains import GainAdvisor
 from haptic_collab.server.object_info import object_info, order_sides_by_coupling
-from haptic_collab.server.security import TokenBucket, TokenTable
+from haptic_collab.server.security import (
+    TokenBucket,
+    TokenTable,
+    new_resume_token,
+    resume_digest,
+    resume_matches,
+)
 from haptic_collab.server.viewer_stream import ViewerStream
 from haptic_collab.server.world import ContactInput
 from haptic_collab.shared.local_model_update import SurfacePatch
@@ -59,7 +74,6 @@ from haptic_collab.shared.protocol import (
     ErrorMsg,
     Hello,
     LinkConditions,
-    ObjectInfo,
     Ping,
     Pong,
     ProtocolError,
@@ -67,6 +81,7 @@ from haptic_collab.shared.protocol import (
     State,
     UserView,
     Welcome,
+    check_complexity,
     client_stream_frame,
     encode,
     encode_faces,
@@ -77,6 +92,15 @@ from haptic_collab.shared.rates import PERIOD_RTOL, Rates
 
 if TYPE_CHECKING:
     from haptic_collab.server.world import World
+
+log = logging.getLogger("haptic.server")
+
+#: How long [s] the seat of a user whose connection closed without ``bye`` is held for it to
+#: come back with its resume token. Long enough for a client that notices a dead link within
+#: 2 s and retries with the backoff of :class:`client.link.Link` (0.2 s doubling to 5 s) to
+#: come back through a network cut of 10-20 s; short enough that a user who is really gone
+#: frees its place in ``max_users`` (and its released contact on the object) soon.
+RESUME_HOLD_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -113,6 +137,16 @@ class _Conn:
     errors: int = 0
     closed: bool = False
     output: SurfacePatch | None = None
+    #: The seat: the world's and the gain advisor's key for this user, kept across a resume
+    #: (the conn_id of the connection that first took it; :meth:`Room.connect` sets it).
+    seat: str = ""
+    #: SHA-256 of the seat's current resume token (users only; None before the welcome).
+    resume_digest: bytes | None = None
+    #: The newest ``state.seq`` on this connection (a resumed seat's new connection may start
+    #: its sequence again).
+    last_seq: int = -1
+    #: Until when [s] a seat whose connection dropped is held (inf while connected).
+    held_until_s: float = math.inf
     #: (primitive, K_o, F_s) of the latest patches, newest last, each with its rest plane as
     #: (rest plane, K_o, 0) when it had one (the force bound's geometry).
     recent: deque[tuple[tuple[Plane | Sphere, float, float], ...]] = field(
@@ -164,6 +198,9 @@ class Room:
         Tokens the room accepts in ``hello``; None admits everyone (a loopback server).
     force_bound : ForceBoundParams, optional
         Tolerances of the bound on reported forces (:mod:`server.force_bound`).
+    resume_hold_s : float
+        How long [s] the seat of a user whose connection closed without ``bye`` is held for
+        it to resume (default :data:`RESUME_HOLD_S`; 0: never held).
 
     Raises
     ------
@@ -180,8 +217,14 @@ class Room:
         limits: RoomLimits | None = None,
         auth: TokenTable | None = None,
         force_bound: ForceBoundParams | None = None,
+        resume_hold_s: float = RESUME_HOLD_S,
     ) -> None:
         self.world = world
+        hold = float(resume_hold_s)
+        if not (math.isfinite(hold) and hold >= 0.0):
+            raise ValueError(f"resume_hold_s must be finite and >= 0 s, got {resume_hold_s!r}")
+        #: How long [s] a dropped user's seat is held (:data:`RESUME_HOLD_S`).
+        self.resume_hold_s = hold
         if rates is None:
             rates = world.rates
             if rates is None:
@@ -208,6 +251,13 @@ class Room:
         #: Recommended gains for every patch (server.gains; designs run by the I/O layer).
         self.gains = GainAdvisor(self.sim_rate_hz)
         self._conns: dict[str, _Conn] = {}
+        #: Seats of users whose connection dropped, by seat, until they resume or expire.
+        self._held: dict[str, _Conn] = {}
+        #: Seats given back (:meth:`_resume_seat`) and resume tokens that matched none.
+        self.resumes = 0
+        self.resume_misses = 0
+        #: The latest time [s] the room was told (a :meth:`disconnect` without one uses it).
+        self._now_s = -math.inf
         self._next_user = 1
         #: The number of the last simulation tick run (0 before the first).
         self.tick_count = 0
@@ -299,6 +349,12 @@ class Room:
         """Connection ids of the viewers."""
         return [c.conn_id for c in self._conns.values() if c.hello and c.hello.role == "viewer"]
 
+    @property
+    def held_seats(self) -> list[str]:
+        """User ids of the seats held for users whose connection dropped (they count against
+        ``max_users`` until they resume or :attr:`resume_hold_s` has passed)."""
+        return [c.user_id for c in self._held.values()]
+
     def connect(self, conn_id: str, now_s: float, address: str = "local") -> list[Outgoing]:
         """Register a new connection from source ``address`` at ``now_s`` [s].
 
@@ -316,6 +372,7 @@ class Room:
         out: list[Outgoing] = []
         if verdict is not None:
             out += self._close(verdict, "too_many_pending", "evicted: too many waiting for hello")
+        self._now_s = max(self._now_s, now_s)
         frames, nbytes = self.flood.open(address, now_s)
         self._conns[conn_id] = _Conn(
             conn_id,
@@ -323,14 +380,64 @@ class Room:
             address,
             frames,
             nbytes,
+            seat=conn_id,
             recent=deque(maxlen=max(1, self.force_bound.history_patches)),
         )
         return out
 
-    def disconnect(self, conn_id: str) -> None:
-        """Forget a connection; a user's load leaves the object from the next tick on."""
-        self._conns.pop(conn_id, None)
-        self.gains.forget(conn_id)
+    def disconnect(self, conn_id: str, now_s: float | None = None, hold: bool = True) -> None:
+        """Forget a connection that closed at ``now_s`` [s] (default: the latest time the room
+        was told).
+
+        A welcomed user's seat is held for :attr:`resume_hold_s` when ``hold`` (the connection
+        dropped without ``bye``): from the next tick its force is zero (the object sees a
+        released probe, as for a silent user) while its contact stays in the world, and a
+        ``hello`` with its resume token takes it back (:meth:`_resume_seat`). Otherwise (and
+        for viewers) the user's load and contact leave the object from the next tick on.
+        ``hold`` False: the server closed it on purpose (drain, the router's rate limit).
+        """
+        conn = self._conns.pop(conn_id, None)
+        if conn is None:
+            return
+        at = self._now_s if now_s is None else float(now_s)
+        self._now_s = max(self._now_s, at)
+        if (
+            hold
+            and self.resume_hold_s > 0.0
+            and conn.hello is not None
+            and conn.hello.role == "user"
+            and conn.resume_digest is not None
+        ):
+            self._release(conn)
+            conn.held_until_s = at + self.resume_hold_s
+            self._held[conn.seat] = conn
+            log.info(
+                "user %r (%s): connection dropped; seat held for %g s",
+                conn.hello.name,
+                conn.user_id,
+                self.resume_hold_s,
+            )
+            return
+        self.gains.forget(conn.seat)
+
+    @staticmethod
+    def _release(conn: _Conn) -> None:
+        """The seat's user is gone: from now on its hand loads the object with nothing (its
+        last probe stays, so its contact stays on the object, released)."""
+        if conn.state is not None:
+            conn.state = conn.state.model_copy(
+                update={"force_n": (0.0, 0.0, 0.0), "k_h": 0.0, "i_gain": 0.0, "own_gain": 0.0}
+            )
+        conn.applied = BoundedForce((0.0, 0.0, 0.0), 0.0)
+
+    def _expire_held(self, now_s: float) -> None:
+        """Drop the held seats whose hold has run out at ``now_s`` [s]."""
+        for seat, conn in list(self._held.items()):
+            if now_s >= conn.held_until_s:
+                del self._held[seat]
+                self.gains.forget(seat)
+                name = conn.hello.name if conn.hello is not None else "?"
+                log.info("user %r (%s): seat released, not resumed in time", name, conn.user_id)
 
     def force_clamps(self) -> dict[str, int]:
         """Clamped force reports per user name (connected or not) since the room started."""
@@ -423,7 +530,7 @@ class Room:
         if conn.hello is None:
             if not isinstance(msg, Hello):
                 return self._close(conn, "expected_hello", "the first message must be hello")
-            return self._hello(conn, msg)
+            return self._hello(conn, msg, now_s)
         if isinstance(msg, Hello):
             return self._soft_error(conn, "duplicate_hello", "hello was already received")
         if isinstance(msg, Ping):
@@ -434,9 +541,8 @@ class Room:
                     stream="pong",
                 )
             ]
-        if isinstance(msg, Bye):  # leaving on purpose: the I/O layer closes the socket
-            conn.closed = True
-            self._conns.pop(conn_id, None)
+        if isinstance(msg, Bye):  # leaving on purpose: the seat goes at once, nothing is held
+            self._drop(conn)
             return [Outgoing(conn_id, None, close=True, close_code=1000)]
         if isinstance(msg, State):
             if conn.hello.role != "user":
@@ -445,9 +551,14 @@ class Room:
         return []  # pragma: no cover - the union is exhausted above
 
     def _close(self, conn: _Conn, code: str, message: str) -> list[Outgoing]:
+        self._drop(conn)
+        return [self._error(conn.conn_id, code, message, fatal=True)]
+
+    def _drop(self, conn: _Conn) -> None:
+        """The room closes ``conn`` (or it said ``bye``): forgotten, its seat not held."""
         conn.closed = True
         self._conns.pop(conn.conn_id, None)
-        return [self._error(conn.conn_id, code, message, fatal=True)]
+        self.gains.forget(conn.seat)
 
     def _soft_error(self, conn: _Conn, code: str, message: str) -> list[Outgoing]:
         conn.errors += 1
@@ -459,7 +570,7 @@ class Room:
             )
         return [self._error(conn.conn_id, code, message)]
 
-    def _hello(self, conn: _Conn, msg: Hello) -> list[Outgoing]:
+    def _hello(self, conn: _Conn, msg: Hello, now_s: float) -> list[Outgoing]:
         if msg.protocol != PROTOCOL_VERSION:
             return self._close(
                 conn,
@@ -475,37 +586,109 @@ class Room:
             if msg.role == "user" and entry.role != "user":
                 return self._close(conn, "unauthorized", "this token may only watch (viewer)")
             bound = entry.name
-        if msg.role == "user" and len(self.users) >= self.limits.max_users:
-            return self._close(conn, "room_full", f"the room holds {self.limits.max_users} users")
-        if msg.role == "viewer" and len(self.viewers) >= self.limits.max_viewers:
-            return self._close(
-                conn, "room_full", f"the room holds {self.limits.max_viewers} viewers"
-            )
-        # names bound to tokens belong to their token, connected or not
-        taken = {c.hello.name for c in self._conns.values() if c.hello}
-        if self.auth is not None:
-            taken |= self.auth.bound_names - {bound}
-        base = bound if bound is not None else msg.name
-        name, k = base, 2
-        while name in taken:
-            name, k = f"{base}-{k}", k + 1
-        conn.hello = msg.model_copy(update={"name": name, "token": None})  # forget the token
-        conn.user_id = f"u{self._next_user}"
-        self._next_user += 1
-        out = [
-            Outgoing(
-                conn.conn_id,
-                _welcome(
-                    conn.user_id, name, msg.role, self.sim_rate_hz, self.object_info, self.link
-                ),
-            )
-        ]
+        out: list[Outgoing] = []
+        seat: _Conn | None = None
+        if msg.role == "user" and msg.resume is not None:
+            seat, out = self._resume_seat(conn, msg.resume, bound, now_s)
+        if seat is None:
+            if msg.role == "user" and len(self.users) + len(self._held) >= self.limits.max_users:
+                return self._close(
+                    conn, "room_full", f"the room holds {self.limits.max_users} users"
+                )
+            if msg.role == "viewer" and len(self.viewers) >= self.limits.max_viewers:
+                return self._close(
+                    conn, "room_full", f"the room holds {self.limits.max_viewers} viewers"
+                )
+            # names bound to tokens belong to their token, connected or not; a held seat's
+            # name is its user's until the hold runs out
+            taken = {c.hello.name for c in (*self._conns.values(), *self._held.values()) if c.hello}
+            if self.auth is not None:
+                taken |= self.auth.bound_names - {bound}
+            base = bound if bound is not None else msg.name
+            name, k = base, 2
+            while name in taken:
+                name, k = f"{base}-{k}", k + 1
+            conn.user_id = f"u{self._next_user}"
+            self._next_user += 1
+        else:
+            assert seat.hello is not None
+            name = seat.hello.name
+        # forget the access token and the resume token
+        conn.hello = msg.model_copy(update={"name": name, "token": None, "resume": None})
+        token: str | None = None
+        if msg.role == "user":
+            token, conn.resume_digest = new_resume_token()
+        welcome = Welcome(
+            user_id=conn.user_id,
+            name=name,
+            role=msg.role,
+            sim_rate_hz=self.sim_rate_hz,
+            object=self.object_info,
+            link=self.link,
+            resume_token=token,
+            resumed=seat is not None,
+        )
+        out.append(Outgoing(conn.conn_id, encode(welcome)))
         if msg.role == "viewer":
             out.append(Outgoing(conn.conn_id, self._faces_frame))
             # keyframe (rest VTX1, NRM1, dense DSP1) as events: never dropped
             keyframe = self._viewer_stream.join(conn.conn_id, self.tick_count, self.world.vertices)
             out += [Outgoing(conn.conn_id, f) for f in keyframe]
         return out
+
+    def _resume_seat(
+        self, conn: _Conn, token: str, bound: str | None, now_s: float
+    ) -> tuple[_Conn | None, list[Outgoing]]:
+        """Give ``conn`` the seat whose resume token is ``token``, if one in this room has it.
+
+        The seat is a held one (its connection dropped less than :attr:`resume_hold_s` ago) or
+        one still connected: a link that died without the server seeing a close (a network
+        cut) is replaced, its connection closed with ``seat_resumed``. The token is compared by
+        its SHA-256 digest with :func:`hmac.compare_digest` against every seat of this room
+        (the tokens are the room's: another room's never match) and is used up: the welcome
+        carries a new one. With an access token bound to a name, only that name's seat can be
+        taken. ``conn`` takes the seat's key, user id, last state (its force zero), patches and
+        force-bound history, so the world goes on with the same contact.
+
+        Returns the seat (None: no seat has the token; a log line, and the caller joins ``conn``
+        as a new user) and the frames to send (the replaced connection's close).
+        """
+        self._expire_held(now_s)
+        digest = resume_digest(token)
+        found: _Conn | None = None
+        for cand in (*self._held.values(), *self._conns.values()):
+            # every candidate is compared (no early exit): the time taken says nothing
+            if cand is not conn and resume_matches(digest, cand.resume_digest):
+                found = cand
+        if found is not None and found.hello is not None and bound not in (None, found.hello.name):
+            found = None  # a token bound to another name cannot take this seat
+        if found is None or found.hello is None:
+            self.resume_misses += 1
+            log.info(
+                "hello from %r: its resume token matches no seat of this room (wrong, used, "
+                "expired or another room's); joining it as a new user",
+                conn.address,
+            )
+            return None, []
+        out: list[Outgoing] = []
+        if found.conn_id in self._conns:  # its old connection is still open: replace it
+            found.closed = True  # (not _close: the seat's gain advice goes on)
+            self._conns.pop(found.conn_id, None)
+            msg = "this user's seat was resumed by a new connection"
+            out = [self._error(found.conn_id, "seat_resumed", msg, fatal=True)]
+            self._release(found)
+        else:
+            del self._held[found.seat]
+        found.resume_digest = None  # used up
+        conn.seat = found.seat
+        conn.user_id = found.user_id
+        conn.state, conn.state_at_s = found.state, found.state_at_s
+        conn.output, conn.recent = found.output, found.recent
+        conn.applied, conn.applied_at_s = found.applied, found.applied_at_s
+        conn.clamps, conn.clamp_reported_s = found.clamps, found.clamp_reported_s
+        self.resumes += 1
+        log.info("user %r (%s): seat resumed", found.hello.name, found.user_id)
+        return found, out
 
     def _state(self, conn: _Conn, msg: State, now_s: float) -> list[Outgoing]:
         force = math.sqrt(sum(c * c for c in msg.force_n))
@@ -523,10 +706,11 @@ class Room:
                 "probe_out_of_range",
                 f"probe farther than {MAX_PROBE_DISTANCE_M} m from the origin",
             )
-        if conn.state is not None and msg.seq <= conn.state.seq:
+        if msg.seq <= conn.last_seq:
             return []  # older than what we have: latest wins
+        conn.last_seq = msg.seq
         conn.state = msg
-        self.gains.observe_rtt(conn.conn_id, msg.rtt_ms, msg.delay_rtt_ms)
+        self.gains.observe_rtt(conn.seat, msg.rtt_ms, msg.delay_rtt_ms)
         conn.state_at_s = now_s
         return []
 
@@ -537,6 +721,8 @@ class Room:
         Returns the patches for users and the surface and summary for viewers.
         """
         self.tick_count = tick
+        self._now_s = max(self._now_s, now_s)
+        self._expire_held(now_s)
         out: list[Outgoing] = []
         for c in list(self._conns.values()):
             if c.hello is None and now_s - c.connected_at_s > self.limits.hello_timeout_s:
@@ -545,14 +731,21 @@ class Room:
                 )
         self.flood.forget_idle(self._conns.values(), now_s)
         inputs: dict[str, ContactInput] = {}
+        seats: dict[str, _Conn] = {}
         for c in self._conns.values():
             if c.state is None or c.hello is None or c.hello.role != "user":
                 continue
             force = self._bounded_force(c, now_s, out)
-            inputs[c.conn_id] = ContactInput(probe=np.array(c.state.probe_m), force=np.array(force))
+            inputs[c.seat] = ContactInput(probe=np.array(c.state.probe_m), force=np.array(force))
+            seats[c.seat] = c
+        for c in self._held.values():  # a dropped user's contact stays, released
+            if c.state is not None:
+                c.applied, c.applied_at_s = BoundedForce((0.0, 0.0, 0.0), 0.0), now_s
+                inputs[c.seat] = ContactInput(probe=np.array(c.state.probe_m), force=np.zeros(3))
+                seats[c.seat] = c
         outputs = self.world.tick(inputs, tick)
-        for conn_id, res in outputs.items():
-            conn = self._conns.get(conn_id)
+        for seat, res in outputs.items():
+            conn = seats.get(seat)
             if conn is None:
                 continue
             conn.output = res
@@ -560,10 +753,13 @@ class Room:
             sent = (res.primitive, k_o, float(res.own_force_n))
             rest = res.rest_plane
             conn.recent.append((sent,) if rest is None else (sent, (rest, k_o, 0.0)))
+            if conn.closed or conn.conn_id not in self._conns:
+                continue  # a held seat: its patch has nobody to go to
+            conn_id = conn.conn_id
             rec = None
             if conn.hello is not None:
                 rec = self.gains.recommend(
-                    conn_id,
+                    seat,
                     conn.hello,
                     k_o_eff=float(res.k_o_eff),
                     k_o_stiff=float(res.k_o_stiff),
@@ -625,7 +821,7 @@ class Room:
     def room_state(self, tick: int) -> RoomState:
         """The summary viewers get each tick."""
         users = []
-        for c in self._conns.values():
+        for c in (*self._conns.values(), *self._held.values()):
             if c.hello is None or c.hello.role != "user" or c.state is None:
                 continue
             s, res = c.state, c.output
@@ -660,6 +856,23 @@ class Room:
         )
 
 
+def is_bye(frame: str | bytes) -> bool:
+    """Whether a client frame is ``bye`` (a cheap look: frames without the word are not parsed).
+
+    The I/O layer reads it on arrival, before latency injection holds the frame back, so that
+    a socket closed right after its ``bye`` does not have its seat held
+    (:meth:`Room.disconnect`).
+    """
+    if not isinstance(frame, str) or '"bye"' not in frame:
+        return False
+    try:
+        check_complexity(frame)
+        msg = json.loads(frame)
+    except (ValueError, ProtocolError, RecursionError):
+        return False
+    return isinstance(msg, dict) and msg.get("type") == "bye"
+
+
 def _check_sim_rate(world: World, rates: Rates | float) -> float:
     """The room's simulation rate [Hz], checked against the period the world steps with."""
     if isinstance(rates, Rates):
@@ -675,18 +888,3 @@ def _check_sim_rate(world: World, rates: Rates | float) -> float:
             f"given {rate:g} Hz: build both from one Rates"
         )
     return rate
-
-
-def _welcome(
-    user_id: str,
-    name: str,
-    role: Literal["user", "viewer"],
-    sim_rate_hz: float,
-    info: ObjectInfo,
-    link: LinkConditions,
-) -> str:
-    return encode(
-        Welcome(
-            user_id=user_id, name=name, role=role, sim_rate_hz=sim_rate_hz, object=info, link=link
-        )
-    )

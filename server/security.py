@@ -26,6 +26,7 @@ import hmac
 import ipaddress
 import math
 import re
+import secrets
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -453,3 +454,41 @@ class RoomTokens(TokenTable):
         if self._secret is not None and token.startswith(ROOM_TOKEN_PREFIX + "."):
             return check_room_token(token, self._secret, self.room, self._clock())
         return self._table.check(token) if self._table is not None else None
+
+
+# ----------------------------------------------------------------------------- resume tokens
+#: Random bytes in a resume token: 192 bits (at least 128 make guessing hopeless even for a
+#: flood of attempts, each of which is a connection under the rate limits).
+RESUME_TOKEN_BYTES = 24
+
+
+def new_resume_token() -> tuple[str, bytes]:
+    """A fresh resume token for one seat, and the digest the room keeps of it.
+
+    The token is :data:`RESUME_TOKEN_BYTES` random bytes from :func:`secrets.token_urlsafe`
+    (32 URL-safe characters): opaque and unguessable. The room keeps only its SHA-256 digest
+    (as it does for the access tokens) and compares digests with :func:`resume_matches`.
+
+    Returns
+    -------
+    token : str
+        Sent once, in the user's ``welcome`` (``resume_token``); never logged.
+    digest : bytes
+        SHA-256 of the token (32 bytes).
+    """
+    token = secrets.token_urlsafe(RESUME_TOKEN_BYTES)
+    return token, _digest(token)
+
+
+def resume_digest(token: str) -> bytes:
+    """SHA-256 digest of a resume token a ``hello`` presented (any string: no error)."""
+    return _digest(token)
+
+
+def resume_matches(digest: bytes, kept: bytes | None) -> bool:
+    """Whether a presented token's ``digest`` is the ``kept`` one, in constant time.
+
+    :func:`hmac.compare_digest` over two 32-byte digests: the time taken says nothing about
+    how much of a guess was right. ``kept`` None (a seat without a token) never matches.
+    """
+    return kept is not None and hmac.compare_digest(digest, kept)
