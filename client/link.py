@@ -17,6 +17,15 @@ of need. Spawned workers (a link started without them, after other threads exist
 design code first; the check a first contact waits for then runs in a thread of this process
 rather than waiting for that.
 
+Rejoin: a link that hears nothing from the server for ``silent_s`` (2 s; patches come 20 times
+a second and pongs twice) is taken for dead and dropped, as one that closes: a network cut sends
+no close, and TCP would wait much longer. The next ``hello`` carries the resume token of the last
+``welcome`` (:attr:`client.session.ClientSession.resume_token`), so a rejoin within the server's
+hold time (30 s) gets the same seat back: user id, name and contact. Meanwhile the servo has
+ramped its forces to zero by its own link timeout (0.25 s); it ramps them back up from zero
+(over ``ServoConfig.ramp_s``) once the first patch after the rejoin arrives, so the force does
+not step.
+
 Security: the link presents a token in ``hello`` (``token=`` or the ``HAPTIC_TOKEN`` environment
 variable) and never logs it; a ``wss://`` URL is verified against the system's CAs or ``ca_file``
 (``HAPTIC_CA_FILE``). A server that answers ``unauthorized`` is not retried: :meth:`Link.run`
@@ -55,6 +64,11 @@ from haptic_collab.shared.protocol import ProtocolError, Welcome
 log = logging.getLogger("haptic.client")
 
 PING_INTERVAL_S = 0.5
+#: No frame from the server for this long [s] after the welcome: the link is dead (a network
+#: cut closes nothing), drop it and rejoin. Eight pings and forty patches would have come.
+SILENT_LINK_S = 2.0
+#: No ``welcome`` within this long [s] of opening: drop the connection and try again.
+WELCOME_TIMEOUT_S = 5.0
 #: Environment variables read when no token or CA file is given.
 TOKEN_ENV = "HAPTIC_TOKEN"
 CA_FILE_ENV = "HAPTIC_CA_FILE"
@@ -144,6 +158,9 @@ class Link:
         Worker processes started earlier (:meth:`DesignWorkers.start`, forked before the client
         had other threads); the link uses them as its own and stops them on close. Default:
         started with the link. Ignored with a ``design_executor``.
+    silent_s : float
+        No frame from the server for this long [s] after the welcome (:data:`SILENT_LINK_S`):
+        the link is dropped and rejoined (with the resume token, so the seat is kept).
     """
 
     def __init__(
@@ -161,8 +178,17 @@ class Link:
         token: str | None = None,
         ca_file: str | None = None,
         workers: DesignWorkers | None = None,
+        silent_s: float = SILENT_LINK_S,
     ) -> None:
         self.url = url
+        self.silent_s = float(silent_s)
+        #: Links dropped because the server fell silent (:attr:`silent_s`).
+        self.silent_drops = 0
+        #: Joins that got the seat of the session before back (``welcome.resumed``), and the
+        #: user id of every join, in order.
+        self.resumes = 0
+        self.user_ids: list[str] = []
+        self._last_rx_s = -float("inf")
         self._workers = workers
         self._token = token if token is not None else (os.environ.get(TOKEN_ENV) or None)
         self.ca_file = ca_file if ca_file is not None else (os.environ.get(CA_FILE_ENV) or None)
@@ -573,9 +599,11 @@ class Link:
         return json.dumps(msg, separators=(",", ":"))
 
     async def _serve(self, ws: ClientConnection, stop: asyncio.Event) -> None:
+        self._last_rx_s = self.clock()
         await ws.send(self.hello_frame())
         sender = asyncio.create_task(self._send_loop(ws))
         stopper = asyncio.create_task(stop.wait())
+        watchdog = asyncio.create_task(self._watch_silence(ws))
         try:
             receiver = asyncio.create_task(self._receive_loop(ws))
             done, _ = await asyncio.wait({receiver, stopper}, return_when=asyncio.FIRST_COMPLETED)
@@ -590,12 +618,28 @@ class Link:
         finally:
             sender.cancel()
             stopper.cancel()
+            watchdog.cancel()
             with contextlib.suppress(asyncio.CancelledError, ConnectionClosed):
                 await sender
+
+    async def _watch_silence(self, ws: ClientConnection) -> None:
+        """Drop the connection when the server has sent nothing for :attr:`silent_s` since the
+        welcome (or no welcome came within :data:`WELCOME_TIMEOUT_S`): the receive loop then
+        ends as for a closed link, and :meth:`run` rejoins."""
+        while True:
+            limit = self.silent_s if self.connected.is_set() else WELCOME_TIMEOUT_S
+            quiet = self.clock() - self._last_rx_s
+            if quiet > limit:
+                self.silent_drops += 1
+                log.info("no frame from the server for %.1f s: dropping the link", quiet)
+                ws.transport.abort()  # no close handshake: the peer cannot answer it
+                return
+            await asyncio.sleep(min(0.25, limit - quiet + 0.01))
 
     async def _receive_loop(self, ws: ClientConnection) -> None:
         async for frame in ws:
             now = self.clock()
+            self._last_rx_s = now
             n_errors = len(self.session.errors)
             welcome_before = self.session.welcome
             try:
@@ -633,6 +677,10 @@ class Link:
                 # joined only on a new welcome: after a rejoin the session still holds the old
                 # one, and a refusal (room_full, rate_limited) must not count as a join
                 self.joins += 1
+                self.user_ids.append(welcome.user_id)
+                if welcome.resumed:
+                    self.resumes += 1
+                    log.info("rejoined: seat %s (%s) resumed", welcome.user_id, welcome.name)
                 self.connected.set()
                 if self.on_welcome:
                     self.on_welcome(welcome)

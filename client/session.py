@@ -278,25 +278,32 @@ class ClientSession:
         self.rest_plane_patches = 0
         # the tick of the last patch a verified plane rendered in this contact (None: none)
         self._plane_tick: int | None = None
+        #: The resume token of the last ``welcome`` (users; None before one, or from a server
+        #: without rejoin): the next ``hello`` sends it back, so that after a dropped link the
+        #: server gives back the same seat (docs/protocol.md, "Rejoin"). Never logged.
+        self.resume_token: str | None = None
+        #: Welcomes that gave back the seat of the session before (``welcome.resumed``).
+        self.resumes = 0
 
     # ------------------------------------------------------------------ outgoing
     def hello(self, now_s: float | None = None) -> str:
         """The first frame to send on every (re)connection, sent at local time ``now_s`` [s].
 
         With ``now_s`` the ``welcome`` that answers it gives the first round-trip time, so the
-        very first patch already knows the loop delay (:meth:`delay_ticks`).
+        very first patch already knows the loop delay (:meth:`delay_ticks`). After a welcome
+        with a resume token it carries that token (``resume``): a rejoin within the server's
+        hold time gets the same seat back. The field is left out when there is none.
         """
         self._hello_s = now_s
-        return encode(
-            Hello(
-                protocol=PROTOCOL_VERSION,
-                role=self.role,
-                name=self.name,
-                device=self.device,
-                servo_rate_hz=self.servo_rate_hz,
-                local_model=self.mode,
-            )
-        )
+        return Hello(
+            protocol=PROTOCOL_VERSION,
+            role=self.role,
+            name=self.name,
+            device=self.device,
+            servo_rate_hz=self.servo_rate_hz,
+            local_model=self.mode,
+            resume=self.resume_token if self.role == "user" else None,
+        ).model_dump_json(exclude_none=True)
 
     def ping(self, now_s: float) -> str:
         """A ping frame stamped with the local monotonic time ``now_s`` [s]."""
@@ -347,6 +354,10 @@ class ClientSession:
                     self.rtt_s.append(rtt)  # hello -> welcome: a round trip like a ping's
                 self._hello_s = None
             self.welcome = msg
+            # each token is used once: keep the new one for the next drop (none: no seat kept)
+            self.resume_token = msg.resume_token
+            if msg.resumed:
+                self.resumes += 1
             self.last_patch = None  # a new session: its ticks start afresh
             self.last_update = None  # and its first patch waits for verified gains again
             self._reset_own_response()  # and the object must show its K_o again

@@ -3,7 +3,8 @@
 //
 // Main thread: the network link (the `ws` package) -- joins the room, streams `state` about twice
 // per simulation tick, turns each `patch` into a primitive + gains for the servo thread, pings for
-// the round trip, reconnects with backoff, prints a JSON summary at exit.
+// the round trip, reconnects with backoff (its hello carrying the last welcome's resume token, so
+// the server gives back the same seat within its hold time), prints a JSON summary at exit.
 // Worker thread (lib/servo-worker.mjs): the servo loop at 1 kHz with a simulated hand + device.
 //
 // Exit codes: 0 done; 1 a fatal `error` from the server (its message on stderr); 2 bad command
@@ -150,6 +151,8 @@ class Client {
     this.timers = [];
     this.welcome = null;
     this.userId = null;
+    this.userIds = []; // the user id of every join, in order (a resumed seat keeps its id)
+    this.resumeToken = null; // the last welcome's resume_token: sent in the next hello
     this.simRateHz = null;
     this.lastTick = -1;
     this.lastRxS = 0;
@@ -163,7 +166,7 @@ class Client {
     this.snapSeq = new Int32Array(new SharedArrayBuffer(4));
     this.workerDone = null;
     this.stats = {
-      connects: 0, joins: 0, patches: 0, patches_by_kind: {}, stale_patches: 0, bad_patches: 0,
+      connects: 0, joins: 0, resumes: 0, patches: 0, patches_by_kind: {}, stale_patches: 0, bad_patches: 0,
       states_sent: 0, states_skipped_non_finite: 0, pings_sent: 0, pongs: 0,
       errors: {}, error_messages: [], fatal_error: null, gains_sources: {}, last_gains: null,
       binary_frames: 0, unknown_frames: 0, last_patch_tick: -1, patch_gap_max_s: 0,
@@ -207,6 +210,7 @@ class Client {
         servoRateHz: this.o.servoRateHz,
         localModel: this.o.localModel,
         token: this.o.token,
+        resume: this.resumeToken,
       });
       ws.send(JSON.stringify(hello));
       helloTimer = setTimeout(() => {
@@ -279,11 +283,15 @@ class Client {
     this.joined = true;
     this.welcome = m;
     this.userId = m.user_id;
+    this.userIds.push(m.user_id);
+    // one use each: the next hello (after a dropped link) sends this one back
+    this.resumeToken = typeof m.resume_token === "string" && m.resume_token ? m.resume_token : null;
+    if (m.resumed === true) this.stats.resumes += 1;
     this.simRateHz = Number.isFinite(m.sim_rate_hz) && m.sim_rate_hz > 0 ? m.sim_rate_hz : 20;
     this.lastTick = -1; // a new session (maybe a restarted server) counts ticks from its own start
     this.lastPatchAtS = null; // patch_gap_max_s: within a session
     this.stats.joins += 1;
-    this.log(`joined as ${m.name} (${m.user_id}), simulation at ${this.simRateHz} Hz`);
+    this.log(`${m.resumed === true ? "rejoined, seat resumed," : "joined"} as ${m.name} (${m.user_id}), simulation at ${this.simRateHz} Hz`);
     if (!this.worker) this.startWorker(m.object);
     // patches start only after the first state: send one now, then about twice per tick
     this.sendState(ws);
@@ -501,6 +509,7 @@ class Client {
       name: this.o.name,
       assigned_name: this.welcome ? this.welcome.name : null,
       user_id: this.userId,
+      user_ids: this.userIds,
       url: this.o.url,
       exit: this.exitReason,
       exit_code: this.exitCode,
@@ -509,6 +518,7 @@ class Client {
       sim_rate_hz: this.simRateHz,
       connects: s.connects,
       joins: s.joins,
+      resumes: s.resumes,
       patches: s.patches,
       patches_by_kind: s.patches_by_kind,
       stale_patches: s.stale_patches,

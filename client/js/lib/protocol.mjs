@@ -14,10 +14,12 @@ export function allFinite(v) {
 }
 
 /**
- * The `hello` of a haptic user. `token` is sent only when given.
+ * The `hello` of a haptic user. `token` is sent only when given; so is `resume`, the
+ * `resume_token` of the last `welcome` (docs/protocol.md, "Rejoin"): after a dropped link it
+ * gets the same seat back (user id, name, contact) within the server's hold time.
  * @throws {RangeError} a name outside 1-32 of A-Za-z0-9_.-
  */
-export function helloMessage({ name, device, servoRateHz, localModel, token }) {
+export function helloMessage({ name, device, servoRateHz, localModel, token, resume }) {
   if (!NAME_RE.test(name)) throw new RangeError(`name must be 1-32 of A-Za-z0-9_.-, got ${JSON.stringify(name)}`);
   const m = {
     type: "hello",
@@ -34,6 +36,7 @@ export function helloMessage({ name, device, servoRateHz, localModel, token }) {
   };
   if (device.maxDampingNsPerM > 0) m.device.max_damping_n_s_per_m = device.maxDampingNsPerM;
   if (token) m.token = token;
+  if (typeof resume === "string" && resume.length > 0) m.resume = resume;
   return m;
 }
 

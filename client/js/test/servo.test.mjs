@@ -466,3 +466,18 @@ test("a declared damper goes into hello and bounds the recommended B_h", () => {
   assert.equal(chooseGains(patch, { ...o, maxDampingNsPerM: 10 }).b_h, 10);
   assert.equal(chooseGains(patch, o).b_h, 25); // no limit given: as recommended
 });
+
+test("hello: resume carries the last welcome's resume token, and only when there is one", () => {
+  const base = {
+    name: "A",
+    device: { profile: "js-sim", maxForceN: 7.9, maxStiffnessNPerM: 1000, maxDampingNsPerM: 0 },
+    servoRateHz: 1000,
+    localModel: "pi",
+  };
+  assert.equal("resume" in helloMessage(base), false); // a first join: no field at all
+  assert.equal("resume" in helloMessage({ ...base, resume: null }), false);
+  assert.equal("resume" in helloMessage({ ...base, resume: "" }), false);
+  const m = helloMessage({ ...base, resume: "Zq3k9V8tS1o0d2aM4mWbq0cJ7oY6uE5r" });
+  assert.equal(m.resume, "Zq3k9V8tS1o0d2aM4mWbq0cJ7oY6uE5r");
+  assert.equal(m.type, "hello");
+});
