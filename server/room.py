@@ -123,6 +123,10 @@ class Outgoing:
     on_sent: Callable[[], None] | None = field(default=None, compare=False, repr=False)
 
 
+#: A SHA-256 digest (named apart: ``_Conn.bytes`` is a byte budget).
+_Digest = bytes
+
+
 @dataclass
 class _Conn:
     conn_id: str
@@ -141,7 +145,7 @@ class _Conn:
     #: (the conn_id of the connection that first took it; :meth:`Room.connect` sets it).
     seat: str = ""
     #: SHA-256 of the seat's current resume token (users only; None before the welcome).
-    resume_digest: bytes | None = None
+    resume_digest: _Digest | None = None
     #: The newest ``state.seq`` on this connection (a resumed seat's new connection may start
     #: its sequence again).
     last_seq: int = -1

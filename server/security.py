@@ -17,6 +17,12 @@ and expire: ``hcr1.ROOM.ROLE.EXPIRES.MAC`` with an HMAC-SHA256 over room, role a
 the server's secret (:func:`make_room_token`, :func:`check_room_token`, :class:`RoomTokens`). A
 room token is valid only in its room, only in its role, and only until it expires; the
 server-wide tokens above stay valid in every room.
+
+Resume tokens (:func:`new_resume_token`) are not access tokens: each user's ``welcome`` carries
+one, good once, for getting its own seat back in the same room after a dropped link
+(:meth:`server.room.Room.disconnect`); the room keeps their SHA-256 digests only and compares
+them in constant time (:func:`resume_matches`). They never replace the access token a ``hello``
+needs.
 """
 
 from __future__ import annotations
