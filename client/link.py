@@ -65,7 +65,7 @@ log = logging.getLogger("haptic.client")
 
 PING_INTERVAL_S = 0.5
 #: No frame from the server for this long [s] after the welcome: the link is dead (a network
-#: cut closes nothing), drop it and rejoin. Eight pings and forty patches would have come.
+#: cut closes nothing), drop it and rejoin. Four pongs and forty patches would have come.
 SILENT_LINK_S = 2.0
 #: No ``welcome`` within this long [s] of opening: drop the connection and try again.
 WELCOME_TIMEOUT_S = 5.0

@@ -96,10 +96,11 @@ if TYPE_CHECKING:
 log = logging.getLogger("haptic.server")
 
 #: How long [s] the seat of a user whose connection closed without ``bye`` is held for it to
-#: come back with its resume token. Long enough for a client that notices a dead link within
-#: 2 s and retries with the backoff of :class:`client.link.Link` (0.2 s doubling to 5 s) to
-#: come back through a network cut of 10-20 s; short enough that a user who is really gone
-#: frees its place in ``max_users`` (and its released contact on the object) soon.
+#: come back with its resume token, from when the server sees the close. Long enough for a
+#: client that notices a dead link within 2 s and retries with the backoff of
+#: :class:`client.link.Link` (0.2 s doubling to 5 s, each try up to 5 s) to come back several
+#: times over; short enough that a user who is really gone frees its place in ``max_users``
+#: (and its released contact on the object) within half a minute.
 RESUME_HOLD_S = 30.0
 
 
