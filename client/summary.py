@@ -99,6 +99,9 @@ def client_summary(
     out: dict[str, Any] = {
         **head,
         "joins": link.joins,
+        "resumes": link.resumes,
+        "user_ids": list(link.user_ids),
+        "silent_drops": link.silent_drops,
         "patches": session.patches,
         "server_errors": [e.model_dump() for e in session.errors[-10:]],
         "rtt_ms_p50": float(np.percentile(rtt, 50)) if rtt.size else None,

@@ -212,6 +212,9 @@ class ScriptedUser:
                         await ws.send(json.dumps(state))
                     t_next += period
                     await asyncio.sleep(max(0.0, t_next - loop.time()))
+                if stop.is_set():  # leaving on purpose, as a client does: no seat held
+                    with contextlib.suppress(Exception):
+                        await ws.send(json.dumps({"type": "bye"}))
             finally:
                 receiver.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
