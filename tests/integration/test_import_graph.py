@@ -100,3 +100,33 @@ def test_the_check_sees_a_cycle_hidden_in_a_function(tmp_path):
     top, inner = _graphs(mods)
     assert top == {"pkg.a": {"pkg.b"}, "pkg.b": set(), "pkg.c": {"pkg.a", "pkg.b"}}
     assert inner["pkg.b"] == {"pkg.a"} and _reaches(top, "pkg.a", "pkg.b")
+
+
+RUNTIME = ("server", "client", "shared", "web")
+
+
+def test_the_runtime_imports_nothing_from_the_tools_around_it():
+    """server/, client/, shared/ and web/ (what a deployment runs) import nothing of
+    haptic_collab's own modules around them (the CLI, the benchmarks, the research drivers, the
+    demo), at module level or inside a function; shared/ imports neither server/ nor client/."""
+    mods = _modules()
+    top, inner = _graphs(mods)
+    runtime = {m for m in mods if m.split(".")[1:2] and m.split(".")[1] in RUNTIME}
+    assert (
+        "haptic_collab.client.workers" in runtime and "haptic_collab.shared.gains.choose" in runtime
+    )
+    outside = [
+        f"{a} -> {b}"
+        for a in sorted(runtime)
+        for b in sorted(top[a] | inner[a])
+        if b != "haptic_collab" and b not in runtime
+    ]
+    assert outside == [], outside
+    upward = [
+        f"{a} -> {b}"
+        for a in sorted(runtime)
+        if a.startswith("haptic_collab.shared")
+        for b in sorted(top[a] | inner[a])
+        if b.startswith(("haptic_collab.server", "haptic_collab.client"))
+    ]
+    assert upward == [], upward
