@@ -201,9 +201,49 @@ def _without_docstrings(tree: ast.Module) -> ast.Module:
     return tree
 
 
+#: The module of the policy's constants (:mod:`shared.gains.policy`): only the constants the design
+#: code reads from it are part of the design code's hash (:func:`_constants_read`).
+CONSTANTS_MODULE = "haptic_collab.shared.gains.policy"
+
+
+def _constants_read(tree: ast.Module, modules: Iterable[str]) -> ast.Module:
+    """``tree`` (:data:`CONSTANTS_MODULE`'s) with only the imports and the assignments of the
+    names ``modules`` import from it, and of the names those assignments use: a constant only
+    the policy's choice reads (:mod:`shared.gains.choose`) does not change a design."""
+    wanted: set[str] = set()
+    for name in modules:
+        if name == CONSTANTS_MODULE:
+            continue
+        for node in ast.walk(_module_ast(name)):
+            if isinstance(node, ast.ImportFrom) and node.module == CONSTANTS_MODULE:
+                wanted |= {a.name for a in node.names}
+
+    def targets(node: ast.stmt) -> set[str]:
+        if isinstance(node, ast.Assign):
+            return {t.id for t in node.targets if isinstance(t, ast.Name)}
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            return {node.target.id}
+        return set()
+
+    grew = True
+    while grew:  # the names the wanted assignments use, until none is added
+        grew = False
+        for node in tree.body:
+            if targets(node) & wanted:
+                used = {n.id for n in ast.walk(node) if isinstance(n, ast.Name)} - wanted
+                if used:
+                    wanted |= used
+                    grew = True
+    body = [
+        n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom) or targets(n) & wanted
+    ]
+    return ast.Module(body=body or [ast.Pass()], type_ignores=[])
+
+
 def design_code_hash(roots: Iterable[str] = DESIGN_ROOTS) -> str:
     """16 hex digits of SHA-256 over the code of :func:`design_code_modules` (their syntax
-    trees without docstrings; comments and formatting never reach the tree): a gain table's
+    trees without docstrings; comments and formatting never reach the tree; of
+    :data:`CONSTANTS_MODULE`, only the constants the design reads): a gain table's
     file holds for the design code of this hash only. ``tools/codegen --check`` checks the
     shipped tables with it; a client's cache of designs is keyed by it.
 
@@ -213,8 +253,12 @@ def design_code_hash(roots: Iterable[str] = DESIGN_ROOTS) -> str:
         As :func:`design_code_modules`.
     """
     h = hashlib.sha256()
-    for name in design_code_modules(roots):
-        dump = ast.dump(_without_docstrings(_module_ast(name)), include_attributes=False)
+    modules = design_code_modules(roots)
+    for name in modules:
+        tree = _without_docstrings(_module_ast(name))
+        if name == CONSTANTS_MODULE:
+            tree = _constants_read(tree, modules)
+        dump = ast.dump(tree, include_attributes=False)
         h.update(name.encode() + b"\0" + dump.encode() + b"\0")
     return h.hexdigest()[:16]
 

@@ -14,6 +14,9 @@ from haptic_collab.shared.full_loop import HandBox
 from haptic_collab.shared.gains.key import make_gain_key
 from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.gains.table_file import (
+    CONSTANTS_MODULE,
+    _constants_read,
+    _module_ast,
     _without_docstrings,
     design_code_hash,
     design_code_modules,
@@ -115,6 +118,29 @@ def test_the_design_code_hash_ignores_docstrings_but_not_code() -> None:
     assert "haptic_collab.shared.gains.search" in mods and "haptic_collab.shared.full_loop" in mods
     assert "haptic_collab.shared.gains.table_file" not in mods  # its format is not the designs'
     assert len(design_code_hash()) == 16
+
+
+def test_a_policy_constant_the_design_does_not_read_leaves_the_hash_alone() -> None:
+    """Of shared.gains.policy only what the design reads is hashed: a new value of the choice's
+    fallback ratio keeps every shipped table; one of the design's tie or decay margin does not."""
+    mods = design_code_modules()
+    assert CONSTANTS_MODULE in mods
+
+    def hashed_with(name: str, value: float) -> str:
+        tree = _without_docstrings(_module_ast(CONSTANTS_MODULE))
+        for node in tree.body:
+            target = getattr(node, "target", None) or (getattr(node, "targets", None) or [None])[0]
+            if isinstance(target, ast.Name) and target.id == name:
+                node.value = ast.Constant(value)  # type: ignore[attr-defined]
+        return ast.dump(_constants_read(tree, mods))
+
+    base = ast.dump(_constants_read(_without_docstrings(_module_ast(CONSTANTS_MODULE)), mods))
+    assert hashed_with("FALLBACK_K_RATIO", 0.2) == base
+    assert hashed_with("HOLD_BACK_S", 2.0) == base
+    assert hashed_with("DESIGN_TIE", 0.01) != base
+    assert hashed_with("MIN_DECAY_RATE_PER_S", 2.0) != base
+    # a name a read constant is made of is read too
+    assert hashed_with("MAX_STIFF_RATIO_CLASS", 64.0) != base
 
 
 def test_every_shipped_table_is_of_this_design_code_and_loads() -> None:
