@@ -278,6 +278,11 @@ class ClientSession:
         self.rest_plane_patches = 0
         # the tick of the last patch a verified plane rendered in this contact (None: none)
         self._plane_tick: int | None = None
+        # the key and K_o cell the gains in use were chosen for
+        self._in_use_key: tuple[GainKey, int] | None = None
+        #: Patches that kept the checked gains in use through a contact rather than step the
+        #: felt stiffness to a design that arrived (:func:`shared.gains.choose.choose`).
+        self.held_patches = 0
         #: The resume token of the last ``welcome`` (users; None before one, or from a server
         #: without rejoin): the next ``hello`` sends it back, so that after a dropped link the
         #: server gives back the same seat (docs/protocol.md, "Rejoin"). Never logged.
@@ -360,6 +365,7 @@ class ClientSession:
                 self.resumes += 1
             self.last_patch = None  # a new session: its ticks start afresh
             self.last_update = None  # and its first patch waits for verified gains again
+            self._in_use_key = None
             self._reset_own_response()  # and the object must show its K_o again
             return None
         if isinstance(msg, Pong):
@@ -578,13 +584,15 @@ class ClientSession:
             self.first_patch_s = now_s
         d = self.delay_ticks(now_s, in_contact=surface.in_contact or surface.own_force_n > 0.0)
         key = self.gain_key(surface.b_o, d, self._stiff_class(surface))
-        self._plan_ahead(key, self.gain_table.cell(surface.k_o_eff))
+        cell = self.gain_table.cell(surface.k_o_eff)
+        self._plan_ahead(key, cell)
         contact = Contact(
             key=key,
             own_response=self._object_as_reported(surface, key),
             identified_ratio=self.own_response.identified_ratio,
             in_use=self.last_update,
             plane_tick=self._plane_tick,
+            in_use_key=self._in_use_key,
         )
         known = Known(self.gain_table, self.interim, self.planes)
         choice = choose(surface, msg.gains, contact, known, self._options())
@@ -593,7 +601,9 @@ class ClientSession:
         if choice.source is None:
             self._waiting = (msg, surface)
             return None
-        self.server_gain_patches += choice.source == "server"
+        self._in_use_key = (key, cell)
+        self.held_patches += choice.held
+        self.server_gain_patches += choice.source in ("server", "server-interim")
         self.plane_patches += choice.source == "plane"
         self.identified_plane_patches += choice.identified
         self.unverified_patches += not choice.verified

@@ -133,6 +133,7 @@ def client_summary(
         "gain_changes": gain_changes(updates),
         "unverified_patches": session.unverified_patches,
         "server_gain_patches": session.server_gain_patches,
+        "held_patches": session.held_patches,
         "gains_source": session.gains_source,
         "first_patch_s": session.first_patch_s,
         "first_gains_s": session.first_update_s,

@@ -18,8 +18,9 @@ The sources, in the order they are tried (docs/gains.md, "Which gains render"):
    the plane verified for that stiffness (:func:`shared.gains.verified_plane.verified_plane`), once
    checked (against the cell's design, if the cell has one).
 3. ``server``: the server's recommended gains (``patch.gains``: the same design, made by the
-   server), where this device may render them and they cover the delay measured here; interim
-   recommendations yield to a design of this client's own.
+   server), where this device may render them and they cover the delay measured here;
+   ``server-interim`` while the server's are checked interim gains, which yield to a design of
+   this client's own.
 4. ``design``: the cell's design in the table (shipped, cached or made this session).
 5. ``interim``: gains checked for this key and cell (:func:`shared.gains.interim.interim_design`).
 6. ``covering``: a design or check of this cell for a wider coupling class
@@ -29,6 +30,11 @@ The sources, in the order they are tried (docs/gains.md, "Which gains render"):
    gains in use; or ``fallback``, :data:`shared.gains.policy.FALLBACK_K_RATIO` times K_o with no
    integral, where the gains in use were made for fewer delay ticks or an uncoupled contact.
    Never for a first contact: with nothing in use it waits with forces off (``source`` None).
+
+In a contact, checked interim gains (``interim``, ``covering``, ``server-interim``) are kept for
+as long as the key and the K_o cell stay those they were chosen for, rather than give way to a
+design felt more than a stiffness JND stiffer or softer (:data:`shared.gains.policy.HOLD_FELT_STEP`;
+``Choice.held``): the design renders from the next contact, or at once on a new key or cell.
 """
 
 from __future__ import annotations
@@ -40,7 +46,12 @@ from typing import Literal
 
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.key import GainKey, covering_classes
-from haptic_collab.shared.gains.policy import COUPLED_CELLS_BELOW, FALLBACK_K_RATIO, HOLD_BACK_S
+from haptic_collab.shared.gains.policy import (
+    COUPLED_CELLS_BELOW,
+    FALLBACK_K_RATIO,
+    HOLD_BACK_S,
+    HOLD_FELT_STEP,
+)
 from haptic_collab.shared.gains.rest_plane import RestPlaneGains, rest_plane_gains
 from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
@@ -52,12 +63,21 @@ from haptic_collab.shared.protocol import RecommendedGains
 PLANE_ALONE = -1
 
 Source = Literal[
-    "rest", "plane", "server", "design", "interim", "covering", "near", "in-use", "fallback"
+    "rest",
+    "plane",
+    "server",
+    "server-interim",
+    "design",
+    "interim",
+    "covering",
+    "near",
+    "in-use",
+    "fallback",
 ]
 #: The sources whose gains passed the full-loop check for the patch's key and cell (or, for the
 #: rest plane, need none).
 VERIFIED_SOURCES: frozenset[str] = frozenset(
-    {"rest", "plane", "server", "design", "interim", "covering"}
+    {"rest", "plane", "server", "server-interim", "design", "interim", "covering"}
 )
 
 
@@ -145,6 +165,8 @@ class Contact:
         The update rendering now (None: nothing yet, forces off).
     plane_tick : int or None
         The tick of the last patch a verified plane rendered in this contact.
+    in_use_key : (GainKey, int) or None
+        The key and K_o cell the gains in use were chosen for.
     """
 
     key: GainKey
@@ -152,6 +174,7 @@ class Contact:
     identified_ratio: float = 1.0
     in_use: LocalModelUpdate | None = None
     plane_tick: int | None = None
+    in_use_key: tuple[GainKey, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -182,6 +205,9 @@ class Choice:
         The contact's new ``plane_tick`` (:class:`Contact`).
     identified : bool
         A verified plane of a stiffness the own-response check identified renders.
+    held : bool
+        The gains in use are kept through the contact rather than step what the hand feels
+        (:func:`_held_in_hold`).
     """
 
     gains: GainDesign | None
@@ -190,6 +216,7 @@ class Choice:
     rest: RestPlaneGains | None = None
     plane_tick: int | None = None
     identified: bool = False
+    held: bool = False
 
     @property
     def verified(self) -> bool:
@@ -345,7 +372,13 @@ def choose(
     own = table.lookup(key, k_o_eff)
     jobs: list[Job] = []
     gains: GainDesign | None = recommended(rec, options, k_o_eff, d, own)
-    source: Source | None = "server" if gains is not None else "design" if own is not None else None
+    source: Source | None = (
+        ("server-interim" if rec is not None and rec.interim else "server")
+        if gains is not None
+        else "design"
+        if own is not None
+        else None
+    )
     if gains is None:
         gains = own
     identified = False
@@ -392,7 +425,69 @@ def choose(
         if gains is None or (source not in VERIFIED_SOURCES and contact.in_use is None):
             # a first contact renders only verified gains: it waits with forces off
             return Choice(None, None, tuple(jobs), plane_tick=plane_tick)
+    held = _held_in_hold(surface, contact, known, key, cell, gains, source)
+    if held is not None:
+        gains, source = held
+        return Choice(gains, source, tuple(jobs), plane_tick=plane_tick, held=True)
     return Choice(gains, source, tuple(jobs), plane_tick=plane_tick, identified=identified)
+
+
+def static_felt_stiffness(k_h: float, i_gain: float, own_gain: float, k_o: float) -> float:
+    """The stiffness [N/m] a still hand feels through a local model of these gains on an object
+    of ``k_o`` [N/m]: the coupling's steady compliance ``1/K_h - C_h`` (``-C_h`` with an integral,
+    which carries the force at rest) in series with ``1/K_o``, at most ten times K_o (a
+    coupling stiffer than the object). K_o itself with C_h K_h = 1; K_o / 5 for K_h = K_o / 4
+    without compensation."""
+    c = -own_gain if i_gain > 0.0 else 1.0 / k_h - own_gain
+    return 1.0 / max(c + 1.0 / k_o, 0.1 / k_o)
+
+
+def _held_in_hold(
+    surface: SurfacePatch,
+    contact: Contact,
+    known: Known,
+    key: GainKey,
+    cell: int,
+    gains: GainDesign | None,
+    source: Source | None,
+) -> tuple[GainDesign, Source] | None:
+    """The gains in use, kept through a contact, where the choice would step what the hand feels.
+
+    In contact, for the key and cell the gains in use were chosen for (their delay, coupling
+    class and K_o cell unchanged: they are still verified for this patch), checked interim or
+    covering gains are kept when a design (this client's or the server's) arrives whose static
+    felt stiffness differs from theirs by more than :data:`shared.gains.policy.HOLD_FELT_STEP`
+    (a stiffness JND): on a busy machine a design arrives seconds into a press, and the hand
+    felt the object's stiffness jump fivefold under it. The design renders from the next contact
+    on, or at once where the key or the cell changes. Returns the gains to keep and their source,
+    or None to render the choice.
+    """
+    in_use = contact.in_use
+    if (
+        gains is None
+        or source not in ("server", "design")
+        or in_use is None
+        or in_use.choice is None
+        or in_use.choice.source not in ("interim", "covering", "server-interim")
+        or contact.in_use_key != (key, cell)
+        or not (surface.in_contact or surface.own_force_n > 0.0)
+    ):
+        return None
+    k_o = surface.k_o_eff
+    now = static_felt_stiffness(in_use.k_h, in_use.i_gain, in_use.own_gain, k_o)
+    new = static_felt_stiffness(gains.k_h, gains.i_gain, gains.own_gain, k_o)
+    if max(now, new) / min(now, new) <= HOLD_FELT_STEP:
+        return None
+    # the same source as in use, looked up again (its gains over this cell, as verified); the
+    # server's interim gains are the gains in use (checked over the cell, unscaled)
+    kept = (
+        known.interim.get((key, cell))
+        if in_use.choice.source == "interim"
+        else covering(known, key, cell, k_o)
+        if in_use.choice.source == "covering"
+        else in_use_design(in_use, round(in_use.hold_ticks))
+    )
+    return None if kept is None else (kept, in_use.choice.source)  # type: ignore[return-value]
 
 
 def without_design(

@@ -4,10 +4,10 @@ What renders for a patch is decided by :func:`shared.gains.choose.choose`, from 
 (:mod:`shared.gains.design`), checks (:mod:`shared.gains.interim`) and planes
 (:mod:`shared.gains.verified_plane`, :mod:`shared.gains.rest_plane`); every number those rules
 were tuned with is here, grouped by the module that uses it (which imports it by name). The
-design's constants are among them, so this module is part of the design code the shipped gain
-tables hold for (:func:`shared.gains.table_file.design_code_hash`): changing any constant here
-asks for the tables to be built again (``haptic gains-table --ship``; ``tools/codegen --check``
-says so). Measurements and their dates are in docs/results/; the constants of the physics (the
+constants the design reads are part of the design code the shipped gain tables hold for
+(:func:`shared.gains.table_file.design_code_hash` hashes those, and only those, of this module):
+changing one asks for the tables to be built again (``haptic gains-table --ship``;
+``tools/codegen --check`` says so); changing one only the choice reads does not. Measurements and their dates are in docs/results/; the constants of the physics (the
 hand box, :mod:`shared.full_loop`) and of the numerics stay with their code.
 """
 
@@ -43,6 +43,13 @@ DELAY_FALL_S = 5.0
 #: spectral radius up to 1.42 with a tick or more of delay (2026-11-27). A grid, not a proof;
 #: not established for a device without a damper.
 FALLBACK_K_RATIO = 0.25
+
+#: Largest ratio of static felt stiffness a contact's rendering may step by when a design
+#: arrives while checked interim gains render (:func:`shared.gains.choose.choose` keeps those
+#: until the contact ends): a stiffness JND of 10 % (Jones and Hunter 1990; docs/fidelity.md).
+#: On a busy 2-core machine a FEM solid's design arrived seconds into a press at 6 ticks of
+#: delay and the hand felt 47 then 235 N/m (docs/results/gain-policy-choose-2026-11-27.json).
+HOLD_FELT_STEP = 1.1
 
 #: Distance [m] the proxy may slide along the surface before the own-response check starts over
 #: (:meth:`client.session.ClientSession._object_as_reported`): on a 5 cm radius, 0.5 mm of slide

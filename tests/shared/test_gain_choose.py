@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import math
 import random
+from dataclasses import replace
 
 import pytest
 
@@ -26,6 +27,7 @@ from haptic_collab.shared.gains.choose import (
     PlaneJob,
     choose,
     known_gains,
+    static_felt_stiffness,
     without_design,
 )
 from haptic_collab.shared.gains.key import GainKey, make_gain_key
@@ -222,3 +224,43 @@ def test_choose_is_pure_total_and_the_server_recommends_only_what_it_verified() 
                 assert source == choice.source and gains == choice.gains
             else:  # unverified gains (the nearest cell) never render for a first contact
                 assert choice.source is None
+
+
+def _interim_in_use(key: GainKey, k_h: float, own_gain: float = 0.0) -> LocalModelUpdate:
+    surface, _ = _surface()
+    return LocalModelUpdate.from_surface(
+        surface, k_h=k_h, i_gain=0.0, b_h=2.0, hold_ticks=50, own_gain=own_gain,
+        choice=GainChoice(delay_ticks=key.delay_ticks, spectral_radius=0.9, source="interim"),
+    )  # fmt: skip
+
+
+def test_a_design_arriving_in_a_hold_does_not_step_the_felt_stiffness() -> None:
+    """Interim gains without compensation (felt about K_o / 5) render in a press; the cell's
+    design (compensated: felt K_o) arrives: the press keeps the interim gains; the next contact,
+    or another cell, gets the design. A design felt within a JND of the interim gains renders."""
+    key = _key(delay_ticks=6)
+    table = GainTable()
+    cell = table.cell(K_O)
+    soft = _gains(0.25 * K_O)
+    interim = {(key, cell): soft}
+    design = replace(_gains(200.0), own_gain=1.0 / 200.0)  # C_h K_h = 1: felt K_o
+    table.store(key, cell, design)
+    known = _known(table, interim=interim)
+    in_use = _interim_in_use(key, soft.k_h)
+    surface, rec = _surface()
+    held = choose(surface, rec, Contact(key, in_use=in_use, in_use_key=(key, cell)), known, OPTIONS)
+    assert held.held and held.source == "interim" and held.gains == soft
+    assert static_felt_stiffness(soft.k_h, 0.0, 0.0, K_O) == pytest.approx(K_O / 5)
+    # released: the design renders
+    out, _ = _surface(force_n=0.0)
+    free = choose(replace(out, in_contact=False), rec, Contact(key, in_use=in_use,
+                  in_use_key=(key, cell)), known, OPTIONS)  # fmt: skip
+    assert free.source == "design" and not free.held
+    # the key changed (the gains in use were chosen for another cell): the design renders
+    other = choose(surface, rec, Contact(key, in_use=in_use, in_use_key=(key, cell + 1)),
+                   known, OPTIONS)  # fmt: skip
+    assert other.source == "design"
+    # interim gains felt like the design (compensated): nothing to hold
+    alike = _interim_in_use(key, 0.25 * K_O, own_gain=1.0 / (0.25 * K_O))
+    assert choose(surface, rec, Contact(key, in_use=alike, in_use_key=(key, cell)), known,
+                  OPTIONS).source == "design"  # fmt: skip
