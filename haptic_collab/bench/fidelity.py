@@ -6,11 +6,18 @@ of :data:`haptic_collab.research.fidelity_schemes.SCHEMES` runs on the vectorise
 trajectory, and with the probe as a position source at each frequency of :data:`FELT_HZ` (the
 felt impedance). The local models render the product's own design
 (:class:`shared.gains.table.GainTable`, the client's key), made for the K_o the simulation
-reports; each peer runs every tuning of its sweep (:func:`haptic_collab.research.fidelity_schemes.peer_renderings`) and
-is represented by its best one in that condition (:func:`choose_variant`), so a peer is never
-judged by a tuning its users would not pick. That choice knows the object; the summary's
-``peers_tuned_on_the_design_model`` ranks again with each peer keeping the tuning it picks on the
-design model (what the product's design knows: the reported K_o).
+reports. Each peer picks its tuning as its user must, without knowing the object: on the spring
+of the K_o reported (the nominal object), at that rate, delay and user count, every tuning of its
+sweep (:func:`haptic_collab.research.fidelity_schemes.peer_renderings`) runs, and the one stable
+with every hand of the box, then felt closest (:func:`choose_variant`), is the one judged on every
+object of that K_o, rate and delay.
+
+The two-user grid (``two_users``) runs every condition again with another user pressing and
+letting go on the same object (:class:`haptic_collab.research.fidelity_cases.OtherUser`: the rest
+surface under the user moves; no rest plane is sent), the same hands and trajectories, and ranks
+the schemes by how a user held still follows the other's press
+(:func:`haptic_collab.research.fidelity_ranking.follow_error`); it is summarised apart
+(``summary["two_users"]``, ``conditions_two_users``).
 
 The objects (:data:`haptic_collab.research.fidelity_cases.OBJECTS`): ``spring`` is the model the product's design
 assumes; ``spring-0.8`` / ``spring-1.2`` (K_o reported 25 % high / 17 % low), ``sls``

@@ -19,25 +19,36 @@ hand + device (servo rate, exact zero-order hold of the force)
     ``None`` is a position source: ``x = y`` (for the felt stiffness).
 object (simulation rate)
     an elastic surface of stiffness K_o, unilateral: a force F >= 0 pushes it to ``x_o = F / K_o``
-    (eq. 6 with B_o = 0).
+    (eq. 6 with B_o = 0); the other objects of :data:`haptic_collab.research.fidelity_cases.OBJECTS`.
+    With another user (:class:`haptic_collab.research.fidelity_cases.OtherUser`) the rest surface
+    under the contact moves with the other's press, the object's law about it unchanged.
 network
     the same one-way delay ``d`` both ways, on the servo clock: the simulation ticking at servo
-    tick ``n`` reads what the servo sent at ``n - d``; what it publishes reaches the servo from tick
-    ``n + 1 + d`` (one tick of computation).
+    tick ``n`` reads what the servo sent at ``n - d`` (at ``n - d - N // 2`` at the stale end of
+    the sampling phase: the client sends its state every half simulation period); what it
+    publishes reaches the servo from tick ``n + 1 + d`` (one tick of computation).
 
-Schemes (:func:`haptic_collab.research.fidelity_schemes.rendering_for` says how each is tuned):
+Schemes (:func:`haptic_collab.research.fidelity_schemes.peer_renderings` says how each is tuned):
 
 ``local-p``, ``local-pi`` (this project)
     the local model of eq. 12 with the product's threshold (eq. 17), release ramp, probe damper,
     proxy hold and, for PI, passivity layer (:mod:`shared.passivity`), gains from the product's own
-    full-loop design (:mod:`shared.gains.design`) for the delay the client would measure; the
-    simulation receives the force rendered and returns the surface.
-``virtual-coupling`` (Colgate, Stanley and Brown 1995; CHAI3D's way)
-    the same coupling structure with a fixed spring-damper at the device's maximum stiffness and
-    damping, not adapted to K_o; proxy jumps each simulation tick.
+    full-loop design (:mod:`shared.gains.design`) for the delay the client would measure, its
+    verified planes and, alone, its rest plane; the simulation receives the force rendered and
+    returns the surface.
+``mmt``, ``mmt-id`` (Mitra and Niemeyer 2008)
+    a plane with the stiffness the simulation reports (``mmt-id``: the one the product's
+    own-response check identifies), capped at the device's, at the server's rest surface while
+    the user is alone and at the rest surface the patch implies with another user.
+``force-jacobian`` (Cavusoglu and Tendick 2000)
+    the simulation's force and its local stiffness about the probe it received, in contact only
+    (the probe's position clipped to the surface, no stiffness sent out of contact).
+``virtual-coupling`` (Colgate, Stanley and Brown 1995; Adams and Hannaford 1999)
+    a spring-damper at the device's Z-width corner to a virtual tool with mass and damping that
+    the simulation moves against the object from the probe it receives; rendered while the tool
+    touches the object.
 ``static-local`` (Mark et al. 1996; VRPN ForceDevice's plane)
-    a plane at the surface the simulation last reported, rendered with a fixed stiffness (half the
-    device's maximum) and no damping.
+    a plane at the object's rest surface with the K_o reported at the start, never updated.
 ``direct``
     the simulation computes the contact force ``K_o max(0, x)`` from the probe position it
     received; the servo holds it (zero-order hold) until the next one.

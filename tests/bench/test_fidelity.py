@@ -69,13 +69,25 @@ def test_small_grid_json_summary_and_plots(tmp_path: Path) -> None:
     summary = out["summary"]
     for s in SCHEMES:
         assert 0.0 <= summary[s]["box_stable_fraction"] <= 1.0
-    # peers kept at the tuning they pick on the design model: the same on the design model
-    tuned = summary["peers_tuned_on_the_design_model"]
-    for s in SCHEMES:
-        assert tuned[s]["box_stable_fraction_spring"] == summary[s]["box_stable_fraction_spring"]
-        assert (
-            tuned[s]["near_best_fraction_box_spring"] == summary[s]["near_best_fraction_box_spring"]
-        )
+    # each peer keeps, on every object, the tuning it picked on the spring of the same K_o,
+    # rate and delay: the object is not known to it
+    by = {(c["object"], c["delay_ms"]): c for c in conds}
+    for (_name, d), c in by.items():
+        for s, r in c["schemes"].items():
+            assert r["variant"] == by[("spring", d)]["schemes"][s]["variant"]
+    # the two-user grid, reported apart: every condition again, ranked by how a user held
+    # still follows the other's press; static-local's plane, never updated, follows nothing
+    two = out["conditions_two_users"]
+    assert [(c["object"], c["delay_ms"]) for c in two] == [
+        (c["object"], c["delay_ms"]) for c in conds
+    ]
+    for c in two:
+        assert c["schemes"]["static-local"]["felt_error"] is None
+        for s, r in c["schemes"].items():
+            assert len(r["stable_cells"]) == 2 * 3 and r["outside_stable"] == ""
+            if s in ("mmt", "mmt-id"):
+                assert r["variant"].endswith(("zoh", "foh"))  # the hold matters: swept
+    assert summary["two_users"]["product"]["local_models"] == ["local-p", "local-pi"]
     prod = summary["product"]
     assert prod["local_models"] == ["local-p", "local-pi"]
     assert 0.0 <= prod["near_best_fraction_box_unseen"] <= 1.0

@@ -173,7 +173,7 @@ def test_every_peer_sweeps_tunings_the_local_models_do_not() -> None:
         rs = peer_renderings(s, k_o=300.0, sim_rate_hz=20.0)
         assert all(r.scheme == s for r in rs)
         assert len({r.variant for r in rs}) == len(rs)
-    assert len(peer_renderings("virtual-coupling", k_o=300.0, sim_rate_hz=20.0)) == 4
+    assert len(peer_renderings("virtual-coupling", k_o=300.0, sim_rate_hz=20.0)) == 2  # tools
     with pytest.raises(ValueError, match="k_o"):
         peer_renderings("mmt", k_o=-1.0, sim_rate_hz=20.0)
 
