@@ -727,6 +727,12 @@ def run(
     if options.seed == 0 and seed:
         options = RunOptions(options.jitter_s, options.quantum_m, seed)
     say = log if log is not None else (lambda _msg: None)
+    if include_3d:
+        # the 3-D cells' modules (the World, the server's objects) imported before the long 1-D
+        # run, not after it: an import that fails ends the run at once, not after half an hour
+        from haptic_collab.research.fidelity_3d import run_3d_cells
+        from haptic_collab.research.fidelity_pairs_3d import PAIR_SCHEMES, run_3d_pairs
+        from haptic_collab.research.fidelity_users_3d import SCHEMES_3D
     t0 = time.perf_counter()
     n_workers = max(1, workers if workers is not None else (os.cpu_count() or 1))
     # one BLAS thread in each worker (they inherit the environment when spawned): with the
@@ -934,10 +940,6 @@ def run(
     t_3d = 0.0
     if include_3d:
         t3 = time.perf_counter()
-        from haptic_collab.research.fidelity_3d import run_3d_cells
-        from haptic_collab.research.fidelity_pairs_3d import PAIR_SCHEMES, run_3d_pairs
-        from haptic_collab.research.fidelity_users_3d import SCHEMES_3D
-
         s3 = [s for s in schemes if s in SCHEMES_3D]
         # one pool for the three grids: its workers build each object once (a FEM solid's
         # start-up is 4-5 s) and import once
