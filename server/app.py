@@ -76,6 +76,13 @@ from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.metrics import RoomFigures, ServerCollector, scrape_allowed
 from haptic_collab.server.prefetch import PatchPrefetcher
 from haptic_collab.server.room import Outgoing, Room, is_bye
+from haptic_collab.server.room_process import (
+    RESTARTING_CODE,
+    RESTARTING_MESSAGE,
+    START_TIMEOUT_S,
+    RoomEvents,
+    RoomProxy,
+)
 from haptic_collab.server.security import TokenBucket, TokenTable, is_loopback, origin_allowed
 from haptic_collab.server.urls import (
     DEFAULT_ROOM,
@@ -89,6 +96,10 @@ from haptic_collab.shared.gains.table import warm_up
 from haptic_collab.shared.protocol import ErrorMsg, LinkConditions, encode, frame_size_bytes
 
 log = logging.getLogger("haptic.server")
+
+#: A room as the I/O layer holds it: in this process, or in a process of its own
+#: (``--room-processes``, :class:`server.room_process.RoomProxy`).
+AnyRoom = Room | RoomProxy
 
 #: websockets' own frame limit; the room answers frames above its smaller limit with an error.
 WS_MAX_SIZE = 64 * 1024
@@ -139,7 +150,9 @@ DRAINING_MESSAGE = (
 #: files the page loads in a wheel).
 WEB_DIR = Path(str(resources.files("haptic_collab") / "web"))
 #: The reason sent with a close code (others: "closed by server, see error").
-_CLOSE_REASONS = {1000: "bye", DRAIN_CLOSE_CODE: "server draining, see error"}
+_CLOSE_REASONS = {1000: "bye", DRAIN_CLOSE_CODE: "service restart, see error"}
+#: A room whose process failed to start is started again after this long [s].
+RESTART_BACKOFF_S = 1.0
 #: The HTTP body of a room refused because the server drains.
 _DRAINING_TEXT = "the server is draining (shutting down); try again or another server\n"
 _STATIC_SUFFIXES = {".html", ".js", ".mjs", ".css", ".json", ".png", ".svg", ".ico", ".map"}
@@ -176,7 +189,7 @@ class RoomMaker(Protocol):
         """Whether a room of this (valid) name may be built."""
         ...
 
-    def build(self, name: str) -> Room:
+    def build(self, name: str) -> AnyRoom:
         """A new room of this name; called in a worker thread. Raises ValueError."""
         ...
 
@@ -208,7 +221,7 @@ class _Slot:
     """One room as the I/O layer runs it: its own loop task, prefetcher and figures."""
 
     name: str
-    room: Room
+    room: AnyRoom
     figures: RoomFigures = field(default_factory=RoomFigures)
     on_demand: bool = False
     task: asyncio.Task[None] | None = None
@@ -345,7 +358,7 @@ class ServerApp:
 
     def __init__(
         self,
-        room: Room,
+        room: AnyRoom,
         host: str = "127.0.0.1",
         port: int = 8765,
         link: LinkConditions | None = None,
@@ -357,14 +370,14 @@ class ServerApp:
         gain_executor: Executor | None = None,
         prefetch: bool | Callable[[Room], bool] = False,
         metrics_token: TokenTable | None = None,
-        rooms: Mapping[str, Room] | None = None,
+        rooms: Mapping[str, AnyRoom] | None = None,
         room_maker: RoomMaker | None = None,
         max_rooms: int = MAX_ROOMS,
         room_idle_s: float = ROOM_IDLE_S,
         address_limits: RoomLimits = ADDRESS_LIMITS,
         snapshot_dir: str | Path | None = None,
     ) -> None:
-        self.room = room
+        self.room: AnyRoom = room
         self._slots: dict[str, _Slot] = {DEFAULT_ROOM: _Slot(DEFAULT_ROOM, room)}
         for name, extra in (rooms or {}).items():
             if not valid_room_name(name) or name == DEFAULT_ROOM:
@@ -462,16 +475,61 @@ class ServerApp:
             self._start_slot(slot)
         if self._own_executor:  # an injected executor (tests) is the caller's to warm
             self._gain_tasks.add(asyncio.create_task(self._warm_design_pool()))
+        await self._rooms_started(list(self._slots.values()))
 
-    def _resume(self, name: str, room: Room) -> bool:
+    async def _rooms_started(self, slots: list[_Slot]) -> None:
+        """Wait until every room of ``slots`` running in a process of its own has built its
+        room and ticks (:data:`server.room_process.START_TIMEOUT_S` at most).
+
+        Raises
+        ------
+        RuntimeError
+            A room's process could not build its room (a bad mesh, say: its log says why) or
+            did not start in time; every room is stopped first.
+        """
+        try:
+            await self._rooms_ready(slots)
+        except RuntimeError:
+            await self.stop()
+            raise
+
+    @staticmethod
+    async def _rooms_ready(slots: list[_Slot]) -> None:
+        """Wait until the rooms of ``slots`` that run in processes have started.
+
+        Raises
+        ------
+        RuntimeError
+            One could not build its room, or did not start within the time.
+        """
+        waits = []
+        for slot in slots:
+            if isinstance(slot.room, RoomProxy):
+                while slot.room.ready is None:  # its supervisor has not spawned it yet
+                    await asyncio.sleep(0)
+                waits.append(slot.room.ready)
+        if not waits:
+            return
+        try:
+            await asyncio.wait_for(asyncio.gather(*waits), START_TIMEOUT_S)
+        except (RuntimeError, TimeoutError) as exc:
+            raise RuntimeError(f"a room's process did not start: {exc}") from None
+
+    def _resume(self, name: str, room: AnyRoom) -> bool:
         """Start room ``name`` from its snapshot when the snapshot directory holds one
-        (:func:`server.snapshots.restore`: checked, consumed, logged; never raises)."""
-        if self.snapshot_dir is None:
+        (:func:`server.snapshots.restore`: checked, consumed, logged; never raises). A room in
+        a process of its own does that itself, at every start."""
+        if self.snapshot_dir is None or isinstance(room, RoomProxy):
             return False
         return snapshots.restore(self.snapshot_dir, name, room)
 
     def _start_slot(self, slot: _Slot) -> None:
-        """Start one room's simulation loop (and its prefetcher)."""
+        """Start one room's simulation loop (and its prefetcher), or its process."""
+        if isinstance(slot.room, RoomProxy):
+            slot.room.snapshot_dir = str(self.snapshot_dir) if self.snapshot_dir else None
+            slot.empty_since_s = asyncio.get_running_loop().time() if slot.peers == 0 else None
+            slot.task = asyncio.create_task(self._supervise(slot), name=f"room {slot.name}")
+            return
         want = self.prefetch(slot.room) if callable(self.prefetch) else self.prefetch
         if want:
             slot.prefetcher = PatchPrefetcher(slot.room.world)
@@ -479,8 +537,19 @@ class ServerApp:
         slot.task = asyncio.create_task(self._sim_loop(slot), name=f"room {slot.name}")
 
     async def _stop_slot(self, slot: _Slot) -> None:
-        """Stop one room's loop, its schedule and its prefetcher."""
+        """Stop one room's loop, its schedule and its prefetcher (or its process)."""
         task = slot.task
+        if isinstance(slot.room, RoomProxy):
+            await slot.room.close()
+            if task is not None and task is not asyncio.current_task():
+                with contextlib.suppress(asyncio.CancelledError, TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(task), 5.0)
+                if not task.done():
+                    slot.room.kill()
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+            return
         if task is not None and task is not asyncio.current_task():
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -553,7 +622,15 @@ class ServerApp:
         began = loop.time()
         self.draining = True
         slots = list(self._slots.values())
+        # a room in a process of its own stops ticking and saves itself (RoomProxy.drain)
+        remote = [
+            asyncio.ensure_future(s.room.drain(self.snapshot_dir is not None))
+            for s in slots
+            if isinstance(s.room, RoomProxy)
+        ]
         for slot in slots:  # no tick after this: the state kept is the one users felt last
+            if isinstance(slot.room, RoomProxy):
+                continue
             task = slot.task
             if task is not None and not task.done():
                 task.cancel()
@@ -563,6 +640,8 @@ class ServerApp:
         taken: list[snapshots.Snapshot] = []
         if self.snapshot_dir is not None:
             for slot in slots:
+                if isinstance(slot.room, RoomProxy):
+                    continue
                 try:
                     taken.append(snapshots.capture(slot.name, slot.room))
                 except Exception:  # noqa: BLE001 - one room's state must not stop the drain
@@ -593,12 +672,17 @@ class ServerApp:
             log.warning("drain: %s did not close within the grace; aborting it", peer.who)
             peer.ws.transport.abort()
         written: list[Path] = await writing
+        if remote:
+            done, _ = await asyncio.wait(remote, timeout=max(0.0, began + grace_s - loop.time()))
+            for fut in done:
+                if not fut.cancelled() and fut.exception() is None and fut.result() is not None:
+                    written.append(Path(fut.result()))  # type: ignore[arg-type]
         for path in written:
             log.info("drain: snapshot %s written", path)
         report = DrainReport(
             told=len(peers),
             left_open=len(left),
-            snapshots=tuple(written),
+            snapshots=tuple(sorted(written)),
             seconds=loop.time() - began,
         )
         log.info(
@@ -635,7 +719,7 @@ class ServerApp:
             await self.stop()
 
     # ------------------------------------------------------------------ rooms
-    def rooms(self) -> dict[str, Room]:
+    def rooms(self) -> dict[str, AnyRoom]:
         """The rooms this server runs now, by name: the default one first, then the configured
         ones, then those made on demand (in the order they were made).
 
@@ -691,6 +775,17 @@ class ServerApp:
         self.flood.sim_period_s = self._shortest_period()
         if self._started:
             self._start_slot(slot)
+            if isinstance(room, RoomProxy):  # a room that cannot be built is refused now
+                try:
+                    await self._rooms_ready([slot])
+                except RuntimeError as exc:
+                    log.error("room %r could not be started: %s", name, exc)
+                    self._slots.pop(name, None)
+                    self.figures.pop(name, None)
+                    await self._stop_slot(slot)
+                    raise _RoomRefused(
+                        HTTPStatus.INTERNAL_SERVER_ERROR, f"room {name!r} could not be built\n"
+                    ) from None
         log.info(
             "room %r made on demand (%d of at most %d rooms)",
             name,
@@ -699,7 +794,7 @@ class ServerApp:
         )
         return slot
 
-    def _make_room(self, name: str) -> Room:
+    def _make_room(self, name: str) -> AnyRoom:
         """Build an on-demand room and resume its snapshot (in a worker thread)."""
         assert self.room_maker is not None
         room = self.room_maker.build(name)
@@ -726,6 +821,8 @@ class ServerApp:
         for name, slot in list(self._slots.items()):
             room = slot.room
             running = slot.task is not None and not slot.task.done()
+            if isinstance(room, RoomProxy):  # its process runs (not dead nor restarting)
+                running = running and room.running
             stall_s = max(STALL_MIN_S, STALL_PERIODS / room.sim_rate_hz)
             on_time = now - room.get_timer() < stall_s
             out.append(
@@ -740,8 +837,14 @@ class ServerApp:
         return out
 
     @staticmethod
-    def _room_status(room: Room) -> dict[str, Any]:
+    def _room_status(room: AnyRoom) -> dict[str, Any]:
+        process = (
+            {"process": {"pid": room.pid, "restarts": room.restarts}}
+            if isinstance(room, RoomProxy)
+            else {}
+        )
         return {
+            **process,
             "tick": room.tick_count,
             "sim_rate_hz": room.sim_rate_hz,
             "users": len(room.users),
@@ -984,7 +1087,8 @@ class ServerApp:
         when its own connection was the one closed).
         """
         slot = self._slot(peer)
-        if now > slot.room.get_timer():  # behind schedule: the backlog of a stall is credited
+        # behind schedule: the backlog of a stall is credited (a room process says so itself)
+        if not isinstance(slot.room, RoomProxy) and now > slot.room.get_timer():
             self.flood.credit_stall(self._live_peers(), slot.room.get_timer(), now)
         size = frame_size_bytes(frame)
         self.flood.charge(peer, size, now)  # its share, to find the heaviest; the room decides
@@ -1101,6 +1205,7 @@ class ServerApp:
             slot = self._slots[DEFAULT_ROOM]
         loop = asyncio.get_running_loop()
         room = slot.room
+        assert isinstance(room, Room), "a room in a process of its own ticks there"
         figures = slot.figures
         room.start(loop.time())
         while True:
@@ -1134,6 +1239,83 @@ class ServerApp:
             if slot.on_demand and idle is not None and start - idle >= self.room_idle_s:
                 await self._retire(slot)
                 return
+
+    async def _supervise(self, slot: _Slot) -> None:
+        """Run a room in a process of its own (:class:`server.room_process.RoomProxy`): start
+        it, relay its messages, and when it dies, log it, tell its connections
+        ``room_restarting`` (close 1012) and start it again (from its snapshot, if the snapshot
+        directory holds one); an on-demand room without a connection for ``room_idle_s`` is
+        closed. Other rooms are not touched."""
+        proxy = slot.room
+        assert isinstance(proxy, RoomProxy)
+        loop = asyncio.get_running_loop()
+        events = RoomEvents(
+            dispatch=self._dispatch,
+            named=self._named,
+            stall=lambda due, start: self.flood.credit_stall(self._live_peers(), due, start),
+            job=self._start_designs,
+            figures=slot.figures,
+        )
+        while not proxy.closing:
+            running = asyncio.ensure_future(proxy.run(events))
+            try:
+                while not running.done():
+                    await asyncio.wait({running}, timeout=1.0)
+                    idle = slot.empty_since_s
+                    if (
+                        slot.on_demand
+                        and not proxy.closing
+                        and idle is not None
+                        and loop.time() - idle >= self.room_idle_s
+                    ):
+                        log.info(
+                            "room %r closed: no connection for %g s", slot.name, self.room_idle_s
+                        )
+                        self._slots.pop(slot.name, None)
+                        self.figures.pop(slot.name, None)
+                        await proxy.close()
+                code = await running
+            finally:
+                if not running.done():  # cancelled (stop): the process is killed
+                    proxy.kill()
+                    running.cancel()
+            if proxy.closing:
+                return
+            was_ready = (
+                proxy.ready is not None and proxy.ready.done() and not (proxy.ready.exception())
+            )
+            log.error(
+                "room %r: its process ended (exit code %s); its connections are told %s and "
+                "it starts again",
+                slot.name,
+                code,
+                RESTARTING_CODE,
+            )
+            self._room_died(slot)
+            proxy.restarts += 1
+            if not was_ready:  # it could not even start: do not spin
+                await asyncio.sleep(RESTART_BACKOFF_S)
+
+    def _room_died(self, slot: _Slot) -> None:
+        """Tell every connection of a room whose process died ``room_restarting`` and close
+        it with code 1012, ahead of any state frame still queued for it."""
+        frame = encode(ErrorMsg(code=RESTARTING_CODE, message=RESTARTING_MESSAGE, fatal=True))
+        for peer in list(self._peers.values()):
+            if peer.closed or self._slot(peer) is not slot:
+                continue
+            peer.closed = True
+            peer.ready = deque(o for o in peer.ready if o.stream is None and not o.close)
+            self._ready(
+                peer, Outgoing(peer.conn_id, frame, close=True, close_code=DRAIN_CLOSE_CODE)
+            )
+
+    def _named(self, conn_id: str, who: str) -> None:
+        """A room in a process of its own welcomed a connection: now we know who it is."""
+        peer = self._peers.get(conn_id)
+        if peer is not None and not peer.named:
+            peer.named = True
+            peer.who += f" {who}"
+            log.info("connection %s: %s joined", conn_id, peer.who)
 
     def _start_designs(self) -> None:
         """Keep the design worker busy with the most urgent queued job (``GainAdvisor.next_job``:
@@ -1175,7 +1357,7 @@ class ServerApp:
             self._gain_tasks.discard(me)  # type: ignore[arg-type]
         self._start_designs()
 
-    async def _design(self, room: Room, job: GainJob) -> None:
+    async def _design(self, room: AnyRoom, job: GainJob) -> None:
         """Run one gain design of ``room`` off the simulation loop (a worker process) and hand
         it back."""
         self._design_pool()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import signal
@@ -30,6 +31,7 @@ from haptic_collab.server.agones import (
 )
 from haptic_collab.server.app import DRAIN_GRACE_S, MAX_ROOMS, ROOM_IDLE_S, ServerApp
 from haptic_collab.server.room import Room
+from haptic_collab.server.room_process import RoomProxy, RoomSpec
 from haptic_collab.server.security import (
     RoomTokens,
     TokenTable,
@@ -77,6 +79,9 @@ class ServerOptions:
     (:meth:`server.app.ServerApp.drain`) within ``drain_grace_s`` [s]; with ``snapshot_dir``
     each room's object state is saved there, and a room made again resumes it
     (:mod:`server.snapshots`).
+
+    ``room_processes`` runs each room's simulation in a process of its own
+    (:mod:`server.room_process`): a slow room's tick then delays no other room.
     """
 
     host: str = "127.0.0.1"
@@ -113,6 +118,7 @@ class ServerOptions:
     token_secret_file: str | None = None
     snapshot_dir: str | None = None
     drain_grace_s: float = DRAIN_GRACE_S
+    room_processes: bool = False
 
 
 #: ``[rooms.NAME]`` keys that name a :class:`ServerOptions` field differently.
@@ -231,6 +237,73 @@ class RoomTemplates:
             raise ValueError(f"no room template allows the name {name!r}")
         log.info("building room %r from template %r", name, tname)
         return build_room(self.opts, name, self.templates[tname], self.link, self.auth, self.secret)
+
+
+def room_spec(
+    opts: ServerOptions,
+    name: str,
+    keys: Mapping[str, object],
+    build: Callable[[], Room],
+) -> RoomSpec:
+    """How room ``name`` (``opts`` with ``keys`` on top) is built in a process of its own
+    (``room_processes``); ``build`` builds it there (picklable).
+
+    Raises
+    ------
+    ValueError
+        As :func:`room_options` and :func:`build_rates` (checked here, before any process).
+    """
+    ropts = room_options(opts, keys)
+    rates = build_rates(ropts)
+    caps = {k: int(keys[k]) for k in _ROOM_LIMIT_KEYS if k in keys}  # type: ignore[call-overload]
+    return RoomSpec(
+        name=name,
+        build=build,
+        sim_rate_hz=rates.sim_rate_hz,
+        max_users=RoomLimits(**caps).max_users,
+        auth=opts.token_file is not None or opts.token is not None or bool(opts.token_secret_file),
+        prefetch=_is_fem,
+        log_level=logging.getLogger().getEffectiveLevel(),
+    )
+
+
+def room_proxy(
+    opts: ServerOptions,
+    name: str,
+    keys: Mapping[str, object],
+    link: LinkConditions,
+    auth: TokenTable | None,
+    secret: bytes | None,
+) -> RoomProxy:
+    """Room ``name`` as :func:`build_room` builds it, in a process of its own.
+
+    Raises
+    ------
+    ValueError
+        As :func:`room_spec`.
+    """
+    build = functools.partial(build_room, opts, name, dict(keys), link, auth, secret)
+    return RoomProxy(room_spec(opts, name, keys, build))
+
+
+class ProcessRoomTemplates:
+    """:class:`RoomTemplates` whose rooms each run in a process of their own."""
+
+    def __init__(self, templates: RoomTemplates) -> None:
+        self.templates = templates
+
+    def allows(self, name: str) -> bool:
+        """Whether some template builds room ``name``."""
+        return self.templates.allows(name)
+
+    def build(self, name: str) -> RoomProxy:
+        """Room ``name``'s proxy (its process is started by the server). Raises ValueError."""
+        tname = self.templates.template(name)
+        if tname is None:
+            raise ValueError(f"no room template allows the name {name!r}")
+        keys = self.templates.templates[tname]
+        build = functools.partial(self.templates.build, name)
+        return RoomProxy(room_spec(self.templates.opts, name, keys, build))
 
 
 def check_templates(opts: ServerOptions) -> None:
@@ -559,19 +632,23 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     if not (math.isfinite(grace) and grace > 0.0):
         raise ValueError(f"--drain-grace-s must be a number of seconds > 0, got {grace:g}")
     snapshot_dir = check_directory(opts.snapshot_dir) if opts.snapshot_dir else None
-    room = build_room(opts, DEFAULT_ROOM, {}, link, auth, secret)
+    make = room_proxy if opts.room_processes else build_room
+    room = make(opts, DEFAULT_ROOM, {}, link, auth, secret)
     rooms = {}
     for name, keys in opts.rooms.items():
         try:
-            rooms[name] = build_room(opts, name, keys, link, auth, secret)
+            rooms[name] = make(opts, name, keys, link, auth, secret)
         except ValueError as exc:
             raise ValueError(f"[rooms.{name}]: {exc}") from None
-    rates = room.rates if room.rates is not None else build_rates(opts)
-    templates = (
+    rates = build_rates(opts)
+    plain = (
         RoomTemplates(opts, opts.room_templates, link, auth, secret)
         if opts.room_templates
         else None
     )
+    templates: RoomTemplates | ProcessRoomTemplates | None = plain
+    if plain is not None and opts.room_processes:
+        templates = ProcessRoomTemplates(plain)
     app = ServerApp(
         room,
         opts.host,
@@ -628,6 +705,8 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
             print(f"viewer: {url}{hint}", flush=True)
         for name in rooms:
             log.info("room %r: %s%s", name, room_page_path(name), hint)
+        if opts.room_processes:
+            log.info("each room runs in a process of its own (--room-processes)")
         if templates is not None:
             log.info(
                 "rooms on demand from templates %s (at most %d rooms)",

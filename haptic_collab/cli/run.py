@@ -136,6 +136,7 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         token_secret_file=args.token_secret_file,
         snapshot_dir=args.snapshot_dir,
         drain_grace_s=args.drain_grace_s,
+        room_processes=args.room_processes,
     )
 
 
@@ -225,6 +226,12 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         default=16,
         metavar="N",
         help="rooms this server runs at most, the default one included (default %(default)s)",
+    )
+    rooms.add_argument(
+        "--room-processes",
+        action="store_true",
+        help="run each room's simulation in a process of its own (a slow room's tick then "
+        "delays no other room; a room process that dies is restarted)",
     )
     rooms.add_argument(
         "--room-idle",

@@ -1,0 +1,204 @@
+"""Rooms in processes of their own (``haptic server --room-processes``), as their users notice it.
+
+A user of a room whose simulation runs in its own process feels the object and moves it; when
+that process is killed (``kill -9``) its users get ``room_restarting`` and close code 1012, the
+room can be joined again, and the users of another room keep getting their patches meanwhile; a
+drain saves the room's state from its process. The real server in this process (ServerApp on a
+free loopback port) with real room processes, and scripted websocket peers; every wait is
+bounded, nothing is timed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import time
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed
+
+from haptic_collab.server import snapshots
+from haptic_collab.server.app import DEFAULT_ROOM, ServerApp
+from haptic_collab.server.main import ServerOptions, room_proxy
+from haptic_collab.shared.protocol import PROTOCOL_VERSION, LinkConditions
+
+SIM_RATE = 20.0
+
+
+async def until(predicate: Callable[[], object], timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out waiting"
+        await asyncio.sleep(0.02)
+
+
+@contextlib.asynccontextmanager
+async def server(snapshot_dir: Path | None = None) -> AsyncIterator[ServerApp]:
+    """A server whose default room and room ``b`` each run in a process of their own."""
+    opts = ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2, room_processes=True)
+    link = LinkConditions()
+    app = ServerApp(
+        room_proxy(opts, DEFAULT_ROOM, {}, link, None, None),
+        "127.0.0.1",
+        0,
+        rooms={"b": room_proxy(opts, "b", {}, link, None, None)},
+        snapshot_dir=snapshot_dir,
+    )
+    await app.start()
+    try:
+        yield app
+    finally:
+        await app.stop()
+
+
+class User:
+    """A websocket user that keeps every text frame it gets and how its connection closed."""
+
+    def __init__(self, ws: ClientConnection) -> None:
+        self.ws = ws
+        self.texts: list[dict[str, Any]] = []
+        self.reader = asyncio.create_task(self._read())
+        self.seq = 0
+        #: How far [m] below the top of the object its hand is (negative: above, no contact).
+        self.depth_m = -0.005
+        self.hand: asyncio.Task[None] | None = None
+
+    async def _read(self) -> None:
+        with contextlib.suppress(ConnectionClosed):
+            async for frame in self.ws:
+                if isinstance(frame, str):
+                    self.texts.append(json.loads(frame))
+
+    @classmethod
+    async def join(cls, port: int, name: str, path: str = "/ws") -> User:
+        ws = await connect(f"ws://127.0.0.1:{port}{path}")
+        user = cls(ws)
+        hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": "user", "name": name}
+        await ws.send(json.dumps(hello))
+        await until(lambda: user.welcome is not None or user.errors(), 60.0)
+        if user.welcome is not None:  # its hand reports a state every 25 ms, as a client's
+            user.hand = asyncio.create_task(user._hand())
+        return user
+
+    async def _hand(self) -> None:
+        with contextlib.suppress(ConnectionClosed):
+            while True:
+                await self.push(self.depth_m)
+                await asyncio.sleep(0.025)
+
+    async def leave(self) -> None:
+        if self.hand is not None:
+            self.hand.cancel()
+        await self.ws.close()
+
+    @property
+    def welcome(self) -> dict[str, Any] | None:
+        return next((t for t in self.texts if t["type"] == "welcome"), None)
+
+    def patches(self) -> list[dict[str, Any]]:
+        return [t for t in self.texts if t["type"] == "patch"]
+
+    def errors(self) -> list[dict[str, Any]]:
+        return [t for t in self.texts if t["type"] == "error"]
+
+    async def push(self, depth_m: float) -> None:
+        """One ``state``: the hand ``depth_m`` below the top of the object, pushing down."""
+        assert self.welcome is not None
+        top = float(self.welcome["object"]["bounds_max_m"][2])
+        self.seq += 1
+        touching = depth_m > 0.0
+        state = {
+            "type": "state",
+            "seq": self.seq,
+            "probe_m": [0.0, 0.0, top - depth_m],
+            "force_n": [0.0, 0.0, 2.0 if touching else 0.0],
+            "penetration_m": max(0.0, depth_m),
+            "in_contact": touching,
+            "k_h": 400.0,
+        }
+        await self.ws.send(json.dumps(state))
+
+
+def patch_top_z(patch: dict[str, Any]) -> float:
+    """Where the patch's plane crosses the vertical axis [m] (the surface under the hand)."""
+    prim = patch["primitive"]
+    assert prim["kind"] == "plane"
+    (px, py, pz), (nx, ny, nz) = prim["point"], prim["normal"]
+    return float(pz + (nx * px + ny * py) / nz)
+
+
+def room_pid(app: ServerApp, name: str) -> int:
+    pid = app.status()["rooms"][name]["process"]["pid"]
+    assert isinstance(pid, int) and pid != os.getpid()
+    return pid
+
+
+async def test_a_user_of_a_room_in_its_own_process_feels_and_moves_the_object() -> None:
+    async with server() as app:
+        assert room_pid(app, DEFAULT_ROOM) != room_pid(app, "b")
+        user = await User.join(app.port, "ada")
+        assert user.welcome is not None, user.errors()
+        top = float(user.welcome["object"]["bounds_max_m"][2])
+        await until(lambda: len(user.patches()) >= 3)
+
+        assert patch_top_z(user.patches()[-1]) > top - 1e-4  # at rest
+        user.depth_m = 0.006
+        await until(lambda: patch_top_z(user.patches()[-1]) < top - 1e-3)  # pushed in
+        # /status reads the room's process: one user, ticking
+        await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["users"] == 1, 10.0)
+        assert app.status()["rooms"][DEFAULT_ROOM]["tick"] > 0
+        await user.leave()
+
+
+async def test_a_killed_room_process_tells_its_users_restarts_and_spares_the_other_room() -> None:
+    async with server() as app:
+        victim = await User.join(app.port, "ada")
+        other = await User.join(app.port, "bob", "/rooms/b/ws")
+        await until(lambda: len(victim.patches()) >= 2 and len(other.patches()) >= 2)
+        pid = room_pid(app, DEFAULT_ROOM)
+        before = len(other.patches())
+        os.kill(pid, signal.SIGKILL)
+        await asyncio.wait_for(victim.reader, 30.0)
+        assert [e["code"] for e in victim.errors()] == ["room_restarting"]
+        assert victim.ws.close_code == 1012
+        # the room is back: a new join is welcomed and gets patches, from a new process
+        again = await User.join(app.port, "ada")
+        assert again.welcome is not None, again.errors()
+        await until(lambda: len(again.patches()) >= 2)
+        assert room_pid(app, DEFAULT_ROOM) != pid
+        assert app.status()["rooms"][DEFAULT_ROOM]["process"]["restarts"] == 1
+        # the other room's user was never interrupted
+        assert len(other.patches()) > before
+        assert other.errors() == [] and other.ws.close_code is None
+        for user in (again, other):
+            await user.leave()
+
+
+async def test_a_drain_saves_each_room_from_its_process_and_it_resumes_there(tmp_path) -> None:
+    async with server(tmp_path) as app:
+        user = await User.join(app.port, "ada")
+        assert user.welcome is not None
+        top = float(user.welcome["object"]["bounds_max_m"][2])
+        await until(lambda: len(user.patches()) >= 2)
+        user.depth_m = 0.006
+        await until(lambda: patch_top_z(user.patches()[-1]) < top - 1e-3)
+        await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["tick"] >= 40)
+        report = await app.drain(5.0)
+        await asyncio.wait_for(user.reader, 10.0)
+        assert [e["code"] for e in user.errors()] == ["server_draining"]
+        assert user.ws.close_code == 1012
+        assert sorted(p.name for p in report.snapshots) == ["b.npz", "default.npz"]
+        snap = snapshots.read(tmp_path / "default.npz")
+        assert snap.tick >= 40
+    # a server started again resumes the pressed room in the room's new process: its tick goes
+    # on from the snapshot's (a room from rest starts at 0) and the file is consumed
+    async with server(tmp_path) as app:
+        await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["tick"] > 0, 30.0)
+        assert app.status()["rooms"][DEFAULT_ROOM]["tick"] >= snap.tick
+        assert (tmp_path / f"default.npz{snapshots.LOADED}").exists()
