@@ -14,18 +14,24 @@ import asyncio
 import contextlib
 import json
 import os
+import re
 import signal
+import subprocess
+import sys
 import time
+import urllib.request
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pytest
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
 from haptic_collab.server import snapshots
 from haptic_collab.server.app import DEFAULT_ROOM, ServerApp
-from haptic_collab.server.main import ServerOptions, room_proxy
+from haptic_collab.server.main import ServerOptions, build_world, room_proxy
 from haptic_collab.shared.protocol import PROTOCOL_VERSION, LinkConditions
 
 SIM_RATE = 20.0
@@ -202,3 +208,53 @@ async def test_a_drain_saves_each_room_from_its_process_and_it_resumes_there(tmp
         await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["tick"] > 0, 30.0)
         assert app.status()["rooms"][DEFAULT_ROOM]["tick"] >= snap.tick
         assert (tmp_path / f"default.npz{snapshots.LOADED}").exists()
+
+
+def test_sigterm_saves_every_room_from_its_process_and_leaves_no_process(tmp_path) -> None:
+    """``haptic server --room-processes`` stopped by a real SIGTERM, as Kubernetes stops it."""
+    snaps = tmp_path / "snapshots"
+    log = tmp_path / "server.log"
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OPENBLAS_NUM_THREADS="1")
+    cmd = [
+        sys.executable, "-m", "haptic_collab.cli", "server", "--host", "127.0.0.1",
+        "--port", "0", "--subdivisions", "2", "--snapshot-dir", str(snaps),
+        "--drain-grace-s", "10", "--room-processes",
+    ]  # fmt: skip
+    with open(log, "w") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        port = None
+        for line in proc.stdout:
+            m = re.search(r"viewer: http://127\.0\.0\.1:(\d+)/", line)
+            if m:
+                port = int(m.group(1))
+                break
+        assert port is not None, log.read_text()[-2000:]
+
+        async def session() -> tuple[User, int]:
+            user = await User.join(port, "ada")
+            assert user.welcome is not None
+            top = float(user.welcome["object"]["bounds_max_m"][2])
+            await until(lambda: len(user.patches()) >= 2)
+            user.depth_m = 0.006
+            await until(lambda: patch_top_z(user.patches()[-1]) < top - 1e-3)
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=10) as res:
+                pid = int(json.loads(res.read())["rooms"][DEFAULT_ROOM]["process"]["pid"])
+            proc.send_signal(signal.SIGTERM)  # while the user still presses
+            await asyncio.wait_for(user.reader, 10.0)
+            return user, pid
+
+        user, room_pid_ = asyncio.run(session())
+        assert proc.wait(30) == 0  # a clean exit
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert user.ws.close_code == 1012
+    assert [e["code"] for e in user.errors()] == ["server_draining"]
+    snap = snapshots.read(snaps / "default.npz")
+    rest = np.array(build_world(ServerOptions(subdivisions=2)).vertices)
+    assert np.max(np.abs(snap.vertices - rest)) > 1e-3  # saved while pressed, by its process
+    with pytest.raises(ProcessLookupError):  # the room's process is gone with the server
+        os.kill(room_pid_, 0)
