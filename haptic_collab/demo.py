@@ -2,8 +2,11 @@
 
 User A presses into the top of the shared water balloon, holds and releases; user B rests lightly
 on its side the whole time. Because every local model is rebuilt from the current global surface,
-B's side bulges out while A presses and B feels it: B's force rises. The run prints the viewer URL
-and live progress, then a summary table; ``--report`` writes JSON, ``--plot`` a PNG.
+B's side bulges out while A presses and B feels it: B's force rises. The run says what to open
+now and for how long (:func:`opening_lines`), what it shows phase by phase in words, read from
+the users' telemetry as they write it (:class:`_Narrator`), then a summary table, whether B felt
+A, and at the end a one-line verdict with the viewer it served and the paths of its report, plot
+and logs (:func:`closing_lines`); ``--report`` writes JSON, ``--plot`` a PNG.
 
 This module runs the demo: its options, the server's port, the server's and both users' processes
 (``python -m haptic_collab.cli``), the viewer and the live progress. A's timeline and what the
@@ -31,7 +34,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from haptic_collab.demo_report import Timeline, build_report, plot_demo, print_summary, timeline
+from haptic_collab.demo_report import (
+    B_FORCE_ON_N,
+    Timeline,
+    build_report,
+    plot_demo,
+    print_summary,
+    run_verdict_line,
+    timeline,
+)
 from haptic_collab.server.security import is_loopback
 from haptic_collab.server.urls import WILDCARD_HOSTS, local_host, url_host, viewer_urls
 
@@ -207,15 +218,58 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         print(f"haptic demo: logs and telemetry are in {work}", file=sys.stderr, flush=True)
         raise
     verdict = report["verdict"]
+    kept = opts.workdir is not None or verdict["exit_code"] != 0
+    if not kept:  # a temporary folder (5-8 MB of telemetry): gone after a good run
+        shutil.rmtree(work, ignore_errors=True)
+    urls = viewer_urls(opts.host, port)
+    for line in closing_lines(report, urls, opts.report, opts.plot, work, kept):
+        print(line, flush=True)
     if verdict["exit_code"] != 0:
-        print(f"haptic demo: logs and telemetry are in {work}", file=sys.stderr, flush=True)
         failed = ", ".join(f"{n} {v}" for n, v in verdict["users"].items() if v != "stable")
         raise DemoVerdictError(
             f"{verdict['verdict']} ({failed})", int(verdict["exit_code"]), report
         )
-    if opts.workdir is None:  # a temporary folder (5-8 MB of telemetry): gone after a good run
-        shutil.rmtree(work, ignore_errors=True)
     return report
+
+
+def closing_lines(
+    report: dict[str, Any],
+    urls: list[str],
+    report_path: Path | None,
+    plot_path: Path | None,
+    work: Path,
+    kept: bool,
+) -> list[str]:
+    """The demo's last lines: the verdict in one line, then the viewer it served and where its
+    report, plot, logs and telemetry are (absolute paths, or how to get them when not written).
+
+    Parameters
+    ----------
+    report : dict
+        The run's report (:func:`haptic_collab.demo_report.build_report`).
+    urls : list of str
+        The viewer URLs the demo served (it has stopped).
+    report_path, plot_path : Path or None
+        Where ``--report`` and ``--plot`` were written (None: not asked for).
+    work : Path
+        The folder of the processes' logs and telemetry.
+    kept : bool
+        Whether ``work`` is still there (a temporary one is deleted after a good run).
+    """
+    # "viewer: URL" as the server prints it (scripts look for it)
+    lines = ["", run_verdict_line(report), f"viewer: {urls[0]} (served while the demo ran)"]
+    for label, path, flag in (("report:", report_path, "--report"), ("plot:", plot_path, "--plot")):
+        lines.append(
+            f"{label:<7} {path.resolve()}"
+            if path is not None
+            else f"{label:<7} none written (add {flag} FILE)"
+        )
+    lines.append(
+        f"{'logs:':<7} {work.resolve()} (server.log, A.log, B.log; telemetry A.csv, B.csv)"
+        if kept
+        else f"{'logs:':<7} deleted after a good run (keep them with --workdir DIR)"
+    )
+    return lines
 
 
 def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
@@ -265,11 +319,12 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
             if time.monotonic() - t0 > 60.0:
                 raise RuntimeError("the server did not come up within 60 s")
             time.sleep(0.1)
-        for url in urls:
-            print(f"viewer: {url}{hint}", flush=True)
+        opened = False
         if not opts.headless and _has_display():
             with contextlib.suppress(Exception):
-                webbrowser.open(urls[0] + hint)
+                opened = bool(webbrowser.open(urls[0] + hint))
+        for line in opening_lines([u + hint for u in urls], tl, opts.duration_s, opened):
+            print(line, flush=True)
         ws = f"ws://{url_host(local_host(opts.host))}:{port}/ws"
         common = [
             "--url", ws, "--servo-rate", f"{opts.servo_rate_hz:g}", "--local-model", opts.local_model,
@@ -316,7 +371,7 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                 stderr=subprocess.DEVNULL,
                 env=env,
             )
-        status_samples = _progress(opts, procs, port, tl)
+        status_samples = _progress(opts, procs, port, tl, work)
         for name in ("A", "B"):
             rc = procs[name].wait(timeout=60.0)
             if rc != 0:
@@ -368,18 +423,135 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
 _POLL_S = 0.5
 
 
+#: About how long the users take to start and join [s] (2-5 s measured on a busy 2-core machine).
+JOIN_S = 4.0
+
+
+def opening_lines(urls: list[str], tl: Timeline, duration_s: float, opened: bool) -> list[str]:
+    """What the demo says once its server is up: what to open now and for how long, and what
+    will happen (A's timeline in seconds from A's start; the users need a few seconds to join)."""
+    # the users run duration_s once they have joined, which takes a few seconds
+    lines = [f"open {urls[0]} now: the demo is live for about {duration_s + JOIN_S:.0f} s"]
+    lines += [f"  (or {u})" for u in urls[1:]]
+    if opened:
+        lines.append("  (opened in your browser)")
+    lines.append(
+        f"What happens: users A and B join; B rests on the balloon's side; after {tl.delay_s:.0f} s "
+        f"A moves onto the top, presses in for {tl.press_s:g} s, holds until "
+        f"{tl.hold_end_s:.0f} s and lets go. While A presses, B's side bulges out and B's force "
+        "rises: B feels A."
+    )
+    return lines
+
+
+def _last_row(path: Path) -> dict[str, float] | None:
+    """The last complete row of a telemetry CSV that a client is still writing, by column name
+    (the client appends rows every 0.2 s); None when it has none yet or cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            header = f.readline().decode().strip().split(",")
+            f.seek(0, os.SEEK_END)
+            end = f.tell()
+            f.seek(max(0, end - 8192))
+            tail = f.read().decode(errors="replace")
+    except OSError:
+        return None
+    complete = tail.split("\n")[:-1]  # the text after the last newline may be half a row
+    for line in reversed(complete):
+        values = line.strip().split(",")
+        if len(values) == len(header) and values[0] != header[0]:
+            try:
+                return dict(zip(header, map(float, values), strict=True))
+            except ValueError:
+                return None
+    return None
+
+
+class _Narrator:
+    """Says what the demo is showing now, in words: who has joined, and A's phase with both
+    users' forces, read from the users' telemetry as they write it (A's own clock, so the phase
+    is A's real one, not the demo's guess)."""
+
+    def __init__(self, tl: Timeline, duration_s: float) -> None:
+        self.tl = tl
+        self.duration_s = duration_s
+        #: B's latest force while A was still away [N] (B's resting force, for comparison).
+        self.b_rest_n: float | None = None
+        #: Both users have joined (the server counted two once).
+        self.joined = False
+
+    def phase(
+        self, users: int | None, a: dict[str, float] | None, b: dict[str, float] | None
+    ) -> tuple[str, str]:
+        """(which phase, what it shows in words). ``users``: users joined per the server (None:
+        unknown); ``a``, ``b``: the users' latest telemetry rows (None: none yet)."""
+        if users is not None and users >= 2:
+            self.joined = True
+        if not self.joined and a is None:
+            if not users:
+                return "joining", "waiting for A and B to join (their processes are starting)"
+            return "joining", f"waiting for A and B to join ({users} of 2 joined)"
+        if a is None:
+            return "starting", "A and B joined; A's hand is starting"
+        tl, t = self.tl, a["t_s"]
+        b_on = b is not None and b["in_contact"] > 0 and b["force_n"] > B_FORCE_ON_N
+        fb = b["force_n"] if b is not None else 0.0
+        if t < tl.contact_s and b_on:
+            self.b_rest_n = fb
+        b_rests = f"B rests on the side with {fb:.2f} N" if b_on else "B moves onto the side"
+        rest = f" ({self.b_rest_n:.2f} N at rest)" if self.b_rest_n is not None else ""
+        fa = a["force_n"]
+        if t < tl.delay_s:
+            return f"waiting B {'on' if b_on else 'off'}", (
+                f"{b_rests}; A waits above the top (A touches it in {tl.contact_s - t:.0f} s)"
+            )
+        if t < tl.contact_s:
+            return "approach", f"A moves down onto the top; {b_rests}"
+        if t < tl.contact_s + tl.press_s:
+            return "press", (
+                f"A presses into the top with {fa:.2f} N: the dent grows and B's side bulges "
+                f"out; B feels {fb:.2f} N{rest}"
+            )
+        if t < tl.hold_end_s:
+            return "hold", f"A holds still, pressing with {fa:.2f} N; B feels {fb:.2f} N{rest}"
+        if t < tl.hold_end_s + tl.release_s:
+            return "release", f"A lets go ({fa:.2f} N); B feels {fb:.2f} N{rest}"
+        left = self.duration_s - t
+        if left < 0.5:
+            return "ending", "the users are finishing; then the report"
+        return "after", (
+            f"A has let go and the balloon settles; {b_rests} (the run ends in {left:.0f} s)"
+        )
+
+
+def _server_words(st: dict[str, Any]) -> str:
+    """The server's figures in a few words (``?`` for what it did not report)."""
+    if not st:
+        return "server: no answer"
+    return (
+        f"server: tick {st.get('tick', '?')}, {st.get('tick_ms_p50', 0) or 0:.1f} ms a tick, "
+        f"{st.get('overruns', '?')} overran"
+    )
+
+
 def _progress(
-    opts: DemoOptions, procs: dict[str, subprocess.Popen[bytes]], port: int, tl: Timeline
+    opts: DemoOptions,
+    procs: dict[str, subprocess.Popen[bytes]],
+    port: int,
+    tl: Timeline,
+    work: Path,
 ) -> list[dict[str, Any]]:
-    """Print the run's progress every 2 s while the users run; return the server's status
-    polled every :data:`_POLL_S` (``t_clock_s``, ``time.perf_counter()`` at the poll [s], the
-    clock of the clients' ``clock_origin_s``; ``tick``, ``overruns``): the report's server
-    overruns during each user's hold."""
+    """Say what the demo shows, in words, when it changes and every 2 s while the users run;
+    return the server's status polled every :data:`_POLL_S` (``t_clock_s``,
+    ``time.perf_counter()`` at the poll [s], the clock of the clients' ``clock_origin_s``;
+    ``tick``, ``overruns``): the report's server overruns during each user's hold."""
     t0 = time.monotonic()
     last = -1.0
     polled = -1.0
+    said = ""
     samples: list[dict[str, Any]] = []
     st: dict[str, Any] = {}
+    narrator = _Narrator(tl, opts.duration_s)
     while any(procs[n].poll() is None for n in ("A", "B")):
         t = time.monotonic() - t0
         if t - polled >= _POLL_S:
@@ -387,19 +559,14 @@ def _progress(
             st = _status(opts.host, port) or {}
             if (sample := _status_sample(st)) is not None:
                 samples.append(sample)
-        if t - last >= 2.0:
-            last = t
-            phase = (
-                "B resting, A waiting" if t < tl.delay_s
-                else "A approaching" if t < tl.contact_s
-                else "A pressing" if t < tl.contact_s + tl.press_s
-                else "A holding" if t < tl.hold_end_s
-                else "A released"
-            )  # fmt: skip
-            print(
-                f"  t={t:5.1f} s  {phase:<22} users {st.get('users', '?')}  tick {st.get('tick', '?')}  "
-                f"tick cost p50 {st.get('tick_ms_p50', 0):.2f} ms  overruns {st.get('overruns', '?')}",
-                flush=True,
+            users = st.get("users")
+            which, words = narrator.phase(
+                users if isinstance(users, int) else None,
+                _last_row(work / "A.csv"),
+                _last_row(work / "B.csv"),
             )
+            if which != said or t - last >= 2.0:  # a new phase at once, else every 2 s
+                said, last = which, t
+                print(f"  t={t:5.1f} s  {words}   [{_server_words(st)}]", flush=True)
         time.sleep(0.1)
     return samples

@@ -12,8 +12,9 @@ B [mm]. Each user's whole hold is judged (:func:`judge_user`): how far the probe
 the stiffness JND), whether the user ever rendered a model, and whether the machine was too loaded
 to judge (:func:`machine_load`); the run's verdict and exit status are :func:`run_verdict`'s. The
 servo's missed deadlines are counted (:func:`missed_per_s`); :func:`build_report` assembles the
-``--report`` JSON from the run's folder, :func:`print_summary` prints its table and the verdicts,
-and :func:`plot_demo` draws the ``--plot`` PNG. The processes that make the telemetry are run by
+``--report`` JSON from the run's folder, :func:`print_summary` prints its table, whether B felt A
+in plain sentences (:func:`coupling_lines`) and the users' verdicts, :func:`run_verdict_line` the
+run's verdict in one line, and :func:`plot_demo` draws the ``--plot`` PNG. The processes that make the telemetry are run by
 :mod:`haptic_collab.demo`.
 """
 
@@ -1131,38 +1132,81 @@ def print_summary(report: dict[str, Any]) -> None:
             f"{ref.get('period_p99_us') or float('nan'):>9.0f}"
             f"{ref.get('missed_per_s') or 0.0:>10.2f}  (a do-nothing loop beside the users)"
         )
-    c = report["coupling"]
-    if c["b_force_rise_n"] is None:
-        print("B feels A: not measured (B's contact never settled outside A's press)")
-    else:
-        w = c["rest_window_s"]
-        ratio = "n/a" if c["ratio"] is None else f"{c['ratio']:.2f}"
-        feels = "yes" if c.get("b_feels_a") else "NO"
-        print(
-            f"B feels A ({feels}): while A holds, B's force rises {c['b_force_rise_n']:+.3f} N "
-            f"({c['b_force_at_rest_n']:.3f} -> {c['b_force_during_a_press_n']:.3f} N) and the "
-            f"surface under B moves {c['b_surface_displacement_mm']:+.2f} mm outward\n"
-            f"  (B at rest {c['baseline']}, {w[0]:.1f}-{w[1]:.1f} s; force ratio {ratio}, which "
-            "depends on how hard B rests)"
-        )
-        if c.get("b_force_lowest_as_a_arrives_n") is not None:
-            print(
-                f"  as A arrived B's force was at least {c['b_force_lowest_as_a_arrives_n']:.3f} N "
-                f"({c['b_force_dip_as_a_arrives_n']:.3f} N below its "
-                f"{c['b_force_before_a_arrives_n']:.3f} N just before)"
-            )
+    for line in coupling_lines(report["coupling"]):
+        print(line)
     s, n = report["server"], report["network"]
     print(
-        f"server: {s['sim_rate_hz']:g} Hz, tick p50 {s['tick_ms_p50'] or 0:.2f} ms, p99 {s['tick_ms_p99'] or 0:.2f} ms, "
-        f"overruns {s['overruns']}; network rtt p50 {n['rtt_ms_p50'] or 0:.1f} ms, p99 {n['rtt_ms_p99'] or 0:.1f} ms"
+        f"server: {s['sim_rate_hz']:g} Hz, a tick took {s['tick_ms_p50'] or 0:.2f} ms "
+        f"(p99 {s['tick_ms_p99'] or 0:.2f} ms), {s['overruns'] or 0} overran; network round trip "
+        f"{n['rtt_ms_p50'] or 0:.1f} ms (p99 {n['rtt_ms_p99'] or 0:.1f} ms)"
     )
     for name, u in report["users"].items():
         print(verdict_line(name, u))
-    v = report.get("verdict")
-    if v is not None:
-        print(
-            f"verdict: {v['verdict']} (exit status {v['exit_code']}: {EXIT_MEANING[v['exit_code']]})"
-        )
+
+
+def coupling_lines(c: dict[str, Any]) -> list[str]:
+    """Whether B felt A's press, in plain sentences (the :func:`coupling_report` dict ``c``).
+
+    What a newcomer reads: did B feel A, how far the side under B moved [mm] and how B's force
+    changed [N]; where B's resting force was measured; and whether B's force dipped as A arrived
+    (B should only feel a rise).
+    """
+    if c["b_force_rise_n"] is None:
+        return [
+            "B feels A's press: not measured (B's contact never settled outside A's press, so "
+            "there is no resting force to compare with)."
+        ]
+    w = c["rest_window_s"]
+    rest, hold = c["b_force_at_rest_n"], c["b_force_during_a_press_n"]
+    rise, moved = c["b_force_rise_n"], c["b_surface_displacement_mm"]
+    share = f" ({rise / rest:+.0%})" if rest > 1e-9 else ""
+    way = "outward" if moved >= 0.0 else "inward"
+    rises = "rose" if rise >= 0.0 else "fell"
+    answer = "yes" if c.get("b_feels_a") else "no"
+    lines = [
+        f"B feels A's press: {answer}. While A held, the side under B moved "
+        f"{abs(moved):.2f} mm {way} and B's force {rises} from {rest:.3f} N to {hold:.3f} N"
+        f"{share}; a hand notices about {FEEL_FORCE_SHARE:.0%}.",
+        f"  (B's force at rest was measured {c['baseline']}, {w[0]:.1f}-{w[1]:.1f} s on A's "
+        "clock.)",
+    ]
+    lowest = c.get("b_force_lowest_as_a_arrives_n")
+    if lowest is not None:
+        before, dip = c["b_force_before_a_arrives_n"], c["b_force_dip_as_a_arrives_n"]
+        if dip > FEEL_FORCE_SHARE * before:
+            lines.append(
+                f"  As A arrived, B's force dipped from {before:.3f} N to {lowest:.3f} N for a "
+                f"moment ({dip:.3f} N less); it should only have risen."
+            )
+        else:
+            lines.append(
+                f"  As A arrived, B's force held: {before:.3f} N just before, never below "
+                f"{lowest:.3f} N in the second after."
+            )
+    return lines
+
+
+def run_verdict_line(report: dict[str, Any]) -> str:
+    """The run's verdict in one line: the verdict, each user's, whether B felt A, the exit status.
+
+    The verdict and its exit status are :func:`run_verdict`'s (in ``report["verdict"]``); this
+    only says them.
+    """
+    v = report["verdict"]
+    code = int(v["exit_code"])
+    who = ", ".join(
+        f"{name} {'could not be judged' if verdict == 'could not judge' else verdict}"
+        for name, verdict in v["users"].items()
+    )
+    feels = report.get("coupling", {}).get("b_feels_a")
+    felt = (
+        "B felt A's press"
+        if feels
+        else "B's feeling of A was not measured"
+        if feels is None
+        else "B did not feel A's press"
+    )
+    return f"verdict: {v['verdict']} ({who}; {felt}; exit status {code}: {EXIT_MEANING[code]})"
 
 
 def plot_demo(work: Path, tl: Timeline, path: Path) -> None:

@@ -33,6 +33,7 @@ from haptic_collab.demo_report import (
     print_summary,
     rest_plane_k_h,
     run_verdict,
+    run_verdict_line,
     timeline,
 )
 
@@ -304,9 +305,12 @@ def test_the_report_carries_the_verdict_and_the_console_ends_with_it(tmp_path, c
     print_summary(report)
     lines = capsys.readouterr().out.strip().splitlines()
     assert "nan" not in "\n".join(lines)
-    assert lines[-3].startswith("A: UNSTABLE: the felt stiffness stepped x5.00")
-    assert lines[-2].startswith("B: stable: over its ")
-    assert lines[-1] == "verdict: unstable (exit status 1: a user unstable or never rendered)"
+    assert lines[-2].startswith("A: UNSTABLE: the felt stiffness stepped x5.00")
+    assert lines[-1].startswith("B: stable: over its ")
+    assert run_verdict_line(report) == (
+        "verdict: unstable (A unstable, B stable; B did not feel A's press; "
+        "exit status 1: a user unstable or never rendered)"
+    )
 
 
 def test_a_run_whose_server_overran_during_the_hold_could_not_be_judged(tmp_path, capsys) -> None:
@@ -322,8 +326,11 @@ def test_a_run_whose_server_overran_during_the_hold_could_not_be_judged(tmp_path
     assert report["server"]["overrun_share_in_hold_measured"] == "during the hold"
     print_summary(report)
     out = capsys.readouterr().out.strip().splitlines()
-    assert out[-3].startswith("A: COULD NOT JUDGE: machine too loaded: the server overran 30%")
-    assert out[-1].startswith("verdict: could not judge (exit status 3: the machine was too loaded")
+    assert out[-2].startswith("A: COULD NOT JUDGE: machine too loaded: the server overran 30%")
+    assert run_verdict_line(report).startswith("verdict: could not judge (A could not be judged, ")
+    assert run_verdict_line(report).endswith(
+        "exit status 3: the machine was too loaded to judge; run it again on a quieter machine)"
+    )
 
 
 def test_a_user_that_never_rendered_makes_haptic_demo_exit_non_zero(
@@ -361,7 +368,9 @@ def test_a_user_that_never_rendered_makes_haptic_demo_exit_non_zero(
         haptic_demo.run_demo(haptic_demo.DemoOptions(port=0, report=report_path))
     assert err.value.exit_code == 1 and "B never rendered" in str(err.value)
     (kept,) = temp.iterdir()
-    assert f"logs and telemetry are in {kept}" in capsys.readouterr().err
+    out = capsys.readouterr().out.splitlines()
+    assert out[-5].startswith("verdict: never rendered (A stable, B never rendered; ")
+    assert out[-1].startswith(f"logs:   {kept.resolve()} (server.log, A.log, B.log")
 
 
 def fallback_changes(unchecked_tick: int) -> list[dict[str, Any]]:
