@@ -13,8 +13,15 @@
 // A user in contact that has sent no state for 0.5 s is marked stale and shown with no force
 // (see "stale users" below). Reconnects by itself with backoff.
 //
+// Late data is shown as late: the users panel and the connection indicator say how old the last
+// `room` summary is ("last update 3.2 s ago") once it is older than LATE_AFTER_S, and keep the
+// users as they were then; "Nobody is touching" is shown only when a fresh summary says so.
+// `?snapshot=1` marks the page ready for a screenshot once the first `room` summary and the
+// surface are in and drawn: `<html data-ready="1">` and "ready · " before the title (a headless
+// browser waits for either, then takes its screenshot; see docs/usage.md).
+//
 // Test hooks: `window.viewerState` (connection, tick, frame counts, users by name, colour scale,
-// dent, bytes per second) is updated live; `window.viewerPositions(indices)` returns where the
+// dent, bytes per second, the last room summary's age and lateness, readiness) is updated live; `window.viewerPositions(indices)` returns where the
 // surface vertices are drawn ([x, y, z] [m] each, from the geometry the renderer uses).
 // Protocol constants come from ./protocol.js, generated from shared/protocol.py; the viewer
 // stream's own constants (STREAM below) mirror server/viewer_stream.py, checked by a test.
@@ -82,6 +89,11 @@ const DENT_MIN_M = 0.0005;
 /** A user silent this long [s] is stale: the server no longer applies its force (its
  * RoomLimits.stale_after_s) and the viewer shows no force for it. */
 const STALE_AFTER_S = 0.5;
+/** The last `room` summary is late when older than this [s] (it comes every simulation tick,
+ * 50 ms at 20 Hz): the users shown are then said to be as they were that long ago. */
+const LATE_AFTER_S = 1.0;
+/** `?snapshot=1`: mark the page ready for a screenshot once data is in (see the header). */
+const SNAPSHOT = params.get("snapshot") === "1";
 
 function positiveParam(name, fallback) {
   if (!params.has(name)) return fallback;
@@ -116,6 +128,10 @@ const viewerState = {
   forceScaleMPerN: 0.01,
   arrows: {}, // by name: { tip_px: [x, y], in_view, visible } of the force arrow, after a render
   users: {}, // by name: force_n_mag [N], penetration_mm, indentation_mm [mm], color, stale, ...
+  roomAgeS: null, // how long ago the last room summary arrived [s] (null: none yet)
+  late: false, // that summary is older than LATE_AFTER_S: the users shown are as they were then
+  surfaceTick: -1, // tick of the last surface frame (DSP1/DSV1)
+  ready: false, // the first room summary and the surface are in and drawn (?snapshot=1 says so)
 };
 window.viewerState = viewerState;
 
@@ -137,6 +153,7 @@ const dom = {
   userList: $("user-list"),
   userCount: $("user-count"),
   noUsers: $("no-users"),
+  roomAge: $("room-age"),
   clientHint: $("client-hint"),
   toast: $("toast"),
   forceScale: $("force-scale"),
@@ -514,6 +531,7 @@ function onDisplacement(buf, vector) {
   else viewerState.frames += 1;
   if (flags & STREAM.FLAG_PARTIAL) viewerState.partialFrames += 1;
   viewerState.tick = tick;
+  viewerState.surfaceTick = tick;
   frameTimes.push(performance.now());
   if (updateColorRange() || redrawAll) writeAll();
   else writeSome(index);
@@ -939,9 +957,7 @@ function setIndentation(card, mm) {
 }
 
 function renderPanels() {
-  const entries = Object.values(viewerState.users);
-  dom.userCount.textContent = String(entries.length);
-  dom.noUsers.hidden = entries.length > 0;
+  const entries = Object.values(viewerState.users); // the count and "nobody": renderFreshness
   const maxF = Math.max(0, ...entries.map((s) => s.force_n_mag));
   forceBarScaleN = Math.max(forceBarScaleN * 0.995, maxF * 1.25, 1.0);
   for (const s of entries) {
@@ -985,6 +1001,8 @@ function renderPanels() {
 
 // ----------------------------------------------------------------------------- header stats
 let lastRoom = null;
+let lastRoomMs = null; // performance.now() when the last room summary arrived
+let liveText = "live"; // the connection indicator's text while the summaries are fresh
 let meshInfo = "";
 const frameTimes = []; // arrival times of recent displacement frames [ms]
 
@@ -1003,9 +1021,45 @@ function renderHeader() {
     dom.overruns.classList.toggle("warn", room.overruns > 0);
     dom.link.textContent = linkText(room.link);
   }
+  renderFreshness(now);
   dom.mesh.textContent = viewerState.nVertices
     ? `${meshInfo} · ${frameTimes.length} fps · ${fmt(viewerState.bytesPerS / 1000, 1)} kB/s`
     : "–";
+}
+
+/** Say how old the users shown are: "Nobody is touching" only when a fresh room summary has
+ * no user; a late summary's users are kept, with its age; none yet is "waiting", not "nobody". */
+function renderFreshness(now) {
+  const age = lastRoomMs === null ? null : (now - lastRoomMs) / 1000;
+  const late = age !== null && age > LATE_AFTER_S;
+  viewerState.roomAgeS = age;
+  viewerState.late = late;
+  const n = lastRoom ? lastRoom.users.length : null;
+  dom.userCount.textContent = n === null ? "–" : String(n);
+  dom.noUsers.hidden = !(lastRoom && !late && n === 0);
+  let text = "";
+  if (!lastRoom) {
+    text = viewerState.connected ? "waiting for the first update from the server…" : "";
+  } else if (late) {
+    const ago = `last update ${fmt(age, 1)} s ago`;
+    text = n ? `${ago}: the users as they were then` : `${ago}: nobody was touching then`;
+  }
+  if (dom.roomAge.textContent !== text) dom.roomAge.textContent = text;
+  dom.roomAge.hidden = !text;
+  dom.users.classList.toggle("late", late);
+  if (viewerState.connected) {
+    if (late) setStatus("late", `late · last update ${fmt(age, 1)} s ago`);
+    else if (viewerState.status !== "connected") setStatus("connected", liveText);
+  }
+}
+
+/** ?snapshot=1: once the first room summary and the surface are in and drawn, say so. */
+function markReady() {
+  if (viewerState.ready || !lastRoom || viewerState.surfaceTick < 0 || !framed) return;
+  viewerState.ready = true;
+  if (!SNAPSHOT) return;
+  document.documentElement.dataset.ready = "1";
+  document.title = `ready · ${document.title}`;
 }
 
 function linkText(link) {
@@ -1051,7 +1105,8 @@ function onWelcome(welcome) {
   viewerState.simRateHz = welcome.sim_rate_hz;
   viewerState.object = welcome.object;
   reconnectAttempt = 0;
-  setStatus("connected", `live · ${fmt(welcome.sim_rate_hz, 0)} Hz`);
+  liveText = `live · ${fmt(welcome.sim_rate_hz, 0)} Hz`;
+  setStatus("connected", liveText);
   const obj = welcome.object;
   meshInfo = `${fmtInt(obj.n_vertices)} v · ${fmtInt(obj.n_faces)} f`;
   frameObject(obj);
@@ -1061,6 +1116,7 @@ function onWelcome(welcome) {
 function onRoom(room) {
   viewerState.roomMessages += 1;
   viewerState.tick = room.tick;
+  lastRoomMs = performance.now();
   viewerState.simRateHz = room.sim_rate_hz;
   lastRoom = room;
   let maxForce = 0;
@@ -1276,6 +1332,7 @@ function animate(now) {
     viewerState.renderMs = performance.now() - t0;
     checkArrowsInView();
     updateDentHook();
+    markReady();
   }
   if (now - lastPanelMs >= PANEL_REFRESH_MS) {
     lastPanelMs = now;
