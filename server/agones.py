@@ -442,7 +442,9 @@ class AgonesAgent:
             and self._try(self.sdk.set_counter, USERS_COUNTER, users, declares=USERS_COUNTER)
         ):
             self._users_reported = users
-        self._empty_timer(reports, now)
+        # empty from when the sidecar has heard so (after this report's calls): Shutdown comes
+        # at least empty_shutdown_s after the last change of the users counter it recorded
+        self._empty_timer(reports, self.clock())
 
     def _empty_timer(self, reports: Sequence[_RoomReport], now: float) -> None:
         limit = self.options.empty_shutdown_s
