@@ -17,7 +17,7 @@ spawned. Front to room: ``connect``, ``frame``, ``disconnect``, ``sent`` (a fram
 ``drain``, ``stop``. Room to front: ``ready``, ``failed``, ``out`` (a tick's or a frame's
 :class:`server.room.Outgoing`, batched), ``named``, ``stall`` (a late tick: the front credits
 its across-room budgets), ``job`` (a gain design the front's one design worker runs),
-``report`` (every :data:`REPORT_S`: the tick count and schedule, users, viewers, tick-cost
+``checkpoint`` (with a snapshot directory, below), ``report`` (every :data:`REPORT_S`: the tick count and schedule, users, viewers, tick-cost
 percentiles, overruns and the two metric histograms, so ``/status``, ``/metrics`` and the Agones
 agent read the room without asking it), ``drained``.
 
@@ -27,9 +27,10 @@ per-address budgets across rooms stay the front's and are charged on arrival.
 
 A room's process that dies is noticed by the front (its stream ends); the front tells that
 room's clients ``room_restarting`` with close code 1012 and starts the room again
-(:class:`RoomProxy`), from its snapshot when the snapshot directory holds one (one is written
-only by a drain: a killed room otherwise starts again from rest, its held seats and resume
-tokens lost).
+(:class:`RoomProxy`). With a snapshot directory the room's process sends the front a checkpoint
+of its object state every :data:`CHECKPOINT_S` (``checkpoint``), which the front writes there as
+the room's snapshot before starting it again, so it starts from where it was at most that long
+before it died; without one it starts from rest. Its held seats and resume tokens are lost.
 """
 
 from __future__ import annotations
@@ -62,6 +63,9 @@ log = logging.getLogger("haptic.server")
 
 #: How often [s] a room's process reports its figures to the front.
 REPORT_S = 0.25
+#: How often [s] a room's process sends the front a checkpoint of its object state (only with
+#: a snapshot directory): what the room starts from again if its process dies.
+CHECKPOINT_S = 2.0
 #: The error code a room's users get when its process died, before close code 1012.
 RESTARTING_CODE = "room_restarting"
 #: The message that goes with it.
@@ -72,6 +76,8 @@ START_TIMEOUT_S = 120.0
 EXIT_TIMEOUT_S = 2.0
 #: Acknowledgements a room's process waits for at most (older ones: the frame was replaced).
 MAX_ACKS = 4096
+#: Messages kept for a room process being (re)started at most (beyond: dropped).
+MAX_PENDING = 10_000
 _HEADER = 4
 
 
@@ -184,6 +190,9 @@ class _Child:
         self.send("ready", os.getpid(), room.object_info, room.tick_count)
         self.sim = asyncio.create_task(self._sim_loop())
         reporter = asyncio.create_task(self._report_loop())
+        if self.snapshot_dir is not None:
+            checkpoints = asyncio.create_task(self._checkpoint_loop())
+            self.sim.add_done_callback(lambda _t: checkpoints.cancel())
         try:
             while True:
                 try:
@@ -311,6 +320,21 @@ class _Child:
             if self.prefetcher is not None:
                 self.prefetcher.after_tick()
 
+    async def _checkpoint_loop(self) -> None:
+        """Send the front the room's object state every :data:`CHECKPOINT_S` (copies taken
+        between ticks, :func:`server.snapshots.capture`)."""
+        from haptic_collab.server import snapshots
+
+        room = self.room
+        assert room is not None
+        while True:
+            await asyncio.sleep(CHECKPOINT_S)
+            try:
+                self.send("checkpoint", snapshots.capture(self.spec.name, room))
+            except Exception:  # noqa: BLE001 - no checkpoint: a restart starts from rest
+                log.exception("room %r: its state could not be taken", self.spec.name)
+                return
+
     async def _report_loop(self) -> None:
         room = self.room
         assert room is not None
@@ -425,6 +449,11 @@ class RoomProxy:
         self._conns: set[str] = set()
         self._names: dict[str, str] = {}
         self._drained: asyncio.Future[str | None] | None = None
+        #: The room's latest checkpoint (:data:`CHECKPOINT_S`; a server.snapshots.Snapshot).
+        self._checkpoint: Any = None
+        #: Messages for a process being (re)started; and which start this is.
+        self._pending: list[bytes] = []
+        self._generation = 0
         self._base: dict[str, tuple[list[int], float]] = {}
         self._last: dict[str, tuple[list[int], float]] = {}
         self._base_clamps = 0
@@ -432,8 +461,17 @@ class RoomProxy:
 
     # ------------------------------------------------------------------ Room's calls
     def _send(self, *msg: Any) -> None:
+        """Write a message to the process; while it is being (re)started, keep it for then."""
         if self._writer is not None and not self._writer.is_closing():
             self._writer.write(_pack(msg))
+        elif not self.closing and len(self._pending) < MAX_PENDING:
+            self._pending.append(_pack(msg))
+
+    def _ack(self, ack: int, generation: int) -> None:
+        """A frame with ``on_sent`` was written: tell the process that made it (not a later
+        one, whose acknowledgement numbers start again)."""
+        if generation == self._generation:
+            self._send("sent", ack)
 
     def connect(self, conn_id: str, now_s: float, address: str = "local") -> list[Outgoing]:
         """Register a connection with the room's process (its replies come as ``out``)."""
@@ -488,6 +526,15 @@ class RoomProxy:
         code (None: it closed its end without exiting, and was killed)."""
         loop = asyncio.get_running_loop()
         self.ready = loop.create_future()
+        if self._checkpoint is not None and self.snapshot_dir is not None:
+            # started again after a death: from the last checkpoint, as from a drain's snapshot
+            from haptic_collab.server import snapshots
+
+            snap, self._checkpoint = self._checkpoint, None
+            try:
+                await asyncio.to_thread(snapshots.write, self.snapshot_dir, snap)
+            except OSError:
+                log.exception("room %r: its checkpoint could not be written", self.name)
         ctx = multiprocessing.get_context("spawn")
         ours, theirs = ctx.Pipe(duplex=True)
         self._process = ctx.Process(
@@ -498,7 +545,14 @@ class RoomProxy:
         )
         self._process.start()
         theirs.close()
-        reader, self._writer = await _streams(ours)
+        reader, writer = await _streams(ours)
+        self._generation += 1
+        for data in self._pending:  # connections made while it was being started
+            writer.write(data)
+        self._pending.clear()
+        if self.closing:  # stopped while it was being started
+            writer.write(_pack(("stop",)))
+        self._writer = writer
         try:
             while True:
                 try:
@@ -555,7 +609,7 @@ class RoomProxy:
         if kind == "out":
             outs = []
             for conn_id, data, stream, close, close_code, ack in msg[1]:
-                on_sent = (lambda n=ack: self._send("sent", n)) if ack else None
+                on_sent = (lambda n=ack, g=self._generation: self._ack(n, g)) if ack else None
                 outs.append(Outgoing(conn_id, data, stream, close, close_code, on_sent))
             events.dispatch(outs)
         elif kind == "report":
@@ -577,6 +631,8 @@ class RoomProxy:
             if self.ready is not None and not self.ready.done():
                 self.ready.set_exception(RuntimeError(f"room {self.name!r}: {msg[1]}"))
                 self.ready.exception()
+        elif kind == "checkpoint":
+            self._checkpoint = msg[1]
         elif kind == "drained":
             if self._drained is not None and not self._drained.done():
                 self._drained.set_result(msg[1])

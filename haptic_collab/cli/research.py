@@ -184,6 +184,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             )
         except (ValueError, RuntimeError) as exc:
             raise CliError(_why(exc)) from None
+    if args.what == "rooms":  # its own options: python -m haptic_collab.bench.rooms --help
+        from haptic_collab.bench.rooms import parse as rooms_options
+        from haptic_collab.bench.rooms import run as bench_rooms
+
+        try:
+            results["rooms"] = bench_rooms(rooms_options([]))
+        except RuntimeError as exc:
+            raise CliError(_why(exc)) from None
     payload = results if args.what == "all" else results[args.what]
     text = json.dumps(payload, indent=2)
     if args.out:
@@ -198,9 +206,10 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "bench",
         help="measure speed (JSON): server tick cost, servo loop timing, gain lookups; "
         "'fidelity': every rendering scheme side by side; 'load': users and viewers against a "
-        "server process",
+        "server process; 'rooms': a FEM room beside balloon rooms, one process vs a process per "
+        "room",
     )
-    p.add_argument("what", choices=["server", "servo", "gains", "fidelity", "load", "all"])
+    p.add_argument("what", choices=["server", "servo", "gains", "fidelity", "load", "rooms", "all"])
     p.add_argument("--json", action="store_true", help="print JSON (always JSON; kept for scripts)")
     p.add_argument("--out", default=None, help="also write the JSON here")
     p.add_argument(

@@ -162,11 +162,15 @@ async def test_a_user_of_a_room_in_its_own_process_feels_and_moves_the_object() 
         await user.leave()
 
 
-async def test_a_killed_room_process_tells_its_users_restarts_and_spares_the_other_room() -> None:
-    async with server() as app:
+async def test_a_killed_room_process_tells_its_users_restarts_and_spares_the_other_room(
+    tmp_path,
+) -> None:
+    async with server(tmp_path) as app:
         victim = await User.join(app.port, "ada")
         other = await User.join(app.port, "bob", "/rooms/b/ws")
         await until(lambda: len(victim.patches()) >= 2 and len(other.patches()) >= 2)
+        # long enough for checkpoints (every 2 s) well past the start
+        await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["tick"] >= 100)
         pid = room_pid(app, DEFAULT_ROOM)
         before = len(other.patches())
         os.kill(pid, signal.SIGKILL)
@@ -179,6 +183,9 @@ async def test_a_killed_room_process_tells_its_users_restarts_and_spares_the_oth
         await until(lambda: len(again.patches()) >= 2)
         assert room_pid(app, DEFAULT_ROOM) != pid
         assert app.status()["rooms"][DEFAULT_ROOM]["process"]["restarts"] == 1
+        # it started again from its last checkpoint (a room from rest starts at tick 0)
+        assert (tmp_path / f"default.npz{snapshots.LOADED}").exists()
+        assert app.status()["rooms"][DEFAULT_ROOM]["tick"] >= 60
         # the other room's user was never interrupted
         assert len(other.patches()) > before
         assert other.errors() == [] and other.ws.close_code is None
