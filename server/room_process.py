@@ -600,6 +600,7 @@ class RoomProxy:
             proc.kill()
             await asyncio.to_thread(proc.join, 1.0)
         code: int | None = proc.exitcode
+        self._process = None
         with contextlib.suppress(ValueError):
             proc.close()
         return code

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
@@ -265,3 +266,39 @@ def test_sigterm_saves_every_room_from_its_process_and_leaves_no_process(tmp_pat
     assert np.max(np.abs(snap.vertices - rest)) > 1e-3  # saved while pressed, by its process
     with pytest.raises(ProcessLookupError):  # the room's process is gone with the server
         os.kill(room_pid_, 0)
+
+
+async def test_status_metrics_and_agones_reports_read_the_room_processes() -> None:
+    async with server() as app:
+        user = await User.join(app.port, "ada", "/rooms/b/ws")
+        await until(lambda: len(user.patches()) >= 5)
+        await until(lambda: app.status()["rooms"]["b"]["users"] == 1, 10.0)
+
+        def metrics() -> dict[tuple[str, str], float]:
+            url = f"http://127.0.0.1:{app.port}/metrics"
+            with urllib.request.urlopen(url, timeout=10) as res:
+                text = res.read().decode()
+            out = {}
+            for fam in text_string_to_metric_families(text):
+                for s in fam.samples:
+                    if "room" in s.labels and "le" not in s.labels:
+                        out[(s.name, s.labels["room"])] = s.value
+            return out
+
+        seen = await asyncio.to_thread(metrics)
+        assert seen[("haptic_room_users", "b")] == 1
+        assert seen[("haptic_room_ticks_total", "b")] > 0
+        assert seen[("haptic_room_tick_lateness_seconds_count", "b")] > 0
+        assert seen[("haptic_room_patches_sent_total", "b")] >= 5
+        reports = {r.name: r for r in app.room_reports()}
+        assert reports["b"].alive and reports["b"].users == 1 and reports[DEFAULT_ROOM].alive
+        # while a room's process is dead its report says so (no Health ping); back after
+        os.kill(room_pid(app, "b"), signal.SIGKILL)
+        await until(lambda: not {r.name: r for r in app.room_reports()}["b"].alive, 10.0)
+        assert {r.name: r for r in app.room_reports()}[DEFAULT_ROOM].alive
+        await until(lambda: {r.name: r for r in app.room_reports()}["b"].alive, 60.0)
+        after = await asyncio.to_thread(metrics)  # the histograms go on across the restart
+        count = "haptic_room_tick_lateness_seconds_count", "b"
+        assert after[count] >= seen[count]
+        assert after[("haptic_room_patches_sent_total", "b")] >= 5
+        await user.leave()
