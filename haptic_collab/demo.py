@@ -498,7 +498,16 @@ class _Narrator:
         fb = b["force_n"] if b is not None else 0.0
         if t < tl.contact_s and b_on:
             self.b_rest_n = fb
-        b_rests = f"B rests on the side with {fb:.2f} N" if b_on else "B moves onto the side"
+        b_touches = b is not None and b["in_contact"] > 0
+        b_rests = (
+            f"B rests on the side with {fb:.2f} N"
+            if b_on
+            else "B touches the side, no force yet"
+            if b_touches
+            else "B is off the side"
+            if self.b_rest_n is not None
+            else "B moves onto the side"
+        )
         rest = f" ({self.b_rest_n:.2f} N at rest)" if self.b_rest_n is not None else ""
         fa = a["force_n"]
         if t < tl.delay_s:

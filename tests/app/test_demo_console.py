@@ -66,6 +66,9 @@ def test_the_phase_says_waiting_to_join_until_both_users_have_joined() -> None:
     which, words = n.phase(1, row(TL.hold_end_s + 3.0, 0.0, False), row(19.0, 0.29))
     assert which == "after" and "the run ends in" in words
     assert n.phase(1, row(19.8, 0.0, False), None)[0] == "ending"
+    # B in contact with its force ramped down (a loaded machine), or off the side after resting
+    assert "B touches the side, no force yet" in n.phase(2, row(1.0, 0.0, False), row(2, 0.0))[1]
+    assert "B is off the side" in n.phase(2, row(1.0, 0.0, False), row(2, 0.0, False))[1]
 
 
 def test_the_latest_row_of_a_telemetry_file_being_written(tmp_path: Path) -> None:
