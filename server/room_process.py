@@ -2,12 +2,13 @@
 
 Why: every room of a server otherwise steps on the one event loop, so a FEM solid's 20-50 ms tick
 delays a balloon room's tick and every socket's writes. With room processes each room's
-:class:`server.room.Room` and :class:`server.world.World` live in a child process (spawned, one
-BLAS thread) with their own event loop and tick schedule, and the front process
-(:class:`server.app.ServerApp`) keeps the sockets: it accepts connections, checks origin and
-tokens' routing and the per-address budgets across rooms (it alone sees the client's real
-address, which it hands to the room with each connection), applies latency injection and
-relays every connection's frames, text and binary, to and from its room's process.
+:class:`server.room.Room` and :class:`server.world.World` live in a child process with their own
+event loop and tick schedule (forked from a fork server that has imported the server's modules,
+:func:`_context`; one BLAS thread), and the front process (:class:`server.app.ServerApp`) keeps
+the sockets: it accepts connections, checks origins, routes by URL, keeps the per-address
+budgets across rooms (it alone sees the client's real address, which it hands to the room with
+each connection), applies latency injection and relays every connection's frames, text and
+binary, to and from its room's process. The room's process checks tokens and its own budgets.
 
 The link between the two is one ``multiprocessing.Pipe`` (a unix socketpair) per room, read and
 written with asyncio streams on both sides; each message is a 4-byte big-endian length and a
@@ -38,7 +39,7 @@ from __future__ import annotations
 import os
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # before numpy loads in a spawned child (cli.blas_threads)
+    os.environ.setdefault(_var, "1")  # before numpy loads in a room's process (cli.blas_threads)
 
 import asyncio  # noqa: E402
 import contextlib  # noqa: E402
@@ -360,6 +361,23 @@ class _Child:
 
 
 # ---------------------------------------------------------------------- the front's side
+#: Modules the fork server imports once, so that a room's process starts without importing them
+#: (seconds on a busy 2-core machine): a room restarted after its process died is back sooner.
+PRELOAD = ("haptic_collab.server.main", "haptic_collab.server.room_process")
+
+
+def _context() -> Any:
+    """How room processes start: forked from a fork server that has imported :data:`PRELOAD`
+    (a clean process, started on first use; never a fork of the front with its sockets and
+    threads), or spawned where there is no fork server."""
+    try:
+        ctx = multiprocessing.get_context("forkserver")
+    except ValueError:
+        return multiprocessing.get_context("spawn")
+    ctx.set_forkserver_preload(list(PRELOAD))
+    return ctx
+
+
 class _Stats:
     """The room's tick figures as last reported (what :class:`server.room.TickStats` gives)."""
 
@@ -535,7 +553,7 @@ class RoomProxy:
                 await asyncio.to_thread(snapshots.write, self.snapshot_dir, snap)
             except OSError:
                 log.exception("room %r: its checkpoint could not be written", self.name)
-        ctx = multiprocessing.get_context("spawn")
+        ctx = _context()
         ours, theirs = ctx.Pipe(duplex=True)
         self._process = ctx.Process(
             target=room_main,

@@ -168,7 +168,21 @@ async def _rejoin_s(port: int, room: str, since: float) -> float:
         await asyncio.sleep(0.05)
 
 
-async def _session(port: int, rooms: list[str], opts: argparse.Namespace, kill: bool) -> dict:
+def _rss_mb(pid: int) -> float | None:
+    """Resident memory of a process [MB] (``VmRSS``; None when it cannot be read)."""
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return round(int(line.split()[1]) / 1024.0, 1)
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+async def _session(
+    port: int, rooms: list[str], opts: argparse.Namespace, kill: bool, server_pid: int
+) -> dict:
     users = [_User(r) for r in rooms for _ in range(opts.users)]
     stop = asyncio.Event()
     tasks = [
@@ -188,8 +202,13 @@ async def _session(port: int, rooms: list[str], opts: argparse.Namespace, kill: 
             }
             for r in rooms
         }
+        status = json.loads(await asyncio.to_thread(_get, port, "/status"))
+        out["rss_mb"] = {"server": _rss_mb(server_pid)}
+        for r in rooms:
+            process = status["rooms"][r].get("process")
+            if process is not None and process.get("pid") is not None:
+                out["rss_mb"][r] = _rss_mb(int(process["pid"]))
         if kill:
-            status = json.loads(await asyncio.to_thread(_get, port, "/status"))
             victim = rooms[1]
             pid = int(status["rooms"][victim]["process"]["pid"])
             t_kill = time.monotonic()
@@ -251,7 +270,9 @@ def run(opts: argparse.Namespace) -> dict[str, Any]:
         for mode, extra in (("one_process", []), ("room_processes", ["--room-processes"])):
             print(f"[bench rooms] run {rep + 1}: {mode}", file=sys.stderr, flush=True)
             with ServerProcess("--config", str(cfg), *extra) as server:
-                run_[mode] = asyncio.run(_session(server.port, rooms, opts, bool(extra)))
+                run_[mode] = asyncio.run(
+                    _session(server.port, rooms, opts, bool(extra), server.proc.pid)
+                )
                 run_[mode]["server_warnings"] = len(server.warnings())
         runs.append(run_)
     result["load_avg_end"] = os.getloadavg()
