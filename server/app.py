@@ -16,6 +16,12 @@ a name no room has and no template allows 404, a full server 503. The routing of
 rooms is all in :meth:`ServerApp._process_request` and :meth:`ServerApp._handler`, and a room is
 reached only through its slot, so that a room can later run in a process of its own.
 
+With ``--room-processes`` a room is a :class:`server.room_process.RoomProxy`: its ``Room`` and
+``World`` tick in a process of their own, this layer relays its connections' frames to it and
+supervises it (:meth:`ServerApp._supervise`: a process that dies is reported to that room's
+clients as ``room_restarting`` with close code 1012 and started again); the across-room address
+budgets, origins and latency injection stay here.
+
 Across rooms, one source address shares one budget (:data:`ADDRESS_LIMITS`, the router's
 :attr:`ServerApp.flood`): its connections and its frames and bytes in every room together, at
 most :data:`ADDRESS_ROOMS_FACTOR` times what one room allows it, so an address cannot multiply

@@ -32,7 +32,13 @@ from websockets.exceptions import ConnectionClosed
 
 from haptic_collab.server import snapshots
 from haptic_collab.server.app import DEFAULT_ROOM, ServerApp
-from haptic_collab.server.main import ServerOptions, build_world, room_proxy
+from haptic_collab.server.main import (
+    ProcessRoomTemplates,
+    RoomTemplates,
+    ServerOptions,
+    build_world,
+    room_proxy,
+)
 from haptic_collab.shared.protocol import PROTOCOL_VERSION, LinkConditions
 
 SIM_RATE = 20.0
@@ -302,3 +308,45 @@ async def test_status_metrics_and_agones_reports_read_the_room_processes() -> No
         assert after[count] >= seen[count]
         assert after[("haptic_room_patches_sent_total", "b")] >= 5
         await user.leave()
+
+
+async def test_a_room_made_on_demand_runs_in_its_own_process_and_closes_when_idle() -> None:
+    opts = ServerOptions(
+        sim_rate_hz=SIM_RATE,
+        subdivisions=2,
+        room_processes=True,
+        room_templates={"class": {"prefix": "class-", "subdivisions": 1}},
+    )
+    link = LinkConditions()
+    templates = ProcessRoomTemplates(RoomTemplates(opts, opts.room_templates, link, None, None))
+    app = ServerApp(
+        room_proxy(opts, DEFAULT_ROOM, {}, link, None, None),
+        "127.0.0.1",
+        0,
+        room_maker=templates,
+        room_idle_s=1.0,
+    )
+    await app.start()
+    try:
+        user = await User.join(app.port, "ada", "/rooms/class-3/ws")
+        assert user.welcome is not None, user.errors()
+        assert user.welcome["object"]["n_vertices"] == 42  # the template's: subdivisions 1
+        await until(lambda: len(user.patches()) >= 2)
+        pid = room_pid(app, "class-3")
+        assert pid != room_pid(app, DEFAULT_ROOM)
+        await user.leave()
+        await until(lambda: "class-3" not in app.status()["rooms"], 30.0)
+        await until(lambda: not _alive(pid), 10.0)  # its process ended with it
+    finally:
+        await app.stop()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with contextlib.suppress(OSError):  # a zombie not yet reaped by its parent is gone too
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    return True
