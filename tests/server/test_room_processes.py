@@ -39,6 +39,7 @@ from haptic_collab.server.main import (
     build_world,
     room_proxy,
 )
+from haptic_collab.server.viewer_decoder import ViewerStreamDecoder
 from haptic_collab.shared.protocol import PROTOCOL_VERSION, LinkConditions
 
 SIM_RATE = 20.0
@@ -350,3 +351,35 @@ def _alive(pid: int) -> bool:
         with open(f"/proc/{pid}/stat", encoding="ascii") as f:
             return f.read().split(")")[-1].split()[0] != "Z"
     return True
+
+
+async def test_a_viewer_of_a_room_in_its_own_process_sees_the_press_and_the_release() -> None:
+    """The viewers' binary surface stream crosses the front too, with its acknowledgements."""
+    async with server() as app:
+        ws = await connect(f"ws://127.0.0.1:{app.port}/rooms/b/ws")
+        decoder = ViewerStreamDecoder()
+        sizes: list[int] = []
+        hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": "viewer", "name": "v"}
+        await ws.send(json.dumps(hello))
+
+        async def watch() -> None:
+            with contextlib.suppress(ConnectionClosed):
+                async for frame in ws:
+                    if isinstance(frame, bytes):
+                        decoder.feed(frame)
+                        sizes.append(len(frame))
+
+        watcher = asyncio.create_task(watch())
+        user = await User.join(app.port, "ada", "/rooms/b/ws")
+        await until(lambda: decoder.frames >= 3 and decoder.tick > 0)
+        assert float(np.max(np.abs(decoder.w))) < 1e-4  # at rest
+        user.depth_m = 0.006
+        await until(lambda: float(np.min(decoder.w)) < -1e-3)  # the press, seen
+        user.depth_m = -0.005
+        await until(lambda: float(np.max(np.abs(decoder.w))) < 1e-4)  # and the release
+        # at rest again, and the server knows what the viewer holds (the front tells the room's
+        # process which frames were written): its frames shrink to the bare 20-byte header
+        await until(lambda: len(sizes) > 5 and set(sizes[-5:]) == {20}, 30.0)
+        await user.leave()
+        await ws.close()
+        watcher.cancel()
