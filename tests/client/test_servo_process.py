@@ -128,13 +128,20 @@ def test_a_killed_servo_process_is_noticed_at_once_and_its_force_ramps_to_zero()
         assert sp.died_at_s - t_kill < 0.1  # noticed within 0.1 s
         assert deaths and "SIGKILL" in deaths[0]
         # what the link reports to the server: the last force, ramping to zero, never a jump
-        seen = []
+        # (read times bracket each value: on a busy machine the reads are irregular, so the ramp
+        # is judged by its slope over the time between them, not by the step between two reads)
+        reads: list[tuple[float, float, float]] = []
         while (time.perf_counter() - origin) - sp.died_at_s < RAMP_S + 0.03:
-            seen.append(sp.latest().force_n[2])  # type: ignore[union-attr]
+            t0 = time.perf_counter() - origin
+            f = sp.latest().force_n[2]  # type: ignore[union-attr]
+            reads.append((t0, time.perf_counter() - origin, f))
             time.sleep(0.002)
-        assert seen[0] > 0.5 * f0 and seen[-1] == 0.0
-        assert np.all(np.diff(seen) <= 1e-12)
-        assert np.abs(np.diff(seen)).max() < 0.2 * f0
+        seen = [f for _, _, f in reads]
+        assert seen[-1] == 0.0 and np.all(np.diff(seen) <= 1e-12)
+        slope = 1.2 * f0 / RAMP_S  # [N/s]: the ramp's, with the press's own wobble
+        assert seen[0] >= 0.8 * f0 - slope * (reads[0][1] - sp.died_at_s)
+        for (a0, _, fa), (_, b1, fb) in zip(reads[:-1], reads[1:], strict=True):
+            assert fa - fb <= slope * (b1 - a0) + 1e-9  # a ramp, never a jump
         assert "SIGKILL" in (sp.status().error or "")
     finally:
         sp.stop()

@@ -202,8 +202,9 @@ def test_link_loss_ramps_force_to_zero_and_the_client_rejoins(tmp_path):
     server = server_process(tmp_path / "server1.log", 0, *SERVER_ARGS, "--subdivisions", "3")
     try:
         proc = start_client(
-            tmp_path, "A", server.url, "--device", "sim:press", "--duration", "12",
-            "--trajectory", "delay_s=0.5,approach_s=1,press_s=1,hold_s=20",
+            # long enough for the link's backoff (up to 5 s) after a slow restart on a busy machine
+            tmp_path, "A", server.url, "--device", "sim:press", "--duration", "20",
+            "--trajectory", "delay_s=0.5,approach_s=1,press_s=1,hold_s=30",
         )  # fmt: skip
         csv = tmp_path / "A.csv"
         # A is pressing: the recording shows a firm force (read only complete lines)
