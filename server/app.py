@@ -512,7 +512,9 @@ class ServerApp:
         for slot in slots:
             if isinstance(slot.room, RoomProxy):
                 while slot.room.ready is None:  # its supervisor has not spawned it yet
-                    await asyncio.sleep(0)
+                    if slot.task is None or slot.task.done():
+                        raise RuntimeError(f"room {slot.name!r}: its process was not started")
+                    await asyncio.sleep(0.01)
                 waits.append(slot.room.ready)
         if not waits:
             return
@@ -1281,6 +1283,9 @@ class ServerApp:
                         self.figures.pop(slot.name, None)
                         await proxy.close()
                 code = await running
+            except Exception:  # noqa: BLE001 - starting it failed (no process, no pipe): retry
+                log.exception("room %r: its process could not be run", slot.name)
+                code = None
             finally:
                 if not running.done():  # cancelled (stop): the process is killed
                     proxy.kill()

@@ -553,17 +553,27 @@ class RoomProxy:
                 await asyncio.to_thread(snapshots.write, self.snapshot_dir, snap)
             except OSError:
                 log.exception("room %r: its checkpoint could not be written", self.name)
-        ctx = _context()
-        ours, theirs = ctx.Pipe(duplex=True)
-        self._process = ctx.Process(
-            target=room_main,
-            args=(self.spec, theirs, self.snapshot_dir),
-            name=f"haptic room {self.name}",
-            daemon=True,
-        )
-        self._process.start()
-        theirs.close()
-        reader, writer = await _streams(ours)
+        try:
+            ctx = _context()
+            ours, theirs = ctx.Pipe(duplex=True)
+            self._process = ctx.Process(
+                target=room_main,
+                args=(self.spec, theirs, self.snapshot_dir),
+                name=f"haptic room {self.name}",
+                daemon=True,
+            )
+            self._process.start()
+            theirs.close()
+            reader, writer = await _streams(ours)
+        except BaseException as exc:  # no process: whoever waits for it to start hears so
+            if not self.ready.done():
+                self.ready.set_exception(RuntimeError(f"room {self.name!r}: {exc!r}"))
+                self.ready.exception()
+            if self._process is not None and self._process.exitcode is None:
+                with contextlib.suppress(Exception):
+                    self._process.kill()
+            self._process = None
+            raise
         self._generation += 1
         for data in self._pending:  # connections made while it was being started
             writer.write(data)

@@ -383,3 +383,15 @@ async def test_a_viewer_of_a_room_in_its_own_process_sees_the_press_and_the_rele
         await user.leave()
         await ws.close()
         watcher.cancel()
+
+
+async def test_a_room_whose_process_cannot_build_it_stops_the_start_and_says_why() -> None:
+    opts = ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2, room_processes=True)
+    link = LinkConditions()
+    bad = room_proxy(opts, "b", {"mesh": "/nonexistent/mesh.obj"}, link, None, None)
+    app = ServerApp(
+        room_proxy(opts, DEFAULT_ROOM, {}, link, None, None), "127.0.0.1", 0, rooms={"b": bad}
+    )
+    with pytest.raises(RuntimeError, match="room 'b'"):
+        await app.start()
+    assert not bad.running and not app.room.running  # every room's process was stopped
