@@ -21,6 +21,7 @@ import sys
 import time
 import urllib.request
 from collections.abc import AsyncIterator, Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +54,7 @@ async def until(predicate: Callable[[], object], timeout_s: float = 60.0) -> Non
 
 
 @contextlib.asynccontextmanager
-async def server(snapshot_dir: Path | None = None) -> AsyncIterator[ServerApp]:
+async def server(snapshot_dir: Path | None = None, **kw: Any) -> AsyncIterator[ServerApp]:
     """A server whose default room and room ``b`` each run in a process of their own."""
     opts = ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2, room_processes=True)
     link = LinkConditions()
@@ -63,6 +64,7 @@ async def server(snapshot_dir: Path | None = None) -> AsyncIterator[ServerApp]:
         0,
         rooms={"b": room_proxy(opts, "b", {}, link, None, None)},
         snapshot_dir=snapshot_dir,
+        **kw,
     )
     await app.start()
     try:
@@ -395,3 +397,46 @@ async def test_a_room_whose_process_cannot_build_it_stops_the_start_and_says_why
     with pytest.raises(RuntimeError, match="room 'b'"):
         await app.start()
     assert not bad.running and not app.room.running  # every room's process was stopped
+
+
+class CountingPool(ThreadPoolExecutor):
+    """The front's design worker, counting the jobs it was given."""
+
+    def __init__(self) -> None:
+        super().__init__(max_workers=1)
+        self.jobs = 0
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Any:
+        self.jobs += 1
+        return super().submit(fn, *args, **kwargs)
+
+
+async def test_gains_for_a_room_in_its_own_process_are_designed_by_the_front() -> None:
+    pool = CountingPool()
+    try:
+        async with server(gain_executor=pool) as app:
+            ws = await connect(f"ws://127.0.0.1:{app.port}/ws")
+            user = User(ws)
+            device = {  # not a shipped table's device: its gains must be designed
+                "profile": "odd",
+                "max_force_n": 7.9,
+                "max_stiffness_n_per_m": 730.0,
+                "max_damping_n_s_per_m": 7.0,
+            }
+            hello = {
+                "type": "hello",
+                "protocol": PROTOCOL_VERSION,
+                "role": "user",
+                "name": "ada",
+                "local_model": "pi",
+                "device": device,
+            }
+            await ws.send(json.dumps(hello))
+            await until(lambda: user.welcome is not None)
+            user.depth_m = 0.004
+            user.hand = asyncio.create_task(user._hand())
+            await until(lambda: any(p.get("gains") for p in user.patches()), 120.0)
+            assert pool.jobs >= 1  # the room's process asked, the front's worker answered
+            await user.leave()
+    finally:
+        pool.shutdown(wait=True)
