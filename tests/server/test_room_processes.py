@@ -92,8 +92,8 @@ class User:
                     self.texts.append(json.loads(frame))
 
     @classmethod
-    async def join(cls, port: int, name: str, path: str = "/ws") -> User:
-        ws = await connect(f"ws://127.0.0.1:{port}{path}")
+    async def join(cls, port: int, name: str, path: str = "/ws", source: str = "127.0.0.1") -> User:
+        ws = await connect(f"ws://127.0.0.1:{port}{path}", local_addr=(source, 0))
         user = cls(ws)
         hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": "user", "name": name}
         await ws.send(json.dumps(hello))
@@ -440,3 +440,19 @@ async def test_gains_for_a_room_in_its_own_process_are_designed_by_the_front() -
             await user.leave()
     finally:
         pool.shutdown(wait=True)
+
+
+async def test_a_room_in_its_own_process_budgets_each_clients_real_address() -> None:
+    """The room's per-address budgets see each client's own address through the front: eight
+    connections waiting for ``hello`` from one address fill its share, not another's."""
+    async with server() as app:
+        url = f"ws://127.0.0.1:{app.port}/rooms/b/ws"
+        waiting = [await connect(url, local_addr=("127.0.0.1", 0)) for _ in range(8)]
+        ninth = User(await connect(url, local_addr=("127.0.0.1", 0)))
+        await asyncio.wait_for(ninth.reader, 30.0)
+        assert [e["code"] for e in ninth.errors()] == ["too_many_pending"]
+        other = await User.join(app.port, "bob", "/rooms/b/ws", source="127.0.0.2")
+        assert other.welcome is not None, other.errors()
+        for ws in waiting:
+            await ws.close()
+        await other.leave()
