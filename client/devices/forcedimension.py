@@ -65,6 +65,7 @@ from haptic_collab.client.devices.backends import (
     one_line,
 )
 from haptic_collab.client.devices.base import Device, DeviceLimits, Vec3
+from haptic_collab.shared.extras import install_hint
 
 __all__ = [
     "BACKEND",
@@ -94,7 +95,7 @@ _SPEC_HELP = (
     "metre), e.g. forcedimension:0,scale=2 or forcedimension:scale=2"
 )
 
-_INSTALL = "pip install 'haptic-collab[forcedimension]'"
+_INSTALL = install_hint("forcedimension")
 _SDK = "install the Force Dimension SDK and set FDSDK to its folder"
 _GUIDE = "(docs/device-forcedimension.md)"
 

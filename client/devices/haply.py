@@ -1,7 +1,7 @@
 """Haply Inverse3 through Haply's HaplyHardwareAPI binding, on the device's own serial port.
 
 ``haptic client --device haply:/dev/ttyACM0`` (docs/device-haply.md). The binding
-(``pip install 'haptic-collab[haply]'``) is imported only when a device is opened or the backend
+(the ``haply`` extra, :func:`shared.extras.install_hint`) is imported only when a device is opened or the backend
 is checked; it talks to the Inverse3 directly over its USB serial port (no Haply service). The
 spec's options and the Inverse3's assumed limits are :mod:`client.devices.haply_spec`'s.
 
@@ -62,6 +62,7 @@ from haptic_collab.client.devices.haply_spec import (
     Inverse3Specs,
     parse_haply_args,
 )
+from haptic_collab.shared.extras import install_hint
 
 __all__ = [
     "BACKEND",
@@ -77,7 +78,7 @@ __all__ = [
 #: it and never ship it).
 BINDING = "HaplyHardwareAPI"
 #: What to run when the binding is missing.
-INSTALL_HINT = "pip install 'haptic-collab[haply]'"
+INSTALL_HINT = install_hint("haply")
 #: Longest wait [s] for the wake-up reply and the first state when the device is opened.
 DEFAULT_OPEN_TIMEOUT_S = 0.5
 #: Wake-up attempts when opening (the first may meet bytes left from an earlier session).

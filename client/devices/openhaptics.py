@@ -10,7 +10,7 @@ Configuration, default ``Default Device``), and optionally ``,scale=S`` after it
 (``openhaptics:Default Device,scale=2`` or ``openhaptics:scale=2``): one metre of stylus motion
 is ``S`` metres in the world. docs/device-openhaptics.md has the details.
 
-The vendor binding ``pyOpenHaptics`` (``pip install 'haptic-collab[openhaptics]'``) is imported
+The vendor binding ``pyOpenHaptics`` (the ``openhaptics`` extra, :func:`shared.extras.install_hint`) is imported
 only when the backend is checked, listed or a device opened: it loads ``libHD.so``, which only
 3D Systems' OpenHaptics driver provides, and fails with ``OSError`` (not ``ImportError``) without
 it.
@@ -83,6 +83,7 @@ from haptic_collab.client.devices.openhaptics_limits import (
     world_force_to_device,
     world_limits,
 )
+from haptic_collab.shared.extras import install_hint
 
 __all__ = [
     "BACKEND",
@@ -98,7 +99,7 @@ DEFAULT_DEVICE_NAME = "Default Device"
 BINDING = "pyOpenHaptics"
 #: What to install, for :meth:`OpenHapticsBackend.available`'s message.
 INSTALL_HINT = (
-    "pip install 'haptic-collab[openhaptics]' and install the OpenHaptics driver from 3D Systems "
+    f"{install_hint('openhaptics')} and install the OpenHaptics driver from 3D Systems "
     "(OpenHaptics and the Touch device driver, which provide libHD.so)"
 )
 #: How long [s] :meth:`OpenHapticsDevice.open` waits for the scheduler's first call of our callback.

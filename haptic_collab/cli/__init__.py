@@ -33,6 +33,7 @@ from haptic_collab.cli.run import (
     _add_token,
     _configure_logging,
 )
+from haptic_collab.shared.extras import install_hint
 
 __all__ = ["build_parser", "main"]
 
@@ -97,8 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if exc.name is None or exc.name.split(".")[0] != "matplotlib":
             raise
         print(
-            f"haptic {args.command}: error: the figures need matplotlib: "
-            "pip install 'haptic-collab[plots]'",
+            f"haptic {args.command}: error: the figures need matplotlib: {install_hint('plots')}",
             file=sys.stderr,
         )
         return 2

@@ -12,6 +12,8 @@ import argparse
 import math
 from typing import Any, NoReturn
 
+from haptic_collab.shared.extras import install_hint
+
 
 class CliError(Exception):
     """Bad input: printed as one line on stderr, exit status 2."""
@@ -133,4 +135,4 @@ def _need_matplotlib() -> None:
     import importlib.util
 
     if importlib.util.find_spec("matplotlib") is None:
-        raise CliError("--plot needs matplotlib: pip install 'haptic-collab[plots]'")
+        raise CliError(f"--plot needs matplotlib: {install_hint('plots')}")

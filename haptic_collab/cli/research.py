@@ -20,6 +20,7 @@ from haptic_collab.cli.args import (
     _positive,
     _why,
 )
+from haptic_collab.shared.extras import install_hint
 from haptic_collab.shared.gains.policy import HOLD_BACK_S as REST_HOLD_BACK_S
 
 
@@ -55,9 +56,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     try:
         plot_recording(files, out)
     except ImportError as exc:
-        raise CliError(
-            f"plotting needs matplotlib ({exc}): pip install 'haptic-collab[plots]'"
-        ) from None
+        raise CliError(f"plotting needs matplotlib ({exc}): {install_hint('plots')}") from None
     except (ValueError, OSError) as exc:
         raise CliError(_why(exc)) from None
     print(f"wrote {out}")

@@ -5,7 +5,7 @@ surface mesh's ``n`` vertices, unchanged and in order, so the surface, its patch
 viewer's indices stay as they are. TetGen builds them (switches ``p`` a piecewise linear
 complex, ``Y`` no Steiner point on the surface, ``q`` a quality bound, ``Q`` quiet).
 
-Licence: TetGen is AGPL. It is an optional extra (``pip install 'haptic-collab[fem]'``) and runs
+Licence: TetGen is AGPL. It is an optional extra (``fem``: :func:`shared.extras.install_hint`) and runs
 as a separate process (:mod:`server.objects.tetgen_step`), never imported by the server; its
 output, a plain array file, is cached per surface under ``cache_dir`` (default
 ``$XDG_CACHE_HOME/haptic-collab/volumes``, or ``~/.cache/...``). A cached volume mesh is used
@@ -30,6 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from haptic_collab.server.objects.mesh import MeshError
+from haptic_collab.shared.extras import install_hint
 from haptic_collab.shared.types import FloatArray, IntArray
 
 #: TetGen switches: PLC input, no Steiner points on the surface, radius-edge ratio <= 1.5 and
@@ -174,8 +175,8 @@ def volume_mesh(
             if "not installed" in why:
                 raise MeshError(
                     "the FEM object needs a volume mesh and TetGen is not installed: "
-                    "pip install 'haptic-collab[fem]' (TetGen is AGPL and runs as a separate "
-                    "step; docs/fem.md)"
+                    f"{install_hint('fem')}; TetGen is AGPL and runs as a separate "
+                    "step (docs/fem.md)"
                 )
             raise MeshError(
                 f"the surface could not be tetrahedralised ({why}); is it self-intersecting?"

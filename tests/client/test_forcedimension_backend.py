@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[2]
 EMULATOR_C = Path(__file__).resolve().parents[1] / "support" / "emulators" / "fd_sim.c"
 #: The file name the binding accepts (libdrd.so.*, SDK 3.16 or newer; the emulator says 3.17.6).
 LIBRARY_NAME = "libdrd.so.3.17.6"
-INSTALL = "pip install 'haptic-collab[forcedimension]'"
+INSTALL = "pip install 'forcedimension-core>=1.0' (the forcedimension extra; in a checkout: pip install -e '.[forcedimension]')"
 
 ANCHOR = (0.01, -0.02, 0.1)
 NORMAL = (0.0, 0.0, 1.0)

@@ -457,7 +457,7 @@ def test_without_the_library_available_says_one_line_what_to_install(
         pytest.skip("a real libHD.so is installed on this machine")
     msg = r["available"]
     assert "\n" not in msg
-    assert "pip install 'haptic-collab[openhaptics]'" in msg
+    assert "pip install 'pyOpenHaptics>=1.0.1'" in msg
     assert "OpenHaptics driver from 3D Systems" in msg
     if block_binding:
         assert msg.startswith("the openhaptics backend needs the pyOpenHaptics package")
@@ -472,7 +472,7 @@ def test_in_this_process_the_backend_is_unavailable_with_one_line() -> None:
     msg = BACKEND.available()
     if msg is None:
         pytest.skip("a real libHD.so is installed on this machine")
-    assert "\n" not in msg and "pip install 'haptic-collab[openhaptics]'" in msg
+    assert "\n" not in msg and "pip install 'pyOpenHaptics>=1.0.1'" in msg
 
 
 def test_open_read_write_in_metres_newtons_and_the_world_frame(libhd: Path) -> None:

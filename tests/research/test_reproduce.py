@@ -271,6 +271,7 @@ def test_cli_without_matplotlib_says_so_in_one_line(tmp_path: pathlib.Path) -> N
     assert proc.returncode == 2
     assert proc.stdout == ""
     assert proc.stderr == (
-        "haptic reproduce: error: the figures need matplotlib: pip install 'haptic-collab[plots]'\n"
+        "haptic reproduce: error: the figures need matplotlib: pip install 'matplotlib>=3.8' "
+        "(the plots extra; in a checkout: pip install -e '.[plots]')\n"
     )
     assert not (tmp_path / "figs").exists()
