@@ -317,8 +317,10 @@ class ServerApp:
 
     Parameters
     ----------
-    room : Room
-        The default room's sans-I/O core (``/ws``, ``/``); also :attr:`room`.
+    room : Room or RoomProxy
+        The default room's sans-I/O core (``/ws``, ``/``); also :attr:`room`. A
+        :class:`server.room_process.RoomProxy` runs it in a process of its own
+        (``--room-processes``), as it does any room of ``rooms`` or of ``room_maker``.
     host, port : str, int
         Where to listen (port 0 picks a free port; see :attr:`port` after start).
     link : LinkConditions, optional
@@ -341,7 +343,7 @@ class ServerApp:
     metrics_token : TokenTable, optional
         The token a scrape of ``/metrics`` must carry (``Authorization: Bearer``); without one
         only a server on loopback answers it (:func:`server.metrics.scrape_allowed`).
-    rooms : mapping of str to Room, optional
+    rooms : mapping of str to Room or RoomProxy, optional
         More rooms by name (``[rooms.NAME]``), reached at ``/rooms/NAME/``.
     room_maker : RoomMaker, optional
         Builds a room on demand when a client joins a name it allows (``[room_templates]``).
