@@ -324,6 +324,21 @@ async def _run(
     return await _ClientRun(opts, host, origin_s, workers).run()
 
 
+def _no_join(url: str, waited_s: float, link: Link) -> str:
+    """Why no join came within ``waited_s`` [s], and what to check."""
+    if link.refused and not link.joins:
+        return (
+            f"could not join {url} within {waited_s:g} s: nothing listens there "
+            f"({link.refused} attempts refused); is `haptic server` running, and is --url right? "
+            "(the server prints its URL when it starts)"
+        )
+    why = f" (last: {link.last_error})" if link.last_error else ""
+    return (
+        f"could not join {url} within {waited_s:g} s{why}; is the server reachable from here, "
+        "and does it accept this client's token?"
+    )
+
+
 class _ClientRun:
     """One run of :func:`run_client` once the device is checked: the session, the link, the
     servo started at the ``welcome``, and what stopped the run.
@@ -563,10 +578,14 @@ class _ClientRun:
         joined = asyncio.create_task(link.connected.wait())
         halted = asyncio.create_task(self.halt.wait())
         t_start = self.clock()
+        # the join counts against --duration too: a run never outlasts it
+        join_timeout = opts.join_timeout_s
+        if opts.duration_s is not None:
+            join_timeout = min(join_timeout, opts.duration_s)
         try:
             done, _ = await asyncio.wait(
                 {joined, halted, link_task},
-                timeout=opts.join_timeout_s,
+                timeout=join_timeout,
                 return_when=asyncio.FIRST_COMPLETED,
             )
             if self.error is not None:
@@ -574,7 +593,7 @@ class _ClientRun:
             if link_task in done:
                 link_task.result()  # e.g. ValueError: a bad URL
             if not done:
-                raise ConnectionError(f"could not join {opts.url} within {opts.join_timeout_s:g} s")
+                raise ConnectionError(_no_join(opts.url, join_timeout, link))
             if not self.halt.is_set():
                 remaining = (
                     None

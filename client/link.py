@@ -200,6 +200,10 @@ class Link:
         self.backoff_s = backoff_s
         self.connected = asyncio.Event()
         self.joins = 0
+        #: Connection attempts refused (nothing listening), and the last failure, for the
+        #: message when no join comes (client.app).
+        self.refused = 0
+        self.last_error: str | None = None
         self.protocol_errors = 0
         self.designs = 0
         self.checks = 0
@@ -557,7 +561,20 @@ class Link:
                 self.close()
                 raise ValueError(f"{self.url} refused this client: {exc}") from None
             except (OSError, InvalidHandshake, TimeoutError, ConnectionClosed) as exc:
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                if isinstance(exc, ConnectionRefusedError):
+                    self.refused += 1
                 if not stop.is_set():
+                    if (
+                        self.refused == 1
+                        and not self.joins
+                        and isinstance(exc, ConnectionRefusedError)
+                    ):
+                        log.warning(
+                            "nothing listens at %s: is `haptic server` running there, and is "
+                            "--url right? (the server prints its URL when it starts); retrying",
+                            self.url,
+                        )
                     log.info("link to %s down (%s); retrying in %.1f s", self.url, exc, delay)
             except InvalidURI as exc:
                 raise ValueError(f"bad server URL {self.url!r}: {exc}") from None
