@@ -1152,9 +1152,15 @@ class ServerApp:
 
     @staticmethod
     def _ready(peer: _Peer, out: Outgoing) -> None:
-        """Queue a due frame; a newer frame of a state stream replaces the queued older one."""
-        if out.stream is not None and any(o.stream == out.stream for o in peer.ready):
-            peer.ready = deque(o for o in peer.ready if o.stream != out.stream)
+        """Queue a due frame; a newer frame of a state stream replaces the queued older one in its
+        place (moved to the end, a viewer's ``room`` frame queued behind each slow surface frame
+        was replaced before it went out, tick after tick: 0 sent in 15 s to a slow reader)."""
+        if out.stream is not None:
+            for i, queued in enumerate(peer.ready):
+                if queued.stream == out.stream:
+                    peer.ready[i] = out  # latest wins, in the older frame's place
+                    peer.wake.set()
+                    return
         peer.ready.append(out)
         peer.wake.set()
 

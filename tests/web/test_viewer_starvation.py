@@ -3,18 +3,16 @@
 The server's own queue and sender (``ServerApp._ready``, ``ServerApp._sender``) for one viewer,
 fed what ``Room.tick`` makes every tick (a surface frame, stream ``vertices``, then a ``room``
 summary, stream ``room``), to a socket on which each surface frame takes longer than a tick to
-write (its buffer is full: a busy browser reads slowly). Latest-wins removes the queued older
-frame of a stream and appends the newer one at the end, so the summary always sits behind the
-next surface frame and is replaced again while that one is written: none is ever sent. With
-each newer frame taking its older one's place in the queue, summaries and surface frames
-alternate. Expected to fail until that edit is made in server/app.py (not this file's owner's).
+write (its buffer is full: a busy browser reads slowly). Latest-wins used to remove the queued
+older frame of a stream and append the newer one at the end, so the summary always sat behind
+the next surface frame and was replaced again while that one was written: none was ever sent.
+With each newer frame taking its older one's place in the queue, summaries and surface frames
+alternate.
 """
 
 from __future__ import annotations
 
 import asyncio
-
-import pytest
 
 from haptic_collab.server.app import ServerApp, _Peer
 from haptic_collab.server.room import Outgoing, Room
@@ -36,11 +34,6 @@ class SlowSocket:
         self.sent.append("surface" if isinstance(data, bytes) else "room")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="server/app.py ServerApp._ready moves a replaced frame behind the other streams "
-    "(issue 61, item 2): the fix is a newer frame taking its older one's place in the queue",
-)
 async def test_a_slow_viewer_still_gets_room_summaries() -> None:
     app = ServerApp(Room(_world(2), SIM_RATE_HZ), "127.0.0.1", 0)
     ws = SlowSocket()
