@@ -3,6 +3,7 @@ PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
+RUNSTAMP := $(VENV)/.installed-run
 WEBSTAMP := web/node_modules/.installed
 JSSTAMP := client/js/node_modules/.installed
 MESHSTAMP := tests/data/meshes/.fetched
@@ -18,6 +19,14 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# What `make demo`, `make reproduce` and `make bench` run: the package and matplotlib for the
+# figures, not the development tools (`make test` installs those).
+$(RUNSTAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[plots]'
+	touch $(RUNSTAMP)
 
 $(WEBSTAMP): web/package.json web/package-lock.json
 	cd web && npm ci --no-audit --no-fund
@@ -87,13 +96,13 @@ test: lint typecheck generated unit
 
 test-slow: unit-slow
 
-demo: $(STAMP) $(WEBSTAMP)
+demo: $(RUNSTAMP) $(WEBSTAMP)
 	$(BIN)/haptic demo --report demo-out/report.json --plot demo-out/demo.png $(DEMO_ARGS)
 
-reproduce: $(STAMP)
+reproduce: $(RUNSTAMP)
 	$(BIN)/haptic reproduce all --out out/figures
 
-bench: $(STAMP)
+bench: $(RUNSTAMP)
 	$(BIN)/haptic bench all --json
 
 clean:
