@@ -49,12 +49,17 @@ _LOGGING_COMMANDS = ("server", "client", "demo")
 
 
 def _configure_logging(args: argparse.Namespace) -> None:
-    """Log to stderr at ``--log-level`` (default info) with time, logger name and level."""
+    """Log to stderr at ``--log-level`` (default info) with time, logger name and level.
+
+    The websockets library's own lines (every HTTP response, connection opened and closed) only
+    at debug: the server and the client say what happened to a connection themselves, with its
+    user, and at info those lines buried them (a server log was mostly "HTTP response sent")."""
     import logging
 
     level = getattr(logging, str(getattr(args, "log_level", "info")).upper(), logging.INFO)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     logging.getLogger().setLevel(level)
+    logging.getLogger("websockets").setLevel(level if level <= logging.DEBUG else logging.WARNING)
 
 
 def _add_log_level(p: argparse.ArgumentParser, *, top: bool) -> None:
