@@ -41,16 +41,16 @@ __all__ = ["build_parser", "main"]
 def build_parser() -> argparse.ArgumentParser:
     """The ``haptic`` argument parser with every subcommand."""
     parser = _Parser(
-        prog="haptic", description="Multirate haptic collaboration on a shared deformable object."
+        prog="haptic",
+        description="Multirate haptic collaboration on a shared deformable object. Start with "
+        "`haptic demo`: a server and two simulated users on this machine, and a viewer to open "
+        "in a browser.",
     )
     _add_log_level(parser, top=True)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    _add_stability(sub)
-    _add_gains(sub)
-    _add_gains_table(sub)
-    _add_reproduce(sub)
-    for extra in _EXTRA:
-        extra(sub)
+    # what a user runs first, then the design and research tools
+    for add in (*_EXTRA, _add_stability, _add_gains, _add_gains_table, _add_reproduce):
+        add(sub)
     for name in _LOGGING_COMMANDS:
         if name in sub.choices:
             _add_log_level(sub.choices[name], top=False)
@@ -58,11 +58,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _EXTRA = [
-    _add_server,
-    _add_token,
-    _add_client,
     _add_demo,
+    _add_server,
+    _add_client,
     _add_devices,
+    _add_token,
     _add_plot,
     _add_protocol,
     _add_bench,

@@ -154,7 +154,12 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="defaults for every option below from a TOML file (flags given here override it; "
         "docs/server-config.example.toml)",
     )
-    _add_shared(p, "--host")
+    _add_shared(
+        p,
+        "--host",
+        help="address to listen on (default %(default)s: this machine only; another address "
+        "needs tokens, docs/security.md)",
+    )
     _add_shared(p, "--port", help="TCP port (0: any free port)")
     _add_shared(p, "--mesh", help=_MESH_HELP)
     _add_shared(p, "--object", help=_OBJECT_HELP)
@@ -444,16 +449,30 @@ def _add_hand(p: argparse.ArgumentParser) -> None:
 
 def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("client", help="run one haptic user: device, 1 kHz servo loop, link")
-    p.add_argument("--url", default="ws://127.0.0.1:8765/ws")
+    p.add_argument(
+        "--url",
+        default="ws://127.0.0.1:8765/ws",
+        help="the server's websocket URL, as `haptic server` prints it (default %(default)s; "
+        "a room: ws://HOST:PORT/rooms/NAME/ws)",
+    )
     p.add_argument("--name", default="A", help="user name shown to others")
     p.add_argument(
-        "--device", default="sim:press", help="sim:press | sim:rest | sim:replay:FILE | hid:VID:PID"
+        "--device",
+        default="sim:press",
+        help="the force-feedback device: sim:press | sim:rest | sim:replay:FILE (simulated), "
+        "hid:VID:PID, openhaptics[:NAME], forcedimension[:ID], haply[:PORT], or a plug-in's; "
+        "`haptic devices` lists what is here (default %(default)s; docs/devices.md)",
     )
     _add_shared(p, "--profile", help="simulated device profile (see haptic devices)")
     p.add_argument(
         "--hid-profile", default=None, help="generic HID device profile (name or JSON file)"
     )
-    _add_shared(p, "--local-model")
+    _add_shared(
+        p,
+        "--local-model",
+        help="the local model: p (a spring K_h) or pi (K_h and an integral I, the paper's "
+        "proportional-integral virtual coupling; default %(default)s)",
+    )
     _add_shared(p, "--servo-rate", help="servo rate [Hz]")
     p.add_argument("--record", default=None, help="write the servo telemetry CSV here")
     p.add_argument("--summary", default=None, help="write a JSON summary here")
@@ -629,7 +648,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("demo", help="server + two simulated users on a shared water balloon")
+    p = sub.add_parser("demo", help="server + two simulated users on one shared balloon, and a viewer: start here")
     p.add_argument("--duration", type=_positive, default=20.0, help="run length [s] (>= 12)")
     p.add_argument("--headless", action="store_true", help="do not open a browser")
     p.add_argument("--report", default=None, help="write the JSON report here")
@@ -665,7 +684,12 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
         help="server address (0.0.0.0: every interface; the viewer URLs of this machine are "
         "printed; default %(default)s)",
     )
-    _add_shared(p, "--local-model")
+    _add_shared(
+        p,
+        "--local-model",
+        help="the local model: p (a spring K_h) or pi (K_h and an integral I, the paper's "
+        "proportional-integral virtual coupling; default %(default)s)",
+    )
     p.add_argument("--workdir", default=None, help="keep logs and telemetry here")
     _add_stiffness_scale(p)
     _add_hand(p)
