@@ -13,9 +13,23 @@
 import { Worker, MessageChannel } from "node:worker_threads";
 import { parseArgs } from "node:util";
 import { writeFileSync } from "node:fs";
-import WebSocket from "ws";
 import { SNAP, movedOut, primitiveFromPatch } from "./lib/servo.mjs";
 import { chooseGains, helloMessage, ownOffsetM, stateMessage } from "./lib/protocol.mjs";
+
+// the `ws` package comes from client/js's lockfile: before `make js-install` say so, not a stack
+let WebSocket;
+try {
+  ({ default: WebSocket } = await import("ws"));
+} catch (err) {
+  if (err && err.code === "ERR_MODULE_NOT_FOUND") {
+    console.error(
+      "haptic-client: the 'ws' package is not installed here: run `make js-install` " +
+        "(or `npm ci` in client/js) first"
+    );
+    process.exit(2);
+  }
+  throw err;
+}
 
 const USAGE = `usage: node haptic-client.mjs [options]
 
