@@ -1233,7 +1233,8 @@ function wsUrl() {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
   return `${scheme}://${location.host}${roomWsPath(location.pathname)}`;
 }
-dom.clientHint.textContent = `haptic client --name alice --url ${wsUrl()}`;
+// one option a line (a shell continuation): the URL is never broken in two
+dom.clientHint.textContent = `haptic client --name alice \\\n  --url ${wsUrl()}`;
 
 function connect() {
   clearTimeout(reconnectTimer);
