@@ -709,6 +709,10 @@ async def test_viewer_reconnects_after_server_restart() -> None:
                 await page.wait_for_function(
                     f"() => window.viewerState.frames > {frames}", timeout=10_000
                 )
-                assert await page.locator("#conn").get_attribute("class") == "conn connected"
+                # "late" until the new server's first room summary is in, then connected
+                await page.wait_for_function(
+                    "() => document.getElementById('conn').className === 'conn connected'",
+                    timeout=10_000,
+                )
         finally:
             await browser.close()
