@@ -648,7 +648,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("demo", help="server + two simulated users on one shared balloon, and a viewer: start here")
+    p = sub.add_parser(
+        "demo", help="server + two simulated users on one shared balloon, and a viewer: start here"
+    )
     p.add_argument("--duration", type=_positive, default=20.0, help="run length [s] (>= 12)")
     p.add_argument("--headless", action="store_true", help="do not open a browser")
     p.add_argument("--report", default=None, help="write the JSON report here")
