@@ -590,6 +590,7 @@ class ServerApp:
         if self._server:
             self._server.close()
             await self._server.wait_closed()
+            log.info("server closed: every room stopped, every connection closed")
 
     async def drain(self, grace_s: float = DRAIN_GRACE_S) -> DrainReport:
         """Drain the server for a shutdown (SIGTERM, :func:`server.main.run_server`).

@@ -44,4 +44,6 @@ def test_the_server_stops_cleanly_on_a_signal_even_with_sigint_ignored(tmp_path,
         log.seek(0)
         text = log.read()
         log.close()
-    assert f"{sig.name}: stopping" in text and "server closed" in text, text[-2000:]
+    assert f"{sig.name}: stopping" in text and "haptic.server INFO server closed" in text, text[
+        -2000:
+    ]
