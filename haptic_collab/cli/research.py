@@ -200,15 +200,38 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser(
-        "bench",
-        help="measure speed (JSON): server tick cost, servo loop timing, gain lookups; "
-        "'fidelity': every rendering scheme side by side; 'load': users and viewers against a "
-        "server process; 'rooms': a FEM room beside balloon rooms, one process vs a process per "
-        "room",
-    )
-    p.add_argument("what", choices=["server", "servo", "gains", "fidelity", "load", "rooms", "all"])
+#: Each benchmark of ``haptic bench`` and what it measures (its own subcommand, its own options).
+BENCHES: dict[str, str] = {
+    "server": "the simulation tick's cost (World.tick) by mesh size and users",
+    "servo": "the servo loop's timing at its rate",
+    "gains": "gain-table lookups and one cell's design",
+    "fidelity": "every rendering scheme side by side on the fidelity grid (docs/fidelity.md)",
+    "load": "users and viewers against a server process for minutes (docs/bench-load.md)",
+    "rooms": "a FEM room beside balloon rooms, one process vs a process per room (its own "
+    "options: python -m haptic_collab.bench.rooms --help)",
+    "all": "server, servo and gains",
+}
+#: The options each benchmark takes besides --json and --out (the others keep their defaults).
+_BENCH_OPTIONS: dict[str, tuple[str, ...]] = {
+    "server": (),
+    "servo": ("--duration", "--servo-rate"),
+    "gains": (),
+    "fidelity": (
+        "--quick", "--plot", "--seed", "--workers", "--no-3d", "--design-reached",
+        "--design-margin", "--design-stiffer-by", "--plane-check-s", "--rest-hold-back-s",
+        "--no-rest-plane", "--jitter-us", "--quantum-um",
+    ),
+    "load": (
+        "--duration", "--workers", "--users", "--viewers", "--sim-rate", "--subdivisions",
+        "--vertices",
+    ),
+    "rooms": (),
+    "all": ("--duration", "--servo-rate"),
+}  # fmt: skip
+
+
+def _bench_options(p: argparse.ArgumentParser) -> None:
+    """Every option of every benchmark, on ``p`` (a scratch parser :func:`_add_bench` copies from)."""
     p.add_argument("--json", action="store_true", help="print JSON (always JSON; kept for scripts)")
     p.add_argument("--out", default=None, help="also write the JSON here")
     p.add_argument(
@@ -322,7 +345,26 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         default=None,
         help="load: the balloon's vertex count instead (2562, 10242, 40962, ...)",
     )
-    p.set_defaults(func=_cmd_bench)
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "bench",
+        help="measure speed and fidelity (JSON), one subcommand a benchmark: " + ", ".join(BENCHES),
+        description="Each benchmark is a subcommand with its own options: "
+        "haptic bench NAME --help.",
+    )
+    benches = p.add_subparsers(dest="what", required=True, parser_class=type(p))
+    scratch = argparse.ArgumentParser(add_help=False)
+    _bench_options(scratch)
+    every = {a.option_strings[0]: a for a in scratch._actions if a.option_strings}
+    defaults = {a.dest: a.default for a in every.values()}
+    for name, what in BENCHES.items():
+        b = benches.add_parser(name, help=what, description=f"haptic bench {name}: {what}.")
+        for flag in ("--json", "--out", *_BENCH_OPTIONS[name]):
+            b._add_action(every[flag])
+        mine = {every[f].dest for f in ("--json", "--out", *_BENCH_OPTIONS[name])}
+        b.set_defaults(func=_cmd_bench, **{k: v for k, v in defaults.items() if k not in mine})
 
 
 def _print_fidelity_table(result: dict[str, object]) -> None:

@@ -38,3 +38,14 @@ def test_the_clients_help_names_every_backend_and_explains_url_and_local_model()
 def test_the_servers_host_says_its_default_and_what_another_address_needs():
     text = _help("server")
     assert "--host HOST address to listen on (default 127.0.0.1: this machine only" in text
+
+
+def test_each_benchmark_is_a_subcommand_with_only_its_own_options():
+    text = _help("bench")
+    for name in ("server", "servo", "gains", "fidelity", "load", "rooms", "all"):
+        assert name in text
+    load = _help("bench", "load")
+    assert "--users" in load and "--jitter-us" not in load
+    fidelity = _help("bench", "fidelity")
+    assert "--jitter-us" in fidelity and "--users" not in fidelity
+    assert "--users" not in _help("bench", "server")
