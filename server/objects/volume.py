@@ -12,7 +12,12 @@ output, a plain array file, is cached per surface under ``cache_dir`` (default
 without TetGen installed. A crash of TetGen (it aborts on some self-intersecting surfaces) is a
 failed step, not a failed server.
 
-Every volume mesh, fresh or cached, is checked before use (:func:`check_volume_mesh`).
+Every volume mesh, fresh or cached, is checked before use (:func:`check_volume_mesh`). A cached
+one is also verified whole: the file carries a sha256 of its nodes and tetrahedra
+(:func:`volume_digest`), and a file whose arrays do not match it (an interior node moved, a
+tetrahedron changed, or a file from before the hash) is logged and rebuilt, never used. The
+surface check alone cannot see an interior node moved (issue 60: one moved 0.5 m made the liver
+ball 20 % stiffer).
 
 Nothing here uses threads, sockets or clocks; it writes files and runs one child process.
 """
@@ -20,6 +25,7 @@ Nothing here uses threads, sockets or clocks; it writes files and runs one child
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import subprocess
 import sys
@@ -32,6 +38,8 @@ import numpy.typing as npt
 from haptic_collab.server.objects.mesh import MeshError
 from haptic_collab.shared.extras import install_hint
 from haptic_collab.shared.types import FloatArray, IntArray
+
+log = logging.getLogger(__name__)
 
 #: TetGen switches: PLC input, no Steiner points on the surface, radius-edge ratio <= 1.5 and
 #: dihedral angles >= 15 degrees, quiet.
@@ -57,6 +65,37 @@ def surface_digest(vertices: npt.ArrayLike, faces: npt.ArrayLike, switches: str)
     h.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
     h.update(switches.encode())
     return h.hexdigest()[:24]
+
+
+def volume_digest(nodes: npt.ArrayLike, tets: npt.ArrayLike) -> str:
+    """The sha256 (hex) of a volume mesh's nodes (float64 [m]) and tetrahedra (int64), shapes
+    included: what a cached volume mesh is verified against before use."""
+    p = np.ascontiguousarray(nodes, dtype=np.float64)
+    t = np.ascontiguousarray(tets, dtype=np.int64)
+    h = hashlib.sha256()
+    h.update(repr((p.shape, t.shape)).encode())
+    h.update(p.tobytes())
+    h.update(t.tobytes())
+    return h.hexdigest()
+
+
+def _load_cached(path: Path, surface: FloatArray) -> tuple[FloatArray, IntArray] | None:
+    """The cached volume mesh at ``path`` if it is whole and fits ``surface``, else None (the
+    file is deleted and the reason logged, so the caller rebuilds it)."""
+    try:
+        with np.load(path) as data:
+            nodes, tets = np.asarray(data["nodes"]), np.asarray(data["tets"])
+            stored = str(data["digest"]) if "digest" in data.files else None
+        if stored != volume_digest(nodes, tets):
+            why = "it has no hash" if stored is None else "its nodes or tetrahedra do not match it"
+            log.warning("cached volume mesh %s refused: %s; rebuilding it", path, why)
+            path.unlink(missing_ok=True)
+            return None
+        return check_volume_mesh(nodes, tets, surface)
+    except (OSError, KeyError, ValueError) as exc:  # MeshError is a ValueError
+        log.warning("cached volume mesh %s refused (%s); rebuilding it", path, exc)
+        path.unlink(missing_ok=True)
+        return None
 
 
 def check_volume_mesh(
@@ -141,7 +180,8 @@ def volume_mesh(
     Raises
     ------
     MeshError
-        TetGen not installed and no cached mesh; TetGen failed, crashed or timed out (a self-
+        TetGen not installed and no whole cached mesh (one that fails its hash or the checks
+        is logged and rebuilt); TetGen failed, crashed or timed out (a self-
         intersecting surface); its output fails :func:`check_volume_mesh`.
     """
     v = np.ascontiguousarray(vertices, dtype=np.float64)
@@ -149,11 +189,9 @@ def volume_mesh(
     folder = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     cached = folder / f"{surface_digest(v, f, switches)}.npz"
     if cached.is_file():
-        try:
-            with np.load(cached) as data:
-                return check_volume_mesh(data["nodes"], data["tets"], v)
-        except (OSError, KeyError, ValueError):
-            cached.unlink(missing_ok=True)  # a broken cache file is rebuilt
+        found = _load_cached(cached, v)
+        if found is not None:
+            return found
     with tempfile.TemporaryDirectory(prefix="haptic-tet-") as tmp:
         src, dst = Path(tmp) / "surface.npz", Path(tmp) / "volume.npz"
         np.savez(src, vertices=v, faces=f)
@@ -186,7 +224,7 @@ def volume_mesh(
     try:
         folder.mkdir(parents=True, exist_ok=True)
         partial = cached.with_suffix(".tmp.npz")
-        np.savez(partial, nodes=nodes, tets=tets)
+        np.savez(partial, nodes=nodes, tets=tets, digest=volume_digest(nodes, tets))
         partial.replace(cached)
     except OSError:
         pass  # no writable cache: the mesh is rebuilt next time

@@ -100,6 +100,26 @@ def test_a_cached_volume_mesh_is_used_without_tetgen(ball, cache, monkeypatch):
     assert len(nodes) > len(ball.vertices)
 
 
+def test_a_cached_volume_mesh_with_an_interior_node_moved_is_refused_and_rebuilt(
+    ball, tmp_path, caplog
+):
+    """The surface check cannot see an interior node moved: the whole mesh's hash does."""
+    folder = tmp_path / "volumes"
+    nodes, tets = volume_mesh(ball.vertices, ball.faces, cache_dir=folder)
+    (path,) = folder.glob("*.npz")
+    with np.load(path) as data:
+        stored = {key: data[key] for key in data.files}
+    interior = len(ball.vertices)  # the first node after the surface's vertices
+    stored["nodes"][interior] += [0.5, 0.0, 0.0]
+    np.savez(path, **stored)
+    with caplog.at_level("WARNING", logger="haptic_collab.server.objects.volume"):
+        again, again_tets = volume_mesh(ball.vertices, ball.faces, cache_dir=folder)
+    assert "refused" in caplog.text and "do not match" in caplog.text
+    assert np.array_equal(again, nodes) and np.array_equal(again_tets, tets)  # TetGen's own
+    with np.load(path) as data:  # and the cache holds the rebuilt mesh again
+        assert np.array_equal(data["nodes"], nodes)
+
+
 def test_a_push_moves_the_surface_under_another_user(ball, cache):
     solid = FemSolid(ball, FemParams(n_modes=0), cache_dir=cache)
     top = solid.patch_key([0.0, 0.0, 0.05], normal=[0, 0, 1])
