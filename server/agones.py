@@ -42,7 +42,9 @@ probe that gets no answer within ``probe_timeout_s`` means the loop is blocked. 
    allocator), so that a scale-down never deletes it under them;
 5. calls Health every ``health_period_s`` only while every room's loop is alive (the probe
    answered and no room is overdue; :class:`server.app.RoomReport`), so Agones marks a server
-   whose loop hangs or died Unhealthy and replaces it;
+   whose loop hangs or died Unhealthy and replaces it. A room in a process of its own is
+   overdue as soon as its process's reports stop (its loop stuck or the process stopped) and
+   not alive while the front kills and restarts it (:data:`server.room_process.HANG_S`);
 6. calls Shutdown once the server has been empty (no user, no viewer) for ``empty_shutdown_s``
    after someone was in it, or after the GameServer was Allocated (a fresh Ready server waiting
    in the fleet is never shut down for being empty).

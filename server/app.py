@@ -825,7 +825,10 @@ class ServerApp:
         A room is alive while its simulation task runs and its next tick is not overdue by
         more than ``max(STALL_MIN_S, STALL_PERIODS / sim_rate_hz)`` [s]: a dead loop (task ended)
         or one whose ticks stopped (a tick that never returns blocks this very call, which is
-        how a caller on another thread sees a blocked loop: no answer).
+        how a caller on another thread sees a blocked loop: no answer). A room in a process of
+        its own is judged by its process's last report: a hung process's next tick is overdue
+        from when its reports stop, and the room is not alive from when the front kills it
+        (:data:`server.room_process.HANG_S`) until its new process has started.
         """
         now = asyncio.get_running_loop().time()
         out = []
@@ -850,7 +853,7 @@ class ServerApp:
     @staticmethod
     def _room_status(room: AnyRoom) -> dict[str, Any]:
         process = (
-            {"process": {"pid": room.pid, "restarts": room.restarts}}
+            {"process": {"pid": room.pid, "restarts": room.restarts, "hangs": room.hangs}}
             if isinstance(room, RoomProxy)
             else {}
         )
@@ -1259,7 +1262,8 @@ class ServerApp:
 
     async def _supervise(self, slot: _Slot) -> None:
         """Run a room in a process of its own (:class:`server.room_process.RoomProxy`): start
-        it, relay its messages, and when it dies, log it, tell its connections
+        it, relay its messages, and when it dies (or hangs and is killed for it,
+        :data:`server.room_process.HANG_S`), log it, tell its connections
         ``room_restarting`` (close 1012) and start it again (from its snapshot, if the snapshot
         directory holds one); an on-demand room without a connection for ``room_idle_s`` is
         closed. Other rooms are not touched."""

@@ -26,9 +26,11 @@ The per-room budgets (:meth:`server.room.Room.admit`) run in the room's process 
 delivered there, after any injected latency (in one process they are charged on arrival); the
 per-address budgets across rooms stay the front's and are charged on arrival.
 
-A room's process that dies is noticed by the front (its stream ends); the front tells that
-room's clients ``room_restarting`` with close code 1012 and starts the room again
-(:class:`RoomProxy`). With a snapshot directory the room's process sends the front a checkpoint
+A room's process that dies is noticed by the front (its stream ends); one that hangs (alive,
+its event loop stuck in a tick that never returns, or stopped) is noticed when no message has
+come from it, or its next tick is overdue, for :data:`HANG_S`, and is killed: either way the
+front tells that room's clients ``room_restarting`` with close code 1012 and starts the room
+again (:class:`RoomProxy`). With a snapshot directory the room's process sends the front a checkpoint
 of its object state every :data:`CHECKPOINT_S` (``checkpoint``), which the front writes there as
 the room's snapshot before starting it again, so it starts from where it was at most that long
 before it died; without one it starts from rest. Its held seats and resume tokens are lost.
@@ -71,6 +73,13 @@ CHECKPOINT_S = 2.0
 RESTARTING_CODE = "room_restarting"
 #: The message that goes with it.
 RESTARTING_MESSAGE = "this room's simulation stopped unexpectedly and is restarting; join again"
+#: How long [s] the front waits, once a room's process has started, without a message from it
+#: (a report comes every :data:`REPORT_S`) or with its next tick overdue by as much, before it
+#: deems the process hung (a tick that never returns, a stopped process), kills it and starts
+#: it again as a dead one (:meth:`RoomProxy.run`). Far above any tick the server is meant to
+#: run (a FEM solid's is tens of ms) and above the scheduler's pauses on a loaded machine;
+#: low enough that the room's users are told within seconds.
+HANG_S = 3.0
 #: How long [s] a room's process may take to build its room and start at most.
 START_TIMEOUT_S = 120.0
 #: How long [s] a stopped room's process may take to exit before it is killed.
@@ -458,10 +467,16 @@ class RoomProxy:
         #: The process's id (None while none runs) and how many times it was started again.
         self.pid: int | None = None
         self.restarts = 0
+        #: How many times its process was found hung and killed (:data:`HANG_S`).
+        self.hangs = 0
+        #: How long [s] it may stay silent or overdue before it counts as hung.
+        self.hang_s = HANG_S
         #: Set once it must not be started again (stop, drain).
         self.closing = False
         self.ready: asyncio.Future[None] | None = None
         self._due = math.inf
+        #: When [s, monotonic] the process last sent anything.
+        self._heard = -math.inf
         self._writer: asyncio.StreamWriter | None = None
         self._process: Any = None
         self._conns: set[str] = set()
@@ -581,16 +596,52 @@ class RoomProxy:
         if self.closing:  # stopped while it was being started
             writer.write(_pack(("stop",)))
         self._writer = writer
+        self._heard = loop.time()
+        watchdog = asyncio.create_task(self._watch(), name=f"room {self.name} watchdog")
         try:
             while True:
                 try:
                     msg = await _unpack(reader)
                 except (asyncio.IncompleteReadError, ConnectionError):
                     break
+                self._heard = loop.time()
                 self._on(msg, events)
         finally:
+            watchdog.cancel()
             self._went(events)
         return await self._reap()
+
+    async def _watch(self) -> None:
+        """Kill the process once it has started and has been silent, or its next tick overdue,
+        for :attr:`hang_s` [s]: its stream then ends and it is started again as a dead one.
+
+        A round in which the front itself woke late (its own loop was held up) judges nothing:
+        what the process sent meanwhile may still be unread.
+        """
+        loop = asyncio.get_running_loop()
+        period = min(REPORT_S, self.hang_s / 4.0)
+        last = loop.time()
+        while True:
+            await asyncio.sleep(period)
+            now = loop.time()
+            held_up = now - last > 2.0 * period
+            last = now
+            if held_up or self.closing or not self.running:
+                continue
+            silent, overdue = now - self._heard, now - self._due
+            if max(silent, overdue) <= self.hang_s:
+                continue
+            self.hangs += 1
+            log.error(
+                "room %r: its process %s is hung (no message for %.1f s, its tick overdue by "
+                "%.1f s): killed, to start again",
+                self.name,
+                self.pid,
+                silent,
+                max(0.0, overdue),
+            )
+            self.kill()
+            return
 
     def _went(self, events: RoomEvents) -> None:
         """The process's stream ended: forget its connections, keep its counters."""

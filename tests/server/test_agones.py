@@ -9,6 +9,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
+import signal
 import socket
 import time
 from collections.abc import Callable
@@ -17,8 +19,9 @@ from websockets.asyncio.client import ClientConnection, connect
 
 from haptic_collab.server.agones import PORT_ENV, AgonesAgent, AgonesOptions, start_agones
 from haptic_collab.server.app import DEFAULT_ROOM, ServerApp
-from haptic_collab.server.main import ServerOptions, build_world, run_server
+from haptic_collab.server.main import ServerOptions, build_world, room_proxy, run_server
 from haptic_collab.server.room import Room
+from haptic_collab.shared.protocol import LinkConditions
 from tests.support.agones_sidecar import Sidecar
 
 SIM_RATE = 20.0
@@ -260,5 +263,43 @@ async def test_a_counter_the_fleet_does_not_declare_is_asked_for_once(caplog):
             added = sc.of("POST", "/v1beta1/lists/rooms:addValue")  # the list still works
             assert [(c.body, c.status) for c in added] == [({"value": DEFAULT_ROOM}, 200)]
         finally:
+            await asyncio.to_thread(agent.stop)
+            await app.stop()
+
+
+async def test_no_health_while_a_room_process_is_hung_and_again_once_it_is_restarted(caplog):
+    """A room in a process of its own whose process is stopped (alive, its loop going nowhere):
+    no health ping from soon after it stops until the front has killed it and its new process
+    ticks; the other room ticks on meanwhile."""
+    opts = ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2, room_processes=True)
+    link = LinkConditions()
+    hung = room_proxy(opts, "b", {}, link, None, None)
+    app = ServerApp(
+        room_proxy(opts, DEFAULT_ROOM, {}, link, None, None), "127.0.0.1", 0, rooms={"b": hung}
+    )
+    await app.start()
+    with Sidecar(lists={"rooms": 2}, counters={"users": 8}) as sc:
+        agent = start_agones(app.room_reports, AgonesOptions(**FAST), {PORT_ENV: str(sc.port)})
+        assert agent is not None
+        health = lambda: len(sc.of("POST", "/health"))  # noqa: E731
+        pid = hung.pid
+        assert pid is not None
+        try:
+            await until(lambda: health() >= 2)
+            withheld = agent.health_withheld
+            os.kill(pid, signal.SIGSTOP)
+            await until(lambda: agent.health_withheld > withheld)
+            pings = health()
+            await until(lambda: hung.hangs == 1)  # found hung and killed: no ping till now
+            assert health() == pings
+            default_ticks = app.status()["rooms"][DEFAULT_ROOM]["tick"]
+            await until(lambda: hung.running and hung.pid != pid)
+            await until(lambda: health() > pings)  # its new process ticks: pings again
+            assert app.status()["rooms"][DEFAULT_ROOM]["tick"] > default_ticks
+            assert hung.restarts == 1
+            assert any("stalled or stopped (rooms b)" in r.getMessage() for r in caplog.records)
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
             await asyncio.to_thread(agent.stop)
             await app.stop()

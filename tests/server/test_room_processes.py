@@ -203,6 +203,41 @@ async def test_a_killed_room_process_tells_its_users_restarts_and_spares_the_oth
             await user.leave()
 
 
+async def test_a_hung_room_process_is_killed_and_restarted_as_a_dead_one(tmp_path) -> None:
+    """A room's process stopped (SIGSTOP: alive, its loop going nowhere, as in a solver that
+    never returns) is found hung, killed and started again from its checkpoint; its users are
+    told as for a dead one, the other room's user keeps its patches meanwhile."""
+    async with server(tmp_path) as app:
+        victim = await User.join(app.port, "ada")
+        other = await User.join(app.port, "bob", "/rooms/b/ws")
+        await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["tick"] >= 100)
+        pid = room_pid(app, DEFAULT_ROOM)
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            before = len(other.patches())
+            stopped_at = len(victim.patches())
+            await asyncio.wait_for(victim.reader, 30.0)
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)  # killed already, unless the test failed
+        assert [e["code"] for e in victim.errors()] == ["room_restarting"]
+        assert victim.ws.close_code == 1012
+        assert len(victim.patches()) == stopped_at  # nothing came from the stopped room
+        # the other room ticked on meanwhile: its user got patches the whole time
+        assert len(other.patches()) > before + 20
+        assert other.errors() == [] and other.ws.close_code is None
+        await until(lambda: not _alive(pid), 10.0)  # the hung process is gone
+        again = await User.join(app.port, "ada")
+        assert again.welcome is not None, again.errors()
+        await until(lambda: len(again.patches()) >= 2)
+        process = app.status()["rooms"][DEFAULT_ROOM]["process"]
+        assert process["pid"] != pid and process["restarts"] == 1 and process["hangs"] == 1
+        assert app.status()["rooms"]["b"]["process"]["hangs"] == 0
+        assert app.status()["rooms"][DEFAULT_ROOM]["tick"] >= 60  # from its checkpoint
+        for user in (again, other):
+            await user.leave()
+
+
 async def test_a_drain_saves_each_room_from_its_process_and_it_resumes_there(tmp_path) -> None:
     async with server(tmp_path) as app:
         user = await User.join(app.port, "ada")
