@@ -33,7 +33,8 @@ Presets (docs/materials.md lists the derivations and the measured K_o):
     bending 0.05 N*m; K_o differs by 0.3 %).
 ``soft-tissue``
     Liver-like: K_o at the contact matches the indentation stiffness of an elastic half-space
-    of healthy liver (E = 5.5 kPa by transient elastography, Roulot et al. 2008; nu = 0.5)
+    of healthy liver (E = 5.5 kPa, the mean of 429 healthy subjects by transient elastography,
+    Roulot et al. 2008; nu = 0.5)
     under the same 15 mm raised-cosine finger-pad patch, 1.672 E a = 138 N/m
     (:func:`halfspace_patch_stiffness`; Boussinesq/Sneddon 1965). A fit, not a derivation:
     tension 20 N/m, no bending, foundation 1e5 N/m^3, water-like bulk 2.2 GPa. The stiff
@@ -362,7 +363,8 @@ _SYLGARD_YOUNG_PA = 1.32e6
 _SILICONE_WALL_M = 7.0e-3
 _SILICONE_PRESSURE_PA = 1.0e3
 
-#: Healthy liver's Young's modulus [Pa] by transient elastography (Roulot et al. 2008).
+#: Healthy liver's Young's modulus [Pa] by transient elastography: the mean of 429 apparently
+#: healthy subjects, 5.49 +- 1.59 kPa (Roulot et al. 2008), not an upper normal value.
 LIVER_YOUNG_PA = 5.5e3
 
 _PRESETS: dict[str, Material] = {

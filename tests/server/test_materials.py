@@ -236,3 +236,65 @@ def test_the_example_in_the_docs_is_a_valid_material(tmp_path):
     block = docs.read_text().split("```toml\n", 1)[1].split("```", 1)[0]
     m = load_material(write(tmp_path, block, name="my-balloon.toml"))
     assert m.name == "my-balloon" and m.tension_n_per_m == 95.0
+
+
+# ---- the FEM solid's presets (server/solid_materials.py) against docs/materials.md ----
+
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "materials.md"
+
+
+def _docs_block(begin: str, end: str) -> str:
+    text = DOCS.read_text()
+    return text.split(begin, 1)[1].split(end, 1)[0].strip()
+
+
+def test_the_solid_presets_table_in_the_docs_is_what_the_module_holds():
+    from haptic_collab.server.solid_materials import SOLID_PRESETS, preset_table
+
+    block = _docs_block("<!-- SOLID-PRESETS:BEGIN -->", "<!-- SOLID-PRESETS:END -->")
+    assert block == preset_table(), "regenerate: python -m haptic_collab.server.solid_materials"
+    for name in SOLID_PRESETS:  # every preset listed, with a source for each number
+        assert f"| `{name}` |" in block
+
+
+def test_ecoflex_is_its_small_strain_modulus_not_the_data_sheets_secant():
+    from haptic_collab.server.solid_materials import (
+        ECOFLEX_0030_100_MODULUS_PA,
+        SOLID_PRESETS,
+    )
+
+    e = SOLID_PRESETS["ecoflex-0030"].young_pa
+    # an incompressible neo-Hookean bar of this E, stretched to twice its length, carries the
+    # data sheet's 100 % modulus (10 psi = 68.9 kPa) as its nominal stress
+    lam = 2.0
+    nominal = e / 3.0 * (lam - lam**-2)
+    assert nominal == pytest.approx(68.9e3, rel=2e-3)
+    assert nominal == pytest.approx(ECOFLEX_0030_100_MODULUS_PA, rel=2e-3)
+    assert e == pytest.approx(118e3, rel=5e-3)  # the docs' number
+
+
+def test_neo_hookean_secant_refuses_what_has_no_modulus():
+    from haptic_collab.server.solid_materials import neo_hookean_young_from_secant
+
+    for stress, stretch in ((0.0, 2.0), (1e3, 1.0), (1e3, math.nan), (-1.0, 2.0)):
+        with pytest.raises(ValueError):
+            neo_hookean_young_from_secant(stress, stretch)
+
+
+def test_liver_is_the_mean_of_its_cohort_in_both_objects_and_the_docs():
+    from haptic_collab.server import solid_materials
+
+    assert solid_materials.SOLID_PRESETS["liver"].young_pa == LIVER_YOUNG_PA == 5.5e3
+    for text in (DOCS.read_text(), solid_materials.__doc__ or ""):
+        assert "is the upper normal value" not in text
+        assert "Roulot" in text and "5.49" in text  # the cohort's mean, cited
+
+
+def test_the_damping_loss_factors_the_docs_quote_follow_from_beta():
+    from haptic_collab.server.solid_materials import SOLID_PRESETS
+
+    docs = DOCS.read_text()
+    beta = SOLID_PRESETS["liver"].rayleigh_beta_s
+    for hz, quoted in ((1.0, "0.06 at 1 Hz"), (3.8, "0.24 at 3.8 Hz"), (10.0, "0.63 at 10 Hz")):
+        assert quoted in docs
+        assert f"{2 * math.pi * hz * beta:.2f}" == quoted.split()[0]
