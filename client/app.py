@@ -11,6 +11,11 @@ is flushed and closed and the summary written.
 A device that faults while running (unplugged) is the device's business: the servo loop ramps
 forces to zero and the client reopens the device with backoff (:data:`client.servo_device.DEVICE_REOPEN_BACKOFF_S`);
 the network link is never restarted for it.
+
+With a lobby (``--lobby URL --room NAME``, :mod:`server.lobby`) the client asks the lobby where
+room NAME runs and for a room token (:func:`ask_lobby`) before it joins, and again when its
+server drains (:class:`client.link.Link`'s ``resolve``): it then joins the room where it runs
+now, without restarting the device or the servo loop.
 """
 
 from __future__ import annotations
@@ -19,21 +24,25 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 import re
 import signal
 import threading
 import time
+import urllib.error
+import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
+from urllib.parse import quote, urlsplit
 
 from haptic_collab.client.devices.base import Device, DeviceLimits
 from haptic_collab.client.devices.hid import HidPort
 from haptic_collab.client.devices.opener import DeviceOpener
 from haptic_collab.client.devices.profiles import get_sim_profile
 from haptic_collab.client.gain_store import device_coverage, preload, save_cache
-from haptic_collab.client.link import DesignWorkers, Link
+from haptic_collab.client.link import DesignWorkers, Link, Resolver
 from haptic_collab.client.recorder import CsvRecording, TelemetryRecorder
 from haptic_collab.client.servo import (
     ServoConfig,
@@ -107,6 +116,101 @@ class ClientOptions:
     #: Keep the gain designs this client makes in its cache and start from it
     #: (client.gain_store; ``haptic client --no-gain-cache``: the shipped tables only).
     gain_cache: bool = True
+    #: A lobby (``http(s)://HOST:PORT``, ``haptic lobby``) that says where ``room`` runs and
+    #: gives a room token; ``url`` and ``token`` are then unused (None: join ``url``).
+    lobby: str | None = None
+    #: The room to ask the lobby for.
+    room: str | None = None
+    #: The lobby's own token (``Authorization: Bearer``), when it asks for one (None:
+    #: ``$HAPTIC_LOBBY_TOKEN``, else none).
+    lobby_token: str | None = None
+
+
+#: Environment variable read when no lobby token is given.
+LOBBY_TOKEN_ENV = "HAPTIC_LOBBY_TOKEN"
+#: Time to wait for the lobby's answer [s], and the largest answer read [bytes].
+LOBBY_TIMEOUT_S = 10.0
+LOBBY_ANSWER_BYTES = 64 * 1024
+
+
+def ask_lobby(
+    lobby_url: str,
+    room: str,
+    role: Literal["user", "viewer"] = "user",
+    *,
+    token: str | None = None,
+    timeout_s: float = LOBBY_TIMEOUT_S,
+) -> dict[str, Any]:
+    """Ask a lobby (``haptic lobby``) where room ``room`` runs; blocking (run it in a thread).
+
+    ``GET LOBBY/rooms/ROOM?role=ROLE`` (:mod:`server.lobby`).
+
+    Parameters
+    ----------
+    lobby_url : str
+        The lobby, ``http(s)://HOST:PORT``.
+    room : str
+        The room's name (the lobby checks it).
+    role : {"user", "viewer"}
+    token : str, optional
+        The lobby's token (``Authorization: Bearer``), when it asks for one.
+    timeout_s : float
+        Time to wait for the answer [s].
+
+    Returns
+    -------
+    dict
+        The lobby's answer: ``url`` (the room's websocket), ``token`` (a room token),
+        ``expires`` (Unix time [s]), ``viewer`` (the room's viewer page with the token),
+        ``server``.
+
+    Raises
+    ------
+    ValueError
+        A bad lobby URL, or the lobby refused (4xx but 429: a bad name, no such room anywhere,
+        a token it does not accept): asking again cannot help.
+    ConnectionError
+        The lobby cannot be reached, is busy (429) or has no room now (5xx): asking again later
+        may help.
+    """
+    parts = urlsplit(lobby_url)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"--lobby is http(s)://HOST:PORT, got {lobby_url!r}")
+    url = f"{lobby_url.rstrip('/')}/rooms/{quote(room, safe='')}?role={role}"
+    req = urllib.request.Request(url, headers={"Accept": "application/json"})
+    if token:
+        req.add_header("Authorization", f"Bearer {token}")
+    try:
+        with urllib.request.urlopen(req, timeout=timeout_s) as resp:
+            answer = json.loads(resp.read(LOBBY_ANSWER_BYTES))
+    except urllib.error.HTTPError as exc:
+        try:
+            why = json.loads(exc.read(LOBBY_ANSWER_BYTES)).get("error", exc.reason)
+        except (ValueError, AttributeError):
+            why = exc.reason
+        if exc.code >= 500 or exc.code == 429:
+            raise ConnectionError(f"the lobby {lobby_url}: {why} ({exc.code})") from None
+        raise ValueError(
+            f"the lobby {lobby_url} refused room {room!r}: {why} ({exc.code})"
+        ) from None
+    except (OSError, ValueError) as exc:
+        raise ConnectionError(f"the lobby {lobby_url} cannot be reached: {exc}") from None
+    if not isinstance(answer, dict) or not isinstance(answer.get("url"), str):
+        raise ConnectionError(f"the lobby {lobby_url} answered without a room URL")
+    return answer
+
+
+def lobby_resolver(lobby_url: str, room: str, token: str | None = None) -> Resolver:
+    """The ``resolve`` of a :class:`client.link.Link` that joins room ``room`` through a lobby:
+    its websocket URL and room token, asked anew each call (:func:`ask_lobby`, in a thread)."""
+    lobby_token = token if token is not None else (os.environ.get(LOBBY_TOKEN_ENV) or None)
+
+    async def resolve() -> tuple[str, str | None]:
+        answer = await asyncio.to_thread(ask_lobby, lobby_url, room, "user", token=lobby_token)
+        room_token = answer.get("token")
+        return answer["url"], room_token if isinstance(room_token, str) else None
+
+    return resolve
 
 
 def _device_info(opts: ClientOptions, limits: DeviceLimits | None = None) -> DeviceInfo:
@@ -527,8 +631,13 @@ class _ClientRun:
                     signals.append(sig)
         if isinstance(host, ServoProcess):
             host.on_death = self.on_servo_death
+        resolve = None
+        if opts.lobby is not None:
+            if not opts.room:
+                raise ValueError("--lobby needs --room NAME")
+            resolve = lobby_resolver(opts.lobby, opts.room, opts.lobby_token)
         link = Link(
-            opts.url,
+            "" if resolve is not None else opts.url,
             self.session,
             on_patch=self.on_patch,
             sample=self.sample,
@@ -537,6 +646,7 @@ class _ClientRun:
             token=opts.token,
             ca_file=opts.ca_file,
             workers=self.workers,
+            resolve=resolve,
         )
         stop = asyncio.Event()
         link_task = asyncio.create_task(link.run(stop))
@@ -593,7 +703,7 @@ class _ClientRun:
             if link_task in done:
                 link_task.result()  # e.g. ValueError: a bad URL
             if not done:
-                raise ConnectionError(_no_join(opts.url, join_timeout, link))
+                raise ConnectionError(_no_join(link.url or str(opts.lobby), join_timeout, link))
             if not self.halt.is_set():
                 remaining = (
                     None
@@ -628,6 +738,12 @@ class _ClientRun:
         summary["servo_rate_hz_set"] = opts.servo_rate_hz
         summary["servo_host"] = "process" if isinstance(host, ServoProcess) else "thread"
         summary["servo_realtime"] = host.realtime
+        if opts.lobby is not None:  # where the lobby sent this client, in order
+            summary["lobby"] = {
+                "room": opts.room,
+                "asks": link.lobby_asks,
+                "joined": list(link.joined_urls),
+            }
         summary.update(host.counters)
         if recording is not None:
             summary["record"] = {

@@ -30,6 +30,14 @@ Security: the link presents a token in ``hello`` (``token=`` or the ``HAPTIC_TOK
 variable) and never logs it; a ``wss://`` URL is verified against the system's CAs or ``ca_file``
 (``HAPTIC_CA_FILE``). A server that answers ``unauthorized`` is not retried: :meth:`Link.run`
 raises ``ValueError``.
+
+A lobby (``haptic client --lobby URL --room NAME``, :mod:`server.lobby`): the link is given a
+``resolve`` coroutine that asks the lobby where the room runs and for a room token, and calls it
+before its first join and again before each later attempt once the server said it is draining
+(``server_draining``, close code 1012), refused the connection or the token, or could not be
+reached: the room may now run on another server. The next ``hello`` still carries the resume
+token; a server that does not hold the seat (another server) joins the user as new. A lobby
+that cannot be reached then leaves the link on the address it had.
 """
 
 from __future__ import annotations
@@ -43,7 +51,7 @@ import os
 import random
 import ssl
 import threading
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -122,6 +130,13 @@ class Unauthorized(Exception):
     """The server refused this client's token (``unauthorized``): retrying cannot help."""
 
 
+#: ``resolve()`` of a link with a lobby: the room's websocket URL and a token for it.
+Resolver = Callable[[], Awaitable[tuple[str, str | None]]]
+#: Close codes after which a link with a lobby asks it again: 1012 (service restart: a draining
+#: server, or a room process restarting) and 1013 (try again later: a room closed meanwhile).
+REASK_CLOSE_CODES = frozenset({1012, 1013})
+
+
 class Link:
     """Runs one session over a websocket until ``stop`` is set.
 
@@ -161,6 +176,13 @@ class Link:
     silent_s : float
         No frame from the server for this long [s] after the welcome (:data:`SILENT_LINK_S`):
         the link is dropped and rejoined (with the resume token, so the seat is kept).
+    resolve : coroutine function, optional
+        Asks a lobby where the room runs now: returns its websocket URL and a room token
+        (:func:`server.lobby.ask_lobby`). Called before the first join and before each attempt
+        after a drain, a refusal or a failure to connect; raises ``ValueError`` when the lobby
+        refuses (the link then stops) or ``ConnectionError`` when it cannot answer (the link
+        keeps the URL it had, or waits when it has none). ``url`` and ``token`` are then only
+        the starting values.
     """
 
     def __init__(
@@ -179,8 +201,15 @@ class Link:
         ca_file: str | None = None,
         workers: DesignWorkers | None = None,
         silent_s: float = SILENT_LINK_S,
+        resolve: Resolver | None = None,
     ) -> None:
         self.url = url
+        self.resolve = resolve
+        #: Answers of the lobby (``resolve``) the link has used, and the URLs it has joined, in
+        #: order (a link moved by a drain lists two servers).
+        self.lobby_asks = 0
+        self.joined_urls: list[str] = []
+        self._reask = resolve is not None
         self.silent_s = float(silent_s)
         #: Links dropped because the server fell silent (:attr:`silent_s`).
         self.silent_drops = 0
@@ -549,21 +578,37 @@ class Link:
         if self.session.role == "user":
             self._ensure_executor()
         delay = self.backoff_s[0]
-        tls = self.ssl_context()
+        tls = None if self.resolve is not None else self.ssl_context()
         while not stop.is_set():
             joins = self.joins
+            fresh = False  # this attempt's URL and token are the lobby's answer of just now
+            if self.resolve is not None and self._reask:
+                fresh = await self._ask_lobby()
+            if self.resolve is not None:
+                tls = self.ssl_context() if self.url else None
             try:
+                if not self.url:  # no lobby answer yet: wait and ask again
+                    raise ConnectionRefusedError("the lobby has not said where the room runs")
                 async with connect(
                     self.url, max_size=8 * 1024 * 1024, open_timeout=5.0, ssl=tls
                 ) as ws:
                     await self._serve(ws, stop)
             except Unauthorized as exc:
-                self.close()
-                raise ValueError(f"{self.url} refused this client: {exc}") from None
+                if self.resolve is None or fresh:
+                    self.close()
+                    raise ValueError(f"{self.url} refused this client: {exc}") from None
+                # a token of an earlier answer (expired, or for a server the room left)
+                log.info("%s refused the lobby's earlier token; asking the lobby again", self.url)
+                self._reask = True
             except (OSError, InvalidHandshake, TimeoutError, ConnectionClosed) as exc:
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 if isinstance(exc, ConnectionRefusedError):
                     self.refused += 1
+                if self.resolve is not None and (
+                    not isinstance(exc, ConnectionClosed)
+                    or (exc.rcvd is not None and exc.rcvd.code in REASK_CLOSE_CODES)
+                ):
+                    self._reask = True  # the room may run elsewhere now: ask the lobby
                 if not stop.is_set():
                     if (
                         self.refused == 1
@@ -577,6 +622,7 @@ class Link:
                         )
                     log.info("link to %s down (%s); retrying in %.1f s", self.url, exc, delay)
             except InvalidURI as exc:
+                self.close()
                 raise ValueError(f"bad server URL {self.url!r}: {exc}") from None
             finally:
                 self.connected.clear()
@@ -584,10 +630,41 @@ class Link:
                     delay = self.backoff_s[0]  # a session that joined resets the backoff
             if stop.is_set():
                 break
+            if self._reask and self.joins > joins:
+                continue  # moved by a drain: ask the lobby and join at once
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), delay * (0.8 + 0.4 * random.random()))
             delay = min(self.backoff_s[1], delay * 2.0)
         self.close()
+
+    async def _ask_lobby(self) -> bool:
+        """Ask the lobby (``resolve``) where the room runs; True when it answered.
+
+        Raises
+        ------
+        ValueError
+            The lobby refused (a bad room name, a token it does not accept): the link stops.
+        """
+        assert self.resolve is not None
+        try:
+            url, token = await self.resolve()
+        except ConnectionError as exc:
+            self.last_error = f"lobby: {exc}"
+            log.warning(
+                "the lobby did not answer (%s); %s",
+                exc,
+                f"trying {self.url} again" if self.url else "asking again",
+            )
+            return False
+        except ValueError:
+            self.close()
+            raise
+        self.lobby_asks += 1
+        if url != self.url:
+            log.info("the lobby places the room at %s", url)
+        self.url, self._token = url, token
+        self._reask = False
+        return True
 
     def ssl_context(self) -> ssl.SSLContext | None:
         """TLS context for a ``wss://`` URL (verifying against ``ca_file`` if given), else None.
@@ -676,6 +753,8 @@ class Link:
                     else logging.WARNING
                 )
                 log.log(level, "server: %s (%s)", err.message, err.code)
+                if err.code == "server_draining" and self.resolve is not None:
+                    self._reask = True  # its rooms go elsewhere: ask the lobby before rejoining
                 if err.fatal and err.code == "unauthorized":
                     raise Unauthorized(f"{err.message} (unauthorized)")
             if self.session.interim_wanted is not None:
@@ -695,6 +774,7 @@ class Link:
                 # one, and a refusal (room_full, rate_limited) must not count as a join
                 self.joins += 1
                 self.user_ids.append(welcome.user_id)
+                self.joined_urls.append(self.url)
                 if welcome.resumed:
                     self.resumes += 1
                     log.info("rejoined: seat %s (%s) resumed", welcome.user_id, welcome.name)

@@ -1,4 +1,4 @@
-"""The subcommands that run the system: ``haptic server``, ``client``, ``demo`` and ``devices``.
+"""The subcommands that run the system: ``haptic server``, ``lobby``, ``client``, ``demo``, ``devices``.
 
 Each command's handler (``_cmd_*``) and parser (``_add_*``), the options they share (the object and
 its mesh, the stiffness scale, the simulated hand), and the logging of the commands that log
@@ -18,6 +18,7 @@ from haptic_collab.cli.args import (
     _finite,
     _need_matplotlib,
     _nonneg,
+    _nonneg_int,
     _positive,
     _why,
 )
@@ -45,7 +46,7 @@ _MESH_MAX_EDGE_HELP = (
 #: ``--log-level`` choices (Python logging levels).
 LOG_LEVELS = ("debug", "info", "warning", "error")
 #: Subcommands that log (and take ``--log-level`` after their name as well as before).
-_LOGGING_COMMANDS = ("server", "client", "demo")
+_LOGGING_COMMANDS = ("server", "lobby", "client", "demo")
 
 
 def _configure_logging(args: argparse.Namespace) -> None:
@@ -329,6 +330,212 @@ def _add_token(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help="the server's --token-secret-file",
     )
     p.set_defaults(func=_cmd_token)
+    _add_lobby(sub)  # beside `haptic token`: the lobby signs the same room tokens
+
+
+# -------------------------------------------------------------------------------------------- lobby
+def _room_server_option(text: str):  # type: ignore[no-untyped-def]
+    from haptic_collab.server.lobby import RoomServer
+
+    try:
+        return RoomServer.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _tls_server_context(cert: str | None, key: str | None):  # type: ignore[no-untyped-def]
+    """An SSL context serving ``cert`` and ``key`` (None without them); CliError when bad."""
+    import ssl
+
+    if cert is None and key is None:
+        return None
+    if cert is None or key is None:
+        raise CliError("--tls-cert and --tls-key go together")
+    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    try:
+        ctx.load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as exc:
+        raise CliError(f"cannot use the TLS certificate {cert}: {exc}") from None
+    return ctx
+
+
+def _lobby_backend(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """The lobby's back end of parsed ``haptic lobby`` arguments (exactly one is given)."""
+    import ssl
+
+    from haptic_collab.server.lobby import AgonesAllocator, LocalServers, load_servers
+
+    servers = list(args.server)
+    if args.servers_file:
+        try:
+            servers += load_servers(args.servers_file)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+    if bool(servers) == bool(args.agones_allocator):
+        raise CliError(
+            "give the room servers (--server URL, --servers-file FILE) or --agones-allocator URL, "
+            "one of the two"
+        )
+    if servers:
+        return LocalServers(servers)
+    context = None
+    if args.agones_allocator.startswith("https://"):
+        try:
+            context = ssl.create_default_context(cafile=args.agones_ca)
+            if args.agones_client_cert:
+                context.load_cert_chain(args.agones_client_cert, args.agones_client_key)
+        except (OSError, ssl.SSLError) as exc:
+            raise CliError(f"cannot use the allocator's TLS files: {exc}") from None
+    labels = {"agones.dev/fleet": args.agones_fleet} if args.agones_fleet else {}
+    try:
+        return AgonesAllocator(
+            args.agones_allocator,
+            namespace=args.agones_namespace,
+            match_labels=labels,
+            port_name=args.agones_port_name,
+            scheme=args.public_scheme,
+            context=context,
+        )
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _cmd_lobby(args: argparse.Namespace) -> int:
+    """``haptic lobby``: serve room names to servers and room tokens until SIGINT or SIGTERM."""
+    import asyncio
+    import signal
+
+    from haptic_collab.server.lobby import Lobby
+    from haptic_collab.server.security import TokenTable, load_secret
+
+    _configure_logging(args)
+    backend = _lobby_backend(args)
+    try:
+        secret = load_secret(args.token_secret_file)
+        auth = TokenTable.load(args.token_file) if args.token_file else None
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    try:
+        lobby = Lobby(
+            backend,
+            secret,
+            host=args.host,
+            port=args.port,
+            token_ttl_s=args.token_ttl,
+            auth=auth,
+            insecure=args.insecure,
+            ssl_context=_tls_server_context(args.tls_cert, args.tls_key),
+        )
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+    async def serve() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        if args.duration is not None:
+            loop.call_later(args.duration, stop.set)
+        await lobby.serve_forever(stop)
+
+    try:
+        asyncio.run(serve())
+    except OSError as exc:
+        raise CliError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}") from None
+    return 0
+
+
+def _add_lobby(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "lobby",
+        help="find a room: map a room name to a server's websocket URL and a room token "
+        "(docs/deploy.md#finding-a-room)",
+    )
+    _add_shared(
+        p,
+        "--host",
+        help="address to listen on (default %(default)s; another address needs --token-file)",
+    )
+    p.add_argument(
+        "--port", type=_nonneg_int, default=8780, help="TCP port (0: any; default %(default)s)"
+    )
+    local = p.add_argument_group("local room servers")
+    local.add_argument(
+        "--server",
+        type=_room_server_option,
+        action="append",
+        default=[],
+        metavar="URL[=PUBLIC]",
+        help="a room server the lobby reads /status of, e.g. http://127.0.0.1:8765; "
+        "=ws://HOST:PORT when clients reach it elsewhere (repeat)",
+    )
+    local.add_argument(
+        "--servers-file",
+        default=None,
+        metavar="FILE.toml",
+        help="room servers as [[servers]] tables with url (and public)",
+    )
+    ag = p.add_argument_group("Agones (a GameServerAllocation per room name)")
+    ag.add_argument(
+        "--agones-allocator",
+        default=None,
+        metavar="URL",
+        help="the allocator service, https://HOST:PORT (POST /gameserverallocation)",
+    )
+    ag.add_argument("--agones-namespace", default="default", help="the fleet's namespace")
+    ag.add_argument(
+        "--agones-fleet",
+        default=None,
+        metavar="NAME",
+        help="allocate only from this fleet (label agones.dev/fleet)",
+    )
+    ag.add_argument(
+        "--agones-port-name",
+        default=None,
+        metavar="NAME",
+        help="the GameServer port clients use (default: its first)",
+    )
+    ag.add_argument("--agones-ca", default=None, metavar="PEM", help="the allocator's CA")
+    ag.add_argument(
+        "--agones-client-cert", default=None, metavar="PEM", help="client certificate (mTLS)"
+    )
+    ag.add_argument("--agones-client-key", default=None, metavar="PEM", help="its key")
+    ag.add_argument(
+        "--public-scheme",
+        choices=["ws", "wss"],
+        default="ws",
+        help="what clients speak to the allocated servers (default %(default)s)",
+    )
+    sec = p.add_argument_group("tokens (docs/security.md)")
+    sec.add_argument(
+        "--token-secret-file",
+        required=True,
+        metavar="FILE",
+        help="the room servers' --token-secret-file: the lobby signs room tokens with it",
+    )
+    sec.add_argument(
+        "--token-ttl",
+        type=_positive,
+        default=600.0,
+        metavar="S",
+        help="room tokens expire S seconds after the lobby signs them (default %(default)g)",
+    )
+    sec.add_argument(
+        "--token-file",
+        default=None,
+        metavar="FILE",
+        help="tokens a request must carry (Authorization: Bearer; TOKEN ROLE [NAME] lines; a "
+        "viewer's token gets only viewer tokens)",
+    )
+    sec.add_argument(
+        "--insecure",
+        action="store_true",
+        help="listen off loopback without --token-file (anyone who reaches it gets tokens)",
+    )
+    sec.add_argument("--tls-cert", default=None, metavar="PEM", help="serve https")
+    sec.add_argument("--tls-key", default=None, metavar="PEM", help="the certificate's key")
+    p.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
+    p.set_defaults(func=_cmd_lobby)
 
 
 # ------------------------------------------------------------------------------------------- client
@@ -349,6 +556,10 @@ def _anchor_option(text: str) -> str:
         return check_anchor(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
+#: ``haptic client --url`` when neither it nor ``--lobby`` is given.
+_DEFAULT_URL = "ws://127.0.0.1:8765/ws"
 
 
 def _cmd_client(args: argparse.Namespace) -> int:
@@ -394,8 +605,14 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     """
     from haptic_collab.client.app import ClientOptions
 
+    if args.lobby is not None and args.url is not None:
+        raise CliError("--lobby finds the room's server: give it or --url, not both")
+    if (args.lobby is None) != (args.room is None):
+        raise CliError("--lobby URL and --room NAME go together")
     return ClientOptions(
-        url=args.url,
+        url=args.url or _DEFAULT_URL,
+        lobby=args.lobby,
+        room=args.room,
         name=args.name,
         device=args.device,
         profile=args.profile,
@@ -413,6 +630,7 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         hid_profile=args.hid_profile,
         stop_on_signals=True,
         token=args.token,
+        lobby_token=args.lobby_token,
         ca_file=args.ca_file,
         gains=args.gains,
         rest_plane=not args.no_rest_plane,
@@ -451,10 +669,18 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p = sub.add_parser("client", help="run one haptic user: device, 1 kHz servo loop, link")
     p.add_argument(
         "--url",
-        default="ws://127.0.0.1:8765/ws",
-        help="the server's websocket URL, as `haptic server` prints it (default %(default)s; "
+        default=None,
+        help=f"the server's websocket URL, as `haptic server` prints it (default {_DEFAULT_URL}; "
         "a room: ws://HOST:PORT/rooms/NAME/ws)",
     )
+    p.add_argument(
+        "--lobby",
+        default=None,
+        metavar="URL",
+        help="ask this lobby (haptic lobby, http://HOST:PORT) where --room runs and for a room "
+        "token, instead of --url; asked again when the server drains",
+    )
+    p.add_argument("--room", default=None, metavar="NAME", help="the room to ask the lobby for")
     p.add_argument("--name", default="A", help="user name shown to others")
     p.add_argument(
         "--device",
@@ -548,6 +774,11 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "--token",
         default=None,
         help="the server's token (default: $HAPTIC_TOKEN; prefer the variable: it stays out of ps)",
+    )
+    p.add_argument(
+        "--lobby-token",
+        default=None,
+        help="the lobby's token, when it asks for one (default: $HAPTIC_LOBBY_TOKEN)",
     )
     p.add_argument(
         "--ca-file",
