@@ -163,6 +163,39 @@ class _Conn:
     clamp_reported_s: float = -math.inf
 
 
+@dataclass(frozen=True)
+class SeatRecord:
+    """A user's seat as it crosses a restart of its room's process (:meth:`Room.seat_records`,
+    :meth:`Room.hold_seats`): what a ``hello`` with the seat's resume token takes back.
+
+    Only the token's SHA-256 digest is kept, never the token. The seat's contact and force
+    history are not: they are the old process's, gone with it.
+
+    Attributes
+    ----------
+    seat : str
+        The seat's key (the world's and the gain advisor's).
+    user_id : str
+        The user id the seat's user was welcomed with.
+    name : str
+        Its name (the viewers' colour for the user is a hash of it).
+    address : str
+        The source address of its last connection (for logs).
+    resume_digest : bytes
+        SHA-256 of its current resume token.
+    held_until_s : float
+        Until when [s, monotonic] it is held after its connection dropped; inf while it was
+        connected.
+    """
+
+    seat: str
+    user_id: str
+    name: str
+    address: str
+    resume_digest: bytes
+    held_until_s: float
+
+
 @dataclass
 class TickStats:
     """Simulation tick costs the I/O layer measured (:meth:`Room.tick_cost`) and ticks skipped."""
@@ -359,6 +392,56 @@ class Room:
         """User ids of the seats held for users whose connection dropped (they count against
         ``max_users`` until they resume or :attr:`resume_hold_s` has passed)."""
         return [c.user_id for c in self._held.values()]
+
+    def seat_records(self) -> tuple[list[SeatRecord], int]:
+        """Every user seat that a resume token can take back (connected or held), and the
+        number the next new user's id takes: what a room process restarted from scratch needs
+        to give its users their seats back (:meth:`hold_seats`)."""
+        out = []
+        for conn in (*self._conns.values(), *self._held.values()):
+            hello, digest = conn.hello, conn.resume_digest
+            if hello is None or hello.role != "user" or digest is None:
+                continue
+            out.append(
+                SeatRecord(
+                    conn.seat, conn.user_id, hello.name, conn.address, digest, conn.held_until_s
+                )
+            )
+        return out, self._next_user
+
+    def hold_seats(self, seats: list[SeatRecord], next_user: int, now_s: float) -> None:
+        """Hold ``seats`` (:meth:`seat_records` of the room's previous process) as seats whose
+        connection dropped at ``now_s`` [s]: a ``hello`` with a seat's resume token within
+        :attr:`resume_hold_s` gets its user id and name back (a seat already held keeps its
+        own deadline), and new users' ids go on from ``next_user``.
+
+        Why: when a room's process dies and is started again, its users' links all drop at
+        once; they rejoin as they would after a link of their own dropped.
+        """
+        self._next_user = max(self._next_user, int(next_user))
+        if self.resume_hold_s <= 0.0:
+            return
+        lim = self.limits
+        for rec in seats:
+            until = min(rec.held_until_s, now_s + self.resume_hold_s)
+            if until <= now_s or rec.seat in self._held or rec.seat in self._conns:
+                continue
+            hello = Hello(protocol=PROTOCOL_VERSION, role="user", name=rec.name)
+            self._held[rec.seat] = _Conn(
+                rec.seat,
+                now_s,
+                rec.address,
+                TokenBucket(lim.rate_per_s, lim.burst, now_s),
+                TokenBucket(lim.bytes_per_s, lim.bytes_burst, now_s),
+                hello=hello,
+                user_id=rec.user_id,
+                seat=rec.seat,
+                resume_digest=rec.resume_digest,
+                held_until_s=until,
+                recent=deque(maxlen=max(1, self.force_bound.history_patches)),
+            )
+        if seats:
+            log.info("%d seat(s) held from the room's previous process", len(self._held))
 
     def connect(self, conn_id: str, now_s: float, address: str = "local") -> list[Outgoing]:
         """Register a new connection from source ``address`` at ``now_s`` [s].

@@ -18,7 +18,8 @@ spawned. Front to room: ``connect``, ``frame``, ``disconnect``, ``sent`` (a fram
 ``drain``, ``stop``. Room to front: ``ready``, ``failed``, ``out`` (a tick's or a frame's
 :class:`server.room.Outgoing`, batched), ``named``, ``stall`` (a late tick: the front credits
 its across-room budgets), ``job`` (a gain design the front's one design worker runs),
-``checkpoint`` (with a snapshot directory, below), ``report`` (every :data:`REPORT_S`: the tick count and schedule, users, viewers, tick-cost
+``checkpoint`` (with a snapshot directory, below), ``seats`` (the seats its users can resume,
+as they change), ``report`` (every :data:`REPORT_S`: the tick count and schedule, users, viewers, tick-cost
 percentiles, overruns and the two metric histograms, so ``/status``, ``/metrics`` and the Agones
 agent read the room without asking it), ``drained``.
 
@@ -33,7 +34,11 @@ front tells that room's clients ``room_restarting`` with close code 1012 and sta
 again (:class:`RoomProxy`). With a snapshot directory the room's process sends the front a checkpoint
 of its object state every :data:`CHECKPOINT_S` (``checkpoint``), which the front writes there as
 the room's snapshot before starting it again, so it starts from where it was at most that long
-before it died; without one it starts from rest. Its held seats and resume tokens are lost.
+before it died; without one it starts from rest. Its users keep their seats: the front keeps the
+room's seats as its process last sent them (user id, name, the resume token's digest; never the
+token) and the next process holds them as seats whose link dropped at its start
+(:meth:`server.room.Room.hold_seats`), so a user who joins again with its resume token within
+:data:`server.room.RESUME_HOLD_S` gets its user id and name (and so its colour) back.
 """
 
 from __future__ import annotations
@@ -60,7 +65,7 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 from haptic_collab.server.metrics import LATENESS_BUCKETS_S, TICK_BUCKETS_S, Buckets  # noqa: E402
-from haptic_collab.server.room import Outgoing, Room  # noqa: E402
+from haptic_collab.server.room import Outgoing, Room, SeatRecord  # noqa: E402
 
 log = logging.getLogger("haptic.server")
 
@@ -146,21 +151,30 @@ async def _streams(chan: Connection) -> tuple[asyncio.StreamReader, asyncio.Stre
 
 
 # ---------------------------------------------------------------------- the child
-def room_main(spec: RoomSpec, chan: Connection, snapshot_dir: str | None) -> None:
-    """A room process's entry point: build the room, serve the front until told to stop or
-    until the front's end of the pipe closes (the front is gone: exit)."""
+def room_main(
+    spec: RoomSpec,
+    chan: Connection,
+    snapshot_dir: str | None,
+    seats: tuple[list[SeatRecord], int] | None = None,
+) -> None:
+    """A room process's entry point: build the room (holding ``seats``, the seats of the
+    room's previous process, :meth:`server.room.Room.hold_seats`), serve the front until told
+    to stop or until the front's end of the pipe closes (the front is gone: exit)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the front's: it drains us
     logging.basicConfig(
         level=spec.log_level,
         format=f"%(asctime)s %(levelname)s %(name)s [room {spec.name}]: %(message)s",
     )
-    asyncio.run(_Child(spec, snapshot_dir).run(chan))
+    asyncio.run(_Child(spec, snapshot_dir, seats).run(chan))
 
 
 @dataclass
 class _Child:
     spec: RoomSpec
     snapshot_dir: str | None
+    seats: tuple[list[SeatRecord], int] | None = None
+    #: The seats last sent to the front (``seats``).
+    seats_sent: Any = None
     room: Room | None = None
     writer: asyncio.StreamWriter | None = None
     prefetcher: Any = None
@@ -196,8 +210,12 @@ class _Child:
 
             self.prefetcher = PatchPrefetcher(room.world)
         loop = asyncio.get_running_loop()
+        if self.seats is not None:  # the previous process's seats, for their users to resume
+            room.hold_seats(*self.seats, loop.time())
+            self.seats = None
         room.start(loop.time())
         self.send("ready", os.getpid(), room.object_info, room.tick_count)
+        self._send_seats()
         self.sim = asyncio.create_task(self._sim_loop())
         reporter = asyncio.create_task(self._report_loop())
         if self.snapshot_dir is not None:
@@ -250,15 +268,17 @@ class _Child:
                 return True
             if conn_id not in self.named:
                 who = room.describe(conn_id)
-                if who is not None:
+                if who is not None:  # welcomed: a new seat, or a resumed one's new token
                     self.named.add(conn_id)
                     self.send("named", conn_id, who)
+                    self._send_seats()
             self._outs(outs)
         elif kind == "connect":
             self._outs(room.connect(msg[1], now, msg[2]))
         elif kind == "disconnect":
             self.named.discard(msg[1])
             room.disconnect(msg[1], now, hold=msg[2])
+            self._send_seats()
         elif kind == "sent":
             on_sent = self.acks.pop(msg[1], None)
             if on_sent is not None:
@@ -291,6 +311,18 @@ class _Child:
             except Exception:  # noqa: BLE001 - the drain goes on without it
                 log.exception("room %r: its state could not be saved", self.spec.name)
         self.send("drained", written)
+
+    def _send_seats(self) -> None:
+        """Send the front the room's seats (:meth:`server.room.Room.seat_records`) when they
+        changed since last sent: what the room's next process holds if this one dies. Sent as
+        each user is welcomed (its resume token is new) or leaves, and with each report (held
+        seats that ran out)."""
+        if self.room is None:
+            return
+        seats = self.room.seat_records()
+        if seats != self.seats_sent:
+            self.seats_sent = seats
+            self.send("seats", *seats)
 
     def _next_job(self) -> None:
         """Hand the front the room's most urgent gain design, one at a time."""
@@ -366,6 +398,7 @@ class _Child:
                     "lateness_s": (list(self.lateness_s.counts), self.lateness_s.total),
                 },
             )
+            self._send_seats()
             await asyncio.sleep(REPORT_S)
 
 
@@ -484,6 +517,8 @@ class RoomProxy:
         self._drained: asyncio.Future[str | None] | None = None
         #: The room's latest checkpoint (:data:`CHECKPOINT_S`; a server.snapshots.Snapshot).
         self._checkpoint: Any = None
+        #: Its seats as its process last sent them (``seats``): held by its next process.
+        self._seats: tuple[list[SeatRecord], int] | None = None
         #: Messages for a process being (re)started; and which start this is.
         self._pending: list[bytes] = []
         self._generation = 0
@@ -573,7 +608,7 @@ class RoomProxy:
             ours, theirs = ctx.Pipe(duplex=True)
             self._process = ctx.Process(
                 target=room_main,
-                args=(self.spec, theirs, self.snapshot_dir),
+                args=(self.spec, theirs, self.snapshot_dir, self._seats),
                 name=f"haptic room {self.name}",
                 daemon=True,
             )
@@ -713,6 +748,8 @@ class RoomProxy:
                 self.ready.exception()
         elif kind == "checkpoint":
             self._checkpoint = msg[1]
+        elif kind == "seats":
+            self._seats = (msg[1], msg[2])
         elif kind == "drained":
             if self._drained is not None and not self._drained.done():
                 self._drained.set_result(msg[1])

@@ -92,10 +92,19 @@ class User:
                     self.texts.append(json.loads(frame))
 
     @classmethod
-    async def join(cls, port: int, name: str, path: str = "/ws", source: str = "127.0.0.1") -> User:
+    async def join(
+        cls,
+        port: int,
+        name: str,
+        path: str = "/ws",
+        source: str = "127.0.0.1",
+        resume: str | None = None,
+    ) -> User:
         ws = await connect(f"ws://127.0.0.1:{port}{path}", local_addr=(source, 0))
         user = cls(ws)
         hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": "user", "name": name}
+        if resume is not None:
+            hello["resume"] = resume
         await ws.send(json.dumps(hello))
         await until(lambda: user.welcome is not None or user.errors(), 60.0)
         if user.welcome is not None:  # its hand reports a state every 25 ms, as a client's
@@ -235,6 +244,45 @@ async def test_a_hung_room_process_is_killed_and_restarted_as_a_dead_one(tmp_pat
         assert app.status()["rooms"]["b"]["process"]["hangs"] == 0
         assert app.status()["rooms"][DEFAULT_ROOM]["tick"] >= 60  # from its checkpoint
         for user in (again, other):
+            await user.leave()
+
+
+async def test_users_keep_their_seats_across_a_restart_of_their_rooms_process() -> None:
+    """After their room's process was killed, its users who join again with their resume
+    tokens get their user ids and names (the viewers' colours) back; a newcomer gets a new id,
+    and a token from before the last welcome is used up."""
+    async with server() as app:
+        ada = await User.join(app.port, "ada")
+        bob = await User.join(app.port, "bob")
+        first_ada = ada.welcome
+        assert first_ada is not None and bob.welcome is not None
+        # ada's link drops and she resumes once before the crash: her token rotates
+        await ada.leave()
+        ada = await User.join(app.port, "ada", resume=first_ada["resume_token"])
+        assert ada.welcome is not None and ada.welcome["resumed"]
+        await until(lambda: len(ada.patches()) >= 2 and len(bob.patches()) >= 2)
+        await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["resumes"] == 1, 10.0)
+        os.kill(room_pid(app, DEFAULT_ROOM), signal.SIGKILL)
+        for user in (ada, bob):
+            await asyncio.wait_for(user.reader, 30.0)
+            assert [e["code"] for e in user.errors()] == ["room_restarting"]
+
+        old = await User.join(app.port, "ada", resume=first_ada["resume_token"])
+        assert old.welcome is not None and not old.welcome["resumed"]  # used up before
+        assert old.welcome["name"] == "ada-2"  # ada's seat is still held for her
+        ada2 = await User.join(app.port, "ada", resume=ada.welcome["resume_token"])
+        bob2 = await User.join(app.port, "bob", resume=bob.welcome["resume_token"])
+        for before, after in ((ada, ada2), (bob, bob2)):
+            assert before.welcome is not None and after.welcome is not None
+            assert after.welcome["resumed"], after.errors()
+            assert after.welcome["user_id"] == before.welcome["user_id"]
+            assert after.welcome["name"] == before.welcome["name"]
+            await until(lambda u=after: len(u.patches()) >= 2)  # type: ignore[misc]
+        ids = {first_ada["user_id"], bob.welcome["user_id"], old.welcome["user_id"]}
+        assert len(ids) == 3  # the newcomer's id is none of the seats'
+        # /status counts the resumes of both processes (one before the kill, two after)
+        await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["resumes"] == 3, 10.0)
+        for user in (old, ada2, bob2):
             await user.leave()
 
 
@@ -491,3 +539,38 @@ async def test_a_room_in_its_own_process_budgets_each_clients_real_address() -> 
         for ws in waiting:
             await ws.close()
         await other.leave()
+
+
+def test_seats_held_from_a_previous_process_run_out_after_the_hold() -> None:
+    """Sans-I/O: a room given the seats of its previous process (``Room.hold_seats``) gives
+    a seat back within ``RESUME_HOLD_S`` of its start, and not after; new ids go on."""
+    from haptic_collab.server.room import RESUME_HOLD_S, Room
+    from tests.support.rooms import RecordingWorld, hello, texts
+
+    def welcome(room: Room, conn: str, frame: str, now_s: float) -> dict[str, Any]:
+        room.connect(conn, now_s)
+        (msg,) = texts(room.receive(conn, frame, now_s), conn)
+        assert msg["type"] == "welcome", msg
+        return msg
+
+    def resume(name: str, token: str) -> str:
+        msg = json.loads(hello(name))
+        msg["resume"] = token
+        return json.dumps(msg)
+
+    old = Room(RecordingWorld(), SIM_RATE)
+    ada, bob = welcome(old, "c1", hello("ada"), 0.0), welcome(old, "c2", hello("bob"), 0.0)
+    records = old.seat_records()
+    assert "resume_token" not in repr(records) and ada["resume_token"] not in repr(records)
+
+    for start in (100.0, 200.0):
+        new = Room(RecordingWorld(), SIM_RATE)
+        new.hold_seats(*records, start)
+        assert sorted(new.held_seats) == sorted([ada["user_id"], bob["user_id"]])
+        late = start + (RESUME_HOLD_S + 1.0 if start == 200.0 else RESUME_HOLD_S - 1.0)
+        back = welcome(new, "c9", resume("ada", ada["resume_token"]), late)
+        if start == 100.0:  # within the hold: her seat
+            assert back["resumed"] and back["user_id"] == ada["user_id"] and back["name"] == "ada"
+        else:  # after it: a new user, with an id no seat of the old room had
+            assert not back["resumed"] and back["name"] == "ada"
+            assert back["user_id"] not in (ada["user_id"], bob["user_id"])
