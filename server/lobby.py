@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -48,6 +49,7 @@ import tomllib
 import urllib.error
 import urllib.request
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
@@ -223,6 +225,22 @@ def load_servers(path: str | Path) -> list[RoomServer]:
     return out
 
 
+#: Threads of the lobby's own pool for requests to the back end: a back end's blocking HTTP
+#: never waits behind other work of the process's default executor (nor holds it up).
+BACKEND_THREADS = 8
+_POOL: ThreadPoolExecutor | None = None
+
+
+async def _in_pool(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """Run ``fn`` in the lobby's own thread pool (:data:`BACKEND_THREADS`)."""
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(BACKEND_THREADS, thread_name_prefix="lobby-backend")
+    return await asyncio.get_running_loop().run_in_executor(
+        _POOL, functools.partial(fn, *args, **kwargs)
+    )
+
+
 def _http_json(
     method: str,
     url: str,
@@ -301,7 +319,7 @@ class LocalServers:
     async def status(self, server: RoomServer) -> dict[str, Any] | None:
         """A server's ``/status`` (None: it did not answer, or not with a status)."""
         try:
-            code, answer = await asyncio.to_thread(
+            code, answer = await _in_pool(
                 _http_json, "GET", server.url + "/status", timeout_s=self.timeout_s,
                 context=self.context,
             )  # fmt: skip
@@ -538,7 +556,7 @@ class AgonesAllocator:
         body = allocation_request(name, namespace=self.namespace, match_labels=self.match_labels)
         for attempt in range(CONTENTION_RETRIES):
             try:
-                code, answer = await asyncio.to_thread(
+                code, answer = await _in_pool(
                     _http_json, "POST", self.url + "/gameserverallocation", body,
                     timeout_s=self.timeout_s, context=self.context,
                 )  # fmt: skip
@@ -615,6 +633,8 @@ class Lobby:
         Serve https.
     clock : callable
         Unix time [s] (tokens' expiry); ``time.time``.
+    read_timeout_s : float
+        Time a client has to send its whole request [s] (:data:`READ_TIMEOUT_S`).
 
     Raises
     ------
@@ -634,6 +654,7 @@ class Lobby:
         insecure: bool = False,
         ssl_context: ssl.SSLContext | None = None,
         clock: Callable[[], float] = time.time,
+        read_timeout_s: float = READ_TIMEOUT_S,
     ) -> None:
         if not (math.isfinite(token_ttl_s) and 0.0 < token_ttl_s <= MAX_TOKEN_TTL_S):
             raise ValueError(f"token lifetime must be in (0, {MAX_TOKEN_TTL_S:g}] s")
@@ -651,6 +672,7 @@ class Lobby:
         self.auth = auth
         self.ssl_context = ssl_context
         self.clock = clock
+        self.read_timeout_s = float(read_timeout_s)
         self._names: dict[str, _NameLock] = {}
         self._budgets: dict[str, TokenBucket] = {}
         self._placements = asyncio.Semaphore(MAX_PLACEMENTS)
@@ -696,7 +718,7 @@ class Lobby:
                 out = self._answer(HTTPStatus.SERVICE_UNAVAILABLE, "the lobby is busy; try again")
             else:
                 try:
-                    req = await asyncio.wait_for(self._read(reader, address), READ_TIMEOUT_S)
+                    req = await asyncio.wait_for(self._read(reader, address), self.read_timeout_s)
                 except LobbyError as exc:
                     out = self._answer(exc.status, exc.message)
                 except TimeoutError:

@@ -1,0 +1,265 @@
+"""``haptic lobby`` with local room servers: what a user asking for a room by name gets.
+
+Two real room servers run in this process on loopback (``ServerApp``, rooms made on demand from
+a template, room tokens checked with the secret they share with the lobby) and a real lobby in
+front of them; requests are real HTTP. A user asking for a room gets the server already running
+it, else a server with a free room slot where the room now runs, else a clear "no capacity";
+the token it gets joins that room on that server and no other; hostile requests get a clear
+4xx and the lobby goes on serving everybody else.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+import urllib.error
+import urllib.request
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import pytest
+from websockets.asyncio.client import connect
+
+from haptic_collab.server.app import ServerApp
+from haptic_collab.server.lobby import Lobby, LocalServers, RoomServer, load_servers
+from haptic_collab.server.room import Room
+from haptic_collab.server.security import MIN_SECRET_BYTES, RoomTokens, TokenTable
+from tests.support.rooms import RecordingWorld, hello
+
+SECRET = b"q" * MIN_SECRET_BYTES
+SIM_RATE = 20.0
+ASKERS = ThreadPoolExecutor(16, thread_name_prefix="asker")
+USER_TOKEN = "lobby-user-token-0123456789"
+VIEWER_TOKEN = "lobby-viewer-token-0123456789"
+
+
+def room(name: str) -> Room:
+    return Room(RecordingWorld(), SIM_RATE, auth=RoomTokens(name, None, SECRET, time.time))
+
+
+class Templates:
+    """Rooms on demand whose names start with ``prefix`` (a server's ``[room_templates]``)."""
+
+    def __init__(self, prefix: str = "") -> None:
+        self.prefix = prefix
+
+    def allows(self, name: str) -> bool:
+        return name.startswith(self.prefix)
+
+    def build(self, name: str) -> Room:
+        return room(name)
+
+
+@contextlib.asynccontextmanager
+async def servers(*specs: tuple[int, str | None]) -> AsyncIterator[list[ServerApp]]:
+    """Room servers, each (max_rooms, template prefix or None: no rooms on demand)."""
+    apps = [
+        ServerApp(
+            room("default"),
+            "127.0.0.1",
+            0,
+            room_maker=None if prefix is None else Templates(prefix),
+            max_rooms=max_rooms,
+        )
+        for max_rooms, prefix in specs
+    ]
+    for app in apps:
+        await app.start()
+    try:
+        yield apps
+    finally:
+        for app in apps:
+            await app.stop()
+
+
+@contextlib.asynccontextmanager
+async def lobby_of(apps: list[ServerApp], **kw: Any) -> AsyncIterator[Lobby]:
+    backend = LocalServers([RoomServer(f"http://127.0.0.1:{a.port}") for a in apps])
+    lobby = Lobby(backend, SECRET, port=0, **kw)
+    await lobby.start()
+    try:
+        yield lobby
+    finally:
+        await lobby.stop()
+
+
+async def ask(
+    lobby: Lobby, path: str, *, method: str = "GET", body: bytes | None = None, token: str = ""
+) -> tuple[int, dict[str, Any]]:
+    def go() -> tuple[int, dict[str, Any]]:
+        req = urllib.request.Request(
+            f"http://127.0.0.1:{lobby.port}{path}", data=body, method=method
+        )
+        if token:
+            req.add_header("Authorization", f"Bearer {token}")
+        try:
+            with urllib.request.urlopen(req, timeout=10) as r:
+                return r.status, json.loads(r.read())
+        except urllib.error.HTTPError as exc:
+            return exc.code, json.loads(exc.read())
+
+    # threads of the test's own: the servers build rooms in the default executor
+    return await asyncio.get_running_loop().run_in_executor(ASKERS, go)
+
+
+async def welcome(url: str, token: str | None, role: str = "user") -> dict[str, Any]:
+    """The first frame a client gets after its hello with ``token`` (welcome or error)."""
+    async with connect(url) as ws:
+        msg = json.loads(hello("A", role))
+        if token is not None:
+            msg["token"] = token
+        await ws.send(json.dumps(msg))
+        return json.loads(await asyncio.wait_for(ws.recv(), 10.0))
+
+
+def port_of(url: str) -> int:
+    return int(url.split("://", 1)[1].split("/", 1)[0].rsplit(":", 1)[1])
+
+
+async def test_a_new_room_goes_where_slots_are_free_and_is_found_there_again() -> None:
+    async with servers((2, ""), (4, "")) as (a, b), lobby_of([a, b]) as lobby:
+        status, answer = await ask(lobby, "/rooms/lab-1")
+        assert status == 200, answer
+        # b has three free slots, a one: the room is made on b, and b runs it now
+        assert answer["url"] == f"ws://127.0.0.1:{b.port}/rooms/lab-1/ws"
+        assert "lab-1" in b.status()["rooms"] and "lab-1" not in a.status()["rooms"]
+        # the token joins that room as a user; without it, or in another room, it does not
+        got = await welcome(answer["url"], answer["token"])
+        assert got["type"] == "welcome"
+        assert (await welcome(answer["url"], None))["code"] == "unauthorized"
+        other = f"ws://127.0.0.1:{b.port}/rooms/lab-2/ws"
+        assert (await welcome(other, answer["token"]))["code"] == "unauthorized"
+        # asked again, by anyone: the same server (it runs the room), not a new room elsewhere
+        for _ in range(2):
+            assert (await ask(lobby, "/rooms/lab-1"))[1]["url"] == answer["url"]
+        assert "lab-1" not in a.status()["rooms"]
+        # a viewer's token watches, and the viewer page opens from the URL the lobby gives
+        status, view = await ask(lobby, "/rooms/lab-1", method="POST", body=b'{"role": "viewer"}')
+        assert status == 200 and view["role"] == "viewer"
+        assert (await welcome(view["url"], view["token"], role="user"))["code"] == "unauthorized"
+        assert (await welcome(view["url"], view["token"], role="viewer"))["type"] == "welcome"
+        page = view["viewer"].split("#", 1)[0]
+        assert page == f"http://127.0.0.1:{b.port}/rooms/lab-1/"
+
+        def fetch() -> tuple[int, bytes]:
+            with urllib.request.urlopen(page, timeout=10) as r:
+                return r.status, r.read()
+
+        code, html = await asyncio.to_thread(fetch)  # the server runs on this event loop
+        assert code == 200 and b"<html" in html.lower()
+
+
+async def test_many_users_asking_at_once_for_a_new_room_make_it_once() -> None:
+    async with servers((3, ""), (3, "")) as (a, b), lobby_of([a, b]) as lobby:
+        answers = await asyncio.gather(*(ask(lobby, "/rooms/seminar") for _ in range(6)))
+        assert [s for s, _ in answers] == [200] * 6
+        assert len({x["url"] for _, x in answers}) == 1
+        holders = [app for app in (a, b) if "seminar" in app.status()["rooms"]]
+        assert len(holders) == 1
+        assert lobby.backend.made == [(f"http://127.0.0.1:{holders[0].port}", "seminar")]  # type: ignore[attr-defined]
+
+
+async def test_full_servers_say_no_capacity_and_templates_decide_which_names() -> None:
+    # a: only "lab-" names on demand, one free slot; b: no rooms on demand at all
+    async with servers((2, "lab-"), (4, None)) as (a, b), lobby_of([a, b]) as lobby:
+        status, answer = await ask(lobby, "/rooms/ward-1")
+        assert status == 404 and "none may make a room of that name" in answer["error"]
+        assert (await ask(lobby, "/rooms/lab-1"))[0] == 200
+        status, answer = await ask(lobby, "/rooms/lab-2")  # a's last slot is taken
+        assert status == 503 and "no room server has a free room slot" in answer["error"]
+        # the default room runs everywhere: the first server that is not draining
+        status, answer = await ask(lobby, "/rooms/default")
+        assert status == 200 and answer["url"] == f"ws://127.0.0.1:{a.port}/ws"
+        await a.drain(grace_s=2.0)
+        status, answer = await ask(lobby, "/rooms/default")
+        assert status == 200 and answer["url"] == f"ws://127.0.0.1:{b.port}/ws"
+        status, answer = await ask(lobby, "/rooms/lab-1")  # its server drains, none makes it
+        assert status == 404
+    async with lobby_of([a]) as lobby:  # nobody answers
+        status, answer = await ask(lobby, "/rooms/lab-1")
+        assert status == 503 and "no room server answers" in answer["error"]
+
+
+async def raw(lobby: Lobby, data: bytes, source: str = "127.0.0.1") -> bytes:
+    """Send ``data`` on a connection from ``source``; the lobby's whole answer."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", lobby.port, local_addr=(source, 0))
+    writer.write(data)
+    with contextlib.suppress(ConnectionError):
+        await writer.drain()
+    try:
+        return await asyncio.wait_for(reader.read(), 20.0)
+    finally:
+        writer.close()
+
+
+def status_of(answer: bytes) -> int:
+    return int(answer.split(b" ", 2)[1])
+
+
+async def test_hostile_requests_get_a_clear_4xx_and_the_lobby_keeps_serving() -> None:
+    async with servers((4, "")) as (a,), lobby_of([a], read_timeout_s=0.5) as lobby:
+        cases = {
+            b"GET /rooms/Bad..Name HTTP/1.1\r\nHost: x\r\n\r\n": 400,
+            b"GET /rooms/" + b"a" * 40 + b" HTTP/1.1\r\n\r\n": 400,
+            b"GET /rooms/lab?role=admin HTTP/1.1\r\n\r\n": 400,
+            b"POST /rooms/lab HTTP/1.1\r\nContent-Length: 9\r\n\r\nnot json!": 400,
+            b'POST /rooms/lab HTTP/1.1\r\nContent-Length: 17\r\n\r\n{"role": "owner"}': 400,
+            b"POST /rooms/lab HTTP/1.1\r\nContent-Length: 99999999\r\n\r\n": 413,
+            b"POST /rooms/lab HTTP/1.1\r\nTransfer-Encoding: chunked\r\n\r\n": 411,
+            b"GET /rooms/lab HTTP/1.1\r\nX: " + b"y" * 20000 + b"\r\n\r\n": 431,
+            b"DELETE /rooms/lab HTTP/1.1\r\n\r\n": 405,
+            b"GET /etc/passwd HTTP/1.1\r\n\r\n": 404,
+            b"\x16\x03\x01 garbage \r\n\r\n": 400,
+            b"GET /rooms/lab HTTP/1.1\r\nHost: x\r\n": 408,  # never finishes its headers
+        }
+        for data, want in cases.items():
+            answer = await raw(lobby, data)
+            assert status_of(answer) == want, (data[:40], answer[:200])
+            assert b'"error"' in answer
+        assert "lab" not in a.status()["rooms"]  # nothing above made a room
+        # a flood from one address is cut off at its budget; another address is still served
+        codes = [status_of(await raw(lobby, b"GET /healthz HTTP/1.1\r\n\r\n", "127.0.0.2"))
+                 for _ in range(30)]  # fmt: skip
+        assert 200 in codes and codes[-1] == 429 and codes.count(429) >= 5
+        status, answer = await ask(lobby, "/rooms/lab")
+        assert status == 200 and answer["url"].endswith("/rooms/lab/ws")
+
+
+async def test_a_lobby_with_tokens_gives_a_viewer_token_only_viewer_rooms(tmp_path: Path) -> None:
+    table = TokenTable({USER_TOKEN: ("user", None), VIEWER_TOKEN: ("viewer", None)})
+    async with servers((4, "")) as (a,), lobby_of([a], auth=table) as lobby:
+        assert (await ask(lobby, "/rooms/lab"))[0] == 401
+        assert (await ask(lobby, "/rooms/lab", token="not-a-token-at-all-000"))[0] == 401
+        status, answer = await ask(lobby, "/rooms/lab", token=VIEWER_TOKEN)
+        assert status == 403 and "only watch" in answer["error"]
+        status, answer = await ask(lobby, "/rooms/lab?role=viewer", token=VIEWER_TOKEN)
+        assert status == 200 and answer["role"] == "viewer"
+        assert (await ask(lobby, "/rooms/lab", token=USER_TOKEN))[0] == 200
+
+
+def test_off_loopback_the_lobby_wants_tokens_and_reads_its_servers_file(tmp_path: Path) -> None:
+    backend = LocalServers([RoomServer("http://127.0.0.1:1")])
+    with pytest.raises(ValueError, match="token-file"):
+        Lobby(backend, SECRET, host="0.0.0.0")
+    Lobby(backend, SECRET, host="0.0.0.0", insecure=True)  # said on purpose
+    with pytest.raises(ValueError, match="at least"):
+        Lobby(backend, b"short", port=0)
+    f = tmp_path / "servers.toml"
+    f.write_text(
+        '[[servers]]\nurl = "http://room-a:8765"\npublic = "ws://localhost:8765"\n'
+        '[[servers]]\nurl = "https://room-b:8765"\n'
+    )
+    a, b = load_servers(f)
+    assert a.bases == ("ws://localhost:8765", "http://localhost:8765")
+    assert b.bases == ("wss://room-b:8765", "https://room-b:8765")
+    assert RoomServer.parse("http://x:1=wss://lab.example:443").bases[0] == "wss://lab.example:443"
+    for bad in ("ftp://x", "x:8765", "http://x:1=nope"):
+        with pytest.raises(ValueError):
+            RoomServer.parse(bad)
+    f.write_text("servers = 3\n")
+    with pytest.raises(ValueError, match=r"\[\[servers\]\]"):
+        load_servers(f)

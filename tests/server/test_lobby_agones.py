@@ -1,0 +1,158 @@
+"""``haptic lobby`` on Agones: each room name allocated once, through the allocator's REST API.
+
+The lobby runs in this process against a stand-in allocator (tests/support/agones_allocator.py,
+built from Agones' allocation swagger: it validates every request and answers as the allocator
+does), never a mock of the lobby's own code. What a user notices: asking for a room gives the
+address and port of the GameServer that runs it, the same one every time, with a token that
+server accepts for that room; new rooms fill an allocated server's free slots before a Ready one
+is taken; two users asking at once for a new room end up on one server.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+import urllib.error
+import urllib.request
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import pytest
+
+from haptic_collab.server.lobby import AgonesAllocator, Lobby, allocation_request
+from haptic_collab.server.security import MIN_SECRET_BYTES, check_room_token
+from tests.support.agones_allocator import Allocator, GameServer
+
+SECRET = b"k" * MIN_SECRET_BYTES
+ASKERS = ThreadPoolExecutor(16, thread_name_prefix="asker")
+FLEET = {"agones.dev/fleet": "haptic-collab"}
+
+
+def fleet(n: int, capacity: int = 2) -> list[GameServer]:
+    return [
+        GameServer(
+            f"haptic-collab-{i}",
+            port=7000 + i,
+            labels=dict(FLEET),
+            lists={"rooms": {"capacity": capacity, "values": []}},
+        )
+        for i in range(n)
+    ]
+
+
+async def ask(lobby: Lobby, path: str) -> tuple[int, dict[str, Any]]:
+    def get() -> tuple[int, dict[str, Any]]:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{lobby.port}{path}", timeout=10) as r:
+                return r.status, json.loads(r.read())
+        except urllib.error.HTTPError as exc:
+            return exc.code, json.loads(exc.read())
+
+    return await asyncio.get_running_loop().run_in_executor(ASKERS, get)
+
+
+class running:
+    """A lobby on a free port with the Agones back end, for ``async with``."""
+
+    def __init__(self, allocator_url: str) -> None:
+        backend = AgonesAllocator(allocator_url, namespace="labs", match_labels=FLEET)
+        self.lobby = Lobby(backend, SECRET, port=0)
+
+    async def __aenter__(self) -> Lobby:
+        await self.lobby.start()
+        return self.lobby
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.lobby.stop()
+
+
+async def test_a_room_is_allocated_once_and_found_again_on_the_same_server() -> None:
+    with Allocator(fleet(3)) as alloc:
+        async with running(alloc.url) as lobby:
+            status, first = await ask(lobby, "/rooms/anatomy-1?role=user")
+            assert status == 200, first
+            assert first["url"] == "ws://127.0.0.1:7000/rooms/anatomy-1/ws"
+            assert first["server"] == "haptic-collab-0"
+            assert alloc.holding("anatomy-1") == ["haptic-collab-0"]
+            assert alloc.state("haptic-collab-0") == "Allocated"
+            # the token is for that room and role, signed with the shared secret
+            entry = check_room_token(first["token"], SECRET, "anatomy-1", time.time())
+            assert entry is not None and entry.role == "user"
+            assert check_room_token(first["token"], SECRET, "anatomy-2", time.time()) is None
+            assert first["expires"] > time.time() + 60
+            assert first["viewer"].startswith("http://127.0.0.1:7000/rooms/anatomy-1/#token=")
+
+            status, again = await ask(lobby, "/rooms/anatomy-1?role=viewer")
+            assert status == 200 and again["url"] == first["url"]
+            assert (
+                check_room_token(again["token"], SECRET, "anatomy-1", time.time()).role == "viewer"
+            )  # type: ignore[union-attr]
+            # a second room fills the allocated server's free slot; a third takes a Ready one
+            _, second = await ask(lobby, "/rooms/anatomy-2")
+            _, third = await ask(lobby, "/rooms/anatomy-3")
+            assert second["server"] == "haptic-collab-0" and third["server"] == "haptic-collab-1"
+            assert alloc.holding("anatomy-1") == ["haptic-collab-0"]  # never listed twice
+            assert alloc.state("haptic-collab-2") == "Ready"
+    # every request the lobby sent is what the swagger describes
+    assert alloc.calls and all(not c.errors for c in alloc.calls), [c.errors for c in alloc.calls]
+    assert {c.body["namespace"] for c in alloc.calls} == {"labs"}
+
+
+async def test_two_users_asking_at_once_for_a_new_room_end_on_one_server() -> None:
+    body = allocation_request("new-room", match_labels=FLEET)
+    # the stand-in matches on a lagging view, as the allocator's cache does: two requests sent
+    # straight to it at once for a new name land on two servers
+    with Allocator(fleet(3), lag_s=0.3) as alloc:
+
+        def post() -> dict[str, Any]:
+            req = urllib.request.Request(
+                alloc.url + "/gameserverallocation",
+                data=json.dumps(body).encode(),
+                headers={"Content-Type": "application/json"},
+                method="POST",
+            )
+            with urllib.request.urlopen(req, timeout=10) as r:
+                return json.loads(r.read())
+
+        straight = await asyncio.gather(*(asyncio.to_thread(post) for _ in range(2)))
+        assert {a["gameServerName"] for a in straight} == {"haptic-collab-0", "haptic-collab-1"}
+        assert len(alloc.holding("new-room")) == 2
+    # through the lobby, requests for one name wait for each other: one server
+    with Allocator(fleet(3), lag_s=0.3) as alloc:
+        async with running(alloc.url) as lobby:
+            answers = await asyncio.gather(*(ask(lobby, "/rooms/new-room") for _ in range(4)))
+            assert [s for s, _ in answers] == [200] * 4
+            assert len({a["url"] for _, a in answers}) == 1
+            assert alloc.holding("new-room") == ["haptic-collab-0"]
+            assert alloc.state("haptic-collab-1") == "Ready"
+            # other names are not held up behind it: each is placed on its own
+            _, other = await ask(lobby, "/rooms/other-room")
+            assert other["server"] == "haptic-collab-0"
+
+
+async def test_no_game_server_free_is_a_clear_503_and_no_allocator_a_502() -> None:
+    full = fleet(1, capacity=1)
+    full[0].state, full[0].lists["rooms"]["values"] = "Allocated", ["taken"]
+    with Allocator(full) as alloc:
+        async with running(alloc.url) as lobby:
+            status, answer = await ask(lobby, "/rooms/lab")
+            assert status == 503 and "no game server free" in answer["error"]
+            assert alloc.calls[-1].status == 429  # ResourceExhausted, as the allocator says it
+            status, answer = await ask(lobby, "/rooms/taken")  # the one it runs: found
+            assert status == 200 and answer["server"] == "haptic-collab-0"
+    async with running(alloc.url) as lobby:  # the allocator is gone
+        status, answer = await ask(lobby, "/rooms/lab")
+        assert status == 502 and "cannot be reached" in answer["error"]
+        assert (await ask(lobby, "/healthz"))[0] == 200  # and the lobby is still up
+
+
+@pytest.mark.parametrize(
+    ("address", "ports", "why"),
+    [(None, [{"name": "default", "port": 7000}], "no address"), ("10.0.0.1", [], "no port")],
+)
+def test_an_allocation_without_an_address_or_port_is_a_bad_gateway(address, ports, why) -> None:
+    backend = AgonesAllocator("http://127.0.0.1:1")
+    with pytest.raises(Exception, match="no address or port") as info:
+        backend.placement("lab", {"gameServerName": "gs", "address": address, "ports": ports})
+    assert info.value.status == 502, why  # type: ignore[attr-defined]
