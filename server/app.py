@@ -853,7 +853,14 @@ class ServerApp:
     @staticmethod
     def _room_status(room: AnyRoom) -> dict[str, Any]:
         process = (
-            {"process": {"pid": room.pid, "restarts": room.restarts, "hangs": room.hangs}}
+            {
+                "process": {
+                    "pid": room.pid,
+                    "restarts": room.restarts,
+                    "hangs": room.hangs,
+                    "start_s": room.start_s,
+                }
+            }
             if isinstance(room, RoomProxy)
             else {}
         )

@@ -502,6 +502,10 @@ class RoomProxy:
         self.restarts = 0
         #: How many times its process was found hung and killed (:data:`HANG_S`).
         self.hangs = 0
+        #: How long [s] its process's latest start took, from the spawn until it had built
+        #: (or restored) its room and started ticking (None before it has).
+        self.start_s: float | None = None
+        self._spawned = math.inf
         #: How long [s] it may stay silent or overdue before it counts as hung.
         self.hang_s = HANG_S
         #: Set once it must not be started again (stop, drain).
@@ -603,6 +607,7 @@ class RoomProxy:
                 await asyncio.to_thread(snapshots.write, self.snapshot_dir, snap)
             except OSError:
                 log.exception("room %r: its checkpoint could not be written", self.name)
+        self._spawned = loop.time()
         try:
             ctx = _context()
             ours, theirs = ctx.Pipe(duplex=True)
@@ -740,6 +745,7 @@ class RoomProxy:
             events.job()
         elif kind == "ready":
             self.pid, self.object_info, self.tick_count = msg[1], msg[2], msg[3]
+            self.start_s = asyncio.get_running_loop().time() - self._spawned
             if self.ready is not None and not self.ready.done():
                 self.ready.set_result(None)
         elif kind == "failed":

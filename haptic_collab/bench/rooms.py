@@ -1,20 +1,34 @@
-"""``python -m haptic_collab.bench.rooms``: one FEM room beside balloon rooms, one process or many.
+"""``python -m haptic_collab.bench.rooms``: many rooms, in one process or a process each, side by side.
 
-Runs the same server twice, side by side in one run: all rooms in one process, then each room in
-a process of its own (``haptic server --room-processes``). The default room is a FEM solid
-(``--object fem``, the liver preset) and ``balloon_rooms`` balloon rooms (``[rooms.bN]``) beside
-it; each room has ``users`` scripted users (a ``state`` every 25 ms, the hand resting 3 mm into
-the top of the object, so the FEM room solves its contacts every tick). After a warm-up, a window
-of ``duration_s`` measures per room: each user's patch rate [Hz] (patches it received / window)
-and the tick lateness p99 [ms] (``haptic_room_tick_lateness_seconds`` of ``/metrics``, the
-window's difference, interpolated within its bucket). With room processes it then kills one
-balloon room's process (``kill -9``) and measures the other rooms' patch rates over the next
-``kill_window_s`` and the time from the kill until a new user of the killed room is welcomed.
+Runs the same server twice in each of ``repeats`` runs, the two modes alternating so that the
+shared machine's load falls on both: all rooms in one process, then each room in a process of
+its own (``haptic server --room-processes``). The default room is a FEM solid (``--object fem``,
+the liver preset) and ``balloon_rooms`` balloon rooms (``[rooms.bN]``) are beside it (by default
+1 + 7: eight rooms). Each room has ``users`` users run as ``haptic bench load`` runs them
+(:mod:`haptic_collab.bench.load_clients`: a 1 kHz device's ``hello``, resting 2 mm in or pressing
+gently, a ``state`` twice per simulation tick with the force of a proportional local model
+against its last patch, a ``ping`` every 0.5 s), spread over ``workers`` worker processes, each
+with a loopback source address of its own (127.0.0.2, .3, ...) and niced +5, as the users' own
+machines. A user whose connection closes joins again after :data:`REJOIN_DELAY_S` with the
+resume token of its last welcome, as ``haptic client`` does.
 
-Both modes run ``repeats`` times, alternating, so that the shared machine's load falls on both;
-the summary gives medians over the runs (and rooms, users) and the ratio of the balloon rooms'
-lateness p99, one process over a process per room. The lateness histogram's buckets are 0.5, 1,
-2, 5, 10, 20, 50 ms...: a p99 is exact only to its bucket.
+After every user joined and a warm-up, a window of ``duration_s`` measures per room: each
+user's patch rate [Hz] and its share of the simulation rate, the tick cost p50 / p99 [ms]
+(``/status``: the room's last 512 ticks at the window's end), the tick lateness p99 [ms]
+(``haptic_room_tick_lateness_seconds`` of ``/metrics``, the window's difference, interpolated
+within its bucket: buckets 0.5, 1, 2, 5, 10, 20, 50 ms..., so a p99 is exact only to its bucket)
+and the overruns in the window; the machine's CPU use over the window (``/proc/stat``) and load
+average say how busy the shared machine was. With room processes it then kills one balloon room's
+process (``kill -9``) and measures the other rooms' patch rates over the next ``kill_window_s``,
+the time from the kill until a new user of that room gets its first patch (joinable again), and
+its own users' way back (their first patch after the kill, and whether their resume tokens gave
+them their user ids back). Memory: resident (RSS) and proportional (PSS: pages shared with the
+fork server or another process split between them) set of the server and of each room's process.
+
+Then, per object (balloon, FEM) and mode, a server with that one room is started
+``repeats`` times: how long until it listens with its room ticking (``haptic server`` prints
+its address only then) and its memory, and with a process per room how long the room's process
+took to start (``/status``'s ``process.start_s``).
 
 A benchmark driver (clocks, processes, sockets); nothing here is imported by the server. The
 machine is shared: report medians and ratios of runs side by side, never thresholds.
@@ -26,86 +40,241 @@ import argparse
 import asyncio
 import contextlib
 import json
+import multiprocessing as mp
 import os
+import queue
 import signal
 import statistics
 import sys
 import tempfile
 import time
 import urllib.request
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import connect
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
+from haptic_collab.bench.load_clients import (
+    JOIN_TIMEOUT_S,
+    PING_INTERVAL_S,
+    STATES_PER_TICK,
+    ClientSpec,
+    client_specs,
+    user_hello,
+    user_spot,
+    user_state,
+)
 from haptic_collab.server_process import ServerProcess
-from haptic_collab.shared.protocol import PROTOCOL_VERSION
 
-#: The hand's depth into the top of the object [m].
-DEPTH_M = 0.003
-#: A user's state period [s].
-STATE_PERIOD_S = 0.025
+#: How long [s] a user whose connection closed waits before it joins again.
+REJOIN_DELAY_S = 0.25
+#: How long [s] the coordinator waits for every user to join.
+READY_TIMEOUT_S = 120.0
+MODES = (("one_process", ()), ("room_processes", ("--room-processes",)))
 
 
-@dataclass
-class _User:
+@dataclass(frozen=True)
+class _Spec:
     room: str
-    patches: list[float] = field(default_factory=list)
-    errors: list[str] = field(default_factory=list)
-    closed: bool = False
+    client: ClientSpec
 
 
 def _path(room: str) -> str:
     return "/ws" if room == "default" else f"/rooms/{room}/ws"
 
 
-async def _user(port: int, room: str, name: str, user: _User, stop: asyncio.Event) -> None:
-    """A scripted user: join, then a state every 25 ms with the hand 3 mm into the top."""
-    async with connect(f"ws://127.0.0.1:{port}{_path(room)}") as ws:
-        hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": "user", "name": name}
-        await ws.send(json.dumps(hello))
-        welcome = None
-        while welcome is None:
-            msg = json.loads(await asyncio.wait_for(ws.recv(), 120.0))
-            if msg["type"] == "welcome":
-                welcome = msg
-            elif msg["type"] == "error":
-                raise RuntimeError(f"{name}: {msg}")
-        top = float(welcome["object"]["bounds_max_m"][2])
-
-        async def read() -> None:
-            with contextlib.suppress(ConnectionClosed):
-                async for frame in ws:
-                    if isinstance(frame, str):
-                        msg = json.loads(frame)
-                        if msg["type"] == "patch":
-                            user.patches.append(time.monotonic())
-                        elif msg["type"] == "error":
-                            user.errors.append(str(msg.get("code")))
-            user.closed = True
-
-        reader = asyncio.create_task(read())
-        seq = 0
-        with contextlib.suppress(ConnectionClosed):
-            while not stop.is_set() and not user.closed:
-                seq += 1
-                state = {
-                    "type": "state",
-                    "seq": seq,
-                    "probe_m": [0.0, 0.0, top - DEPTH_M],
-                    "force_n": [0.0, 0.0, 1.0],
-                    "penetration_m": DEPTH_M,
-                    "in_contact": True,
-                    "k_h": 300.0,
-                }
-                await ws.send(json.dumps(state))
-                await asyncio.sleep(STATE_PERIOD_S)
-        reader.cancel()
+# ------------------------------------------------------------------------- the users' workers
+async def _user(port: int, spec: _Spec, rec: dict[str, Any], source: str | None) -> None:
+    """One user, kept connected (joining again with its resume token) until cancelled."""
+    url = f"ws://127.0.0.1:{port}{_path(spec.room)}"
+    token: str | None = None
+    while True:
+        try:
+            async with connect(
+                url,
+                local_addr=(source, 0) if source else None,
+                open_timeout=JOIN_TIMEOUT_S,
+                max_size=64 * 1024 * 1024,
+            ) as ws:
+                hello = user_hello(spec.client)
+                if token is not None:
+                    hello["resume"] = token
+                await ws.send(json.dumps(hello))
+                welcome = json.loads(await asyncio.wait_for(ws.recv(), JOIN_TIMEOUT_S))
+                if welcome.get("type") != "welcome":
+                    rec["errors"].append((time.monotonic(), str(welcome.get("code"))))
+                    raise ConnectionError("refused")
+                now = time.monotonic()
+                rec["welcomes"].append((now, welcome["user_id"], bool(welcome.get("resumed"))))
+                token = welcome.get("resume_token")
+                await _user_session(ws, spec, rec, welcome)
+        except (OSError, TimeoutError, InvalidHandshake, ConnectionClosed, ValueError):
+            pass
+        rec["drops"].append(time.monotonic())
+        await asyncio.sleep(REJOIN_DELAY_S)
 
 
+async def _user_session(ws: Any, spec: _Spec, rec: dict[str, Any], welcome: dict[str, Any]) -> None:
+    """States twice per tick and pings every 0.5 s; every patch's arrival time recorded."""
+    sim_rate = float(welcome["sim_rate_hz"])
+    spot = user_spot(spec.client, welcome["object"])
+    patch: dict[str, Any] | None = None
+    pings: dict[int, float] = {}
+    rtt: list[float] = []
+
+    async def receive() -> None:
+        nonlocal patch
+        async for frame in ws:
+            if isinstance(frame, bytes):
+                continue
+            msg = json.loads(frame)
+            kind = msg.get("type")
+            now = time.monotonic()
+            if kind == "patch":
+                patch = msg
+                rec["patches"].append(now)
+            elif kind == "pong":
+                sent = pings.pop(int(msg.get("id", -1)), None)
+                if sent is not None:
+                    rtt.append((now - sent) * 1e3)
+            elif kind == "error":
+                rec["errors"].append((now, str(msg.get("code"))))
+
+    receiver = asyncio.create_task(receive())
+    loop = asyncio.get_running_loop()
+    period = 1.0 / (STATES_PER_TICK * sim_rate)
+    t_start = t_next = next_ping = loop.time()
+    seq = ping_id = 0
+    try:
+        while not receiver.done():
+            now = loop.time()
+            seq += 1
+            state = user_state(
+                spec.client, spot, now - t_start, patch, seq, rtt[-1] if rtt else None
+            )
+            await ws.send(json.dumps(state))
+            if now >= next_ping:
+                ping_id += 1
+                pings[ping_id] = time.monotonic()
+                await ws.send(json.dumps({"type": "ping", "id": ping_id, "t_client_s": now}))
+                next_ping = now + PING_INTERVAL_S
+            t_next += period
+            delay = t_next - loop.time()
+            if delay < -period:  # far behind (a stalled process): skip, never send in a burst
+                t_next = loop.time() + period
+                delay = period
+            await asyncio.sleep(max(delay, 0.0))
+    finally:
+        receiver.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await receiver
+
+
+async def _worker_async(
+    port: int, specs: list[_Spec], source: str | None, to_coord: Any, inbox: Any
+) -> None:
+    recs = [
+        {
+            "room": s.room,
+            "name": s.client.name,
+            "patches": [],
+            "errors": [],
+            "welcomes": [],
+            "drops": [],
+        }
+        for s in specs
+    ]
+    tasks = []
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + READY_TIMEOUT_S
+    for spec, rec in zip(specs, recs, strict=True):
+        tasks.append(asyncio.create_task(_user(port, spec, rec, source)))
+        while not rec["welcomes"] and loop.time() < deadline:  # one join at a time
+            await asyncio.sleep(0.02)
+    to_coord.put(("ready", sum(1 for r in recs if r["welcomes"])))
+    await loop.run_in_executor(None, inbox.get)  # "stop"
+    for t in tasks:
+        t.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+    to_coord.put(("result", recs))
+
+
+def _worker_main(
+    port: int, specs: list[_Spec], source: str | None, to_coord: Any, inbox: Any
+) -> None:
+    """Entry point of a users' worker process (spawned; niced +5 as ``haptic bench load``'s)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(5)
+    try:
+        asyncio.run(_worker_async(port, specs, source, to_coord, inbox))
+    except BaseException as exc:
+        to_coord.put(("failed", f"{type(exc).__name__}: {exc}"))
+        raise
+
+
+class _Workers:
+    """The users' worker processes of one session."""
+
+    def __init__(self, port: int, rooms: list[str], users: int, workers: int) -> None:
+        specs = [_Spec(r, c) for r in rooms for c in client_specs(users, 0)]
+        specs = [_Spec(s.room, _renamed(s.client, f"{s.room}-{s.client.name}")) for s in specs]
+        ctx = mp.get_context("spawn")
+        self.to_coord: Any = ctx.Queue()
+        self.inboxes = [ctx.Queue() for _ in range(workers)]
+        linux = sys.platform.startswith("linux")
+        self.procs = [
+            ctx.Process(
+                target=_worker_main,
+                args=(
+                    port,
+                    specs[w::workers],
+                    f"127.0.0.{2 + w}" if linux else None,
+                    self.to_coord,
+                    self.inboxes[w],
+                ),
+                daemon=True,
+            )
+            for w in range(workers)
+        ]
+        self.expected = len(specs)
+        for p in self.procs:
+            p.start()
+
+    def wait_ready(self) -> int:
+        joined = 0
+        for _ in self.procs:
+            kind, *rest = self.to_coord.get(timeout=READY_TIMEOUT_S + 30.0)
+            if kind == "failed":
+                raise RuntimeError(f"a users' worker failed: {rest[0]}")
+            joined += int(rest[0])
+        return joined
+
+    def stop(self) -> list[dict[str, Any]]:
+        for inbox in self.inboxes:
+            inbox.put("stop")
+        recs: list[dict[str, Any]] = []
+        for _ in self.procs:
+            try:
+                kind, *rest = self.to_coord.get(timeout=60.0)
+            except queue.Empty:
+                break
+            if kind == "result":
+                recs += rest[0]
+        for p in self.procs:
+            p.join(10.0)
+            if p.is_alive():
+                p.kill()
+        return recs
+
+
+def _renamed(spec: ClientSpec, name: str) -> ClientSpec:
+    return ClientSpec(spec.role, name, spec.anchor, spec.slot, spec.press)
+
+
+# ------------------------------------------------------------------------- readings
 def _get(port: int, path: str) -> str:
     with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=30) as res:
         return str(res.read().decode())
@@ -140,96 +309,188 @@ def _p99_ms(before: list[tuple[float, float]], after: list[tuple[float, float]])
     return None
 
 
-async def _window(users: list[_User], seconds: float) -> dict[str, list[float]]:
-    """Per room, each user's patch rate [Hz] over the next ``seconds``."""
-    t0 = time.monotonic()
-    await asyncio.sleep(seconds)
-    t1 = time.monotonic()
-    rates: dict[str, list[float]] = {}
-    for u in users:
-        n = sum(1 for t in u.patches if t0 <= t < t1)
-        rates.setdefault(u.room, []).append(n / (t1 - t0))
-    return rates
+def _memory_mb(pid: int) -> dict[str, float | None]:
+    """Resident (``VmRSS``) and proportional (``Pss``) set of a process [MB] (None: unreadable)."""
+    out: dict[str, float | None] = {"rss": None, "pss": None}
+    for path, key, field_ in (
+        (f"/proc/{pid}/status", "rss", "VmRSS:"),
+        (f"/proc/{pid}/smaps_rollup", "pss", "Pss:"),
+    ):
+        try:
+            with open(path, encoding="ascii") as f:
+                for line in f:
+                    if line.startswith(field_):
+                        out[key] = round(int(line.split()[1]) / 1024.0, 1)
+                        break
+        except (OSError, ValueError):
+            pass
+    return out
+
+
+def _cpu_ticks() -> tuple[int, int] | None:
+    """The machine's (busy, total) CPU jiffies since boot (``/proc/stat``; None elsewhere)."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)
+    return sum(fields) - idle, sum(fields)
+
+
+def _busy(before: tuple[int, int] | None, after: tuple[int, int] | None) -> float | None:
+    if before is None or after is None or after[1] == before[1]:
+        return None
+    return round((after[0] - before[0]) / (after[1] - before[1]), 3)
+
+
+def _rates(
+    recs: list[dict[str, Any]], t0: float, t1: float, rooms: list[str]
+) -> dict[str, list[float]]:
+    """Per room, each user's patch rate [Hz] in [t0, t1)."""
+    out: dict[str, list[float]] = {r: [] for r in rooms}
+    for rec in recs:
+        n = sum(1 for t in rec["patches"] if t0 <= t < t1)
+        out[rec["room"]].append(round(n / (t1 - t0), 2))
+    return out
 
 
 async def _rejoin_s(port: int, room: str, since: float) -> float:
     """Seconds from ``since`` until a new user of ``room`` gets its first patch."""
+    spec = _Spec(room, ClientSpec("user", "probe"))
     while True:
-        user, stop = _User(room), asyncio.Event()
-        task = asyncio.create_task(_user(port, room, "probe", user, stop))
+        rec: dict[str, Any] = {"patches": [], "errors": [], "welcomes": [], "drops": []}
+        task = asyncio.create_task(_user(port, spec, rec, None))
         deadline = time.monotonic() + 5.0
-        while not user.patches and not task.done() and time.monotonic() < deadline:
+        while not rec["patches"] and not rec["drops"] and time.monotonic() < deadline:
             await asyncio.sleep(0.01)
-        stop.set()
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(task, 5.0)
-        if user.patches:
-            return user.patches[0] - since
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await task
+        if rec["patches"]:
+            return float(rec["patches"][0] - since)
         await asyncio.sleep(0.05)
 
 
-def _rss_mb(pid: int) -> float | None:
-    """Resident memory of a process [MB] (``VmRSS``; None when it cannot be read)."""
-    try:
-        with open(f"/proc/{pid}/status", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return round(int(line.split()[1]) / 1024.0, 1)
-    except (OSError, ValueError):
-        pass
-    return None
-
-
-async def _session(
+# ------------------------------------------------------------------------- one session
+async def _measure(
     port: int, rooms: list[str], opts: argparse.Namespace, kill: bool, server_pid: int
-) -> dict:
-    users = [_User(r) for r in rooms for _ in range(opts.users)]
-    stop = asyncio.Event()
-    tasks = [
-        asyncio.create_task(_user(port, u.room, f"{u.room}-{i}", u, stop))
-        for i, u in enumerate(users)
-    ]
+) -> tuple[dict[str, Any], tuple[float, float], tuple[float, float] | None, str | None]:
+    """The window's readings (and the kill's), in the coordinator while the workers run."""
+    await asyncio.sleep(opts.warmup_s)
     out: dict[str, Any] = {}
-    try:
-        await asyncio.sleep(opts.warmup_s)
-        before = await asyncio.to_thread(_lateness, port)
-        rates = await _window(users, opts.duration_s)
-        after = await asyncio.to_thread(_lateness, port)
-        out["rooms"] = {
-            r: {
-                "patch_rate_hz": [round(x, 2) for x in rates[r]],
-                "lateness_ms_p99": _p99_ms(before[r], after[r]),
-            }
-            for r in rooms
+    status0 = json.loads(await asyncio.to_thread(_get, port, "/status"))
+    before = await asyncio.to_thread(_lateness, port)
+    cpu0, t0 = _cpu_ticks(), time.monotonic()
+    await asyncio.sleep(opts.duration_s)
+    t1, cpu1 = time.monotonic(), _cpu_ticks()
+    after = await asyncio.to_thread(_lateness, port)
+    status = json.loads(await asyncio.to_thread(_get, port, "/status"))
+    out["machine"] = {"cpu_busy": _busy(cpu0, cpu1), "load_avg": os.getloadavg()}
+    out["rooms"] = {}
+    for r in rooms:
+        st, st0 = status["rooms"][r], status0["rooms"][r]
+        out["rooms"][r] = {
+            "tick_ms_p50": round(st["tick_ms_p50"], 2),
+            "tick_ms_p99": round(st["tick_ms_p99"], 2),
+            "lateness_ms_p99": _p99_ms(before[r], after[r]),
+            "overruns": st["overruns"] - st0["overruns"],
+            "ticks": st["tick"] - st0["tick"],
         }
-        status = json.loads(await asyncio.to_thread(_get, port, "/status"))
-        out["rss_mb"] = {"server": _rss_mb(server_pid)}
-        for r in rooms:
-            process = status["rooms"][r].get("process")
-            if process is not None and process.get("pid") is not None:
-                out["rss_mb"][r] = _rss_mb(int(process["pid"]))
-        if kill:
-            victim = rooms[1]
-            pid = int(status["rooms"][victim]["process"]["pid"])
-            t_kill = time.monotonic()
-            os.kill(pid, signal.SIGKILL)
-            rejoin = asyncio.create_task(_rejoin_s(port, victim, t_kill))
-            during = await _window(users, opts.kill_window_s)
-            out["kill"] = {
-                "room": victim,
-                "others_patch_rate_hz": {
-                    r: [round(x, 2) for x in during[r]] for r in rooms if r != victim
-                },
-                "rejoin_s": round(await asyncio.wait_for(rejoin, 60.0), 3),
-                "killed_users_errors": sorted(
-                    {e for u in users if u.room == victim for e in u.errors}
-                ),
-            }
+    out["memory_mb"] = {"server": _memory_mb(server_pid)}
+    for r in rooms:
+        process = status["rooms"][r].get("process")
+        if process is not None and process.get("pid") is not None:
+            out["memory_mb"][r] = _memory_mb(int(process["pid"]))
+            out["rooms"][r]["start_s"] = process.get("start_s")
+    kill_window = None
+    victim = None
+    if kill:
+        victim = rooms[1]
+        pid = int(status["rooms"][victim]["process"]["pid"])
+        t_kill = time.monotonic()
+        os.kill(pid, signal.SIGKILL)
+        rejoin = asyncio.create_task(_rejoin_s(port, victim, t_kill))
+        await asyncio.sleep(opts.kill_window_s)
+        kill_window = (t_kill, t_kill + opts.kill_window_s)
+        out["kill"] = {"room": victim, "rejoin_s": round(await asyncio.wait_for(rejoin, 60.0), 3)}
+        st = json.loads(await asyncio.to_thread(_get, port, "/status"))["rooms"][victim]
+        out["kill"]["restart_start_s"] = st["process"]["start_s"]
+    return out, (t0, t1), kill_window, victim
+
+
+def _session(
+    port: int, rooms: list[str], opts: argparse.Namespace, kill: bool, server_pid: int
+) -> dict[str, Any]:
+    workers = _Workers(port, rooms, opts.users, opts.workers)
+    recs: list[dict[str, Any]] = []
+    try:
+        joined = workers.wait_ready()
+        out, (t0, t1), kill_window, victim = asyncio.run(
+            _measure(port, rooms, opts, kill, server_pid)
+        )
+        out["joined"], out["expected"] = joined, workers.expected
     finally:
-        stop.set()
-        for t in tasks:
-            t.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        recs = workers.stop()
+    rates = _rates(recs, t0, t1, rooms)
+    for r in rooms:
+        share = [x / opts.sim_rate for x in rates[r]]
+        out["rooms"][r]["patch_rate_hz"] = rates[r]
+        out["rooms"][r]["patch_share_min"] = round(min(share), 4) if share else None
+    out["errors"] = sorted({code for rec in recs for t, code in rec["errors"] if t0 <= t < t1})
+    out["drops_in_window"] = sum(1 for rec in recs for t in rec["drops"] if t0 <= t < t1)
+    if kill_window is not None and victim is not None:
+        k0, k1 = kill_window
+        during = _rates(recs, k0, k1, rooms)
+        out["kill"]["others_patch_rate_hz"] = {r: during[r] for r in rooms if r != victim}
+        back = []
+        for rec in recs:
+            if rec["room"] != victim:
+                continue
+            first = next((t for t in rec["patches"] if t > k0), None)
+            before_ids = [w[1] for w in rec["welcomes"] if w[0] < k0]
+            after = [w for w in rec["welcomes"] if w[0] > k0]
+            back.append(
+                {
+                    "first_patch_after_kill_s": None if first is None else round(first - k0, 3),
+                    "resumed": bool(after) and after[0][2],
+                    "same_user_id": bool(after and before_ids) and after[0][1] == before_ids[-1],
+                    "errors": sorted({c for t, c in rec["errors"] if t >= k0}),
+                }
+            )
+        out["kill"]["victims"] = back
+    return out
+
+
+# ------------------------------------------------------------------------- starting rooms
+def _starts(opts: argparse.Namespace, tmp: Path) -> dict[str, Any]:
+    """Start time and memory of a server with one room, per object and mode (module docstring)."""
+    out: dict[str, Any] = {}
+    for obj in ("balloon", "fem"):
+        cfg = tmp / f"one-{obj}.toml"
+        subdivisions = opts.fem_subdivisions if obj == "fem" else opts.subdivisions
+        cfg.write_text(
+            f'object = "{obj}"\nsubdivisions = {subdivisions}\n'
+            f'volume_cache = "{tmp / "volumes"}"\nsim_rate = {opts.sim_rate:g}\n'
+        )
+        for mode, extra in MODES:
+            runs = []
+            for _ in range(opts.repeats):
+                t = time.monotonic()
+                with ServerProcess("--config", str(cfg), *extra) as server:
+                    listen_s = time.monotonic() - t
+                    time.sleep(1.0)  # a few ticks: its memory as it runs
+                    status = json.loads(_get(server.port, "/status"))
+                    run_: dict[str, Any] = {
+                        "listen_s": round(listen_s, 3),
+                        "server": _memory_mb(server.proc.pid),
+                    }
+                    process = status["rooms"]["default"].get("process")
+                    if process is not None:
+                        run_["room_start_s"] = round(process["start_s"], 3)
+                        run_["room"] = _memory_mb(int(process["pid"]))
+                runs.append(run_)
+            out[f"{obj}/{mode}"] = runs
     return out
 
 
@@ -249,14 +510,16 @@ def _config(path: Path, opts: argparse.Namespace, cache: Path) -> list[str]:
 
 
 def run(opts: argparse.Namespace) -> dict[str, Any]:
-    """Both modes side by side; the result (module docstring)."""
+    """Both modes side by side, then the single-room starts; the result (module docstring)."""
     tmp = Path(tempfile.mkdtemp(prefix="bench-rooms-"))
     cfg = tmp / "rooms.toml"
     rooms = _config(cfg, opts, tmp / "volumes")
     result: dict[str, Any] = {
-        "what": "1 FEM room + balloon rooms, one process vs a process per room",
+        "what": f"1 FEM room + {opts.balloon_rooms} balloon rooms x {opts.users} users, "
+        "one process vs a process per room",
         "sim_rate_hz": opts.sim_rate,
         "users_per_room": opts.users,
+        "workers": opts.workers,
         "duration_s": opts.duration_s,
         "kill_window_s": opts.kill_window_s,
         "fem_subdivisions": opts.fem_subdivisions,
@@ -267,17 +530,21 @@ def run(opts: argparse.Namespace) -> dict[str, Any]:
     runs: list[dict[str, Any]] = []
     for rep in range(opts.repeats):  # the two modes alternate: the machine's load hits both
         run_: dict[str, Any] = {}
-        for mode, extra in (("one_process", []), ("room_processes", ["--room-processes"])):
+        for mode, extra in MODES:
             print(f"[bench rooms] run {rep + 1}: {mode}", file=sys.stderr, flush=True)
+            t = time.monotonic()
             with ServerProcess("--config", str(cfg), *extra) as server:
-                run_[mode] = asyncio.run(
-                    _session(server.port, rooms, opts, bool(extra), server.proc.pid)
-                )
+                listen_s = time.monotonic() - t
+                run_[mode] = _session(server.port, rooms, opts, bool(extra), server.proc.pid)
+                run_[mode]["listen_s"] = round(listen_s, 3)
                 run_[mode]["server_warnings"] = len(server.warnings())
         runs.append(run_)
-    result["load_avg_end"] = os.getloadavg()
     result["runs"] = runs
-    result["summary"] = _summary(runs, rooms)
+    if opts.starts:
+        print("[bench rooms] one-room starts", file=sys.stderr, flush=True)
+        result["starts"] = _starts(opts, tmp)
+    result["load_avg_end"] = os.getloadavg()
+    result["summary"] = _summary(runs, rooms, opts.sim_rate, result.get("starts"))
     return result
 
 
@@ -285,27 +552,36 @@ def _median(xs: list[float]) -> float | None:
     return round(statistics.median(xs), 3) if xs else None
 
 
-def _summary(runs: list[dict[str, Any]], rooms: list[str]) -> dict[str, Any]:
+def _summary(
+    runs: list[dict[str, Any]], rooms: list[str], sim_rate: float, starts: dict[str, Any] | None
+) -> dict[str, Any]:
     """Medians over every run (and every balloon room, every user), and their ratios."""
     balloon = rooms[1:]
     summary: dict[str, Any] = {}
-    for mode in ("one_process", "room_processes"):
+    for mode, _ in MODES:
         per = [run_[mode]["rooms"] for run_ in runs]
-        lat = [r[b]["lateness_ms_p99"] for r in per for b in balloon]
+
+        def med(key: str, names: list[str], per: list[dict[str, Any]] = per) -> float | None:
+            return _median([r[n][key] for r in per for n in names if r[n][key] is not None])
+
+        shares = [r[n]["patch_share_min"] for r in per for n in rooms]
         summary[mode] = {
-            "balloon_lateness_ms_p99_median": _median([x for x in lat if x is not None]),
-            "balloon_patch_rate_hz_median": _median(
-                [x for r in per for b in balloon for x in r[b]["patch_rate_hz"]]
-            ),
-            "balloon_patch_rate_hz_min": min(
-                x for r in per for b in balloon for x in r[b]["patch_rate_hz"]
-            ),
-            "fem_patch_rate_hz_median": _median(
-                [x for r in per for x in r["default"]["patch_rate_hz"]]
-            ),
-            "fem_lateness_ms_p99_median": _median(
-                [r["default"]["lateness_ms_p99"] for r in per if r["default"]["lateness_ms_p99"]]
-            ),
+            "rooms_at_99pct": [
+                sum(1 for n in rooms if (r[n]["patch_share_min"] or 0) >= 0.99) for r in per
+            ],
+            "patch_share_min": min((s for s in shares if s is not None), default=None),
+            "patch_share_min_per_room_median": {
+                n: _median([r[n]["patch_share_min"] for r in per if r[n]["patch_share_min"]])
+                for n in rooms
+            },
+            "balloon_tick_ms_p50_median": med("tick_ms_p50", balloon),
+            "balloon_tick_ms_p99_median": med("tick_ms_p99", balloon),
+            "balloon_lateness_ms_p99_median": med("lateness_ms_p99", balloon),
+            "fem_tick_ms_p50_median": med("tick_ms_p50", ["default"]),
+            "fem_tick_ms_p99_median": med("tick_ms_p99", ["default"]),
+            "fem_lateness_ms_p99_median": med("lateness_ms_p99", ["default"]),
+            "machine_cpu_busy": [run_[mode]["machine"]["cpu_busy"] for run_ in runs],
+            "errors": sorted({e for run_ in runs for e in run_[mode]["errors"]}),
         }
     one, many = summary["one_process"], summary["room_processes"]
     if one["balloon_lateness_ms_p99_median"] and many["balloon_lateness_ms_p99_median"]:
@@ -316,17 +592,36 @@ def _summary(runs: list[dict[str, Any]], rooms: list[str]) -> dict[str, Any]:
     if kills:
         others = [x for k in kills for v in k["others_patch_rate_hz"].values() for x in v]
         summary["kill_others_patch_rate_hz_median"] = _median(others)
-        summary["kill_others_patch_rate_hz_min"] = min(others)
+        summary["kill_others_patch_share_min"] = round(min(others) / sim_rate, 4)
         summary["kill_rejoin_s"] = [k["rejoin_s"] for k in kills]
-        summary["kill_rejoin_s_median"] = _median([k["rejoin_s"] for k in kills])
+        victims = [v for k in kills for v in k["victims"]]
+        summary["kill_victims_back_s"] = [v["first_patch_after_kill_s"] for v in victims]
+        summary["kill_victims_same_user_id"] = sum(v["same_user_id"] for v in victims)
+        summary["kill_victims"] = len(victims)
+    if starts:
+        summary["starts_median"] = {
+            key: {
+                field_: _median([r[field_] for r in rs if r.get(field_) is not None])
+                for field_ in ("listen_s", "room_start_s")
+            }
+            | {
+                f"{who}_{kind}_mb": _median(
+                    [r[who][kind] for r in rs if who in r and r[who][kind] is not None]
+                )
+                for who in ("server", "room")
+                for kind in ("rss", "pss")
+            }
+            for key, rs in starts.items()
+        }
     return summary
 
 
 def parse(argv: list[str] | None = None) -> argparse.Namespace:
     """The options of this bench (``python -m haptic_collab.bench.rooms --help``)."""
     p = argparse.ArgumentParser(prog="python -m haptic_collab.bench.rooms", description=__doc__)
-    p.add_argument("--balloon-rooms", type=int, default=3)
-    p.add_argument("--users", type=int, default=2, help="scripted users per room")
+    p.add_argument("--balloon-rooms", type=int, default=7)
+    p.add_argument("--users", type=int, default=4, help="users per room")
+    p.add_argument("--workers", type=int, default=4, help="the users' worker processes")
     p.add_argument("--sim-rate", type=float, default=20.0)
     p.add_argument("--subdivisions", type=int, default=4, help="of the balloon rooms")
     p.add_argument("--fem-subdivisions", type=int, default=3)
@@ -334,6 +629,9 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--duration-s", type=float, default=20.0)
     p.add_argument("--kill-window-s", type=float, default=5.0)
     p.add_argument("--repeats", type=int, default=3, help="runs of both modes, alternating")
+    p.add_argument(
+        "--no-starts", dest="starts", action="store_false", help="skip the one-room starts"
+    )
     p.add_argument("--json", default=None, help="write the result here (default: stdout)")
     return p.parse_args(argv)
 
