@@ -20,7 +20,8 @@ RUN apt-get update && apt-get install -y --no-install-recommends libhidapi-hidra
 COPY --from=build /dist /dist
 RUN pip install --no-cache-dir /dist/haptic_collab-*.whl && rm -rf /dist \
     && useradd --uid 10001 --user-group --create-home --home-dir /home/haptic \
-       --shell /usr/sbin/nologin haptic
+       --shell /usr/sbin/nologin haptic \
+    && mkdir -p /var/lib/haptic/snapshots && chown -R 10001:10001 /var/lib/haptic
 # One BLAS / OpenMP thread per process: the simulation, its gain design worker and the clients
 # are processes of their own already, and a thread pool per process would fight them for the
 # same cores (a Kubernetes pod gets a CPU request, not a machine).
@@ -30,7 +31,8 @@ ENV OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMEXPR_NUM_THREA
 USER 10001:10001
 WORKDIR /home/haptic
 
-EXPOSE 8765
+# 8765: a room server (haptic server); 8780: the lobby (haptic lobby)
+EXPOSE 8765 8780
 ENTRYPOINT ["haptic"]
 # Off loopback the server requires tokens: mount a token file (lines "TOKEN ROLE [NAME]"), e.g.
 #   docker run -v $PWD/tokens.txt:/run/secrets/haptic_tokens:ro -p 8765:8765 haptic-collab

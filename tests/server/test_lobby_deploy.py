@@ -1,0 +1,118 @@
+"""The deploy files of "finding a room", read as data (no Docker engine runs here): the
+docker-compose services of two room servers and a lobby are valid ``haptic`` commands that fit
+together, the services that were there before are unchanged, and the image carries the viewer
+and runs as a numeric non-root user.
+"""
+
+from __future__ import annotations
+
+import shlex
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from haptic_collab.cli import build_parser
+from haptic_collab.cli.run import _lobby_backend
+from haptic_collab.server.config import load_server_config
+
+yaml = pytest.importorskip("yaml")
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def compose() -> dict[str, Any]:
+    return yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+
+
+def command(svc: dict[str, Any]) -> list[str]:
+    cmd = svc["command"]
+    return cmd if isinstance(cmd, list) else shlex.split(cmd)
+
+
+def test_two_room_servers_and_a_lobby_that_points_at_them(tmp_path: Path) -> None:
+    services = compose()["services"]
+    parser = build_parser()
+    rooms = {n: services[n] for n in ("room-a", "room-b")}
+    lobby_svc = services["lobby"]
+    for svc in (*rooms.values(), lobby_svc):
+        assert svc["profiles"] == ["rooms"]  # `docker compose up` starts what it did before
+        assert svc["image"] == "haptic-collab"
+    published = {}
+    for name, svc in rooms.items():
+        args = parser.parse_args(command(svc))
+        assert args.command == "server" and args.host == "0.0.0.0"
+        # the servers check room tokens with the secret the lobby signs them with
+        assert args.token_secret_file == "/run/secrets/token_secret"
+        assert "token_secret" in svc["secrets"]
+        (mount,) = svc["configs"]
+        assert mount["target"] == args.config
+        host_ip, host_port, container_port = svc["ports"][0].split(":")
+        assert host_ip == "127.0.0.1" and int(container_port) == args.port
+        published[name] = int(host_port)
+        assert "snapshots" in svc["volumes"][0]
+    # the rooms' configuration makes rooms of any name on demand, a few per server
+    cfg = tmp_path / "rooms.toml"
+    cfg.write_text(compose()["configs"]["rooms"]["content"])
+    keys = load_server_config(cfg)
+    assert keys["room_templates"] == {"any": {"prefix": ""}}
+    assert 2 <= int(keys["max_rooms"]) <= 16  # type: ignore[call-overload]
+    # the lobby reads each server by its service name and gives clients the published port
+    args = parser.parse_args(command(lobby_svc))
+    assert args.command == "lobby" and args.token_secret_file == "/run/secrets/token_secret"
+    assert "token_secret" in lobby_svc["secrets"]
+    backend = _lobby_backend(args)
+    assert [s.url for s in backend.servers] == ["http://room-a:8765", "http://room-b:8765"]
+    assert [s.bases[0] for s in backend.servers] == [
+        f"ws://localhost:{published['room-a']}",
+        f"ws://localhost:{published['room-b']}",
+    ]
+    assert lobby_svc["ports"] == [f"127.0.0.1:{args.port}:{args.port}"]
+    assert set(lobby_svc["depends_on"]) == {"room-a", "room-b"}
+    assert compose()["secrets"]["token_secret"]["file"]
+
+
+def test_the_services_there_before_still_run_the_same_commands() -> None:
+    services = compose()["services"]
+    parser = build_parser()
+    for name in ("server", "user-a", "user-b"):
+        assert "profiles" not in services[name]
+        parser.parse_args(command(services[name]))
+    user_a = parser.parse_args(command(services["user-a"]))
+    assert user_a.url == "ws://server:8765/ws" and user_a.lobby is None
+
+
+def _stages() -> list[list[tuple[str, str]]]:
+    """The Dockerfile's stages, each a list of (INSTRUCTION, arguments)."""
+    text = (ROOT / "Dockerfile").read_text().replace("\\\n", " ")
+    stages: list[list[tuple[str, str]]] = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            if word.upper() == "FROM":
+                stages.append([])
+            stages[-1].append((word.upper(), rest.strip()))
+    return stages
+
+
+def test_the_image_carries_the_viewer_and_runs_non_root() -> None:
+    build, final = _stages()[0], _stages()[-1]
+    runs = [rest for word, rest in build if word == "RUN"]
+    npm = next(i for i, r in enumerate(runs) if "cd web" in r and "npm ci" in r)
+    wheel = next(i for i, r in enumerate(runs) if "pip wheel" in r)
+    assert npm < wheel  # three.js is in web/ when the wheel is built
+    assert ("COPY", "web ./web") in build
+    # the wheel carries the viewer's page and the three.js it loads
+    import tomllib
+
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    files = data["tool"]["setuptools"]["package-data"]["haptic_collab"]
+    assert "web/index.html" in files
+    assert "web/node_modules/three/build/three.module.js" in files
+    assert any("pip install" in r and ".whl" in r for w, r in final if w == "RUN")
+    user = [rest for word, rest in final if word == "USER"][-1].split(":")[0]
+    assert user.isdigit() and int(user) != 0
+    exposed = {int(p) for w, r in final if w == "EXPOSE" for p in r.split()}
+    assert {8765, build_parser().parse_args(["lobby", "--token-secret-file", "x"]).port} <= exposed
+    entry = [rest for word, rest in final if word == "ENTRYPOINT"]
+    assert entry == ['["haptic"]']
