@@ -48,6 +48,7 @@ import time
 import tomllib
 import urllib.error
 import urllib.request
+from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -92,6 +93,8 @@ TOKEN_TTL_S = 600.0
 BACKEND_TIMEOUT_S = 5.0
 #: Largest ``/status`` or allocation answer read [bytes].
 MAX_ANSWER_BYTES = 1 << 20
+#: Rooms made that :attr:`LocalServers.made` remembers (the newest).
+MADE_KEPT = 256
 #: The Agones list that names the rooms a GameServer runs (server/agones.py lists them).
 ROOMS_LIST = "rooms"
 #: Allocations retried when the allocator answers Contention (409) [attempts].
@@ -310,8 +313,8 @@ class LocalServers:
         self.servers = list(servers)
         self.timeout_s = float(timeout_s)
         self.context = context
-        #: Rooms the lobby made, by server URL (for /healthz and the tests' record).
-        self.made: list[tuple[str, str]] = []
+        #: The last rooms the lobby made: (server URL, room name), oldest first.
+        self.made: deque[tuple[str, str]] = deque(maxlen=MADE_KEPT)
 
     def describe(self) -> dict[str, Any]:
         return {"backend": "local", "servers": [s.url for s in self.servers]}

@@ -160,7 +160,7 @@ async def test_many_users_asking_at_once_for_a_new_room_make_it_once() -> None:
         assert len({x["url"] for _, x in answers}) == 1
         holders = [app for app in (a, b) if "seminar" in app.status()["rooms"]]
         assert len(holders) == 1
-        assert lobby.backend.made == [(f"http://127.0.0.1:{holders[0].port}", "seminar")]  # type: ignore[attr-defined]
+        assert list(lobby.backend.made) == [(f"http://127.0.0.1:{holders[0].port}", "seminar")]  # type: ignore[attr-defined]
 
 
 async def test_full_servers_say_no_capacity_and_templates_decide_which_names() -> None:
