@@ -103,6 +103,9 @@ SERVER_OPTIONS: dict[str, _Option] = {
     "mesh_scale": _Option("float", "multiply the file's coordinates by this", _positive),
     "mesh_size": _Option("float", "rescale so the largest extent is this [m]", _positive),
     "mesh_max_edge": _Option("float", "refine until no edge is longer than this [m]", _positive),
+    "mesh_repair": _Option(
+        "bool", "make an open, non-manifold or several-body mesh one closed body (--mesh-repair)"
+    ),
     "subdivisions": _Option("int", "icosphere subdivisions of the balloon", _subdivisions),
     "object": _Option("str", "object model", _one_of("balloon", "fem")),
     "material": _Option("str", "material preset or TOML file", _not_empty, True),
@@ -152,6 +155,7 @@ ROOM_OPTIONS: dict[str, _Option] = {
             "mesh_scale",
             "mesh_size",
             "mesh_max_edge",
+            "mesh_repair",
             "subdivisions",
             "material",
             "sim_rate",

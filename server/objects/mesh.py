@@ -22,6 +22,12 @@ Repairs applied by :func:`load_mesh` (:func:`prepare_mesh` for a mesh in memory)
    midpoint (:func:`trimesh.remesh.subdivide_to_size`): the surface keeps its shape exactly,
    sharp edges included (no smoothing), and stays closed.
 
+With ``repair=True`` (``--mesh-repair``, :mod:`server.objects.repair`) an open, non-manifold,
+self-intersecting or several-body mesh is first made one closed body (pymeshfix closes open
+pieces, manifold3d unites closed ones; the largest body is kept) and the checks below run on the
+result; what the repair changed is logged and kept as ``mesh.metadata["mesh_repair"]``
+(:func:`repair_report_of`). Without it such a mesh is refused and the message suggests the flag.
+
 What is refused, with a :class:`MeshError` of one line that names the file and the failed check,
 before the server starts:
 
@@ -54,6 +60,7 @@ centimetres read as metres, say), a model too coarse for a 15 mm finger-pad patc
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
@@ -64,8 +71,17 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from haptic_collab.server.objects.repair import RepairError, RepairReport, repair_mesh_topology
 from haptic_collab.shared.checks import positive as _positive_finite
 from haptic_collab.shared.types import FloatArray, IntArray
+
+log = logging.getLogger("haptic.server.mesh")
+
+#: ``mesh.metadata`` key of the :class:`~server.objects.repair.RepairReport` of a repaired mesh.
+REPAIR_KEY = "mesh_repair"
+
+#: The hint every refusal that ``--mesh-repair`` can mend ends with.
+REPAIR_HINT = "; or try --mesh-repair (it makes the mesh one closed body and says what changed)"
 
 #: File suffixes :func:`load_mesh` accepts (lower case, with the dot).
 SUPPORTED_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb")
@@ -363,12 +379,22 @@ def _bodies(n_vertices: int, faces: IntArray) -> IntArray:
     return np.sort(sizes[sizes > 0])[::-1].astype(np.int64)
 
 
-def repair_mesh(mesh: trimesh.Trimesh, where: str = "mesh") -> trimesh.Trimesh:
+def repair_report_of(mesh: trimesh.Trimesh) -> RepairReport | None:
+    """What ``--mesh-repair`` changed in ``mesh`` (None: it was not repaired)."""
+    report = mesh.metadata.get(REPAIR_KEY)
+    return report if isinstance(report, RepairReport) else None
+
+
+def repair_mesh(
+    mesh: trimesh.Trimesh, where: str = "mesh", repair: bool = False
+) -> trimesh.Trimesh:
     """Repair and validate a triangle mesh; the input is copied, never modified.
 
     Merges seam-split vertices, drops degenerate/duplicate faces and unreferenced vertices,
     makes the winding consistent and outward, then checks it is closed, manifold, one body
-    and encloses a volume (module docstring: what is refused and why).
+    and encloses a volume (module docstring: what is refused and why). With ``repair``
+    (``--mesh-repair``), :func:`server.objects.repair.repair_mesh_topology` first makes it one
+    closed body, logs what it changed and keeps that in ``metadata["mesh_repair"]``.
 
     Parameters
     ----------
@@ -376,6 +402,8 @@ def repair_mesh(mesh: trimesh.Trimesh, where: str = "mesh") -> trimesh.Trimesh:
         Any triangle mesh; it is copied, not modified.
     where : str
         Name used in error messages (a file path, say).
+    repair : bool
+        Mend an open, non-manifold or several-body mesh instead of refusing it.
 
     Returns
     -------
@@ -400,6 +428,13 @@ def repair_mesh(mesh: trimesh.Trimesh, where: str = "mesh") -> trimesh.Trimesh:
         raise MeshError(f"{where}: the mesh has no faces")
     if not np.all(np.isfinite(m.vertices)):
         raise MeshError(f"{where}: vertex coordinates contain NaN or infinity")
+    report: RepairReport | None = None
+    if repair:
+        try:
+            m, report = repair_mesh_topology(m)
+        except RepairError as exc:
+            raise MeshError(f"{where}: --mesh-repair could not mend it: {exc}") from None
+        log.info("%s: %s", where, report.summary())
     m.merge_vertices(merge_tex=True, merge_norm=True)
     n_faces = len(m.faces)
     keep = np.asarray(m.nondegenerate_faces(), dtype=bool)
@@ -428,26 +463,28 @@ def repair_mesh(mesh: trimesh.Trimesh, where: str = "mesh") -> trimesh.Trimesh:
         raise MeshError(
             f"{where}: the surface is closed only through {n_degenerate} degenerate (zero-area) "
             f"faces: dropping them leaves {n_open} open edges (they fill cracks at T-junctions); "
-            "repair the mesh in a mesh editor (weld the T-junctions)"
+            f"repair the mesh in a mesh editor (weld the T-junctions){REPAIR_HINT}"
         )
     if n_open:
         shared = f", and {n_shared} to more than two" if n_shared else ""
         raise MeshError(
             f"{where}: the surface is not closed (not watertight: {_count(n_open, 'edge')} "
             f"belonging to one face only{shared}); a deformable object needs a closed mesh"
+            f"{REPAIR_HINT}"
         )
     if n_shared:
         raise MeshError(
             f"{where}: the surface is not manifold: {_count(n_shared, 'edge')} shared by more "
             "than two faces (non-manifold edges: a fin, an inner wall, or parts touching along an edge); "
             "a deformable object needs a closed mesh where every edge joins exactly two faces"
+            f"{REPAIR_HINT}"
         )
     pinched = _nonmanifold_vertices(faces)
     if len(pinched):
         raise MeshError(
             f"{where}: the surface is not manifold: at {_count(len(pinched), 'vertex')} pieces "
             "of surface meet only at that point (non-manifold vertices, e.g. two parts touching at a "
-            "corner); separate or weld the parts in a mesh editor"
+            f"corner); separate or weld the parts in a mesh editor{REPAIR_HINT}"
         )
     bodies = _bodies(len(m.vertices), faces)
     if len(bodies) > 1:
@@ -455,7 +492,7 @@ def repair_mesh(mesh: trimesh.Trimesh, where: str = "mesh") -> trimesh.Trimesh:
             f"{where}: the mesh has {len(bodies)} separate bodies (connected pieces of surface; "
             f"the largest has {bodies[0]} of {len(faces)} faces); a deformable object is one "
             "closed surface: keep the largest body (delete the others in a mesh editor) or join "
-            "them into one"
+            f"them into one{REPAIR_HINT}"
         )
     extents = np.asarray(m.extents, dtype=np.float64)
     box_volume = float(np.prod(extents))
@@ -470,6 +507,8 @@ def repair_mesh(mesh: trimesh.Trimesh, where: str = "mesh") -> trimesh.Trimesh:
         raise MeshError(f"{where}: the mesh is degenerate (it encloses zero volume)")
     if volume < 0.0:
         m.invert()
+    if report is not None:
+        m.metadata[REPAIR_KEY] = report
     return m
 
 
@@ -536,6 +575,7 @@ def prepare_mesh(
     scale: float | None = None,
     target_size_m: float | None = None,
     max_edge_m: float | None = None,
+    repair: bool = False,
 ) -> trimesh.Trimesh:
     """Repair, validate, scale, size-check and optionally refine a mesh in memory.
 
@@ -555,6 +595,9 @@ def prepare_mesh(
         Rescale so the largest bounding-box extent equals this [m]. Exclusive with ``scale``.
     max_edge_m : float, optional
         Split edges until none is longer than this [m] (after scaling).
+    repair : bool
+        ``--mesh-repair``: mend an open, non-manifold or several-body mesh
+        (:func:`repair_mesh`); :func:`repair_report_of` the result says what changed.
 
     Returns
     -------
@@ -576,7 +619,7 @@ def prepare_mesh(
     factor = None if scale is None else _positive_finite("scale", scale)
     target = None if target_size_m is None else _positive_finite("target_size_m", target_size_m)
     h = None if max_edge_m is None else _positive_finite("max_edge_m", max_edge_m)
-    m = repair_mesh(mesh, where)
+    m = repair_mesh(mesh, where, repair=repair)
     if factor is None and target is not None:
         m.vertices = scale_mesh_to_size(m.vertices, target)
     elif factor is not None and factor != 1.0:
@@ -590,7 +633,10 @@ def prepare_mesh(
             f"object a hand can touch; {_size_hint(size)}"
         )
     if h is not None:
+        report = repair_report_of(m)
         m = refine_mesh(m, h, where)
+        if report is not None:
+            m.metadata[REPAIR_KEY] = report
     return m
 
 
@@ -599,6 +645,7 @@ def load_mesh(
     scale: float | None = None,
     target_size_m: float | None = None,
     max_edge_m: float | None = None,
+    repair: bool = False,
 ) -> trimesh.Trimesh:
     """Load, repair and validate a closed triangle mesh file (STL, OBJ, PLY, OFF, GLB).
 
@@ -615,6 +662,8 @@ def load_mesh(
     max_edge_m : float, optional
         Refine (:func:`refine_mesh`, after scaling) until no edge is longer than this [m]
         (``--mesh-max-edge``); None leaves the mesh as it is.
+    repair : bool
+        ``--mesh-repair`` (:func:`prepare_mesh`).
 
     Returns
     -------
@@ -666,4 +715,5 @@ def load_mesh(
         scale=scale,
         target_size_m=target_size_m,
         max_edge_m=max_edge_m,
+        repair=repair,
     )

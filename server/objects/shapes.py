@@ -291,6 +291,7 @@ def load_object_mesh(
     scale: float | None = None,
     target_size_m: float | None = None,
     max_edge_m: float | None = None,
+    repair: bool = False,
 ) -> trimesh.Trimesh:
     """The object of ``--mesh SPEC`` (other than ``balloon``): a stress shape or a mesh file.
 
@@ -306,6 +307,9 @@ def load_object_mesh(
     scale, target_size_m, max_edge_m : float, optional
         ``--mesh-scale`` (a factor to metres), ``--mesh-size`` [m] and ``--mesh-max-edge`` [m],
         as :func:`server.objects.mesh.load_mesh`.
+    repair : bool
+        ``--mesh-repair`` (:func:`server.objects.mesh.prepare_mesh`): mend an open,
+        non-manifold or several-body file instead of refusing it.
 
     Returns
     -------
@@ -327,13 +331,16 @@ def load_object_mesh(
             scale=scale,
             target_size_m=target_size_m,
             max_edge_m=max_edge_m,
+            repair=repair,
         )
     if not Path(spec).exists():
         raise MeshError(
             f"{spec}: no such mesh file, and not an object name; give balloon, one of "
             f"{', '.join(STRESS_MESHES)}, or a mesh file ({' '.join(SUPPORTED_SUFFIXES)})"
         )
-    return load_mesh(spec, scale=scale, target_size_m=target_size_m, max_edge_m=max_edge_m)
+    return load_mesh(
+        spec, scale=scale, target_size_m=target_size_m, max_edge_m=max_edge_m, repair=repair
+    )
 
 
 def write_textured_obj(path: str | Path, name: str = "torus") -> Path:
