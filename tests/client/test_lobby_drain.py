@@ -140,3 +140,73 @@ async def test_a_client_waits_for_a_lobby_that_is_not_up_yet() -> None:
             await lobby.start()
             await until(lambda: link.joins == 1)
             assert link.joined_urls == [f"ws://127.0.0.1:{a.port}/rooms/lab/ws"]
+
+
+async def test_the_room_a_drain_moved_starts_from_its_snapshot_on_the_other_server(tmp_path):
+    """Servers sharing a snapshot folder (docker-compose's volume): the pressed surface of a
+    room drained on one server is the surface of that room where the lobby makes it next."""
+    import json
+
+    import numpy as np
+    from websockets.asyncio.client import connect
+
+    from haptic_collab.server.main import RoomTemplates, ServerOptions, build_world
+    from haptic_collab.shared.protocol import LinkConditions
+
+    opts = ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2)
+    apps = []
+    for max_rooms in (4, 3):
+        maker = RoomTemplates(opts, {"any": {"prefix": ""}}, LinkConditions(), None, SECRET)
+        apps.append(
+            ServerApp(
+                Room(build_world(opts), SIM_RATE),
+                "127.0.0.1",
+                0,
+                room_maker=maker,
+                max_rooms=max_rooms,
+                snapshot_dir=tmp_path,
+            )  # fmt: skip
+        )
+    a, b = apps
+    for app in apps:
+        await app.start()
+    lobby = Lobby(
+        LocalServers([RoomServer(f"http://127.0.0.1:{x.port}") for x in apps]), SECRET, port=0
+    )
+    await lobby.start()
+    lobby_url = f"http://127.0.0.1:{lobby.port}"
+    try:
+        answer = await asyncio.to_thread(ask_lobby, lobby_url, "lab")
+        assert answer["url"] == f"ws://127.0.0.1:{a.port}/rooms/lab/ws"
+        lab = a.rooms()["lab"]
+        top = float(lab.world.rest_bounds[1][2])  # type: ignore[union-attr]
+        async with connect(answer["url"]) as presser, user(lobby_url, "lab") as (link, _):
+            hello = {"type": "hello", "protocol": 1, "role": "user", "name": "P"}
+            await presser.send(json.dumps({**hello, "token": answer["token"]}))
+            seq = 0
+            while lab.world.obj.max_displacement_m < 1e-3:  # type: ignore[union-attr]
+                seq += 1
+                state = {
+                    "type": "state", "seq": seq, "probe_m": [0.0, 0.0, top - 0.006],
+                    "force_n": [0.0, 0.0, 2.0], "penetration_m": 0.006, "in_contact": True,
+                    "k_h": 400.0,
+                }  # fmt: skip
+                await presser.send(json.dumps(state))
+                await asyncio.sleep(0.02)
+            await until(lambda: link.joins == 1)
+            report = await a.drain(grace_s=5.0)
+            assert tmp_path / "lab.npz" in report.snapshots
+            pressed = np.array(lab.world.vertices)  # type: ignore[union-attr]
+            await until(lambda: link.joins == 2)
+            assert link.joined_urls[1] == f"ws://127.0.0.1:{b.port}/rooms/lab/ws"
+            shown = np.array(b.rooms()["lab"].world.vertices)  # type: ignore[union-attr]
+            rest = np.array(build_world(opts).vertices)
+            assert np.max(np.abs(pressed - rest)) > 1e-3  # the press had moved it
+            # b's room lab started from a's snapshot: the same surface (b's own ticks since
+            # may have relaxed it a little: it is a live object now)
+            assert np.max(np.abs(shown - pressed)) < 0.25 * np.max(np.abs(pressed - rest))
+            assert (tmp_path / "lab.npz.loaded").exists()
+    finally:
+        await lobby.stop()
+        for app in apps:
+            await app.stop()
