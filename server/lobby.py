@@ -124,12 +124,16 @@ class Placement:
         Which server: the ``--server`` URL, or the GameServer's name.
     created : bool
         The lobby made the room (local) or added it to the server's list (Agones) now.
+    full : bool
+        The room has no seat for another user (its users and held seats reach its cap, as its
+        server's ``/status`` says; the Agones back end does not know).
     """
 
     ws_base: str
     http_base: str
     server: str
     created: bool = False
+    full: bool = False
 
 
 class Backend(Protocol):
@@ -372,7 +376,13 @@ class LocalServers:
         for server, st in live:
             if name in st["rooms"]:
                 ws, http = server.bases
-                return Placement(ws, http, server.url)
+                figures = st["rooms"][name] if isinstance(st["rooms"][name], dict) else {}
+                try:
+                    seats = int(figures.get("users", 0)) + int(figures.get("held_seats", 0))
+                    full = seats >= int(figures["max_users"])
+                except (KeyError, TypeError, ValueError):
+                    full = False
+                return Placement(ws, http, server.url, full=full)
         free = [
             (int(st.get("max_rooms", 0)) - len(st["rooms"]), i, server)
             for i, (server, st) in enumerate(live)
@@ -876,7 +886,8 @@ class Lobby:
         Raises
         ------
         LobbyError
-            What the back end refused (404, 502, 503).
+            What the back end refused (404, 502, 503), or 503 for a user when the room is full
+            (a viewer may still watch).
         """
         entry = self._names.setdefault(name, _NameLock())
         entry.holders += 1
@@ -887,6 +898,11 @@ class Lobby:
             entry.holders -= 1
             if entry.holders == 0:
                 self._names.pop(name, None)
+        if placement.full and role == "user":
+            raise LobbyError(
+                HTTPStatus.SERVICE_UNAVAILABLE,
+                f"room {name!r} is full (every seat taken); try later, or watch it as a viewer",
+            )
         expires = int(self.clock() + self.token_ttl_s)
         token = make_room_token(self._secret, name, role, expires)
         return {

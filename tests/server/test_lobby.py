@@ -24,6 +24,7 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import connect
 
+from haptic_collab.server.admission import RoomLimits
 from haptic_collab.server.app import ServerApp
 from haptic_collab.server.lobby import Lobby, LocalServers, RoomServer, load_servers
 from haptic_collab.server.room import Room
@@ -38,7 +39,10 @@ VIEWER_TOKEN = "lobby-viewer-token-0123456789"
 
 
 def room(name: str) -> Room:
-    return Room(RecordingWorld(), SIM_RATE, auth=RoomTokens(name, None, SECRET, time.time))
+    # a room named "solo-..." seats one user
+    limits = RoomLimits(max_users=1) if name.startswith("solo-") else None
+    auth = RoomTokens(name, None, SECRET, time.time)
+    return Room(RecordingWorld(), SIM_RATE, limits=limits, auth=auth)
 
 
 class Templates:
@@ -182,6 +186,19 @@ async def test_full_servers_say_no_capacity_and_templates_decide_which_names() -
     async with lobby_of([a]) as lobby:  # nobody answers
         status, answer = await ask(lobby, "/rooms/lab-1")
         assert status == 503 and "no room server answers" in answer["error"]
+
+
+async def test_a_full_room_is_refused_to_users_and_open_to_viewers() -> None:
+    async with servers((4, "")) as (a,), lobby_of([a]) as lobby:
+        status, answer = await ask(lobby, "/rooms/solo-1")
+        assert status == 200
+        async with connect(answer["url"]) as ws:  # its one user stays in
+            await ws.send(json.dumps({**json.loads(hello("A")), "token": answer["token"]}))
+            assert json.loads(await asyncio.wait_for(ws.recv(), 10.0))["type"] == "welcome"
+            status, refused = await ask(lobby, "/rooms/solo-1")
+            assert status == 503 and "is full" in refused["error"]
+            status, view = await ask(lobby, "/rooms/solo-1?role=viewer")
+            assert status == 200 and view["url"] == answer["url"]
 
 
 async def raw(lobby: Lobby, data: bytes, source: str = "127.0.0.1") -> bytes:

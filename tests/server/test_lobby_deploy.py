@@ -116,3 +116,29 @@ def test_the_image_carries_the_viewer_and_runs_non_root() -> None:
     assert {8765, build_parser().parse_args(["lobby", "--token-secret-file", "x"]).port} <= exposed
     entry = [rest for word, rest in final if word == "ENTRYPOINT"]
     assert entry == ['["haptic"]']
+
+
+def test_the_lobby_and_client_commands_say_what_is_missing(tmp_path: Path, capsys) -> None:
+    from haptic_collab.cli import main
+
+    secret = tmp_path / "secret"
+    secret.write_text("x" * 48)
+    assert main(["lobby", "--token-secret-file", str(secret)]) == 2
+    assert "--server URL" in capsys.readouterr().err
+    both = ["--server", "http://127.0.0.1:1", "--agones-allocator", "http://127.0.0.1:2"]
+    assert main(["lobby", "--token-secret-file", str(secret), *both]) == 2
+    assert "one of the two" in capsys.readouterr().err
+    short = tmp_path / "short"
+    short.write_text("x")
+    assert main(["lobby", "--token-secret-file", str(short), "--server", "http://h:1"]) == 2
+    assert "at least 32 bytes" in capsys.readouterr().err
+    off = ["--host", "0.0.0.0", "--server", "http://h:1"]
+    assert main(["lobby", "--token-secret-file", str(secret), *off]) == 2
+    assert "--token-file" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["lobby", "--token-secret-file", str(secret), "--server", "ftp://h"])
+    assert "http(s)://HOST:PORT" in capsys.readouterr().err
+    assert main(["client", "--lobby", "http://127.0.0.1:1"]) == 2
+    assert "--room NAME go together" in capsys.readouterr().err
+    assert main(["client", "--lobby", "http://h:1", "--room", "a", "--url", "ws://h/ws"]) == 2
+    assert "not both" in capsys.readouterr().err
