@@ -7,11 +7,10 @@ decay-rate margin, for
 
 - every hand of the hand box (:class:`shared.full_loop.HandBox`),
 - every servo tick j at which the simulation may sample the force (Step 3 over a network),
-- every object stiffness K_o' in ``[lo, K_o]``, ``lo`` the softer of ``(1 - margin) K_o`` (the
-  paper's advice to design for a lower K_o than reported) and ``K_o / (1 + stiffer_by)`` (the
-  softer object of the model error whose feel the design judges: :func:`softest_k_o`) and, for
-  the product's :class:`shared.gains.table.GainTable` designs, up to ``1 + stiffer_by`` times the
-  top of the cell (:attr:`GainKey.stiffer_by`: an object stiffer than reported, docs/fidelity.md),
+- every object stiffness K_o' in ``[(1 - margin) K_o, K_o]`` (the paper's advice to design for a
+  lower K_o than reported) and, for the product's :class:`shared.gains.table.GainTable` designs, up
+  to ``1 + stiffer_by`` times the top of the cell (:attr:`GainKey.stiffer_by`: an object stiffer
+  than reported, docs/fidelity.md),
 
 and among those the one with the best *transparency*: the felt stiffness |dF/dx| at the probe,
 probe as a position source, relative to K_o. For the paper's models alone, at 1 Hz (then 8 Hz
@@ -194,35 +193,6 @@ class GainDesign:
         }
 
 
-def softest_k_o(k_o: float, margin: float, stiffer_by: float) -> float:
-    """The softest object [N/m] a design for ``k_o`` [N/m] is checked on: ``(1 - margin) k_o``
-    (the paper's advice to design for a lower K_o than reported), or ``k_o / (1 + stiffer_by)``
-    where that is softer.
-
-    Why the second. A design with own-force compensation judges how it feels on objects ``1 +
-    stiffer_by`` times softer and stiffer than reported (a model error of that factor either
-    way), and :func:`shared.gains.table.cell_k_o_range` checks its stability up to ``1 +
-    stiffer_by`` times the stiffer one; checked only down to ``(1 - margin) k_o`` = 0.85 k_o, a
-    design was not checked on the softer object it claims to render. On an object 20 % softer
-    than reported (100 N/m, 10 Hz, one tick of delay, K_h 97 N/m, B_h 0.5 N*s/m, C_h K_h = 1)
-    the box's least damped hand (0.6 kg, 2 N*s/m, 20 N/m) then rang at 0.69/s against the
-    margin's 1/s (spectral radius 0.933 over a simulation period against 0.905), unstable
-    at 70 N/m: a slow ring a second user's press set off and a hand felt
-    (docs/fidelity.md, the two-user grid). A stiffness estimate's error is a ratio, so the
-    range is the same factor either way.
-
-    Raises
-    ------
-    ValueError
-        ``margin`` not in [0, 1) or ``stiffer_by`` negative or not finite.
-    """
-    if not 0.0 <= margin < 1.0:
-        raise ValueError(f"margin must be in [0, 1), got {margin!r}")
-    if not (math.isfinite(stiffer_by) and stiffer_by >= 0.0):
-        raise ValueError(f"stiffer_by must be finite and >= 0, got {stiffer_by!r}")
-    return k_o * min(1.0 - margin, 1.0 / (1.0 + stiffer_by))
-
-
 def design_gains(
     k_o: float,
     *,
@@ -259,8 +229,7 @@ def design_gains(
         Proportional or proportional-integral local model.
     margin : float
         Fraction in [0, 1) by which K_o may be overestimated: stability is checked down to
-        ``(1 - margin) K_o``, or to ``K_o / (1 + stiffer_by)`` where that is softer
-        (:func:`softest_k_o`).
+        ``(1 - margin) K_o``.
     k_o_hi : float, optional
         Upper end of the K_o range checked (default ``k_o``; :class:`shared.gains.table.GainTable`
         passes the next grid point so a design covers its whole cell).
@@ -400,7 +369,7 @@ def design_gains_modes(
     if not holds or any(h not in ("zoh", "foh") for h in holds):
         raise ValueError(f"holds must name 'zoh' and/or 'foh', got {holds!r}")
     hi = float(k_o if k_o_hi is None else max(k_o, k_o_hi))
-    lo = softest_k_o(k_o, margin, stiffer_by)
+    lo = (1.0 - margin) * k_o
     felt_at = [float(k_o)] if felt_k_os is None else [float(v) for v in felt_k_os]
     if not felt_at or not all(math.isfinite(v) and v > 0.0 for v in felt_at):
         raise ValueError(f"felt_k_os must be finite stiffnesses > 0 N/m, got {felt_k_os!r}")

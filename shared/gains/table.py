@@ -15,12 +15,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from haptic_collab.shared.gains.design import (
-    GainDesign,
-    design_gains,
-    design_gains_modes,
-    softest_k_o,
-)
+from haptic_collab.shared.gains.design import GainDesign, design_gains, design_gains_modes
 from haptic_collab.shared.gains.key import GainKey, Mode, coupled_k_o_hi
 from haptic_collab.shared.gains.policy import K_O_GRID_RATIO
 
@@ -33,10 +28,7 @@ def stiffest_k_o(k_o: float, stiffer_by: float, b_o: float) -> float:
 
 
 def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, float]:
-    """``[k_o_lo, k_o_hi]`` [N/m], the K_o range a :class:`GainTable` cell is checked over.
-
-    ``k_o_lo`` is ``(1 - margin) g_i``, or ``g_i / (1 + key.stiffer_by)`` where that is softer
-    (:func:`shared.gains.design.softest_k_o`: the object as far off softer as stiffer).
+    """``[(1 - margin) g_i, k_o_hi]`` [N/m], the K_o range a :class:`GainTable` cell is checked over.
 
     ``g_i = grid_ratio**cell``; ``k_o_hi`` is the next grid point times ``1 + key.stiffer_by``,
     or its one-tick stiffness ``g_(i+1) + key.b_o`` where that is higher (an object with mass
@@ -56,9 +48,7 @@ def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, f
     hi = stiffest_k_o(top, key.stiffer_by, key.b_o)
     if key.stiff_ratio != 1.0:
         hi = max(hi, coupled_k_o_hi(top, key.stiff_ratio))
-    # an object softer than reported: by the margin, or by the factor its felt response is
-    # judged at (shared.gains.design.softest_k_o)
-    return softest_k_o(g, key.margin, key.stiffer_by), hi
+    return (1.0 - key.margin) * g, hi
 
 
 class GainTable:
