@@ -100,8 +100,9 @@ def run_demo(
             u = rep["users"][name]
             row[f"{name}_stable"] = u["stable"]
             row[f"{name}_verdict"] = u.get("verdict")
-            row[f"{name}_hold_p2p_mm"] = round(u["hold_oscillation_mm"], 3)
-            row[f"{name}_max_force_n"] = round(u["max_force_n"], 3)
+            for key, out in (("hold_oscillation_mm", "hold_p2p_mm"), ("max_force_n", "max_force_n")):
+                value = u.get(key)  # None: no verdict (the contact never settled)
+                row[f"{name}_{out}"] = None if value is None else round(value, 3)
         c = rep["coupling"]
         row["b_feels_a"] = c.get("b_feels_a")
         for key in ("b_force_rise_n", "b_surface_displacement_mm", "b_force_at_rest_n"):
