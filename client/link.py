@@ -178,7 +178,7 @@ class Link:
         the link is dropped and rejoined (with the resume token, so the seat is kept).
     resolve : coroutine function, optional
         Asks a lobby where the room runs now: returns its websocket URL and a room token
-        (:func:`server.lobby.ask_lobby`). Called before the first join and before each attempt
+        (:func:`client.app.lobby_resolver`). Called before the first join and before each attempt
         after a drain, a refusal or a failure to connect; raises ``ValueError`` when the lobby
         refuses (the link then stops) or ``ConnectionError`` when it cannot answer (the link
         keeps the URL it had, or waits when it has none). ``url`` and ``token`` are then only
@@ -588,7 +588,7 @@ class Link:
                 tls = self.ssl_context() if self.url else None
             try:
                 if not self.url:  # no lobby answer yet: wait and ask again
-                    raise ConnectionRefusedError("the lobby has not said where the room runs")
+                    raise ConnectionError("the lobby has not said yet where the room runs")
                 async with connect(
                     self.url, max_size=8 * 1024 * 1024, open_timeout=5.0, ssl=tls
                 ) as ws:
