@@ -20,8 +20,8 @@ within its bucket: buckets 0.5, 1, 2, 5, 10, 20, 50 ms..., so a p99 is exact onl
 and the overruns in the window; the machine's CPU use over the window (``/proc/stat``) and load
 average say how busy the shared machine was. With room processes it then kills one balloon room's
 process (``kill -9``) and measures the other rooms' patch rates over the next ``kill_window_s``,
-the time from the kill until a new user of that room gets its first patch (joinable again), and
-its own users' way back (their first patch after the kill, and whether their resume tokens gave
+the time from the kill until a new user of that room is welcomed (joinable again) and gets its
+first patch, and its own users' way back (their first patch after the kill, and whether their resume tokens gave
 them their user ids back). Memory: resident (RSS) and proportional (PSS: pages shared with the
 fork server or another process split between them) set of the server and of each room's process.
 
@@ -338,6 +338,43 @@ def _cpu_ticks() -> tuple[int, int] | None:
     return sum(fields) - idle, sum(fields)
 
 
+def _proc_s(pid: int) -> tuple[float, float] | None:
+    """CPU time [s] a process has used (all its threads; ``/proc/PID/stat``) and how long its
+    main thread has waited for a CPU while runnable [s] (``/proc/PID/schedstat``); None when
+    it cannot be read."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        with open(f"/proc/{pid}/schedstat", encoding="ascii") as f:
+            wait_ns = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    hz = os.sysconf("SC_CLK_TCK")
+    return (int(fields[11]) + int(fields[12])) / hz, wait_ns / 1e9
+
+
+def _procs_s(pids: dict[str, int]) -> dict[str, tuple[float, float] | None]:
+    return {name: _proc_s(pid) for name, pid in pids.items()}
+
+
+def _cpu_use(
+    before: dict[str, tuple[float, float] | None],
+    after: dict[str, tuple[float, float] | None],
+    seconds: float,
+) -> dict[str, dict[str, float]]:
+    """Per process: the share of one CPU it used, and of the window its main thread spent
+    runnable but waiting for a CPU, between two :func:`_procs_s` readings."""
+    out = {}
+    for name, b in before.items():
+        a = after.get(name)
+        if a is not None and b is not None:
+            out[name] = {
+                "cpu": round((a[0] - b[0]) / seconds, 3),
+                "waiting": round((a[1] - b[1]) / seconds, 3),
+            }
+    return out
+
+
 def _busy(before: tuple[int, int] | None, after: tuple[int, int] | None) -> float | None:
     if before is None or after is None or after[1] == before[1]:
         return None
@@ -355,38 +392,49 @@ def _rates(
     return out
 
 
-async def _rejoin_s(port: int, room: str, since: float) -> float:
-    """Seconds from ``since`` until a new user of ``room`` gets its first patch."""
+async def _rejoin_s(port: int, room: str, since: float) -> tuple[float, float]:
+    """Seconds from ``since`` until a new user of ``room`` is welcomed, and until it gets its
+    first patch (it tries again, as a client does, while the room is being restarted)."""
     spec = _Spec(room, ClientSpec("user", "probe"))
-    while True:
-        rec: dict[str, Any] = {"patches": [], "errors": [], "welcomes": [], "drops": []}
-        task = asyncio.create_task(_user(port, spec, rec, None))
-        deadline = time.monotonic() + 5.0
-        while not rec["patches"] and not rec["drops"] and time.monotonic() < deadline:
+    rec: dict[str, Any] = {"patches": [], "errors": [], "welcomes": [], "drops": []}
+    task = asyncio.create_task(_user(port, spec, rec, None))
+    try:
+        while not rec["patches"]:
             await asyncio.sleep(0.01)
+    finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await task
-        if rec["patches"]:
-            return float(rec["patches"][0] - since)
-        await asyncio.sleep(0.05)
+    welcomed = [w[0] for w in rec["welcomes"]]
+    return float(welcomed[-1] - since), float(rec["patches"][0] - since)
 
 
 # ------------------------------------------------------------------------- one session
 async def _measure(
-    port: int, rooms: list[str], opts: argparse.Namespace, kill: bool, server_pid: int
+    port: int,
+    rooms: list[str],
+    opts: argparse.Namespace,
+    kill: bool,
+    server_pid: int,
+    worker_pids: list[int],
 ) -> tuple[dict[str, Any], tuple[float, float], tuple[float, float] | None, str | None]:
     """The window's readings (and the kill's), in the coordinator while the workers run."""
     await asyncio.sleep(opts.warmup_s)
     out: dict[str, Any] = {}
     status0 = json.loads(await asyncio.to_thread(_get, port, "/status"))
+    pids = {"server": server_pid} | {f"users{i}": p for i, p in enumerate(worker_pids)}
+    for r in rooms:
+        process = status0["rooms"][r].get("process")
+        if process is not None and process.get("pid") is not None:
+            pids[r] = int(process["pid"])
     before = await asyncio.to_thread(_lateness, port)
-    cpu0, t0 = _cpu_ticks(), time.monotonic()
+    procs0, cpu0, t0 = _procs_s(pids), _cpu_ticks(), time.monotonic()
     await asyncio.sleep(opts.duration_s)
-    t1, cpu1 = time.monotonic(), _cpu_ticks()
+    t1, cpu1, procs1 = time.monotonic(), _cpu_ticks(), _procs_s(pids)
     after = await asyncio.to_thread(_lateness, port)
     status = json.loads(await asyncio.to_thread(_get, port, "/status"))
     out["machine"] = {"cpu_busy": _busy(cpu0, cpu1), "load_avg": os.getloadavg()}
+    out["processes"] = _cpu_use(procs0, procs1, t1 - t0)
     out["rooms"] = {}
     for r in rooms:
         st, st0 = status["rooms"][r], status0["rooms"][r]
@@ -413,7 +461,9 @@ async def _measure(
         rejoin = asyncio.create_task(_rejoin_s(port, victim, t_kill))
         await asyncio.sleep(opts.kill_window_s)
         kill_window = (t_kill, t_kill + opts.kill_window_s)
-        out["kill"] = {"room": victim, "rejoin_s": round(await asyncio.wait_for(rejoin, 60.0), 3)}
+        welcome_s, patch_s = await asyncio.wait_for(rejoin, 120.0)
+        out["kill"] = {"room": victim, "rejoin_s": round(welcome_s, 3)}
+        out["kill"]["rejoin_first_patch_s"] = round(patch_s, 3)
         st = json.loads(await asyncio.to_thread(_get, port, "/status"))["rooms"][victim]
         out["kill"]["restart_start_s"] = st["process"]["start_s"]
     return out, (t0, t1), kill_window, victim
@@ -427,7 +477,7 @@ def _session(
     try:
         joined = workers.wait_ready()
         out, (t0, t1), kill_window, victim = asyncio.run(
-            _measure(port, rooms, opts, kill, server_pid)
+            _measure(port, rooms, opts, kill, server_pid, [int(p.pid or 0) for p in workers.procs])
         )
         out["joined"], out["expected"] = joined, workers.expected
     finally:
@@ -447,11 +497,13 @@ def _session(
         for rec in recs:
             if rec["room"] != victim:
                 continue
-            first = next((t for t in rec["patches"] if t > k0), None)
             before_ids = [w[1] for w in rec["welcomes"] if w[0] < k0]
             after = [w for w in rec["welcomes"] if w[0] > k0]
+            # its first patch from the room's new process: after its welcome there
+            first = next((t for t in rec["patches"] if after and t > after[0][0]), None)
             back.append(
                 {
+                    "welcome_after_kill_s": round(after[0][0] - k0, 3) if after else None,
                     "first_patch_after_kill_s": None if first is None else round(first - k0, 3),
                     "resumed": bool(after) and after[0][2],
                     "same_user_id": bool(after and before_ids) and after[0][1] == before_ids[-1],
@@ -552,6 +604,21 @@ def _median(xs: list[float]) -> float | None:
     return round(statistics.median(xs), 3) if xs else None
 
 
+def _cpu_summary(per: list[dict[str, dict[str, float]]], rooms: list[str]) -> dict[str, Any]:
+    """Median over runs of the CPU shares (and waiting shares) of the server (the front with
+    room processes), the room processes together and the users' workers together."""
+    out: dict[str, Any] = {}
+    for group, pick in (
+        ("server", lambda n: n == "server"),
+        ("room_processes", lambda n: n in rooms),
+        ("users", lambda n: n.startswith("users")),
+    ):
+        for key in ("cpu", "waiting"):
+            sums = [sum(v[key] for n, v in p.items() if pick(n)) for p in per if p]
+            out[f"{group}_{key}"] = _median(sums)
+    return out
+
+
 def _summary(
     runs: list[dict[str, Any]], rooms: list[str], sim_rate: float, starts: dict[str, Any] | None
 ) -> dict[str, Any]:
@@ -581,6 +648,7 @@ def _summary(
             "fem_tick_ms_p99_median": med("tick_ms_p99", ["default"]),
             "fem_lateness_ms_p99_median": med("lateness_ms_p99", ["default"]),
             "machine_cpu_busy": [run_[mode]["machine"]["cpu_busy"] for run_ in runs],
+            "cpu_median": _cpu_summary([run_[mode].get("processes", {}) for run_ in runs], rooms),
             "errors": sorted({e for run_ in runs for e in run_[mode]["errors"]}),
         }
     one, many = summary["one_process"], summary["room_processes"]
@@ -594,6 +662,7 @@ def _summary(
         summary["kill_others_patch_rate_hz_median"] = _median(others)
         summary["kill_others_patch_share_min"] = round(min(others) / sim_rate, 4)
         summary["kill_rejoin_s"] = [k["rejoin_s"] for k in kills]
+        summary["kill_rejoin_first_patch_s"] = [k["rejoin_first_patch_s"] for k in kills]
         victims = [v for k in kills for v in k["victims"]]
         summary["kill_victims_back_s"] = [v["first_patch_after_kill_s"] for v in victims]
         summary["kill_victims_same_user_id"] = sum(v["same_user_id"] for v in victims)

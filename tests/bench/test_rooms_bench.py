@@ -1,13 +1,15 @@
-"""``haptic bench rooms``' reading of the lateness histogram (:func:`haptic_collab.bench.rooms._p99_ms`):
-the window's p99 from two cumulative ``/metrics`` readings, interpolated within its bucket."""
+"""``haptic bench rooms``: its reading of the lateness histogram (the window's p99 from two
+cumulative ``/metrics`` readings, interpolated within its bucket), the patch rates in the window
+and the summary's count of rooms at 99 %, and (slow) the whole bench, small."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 
-from haptic_collab.bench.rooms import _p99_ms
+from haptic_collab.bench.rooms import _p99_ms, _rates, _summary, main
 
 BOUNDS = (0.001, 0.005, 0.01, math.inf)
 
@@ -31,3 +33,62 @@ def test_no_tick_in_the_window_has_no_p99_and_the_open_bucket_answers_its_lower_
     same = cumulative([5, 5, 0, 0])
     assert _p99_ms(same, same) is None
     assert _p99_ms(cumulative([0, 0, 0, 0]), cumulative([0, 0, 0, 10])) == pytest.approx(10.0)
+
+
+def test_each_users_patch_rate_counts_only_its_patches_inside_the_window() -> None:
+    recs = [
+        {"room": "default", "patches": [0.5, 1.0, 1.5, 2.0, 3.0]},  # 1.0, 1.5, 2.0 inside
+        {"room": "b1", "patches": [1.2]},
+    ]
+    assert _rates(recs, 1.0, 2.5, ["default", "b1", "b2"]) == {
+        "default": [2.0],
+        "b1": [round(1 / 1.5, 2)],
+        "b2": [],  # a room nobody was in has no rate
+    }
+
+
+def _run(shares: dict[str, float]) -> dict:
+    rooms = {
+        name: {
+            "patch_share_min": share,
+            "tick_ms_p50": 1.0,
+            "tick_ms_p99": 2.0,
+            "lateness_ms_p99": 3.0,
+        }
+        for name, share in shares.items()
+    }
+    return {"rooms": rooms, "machine": {"cpu_busy": 0.5}, "errors": []}
+
+
+def test_the_summary_counts_the_rooms_whose_slowest_user_had_99_percent() -> None:
+    one = _run({"default": 1.0, "b1": 0.975})  # b1's slowest user: 19.5 Hz of 20
+    many = _run({"default": 0.99, "b1": 1.0})
+    summary = _summary(
+        [{"one_process": one, "room_processes": many}], ["default", "b1"], 20.0, None
+    )
+    assert summary["one_process"]["rooms_at_99pct"] == [1]
+    assert summary["one_process"]["patch_share_min"] == 0.975
+    assert summary["room_processes"]["rooms_at_99pct"] == [2]
+
+
+@pytest.mark.slow
+def test_the_bench_kills_a_room_process_and_its_users_get_their_seats_back(tmp_path) -> None:
+    """The whole bench, small: two rooms, two users each, short windows, one run."""
+    out = tmp_path / "rooms.json"
+    argv = [
+        "--balloon-rooms", "1", "--users", "2", "--workers", "2", "--warmup-s", "1",
+        "--duration-s", "3", "--kill-window-s", "3", "--repeats", "1", "--no-starts",
+        "--fem-subdivisions", "2", "--subdivisions", "2", "--json", str(out),
+    ]  # fmt: skip
+    main(argv)
+    result = json.loads(out.read_text())
+    (run,) = result["runs"]
+    for mode in ("one_process", "room_processes"):
+        assert run[mode]["joined"] == run[mode]["expected"] == 4
+        for room in ("default", "b1"):
+            assert all(rate > 0 for rate in run[mode]["rooms"][room]["patch_rate_hz"])
+    kill = run["room_processes"]["kill"]
+    assert kill["room"] == "b1" and kill["rejoin_s"] > 0
+    assert all(rate > 0 for rate in kill["others_patch_rate_hz"]["default"])
+    assert [v["errors"] for v in kill["victims"]] == [["room_restarting"]] * 2
+    assert all(v["resumed"] and v["same_user_id"] for v in kill["victims"])
