@@ -91,6 +91,9 @@ MAX_ADDRESSES = 4096
 TOKEN_TTL_S = 600.0
 #: Time to wait for a room server's ``/status`` or for the allocator [s].
 BACKEND_TIMEOUT_S = 5.0
+#: Time a room server may take to make a room from its template [s]: it answers the websocket
+#: handshake only once the room runs, and a FEM solid takes seconds to build.
+ROOM_BUILD_TIMEOUT_S = 60.0
 #: Largest ``/status`` or allocation answer read [bytes].
 MAX_ANSWER_BYTES = 1 << 20
 #: Rooms made that :attr:`LocalServers.made` remembers (the newest).
@@ -296,9 +299,11 @@ class LocalServers:
     servers : sequence of RoomServer
         The room servers, in the order ties are broken.
     timeout_s : float
-        Time to wait for each server's ``/status`` and for a room to be made [s].
+        Time to wait for each server's ``/status`` [s].
     context : ssl.SSLContext, optional
         TLS context for ``https://`` servers (default: the system's CAs).
+    build_timeout_s : float
+        Time a server may take to make a room [s] (:data:`ROOM_BUILD_TIMEOUT_S`).
 
     Raises
     ------
@@ -311,12 +316,14 @@ class LocalServers:
         servers: Sequence[RoomServer],
         timeout_s: float = BACKEND_TIMEOUT_S,
         context: ssl.SSLContext | None = None,
+        build_timeout_s: float = ROOM_BUILD_TIMEOUT_S,
     ) -> None:
         if not servers:
             raise ValueError("the local lobby needs at least one room server (--server URL)")
         self.servers = list(servers)
         self.timeout_s = float(timeout_s)
         self.context = context
+        self.build_timeout_s = float(build_timeout_s)
         #: The last rooms the lobby made: (server URL, room name), oldest first.
         self.made: deque[tuple[str, str]] = deque(maxlen=MADE_KEPT)
 
@@ -347,16 +354,28 @@ class LocalServers:
         int
             101 when the room runs now; else the server's HTTP status (404: no template allows
             the name, 503: full or draining), or 0 when it could not be reached.
+
+        Raises
+        ------
+        LobbyError
+            503 when the server took longer than ``build_timeout_s`` to answer: it may
+            still be making the room, so no other server is asked to make it too.
         """
         ws_base = _bases(server.url)[0]
         url = ws_base + room_ws_path(name)
         tls = self.context if url.startswith("wss://") else None
         try:
-            async with connect(url, open_timeout=self.timeout_s, ssl=tls) as ws:
+            async with connect(url, open_timeout=self.build_timeout_s, ssl=tls) as ws:
                 await ws.close(1000, "lobby: room made")
         except InvalidStatus as exc:
             return int(exc.response.status_code)
-        except (OSError, InvalidHandshake, TimeoutError) as exc:
+        except TimeoutError:
+            log.warning("room server %s: still making room %r", server.url, name)
+            raise LobbyError(
+                HTTPStatus.SERVICE_UNAVAILABLE,
+                f"room {name!r} is still being made on a server; ask again in a moment",
+            ) from None
+        except (OSError, InvalidHandshake) as exc:
             log.warning("room server %s: could not make room %r (%s)", server.url, name, exc)
             return 0
         return 101

@@ -201,6 +201,51 @@ async def test_a_full_room_is_refused_to_users_and_open_to_viewers() -> None:
             assert status == 200 and view["url"] == answer["url"]
 
 
+async def test_a_server_slow_to_make_a_room_is_not_doubled_by_another() -> None:
+    """A server that has not answered the room's handshake may still be making the room: the
+    lobby says so (503) and does not make the room on another server too."""
+    hung: list[asyncio.StreamWriter] = []
+
+    async def slow_server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        line = await reader.readline()
+        if line.startswith(b"GET /status "):
+            body = json.dumps(
+                {"rooms": {"default": {}}, "max_rooms": 16, "rooms_on_demand": True,
+                 "draining": False}
+            ).encode()  # fmt: skip
+            head = f"HTTP/1.1 200 OK\r\nContent-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+            writer.write(head.encode() + body)
+            await writer.drain()
+            writer.close()
+        else:
+            hung.append(writer)  # a websocket handshake: no answer while it builds
+
+    slow = await asyncio.start_server(slow_server, "127.0.0.1", 0)
+    slow_port = slow.sockets[0].getsockname()[1]
+    try:
+        async with servers((4, "")) as (b,):
+            backend = LocalServers(
+                [
+                    RoomServer(f"http://127.0.0.1:{slow_port}"),
+                    RoomServer(f"http://127.0.0.1:{b.port}"),
+                ],
+                build_timeout_s=0.5,
+            )
+            lobby = Lobby(backend, SECRET, port=0)
+            await lobby.start()
+            try:
+                status, answer = await ask(lobby, "/rooms/big-solid")
+            finally:
+                await lobby.stop()
+            assert status == 503 and "still being made" in answer["error"]
+            assert hung  # it was asked, and had not answered
+            assert "big-solid" not in b.status()["rooms"]  # not made a second time
+    finally:
+        for w in hung:
+            w.close()
+        slow.close()
+
+
 async def raw(lobby: Lobby, data: bytes, source: str = "127.0.0.1") -> bytes:
     """Send ``data`` on a connection from ``source``; the lobby's whole answer."""
     reader, writer = await asyncio.open_connection("127.0.0.1", lobby.port, local_addr=(source, 0))
