@@ -156,3 +156,45 @@ def test_an_allocation_without_an_address_or_port_is_a_bad_gateway(address, port
     with pytest.raises(Exception, match="no address or port") as info:
         backend.placement("lab", {"gameServerName": "gs", "address": address, "ports": ports})
     assert info.value.status == 502, why  # type: ignore[attr-defined]
+
+
+async def test_the_lobby_speaks_the_allocators_mutual_tls(tmp_path) -> None:
+    """``haptic lobby --agones-allocator https://... --agones-ca --agones-client-cert/-key``:
+    an allocator that requires a client certificate allocates for the lobby; a lobby without
+    the certificate is refused and says so (502), and keeps serving."""
+    import ssl
+
+    trustme = pytest.importorskip("trustme")
+    from haptic_collab.cli import build_parser
+    from haptic_collab.cli.run import _lobby_backend
+
+    ca = trustme.CA()
+    server_ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ca.issue_cert("127.0.0.1").configure_cert(server_ctx)
+    server_ctx.verify_mode = ssl.CERT_REQUIRED
+    ca.configure_trust(server_ctx)
+    client = ca.issue_cert("haptic-lobby")
+    files = {"ca": tmp_path / "ca.pem", "cert": tmp_path / "c.pem", "key": tmp_path / "k.pem"}
+    ca.cert_pem.write_to_path(str(files["ca"]))
+    client.cert_chain_pems[0].write_to_path(str(files["cert"]))
+    client.private_key_pem.write_to_path(str(files["key"]))
+    with Allocator(fleet(2), tls=server_ctx) as alloc:
+        base = ["lobby", "--token-secret-file", "x", "--agones-allocator", alloc.url,
+                "--agones-ca", str(files["ca"]), "--agones-fleet", "haptic-collab"]  # fmt: skip
+        with_cert = [*base, "--agones-client-cert", str(files["cert"]),
+                     "--agones-client-key", str(files["key"])]  # fmt: skip
+        for argv, want in ((with_cert, 200), (base, 502)):
+            backend = _lobby_backend(build_parser().parse_args(argv))
+            lobby = Lobby(backend, SECRET, port=0)
+            await lobby.start()
+            try:
+                status, answer = await ask(lobby, "/rooms/lab")
+                assert status == want, answer
+                if want == 200:
+                    assert answer["url"] == "ws://127.0.0.1:7000/rooms/lab/ws"
+                else:
+                    assert "cannot be reached" in answer["error"]
+                    assert (await ask(lobby, "/healthz"))[0] == 200
+            finally:
+                await lobby.stop()
+    assert [c.body["gameServerSelectors"][0]["matchLabels"] for c in alloc.calls] == [FLEET]

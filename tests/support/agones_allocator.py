@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import json
+import ssl
 import threading
 import time
 from dataclasses import dataclass, field
@@ -85,9 +86,18 @@ class Allocator:
         The fleet.
     lag_s : float
         Time from a request's arrival (when its selectors are matched) to the allocation's write.
+    tls : ssl.SSLContext, optional
+        Serve https with it (the allocator speaks mutual TLS: a context that requires a client
+        certificate refuses a caller without one).
     """
 
-    def __init__(self, servers: list[GameServer], lag_s: float = 0.0, port: int = 0) -> None:
+    def __init__(
+        self,
+        servers: list[GameServer],
+        lag_s: float = 0.0,
+        port: int = 0,
+        tls: ssl.SSLContext | None = None,
+    ) -> None:
         spec = _spec()
         op = spec["paths"]["/gameserverallocation"]["post"]
         (param,) = [p for p in op["parameters"] if p["in"] == "body"]
@@ -117,8 +127,10 @@ class Allocator:
 
         self._http = ThreadingHTTPServer(("127.0.0.1", port), Handler)
         self._http.daemon_threads = True
+        if tls is not None:
+            self._http.socket = tls.wrap_socket(self._http.socket, server_side=True)
         self.port = int(self._http.server_address[1])
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.url = f"{'https' if tls is not None else 'http'}://127.0.0.1:{self.port}"
 
     def __enter__(self) -> Allocator:
         threading.Thread(target=self._http.serve_forever, daemon=True).start()
