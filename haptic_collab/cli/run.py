@@ -330,7 +330,6 @@ def _add_token(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         help="the server's --token-secret-file",
     )
     p.set_defaults(func=_cmd_token)
-    _add_lobby(sub)  # beside `haptic token`: the lobby signs the same room tokens
 
 
 # -------------------------------------------------------------------------------------------- lobby

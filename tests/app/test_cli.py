@@ -172,7 +172,7 @@ def test_compose_services_run_valid_haptic_commands():
     for name, svc in compose["services"].items():
         cmd = svc["command"] if isinstance(svc["command"], list) else shlex.split(svc["command"])
         args = parser.parse_args(cmd)  # raises SystemExit on an invalid command
-        assert args.command in ("server", "client"), name
+        assert args.command in ("server", "client", "lobby"), name
     latency = compose["services"]["server-latency"]["command"]
     assert (
         latency[latency.index("--latency-ms") + 1] == "100"
