@@ -54,7 +54,41 @@ def mesh_specs(tmp: Path) -> list[tuple[str, list[str]]]:
                 ["--mesh", str(nut), "--mesh-size", "0.15", "--mesh-max-edge", "0.007"],
             )
         )
+    specs += repaired_specs(tmp)
     return specs
+
+
+def repaired_specs(tmp: Path) -> list[tuple[str, list[str]]]:
+    """The parts only ``--mesh-repair`` makes usable, repaired here and written to ``tmp``.
+
+    ``haptic demo`` has no ``--mesh-repair`` flag yet (haptic_collab/cli/args.py), so the repair
+    runs in this process (:func:`server.objects.mesh.load_mesh` ``repair=True``) and the demo
+    loads its result: pyvista's ant (15 intersecting bodies) and a CAD-like part of two boxes
+    overlapping off each other's grid, written as an STL (a triangle soup).
+    """
+    import trimesh
+
+    from haptic_collab.server.objects.mesh import load_mesh
+
+    out: list[tuple[str, list[str]]] = []
+    ant = MESHES / "ant.ply"
+    if ant.is_file():
+        mesh = load_mesh(ant, target_size_m=0.2, repair=True, max_edge_m=0.0075)
+        path = tmp / "ant-repaired.ply"
+        mesh.export(path)
+        out.append(("ant (pyvista, 15 bodies) repaired, 0.2 m, refined", ["--mesh", str(path)]))
+    boxes = []
+    for offset in ((0.0, 0.0, 0.0), (0.037, 0.021, 0.013)):
+        box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+        box.apply_translation(np.asarray(offset) + 0.05)
+        boxes.append(box)
+    soup = tmp / "two-boxes.stl"
+    trimesh.util.concatenate(boxes).export(soup)
+    part = load_mesh(soup, repair=True, max_edge_m=0.0075)
+    path = tmp / "two-boxes-repaired.ply"
+    part.export(path)
+    out.append(("two overlapping boxes (STL) repaired, refined", ["--mesh", str(path)]))
+    return out
 
 
 def _largest_proxy_step(work: Path, user: str) -> tuple[float, float]:
@@ -100,7 +134,10 @@ def run_demo(
             u = rep["users"][name]
             row[f"{name}_stable"] = u["stable"]
             row[f"{name}_verdict"] = u.get("verdict")
-            for key, out in (("hold_oscillation_mm", "hold_p2p_mm"), ("max_force_n", "max_force_n")):
+            for key, out in (
+                ("hold_oscillation_mm", "hold_p2p_mm"),
+                ("max_force_n", "max_force_n"),
+            ):
                 value = u.get(key)  # None: no verdict (the contact never settled)
                 row[f"{name}_{out}"] = None if value is None else round(value, 3)
         c = rep["coupling"]
@@ -170,6 +207,71 @@ def slide(label: str, mesh, proxy: str, depth_m: float, ticks: int = 120) -> dic
     }
 
 
+def pair_rows(tmp: Path, delays_ms: tuple[float, ...] = (0.0, 100.0)) -> list[dict]:
+    """The two-user scene in-process, deterministic (no scheduler, no load): the fidelity
+    benchmark's pair (:func:`haptic_collab.research.fidelity_pairs_3d.run_3d_pair`, the
+    product's ``local-pi`` servo, simulated device and hand, B resting on the side while A
+    presses the top) on every demo mesh: A's and B's hold peak-to-peak [mm]."""
+    from haptic_collab.research.fidelity_pairs_3d import run_3d_pair
+    from haptic_collab.server.objects.shapes import load_object_mesh
+
+    rows = []
+    for k, (label, args) in enumerate(mesh_specs(tmp)):
+        spec = args[1]
+        opts = dict(zip(args[2::2], (float(x) for x in args[3::2]), strict=True))
+        if opts:  # the pair takes a mesh spec only: scale and refine it into a file here
+            mesh = load_object_mesh(
+                spec,
+                scale=opts.get("--mesh-scale"),
+                target_size_m=opts.get("--mesh-size"),
+                max_edge_m=opts.get("--mesh-max-edge"),
+            )
+            spec = str(tmp / f"pair-{k}.ply")
+            mesh.export(spec)
+        for delay in delays_ms:
+            r = run_3d_pair("local-pi", mesh=spec, delay_ms=delay).to_json()
+            row = {"mesh": label, "delay_ms": delay}
+            row.update(
+                {k: round(v, 3) if isinstance(v, float) else v for k, v in r.items() if k != "mesh"}
+            )
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    return rows
+
+
+def plane_jumps(label: str, mesh, depth_m: float, seed: int = 0) -> dict:  # type: ignore[no-untyped-def]
+    """How far the plane local model jumps at a resting probe that moves a little: 60 probes
+    ``depth_m`` under random vertices, each moved 20 times by 0.1 mm (normal noise per axis);
+    per move, the new plane's penetration at the new probe less the old plane's [mm]."""
+    from haptic_collab.server.objects.balloon import Balloon
+    from haptic_collab.server.world import ContactInput, World
+
+    world = World(Balloon(mesh))
+    rng = np.random.default_rng(seed)
+    v, vn = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    zero = np.zeros(3)
+    worst = []
+    for i in rng.choice(len(v), 60, replace=False):
+        p = v[i] - depth_m * vn[i]
+        out = world.tick({str(i): ContactInput(p, zero)})[str(i)]
+        w = 0.0
+        for _ in range(20):
+            q = p + rng.normal(0.0, 1e-4, 3)
+            new = world.tick({str(i): ContactInput(q, zero)})[str(i)]
+            old_e = out.primitive.contact(*map(float, q))[0]
+            w = max(w, abs(new.primitive.contact(*map(float, q))[0] - old_e))
+            out, p = new, q
+        worst.append(w * 1e3)
+    a = np.asarray(worst)
+    return {
+        "mesh": label,
+        "depth_mm": depth_m * 1e3,
+        "median_mm": round(float(np.median(a)), 4),
+        "p90_mm": round(float(np.percentile(a, 90)), 4),
+        "max_mm": round(float(a.max()), 4),
+    }
+
+
 def slide_meshes(tmp: Path) -> list[tuple[str, object]]:
     from haptic_collab.server.objects.mesh import default_balloon, load_mesh
     from haptic_collab.server.objects.shapes import STRESS_MESHES, stress_mesh
@@ -181,6 +283,8 @@ def slide_meshes(tmp: Path) -> list[tuple[str, object]]:
     if (MESHES / "nut.ply").is_file():
         nut = load_mesh(MESHES / "nut.ply", target_size_m=0.15, max_edge_m=0.007)
         out.append(("hex nut 0.15 m, refined", nut))
+    for label, args in repaired_specs(tmp):
+        out.append((label, load_mesh(args[1])))
     return out
 
 
@@ -192,6 +296,11 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=12.0)
     ap.add_argument("--out", type=Path, default=None, help="write the JSON here")
     ap.add_argument("--slide-only", action="store_true")
+    ap.add_argument(
+        "--pairs",
+        action="store_true",
+        help="also the two-user scene in-process (deterministic) and the plane jumps",
+    )
     ap.add_argument(
         "--demo-only",
         action="store_true",
@@ -219,6 +328,14 @@ def main() -> None:
                     row = slide(label, mesh, proxy, depth)
                     print(json.dumps(row), flush=True)
                     result["slide"].append(row)
+        if opts.pairs:
+            result["pairs"] = pair_rows(Path(tmp))
+            result["plane_jumps"] = []
+            for label, mesh in slide_meshes(Path(tmp)):
+                for depth in (0.002, 0.008):
+                    row = plane_jumps(label, mesh, depth)
+                    print(json.dumps(row), flush=True)
+                    result["plane_jumps"].append(row)
         if not opts.slide_only:
             for label, args in mesh_specs(Path(tmp)):
                 if opts.only and not any(part in label for part in opts.only.split(",")):
