@@ -451,6 +451,9 @@ async def _measure(
         if process is not None and process.get("pid") is not None:
             out["memory_mb"][r] = _memory_mb(int(process["pid"]))
             out["rooms"][r]["start_s"] = process.get("start_s")
+            # a process found hung (or dead) in the window would show here
+            out["rooms"][r]["restarts"] = process.get("restarts")
+            out["rooms"][r]["hangs"] = process.get("hangs")
     kill_window = None
     victim = None
     if kill:
