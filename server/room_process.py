@@ -77,7 +77,10 @@ CHECKPOINT_S = 2.0
 #: The error code a room's users get when its process died, before close code 1012.
 RESTARTING_CODE = "room_restarting"
 #: The message that goes with it.
-RESTARTING_MESSAGE = "this room's simulation stopped unexpectedly and is restarting; join again"
+RESTARTING_MESSAGE = (
+    "this room's simulation stopped unexpectedly and is restarting; join again "
+    "(with your resume token to keep your seat)"
+)
 #: How long [s] the front waits, once a room's process has started, without a message from it
 #: (a report comes every :data:`REPORT_S`) or with its next tick overdue by as much, before it
 #: deems the process hung (a tick that never returns, a stopped process), kills it and starts
