@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from haptic_collab.cli import build_parser
 from haptic_collab.demo import DemoOptions
@@ -90,6 +91,12 @@ def test_a_textured_obj_split_at_seams_loads_to_the_seamless_mesh(tmp_path):
         assert len(m.vertices) == len(seamless.vertices)
         assert m.is_watertight and m.body_count == 1
         assert m.volume == pytest.approx(seamless.volume, rel=1e-6)
+        # the same surface, not only the same counts: each vertex where a seamless one is (to
+        # the 9 digits written) and the same faces between them: nothing a contact meets differs
+        dist, match = cKDTree(seamless.vertices).query(m.vertices)
+        assert dist.max() < 1e-8 and len(set(match.tolist())) == len(match)
+        faces = {tuple(sorted(f)) for f in match[np.asarray(m.faces)].tolist()}
+        assert faces == {tuple(sorted(f)) for f in np.asarray(seamless.faces).tolist()}
 
 
 # ------------------------------------------------------------------------ --mesh NAME everywhere
@@ -180,6 +187,7 @@ def test_haptic_server_refuses_an_unknown_name_and_a_two_body_mesh_in_one_line(t
     assert res.returncode == 2 and "Traceback" not in res.stderr
     (err,) = [ln for ln in res.stderr.splitlines() if "haptic server: error" in ln]
     assert "pair.stl" in err and "2 separate bodies" in err
+    assert "--mesh-repair" in err  # the way out it suggests
 
 
 def test_haptic_server_serves_a_refined_named_shape():
