@@ -744,10 +744,12 @@ class Link:
                 continue
             if len(self.session.errors) > n_errors:
                 err = self.session.errors[-1]
-                # a draining server (SIGTERM) is a restart, not a fault: the link retries
+                # a draining server (SIGTERM) or a room whose process is restarted is a
+                # restart, not a fault: the link retries (a restarted room stays on its server,
+                # so only a drain asks the lobby again)
                 level = (
                     logging.INFO
-                    if err.code == "server_draining"
+                    if err.code in ("server_draining", "room_restarting")
                     else logging.ERROR
                     if err.fatal
                     else logging.WARNING
