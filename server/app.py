@@ -1289,6 +1289,11 @@ class ServerApp:
             try:
                 while not running.done():
                     await asyncio.wait({running}, timeout=1.0)
+                    if slot.peers == 0 and not proxy.running:
+                        # idle time counts from the process's first tick: on a busy machine a
+                        # process starts (or restarts) slower than room_idle_s, and the user
+                        # whose handshake made the room, or who rejoins it, finds it closed
+                        slot.empty_since_s = loop.time()
                     idle = slot.empty_since_s
                     if (
                         slot.on_demand
