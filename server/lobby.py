@@ -1,7 +1,7 @@
 """``haptic lobby``: finding a room. Maps a room name to a server's address and a room token.
 
-A client asks ``GET /rooms/NAME?role=user`` (or ``POST /rooms/NAME`` with ``{"role": "user"}``)
-and gets ``{"url": "ws://HOST:PORT/rooms/NAME/ws", "token": ..., "expires": ..., "viewer":
+A client asks ``GET /rooms/NAME?role=user`` (``role=viewer`` to watch; user by default) and
+gets ``{"url": "ws://HOST:PORT/rooms/NAME/ws", "token": ..., "expires": ..., "viewer":
 "http://HOST:PORT/rooms/NAME/#token=...", "server": ...}``: where room NAME runs, and a room
 token for it (:func:`server.security.make_room_token`, signed with the secret the lobby shares
 with the room servers' ``--token-secret-file``). Two back ends find the server:
@@ -24,10 +24,17 @@ so two users asking at once for a room nobody has made get the same server, and 
 only after the first's room (local) or list entry (Agones) exists. Several lobby processes do
 not share these locks (see docs/deploy.md).
 
-Hostile input gets a clear 4xx and the lobby goes on: a bad room name 400, an unknown path 404,
-another method 405, a body over :data:`MAX_BODY_BYTES` 413, headers over
-:data:`MAX_HEAD_BYTES` 431, a request not read in :data:`READ_TIMEOUT_S` 408, more than
-:data:`ADDRESS_RATE_PER_S` requests a second from one address (burst :data:`ADDRESS_BURST`) 429.
+HTTP is websockets' (``process_request``, as the room server serves ``/status``): it parses
+the request and answers what it refuses itself, with its own limits. A request line over
+``websockets.http11.MAX_LINE_LENGTH`` (8192 bytes) gets 414, a header line over it or more
+than ``MAX_NUM_HEADERS`` (128) header lines 431; a body, a ``Transfer-Encoding`` or bytes
+that are not HTTP/1.x get the connection closed without an answer (websockets' parser takes no
+request body, so the lobby is GET only: a role is a query parameter). The lobby adds: a request
+not read within :data:`READ_TIMEOUT_S` of the connection, or more than :data:`MAX_HEAD_BYTES`
+before its end, is cut off (no answer); a method other than GET 405, a bad room name or role
+400, an unknown path 404, more
+than :data:`ADDRESS_RATE_PER_S` requests a second from one address (burst
+:data:`ADDRESS_BURST`) 429, more than :data:`MAX_CONNECTIONS` connections at once 503.
 With a token file (``TOKEN ROLE [NAME]`` lines, :class:`server.security.TokenTable`) every room
 request needs ``Authorization: Bearer TOKEN`` and a viewer's token gets only viewer tokens;
 off loopback the lobby refuses to start without one (``--insecure`` to allow it).
@@ -58,7 +65,10 @@ from typing import Any, Protocol
 from urllib.parse import parse_qs, urlsplit
 
 from websockets.asyncio.client import connect
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.datastructures import Headers
 from websockets.exceptions import InvalidHandshake, InvalidStatus
+from websockets.http11 import Request, Response
 
 from haptic_collab.server.security import (
     MAX_TOKEN_TTL_S,
@@ -72,12 +82,14 @@ from haptic_collab.server.urls import room_page_path, room_ws_path, url_host, va
 
 log = logging.getLogger("haptic.lobby")
 
-#: Largest request body [bytes]; the only body is ``{"role": ...}``.
-MAX_BODY_BYTES = 1024
-#: Largest request line and headers together [bytes].
-MAX_HEAD_BYTES = 8192
-#: Time to read a whole request [s] (a slow sender is cut off with 408).
+#: Largest request line and headers together [bytes]: websockets bounds each line (8192 bytes)
+#: and their number (128), so up to 1 MiB; the lobby cuts off a request larger than this.
+MAX_HEAD_BYTES = 65536
+#: Time to read a whole request [s] (a slow sender is cut off).
 READ_TIMEOUT_S = 5.0
+#: Time to answer a request once read [s]: the back ends bound each step (statuses, a room's
+#: build, the allocator), this bounds a request waiting behind others for the same name.
+ANSWER_TIMEOUT_S = 120.0
 #: Requests a second one address may make, sustained, and saved up.
 ADDRESS_RATE_PER_S = 5.0
 ADDRESS_BURST = 20.0
@@ -619,31 +631,67 @@ class _NameLock:
     holders: int = 0
 
 
-@dataclass(frozen=True)
-class _Request:
-    method: str
-    path: str
-    query: dict[str, list[str]]
-    headers: dict[str, str]
-    body: bytes
-    address: str
-
-
-def _response(status: HTTPStatus, payload: Any, extra: Sequence[tuple[str, str]] = ()) -> bytes:
+def _response(status: HTTPStatus, payload: Any, extra: Sequence[tuple[str, str]] = ()) -> Response:
+    """A JSON answer (websockets sends it and closes the connection)."""
     body = (json.dumps(payload) + "\n").encode()
-    lines = [
-        f"HTTP/1.1 {status.value} {status.phrase}",
-        "Content-Type: application/json",
-        f"Content-Length: {len(body)}",
-        "Cache-Control: no-store",
-        "Connection: close",
-        *(f"{k}: {v}" for k, v in extra),
-    ]
-    return ("\r\n".join(lines) + "\r\n\r\n").encode() + body
+    headers = Headers(
+        [
+            ("Content-Type", "application/json"),
+            ("Content-Length", str(len(body))),
+            ("Cache-Control", "no-store"),
+            ("Connection", "close"),
+            *extra,
+        ]
+    )
+    return Response(status.value, status.phrase, headers, body)
+
+
+class _LobbyConnection(ServerConnection):
+    """websockets' server connection with the lobby's limits on a request not yet read.
+
+    websockets' parser bounds each line (:data:`websockets.http11.MAX_LINE_LENGTH`) and the
+    number of header lines (:data:`websockets.http11.MAX_NUM_HEADERS`), not their sum, and its
+    ``open_timeout`` covers the whole handshake, the lobby's answer included (a room may take
+    :data:`ROOM_BUILD_TIMEOUT_S` to build). So this subclass (websockets' ``create_connection``)
+    counts the connections open, cuts off one whose request is not read within the lobby's
+    ``read_timeout_s`` or whose bytes before its request exceed :data:`MAX_HEAD_BYTES`, and
+    leaves the parsing to websockets. :meth:`Lobby.start` makes a subclass bound to its lobby.
+    """
+
+    lobby: Lobby
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._head_bytes = 0
+        self.lobby._connections += 1
+        super().connection_made(transport)
+        self._deadline = self.loop.call_later(self.lobby.read_timeout_s, self._read_late)
+
+    def data_received(self, data: bytes) -> None:
+        if self.request is None:
+            self._head_bytes += len(data)
+            if self._head_bytes > MAX_HEAD_BYTES:
+                self.lobby._dropped("headers over the lobby's limit")
+                self.transport.abort()
+                return
+        super().data_received(data)
+
+    def _read_late(self) -> None:
+        if self.request is None:
+            self.lobby._dropped("request not read in time")
+            self.transport.abort()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._deadline.cancel()
+        self.lobby._connections -= 1
+        super().connection_lost(exc)
 
 
 class Lobby:
     """The lobby's HTTP service: answers room requests with a server's URL and a room token.
+
+    websockets serves it (``process_request`` answers every request; nothing is ever upgraded
+    to a websocket), as the room server serves its viewer and ``/status``: websockets parses
+    the request and takes GET only.
 
     Parameters
     ----------
@@ -666,7 +714,8 @@ class Lobby:
     clock : callable
         Unix time [s] (tokens' expiry); ``time.time``.
     read_timeout_s : float
-        Time a client has to send its whole request [s] (:data:`READ_TIMEOUT_S`).
+        Time a client has, after its connection (and TLS handshake), to send its whole
+        request [s] (:data:`READ_TIMEOUT_S`); the TLS handshake has as long again.
 
     Raises
     ------
@@ -709,17 +758,29 @@ class Lobby:
         self._budgets: dict[str, TokenBucket] = {}
         self._placements = asyncio.Semaphore(MAX_PLACEMENTS)
         self._connections = 0
-        self._server: asyncio.Server | None = None
+        self._server: Server | None = None
         #: Answers given, by HTTP status (the tests and /healthz read it).
         self.answered: dict[int, int] = {}
+        #: Connections cut off before their request was read (too slow, too large).
+        self.dropped = 0
 
     # -- the service -------------------------------------------------------------------------
     async def start(self) -> None:
         """Listen; :attr:`port` is the port taken."""
-        self._server = await asyncio.start_server(
-            self._connection, self.host, self.port, limit=MAX_HEAD_BYTES, ssl=self.ssl_context
+        connection = type("LobbyConnection", (_LobbyConnection,), {"lobby": self})
+        self._server = await serve(
+            self._never_upgraded,
+            self.host,
+            self.port,
+            process_request=self._process_request,
+            ssl=self.ssl_context,
+            ssl_handshake_timeout=self.read_timeout_s if self.ssl_context is not None else None,
+            open_timeout=None,  # the read deadline is _LobbyConnection's; the answer's, ours
+            server_header=None,
+            create_connection=connection,
+            logger=logging.getLogger("haptic.lobby.http"),
         )
-        self.port = int(self._server.sockets[0].getsockname()[1])
+        self.port = int(next(iter(self._server.sockets)).getsockname()[1])
         scheme = "https" if self.ssl_context is not None else "http"
         log.info(
             "lobby listening on %s://%s:%d (%s)",
@@ -741,83 +802,33 @@ class Lobby:
         finally:
             await self.stop()
 
-    async def _connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        peer = writer.get_extra_info("peername")
+    @staticmethod
+    async def _never_upgraded(ws: ServerConnection) -> None:
+        """The websocket handler websockets wants: never runs (every request is answered)."""
+        await ws.close(1008, "the lobby speaks HTTP only")
+
+    def _dropped(self, why: str) -> None:
+        self.dropped += 1
+        log.info("lobby: a connection cut off: %s", why)
+
+    async def _process_request(self, connection: ServerConnection, request: Request) -> Response:
+        """Answer one request (websockets has parsed it: GET, no body, bounded lines)."""
+        peer = connection.remote_address
         address = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
-        self._connections += 1
         try:
             if self._connections > MAX_CONNECTIONS:
-                out = self._answer(HTTPStatus.SERVICE_UNAVAILABLE, "the lobby is busy; try again")
-            else:
-                try:
-                    req = await asyncio.wait_for(self._read(reader, address), self.read_timeout_s)
-                except LobbyError as exc:
-                    out = self._answer(exc.status, exc.message)
-                except TimeoutError:
-                    out = self._answer(HTTPStatus.REQUEST_TIMEOUT, "request not sent in time")
-                except (asyncio.IncompleteReadError, ConnectionError):
-                    return
-                else:
-                    out = await self._handle(req)
-            writer.write(out)
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(writer.drain(), READ_TIMEOUT_S)
-        except Exception:  # never let one connection end the service
+                return self._answer(HTTPStatus.SERVICE_UNAVAILABLE, "the lobby is busy; try again")
+            async with asyncio.timeout(ANSWER_TIMEOUT_S):
+                return await self._handle(request, address)
+        except TimeoutError:
+            return self._answer(HTTPStatus.SERVICE_UNAVAILABLE, "no answer in time; try again")
+        except Exception:  # never let one request end the service
             log.exception("lobby: request from %s failed", address)
-        finally:
-            self._connections -= 1
-            writer.close()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(writer.wait_closed(), 1.0)
-
-    async def _read(self, reader: asyncio.StreamReader, address: str) -> _Request:
-        """One request: its line, headers (at most :data:`MAX_HEAD_BYTES`) and body."""
-        try:
-            head = await reader.readuntil(b"\r\n\r\n")
-        except asyncio.LimitOverrunError:
-            raise LobbyError(
-                HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE,
-                f"request line and headers over {MAX_HEAD_BYTES} bytes",
-            ) from None
-        except asyncio.IncompleteReadError as exc:
-            if len(exc.partial) >= MAX_HEAD_BYTES:
-                raise LobbyError(
-                    HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, "headers too large"
-                ) from None
-            raise
-        try:
-            text = head.decode("latin-1")
-            line, *header_lines = text[:-4].split("\r\n")
-            method, target, version = line.split(" ")
-        except ValueError:
-            raise LobbyError(HTTPStatus.BAD_REQUEST, "not an HTTP/1.1 request") from None
-        if not version.startswith("HTTP/1.") or not target.startswith("/"):
-            raise LobbyError(HTTPStatus.BAD_REQUEST, "not an HTTP/1.1 request")
-        headers: dict[str, str] = {}
-        for h in header_lines:
-            key, sep, value = h.partition(":")
-            if not sep or not key.strip():
-                raise LobbyError(HTTPStatus.BAD_REQUEST, "a malformed header line")
-            headers[key.strip().lower()] = value.strip()
-        if "transfer-encoding" in headers:
-            raise LobbyError(HTTPStatus.LENGTH_REQUIRED, "send the body with a Content-Length")
-        try:
-            length = int(headers.get("content-length", "0"))
-        except ValueError:
-            raise LobbyError(HTTPStatus.BAD_REQUEST, "a bad Content-Length") from None
-        if length < 0:
-            raise LobbyError(HTTPStatus.BAD_REQUEST, "a bad Content-Length")
-        if length > MAX_BODY_BYTES:
-            raise LobbyError(
-                HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"a body is at most {MAX_BODY_BYTES} bytes"
-            )
-        body = await reader.readexactly(length) if length else b""
-        parts = urlsplit(target)
-        return _Request(method, parts.path, parse_qs(parts.query), headers, body, address)
+            return self._answer(HTTPStatus.INTERNAL_SERVER_ERROR, "the lobby failed; try again")
 
     def _answer(
         self, status: HTTPStatus, message_or_payload: Any, extra: Sequence[tuple[str, str]] = ()
-    ) -> bytes:
+    ) -> Response:
         self.answered[status.value] = self.answered.get(status.value, 0) + 1
         payload = (
             {"error": message_or_payload, "status": status.value}
@@ -839,25 +850,24 @@ class Lobby:
             bucket = self._budgets[address] = TokenBucket(ADDRESS_RATE_PER_S, ADDRESS_BURST, now)
         return bucket.take(1.0, now)
 
-    async def _handle(self, req: _Request) -> bytes:
-        if not self._within_budget(req.address):
-            log.warning("lobby: %s is over its request budget", req.address)
+    async def _handle(self, request: Request, address: str) -> Response:
+        if not self._within_budget(address):
+            log.warning("lobby: %s is over its request budget", address)
             return self._answer(
                 HTTPStatus.TOO_MANY_REQUESTS, "too many requests; slow down", [("Retry-After", "1")]
             )
-        if req.path == "/healthz":
-            if req.method != "GET":
-                return self._answer(
-                    HTTPStatus.METHOD_NOT_ALLOWED, "GET /healthz", [("Allow", "GET")]
-                )
-            return self._answer(HTTPStatus.OK, {"ok": True, **self.backend.describe()})
-        if not req.path.startswith("/rooms/"):
-            return self._answer(HTTPStatus.NOT_FOUND, "ask GET /rooms/NAME?role=user|viewer")
-        if req.method not in ("GET", "POST"):
+        # websockets >= 16 parses any method (a body it refuses); older ones take GET only
+        method = getattr(request, "method", "GET")
+        if method != "GET":
             return self._answer(
-                HTTPStatus.METHOD_NOT_ALLOWED, "GET or POST /rooms/NAME", [("Allow", "GET, POST")]
+                HTTPStatus.METHOD_NOT_ALLOWED, "the lobby answers GET only", [("Allow", "GET")]
             )
-        name = req.path[len("/rooms/") :].rstrip("/")
+        parts = urlsplit(request.path)
+        if parts.path == "/healthz":
+            return self._answer(HTTPStatus.OK, {"ok": True, **self.backend.describe()})
+        if not parts.path.startswith("/rooms/"):
+            return self._answer(HTTPStatus.NOT_FOUND, "ask GET /rooms/NAME?role=user|viewer")
+        name = parts.path[len("/rooms/") :].rstrip("/")
         try:
             if not valid_room_name(name):
                 raise LobbyError(
@@ -865,36 +875,26 @@ class Lobby:
                     "a room name is 1-32 of a-z, 0-9 and -, starting and ending with a letter "
                     "or digit",
                 )
-            role = self._role(req)
+            role = self._role(parse_qs(parts.query), request.headers)
             answer = await self.join(name, role)
         except LobbyError as exc:
             return self._answer(exc.status, exc.message)
         return self._answer(HTTPStatus.OK, answer)
 
-    def _role(self, req: _Request) -> Role:
-        """The role asked (query ``role``, or the JSON body's), checked against the token."""
-        asked = req.query.get("role")
-        role: Any = asked[0] if asked else None
-        if req.body:
-            try:
-                body = json.loads(req.body)
-            except ValueError:
-                raise LobbyError(HTTPStatus.BAD_REQUEST, "the body is not JSON") from None
-            if not isinstance(body, dict) or set(body) - {"role"}:
-                raise LobbyError(HTTPStatus.BAD_REQUEST, 'the body is {"role": "user|viewer"}')
-            role = body.get("role", role)
-        role = "user" if role is None else role
-        if role not in ("user", "viewer"):
-            raise LobbyError(HTTPStatus.BAD_REQUEST, "role is user or viewer")
+    def _role(self, query: dict[str, list[str]], headers: Headers) -> Role:
+        """The role asked (query ``role``, once; default user), checked against the token."""
+        asked = query.get("role", ["user"])
+        if len(asked) != 1 or asked[0] not in ("user", "viewer"):
+            raise LobbyError(HTTPStatus.BAD_REQUEST, "role is user or viewer (once)")
+        role: Role = "user" if asked[0] == "user" else "viewer"
         if self.auth is not None:
-            auth = req.headers.get("authorization", "")
-            scheme, _, token = auth.partition(" ")
+            scheme, _, token = headers.get("Authorization", "").partition(" ")
             entry = self.auth.check(token.strip()) if scheme.lower() == "bearer" else None
             if entry is None:
                 raise LobbyError(HTTPStatus.UNAUTHORIZED, "a lobby token is needed (Bearer)")
             if role == "user" and entry.role != "user":
                 raise LobbyError(HTTPStatus.FORBIDDEN, "this token may only watch (role viewer)")
-        return role  # type: ignore[no-any-return]
+        return role
 
     async def join(self, name: str, role: Role) -> dict[str, Any]:
         """Where room ``name`` runs and a token for ``role`` in it (the answer's JSON).

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import ssl
 import time
 import urllib.error
 import urllib.request
@@ -91,13 +92,9 @@ async def lobby_of(apps: list[ServerApp], **kw: Any) -> AsyncIterator[Lobby]:
         await lobby.stop()
 
 
-async def ask(
-    lobby: Lobby, path: str, *, method: str = "GET", body: bytes | None = None, token: str = ""
-) -> tuple[int, dict[str, Any]]:
+async def ask(lobby: Lobby, path: str, *, token: str = "") -> tuple[int, dict[str, Any]]:
     def go() -> tuple[int, dict[str, Any]]:
-        req = urllib.request.Request(
-            f"http://127.0.0.1:{lobby.port}{path}", data=body, method=method
-        )
+        req = urllib.request.Request(f"http://127.0.0.1:{lobby.port}{path}")
         if token:
             req.add_header("Authorization", f"Bearer {token}")
         try:
@@ -142,7 +139,7 @@ async def test_a_new_room_goes_where_slots_are_free_and_is_found_there_again() -
             assert (await ask(lobby, "/rooms/lab-1"))[1]["url"] == answer["url"]
         assert "lab-1" not in a.status()["rooms"]
         # a viewer's token watches, and the viewer page opens from the URL the lobby gives
-        status, view = await ask(lobby, "/rooms/lab-1", method="POST", body=b'{"role": "viewer"}')
+        status, view = await ask(lobby, "/rooms/lab-1?role=viewer")
         assert status == 200 and view["role"] == "viewer"
         assert (await welcome(view["url"], view["token"], role="user"))["code"] == "unauthorized"
         assert (await welcome(view["url"], view["token"], role="viewer"))["type"] == "welcome"
@@ -264,24 +261,39 @@ def status_of(answer: bytes) -> int:
 
 async def test_hostile_requests_get_a_clear_4xx_and_the_lobby_keeps_serving() -> None:
     async with servers((4, "")) as (a,), lobby_of([a], read_timeout_s=0.5) as lobby:
-        cases = {
+        answered = {
             b"GET /rooms/Bad..Name HTTP/1.1\r\nHost: x\r\n\r\n": 400,
             b"GET /rooms/" + b"a" * 40 + b" HTTP/1.1\r\n\r\n": 400,
             b"GET /rooms/lab?role=admin HTTP/1.1\r\n\r\n": 400,
-            b"POST /rooms/lab HTTP/1.1\r\nContent-Length: 9\r\n\r\nnot json!": 400,
-            b'POST /rooms/lab HTTP/1.1\r\nContent-Length: 17\r\n\r\n{"role": "owner"}': 400,
-            b"POST /rooms/lab HTTP/1.1\r\nContent-Length: 99999999\r\n\r\n": 413,
-            b"POST /rooms/lab HTTP/1.1\r\nTransfer-Encoding: chunked\r\n\r\n": 411,
-            b"GET /rooms/lab HTTP/1.1\r\nX: " + b"y" * 20000 + b"\r\n\r\n": 431,
-            b"DELETE /rooms/lab HTTP/1.1\r\n\r\n": 405,
+            b"GET /rooms/lab?role=user&role=viewer HTTP/1.1\r\n\r\n": 400,
             b"GET /etc/passwd HTTP/1.1\r\n\r\n": 404,
-            b"\x16\x03\x01 garbage \r\n\r\n": 400,
-            b"GET /rooms/lab HTTP/1.1\r\nHost: x\r\n": 408,  # never finishes its headers
+            b"DELETE /rooms/lab HTTP/1.1\r\n\r\n": 405,
+            b"POST /rooms/lab HTTP/1.1\r\n\r\n": 405,  # the form is GET now
         }
-        for data, want in cases.items():
+        for data, want in answered.items():
             answer = await raw(lobby, data)
             assert status_of(answer) == want, (data[:40], answer[:200])
             assert b'"error"' in answer
+        # what websockets' parser refuses itself: a line over its 8192 bytes gets a status
+        too_long = {
+            b"GET /rooms/lab HTTP/1.1\r\nX: " + b"y" * 20000 + b"\r\n\r\n": 431,
+            b"GET /rooms/" + b"a" * 9000 + b" HTTP/1.1\r\n\r\n": 414,
+        }
+        for data, want in too_long.items():
+            assert status_of(await raw(lobby, data)) == want, data[:40]
+        # a method, body or framing it does not take, bytes that are not HTTP, a request never
+        # finished or larger than the lobby's bound: the connection closes without an answer
+        dropped = [
+            b'POST /rooms/lab HTTP/1.1\r\nContent-Length: 17\r\n\r\n{"role": "owner"}',
+            b"GET /rooms/lab HTTP/1.1\r\nContent-Length: 99999999\r\n\r\n",
+            b"GET /rooms/lab HTTP/1.1\r\nTransfer-Encoding: chunked\r\n\r\n",
+            b"\x16\x03\x01 garbage \r\n\r\n",
+            b"GET /rooms/lab HTTP/1.1\r\nHost: x\r\n",  # never finishes its headers
+            b"GET /rooms/lab HTTP/1.1\r\n" + (b"X: " + b"y" * 8000 + b"\r\n") * 10,  # 80 kB
+        ]
+        for data in dropped:
+            assert await raw(lobby, data) == b"", data[:40]
+        assert lobby.dropped == 2  # the slow one and the large one; websockets closed the rest
         assert "lab" not in a.status()["rooms"]  # nothing above made a room
         # a flood from one address is cut off at its budget; another address is still served
         codes = [status_of(await raw(lobby, b"GET /healthz HTTP/1.1\r\n\r\n", "127.0.0.2"))
@@ -325,3 +337,32 @@ def test_off_loopback_the_lobby_wants_tokens_and_reads_its_servers_file(tmp_path
     f.write_text("servers = 3\n")
     with pytest.raises(ValueError, match=r"\[\[servers\]\]"):
         load_servers(f)
+
+
+async def test_a_lobby_serves_https_and_cuts_off_a_silent_tls_client() -> None:
+    trustme = pytest.importorskip("trustme")
+    ca = trustme.CA()
+    server_ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ca.issue_cert("127.0.0.1").configure_cert(server_ctx)
+    client_ctx = ssl.create_default_context()
+    ca.configure_trust(client_ctx)
+    async with (
+        servers((4, "")) as (a,),
+        lobby_of([a], ssl_context=server_ctx, read_timeout_s=0.5) as lobby,
+    ):
+
+        def get(path: str) -> tuple[int, dict[str, Any]]:
+            url = f"https://127.0.0.1:{lobby.port}{path}"
+            with urllib.request.urlopen(url, timeout=10, context=client_ctx) as r:
+                return r.status, json.loads(r.read())
+
+        status, answer = await asyncio.get_running_loop().run_in_executor(
+            ASKERS, get, "/rooms/lab?role=viewer"
+        )
+        assert status == 200 and answer["role"] == "viewer"
+        assert (await welcome(answer["url"], answer["token"], role="viewer"))["type"] == "welcome"
+        # a client that opens TCP and never starts TLS is closed, and the lobby goes on
+        reader, writer = await asyncio.open_connection("127.0.0.1", lobby.port)
+        assert await asyncio.wait_for(reader.read(), 20.0) == b""
+        writer.close()
+        assert (await asyncio.get_running_loop().run_in_executor(ASKERS, get, "/healthz"))[0] == 200
