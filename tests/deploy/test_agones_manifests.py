@@ -8,10 +8,19 @@ pod spec is checked too. Two things Kubernetes adds to a CRD's schema are added 
 ``kubectl apply`` does by default since Kubernetes 1.27: a field the schema does not name is an
 error, except under ``x-kubernetes-preserve-unknown-fields``). ``nullable`` is read as allowing
 null. No cluster is needed: this is the schema check the API server makes, not admission.
+
+The ConfigMap (the servers' configuration file) is a core kind with no CRD: its schema,
+:data:`CONFIGMAP_SCHEMA`, is written here from the Kubernetes API reference, "ConfigMap"
+(``v1``, https://kubernetes.io/docs/reference/kubernetes-api/config-and-storage-resources/
+config-map-v1/, Kubernetes 1.31; CC BY 4.0, The Kubernetes Authors): its four fields and the
+key pattern of ``data``. The Secret the fleet mounts is made by ``kubectl create secret``
+(its values are not committed), so there is no Secret manifest to check: the test checks that
+the fleet reads each file from the Secret volume.
 """
 
 from __future__ import annotations
 
+import argparse
 import copy
 import gzip
 import shlex
@@ -23,7 +32,11 @@ import pytest
 import yaml
 
 from haptic_collab.cli import build_parser
+from haptic_collab.cli.run import _server_options
 from haptic_collab.server.agones import ROOMS_LIST, USERS_COUNTER, AgonesOptions
+from haptic_collab.server.config import apply_server_config
+from haptic_collab.server.main import RoomTemplates
+from haptic_collab.shared.protocol import LinkConditions
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy" / "agones"
@@ -42,6 +55,32 @@ _OBJECT_META = {
         "labels": {"type": "object", "additionalProperties": {"type": "string"}},
         "annotations": {"type": "object", "additionalProperties": {"type": "string"}},
     },
+    "additionalProperties": False,
+}
+
+
+#: ConfigMap v1 (Kubernetes API reference; see the module): ``data`` maps a key (a file name
+#: when mounted) to text, ``binaryData`` to base64 bytes, ``immutable`` forbids updates.
+_CONFIGMAP_KEY = r"^[-._a-zA-Z0-9]+$"
+CONFIGMAP_SCHEMA = {
+    "type": "object",
+    "properties": {
+        "apiVersion": {"type": "string", "enum": ["v1"]},
+        "kind": {"type": "string", "enum": ["ConfigMap"]},
+        "metadata": {**_OBJECT_META, "required": ["name"]},
+        "data": {
+            "type": "object",
+            "propertyNames": {"pattern": _CONFIGMAP_KEY, "maxLength": 253},
+            "additionalProperties": {"type": "string"},
+        },
+        "binaryData": {
+            "type": "object",
+            "propertyNames": {"pattern": _CONFIGMAP_KEY, "maxLength": 253},
+            "additionalProperties": {"type": "string", "contentEncoding": "base64"},
+        },
+        "immutable": {"type": "boolean"},
+    },
+    "required": ["apiVersion", "kind", "metadata"],
     "additionalProperties": False,
 }
 
@@ -107,12 +146,12 @@ def manifests() -> dict[str, dict[str, Any]]:
 
 @pytest.fixture(scope="module")
 def schemas() -> dict[tuple[str, str], dict[str, Any]]:
-    return crd_schemas()
+    return {**crd_schemas(), ("v1", "ConfigMap"): CONFIGMAP_SCHEMA}
 
 
-def test_every_manifest_is_valid_for_its_agones_kind(schemas):
+def test_every_manifest_is_valid_for_its_kind(schemas):
     docs = manifests()
-    assert set(docs) == {"Fleet", "FleetAutoscaler"}
+    assert set(docs) == {"Fleet", "FleetAutoscaler", "ConfigMap"}
     for kind, doc in docs.items():
         assert errors(doc, schemas) == [], kind
 
@@ -162,6 +201,64 @@ def test_the_fleet_and_its_autoscaler_agree_with_the_server():
     assert "cpu" in resources["requests"] and "cpu" not in resources.get("limits", {})
     env = {e["name"]: e["value"] for e in container["env"]}
     assert env["OPENBLAS_NUM_THREADS"] == "1" and env["OMP_NUM_THREADS"] == "1"
+
+
+@pytest.mark.parametrize(
+    ("where", "value", "says"),
+    [
+        (("data", "rooms toml"), "x = 1", "does not match"),
+        (("data", "rooms.toml"), 3, "is not of type"),
+        (("immutable",), "yes", "is not of type"),
+        (("spec",), {}, "Additional properties"),
+    ],
+)
+def test_the_check_catches_a_mistake_in_the_configmap(schemas, where, value, says):
+    cm = copy.deepcopy(manifests()["ConfigMap"])
+    node = cm
+    for key in where[:-1]:
+        node = node[key]
+    node[where[-1]] = value
+    assert any(says in e for e in errors(cm, schemas))
+
+
+def _mounted(pod: dict[str, Any], container: dict[str, Any], path: str) -> dict[str, Any]:
+    """The pod volume a file path of the container is read from, with ``key``: the file name."""
+    for m in container["volumeMounts"]:
+        if path.startswith(m["mountPath"].rstrip("/") + "/"):
+            (volume,) = [v for v in pod["volumes"] if v["name"] == m["name"]]
+            return {**volume, "key": path[len(m["mountPath"].rstrip("/")) + 1 :]}
+    raise AssertionError(f"{path} is on no volume of the container")
+
+
+def test_the_fleets_servers_make_the_rooms_the_lobby_names(tmp_path):
+    docs = manifests()
+    gs = docs["Fleet"]["spec"]["template"]["spec"]
+    pod = gs["template"]["spec"]
+    (container,) = [c for c in pod["containers"] if c["name"] == gs["container"]]
+    argv = container["args"]
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    # the configuration file is the ConfigMap's key, mounted as a file
+    config = _mounted(pod, container, args.config)
+    cm = docs["ConfigMap"]
+    assert config["configMap"]["name"] == cm["metadata"]["name"]
+    text = cm["data"][config["key"]]
+    # the room-token secret (the lobby's) and the server-wide tokens are files of the Secret
+    for path in (args.token_secret_file, args.token_file, args.metrics_token_file):
+        assert "secretName" in _mounted(pod, container, path)["secret"], path
+    # the server reads the configuration as `haptic server --config` does (haptic_collab.cli)
+    local = tmp_path / config["key"]
+    local.write_text(text)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    apply_server_config(sub.choices["server"], local)
+    opts = _server_options(parser.parse_args(argv))
+    assert opts.token_secret_file == args.token_secret_file
+    # a name the lobby allocates is made when its first user arrives, whatever the name
+    templates = RoomTemplates(opts, opts.room_templates, LinkConditions(), None, None)
+    for name in ("anatomy-3", "x", "lab-2026-11-27"):
+        assert templates.allows(name), name
+    # the rooms list holds one name per room the server may run
+    assert gs["lists"][ROOMS_LIST]["capacity"] == opts.max_rooms
 
 
 def _dockerfile_instructions() -> list[tuple[str, str]]:
