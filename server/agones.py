@@ -36,7 +36,13 @@ probe that gets no answer within ``probe_timeout_s`` means the loop is blocked. 
    added when the first user or viewer joins it and removed when the last leaves, so the list's
    free capacity is the rooms this server can still open, which a FleetAutoscaler's List policy
    keeps a buffer of (the list's capacity is the rooms a process may run: ``haptic server
-   --max-rooms``; every room of :meth:`server.app.ServerApp.rooms`, on demand ones included);
+   --max-rooms``; every room of :meth:`server.app.ServerApp.rooms`, on demand ones included).
+   Every ``list_check_s`` it also reads the list as Agones holds it (GET ``/gameserver``,
+   ``status.lists.rooms.values``) and removes a name that has not been a room in use for
+   ``stale_room_grace_s`` (:data:`STALE_ROOM_GRACE_S`) since it first saw it so: the lobby's
+   allocation lists a room's name before its first user arrives (``lists.rooms.addValues``,
+   :mod:`server.lobby`), and a name whose user never came would otherwise hold a slot of the
+   list (and send later users of that name here) until the server shuts down;
 4. keeps the counter ``users`` at the number of users in all rooms, and on the first arrival at
    a server that is only Ready calls Allocate (people who came straight to its address, past any
    allocator), so that a scale-down never deletes it under them;
@@ -80,6 +86,12 @@ ROOMS_LIST = "rooms"
 USERS_COUNTER = "users"
 #: Default time [s] the server may stay empty before it asks to be shut down.
 EMPTY_SHUTDOWN_S = 300.0
+#: Time [s] a name in the ``rooms`` list may go without being a room in use before the agent
+#: removes it: long enough for a user the lobby sent (it lists the name at allocation) to
+#: arrive and join, short beside a session, so a slot a user never took is soon free again.
+STALE_ROOM_GRACE_S = 60.0
+#: Time [s] between two reads of the ``rooms`` list as Agones holds it (GET ``/gameserver``).
+LIST_CHECK_S = 5.0
 
 
 class SidecarError(Exception):
@@ -254,6 +266,11 @@ class AgonesOptions:
         First and largest wait between Ready attempts; the wait doubles between them.
     labels : dict of str to str
         Labels to set once Ready (without Agones' ``agones.dev/sdk-`` prefix).
+    stale_room_grace_s : float
+        A name in the ``rooms`` list that is not a room in use is removed once the agent has
+        seen it so for this long (:data:`STALE_ROOM_GRACE_S`).
+    list_check_s : float
+        Time between two reads of the ``rooms`` list from the sidecar (:data:`LIST_CHECK_S`).
     """
 
     health_period_s: float = 2.0
@@ -262,6 +279,8 @@ class AgonesOptions:
     poll_s: float = 0.25
     ready_backoff_s: tuple[float, float] = (0.25, 8.0)
     labels: dict[str, str] = field(default_factory=dict)
+    stale_room_grace_s: float = STALE_ROOM_GRACE_S
+    list_check_s: float = LIST_CHECK_S
 
 
 class AgonesAgent:
@@ -287,6 +306,9 @@ class AgonesAgent:
     ready_attempts, health_sent, health_withheld : int
         Ready calls tried, health pings sent, health periods in which no ping was sent
         because a room's loop was blocked, dead or stalled.
+    stale_removed : int
+        Names the agent removed from the ``rooms`` list as stale (listed by someone else,
+        never or no longer a room in use).
     """
 
     def __init__(
@@ -317,6 +339,9 @@ class AgonesAgent:
         self._next_allocated_check = -float("inf")
         self._undeclared: set[str] = set()
         self._warned: dict[str, float] = {}
+        self._unused_since: dict[str, float] = {}
+        self._next_list_check = -float("inf")
+        self.stale_removed = 0
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -437,6 +462,9 @@ class AgonesAgent:
             for name in sorted(self._listed - names):
                 if self._try(self.sdk.remove_list_value, ROOMS_LIST, name, ok=(404,)):
                     self._listed.discard(name)
+            if now >= self._next_list_check:
+                self._next_list_check = now + self.options.list_check_s
+                self._prune_list(names, now)
         users = sum(r.users for r in reports)
         if (
             USERS_COUNTER not in self._undeclared
@@ -447,6 +475,33 @@ class AgonesAgent:
         # empty from when the sidecar has heard so (after this report's calls): Shutdown comes
         # at least empty_shutdown_s after the last change of the users counter it recorded
         self._empty_timer(reports, self.clock())
+
+    def _prune_list(self, in_use: set[str], now: float) -> None:
+        """Remove the names of the ``rooms`` list (as the sidecar holds it) that have not been
+        rooms in use for ``stale_room_grace_s`` since this agent first saw them so."""
+        got: list[dict[str, Any]] = []
+        if not self._try(lambda: got.append(self.sdk.game_server())):
+            return
+        status = got[0].get("status")
+        lists = status.get("lists") if isinstance(status, dict) else None
+        entry = lists.get(ROOMS_LIST) if isinstance(lists, dict) else None
+        values = entry.get("values") if isinstance(entry, dict) else None
+        listed = {v for v in values or [] if isinstance(v, str)}
+        unused = listed - in_use
+        for name in set(self._unused_since) - unused:  # in use again, or gone from the list
+            del self._unused_since[name]
+        for name in sorted(unused):
+            since = self._unused_since.setdefault(name, now)
+            if now - since < self.options.stale_room_grace_s:
+                continue
+            if self._try(self.sdk.remove_list_value, ROOMS_LIST, name, ok=(404,)):
+                del self._unused_since[name]
+                self._listed.discard(name)
+                self.stale_removed += 1
+                log.info(
+                    "Agones: room %r listed but not in use for %g s; removed from %r",
+                    name, now - since, ROOMS_LIST,
+                )  # fmt: skip
 
     def _empty_timer(self, reports: Sequence[_RoomReport], now: float) -> None:
         limit = self.options.empty_shutdown_s

@@ -22,7 +22,7 @@ from haptic_collab.server.app import DEFAULT_ROOM, ServerApp
 from haptic_collab.server.main import ServerOptions, build_world, room_proxy, run_server
 from haptic_collab.server.room import Room
 from haptic_collab.shared.protocol import LinkConditions
-from tests.support.agones_sidecar import Sidecar
+from tests.support.agones_sidecar import Call, Sidecar
 
 SIM_RATE = 20.0
 #: A short health period and probe timeout keep the test short; the defaults are 2 s and 1 s.
@@ -301,5 +301,60 @@ async def test_no_health_while_a_room_process_is_hung_and_again_once_it_is_resta
         finally:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGCONT)
+            await asyncio.to_thread(agent.stop)
+            await app.stop()
+
+
+async def test_a_name_the_allocation_listed_that_nobody_joined_leaves_the_list():
+    """The lobby's allocation lists a room's name before its user arrives; a name whose user
+    never came is removed after the grace, one whose user came stays."""
+    world = build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=1))
+    app = ServerApp(
+        Room(build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=1)), SIM_RATE),
+        "127.0.0.1",
+        0,
+        rooms={"lab": Room(world, SIM_RATE)},
+    )
+    await app.start()
+    users: list[User] = []
+    with Sidecar(lists={"rooms": 4}, counters={"users": 8}) as sc:
+        options = AgonesOptions(
+            empty_shutdown_s=None, stale_room_grace_s=0.5, list_check_s=0.1, **FAST
+        )
+        agent = start_agones(app.room_reports, options, {PORT_ENV: str(sc.port)})
+        assert isinstance(agent, AgonesAgent)
+
+        def reads() -> list[Call]:
+            return sc.of("GET", "/gameserver")
+
+        def removed() -> list[str]:
+            return [c.body["value"] for c in sc.of("POST", "/v1beta1/lists/rooms:removeValue")]
+
+        try:
+            await until(lambda: sc.state == "Ready")
+            # two allocations by the lobby: "lab" (a user is on the way) and "ghost" (never)
+            sc.allocate({"rooms": ["lab", "ghost"]})
+            seen_at = len(sc.calls)
+            await until(lambda: any(c.seq >= seen_at for c in reads()))  # the agent read them
+            users.append(await User.join(app.port, "A", path="/rooms/lab/ws"))
+            await until(lambda: "ghost" not in sc.lists["rooms"]["values"])
+            assert removed() == ["ghost"] and agent.stale_removed == 1
+            # not at first sight: the agent read the list more than once before removing it
+            (removal,) = sc.of("POST", "/v1beta1/lists/rooms:removeValue")
+            assert len([c for c in reads() if seen_at <= c.seq < removal.seq]) >= 2
+            # the room its user joined stays listed, past the grace, while the user is in it
+            reads_then = len(reads())
+            await until(lambda: len(reads()) >= reads_then + 10)
+            assert sc.lists["rooms"]["values"] == ["lab"] and removed() == ["ghost"]
+            # a name listed again after its users left (the lobby sent someone) is removed too
+            await users.pop(0).leave()
+            await until(lambda: sc.lists["rooms"]["values"] == [])
+            assert removed() == ["ghost", "lab"]  # the agent's own removal, as before
+            sc.allocate({"rooms": ["lab"]})
+            await until(lambda: removed() == ["ghost", "lab", "lab"])
+            assert agent.stale_removed == 2
+        finally:
+            for u in users:
+                await u.leave()
             await asyncio.to_thread(agent.stop)
             await app.stop()

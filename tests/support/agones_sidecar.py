@@ -191,10 +191,18 @@ class Sidecar:
         self._http.server_close()
 
     # ------------------------------------------------------------------ for the tests
-    def allocate(self) -> None:
-        """What a GameServerAllocation does: Ready becomes Allocated."""
+    def allocate(self, add_values: dict[str, list[str]] | None = None) -> None:
+        """What a GameServerAllocation does: Ready becomes Allocated, and its
+        ``lists.NAME.addValues`` are appended (a value already there is ignored, values past
+        the capacity are dropped, as tests/support/agones_allocator.py does)."""
         with self._cond:
             self.state = "Allocated"
+            for name, values in (add_values or {}).items():
+                lst = self.lists[name]
+                for value in values:
+                    if value not in lst["values"] and len(lst["values"]) < lst["capacity"]:
+                        lst["values"].append(value)
+            self._cond.notify_all()
 
     def of(self, method: str, path: str) -> list[Call]:
         """The calls of one method and path, in order."""
