@@ -13,6 +13,9 @@ jerks the device.
   back to the start in ``release_s``, then stay there.
 - :class:`Rest`: wait ``delay_s`` at ``standoff_m`` outside, move in ``approach_s`` to a hand target
   ``depth_m`` inside (a light touch on the side), hold for ever.
+- :class:`Sweep`: palpation over a curved surface: wait outside the start point, approach it,
+  press the hand target ``depth_m`` in, hold, slide at that depth along the great circle of a
+  sphere (centre and radius) to the end point and back, withdraw.
 - :class:`Replay`: linear interpolation of a recorded CSV of hand positions (``t_s,x_m,y_m,z_m``),
   holding the first sample before it and the last after it.
 
@@ -210,6 +213,120 @@ class Rest:
     def __call__(self, t_s: float) -> Vec3:
         """Hand target (x, y, z) [m] at time ``t_s`` [s]."""
         return self._path.at(t_s)
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """Press in, then slide across the surface at that depth and back: a palpating hand.
+
+    The surface is taken as a sphere (``centre``, ``radius_m``) along the slide, so the hand
+    target stays ``depth_m`` inside it all the way (a straight chord would dig deeper in the
+    middle: 6 mm on a 20 degree half-arc of a 0.1 m ball). The slide follows the great circle
+    from ``start`` to ``end`` (unit directions from the centre), minimum-jerk in angle, then back.
+
+    Parameters
+    ----------
+    centre : (3,) float
+        The sphere's centre [m].
+    radius_m : float
+        Its radius [m] (> 0).
+    start, end : (3,) float
+        Directions from the centre to the slide's ends (normalized here; not opposite).
+    standoff_m : float
+        Distance [m] outside the start point at the beginning and the end (default 0.03).
+    depth_m : float
+        Hand-target depth [m] inside the surface while sliding (default 0.01).
+    delay_s, approach_s, press_s, hold_s, sweep_s, release_s : float
+        Phase durations [s]: wait, approach the start point, press in, hold still, slide to the
+        end (and as long back), withdraw (defaults 0, 1, 1.5, 2, 4, 1).
+
+    Raises
+    ------
+    ValueError
+        Non-finite or negative values, a radius not > 0, zero or opposite directions, or a
+        depth not less than the radius.
+    """
+
+    centre: Sequence[float]
+    radius_m: float
+    start: Sequence[float]
+    end: Sequence[float]
+    standoff_m: float = 0.03
+    depth_m: float = 0.01
+    delay_s: float = 0.0
+    approach_s: float = 1.0
+    press_s: float = 1.5
+    hold_s: float = 2.0
+    sweep_s: float = 4.0
+    release_s: float = 1.0
+    _times: tuple[float, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        c = vec3("centre", self.centre)
+        a, b = unit_vec3("start", self.start), unit_vec3("end", self.end)
+        r = _nonneg("radius_m", self.radius_m)
+        if r <= 0.0:
+            raise ValueError(f"radius_m must be > 0, got {self.radius_m!r}")
+        _nonneg("standoff_m", self.standoff_m)
+        if not _nonneg("depth_m", self.depth_m) < r:
+            raise ValueError(f"depth_m must be less than radius_m, got {self.depth_m!r}")
+        cos = sum(x * y for x, y in zip(a, b, strict=True))
+        if cos <= -1.0 + 1e-9:
+            raise ValueError("start and end must not be opposite (the great circle is not one)")
+        phases = ("delay_s", "approach_s", "press_s", "hold_s", "sweep_s", "sweep_s", "release_s")
+        times = tuple(accumulate(_nonneg(name, getattr(self, name)) for name in phases))
+        object.__setattr__(self, "centre", c)
+        object.__setattr__(self, "start", a)
+        object.__setattr__(self, "end", b)
+        object.__setattr__(self, "_times", times)
+
+    @property
+    def duration_s(self) -> float:
+        """Time [s] at which the hand is back outside the start point."""
+        return self._times[-1]
+
+    @property
+    def slide_s(self) -> tuple[float, float]:
+        """(start, end) [s] of the slide out and back."""
+        return self._times[3], self._times[5]
+
+    def direction(self, s: float) -> Vec3:
+        """The unit direction a share ``s`` in [0, 1] of the way from ``start`` to ``end`` along
+        the great circle (spherical linear interpolation)."""
+        a, b = self.start, self.end
+        cos = max(-1.0, min(1.0, sum(x * y for x, y in zip(a, b, strict=True))))
+        angle = math.acos(cos)
+        if angle < 1e-9:
+            return (a[0], a[1], a[2])
+        wa, wb = (
+            math.sin((1.0 - s) * angle) / math.sin(angle),
+            math.sin(s * angle) / math.sin(angle),
+        )
+        return (wa * a[0] + wb * b[0], wa * a[1] + wb * b[1], wa * a[2] + wb * b[2])
+
+    def __call__(self, t_s: float) -> Vec3:
+        """Hand target (x, y, z) [m] at time ``t_s`` [s]."""
+        t0, t_contact, t_in, t_slide, t_end, t_back, t_out = self._times
+        so, dp = self.standoff_m, self.depth_m
+
+        def blend(t: float, ta: float, tb: float) -> float:
+            return min_jerk((t - ta) / (tb - ta)) if tb > ta else float(t >= tb)
+
+        if t_s < t_slide:
+            s = 0.0
+            if t_s < t_contact:
+                off = so + (0.0 - so) * blend(t_s, t0, t_contact)
+            else:
+                off = -dp * blend(t_s, t_contact, t_in)
+        elif t_s < t_back:
+            off = -dp
+            s = blend(t_s, t_slide, t_end) if t_s < t_end else 1.0 - blend(t_s, t_end, t_back)
+        else:
+            s = 0.0
+            off = -dp + (so + dp) * blend(t_s, t_back, t_out)
+        d = self.direction(s)
+        c, r = self.centre, self.radius_m + off
+        return (c[0] + r * d[0], c[1] + r * d[1], c[2] + r * d[2])
 
 
 class ReplayError(ValueError):

@@ -117,6 +117,20 @@ _SHARED: dict[str, dict[str, Any]] = {
     "--mesh-max-edge": {"type": _positive, "default": None, "metavar": "M"},
     "--material": {"default": None, "metavar": "NAME|FILE.toml"},
     "--object": {"choices": ["balloon", "fem"], "default": "balloon"},
+    "--inclusion": {
+        "action": "append",
+        "default": [],
+        "metavar": "FILE",
+        "help": "with --object fem: a closed surface inside the solid (metres, the solid's frame) "
+        "with a material of its own, e.g. a lump to palpate (repeat; docs/palpation.md)",
+    },
+    "--inclusion-material": {
+        "action": "append",
+        "default": [],
+        "metavar": "NAME",
+        "help": "the material of each --inclusion, in the same order: a solid preset, a TOML "
+        "file, or PRESET*K (the preset K times as stiff, e.g. liver*10)",
+    },
     "--subdivisions": {"type": _nonneg_int, "default": 4},
     "--latency-ms": {"type": _nonneg, "default": 0.0, "help": "injected one-way latency [ms]"},
     "--jitter-ms": {"type": _nonneg, "default": 0.0, "help": "injected jitter [ms]"},

@@ -1,0 +1,424 @@
+"""Inclusions of the FEM solid: a stiffer or softer region inside it, for palpation (docs/palpation.md).
+
+A tumour or a vessel inside soft tissue is felt through the tissue above it: the surface over a
+stiff lump is stiffer under the finger than the surface beside it at the same depth. An
+*inclusion* is a second closed surface inside the solid's surface (``--inclusion FILE``) with a
+material of its own (``--inclusion-material NAME``); several may be given, paired in order.
+
+What this module does, for :class:`server.objects.fem.FemSolid`:
+
+- :func:`load_inclusions` reads each file (:func:`server.objects.mesh.load_mesh`, coordinates in
+  metres in the object's own frame) and its material (:func:`inclusion_material`: a solid preset,
+  a TOML file, or ``PRESET*K``, the preset with its Young's modulus times ``K``);
+- :func:`check_inclusions` refuses an inclusion that is not inside the solid, crosses its
+  surface or another inclusion, with a message that says which and where;
+- :func:`volume_with_inclusions` tetrahedralises the solid with the inclusions' surfaces as
+  internal facets (TetGen's piecewise linear complex keeps them), so the elements *conform* to
+  each inclusion: its volume is the volume of the tetrahedra labelled as it, to rounding,
+  however coarse the mesh (a centroid test on a mesh that does not conform would give a
+  staircase lump whose size depends on the mesh);
+- :func:`element_labels` labels each tetrahedron by its centroid with the generalised winding
+  number (Jacobson, Kavan and Sorkine-Hornung 2013), which is exact for a closed surface and
+  needs no ray-casting library; :func:`element_materials` turns the labels into per-element
+  Young's modulus, Poisson's ratio and density (:class:`ElementMaterials`, with Lame's
+  constants per element);
+- :func:`stiffness_by_groups` and :func:`mass_by_groups` assemble the stiffness and the lumped
+  mass with per-element materials from today's one-material
+  :func:`server.objects.fem_elements.stiffness_matrix` and ``lumped_mass``: one assembly per
+  material group, summed. That is exact for any element whose stiffness is a sum over elements
+  (P1, P2, selective reduced integration), and is what the palpation measurement
+  (:mod:`haptic_collab.research.palpation`) uses until the solid takes per-element materials
+  itself (docs/palpation.md: the hook).
+
+The inclusion's Rayleigh damping is the solid's (``C = alpha M + beta K`` with the per-element
+``K`` already carries the stiffer element's larger ``beta K`` term); its own ``beta`` is not used.
+
+References
+----------
+- Jacobson, A., Kavan, L., & Sorkine-Hornung, O. (2013). Robust inside-outside segmentation
+  using generalized winding numbers. *ACM Transactions on Graphics* 32(4), 33.
+- Van Oosterom, A., & Strackee, J. (1983). The solid angle of a plane triangle. *IEEE
+  Transactions on Biomedical Engineering* 30(2), 125-126.
+- Si, H. (2015). TetGen, a Delaunay-based quality tetrahedral mesh generator. *ACM TOMS* 41(2), 11.
+
+Nothing here uses threads, sockets or clocks; :func:`volume_with_inclusions` runs TetGen in a
+child process (:func:`server.objects.volume.volume_mesh`).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+import trimesh
+
+from haptic_collab.server.materials import MaterialError
+from haptic_collab.server.objects.fem_elements import lumped_mass, stiffness_matrix
+from haptic_collab.server.objects.mesh import MeshError, load_mesh
+from haptic_collab.server.objects.volume import volume_mesh
+from haptic_collab.server.solid_materials import SOLID_PRESETS, SolidMaterial, load_solid_material
+from haptic_collab.shared.types import FloatArray, IntArray
+
+#: ``PRESET*K``: a solid preset with its Young's modulus multiplied by K (a lump K times as stiff).
+_SCALED = re.compile(r"^(?P<name>[A-Za-z0-9_.-]+)\s*\*\s*(?P<k>[0-9.eE+-]+)$")
+
+#: Points per chunk of the winding-number test (memory: chunk x faces x 3 x 8 bytes, several).
+_CHUNK = 2048
+
+
+class InclusionError(ValueError):
+    """An inclusion that cannot be used: its file, its material, or where it lies."""
+
+
+@dataclass(frozen=True)
+class Inclusion:
+    """A region of the solid with a material of its own.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Its closed surface, outward wound, coordinates [m] in the solid's frame.
+    material : SolidMaterial
+        Its material (Young's modulus, Poisson's ratio, density used; damping is the solid's).
+    where : str
+        The file (or a name) it came from, for messages.
+    """
+
+    mesh: trimesh.Trimesh
+    material: SolidMaterial
+    where: str
+
+
+@dataclass(frozen=True)
+class ElementMaterials:
+    """Per-element materials of a volume mesh of T tetrahedra.
+
+    Parameters
+    ----------
+    labels : (T,) int
+        0: the solid's own material; ``i + 1``: inclusion ``i``.
+    young_pa : (T,) float [Pa]
+    poisson : (T,) float [1]
+    density_kg_m3 : (T,) float [kg/m^3]
+    names : tuple of str
+        The material of each label (``names[0]`` the solid's).
+    """
+
+    labels: IntArray
+    young_pa: FloatArray
+    poisson: FloatArray
+    density_kg_m3: FloatArray
+    names: tuple[str, ...]
+
+    @property
+    def lame(self) -> tuple[FloatArray, FloatArray]:
+        """Lame's ``(lambda, mu)`` per element, each (T,) [Pa]:
+        ``lambda = E nu / ((1 + nu)(1 - 2 nu))``, ``mu = E / (2 (1 + nu))``."""
+        e, nu = self.young_pa, self.poisson
+        return e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), e / (2.0 * (1.0 + nu))
+
+    def counts(self) -> dict[str, int]:
+        """Tetrahedra per material label name (``names[label]``)."""
+        found = np.bincount(self.labels, minlength=len(self.names))
+        return {self.names[i]: int(found[i]) for i in range(len(self.names))}
+
+
+def inclusion_material(spec: str | Path) -> SolidMaterial:
+    """The material of ``--inclusion-material``: a solid preset (``liver``, ``skin``,
+    ``ecoflex-0030``, ``sylgard-184``), a TOML file (:func:`server.solid_materials.
+    load_solid_material`), or ``PRESET*K``: the preset with its Young's modulus times K (> 0),
+    e.g. ``liver*10`` for a lump ten times as stiff as liver (a tumour is 3-20 times as stiff as
+    the tissue around it; docs/palpation.md).
+
+    Raises
+    ------
+    MaterialError
+        An unknown preset or file, a file :func:`load_solid_material` refuses, or a factor that
+        is not a finite number > 0.
+    """
+    text = str(spec).strip()
+    m = _SCALED.match(text)
+    if m is None:
+        return load_solid_material(spec)
+    name, k_text = m.group("name"), m.group("k")
+    try:
+        k = float(k_text)
+    except ValueError:
+        k = math.nan
+    if not (math.isfinite(k) and k > 0.0):
+        raise MaterialError(f"inclusion material {text!r}: the factor must be a number > 0")
+    if name not in SOLID_PRESETS:
+        raise MaterialError(
+            f"inclusion material {text!r}: {name!r} is not a solid preset "
+            f"({', '.join(SOLID_PRESETS)}); PRESET*K scales a preset's Young's modulus"
+        )
+    base = SOLID_PRESETS[name]
+    return replace(
+        base,
+        name=f"{name}*{k:g}",
+        young_pa=base.young_pa * k,
+        source=f"{base.source}; Young's modulus x {k:g}",
+    )
+
+
+def load_inclusions(
+    files: Sequence[str | Path], materials: Sequence[str | Path]
+) -> list[Inclusion]:
+    """The inclusions of ``--inclusion FILE`` and ``--inclusion-material NAME``, paired in order.
+
+    Parameters
+    ----------
+    files : sequence of path
+        Closed surface meshes (STL, OBJ, PLY, OFF, GLB), coordinates in metres in the solid's
+        frame (the frame the server uses, after ``--mesh-scale`` or ``--mesh-size``).
+    materials : sequence of str
+        One :func:`inclusion_material` spec per file.
+
+    Raises
+    ------
+    InclusionError
+        Not as many materials as files, a file that cannot be loaded or is not one closed body
+        (:class:`server.objects.mesh.MeshError`'s reason), or a material refused.
+    """
+    if len(files) != len(materials):
+        raise InclusionError(
+            f"{len(files)} --inclusion file(s) but {len(materials)} --inclusion-material(s): "
+            "give one material per inclusion, in the same order"
+        )
+    out = []
+    for f, spec in zip(files, materials, strict=True):
+        try:
+            mesh = load_mesh(f)
+        except MeshError as exc:
+            raise InclusionError(f"--inclusion {f}: {exc}") from None
+        try:
+            material = inclusion_material(spec)
+        except MaterialError as exc:
+            raise InclusionError(f"--inclusion-material {spec}: {exc}") from None
+        out.append(Inclusion(mesh=mesh, material=material, where=str(f)))
+    return out
+
+
+def winding_number(
+    points: npt.ArrayLike, vertices: npt.ArrayLike, faces: npt.ArrayLike
+) -> FloatArray:
+    """The generalised winding number of a triangle surface at each point (Jacobson et al. 2013).
+
+    The sum of the signed solid angles the faces subtend at the point (Van Oosterom and
+    Strackee 1983) over 4 pi: 1 inside a closed outward-wound surface, 0 outside, 1/2 on it.
+
+    Parameters
+    ----------
+    points : (P, 3) float [m]; vertices : (n, 3) float [m]; faces : (m, 3) int
+
+    Returns
+    -------
+    (P,) float [1]
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    out = np.empty(len(p))
+    for s in range(0, len(p), _CHUNK):
+        c = p[s : s + _CHUNK, None, :]
+        a, b, d = tri[None, :, 0] - c, tri[None, :, 1] - c, tri[None, :, 2] - c
+        la, lb, ld = (np.linalg.norm(x, axis=2) for x in (a, b, d))
+        num = np.einsum("ijk,ijk->ij", a, np.cross(b, d))
+        den = (
+            la * lb * ld
+            + np.einsum("ijk,ijk->ij", a, b) * ld
+            + np.einsum("ijk,ijk->ij", b, d) * la
+            + np.einsum("ijk,ijk->ij", d, a) * lb
+        )
+        out[s : s + _CHUNK] = 2.0 * np.arctan2(num, den).sum(axis=1) / (4.0 * math.pi)
+    return out
+
+
+def _inside(points: FloatArray, mesh: trimesh.Trimesh) -> npt.NDArray[np.bool_]:
+    """Whether each point (P, 3) [m] is inside ``mesh`` (winding number above 1/2); only the
+    points in its bounding box are tested."""
+    lo, hi = mesh.bounds
+    box = np.all((points >= lo) & (points <= hi), axis=1)
+    inside = np.zeros(len(points), dtype=bool)
+    if box.any():
+        inside[box] = winding_number(points[box], mesh.vertices, mesh.faces) > 0.5
+    return inside
+
+
+def check_inclusions(solid: trimesh.Trimesh, inclusions: Sequence[Inclusion]) -> None:
+    """Refuse inclusions that are not wholly inside the solid and apart from each other.
+
+    Every vertex of an inclusion must be strictly inside the solid's surface (winding number
+    above 1/2), no vertex of the solid inside an inclusion (a surface that crosses the solid's
+    would give TetGen intersecting facets), and no vertex of one inclusion inside another.
+
+    Parameters
+    ----------
+    solid : trimesh.Trimesh
+        The solid's closed surface [m].
+    inclusions : sequence of Inclusion
+
+    Raises
+    ------
+    InclusionError
+        Says which inclusion, how many of its vertices are outside, and the first one [m].
+    """
+    for i, inc in enumerate(inclusions):
+        v = np.asarray(inc.mesh.vertices, dtype=np.float64)
+        if not inc.mesh.is_watertight or not float(inc.mesh.volume) > 0.0:
+            raise InclusionError(f"inclusion {inc.where}: not a closed surface enclosing a volume")
+        out = winding_number(v, solid.vertices, solid.faces) <= 0.5
+        if out.any():
+            first = np.round(v[np.flatnonzero(out)[0]] * 1000.0, 2)
+            raise InclusionError(
+                f"inclusion {inc.where}: {int(out.sum())} of its {len(v)} vertices are outside the "
+                f"solid (the first at {first.tolist()} mm); an inclusion must lie wholly inside, "
+                "in the solid's frame in metres"
+            )
+        crossed = _inside(np.asarray(solid.vertices, dtype=np.float64), inc.mesh)
+        if crossed.any():
+            raise InclusionError(
+                f"inclusion {inc.where}: it crosses the solid's surface ({int(crossed.sum())} of "
+                "the solid's vertices are inside it)"
+            )
+        for j, other in enumerate(inclusions[:i]):
+            if (
+                _inside(v, other.mesh).any()
+                or _inside(np.asarray(other.mesh.vertices, dtype=np.float64), inc.mesh).any()
+            ):
+                raise InclusionError(
+                    f"inclusions {other.where} (#{j + 1}) and {inc.where} (#{i + 1}) overlap"
+                )
+
+
+def combined_surface(
+    solid: trimesh.Trimesh, inclusions: Sequence[Inclusion]
+) -> tuple[FloatArray, IntArray]:
+    """The solid's surface then each inclusion's, as one vertex and face list: the piecewise
+    linear complex TetGen meshes. The solid's ``n`` vertices come first, unchanged.
+
+    Returns
+    -------
+    (vertices (n + sum n_i, 3) float64 [m], faces (m + sum m_i, 3) int64)
+    """
+    verts = [np.asarray(solid.vertices, dtype=np.float64)]
+    faces = [np.asarray(solid.faces, dtype=np.int64)]
+    offset = len(verts[0])
+    for inc in inclusions:
+        verts.append(np.asarray(inc.mesh.vertices, dtype=np.float64))
+        faces.append(np.asarray(inc.mesh.faces, dtype=np.int64) + offset)
+        offset += len(verts[-1])
+    return np.vstack(verts), np.vstack(faces)
+
+
+def volume_with_inclusions(
+    solid: trimesh.Trimesh,
+    inclusions: Sequence[Inclusion],
+    cache_dir: str | Path | None = None,
+) -> tuple[FloatArray, IntArray]:
+    """The solid's volume mesh with the inclusions' surfaces as internal facets (conforming).
+
+    :func:`check_inclusions` first, then :func:`server.objects.volume.volume_mesh` on
+    :func:`combined_surface` (TetGen, cached like any volume mesh). With no inclusions it is the
+    solid's own volume mesh.
+
+    Returns
+    -------
+    (nodes (N, 3) float64 [m], tets (T, 4) int64)
+        ``nodes[:n]`` are the solid's ``n`` surface vertices, as
+        :class:`server.objects.fem.FemSolid` needs (its ``volume`` argument).
+
+    Raises
+    ------
+    InclusionError
+        As :func:`check_inclusions`.
+    MeshError
+        As :func:`server.objects.volume.volume_mesh`.
+    """
+    check_inclusions(solid, inclusions)
+    v, f = combined_surface(solid, inclusions)
+    return volume_mesh(v, f, cache_dir=cache_dir)
+
+
+def element_labels(
+    nodes: npt.ArrayLike, tets: npt.ArrayLike, inclusions: Sequence[Inclusion]
+) -> IntArray:
+    """Each tetrahedron's region by its centroid: 0 the solid, ``i + 1`` inclusion ``i``.
+
+    Returns
+    -------
+    (T,) int64
+    """
+    p = np.asarray(nodes, dtype=np.float64)
+    t = np.asarray(tets, dtype=np.int64)
+    centroids = p[t].mean(axis=1)
+    labels = np.zeros(len(t), dtype=np.int64)
+    for i, inc in enumerate(inclusions):
+        labels[_inside(centroids, inc.mesh)] = i + 1
+    return labels
+
+
+def element_materials(
+    nodes: npt.ArrayLike,
+    tets: npt.ArrayLike,
+    base: SolidMaterial,
+    inclusions: Sequence[Inclusion],
+    young_scale: float = 1.0,
+) -> ElementMaterials:
+    """Per-element Young's modulus, Poisson's ratio and density (:func:`element_labels`).
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]; tets : (T, 4) int
+    base : SolidMaterial
+        The solid's material.
+    inclusions : sequence of Inclusion
+    young_scale : float
+        Every Young's modulus times this (``--stiffness-scale``), > 0.
+
+    Returns
+    -------
+    ElementMaterials
+    """
+    labels = element_labels(nodes, tets, inclusions)
+    mats = [base, *(inc.material for inc in inclusions)]
+    e = np.array([m.young_pa * young_scale for m in mats])
+    nu = np.array([m.poisson for m in mats])
+    rho = np.array([m.density_kg_m3 for m in mats])
+    return ElementMaterials(
+        labels=labels,
+        young_pa=e[labels],
+        poisson=nu[labels],
+        density_kg_m3=rho[labels],
+        names=tuple(m.name for m in mats),
+    )
+
+
+def stiffness_by_groups(
+    nodes: FloatArray, tets: IntArray, materials: ElementMaterials
+) -> sp.csr_matrix:
+    """The stiffness ``K`` (3N, 3N) [N/m] with per-element materials, from the one-material
+    :func:`server.objects.fem_elements.stiffness_matrix`: one assembly per distinct ``(lambda,
+    mu)``, summed (exact for any element whose stiffness is a sum over elements)."""
+    lam, mu = materials.lame
+    pairs = np.stack([lam, mu], axis=1)
+    unique, group = np.unique(pairs, axis=0, return_inverse=True)
+    n = 3 * len(nodes)
+    k = sp.csr_matrix((n, n))
+    for g, (lam_g, mu_g) in enumerate(unique):
+        k = k + stiffness_matrix(nodes, tets[group.ravel() == g], float(lam_g), float(mu_g))
+    return k.tocsr()
+
+
+def mass_by_groups(nodes: FloatArray, tets: IntArray, materials: ElementMaterials) -> FloatArray:
+    """Lumped nodal masses (N,) [kg] with per-element density, from the one-density
+    :func:`server.objects.fem_elements.lumped_mass`, one call per distinct density, summed."""
+    out = np.zeros(len(nodes))
+    for rho in np.unique(materials.density_kg_m3):
+        out += lumped_mass(nodes, tets[materials.density_kg_m3 == rho], float(rho))
+    return out
