@@ -5,10 +5,15 @@
 // per simulation tick, turns each `patch` into a primitive + gains for the servo thread, pings for
 // the round trip, reconnects with backoff (its hello carrying the last welcome's resume token, so
 // the server gives back the same seat within its hold time), prints a JSON summary at exit.
+// With --lobby URL --room NAME it asks a lobby (haptic lobby, server/lobby.py) where the room runs
+// and for a room token (GET LOBBY/rooms/NAME?role=user) before it joins, and asks again before
+// rejoining once its server said it is draining (server_draining, close 1012/1013), refused the
+// connection or refused an earlier token; a draining server is never picked, so it rejoins the
+// room where it runs now.
 // Worker thread (lib/servo-worker.mjs): the servo loop at 1 kHz with a simulated hand + device.
 //
-// Exit codes: 0 done; 1 a fatal `error` from the server (its message on stderr); 2 bad command
-// line; 3 never joined a room.
+// Exit codes: 0 done; 1 a fatal `error` from the server, or the lobby refused the room (4xx but
+// 429; the message on stderr); 2 bad command line; 3 never joined a room.
 
 import { Worker, MessageChannel } from "node:worker_threads";
 import { parseArgs } from "node:util";
@@ -37,6 +42,10 @@ Join a haptic collaboration room as a user with a simulated hand and device.
 
 connection
   --url URL              server websocket (default ws://127.0.0.1:8765/ws)
+  --lobby URL            ask this lobby (haptic lobby, http(s)://HOST:PORT) where --room runs and
+                         for a room token, instead of --url; asked again after a drain
+  --room NAME            the room to ask the lobby for (with --lobby)
+  --lobby-token TOKEN    the lobby's token, when it asks for one (default: $HAPTIC_LOBBY_TOKEN)
   --name NAME            user name, 1-32 of A-Za-z0-9_.- (default js)
   --token TOKEN          access token sent in hello (default: $HAPTIC_TOKEN; none if unset)
   --duration S           leave after S seconds (default: run until SIGINT/SIGTERM)
@@ -101,7 +110,7 @@ function parseCli(argv, env = process.env) {
     options: {
       help: { type: "boolean", short: "h" },
       quiet: { type: "boolean" },
-      url: str, name: str, token: str, duration: str, summary: str, record: str, window: str,
+      url: str, lobby: str, room: str, "lobby-token": str, name: str, token: str, duration: str, summary: str, record: str, window: str,
       on: str, "rest-depth": str, standoff: str, "approach-at": str, "approach-s": str,
       "press-depth": str, "press-at": str, "press-ramp": str, "press-hold": str,
       target: str, start: str, "hand-k": str, "hand-b": str, "hand-mass": str,
@@ -112,7 +121,10 @@ function parseCli(argv, env = process.env) {
   if (values.help) return { help: true };
   const v = (k, d) => (values[k] === undefined ? d : values[k]);
   const o = {
-    url: v("url", "ws://127.0.0.1:8765/ws"),
+    url: values.lobby === undefined ? v("url", "ws://127.0.0.1:8765/ws") : null,
+    lobby: values.lobby ?? null,
+    room: values.room ?? null,
+    lobbyToken: values["lobby-token"] ?? (env.HAPTIC_LOBBY_TOKEN || null),
     name: v("name", "js"),
     token: values.token ?? (env.HAPTIC_TOKEN || null),
     durationS: values.duration === undefined ? Infinity : num("duration", values.duration, { min: 0, gt: true }),
@@ -147,7 +159,10 @@ function parseCli(argv, env = process.env) {
     rampS: num("ramp", v("ramp", "0.05"), { min: 0.001, max: 10 }),
   };
   if (!/^[A-Za-z0-9_.-]{1,32}$/.test(o.name)) throw new UsageError(`--name must be 1-32 of A-Za-z0-9_.-, got ${JSON.stringify(o.name)}`);
-  if (!/^wss?:\/\//.test(o.url)) throw new UsageError(`--url must start with ws:// or wss://, got ${JSON.stringify(o.url)}`);
+  if (o.lobby !== null && values.url !== undefined) throw new UsageError("--lobby finds the room's server: give it or --url, not both");
+  if ((o.lobby === null) !== (o.room === null)) throw new UsageError("--lobby URL and --room NAME go together");
+  if (o.lobby !== null && !/^https?:\/\/[^/]/.test(o.lobby)) throw new UsageError(`--lobby is http(s)://HOST:PORT, got ${JSON.stringify(o.lobby)}`);
+  if (o.url !== null && !/^wss?:\/\//.test(o.url)) throw new UsageError(`--url must start with ws:// or wss://, got ${JSON.stringify(o.url)}`);
   return o;
 }
 
@@ -155,6 +170,12 @@ class Client {
   constructor(opts) {
     this.o = opts;
     this.originUnixMs = performance.timeOrigin + performance.now();
+    this.url = opts.url; // with a lobby: null until it answers, then where the room runs
+    this.token = opts.token; // with a lobby: the room token it gave
+    this.reask = opts.lobby !== null; // ask the lobby before the next connection
+    this.tokenFresh = false; // the token came from the lobby just before this connection
+    this.lobbyAsks = 0;
+    this.lobbyJoined = []; // {url, server} of each lobby answer a connection joined with
     this.ws = null;
     this.joined = false;
     this.stopping = false;
@@ -204,11 +225,67 @@ class Client {
     for (const sig of ["SIGINT", "SIGTERM"]) process.on(sig, () => this.finish(0, sig));
   }
 
+  // ---- lobby -----------------------------------------------------------------------------------
+  // Ask the lobby where the room runs (GET LOBBY/rooms/NAME?role=user): true when it answered
+  // with a room URL (this.url, this.token set). A 4xx but 429 (a bad name, a lobby token it does
+  // not accept) ends the client: asking again cannot help. No answer, 429 or 5xx: false, and the
+  // caller tries again after its backoff.
+  async askLobby() {
+    const o = this.o;
+    const url = `${o.lobby.replace(/\/+$/, "")}/rooms/${encodeURIComponent(o.room)}?role=user`;
+    const headers = { Accept: "application/json" };
+    if (o.lobbyToken) headers.Authorization = `Bearer ${o.lobbyToken}`;
+    this.lobbyAsks += 1;
+    let res;
+    let body = null;
+    try {
+      res = await fetch(url, { headers, signal: AbortSignal.timeout(10000) });
+      body = await res.json().catch(() => null);
+    } catch (err) {
+      this.log(`the lobby ${o.lobby} cannot be reached: ${err.cause?.code || err.message}`);
+      return false;
+    }
+    if (res.ok && body && typeof body.url === "string" && /^wss?:\/\//.test(body.url)) {
+      this.url = body.url;
+      this.token = typeof body.token === "string" ? body.token : null;
+      this.lobbyServer = body.server ?? null;
+      this.log(`the lobby places room ${o.room} at ${this.url}`);
+      return true;
+    }
+    const why = body && typeof body.error === "string" ? body.error : res.statusText;
+    if (res.ok || res.status >= 500 || res.status === 429) {
+      this.log(`the lobby ${o.lobby} has no room for us now: ${why} (${res.status})`);
+      return false;
+    }
+    this.stats.fatal_error = { code: "lobby_refused", message: `${why} (${res.status})` };
+    process.stderr.write(`haptic-client[${o.name}]: the lobby ${o.lobby} refused room ${JSON.stringify(o.room)}: ${why} (${res.status})\n`);
+    this.finish(1, "lobby_refused");
+    return false;
+  }
+
+  retryLater() {
+    const delay = this.backoffS;
+    this.backoffS = Math.min(5.0, this.backoffS * 2);
+    this.reconnectTimer = setTimeout(() => this.connect(), delay * 1000);
+  }
+
   // ---- link ------------------------------------------------------------------------------------
-  connect() {
+  async connect() {
     if (this.stopping) return;
+    this.tokenFresh = false;
+    if (this.o.lobby !== null && this.reask) {
+      const answered = await this.askLobby();
+      if (this.stopping) return;
+      if (answered) {
+        this.reask = false;
+        this.tokenFresh = true;
+      } else if (this.url === null) {
+        this.retryLater(); // nowhere to go yet
+        return;
+      } // else: try the last place the lobby gave, and ask again next time
+    }
     this.stats.connects += 1;
-    const ws = new WebSocket(this.o.url, { handshakeTimeout: 5000, maxPayload: 1 << 20 });
+    const ws = new WebSocket(this.url, { handshakeTimeout: 5000, maxPayload: 1 << 20 });
     this.ws = ws;
     let helloTimer = null;
     ws.on("open", () => {
@@ -223,7 +300,7 @@ class Client {
         },
         servoRateHz: this.o.servoRateHz,
         localModel: this.o.localModel,
-        token: this.o.token,
+        token: this.token,
         resume: this.resumeToken,
       });
       ws.send(JSON.stringify(hello));
@@ -259,11 +336,12 @@ class Client {
       if (this.ws === ws) this.ws = null;
       if (this.stopping) return;
       if (this.stats.fatal_error) return; // finish() is under way
-      this.log(`link closed (${code}${reason && reason.length ? ` ${reason}` : ""}); reconnecting in ${this.backoffS.toFixed(1)} s`);
+      // with a lobby: a drain (1012; 1013 try again later) or a server that never let us in
+      // may mean the room runs elsewhere now: ask before rejoining
+      if (this.o.lobby !== null && (code === 1012 || code === 1013 || !wasJoined)) this.reask = true;
       if (wasJoined) this.backoffS = 0.2; // a session that joined resets the backoff
-      const delay = this.backoffS;
-      this.backoffS = Math.min(5.0, this.backoffS * 2);
-      this.reconnectTimer = setTimeout(() => this.connect(), delay * 1000);
+      this.log(`link closed (${code}${reason && reason.length ? ` ${reason}` : ""}); reconnecting in ${this.backoffS.toFixed(1)} s`);
+      this.retryLater();
     });
   }
 
@@ -305,6 +383,7 @@ class Client {
     this.lastTick = -1; // a new session (maybe a restarted server) counts ticks from its own start
     this.lastPatchAtS = null; // patch_gap_max_s: within a session
     this.stats.joins += 1;
+    if (this.o.lobby !== null) this.lobbyJoined.push({ url: this.url, server: this.lobbyServer ?? null });
     this.log(`${m.resumed === true ? "rejoined, seat resumed," : "joined"} as ${m.name} (${m.user_id}), simulation at ${this.simRateHz} Hz`);
     if (!this.worker) this.startWorker(m.object);
     // patches start only after the first state: send one now, then about twice per tick
@@ -366,7 +445,16 @@ class Client {
     if (this.stats.error_messages.length < 20) {
       this.stats.error_messages.push({ code, message: String(m.message), fatal: !!m.fatal });
     }
-    if (m.fatal) {
+    if (m.fatal && (code === "server_draining" || code === "room_restarting")) {
+      // a restart, not a fault: the server closes with 1012 and the client rejoins (a drained
+      // room runs elsewhere next: with a lobby, ask it first)
+      this.log(`the server says ${code}: ${m.message}; rejoining`);
+      if (this.o.lobby !== null && code === "server_draining") this.reask = true;
+    } else if (m.fatal && code === "unauthorized" && this.o.lobby !== null && !this.tokenFresh) {
+      // a room token of an earlier answer (expired, or for another server): ask again
+      this.log(`the server refused the lobby's earlier token; asking the lobby again`);
+      this.reask = true;
+    } else if (m.fatal) {
       this.stats.fatal_error = { code, message: String(m.message) };
       process.stderr.write(`haptic-client[${this.o.name}]: fatal error from the server: ${code}: ${m.message}\n`);
       this.finish(1, "fatal_error");
@@ -494,7 +582,7 @@ class Client {
     if (code === 0 && this.stats.joins === 0) {
       this.exitCode = 3;
       this.exitReason = "never_joined";
-      process.stderr.write(`haptic-client[${this.o.name}]: never joined a room at ${this.o.url}\n`);
+      process.stderr.write(`haptic-client[${this.o.name}]: never joined a room at ${this.url ?? this.o.lobby}\n`);
     }
     const summary = this.summary(servo);
     const text = JSON.stringify(summary, null, 2) + "\n";
@@ -524,7 +612,8 @@ class Client {
       assigned_name: this.welcome ? this.welcome.name : null,
       user_id: this.userId,
       user_ids: this.userIds,
-      url: this.o.url,
+      url: this.url,
+      lobby: this.o.lobby === null ? null : { url: this.o.lobby, room: this.o.room, asks: this.lobbyAsks, joined: this.lobbyJoined },
       exit: this.exitReason,
       exit_code: this.exitCode,
       clock_origin_unix_s: this.originUnixMs / 1000,
