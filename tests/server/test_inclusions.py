@@ -1,0 +1,153 @@
+"""Inclusions inside the FEM solid: refusals, the conforming mesh, per-element materials, and what
+a palpating user feels (server/objects/inclusions.py, haptic_collab/research/palpation.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from haptic_collab.demo_report import STIFFNESS_JND
+from haptic_collab.research.palpation import measure, sphere_lump
+from haptic_collab.server.materials import MaterialError
+from haptic_collab.server.objects.fem_elements import (
+    element_gradients,
+    lumped_mass,
+    stiffness_matrix,
+)
+from haptic_collab.server.objects.inclusions import (
+    Inclusion,
+    InclusionError,
+    check_inclusions,
+    element_materials,
+    inclusion_material,
+    load_inclusions,
+    mass_by_groups,
+    stiffness_by_groups,
+    volume_with_inclusions,
+    winding_number,
+)
+from haptic_collab.server.objects.mesh import default_balloon
+from haptic_collab.server.solid_materials import SOLID_PRESETS
+
+LIVER = SOLID_PRESETS["liver"]
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("volumes")
+
+
+@pytest.fixture(scope="module")
+def ball():
+    return default_balloon(subdivisions=3)  # 0.1 m radius, 642 vertices
+
+
+def _lump(centre, radius, material=None, where="lump"):
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+    mesh.apply_translation(centre)
+    return Inclusion(mesh=mesh, material=material or inclusion_material("liver*10"), where=where)
+
+
+def test_the_winding_number_says_inside_and_outside_of_a_closed_surface():
+    box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
+    w = winding_number([[0.0, 0.0, 0.0], [0.009, -0.009, 0.009], [0.011, 0.0, 0.0], [0.5, 0, 0]],
+                       box.vertices, box.faces)  # fmt: skip
+    np.testing.assert_allclose(w, [1.0, 1.0, 0.0, 0.0], atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("centre", "radius", "words"),
+    [
+        ((0.0, 0.0, 0.3), 0.01, "vertices are outside the solid"),  # wholly outside
+        ((0.0, 0.0, 0.095), 0.01, "outside the solid"),  # pokes through the top
+        ((0.0, 0.0, 0.0), 0.2, "outside the solid"),  # the solid inside the inclusion
+    ],
+)
+def test_an_inclusion_not_inside_the_solid_is_refused_saying_where(ball, centre, radius, words):
+    with pytest.raises(InclusionError, match=words) as err:
+        check_inclusions(ball, [_lump(centre, radius)])
+    assert "lump" in str(err.value)
+
+
+def test_overlapping_inclusions_are_refused_and_apart_ones_are_not(ball):
+    a = _lump((0.0, 0.0, 0.05), 0.01, where="a.stl")
+    check_inclusions(ball, [a, _lump((0.0, 0.0, -0.05), 0.01, where="b.stl")])
+    with pytest.raises(InclusionError, match=r"a\.stl.*b\.stl.*overlap"):
+        check_inclusions(ball, [a, _lump((0.0, 0.0, 0.055), 0.01, where="b.stl")])
+
+
+def test_an_inclusion_material_is_a_preset_a_scaled_preset_or_refused():
+    assert inclusion_material("skin") == SOLID_PRESETS["skin"]
+    ten = inclusion_material("liver*10")
+    assert ten.young_pa == pytest.approx(10.0 * LIVER.young_pa)
+    assert (ten.poisson, ten.density_kg_m3) == (LIVER.poisson, LIVER.density_kg_m3)
+    for bad in ("liver*0", "liver*-2", "bone*10", "liver*x"):
+        with pytest.raises(MaterialError):
+            inclusion_material(bad)
+
+
+def test_inclusion_files_and_materials_pair_in_order(tmp_path):
+    path = tmp_path / "lump.stl"
+    trimesh.creation.icosphere(subdivisions=2, radius=0.005).export(path)
+    (inc,) = load_inclusions([path], ["liver*5"])
+    assert inc.material.young_pa == pytest.approx(5.0 * LIVER.young_pa)
+    assert inc.mesh.is_watertight
+    with pytest.raises(InclusionError, match="1 --inclusion file.*2 --inclusion-material"):
+        load_inclusions([path], ["liver", "skin"])
+    with pytest.raises(InclusionError, match="missing.stl"):
+        load_inclusions([tmp_path / "missing.stl"], ["liver"])
+
+
+def test_the_volume_mesh_conforms_to_the_lump_and_keeps_the_surface(ball, cache):
+    lump = _lump((0.02, 0.0, 0.07), 0.008)
+    nodes, tets = volume_with_inclusions(ball, [lump], cache_dir=cache)
+    np.testing.assert_array_equal(nodes[: len(ball.vertices)], ball.vertices)
+    mats = element_materials(nodes, tets, LIVER, [lump])
+    _, vol = element_gradients(nodes, tets)
+    # the tetrahedra labelled as the lump fill exactly its volume: the mesh conforms to it
+    assert vol[mats.labels == 1].sum() == pytest.approx(lump.mesh.volume, rel=1e-9)
+    assert vol.sum() == pytest.approx(ball.volume, rel=1e-9)
+    assert mats.young_pa[mats.labels == 1] == pytest.approx(10.0 * LIVER.young_pa)
+    assert mats.young_pa[mats.labels == 0] == pytest.approx(LIVER.young_pa)
+    lam, mu = mats.lame
+    assert mu[mats.labels == 1][0] == pytest.approx(10.0 * mu[mats.labels == 0][0])
+
+
+def test_assembly_by_groups_is_the_elements_own_sum(ball, cache):
+    lump = _lump((0.0, 0.0, 0.06), 0.01)
+    nodes, tets = volume_with_inclusions(ball, [lump], cache_dir=cache)
+    same = element_materials(nodes, tets, LIVER, [_lump((0.0, 0.0, 0.06), 0.01, LIVER)])
+    lam, mu = (float(x[0]) for x in same.lame)
+    k_one = stiffness_matrix(nodes, tets, lam, mu)
+    assert abs(stiffness_by_groups(nodes, tets, same) - k_one).max() <= 1e-12 * abs(k_one).max()
+    np.testing.assert_allclose(
+        mass_by_groups(nodes, tets, same), lumped_mass(nodes, tets, LIVER.density_kg_m3)
+    )
+    # a stiffer lump: K is the soft part's elements plus the lump's, each with its own E
+    mats = element_materials(nodes, tets, LIVER, [lump])
+    soft, hard = tets[mats.labels == 0], tets[mats.labels == 1]
+    lam_h, mu_h = (float(x[mats.labels == 1][0]) for x in mats.lame)
+    expect = stiffness_matrix(nodes, soft, lam, mu) + stiffness_matrix(nodes, hard, lam_h, mu_h)
+    k = stiffness_by_groups(nodes, tets, mats)
+    assert abs(k - expect).max() <= 1e-12 * abs(expect).max()
+    assert abs(k - k_one).max() > 0.1 * abs(k_one).max()  # the lump's elements did change
+
+
+def test_a_large_stiff_lump_is_felt_through_the_liver_and_a_deep_one_is_not(cache):
+    """Over a 30 mm lump ten times as stiff as liver, its top 10 mm under the surface, the finger
+    pad meets a surface stiffer than beside it (over its twin of liver) by more than a stiffness
+    JND; the same lump 30 mm deep is not felt. (A 10 mm lump at 10-20 mm changes K_o by about
+    2 % under the 15 mm pad: docs/palpation.md.)"""
+    near = measure(0.030, 0.010, cache_dir=cache)
+    assert near.rise > STIFFNESS_JND and near.lump_share > STIFFNESS_JND
+    assert abs(near.mesh_asymmetry) < 0.25 * STIFFNESS_JND  # the twin meshes beside alike
+    assert near.felt
+    deep = measure(0.030, 0.030, cache_dir=cache)
+    assert deep.rise < STIFFNESS_JND and not deep.felt
+    assert deep.rise < near.rise
+
+
+def test_a_lump_that_does_not_fit_is_refused():
+    with pytest.raises(ValueError, match="does not fit"):
+        sphere_lump(0.05, 0.06)
