@@ -1,7 +1,11 @@
 """``haptic demo``: the server and two simulated users as separate processes over real websockets.
 
 User A presses into the top of the shared water balloon, holds and releases; user B rests lightly
-on its side the whole time. Because every local model is rebuilt from the current global surface,
+on its side the whole time. ``--scenario palpation`` (:func:`palpation_setup`): the FEM liver
+sphere with a hidden stiff lump under its top (``--inclusion``), A presses in beside the lump,
+holds, slides across the top over the lump and back at the same depth and lets go; the report
+says how much A's force rose over the lump and whether B felt the sweep
+(:func:`haptic_collab.demo_report.palpation_report`). Because every local model is rebuilt from the current global surface,
 B's side bulges out while A presses and B feels it: B's force rises. The run says what to open
 now and for how long (:func:`opening_lines`), what it shows phase by phase in words, read from
 the users' telemetry as they write it (:class:`_Narrator`), then a summary table, whether B felt
@@ -19,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import secrets
 import shutil
@@ -30,14 +35,17 @@ import tempfile
 import time
 import urllib.request
 import webbrowser
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from haptic_collab.client.devices.trajectories import Sweep
 from haptic_collab.demo_report import (
     B_FORCE_ON_N,
     Timeline,
     build_report,
+    palpation_lines,
+    palpation_report,
     plot_demo,
     print_summary,
     run_verdict_line,
@@ -45,6 +53,9 @@ from haptic_collab.demo_report import (
 )
 from haptic_collab.server.security import is_loopback
 from haptic_collab.server.urls import WILDCARD_HOSTS, local_host, url_host, viewer_urls
+
+#: A direction or point (x, y, z).
+FloatVec = tuple[float, float, float]
 
 
 @dataclass
@@ -80,6 +91,13 @@ class DemoOptions:
     #: demo's duration: what this machine's scheduler gives any loop, for the users' servo
     #: timing to be read against (it takes about a third of a core).
     reference_loop: bool = False
+    #: ``press`` (A presses the top and holds) or ``palpation`` (the FEM liver with a stiff lump
+    #: under the top: A presses in and sweeps across it and back; :func:`palpation_setup`).
+    scenario: str = "press"
+    #: ``--inclusion`` files and their ``--inclusion-material`` names, passed to the server
+    #: (the palpation scenario writes its own lump and twin when none are given).
+    inclusions: tuple[str, ...] = ()
+    inclusion_materials: tuple[str, ...] = ()
 
     def hand_args(self) -> list[str]:
         """``haptic client`` flags for the simulated hand values that were given (both users)."""
@@ -205,6 +223,15 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     """
     if opts.duration_s < 12.0:
         raise ValueError("--duration must be at least 12 s (approach, press, hold, release)")
+    if opts.scenario not in SCENARIOS:
+        raise ValueError(f"--scenario must be one of {', '.join(SCENARIOS)}, got {opts.scenario!r}")
+    if opts.scenario == "palpation":
+        if opts.mesh != "balloon" or opts.mesh_scale is not None or opts.mesh_size is not None:
+            raise ValueError(
+                "--scenario palpation sweeps the default 0.1 m sphere: leave --mesh, "
+                "--mesh-scale and --mesh-size out"
+            )
+        opts = replace(opts, object="fem")
     port = opts.port or _free_port(opts.host)
     if not _port_free(opts.host, port):
         raise ValueError(
@@ -272,9 +299,98 @@ def closing_lines(
     return lines
 
 
+#: ``--scenario`` choices.
+SCENARIOS = ("press", "palpation")
+
+#: The palpation scenario's lump when no ``--inclusion`` is given: diameter and depth of its top
+#: under the surface [m], and how many times as stiff as liver. A 10 mm lump 10 mm deep changes
+#: K_o under the 15 mm finger pad by about 2 %, below the JND; 30 mm, +19 % (docs/palpation.md).
+PALPATION_LUMP = (0.030, 0.010, 10.0)
+
+#: Half the sweep's arc [rad]: A slides from this far on one side of the top to as far on the
+#: other, over the lump's twin (-20 degrees) and the lump (+20 degrees).
+SWEEP_HALF_ANGLE_RAD = math.radians(40.0)
+
+#: The palpating hand's target depth under the surface while it slides [m].
+SWEEP_DEPTH_M = 0.010
+
+
+def palpation_timeline(duration_s: float) -> tuple[Timeline, float]:
+    """A's palpation for a run of ``duration_s`` seconds: its :class:`Timeline` (the press, a 2 s
+    hold judged as the press scenario's, then the slide out and back and the withdrawal counted
+    as the release) and the slide's one-way duration [s]."""
+    delay = max(4.0, 0.2 * duration_s)
+    approach, press, hold, release = 1.0, 1.5, 2.0, 1.0
+    sweep = max(3.0, (0.9 * duration_s - delay - approach - press - hold - release) / 2.0)
+    return Timeline(delay, approach, press, hold, 2.0 * sweep + release), sweep
+
+
+def palpation_setup(
+    work: Path, opts: DemoOptions
+) -> tuple[Timeline, Sweep, list[str], tuple[FloatVec, FloatVec]]:
+    """What the palpation scenario needs, written into ``work``.
+
+    The lump (``--inclusion`` files as given, or :data:`PALPATION_LUMP` and its twin of liver
+    written as ``lump.stl`` and ``twin.stl``: :func:`haptic_collab.research.palpation.
+    lump_and_twin`), A's sweep (:class:`client.devices.trajectories.Sweep` over the default
+    sphere, written as ``sweep.csv`` at 200 Hz for ``sim:replay``).
+
+    Returns
+    -------
+    (timeline, sweep, server flags, (direction over the lump, direction beside it))
+    """
+    from haptic_collab.research.palpation import LUMP_ANGLE_RAD, lump_and_twin, lump_direction
+    from haptic_collab.server.solid_materials import SOLID_PRESETS
+
+    tl, sweep_s = palpation_timeline(opts.duration_s)
+    files, materials = list(opts.inclusions), list(opts.inclusion_materials)
+    if not files:
+        diameter, depth, factor = PALPATION_LUMP
+        liver = SOLID_PRESETS["liver"]
+        stiff = replace(liver, name=f"liver*{factor:g}", young_pa=liver.young_pa * factor)
+        for inc in lump_and_twin(diameter, depth, stiff, liver):
+            path = work / f"{inc.where}.stl"
+            inc.mesh.export(path)
+            files.append(str(path))
+            materials.append(inc.material.name)
+    flags: list[str] = []
+    for f, m in zip(files, materials, strict=True):
+        flags += ["--inclusion", f, "--inclusion-material", m]
+    sweep = Sweep(
+        centre=(0.0, 0.0, 0.0),
+        radius_m=0.1,
+        start=tuple(lump_direction(SWEEP_HALF_ANGLE_RAD, -1.0)),
+        end=tuple(lump_direction(SWEEP_HALF_ANGLE_RAD, 1.0)),
+        depth_m=SWEEP_DEPTH_M,
+        delay_s=tl.delay_s,
+        approach_s=tl.approach_s,
+        press_s=tl.press_s,
+        hold_s=tl.hold_s,
+        sweep_s=sweep_s,
+        release_s=tl.release_s - 2.0 * sweep_s,
+    )
+    with open(work / "sweep.csv", "w") as fh:
+        fh.write("t_s,x_m,y_m,z_m\n")
+        for i in range(int((sweep.duration_s + 1.0) * 200) + 1):
+            x, y, z = sweep(i / 200.0)
+            fh.write(f"{i / 200.0:.3f},{x:.6f},{y:.6f},{z:.6f}\n")
+    over = tuple(float(v) for v in lump_direction(LUMP_ANGLE_RAD, 1.0))
+    beside = tuple(float(v) for v in lump_direction(LUMP_ANGLE_RAD, -1.0))
+    return tl, sweep, flags, (over, beside)  # type: ignore[return-value]
+
+
 def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
     """Run the processes with their logs and telemetry in ``work``; report, plot, summary."""
     tl = timeline(opts.duration_s)
+    palpation: tuple[Sweep, tuple[FloatVec, FloatVec]] | None = None
+    a_device, a_extra = "sim:press", ["--trajectory", tl.options()]
+    inclusion_flags: list[str] = []
+    for file, material in zip(opts.inclusions, opts.inclusion_materials, strict=True):
+        inclusion_flags += ["--inclusion", file, "--inclusion-material", material]
+    if opts.scenario == "palpation":
+        tl, sweep, inclusion_flags, where = palpation_setup(work, opts)
+        palpation = (sweep, where)
+        a_device, a_extra = f"sim:replay:{work / 'sweep.csv'}", []
     urls = viewer_urls(opts.host, port)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     server_cmd = _haptic(
@@ -294,6 +410,7 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         server_cmd += ["--mesh-size", repr(float(opts.mesh_size))]
     if opts.mesh_max_edge is not None:
         server_cmd += ["--mesh-max-edge", repr(float(opts.mesh_max_edge))]
+    server_cmd += inclusion_flags
     hint = ""
     if not is_loopback(local_host(opts.host)) or opts.host in WILDCARD_HOSTS:
         # reachable from the network: the demo's users and viewers need a token (docs/security.md)
@@ -323,7 +440,9 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         if not opts.headless and _has_display():
             with contextlib.suppress(Exception):
                 opened = bool(webbrowser.open(urls[0] + hint))
-        for line in opening_lines([u + hint for u in urls], tl, opts.duration_s, opened):
+        for line in opening_lines(
+            [u + hint for u in urls], tl, opts.duration_s, opened, opts.scenario
+        ):
             print(line, flush=True)
         ws = f"ws://{url_host(local_host(opts.host))}:{port}/ws"
         common = [
@@ -333,7 +452,7 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         for name, device, extra in (
             # B rests on the side a press on the top moves most (server.room), whoever joins first
             ("B", "sim:rest", ["--anchor", "side:1"]),
-            ("A", "sim:press", ["--trajectory", tl.options()]),
+            ("A", a_device, a_extra),
         ):
             procs[name] = subprocess.Popen(
                 _haptic(
@@ -409,6 +528,9 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         for u in report["users"].values():
             p99 = u.get("period_us_p99")
             u["period_p99_vs_reference"] = p99 / ref_p99 if p99 and ref_p99 else None
+    if palpation is not None:
+        sweep, (over, beside) = palpation
+        report["palpation"] = palpation_report(work, sweep, over, beside)
     report["workdir"] = str(work) if opts.workdir is not None else None  # a temp one is deleted
     if opts.report:
         opts.report.parent.mkdir(parents=True, exist_ok=True)
@@ -416,6 +538,9 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
     if opts.plot:
         plot_demo(work, tl, opts.plot)
     print_summary(report)
+    if "palpation" in report:
+        for line in palpation_lines(report["palpation"]):
+            print(line)
     return report
 
 
@@ -427,14 +552,26 @@ _POLL_S = 0.5
 JOIN_S = 4.0
 
 
-def opening_lines(urls: list[str], tl: Timeline, duration_s: float, opened: bool) -> list[str]:
+def opening_lines(
+    urls: list[str], tl: Timeline, duration_s: float, opened: bool, scenario: str = "press"
+) -> list[str]:
     """What the demo says once its server is up: what to open now and for how long, and what
-    will happen (A's timeline in seconds from A's start; the users need a few seconds to join)."""
+    will happen (A's timeline in seconds from A's start; the users need a few seconds to join;
+    ``scenario`` as ``--scenario``)."""
     # the users run duration_s once they have joined, which takes a few seconds
     lines = [f"open {urls[0]} now: the demo is live for about {duration_s + JOIN_S:.0f} s"]
     lines += [f"  (or {u})" for u in urls[1:]]
     if opened:
         lines.append("  (opened in your browser)")
+    if scenario == "palpation":
+        lines.append(
+            f"What happens: users A and B join; B rests on the liver's side; after "
+            f"{tl.delay_s:.0f} s A presses into the top beside a hidden stiff lump, holds, then "
+            f"slides across the top over the lump and back and lets go at "
+            f"{tl.hold_end_s + tl.release_s:.0f} s. Over the lump A's force rises at the same "
+            "depth; B feels A's sweep through the liver."
+        )
+        return lines
     lines.append(
         f"What happens: users A and B join; B rests on the balloon's side; after {tl.delay_s:.0f} s "
         f"A moves onto the top, presses in for {tl.press_s:g} s, holds until "
@@ -472,9 +609,12 @@ class _Narrator:
     users' forces, read from the users' telemetry as they write it (A's own clock, so the phase
     is A's real one, not the demo's guess)."""
 
-    def __init__(self, tl: Timeline, duration_s: float) -> None:
+    def __init__(self, tl: Timeline, duration_s: float, sweeps: bool = False) -> None:
         self.tl = tl
         self.duration_s = duration_s
+        #: A slides across the top after its hold (the palpation scenario): the first part of
+        #: the timeline's release is the slide out and back, its last second the withdrawal.
+        self.sweeps = sweeps
         #: B's latest force while A was still away [N] (B's resting force, for comparison).
         self.b_rest_n: float | None = None
         #: Both users have joined (the server counted two once).
@@ -523,6 +663,11 @@ class _Narrator:
             )
         if t < tl.hold_end_s:
             return "hold", f"A holds still, pressing with {fa:.2f} N; B feels {fb:.2f} N{rest}"
+        if self.sweeps and t < tl.hold_end_s + tl.release_s - 1.0:
+            return "sweep", (
+                f"A slides across the top at the same depth, over the hidden lump and back, "
+                f"pressing {fa:.2f} N; B feels {fb:.2f} N{rest}"
+            )
         if t < tl.hold_end_s + tl.release_s:
             return "release", f"A lets go ({fa:.2f} N); B feels {fb:.2f} N{rest}"
         left = self.duration_s - t
@@ -560,7 +705,7 @@ def _progress(
     said = ""
     samples: list[dict[str, Any]] = []
     st: dict[str, Any] = {}
-    narrator = _Narrator(tl, opts.duration_s)
+    narrator = _Narrator(tl, opts.duration_s, sweeps=opts.scenario == "palpation")
     while any(procs[n].poll() is None for n in ("A", "B")):
         t = time.monotonic() - t0
         if t - polled >= _POLL_S:

@@ -14,7 +14,9 @@ to judge (:func:`machine_load`); the run's verdict and exit status are :func:`ru
 servo's missed deadlines are counted (:func:`missed_per_s`); :func:`build_report` assembles the
 ``--report`` JSON from the run's folder, :func:`print_summary` prints its table, whether B felt A
 in plain sentences (:func:`coupling_lines`) and the users' verdicts, :func:`run_verdict_line` the
-run's verdict in one line, and :func:`plot_demo` draws the ``--plot`` PNG. The processes that make the telemetry are run by
+run's verdict in one line, and :func:`plot_demo` draws the ``--plot`` PNG. The palpation
+scenario's own figures (A's force over the lump and beside it, B's force during A's sweep) are
+:func:`palpation_report`'s, in words :func:`palpation_lines`. The processes that make the telemetry are run by
 :mod:`haptic_collab.demo`.
 """
 
@@ -22,13 +24,14 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from haptic_collab.client.devices.trajectories import Rest
+from haptic_collab.client.devices.trajectories import Rest, Sweep
 from haptic_collab.shared.gains.policy import DESIGN_OVER_REST
 
 #: A hold is stable when the probe's largest peak to peak over its whole hold, each second after
@@ -1242,3 +1245,117 @@ def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------- palpation
+#: Half-width [rad] of the stretch of A's sweep that counts as over the lump (or beside it): 5
+#: degrees, 8.7 mm on the 0.1 m sphere, about the finger pad's radius.
+PALPATION_WINDOW_RAD = math.radians(5.0)
+
+
+def _angle_to(points: np.ndarray, direction: Sequence[float]) -> np.ndarray:
+    """The angle [rad] between each point (P, 3) [m], seen from the origin, and ``direction``."""
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    r = np.linalg.norm(points, axis=1)
+    cos = np.clip(points @ d / np.where(r > 0.0, r, 1.0), -1.0, 1.0)
+    return np.arccos(cos)
+
+
+def palpation_report(
+    work: Path,
+    sweep: Sweep,
+    over: Sequence[float],
+    beside: Sequence[float],
+) -> dict[str, Any]:
+    """What A felt sweeping over the lump, and what B felt of it (``haptic demo --scenario
+    palpation``).
+
+    A's samples in contact during the slide (out and back: ``sweep.slide_s``) whose probe, seen
+    from the sphere's centre, is within :data:`PALPATION_WINDOW_RAD` of ``over`` (the lump) or of
+    ``beside`` (its twin, the mirror point): the mean force [N], penetration [mm] and their ratio
+    (the stiffness felt there [N/m]) at the same hand depth. ``rise`` is the force over the lump
+    over the force beside it less 1; ``felt`` whether it exceeds the stiffness JND
+    (:data:`STIFFNESS_JND`). B: its force [N] before A touched (median) and its range (5th to
+    95th percentile) while A slid: B feels the sweep when that range exceeds
+    :data:`FEEL_FORCE_SHARE` of its resting force.
+
+    Returns
+    -------
+    dict
+        ``a_over``, ``a_beside`` (``force_n``, ``penetration_mm``, ``stiffness_n_per_m``,
+        ``samples``; None where A never passed), ``rise``, ``felt``, ``b_rest_force_n``,
+        ``b_force_range_in_sweep_n``, ``b_felt_sweep``.
+    """
+    a, a_sum = _load(work, "A")
+    b, b_sum = _load(work, "B")
+    t0, t1 = sweep.slide_s
+    sliding = (a["t_s"] >= t0) & (a["t_s"] <= t1) & (a["in_contact"] > 0)
+    probe = np.stack([a["probe_x_m"], a["probe_y_m"], a["probe_z_m"]], axis=1)
+    probe = probe - np.asarray(sweep.centre, dtype=float)
+
+    def near(direction: Sequence[float]) -> dict[str, Any] | None:
+        m = sliding & (_angle_to(probe, direction) < PALPATION_WINDOW_RAD)
+        if not m.any():
+            return None
+        f, e = float(np.mean(a["force_n"][m])), float(np.mean(a["penetration_m"][m]))
+        return {
+            "force_n": f,
+            "penetration_mm": e * 1e3,
+            "stiffness_n_per_m": f / e if e > 0.0 else None,
+            "samples": int(m.sum()),
+        }
+
+    a_over, a_beside = near(over), near(beside)
+    rise = (
+        a_over["force_n"] / a_beside["force_n"] - 1.0
+        if a_over is not None and a_beside is not None and a_beside["force_n"] > 0.0
+        else None
+    )
+    shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
+    tb = b["t_s"] + shift
+    before = (tb < sweep.delay_s) & (b["in_contact"] > 0)
+    during = (tb >= t0) & (tb <= t1) & (b["in_contact"] > 0)
+    b_rest = float(np.median(b["force_n"][before])) if before.any() else None
+    b_range = (
+        float(np.percentile(b["force_n"][during], 95) - np.percentile(b["force_n"][during], 5))
+        if during.any()
+        else None
+    )
+    return {
+        "over_direction": [float(v) for v in over],
+        "beside_direction": [float(v) for v in beside],
+        "window_deg": math.degrees(PALPATION_WINDOW_RAD),
+        "hand_depth_mm": sweep.depth_m * 1e3,
+        "slide_s": [t0, t1],
+        "a_over": a_over,
+        "a_beside": a_beside,
+        "rise": rise,
+        "felt": None if rise is None else bool(rise > STIFFNESS_JND),
+        "b_rest_force_n": b_rest,
+        "b_force_range_in_sweep_n": b_range,
+        "b_felt_sweep": (
+            None
+            if b_rest is None or b_range is None
+            else bool(b_range > FEEL_FORCE_SHARE * max(b_rest, B_FORCE_ON_N))
+        ),
+    }
+
+
+def palpation_lines(p: dict[str, Any]) -> list[str]:
+    """The palpation scenario's result in plain sentences (the :func:`palpation_report` dict)."""
+    over, beside = p.get("a_over"), p.get("a_beside")
+    if over is None or beside is None or p.get("rise") is None:
+        return ["palpation: A's sweep never passed both over the lump and beside it in contact"]
+    felt = "felt it" if p["felt"] else "did not feel it (under the stiffness JND)"
+    lines = [
+        f"palpation: at the same hand depth A pressed {over['force_n']:.2f} N over the lump and "
+        f"{beside['force_n']:.2f} N beside it: {100.0 * p['rise']:+.0f} %, A {felt}."
+    ]
+    if p.get("b_force_range_in_sweep_n") is not None and p.get("b_rest_force_n") is not None:
+        lines.append(
+            f"B's force moved over {p['b_force_range_in_sweep_n']:.3f} N while A swept "
+            f"(resting {p['b_rest_force_n']:.3f} N): B "
+            f"{'felt' if p['b_felt_sweep'] else 'did not feel'} A's sweep."
+        )
+    return lines

@@ -103,11 +103,81 @@ def _cmd_server(args: argparse.Namespace) -> int:
     return 0
 
 
-def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
-    """The :class:`server.main.ServerOptions` of parsed ``haptic server`` arguments."""
+def _inclusion_args(
+    args: argparse.Namespace, fem: bool | None = None
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``--inclusion`` files and ``--inclusion-material`` names, checked as a pair (``fem``:
+    whether the object is the FEM solid; default ``--object fem``).
+
+    Raises
+    ------
+    CliError
+        Not one material per file, or inclusions without ``--object fem``.
+    """
+    files = tuple(getattr(args, "inclusion", None) or ())
+    materials = tuple(getattr(args, "inclusion_material", None) or ())
+    if len(files) != len(materials):
+        raise CliError(
+            f"{len(files)} --inclusion file(s) but {len(materials)} --inclusion-material(s): "
+            "give one material per inclusion, in the same order"
+        )
+    if files and not (args.object == "fem" if fem is None else fem):
+        raise CliError("--inclusion needs --object fem (an inclusion is a region of the solid)")
+    return files, materials
+
+
+#: ``haptic server`` options that :class:`server.main.ServerOptions` takes only once the server
+#: side has them (the FEM solid's per-element materials, docs/palpation.md), by field name; with
+#: the value that means "not used".
+_PENDING_SERVER_FIELDS = {"mesh_repair": False, "inclusions": (), "inclusion_materials": ()}
+
+
+def _pending_server_fields(values: dict[str, object]) -> dict[str, object]:
+    """The values of :data:`_PENDING_SERVER_FIELDS` that this server's ``ServerOptions`` takes.
+
+    Raises
+    ------
+    CliError
+        A flag given whose field this server does not have yet (never ignored in silence).
+    """
+    from dataclasses import fields
+
     from haptic_collab.server.main import ServerOptions
 
+    known = {f.name for f in fields(ServerOptions)}
+    flags = {"mesh_repair": "--mesh-repair", "inclusions": "--inclusion",
+             "inclusion_materials": "--inclusion-material"}  # fmt: skip
+    unknown = [
+        flags[k] for k, v in values.items() if k not in known and v != _PENDING_SERVER_FIELDS[k]
+    ]
+    if unknown:
+        raise CliError(
+            f"this server cannot take {' and '.join(dict.fromkeys(unknown))} yet (its "
+            "ServerOptions has no field for it; docs/palpation.md)"
+        )
+    return {k: v for k, v in values.items() if k in known}
+
+
+def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """The :class:`server.main.ServerOptions` of parsed ``haptic server`` arguments.
+
+    Raises
+    ------
+    CliError
+        As :func:`_inclusion_args` and :func:`_pending_server_fields`.
+    """
+    from haptic_collab.server.main import ServerOptions
+
+    files, materials = _inclusion_args(args)
+    pending = _pending_server_fields(
+        {
+            "mesh_repair": bool(getattr(args, "mesh_repair", False)),
+            "inclusions": files,
+            "inclusion_materials": materials,
+        }
+    )
     return ServerOptions(
+        **pending,  # type: ignore[arg-type]
         host=args.host,
         port=args.port,
         mesh=args.mesh,
@@ -180,6 +250,14 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     _add_shared(p, "--mesh-scale", help="multiply the file's coordinates by S")
     _add_shared(p, "--mesh-size", help="rescale so the largest extent is this [m]")
     _add_shared(p, "--mesh-max-edge", help=_MESH_MAX_EDGE_HELP)
+    p.add_argument(
+        "--mesh-repair",
+        action="store_true",
+        help="make an open, non-manifold or several-body mesh one closed body and say what "
+        "changed (docs/real-objects.md); without it such a mesh is refused",
+    )
+    _add_shared(p, "--inclusion")
+    _add_shared(p, "--inclusion-material")
     _add_shared(p, "--subdivisions", help="icosphere subdivisions of the balloon")
     _add_shared(p, "--sim-rate", help="simulation rate [Hz]")
     p.add_argument(
@@ -838,7 +916,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if args.plot:
         _need_matplotlib()  # before the run, not after it
 
+    # the palpation scenario's object is the FEM solid whatever --object says
+    files, materials = _inclusion_args(args, fem=args.object == "fem" or args.scenario != "press")
     opts = DemoOptions(
+        scenario=args.scenario,
+        inclusions=files,
+        inclusion_materials=materials,
         duration_s=args.duration,
         headless=args.headless,
         report=Path(args.report) if args.report else None,
@@ -882,6 +965,14 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
         "demo", help="server + two simulated users on one shared balloon, and a viewer: start here"
     )
     p.add_argument("--duration", type=_positive, default=20.0, help="run length [s] (>= 12)")
+    p.add_argument(
+        "--scenario",
+        choices=["press", "palpation"],
+        default="press",
+        help="press: A presses the top and holds, B rests on the side (default); palpation: "
+        "the FEM liver with a stiff lump under the top, A presses in and sweeps across it and "
+        "back, B rests on the side and feels the sweep (docs/palpation.md)",
+    )
     p.add_argument("--headless", action="store_true", help="do not open a browser")
     p.add_argument("--report", default=None, help="write the JSON report here")
     p.add_argument("--plot", default=None, help="write a PNG of probe, proxy and force here")
@@ -909,6 +1000,8 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
         help="object material: water-balloon, silicone-ball, soft-tissue or a TOML file; with "
         "--object fem: liver, skin, ecoflex-0030, sylgard-184 or a TOML file",
     )
+    _add_shared(p, "--inclusion")
+    _add_shared(p, "--inclusion-material")
     _add_shared(p, "--port", help="server port (0: any free port)")
     _add_shared(
         p,
