@@ -27,14 +27,15 @@ K_O, RATE_HZ, DELAY_MS = 100.0, 50.0, 100.0
 
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 58: the soft end K_o / (1 + stiffer_by) (4dae19c) lands with its shipped tables",
+    reason="issue 58's open finding: designs are checked down to 0.85 K_o only (docs/fidelity.md)",
 )
 def test_a_spring_softer_than_reported_holds_still_after_the_other_user_lets_go() -> None:
     # the spring is 20 % softer than the K_o reported. With another user the product renders
     # its design (alone it renders the rest plane). Designed only down to 0.85 K_o, the box's
     # fifth corner (0.6 kg, 2 N*s/m, 20 N/m) rang 0.557 mm peak to peak a second after the other
     # user let go (at the stale end of the sampling phase), where a probe on the spring itself
-    # with that hand rings 0.2 mm; checked down to K_o / 1.25 it holds still with every hand
+    # with that hand rings 0.2 mm. A design checked down to K_o / 1.25 (4dae19c, reverted)
+    # holds still here with every hand, but costs elsewhere (docs/fidelity.md)
     key = _gain_key("p", RATE_HZ, DELAY_MS, DEVICE)
     design = _design_cell(key, K_O)
     table = GainTable(DEFAULT_HAND_BOX)
@@ -61,5 +62,3 @@ def test_a_spring_softer_than_reported_holds_still_after_the_other_user_lets_go(
     i = 4 * 2 + 1  # hand 4 (the fifth corner), stale
     assert press[i].hold_p2p_mm < 1e3 * STABLE_HOLD_P2P_M
     assert np.isfinite(press[i].hold_p2p_mm)
-    # and the design claims the softer object: checked down to K_o / 1.25
-    assert design.at(K_O).k_o_range[0] <= K_O / 1.25 + 1e-9
