@@ -107,7 +107,8 @@ class ElementMaterials:
     poisson : (T,) float [1]
     density_kg_m3 : (T,) float [kg/m^3]
     names : tuple of str
-        The material of each label (``names[0]`` the solid's).
+        Each label's region and material, ``solid (liver)``, ``lump.stl (liver*10)``
+        (``names[0]`` the solid's).
     """
 
     labels: IntArray
@@ -124,7 +125,7 @@ class ElementMaterials:
         return e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), e / (2.0 * (1.0 + nu))
 
     def counts(self) -> dict[str, int]:
-        """Tetrahedra per material label name (``names[label]``)."""
+        """Tetrahedra per region (``names[label]``: two inclusions of one material stay apart)."""
         found = np.bincount(self.labels, minlength=len(self.names))
         return {self.names[i]: int(found[i]) for i in range(len(self.names))}
 
@@ -395,7 +396,10 @@ def element_materials(
         young_pa=e[labels],
         poisson=nu[labels],
         density_kg_m3=rho[labels],
-        names=tuple(m.name for m in mats),
+        names=(
+            f"solid ({base.name})",
+            *(f"{inc.where} ({inc.material.name})" for inc in inclusions),
+        ),
     )
 
 

@@ -112,6 +112,11 @@ def test_the_volume_mesh_conforms_to_the_lump_and_keeps_the_surface(ball, cache)
     assert mats.young_pa[mats.labels == 0] == pytest.approx(LIVER.young_pa)
     lam, mu = mats.lame
     assert mu[mats.labels == 1][0] == pytest.approx(10.0 * mu[mats.labels == 0][0])
+    twin = _lump((-0.02, 0.0, 0.07), 0.008, LIVER, where="twin")  # a region of the solid's own
+    counts = element_materials(nodes, tets, LIVER, [lump, twin]).counts()
+    assert set(counts) == {"solid (liver)", "lump (liver*10)", "twin (liver)"}
+    assert counts["lump (liver*10)"] == int((mats.labels == 1).sum())
+    assert counts["twin (liver)"] > 0 and sum(counts.values()) == len(tets)
 
 
 def test_assembly_by_groups_is_the_elements_own_sum(ball, cache):
