@@ -261,7 +261,11 @@ def test_table_refuses_bad_grid_and_stiffness() -> None:
 
 @pytest.mark.parametrize(
     ("k_o", "sim_rate_hz", "delay_ticks", "b_o"),
-    [(300.0, 100.0, 5, 0.0), (3000.0, 10.0, 1, 0.0), (300.0, 100.0, 1, 391.0)],
+    [
+        pytest.param(300.0, 100.0, 5, 0.0, marks=pytest.mark.slow),  # 5 ticks: a long design
+        (3000.0, 10.0, 1, 0.0),
+        (300.0, 100.0, 1, 391.0),
+    ],
 )
 def test_both_local_models_designed_at_once_are_each_the_design_made_alone(
     k_o: float, sim_rate_hz: float, delay_ticks: int, b_o: float

@@ -67,7 +67,8 @@ def _key(sim_rate_hz: float, delay_ticks: int, mode: str, own: bool) -> GainKey:
 
 
 @pytest.mark.parametrize(
-    ("k_o", "sim_rate_hz", "delay_ticks"), [(300.0, 20.0, 0), (1000.0, 20.0, 4)]
+    ("k_o", "sim_rate_hz", "delay_ticks"),
+    [(300.0, 20.0, 0), pytest.param(1000.0, 20.0, 4, marks=pytest.mark.slow)],  # 4 ticks: long
 )
 @pytest.mark.parametrize("mode", ["p", "pi"])
 def test_the_design_with_compensation_is_near_k_o_and_stable_over_the_box(

@@ -179,6 +179,7 @@ def _band_error(d, k_o: float, rate: float, ticks: int) -> float:
     return max(abs(math.log(abs(v) / k_o)) for v in q)
 
 
+@pytest.mark.slow  # full plane searches at the device's stiffness: make test-slow
 def test_at_the_devices_stiffness_a_heavier_damper_lets_the_plane_beat_the_design(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -224,6 +225,7 @@ def _holds_every_hand_across_the_cell(plane: GainDesign, rate: float, ticks: int
     assert rho < limit, where
 
 
+@pytest.mark.slow  # full plane searches at the device's stiffness: make test-slow
 def test_just_above_the_devices_stiffness_the_capped_plane_holds_the_rest_surface() -> None:
     # a spring 20 % stiffer than the 1000 N/m reported (the cell of 1200 N/m), 20 Hz, 4 ticks:
     # K_h stops at the device's 1000 N/m; with this much delay no step of C_h beyond the
@@ -277,6 +279,7 @@ def test_without_delay_the_capped_plane_renders_the_objects_stiffness_above_the_
     assert verified_plane(key, cell, *args, reported) == plane
 
 
+@pytest.mark.slow  # full plane searches at the device's stiffness: make test-slow
 def test_the_search_stops_once_no_damper_left_could_beat_the_design(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
