@@ -308,8 +308,10 @@ SCENARIOS = ("press", "palpation")
 PALPATION_LUMP = (0.030, 0.010, 10.0)
 
 #: Half the sweep's arc [rad]: A slides from this far on one side of the top to as far on the
-#: other, over the lump's twin (-20 degrees) and the lump (+20 degrees).
-SWEEP_HALF_ANGLE_RAD = math.radians(40.0)
+#: other, over the lump's twin (-20 degrees) and the lump (+20 degrees); the slide and its 30 mm
+#: standoff stay inside the simulated Phantom Desktop's 160 x 120 x 120 mm workspace, centred
+#: outside the top (:class:`client.devices.trajectories.Sweep`).
+SWEEP_HALF_ANGLE_RAD = math.radians(35.0)
 
 #: The palpating hand's target depth under the surface while it slides [m].
 SWEEP_DEPTH_M = 0.010

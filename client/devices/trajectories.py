@@ -13,9 +13,10 @@ jerks the device.
   back to the start in ``release_s``, then stay there.
 - :class:`Rest`: wait ``delay_s`` at ``standoff_m`` outside, move in ``approach_s`` to a hand target
   ``depth_m`` inside (a light touch on the side), hold for ever.
-- :class:`Sweep`: palpation over a curved surface: wait outside the start point, approach it,
-  press the hand target ``depth_m`` in, hold, slide at that depth along the great circle of a
-  sphere (centre and radius) to the end point and back, withdraw.
+- :class:`Sweep`: palpation over a curved surface: wait outside the middle of the slide, move
+  outside its start point, approach it, press the hand target ``depth_m`` in, hold, slide at
+  that depth along the great circle of a sphere (centre and radius) to the end point and back,
+  withdraw.
 - :class:`Replay`: linear interpolation of a recorded CSV of hand positions (``t_s,x_m,y_m,z_m``),
   holding the first sample before it and the last after it.
 
@@ -224,6 +225,12 @@ class Sweep:
     middle: 6 mm on a 20 degree half-arc of a 0.1 m ball). The slide follows the great circle
     from ``start`` to ``end`` (unit directions from the centre), minimum-jerk in angle, then back.
 
+    The hand waits outside the *middle* of the slide and moves outside its start point in the
+    last ``move_s`` of ``delay_s``: a simulated device's workspace is centred on its first
+    position (:class:`client.devices.sim.SimDevice`), and a Phantom Desktop's is 160 mm wide,
+    less than an 80 degree slide on a 0.1 m ball with a 30 mm standoff at one end (measured
+    2026-11-27: a sweep that started at one end stopped at the workspace's far wall).
+
     Parameters
     ----------
     centre : (3,) float
@@ -237,14 +244,17 @@ class Sweep:
     depth_m : float
         Hand-target depth [m] inside the surface while sliding (default 0.01).
     delay_s, approach_s, press_s, hold_s, sweep_s, release_s : float
-        Phase durations [s]: wait, approach the start point, press in, hold still, slide to the
-        end (and as long back), withdraw (defaults 0, 1, 1.5, 2, 4, 1).
+        Phase durations [s]: wait (and move), approach the start point, press in, hold still,
+        slide to the end (and as long back), withdraw (defaults 1, 1, 1.5, 2, 4, 1).
+    move_s : float
+        The last part of ``delay_s`` [s] in which the hand moves from outside the middle to
+        outside the start point (default 1; at most ``delay_s``).
 
     Raises
     ------
     ValueError
-        Non-finite or negative values, a radius not > 0, zero or opposite directions, or a
-        depth not less than the radius.
+        Non-finite or negative values, a radius not > 0, zero or opposite directions, a
+        depth not less than the radius, or ``move_s`` longer than ``delay_s``.
     """
 
     centre: Sequence[float]
@@ -253,12 +263,13 @@ class Sweep:
     end: Sequence[float]
     standoff_m: float = 0.03
     depth_m: float = 0.01
-    delay_s: float = 0.0
+    delay_s: float = 1.0
     approach_s: float = 1.0
     press_s: float = 1.5
     hold_s: float = 2.0
     sweep_s: float = 4.0
     release_s: float = 1.0
+    move_s: float = 1.0
     _times: tuple[float, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -273,6 +284,8 @@ class Sweep:
         cos = sum(x * y for x, y in zip(a, b, strict=True))
         if cos <= -1.0 + 1e-9:
             raise ValueError("start and end must not be opposite (the great circle is not one)")
+        if _nonneg("move_s", self.move_s) > _nonneg("delay_s", self.delay_s):
+            raise ValueError(f"move_s must be at most delay_s, got {self.move_s!r}")
         phases = ("delay_s", "approach_s", "press_s", "hold_s", "sweep_s", "sweep_s", "release_s")
         times = tuple(accumulate(_nonneg(name, getattr(self, name)) for name in phases))
         object.__setattr__(self, "centre", c)
@@ -312,7 +325,9 @@ class Sweep:
         def blend(t: float, ta: float, tb: float) -> float:
             return min_jerk((t - ta) / (tb - ta)) if tb > ta else float(t >= tb)
 
-        if t_s < t_slide:
+        if t_s < t0:  # outside the middle, then over to outside the start point
+            s, off = 0.5 * (1.0 - blend(t_s, t0 - self.move_s, t0)), so
+        elif t_s < t_slide:
             s = 0.0
             if t_s < t_contact:
                 off = so + (0.0 - so) * blend(t_s, t0, t_contact)
