@@ -277,12 +277,15 @@ def run(
     factor: float,
     press_depth_m: float,
     cache_dir: str | Path | None = None,
+    big_depths_mm: Sequence[float] = (10.0, 20.0, 30.0),
 ) -> dict[str, Any]:
-    """The palpation measurement: a 10 mm lump at each of ``depths_mm``, and lumps of each of
-    ``diameters_mm`` 10 mm deep, ``factor`` times as stiff as liver; JSON-ready."""
+    """The palpation measurement: a 10 mm lump at each of ``depths_mm``, lumps of each of
+    ``diameters_mm`` 10 mm deep, and a 30 mm lump at each of ``big_depths_mm``, ``factor`` times
+    as stiff as liver; JSON-ready (depths of the lump's top, diameters [mm])."""
     clock = time.perf_counter()
     by_depth = [measure(0.010, d * 1e-3, factor, cache_dir=cache_dir) for d in depths_mm]
     by_size = [measure(D * 1e-3, 0.010, factor, cache_dir=cache_dir) for D in diameters_mm]
+    big = [measure(0.030, d * 1e-3, factor, cache_dir=cache_dir) for d in big_depths_mm]
     smallest = smallest_felt(by_size)
     deepest = [r.depth_m for r in by_depth if r.felt]
     return {
@@ -302,6 +305,7 @@ def run(
         "stiffer_by": factor,
         "lump_10mm_by_depth": [r.as_dict(press_depth_m) for r in by_depth],
         "lumps_10mm_deep_by_diameter": [r.as_dict(press_depth_m) for r in by_size],
+        "lump_30mm_by_depth": [r.as_dict(press_depth_m) for r in big],
         "smallest_felt_diameter_mm": None if smallest is None else smallest * 1e3,
         "deepest_felt_10mm_lump_mm": max(deepest) * 1e3 if deepest else None,
         "seconds": round(time.perf_counter() - clock, 1),
