@@ -125,6 +125,10 @@ def test_a_feels_the_lump_in_the_demo_and_b_feels_the_sweep(tmp_path):
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
     assert report.is_file(), done.stdout[-3000:] + done.stderr[-3000:]
-    p = json.loads(report.read_text())["palpation"]
+    run = json.loads(report.read_text())
+    if run["verdict"]["exit_code"] == 3:  # rendered with fallback gains through a stalled link
+        pytest.skip(f"the machine was too loaded to judge the run: {run['server']}")
+    assert run["verdict"]["exit_code"] == 0, run["verdict"]
+    p = run["palpation"]
     assert p["rise"] > STIFFNESS_JND and p["felt"]
     assert p["b_felt_sweep"]
