@@ -108,6 +108,15 @@ SERVER_OPTIONS: dict[str, _Option] = {
     ),
     "subdivisions": _Option("int", "icosphere subdivisions of the balloon", _subdivisions),
     "object": _Option("str", "object model", _one_of("balloon", "fem")),
+    "inclusion": _Option(
+        "list[str]",
+        "closed surfaces inside the FEM solid (--inclusion, docs/palpation.md)",
+        None,
+        True,
+    ),
+    "inclusion_material": _Option(
+        "list[str]", "the material of each inclusion, in order (--inclusion-material)"
+    ),
     "material": _Option("str", "material preset or TOML file", _not_empty, True),
     "volume_cache": _Option("str", "folder of cached FEM volume meshes", _not_empty, True),
     "sim_rate": _Option("float", "simulation rate [Hz]", _positive),
@@ -281,7 +290,10 @@ def _checked(
     elif option.kind == "list[str]":
         value = list(value)  # type: ignore[call-overload]
     if option.path:
-        value = _resolve(key, str(value), folder)
+        if isinstance(value, list):
+            value = [_resolve(key, str(v), folder) for v in value]
+        else:
+            value = _resolve(key, str(value), folder)
     return value
 
 

@@ -119,6 +119,9 @@ class ServerOptions:
     snapshot_dir: str | None = None
     drain_grace_s: float = DRAIN_GRACE_S
     room_processes: bool = False
+    mesh_repair: bool = False
+    inclusions: tuple[str, ...] = ()
+    inclusion_materials: tuple[str, ...] = ()
 
 
 #: ``[rooms.NAME]`` keys that name a :class:`ServerOptions` field differently.
@@ -509,6 +512,7 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
             scale=opts.mesh_scale,
             target_size_m=opts.mesh_size,
             max_edge_m=opts.mesh_max_edge,
+            repair=opts.mesh_repair,
         )
     scale = float(opts.stiffness_scale)
     if not (math.isfinite(scale) and scale > 0.0):
@@ -520,6 +524,8 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
         log.info("material %s", material.summary())
     if opts.object not in ("balloon", "fem"):
         raise ValueError(f"--object must be balloon or fem, got {opts.object!r}")
+    if opts.inclusions and opts.object != "fem":
+        raise ValueError("--inclusion needs --object fem (an inclusion is a region of the solid)")
     if opts.object == "fem" and opts.damping is not None:
         raise ValueError("--damping is the balloon's; a FEM solid's damping is its material's")
     params = base.with_stiffness_scale(scale)
@@ -566,7 +572,22 @@ def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> An
     params = solid_to_params(material, FemParams(sim_period_s=rates.sim_period_s))
     params = replace(params, young_pa=params.young_pa * scale)
     log.info("FEM solid, material %s", material.summary())
-    obj = FemSolid(mesh, params, cache_dir=opts.volume_cache)
+    from haptic_collab.server.objects.inclusions import (
+        element_materials,
+        load_inclusions,
+        volume_with_inclusions,
+    )
+
+    inclusions = load_inclusions(opts.inclusions, opts.inclusion_materials)
+    if inclusions:
+        volume = volume_with_inclusions(mesh, inclusions, cache_dir=opts.volume_cache)
+        materials = element_materials(*volume, material, inclusions, young_scale=scale)
+        for inc in inclusions:
+            log.info("inclusion %s: %s", inc.where, inc.material.summary())
+        log.info("FEM solid: tetrahedra per material %s", materials.counts())
+        obj = FemSolid(mesh, params, volume=volume, materials=materials)
+    else:
+        obj = FemSolid(mesh, params, cache_dir=opts.volume_cache)
     log.info(
         "FEM solid: %d nodes, %d tetrahedra, %.3f kg; lowest modes %s Hz",
         len(obj.nodes),

@@ -126,58 +126,21 @@ def _inclusion_args(
     return files, materials
 
 
-#: ``haptic server`` options that :class:`server.main.ServerOptions` takes only once the server
-#: side has them (the FEM solid's per-element materials, docs/palpation.md), by field name; with
-#: the value that means "not used".
-_PENDING_SERVER_FIELDS = {"mesh_repair": False, "inclusions": (), "inclusion_materials": ()}
-
-
-def _pending_server_fields(values: dict[str, object]) -> dict[str, object]:
-    """The values of :data:`_PENDING_SERVER_FIELDS` that this server's ``ServerOptions`` takes.
-
-    Raises
-    ------
-    CliError
-        A flag given whose field this server does not have yet (never ignored in silence).
-    """
-    from dataclasses import fields
-
-    from haptic_collab.server.main import ServerOptions
-
-    known = {f.name for f in fields(ServerOptions)}
-    flags = {"mesh_repair": "--mesh-repair", "inclusions": "--inclusion",
-             "inclusion_materials": "--inclusion-material"}  # fmt: skip
-    unknown = [
-        flags[k] for k, v in values.items() if k not in known and v != _PENDING_SERVER_FIELDS[k]
-    ]
-    if unknown:
-        raise CliError(
-            f"this server cannot take {' and '.join(dict.fromkeys(unknown))} yet (its "
-            "ServerOptions has no field for it; docs/palpation.md)"
-        )
-    return {k: v for k, v in values.items() if k in known}
-
-
 def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     """The :class:`server.main.ServerOptions` of parsed ``haptic server`` arguments.
 
     Raises
     ------
     CliError
-        As :func:`_inclusion_args` and :func:`_pending_server_fields`.
+        As :func:`_inclusion_args`.
     """
     from haptic_collab.server.main import ServerOptions
 
     files, materials = _inclusion_args(args)
-    pending = _pending_server_fields(
-        {
-            "mesh_repair": bool(getattr(args, "mesh_repair", False)),
-            "inclusions": files,
-            "inclusion_materials": materials,
-        }
-    )
     return ServerOptions(
-        **pending,  # type: ignore[arg-type]
+        mesh_repair=bool(getattr(args, "mesh_repair", False)),
+        inclusions=files,
+        inclusion_materials=materials,
         host=args.host,
         port=args.port,
         mesh=args.mesh,
