@@ -15,10 +15,9 @@ in the x-z plane. *Beside* is the mirror point at ``-angle``: the same distance 
 base, on the same mesh. The same mesh with one material is the control (its over/beside ratio
 is the mesh's own asymmetry, a few tenths of a per cent).
 
-Until :class:`~server.objects.fem.FemSolid` takes per-element materials itself (the hook in
-docs/palpation.md), ``K_o`` with the lump is computed here from the solid's own patches and
-fixed base with :func:`server.objects.inclusions.stiffness_by_groups`: ``K_o = 1 / (b^T K^-1
-b)`` on the free degrees of freedom, the solid's own formula.
+``K_o`` with the lump is the solid's own (:class:`~server.objects.fem.FemSolid` with per-element
+materials, :func:`server.objects.inclusions.element_materials`), so this measures what the
+server sends.
 
 Run ``python -m haptic_collab.research.palpation --out docs/results/palpation-DATE.json``.
 """
@@ -40,8 +39,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 import trimesh
 
 from haptic_collab.demo_report import STIFFNESS_JND
@@ -50,7 +47,6 @@ from haptic_collab.server.objects.inclusions import (
     ElementMaterials,
     Inclusion,
     element_materials,
-    stiffness_by_groups,
     volume_with_inclusions,
 )
 from haptic_collab.server.objects.mesh import default_balloon
@@ -97,25 +93,6 @@ def sphere_lump(
     lump = trimesh.creation.icosphere(subdivisions=subdivisions, radius=d / 2.0)
     lump.apply_translation(lump_direction(angle_rad, side) * (r - h - d / 2.0))
     return lump
-
-
-def _ko(solid: FemSolid, k: sp.spmatrix, keys: Sequence[int]) -> FloatArray:
-    """``K_o = 1 / (b^T K^-1 b)`` [N/m] at the patches ``keys`` of ``solid`` with the stiffness
-    ``k`` (3N, 3N) [N/m] on its free degrees of freedom (the solid's own formula)."""
-    free = np.flatnonzero(np.repeat(~solid.fixed_nodes, 3))
-    row = np.full(3 * len(solid.nodes), -1)
-    row[free] = np.arange(len(free))
-    lu = spla.splu(sp.csc_matrix(k[free][:, free]))
-    out = []
-    for key in keys:
-        pt = solid.patch(int(key))
-        b = np.zeros(len(free))
-        dofs = (3 * pt.indices[:, None] + np.arange(3)).ravel()
-        vals = (pt.weights[:, None] * pt.normal[None, :]).ravel()
-        ok = row[dofs] >= 0
-        np.add.at(b, row[dofs[ok]], vals[ok])
-        out.append(1.0 / float(b @ lu.solve(b)))
-    return np.array(out)
 
 
 @dataclass(frozen=True)
@@ -236,7 +213,10 @@ def measure(
     ]
     without = solid.contact_stiffness(keys)
     mats: ElementMaterials = element_materials(solid.nodes, solid.tets, base, inclusions)
-    with_lump = _ko(solid, stiffness_by_groups(solid.nodes, solid.tets, mats), keys)
+    lumped = FemSolid(
+        mesh, _static(solid_to_params(base, FemParams())), volume=(nodes, tets), materials=mats
+    )
+    with_lump = lumped.contact_stiffness(keys)
     return PalpationResult(
         diameter_m=float(diameter_m),
         depth_m=float(depth_m),

@@ -91,7 +91,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import numpy.typing as npt
@@ -116,6 +116,9 @@ from haptic_collab.server.objects.sparse_factor import factor_spd, nested_dissec
 from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
+
+if TYPE_CHECKING:  # inclusions imports solid_materials, which imports this module
+    from haptic_collab.server.objects.inclusions import ElementMaterials
 
 #: Poisson's ratio: above -1 and below 0.5 (0.5 is incompressible, which P1 elements cannot do).
 Poisson = Annotated[float, Field(gt=-1.0, lt=0.5, allow_inf_nan=False, strict=True)]
@@ -326,6 +329,7 @@ class FemSolid(PatchedSurface):
         params: FemParams | None = None,
         volume: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
         cache_dir: str | None = None,
+        materials: ElementMaterials | None = None,
     ) -> None:
         self.params = p = params if params is not None else FemParams()
         verts = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
@@ -352,6 +356,12 @@ class FemSolid(PatchedSurface):
             nodes, tets = check_volume_mesh(volume[0], volume[1], verts)
         self.nodes, self.tets = nodes, tets
         n_nodes = len(nodes)
+        if materials is not None and len(materials.labels) != len(tets):
+            raise MeshError(
+                f"FEM solid: {len(materials.labels)} element materials for {len(tets)} tetrahedra"
+            )
+        #: per-element materials (inclusions: docs/palpation.md), None for one material
+        self.materials = materials
         self.timings["volume_mesh_s"] = time.perf_counter() - clock
 
         # supported base: a ball around the lowest point and a flat bottom
@@ -364,7 +374,7 @@ class FemSolid(PatchedSurface):
             raise MeshError("FEM solid: every node is on the fixed base (base_share too large)")
         self.fixed_nodes = fixed
 
-        lam, mu = p.lame
+        lam, mu = materials.lame if materials is not None else p.lame
         k_full = stiffness_matrix(nodes, tets, lam, mu)
         free_nodes = np.flatnonzero(~fixed)
         adjacency = sp.coo_matrix(
@@ -396,7 +406,8 @@ class FemSolid(PatchedSurface):
         self._phi_surface = np.zeros((3 * n, 0))
         self._phi_rotation = np.zeros((3 * n, 0))
         self._phi_rows = np.zeros((len(self._dofs), 0))
-        masses = lumped_mass(nodes, tets, p.density_kg_m3)
+        density = materials.density_kg_m3 if materials is not None else p.density_kg_m3
+        masses = lumped_mass(nodes, tets, density)
         m_modes = min(p.n_modes, len(self._dofs) - 2)
         clock = time.perf_counter()
         if p.density_kg_m3 > 0.0 and m_modes > 0:

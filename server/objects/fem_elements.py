@@ -107,7 +107,9 @@ def warped(u: FloatArray, w: FloatArray) -> FloatArray:
     return u + a[:, None] * wu + b[:, None] * np.cross(w, wu)
 
 
-def stiffness_matrix(nodes: FloatArray, tets: IntArray, lam: float, mu: float) -> sp.csr_matrix:
+def stiffness_matrix(
+    nodes: FloatArray, tets: IntArray, lam: float | FloatArray, mu: float | FloatArray
+) -> sp.csr_matrix:
     """Linear elastic stiffness of P1 tetrahedra, ``K`` (3N, 3N) [N/m], dof ``3 * node + axis``.
 
     ``K_e[a i, b j] = V (lambda g_ai g_bj + mu g_aj g_bi + mu (g_a . g_b) delta_ij)``: the
@@ -116,10 +118,13 @@ def stiffness_matrix(nodes: FloatArray, tets: IntArray, lam: float, mu: float) -
     Parameters
     ----------
     nodes : (N, 3) float [m]; tets : (T, 4) int, positively oriented.
-    lam, mu : float
-        Lame's constants [Pa].
+    lam, mu : float or (T,) float
+        Lame's constants [Pa], one pair for every element or one per element (an inclusion's
+        own material: :mod:`server.objects.inclusions`).
     """
     g, vol = element_gradients(nodes, tets)
+    lam = np.broadcast_to(np.asarray(lam, dtype=np.float64), vol.shape)[:, None, None]
+    mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), vol.shape)[:, None, None]
     eye = np.eye(3)
     ke = np.empty((len(tets), 4, 3, 4, 3))
     for a in range(4):
@@ -140,8 +145,9 @@ def stiffness_matrix(nodes: FloatArray, tets: IntArray, lam: float, mu: float) -
     return (0.5 * (k + k.T)).tocsr()
 
 
-def lumped_mass(nodes: FloatArray, tets: IntArray, density: float) -> FloatArray:
-    """Lumped nodal masses [kg], (N,): a quarter of each element's ``rho V``."""
+def lumped_mass(nodes: FloatArray, tets: IntArray, density: float | FloatArray) -> FloatArray:
+    """Lumped nodal masses [kg], (N,): a quarter of each element's ``rho V`` (``density``
+    [kg/m^3], one for every element or (T,) one per element)."""
     _, vol = element_gradients(nodes, tets)
     return np.asarray(
         np.bincount(tets.ravel(), weights=np.repeat(density * vol / 4.0, 4), minlength=len(nodes)),

@@ -139,6 +139,38 @@ def test_assembly_by_groups_is_the_elements_own_sum(ball, cache):
     assert abs(k - k_one).max() > 0.1 * abs(k_one).max()  # the lump's elements did change
 
 
+def test_the_solid_with_a_lump_is_stiffer_over_it_as_its_elements_say(ball, cache):
+    # the server's FemSolid with per-element materials: K_o over a stiff lump is the one the
+    # group-by-group assembly gives, and higher than the same solid's without the lump
+    from dataclasses import replace
+
+    from haptic_collab.server.objects.fem import FemParams, FemSolid
+    from haptic_collab.server.solid_materials import solid_to_params
+
+    lump = _lump((0.0, 0.0, 0.07), 0.015)
+    nodes, tets = volume_with_inclusions(ball, [lump], cache_dir=cache)
+    mats = element_materials(nodes, tets, LIVER, [lump])
+    params = replace(solid_to_params(LIVER, FemParams()), density_kg_m3=0.0, warp=False)
+    plain = FemSolid(ball, params, volume=(nodes, tets))
+    lumped = FemSolid(ball, params, volume=(nodes, tets), materials=mats)
+    top = int(np.argmax(ball.vertices[:, 2]))
+    k_plain, k_lump = plain.contact_stiffness([top])[0], lumped.contact_stiffness([top])[0]
+    assert k_lump > (1.0 + STIFFNESS_JND) * k_plain  # a 30 mm lump 15 mm under the pad is felt
+    free = np.flatnonzero(np.repeat(~lumped.fixed_nodes, 3))
+    k = stiffness_by_groups(nodes, tets, mats).tocsc()[free][:, free]
+    pt = lumped.patch(top)
+    row = np.full(3 * len(nodes), -1)
+    row[free] = np.arange(len(free))
+    b = np.zeros(len(free))
+    dofs = (3 * pt.indices[:, None] + np.arange(3)).ravel()
+    vals = (pt.weights[:, None] * pt.normal[None, :]).ravel()
+    ok = row[dofs] >= 0
+    np.add.at(b, row[dofs[ok]], vals[ok])
+    import scipy.sparse.linalg as spla
+
+    assert 1.0 / float(b @ spla.spsolve(k, b)) == pytest.approx(k_lump, rel=1e-9)
+
+
 def test_a_large_stiff_lump_is_felt_through_the_liver_and_a_deep_one_is_not(cache):
     """Over a 30 mm lump ten times as stiff as liver, its top 10 mm under the surface, the finger
     pad meets a surface stiffer than beside it (over its twin of liver) by more than a stiffness
