@@ -121,13 +121,19 @@ def test_the_reference_is_the_flat_punch_on_a_large_solid(poisson, cache):
     assert reference == pytest.approx(2.0 * PAD_M * E_PA / (1.0 - poisson**2), rel=0.1)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(
+#: Near incompressibility linear tetrahedra are more than 5 % stiff (issue 60 item 1, docs/fem.md):
+#: those cases are known failures that report themselves once they pass; at nu 0.3 it holds.
+_LOCKS = pytest.mark.xfail(
     strict=True,
     raises=AssertionError,
     reason="issue 60 item 1: linear tetrahedra, > 5 % stiffer (docs/fem.md)",
 )
-@pytest.mark.parametrize("poisson", [0.3, 0.45, 0.49])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "poisson", [0.3, pytest.param(0.45, marks=_LOCKS), pytest.param(0.49, marks=_LOCKS)]
+)
 def test_the_default_liver_sphere_is_as_stiff_as_a_converged_solution(poisson, cache):
     reference, ours = reference_and_solid(poisson, cache)
     assert ours == pytest.approx(reference, rel=0.05)
