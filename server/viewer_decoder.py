@@ -6,7 +6,8 @@ vector displacements). This module is what a viewer does with those frames, in P
 reference web/viewer.js follows, and what the tests and ``haptic bench server`` check the stream
 against. :func:`decode_displacement` reads one ``DSP1``/``DSV1`` frame; a
 :class:`ViewerStreamDecoder` fed every frame in the order received holds the surface the viewer
-draws.
+draws. :func:`decode_inclusion` reads and checks an ``INC1`` frame (an inclusion's rest
+surface), as web/lump.js does in the browser.
 
 Pure numpy; no sockets, no clocks.
 """
@@ -22,6 +23,13 @@ from haptic_collab.server.viewer_stream import (
     DSP_HEADER,
     FLAG_DENSE,
     FLAG_INDEX32,
+    INC_FLAG_DECIMATED,
+    INC_HEADER,
+    INCLUSION_MAGIC,
+    MAX_INCLUSION_FACES,
+    MAX_INCLUSION_TEXT_BYTES,
+    MAX_INCLUSION_VERTICES,
+    MAX_INCLUSIONS_SENT,
     NORMALS_MAGIC,
     VECTOR_MAGIC,
     Int16Array,
@@ -92,6 +100,86 @@ def decode_displacement(frame: bytes) -> DisplacementFrame:
     return DisplacementFrame(tick, quantum_nm * 1e-9, flags, index.astype(np.int64), values)
 
 
+#: Largest |coordinate| [m] of an inclusion's vertex a viewer accepts (web/lump.js: the same).
+MAX_INCLUSION_COORD_M = 1000.0
+
+
+@dataclass(frozen=True, eq=False)
+class DecodedInclusion:
+    """A decoded ``INC1`` frame: one inclusion's rest surface.
+
+    Attributes
+    ----------
+    index, of : int
+        Its place in the object's inclusions, and how many the object has.
+    name, material : str
+        Its region (file name) and its material's name.
+    young_ratio : float or None
+        Its Young's modulus over the solid's [1]; None when the server did not know it.
+    decimated : bool
+        The server simplified it to fit its triangle budget.
+    vertices : (k, 3) float64 [m]
+    faces : (m, 3) int64
+    """
+
+    index: int
+    of: int
+    name: str
+    material: str
+    young_ratio: float | None
+    decimated: bool
+    vertices: FloatArray
+    faces: Int64Array
+
+
+def decode_inclusion(frame: bytes) -> DecodedInclusion:
+    """Decode and check an ``INC1`` frame (server/viewer_stream.py has the format).
+
+    Refused, as web/lump.js refuses them: a frame shorter than its header or of another length
+    than its counts say; more vertices or triangles than one frame may hold, an index beyond
+    :data:`server.viewer_stream.MAX_INCLUSIONS_SENT` or not below ``of``; a text longer than
+    :data:`server.viewer_stream.MAX_INCLUSION_TEXT_BYTES`; a vertex that is not finite or beyond
+    :data:`MAX_INCLUSION_COORD_M`; a triangle index out of range.
+
+    Raises
+    ------
+    ValueError
+        Says which check failed.
+    """
+    if len(frame) < INC_HEADER.size:
+        raise ValueError("INC1 frame shorter than its header")
+    magic, index, of, k, m, ratio, flags, nb, mb = INC_HEADER.unpack_from(frame)
+    if magic != INCLUSION_MAGIC:
+        raise ValueError(f"not an INC1 frame: {magic!r}")
+    if not (index < of and index < MAX_INCLUSIONS_SENT):
+        raise ValueError(f"INC1 index {index} of {of} out of range")
+    if not (3 <= k <= MAX_INCLUSION_VERTICES and 1 <= m <= MAX_INCLUSION_FACES):
+        raise ValueError(f"INC1 with {k} vertices and {m} triangles: out of bounds")
+    if nb > MAX_INCLUSION_TEXT_BYTES or mb > MAX_INCLUSION_TEXT_BYTES:
+        raise ValueError("INC1 name or material too long")
+    text = nb + mb + (-(nb + mb) % 4)
+    start = INC_HEADER.size + text
+    if len(frame) != start + 12 * k + 6 * m:
+        raise ValueError("INC1 frame length does not match its counts")
+    raw = bytes(frame[INC_HEADER.size : INC_HEADER.size + nb + mb])
+    v = np.frombuffer(frame, dtype="<f4", count=3 * k, offset=start).reshape(k, 3)
+    f = np.frombuffer(frame, dtype="<u2", count=3 * m, offset=start + 12 * k).reshape(m, 3)
+    if not (np.all(np.isfinite(v)) and np.all(np.abs(v) <= MAX_INCLUSION_COORD_M)):
+        raise ValueError("INC1 vertex not finite or out of range")
+    if int(f.max()) >= k:
+        raise ValueError("INC1 triangle index out of range")
+    return DecodedInclusion(
+        index=index,
+        of=of,
+        name=raw[:nb].decode("utf-8", "replace"),
+        material=raw[nb:].decode("utf-8", "replace"),
+        young_ratio=float(ratio) if np.isfinite(ratio) and ratio > 0 else None,
+        decimated=bool(flags & INC_FLAG_DECIMATED),
+        vertices=v.astype(np.float64),
+        faces=f.astype(np.int64),
+    )
+
+
 class ViewerStreamDecoder:
     """What a viewer does with the stream (the reference for web/viewer.js).
 
@@ -110,6 +198,9 @@ class ViewerStreamDecoder:
         self._d: FloatArray | None = None
         self.tick = -1
         self.frames = 0
+        #: The inclusions received (``INC1``), by index; a ``VTX1`` frame (a new join) clears
+        #: them.
+        self.inclusions: dict[int, DecodedInclusion] = {}
 
     @property
     def w(self) -> FloatArray:
@@ -135,8 +226,8 @@ class ViewerStreamDecoder:
         return self._d is not None
 
     def feed(self, frame: bytes) -> None:
-        """Apply one binary frame (``VTX1`` rest, ``NRM1``, ``DSP1``, ``DSV1``; others are
-        ignored).
+        """Apply one binary frame (``VTX1`` rest, ``NRM1``, ``DSP1``, ``DSV1``, ``INC1``;
+        others are ignored).
 
         Raises
         ------
@@ -175,8 +266,12 @@ class ViewerStreamDecoder:
             arr = np.frombuffer(body, dtype="<f4").reshape(count, 3).astype(np.float64)
             if magic == VERTICES_MAGIC:
                 self.rest, self._w, self._d = arr, np.zeros(count), None
+                self.inclusions = {}
             else:
                 self.normals = arr
+        elif magic == INCLUSION_MAGIC:
+            inc = decode_inclusion(frame)
+            self.inclusions[inc.index] = inc
 
     @property
     def displacement(self) -> FloatArray:

@@ -35,6 +35,10 @@ On join, three events:
    still colours the surface by the normal component ``d . rest_normal``);
 3. a keyframe (``DSP1`` or ``DSV1``): every vertex's displacement (flags ``DENSE | KEY``).
 
+For a FEM solid with inclusions (``--inclusion``; docs/palpation.md), one ``INC1`` frame per
+inclusion follows the keyframe, also as an event (:func:`encode_inclusions`); an object without
+inclusions sends none, so its viewers' bytes do not change.
+
 Then one frame of the same form per simulation tick, a latest-wins state stream. Header
 (:data:`DSP_HEADER`, 20 bytes, both forms): magic, uint32 tick, uint32 count (vertices), uint32
 quantum [nm], uint32 flags. ``DSP1`` body: ``DENSE``: n int16 values (count = n); otherwise
@@ -42,6 +46,19 @@ count indices (uint16, or uint32 with ``INDEX32``) then count int16 values. A va
 vertex ``i`` means ``w_i = v * quantum``. ``DSV1`` body: the same with three int16 per vertex
 (x, y, z, vertex after vertex): ``DENSE``: 3n int16; otherwise count indices then 3 count int16,
 ``d_i = (vx, vy, vz) * quantum``. Vertices not listed keep what the viewer has.
+
+``INC1`` (:data:`INC_HEADER`, 32 bytes): magic, uint32 index (the inclusion's place in
+``--inclusion`` order), uint32 of (how many the object has), uint32 vertices k, uint32 faces m,
+float32 Young's modulus ratio (the inclusion's over the solid's; NaN when unknown), uint32
+flags (:data:`INC_FLAG_DECIMATED`), uint16 name bytes, uint16 material bytes. Then the name and
+the material's name (UTF-8, at most :data:`MAX_INCLUSION_TEXT_BYTES` each; the region's file
+name, never a folder), zero-padded to a multiple of 4 bytes; k x 3 float32 rest positions [m] in
+the object's frame; m x 3 uint16 vertex indices, counter-clockwise seen from outside. The surface
+is the inclusion's at rest: it does not follow the deformation (the FEM tick computes only the
+outer surface's displacement). Bounded: at most :data:`MAX_INCLUSIONS_SENT` frames and
+:data:`MAX_INCLUSION_FACES` triangles for all of them together, shared out evenly (a small
+inclusion keeps all it has and leaves the rest to the others); an inclusion over its share is
+decimated by vertex clustering (:func:`server.objects.inclusions.cluster_decimate`) and flagged.
 
 What the server guarantees
 --------------------------
@@ -72,18 +89,22 @@ were made (dropping some is fine) and call :attr:`Frame.sent` right after writin
 
 from __future__ import annotations
 
+import math
 import struct
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
 from haptic_collab.shared.protocol import BINARY_HEADER, encode_vertices
 from haptic_collab.shared.types import FloatArray
+
+if TYPE_CHECKING:
+    from haptic_collab.server.objects.inclusions import InclusionSurface
 
 Int16Array = npt.NDArray[np.int16]
 Int32Array = npt.NDArray[np.int32]
@@ -108,6 +129,24 @@ FLAG_INDEX32 = 4
 FLAG_CLAMPED = 8
 #: The byte budget cut this frame short: more changes follow in the next frames.
 FLAG_PARTIAL = 16
+
+#: An inclusion's rest surface (FEM solid with ``--inclusion``): header :data:`INC_HEADER`, the
+#: name and material (UTF-8, padded to 4 bytes), k x 3 float32 [m], m x 3 uint16.
+INCLUSION_MAGIC = b"INC1"
+#: ``INC1`` header: magic, uint32 index, uint32 of, uint32 vertices, uint32 faces, float32
+#: Young's modulus ratio, uint32 flags, uint16 name bytes, uint16 material bytes.
+INC_HEADER = struct.Struct("<4sIIIIfIHH")
+#: The surface was decimated to fit :data:`MAX_INCLUSION_FACES`.
+INC_FLAG_DECIMATED = 1
+#: At most this many ``INC1`` frames a viewer gets (the first inclusions, in ``--inclusion`` order).
+MAX_INCLUSIONS_SENT = 16
+#: At most this many triangles in all ``INC1`` frames together: with their vertices about
+#: 50 kB for closed surfaces, 170 kB at worst (a lump's shape is clear in a few hundred).
+MAX_INCLUSION_FACES = 4096
+#: At most this many vertices in one ``INC1`` frame (every triangle its own three corners).
+MAX_INCLUSION_VERTICES = 3 * MAX_INCLUSION_FACES
+#: At most this many bytes of UTF-8 for a name or a material's name (cut at a character).
+MAX_INCLUSION_TEXT_BYTES = 64
 
 #: Smallest quantum [nm] (1 um).
 BASE_QUANTUM_NM = 1000
@@ -266,6 +305,9 @@ class ViewerStream:
         False: the normal form (``DSP1``, one value per vertex, ``w`` along the rest normal);
         True: the vector form (``DSV1``, the full displacement ``d``, three values per vertex),
         for objects that move vertices off their normals (module docstring).
+    inclusions : sequence of server.objects.inclusions.InclusionSurface
+        The object's inclusions at rest, sent to each viewer on join as ``INC1`` frames
+        (:func:`encode_inclusions`, bounded); none by default.
 
     Raises
     ------
@@ -281,6 +323,7 @@ class ViewerStream:
         frame_budget_bytes: int | None = None,
         max_in_flight: int = 8,
         vector: bool = False,
+        inclusions: Sequence[InclusionSurface] = (),
     ) -> None:
         rest = np.array(rest_vertices, dtype=np.float64)
         normals = np.array(rest_normals, dtype=np.float64)
@@ -311,6 +354,8 @@ class ViewerStream:
             encode_vertices(0, rest),
             BINARY_HEADER.pack(NORMALS_MAGIC, 0, n) + normals.astype("<f4").tobytes(),
         )
+        #: The ``INC1`` frames every viewer gets on join (encoded once).
+        self.inclusion_frames: tuple[bytes, ...] = tuple(encode_inclusions(inclusions))
         self._scale_exp = 0
         self._version = 0
         self._last_target: Int32Array | None = None
@@ -333,6 +378,11 @@ class ViewerStream:
         (``DSP1``; the balloon). Either way the stream takes the world's current ``vertices``:
         the vector form carries ``vertices - rest``, the object's (n, 3) displacement.
 
+        An object with per-element materials from inclusions (``obj.materials``, with ``nodes``
+        and ``tets``: :class:`server.objects.fem.FemSolid` built with ``--inclusion``) gives the
+        stream its inclusions' rest surfaces
+        (:func:`server.objects.inclusions.inclusion_surfaces`); any other object none.
+
         Parameters
         ----------
         world : World
@@ -352,7 +402,14 @@ class ViewerStream:
         if bytes_per_s is not None:
             budget = max(MIN_FRAME_BUDGET_BYTES, int(bytes_per_s / max(float(rate_hz), 1e-9)))
         vector = getattr(obj, "tangential_motion", False) is True
-        return cls(rest, normals, frame_budget_bytes=budget, vector=vector)
+        inclusions: list[InclusionSurface] = []
+        materials = getattr(obj, "materials", None)
+        nodes, tets = getattr(obj, "nodes", None), getattr(obj, "tets", None)
+        if materials is not None and nodes is not None and tets is not None:
+            from haptic_collab.server.objects.inclusions import inclusion_surfaces
+
+            inclusions = inclusion_surfaces(nodes, tets, materials)
+        return cls(rest, normals, frame_budget_bytes=budget, vector=vector, inclusions=inclusions)
 
     # ------------------------------------------------------------------ state
     @property
@@ -452,13 +509,14 @@ class ViewerStream:
         -------
         list of bytes
             ``[VTX1 rest positions, NRM1 rest normals, keyframe]`` (a ``DSP1`` or ``DSV1``
-            keyframe, the stream's form). The keyframe counts as held by the viewer from now
-            on: events are never dropped.
+            keyframe, the stream's form), then the ``INC1`` frames of the object's inclusions
+            (none without). The keyframe counts as held by the viewer from now on: events are
+            never dropped.
         """
         snap = self.snapshot(tick, vertices)
         self._viewers[viewer_id] = _Viewer(held=snap.target.copy(), synced=snap.version)
         key = self._encode(snap, None, FLAG_DENSE | FLAG_KEY)
-        return [*self._rest_frames, key]
+        return [*self._rest_frames, key, *self.inclusion_frames]
 
     def leave(self, viewer_id: str) -> None:
         """Forget a viewer (no error if unknown)."""
@@ -592,6 +650,100 @@ class ViewerStream:
             body += snap.values[index].astype("<i2").tobytes()
         head = DSP_HEADER.pack(self._magic, snap.tick & 0xFFFFFFFF, count, snap.quantum_nm, flags)
         return head + body
+
+
+def _text(value: str) -> bytes:
+    """``value`` as UTF-8, cut to :data:`MAX_INCLUSION_TEXT_BYTES` at a character boundary."""
+    data = str(value).encode("utf-8", "replace")[:MAX_INCLUSION_TEXT_BYTES]
+    return data.decode("utf-8", "ignore").encode("utf-8")
+
+
+def _shares(faces: Sequence[int], total: int) -> list[int]:
+    """Triangles each inclusion may keep: ``total`` shared out evenly, smallest first, each
+    taking what it has up to an even share of what is left (the sum is at most ``total``)."""
+    out = [0] * len(faces)
+    left = total
+    order = sorted(range(len(faces)), key=lambda i: faces[i])
+    for done, i in enumerate(order):
+        out[i] = min(int(faces[i]), left // (len(faces) - done))
+        left -= out[i]
+    return out
+
+
+def encode_inclusions(
+    inclusions: Sequence[InclusionSurface],
+    max_faces: int = MAX_INCLUSION_FACES,
+    max_count: int = MAX_INCLUSIONS_SENT,
+) -> list[bytes]:
+    """The ``INC1`` frames of an object's inclusions (module docstring: the format).
+
+    Bounded so that no inclusion mesh, however large, floods a viewer: the first ``max_count``
+    inclusions only, and ``max_faces`` triangles for all of them together, shared out evenly
+    (:func:`_shares`); an inclusion over its share is decimated by vertex clustering
+    (:func:`server.objects.inclusions.cluster_decimate`, flag :data:`INC_FLAG_DECIMATED`).
+    Unused vertices are dropped. An inclusion with a non-finite vertex, an index out of range or
+    no triangle left is not sent (the others keep their ``index``).
+
+    Parameters
+    ----------
+    inclusions : sequence of InclusionSurface
+        ``vertices`` (k, 3) [m], ``faces`` (m, 3), ``name``, ``material``, ``young_ratio``.
+    max_faces : int
+        Triangles in all frames together (<= :data:`MAX_INCLUSION_FACES`: the viewer refuses
+        more).
+    max_count : int
+        Frames at most (<= :data:`MAX_INCLUSIONS_SENT`).
+
+    Returns
+    -------
+    list of bytes
+        One ``INC1`` frame per inclusion sent; empty for no inclusions.
+    """
+    items = list(inclusions)
+    if not items:
+        return []
+    sent = items[: max(0, min(int(max_count), MAX_INCLUSIONS_SENT))]
+    geometry: list[tuple[FloatArray, npt.NDArray[np.int64]] | None] = []
+    for inc in sent:
+        v = np.asarray(inc.vertices, dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(inc.faces, dtype=np.int64).reshape(-1, 3)
+        ok = len(f) > 0 and bool(np.all(np.isfinite(v)))
+        ok = ok and int(f.min()) >= 0 and int(f.max()) < len(v)
+        geometry.append((v, f) if ok else None)
+    counts = [0 if g is None else len(g[1]) for g in geometry]
+    shares = _shares(counts, min(int(max_faces), MAX_INCLUSION_FACES))
+    out = []
+    for index, (inc, g, share) in enumerate(zip(sent, geometry, shares, strict=True)):
+        if g is None:
+            continue
+        v, f = g
+        flags = 0
+        if len(f) > share:
+            from haptic_collab.server.objects.inclusions import cluster_decimate
+
+            v, f, _ = cluster_decimate(v, f, share)
+            flags |= INC_FLAG_DECIMATED
+        if len(f) == 0:
+            continue
+        used, renumbered = np.unique(f, return_inverse=True)
+        v, f = v[used], renumbered.reshape(-1, 3)
+        name, material = _text(inc.name), _text(inc.material)
+        ratio = float(inc.young_ratio)
+        head = INC_HEADER.pack(
+            INCLUSION_MAGIC,
+            index,
+            len(items),
+            len(v),
+            len(f),
+            ratio if math.isfinite(ratio) and abs(ratio) < 3e38 else math.nan,  # float32
+            flags,
+            len(name),
+            len(material),
+        )
+        text = name + material
+        text += b"\0" * (-len(text) % 4)
+        out.append(head + text + v.astype("<f4").tobytes() + f.astype("<u2").tobytes())
+    return out
 
 
 def _difference(a: Int32Array, b: Int32Array) -> npt.NDArray[Any]:

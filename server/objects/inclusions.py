@@ -30,6 +30,11 @@ What this module does, for :class:`server.objects.fem.FemSolid`:
   (:mod:`haptic_collab.research.palpation`) uses until the solid takes per-element materials
   itself (docs/palpation.md: the hook).
 
+- :func:`inclusion_surfaces` reads each inclusion's surface back from a solid meshed with it
+  (:func:`region_boundary` of its labelled tetrahedra), with its material's name and its Young's
+  modulus over the solid's, for the browser viewer's "show lump" (:mod:`server.viewer_stream`,
+  ``INC1``); :func:`cluster_decimate` bounds the triangles a viewer is sent.
+
 The inclusion's Rayleigh damping is the solid's (``C = alpha M + beta K`` with the per-element
 ``K`` already carries the stiffer element's larger ``beta K`` term); its own ``beta`` is not used.
 
@@ -39,6 +44,8 @@ References
   using generalized winding numbers. *ACM Transactions on Graphics* 32(4), 33.
 - Van Oosterom, A., & Strackee, J. (1983). The solid angle of a plane triangle. *IEEE
   Transactions on Biomedical Engineering* 30(2), 125-126.
+- Rossignac, J., & Borrel, P. (1993). Multi-resolution 3D approximations for rendering complex
+  scenes. *Modeling in Computer Graphics*, Springer, 455-465 (vertex clustering).
 - Si, H. (2015). TetGen, a Delaunay-based quality tetrahedral mesh generator. *ACM TOMS* 41(2), 11.
 
 Nothing here uses threads, sockets or clocks; :func:`volume_with_inclusions` runs TetGen in a
@@ -109,6 +116,11 @@ class ElementMaterials:
     names : tuple of str
         Each label's region and material, ``solid (liver)``, ``lump.stl (liver*10)``
         (``names[0]`` the solid's).
+    regions : tuple of str
+        Each label's region alone, without folders: ``solid``, ``lump.stl`` (what a viewer is
+        told: never a path on the server); empty when not known.
+    materials : tuple of str
+        Each label's material name: ``liver``, ``liver*10``; empty when not known.
     """
 
     labels: IntArray
@@ -116,6 +128,8 @@ class ElementMaterials:
     poisson: FloatArray
     density_kg_m3: FloatArray
     names: tuple[str, ...]
+    regions: tuple[str, ...] = ()
+    materials: tuple[str, ...] = ()
 
     @property
     def lame(self) -> tuple[FloatArray, FloatArray]:
@@ -400,6 +414,11 @@ def element_materials(
             f"solid ({base.name})",
             *(f"{inc.where} ({inc.material.name})" for inc in inclusions),
         ),
+        regions=(
+            "solid",
+            *(Path(inc.where).name or f"inclusion {i + 1}" for i, inc in enumerate(inclusions)),
+        ),
+        materials=tuple(m.name for m in mats),
     )
 
 
@@ -426,3 +445,167 @@ def mass_by_groups(nodes: FloatArray, tets: IntArray, materials: ElementMaterial
     for rho in np.unique(materials.density_kg_m3):
         out += lumped_mass(nodes, tets[materials.density_kg_m3 == rho], float(rho))
     return out
+
+
+@dataclass(frozen=True)
+class InclusionSurface:
+    """One inclusion's closed surface at rest, as the viewer draws it (docs/palpation.md).
+
+    Parameters
+    ----------
+    name : str
+        Its region (the file name, no folders: ``lump.stl``).
+    material : str
+        Its material's name (``liver*10``).
+    young_ratio : float [1]
+        Its Young's modulus over the solid's (10 for ``liver*10`` in liver).
+    vertices : (k, 3) float64 [m]
+        Rest positions, in the solid's frame.
+    faces : (m, 3) int64
+        Triangles, counter-clockwise seen from outside the inclusion.
+    """
+
+    name: str
+    material: str
+    young_ratio: float
+    vertices: FloatArray
+    faces: IntArray
+
+
+def region_boundary(
+    nodes: npt.ArrayLike, tets: npt.ArrayLike, inside: npt.ArrayLike
+) -> tuple[FloatArray, IntArray]:
+    """The boundary of a set of tetrahedra: the faces that only one of them has.
+
+    On a volume mesh that conforms to an inclusion (:func:`volume_with_inclusions`) the
+    tetrahedra labelled as the inclusion are bounded by its surface as TetGen kept it, so this
+    gives that surface back from the solid itself, with no second copy of it to keep.
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]; tets : (T, 4) int
+    inside : (T,) bool
+        The tetrahedra of the region.
+
+    Returns
+    -------
+    (vertices (k, 3) float64 [m], faces (m, 3) int64)
+        Only the nodes the faces use, renumbered; each face wound counter-clockwise seen from
+        outside the region (its normal points away from the fourth node of its tetrahedron).
+        Empty arrays for an empty region.
+    """
+    p = np.asarray(nodes, dtype=np.float64)
+    t = np.asarray(tets, dtype=np.int64)[np.asarray(inside, dtype=bool)]
+    if len(t) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    # the four faces of each tetrahedron, with the node opposite each
+    local = np.array([[1, 2, 3, 0], [0, 3, 2, 1], [0, 1, 3, 2], [0, 2, 1, 3]])
+    all_faces = t[:, local[:, :3]].reshape(-1, 3)
+    opposite = t[:, local[:, 3]].reshape(-1)
+    key = np.sort(all_faces, axis=1)
+    _, first, count = np.unique(key, axis=0, return_index=True, return_counts=True)
+    once = first[count == 1]
+    faces = all_faces[once]
+    a, b, c = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
+    away = np.einsum("ij,ij->i", np.cross(b - a, c - a), p[opposite[once]] - a) > 0.0
+    faces[away] = faces[away][:, ::-1]  # the normal pointed into the tetrahedron: flip
+    used, renumbered = np.unique(faces, return_inverse=True)
+    return p[used], renumbered.reshape(-1, 3).astype(np.int64)
+
+
+def inclusion_surfaces(
+    nodes: npt.ArrayLike, tets: npt.ArrayLike, materials: ElementMaterials
+) -> list[InclusionSurface]:
+    """Each inclusion's surface at rest, read from a solid meshed with its inclusions.
+
+    The surface is :func:`region_boundary` of the tetrahedra labelled as the inclusion (the
+    labels of :func:`element_materials`), so it is what the solid simulates. Its Young's
+    modulus ratio is the inclusion's elements' over the solid's own (label 0).
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]; tets : (T, 4) int
+    materials : ElementMaterials
+        The per-element materials the solid was built with.
+
+    Returns
+    -------
+    list of InclusionSurface
+        In label order (the order of ``--inclusion``); an inclusion with no tetrahedra is left
+        out. Empty for a solid of one material.
+    """
+    labels = np.asarray(materials.labels, dtype=np.int64)
+    young = np.asarray(materials.young_pa, dtype=np.float64)
+    solid = young[labels == 0]
+    e_solid = float(np.median(solid)) if len(solid) else math.nan
+    out = []
+    for label in range(1, int(labels.max(initial=0)) + 1):
+        inside = labels == label
+        if not inside.any():
+            continue
+        v, f = region_boundary(nodes, tets, inside)
+        if len(f) == 0:
+            continue
+        e = float(np.median(young[inside]))
+        ratio = e / e_solid if e_solid > 0.0 else math.nan
+        name = materials.regions[label] if label < len(materials.regions) else f"inclusion {label}"
+        material = materials.materials[label] if label < len(materials.materials) else ""
+        out.append(InclusionSurface(name, material, ratio, v, f))
+    return out
+
+
+def cluster_decimate(
+    vertices: npt.ArrayLike, faces: npt.ArrayLike, max_faces: int
+) -> tuple[FloatArray, IntArray, bool]:
+    """A surface with at most ``max_faces`` triangles, by vertex clustering.
+
+    Vertex clustering (Rossignac and Borrel 1993): the vertices in one cell of a cubic grid
+    become one, at their mean; triangles whose corners fall in fewer than three cells go, and
+    so do repeated ones. The cell starts at ``sqrt(2.3 A / max_faces)`` (``A`` the area: a
+    uniform mesh of edge ``h`` has about ``2.3 A / h^2`` triangles) and grows by a quarter
+    until the count fits. It keeps the shape to about a cell and the winding of what is left;
+    the result need not be a closed manifold (for drawing, not for simulating).
+
+    Parameters
+    ----------
+    vertices : (n, 3) float [m]; faces : (m, 3) int
+    max_faces : int
+        At most this many triangles, >= 0.
+
+    Returns
+    -------
+    (vertices (k, 3) float64 [m], faces (<= max_faces, 3) int64, decimated: bool)
+        The input itself (``decimated`` False) when it already fits.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    cap = max(int(max_faces), 0)
+    if len(f) <= cap:
+        return v, f, False
+    lo = v.min(axis=0)
+    extent = float(np.max(v.max(axis=0) - lo))
+    area = 0.5 * float(
+        np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
+    )
+    cell = math.sqrt(2.3 * area / max(cap, 1)) if cap else math.inf
+    cell = max(cell, extent * 1e-6, 1e-12)
+    while True:
+        if not math.isfinite(cell) or cell > 4.0 * extent:
+            return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), True
+        grid = np.floor((v - lo) / cell).astype(np.int64)
+        _, cluster = np.unique(grid, axis=0, return_inverse=True)
+        cluster = cluster.reshape(-1)
+        k = int(cluster.max()) + 1
+        g = cluster[f]
+        keep = (g[:, 0] != g[:, 1]) & (g[:, 1] != g[:, 2]) & (g[:, 0] != g[:, 2])
+        g = g[keep]
+        _, first = np.unique(np.sort(g, axis=1), axis=0, return_index=True)
+        g = g[np.sort(first)]
+        if len(g) <= cap:
+            break
+        cell *= 1.25
+    sums = np.zeros((k, 3))
+    np.add.at(sums, cluster, v)
+    centres = sums / np.bincount(cluster, minlength=k)[:, None]
+    used, renumbered = np.unique(g, return_inverse=True)
+    return centres[used], renumbered.reshape(-1, 3).astype(np.int64), True

@@ -19,10 +19,13 @@ from haptic_collab.server.objects.inclusions import (
     Inclusion,
     InclusionError,
     check_inclusions,
+    cluster_decimate,
     element_materials,
     inclusion_material,
+    inclusion_surfaces,
     load_inclusions,
     mass_by_groups,
+    region_boundary,
     stiffness_by_groups,
     volume_with_inclusions,
     winding_number,
@@ -188,3 +191,47 @@ def test_a_large_stiff_lump_is_felt_through_the_liver_and_a_deep_one_is_not(cach
 def test_a_lump_that_does_not_fit_is_refused():
     with pytest.raises(ValueError, match="does not fit"):
         sphere_lump(0.05, 0.06)
+
+
+def test_each_inclusions_surface_is_read_back_from_the_solid_with_its_name_and_ratio(ball, cache):
+    """What the viewer is sent (docs/palpation.md): each lump's closed surface at rest, wound
+    outward, its file name without folders, its material and its Young's modulus over the
+    solid's."""
+    lump = _lump((0.02, 0.0, 0.05), 0.01, where="/srv/cases/lump.stl")
+    twin = _lump((-0.02, 0.0, 0.05), 0.01, LIVER, where="twin.stl")
+    nodes, tets = volume_with_inclusions(ball, [lump, twin], cache_dir=cache)
+    mats = element_materials(nodes, tets, LIVER, [lump, twin], young_scale=3.0)
+    got = inclusion_surfaces(nodes, tets, mats)
+    assert [(s.name, s.material) for s in got] == [("lump.stl", "liver*10"), ("twin.stl", "liver")]
+    assert [s.young_ratio for s in got] == pytest.approx([10.0, 1.0])  # the scale cancels
+    for s, inc in zip(got, (lump, twin), strict=True):
+        mesh = trimesh.Trimesh(s.vertices, s.faces, process=False)
+        assert mesh.is_watertight and mesh.is_winding_consistent
+        assert mesh.volume == pytest.approx(inc.mesh.volume, rel=1e-9)  # > 0: wound outward
+        np.testing.assert_allclose(mesh.bounds, inc.mesh.bounds, atol=1e-12)
+    # the whole solid's boundary is its surface; no region, no surface
+    v, f = region_boundary(nodes, tets, np.ones(len(tets), dtype=bool))
+    assert trimesh.Trimesh(v, f, process=False).volume == pytest.approx(ball.volume, rel=1e-9)
+    assert len(f) == len(ball.faces)
+    v, f = region_boundary(nodes, tets, np.zeros(len(tets), dtype=bool))
+    assert v.shape == (0, 3) and f.shape == (0, 3)
+    one = element_materials(nodes, tets, LIVER, [])
+    assert inclusion_surfaces(nodes, tets, one) == []
+
+
+def test_vertex_clustering_keeps_a_surface_under_its_cap_and_its_shape():
+    big = trimesh.creation.icosphere(subdivisions=6, radius=0.02)  # 81 920 triangles
+    for cap, shape in ((4096, 0.01), (500, 0.1), (60, 0.4)):
+        v, f, decimated = cluster_decimate(big.vertices, big.faces, cap)
+        assert decimated and 0.2 * cap < len(f) <= cap, (cap, len(f))
+        assert f.min() >= 0 and f.max() == len(v) - 1  # every vertex used, none missing
+        r = np.linalg.norm(v, axis=1)
+        assert np.all(np.abs(r - 0.02) < shape * 0.02), cap  # on the sphere, to a cell
+        mesh = trimesh.Trimesh(v, f, process=False)
+        # still wound outward, enclosing about the sphere's volume (less the coarser it is)
+        assert mesh.volume == pytest.approx(big.volume, rel=shape), cap
+    v, f, decimated = cluster_decimate(big.vertices, big.faces, len(big.faces))
+    assert not decimated and len(f) == len(big.faces)
+    flat = np.zeros((3, 3))  # every corner at one point: nothing left to draw
+    v, f, decimated = cluster_decimate(flat, [[0, 1, 2], [0, 2, 1]], 1)
+    assert decimated and len(f) == 0
