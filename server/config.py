@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from haptic_collab.server.materials import PRESETS
+from haptic_collab.server.objects.fem import GRAVITY_MAX_M_S2
 from haptic_collab.server.objects.shapes import STRESS_MESHES
 from haptic_collab.server.solid_materials import SOLID_PRESETS
 from haptic_collab.server.toml_file import read_toml
@@ -71,6 +72,11 @@ def _port(v: object) -> str | None:
 
 def _subdivisions(v: object) -> str | None:
     return None if isinstance(v, int) and 0 <= v <= 7 else "must be in 0..7"
+
+
+def _gravity(v: object) -> str | None:
+    ok = isinstance(v, int | float) and 0.0 <= v <= GRAVITY_MAX_M_S2
+    return None if ok else f"must be in [0, {GRAVITY_MAX_M_S2:g}] m/s^2"
 
 
 def _one_of(*choices: str) -> Callable[[object], str | None]:
@@ -119,6 +125,9 @@ SERVER_OPTIONS: dict[str, _Option] = {
     ),
     "material": _Option("str", "material preset or TOML file", _not_empty, True),
     "volume_cache": _Option("str", "folder of cached FEM volume meshes", _not_empty, True),
+    "gravity": _Option(
+        "float", "the FEM solid sags under its own weight, g along -z [m/s^2]", _gravity
+    ),
     "sim_rate": _Option("float", "simulation rate [Hz]", _positive),
     "damping": _Option("float", "object damping (visco-elastic, eq. 9) [Pa*s/m]", _nonneg),
     "stiffness_scale": _Option("float", "multiply every stiffness term by this", _positive),
@@ -167,6 +176,7 @@ ROOM_OPTIONS: dict[str, _Option] = {
             "mesh_repair",
             "subdivisions",
             "material",
+            "gravity",
             "sim_rate",
             "damping",
             "stiffness_scale",

@@ -82,6 +82,9 @@ class ServerOptions:
 
     ``room_processes`` runs each room's simulation in a process of its own
     (:mod:`server.room_process`): a slow room's tick then delays no other room.
+
+    ``gravity_m_s2`` (``--gravity``, ``object`` fem only): the FEM solid's rest state is the one
+    it sags to under its own weight, g [m/s^2] along -z (0: none; docs/fem.md, "Gravity").
     """
 
     host: str = "127.0.0.1"
@@ -122,10 +125,11 @@ class ServerOptions:
     mesh_repair: bool = False
     inclusions: tuple[str, ...] = ()
     inclusion_materials: tuple[str, ...] = ()
+    gravity_m_s2: float = 0.0
 
 
 #: ``[rooms.NAME]`` keys that name a :class:`ServerOptions` field differently.
-_ROOM_KEY_FIELDS = {"sim_rate": "sim_rate_hz"}
+_ROOM_KEY_FIELDS = {"sim_rate": "sim_rate_hz", "gravity": "gravity_m_s2"}
 #: ``[rooms.NAME]`` keys that are the room's caps (:class:`server.admission.RoomLimits`).
 _ROOM_LIMIT_KEYS = ("max_users", "max_viewers")
 
@@ -316,11 +320,13 @@ def check_templates(opts: ServerOptions) -> None:
     Raises
     ------
     ValueError
-        As :func:`room_options` and :func:`build_rates` for a template's keys.
+        As :func:`room_options`, :func:`build_rates` and ``--gravity``'s check
+        (:func:`build_world`) for a template's keys.
     """
     for tname, keys in opts.room_templates.items():
         try:
             build_rates(room_options(opts, keys))
+            _check_gravity(room_options(opts, keys))
         except ValueError as exc:
             raise ValueError(f"[room_templates.{tname}]: {exc}") from None
 
@@ -528,6 +534,7 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
         raise ValueError("--inclusion needs --object fem (an inclusion is a region of the solid)")
     if opts.object == "fem" and opts.damping is not None:
         raise ValueError("--damping is the balloon's; a FEM solid's damping is its material's")
+    _check_gravity(opts)
     params = base.with_stiffness_scale(scale)
     if opts.damping is not None:
         params = replace(params, damping=opts.damping)
@@ -538,6 +545,25 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     obj = Balloon(mesh, params)
     log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))
     return world_around(obj, opts, rates)
+
+
+def _check_gravity(opts: ServerOptions) -> None:
+    """``--gravity``: a finite number in [0, GRAVITY_MAX_M_S2] m/s^2, and only for the FEM solid.
+
+    Raises
+    ------
+    ValueError
+        Out of range or not finite, or given (> 0) for the balloon, which has no weight model.
+    """
+    from haptic_collab.server.objects.fem import GRAVITY_MAX_M_S2
+
+    g = float(opts.gravity_m_s2)
+    if not (math.isfinite(g) and 0.0 <= g <= GRAVITY_MAX_M_S2):
+        raise ValueError(
+            f"--gravity must be in [0, {GRAVITY_MAX_M_S2:g}] m/s^2 (9.81 on Earth), got {g:g}"
+        )
+    if g > 0.0 and opts.object != "fem":
+        raise ValueError("--gravity needs --object fem (the balloon has no weight model)")
 
 
 def world_around(obj: Any, opts: ServerOptions, rates: Rates | None = None):  # type: ignore[no-untyped-def]
@@ -570,7 +596,9 @@ def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> An
 
     material = load_solid_material(opts.material) if opts.material else SOLID_PRESETS["liver"]
     params = solid_to_params(material, FemParams(sim_period_s=rates.sim_period_s))
-    params = replace(params, young_pa=params.young_pa * scale)
+    params = replace(
+        params, young_pa=params.young_pa * scale, gravity_m_s2=float(opts.gravity_m_s2)
+    )
     log.info("FEM solid, material %s", material.summary())
     from haptic_collab.server.objects.inclusions import (
         element_materials,
@@ -595,6 +623,12 @@ def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> An
         obj.mass_kg,
         ", ".join(f"{f:.1f}" for f in obj.natural_frequencies_hz[:3]),
     )
+    if params.gravity_m_s2 > 0.0:
+        log.info(
+            "FEM solid: at rest sagged under its own weight (g %.4g m/s^2), %.1f mm at most",
+            params.gravity_m_s2,
+            1e3 * obj.sag_m,
+        )
     from haptic_collab.server.materials import top_side_stiffness
 
     log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))  # type: ignore[arg-type]

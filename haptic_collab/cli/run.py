@@ -42,6 +42,23 @@ _MESH_MAX_EDGE_HELP = (
 )
 
 
+#: ``--gravity`` without a value [m/s^2]: standard gravity, rounded.
+STANDARD_GRAVITY_M_S2 = 9.81
+#: ``--gravity`` at most [m/s^2] (:data:`server.objects.fem.GRAVITY_MAX_M_S2`, not imported here:
+#: it loads scipy and trimesh; a test checks they agree).
+GRAVITY_MAX_M_S2 = 100.0
+
+
+def _gravity(text: str) -> float:
+    """``--gravity G``: a finite number in [0, :data:`GRAVITY_MAX_M_S2`] m/s^2."""
+    value = _nonneg(text)
+    if value > GRAVITY_MAX_M_S2:
+        raise argparse.ArgumentTypeError(
+            f"must be at most {GRAVITY_MAX_M_S2:g} m/s^2 (9.81 on Earth), got {text!r}"
+        )
+    return value
+
+
 # ------------------------------------------------------------------------------------------ logging
 #: ``--log-level`` choices (Python logging levels).
 LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -176,6 +193,7 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         snapshot_dir=args.snapshot_dir,
         drain_grace_s=args.drain_grace_s,
         room_processes=args.room_processes,
+        gravity_m_s2=float(getattr(args, "gravity", 0.0) or 0.0),
     )
 
 
@@ -209,6 +227,17 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         default=None,
         metavar="DIR",
         help="folder of cached FEM volume meshes (default ~/.cache/haptic-collab/volumes)",
+    )
+    p.add_argument(
+        "--gravity",
+        type=_gravity,
+        nargs="?",
+        const=STANDARD_GRAVITY_M_S2,
+        default=0.0,
+        metavar="G",
+        help="with --object fem: the solid sags under its own weight at start, G [m/s^2] along "
+        f"-z of the object's frame (G in [0, {GRAVITY_MAX_M_S2:g}]; {STANDARD_GRAVITY_M_S2:g} "
+        "when given without a value; default 0: no weight; docs/fem.md)",
     )
     _add_shared(p, "--mesh-scale", help="multiply the file's coordinates by S")
     _add_shared(p, "--mesh-size", help="rescale so the largest extent is this [m]")

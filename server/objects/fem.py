@@ -71,6 +71,31 @@ step. The rotation is estimated from the linear solution (moderate rotations, ab
 bar above reaches 0.4), the strain stays linear, and a rotation that varies across one patch is
 not one rotation. docs/fem.md has the measurements.
 
+**Gravity** (``gravity_m_s2``, off by default; ``haptic server --gravity``). The solid's rest state
+is the one it sags to under its own weight, ``g`` along -z of the object's frame: the consistent
+body-force loads ``rho g V / 4`` on each node of each tetrahedron (per-element densities with
+inclusions; :func:`server.objects.fem_elements.gravity_loads`) solved once with the factored
+``K`` at start, ``u_g = K^-1 F_g``. The fixed base carries the weight. What follows from that:
+
+- The sagged surface is the solid's :attr:`FemSolid.rest_vertices`: what the viewer draws, what
+  the World indexes contacts and rest planes on, and what every reported displacement is
+  measured from. ``reset`` returns to it; :meth:`FemSolid.state` and ``set_state`` carry it.
+- Users' forces add on top: the load is ``F_g + F`` and the model linear, so the linear
+  displacement is ``u_g`` plus today's response to ``F``. The weight has always been there, so
+  the modes start at rest in the sagged equilibrium and only users' forces move them.
+- ``K_o``, ``B_o`` and the compliance are those of the unloaded mesh, unchanged by gravity: a
+  linear solid's stiffness does not depend on a preload (the stress stiffening of a preloaded
+  solid, the initial-stress matrix of geometrically nonlinear FEM, is left out, as every large-
+  deformation effect is but warping), so the linear model about the sagged state is the linear
+  model itself. The punch patches keep the unloaded mesh's geometry and normals.
+- With modal warping the sag is one more load: its rotation ``w_g = curl(u_g) / 2`` enters the
+  rotation estimate, and the surface shown is ``warped(u_g + u, w_g + w)``. So the sagged shape
+  is the one a user pushing with the same weight would make, and loads combine as users' loads
+  do (summed, then warped).
+- The linear model is good for small strain: when the sag exceeds :data:`SAG_WARN_SHARE` of the
+  object's height a warning names it (:attr:`FemSolid.sag_m`). A massless solid
+  (``density_kg_m3`` 0, the static model) weighs nothing and does not sag.
+
 References
 ----------
 - Johnson, K. L. (1985). *Contact Mechanics*. Cambridge University Press.
@@ -87,6 +112,7 @@ Nothing here uses threads, sockets or clocks (the volume mesh may come from a ch
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -105,6 +131,7 @@ from scipy.spatial import cKDTree
 from haptic_collab.server.contact_stiffness import K_O_MAX
 from haptic_collab.server.objects.balloon import vertex_areas
 from haptic_collab.server.objects.fem_elements import (
+    gravity_loads,
     lumped_mass,
     rotation_operator,
     stiffness_matrix,
@@ -119,6 +146,16 @@ from haptic_collab.shared.types import FloatArray, IntArray
 
 if TYPE_CHECKING:  # inclusions imports solid_materials, which imports this module
     from haptic_collab.server.objects.inclusions import ElementMaterials
+
+log = logging.getLogger("haptic.server.fem")
+
+#: The largest gravitational acceleration [m/s^2] the solid takes (about 10 g): beyond it the
+#: number is a mistake (a unit slip, cm/s^2), not a laboratory; the linear model fails well before.
+GRAVITY_MAX_M_S2 = 100.0
+
+#: A sag under the solid's own weight above this share of its height is logged as a warning:
+#: beyond about 10 % strain the linear (small-strain) model no longer describes the solid.
+SAG_WARN_SHARE = 0.10
 
 #: Poisson's ratio: above -1 and below 0.5 (0.5 is incompressible, which P1 elements cannot do).
 Poisson = Annotated[float, Field(gt=-1.0, lt=0.5, allow_inf_nan=False, strict=True)]
@@ -186,6 +223,10 @@ class FemParams:
         Modal warping (module docstring, Choi and Ko 2005): each surface vertex's displacement
         is carried along its local rotation, so a bent or twisted part keeps its volume (True,
         the default); False: the linear displacement.
+    gravity_m_s2 : float
+        Gravitational acceleration g [m/s^2] along -z of the object's frame, in [0,
+        :data:`GRAVITY_MAX_M_S2`] (0, the default: no weight). With g > 0 the solid's rest state
+        is the one it sags to under its own weight (module docstring, "Gravity").
 
     Raises
     ------
@@ -205,6 +246,9 @@ class FemParams:
     sim_period_s: PositiveFinite = 0.05
     cache_mb: PositiveFinite = 128.0
     warp: Annotated[bool, Field(strict=True)] = True
+    gravity_m_s2: Annotated[
+        float, Field(ge=0.0, le=GRAVITY_MAX_M_S2, allow_inf_nan=False, strict=True)
+    ] = 0.0
 
     @property
     def lame(self) -> tuple[float, float]:
@@ -314,8 +358,8 @@ class FemSolid(PatchedSurface):
 
     Notes
     -----
-    Cost at start: the volume mesh (TetGen, or the cache), one sparse factorisation of ``K`` and
-    ``n_modes`` eigenpairs (``haptic bench server --object fem`` measures them). A step is one
+    Cost at start: the volume mesh (TetGen, or the cache), one sparse factorisation of ``K``,
+    with gravity one solve with it (``timings["gravity_s"]``), and ``n_modes`` eigenpairs (``haptic bench server --object fem`` measures them). A step is one
     small product per loaded contact and one of the surface's modal shapes (3n x n_modes); a
     contact whose patch is not cached costs one sparse solve (batched).
     """
@@ -419,14 +463,74 @@ class FemSolid(PatchedSurface):
         self._q = np.zeros((len(self._omega), 2))  # modal displacement and velocity
         self.mass_kg = float(masses.sum())
 
-        self._centres = PatchCentres(verts, self._normals, p.patch_spacing_m)
+        clock = time.perf_counter()
+        self._sag(density, p.gravity_m_s2, n, height)
+        self.timings["gravity_s"] = time.perf_counter() - clock
+
+        self._centres = PatchCentres(self._sag_rest, self._sag_normals, p.patch_spacing_m)
         per_patch = 3 * n * 8 * (2 if p.warp else 1)
         capacity = max(16, int(p.cache_mb * 1e6 // per_patch))
         self._cache: PatchCache[_Solve] = PatchCache(capacity, self._solve_patches)
-        self._u = np.zeros(3 * n)  # linear surface displacement
-        self._w = np.zeros(3 * n)  # the surface vertices' small rotations
-        self._shown = np.zeros((n, 3))  # the displacement shown: warped
+        # linear surface displacement and the surface vertices' small rotations from the
+        # unloaded mesh (the sag's included), the displacement shown (warped) from the rest state
+        self._u = self._u0.copy()
+        self._w = self._w0.copy()
+        self._shown = np.zeros((n, 3))
         self._max_disp = 0.0
+
+    def _sag(self, density: float | FloatArray, g: float, n: int, height: float) -> None:
+        """The rest state under the solid's own weight (module docstring, "Gravity"): ``u_g =
+        K^-1 F_g`` by the factor, its surface rotation, the sagged surface and its normals.
+
+        Sets ``sag_nodes``, ``sag_m``, ``_u0``, ``_w0`` (3n,) and ``_sag_shown``, ``_sag_rest``,
+        ``_sag_normals`` (n, 3); without gravity (or mass) the sag is zeros and the rest state is
+        the mesh, bit for bit. Logs a warning when the sag exceeds :data:`SAG_WARN_SHARE` of
+        ``height`` [m].
+        """
+        n_nodes = len(self.nodes)
+        full = np.zeros(3 * n_nodes)
+        rows = np.zeros(len(self._dofs))
+        if g > 0.0:
+            loads = gravity_loads(self.nodes, self.tets, density, g).ravel()
+            rows = np.asarray(self._lu.solve(loads[self._dofs]), dtype=np.float64).reshape(-1)
+            full[self._dofs] = rows
+        #: (N, 3) [m] every node's linear displacement under the solid's own weight (zeros on
+        #: the fixed base, and everywhere without gravity)
+        self.sag_nodes = full.reshape(-1, 3)
+        self.sag_nodes.setflags(write=False)
+        self._u0 = full[: 3 * n].copy()
+        self._w0 = (
+            np.asarray(self._w_op @ rows, dtype=np.float64)
+            if self._w_op is not None
+            else np.zeros(3 * n)
+        )
+        shown = self._u0.reshape(-1, 3)
+        if self._w_op is not None and g > 0.0:
+            shown = warped(shown, self._w0.reshape(-1, 3))
+        self._sag_shown = np.array(shown)
+        self._sag_shown.setflags(write=False)
+        self._sag_rest = self._rest + self._sag_shown if g > 0.0 else self._rest
+        self._sag_rest.setflags(write=False)
+        self._sag_normals = self._normals
+        if g > 0.0:
+            sagged = trimesh.Trimesh(self._sag_rest, self._faces, process=False)
+            normals = np.asarray(sagged.vertex_normals, dtype=np.float64)
+            self._sag_normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+            self._sag_normals.setflags(write=False)
+        #: [m] the largest downward displacement of the surface under its own weight (0
+        #: without gravity)
+        self.sag_m = float(max(0.0, -float(self._sag_shown[:, 2].min()))) if n else 0.0
+        if self.sag_m > SAG_WARN_SHARE * height:
+            log.warning(
+                "FEM solid: it sags %.1f mm under its own weight (g %.4g m/s^2), %.0f %% of its "
+                "height (%.0f mm): beyond about %.0f %% the linear model does not hold; use a "
+                "stiffer material or less gravity",
+                1e3 * self.sag_m,
+                g,
+                100.0 * self.sag_m / height,
+                1e3 * height,
+                100.0 * SAG_WARN_SHARE,
+            )
 
     def _modes(self, m_rows: FloatArray, count: int, omega_c: float) -> None:
         """The lowest modes by shift-invert Lanczos (``sigma = 0``) on the factor: every mode
@@ -475,25 +579,51 @@ class FemSolid(PatchedSurface):
     # ------------------------------------------------------------------ geometry
 
     @property
+    def rest_vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] surface positions at rest (read-only): the mesh's, or with gravity
+        the sagged ones (module docstring, "Gravity")."""
+        return self._sag_rest
+
+    @property
+    def rest_normals(self) -> FloatArray:
+        """(n, 3) float64 outward unit vertex normals of the rest surface (read-only; with
+        gravity the sagged surface's)."""
+        return self._sag_normals
+
+    @property
+    def mesh_vertices(self) -> FloatArray:
+        """(n, 3) float64 [m] the surface as meshed, unloaded (read-only): the FEM model's
+        geometry, which gravity leaves as it is."""
+        return self._rest
+
+    @property
+    def sag(self) -> FloatArray:
+        """(n, 3) float64 [m] the surface's displacement under its own weight, from the mesh to
+        the rest state (warped; zeros without gravity; read-only)."""
+        return self._sag_shown
+
+    @property
     def vertices(self) -> FloatArray:
         """(n, 3) float64 [m] current surface positions (a new array)."""
-        return self._rest + self._shown
+        return self._sag_rest + self._shown
 
     @property
     def displacement(self) -> FloatArray:
-        """(n, 3) float64 [m] current surface displacement, warped (a copy)."""
+        """(n, 3) float64 [m] current surface displacement from the rest state, warped (a
+        copy)."""
         return self._shown.copy()
 
     @property
     def linear_displacement(self) -> FloatArray:
-        """(n, 3) float64 [m] current surface displacement of the linear model (a copy)."""
-        return self._u.reshape(-1, 3).copy()
+        """(n, 3) float64 [m] current surface displacement of the linear model from the rest
+        state: the users' loads' share (a copy)."""
+        return (self._u - self._u0).reshape(-1, 3)
 
     @property
     def rotation(self) -> FloatArray:
-        """(n, 3) float64 [rad] the surface vertices' current small rotations (zeros without
-        warping; a copy)."""
-        return self._w.reshape(-1, 3).copy()
+        """(n, 3) float64 [rad] the surface vertices' current small rotations from the rest
+        state (zeros without warping; a copy)."""
+        return (self._w - self._w0).reshape(-1, 3)
 
     @property
     def max_displacement_m(self) -> float:
@@ -511,14 +641,25 @@ class FemSolid(PatchedSurface):
         return self._omega / (2.0 * math.pi)
 
     def reset(self, clear_cache: bool = False) -> None:
-        """Return to rest (and, optionally, drop the patch cache)."""
-        self._u = np.zeros(3 * self.n_vertices)
-        self._w = np.zeros(3 * self.n_vertices)
+        """Return to rest, the sagged state with gravity (and, optionally, drop the patch
+        cache)."""
+        self._u = self._u0.copy()
+        self._w = self._w0.copy()
         self._shown = np.zeros((self.n_vertices, 3))
         self._q = np.zeros_like(self._q)
         self._max_disp = 0.0
         if clear_cache:
             self._cache.clear()
+
+    def _show(self) -> None:
+        """The surface shown from ``_u`` and ``_w``: warped, less the rest state's own sag."""
+        shown = self._u.reshape(-1, 3)
+        if self._w_op is not None:
+            shown = warped(shown, self._w.reshape(-1, 3))
+        self._shown = shown - self._sag_shown if self.params.gravity_m_s2 > 0.0 else shown
+        self._max_disp = (
+            float(np.max(np.linalg.norm(self._shown, axis=1))) if len(self._shown) else 0.0
+        )
 
     def state(self) -> dict[str, FloatArray]:
         """The solid's whole dynamic state (copies), what a step goes on from: saved by a
@@ -527,6 +668,10 @@ class FemSolid(PatchedSurface):
         The modes' part is given in space, not as modal coordinates: the modes of a solid built
         again are the same subspace but may come out with other signs, or turned within a group
         of equal frequencies (the eigensolver starts from a random vector).
+
+        With gravity ``u`` and ``w`` are measured from the unloaded mesh (the sag included: a
+        state is taken back to the last bit only by a solid of the same parameters, which fix
+        the sag), the modes' motion from the sagged rest state (zeros at rest).
 
         Returns
         -------
@@ -577,11 +722,7 @@ class FemSolid(PatchedSurface):
         if not off <= 1e-6 * float(np.linalg.norm(rows)) + 1e-300:
             raise ValueError("FEM state: the modal motion is not one of this solid's modes")
         self._u, self._w, self._q = arrays["u"], arrays["w"], q
-        shown = self._u.reshape(-1, 3)
-        self._shown = warped(shown, self._w.reshape(-1, 3)) if self._w_op is not None else shown
-        self._max_disp = (
-            float(np.max(np.linalg.norm(self._shown, axis=1))) if len(self._shown) else 0.0
-        )
+        self._show()
 
     # ------------------------------------------------------------------ patches
     def patch(self, key: int) -> PunchPatch:
@@ -646,7 +787,8 @@ class FemSolid(PatchedSurface):
         """Advance one simulation period under pushes ``forces_n`` [N] at patches ``keys``.
 
         ``u = K^-1 F + Phi_s (q - Lambda^-1 Phi^T F)`` with the modes stepped exactly for the
-        force held over the period (module docstring); ``F = -sum_i f_i b_i``.
+        force held over the period (module docstring); ``F = -sum_i f_i b_i``; with gravity the
+        weight's ``u_g`` is added (its modes rest in the sagged equilibrium).
 
         Parameters
         ----------
@@ -662,8 +804,8 @@ class FemSolid(PatchedSurface):
         """
         f, solves = self._pushes(keys, forces_n)
         warp = self._w_op is not None
-        u = np.zeros(len(self._u))
-        w = np.zeros(len(self._u))
+        u = self._u0.copy()  # the weight's share (zeros without gravity)
+        w = self._w0.copy()
         p_modal = np.zeros(len(self._omega))
         for s, fi in zip(solves, f, strict=True):
             if fi != 0.0:
@@ -681,11 +823,7 @@ class FemSolid(PatchedSurface):
                 w += self._phi_rotation @ dyn
         self._u = u
         self._w = w
-        shown = u.reshape(-1, 3)
-        self._shown = warped(shown, w.reshape(-1, 3)) if warp else shown
-        self._max_disp = (
-            float(np.max(np.linalg.norm(self._shown, axis=1))) if len(self._shown) else 0.0
-        )
+        self._show()
 
     def contact_compliance(self, keys: Sequence[int]) -> FloatArray:
         """Normal compliance ``C_ij = b_i^T K^-1 b_j`` [m/N] of the contacts' punches.

@@ -9,6 +9,7 @@ once when :class:`server.objects.fem.FemSolid` is built and, for :func:`warped`,
   element by element ``V B^T D B`` with Lame's constants (Zienkiewicz, Taylor and Zhu 2013,
   ch. 6): the object's stiffness behind the paper's eq. (6);
 - :func:`lumped_mass`: a quarter of each element's mass on each of its nodes;
+- :func:`gravity_loads`: the consistent nodal loads of the solid's own weight;
 - :func:`rotation_operator` and :func:`warped`: modal warping (Choi and Ko 2005), the surface
   vertices' small rotation ``curl(u) / 2`` from the linear displacement and the displacement
   carried along it.
@@ -153,3 +154,35 @@ def lumped_mass(nodes: FloatArray, tets: IntArray, density: float | FloatArray) 
         np.bincount(tets.ravel(), weights=np.repeat(density * vol / 4.0, 4), minlength=len(nodes)),
         dtype=np.float64,
     )
+
+
+def gravity_loads(
+    nodes: FloatArray, tets: IntArray, density: float | FloatArray, g_m_s2: float
+) -> FloatArray:
+    """The consistent nodal loads [N] of the solid's own weight, ``g`` along -z, (N, 3).
+
+    A body force ``rho g`` [N/m^3] on a P1 tetrahedron loads node ``i`` with ``integral N_i rho
+    g dV = rho g V / 4`` (each linear shape function integrates to a quarter of the volume;
+    Zienkiewicz, Taylor and Zhu 2013, ch. 6): for a constant body force the consistent load and
+    the lumped one are the same. With per-element densities each element adds its own weight.
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]; tets : (T, 4) int, positively oriented.
+    density : float or (T,) float
+        Mass density [kg/m^3], one for every element or one per element (inclusions).
+    g_m_s2 : float
+        Gravitational acceleration [m/s^2] along -z of the nodes' frame (>= 0).
+
+    Returns
+    -------
+    (N, 3) float64 [N]: x and y zero, z ``-g`` times each node's share of the mass; the loads
+    sum to ``-g sum(rho_e V_e)``, the solid's weight.
+    """
+    _, vol = element_gradients(nodes, tets)
+    share = np.repeat(np.broadcast_to(np.asarray(density, dtype=np.float64), vol.shape) * vol, 4)
+    out = np.zeros((len(nodes), 3))
+    out[:, 2] = -float(g_m_s2) * np.bincount(
+        tets.ravel(), weights=share / 4.0, minlength=len(nodes)
+    )
+    return out
