@@ -252,3 +252,21 @@ def test_a_sag_beyond_the_linear_model_is_a_warning_naming_it(cache, caplog):
         FemSolid(column, replace(params, gravity_m_s2=G), cache_dir=cache)
     (record,) = caplog.records
     assert "14.1 mm" in record.getMessage() and "12 %" in record.getMessage()
+
+
+def test_a_user_touches_the_sagged_surface_from_the_first_tick(sagged, plain):
+    from haptic_collab.server.world import ContactInput, World
+
+    top = _top(sagged)
+    sag = -sagged.sag[top, 2]  # about 20 mm
+    above = np.array([0.0, 0.0, 0.1 - sag / 2.0])  # inside the mesh, above the sagged top
+    into = np.array([0.0, 0.0, 0.1 - sag - 0.003])  # 3 mm into the sagged top
+    for solid, probe, depth in ((plain, above, sag / 2.0), (sagged, above, -sag / 2.0),
+                                (sagged, into, 0.003)):  # fmt: skip
+        solid.reset()
+        out = World(solid).tick({"A": ContactInput(probe=probe, force=np.zeros(3))})["A"]
+        assert out.penetration_m == pytest.approx(depth, abs=0.0005)
+        if solid is sagged:  # the lone user's rest plane is on the sagged surface
+            assert out.rest_plane is not None
+            assert out.rest_plane.penetration(*probe) == pytest.approx(depth, abs=0.0005)
+        solid.reset()
