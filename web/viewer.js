@@ -10,6 +10,9 @@
 // by how far each point is pushed in or bulged out (legend in mm), turns the camera toward the
 // deepest dent until the user moves it, and shows each user's probe, proxy and force (arrows
 // scaled to stay in view) and a card per user with the surface indentation at its contact.
+// A FEM solid with inclusions (`--inclusion`) also sends each lump's rest surface (INC1, decoded
+// and checked by ./lump.js); the "show lump" checkbox (or `?lump=1`) draws it inside the object,
+// which turns more transparent; it is hidden by default, since palpation is finding it by touch.
 // A user in contact that has sent no state for 0.5 s is marked stale and shown with no force
 // (see "stale users" below). Reconnects by itself with backoff.
 //
@@ -21,7 +24,8 @@
 // browser waits for either, then takes its screenshot; see docs/usage.md).
 //
 // Test hooks: `window.viewerState` (connection, tick, frame counts, users by name, colour scale,
-// dent, bytes per second, the last room summary's age and lateness, readiness) is updated live; `window.viewerPositions(indices)` returns where the
+// dent, bytes per second, the last room summary's age and lateness, readiness, the lumps) is
+// updated live; `window.viewerPositions(indices)` returns where the
 // surface vertices are drawn ([x, y, z] [m] each, from the geometry the renderer uses).
 // Protocol constants come from ./protocol.js, generated from shared/protocol.py; the viewer
 // stream's own constants (STREAM below) mirror server/viewer_stream.py, checked by a test.
@@ -39,6 +43,7 @@ import {
   PROTOCOL_VERSION,
   VERTICES_MAGIC,
 } from "./protocol.js";
+import { INCLUSION, decodeInclusion, lumpColor, stiffnessText } from "./lump.js";
 
 /** Every message/model field this module reads (checked against the schema by the tests). */
 export const USED_FIELDS = /* USED_FIELDS:BEGIN */ {
@@ -94,6 +99,10 @@ const STALE_AFTER_S = 0.5;
 const LATE_AFTER_S = 1.0;
 /** `?snapshot=1`: mark the page ready for a screenshot once data is in (see the header). */
 const SNAPSHOT = params.get("snapshot") === "1";
+/** `?lump=1`: show the object's inclusions from the start (hidden by default: palpation is blind). */
+const LUMP_PARAM = ["1", "true", "show"].includes(params.get("lump") ?? "");
+/** Opacities of the skin (front, back) while the lumps are hidden and while they are shown. */
+const SKIN_OPACITY = { hidden: [0.72, 0.55], shown: [0.3, 0.18] };
 
 function positiveParam(name, fallback) {
   if (!params.has(name)) return fallback;
@@ -131,6 +140,10 @@ const viewerState = {
   roomAgeS: null, // how long ago the last room summary arrived [s] (null: none yet)
   late: false, // that summary is older than LATE_AFTER_S: the users shown are as they were then
   surfaceTick: -1, // tick of the last surface frame (DSP1/DSV1)
+  // the object's inclusions (INC1): how many drawn, of how many the object has, shown or not,
+  // triangles, frames refused as malformed; per lump its name, material, Young's modulus ratio,
+  // whether the server decimated it, and where its centre is drawn ({ px: [x, y], in_view })
+  lumps: { count: 0, of: 0, shown: LUMP_PARAM, triangles: 0, rejected: 0, items: [] },
   ready: false, // the first room summary and the surface are in and drawn (?snapshot=1 says so)
 };
 window.viewerState = viewerState;
@@ -160,6 +173,9 @@ const dom = {
   cmIn: $("cm-in"),
   cmOut: $("cm-out"),
   autoView: $("auto-view"),
+  lumpToggle: $("lump-toggle"),
+  showLump: $("show-lump"),
+  lumpInfo: $("lump-info"),
 };
 
 function fmt(x, digits = 1) {
@@ -283,6 +299,11 @@ scene.add(floor);
 
 const usersGroup = new THREE.Group();
 scene.add(usersGroup);
+
+// The inclusions, drawn opaque inside the object (at rest: they do not follow the deformation).
+const lumpGroup = new THREE.Group();
+lumpGroup.visible = false;
+scene.add(lumpGroup);
 
 let objectRadius = 0.05;
 const objectCenter = new THREE.Vector3();
@@ -432,6 +453,10 @@ function onBinary(buf) {
   const now = performance.now();
   byteLog.push([now, buf.byteLength]);
   const magic = readMagic(buf);
+  if (magic === INCLUSION.MAGIC) {
+    onInclusion(buf);
+    return;
+  }
   if (magic === STREAM.DISPLACEMENT_MAGIC || magic === STREAM.VECTOR_MAGIC) {
     if (!onDisplacement(buf, magic === STREAM.VECTOR_MAGIC)) {
       console.warn(`viewer: malformed ${magic} frame ignored`);
@@ -652,6 +677,119 @@ function displacementNear(p) {
     }
   }
   return at < 0 ? null : mesh.w[at];
+}
+
+// ----------------------------------------------------------------------------- lumps (INC1)
+const lumpMeshes = new Map(); // index -> THREE.Mesh
+
+/** INC1: one inclusion's rest surface; a malformed one is counted and left out. */
+function onInclusion(buf) {
+  const lumps = viewerState.lumps;
+  const res = decodeInclusion(buf);
+  const old = res.ok ? lumpMeshes.get(res.lump.index) : undefined;
+  const others = lumps.triangles - (old ? old.geometry.index.count / 3 : 0);
+  if (res.ok && others + res.lump.indices.length / 3 > INCLUSION.MAX_FACES) {
+    res.ok = false;
+    res.reason = "more triangles than the server may send";
+  }
+  if (!res.ok) {
+    lumps.rejected += 1;
+    console.warn(`viewer: malformed ${INCLUSION.MAGIC} frame ignored (${res.reason})`);
+    return;
+  }
+  const lump = res.lump;
+  if (old) dropLump(lump.index);
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute("position", new THREE.BufferAttribute(lump.positions, 3));
+  geometry.setIndex(new THREE.BufferAttribute(lump.indices, 1));
+  geometry.computeVertexNormals();
+  geometry.computeBoundingBox();
+  const color = lumpColor(lump.youngRatio);
+  const m = new THREE.Mesh(
+    geometry,
+    new THREE.MeshStandardMaterial({
+      color,
+      emissive: color,
+      emissiveIntensity: 0.25,
+      roughness: 0.5,
+      metalness: 0.0,
+    }),
+  );
+  m.renderOrder = 2; // after the inside wall, before the skin drawn over it
+  m.userData = {
+    index: lump.index,
+    centre: geometry.boundingBox.getCenter(new THREE.Vector3()),
+    info: {
+      index: lump.index,
+      name: lump.name,
+      material: lump.material,
+      young_ratio: lump.youngRatio,
+      decimated: lump.decimated,
+      triangles: lump.indices.length / 3,
+      color,
+      px: null,
+      in_view: false,
+    },
+  };
+  lumpMeshes.set(lump.index, m);
+  lumpGroup.add(m);
+  lumps.of = lump.of;
+  updateLumps();
+}
+
+function dropLump(index) {
+  const m = lumpMeshes.get(index);
+  if (!m) return;
+  lumpGroup.remove(m);
+  m.geometry.dispose();
+  m.material.dispose();
+  lumpMeshes.delete(index);
+}
+
+/** A new join (welcome): the lumps come again after the surface, if the object has any. */
+function clearLumps() {
+  for (const index of [...lumpMeshes.keys()]) dropLump(index);
+  viewerState.lumps.of = 0;
+  updateLumps();
+}
+
+/** Counts, the checkbox and its text, what is drawn and how transparent the skin is. */
+function updateLumps() {
+  const lumps = viewerState.lumps;
+  const items = [...lumpMeshes.values()].sort((a, b) => a.userData.index - b.userData.index);
+  lumps.count = items.length;
+  lumps.items = items.map((m) => m.userData.info);
+  lumps.triangles = lumps.items.reduce((sum, it) => sum + it.triangles, 0);
+  const shown = lumps.shown && lumps.count > 0;
+  lumpGroup.visible = shown;
+  const [front, back] = shown ? SKIN_OPACITY.shown : SKIN_OPACITY.hidden;
+  skin.material.opacity = front;
+  skinBack.material.opacity = back;
+  dom.lumpToggle.hidden = lumps.count === 0;
+  dom.showLump.checked = lumps.shown;
+  dom.lumpToggle.classList.toggle("on", shown);
+  const words = lumps.items.map((it) =>
+    [it.name, it.material, stiffnessText(it.young_ratio)].filter(Boolean).join(" · "));
+  const more = lumps.of > lumps.count ? ` (${lumps.count} of ${lumps.of})` : "";
+  dom.lumpInfo.textContent = shown ? `${words.join("; ")}${more}` : `hidden${more}`;
+  dom.lumpToggle.title = `${words.join("\n")}\ndrawn at rest: it does not follow the deformation`;
+  sceneDirty = true;
+}
+
+function setLumpShown(on) {
+  viewerState.lumps.shown = on;
+  updateLumps();
+}
+dom.showLump.addEventListener("change", () => setLumpShown(dom.showLump.checked));
+updateLumps();
+
+/** After a render: where each lump's centre is drawn (a test hook). */
+function updateLumpHook() {
+  for (const m of lumpMeshes.values()) {
+    const s = toScreen(m.userData.centre);
+    m.userData.info.px = s.px;
+    m.userData.info.in_view = s.inView;
+  }
 }
 
 // ----------------------------------------------------------------------------- camera: the dent
@@ -1104,6 +1242,7 @@ function onWelcome(welcome) {
   viewerState.userId = welcome.user_id;
   viewerState.simRateHz = welcome.sim_rate_hz;
   viewerState.object = welcome.object;
+  clearLumps();
   reconnectAttempt = 0;
   liveText = `live · ${fmt(welcome.sim_rate_hz, 0)} Hz`;
   setStatus("connected", liveText);
@@ -1333,6 +1472,7 @@ function animate(now) {
     viewerState.renderMs = performance.now() - t0;
     checkArrowsInView();
     updateDentHook();
+    updateLumpHook();
     markReady();
   }
   if (now - lastPanelMs >= PANEL_REFRESH_MS) {
