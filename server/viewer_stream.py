@@ -381,7 +381,9 @@ class ViewerStream:
         An object with per-element materials from inclusions (``obj.materials``, with ``nodes``
         and ``tets``: :class:`server.objects.fem.FemSolid` built with ``--inclusion``) gives the
         stream its inclusions' rest surfaces
-        (:func:`server.objects.inclusions.inclusion_surfaces`); any other object none.
+        (:func:`server.objects.inclusions.inclusion_surfaces`); any other object none. A solid
+        that sags under its own weight (``sag_nodes``, (N, 3) [m], ``--gravity``) has them at
+        its sagged rest state: the nodes moved by their linear sag.
 
         Parameters
         ----------
@@ -408,6 +410,9 @@ class ViewerStream:
         if materials is not None and nodes is not None and tets is not None:
             from haptic_collab.server.objects.inclusions import inclusion_surfaces
 
+            sag = getattr(obj, "sag_nodes", None)  # the rest state under gravity, if any
+            if sag is not None and np.shape(sag) == np.shape(nodes):
+                nodes = np.asarray(nodes, dtype=np.float64) + np.asarray(sag, dtype=np.float64)
             inclusions = inclusion_surfaces(nodes, tets, materials)
         return cls(rest, normals, frame_budget_bytes=budget, vector=vector, inclusions=inclusions)
 

@@ -30,6 +30,7 @@ from haptic_collab.server.viewer_stream import (
     MAX_INCLUSION_FACES,
     MAX_INCLUSION_TEXT_BYTES,
     MAX_INCLUSIONS_SENT,
+    ViewerStream,
     encode_inclusions,
 )
 from haptic_collab.server.world import World
@@ -215,3 +216,26 @@ def test_the_reference_decoder_refuses_malformed_inclusion_frames():
         with pytest.raises(ValueError, match="INC1"):
             dec.feed(frame)
         assert list(dec.inclusions) == [0], what
+
+
+def test_a_solid_sagging_under_its_weight_has_its_lump_drawn_where_the_sag_holds_it(lump_room):
+    """With ``--gravity`` the solid's rest state is the sagged one: the lump is sent moved by
+    its nodes' sag (here a made-up sag of 3 mm down on the same solid)."""
+    room, lump = lump_room
+    obj = room.world.obj
+    sag = np.zeros_like(obj.nodes)
+    sag[:, 2] = -0.003
+    sagged = SimpleNamespace(
+        rest_vertices=obj.rest_vertices,
+        rest_normals=obj.rest_normals,
+        nodes=obj.nodes,
+        tets=obj.tets,
+        materials=obj.materials,
+        sag_nodes=sag,
+        tangential_motion=True,
+    )
+    world = SimpleNamespace(obj=sagged, vertices=obj.rest_vertices, faces=room.world.faces)
+    (frame,) = ViewerStream.of_world(world, SIM_RATE_HZ).inclusion_frames
+    inc = decode_inclusion(frame)
+    centre = inc.vertices.mean(axis=0)
+    np.testing.assert_allclose(centre, np.asarray(LUMP_CENTRE_M) + (0, 0, -0.003), atol=1e-6)
