@@ -154,8 +154,10 @@ log = logging.getLogger("haptic.server.fem")
 GRAVITY_MAX_M_S2 = 100.0
 
 #: A sag under the solid's own weight above this share of its height is logged as a warning:
-#: beyond about 10 % strain the linear (small-strain) model no longer describes the solid.
-SAG_WARN_SHARE = 0.10
+#: the linear (small-strain) model is a first-order one, and at strains of 10-15 % on average
+#: over the height (more near the base) it no longer describes a rubber-like solid; the default
+#: liver sphere sags 10 % of its height and is not warned about.
+SAG_WARN_SHARE = 0.15
 
 #: Poisson's ratio: above -1 and below 0.5 (0.5 is incompressible, which P1 elements cannot do).
 Poisson = Annotated[float, Field(gt=-1.0, lt=0.5, allow_inf_nan=False, strict=True)]
