@@ -18,7 +18,7 @@ import trimesh
 from pydantic import ValidationError
 
 from haptic_collab.server.config import ConfigError, load_server_config
-from haptic_collab.server.main import ServerOptions, build_world
+from haptic_collab.server.main import ServerOptions, build_world, check_templates, room_options
 from haptic_collab.server.objects.fem import GRAVITY_MAX_M_S2, FemParams, FemSolid
 from haptic_collab.server.objects.fem_elements import element_gradients, stiffness_matrix
 from haptic_collab.server.objects.inclusions import (
@@ -221,6 +221,12 @@ def test_the_config_file_and_the_command_line_take_gravity(tmp_path):
     good.write_text('object = "fem"\ngravity = 9.81\n[rooms.heavy]\ngravity = 20\n')
     assert load_server_config(good)["gravity"] == 9.81
     assert load_server_config(good)["rooms"] == {"heavy": {"gravity": 20.0}}
+    opts = ServerOptions(object="fem", gravity_m_s2=9.81)
+    assert room_options(opts, {"gravity": 20.0}).gravity_m_s2 == 20.0
+    assert room_options(opts, {"object": "balloon"}).gravity_m_s2 == 9.81
+    # a template of the balloon under a server-wide gravity fails the start, not the first join
+    with pytest.raises(ValueError, match=r"\[room_templates.toy\]: --gravity needs --object fem"):
+        check_templates(replace(opts, room_templates={"toy": {"object": "balloon"}}))
     bad = tmp_path / "bad.toml"
     bad.write_text("gravity = 981\n")
     with pytest.raises(ConfigError, match=r"gravity must be in \[0, 100\] m/s\^2"):
