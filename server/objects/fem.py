@@ -84,10 +84,11 @@ inclusions; :func:`server.objects.fem_elements.gravity_loads`) solved once with 
   displacement is ``u_g`` plus today's response to ``F``. The weight has always been there, so
   the modes start at rest in the sagged equilibrium and only users' forces move them.
 - ``K_o``, ``B_o`` and the compliance are those of the unloaded mesh, unchanged by gravity: a
-  linear solid's stiffness does not depend on a preload (the stress stiffening of a preloaded
-  solid, the initial-stress matrix of geometrically nonlinear FEM, is left out, as every large-
-  deformation effect is but warping), so the linear model about the sagged state is the linear
-  model itself. The punch patches keep the unloaded mesh's geometry and normals.
+  linear solid's stiffness does not depend on a preload, so the linear model about the sagged
+  state is the linear model itself. Left out is stress stiffening (the initial-stress matrix of
+  geometrically nonlinear FEM), as is every large-deformation effect but warping. The punch
+  patches keep the unloaded mesh's geometry and normals; only the lookup of a contact's patch
+  centre (:meth:`FemSolid.patch_key`) is on the sagged surface, where the World finds it.
 - With modal warping the sag is one more load: its rotation ``w_g = curl(u_g) / 2`` enters the
   rotation estimate, and the surface shown is ``warped(u_g + u, w_g + w)``. So the sagged shape
   is the one a user pushing with the same weight would make, and loads combine as users' loads
@@ -361,7 +362,8 @@ class FemSolid(PatchedSurface):
     Notes
     -----
     Cost at start: the volume mesh (TetGen, or the cache), one sparse factorisation of ``K``,
-    with gravity one solve with it (``timings["gravity_s"]``), and ``n_modes`` eigenpairs (``haptic bench server --object fem`` measures them). A step is one
+    with gravity one solve with it (``timings["gravity_s"]``), and ``n_modes`` eigenpairs
+    (``haptic bench server --object fem`` measures them). A step is one
     small product per loaded contact and one of the surface's modal shapes (3n x n_modes); a
     contact whose patch is not cached costs one sparse solve (batched).
     """
