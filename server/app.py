@@ -992,6 +992,7 @@ class ServerApp:
             "index.html",
             "viewer.js",
             "protocol.js",
+            "lump.js",
             "node_modules/three/build/three.module.js",
         )
         return [rel for rel in need if not (self.web_dir / rel).is_file()]
