@@ -35,12 +35,17 @@ CASES: tuple[tuple[str, str], ...] = (
 )
 
 
-def _build(mesh: str, material: str, g: float, cache: str) -> tuple[float, Any]:
+def _build(mesh: str, material: str, g: float, cache: str, subdivisions: int) -> tuple[float, Any]:
     """One server start-up of the object [s] and the object built."""
     from haptic_collab.server.main import ServerOptions, build_world
 
     opts = ServerOptions(
-        object="fem", mesh=mesh, material=material, gravity_m_s2=g, volume_cache=cache
+        object="fem",
+        mesh=mesh,
+        material=material,
+        gravity_m_s2=g,
+        volume_cache=cache,
+        subdivisions=subdivisions,
     )
     clock = time.perf_counter()
     world = build_world(opts)
@@ -64,7 +69,10 @@ def _sag(obj: Any) -> dict[str, float]:
 
 
 def bench_fem_gravity(
-    g: float = 9.81, repeats: int = 3, cases: Sequence[tuple[str, str]] = CASES
+    g: float = 9.81,
+    repeats: int = 3,
+    cases: Sequence[tuple[str, str]] = CASES,
+    subdivisions: int = 4,
 ) -> dict[str, Any]:
     """Sag and start-up time of the FEM solid with and without gravity (module docstring).
 
@@ -75,6 +83,8 @@ def bench_fem_gravity(
     repeats : int
         Builds of each object with and without gravity, alternating (>= 1).
     cases : sequence of (mesh, material)
+    subdivisions : int
+        Of the ``balloon`` sphere (4, the server's default: 2562 vertices).
 
     Returns
     -------
@@ -91,13 +101,15 @@ def bench_fem_gravity(
     objects = []
     with single_thread_blas() as limited, tempfile.TemporaryDirectory() as cache:
         for mesh, material in cases:
-            _build(mesh, material, 0.0, cache)  # the volume mesh into the cache: TetGen untimed
+            _build(
+                mesh, material, 0.0, cache, subdivisions
+            )  # the volume mesh into the cache: TetGen untimed
             times: dict[str, list[float]] = {"without": [], "with": []}
             solves: list[float] = []
             built: dict[str, Any] = {}
             for _ in range(repeats):
                 for name, gee in (("without", 0.0), ("with", g)):
-                    seconds, obj = _build(mesh, material, gee, cache)
+                    seconds, obj = _build(mesh, material, gee, cache, subdivisions)
                     times[name].append(seconds)
                     if gee > 0.0:
                         solves.append(obj.timings["gravity_s"])
@@ -126,6 +138,7 @@ def bench_fem_gravity(
         "benchmark": "fem-gravity",
         "g_m_s2": g,
         "repeats": repeats,
+        "subdivisions": subdivisions,
         "blas_libraries_single_threaded": limited,
         "objects": objects,
     }
