@@ -159,6 +159,8 @@ def test_without_gravity_the_solid_is_the_unloaded_one(plain, ball):
     assert np.array_equal(plain.vertices, ball.vertices + plain.displacement)
     assert plain.displacement[top, 2] < -1e-3
     plain.reset()
+    assert np.array_equal(plain.vertices, ball.vertices)
+    assert all(not v.any() for v in plain.state().values())  # rest is all zeros, as before
 
 
 def test_pushes_add_on_top_of_the_sag_and_a_reset_returns_to_it(sagged, plain):
