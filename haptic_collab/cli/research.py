@@ -191,6 +191,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             results["rooms"] = bench_rooms(rooms_options([]))
         except RuntimeError as exc:
             raise CliError(_why(exc)) from None
+    if args.what == "fem-gravity":  # python -m haptic_collab.bench.fem_gravity for its options
+        from haptic_collab.bench.fem_gravity import bench_fem_gravity
+
+        results["fem-gravity"] = bench_fem_gravity()
     payload = results if args.what == "all" else results[args.what]
     text = json.dumps(payload, indent=2)
     if args.out:
@@ -209,6 +213,7 @@ BENCHES: dict[str, str] = {
     "load": "users and viewers against a server process for minutes (docs/bench-load.md)",
     "rooms": "a FEM room beside balloon rooms, one process vs a process per room (its own "
     "options: python -m haptic_collab.bench.rooms --help)",
+    "fem-gravity": "the FEM solid's sag and start-up with and without --gravity (docs/fem.md)",
     "all": "server, servo and gains",
 }
 #: The options each benchmark takes besides --json and --out (the others keep their defaults).
@@ -226,6 +231,7 @@ _BENCH_OPTIONS: dict[str, tuple[str, ...]] = {
         "--vertices",
     ),
     "rooms": (),
+    "fem-gravity": (),
     "all": ("--duration", "--servo-rate"),
 }  # fmt: skip
 
