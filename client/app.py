@@ -1,7 +1,9 @@
 """``haptic client``: one user — device and 1 kHz servo loop in their own process, network link.
 
 Sequence: check the ``--device`` spec and open the device (a HID device's port) *before* any
-network, so a bad spec or an absent device fails at once with one line; start streaming
+network, so a bad spec or an absent device fails at once with one line; build the device's gain
+table into this machine's cache if neither the shipped tables nor the cache hold it (once per
+device and design code, minutes: :func:`build_gains`); start streaming
 ``--record``; connect and join (the ``welcome`` says where the object is), place the device around
 the anchor the trajectory works on (the top of the object for ``press``, a side for ``rest``),
 start the servo thread (forces stay off until the first patch), then run until ``--duration``,
@@ -27,6 +29,7 @@ import logging
 import os
 import re
 import signal
+import sys
 import threading
 import time
 import urllib.error
@@ -37,10 +40,18 @@ from pathlib import Path
 from typing import Any, Literal, Protocol
 from urllib.parse import quote, urlsplit
 
+from haptic_collab.client import gain_build
 from haptic_collab.client.devices.base import Device, DeviceLimits
 from haptic_collab.client.devices.hid import HidPort
 from haptic_collab.client.devices.opener import DeviceOpener
 from haptic_collab.client.devices.profiles import get_sim_profile
+from haptic_collab.client.gain_build import (
+    build_device_table,
+    build_workers,
+    gain_build_default,
+    plan_device_build,
+    progress_bar,
+)
 from haptic_collab.client.gain_store import device_coverage, preload, save_cache
 from haptic_collab.client.link import DesignWorkers, Link, Resolver
 from haptic_collab.client.recorder import CsvRecording, TelemetryRecorder
@@ -116,6 +127,11 @@ class ClientOptions:
     #: Keep the gain designs this client makes in its cache and start from it
     #: (client.gain_store; ``haptic client --no-gain-cache``: the shipped tables only).
     gain_cache: bool = True
+    #: Before joining, build the gain table of a device neither the shipped tables nor the cache
+    #: cover, into the cache (:func:`build_gains`; needs ``gain_cache``); False
+    #: (``haptic client --no-gain-build``): its cells are designed during contact. Default True
+    #: unless ``$HAPTIC_GAIN_BUILD`` is 0 (client.gain_build.gain_build_default).
+    gain_build: bool = field(default_factory=gain_build_default)
     #: A lobby (``http(s)://HOST:PORT``, ``haptic lobby``) that says where ``room`` runs and
     #: gives a room token; ``url`` and ``token`` are then unused (None: join ``url``).
     lobby: str | None = None
@@ -394,6 +410,9 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
         The servo process could not be started, or died while the client ran.
     OSError
         The recording file cannot be created.
+    GainBuildInterrupted
+        SIGINT or SIGTERM (``stop_on_signals``) during the gain table's build: nothing was
+        connected; the cells designed are in the cache.
     """
     origin_s = time.perf_counter()
     # bounded memory: the ring holds the last two minutes; --record streams everything to disk
@@ -411,7 +430,9 @@ async def run_client(opts: ClientOptions) -> dict[str, Any]:
             await asyncio.to_thread(host.wait_checked)
         else:
             host.check()  # before any network: DeviceError with one line
-        return await _run(opts, host, origin_s, workers)
+        # the device's limits are known now; the servo loop is not started (forces are off)
+        built = await build_gains(opts, _device_info(opts, host.limits))
+        return await _run(opts, host, origin_s, workers, built)
     finally:
         if workers is not None:  # the link stops them too; this covers a link never run
             stop_pool(workers.design)
@@ -424,8 +445,130 @@ async def _run(
     host: _ThreadServo | ServoProcess,
     origin_s: float,
     workers: DesignWorkers | None,
+    built: dict[str, Any],
 ) -> dict[str, Any]:
-    return await _ClientRun(opts, host, origin_s, workers).run()
+    run = _ClientRun(opts, host, origin_s, workers)
+    run.gain_build = built
+    return await run.run()
+
+
+class GainBuildInterrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM while :func:`build_gains` built the device's gain table: the client
+    stops without connecting (``haptic`` exits with status 130); the cells designed so far are
+    in the cache, and the next run builds only the rest."""
+
+
+async def build_gains(opts: ClientOptions, info: DeviceInfo) -> dict[str, Any]:
+    """Build the device's gain table into the cache if it is not there, before any network.
+
+    The session's gains come from the gain table; a cell it lacks is designed during the
+    contact that needs it, and the hand feels interim or fallback gains until then
+    (docs/gains.md). The built-in profiles ship their tables; any other device's limits are
+    designed here once, the shipped grid (:data:`client.gain_build.DEVICE_GRID`, for a 1 kHz
+    servo and a 20 Hz simulation) on every core, into this machine's cache
+    (:mod:`client.gain_store`), with a progress bar on stderr. The next run finds them there
+    and does not build. Nothing runs with ``gain_build`` or ``gain_cache`` off, for a device that
+    states no limits, or a servo rate or margin the grid is not for.
+
+    Parameters
+    ----------
+    opts : ClientOptions
+    info : DeviceInfo
+        The device's limits as ``hello`` declares them (:func:`_device_info`): K_h max [N/m]
+        and B_h max [N*s/m] capped to the protocol's ranges, as the session's gain keys carry
+        them.
+
+    Returns
+    -------
+    dict
+        For the summary (``gain_build``): ``ran`` (bool), ``cells`` (designed now), ``missing``
+        (cells of the grid missing before), ``of`` (the grid's cells for this device),
+        ``seconds`` (the build's wall time [s]), ``workers``, or ``skipped`` (why not).
+
+    Raises
+    ------
+    GainBuildInterrupted
+        SIGINT or SIGTERM (``opts.stop_on_signals``) during the build.
+    asyncio.CancelledError
+        The task was cancelled during the build (it is stopped and what it made written first).
+    """
+    k_h_max, b_h_max = info.max_stiffness_n_per_m, info.max_damping_n_s_per_m
+    if not opts.gain_build:
+        return {"ran": False, "skipped": "no-gain-build"}
+    if not opts.gain_cache:
+        return {"ran": False, "skipped": "no-gain-cache"}
+    if k_h_max is None or b_h_max is None:
+        return {"ran": False, "skipped": "the device states no limits"}
+    grid = gain_build.DEVICE_GRID  # read now: a test may give a smaller one
+    if opts.servo_rate_hz != grid["servo_rate_hz"] or opts.margin != grid["margin"]:
+        return {
+            "ran": False,
+            "skipped": f"the table's grid is for a {grid['servo_rate_hz']:g} Hz servo and "
+            f"margin {grid['margin']:g}",
+        }
+    plan = await asyncio.to_thread(plan_device_build, k_h_max, b_h_max, grid)
+    if not plan.jobs:
+        return {"ran": False, "missing": 0, "of": plan.total}
+    log.warning(
+        "gains: no table holds %d of the %d cells of this device (K_h <= %g N/m, B_h <= %g "
+        "N*s/m): designing them now, before joining, so that every contact renders designed "
+        "gains (minutes, once: cached in %s for the next run; skip with --no-gain-build; "
+        "Ctrl-C stops, keeping what is made)",
+        len(plan.jobs), plan.total, k_h_max, b_h_max, plan.out,
+    )  # fmt: skip
+    stop = threading.Event()
+    loop = asyncio.get_running_loop()
+    signals: list[signal.Signals] = []
+    if opts.stop_on_signals:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.add_signal_handler(sig, stop.set)
+                signals.append(sig)
+    workers = build_workers()
+    t0 = time.perf_counter()
+    build = asyncio.ensure_future(
+        asyncio.to_thread(
+            build_device_table,
+            plan,
+            grid=grid,
+            workers=workers,
+            stop=stop,
+            progress=progress_bar("gains: designing"),
+        )
+    )
+    try:
+        done, left = await asyncio.shield(build)
+    except asyncio.CancelledError:
+        stop.set()  # the designs under way are abandoned; what was made is written
+        with contextlib.suppress(Exception):
+            await build
+        print(file=sys.stderr)  # end the progress bar's line
+        log.warning("gains: the build was stopped; the cells designed are cached in %s", plan.out)
+        raise
+    finally:
+        for sig in signals:
+            loop.remove_signal_handler(sig)
+    seconds = time.perf_counter() - t0
+    if stop.is_set():
+        print(file=sys.stderr)  # end the progress bar's line
+        log.warning(
+            "gains: stopped after %d of %d cells (%.0f s); they are cached in %s and the next "
+            "run builds only the other %d; nothing was connected",
+            done, len(plan.jobs), seconds, plan.out, left,
+        )  # fmt: skip
+        raise GainBuildInterrupted(f"gain table build stopped after {done} cells")
+    log.info(
+        "gains: %d cells designed in %.0f s on %d workers, cached in %s", done, seconds, workers,
+        plan.out,
+    )  # fmt: skip
+    return {
+        "ran": True,
+        "cells": done,
+        "missing": len(plan.jobs),
+        "of": plan.total,
+        "seconds": round(seconds, 3),
+        "workers": workers,
+    }
 
 
 def _no_join(url: str, waited_s: float, link: Link) -> str:
@@ -477,6 +620,8 @@ class _ClientRun:
         #: What the session's gain table started with (client.gain_store.preload), and its
         #: cells then: the designs made after them go to the cache when the run ends.
         self.gain_preload = preload(self.session.gain_table, cache=opts.gain_cache)
+        #: What :func:`build_gains` did before the run (the summary's ``gain_build``).
+        self.gain_build: dict[str, Any] = {"ran": False}
         self._preloaded = {(k, c) for k, c, _ in self.session.gain_table.cells()}
         #: The servo once started (at the first ``welcome``), and the task starting it.
         self.servo: ServoHandle | None = None
@@ -559,8 +704,9 @@ class _ClientRun:
             log.warning(
                 "gains: %d of %d cells of this device's table are designed (K_h <= %g N/m, "
                 "B_h <= %g N*s/m); the others are designed as contacts need them and feel "
-                "different until ready. Build them once (minutes, cached): haptic gains-table "
-                "--cache --max-stiffness %g --max-damping %g",
+                "different until ready. Build them once (minutes, cached): run haptic client "
+                "without --no-gain-build, or haptic gains-table --cache --max-stiffness %g "
+                "--max-damping %g",
                 held, of, k_h_max, b_h_max, k_h_max, b_h_max,
             )  # fmt: skip
 
@@ -732,6 +878,7 @@ class _ClientRun:
         }
         summary = client_summary(head, self.session, link, self.servo, host.recorder, self.updates)
         summary["gain_tables"] = self.gain_preload  # shipped and cached designs loaded
+        summary["gain_build"] = self.gain_build  # the device's table built before joining
         summary["anchor"] = self.anchor  # where the scripted hand worked
         summary["clock_origin_s"] = self.origin_s  # time.perf_counter() at t_s = 0
         summary["stopped_by"] = self.signal or ("error" if self.error is not None else "end")

@@ -27,6 +27,12 @@ kept:
   :func:`~haptic_collab.shared.gains.table_file.design_from_record`, which refuses a malformed or
   unstable record (then the cell is designed again).
 
+**No gain table build.** A client whose device has no gain table builds one before it joins
+(:mod:`haptic_collab.client.gain_build`: every cell of the shipped grid, minutes). The tests'
+clients must not: ``HAPTIC_GAIN_BUILD=0`` (the default of ``ClientOptions.gain_build`` and of
+``haptic client --no-gain-build``) is set for the run and every process it starts; a test of
+the build passes ``gain_build=True`` itself.
+
 Every test still gets the design the current code makes for its arguments. Processes the tests
 start (``haptic server``, ``haptic client``, spawned workers) import the module afresh and design
 as users' do.
@@ -117,6 +123,9 @@ def _kept_design_cell_modes(
 _gain_table.design_cell_modes = _kept_design_cell_modes
 
 _RUN_CACHE_ENV = "HAPTIC_TEST_RUN_CACHE"
+
+# no client of the tests builds its device's gain table before joining (module docstring)
+os.environ["HAPTIC_GAIN_BUILD"] = "0"
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -339,8 +339,9 @@ def _cmd_ship_table(args: argparse.Namespace) -> int:
     """``haptic gains-table --ship``: build (or complete) a profile's shipped table;
     ``--cache``: the same grid for this device (a profile, or ``--max-stiffness`` and
     ``--max-damping``) into the client's cache of designs (client.gain_store)."""
-    from haptic_collab.cli.shipped_tables import build_table, progress_bar, shipped_dir
+    from haptic_collab.cli.shipped_tables import shipped_dir
     from haptic_collab.client.devices.profiles import get_sim_profile
+    from haptic_collab.client.gain_build import build_table, progress_bar
     from haptic_collab.client.gain_store import cache_path
     from haptic_collab.shared.gains.table_file import design_code_hash
 
@@ -372,8 +373,9 @@ def _cmd_ship_table(args: argparse.Namespace) -> int:
         workers=args.workers,
         max_jobs=args.max_jobs,
         progress=progress_bar(label),
+        remember_undesignable=args.cache and not args.out,
     )
-    print(f"{out}: {done} cells designed now; {left} without a stable design")
+    print(f"{out}: {done} cells designed now; {left} left for a later run")
     return 0
 
 

@@ -673,6 +673,7 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     along the trajectory); :func:`client.devices.opener.make_device` takes them out into the hand.
     """
     from haptic_collab.client.app import ClientOptions
+    from haptic_collab.client.gain_build import gain_build_default
 
     if args.lobby is not None and args.url is not None:
         raise CliError("--lobby finds the room's server: give it or --url, not both")
@@ -704,6 +705,8 @@ def _client_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         gains=args.gains,
         rest_plane=not args.no_rest_plane,
         gain_cache=not args.no_gain_cache,
+        gain_build=(gain_build_default() if args.gain_build is None else args.gain_build)
+        and not args.no_gain_cache,
         engage=args.engage,
         servo=args.servo,
     )
@@ -806,7 +809,18 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "--no-gain-cache",
         action="store_true",
         help="neither read nor write this machine's cache of gain designs "
-        "($HAPTIC_GAIN_CACHE, else ~/.cache/haptic-collab; the shipped tables still load)",
+        "($HAPTIC_GAIN_CACHE, else ~/.cache/haptic-collab; the shipped tables still load); "
+        "implies --no-gain-build",
+    )
+    p.add_argument(
+        "--no-gain-build",
+        dest="gain_build",
+        action="store_false",
+        default=None,  # the client's default: build, unless $HAPTIC_GAIN_BUILD=0
+        help="do not build the gain table of a device that has none (no shipped table, not in "
+        "the cache) before joining (minutes once, with a progress bar, then cached): its cells "
+        "are designed during contact and feel different until ready (default: build, unless "
+        "$HAPTIC_GAIN_BUILD=0)",
     )
     p.add_argument(
         "--engage",
