@@ -242,7 +242,7 @@ def build_table(
                     progress(done, len(todo))
                 if done % WRITE_EVERY == 0:
                     _write(out, table, code, undesignable)
-                nxt = next(it, None)
+                nxt = None if stop is not None and stop.is_set() else next(it, None)
                 if nxt is not None:
                     pending.add(pool.submit(_design_job, nxt))
         finished_cleanly = True
