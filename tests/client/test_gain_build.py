@@ -190,3 +190,44 @@ def test_the_cli_default_follows_haptic_gain_build_and_no_gain_cache_implies_no_
     monkeypatch.setenv("HAPTIC_GAIN_BUILD", "0")
     assert opts().gain_build is False
     assert ClientOptions().gain_build is False
+
+
+def test_ctrl_c_during_the_build_keeps_the_cells_and_connects_nowhere(
+    custom_device, tmp_path, monkeypatch, caplog
+) -> None:
+    import os
+    import signal
+
+    from haptic_collab.client import app
+
+    monkeypatch.setattr(gain_build, "DEVICE_GRID", THREE)
+    shown = app.progress_bar
+
+    def ctrl_c_after_one(label: str):  # the user presses Ctrl-C once a cell is made
+        bar = shown(label)
+
+        def show(done: int, total: int) -> None:
+            bar(done, total)
+            if done == 1:
+                os.kill(os.getpid(), signal.SIGINT)
+
+        return show
+
+    monkeypatch.setattr(app, "progress_bar", ctrl_c_after_one)
+    seen: list[int] = []
+
+    async def main() -> None:
+        server = await _listener(seen)
+        port = server.sockets[0].getsockname()[1]
+        async with server:
+            opts = _options(custom_device, port, tmp_path / "A.json", gain_build=True)
+            opts.stop_on_signals = True
+            await run_client(opts)
+
+    with pytest.raises(app.GainBuildInterrupted):
+        asyncio.run(main())
+    assert seen == []  # nothing connected
+    made = _cached_cells() // 2
+    assert made >= 1  # the cells designed (P and PI each) are in the cache
+    assert len(plan_device_build(K_H_MAX, B_H_MAX, THREE).jobs) == 3 - made
+    assert "nothing was connected" in caplog.text
