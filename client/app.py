@@ -483,7 +483,9 @@ async def build_gains(opts: ClientOptions, info: DeviceInfo) -> dict[str, Any]:
     dict
         For the summary (``gain_build``): ``ran`` (bool), ``cells`` (designed now), ``missing``
         (cells of the grid missing before), ``of`` (the grid's cells for this device),
-        ``seconds`` (the build's wall time [s]), ``workers``, or ``skipped`` (why not).
+        ``seconds`` (the build's wall time [s]), ``workers``; or ``skipped`` (why not), or
+        ``error`` (a build that failed: the cache cannot be written, a worker died; the client
+        then joins and designs during contact, as with ``--no-gain-build``).
 
     Raises
     ------
@@ -545,6 +547,13 @@ async def build_gains(opts: ClientOptions, info: DeviceInfo) -> dict[str, Any]:
         print(file=sys.stderr)  # end the progress bar's line
         log.warning("gains: the build was stopped; the cells designed are cached in %s", plan.out)
         raise
+    except (OSError, RuntimeError) as exc:  # a cache that cannot be written, a worker killed
+        print(file=sys.stderr)
+        log.warning(
+            "gains: the table could not be built (%s); its cells are designed during contact",
+            exc,
+        )
+        return {"ran": False, "error": str(exc), "missing": len(plan.jobs), "of": plan.total}
     finally:
         for sig in signals:
             loop.remove_signal_handler(sig)

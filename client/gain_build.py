@@ -218,6 +218,7 @@ def build_table(
         progress(0, len(todo))
     if not todo:
         return 0, 0
+    _write(out, table, code, undesignable)  # a file that cannot be written fails now, not later
     pool = ProcessPoolExecutor(
         max_workers=workers, mp_context=_pool_context(), initializer=build_worker
     )

@@ -174,6 +174,23 @@ def test_no_gain_build_joins_without_building(custom_device, tmp_path, capsys, o
     assert built["skipped"] == ("no-gain-build" if off["gain_build"] is False else "no-gain-cache")
 
 
+def test_a_cache_that_cannot_be_written_lets_the_client_join_without_a_table(
+    custom_device, tmp_path, monkeypatch, capsys
+) -> None:
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("")
+    monkeypatch.setenv("HAPTIC_GAIN_CACHE", str(blocker))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed when the block ends: nothing listens
+    opts = _options(custom_device, port, tmp_path / "A.json", gain_build=True)
+    with pytest.raises(ConnectionError, match="nothing listens there"):  # it went on to join
+        asyncio.run(run_client(opts))
+    assert "cells, done" not in capsys.readouterr().err
+    built = json.loads((tmp_path / "A.json").read_text())["gain_build"]
+    assert built["ran"] is False and "not-a-folder" in built["error"]
+
+
 def test_the_cli_default_follows_haptic_gain_build_and_no_gain_cache_implies_no_build(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
