@@ -81,6 +81,7 @@ from haptic_collab.server.gains import GainJob, run_job
 from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.metrics import RoomFigures, ServerCollector, scrape_allowed
 from haptic_collab.server.prefetch import PatchPrefetcher
+from haptic_collab.server.priority import TickPriority
 from haptic_collab.server.room import Outgoing, Room, is_bye
 from haptic_collab.server.room_process import (
     RESTARTING_CODE,
@@ -356,6 +357,12 @@ class ServerApp:
     snapshot_dir : path, optional
         Where :meth:`drain` writes each room's snapshot and where a room made (at the start or
         on demand) looks for its own (:mod:`server.snapshots`); None: no snapshots.
+    tick_priority : str
+        ``"realtime"``: the thread running the event loop (it ticks the rooms) asks for
+        SCHED_FIFO at a low priority from :meth:`start` until :meth:`stop`, or a negative nice
+        where refused (:class:`server.priority.TickPriority`): on a busy machine the tick was
+        late for want of a CPU, not of work; ``"off"`` (default here, ``haptic server``'s is
+        ``"realtime"``): the thread keeps its policy.
 
     Raises
     ------
@@ -384,7 +391,10 @@ class ServerApp:
         room_idle_s: float = ROOM_IDLE_S,
         address_limits: RoomLimits = ADDRESS_LIMITS,
         snapshot_dir: str | Path | None = None,
+        tick_priority: str = "off",
     ) -> None:
+        #: The event loop thread's scheduling priority, asked in start(), given back in stop().
+        self.tick_priority = TickPriority(tick_priority, "server")
         self.room: AnyRoom = room
         self._slots: dict[str, _Slot] = {DEFAULT_ROOM: _Slot(DEFAULT_ROOM, room)}
         for name, extra in (rooms or {}).items():
@@ -478,6 +488,7 @@ class ServerApp:
         sock = next(iter(self._server.sockets))
         self.port = int(sock.getsockname()[1])
         self._started = True
+        self.tick_priority.ask()  # before any thread or process is started from this one
         for slot in self._slots.values():
             self._resume(slot.name, slot.room)
             self._start_slot(slot)
@@ -591,6 +602,7 @@ class ServerApp:
             self._server.close()
             await self._server.wait_closed()
             log.info("server closed: every room stopped, every connection closed")
+        self.tick_priority.restore()
 
     async def drain(self, grace_s: float = DRAIN_GRACE_S) -> DrainReport:
         """Drain the server for a shutdown (SIGTERM, :func:`server.main.run_server`).

@@ -13,6 +13,7 @@ import contextlib
 import functools
 import logging
 import math
+import os
 import signal
 import ssl
 import time
@@ -85,6 +86,10 @@ class ServerOptions:
 
     ``gravity_m_s2`` (``--gravity``, ``object`` fem only): the FEM solid's rest state is the one
     it sags to under its own weight, g [m/s^2] along -z (0: none; docs/fem.md, "Gravity").
+
+    ``tick_priority`` (``"realtime"`` or ``"off"``; :func:`default_tick_priority`): the thread
+    that ticks the rooms (the server's event loop, and each room process's) asks for a real-time
+    priority where the OS allows it (:mod:`server.priority`; docs/fem.md, "Under load").
     """
 
     host: str = "127.0.0.1"
@@ -126,6 +131,17 @@ class ServerOptions:
     inclusions: tuple[str, ...] = ()
     inclusion_materials: tuple[str, ...] = ()
     gravity_m_s2: float = 0.0
+    tick_priority: str = field(default_factory=lambda: default_tick_priority())
+
+
+def default_tick_priority() -> str:
+    """``tick_priority``'s default: ``$HAPTIC_TICK_PRIORITY`` if set, else ``"realtime"``.
+
+    The thread that ticks the rooms asks for SCHED_FIFO at a low priority, or a negative nice
+    where refused (:class:`server.priority.TickPriority`); ``"off"`` keeps the ordinary policy.
+    The variable turns it off where the command line cannot (e.g. a benchmark's server process).
+    """
+    return os.environ.get("HAPTIC_TICK_PRIORITY", "realtime")
 
 
 #: ``[rooms.NAME]`` keys that name a :class:`ServerOptions` field differently.
@@ -271,6 +287,7 @@ def room_spec(
         auth=opts.token_file is not None or opts.token is not None or bool(opts.token_secret_file),
         prefetch=_is_fem,
         log_level=logging.getLogger().getEffectiveLevel(),
+        tick_priority=opts.tick_priority,
     )
 
 
@@ -721,6 +738,7 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         max_rooms=opts.max_rooms,
         room_idle_s=opts.room_idle_s,
         snapshot_dir=snapshot_dir,
+        tick_priority=opts.tick_priority,
     )
     scheme = "https" if ssl_context else "http"
     if auth is None and not is_loopback(opts.host):

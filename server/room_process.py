@@ -65,6 +65,7 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 from haptic_collab.server.metrics import LATENESS_BUCKETS_S, TICK_BUCKETS_S, Buckets  # noqa: E402
+from haptic_collab.server.priority import TickPriority  # noqa: E402
 from haptic_collab.server.room import Outgoing, Room, SeatRecord  # noqa: E402
 
 log = logging.getLogger("haptic.server")
@@ -121,6 +122,9 @@ class RoomSpec:
         of the room says so (picklable).
     log_level : int
         The child's logging level.
+    tick_priority : str
+        ``"realtime"``: the child's event loop thread asks for a real-time priority
+        (:class:`server.priority.TickPriority`); ``"off"``: it keeps the ordinary policy.
     """
 
     name: str
@@ -130,6 +134,7 @@ class RoomSpec:
     auth: bool = False
     prefetch: bool | Callable[[Room], bool] = False
     log_level: int = logging.INFO
+    tick_priority: str = "off"
 
 
 # ---------------------------------------------------------------------- framing
@@ -207,6 +212,9 @@ class _Child:
             await self.writer.drain()
             return
         self.room = room
+        # the room's ticks run on this thread: real-time where allowed, before the prefetch
+        # thread is started (it then keeps the ordinary policy: SCHED_RESET_ON_FORK)
+        TickPriority(self.spec.tick_priority, f"room {self.spec.name!r}").ask()
         want = self.spec.prefetch(room) if callable(self.spec.prefetch) else self.spec.prefetch
         if want:
             from haptic_collab.server.prefetch import PatchPrefetcher
