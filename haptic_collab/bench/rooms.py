@@ -30,6 +30,12 @@ Then, per object (balloon, FEM) and mode, a server with that one room is started
 its address only then) and its memory, and with a process per room how long the room's process
 took to start (``/status``'s ``process.start_s``).
 
+``--compare priority`` runs, instead of the two modes above, the same server in one process
+with its simulation thread at the ordinary policy (``tick_priority`` off) and asking for a
+real-time one (:mod:`server.priority`), alternating; ``--burners N`` runs N CPU-bound processes
+beside it for the whole run (a busy machine: docs/fem.md, "Under load"), and each run records
+the server's scheduling policy as the kernel reports it (``tick_policy``).
+
 A benchmark driver (clocks, processes, sockets); nothing here is imported by the server. The
 machine is shared: report medians and ratios of runs side by side, never thresholds.
 """
@@ -45,6 +51,7 @@ import os
 import queue
 import signal
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -74,6 +81,14 @@ REJOIN_DELAY_S = 0.25
 #: How long [s] the coordinator waits for every user to join.
 READY_TIMEOUT_S = 120.0
 MODES = (("one_process", ()), ("room_processes", ("--room-processes",)))
+#: ``--compare priority``: the server's simulation thread at the ordinary policy, then asking
+#: for a real-time one (``$HAPTIC_TICK_PRIORITY``, :mod:`server.priority`), all in one process.
+PRIORITY_MODES = (("tick_priority_off", ()), ("tick_priority_realtime", ()))
+#: The server's ``$HAPTIC_TICK_PRIORITY`` per mode (a mode not listed keeps the environment's).
+MODE_TICK_PRIORITY = {"tick_priority_off": "off", "tick_priority_realtime": "realtime"}
+#: What each CPU-bound process beside the server runs (``--burners``): one core's worth of load,
+#: until its parent (this bench) is gone, also when the bench is killed.
+BURNER = "import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n    pass"
 
 
 @dataclass(frozen=True)
@@ -295,11 +310,19 @@ def _lateness(port: int) -> dict[str, list[tuple[float, float]]]:
 def _p99_ms(before: list[tuple[float, float]], after: list[tuple[float, float]]) -> float | None:
     """The 99th percentile [ms] of the observations between two cumulative bucket readings,
     interpolated linearly within its bucket (the +Inf bucket answers its lower bound)."""
+    return _quantile_ms(before, after, 0.99)
+
+
+def _quantile_ms(
+    before: list[tuple[float, float]], after: list[tuple[float, float]], q: float
+) -> float | None:
+    """The ``q`` quantile [ms] of the observations between two cumulative bucket readings
+    [(upper bound s, count)], interpolated linearly within its bucket (as :func:`_p99_ms`)."""
     diff = [(le, a - b) for (le, a), (_, b) in zip(after, before, strict=True)]
     total = diff[-1][1]
     if total <= 0:
         return None
-    want, low, low_n = 0.99 * total, 0.0, 0.0
+    want, low, low_n = q * total, 0.0, 0.0
     for le, n in diff:
         if n >= want:
             if le == float("inf") or n == low_n:
@@ -441,6 +464,7 @@ async def _measure(
         out["rooms"][r] = {
             "tick_ms_p50": round(st["tick_ms_p50"], 2),
             "tick_ms_p99": round(st["tick_ms_p99"], 2),
+            "lateness_ms_p50": _quantile_ms(before[r], after[r], 0.5),
             "lateness_ms_p99": _p99_ms(before[r], after[r]),
             "overruns": st["overruns"] - st0["overruns"],
             "ticks": st["tick"] - st0["tick"],
@@ -582,18 +606,34 @@ def run(opts: argparse.Namespace) -> dict[str, Any]:
         "cpus": os.cpu_count(),
         "load_avg_start": os.getloadavg(),
     }
+    modes = PRIORITY_MODES if opts.compare == "priority" else MODES
+    result["compare"] = opts.compare
+    result["burners"] = opts.burners
     runs: list[dict[str, Any]] = []
-    for rep in range(opts.repeats):  # the two modes alternate: the machine's load hits both
-        run_: dict[str, Any] = {}
-        for mode, extra in MODES:
-            print(f"[bench rooms] run {rep + 1}: {mode}", file=sys.stderr, flush=True)
-            t = time.monotonic()
-            with ServerProcess("--config", str(cfg), *extra) as server:
-                listen_s = time.monotonic() - t
-                run_[mode] = _session(server.port, rooms, opts, bool(extra), server.proc.pid)
-                run_[mode]["listen_s"] = round(listen_s, 3)
-                run_[mode]["server_warnings"] = len(server.warnings())
-        runs.append(run_)
+    burners = [
+        subprocess.Popen([sys.executable, "-c", BURNER]) for _ in range(max(0, opts.burners))
+    ]
+    try:
+        for rep in range(opts.repeats):  # the two modes alternate: the machine's load hits both
+            run_: dict[str, Any] = {}
+            for mode, extra in modes:
+                print(f"[bench rooms] run {rep + 1}: {mode}", file=sys.stderr, flush=True)
+                kill = opts.compare == "processes" and bool(extra)
+                t = time.monotonic()
+                with (
+                    _tick_priority(MODE_TICK_PRIORITY.get(mode)),
+                    ServerProcess("--config", str(cfg), *extra) as server,
+                ):
+                    listen_s = time.monotonic() - t
+                    run_[mode] = _session(server.port, rooms, opts, kill, server.proc.pid)
+                    run_[mode]["listen_s"] = round(listen_s, 3)
+                    run_[mode]["server_warnings"] = len(server.warnings())
+                    run_[mode]["tick_policy"] = _policy(server.proc.pid)
+            runs.append(run_)
+    finally:
+        for b in burners:
+            b.kill()
+            b.wait()
     result["runs"] = runs
     if opts.starts:
         print("[bench rooms] one-room starts", file=sys.stderr, flush=True)
@@ -601,6 +641,33 @@ def run(opts: argparse.Namespace) -> dict[str, Any]:
     result["load_avg_end"] = os.getloadavg()
     result["summary"] = _summary(runs, rooms, opts.sim_rate, result.get("starts"))
     return result
+
+
+@contextlib.contextmanager
+def _tick_priority(value: str | None) -> Any:
+    """``$HAPTIC_TICK_PRIORITY`` set to ``value`` (None: untouched) while a server starts."""
+    old = os.environ.get("HAPTIC_TICK_PRIORITY")
+    if value is not None:
+        os.environ["HAPTIC_TICK_PRIORITY"] = value
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("HAPTIC_TICK_PRIORITY", None)
+        else:
+            os.environ["HAPTIC_TICK_PRIORITY"] = old
+
+
+def _policy(pid: int) -> dict[str, int] | None:
+    """The scheduling policy and nice value of a process's main thread (``/proc/PID/stat``:
+    ``policy`` 0 ordinary, 1 SCHED_FIFO, 2 SCHED_RR; ``rt_priority``); None off Linux."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    # fields[0] is field 3 (state): nice is field 19, rt_priority 40, policy 41
+    return {"nice": int(fields[16]), "rt_priority": int(fields[37]), "policy": int(fields[38])}
 
 
 def _median(xs: list[float]) -> float | None:
@@ -628,11 +695,12 @@ def _summary(
     """Medians over every run (and every balloon room, every user), and their ratios."""
     balloon = rooms[1:]
     summary: dict[str, Any] = {}
-    for mode, _ in MODES:
+    names = list(runs[0]) if runs else []
+    for mode in names:
         per = [run_[mode]["rooms"] for run_ in runs]
 
         def med(key: str, names: list[str], per: list[dict[str, Any]] = per) -> float | None:
-            return _median([r[n][key] for r in per for n in names if r[n][key] is not None])
+            return _median([r[n][key] for r in per for n in names if r[n].get(key) is not None])
 
         shares = [r[n]["patch_share_min"] for r in per for n in rooms]
         summary[mode] = {
@@ -649,17 +717,30 @@ def _summary(
             "balloon_lateness_ms_p99_median": med("lateness_ms_p99", balloon),
             "fem_tick_ms_p50_median": med("tick_ms_p50", ["default"]),
             "fem_tick_ms_p99_median": med("tick_ms_p99", ["default"]),
+            "fem_lateness_ms_p50_median": med("lateness_ms_p50", ["default"]),
             "fem_lateness_ms_p99_median": med("lateness_ms_p99", ["default"]),
+            "fem_overruns_median": med("overruns", ["default"]),
+            "fem_patch_share_median": _median(
+                [x / sim_rate for r in per for x in r["default"].get("patch_rate_hz", [])]
+            ),
             "machine_cpu_busy": [run_[mode]["machine"]["cpu_busy"] for run_ in runs],
             "cpu_median": _cpu_summary([run_[mode].get("processes", {}) for run_ in runs], rooms),
             "errors": sorted({e for run_ in runs for e in run_[mode]["errors"]}),
         }
-    one, many = summary["one_process"], summary["room_processes"]
-    if one["balloon_lateness_ms_p99_median"] and many["balloon_lateness_ms_p99_median"]:
-        summary["balloon_lateness_p99_ratio_one_over_processes"] = round(
-            one["balloon_lateness_ms_p99_median"] / many["balloon_lateness_ms_p99_median"], 2
-        )
-    kills = [run_["room_processes"]["kill"] for run_ in runs if "kill" in run_["room_processes"]]
+    if "one_process" in summary and "room_processes" in summary:
+        one, many = summary["one_process"], summary["room_processes"]
+        if one["balloon_lateness_ms_p99_median"] and many["balloon_lateness_ms_p99_median"]:
+            summary["balloon_lateness_p99_ratio_one_over_processes"] = round(
+                one["balloon_lateness_ms_p99_median"] / many["balloon_lateness_ms_p99_median"], 2
+            )
+    if "tick_priority_off" in summary and "tick_priority_realtime" in summary:
+        off, rt = summary["tick_priority_off"], summary["tick_priority_realtime"]
+        for key in ("fem_lateness_ms_p50_median", "fem_lateness_ms_p99_median"):
+            if off[key] and rt[key]:
+                summary[f"{key}_ratio_off_over_realtime"] = round(off[key] / rt[key], 2)
+    kills = [
+        run_["room_processes"]["kill"] for run_ in runs if "kill" in run_.get("room_processes", {})
+    ]
     if kills:
         others = [x for k in kills for v in k["others_patch_rate_hz"].values() for x in v]
         summary["kill_others_patch_rate_hz_median"] = _median(others)
@@ -703,6 +784,19 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--repeats", type=int, default=3, help="runs of both modes, alternating")
     p.add_argument(
         "--no-starts", dest="starts", action="store_false", help="skip the one-room starts"
+    )
+    p.add_argument(
+        "--compare",
+        choices=["processes", "priority"],
+        default="processes",
+        help="processes: one process against a process per room (default); priority: the "
+        "simulation thread at the ordinary policy against real-time (tick_priority), one process",
+    )
+    p.add_argument(
+        "--burners",
+        type=int,
+        default=0,
+        help="CPU-bound processes ('while True: pass') beside the server for the whole run",
     )
     p.add_argument("--json", default=None, help="write the result here (default: stdout)")
     return p.parse_args(argv)

@@ -9,7 +9,7 @@ import math
 
 import pytest
 
-from haptic_collab.bench.rooms import _p99_ms, _rates, _summary, main
+from haptic_collab.bench.rooms import _p99_ms, _quantile_ms, _rates, _summary, main
 
 BOUNDS = (0.001, 0.005, 0.01, math.inf)
 
@@ -69,6 +69,48 @@ def test_the_summary_counts_the_rooms_whose_slowest_user_had_99_percent() -> Non
     assert summary["one_process"]["rooms_at_99pct"] == [1]
     assert summary["one_process"]["patch_share_min"] == 0.975
     assert summary["room_processes"]["rooms_at_99pct"] == [2]
+
+
+def test_the_median_of_the_window_is_interpolated_in_its_bucket() -> None:
+    # the window: 40 ticks under 1 ms, 60 in (1, 5] ms -> the 50th of 100 is the 10th of 60
+    after = cumulative([40, 60, 0, 0])
+    assert _quantile_ms(cumulative([0, 0, 0, 0]), after, 0.5) == pytest.approx(
+        1.0 + 4.0 * (50 - 40) / 60
+    )
+
+
+def test_the_priority_comparison_sums_up_each_mode_and_their_lateness_ratio() -> None:
+    def run(lateness_p50: float, lateness_p99: float, rates: list[float]) -> dict:
+        room = {
+            "patch_share_min": min(rates) / 20.0,
+            "patch_rate_hz": rates,
+            "tick_ms_p50": 3.0,
+            "tick_ms_p99": 4.0,
+            "lateness_ms_p50": lateness_p50,
+            "lateness_ms_p99": lateness_p99,
+            "overruns": 0,
+        }
+        return {"rooms": {"default": room}, "machine": {"cpu_busy": 1.0}, "errors": []}
+
+    runs = [
+        {
+            "tick_priority_off": run(4.0, 20.0, [19.0, 10.0]),
+            "tick_priority_realtime": run(0.5, 2.0, [20.0, 20.0]),
+        },
+        {
+            "tick_priority_off": run(6.0, 40.0, [20.0, 12.0]),
+            "tick_priority_realtime": run(1.0, 4.0, [20.0, 19.8]),
+        },
+    ]
+    summary = _summary(runs, ["default"], 20.0, None)
+    off, rt = summary["tick_priority_off"], summary["tick_priority_realtime"]
+    assert off["fem_lateness_ms_p99_median"] == 30.0 and rt["fem_lateness_ms_p99_median"] == 3.0
+    assert summary["fem_lateness_ms_p99_median_ratio_off_over_realtime"] == 10.0
+    assert summary["fem_lateness_ms_p50_median_ratio_off_over_realtime"] == 6.67
+    # B's patches: every user of every run counts, the slowest decides the minimum
+    assert off["patch_share_min"] == 0.5 and rt["patch_share_min"] == 0.99
+    assert off["fem_patch_share_median"] == pytest.approx(0.775)
+    assert "balloon_lateness_p99_ratio_one_over_processes" not in summary
 
 
 @pytest.mark.slow
