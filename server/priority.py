@@ -1,19 +1,18 @@
 """The scheduling priority of the thread that ticks a room: real-time when the OS allows it.
 
 On a busy machine the simulation tick is late because the kernel does not run it, not because it
-costs more: with two CPU-bound processes beside a FEM room on 2 cores (load about 9), the event
-loop's thread spent about half of the wall time runnable but waiting for a CPU
-(``/proc/thread-self/schedstat``), a tick's wall time was about 3 times its CPU time
-(:func:`time.thread_time`), and the GIL and the patch prefetch thread took next to nothing
-(docs/fem.md, "Under load"). So the cure is at the scheduler: the thread running the event loop
-(which ticks the room, and reads and writes its users' frames) asks for SCHED_FIFO at a low
-priority, as haptic vendors' servo threads and :func:`client.scheduler.try_realtime_priority`
-do. Where that is refused (no CAP_SYS_NICE, or a container without a real-time budget) it asks
-for a negative nice instead, and where that is refused too it logs one warning and runs as
-before.
+costs more: with CPU-bound processes beside a FEM room, the event loop's thread waits runnable for
+a CPU (``/proc/thread-self/schedstat``) for most of a tick's wall time, while its CPU time
+(:func:`time.thread_time`) stays as on a quiet machine and the GIL and the patch prefetch thread
+take next to nothing (docs/fem.md, "Under load"). So the cure is at the scheduler: the thread
+running the event loop (which ticks the room, and reads and writes its users' frames) asks for
+SCHED_FIFO at a low priority, as haptic vendors' servo threads and
+:func:`client.scheduler.try_realtime_priority` do. Where that is refused (no CAP_SYS_NICE, or a
+container without a real-time budget) it asks for a negative nice instead, and where that is
+refused too it logs one warning and runs as before.
 
-Why it cannot starve the machine: the loop sleeps between ticks (about 12 % of one core for a FEM
-room with two users), Linux caps real-time threads at ``sched_rt_runtime_us`` /
+Why it cannot starve the machine: the loop sleeps between ticks (its duty cycle is in
+docs/fem.md), Linux caps real-time threads at ``sched_rt_runtime_us`` /
 ``sched_rt_period_us`` of each CPU (95 % by default), and the priority (:data:`TICK_RT_PRIORITY`)
 is below the client servo thread's 10, so a client on the same machine still preempts the
 server. ``SCHED_RESET_ON_FORK`` is set with it: threads and processes started from this thread
@@ -131,7 +130,7 @@ class TickPriority:
                 log.warning("%s: could not restore the nice value: %s", self.who, exc)
 
     def _fifo(self) -> str | None:
-        """SCHED_FIFO | SCHED_RESET_ON_FORK for the calling thread; None if granted, else why not."""
+        """SCHED_FIFO | SCHED_RESET_ON_FORK for the calling thread; None if granted, else why."""
         setsched = getattr(os, "sched_setscheduler", None)
         fifo = getattr(os, "SCHED_FIFO", None)
         if setsched is None or fifo is None:
