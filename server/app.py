@@ -488,13 +488,15 @@ class ServerApp:
         sock = next(iter(self._server.sockets))
         self.port = int(sock.getsockname()[1])
         self._started = True
-        self.tick_priority.ask()  # before any thread or process is started from this one
         for slot in self._slots.values():
             self._resume(slot.name, slot.room)
             self._start_slot(slot)
         if self._own_executor:  # an injected executor (tests) is the caller's to warm
             self._gain_tasks.add(asyncio.create_task(self._warm_design_pool()))
         await self._rooms_started(list(self._slots.values()))
+        # last: a start that raised leaves the thread as it was (stop() gives it back); threads
+        # and processes started from here on keep the ordinary policy (server.priority)
+        self.tick_priority.ask()
 
     async def _rooms_started(self, slots: list[_Slot]) -> None:
         """Wait until every room of ``slots`` running in a process of its own has built its
