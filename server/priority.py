@@ -86,7 +86,7 @@ class TickPriority:
             self.granted = f"SCHED_FIFO {TICK_RT_PRIORITY}"
             log.info(
                 "%s: the simulation thread runs at SCHED_FIFO priority %d (tick_priority = "
-                '"off" to keep the ordinary policy)',
+                '"off" or HAPTIC_TICK_PRIORITY=off keeps the ordinary policy)',
                 self.who,
                 TICK_RT_PRIORITY,
             )
