@@ -105,7 +105,7 @@ class TickPriority:
         log.warning(
             "%s: real-time priority refused (%s) and nice %d refused (%s): the simulation "
             "ticks at the ordinary priority and may be late on a busy machine (docs/deploy.md: "
-            'CAP_SYS_NICE; tick_priority = "off" silences this)',
+            'CAP_SYS_NICE; tick_priority = "off" or HAPTIC_TICK_PRIORITY=off silences it)',
             self.who,
             why_fifo,
             TICK_NICE,
