@@ -37,6 +37,38 @@ from pathlib import Path
 from typing import Any
 
 MODES = ("off", "realtime")
+#: ``--sweep``: each user's spot swings along the sphere's surface, +-SWEEP_RAD [rad] about the
+#: centre SWEEP_RADIUS_M [m] behind it, at SWEEP_HZ, so its contact keeps reaching patches that
+#: are not solved yet and the prefetch thread works (the default liver sphere: r 0.1 m).
+SWEEP_RAD, SWEEP_HZ, SWEEP_RADIUS_M = 0.5, 0.1, 0.1
+SWEEP_ENV = "FEM_UNDER_LOAD_SWEEP"
+
+
+def _swept(user_state: Any) -> Any:
+    """``user_state`` with its spot rotated about the axis normal x (any direction across it)."""
+
+    def state(spec: Any, spot: Any, elapsed_s: float, *rest: Any) -> Any:
+        import math
+
+        base, normal = spot
+        centre = [base[i] - SWEEP_RADIUS_M * normal[i] for i in range(3)]
+        a = [0.0, 0.0, 1.0] if abs(normal[2]) < 0.9 else [1.0, 0.0, 0.0]
+        t = [a[1] * normal[2] - a[2] * normal[1], a[2] * normal[0] - a[0] * normal[2]]
+        t.append(a[0] * normal[1] - a[1] * normal[0])
+        norm = math.sqrt(sum(c * c for c in t))
+        t = [c / norm for c in t]
+        th = SWEEP_RAD * math.sin(2 * math.pi * SWEEP_HZ * elapsed_s + 0.7 * spec.slot)
+        n = [math.cos(th) * normal[i] + math.sin(th) * t[i] for i in range(3)]
+        moved = ([centre[i] + SWEEP_RADIUS_M * n[i] for i in range(3)], n)
+        return user_state(spec, moved, elapsed_s, *rest)
+
+    return state
+
+
+if os.environ.get(SWEEP_ENV):  # in the users' spawned worker too: it imports this file first
+    import haptic_collab.bench.rooms as _rooms
+
+    _rooms.user_state = _swept(_rooms.user_state)  # type: ignore[assignment]
 BURNER = "import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n    pass"
 
 
@@ -133,6 +165,8 @@ def parent(opts: argparse.Namespace) -> dict[str, Any]:
             for mode in MODES:
                 print(f"[fem under load] run {rep + 1}: {mode}", file=sys.stderr, flush=True)
                 env = dict(os.environ, HAPTIC_TICK_PRIORITY=mode)
+                if opts.sweep:
+                    env[SWEEP_ENV] = "1"
                 cmd = [sys.executable, __file__, "--child", "--mode", mode]
                 cmd += ["--port", str(_free_port())]
                 for k in ("users", "warmup_s", "duration_s", "sim_rate", "start_s"):
@@ -163,6 +197,7 @@ def parent(opts: argparse.Namespace) -> dict[str, Any]:
         "machine": {"cpus": os.cpu_count(), "kernel": platform.release()},
         "burners": opts.burners,
         "users": opts.users,
+        "sweep": {"rad": SWEEP_RAD, "hz": SWEEP_HZ} if opts.sweep else None,
         "runs": runs,
         "summary": summary,
     }
@@ -178,6 +213,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--sim-rate", type=float, default=20.0)
     p.add_argument("--start-s", type=float, default=6.0, help="the server's start-up [s]")
     p.add_argument("--json", default=None)
+    p.add_argument("--sweep", action="store_true", help="the users sweep (SWEEP_RAD, SWEEP_HZ)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--mode", choices=MODES, default="off", help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
