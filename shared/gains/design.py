@@ -8,7 +8,8 @@ decay-rate margin, for
 - every hand of the hand box (:class:`shared.full_loop.HandBox`),
 - every servo tick j at which the simulation may sample the force (Step 3 over a network),
 - every object stiffness K_o' in ``[(1 - margin) K_o, K_o]`` (the paper's advice to design for a
-  lower K_o than reported) and, for the product's :class:`shared.gains.table.GainTable` designs, up
+  lower K_o than reported), with own-force compensation down to ``K_o / (1 + stiffer_by)`` where
+  that costs less than a stiffness JND (:func:`softest_k_o`), and, for the product's :class:`shared.gains.table.GainTable` designs, up
   to ``1 + stiffer_by`` times the top of the cell (:attr:`GainKey.stiffer_by`: an object stiffer
   than reported, docs/fidelity.md),
 
@@ -75,7 +76,11 @@ from haptic_collab.shared.full_loop import (
     ProxyHold,
 )
 from haptic_collab.shared.gains.key import Mode
-from haptic_collab.shared.gains.policy import FELT_BAND_HZ, MIN_DECAY_RATE_PER_S
+from haptic_collab.shared.gains.policy import (
+    FELT_BAND_HZ,
+    MIN_DECAY_RATE_PER_S,
+    SOFT_END_COST_STEPS,
+)
 from haptic_collab.shared.gains.search import Candidate, GainSearch, candidate_groups, scaled_gains
 from haptic_collab.shared.rates import Rates
 
@@ -193,6 +198,30 @@ class GainDesign:
         }
 
 
+def softest_k_o(k_o: float, margin: float, stiffer_by: float) -> float:
+    """The softest object [N/m] a compensated design for ``k_o`` [N/m] may be checked on: ``k_o /
+    (1 + stiffer_by)`` where that is softer than ``(1 - margin) k_o``, else the latter.
+
+    Why. A design with own-force compensation judges how it feels on objects ``1 + stiffer_by``
+    times softer and stiffer than reported (a model error of that ratio either way; a stiffness
+    estimate's error is a ratio), and is checked for stability up to ``1 + stiffer_by`` times
+    its cell's top (:func:`shared.gains.table.cell_k_o_range`), but by the paper's margin only
+    down to ``(1 - margin) k_o``. :func:`design_gains_modes` checks down to this softer end
+    wherever that costs at most :data:`shared.gains.policy.SOFT_END_COST_STEPS` of the design's
+    objective (less than a stiffness JND), and keeps the margin's end where it would cost more.
+
+    Raises
+    ------
+    ValueError
+        ``margin`` not in [0, 1) or ``stiffer_by`` negative or not finite.
+    """
+    if not 0.0 <= margin < 1.0:
+        raise ValueError(f"margin must be in [0, 1), got {margin!r}")
+    if not (math.isfinite(stiffer_by) and stiffer_by >= 0.0):
+        raise ValueError(f"stiffer_by must be finite and >= 0, got {stiffer_by!r}")
+    return k_o * min(1.0 - margin, 1.0 / (1.0 + stiffer_by))
+
+
 def design_gains(
     k_o: float,
     *,
@@ -229,7 +258,9 @@ def design_gains(
         Proportional or proportional-integral local model.
     margin : float
         Fraction in [0, 1) by which K_o may be overestimated: stability is checked down to
-        ``(1 - margin) K_o``.
+        ``(1 - margin) K_o``; with ``own_force``, down to ``K_o / (1 + stiffer_by)`` where that
+        is softer and costs at most :data:`shared.gains.policy.SOFT_END_COST_STEPS` of the
+        objective (:func:`softest_k_o`; the design's ``k_o_range`` says which).
     k_o_hi : float, optional
         Upper end of the K_o range checked (default ``k_o``; :class:`shared.gains.table.GainTable`
         passes the next grid point so a design covers its whole cell).
@@ -369,7 +400,6 @@ def design_gains_modes(
     if not holds or any(h not in ("zoh", "foh") for h in holds):
         raise ValueError(f"holds must name 'zoh' and/or 'foh', got {holds!r}")
     hi = float(k_o if k_o_hi is None else max(k_o, k_o_hi))
-    lo = (1.0 - margin) * k_o
     felt_at = [float(k_o)] if felt_k_os is None else [float(v) for v in felt_k_os]
     if not felt_at or not all(math.isfinite(v) and v > 0.0 for v in felt_at):
         raise ValueError(f"felt_k_os must be finite stiffnesses > 0 N/m, got {felt_k_os!r}")
@@ -380,72 +410,107 @@ def design_gains_modes(
         [k_o / (1.0 + stiffer_by), k_o * (1.0 + stiffer_by)] if own_force and stiffer_by > 0 else []
     )
 
-    # each mode's paper model, then the compensated groups (proportional: the same for every
-    # mode; candidate_groups builds them whatever ``integral``)
-    by_mode = {
-        m: candidate_groups(
+    def search_from(lo: float, floors: dict[Mode, float | None]) -> dict[Mode, Candidate | None]:
+        """Each mode's most transparent candidate checked down to ``lo`` [N/m], None where none
+        passes or none ranks at or above its mode's ``floors`` (``rank[0]``)."""
+        # each mode's paper model, then the compensated groups (proportional: the same for every
+        # mode; candidate_groups builds them whatever ``integral``)
+        by_mode = {
+            m: candidate_groups(
+                k_o,
+                lo,
+                hi,
+                rate_ratio=N,
+                servo_period_s=T,
+                integral=m == "pi",
+                k_h_max=k_h_max,
+                b_h_max=b_h_max,
+                own_force=own_force,
+                scaled=scaled,
+                felt_at=felt_at,
+            )
+            for m in dict.fromkeys(modes)
+        }
+        groups = next(iter(by_mode.values()))
+        search = GainSearch(
             k_o,
             lo,
             hi,
+            b_o=b_o,
             rate_ratio=N,
             servo_period_s=T,
-            integral=m == "pi",
-            k_h_max=k_h_max,
-            b_h_max=b_h_max,
+            delay_ticks=delay,
+            rho_limit=rho_limit,
+            band=band,
+            felt_at=felt_at,
+            model_error_k_os=model_error_k_os,
             own_force=own_force,
             scaled=scaled,
-            felt_at=felt_at,
+            hand_box=hand_box,
         )
-        for m in dict.fromkeys(modes)
-    }
-    groups = next(iter(by_mode.values()))
-    search = GainSearch(
-        k_o,
-        lo,
-        hi,
-        b_o=b_o,
-        rate_ratio=N,
-        servo_period_s=T,
-        delay_ticks=delay,
-        rho_limit=rho_limit,
-        band=band,
-        felt_at=felt_at,
-        model_error_k_os=model_error_k_os,
-        own_force=own_force,
-        scaled=scaled,
-        hand_box=hand_box,
-    )
 
-    # the largest scale of each candidate's gains (``scaled``): to the top of felt_at, K_h within
-    # the device's stiffness; compensated candidates only. The paper's models keep one set of
-    # gains per cell: they win only above the device's stiffness, where K_h is at or near its
-    # limit, and checking them scaled dropped PI designs that felt 8 % stiffer (3000 N/m, 100 Hz,
-    # 40 ticks: 0.42 against 0.46 K_o at 1 Hz)
-    top = max(felt_at) / k_o if scaled else 1.0
-    smax = [np.clip(k_h_max / base["k_h"], 1.0, max(top, 1.0)) for base, _ in groups[1:]]
+        # the largest scale of each candidate's gains (``scaled``): to the top of felt_at, K_h
+        # within the device's stiffness; compensated candidates only. The paper's models keep
+        # one set of gains per cell: they win only above the device's stiffness, where K_h is at
+        # or near its limit, and checking them scaled dropped PI designs that felt 8 % stiffer
+        # (3000 N/m, 100 Hz, 40 ticks: 0.42 against 0.46 K_o at 1 Hz)
+        top = max(felt_at) / k_o if scaled else 1.0
+        smax = [np.clip(k_h_max / base["k_h"], 1.0, max(top, 1.0)) for base, _ in groups[1:]]
 
-    best: dict[Mode, Candidate | None] = dict.fromkeys(by_mode)
+        best: dict[Mode, Candidate | None] = dict.fromkeys(by_mode)
 
-    def keep(m: Mode, found: Candidate | None) -> None:
-        old = best[m]
-        if found is not None and (old is None or found.rank > old.rank):
-            best[m] = found
+        def keep(m: Mode, found: Candidate | None) -> None:
+            old = best[m]
+            if found is not None and (old is None or found.rank > old.rank):
+                best[m] = found
 
-    for m, mode_groups in by_mode.items():
-        paper, with_i = mode_groups[0]
-        for hold in holds:
-            b_m = best[m]
-            bound = None if b_m is None else b_m.rank[0]
-            keep(m, search.best_in_group(paper, with_i, hold, np.ones_like(paper["k_h"]), bound))
-    for ((base, with_i), s_max), hold in itertools.product(
-        zip(groups[1:], smax, strict=True), holds
-    ):
-        # pruned below the least transparent best so far: no mode's best can lie there
-        bests = list(best.values())
-        bound = None if any(x is None for x in bests) else min(x.rank[0] for x in bests if x)
-        found = search.best_in_group(base, with_i, hold, s_max, bound)
-        for m in best:
-            keep(m, found)
+        def bound_of(m: Mode) -> float | None:
+            """What a candidate must reach to matter to mode ``m``: its best so far, or its
+            floor."""
+            b_m, f_m = best[m], floors.get(m)
+            marks = [v for v in (None if b_m is None else b_m.rank[0], f_m) if v is not None]
+            return max(marks) if marks else None
+
+        for m, mode_groups in by_mode.items():
+            paper, with_i = mode_groups[0]
+            for hold in holds:
+                keep(
+                    m,
+                    search.best_in_group(
+                        paper, with_i, hold, np.ones_like(paper["k_h"]), bound_of(m)
+                    ),
+                )
+        for ((base, with_i), s_max), hold in itertools.product(
+            zip(groups[1:], smax, strict=True), holds
+        ):
+            # pruned below the least transparent best so far: no mode's best can lie there
+            bounds = [bound_of(m) for m in best]
+            bound = (
+                None if any(b is None for b in bounds) else min(b for b in bounds if b is not None)
+            )
+            found = search.best_in_group(base, with_i, hold, s_max, bound)
+            for m in best:
+                keep(m, found)
+        for m, f_m in floors.items():  # a floor is a requirement, not only a pruning bound
+            b_m = best.get(m)
+            if f_m is not None and b_m is not None and b_m.rank[0] < f_m - 1e-9:
+                best[m] = None
+        return best
+
+    # checked down to the margin; then, with own-force compensation, down to the softer object
+    # of the model error where that costs at most SOFT_END_COST_STEPS (softest_k_o)
+    lo = (1.0 - margin) * k_o
+    best = search_from(lo, dict.fromkeys(modes))
+    lo_of: dict[Mode, float] = dict.fromkeys(best, lo)  # type: ignore[arg-type]
+    soft = softest_k_o(k_o, margin, stiffer_by)
+    if own_force and soft < lo * (1.0 - 1e-12):
+        floors: dict[Mode, float | None] = {
+            m: None if c is None else c.rank[0] - SOFT_END_COST_STEPS for m, c in best.items()
+        }
+        wide = search_from(soft, floors)
+        for m, c in wide.items():
+            if c is not None:
+                best[m], lo_of[m] = c, soft
 
     out: dict[Mode, GainDesign] = {}
     for m in ("p", "pi"):
@@ -473,7 +538,7 @@ def design_gains_modes(
             felt_stiffness_ratio_1hz=found.felt_stiffness_ratio_1hz,
             felt_stiffness_ratio_8hz=found.felt_stiffness_ratio_8hz,
             k_o=float(k_o),
-            k_o_range=(lo, hi),
+            k_o_range=(lo_of[m], hi),
             rate_ratio=N,
             delay_ticks=delay,
             mode=m,

@@ -113,6 +113,17 @@ STIFFER_BY = 0.25
 #: ``ClientSession.margin``, ``GainAdvisor.margin``).
 DESIGN_MARGIN = 0.15
 
+#: Steps of :data:`DESIGN_TIE` a design may give up to be checked down to the softer object of the
+#: model error, ``K_o / (1 + stiffer_by)`` (:func:`shared.gains.design.softest_k_o`), instead of
+#: the margin's ``(1 - margin) K_o``: one step, so that the wider check costs less than a stiffness
+#: JND (two steps). Checked only to 0.85 K_o, a design for 100 N/m at 10 Hz with one tick of delay
+#: held the box's loose heavy hand in a ring decaying at 0.69/s on a spring 20 % softer than
+#: reported (spectral radius 0.933 against the margin's 0.905), which a second user's release
+#: set off; checked to 0.80 K_o everywhere, the cells of 1000 N/m with 10 ticks of delay lost
+#: their compensated designs (the paper's P, a fifth as stiff) and a press on a stiffening
+#: object cycled between them and the compensated verified planes (docs/fidelity.md).
+SOFT_END_COST_STEPS = 1
+
 #: Ratio between neighbouring K_o grid points of a :class:`shared.gains.table.GainTable`.
 K_O_GRID_RATIO = 1.1
 

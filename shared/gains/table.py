@@ -28,7 +28,10 @@ def stiffest_k_o(k_o: float, stiffer_by: float, b_o: float) -> float:
 
 
 def cell_k_o_range(key: GainKey, cell: int, grid_ratio: float) -> tuple[float, float]:
-    """``[(1 - margin) g_i, k_o_hi]`` [N/m], the K_o range a :class:`GainTable` cell is checked over.
+    """``[(1 - margin) g_i, k_o_hi]`` [N/m], the K_o range every design of a :class:`GainTable`
+    cell is checked over (a compensated design may be checked further down, to ``g_i / (1 +
+    stiffer_by)``, where that costs less than a JND: its ``k_o_range`` says so;
+    :func:`shared.gains.design.softest_k_o`).
 
     ``g_i = grid_ratio**cell``; ``k_o_hi`` is the next grid point times ``1 + key.stiffer_by``,
     or its one-tick stiffness ``g_(i+1) + key.b_o`` where that is higher (an object with mass
