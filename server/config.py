@@ -160,6 +160,12 @@ SERVER_OPTIONS: dict[str, _Option] = {
     "room_idle": _Option(
         "float", "seconds an empty on-demand room lives before it is closed", _positive
     ),
+    "tick_priority": _Option(
+        "str",
+        "realtime: the simulation thread asks for SCHED_FIFO (or a negative nice) where allowed; "
+        "off: the ordinary policy (docs/fem.md, 'Under load')",
+        _one_of("realtime", "off"),
+    ),
 }
 
 #: Keys of a ``[rooms.NAME]`` or ``[room_templates.NAME]`` table: what one room's object, rates

@@ -127,6 +127,10 @@ _RUN_CACHE_ENV = "HAPTIC_TEST_RUN_CACHE"
 # no client of the tests builds its device's gain table before joining (module docstring)
 os.environ["HAPTIC_GAIN_BUILD"] = "0"
 
+# the tests' servers tick at the ordinary policy (their in-process servers would otherwise run
+# the pytest thread at SCHED_FIFO while they serve; server.priority)
+os.environ.setdefault("HAPTIC_TICK_PRIORITY", "off")
+
 
 def pytest_configure(config: pytest.Config) -> None:
     """One ``XDG_CACHE_HOME`` for the run: made by the first process (the xdist controller, or

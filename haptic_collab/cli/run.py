@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -194,6 +195,7 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         drain_grace_s=args.drain_grace_s,
         room_processes=args.room_processes,
         gravity_m_s2=float(getattr(args, "gravity", 0.0) or 0.0),
+        tick_priority=getattr(args, "tick_priority", "realtime"),
     )
 
 
@@ -313,6 +315,14 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         action="store_true",
         help="run each room's simulation in a process of its own (a slow room's tick then "
         "delays no other room; a room process that dies is restarted)",
+    )
+    rooms.add_argument(
+        "--tick-priority",
+        choices=["realtime", "off"],
+        default=os.environ.get("HAPTIC_TICK_PRIORITY", "realtime"),
+        help="realtime: the simulation thread asks for SCHED_FIFO 5, else nice -10, where "
+        "allowed (default, or $HAPTIC_TICK_PRIORITY); off: the ordinary policy (docs/fem.md, "
+        "'Under load')",
     )
     rooms.add_argument(
         "--room-idle",
