@@ -89,7 +89,15 @@ def test_a_client_follows_its_room_through_the_lobby_when_its_server_drains(tmp_
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
         client_log.close()
+
+        def servo_running() -> bool:
+            """The client's servo runs (its "joined as" line: the servo starts at the first
+            welcome and patches are rendered from then on; on a loaded machine that comes a
+            while after the server counts the user)."""
+            return " joined as " in (tmp_path / "A.log").read_text()
+
         wait_for(lambda: lab_users(a) == 1, 60.0, "the client in room lab on server a")
+        wait_for(servo_running, 60.0, "the client's servo on server a")
         assert "lab" not in b.status()["rooms"]
         a.proc.send_signal(signal.SIGTERM)  # a drains
         assert a.proc.wait(20.0) == 0
