@@ -497,11 +497,17 @@ async def test_viewer_shows_the_dent_users_and_coupled_force() -> None:
         # A holds still: the indentation shown is the server's surface displacement there
         while a.depth_m != a.target_m and loop.time() < deadline:
             await asyncio.sleep(0.1)
-        await asyncio.sleep(1.0)
-        users = await _viewer_users(page)
-        shown = users["A"]["indentation_mm"]
-        assert shown is not None and shown >= 0.0
-        truth = _server_indentation_mm(app, users["A"]["proxy_m"])
+        # the dent settles after A's probe stops (slower on a loaded machine): the viewer shows
+        # the server's indentation once both stand still
+        settle = loop.time() + 10.0
+        while True:
+            await asyncio.sleep(1.0)
+            users = await _viewer_users(page)
+            shown = users["A"]["indentation_mm"]
+            assert shown is not None and shown >= 0.0
+            truth = _server_indentation_mm(app, users["A"]["proxy_m"])
+            if (truth > 2.0 and abs(shown - truth) < 0.3) or loop.time() > settle:
+                break
         assert truth > 2.0 and abs(shown - truth) < 0.3, (shown, truth)
         await page.wait_for_timeout(300)
         text = await card_a.locator(".indent-value").inner_text()
