@@ -24,7 +24,13 @@ from typing import Literal
 
 from haptic_collab.client.workers import timed
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from haptic_collab.shared.gains.choose import VERIFIED_SOURCES, DesignJob, Known, without_design
+from haptic_collab.shared.gains.choose import (
+    VERIFIED_SOURCES,
+    DesignJob,
+    Known,
+    table_design,
+    without_design,
+)
 from haptic_collab.shared.gains.delay import DelayHold, measured_delay_ticks
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.interim import interim_design
@@ -193,7 +199,9 @@ class GainAdvisor:
         ``in_contact`` or not: the loop delay's hold, :meth:`delay_ticks`), or None while none
         are verified yet.
 
-        A dictionary lookup; a missing cell queues an interim check and a design
+        A dictionary lookup (:func:`shared.gains.choose.table_design`: a key with object
+        damping gets the shipped design for B_o = 0 where its offline check covers that B_o,
+        as on the client); a missing cell queues an interim check and a design
         (:meth:`next_job`). Never raises for a hostile or odd user: unsupported rates give None.
         """
         if not (math.isfinite(k_o_eff) and k_o_eff > 0.0):
@@ -203,7 +211,9 @@ class GainAdvisor:
         except ValueError:
             return None
         cell = self.table.cell(k_o_eff)
-        design = self.table.lookup(key, k_o_eff)
+        # the client's own rule for the table (a damped key gets the design for B_o = 0 its
+        # offline check covers: shared.gains.choose.table_design)
+        design = table_design(self.table, key, k_o_eff)[0]
         interim = design is None
         if design is None:
             # the client's own rule for a cell without a design (shared.gains.choose), of which

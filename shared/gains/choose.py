@@ -21,7 +21,11 @@ The sources, in the order they are tried (docs/gains.md, "Which gains render"):
    server), where this device may render them and they cover the delay measured here;
    ``server-interim`` while the server's are checked interim gains, which yield to a design of
    this client's own.
-4. ``design``: the cell's design in the table (shipped, cached or made this session).
+4. ``design``: the cell's design in the table (shipped, cached or made this session);
+   ``design-b_o``: for a key with object damping B_o > 0 whose cell has none, the shipped design
+   of the same key with B_o = 0, where that design was checked offline on the damped loop up to
+   the key's B_o (:func:`table_design`, :mod:`shared.gains.damping_cover`): a designed, verified
+   cell, no design asked for.
 5. ``interim``: gains checked for this key and cell (:func:`shared.gains.interim.interim_design`).
 6. ``covering``: a design or check of this cell for a wider coupling class
    (:func:`shared.gains.key.covering_classes`), checked over a range containing this key's.
@@ -54,6 +58,7 @@ from haptic_collab.shared.gains.policy import (
 )
 from haptic_collab.shared.gains.rest_plane import RestPlaneGains, rest_plane_gains
 from haptic_collab.shared.gains.table import GainTable
+from haptic_collab.shared.gains.table_file import b_o_covered
 from haptic_collab.shared.local_model_update import LocalModelUpdate, SurfacePatch
 from haptic_collab.shared.protocol import RecommendedGains
 
@@ -68,6 +73,7 @@ Source = Literal[
     "server",
     "server-interim",
     "design",
+    "design-b_o",
     "interim",
     "covering",
     "near",
@@ -77,7 +83,7 @@ Source = Literal[
 #: The sources whose gains passed the full-loop check for the patch's key and cell (or, for the
 #: rest plane, need none).
 VERIFIED_SOURCES: frozenset[str] = frozenset(
-    {"rest", "plane", "server", "server-interim", "design", "interim", "covering"}
+    {"rest", "plane", "server", "server-interim", "design", "design-b_o", "interim", "covering"}
 )
 
 
@@ -226,7 +232,7 @@ class Choice:
     @property
     def fallback(self) -> bool:
         """No design (of this client's or the server's) nor verified plane renders."""
-        return self.source not in ("rest", "plane", "server", "design")
+        return self.source not in ("rest", "plane", "server", "design", "design-b_o")
 
 
 def known_gains(
@@ -301,12 +307,41 @@ def recommended(
     )  # fmt: skip
 
 
+def table_design(
+    table: GainTable, key: GainKey, k_o: float
+) -> tuple[GainDesign | None, Literal["design", "design-b_o"] | None]:
+    """The table's design for ``key`` at a reported ``k_o`` [N/m] and its source: the one rule by
+    which a key meets the table (the client's :func:`choose`, the server's gain advisor).
+
+    The cell's own design (``"design"``). Else, for a key with object damping B_o > 0 (eq. 9;
+    the FEM solid's), the design of the same key with B_o = 0 (``"design-b_o"``) where that
+    design's coverage (:func:`shared.gains.table_file.b_o_covered`: checked offline on the loop
+    with every lattice B_o up to it, :mod:`shared.gains.damping_cover`) reaches ``key.b_o``: a
+    design for less object damping, the safe side of the paper's eq. 10, verified on the damped
+    loop with the hand in it. Else ``(None, None)``: the cell is designed during the session.
+
+    Raises
+    ------
+    ValueError
+        ``k_o`` not a finite stiffness > 0 (:meth:`GainTable.cell`).
+    """
+    d = table.lookup(key, k_o)
+    if d is not None:
+        return d, "design"
+    if key.b_o > 0.0:
+        undamped = replace(key, b_o=0.0)
+        d = table.lookup(undamped, k_o)
+        if d is not None and key.b_o <= b_o_covered(table, undamped, table.cell(k_o)):
+            return d, "design-b_o"
+    return None, None
+
+
 def covering(known: Known, key: GainKey, cell: int, k_o_eff: float) -> GainDesign | None:
     """Gains designed or checked for this cell and a wider coupling class, if any: checked over a
     K_o range containing this key's (:func:`shared.gains.key.covering_classes`)."""
     for c in covering_classes(key.stiff_ratio):
         wider = replace(key, stiff_ratio=c)
-        d = known.table.lookup(wider, k_o_eff)
+        d = table_design(known.table, wider, k_o_eff)[0]
         if d is None:
             d = known.interim.get((wider, cell))
         if d is not None:
@@ -369,15 +404,13 @@ def choose(
     k_o_eff = surface.k_o_eff
     table = known.table
     cell = table.cell(k_o_eff)
-    own = table.lookup(key, k_o_eff)
+    own, own_source = table_design(table, key, k_o_eff)
     jobs: list[Job] = []
     gains: GainDesign | None = recommended(rec, options, k_o_eff, d, own)
     source: Source | None = (
         ("server-interim" if rec is not None and rec.interim else "server")
         if gains is not None
-        else "design"
-        if own is not None
-        else None
+        else own_source
     )
     if gains is None:
         gains = own
@@ -465,7 +498,7 @@ def _held_in_hold(
     in_use = contact.in_use
     if (
         gains is None
-        or source not in ("server", "design")
+        or source not in ("server", "design", "design-b_o")
         or in_use is None
         or in_use.choice is None
         or in_use.choice.source not in ("interim", "covering", "server-interim")

@@ -127,6 +127,14 @@ SOFT_END_COST_STEPS = 1
 #: Ratio between neighbouring K_o grid points of a :class:`shared.gains.table.GainTable`.
 K_O_GRID_RATIO = 1.1
 
+#: Object dampings B_o [N/m] (eq. 9) a shipped design for B_o = 0 is checked at, offline, to be
+#: rendered for a key with B_o > 0 (:func:`shared.gains.damping_cover.covered_b_o`; ``b_o_covered``
+#: in a shipped table). Whole N/m, as the key quantizes B_o (:func:`shared.gains.key.make_gain_key`),
+#: doubling from 1 to 64: the default liver sphere reports 7.7 N/m at its top and 53 at its side
+#: (docs/fem.md). Doubling, not a finer ratio, for the cost: a check is 0.1-0.4 s of CPU and the
+#: two profiles hold 1363 distinct designs (docs/results/fem-table-cover-2026-11-27.json).
+B_O_COVER_LATTICE: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
+
 #: The coupling class in use falls only when the measured one is this many times lower.
 STIFF_CLASS_FALL = 4.0
 

@@ -20,14 +20,17 @@ modules' source files.
 from __future__ import annotations
 
 import ast
+import functools
 import hashlib
 import importlib.util
 import json
 import math
+import weakref
 from collections.abc import Iterable, Mapping
 from typing import Any
 
 from haptic_collab.shared.full_loop import HandBox
+from haptic_collab.shared.gains.damping_cover import valid_cover
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.key import GainKey, make_gain_key
 from haptic_collab.shared.gains.policy import DESIGN_MARGIN
@@ -263,6 +266,33 @@ def design_code_hash(roots: Iterable[str] = DESIGN_ROOTS) -> str:
     return h.hexdigest()[:16]
 
 
+#: The module of the damping coverage check (:mod:`shared.gains.damping_cover`):
+#: :func:`cover_code_hash` starts there.
+COVER_ROOTS = ("haptic_collab.shared.gains.damping_cover",)
+
+
+@functools.cache
+def cover_code_hash() -> str:
+    """:func:`design_code_hash` of the damping coverage check (:data:`COVER_ROOTS`: the check,
+    the full loop it runs and the lattice it reads, :data:`shared.gains.policy.B_O_COVER_LATTICE`):
+    a table's ``b_o_covered`` holds for the check of this hash only. Computed once per process
+    (the source files are read once)."""
+    return design_code_hash(COVER_ROOTS)
+
+
+def cover_header(cover_code: str) -> dict[str, Any]:
+    """A table document's ``damping_cover`` entry: the cover code's hash and the lattice [N/m]."""
+    from haptic_collab.shared.gains.policy import B_O_COVER_LATTICE
+
+    return {"code": cover_code, "lattice": list(B_O_COVER_LATTICE)}
+
+
+def cover_is_fresh(doc: Mapping[str, Any], cover_code: str) -> bool:
+    """Whether ``doc``'s ``b_o_covered`` values were made by the check of hash ``cover_code``."""
+    head = doc.get("damping_cover")
+    return isinstance(head, Mapping) and head.get("code") == cover_code
+
+
 #: What a shipped table covers, for each built-in profile: the servo rate [Hz], the simulation
 #: rates [Hz], the loop delays [ticks], the coupling classes (K_o_stiff / K_o_eff), the K_o range
 #: [N/m] (every grid cell from the one holding the lower end to the one holding the upper), both
@@ -314,34 +344,83 @@ def ship_jobs(
     return jobs
 
 
+#: Each table's damping coverage: ``{(key, cell): b_o_covered}`` [N/m] of its designs for B_o = 0
+#: that a shipped table checked on damped objects (:mod:`shared.gains.damping_cover`). Kept
+#: beside the table, not in it: :class:`shared.gains.table.GainTable` is design code
+#: (:func:`design_code_hash` hashes it), and the coverage is not. Filled by
+#: :func:`load_table_document`; read by :func:`b_o_covered`.
+_COVERS: weakref.WeakKeyDictionary[GainTable, dict[tuple[GainKey, int], float]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def b_o_covered(table: GainTable, key: GainKey, cell: int) -> float:
+    """The object damping B_o [N/m] up to which ``table``'s design of ``cell`` of ``key`` (a key
+    with B_o = 0) passed its check on the damped loop (:func:`shared.gains.damping_cover.covered_b_o`);
+    0 where it was not checked (a design made during a session, a cache's, a stale coverage)."""
+    covers = _COVERS.get(table)
+    return 0.0 if covers is None else covers.get((key, cell), 0.0)
+
+
+def set_b_o_covered(table: GainTable, key: GainKey, cell: int, b_o: float) -> None:
+    """Record ``b_o`` [N/m] as the coverage of ``table``'s design of ``cell`` of ``key``
+    (:func:`b_o_covered`). 0 removes it.
+
+    Raises
+    ------
+    ValueError
+        As :func:`shared.gains.damping_cover.valid_cover`, or a ``key`` with B_o > 0.
+    """
+    v = valid_cover(b_o)
+    if key.b_o != 0.0:
+        raise ValueError(f"a coverage is of a design for B_o = 0, got a key of B_o {key.b_o!r}")
+    covers = _COVERS.setdefault(table, {})
+    if v > 0.0:
+        covers[(key, cell)] = v
+    else:
+        covers.pop((key, cell), None)
+
+
 def table_document(table: GainTable, design_code: str) -> dict[str, Any]:
     """``table``'s designs as a JSON-ready document: its format, the design code's hash
     (:func:`design_code_hash`), the hand box and grid ratio the designs hold for, and one record
     per cell (:func:`key_record`, :func:`design_record`), sorted so that the same designs give
     the same document."""
-    cells = [
-        {"key": key_record(k), "cell": c, "design": design_record(d)} for k, c, d in table.cells()
-    ]
+    covers = _COVERS.get(table, {})
+    cells: list[dict[str, Any]] = []
+    for k, c, d in table.cells():
+        rec: dict[str, Any] = {"key": key_record(k), "cell": c, "design": design_record(d)}
+        if covers:
+            rec["b_o_covered"] = covers.get((k, c), 0.0)
+        cells.append(rec)
     cells.sort(key=lambda r: (json.dumps(r["key"], sort_keys=True), r["cell"]))
-    return {
+    doc: dict[str, Any] = {
         "format": TABLE_FORMAT,
         "design_code": design_code,
         "hand_box": repr(table.hand_box),
         "grid_ratio": table.grid_ratio,
         "cells": cells,
     }
+    if covers:
+        doc["damping_cover"] = cover_header(cover_code_hash())
+    return doc
 
 
 def load_table_document(table: GainTable, doc: Any, design_code: str) -> int:
     """Store the cells of ``doc`` (:func:`table_document`) in ``table``; the number stored.
 
-    Cells ``table`` has already are kept as they are.
+    Cells ``table`` has already are kept as they are. A cell's ``b_o_covered`` [N/m] (a shipped
+    table's: :mod:`shared.gains.damping_cover`) is recorded for ``table``
+    (:func:`b_o_covered`) when the document's ``damping_cover`` names this cover code
+    (:func:`cover_code_hash`); a coverage of another check code is dropped, its designs kept.
 
     Raises
     ------
     ValueError
         ``doc`` is of another format, design code, hand box or grid ratio than ``table`` and
-        ``design_code``, or a record is malformed: nothing is stored then.
+        ``design_code``, or a record is malformed (a ``b_o_covered`` that is NaN, negative,
+        infinite or not a number included, whatever its cover code: a corrupted file): nothing
+        is stored then.
     """
     if not isinstance(doc, Mapping):
         raise ValueError("a gain table document is a JSON object")
@@ -358,6 +437,11 @@ def load_table_document(table: GainTable, doc: Any, design_code: str) -> int:
     cells = doc.get("cells")
     if not isinstance(cells, list):
         raise ValueError("a gain table document's cells are a list")
+    head = doc.get("damping_cover")
+    if head is not None and not (isinstance(head, Mapping) and isinstance(head.get("code"), str)):
+        raise ValueError(f"a gain table's damping_cover is {{code, lattice}}, got {head!r}")
+    # a coverage of another check code or lattice is not used (the designs still are)
+    fresh = head is not None and head.get("code") == cover_code_hash()
     parsed = []
     for rec in cells:
         if not isinstance(rec, Mapping):
@@ -366,12 +450,23 @@ def load_table_document(table: GainTable, doc: Any, design_code: str) -> int:
         cell = rec.get("cell")
         if not isinstance(cell, int) or isinstance(cell, bool):
             raise ValueError(f"a gain table cell's index is an integer, got {cell!r}")
-        parsed.append((key, cell, design_from_record(rec.get("design", {}), table.hand_box)))
+        cover = 0.0
+        if "b_o_covered" in rec:
+            try:
+                cover = valid_cover(rec["b_o_covered"])
+            except ValueError as exc:
+                raise ValueError(f"gain table cell {cell} of {key}: {exc}") from None
+            if cover > 0.0 and key.b_o != 0.0:
+                raise ValueError(f"gain table cell {cell} of {key}: a coverage of a damped key")
+        design = design_from_record(rec.get("design", {}), table.hand_box)
+        parsed.append((key, cell, design, cover if fresh else 0.0))
     added = 0
-    for key, cell, design in parsed:
+    for key, cell, design, cover in parsed:
         if not table.has(key, cell):
             table.store(key, cell, design)
             added += 1
+            if cover > 0.0:
+                set_b_o_covered(table, key, cell, cover)
     return added
 
 
