@@ -526,11 +526,13 @@ async def test_viewer_shows_the_dent_users_and_coupled_force() -> None:
             assert color == users[name]["color"]
         assert users["A"]["color"] != users["B"]["color"]
 
-        # the colour legend is there in mm and covers the dent
-        state = await page.evaluate("() => window.viewerState")
+        # the colour legend is there in mm and covers the dent (read in one go with the state:
+        # the scale may change between two reads while the dent settles)
+        state, legend = await page.evaluate(
+            "() => [window.viewerState, document.getElementById('cm-in').textContent]"
+        )
         scale = state["colorScale"]
         assert await page.locator("#colormap").is_visible()
-        legend = await page.locator("#cm-in").inner_text()
         assert legend == f"−{scale['range_mm']:g} mm", legend
         assert scale["max_in_mm"] >= shown - 0.05 and scale["range_mm"] >= scale["max_in_mm"]
 
