@@ -25,6 +25,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -35,9 +36,13 @@ import tempfile
 import time
 import urllib.request
 import webbrowser
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+import numpy.typing as npt
 
 from haptic_collab.client.devices.trajectories import Sweep
 from haptic_collab.demo_report import (
@@ -98,6 +103,9 @@ class DemoOptions:
     #: (the palpation scenario writes its own lump and twin when none are given).
     inclusions: tuple[str, ...] = ()
     inclusion_materials: tuple[str, ...] = ()
+    #: ``--gravity`` [m/s^2]: the FEM solid sags under its own weight at start (0: weightless);
+    #: passed to the server, refused with the balloon (:func:`check_gravity`).
+    gravity_m_s2: float = 0.0
 
     def hand_args(self) -> list[str]:
         """``haptic client`` flags for the simulated hand values that were given (both users)."""
@@ -225,6 +233,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         raise ValueError("--duration must be at least 12 s (approach, press, hold, release)")
     if opts.scenario not in SCENARIOS:
         raise ValueError(f"--scenario must be one of {', '.join(SCENARIOS)}, got {opts.scenario!r}")
+    check_gravity(opts)
     if opts.scenario == "palpation":
         if opts.mesh != "balloon" or opts.mesh_scale is not None or opts.mesh_size is not None:
             raise ValueError(
@@ -316,6 +325,14 @@ SWEEP_HALF_ANGLE_RAD = math.radians(35.0)
 #: The palpating hand's target depth under the surface while it slides [m].
 SWEEP_DEPTH_M = 0.010
 
+#: How far from the sphere's centre the hand waits outside the slide's ends at most [m]: the
+#: 0.1 m ball's radius and the sweep's 30 mm standoff. A larger sphere (the flatter top of a
+#: sagged ball, 116 mm) gets a shorter standoff, at least :data:`SWEEP_MIN_STANDOFF_M`, so that
+#: the hand's start stays inside the simulated Phantom Desktop's 160 mm wide workspace.
+SWEEP_REACH_M = 0.13
+#: The shortest standoff outside the slide's ends [m].
+SWEEP_MIN_STANDOFF_M = 0.015
+
 
 def palpation_timeline(duration_s: float) -> tuple[Timeline, float]:
     """A's palpation for a run of ``duration_s`` seconds: its :class:`Timeline` (the press, a 2 s
@@ -358,9 +375,53 @@ def palpation_setup(
     flags: list[str] = []
     for f, m in zip(files, materials, strict=True):
         flags += ["--inclusion", f, "--inclusion-material", m]
+    sweep = write_sweep(work, tl, sweep_s)
+    over = tuple(float(v) for v in lump_direction(LUMP_ANGLE_RAD, 1.0))
+    beside = tuple(float(v) for v in lump_direction(LUMP_ANGLE_RAD, -1.0))
+    return tl, sweep, flags, (over, beside)  # type: ignore[return-value]
+
+
+def write_sweep(
+    work: Path,
+    tl: Timeline,
+    sweep_s: float,
+    centre: FloatVec = (0.0, 0.0, 0.0),
+    radius_m: float = 0.1,
+) -> Sweep:
+    """A's palpating sweep over the top of the sphere (``centre`` [m], ``radius_m`` [m]), written
+    as ``work/sweep.csv`` (``t_s, x_m, y_m, z_m`` at 200 Hz, for ``sim:replay``).
+
+    The default sphere is the unloaded liver ball; under ``--gravity`` the demo passes the
+    sphere fitted to the rest surface the server reports (:func:`fit_top_sphere`), so that the
+    hand slides :data:`SWEEP_DEPTH_M` inside the sagged top, not 10 mm above it. The hand
+    waits :data:`SWEEP_REACH_M` from the centre (30 mm outside the default sphere), never less
+    than :data:`SWEEP_MIN_STANDOFF_M` outside the surface.
+
+    Parameters
+    ----------
+    work : Path
+        The run's folder.
+    tl : Timeline
+        A's palpation timeline (:func:`palpation_timeline`).
+    sweep_s : float
+        The slide's one-way duration [s].
+    centre : (3,) float
+        The sphere's centre [m].
+    radius_m : float
+        Its radius [m].
+
+    Returns
+    -------
+    Sweep
+        The trajectory written.
+    """
+    from haptic_collab.research.palpation import lump_direction
+
+    standoff = min(0.03, max(SWEEP_MIN_STANDOFF_M, SWEEP_REACH_M - radius_m))
     sweep = Sweep(
-        centre=(0.0, 0.0, 0.0),
-        radius_m=0.1,
+        centre=centre,
+        radius_m=radius_m,
+        standoff_m=standoff,
         start=tuple(lump_direction(SWEEP_HALF_ANGLE_RAD, -1.0)),
         end=tuple(lump_direction(SWEEP_HALF_ANGLE_RAD, 1.0)),
         depth_m=SWEEP_DEPTH_M,
@@ -376,25 +437,170 @@ def palpation_setup(
         for i in range(int((sweep.duration_s + 1.0) * 200) + 1):
             x, y, z = sweep(i / 200.0)
             fh.write(f"{i / 200.0:.3f},{x:.6f},{y:.6f},{z:.6f}\n")
-    over = tuple(float(v) for v in lump_direction(LUMP_ANGLE_RAD, 1.0))
-    beside = tuple(float(v) for v in lump_direction(LUMP_ANGLE_RAD, -1.0))
-    return tl, sweep, flags, (over, beside)  # type: ignore[return-value]
+    return sweep
 
 
-def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
-    """Run the processes with their logs and telemetry in ``work``; report, plot, summary."""
-    tl = timeline(opts.duration_s)
-    palpation: tuple[Sweep, tuple[FloatVec, FloatVec]] | None = None
-    a_device, a_extra = "sim:press", ["--trajectory", tl.options()]
-    inclusion_flags: list[str] = []
-    for file, material in zip(opts.inclusions, opts.inclusion_materials, strict=True):
-        inclusion_flags += ["--inclusion", file, "--inclusion-material", material]
-    if opts.scenario == "palpation":
-        tl, sweep, inclusion_flags, where = palpation_setup(work, opts)
-        palpation = (sweep, where)
-        a_device, a_extra = f"sim:replay:{work / 'sweep.csv'}", []
-    urls = viewer_urls(opts.host, port)
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+#: The cap of the rest surface a sagged top's sphere is fitted to: the vertices within this
+#: angle of +z from the object's centre [rad], the sweep's 35 degrees and a finger pad more.
+FIT_CAP_RAD = math.radians(45.0)
+
+
+def fit_top_sphere(
+    vertices: npt.ArrayLike, centre: Sequence[float], cap_rad: float = FIT_CAP_RAD
+) -> tuple[FloatVec, float]:
+    """The sphere (centre [m], radius [m]) closest to the top cap of a surface, by linear least
+    squares (``|v|^2 = 2 c . v + r^2 - |c|^2``).
+
+    The palpating hand slides at a fixed depth under a sphere (:class:`Sweep`); on a ball sagged
+    under its own weight the top is about 20 mm lower and a little flatter than the mesh's sphere,
+    and this is the sphere of the surface the server reports.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+        The rest surface [m] (the server's ``VTX1`` frame).
+    centre : (3,) float
+        The object's centre [m] (the welcome's ``center_m``): the cap is the vertices within
+        ``cap_rad`` of +z seen from it.
+    cap_rad : float
+        Half-angle of the cap [rad].
+
+    Returns
+    -------
+    ((3,) float, float)
+        The fitted centre [m] and radius [m].
+
+    Raises
+    ------
+    RuntimeError
+        Fewer than 10 vertices in the cap, or a fit that is not finite.
+    """
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    rel = v - np.asarray(centre, dtype=np.float64)
+    length = np.linalg.norm(rel, axis=1)
+    cap = v[(length > 0.0) & (rel[:, 2] > math.cos(cap_rad) * length)]
+    if len(cap) < 10:
+        raise RuntimeError(f"the object's top has {len(cap)} vertices: no sphere to sweep over")
+    a = np.column_stack([2.0 * cap, np.ones(len(cap))])
+    sol = np.linalg.lstsq(a, np.einsum("ij,ij->i", cap, cap), rcond=None)[0]
+    c = sol[:3]
+    r2 = float(sol[3] + c @ c)
+    if not (np.all(np.isfinite(c)) and math.isfinite(r2) and r2 > 0.0):
+        raise RuntimeError("the object's top fits no sphere")
+    return (float(c[0]), float(c[1]), float(c[2])), math.sqrt(r2)
+
+
+def rest_surface(
+    host: str, port: int, token: str | None = None, timeout_s: float = 30.0
+) -> tuple[dict[str, Any], npt.NDArray[np.float64]]:
+    """The object as the running server reports it: its welcome's object info and its rest
+    surface, read once as a viewer (hello, welcome, then the ``VTX1`` frame of rest positions).
+
+    With ``--gravity`` the rest surface is the sagged one (docs/fem.md, "Gravity"): the scripted
+    users must work on it, not on the mesh.
+
+    Parameters
+    ----------
+    host, port :
+        The demo's server.
+    token : str or None
+        The access token when the server asks for one.
+    timeout_s : float
+        How long to wait for the frames [s].
+
+    Returns
+    -------
+    (dict, (n, 3) float64)
+        The ``object`` of the welcome (:class:`shared.protocol.ObjectInfo` as JSON: ``top_m``,
+        ``center_m``, ... [m]) and the rest vertices [m].
+
+    Raises
+    ------
+    RuntimeError
+        The server sent no welcome or no rest surface in time.
+    """
+    from websockets.sync.client import connect
+
+    from haptic_collab.shared.protocol import (
+        PROTOCOL_VERSION,
+        VERTICES_MAGIC,
+        Hello,
+        decode_binary,
+        encode,
+    )
+
+    ws = f"ws://{url_host(local_host(host))}:{port}/ws"
+    info: dict[str, Any] | None = None
+    deadline = time.monotonic() + timeout_s
+    try:
+        with connect(ws, open_timeout=timeout_s, max_size=None) as conn:
+            conn.send(
+                encode(Hello(protocol=PROTOCOL_VERSION, role="viewer", name="demo", token=token))
+            )
+            while (left := deadline - time.monotonic()) > 0.0:
+                msg = conn.recv(timeout=left)
+                if isinstance(msg, str):
+                    body = json.loads(msg)
+                    if body.get("type") == "welcome":
+                        info = body["object"]
+                    elif body.get("type") == "error":
+                        raise RuntimeError(f"the server refused the demo's look: {body}")
+                elif msg[:4] == VERTICES_MAGIC and info is not None:
+                    _, _, rest = decode_binary(msg)
+                    return info, np.asarray(rest, dtype=np.float64)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise RuntimeError(f"could not read the object's rest surface from {ws}: {exc}") from exc
+    raise RuntimeError(f"the server at {ws} sent no rest surface within {timeout_s:g} s")
+
+
+def check_gravity(opts: DemoOptions) -> None:
+    """``--gravity``: finite, in [0, 100] m/s^2, and only with an FEM object (``--object fem`` or
+    the palpation scenario), as the server checks it.
+
+    Raises
+    ------
+    ValueError
+        Out of range, or given (> 0) with the balloon, which has no weight model.
+    """
+    g = float(opts.gravity_m_s2)
+    if not (math.isfinite(g) and 0.0 <= g <= 100.0):
+        raise ValueError(f"--gravity must be in [0, 100] m/s^2 (9.81 on Earth), got {g:g}")
+    if g > 0.0 and opts.object != "fem" and opts.scenario != "palpation":
+        raise ValueError(
+            "--gravity needs --object fem or --scenario palpation (the balloon has no weight model)"
+        )
+
+
+def object_title(opts: DemoOptions) -> str:
+    """The object in a few words, for the plot's title and the summary: ``water balloon``, or
+    the FEM solid's material, with ``gravity G m/s^2`` when it sagged under its own weight
+    (e.g. ``FEM liver, gravity 9.81 m/s^2``)."""
+    fem = opts.object == "fem" or opts.scenario == "palpation"
+    if not fem:
+        return "water balloon" if opts.material is None else f"balloon ({opts.material})"
+    material = Path(opts.material).stem if opts.material is not None else "liver"
+    words = f"FEM {material}"
+    if opts.gravity_m_s2 > 0.0:
+        words += f", gravity {opts.gravity_m_s2:g} m/s^2"
+    return words
+
+
+#: The server's log line that says how far the FEM solid sagged (server.main).
+_SAG_LOG = re.compile(r"sagged under its own weight \(g ([0-9.eE+-]+) m/s\^2\), ([0-9.]+) mm")
+
+
+def logged_sag_mm(server_log: str) -> float | None:
+    """How far the solid sagged under its own weight [mm], as its server logged it (None: not
+    logged, no gravity)."""
+    m = _SAG_LOG.search(server_log)
+    return float(m.group(2)) if m else None
+
+
+def server_command(opts: DemoOptions, port: int) -> list[str]:
+    """The demo's ``haptic server`` command for ``opts`` on ``port`` (without the palpation
+    lump's ``--inclusion`` flags or a token): the object, its mesh and material, the rates, the
+    injected link and, for an FEM object, ``--gravity`` (never for the balloon:
+    :func:`check_gravity`)."""
     server_cmd = _haptic(
         "--log-level", opts.log_level,
         "server", "--host", opts.host, "--port", str(port), "--mesh", opts.mesh,
@@ -412,8 +618,31 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         server_cmd += ["--mesh-size", repr(float(opts.mesh_size))]
     if opts.mesh_max_edge is not None:
         server_cmd += ["--mesh-max-edge", repr(float(opts.mesh_max_edge))]
+    fem = opts.object == "fem" or opts.scenario == "palpation"
+    if opts.gravity_m_s2 > 0.0 and fem:  # it sags at start
+        server_cmd += ["--gravity", repr(float(opts.gravity_m_s2))]
+    return server_cmd
+
+
+def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
+    """Run the processes with their logs and telemetry in ``work``; report, plot, summary."""
+    tl = timeline(opts.duration_s)
+    palpation: tuple[Sweep, tuple[FloatVec, FloatVec]] | None = None
+    a_device, a_extra = "sim:press", ["--trajectory", tl.options()]
+    inclusion_flags: list[str] = []
+    for file, material in zip(opts.inclusions, opts.inclusion_materials, strict=True):
+        inclusion_flags += ["--inclusion", file, "--inclusion-material", material]
+    if opts.scenario == "palpation":
+        tl, sweep, inclusion_flags, where = palpation_setup(work, opts)
+        palpation = (sweep, where)
+        palpation_sweep_s = palpation_timeline(opts.duration_s)[1]
+        a_device, a_extra = f"sim:replay:{work / 'sweep.csv'}", []
+    urls = viewer_urls(opts.host, port)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    server_cmd = server_command(opts, port)
     server_cmd += inclusion_flags
     hint = ""
+    token: str | None = None
     if not is_loopback(local_host(opts.host)) or opts.host in WILDCARD_HOSTS:
         # reachable from the network: the demo's users and viewers need a token (docs/security.md)
         token = secrets.token_urlsafe(18)
@@ -438,12 +667,19 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
             if time.monotonic() - t0 > 60.0:
                 raise RuntimeError("the server did not come up within 60 s")
             time.sleep(0.1)
+        if palpation is not None and opts.gravity_m_s2 > 0.0:
+            # the sweep slides over the sagged top the server reports, not the mesh's sphere
+            info, rest = rest_surface(opts.host, port, token)
+            centre, radius = fit_top_sphere(rest, info["center_m"])
+            sweep = write_sweep(work, tl, palpation_sweep_s, centre, radius)
+            palpation = (sweep, palpation[1])
         opened = False
         if not opts.headless and _has_display():
             with contextlib.suppress(Exception):
                 opened = bool(webbrowser.open(urls[0] + hint))
+        subject = "balloon" if opts.object == "balloon" else object_title(opts)
         for line in opening_lines(
-            [u + hint for u in urls], tl, opts.duration_s, opened, opts.scenario
+            [u + hint for u in urls], tl, opts.duration_s, opened, opts.scenario, subject
         ):
             print(line, flush=True)
         ws = f"ws://{url_host(local_host(opts.host))}:{port}/ws"
@@ -530,20 +766,72 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         for u in report["users"].values():
             p99 = u.get("period_us_p99")
             u["period_p99_vs_reference"] = p99 / ref_p99 if p99 and ref_p99 else None
+    report["object"] = _object_report(opts, work)
     if palpation is not None:
         sweep, (over, beside) = palpation
         report["palpation"] = palpation_report(work, sweep, over, beside)
+        report["palpation"]["sphere"] = {
+            "centre_m": list(sweep.centre),
+            "radius_m": sweep.radius_m,
+            "from": "the server's rest surface" if opts.gravity_m_s2 > 0.0 else "the mesh",
+        }
     report["workdir"] = str(work) if opts.workdir is not None else None  # a temp one is deleted
     if opts.report:
         opts.report.parent.mkdir(parents=True, exist_ok=True)
         opts.report.write_text(json.dumps(report, indent=2))
     if opts.plot:
-        plot_demo(work, tl, opts.plot)
+        plot_demo(work, tl, opts.plot, report["object"]["title"])
+    print(object_line(report["object"]))
     print_summary(report)
     if "palpation" in report:
         for line in palpation_lines(report["palpation"]):
             print(line)
     return report
+
+
+def _object_report(opts: DemoOptions, work: Path) -> dict[str, Any]:
+    """The report's ``object``: what the users touched.
+
+    ``title`` (:func:`object_title`), ``object``, ``material``, ``gravity_m_s2``, ``sag_mm`` (how
+    far the solid sagged under its own weight, from the server's log; None without gravity) and
+    ``a_anchor_m``, ``b_anchor_m``: the surface points [m] the scripted hands worked on, as the
+    server reported them in each user's welcome (on the sagged surface under ``--gravity``).
+    """
+    anchors: dict[str, Any] = {}
+    for name in ("A", "B"):
+        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+            anchors[name] = json.loads((work / f"{name}.json").read_text())["anchor"]["point_m"]
+    sag: float | None = None
+    if opts.gravity_m_s2 > 0.0:
+        with contextlib.suppress(OSError):
+            sag = logged_sag_mm((work / "server.log").read_text(errors="replace"))
+    fem = opts.object == "fem" or opts.scenario == "palpation"
+    return {
+        "title": object_title(opts),
+        "object": "fem" if fem else opts.object,
+        "material": opts.material or ("liver" if fem else "water-balloon"),
+        "gravity_m_s2": float(opts.gravity_m_s2),
+        "sag_mm": sag,
+        "a_anchor_m": anchors.get("A"),
+        "b_anchor_m": anchors.get("B"),
+    }
+
+
+def object_line(obj: dict[str, Any]) -> str:
+    """The summary's first line: the object the users touched, and under gravity how far it
+    sagged and where A's hand met its sagged top (the report's ``object``)."""
+    line = f"object: {obj['title']}"
+    if obj["gravity_m_s2"] > 0.0:
+        sag = obj.get("sag_mm")
+        line += (
+            f"; it sagged {sag:.1f} mm under its own weight before anyone touched it"
+            if sag is not None
+            else "; it sagged under its own weight before anyone touched it"
+        )
+        a = obj.get("a_anchor_m")
+        if a is not None:
+            line += f" (A's top anchor, as the server reported it: z = {1e3 * a[2]:.1f} mm)"
+    return line
 
 
 #: How often the demo polls the server's status while the users run [s].
@@ -555,27 +843,36 @@ JOIN_S = 4.0
 
 
 def opening_lines(
-    urls: list[str], tl: Timeline, duration_s: float, opened: bool, scenario: str = "press"
+    urls: list[str],
+    tl: Timeline,
+    duration_s: float,
+    opened: bool,
+    scenario: str = "press",
+    subject: str = "balloon",
 ) -> list[str]:
     """What the demo says once its server is up: what to open now and for how long, and what
     will happen (A's timeline in seconds from A's start; the users need a few seconds to join;
-    ``scenario`` as ``--scenario``)."""
+    ``scenario`` as ``--scenario``; ``subject`` what the press scenario's users touch, e.g.
+    ``balloon`` or ``FEM liver, gravity 9.81 m/s^2``)."""
     # the users run duration_s once they have joined, which takes a few seconds
     lines = [f"open {urls[0]} now: the demo is live for about {duration_s + JOIN_S:.0f} s"]
     lines += [f"  (or {u})" for u in urls[1:]]
     if opened:
         lines.append("  (opened in your browser)")
+    sagged = f" (the {subject}: it has sagged under its own weight)" if "gravity" in subject else ""
     if scenario == "palpation":
         lines.append(
-            f"What happens: users A and B join; B rests on the liver's side; after "
+            f"What happens: users A and B join; B rests on the liver's side{sagged}; after "
             f"{tl.delay_s:.0f} s A presses into the top beside a hidden stiff lump, holds, then "
             f"slides across the top over the lump and back and lets go at "
             f"{tl.hold_end_s + tl.release_s:.0f} s. Over the lump A's force rises at the same "
             "depth; B feels A's sweep through the liver."
         )
         return lines
+    what = "balloon" if subject == "balloon" else "object"
     lines.append(
-        f"What happens: users A and B join; B rests on the balloon's side; after {tl.delay_s:.0f} s "
+        f"What happens: users A and B join; B rests on the {what}'s side{sagged}; after "
+        f"{tl.delay_s:.0f} s "
         f"A moves onto the top, presses in for {tl.press_s:g} s, holds until "
         f"{tl.hold_end_s:.0f} s and lets go. While A presses, B's side bulges out and B's force "
         "rises: B feels A."

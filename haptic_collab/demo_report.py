@@ -1212,8 +1212,10 @@ def run_verdict_line(report: dict[str, Any]) -> str:
     return f"verdict: {v['verdict']} ({who}; {felt}; exit status {code}: {EXIT_MEANING[code]})"
 
 
-def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
-    """PNG of both users' probe, proxy and force over time (A's press and B's response)."""
+def plot_demo(work: Path, tl: Timeline, path: Path, subject: str = "water balloon") -> None:
+    """PNG of both users' probe, proxy and force over time (A's press and B's response);
+    ``subject`` names the object in the title (``haptic_collab.demo.object_title``: e.g.
+    ``FEM liver, gravity 9.81 m/s^2`` for a solid sagged under its own weight)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1240,7 +1242,7 @@ def plot_demo(work: Path, tl: Timeline, path: Path) -> None:
     for ax in axes:
         ax.axvspan(tl.contact_s, tl.hold_end_s, color="0.9", zorder=0)
     axes[0].text(tl.contact_s + 0.1, axes[0].get_ylim()[1] * 0.9, "A presses and holds", va="top")
-    fig.suptitle("Two users on a shared water balloon: B feels A's press")
+    fig.suptitle(f"Two users on a shared {subject}: B feels A's press")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)

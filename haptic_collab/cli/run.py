@@ -963,7 +963,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         hand_damping_n_s_per_m=args.hand_damping,
         log_level=getattr(args, "log_level", "info"),
         reference_loop=args.reference_loop,
+        gravity_m_s2=float(args.gravity),
     )
+    if opts.gravity_m_s2 > 0.0 and args.object != "fem" and args.scenario == "press":
+        # before anything starts, as the server would refuse it
+        raise CliError(
+            "--gravity needs --object fem or --scenario palpation (the balloon has no weight model)"
+        )
     try:
         run_demo(opts)
     except ValueError as exc:
@@ -1018,6 +1024,18 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
     )
     _add_shared(p, "--inclusion")
     _add_shared(p, "--inclusion-material")
+    p.add_argument(
+        "--gravity",
+        type=_gravity,
+        nargs="?",
+        const=STANDARD_GRAVITY_M_S2,
+        default=0.0,
+        metavar="G",
+        help="with --object fem or --scenario palpation: the solid sags under its own weight "
+        f"at start, G [m/s^2] along -z (G in [0, {GRAVITY_MAX_M_S2:g}]; "
+        f"{STANDARD_GRAVITY_M_S2:g} when given without a value; default 0: no weight); the "
+        "users work on the sagged surface (docs/fem.md)",
+    )
     _add_shared(p, "--port", help="server port (0: any free port)")
     _add_shared(
         p,
