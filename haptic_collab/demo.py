@@ -780,7 +780,9 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
         opts.report.parent.mkdir(parents=True, exist_ok=True)
         opts.report.write_text(json.dumps(report, indent=2))
     if opts.plot:
-        plot_demo(work, tl, opts.plot, report["object"]["title"])
+        sag = report["object"]["sag_mm"]
+        subject = report["object"]["title"] + (f" (sagged {sag:.1f} mm)" if sag else "")
+        plot_demo(work, tl, opts.plot, subject)
     print(object_line(report["object"]))
     print_summary(report)
     if "palpation" in report:
@@ -908,8 +910,12 @@ class _Narrator:
     users' forces, read from the users' telemetry as they write it (A's own clock, so the phase
     is A's real one, not the demo's guess)."""
 
-    def __init__(self, tl: Timeline, duration_s: float, sweeps: bool = False) -> None:
+    def __init__(
+        self, tl: Timeline, duration_s: float, sweeps: bool = False, subject: str = "balloon"
+    ) -> None:
         self.tl = tl
+        #: What the users touch, in the closing phase's words ("the balloon settles").
+        self.subject = subject
         self.duration_s = duration_s
         #: A slides across the top after its hold (the palpation scenario): the first part of
         #: the timeline's release is the slide out and back, its last second the withdrawal.
@@ -973,7 +979,7 @@ class _Narrator:
         if left < 0.5:
             return "ending", "the users are finishing; then the report"
         return "after", (
-            f"A has let go and the balloon settles; {b_rests} (the run ends in {left:.0f} s)"
+            f"A has let go and the {self.subject} settles; {b_rests} (the run ends in {left:.0f} s)"
         )
 
 
@@ -1004,7 +1010,13 @@ def _progress(
     said = ""
     samples: list[dict[str, Any]] = []
     st: dict[str, Any] = {}
-    narrator = _Narrator(tl, opts.duration_s, sweeps=opts.scenario == "palpation")
+    fem = opts.object == "fem" or opts.scenario == "palpation"
+    narrator = _Narrator(
+        tl,
+        opts.duration_s,
+        sweeps=opts.scenario == "palpation",
+        subject="solid" if fem else "balloon",
+    )
     while any(procs[n].poll() is None for n in ("A", "B")):
         t = time.monotonic() - t0
         if t - polled >= _POLL_S:
