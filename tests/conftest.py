@@ -40,6 +40,7 @@ as users' do.
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import functools
 import hashlib
@@ -83,11 +84,30 @@ def _read_cell(path: Path, hand_box: HandBox) -> dict[Mode, GainDesign] | None:
 
 
 @functools.cache
+def _shipped(hand_box: HandBox, grid_ratio: float) -> dict[tuple[GainKey, int], GainDesign]:
+    """The shipped tables' designs for this hand box and grid ratio (none when the tables are of
+    another design code, hand box or ratio: ``load_shipped`` refuses them then)."""
+    from haptic_collab.shared.gains.table import GainTable
+    from haptic_collab.shared.gains.table_file import load_shipped
+
+    table = GainTable(hand_box, grid_ratio)
+    load_shipped(table)
+    return {(k, c): d for k, c, d in table.cells()}
+
+
+@functools.cache
 def _kept(
     key: GainKey, cell: int, grid_ratio: float, hand_box: HandBox, modes: tuple[Mode, ...]
 ) -> tuple[tuple[Mode, GainDesign], ...]:
     # imported here: a broken gain_table_file fails the tests that design, not the whole run
     from haptic_collab.shared.gains.table_file import design_record
+
+    # a cell of the shipped tables: the design this very code made for it (the tables hold the
+    # design code's hash, and tools.codegen --check fails when they are stale)
+    shipped = _shipped(hand_box, grid_ratio)
+    found = {m: shipped.get((dataclasses.replace(key, mode=m), cell)) for m in modes}
+    if all(d is not None for d in found.values()):
+        return tuple((m, d) for m, d in found.items() if d is not None)
 
     # every field of the frozen arguments (their reprs: floats exactly), not a file's record
     what = json.dumps([repr(key), cell, repr(float(grid_ratio)), repr(hand_box), modes])

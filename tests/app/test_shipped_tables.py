@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 
+import pytest
+
 from haptic_collab.cli.shipped_tables import SHIP_GRID, build_table, ship_jobs
 from haptic_collab.shared.gains.table import GainTable
 from haptic_collab.shared.gains.table_file import design_code_hash, load_table_document
@@ -20,6 +22,7 @@ TINY = {
 }
 
 
+@pytest.mark.slow  # designs four cells afresh in a worker: a minute on a fresh checkout
 def test_a_built_table_holds_the_sessions_own_designs_and_a_second_build_resumes(tmp_path) -> None:
     out = tmp_path / "phantom.json"
     jobs = ship_jobs(1000.0, 10.0, TINY)

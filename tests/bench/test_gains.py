@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import pytest
+
 from haptic_collab.bench.gains import _session, plane_check_ms
 
 
+@pytest.mark.slow  # a benchmark's sweep of plane checks
 def test_the_plane_checks_are_timed_for_every_cell_and_delay_asked() -> None:
     s = _session()
     key = s.gain_key(0.0, 0)

@@ -42,7 +42,10 @@ def test_an_uncoupled_patch_keeps_todays_gain_key() -> None:
     assert s2.design_wanted is not None and s2.design_wanted[0] == s.design_wanted[0]
 
 
-@pytest.mark.parametrize("coupling", [0.5, 0.9])
+@pytest.mark.parametrize(
+    "coupling",
+    [pytest.param(0.5, marks=pytest.mark.slow), 0.9],  # 0.5: a long PI design
+)
 def test_coupled_pi_users_get_gains_that_meet_the_margin_of_the_coupled_loop(
     coupling: float,
 ) -> None:

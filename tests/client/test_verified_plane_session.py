@@ -263,6 +263,7 @@ def _stiffening_patch(tick: int, x: float, xs: float = 10e-3) -> tuple[str, floa
     return encode(msg), k
 
 
+@pytest.mark.slow  # checks a plane per cell along a press
 def test_on_a_stiffening_object_the_plane_follows_the_tangent_reported() -> None:
     # Fung's law (300 N/m at rest, x_s = 10 mm) pressed from 0.5 to 6 mm in 1.5 s and held: the
     # K_o reported is the tangent, 300 -> 547 N/m through seven gain-table cells. Read as the

@@ -494,6 +494,7 @@ class CountingPool(ThreadPoolExecutor):
         return super().submit(fn, *args, **kwargs)
 
 
+@pytest.mark.slow  # a room process and a design
 async def test_gains_for_a_room_in_its_own_process_are_designed_by_the_front() -> None:
     pool = CountingPool()
     try:

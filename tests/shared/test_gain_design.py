@@ -112,10 +112,11 @@ def _simulate_peaks(
 K_OS = (50.0, 300.0, 1000.0, 5000.0)
 SIM_RATES = (10.0, 20.0, 100.0)
 DELAYS = (0, 2, 4)
-# PI designs take up to a few seconds each: a subset covering every K_o, rate and delay runs by
-# default, the rest of the grid is marked slow, and the five costliest (2-4 s each; they passed
-# this check when the test was written) are left out to keep the file within a minute
-PI_FAST = {
+# A design takes up to a few seconds each on a fresh checkout: a subset covering every K_o, rate
+# and delay runs by default for both local models, the rest of the grid is marked slow (CI runs
+# it: make test-slow), and the five costliest PI cells (2-4 s each; they passed this check when
+# the test was written) are left out
+FAST = {
     (50.0, 10.0, 0),
     (50.0, 100.0, 0),
     (50.0, 100.0, 2),
@@ -140,7 +141,7 @@ GRID = [
         delay,
         mode,
         id=f"{mode}-Ko{k_o:g}-{sim:g}Hz-D{delay}",
-        marks=[pytest.mark.slow] if mode == "pi" and (k_o, sim, delay) not in PI_FAST else [],
+        marks=[] if (k_o, sim, delay) in FAST else [pytest.mark.slow],
     )
     for mode in ("p", "pi")
     for k_o, sim, delay in itertools.product(K_OS, SIM_RATES, DELAYS)
@@ -166,11 +167,18 @@ INTERIOR_HAND = Hand(0.1 + 0.5 / 3.0, 2.0, 1000.0)  # a lattice point on an edge
 
 
 @pytest.mark.parametrize(
-    "hand",
-    [DEFAULT_HAND, Hand(0.6, 2.0, 1000.0), INTERIOR_HAND],
-    ids=["simulated-hand", "box-corner", "box-edge"],
+    ("hand", "own_force"),
+    [
+        pytest.param(DEFAULT_HAND, False, id="paper-simulated-hand", marks=pytest.mark.slow),
+        pytest.param(Hand(0.6, 2.0, 1000.0), False, id="paper-box-corner"),
+        pytest.param(INTERIOR_HAND, False, id="paper-box-edge", marks=pytest.mark.slow),
+        pytest.param(DEFAULT_HAND, True, id="compensated-simulated-hand", marks=pytest.mark.slow),
+        pytest.param(
+            Hand(0.6, 2.0, 1000.0), True, id="compensated-box-corner", marks=pytest.mark.slow
+        ),
+        pytest.param(INTERIOR_HAND, True, id="compensated-box-edge"),
+    ],
 )
-@pytest.mark.parametrize("own_force", [False, True], ids=["paper", "compensated"])
 def test_design_decays_in_the_time_domain_for_hands_of_the_box(hand: Hand, own_force: bool) -> None:
     """K_o = 50 N/m at 100 Hz with 4 ticks of delay (P), at the low end of the margin."""
     d = _design(50.0, 100.0, 4, "p", own_force=own_force)

@@ -204,7 +204,8 @@ def test_the_wire_patch_is_rendered_moved_out_by_c_h_times_the_applied_force():
 
 
 @pytest.mark.parametrize(
-    ("k_o", "sim_rate_hz", "delay_ticks"), [(700.0, 50.0, 5), (700.0, 20.0, 0)]
+    ("k_o", "sim_rate_hz", "delay_ticks"),
+    [pytest.param(700.0, 50.0, 5, marks=pytest.mark.slow), (700.0, 20.0, 0)],
 )
 def test_the_staged_check_gives_the_verdict_of_every_tick_at_once(
     k_o: float, sim_rate_hz: float, delay_ticks: int
@@ -247,6 +248,7 @@ def _every_matrix(key: GainKey, cell: int, table: GainTable, s: float = 1.0, **g
     return bool(marg.max() < lim and rad.max() < 1.0 - 1e-9), float(rad.max())
 
 
+@pytest.mark.slow  # a sweep of every tick, hand and K_o
 def test_a_designs_worst_radius_is_the_worst_of_every_tick_hand_and_k_o():
     # the design's full check runs in stages (one tick first); the worst spectral radius it
     # reports is the one of every sampling tick, hand and K_o' of its range, at each scale

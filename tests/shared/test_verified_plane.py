@@ -47,7 +47,11 @@ def _key(rate: float, ticks: int, **changes: object) -> GainKey:
     return replace(key, **changes)  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize(("rate", "ticks"), [(20.0, 0), (20.0, 4), (50.0, 5), (100.0, 10)])
+@pytest.mark.parametrize(
+    ("rate", "ticks"),
+    [(20.0, 4)]
+    + [pytest.param(r, t, marks=pytest.mark.slow) for r, t in ((20.0, 0), (50.0, 5), (100.0, 10))],
+)
 def test_the_plane_is_the_object_felt_as_itself_and_holds_every_hand_within_five_percent(
     rate: float, ticks: int
 ) -> None:

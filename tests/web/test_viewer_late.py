@@ -94,6 +94,7 @@ async def _panel(page: Any) -> dict[str, Any]:
     }
 
 
+@pytest.mark.slow  # a browser run of held-back summaries
 @pytest.mark.browser
 @pytest.mark.timeout(120)
 async def test_late_room_summaries_show_their_age_never_nobody() -> None:
