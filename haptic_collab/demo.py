@@ -554,17 +554,21 @@ def rest_surface(
 
 
 def check_gravity(opts: DemoOptions) -> None:
-    """``--gravity``: finite, in [0, 100] m/s^2, and only with an FEM object (``--object fem`` or
-    the palpation scenario), as the server checks it.
+    """``--gravity``: finite, in [0, ``GRAVITY_MAX_M_S2``] m/s^2 (100), and only with an FEM
+    object (``--object fem`` or the palpation scenario), as the server checks it.
 
     Raises
     ------
     ValueError
         Out of range, or given (> 0) with the balloon, which has no weight model.
     """
+    from haptic_collab.cli.run import GRAVITY_MAX_M_S2
+
     g = float(opts.gravity_m_s2)
-    if not (math.isfinite(g) and 0.0 <= g <= 100.0):
-        raise ValueError(f"--gravity must be in [0, 100] m/s^2 (9.81 on Earth), got {g:g}")
+    if not (math.isfinite(g) and 0.0 <= g <= GRAVITY_MAX_M_S2):
+        raise ValueError(
+            f"--gravity must be in [0, {GRAVITY_MAX_M_S2:g}] m/s^2 (9.81 on Earth), got {g:g}"
+        )
     if g > 0.0 and opts.object != "fem" and opts.scenario != "palpation":
         raise ValueError(
             "--gravity needs --object fem or --scenario palpation (the balloon has no weight model)"

@@ -4,6 +4,7 @@ touch it (docs/fem.md, "Gravity"; docs/usage.md, the demo's options)."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +22,7 @@ from haptic_collab.demo import (
     object_line,
     object_title,
     palpation_timeline,
+    run_demo,
     server_command,
     write_sweep,
 )
@@ -72,6 +74,15 @@ def test_demo_refuses_gravity_without_a_weight_model_or_out_of_range(demo_opts, 
     assert exited.value.code == 2
     assert why in capsys.readouterr().err
     assert demo_opts == []  # refused before anything ran
+
+
+def test_run_demo_refuses_gravity_on_the_balloon_before_starting_anything(tmp_path: Path):
+    work = tmp_path / "work"
+    with pytest.raises(ValueError, match="--gravity needs --object fem"):
+        run_demo(DemoOptions(gravity_m_s2=9.81, workdir=work))
+    with pytest.raises(ValueError, match=r"--gravity must be in \[0, 100\]"):
+        run_demo(DemoOptions(object="fem", gravity_m_s2=math.inf, workdir=work))
+    assert not work.exists()
 
 
 def test_the_server_is_told_gravity_only_for_an_fem_object():
