@@ -54,6 +54,7 @@ from haptic_collab.demo_report import (
     plot_demo,
     print_summary,
     run_verdict_line,
+    script_start_s,
     timeline,
 )
 from haptic_collab.server.security import is_loopback
@@ -760,7 +761,15 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
                 p.kill()
         for f in logs.values():
             f.close()
+    # A's script starts at its servo's first tick, 0.5-3 s into A's clock under load: the hold
+    # is judged, B's windows are set and the plot is drawn where A's hand really was
+    a_start_s = script_start_s(work / "A.csv")
+    tl = replace(tl, delay_s=tl.delay_s + a_start_s)
+    if palpation is not None:
+        moved = replace(palpation[0], delay_s=palpation[0].delay_s + a_start_s)
+        palpation = (moved, palpation[1])
     report = build_report(work, tl, server_status, opts, status_samples)
+    report["a_script_start_s"] = a_start_s
     if reference_stats is not None:
         report["reference_loop"] = {
             k: reference_stats.get(k)

@@ -92,7 +92,9 @@ REST_GAIN_SETTLE_S = 0.3
 
 @dataclass(frozen=True)
 class Timeline:
-    """A's scripted press, in seconds from the start of A's client."""
+    """A's scripted press, in seconds from the start of A's client (its clock's zero; shifted
+    by :func:`script_start_s` once the run is over, as A's script starts at its servo's first
+    tick)."""
 
     delay_s: float
     approach_s: float
@@ -116,6 +118,28 @@ class Timeline:
             f"delay_s={self.delay_s:g},approach_s={self.approach_s:g},press_s={self.press_s:g},"
             f"hold_s={self.hold_s:g},release_s={self.release_s:g}"
         )
+
+
+def script_start_s(csv_path: Path) -> float:
+    """When A's scripted hand started, on A's clock [s]: the ``t_s`` of the first telemetry row.
+
+    A scripted device starts its trajectory at the servo's first read
+    (:meth:`client.devices.sim.SimDevice.read`), and the servo starts once the client has joined
+    and loaded its gains: 0.5-3 s into A's clock on a loaded machine. The demo's timeline (the
+    judged hold, B's windows, the plot) is in trajectory time, so it is shifted by this. 0.0
+    when A wrote no row (the report then says A never rendered).
+    """
+    import csv
+
+    try:
+        with open(csv_path, newline="") as f:
+            reader = csv.reader(f)
+            header = next(reader)
+            row = next(reader)
+        t = float(row[header.index("t_s")])
+    except (OSError, StopIteration, ValueError, IndexError):
+        return 0.0
+    return t if math.isfinite(t) and t > 0.0 else 0.0
 
 
 def timeline(duration_s: float) -> Timeline:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from haptic_collab.client.recorder import COLUMNS, CSV_HEADER, format_rows
 from haptic_collab.demo_report import (
     EXIT_CODES,
     STIFFNESS_JND,
+    Timeline,
     build_report,
     delay_rise_in_hold,
     felt_stiffness,
@@ -34,6 +36,7 @@ from haptic_collab.demo_report import (
     rest_plane_k_h,
     run_verdict,
     run_verdict_line,
+    script_start_s,
     timeline,
 )
 
@@ -51,6 +54,7 @@ def user(
     own_gain: Any = None,
     force_n: Any = None,
     probe_wobble_m: Any = 0.0,
+    tl: Timeline = TL,
 ) -> dict[str, np.ndarray]:
     """A user's telemetry over the whole run, every recorder column (SI units).
 
@@ -69,9 +73,9 @@ def user(
 
     if name == "A":
         anchor, normal = TOP, np.array([0.0, 0.0, 1.0])
-        press = np.clip((t - TL.contact_s) / TL.press_s, 0.0, 1.0)
-        release = np.clip((t - TL.hold_end_s) / TL.release_s, 0.0, 1.0)
-        depth = 0.010 * press * (1.0 - release) - 0.02 * (t < TL.contact_s)
+        press = np.clip((t - tl.contact_s) / tl.press_s, 0.0, 1.0)
+        release = np.clip((t - tl.hold_end_s) / tl.release_s, 0.0, 1.0)
+        depth = 0.010 * press * (1.0 - release) - 0.02 * (t < tl.contact_s)
     else:
         anchor, normal = SIDE, np.array([-1.0, 0.0, 0.0])
         depth = np.where(t >= 1.0, 0.0015, -0.02)
@@ -478,3 +482,35 @@ def test_a_user_left_alone_on_the_rest_plane_feels_its_k_h_not_a_step() -> None:
     # without the summary's rest flag the same samples read as a coupling: the false step
     plain = felt_stiffness_step(*felt_stiffness(b, w, k_o))
     assert plain is not None and plain["ratio"] == pytest.approx(2.0, rel=1e-3)
+
+
+def test_a_script_that_started_late_is_judged_on_its_hold_not_its_arrival(tmp_path) -> None:
+    """A's scripted hand starts at its servo's first tick, 2.5 s into A's clock on a loaded
+    machine: the demo shifts its timeline there, so A's steady hold is called steady and not
+    the press that arrived 2.5 s later than planned."""
+    late = 2.5
+    real = replace(TL, delay_s=TL.delay_s + late)
+    a = user("A", tl=real)
+    first = a["t_s"] >= late  # no telemetry before the servo's first tick
+    a = {c: v[first] for c, v in a.items()}
+    work = tmp_path / "run"
+    write_run(work, a, user("B"), summary("A"), summary("B"))
+    assert script_start_s(work / "A.csv") == pytest.approx(late, abs=1e-3)
+    status = {"tick": 400, "overruns": 0, "tick_ms_p50": 3.0, "tick_ms_p99": 6.0}
+
+    planned = build_report(work, TL, status, Settings(), overrun_samples(0.0))
+    assert planned["users"]["A"]["stable"] is False  # the press itself, judged as a hold
+
+    shifted = replace(TL, delay_s=TL.delay_s + script_start_s(work / "A.csv"))
+    report = build_report(work, shifted, status, Settings(), overrun_samples(0.0))
+    ua = report["users"]["A"]
+    assert ua["stable"] is True
+    (start, end), *_ = ua["hold_window_s"]
+    assert real.contact_s + real.press_s <= start and end <= real.hold_end_s
+    assert report["verdict"]["users"]["A"] == "stable"
+
+
+def test_no_telemetry_means_no_shift(tmp_path) -> None:
+    assert script_start_s(tmp_path / "missing.csv") == 0.0
+    (tmp_path / "empty.csv").write_text(CSV_HEADER)
+    assert script_start_s(tmp_path / "empty.csv") == 0.0
