@@ -407,6 +407,7 @@ def test_the_viscoelastic_object_is_felt_as_it_yields_not_as_a_softer_spring() -
     assert _box_stable(product, SLS, k, rate, 0.0)
 
 
+@pytest.mark.slow  # a benchmark run over the capped plane's cells
 def test_above_the_device_stiffness_the_product_renders_a_flat_plane() -> None:
     # at 3000 N/m (three times the device's stiffness) the paper's PI creeps toward K_o at
     # 0.5 Hz and is soft at 4 Hz; the product renders the plane at the rest surface with the

@@ -145,6 +145,7 @@ async def test_late_room_summaries_show_their_age_never_nobody() -> None:
         assert not problems, problems
 
 
+@pytest.mark.slow  # a browser run of held-back summaries
 @pytest.mark.browser
 @pytest.mark.timeout(120)
 async def test_nobody_is_said_only_by_a_fresh_summary_without_users() -> None:

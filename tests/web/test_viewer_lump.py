@@ -131,6 +131,7 @@ async def test_the_lump_is_hidden_until_the_user_shows_it_and_hides_again(tmp_pa
         assert not problems, problems
 
 
+@pytest.mark.slow  # two browser runs; the lump's toggle is checked in make test
 @pytest.mark.browser
 @pytest.mark.timeout(180)
 async def test_lump_1_shows_it_from_the_start_and_a_balloon_has_no_checkbox(
