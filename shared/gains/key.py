@@ -7,7 +7,9 @@ same rules:
 
 - the loop delay in whole simulation ticks (:func:`loop_delay_ticks`) from the round trip;
 - the object damping B_o (eq. 9: the damping over the simulation period, in N/m) quantized down
-  to 1 N/m steps (a design for less object damping);
+  to 1 N/m steps (a design for less object damping; on the full loop with the hand that is not
+  always the safe side, so a key with B_o > 0 renders a design made for B_o = 0 only up to the
+  B_o that design was checked for: :func:`shared.gains.choose.table_design`);
 - the coupling class of ``K_o_stiff / K_o_eff`` (:func:`stiff_ratio_class`, docs/coupled-users.md)
   with its hysteresis (:func:`held_stiff_ratio`): it rises at once and falls only when the
   measured class is :data:`STIFF_CLASS_FALL` times lower;
