@@ -60,7 +60,7 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from haptic_collab.client.session import ClientSession, ServoSample, warm_up_worker
 from haptic_collab.client.workers import background_worker, check_worker, stop_pool, timed
-from haptic_collab.shared.gains.choose import PLANE_ALONE, likely_next
+from haptic_collab.shared.gains.choose import PLANE_ALONE, likely_next, table_design
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.interim import interim_design
 from haptic_collab.shared.gains.key import GainKey
@@ -263,7 +263,7 @@ class Link:
         key, k_o = want
         table = self.session.gain_table
         cell = table.cell(k_o)
-        if table.lookup(key, k_o) is not None:
+        if table_design(table, key, k_o)[0] is not None:
             return
         self._ensure_executor()
 
@@ -287,7 +287,7 @@ class Link:
                 self._queue_check(nk, table.cell(nko), (design,), ahead=True)
             self._start_check()
             for nk, nko in near:
-                if table.lookup(nk, nko) is None:
+                if table_design(table, nk, nko)[0] is None:
                     try:
                         nd = await loop.run_in_executor(
                             self._executor,
@@ -350,7 +350,7 @@ class Link:
                 design = (
                     None
                     if design_cell == PLANE_ALONE
-                    else table.lookup(key, table.grid_point(design_cell) * 1.0001)
+                    else table_design(table, key, table.grid_point(design_cell) * 1.0001)[0]
                 )
                 if checked_alone:
                     plane = await loop.run_in_executor(
@@ -453,7 +453,9 @@ class Link:
         loop = asyncio.get_running_loop()
         while (nxt := self._next_check(ahead_task)) is not None:
             (key, cell, candidates, asked_s), ahead = nxt
-            if (key, cell) in session.interim or table.lookup(key, table.grid_point(cell) * 1.0001):
+            if (key, cell) in session.interim or table_design(
+                table, key, table.grid_point(cell) * 1.0001
+            )[0]:
                 continue
             # Before anything is rendered (a first contact, or after a rejoin) forces are off:
             # while a spawned check worker is still importing, check in a thread here, at once

@@ -3,7 +3,8 @@
 The asyncio link (:mod:`client.link`) pumps bytes; this class keeps the protocol's state and the
 contact's past, and asks :func:`shared.gains.choose.choose` which gains render each ``patch``
 (the gain policy has that one home; its sources, in order: the rest plane of a user alone, a
-verified plane, the server's recommended gains, the cell's design, checked interim gains,
+verified plane, the server's recommended gains, the cell's design (or, for a damped object, the
+undamped cell's design where it was checked on the damped loop), checked interim gains,
 covering gains, and unverified gains for the moment a check runs). The choice comes with jobs
 (a design, a check, a plane to verify) that this session hands to the link through
 :attr:`ClientSession.design_wanted`, :attr:`ClientSession.interim_wanted` and

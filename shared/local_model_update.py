@@ -251,8 +251,10 @@ class GainChoice:
         verified interim gains); False only for the short while that check runs after a change
         of cell or delay in mid-contact.
     source : str
-        Where the gains come from (:data:`shared.gains.choose.Source`: ``design``, ``server``,
-        ``plane``, ``rest``, ``interim``, ``covering``, ``near``, ``in-use``, ``fallback``).
+        Where the gains come from (:data:`shared.gains.choose.Source`: ``design``,
+        ``design-b_o`` (a damped key's shipped design for B_o = 0, checked on the damped loop),
+        ``server``, ``server-interim``, ``plane``, ``rest``, ``interim``, ``covering``, ``near``,
+        ``in-use``, ``fallback``).
     """
 
     delay_ticks: int
