@@ -316,7 +316,8 @@ def table_design(
     The cell's own design (``"design"``). Else, for a key with object damping B_o > 0 (eq. 9;
     the FEM solid's), the design of the same key with B_o = 0 (``"design-b_o"``) where that
     design's coverage (:func:`shared.gains.table_file.b_o_covered`: checked offline on the loop
-    with every lattice B_o up to it, :mod:`shared.gains.damping_cover`) reaches ``key.b_o``: a
+    with every lattice B_o up to it, :mod:`shared.gains.damping_cover`) reaches the object's own
+    B_o, which is below ``key.b_o + 1`` (the key floors it to whole N/m): a
     design for less object damping, the safe side of the paper's eq. 10, verified on the damped
     loop with the hand in it. Else ``(None, None)``: the cell is designed during the session.
 
@@ -331,7 +332,10 @@ def table_design(
     if key.b_o > 0.0:
         undamped = replace(key, b_o=0.0)
         d = table.lookup(undamped, k_o)
-        if d is not None and key.b_o <= b_o_covered(table, undamped, table.cell(k_o)):
+        # the key's B_o is the reported one floored to whole N/m (make_gain_key): the object's
+        # own is below key.b_o + 1, and the design must have passed up to that
+        reach = key.b_o + 1.0
+        if d is not None and reach <= b_o_covered(table, undamped, table.cell(k_o)):
             return d, "design-b_o"
     return None, None
 

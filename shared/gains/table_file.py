@@ -344,22 +344,34 @@ def ship_jobs(
     return jobs
 
 
-#: Each table's damping coverage: ``{(key, cell): b_o_covered}`` [N/m] of its designs for B_o = 0
-#: that a shipped table checked on damped objects (:mod:`shared.gains.damping_cover`). Kept
-#: beside the table, not in it: :class:`shared.gains.table.GainTable` is design code
-#: (:func:`design_code_hash` hashes it), and the coverage is not. Filled by
+#: Each table's damping coverage: ``{(key, cell): (b_o_covered, design)}`` [N/m] of its designs
+#: for B_o = 0 that a shipped table checked on damped objects (:mod:`shared.gains.damping_cover`),
+#: with the very design object checked: a design stored over it later (another build's) has no
+#: coverage. Kept beside the table, not in it: :class:`shared.gains.table.GainTable` is design
+#: code (:func:`design_code_hash` hashes it), and the coverage is not. Filled by
 #: :func:`load_table_document`; read by :func:`b_o_covered`.
-_COVERS: weakref.WeakKeyDictionary[GainTable, dict[tuple[GainKey, int], float]] = (
-    weakref.WeakKeyDictionary()
-)
+_COVERS: weakref.WeakKeyDictionary[
+    GainTable, dict[tuple[GainKey, int], tuple[float, GainDesign]]
+] = weakref.WeakKeyDictionary()
 
 
 def b_o_covered(table: GainTable, key: GainKey, cell: int) -> float:
     """The object damping B_o [N/m] up to which ``table``'s design of ``cell`` of ``key`` (a key
     with B_o = 0) passed its check on the damped loop (:func:`shared.gains.damping_cover.covered_b_o`);
-    0 where it was not checked (a design made during a session, a cache's, a stale coverage)."""
-    covers = _COVERS.get(table)
-    return 0.0 if covers is None else covers.get((key, cell), 0.0)
+    0 where it was not checked (a design made during a session, a cache's, a stale coverage, or a
+    design stored over the one checked)."""
+    got = _COVERS.get(table, {}).get((key, cell))
+    if got is None:
+        return 0.0
+    cover, design = got
+    return cover if _stored(table, key, cell) is design else 0.0
+
+
+def _stored(table: GainTable, key: GainKey, cell: int) -> GainDesign | None:
+    """The design object ``table`` holds for ``cell`` of ``key`` (not :meth:`GainTable.lookup`'s
+    copy scaled to a K_o): its own ``_cells``, read here because the table's module is design code
+    whose hash a new method would change."""
+    return table._cells.get((key, cell))
 
 
 def set_b_o_covered(table: GainTable, key: GainKey, cell: int, b_o: float) -> None:
@@ -375,8 +387,9 @@ def set_b_o_covered(table: GainTable, key: GainKey, cell: int, b_o: float) -> No
     if key.b_o != 0.0:
         raise ValueError(f"a coverage is of a design for B_o = 0, got a key of B_o {key.b_o!r}")
     covers = _COVERS.setdefault(table, {})
-    if v > 0.0:
-        covers[(key, cell)] = v
+    design = _stored(table, key, cell)
+    if v > 0.0 and design is not None:
+        covers[(key, cell)] = (v, design)
     else:
         covers.pop((key, cell), None)
 
@@ -391,7 +404,7 @@ def table_document(table: GainTable, design_code: str) -> dict[str, Any]:
     for k, c, d in table.cells():
         rec: dict[str, Any] = {"key": key_record(k), "cell": c, "design": design_record(d)}
         if covers:
-            rec["b_o_covered"] = covers.get((k, c), 0.0)
+            rec["b_o_covered"] = b_o_covered(table, k, c)
         cells.append(rec)
     cells.sort(key=lambda r: (json.dumps(r["key"], sort_keys=True), r["cell"]))
     doc: dict[str, Any] = {

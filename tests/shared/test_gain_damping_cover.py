@@ -44,6 +44,7 @@ from haptic_collab.shared.gains.table_file import (
     cover_code_hash,
     design_code_hash,
     design_code_modules,
+    key_from_record,
     load_shipped,
     load_table_document,
     table_document,
@@ -65,10 +66,10 @@ OPTIONS = Options(servo_rate_hz=1000.0, sim_rate_hz=20.0, k_h_max=1000.0, b_h_ma
 #: docs/results/fem-table-cover-2026-11-27.json): (B_o [N/m], K_o [N/m], delay ticks, coupling
 #: class).
 COVERED = [
-    (8.0, 220.0, 0, 1.0),
+    (7.7, 220.0, 0, 1.0),  # the liver sphere's top
     (40.0, 220.0, 0, 1.0),
-    (8.0, 200.0, 3, 1.0),
-    (16.0, 200.0, 3, math.sqrt(2.0)),
+    (7.5, 200.0, 3, 1.0),  # covered to 8 N/m: a B_o below 8 renders it
+    (15.5, 200.0, 3, math.sqrt(2.0)),  # covered to 16 N/m
 ]
 #: Keys of the same kind the coverage of their own class does not reach (the compensated designs
 #: there sit at the decay margin, and a few N/m of B_o slow their slowest ring below 1/s): their
@@ -151,7 +152,7 @@ def test_the_design_rendered_is_stable_on_the_damped_loop_for_a_finer_lattice_of
     hands = lattice(6)
     for served in (design, design.at(0.999 * shipped.grid_point(cell + 1))):
         k_os = [served.k_o_range[0], math.sqrt(served.k_o_range[0] * hi), hi]
-        for b in (0.5 * b_o, b_o):
+        for b in (0.5 * b_o, b_o, math.floor(b_o) + 0.999):  # up to the key's whole N/m
             rho, where = worst_on_lattice(
                 served, k_os, sim_rate_hz=20.0, delay_ticks=delay, hands=hands, b_o=b
             )
@@ -262,3 +263,36 @@ def test_the_lattice_and_the_check_are_the_cover_code_s_not_the_design_code_s() 
     assert "B_O_COVER_LATTICE" not in constants(design_mods)
     assert "haptic_collab.shared.gains.interim" in cover_mods
     assert "haptic_collab.shared.gains.damping_cover" not in design_mods
+
+
+def test_a_b_o_above_the_coverage_by_less_than_the_key_s_step_is_not_rendered_from_it(
+    shipped: GainTable,
+) -> None:
+    """The key floors B_o to whole N/m: an object of 8.5 N/m has a key of 8, and a design checked
+    up to 8 N/m (and failing between 8 and 16) must not render for it; one of 7.5 N/m may."""
+    k_o, delay = 200.0, 3
+    undamped = _key("p", 0.0, delay)
+    assert b_o_covered(shipped, undamped, shipped.cell(k_o)) == 8.0
+    assert table_design(shipped, _key("p", 7.5, delay), k_o)[1] == "design-b_o"
+    assert table_design(shipped, _key("p", 8.5, delay), k_o) == (None, None)
+    assert table_design(shipped, _key("p", 8.0, delay), k_o) == (None, None)
+
+
+def test_a_design_stored_over_the_checked_one_has_no_coverage(shipped: GainTable) -> None:
+    """A coverage belongs to the design that was checked: a table holding another design for the
+    cell (a build or a cache made elsewhere) does not render it for a damped key."""
+    table = GainTable()
+    load_shipped(table)
+    k_o, key = 220.0, _key("p", 0.0, 0)
+    cell = table.cell(k_o)
+    assert b_o_covered(table, key, cell) == 64.0
+    before = table_design(table, _key("p", 40.0, 0), k_o)
+    assert before[1] == "design-b_o"
+    other = replace(before[0], k_h=0.9 * before[0].k_h)  # not the design that was checked
+    table.store(key, cell, other)
+    assert b_o_covered(table, key, cell) == 0.0
+    assert table_design(table, _key("p", 40.0, 0), k_o) == (None, None)
+    # and a table written out again does not carry the old design's coverage to the new one
+    doc = table_document(table, design_code_hash())
+    (rec,) = (c for c in doc["cells"] if c["cell"] == cell and key_from_record(c["key"]) == key)
+    assert rec["b_o_covered"] == 0.0
