@@ -17,6 +17,7 @@ import multiprocessing as mp
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from contextlib import contextmanager
+from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
@@ -49,6 +50,7 @@ from haptic_collab.research.harness_3d import (
 )
 from haptic_collab.server.object_info import object_info
 from haptic_collab.server.world import ContactInput, World
+from haptic_collab.shared.gains.choose import table_design
 from haptic_collab.shared.gains.key import GainKey
 from haptic_collab.shared.gains.rest_plane import rest_plane_gains
 from haptic_collab.shared.gains.table import GainTable
@@ -245,7 +247,8 @@ def rendering_3d(
     b_o: float = 0.0,
 ) -> Rendering:
     """:func:`haptic_collab.research.fidelity_schemes.rendering_for` at 20 Hz, designing the local models' gains for
-    ``k_o`` [N/m] and ``delay_ms`` [ms] (seconds per design; ``gain_table`` caches them).
+    ``k_o`` [N/m], ``delay_ms`` [ms] and ``b_o`` [N/m] by the client's rule
+    (:func:`shared.gains.choose.table_design`; seconds per design; ``gain_table`` caches them).
 
     With ``rest_plane`` a local model is the client alone on the object: the rest plane each
     patch carries (:mod:`shared.gains.rest_plane`), with the gains of ``k_o`` (K_h = min(K_o, the
@@ -281,8 +284,11 @@ def rendering_3d(
     if scheme in ("local-p", "local-pi"):
         mode: Literal["p", "pi"] = "pi" if scheme == "local-pi" else "p"
         table = gain_table if gain_table is not None else GainTable()
-        key = gain_key(mode, delay_ms, device)
-        design = table.lookup(key, k_o)
+        # the client's key and rule (shared.gains.choose.table_design): B_o floored to whole N/m
+        # as make_gain_key does; a damped key renders its own design, or the undamped one where
+        # the table's damping coverage reaches it, else the design the session makes
+        key = replace(gain_key(mode, delay_ms, device), b_o=float(math.floor(max(0.0, b_o))))
+        design = table_design(table, key, k_o)[0]
         if design is None:
             design = table.design(key, k_o)
     return rendering_for(scheme, sim_rate_hz=SIM_RATE_HZ, device=device, design=design, k_o=k_o)
