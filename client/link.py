@@ -761,7 +761,12 @@ class Link:
                     self._reask = True  # its rooms go elsewhere: ask the lobby before rejoining
                 if err.fatal and err.code == "unauthorized":
                     raise Unauthorized(f"{err.message} (unauthorized)")
-            if self.session.interim_wanted is not None:
+            if self.session.checks_ahead:
+                for nk, nc, candidates in self.session.checks_ahead:
+                    self._queue_check(nk, nc, candidates, ahead=True)
+                self.session.checks_ahead.clear()
+                self._start_check()
+            elif self.session.interim_wanted is not None:
                 self._start_check()
             if self.session.design_wanted is not None:
                 self._start_design()

@@ -48,6 +48,8 @@ from haptic_collab.shared.gains.choose import (
     Known,
     Options,
     choose,
+    likely_next,
+    table_design,
 )
 from haptic_collab.shared.gains.delay import DelayHold, delay_rtt_s, measured_delay_ticks
 from haptic_collab.shared.gains.design import GainDesign
@@ -269,6 +271,14 @@ class ClientSession:
         #: (:func:`shared.gains.verified_plane.ahead_cells`), so that a press finds them checked.
         self.plane_ahead: list[tuple[GainKey, int]] = []
         self._ahead_around: tuple[GainKey, int] | None = None
+        #: (key, cell, candidates) the link is to check ahead of need: where a contact that
+        #: renders designed gains no job came with (a shipped design, one the damping coverage
+        #: reaches, the server's) is likely to go next (:func:`shared.gains.choose.likely_next`),
+        #: as the link does after a design or a needed check of its own. Without it a second
+        #: user's arrival on a FEM solid met an unchecked coupled class, and on a busy machine
+        #: the resting user rendered the quarter-K_o fallback while that check ran.
+        self.checks_ahead: list[tuple[GainKey, int, tuple[GainDesign, ...]]] = []
+        self._checks_ahead_of: tuple[GainKey, int] | None = None
         #: Patches rendered with a verified plane, and of those with the plane of a stiffness
         #: the own-response check identified other than the K_o reported.
         self.plane_patches = 0
@@ -493,6 +503,21 @@ class ClientSession:
         self._ahead_around = (key, cell)
         self.plane_ahead = [(key, c) for c in ahead_cells(key, cell, self.gain_table.grid_ratio)]
 
+    def _ask_ahead(self, key: GainKey, cell: int, gains: GainDesign) -> None:
+        """Ask the link to check ahead of need the (key, cell) :func:`likely_next` names that the
+        table has no design for (:func:`table_design`) nor a check, once per (key, cell) of a
+        contact, with ``gains`` (those rendering) as the first candidate (:attr:`checks_ahead`)."""
+        if self._checks_ahead_of == (key, cell):
+            return
+        self._checks_ahead_of = (key, cell)
+        table = self.gain_table
+        for nk, nc in likely_next(key, cell):
+            if (nk, nc) in self.interim or table_design(table, nk, table.grid_point(nc) * 1.0001)[
+                0
+            ]:
+                continue
+            self.checks_ahead.append((nk, nc, (gains,)))
+
     def next_plane_ahead(self) -> tuple[GainKey, int] | None:
         """The next plane to check ahead (:attr:`plane_ahead`), marked asked, or None."""
         while self.plane_ahead:
@@ -603,6 +628,8 @@ class ClientSession:
             self._waiting = (msg, surface)
             return None
         self._in_use_key = (key, cell)
+        if choice.source in ("design", "design-b_o", "server") and choice.gains is not None:
+            self._ask_ahead(key, cell, choice.gains)
         self.held_patches += choice.held
         self.server_gain_patches += choice.source in ("server", "server-interim")
         self.plane_patches += choice.source == "plane"

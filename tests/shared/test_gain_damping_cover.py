@@ -296,3 +296,47 @@ def test_a_design_stored_over_the_checked_one_has_no_coverage(shipped: GainTable
     doc = table_document(table, design_code_hash())
     (rec,) = (c for c in doc["cells"] if c["cell"] == cell and key_from_record(c["key"]) == key)
     assert rec["b_o_covered"] == 0.0
+
+
+def test_a_contact_rendering_a_covered_design_asks_its_coupled_class_checked_ahead(
+    shipped: GainTable,
+) -> None:
+    """A contact that renders a shipped design with no job (here the damping coverage's) still
+    gets checked ahead of need where it is likely to go next, as after a design of its own: a
+    second user's arrival then finds the coupled class checked, not the quarter-K_o fallback.
+    Asked once per key and cell, and nothing for keys the table already has."""
+    b_o, k_o, _, _ = COVERED[1]
+    s = welcomed_session(
+        "B", "u2", b_h_max=10.0, mode="pi", gains="local", rest_plane=False, gain_table=shipped
+    )
+    update = s.receive(press_patch(1, 1.0, k_o, k_o=k_o, b_o=b_o), 0.05)
+    assert update is not None and update.choice is not None
+    assert update.choice.source == "design-b_o"
+    asked = [(k, c) for k, c, _ in s.checks_ahead]
+    key = _key("pi", b_o, 0)
+    cell = shipped.cell(k_o)
+    # the coupled class of this cell is not covered for this B_o: it is asked first
+    coupled = replace(key, stiff_ratio=2.0)
+    assert table_design(shipped, coupled, k_o)[0] is None
+    assert asked[0] == (coupled, cell)
+    # nothing the table already renders, and the gains in use as the first candidate
+    assert all(
+        table_design(shipped, k, shipped.grid_point(c) * 1.0001)[0] is None for k, c in asked
+    )
+    rendering = table_design(shipped, key, k_o)[0]
+    assert all(cands == (rendering,) for _, _, cands in s.checks_ahead)
+    s.checks_ahead.clear()
+    s.receive(press_patch(2, 1.0, k_o, k_o=k_o, b_o=b_o), 0.10)
+    assert s.checks_ahead == []  # the same key and cell: asked once
+
+
+def test_a_balloon_contact_on_the_shipped_grid_asks_nothing_ahead(shipped: GainTable) -> None:
+    s = welcomed_session(
+        "B", "u2", b_h_max=10.0, mode="pi", gains="local", rest_plane=False, gain_table=shipped
+    )
+    update = s.receive(press_patch(1, 1.0, 300.0, k_o=300.0), 0.05)
+    assert update is not None and update.choice is not None
+    assert update.choice.source == "design"
+    # every key likely next at 0 ticks, class 1 (class 2, a tick more, the cells around) is in
+    # the shipped tables: nothing to check
+    assert s.checks_ahead == []
