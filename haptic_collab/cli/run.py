@@ -60,6 +60,20 @@ def _gravity(text: str) -> float:
     return value
 
 
+def _add_gravity(p: argparse.ArgumentParser, help: str) -> None:
+    """``--gravity [G]`` on ``p`` (the server's and the demo's, each with its own ``help``):
+    :func:`_gravity`, :data:`STANDARD_GRAVITY_M_S2` without a value, 0 (no weight) without it."""
+    p.add_argument(
+        "--gravity",
+        type=_gravity,
+        nargs="?",
+        const=STANDARD_GRAVITY_M_S2,
+        default=0.0,
+        metavar="G",
+        help=help,
+    )
+
+
 # ------------------------------------------------------------------------------------------ logging
 #: ``--log-level`` choices (Python logging levels).
 LOG_LEVELS = ("debug", "info", "warning", "error")
@@ -230,14 +244,9 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         metavar="DIR",
         help="folder of cached FEM volume meshes (default ~/.cache/haptic-collab/volumes)",
     )
-    p.add_argument(
-        "--gravity",
-        type=_gravity,
-        nargs="?",
-        const=STANDARD_GRAVITY_M_S2,
-        default=0.0,
-        metavar="G",
-        help="with --object fem: the solid sags under its own weight at start, G [m/s^2] along "
+    _add_gravity(
+        p,
+        "with --object fem: the solid sags under its own weight at start, G [m/s^2] along "
         f"-z of the object's frame (G in [0, {GRAVITY_MAX_M_S2:g}]; {STANDARD_GRAVITY_M_S2:g} "
         "when given without a value; default 0: no weight; docs/fem.md)",
     )
@@ -1024,14 +1033,9 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
     )
     _add_shared(p, "--inclusion")
     _add_shared(p, "--inclusion-material")
-    p.add_argument(
-        "--gravity",
-        type=_gravity,
-        nargs="?",
-        const=STANDARD_GRAVITY_M_S2,
-        default=0.0,
-        metavar="G",
-        help="with --object fem or --scenario palpation: the solid sags under its own weight "
+    _add_gravity(
+        p,
+        "with --object fem or --scenario palpation: the solid sags under its own weight "
         f"at start, G [m/s^2] along -z (G in [0, {GRAVITY_MAX_M_S2:g}]; "
         f"{STANDARD_GRAVITY_M_S2:g} when given without a value; default 0: no weight); the "
         "users work on the sagged surface (docs/fem.md)",
