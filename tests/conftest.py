@@ -36,6 +36,13 @@ the build passes ``gain_build=True`` itself.
 Every test still gets the design the current code makes for its arguments. Processes the tests
 start (``haptic server``, ``haptic client``, spawned workers) import the module afresh and design
 as users' do.
+
+**One BLAS thread.** The tests run numpy as every ``haptic`` process does: this module imports
+:mod:`haptic_collab.cli.blas_threads` before anything imports numpy, so the pytest-xdist workers
+and every process they start have one OpenBLAS thread (a value set in the environment is kept).
+With a thread per core in each of two workers, OpenBLAS's threads spin against each other and
+against the servers and browsers the tests run: one gain-check test took 29 s (26 s of CPU) on a
+loaded machine against 1.7 s with one thread (2026-11-27).
 """
 
 from __future__ import annotations
@@ -53,6 +60,7 @@ from pathlib import Path
 
 import pytest
 
+import haptic_collab.cli.blas_threads  # noqa: F401  (first: before numpy is imported)
 import haptic_collab.shared.gains.table as _gain_table
 from haptic_collab.shared.full_loop import HandBox
 from haptic_collab.shared.gains.design import GainDesign
