@@ -454,7 +454,13 @@ async def test_a_viewer_over_websockets_decodes_the_servers_surface():
     sizes: list[int] = []
     try:
         url = f"ws://127.0.0.1:{app.port}/ws"
-        async with connect(url) as user, connect(url) as viewer:
+        # neither connection reads to the end (the user reads only its welcome): unbounded
+        # queues keep their readers taking frames, so a close handshake does not wait out
+        # close_timeout (10 s) behind unread patches
+        async with (
+            connect(url, max_queue=None) as user,
+            connect(url, max_queue=None) as viewer,
+        ):
             hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "name": "A"}
             await user.send(json.dumps({**hello, "role": "user"}))
             top = json.loads(await user.recv())["object"]["top_m"]
