@@ -93,7 +93,13 @@ unit-slow: $(UNITDEPS)
 generated: $(STAMP)
 	$(BIN)/python -m tools.codegen --check
 
-test: lint typecheck generated unit
+# Set-up first, its independent parts side by side (pip, npm and apt mostly wait on the network
+# and the disk), then the checks side by side with the meshes' fetch, then the tests on every
+# core. Each stage's output is kept together (--output-sync).
+test:
+	@$(MAKE) --no-print-directory -j4 --output-sync=target $(STAMP) $(WEBSTAMP) $(JSSTAMP) browser
+	@$(MAKE) --no-print-directory -j4 --output-sync=target lint typecheck generated $(MESHSTAMP)
+	@$(MAKE) --no-print-directory unit
 
 test-slow: unit-slow
 
