@@ -526,7 +526,12 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     if opts.mesh == "balloon":
         if not 0 <= opts.subdivisions <= 7:
             raise ValueError("--subdivisions must be in [0, 7]")
-        mesh = default_balloon(subdivisions=opts.subdivisions)
+        if opts.object == "fem" and opts.mesh_max_edge is None:
+            from haptic_collab.server.objects.fem import sphere_for_solid
+
+            mesh = sphere_for_solid(opts.subdivisions)  # P2: shown split four ways
+        else:
+            mesh = default_balloon(subdivisions=opts.subdivisions)
         if opts.mesh_max_edge is not None:
             mesh = refine_mesh(mesh, opts.mesh_max_edge, where="balloon")
     else:

@@ -118,7 +118,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -132,10 +132,11 @@ from scipy.spatial import cKDTree
 from haptic_collab.server.contact_stiffness import K_O_MAX
 from haptic_collab.server.objects.balloon import vertex_areas
 from haptic_collab.server.objects.fem_elements import (
-    gravity_loads,
-    lumped_mass,
+    element_gravity_loads,
+    element_lumped_mass,
+    element_stiffness_matrix,
+    quadratic_mesh,
     rotation_operator,
-    stiffness_matrix,
     warped,
 )
 from haptic_collab.server.objects.mesh import MeshError
@@ -187,6 +188,16 @@ _FIRST_MODES = 32
 #: singularity is integrable; a vertex near the rim stands for the area around it).
 _RIM = 0.95
 
+#: P2 punch loads: each face of the solid's surface under the pad is split this many ways along
+#: each edge (``_SPLITS^2`` parts) to integrate the pressure against the shape functions.
+_SPLITS = 12
+
+#: ``element = "auto"`` takes quadratic (P2) tetrahedra when they have at most this many nodes,
+#: else linear ones: the liver sphere's P2 solid on its 642-vertex parent has 5744 nodes and a
+#: factor of about 14 M non-zeros; a mesh of 12000 P2 nodes is about three times that
+#: (docs/fem.md, "Quadratic tetrahedra").
+P2_MAX_NODES = 12000
+
 
 @params_dataclass(frozen=True, slots=True)
 class FemParams:
@@ -230,6 +241,10 @@ class FemParams:
         Gravitational acceleration g [m/s^2] along -z of the object's frame, in [0,
         :data:`GRAVITY_MAX_M_S2`] (0, the default: no weight). With g > 0 the solid's rest state
         is the one it sags to under its own weight (module docstring, "Gravity").
+    element : {"auto", "p1", "p2"}
+        The tetrahedra (module docstring, "Elements"): "p2" quadratic, ten-node, the surface
+        shown split four ways; "p1" linear, four-node, the surface shown as meshed; "auto" (the
+        default) P2 when its mesh has at most :data:`P2_MAX_NODES` nodes, else P1.
 
     Raises
     ------
@@ -252,6 +267,7 @@ class FemParams:
     gravity_m_s2: Annotated[
         float, Field(ge=0.0, le=GRAVITY_MAX_M_S2, allow_inf_nan=False, strict=True)
     ] = 0.0
+    element: Literal["auto", "p1", "p2"] = "auto"
 
     @property
     def lame(self) -> tuple[float, float]:
@@ -303,6 +319,114 @@ def _zoh_modes(omega: FloatArray, zeta: FloatArray, h: float) -> tuple[FloatArra
         a_out[k] = e[:2, :2]
         b_out[k] = e[:2, 2]
     return a_out, b_out
+
+
+def _sub_triangles(splits: int) -> tuple[FloatArray, FloatArray]:
+    """A triangle split ``splits`` ways along each edge: the parts' corners (S, 3, 3) and
+    centroids (S, 3), in barycentric coordinates (S = splits^2)."""
+    tri = []
+    for i in range(splits):
+        for j in range(splits - i):
+            tri.append([(i, j), (i + 1, j), (i, j + 1)])
+            if i + j < splits - 1:
+                tri.append([(i + 1, j), (i, j + 1), (i + 1, j + 1)])
+    ij = np.asarray(tri, dtype=np.float64) / splits
+    corners = np.concatenate([1.0 - ij.sum(axis=2, keepdims=True), ij], axis=2)
+    return corners, corners.mean(axis=1)
+
+
+def p2_punch_loads(
+    nodes: FloatArray,
+    faces6: IntArray,
+    centre: FloatArray,
+    normal: FloatArray,
+    radius: float,
+    splits: int = _SPLITS,
+) -> tuple[IntArray, FloatArray]:
+    """The rigid flat punch's pressure on quadratic surface faces, as consistent nodal loads.
+
+    The pressure ``p(r) ~ 1 / sqrt(1 - (r / a)^2)`` (``r`` the distance from ``centre`` across
+    ``normal``; Johnson 1985, eq. 3.38's distribution) is integrated against each six-node
+    face's shape functions (``l_c (2 l_c - 1)`` at a corner, ``4 l_i l_j`` at a mid-edge node;
+    Zienkiewicz, Taylor and Zhu 2013, ch. 6) over the faces facing ``normal``. Each face is split
+    ``splits^2`` ways; a part is weighted by its area times the pressure's mean over its radial
+    extent ``[r1, r2]``, ``a (asin(r2 / a) - asin(r1 / a)) / (r2 - r1)``, so the rim's
+    integrable singularity is integrated, not sampled, and the shape functions are taken at the
+    part's centroid.
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]
+    faces6 : (F, 6) int
+        Each surface face's corners (outward) and the midpoints of its edges 01, 12, 20.
+    centre : (3,) float [m]; normal : (3,) float, unit, outward.
+    radius : float
+        The punch's radius a [m].
+    splits : int
+
+    Returns
+    -------
+    (indices (k,) int64, weights (k,) float64)
+        The loaded surface nodes and their shares of a unit push (summing to 1; negative at
+        some corners, as P2's consistent loads are).
+    """
+    x = nodes[faces6[:, :3]]  # (F, 3, 3) straight-sided faces: the corners fix the geometry
+    fn = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    area = 0.5 * np.linalg.norm(fn, axis=1)
+
+    def planar(pts: FloatArray) -> FloatArray:
+        rel = pts - centre
+        return np.asarray(np.linalg.norm(rel - (rel @ normal)[..., None] * normal, axis=-1))
+
+    centroid = x.mean(axis=1)
+    reach = np.linalg.norm(x - centroid[:, None, :], axis=2).max(axis=1)
+    cand = np.flatnonzero((planar(centroid) < radius + reach) & (fn @ normal > 0.0))
+    corners, mids = _sub_triangles(splits)
+    xs = x[cand]
+    r_c = planar(np.einsum("kcb,fbd->fkcd", corners, xs))  # (F, S, 3)
+    r1, r2 = r_c.min(axis=2), r_c.max(axis=2)
+    s1, s2 = np.minimum(r1, radius) / radius, np.minimum(r2, radius) / radius
+    mean_p = np.where(
+        r2 - r1 > 1e-9 * radius,
+        radius * (np.arcsin(s2) - np.arcsin(s1)) / np.maximum(r2 - r1, 1e-12 * radius),
+        1.0 / np.sqrt(np.maximum(1.0 - s1 * s1, 1e-12)),
+    )
+    w = np.where(r1 >= radius, 0.0, mean_p) * (area[cand] / len(mids))[:, None]  # (F, S)
+    l0, l1, l2 = mids[:, 0], mids[:, 1], mids[:, 2]
+    shape = np.stack(
+        [l0 * (2 * l0 - 1), l1 * (2 * l1 - 1), l2 * (2 * l2 - 1), 4 * l0 * l1, 4 * l1 * l2,
+         4 * l2 * l0], axis=1,
+    )  # fmt: skip
+    loads = w @ shape  # (F, 6)
+    idx, inv = np.unique(faces6[cand].ravel(), return_inverse=True)
+    out = np.bincount(inv.ravel(), weights=loads.ravel(), minlength=len(idx))
+    return idx.astype(np.int64), out / w.sum()
+
+
+#: The finest icosphere whose FEM solid is built from its parent (one subdivision coarser) with
+#: P2 elements: 2562 vertices (the default), P2 on the 642-vertex parent; finer ones are P1.
+P2_SPHERE_MAX_SUBDIVISIONS = 4
+
+
+def sphere_for_solid(subdivisions: int, radius_m: float = 0.1) -> trimesh.Trimesh:
+    """The surface to build a FEM solid on that shows the icosphere of ``subdivisions``.
+
+    With P2 elements (:attr:`FemParams.element`) a solid shows its surface split four ways, so
+    for 1 to :data:`P2_SPHERE_MAX_SUBDIVISIONS` this is the parent icosphere (one subdivision
+    coarser): the solid shows the same number of vertices, ``10 * 4^s + 2``, as the balloon's
+    sphere, the mid-edge vertices on the parent's chords (at most 0.3 mm inside the sphere at
+    r 0.1 m and 2562 vertices). Otherwise the icosphere itself (P1 above, 12 vertices at 0).
+
+    Raises
+    ------
+    ValueError
+        As :func:`server.objects.mesh.default_balloon`.
+    """
+    from haptic_collab.server.objects.mesh import default_balloon
+
+    if isinstance(subdivisions, int) and 1 <= subdivisions <= P2_SPHERE_MAX_SUBDIVISIONS:
+        return default_balloon(radius_m, subdivisions - 1)
+    return default_balloon(radius_m, subdivisions)
 
 
 def settle_frequency(params: FemParams) -> float:
@@ -386,7 +510,51 @@ class FemSolid(PatchedSurface):
             raise MeshError("FEM mesh has no faces or non-finite coordinates")
         if not mesh.is_watertight or not float(mesh.volume) > 0.0:
             raise MeshError("FEM mesh must be a closed surface enclosing a positive volume")
+        clock = time.perf_counter()
+        #: seconds of each start-up step (``haptic bench server`` reports them)
+        self.timings: dict[str, float] = {}
+        if volume is None:
+            nodes, tets = volume_mesh(verts, faces, cache_dir=cache_dir)
+        else:
+            nodes, tets = check_volume_mesh(volume[0], volume[1], verts)
+        if materials is not None and len(materials.labels) != len(tets):
+            raise MeshError(
+                f"FEM solid: {len(materials.labels)} element materials for {len(tets)} tetrahedra"
+            )
+        #: the P1 volume mesh the solid was built from (TetGen's, or ``volume``)
+        self.linear_nodes, self.linear_tets = nodes, tets
+        #: the element used: "p1" (linear) or "p2" (quadratic; module docstring, "Elements")
+        self.element = "p1"
+        elements = tets
         n = len(verts)
+        self._faces6: IntArray | None = None  # P2: each surface face's 6 nodes
+        if p.element != "p1":
+            nodes2, elements2, n2, shown = quadratic_mesh(nodes, tets, faces)
+            if p.element == "p2" or len(nodes2) <= P2_MAX_NODES:
+                m = len(faces)
+                self._faces6 = np.stack(
+                    [shown[:m, 0], shown[m : 2 * m, 1], shown[2 * m : 3 * m, 2],
+                     shown[:m, 1], shown[m : 2 * m, 2], shown[:m, 2]], axis=1,
+                )  # fmt: skip
+                self.element = "p2"
+                nodes, elements, n, faces = nodes2, elements2, n2, shown
+                verts = np.ascontiguousarray(nodes[:n])
+                mesh = trimesh.Trimesh(verts, faces, process=False)
+            else:
+                log.info(
+                    "FEM solid: linear tetrahedra (P1): quadratic ones would have %d nodes, "
+                    'more than %d (docs/fem.md, "Quadratic tetrahedra")',
+                    len(nodes2),
+                    P2_MAX_NODES,
+                )
+        #: (N, 3) [m] every node (P2: corners and mid-edge nodes); the first ``n_vertices`` are
+        #: the surface shown
+        self.nodes = nodes
+        #: (T, 4) the elements' corner nodes (indices into :attr:`nodes`), the linear mesh
+        self.tets = elements[:, :4]
+        #: (T, 4) or (T, 10) the elements (P2: corners, then mid-edge nodes)
+        self.elements = elements
+        n_nodes = len(nodes)
         self._rest = verts
         self._rest.setflags(write=False)
         self._faces = faces.astype(np.int32)
@@ -395,19 +563,6 @@ class FemSolid(PatchedSurface):
         self._normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
         self._areas = vertex_areas(verts, faces)
         self._tree = cKDTree(verts)
-        clock = time.perf_counter()
-        #: seconds of each start-up step (``haptic bench server`` reports them)
-        self.timings: dict[str, float] = {}
-        if volume is None:
-            nodes, tets = volume_mesh(verts, faces, cache_dir=cache_dir)
-        else:
-            nodes, tets = check_volume_mesh(volume[0], volume[1], verts)
-        self.nodes, self.tets = nodes, tets
-        n_nodes = len(nodes)
-        if materials is not None and len(materials.labels) != len(tets):
-            raise MeshError(
-                f"FEM solid: {len(materials.labels)} element materials for {len(tets)} tetrahedra"
-            )
         #: per-element materials (inclusions: docs/palpation.md), None for one material
         self.materials = materials
         self.timings["volume_mesh_s"] = time.perf_counter() - clock
@@ -423,12 +578,13 @@ class FemSolid(PatchedSurface):
         self.fixed_nodes = fixed
 
         lam, mu = materials.lame if materials is not None else p.lame
-        k_full = stiffness_matrix(nodes, tets, lam, mu)
+        k_full = element_stiffness_matrix(nodes, elements, lam, mu)
         free_nodes = np.flatnonzero(~fixed)
+        width = elements.shape[1]
         adjacency = sp.coo_matrix(
             (
-                np.ones(tets.size * 4),
-                (np.repeat(tets, 4, axis=1).ravel(), np.tile(tets, 4).ravel()),
+                np.ones(elements.size * width),
+                (np.repeat(elements, width, axis=1).ravel(), np.tile(elements, width).ravel()),
             ),
             shape=(n_nodes, n_nodes),
         ).tocsr()
@@ -447,7 +603,7 @@ class FemSolid(PatchedSurface):
         row_of[self._dofs] = np.arange(len(self._dofs))
         self._surface_rows = row_of[: 3 * n]
         # the surface's small rotations from the factored rows (modal warping)
-        self._w_op = rotation_operator(nodes, tets, n, row_of) if p.warp else None
+        self._w_op = rotation_operator(nodes, elements, n, row_of) if p.warp else None
 
         # modes: K phi = w^2 M phi on the free dofs (mass-normalised)
         self._omega = np.zeros(0)
@@ -455,7 +611,7 @@ class FemSolid(PatchedSurface):
         self._phi_rotation = np.zeros((3 * n, 0))
         self._phi_rows = np.zeros((len(self._dofs), 0))
         density = materials.density_kg_m3 if materials is not None else p.density_kg_m3
-        masses = lumped_mass(nodes, tets, density)
+        masses = element_lumped_mass(nodes, elements, density)
         m_modes = min(p.n_modes, len(self._dofs) - 2)
         clock = time.perf_counter()
         if p.density_kg_m3 > 0.0 and m_modes > 0:
@@ -495,7 +651,7 @@ class FemSolid(PatchedSurface):
         full = np.zeros(3 * n_nodes)
         rows = np.zeros(len(self._dofs))
         if g > 0.0:
-            loads = gravity_loads(self.nodes, self.tets, density, g).ravel()
+            loads = element_gravity_loads(self.nodes, self.elements, density, g).ravel()
             rows = np.asarray(self._lu.solve(loads[self._dofs]), dtype=np.float64).reshape(-1)
             full[self._dofs] = rows
         #: (N, 3) [m] every node's linear displacement under the solid's own weight (zeros on
@@ -744,6 +900,9 @@ class FemSolid(PatchedSurface):
         key = int(key)
         a = self.params.patch_radius_m
         normal = self._normals[key]
+        if self._faces6 is not None:
+            idx, wts = p2_punch_loads(self.nodes, self._faces6, self._rest[key], normal, a, _SPLITS)
+            return PunchPatch(key=key, indices=idx, weights=wts, normal=normal.copy())
         idx = np.asarray(self._tree.query_ball_point(self._rest[key], a), dtype=np.int64)
         d = np.linalg.norm(self._rest[idx] - self._rest[key], axis=1)
         keep = self._normals[idx] @ normal > 0.0  # the side pressed, not the far side

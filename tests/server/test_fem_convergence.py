@@ -46,7 +46,11 @@ def punch_points(vertices, faces, centre, normal, radius, splits=6):
         rel = p - centre
         return np.linalg.norm(rel - (rel @ normal)[..., None] * normal, axis=-1)
 
-    cand = np.flatnonzero((planar(x).min(axis=1) < radius) & (fn @ normal > 0.0))
+    centroid = x.mean(axis=1)
+    reach = np.linalg.norm(x - centroid[:, None, :], axis=2).max(axis=1)
+    # every face the pad's disc may reach, not only those with a corner under it: on a coarse
+    # surface the rim crosses faces whose corners are all outside it
+    cand = np.flatnonzero((planar(centroid) < radius + reach) & (fn @ normal > 0.0))
     tri = []
     for i in range(splits):
         for j in range(splits - i):
