@@ -293,8 +293,10 @@ def bench_fem(
             if n not in _SUBDIVISIONS:
                 raise ValueError(f"{n} is not an icosphere vertex count (10 * 4**s + 2)")
             sub = _SUBDIVISIONS[n]
-            surface = default_balloon(0.1, sub) if element == "p1" else sphere_for_solid(sub)
-            obj = FemSolid(surface, FemParams(element=element), cache_dir=cache)  # type: ignore[arg-type]
+            surface, chosen = sphere_for_solid(sub)
+            if element == "p1":
+                surface, chosen = default_balloon(0.1, sub), "p1"
+            obj = FemSolid(surface, FemParams(element=chosen), cache_dir=cache)
             row: dict[str, Any] = {
                 "n_vertices": n,
                 "element": obj.element,

@@ -161,6 +161,9 @@ GRAVITY_MAX_M_S2 = 100.0
 #: liver sphere sags 10 % of its height and is not warned about.
 SAG_WARN_SHARE = 0.15
 
+#: The FEM solid's tetrahedra (:attr:`FemParams.element`).
+Element = Literal["auto", "p1", "p2"]
+
 #: Poisson's ratio: above -1 and below 0.5 (0.5 is incompressible, which P1 elements cannot do).
 Poisson = Annotated[float, Field(gt=-1.0, lt=0.5, allow_inf_nan=False, strict=True)]
 
@@ -270,7 +273,7 @@ class FemParams:
     gravity_m_s2: Annotated[
         float, Field(ge=0.0, le=GRAVITY_MAX_M_S2, allow_inf_nan=False, strict=True)
     ] = 0.0
-    element: Literal["auto", "p1", "p2"] = "auto"
+    element: Element = "auto"
 
     @property
     def lame(self) -> tuple[float, float]:
@@ -411,14 +414,17 @@ def p2_punch_loads(
 P2_SPHERE_MAX_SUBDIVISIONS = 4
 
 
-def sphere_for_solid(subdivisions: int, radius_m: float = 0.1) -> trimesh.Trimesh:
-    """The surface to build a FEM solid on that shows the icosphere of ``subdivisions``.
+def sphere_for_solid(subdivisions: int, radius_m: float = 0.1) -> tuple[trimesh.Trimesh, Element]:
+    """The surface to build a FEM solid on that shows the icosphere of ``subdivisions``, and
+    the :attr:`FemParams.element` to build it with.
 
     With P2 elements (:attr:`FemParams.element`) a solid shows its surface split four ways, so
     for 1 to :data:`P2_SPHERE_MAX_SUBDIVISIONS` this is the parent icosphere (one subdivision
     coarser): the solid shows the same number of vertices, ``10 * 4^s + 2``, as the balloon's
     sphere, the mid-edge vertices on the parent's chords (at most 0.3 mm inside the sphere at
-    r 0.1 m and 2562 vertices). Otherwise the icosphere itself (P1 above, 12 vertices at 0).
+    r 0.1 m and 2562 vertices), and the element is "p2" whatever the node count (inclusions
+    refine the volume mesh; P1 on the parent would show a quarter of the vertices and be far
+    too stiff). Otherwise the icosphere itself and "auto" (P1 above, 12 vertices at 0).
 
     Raises
     ------
@@ -428,8 +434,8 @@ def sphere_for_solid(subdivisions: int, radius_m: float = 0.1) -> trimesh.Trimes
     from haptic_collab.server.objects.mesh import default_balloon
 
     if isinstance(subdivisions, int) and 1 <= subdivisions <= P2_SPHERE_MAX_SUBDIVISIONS:
-        return default_balloon(radius_m, subdivisions - 1)
-    return default_balloon(radius_m, subdivisions)
+        return default_balloon(radius_m, subdivisions - 1), "p2"
+    return default_balloon(radius_m, subdivisions), "auto"
 
 
 def settle_frequency(params: FemParams) -> float:
