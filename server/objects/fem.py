@@ -178,13 +178,17 @@ _NO_ROTATION = np.zeros(0)
 #: first tick of a step within 0.1 % of a full Newmark run with them, 2.8 % off with 24 modes).
 _SETTLE = 3.0
 
-#: Up to this many free degrees of freedom a P1 solid's modes come from LAPACK's dense symmetric
-#: solver (the lowest ``n_modes``, of which those below the settle frequency are kept: 1.8 s for
-#: 2202 unknowns, where ARPACK took 11 s for 142 modes); above it from ARPACK's shift-invert
-#: Lanczos on the sparse factor. A P2 solid always uses ARPACK: on the 162-vertex ball's P2
-#: solid (2859 unknowns) it took 0.3 s for 24 modes and 3.1 s for 163 where the dense solver
-#: took 9.3 and 3.8 s (docs/fem.md, "Quadratic tetrahedra").
+#: Up to this many free degrees of freedom the modes come from LAPACK's dense symmetric solver
+#: (the lowest ``n_modes``, of which those below the settle frequency are kept: 1.8 s for 2202
+#: unknowns, where ARPACK took 11 s for 142 modes) when at least one in :data:`_DENSE_SHARE` of
+#: them is wanted; otherwise from ARPACK's shift-invert Lanczos on the sparse factor. A few
+#: modes of many are ARPACK's: on the 162-vertex ball's P2 solid (2859 unknowns) it took 0.3 s
+#: for 24 modes where the dense solver took 9.3 s.
 _DENSE_MODES = 3000
+
+#: The dense solver is used when the modes wanted are at least this share (1 in 8) of the
+#: unknowns (module constant :data:`_DENSE_MODES`).
+_DENSE_SHARE = 8
 
 #: The first batch of modes (and the fewest kept); more follow (a Weyl estimate, count ~ omega^3) up to the settle
 #: frequency.
@@ -705,8 +709,8 @@ class FemSolid(PatchedSurface):
         """The lowest modes by shift-invert Lanczos (``sigma = 0``) on the factor: every mode
         below ``omega_c`` [rad/s] (:func:`settle_frequency`), at most ``count``.
 
-        On P1 elements with at most :data:`_DENSE_MODES` unknowns, LAPACK's dense solver finds
-        the lowest ``count`` at once, and those below ``omega_c`` are kept (at least
+        With at most :data:`_DENSE_MODES` unknowns, of which ``count`` is at least one in
+        :data:`_DENSE_SHARE`, LAPACK's dense solver finds the lowest ``count`` at once, and those below ``omega_c`` are kept (at least
         :data:`_FIRST_MODES`). Otherwise a first batch of :data:`_FIRST_MODES` by ARPACK; if its
         highest is below ``omega_c``, one more solve for the count Weyl's law estimates (modes up
         to ``omega`` grow as ``omega^3``) with a 20 % margin, and so on.
@@ -720,7 +724,7 @@ class FemSolid(PatchedSurface):
             (size, size), matvec=lambda x: self._lu.solve(x / s) / s, dtype=np.float64
         )
         least = min(count, _FIRST_MODES)
-        if size <= _DENSE_MODES and self.element == "p1":  # LAPACK's dense solver
+        if size <= _DENSE_MODES and count * _DENSE_SHARE >= size:  # LAPACK's dense solver
             dense = np.asarray(self._k_free.toarray()) * s[:, None] * s[None, :]
             vals, vecs = sla.eigh(dense, subset_by_index=(0, count - 1), driver="evr")
             keep = max(least, int(np.count_nonzero(vals < omega_c**2)))
