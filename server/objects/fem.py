@@ -7,30 +7,46 @@ surface out, ``K_o``, ``B_o`` and the contacts' compliance matrix), so the World
 gain design and the viewer use it unchanged.
 
 **Volume mesh.** :func:`server.objects.volume.volume_mesh` tetrahedralises the surface keeping
-its ``n`` vertices as the first ``n`` nodes, so the surface, the patches and the viewer's indices
-are the surface mesh's own.
+its ``n`` vertices as the first ``n`` nodes.
 
-**Elasticity.** P1 (linear, four-node) tetrahedra, isotropic, small strain: Young's modulus
-``E`` [Pa] and Poisson's ratio ``nu``, Lame ``lambda = E nu / ((1 + nu)(1 - 2 nu))`` and
-``mu = E / (2 (1 + nu))``; each element's stiffness is ``V B^T D B`` (Zienkiewicz, Taylor and
-Zhu 2013, ch. 6), assembled into ``K`` (3N x 3N) [N/m]. The supported base is fixed (``u = 0``):
+**Elements** (``FemParams.element``). Quadratic (P2, ten-node, straight-sided) tetrahedra on
+that mesh (:func:`server.objects.fem_elements.quadratic_mesh`): linear ones lock near
+incompressibility and resolve the finger pad's rim poorly, so their ``K_o`` was 9-37 % too stiff
+at nu 0.45-0.49, where P2's is within 5 % of a refined P2 solution (docs/fem.md, "Converged
+stiffness"). P2 was chosen over a mixed u-p, F-bar or selectively reduced P1 element because the
+error left with averaged nodal pressure (which fixes locking) was the surface's resolution under
+the pad, which P2's quadratic surface supplies. The nodes are ordered so that the surface shown
+comes first: the mesh's ``n`` corner vertices, then its edges' midpoints; the shown surface is
+the given one with every face split in four, and the patches, the viewer stream and the World
+work on it. "auto" (the default) takes P2 when it has at most :data:`P2_MAX_NODES` nodes and
+P1 (linear, four-node, the surface shown as given) otherwise;
+:func:`sphere_for_solid` builds the default sphere of ``N`` shown vertices from its parent
+icosphere with P2.
+
+**Elasticity.** Isotropic, small strain: Young's modulus ``E`` [Pa] and Poisson's ratio ``nu``,
+Lame ``lambda = E nu / ((1 + nu)(1 - 2 nu))`` and ``mu = E / (2 (1 + nu))``; each element's
+stiffness is ``integral B^T D B dV`` (Zienkiewicz, Taylor and Zhu 2013, ch. 6; for P2 by a
+four-point rule, exact for its linear strain), assembled into ``K`` (3N x 3N) [N/m]. The supported base is fixed (``u = 0``):
 every node within ``base_share`` (20 %) of the object's height of its lowest point, as if it sat
 in a cradle (a flat bottom is always fixed). ``K`` on the free nodes is factored once at start (geometric nested
 dissection, the balloon's: :mod:`server.objects.sparse_factor`).
 
 **Contacts.** A push ``f`` [N] at a contact is a *rigid flat punch* of radius ``a``
 (``patch_radius_m``, the 15 mm finger pad) pressing along the patch normal ``n_p`` (the centre
-vertex's rest normal): nodal loads ``-f beta_i n_p`` on the surface vertices of the patch with
-the flat punch's pressure distribution, ``beta_i`` proportional to ``a_i / sqrt(1 - (d_i/a)^2)``
-(``a_i`` the vertex's area, ``d_i`` its distance from the centre; Boussinesq's rigid punch,
-Johnson 1985, section 3.8), summing to 1. With ``b_j`` the load vector of patch ``j``, the normal
+vertex's rest normal): nodal loads ``-f beta_i n_p`` on the surface nodes of the patch with
+the flat punch's pressure distribution ``~ 1 / sqrt(1 - (d/a)^2)`` (``d`` the distance from the
+centre; Boussinesq's rigid punch, Johnson 1985, section 3.8), summing to 1. On P2 elements the
+pressure is integrated over the surface faces against their six-node shape functions, the rim's
+singularity integrated (:func:`p2_punch_loads`); on P1 ``beta_i`` is ``a_i / sqrt(1 -
+(d_i/a)^2)`` at the vertices (``a_i`` the vertex's area). With ``b_j`` the load vector of patch ``j``, the normal
 compliance is ``C_ij = b_i^T K^-1 b_j`` [m/N] and ``K_o,i = 1 / C_ii``: under the punch's
 pressure the weighted mean displacement is the punch's displacement, so on an elastic half-space
 ``K_o = 2 a E / (1 - nu^2)`` (a rigid flat punch; Johnson 1985, eq. 3.38), and it stays finite
 as the mesh is refined (a single node's compliance does not).
 
-**Dynamics** (so the object is not the gain design's model): a lumped mass ``rho V / 4`` per node
-and per element, and Rayleigh damping ``C = alpha M + beta K`` (``beta`` is Kelvin-Voigt
+**Dynamics** (so the object is not the gain design's model): a lumped mass (P1: ``rho V / 4``
+per node and per element; P2: HRZ lumping, Hinton, Rock and Zienkiewicz 1976, 1/36 of the
+element's mass at a corner and 4/27 at a mid-edge node), and Rayleigh damping ``C = alpha M + beta K`` (``beta`` is Kelvin-Voigt
 viscosity over E). The response is split by the mode-acceleration method (Craig and Kurdila
 2006, ch. 14): every mode that does not settle within one simulation period
 (:func:`settle_frequency`; at most ``n_modes``; ``K phi = omega^2 M phi``, mass-normalised,
@@ -73,8 +89,9 @@ not one rotation. docs/fem.md has the measurements.
 
 **Gravity** (``gravity_m_s2``, off by default; ``haptic server --gravity``). The solid's rest state
 is the one it sags to under its own weight, ``g`` along -z of the object's frame: the consistent
-body-force loads ``rho g V / 4`` on each node of each tetrahedron (per-element densities with
-inclusions; :func:`server.objects.fem_elements.gravity_loads`) solved once with the factored
+body-force loads (P1: ``rho g V / 4`` on each node of each tetrahedron; P2: ``-1/20`` of the
+element's weight at a corner, ``1/5`` at a mid-edge node; per-element densities with
+inclusions; :func:`server.objects.fem_elements.element_gravity_loads`) solved once with the factored
 ``K`` at start, ``u_g = K^-1 F_g``. The fixed base carries the weight. What follows from that:
 
 - The sagged surface is the solid's :attr:`FemSolid.rest_vertices`: what the viewer draws, what
@@ -100,6 +117,8 @@ inclusions; :func:`server.objects.fem_elements.gravity_loads`) solved once with 
 References
 ----------
 - Johnson, K. L. (1985). *Contact Mechanics*. Cambridge University Press.
+- Hinton, E., Rock, T., & Zienkiewicz, O. C. (1976). A note on mass lumping and related
+  processes in the finite element method. *Earthq. Eng. Struct. Dyn.* 4, 245-249.
 - Zienkiewicz, O. C., Taylor, R. L., & Zhu, J. Z. (2013). *The Finite Element Method: Its Basis
   and Fundamentals*, 7th ed. Butterworth-Heinemann.
 - Craig, R. R., & Kurdila, A. J. (2006). *Fundamentals of Structural Dynamics*, 2nd ed. Wiley.

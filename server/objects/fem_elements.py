@@ -1,15 +1,22 @@
-"""The FEM solid's P1 tetrahedra: element gradients, stiffness, lumped mass, modal warping.
+"""The FEM solid's tetrahedra, P1 and P2: gradients, stiffness, lumped mass, loads, warping.
 
-Pure functions of a volume mesh (``nodes`` (N, 3) [m], ``tets`` (T, 4) positively oriented), used
-once when :class:`server.objects.fem.FemSolid` is built and, for :func:`warped`, every tick:
+Pure functions of a volume mesh (``nodes`` (N, 3) [m], ``tets`` (T, 4) positively oriented, or
+ten-node ``elements`` (T, 10) from :func:`quadratic_mesh`), used once when
+:class:`server.objects.fem.FemSolid` is built and, for :func:`warped`, every tick:
 
-- :func:`element_gradients`: the constant shape-function gradients and the volume of each linear
-  four-node tetrahedron;
-- :func:`stiffness_matrix`: the isotropic small-strain elastic stiffness ``K`` (3N x 3N) [N/m],
-  element by element ``V B^T D B`` with Lame's constants (Zienkiewicz, Taylor and Zhu 2013,
-  ch. 6): the object's stiffness behind the paper's eq. (6);
-- :func:`lumped_mass`: a quarter of each element's mass on each of its nodes;
-- :func:`gravity_loads`: the consistent nodal loads of the solid's own weight;
+- :func:`element_gradients`: the barycentric coordinates' constant gradients and the volume of
+  each tetrahedron (the P1 shape functions'); :func:`p2_gradients` the ten P2 shape functions'
+  at a point;
+- :func:`quadratic_mesh`: the straight-sided P2 mesh, the surface's corner and mid-edge nodes
+  first, and the surface it shows (each face split in four);
+- :func:`stiffness_matrix` (P1, ``V B^T D B``) and :func:`p2_stiffness_matrix` (P2, a
+  four-point rule exact for its linear strain), :func:`element_stiffness_matrix` either: the
+  isotropic small-strain elastic stiffness ``K`` (3N x 3N) [N/m] with Lame's constants
+  (Zienkiewicz, Taylor and Zhu 2013, ch. 6), the object's stiffness behind the paper's eq. (6);
+- :func:`lumped_mass` (a quarter of each P1 element's mass on each node) and
+  :func:`element_lumped_mass` (P2: HRZ lumping, Hinton, Rock and Zienkiewicz 1976);
+- :func:`gravity_loads` and :func:`element_gravity_loads`: the consistent nodal loads of the
+  solid's own weight;
 - :func:`rotation_operator` and :func:`warped`: modal warping (Choi and Ko 2005), the surface
   vertices' small rotation ``curl(u) / 2`` from the linear displacement and the displacement
   carried along it.
