@@ -86,7 +86,7 @@ def test_a_column_sags_as_the_analytic_column_under_its_own_weight(cache):
     # nu = 0: a column clamped at its foot is in uniaxial stress rho g (H - z), so
     # u_z(z) = -rho g (H z - z^2 / 2) / E exactly, and nothing moves sideways
     height, e, rho = 0.12, 10.0e3, 1000.0
-    column = refine_mesh(trimesh.creation.box(extents=(0.04, 0.04, height)), 0.012)
+    column = refine_mesh(trimesh.creation.box(extents=(0.04, 0.04, height)), 0.02)
     params = FemParams(
         young_pa=e, poisson=0.0, density_kg_m3=rho, n_modes=0, base_share=0.0, gravity_m_s2=G
     )
@@ -268,7 +268,7 @@ def test_the_command_line_takes_gravity_9_81_without_a_value_and_refuses_a_bad_o
 
 
 def test_a_sag_beyond_the_linear_model_is_a_warning_naming_it(cache, caplog):
-    column = refine_mesh(trimesh.creation.box(extents=(0.04, 0.04, 0.12)), 0.012)
+    column = refine_mesh(trimesh.creation.box(extents=(0.04, 0.04, 0.12)), 0.02)
     params = FemParams(young_pa=3.5e3, poisson=0.0, density_kg_m3=1000.0, n_modes=0, base_share=0.0)
     with caplog.at_level(logging.WARNING, logger="haptic.server.fem"):
         FemSolid(column, replace(params, gravity_m_s2=G * 0.85), cache_dir=cache)
