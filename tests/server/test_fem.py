@@ -58,10 +58,14 @@ def _top_stiffness(solid: FemSolid) -> float:
 
 
 def test_a_block_pressed_by_the_finger_pad_is_as_stiff_as_a_flat_punch_and_scales_with_e(
-    block, cache
+    block, cache, caplog
 ):
     params = FemParams(young_pa=5.0e3, poisson=0.3, n_modes=0)
-    solid = FemSolid(block, params, cache_dir=cache)
+    with caplog.at_level("INFO", logger="haptic.server.fem"):
+        solid = FemSolid(block, params, cache_dir=cache)
+    # about 65000 P2 nodes: linear elements, the surface shown as given, and the log says so
+    assert solid.element == "p1" and solid.n_vertices == len(block.vertices)
+    assert "linear tetrahedra (P1)" in caplog.text
     k = _top_stiffness(solid)
     punch = 2.0 * params.patch_radius_m * params.young_pa / (1.0 - params.poisson**2)
     # a finite block fixed at its bottom and 6 mm linear elements are stiffer than the
@@ -344,3 +348,48 @@ def test_a_bent_part_is_loaded_at_its_own_patch(bar, cache):
     assert solid.vertices[vertex][0] - rest_point[0] < -0.03  # bent by centimetres
     key = world._users["u"].key
     assert np.linalg.norm(solid.rest_vertices[key] - rest_point) < 1.5 * spacing
+
+
+def test_a_small_rigid_turn_is_the_rotation_every_surface_vertex_reports(ball, cache):
+    """Modal warping's rotation estimate on P2 elements: a small rigid rotation ``u = w x x``
+    (a linear field, which P2 holds exactly) reads back as ``w`` at every surface vertex,
+    corners and mid-edge vertices alike."""
+    from haptic_collab.server.objects.fem_elements import rotation_operator
+
+    solid = FemSolid(ball, FemParams(n_modes=0), cache_dir=cache)
+    n_all = len(solid.nodes)
+    op = rotation_operator(solid.nodes, solid.elements, solid.n_vertices, np.arange(3 * n_all))
+    w = np.array([0.01, -0.02, 0.005])
+    u = np.cross(w, solid.nodes).ravel()
+    got = (op @ u).reshape(-1, 3)
+    assert np.abs(got - w).max() <= 1e-9 * np.abs(w).max()
+
+
+def test_the_pad_presses_with_the_flat_punch_pressure_integrated(ball, cache):
+    """The P2 punch loads of one unit push: they sum to 1 along the patch normal, their first
+    moment is the pad's centre on a symmetric patch, and they reach past the vertices under the
+    pad to every face the pad's disc crosses."""
+    solid = FemSolid(ball, FemParams(n_modes=0), cache_dir=cache)
+    key = solid.patch_key([0.0, 0.0, 0.05], normal=[0.0, 0.0, 1.0])
+    pt = solid.patch(key)
+    assert pt.weights.sum() == pytest.approx(1.0, abs=1e-12)
+    centre = solid.rest_vertices[key]
+    first_moment = pt.weights @ (solid.rest_vertices[pt.indices] - centre)
+    planar = first_moment - (first_moment @ pt.normal) * pt.normal
+    assert np.linalg.norm(planar) < 0.05 * solid.params.patch_radius_m
+    across = solid.rest_vertices[pt.indices] - centre
+    d = np.linalg.norm(across - np.outer(across @ pt.normal, pt.normal), axis=1)
+    assert d.max() > solid.params.patch_radius_m  # nodes of the faces the rim crosses
+
+
+def test_the_servers_fem_sphere_shows_as_many_vertices_as_the_balloons():
+    """``--subdivisions 2``: the balloon's sphere has 162 vertices; the FEM solid is P2 on its
+    42-vertex parent and shows 162, on the parent's chords."""
+    from haptic_collab.server.main import ServerOptions, build_world
+
+    balloon = build_world(ServerOptions(subdivisions=2))
+    solid = build_world(ServerOptions(object="fem", subdivisions=2)).obj
+    assert solid.element == "p2"
+    assert solid.n_vertices == len(balloon.vertices) == 162
+    radius = np.linalg.norm(solid.rest_vertices, axis=1)
+    assert radius.max() == pytest.approx(0.1, rel=1e-9) and radius.min() > 0.09
