@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from haptic_collab.server.admission import RoomLimits
 from haptic_collab.server.agones import (
@@ -523,10 +523,16 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
         raise ValueError(
             f"rates at {rates.sim_rate_hz:g} Hz disagree with --sim-rate {opts.sim_rate_hz:g} Hz"
         )
+    element: Literal["auto", "p1", "p2"] = "auto"  # the FEM solid's (FemParams.element)
     if opts.mesh == "balloon":
         if not 0 <= opts.subdivisions <= 7:
             raise ValueError("--subdivisions must be in [0, 7]")
-        mesh = default_balloon(subdivisions=opts.subdivisions)
+        if opts.object == "fem" and opts.mesh_max_edge is None:
+            from haptic_collab.server.objects.fem import sphere_for_solid
+
+            mesh, element = sphere_for_solid(opts.subdivisions)  # P2: shown split four ways
+        else:
+            mesh = default_balloon(subdivisions=opts.subdivisions)
         if opts.mesh_max_edge is not None:
             mesh = refine_mesh(mesh, opts.mesh_max_edge, where="balloon")
     else:
@@ -558,7 +564,7 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     for warning in mesh_warnings(mesh, params.patch_radius_m, where=opts.mesh):
         log.warning("%s", warning)
     if opts.object == "fem":
-        return world_around(_build_fem(opts, mesh, rates, scale), opts, rates)
+        return world_around(_build_fem(opts, mesh, rates, scale, element), opts, rates)
     obj = Balloon(mesh, params)
     log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))
     return world_around(obj, opts, rates)
@@ -602,8 +608,15 @@ def world_around(obj: Any, opts: ServerOptions, rates: Rates | None = None):  # 
     )
 
 
-def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> Any:
-    """The FEM solid of ``--object fem`` (:func:`build_world`); E is multiplied by ``scale``."""
+def _build_fem(
+    opts: ServerOptions,
+    mesh: Any,
+    rates: Rates,
+    scale: float,
+    element: Literal["auto", "p1", "p2"] = "auto",
+) -> Any:
+    """The FEM solid of ``--object fem`` (:func:`build_world`); E is multiplied by ``scale``;
+    ``element`` is :attr:`server.objects.fem.FemParams.element`."""
     from haptic_collab.server.objects.fem import FemParams, FemSolid
     from haptic_collab.server.solid_materials import (
         SOLID_PRESETS,
@@ -614,7 +627,10 @@ def _build_fem(opts: ServerOptions, mesh: Any, rates: Rates, scale: float) -> An
     material = load_solid_material(opts.material) if opts.material else SOLID_PRESETS["liver"]
     params = solid_to_params(material, FemParams(sim_period_s=rates.sim_period_s))
     params = replace(
-        params, young_pa=params.young_pa * scale, gravity_m_s2=float(opts.gravity_m_s2)
+        params,
+        young_pa=params.young_pa * scale,
+        gravity_m_s2=float(opts.gravity_m_s2),
+        element=element,
     )
     log.info("FEM solid, material %s", material.summary())
     from haptic_collab.server.objects.inclusions import (

@@ -263,8 +263,13 @@ def bench_fem(
     ticks: int = 100,
     seed: int = 0,
     warmup: int = 3,
+    element: str = "auto",
 ) -> dict[str, Any]:
     """Start-up and tick cost of the FEM solid (``--object fem``, liver) on icospheres.
+
+    ``element`` is :attr:`server.objects.fem.FemParams.element`: "auto" builds the solid as the
+    server does (:func:`server.objects.fem.sphere_for_solid`: P2 on the parent icosphere up to
+    2562 shown vertices); "p1" linear tetrahedra on the icosphere of ``n`` vertices itself.
 
     For each surface size: the volume mesh (TetGen in its own process, not cached), the
     assembly, the one sparse factorisation (geometric nested dissection, SuperLU without
@@ -280,16 +285,21 @@ def bench_fem(
     """
     import tempfile
 
-    from haptic_collab.server.objects.fem import FemParams, FemSolid
+    from haptic_collab.server.objects.fem import FemParams, FemSolid, sphere_for_solid
 
     meshes = []
     with single_thread_blas() as limited, tempfile.TemporaryDirectory() as cache:
         for n in n_vertices_list:
             if n not in _SUBDIVISIONS:
                 raise ValueError(f"{n} is not an icosphere vertex count (10 * 4**s + 2)")
-            obj = FemSolid(default_balloon(0.1, _SUBDIVISIONS[n]), FemParams(), cache_dir=cache)
+            sub = _SUBDIVISIONS[n]
+            surface, chosen = sphere_for_solid(sub)
+            if element == "p1":
+                surface, chosen = default_balloon(0.1, sub), "p1"
+            obj = FemSolid(surface, FemParams(element=chosen), cache_dir=cache)
             row: dict[str, Any] = {
                 "n_vertices": n,
+                "element": obj.element,
                 "nodes": len(obj.nodes),
                 "tetrahedra": len(obj.tets),
                 "factor_nnz": int(obj.factor_nnz),

@@ -42,14 +42,13 @@ import numpy as np
 import trimesh
 
 from haptic_collab.demo_report import STIFFNESS_JND
-from haptic_collab.server.objects.fem import FemParams, FemSolid
+from haptic_collab.server.objects.fem import FemParams, FemSolid, sphere_for_solid
 from haptic_collab.server.objects.inclusions import (
     ElementMaterials,
     Inclusion,
     element_materials,
     volume_with_inclusions,
 )
-from haptic_collab.server.objects.mesh import default_balloon
 from haptic_collab.server.objects.volume import TETGEN_SWITCHES
 from haptic_collab.server.solid_materials import SOLID_PRESETS, SolidMaterial, solid_to_params
 from haptic_collab.shared.types import FloatArray
@@ -156,15 +155,27 @@ class PalpationResult:
 
 
 def lump_and_twin(
-    diameter_m: float, depth_m: float, material: SolidMaterial, base: SolidMaterial
+    diameter_m: float,
+    depth_m: float,
+    material: SolidMaterial,
+    base: SolidMaterial,
+    subdivisions: int = LUMP_SUBDIVISIONS,
 ) -> list[Inclusion]:
     """The lump (``material``) and its mirror twin of the solid's own material (``base``): the
     twin's surface refines the mesh beside the lump as the lump's refines it over the lump, so
     that over and beside are meshed alike (without it, today's P1 mesh is about 10 % softer
     over the lump's refined facets than beside them; docs/palpation.md)."""
     return [
-        Inclusion(mesh=sphere_lump(diameter_m, depth_m), material=material, where="lump"),
-        Inclusion(mesh=sphere_lump(diameter_m, depth_m, side=-1.0), material=base, where="twin"),
+        Inclusion(
+            mesh=sphere_lump(diameter_m, depth_m, subdivisions=subdivisions),
+            material=material,
+            where="lump",
+        ),
+        Inclusion(
+            mesh=sphere_lump(diameter_m, depth_m, side=-1.0, subdivisions=subdivisions),
+            material=base,
+            where="twin",
+        ),
     ]
 
 
@@ -175,6 +186,7 @@ def measure(
     base: SolidMaterial | None = None,
     subdivisions: int = 4,
     cache_dir: str | Path | None = None,
+    lump_subdivisions: int = LUMP_SUBDIVISIONS,
 ) -> PalpationResult:
     """``K_o`` over a spherical lump ``factor`` times as stiff as ``base`` (default liver) and
     beside it over its twin, with and without the lump's material, on the default sphere
@@ -189,9 +201,13 @@ def measure(
     base : SolidMaterial, optional
         The solid's material (default liver).
     subdivisions : int
-        Icosphere subdivisions of the solid's surface (4: the server's default, 2562 vertices).
+        Icosphere subdivisions of the solid's surface shown (4: the server's default, 2562
+        vertices); the solid is built as the server builds it
+        (:func:`server.objects.fem.sphere_for_solid`: P2 on the parent icosphere).
     cache_dir : path, optional
         Where TetGen's volume meshes are cached.
+    lump_subdivisions : int
+        Icosphere subdivisions of the lump's and its twin's surfaces.
 
     Raises
     ------
@@ -202,20 +218,20 @@ def measure(
         raise ValueError(f"factor must be > 0, got {factor!r}")
     base = base or SOLID_PRESETS["liver"]
     stiff = replace(base, name=f"{base.name}*{factor:g}", young_pa=base.young_pa * factor)
-    mesh = default_balloon(subdivisions=subdivisions)
-    inclusions = lump_and_twin(diameter_m, depth_m, stiff, base)
+    mesh, element = sphere_for_solid(subdivisions)
+    inclusions = lump_and_twin(diameter_m, depth_m, stiff, base, lump_subdivisions)
     nodes, tets = volume_with_inclusions(mesh, inclusions, cache_dir=cache_dir)
-    solid = FemSolid(mesh, _static(solid_to_params(base, FemParams())), volume=(nodes, tets))
-    radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
+    params = replace(_static(solid_to_params(base, FemParams())), element=element)
+    solid = FemSolid(mesh, params, volume=(nodes, tets))
+    shown = solid.rest_vertices
+    radius = float(np.linalg.norm(shown, axis=1).max())
     keys = [
-        int(np.argmin(np.linalg.norm(mesh.vertices - radius * lump_direction(side=s), axis=1)))
+        int(np.argmin(np.linalg.norm(shown - radius * lump_direction(side=s), axis=1)))
         for s in (1.0, -1.0)
     ]
     without = solid.contact_stiffness(keys)
     mats: ElementMaterials = element_materials(solid.nodes, solid.tets, base, inclusions)
-    lumped = FemSolid(
-        mesh, _static(solid_to_params(base, FemParams())), volume=(nodes, tets), materials=mats
-    )
+    lumped = FemSolid(mesh, params, volume=(nodes, tets), materials=mats)
     with_lump = lumped.contact_stiffness(keys)
     return PalpationResult(
         diameter_m=float(diameter_m),

@@ -7,30 +7,46 @@ surface out, ``K_o``, ``B_o`` and the contacts' compliance matrix), so the World
 gain design and the viewer use it unchanged.
 
 **Volume mesh.** :func:`server.objects.volume.volume_mesh` tetrahedralises the surface keeping
-its ``n`` vertices as the first ``n`` nodes, so the surface, the patches and the viewer's indices
-are the surface mesh's own.
+its ``n`` vertices as the first ``n`` nodes.
 
-**Elasticity.** P1 (linear, four-node) tetrahedra, isotropic, small strain: Young's modulus
-``E`` [Pa] and Poisson's ratio ``nu``, Lame ``lambda = E nu / ((1 + nu)(1 - 2 nu))`` and
-``mu = E / (2 (1 + nu))``; each element's stiffness is ``V B^T D B`` (Zienkiewicz, Taylor and
-Zhu 2013, ch. 6), assembled into ``K`` (3N x 3N) [N/m]. The supported base is fixed (``u = 0``):
+**Elements** (``FemParams.element``). Quadratic (P2, ten-node, straight-sided) tetrahedra on
+that mesh (:func:`server.objects.fem_elements.quadratic_mesh`): linear ones lock near
+incompressibility and resolve the finger pad's rim poorly, so their ``K_o`` was 9-37 % too stiff
+at nu 0.45-0.49, where P2's is within 5 % of a refined P2 solution (docs/fem.md, "Converged
+stiffness"). P2 was chosen over a mixed u-p, F-bar or selectively reduced P1 element because the
+error left with averaged nodal pressure (which fixes locking) was the surface's resolution under
+the pad, which P2's quadratic surface supplies. The nodes are ordered so that the surface shown
+comes first: the mesh's ``n`` corner vertices, then its edges' midpoints; the shown surface is
+the given one with every face split in four, and the patches, the viewer stream and the World
+work on it. "auto" (the default) takes P2 when it has at most :data:`P2_MAX_NODES` nodes and
+P1 (linear, four-node, the surface shown as given) otherwise;
+:func:`sphere_for_solid` builds the default sphere of ``N`` shown vertices from its parent
+icosphere with P2.
+
+**Elasticity.** Isotropic, small strain: Young's modulus ``E`` [Pa] and Poisson's ratio ``nu``,
+Lame ``lambda = E nu / ((1 + nu)(1 - 2 nu))`` and ``mu = E / (2 (1 + nu))``; each element's
+stiffness is ``integral B^T D B dV`` (Zienkiewicz, Taylor and Zhu 2013, ch. 6; for P2 by a
+four-point rule, exact for its linear strain), assembled into ``K`` (3N x 3N) [N/m]. The supported base is fixed (``u = 0``):
 every node within ``base_share`` (20 %) of the object's height of its lowest point, as if it sat
 in a cradle (a flat bottom is always fixed). ``K`` on the free nodes is factored once at start (geometric nested
 dissection, the balloon's: :mod:`server.objects.sparse_factor`).
 
 **Contacts.** A push ``f`` [N] at a contact is a *rigid flat punch* of radius ``a``
 (``patch_radius_m``, the 15 mm finger pad) pressing along the patch normal ``n_p`` (the centre
-vertex's rest normal): nodal loads ``-f beta_i n_p`` on the surface vertices of the patch with
-the flat punch's pressure distribution, ``beta_i`` proportional to ``a_i / sqrt(1 - (d_i/a)^2)``
-(``a_i`` the vertex's area, ``d_i`` its distance from the centre; Boussinesq's rigid punch,
-Johnson 1985, section 3.8), summing to 1. With ``b_j`` the load vector of patch ``j``, the normal
+vertex's rest normal): nodal loads ``-f beta_i n_p`` on the surface nodes of the patch with
+the flat punch's pressure distribution ``~ 1 / sqrt(1 - (d/a)^2)`` (``d`` the distance from the
+centre; Boussinesq's rigid punch, Johnson 1985, section 3.8), summing to 1. On P2 elements the
+pressure is integrated over the surface faces against their six-node shape functions, the rim's
+singularity integrated (:func:`p2_punch_loads`); on P1 ``beta_i`` is ``a_i / sqrt(1 -
+(d_i/a)^2)`` at the vertices (``a_i`` the vertex's area). With ``b_j`` the load vector of patch ``j``, the normal
 compliance is ``C_ij = b_i^T K^-1 b_j`` [m/N] and ``K_o,i = 1 / C_ii``: under the punch's
 pressure the weighted mean displacement is the punch's displacement, so on an elastic half-space
 ``K_o = 2 a E / (1 - nu^2)`` (a rigid flat punch; Johnson 1985, eq. 3.38), and it stays finite
 as the mesh is refined (a single node's compliance does not).
 
-**Dynamics** (so the object is not the gain design's model): a lumped mass ``rho V / 4`` per node
-and per element, and Rayleigh damping ``C = alpha M + beta K`` (``beta`` is Kelvin-Voigt
+**Dynamics** (so the object is not the gain design's model): a lumped mass (P1: ``rho V / 4``
+per node and per element; P2: HRZ lumping, Hinton, Rock and Zienkiewicz 1976, 1/36 of the
+element's mass at a corner and 4/27 at a mid-edge node), and Rayleigh damping ``C = alpha M + beta K`` (``beta`` is Kelvin-Voigt
 viscosity over E). The response is split by the mode-acceleration method (Craig and Kurdila
 2006, ch. 14): every mode that does not settle within one simulation period
 (:func:`settle_frequency`; at most ``n_modes``; ``K phi = omega^2 M phi``, mass-normalised,
@@ -73,8 +89,9 @@ not one rotation. docs/fem.md has the measurements.
 
 **Gravity** (``gravity_m_s2``, off by default; ``haptic server --gravity``). The solid's rest state
 is the one it sags to under its own weight, ``g`` along -z of the object's frame: the consistent
-body-force loads ``rho g V / 4`` on each node of each tetrahedron (per-element densities with
-inclusions; :func:`server.objects.fem_elements.gravity_loads`) solved once with the factored
+body-force loads (P1: ``rho g V / 4`` on each node of each tetrahedron; P2: ``-1/20`` of the
+element's weight at a corner, ``1/5`` at a mid-edge node; per-element densities with
+inclusions; :func:`server.objects.fem_elements.element_gravity_loads`) solved once with the factored
 ``K`` at start, ``u_g = K^-1 F_g``. The fixed base carries the weight. What follows from that:
 
 - The sagged surface is the solid's :attr:`FemSolid.rest_vertices`: what the viewer draws, what
@@ -100,6 +117,8 @@ inclusions; :func:`server.objects.fem_elements.gravity_loads`) solved once with 
 References
 ----------
 - Johnson, K. L. (1985). *Contact Mechanics*. Cambridge University Press.
+- Hinton, E., Rock, T., & Zienkiewicz, O. C. (1976). A note on mass lumping and related
+  processes in the finite element method. *Earthq. Eng. Struct. Dyn.* 4, 245-249.
 - Zienkiewicz, O. C., Taylor, R. L., & Zhu, J. Z. (2013). *The Finite Element Method: Its Basis
   and Fundamentals*, 7th ed. Butterworth-Heinemann.
 - Craig, R. R., & Kurdila, A. J. (2006). *Fundamentals of Structural Dynamics*, 2nd ed. Wiley.
@@ -118,7 +137,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -132,10 +151,11 @@ from scipy.spatial import cKDTree
 from haptic_collab.server.contact_stiffness import K_O_MAX
 from haptic_collab.server.objects.balloon import vertex_areas
 from haptic_collab.server.objects.fem_elements import (
-    gravity_loads,
-    lumped_mass,
+    element_gravity_loads,
+    element_lumped_mass,
+    element_stiffness_matrix,
+    quadratic_mesh,
     rotation_operator,
-    stiffness_matrix,
     warped,
 )
 from haptic_collab.server.objects.mesh import MeshError
@@ -160,6 +180,9 @@ GRAVITY_MAX_M_S2 = 100.0
 #: liver sphere sags 10 % of its height and is not warned about.
 SAG_WARN_SHARE = 0.15
 
+#: The FEM solid's tetrahedra (:attr:`FemParams.element`).
+Element = Literal["auto", "p1", "p2"]
+
 #: Poisson's ratio: above -1 and below 0.5 (0.5 is incompressible, which P1 elements cannot do).
 Poisson = Annotated[float, Field(gt=-1.0, lt=0.5, allow_inf_nan=False, strict=True)]
 
@@ -176,8 +199,15 @@ _SETTLE = 3.0
 
 #: Up to this many free degrees of freedom the modes come from LAPACK's dense symmetric solver
 #: (the lowest ``n_modes``, of which those below the settle frequency are kept: 1.8 s for 2202
-#: unknowns, where ARPACK took 11 s for 142 modes); above it from ARPACK's shift-invert Lanczos on the sparse factor.
+#: unknowns, where ARPACK took 11 s for 142 modes) when at least one in :data:`_DENSE_SHARE` of
+#: them is wanted; otherwise from ARPACK's shift-invert Lanczos on the sparse factor. A few
+#: modes of many are ARPACK's: on the 162-vertex ball's P2 solid (2859 unknowns) it took 0.3 s
+#: for 24 modes where the dense solver took 9.3 s.
 _DENSE_MODES = 3000
+
+#: The dense solver is used when the modes wanted are at least this share (1 in 8) of the
+#: unknowns (module constant :data:`_DENSE_MODES`).
+_DENSE_SHARE = 8
 
 #: The first batch of modes (and the fewest kept); more follow (a Weyl estimate, count ~ omega^3) up to the settle
 #: frequency.
@@ -186,6 +216,16 @@ _FIRST_MODES = 32
 #: The punch pressure ``1 / sqrt(1 - r^2)`` is evaluated at most at this ``r = d / a`` (its rim
 #: singularity is integrable; a vertex near the rim stands for the area around it).
 _RIM = 0.95
+
+#: P2 punch loads: each face of the solid's surface under the pad is split this many ways along
+#: each edge (``_SPLITS^2`` parts) to integrate the pressure against the shape functions.
+_SPLITS = 12
+
+#: ``element = "auto"`` takes quadratic (P2) tetrahedra when they have at most this many nodes,
+#: else linear ones: the liver sphere's P2 solid on its 642-vertex parent has 5744 nodes and a
+#: factor of about 14 M non-zeros; a mesh of 12000 P2 nodes is about three times that
+#: (docs/fem.md, "Quadratic tetrahedra").
+P2_MAX_NODES = 12000
 
 
 @params_dataclass(frozen=True, slots=True)
@@ -230,6 +270,10 @@ class FemParams:
         Gravitational acceleration g [m/s^2] along -z of the object's frame, in [0,
         :data:`GRAVITY_MAX_M_S2`] (0, the default: no weight). With g > 0 the solid's rest state
         is the one it sags to under its own weight (module docstring, "Gravity").
+    element : {"auto", "p1", "p2"}
+        The tetrahedra (module docstring, "Elements"): "p2" quadratic, ten-node, the surface
+        shown split four ways; "p1" linear, four-node, the surface shown as meshed; "auto" (the
+        default) P2 when its mesh has at most :data:`P2_MAX_NODES` nodes, else P1.
 
     Raises
     ------
@@ -252,6 +296,7 @@ class FemParams:
     gravity_m_s2: Annotated[
         float, Field(ge=0.0, le=GRAVITY_MAX_M_S2, allow_inf_nan=False, strict=True)
     ] = 0.0
+    element: Element = "auto"
 
     @property
     def lame(self) -> tuple[float, float]:
@@ -303,6 +348,117 @@ def _zoh_modes(omega: FloatArray, zeta: FloatArray, h: float) -> tuple[FloatArra
         a_out[k] = e[:2, :2]
         b_out[k] = e[:2, 2]
     return a_out, b_out
+
+
+def _sub_triangles(splits: int) -> tuple[FloatArray, FloatArray]:
+    """A triangle split ``splits`` ways along each edge: the parts' corners (S, 3, 3) and
+    centroids (S, 3), in barycentric coordinates (S = splits^2)."""
+    tri = []
+    for i in range(splits):
+        for j in range(splits - i):
+            tri.append([(i, j), (i + 1, j), (i, j + 1)])
+            if i + j < splits - 1:
+                tri.append([(i + 1, j), (i, j + 1), (i + 1, j + 1)])
+    ij = np.asarray(tri, dtype=np.float64) / splits
+    corners = np.concatenate([1.0 - ij.sum(axis=2, keepdims=True), ij], axis=2)
+    return corners, corners.mean(axis=1)
+
+
+def p2_punch_loads(
+    nodes: FloatArray,
+    faces6: IntArray,
+    centre: FloatArray,
+    normal: FloatArray,
+    radius: float,
+    splits: int = _SPLITS,
+) -> tuple[IntArray, FloatArray]:
+    """The rigid flat punch's pressure on quadratic surface faces, as consistent nodal loads.
+
+    The pressure ``p(r) ~ 1 / sqrt(1 - (r / a)^2)`` (``r`` the distance from ``centre`` across
+    ``normal``; Johnson 1985, eq. 3.38's distribution) is integrated against each six-node
+    face's shape functions (``l_c (2 l_c - 1)`` at a corner, ``4 l_i l_j`` at a mid-edge node;
+    Zienkiewicz, Taylor and Zhu 2013, ch. 6) over the faces facing ``normal``. Each face is split
+    ``splits^2`` ways; a part is weighted by its area times the pressure's mean over its radial
+    extent ``[r1, r2]``, ``a (asin(r2 / a) - asin(r1 / a)) / (r2 - r1)``, so the rim's
+    integrable singularity is integrated, not sampled, and the shape functions are taken at the
+    part's centroid.
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]
+    faces6 : (F, 6) int
+        Each surface face's corners (outward) and the midpoints of its edges 01, 12, 20.
+    centre : (3,) float [m]; normal : (3,) float, unit, outward.
+    radius : float
+        The punch's radius a [m].
+    splits : int
+
+    Returns
+    -------
+    (indices (k,) int64, weights (k,) float64)
+        The loaded surface nodes and their shares of a unit push (summing to 1; negative at
+        some corners, as P2's consistent loads are).
+    """
+    x = nodes[faces6[:, :3]]  # (F, 3, 3) straight-sided faces: the corners fix the geometry
+    fn = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    area = 0.5 * np.linalg.norm(fn, axis=1)
+
+    def planar(pts: FloatArray) -> FloatArray:
+        rel = pts - centre
+        return np.asarray(np.linalg.norm(rel - (rel @ normal)[..., None] * normal, axis=-1))
+
+    centroid = x.mean(axis=1)
+    reach = np.linalg.norm(x - centroid[:, None, :], axis=2).max(axis=1)
+    cand = np.flatnonzero((planar(centroid) < radius + reach) & (fn @ normal > 0.0))
+    corners, mids = _sub_triangles(splits)
+    xs = x[cand]
+    r_c = planar(np.einsum("kcb,fbd->fkcd", corners, xs))  # (F, S, 3)
+    r1, r2 = r_c.min(axis=2), r_c.max(axis=2)
+    s1, s2 = np.minimum(r1, radius) / radius, np.minimum(r2, radius) / radius
+    mean_p = np.where(
+        r2 - r1 > 1e-9 * radius,
+        radius * (np.arcsin(s2) - np.arcsin(s1)) / np.maximum(r2 - r1, 1e-12 * radius),
+        1.0 / np.sqrt(np.maximum(1.0 - s1 * s1, 1e-12)),
+    )
+    w = np.where(r1 >= radius, 0.0, mean_p) * (area[cand] / len(mids))[:, None]  # (F, S)
+    l0, l1, l2 = mids[:, 0], mids[:, 1], mids[:, 2]
+    shape = np.stack(
+        [l0 * (2 * l0 - 1), l1 * (2 * l1 - 1), l2 * (2 * l2 - 1), 4 * l0 * l1, 4 * l1 * l2,
+         4 * l2 * l0], axis=1,
+    )  # fmt: skip
+    loads = w @ shape  # (F, 6)
+    idx, inv = np.unique(faces6[cand].ravel(), return_inverse=True)
+    out = np.bincount(inv.ravel(), weights=loads.ravel(), minlength=len(idx))
+    return idx.astype(np.int64), out / w.sum()
+
+
+#: The finest icosphere whose FEM solid is built from its parent (one subdivision coarser) with
+#: P2 elements: 2562 vertices (the default), P2 on the 642-vertex parent; finer ones are P1.
+P2_SPHERE_MAX_SUBDIVISIONS = 4
+
+
+def sphere_for_solid(subdivisions: int, radius_m: float = 0.1) -> tuple[trimesh.Trimesh, Element]:
+    """The surface to build a FEM solid on that shows the icosphere of ``subdivisions``, and
+    the :attr:`FemParams.element` to build it with.
+
+    With P2 elements (:attr:`FemParams.element`) a solid shows its surface split four ways, so
+    for 1 to :data:`P2_SPHERE_MAX_SUBDIVISIONS` this is the parent icosphere (one subdivision
+    coarser): the solid shows the same number of vertices, ``10 * 4^s + 2``, as the balloon's
+    sphere, the mid-edge vertices on the parent's chords (at most 0.3 mm inside the sphere at
+    r 0.1 m and 2562 vertices), and the element is "p2" whatever the node count (inclusions
+    refine the volume mesh; P1 on the parent would show a quarter of the vertices and be far
+    too stiff). Otherwise the icosphere itself and "auto" (P1 above, 12 vertices at 0).
+
+    Raises
+    ------
+    ValueError
+        As :func:`server.objects.mesh.default_balloon`.
+    """
+    from haptic_collab.server.objects.mesh import default_balloon
+
+    if isinstance(subdivisions, int) and 1 <= subdivisions <= P2_SPHERE_MAX_SUBDIVISIONS:
+        return default_balloon(radius_m, subdivisions - 1), "p2"
+    return default_balloon(radius_m, subdivisions), "auto"
 
 
 def settle_frequency(params: FemParams) -> float:
@@ -386,7 +542,51 @@ class FemSolid(PatchedSurface):
             raise MeshError("FEM mesh has no faces or non-finite coordinates")
         if not mesh.is_watertight or not float(mesh.volume) > 0.0:
             raise MeshError("FEM mesh must be a closed surface enclosing a positive volume")
+        clock = time.perf_counter()
+        #: seconds of each start-up step (``haptic bench server`` reports them)
+        self.timings: dict[str, float] = {}
+        if volume is None:
+            nodes, tets = volume_mesh(verts, faces, cache_dir=cache_dir)
+        else:
+            nodes, tets = check_volume_mesh(volume[0], volume[1], verts)
+        if materials is not None and len(materials.labels) != len(tets):
+            raise MeshError(
+                f"FEM solid: {len(materials.labels)} element materials for {len(tets)} tetrahedra"
+            )
+        #: the P1 volume mesh the solid was built from (TetGen's, or ``volume``)
+        self.linear_nodes, self.linear_tets = nodes, tets
+        #: the element used: "p1" (linear) or "p2" (quadratic; module docstring, "Elements")
+        self.element = "p1"
+        elements = tets
         n = len(verts)
+        self._faces6: IntArray | None = None  # P2: each surface face's 6 nodes
+        if p.element != "p1":
+            nodes2, elements2, n2, shown = quadratic_mesh(nodes, tets, faces)
+            if p.element == "p2" or len(nodes2) <= P2_MAX_NODES:
+                m = len(faces)
+                self._faces6 = np.stack(
+                    [shown[:m, 0], shown[m : 2 * m, 1], shown[2 * m : 3 * m, 2],
+                     shown[:m, 1], shown[m : 2 * m, 2], shown[:m, 2]], axis=1,
+                )  # fmt: skip
+                self.element = "p2"
+                nodes, elements, n, faces = nodes2, elements2, n2, shown
+                verts = np.ascontiguousarray(nodes[:n])
+                mesh = trimesh.Trimesh(verts, faces, process=False)
+            else:
+                log.info(
+                    "FEM solid: linear tetrahedra (P1): quadratic ones would have %d nodes, "
+                    'more than %d (docs/fem.md, "Quadratic tetrahedra")',
+                    len(nodes2),
+                    P2_MAX_NODES,
+                )
+        #: (N, 3) [m] every node (P2: corners and mid-edge nodes); the first ``n_vertices`` are
+        #: the surface shown
+        self.nodes = nodes
+        #: (T, 4) the elements' corner nodes (indices into :attr:`nodes`), the linear mesh
+        self.tets = elements[:, :4]
+        #: (T, 4) or (T, 10) the elements (P2: corners, then mid-edge nodes)
+        self.elements = elements
+        n_nodes = len(nodes)
         self._rest = verts
         self._rest.setflags(write=False)
         self._faces = faces.astype(np.int32)
@@ -395,19 +595,6 @@ class FemSolid(PatchedSurface):
         self._normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
         self._areas = vertex_areas(verts, faces)
         self._tree = cKDTree(verts)
-        clock = time.perf_counter()
-        #: seconds of each start-up step (``haptic bench server`` reports them)
-        self.timings: dict[str, float] = {}
-        if volume is None:
-            nodes, tets = volume_mesh(verts, faces, cache_dir=cache_dir)
-        else:
-            nodes, tets = check_volume_mesh(volume[0], volume[1], verts)
-        self.nodes, self.tets = nodes, tets
-        n_nodes = len(nodes)
-        if materials is not None and len(materials.labels) != len(tets):
-            raise MeshError(
-                f"FEM solid: {len(materials.labels)} element materials for {len(tets)} tetrahedra"
-            )
         #: per-element materials (inclusions: docs/palpation.md), None for one material
         self.materials = materials
         self.timings["volume_mesh_s"] = time.perf_counter() - clock
@@ -423,12 +610,13 @@ class FemSolid(PatchedSurface):
         self.fixed_nodes = fixed
 
         lam, mu = materials.lame if materials is not None else p.lame
-        k_full = stiffness_matrix(nodes, tets, lam, mu)
+        k_full = element_stiffness_matrix(nodes, elements, lam, mu)
         free_nodes = np.flatnonzero(~fixed)
+        width = elements.shape[1]
         adjacency = sp.coo_matrix(
             (
-                np.ones(tets.size * 4),
-                (np.repeat(tets, 4, axis=1).ravel(), np.tile(tets, 4).ravel()),
+                np.ones(elements.size * width),
+                (np.repeat(elements, width, axis=1).ravel(), np.tile(elements, width).ravel()),
             ),
             shape=(n_nodes, n_nodes),
         ).tocsr()
@@ -447,7 +635,7 @@ class FemSolid(PatchedSurface):
         row_of[self._dofs] = np.arange(len(self._dofs))
         self._surface_rows = row_of[: 3 * n]
         # the surface's small rotations from the factored rows (modal warping)
-        self._w_op = rotation_operator(nodes, tets, n, row_of) if p.warp else None
+        self._w_op = rotation_operator(nodes, elements, n, row_of) if p.warp else None
 
         # modes: K phi = w^2 M phi on the free dofs (mass-normalised)
         self._omega = np.zeros(0)
@@ -455,7 +643,7 @@ class FemSolid(PatchedSurface):
         self._phi_rotation = np.zeros((3 * n, 0))
         self._phi_rows = np.zeros((len(self._dofs), 0))
         density = materials.density_kg_m3 if materials is not None else p.density_kg_m3
-        masses = lumped_mass(nodes, tets, density)
+        masses = element_lumped_mass(nodes, elements, density)
         m_modes = min(p.n_modes, len(self._dofs) - 2)
         clock = time.perf_counter()
         if p.density_kg_m3 > 0.0 and m_modes > 0:
@@ -495,7 +683,7 @@ class FemSolid(PatchedSurface):
         full = np.zeros(3 * n_nodes)
         rows = np.zeros(len(self._dofs))
         if g > 0.0:
-            loads = gravity_loads(self.nodes, self.tets, density, g).ravel()
+            loads = element_gravity_loads(self.nodes, self.elements, density, g).ravel()
             rows = np.asarray(self._lu.solve(loads[self._dofs]), dtype=np.float64).reshape(-1)
             full[self._dofs] = rows
         #: (N, 3) [m] every node's linear displacement under the solid's own weight (zeros on
@@ -540,8 +728,9 @@ class FemSolid(PatchedSurface):
         """The lowest modes by shift-invert Lanczos (``sigma = 0``) on the factor: every mode
         below ``omega_c`` [rad/s] (:func:`settle_frequency`), at most ``count``.
 
-        At most :data:`_DENSE_MODES` unknowns, LAPACK's dense solver finds the lowest ``count``
-        at once, and those below ``omega_c`` are kept (at least :data:`_FIRST_MODES`). Above, a first batch of :data:`_FIRST_MODES` by ARPACK; if its
+        With at most :data:`_DENSE_MODES` unknowns, of which ``count`` is at least one in
+        :data:`_DENSE_SHARE`, LAPACK's dense solver finds the lowest ``count`` at once, and those below ``omega_c`` are kept (at least
+        :data:`_FIRST_MODES`). Otherwise a first batch of :data:`_FIRST_MODES` by ARPACK; if its
         highest is below ``omega_c``, one more solve for the count Weyl's law estimates (modes up
         to ``omega`` grow as ``omega^3``) with a 20 % margin, and so on.
         """
@@ -554,7 +743,7 @@ class FemSolid(PatchedSurface):
             (size, size), matvec=lambda x: self._lu.solve(x / s) / s, dtype=np.float64
         )
         least = min(count, _FIRST_MODES)
-        if size <= _DENSE_MODES:  # small: LAPACK's dense solver, every mode below omega_c
+        if size <= _DENSE_MODES and count * _DENSE_SHARE >= size:  # LAPACK's dense solver
             dense = np.asarray(self._k_free.toarray()) * s[:, None] * s[None, :]
             vals, vecs = sla.eigh(dense, subset_by_index=(0, count - 1), driver="evr")
             keep = max(least, int(np.count_nonzero(vals < omega_c**2)))
@@ -744,6 +933,9 @@ class FemSolid(PatchedSurface):
         key = int(key)
         a = self.params.patch_radius_m
         normal = self._normals[key]
+        if self._faces6 is not None:
+            idx, wts = p2_punch_loads(self.nodes, self._faces6, self._rest[key], normal, a, _SPLITS)
+            return PunchPatch(key=key, indices=idx, weights=wts, normal=normal.copy())
         idx = np.asarray(self._tree.query_ball_point(self._rest[key], a), dtype=np.int64)
         d = np.linalg.norm(self._rest[idx] - self._rest[key], axis=1)
         keep = self._normals[idx] @ normal > 0.0  # the side pressed, not the far side

@@ -23,8 +23,9 @@ What this module does, for :class:`server.objects.fem.FemSolid`:
   Young's modulus, Poisson's ratio and density (:class:`ElementMaterials`, with Lame's
   constants per element);
 - :func:`stiffness_by_groups` and :func:`mass_by_groups` assemble the stiffness and the lumped
-  mass with per-element materials from today's one-material
-  :func:`server.objects.fem_elements.stiffness_matrix` and ``lumped_mass``: one assembly per
+  mass with per-element materials from the one-material
+  :func:`server.objects.fem_elements.element_stiffness_matrix` and ``element_lumped_mass`` (P1
+  or P2 elements): one assembly per
   material group, summed. That is exact for any element whose stiffness is a sum over elements
   (P1, P2, selective reduced integration), and is what the palpation measurement
   (:mod:`haptic_collab.research.palpation`) uses until the solid takes per-element materials
@@ -66,7 +67,7 @@ import scipy.sparse as sp
 import trimesh
 
 from haptic_collab.server.materials import MaterialError
-from haptic_collab.server.objects.fem_elements import lumped_mass, stiffness_matrix
+from haptic_collab.server.objects.fem_elements import element_lumped_mass, element_stiffness_matrix
 from haptic_collab.server.objects.mesh import MeshError, load_mesh
 from haptic_collab.server.objects.volume import volume_mesh
 from haptic_collab.server.solid_materials import SOLID_PRESETS, SolidMaterial, load_solid_material
@@ -426,24 +427,26 @@ def stiffness_by_groups(
     nodes: FloatArray, tets: IntArray, materials: ElementMaterials
 ) -> sp.csr_matrix:
     """The stiffness ``K`` (3N, 3N) [N/m] with per-element materials, from the one-material
-    :func:`server.objects.fem_elements.stiffness_matrix`: one assembly per distinct ``(lambda,
-    mu)``, summed (exact for any element whose stiffness is a sum over elements)."""
+    :func:`server.objects.fem_elements.element_stiffness_matrix` (``tets`` (T, 4) P1 or (T, 10)
+    P2 elements): one assembly per distinct ``(lambda, mu)``, summed (exact for any element
+    whose stiffness is a sum over elements)."""
     lam, mu = materials.lame
     pairs = np.stack([lam, mu], axis=1)
     unique, group = np.unique(pairs, axis=0, return_inverse=True)
     n = 3 * len(nodes)
     k = sp.csr_matrix((n, n))
     for g, (lam_g, mu_g) in enumerate(unique):
-        k = k + stiffness_matrix(nodes, tets[group.ravel() == g], float(lam_g), float(mu_g))
+        k = k + element_stiffness_matrix(nodes, tets[group.ravel() == g], float(lam_g), float(mu_g))
     return k.tocsr()
 
 
 def mass_by_groups(nodes: FloatArray, tets: IntArray, materials: ElementMaterials) -> FloatArray:
     """Lumped nodal masses (N,) [kg] with per-element density, from the one-density
-    :func:`server.objects.fem_elements.lumped_mass`, one call per distinct density, summed."""
+    :func:`server.objects.fem_elements.element_lumped_mass` (P1 or P2 elements), one call per
+    distinct density, summed."""
     out = np.zeros(len(nodes))
     for rho in np.unique(materials.density_kg_m3):
-        out += lumped_mass(nodes, tets[materials.density_kg_m3 == rho], float(rho))
+        out += element_lumped_mass(nodes, tets[materials.density_kg_m3 == rho], float(rho))
     return out
 
 

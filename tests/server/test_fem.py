@@ -20,7 +20,11 @@ from pydantic import ValidationError
 
 from haptic_collab.server.materials import MaterialError
 from haptic_collab.server.objects.fem import FemParams, FemSolid
-from haptic_collab.server.objects.fem_elements import stiffness_matrix
+from haptic_collab.server.objects.fem_elements import (
+    element_lumped_mass,
+    p2_stiffness_matrix,
+    quadratic_mesh,
+)
 from haptic_collab.server.objects.mesh import MeshError, refine_mesh
 from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
 from haptic_collab.server.solid_materials import (
@@ -44,7 +48,8 @@ def block():
 
 @pytest.fixture(scope="module")
 def ball():
-    return trimesh.creation.icosphere(3, 0.05)  # 642 vertices, r = 5 cm
+    """r = 5 cm, 162 vertices: its P2 solid shows 642 (each face split in four)."""
+    return trimesh.creation.icosphere(2, 0.05)
 
 
 def _top_stiffness(solid: FemSolid) -> float:
@@ -53,10 +58,14 @@ def _top_stiffness(solid: FemSolid) -> float:
 
 
 def test_a_block_pressed_by_the_finger_pad_is_as_stiff_as_a_flat_punch_and_scales_with_e(
-    block, cache
+    block, cache, caplog
 ):
     params = FemParams(young_pa=5.0e3, poisson=0.3, n_modes=0)
-    solid = FemSolid(block, params, cache_dir=cache)
+    with caplog.at_level("INFO", logger="haptic.server.fem"):
+        solid = FemSolid(block, params, cache_dir=cache)
+    # about 65000 P2 nodes: linear elements, the surface shown as given, and the log says so
+    assert solid.element == "p1" and solid.n_vertices == len(block.vertices)
+    assert "linear tetrahedra (P1)" in caplog.text
     k = _top_stiffness(solid)
     punch = 2.0 * params.patch_radius_m * params.young_pa / (1.0 - params.poisson**2)
     # a finite block fixed at its bottom and 6 mm linear elements are stiffer than the
@@ -67,25 +76,57 @@ def test_a_block_pressed_by_the_finger_pad_is_as_stiff_as_a_flat_punch_and_scale
 
 
 def test_the_assembly_agrees_with_scikit_fem(ball, cache):
+    """The quadratic (P2) stiffness is scikit-fem's P2 elasticity on the same mesh, dof by dof;
+    the HRZ masses are positive and each element's mass; the consistent mass's diagonal (the
+    HRZ shares) is scikit-fem's."""
     skfem = pytest.importorskip("skfem")
+    from scipy.spatial import cKDTree
     from skfem.models.elasticity import lame_parameters, linear_elasticity
 
     nodes, tets = volume_mesh(ball.vertices, ball.faces, cache_dir=cache)
     lam, mu = lame_parameters(5.0e3, 0.45)
-    ours = stiffness_matrix(nodes, tets, lam, mu)
-    basis = skfem.Basis(skfem.MeshTet(nodes.T, tets.T), skfem.ElementVector(skfem.ElementTetP1()))
+    nodes2, elements, _, _ = quadratic_mesh(nodes, tets, np.asarray(ball.faces))
+    ours = p2_stiffness_matrix(nodes2, elements, lam, mu)
+    element = skfem.ElementVector(skfem.ElementTetP2())
+    basis = skfem.Basis(skfem.MeshTet(nodes.T, tets.T), element)
     theirs = skfem.asm(linear_elasticity(lam, mu), basis)
-    order = basis.nodal_dofs.T.ravel()  # their dof of (node, axis), ours is 3 node + axis
+    # their dofs by location and axis: the axis from the vector element's component of each dof
+    dist, node = cKDTree(nodes2).query(basis.doflocs.T)
+    assert dist.max() < 1e-12
+    axis = np.empty(basis.N, dtype=np.int64)
+    for k in range(3):
+        unit = basis.project(
+            lambda x, k=k: np.stack([np.full_like(x[0], float(i == k)) for i in range(3)])
+        )
+        axis[np.isclose(unit, 1.0)] = k
+    order = np.argsort(3 * node + axis)  # their dof of our dof 3 node + axis
     diff = abs(ours - theirs[order][:, order]).max()
     assert diff <= 1e-9 * abs(ours).max()
+    masses = element_lumped_mass(nodes2, elements, 1000.0)
+    assert masses.min() > 0.0
+    assert masses.sum() == pytest.approx(1000.0 * ball.volume, rel=1e-9)
+    # HRZ: the consistent mass's diagonal scaled to the element's mass (by 70 / 36 for a
+    # straight-sided P2 tetrahedron), so each node's lumped mass is that scale of scikit-fem's
+    scalar = skfem.Basis(skfem.MeshTet(nodes.T, tets.T), skfem.ElementTetP2())
+    diagonal = skfem.asm(skfem.BilinearForm(lambda u, v, w: u * v), scalar).diagonal()
+    _, at = cKDTree(nodes2).query(scalar.doflocs.T)
+    assert masses[at] == pytest.approx(1000.0 * 70.0 / 36.0 * diagonal, rel=1e-9)
 
 
 def test_the_volume_mesh_keeps_the_surface_and_the_server_never_imports_tetgen(ball, cache):
+    """The P2 solid shows its surface split four ways: the mesh's vertices first, unchanged,
+    then its edges' midpoints; every face in four, outward, the same area."""
     solid = FemSolid(ball, FemParams(n_modes=0), cache_dir=cache)
+    assert solid.element == "p2"
     n = len(ball.vertices)
     assert np.array_equal(solid.nodes[:n], ball.vertices)
-    assert len(solid.nodes) > n  # interior nodes
-    assert np.array_equal(solid.faces, ball.faces)
+    assert solid.n_vertices == n + len(ball.edges_unique)  # 162 + 480 = 642
+    assert len(solid.nodes) > solid.n_vertices  # interior nodes
+    assert len(solid.faces) == 4 * len(ball.faces)
+    mids = 0.5 * ball.vertices[ball.edges_unique].sum(axis=1)
+    assert np.allclose(np.sort(solid.rest_vertices[n:], axis=0), np.sort(mids, axis=0))
+    shown = trimesh.Trimesh(solid.rest_vertices, solid.faces, process=False)
+    assert shown.is_watertight and shown.volume == pytest.approx(ball.volume, rel=1e-12)
     assert "tetgen" not in sys.modules
 
 
@@ -270,7 +311,7 @@ def test_a_bar_bent_by_centimetres_keeps_its_volume_and_its_tip_swings_down(bar,
         solid.step([key], [push_n])
         verts = solid.vertices
         tip = int(np.argmax(bar.vertices[:, 2] - 1e-3 * bar.vertices[:, 0]))
-        growth = trimesh.Trimesh(verts, bar.faces).volume / bar.volume - 1.0
+        growth = trimesh.Trimesh(verts, solid.faces).volume / bar.volume - 1.0
         results[warp] = (growth, verts[tip] - bar.vertices[tip])
     (linear_growth, linear_tip), (warped_growth, warped_tip) = results[False], results[True]
     assert linear_tip[0] < -0.02  # bent by centimetres (pushed towards -x)
@@ -307,3 +348,48 @@ def test_a_bent_part_is_loaded_at_its_own_patch(bar, cache):
     assert solid.vertices[vertex][0] - rest_point[0] < -0.03  # bent by centimetres
     key = world._users["u"].key
     assert np.linalg.norm(solid.rest_vertices[key] - rest_point) < 1.5 * spacing
+
+
+def test_a_small_rigid_turn_is_the_rotation_every_surface_vertex_reports(ball, cache):
+    """Modal warping's rotation estimate on P2 elements: a small rigid rotation ``u = w x x``
+    (a linear field, which P2 holds exactly) reads back as ``w`` at every surface vertex,
+    corners and mid-edge vertices alike."""
+    from haptic_collab.server.objects.fem_elements import rotation_operator
+
+    solid = FemSolid(ball, FemParams(n_modes=0), cache_dir=cache)
+    n_all = len(solid.nodes)
+    op = rotation_operator(solid.nodes, solid.elements, solid.n_vertices, np.arange(3 * n_all))
+    w = np.array([0.01, -0.02, 0.005])
+    u = np.cross(w, solid.nodes).ravel()
+    got = (op @ u).reshape(-1, 3)
+    assert np.abs(got - w).max() <= 1e-9 * np.abs(w).max()
+
+
+def test_the_pad_presses_with_the_flat_punch_pressure_integrated(ball, cache):
+    """The P2 punch loads of one unit push: they sum to 1 along the patch normal, their first
+    moment is the pad's centre on a symmetric patch, and they reach past the vertices under the
+    pad to every face the pad's disc crosses."""
+    solid = FemSolid(ball, FemParams(n_modes=0), cache_dir=cache)
+    key = solid.patch_key([0.0, 0.0, 0.05], normal=[0.0, 0.0, 1.0])
+    pt = solid.patch(key)
+    assert pt.weights.sum() == pytest.approx(1.0, abs=1e-12)
+    centre = solid.rest_vertices[key]
+    first_moment = pt.weights @ (solid.rest_vertices[pt.indices] - centre)
+    planar = first_moment - (first_moment @ pt.normal) * pt.normal
+    assert np.linalg.norm(planar) < 0.05 * solid.params.patch_radius_m
+    across = solid.rest_vertices[pt.indices] - centre
+    d = np.linalg.norm(across - np.outer(across @ pt.normal, pt.normal), axis=1)
+    assert d.max() > solid.params.patch_radius_m  # nodes of the faces the rim crosses
+
+
+def test_the_servers_fem_sphere_shows_as_many_vertices_as_the_balloons():
+    """``--subdivisions 2``: the balloon's sphere has 162 vertices; the FEM solid is P2 on its
+    42-vertex parent and shows 162, on the parent's chords."""
+    from haptic_collab.server.main import ServerOptions, build_world
+
+    balloon = build_world(ServerOptions(subdivisions=2))
+    solid = build_world(ServerOptions(object="fem", subdivisions=2)).obj
+    assert solid.element == "p2"
+    assert solid.n_vertices == len(balloon.vertices) == 162
+    radius = np.linalg.norm(solid.rest_vertices, axis=1)
+    assert radius.max() == pytest.approx(0.1, rel=1e-9) and radius.min() > 0.09

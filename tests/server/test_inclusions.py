@@ -43,11 +43,11 @@ def cache(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def ball():
-    return default_balloon(subdivisions=3)  # 0.1 m radius, 642 vertices
+    return default_balloon(subdivisions=2)  # 0.1 m radius, 162 vertices: P2 shows 642
 
 
-def _lump(centre, radius, material=None, where="lump"):
-    mesh = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+def _lump(centre, radius, material=None, where="lump", subdivisions=2):
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     mesh.apply_translation(centre)
     return Inclusion(mesh=mesh, material=material or inclusion_material("liver*10"), where=where)
 
@@ -150,7 +150,7 @@ def test_the_solid_with_a_lump_is_stiffer_over_it_as_its_elements_say(ball, cach
     from haptic_collab.server.objects.fem import FemParams, FemSolid
     from haptic_collab.server.solid_materials import solid_to_params
 
-    lump = _lump((0.0, 0.0, 0.07), 0.015)
+    lump = _lump((0.0, 0.0, 0.07), 0.015, subdivisions=1)  # 42 vertices: a small P2 solid
     nodes, tets = volume_with_inclusions(ball, [lump], cache_dir=cache)
     mats = element_materials(nodes, tets, LIVER, [lump])
     params = replace(solid_to_params(LIVER, FemParams()), density_kg_m3=0.0, warp=False)
@@ -160,9 +160,9 @@ def test_the_solid_with_a_lump_is_stiffer_over_it_as_its_elements_say(ball, cach
     k_plain, k_lump = plain.contact_stiffness([top])[0], lumped.contact_stiffness([top])[0]
     assert k_lump > (1.0 + STIFFNESS_JND) * k_plain  # a 30 mm lump 15 mm under the pad is felt
     free = np.flatnonzero(np.repeat(~lumped.fixed_nodes, 3))
-    k = stiffness_by_groups(nodes, tets, mats).tocsc()[free][:, free]
+    k = stiffness_by_groups(lumped.nodes, lumped.elements, mats).tocsc()[free][:, free]
     pt = lumped.patch(top)
-    row = np.full(3 * len(nodes), -1)
+    row = np.full(3 * len(lumped.nodes), -1)
     row[free] = np.arange(len(free))
     b = np.zeros(len(free))
     dofs = (3 * pt.indices[:, None] + np.arange(3)).ravel()
@@ -179,11 +179,11 @@ def test_a_large_stiff_lump_is_felt_through_the_liver_and_a_deep_one_is_not(cach
     pad meets a surface stiffer than beside it (over its twin of liver) by more than a stiffness
     JND; the same lump 30 mm deep is not felt. (A 10 mm lump at 10-20 mm changes K_o by about
     2 % under the 15 mm pad: docs/palpation.md.)"""
-    near = measure(0.030, 0.010, cache_dir=cache)
+    near = measure(0.030, 0.010, subdivisions=3, cache_dir=cache, lump_subdivisions=1)
     assert near.rise > STIFFNESS_JND and near.lump_share > STIFFNESS_JND
     assert abs(near.mesh_asymmetry) < 0.25 * STIFFNESS_JND  # the twin meshes beside alike
     assert near.felt
-    deep = measure(0.030, 0.030, cache_dir=cache)
+    deep = measure(0.030, 0.030, subdivisions=3, cache_dir=cache, lump_subdivisions=1)
     assert deep.rise < STIFFNESS_JND and not deep.felt
     assert deep.rise < near.rise
 

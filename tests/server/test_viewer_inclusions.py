@@ -55,7 +55,7 @@ def lump_room(tmp_path_factory: pytest.TempPathFactory) -> tuple[Room, trimesh.T
     from haptic_collab.server.main import ServerOptions, build_world
 
     folder = tmp_path_factory.mktemp("private-folder")
-    lump = trimesh.creation.icosphere(subdivisions=2, radius=LUMP_RADIUS_M)
+    lump = trimesh.creation.icosphere(subdivisions=1, radius=LUMP_RADIUS_M)  # 42 vertices
     lump.apply_translation(LUMP_CENTRE_M)
     path = folder / "lump.stl"
     lump.export(path)

@@ -82,13 +82,14 @@ def _world(subdivisions: int) -> Any:
 
 
 def _fem_world(cache_dir: Path) -> Any:
-    """A small FEM solid (162 vertices, r = 5 cm): its surface also moves sideways (DSV1)."""
+    """A small FEM solid (162 vertices, r = 5 cm; P2 on the 42-vertex icosphere): its surface
+    also moves sideways (DSV1)."""
     import trimesh
 
     from haptic_collab.server.objects.fem import FemParams, FemSolid
     from haptic_collab.server.world import World
 
-    mesh = trimesh.creation.icosphere(2, 0.05)
+    mesh = trimesh.creation.icosphere(1, 0.05)
     params = FemParams(sim_period_s=1.0 / SIM_RATE_HZ)
     return World(FemSolid(mesh, params, cache_dir=str(cache_dir)))
 

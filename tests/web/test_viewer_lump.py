@@ -46,7 +46,7 @@ def _lump_world(cache_dir: Path) -> Any:
     from haptic_collab.server.world import World
 
     mesh = trimesh.creation.icosphere(2, 0.05)
-    lump = trimesh.creation.icosphere(2, 0.02)
+    lump = trimesh.creation.icosphere(1, 0.02)  # 42 vertices: the P2 solid stays small
     inc = [Inclusion(lump, inclusion_material("liver*10"), "lump.stl")]
     volume = volume_with_inclusions(mesh, inc, cache_dir=cache_dir)
     materials = element_materials(*volume, SOLID_PRESETS["liver"], inc)
