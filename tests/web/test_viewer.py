@@ -535,11 +535,15 @@ async def test_viewer_shows_the_dent_users_and_coupled_force() -> None:
         scale = state["colorScale"]
         assert await page.locator("#colormap").is_visible()
         assert legend == f"−{scale['range_mm']:g} mm", legend
-        assert scale["max_in_mm"] >= shown - 0.05 and scale["range_mm"] >= scale["max_in_mm"]
+        # A's indentation of that same state: the dent may still be relaxing since `shown` was
+        # read (on a loaded machine it moved 0.9 mm in the seconds between), and the surface
+        # frames and the room summaries arrive apart (up to a tick's motion between them)
+        now = state["users"]["A"]["indentation_mm"]
+        assert scale["max_in_mm"] >= now - 0.2 and scale["range_mm"] >= scale["max_in_mm"]
 
         # the camera shows the dent from outside, and the force arrows stay in view
         dent = state["dent"]
-        assert dent is not None and dent["depth_mm"] >= shown - 0.05
+        assert dent is not None and dent["depth_mm"] >= now - 0.2
         assert dent["in_view"] and dent["facing"] > 0.2, dent
         for name, arrow in state["arrows"].items():
             assert arrow["in_view"] or not arrow["visible"], (name, arrow)
