@@ -75,8 +75,9 @@ typecheck: $(STAMP)
 # (no test selected, e.g. `make unit PYTEST_ARGS='-k nothing'`) is not a failure; any other is.
 PYTEST_WORKERS ?= logical
 PYTEST_ARGS ?=
-# --durations: the 25 slowest tests are printed, so CI's log says where `make test`'s time goes.
-PYTEST  = $(BIN)/pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=25 $(PYTEST_ARGS)
+# --durations: the 25 slowest tests are printed, so CI's log says where `make test`'s time goes;
+# -rs: each skipped test is named with its reason.
+PYTEST  = $(BIN)/pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=25 -rs $(PYTEST_ARGS)
 UNITDEPS = $(STAMP) $(WEBSTAMP) $(JSSTAMP) $(MESHSTAMP) browser
 NOTESTS_OK = rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests selected"; exit 0; fi; exit $$rc
 
