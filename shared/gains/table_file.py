@@ -297,12 +297,14 @@ def cover_is_fresh(doc: Mapping[str, Any], cover_code: str) -> bool:
 #: rates [Hz], the loop delays [ticks], the coupling classes (K_o_stiff / K_o_eff), the K_o range
 #: [N/m] (every grid cell from the one holding the lower end to the one holding the upper), both
 #: local models, the product's design margin, an object without damping (B_o 0: the balloon and
-#: any mesh; the FEM solid reports B_o and is designed during the session).
+#: any mesh; the FEM solid reports B_o and is designed during the session). The coupling classes
+#: go up to 16 because two users' contacts on real meshes reach them (the torus 2.33, the bowl
+#: 12.2: docs/gains.md, "Why classes up to 16"); a key beyond is designed during the session.
 SHIP_GRID: dict[str, Any] = {
     "servo_rate_hz": 1000.0,
     "sim_rate_hz": (20.0,),
     "delay_ticks": tuple(range(0, 6)),
-    "stiff_ratio": (1.0, math.sqrt(2.0), 2.0),
+    "stiff_ratio": (1.0, math.sqrt(2.0), 2.0, 2.0 * math.sqrt(2.0), 4.0, 8.0, 16.0),
     "k_o_n_per_m": (50.0, 2000.0),
     "margin": DESIGN_MARGIN,
 }
@@ -359,12 +361,19 @@ def b_o_covered(table: GainTable, key: GainKey, cell: int) -> float:
     """The object damping B_o [N/m] up to which ``table``'s design of ``cell`` of ``key`` (a key
     with B_o = 0) passed its check on the damped loop (:func:`shared.gains.damping_cover.covered_b_o`);
     0 where it was not checked (a design made during a session, a cache's, a stale coverage, or a
-    design stored over the one checked)."""
+    design stored over the one checked) or passed at no B_o of the lattice."""
+    got = _checked_cover(table, key, cell)
+    return 0.0 if got is None else got
+
+
+def _checked_cover(table: GainTable, key: GainKey, cell: int) -> float | None:
+    """The coverage [N/m] the check found for the very design ``table`` holds for ``cell`` of
+    ``key`` (0 included), or None where that design was not checked."""
     got = _COVERS.get(table, {}).get((key, cell))
     if got is None:
-        return 0.0
+        return None
     cover, design = got
-    return cover if _stored(table, key, cell) is design else 0.0
+    return cover if _stored(table, key, cell) is design else None
 
 
 def _stored(table: GainTable, key: GainKey, cell: int) -> GainDesign | None:
@@ -375,8 +384,8 @@ def _stored(table: GainTable, key: GainKey, cell: int) -> GainDesign | None:
 
 
 def set_b_o_covered(table: GainTable, key: GainKey, cell: int, b_o: float) -> None:
-    """Record ``b_o`` [N/m] as the coverage of ``table``'s design of ``cell`` of ``key``
-    (:func:`b_o_covered`). 0 removes it.
+    """Record ``b_o`` [N/m] as the coverage the check found for ``table``'s design of ``cell``
+    of ``key`` (:func:`b_o_covered`; 0: checked, and it passed at no B_o of the lattice).
 
     Raises
     ------
@@ -388,7 +397,7 @@ def set_b_o_covered(table: GainTable, key: GainKey, cell: int, b_o: float) -> No
         raise ValueError(f"a coverage is of a design for B_o = 0, got a key of B_o {key.b_o!r}")
     covers = _COVERS.setdefault(table, {})
     design = _stored(table, key, cell)
-    if v > 0.0 and design is not None:
+    if design is not None:
         covers[(key, cell)] = (v, design)
     else:
         covers.pop((key, cell), None)
@@ -398,13 +407,17 @@ def table_document(table: GainTable, design_code: str) -> dict[str, Any]:
     """``table``'s designs as a JSON-ready document: its format, the design code's hash
     (:func:`design_code_hash`), the hand box and grid ratio the designs hold for, and one record
     per cell (:func:`key_record`, :func:`design_record`), sorted so that the same designs give
-    the same document."""
+    the same document. A cell's ``b_o_covered`` is written only where its design was checked
+    (:func:`set_b_o_covered`), so that a design added after the coverage was found (a wider
+    grid built into a covered table) is checked by the next pass rather than read as covering
+    nothing."""
     covers = _COVERS.get(table, {})
     cells: list[dict[str, Any]] = []
     for k, c, d in table.cells():
         rec: dict[str, Any] = {"key": key_record(k), "cell": c, "design": design_record(d)}
-        if covers:
-            rec["b_o_covered"] = b_o_covered(table, k, c)
+        cover = _checked_cover(table, k, c)
+        if cover is not None:
+            rec["b_o_covered"] = cover
         cells.append(rec)
     cells.sort(key=lambda r: (json.dumps(r["key"], sort_keys=True), r["cell"]))
     doc: dict[str, Any] = {
@@ -463,7 +476,7 @@ def load_table_document(table: GainTable, doc: Any, design_code: str) -> int:
         cell = rec.get("cell")
         if not isinstance(cell, int) or isinstance(cell, bool):
             raise ValueError(f"a gain table cell's index is an integer, got {cell!r}")
-        cover = 0.0
+        cover: float | None = None
         if "b_o_covered" in rec:
             try:
                 cover = valid_cover(rec["b_o_covered"])
@@ -472,13 +485,13 @@ def load_table_document(table: GainTable, doc: Any, design_code: str) -> int:
             if cover > 0.0 and key.b_o != 0.0:
                 raise ValueError(f"gain table cell {cell} of {key}: a coverage of a damped key")
         design = design_from_record(rec.get("design", {}), table.hand_box)
-        parsed.append((key, cell, design, cover if fresh else 0.0))
+        parsed.append((key, cell, design, cover if fresh and key.b_o == 0.0 else None))
     added = 0
     for key, cell, design, cover in parsed:
         if not table.has(key, cell):
             table.store(key, cell, design)
             added += 1
-            if cover > 0.0:
+            if cover is not None:
                 set_b_o_covered(table, key, cell, cover)
     return added
 

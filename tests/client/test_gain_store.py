@@ -129,3 +129,58 @@ def test_a_built_in_device_is_covered_and_a_custom_one_is_built_into_the_cache(
     assert main([*argv, "--max-jobs", "2", "--workers", "1"]) == 0
     assert "2 cells designed now" in capsys.readouterr().out
     assert coverage(1500.0, 8.0) == (2, of)  # and the next run goes on from there
+
+
+# (K_o_eff, K_o_stiff) [N/m] of the patches of one contact, as the stress meshes' demo at 50 ms
+# (2 ticks of delay) measured them (docs/real-objects.md): the torus's resting user B while A's
+# press coupled it (class 2 sqrt 2), then uncoupled again with its class held; the bowl's A as
+# its press coupled it ever more (classes 8 and 16), then uncoupled.
+STRESS_CONTACTS = {
+    "torus B": [(1202.9, 1202.9), (859.4, 2003.6), (859.4, 2003.6), (1202.9, 1202.9)],
+    "bowl A": [(307.3, 307.3), (175.9, 1178.2), (169.1, 1362.7), (155.3, 1895.7),
+               (169.1, 1362.7), (175.9, 1178.2), (306.1, 306.1)],
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("profile", ["phantom-desktop", "touch"])
+@pytest.mark.parametrize("mode", ["p", "pi"])
+@pytest.mark.parametrize("contact", sorted(STRESS_CONTACTS))
+def test_a_contact_coupled_beyond_class_2_renders_shipped_designs_throughout(
+    cache_dir, profile, mode, contact
+) -> None:
+    """Coupling classes up to 16 are in the shipped grid: each patch of a contact whose coupling
+    rises to them, and falls again with its class held, renders a shipped design at once, with
+    no design, check or fallback asked. Before, the torus's B rendered the nearest cell's gains
+    unverified, then interim gains, and the bowl's A the quarter-K_o fallback."""
+    from dataclasses import replace
+
+    from haptic_collab.client.devices.profiles import get_sim_profile
+    from haptic_collab.shared.gains.choose import Contact, Known, Options, choose
+    from haptic_collab.shared.gains.key import held_stiff_ratio
+    from haptic_collab.shared.local_model_update import SurfacePatch
+    from haptic_collab.shared.protocol import Patch, parse_server
+    from tests.support.sessions import press_patch
+
+    lim = get_sim_profile(profile).limits
+    table = GainTable()
+    preload(table, cache=False)
+    known = Known(table, {}, {})
+    options = Options(
+        servo_rate_hz=1000.0, sim_rate_hz=20.0, k_h_max=lim.max_stiffness_n_per_m,
+        b_h_max=lim.max_damping_n_s_per_m, mode=mode, rest_plane=False,
+    )  # fmt: skip
+    cls, sources = 1.0, []
+    for tick, (k_eff, k_stiff) in enumerate(STRESS_CONTACTS[contact], start=1):
+        msg = parse_server(press_patch(tick, 0.5, k_eff, k_o=k_eff))
+        assert isinstance(msg, Patch)
+        surface = replace(SurfacePatch.from_wire(msg), k_o_stiff=k_stiff)
+        cls = held_stiff_ratio(cls, k_eff, k_stiff)
+        key = make_gain_key(
+            servo_rate_hz=1000.0, sim_rate_hz=20.0, delay_ticks=2, mode=mode, margin=0.15,
+            k_h_max=options.k_h_max, b_h_max=options.b_h_max, b_o=0.0, stiff_ratio=cls,
+        )  # fmt: skip
+        choice = choose(surface, None, Contact(key), known, options)
+        sources.append((cls, choice.source, choice.jobs))
+        assert choice.gains is not None and choice.gains.worst_spectral_radius < 1.0
+    assert max(c for c, _, _ in sources) > 2.0  # the contact left the former grid
+    assert all(s == "design" and not jobs for _, s, jobs in sources), sources
