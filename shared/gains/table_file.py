@@ -248,13 +248,20 @@ def design_code_hash(roots: Iterable[str] = DESIGN_ROOTS) -> str:
     trees without docstrings; comments and formatting never reach the tree; of
     :data:`CONSTANTS_MODULE`, only the constants the design reads): a gain table's
     file holds for the design code of this hash only. ``tools/codegen --check`` checks the
-    shipped tables with it; a client's cache of designs is keyed by it.
+    shipped tables with it; a client's cache of designs is keyed by it. Computed once per
+    process and set of roots (the source files are read once: parsing them is a few tenths of
+    a second, which every client's start and every session's table would pay again).
 
     Raises
     ------
     ValueError
         As :func:`design_code_modules`.
     """
+    return _design_code_hash(tuple(roots))
+
+
+@functools.cache
+def _design_code_hash(roots: tuple[str, ...]) -> str:
     h = hashlib.sha256()
     modules = design_code_modules(roots)
     for name in modules:
