@@ -181,6 +181,7 @@ def test_compose_services_run_valid_haptic_commands():
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # its verdict needs a quiet machine: run after the others
 def test_demo_processes_feel_each_other(tmp_path):
     """`haptic demo`: server and two clients as processes; the report shows coupling and stability."""
     report = tmp_path / "report.json"

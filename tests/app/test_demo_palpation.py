@@ -104,6 +104,7 @@ def test_the_scenario_writes_a_lump_its_twin_and_a_sweep_over_them(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # its verdict needs a quiet machine: run after the others
 def test_the_palpation_demo_slides_over_the_lump_stably_and_b_feels_the_sweep(tmp_path):
     report = tmp_path / "report.json"
     done = subprocess.run(
