@@ -288,8 +288,12 @@ def test_a_late_tick_s_patches_are_sent_before_the_next_tick():
 
     def stalling_tick(k: int, now_s: float):
         ran.append(k)
-        if len(ran) == 3:  # this tick takes 3.5 periods: the next one is overdue
-            loop.offset += 3.5 * PERIOD
+        if len(ran) == 3:
+            # this tick takes 3.05 periods: ticks 4-6 are overdue and 6 runs at once, with
+            # nearly a period left before tick 7 for its patch to go out (a newer patch replaces
+            # an unsent one). With 3.5 periods only half a period was left, and a CI machine
+            # busy with browsers once let tick 7 run first: patch 6 was replaced, as designed
+            loop.offset += 3.05 * PERIOD
         return tick(k, now_s)
 
     room.tick = stalling_tick  # type: ignore[method-assign]
