@@ -6,22 +6,26 @@ included). This tool asks how much that costs where a contact's coupling class r
 resting user: for the contacts the stress meshes' demo measured (docs/real-objects.md), it
 rebuilds the two users' compliance from their K_o_eff and K_o_stiff, takes each user's shipped
 design for its uncoupled key and for its coupled one, and verifies every pairing on the coupled
-loop (:func:`shared.coupled_loop.verify_coupled`: every hand of the box and sampling tick per
-user, the K_o margin), as the product's coupled-loop tests do.
+loop (:func:`shared.coupled_loop.verify_coupled`: every user takes each of the 10 verification
+hands of the box and, by default, the sampling ticks 0, N/2 and N - 1, all combinations, with the
+K_o margin), as the product's coupled-loop tests do; ``--all-ticks`` takes every one of the N
+sampling ticks per user (about 15 s a pairing).
 
-Usage: ``.venv/bin/python tools/coupled_pair_check.py [--out FILE]`` (JSON on stdout or to FILE).
+Usage: ``.venv/bin/python tools/coupled_pair_check.py [--all-ticks] [--out FILE]`` (JSON on
+stdout or to FILE).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
-import math
 import sys
 from pathlib import Path
 
 import haptic_collab.cli.blas_threads  # noqa: F401  (first: one BLAS thread, before numpy)
 from haptic_collab.client.gain_store import preload
+from haptic_collab.shared.coupled_compliance import compliance_matrix
 from haptic_collab.shared.coupled_loop import UserGains, verification_hands, verify_coupled
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
 from haptic_collab.shared.gains.choose import static_felt_stiffness
@@ -43,17 +47,22 @@ def _key(stiff_ratio: float, delay_ticks: int, mode: str):
     )  # fmt: skip
 
 
-def check(k_a: float, k_b: float, ratio: float, delay_ticks: int, mode: str) -> dict[str, object]:
-    """Every pairing of A's and B's uncoupled and coupled designs (Phantom Desktop's shipped
-    table) on the coupled loop of two contacts of stiffness ``k_a``, ``k_b`` [N/m] whose modal
-    stiffness ratio is ``ratio``."""
-    import numpy as np
-
-    rho = (ratio - 1.0) / (ratio + 1.0)  # 2 contacts: K_o_stiff / K_o_eff = (1 + r) / (1 - r)
-    c12 = rho / math.sqrt(k_a * k_b)
-    compliance = np.array([[1.0 / k_a, c12], [c12, 1.0 / k_b]])
+@functools.cache
+def _shipped() -> GainTable:
     table = GainTable()
     preload(table, cache=False)
+    return table
+
+
+def check(
+    k_a: float, k_b: float, ratio: float, delay_ticks: int, mode: str, *, all_ticks: bool = False
+) -> dict[str, object]:
+    """Every pairing of A's and B's uncoupled and coupled designs (Phantom Desktop's shipped
+    table) on the coupled loop of two contacts of stiffness ``k_a``, ``k_b`` [N/m] whose modal
+    stiffness ratio is ``ratio`` (``all_ticks``: every sampling tick per user)."""
+    rho = (ratio - 1.0) / (ratio + 1.0)  # 2 contacts: K_o_stiff / K_o_eff = (1 + r) / (1 - r)
+    compliance = compliance_matrix([k_a, k_b], rho)
+    table = _shipped()
     cls = stiff_ratio_class(1.0, ratio)
     users = {}
     for name, k in (("A", k_a), ("B", k_b)):
@@ -88,6 +97,7 @@ def check(k_a: float, k_b: float, ratio: float, delay_ticks: int, mode: str) -> 
             v = verify_coupled(
                 compliance, (UserGains.from_design(ga), UserGains.from_design(gb)),
                 delay_ticks=delay_ticks, margin=0.15, hands=verification_hands(DEFAULT_HAND_BOX),
+                sample_ticks=range(50) if all_ticks else None,  # N = 1 kHz / 20 Hz
             )  # fmt: skip
             name = f"A {'coupled' if a_coupled else 'uncoupled'}, B {'coupled' if b_coupled else 'uncoupled'}"
             out["pairs"][name] = {  # type: ignore[index]
@@ -100,14 +110,16 @@ def check(k_a: float, k_b: float, ratio: float, delay_ticks: int, mode: str) -> 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--all-ticks", action="store_true", help="every sampling tick per user")
     args = ap.parse_args(argv)
     rows = [
-        {"case": name, **check(k_a, k_b, ratio, d, mode)}
+        {"case": name, **check(k_a, k_b, ratio, d, mode, all_ticks=args.all_ticks)}
         for name, (k_a, k_b, ratio) in CASES.items()
         for d in (0, 2)
         for mode in ("p", "pi")
     ]
-    text = json.dumps({"command": "tools/coupled_pair_check.py", "rows": rows}, indent=1)
+    command = "tools/coupled_pair_check.py" + (" --all-ticks" if args.all_ticks else "")
+    text = json.dumps({"command": command, "rows": rows}, indent=1)
     if args.out:
         args.out.write_text(text + "\n")
     else:
