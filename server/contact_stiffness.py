@@ -90,6 +90,28 @@ def _coupled_groups(coupled: npt.NDArray[np.bool_]) -> list[IntArray]:
     return groups
 
 
+def coupled_groups(compliance: npt.ArrayLike) -> list[IntArray]:
+    """The groups of mutually coupled contacts (connected through non-zero ``C_ij``, as
+    :func:`effective_stiffness` and :func:`stiff_stiffness` group them) of an (m, m) compliance
+    [m/N]: int64 index arrays, each sorted, ordered by their smallest index; [] for m = 0.
+
+    Raises
+    ------
+    ValueError
+        A non-square or non-finite compliance.
+    """
+    c = np.asarray(compliance, dtype=np.float64)
+    if c.ndim != 2 or c.shape[0] != c.shape[1] or not np.all(np.isfinite(c)):
+        raise ValueError(f"compliance must be a finite square matrix, got shape {c.shape}")
+    if len(c) == 0:
+        return []
+    c = 0.5 * (c + c.T)
+    scale = np.sqrt(np.abs(np.diag(c)))
+    coupled = np.abs(c) > _COUPLING_TOL * np.outer(scale, scale)
+    np.fill_diagonal(coupled, True)
+    return _coupled_groups(coupled)
+
+
 def effective_stiffness(compliance: npt.ArrayLike, k_o: npt.ArrayLike) -> FloatArray:
     """Coupling-aware object stiffness ``K_o_eff <= K_o`` per contact (DESIGN section 6).
 

@@ -19,10 +19,14 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
-from typing import Literal
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
 
 from haptic_collab.client.workers import timed
+from haptic_collab.server.contact_stiffness import coupled_groups
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
 from haptic_collab.shared.gains.choose import (
     VERIFIED_SOURCES,
@@ -33,29 +37,49 @@ from haptic_collab.shared.gains.choose import (
 )
 from haptic_collab.shared.gains.delay import DelayHold, measured_delay_ticks
 from haptic_collab.shared.gains.design import GainDesign
+from haptic_collab.shared.gains.group import (
+    PairBucket,
+    PairCase,
+    PairVerdict,
+    check_pair,
+    pair_points,
+)
 from haptic_collab.shared.gains.interim import interim_design
 from haptic_collab.shared.gains.key import (
     GainKey,
     held_stiff_ratio,
     loop_delay_ticks,
     make_gain_key,
+    stiff_ratio_class,
 )
-from haptic_collab.shared.gains.policy import K_O_GRID_RATIO, RTT_WINDOW
+from haptic_collab.shared.gains.policy import (
+    K_O_GRID_RATIO,
+    PAIR_LOOKAHEAD_M,
+    PAIR_QUEUE,
+    RTT_WINDOW,
+)
 from haptic_collab.shared.gains.table import GainTable, design_cell
 from haptic_collab.shared.gains.table_file import load_shipped
+from haptic_collab.shared.local_model_update import SurfacePatch
 from haptic_collab.shared.protocol import Hello, RecommendedGains
 from haptic_collab.shared.stability import rate_ratio
 
-JobKind = Literal["interim", "design"]
+if TYPE_CHECKING:
+    from haptic_collab.server.world import Coupling
+
+JobKind = Literal["interim", "design", "pair"]
 
 
 @dataclass(frozen=True)
 class GainJob:
-    """One piece of design work for the worker: ``kind`` for grid cell ``cell`` of ``key``."""
+    """One piece of design work for the worker: ``kind`` for grid cell ``cell`` of ``key``; a
+    ``pair`` job checks ``pair`` (:mod:`shared.gains.group`; ``key`` and ``cell`` are then the
+    partner's)."""
 
     kind: JobKind
     key: GainKey
     cell: int
+    pair: PairCase | None = None
 
 
 @dataclass
@@ -67,6 +91,14 @@ class _User:
     #: The round trip [s] the client measures its delay from (``state.delay_rtt_ms``).
     delay_rtt_s: float | None = None
     delay: DelayHold = field(default_factory=DelayHold)
+    #: The key of the user's last patch, and what was recommended with it.
+    key: GainKey | None = None
+    rec: RecommendedGains | None = None
+    #: In contact, alone on its class-1 design when its contact last coupled: it may keep that
+    #: design while its pair verifies (:meth:`GainAdvisor.hold_pairs`).
+    may_hold: bool = False
+    #: It keeps its uncoupled design this tick (a verified pair).
+    holding: bool = False
 
 
 class GainAdvisor:
@@ -107,6 +139,13 @@ class GainAdvisor:
         #: The shipped tables loaded into it ({file: cells, or why it was refused}).
         self.shipped = load_shipped(self.table) if shipped else {}
         self.interim: dict[tuple[GainKey, int], GainDesign] = {}
+        #: Pair verdicts (:mod:`shared.gains.group`) by bucket; None: no check is possible there.
+        self.pairs: dict[PairBucket, PairVerdict | None] = {}
+        self._pair_queue: dict[PairBucket, PairCase] = {}
+        #: Patches a user rendered its uncoupled design beside a coupled partner, by a verified
+        #: pair (:meth:`hold_pairs`); pair checks asked.
+        self.held_patches = 0
+        self.pair_checks = 0
         self._queued: dict[tuple[JobKind, GainKey, int], None] = {}
         self._asked: set[tuple[JobKind, GainKey, int]] = set()
         self._users: dict[str, _User] = {}
@@ -225,10 +264,17 @@ class GainAdvisor:
                 self._want("design" if isinstance(job, DesignJob) else "interim", key, cell)
             if source not in VERIFIED_SOURCES:
                 design = None
+        u = self._users[user]
+        u.key = key
         if design is None:
             self.misses += 1
+            u.rec = None
             return None
         self.hits += 1
+        u.rec = self._rec(design, key, interim)
+        return u.rec
+
+    def _rec(self, design: GainDesign, key: GainKey, interim: bool) -> RecommendedGains:
         return RecommendedGains(
             k_h=design.k_h,
             i_gain=design.i_gain,
@@ -239,6 +285,173 @@ class GainAdvisor:
             interim=interim,
             own_gain=design.own_gain,
         )
+
+    # ---------------------------------------------------------------- coupled pairs
+    def hold_pairs(
+        self,
+        coupling: Coupling,
+        patches: Mapping[str, SurfacePatch],
+        recs: Mapping[str, RecommendedGains | None],
+    ) -> dict[str, RecommendedGains | None]:
+        """This tick's recommendations with a resting user's uncoupled design kept where its
+        coupled pair, as rendered, is verified (:mod:`shared.gains.group`); call after
+        :meth:`recommend` for every user of the tick.
+
+        A user in contact whose recommendation is its class-1 design (alone on the object, or
+        uncoupled) may keep that design when another user's press couples its contact: while
+        the group is that pair, their delays equal, the partner renders its coupled key's design
+        and the pair's verdict for the bucket (the held user's K_o cell, the partner's K_o_eff
+        cell, the coupling class) meets the margin; alone again (the partner left), it keeps
+        its class-1 design at its K_o. A verdict not known when the coupling arrives, or one
+        that fails, ends the hold for the rest of the contact: the user renders its coupled
+        key's design, designed for a rigid partner, as without this check (one step, never a
+        return). Only one user of a pair holds. Ahead of need (:data:`shared.gains.policy.PAIR_LOOKAHEAD_M`),
+        while a resting user is uncoupled, the pair it would make with every user within that
+        distance of the surface is queued for the design worker (:meth:`next_job`), so the
+        verdict is there when the press arrives.
+
+        Parameters
+        ----------
+        coupling : server.world.Coupling
+            The world's contacts of this tick (compliance, penetrations).
+        patches : mapping user -> SurfacePatch
+            This tick's patches.
+        recs : mapping user -> RecommendedGains or None
+            What :meth:`recommend` answered this tick.
+
+        Returns
+        -------
+        dict user -> RecommendedGains or None: ``recs`` with the holding users' replaced.
+        """
+        out = dict(recs)
+        names = list(coupling.names)
+        if not names:
+            return out
+        c = np.asarray(coupling.compliance, dtype=np.float64)
+        pen = np.asarray(coupling.penetration_m, dtype=np.float64)
+        near = [i for i in range(len(names)) if pen[i] > -coupling.proximity_m]
+        group_of: dict[str, list[str]] = {}
+        if near:
+            for g in coupled_groups(c[np.ix_(near, near)]):
+                members = [names[near[int(j)]] for j in g]
+                for m in members:
+                    group_of[m] = members
+        for i, name in enumerate(names):
+            u = self._users.get(name)
+            patch = patches.get(name)
+            if u is None or patch is None or u.key is None:
+                continue
+            u.holding = False
+            if not (patch.in_contact or patch.own_force_n > 0.0):
+                u.may_hold = False
+                continue
+            rec = recs.get(name)
+            if u.key.stiff_ratio == 1.0:
+                u.may_hold = rec is not None and not rec.interim
+                if u.may_hold:
+                    self._look_ahead(i, names, c, pen)
+                continue
+            if not u.may_hold:
+                continue
+            held = self._held_design(name, u, patch, group_of.get(name, [name]), patches)
+            if held is None:
+                u.may_hold = False
+                continue
+            u.holding = True
+            self.held_patches += 1
+            out[name] = self._rec(held, u.key, interim=False)
+        return out
+
+    def _held_design(
+        self,
+        name: str,
+        u: _User,
+        patch: SurfacePatch,
+        group: list[str],
+        patches: Mapping[str, SurfacePatch],
+    ) -> GainDesign | None:
+        """The class-1 design ``name`` keeps this tick, or None where its hold ends."""
+        assert u.key is not None
+        held_key = replace(u.key, stiff_ratio=1.0)
+        if not (math.isfinite(patch.k_o) and patch.k_o > 0.0):
+            return None
+        design = table_design(self.table, held_key, patch.k_o)[0]
+        if design is None or len(group) > 2:
+            return None
+        if len(group) == 1:
+            return design  # alone again: its own verified design
+        partner = group[0] if group[1] == name else group[1]
+        p, pp = self._users.get(partner), patches.get(partner)
+        if p is None or pp is None or p.key is None or p.rec is None or p.rec.interim:
+            return None
+        if p.holding or p.key.delay_ticks != u.key.delay_ticks or p.key.stiff_ratio == 1.0:
+            return None
+        try:
+            ratio_class = stiff_ratio_class(pp.k_o_eff, max(pp.k_o_eff, pp.k_o_stiff))
+            bucket = PairBucket(
+                held_key, self.table.cell(patch.k_o), p.key, self.table.cell(pp.k_o_eff),
+                ratio_class,
+            )  # fmt: skip
+        except ValueError:
+            return None
+        if bucket not in self.pairs:
+            self._want_pair(bucket)
+            return None  # not known in time: the coupled design (one step)
+        verdict = self.pairs[bucket]
+        if verdict is None or not verdict.meets_margin:
+            return None
+        p.may_hold = False  # one user of a pair holds: the verdict is for the other's design
+        return design
+
+    def _look_ahead(self, i: int, names: list[str], c: np.ndarray, pen: np.ndarray) -> None:
+        """Queue the pair checks resting user ``names[i]`` would need if a user within
+        :data:`shared.gains.policy.PAIR_LOOKAHEAD_M` of the surface pressed where its probe is."""
+        u = self._users[names[i]]
+        assert u.key is not None
+        for j, other in enumerate(names):
+            p = self._users.get(other)
+            if j == i or p is None or p.key is None or not pen[j] > -PAIR_LOOKAHEAD_M:
+                continue
+            if p.key.delay_ticks != u.key.delay_ticks:
+                continue
+            k_i, k_j = 1.0 / c[i, i], 1.0 / c[j, j]
+            if not (math.isfinite(k_i) and math.isfinite(k_j) and k_i > 0.0 and k_j > 0.0):
+                continue
+            coupling = min(float(c[i, j]) * math.sqrt(k_i * k_j), 1.0 - 1e-9)
+            if coupling <= 1e-9:
+                continue
+            ratio = (1.0 + coupling) / (1.0 - coupling)
+            k_eff = k_j / (1.0 + coupling)
+            ratio_class = stiff_ratio_class(1.0, ratio)
+            partner_key = replace(p.key, stiff_ratio=max(ratio_class, p.key.stiff_ratio))
+            bucket = PairBucket(
+                replace(u.key, stiff_ratio=1.0), self.table.cell(k_i), partner_key,
+                self.table.cell(k_eff), ratio_class,
+            )  # fmt: skip
+            if bucket not in self.pairs:
+                self._want_pair(bucket)
+
+    def _want_pair(self, bucket: PairBucket) -> None:
+        """Queue the check of ``bucket`` (once; the newest first, at most
+        :data:`shared.gains.policy.PAIR_QUEUE` waiting)."""
+        if bucket in self._pair_queue:
+            return
+        points = pair_points(
+            bucket, lambda key, k_o: table_design(self.table, key, k_o)[0], self.table.grid_point
+        )
+        if points is None:
+            self.pairs[bucket] = None  # a design missing or a rigid class: no hold there
+            return
+        held, partner = bucket.held_key, bucket.partner_key
+        b_o: tuple[tuple[float, float], ...] = ((0.0, 0.0),)
+        if held.b_o > 0.0 or partner.b_o > 0.0:
+            b_o += ((held.b_o, partner.b_o),)
+        self._pair_queue[bucket] = PairCase(
+            bucket, points, b_o, held.servo_rate_hz, held.sim_rate_hz, held.delay_ticks,
+            held.margin, self.table.hand_box,
+        )  # fmt: skip
+        while len(self._pair_queue) > PAIR_QUEUE:
+            del self._pair_queue[next(iter(self._pair_queue))]
 
     # ---------------------------------------------------------------- work for the worker
     def _want(self, kind: JobKind, key: GainKey, cell: int) -> None:
@@ -255,24 +468,40 @@ class GainAdvisor:
         the object asks for one K_o cell after another, and the cell it is in now matters more
         than the ones it has left (those are still designed later, when nothing newer waits).
         """
-        if not self._queued:
-            return None
         jobs = list(self._queued)
         interim = [j for j in jobs if j[0] == "interim"]
+        if not interim and self._pair_queue:
+            bucket, case = self._pair_queue.popitem()  # the newest
+            self.pairs.setdefault(bucket, None)  # asked once (a lost job: no hold there)
+            self.pair_checks += 1
+            return GainJob("pair", bucket.partner_key, bucket.partner_cell, case)
+        if not jobs:
+            return None
         kind, key, cell = (interim or jobs)[-1]
         del self._queued[(kind, key, cell)]
         return GainJob(kind, key, cell)
 
     def take_jobs(self) -> list[GainJob]:
-        """The design work queued since the last call (interim checks first), oldest first."""
+        """The design work queued since the last call (interim checks first, then pair checks),
+        oldest first."""
         jobs = [GainJob(k, key, cell) for (k, key, cell) in self._queued]
         self._queued.clear()
-        jobs.sort(key=lambda j: j.kind != "interim")
+        for bucket, case in self._pair_queue.items():
+            self.pairs.setdefault(bucket, None)
+            self.pair_checks += 1
+            jobs.append(GainJob("pair", bucket.partner_key, bucket.partner_cell, case))
+        self._pair_queue.clear()
+        jobs.sort(key=lambda j: {"interim": 0, "pair": 1}.get(j.kind, 2))
         return jobs
 
-    def store(self, job: GainJob, design: GainDesign | None) -> None:
-        """Hand back a job's result (None: no gains pass for it; it is not asked again)."""
-        if design is None:
+    def store(self, job: GainJob, design: GainDesign | PairVerdict | None) -> None:
+        """Hand back a job's result (None: no gains pass for it; it is not asked again; a pair
+        job's :class:`shared.gains.group.PairVerdict`)."""
+        if job.kind == "pair":
+            if job.pair is not None and (design is None or isinstance(design, PairVerdict)):
+                self.pairs[job.pair.bucket] = design
+            return
+        if design is None or not isinstance(design, GainDesign):
             return
         if job.kind == "design":
             self.table.store(job.key, job.cell, design)
@@ -280,12 +509,15 @@ class GainAdvisor:
             self.interim[(job.key, job.cell)] = design
 
 
-def run_job(job: GainJob, grid_ratio: float, hand_box: HandBox) -> GainDesign | None:
+def run_job(job: GainJob, grid_ratio: float, hand_box: HandBox) -> GainDesign | PairVerdict | None:
     """Run one :class:`GainJob` (in a worker process: arguments and result pickle).
 
-    Returns None when no gains pass (the key is beyond what any local model renders).
+    Returns None when no gains pass (the key is beyond what any local model renders); a pair
+    job's verdict (:func:`shared.gains.group.check_pair`).
     """
     try:
+        if job.kind == "pair":
+            return None if job.pair is None else check_pair(job.pair)
         if job.kind == "design":
             return timed(design_cell, job.key, job.cell, grid_ratio, hand_box)
         return timed(interim_design, job.key, job.cell, grid_ratio, hand_box, design_fallback=False)

@@ -77,6 +77,7 @@ from haptic_collab.shared.protocol import (
     Ping,
     Pong,
     ProtocolError,
+    RecommendedGains,
     RoomState,
     State,
     UserView,
@@ -832,6 +833,7 @@ class Room:
                 inputs[c.seat] = ContactInput(probe=np.array(c.state.probe_m), force=np.zeros(3))
                 seats[c.seat] = c
         outputs = self.world.tick(inputs, tick)
+        recs: dict[str, RecommendedGains | None] = {}
         for seat, res in outputs.items():
             conn = seats.get(seat)
             if conn is None:
@@ -843,10 +845,8 @@ class Room:
             conn.recent.append((sent,) if rest is None else (sent, (rest, k_o, 0.0)))
             if conn.closed or conn.conn_id not in self._conns:
                 continue  # a held seat: its patch has nobody to go to
-            conn_id = conn.conn_id
-            rec = None
             if conn.hello is not None:
-                rec = self.gains.recommend(
+                recs[seat] = self.gains.recommend(
                     seat,
                     conn.hello,
                     k_o_eff=float(res.k_o_eff),
@@ -855,7 +855,14 @@ class Room:
                     tick=tick,
                     in_contact=bool(res.in_contact or res.own_force_n > 0.0),
                 )
-            out.append(Outgoing(conn_id, encode(res.to_wire(rec)), stream="patch"))
+        # a resting user keeps its gains where its coupled pair, as rendered, is verified
+        recs = self.gains.hold_pairs(self.world.coupling, outputs, recs)
+        for seat, res in outputs.items():
+            conn = seats.get(seat)
+            if conn is None or conn.closed or conn.conn_id not in self._conns:
+                continue
+            rec = recs.get(seat)
+            out.append(Outgoing(conn.conn_id, encode(res.to_wire(rec)), stream="patch"))
         viewers = self.viewers
         vframes = self._viewer_stream.frames(tick, self.world.vertices, viewers)
         if viewers:

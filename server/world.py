@@ -103,6 +103,30 @@ class _UserState:
     rest_normal: FloatArray
 
 
+@dataclass(frozen=True)
+class Coupling:
+    """Every user's contact of one tick as the coupled stability sees it (the server's gain
+    advisor checks coupled pairs from it, :meth:`server.gains.GainAdvisor.hold_pairs`).
+
+    Attributes
+    ----------
+    names : tuple of str
+        The users, in the order of the arrays.
+    compliance : (M, M) float [m/N]
+        The contacts' normal compliance ``C_ij`` (the object's ``contact_compliance``), every user
+        in it, near the surface or not: ``K_o,i = 1 / C_ii``.
+    penetration_m : (M,) float [m]
+        Each probe's penetration (negative: outside the surface by that much).
+    proximity_m : float
+        Users with a penetration above ``-proximity_m`` take part in ``K_o_eff`` and ``K_o_stiff``.
+    """
+
+    names: tuple[str, ...]
+    compliance: FloatArray
+    penetration_m: FloatArray
+    proximity_m: float
+
+
 def _finite3(value: object) -> FloatArray | None:
     """The value as a (3,) float64 array if it is 3 finite numbers, else None."""
     try:
@@ -196,6 +220,8 @@ class World:
         self._bound = float(obj.max_displacement_m)
         self._tick = 0
         self._users: dict[str, _UserState] = {}
+        #: The last tick's contacts as the coupled stability saw them (:class:`Coupling`).
+        self.coupling = Coupling((), np.zeros((0, 0)), np.zeros(0), self.proximity_m)
 
     # ------------------------------------------------------------------ state
     @property
@@ -399,6 +425,7 @@ class World:
         self._tick += 1
         if not names:
             self._users.clear()
+            self.coupling = Coupling((), np.zeros((0, 0)), np.zeros(0), self.proximity_m)
             return {}
 
         # Step 1: every probe on the new surface.
@@ -464,6 +491,7 @@ class World:
                 rest_plane=rest_planes[i],
             )
         self._users = users
+        self.coupling = Coupling(tuple(names), compliance, pen, self.proximity_m)
         return out
 
 

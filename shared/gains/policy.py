@@ -62,6 +62,18 @@ OWN_RESPONSE_SLIDE_M = 0.5e-3
 #: demo, two cells of 10 %.
 COUPLED_CELLS_BELOW = 2
 
+#: Distance [m] from the surface within which another user's probe has the server check, ahead
+#: of need, the coupled pair it would make with a resting user (:mod:`shared.gains.group`,
+#: :meth:`server.gains.GainAdvisor.hold_pairs`): a check takes 1-3 s of the design worker
+#: (12-24 coupled loops of about 0.1 s), and the stress demo's pressing hand comes down at
+#: about 5 cm/s from 3 cm above the surface (docs/real-objects.md). 5 cm: over a second ahead
+#: at that speed, and the demo's start position is inside it.
+PAIR_LOOKAHEAD_M = 0.05
+
+#: Pair checks waiting at most; the newest run first and the oldest are dropped (a hand moving
+#: over the object asks for one bucket after another, and the one it is over matters most).
+PAIR_QUEUE = 4
+
 # ------------------------------------------------------------------
 # The stability margin all gains are held to (shared.stability_margin)
 

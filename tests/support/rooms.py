@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 
+from haptic_collab.server.world import Coupling
 from haptic_collab.shared.local_model_update import SurfacePatch
 from haptic_collab.shared.primitives import make_plane
 from haptic_collab.shared.protocol import PROTOCOL_VERSION
@@ -24,6 +25,7 @@ class RecordingWorld:
         )
         self.inputs: list[dict] = []
         self.sim_period_s = 0.05  # a 20 Hz object, as the rooms below
+        self.coupling = Coupling((), np.zeros((0, 0)), np.zeros(0), 0.005)
 
     def tick(self, inputs, tick=None):
         self.inputs.append(dict(inputs))
@@ -42,6 +44,9 @@ class RecordingWorld:
                 k_o_stiff=400.0,
                 b_o=0.0,
             )
+        # every contact its own 400 N/m, uncoupled, 5 mm in (as the patches say)
+        m = len(out)
+        self.coupling = Coupling(tuple(out), np.eye(m) / 400.0, np.full(m, 0.005), 0.005)
         return out
 
 

@@ -1,0 +1,197 @@
+"""A resting user keeps its gains when another user's press couples its contact, where the pair
+as rendered is verified (server.gains.GainAdvisor.hold_pairs, shared.gains.group).
+
+The contacts are the stress demo's (docs/real-objects.md, tools/coupled_pair_check.py), at 2
+ticks of delay with the Phantom Desktop's shipped tables:
+- torus: B rests on the side (K_o 1202.9 N/m) on its uncoupled compensated P (K_h 1000 N/m);
+  A's press on the top couples them (K_o_stiff / K_o_eff 2.33, class 2 sqrt 2). Designed for a
+  rigid partner, B's coupled key renders the paper's PI at K_h 270 N/m, a felt step of x5;
+  beside A's coupled design B's own gains meet the margin on the pair's loop, so B keeps them;
+- bowl: the same pairing rings (class 8), so B takes its coupled design, as before.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import pytest
+
+from haptic_collab.server.gains import GainAdvisor, run_job
+from haptic_collab.server.world import Coupling
+from haptic_collab.shared.coupled_loop import UserGains, verification_hands, verify_coupled
+from haptic_collab.shared.gains.group import PairVerdict, class_ratios, coupling_of_ratio
+from haptic_collab.shared.local_model_update import SurfacePatch
+from haptic_collab.shared.primitives import make_plane
+from haptic_collab.shared.protocol import DeviceInfo, Hello, RecommendedGains
+
+PHANTOM = DeviceInfo(
+    profile="phantom-desktop",
+    max_force_n=7.9,
+    max_stiffness_n_per_m=1000.0,
+    max_damping_n_s_per_m=10.0,
+)
+HELLO = Hello(protocol=1, role="user", name="u", device=PHANTOM, local_model="pi")
+#: A round trip that makes the loop delay 2 ticks at 20 Hz (shared.gains.key.loop_delay_ticks).
+RTT_MS = 110.0
+
+#: (B's K_o, A's K_o, their coupling c) as the demo's patches reported them during A's press.
+TORUS = (1202.9, 472.7, coupling_of_ratio(2003.6 / 859.4))
+BOWL = (281.4, 306.1, coupling_of_ratio(1178.2 / 175.9))
+
+
+@functools.cache
+def shipped() -> GainAdvisor:
+    """An advisor whose table holds the shipped tables (loaded once; each test gets a fresh
+    advisor sharing that table)."""
+    return GainAdvisor(20.0)
+
+
+def advisor() -> GainAdvisor:
+    adv = GainAdvisor(20.0, shipped=False)
+    adv.table = shipped().table
+    for user in "AB":
+        adv.observe_rtt(user, RTT_MS, RTT_MS)
+    return adv
+
+
+def patch(tick: int, k_o: float, k_eff: float, k_stiff: float, pen: float) -> SurfacePatch:
+    return SurfacePatch(
+        tick=tick,
+        primitive=make_plane((0, 0, 0), (0, 0, 1)),
+        proxy=(0.0, 0.0, 0.0),
+        normal=(0.0, 0.0, 1.0),
+        penetration_m=pen,
+        in_contact=pen > 0.0,
+        k_o=k_o,
+        k_o_eff=k_eff,
+        k_o_stiff=k_stiff,
+        b_o=0.0,
+    )
+
+
+def tick(
+    adv: GainAdvisor, n: int, case: tuple[float, float, float], a_pen: float
+) -> dict[str, RecommendedGains | None]:
+    """One simulation tick: B resting 1 mm in, A's probe ``a_pen`` [m] from the surface (coupled
+    to B only within the world's 5 mm), as the room calls the advisor."""
+    k_b, k_a, c = case
+    proximity = 0.005
+    cross = c / math.sqrt(k_a * k_b)
+    compliance = np.array([[1.0 / k_a, cross], [cross, 1.0 / k_b]])
+    near = a_pen > -proximity
+    if near:
+        patches = {
+            "A": patch(n, k_a, k_a / (1 + c), k_a / (1 - c), a_pen),
+            "B": patch(n, k_b, k_b / (1 + c), k_b / (1 - c), 0.001),
+        }
+    else:
+        patches = {"A": patch(n, k_a, k_a, k_a, a_pen), "B": patch(n, k_b, k_b, k_b, 0.001)}
+    recs = {
+        u: adv.recommend(
+            u,
+            HELLO,
+            k_o_eff=p.k_o_eff,
+            k_o_stiff=p.k_o_stiff,
+            b_o=0.0,
+            tick=n,
+            in_contact=p.in_contact,
+        )  # fmt: skip
+        for u, p in patches.items()
+    }
+    coupling = Coupling(("A", "B"), compliance, np.array([a_pen, 0.001]), proximity)
+    return adv.hold_pairs(coupling, patches, recs)
+
+
+def run_pair_jobs(adv: GainAdvisor) -> list[PairVerdict | None]:
+    out = []
+    for job in adv.take_jobs():
+        result = run_job(job, adv.table.grid_ratio, adv.table.hand_box)
+        adv.store(job, result)
+        if job.kind == "pair":
+            assert result is None or isinstance(result, PairVerdict)
+            out.append(result)
+    return out
+
+
+def felt(g: RecommendedGains | None) -> tuple[float, float, float]:
+    assert g is not None
+    return (g.k_h, g.i_gain, g.own_gain)
+
+
+def press(adv: GainAdvisor, case: tuple[float, float, float], *, look_ahead: bool) -> list:
+    """B rests while A waits 3 cm above, then A presses and releases: B's gains each tick."""
+    seen = []
+    for n in range(5):
+        seen.append(tick(adv, n, case, -0.03))
+    if look_ahead:
+        run_pair_jobs(adv)  # the design worker, between ticks
+    for n in range(5, 15):
+        seen.append(tick(adv, n, case, 0.004))
+    for n in range(15, 20):
+        seen.append(tick(adv, n, case, -0.03))
+    return seen
+
+
+def test_the_resting_user_keeps_its_gains_as_a_verified_press_arrives() -> None:
+    adv = advisor()
+    seen = press(adv, TORUS, look_ahead=True)
+    b = [felt(r["B"]) for r in seen]
+    assert b[0][0] == pytest.approx(1000.0)  # B's compensated P alone
+    assert all(x == b[0] for x in b), "B's gains changed while A pressed and left"
+    a_alone, a_pressing = felt(seen[0]["A"]), felt(seen[10]["A"])
+    assert a_pressing != a_alone  # A renders its coupled key's design
+    assert adv.held_patches >= 10
+    # the pair B held is the one the check verified: B's gains beside A's on the coupled loop
+    k_b, k_a, c = TORUS
+    cross = c / math.sqrt(k_a * k_b)
+    gb, ga = seen[10]["B"], seen[10]["A"]
+    assert ga is not None and gb is not None
+    v = verify_coupled(
+        np.array([[1.0 / k_a, cross], [cross, 1.0 / k_b]]),
+        [UserGains(k_h=g.k_h, i_gain=g.i_gain, b_h=g.b_h, proxy_hold=g.proxy_hold,
+                   own_gain=g.own_gain) for g in (ga, gb)],
+        delay_ticks=2, margin=0.15, hands=verification_hands(adv.table.hand_box),
+    )  # fmt: skip
+    assert v.meets_margin
+
+
+def test_without_a_verdict_in_time_the_resting_user_steps_once_and_stays() -> None:
+    adv = advisor()
+    adv_jobs = []
+    seen = []
+    for n in range(3):  # A far beyond the look-ahead: nothing is checked
+        seen.append(tick(adv, n, TORUS, -0.2))
+    assert not [j for j in adv.take_jobs() if j.kind == "pair"]
+    for n in range(3, 10):
+        seen.append(tick(adv, n, TORUS, 0.004))
+        adv_jobs += run_pair_jobs(adv)  # the verdict arrives after the coupled patch
+    assert adv_jobs and all(v is not None and v.meets_margin for v in adv_jobs)
+    b = [felt(r["B"]) for r in seen]
+    assert b[0][0] == pytest.approx(1000.0)
+    assert b[3] != b[0]  # the coupled key's design: designed for a rigid partner
+    assert all(x == b[3] for x in b[3:]), "B went back to its old gains within the contact"
+    assert adv.held_patches == 0
+
+
+def test_where_the_pair_rings_the_resting_user_takes_its_coupled_design() -> None:
+    adv = advisor()
+    seen = press(adv, BOWL, look_ahead=True)
+    verdicts = [v for v in adv.pairs.values() if v is not None]
+    assert verdicts and not any(v.meets_margin for v in verdicts)
+    b = [felt(r["B"]) for r in seen]
+    assert b[6] != b[0]
+    assert adv.held_patches == 0
+
+
+def test_a_pair_check_covers_its_bucket_at_its_corners() -> None:
+    # class 2 sqrt 2 is checked at the coupling of class 2's bound, the middle and its own
+    r = class_ratios(2 * math.sqrt(2))
+    assert r == pytest.approx((2.0, 2**1.25, 2 * math.sqrt(2)))
+    assert class_ratios(1.0) == () and class_ratios(math.inf) == ()
+    adv = advisor()
+    press(adv, TORUS, look_ahead=True)
+    (bucket,) = [b for b, v in adv.pairs.items() if v is not None]
+    verdict = adv.pairs[bucket]
+    assert verdict is not None and verdict.points == 12  # 2 x 2 cell ends x 3 couplings
