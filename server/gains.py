@@ -17,6 +17,7 @@ a second) or, for the very first moment of a new key, no gains at all.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from collections.abc import Mapping
@@ -57,6 +58,7 @@ from haptic_collab.shared.gains.policy import (
     PAIR_LOOKAHEAD_M,
     PAIR_QUEUE,
     RTT_WINDOW,
+    STIFF_RATIO_CLASSES,
 )
 from haptic_collab.shared.gains.table import GainTable, design_cell
 from haptic_collab.shared.gains.table_file import load_shipped
@@ -66,6 +68,8 @@ from haptic_collab.shared.stability import rate_ratio
 
 if TYPE_CHECKING:
     from haptic_collab.server.world import Coupling
+
+log = logging.getLogger("haptic.server")
 
 JobKind = Literal["interim", "design", "pair"]
 
@@ -299,7 +303,7 @@ class GainAdvisor:
 
         A user in contact whose recommendation is its class-1 design (alone on the object, or
         uncoupled) may keep that design when another user's press couples its contact: while
-        the group is that pair, their delays equal, the partner renders its coupled key's design
+        the group is that pair, the partner renders its coupled key's design
         and the pair's verdict for the bucket (the held user's K_o cell, the partner's K_o_eff
         cell, the coupling class) meets the margin; alone again (the partner left), it keeps
         its class-1 design at its K_o. A verdict not known when the coupling arrives, or one
@@ -341,7 +345,7 @@ class GainAdvisor:
             patch = patches.get(name)
             if u is None or patch is None or u.key is None:
                 continue
-            u.holding = False
+            was_holding, u.holding = u.holding, False
             if not (patch.in_contact or patch.own_force_n > 0.0):
                 u.may_hold = False
                 continue
@@ -353,10 +357,18 @@ class GainAdvisor:
                 continue
             if not u.may_hold:
                 continue
-            held = self._held_design(name, u, patch, group_of.get(name, [name]), patches)
+            group = group_of.get(name, [name])
+            held = self._held_design(name, u, patch, group, patches)
             if held is None:
                 u.may_hold = False
+                log.info(
+                    "user %s: its contact coupled to %s, its coupled design renders (%s)",
+                    name, ", ".join(g for g in group if g != name) or "nobody",
+                    "the pair stops verifying" if was_holding else "no verified pair",
+                )  # fmt: skip
                 continue
+            if not was_holding:
+                log.info("user %s keeps its uncoupled gains: its coupled pair verifies", name)
             u.holding = True
             self.held_patches += 1
             out[name] = self._rec(held, u.key, interim=False)
@@ -384,7 +396,7 @@ class GainAdvisor:
         p, pp = self._users.get(partner), patches.get(partner)
         if p is None or pp is None or p.key is None or p.rec is None or p.rec.interim:
             return None
-        if p.holding or p.key.delay_ticks != u.key.delay_ticks or p.key.stiff_ratio == 1.0:
+        if p.holding or p.key.stiff_ratio == 1.0:
             return None
         try:
             ratio_class = stiff_ratio_class(pp.k_o_eff, max(pp.k_o_eff, pp.k_o_stiff))
@@ -401,7 +413,21 @@ class GainAdvisor:
         if verdict is None or not verdict.meets_margin:
             return None
         p.may_hold = False  # one user of a pair holds: the verdict is for the other's design
+        self._want_near(bucket)  # where the press goes next, while this one holds
         return design
+
+    def _want_near(self, bucket: PairBucket) -> None:
+        """Queue the buckets a press moves a verified pair to next: the partner's K_o_eff a cell
+        lower or higher, and the next coupling class (a deeper press couples more)."""
+        near = [replace(bucket, partner_cell=bucket.partner_cell + d) for d in (-1, 1)]
+        i = STIFF_RATIO_CLASSES.index(bucket.ratio_class)
+        up = STIFF_RATIO_CLASSES[min(i + 1, len(STIFF_RATIO_CLASSES) - 1)]
+        if math.isfinite(up) and up != bucket.ratio_class:
+            key = replace(bucket.partner_key, stiff_ratio=max(up, bucket.partner_key.stiff_ratio))
+            near.append(replace(bucket, partner_key=key, ratio_class=up))
+        for b in near:
+            if b not in self.pairs:
+                self._want_pair(b)
 
     def _look_ahead(self, i: int, names: list[str], c: np.ndarray, pen: np.ndarray) -> None:
         """Queue the pair checks resting user ``names[i]`` would need if a user within
@@ -412,12 +438,12 @@ class GainAdvisor:
             p = self._users.get(other)
             if j == i or p is None or p.key is None or not pen[j] > -PAIR_LOOKAHEAD_M:
                 continue
-            if p.key.delay_ticks != u.key.delay_ticks:
-                continue
             k_i, k_j = 1.0 / c[i, i], 1.0 / c[j, j]
             if not (math.isfinite(k_i) and math.isfinite(k_j) and k_i > 0.0 and k_j > 0.0):
                 continue
-            coupling = min(float(c[i, j]) * math.sqrt(k_i * k_j), 1.0 - 1e-9)
+            # a negative coupling (a press here lifts the surface there) is the same loop: the
+            # other user's states negated (shared.gains.group)
+            coupling = min(abs(float(c[i, j])) * math.sqrt(k_i * k_j), 1.0 - 1e-9)
             if coupling <= 1e-9:
                 continue
             ratio = (1.0 + coupling) / (1.0 - coupling)
@@ -430,6 +456,8 @@ class GainAdvisor:
             )  # fmt: skip
             if bucket not in self.pairs:
                 self._want_pair(bucket)
+            elif (v := self.pairs[bucket]) is not None and v.meets_margin:
+                self._want_near(bucket)  # verified: then where the press may go
 
     def _want_pair(self, bucket: PairBucket) -> None:
         """Queue the check of ``bucket`` (once; the newest first, at most
@@ -447,7 +475,8 @@ class GainAdvisor:
         if held.b_o > 0.0 or partner.b_o > 0.0:
             b_o += ((held.b_o, partner.b_o),)
         self._pair_queue[bucket] = PairCase(
-            bucket, points, b_o, held.servo_rate_hz, held.sim_rate_hz, held.delay_ticks,
+            bucket, points, b_o, held.servo_rate_hz, held.sim_rate_hz,
+            (held.delay_ticks, partner.delay_ticks),
             held.margin, self.table.hand_box,
         )  # fmt: skip
         while len(self._pair_queue) > PAIR_QUEUE:

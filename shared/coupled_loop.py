@@ -197,17 +197,17 @@ def _assemble(
     tick_idx: IndexArray,
     compliance: FloatArray,
     b_o: FloatArray,
-    delay_ticks: int,
+    delays: Sequence[int],
 ) -> FloatArray:
-    """Coupled monodromy matrices (K, n, n) for hand/tick indices (K, M), compliance (K, M, M).
+    """Coupled monodromy matrices (K, n, n) for hand/tick indices (K, M), compliance (K, M, M),
+    user u's proxy ``delays[u]`` ticks late.
 
     State: per user u in turn ``[fast states, proxy, (previous proxy), object, delay line]``, the
     layout of :func:`shared.full_loop.monodromy`.
     """
     m = len(blocks)
     nb = hand_idx.shape[0]
-    D = int(delay_ticks)
-    sizes = [b.nf + 2 + (1 if b.foh else 0) + D for b in blocks]
+    sizes = [b.nf + 2 + (1 if b.foh else 0) + int(d) for b, d in zip(blocks, delays, strict=True)]
     offs = [0, *itertools.accumulate(sizes)]
     n = offs[-1]
     Mx = np.zeros((nb, n, n))
@@ -236,6 +236,7 @@ def _assemble(
         Mx[:, io, :] = obj_rows[:, u]
         # the proxy delivered: the surface less C_h times the user's own sampled force
         proxy_row = obj_rows[:, u] - bl.own_gain * frows[u] if bl.own_gain else obj_rows[:, u]
+        D = int(delays[u])
         if D == 0:
             Mx[:, i_p, :] = proxy_row
         else:
@@ -251,7 +252,7 @@ def _check_common(
     gains: Sequence[UserGains],
     b_o: ArrayLike,
     rate_ratio: int,
-    delay_ticks: int,
+    delay_ticks: int | Sequence[int],
 ) -> tuple[FloatArray, FloatArray]:
     c = check_compliance(compliance)
     m = c.shape[0]
@@ -261,8 +262,19 @@ def _check_common(
     if not (np.all(np.isfinite(bo)) and np.all(bo >= 0.0)):
         raise ValueError(f"b_o must be finite and >= 0, got {b_o!r}")
     _whole("rate_ratio", rate_ratio, 1)
-    _whole("delay_ticks", delay_ticks, 0)
     return c, bo
+
+
+def _delays(delay_ticks: int | Sequence[int], m: int) -> tuple[int, ...]:
+    """Each of ``m`` users' delay [ticks]: one whole number for all, or one per user."""
+    if isinstance(delay_ticks, Sequence):
+        if len(delay_ticks) != m:
+            raise ValueError(f"{m} users but {len(delay_ticks)} delays")
+        for d in delay_ticks:
+            _whole("delay_ticks", d, 0)
+        return tuple(int(d) for d in delay_ticks)
+    _whole("delay_ticks", delay_ticks, 0)
+    return (int(delay_ticks),) * m
 
 
 def coupled_monodromy(
@@ -274,7 +286,7 @@ def coupled_monodromy(
     b_o: ArrayLike = 0.0,
     servo_period_s: float = 1e-3,
     rate_ratio: int = 50,
-    delay_ticks: int = 0,
+    delay_ticks: int | Sequence[int] = 0,
 ) -> FloatArray:
     """Monodromy matrices of M users' full loops coupled through the object (module docstring).
 
@@ -296,8 +308,10 @@ def coupled_monodromy(
         T [s].
     rate_ratio : int
         N, servo ticks per simulation tick.
-    delay_ticks : int
-        D, extra whole simulation ticks of delay (the same for every user), >= 0.
+    delay_ticks : int or sequence of M ints
+        D, extra whole simulation ticks of delay, >= 0: the same for every user, or one per user
+        (user u's proxy is its contact's surface D_u ticks late: each user's whole round trip
+        lumped on the way to its proxy, the single-user loop's convention).
 
     Returns
     -------
@@ -312,6 +326,7 @@ def coupled_monodromy(
     """
     c, bo = _check_common(compliance, gains, b_o, rate_ratio, delay_ticks)
     m, N = c.shape[0], int(rate_ratio)
+    delays = _delays(delay_ticks, m)
     combos = [tuple(h) for h in hands]
     if not combos or any(len(h) != m for h in combos):
         raise ValueError(f"hands must be a non-empty sequence of {m}-user combinations")
@@ -334,7 +349,7 @@ def coupled_monodromy(
     B, J = len(combos), len(tick_combos)
     hi = np.repeat(np.array(h_idx, dtype=np.intp).T, J, axis=0)
     ti = np.tile(np.array(t_idx, dtype=np.intp).T, (B, 1))
-    Mx = _assemble(blocks, hi, ti, np.broadcast_to(c, (B * J, m, m)), bo, int(delay_ticks))
+    Mx = _assemble(blocks, hi, ti, np.broadcast_to(c, (B * J, m, m)), bo, delays)
     return Mx.reshape(B, J, *Mx.shape[1:])
 
 
@@ -430,7 +445,7 @@ def verify_coupled(
     b_o: ArrayLike = 0.0,
     servo_rate_hz: float = 1000.0,
     sim_rate_hz: float = 20.0,
-    delay_ticks: int = 0,
+    delay_ticks: int | Sequence[int] = 0,
     margin: float = 0.15,
     hands: Sequence[Hand | None] | None = None,
     sample_ticks: Sequence[int] | None = None,
@@ -454,7 +469,8 @@ def verify_coupled(
     b_o : float or (M,) [N/m]
     servo_rate_hz, sim_rate_hz : float
         1/T and 1/(N*T) [Hz]; N must be whole.
-    delay_ticks : int
+    delay_ticks : int or sequence of M ints
+        One delay for every user or one per user (:func:`coupled_monodromy`).
     margin : float
         In [0, 1).
     hands : sequence of Hand or None, optional
@@ -475,6 +491,7 @@ def verify_coupled(
     rates = Rates(servo_rate_hz, sim_rate_hz)
     N, T = rates.ratio, rates.servo_period_s
     c, bo = _check_common(compliance, gains, b_o, N, delay_ticks)
+    delays = _delays(delay_ticks, c.shape[0])
     if not (math.isfinite(margin) and 0.0 <= margin < 1.0):
         raise ValueError(f"margin must be in [0, 1), got {margin!r}")
     m = c.shape[0]
@@ -490,7 +507,7 @@ def verify_coupled(
     if hand_combos is None and tick_combos is None:
         pairs = [(h, t) for h in range(len(hs)) for t in range(len(ts))]
         combos: list[tuple[int, ...]]
-        if _permutation_symmetric(c, gains, bo):
+        if _permutation_symmetric(c, gains, bo) and len(set(delays)) == 1:
             combos = list(itertools.combinations_with_replacement(range(len(pairs)), m))
         else:
             combos = list(itertools.product(range(len(pairs)), repeat=m))
@@ -524,7 +541,7 @@ def verify_coupled(
             sl = slice(a, min(a + _CHUNK, K))
             k = sl.stop - sl.start
             Mx = _assemble(
-                blocks, h_idx[sl], t_idx[sl], np.broadcast_to(c * s, (k, m, m)), bo, delay_ticks
+                blocks, h_idx[sl], t_idx[sl], np.broadcast_to(c * s, (k, m, m)), bo, delays
             )
             marg, rad = mode_radii(Mx, rho_limit, N, T)
             w = int(np.argmax(marg))

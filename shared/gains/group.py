@@ -17,7 +17,11 @@ grid cell of the held user's K_o, the cell of the partner's K_o_eff and the coup
 check covers the bucket at its corners: both cells' ends and the class's coupling at its lower
 end, its geometric middle and its upper end, each user's design scaled to its K_o there as the
 table scales it (:meth:`shared.gains.design.GainDesign.at`), at the keys' object damping and at
-none. A grid, not a proof, as the designs' own K_o points are.
+none. A grid, not a proof, as the designs' own K_o points are. The sign of the coupling does not
+matter: a compliance with ``-C_12`` is ``S C S`` with ``S = diag(1, -1)``, and negating every
+state of the second user (hand, device, local model, proxy, force: linear, odd) carries one loop
+into the other, so both have the same eigenvalues; a press that lifts the other contact (the
+stress ant, ``C_12 < 0``) is checked as one that sinks it.
 
 Pure: no clock, no I/O. :func:`pair_points` builds the loops to check (table lookups, cheap);
 :func:`check_pair` verifies them (about 0.1 s each on this 2-core machine: the server runs it in
@@ -68,14 +72,15 @@ class PairPoint:
 
 @dataclass(frozen=True)
 class PairCase:
-    """A pair check to run: the loops of a bucket (:func:`pair_points`) and the loop's facts."""
+    """A pair check to run: the loops of a bucket (:func:`pair_points`) and the loop's facts
+    (``delay_ticks``: the held user's and the partner's, each its key's)."""
 
     bucket: PairBucket
     points: tuple[PairPoint, ...]
     b_o: tuple[tuple[float, float], ...]
     servo_rate_hz: float
     sim_rate_hz: float
-    delay_ticks: int
+    delay_ticks: tuple[int, int]
     margin: float
     hand_box: HandBox
 

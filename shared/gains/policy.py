@@ -72,7 +72,9 @@ PAIR_LOOKAHEAD_M = 0.05
 
 #: Pair checks waiting at most; the newest run first and the oldest are dropped (a hand moving
 #: over the object asks for one bucket after another, and the one it is over matters most).
-PAIR_QUEUE = 4
+#: Each verified bucket asks for its three neighbours (the partner's cell either side, the next
+#: coupling class), so 8 hold a bucket's and a few more.
+PAIR_QUEUE = 8
 
 # ------------------------------------------------------------------
 # The stability margin all gains are held to (shared.stability_margin)

@@ -48,11 +48,12 @@ def shipped() -> GainAdvisor:
     return GainAdvisor(20.0)
 
 
-def advisor() -> GainAdvisor:
+def advisor(rtt_ms: tuple[float, float] = (RTT_MS, RTT_MS)) -> GainAdvisor:
+    """A fresh advisor on the shipped tables, A's and B's round trips ``rtt_ms`` [ms]."""
     adv = GainAdvisor(20.0, shipped=False)
     adv.table = shipped().table
-    for user in "AB":
-        adv.observe_rtt(user, RTT_MS, RTT_MS)
+    for user, rtt in zip("AB", rtt_ms, strict=True):
+        adv.observe_rtt(user, rtt, rtt)
     return adv
 
 
@@ -134,9 +135,13 @@ def press(adv: GainAdvisor, case: tuple[float, float, float], *, look_ahead: boo
     return seen
 
 
-def test_the_resting_user_keeps_its_gains_as_a_verified_press_arrives() -> None:
-    adv = advisor()
+@pytest.mark.parametrize(("rtt_ms", "delays"), [((RTT_MS, RTT_MS), (2, 2)), ((10.0, 60.0), (0, 1))])
+def test_the_resting_user_keeps_its_gains_as_a_verified_press_arrives(
+    rtt_ms: tuple[float, float], delays: tuple[int, int]
+) -> None:
+    adv = advisor(rtt_ms)
     seen = press(adv, TORUS, look_ahead=True)
+    assert (seen[10]["A"].delay_ticks, seen[10]["B"].delay_ticks) == delays  # type: ignore[union-attr]
     b = [felt(r["B"]) for r in seen]
     assert b[0][0] == pytest.approx(1000.0)  # B's compensated P alone
     assert all(x == b[0] for x in b), "B's gains changed while A pressed and left"
@@ -152,7 +157,7 @@ def test_the_resting_user_keeps_its_gains_as_a_verified_press_arrives() -> None:
         np.array([[1.0 / k_a, cross], [cross, 1.0 / k_b]]),
         [UserGains(k_h=g.k_h, i_gain=g.i_gain, b_h=g.b_h, proxy_hold=g.proxy_hold,
                    own_gain=g.own_gain) for g in (ga, gb)],
-        delay_ticks=2, margin=0.15, hands=verification_hands(adv.table.hand_box),
+        delay_ticks=delays, margin=0.15, hands=verification_hands(adv.table.hand_box),
     )  # fmt: skip
     assert v.meets_margin
 

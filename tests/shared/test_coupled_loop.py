@@ -268,7 +268,7 @@ def _simulate(
     hands: Sequence[Hand],
     ticks: Sequence[int],
     *,
-    delay: int = 0,
+    delay: int | Sequence[int] = 0,
     n: int = 50,
     blocks: int = 120,
     substeps: int = 40,
@@ -277,10 +277,12 @@ def _simulate(
     """Every user's probe depth [m] at every servo tick (blocks * n, M): user 0 starts pushed in.
 
     Linear bilateral contact at 1 kHz; the object steps every n ticks, x_o = C F with F each
-    user's force at its own tick; the proxy reaches each servo after ``delay`` more steps.
+    user's force at its own tick; the proxy reaches each servo after ``delay`` more steps (one
+    number for all, or one per user).
     """
     T = 1e-3
     m = len(gains)
+    delays = [int(delay)] * m if isinstance(delay, int) else [int(d) for d in delay]
     a_u = T / (T + 0.005)  # the servo's 5 ms filter on the damper's probe velocity
     x = [0.0] * m
     x[0] = push_m
@@ -288,7 +290,7 @@ def _simulate(
     x_prev = list(x)
     u = [0.0] * m
     s = [0.0] * m
-    line: deque[list[float]] = deque([[0.0] * m for _ in range(delay)])
+    line: deque[list[float]] = deque([[0.0] * m for _ in range(max(delays) + 1)])
     p_new = [0.0] * m
     p_old = [0.0] * m
     f_sample = [0.0] * m
@@ -297,7 +299,8 @@ def _simulate(
     for blk in range(blocks):
         if blk > 0:
             line.append([float(z) for z in compliance @ np.array(f_sample)])
-            p_old, p_new = p_new, line.popleft()
+            line.popleft()
+            p_old, p_new = p_new, [line[-1 - delays[k]][k] for k in range(m)]
         for i in range(n):
             for k in range(m):
                 g, hk = gains[k], hands[k]
@@ -407,6 +410,58 @@ def test_three_users_time_domain_decay_matches_the_spectral_radius() -> None:
     env = _envelope(_simulate(c, list(cd.gains), hands, ticks, delay=2, blocks=160))
     assert _rate(env, 80, 160) == pytest.approx(rho, abs=0.01)
     assert env[-20:].max() < 0.01e-3
+
+
+def test_users_with_their_own_delays_decay_as_the_spectral_radius_says() -> None:
+    """Each user's proxy its own delay late (B's round trip 2 ticks, A's none): the monodromy
+    against the independent time-domain loop, and uncoupled users against their own loops."""
+    c = compliance_matrix([1000.0, 400.0], 0.6)
+    gains = [UserGains(k_h=300.0, i_gain=2500.0, b_h=5.0, proxy_hold="foh"),
+             UserGains(k_h=350.0, i_gain=1500.0, b_h=8.0)]  # fmt: skip
+    hands, ticks = [HEAVY, LIGHT_STIFF], [0, 49]
+    rho = float(
+        coupled_spectral_radius(
+            compliance=c, gains=gains, hands=[hands], sample_ticks=[ticks], delay_ticks=(0, 2)
+        )[0, 0]
+    )
+    equal = float(
+        coupled_spectral_radius(
+            compliance=c, gains=gains, hands=[hands], sample_ticks=[ticks], delay_ticks=2
+        )[0, 0]
+    )
+    assert rho < 1.0 < equal  # stable as A's delay is none; B's 2 ticks for both would ring
+    env = _envelope(_simulate(c, gains, hands, ticks, delay=(0, 2), blocks=160))
+    assert _rate(env, 80, 160) == pytest.approx(rho, abs=0.01)
+    # uncoupled: each user alone at its own delay
+    apart = np.diag([1.0 / 1000.0, 1.0 / 400.0])
+    both = coupled_spectral_radius(
+        compliance=apart, gains=gains, hands=[hands], sample_ticks=[ticks], delay_ticks=(0, 2)
+    )[0, 0]
+    alone = [
+        spectral_radius(
+            hand=h, k_o=k, k_h=g.k_h, i_gain=g.i_gain, b_h=g.b_h, delay_ticks=d, sample_ticks=[j], proxy_hold=g.proxy_hold,
+        )[0, 0]
+        for h, k, g, d, j in zip(hands, (1000.0, 400.0), gains, (0, 2), ticks, strict=True)
+    ]  # fmt: skip
+    assert both == pytest.approx(max(alone), abs=1e-9)
+    with pytest.raises(ValueError, match="delays"):
+        verify_coupled(c, gains, delay_ticks=(0, 1, 2))
+
+
+def test_the_sign_of_the_coupling_does_not_change_the_loop() -> None:
+    """A press that lifts the other contact (C_12 < 0) rings as one that sinks it: negating the
+    second user's states carries one loop into the other (shared.gains.group)."""
+    gains = [UserGains(k_h=300.0, i_gain=2500.0, b_h=5.0, proxy_hold="foh"),
+             UserGains(k_h=700.0, b_h=8.0, own_gain=1.0 / 900.0)]  # fmt: skip
+    c = compliance_matrix([1000.0, 400.0], 0.6)
+    flipped = c * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    hands = [[HEAVY, LIGHT_STIFF], [DEFAULT_HAND, HEAVY]]
+    kw = dict(gains=gains, hands=hands, sample_ticks=[[0, 49], [25, 3]], delay_ticks=(1, 2))
+    np.testing.assert_allclose(
+        coupled_spectral_radius(compliance=flipped, **kw),  # type: ignore[arg-type]
+        coupled_spectral_radius(compliance=c, **kw),  # type: ignore[arg-type]
+        rtol=1e-9,
+    )
 
 
 @pytest.mark.slow
