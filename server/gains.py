@@ -309,7 +309,9 @@ class GainAdvisor:
         its class-1 design at its K_o. A verdict not known when the coupling arrives, or one
         that fails, ends the hold for the rest of the contact: the user renders its coupled
         key's design, designed for a rigid partner, as without this check (one step, never a
-        return). Only one user of a pair holds. Ahead of need (:data:`shared.gains.policy.PAIR_LOOKAHEAD_M`),
+        return). A contact is the probe in the surface, or within the world's proximity of it
+        while holding: a light touch the partner's press lifts off for a moment keeps its hold.
+        Only one user of a pair holds. Ahead of need (:data:`shared.gains.policy.PAIR_LOOKAHEAD_M`),
         while a resting user is uncoupled, the pair it would make with every user within that
         distance of the surface is queued for the design worker (:meth:`next_job`), so the
         verdict is there when the press arrives.
@@ -346,12 +348,16 @@ class GainAdvisor:
             if u is None or patch is None or u.key is None:
                 continue
             was_holding, u.holding = u.holding, False
-            if not (patch.in_contact or patch.own_force_n > 0.0):
+            touching = patch.in_contact or patch.own_force_n > 0.0
+            if not touching and not (u.may_hold and pen[i] > -coupling.proximity_m):
+                # out of contact and away: a new contact starts over (a light touch that the
+                # partner's press lifts off for a tick, still near, keeps its hold)
                 u.may_hold = False
                 continue
             rec = recs.get(name)
             if u.key.stiff_ratio == 1.0:
-                u.may_hold = rec is not None and not rec.interim
+                if touching:
+                    u.may_hold = rec is not None and not rec.interim
                 if u.may_hold:
                     self._look_ahead(i, names, c, pen)
                 continue

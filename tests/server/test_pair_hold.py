@@ -73,10 +73,14 @@ def patch(tick: int, k_o: float, k_eff: float, k_stiff: float, pen: float) -> Su
 
 
 def tick(
-    adv: GainAdvisor, n: int, case: tuple[float, float, float], a_pen: float
+    adv: GainAdvisor,
+    n: int,
+    case: tuple[float, float, float],
+    a_pen: float,
+    b_pen: float = 0.001,
 ) -> dict[str, RecommendedGains | None]:
-    """One simulation tick: B resting 1 mm in, A's probe ``a_pen`` [m] from the surface (coupled
-    to B only within the world's 5 mm), as the room calls the advisor."""
+    """One simulation tick: B resting ``b_pen`` [m] in, A's probe ``a_pen`` [m] from the surface
+    (coupled to B only within the world's 5 mm), as the room calls the advisor."""
     k_b, k_a, c = case
     proximity = 0.005
     cross = c / math.sqrt(k_a * k_b)
@@ -85,10 +89,10 @@ def tick(
     if near:
         patches = {
             "A": patch(n, k_a, k_a / (1 + c), k_a / (1 - c), a_pen),
-            "B": patch(n, k_b, k_b / (1 + c), k_b / (1 - c), 0.001),
+            "B": patch(n, k_b, k_b / (1 + c), k_b / (1 - c), b_pen),
         }
     else:
-        patches = {"A": patch(n, k_a, k_a, k_a, a_pen), "B": patch(n, k_b, k_b, k_b, 0.001)}
+        patches = {"A": patch(n, k_a, k_a, k_a, a_pen), "B": patch(n, k_b, k_b, k_b, b_pen)}
     recs = {
         u: adv.recommend(
             u,
@@ -101,7 +105,7 @@ def tick(
         )  # fmt: skip
         for u, p in patches.items()
     }
-    coupling = Coupling(("A", "B"), compliance, np.array([a_pen, 0.001]), proximity)
+    coupling = Coupling(("A", "B"), compliance, np.array([a_pen, b_pen]), proximity)
     return adv.hold_pairs(coupling, patches, recs)
 
 
@@ -200,3 +204,20 @@ def test_a_pair_check_covers_its_bucket_at_its_corners() -> None:
     (bucket,) = [b for b, v in adv.pairs.items() if v is not None]
     verdict = adv.pairs[bucket]
     assert verdict is not None and verdict.points == 12  # 2 x 2 cell ends x 3 couplings
+
+
+def test_a_light_touch_lifted_off_for_a_moment_keeps_its_gains() -> None:
+    """On the torus A's press draws the surface under B's light touch away (0.86 mm in the
+    demo): B's probe leaves the surface for a tick or two, still within the world's 5 mm."""
+    adv = advisor()
+    for n in range(5):
+        tick(adv, n, TORUS, -0.03)
+    run_pair_jobs(adv)
+    rest = felt(tick(adv, 5, TORUS, 0.004)["B"])
+    lifted = [felt(tick(adv, n, TORUS, 0.004, b_pen=-0.0005)["B"]) for n in range(6, 8)]
+    back = [felt(tick(adv, n, TORUS, 0.004)["B"]) for n in range(8, 12)]
+    assert rest[0] == pytest.approx(1000.0)
+    assert all(x == rest for x in lifted + back)
+    # lifted off beyond the world's proximity, a new touch starts over: its coupled design
+    tick(adv, 12, TORUS, 0.004, b_pen=-0.02)
+    assert felt(tick(adv, 13, TORUS, 0.004)["B"]) != rest
