@@ -364,17 +364,17 @@ class GainAdvisor:
             if not u.may_hold:
                 continue
             group = group_of.get(name, [name])
-            held = self._held_design(name, u, patch, group, patches)
+            held, why = self._held_design(name, u, patch, group, patches)
             if held is None:
                 u.may_hold = False
                 log.info(
-                    "user %s: its contact coupled to %s, its coupled design renders (%s)",
+                    "user %s: its contact coupled to %s, its coupled design renders (%s%s)",
                     name, ", ".join(g for g in group if g != name) or "nobody",
-                    "the pair stops verifying" if was_holding else "no verified pair",
+                    "after a hold: " if was_holding else "", why,
                 )  # fmt: skip
                 continue
             if not was_holding:
-                log.info("user %s keeps its uncoupled gains: its coupled pair verifies", name)
+                log.info("user %s keeps its uncoupled gains (%s)", name, why)
             u.holding = True
             self.held_patches += 1
             out[name] = self._rec(held, u.key, interim=False)
@@ -387,23 +387,25 @@ class GainAdvisor:
         patch: SurfacePatch,
         group: list[str],
         patches: Mapping[str, SurfacePatch],
-    ) -> GainDesign | None:
-        """The class-1 design ``name`` keeps this tick, or None where its hold ends."""
+    ) -> tuple[GainDesign | None, str]:
+        """The class-1 design ``name`` keeps this tick, or None where its hold ends, and why."""
         assert u.key is not None
         held_key = replace(u.key, stiff_ratio=1.0)
         if not (math.isfinite(patch.k_o) and patch.k_o > 0.0):
-            return None
+            return None, "no K_o"
         design = table_design(self.table, held_key, patch.k_o)[0]
-        if design is None or len(group) > 2:
-            return None
+        if design is None:
+            return None, "no uncoupled design at its K_o"
+        if len(group) > 2:
+            return None, f"a group of {len(group)}"
         if len(group) == 1:
-            return design  # alone again: its own verified design
+            return design, "alone"  # alone again: its own verified design
         partner = group[0] if group[1] == name else group[1]
         p, pp = self._users.get(partner), patches.get(partner)
         if p is None or pp is None or p.key is None or p.rec is None or p.rec.interim:
-            return None
+            return None, "the partner has no design"
         if p.holding or p.key.stiff_ratio == 1.0:
-            return None
+            return None, "the partner holds"
         try:
             ratio_class = stiff_ratio_class(pp.k_o_eff, max(pp.k_o_eff, pp.k_o_stiff))
             bucket = PairBucket(
@@ -411,16 +413,18 @@ class GainAdvisor:
                 ratio_class,
             )  # fmt: skip
         except ValueError:
-            return None
+            return None, "no K_o_eff"
         if bucket not in self.pairs:
             self._want_pair(bucket)
-            return None  # not known in time: the coupled design (one step)
+            return None, "the pair not checked in time"  # the coupled design (one step)
         verdict = self.pairs[bucket]
-        if verdict is None or not verdict.meets_margin:
-            return None
+        if verdict is None:
+            return None, "the pair not checked in time"
+        if not verdict.meets_margin:
+            return None, f"the pair misses the margin: radius {verdict.margin_radius:.3f}"
         p.may_hold = False  # one user of a pair holds: the verdict is for the other's design
         self._want_near(bucket)  # where the press goes next, while this one holds
-        return design
+        return design, "verified"
 
     def _want_near(self, bucket: PairBucket) -> None:
         """Queue the buckets a press moves a verified pair to next: the partner's K_o_eff a cell
