@@ -503,26 +503,29 @@ class GainAdvisor:
         """The most urgent queued job, removed from the queue; None when there is none.
 
         Interim checks come first (they let a user's forces come on within a fraction of a
-        second), then designs; within a kind the most recently asked first: a user moving over
-        the object asks for one K_o cell after another, and the cell it is in now matters more
-        than the ones it has left (those are still designed later, when nothing newer waits).
+        second), then designs, then pair checks (:meth:`hold_pairs`: they spare a felt step,
+        where a design replaces interim gains; on the FEM palpation demo, pair checks before
+        designs left B on interim gains for 339 of 400 patches against 174); within a kind the
+        most recently asked first: a user moving over the object asks for one K_o cell after
+        another, and the cell it is in now matters more than the ones it has left (those are
+        still designed later, when nothing newer waits).
         """
         jobs = list(self._queued)
-        interim = [j for j in jobs if j[0] == "interim"]
-        if not interim and self._pair_queue:
+        if not jobs and self._pair_queue:
             bucket, case = self._pair_queue.popitem()  # the newest
             self.pairs.setdefault(bucket, None)  # asked once (a lost job: no hold there)
             self.pair_checks += 1
             return GainJob("pair", bucket.partner_key, bucket.partner_cell, case)
         if not jobs:
             return None
+        interim = [j for j in jobs if j[0] == "interim"]
         kind, key, cell = (interim or jobs)[-1]
         del self._queued[(kind, key, cell)]
         return GainJob(kind, key, cell)
 
     def take_jobs(self) -> list[GainJob]:
-        """The design work queued since the last call (interim checks first, then pair checks),
-        oldest first."""
+        """The design work queued since the last call (interim checks first, then designs, then
+        pair checks), oldest first."""
         jobs = [GainJob(k, key, cell) for (k, key, cell) in self._queued]
         self._queued.clear()
         for bucket, case in self._pair_queue.items():
@@ -530,7 +533,7 @@ class GainAdvisor:
             self.pair_checks += 1
             jobs.append(GainJob("pair", bucket.partner_key, bucket.partner_cell, case))
         self._pair_queue.clear()
-        jobs.sort(key=lambda j: {"interim": 0, "pair": 1}.get(j.kind, 2))
+        jobs.sort(key=lambda j: {"interim": 0, "design": 1}.get(j.kind, 2))
         return jobs
 
     def store(self, job: GainJob, design: GainDesign | PairVerdict | None) -> None:
