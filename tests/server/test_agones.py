@@ -132,6 +132,8 @@ async def test_a_session_as_the_sidecar_hears_it():
             await users.pop(0).leave()
             await viewer.leave()
             await until(lambda: sc.of("POST", "/shutdown"), 30.0)
+            # the agent says so once the sidecar's answer is back (a loaded CI read it first)
+            await until(lambda: agent.state == "shutdown", 10.0)
 
             assert counts(sc) == [0, 1, 2, 1, 0]
             assert len(sc.of("POST", "/allocate")) == 1
