@@ -38,6 +38,13 @@ def lab_users(server: ServerProcess) -> int:
         return 0
 
 
+def lab_tick(server: ServerProcess) -> int:
+    try:
+        return int(server.status()["rooms"].get("lab", {}).get("tick", 0))
+    except (OSError, ValueError):
+        return 0
+
+
 def test_a_client_follows_its_room_through_the_lobby_when_its_server_drains(tmp_path: Path):
     secret = tmp_path / "secret"
     secret.write_text("s" * 48)
@@ -102,6 +109,10 @@ def test_a_client_follows_its_room_through_the_lobby_when_its_server_drains(tmp_
         a.proc.send_signal(signal.SIGTERM)  # a drains
         assert a.proc.wait(20.0) == 0
         wait_for(lambda: lab_users(b) == 1, 30.0, "the client in room lab on server b")
+        # a second of ticks with the client in the room: patches sent (on a loaded clean-clone
+        # run the client was stopped before its first one, and counted none)
+        t0 = lab_tick(b)
+        wait_for(lambda: lab_tick(b) >= t0 + 20, 30.0, "room lab's ticks on server b")
         client.send_signal(signal.SIGINT)
         assert client.wait(30.0) == 0, (tmp_path / "A.log").read_text()[-2000:]
         got = json.loads(summary.read_text())
