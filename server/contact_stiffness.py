@@ -146,14 +146,8 @@ def effective_stiffness(compliance: npt.ArrayLike, k_o: npt.ArrayLike) -> FloatA
         Shapes mismatch, non-finite entries, negative stiffness.
     """
     c, k = _check_ck(compliance, k_o, "k_o")
-    m = len(k)
     out = k.copy()
-    if m == 0:
-        return out
-    scale = np.sqrt(np.abs(np.diag(c)))
-    coupled = np.abs(c) > _COUPLING_TOL * np.outer(scale, scale)
-    np.fill_diagonal(coupled, True)
-    for members in _coupled_groups(coupled):
+    for members in coupled_groups(c):
         rho = spectral_radius(c[np.ix_(members, members)], k[members])
         if rho > 1.0:
             out[members] = k[members] / rho
@@ -189,12 +183,7 @@ def stiff_stiffness(compliance: npt.ArrayLike, k_o: npt.ArrayLike) -> FloatArray
     """
     c, k = _check_ck(compliance, k_o, "k_o")
     out = k.copy()
-    if len(k) == 0:
-        return out
-    scale = np.sqrt(np.abs(np.diag(c)))
-    coupled = np.abs(c) > _COUPLING_TOL * np.outer(scale, scale)
-    np.fill_diagonal(coupled, True)
-    for members in _coupled_groups(coupled):
+    for members in coupled_groups(c):
         if len(members) < 2:
             continue
         s = np.sqrt(k[members])

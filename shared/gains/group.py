@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from haptic_collab.shared.coupled_compliance import compliance_matrix
 from haptic_collab.shared.coupled_loop import UserGains, verification_hands, verify_coupled
 from haptic_collab.shared.full_loop import HandBox
 from haptic_collab.shared.gains.design import GainDesign
@@ -174,9 +175,7 @@ def check_pair(case: PairCase) -> PairVerdict:
     checked = 0
     hands = verification_hands(case.hand_box)
     for p in case.points:
-        (ka, kb), c = p.k_o, p.coupling
-        cross = c / math.sqrt(ka * kb)
-        compliance = np.array([[1.0 / ka, cross], [cross, 1.0 / kb]])
+        compliance = compliance_matrix(list(p.k_o), p.coupling)
         for b_o in case.b_o:
             v = verify_coupled(
                 compliance,
