@@ -309,6 +309,11 @@ def closing_lines(
     return lines
 
 
+#: How long the demo waits for its server to listen [s]: a FEM solid's start-up (volume mesh,
+#: factor and modes) is 15-30 s on a quiet 2-core machine and several times that under load
+#: (docs/fem.md, "Cost of the quadratic elements").
+SERVER_START_TIMEOUT_S = 180.0
+
 #: ``--scenario`` choices.
 SCENARIOS = ("press", "palpation")
 
@@ -664,13 +669,27 @@ def _run_in(work: Path, port: int, opts: DemoOptions) -> dict[str, Any]:
             server_cmd, stdout=logs["server"], stderr=subprocess.STDOUT, env=env
         )
         t0 = time.monotonic()
+        told = False
         while _status(opts.host, port) is None:
             if procs["server"].poll() is not None:
                 raise RuntimeError(
                     "the server exited:\n" + (work / "server.log").read_text()[-2000:]
                 )
-            if time.monotonic() - t0 > 60.0:
-                raise RuntimeError("the server did not come up within 60 s")
+            waited = time.monotonic() - t0
+            if waited > SERVER_START_TIMEOUT_S:
+                raise RuntimeError(
+                    f"the server did not come up within {SERVER_START_TIMEOUT_S:g} s "
+                    f"(its log: {work / 'server.log'})"
+                )
+            if not told and waited > 3.0:
+                told = True
+                print(
+                    "the server is building the FEM solid (its volume mesh, factor and modes: "
+                    "15-30 s on a quiet machine) ..."
+                    if opts.object == "fem" or opts.scenario == "palpation"
+                    else "waiting for the server to start ...",
+                    flush=True,
+                )
             time.sleep(0.1)
         if palpation is not None and opts.gravity_m_s2 > 0.0:
             # the sweep slides over the sagged top the server reports, not the mesh's sphere

@@ -529,14 +529,10 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
             raise ValueError("--subdivisions must be in [0, 7]")
         shown = default_balloon(subdivisions=opts.subdivisions)
         mesh = shown
-        if opts.object == "fem" and opts.mesh_max_edge is None and not opts.inclusions:
+        if opts.object == "fem" and opts.mesh_max_edge is None:
             from haptic_collab.server.objects.fem import sphere_for_solid
 
             mesh, element = sphere_for_solid(opts.subdivisions)  # P2: shown split four ways
-        elif opts.object == "fem" and opts.inclusions:
-            # P2 around a lump's surface: the volume mesh refines there and the start-up took
-            # 69 s (factor 12 s, modes 55 s) against 8 s for P1 (docs/fem.md)
-            element = "p1"
         if opts.mesh_max_edge is not None:
             mesh = refine_mesh(mesh, opts.mesh_max_edge, where="balloon")
     else:
@@ -570,7 +566,12 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     for warning in mesh_warnings(touched, params.patch_radius_m, where=opts.mesh):
         log.warning("%s", warning)
     if opts.object == "fem":
-        return world_around(_build_fem(opts, mesh, rates, scale, element), opts, rates)
+        # with inclusions, P2 on the parent sphere unless their refinement makes it too large:
+        # then P1 on the sphere shown (_build_fem)
+        p1_mesh = shown if opts.mesh == "balloon" and mesh is not shown else None
+        return world_around(
+            _build_fem(opts, mesh, rates, scale, element, p1_mesh=p1_mesh), opts, rates
+        )
     obj = Balloon(mesh, params)
     log.info("K_o %.0f N/m at the top, %.0f N/m at the side", *top_side_stiffness(obj))
     return world_around(obj, opts, rates)
@@ -620,10 +621,17 @@ def _build_fem(
     rates: Rates,
     scale: float,
     element: Literal["auto", "p1", "p2"] = "auto",
+    p1_mesh: Any = None,
 ) -> Any:
     """The FEM solid of ``--object fem`` (:func:`build_world`); E is multiplied by ``scale``;
-    ``element`` is :attr:`server.objects.fem.FemParams.element`."""
-    from haptic_collab.server.objects.fem import FemParams, FemSolid
+    ``element`` is :attr:`server.objects.fem.FemParams.element`.
+
+    With inclusions, ``mesh`` the parent sphere of a P2 solid and ``p1_mesh`` the sphere shown:
+    the inclusions' surfaces refine the volume mesh around them, so where its P2 solid would
+    have more than :data:`server.objects.fem.P2_MAX_NODES` nodes (the start-up took 61 s with
+    two 162-vertex lumps, 23 s with 42-vertex ones; docs/palpation.md) the solid is P1 on
+    ``p1_mesh`` instead."""
+    from haptic_collab.server.objects.fem import P2_MAX_NODES, FemParams, FemSolid, p2_node_count
     from haptic_collab.server.solid_materials import (
         SOLID_PRESETS,
         load_solid_material,
@@ -648,6 +656,16 @@ def _build_fem(
     inclusions = load_inclusions(opts.inclusions, opts.inclusion_materials)
     if inclusions:
         volume = volume_with_inclusions(mesh, inclusions, cache_dir=opts.volume_cache)
+        if p1_mesh is not None and p2_node_count(volume[1]) > P2_MAX_NODES:
+            log.info(
+                "FEM solid: the inclusions refine the volume mesh to %d quadratic (P2) nodes, "
+                "more than %d: linear tetrahedra (P1) on the %d-vertex sphere",
+                p2_node_count(volume[1]),
+                P2_MAX_NODES,
+                len(p1_mesh.vertices),
+            )
+            mesh, params = p1_mesh, replace(params, element="p1")
+            volume = volume_with_inclusions(mesh, inclusions, cache_dir=opts.volume_cache)
         materials = element_materials(*volume, material, inclusions, young_scale=scale)
         for inc in inclusions:
             log.info("inclusion %s: %s", inc.where, inc.material.summary())

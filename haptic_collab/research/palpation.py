@@ -57,8 +57,10 @@ from haptic_collab.shared.types import FloatArray
 #: point is an equal place beside it.
 LUMP_ANGLE_RAD = math.radians(20.0)
 
-#: Icosphere subdivisions of the lump's surface (162 vertices).
-LUMP_SUBDIVISIONS = 2
+#: Icosphere subdivisions of the lump's surface (42 vertices, edges about 0.3 of its
+#: diameter): the solid's quadratic (P2) elements resolve a lump this coarse, and a finer one
+#: refines the volume mesh around it until the start-up costs minutes (docs/palpation.md).
+LUMP_SUBDIVISIONS = 1
 
 
 def lump_direction(angle_rad: float = LUMP_ANGLE_RAD, side: float = 1.0) -> FloatArray:
@@ -79,6 +81,9 @@ def sphere_lump(
     sphere of ``solid_radius_m`` [m] centred at the origin, on :func:`lump_direction` (``side``
     -1: its mirror image, where the twin of :func:`measure` goes).
 
+    The lump is an icosphere of ``subdivisions`` scaled to the ball's volume: an inscribed
+    42-vertex icosphere holds 87 % of it, so unscaled it would be a smaller lump than asked.
+
     Raises
     ------
     ValueError
@@ -90,6 +95,7 @@ def sphere_lump(
     if h + d >= r:
         raise ValueError(f"a lump {d * 1e3:g} mm across {h * 1e3:g} mm deep does not fit")
     lump = trimesh.creation.icosphere(subdivisions=subdivisions, radius=d / 2.0)
+    lump.apply_scale((math.pi * d**3 / 6.0 / float(lump.volume)) ** (1.0 / 3.0))
     lump.apply_translation(lump_direction(angle_rad, side) * (r - h - d / 2.0))
     return lump
 

@@ -151,6 +151,7 @@ from scipy.spatial import cKDTree
 from haptic_collab.server.contact_stiffness import K_O_MAX
 from haptic_collab.server.objects.balloon import vertex_areas
 from haptic_collab.server.objects.fem_elements import (
+    P2_EDGES,
     element_gravity_loads,
     element_lumped_mass,
     element_stiffness_matrix,
@@ -226,6 +227,15 @@ _SPLITS = 12
 #: factor of about 14 M non-zeros; a mesh of 12000 P2 nodes is about three times that
 #: (docs/fem.md, "Quadratic tetrahedra").
 P2_MAX_NODES = 12000
+
+
+def p2_node_count(tets: npt.ArrayLike) -> int:
+    """How many nodes quadratic (P2) elements on the linear tetrahedra ``tets`` (T, 4) have:
+    the corners used and one node on every edge (:func:`server.objects.fem_elements.
+    quadratic_mesh`), without building them."""
+    t = np.asarray(tets, dtype=np.int64)
+    edges = np.unique(np.sort(t[:, P2_EDGES], axis=2).reshape(-1, 2), axis=0)
+    return int(len(np.unique(t)) + len(edges))
 
 
 @params_dataclass(frozen=True, slots=True)

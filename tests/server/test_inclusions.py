@@ -235,3 +235,38 @@ def test_vertex_clustering_keeps_a_surface_under_its_cap_and_its_shape():
     flat = np.zeros((3, 3))  # every corner at one point: nothing left to draw
     v, f, decimated = cluster_decimate(flat, [[0, 1, 2], [0, 2, 1]], 1)
     assert decimated and len(f) == 0
+
+
+def _server_solid(tmp_path, lump_subdivisions, monkeypatch=None, max_nodes=None):
+    """The FEM solid ``haptic server --object fem --subdivisions 2 --inclusion lump.stl`` builds."""
+    from haptic_collab.server.main import ServerOptions, build_world
+
+    if max_nodes is not None:
+        monkeypatch.setattr("haptic_collab.server.objects.fem.P2_MAX_NODES", max_nodes)
+    path = tmp_path / "lump.stl"
+    sphere_lump(0.03, 0.01, subdivisions=lump_subdivisions).export(path)
+    opts = ServerOptions(
+        object="fem",
+        subdivisions=2,
+        inclusions=(str(path),),
+        inclusion_materials=("liver*10",),
+        volume_cache=str(tmp_path / "volumes"),
+    )
+    return build_world(opts).obj
+
+
+def test_a_solid_with_a_lump_is_quadratic_on_the_sphere_shown_unless_too_large(
+    tmp_path, monkeypatch
+):
+    # near incompressibility linear tetrahedra lock (docs/fem.md): the server builds a solid with
+    # a lump with quadratic ones on the parent sphere, showing the sphere asked for
+    solid = _server_solid(tmp_path, 1)
+    assert solid.element == "p2"
+    assert len(solid.rest_vertices) == 162
+    assert (solid.materials.labels == 1).sum() > 0  # the lump is in it
+    # a lump whose refinement would make the P2 solid too large: P1 on the sphere shown, still
+    # showing the sphere asked for, never P1 on the parent (a quarter of the vertices)
+    small = _server_solid(tmp_path, 1, monkeypatch, max_nodes=len(solid.nodes) - 1)
+    assert small.element == "p1"
+    assert len(small.rest_vertices) == 162
+    assert (small.materials.labels == 1).sum() > 0
