@@ -340,6 +340,21 @@ SWEEP_REACH_M = 0.13
 SWEEP_MIN_STANDOFF_M = 0.015
 
 
+#: The palpation scenario's run length when none is given [s]: A's slide then takes 7.75 s each
+#: way (about 16 mm/s). In a 20 s run it takes 4.25 s (29 mm/s), the proxy trails the hand
+#: further, and A felt the default lump +4 % (not felt) where 30 s runs gave +12-13 %
+#: (docs/palpation.md).
+PALPATION_DURATION_S = 30.0
+
+#: The press scenario's run length when none is given [s].
+PRESS_DURATION_S = 20.0
+
+
+def default_duration(scenario: str) -> float:
+    """The run length [s] of ``haptic demo --scenario SCENARIO`` without ``--duration``."""
+    return PALPATION_DURATION_S if scenario == "palpation" else PRESS_DURATION_S
+
+
 def palpation_timeline(duration_s: float) -> tuple[Timeline, float]:
     """A's palpation for a run of ``duration_s`` seconds: its :class:`Timeline` (the press, a 2 s
     hold judged as the press scenario's, then the slide out and back and the withdrawal counted

@@ -936,7 +936,7 @@ def _add_devices(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
 
 # --------------------------------------------------------------------------------------------- demo
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from haptic_collab.demo import DemoOptions, DemoVerdictError, run_demo
+    from haptic_collab.demo import DemoOptions, DemoVerdictError, default_duration, run_demo
 
     if args.plot:
         _need_matplotlib()  # before the run, not after it
@@ -947,7 +947,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         scenario=args.scenario,
         inclusions=files,
         inclusion_materials=materials,
-        duration_s=args.duration,
+        duration_s=args.duration if args.duration is not None else default_duration(args.scenario),
         headless=args.headless,
         report=Path(args.report) if args.report else None,
         plot=Path(args.plot) if args.plot else None,
@@ -995,7 +995,13 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg
     p = sub.add_parser(
         "demo", help="server + two simulated users on one shared balloon, and a viewer: start here"
     )
-    p.add_argument("--duration", type=_positive, default=20.0, help="run length [s] (>= 12)")
+    p.add_argument(
+        "--duration",
+        type=_positive,
+        default=None,
+        help="run length [s] (>= 12; default 20, or 30 for --scenario palpation: its slide is "
+        "slow enough to feel the lump)",
+    )
     p.add_argument(
         "--scenario",
         choices=["press", "palpation"],

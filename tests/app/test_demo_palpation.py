@@ -109,7 +109,7 @@ def test_the_palpation_demo_slides_over_the_lump_stably_and_b_feels_the_sweep(tm
     report = tmp_path / "report.json"
     done = subprocess.run(
         [sys.executable, "-m", "haptic_collab.cli", "demo", "--scenario", "palpation",
-         "--headless", "--duration", "20", "--port", "0", "--report", str(report),
+         "--headless", "--port", "0", "--report", str(report),
          "--workdir", str(tmp_path / "work")],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
@@ -123,6 +123,8 @@ def test_the_palpation_demo_slides_over_the_lump_stably_and_b_feels_the_sweep(tm
     assert p["a_over"]["samples"] > 100 and p["a_beside"]["samples"] > 100, p
     assert math.isfinite(p["rise"]) and p["felt"] == (p["rise"] > STIFFNESS_JND)
     assert p["b_felt_sweep"], p
-    # Whether A feels the lump is the open finding of docs/palpation.md ("In the demo"): with B
-    # resting on the side, the coupled design over the lump's stiffer cell renders a lower K_h
-    # (41-45 N/m against 133 beside it), so A felt it 27 % softer, not stiffer (2026-11-27)
+    # A's force rises over the lump at the same hand depth (the default 30 s run, the P2 solid:
+    # +12-13 % in three runs on a quiet machine, felt; the static solid gives +20.5 %;
+    # docs/palpation.md). The JND's margin is a few per cent, so the test asks for the rise,
+    # and that the report's "felt" follows it.
+    assert p["rise"] > 0.03, p
