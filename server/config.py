@@ -125,6 +125,11 @@ SERVER_OPTIONS: dict[str, _Option] = {
     ),
     "material": _Option("str", "material preset or TOML file", _not_empty, True),
     "volume_cache": _Option("str", "folder of cached FEM volume meshes", _not_empty, True),
+    "fem_volume_edge": _Option(
+        "float",
+        "with object fem: no tetrahedron larger than the regular one of edge this many pad radii",
+        _positive,
+    ),
     "gravity": _Option(
         "float", "the FEM solid sags under its own weight, g along -z [m/s^2]", _gravity
     ),

@@ -131,6 +131,7 @@ class ServerOptions:
     inclusions: tuple[str, ...] = ()
     inclusion_materials: tuple[str, ...] = ()
     gravity_m_s2: float = 0.0
+    fem_volume_edge_pads: float | None = None
     tick_priority: str = field(default_factory=lambda: default_tick_priority())
 
 
@@ -577,6 +578,17 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
     return world_around(obj, opts, rates)
 
 
+def _volume_edge(pads: float | None, default: float | None) -> float | None:
+    """``--fem-volume-edge``: ``default`` when not given, else a finite number > 0 of pad radii
+    (0 is refused; a huge value is no limit in effect)."""
+    if pads is None:
+        return default
+    v = float(pads)
+    if not (math.isfinite(v) and v > 0.0):
+        raise ValueError(f"--fem-volume-edge must be a number of pad radii > 0, got {pads!r}")
+    return v
+
+
 def _check_gravity(opts: ServerOptions) -> None:
     """``--gravity``: a finite number in [0, GRAVITY_MAX_M_S2] m/s^2, and only for the FEM solid.
 
@@ -631,7 +643,13 @@ def _build_fem(
     have more than :data:`server.objects.fem.P2_MAX_NODES` nodes (the start-up took 61 s with
     two 162-vertex lumps, 23 s with 42-vertex ones; docs/palpation.md) the solid is P1 on
     ``p1_mesh`` instead."""
-    from haptic_collab.server.objects.fem import P2_MAX_NODES, FemParams, FemSolid, p2_node_count
+    from haptic_collab.server.objects.fem import (
+        P2_MAX_NODES,
+        FemParams,
+        FemSolid,
+        p2_node_count,
+        tet_edge_limit_m,
+    )
     from haptic_collab.server.solid_materials import (
         SOLID_PRESETS,
         load_solid_material,
@@ -645,6 +663,7 @@ def _build_fem(
         young_pa=params.young_pa * scale,
         gravity_m_s2=float(opts.gravity_m_s2),
         element=element,
+        volume_edge_pads=_volume_edge(opts.fem_volume_edge_pads, params.volume_edge_pads),
     )
     log.info("FEM solid, material %s", material.summary())
     from haptic_collab.server.objects.inclusions import (
@@ -655,7 +674,10 @@ def _build_fem(
 
     inclusions = load_inclusions(opts.inclusions, opts.inclusion_materials)
     if inclusions:
-        volume = volume_with_inclusions(mesh, inclusions, cache_dir=opts.volume_cache)
+        edge = tet_edge_limit_m(params, float(mesh.volume))
+        volume = volume_with_inclusions(
+            mesh, inclusions, cache_dir=opts.volume_cache, max_edge_m=edge
+        )
         if p1_mesh is not None and p2_node_count(volume[1]) > P2_MAX_NODES:
             log.info(
                 "FEM solid: the inclusions refine the volume mesh to %d quadratic (P2) nodes, "
@@ -665,7 +687,9 @@ def _build_fem(
                 len(p1_mesh.vertices),
             )
             mesh, params = p1_mesh, replace(params, element="p1")
-            volume = volume_with_inclusions(mesh, inclusions, cache_dir=opts.volume_cache)
+            volume = volume_with_inclusions(
+                mesh, inclusions, cache_dir=opts.volume_cache, max_edge_m=edge
+            )
         materials = element_materials(*volume, material, inclusions, young_scale=scale)
         for inc in inclusions:
             log.info("inclusion %s: %s", inc.where, inc.material.summary())

@@ -162,7 +162,7 @@ from haptic_collab.server.objects.fem_elements import (
 from haptic_collab.server.objects.mesh import MeshError
 from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PatchedSurface
 from haptic_collab.server.objects.sparse_factor import factor_spd, nested_dissection
-from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
+from haptic_collab.server.objects.volume import check_volume_mesh, tetgen_switches, volume_mesh
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
 
@@ -238,6 +238,27 @@ def p2_node_count(tets: npt.ArrayLike) -> int:
     return int(len(np.unique(t)) + len(edges))
 
 
+#: :attr:`FemParams.volume_edge_pads`' default [pad radii].
+VOLUME_EDGE_PADS = 2.5
+
+#: The volume size limit is relaxed so that at most this many regular tetrahedra of the limit's
+#: size fill the object (a 1 m box at the 15 mm pad's 2.5 radii would need 160000).
+VOLUME_LIMIT_MAX_TETS = 60000
+
+
+def tet_edge_limit_m(params: FemParams, volume_m3: float) -> float | None:
+    """The largest tetrahedron's edge [m] for a solid of ``volume_m3`` [m^3]:
+    :attr:`FemParams.max_tet_edge_m`, made longer where more than
+    :data:`VOLUME_LIMIT_MAX_TETS` regular tetrahedra of it would fill the solid; None: no limit."""
+    edge = params.max_tet_edge_m
+    if edge is None:
+        return None
+    v = float(volume_m3)
+    if math.isfinite(v) and v > 0.0:
+        edge = max(edge, (6.0 * math.sqrt(2.0) * v / VOLUME_LIMIT_MAX_TETS) ** (1.0 / 3.0))
+    return edge
+
+
 @params_dataclass(frozen=True, slots=True)
 class FemParams:
     """Material and numerical parameters of the FEM solid (SI units; docs/fem.md).
@@ -284,6 +305,16 @@ class FemParams:
         The tetrahedra (module docstring, "Elements"): "p2" quadratic, ten-node, the surface
         shown split four ways; "p1" linear, four-node, the surface shown as meshed; "auto" (the
         default) P2 when its mesh has at most :data:`P2_MAX_NODES` nodes, else P1.
+    volume_edge_pads : float or None
+        A volume size limit tied to the finger pad: no tetrahedron larger than the regular one
+        of edge ``volume_edge_pads * patch_radius_m`` (TetGen's switch ``a``), > 0; None:
+        TetGen's quality bounds only. The default, :data:`VOLUME_EDGE_PADS` (2.5), costs the
+        default sphere nothing (its interior is finer) and keeps a coarse surface's interior
+        from being one layer of large tetrahedra: the 162-vertex sphere's K_o at the top went
+        273 -> 248 N/m, within 1 % of its interior at 1.5 pad radii (docs/fem.md, "Converged
+        stiffness"). On a large object the limit is relaxed to at most
+        :data:`VOLUME_LIMIT_MAX_TETS` tetrahedra of that size (:func:`tet_edge_limit_m`). Used
+        when the solid meshes its own volume (no ``volume`` given) and for inclusions.
 
     Raises
     ------
@@ -307,6 +338,14 @@ class FemParams:
         float, Field(ge=0.0, le=GRAVITY_MAX_M_S2, allow_inf_nan=False, strict=True)
     ] = 0.0
     element: Element = "auto"
+    volume_edge_pads: PositiveFinite | None = 2.5
+
+    @property
+    def max_tet_edge_m(self) -> float | None:
+        """The largest tetrahedron's edge [m] (:attr:`volume_edge_pads` pad radii), or None."""
+        if self.volume_edge_pads is None:
+            return None
+        return float(self.volume_edge_pads) * float(self.patch_radius_m)
 
     @property
     def lame(self) -> tuple[float, float]:
@@ -556,7 +595,19 @@ class FemSolid(PatchedSurface):
         #: seconds of each start-up step (``haptic bench server`` reports them)
         self.timings: dict[str, float] = {}
         if volume is None:
-            nodes, tets = volume_mesh(verts, faces, cache_dir=cache_dir)
+            edge = tet_edge_limit_m(p, float(mesh.volume))
+            if edge is not None and p.max_tet_edge_m is not None and edge > p.max_tet_edge_m:
+                log.info(
+                    "FEM solid: tetrahedra up to %.0f mm across, not %.0f mm (%g pad radii): "
+                    "at most %d of that size fill this object",
+                    1e3 * edge,
+                    1e3 * p.max_tet_edge_m,
+                    p.volume_edge_pads,
+                    VOLUME_LIMIT_MAX_TETS,
+                )
+            nodes, tets = volume_mesh(
+                verts, faces, switches=tetgen_switches(edge), cache_dir=cache_dir
+            )
         else:
             nodes, tets = check_volume_mesh(volume[0], volume[1], verts)
         if materials is not None and len(materials.labels) != len(tets):

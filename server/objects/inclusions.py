@@ -69,7 +69,7 @@ import trimesh
 from haptic_collab.server.materials import MaterialError
 from haptic_collab.server.objects.fem_elements import element_lumped_mass, element_stiffness_matrix
 from haptic_collab.server.objects.mesh import MeshError, load_mesh
-from haptic_collab.server.objects.volume import volume_mesh
+from haptic_collab.server.objects.volume import tetgen_switches, volume_mesh
 from haptic_collab.server.solid_materials import SOLID_PRESETS, SolidMaterial, load_solid_material
 from haptic_collab.shared.types import FloatArray, IntArray
 
@@ -336,8 +336,11 @@ def volume_with_inclusions(
     solid: trimesh.Trimesh,
     inclusions: Sequence[Inclusion],
     cache_dir: str | Path | None = None,
+    max_edge_m: float | None = None,
 ) -> tuple[FloatArray, IntArray]:
-    """The solid's volume mesh with the inclusions' surfaces as internal facets (conforming).
+    """The solid's volume mesh with the inclusions' surfaces as internal facets (conforming);
+    ``max_edge_m`` [m] limits the tetrahedra's size (:func:`server.objects.volume.
+    tetgen_switches`; :attr:`server.objects.fem.FemParams.volume_edge_pads`).
 
     :func:`check_inclusions` first, then :func:`server.objects.volume.volume_mesh` on
     :func:`combined_surface` (TetGen, cached like any volume mesh). With no inclusions it is the
@@ -358,7 +361,7 @@ def volume_with_inclusions(
     """
     check_inclusions(solid, inclusions)
     v, f = combined_surface(solid, inclusions)
-    return volume_mesh(v, f, cache_dir=cache_dir)
+    return volume_mesh(v, f, switches=tetgen_switches(max_edge_m), cache_dir=cache_dir)
 
 
 def element_labels(

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import os
 import subprocess
 import sys
@@ -44,6 +45,24 @@ log = logging.getLogger(__name__)
 #: TetGen switches: PLC input, no Steiner points on the surface, radius-edge ratio <= 1.5 and
 #: dihedral angles >= 15 degrees, quiet.
 TETGEN_SWITCHES = "pq1.5/15YQ"
+
+
+def tetgen_switches(max_edge_m: float | None = None) -> str:
+    """TetGen's switches: :data:`TETGEN_SWITCHES`, and with ``max_edge_m`` [m] a volume limit
+    (switch ``a``): no tetrahedron larger than the regular one of that edge, ``e^3 / (6 sqrt 2)``.
+
+    Raises
+    ------
+    ValueError
+        ``max_edge_m`` not finite and > 0.
+    """
+    if max_edge_m is None:
+        return TETGEN_SWITCHES
+    e = float(max_edge_m)
+    if not (math.isfinite(e) and e > 0.0):
+        raise ValueError(f"the largest tetrahedron's edge must be > 0 m, got {max_edge_m!r}")
+    return TETGEN_SWITCHES.replace("YQ", f"Ya{e**3 / (6.0 * math.sqrt(2.0)):.6e}Q")
+
 
 #: Seconds TetGen may take (about 14 s for a 41k-vertex sphere on this project's CI machine).
 TETGEN_TIMEOUT_S = 600.0

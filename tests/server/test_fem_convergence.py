@@ -21,7 +21,14 @@ import pytest
 import scipy.sparse as sp
 
 from haptic_collab.server.materials import top_side_stiffness
-from haptic_collab.server.objects.fem import FemParams, FemSolid, sphere_for_solid
+from haptic_collab.server.objects.fem import (
+    VOLUME_EDGE_PADS,
+    VOLUME_LIMIT_MAX_TETS,
+    FemParams,
+    FemSolid,
+    sphere_for_solid,
+    tet_edge_limit_m,
+)
 from haptic_collab.server.objects.mesh import default_balloon
 from haptic_collab.server.objects.sparse_factor import factor_spd, nested_dissection
 from haptic_collab.server.objects.volume import volume_mesh
@@ -147,3 +154,40 @@ def test_the_reference_is_the_flat_punch_on_a_large_solid(poisson, cache):
 def test_the_default_liver_sphere_is_as_stiff_as_a_converged_solution(poisson, cache):
     reference, ours = reference_and_solid(poisson, cache)
     assert ours == pytest.approx(reference, rel=0.05)  # top and side
+
+
+def test_a_coarse_surfaces_interior_is_limited_by_the_finger_pad(cache):
+    # the 162-vertex sphere (P2 on its 42-vertex parent): without a volume size limit TetGen fills
+    # it with one layer of tetrahedra spanning the ball and K_o is 10 % too stiff; the default
+    # limit, tied to the pad radius, brings it within 1 % of an interior at 1.5 pad radii
+    surface, element = sphere_for_solid(2)
+
+    def solid(pads):
+        params = FemParams(poisson=0.45, n_modes=0, element=element, volume_edge_pads=pads)
+        return FemSolid(surface, params, cache_dir=cache)
+
+    limited, free, finer = solid(VOLUME_EDGE_PADS), solid(None), solid(1.5)
+    # TetGen splits the interior (a coarse surface's own faces stay: the surface is kept)
+    assert len(limited.linear_tets) > 2 * len(free.linear_tets)
+    top = [top_side_stiffness(s)[0] for s in (limited, free, finer)]
+    assert top[0] == pytest.approx(top[2], rel=0.02)
+    assert top[1] > 1.08 * top[2]
+
+
+def test_the_volume_size_limit_follows_the_pad_and_is_relaxed_for_a_large_object():
+    small = 4.0e-3  # m^3, the default sphere
+    assert tet_edge_limit_m(FemParams(), small) == pytest.approx(2.5 * 0.015)
+    assert tet_edge_limit_m(FemParams(patch_radius_m=0.0075), small) == pytest.approx(2.5 * 0.0075)
+    assert tet_edge_limit_m(FemParams(volume_edge_pads=None), small) is None
+    # a 1 m cube: at most VOLUME_LIMIT_MAX_TETS regular tetrahedra of the limit's size
+    edge = tet_edge_limit_m(FemParams(), 1.0)
+    assert edge > 2.5 * 0.015
+    assert 1.0 / (edge**3 / (6.0 * np.sqrt(2.0))) == pytest.approx(VOLUME_LIMIT_MAX_TETS)
+
+
+@pytest.mark.parametrize("pads", [0.0, -1.0, float("nan"), float("inf")])
+def test_an_impossible_volume_size_limit_is_refused_by_name(pads):
+    from haptic_collab.server.main import ServerOptions, build_world
+
+    with pytest.raises(ValueError, match="--fem-volume-edge must be a number of pad radii > 0"):
+        build_world(ServerOptions(object="fem", fem_volume_edge_pads=pads, subdivisions=1))
