@@ -694,7 +694,9 @@ def _build_fem(
         for inc in inclusions:
             log.info("inclusion %s: %s", inc.where, inc.material.summary())
         log.info("FEM solid: tetrahedra per material %s", materials.counts())
-        obj = FemSolid(mesh, params, volume=volume, materials=materials)
+        obj = FemSolid(
+            mesh, params, volume=volume, cache_dir=opts.volume_cache, materials=materials
+        )
     else:
         obj = FemSolid(mesh, params, cache_dir=opts.volume_cache)
     log.info(

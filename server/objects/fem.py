@@ -137,6 +137,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
@@ -160,9 +161,15 @@ from haptic_collab.server.objects.fem_elements import (
     warped,
 )
 from haptic_collab.server.objects.mesh import MeshError
+from haptic_collab.server.objects.mode_cache import load_modes, modes_key, store_modes
 from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PatchedSurface
 from haptic_collab.server.objects.sparse_factor import factor_spd, nested_dissection
-from haptic_collab.server.objects.volume import check_volume_mesh, tetgen_switches, volume_mesh
+from haptic_collab.server.objects.volume import (
+    check_volume_mesh,
+    default_cache_dir,
+    tetgen_switches,
+    volume_mesh,
+)
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
 from haptic_collab.shared.types import FloatArray, IntArray
 
@@ -556,7 +563,9 @@ class FemSolid(PatchedSurface):
         A volume mesh whose first ``n`` nodes are the surface's vertices; default
         :func:`server.objects.volume.volume_mesh` (TetGen, cached).
     cache_dir : path, optional
-        Where volume meshes are cached (:func:`server.objects.volume.default_cache_dir`).
+        Where volume meshes and modes are cached (:func:`server.objects.volume.
+        default_cache_dir`; :mod:`server.objects.mode_cache`: a solid built again loads its
+        modes, verified, instead of solving them).
 
     Raises
     ------
@@ -585,6 +594,9 @@ class FemSolid(PatchedSurface):
         materials: ElementMaterials | None = None,
     ) -> None:
         self.params = p = params if params is not None else FemParams()
+        self._cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+        #: whether the modes came from the cache (:mod:`server.objects.mode_cache`)
+        self.modes_cached = False
         verts = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         if len(faces) == 0 or not np.all(np.isfinite(verts)):
@@ -803,6 +815,12 @@ class FemSolid(PatchedSurface):
         k_inv = spla.LinearOperator(
             (size, size), matvec=lambda x: self._lu.solve(x / s) / s, dtype=np.float64
         )
+        key = modes_key(self._k_free, m_rows, count, omega_c)
+        cached = load_modes(self._cache_dir, key, self._k_free, m_rows)
+        if cached is not None:
+            self.modes_cached = True
+            self._set_modes(*cached)
+            return
         least = min(count, _FIRST_MODES)
         if size <= _DENSE_MODES and count * _DENSE_SHARE >= size:  # LAPACK's dense solver
             dense = np.asarray(self._k_free.toarray()) * s[:, None] * s[None, :]
@@ -817,10 +835,16 @@ class FemSolid(PatchedSurface):
                 if top >= omega_c or k >= count:
                     break
                 k = min(count, max(k + 16, math.ceil(1.2 * k * min(omega_c / top, 10.0) ** 3)))
-        count = len(vals)
         order = np.argsort(vals)
         vals, vecs = np.maximum(vals[order], 1e-12), vecs[:, order]
         phi = vecs * s[:, None]  # mass-normalised: phi^T M phi = I
+        store_modes(self._cache_dir, key, vals, phi)
+        self._set_modes(vals, phi)
+
+    def _set_modes(self, vals: FloatArray, phi: FloatArray) -> None:
+        """Take the modes ``w^2`` (m,) ascending [rad^2/s^2] and ``phi`` (rows, m),
+        mass-normalised, and their surface and rotation shapes."""
+        count = len(vals)
         self._omega = np.sqrt(vals)
         self._phi_rows = phi
         surface = np.zeros((len(self._surface_rows), count))
