@@ -47,8 +47,14 @@ and a power law below 50 Hz in bovine liver by rheometry and in healthy human li
 MR elastography (Klatt et al. 2009; Asbach et al. 2008: viscosity 7.3 Pa s beside shear moduli
 1.2-2.0 kPa, a time constant eta / mu of 4-6 ms). No Rayleigh pair gives a constant loss factor;
 beta = 0.01 s gives liver's 0.24 at 3.8 Hz, within the band of a hand's voluntary motion, twice
-too little damping at 2 Hz and twice too much at 8 Hz. The same beta on the other presets is
-unsourced (kept so that every preset damps its contact modes alike).
+too much at 8 Hz, and alone it damped too little below: 0.06 at 1 Hz, 0.11 at the liver ball's
+lowest modes (1.7 Hz). The presets therefore add mass-proportional damping ``alpha M`` (loss factor
+``alpha / omega``), alpha = 1.11 1/s, so that the loss factor is liver's 0.24 at 1 Hz as well:
+0.21 at 1.7-2 Hz and 0.29 at 3.8 Hz (:data:`PRESET_ALPHA_PER_S`). Without it a resting user's
+hand kept the ball's 1.7 Hz rocking going after another user's palpating sweep (a 1-1.7 mm
+shake in 3 of 6 demo runs; 0.15-0.22 mm with it in 3 of 3; docs/palpation.md). The same alpha
+and beta on the other presets are unsourced (kept so that every preset damps its contact modes
+alike).
 
 Density: liver 1060 and skin 1100 kg/m^3 are unsourced here (soft tissue is 1000-1100 kg/m^3);
 Ecoflex 00-30 1070 kg/m^3 is the data sheet's specific gravity 1.07; Sylgard 184 1030 kg/m^3 is
@@ -165,6 +171,9 @@ PSI_PA = 0.45359237 * 9.80665 / 0.0254**2
 ECOFLEX_0030_100_MODULUS_PA = 10.0 * PSI_PA
 #: Kelvin-Voigt beta [s] of every preset (module docstring: liver's loss factor at 3.8 Hz).
 PRESET_BETA_S = 0.01
+#: Mass-proportional Rayleigh alpha [1/s] of every preset: liver's loss factor 0.24 at 1 Hz with
+#: :data:`PRESET_BETA_S` (module docstring): ``(0.24 - 2 pi beta) 2 pi``.
+PRESET_ALPHA_PER_S = 1.11
 #: Poisson's ratio of every preset: the P1 element's choice, not a material value.
 PRESET_POISSON = 0.45
 
@@ -209,6 +218,7 @@ SOLID_PRESETS: Mapping[str, SolidMaterial] = MappingProxyType(
             young_pa=LIVER_YOUNG_PA,
             poisson=PRESET_POISSON,
             density_kg_m3=1060.0,
+            rayleigh_alpha_per_s=PRESET_ALPHA_PER_S,
             rayleigh_beta_s=PRESET_BETA_S,
             source="transient elastography, mean of 429 healthy subjects, Roulot et al. 2008 "
             "(J Hepatol 48:606)",
@@ -218,6 +228,7 @@ SOLID_PRESETS: Mapping[str, SolidMaterial] = MappingProxyType(
             young_pa=35.0e3,
             poisson=PRESET_POISSON,
             density_kg_m3=1100.0,
+            rayleigh_alpha_per_s=PRESET_ALPHA_PER_S,
             rayleigh_beta_s=PRESET_BETA_S,
             source="dermis, in vivo indentation, Pailler-Mattei et al. 2008 (Med Eng Phys 30:599)",
         ),
@@ -226,6 +237,7 @@ SOLID_PRESETS: Mapping[str, SolidMaterial] = MappingProxyType(
             young_pa=round(neo_hookean_young_from_secant(ECOFLEX_0030_100_MODULUS_PA, 2.0), -2),
             poisson=PRESET_POISSON,
             density_kg_m3=1070.0,
+            rayleigh_alpha_per_s=PRESET_ALPHA_PER_S,
             rayleigh_beta_s=PRESET_BETA_S,
             source="Smooth-On Ecoflex 00-30 data sheet, 100 % modulus 10 psi, small-strain E of "
             "an incompressible neo-Hookean solid (Treloar 1975)",
@@ -235,6 +247,7 @@ SOLID_PRESETS: Mapping[str, SolidMaterial] = MappingProxyType(
             young_pa=1.32e6,
             poisson=PRESET_POISSON,
             density_kg_m3=1030.0,
+            rayleigh_alpha_per_s=PRESET_ALPHA_PER_S,
             rayleigh_beta_s=PRESET_BETA_S,
             source="10:1, cured at 25 C, Johnston et al. 2014 (J Micromech Microeng 24:035017)",
         ),
@@ -264,10 +277,10 @@ class PresetSource:
 
 _NU = "0.45: P1 choice; material about 0.5 (incompressible)"
 _BETA_LIVER = (
-    "loss factor 0.24 at 3.8 Hz; liver's is about 0.24, flat in frequency "
-    "(Sinkus 2006; Asbach 2008; Klatt 2009)"
+    "loss factor 0.24 at 1 Hz and 3.8 Hz (0.21 at 2 Hz); liver's is about 0.24, flat in "
+    "frequency (Sinkus 2006; Asbach 2008; Klatt 2009)"
 )
-_BETA_UNSOURCED = "unsourced (liver's value)"
+_BETA_UNSOURCED = "unsourced (liver's values)"
 
 #: The sources of every preset's numbers (module docstring; :func:`preset_table`).
 PRESET_SOURCES: Mapping[str, PresetSource] = MappingProxyType(
@@ -316,19 +329,20 @@ def _si(value: float, unit: str) -> str:
 def preset_table() -> str:
     """The solid presets as the Markdown table of docs/materials.md (one row a preset).
 
-    Columns: preset, E, nu, density, beta, then the source of E, of nu, of the density, of beta,
-    and the strain range, from :data:`SOLID_PRESETS` and :data:`PRESET_SOURCES`.
+    Columns: preset, E, nu, density, alpha, beta, then the source of E, of nu, of the density, of
+    the damping, and the strain range, from :data:`SOLID_PRESETS` and :data:`PRESET_SOURCES`.
     """
     head = (
-        "| preset | E | nu | density [kg/m^3] | beta [s] | E from | nu | density from "
-        "| beta from | strain range |"
+        "| preset | E | nu | density [kg/m^3] | alpha [1/s] | beta [s] | E from | nu "
+        "| density from | damping from | strain range |"
     )
-    rows = [head, "|" + "---|" * 10]
+    rows = [head, "|" + "---|" * 11]
     for name, m in SOLID_PRESETS.items():
         src = PRESET_SOURCES[name]
         rows.append(
             f"| `{name}` | {_si(m.young_pa, 'Pa')} | {m.poisson:g} | {m.density_kg_m3:g} "
-            f"| {m.rayleigh_beta_s:g} | {src.young} | {src.poisson} | {src.density} "
+            f"| {m.rayleigh_alpha_per_s:g} | {m.rayleigh_beta_s:g} | {src.young} | {src.poisson} "
+            f"| {src.density} "
             f"| {src.damping} | {src.strain_range} |"
         )
     return "\n".join(rows)
