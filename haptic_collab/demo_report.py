@@ -1299,19 +1299,24 @@ def palpation_report(
 
     A's samples in contact during the slide (out and back: ``sweep.slide_s``) whose probe, seen
     from the sphere's centre, is within :data:`PALPATION_WINDOW_RAD` of ``over`` (the lump) or of
-    ``beside`` (its twin, the mirror point): the mean force [N], penetration [mm] and their ratio
-    (the stiffness felt there [N/m]) at the same hand depth. ``rise`` is the force over the lump
-    over the force beside it less 1; ``felt`` whether it exceeds the stiffness JND
-    (:data:`STIFFNESS_JND`). B: its force [N] before A touched (median) and its range (5th to
+    ``beside`` (its twin, the mirror point): the mean force [N]; the probe's *indentation*, its
+    depth under the rest sphere (``sweep.radius_m`` about ``sweep.centre``) [mm]; and their
+    ratio, the stiffness A feels there [N/m]. ``rise`` is the felt stiffness over the lump over
+    the one beside it less 1: how much more force the same indentation takes over the lump (the
+    solid is linear, F = K_o d); ``felt`` whether it exceeds the stiffness JND
+    (:data:`STIFFNESS_JND`). ``force_rise_at_hand_depth`` is the mean force's rise at the hand's
+    same target depth: the hand's own compliance in series makes it about half the stiffness's
+    (docs/palpation.md). ``penetration_mm`` is the probe's depth behind its proxy. B: its force [N] before A touched (median) and its range (5th to
     95th percentile) while A slid: B feels the sweep when that range exceeds
     :data:`FEEL_FORCE_SHARE` of its resting force.
 
     Returns
     -------
     dict
-        ``a_over``, ``a_beside`` (``force_n``, ``penetration_mm``, ``stiffness_n_per_m``,
-        ``samples``; None where A never passed), ``rise``, ``felt``, ``b_rest_force_n``,
-        ``b_force_range_in_sweep_n``, ``b_felt_sweep``.
+        ``a_over``, ``a_beside`` (``force_n``, ``indentation_mm``, ``stiffness_n_per_m``,
+        ``penetration_mm``, ``samples``; None where A never passed), ``rise``, ``felt``,
+        ``force_rise_at_hand_depth``, ``b_rest_force_n``, ``b_force_range_in_sweep_n``,
+        ``b_felt_sweep``.
     """
     a, a_sum = _load(work, "A")
     b, b_sum = _load(work, "B")
@@ -1319,21 +1324,27 @@ def palpation_report(
     sliding = (a["t_s"] >= t0) & (a["t_s"] <= t1) & (a["in_contact"] > 0)
     probe = np.stack([a["probe_x_m"], a["probe_y_m"], a["probe_z_m"]], axis=1)
     probe = probe - np.asarray(sweep.centre, dtype=float)
+    indentation = float(sweep.radius_m) - np.linalg.norm(probe, axis=1)
 
     def near(direction: Sequence[float]) -> dict[str, Any] | None:
         m = sliding & (_angle_to(probe, direction) < PALPATION_WINDOW_RAD)
         if not m.any():
             return None
-        f, e = float(np.mean(a["force_n"][m])), float(np.mean(a["penetration_m"][m]))
+        f, d = float(np.mean(a["force_n"][m])), float(np.mean(indentation[m]))
         return {
             "force_n": f,
-            "penetration_mm": e * 1e3,
-            "stiffness_n_per_m": f / e if e > 0.0 else None,
+            "indentation_mm": d * 1e3,
+            "stiffness_n_per_m": f / d if d > 0.0 else None,
+            "penetration_mm": float(np.mean(a["penetration_m"][m])) * 1e3,
             "samples": int(m.sum()),
         }
 
     a_over, a_beside = near(over), near(beside)
-    rise = (
+    both = a_over is not None and a_beside is not None
+    k_over = a_over["stiffness_n_per_m"] if a_over is not None else None
+    k_beside = a_beside["stiffness_n_per_m"] if a_beside is not None else None
+    rise = k_over / k_beside - 1.0 if both and k_over and k_beside else None
+    force_rise = (
         a_over["force_n"] / a_beside["force_n"] - 1.0
         if a_over is not None and a_beside is not None and a_beside["force_n"] > 0.0
         else None
@@ -1358,6 +1369,7 @@ def palpation_report(
         "a_beside": a_beside,
         "rise": rise,
         "felt": None if rise is None else bool(rise > STIFFNESS_JND),
+        "force_rise_at_hand_depth": force_rise,
         "b_rest_force_n": b_rest,
         "b_force_range_in_sweep_n": b_range,
         "b_felt_sweep": (
@@ -1375,9 +1387,17 @@ def palpation_lines(p: dict[str, Any]) -> list[str]:
         return ["palpation: A's sweep never passed both over the lump and beside it in contact"]
     felt = "felt it" if p["felt"] else "did not feel it (under the stiffness JND)"
     lines = [
-        f"palpation: at the same hand depth A pressed {over['force_n']:.2f} N over the lump and "
-        f"{beside['force_n']:.2f} N beside it: {100.0 * p['rise']:+.0f} %, A {felt}."
+        f"palpation: A felt {over['stiffness_n_per_m']:.0f} N/m over the lump and "
+        f"{beside['stiffness_n_per_m']:.0f} N/m beside it (force per depth under the surface, "
+        f"{over['indentation_mm']:.1f} and {beside['indentation_mm']:.1f} mm): "
+        f"{100.0 * p['rise']:+.0f} %, A {felt}."
     ]
+    if p.get("force_rise_at_hand_depth") is not None:
+        lines.append(
+            f"At the same hand depth that is {over['force_n']:.2f} N against "
+            f"{beside['force_n']:.2f} N ({100.0 * p['force_rise_at_hand_depth']:+.0f} %): the "
+            "hand's own give takes up part of it."
+        )
     if p.get("b_force_range_in_sweep_n") is not None and p.get("b_rest_force_n") is not None:
         lines.append(
             f"B's force moved over {p['b_force_range_in_sweep_n']:.3f} N while A swept "
