@@ -1340,15 +1340,12 @@ def palpation_report(
         }
 
     a_over, a_beside = near(over), near(beside)
-    both = a_over is not None and a_beside is not None
-    k_over = a_over["stiffness_n_per_m"] if a_over is not None else None
-    k_beside = a_beside["stiffness_n_per_m"] if a_beside is not None else None
-    rise = k_over / k_beside - 1.0 if both and k_over and k_beside else None
-    force_rise = (
-        a_over["force_n"] / a_beside["force_n"] - 1.0
-        if a_over is not None and a_beside is not None and a_beside["force_n"] > 0.0
-        else None
-    )
+    rise = force_rise = None
+    if a_over is not None and a_beside is not None:
+        if a_over["stiffness_n_per_m"] and a_beside["stiffness_n_per_m"]:
+            rise = a_over["stiffness_n_per_m"] / a_beside["stiffness_n_per_m"] - 1.0
+        if a_beside["force_n"] > 0.0:
+            force_rise = a_over["force_n"] / a_beside["force_n"] - 1.0
     shift = b_sum["clock_origin_s"] - a_sum["clock_origin_s"]
     tb = b["t_s"] + shift
     before = (tb < sweep.delay_s) & (b["in_contact"] > 0)

@@ -678,11 +678,12 @@ def _build_fem(
         volume = volume_with_inclusions(
             mesh, inclusions, cache_dir=opts.volume_cache, max_edge_m=edge
         )
-        if p1_mesh is not None and p2_node_count(volume[1]) > P2_MAX_NODES:
+        p2_nodes = p2_node_count(volume[1]) if p1_mesh is not None else 0
+        if p2_nodes > P2_MAX_NODES:
             log.info(
                 "FEM solid: the inclusions refine the volume mesh to %d quadratic (P2) nodes, "
                 "more than %d: linear tetrahedra (P1) on the %d-vertex sphere",
-                p2_node_count(volume[1]),
+                p2_nodes,
                 P2_MAX_NODES,
                 len(p1_mesh.vertices),
             )

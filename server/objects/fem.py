@@ -261,9 +261,20 @@ def tet_edge_limit_m(params: FemParams, volume_m3: float) -> float | None:
     if edge is None:
         return None
     v = float(volume_m3)
-    if math.isfinite(v) and v > 0.0:
-        edge = max(edge, (6.0 * math.sqrt(2.0) * v / VOLUME_LIMIT_MAX_TETS) ** (1.0 / 3.0))
-    return edge
+    if not (math.isfinite(v) and v > 0.0):
+        return edge
+    relaxed = (6.0 * math.sqrt(2.0) * v / VOLUME_LIMIT_MAX_TETS) ** (1.0 / 3.0)
+    if relaxed <= edge:
+        return edge
+    log.info(
+        "FEM solid: tetrahedra up to %.0f mm across, not %.0f mm (%g pad radii): at most %d of "
+        "that size fill this object",
+        1e3 * relaxed,
+        1e3 * edge,
+        params.volume_edge_pads,
+        VOLUME_LIMIT_MAX_TETS,
+    )
+    return relaxed
 
 
 @params_dataclass(frozen=True, slots=True)
@@ -345,7 +356,7 @@ class FemParams:
         float, Field(ge=0.0, le=GRAVITY_MAX_M_S2, allow_inf_nan=False, strict=True)
     ] = 0.0
     element: Element = "auto"
-    volume_edge_pads: PositiveFinite | None = 2.5
+    volume_edge_pads: PositiveFinite | None = VOLUME_EDGE_PADS
 
     @property
     def max_tet_edge_m(self) -> float | None:
@@ -608,15 +619,6 @@ class FemSolid(PatchedSurface):
         self.timings: dict[str, float] = {}
         if volume is None:
             edge = tet_edge_limit_m(p, float(mesh.volume))
-            if edge is not None and p.max_tet_edge_m is not None and edge > p.max_tet_edge_m:
-                log.info(
-                    "FEM solid: tetrahedra up to %.0f mm across, not %.0f mm (%g pad radii): "
-                    "at most %d of that size fill this object",
-                    1e3 * edge,
-                    1e3 * p.max_tet_edge_m,
-                    p.volume_edge_pads,
-                    VOLUME_LIMIT_MAX_TETS,
-                )
             nodes, tets = volume_mesh(
                 verts, faces, switches=tetgen_switches(edge), cache_dir=cache_dir
             )
@@ -805,8 +807,15 @@ class FemSolid(PatchedSurface):
         :data:`_DENSE_SHARE`, LAPACK's dense solver finds the lowest ``count`` at once, and those below ``omega_c`` are kept (at least
         :data:`_FIRST_MODES`). Otherwise a first batch of :data:`_FIRST_MODES` by ARPACK; if its
         highest is below ``omega_c``, one more solve for the count Weyl's law estimates (modes up
-        to ``omega`` grow as ``omega^3``) with a 20 % margin, and so on.
+        to ``omega`` grow as ``omega^3``) with a 20 % margin, and so on. Modes this solid was
+        built with before come from :mod:`server.objects.mode_cache`, verified.
         """
+        key = modes_key(self._k_free, m_rows, count, omega_c)
+        cached = load_modes(self._cache_dir, key, self._k_free, m_rows)
+        if cached is not None:
+            self.modes_cached = True
+            self._set_modes(*cached)
+            return
         s = 1.0 / np.sqrt(m_rows)  # K' = M^-1/2 K M^-1/2, eigenvectors psi = M^1/2 phi
         size = len(m_rows)
         k_scaled = spla.LinearOperator(
@@ -815,12 +824,6 @@ class FemSolid(PatchedSurface):
         k_inv = spla.LinearOperator(
             (size, size), matvec=lambda x: self._lu.solve(x / s) / s, dtype=np.float64
         )
-        key = modes_key(self._k_free, m_rows, count, omega_c)
-        cached = load_modes(self._cache_dir, key, self._k_free, m_rows)
-        if cached is not None:
-            self.modes_cached = True
-            self._set_modes(*cached)
-            return
         least = min(count, _FIRST_MODES)
         if size <= _DENSE_MODES and count * _DENSE_SHARE >= size:  # LAPACK's dense solver
             dense = np.asarray(self._k_free.toarray()) * s[:, None] * s[None, :]

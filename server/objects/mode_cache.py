@@ -57,7 +57,8 @@ def modes_key(k_free: sp.spmatrix, m_rows: npt.ArrayLike, count: int, omega_c: f
     ``k_free`` (the free stiffness, any sparse format), the lumped masses ``m_rows`` [kg] of its
     rows, at most ``count`` modes and the settle frequency ``omega_c`` [rad/s]."""
     k = sp.csc_matrix(k_free)
-    k.sort_indices()
+    if not k.has_sorted_indices:
+        k = k.sorted_indices()  # a copy: the caller's matrix is left as it is
     h = hashlib.sha256()
     h.update(MODES_FORMAT.encode())
     h.update(repr((k.shape, int(count), float(omega_c).hex())).encode())
