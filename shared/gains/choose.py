@@ -353,6 +353,12 @@ def covering(known: Known, key: GainKey, cell: int, k_o_eff: float) -> GainDesig
     return None
 
 
+def compensated(design: GainDesign) -> bool:
+    """Whether ``design`` compensates its own force (C_h > 0, no integral): a held press through
+    it is felt as the object's own stiffness (docs/own-force.md)."""
+    return design.own_gain > 0.0 and design.i_gain == 0.0
+
+
 def likely_next(key: GainKey, cell: int) -> tuple[tuple[GainKey, int], ...]:
     """The (key, cell) a contact in ``cell`` of ``key`` most likely needs next, most likely first:
     what the link designs and checks ahead of need.
@@ -549,6 +555,16 @@ def without_design(
         return interim, "interim", tuple(jobs)
     wider = covering(known, key, cell, k_o_eff)
     if wider is not None:
+        if key.own_force and not compensated(wider):
+            # a wider class's design is verified here but, without own-force compensation (the
+            # wide classes' designs are mostly the paper's PI), felt softer than the object while
+            # the hand moves (a slide over a lump, docs/palpation.md). It renders while a check
+            # for this key is asked (a fraction of a second): the compensated gains known, then
+            # the generic compensated rungs (:func:`shared.gains.interim.interim_design`)
+            ahead = (known.table.fallback(key, k_o_eff), in_use_design(in_use, rate_ratio))
+            jobs.append(
+                CheckJob(key, cell, tuple(c for c in ahead if c is not None and compensated(c)))
+            )
         return wider, "covering", tuple(jobs)
     # nothing verified for this key and cell: have gains checked (fast) and meanwhile keep the
     # nearest designed cell (no stiffer relative to K_o) or the gains in use

@@ -16,6 +16,8 @@ from dataclasses import replace
 
 import pytest
 
+from haptic_collab.shared.felt_stiffness import felt_stiffness
+from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX
 from haptic_collab.shared.gains.choose import (
     PLANE_ALONE,
     VERIFIED_SOURCES,
@@ -30,6 +32,7 @@ from haptic_collab.shared.gains.choose import (
     static_felt_stiffness,
     without_design,
 )
+from haptic_collab.shared.gains.interim import interim_design
 from haptic_collab.shared.gains.key import GainKey, make_gain_key
 from haptic_collab.shared.gains.policy import FALLBACK_K_RATIO
 from haptic_collab.shared.gains.table import GainTable
@@ -264,3 +267,49 @@ def test_a_design_arriving_in_a_hold_does_not_step_the_felt_stiffness() -> None:
     alike = _interim_in_use(key, 0.25 * K_O, own_gain=1.0 / (0.25 * K_O))
     assert choose(surface, rec, Contact(key, in_use=alike, in_use_key=(key, cell)), known,
                   OPTIONS).source == "design"  # fmt: skip
+
+
+def test_a_wider_class_s_uncompensated_design_renders_only_while_a_compensated_check_runs() -> None:
+    # the palpation demo's slide: A's coupled key (class sqrt 2) had no design of its own, and the
+    # class-2 design covering it was the paper's PI (no own-force compensation), which a sliding
+    # hand feels softer than the object: over the lump A felt +10 % where the solid has +20 %
+    key = _key(stiff_ratio=math.sqrt(2.0))
+    table = GainTable()
+    cell = table.cell(K_O)
+    paper_pi = _gains(100.0, 700.0)
+    table.store(_key(stiff_ratio=2.0), cell, paper_pi)
+    surface, rec = _surface()
+    choice = choose(surface, rec, Contact(key), _known(table), OPTIONS)
+    assert choice.source == "covering" and choice.verified  # verified: it renders meanwhile
+    checks = [j for j in choice.jobs if isinstance(j, CheckJob)]
+    assert checks == [CheckJob(key, cell, ())]  # and a check for this key is asked
+    # the check, as the link and the server's worker run it, finds compensated gains
+    job = checks[0]
+    found = interim_design(
+        job.key, job.cell, table.grid_ratio, DEFAULT_HAND_BOX, job.candidates,
+        design_fallback=False,
+    )  # fmt: skip
+    assert found.i_gain == 0.0 and found.own_gain * found.k_h == pytest.approx(1.0)
+    felt = {
+        name: float(
+            felt_stiffness(
+                1.0, k_o=K_O, k_h=g.k_h, i_gain=g.i_gain, b_h=g.b_h, proxy_hold=g.proxy_hold,
+                own_gain=g.own_gain,
+            )[0]
+        )
+        / K_O
+        for name, g in (("paper", paper_pi), ("found", found))
+    }  # fmt: skip
+    # a hand moving at 1 Hz feels the object through the compensated gains, softer through the PI
+    assert abs(math.log(felt["found"])) < math.log(1.1) < abs(math.log(felt["paper"]))
+    # once checked, they render instead of the covering design
+    known = _known(table, interim={(key, cell): found})
+    again = choose(surface, rec, Contact(key), known, OPTIONS)
+    assert again.source == "interim" and again.gains is not None
+    assert again.gains.own_gain == found.own_gain
+    # a covering design that compensates its own force needs no check: it is felt as the object
+    table2 = GainTable()
+    table2.store(_key(stiff_ratio=2.0), cell, replace(_gains(200.0), own_gain=1.0 / 200.0))
+    plain = choose(surface, rec, Contact(key), _known(table2), OPTIONS)
+    assert plain.source == "covering"
+    assert not [j for j in plain.jobs if isinstance(j, CheckJob)]
