@@ -68,6 +68,7 @@ def gain_changes(updates: list[LocalModelUpdate], limit: int = 200) -> list[dict
                 "verified": choice.verified,
                 "fallback": choice.fallback,
                 "delay_ticks": choice.delay_ticks,
+                "k_o": round(surface.k_o, 1),
                 "k_o_eff": round(surface.k_o_eff, 1),
                 "k_o_stiff": round(surface.k_o_stiff, 1),
                 "rest": u.rest_plane,

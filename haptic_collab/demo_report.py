@@ -465,9 +465,19 @@ def felt_stiffness_step(
 
 
 def object_stiffness(summary: dict[str, Any]) -> float | None:
-    """The object's stiffness at the user's contact [N/m]: the median K_o_eff of the patches at
-    which the user's gains changed (the client summary's ``gain_changes``); None without any."""
-    k = [float(g["k_o_eff"]) for g in summary.get("gain_changes") or [] if g.get("k_o_eff")]
+    """The object's stiffness at the user's contact [N/m]: the median K_o of the patches at
+    which the user's gains changed (the client summary's ``gain_changes``); None without any.
+
+    K_o is the contact's own stiffness, the inverse of its diagonal compliance: what a press
+    meets while every other user's force stays as it is, and what the rest plane renders once
+    the user is alone. A contact coupled to another user's also reports K_o_eff, the stiffness
+    of the mode in which both press together, which is lower (146 against 181 N/m for the
+    palpation demo's resting user while the other pressed on the top). Judged against K_o_eff,
+    a compensated design felt as the contact's own stiffness read as a step of x1.16-1.18 when
+    the partner left and the rest plane of 181 N/m rendered. Summaries written before ``k_o``
+    was recorded give K_o_eff."""
+    changes = summary.get("gain_changes") or []
+    k = [float(g.get("k_o") or g["k_o_eff"]) for g in changes if g.get("k_o") or g.get("k_o_eff")]
     return float(np.median(k)) if k else None
 
 
@@ -951,6 +961,32 @@ def _stepped(x: np.ndarray) -> np.ndarray:
         return np.abs(x - prev) > GAIN_CHANGE_SHARE * np.maximum(np.abs(prev), 1e-12)
 
 
+#: How long the client carries a change of gains over [s] (``client.app.GAIN_TRANSFER_S``,
+#: docs/physics.md "Gain changes"; a test keeps the two equal).
+GAIN_TRANSFER_S = 0.25
+
+
+def in_gain_transfer(cols: dict[str, np.ndarray], span_s: float = GAIN_TRANSFER_S) -> np.ndarray:
+    """(m,) bool: the samples within ``span_s`` [s] after the rendered K_h, I or own-force gain
+    C_h changed (by more than :data:`GAIN_CHANGE_SHARE`), while the client carries the change
+    over without a force step.
+
+    Meanwhile the rendered proxy moves from the old gains' place to the new ones' (0.25 s), while
+    the recorded own-force offset C_h F_s steps at once: their difference is not the object's
+    surface. On the palpation demo's resting user a change from K_h 121 to 48 N/m (offsets 2.9
+    and 7.6 mm) 0.05 s into A's 1 s hold read as the surface moving 0.05 mm in, where it moved
+    0.5 mm out."""
+    t = cols["t_s"]
+    kh = cols.get("k_h_n_per_m")
+    if kh is None:
+        return np.zeros(t.shape, bool)
+    stepped = _stepped(kh) | _stepped(cols.get("i_gain_n_per_m_s", np.zeros_like(kh)))
+    if "own_gain_m_per_n" in cols:
+        stepped |= _stepped(cols["own_gain_m_per_n"])
+    last = np.maximum.accumulate(np.where(stepped, t, -np.inf))
+    return t - last < span_s
+
+
 def _same_coupling(b: dict[str, np.ndarray], hold_mask: np.ndarray) -> np.ndarray | None:
     """B's samples whose coupling holds B's hand as it does while A holds, :data:`REST_GAIN_SETTLE_S`
     after B's gains last changed; None without K_h telemetry or hold samples.
@@ -1074,12 +1110,16 @@ def coupling_report(
     fvec = np.stack([b["force_x_n"], b["force_y_n"], b["force_z_n"]], axis=1)[w_rest]
     outward = np.nanmean(fvec, axis=0)  # the force on B's hand points out of the surface
     outward = outward / np.linalg.norm(outward)
-    # the object's surface: the rendered proxy, less any own-force compensation offset
+    # the object's surface: the rendered proxy, less any own-force compensation offset, where no
+    # change of gains is being carried over (:func:`in_gain_transfer`)
     proxy = np.stack([b["proxy_x_m"], b["proxy_y_m"], b["proxy_z_m"]], axis=1) @ outward
     proxy = proxy - b.get("own_offset_m", np.zeros_like(proxy))
+    settled = ~in_gain_transfer(b)
+    s_hold = w_hold & settled if (w_hold & settled).any() else w_hold
+    s_rest = w_rest & settled if (w_rest & settled).any() else w_rest
     f_rest = float(np.nanmean(b["force_n"][w_rest]))
     f_hold = float(np.nanmean(b["force_n"][w_hold]))
-    moved_mm = float((np.nanmean(proxy[w_hold]) - np.nanmean(proxy[w_rest])) * 1000.0)
+    moved_mm = float((np.nanmean(proxy[s_hold]) - np.nanmean(proxy[s_rest])) * 1000.0)
     rise = f_hold - f_rest
     out.update(
         b_force_rise_n=rise,

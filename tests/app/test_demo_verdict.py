@@ -22,13 +22,16 @@ from haptic_collab import demo as haptic_demo
 from haptic_collab.client.recorder import COLUMNS, CSV_HEADER, format_rows
 from haptic_collab.demo_report import (
     EXIT_CODES,
+    GAIN_TRANSFER_S,
     STIFFNESS_JND,
     Timeline,
     build_report,
+    coupling_report,
     delay_rise_in_hold,
     felt_stiffness,
     felt_stiffness_step,
     hold_window,
+    in_gain_transfer,
     judge_user,
     link_lost_in_hold,
     machine_load,
@@ -484,6 +487,39 @@ def test_a_user_left_alone_on_the_rest_plane_feels_its_k_h_not_a_step() -> None:
     assert plain is not None and plain["ratio"] == pytest.approx(2.0, rel=1e-3)
 
 
+def test_a_coupled_contact_is_judged_against_its_own_stiffness_not_the_common_mode() -> None:
+    # the palpation demo's B: while A pressed the top, B's contact was coupled to A's (K_o_eff
+    # 146.5, K_o_stiff 238: its own K_o, the harmonic mean, 181.3 N/m) and rendered compensated
+    # designs, felt as the object; once A left, the rest plane of K_h 181.3 N/m. Judged against
+    # the median K_o_eff (156 N/m) that read as a step of x1.16 and called B unstable
+    own = 181.3
+    b = user("B", k_h=lambda t: np.where(t < 16.0, 48.0, own))
+    b["own_gain_m_per_n"] = np.where(b["t_s"] < 16.0, 1.0 / 48.0, 0.0)
+    coupled = [
+        {"tick": 40 + i, "k_h": 48.0, "own_gain": round(1 / 48.0, 6), "k_o": own,
+         "k_o_eff": k_eff, "k_o_stiff": k_eff * own / (2.0 * k_eff - own)}
+        for i, k_eff in enumerate((146.5, 150.0, 156.0, 160.0, 170.0))
+    ]  # fmt: skip
+    rest = {"tick": 320, "k_h": own, "own_gain": 0.0, "k_o": own, "k_o_eff": own, "rest": True}
+    hold = [(10.0, 19.0)]
+    judged = judge_user(b, summary("B", gain_changes=[*coupled, rest]), hold, load=[])
+    assert judged["felt_stiffness"]["k_o_n_per_m"] == pytest.approx(own)
+    assert judged["felt_stiffness"]["ratio"] == pytest.approx(1.0, abs=1e-6)
+    assert judged["verdict"] == "stable"
+    # a summary without ``k_o`` (written before it was recorded) is judged against the median
+    # K_o_eff, 158 N/m here: the false step
+    old = [{k: v for k, v in g.items() if k != "k_o"} for g in [*coupled, rest]]
+    judged = judge_user(b, summary("B", gain_changes=old), hold, load=[])
+    assert judged["felt_stiffness"]["ratio"] == pytest.approx(own / 158.0, rel=1e-3)
+    assert judged["verdict"] == "unstable"
+    # a quarter-K_o fallback without compensation is still a step against the contact's own K_o
+    b["k_h_n_per_m"] = np.where(b["t_s"] < 13.0, own / 4.0, b["k_h_n_per_m"])
+    b["own_gain_m_per_n"] = np.where(b["t_s"] < 13.0, 0.0, b["own_gain_m_per_n"])
+    judged = judge_user(b, summary("B", gain_changes=[*coupled, rest]), hold, load=[])
+    assert judged["felt_stiffness"]["ratio"] == pytest.approx(5.0, rel=1e-3)
+    assert judged["verdict"] == "unstable"
+
+
 def test_a_script_that_started_late_is_judged_on_its_hold_not_its_arrival(tmp_path) -> None:
     """A's scripted hand starts at its servo's first tick, 2.5 s into A's clock on a loaded
     machine: the demo shifts its timeline there, so A's steady hold is called steady and not
@@ -514,3 +550,36 @@ def test_no_telemetry_means_no_shift(tmp_path) -> None:
     assert script_start_s(tmp_path / "missing.csv") == 0.0
     (tmp_path / "empty.csv").write_text(CSV_HEADER)
     assert script_start_s(tmp_path / "empty.csv") == 0.0
+
+
+def test_the_surface_under_b_is_read_where_no_change_of_gains_is_carried_over() -> None:
+    # B's gains change 0.05 s into A's hold (K_h 121 -> 48 N/m, compensated): the client carries
+    # the change over in 0.25 s, the rendered proxy moving from the old offset C_h F to the new
+    # one while the recorded offset steps at once. Read through that ramp, a surface that moved
+    # 0.5 mm out looked as if it moved in, and "B feels A's press" was answered no
+    from haptic_collab.client.app import GAIN_TRANSFER_S as client_transfer_s
+
+    assert GAIN_TRANSFER_S == client_transfer_s
+    hold0 = TL.contact_s + TL.press_s
+    hold = (hold0, hold0 + 1.0)
+    b = user("B")
+    t = b["t_s"]
+    change = hold0 + 0.05
+    kh = np.where(t < change, 121.0, 48.0)
+    f = np.where(t < TL.contact_s, 0.214, 0.367)  # B's force rises as A presses
+    surface = -0.1 - np.where(t < TL.contact_s, 0.0, 0.0005)  # and the side bulges 0.5 mm out
+    offset = f / kh  # C_h F, stepping at once at the change
+    # the proxy ramps from the old offset to the new one over the transfer
+    ramp = np.clip((t - change) / GAIN_TRANSFER_S, 0.0, 1.0)
+    proxy_offset = np.where(
+        t < change, offset, 0.367 / 121.0 + ramp * (0.367 / 48.0 - 0.367 / 121.0)
+    )
+    b.update(
+        k_h_n_per_m=kh, own_gain_m_per_n=1.0 / kh, own_offset_m=offset, force_n=f,
+        force_x_n=-f, proxy_x_m=surface - proxy_offset,
+    )  # fmt: skip
+    assert in_gain_transfer(b)[(t >= change) & (t < change + GAIN_TRANSFER_S - 0.01)].all()
+    assert not in_gain_transfer(b)[(t > change + GAIN_TRANSFER_S + 0.01)].any()
+    c = coupling_report(b, TL, hold, 1.0)
+    assert c["b_surface_displacement_mm"] == pytest.approx(0.5, abs=0.01)
+    assert c["b_feels_a"]
