@@ -117,11 +117,11 @@ def test_the_scenario_writes_a_lump_its_twin_and_a_sweep_over_them(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.alone  # its verdict needs a quiet machine: run after the others
-def test_the_palpation_demo_slides_over_the_lump_stably_and_b_feels_the_sweep(tmp_path):
+def test_the_palpation_demo_a_feels_the_lump_b_feels_the_sweep_and_both_stay_stable(tmp_path):
     report = tmp_path / "report.json"
     done = subprocess.run(
         [sys.executable, "-m", "haptic_collab.cli", "demo", "--scenario", "palpation",
-         "--headless", "--duration", "20", "--port", "0", "--report", str(report),
+         "--headless", "--port", "0", "--report", str(report),
          "--workdir", str(tmp_path / "work")],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
@@ -133,9 +133,8 @@ def test_the_palpation_demo_slides_over_the_lump_stably_and_b_feels_the_sweep(tm
     p = run["palpation"]
     # A slid over the lump and over its twin, and B felt A's sweep through the organ
     assert p["a_over"]["samples"] > 100 and p["a_beside"]["samples"] > 100, p
-    assert math.isfinite(p["rise"]) and p["felt"] == (p["rise"] > STIFFNESS_JND)
     assert p["b_felt_sweep"], p
-    # Whether A felt the lump is not asserted: in the demo's default 30 s run it did in 9 of 12
-    # runs (+18.5 to +23.5 %, the solid's own +20.5 %), in 3 the rendering over the lump gave less
-    # (+9.9, +9.9 and -2.5 %; docs/palpation.md, "Status"; issue 60 stays open for it). 20 s here:
-    # its faster slide is judged for stability and B's feeling, which held in every 20 s run.
+    # A felt the lump: the same depth under the surface takes more force over it, by more than a
+    # stiffness JND (the static solid: +20.5 %). The demo's default 30 s run felt +21.6 to
+    # +23.3 % in 9 of 9 runs, quiet or beside two spinning processes (docs/palpation.md)
+    assert p["felt"] and p["rise"] > STIFFNESS_JND, p
