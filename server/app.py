@@ -77,7 +77,7 @@ from websockets.http11 import Request, Response
 from haptic_collab.client.workers import background_worker, stop_pool
 from haptic_collab.server import snapshots
 from haptic_collab.server.admission import FloodControl, Refusal, RoomLimits
-from haptic_collab.server.gains import GainJob, run_job
+from haptic_collab.server.gains import GainJob, JobKind, run_job
 from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.metrics import RoomFigures, ServerCollector, scrape_allowed
 from haptic_collab.server.prefetch import PatchPrefetcher
@@ -136,6 +136,11 @@ STALL_PERIODS = 3.0
 STALL_MIN_S = 1.0
 #: Worker processes that design recommended gains (niced; :func:`background_worker`).
 DESIGN_WORKERS = 1
+#: Worker processes that run only the interim checks (niced too), so that a check (0.05-0.5 s)
+#: never waits behind a design already running (1-4 s quiet; tens of seconds with two busy
+#: processes beside a niced worker). The client keeps its checks apart from its designs the same
+#: way (client.link).
+CHECK_WORKERS = 1
 #: A consumer whose send buffer stays full this long [s] is dropped.
 SEND_TIMEOUT_S = 10.0
 #: How long a drain may take at most [s], SIGTERM to exit (``haptic server --drain-grace-s``): well
@@ -424,8 +429,12 @@ class ServerApp:
         #: Where recommended-gain designs run (default: one spawned worker process, made on the
         #: first design; server.gains). Never the event loop's thread.
         self.gain_executor = gain_executor
+        #: Where the interim checks run (default: a second spawned worker process; an injected
+        #: ``gain_executor`` runs them too).
+        self.check_executor = gain_executor
         self._own_executor = gain_executor is None
         self._gain_tasks: set[asyncio.Task[None]] = set()
+        self._check_tasks: set[asyncio.Task[None]] = set()
         self._design_turn = 0
         self.host = host
         self.port = port
@@ -493,6 +502,7 @@ class ServerApp:
             self._start_slot(slot)
         if self._own_executor:  # an injected executor (tests) is the caller's to warm
             self._gain_tasks.add(asyncio.create_task(self._warm_design_pool()))
+            self._check_tasks.add(asyncio.create_task(self._warm_design_pool(checks=True)))
         await self._rooms_started(list(self._slots.values()))
         # last: a start that raised leaves the thread as it was (stop() gives it back); threads
         # and processes started from here on keep the ordinary policy (server.priority)
@@ -591,15 +601,17 @@ class ServerApp:
             pending.cancel()
         for slot in list(self._slots.values()):
             await self._stop_slot(slot)
-        pending_tasks = list(self._gain_tasks)
+        pending_tasks = [*self._gain_tasks, *self._check_tasks]
         for task in pending_tasks:
             task.cancel()
         for task in pending_tasks:  # let them finish their cancellation while the loop still runs
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
-        if self._own_executor and self.gain_executor is not None:
-            stop_pool(self.gain_executor)  # a running design must not hold up the stop
-            self.gain_executor = None
+        if self._own_executor:
+            for pool in (self.gain_executor, self.check_executor):
+                if pool is not None:
+                    stop_pool(pool)  # a running design must not hold up the stop
+            self.gain_executor = self.check_executor = None
         if self._server:
             self._server.close()
             await self._server.wait_closed()
@@ -1369,24 +1381,45 @@ class ServerApp:
             log.info("connection %s: %s joined", conn_id, peer.who)
 
     def _start_designs(self) -> None:
-        """Keep the design worker busy with the most urgent queued job (``GainAdvisor.next_job``:
-        interim checks first, then the newest designs), one job per worker at a time, so that an
-        urgent check never waits behind a queue of designs already handed to the pool. The
-        rooms take turns: each call starts with the room after the one served last."""
+        """Keep the gain workers busy with the most urgent queued jobs (``GainAdvisor.next_job``):
+        the check worker with interim checks only, the design worker with the most urgent job of
+        any kind (interim checks first, then the newest designs, then pair checks). One job per
+        worker at a time, so that an urgent check never waits behind a queue of jobs already
+        handed to a pool, nor behind a design running. The rooms take turns: each pick starts
+        with the room after the one served last."""
+        while len(self._check_tasks) < CHECK_WORKERS:
+            picked = self._next_gain_job("interim")
+            if picked is None:
+                break
+            self._check_tasks.add(asyncio.create_task(self._design(*picked, checks=True)))
         while len(self._gain_tasks) < DESIGN_WORKERS:
-            slots = list(self._slots.values())
-            for i in range(len(slots)):
-                slot = slots[(self._design_turn + i) % len(slots)]
-                job = slot.room.gains.next_job()
-                if job is not None:
-                    self._design_turn = (self._design_turn + i + 1) % len(slots)
-                    self._gain_tasks.add(asyncio.create_task(self._design(slot.room, job)))
-                    break
-            else:
+            picked = self._next_gain_job(None)
+            if picked is None:
                 return
+            self._gain_tasks.add(asyncio.create_task(self._design(*picked)))
 
-    def _design_pool(self) -> Executor:
-        """The design workers (started once, at the server's start or on the first job)."""
+    def _next_gain_job(self, only: JobKind | None) -> tuple[AnyRoom, GainJob] | None:
+        """The next room's most urgent gain job (``only`` one of that kind), in turn."""
+        slots = list(self._slots.values())
+        for i in range(len(slots)):
+            slot = slots[(self._design_turn + i) % len(slots)]
+            job = slot.room.gains.next_job(only)
+            if job is not None:
+                self._design_turn = (self._design_turn + i + 1) % len(slots)
+                return slot.room, job
+        return None
+
+    def _design_pool(self, checks: bool = False) -> Executor:
+        """The design worker, or with ``checks`` the check worker (each started once, at the
+        server's start or on its first job)."""
+        if checks:
+            if self.check_executor is None:
+                self.check_executor = ProcessPoolExecutor(
+                    max_workers=CHECK_WORKERS,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=background_worker,
+                )
+            return self.check_executor
         if self.gain_executor is None:
             ctx = multiprocessing.get_context("spawn")
             self.gain_executor = ProcessPoolExecutor(
@@ -1394,36 +1427,38 @@ class ServerApp:
             )
         return self.gain_executor
 
-    async def _warm_design_pool(self) -> None:
-        """Start the design workers and import the design code in them before anyone joins: a
-        worker spawned on the first user's first patch took seconds (imports) before its first
-        interim check on a busy 2-core machine."""
+    async def _warm_design_pool(self, checks: bool = False) -> None:
+        """Start the design (or check) worker and import the design code in it before anyone
+        joins: a worker spawned on the first user's first patch took seconds (imports) before its
+        first interim check on a busy 2-core machine."""
         loop = asyncio.get_running_loop()
         me = asyncio.current_task()
         try:
-            await loop.run_in_executor(self._design_pool(), warm_up)
+            await loop.run_in_executor(self._design_pool(checks), warm_up)
         except Exception:  # no warm worker: the first job starts it
-            log.exception("the gain design worker could not be started")
+            log.exception(
+                "the gain %s worker could not be started", "check" if checks else "design"
+            )
         finally:
-            self._gain_tasks.discard(me)  # type: ignore[arg-type]
+            (self._check_tasks if checks else self._gain_tasks).discard(me)  # type: ignore[arg-type]
         self._start_designs()
 
-    async def _design(self, room: AnyRoom, job: GainJob) -> None:
-        """Run one gain design of ``room`` off the simulation loop (a worker process) and hand
-        it back."""
-        self._design_pool()
+    async def _design(self, room: AnyRoom, job: GainJob, checks: bool = False) -> None:
+        """Run one gain job of ``room`` off the simulation loop (in the design worker, or with
+        ``checks`` the check worker) and hand its result back."""
+        pool = self._design_pool(checks)
         table = room.gains.table
         loop = asyncio.get_running_loop()
         me = asyncio.current_task()
         try:
             design = await loop.run_in_executor(
-                self.gain_executor, run_job, job, table.grid_ratio, table.hand_box
+                pool, run_job, job, table.grid_ratio, table.hand_box
             )
         except Exception:  # a broken worker must not stop the room: no recommendation
             log.exception("gain design %s failed", job.kind)
             design = None
         finally:
-            self._gain_tasks.discard(me)  # type: ignore[arg-type]
+            (self._check_tasks if checks else self._gain_tasks).discard(me)  # type: ignore[arg-type]
         room.gains.store(job, design)
         self._start_designs()
 

@@ -459,8 +459,11 @@ class _RemoteGains:
         self.table = _Table()
         self.jobs: list[Any] = []
 
-    def next_job(self) -> Any:
-        return self.jobs.pop(0) if self.jobs else None
+    def next_job(self, only: str | None = None) -> Any:
+        for i, job in enumerate(self.jobs):
+            if only is None or getattr(job, "kind", None) == only:
+                return self.jobs.pop(i)
+        return None
 
     def store(self, job: Any, design: Any) -> None:
         self.proxy._send("design", job, design)

@@ -7,6 +7,7 @@ the box, every sampling tick and the K_o margin.
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 import numpy as np
@@ -296,3 +297,66 @@ def test_the_advisor_designs_for_the_delay_the_client_measures_from_its_state() 
         assert adv.delay_ticks("u1") == s.delay_ticks()
         differ += median_only.delay_ticks("u1") != s.delay_ticks()
     assert differ > 0  # the states' medians alone give another delay on this trace
+
+
+def test_next_job_of_one_kind_leaves_the_others_queued() -> None:
+    adv = GainAdvisor(20.0, shipped=False)
+    h = hello("pi")
+    assert adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
+    assert adv.next_job("design") is not None  # the design, though the check is more urgent
+    job = adv.next_job("interim")
+    assert job is not None and job.kind == "interim"
+    assert adv.next_job("interim") is None and adv.next_job() is None
+
+
+async def test_the_servers_interim_check_never_waits_behind_a_running_design(monkeypatch) -> None:
+    """The server runs its interim checks in a worker of their own: a new key's check (a fraction
+    of a second) comes back while the design worker is still busy with a design (seconds; tens of
+    seconds on a loaded machine), and the user's forces come on with it."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from haptic_collab.server import app as app_module
+    from haptic_collab.server.app import ServerApp
+    from haptic_collab.server.main import ServerOptions, build_world
+    release = threading.Event()
+    ran: list[str] = []
+
+    def fake_run_job(job: GainJob, grid_ratio: float, hand_box: object) -> object:
+        ran.append(job.kind)
+        if job.kind == "design":
+            release.wait(30.0)  # a design that takes long
+            return None
+        return run_job(job, grid_ratio, hand_box)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(app_module, "run_job", fake_run_job)
+    world = build_world(ServerOptions(sim_rate_hz=20.0, subdivisions=2))
+    room = Room(world, 20.0)
+    pool = ThreadPoolExecutor(max_workers=2)  # one for the designs, one for the checks
+    app = ServerApp(room, "127.0.0.1", 0, gain_executor=pool)
+    adv = room.gains
+    odd = {"profile": "odd", "max_stiffness_n_per_m": 730.0, "max_damping_n_s_per_m": 7.0}
+    h = hello("pi", PHANTOM.model_copy(update=odd))  # no shipped table's device: designed here
+    try:
+        # a first key: its check and design are handed out; the design blocks the design worker
+        assert adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
+        app._start_designs()
+        for _ in range(200):
+            if "design" in ran:
+                break
+            await asyncio.sleep(0.05)
+        assert "design" in ran and not release.is_set()
+        # a second user's key arrives while that design runs: its check comes back at once
+        assert adv.recommend("u2", h, k_o_eff=900.0, k_o_stiff=900.0, b_o=0.0) is None
+        app._start_designs()
+        for _ in range(400):
+            if adv.recommend("u2", h, k_o_eff=900.0, k_o_stiff=900.0, b_o=0.0) is not None:
+                break
+            await asyncio.sleep(0.05)
+        rec = adv.recommend("u2", h, k_o_eff=900.0, k_o_stiff=900.0, b_o=0.0)
+        assert rec is not None and rec.interim  # checked gains, the design still running
+        assert not release.is_set()
+    finally:
+        release.set()
+        await app.stop()
+        pool.shutdown(wait=True)

@@ -297,7 +297,7 @@ def test_a_late_tick_s_patches_are_sent_before_the_next_tick():
         return tick(k, now_s)
 
     room.tick = stalling_tick  # type: ignore[method-assign]
-    room.gains.next_job = lambda: None  # type: ignore[method-assign]  # no gain designs: no worker
+    room.gains.next_job = lambda *_: None  # type: ignore[method-assign]  # no gain designs: no worker
 
     async def main() -> list[int]:
         app = ServerApp(room, "127.0.0.1", 0)
