@@ -468,6 +468,22 @@ class GainAdvisor:
                 self._want_pair(bucket)
             elif (v := self.pairs[bucket]) is not None and v.meets_margin:
                 self._want_near(bucket)  # verified: then where the press may go
+            # and the resting user's own coupled key, should the pair not hold: checked gains
+            # for it from the press's first patch, rather than a wider class's paper PI
+            self._check_ahead(replace(u.key, stiff_ratio=ratio_class), k_i / (1.0 + coupling))
+
+    def _check_ahead(self, key: GainKey, k_o_eff: float) -> None:
+        """Queue interim checks for ``key`` in the cell of ``k_o_eff`` [N/m] and the two beside
+        it, where neither the table (:func:`shared.gains.choose.table_design`) nor a check has
+        gains yet: a contact about to couple has its coupled key's gains verified before the
+        press arrives (each check 0.05-0.5 s in the check worker)."""
+        cell = self.table.cell(k_o_eff)
+        for c in (cell + 1, cell - 1, cell):  # the newest is checked first: the cell itself
+            if (key, c) in self.interim:
+                continue
+            if table_design(self.table, key, self.table.grid_point(c) * 1.0001)[0] is not None:
+                continue
+            self._want("interim", key, c)
 
     def _want_pair(self, bucket: PairBucket) -> None:
         """Queue the check of ``bucket`` (once; the newest first, at most
@@ -499,8 +515,9 @@ class GainAdvisor:
             self._asked.add(job)
             self._queued[job] = None
 
-    def next_job(self) -> GainJob | None:
-        """The most urgent queued job, removed from the queue; None when there is none.
+    def next_job(self, only: JobKind | None = None) -> GainJob | None:
+        """The most urgent queued job (``only`` one of that kind), removed from the queue; None
+        when there is none.
 
         Interim checks come first (they let a user's forces come on within a fraction of a
         second), then designs, then pair checks (:meth:`hold_pairs`: they spare a felt step,
@@ -510,8 +527,8 @@ class GainAdvisor:
         another, and the cell it is in now matters more than the ones it has left (those are
         still designed later, when nothing newer waits).
         """
-        jobs = list(self._queued)
-        if not jobs and self._pair_queue:
+        jobs = [j for j in self._queued if only is None or j[0] == only]
+        if not jobs and self._pair_queue and only in (None, "pair"):
             bucket, case = self._pair_queue.popitem()  # the newest
             self.pairs.setdefault(bucket, None)  # asked once (a lost job: no hold there)
             self.pair_checks += 1

@@ -221,3 +221,57 @@ def test_a_light_touch_lifted_off_for_a_moment_keeps_its_gains() -> None:
     # lifted off beyond the world's proximity, a new touch starts over: its coupled design
     tick(adv, 12, TORUS, 0.004, b_pen=-0.02)
     assert felt(tick(adv, 13, TORUS, 0.004)["B"]) != rest
+
+
+def test_a_resting_users_coupled_key_is_checked_before_the_press_arrives() -> None:
+    """The palpation demo's B: resting on the liver's side (K_o 181 N/m, B_o 53 N/m, beyond the
+    shipped designs' damping coverage) when A's press couples the contacts (K_o_eff 146.5,
+    K_o_stiff 238 N/m). Without a verified pair, B's coupled key rendered a wider class's paper
+    PI: a light touch (its integral idle) felt 54 N/m against the object's 181. While A is still
+    on its way, the advisor has B's coupled key checked, so the press's first patch recommends
+    compensated gains, felt as the object."""
+    k_b, k_a, b_o = 181.3, 231.1, 53.0
+    c = (238.0 - 146.5) / (238.0 + 146.5)
+    adv = advisor((1.0, 1.0))  # loopback: no delay
+
+    def step(n: int, a_pen: float) -> dict[str, RecommendedGains | None]:
+        near = a_pen > -0.005
+        patches = {
+            "A": patch(n, k_a, k_a / (1 + c) if near else k_a, k_a / (1 - c) if near else k_a, a_pen),
+            "B": patch(n, k_b, k_b / (1 + c) if near else k_b, k_b / (1 - c) if near else k_b, 0.001),
+        }  # fmt: skip
+        recs = {
+            u: adv.recommend(
+                u,
+                HELLO,
+                k_o_eff=p.k_o_eff,
+                k_o_stiff=p.k_o_stiff,
+                b_o=b_o,
+                tick=n,
+                in_contact=p.in_contact,
+            )  # fmt: skip
+            for u, p in patches.items()
+        }
+        cross = c / math.sqrt(k_a * k_b)
+        compliance = np.array([[1.0 / k_a, cross], [cross, 1.0 / k_b]])
+        return adv.hold_pairs(Coupling(("A", "B"), compliance, np.array([a_pen, 0.001]), 0.005),
+                              patches, recs)  # fmt: skip
+
+    def run_checks() -> list[tuple[float, int]]:
+        done = []
+        for job in adv.take_jobs():
+            if job.kind == "interim":  # the checks only: the designs take seconds
+                adv.store(job, run_job(job, adv.table.grid_ratio, adv.table.hand_box))
+                done.append((job.key.stiff_ratio, job.cell))
+        return done
+
+    recs = step(1, -0.02)  # B rests alone; A 2 cm above the surface
+    assert recs["B"] is not None and recs["B"].own_gain > 0.0  # B's own compensated design
+    checked = run_checks()
+    step(2, -0.02)
+    checked += run_checks()
+    coupled = adv.table.cell(k_b / (1 + c))
+    assert (2.0, coupled) in checked  # B's coupled key (class 2) in the cell A's press brings
+    recs = step(3, 0.003)  # A presses: B's contact is coupled, no pair verdict yet
+    rec = recs["B"]
+    assert rec is not None and rec.i_gain == 0.0 and rec.own_gain * rec.k_h == pytest.approx(1.0)
