@@ -83,9 +83,10 @@ async def test_a_scrape_shows_the_rooms_ticks_users_patches_and_viewer_bytes():
             readers = [asyncio.create_task(read_user()), asyncio.create_task(read_viewer())]
             while patches < 10 or viewer_bytes == 0:
                 await asyncio.sleep(0.05)
-            first = await scrape(app.port)
+            # what the clients had read before the scrape (a patch may arrive during it)
             seen_patches, seen_bytes = patches, viewer_bytes
-            while patches < seen_patches + 10:
+            first = await scrape(app.port)
+            while patches < first[f"haptic_room_patches_sent_total{{{R}}}"] + 10:
                 await asyncio.sleep(0.05)
             second = await scrape(app.port)
             for task in readers:
