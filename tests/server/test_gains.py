@@ -319,6 +319,7 @@ async def test_the_servers_interim_check_never_waits_behind_a_running_design(mon
     from haptic_collab.server import app as app_module
     from haptic_collab.server.app import ServerApp
     from haptic_collab.server.main import ServerOptions, build_world
+
     release = threading.Event()
     ran: list[str] = []
 
