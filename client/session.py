@@ -47,9 +47,9 @@ from haptic_collab.shared.gains.choose import (
     Job,
     Known,
     Options,
+    cell_has_gains,
     choose,
     likely_next,
-    table_design,
 )
 from haptic_collab.shared.gains.delay import DelayHold, delay_rtt_s, measured_delay_ticks
 from haptic_collab.shared.gains.design import GainDesign
@@ -510,13 +510,9 @@ class ClientSession:
         if self._checks_ahead_of == (key, cell):
             return
         self._checks_ahead_of = (key, cell)
-        table = self.gain_table
         for nk, nc in likely_next(key, cell):
-            if (nk, nc) in self.interim or table_design(table, nk, table.grid_point(nc) * 1.0001)[
-                0
-            ]:
-                continue
-            self.checks_ahead.append((nk, nc, (gains,)))
+            if not cell_has_gains(self.gain_table, self.interim, nk, nc):
+                self.checks_ahead.append((nk, nc, (gains,)))
 
     def next_plane_ahead(self) -> tuple[GainKey, int] | None:
         """The next plane to check ahead (:attr:`plane_ahead`), marked asked, or None."""

@@ -1412,20 +1412,22 @@ class ServerApp:
     def _design_pool(self, checks: bool = False) -> Executor:
         """The design worker, or with ``checks`` the check worker (each started once, at the
         server's start or on its first job)."""
+
+        def spawn(workers: int) -> Executor:
+            ctx = multiprocessing.get_context("spawn")
+            return ProcessPoolExecutor(workers, mp_context=ctx, initializer=background_worker)
+
         if checks:
             if self.check_executor is None:
-                self.check_executor = ProcessPoolExecutor(
-                    max_workers=CHECK_WORKERS,
-                    mp_context=multiprocessing.get_context("spawn"),
-                    initializer=background_worker,
-                )
+                self.check_executor = spawn(CHECK_WORKERS)
             return self.check_executor
         if self.gain_executor is None:
-            ctx = multiprocessing.get_context("spawn")
-            self.gain_executor = ProcessPoolExecutor(
-                max_workers=DESIGN_WORKERS, mp_context=ctx, initializer=background_worker
-            )
+            self.gain_executor = spawn(DESIGN_WORKERS)
         return self.gain_executor
+
+    def _tasks(self, checks: bool) -> set[asyncio.Task[None]]:
+        """The running jobs of the check worker (``checks``) or of the design worker."""
+        return self._check_tasks if checks else self._gain_tasks
 
     async def _warm_design_pool(self, checks: bool = False) -> None:
         """Start the design (or check) worker and import the design code in it before anyone
@@ -1440,7 +1442,7 @@ class ServerApp:
                 "the gain %s worker could not be started", "check" if checks else "design"
             )
         finally:
-            (self._check_tasks if checks else self._gain_tasks).discard(me)  # type: ignore[arg-type]
+            self._tasks(checks).discard(me)  # type: ignore[arg-type]
         self._start_designs()
 
     async def _design(self, room: AnyRoom, job: GainJob, checks: bool = False) -> None:
@@ -1458,7 +1460,7 @@ class ServerApp:
             log.exception("gain design %s failed", job.kind)
             design = None
         finally:
-            (self._check_tasks if checks else self._gain_tasks).discard(me)  # type: ignore[arg-type]
+            self._tasks(checks).discard(me)  # type: ignore[arg-type]
         room.gains.store(job, design)
         self._start_designs()
 

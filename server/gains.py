@@ -33,6 +33,7 @@ from haptic_collab.shared.gains.choose import (
     VERIFIED_SOURCES,
     DesignJob,
     Known,
+    cell_has_gains,
     table_design,
     without_design,
 )
@@ -479,11 +480,8 @@ class GainAdvisor:
         press arrives (each check 0.05-0.5 s in the check worker)."""
         cell = self.table.cell(k_o_eff)
         for c in (cell + 1, cell - 1, cell):  # the newest is checked first: the cell itself
-            if (key, c) in self.interim:
-                continue
-            if table_design(self.table, key, self.table.grid_point(c) * 1.0001)[0] is not None:
-                continue
-            self._want("interim", key, c)
+            if not cell_has_gains(self.table, self.interim, key, c):
+                self._want("interim", key, c)
 
     def _want_pair(self, bucket: PairBucket) -> None:
         """Queue the check of ``bucket`` (once; the newest first, at most

@@ -353,6 +353,17 @@ def covering(known: Known, key: GainKey, cell: int, k_o_eff: float) -> GainDesig
     return None
 
 
+def cell_has_gains(
+    table: GainTable, interim: Mapping[tuple[GainKey, int], GainDesign], key: GainKey, cell: int
+) -> bool:
+    """Whether grid cell ``cell`` of ``key`` has verified gains already: a check's (``interim``)
+    or the table's for a K_o in the cell (:func:`table_design`, damping coverage included). What
+    the client's and the server's checks ahead of need skip."""
+    if (key, cell) in interim:
+        return True
+    return table_design(table, key, table.grid_point(cell) * 1.0001)[0] is not None
+
+
 def compensated(design: GainDesign) -> bool:
     """Whether ``design`` compensates its own force (C_h > 0, no integral): a held press through
     it is felt as the object's own stiffness (docs/own-force.md)."""
