@@ -524,7 +524,7 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
         raise ValueError(
             f"rates at {rates.sim_rate_hz:g} Hz disagree with --sim-rate {opts.sim_rate_hz:g} Hz"
         )
-    element: Literal["auto", "p1", "p2"] = "auto"  # the FEM solid's (FemParams.element)
+    element: Literal["auto", "p1", "anp", "p2"] = "auto"  # the FEM solid's (FemParams.element)
     if opts.mesh == "balloon":
         if not 0 <= opts.subdivisions <= 7:
             raise ValueError("--subdivisions must be in [0, 7]")
@@ -632,7 +632,7 @@ def _build_fem(
     mesh: Any,
     rates: Rates,
     scale: float,
-    element: Literal["auto", "p1", "p2"] = "auto",
+    element: Literal["auto", "p1", "anp", "p2"] = "auto",
     p1_mesh: Any = None,
 ) -> Any:
     """The FEM solid of ``--object fem`` (:func:`build_world`); E is multiplied by ``scale``;
@@ -641,8 +641,8 @@ def _build_fem(
     With inclusions, ``mesh`` the parent sphere of a P2 solid and ``p1_mesh`` the sphere shown:
     the inclusions' surfaces refine the volume mesh around them, so where its P2 solid would
     have more than :data:`server.objects.fem.P2_MAX_NODES` nodes (the start-up took 61 s with
-    two 162-vertex lumps, 23 s with 42-vertex ones; docs/palpation.md) the solid is P1 on
-    ``p1_mesh`` instead."""
+    two 162-vertex lumps, 23 s with 42-vertex ones; docs/palpation.md) the solid is linear, with
+    averaged nodal pressure, on ``p1_mesh`` instead."""
     from haptic_collab.server.objects.fem import (
         P2_MAX_NODES,
         FemParams,
@@ -682,12 +682,13 @@ def _build_fem(
         if p2_nodes > P2_MAX_NODES:
             log.info(
                 "FEM solid: the inclusions refine the volume mesh to %d quadratic (P2) nodes, "
-                "more than %d: linear tetrahedra (P1) on the %d-vertex sphere",
+                "more than %d: linear tetrahedra with averaged nodal pressure on the %d-vertex "
+                "sphere",
                 p2_nodes,
                 P2_MAX_NODES,
                 len(p1_mesh.vertices),
             )
-            mesh, params = p1_mesh, replace(params, element="p1")
+            mesh, params = p1_mesh, replace(params, element="anp")
             volume = volume_with_inclusions(
                 mesh, inclusions, cache_dir=opts.volume_cache, max_edge_m=edge
             )

@@ -19,7 +19,12 @@ the pad, which P2's quadratic surface supplies. The nodes are ordered so that th
 comes first: the mesh's ``n`` corner vertices, then its edges' midpoints; the shown surface is
 the given one with every face split in four, and the patches, the viewer stream and the World
 work on it. "auto" (the default) takes P2 when it has at most :data:`P2_MAX_NODES` nodes and
-P1 (linear, four-node, the surface shown as given) otherwise;
+otherwise linear, four-node tetrahedra with averaged nodal pressure ("anp", Bonet and Burton
+1998; :func:`server.objects.fem_elements.nodal_pressure_operators`), the surface shown as
+given: plain linear ones ("p1", kept for comparison) lock, 37 % too stiff at nu 0.49 on the
+default sphere, where these are 4-6 % soft at nu 0.3-0.49 (docs/fem.md, "Linear tetrahedra
+with averaged nodal pressure"). Their stiffness ``K_dev + D^T C^-1 D`` is factored in its mixed
+form (:class:`server.objects.sparse_factor.SaddlePointFactor`), about twice P1's factor;
 :func:`sphere_for_solid` builds the default sphere of ``N`` shown vertices from its parent
 icosphere with P2.
 
@@ -156,6 +161,7 @@ from haptic_collab.server.objects.fem_elements import (
     element_gravity_loads,
     element_lumped_mass,
     element_stiffness_matrix,
+    nodal_pressure_operators,
     quadratic_mesh,
     rotation_operator,
     warped,
@@ -163,7 +169,11 @@ from haptic_collab.server.objects.fem_elements import (
 from haptic_collab.server.objects.mesh import MeshError
 from haptic_collab.server.objects.mode_cache import load_modes, modes_key, store_modes
 from haptic_collab.server.objects.patches import PatchCache, PatchCentres, PatchedSurface
-from haptic_collab.server.objects.sparse_factor import factor_spd, nested_dissection
+from haptic_collab.server.objects.sparse_factor import (
+    SaddlePointFactor,
+    factor_spd,
+    nested_dissection,
+)
 from haptic_collab.server.objects.volume import (
     check_volume_mesh,
     default_cache_dir,
@@ -189,7 +199,7 @@ GRAVITY_MAX_M_S2 = 100.0
 SAG_WARN_SHARE = 0.15
 
 #: The FEM solid's tetrahedra (:attr:`FemParams.element`).
-Element = Literal["auto", "p1", "p2"]
+Element = Literal["auto", "p1", "anp", "p2"]
 
 #: Poisson's ratio: above -1 and below 0.5 (0.5 is incompressible, which P1 elements cannot do).
 Poisson = Annotated[float, Field(gt=-1.0, lt=0.5, allow_inf_nan=False, strict=True)]
@@ -230,9 +240,9 @@ _RIM = 0.95
 _SPLITS = 12
 
 #: ``element = "auto"`` takes quadratic (P2) tetrahedra when they have at most this many nodes,
-#: else linear ones: the liver sphere's P2 solid on its 642-vertex parent has 5744 nodes and a
-#: factor of about 14 M non-zeros; a mesh of 12000 P2 nodes is about three times that
-#: (docs/fem.md, "Quadratic tetrahedra").
+#: else linear ones with averaged nodal pressure: the liver sphere's P2 solid on its 642-vertex
+#: parent has 5744 nodes and a factor of about 14 M non-zeros; a mesh of 12000 P2 nodes is about
+#: three times that (docs/fem.md, "Quadratic tetrahedra").
 P2_MAX_NODES = 12000
 
 
@@ -319,10 +329,12 @@ class FemParams:
         Gravitational acceleration g [m/s^2] along -z of the object's frame, in [0,
         :data:`GRAVITY_MAX_M_S2`] (0, the default: no weight). With g > 0 the solid's rest state
         is the one it sags to under its own weight (module docstring, "Gravity").
-    element : {"auto", "p1", "p2"}
+    element : {"auto", "p1", "anp", "p2"}
         The tetrahedra (module docstring, "Elements"): "p2" quadratic, ten-node, the surface
-        shown split four ways; "p1" linear, four-node, the surface shown as meshed; "auto" (the
-        default) P2 when its mesh has at most :data:`P2_MAX_NODES` nodes, else P1.
+        shown split four ways; "anp" linear, four-node, with averaged nodal pressure, the
+        surface shown as meshed; "p1" the same without (it locks near incompressibility);
+        "auto" (the default) P2 when its mesh has at most :data:`P2_MAX_NODES` nodes, else
+        "anp".
     volume_edge_pads : float or None
         A volume size limit tied to the finger pad: no tetrahedron larger than the regular one
         of edge ``volume_edge_pads * patch_radius_m`` (TetGen's switch ``a``), > 0; None:
@@ -630,12 +642,13 @@ class FemSolid(PatchedSurface):
             )
         #: the P1 volume mesh the solid was built from (TetGen's, or ``volume``)
         self.linear_nodes, self.linear_tets = nodes, tets
-        #: the element used: "p1" (linear) or "p2" (quadratic; module docstring, "Elements")
+        #: the element used: "p1" (linear), "anp" (linear, averaged nodal pressure) or "p2"
+        #: (quadratic; module docstring, "Elements")
         self.element = "p1"
         elements = tets
         n = len(verts)
         self._faces6: IntArray | None = None  # P2: each surface face's 6 nodes
-        if p.element != "p1":
+        if p.element in ("auto", "p2"):
             nodes2, elements2, n2, shown = quadratic_mesh(nodes, tets, faces)
             if p.element == "p2" or len(nodes2) <= P2_MAX_NODES:
                 m = len(faces)
@@ -648,12 +661,15 @@ class FemSolid(PatchedSurface):
                 verts = np.ascontiguousarray(nodes[:n])
                 mesh = trimesh.Trimesh(verts, faces, process=False)
             else:
+                self.element = "anp"
                 log.info(
-                    "FEM solid: linear tetrahedra (P1): quadratic ones would have %d nodes, "
-                    'more than %d (docs/fem.md, "Quadratic tetrahedra")',
+                    "FEM solid: linear tetrahedra with averaged nodal pressure: quadratic ones "
+                    'would have %d nodes, more than %d (docs/fem.md, "Quadratic tetrahedra")',
                     len(nodes2),
                     P2_MAX_NODES,
                 )
+        elif p.element == "anp":
+            self.element = "anp"
         #: (N, 3) [m] every node (P2: corners and mid-edge nodes); the first ``n_vertices`` are
         #: the surface shown
         self.nodes = nodes
@@ -685,7 +701,6 @@ class FemSolid(PatchedSurface):
         self.fixed_nodes = fixed
 
         lam, mu = materials.lame if materials is not None else p.lame
-        k_full = element_stiffness_matrix(nodes, elements, lam, mu)
         free_nodes = np.flatnonzero(~fixed)
         width = elements.shape[1]
         adjacency = sp.coo_matrix(
@@ -695,15 +710,36 @@ class FemSolid(PatchedSurface):
             ),
             shape=(n_nodes, n_nodes),
         ).tocsr()
-        node_order = free_nodes[
-            nested_dissection(adjacency[free_nodes][:, free_nodes], nodes[free_nodes])
-        ]
-        self._dofs = (3 * node_order[:, None] + np.arange(3)).ravel()  # free dof of each row
-        k_free = sp.csc_matrix(k_full[self._dofs][:, self._dofs])
+        factor: spla.SuperLU | SaddlePointFactor
+        if self.element == "anp":
+            # every node carries a pressure, the fixed ones too: order all nodes, each node's
+            # free displacements then its pressure (the mixed form's fill is P1's)
+            k_dev, d, c = nodal_pressure_operators(nodes, elements, lam, mu)
+            every = nested_dissection(adjacency, nodes)
+            rank = np.empty(n_nodes, dtype=np.int64)
+            rank[every] = np.arange(n_nodes)
+            node_order = every[~fixed[every]]
+            self._dofs = (3 * node_order[:, None] + np.arange(3)).ravel()
+            a = sp.csc_matrix(k_dev[self._dofs][:, self._dofs])
+            b = sp.csr_matrix(d[:, self._dofs])
+            k_free = sp.csc_matrix(a + b.T @ sp.diags(1.0 / c) @ b)
+            mixed_key = np.concatenate([4 * rank[self._dofs // 3] + self._dofs % 3, 4 * rank + 3])
+            self.timings["assembly_s"] = time.perf_counter() - clock - self.timings["volume_mesh_s"]
+            clock = time.perf_counter()
+            factor = SaddlePointFactor(a, b, c, np.argsort(mixed_key, kind="stable"))
+        else:
+            k_full = element_stiffness_matrix(nodes, elements, lam, mu)
+            node_order = free_nodes[
+                nested_dissection(adjacency[free_nodes][:, free_nodes], nodes[free_nodes])
+            ]
+            self._dofs = (3 * node_order[:, None] + np.arange(3)).ravel()  # free dof of each row
+            k_free = sp.csc_matrix(k_full[self._dofs][:, self._dofs])
+            self.timings["assembly_s"] = time.perf_counter() - clock - self.timings["volume_mesh_s"]
+            clock = time.perf_counter()
+            factor = factor_spd(k_free)
+        #: the stiffness on the free degrees of freedom, in the factor's row order [N/m]
         self._k_free = k_free
-        self.timings["assembly_s"] = time.perf_counter() - clock - self.timings["volume_mesh_s"]
-        clock = time.perf_counter()
-        self._lu = factor_spd(k_free)
+        self._lu = factor
         self.timings["factor_s"] = time.perf_counter() - clock
         # surface dof (3n) -> factored row, -1 if fixed
         row_of = np.full(3 * n_nodes, -1, dtype=np.int64)

@@ -13,6 +13,9 @@ ten-node ``elements`` (T, 10) from :func:`quadratic_mesh`), used once when
   four-point rule exact for its linear strain), :func:`element_stiffness_matrix` either: the
   isotropic small-strain elastic stiffness ``K`` (3N x 3N) [N/m] with Lame's constants
   (Zienkiewicz, Taylor and Zhu 2013, ch. 6), the object's stiffness behind the paper's eq. (6);
+- :func:`nodal_pressure_operators`: the linear tetrahedron with averaged nodal pressure (Bonet
+  and Burton 1998), which does not lock near incompressibility: the deviatoric stiffness and
+  the nodal volume change and compliance of its mixed form;
 - :func:`lumped_mass` (a quarter of each P1 element's mass on each node) and
   :func:`element_lumped_mass` (P2: HRZ lumping, Hinton, Rock and Zienkiewicz 1976);
 - :func:`gravity_loads` and :func:`element_gravity_loads`: the consistent nodal loads of the
@@ -158,6 +161,49 @@ def stiffness_matrix(
     n = 3 * len(nodes)
     k = sp.coo_matrix((ke.reshape(-1), (rows, cols)), shape=(n, n)).tocsr()
     return (0.5 * (k + k.T)).tocsr()
+
+
+def nodal_pressure_operators(
+    nodes: FloatArray, tets: IntArray, lam: float | FloatArray, mu: float | FloatArray
+) -> tuple[sp.csr_matrix, sp.csr_matrix, FloatArray]:
+    """The averaged nodal pressure tetrahedron (Bonet and Burton 1998): linear tetrahedra whose
+    volume change is averaged over each node's elements, so they do not lock as nu -> 0.5.
+
+    Each element's strain energy is split into a deviatoric part, kept per element (``mu``), and
+    a volumetric part, which lives at the nodes: node ``a``'s volume change is ``(D u)_a = sum_e
+    (V_e / 4) div(u)_e`` over its elements, and its pressure ``p_a = (D u)_a / c_a`` with the
+    compliance ``c_a = sum_e V_e / (4 kappa_e)`` (``kappa = lambda + 2 mu / 3``, the bulk modulus;
+    for one material ``c_a = V_a / kappa``, ``V_a`` the node's quarter-volumes). The stiffness
+    is ``K = K_dev + D^T diag(1 / c) D``; the solid factors its mixed form ``[[K_dev, D^T], [D,
+    -diag(c)]]`` instead (:class:`server.objects.sparse_factor.SaddlePointFactor`), whose fill is
+    about that of P1 while ``K`` itself couples every node's neighbours' neighbours.
+
+    Parameters
+    ----------
+    nodes : (N, 3) float [m]; tets : (T, 4) int, positively oriented.
+    lam, mu : float or (T,) float
+        Lame's constants [Pa], one pair for every element or one per element (inclusions).
+
+    Returns
+    -------
+    (k_dev (3N, 3N) csr [N/m], d (N, 3N) csr [m^2], c (N,) float [m^3/Pa])
+        ``k_dev`` is :func:`stiffness_matrix` with ``lambda = -2 mu / 3`` (the deviatoric
+        energy ``mu |dev eps|^2``); ``d`` maps displacements [m] to nodal volume changes [m^3].
+    """
+    g, vol = element_gradients(nodes, tets)
+    lam_e = np.broadcast_to(np.asarray(lam, dtype=np.float64), vol.shape)
+    mu_e = np.broadcast_to(np.asarray(mu, dtype=np.float64), vol.shape)
+    k_dev = stiffness_matrix(nodes, tets, -2.0 * mu_e / 3.0, mu_e)
+    kappa = lam_e + 2.0 * mu_e / 3.0
+    n = len(nodes)
+    dof = (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(len(tets), 12)
+    quarter = g.reshape(len(tets), 12) * (vol / 4.0)[:, None]  # (V_e / 4) div_e, per dof
+    rows = np.repeat(tets, 12, axis=1).ravel()  # each corner a of e gets e's whole row
+    cols = np.tile(dof, (1, 4)).ravel()
+    vals = np.tile(quarter, (1, 4)).ravel()
+    d = sp.coo_matrix((vals, (rows, cols)), shape=(n, 3 * n)).tocsr()
+    c = np.bincount(tets.ravel(), weights=np.repeat(vol / (4.0 * kappa), 4), minlength=n)
+    return k_dev, d, np.asarray(c, dtype=np.float64)
 
 
 def lumped_mass(nodes: FloatArray, tets: IntArray, density: float | FloatArray) -> FloatArray:

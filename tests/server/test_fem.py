@@ -63,9 +63,10 @@ def test_a_block_pressed_by_the_finger_pad_is_as_stiff_as_a_flat_punch_and_scale
     params = FemParams(young_pa=5.0e3, poisson=0.3, n_modes=0)
     with caplog.at_level("INFO", logger="haptic.server.fem"):
         solid = FemSolid(block, params, cache_dir=cache)
-    # about 65000 P2 nodes: linear elements, the surface shown as given, and the log says so
-    assert solid.element == "p1" and solid.n_vertices == len(block.vertices)
-    assert "linear tetrahedra (P1)" in caplog.text
+    # about 65000 P2 nodes: linear elements with averaged nodal pressure, the surface shown as
+    # given, and the log says so
+    assert solid.element == "anp" and solid.n_vertices == len(block.vertices)
+    assert "linear tetrahedra with averaged nodal pressure" in caplog.text
     k = _top_stiffness(solid)
     punch = 2.0 * params.patch_radius_m * params.young_pa / (1.0 - params.poisson**2)
     # a finite block fixed at its bottom and 6 mm linear elements are stiffer than the
