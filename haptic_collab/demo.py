@@ -310,9 +310,11 @@ def closing_lines(
 
 
 #: How long the demo waits for its server to listen [s]: a FEM solid's start-up (volume mesh,
-#: factor and modes) is 15-30 s on a quiet 2-core machine and several times that under load
-#: (docs/fem.md, "Cost of the quadratic elements").
-SERVER_START_TIMEOUT_S = 180.0
+#: factor and modes) is 15-30 s for the default sphere on a quiet 2-core machine and several
+#: times that under load (docs/fem.md, "Cost of the quadratic elements"); the largest stress
+#: shape's first start-up is about 230 s quiet (docs/fem.md, "Linear tetrahedra with averaged
+#: nodal pressure"; its modes are cached for the next).
+SERVER_START_TIMEOUT_S = 600.0
 
 #: ``--scenario`` choices.
 SCENARIOS = ("press", "palpation")
