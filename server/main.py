@@ -568,7 +568,7 @@ def build_world(opts: ServerOptions, rates: Rates | None = None):  # type: ignor
         log.warning("%s", warning)
     if opts.object == "fem":
         # with inclusions, P2 on the parent sphere unless their refinement makes it too large:
-        # then P1 on the sphere shown (_build_fem)
+        # then linear tetrahedra (averaged nodal pressure) on the sphere shown (_build_fem)
         p1_mesh = shown if opts.mesh == "balloon" and mesh is not shown else None
         return world_around(
             _build_fem(opts, mesh, rates, scale, element, p1_mesh=p1_mesh), opts, rates
