@@ -174,6 +174,34 @@ def test_the_solid_with_a_lump_is_stiffer_over_it_as_its_elements_say(ball, cach
     assert 1.0 / float(b @ spla.spsolve(k, b)) == pytest.approx(k_lump, rel=1e-9)
 
 
+def test_a_lump_is_felt_on_the_linear_elements_with_averaged_nodal_pressure_too(ball, cache):
+    # the element of a mesh too large for P2: each node's pressure takes the compliances of its
+    # elements in series, so a lump of the solid's own material changes nothing and a stiff one
+    # is felt over it
+    from dataclasses import replace
+
+    from haptic_collab.server.objects.fem import FemParams, FemSolid
+    from haptic_collab.server.solid_materials import solid_to_params
+
+    lump = _lump((0.0, 0.0, 0.07), 0.015, subdivisions=1)
+    nodes, tets = volume_with_inclusions(ball, [lump], cache_dir=cache)
+    params = replace(
+        solid_to_params(LIVER, FemParams()), density_kg_m3=0.0, warp=False, element="anp"
+    )
+    top = int(np.argmax(ball.vertices[:, 2]))
+
+    def k_top(materials):
+        solid = FemSolid(ball, params, volume=(nodes, tets), materials=materials)
+        assert solid.element == "anp"
+        return float(solid.contact_stiffness([top])[0])
+
+    plain = k_top(None)
+    same_material = _lump((0.0, 0.0, 0.07), 0.015, LIVER, subdivisions=1)
+    same = k_top(element_materials(nodes, tets, LIVER, [same_material]))
+    assert same == pytest.approx(plain, rel=1e-9)
+    assert k_top(element_materials(nodes, tets, LIVER, [lump])) > (1.0 + STIFFNESS_JND) * plain
+
+
 def test_a_large_stiff_lump_is_felt_through_the_liver_and_a_deep_one_is_not(cache):
     """Over a 30 mm lump ten times as stiff as liver, its top 10 mm under the surface, the finger
     pad meets a surface stiffer than beside it (over its twin of liver) by more than a stiffness
