@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from haptic_collab.demo import SERVER_START_TIMEOUT_S
+
 ROOT = Path(__file__).resolve().parents[1]
 MESHES = ROOT / "tests" / "data" / "meshes"
 HAPTIC = str(Path(sys.executable).with_name("haptic"))
@@ -122,7 +124,9 @@ def run_demo(
         cmd = [HAPTIC, "demo", "--headless", "--duration", f"{duration:g}", "--port", "0"]
         cmd += ["--report", str(report), "--workdir", str(work), *args, *extra]
         start = time.monotonic()
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=duration + 120)
+        # the demo waits up to SERVER_START_TIMEOUT_S for a FEM solid's start-up, then runs
+        limit = duration + SERVER_START_TIMEOUT_S + 60.0
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=limit)
         row: dict = {"mesh": label, "run": run, "latency": "50 +- 10 ms" if latency else "none"}
         row["wall_s"] = round(time.monotonic() - start, 1)
         if not report.is_file():  # exit 1 or 3 with a report is a verdict, not an error
