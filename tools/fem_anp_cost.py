@@ -22,7 +22,6 @@ import time
 from dataclasses import replace
 from typing import Any
 
-import numpy as np
 import trimesh
 
 from haptic_collab.bench.world import single_thread_blas
@@ -31,6 +30,7 @@ from haptic_collab.server.objects.fem import FemParams, FemSolid
 from haptic_collab.server.objects.mesh import default_balloon
 from haptic_collab.server.objects.shapes import STRESS_MESHES, stress_mesh
 from haptic_collab.server.solid_materials import SOLID_PRESETS, solid_to_params
+from tools.fem_p2_cost import patch_solves_ms
 
 
 def surfaces(names: list[str]) -> dict[str, trimesh.Trimesh]:
@@ -44,12 +44,7 @@ def measure(surface: trimesh.Trimesh, params: FemParams, cache: str) -> dict[str
     start = time.perf_counter()
     solid = FemSolid(surface, params, cache_dir=cache)
     startup = time.perf_counter() - start
-    centres = solid._centres.centres
-    solves = []
-    for key in centres[np.linspace(0, len(centres) - 1, 10).astype(int)]:
-        t = time.perf_counter()
-        solid._solve_patches([int(key)])
-        solves.append(1e3 * (time.perf_counter() - t))
+    solves = patch_solves_ms(solid, count=10)
     top, side = top_side_stiffness(solid)
     return {
         "element": solid.element,

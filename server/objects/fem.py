@@ -701,7 +701,6 @@ class FemSolid(PatchedSurface):
         self.fixed_nodes = fixed
 
         lam, mu = materials.lame if materials is not None else p.lame
-        free_nodes = np.flatnonzero(~fixed)
         width = elements.shape[1]
         adjacency = sp.coo_matrix(
             (
@@ -710,7 +709,7 @@ class FemSolid(PatchedSurface):
             ),
             shape=(n_nodes, n_nodes),
         ).tocsr()
-        factor: spla.SuperLU | SaddlePointFactor
+        mixed: tuple[sp.csc_matrix, sp.csr_matrix, FloatArray, IntArray] | None = None
         if self.element == "anp":
             # every node carries a pressure, the fixed ones too: order all nodes, each node's
             # free displacements then its pressure (the mixed form's fill is P1's)
@@ -724,22 +723,20 @@ class FemSolid(PatchedSurface):
             b = sp.csr_matrix(d[:, self._dofs])
             k_free = sp.csc_matrix(a + b.T @ sp.diags(1.0 / c) @ b)
             mixed_key = np.concatenate([4 * rank[self._dofs // 3] + self._dofs % 3, 4 * rank + 3])
-            self.timings["assembly_s"] = time.perf_counter() - clock - self.timings["volume_mesh_s"]
-            clock = time.perf_counter()
-            factor = SaddlePointFactor(a, b, c, np.argsort(mixed_key, kind="stable"))
+            mixed = (a, b, c, np.argsort(mixed_key, kind="stable"))
         else:
             k_full = element_stiffness_matrix(nodes, elements, lam, mu)
+            free_nodes = np.flatnonzero(~fixed)
             node_order = free_nodes[
                 nested_dissection(adjacency[free_nodes][:, free_nodes], nodes[free_nodes])
             ]
             self._dofs = (3 * node_order[:, None] + np.arange(3)).ravel()  # free dof of each row
             k_free = sp.csc_matrix(k_full[self._dofs][:, self._dofs])
-            self.timings["assembly_s"] = time.perf_counter() - clock - self.timings["volume_mesh_s"]
-            clock = time.perf_counter()
-            factor = factor_spd(k_free)
         #: the stiffness on the free degrees of freedom, in the factor's row order [N/m]
         self._k_free = k_free
-        self._lu = factor
+        self.timings["assembly_s"] = time.perf_counter() - clock - self.timings["volume_mesh_s"]
+        clock = time.perf_counter()
+        self._lu = SaddlePointFactor(*mixed) if mixed is not None else factor_spd(k_free)
         self.timings["factor_s"] = time.perf_counter() - clock
         # surface dof (3n) -> factored row, -1 if fixed
         row_of = np.full(3 * n_nodes, -1, dtype=np.int64)
