@@ -440,8 +440,13 @@ class World:
         for name, s, (rest_point, rest_normal) in zip(names, located, materials, strict=True):
             user = self._users.get(name)
             rest_planes.append(self._rest_plane(s, rest_point) if len(names) == 1 else None)
+            # a probe in free space may keep a solved patch while its own is solved ahead
+            # (PatchedSurface.patch_key): the tick never waits for a hand moving in the air
+            free = s.penetration_m <= -self.proximity_m
             patch_keys.append(
-                self.obj.patch_key(rest_point, user.key if user is not None else None, rest_normal)
+                self.obj.patch_key(
+                    rest_point, user.key if user is not None else None, rest_normal, free=free
+                )
             )
         # Step 2 inputs: K_o, B_o and the coupling-aware K_o_eff.
         compliance = self.obj.contact_compliance(patch_keys)

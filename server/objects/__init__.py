@@ -55,6 +55,7 @@ class AdmittanceObject(Protocol):
         point: npt.ArrayLike,
         previous: int | None = None,
         normal: npt.ArrayLike | None = None,
+        free: bool = False,
     ) -> int: ...
 
     def step(self, keys: Sequence[int], forces_n: npt.ArrayLike) -> None: ...

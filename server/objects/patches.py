@@ -11,6 +11,7 @@ Nothing here uses threads, sockets or clocks.
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any, Generic, TypeVar
@@ -265,10 +266,19 @@ class PatchedSurface:
         point: npt.ArrayLike,
         previous: int | None = None,
         normal: npt.ArrayLike | None = None,
+        free: bool = False,
     ) -> int:
         """Cache key of the load patch for a contact at ``point`` (3,) [m]: the nearest centre.
 
         See :meth:`PatchCentres.key` (hysteresis with ``previous``, the side facing ``normal``).
+        With patches solved ahead (:attr:`stand_in_m` > 0), a centre not solved yet is stood in
+        for by a solved one within :attr:`stand_in_m`; for a probe in ``free`` space (not
+        touching, nor within the world's proximity of the surface), where nothing is pushed and
+        the patch only reports K_o and B_o ahead of a touch, by ``previous`` if solved, else by
+        the nearest solved centre facing the same side at any distance: a hand moving through
+        the air outruns the solves ahead, and each miss solved in the tick stalled every user's
+        tick (40-60 ms on the palpation solid), which a client measures as a longer round trip
+        (docs/fem.md, "A hand in the air"). Its own centre is solved ahead first.
 
         Raises
         ------
@@ -277,14 +287,21 @@ class PatchedSurface:
         """
         k = self._centres.key(point, previous, normal)
         if self.stand_in_m > 0.0 and self._cache.peek(k) is None:
-            for c in self._centres.around(k, self.stand_in_m):
+            if free and previous is not None and self._cache.peek(int(previous)) is not None:
+                return self._stand_in(k, int(previous))
+            reach = math.inf if free else self.stand_in_m
+            for c in self._centres.around(k, reach):
                 if self._cache.peek(int(c)) is not None:
-                    self.stand_ins += 1
-                    if self._wanted is None:
-                        self._wanted = {}
-                    self._wanted[k] = None
-                    return int(c)
+                    return self._stand_in(k, int(c))
         return k
+
+    def _stand_in(self, wanted: int, solved: int) -> int:
+        """``solved`` loads the contact whose centre ``wanted`` is solved ahead first."""
+        self.stand_ins += 1
+        if self._wanted is None:
+            self._wanted = {}
+        self._wanted[wanted] = None
+        return solved
 
     #: With patches solved ahead (``server.prefetch``): a contact whose centre is not solved yet
     #: is loaded, for the ticks until it is, at the nearest solved centre within this distance

@@ -137,4 +137,7 @@ def test_the_palpation_demo_a_feels_the_lump_b_feels_the_sweep_and_both_stay_sta
     # A felt the lump: the same depth under the surface takes more force over it, by more than a
     # stiffness JND (the static solid: +20.5 %). The demo's default 30 s run felt +21.6 to
     # +23.3 % in 9 of 9 runs, quiet or beside two spinning processes (docs/palpation.md)
-    assert p["felt"] and p["rise"] > STIFFNESS_JND, p
+    assert p["felt"] and p["rise"] > STIFFNESS_JND, (
+        f"rise {p['rise']}, over {p['a_over']}, beside {p['a_beside']}, A's delay "
+        f"{run['users']['A']['delay_ticks_last']} ticks, server {run['server']}"
+    )

@@ -131,3 +131,36 @@ def test_a_fast_contact_borrows_a_solved_neighbour_and_its_own_centre_is_solved_
     finally:
         prefetcher.close()
     assert obj.stand_in_m == 0.0  # closed: contacts get their own centres again
+
+
+def test_a_hand_moving_in_the_air_costs_the_tick_no_solve_and_touches_its_own_patch():
+    """A probe 2 cm above the surface sweeping a quarter of the way round it (faster than the
+    ring solved ahead) keeps solved patches meanwhile, so no tick waits for a sparse solve (each
+    one 40-60 ms on the palpation solid); a probe in contact still gets its own centre's solve."""
+    world = World(Balloon())
+    prefetcher = PatchPrefetcher(world)
+    obj = world.obj
+    try:
+        _slide(world, 1, 0.0)
+        _drain(prefetcher, world)
+        before = obj.solve_count
+        keys = []
+        for k in range(1, 30):
+            phi = k * (np.pi / 2) / 30
+            probe = (R + 0.02) * np.array([np.sin(phi), 0.0, np.cos(phi)])
+            out = world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})
+            assert not out["u"].in_contact and out["u"].k_o > 0.0
+            keys.append(world._users["u"].key)
+            prefetcher.after_tick()
+        assert obj.solve_count == before  # not one sparse solve on a tick
+        assert len(set(keys)) > 1  # its patch followed as the solves ahead came in
+        # the hand comes down: in contact at the side, where the ring around it is not solved
+        _drain(prefetcher, world)
+        probe = (R - 0.003) * np.array([1.0, 0.0, 0.0])
+        obj._cache._entries.clear()
+        world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})
+        own = obj.patch_key(probe, None, probe / np.linalg.norm(probe))
+        assert world._users["u"].key == own  # nothing solved near it: the tick solved its own
+        assert obj.solve_count > before
+    finally:
+        prefetcher.close()
