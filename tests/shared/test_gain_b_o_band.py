@@ -130,3 +130,46 @@ def test_the_client_keeps_a_bands_check_for_the_next_b_o_as_the_server_does():
     assert (up.k_h, up.own_gain) == (found.k_h, found.own_gain)
     assert up.choice.source == "interim"  # checked for its own key, by the band
     assert (s.gain_key(25.0, key.delay_ticks, key.stiff_ratio), cell) in s.interim
+
+
+def test_the_clients_link_checks_the_band_after_the_waiting_patch_has_its_gains():
+    """The link (``haptic client``) renders the first damped contact with its check's gains, then
+    checks them over the band: the session then holds them for every B_o of the band."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from haptic_collab.client.link import Link
+    from haptic_collab.client.session import ClientSession
+    from haptic_collab.shared.protocol import Welcome, encode
+    from tests.support.sessions import WELCOME_OBJECT, press_patch
+
+    s = ClientSession("A", device=DeviceInfo(max_stiffness_n_per_m=1000.0), b_h_max=10.0)
+    welcome = Welcome(user_id="u1", name="A", role="user", sim_rate_hz=20.0, object=WELCOME_OBJECT)
+    s.receive(encode(welcome), 0.0)
+    got = []
+    design_pool, check_pool = ThreadPoolExecutor(max_workers=1), ThreadPoolExecutor(max_workers=1)
+
+    async def go() -> None:
+        link = Link(
+            "ws://127.0.0.1:1/ws", s, on_patch=lambda u, t: got.append(u), sample=lambda: None,
+            clock=lambda: 1.0, design_executor=design_pool, check_executor=check_pool,
+        )  # fmt: skip
+        assert s.receive(press_patch(1, 0.5, 240.0, k_o=240.0, b_o=20.0), 0.5) is None
+        link._start_check()
+        assert link._check_task is not None
+        try:
+            await asyncio.wait_for(link._check_task, 30.0)
+        finally:
+            link.close()
+
+    try:
+        asyncio.run(go())
+    finally:
+        for pool in (design_pool, check_pool):
+            pool.shutdown(wait=True, cancel_futures=True)
+    assert len(got) == 1 and got[0].choice.verified  # the waiting patch, with its check's gains
+    cell = s.gain_table.cell(240.0)
+    key = s.gain_key(20.0, 0)
+    assert s.interim[(key, cell)] is not None
+    band = [b for b in range(0, 80) if (replace(key, b_o=float(b)), cell) in s.interim]
+    assert band == list(range(16, 33))
