@@ -60,7 +60,6 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from haptic_collab.client.session import ClientSession, ServoSample, warm_up_worker
 from haptic_collab.client.workers import background_worker, check_worker, stop_pool, timed
-from haptic_collab.shared.gains.b_o_band import b_o_band, check_band
 from haptic_collab.shared.gains.choose import PLANE_ALONE, likely_next, table_design
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.interim import interim_design
@@ -501,19 +500,6 @@ class Link:
                 for nk, nc in likely_next(key, cell):
                     self._queue_check(nk, nc, (d,), ahead=True)
                 self._start_check()
-            # then the band of object damping the gains also hold for (a hand sliding over a
-            # damped solid changes B_o by whole N/m: shared.gains.b_o_band), once the patch
-            # that waited for them has them
-            # (in the worker, never the first check's thread, which shares this process's lock)
-            band_executor = self._checker if executor is self._first_pool else executor
-            if b_o_band(key.b_o) is not None and band_executor is not None:
-                try:
-                    banded = await loop.run_in_executor(
-                        band_executor, check_band, key, cell, d, table.grid_ratio, table.hand_box
-                    )
-                except Exception:  # a broken worker: the gains hold for their own key
-                    continue
-                session.store_interim_band(key, cell, banded)
 
     def _checker_ready(self) -> bool:
         """The check worker has started and imported the design code (a given executor: yes)."""

@@ -39,7 +39,6 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from haptic_collab.shared.full_loop import monodromy
-from haptic_collab.shared.gains.b_o_band import BandedGains
 from haptic_collab.shared.gains.choose import (
     PLANE_ALONE,
     CheckJob,
@@ -574,12 +573,6 @@ class ClientSession:
     def store_interim(self, key: GainKey, cell: int, design: GainDesign) -> None:
         """Keep verified interim gains (from :func:`shared.gains.interim.interim_design`) for (key, cell)."""
         self.interim[(key, cell)] = design
-
-    def store_interim_band(self, key: GainKey, cell: int, banded: BandedGains) -> None:
-        """Keep interim gains checked over a band of B_o (:func:`shared.gains.b_o_band.check_band`
-        of those found for ``key``) for every key of the band that has none yet."""
-        for k in banded.keys(key):
-            self.interim.setdefault((k, cell), banded.design)
 
     def interim_failed(self, key: GainKey, cell: int) -> None:
         """No interim gains were found for (key, cell): its patches wait for the design."""

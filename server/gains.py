@@ -29,7 +29,6 @@ import numpy as np
 from haptic_collab.client.workers import timed
 from haptic_collab.server.contact_stiffness import coupled_groups
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
-from haptic_collab.shared.gains.b_o_band import BandedGains, check_band
 from haptic_collab.shared.gains.choose import (
     VERIFIED_SOURCES,
     DesignJob,
@@ -526,8 +525,6 @@ class GainAdvisor:
         another, and the cell it is in now matters more than the ones it has left (those are
         still designed later, when nothing newer waits).
         """
-        for job in [j for j in self._queued if j[0] == "interim" and j[1:] in self.interim]:
-            del self._queued[job]  # answered meanwhile by a check over its B_o band
         jobs = [j for j in self._queued if only is None or j[0] == only]
         if not jobs and self._pair_queue and only in (None, "pair"):
             bucket, case = self._pair_queue.popitem()  # the newest
@@ -554,20 +551,12 @@ class GainAdvisor:
         jobs.sort(key=lambda j: {"interim": 0, "design": 1}.get(j.kind, 2))
         return jobs
 
-    def store(self, job: GainJob, design: GainDesign | BandedGains | PairVerdict | None) -> None:
+    def store(self, job: GainJob, design: GainDesign | PairVerdict | None) -> None:
         """Hand back a job's result (None: no gains pass for it; it is not asked again; a pair
-        job's :class:`shared.gains.group.PairVerdict`; an interim check's
-        :class:`shared.gains.b_o_band.BandedGains`, kept for every key of its band where no
-        check of that key is known yet)."""
+        job's :class:`shared.gains.group.PairVerdict`)."""
         if job.kind == "pair":
             if job.pair is not None and (design is None or isinstance(design, PairVerdict)):
                 self.pairs[job.pair.bucket] = design
-            return
-        if isinstance(design, BandedGains):  # an interim check over the key's B_o band
-            if job.kind == "interim":
-                for key in design.keys(job.key):
-                    self.interim.setdefault((key, job.cell), design.design)
-                self.interim[(job.key, job.cell)] = design.design
             return
         if design is None or not isinstance(design, GainDesign):
             return
@@ -577,23 +566,17 @@ class GainAdvisor:
             self.interim[(job.key, job.cell)] = design
 
 
-def run_job(
-    job: GainJob, grid_ratio: float, hand_box: HandBox
-) -> GainDesign | BandedGains | PairVerdict | None:
+def run_job(job: GainJob, grid_ratio: float, hand_box: HandBox) -> GainDesign | PairVerdict | None:
     """Run one :class:`GainJob` (in a worker process: arguments and result pickle).
 
     Returns None when no gains pass (the key is beyond what any local model renders); a pair
-    job's verdict (:func:`shared.gains.group.check_pair`); an interim check's gains with the
-    band of B_o they also hold for (:func:`shared.gains.b_o_band.check_band`).
+    job's verdict (:func:`shared.gains.group.check_pair`).
     """
     try:
         if job.kind == "pair":
             return None if job.pair is None else check_pair(job.pair)
         if job.kind == "design":
             return timed(design_cell, job.key, job.cell, grid_ratio, hand_box)
-        found = timed(
-            interim_design, job.key, job.cell, grid_ratio, hand_box, design_fallback=False
-        )
-        return check_band(job.key, job.cell, found, grid_ratio, hand_box)
+        return timed(interim_design, job.key, job.cell, grid_ratio, hand_box, design_fallback=False)
     except ValueError:
         return None
