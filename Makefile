@@ -87,9 +87,10 @@ unit: $(UNITDEPS)
 	$(PYTEST) -m "not slow"; $(NOTESTS_OK)
 
 # The tests marked `slow`; CI runs them after `make test` (.ci/run).
-# The demos whose verdict a test judges (marked `alone`) run after the others, one at a time: beside
-# the other slow tests on 2 cores their server fell behind and the demo said it could not judge:
-# the palpation demo's test skipped so in both CI runs of 2026-11-28.
+# The demos whose verdict a test judges, and the server's patch rate to the tick (marked `alone`),
+# run after the others, one at a time: beside the other slow tests on 2 cores their server fell
+# behind and the demo said it could not judge: the palpation demo's test skipped so in both CI
+# runs of 2026-11-28.
 unit-slow: $(UNITDEPS)
 	$(PYTEST) -m "slow and not alone"; $(NOTESTS_OK)
 	$(PYTEST_ALONE) -m "slow and alone"; $(NOTESTS_OK)

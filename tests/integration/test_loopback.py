@@ -172,6 +172,8 @@ async def _hostile(url: str) -> dict[str, list]:
     return seen
 
 
+@pytest.mark.alone  # a patch rate to the tick: beside two FEM convergence tests on 2 cores
+# (CI of 3eacebd, 2026-11-28) the in-process server once missed 3 ticks in a row for everyone
 async def test_hostile_input_gets_errors_and_the_other_user_keeps_working():
     app = await start_server(subdivisions=3)
     url = f"ws://127.0.0.1:{app.port}/ws"
