@@ -158,9 +158,9 @@ class SaddlePointFactor:
     (Vanderbei 1995, "Symmetric quasidefinite matrices", SIAM J. Optim. 5(1)), which
     :func:`factor_spd` makes and checks. Eliminating the second block gives back ``x``; the
     condensed matrix is never factored (it couples every unknown's neighbours' neighbours: 6.7
-    times P1's fill on the 11200-node box, where this form has 1.8 times). Used for the FEM solid's averaged nodal pressure
-    (:func:`server.objects.fem_elements.nodal_pressure_operators`: ``A = K_dev``, ``B = D``,
-    ``C = diag(c)``).
+    times P1's fill on the 11200-node box, where this form has 1.8 times). Used for the FEM
+    solid's averaged nodal pressure (:func:`server.objects.fem_elements.nodal_pressure_operators`:
+    ``A = K_dev``, ``B = D``, ``C = diag(c)``).
 
     Parameters
     ----------
