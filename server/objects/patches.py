@@ -189,6 +189,10 @@ class PatchCache(Generic[_S]):
 #: Prefetch looks for uncached patch centres within this many patch spacings of a contact's.
 AHEAD_SPACINGS = 1.6
 
+#: Centres stood in for that wait to be solved ahead at most (the oldest are dropped: a hand
+#: that asked for them has long moved on).
+WANTED_MAX = 32
+
 
 class PatchedSurface:
     """What both deformable objects share: a surface, its patch centres, the patch cache, and
@@ -300,7 +304,10 @@ class PatchedSurface:
         self.stand_ins += 1
         if self._wanted is None:
             self._wanted = {}
-        self._wanted[wanted] = None
+        self._wanted.pop(wanted, None)
+        self._wanted[wanted] = None  # the newest last
+        while len(self._wanted) > WANTED_MAX:  # a hand long gone from the oldest
+            del self._wanted[next(iter(self._wanted))]
         return solved
 
     #: With patches solved ahead (``server.prefetch``): a contact whose centre is not solved yet
@@ -310,23 +317,32 @@ class PatchedSurface:
     stand_in_m: float = 0.0
     #: Contacts loaded at a stand-in centre so far.
     stand_ins: int = 0
-    #: Centres stood in for since the last :meth:`patches_ahead` (solved ahead first).
+    #: Centres stood in for and not handed to :meth:`patches_ahead` yet, oldest first.
     _wanted: dict[int, None] | None = None
 
     def patches_ahead(self, keys: Sequence[int], limit: int) -> list[int]:
-        """Up to ``limit`` uncached centres: those stood in for first (:attr:`stand_in_m`), then
-        around the patch centres ``keys``, each key's nearest first, the keys taken in turn (so
-        every contact gets its next patch)."""
+        """Up to ``limit`` uncached centres: those stood in for first (:attr:`stand_in_m`), the
+        newest first, then around the patch centres ``keys``, each key's nearest first, the keys
+        taken in turn (so every contact gets its next patch).
+
+        A centre stood in for stays asked for until it is handed out here: a hand sweeping
+        through the air asks a new centre every tick, more than one job solves, and the centre
+        it is over now is the one it needs."""
         radius = AHEAD_SPACINGS * float(self.params.patch_spacing_m)
         rings = [self._centres.around(int(k), radius) for k in dict.fromkeys(keys)]
         out: list[int] = []
         seen: set[int] = set()
-        for k in self._cache.missing(list(self._wanted or ())):
-            seen.add(k)
-            out.append(k)
-            if len(out) >= limit:
-                break
-        self._wanted = None
+        if self._wanted:
+            newest_first = list(reversed(self._wanted))
+            for k in self._cache.missing(newest_first):
+                seen.add(k)
+                out.append(k)
+                if len(out) >= limit:
+                    break
+            # the handed-out and the solved leave the queue; the rest wait for the next job
+            for k in newest_first:
+                if k in seen or self._cache.peek(k) is not None:
+                    del self._wanted[k]
         if len(out) >= limit:
             return out
         for depth in range(max((len(r) for r in rings), default=0)):

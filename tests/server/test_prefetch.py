@@ -167,3 +167,47 @@ def test_a_hand_moving_in_the_air_costs_the_tick_no_solve_and_touches_its_own_pa
         assert obj.solve_count > before
     finally:
         prefetcher.close()
+
+
+def test_a_hand_sweeping_past_a_busy_worker_gets_the_centre_it_is_over_solved_first():
+    """The worker is still busy with one job while the hand sweeps over many centres (a slow
+    solve on a busy machine); once it is free, the centre the hand is over now is solved first,
+    and the hand has its own patch without a tick solving it (CI saw it lost: the queue of
+    centres stood in for was cut to one job's worth, the oldest kept)."""
+    import threading
+
+    world = World(Balloon())
+    prefetcher = PatchPrefetcher(world)
+    obj = world.obj
+    release = threading.Event()
+    solve = obj.solve_ahead
+
+    def held(keys):
+        release.wait(10.0)
+        return solve(keys)
+
+    try:
+        _slide(world, 1, 0.0)
+        _drain(prefetcher, world)
+        obj.solve_ahead = held  # type: ignore[method-assign]
+        before = obj.solve_count
+        for k in range(1, 30):
+            phi = k * (np.pi / 2) / 30
+            probe = (R + 0.02) * np.array([np.sin(phi), 0.0, np.cos(phi)])
+            world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})
+            prefetcher.after_tick()
+        own = obj.patch_key(probe, world._users["u"].key, probe / np.linalg.norm(probe))
+        assert world._users["u"].key != own  # stood in for: its own is not solved yet
+        assert prefetcher._job is not None
+        held_job = prefetcher._job
+        release.set()
+        held_job[1].result(timeout=10.0)
+        prefetcher.after_tick()  # stores the held job, starts the next
+        assert prefetcher._job is not None and prefetcher._job[0][0] == own
+        _drain(prefetcher, world)
+        world.tick({"u": ContactInput(probe=probe, force=np.zeros(3))})
+        assert world._users["u"].key == own
+        assert obj.solve_count == before  # no tick solved
+    finally:
+        release.set()
+        prefetcher.close()
