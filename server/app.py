@@ -1382,13 +1382,15 @@ class ServerApp:
 
     def _start_designs(self) -> None:
         """Keep the gain workers busy with the most urgent queued jobs (``GainAdvisor.next_job``):
-        the check worker with interim checks only, the design worker with the most urgent job of
-        any kind (interim checks first, then the newest designs, then pair checks). One job per
+        the check worker with interim checks, and band checks when no interim check waits
+        (:mod:`shared.gains.b_o_band`: two acceptance tests each, so a check asked meanwhile
+        waits at most that), the design worker with the most urgent job of any kind (interim
+        checks first, then band checks, the newest designs, then pair checks). One job per
         worker at a time, so that an urgent check never waits behind a queue of jobs already
         handed to a pool, nor behind a design running. The rooms take turns: each pick starts
         with the room after the one served last."""
         while len(self._check_tasks) < CHECK_WORKERS:
-            picked = self._next_gain_job("interim")
+            picked = self._next_gain_job("interim") or self._next_gain_job("band")
             if picked is None:
                 break
             self._check_tasks.add(asyncio.create_task(self._design(*picked, checks=True)))

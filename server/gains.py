@@ -29,6 +29,7 @@ import numpy as np
 from haptic_collab.client.workers import timed
 from haptic_collab.server.contact_stiffness import coupled_groups
 from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, HandBox
+from haptic_collab.shared.gains.b_o_band import BandedGains, b_o_band, check_band
 from haptic_collab.shared.gains.choose import (
     VERIFIED_SOURCES,
     DesignJob,
@@ -72,19 +73,25 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("haptic.server")
 
-JobKind = Literal["interim", "design", "pair"]
+JobKind = Literal["interim", "band", "design", "pair"]
+
+#: Band checks (:mod:`shared.gains.b_o_band`) waiting at most; the oldest are dropped (a hand
+#: sliding over a damped solid has left their keys).
+BAND_QUEUE = 4
 
 
 @dataclass(frozen=True)
 class GainJob:
     """One piece of design work for the worker: ``kind`` for grid cell ``cell`` of ``key``; a
     ``pair`` job checks ``pair`` (:mod:`shared.gains.group`; ``key`` and ``cell`` are then the
-    partner's)."""
+    partner's); a ``band`` job checks ``design``, the interim gains found for ``key``, over the
+    band of B_o around ``key.b_o`` (:func:`shared.gains.b_o_band.check_band`)."""
 
     kind: JobKind
     key: GainKey
     cell: int
     pair: PairCase | None = None
+    design: GainDesign | None = None
 
 
 @dataclass
@@ -153,6 +160,10 @@ class GainAdvisor:
         self.pair_checks = 0
         self._queued: dict[tuple[JobKind, GainKey, int], None] = {}
         self._asked: set[tuple[JobKind, GainKey, int]] = set()
+        #: Interim gains waiting to be checked over their B_o band, the newest last.
+        self._band_queue: dict[tuple[GainKey, int], GainDesign] = {}
+        #: Keys given interim gains by a band check before their own was asked.
+        self.band_keys = 0
         self._users: dict[str, _User] = {}
         #: Lookups answered with gains / without (no design or interim yet).
         self.hits = 0
@@ -518,14 +529,24 @@ class GainAdvisor:
         when there is none.
 
         Interim checks come first (they let a user's forces come on within a fraction of a
-        second), then designs, then pair checks (:meth:`hold_pairs`: they spare a felt step,
-        where a design replaces interim gains; on the FEM palpation demo, pair checks before
-        designs left B on interim gains for 339 of 400 patches against 174); within a kind the
-        most recently asked first: a user moving over the object asks for one K_o cell after
-        another, and the cell it is in now matters more than the ones it has left (those are
-        still designed later, when nothing newer waits).
+        second), then band checks (a hand sliding over a damped solid changes key with every
+        whole N/m of B_o: interim gains checked over a band spare the keys next to it their
+        own check, :mod:`shared.gains.b_o_band`), then designs, then pair checks
+        (:meth:`hold_pairs`: they spare a felt step, where a design replaces interim gains; on
+        the FEM palpation demo, pair checks before designs left B on interim gains for 339 of
+        400 patches against 174); within a kind the most recently asked first: a user moving
+        over the object asks for one K_o cell after another, and the cell it is in now matters
+        more than the ones it has left (those are still designed later, when nothing newer
+        waits). The server's check worker takes a band check only when no interim check waits
+        (:meth:`server.app.ServerApp._start_designs`).
         """
+        for job in [j for j in self._queued if j[0] == "interim" and j[1:] in self.interim]:
+            del self._queued[job]  # answered meanwhile by a check over its B_o band
         jobs = [j for j in self._queued if only is None or j[0] == only]
+        interim = [j for j in jobs if j[0] == "interim"]
+        if not interim and self._band_queue and only in (None, "band"):
+            (key, cell), design = self._band_queue.popitem()  # the newest
+            return GainJob("band", key, cell, design=design)
         if not jobs and self._pair_queue and only in (None, "pair"):
             bucket, case = self._pair_queue.popitem()  # the newest
             self.pairs.setdefault(bucket, None)  # asked once (a lost job: no hold there)
@@ -533,7 +554,6 @@ class GainAdvisor:
             return GainJob("pair", bucket.partner_key, bucket.partner_cell, case)
         if not jobs:
             return None
-        interim = [j for j in jobs if j[0] == "interim"]
         kind, key, cell = (interim or jobs)[-1]
         del self._queued[(kind, key, cell)]
         return GainJob(kind, key, cell)
@@ -548,33 +568,60 @@ class GainAdvisor:
             self.pair_checks += 1
             jobs.append(GainJob("pair", bucket.partner_key, bucket.partner_cell, case))
         self._pair_queue.clear()
-        jobs.sort(key=lambda j: {"interim": 0, "design": 1}.get(j.kind, 2))
+        jobs.extend(GainJob("band", k, c, design=d) for (k, c), d in self._band_queue.items())
+        self._band_queue.clear()
+        jobs.sort(key=lambda j: {"interim": 0, "band": 1, "design": 2}.get(j.kind, 3))
         return jobs
 
-    def store(self, job: GainJob, design: GainDesign | PairVerdict | None) -> None:
+    def store(self, job: GainJob, design: GainDesign | BandedGains | PairVerdict | None) -> None:
         """Hand back a job's result (None: no gains pass for it; it is not asked again; a pair
-        job's :class:`shared.gains.group.PairVerdict`)."""
+        job's :class:`shared.gains.group.PairVerdict`; a band job's
+        :class:`shared.gains.b_o_band.BandedGains`, kept for every key of its band with no
+        interim gains yet).
+
+        Interim gains for a key whose B_o lies in a band of
+        :data:`shared.gains.policy.B_O_COVER_LATTICE` queue their band check (:meth:`next_job`).
+        """
         if job.kind == "pair":
             if job.pair is not None and (design is None or isinstance(design, PairVerdict)):
                 self.pairs[job.pair.bucket] = design
+            return
+        if job.kind == "band":
+            if isinstance(design, BandedGains):
+                for key in design.keys(job.key):
+                    if (key, job.cell) not in self.interim:
+                        self.interim[(key, job.cell)] = design.design
+                        self.band_keys += 1
             return
         if design is None or not isinstance(design, GainDesign):
             return
         if job.kind == "design":
             self.table.store(job.key, job.cell, design)
-        else:
-            self.interim[(job.key, job.cell)] = design
+            return
+        self.interim[(job.key, job.cell)] = design
+        if b_o_band(job.key.b_o) is not None and ("band", job.key, job.cell) not in self._asked:
+            self._asked.add(("band", job.key, job.cell))
+            self._band_queue[(job.key, job.cell)] = design
+            while len(self._band_queue) > BAND_QUEUE:
+                del self._band_queue[next(iter(self._band_queue))]
 
 
-def run_job(job: GainJob, grid_ratio: float, hand_box: HandBox) -> GainDesign | PairVerdict | None:
+def run_job(
+    job: GainJob, grid_ratio: float, hand_box: HandBox
+) -> GainDesign | BandedGains | PairVerdict | None:
     """Run one :class:`GainJob` (in a worker process: arguments and result pickle).
 
     Returns None when no gains pass (the key is beyond what any local model renders); a pair
-    job's verdict (:func:`shared.gains.group.check_pair`).
+    job's verdict (:func:`shared.gains.group.check_pair`); a band job's
+    :class:`shared.gains.b_o_band.BandedGains` (with no band where an end fails).
     """
     try:
         if job.kind == "pair":
             return None if job.pair is None else check_pair(job.pair)
+        if job.kind == "band":
+            if job.design is None:
+                return None
+            return check_band(job.key, job.cell, job.design, grid_ratio, hand_box)
         if job.kind == "design":
             return timed(design_cell, job.key, job.cell, grid_ratio, hand_box)
         return timed(interim_design, job.key, job.cell, grid_ratio, hand_box, design_fallback=False)
