@@ -1385,7 +1385,7 @@ class ServerApp:
         the check worker with interim checks, and band checks when no interim check waits
         (:mod:`shared.gains.b_o_band`: two acceptance tests each, so a check asked meanwhile
         waits at most that), the design worker with the most urgent job of any kind (interim
-        checks first, then band checks, the newest designs, then pair checks). One job per
+        checks first, then the newest designs, band checks, then pair checks). One job per
         worker at a time, so that an urgent check never waits behind a queue of jobs already
         handed to a pool, nor behind a design running. The rooms take turns: each pick starts
         with the room after the one served last."""

@@ -529,22 +529,23 @@ class GainAdvisor:
         when there is none.
 
         Interim checks come first (they let a user's forces come on within a fraction of a
-        second), then band checks (a hand sliding over a damped solid changes key with every
-        whole N/m of B_o: interim gains checked over a band spare the keys next to it their
-        own check, :mod:`shared.gains.b_o_band`), then designs, then pair checks
+        second), then designs, then band checks (a hand sliding over a damped solid changes
+        key with every whole N/m of B_o: interim gains checked over a band spare the keys next
+        to it their own check, :mod:`shared.gains.b_o_band`), then pair checks
         (:meth:`hold_pairs`: they spare a felt step, where a design replaces interim gains; on
         the FEM palpation demo, pair checks before designs left B on interim gains for 339 of
         400 patches against 174); within a kind the most recently asked first: a user moving
         over the object asks for one K_o cell after another, and the cell it is in now matters
         more than the ones it has left (those are still designed later, when nothing newer
-        waits). The server's check worker takes a band check only when no interim check waits
-        (:meth:`server.app.ServerApp._start_designs`).
+        waits). The server's check worker takes a band check when no interim check waits
+        (:meth:`server.app.ServerApp._start_designs`), so band checks delay no design: with
+        them before designs, beside two spinning processes no design finished for the resting
+        user in one run of two.
         """
         for job in [j for j in self._queued if j[0] == "interim" and j[1:] in self.interim]:
             del self._queued[job]  # answered meanwhile by a check over its B_o band
         jobs = [j for j in self._queued if only is None or j[0] == only]
-        interim = [j for j in jobs if j[0] == "interim"]
-        if not interim and self._band_queue and only in (None, "band"):
+        if not jobs and self._band_queue and only in (None, "band"):
             (key, cell), design = self._band_queue.popitem()  # the newest
             return GainJob("band", key, cell, design=design)
         if not jobs and self._pair_queue and only in (None, "pair"):
@@ -554,6 +555,7 @@ class GainAdvisor:
             return GainJob("pair", bucket.partner_key, bucket.partner_cell, case)
         if not jobs:
             return None
+        interim = [j for j in jobs if j[0] == "interim"]
         kind, key, cell = (interim or jobs)[-1]
         del self._queued[(kind, key, cell)]
         return GainJob(kind, key, cell)
@@ -570,7 +572,7 @@ class GainAdvisor:
         self._pair_queue.clear()
         jobs.extend(GainJob("band", k, c, design=d) for (k, c), d in self._band_queue.items())
         self._band_queue.clear()
-        jobs.sort(key=lambda j: {"interim": 0, "band": 1, "design": 2}.get(j.kind, 3))
+        jobs.sort(key=lambda j: {"interim": 0, "design": 1, "band": 2}.get(j.kind, 3))
         return jobs
 
     def store(self, job: GainJob, design: GainDesign | BandedGains | PairVerdict | None) -> None:

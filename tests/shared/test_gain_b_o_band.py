@@ -109,8 +109,10 @@ def test_the_server_renders_checked_gains_at_every_b_o_of_a_band_after_its_band_
     assert adv.recommend("u1", h, k_o_eff=240.0, k_o_stiff=240.0, b_o=21.0) is None
     first = adv.next_job()
     assert first is not None and first.kind == "interim" and first.key.b_o == 21.0
-    assert adv.next_job("interim") is None  # none waits: a worker takes the band check next
-    band_job = adv.next_job()
+    assert adv.next_job("interim") is None
+    design = adv.next_job()  # the design worker: designs before band checks
+    assert design is not None and design.kind == "design"
+    band_job = adv.next_job("band")  # the check worker, with no check waiting
     assert band_job is not None and band_job.kind == "band" and band_job.design is found
     # meanwhile the hand is at 24 N/m: a check is asked, and the band answers it
     assert adv.recommend("u1", h, k_o_eff=240.0, k_o_stiff=240.0, b_o=24.0) is None
