@@ -77,7 +77,7 @@ from websockets.http11 import Request, Response
 from haptic_collab.client.workers import background_worker, stop_pool
 from haptic_collab.server import snapshots
 from haptic_collab.server.admission import FloodControl, Refusal, RoomLimits
-from haptic_collab.server.gains import GainJob, JobKind, run_job
+from haptic_collab.server.gains import GainJob, JobKind, run_job_measured
 from haptic_collab.server.latency import LinkShaper
 from haptic_collab.server.metrics import RoomFigures, ServerCollector, scrape_allowed
 from haptic_collab.server.prefetch import PatchPrefetcher
@@ -141,6 +141,17 @@ DESIGN_WORKERS = 1
 #: processes beside a niced worker). The client keeps its checks apart from its designs the same
 #: way (client.link).
 CHECK_WORKERS = 1
+#: The gain workers do the checks no contact waits for (band checks, checks ahead:
+#: :data:`server.gains.IDLE_KINDS`) only while the check worker's last jobs had, as a median, at
+#: least this share of a core (CPU time over the wall time the server waited). Both workers are
+#: niced: beside two spinning processes they get 10-30 %, and there the extra checks took the CPU
+#: the resting user's design needed (no design finished for B in 4 palpation runs of 6, 0 of 4
+#: without them; docs/gains.md, "Interim gains over a band of B_o").
+IDLE_WORK_MIN_SHARE = 0.5
+#: Check jobs the share is the median of.
+IDLE_WORK_WINDOW = 5
+#: Jobs shorter than this [s] of wall time tell nothing of the share (IPC dominates).
+IDLE_WORK_MIN_WALL_S = 0.02
 #: A consumer whose send buffer stays full this long [s] is dropped.
 SEND_TIMEOUT_S = 10.0
 #: How long a drain may take at most [s], SIGTERM to exit (``haptic server --drain-grace-s``): well
@@ -435,6 +446,8 @@ class ServerApp:
         self._own_executor = gain_executor is None
         self._gain_tasks: set[asyncio.Task[None]] = set()
         self._check_tasks: set[asyncio.Task[None]] = set()
+        #: The check worker's share of a core in its last jobs (IDLE_WORK_MIN_SHARE).
+        self.check_cpu_share: deque[float] = deque(maxlen=IDLE_WORK_WINDOW)
         self._design_turn = 0
         self.host = host
         self.port = port
@@ -1382,30 +1395,44 @@ class ServerApp:
 
     def _start_designs(self) -> None:
         """Keep the gain workers busy with the most urgent queued jobs (``GainAdvisor.next_job``):
-        the check worker with interim checks, and band checks when no interim check waits
-        (:mod:`shared.gains.b_o_band`: two acceptance tests each, so a check asked meanwhile
-        waits at most that), the design worker with the most urgent job of any kind (interim
-        checks first, then the newest designs, band checks, then pair checks). One job per
+        the check worker with interim checks, and when none waits band checks
+        (:mod:`shared.gains.b_o_band`: two acceptance tests each) and checks of the cells
+        beside a damped contact's, so a check asked meanwhile waits at most one of those; the
+        design worker with the most urgent job of any kind (interim checks first, then the
+        newest designs, band checks, checks ahead, then pair checks). One job per
         worker at a time, so that an urgent check never waits behind a queue of jobs already
         handed to a pool, nor behind a design running. The rooms take turns: each pick starts
         with the room after the one served last."""
+        idle = self.idle_work_ok()
         while len(self._check_tasks) < CHECK_WORKERS:
-            picked = self._next_gain_job("interim") or self._next_gain_job("band")
+            picked = self._next_gain_job("interim")
+            if picked is None and idle:
+                picked = self._next_gain_job("band") or self._next_gain_job("ahead")
             if picked is None:
                 break
             self._check_tasks.add(asyncio.create_task(self._design(*picked, checks=True)))
         while len(self._gain_tasks) < DESIGN_WORKERS:
-            picked = self._next_gain_job(None)
+            picked = self._next_gain_job(None, idle)
             if picked is None:
                 return
             self._gain_tasks.add(asyncio.create_task(self._design(*picked)))
 
-    def _next_gain_job(self, only: JobKind | None) -> tuple[AnyRoom, GainJob] | None:
-        """The next room's most urgent gain job (``only`` one of that kind), in turn."""
+    def idle_work_ok(self) -> bool:
+        """Whether the gain workers have CPU to spare for checks no contact waits for: the check
+        worker's median share of a core over its last jobs is at least
+        :data:`IDLE_WORK_MIN_SHARE` (none measured yet: no)."""
+        shares = sorted(self.check_cpu_share)
+        return bool(shares) and shares[len(shares) // 2] >= IDLE_WORK_MIN_SHARE
+
+    def _next_gain_job(
+        self, only: JobKind | None, idle: bool = True
+    ) -> tuple[AnyRoom, GainJob] | None:
+        """The next room's most urgent gain job (``only`` one of that kind; ``idle``: band
+        checks and checks ahead too), in turn."""
         slots = list(self._slots.values())
         for i in range(len(slots)):
             slot = slots[(self._design_turn + i) % len(slots)]
-            job = slot.room.gains.next_job(only)
+            job = slot.room.gains.next_job(only, idle)
             if job is not None:
                 self._design_turn = (self._design_turn + i + 1) % len(slots)
                 return slot.room, job
@@ -1454,10 +1481,14 @@ class ServerApp:
         table = room.gains.table
         loop = asyncio.get_running_loop()
         me = asyncio.current_task()
+        start = loop.time()
         try:
-            design = await loop.run_in_executor(
-                pool, run_job, job, table.grid_ratio, table.hand_box
+            design, cpu_s = await loop.run_in_executor(
+                pool, run_job_measured, job, table.grid_ratio, table.hand_box
             )
+            wall_s = loop.time() - start
+            if checks and wall_s >= IDLE_WORK_MIN_WALL_S:
+                self.check_cpu_share.append(min(1.0, cpu_s / wall_s))
         except Exception:  # a broken worker must not stop the room: no recommendation
             log.exception("gain design %s failed", job.kind)
             design = None

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -73,11 +74,16 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("haptic.server")
 
-JobKind = Literal["interim", "band", "design", "pair"]
+JobKind = Literal["interim", "band", "ahead", "design", "pair"]
 
-#: Band checks (:mod:`shared.gains.b_o_band`) waiting at most; the oldest are dropped (a hand
-#: sliding over a damped solid has left their keys).
+#: Band checks (:mod:`shared.gains.b_o_band`) and checks of the cells beside a damped key's
+#: (``ahead``) waiting at most, each; the oldest are dropped (a hand sliding over a damped solid
+#: has left their keys).
 BAND_QUEUE = 4
+
+#: The jobs a worker does only when it has CPU to spare (:meth:`GainAdvisor.next_job`,
+#: ``idle``): checks no contact waits for.
+IDLE_KINDS: tuple[JobKind, ...] = ("band", "ahead")
 
 
 @dataclass(frozen=True)
@@ -85,7 +91,9 @@ class GainJob:
     """One piece of design work for the worker: ``kind`` for grid cell ``cell`` of ``key``; a
     ``pair`` job checks ``pair`` (:mod:`shared.gains.group`; ``key`` and ``cell`` are then the
     partner's); a ``band`` job checks ``design``, the interim gains found for ``key``, over the
-    band of B_o around ``key.b_o`` (:func:`shared.gains.b_o_band.check_band`)."""
+    band of B_o around ``key.b_o`` (:func:`shared.gains.b_o_band.check_band`); an ``ahead`` job
+    is an interim check of a cell beside one a damped contact needed, asked before it is
+    needed."""
 
     kind: JobKind
     key: GainKey
@@ -162,6 +170,8 @@ class GainAdvisor:
         self._asked: set[tuple[JobKind, GainKey, int]] = set()
         #: Interim gains waiting to be checked over their B_o band, the newest last.
         self._band_queue: dict[tuple[GainKey, int], GainDesign] = {}
+        #: Cells beside a damped contact's to check ahead of need, the newest last.
+        self._ahead_queue: dict[tuple[GainKey, int], None] = {}
         #: Keys given interim gains by a band check before their own was asked.
         self.band_keys = 0
         self._users: dict[str, _User] = {}
@@ -524,9 +534,10 @@ class GainAdvisor:
             self._asked.add(job)
             self._queued[job] = None
 
-    def next_job(self, only: JobKind | None = None) -> GainJob | None:
-        """The most urgent queued job (``only`` one of that kind), removed from the queue; None
-        when there is none.
+    def next_job(self, only: JobKind | None = None, idle: bool = True) -> GainJob | None:
+        """The most urgent queued job (``only`` one of that kind; with ``idle`` False no band
+        check or check ahead: :data:`IDLE_KINDS`), removed from the queue; None when there is
+        none.
 
         Interim checks come first (they let a user's forces come on within a fraction of a
         second), then designs, then band checks (a hand sliding over a damped solid changes
@@ -545,9 +556,15 @@ class GainAdvisor:
         for job in [j for j in self._queued if j[0] == "interim" and j[1:] in self.interim]:
             del self._queued[job]  # answered meanwhile by a check over its B_o band
         jobs = [j for j in self._queued if only is None or j[0] == only]
-        if not jobs and self._band_queue and only in (None, "band"):
+        if not idle and only in IDLE_KINDS:
+            return None
+        if not jobs and idle and self._band_queue and only in (None, "band"):
             (key, cell), design = self._band_queue.popitem()  # the newest
             return GainJob("band", key, cell, design=design)
+        while not jobs and idle and self._ahead_queue and only in (None, "ahead"):
+            key, cell = self._ahead_queue.popitem()[0]  # the newest
+            if not cell_has_gains(self.table, self.interim, key, cell):
+                return GainJob("ahead", key, cell)
         if not jobs and self._pair_queue and only in (None, "pair"):
             bucket, case = self._pair_queue.popitem()  # the newest
             self.pairs.setdefault(bucket, None)  # asked once (a lost job: no hold there)
@@ -571,8 +588,11 @@ class GainAdvisor:
             jobs.append(GainJob("pair", bucket.partner_key, bucket.partner_cell, case))
         self._pair_queue.clear()
         jobs.extend(GainJob("band", k, c, design=d) for (k, c), d in self._band_queue.items())
+        jobs.extend(GainJob("ahead", k, c) for (k, c) in self._ahead_queue)
         self._band_queue.clear()
-        jobs.sort(key=lambda j: {"interim": 0, "design": 1, "band": 2}.get(j.kind, 3))
+        self._ahead_queue.clear()
+        order = {"interim": 0, "design": 1, "band": 2, "ahead": 3}
+        jobs.sort(key=lambda j: order.get(j.kind, 4))
         return jobs
 
     def store(self, job: GainJob, design: GainDesign | BandedGains | PairVerdict | None) -> None:
@@ -582,7 +602,10 @@ class GainAdvisor:
         interim gains yet).
 
         Interim gains for a key whose B_o lies in a band of
-        :data:`shared.gains.policy.B_O_COVER_LATTICE` queue their band check (:meth:`next_job`).
+        :data:`shared.gains.policy.B_O_COVER_LATTICE` queue their band check (:meth:`next_job`),
+        and, where a contact needed them, checks of the cells beside theirs: over a lump K_o
+        crosses a cell every 10 %, and each new cell rendered a wider class's PI until its own
+        check came back.
         """
         if job.kind == "pair":
             if job.pair is not None and (design is None or isinstance(design, PairVerdict)):
@@ -601,11 +624,31 @@ class GainAdvisor:
             self.table.store(job.key, job.cell, design)
             return
         self.interim[(job.key, job.cell)] = design
-        if b_o_band(job.key.b_o) is not None and ("band", job.key, job.cell) not in self._asked:
+        if b_o_band(job.key.b_o) is None:
+            return
+        if ("band", job.key, job.cell) not in self._asked:
             self._asked.add(("band", job.key, job.cell))
             self._band_queue[(job.key, job.cell)] = design
             while len(self._band_queue) > BAND_QUEUE:
                 del self._band_queue[next(iter(self._band_queue))]
+        if job.kind != "interim":
+            return  # a check ahead asks none further
+        for c in (job.cell - 1, job.cell + 1):
+            if ("ahead", job.key, c) not in self._asked:
+                self._asked.add(("ahead", job.key, c))
+                self._ahead_queue[(job.key, c)] = None
+                while len(self._ahead_queue) > BAND_QUEUE:
+                    del self._ahead_queue[next(iter(self._ahead_queue))]
+
+
+def run_job_measured(
+    job: GainJob, grid_ratio: float, hand_box: HandBox
+) -> tuple[GainDesign | BandedGains | PairVerdict | None, float]:
+    """:func:`run_job`, and the CPU time [s] the worker spent on it (``time.process_time``):
+    against the wall time the server waited, the share of a core the worker had."""
+    cpu0 = time.process_time()
+    result = run_job(job, grid_ratio, hand_box)
+    return result, time.process_time() - cpu0
 
 
 def run_job(

@@ -64,6 +64,7 @@ from multiprocessing.connection import Connection  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
+from haptic_collab.server.gains import IDLE_KINDS  # noqa: E402
 from haptic_collab.server.metrics import LATENESS_BUCKETS_S, TICK_BUCKETS_S, Buckets  # noqa: E402
 from haptic_collab.server.priority import TickPriority  # noqa: E402
 from haptic_collab.server.room import Outgoing, Room, SeatRecord  # noqa: E402
@@ -459,9 +460,10 @@ class _RemoteGains:
         self.table = _Table()
         self.jobs: list[Any] = []
 
-    def next_job(self, only: str | None = None) -> Any:
+    def next_job(self, only: str | None = None, idle: bool = True) -> Any:
         for i, job in enumerate(self.jobs):
-            if only is None or getattr(job, "kind", None) == only:
+            kind = getattr(job, "kind", None)
+            if (only is None or kind == only) and (idle or kind not in IDLE_KINDS):
                 return self.jobs.pop(i)
         return None
 

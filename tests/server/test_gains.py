@@ -323,14 +323,14 @@ async def test_the_servers_interim_check_never_waits_behind_a_running_design(mon
     release = threading.Event()
     ran: list[str] = []
 
-    def fake_run_job(job: GainJob, grid_ratio: float, hand_box: object) -> object:
+    def fake_run_job(job: GainJob, grid_ratio: float, hand_box: object) -> tuple[object, float]:
         ran.append(job.kind)
         if job.kind == "design":
             release.wait(30.0)  # a design that takes long
-            return None
-        return run_job(job, grid_ratio, hand_box)  # type: ignore[arg-type]
+            return None, 0.0
+        return run_job(job, grid_ratio, hand_box), 0.0  # type: ignore[arg-type]
 
-    monkeypatch.setattr(app_module, "run_job", fake_run_job)
+    monkeypatch.setattr(app_module, "run_job_measured", fake_run_job)
     world = build_world(ServerOptions(sim_rate_hz=20.0, subdivisions=2))
     room = Room(world, 20.0)
     pool = ThreadPoolExecutor(max_workers=2)  # one for the designs, one for the checks
