@@ -74,7 +74,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from haptic_collab.client.workers import background_worker, stop_pool
+from haptic_collab.client.workers import background_worker, check_worker, stop_pool
 from haptic_collab.server import snapshots
 from haptic_collab.server.admission import FloodControl, Refusal, RoomLimits
 from haptic_collab.server.gains import GainJob, JobKind, run_job_measured
@@ -136,18 +136,23 @@ STALL_PERIODS = 3.0
 STALL_MIN_S = 1.0
 #: Worker processes that design recommended gains (niced; :func:`background_worker`).
 DESIGN_WORKERS = 1
-#: Worker processes that run only the interim checks (niced too), so that a check (0.05-0.5 s)
+#: Worker processes that run only the interim checks, so that a check (about 0.05 s of CPU)
 #: never waits behind a design already running (1-4 s quiet; tens of seconds with two busy
 #: processes beside a niced worker). The client keeps its checks apart from its designs the same
-#: way (client.link).
+#: way (client.link). At normal priority, as the client's (:func:`client.workers.check_worker`):
+#: niced like the designs, a check of 0.045 s of CPU came back after 0.08-0.6 s in the quiet
+#: palpation demo, the designs taking the CPU it waited for, and every tick of that wait a
+#: contact rendered a wider class's gains. The tick cannot wait for it: its thread runs at
+#: real-time priority (:mod:`server.priority`).
 CHECK_WORKERS = 1
 #: The gain workers do the checks no contact waits for (band checks, checks ahead:
 #: :data:`server.gains.IDLE_KINDS`) only while the check worker's last jobs had, as a median, at
-#: least this share of a core (CPU time over the wall time the server waited). Both workers are
-#: niced: beside two spinning processes they get 10-30 %, and there the extra checks took the CPU
-#: the resting user's design needed (no design finished for B in 4 palpation runs of 6, 0 of 4
-#: without them; docs/gains.md, "Interim gains over a band of B_o").
-IDLE_WORK_MIN_SHARE = 0.5
+#: least this share of a core (CPU time over the wall time the server waited, its pickling and
+#: wake-ups included). In the palpation demo a check is about 0.045 s of CPU: quiet, the share
+#: was 0.33-0.56 (median about 0.5); beside two spinning processes 0.06-0.29 (median 0.25), and
+#: there the extra checks took the CPU the resting user's design needed (no design finished for
+#: B in 4 runs of 6, 0 of 4 without them; docs/gains.md, "Interim gains over a band of B_o").
+IDLE_WORK_MIN_SHARE = 0.4
 #: Check jobs the share is the median of.
 IDLE_WORK_WINDOW = 5
 #: Jobs shorter than this [s] of wall time tell nothing of the share (IPC dominates).
@@ -448,6 +453,7 @@ class ServerApp:
         self._check_tasks: set[asyncio.Task[None]] = set()
         #: The check worker's share of a core in its last jobs (IDLE_WORK_MIN_SHARE).
         self.check_cpu_share: deque[float] = deque(maxlen=IDLE_WORK_WINDOW)
+        self._idle_work = False
         self._design_turn = 0
         self.host = host
         self.port = port
@@ -1422,7 +1428,15 @@ class ServerApp:
         worker's median share of a core over its last jobs is at least
         :data:`IDLE_WORK_MIN_SHARE` (none measured yet: no)."""
         shares = sorted(self.check_cpu_share)
-        return bool(shares) and shares[len(shares) // 2] >= IDLE_WORK_MIN_SHARE
+        ok = bool(shares) and shares[len(shares) // 2] >= IDLE_WORK_MIN_SHARE
+        if ok != self._idle_work:
+            self._idle_work = ok
+            log.info(
+                "gain workers: %s (the check worker's median share of a core: %.2f)",
+                "checks ahead of need on" if ok else "checks ahead of need off: no CPU to spare",
+                shares[len(shares) // 2] if shares else 0.0,
+            )
+        return ok
 
     def _next_gain_job(
         self, only: JobKind | None, idle: bool = True
@@ -1442,13 +1456,13 @@ class ServerApp:
         """The design worker, or with ``checks`` the check worker (each started once, at the
         server's start or on its first job)."""
 
-        def spawn(workers: int) -> Executor:
+        def spawn(workers: int, init: Callable[[], None] = background_worker) -> Executor:
             ctx = multiprocessing.get_context("spawn")
-            return ProcessPoolExecutor(workers, mp_context=ctx, initializer=background_worker)
+            return ProcessPoolExecutor(workers, mp_context=ctx, initializer=init)
 
         if checks:
             if self.check_executor is None:
-                self.check_executor = spawn(CHECK_WORKERS)
+                self.check_executor = spawn(CHECK_WORKERS, check_worker)
             return self.check_executor
         if self.gain_executor is None:
             self.gain_executor = spawn(DESIGN_WORKERS)
@@ -1489,6 +1503,7 @@ class ServerApp:
             wall_s = loop.time() - start
             if checks and wall_s >= IDLE_WORK_MIN_WALL_S:
                 self.check_cpu_share.append(min(1.0, cpu_s / wall_s))
+                log.debug("gain check %s: %.3f s of CPU in %.3f s", job.kind, cpu_s, wall_s)
         except Exception:  # a broken worker must not stop the room: no recommendation
             log.exception("gain design %s failed", job.kind)
             design = None

@@ -129,3 +129,62 @@ def test_the_server_renders_checked_gains_at_every_b_o_of_a_band_after_its_band_
     assert adv.recommend("u1", h, k_o_eff=240.0, k_o_stiff=240.0, b_o=33.0) is None
     nxt = adv.next_job("interim")
     assert nxt is not None and nxt.key.b_o == 33.0
+
+
+def test_a_damped_contacts_check_asks_the_cells_beside_it_ahead_and_those_ask_no_further():
+    """Over a lump K_o crosses a cell every 10 %: the check a damped contact needed queues the
+    cells beside its own, after its band check; what a check ahead finds renders at once when
+    the contact gets there, and it asks no further cells itself."""
+    adv = GainAdvisor(20.0, shipped=False)
+    h = Hello(protocol=1, role="user", name="A", device=PHANTOM, local_model="pi")
+    assert adv.recommend("u1", h, k_o_eff=240.0, k_o_stiff=240.0, b_o=20.0) is None
+    job = adv.next_job("interim")
+    assert job is not None
+    adv.store(job, run_job(job, adv.table.grid_ratio, adv.table.hand_box))
+    assert adv.next_job("ahead", idle=False) is None  # no CPU to spare: none handed out
+    band = adv.next_job("band")
+    assert band is not None and band.key == job.key
+    ahead = [adv.next_job("ahead"), adv.next_job("ahead")]
+    assert all(a is not None and a.key == job.key for a in ahead)
+    assert sorted(a.cell for a in ahead if a is not None) == [job.cell - 1, job.cell + 1]
+    up = next(a for a in ahead if a is not None and a.cell == job.cell + 1)
+    adv.store(up, run_job(up, adv.table.grid_ratio, adv.table.hand_box))
+    assert adv.next_job("ahead") is None  # a check ahead asks no further cells
+    k_up = adv.table.grid_point(job.cell + 1) * 1.05
+    rec = adv.recommend("u1", h, k_o_eff=k_up, k_o_stiff=k_up, b_o=20.0)
+    assert rec is not None and rec.interim  # the next cell up renders checked gains at once
+
+
+def test_band_checks_wait_for_every_interim_check_and_for_cpu_to_spare():
+    """A band check is never handed out before a check a contact waits for, nor with
+    ``idle`` False (the server's workers without CPU to spare)."""
+    adv = GainAdvisor(20.0, shipped=False)
+    h = Hello(protocol=1, role="user", name="A", device=PHANTOM, local_model="pi")
+    adv.recommend("u1", h, k_o_eff=240.0, k_o_stiff=240.0, b_o=20.0)
+    job = adv.next_job("interim")
+    assert job is not None
+    adv.store(job, run_job(job, adv.table.grid_ratio, adv.table.hand_box))
+    adv.recommend("u1", h, k_o_eff=240.0, k_o_stiff=240.0, b_o=40.0)  # another band: a check
+    assert adv.next_job("band", idle=False) is None
+    nxt = adv.next_job(None, idle=False)
+    assert nxt is not None and nxt.kind == "interim" and nxt.key.b_o == 40.0
+    while (other := adv.next_job(None, idle=False)) is not None:
+        assert other.kind not in ("band", "ahead")
+    band = adv.next_job(None)  # with CPU to spare, once nothing else waits
+    assert band is not None and band.kind == "band" and band.key.b_o == 20.0
+
+
+def test_the_server_does_checks_no_contact_waits_for_only_with_cpu_to_spare():
+    """The server's gain workers take band checks and checks ahead only while its check worker
+    had at least half a core in its last jobs (beside two spinning processes it has 10-30 %)."""
+    from haptic_collab.server.app import ServerApp
+    from haptic_collab.server.main import ServerOptions, build_world
+    from haptic_collab.server.room import Room
+
+    world = build_world(ServerOptions(sim_rate_hz=20.0, subdivisions=1))
+    app = ServerApp(Room(world, 20.0), "127.0.0.1", 0)
+    assert not app.idle_work_ok()  # nothing measured yet
+    app.check_cpu_share.extend([0.9, 0.2, 0.15, 0.3, 0.8])
+    assert not app.idle_work_ok()  # the median job had 0.3 of a core
+    app.check_cpu_share.extend([0.9, 0.95, 1.0])
+    assert app.idle_work_ok()
