@@ -142,8 +142,9 @@ DESIGN_WORKERS = 1
 #: way (client.link). At normal priority, as the client's (:func:`client.workers.check_worker`):
 #: niced like the designs, a check of 0.045 s of CPU came back after 0.08-0.6 s in the quiet
 #: palpation demo, the designs taking the CPU it waited for, and every tick of that wait a
-#: contact rendered a wider class's gains. The tick cannot wait for it: its thread runs at
-#: real-time priority (:mod:`server.priority`).
+#: contact rendered a wider class's gains. The tick does not wait for it: its thread runs at
+#: real-time priority or nice -10 (:mod:`server.priority`); where both are refused they share the
+#: CPU as equals (a check is about 0.045 s of CPU).
 CHECK_WORKERS = 1
 #: The gain workers do the checks no contact waits for (band checks, checks ahead:
 #: :data:`server.gains.IDLE_KINDS`) only while the check worker's last jobs had, as a median, at
