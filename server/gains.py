@@ -23,7 +23,7 @@ import time
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -548,10 +548,11 @@ class GainAdvisor:
         400 patches against 174); within a kind the most recently asked first: a user moving
         over the object asks for one K_o cell after another, and the cell it is in now matters
         more than the ones it has left (those are still designed later, when nothing newer
-        waits). The server's check worker takes a band check when no interim check waits
-        (:meth:`server.app.ServerApp._start_designs`), so band checks delay no design: with
-        them before designs, beside two spinning processes no design finished for the resting
-        user in one run of two.
+        waits). Checks ahead come after band checks. The server's check worker takes those two
+        (:data:`IDLE_KINDS`) when no interim check waits, and only while it has CPU to spare
+        (``idle``; :meth:`server.app.ServerApp._start_designs`); the design worker after its
+        designs: with them before designs, beside two spinning processes no design finished
+        for the resting user in one run of two.
         """
         for job in [j for j in self._queued if j[0] == "interim" and j[1:] in self.interim]:
             del self._queued[job]  # answered meanwhile by a check over its B_o band
@@ -628,17 +629,21 @@ class GainAdvisor:
             return
         if ("band", job.key, job.cell) not in self._asked:
             self._asked.add(("band", job.key, job.cell))
-            self._band_queue[(job.key, job.cell)] = design
-            while len(self._band_queue) > BAND_QUEUE:
-                del self._band_queue[next(iter(self._band_queue))]
+            _push_newest(self._band_queue, (job.key, job.cell), design)
         if job.kind != "interim":
             return  # a check ahead asks none further
         for c in (job.cell - 1, job.cell + 1):
             if ("ahead", job.key, c) not in self._asked:
                 self._asked.add(("ahead", job.key, c))
-                self._ahead_queue[(job.key, c)] = None
-                while len(self._ahead_queue) > BAND_QUEUE:
-                    del self._ahead_queue[next(iter(self._ahead_queue))]
+                _push_newest(self._ahead_queue, (job.key, c), None)
+
+
+def _push_newest(queue: dict[Any, Any], item: Any, value: Any) -> None:
+    """Put ``item`` last in ``queue`` (the newest), dropping the oldest beyond
+    :data:`BAND_QUEUE`."""
+    queue[item] = value
+    while len(queue) > BAND_QUEUE:
+        del queue[next(iter(queue))]
 
 
 def run_job_measured(
