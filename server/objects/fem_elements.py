@@ -10,7 +10,8 @@ ten-node ``elements`` (T, 10) from :func:`quadratic_mesh`), used once when
 - :func:`quadratic_mesh`: the straight-sided P2 mesh, the surface's corner and mid-edge nodes
   first, and the surface it shows (each face split in four);
 - :func:`stiffness_matrix` (P1, ``V B^T D B``) and :func:`p2_stiffness_matrix` (P2, a
-  four-point rule exact for its linear strain), :func:`element_stiffness_matrix` either: the
+  four-point rule exact for its linear strain, the volumetric term on each element's mean
+  dilatation: P2/P0), :func:`element_stiffness_matrix` either: the
   isotropic small-strain elastic stiffness ``K`` (3N x 3N) [N/m] with Lame's constants
   (Zienkiewicz, Taylor and Zhu 2013, ch. 6), the object's stiffness behind the paper's eq. (6);
 - :func:`nodal_pressure_operators`: the linear tetrahedron with averaged nodal pressure (Bonet
@@ -363,35 +364,61 @@ def _node_bary(width: int) -> FloatArray:
     return np.concatenate([eye, 0.5 * (eye[P2_EDGES[:, 0]] + eye[P2_EDGES[:, 1]])])
 
 
+def p2_mean_gradients(grads: FloatArray) -> FloatArray:
+    """The element means (T, 10, 3) [1/m] of the ten P2 shape functions' gradients.
+
+    ``grad N_c = (4 l_c - 1) grad l_c`` averages to zero (``l_c`` averages to 1/4) and
+    ``grad N_ij = 4 (l_i grad l_j + l_j grad l_i)`` to ``grad l_i + grad l_j``; ``grads``
+    (T, 4, 3) as in :func:`p2_gradients`. The mean dilatation of a displacement ``u`` is
+    ``sum_a u_a . mean grad N_a``.
+    """
+    out = np.zeros((grads.shape[0], 10, 3))
+    for e, (i, j) in enumerate(P2_EDGES):
+        out[:, 4 + e] = grads[:, i] + grads[:, j]
+    return out
+
+
 def _element_block_stiffness(
     g: FloatArray, vol: FloatArray, lam: FloatArray, mu: FloatArray
 ) -> FloatArray:
-    """``K_e`` (T, 10, 3, 10, 3) [N/m] of straight-sided P2 elements by :data:`P2_QUADRATURE`."""
+    """``K_e`` (T, 10, 3, 10, 3) [N/m] of straight-sided P2 elements: the shear (``mu``) terms by
+    :data:`P2_QUADRATURE`, the ``lambda`` term on the element's mean dilatation
+    (:func:`p2_stiffness_matrix`)."""
     eye = np.eye(3)
     ke = np.zeros((len(vol), 10, 3, 10, 3))
     for bary in P2_QUADRATURE:
         gq = p2_gradients(g, bary)
-        w = (vol / 4.0)[:, None, None, None, None]
+        w = (vol / 4.0 * mu)[:, None, None, None, None]
         dots = np.einsum("tak,tbk->tab", gq, gq)
         ke += w * (
-            lam[:, None, None, None, None] * np.einsum("tai,tbj->taibj", gq, gq)
-            + mu[:, None, None, None, None] * np.einsum("taj,tbi->taibj", gq, gq)
-            + mu[:, None, None, None, None]
-            * dots[:, :, None, :, None]
-            * eye[None, None, :, None, :]
+            np.einsum("taj,tbi->taibj", gq, gq)
+            + dots[:, :, None, :, None] * eye[None, None, :, None, :]
         )
+    gm = p2_mean_gradients(g)
+    ke += (vol * lam)[:, None, None, None, None] * np.einsum("tai,tbj->taibj", gm, gm)
     return ke
 
 
 def p2_stiffness_matrix(
     nodes: FloatArray, elements: IntArray, lam: float | FloatArray, mu: float | FloatArray
 ) -> sp.csr_matrix:
-    """Linear elastic stiffness of straight-sided ten-node (P2) tetrahedra, ``K`` (3N, 3N) [N/m].
+    """Linear elastic stiffness of straight-sided ten-node (P2) tetrahedra, ``K`` (3N, 3N) [N/m],
+    with the volumetric (``lambda``) term on each element's mean dilatation (P2/P0).
 
-    ``K_e = integral B^T D B dV`` with the strain of the quadratic displacement, which is linear
-    in the element, so the four-point rule :data:`P2_QUADRATURE` is exact (Zienkiewicz, Taylor
-    and Zhu 2013, ch. 6); written with Lame's constants as :func:`stiffness_matrix`. Quadratic
-    elements do not lock at the Poisson's ratios of soft tissue (0.45-0.49) as linear ones do.
+    ``K_e = integral (2 mu eps(u) : eps(v) + lambda div(u) div(v)) dV`` (Zienkiewicz, Taylor
+    and Zhu 2013, ch. 6) with the shear term integrated exactly (the strain of the quadratic
+    displacement is linear in the element, so the four-point rule :data:`P2_QUADRATURE` is exact)
+    and the ``lambda`` term at the element's mean divergence, ``lambda V mean(div u)
+    mean(div v)`` (:func:`p2_mean_gradients`; on a straight-sided element the divergence is
+    linear, so this is its one-point, centroid rule). That is selective reduced integration of
+    the ``lambda`` term, equivalent to a mixed displacement-pressure element with a constant
+    pressure on each element, condensed (Malkus and Hughes 1978, "Mixed finite element methods -
+    reduced and selective integration techniques: a unification of concepts"): near
+    incompressibility the full ``lambda`` term asks each element's linear divergence to vanish
+    everywhere, which over-stiffens P2 (its ``K_o`` was 5-6 % above a refined solution at nu
+    0.49 on the default sphere); the mean asks one constraint per element. ``K`` stays symmetric
+    positive definite on the fixed solid for every nu below 0.5 (docs/fem.md, "Converged
+    stiffness").
 
     Parameters
     ----------
