@@ -12,10 +12,13 @@ its ``n`` vertices as the first ``n`` nodes.
 **Elements** (``FemParams.element``). Quadratic (P2, ten-node, straight-sided) tetrahedra on
 that mesh (:func:`server.objects.fem_elements.quadratic_mesh`): linear ones lock near
 incompressibility and resolve the finger pad's rim poorly, so their ``K_o`` was 9-37 % too stiff
-at nu 0.45-0.49, where P2's is within 5 % of a refined P2 solution (docs/fem.md, "Converged
-stiffness"). P2 was chosen over a mixed u-p, F-bar or selectively reduced P1 element because the
-error left with averaged nodal pressure (which fixes locking) was the surface's resolution under
-the pad, which P2's quadratic surface supplies. The nodes are ordered so that the surface shown
+at nu 0.45-0.49. P2 was chosen over a mixed u-p, F-bar or selectively reduced P1 element because
+the error left with averaged nodal pressure (which fixes locking) was the surface's resolution
+under the pad, which P2's quadratic surface supplies. Its ``lambda`` term is taken on each
+element's mean dilatation (P2/P0, :func:`server.objects.fem_elements.p2_stiffness_matrix`):
+plain P2 over-constrains the volume change near incompressibility (+6 % at nu 0.49 on the
+default sphere), P2/P0 is within 2.3 % of a solution refined in surface and volume at nu
+0.3-0.49 (docs/fem.md, "Converged stiffness"). The nodes are ordered so that the surface shown
 comes first: the mesh's ``n`` corner vertices, then its edges' midpoints; the shown surface is
 the given one with every face split in four, and the patches, the viewer stream and the World
 work on it. "auto" (the default) takes P2 when it has at most :data:`P2_MAX_NODES` nodes and
@@ -31,7 +34,7 @@ icosphere with P2.
 **Elasticity.** Isotropic, small strain: Young's modulus ``E`` [Pa] and Poisson's ratio ``nu``,
 Lame ``lambda = E nu / ((1 + nu)(1 - 2 nu))`` and ``mu = E / (2 (1 + nu))``; each element's
 stiffness is ``integral B^T D B dV`` (Zienkiewicz, Taylor and Zhu 2013, ch. 6; for P2 by a
-four-point rule, exact for its linear strain), assembled into ``K`` (3N x 3N) [N/m]. The supported base is fixed (``u = 0``):
+four-point rule, exact for its linear strain, the ``lambda`` term on the mean dilatation), assembled into ``K`` (3N x 3N) [N/m]. The supported base is fixed (``u = 0``):
 every node within ``base_share`` (20 %) of the object's height of its lowest point, as if it sat
 in a cradle (a flat bottom is always fixed). ``K`` on the free nodes is factored once at start (geometric nested
 dissection, the balloon's: :mod:`server.objects.sparse_factor`).

@@ -196,11 +196,12 @@ def test_the_default_liver_sphere_is_as_stiff_as_a_converged_solution(poisson, c
 @pytest.mark.slow
 @pytest.mark.xdist_group("p2_reference")  # one worker computes the references once
 @pytest.mark.parametrize("poisson", [0.3, 0.45, 0.49])
-def test_a_mesh_too_large_for_p2_is_within_7_percent_at_every_nu(poisson, cache):
+def test_a_mesh_too_large_for_p2_is_within_5_percent_at_every_nu(poisson, cache):
     # linear tetrahedra locked here: +1, +9 and +37 % at the top against plain P2; averaged
-    # nodal pressure is on the soft side (docs/fem.md)
+    # nodal pressure is on the soft side: -4.9, -3.5 and -0.7 % of P2/P0 at the top (against
+    # plain P2, the stiffer reference, -6.4, -6.2 and -4.4 %: docs/fem.md)
     references, _ = reference_and_solid(poisson, cache)
-    assert _LINEAR[poisson] == pytest.approx(references["p2p0"], rel=0.07)  # top and side
+    assert _LINEAR[poisson] == pytest.approx(references["p2p0"], rel=0.05)  # top and side
 
 
 def test_a_coarse_surfaces_interior_is_limited_by_the_finger_pad(cache):
