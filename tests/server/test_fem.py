@@ -79,9 +79,9 @@ def test_a_block_pressed_by_the_finger_pad_is_as_stiff_as_a_flat_punch_and_scale
 
 def test_the_assembly_agrees_with_scikit_fem(ball, cache):
     """The quadratic (P2) stiffness is scikit-fem's P2 elasticity with a constant pressure on each
-    element (P2/P0, condensed) on the same mesh, dof by dof, and differs from plain P2 only in
-    the volumetric term (softer: less energy for every displacement); the HRZ masses are positive and each element's mass; the consistent mass's diagonal (the
-    HRZ shares) is scikit-fem's."""
+    element (P2/P0, condensed) on the same mesh, dof by dof, and softer than plain P2 (less
+    energy for every displacement); the HRZ masses are positive and each element's mass; the
+    consistent mass's diagonal (the HRZ shares) is scikit-fem's."""
     skfem = pytest.importorskip("skfem")
     from scipy.spatial import cKDTree
     from skfem.models.elasticity import lame_parameters, linear_elasticity

@@ -160,9 +160,6 @@ def reference_and_solid(
         # 2562-vertex sphere itself, read at the reference's own vertices
         linear = FemSolid(fine, replace(params, element="anp"), cache_dir=cache_dir)
         _LINEAR[poisson] = [float(k) for k in linear.contact_stiffness(near)]
-        print(
-            f"nu {poisson}: ours {ours}, references {_REFERENCES[poisson]}, anp {_LINEAR[poisson]}"
-        )
     return _REFERENCES[poisson], _OURS[poisson]
 
 

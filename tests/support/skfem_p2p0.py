@@ -3,9 +3,9 @@ constant pressure on each element (P2/P0), the pressure condensed.
 
 ``K = a_mu(u, v) + lambda B^T M_0^-1 B`` with ``a_mu`` scikit-fem's ``linear_elasticity(0, mu)``
 (the shear terms), ``B`` the mixed form ``integral q div(u) dV`` against the P0 pressure ``q``
-and ``M_0`` its mass, diagonal (one pressure per element), the elements' volumes: the mixed element of Malkus and Hughes
-(1978) that the solid's selective integration of the ``lambda`` term equals
-(``server.objects.fem_elements.p2_stiffness_matrix``). Written from the formulation, not from
+and ``M_0`` its mass, diagonal (one pressure per element), the elements' volumes: the mixed
+element of Malkus and Hughes (1978) that the solid's selective integration of the ``lambda``
+term equals (``server.objects.fem_elements.p2_stiffness_matrix``). Written from the formulation, not from
 the solid's code, so a test comparing the two checks the assembly.
 """
 
