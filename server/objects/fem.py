@@ -1041,6 +1041,30 @@ class FemSolid(PatchedSurface):
         self._u, self._w, self._q = arrays["u"], arrays["w"], q
         self._show()
 
+    def checkpoint(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The dynamic state as it is now (copies), for :meth:`rewind` on this same solid.
+
+        Cheap, unlike :meth:`state` (which a draining server saves for a solid built again, and
+        whose :meth:`set_state` finds the modal coordinates by least squares): a look-ahead step,
+        such as the one-tick response a direct 1 kHz coupling solves its contact force with
+        (``tools/landing_reference.py``), is undone in microseconds.
+        """
+        return self._q.copy(), self._u.copy(), self._w.copy()
+
+    def rewind(self, checkpoint: tuple[FloatArray, FloatArray, FloatArray]) -> None:
+        """Go back to a :meth:`checkpoint` of this solid.
+
+        Raises
+        ------
+        ValueError
+            The checkpoint's arrays are not this solid's shapes.
+        """
+        q, u, w = (np.array(a, dtype=np.float64) for a in checkpoint)
+        if q.shape != self._q.shape or u.shape != self._u.shape or w.shape != self._w.shape:
+            raise ValueError("FEM checkpoint: not this solid's state")
+        self._q, self._u, self._w = q, u, w
+        self._show()
+
     # ------------------------------------------------------------------ patches
     def patch(self, key: int) -> PunchPatch:
         """The punch patch centred at surface vertex ``key`` (module docstring).

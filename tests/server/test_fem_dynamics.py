@@ -92,3 +92,28 @@ def test_the_modes_stepped_are_those_that_do_not_settle_within_a_tick():
     slower = FemParams(sim_period_s=0.1)
     assert settle_frequency(slower) < settle_frequency(liver)
     assert settle_frequency(FemParams(rayleigh_beta=0.0)) == np.inf
+
+
+def test_a_look_ahead_step_is_undone_by_rewind(cache):
+    """A direct 1 kHz coupling (tools/landing_reference.py) solves its contact force from where
+    the surface would be after a tick with no push, then steps with that force: the look-ahead
+    must leave no trace, or the reference's ringing is not the solid's."""
+    ball = default_balloon(0.1, 2)
+    solid = FemSolid(ball, FemParams(sim_period_s=0.001), cache_dir=cache)
+    key = solid.patch_key([0.1, 0.0, 0.0], normal=[1, 0, 0])
+    twin = FemSolid(ball, FemParams(sim_period_s=0.001), cache_dir=cache)
+    for f in (0.5, 0.5, 0.2):  # both ringing under the same pushes
+        solid.step([key], [f])
+        twin.step([key], [f])
+    mark = solid.checkpoint()
+    solid.step([key], [0.0])
+    looked = solid.vertices.copy()
+    solid.rewind(mark)
+    assert np.array_equal(solid.vertices, twin.vertices)
+    assert not np.array_equal(looked, twin.vertices)  # the solid was ringing
+    for f in (0.3, 0.0, 0.0):
+        solid.step([key], [f])
+        twin.step([key], [f])
+    assert np.allclose(solid.vertices, twin.vertices, rtol=0.0, atol=1e-15)
+    with pytest.raises(ValueError, match="not this solid"):
+        solid.rewind((mark[0][:1], mark[1], mark[2]))
