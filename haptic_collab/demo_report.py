@@ -5,7 +5,8 @@ approaches (1 s), presses (1.5 s), holds until 0.75 D, releases (1 s) and withdr
 (:func:`timeline`).
 
 The report's coupling (:func:`coupling_report`) compares the last second of A's hold with a window
-where B rests settled (1 s after B's force came on), before A touches, or after A's release when
+where B rests settled (1 s after B's force came on, or once a landing bounce has died out at the
+gain design's decay margin: :func:`landing_settled_s`), before A touches, or after A's release when
 B's contact came on too late: B's force rise [N] and the outward displacement of the surface under
 B [mm]. Each user's whole hold is judged (:func:`judge_user`): how far the probe shook
 (:func:`largest_p2p`), how far the felt stiffness stepped (:func:`felt_stiffness_step`, against
@@ -32,7 +33,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from haptic_collab.client.devices.trajectories import Rest, Sweep
-from haptic_collab.shared.gains.policy import DESIGN_OVER_REST
+from haptic_collab.shared.gains.policy import DESIGN_OVER_REST, MIN_DECAY_RATE_PER_S
 
 #: A hold is stable when the probe's largest peak to peak over its whole hold, each second after
 #: its straight-line trend (:func:`largest_p2p`), stays below this [mm] (and :func:`hold_shake_mm`,
@@ -351,6 +352,42 @@ def contact_normal(cols: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray 
     mean = np.nanmean(f, axis=0) if f.size else np.zeros(3)
     norm = float(np.linalg.norm(mean)) if np.all(np.isfinite(mean)) else 0.0
     return mean / norm if norm > 1e-9 else None
+
+
+def landing_settled_s(b: dict[str, np.ndarray], onset_s: float) -> tuple[float, float | None]:
+    """When B's landing has settled [s, ``b``'s clock], and how far it bounced [mm] (None: no
+    probe or force columns to measure it).
+
+    A heavy hand held loosely bounces as it lands on a soft solid, and its landing sets the solid
+    ringing (the liver ball rocks at 1.6-2.4 Hz): the solid coupled directly at 1 kHz, with no
+    delay and no local model, bounces such a hand by more than 1 mm for most of a second too
+    (``tools/landing_reference.py``, docs/palpation.md). A transient that dies out is not an
+    instability; the gain design's own test of one is its decay rate
+    (:data:`shared.gains.policy.MIN_DECAY_RATE_PER_S`). So B counts as settled
+    :data:`B_SETTLE_S` after its force came on or, when the probe's largest peak to peak ``p``
+    in that first second (:func:`largest_p2p` along the contact normal) is
+    :data:`STABLE_P2P_MM` or more, once a bounce of ``p`` decaying at that rate from the end of
+    its window would be under it: ``t_p + SHAKE_WINDOW_S + ln(p / STABLE_P2P_MM) /
+    MIN_DECAY_RATE_PER_S``. A shake that decays more slowly than the margin, or not at all, is
+    still :data:`STABLE_P2P_MM` or more when B's rest is judged.
+    """
+    settled = onset_s + B_SETTLE_S
+    need = ("probe_x_m", "probe_y_m", "probe_z_m", "force_x_n", "force_y_n", "force_z_n")
+    if not all(k in b for k in need):
+        return settled, None
+    first = _window(b, onset_s, settled)
+    normal = contact_normal(b, first & (b["in_contact"] > 0))
+    if normal is None:
+        return settled, None
+    probe = np.stack([b["probe_x_m"], b["probe_y_m"], b["probe_z_m"]], axis=1) @ normal
+    p2p, at = largest_p2p(b["t_s"], probe, first)
+    if not np.isfinite(p2p) or at is None:
+        return settled, None
+    p2p_mm = p2p * 1000.0
+    if p2p_mm >= STABLE_P2P_MM:
+        decays_by = at + SHAKE_WINDOW_S + math.log(p2p_mm / STABLE_P2P_MM) / MIN_DECAY_RATE_PER_S
+        settled = max(settled, decays_by)
+    return settled, p2p_mm
 
 
 def rest_plane_k_h(summary: dict[str, Any]) -> np.ndarray:
@@ -1035,8 +1072,9 @@ def coupling_report(
     surface (rose as it bulged out, fell as it was drawn in); None when not measured.
     ``b_surface_displacement_mm``: how far the surface under B (B's proxy) moves outward, along
     B's force, while A holds [mm]. Both compare the ``hold`` window with a window where B rests,
-    settled (:data:`B_SETTLE_S` after B's force came on and after B's approach), before A touches
-    (or, failing that, after A's release: ``baseline`` says which). While A holds, samples where
+    settled (``b_settled_s``, :func:`landing_settled_s`: :data:`B_SETTLE_S` after B's force came
+    on after B's approach, later if B's landing bounced; ``b_landing_p2p_mm``: how far), before
+    A touches (or, failing that, after A's release: ``baseline`` says which). While A holds, samples where
     B is out of contact count too (force 0): a side drawn in by A's press can leave B's finger.
     ``b_force_lowest_as_a_arrives_n``: B's lowest force in the :data:`ARRIVAL_WINDOW_S` after A
     touches, and ``b_force_dip_as_a_arrives_n`` how far that is below
@@ -1058,6 +1096,7 @@ def coupling_report(
     """
     on = (b["in_contact"] > 0) & (b["force_n"] > B_FORCE_ON_N) & (b["t_s"] >= b_approach_end_s)
     onset = float(b["t_s"][np.argmax(on)]) if on.any() else None
+    settled_at, landing_mm = (None, None) if onset is None else landing_settled_s(b, onset)
     out: dict[str, Any] = {
         "b_force_rise_n": None,
         "b_surface_displacement_mm": None,
@@ -1073,7 +1112,8 @@ def coupling_report(
         "b_force_before_a_arrives_n": None,
         "b_force_lowest_as_a_arrives_n": None,
         "b_force_dip_as_a_arrives_n": None,
-        "b_settled_s": None if onset is None else onset + B_SETTLE_S,
+        "b_settled_s": settled_at,
+        "b_landing_p2p_mm": landing_mm,
     }
     # samples with B in contact at full force (no ramp in or out, no fault)
     steady = b.get("force_scale", np.ones_like(b["t_s"])) >= 0.999
@@ -1085,8 +1125,8 @@ def coupling_report(
     w_pre = _window(b, tl.contact_s - 0.5, tl.contact_s - 0.05) & full
     w_arrive = _window(b, tl.contact_s, tl.contact_s + ARRIVAL_WINDOW_S)
     if (
-        onset is not None
-        and onset + B_SETTLE_S <= tl.contact_s - 0.5
+        settled_at is not None
+        and settled_at <= tl.contact_s - 0.5
         and w_pre.any()
         and w_arrive.any()
     ):
@@ -1098,7 +1138,7 @@ def coupling_report(
             b_force_dip_as_a_arrives_n=before - lowest,
         )
     usable = _same_coupling(b, w_hold)
-    found = None if onset is None else _rest_window(b, tl, onset + B_SETTLE_S, usable)
+    found = None if settled_at is None else _rest_window(b, tl, settled_at, usable)
     if found is None or not w_hold.any():
         return out
     baseline, rest = found
@@ -1218,10 +1258,22 @@ def coupling_lines(c: dict[str, Any]) -> list[str]:
     changed [N]; where B's resting force was measured; and whether B's force dipped as A arrived
     (B should only feel a rise).
     """
+    landing = c.get("b_landing_p2p_mm")
+    bounce = (
+        [
+            f"  (B's hand bounced {landing:.1f} mm peak to peak as it landed, as a loosely held "
+            f"hand does on a solid its landing sets ringing; B counts as settled from "
+            f"{c['b_settled_s']:.1f} s on A's clock, when a bounce decaying at the gain design's "
+            f"margin, {MIN_DECAY_RATE_PER_S:g}/s, is under {STABLE_P2P_MM:g} mm.)"
+        ]
+        if landing is not None and landing >= STABLE_P2P_MM and c.get("b_settled_s") is not None
+        else []
+    )
     if c["b_force_rise_n"] is None:
         return [
             "B feels A's press: not measured (B's contact never settled outside A's press, so "
-            "there is no resting force to compare with)."
+            "there is no resting force to compare with).",
+            *bounce,
         ]
     w = c["rest_window_s"]
     rest, hold = c["b_force_at_rest_n"], c["b_force_during_a_press_n"]
@@ -1236,6 +1288,7 @@ def coupling_lines(c: dict[str, Any]) -> list[str]:
         f"{share}; a hand notices about {FEEL_FORCE_SHARE:.0%}.",
         f"  (B's force at rest was measured {c['baseline']}, {w[0]:.1f}-{w[1]:.1f} s on A's "
         "clock.)",
+        *bounce,
     ]
     lowest = c.get("b_force_lowest_as_a_arrives_n")
     if lowest is not None:
