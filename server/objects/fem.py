@@ -184,6 +184,7 @@ from haptic_collab.server.objects.volume import (
     volume_mesh,
 )
 from haptic_collab.shared.checks import NonNegFinite, PositiveFinite, params_dataclass
+from haptic_collab.shared.modal_loop import ContactModes
 from haptic_collab.shared.types import FloatArray, IntArray
 
 if TYPE_CHECKING:  # inclusions imports solid_materials, which imports this module
@@ -1168,6 +1169,36 @@ class FemSolid(PatchedSurface):
         self._u = u
         self._w = w
         self._show()
+
+    def contact_modes(self, key: int) -> ContactModes:
+        """The contact's response to a push, mode by mode, as :meth:`step` moves it: the object
+        of :func:`shared.modal_loop.modal_monodromy` (the full loop on this solid's slow modes,
+        where the gain design sees K_o and B_o only).
+
+        ``z(k+1) = a z(k) + b F(k)``, the depth under the patch (along its inward normal)
+        ``c . z(k+1) + d F(k)`` for a push F [N] held over each period: each mode's
+        displacement and velocity (``a`` its exact step, ``b`` its load ``-Phi^T b`` times the
+        step's input), ``c`` the patch's share of each mode's surface motion, and ``d`` the
+        static compliance less the stepped modes' static share (:meth:`step`'s ``K^-1 F -
+        Phi_s Lambda^-1 Phi^T F``).
+        """
+        (s,) = self._cache.get([key])
+        patch = s.patch
+        dofs = (3 * patch.indices[:, None] + np.arange(3)).ravel()
+        b = (patch.weights[:, None] * patch.normal[None, :]).ravel()
+        m = len(self._omega)
+        psi = b @ self._phi_surface[dofs] if m else np.zeros(0)  # the patch's share of each mode
+        load = s.modal  # Phi^T b: a push f loads mode i by -f load_i
+        a = np.zeros((2 * m, 2 * m))
+        bz = np.zeros(2 * m)
+        c = np.zeros(2 * m)
+        for i in range(m):
+            a[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = self._a_modes[i]
+            bz[2 * i : 2 * i + 2] = -load[i] * self._b_modes[i]
+            c[2 * i] = -psi[i]  # depth = -b^T u, u's modal part Phi_s q
+        c0 = float(b @ s.static[dofs])
+        d = c0 - float(np.sum(psi * load / self._omega**2)) if m else c0
+        return ContactModes(a=a, b=bz, c=c, d=d, c_static=c0)
 
     def contact_compliance(self, keys: Sequence[int]) -> FloatArray:
         """Normal compliance ``C_ij = b_i^T K^-1 b_j`` [m/N] of the contacts' punches.

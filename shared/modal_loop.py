@@ -1,0 +1,229 @@
+"""The full haptic loop against an object's slow modes: rendered gains checked on the solid itself.
+
+The gain design (:mod:`shared.gains.design`) checks a local model on :mod:`shared.full_loop`'s
+loop, whose object is what the server reports of a contact and nothing more: eq. 9,
+``x_o(k+1) = (F(k) + B_o x_o(k)) / (K_o + B_o)``. A FEM solid is more: its lowest modes (the
+liver ball rocks at 1.6-2.4 Hz) keep moving for many simulation ticks, and a hand resting on it
+through the local model can keep them going (docs/palpation.md, docs/fem.md "Not done"). This
+module closes the same loop, block for block, over the contact's own modal dynamics instead:
+
+object (simulation rate), the contact's modes (:class:`ContactModes`)
+    ``z(k+1) = A z(k) + b F(k)``, ``x_o(k+1) = c . z(k+1) + d F(k)``: every mode's displacement and
+    velocity stepped exactly for the force held over the period, and the static residual of the
+    rest in ``d``, as :meth:`server.objects.fem.FemSolid.step` moves the contact
+    (:meth:`server.objects.fem.FemSolid.contact_modes` gives them).
+
+Everything else (the hand and device, the local model at the servo rate, its probe damper, the
+decimation, the delay, the proxy hold, own-force compensation) is :func:`shared.full_loop.monodromy`'s,
+read from its own matrices: the servo-rate block over one simulation period is taken from
+``monodromy`` for a unit object and re-closed here (:func:`modal_monodromy`), so both checks
+share one model of everything but the object. Not part of the design code
+(:func:`shared.gains.table_file.design_code_hash`): a diagnosis of rendered gains, as
+``tools/modal_loop_check.py`` runs it.
+
+Judged as the design judges: the spectral radius of the monodromy matrix over every sampling
+tick and hand, and the decay rate it implies (:func:`decay_rate_per_s`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from haptic_collab.shared.full_loop import Hand, ProxyHold, monodromy, slow_layout
+from haptic_collab.shared.types import FloatArray
+
+
+@dataclass(frozen=True)
+class ContactModes:
+    """A contact's response to a push held over each simulation period (SI units).
+
+    ``z(k+1) = a z(k) + b F(k)``; the contact's depth (along the inward normal, what
+    :mod:`shared.full_loop` calls ``x_o``) ``x(k+1) = c . z(k+1) + d F(k)``.
+
+    Attributes
+    ----------
+    a : (2M, 2M) float
+        The modes' state transition over one period (block diagonal: each mode's displacement
+        and velocity).
+    b : (2M,) float
+        Their input from the push F [N].
+    c : (2M,) float
+        The depth's output row [m per state unit].
+    d : float
+        The static residual [m/N]: the compliance of the modes not stepped and of each stepped
+        mode's static part removed.
+    c_static : float
+        The static compliance 1/K_o [m/N] (``d`` plus every mode's static share).
+    """
+
+    a: FloatArray
+    b: FloatArray
+    c: FloatArray
+    d: float
+    c_static: float
+
+    def __post_init__(self) -> None:
+        n = len(self.b)
+        if self.a.shape != (n, n) or self.c.shape != (n,):
+            raise ValueError(f"modal shapes differ: a {self.a.shape}, b ({n},), c {self.c.shape}")
+        if not (np.all(np.isfinite(self.a)) and np.all(np.isfinite(self.b))):
+            raise ValueError("modal matrices hold a non-finite value")
+        if not (math.isfinite(self.d) and math.isfinite(self.c_static) and self.c_static > 0.0):
+            raise ValueError(
+                f"compliances must be finite (static > 0), got {self.d}, {self.c_static}"
+            )
+
+    @property
+    def mode_count(self) -> int:
+        """How many modes are stepped."""
+        return len(self.b) // 2
+
+    def static_shares(self) -> FloatArray:
+        """Each mode's share of the static compliance [m/N]: its depth under a 1 N push held
+        until it settles, ``c_i (I - A_i)^-1 b_i``; with ``d`` they add up to ``c_static``."""
+        out = np.empty(self.mode_count)
+        for i in range(self.mode_count):
+            s = slice(2 * i, 2 * i + 2)
+            out[i] = self.c[s] @ np.linalg.solve(np.eye(2) - self.a[s, s], self.b[s])
+        return out
+
+    def reduced(self, count: int) -> ContactModes:
+        """The ``count`` modes with the largest static shares, the others' shares moved into
+        ``d`` (treated as static, as the solid treats the modes that settle within a period):
+        the same static compliance, a loop of fewer states. On the liver ball's side 20 of 159
+        modes gave the full model's decay rates to 1 % at 1/50 of the cost (docs/fem.md)."""
+        if count >= self.mode_count:
+            return self
+        shares = self.static_shares()
+        keep = np.sort(np.argsort(-np.abs(shares))[: max(int(count), 0)])
+        sel = np.ravel([[2 * i, 2 * i + 1] for i in keep]).astype(int)
+        folded = float(shares.sum() - shares[keep].sum())
+        return ContactModes(
+            a=self.a[np.ix_(sel, sel)],
+            b=self.b[sel],
+            c=self.c[sel],
+            d=self.d + folded,
+            c_static=self.c_static,
+        )
+
+    def step_response(self, ticks: int) -> FloatArray:
+        """The depth [m] at the end of each of ``ticks`` periods under a 1 N push from rest."""
+        z = np.zeros(len(self.b))
+        out = np.empty(ticks)
+        for k in range(ticks):
+            z = self.a @ z + self.b
+            out[k] = self.c @ z + self.d
+        return out
+
+
+def modal_monodromy(
+    *,
+    hand: Hand | Sequence[Hand] | None,
+    modes: ContactModes,
+    k_h: float,
+    i_gain: float = 0.0,
+    b_h: float = 0.0,
+    own_gain: float = 0.0,
+    servo_period_s: float = 1e-3,
+    rate_ratio: int = 50,
+    delay_ticks: int = 0,
+    sample_ticks: Sequence[int] | None = None,
+    proxy_hold: ProxyHold = "zoh",
+) -> FloatArray:
+    """Monodromy matrices of the full loop over one simulation period, the object ``modes``.
+
+    Parameters as :func:`shared.full_loop.monodromy` (one set of gains; hands batched), with the
+    object's :class:`ContactModes` for K_o and B_o.
+
+    Returns
+    -------
+    (H, J, n, n) float array
+        Per hand and sampling tick; the state is [fast states, proxy, (previous proxy), the
+        object's modal states, delay line].
+
+    Raises
+    ------
+    ValueError
+        As :func:`shared.full_loop.monodromy`.
+    """
+    # the servo-rate block from monodromy itself, for a unit object without damping and without
+    # compensation: its object row is then the sampled force's row F = F_xi xi + F_new p + F_old p_old
+    unit = monodromy(
+        hand=hand, k_o=1.0, k_h=k_h, i_gain=i_gain, b_h=b_h, b_o=0.0,
+        servo_period_s=servo_period_s, rate_ratio=rate_ratio, delay_ticks=0,
+        sample_ticks=sample_ticks, proxy_hold=proxy_hold, own_gain=0.0,
+    )  # fmt: skip
+    foh = proxy_hold == "foh"
+    nb, nj, n0, _ = unit.shape
+    nf = n0 - (3 if foh else 2)  # the fast states: [xi, p, (p_old), x_obj]
+    lay0 = slow_layout(nf, foh, 0)
+    force = unit[:, :, lay0.obj, :].copy()  # (nb, nj, n0): F as a row over the unit's states
+    force[:, :, lay0.obj] = 0.0  # the unit object's own term (B_o = 0: none)
+    nm = len(modes.b)
+    D = int(delay_ticks)
+    i_z = nf + (2 if foh else 1)  # the modal states replace x_obj
+    i_q = i_z + nm
+    n = i_q + D
+    M = np.zeros((nb, nj, n, n))
+    keep = slice(0, lay0.obj)  # fast states, proxy and previous proxy: as in the unit loop
+    M[:, :, keep, keep] = unit[:, :, keep, keep]
+    f_row = np.zeros((nb, nj, n))
+    f_row[:, :, keep] = force[:, :, keep]
+    # z' = A z + b F
+    M[:, :, i_z:i_q, :] = modes.b[None, None, :, None] * f_row[:, :, None, :]
+    M[:, :, i_z:i_q, i_z:i_q] += modes.a
+    # the depth reported: c . z' + d F; the proxy delivered: that, moved out by C_h F
+    proxy_row = np.einsum("m,bjmn->bjn", modes.c, M[:, :, i_z:i_q, :])
+    proxy_row += (modes.d - float(own_gain)) * f_row
+    i_p = lay0.proxy
+    if D == 0:
+        M[:, :, i_p, :] = proxy_row
+    else:
+        M[:, :, i_p, :] = 0.0
+        M[:, :, i_p, i_q] = 1.0
+        for r in range(D - 1):
+            M[:, :, i_q + r, i_q + r + 1] = 1.0
+        M[:, :, i_q + D - 1, :] = proxy_row
+    return M
+
+
+def modal_decay_rates(
+    *,
+    hands: Sequence[Hand],
+    modes: ContactModes,
+    k_h: float,
+    i_gain: float = 0.0,
+    b_h: float = 0.0,
+    own_gain: float = 0.0,
+    servo_period_s: float = 1e-3,
+    rate_ratio: int = 50,
+    delay_ticks: int = 0,
+    proxy_hold: ProxyHold = "zoh",
+) -> FloatArray:
+    """The loop's slowest decay rate [1/s] per hand (over every sampling tick), on ``modes``:
+    :func:`modal_monodromy` judged as the design judges (negative: the loop grows)."""
+    m = modal_monodromy(
+        hand=list(hands), modes=modes, k_h=k_h, i_gain=i_gain, b_h=b_h, own_gain=own_gain,
+        servo_period_s=servo_period_s, rate_ratio=rate_ratio, delay_ticks=delay_ticks,
+        proxy_hold=proxy_hold,
+    )  # fmt: skip
+    radius = spectral_radius(m).max(axis=1)
+    period = servo_period_s * rate_ratio
+    return np.array([decay_rate_per_s(float(r), period) for r in radius])
+
+
+def spectral_radius(m: FloatArray) -> FloatArray:
+    """The largest eigenvalue magnitude of each matrix of a (..., n, n) batch."""
+    return np.max(np.abs(np.linalg.eigvals(m)), axis=-1)
+
+
+def decay_rate_per_s(radius: float, sim_period_s: float) -> float:
+    """The decay rate [1/s] of the slowest mode of a loop whose monodromy over one simulation
+    period ``sim_period_s`` [s] has spectral radius ``radius`` (negative: it grows)."""
+    if radius <= 0.0:
+        return math.inf
+    return -math.log(radius) / sim_period_s

@@ -1,0 +1,111 @@
+"""The full loop closed over an object's modes (shared.modal_loop), and the FEM contact's modes
+it takes (server.objects.fem.FemSolid.contact_modes).
+
+What a user would notice: the gain design checks a contact on eq. 9's K_o and B_o, which is
+all the server reports; a FEM solid's lowest modes ring for many ticks beyond that. The check on
+the solid's own modes must be the same loop as the design's wherever the object is the same
+(no modes: eq. 9 without damping, to rounding), its object must move as the solid does under
+the same pushes, and on the liver ball it must see what the demos saw: a resting hand's wobble
+that outlasts the design's decay margin (docs/palpation.md, docs/fem.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from haptic_collab.server.objects.fem import FemParams, FemSolid
+from haptic_collab.server.objects.mesh import default_balloon
+from haptic_collab.shared.full_loop import Hand, monodromy
+from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
+from haptic_collab.shared.modal_loop import (
+    ContactModes,
+    decay_rate_per_s,
+    modal_decay_rates,
+    modal_monodromy,
+    spectral_radius,
+)
+
+HANDS = [
+    Hand(mass_kg=0.645, damping_n_s_per_m=2.5, stiffness_n_per_m=20.0),  # heavy, loosely held
+    Hand(mass_kg=0.145, damping_n_s_per_m=2.5, stiffness_n_per_m=1000.0),  # light, firm
+    Hand(mass_kg=0.495, damping_n_s_per_m=5.5, stiffness_n_per_m=300.0),  # the demo's
+]
+
+
+@pytest.fixture(scope="module")
+def liver_side(tmp_path_factory):
+    """The default sphere's shape in liver (a cheaper mesh), its side contact's modes."""
+    ball = default_balloon(0.1, 2)
+    cache = str(tmp_path_factory.mktemp("volumes"))
+    solid = FemSolid(ball, FemParams(rayleigh_alpha=1.11), cache_dir=cache)
+    key = solid.patch_key([0.1, 0.0, 0.0], normal=[1, 0, 0])
+    return solid, key, solid.contact_modes(key)
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+@pytest.mark.parametrize("delay", [0, 2])
+def test_without_modes_it_is_the_designs_own_loop(hold, delay) -> None:
+    static = ContactModes(
+        a=np.zeros((0, 0)), b=np.zeros(0), c=np.zeros(0), d=1 / 300.0, c_static=1 / 300.0
+    )
+    for gains in (
+        {"k_h": 150.0, "b_h": 3.0, "own_gain": 1 / 150.0},
+        {"k_h": 80.0, "i_gain": 900.0},
+    ):
+        ours = spectral_radius(
+            modal_monodromy(hand=HANDS, modes=static, delay_ticks=delay, proxy_hold=hold, **gains)
+        )
+        design = spectral_radius(
+            monodromy(hand=HANDS, k_o=300.0, delay_ticks=delay, proxy_hold=hold, **gains)
+        )
+        assert np.allclose(ours, design, rtol=0.0, atol=1e-12)
+
+
+def test_the_contacts_modes_move_as_the_solid_does(liver_side) -> None:
+    solid, key, modes = liver_side
+    patch = solid.patch(key)
+    dofs = (3 * patch.indices[:, None] + np.arange(3)).ravel()
+    b = (patch.weights[:, None] * patch.normal[None, :]).ravel()
+    z = np.zeros(len(modes.b))
+    solid.reset()
+    pushes = np.random.default_rng(1).uniform(0.0, 1.0, 25)
+    for f in pushes:
+        solid.step([key], [f])
+        depth = -(b @ solid.linear_displacement.ravel()[dofs])
+        z = modes.a @ z + modes.b * f
+        assert modes.c @ z + modes.d * f == pytest.approx(depth, rel=1e-9, abs=1e-15)
+    # the first tick of a step push is the one-tick compliance B_o is defined by
+    k_o = solid.contact_stiffness([key])[0]
+    b_o = solid.contact_damping([key])[0]
+    assert modes.step_response(1)[0] == pytest.approx(1.0 / (k_o + b_o), rel=1e-9)
+    assert modes.step_response(400)[-1] == pytest.approx(modes.c_static, rel=1e-3)
+    assert modes.c_static == pytest.approx(1.0 / k_o, rel=1e-9)
+
+
+def test_fewer_modes_keep_the_static_compliance_and_the_verdict(liver_side) -> None:
+    _, _, modes = liver_side
+    few = modes.reduced(20)
+    assert few.mode_count == 20 < modes.mode_count
+    assert few.d + few.static_shares().sum() == pytest.approx(modes.c_static, rel=1e-9)
+    gains = {"k_h": 72.0, "b_h": 5.0, "own_gain": 1 / 72.0, "proxy_hold": "foh"}
+    full = modal_decay_rates(hands=HANDS, modes=modes, **gains)
+    assert np.allclose(modal_decay_rates(hands=HANDS, modes=few, **gains), full, atol=0.05)
+
+
+def test_on_the_liver_ball_a_hand_keeps_the_rocking_going_past_the_design_margin(liver_side):
+    """Gains the design's loop passes with room to spare (eq. 9: 2-7/s) let the ball's lowest
+    mode, which alone decays at about 1.1/s, die out more slowly than the 1/s margin with the
+    demo's hand and the firm one: the resting hand's lingering wobble of the palpation demos."""
+    solid, key, modes = liver_side
+    k_o = solid.contact_stiffness([key])[0]
+    b_o = solid.contact_damping([key])[0]
+    gains = {"k_h": 72.0, "b_h": 5.0, "own_gain": 1 / 72.0, "proxy_hold": "foh"}
+    eq9 = spectral_radius(monodromy(hand=HANDS, k_o=k_o, b_o=b_o, **gains)).max(axis=1)
+    eq9_rates = [decay_rate_per_s(float(r), 0.05) for r in eq9]
+    assert min(eq9_rates) > 1.5 * MIN_DECAY_RATE_PER_S
+    alone = decay_rate_per_s(float(np.abs(np.linalg.eigvals(modes.a)).max()), 0.05)
+    assert MIN_DECAY_RATE_PER_S < alone < 1.3
+    rates = modal_decay_rates(hands=HANDS, modes=modes.reduced(20), **gains)
+    assert rates[1] < 0.5 * MIN_DECAY_RATE_PER_S  # the firm hand
+    assert rates[2] < MIN_DECAY_RATE_PER_S  # the demo's hand
