@@ -1,0 +1,134 @@
+"""The product's gains for a FEM contact, checked on the solid's own slow modes.
+
+``python tools/modal_loop_check.py [--at side|top] [--delays 0 1 2] [--modes 20] [--json FILE]``
+builds the default FEM solid (``haptic server --object fem``: the liver sphere), reads K_o and
+B_o at the contact as the server reports them, designs the product's gains for that contact as
+``haptic gains --local-model p`` does (own-force compensation, the simulated Phantom Desktop's
+limits; the shipped tables hold the same designs), and judges them twice at each delay: on the
+loop the design checks (:func:`shared.full_loop.monodromy`, the object as eq. 9's K_o and B_o)
+and on the same loop closed over the contact's modes (:func:`shared.modal_loop.modal_monodromy`,
+the ``--modes`` with the largest static shares, the rest static:
+:meth:`shared.modal_loop.ContactModes.reduced`). It prints, and writes with ``--json``, the
+slowest decay rate [1/s] per hand of the design's box (:func:`shared.coupled_loop.
+verification_hands`) and for the demo's heavy, loosely held hand with the device's mass and
+damping, beside the design's margin and the solid's own slowest decay. Not a test: the
+measurement behind docs/fem.md ("Not done") and docs/palpation.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+POINTS = {"side": ((0.1, 0.0, 0.0), (1.0, 0.0, 0.0)), "top": ((0.0, 0.0, 0.1), (0.0, 0.0, 1.0))}
+
+
+def check(at: str, delays: list[int], mode_count: int) -> dict[str, Any]:
+    """The module docstring's measurement at contact ``at``."""
+    from haptic_collab.cli.design import _profile_design
+    from haptic_collab.client.devices.profiles import get_sim_profile
+    from haptic_collab.research.harness_3d import PROFILE
+    from haptic_collab.server.objects.fem import FemParams, FemSolid, sphere_for_solid
+    from haptic_collab.server.solid_materials import SOLID_PRESETS, solid_to_params
+    from haptic_collab.shared.coupled_loop import verification_hands
+    from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, Hand, monodromy
+    from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
+    from haptic_collab.shared.modal_loop import (
+        decay_rate_per_s,
+        modal_decay_rates,
+        spectral_radius,
+    )
+
+    params = solid_to_params(SOLID_PRESETS["liver"], FemParams())
+    mesh, element = sphere_for_solid(4)
+    solid = FemSolid(mesh, replace(params, element=element))
+    point, normal = POINTS[at]
+    key = solid.patch_key(point, normal=normal)
+    k_o = float(solid.contact_stiffness([key])[0])
+    b_o = float(solid.contact_damping([key])[0])
+    full = solid.contact_modes(key)
+    modes = full.reduced(mode_count)
+    period = params.sim_period_s
+    alone = decay_rate_per_s(float(np.abs(np.linalg.eigvals(full.a)).max()), period)
+    prof = get_sim_profile(PROFILE)
+    heavy = Hand(
+        mass_kg=0.6 + prof.mass_kg,
+        damping_n_s_per_m=2.0 + prof.limits.damping_n_s_per_m,
+        stiffness_n_per_m=20.0,
+    )
+    hands = [*verification_hands(DEFAULT_HAND_BOX), heavy]
+    names = [
+        f"{h.mass_kg:g} kg, {h.damping_n_s_per_m:g} N*s/m, {h.stiffness_n_per_m:g} N/m"
+        for h in hands
+    ]
+    rows = []
+    for d in delays:
+        design = _profile_design(PROFILE, k_o, paper=False, b_o=b_o, delay_ticks=d, mode="p")
+        gains = {
+            "k_h": design.k_h, "b_h": design.b_h, "own_gain": design.own_gain,
+            "proxy_hold": design.proxy_hold,
+        }  # fmt: skip
+        m9 = monodromy(hand=hands, k_o=k_o, b_o=b_o, delay_ticks=d, **gains)
+        eq9 = [decay_rate_per_s(float(r), period) for r in spectral_radius(m9).max(axis=1)]
+        modal = modal_decay_rates(hands=hands, modes=modes, delay_ticks=d, **gains)
+        rows.append(
+            {
+                "delay_ticks": d,
+                "design": {**gains, "worst_spectral_radius": design.worst_spectral_radius},
+                "eq9_decay_per_s": dict(zip(names, eq9, strict=True)),
+                "modal_decay_per_s": dict(zip(names, modal.tolist(), strict=True)),
+                "eq9_slowest_in_box": min(eq9[:-1]),
+                "modal_slowest_in_box": float(modal[:-1].min()),
+                "heavy_loose_hand": {"eq9": eq9[-1], "modal": float(modal[-1])},
+            }
+        )
+    return {
+        "at": at,
+        "k_o_n_per_m": k_o,
+        "b_o_n_per_m": b_o,
+        "modes_stepped": full.mode_count,
+        "modes_in_check": modes.mode_count,
+        "lowest_modes_hz": [float(f) for f in solid.natural_frequencies_hz[:4]],
+        "first_mode_static_share": float(np.max(np.abs(full.static_shares())) / full.c_static),
+        "solid_alone_slowest_decay_per_s": alone,
+        "design_margin_per_s": MIN_DECAY_RATE_PER_S,
+        "rows": rows,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--at", choices=sorted(POINTS), default="side")
+    ap.add_argument("--delays", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--modes", type=int, default=20, help="modes kept in the check")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    out = check(args.at, args.delays, args.modes)
+    out["how"] = "tools/modal_loop_check.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    print(
+        f"{args.at}: K_o {out['k_o_n_per_m']:.1f} N/m, B_o {out['b_o_n_per_m']:.1f} N/m; the "
+        f"solid alone decays at {out['solid_alone_slowest_decay_per_s']:.2f}/s; the design's "
+        f"margin {out['design_margin_per_s']:g}/s"
+    )
+    for r in out["rows"]:
+        g = r["design"]
+        print(
+            f"  {r['delay_ticks']} ticks: K_h {g['k_h']:.1f} N/m, B_h {g['b_h']:.2f} N*s/m, "
+            f"C_h K_h {g['own_gain'] * g['k_h']:.2f}, {g['proxy_hold']}: slowest in the box "
+            f"eq. 9 {r['eq9_slowest_in_box']:.2f}/s, the solid's modes "
+            f"{r['modal_slowest_in_box']:.2f}/s; heavy loose hand {r['heavy_loose_hand']['eq9']:.2f}"
+            f" -> {r['heavy_loose_hand']['modal']:.2f}/s"
+        )
+    if args.json is not None:
+        args.json.write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
