@@ -1261,8 +1261,8 @@ def coupling_lines(c: dict[str, Any]) -> list[str]:
     landing = c.get("b_landing_p2p_mm")
     bounce = (
         [
-            f"  (B's hand bounced {landing:.1f} mm peak to peak as it landed, as a loosely held "
-            f"hand does on a solid its landing sets ringing; B counts as settled from "
+            f"  (B's hand bounced {landing:.1f} mm peak to peak as it landed, as a hand does on "
+            f"a soft solid its landing sets ringing; B counts as settled from "
             f"{c['b_settled_s']:.1f} s on A's clock, when a bounce decaying at the gain design's "
             f"margin, {MIN_DECAY_RATE_PER_S:g}/s, is under {STABLE_P2P_MM:g} mm.)"
         ]
