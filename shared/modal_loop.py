@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -195,21 +196,16 @@ def modal_decay_rates(
     *,
     hands: Sequence[Hand],
     modes: ContactModes,
-    k_h: float,
-    i_gain: float = 0.0,
-    b_h: float = 0.0,
-    own_gain: float = 0.0,
     servo_period_s: float = 1e-3,
     rate_ratio: int = 50,
-    delay_ticks: int = 0,
-    proxy_hold: ProxyHold = "zoh",
+    **loop: Any,
 ) -> FloatArray:
     """The loop's slowest decay rate [1/s] per hand (over every sampling tick), on ``modes``:
-    :func:`modal_monodromy` judged as the design judges (negative: the loop grows)."""
+    :func:`modal_monodromy` with ``loop`` (its gains, delay and proxy hold) judged as the design
+    judges (negative: the loop grows)."""
     m = modal_monodromy(
-        hand=list(hands), modes=modes, k_h=k_h, i_gain=i_gain, b_h=b_h, own_gain=own_gain,
-        servo_period_s=servo_period_s, rate_ratio=rate_ratio, delay_ticks=delay_ticks,
-        proxy_hold=proxy_hold,
+        hand=list(hands), modes=modes, servo_period_s=servo_period_s, rate_ratio=rate_ratio,
+        **loop,
     )  # fmt: skip
     radius = spectral_radius(m).max(axis=1)
     period = servo_period_s * rate_ratio
