@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from haptic_collab.shared.full_loop import Hand, ProxyHold, monodromy, slow_layout
+from haptic_collab.shared.full_loop import Hand, ProxyHold, _hand_zoh, monodromy, slow_layout
 from haptic_collab.shared.types import FloatArray
 
 
@@ -210,6 +210,48 @@ def modal_decay_rates(
     radius = spectral_radius(m).max(axis=1)
     period = servo_period_s * rate_ratio
     return np.array([decay_rate_per_s(float(r), period) for r in radius])
+
+
+def direct_decay_rates(
+    *,
+    hands: Sequence[Hand],
+    modes: ContactModes,
+    pad_stiffness_n_per_m: float,
+    pad_damping_n_s_per_m: float,
+    period_s: float,
+) -> FloatArray:
+    """The slowest decay rate [1/s] of each hand held on the object itself, no product between.
+
+    The finger pad is a spring and damper from the probe to the contact, ``f = K (x - y) + B x'``
+    (``x`` the probe's depth, ``y`` the contact's), its force solved each period with the
+    object's one-period response as ``tools/landing_reference.py`` solves it, linearised in
+    contact; no delay, no local model. ``modes`` must be stepped at ``period_s`` (a solid built
+    with that simulation period, 1 ms for a servo-rate reference). What a hand does on the solid
+    itself, for judging :func:`modal_decay_rates` (docs/fem.md, "Not done").
+    """
+    k_pad, b_pad = float(pad_stiffness_n_per_m), float(pad_damping_n_s_per_m)
+    phi, gam = _hand_zoh(
+        np.array([h.mass_kg for h in hands]),
+        np.array([h.damping_n_s_per_m for h in hands]),
+        np.array([h.stiffness_n_per_m for h in hands]),
+        period_s,
+    )
+    nz = len(modes.b)
+    gain = 1.0 / (1.0 + k_pad * (float(modes.c @ modes.b) + modes.d))
+    force = np.zeros(nz + 2)  # f over the state [z, x, x']
+    force[:nz] = -k_pad * gain * (modes.c @ modes.a)  # the contact where it goes unpushed
+    force[nz] = k_pad * gain
+    force[nz + 1] = b_pad * gain
+    out = np.empty(len(hands))
+    for i in range(len(hands)):
+        m = np.zeros((nz + 2, nz + 2))
+        m[:nz, :nz] = modes.a
+        m[:nz] += np.outer(modes.b, force)  # the push moves the object in
+        m[nz:, nz:] = phi[i]
+        m[nz:] += np.outer(gam[i], force)  # and the hand out
+        radius = float(np.max(np.abs(np.linalg.eigvals(m))))
+        out[i] = decay_rate_per_s(radius, period_s)
+    return out
 
 
 def spectral_radius(m: FloatArray) -> FloatArray:

@@ -109,3 +109,52 @@ def test_on_the_liver_ball_a_hand_keeps_the_rocking_going_past_the_design_margin
     rates = modal_decay_rates(hands=HANDS, modes=modes.reduced(20), **gains)
     assert rates[1] < 0.5 * MIN_DECAY_RATE_PER_S  # the firm hand
     assert rates[2] < MIN_DECAY_RATE_PER_S  # the demo's hand
+
+
+def test_the_direct_reference_is_the_hand_on_the_solid_itself(tmp_path) -> None:
+    """direct_decay_rates' loop, tick by tick, against the solid stepped at 1 ms with the pad's
+    force solved from its look-ahead (tools/landing_reference.py's coupling, never leaving the
+    surface): the same probe to rounding, and the decay its eigenvalues give."""
+    from haptic_collab.shared.full_loop import _hand_zoh
+    from haptic_collab.shared.modal_loop import direct_decay_rates
+
+    ball = default_balloon(0.1, 2)
+    solid = FemSolid(
+        ball, FemParams(rayleigh_alpha=1.11, sim_period_s=1e-3), cache_dir=str(tmp_path)
+    )
+    key = solid.patch_key([0.1, 0.0, 0.0], normal=[1, 0, 0])
+    modes = solid.contact_modes(key)
+    patch = solid.patch(key)
+    dofs = (3 * patch.indices[:, None] + np.arange(3)).ravel()
+    b = (patch.weights[:, None] * patch.normal[None, :]).ravel()
+    hand = HANDS[1]
+    k_pad, b_pad = 1000.0, 5.0
+    phi, gam = _hand_zoh(
+        np.array([hand.mass_kg]), np.array([hand.damping_n_s_per_m]),
+        np.array([hand.stiffness_n_per_m]), 1e-3,
+    )  # fmt: skip
+    c_t = float(modes.c @ modes.b) + modes.d
+
+    def depth() -> float:
+        return float(-(b @ solid.linear_displacement.ravel()[dofs]))
+
+    xv = np.array([2e-3, 0.0])  # the probe 2 mm in, still: the pad pushes it back out
+    z = np.zeros(len(modes.b))
+    for _ in range(300):
+        mark = solid.checkpoint()
+        solid.step([key], [0.0])
+        free = depth()
+        solid.rewind(mark)
+        f = (k_pad * (xv[0] - free) + b_pad * xv[1]) / (1.0 + k_pad * c_t)
+        solid.step([key], [f])
+        # the matrix's own step of the same state
+        f_m = (k_pad * (xv[0] - modes.c @ modes.a @ z) + b_pad * xv[1]) / (1.0 + k_pad * c_t)
+        assert f_m == pytest.approx(f, rel=1e-9, abs=1e-12)
+        z = modes.a @ z + modes.b * f
+        assert modes.c @ z + modes.d * f == pytest.approx(depth(), rel=1e-9, abs=1e-15)
+        xv = phi[0] @ xv + gam[0] * f
+    rate = direct_decay_rates(
+        hands=[hand], modes=modes, pad_stiffness_n_per_m=k_pad, pad_damping_n_s_per_m=b_pad,
+        period_s=1e-3,
+    )  # fmt: skip
+    assert rate[0] > 0.0  # a passive hand on a passive solid dies out
