@@ -1,6 +1,7 @@
 """The product's gains for a FEM contact, checked on the solid's own slow modes.
 
-``python tools/modal_loop_check.py [--at side|top] [--delays 0 1 2] [--modes 20] [--json FILE]``
+``python tools/modal_loop_check.py [--at side|top] [--delays 0 1 2] [--modes 20] [--direct]
+[--json FILE]``
 builds the default FEM solid (``haptic server --object fem``: the liver sphere), reads K_o and
 B_o at the contact as the server reports them, designs the product's gains for that contact as
 ``haptic gains --local-model p`` does (own-force compensation, the simulated Phantom Desktop's
@@ -11,7 +12,9 @@ the ``--modes`` with the largest static shares, the rest static:
 :meth:`shared.modal_loop.ContactModes.reduced`). It prints, and writes with ``--json``, the
 slowest decay rate [1/s] per hand of the design's box (:func:`shared.coupled_loop.
 verification_hands`) and for the demo's heavy, loosely held hand with the device's mass and
-damping, beside the design's margin and the solid's own slowest decay. Not a test: the
+damping, beside the design's margin and the solid's own slowest decay; with ``--direct``, each
+hand held on the solid itself at 1 kHz through a finger pad, with no product between
+(:func:`shared.modal_loop.direct_decay_rates`): what the rates are to be judged against. Not a test: the
 measurement behind docs/fem.md ("Not done") and docs/palpation.md.
 """
 
@@ -29,7 +32,28 @@ import numpy as np
 POINTS = {"side": ((0.1, 0.0, 0.0), (1.0, 0.0, 0.0)), "top": ((0.0, 0.0, 0.1), (0.0, 0.0, 1.0))}
 
 
-def check(at: str, delays: list[int], mode_count: int) -> dict[str, Any]:
+def direct(at: str, hands: list[Any], pad: tuple[float, float]) -> list[float]:
+    """The slowest decay rate [1/s] of each hand held on the solid itself (no product between):
+    :func:`shared.modal_loop.direct_decay_rates` on the same solid stepped every millisecond."""
+    from haptic_collab.server.objects.fem import FemParams, FemSolid, sphere_for_solid
+    from haptic_collab.server.solid_materials import SOLID_PRESETS, solid_to_params
+    from haptic_collab.shared.modal_loop import direct_decay_rates
+
+    params = solid_to_params(SOLID_PRESETS["liver"], FemParams(sim_period_s=1e-3))
+    mesh, element = sphere_for_solid(4)
+    solid = FemSolid(mesh, replace(params, element=element))
+    point, normal = POINTS[at]
+    modes = solid.contact_modes(solid.patch_key(point, normal=normal))
+    rates = direct_decay_rates(
+        hands=hands, modes=modes, pad_stiffness_n_per_m=pad[0], pad_damping_n_s_per_m=pad[1],
+        period_s=1e-3,
+    )  # fmt: skip
+    return [float(r) for r in rates]
+
+
+def check(
+    at: str, delays: list[int], mode_count: int, pad: tuple[float, float] | None = None
+) -> dict[str, Any]:
     """The module docstring's measurement at contact ``at``."""
     from haptic_collab.cli.design import _profile_design
     from haptic_collab.client.devices.profiles import get_sim_profile
@@ -88,8 +112,13 @@ def check(at: str, delays: list[int], mode_count: int) -> dict[str, Any]:
                 "heavy_loose_hand": {"eq9": eq9[-1], "modal": float(modal[-1])},
             }
         )
+    reference = None if pad is None else dict(zip(names, direct(at, hands, pad), strict=True))
     return {
         "at": at,
+        "direct_decay_per_s": reference,
+        "direct_pad": None
+        if pad is None
+        else {"stiffness_n_per_m": pad[0], "damping_n_s_per_m": pad[1]},
         "k_o_n_per_m": k_o,
         "b_o_n_per_m": b_o,
         "modes_stepped": full.mode_count,
@@ -107,9 +136,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--at", choices=sorted(POINTS), default="side")
     ap.add_argument("--delays", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--modes", type=int, default=20, help="modes kept in the check")
+    ap.add_argument(
+        "--direct", action="store_true",
+        help="also each hand on the solid itself (1 kHz, the pad below; a minute more)",
+    )  # fmt: skip
+    ap.add_argument("--pad-stiffness", type=float, default=1000.0, help="[N/m]")
+    ap.add_argument("--pad-damping", type=float, default=5.0, help="[N*s/m]")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    out = check(args.at, args.delays, args.modes)
+    pad = (args.pad_stiffness, args.pad_damping) if args.direct else None
+    out = check(args.at, args.delays, args.modes, pad)
     out["how"] = "tools/modal_loop_check.py " + " ".join(sys.argv[1:] if argv is None else argv)
     print(
         f"{args.at}: K_o {out['k_o_n_per_m']:.1f} N/m, B_o {out['b_o_n_per_m']:.1f} N/m; the "
@@ -125,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['modal_slowest_in_box']:.2f}/s; heavy loose hand {r['heavy_loose_hand']['eq9']:.2f}"
             f" -> {r['heavy_loose_hand']['modal']:.2f}/s"
         )
+    if out["direct_decay_per_s"] is not None:
+        slowest = min(out["direct_decay_per_s"].items(), key=lambda kv: kv[1])
+        print(f"  on the solid itself: slowest {slowest[1]:.2f}/s ({slowest[0]})")
     if args.json is not None:
         args.json.write_text(json.dumps(out, indent=1) + "\n")
     return 0

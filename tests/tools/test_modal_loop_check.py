@@ -23,3 +23,11 @@ def test_the_designs_pass_their_own_check_but_not_on_the_solids_modes() -> None:
         assert row["eq9_slowest_in_box"] > 1.5 * MIN_DECAY_RATE_PER_S
         assert row["modal_slowest_in_box"] < 0.5 * MIN_DECAY_RATE_PER_S
     assert out["rows"][0]["design"]["own_gain"] > 0.0  # compensated P, as the product renders
+
+
+def test_a_hand_on_the_solid_itself_never_rings_longer_than_the_ball_alone() -> None:
+    out = check("top", [0], 20, pad=(1000.0, 5.0))
+    direct = out["direct_decay_per_s"]
+    alone = out["solid_alone_slowest_decay_per_s"]
+    assert min(direct.values()) == pytest.approx(alone, rel=0.02)  # the bar the product misses
+    assert out["rows"][0]["modal_slowest_in_box"] < 0.5 * min(direct.values())
