@@ -21,8 +21,8 @@ share one model of everything but the object. Not part of the design code
 (:func:`shared.gains.table_file.design_code_hash`): a diagnosis of rendered gains, as
 ``tools/modal_loop_check.py`` runs it.
 
-Judged as the design judges: the spectral radius of the monodromy matrix over every sampling
-tick and hand, and the decay rate it implies (:func:`decay_rate_per_s`).
+Judged as the design judges: the monodromy matrix's eigenvalues over every sampling tick and
+hand, oscillating modes by their decay and creep only for growth (:func:`decay_rates`).
 """
 
 from __future__ import annotations
@@ -35,6 +35,8 @@ from typing import Any
 import numpy as np
 
 from haptic_collab.shared.full_loop import Hand, ProxyHold, _hand_zoh, monodromy, slow_layout
+from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
+from haptic_collab.shared.stability_margin import mode_radii
 from haptic_collab.shared.types import FloatArray
 
 
@@ -57,15 +59,12 @@ class ContactModes:
     d : float
         The static residual [m/N]: the compliance of the modes not stepped and of each stepped
         mode's static part removed.
-    c_static : float
-        The static compliance 1/K_o [m/N] (``d`` plus every mode's static share).
     """
 
     a: FloatArray
     b: FloatArray
     c: FloatArray
     d: float
-    c_static: float
 
     def __post_init__(self) -> None:
         n = len(self.b)
@@ -73,15 +72,18 @@ class ContactModes:
             raise ValueError(f"modal shapes differ: a {self.a.shape}, b ({n},), c {self.c.shape}")
         if not (np.all(np.isfinite(self.a)) and np.all(np.isfinite(self.b))):
             raise ValueError("modal matrices hold a non-finite value")
-        if not (math.isfinite(self.d) and math.isfinite(self.c_static) and self.c_static > 0.0):
-            raise ValueError(
-                f"compliances must be finite (static > 0), got {self.d}, {self.c_static}"
-            )
+        if not (math.isfinite(self.d) and self.c_static > 0.0):
+            raise ValueError(f"the static compliance must be finite and > 0, got {self.c_static}")
 
     @property
     def mode_count(self) -> int:
         """How many modes are stepped."""
         return len(self.b) // 2
+
+    @property
+    def c_static(self) -> float:
+        """The static compliance 1/K_o [m/N]: ``d`` and every mode's static share."""
+        return self.d + float(self.static_shares().sum())
 
     def static_shares(self) -> FloatArray:
         """Each mode's share of the static compliance [m/N]: its depth under a 1 N push held
@@ -108,7 +110,6 @@ class ContactModes:
             b=self.b[sel],
             c=self.c[sel],
             d=self.d + folded,
-            c_static=self.c_static,
         )
 
     def step_response(self, ticks: int) -> FloatArray:
@@ -192,6 +193,22 @@ def modal_monodromy(
     return M
 
 
+def decay_rates(m: FloatArray, servo_period_s: float = 1e-3, rate_ratio: int = 50) -> FloatArray:
+    """The slowest decay rate [1/s] of each batch element of monodromy matrices ``m``
+    (..., J, n, n) over its J sampling ticks, judged as the design judges
+    (:func:`shared.stability_margin.mode_radii`): oscillating modes by their decay, creep (slower
+    than :data:`shared.gains.policy.CREEP_FREQUENCY_HZ`) only for growth, so a rate meets
+    :data:`shared.gains.policy.MIN_DECAY_RATE_PER_S` exactly where the design's margin does
+    (negative: the loop grows)."""
+    period = servo_period_s * rate_ratio
+    rho_limit = math.exp(-MIN_DECAY_RATE_PER_S * period)
+    margin_radius, _ = mode_radii(m, rho_limit, rate_ratio, servo_period_s)
+    worst = margin_radius.max(axis=-1)
+    return np.array([decay_rate_per_s(float(r), period) for r in np.ravel(worst)]).reshape(
+        worst.shape
+    )
+
+
 def modal_decay_rates(
     *,
     hands: Sequence[Hand],
@@ -200,16 +217,13 @@ def modal_decay_rates(
     rate_ratio: int = 50,
     **loop: Any,
 ) -> FloatArray:
-    """The loop's slowest decay rate [1/s] per hand (over every sampling tick), on ``modes``:
-    :func:`modal_monodromy` with ``loop`` (its gains, delay and proxy hold) judged as the design
-    judges (negative: the loop grows)."""
+    """The loop's slowest decay rate [1/s] per hand on ``modes`` (:func:`decay_rates` of
+    :func:`modal_monodromy` with ``loop``: its gains, delay and proxy hold)."""
     m = modal_monodromy(
         hand=list(hands), modes=modes, servo_period_s=servo_period_s, rate_ratio=rate_ratio,
         **loop,
     )  # fmt: skip
-    radius = spectral_radius(m).max(axis=1)
-    period = servo_period_s * rate_ratio
-    return np.array([decay_rate_per_s(float(r), period) for r in radius])
+    return decay_rates(m, servo_period_s, rate_ratio)
 
 
 def direct_decay_rates(
@@ -252,11 +266,6 @@ def direct_decay_rates(
         radius = float(np.max(np.abs(np.linalg.eigvals(m))))
         out[i] = decay_rate_per_s(radius, period_s)
     return out
-
-
-def spectral_radius(m: FloatArray) -> FloatArray:
-    """The largest eigenvalue magnitude of each matrix of a (..., n, n) batch."""
-    return np.max(np.abs(np.linalg.eigvals(m)), axis=-1)
 
 
 def decay_rate_per_s(radius: float, sim_period_s: float) -> float:

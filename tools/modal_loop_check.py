@@ -63,11 +63,7 @@ def check(
     from haptic_collab.shared.coupled_loop import verification_hands
     from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, Hand, monodromy
     from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
-    from haptic_collab.shared.modal_loop import (
-        decay_rate_per_s,
-        modal_decay_rates,
-        spectral_radius,
-    )
+    from haptic_collab.shared.modal_loop import decay_rate_per_s, decay_rates, modal_decay_rates
 
     params = solid_to_params(SOLID_PRESETS["liver"], FemParams())
     mesh, element = sphere_for_solid(4)
@@ -99,7 +95,7 @@ def check(
             "proxy_hold": design.proxy_hold,
         }  # fmt: skip
         m9 = monodromy(hand=hands, k_o=k_o, b_o=b_o, delay_ticks=d, **gains)
-        eq9 = [decay_rate_per_s(float(r), period) for r in spectral_radius(m9).max(axis=1)]
+        eq9 = decay_rates(m9).tolist()
         modal = modal_decay_rates(hands=hands, modes=modes, delay_ticks=d, **gains)
         rows.append(
             {

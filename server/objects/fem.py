@@ -1198,7 +1198,7 @@ class FemSolid(PatchedSurface):
             c[2 * i] = -psi[i]  # depth = -b^T u, u's modal part Phi_s q
         c0 = float(b @ s.static[dofs])
         d = c0 - float(np.sum(psi * load / self._omega**2)) if m else c0
-        return ContactModes(a=a, b=bz, c=c, d=d, c_static=c0)
+        return ContactModes(a=a, b=bz, c=c, d=d)
 
     def contact_compliance(self, keys: Sequence[int]) -> FloatArray:
         """Normal compliance ``C_ij = b_i^T K^-1 b_j`` [m/N] of the contacts' punches.
