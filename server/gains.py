@@ -21,7 +21,7 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -56,8 +56,10 @@ from haptic_collab.shared.gains.key import (
     make_gain_key,
     stiff_ratio_class,
 )
+from haptic_collab.shared.gains.modal_guard import ModalCase, ModalVerdict, guard
 from haptic_collab.shared.gains.policy import (
     K_O_GRID_RATIO,
+    MODAL_CHECK_MODES,
     PAIR_LOOKAHEAD_M,
     PAIR_QUEUE,
     RTT_WINDOW,
@@ -66,6 +68,7 @@ from haptic_collab.shared.gains.policy import (
 from haptic_collab.shared.gains.table import GainTable, design_cell
 from haptic_collab.shared.gains.table_file import load_shipped
 from haptic_collab.shared.local_model_update import SurfacePatch
+from haptic_collab.shared.modal_loop import ContactModes
 from haptic_collab.shared.protocol import Hello, RecommendedGains
 from haptic_collab.shared.stability import rate_ratio
 
@@ -74,7 +77,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("haptic.server")
 
-JobKind = Literal["interim", "band", "ahead", "design", "pair"]
+JobKind = Literal["interim", "band", "ahead", "design", "pair", "modal"]
 
 #: Band checks (:mod:`shared.gains.b_o_band`) and checks of the cells beside a damped key's
 #: (``ahead``) waiting at most, each; the oldest are dropped (a hand sliding over a damped solid
@@ -93,13 +96,15 @@ class GainJob:
     partner's); a ``band`` job checks ``design``, the interim gains found for ``key``, over the
     band of B_o around ``key.b_o`` (:func:`shared.gains.b_o_band.check_band`); an ``ahead`` job
     is an interim check of a cell beside one a damped contact needed, asked before it is
-    needed."""
+    needed; a ``modal`` job checks ``modal``, the gains recommended for a FEM contact, on the
+    contact's own modes (:func:`shared.gains.modal_guard.guard`)."""
 
     kind: JobKind
     key: GainKey
     cell: int
     pair: PairCase | None = None
     design: GainDesign | None = None
+    modal: ModalCase | None = None
 
 
 @dataclass
@@ -119,6 +124,10 @@ class _User:
     may_hold: bool = False
     #: It keeps its uncoupled design this tick (a verified pair).
     holding: bool = False
+    #: The design behind ``rec``, its key and K_o cell (for the modal guard: :meth:`GainAdvisor.guard_modes`).
+    design: GainDesign | None = None
+    design_key: GainKey | None = None
+    cell: int = 0
 
 
 class GainAdvisor:
@@ -175,6 +184,15 @@ class GainAdvisor:
         #: Keys given interim gains by a band check before their own was asked.
         self.band_keys = 0
         self._users: dict[str, _User] = {}
+        #: Modal verdicts (:mod:`shared.gains.modal_guard`) by (contact, design key, gains); None:
+        #: asked, not back yet. And the newest verdict for (design key, gains) at any contact:
+        #: what a contact not checked yet renders meanwhile.
+        self.modal: dict[tuple[int, GainKey, tuple[Any, ...]], ModalVerdict | None] = {}
+        self._modal_near: dict[tuple[GainKey, tuple[Any, ...]], ModalVerdict] = {}
+        self._modal_queue: dict[tuple[int, GainKey, tuple[Any, ...]], ModalCase] = {}
+        #: Patches whose gains the modal guard changed; patches it had no passing gains for.
+        self.modal_changed = 0
+        self.modal_unmet = 0
         #: Lookups answered with gains / without (no design or interim yet).
         self.hits = 0
         self.misses = 0
@@ -298,6 +316,7 @@ class GainAdvisor:
             return None
         self.hits += 1
         u.rec = self._rec(design, key, interim)
+        u.design, u.design_key, u.cell = design, key, cell
         return u.rec
 
     def _rec(self, design: GainDesign, key: GainKey, interim: bool) -> RecommendedGains:
@@ -400,7 +419,71 @@ class GainAdvisor:
             u.holding = True
             self.held_patches += 1
             out[name] = self._rec(held, u.key, interim=False)
+            u.design, u.design_key = held, replace(u.key, stiff_ratio=1.0)
+            u.cell = self.table.cell(patch.k_o)
         return out
+
+    # ---------------------------------------------------------------- a FEM contact's modes
+    def guard_modes(
+        self,
+        recs: Mapping[str, RecommendedGains | None],
+        contact_of: Callable[[str], int | None],
+        modes_of: Callable[[str], ContactModes | None],
+    ) -> dict[str, RecommendedGains | None]:
+        """This tick's recommendations with each FEM contact's checked on the solid's own modes
+        (:mod:`shared.gains.modal_guard`); call after :meth:`hold_pairs`.
+
+        A user whose object has modes (``contact_of(user)``: the object's key of its contact,
+        None for an object without modes) renders its design where the check passed, the
+        softer or more damped gains the check found where it did not, and, until its own
+        contact's check is back (a job for the design worker, :meth:`next_job`), the verdict
+        found last for the same design at another contact of the object: a hand sliding over
+        the solid changes contact every few millimetres. ``modes_of(user)`` gives the contact's
+        modes when a check is queued. Where no gains pass the check, the design renders as it
+        is (counted in ``modal_unmet``).
+        """
+        out = dict(recs)
+        for name, rec in recs.items():
+            u = self._users.get(name)
+            if rec is None or u is None or u.design is None or u.design_key is None:
+                continue
+            contact = contact_of(name)
+            if contact is None:
+                continue
+            gains = (rec.k_h, rec.i_gain, rec.b_h, rec.proxy_hold, rec.own_gain)
+            job = (contact, u.design_key, gains)
+            verdict = self.modal.get(job)
+            if job not in self.modal:
+                self._want_modal(job, u, modes_of(name))
+            if verdict is None:
+                verdict = self._modal_near.get((u.design_key, gains))
+            if verdict is None:
+                continue
+            if verdict.design is None:
+                self.modal_unmet += 1
+                continue
+            if verdict.changed:
+                self.modal_changed += 1
+                d = verdict.design
+                out[name] = rec.model_copy(
+                    update={
+                        "k_h": d.k_h, "i_gain": d.i_gain, "b_h": d.b_h,
+                        "proxy_hold": d.proxy_hold, "own_gain": d.own_gain,
+                    }
+                )  # fmt: skip
+        return out
+
+    def _want_modal(
+        self, job: tuple[int, GainKey, tuple[Any, ...]], u: _User, modes: ContactModes | None
+    ) -> None:
+        """Queue the modal check of ``job`` (once; the newest first, at most
+        :data:`BAND_QUEUE` waiting)."""
+        assert u.design is not None and u.design_key is not None
+        self.modal[job] = None
+        if modes is None or modes.mode_count == 0:
+            return
+        case = ModalCase(job[0], u.design_key, u.cell, u.design, modes.reduced(MODAL_CHECK_MODES))
+        _push_newest(self._modal_queue, job, case)
 
     def _held_design(
         self,
@@ -540,7 +623,8 @@ class GainAdvisor:
         none.
 
         Interim checks come first (they let a user's forces come on within a fraction of a
-        second), then designs, then band checks (a hand sliding over a damped solid changes
+        second), then modal checks (:meth:`guard_modes`: a FEM contact's rendered gains on the
+        solid's own modes, 1-12 s each on the liver ball), then designs, then band checks (a hand sliding over a damped solid changes
         key with every whole N/m of B_o: interim gains checked over a band spare the keys next
         to it their own check, :mod:`shared.gains.b_o_band`), then pair checks
         (:meth:`hold_pairs`: they spare a felt step, where a design replaces interim gains; on
@@ -559,6 +643,13 @@ class GainAdvisor:
         jobs = [j for j in self._queued if only is None or j[0] == only]
         if not idle and only in IDLE_KINDS:
             return None
+        if interim := [j for j in jobs if j[0] == "interim"]:
+            kind, key, cell = interim[-1]
+            del self._queued[(kind, key, cell)]
+            return GainJob(kind, key, cell)
+        if self._modal_queue and only in (None, "modal"):
+            modal = self._modal_queue.popitem()[1]  # the newest
+            return GainJob("modal", modal.key, modal.cell, modal=modal)
         if not jobs and idle and self._band_queue and only in (None, "band"):
             (key, cell), design = self._band_queue.popitem()  # the newest
             return GainJob("band", key, cell, design=design)
@@ -573,8 +664,7 @@ class GainAdvisor:
             return GainJob("pair", bucket.partner_key, bucket.partner_cell, case)
         if not jobs:
             return None
-        interim = [j for j in jobs if j[0] == "interim"]
-        kind, key, cell = (interim or jobs)[-1]
+        kind, key, cell = jobs[-1]
         del self._queued[(kind, key, cell)]
         return GainJob(kind, key, cell)
 
@@ -590,13 +680,17 @@ class GainAdvisor:
         self._pair_queue.clear()
         jobs.extend(GainJob("band", k, c, design=d) for (k, c), d in self._band_queue.items())
         jobs.extend(GainJob("ahead", k, c) for (k, c) in self._ahead_queue)
+        jobs.extend(GainJob("modal", c.key, c.cell, modal=c) for c in self._modal_queue.values())
         self._band_queue.clear()
         self._ahead_queue.clear()
-        order = {"interim": 0, "design": 1, "band": 2, "ahead": 3}
+        self._modal_queue.clear()
+        order = {"interim": 0, "modal": 1, "design": 2, "band": 3, "ahead": 4}
         jobs.sort(key=lambda j: order.get(j.kind, 4))
         return jobs
 
-    def store(self, job: GainJob, design: GainDesign | BandedGains | PairVerdict | None) -> None:
+    def store(
+        self, job: GainJob, design: GainDesign | BandedGains | PairVerdict | ModalVerdict | None
+    ) -> None:
         """Hand back a job's result (None: no gains pass for it; it is not asked again; a pair
         job's :class:`shared.gains.group.PairVerdict`; a band job's
         :class:`shared.gains.b_o_band.BandedGains`, kept for every key of its band with no
@@ -611,6 +705,28 @@ class GainAdvisor:
         if job.kind == "pair":
             if job.pair is not None and (design is None or isinstance(design, PairVerdict)):
                 self.pairs[job.pair.bucket] = design
+            return
+        if job.kind == "modal":
+            case = job.modal
+            if case is None or not isinstance(design, ModalVerdict):
+                return  # failed: the design renders unchecked, not asked again
+            d = case.design
+            gains = (d.k_h, d.i_gain, d.b_h, d.proxy_hold, d.own_gain)
+            self.modal[(case.contact, case.key, gains)] = design
+            self._modal_near[(case.key, gains)] = design
+            if design.design is None:
+                log.warning(
+                    "no gains keep the solid's modes at %.2f/s at contact %d (the design: "
+                    "%.2f/s); the design renders", design.bar_per_s, case.contact,
+                    design.designed_rate_per_s,
+                )  # fmt: skip
+            elif design.changed:
+                log.info(
+                    "contact %d: the design's loop on the solid's modes %.2f/s, under %.2f/s: "
+                    "K_h x %.2f, B_h %.1f N*s/m, %s (%.2f/s)", case.contact,
+                    design.designed_rate_per_s, design.bar_per_s, design.scale,
+                    design.design.b_h, design.design.proxy_hold, design.rate_per_s,
+                )  # fmt: skip
             return
         if job.kind == "band":
             if isinstance(design, BandedGains):
@@ -648,7 +764,7 @@ def _push_newest(queue: dict[Any, Any], item: Any, value: Any) -> None:
 
 def run_job_measured(
     job: GainJob, grid_ratio: float, hand_box: HandBox
-) -> tuple[GainDesign | BandedGains | PairVerdict | None, float]:
+) -> tuple[GainDesign | BandedGains | PairVerdict | ModalVerdict | None, float]:
     """:func:`run_job`, and the CPU time [s] the worker spent on it (``time.process_time``):
     against the wall time the server waited, the share of a core the worker had."""
     cpu0 = time.process_time()
@@ -658,16 +774,19 @@ def run_job_measured(
 
 def run_job(
     job: GainJob, grid_ratio: float, hand_box: HandBox
-) -> GainDesign | BandedGains | PairVerdict | None:
+) -> GainDesign | BandedGains | PairVerdict | ModalVerdict | None:
     """Run one :class:`GainJob` (in a worker process: arguments and result pickle).
 
     Returns None when no gains pass (the key is beyond what any local model renders); a pair
-    job's verdict (:func:`shared.gains.group.check_pair`); a band job's
+    job's verdict (:func:`shared.gains.group.check_pair`); a modal job's
+    (:func:`shared.gains.modal_guard.guard`); a band job's
     :class:`shared.gains.b_o_band.BandedGains` (with no band where an end fails).
     """
     try:
         if job.kind == "pair":
             return None if job.pair is None else check_pair(job.pair)
+        if job.kind == "modal":
+            return None if job.modal is None else guard(job.modal, grid_ratio, hand_box)
         if job.kind == "band":
             if job.design is None:
                 return None

@@ -857,6 +857,8 @@ class Room:
                 )
         # a resting user keeps its gains where its coupled pair, as rendered, is verified
         recs = self.gains.hold_pairs(self.world.coupling, outputs, recs)
+        # and a FEM contact's checked on the solid's own modes
+        recs = self.gains.guard_modes(recs, self.world.modal_contact, self.world.contact_modes)
         for seat, res in outputs.items():
             conn = seats.get(seat)
             if conn is None or conn.closed or conn.conn_id not in self._conns:

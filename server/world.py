@@ -59,6 +59,7 @@ from haptic_collab.server.contacts import (
 )
 from haptic_collab.server.objects import AdmittanceObject
 from haptic_collab.shared.local_model_update import SurfacePatch
+from haptic_collab.shared.modal_loop import ContactModes
 from haptic_collab.shared.primitives import Plane, Sphere, make_plane
 from haptic_collab.shared.rates import Rates
 from haptic_collab.shared.types import FloatArray, Vec3
@@ -240,6 +241,20 @@ class World:
     def n_vertices(self) -> int:
         """Number of surface vertices n."""
         return len(self._current)
+
+    def modal_contact(self, name: str) -> int | None:
+        """The object's key of ``name``'s contact where the object has modes to check gains on
+        (:meth:`server.objects.fem.FemSolid.contact_modes`), else None (no such object, no
+        modes, or no such user)."""
+        user = self._users.get(name)
+        if user is None or not getattr(self.obj, "has_contact_modes", False):
+            return None
+        return int(user.key)
+
+    def contact_modes(self, name: str) -> ContactModes | None:
+        """The modes of ``name``'s contact (:meth:`modal_contact`), or None."""
+        key = self.modal_contact(name)
+        return None if key is None else self.obj.contact_modes(key)  # type: ignore[attr-defined]
 
     @property
     def tick_count(self) -> int:

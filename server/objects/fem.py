@@ -1170,6 +1170,12 @@ class FemSolid(PatchedSurface):
         self._w = w
         self._show()
 
+    @property
+    def has_contact_modes(self) -> bool:
+        """Whether any mode is stepped (:meth:`contact_modes` has a mode to give): the server
+        then checks each contact's gains on them (:mod:`shared.gains.modal_guard`)."""
+        return len(self._omega) > 0
+
     def contact_modes(self, key: int) -> ContactModes:
         """The contact's response to a push, mode by mode, as :meth:`step` moves it: the object
         of :func:`shared.modal_loop.modal_monodromy` (the full loop on this solid's slow modes,

@@ -314,3 +314,25 @@ IDENTIFY_MIN_SAMPLES = 5.0
 #: 0.2 the fidelity benchmark's half-second press, read at 20 Hz through the loop, was refused
 #: where it is identified at 0.3 (300 N/m, no delay; 100 N/m, 100 ms).
 IDENTIFY_MAX_JUMP_SHARE = 0.3
+
+# ------------------------------------------------------------------
+# A FEM contact's slow modes (shared.gains.modal_guard, server.gains)
+
+#: How many times longer than the solid alone its slowest modes may ring under a local model,
+#: where the design's margin lies beyond what the solid itself does (the bar of
+#: :func:`shared.gains.modal_guard.modal_bar`): the liver ball alone decays at 1.08/s, so the
+#: design's 1/s would leave 8 % for the whole loop; no gain a user feels keeps it (at the ball's
+#: side an uncompensated 0.1 K_o decays at 0.97/s over the box). Twice is the least this bar
+#: asks that still refuses the designs that grew there at one and two ticks of delay
+#: (docs/fem.md).
+MODAL_RING_FACTOR = 2.0
+
+#: Softest K_h the guard recommends, over the design's: the unverified fallback's ratio
+#: (:data:`FALLBACK_K_RATIO`). A compensated design keeps ``C_h K_h``, so a held press is felt
+#: as designed; what softens is the first touch.
+MODAL_GUARD_MIN_SCALE = FALLBACK_K_RATIO
+
+#: Modes of largest static share the server checks a FEM contact's gains on
+#: (:meth:`shared.modal_loop.ContactModes.reduced`): on the liver ball's side 20 of 159 gave the
+#: full model's decay rates to within 0.05/s at 1/50 of the cost (tests/shared/test_modal_loop.py).
+MODAL_CHECK_MODES = 20

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests.support.fem_contact import contact_key, liver_ball
 
 from haptic_collab.server.objects.fem import FemParams, FemSolid
 from haptic_collab.server.objects.mesh import default_balloon
@@ -41,10 +42,8 @@ HANDS = [
 @pytest.fixture(scope="module")
 def liver_side(tmp_path_factory):
     """The default sphere's shape in liver (a cheaper mesh), its side contact's modes."""
-    ball = default_balloon(0.1, 2)
-    cache = str(tmp_path_factory.mktemp("volumes"))
-    solid = FemSolid(ball, FemParams(rayleigh_alpha=1.11), cache_dir=cache)
-    key = solid.patch_key([0.1, 0.0, 0.0], normal=[1, 0, 0])
+    solid = liver_ball(str(tmp_path_factory.mktemp("volumes")))
+    key = contact_key(solid, "side")
     return solid, key, solid.contact_modes(key)
 
 

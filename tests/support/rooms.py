@@ -50,6 +50,13 @@ class RecordingWorld:
         return out
 
 
+    def modal_contact(self, name):
+        return None  # no modes: nothing for the modal guard to check
+
+    def contact_modes(self, name):
+        return None
+
+
 def hello(name: str, role: str = "user") -> str:
     return json.dumps({"type": "hello", "protocol": PROTOCOL_VERSION, "role": role, "name": name})
 
