@@ -361,3 +361,58 @@ async def test_the_servers_interim_check_never_waits_behind_a_running_design(mon
         release.set()
         await app.stop()
         pool.shutdown(wait=True)
+
+
+@pytest.fixture(scope="module")
+def liver_side(tmp_path_factory):
+    """A FEM ball in liver: its side contact's key, K_o, B_o and modes."""
+    from tests.support.fem_contact import contact_key, liver_ball
+
+    solid = liver_ball(str(tmp_path_factory.mktemp("volumes")))
+    key = contact_key(solid, "side")
+    k_o = float(solid.contact_stiffness([key])[0])
+    b_o = float(solid.contact_damping([key])[0])
+    return key, k_o, b_o, solid.contact_modes(key)
+
+
+def test_a_fem_contacts_gains_are_checked_on_its_modes_and_replaced_where_they_ring_on(
+    liver_side,
+) -> None:
+    """The shipped design for the ball's side lets the ball's rocking ring on under a resting
+    hand; once the modal check is back the patch carries gains that keep the bar, a second
+    contact of the same design renders that verdict at once while its own check runs, and an
+    object without modes is left alone."""
+    contact, k_o, b_o, modes = liver_side
+    adv = GainAdvisor(20.0)
+    h = hello("p")
+    rec = adv.recommend("u1", h, k_o_eff=k_o, k_o_stiff=k_o, b_o=b_o)
+    assert rec is not None and not rec.interim  # the shipped table's design
+    asked: list[str] = []
+
+    def modes_of(name: str):
+        asked.append(name)
+        return modes
+
+    out = adv.guard_modes({"u1": rec}, lambda name: contact, modes_of)
+    assert out["u1"] == rec and asked == ["u1"]  # not checked yet: the design renders
+    job = adv.next_job()
+    assert job is not None and job.kind == "modal" and job.modal is not None
+    assert adv.next_job(only="modal") is None  # asked once
+    verdict = run_job(job, adv.table.grid_ratio, adv.table.hand_box)
+    adv.store(job, verdict)
+    assert verdict is not None and verdict.designed_rate_per_s < verdict.bar_per_s
+    guarded = adv.guard_modes({"u1": rec}, lambda name: contact, modes_of)["u1"]
+    assert guarded is not None and guarded != rec and adv.modal_changed == 1
+    assert verdict.design is not None and guarded.k_h == pytest.approx(verdict.design.k_h)
+    assert guarded.b_h <= PHANTOM.max_damping_n_s_per_m
+    assert guarded.own_gain * guarded.k_h == pytest.approx(rec.own_gain * rec.k_h)
+    assert guarded.delay_ticks == rec.delay_ticks and not guarded.interim
+    assert len(asked) == 1  # its own check is known: not asked again
+    # another contact with the same design: the verdict found at the first, its own queued
+    other = adv.guard_modes({"u1": rec}, lambda name: contact + 1, modes_of)["u1"]
+    assert other == guarded and len(asked) == 2
+    nxt = adv.next_job()
+    assert nxt is not None and nxt.kind == "modal" and nxt.modal.contact == contact + 1
+    # no modes (a mass-spring balloon, a static solid): nothing is checked or changed
+    plain = adv.guard_modes({"u1": rec}, lambda name: None, modes_of)
+    assert plain["u1"] == rec and len(asked) == 2
