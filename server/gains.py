@@ -623,8 +623,9 @@ class GainAdvisor:
         none.
 
         Interim checks come first (they let a user's forces come on within a fraction of a
-        second), then modal checks (:meth:`guard_modes`: a FEM contact's rendered gains on the
-        solid's own modes, 1-12 s each on the liver ball), then designs, then band checks (a hand sliding over a damped solid changes
+        second), then designs, then modal checks (:meth:`guard_modes`: a FEM contact's rendered
+        gains on the solid's own modes, 0.3-2 s each on the liver ball; before designs they
+        kept every design from finishing in the firm-hand FEM demo), then band checks (a hand sliding over a damped solid changes
         key with every whole N/m of B_o: interim gains checked over a band spare the keys next
         to it their own check, :mod:`shared.gains.b_o_band`), then pair checks
         (:meth:`hold_pairs`: they spare a felt step, where a design replaces interim gains; on
@@ -643,30 +644,26 @@ class GainAdvisor:
         jobs = [j for j in self._queued if only is None or j[0] == only]
         if not idle and only in IDLE_KINDS:
             return None
-        if interim := [j for j in jobs if j[0] == "interim"]:
-            kind, key, cell = interim[-1]
+        if first := [j for j in jobs if j[0] == "interim"] or jobs:
+            kind, key, cell = first[-1]  # interim checks, then designs
             del self._queued[(kind, key, cell)]
             return GainJob(kind, key, cell)
         if self._modal_queue and only in (None, "modal"):
             modal = self._modal_queue.popitem()[1]  # the newest
             return GainJob("modal", modal.key, modal.cell, modal=modal)
-        if not jobs and idle and self._band_queue and only in (None, "band"):
+        if idle and self._band_queue and only in (None, "band"):
             (key, cell), design = self._band_queue.popitem()  # the newest
             return GainJob("band", key, cell, design=design)
-        while not jobs and idle and self._ahead_queue and only in (None, "ahead"):
+        while idle and self._ahead_queue and only in (None, "ahead"):
             key, cell = self._ahead_queue.popitem()[0]  # the newest
             if not cell_has_gains(self.table, self.interim, key, cell):
                 return GainJob("ahead", key, cell)
-        if not jobs and self._pair_queue and only in (None, "pair"):
+        if self._pair_queue and only in (None, "pair"):
             bucket, case = self._pair_queue.popitem()  # the newest
             self.pairs.setdefault(bucket, None)  # asked once (a lost job: no hold there)
             self.pair_checks += 1
             return GainJob("pair", bucket.partner_key, bucket.partner_cell, case)
-        if not jobs:
-            return None
-        kind, key, cell = jobs[-1]
-        del self._queued[(kind, key, cell)]
-        return GainJob(kind, key, cell)
+        return None
 
     def take_jobs(self) -> list[GainJob]:
         """The design work queued since the last call (interim checks first, then designs, then
@@ -684,7 +681,7 @@ class GainAdvisor:
         self._band_queue.clear()
         self._ahead_queue.clear()
         self._modal_queue.clear()
-        order = {"interim": 0, "modal": 1, "design": 2, "band": 3, "ahead": 4}
+        order = {"interim": 0, "design": 1, "modal": 2, "band": 3, "ahead": 4}
         jobs.sort(key=lambda j: order.get(j.kind, 4))
         return jobs
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tests.support.fem_contact import contact_key, liver_ball
 
 from haptic_collab.server.objects.fem import FemParams, FemSolid
 from haptic_collab.server.objects.mesh import default_balloon
@@ -26,6 +25,7 @@ from haptic_collab.shared.modal_loop import (
     modal_decay_rates,
     modal_monodromy,
 )
+from tests.support.fem_contact import contact_key, liver_ball
 
 
 def spectral_radius(m: np.ndarray) -> np.ndarray:

@@ -49,7 +49,6 @@ class RecordingWorld:
         self.coupling = Coupling(tuple(out), np.eye(m) / 400.0, np.full(m, 0.005), 0.005)
         return out
 
-
     def modal_contact(self, name):
         return None  # no modes: nothing for the modal guard to check
 
