@@ -84,6 +84,10 @@ JobKind = Literal["interim", "band", "ahead", "design", "pair", "modal"]
 #: has left their keys).
 BAND_QUEUE = 4
 
+#: Modal verdicts (:meth:`GainAdvisor.guard_modes`) kept, the oldest dropped first: a hand that
+#: slides for hours over a solid meets a new contact every few millimetres.
+MODAL_VERDICTS_KEPT = 4096
+
 #: The jobs a worker does only when it has CPU to spare (:meth:`GainAdvisor.next_job`,
 #: ``idle``): checks no contact waits for.
 IDLE_KINDS: tuple[JobKind, ...] = ("band", "ahead")
@@ -476,14 +480,21 @@ class GainAdvisor:
     def _want_modal(
         self, job: tuple[int, GainKey, tuple[Any, ...]], u: _User, modes: ContactModes | None
     ) -> None:
-        """Queue the modal check of ``job`` (once; the newest first, at most
-        :data:`BAND_QUEUE` waiting)."""
+        """Queue the modal check of ``job`` (the newest first, at most :data:`BAND_QUEUE`
+        waiting; one dropped unchecked is asked again when a patch renders it again)."""
         assert u.design is not None and u.design_key is not None
         self.modal[job] = None
+        while len(self.modal) > MODAL_VERDICTS_KEPT:
+            del self.modal[next(iter(self.modal))]  # the oldest: asked again if met again
         if modes is None or modes.mode_count == 0:
             return
         case = ModalCase(job[0], u.design_key, u.cell, u.design, modes.reduced(MODAL_CHECK_MODES))
-        _push_newest(self._modal_queue, job, case)
+        self._modal_queue[job] = case
+        while len(self._modal_queue) > BAND_QUEUE:
+            dropped = next(iter(self._modal_queue))
+            del self._modal_queue[dropped]
+            if self.modal.get(dropped, 0) is None:
+                del self.modal[dropped]  # not checked: asked again while it renders
 
     def _held_design(
         self,

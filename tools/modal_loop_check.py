@@ -14,8 +14,11 @@ slowest decay rate [1/s] per hand of the design's box (:func:`shared.coupled_loo
 verification_hands`) and for the demo's heavy, loosely held hand with the device's mass and
 damping, beside the design's margin and the solid's own slowest decay; with ``--direct``, each
 hand held on the solid itself at 1 kHz through a finger pad, with no product between
-(:func:`shared.modal_loop.direct_decay_rates`): what the rates are to be judged against. Not a test: the
-measurement behind docs/fem.md ("Not done") and docs/palpation.md.
+(:func:`shared.modal_loop.direct_decay_rates`): what the rates are to be judged against. Each
+row also gives what the server recommends instead since the modal guard
+(:func:`shared.gains.modal_guard.guard`, as :meth:`server.gains.GainAdvisor.guard_modes` runs it:
+the table's design for the key the server makes, checked on the screen hands) and its rates the
+same two ways. Not a test: the measurement behind docs/fem.md and docs/palpation.md.
 """
 
 from __future__ import annotations
@@ -62,7 +65,10 @@ def check(
     from haptic_collab.server.solid_materials import SOLID_PRESETS, solid_to_params
     from haptic_collab.shared.coupled_loop import verification_hands
     from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, Hand, monodromy
-    from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
+    from haptic_collab.shared.gains.key import make_gain_key
+    from haptic_collab.shared.gains.modal_guard import ModalCase, guard
+    from haptic_collab.shared.gains.policy import K_O_GRID_RATIO, MIN_DECAY_RATE_PER_S
+    from haptic_collab.shared.gains.table import GainTable
     from haptic_collab.shared.modal_loop import decay_rate_per_s, decay_rates, modal_decay_rates
 
     params = solid_to_params(SOLID_PRESETS["liver"], FemParams())
@@ -97,6 +103,33 @@ def check(
         m9 = monodromy(hand=hands, k_o=k_o, b_o=b_o, delay_ticks=d, **gains)
         eq9 = decay_rates(m9).tolist()
         modal = modal_decay_rates(hands=hands, modes=modes, delay_ticks=d, **gains)
+        key_d = make_gain_key(
+            servo_rate_hz=1000.0, sim_rate_hz=1.0 / period, delay_ticks=d, mode="p",
+            margin=0.15, k_h_max=prof.limits.max_stiffness_n_per_m,
+            b_h_max=prof.limits.max_damping_n_s_per_m, b_o=b_o, stiff_ratio=1.0,
+        )  # fmt: skip
+        cell = GainTable(DEFAULT_HAND_BOX, K_O_GRID_RATIO).cell(k_o)
+        verdict = guard(
+            ModalCase(key, key_d, cell, design, modes), K_O_GRID_RATIO, DEFAULT_HAND_BOX
+        )
+        guarded: dict[str, Any] = {
+            "bar_per_s": verdict.bar_per_s,
+            "designed_rate_screen_hands_per_s": verdict.designed_rate_per_s,
+            "found": verdict.design is not None,
+        }
+        if verdict.design is not None:
+            g2 = {
+                "k_h": verdict.design.k_h, "b_h": verdict.design.b_h,
+                "own_gain": verdict.design.own_gain, "proxy_hold": verdict.design.proxy_hold,
+            }  # fmt: skip
+            eq9_g = decay_rates(monodromy(hand=hands, k_o=k_o, b_o=b_o, delay_ticks=d, **g2))
+            modal_g = modal_decay_rates(hands=hands, modes=modes, delay_ticks=d, **g2)
+            guarded.update(
+                gains={**g2, "k_h_scale": verdict.scale},
+                eq9_slowest_in_box=float(eq9_g[:-1].min()),
+                modal_slowest_in_box=float(modal_g[:-1].min()),
+                heavy_loose_hand={"eq9": float(eq9_g[-1]), "modal": float(modal_g[-1])},
+            )
         rows.append(
             {
                 "delay_ticks": d,
@@ -106,6 +139,7 @@ def check(
                 "eq9_slowest_in_box": min(eq9[:-1]),
                 "modal_slowest_in_box": float(modal[:-1].min()),
                 "heavy_loose_hand": {"eq9": eq9[-1], "modal": float(modal[-1])},
+                "guarded": guarded,
             }
         )
     reference = None if pad is None else dict(zip(names, direct(at, hands, pad), strict=True))
@@ -157,6 +191,17 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['modal_slowest_in_box']:.2f}/s; heavy loose hand {r['heavy_loose_hand']['eq9']:.2f}"
             f" -> {r['heavy_loose_hand']['modal']:.2f}/s"
         )
+        gd = r["guarded"]
+        if gd.get("gains"):
+            g = gd["gains"]
+            print(
+                f"    the server recommends: K_h {g['k_h']:.1f} N/m (x{g['k_h_scale']:.2f}), B_h "
+                f"{g['b_h']:.2f} N*s/m, {g['proxy_hold']}: eq. 9 {gd['eq9_slowest_in_box']:.2f}/s, "
+                f"the solid's modes {gd['modal_slowest_in_box']:.2f}/s (bar {gd['bar_per_s']:.2f}/s)"
+                f"; heavy loose hand {gd['heavy_loose_hand']['modal']:.2f}/s"
+            )
+        else:
+            print(f"    no gains keep the bar ({gd['bar_per_s']:.2f}/s): the design renders")
     if out["direct_decay_per_s"] is not None:
         slowest = min(out["direct_decay_per_s"].items(), key=lambda kv: kv[1])
         print(f"  on the solid itself: slowest {slowest[1]:.2f}/s ({slowest[0]})")

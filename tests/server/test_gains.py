@@ -416,3 +416,18 @@ def test_a_fem_contacts_gains_are_checked_on_its_modes_and_replaced_where_they_r
     # no modes (a mass-spring balloon, a static solid): nothing is checked or changed
     plain = adv.guard_modes({"u1": rec}, lambda name: None, modes_of)
     assert plain["u1"] == rec and len(asked) == 2
+
+
+def test_a_modal_check_pushed_out_of_the_queue_is_asked_again(liver_side) -> None:
+    """A resting user's check must not be lost to a sliding user's newer ones."""
+    contact, k_o, b_o, modes = liver_side
+    adv = GainAdvisor(20.0)
+    rec = adv.recommend("b", hello("p"), k_o_eff=k_o, k_o_stiff=k_o, b_o=b_o)
+    adv.guard_modes({"b": rec}, lambda name: contact, lambda name: modes)
+    for c in range(1, 6):  # five newer contacts of the same user push it out
+        adv.guard_modes({"b": rec}, lambda name, c=c: contact + c, lambda name: modes)
+    waiting = {j.modal.contact for j in iter(adv.next_job, None) if j.kind == "modal"}
+    assert contact not in waiting and len(waiting) == 4
+    adv.guard_modes({"b": rec}, lambda name: contact, lambda name: modes)  # it renders again
+    job = adv.next_job()
+    assert job is not None and job.kind == "modal" and job.modal.contact == contact
