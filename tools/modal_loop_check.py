@@ -18,7 +18,8 @@ hand held on the solid itself at 1 kHz through a finger pad, with no product bet
 row also gives what the server recommends instead since the modal guard
 (:func:`shared.gains.modal_guard.guard`, as :meth:`server.gains.GainAdvisor.guard_modes` runs it:
 the table's design for the key the server makes, checked on the screen hands) and its rates the
-same two ways. Not a test: the measurement behind docs/fem.md and docs/palpation.md.
+same two ways, and on the solid's modes over the box's whole lattice of hands
+(:meth:`shared.full_loop.HandBox.hands`, where the guard takes its screen). Not a test: the measurement behind docs/fem.md and docs/palpation.md.
 """
 
 from __future__ import annotations
@@ -124,8 +125,12 @@ def check(
             }  # fmt: skip
             eq9_g = decay_rates(monodromy(hand=hands, k_o=k_o, b_o=b_o, delay_ticks=d, **g2))
             modal_g = modal_decay_rates(hands=hands, modes=modes, delay_ticks=d, **g2)
+            lattice = modal_decay_rates(
+                hands=DEFAULT_HAND_BOX.hands(), modes=modes, delay_ticks=d, **g2
+            )
             guarded.update(
                 gains={**g2, "k_h_scale": verdict.scale},
+                modal_slowest_full_lattice=float(lattice.min()),
                 eq9_slowest_in_box=float(eq9_g[:-1].min()),
                 modal_slowest_in_box=float(modal_g[:-1].min()),
                 heavy_loose_hand={"eq9": float(eq9_g[-1]), "modal": float(modal_g[-1])},

@@ -38,17 +38,20 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from haptic_collab.shared.full_loop import HandBox, ProxyHold
+from haptic_collab.shared.felt_stiffness import felt_responses
+from haptic_collab.shared.full_loop import HandBox, ProxyHold, object_impedance
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.interim import verify_gains
 from haptic_collab.shared.gains.key import GainKey
 from haptic_collab.shared.gains.policy import (
+    FELT_BAND_HZ,
     MIN_DECAY_RATE_PER_S,
     MODAL_GUARD_MIN_SCALE,
     MODAL_RING_FACTOR,
 )
-from haptic_collab.shared.gains.search import scaled_gains
+from haptic_collab.shared.gains.search import _band_miss, _felt_dc, _log_miss, scaled_gains
 from haptic_collab.shared.modal_loop import ContactModes, decay_rate_per_s, modal_decay_rates
+from haptic_collab.shared.types import FloatArray
 
 #: Sampling ticks a candidate is first checked at (:func:`modal_rate`), as
 #: :func:`shared.gains.interim.verify_gains` probes.
@@ -177,6 +180,37 @@ def candidates(
     return out[1:]
 
 
+def felt_miss(designs: list[GainDesign], k_o: float, b_o: float, key: GainKey) -> FloatArray:
+    """The design's own transparency objective for each of ``designs`` on the contact's K_o and
+    B_o (:mod:`shared.gains.search`): the larger of how far the felt response over
+    :data:`shared.gains.policy.FELT_BAND_HZ` is from the object's own dynamic stiffness (|ln| of
+    the ratio, or its active share) and how far a held press is from K_o; smaller is closer to
+    the object. A damper is felt as a stiffer object at the top of the band; a softer K_h, where
+    own-force compensation holds the press, only as the first touch's softness."""
+    out = np.empty(len(designs))
+    rates = key.rates
+    own = np.abs(
+        object_impedance(
+            np.asarray(FELT_BAND_HZ)[:, None], k_o, b_o, rates.ratio * rates.servo_period_s
+        )
+    )
+    for hold in ("zoh", "foh"):
+        idx = [i for i, d in enumerate(designs) if d.proxy_hold == hold]
+        if not idx:
+            continue
+        cand = {
+            name: np.array([getattr(designs[i], name) for i in idx])
+            for name in ("k_h", "i_gain", "b_h", "own_gain")
+        }
+        resp = felt_responses(
+            FELT_BAND_HZ, k_o=k_o, b_o=b_o, servo_period_s=rates.servo_period_s,
+            rate_ratio=rates.ratio, delay_ticks=key.delay_ticks, proxy_hold=hold,
+            k_h=cand["k_h"], i_gain=cand["i_gain"], b_h=cand["b_h"], own_gain=cand["own_gain"],
+        )  # fmt: skip
+        out[idx] = np.maximum(_band_miss(resp / own), _log_miss(_felt_dc(cand, k_o)))
+    return out
+
+
 def modal_rate(
     case: ModalCase, design: GainDesign, hand_box: HandBox, probe_ticks: int | None = None
 ) -> float:
@@ -210,7 +244,8 @@ def guard(case: ModalCase, grid_ratio: float, hand_box: HandBox) -> ModalVerdict
     Returns
     -------
     ModalVerdict
-        The design as is where it keeps the bar; else the first of :func:`candidates` whose
+        The design as is where it keeps the bar; else, of :func:`candidates` taken in the
+        order of the design's own objective (:func:`felt_miss`: the closest felt first), the first whose
         loop on the modes keeps it and whose gains pass eq. 9's acceptance test for the case's
         key and cell; else no design.
 
@@ -226,8 +261,13 @@ def guard(case: ModalCase, grid_ratio: float, hand_box: HandBox) -> ModalVerdict
     if designed >= bar:
         return ModalVerdict(case.design, 1.0, bar, designed, designed, alone)
     rate, scale = designed, 1.0
-    for s, hold, b_h in candidates(case.design, case.key.b_h_max, grid_ratio):
-        cand = scaled_design(case.design, s, b_h, hold)
+    cands = [
+        scaled_design(case.design, s, b_h, hold)
+        for s, hold, b_h in candidates(case.design, case.key.b_h_max, grid_ratio)
+    ]
+    miss = felt_miss(cands, case.design.k_o, case.key.b_o, case.key)
+    for i in sorted(range(len(cands)), key=lambda i: (miss[i], i)):
+        cand, s = cands[i], cands[i].k_h / case.design.k_h
         rate, scale = modal_rate(case, cand, hand_box, PROBE_TICKS), s
         if rate < bar:
             continue  # (most candidates: a fiftieth of the whole check's cost)
