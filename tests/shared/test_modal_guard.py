@@ -22,6 +22,7 @@ from haptic_collab.shared.gains.modal_guard import (
     ModalCase,
     alone_rate_per_s,
     candidates,
+    felt_miss,
     guard,
     modal_bar,
     scaled_design,
@@ -95,6 +96,11 @@ def test_a_design_that_grows_on_the_balls_modes_is_replaced_by_gains_that_keep_t
     assert passed
     assert d.k_h <= case.design.k_h and d.b_h <= B_H_MAX
     assert d.k_h >= MODAL_GUARD_MIN_SCALE * case.design.k_h * (1 - 1e-9)
+    # of the gains that keep the bar, the ones felt closest to the object by the design's own
+    # objective: no further than the device's whole damper on the designed K_h
+    damped = scaled_design(case.design, 1.0, B_H_MAX)
+    miss = felt_miss([d, damped], case.design.k_o, case.key.b_o, case.key)
+    assert miss[0] <= miss[1]
     # a held press is felt as stiff as designed
     k_o = case.design.k_o
     felt = static_felt_stiffness(d.k_h, d.i_gain, d.own_gain, k_o)
