@@ -1415,13 +1415,9 @@ class ServerApp:
         with the room after the one served last."""
         idle = self.idle_work_ok()
         while len(self._check_tasks) < CHECK_WORKERS:
-            picked = self._next_gain_job("interim")
+            picked = self._next_gain_job("interim") or self._next_gain_job("modal")
             if picked is None and idle:
-                picked = (
-                    self._next_gain_job("modal")
-                    or self._next_gain_job("band")
-                    or self._next_gain_job("ahead")
-                )
+                picked = self._next_gain_job("band") or self._next_gain_job("ahead")
             if picked is None:
                 break
             self._check_tasks.add(asyncio.create_task(self._design(*picked, checks=True)))

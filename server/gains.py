@@ -132,6 +132,10 @@ class _User:
     design: GainDesign | None = None
     design_key: GainKey | None = None
     cell: int = 0
+    #: The modal check of what this user renders now (contact, design key, gains), and whether
+    #: those are interim gains (:meth:`GainAdvisor.guard_modes`).
+    modal_job: tuple[int, GainKey, tuple[Any, ...]] | None = None
+    modal_interim: bool = False
 
 
 class GainAdvisor:
@@ -452,10 +456,12 @@ class GainAdvisor:
             if rec is None or u is None or u.design is None or u.design_key is None:
                 continue
             contact = contact_of(name)
+            u.modal_job = None
             if contact is None:
                 continue
             gains = (rec.k_h, rec.i_gain, rec.b_h, rec.proxy_hold, rec.own_gain)
             job = (contact, u.design_key, gains)
+            u.modal_job, u.modal_interim = job, rec.interim
             verdict = self.modal.get(job)
             if job not in self.modal:
                 self._want_modal(job, u, modes_of(name))
@@ -621,6 +627,23 @@ class GainAdvisor:
         while len(self._pair_queue) > PAIR_QUEUE:
             del self._pair_queue[next(iter(self._pair_queue))]
 
+    def _next_modal(self) -> ModalCase | None:
+        """The modal check to run next: of the gains a user renders now, a design's before
+        interim gains' (which a design replaces within seconds, often before their check is
+        back), the newest first. Checks of gains nobody renders any more are dropped unchecked
+        (asked again should they render again): on the 2-core demo machine a check takes
+        2-6 s, and a resting user's check waited behind checks of gains it had left."""
+        now = {u.modal_job: u.modal_interim for u in self._users.values() if u.modal_job}
+        for job in [j for j in self._modal_queue if j not in now]:
+            del self._modal_queue[job]
+            if self.modal.get(job, 0) is None:
+                del self.modal[job]
+        if not self._modal_queue:
+            return None
+        designs = [j for j in self._modal_queue if not now[j]]
+        job = (designs or list(self._modal_queue))[-1]  # the newest of its kind
+        return self._modal_queue.pop(job)
+
     # ---------------------------------------------------------------- work for the worker
     def _want(self, kind: JobKind, key: GainKey, cell: int) -> None:
         job = (kind, key, cell)
@@ -659,8 +682,7 @@ class GainAdvisor:
             kind, key, cell = first[-1]  # interim checks, then designs
             del self._queued[(kind, key, cell)]
             return GainJob(kind, key, cell)
-        if self._modal_queue and only in (None, "modal"):
-            modal = self._modal_queue.popitem()[1]  # the newest
+        if self._modal_queue and only in (None, "modal") and (modal := self._next_modal()):
             return GainJob("modal", modal.key, modal.cell, modal=modal)
         if idle and self._band_queue and only in (None, "band"):
             (key, cell), design = self._band_queue.popitem()  # the newest
@@ -722,18 +744,25 @@ class GainAdvisor:
             gains = (d.k_h, d.i_gain, d.b_h, d.proxy_hold, d.own_gain)
             self.modal[(case.contact, case.key, gains)] = design
             self._modal_near[(case.key, gains)] = design
-            if design.design is None:
+            if not design.changed and design.design is not None:
+                log.info(
+                    "contact %d: the design (K_h %.1f N/m, B_h %.1f N*s/m) keeps the solid's "
+                    "modes at %.2f/s (bar %.2f/s)", case.contact, d.k_h, d.b_h,
+                    design.rate_per_s, design.bar_per_s,
+                )  # fmt: skip
+            elif design.design is None:
                 log.warning(
                     "no gains keep the solid's modes at %.2f/s at contact %d (the design: "
                     "%.2f/s); the design renders", design.bar_per_s, case.contact,
                     design.designed_rate_per_s,
                 )  # fmt: skip
-            elif design.changed:
+            else:
                 log.info(
-                    "contact %d: the design's loop on the solid's modes %.2f/s, under %.2f/s: "
-                    "K_h x %.2f, B_h %.1f N*s/m, %s (%.2f/s)", case.contact,
-                    design.designed_rate_per_s, design.bar_per_s, design.scale,
-                    design.design.b_h, design.design.proxy_hold, design.rate_per_s,
+                    "contact %d: the design (K_h %.1f N/m, B_h %.1f N*s/m, %s) on the solid's "
+                    "modes %.2f/s, under %.2f/s: K_h x %.2f, B_h %.1f N*s/m, %s (%.2f/s)",
+                    case.contact, d.k_h, d.b_h, d.proxy_hold, design.designed_rate_per_s,
+                    design.bar_per_s, design.scale, design.design.b_h,
+                    design.design.proxy_hold, design.rate_per_s,
                 )  # fmt: skip
             return
         if job.kind == "band":

@@ -116,7 +116,7 @@ class ModalVerdict:
     @property
     def changed(self) -> bool:
         """Whether the gains recommended differ from the design's."""
-        return self.design is not None and self.rate_per_s != self.designed_rate_per_s
+        return self.design is not None and self.designed_rate_per_s < self.bar_per_s
 
 
 def alone_rate_per_s(modes: ContactModes, sim_period_s: float) -> float:

@@ -418,16 +418,72 @@ def test_a_fem_contacts_gains_are_checked_on_its_modes_and_replaced_where_they_r
     assert plain["u1"] == rec and len(asked) == 2
 
 
-def test_a_modal_check_pushed_out_of_the_queue_is_asked_again(liver_side) -> None:
-    """A resting user's check must not be lost to a sliding user's newer ones."""
+def test_modal_checks_go_to_what_users_render_now_designs_first(liver_side) -> None:
+    """The check worker spends its seconds on the gains users render now: a resting user's
+    design before a sliding user's interim gains, and nothing on gains nobody renders any
+    more (asked again should they render again)."""
     contact, k_o, b_o, modes = liver_side
     adv = GainAdvisor(20.0)
-    rec = adv.recommend("b", hello("p"), k_o_eff=k_o, k_o_stiff=k_o, b_o=b_o)
+    h = hello("p")
+    rec = adv.recommend("b", h, k_o_eff=k_o, k_o_stiff=k_o, b_o=b_o)
+    assert rec is not None and not rec.interim
+    interim = rec.model_copy(update={"k_h": 0.9 * rec.k_h, "interim": True})
+    adv.recommend("a", h, k_o_eff=k_o, k_o_stiff=k_o, b_o=b_o)
     adv.guard_modes({"b": rec}, lambda name: contact, lambda name: modes)
-    for c in range(1, 6):  # five newer contacts of the same user push it out
-        adv.guard_modes({"b": rec}, lambda name, c=c: contact + c, lambda name: modes)
-    waiting = {j.modal.contact for j in iter(adv.next_job, None) if j.kind == "modal"}
-    assert contact not in waiting and len(waiting) == 4
-    adv.guard_modes({"b": rec}, lambda name: contact, lambda name: modes)  # it renders again
-    job = adv.next_job()
-    assert job is not None and job.kind == "modal" and job.modal.contact == contact
+    for c in range(1, 4):  # the sliding user's interim gains at one contact after another
+        adv.guard_modes({"a": interim}, lambda name, c=c: contact + c, lambda name: modes)
+    first = adv.next_job()
+    assert first is not None and first.modal is not None
+    assert first.modal.contact == contact  # the resting user's design first
+    second = adv.next_job()
+    assert second is not None and second.modal is not None
+    assert second.modal.contact == contact + 3  # where the sliding user is now
+    assert adv.next_job() is None  # the contacts it has left: dropped
+    # back at one of them: asked again
+    adv.guard_modes({"a": interim}, lambda name: contact + 1, lambda name: modes)
+    again = adv.next_job()
+    assert again is not None and again.modal is not None and again.modal.contact == contact + 1
+
+
+@pytest.mark.slow  # a FEM ball's ticks and several designs' modal checks: 25 s
+def test_the_room_sends_a_fem_contact_the_gains_checked_on_its_modes(tmp_path) -> None:
+    """End to end without sockets: a user resting on a FEM ball's side gets the table's design,
+    then, once the worker's modal check is back, gains that keep the ball's modes dying out at
+    the bar, in the very patch the client renders."""
+    from haptic_collab.shared.gains.modal_guard import ModalCase, modal_rate
+    from haptic_collab.shared.gains.policy import MODAL_CHECK_MODES
+    from tests.support.fem_contact import liver_ball
+
+    solid = liver_ball(str(tmp_path))
+    room = Room(World(solid), 20.0)
+    room.connect("c1", 0.0)
+    room.receive("c1", encode(hello("p")), 0.0)
+    probe = (0.099, 0.0, 0.0)  # 1 mm into the side, pushing in
+    room.receive(
+        "c1", encode(State(seq=1, probe_m=probe, force_n=(-0.2, 0.0, 0.0), k_h=170.0)), 0.01
+    )
+
+    def patch(k: int) -> Patch:
+        outs = [o for o in room.tick(k, 0.05 * k) if o.conn_id == "c1" and o.stream == "patch"]
+        assert len(outs) == 1
+        return Patch.model_validate(json.loads(outs[0].data))  # type: ignore[arg-type]
+
+    seen = [patch(1).gains]
+    for k in range(2, 8):  # interim checks or designs first, then the modal check
+        run_jobs(room.gains)
+        seen.append(patch(k).gains)
+    given = [g for g in seen if g is not None]
+    first, later = given[0], given[-1]
+    (contact,) = {c for (c, _, _) in room.gains.modal}
+    verdict = next(v for v in room.gains.modal.values() if v is not None)
+    assert verdict.designed_rate_per_s < verdict.bar_per_s  # the table's design rings on
+    assert later != first and room.gains.modal_changed >= 1
+    g = later
+    # what the patch carries keeps the ball's modes at the bar over the box
+    (u,) = room.gains._users.values()
+    assert u.design is not None and u.design_key is not None
+    checked = type(u.design)(**{**u.design.__dict__, "k_h": g.k_h, "b_h": g.b_h,
+                                "proxy_hold": g.proxy_hold, "own_gain": g.own_gain})  # fmt: skip
+    modes = solid.contact_modes(contact).reduced(MODAL_CHECK_MODES)
+    case = ModalCase(contact, u.design_key, u.cell, checked, modes)
+    assert modal_rate(case, checked, room.gains.table.hand_box) >= verdict.bar_per_s - 0.05
