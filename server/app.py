@@ -1403,9 +1403,9 @@ class ServerApp:
     def _start_designs(self) -> None:
         """Keep the gain workers busy with the most urgent queued jobs (``GainAdvisor.next_job``):
         the check worker with interim checks, and when none waits, while it has CPU to spare,
-        checks of a FEM contact's gains on the solid's modes (``GainAdvisor.guard_modes``: a
-        new design's check waited seconds behind the design worker's designs; taken at once, on
-        a busy machine they kept a client's own designs from finishing), band checks
+        checks of a FEM contact's gains on the solid's modes (``GainAdvisor.guard_modes``, 2-6 s
+        each; taken at once, at the check worker's normal priority, they kept the niced design
+        worker's designs from finishing beside the demo's two clients on two cores), band checks
         (:mod:`shared.gains.b_o_band`: two acceptance tests each) and checks of the cells
         beside a damped contact's, so a check asked meanwhile waits at most one of those; the
         design worker with the most urgent job of any kind (interim checks first, then the
@@ -1415,9 +1415,13 @@ class ServerApp:
         with the room after the one served last."""
         idle = self.idle_work_ok()
         while len(self._check_tasks) < CHECK_WORKERS:
-            picked = self._next_gain_job("interim") or self._next_gain_job("modal")
+            picked = self._next_gain_job("interim")
             if picked is None and idle:
-                picked = self._next_gain_job("band") or self._next_gain_job("ahead")
+                picked = (
+                    self._next_gain_job("modal")
+                    or self._next_gain_job("band")
+                    or self._next_gain_job("ahead")
+                )
             if picked is None:
                 break
             self._check_tasks.add(asyncio.create_task(self._design(*picked, checks=True)))

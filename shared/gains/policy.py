@@ -333,6 +333,8 @@ MODAL_RING_FACTOR = 2.0
 MODAL_GUARD_MIN_SCALE = FALLBACK_K_RATIO
 
 #: Modes of largest static share the server checks a FEM contact's gains on
-#: (:meth:`shared.modal_loop.ContactModes.reduced`): on the liver ball's side 20 of 159 gave the
-#: full model's decay rates to within 0.05/s at 1/50 of the cost (tests/shared/test_modal_loop.py).
-MODAL_CHECK_MODES = 20
+#: (:meth:`shared.modal_loop.ContactModes.reduced`): on the liver sphere (159 modes), at its
+#: side and top, 0-2 ticks of delay, the designs and softened gains, 12 modes gave the decay
+#: rates of 40 to within 0.02/s (20: 0.002/s) at 0.4 of the cost of 20 and 0.08 of 40's
+#: (2026-11-29, docs/fem.md); every candidate's check on the box's lattice then takes 0.5 s.
+MODAL_CHECK_MODES = 12
