@@ -1403,7 +1403,7 @@ class ServerApp:
     def _start_designs(self) -> None:
         """Keep the gain workers busy with the most urgent queued jobs (``GainAdvisor.next_job``):
         the check worker with interim checks, and when none waits, while it has CPU to spare,
-        checks of a FEM contact's gains on the solid's modes (``GainAdvisor.guard_modes``, 2-6 s
+        checks of a FEM contact's gains on the solid's modes (``GainAdvisor.guard_modes``, 0.6-1.8 s
         each; taken at once, at the check worker's normal priority, they kept the niced design
         worker's designs from finishing beside the demo's two clients on two cores), band checks
         (:mod:`shared.gains.b_o_band`: two acceptance tests each) and checks of the cells

@@ -631,8 +631,9 @@ class GainAdvisor:
         """The modal check to run next: of the gains a user renders now, a design's before
         interim gains' (which a design replaces within seconds, often before their check is
         back), the newest first. Checks of gains nobody renders any more are dropped unchecked
-        (asked again should they render again): on the 2-core demo machine a check takes
-        2-6 s, and a resting user's check waited behind checks of gains it had left."""
+        (asked again should they render again): a check takes 0.6-1.8 s of CPU on the liver
+        sphere, and in the demo a resting user's check waited behind checks of gains it had
+        left."""
         now = {u.modal_job: u.modal_interim for u in self._users.values() if u.modal_job}
         for job in [j for j in self._modal_queue if j not in now]:
             del self._modal_queue[job]
@@ -658,7 +659,7 @@ class GainAdvisor:
 
         Interim checks come first (they let a user's forces come on within a fraction of a
         second), then designs, then modal checks (:meth:`guard_modes`: a FEM contact's rendered
-        gains on the solid's own modes, 0.3-2 s each on the liver ball; before designs they
+        gains on the solid's own modes, 0.6-1.8 s each on the liver ball; before designs they
         kept every design from finishing in the firm-hand FEM demo), then band checks (a hand sliding over a damped solid changes
         key with every whole N/m of B_o: interim gains checked over a band spare the keys next
         to it their own check, :mod:`shared.gains.b_o_band`), then pair checks

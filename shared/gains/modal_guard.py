@@ -247,7 +247,8 @@ def modal_rate(
 def staged_rate(case: ModalCase, design: GainDesign, hand_box: HandBox, bar: float) -> float:
     """:func:`modal_rate` in stages, each only where the one before keeps ``bar``: the box's
     screen at :data:`PROBE_TICKS` ticks, its lattice at those ticks and at five times as many,
-    the lattice at every tick (on the liver ball 7 ms, 50 ms, 0.2 s and 1.1 s).
+    the lattice at every tick (on the liver sphere with 20 modes 7 ms, 50 ms, 0.2 s and 1.1 s;
+    with 12 about half).
     The whole check's rate where every stage keeps the bar, else the first stage's that does
     not (no slower than the whole)."""
     stages = ((PROBE_TICKS, True), (PROBE_TICKS, False), (5 * PROBE_TICKS, False), (None, False))
