@@ -1402,14 +1402,14 @@ class ServerApp:
 
     def _start_designs(self) -> None:
         """Keep the gain workers busy with the most urgent queued jobs (``GainAdvisor.next_job``):
-        the check worker with interim checks, and when none waits, while it has CPU to spare,
-        checks of a FEM contact's gains on the solid's modes (``GainAdvisor.guard_modes``, 0.6-1.8 s
-        each; taken at once, at the check worker's normal priority, they kept the niced design
-        worker's designs from finishing beside the demo's two clients on two cores), band checks
+        the check worker with interim checks, and when none waits band checks
         (:mod:`shared.gains.b_o_band`: two acceptance tests each) and checks of the cells
         beside a damped contact's, so a check asked meanwhile waits at most one of those; the
         design worker with the most urgent job of any kind (interim checks first, then the
-        newest designs, modal checks, band checks, checks ahead, then pair checks). One job per
+        newest designs, band checks, checks ahead, pair checks, then checks of a FEM contact's
+        gains on the solid's modes: ``GainAdvisor.guard_modes``, 0.6-1.8 s each; in the check
+        worker they delayed interim checks, and a resting user pressed on by another rendered an
+        uncompensated interim felt 4 times softer for two seconds). One job per
         worker at a time, so that an urgent check never waits behind a queue of jobs already
         handed to a pool, nor behind a design running. The rooms take turns: each pick starts
         with the room after the one served last."""
@@ -1417,11 +1417,7 @@ class ServerApp:
         while len(self._check_tasks) < CHECK_WORKERS:
             picked = self._next_gain_job("interim")
             if picked is None and idle:
-                picked = (
-                    self._next_gain_job("modal")
-                    or self._next_gain_job("band")
-                    or self._next_gain_job("ahead")
-                )
+                picked = self._next_gain_job("band") or self._next_gain_job("ahead")
             if picked is None:
                 break
             self._check_tasks.add(asyncio.create_task(self._design(*picked, checks=True)))

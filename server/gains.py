@@ -658,9 +658,7 @@ class GainAdvisor:
         none.
 
         Interim checks come first (they let a user's forces come on within a fraction of a
-        second), then designs, then modal checks (:meth:`guard_modes`: a FEM contact's rendered
-        gains on the solid's own modes, 0.6-1.8 s each on the liver ball; before designs they
-        kept every design from finishing in the firm-hand FEM demo), then band checks (a hand sliding over a damped solid changes
+        second), then designs, then band checks (a hand sliding over a damped solid changes
         key with every whole N/m of B_o: interim gains checked over a band spare the keys next
         to it their own check, :mod:`shared.gains.b_o_band`), then pair checks
         (:meth:`hold_pairs`: they spare a felt step, where a design replaces interim gains; on
@@ -672,7 +670,10 @@ class GainAdvisor:
         (:data:`IDLE_KINDS`) when no interim check waits, and only while it has CPU to spare
         (``idle``; :meth:`server.app.ServerApp._start_designs`); the design worker after its
         designs: with them before designs, beside two spinning processes no design finished
-        for the resting user in one run of two.
+        for the resting user in one run of two. Last, when nothing else waits, modal checks
+        (:meth:`guard_modes`: a FEM contact's rendered gains on the solid's own modes, 0.6-1.8 s
+        each on the liver sphere; before designs they kept every design from finishing in the
+        firm-hand FEM demo, and before pair checks a resting user's pair did not verify in time).
         """
         for job in [j for j in self._queued if j[0] == "interim" and j[1:] in self.interim]:
             del self._queued[job]  # answered meanwhile by a check over its B_o band
@@ -683,8 +684,6 @@ class GainAdvisor:
             kind, key, cell = first[-1]  # interim checks, then designs
             del self._queued[(kind, key, cell)]
             return GainJob(kind, key, cell)
-        if self._modal_queue and only in (None, "modal") and (modal := self._next_modal()):
-            return GainJob("modal", modal.key, modal.cell, modal=modal)
         if idle and self._band_queue and only in (None, "band"):
             (key, cell), design = self._band_queue.popitem()  # the newest
             return GainJob("band", key, cell, design=design)
@@ -697,6 +696,8 @@ class GainAdvisor:
             self.pairs.setdefault(bucket, None)  # asked once (a lost job: no hold there)
             self.pair_checks += 1
             return GainJob("pair", bucket.partner_key, bucket.partner_cell, case)
+        if self._modal_queue and only in (None, "modal") and (modal := self._next_modal()):
+            return GainJob("modal", modal.key, modal.cell, modal=modal)
         return None
 
     def take_jobs(self) -> list[GainJob]:
@@ -715,7 +716,7 @@ class GainAdvisor:
         self._band_queue.clear()
         self._ahead_queue.clear()
         self._modal_queue.clear()
-        order = {"interim": 0, "design": 1, "modal": 2, "band": 3, "ahead": 4}
+        order = {"interim": 0, "design": 1, "band": 2, "ahead": 3, "modal": 5}
         jobs.sort(key=lambda j: order.get(j.kind, 4))
         return jobs
 
