@@ -17,9 +17,11 @@ hand held on the solid itself at 1 kHz through a finger pad, with no product bet
 (:func:`shared.modal_loop.direct_decay_rates`): what the rates are to be judged against. Each
 row also gives what the server recommends instead since the modal guard
 (:func:`shared.gains.modal_guard.guard`, as :meth:`server.gains.GainAdvisor.guard_modes` runs it:
-the table's design for the key the server makes, checked on the screen hands) and its rates the
-same two ways, and on the solid's modes over the box's whole lattice of hands
-(:meth:`shared.full_loop.HandBox.hands`, where the guard takes its screen). Not a test: the measurement behind docs/fem.md and docs/palpation.md.
+the table's design for the key the server makes, on the server's
+:data:`shared.gains.policy.MODAL_CHECK_MODES`) and its rates the same two ways (on ``--modes``),
+and on the solid's modes over the box's whole lattice of hands
+(:meth:`shared.full_loop.HandBox.hands`, as the guard checks). Not a test: the measurement behind
+docs/fem.md and docs/palpation.md.
 """
 
 from __future__ import annotations
@@ -68,7 +70,11 @@ def check(
     from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, Hand, monodromy
     from haptic_collab.shared.gains.key import make_gain_key
     from haptic_collab.shared.gains.modal_guard import ModalCase, guard
-    from haptic_collab.shared.gains.policy import K_O_GRID_RATIO, MIN_DECAY_RATE_PER_S
+    from haptic_collab.shared.gains.policy import (
+        K_O_GRID_RATIO,
+        MIN_DECAY_RATE_PER_S,
+        MODAL_CHECK_MODES,
+    )
     from haptic_collab.shared.gains.table import GainTable
     from haptic_collab.shared.modal_loop import decay_rate_per_s, decay_rates, modal_decay_rates
 
@@ -110,8 +116,9 @@ def check(
             b_h_max=prof.limits.max_damping_n_s_per_m, b_o=b_o, stiff_ratio=1.0,
         )  # fmt: skip
         cell = GainTable(DEFAULT_HAND_BOX, K_O_GRID_RATIO).cell(k_o)
+        server_modes = full.reduced(MODAL_CHECK_MODES)  # as the server checks
         verdict = guard(
-            ModalCase(key, key_d, cell, design, modes), K_O_GRID_RATIO, DEFAULT_HAND_BOX
+            ModalCase(key, key_d, cell, design, server_modes), K_O_GRID_RATIO, DEFAULT_HAND_BOX
         )
         guarded: dict[str, Any] = {
             "bar_per_s": verdict.bar_per_s,
