@@ -4,7 +4,8 @@ The gain design (:mod:`shared.gains.design`) checks a local model on :mod:`share
 loop, whose object is what the server reports of a contact and nothing more: eq. 9,
 ``x_o(k+1) = (F(k) + B_o x_o(k)) / (K_o + B_o)``. A FEM solid is more: its lowest modes (the
 liver ball rocks at 1.6-2.4 Hz) keep moving for many simulation ticks, and a hand resting on it
-through the local model can keep them going (docs/palpation.md, docs/fem.md "Not done"). This
+through the local model can keep them going (docs/palpation.md; docs/fem.md, "The solid's slow
+modes"). This
 module closes the same loop, block for block, over the contact's own modal dynamics instead:
 
 object (simulation rate), the contact's modes (:class:`ContactModes`)
@@ -241,7 +242,7 @@ def direct_decay_rates(
     object's one-period response as ``tools/landing_reference.py`` solves it, linearised in
     contact; no delay, no local model. ``modes`` must be stepped at ``period_s`` (a solid built
     with that simulation period, 1 ms for a servo-rate reference). What a hand does on the solid
-    itself, for judging :func:`modal_decay_rates` (docs/fem.md, "Not done").
+    itself, for judging :func:`modal_decay_rates` (docs/fem.md, "The solid's slow modes").
     """
     k_pad, b_pad = float(pad_stiffness_n_per_m), float(pad_damping_n_s_per_m)
     phi, gam = _hand_zoh(
