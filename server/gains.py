@@ -459,7 +459,7 @@ class GainAdvisor:
             u.modal_job = None
             if contact is None:
                 continue
-            gains = (rec.k_h, rec.i_gain, rec.b_h, rec.proxy_hold, rec.own_gain)
+            gains = _gains_of(rec)
             job = (contact, u.design_key, gains)
             u.modal_job, u.modal_interim = job, rec.interim
             verdict = self.modal.get(job)
@@ -486,8 +486,8 @@ class GainAdvisor:
     def _want_modal(
         self, job: tuple[int, GainKey, tuple[Any, ...]], u: _User, modes: ContactModes | None
     ) -> None:
-        """Queue the modal check of ``job`` (the newest first, at most :data:`BAND_QUEUE`
-        waiting; one dropped unchecked is asked again when a patch renders it again)."""
+        """Queue the modal check of ``job`` (what ``u`` renders now: one check waits per user, so
+        a room of many users never drops a current check to ask it again every tick)."""
         assert u.design is not None and u.design_key is not None
         self.modal[job] = None
         while len(self.modal) > MODAL_VERDICTS_KEPT:
@@ -496,11 +496,7 @@ class GainAdvisor:
             return
         case = ModalCase(job[0], u.design_key, u.cell, u.design, modes.reduced(MODAL_CHECK_MODES))
         self._modal_queue[job] = case
-        while len(self._modal_queue) > BAND_QUEUE:
-            dropped = next(iter(self._modal_queue))
-            del self._modal_queue[dropped]
-            if self.modal.get(dropped, 0) is None:
-                del self.modal[dropped]  # not checked: asked again while it renders
+        self._modal_rendered()  # at most one waiting per user
 
     def _held_design(
         self,
@@ -627,6 +623,17 @@ class GainAdvisor:
         while len(self._pair_queue) > PAIR_QUEUE:
             del self._pair_queue[next(iter(self._pair_queue))]
 
+    def _modal_rendered(self) -> dict[tuple[int, GainKey, tuple[Any, ...]], bool]:
+        """The modal checks of what users render now (whether each is of interim gains), with
+        every other check dropped from the queue unchecked, to be asked again should its gains
+        render again."""
+        now = {u.modal_job: u.modal_interim for u in self._users.values() if u.modal_job}
+        for job in [j for j in self._modal_queue if j not in now]:
+            del self._modal_queue[job]
+            if self.modal.get(job, 0) is None:
+                del self.modal[job]
+        return now
+
     def _next_modal(self) -> ModalCase | None:
         """The modal check to run next: of the gains a user renders now, a design's before
         interim gains' (which a design replaces within seconds, often before their check is
@@ -634,11 +641,7 @@ class GainAdvisor:
         (asked again should they render again): a check takes 0.6-1.8 s of CPU on the liver
         sphere, and in the demo a resting user's check waited behind checks of gains it had
         left."""
-        now = {u.modal_job: u.modal_interim for u in self._users.values() if u.modal_job}
-        for job in [j for j in self._modal_queue if j not in now]:
-            del self._modal_queue[job]
-            if self.modal.get(job, 0) is None:
-                del self.modal[job]
+        now = self._modal_rendered()
         if not self._modal_queue:
             return None
         designs = [j for j in self._modal_queue if not now[j]]
@@ -743,7 +746,7 @@ class GainAdvisor:
             if case is None or not isinstance(design, ModalVerdict):
                 return  # failed: the design renders unchecked, not asked again
             d = case.design
-            gains = (d.k_h, d.i_gain, d.b_h, d.proxy_hold, d.own_gain)
+            gains = _gains_of(d)
             self.modal[(case.contact, case.key, gains)] = design
             self._modal_near[(case.key, gains)] = design
             if not design.changed and design.design is not None:
@@ -791,6 +794,11 @@ class GainAdvisor:
             if ("ahead", job.key, c) not in self._asked:
                 self._asked.add(("ahead", job.key, c))
                 _push_newest(self._ahead_queue, (job.key, c), None)
+
+
+def _gains_of(g: RecommendedGains | GainDesign) -> tuple[Any, ...]:
+    """The gains that identify a modal check: K_h, I, B_h, the hold and C_h."""
+    return (g.k_h, g.i_gain, g.b_h, g.proxy_hold, g.own_gain)
 
 
 def _push_newest(queue: dict[Any, Any], item: Any, value: Any) -> None:

@@ -8,6 +8,7 @@ the box, every sampling tick and the K_o margin.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 
 import numpy as np
@@ -482,8 +483,30 @@ def test_the_room_sends_a_fem_contact_the_gains_checked_on_its_modes(tmp_path) -
     # what the patch carries keeps the ball's modes at the bar over the box
     (u,) = room.gains._users.values()
     assert u.design is not None and u.design_key is not None
-    checked = type(u.design)(**{**u.design.__dict__, "k_h": g.k_h, "b_h": g.b_h,
-                                "proxy_hold": g.proxy_hold, "own_gain": g.own_gain})  # fmt: skip
+    checked = dataclasses.replace(
+        u.design, k_h=g.k_h, b_h=g.b_h, proxy_hold=g.proxy_hold, own_gain=g.own_gain
+    )
     modes = solid.contact_modes(contact).reduced(MODAL_CHECK_MODES)
     case = ModalCase(contact, u.design_key, u.cell, checked, modes)
     assert modal_rate(case, checked, room.gains.table.hand_box) >= verdict.bar_per_s - 0.05
+
+
+def test_every_users_modal_check_waits_in_a_full_room(liver_side) -> None:
+    """Eight users on one FEM solid: each one's check waits its turn, and none is asked again
+    (rebuilding the contact's modes on the tick) while it waits."""
+    contact, k_o, b_o, modes = liver_side
+    adv = GainAdvisor(20.0)
+    h = hello("p")
+    users = [f"u{i}" for i in range(8)]
+    recs = {u: adv.recommend(u, h, k_o_eff=k_o, k_o_stiff=k_o, b_o=b_o) for u in users}
+    built: list[str] = []
+
+    def modes_of(name: str):
+        built.append(name)
+        return modes
+
+    for _ in range(3):  # three ticks
+        adv.guard_modes(recs, lambda name: contact + users.index(name), modes_of)
+    assert sorted(built) == users  # each contact's modes built once
+    waiting = {j.modal.contact for j in iter(adv.next_job, None) if j.modal is not None}
+    assert waiting == {contact + i for i in range(8)}

@@ -11,6 +11,8 @@ press feels, and stay within the device; gains that already keep the bar are lef
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -118,8 +120,8 @@ def test_the_bar_is_the_designs_margin_or_half_the_solids_own_decay(ball) -> Non
 
 def test_gains_that_keep_the_bar_are_left_as_they_are(ball) -> None:
     case = case_at(ball, "side", delay=0)
-    soft = scaled_design(case.design, 0.14, 5.0)  # a soft local model without compensation
-    soft = type(soft)(**{**soft.__dict__, "own_gain": 0.0})
+    # a soft local model without compensation
+    soft = replace(scaled_design(case.design, 0.14, 5.0), own_gain=0.0)
     verdict = guard(
         ModalCase(case.contact, case.key, case.cell, soft, case.modes),
         K_O_GRID_RATIO,
