@@ -5,7 +5,8 @@ loop, whose object is what the server reports of a contact and nothing more: eq.
 ``x_o(k+1) = (F(k) + B_o x_o(k)) / (K_o + B_o)``. A FEM solid is more: its lowest modes (the
 liver ball rocks at 1.6-2.4 Hz) keep moving for many simulation ticks, and a hand resting on it
 through the local model can keep them going (docs/palpation.md; docs/fem.md, "The solid's slow
-modes"). This module closes the same loop, block for block, over the contact's own modal dynamics instead:
+modes"). This module closes the same loop, block for block, over the contact's own modal
+dynamics instead:
 
 object (simulation rate), the contact's modes (:class:`ContactModes`)
     ``z(k+1) = A z(k) + b F(k)``, ``x_o(k+1) = c . z(k+1) + d F(k)``: every mode's displacement and

@@ -267,9 +267,9 @@ def guard(case: ModalCase, grid_ratio: float, hand_box: HandBox) -> ModalVerdict
     -------
     ModalVerdict
         The design as is where it keeps the bar; else, of :func:`candidates` taken in the
-        order of the design's own objective (:func:`felt_miss`: the closest felt first), the first whose
-        loop on the modes keeps it and whose gains pass eq. 9's acceptance test for the case's
-        key and cell; else no design.
+        order of the design's own objective (:func:`felt_miss`: the closest felt first), the
+        first whose loop on the modes keeps it and whose gains pass eq. 9's acceptance test for
+        the case's key and cell; else no design.
 
     Raises
     ------
