@@ -14,7 +14,7 @@ metric                                     type       what
 =========================================  =========  =============================================
 haptic_room_tick_seconds                   histogram  wall time of each simulation tick [s]
 haptic_room_tick_lateness_seconds          histogram  how late each tick started after it was due [s]
-haptic_room_ticks_total                    counter    simulation ticks run
+haptic_room_ticks_total                    counter    simulation ticks run (skipped: in overruns)
 haptic_room_overruns_total                 counter    ticks longer than a period, and ticks skipped
 haptic_room_users / _viewers               gauge      connections welcomed as users / viewers
 haptic_room_patches_sent_total             counter    local-model patches written to users (rate():
@@ -143,7 +143,7 @@ class ServerCollector(Collector):
                 late.add_metric([name], fig.lateness_s.cumulative(), fig.lateness_s.total)
                 patches.add_metric([name], fig.patches_sent)
                 vbytes.add_metric([name], fig.viewer_bytes_sent)
-            ticks.add_metric([name], room.tick_count)
+            ticks.add_metric([name], room.ticks_run)
             overruns.add_metric([name], room.stats.overruns)
             clamps.add_metric([name], sum(room.clamp_counts.values()))
             users.add_metric([name], len(room.users))

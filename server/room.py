@@ -298,8 +298,12 @@ class Room:
         #: The latest time [s] the room was told (a :meth:`disconnect` without one uses it).
         self._now_s = -math.inf
         self._next_user = 1
-        #: The number of the last simulation tick run (0 before the first).
+        #: The number of the last simulation tick run (0 before the first); ticks skipped
+        #: behind schedule (:meth:`handle_timer`) are numbered too, so it runs ahead of
+        #: :attr:`ticks_run` on a late loop.
         self.tick_count = 0
+        #: Simulation ticks this room object ran (:meth:`handle_timer`), skipped ones not counted.
+        self.ticks_run = 0
         #: The schedule (:meth:`start`): tick k is due at ``_t0_s + k / sim_rate_hz`` [s].
         self._t0_s = math.inf
         #: A tick ran whose cost the I/O layer has not reported yet (:meth:`tick_cost`).
@@ -356,6 +360,7 @@ class Room:
             self.stats.overruns += behind
         k = self.tick_count + 1 + behind
         self.tick_count = k
+        self.ticks_run += 1
         self._cost_due = True
         return self.tick(k, now_s)
 

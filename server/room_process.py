@@ -397,6 +397,7 @@ class _Child:
                 "report",
                 {
                     "tick": room.tick_count,
+                    "ticks_run": room.ticks_run,
                     "due": room.get_timer(),
                     "users": room.users,
                     "viewers": room.viewers,
@@ -508,6 +509,8 @@ class RoomProxy:
         self.stats = _Stats()
         self.gains = _RemoteGains(self)
         self.tick_count = 0
+        #: Ticks its processes ran, over restarts (from their reports).
+        self.ticks_run = 0
         self.users: list[str] = []
         self.viewers: list[str] = []
         self.held_seats: list[str] = []
@@ -546,6 +549,7 @@ class RoomProxy:
         self._last: dict[str, tuple[list[int], float]] = {}
         self._base_clamps = 0
         self._base_resumes = 0
+        self._base_ticks_run = 0
 
     # ------------------------------------------------------------------ Room's calls
     def _send(self, *msg: Any) -> None:
@@ -724,6 +728,7 @@ class RoomProxy:
         self.stats.base_overruns = self.stats.overruns
         self._base_clamps = sum(self.clamp_counts.values())
         self._base_resumes = self.resumes
+        self._base_ticks_run = self.ticks_run
 
     async def _reap(self) -> int | None:
         """Wait for the process to exit (killed after :data:`EXIT_TIMEOUT_S`)."""
@@ -778,6 +783,7 @@ class RoomProxy:
 
     def _report(self, rep: dict[str, Any], events: RoomEvents) -> None:
         self.tick_count = rep["tick"]
+        self.ticks_run = self._base_ticks_run + rep["ticks_run"]
         self._due = rep["due"]
         self.users, self.viewers = rep["users"], rep["viewers"]
         self.held_seats = [""] * rep["held"]

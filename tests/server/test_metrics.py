@@ -106,13 +106,12 @@ async def test_a_scrape_shows_the_rooms_ticks_users_patches_and_viewer_bytes():
         second[f"haptic_room_patches_sent_total{{{R}}}"]
         >= first[f"haptic_room_patches_sent_total{{{R}}}"] + 10
     )
-    # every tick run is in the histograms; their buckets are cumulative
+    # every tick run is in the histograms, however many a busy loop skipped (the scrape is
+    # served on the loop between ticks); their buckets are cumulative
     for scraped in (first, second):
         ticks = scraped[f"haptic_room_ticks_total{{{R}}}"]
-        assert scraped[f"haptic_room_tick_seconds_count{{{R}}}"] == pytest.approx(ticks, abs=1)
-        assert scraped[f"haptic_room_tick_lateness_seconds_count{{{R}}}"] == pytest.approx(
-            ticks, abs=1
-        )
+        assert scraped[f"haptic_room_tick_seconds_count{{{R}}}"] == ticks
+        assert scraped[f"haptic_room_tick_lateness_seconds_count{{{R}}}"] == ticks
         buckets = sorted(
             (float(k.split("le=")[1].split(",")[0].rstrip("}")), v)
             for k, v in scraped.items()

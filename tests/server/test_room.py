@@ -204,6 +204,7 @@ def test_the_room_keeps_the_simulation_schedule_and_skips_missed_ticks():
     patches = [o for o in room.handle_timer(10.10 + 3.5 * 0.05) if o.stream == "patch"]
     assert [json.loads(o.data)["tick"] for o in patches] == [5]
     assert room.stats.overruns == 3
+    assert room.ticks_run == 2  # the metrics' tick count: ticks run, not tick numbers
     assert room.get_timer() == pytest.approx(10.30)  # back on the drift-free schedule
     room.tick_cost(0.06)  # a tick that took longer than its period is an overrun too
     assert room.stats.overruns == 4
