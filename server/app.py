@@ -1507,7 +1507,10 @@ class ServerApp:
             wall_s = loop.time() - start
             if checks and wall_s >= IDLE_WORK_MIN_WALL_S:
                 self.check_cpu_share.append(min(1.0, cpu_s / wall_s))
-                log.debug("gain check %s: %.3f s of CPU in %.3f s", job.kind, cpu_s, wall_s)
+            log.debug(
+                "gain job %s (the %s worker): %.3f s of CPU in %.3f s", job.kind,
+                "check" if checks else "design", cpu_s, wall_s,
+            )  # fmt: skip
         except Exception:  # a broken worker must not stop the room: no recommendation
             log.exception("gain design %s failed", job.kind)
             design = None

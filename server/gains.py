@@ -201,6 +201,8 @@ class GainAdvisor:
         #: Patches whose gains the modal guard changed; patches it had no passing gains for.
         self.modal_changed = 0
         self.modal_unmet = 0
+        #: A design was handed out since the last modal check: a waiting check goes next.
+        self._modal_turn = False
         #: Lookups answered with gains / without (no design or interim yet).
         self.hits = 0
         self.misses = 0
@@ -677,15 +679,26 @@ class GainAdvisor:
         (:meth:`guard_modes`: a FEM contact's rendered gains on the solid's own modes, 0.6-1.8 s
         each on the liver sphere; before designs they kept every design from finishing in the
         firm-hand FEM demo, and before pair checks a resting user's pair did not verify in time).
+        A modal check waiting when a design has been handed out since the last one takes the
+        next turn before further designs: in the palpation demo designs (1 s of CPU each) kept
+        the design worker busy for the whole run, and one modal check came back in 20 s.
         """
         for job in [j for j in self._queued if j[0] == "interim" and j[1:] in self.interim]:
             del self._queued[job]  # answered meanwhile by a check over its B_o band
         jobs = [j for j in self._queued if only is None or j[0] == only]
         if not idle and only in IDLE_KINDS:
             return None
-        if first := [j for j in jobs if j[0] == "interim"] or jobs:
+        interim = [j for j in jobs if j[0] == "interim"]
+        if (
+            not interim and self._modal_turn and self._modal_queue and only is None
+            and (modal := self._next_modal())
+        ):  # fmt: skip
+            self._modal_turn = False
+            return GainJob("modal", modal.key, modal.cell, modal=modal)
+        if first := interim or jobs:
             kind, key, cell = first[-1]  # interim checks, then designs
             del self._queued[(kind, key, cell)]
+            self._modal_turn = self._modal_turn or kind == "design"
             return GainJob(kind, key, cell)
         if idle and self._band_queue and only in (None, "band"):
             (key, cell), design = self._band_queue.popitem()  # the newest
@@ -700,6 +713,7 @@ class GainAdvisor:
             self.pair_checks += 1
             return GainJob("pair", bucket.partner_key, bucket.partner_cell, case)
         if self._modal_queue and only in (None, "modal") and (modal := self._next_modal()):
+            self._modal_turn = False
             return GainJob("modal", modal.key, modal.cell, modal=modal)
         return None
 

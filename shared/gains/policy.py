@@ -332,9 +332,11 @@ MODAL_RING_FACTOR = 2.0
 #: as designed; what softens is the first touch.
 MODAL_GUARD_MIN_SCALE = FALLBACK_K_RATIO
 
-#: Modes of largest static share the server checks a FEM contact's gains on
-#: (:meth:`shared.modal_loop.ContactModes.reduced`): on the liver sphere (159 modes), at its
-#: side and top, 0-2 ticks of delay, the designs and softened gains, 12 modes gave the decay
-#: rates of 40 to within 0.02/s (20: 0.002/s) at 0.4 of the cost of 20 and 0.08 of 40's
-#: (2026-11-29, docs/fem.md); every candidate's check on the box's lattice then takes 0.5 s.
-MODAL_CHECK_MODES = 12
+#: Modes of largest dynamic response the server checks a FEM contact's gains on
+#: (:meth:`shared.modal_loop.ContactModes.reduced`, the rest static): on the liver sphere (159
+#: modes), at its side and top, 0-2 ticks of delay, the designs and softened gains, 6 modes gave
+#: the slowest decay over the box within 0.015/s of 40 modes' and never more than 0.001/s faster
+#: (12 ranked by static share, the ranking before, were up to 0.019/s faster); a candidate's
+#: check over the box's lattice at every tick takes 0.17-0.2 s, against 12 modes' 0.45-0.5 s
+#: (2026-11-29, docs/fem.md).
+MODAL_CHECK_MODES = 6

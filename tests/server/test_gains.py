@@ -491,6 +491,21 @@ def test_the_room_sends_a_fem_contact_the_gains_checked_on_its_modes(tmp_path) -
     assert modal_rate(case, checked, room.gains.table.hand_box) >= verdict.bar_per_s - 0.05
 
 
+def test_a_waiting_modal_check_takes_the_turn_after_each_design(liver_side) -> None:
+    """Designs do not starve the modal check of what a user renders: after a design the check
+    waiting goes next, then the designs go on; interim checks still come first."""
+    contact, k_o, b_o, modes = liver_side
+    adv = GainAdvisor(20.0)
+    rec = adv.recommend("b", hello("p"), k_o_eff=k_o, k_o_stiff=k_o, b_o=b_o)
+    assert rec is not None and not rec.interim  # the shipped design, rendered by a resting user
+    odd = PHANTOM.model_copy(update={"profile": "odd", "max_stiffness_n_per_m": 730.0})
+    for k in (300.0, 600.0, 900.0):  # a sweeping user of a device no table has: three cells
+        assert adv.recommend("a", hello("pi", odd), k_o_eff=k, k_o_stiff=k, b_o=0.0) is None
+    adv.guard_modes({"b": rec}, lambda name: contact, lambda name: modes)
+    kinds = [job.kind for job in iter(adv.next_job, None)]
+    assert kinds == ["interim"] * 3 + ["design", "modal", "design", "design"]
+
+
 def test_every_users_modal_check_waits_in_a_full_room(liver_side) -> None:
     """Eight users on one FEM solid: each one's check waits its turn, and none is asked again
     (rebuilding the contact's modes on the tick) while it waits."""
