@@ -16,8 +16,8 @@ import pytest
 
 from haptic_collab.server.objects.fem import FemParams, FemSolid
 from haptic_collab.server.objects.mesh import default_balloon
-from haptic_collab.shared.full_loop import Hand, monodromy
-from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S
+from haptic_collab.shared.full_loop import DEFAULT_HAND_BOX, Hand, monodromy
+from haptic_collab.shared.gains.policy import MIN_DECAY_RATE_PER_S, MODAL_CHECK_MODES
 from haptic_collab.shared.modal_loop import (
     ContactModes,
     decay_rate_per_s,
@@ -93,6 +93,60 @@ def test_fewer_modes_keep_the_static_compliance_and_the_verdict(liver_side) -> N
     gains = {"k_h": 72.0, "b_h": 5.0, "own_gain": 1 / 72.0, "proxy_hold": "foh"}
     full = modal_decay_rates(hands=HANDS, modes=modes, **gains)
     assert np.allclose(modal_decay_rates(hands=HANDS, modes=few, **gains), full, atol=0.05)
+
+
+def _mode(static_m_per_n: float, freq_hz: float, zeta: float, period_s: float = 0.05):
+    """One mode, ``q'' + 2 zeta w q' + w^2 q = w^2 s F``, depth ``q``, stepped exactly over a
+    period with the push held: its ``(a, b, c)``."""
+    from scipy.linalg import expm
+
+    w = 2.0 * np.pi * freq_hz
+    cont = np.zeros((3, 3))
+    cont[:2, :2] = [[0.0, 1.0], [-(w**2), -2.0 * zeta * w]]
+    cont[1, 2] = w**2 * static_m_per_n
+    step = expm(cont * period_s)
+    return step[:2, :2], step[:2, 2], np.array([1.0, 0.0])
+
+
+def test_fewer_modes_keep_the_one_that_rings_not_the_largest_static_share() -> None:
+    """A stiff, overdamped mode that settles within a period holds most of the compliance; a
+    lightly damped 2 Hz one little of it, but rings for seconds. One mode kept is the ringing
+    one: the reduced contact then moves as the whole one does, and the settling one, folded
+    into the static residual, costs nothing a loop would see."""
+    settles = _mode(4e-3, 30.0, 1.0)
+    rings = _mode(5e-4, 2.0, 0.02)
+    a = np.zeros((4, 4))
+    a[:2, :2], a[2:, 2:] = settles[0], rings[0]
+    modes = ContactModes(
+        a=a, b=np.concatenate([settles[1], rings[1]]), c=np.concatenate([settles[2], rings[2]]),
+        d=1e-4,
+    )  # fmt: skip
+    shares = modes.static_shares()
+    assert shares[0] > 5 * shares[1]  # by static share the settling mode would be kept
+    one = modes.reduced(1)
+    assert one.mode_count == 1 and np.allclose(one.a, rings[0])
+    assert one.c_static == pytest.approx(modes.c_static, rel=1e-12)
+    whole = modes.step_response(60)
+    assert np.max(np.abs(one.step_response(60) - whole)) < 0.02 * modes.c_static
+    by_share = ContactModes(a=settles[0], b=settles[1], c=settles[2], d=modes.d + shares[1])
+    assert np.max(np.abs(by_share.step_response(60) - whole)) > 0.1 * shares[1]
+
+
+def test_on_the_liver_ball_six_modes_stand_for_forty_and_err_slow(liver_side) -> None:
+    """The server checks 6 modes (:data:`MODAL_CHECK_MODES`): on the liver ball's side the
+    slowest decay over the box's corners and centre is within 0.02/s of 40 modes' and never
+    visibly faster, so gains that keep a bar on the 6 keep it on the solid."""
+    _, _, modes = liver_side
+    hands = DEFAULT_HAND_BOX.screen_hands()
+    for gains in (
+        {"k_h": 72.0, "b_h": 5.0, "own_gain": 1 / 72.0, "proxy_hold": "foh"},  # rings on
+        {"k_h": 34.0, "b_h": 7.5, "own_gain": 1 / 34.0, "proxy_hold": "foh"},  # dies out
+    ):
+        for delay in (0, 1):
+            loop = {"hands": hands, "delay_ticks": delay, **gains}
+            ref = modal_decay_rates(modes=modes.reduced(40), **loop).min()
+            six = modal_decay_rates(modes=modes.reduced(MODAL_CHECK_MODES), **loop).min()
+            assert ref - 0.02 <= six <= ref + 0.002
 
 
 def test_on_the_liver_ball_a_hand_keeps_the_rocking_going_past_the_design_margin(liver_side):
