@@ -1407,7 +1407,8 @@ class ServerApp:
         beside a damped contact's, so a check asked meanwhile waits at most one of those; the
         design worker with the most urgent job of any kind (interim checks first, then the
         newest designs, band checks, checks ahead, pair checks, then checks of a FEM contact's
-        gains on the solid's modes: ``GainAdvisor.guard_modes``, 0.6-1.8 s each; in the check
+        gains on the solid's modes: ``GainAdvisor.guard_modes``, 0.26-1.0 s each, one of which
+        takes the turn after each design; in the check
         worker they delayed interim checks, and a resting user pressed on by another rendered an
         uncompensated interim felt 4 times softer for two seconds). One job per
         worker at a time, so that an urgent check never waits behind a queue of jobs already

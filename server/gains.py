@@ -640,7 +640,7 @@ class GainAdvisor:
         """The modal check to run next: of the gains a user renders now, a design's before
         interim gains' (which a design replaces within seconds, often before their check is
         back), the newest first. Checks of gains nobody renders any more are dropped unchecked
-        (asked again should they render again): a check takes 0.6-1.8 s of CPU on the liver
+        (asked again should they render again): a check takes 0.26-1.0 s of CPU on the liver
         sphere, and in the demo a resting user's check waited behind checks of gains it had
         left."""
         now = self._modal_rendered()
@@ -676,12 +676,13 @@ class GainAdvisor:
         (``idle``; :meth:`server.app.ServerApp._start_designs`); the design worker after its
         designs: with them before designs, beside two spinning processes no design finished
         for the resting user in one run of two. Last, when nothing else waits, modal checks
-        (:meth:`guard_modes`: a FEM contact's rendered gains on the solid's own modes, 0.6-1.8 s
+        (:meth:`guard_modes`: a FEM contact's rendered gains on the solid's own modes, 0.26-1.0 s
         each on the liver sphere; before designs they kept every design from finishing in the
         firm-hand FEM demo, and before pair checks a resting user's pair did not verify in time).
         A modal check waiting when a design has been handed out since the last one takes the
         next turn before further designs: in the palpation demo designs (1 s of CPU each) kept
-        the design worker busy for the whole run, and one modal check came back in 20 s.
+        the design worker busy for the whole run, and one modal check came back in 20 s (with
+        the turn, 2-7 a run; docs/fem.md).
         """
         for job in [j for j in self._queued if j[0] == "interim" and j[1:] in self.interim]:
             del self._queued[job]  # answered meanwhile by a check over its B_o band

@@ -8,7 +8,7 @@ B_o at the contact as the server reports them, designs the product's gains for t
 limits; the shipped tables hold the same designs), and judges them twice at each delay: on the
 loop the design checks (:func:`shared.full_loop.monodromy`, the object as eq. 9's K_o and B_o)
 and on the same loop closed over the contact's modes (:func:`shared.modal_loop.modal_monodromy`,
-the ``--modes`` with the largest static shares, the rest static:
+the ``--modes`` of largest dynamic response, the rest static:
 :meth:`shared.modal_loop.ContactModes.reduced`). It prints, and writes with ``--json``, the
 slowest decay rate [1/s] per hand of the design's box (:func:`shared.coupled_loop.
 verification_hands`) and for the demo's heavy, loosely held hand with the device's mass and

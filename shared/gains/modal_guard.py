@@ -27,7 +27,7 @@ at most double how long the solid rings, and never lets it grow.
 Pure: no I/O, no clock. The hands are the box's lattice (:meth:`shared.full_loop.HandBox.hands`,
 as the design checks), every sampling tick, each candidate probed first (:func:`staged_rate`);
 the modes the ``modes`` given (the server passes the
-:data:`shared.gains.policy.MODAL_CHECK_MODES` of largest static share,
+:data:`shared.gains.policy.MODAL_CHECK_MODES` of largest dynamic response,
 :meth:`shared.modal_loop.ContactModes.reduced`).
 """
 
@@ -247,8 +247,8 @@ def modal_rate(
 def staged_rate(case: ModalCase, design: GainDesign, hand_box: HandBox, bar: float) -> float:
     """:func:`modal_rate` in stages, each only where the one before keeps ``bar``: the box's
     screen at :data:`PROBE_TICKS` ticks, its lattice at those ticks and at five times as many,
-    the lattice at every tick (on the liver sphere with 20 modes 7 ms, 50 ms, 0.2 s and 1.1 s;
-    with 12 about half).
+    the lattice at every tick (on the liver sphere with the server's 6 modes about 2 ms, 10 ms,
+    40 ms and 0.2 s).
     The whole check's rate where every stage keeps the bar, else the first stage's that does
     not (no slower than the whole)."""
     stages = ((PROBE_TICKS, True), (PROBE_TICKS, False), (5 * PROBE_TICKS, False), (None, False))
