@@ -63,8 +63,11 @@ def punch_points(vertices, faces, centre, normal, radius, splits=6):
     centroid = x.mean(axis=1)
     reach = np.linalg.norm(x - centroid[:, None, :], axis=2).max(axis=1)
     # every face the pad's disc may reach, not only those with a corner under it: on a coarse
-    # surface the rim crosses faces whose corners are all outside it
-    cand = np.flatnonzero((planar(centroid) < radius + reach) & (fn @ normal > 0.0))
+    # surface the rim crosses faces whose corners are all outside it; and only near the pad, not
+    # along its whole cylinder (on a torus's outer side that also held the ring's far inner wall,
+    # which faces the same way: 55 % of the load, and a reference 20 % stiff; 2026-11-29)
+    near = np.linalg.norm(centroid - centre, axis=1) < 2.0 * radius + reach
+    cand = np.flatnonzero((planar(centroid) < radius + reach) & (fn @ normal > 0.0) & near)
     tri = []
     for i in range(splits):
         for j in range(splits - i):
