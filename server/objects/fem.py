@@ -464,7 +464,9 @@ def p2_punch_loads(
     ``splits^2`` ways; a part is weighted by its area times the pressure's mean over its radial
     extent ``[r1, r2]``, ``a (asin(r2 / a) - asin(r1 / a)) / (r2 - r1)``, so the rim's
     integrable singularity is integrated, not sampled, and the shape functions are taken at the
-    part's centroid.
+    part's centroid. Only faces within ``2 a`` (plus their own size) of ``centre`` are loaded,
+    so on a non-convex surface a far face that also faces ``normal`` inside the pad's cylinder
+    takes none of the push.
 
     Parameters
     ----------
@@ -492,7 +494,11 @@ def p2_punch_loads(
 
     centroid = x.mean(axis=1)
     reach = np.linalg.norm(x - centroid[:, None, :], axis=2).max(axis=1)
-    cand = np.flatnonzero((planar(centroid) < radius + reach) & (fn @ normal > 0.0))
+    # the faces the pad's disc may reach, and only near the pad: its cylinder alone also holds
+    # far surfaces facing the same way (a torus's far inner wall, behind the outer side, took
+    # 54 % of the load; 2026-11-29)
+    near = np.linalg.norm(centroid - centre, axis=1) < 2.0 * radius + reach
+    cand = np.flatnonzero((planar(centroid) < radius + reach) & (fn @ normal > 0.0) & near)
     corners, mids = _sub_triangles(splits)
     xs = x[cand]
     r_c = planar(np.einsum("kcb,fbd->fkcd", corners, xs))  # (F, S, 3)

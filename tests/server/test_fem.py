@@ -19,6 +19,7 @@ import trimesh
 from pydantic import ValidationError
 
 from haptic_collab.server.materials import MaterialError
+from haptic_collab.server.objects import fem
 from haptic_collab.server.objects.fem import FemParams, FemSolid
 from haptic_collab.server.objects.fem_elements import (
     element_lumped_mass,
@@ -26,6 +27,7 @@ from haptic_collab.server.objects.fem_elements import (
     quadratic_mesh,
 )
 from haptic_collab.server.objects.mesh import MeshError, refine_mesh
+from haptic_collab.server.objects.shapes import stress_mesh
 from haptic_collab.server.objects.volume import check_volume_mesh, volume_mesh
 from haptic_collab.server.solid_materials import (
     SOLID_PRESETS,
@@ -400,3 +402,26 @@ def test_the_servers_fem_sphere_shows_as_many_vertices_as_the_balloons():
     assert solid.n_vertices == len(balloon.vertices) == 162
     radius = np.linalg.norm(solid.rest_vertices, axis=1)
     assert radius.max() == pytest.approx(0.1, rel=1e-9) and radius.min() > 0.09
+
+
+def test_a_push_on_the_torus_side_loads_the_pad_not_the_far_wall_behind_it():
+    """On the torus's outer side the pad's cylinder also passes through the ring's far inner
+    wall, which faces the same way. Only the surface under the pad may take the push: loaded
+    there, the far wall took 54 % of it and the side felt 346 N/m instead of about 255."""
+    torus = stress_mesh("torus")
+    v = np.asarray(torus.vertices, dtype=np.float64)
+    faces = np.asarray(torus.faces, dtype=np.int64)
+    mids = v[torus.edges_unique].mean(axis=1)  # P2's mid-edge nodes on straight edges
+    e = len(v) + np.asarray(torus.faces_unique_edges, dtype=np.int64)  # edges 01, 12, 20
+    nodes = np.vstack([v, mids])
+    faces6 = np.column_stack([faces, e])
+    key = int(np.argmax(v[:, 0]))  # the outer side, facing +x
+    normal = np.asarray(torus.vertex_normals[key], dtype=np.float64)
+    a = FemParams().patch_radius_m
+    idx, w = fem.p2_punch_loads(nodes, faces6, v[key], normal, a)
+    assert w.sum() == pytest.approx(1.0, abs=1e-12)
+    far = np.linalg.norm(nodes[idx] - v[key], axis=1) > 2.0 * a
+    assert not far.any(), f"{far.sum()} loaded nodes beyond 2 a, {w[far].sum():.0%} of the push"
+    # and the push's centre is the pad's
+    centre = w @ nodes[idx]
+    assert np.linalg.norm(centre - v[key]) < 0.2 * a
