@@ -17,6 +17,7 @@ a second) or, for the very first moment of a new key, no gains at all.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
@@ -136,6 +137,10 @@ class _User:
     #: those are interim gains (:meth:`GainAdvisor.guard_modes`).
     modal_job: tuple[int, GainKey, tuple[Any, ...]] | None = None
     modal_interim: bool = False
+    #: The design this user waits for (its key has none), and its turn: when it began to wait
+    #: or was last given a design job, whichever is later (:meth:`GainAdvisor.next_job`).
+    design_want: tuple[JobKind, GainKey, int] | None = None
+    design_turn: int | None = None
 
 
 class GainAdvisor:
@@ -203,6 +208,8 @@ class GainAdvisor:
         self.modal_unmet = 0
         #: A design was handed out since the last modal check: a waiting check goes next.
         self._modal_turn = False
+        #: Numbers the users' waits for a design, so the longest wait is served first.
+        self._turns = itertools.count()
         #: Lookups answered with gains / without (no design or interim yet).
         self.hits = 0
         self.misses = 0
@@ -320,6 +327,12 @@ class GainAdvisor:
                 design = None
         u = self._users[user]
         u.key = key
+        if interim:
+            u.design_want = ("design", key, cell)
+            if u.design_turn is None:
+                u.design_turn = next(self._turns)
+        else:
+            u.design_want = u.design_turn = None
         if design is None:
             self.misses += 1
             u.rec = None
@@ -651,6 +664,23 @@ class GainAdvisor:
         return self._modal_queue.pop(job)
 
     # ---------------------------------------------------------------- work for the worker
+    def _longest_wait(
+        self, jobs: list[tuple[JobKind, GainKey, int]]
+    ) -> tuple[JobKind, GainKey, int] | None:
+        """The queued design of the user that has waited longest for one (since it began to
+        wait, or since its last design job was handed out), which then goes to the back of
+        the line; None where no user waits for a queued design."""
+        queued = set(jobs)
+        waiting = [
+            u for u in self._users.values()
+            if u.design_want in queued and u.design_turn is not None
+        ]  # fmt: skip
+        if not waiting:
+            return None
+        u = min(waiting, key=lambda w: w.design_turn or 0)
+        u.design_turn = next(self._turns)
+        return u.design_want
+
     def _want(self, kind: JobKind, key: GainKey, cell: int) -> None:
         job = (kind, key, cell)
         if job not in self._asked:
@@ -671,7 +701,13 @@ class GainAdvisor:
         400 patches against 174); within a kind the most recently asked first: a user moving
         over the object asks for one K_o cell after another, and the cell it is in now matters
         more than the ones it has left (those are still designed later, when nothing newer
-        waits). Checks ahead come after band checks. The server's check worker takes those two
+        waits). Among designs, though, a user's wait comes first: the design for the key a user
+        renders now without one goes to the user that has waited longest (since it began to
+        wait, or since its last design was handed out), the users taking turns; then the
+        newest. With the newest alone, a hand sweeping over a FEM solid at one or two ticks of
+        delay asks a new key every second or two, each design takes 4-6 s of the niced
+        worker, and the resting user's design waited for the whole 30 s palpation demo
+        (docs/gains.md). Checks ahead come after band checks. The server's check worker takes those two
         (:data:`IDLE_KINDS`) when no interim check waits, and only while it has CPU to spare
         (``idle``; :meth:`server.app.ServerApp._start_designs`); the design worker after its
         designs: with them before designs, beside two spinning processes no design finished
@@ -698,6 +734,8 @@ class GainAdvisor:
             return GainJob("modal", modal.key, modal.cell, modal=modal)
         if first := interim or jobs:
             kind, key, cell = first[-1]  # interim checks, then designs
+            if not interim:
+                kind, key, cell = self._longest_wait(jobs) or (kind, key, cell)
             del self._queued[(kind, key, cell)]
             self._modal_turn = self._modal_turn or kind == "design"
             return GainJob(kind, key, cell)

@@ -201,6 +201,32 @@ def test_the_most_urgent_job_goes_first_interim_checks_then_the_newest_cell() ->
     assert adv.next_job() is None and adv.take_jobs() == []  # each job is handed out once
 
 
+def test_a_resting_users_design_is_not_starved_by_a_sweeping_one() -> None:
+    """B rests on one key; A sweeps, asking a new cell each time a design is handed out. Newest
+    first alone, A's cells took every design and B waited for the whole demo (the palpation
+    demo at 20 ms of latency: B on interim gains for 550 of 597 patches). B's design goes
+    first, as B has waited longest, and then the two take turns."""
+    adv = GainAdvisor(20.0, shipped=False)
+    h = hello("pi")
+    b_cell = adv.table.cell(180.0)
+    assert adv.recommend("B", h, k_o_eff=180.0, k_o_stiff=180.0, b_o=0.0) is None
+    handed = []
+    for k_o in (230.0, 280.0, 340.0, 410.0):  # A: a new cell as each design is handed out
+        assert adv.recommend("A", h, k_o_eff=k_o, k_o_stiff=k_o, b_o=0.0) is None
+        assert adv.recommend("B", h, k_o_eff=180.0, k_o_stiff=180.0, b_o=0.0) is None
+        job = adv.next_job("design")
+        assert job is not None
+        handed.append(job.cell)
+    assert handed[0] == b_cell
+    # then turns: A's cell now, since B's design is out; the rest of A's cells after
+    assert handed[1:] == [adv.table.cell(k) for k in (280.0, 340.0, 410.0)]
+    # B's design is out: what is left goes newest first
+    left = []
+    while (job := adv.next_job("design")) is not None:
+        left.append(job.cell)
+    assert left == [adv.table.cell(230.0)]
+
+
 def test_an_interim_recommendation_yields_to_the_clients_own_full_design() -> None:
     """The server flags interim gains; a client with its own full design for the contact renders
     that, and renders the server's interim gains only while it has nothing designed itself."""
