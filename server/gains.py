@@ -701,13 +701,13 @@ class GainAdvisor:
         400 patches against 174); within a kind the most recently asked first: a user moving
         over the object asks for one K_o cell after another, and the cell it is in now matters
         more than the ones it has left (those are still designed later, when nothing newer
-        waits). Among designs, though, a user's wait comes first: the design for the key a user
-        renders now without one goes to the user that has waited longest (since it began to
-        wait, or since its last design was handed out), the users taking turns; then the
-        newest. With the newest alone, a hand sweeping over a FEM solid at one or two ticks of
-        delay asks a new key every second or two, each design takes 4-6 s of the niced
-        worker, and the resting user's design waited for the whole 30 s palpation demo
-        (docs/gains.md). Checks ahead come after band checks. The server's check worker takes those two
+        waits). Before those, though, the designs users wait for: of the keys users render now
+        without a design, the key of the user that has waited longest (since it began to wait,
+        or since its last design job was handed out), so users take turns. With the newest
+        alone, a hand sweeping over a FEM solid at one or two ticks of delay asked a new key
+        every second or two, each design took 4-6 s of the niced worker, and the resting
+        user's design waited for the whole 30 s palpation demo (docs/gains.md). Checks ahead
+        come after band checks. The server's check worker takes those two
         (:data:`IDLE_KINDS`) when no interim check waits, and only while it has CPU to spare
         (``idle``; :meth:`server.app.ServerApp._start_designs`); the design worker after its
         designs: with them before designs, beside two spinning processes no design finished
