@@ -210,6 +210,9 @@ class GainAdvisor:
         self._modal_turn = False
         #: Numbers the users' waits for a design, so the longest wait is served first.
         self._turns = itertools.count()
+        #: (key, cell) found without verified gains since the last job stored: not looked up
+        #: again until one stores (:meth:`recommend`).
+        self._unverified: set[tuple[GainKey, int]] = set()
         #: Lookups answered with gains / without (no design or interim yet).
         self.hits = 0
         self.misses = 0
@@ -315,7 +318,7 @@ class GainAdvisor:
         # offline check covers: shared.gains.choose.table_design)
         design = table_design(self.table, key, k_o_eff)[0]
         interim = design is None
-        if design is None:
+        if design is None and (key, cell) not in self._unverified:
             # the client's own rule for a cell without a design (shared.gains.choose), of which
             # the server recommends only verified gains: checked interim or covering gains
             known = Known(self.table, self.interim, {})
@@ -324,7 +327,11 @@ class GainAdvisor:
             for job in jobs:
                 self._want("design" if isinstance(job, DesignJob) else "interim", key, cell)
             if source not in VERIFIED_SOURCES:
+                # nothing verified here until a job stores: the next ticks skip the look (its
+                # fallback scans the whole table, 5.5 ms with the shipped tables' 10752 cells;
+                # every tick of a slide over the FEM liver it cost the tick 5-11 ms a user)
                 design = None
+                self._unverified.add((key, cell))
         u = self._users[user]
         u.key = key
         if interim:
@@ -825,6 +832,7 @@ class GainAdvisor:
             return
         if job.kind == "band":
             if isinstance(design, BandedGains):
+                self._unverified.clear()
                 for key in design.keys(job.key):
                     if (key, job.cell) not in self.interim:
                         self.interim[(key, job.cell)] = design.design
@@ -832,6 +840,7 @@ class GainAdvisor:
             return
         if design is None or not isinstance(design, GainDesign):
             return
+        self._unverified.clear()
         if job.kind == "design":
             self.table.store(job.key, job.cell, design)
             return
