@@ -230,8 +230,8 @@ def test_a_resting_users_design_is_not_starved_by_a_sweeping_one() -> None:
 def test_a_key_without_verified_gains_is_looked_up_once_until_a_job_stores(monkeypatch) -> None:
     """Every tick a user renders a key without verified gains, the lookup of what covers it
     scanned the whole table (5.5 ms with the shipped tables; 5-11 ms of a tick a user in the
-    palpation slide). It is looked up once, and again only once a job has stored: the check's
-    gains then render at once."""
+    palpation slide). It is looked up once, and again only once a job has stored gains in its
+    K_o cell: the check's gains then render at once."""
     from haptic_collab.server import gains as gains_module
 
     calls = []
@@ -247,8 +247,15 @@ def test_a_key_without_verified_gains_is_looked_up_once_until_a_job_stores(monke
     for _ in range(5):  # five ticks on the same key
         assert adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
     assert len(calls) == 1
+    # gains stored in another K_o cell leave it alone
+    assert adv.recommend("u2", h, k_o_eff=600.0, k_o_stiff=600.0, b_o=0.0) is None
     job = adv.next_job("interim")
-    assert job is not None
+    assert job is not None and job.cell == adv.table.cell(600.0)
+    adv.store(job, run_job(job, adv.table.grid_ratio, adv.table.hand_box))
+    assert adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0) is None
+    assert len(calls) == 2
+    job = adv.next_job("interim")
+    assert job is not None and job.cell == adv.table.cell(300.0)
     adv.store(job, run_job(job, adv.table.grid_ratio, adv.table.hand_box))
     rec = adv.recommend("u1", h, k_o_eff=300.0, k_o_stiff=300.0, b_o=0.0)
     assert rec is not None and rec.interim  # the check's gains, on the first tick after it
