@@ -210,9 +210,6 @@ class GainAdvisor:
         self._modal_turn = False
         #: Numbers the users' waits for a design, so the longest wait is served first.
         self._turns = itertools.count()
-        #: (key, cell) found without verified gains since the last job stored gains in the cell:
-        #: not looked up again until one does (:meth:`recommend`, :meth:`_stored_in`).
-        self._unverified: set[tuple[GainKey, int]] = set()
         #: Lookups answered with gains / without (no design or interim yet).
         self.hits = 0
         self.misses = 0
@@ -318,20 +315,16 @@ class GainAdvisor:
         # offline check covers: shared.gains.choose.table_design)
         design = table_design(self.table, key, k_o_eff)[0]
         interim = design is None
-        if design is None and (key, cell) not in self._unverified:
+        if design is None:
             # the client's own rule for a cell without a design (shared.gains.choose), of which
             # the server recommends only verified gains: checked interim or covering gains
             known = Known(self.table, self.interim, {})
             n = rate_ratio(hello.servo_rate_hz, self.sim_rate_hz)
-            design, source, jobs = without_design(key, k_o_eff, known, None, n)
+            design, source, jobs = without_design(key, k_o_eff, known, None, n, verified_only=True)
             for job in jobs:
                 self._want("design" if isinstance(job, DesignJob) else "interim", key, cell)
             if source not in VERIFIED_SOURCES:
-                # nothing verified here until a job stores in the cell: the next ticks skip the
-                # look (its fallback scans the whole table, 5.5 ms with the shipped tables' 10752
-                # cells; every tick of a slide over the FEM liver it cost the tick 5-11 ms a user)
                 design = None
-                self._unverified.add((key, cell))
         u = self._users[user]
         u.key = key
         if interim:
@@ -670,12 +663,6 @@ class GainAdvisor:
         job = (designs or list(self._modal_queue))[-1]  # the newest of its kind
         return self._modal_queue.pop(job)
 
-    def _stored_in(self, cell: int) -> None:
-        """A job stored gains for K_o cell ``cell``: the keys found without verified gains
-        there are looked up again (a cell's verified gains, its own or a wider class's, are
-        only ever the cell's: :func:`shared.gains.choose.without_design`)."""
-        self._unverified = {kc for kc in self._unverified if kc[1] != cell}
-
     # ---------------------------------------------------------------- work for the worker
     def _longest_wait(
         self, jobs: list[tuple[JobKind, GainKey, int]]
@@ -838,7 +825,6 @@ class GainAdvisor:
             return
         if job.kind == "band":
             if isinstance(design, BandedGains):
-                self._stored_in(job.cell)
                 for key in design.keys(job.key):
                     if (key, job.cell) not in self.interim:
                         self.interim[(key, job.cell)] = design.design
@@ -846,7 +832,6 @@ class GainAdvisor:
             return
         if design is None or not isinstance(design, GainDesign):
             return
-        self._stored_in(job.cell)
         if job.kind == "design":
             self.table.store(job.key, job.cell, design)
             return

@@ -550,13 +550,20 @@ def without_design(
     known: Known,
     in_use: LocalModelUpdate | None,
     rate_ratio: int,
+    *,
+    verified_only: bool = False,
 ) -> tuple[GainDesign | None, Source | None, tuple[Job, ...]]:
     """The gains for ``k_o_eff`` [N/m] of ``key`` while its cell has no design (steps 5-7 of the
     module docstring), their source and the jobs to ask: the cell's design always, and a check
     where nothing verified renders. The server's gain advisor (:class:`server.gains.GainAdvisor`)
-    asks this too and recommends only verified gains (:data:`VERIFIED_SOURCES`).
+    asks this too and recommends only verified gains (:data:`VERIFIED_SOURCES`): with
+    ``verified_only`` the unverified ones (the nearest designed cell, the gains in use) are not
+    looked for, and the check asked has no candidates of theirs. That look scans the whole
+    table (:meth:`GainTable.fallback`: 5.5 ms with the shipped tables' 10752 cells), and on the
+    server it ran every tick for every user without verified gains.
 
-    Returns ``(None, None, jobs)`` when nothing is known for the cell and nothing is in use.
+    Returns ``(None, None, jobs)`` when nothing is known for the cell and nothing is in use (or
+    nothing verified, with ``verified_only``).
     """
     table = known.table
     cell = table.cell(k_o_eff)
@@ -577,6 +584,8 @@ def without_design(
                 CheckJob(key, cell, tuple(c for c in ahead if c is not None and compensated(c)))
             )
         return wider, "covering", tuple(jobs)
+    if verified_only:
+        return None, None, (*jobs, CheckJob(key, cell, ()))
     # nothing verified for this key and cell: have gains checked (fast) and meanwhile keep the
     # nearest designed cell (no stiffer relative to K_o) or the gains in use
     near = table.fallback(key, k_o_eff)
