@@ -558,7 +558,7 @@ def without_design(
     where nothing verified renders. The server's gain advisor (:class:`server.gains.GainAdvisor`)
     asks this too and recommends only verified gains (:data:`VERIFIED_SOURCES`): with
     ``verified_only`` the unverified ones (the nearest designed cell, the gains in use) are not
-    looked for, and the check asked has no candidates of theirs. That look scans the whole
+    looked for, as gains or as a check's candidates. That look scans the whole
     table (:meth:`GainTable.fallback`: 5.5 ms with the shipped tables' 10752 cells), and on the
     server it ran every tick for every user without verified gains.
 
@@ -579,7 +579,11 @@ def without_design(
             # the hand moves (a slide over a lump, docs/palpation.md). It renders while a check
             # for this key is asked (a fraction of a second): the compensated gains known, then
             # the generic compensated rungs (:func:`shared.gains.interim.interim_design`)
-            ahead = (known.table.fallback(key, k_o_eff), in_use_design(in_use, rate_ratio))
+            ahead = (
+                ()
+                if verified_only
+                else (known.table.fallback(key, k_o_eff), in_use_design(in_use, rate_ratio))
+            )
             jobs.append(
                 CheckJob(key, cell, tuple(c for c in ahead if c is not None and compensated(c)))
             )
