@@ -137,10 +137,11 @@ class _User:
     #: those are interim gains (:meth:`GainAdvisor.guard_modes`).
     modal_job: tuple[int, GainKey, tuple[Any, ...]] | None = None
     modal_interim: bool = False
-    #: The design this user waits for (its key has none), and its turn: when it began to wait
-    #: or was last given a design job, whichever is later (:meth:`GainAdvisor.next_job`).
+    #: The design this user waits for (its key has none; None: not waiting), and its turn: when
+    #: it began to wait or was last given a design job, whichever is later
+    #: (:meth:`GainAdvisor.next_job`).
     design_want: tuple[JobKind, GainKey, int] | None = None
-    design_turn: int | None = None
+    design_turn: int = 0
 
 
 class GainAdvisor:
@@ -328,11 +329,11 @@ class GainAdvisor:
         u = self._users[user]
         u.key = key
         if interim:
-            u.design_want = ("design", key, cell)
-            if u.design_turn is None:
+            if u.design_want is None:  # it begins to wait
                 u.design_turn = next(self._turns)
+            u.design_want = ("design", key, cell)
         else:
-            u.design_want = u.design_turn = None
+            u.design_want = None
         if design is None:
             self.misses += 1
             u.rec = None
@@ -671,13 +672,10 @@ class GainAdvisor:
         wait, or since its last design job was handed out), which then goes to the back of
         the line; None where no user waits for a queued design."""
         queued = set(jobs)
-        waiting = [
-            u for u in self._users.values()
-            if u.design_want in queued and u.design_turn is not None
-        ]  # fmt: skip
+        waiting = [u for u in self._users.values() if u.design_want in queued]
         if not waiting:
             return None
-        u = min(waiting, key=lambda w: w.design_turn or 0)
+        u = min(waiting, key=lambda w: w.design_turn)
         u.design_turn = next(self._turns)
         return u.design_want
 
@@ -703,10 +701,10 @@ class GainAdvisor:
         more than the ones it has left (those are still designed later, when nothing newer
         waits). Before those, though, the designs users wait for: of the keys users render now
         without a design, the key of the user that has waited longest (since it began to wait,
-        or since its last design job was handed out), so users take turns. With the newest
-        alone, a hand sweeping over a FEM solid at one or two ticks of delay asked a new key
-        every second or two, each design took 4-6 s of the niced worker, and the resting
-        user's design waited for the whole 30 s palpation demo (docs/gains.md). Checks ahead
+        or since its last design job was handed out), so users take turns: with the newest
+        alone, a hand sweeping over a FEM solid asks a new key faster than designs finish, and
+        a resting user's design waited behind every one of them (docs/gains.md, "Which design
+        the server runs first"). Checks ahead
         come after band checks. The server's check worker takes those two
         (:data:`IDLE_KINDS`) when no interim check waits, and only while it has CPU to spare
         (``idle``; :meth:`server.app.ServerApp._start_designs`); the design worker after its

@@ -495,8 +495,7 @@ def p2_punch_loads(
     centroid = x.mean(axis=1)
     reach = np.linalg.norm(x - centroid[:, None, :], axis=2).max(axis=1)
     # the faces the pad's disc may reach, and only near the pad: its cylinder alone also holds
-    # far surfaces facing the same way (a torus's far inner wall, behind the outer side, took
-    # 54 % of the load; 2026-11-29)
+    # far surfaces facing the same way (a torus's far inner wall, behind its outer side)
     near = np.linalg.norm(centroid - centre, axis=1) < 2.0 * radius + reach
     cand = np.flatnonzero((planar(centroid) < radius + reach) & (fn @ normal > 0.0) & near)
     corners, mids = _sub_triangles(splits)

@@ -558,9 +558,9 @@ def without_design(
     where nothing verified renders. The server's gain advisor (:class:`server.gains.GainAdvisor`)
     asks this too and recommends only verified gains (:data:`VERIFIED_SOURCES`): with
     ``verified_only`` the unverified ones (the nearest designed cell, the gains in use) are not
-    looked for, as gains or as a check's candidates. That look scans the whole
-    table (:meth:`GainTable.fallback`: 5.5 ms with the shipped tables' 10752 cells), and on the
-    server it ran every tick for every user without verified gains.
+    looked for, as gains or as a check's candidates: that look scans the whole table
+    (:meth:`GainTable.fallback`), and on the server it ran every tick for every user without
+    verified gains, for gains it then dropped (docs/fem.md, "Under load").
 
     Returns ``(None, None, jobs)`` when nothing is known for the cell and nothing is in use (or
     nothing verified, with ``verified_only``).
