@@ -136,14 +136,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
         try:
             fid_options = RunOptions(
-                jitter_s=args.jitter_us * 1e-6, quantum_m=args.quantum_um * 1e-6, seed=args.seed
+                jitter_s=args.jitter_us * 1e-6,
+                quantum_m=args.quantum_um * 1e-6,
+                seed=0 if args.seed is None else args.seed,
             )
         except ValueError as exc:
             raise CliError(_why(exc)) from None
         results["fidelity"] = fid = bench_fidelity(
             quick=args.quick,
             options=fid_options,
-            seed=args.seed,
+            seed=0 if args.seed is None else args.seed,
             workers=args.workers,
             include_3d=not (args.no_3d or args.quick),
             design_reached=args.design_reached,
@@ -159,6 +161,22 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 print(f"wrote {path}", file=sys.stderr)
         if not args.json and not args.out:
             _print_fidelity_table(fid)
+            return 0
+    if args.what == "drawn":
+        from haptic_collab.bench.drawn import run_drawn
+
+        if args.conditions < 1 or args.hands < 1:
+            raise CliError("--conditions and --hands must be at least 1")
+        results["drawn"] = drawn = run_drawn(
+            args.seed,
+            args.conditions,
+            hands=args.hands,
+            workers=args.workers,
+            log=lambda msg: print(msg, file=sys.stderr, flush=True),
+        )
+        print(f"drawn: seed {drawn['seed']}", file=sys.stderr, flush=True)
+        if not args.json and not args.out:
+            _print_drawn_table(drawn)
             return 0
     if args.what == "load":
         from haptic_collab.bench.load import LoadOptions, subdivisions_for_vertices
@@ -210,6 +228,8 @@ BENCHES: dict[str, str] = {
     "servo": "the servo loop's timing at its rate",
     "gains": "gain-table lookups and one cell's design",
     "fidelity": "every rendering scheme side by side on the fidelity grid (docs/fidelity.md)",
+    "drawn": "the product's own client on objects, delays and partners drawn at random from the "
+    "declared set (docs/stability.md); prints its seed",
     "load": "users and viewers against a server process for minutes (docs/bench-load.md)",
     "rooms": "a FEM room beside balloon rooms, one process vs a process per room (its own "
     "options: python -m haptic_collab.bench.rooms --help)",
@@ -226,6 +246,7 @@ _BENCH_OPTIONS: dict[str, tuple[str, ...]] = {
         "--design-margin", "--design-stiffer-by", "--plane-check-s", "--rest-hold-back-s",
         "--no-rest-plane", "--jitter-us", "--quantum-um",
     ),
+    "drawn": ("--seed", "--conditions", "--hands", "--workers"),
     "load": (
         "--duration", "--workers", "--users", "--viewers", "--sim-rate", "--subdivisions",
         "--vertices",
@@ -252,7 +273,26 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
         "--quick", action="store_true", help="fidelity: the documented subset (< 2 min, 2 cores)"
     )
     p.add_argument("--plot", default=None, metavar="DIR", help="fidelity: write the plots here")
-    p.add_argument("--seed", type=int, default=0, help="fidelity: recorded seed (deterministic)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="fidelity: recorded seed (default 0, deterministic); drawn: the draw's seed "
+        "(default: a new one each run, printed)",
+    )
+    p.add_argument(
+        "--conditions",
+        type=int,
+        default=24,
+        help="drawn: conditions drawn from the declared set (default %(default)s)",
+    )
+    p.add_argument(
+        "--hands",
+        type=int,
+        default=3,
+        help="drawn: hands of the box per condition, the least damped stiffest corner "
+        "among them (default %(default)s)",
+    )
     p.add_argument(
         "--workers",
         type=int,
@@ -371,6 +411,18 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
             b._add_action(every[flag])
         mine = {every[f].dest for f in ("--json", "--out", *_BENCH_OPTIONS[name])}
         b.set_defaults(func=_cmd_bench, **{k: v for k, v in defaults.items() if k not in mine})
+
+
+def _print_drawn_table(result: dict[str, object]) -> None:
+    """A human-readable summary of ``haptic bench drawn`` (``--json`` for everything)."""
+    summary = result["summary"]
+    assert isinstance(summary, dict)
+    print(f"seed {result['seed']}: {result['n']} conditions, {result['hands']} hands each")
+    for name, row in summary.items():
+        share = row["share"]
+        pct = "-" if share is None else f"{share:.1%}"
+        bad = ", ".join(str(i) for i in row["not_stable"]) or "none"
+        print(f"{name:22s} box-stable {row['box_stable']:3d} of {row['of']:3d} ({pct}); not: {bad}")
 
 
 def _print_fidelity_table(result: dict[str, object]) -> None:
