@@ -739,9 +739,7 @@ class _ClientRun:
         session.b_h_max = min(1e3, lim.max_damping_n_s_per_m)
         self._report_coverage(welcome.sim_rate_hz)
         lm = _local_model_params(opts, device, welcome.sim_rate_hz)
-        passivity = opts.passivity == "on" or (
-            opts.passivity == "auto" and opts.local_model == "pi"
-        )
+        passivity = passivity_on(opts.passivity, opts.local_model)
         by_button = opts.engage == "button" or (opts.engage == "default" and device.has_buttons)
         if by_button:
             log.info("press the device's first button to engage forces (again to disengage)")
@@ -933,6 +931,12 @@ def _check_whole_rate_ratio(servo_rate_hz: float, sim_rate_hz: float) -> None:
             f"--servo-rate {fit:g}, or the server at a rate that divides "
             f"{servo_rate_hz:g} Hz"
         ) from None
+
+
+def passivity_on(choice: Literal["auto", "on", "off"], local_model: Literal["p", "pi"]) -> bool:
+    """Whether the servo runs the passivity observer and controller at the device port
+    (``--passivity``): ``auto`` (the default) for a PI local model."""
+    return choice == "on" or (choice == "auto" and local_model == "pi")
 
 
 def _local_model_params(

@@ -161,7 +161,9 @@ class ServoSnapshot:
     probe_m : (3,) float
         Probe position x_h [m].
     force_n : (3,) float
-        Force [N] rendered on the user (and applied to the object with the opposite sign, Step 3).
+        Force [N] of the local model on the user, clamped and scaled by the safety gain, before
+        the passivity controller's damper: what the coupling applies to the object with the
+        opposite sign (Step 3). The force the device displayed is in the telemetry rows.
     penetration_m : float
         Penetration e [m] into the local model (NaN before the first patch).
     in_contact : bool
@@ -559,7 +561,11 @@ class ServoCore:
             rd.own_offset_m,
             rd.own_gain,
         )
-        self._pub = (n, now_s, x, y, z, fx, fy, fz, e, in_contact, k_h, i_gain, rd.own_gain, s)
+        # the coupling's force, not the passivity controller's damper: the object is pushed by the
+        # local model (Step 3), and a damper that acts on the hand alone must not enter the slow
+        # loop (with it, three PI users on a soft object rang 8.7 mm: docs/stability.md)
+        fcx, fcy, fcz = fo * nx, fo * ny, fo * nz
+        self._pub = (n, now_s, x, y, z, fcx, fcy, fcz, e, in_contact, k_h, i_gain, rd.own_gain, s)
         self._ticks = n + 1
         return self._stopped
 

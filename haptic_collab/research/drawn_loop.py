@@ -101,7 +101,7 @@ def servo_setup(
 
     prof = get_sim_profile(PROFILE)
     lim = prof.limits
-    on = passivity_on(passivity)
+    on = passivity_on(passivity, mode)
     lm = LocalModelParams(
         k_h=1.0,
         servo_period_s=T,

@@ -724,6 +724,9 @@ def simulate(
             f_c = k_h * (xr - p_new) + b_h * (u - v_recv)
             f = np.where(tool, np.where(k_recv > 0.0, np.maximum(f_c, 0.0), 0.0), f)
         f = np.clip(f, -fmax, fmax)
+        # the object is pushed by the coupling, never by the passivity controller's damper (as
+        # the client's state: client.servo.ServoCore publishes the force before it)
+        f_up = f
         # passivity layer at the device port: force ON the handle is -f, its velocity vel
         if any_pc:
             pc_e, fa, _ = passivity_step(
@@ -769,7 +772,7 @@ def simulate(
             v = np.where(runaway, 0.0, vn)
         xr_prev = xr
         # uplink, then the simulation's tick
-        up[n % L] = np.where(fed_position, xr, f)
+        up[n % L] = np.where(fed_position, xr, np.where(pc_on, f_up, f) if any_pc else f)
         sim_now = (n % n_ratio) == 0
         if sim_now.any():
             k_up = n - d_ticks - lag

@@ -20,7 +20,7 @@ from haptic_collab.client.servo_thread import ServoThread
 from haptic_collab.shared.local_model import LocalModelParams
 from haptic_collab.shared.local_model_update import LocalModelUpdate
 from haptic_collab.shared.primitives import make_plane, make_sphere
-from tests.support.helpers import FakeDevice, max_step
+from tests.support.helpers import FakeDevice, lab_limits, max_step
 
 T = 1e-3
 RAMP_S = 0.05
@@ -458,3 +458,33 @@ def test_without_button_engagement_buttons_are_ignored() -> None:
     dev.held = 1
     run(core, 0.0, 200, notify_every=10)
     assert core.status().engaged and dev.displayed[2] == pytest.approx(1.5)
+
+
+def test_the_object_is_pushed_by_the_coupling_not_by_the_passivity_controllers_damper() -> None:
+    """The state a client sends carries the local model's force (Step 3). The passivity
+    controller's damper acts on the hand alone: fed to the simulation it closed a second,
+    delayed loop through the object, and three PI users on a soft object rang 8.7 mm
+    (docs/stability.md)."""
+    dev = FakeDevice((0.0, 0.0, -0.005))
+    dev.limits = lab_limits(max_velocity_m_s=0.5, max_damping_n_s_per_m=10.0)
+    core = ServoCore(dev, ServoConfig(ramp_s=RAMP_S, link_timeout_s=math.inf, passivity=True))
+    core.enable_forces()
+    core.set_patch(PLANE, 500.0, 0.0)
+    t = run(core, 0.0, 200)
+    # the surface jumps 4 mm out and the hand gives way under it: the port gives energy
+    core.set_patch(make_plane((0.0, 0.0, 0.004), (0.0, 0.0, 1.0)), 500.0, 0.0)
+    pushed: list[tuple[float, float]] = []
+    for k in range(200):
+        dev.position = (0.0, 0.0, -0.005 + 4e-3 * min(k / 100, 1.0))
+        core.tick(t + k * T)
+        snap = core.latest()
+        assert snap is not None
+        pushed.append((snap.force_n[2], dev.displayed[2]))
+    pc = core.safety.passivity
+    assert pc is not None and pc.dissipated_energy_j > 0.0  # the controller did act
+    # the object was pushed with the coupling's force, K_h times the penetration...
+    for k, (sent, _) in enumerate(pushed[:100]):
+        depth = 0.004 + 0.005 - 4e-3 * min(k / 100, 1.0)
+        assert sent == pytest.approx(500.0 * depth, rel=1e-9, abs=1e-12)
+    # ...while the hand felt less: the damper's share stayed at the device port
+    assert any(shown < sent - 0.05 for sent, shown in pushed)
