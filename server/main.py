@@ -254,6 +254,18 @@ class RoomTemplates:
         """Whether some template builds room ``name``."""
         return self.template(name) is not None
 
+    def admits(self, name: str, token: str | None) -> bool:
+        """Whether a client with ``token`` (None: none) may have room ``name`` made.
+
+        With tokens (``--token-file``, ``--token``, ``--token-secret-file``): a room token for
+        room ``name`` (:func:`server.security.check_room_token`, not expired) or a server-wide
+        token, in either role; the same check the room's ``hello`` makes
+        (:class:`server.security.RoomTokens`). Without tokens: any client.
+        """
+        if self.auth is None and self.secret is None:
+            return True
+        return RoomTokens(name, self.auth, self.secret, time.time).check(token) is not None
+
     def build(self, name: str) -> Room:
         """Room ``name`` from its template. Raises ValueError (no template, bad keys)."""
         tname = self.template(name)
@@ -320,6 +332,10 @@ class ProcessRoomTemplates:
     def allows(self, name: str) -> bool:
         """Whether some template builds room ``name``."""
         return self.templates.allows(name)
+
+    def admits(self, name: str, token: str | None) -> bool:
+        """As :meth:`RoomTemplates.admits`."""
+        return self.templates.admits(name, token)
 
     def build(self, name: str) -> RoomProxy:
         """Room ``name``'s proxy (its process is started by the server). Raises ValueError."""
@@ -804,6 +820,11 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         rooms=rooms,
         room_maker=templates,
         max_rooms=opts.max_rooms,
+        # with tokens, a room is made only for a client whose token names it (or a server-wide
+        # token): a handshake alone costs no room
+        room_admits=(
+            templates.admits if templates and (auth is not None or secret is not None) else None
+        ),
         room_idle_s=opts.room_idle_s,
         snapshot_dir=snapshot_dir,
         tick_priority=opts.tick_priority,
