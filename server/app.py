@@ -64,7 +64,7 @@ import mimetypes
 import multiprocessing
 import ssl
 from collections import deque
-from collections.abc import AsyncIterator, Callable, Iterator, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from http import HTTPStatus
@@ -396,6 +396,10 @@ class ServerApp:
         ``Authorization: Bearer`` token it admits, or once a connection's ``hello`` carries one
         (a connection that sends none costs no room, no slot and no memory once closed). None:
         the rooms take no tokens, and the handshake makes the room.
+    room_gate : callable, optional
+        ``await room_gate(name)`` before an on-demand room is built: None to build it, else why
+        not (answered 503). Under Agones, :meth:`server.agones.AgonesAgent.claim_room` puts
+        the name in the ``rooms`` list first; also settable as the attribute.
     max_rooms : int
         Rooms this server runs at most, the default one included (>= 1).
     room_idle_s : float
@@ -437,6 +441,7 @@ class ServerApp:
         room_maker: RoomMaker | None = None,
         max_rooms: int = MAX_ROOMS,
         room_admits: Callable[[str, str | None], bool] | None = None,
+        room_gate: Callable[[str], Awaitable[str | None]] | None = None,
         room_idle_s: float = ROOM_IDLE_S,
         address_limits: RoomLimits = ADDRESS_LIMITS,
         snapshot_dir: str | Path | None = None,
@@ -459,6 +464,7 @@ class ServerApp:
         self.room_maker = room_maker
         self.max_rooms = max_rooms
         self.room_admits = room_admits
+        self.room_gate = room_gate
         #: Connections waiting for a hello before their room is made, by source address.
         self._roomless: dict[str, int] = {}
         #: Connections closed before a room was made for them (no hello, or no good token).
@@ -859,7 +865,16 @@ class ServerApp:
         """Build an on-demand room in a worker thread (a FEM solid takes seconds), start it."""
         assert self.room_maker is not None
         try:
+            why = None if self.room_gate is None else await self.room_gate(name)
+            if why is not None:
+                log.debug("room %r refused: %s", name, why)  # the gate said why
+                raise _RoomRefused(
+                    HTTPStatus.SERVICE_UNAVAILABLE,
+                    f"no room {name!r} here: {why}; try another server\n",
+                )
             room = await asyncio.to_thread(self._make_room, name)
+        except _RoomRefused:
+            raise
         except Exception as exc:
             log.exception("room %r could not be built", name)
             raise _RoomRefused(

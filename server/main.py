@@ -17,7 +17,7 @@ import os
 import signal
 import ssl
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -767,6 +767,14 @@ def _is_fem(room: Room) -> bool:
     return isinstance(getattr(room.world, "obj", None), FemSolid)
 
 
+def _room_gate(agent: AgonesAgent | None) -> Callable[[str], Awaitable[str | None]] | None:
+    """The app's ``room_gate`` under Agones: :meth:`AgonesAgent.claim_room` in a thread."""
+    if agent is None:
+        return None
+    claim = agent.claim_room
+    return lambda name: asyncio.to_thread(claim, name)
+
+
 async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None = None) -> None:
     """Build everything, listen, and serve until cancelled or ``duration_s`` elapses."""
     link = build_link(opts)
@@ -788,14 +796,27 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     if not (math.isfinite(grace) and grace > 0.0):
         raise ValueError(f"--drain-grace-s must be a number of seconds > 0, got {grace:g}")
     snapshot_dir = check_directory(opts.snapshot_dir) if opts.snapshot_dir else None
-    make = room_proxy if opts.room_processes else build_room
-    room = make(opts, DEFAULT_ROOM, {}, link, auth, secret)
-    rooms = {}
-    for name, keys in opts.rooms.items():
-        try:
-            rooms[name] = make(opts, name, keys, link, auth, secret)
-        except ValueError as exc:
-            raise ValueError(f"[rooms.{name}]: {exc}") from None
+    # under Agones the agent starts now, before the rooms are built and the port listens (a FEM
+    # solid takes seconds to build): it sends health pings from here on and calls Ready once
+    # every room ticks (server/agones.py)
+    apps: list[ServerApp] = []
+    agents: list[AgonesAgent] = []
+    agent = start_agones(lambda: apps[0].room_reports() if apps else [], agones)
+    if agent is not None:
+        agents.append(agent)
+    try:
+        make = room_proxy if opts.room_processes else build_room
+        room = make(opts, DEFAULT_ROOM, {}, link, auth, secret)
+        rooms = {}
+        for name, keys in opts.rooms.items():
+            try:
+                rooms[name] = make(opts, name, keys, link, auth, secret)
+            except ValueError as exc:
+                raise ValueError(f"[rooms.{name}]: {exc}") from None
+    except BaseException:
+        for a in agents:
+            await asyncio.to_thread(a.stop)
+        raise
     rates = build_rates(opts)
     plain = (
         RoomTemplates(opts, opts.room_templates, link, auth, secret)
@@ -825,6 +846,9 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         room_admits=(
             templates.admits if templates and (auth is not None or secret is not None) else None
         ),
+        # under Agones a room made on demand is put in the rooms list first; a full list
+        # refuses it (the fleet sees this server as full, as it is)
+        room_gate=_room_gate(agent),
         room_idle_s=opts.room_idle_s,
         snapshot_dir=snapshot_dir,
         tick_priority=opts.tick_priority,
@@ -835,12 +859,9 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     elif ssl_context is None and not is_loopback(opts.host):
         log.warning("no TLS: tokens and forces cross the network in clear (give --tls-cert)")
 
-    agents: list[AgonesAgent] = []
+    apps.append(app)
 
     def ready(port: int) -> None:
-        agent = start_agones(app.room_reports, agones)
-        if agent is not None:
-            agents.append(agent)
         info = room.object_info
         log.info(
             "serving %d-vertex object at %g Hz on %s://%s:%d/ (websocket /ws, %s)%s",
