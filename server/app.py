@@ -3,7 +3,8 @@
 Everything that decides anything lives in :class:`server.room.Room`; this module only moves
 frames between sockets and the rooms, wakes each room at its timer and injects latency. HTTP
 ``/`` serves the viewer (web/), ``/vendor/three/...`` the three.js package from web/node_modules,
-``/status`` a JSON summary; the websocket endpoint is ``/ws``.
+``/status`` a JSON summary (off loopback only with the metrics token); the websocket endpoint is
+``/ws``.
 
 Rooms: a server runs several rooms by name, each its own :class:`server.room.Room` (object,
 rates, caps, tokens) with its own simulation loop task, so no room waits for another's tick
@@ -1020,6 +1021,9 @@ class ServerApp:
         if where is not None:
             return await self._room_request(request, where)
         if path == "/status":
+            refused = self._status_refused(request)
+            if refused is not None:
+                return refused
             body = json.dumps(self.status())
             return _text(HTTPStatus.OK, body, "application/json")
         if path == "/metrics":
@@ -1154,6 +1158,28 @@ class ServerApp:
             await asyncio.wait_for(ws.send(error), self.send_timeout_s)
             await ws.close(close_code, "closed by server, see error")
         return None
+
+    def _status_refused(self, request: Request) -> Response | None:
+        """``/status`` names every room and its processes' ids: on loopback anyone local may read
+        it (the lobby of docs/usage.md does); off loopback only a request with the metrics token
+        (``Authorization: Bearer``, ``--metrics-token-file``). None when it may be answered, else
+        the refusal (403 without a metrics token configured, 401 without the right one)."""
+        if is_loopback(self.host):
+            return None
+        auth = request.headers.get("Authorization")
+        if self.metrics_token is None:
+            return _text(
+                HTTPStatus.FORBIDDEN,
+                "/status off loopback needs a metrics token (--metrics-token-file)\n",
+            )
+        if scrape_allowed(False, auth, self.metrics_token):
+            return None
+        return Response(
+            HTTPStatus.UNAUTHORIZED.value,
+            HTTPStatus.UNAUTHORIZED.phrase,
+            Headers([("WWW-Authenticate", 'Bearer realm="status"'), ("Content-Length", "0")]),
+            b"",
+        )
 
     def _metrics(self, request: Request) -> Response:
         """``/metrics``: the Prometheus text format, for those :func:`scrape_allowed` admits."""
