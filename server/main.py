@@ -72,7 +72,8 @@ class ServerOptions:
 
     Rooms (docs/usage.md): ``rooms`` maps a room name to its keys (``[rooms.NAME]`` of the
     configuration file: :data:`server.config.ROOM_OPTIONS`), ``room_templates`` a template's
-    name to its keys and ``prefix`` (``[room_templates.NAME]``); ``max_rooms`` caps the rooms,
+    name to its keys and ``prefix`` (``[room_templates.NAME]``); ``max_users`` (None: 32) is
+    each room's cap of users unless its keys set one; ``max_rooms`` caps the rooms,
     the default one included; an on-demand room empty for ``room_idle_s`` [s] is closed.
     ``token_secret_file`` holds the secret room tokens are signed with (``haptic token``).
 
@@ -122,6 +123,7 @@ class ServerOptions:
     rooms: dict[str, dict[str, Any]] = field(default_factory=dict)
     room_templates: dict[str, dict[str, Any]] = field(default_factory=dict)
     max_rooms: int = MAX_ROOMS
+    max_users: int | None = None
     room_idle_s: float = ROOM_IDLE_S
     token_secret_file: str | None = None
     snapshot_dir: str | None = None
@@ -170,6 +172,19 @@ def room_options(opts: ServerOptions, keys: Mapping[str, object]) -> ServerOptio
     return replace(opts, **changes)  # type: ignore[arg-type]
 
 
+def room_caps(opts: ServerOptions, keys: Mapping[str, object]) -> dict[str, int]:
+    """A room's caps (:class:`server.admission.RoomLimits` fields): its ``max_users`` and
+    ``max_viewers`` keys, else the server's ``max_users`` (``--max-users``) when set.
+
+    The users a server admits at most are then ``max_rooms * max_users`` when no room sets its
+    own: the capacity of the Agones ``users`` counter (deploy/agones/fleet.yaml).
+    """
+    caps = {k: int(keys[k]) for k in _ROOM_LIMIT_KEYS if k in keys}  # type: ignore[call-overload]
+    if opts.max_users is not None:
+        caps.setdefault("max_users", int(opts.max_users))
+    return caps
+
+
 def build_secret(opts: ServerOptions) -> bytes | None:
     """The room-token secret of ``token_secret_file`` (None without one).
 
@@ -202,7 +217,7 @@ def build_room(
     ropts = room_options(opts, keys)
     rates = build_rates(ropts)
     world = build_world(ropts, rates)
-    caps = {k: int(keys[k]) for k in _ROOM_LIMIT_KEYS if k in keys}  # type: ignore[call-overload]
+    caps = room_caps(opts, keys)
     room_auth: TokenTable | None = auth
     if secret is not None:
         room_auth = RoomTokens(name, auth, secret, time.time)
@@ -291,7 +306,7 @@ def room_spec(
     """
     ropts = room_options(opts, keys)
     rates = build_rates(ropts)
-    caps = {k: int(keys[k]) for k in _ROOM_LIMIT_KEYS if k in keys}  # type: ignore[call-overload]
+    caps = room_caps(opts, keys)
     return RoomSpec(
         name=name,
         build=build,
