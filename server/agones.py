@@ -413,6 +413,7 @@ class AgonesAgent:
         self._warned: dict[str, float] = {}
         self._unused_since: dict[str, float] = {}
         self._next_list_check = -float("inf")
+        self._late_said: frozenset[str] = frozenset()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -539,18 +540,13 @@ class AgonesAgent:
         reports = self.look()
         if reports is None:
             return "the event loop is blocked (no answer)"
-        late = [r.name for r in reports if not r.alive]
-        if late and len(late) < len(reports):
-            key = "late:" + ",".join(late)
-            if self._warned.get(key) is None:
-                self._warned = {k: v for k, v in self._warned.items() if not k.startswith("late:")}
-                self._warned[key] = self.clock()
-                log.warning(
-                    "Agones: rooms %s late or restarting; the others serve, health pings go on",
-                    ", ".join(late),
-                )
-        elif not late:
-            self._warned = {k: v for k, v in self._warned.items() if not k.startswith("late:")}
+        late = frozenset(r.name for r in reports if not r.alive)
+        if late != self._late_said and late and len(late) < len(reports):
+            log.warning(
+                "Agones: rooms %s late or restarting; the others serve, health pings go on",
+                ", ".join(sorted(late)),
+            )
+        self._late_said = late  # said once per set of late rooms (this thread only)
         if not reports or len(late) == len(reports):
             return "no room ticks: " + _stalled(reports)
         return None
