@@ -17,8 +17,8 @@ a name no room has and no template allows 404, a full server 503. On a server wi
 (``room_admits``) an on-demand room is made only for a connection whose token names it: an
 ``Authorization: Bearer`` token in the handshake (what a lobby can send), else the token of its
 first frame, a ``hello`` (what a browser sends), read before any room exists; a connection
-without one is closed and costs no room (:meth:`ServerApp._room_by_hello`). The routing of connections to
-rooms is all in :meth:`ServerApp._process_request` and :meth:`ServerApp._handler`, and a room is
+without one is closed and costs no room (:meth:`ServerApp._room_by_hello`). The routing of
+connections to rooms is all in :meth:`ServerApp._process_request` and :meth:`ServerApp._handler`, and a room is
 reached only through its slot, so that a room can later run in a process of its own.
 
 With ``--room-processes`` a room is a :class:`server.room_process.RoomProxy`: its ``Room`` and
@@ -987,8 +987,9 @@ class ServerApp:
 
     def status(self) -> dict[str, Any]:
         """JSON-able summary: the default room's tick, users, viewers, tick costs, overruns at
-        the top level (as before rooms), the link conditions, and ``rooms``: every room's own
-        figures by name with its websocket and page paths."""
+        the top level (as before rooms), the link conditions, ``roomless_refused`` (connections
+        closed before a room was made for them: no hello, or no token naming the room), and
+        ``rooms``: every room's own figures by name with its websocket and page paths."""
         room = self.room
         rooms = {}
         for name, slot in list(self._slots.items()):
@@ -1006,6 +1007,7 @@ class ServerApp:
             "tls": self.ssl_context is not None,
             "send_timeouts": self.send_timeouts,
             "origins_refused": self.origins_refused,
+            "roomless_refused": self.roomless_refused,
             "rooms": rooms,
             "max_rooms": self.max_rooms,
             "rooms_on_demand": self.room_maker is not None,

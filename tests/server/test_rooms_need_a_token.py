@@ -60,6 +60,11 @@ async def token_server(tmp_path: Path, max_rooms: int = 3) -> AsyncIterator[int]
             await task
 
 
+def _status(port: int) -> dict[str, Any]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=10) as r:
+        return json.loads(r.read())  # type: ignore[no-any-return]
+
+
 async def rooms_of(port: int) -> list[str]:
     """The rooms the server's ``/status`` lists (what the lobby reads)."""
 
@@ -97,6 +102,8 @@ async def test_tokenless_handshakes_cost_no_room_and_the_lobby_still_places(tmp_
             got = await first_answer(f"{base}/rooms/junk-1/ws", token)
             assert got["type"] == "error" and got["code"] == "unauthorized", got
         assert await rooms_of(port) == [DEFAULT_ROOM]
+        status = await asyncio.to_thread(_status, port)
+        assert status["roomless_refused"] == HANDSHAKES + len(wrong)
 
         # the lobby still finds a free slot here and places a new name; its token makes it
         lobby = Lobby(LocalServers([RoomServer(f"http://127.0.0.1:{port}")]), SECRET, port=0)
