@@ -331,6 +331,12 @@ class AgonesOptions:
         Health pings go out from the agent's start, before Ready, while the server builds its
         rooms and starts listening (:data:`START_GRACE_S`); a server not Ready this long after
         the start gets none until it is (Agones then marks it Unhealthy and replaces it).
+    max_rooms, max_users : int or None
+        The rooms the server may run (``--max-rooms``) and the users it admits in all of them
+        (``haptic server``'s rooms' caps summed): once Ready the agent reads the capacities of
+        the ``rooms`` list and the ``users`` counter and says (once) where they differ, since
+        the fleet then allocates to this server rooms or users it refuses, or never sends it
+        those it could take. None: not checked.
     """
 
     health_period_s: float = 2.0
@@ -342,6 +348,8 @@ class AgonesOptions:
     stale_room_grace_s: float = STALE_ROOM_GRACE_S
     list_check_s: float = LIST_CHECK_S
     start_grace_s: float = START_GRACE_S
+    max_rooms: int | None = None
+    max_users: int | None = None
 
 
 class AgonesAgent:
@@ -585,8 +593,43 @@ class AgonesAgent:
                 continue
             self.state = "ready"
             log.info("Agones: Ready (after %d attempts)", self.ready_attempts)
+            self._check_capacities()
             return True
         return False
+
+    def _check_capacities(self) -> None:
+        """Say once where the GameServer's ``rooms`` list and ``users`` counter capacities are
+        not what this server runs (``max_rooms``, ``max_users`` of the options)."""
+        want = {
+            (ROOMS_LIST, "lists", "--max-rooms"): self.options.max_rooms,
+            (
+                USERS_COUNTER,
+                "counters",
+                "--max-rooms x each room's max_users",
+            ): self.options.max_users,
+        }
+        if all(v is None for v in want.values()):
+            return
+        try:
+            status = self.sdk.game_server().get("status")
+        except SidecarError as exc:
+            self._warn(exc)
+            return
+        for (name, kind, what), expected in want.items():
+            group = status.get(kind) if isinstance(status, dict) else None
+            entry = group.get(name) if isinstance(group, dict) else None
+            if expected is None or not isinstance(entry, dict):
+                continue
+            try:
+                capacity = int(entry.get("capacity"))  # type: ignore[arg-type]
+            except (TypeError, ValueError):
+                continue
+            if capacity != expected:
+                log.warning(
+                    "Agones: the %r %s has capacity %d but this server takes %d (%s): capacity "
+                    "must be one number (docs/rooms-operations.md)",
+                    name, kind[:-1], capacity, expected, what,
+                )  # fmt: skip
 
     def _serve(self) -> None:
         while not self._stop.is_set() and self.state == "ready":

@@ -489,7 +489,24 @@ def build_agones(opts: ServerOptions) -> AgonesOptions:
     return AgonesOptions(
         empty_shutdown_s=empty or None,
         labels={"object": opts.object, "protocol": str(PROTOCOL_VERSION)},
+        max_rooms=opts.max_rooms,
+        max_users=users_admitted(opts),
     )
+
+
+def users_admitted(opts: ServerOptions) -> int:
+    """The users a server of these options admits at most [users]: the default room's cap, each
+    configured room's, and the largest template's for every other slot of ``max_rooms``
+    (:func:`room_caps`; 32 a room where nothing sets ``max_users``)."""
+
+    def cap(keys: Mapping[str, object]) -> int:
+        return int(room_caps(opts, keys).get("max_users", RoomLimits().max_users))
+
+    total = cap({}) + sum(cap(keys) for keys in opts.rooms.values())
+    free = max(0, opts.max_rooms - 1 - len(opts.rooms))
+    if free and opts.room_templates:
+        total += free * max(cap(keys) for keys in opts.room_templates.values())
+    return total
 
 
 def build_rates(opts: ServerOptions) -> Rates:

@@ -37,7 +37,7 @@ from haptic_collab.cli import build_parser
 from haptic_collab.cli.run import _server_options
 from haptic_collab.server.agones import ROOMS_LIST, USERS_COUNTER, AgonesOptions
 from haptic_collab.server.config import apply_server_config
-from haptic_collab.server.main import RoomTemplates, build_room
+from haptic_collab.server.main import RoomTemplates, build_agones, build_room
 from haptic_collab.server.urls import DEFAULT_ROOM
 from haptic_collab.shared.protocol import LinkConditions
 
@@ -318,6 +318,9 @@ def test_the_fleets_servers_make_the_rooms_the_lobby_names(tmp_path):
     per_room = [build_room(opts, DEFAULT_ROOM, {}, link, None, None).limits.max_users]
     per_room += [templates.build(f"r{i}").limits.max_users for i in range(1, opts.max_rooms)]
     assert gs["counters"][USERS_COUNTER]["capacity"] == sum(per_room)
+    # and what the server checks them against under Agones (it says so where they differ)
+    agones = build_agones(opts)
+    assert (agones.max_rooms, agones.max_users) == (opts.max_rooms, sum(per_room))
 
 
 def test_the_fleet_serves_tls_and_keeps_snapshots_on_a_shared_volume():

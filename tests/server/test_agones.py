@@ -496,3 +496,39 @@ async def test_a_sidecar_slow_to_answer_a_list_call_does_not_delay_health():
             gate.set()
             await asyncio.to_thread(agent.stop)
             await app.stop()
+
+
+async def test_capacities_that_are_not_the_servers_are_said_once_and_a_full_counter_not_retried(
+    caplog,
+):
+    """A Fleet whose list or counter capacity is not what the server takes is said at Ready;
+    users past the counter's capacity are said once, and the count is not sent again until it
+    changes (the real sidecar refuses it: "out of range", HTTP 500)."""
+    app = await start_app()
+    with Sidecar(lists={"rooms": 4}, counters={"users": 1}) as sc:
+        options = AgonesOptions(empty_shutdown_s=None, max_rooms=3, max_users=1, **FAST)
+        agent = start_agones(app.room_reports, options, {PORT_ENV: str(sc.port)})
+        assert agent is not None
+        users: list[User] = []
+        try:
+            await until(lambda: agent.state == "ready" and counts(sc) == [0])
+            said = [r.getMessage() for r in caplog.records if "one number" in r.getMessage()]
+            assert (
+                len(said) == 1 and "'rooms' list has capacity 4 but this server takes 3" in said[0]
+            )
+            users.append(await User.join(app.port, "A"))
+            users.append(await User.join(app.port, "B"))
+            await until(lambda: counts(sc)[-1] == 2)  # asked once, refused
+            health = len(sc.of("POST", "/health"))
+            await until(lambda: len(sc.of("POST", "/health")) >= health + 4)
+            patches = sc.of("PATCH", "/v1beta1/counters/users")
+            assert [(int(c.body["count"]), c.status) for c in patches] == [(0, 200), (2, 500)]
+            full = [r for r in caplog.records if "cannot hold 2 users" in r.getMessage()]
+            assert len(full) == 1
+            await users.pop().leave()  # one user: the count changed, it is sent and taken
+            await until(lambda: counts(sc)[-1] == 1 and sc.counters["users"]["count"] == 1)
+        finally:
+            for u in users:
+                await u.leave()
+            await asyncio.to_thread(agent.stop)
+            await app.stop()
