@@ -532,3 +532,40 @@ async def test_capacities_that_are_not_the_servers_are_said_once_and_a_full_coun
                 await u.leave()
             await asyncio.to_thread(agent.stop)
             await app.stop()
+
+
+async def test_haptic_server_under_agones_refuses_a_room_its_rooms_list_has_no_slot_for(
+    monkeypatch, caplog
+):
+    """``haptic server`` (run_server) wires the agent's claim in before a room is built: a
+    Fleet whose list holds fewer rooms than --max-rooms gets its own number, not the server's."""
+    with Sidecar(lists={"rooms": 1}, counters={"users": 64}) as sc:
+        monkeypatch.setenv(PORT_ENV, str(sc.port))
+        opts = ServerOptions(
+            port=0,
+            sim_rate_hz=SIM_RATE,
+            subdivisions=1,
+            room_templates={"any": {}},
+            max_rooms=2,
+            tick_priority="off",
+        )
+        started: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        server = asyncio.create_task(run_server(opts, on_ready=started.set_result))
+        try:
+            port = await asyncio.wait_for(asyncio.shield(started), 60.0)
+            await until(lambda: sc.lists["rooms"]["values"] == [DEFAULT_ROOM])
+            try:
+                await User.join(port, "A", path="/rooms/lab/ws")
+            except Exception as exc:
+                assert "503" in str(exc), exc
+            else:
+                raise AssertionError("a room opened that the rooms list has no slot for")
+            assert sc.lists["rooms"]["values"] == [DEFAULT_ROOM]
+            assert any("room 'lab' refused" in r.getMessage() for r in caplog.records)
+            assert any(
+                "capacity 1 but this server takes 2" in r.getMessage() for r in caplog.records
+            )
+        finally:
+            server.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await server
