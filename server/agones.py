@@ -25,38 +25,46 @@ gRPC gateway's generator writes a body bound to one field (``body: "counter_upda
 not a property to send. The count is set (``count``), never incremented (``countDiff``), so a
 call repeated after a lost answer cannot count a user twice.
 
-:class:`AgonesAgent` runs in a thread of its own, off the simulation's event loop, and reads the
-rooms through a probe it schedules on that loop (:meth:`server.app.ServerApp.room_reports`). A
-probe that gets no answer within ``probe_timeout_s`` means the loop is blocked. The agent:
+:class:`AgonesAgent` runs in two threads of its own, off the simulation's event loop, and reads
+the rooms through a probe it schedules on that loop (:meth:`server.app.ServerApp.room_reports`).
+A probe that gets no answer within ``probe_timeout_s`` means the loop is blocked. The agent:
 
 1. waits until every room has ticked, then calls Ready, retrying with backoff (the sidecar may
    start after the server);
 2. sets its labels (``/metadata/label``; Agones prefixes them ``agones.dev/sdk-``);
-3. keeps the names of the rooms in use (someone in them) in the list ``rooms``: a room's name is
-   added when the first user or viewer joins it and removed when the last leaves, so the list's
-   free capacity is the rooms this server can still open, which a FleetAutoscaler's List policy
-   keeps a buffer of (the list's capacity is the rooms a process may run: ``haptic server
-   --max-rooms``; every room of :meth:`server.app.ServerApp.rooms`, on demand ones included).
-   Every ``list_check_s`` it also reads the list as Agones holds it (GET ``/gameserver``,
-   ``status.lists.rooms.values``) and removes a name that has not been a room in use for
-   ``stale_room_grace_s`` (:data:`STALE_ROOM_GRACE_S`) since it first saw it so: the lobby's
-   allocation lists a room's name before its first user arrives (``lists.rooms.addValues``,
-   :mod:`server.lobby`), and a name whose user never came would otherwise hold a slot of the
-   list (and send later users of that name here) until the server shuts down;
+3. keeps the name of every open room (the default one, the configured ones and those made on
+   demand, empty or not, until it closes) in the list ``rooms``, whose capacity is the rooms the
+   process may run (``haptic server --max-rooms``), so the list's free capacity is the rooms
+   this server can still open, which a FleetAutoscaler's List policy keeps a buffer of and the
+   allocator's ``minAvailable`` selects on. A room made on demand is put in the list before it
+   is built (:meth:`AgonesAgent.claim_room`, the app's ``room_gate``): a full list refuses the
+   room (503) with one log line, never a retry. Every ``list_check_s`` it also reads the list as
+   Agones holds it (GET ``/gameserver``, ``status.lists.rooms.values``) and removes a name that
+   has not been an open room for ``stale_room_grace_s`` (:data:`STALE_ROOM_GRACE_S`) since it
+   first saw it so: the lobby's allocation lists a room's name before its first user arrives
+   (``lists.rooms.addValues``, :mod:`server.lobby`), and a name whose user never came would
+   otherwise hold a slot of the list until the server shuts down;
 4. keeps the counter ``users`` at the number of users in all rooms, and on the first arrival at
    a server that is only Ready calls Allocate (people who came straight to its address, past any
-   allocator), so that a scale-down never deletes it under them;
-5. calls Health every ``health_period_s`` only while every room's loop is alive (the probe
-   answered and no room is overdue; :class:`server.app.RoomReport`), so Agones marks a server
-   whose loop hangs or died Unhealthy and replaces it. A room in a process of its own is
-   overdue as soon as its process's reports stop (its loop stuck or the process stopped) and
-   not alive while the front kills and restarts it (:data:`server.room_process.HANG_S`);
+   allocator), so that a scale-down never deletes it under them. A count past the counter's
+   capacity is said once (the Fleet's capacity must be what the server admits), not retried;
+5. calls Health every ``health_period_s`` from a thread that does nothing else (a slow list
+   update never delays a ping), from its start, before Ready, while the server builds its rooms
+   (``start_grace_s``), then while the process can serve: its event loop answers the probe and
+   at least one room ticks. A room that is late or whose process is being restarted
+   (:data:`server.room_process.HANG_S`) is logged, not held against the whole GameServer:
+   Agones would delete every room with it;
 6. calls Shutdown once the server has been empty (no user, no viewer) for ``empty_shutdown_s``
    after someone was in it, or after the GameServer was Allocated (a fresh Ready server waiting
    in the fleet is never shut down for being empty).
 
-Sources: Agones' SDK reference (agones.dev/site/docs/guides/client-sdks/, "REST") and the
-swagger files named above.
+The sidecar refuses list and counter calls with plain Go errors, which its REST gateway answers
+as HTTP 500 with the error's text (:data:`REFUSALS`, :attr:`SidecarError.kind`): "already
+exists" is success for an add, "not found" for a remove.
+
+Sources: Agones' SDK reference (agones.dev/site/docs/guides/client-sdks/, "REST"), the
+swagger files named above, and the SDK server's source (pkg/sdkserver/sdkserver.go, Apache-2.0;
+excerpts in tests/data/agones/sdkserver-errors.md).
 """
 
 from __future__ import annotations
@@ -92,6 +100,24 @@ EMPTY_SHUTDOWN_S = 300.0
 STALE_ROOM_GRACE_S = 60.0
 #: Time [s] between two reads of the ``rooms`` list as Agones holds it (GET ``/gameserver``).
 LIST_CHECK_S = 5.0
+#: Time [s] from the agent's start during which it sends health pings before Ready: a FEM
+#: server took 30 s to build its solid and listen on a loaded machine, and Agones checks health
+#: from the Fleet's ``initialDelaySeconds``.
+START_GRACE_S = 300.0
+
+
+#: What a refusal of a list or counter call means, by the start of the SDK server's error text
+#: (:attr:`SidecarError.kind`). Source: Agones' pkg/sdkserver/sdkserver.go (``GetList``,
+#: ``AddListValue``, ``RemoveListValue``, ``UpdateCounter``; excerpts and licence in
+#: tests/data/agones/sdkserver-errors.md): these are plain Go errors, which the REST gateway
+#: answers as HTTP 500 (gRPC Unknown) with the text as ``message``, not as 409/404/400.
+REFUSALS = (
+    ("list not found", "undeclared"),
+    ("counter not found", "undeclared"),
+    ("already exists", "exists"),
+    ("not found", "absent"),
+    ("out of range", "full"),
+)
 
 
 class SidecarError(Exception):
@@ -100,13 +126,23 @@ class SidecarError(Exception):
     Attributes
     ----------
     status : int
-        The HTTP status (409: ALREADY_EXISTS, 404: NOT_FOUND, 400: OUT_OF_RANGE or
-        INVALID_ARGUMENT, as the gRPC gateway maps them), 0 when no answer came.
+        The HTTP status: 500 for the SDK server's own refusals (plain Go errors, gRPC
+        Unknown), 400 for an invalid argument, 0 when no answer came.
+    detail : str
+        The gRPC status message of the answer (the Go error's text); "" without one.
+    kind : str
+        What the refusal means (:data:`REFUSALS`): ``"undeclared"`` (no such list or counter in
+        the GameServer), ``"exists"`` (a value already in the list), ``"absent"`` (a value not
+        in the list), ``"full"`` (a list at capacity, or a count outside [0, capacity]); ""
+        for anything else.
     """
 
-    def __init__(self, status: int, message: str) -> None:
+    def __init__(self, status: int, message: str, detail: str = "") -> None:
         super().__init__(message)
         self.status = status
+        self.detail = detail
+        text = detail.strip().lower()
+        self.kind = next((kind for start, kind in REFUSALS if text.startswith(start)), "")
 
 
 class AgonesSDK:
@@ -177,7 +213,9 @@ class AgonesSDK:
                 detail = str(json.loads(detail).get("message", detail))
             except (ValueError, AttributeError):
                 pass
-            raise SidecarError(exc.code, f"{method} {path}: HTTP {exc.code}: {detail}") from None
+            raise SidecarError(
+                exc.code, f"{method} {path}: HTTP {exc.code}: {detail}", detail
+            ) from None
         except (urllib.error.URLError, OSError) as exc:
             reason = getattr(exc, "reason", exc)
             raise SidecarError(0, f"{method} {path}: no answer: {reason}") from None
@@ -214,17 +252,35 @@ class AgonesSDK:
         return self.call("GET", "/gameserver")
 
     def add_list_value(self, name: str, value: str) -> dict[str, Any]:
-        """Add ``value`` to the list ``name``; the list after it (409 when already there)."""
+        """Add ``value`` to the list ``name``; the list after it.
+
+        Raises
+        ------
+        SidecarError
+            ``kind`` "full" for a list at capacity (checked first, so also for a value already
+            in a full list), "exists" for a value already there, "undeclared" for no such list.
+        """
         return self.call("POST", f"/v1beta1/lists/{_segment(name)}:addValue", {"value": value})
 
     def remove_list_value(self, name: str, value: str) -> dict[str, Any]:
-        """Remove ``value`` from the list ``name``; the list after it (404 when absent)."""
+        """Remove ``value`` from the list ``name``; the list after it.
+
+        Raises
+        ------
+        SidecarError
+            ``kind`` "absent" for a value not in the list, "undeclared" for no such list.
+        """
         return self.call("POST", f"/v1beta1/lists/{_segment(name)}:removeValue", {"value": value})
 
     def set_counter(self, name: str, count: int) -> dict[str, Any]:
         """Set the counter ``name`` to ``count`` (PATCH with a ``CounterUpdateRequest``).
 
         Returns the counter after it. int64 values travel as strings (proto3 JSON).
+
+        Raises
+        ------
+        SidecarError
+            ``kind`` "full" for a count outside [0, capacity], "undeclared" for no such counter.
         """
         return self.call("PATCH", f"/v1beta1/counters/{_segment(name)}", {"count": str(int(count))})
 
@@ -267,10 +323,20 @@ class AgonesOptions:
     labels : dict of str to str
         Labels to set once Ready (without Agones' ``agones.dev/sdk-`` prefix).
     stale_room_grace_s : float
-        A name in the ``rooms`` list that is not a room in use is removed once the agent has
+        A name in the ``rooms`` list that is not an open room is removed once the agent has
         seen it so for this long (:data:`STALE_ROOM_GRACE_S`).
     list_check_s : float
         Time between two reads of the ``rooms`` list from the sidecar (:data:`LIST_CHECK_S`).
+    start_grace_s : float
+        Health pings go out from the agent's start, before Ready, while the server builds its
+        rooms and starts listening (:data:`START_GRACE_S`); a server not Ready this long after
+        the start gets none until it is (Agones then marks it Unhealthy and replaces it).
+    max_rooms, max_users : int or None
+        The rooms the server may run (``--max-rooms``) and the users it admits in all of them
+        (``haptic server``'s rooms' caps summed): once Ready the agent reads the capacities of
+        the ``rooms`` list and the ``users`` counter and says (once) where they differ, since
+        the fleet then allocates to this server rooms or users it refuses, or never sends it
+        those it could take. None: not checked.
     """
 
     health_period_s: float = 2.0
@@ -281,10 +347,17 @@ class AgonesOptions:
     labels: dict[str, str] = field(default_factory=dict)
     stale_room_grace_s: float = STALE_ROOM_GRACE_S
     list_check_s: float = LIST_CHECK_S
+    start_grace_s: float = START_GRACE_S
+    max_rooms: int | None = None
+    max_users: int | None = None
 
 
 class AgonesAgent:
-    """Tells the Agones sidecar what the server's rooms are doing; a thread of its own.
+    """Tells the Agones sidecar what the server's rooms are doing; two threads of its own.
+
+    One thread sends the health pings and nothing else, so that no other call to the sidecar
+    (a slow list update, a Ready retry) delays them; the other calls Ready and keeps the labels,
+    the ``rooms`` list, the ``users`` counter and the shutdown.
 
     Parameters
     ----------
@@ -294,7 +367,7 @@ class AgonesAgent:
         The event loop the rooms run on; ``probe`` is called on it.
     probe : callable
         Returns a report per room (:meth:`server.app.ServerApp.room_reports`); called on
-        ``loop``'s thread only.
+        ``loop``'s thread only. An empty sequence means no room yet (the server is starting).
     options : AgonesOptions
     clock : callable
         Monotonic time [s] (``time.monotonic``).
@@ -304,11 +377,14 @@ class AgonesAgent:
     state : str
         ``starting``, ``ready`` or ``shutdown``.
     ready_attempts, health_sent, health_withheld : int
-        Ready calls tried, health pings sent, health periods in which no ping was sent
-        because a room's loop was blocked, dead or stalled.
+        Ready calls tried, health pings sent (before Ready included), health periods in which
+        no ping was sent because the server could not serve (its event loop blocked, or no room
+        alive).
     stale_removed : int
         Names the agent removed from the ``rooms`` list as stale (listed by someone else,
-        never or no longer a room in use).
+        never or no longer an open room).
+    refused_rooms : int
+        Rooms :meth:`claim_room` refused because the ``rooms`` list was full.
     """
 
     def __init__(
@@ -328,9 +404,13 @@ class AgonesAgent:
         self.ready_attempts = 0
         self.health_sent = 0
         self.health_withheld = 0
+        self.stale_removed = 0
+        self.refused_rooms = 0
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
+        self._started_at = clock()
         self._listed: set[str] = set()
+        self._unlistable: set[str] = set()
         self._labelled: set[str] = set()
         self._users_reported: int | None = None
         self._occupied = False
@@ -341,19 +421,22 @@ class AgonesAgent:
         self._warned: dict[str, float] = {}
         self._unused_since: dict[str, float] = {}
         self._next_list_check = -float("inf")
-        self.stale_removed = 0
+        self._late_said: frozenset[str] = frozenset()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        """Start the agent's thread (daemon: it never holds the process up)."""
-        self._thread = threading.Thread(target=self._run, name="agones", daemon=True)
-        self._thread.start()
+        """Start the agent's two threads (daemons: they never hold the process up)."""
+        self._started_at = self.clock()
+        for target, name in ((self._run_health, "agones-health"), (self._run, "agones")):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            self._threads.append(thread)
+            thread.start()
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop the thread and wait for it (at most ``timeout_s`` [s]); blocking."""
+        """Stop the threads and wait for them (at most ``timeout_s`` [s] each); blocking."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout_s)
+        for thread in self._threads:
+            thread.join(timeout_s)
 
     # ------------------------------------------------------------------ the rooms
     def look(self) -> list[_RoomReport] | None:
@@ -382,7 +465,100 @@ class AgonesAgent:
             log.exception("reading the rooms failed")
             return None
 
-    # ------------------------------------------------------------------ the thread
+    def claim_room(self, name: str) -> str | None:
+        """Put room ``name`` in the ``rooms`` list before the server opens it; blocking.
+
+        Call it from a worker thread (:meth:`server.app.ServerApp` does, as its
+        ``room_gate``) before an on-demand room is built: the list's capacity is the rooms the
+        server may run (``--max-rooms``), so a room the list has no slot for is refused here
+        instead of running unlisted (the allocator would go on sending names to this server).
+
+        Returns
+        -------
+        str or None
+            None when the room may open: the name is in the list now (added, or already there:
+            the lobby's allocation lists it first), or the list cannot be asked (no sidecar
+            answer, no ``rooms`` list declared: the server's own ``--max-rooms`` still holds);
+            else why not (the list is full), for the refusal's text.
+        """
+        if ROOMS_LIST in self._undeclared:
+            return None
+        try:
+            self.sdk.add_list_value(ROOMS_LIST, name)
+        except SidecarError as exc:
+            if exc.kind == "exists":
+                return None
+            if exc.kind == "undeclared":
+                self._undeclared.add(ROOMS_LIST)
+                log.warning("Agones: the GameServer declares no %r list (%s)", ROOMS_LIST, exc)
+                return None
+            if exc.kind != "full":
+                self._warn(exc)
+                return None
+            if name in self._listed_values():  # full, with this name in it (the allocation's)
+                return None
+            self.refused_rooms += 1
+            log.warning(
+                "Agones: room %r refused: the %r list is full (%s); the fleet sees this server "
+                "as full, as it is",
+                name, ROOMS_LIST, exc.detail,
+            )  # fmt: skip
+            return f"the {ROOMS_LIST!r} list of this GameServer is full"
+        return None
+
+    # ------------------------------------------------------------------ the threads
+    def _run_health(self) -> None:
+        """Health pings every ``health_period_s``, from the start: before Ready (within
+        ``start_grace_s``) and after it while the server can serve (:meth:`_can_serve`)."""
+        try:
+            period = self.options.health_period_s
+            withholding = False
+            while not self._stop.is_set() and self.state != "shutdown":
+                began = self.clock()
+                why = self._cannot_serve()
+                if why is None:
+                    if self._try(self.sdk.health):
+                        self.health_sent += 1
+                    if withholding:
+                        log.info("Agones: the server can serve again, health pings resumed")
+                    withholding = False
+                else:
+                    self.health_withheld += 1
+                    if not withholding:
+                        log.warning("Agones: no health ping: %s", why)
+                    withholding = True
+                self._stop.wait(max(0.0, period - (self.clock() - began)))
+        except Exception:  # the agent must never take the server down
+            log.exception("the Agones health thread stopped")
+
+    def _cannot_serve(self) -> str | None:
+        """Why the server cannot serve now, or None when it can.
+
+        Starting (not Ready yet): it can within ``start_grace_s`` of the start, whatever its
+        event loop does (building a FEM solid holds it for seconds). Ready: its event loop
+        answers a probe within ``probe_timeout_s`` and at least one room ticks; a room that is
+        late or restarting is logged but does not stop the pings, so one room's trouble never
+        has every room of the GameServer deleted.
+        """
+        if self.state == "starting":
+            waited = self.clock() - self._started_at
+            if waited < self.options.start_grace_s:
+                return None
+            return f"not Ready {waited:.0f} s after the start"
+        reports = self.look()
+        if reports is None:
+            return "the event loop is blocked (no answer)"
+        late = frozenset(r.name for r in reports if not r.alive)
+        if late != self._late_said and late and len(late) < len(reports):
+            log.warning(
+                "Agones: rooms %s late or restarting; the others serve, health pings go on",
+                ", ".join(sorted(late)),
+            )
+        self._late_said = late  # said once per set of late rooms (this thread only)
+        if not reports or len(late) == len(reports):
+            return "no room ticks: " + _stalled(reports)
+        return None
+
     def _run(self) -> None:
         try:
             if self._await_ticking() and self._ready():
@@ -417,68 +593,136 @@ class AgonesAgent:
                 continue
             self.state = "ready"
             log.info("Agones: Ready (after %d attempts)", self.ready_attempts)
+            self._check_capacities()
             return True
         return False
 
+    def _check_capacities(self) -> None:
+        """Say once where the GameServer's ``rooms`` list and ``users`` counter capacities are
+        not what this server runs (``max_rooms``, ``max_users`` of the options)."""
+        want = {
+            (ROOMS_LIST, "lists", "--max-rooms"): self.options.max_rooms,
+            (
+                USERS_COUNTER,
+                "counters",
+                "--max-rooms x each room's max_users",
+            ): self.options.max_users,
+        }
+        if all(v is None for v in want.values()):
+            return
+        try:
+            status = self.sdk.game_server().get("status")
+        except SidecarError as exc:
+            self._warn(exc)
+            return
+        for (name, kind, what), expected in want.items():
+            group = status.get(kind) if isinstance(status, dict) else None
+            entry = group.get(name) if isinstance(group, dict) else None
+            if expected is None or not isinstance(entry, dict):
+                continue
+            try:
+                capacity = int(entry.get("capacity"))  # type: ignore[arg-type]
+            except (TypeError, ValueError):
+                continue
+            if capacity != expected:
+                log.warning(
+                    "Agones: the %r %s has capacity %d but this server takes %d (%s): capacity "
+                    "must be one number (docs/rooms-operations.md)",
+                    name, kind[:-1], capacity, expected, what,
+                )  # fmt: skip
+
     def _serve(self) -> None:
-        opts = self.options
-        next_health = self.clock()
-        withholding = False
         while not self._stop.is_set() and self.state == "ready":
             reports = self.look()
-            now = self.clock()
             if reports is not None:
-                self._sync(reports, now)
-            if now >= next_health:
-                next_health = max(next_health + opts.health_period_s, now)
-                alive = bool(reports) and all(r.alive for r in reports)  # type: ignore[union-attr]
-                if alive:
-                    if self._try(self.sdk.health):
-                        self.health_sent += 1
-                    if withholding:
-                        log.info("Agones: every room ticks again, health pings resumed")
-                    withholding = False
-                else:
-                    self.health_withheld += 1
-                    if not withholding:
-                        why = "blocked (no answer)" if reports is None else _stalled(reports)
-                        log.warning("Agones: no health ping: the simulation loop is %s", why)
-                    withholding = True
+                self._sync(reports, self.clock())
             if self.state == "ready":
-                self._stop.wait(max(0.0, min(opts.poll_s, next_health - self.clock())))
+                self._stop.wait(self.options.poll_s)
 
     def _sync(self, reports: Sequence[_RoomReport], now: float) -> None:
         """Labels, the rooms list, the users counter and the empty timer from one look."""
         for key, value in self.options.labels.items():
             if key not in self._labelled and self._try(self.sdk.set_label, key, value):
                 self._labelled.add(key)
-        names = {r.name for r in reports if r.users or r.viewers}  # rooms in use
+        names = {r.name for r in reports}  # every open room, empty or not
         if ROOMS_LIST not in self._undeclared:
-            for name in sorted(names - self._listed):
-                if self._try(
-                    self.sdk.add_list_value, ROOMS_LIST, name, ok=(409,), declares=ROOMS_LIST
-                ):
-                    self._listed.add(name)
+            for name in sorted(names - self._listed - self._unlistable):
+                self._list(name)
             for name in sorted(self._listed - names):
-                if self._try(self.sdk.remove_list_value, ROOMS_LIST, name, ok=(404,)):
+                if self._try(
+                    self.sdk.remove_list_value, ROOMS_LIST, name, ok=("absent",), declares=True
+                ):
                     self._listed.discard(name)
+                    self._unlistable.clear()  # a slot is free: try those again
+            self._unlistable &= names
             if now >= self._next_list_check:
                 self._next_list_check = now + self.options.list_check_s
                 self._prune_list(names, now)
         users = sum(r.users for r in reports)
-        if (
-            USERS_COUNTER not in self._undeclared
-            and users != self._users_reported
-            and self._try(self.sdk.set_counter, USERS_COUNTER, users, declares=USERS_COUNTER)
-        ):
-            self._users_reported = users
+        if USERS_COUNTER not in self._undeclared and users != self._users_reported:
+            try:
+                self.sdk.set_counter(USERS_COUNTER, users)
+            except SidecarError as exc:
+                if exc.kind == "full":  # said once per count: no retry until the count changes
+                    self._users_reported = users
+                    log.warning(
+                        "Agones: the %r counter cannot hold %d users (%s): its capacity in the "
+                        "Fleet must be the users the server admits (docs/rooms-operations.md)",
+                        USERS_COUNTER, users, exc.detail,
+                    )  # fmt: skip
+                elif exc.kind == "undeclared":
+                    self._undeclare(USERS_COUNTER, exc)
+                else:
+                    self._warn(exc)
+            else:
+                self._users_reported = users
         # empty from when the sidecar has heard so (after this report's calls): Shutdown comes
         # at least empty_shutdown_s after the last change of the users counter it recorded
         self._empty_timer(reports, self.clock())
 
-    def _prune_list(self, in_use: set[str], now: float) -> None:
+    def _list(self, name: str) -> None:
+        """Add open room ``name`` to the ``rooms`` list (already there: done; the list full
+        without it: said once, not asked again until a slot is freed)."""
+        try:
+            self.sdk.add_list_value(ROOMS_LIST, name)
+        except SidecarError as exc:
+            if exc.kind == "exists":
+                self._listed.add(name)
+            elif exc.kind == "undeclared":
+                self._undeclare(ROOMS_LIST, exc)
+            elif exc.kind == "full":
+                if name in self._listed_values():
+                    self._listed.add(name)
+                    return
+                self._unlistable.add(name)
+                log.warning(
+                    "Agones: room %r is open but the %r list is full (%s): not listed, not "
+                    "asked again until a room closes; --max-rooms and the list's capacity in "
+                    "the Fleet must be one number (docs/rooms-operations.md)",
+                    name, ROOMS_LIST, exc.detail,
+                )  # fmt: skip
+            else:
+                self._warn(exc)
+        else:
+            self._listed.add(name)
+
+    def _listed_values(self) -> set[str]:
+        """The ``rooms`` list's values as the sidecar holds them (GET ``/gameserver``); empty
+        when it cannot be read."""
+        try:
+            gs = self.sdk.game_server()
+        except SidecarError as exc:
+            self._warn(exc)
+            return set()
+        status = gs.get("status")
+        lists = status.get("lists") if isinstance(status, dict) else None
+        entry = lists.get(ROOMS_LIST) if isinstance(lists, dict) else None
+        values = entry.get("values") if isinstance(entry, dict) else None
+        return {v for v in values or [] if isinstance(v, str)}
+
+    def _prune_list(self, open_rooms: set[str], now: float) -> None:
         """Remove the names of the ``rooms`` list (as the sidecar holds it) that have not been
-        rooms in use for ``stale_room_grace_s`` since this agent first saw them so."""
+        open rooms for ``stale_room_grace_s`` since this agent first saw them so."""
         got: list[dict[str, Any]] = []
         if not self._try(lambda: got.append(self.sdk.game_server())):
             return
@@ -487,19 +731,20 @@ class AgonesAgent:
         entry = lists.get(ROOMS_LIST) if isinstance(lists, dict) else None
         values = entry.get("values") if isinstance(entry, dict) else None
         listed = {v for v in values or [] if isinstance(v, str)}
-        unused = listed - in_use
-        for name in set(self._unused_since) - unused:  # in use again, or gone from the list
+        unused = listed - open_rooms
+        for name in set(self._unused_since) - unused:  # open now, or gone from the list
             del self._unused_since[name]
         for name in sorted(unused):
             since = self._unused_since.setdefault(name, now)
             if now - since < self.options.stale_room_grace_s:
                 continue
-            if self._try(self.sdk.remove_list_value, ROOMS_LIST, name, ok=(404,)):
+            if self._try(self.sdk.remove_list_value, ROOMS_LIST, name, ok=("absent",)):
                 del self._unused_since[name]
                 self._listed.discard(name)
+                self._unlistable.clear()
                 self.stale_removed += 1
                 log.info(
-                    "Agones: room %r listed but not in use for %g s; removed from %r",
+                    "Agones: room %r listed but not open for %g s; removed from %r",
                     name, now - since, ROOMS_LIST,
                 )  # fmt: skip
 
@@ -537,31 +782,35 @@ class AgonesAgent:
             self.state = "shutdown"
             log.info("Agones: empty for %g s, Shutdown", now - self._empty_since)
 
-    def _try(
-        self, fn: Callable[..., Any], *args: Any, ok: tuple[int, ...] = (), declares: str = ""
-    ) -> bool:
-        """Call the sidecar; True when it took the call (or answered a status in ``ok``).
+    def _undeclare(self, what: str, exc: SidecarError) -> None:
+        self._undeclared.add(what)
+        log.warning("Agones: the GameServer declares no %r (%s); not asked again", what, exc)
 
-        A NOT_FOUND (404) for the list or counter ``declares`` means the GameServer does not
-        declare it (the Fleet's ``counters``/``lists``): said once, and never asked again. The
-        same failure is logged at most once a minute (the agent retries every poll).
+    def _warn(self, exc: SidecarError) -> None:
+        """Log a failed call, the same failure at most once a minute (the agent retries)."""
+        now = self.clock()
+        key = str(exc) if exc.status else "unreachable"
+        if now - self._warned.get(key, -math.inf) >= 60.0:
+            self._warned[key] = now
+            log.warning("Agones: %s", exc)
+
+    def _try(
+        self, fn: Callable[..., Any], *args: Any, ok: tuple[str, ...] = (), declares: bool = False
+    ) -> bool:
+        """Call the sidecar; True when it took the call (or refused it as a ``kind`` in ``ok``).
+
+        With ``declares``, an "undeclared" refusal (the GameServer has no such list or counter:
+        the Fleet's ``lists``/``counters``) is said once and the list is never asked again.
         """
         try:
             fn(*args)
         except SidecarError as exc:
-            if exc.status in ok:
+            if exc.kind and exc.kind in ok:
                 return True
-            if declares and exc.status == 404:
-                self._undeclared.add(declares)
-                log.warning(
-                    "Agones: the GameServer declares no %r (%s); not asked again", declares, exc
-                )
+            if declares and exc.kind == "undeclared":
+                self._undeclare(ROOMS_LIST, exc)
                 return False
-            now = self.clock()
-            key = str(exc) if exc.status else "unreachable"
-            if now - self._warned.get(key, -math.inf) >= 60.0:
-                self._warned[key] = now
-                log.warning("Agones: %s", exc)
+            self._warn(exc)
             return False
         return True
 

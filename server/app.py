@@ -3,7 +3,8 @@
 Everything that decides anything lives in :class:`server.room.Room`; this module only moves
 frames between sockets and the rooms, wakes each room at its timer and injects latency. HTTP
 ``/`` serves the viewer (web/), ``/vendor/three/...`` the three.js package from web/node_modules,
-``/status`` a JSON summary; the websocket endpoint is ``/ws``.
+``/status`` a JSON summary (off loopback only with the metrics token); the websocket endpoint is
+``/ws``.
 
 Rooms: a server runs several rooms by name, each its own :class:`server.room.Room` (object,
 rates, caps, tokens) with its own simulation loop task, so no room waits for another's tick
@@ -12,8 +13,12 @@ rates, caps, tokens) with its own simulation loop task, so no room waits for ano
 start (the configuration's ``[rooms.NAME]``) or built on demand by a :class:`RoomMaker` (its
 ``[room_templates]``) when a client first joins a name it allows, up to ``max_rooms``; an
 on-demand room is closed after ``room_idle_s`` without a connection. A bad name is answered 400,
-a name no room has and no template allows 404, a full server 503. The routing of connections to
-rooms is all in :meth:`ServerApp._process_request` and :meth:`ServerApp._handler`, and a room is
+a name no room has and no template allows 404, a full server 503. On a server with tokens
+(``room_admits``) an on-demand room is made only for a connection whose token names it: an
+``Authorization: Bearer`` token in the handshake (what a lobby can send), else the token of its
+first frame, a ``hello`` (what a browser sends), read before any room exists; a connection
+without one is closed and costs no room (:meth:`ServerApp._room_by_hello`). The routing of
+connections to rooms is all in :meth:`ServerApp._process_request` and :meth:`ServerApp._handler`, and a room is
 reached only through its slot, so that a room can later run in a process of its own.
 
 With ``--room-processes`` a room is a :class:`server.room_process.RoomProxy`: its ``Room`` and
@@ -60,7 +65,7 @@ import mimetypes
 import multiprocessing
 import ssl
 from collections import deque
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from http import HTTPStatus
@@ -100,7 +105,15 @@ from haptic_collab.server.urls import (
     valid_room_name,
 )
 from haptic_collab.shared.gains.table import warm_up
-from haptic_collab.shared.protocol import ErrorMsg, LinkConditions, encode, frame_size_bytes
+from haptic_collab.shared.protocol import (
+    ErrorMsg,
+    Hello,
+    LinkConditions,
+    ProtocolError,
+    encode,
+    frame_size_bytes,
+    parse_client,
+)
 
 log = logging.getLogger("haptic.server")
 
@@ -114,6 +127,13 @@ WS_MAX_SIZE = 64 * 1024
 MAX_ROOMS = 16
 #: An on-demand room without a connection for this long [s] is closed.
 ROOM_IDLE_S = 300.0
+#: Connections waiting for their ``hello`` before an on-demand room is made for them: at most
+#: this many from one address, and in all (more are closed with 1013 at once). Each costs an
+#: open socket and nothing else until its hello names the room with a token.
+ROOMLESS_PER_ADDRESS = RoomLimits.max_pending_per_address
+ROOMLESS_MAX = RoomLimits.max_pending
+#: Time [s] a connection to a room that does not exist yet has to send its ``hello``.
+ROOMLESS_HELLO_S = RoomLimits.hello_timeout_s
 #: How many times one room's per-address budget a source address may spend in all rooms.
 ADDRESS_ROOMS_FACTOR = 2
 #: The router's budgets of one source address across every room (:attr:`ServerApp.flood`): its
@@ -370,6 +390,17 @@ class ServerApp:
         More rooms by name (``[rooms.NAME]``), reached at ``/rooms/NAME/``.
     room_maker : RoomMaker, optional
         Builds a room on demand when a client joins a name it allows (``[room_templates]``).
+    room_admits : callable, optional
+        ``room_admits(name, token) -> bool``: whether ``token`` (None: no token) may have the
+        on-demand room ``name`` made (:meth:`server.main.RoomTemplates.admits`: a room token for
+        that room or a server-wide token). With it, a room is made only for a handshake whose
+        ``Authorization: Bearer`` token it admits, or once a connection's ``hello`` carries one
+        (a connection that sends none costs no room, no slot and no memory once closed). None:
+        the rooms take no tokens, and the handshake makes the room.
+    room_gate : callable, optional
+        ``await room_gate(name)`` before an on-demand room is built: None to build it, else why
+        not (answered 503). Under Agones, :meth:`server.agones.AgonesAgent.claim_room` puts
+        the name in the ``rooms`` list first; also settable as the attribute.
     max_rooms : int
         Rooms this server runs at most, the default one included (>= 1).
     room_idle_s : float
@@ -410,6 +441,8 @@ class ServerApp:
         rooms: Mapping[str, AnyRoom] | None = None,
         room_maker: RoomMaker | None = None,
         max_rooms: int = MAX_ROOMS,
+        room_admits: Callable[[str, str | None], bool] | None = None,
+        room_gate: Callable[[str], Awaitable[str | None]] | None = None,
         room_idle_s: float = ROOM_IDLE_S,
         address_limits: RoomLimits = ADDRESS_LIMITS,
         snapshot_dir: str | Path | None = None,
@@ -431,6 +464,12 @@ class ServerApp:
             )
         self.room_maker = room_maker
         self.max_rooms = max_rooms
+        self.room_admits = room_admits
+        self.room_gate = room_gate
+        #: Connections waiting for a hello before their room is made, by source address.
+        self._roomless: dict[str, int] = {}
+        #: Connections closed before a room was made for them (no hello, or no good token).
+        self.roomless_refused = 0
         self.room_idle_s = float(room_idle_s)
         self._building: dict[str, asyncio.Future[_Slot]] = {}
         #: What this layer counts per room, by name (:mod:`server.metrics`).
@@ -797,26 +836,46 @@ class ServerApp:
         slot = self._slots.get(name)
         if slot is not None:
             return slot
-        if self.room_maker is None or not self.room_maker.allows(name):
-            raise _RoomRefused(HTTPStatus.NOT_FOUND, f"no room {name!r} on this server\n")
         pending = self._building.get(name)
         if pending is None:
-            if self.draining:
-                raise _RoomRefused(HTTPStatus.SERVICE_UNAVAILABLE, _DRAINING_TEXT)
-            if len(self._slots) + len(self._building) >= self.max_rooms:
-                raise _RoomRefused(
-                    HTTPStatus.SERVICE_UNAVAILABLE,
-                    f"this server runs its most rooms ({self.max_rooms}); try another server\n",
-                )
+            self._check_room_slot(name)
             pending = asyncio.ensure_future(self._build_room(name))
             self._building[name] = pending
         return await asyncio.shield(pending)
+
+    def _check_room_slot(self, name: str) -> None:
+        """Whether room ``name`` (not running, not being built) could be made now.
+
+        Raises
+        ------
+        _RoomRefused
+            404 when no template allows the name, 503 when the server drains or runs
+            ``max_rooms`` rooms (those being built included).
+        """
+        if self.room_maker is None or not self.room_maker.allows(name):
+            raise _RoomRefused(HTTPStatus.NOT_FOUND, f"no room {name!r} on this server\n")
+        if self.draining:
+            raise _RoomRefused(HTTPStatus.SERVICE_UNAVAILABLE, _DRAINING_TEXT)
+        if len(self._slots) + len(self._building) >= self.max_rooms:
+            raise _RoomRefused(
+                HTTPStatus.SERVICE_UNAVAILABLE,
+                f"this server runs its most rooms ({self.max_rooms}); try another server\n",
+            )
 
     async def _build_room(self, name: str) -> _Slot:
         """Build an on-demand room in a worker thread (a FEM solid takes seconds), start it."""
         assert self.room_maker is not None
         try:
+            why = None if self.room_gate is None else await self.room_gate(name)
+            if why is not None:
+                log.debug("room %r refused: %s", name, why)  # the gate said why
+                raise _RoomRefused(
+                    HTTPStatus.SERVICE_UNAVAILABLE,
+                    f"no room {name!r} here: {why}; try another server\n",
+                )
             room = await asyncio.to_thread(self._make_room, name)
+        except _RoomRefused:
+            raise
         except Exception as exc:
             log.exception("room %r could not be built", name)
             raise _RoomRefused(
@@ -928,8 +987,9 @@ class ServerApp:
 
     def status(self) -> dict[str, Any]:
         """JSON-able summary: the default room's tick, users, viewers, tick costs, overruns at
-        the top level (as before rooms), the link conditions, and ``rooms``: every room's own
-        figures by name with its websocket and page paths."""
+        the top level (as before rooms), the link conditions, ``roomless_refused`` (connections
+        closed before a room was made for them: no hello, or no token naming the room), and
+        ``rooms``: every room's own figures by name with its websocket and page paths."""
         room = self.room
         rooms = {}
         for name, slot in list(self._slots.items()):
@@ -947,6 +1007,7 @@ class ServerApp:
             "tls": self.ssl_context is not None,
             "send_timeouts": self.send_timeouts,
             "origins_refused": self.origins_refused,
+            "roomless_refused": self.roomless_refused,
             "rooms": rooms,
             "max_rooms": self.max_rooms,
             "rooms_on_demand": self.room_maker is not None,
@@ -962,6 +1023,9 @@ class ServerApp:
         if where is not None:
             return await self._room_request(request, where)
         if path == "/status":
+            refused = self._status_refused(request)
+            if refused is not None:
+                return refused
             body = json.dumps(self.status())
             return _text(HTTPStatus.OK, body, "application/json")
         if path == "/metrics":
@@ -993,6 +1057,12 @@ class ServerApp:
             if self.draining:  # no new room: the handler tells it server_draining
                 return None
             try:
+                if name not in self._slots and not self._handshake_admits(name, request):
+                    # no room yet, and no token for it in the handshake: the handler waits
+                    # for the hello's token (a browser cannot send headers)
+                    if name not in self._building:
+                        self._check_room_slot(name)
+                    return None
                 await self._room_for(name)
             except _RoomRefused as exc:
                 return _text(exc.status, str(exc))
@@ -1012,6 +1082,106 @@ class ServerApp:
         if request.headers.get("Upgrade", "").lower() == "websocket":
             return _text(HTTPStatus.NOT_FOUND, f"the websocket endpoint is {room_ws_path(name)}\n")
         return _static_response(self.web_dir, "/" + where.rest)
+
+    def _handshake_admits(self, name: str, request: Request) -> bool:
+        """Whether the handshake may have room ``name`` made: the rooms take no tokens
+        (:attr:`room_admits` None), or its ``Authorization: Bearer`` token is admitted.
+
+        Raises
+        ------
+        _RoomRefused
+            401 for a bearer token that does not name the room (nor is a server-wide token).
+        """
+        if self.room_admits is None:
+            return True
+        auth = request.headers.get("Authorization")
+        if auth is None:
+            return False
+        scheme, _, token = auth.partition(" ")
+        if scheme.lower() != "bearer" or not self.room_admits(name, token.strip()):
+            raise _RoomRefused(
+                HTTPStatus.UNAUTHORIZED, f"the bearer token is not valid for room {name!r}\n"
+            )
+        return True
+
+    async def _room_by_hello(
+        self, ws: ServerConnection, name: str, address: str
+    ) -> tuple[_Slot, str | bytes] | None:
+        """Room ``name`` made (or found) for a connection whose hello carries a token it admits
+        (:attr:`room_admits`); the slot and that hello, or None once the connection is closed
+        with the reason (no hello in time, not a hello, a token that does not name the room,
+        no room slot, or too many connections waiting so).
+
+        Nothing of the connection is kept once it is closed: the room is made only after the
+        token is checked, and the count of waiting connections per address goes back down.
+        """
+        waiting = self._roomless.get(address, 0)
+        if waiting >= ROOMLESS_PER_ADDRESS or sum(self._roomless.values()) >= ROOMLESS_MAX:
+            self.roomless_refused += 1
+            await ws.close(1013, "too many connections waiting to join; try again")
+            return None
+        self._roomless[address] = waiting + 1
+        code, message, close_code = "", "", 1008
+        try:
+            try:
+                frame = await asyncio.wait_for(ws.recv(), ROOMLESS_HELLO_S)
+            except TimeoutError:
+                code, message = "hello_timeout", f"no hello within {ROOMLESS_HELLO_S:g} s"
+            except ConnectionClosed:
+                self.roomless_refused += 1
+                return None
+            else:
+                try:
+                    msg = parse_client(frame)
+                except ProtocolError as exc:
+                    code, message = exc.code, str(exc)
+                else:
+                    token = msg.token if isinstance(msg, Hello) else None
+                    if not isinstance(msg, Hello):
+                        code, message = "hello_expected", "the first message must be hello"
+                    elif not self.room_admits or not self.room_admits(name, token):
+                        what = "a token is required" if token is None else "the token is not valid"
+                        code, message = "unauthorized", f"{what} (hello.token) in room {name!r}"
+                    else:
+                        try:
+                            return await self._room_for(name), frame
+                        except _RoomRefused as exc:
+                            code, close_code = "room_unavailable", 1013
+                            message = str(exc).strip()
+        finally:
+            left = self._roomless.get(address, 1) - 1
+            if left > 0:
+                self._roomless[address] = left
+            else:
+                self._roomless.pop(address, None)
+        self.roomless_refused += 1
+        with contextlib.suppress(ConnectionClosed, TimeoutError):
+            error = encode(ErrorMsg(code=code, message=message, fatal=True))
+            await asyncio.wait_for(ws.send(error), self.send_timeout_s)
+            await ws.close(close_code, "closed by server, see error")
+        return None
+
+    def _status_refused(self, request: Request) -> Response | None:
+        """``/status`` names every room and its processes' ids: on loopback anyone local may read
+        it (the lobby of docs/usage.md does); off loopback only a request with the metrics token
+        (``Authorization: Bearer``, ``--metrics-token-file``). None when it may be answered, else
+        the refusal (403 without a metrics token configured, 401 without the right one)."""
+        if is_loopback(self.host):
+            return None
+        auth = request.headers.get("Authorization")
+        if self.metrics_token is None:
+            return _text(
+                HTTPStatus.FORBIDDEN,
+                "/status off loopback needs a metrics token (--metrics-token-file)\n",
+            )
+        if scrape_allowed(False, auth, self.metrics_token):
+            return None
+        return Response(
+            HTTPStatus.UNAUTHORIZED.value,
+            HTTPStatus.UNAUTHORIZED.phrase,
+            Headers([("WWW-Authenticate", 'Bearer realm="status"'), ("Content-Length", "0")]),
+            b"",
+        )
 
     def _metrics(self, request: Request) -> Response:
         """``/metrics``: the Prometheus text format, for those :func:`scrape_allowed` admits."""
@@ -1053,6 +1223,16 @@ class ServerApp:
             return
         where = room_path(ws.request.path) if ws.request is not None else None
         slot = self._slots.get(where.room if where is not None else DEFAULT_ROOM)
+        first: str | bytes | None = None
+        if slot is None and where is not None and self.room_admits is not None:
+            # no room yet: made only once the hello's token names it (or it was made meanwhile)
+            made = await self._room_by_hello(ws, where.room, _address(ws))
+            if made is None:
+                return
+            slot, first = made
+            if self.draining:
+                await self._refuse_draining(ws)
+                return
         if slot is None:  # closed between the handshake and now (idle on-demand room)
             await ws.close(1013, "room closed, join again")
             return
@@ -1086,7 +1266,7 @@ class ServerApp:
             else:
                 peer.frames, peer.bytes = self.flood.open(address, peer.connected_at_s)
                 self._dispatch(room.connect(conn_id, loop.time(), address))
-            async for frame in ws:  # after a refusal: keep draining for the close handshake
+            async for frame in _frames(first, ws):  # after a refusal: drain for the close
                 now = loop.time()
                 if peer.closed:
                     continue
@@ -1519,6 +1699,14 @@ class ServerApp:
             self._tasks(checks).discard(me)  # type: ignore[arg-type]
         room.gains.store(job, design)
         self._start_designs()
+
+
+async def _frames(first: str | bytes | None, ws: ServerConnection) -> AsyncIterator[str | bytes]:
+    """``first`` (a hello already read, when not None), then every frame of ``ws``."""
+    if first is not None:
+        yield first
+    async for frame in ws:
+        yield frame
 
 
 def _address(ws: ServerConnection) -> str:

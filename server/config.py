@@ -161,6 +161,9 @@ SERVER_OPTIONS: dict[str, _Option] = {
     "snapshot_dir": _Option("str", "folder of the rooms' snapshots", _not_empty, True),
     "drain_grace_s": _Option("float", "seconds from SIGTERM to exit at most", _positive),
     "max_rooms": _Option("int", "rooms this server runs at most", _at_least_one),
+    "max_users": _Option(
+        "int", "users each room admits at most unless its table says max_users", _at_least_one
+    ),
     "room_processes": _Option("bool", "run each room's simulation in a process of its own"),
     "room_idle": _Option(
         "float", "seconds an empty on-demand room lives before it is closed", _positive

@@ -17,7 +17,7 @@ import os
 import signal
 import ssl
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -72,7 +72,8 @@ class ServerOptions:
 
     Rooms (docs/usage.md): ``rooms`` maps a room name to its keys (``[rooms.NAME]`` of the
     configuration file: :data:`server.config.ROOM_OPTIONS`), ``room_templates`` a template's
-    name to its keys and ``prefix`` (``[room_templates.NAME]``); ``max_rooms`` caps the rooms,
+    name to its keys and ``prefix`` (``[room_templates.NAME]``); ``max_users`` (None: 32) is
+    each room's cap of users unless its keys set one; ``max_rooms`` caps the rooms,
     the default one included; an on-demand room empty for ``room_idle_s`` [s] is closed.
     ``token_secret_file`` holds the secret room tokens are signed with (``haptic token``).
 
@@ -122,6 +123,7 @@ class ServerOptions:
     rooms: dict[str, dict[str, Any]] = field(default_factory=dict)
     room_templates: dict[str, dict[str, Any]] = field(default_factory=dict)
     max_rooms: int = MAX_ROOMS
+    max_users: int | None = None
     room_idle_s: float = ROOM_IDLE_S
     token_secret_file: str | None = None
     snapshot_dir: str | None = None
@@ -170,6 +172,19 @@ def room_options(opts: ServerOptions, keys: Mapping[str, object]) -> ServerOptio
     return replace(opts, **changes)  # type: ignore[arg-type]
 
 
+def room_caps(opts: ServerOptions, keys: Mapping[str, object]) -> dict[str, int]:
+    """A room's caps (:class:`server.admission.RoomLimits` fields): its ``max_users`` and
+    ``max_viewers`` keys, else the server's ``max_users`` (``--max-users``) when set.
+
+    The users a server admits at most are then ``max_rooms * max_users`` when no room sets its
+    own: the capacity of the Agones ``users`` counter (deploy/agones/fleet.yaml).
+    """
+    caps = {k: int(keys[k]) for k in _ROOM_LIMIT_KEYS if k in keys}  # type: ignore[call-overload]
+    if opts.max_users is not None:
+        caps.setdefault("max_users", int(opts.max_users))
+    return caps
+
+
 def build_secret(opts: ServerOptions) -> bytes | None:
     """The room-token secret of ``token_secret_file`` (None without one).
 
@@ -202,7 +217,7 @@ def build_room(
     ropts = room_options(opts, keys)
     rates = build_rates(ropts)
     world = build_world(ropts, rates)
-    caps = {k: int(keys[k]) for k in _ROOM_LIMIT_KEYS if k in keys}  # type: ignore[call-overload]
+    caps = room_caps(opts, keys)
     room_auth: TokenTable | None = auth
     if secret is not None:
         room_auth = RoomTokens(name, auth, secret, time.time)
@@ -254,6 +269,18 @@ class RoomTemplates:
         """Whether some template builds room ``name``."""
         return self.template(name) is not None
 
+    def admits(self, name: str, token: str | None) -> bool:
+        """Whether a client with ``token`` (None: none) may have room ``name`` made.
+
+        With tokens (``--token-file``, ``--token``, ``--token-secret-file``): a room token for
+        room ``name`` (:func:`server.security.check_room_token`, not expired) or a server-wide
+        token, in either role; the same check the room's ``hello`` makes
+        (:class:`server.security.RoomTokens`). Without tokens: any client.
+        """
+        if self.auth is None and self.secret is None:
+            return True
+        return RoomTokens(name, self.auth, self.secret, time.time).check(token) is not None
+
     def build(self, name: str) -> Room:
         """Room ``name`` from its template. Raises ValueError (no template, bad keys)."""
         tname = self.template(name)
@@ -279,7 +306,7 @@ def room_spec(
     """
     ropts = room_options(opts, keys)
     rates = build_rates(ropts)
-    caps = {k: int(keys[k]) for k in _ROOM_LIMIT_KEYS if k in keys}  # type: ignore[call-overload]
+    caps = room_caps(opts, keys)
     return RoomSpec(
         name=name,
         build=build,
@@ -320,6 +347,10 @@ class ProcessRoomTemplates:
     def allows(self, name: str) -> bool:
         """Whether some template builds room ``name``."""
         return self.templates.allows(name)
+
+    def admits(self, name: str, token: str | None) -> bool:
+        """As :meth:`RoomTemplates.admits`."""
+        return self.templates.admits(name, token)
 
     def build(self, name: str) -> RoomProxy:
         """Room ``name``'s proxy (its process is started by the server). Raises ValueError."""
@@ -458,7 +489,24 @@ def build_agones(opts: ServerOptions) -> AgonesOptions:
     return AgonesOptions(
         empty_shutdown_s=empty or None,
         labels={"object": opts.object, "protocol": str(PROTOCOL_VERSION)},
+        max_rooms=opts.max_rooms,
+        max_users=users_admitted(opts),
     )
+
+
+def users_admitted(opts: ServerOptions) -> int:
+    """The users a server of these options admits at most [users]: the default room's cap, each
+    configured room's, and the largest template's for every other slot of ``max_rooms``
+    (:func:`room_caps`; 32 a room where nothing sets ``max_users``)."""
+
+    def cap(keys: Mapping[str, object]) -> int:
+        return int(room_caps(opts, keys).get("max_users", RoomLimits().max_users))
+
+    total = cap({}) + sum(cap(keys) for keys in opts.rooms.values())
+    free = max(0, opts.max_rooms - 1 - len(opts.rooms))
+    if free and opts.room_templates:
+        total += free * max(cap(keys) for keys in opts.room_templates.values())
+    return total
 
 
 def build_rates(opts: ServerOptions) -> Rates:
@@ -751,6 +799,14 @@ def _is_fem(room: Room) -> bool:
     return isinstance(getattr(room.world, "obj", None), FemSolid)
 
 
+def _room_gate(agent: AgonesAgent | None) -> Callable[[str], Awaitable[str | None]] | None:
+    """The app's ``room_gate`` under Agones: :meth:`AgonesAgent.claim_room` in a thread."""
+    if agent is None:
+        return None
+    claim = agent.claim_room
+    return lambda name: asyncio.to_thread(claim, name)
+
+
 async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None = None) -> None:
     """Build everything, listen, and serve until cancelled or ``duration_s`` elapses."""
     link = build_link(opts)
@@ -772,14 +828,27 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     if not (math.isfinite(grace) and grace > 0.0):
         raise ValueError(f"--drain-grace-s must be a number of seconds > 0, got {grace:g}")
     snapshot_dir = check_directory(opts.snapshot_dir) if opts.snapshot_dir else None
-    make = room_proxy if opts.room_processes else build_room
-    room = make(opts, DEFAULT_ROOM, {}, link, auth, secret)
-    rooms = {}
-    for name, keys in opts.rooms.items():
-        try:
-            rooms[name] = make(opts, name, keys, link, auth, secret)
-        except ValueError as exc:
-            raise ValueError(f"[rooms.{name}]: {exc}") from None
+    # under Agones the agent starts now, before the rooms are built and the port listens (a FEM
+    # solid takes seconds to build): it sends health pings from here on and calls Ready once
+    # every room ticks (server/agones.py)
+    apps: list[ServerApp] = []
+    agents: list[AgonesAgent] = []
+    agent = start_agones(lambda: apps[0].room_reports() if apps else [], agones)
+    if agent is not None:
+        agents.append(agent)
+    try:
+        make = room_proxy if opts.room_processes else build_room
+        room = make(opts, DEFAULT_ROOM, {}, link, auth, secret)
+        rooms = {}
+        for name, keys in opts.rooms.items():
+            try:
+                rooms[name] = make(opts, name, keys, link, auth, secret)
+            except ValueError as exc:
+                raise ValueError(f"[rooms.{name}]: {exc}") from None
+    except BaseException:
+        for a in agents:
+            await asyncio.to_thread(a.stop)
+        raise
     rates = build_rates(opts)
     plain = (
         RoomTemplates(opts, opts.room_templates, link, auth, secret)
@@ -804,6 +873,14 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
         rooms=rooms,
         room_maker=templates,
         max_rooms=opts.max_rooms,
+        # with tokens, a room is made only for a client whose token names it (or a server-wide
+        # token): a handshake alone costs no room
+        room_admits=(
+            templates.admits if templates and (auth is not None or secret is not None) else None
+        ),
+        # under Agones a room made on demand is put in the rooms list first; a full list
+        # refuses it (the fleet sees this server as full, as it is)
+        room_gate=_room_gate(agent),
         room_idle_s=opts.room_idle_s,
         snapshot_dir=snapshot_dir,
         tick_priority=opts.tick_priority,
@@ -814,12 +891,9 @@ async def run_server(opts: ServerOptions, on_ready: Callable[[int], None] | None
     elif ssl_context is None and not is_loopback(opts.host):
         log.warning("no TLS: tokens and forces cross the network in clear (give --tls-cert)")
 
-    agents: list[AgonesAgent] = []
+    apps.append(app)
 
     def ready(port: int) -> None:
-        agent = start_agones(app.room_reports, agones)
-        if agent is not None:
-            agents.append(agent)
         info = room.object_info
         log.info(
             "serving %d-vertex object at %g Hz on %s://%s:%d/ (websocket /ws, %s)%s",

@@ -13,7 +13,8 @@ machines. A user whose connection closes joins again after :data:`REJOIN_DELAY_S
 resume token of its last welcome, as ``haptic client`` does.
 
 After every user joined and a warm-up, a window of ``duration_s`` measures per room: each
-user's patch rate [Hz] and its share of the simulation rate, the tick cost p50 / p99 [ms]
+user's patch rate [Hz] and its share of the simulation rate (the slowest user's rate per room
+and run is in the summary, ``slowest_user_patch_rate_hz``, and printed at the end), the tick cost p50 / p99 [ms]
 (``/status``: the room's last 512 ticks at the window's end), the tick lateness p99 [ms]
 (``haptic_room_tick_lateness_seconds`` of ``/metrics``, the window's difference, interpolated
 within its bucket: buckets 0.5, 1, 2, 5, 10, 20, 50 ms..., so a p99 is exact only to its bucket)
@@ -513,6 +514,7 @@ def _session(
     for r in rooms:
         share = [x / opts.sim_rate for x in rates[r]]
         out["rooms"][r]["patch_rate_hz"] = rates[r]
+        out["rooms"][r]["slowest_user_patch_rate_hz"] = min(rates[r]) if rates[r] else None
         out["rooms"][r]["patch_share_min"] = round(min(share), 4) if share else None
     out["errors"] = sorted({code for rec in recs for t, code in rec["errors"] if t0 <= t < t1})
     out["drops_in_window"] = sum(1 for rec in recs for t in rec["drops"] if t0 <= t < t1)
@@ -670,6 +672,25 @@ def _policy(pid: int) -> dict[str, int] | None:
     return {"nice": int(fields[16]), "rt_priority": int(fields[37]), "policy": int(fields[38])}
 
 
+def _slowest(room: dict[str, Any]) -> float | None:
+    """The slowest user's patch rate [Hz] of one room in one run (None: no user's rate)."""
+    rates = room.get("patch_rate_hz") or []
+    return min(rates) if rates else None
+
+
+def print_slowest(result: dict[str, Any], file: Any = None) -> None:
+    """Per mode and room, the slowest user's patch rate [Hz] of each run, as one table (on
+    ``file``, default standard error; "-" for a run in which no user of the room had a rate)."""
+    file = sys.stderr if file is None else file
+    for mode, summary in result.get("summary", {}).items():
+        if not isinstance(summary, dict) or "slowest_user_patch_rate_hz" not in summary:
+            continue
+        print(f"[bench rooms] {mode}: slowest user's patch rate [Hz] per run", file=file)
+        for room, rates in summary["slowest_user_patch_rate_hz"].items():
+            shown = ", ".join("-" if r is None else f"{r:.2f}" for r in rates)
+            print(f"  {room:>10s}  {shown}", file=file)
+
+
 def _median(xs: list[float]) -> float | None:
     return round(statistics.median(xs), 3) if xs else None
 
@@ -712,6 +733,8 @@ def _summary(
                 n: _median([r[n]["patch_share_min"] for r in per if r[n]["patch_share_min"]])
                 for n in rooms
             },
+            # per room, each run's slowest user's patch rate [Hz] (None: no user had one)
+            "slowest_user_patch_rate_hz": {n: [_slowest(r[n]) for r in per] for n in rooms},
             "balloon_tick_ms_p50_median": med("tick_ms_p50", balloon),
             "balloon_tick_ms_p99_median": med("tick_ms_p99", balloon),
             "balloon_lateness_ms_p99_median": med("lateness_ms_p99", balloon),
@@ -773,6 +796,13 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     """The options of this bench (``python -m haptic_collab.bench.rooms --help``)."""
     p = argparse.ArgumentParser(prog="python -m haptic_collab.bench.rooms", description=__doc__)
     p.add_argument("--balloon-rooms", type=int, default=7)
+    p.add_argument(
+        "--rooms",
+        type=int,
+        default=None,
+        help="rooms in all: the FEM one and ROOMS-1 balloon rooms (>= 2; overrides "
+        "--balloon-rooms)",
+    )
     p.add_argument("--users", type=int, default=4, help="users per room")
     p.add_argument("--workers", type=int, default=4, help="the users' worker processes")
     p.add_argument("--sim-rate", type=float, default=20.0)
@@ -799,13 +829,23 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
         help="CPU-bound processes ('while True: pass') beside the server for the whole run",
     )
     p.add_argument("--json", default=None, help="write the result here (default: stdout)")
-    return p.parse_args(argv)
+    opts = p.parse_args(argv)
+    if opts.rooms is not None:
+        if opts.rooms < 2:
+            p.error(
+                f"--rooms must be at least 2 (the FEM room and a balloon room), got {opts.rooms}"
+            )
+        opts.balloon_rooms = opts.rooms - 1
+    if not opts.duration_s > 0:
+        p.error(f"--duration-s must be > 0, got {opts.duration_s}")
+    return opts
 
 
 def main(argv: list[str] | None = None) -> None:
     """Run it and print (and with ``--json FILE`` write) the result."""
     opts = parse(argv)
     result = run(opts)
+    print_slowest(result)
     text = json.dumps(result, indent=2)
     if opts.json:
         Path(opts.json).write_text(text + "\n")

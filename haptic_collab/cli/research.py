@@ -8,6 +8,7 @@ them) are imported inside the handlers, so that they stay off every other comman
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import sys
 from pathlib import Path
@@ -203,12 +204,20 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise CliError(_why(exc)) from None
     if args.what == "rooms":  # its own options: python -m haptic_collab.bench.rooms --help
         from haptic_collab.bench.rooms import parse as rooms_options
+        from haptic_collab.bench.rooms import print_slowest
         from haptic_collab.bench.rooms import run as bench_rooms
 
+        if args.rooms < 2:
+            raise CliError(
+                f"--rooms must be at least 2 (a FEM room and a balloon room), got {args.rooms}"
+            )
+        argv = ["--duration-s", str(args.duration), "--rooms", str(args.rooms)]
         try:
-            results["rooms"] = bench_rooms(rooms_options([]))
+            rooms_result = bench_rooms(rooms_options(argv))
         except RuntimeError as exc:
             raise CliError(_why(exc)) from None
+        results["rooms"] = rooms_result
+        print_slowest(rooms_result)
     if args.what == "fem-gravity":  # python -m haptic_collab.bench.fem_gravity for its options
         from haptic_collab.bench.fem_gravity import bench_fem_gravity
 
@@ -251,10 +260,12 @@ _BENCH_OPTIONS: dict[str, tuple[str, ...]] = {
         "--duration", "--workers", "--users", "--viewers", "--sim-rate", "--subdivisions",
         "--vertices",
     ),
-    "rooms": (),
+    "rooms": ("--duration", "--rooms"),
     "fem-gravity": (),
     "all": ("--duration", "--servo-rate"),
 }  # fmt: skip
+#: A benchmark's own default of a shared option (the option is copied for it).
+_BENCH_DEFAULTS: dict[str, dict[str, object]] = {"rooms": {"--duration": 20.0}}
 
 
 def _bench_options(p: argparse.ArgumentParser) -> None:
@@ -265,8 +276,15 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
         "--duration",
         type=_positive,
         default=5.0,
-        help="servo bench duration; load: the measurement window after warm-up [s] "
+        help="servo bench duration; load, rooms: the measurement window after warm-up [s] "
         "(default %(default)s)",
+    )
+    p.add_argument(
+        "--rooms",
+        type=int,
+        default=8,
+        help="rooms: rooms in all, a FEM room and ROOMS-1 balloon rooms, >= 2 (default "
+        "%(default)s); the report gives per room the slowest user's patch rate",
     )
     _add_shared(p, "--servo-rate", help="servo bench rate [Hz]")
     p.add_argument(
@@ -408,7 +426,12 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     for name, what in BENCHES.items():
         b = benches.add_parser(name, help=what, description=f"haptic bench {name}: {what}.")
         for flag in ("--json", "--out", *_BENCH_OPTIONS[name]):
-            b._add_action(every[flag])
+            action = every[flag]
+            default = _BENCH_DEFAULTS.get(name, {}).get(flag)
+            if default is not None:  # this bench's own default: a copy of the option
+                action = copy.copy(action)
+                action.default = default
+            b._add_action(action)
         mine = {every[f].dest for f in ("--json", "--out", *_BENCH_OPTIONS[name])}
         b.set_defaults(func=_cmd_bench, **{k: v for k, v in defaults.items() if k not in mine})
 

@@ -204,6 +204,7 @@ def _server_options(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         rooms=dict(args.rooms or {}),
         room_templates=dict(args.room_templates or {}),
         max_rooms=args.max_rooms,
+        max_users=getattr(args, "max_users", None),
         room_idle_s=args.room_idle,
         token_secret_file=args.token_secret_file,
         snapshot_dir=args.snapshot_dir,
@@ -328,6 +329,14 @@ def _add_server(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         default=16,
         metavar="N",
         help="rooms this server runs at most, the default one included (default %(default)s)",
+    )
+    rooms.add_argument(
+        "--max-users",
+        type=_at_least_one,
+        default=None,
+        metavar="N",
+        help="users each room admits at most unless its [rooms]/[room_templates] table says "
+        "max_users (default 32); the server admits at most --max-rooms times this",
     )
     rooms.add_argument(
         "--room-processes",

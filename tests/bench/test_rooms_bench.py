@@ -113,6 +113,56 @@ def test_the_priority_comparison_sums_up_each_mode_and_their_lateness_ratio() ->
     assert "balloon_lateness_p99_ratio_one_over_processes" not in summary
 
 
+def test_the_summary_gives_per_room_each_runs_slowest_user() -> None:
+    def run(rates: dict[str, list[float]]) -> dict:
+        rooms = {
+            name: {"patch_rate_hz": r, "patch_share_min": min(r, default=0) / 20.0 or None}
+            for name, r in rates.items()
+        }
+        return {"rooms": rooms, "machine": {"cpu_busy": 0.5}, "errors": []}
+
+    runs = [
+        {"one_process": run({"default": [19.9, 12.5, 20.0], "b1": [20.0, 19.0]})},
+        {"one_process": run({"default": [20.0, 20.0], "b1": []})},  # nobody's rate in b1
+    ]
+    summary = _summary(runs, ["default", "b1"], 20.0, None)
+    assert summary["one_process"]["slowest_user_patch_rate_hz"] == {
+        "default": [12.5, 20.0],
+        "b1": [19.0, None],
+    }
+
+
+def test_haptic_bench_rooms_takes_its_duration_and_rooms_and_prints_the_slowest(
+    monkeypatch, capsys
+) -> None:
+    """``haptic bench rooms --duration S --rooms N``: the window and the rooms reach the bench
+    (a FEM room and N-1 balloon rooms), and the report names each room's slowest user."""
+    import haptic_collab.bench.rooms as bench
+    from haptic_collab.cli import main as haptic
+
+    seen = []
+
+    def fake_run(opts):
+        seen.append(opts)
+        rooms = ["default", *(f"b{i + 1}" for i in range(opts.balloon_rooms))]
+        per = {r: {"patch_rate_hz": [20.0, 17.25], "patch_share_min": 0.8625} for r in rooms}
+        runs = [{"one_process": {"rooms": per, "machine": {"cpu_busy": 0.5}, "errors": []}}]
+        return {"runs": runs, "summary": _summary(runs, rooms, 20.0, None)}
+
+    monkeypatch.setattr(bench, "run", fake_run)
+    assert haptic(["bench", "rooms", "--duration", "3", "--rooms", "3"]) == 0
+    (opts,) = seen
+    assert opts.duration_s == 3.0 and opts.balloon_rooms == 2
+    err = capsys.readouterr().err
+    assert "slowest user's patch rate" in err
+    for room in ("default", "b1", "b2"):
+        assert any(line.split() == [room, "17.25"] for line in err.splitlines()), err
+    assert haptic(["bench", "rooms"]) == 0  # the bench's own defaults: 20 s, 8 rooms
+    assert (seen[1].duration_s, seen[1].balloon_rooms) == (20.0, 7)
+    assert haptic(["bench", "rooms", "--rooms", "1"]) == 2
+    assert "--rooms must be at least 2" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_the_bench_kills_a_room_process_and_its_users_get_their_seats_back(tmp_path) -> None:
     """The whole bench, small: two rooms, two users each, short windows, one run."""

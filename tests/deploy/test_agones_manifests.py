@@ -9,11 +9,13 @@ pod spec is checked too. Two things Kubernetes adds to a CRD's schema are added 
 error, except under ``x-kubernetes-preserve-unknown-fields``). ``nullable`` is read as allowing
 null. No cluster is needed: this is the schema check the API server makes, not admission.
 
-The ConfigMap (the servers' configuration file) is a core kind with no CRD: its schema,
-:data:`CONFIGMAP_SCHEMA`, is written here from the Kubernetes API reference, "ConfigMap"
-(``v1``, https://kubernetes.io/docs/reference/kubernetes-api/config-and-storage-resources/
-config-map-v1/, Kubernetes 1.31; CC BY 4.0, The Kubernetes Authors): its four fields and the
-key pattern of ``data``. The Secret the fleet mounts is made by ``kubectl create secret``
+The ConfigMap (the servers' configuration file) and the PersistentVolumeClaim (the snapshot
+volume) are core kinds with no CRD: their schemas, :data:`CONFIGMAP_SCHEMA` and
+:data:`PVC_SCHEMA`, are written here from the Kubernetes API reference, "ConfigMap" and
+"PersistentVolumeClaim" (``v1``, https://kubernetes.io/docs/reference/kubernetes-api/
+config-and-storage-resources/config-map-v1/ and .../persistent-volume-claim-v1/, Kubernetes
+1.31; CC BY 4.0, The Kubernetes Authors): the ConfigMap's four fields and the key pattern of
+``data``; the claim's ``spec`` fields (access modes by their enum, the storage request). The Secret the fleet mounts is made by ``kubectl create secret``
 (its values are not committed), so there is no Secret manifest to check: the test checks that
 the fleet reads each file from the Secret volume.
 """
@@ -35,7 +37,8 @@ from haptic_collab.cli import build_parser
 from haptic_collab.cli.run import _server_options
 from haptic_collab.server.agones import ROOMS_LIST, USERS_COUNTER, AgonesOptions
 from haptic_collab.server.config import apply_server_config
-from haptic_collab.server.main import RoomTemplates
+from haptic_collab.server.main import RoomTemplates, build_agones, build_room
+from haptic_collab.server.urls import DEFAULT_ROOM
 from haptic_collab.shared.protocol import LinkConditions
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -81,6 +84,52 @@ CONFIGMAP_SCHEMA = {
         "immutable": {"type": "boolean"},
     },
     "required": ["apiVersion", "kind", "metadata"],
+    "additionalProperties": False,
+}
+
+
+#: PersistentVolumeClaim v1 (Kubernetes API reference; see the module): the fields of ``spec``.
+_QUANTITY = {"type": "string", "pattern": r"^[0-9]+(\.[0-9]+)?(m|k|Ki|Mi|Gi|Ti|Pi|Ei|M|G|T|P|E)?$"}
+PVC_SCHEMA = {
+    "type": "object",
+    "properties": {
+        "apiVersion": {"type": "string", "enum": ["v1"]},
+        "kind": {"type": "string", "enum": ["PersistentVolumeClaim"]},
+        "metadata": {**_OBJECT_META, "required": ["name"]},
+        "spec": {
+            "type": "object",
+            "properties": {
+                "accessModes": {
+                    "type": "array",
+                    "items": {
+                        "enum": [
+                            "ReadWriteOnce",
+                            "ReadOnlyMany",
+                            "ReadWriteMany",
+                            "ReadWriteOncePod",
+                        ]
+                    },
+                },
+                "resources": {
+                    "type": "object",
+                    "properties": {
+                        "requests": {"type": "object", "additionalProperties": _QUANTITY},
+                        "limits": {"type": "object", "additionalProperties": _QUANTITY},
+                    },
+                    "additionalProperties": False,
+                },
+                "storageClassName": {"type": "string"},
+                "volumeMode": {"enum": ["Filesystem", "Block"]},
+                "volumeName": {"type": "string"},
+                "volumeAttributesClassName": {"type": "string"},
+                "selector": {"type": "object"},
+                "dataSource": {"type": "object"},
+                "dataSourceRef": {"type": "object"},
+            },
+            "additionalProperties": False,
+        },
+    },
+    "required": ["apiVersion", "kind", "metadata", "spec"],
     "additionalProperties": False,
 }
 
@@ -146,12 +195,16 @@ def manifests() -> dict[str, dict[str, Any]]:
 
 @pytest.fixture(scope="module")
 def schemas() -> dict[tuple[str, str], dict[str, Any]]:
-    return {**crd_schemas(), ("v1", "ConfigMap"): CONFIGMAP_SCHEMA}
+    return {
+        **crd_schemas(),
+        ("v1", "ConfigMap"): CONFIGMAP_SCHEMA,
+        ("v1", "PersistentVolumeClaim"): PVC_SCHEMA,
+    }
 
 
 def test_every_manifest_is_valid_for_its_kind(schemas):
     docs = manifests()
-    assert set(docs) == {"Fleet", "FleetAutoscaler", "ConfigMap"}
+    assert set(docs) == {"Fleet", "FleetAutoscaler", "ConfigMap", "PersistentVolumeClaim"}
     for kind, doc in docs.items():
         assert errors(doc, schemas) == [], kind
 
@@ -254,11 +307,46 @@ def test_the_fleets_servers_make_the_rooms_the_lobby_names(tmp_path):
     opts = _server_options(parser.parse_args(argv))
     assert opts.token_secret_file == args.token_secret_file
     # a name the lobby allocates is made when its first user arrives, whatever the name
-    templates = RoomTemplates(opts, opts.room_templates, LinkConditions(), None, None)
+    link = LinkConditions()
+    templates = RoomTemplates(opts, opts.room_templates, link, None, None)
     for name in ("anatomy-3", "x", "lab-2026-11-27"):
         assert templates.allows(name), name
-    # the rooms list holds one name per room the server may run
+    # capacity is one number: the rooms list holds every open room (the default one included)
+    # and has a slot per room the server may run; the users counter holds every user of them
     assert gs["lists"][ROOMS_LIST]["capacity"] == opts.max_rooms
+    assert not opts.rooms  # no configured room: every room but the default one is a template's
+    per_room = [build_room(opts, DEFAULT_ROOM, {}, link, None, None).limits.max_users]
+    per_room += [templates.build(f"r{i}").limits.max_users for i in range(1, opts.max_rooms)]
+    assert gs["counters"][USERS_COUNTER]["capacity"] == sum(per_room)
+    # and what the server checks them against under Agones (it says so where they differ)
+    agones = build_agones(opts)
+    assert (agones.max_rooms, agones.max_users) == (opts.max_rooms, sum(per_room))
+
+
+def test_the_fleet_serves_tls_and_keeps_snapshots_on_a_shared_volume():
+    docs = manifests()
+    gs = docs["Fleet"]["spec"]["template"]["spec"]
+    pod = gs["template"]["spec"]
+    (container,) = [c for c in pod["containers"] if c["name"] == gs["container"]]
+    args = build_parser().parse_args(container["args"])
+    # TLS on the game port: the certificate and key are files of a Secret volume
+    assert args.tls_cert and args.tls_key
+    cert, key = _mounted(pod, container, args.tls_cert), _mounted(pod, container, args.tls_key)
+    assert cert["secret"]["secretName"] == key["secret"]["secretName"]
+    assert (cert["key"], key["key"]) == ("tls.crt", "tls.key")  # a kubernetes.io/tls Secret
+    # the drain's snapshots go to the claim every GameServer mounts, writable by the server
+    assert args.snapshot_dir
+    mount = next(
+        m for m in container["volumeMounts"] if args.snapshot_dir.startswith(m["mountPath"])
+    )
+    assert not mount.get("readOnly", False)
+    volume = _mounted(pod, container, args.snapshot_dir + "/room.npz")
+    claim = docs["PersistentVolumeClaim"]
+    assert volume["persistentVolumeClaim"]["claimName"] == claim["metadata"]["name"]
+    assert claim["spec"]["accessModes"] == ["ReadWriteMany"]  # every GameServer mounts it
+    assert pod["securityContext"]["fsGroup"] == pod["securityContext"]["runAsGroup"]
+    # the pod lives long enough for the drain to save every room
+    assert pod["terminationGracePeriodSeconds"] > args.drain_grace_s
 
 
 def _dockerfile_instructions() -> list[tuple[str, str]]:

@@ -11,6 +11,7 @@ is taken; two users asking at once for a new room end up on one server.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 import urllib.error
@@ -198,3 +199,129 @@ async def test_the_lobby_speaks_the_allocators_mutual_tls(tmp_path) -> None:
             finally:
                 await lobby.stop()
     assert [c.body["gameServerSelectors"][0]["matchLabels"] for c in alloc.calls] == [FLEET]
+
+
+class RoomServers:
+    """Two room servers with tokens and a template for any name (as deploy/agones/ runs them),
+    each with its stand-in sidecar and agent, the allocator's fleet backed by those sidecars."""
+
+    def __init__(self, max_rooms: int, max_users: int) -> None:
+        from haptic_collab.server.main import ServerOptions
+
+        self.opts = ServerOptions(
+            port=0, sim_rate_hz=20.0, subdivisions=1, max_rooms=max_rooms, max_users=max_users
+        )
+        self.apps: list[Any] = []
+        self.agents: list[Any] = []
+        self.sidecars: list[Any] = []
+
+    async def __aenter__(self) -> RoomServers:
+        from haptic_collab.server.agones import PORT_ENV, AgonesOptions, start_agones
+        from haptic_collab.server.app import DEFAULT_ROOM, ServerApp
+        from haptic_collab.server.main import RoomTemplates, build_link, build_room
+        from tests.support.agones_sidecar import Sidecar
+
+        opts, link = self.opts, build_link(self.opts)
+        fast = AgonesOptions(
+            empty_shutdown_s=None, health_period_s=0.5, probe_timeout_s=0.5, poll_s=0.05
+        )
+        for _ in range(2):
+            templates = RoomTemplates(opts, {"any": {}}, link, None, SECRET)
+            app = ServerApp(
+                build_room(opts, DEFAULT_ROOM, {}, link, None, SECRET),
+                "127.0.0.1",
+                0,
+                room_maker=templates,
+                room_admits=templates.admits,
+                max_rooms=opts.max_rooms,
+                room_idle_s=0.5,
+            )
+            await app.start()
+            self.apps.append(app)
+            assert opts.max_users is not None
+            sc = Sidecar(
+                lists={"rooms": opts.max_rooms},
+                counters={"users": opts.max_rooms * opts.max_users},
+            ).__enter__()
+            self.sidecars.append(sc)
+            agent = start_agones(app.room_reports, fast, {PORT_ENV: str(sc.port)})
+            assert agent is not None
+            app.room_gate = lambda name, a=agent: asyncio.to_thread(a.claim_room, name)
+            self.agents.append(agent)
+        return self
+
+    def fleet(self) -> list[GameServer]:
+        return [
+            GameServer(f"haptic-collab-{i}", port=app.port, labels=dict(FLEET), sidecar=sc)
+            for i, (app, sc) in enumerate(zip(self.apps, self.sidecars, strict=True))
+        ]
+
+    async def __aexit__(self, *exc: object) -> None:
+        for agent in self.agents:
+            await asyncio.to_thread(agent.stop)
+        for app in self.apps:
+            await app.stop()
+        for sc in self.sidecars:
+            sc.__exit__()
+
+
+async def join(answer: dict[str, Any]) -> Any:
+    """A user who asked the lobby joins with its token; the open websocket once welcomed."""
+    from websockets.asyncio.client import connect
+
+    ws = await connect(answer["url"])
+    await ws.send(
+        json.dumps(
+            {"type": "hello", "protocol": 1, "role": "user", "name": "u", "token": answer["token"]}
+        )
+    )
+    got = json.loads(await asyncio.wait_for(ws.recv(), 30.0))
+    assert got["type"] == "welcome", got
+    return ws
+
+
+async def test_a_full_server_sends_the_next_name_elsewhere_and_a_closed_room_frees_its_slot():
+    """Capacity is one number: a server of 3 rooms (the default one and 2 made on demand) is
+    filled through the lobby and the allocator, the next name goes to the other server, and
+    once a room closes its slot takes a new name; nobody is answered 503."""
+
+    async def place(name: str) -> dict[str, Any]:
+        status, answer = await ask(lobby, f"/rooms/{name}")
+        assert status == 200, answer
+        return answer
+
+    async with RoomServers(max_rooms=3, max_users=2) as rs:
+        a, b = rs.apps
+        for sc in rs.sidecars:  # Ready, with the default room listed
+            ready = lambda sc=sc: sc.state == "Ready" and sc.lists["rooms"]["values"]  # noqa: E731
+            assert await asyncio.to_thread(sc.wait, ready)
+        with Allocator(rs.fleet()) as alloc, contextlib.ExitStack():
+            backend = AgonesAllocator(alloc.url, match_labels=FLEET)
+            lobby = Lobby(backend, SECRET, port=0)
+            await lobby.start()
+            users = []
+            try:
+                for name in ("anatomy-1", "anatomy-2"):
+                    answer = await place(name)
+                    assert answer["server"] == "haptic-collab-0", answer
+                    users.append(await join(answer))
+                assert sorted(a.rooms()) == ["anatomy-1", "anatomy-2", "default"]
+                # full: 3 rooms, 3 names listed; the next name goes to the other server
+                answer = await place("anatomy-3")
+                assert answer["server"] == "haptic-collab-1", answer
+                users.append(await join(answer))
+                assert "anatomy-3" in b.rooms()
+                # anatomy-1 empties and closes: its slot is free again for a new name
+                await users.pop(0).close()
+                sc0 = rs.sidecars[0]
+                closed = lambda: "anatomy-1" not in sc0.lists["rooms"]["values"]  # noqa: E731
+                assert await asyncio.to_thread(sc0.wait, closed)
+                answer = await place("anatomy-4")
+                assert answer["server"] == "haptic-collab-0", answer
+                users.append(await join(answer))
+                assert sorted(a.rooms()) == ["anatomy-2", "anatomy-4", "default"]
+                assert all(c.status == 200 for c in alloc.calls)
+            finally:
+                for ws in users:
+                    await ws.close()
+                await lobby.stop()

@@ -188,3 +188,31 @@ async def test_a_scrape_shows_every_room_each_with_its_own_figures():
         assert got["haptic_room_ticks_total{room=lab}"] >= 1
     finally:
         await app.stop()
+
+
+async def test_off_loopback_status_needs_the_metrics_token():
+    """``/status`` names every room (and room processes' ids): a server listening off loopback
+    answers it only with the metrics token; on loopback, as the lobby of docs/usage.md reads
+    it, anyone local. (Listens on 0.0.0.0; every request goes to 127.0.0.1.)"""
+    table = TokenTable.single(TOKEN)
+    for token in (None, table):
+        world = build_world(ServerOptions(sim_rate_hz=SIM_RATE, subdivisions=2))
+        app = ServerApp(Room(world, SIM_RATE), "0.0.0.0", 0, metrics_token=token)
+        await app.start()
+        try:
+            code, _, body = await asyncio.to_thread(get, app.port, "/status")
+            assert code == (403 if token is None else 401) and "rooms" not in body
+            if token is not None:
+                wrong = {"Authorization": "Bearer " + TOKEN[::-1]}
+                assert (await asyncio.to_thread(get, app.port, "/status", wrong))[0] == 401
+                right = {"Authorization": f"Bearer {TOKEN}"}
+                code, _, body = await asyncio.to_thread(get, app.port, "/status", right)
+                assert code == 200 and DEFAULT_ROOM in json.loads(body)["rooms"]
+        finally:
+            await app.stop()
+    app = await start_app()  # on loopback: open to local readers
+    try:
+        code, _, body = await asyncio.to_thread(get, app.port, "/status")
+        assert code == 200 and DEFAULT_ROOM in json.loads(body)["rooms"]
+    finally:
+        await app.stop()

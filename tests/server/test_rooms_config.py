@@ -101,6 +101,25 @@ def test_a_room_is_the_top_level_options_with_its_keys_on_top() -> None:
     assert plain.sim_rate_hz == 20.0 and plain.auth is None
 
 
+def test_max_users_caps_every_room_that_does_not_set_its_own(tmp_path: Path) -> None:
+    """``--max-users`` (``max_users`` at the top of the file): each room's cap of users unless
+    its table sets one, the default room's too, so a server admits at most max_rooms x it."""
+    config = tmp_path / "rooms.toml"
+    config.write_text("max_users = 8\nmax_rooms = 4\n[room_templates.any]\n")
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    apply_server_config(sub.choices["server"], config)
+    opts = _server_options(parser.parse_args(["server", "--subdivisions", "1"]))
+    assert opts.max_users == 8
+    link = build_link(opts)
+    assert build_room(opts, "default", {}, link, None, None).limits.max_users == 8
+    made = RoomTemplates(opts, opts.room_templates, link, None, None).build("anatomy")
+    assert made.limits.max_users == 8
+    assert build_room(opts, "lab", {"max_users": 2}, link, None, None).limits.max_users == 2
+    flag = _server_options(parser.parse_args(["server", "--max-users", "3"]))
+    assert flag.max_users == 3  # the flag beats the file
+
+
 def test_the_longest_matching_template_prefix_builds_a_room() -> None:
     opts = ServerOptions(sim_rate_hz=20.0, subdivisions=1)
     templates = RoomTemplates(

@@ -27,6 +27,12 @@ allocation is written; and a Ready GameServer is never handed to two allocations
 checked against the GameServer's version: the loser takes the next Ready one). So two requests
 for a new name that arrive together land on two servers unless the caller serialises them.
 Among several matches the first in the stand-in's order is taken (``Packed`` on one node).
+
+A GameServer may be backed by a stand-in sidecar (``GameServer.sidecar``,
+tests/support/agones_sidecar.py), as a real GameServer's status is what its SDK sidecar wrote:
+its state and lists are then read from that sidecar, and an allocation is written to it
+(:meth:`Sidecar.allocate`), so the room server's own list updates and the allocations meet in
+one place, as in a cluster.
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ from typing import Any
 
 import jsonschema
 
-from tests.support.agones_sidecar import _FORMATS, DATA, _strict
+from tests.support.agones_sidecar import _FORMATS, DATA, Sidecar, _strict
 
 RESOURCE_EXHAUSTED = 8
 INVALID_ARGUMENT = 3
@@ -59,6 +65,17 @@ class GameServer:
     labels: dict[str, str] = field(default_factory=dict)
     lists: dict[str, dict[str, Any]] = field(default_factory=dict)  #: {capacity, values}
     version: int = 0  #: bumped at every write (Kubernetes' resourceVersion)
+    #: The stand-in sidecar whose state and lists this GameServer's are (None: its own).
+    sidecar: Sidecar | None = None
+
+    def refresh(self) -> None:
+        """Read the state and lists from the sidecar, when backed by one."""
+        sc = self.sidecar
+        if sc is None:
+            return
+        with sc._cond:
+            self.state = sc.state
+            self.lists = copy.deepcopy(sc.lists)
 
 
 @dataclass
@@ -190,7 +207,11 @@ class Allocator:
             }
             return self._reply(h, call.status, call.answer)
         with self._lock:  # the informer's view when the request arrives
-            view = copy.deepcopy(self.servers)
+            for gs in self.servers:
+                gs.refresh()
+            view = [copy.copy(gs) for gs in self.servers]
+            for gs in view:
+                gs.lists = copy.deepcopy(gs.lists)
         chosen = self._match(call.body, view)
         if self.lag_s:
             time.sleep(self.lag_s)
@@ -243,6 +264,8 @@ class Allocator:
         if chosen is None:
             return None
         name, state = chosen
+        for server in self.servers:
+            server.refresh()
         gs = next(s for s in self.servers if s.name == name)
         if state == "READY" and gs.state != "Ready":  # taken meanwhile: the next Ready one
             sel = next(
@@ -253,6 +276,10 @@ class Allocator:
             gs = next((s for s in self.servers if self._passes(sel, s)), None)  # type: ignore[assignment]
             if gs is None:
                 return None
+        if gs.sidecar is not None:  # the sidecar holds the GameServer's status
+            adds = {n: list(a.get("addValues") or []) for n, a in (body.get("lists") or {}).items()}
+            gs.sidecar.allocate({n: v for n, v in adds.items() if n in gs.sidecar.lists})
+            gs.refresh()
         gs.state = "Allocated"
         for lname, action in (body.get("lists") or {}).items():
             lst = gs.lists.get(lname)

@@ -17,11 +17,21 @@ Two deliberate readings of the swagger files:
   added to every request object schema), where the gateway may ignore them: a misspelt field
   (``countdiff``) fails a test instead of silently doing nothing.
 
-State follows the SDK's documented behaviour: Ready sets ``status.state`` Ready, Shutdown sets
-Shutdown, Allocate and :meth:`Sidecar.allocate` (the allocator) set Allocated; lists answer ALREADY_EXISTS (409) for a
-value already there, NOT_FOUND (404) for an absent value or list, OUT_OF_RANGE (400) past the
-capacity; a counter refuses a count outside [0, capacity]; labels must be valid Kubernetes
-label values and names once prefixed ``agones.dev/sdk-``.
+State follows the SDK server's source (Agones' pkg/sdkserver/sdkserver.go, commit b19d5fe,
+Apache-2.0; the facts used are in tests/data/agones/sdkserver-errors.md with the licence in
+tests/data/agones/LICENSE): Ready sets ``status.state`` Ready, Shutdown sets Shutdown, Allocate
+and :meth:`Sidecar.allocate` (the allocator) set Allocated. Lists and counters answer their
+refusals as the real sidecar does: plain Go errors (gRPC code Unknown, 2), which its REST gateway
+sends as HTTP 500 with the Go text as ``message``: ``AddListValue`` checks the capacity *before*
+the value ("out of range. No available capacity. ..." even for a value already there, else
+"already exists. Value: V already in List: L"), ``RemoveListValue`` answers "not found: value V
+not in list L", an undeclared list "list not found: L", an undeclared counter "counter not
+found: C", a count outside [0, capacity] "out of range. Count must be within range
+[0,Capacity]. ...". Labels are checked with real gRPC codes (InvalidArgument, HTTP 400): they
+must be valid Kubernetes label values and names once prefixed ``agones.dev/sdk-``.
+
+:meth:`Sidecar.hold` makes the answers to one path wait until the test lets them go, as a slow
+sidecar's would.
 """
 
 from __future__ import annotations
@@ -44,9 +54,10 @@ LABEL_PREFIX = "agones.dev/sdk-"
 _LABEL_VALUE = re.compile(r"^(([A-Za-z0-9][-A-Za-z0-9_.]*)?[A-Za-z0-9])?$")
 _LABEL_NAME = re.compile(r"^([A-Za-z0-9][-A-Za-z0-9_.]*)?[A-Za-z0-9]$")
 
-#: gRPC status codes and the HTTP statuses grpc-gateway maps them to.
-NOT_FOUND, ALREADY_EXISTS, OUT_OF_RANGE, INVALID_ARGUMENT = 5, 6, 11, 3
-_HTTP = {NOT_FOUND: 404, ALREADY_EXISTS: 409, OUT_OF_RANGE: 400, INVALID_ARGUMENT: 400}
+#: gRPC status codes and the HTTP statuses grpc-gateway maps them to. The SDK server returns
+#: its list and counter refusals as plain Go errors, which gRPC sends as UNKNOWN (HTTP 500).
+UNKNOWN, NOT_FOUND, INVALID_ARGUMENT = 2, 5, 3
+_HTTP = {UNKNOWN: 500, NOT_FOUND: 404, INVALID_ARGUMENT: 400}
 
 _FORMATS = jsonschema.FormatChecker()
 
@@ -164,6 +175,9 @@ class Sidecar:
         self.lists = {n: {"capacity": c, "values": []} for n, c in (lists or {}).items()}
         self.counters = {n: {"capacity": c, "count": 0} for n, c in (counters or {}).items()}
         self._cond = threading.Condition()
+        self._holds: dict[str, threading.Event] = {}
+        #: Requests waiting in :meth:`hold`, by path.
+        self.held: dict[str, int] = {}
         sidecar = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -204,6 +218,14 @@ class Sidecar:
                         lst["values"].append(value)
             self._cond.notify_all()
 
+    def hold(self, path: str) -> threading.Event:
+        """Keep every answer to ``path`` waiting until the returned event is set (60 s at most);
+        :attr:`held` counts the requests that waited so."""
+        gate = threading.Event()
+        with self._cond:
+            self._holds[path] = gate
+        return gate
+
     def of(self, method: str, path: str) -> list[Call]:
         """The calls of one method and path, in order."""
         with self._cond:
@@ -225,6 +247,13 @@ class Sidecar:
         length = int(h.headers.get("Content-Length") or 0)
         raw = h.rfile.read(length) if length else b""
         path = h.path.split("?", 1)[0]
+        with self._cond:
+            gate = self._holds.get(path)
+            if gate is not None:
+                self.held[path] = self.held.get(path, 0) + 1
+                self._cond.notify_all()
+        if gate is not None:
+            gate.wait(60.0)
         with self._cond:
             call = Call(len(self.calls), time.monotonic(), h.command, path, None)
             self.calls.append(call)
@@ -325,18 +354,23 @@ class Sidecar:
     def _list(self, template: str, params: dict[str, str], body: Any) -> dict[str, Any]:
         name = params.get("name") or params.get("list.name", "")
         lst = self.lists.get(name)
-        if lst is None:
-            raise _GrpcError(NOT_FOUND, f"List {name} not found")
-        if template.endswith(":addValue"):
-            if body["value"] in lst["values"]:
-                raise _GrpcError(ALREADY_EXISTS, f"already exists. Value: {body['value']}")
-            if len(lst["values"]) >= lst["capacity"]:
-                raise _GrpcError(OUT_OF_RANGE, f"List {name} is at capacity")
-            lst["values"].append(body["value"])
-        elif template.endswith(":removeValue"):
-            if body["value"] not in lst["values"]:
-                raise _GrpcError(NOT_FOUND, f"not found. Value: {body['value']}")
-            lst["values"].remove(body["value"])
+        if lst is None:  # GetList
+            raise _GrpcError(UNKNOWN, f"list not found: {name}")
+        value, values = body.get("value") if body else None, lst["values"]
+        if template.endswith(":addValue"):  # AddListValue: capacity first, then the value
+            if lst["capacity"] <= len(values):
+                raise _GrpcError(
+                    UNKNOWN,
+                    "out of range. No available capacity. Current Capacity: "
+                    f"{lst['capacity']}, List Size: {len(values)}",
+                )
+            if value in values:
+                raise _GrpcError(UNKNOWN, f"already exists. Value: {value} already in List: {name}")
+            values.append(value)
+        elif template.endswith(":removeValue"):  # RemoveListValue
+            if value not in values:
+                raise _GrpcError(UNKNOWN, f"not found: value {value} not in list {name}")
+            values.remove(value)
         elif body is not None:
             raise _GrpcError(INVALID_ARGUMENT, "the stand-in does not implement UpdateList")
         return {"name": name, "capacity": str(lst["capacity"]), "values": list(lst["values"])}
@@ -345,13 +379,17 @@ class Sidecar:
         name = params.get("name") or params.get("counterUpdateRequest.name", "")
         c = self.counters.get(name)
         if c is None:
-            raise _GrpcError(NOT_FOUND, f"counter not found: {name}")
-        if method == "PATCH":
+            raise _GrpcError(UNKNOWN, f"counter not found: {name}")
+        if method == "PATCH":  # UpdateCounter
             capacity = int(body.get("capacity", c["capacity"]))
             count = int(body["count"]) if "count" in body else c["count"]
             count += int(body.get("countDiff", 0))
             if not 0 <= count <= capacity:
-                raise _GrpcError(OUT_OF_RANGE, f"count {count} out of range [0, {capacity}]")
+                raise _GrpcError(
+                    UNKNOWN,
+                    "out of range. Count must be within range [0,Capacity]. Found Count: "
+                    f"{count}, Capacity: {capacity}",
+                )
             c["count"], c["capacity"] = count, capacity
         return {"name": name, "count": str(c["count"]), "capacity": str(c["capacity"])}
 
