@@ -4,15 +4,15 @@ A client asks ``GET /rooms/NAME?role=user`` (``role=viewer`` to watch; user by d
 gets ``{"url": "ws://HOST:PORT/rooms/NAME/ws", "token": ..., "expires": ..., "viewer":
 "http://HOST:PORT/rooms/NAME/#token=...", "server": ...}``: where room NAME runs, and a room
 token for it (:func:`server.security.make_room_token`, signed with the secret the lobby shares
-with the room servers' ``--token-secret-file``). Two back ends find the server (:mod:`server.lobby_backends`): :class:`LocalServers`
-(``--server URL``: the room servers' ``/status``, a room made on demand) and
-:class:`AgonesAllocator` (``--agones-allocator URL``: one GameServerAllocation with list
-selectors on the fleet's ``rooms`` list).
+with the room servers' ``--token-secret-file``). Two back ends find the server
+(:mod:`server.lobby_backends`): :class:`LocalServers` (``--server URL``: the room servers'
+``/status``, a room made on demand) and :class:`AgonesAllocator` (``--agones-allocator URL``:
+one GameServerAllocation with list selectors on the fleet's ``rooms`` list).
 
-Each name is placed once: requests for one name are serialised in the lobby (a lock per name),
-so two users asking at once for a room nobody has made get the same server, and the second asks
-only after the first's room (local) or list entry (Agones) exists. Several lobby processes do
-not share these locks (see docs/deploy.md).
+Each name is placed once: a request for a name whose placement is under way gets that
+placement's outcome instead of placing it again, so two users asking at once for a room nobody
+has made get the same server. Several replicas (``--peer``, :mod:`server.lobby_peers`) give
+each name one owner that places it; the others ask the owner.
 
 HTTP is websockets' (``process_request``, as the room server serves ``/status``): it parses
 the request and answers what it refuses itself, with its own limits. A request line over
@@ -22,9 +22,16 @@ that are not HTTP/1.x get the connection closed without an answer (websockets' p
 request body, so the lobby is GET only: a role is a query parameter). The lobby adds: a request
 not read within :data:`READ_TIMEOUT_S` of the connection, or more than :data:`MAX_HEAD_BYTES`
 before its end, is cut off (no answer); a method other than GET 405, a bad room name or role
-400, an unknown path 404, more
-than :data:`ADDRESS_RATE_PER_S` requests a second from one address (burst
-:data:`ADDRESS_BURST`) 429, more than :data:`MAX_CONNECTIONS` connections at once 503.
+400, an unknown path 404, more than :data:`ADDRESS_RATE_PER_S` requests a second from one
+client (burst :data:`ADDRESS_BURST`) 429 with ``Retry-After``. A connection over
+:data:`MAX_CONNECTIONS_PER_ADDRESS` open from its address, or over :data:`MAX_CONNECTIONS` in
+all, is answered 503 with ``Retry-After`` (cut off after :data:`REFUSED_READ_TIMEOUT_S` if it
+sends nothing). The client is the TCP peer, or, from a trusted proxy (``--trusted-proxy``), the
+address its ``X-Forwarded-For`` names (:mod:`server.lobby_limits`). At most
+:data:`MAX_PLACEMENTS` placements run at once; one that waits :data:`PLACEMENT_WAIT_S` for a
+turn, or whose back end does not answer within its timeout, is answered 503 with
+``Retry-After``, never queued.
+
 With a token file (``TOKEN ROLE [NAME]`` lines, :class:`server.security.TokenTable`) every room
 request needs ``Authorization: Bearer TOKEN`` and a viewer's token gets only viewer tokens;
 off loopback the lobby refuses to start without one (``--insecure`` to allow it).
@@ -42,7 +49,6 @@ import math
 import ssl
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from http import HTTPStatus
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
@@ -63,10 +69,26 @@ from haptic_collab.server.lobby_backends import (
     allocation_request,
     load_servers,
 )
+from haptic_collab.server.lobby_limits import (
+    ADDRESS_BURST,
+    ADDRESS_RATE_PER_S,
+    MAX_CONNECTIONS,
+    MAX_CONNECTIONS_PER_ADDRESS,
+    AddressBudgets,
+    ConnectionCounts,
+    client_address,
+    is_trusted,
+    parse_proxies,
+)
+from haptic_collab.server.lobby_peers import (
+    PEER_PATH,
+    Peers,
+    check_peer_request,
+    placement_json,
+)
 from haptic_collab.server.security import (
     MAX_TOKEN_TTL_S,
     Role,
-    TokenBucket,
     TokenTable,
     is_loopback,
     make_room_token,
@@ -97,26 +119,19 @@ READ_TIMEOUT_S = 5.0
 #: Time to answer a request once read [s]: the back ends bound each step (statuses, a room's
 #: build, the allocator), this bounds a request waiting behind others for the same name.
 ANSWER_TIMEOUT_S = 120.0
-#: Requests a second one address may make, sustained, and saved up.
-ADDRESS_RATE_PER_S = 5.0
-ADDRESS_BURST = 20.0
-#: Connections open at once, over every address; more are answered 503 at once.
-MAX_CONNECTIONS = 256
-#: Room placements in flight at once (each reads every server's status); more wait.
-MAX_PLACEMENTS = 16
-#: Addresses whose flood budgets are kept at most (full buckets are forgotten first).
-MAX_ADDRESSES = 4096
+#: Time a connection over a connection limit has to send its request [s]: it is answered 503
+#: at once when it does, cut off when it does not.
+REFUSED_READ_TIMEOUT_S = 1.0
+#: Room placements in flight at once (each one allocation, or one ``/status`` per server).
+MAX_PLACEMENTS = 8
+#: Time a placement waits for one of the :data:`MAX_PLACEMENTS` slots [s]; then 503 with
+#: ``Retry-After``, rather than a queue behind a back end that hangs.
+PLACEMENT_WAIT_S = 1.0
 #: Default lifetime of the room tokens the lobby signs [s].
 TOKEN_TTL_S = 600.0
 
 
 # ------------------------------------------------------------------------------------- the lobby
-@dataclass
-class _NameLock:
-    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
-    holders: int = 0
-
-
 def _response(status: HTTPStatus, payload: Any, extra: Sequence[tuple[str, str]] = ()) -> Response:
     """A JSON answer (websockets sends it and closes the connection)."""
     body = (json.dumps(payload) + "\n").encode()
@@ -142,15 +157,30 @@ class _LobbyConnection(ServerConnection):
     counts the connections open, cuts off one whose request is not read within the lobby's
     ``read_timeout_s`` or whose bytes before its request exceed :data:`MAX_HEAD_BYTES`, and
     leaves the parsing to websockets. :meth:`Lobby.start` makes a subclass bound to its lobby.
+
+    A connection over a limit (:class:`server.lobby_limits.ConnectionCounts`: per address, in
+    all) is not counted and has :data:`REFUSED_READ_TIMEOUT_S` to send its request, which is
+    then answered 503 without further work: idle sockets from one address hold at most
+    ``per_address`` places, and everyone else is served.
     """
 
     lobby: Lobby
+    refused: str | None = None  #: why it is over a limit ("address", "total"), or None
+    peer: str = "?"
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._head_bytes = 0
-        self.lobby._connections += 1
+        peer = transport.get_extra_info("peername")
+        self.peer = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
+        lobby = self.lobby
+        self.refused = lobby.connections.admit(
+            self.peer, proxy=is_trusted(self.peer, lobby.trusted_proxies)
+        )
+        if self.refused is not None:
+            lobby._count("connections_refused", self.refused)
         super().connection_made(transport)
-        self._deadline = self.loop.call_later(self.lobby.read_timeout_s, self._read_late)
+        wait = lobby.read_timeout_s if self.refused is None else REFUSED_READ_TIMEOUT_S
+        self._deadline = self.loop.call_later(wait, self._read_late)
 
     def data_received(self, data: bytes) -> None:
         if self.request is None:
@@ -168,7 +198,8 @@ class _LobbyConnection(ServerConnection):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._deadline.cancel()
-        self.lobby._connections -= 1
+        if self.refused is None:
+            self.lobby.connections.release(self.peer)
         super().connection_lost(exc)
 
 
@@ -202,11 +233,22 @@ class Lobby:
     read_timeout_s : float
         Time a client has, after its connection (and TLS handshake), to send its whole
         request [s] (:data:`READ_TIMEOUT_S`); the TLS handshake has as long again.
+    trusted_proxies : sequence of str
+        Addresses or networks (``10.0.0.0/8``) of proxies whose ``X-Forwarded-For`` names the
+        client (:func:`server.lobby_limits.client_address`); from anyone else it is ignored.
+    max_connections_per_address : int
+        Connections one address may hold open at once (a trusted proxy: no cap of its own).
+    max_connections : int
+        Connections open at once in all.
+    peers : Peers, optional
+        The lobby replicas (:mod:`server.lobby_peers`): a name another replica owns is placed
+        by it. None: this lobby places every name itself. May be set before :meth:`start`.
 
     Raises
     ------
     ValueError
-        A bad lifetime, or an address off loopback without ``auth`` or ``insecure``.
+        A bad lifetime, an address off loopback without ``auth`` or ``insecure``, a trusted
+        proxy that is no address or network, or a connection limit below 1.
     """
 
     def __init__(
@@ -222,6 +264,10 @@ class Lobby:
         ssl_context: ssl.SSLContext | None = None,
         clock: Callable[[], float] = time.time,
         read_timeout_s: float = READ_TIMEOUT_S,
+        trusted_proxies: Sequence[str] = (),
+        max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
+        max_connections: int = MAX_CONNECTIONS,
+        peers: Peers | None = None,
     ) -> None:
         if not (math.isfinite(token_ttl_s) and 0.0 < token_ttl_s <= MAX_TOKEN_TTL_S):
             raise ValueError(f"token lifetime must be in (0, {MAX_TOKEN_TTL_S:g}] s")
@@ -240,15 +286,20 @@ class Lobby:
         self.ssl_context = ssl_context
         self.clock = clock
         self.read_timeout_s = float(read_timeout_s)
-        self._names: dict[str, _NameLock] = {}
-        self._budgets: dict[str, TokenBucket] = {}
+        self.trusted_proxies = parse_proxies(trusted_proxies)
+        self.connections = ConnectionCounts(max_connections_per_address, max_connections)
+        self.budgets = AddressBudgets(ADDRESS_RATE_PER_S, ADDRESS_BURST)
+        self.peers = peers
+        self._flights: dict[str, asyncio.Future[Placement]] = {}
         self._placements = asyncio.Semaphore(MAX_PLACEMENTS)
-        self._connections = 0
         self._server: Server | None = None
-        #: Answers given, by HTTP status (the tests and /healthz read it).
+        #: Answers given, by HTTP status (the tests, /healthz and /metrics read it).
         self.answered: dict[int, int] = {}
         #: Connections cut off before their request was read (too slow, too large).
         self.dropped = 0
+        #: Events by (kind, reason): ``("connections_refused", "address" | "total")``,
+        #: ``("dropped", ...)``, ``("placement_busy", "")`` (read by /metrics).
+        self.counts: dict[tuple[str, str], int] = {}
 
     # -- the service -------------------------------------------------------------------------
     async def start(self) -> None:
@@ -293,21 +344,42 @@ class Lobby:
         """The websocket handler websockets wants: never runs (every request is answered)."""
         await ws.close(1008, "the lobby speaks HTTP only")
 
+    def _count(self, kind: str, reason: str = "") -> None:
+        self.counts[kind, reason] = self.counts.get((kind, reason), 0) + 1
+
     def _dropped(self, why: str) -> None:
         self.dropped += 1
+        self._count("dropped", why)
         log.info("lobby: a connection cut off: %s", why)
 
     async def _process_request(self, connection: ServerConnection, request: Request) -> Response:
         """Answer one request (websockets has parsed it: GET, no body, bounded lines)."""
-        peer = connection.remote_address
-        address = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
+        refused = getattr(connection, "refused", None)
+        peer = str(getattr(connection, "peer", "?"))
+        if refused is not None:
+            why = (
+                "too many connections from your address at once"
+                if refused == "address"
+                else "the lobby is busy"
+            )
+            return self._answer(
+                HTTPStatus.SERVICE_UNAVAILABLE, f"{why}; try again", [("Retry-After", "1")]
+            )
         try:
-            if self._connections > MAX_CONNECTIONS:
-                return self._answer(HTTPStatus.SERVICE_UNAVAILABLE, "the lobby is busy; try again")
+            address = client_address(
+                peer, request.headers.get_all("X-Forwarded-For"), self.trusted_proxies
+            )
+        except ValueError as exc:
+            return self._answer(HTTPStatus.BAD_REQUEST, str(exc))
+        try:
             async with asyncio.timeout(ANSWER_TIMEOUT_S):
                 return await self._handle(request, address)
         except TimeoutError:
-            return self._answer(HTTPStatus.SERVICE_UNAVAILABLE, "no answer in time; try again")
+            return self._answer(
+                HTTPStatus.SERVICE_UNAVAILABLE,
+                "no answer in time; try again",
+                [("Retry-After", "1")],
+            )
         except Exception:  # never let one request end the service
             log.exception("lobby: request from %s failed", address)
             return self._answer(HTTPStatus.INTERNAL_SERVER_ERROR, "the lobby failed; try again")
@@ -323,21 +395,11 @@ class Lobby:
         )
         return _response(status, payload, extra)
 
-    def _within_budget(self, address: str) -> bool:
-        """Charge one request to ``address``'s budget (:data:`ADDRESS_RATE_PER_S`)."""
-        now = time.monotonic()
-        bucket = self._budgets.get(address)
-        if bucket is None:
-            if len(self._budgets) >= MAX_ADDRESSES:  # forget the addresses that are quiet
-                for a in [a for a, b in self._budgets.items() if b.refill(now) >= b.burst]:
-                    del self._budgets[a]
-                if len(self._budgets) >= MAX_ADDRESSES:
-                    return False
-            bucket = self._budgets[address] = TokenBucket(ADDRESS_RATE_PER_S, ADDRESS_BURST, now)
-        return bucket.take(1.0, now)
-
     async def _handle(self, request: Request, address: str) -> Response:
-        if not self._within_budget(address):
+        path = urlsplit(request.path).path
+        if path.startswith(PEER_PATH) and self._from_peer(path, request.headers):
+            return await self._serve_peer(path[len(PEER_PATH) :])  # a replica: no budget
+        if not self.budgets.take(address, time.monotonic()):
             log.warning("lobby: %s is over its request budget", address)
             return self._answer(
                 HTTPStatus.TOO_MANY_REQUESTS, "too many requests; slow down", [("Retry-After", "1")]
@@ -364,8 +426,30 @@ class Lobby:
             role = self._role(parse_qs(parts.query), request.headers)
             answer = await self.join(name, role)
         except LobbyError as exc:
-            return self._answer(exc.status, exc.message)
+            return self._refusal(exc)
         return self._answer(HTTPStatus.OK, answer)
+
+    def _refusal(self, exc: LobbyError) -> Response:
+        retry = [] if exc.retry_after_s is None else [("Retry-After", str(exc.retry_after_s))]
+        return self._answer(exc.status, exc.message, retry)
+
+    def _from_peer(self, path: str, headers: Headers) -> bool:
+        """Whether a ``/peer/place/NAME`` request carries a replica's signature for NAME."""
+        scheme, _, value = headers.get("Authorization", "").partition(" ")
+        return scheme == "Peer" and check_peer_request(
+            self._secret, path[len(PEER_PATH) :], value, self.clock()
+        )
+
+    async def _serve_peer(self, name: str) -> Response:
+        """Place room ``name`` for another replica (which signs the user's token itself)."""
+        if not valid_room_name(name):
+            return self._answer(HTTPStatus.BAD_REQUEST, f"{name[:40]!r} is not a room name")
+        self._count("peer_requests")
+        try:
+            placement = await self._place_once(name, from_peer=True)
+        except LobbyError as exc:
+            return self._refusal(exc)
+        return self._answer(HTTPStatus.OK, placement_json(placement))
 
     def _role(self, query: dict[str, list[str]], headers: Headers) -> Role:
         """The role asked (query ``role``, once; default user), checked against the token."""
@@ -385,8 +469,9 @@ class Lobby:
     async def join(self, name: str, role: Role) -> dict[str, Any]:
         """Where room ``name`` runs and a token for ``role`` in it (the answer's JSON).
 
-        Requests for one name wait for each other (one lock per name, dropped when no request
-        holds it), so a name is placed once.
+        A request for a name whose placement is under way gets that placement's outcome (it
+        does not place the name again), so a name is placed once; with :attr:`peers`, by the
+        replica that owns it.
 
         Raises
         ------
@@ -394,15 +479,7 @@ class Lobby:
             What the back end refused (404, 502, 503), or 503 for a user when the room is full
             (a viewer may still watch).
         """
-        entry = self._names.setdefault(name, _NameLock())
-        entry.holders += 1
-        try:
-            async with entry.lock, self._placements:
-                placement = await self.backend.place(name)
-        finally:
-            entry.holders -= 1
-            if entry.holders == 0:
-                self._names.pop(name, None)
+        placement = await self._place_once(name)
         if placement.full and role == "user":
             raise LobbyError(
                 HTTPStatus.SERVICE_UNAVAILABLE,
@@ -419,3 +496,48 @@ class Lobby:
             "expires": expires,
             "server": placement.server,
         }
+
+    async def _place_once(self, name: str, *, from_peer: bool = False) -> Placement:
+        """The placement of ``name``: the one under way, else a new one (:meth:`_place`)."""
+        flight = self._flights.get(name)
+        if flight is None:
+            flight = asyncio.ensure_future(self._place(name, from_peer=from_peer))
+            self._flights[name] = flight
+
+            def done(f: asyncio.Future[Placement]) -> None:
+                if self._flights.get(name) is f:
+                    del self._flights[name]
+                if not f.cancelled():
+                    f.exception()  # retrieved: a failure every waiter left is not logged
+
+            flight.add_done_callback(done)
+        # a waiter that gives up (its answer's deadline) leaves the placement to the others
+        return await asyncio.shield(flight)
+
+    async def _place(self, name: str, *, from_peer: bool) -> Placement:
+        """Place ``name`` here, or have its owner among :attr:`peers` place it.
+
+        Raises
+        ------
+        LobbyError
+            503 with ``Retry-After`` when :data:`MAX_PLACEMENTS` placements stay under way for
+            :data:`PLACEMENT_WAIT_S`; what the back end or the owner refused.
+        """
+        try:
+            async with asyncio.timeout(PLACEMENT_WAIT_S):
+                await self._placements.acquire()
+        except TimeoutError:
+            self._count("placement_busy")
+            raise LobbyError(
+                HTTPStatus.SERVICE_UNAVAILABLE,
+                f"the lobby is busy placing {MAX_PLACEMENTS} other rooms; try again",
+            ) from None
+        try:
+            peers = self.peers
+            owner = None if peers is None or from_peer else peers.owner(name)
+            if peers is not None and owner is not None and owner != peers.self_url:
+                self._count("peer_asked")
+                return await peers.ask(owner, name, self._secret)
+            return await self.backend.place(name)
+        finally:
+            self._placements.release()

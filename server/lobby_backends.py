@@ -46,6 +46,8 @@ log = logging.getLogger("haptic.lobby")
 
 #: Time to wait for a room server's ``/status`` or for the allocator [s].
 BACKEND_TIMEOUT_S = 5.0
+#: ``Retry-After`` of a 503 that says nothing more precise [s].
+RETRY_AFTER_S = 1
 #: Time a room server may take to make a room from its template [s]: it answers the websocket
 #: handshake only once the room runs, and a FEM solid takes seconds to build.
 ROOM_BUILD_TIMEOUT_S = 60.0
@@ -60,12 +62,26 @@ CONTENTION_RETRIES = 3
 
 
 class LobbyError(Exception):
-    """A request the lobby cannot serve: the HTTP status and a one-line reason."""
+    """A request the lobby cannot serve: the HTTP status and a one-line reason.
 
-    def __init__(self, status: HTTPStatus, message: str) -> None:
+    Parameters
+    ----------
+    status : HTTPStatus
+        The answer's status.
+    message : str
+        One line for the user.
+    retry_after_s : int, optional
+        For a 503 or 429: seconds after which asking again may work (the ``Retry-After``
+        header); None: :data:`RETRY_AFTER_S` for a 503, no header otherwise.
+    """
+
+    def __init__(self, status: HTTPStatus, message: str, retry_after_s: int | None = None) -> None:
         super().__init__(message)
         self.status = status
         self.message = message
+        if retry_after_s is None and status == HTTPStatus.SERVICE_UNAVAILABLE:
+            retry_after_s = RETRY_AFTER_S
+        self.retry_after_s = retry_after_s
 
 
 @dataclass(frozen=True)
@@ -191,8 +207,10 @@ def load_servers(path: str | Path) -> list[RoomServer]:
 
 
 #: Threads of the lobby's own pool for requests to the back end: a back end's blocking HTTP
-#: never waits behind other work of the process's default executor (nor holds it up).
-BACKEND_THREADS = 8
+#: never waits behind other work of the process's default executor (nor holds it up). The
+#: lobby runs at most ``MAX_PLACEMENTS`` (8) placements at once, each one allocation or one
+#: ``/status`` per local server, so a pool this size does not queue them for up to 8 servers.
+BACKEND_THREADS = 64
 _POOL: ThreadPoolExecutor | None = None
 
 
@@ -206,6 +224,11 @@ async def _in_pool(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
     )
 
 
+def _timed_out(exc: BaseException) -> bool:
+    """Whether a failed request timed out (urllib wraps a connect timeout in a URLError)."""
+    return isinstance(exc, TimeoutError) or isinstance(getattr(exc, "reason", None), TimeoutError)
+
+
 def _http_json(
     method: str,
     url: str,
@@ -213,6 +236,7 @@ def _http_json(
     *,
     timeout_s: float = BACKEND_TIMEOUT_S,
     context: ssl.SSLContext | None = None,
+    headers: dict[str, str] | None = None,
 ) -> tuple[int, Any]:
     """One HTTP request with a JSON body and answer, blocking (run it in a thread).
 
@@ -230,7 +254,7 @@ def _http_json(
         Nothing answers, or the connection failed (urllib's URLError is an OSError).
     """
     data = None if body is None else json.dumps(body).encode()
-    headers = {"Accept": "application/json"}
+    headers = {"Accept": "application/json", **(headers or {})}
     if data is not None:
         headers["Content-Type"] = "application/json"
     req = urllib.request.Request(url, data=data, method=method, headers=headers)
@@ -496,6 +520,12 @@ class AgonesAllocator:
         self.scheme = scheme
         self.context = context
         self.timeout_s = float(timeout_s)
+        #: The allocator's answers by HTTP status (``"200"``, ``"429"``, ...), ``"timeout"``
+        #: (none within ``timeout_s``) and ``"unreachable"`` (the lobby's ``/metrics``).
+        self.answers: dict[str, int] = {}
+
+    def _count(self, outcome: str) -> None:
+        self.answers[outcome] = self.answers.get(outcome, 0) + 1
 
     def describe(self) -> dict[str, Any]:
         return {"backend": "agones", "allocator": self.url, "namespace": self.namespace}
@@ -536,9 +566,10 @@ class AgonesAllocator:
         Raises
         ------
         LobbyError
-            503 when Agones has no server to allocate (429, ResourceExhausted) or stays in
-            contention (409, Aborted) after :data:`CONTENTION_RETRIES` tries; 502 when the
-            allocator cannot be reached or answers otherwise.
+            503 when Agones has no server to allocate (429, ResourceExhausted), stays in
+            contention (409, Aborted) after :data:`CONTENTION_RETRIES` tries or does not answer
+            within ``timeout_s``; 502 when the allocator cannot be reached or answers
+            otherwise. :attr:`answers` counts each answer.
         """
         body = allocation_request(name, namespace=self.namespace, match_labels=self.match_labels)
         for attempt in range(CONTENTION_RETRIES):
@@ -548,10 +579,21 @@ class AgonesAllocator:
                     timeout_s=self.timeout_s, context=self.context,
                 )  # fmt: skip
             except OSError as exc:
+                self._count("timeout" if _timed_out(exc) else "unreachable")
+                if _timed_out(exc):
+                    log.error(
+                        "the Agones allocator %s: no answer in %g s", self.url, self.timeout_s
+                    )
+                    raise LobbyError(
+                        HTTPStatus.SERVICE_UNAVAILABLE,
+                        f"the Agones allocator did not answer within {self.timeout_s:g} s; "
+                        "try again",
+                    ) from None
                 log.error("the Agones allocator %s cannot be reached: %s", self.url, exc)
                 raise LobbyError(
                     HTTPStatus.BAD_GATEWAY, "the Agones allocator cannot be reached"
                 ) from None
+            self._count(str(code))
             if code == 200:
                 return self.placement(name, answer)
             if code == HTTPStatus.TOO_MANY_REQUESTS:  # ResourceExhausted: nothing to allocate
