@@ -1,0 +1,152 @@
+"""Several ``haptic lobby`` replicas in front of one Agones allocator: each name on one server.
+
+Two real lobbies on loopback share one stand-in allocator (tests/support/agones_allocator.py).
+The stand-in matches selectors against the GameServers as they were when a request arrived, as
+the allocator's informer cache does, so two allocations for a new name that arrive together
+land on two servers: the first test shows that happening to two lobbies that do not know each
+other. Given each other as peers (server/lobby_peers.py), every name has one owner that places
+it, and users asking through either replica at once all end up on one server. While a name's
+owner is down, a request for that name is refused with ``Retry-After``, never placed elsewhere.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import http.client
+import json
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from haptic_collab.server.lobby import AgonesAllocator, Lobby
+from haptic_collab.server.lobby_peers import Peers
+from haptic_collab.server.security import MIN_SECRET_BYTES, check_room_token
+from tests.support.agones_allocator import Allocator, GameServer
+
+SECRET = b"r" * MIN_SECRET_BYTES
+ASKERS = ThreadPoolExecutor(48, thread_name_prefix="asker")
+FLEET = {"agones.dev/fleet": "haptic-collab"}
+#: The stand-in's informer lag [s]: wide enough that requests sent together fall inside it.
+LAG_S = 0.4
+
+
+def fleet(n: int, capacity: int = 4) -> list[GameServer]:
+    return [
+        GameServer(
+            f"haptic-collab-{i}",
+            port=7000 + i,
+            labels=dict(FLEET),
+            lists={"rooms": {"capacity": capacity, "values": []}},
+        )
+        for i in range(n)
+    ]
+
+
+async def ask(
+    lobby: Lobby, path: str, source: str = "127.0.0.1"
+) -> tuple[int, dict[str, str], dict[str, Any]]:
+    """(status, headers, JSON answer) of ``GET path``, sent from the address ``source``."""
+
+    def go() -> tuple[int, dict[str, str], dict[str, Any]]:
+        conn = http.client.HTTPConnection(
+            "127.0.0.1", lobby.port, timeout=30, source_address=(source, 0)
+        )
+        try:
+            conn.request("GET", path)
+            r = conn.getresponse()
+            return r.status, dict(r.getheaders()), json.loads(r.read())
+        finally:
+            conn.close()
+
+    return await asyncio.get_running_loop().run_in_executor(ASKERS, go)
+
+
+@contextlib.asynccontextmanager
+async def replicas(url: str, n: int, *, peers: bool) -> AsyncIterator[list[Lobby]]:
+    """``n`` lobbies on the allocator at ``url``; with ``peers``, each knows all of them."""
+    lobbies = [
+        Lobby(AgonesAllocator(url, namespace="labs", match_labels=FLEET), SECRET, port=0)
+        for _ in range(n)
+    ]
+    for lobby in lobbies:
+        await lobby.start()
+    if peers:
+        urls = [f"http://127.0.0.1:{lobby.port}" for lobby in lobbies]
+        for lobby, me in zip(lobbies, urls, strict=True):
+            lobby.peers = Peers.of(urls, me)
+    try:
+        yield lobbies
+    finally:
+        for lobby in lobbies:
+            await lobby.stop()
+
+
+async def test_two_lobbies_that_do_not_know_each_other_can_place_a_name_twice() -> None:
+    with Allocator(fleet(3), lag_s=LAG_S) as alloc:
+        async with replicas(alloc.url, 2, peers=False) as (a, b):
+            answers = await asyncio.gather(ask(a, "/rooms/anatomy"), ask(b, "/rooms/anatomy"))
+            assert [s for s, _, _ in answers] == [200, 200]
+            # two servers each think they run the room: its users would not meet
+            assert len(alloc.holding("anatomy")) == 2
+            assert len({ans["url"] for _, _, ans in answers}) == 2
+
+
+async def test_replicas_that_know_each_other_place_every_name_once() -> None:
+    names = [f"lab-{i}" for i in range(8)]
+    # a server per name: the stand-in's lagging view sends new names at once to Ready servers
+    with Allocator(fleet(len(names)), lag_s=LAG_S) as alloc:
+        async with replicas(alloc.url, 2, peers=True) as (a, b):
+            # every name asked 3 times through each replica, all at once, by 48 users
+            asked = [(n, lobby) for n in names for lobby in (a, b, a, b, a, b)]
+            answers = await asyncio.gather(
+                *(
+                    ask(lobby, f"/rooms/{n}", f"127.0.3.{i + 1}")
+                    for i, (n, lobby) in enumerate(asked)
+                )
+            )
+            assert [s for s, _, _ in answers] == [200] * len(asked), answers
+            for name in names:
+                got = {
+                    ans["url"]
+                    for (n, _), (_, _, ans) in zip(asked, answers, strict=True)
+                    if n == name
+                }
+                assert len(got) == 1, (name, got)  # every user of a name: one server
+                assert len(alloc.holding(name)) == 1, (name, alloc.holding(name))
+            # each replica signs tokens the room's server accepts, whichever placed the name
+            for (name, _), (_, _, ans) in zip(asked, answers, strict=True):
+                assert check_room_token(ans["token"], SECRET, name, ans["expires"] - 1) is not None
+            # both replicas owned some names (the work is shared), and each name was
+            # allocated by its owner only: one request per name reached the allocator
+            assert a.counts.get(("peer_asked", ""), 0) > 0
+            assert b.counts.get(("peer_asked", ""), 0) > 0
+            allocated = [c.body["lists"]["rooms"]["addValues"][0] for c in alloc.calls]
+            assert sorted(allocated) == sorted(names)
+
+
+async def test_while_a_names_owner_is_down_it_is_refused_not_placed_twice() -> None:
+    with Allocator(fleet(3), lag_s=0.0) as alloc:
+        async with replicas(alloc.url, 2, peers=True) as (a, b):
+            assert a.peers is not None
+            owned_by_b = next(
+                f"room-{i}" for i in range(100) if a.peers.owner(f"room-{i}") != a.peers.self_url
+            )
+            status, _, first = await ask(a, f"/rooms/{owned_by_b}")
+            assert status == 200
+            await b.stop()
+            status, headers, answer = await ask(a, f"/rooms/{owned_by_b}")
+            assert status == 503
+            assert headers["Retry-After"] == "2"
+            assert "the lobby replica that places room" in answer["error"]
+            assert alloc.holding(owned_by_b) == [first["server"]]
+            assert len(alloc.calls) == 1  # a never allocated it itself
+
+
+async def test_a_peer_request_without_the_replicas_signature_is_not_served() -> None:
+    with Allocator(fleet(1)) as alloc:
+        async with replicas(alloc.url, 2, peers=True) as (a, _b):
+            status, _, answer = await ask(a, "/peer/place/anatomy")
+            assert status == 404
+            assert "GET /rooms/NAME" in answer["error"]
+            assert alloc.calls == []
