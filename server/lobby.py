@@ -53,6 +53,7 @@ from http import HTTPStatus
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
@@ -80,12 +81,14 @@ from haptic_collab.server.lobby_limits import (
     is_trusted,
     parse_proxies,
 )
+from haptic_collab.server.lobby_metrics import PlacementTimes, lobby_registry
 from haptic_collab.server.lobby_peers import (
     PEER_PATH,
     Peers,
     check_peer_request,
     placement_json,
 )
+from haptic_collab.server.metrics import scrape_allowed
 from haptic_collab.server.security import (
     MAX_TOKEN_TTL_S,
     Role,
@@ -243,6 +246,9 @@ class Lobby:
     peers : Peers, optional
         The lobby replicas (:mod:`server.lobby_peers`): a name another replica owns is placed
         by it. None: this lobby places every name itself. May be set before :meth:`start`.
+    metrics_token : TokenTable, optional
+        The token a scrape of ``/metrics`` must carry (``Authorization: Bearer``); without one
+        only a lobby on loopback serves it (:func:`server.metrics.scrape_allowed`).
 
     Raises
     ------
@@ -268,6 +274,7 @@ class Lobby:
         max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
         max_connections: int = MAX_CONNECTIONS,
         peers: Peers | None = None,
+        metrics_token: TokenTable | None = None,
     ) -> None:
         if not (math.isfinite(token_ttl_s) and 0.0 < token_ttl_s <= MAX_TOKEN_TTL_S):
             raise ValueError(f"token lifetime must be in (0, {MAX_TOKEN_TTL_S:g}] s")
@@ -290,6 +297,11 @@ class Lobby:
         self.connections = ConnectionCounts(max_connections_per_address, max_connections)
         self.budgets = AddressBudgets(ADDRESS_RATE_PER_S, ADDRESS_BURST)
         self.peers = peers
+        self.metrics_token = metrics_token
+        #: Time each room request took to get its placement (``/metrics``).
+        self.placement_times = PlacementTimes()
+        #: The registry ``/metrics`` exposes (:mod:`server.lobby_metrics`).
+        self.metrics_registry = lobby_registry(self)
         self._flights: dict[str, asyncio.Future[Placement]] = {}
         self._placements = asyncio.Semaphore(MAX_PLACEMENTS)
         self._server: Server | None = None
@@ -413,6 +425,8 @@ class Lobby:
         parts = urlsplit(request.path)
         if parts.path == "/healthz":
             return self._answer(HTTPStatus.OK, {"ok": True, **self.backend.describe()})
+        if parts.path == "/metrics":
+            return self._metrics(request.headers.get("Authorization"))
         if not parts.path.startswith("/rooms/"):
             return self._answer(HTTPStatus.NOT_FOUND, "ask GET /rooms/NAME?role=user|viewer")
         name = parts.path[len("/rooms/") :].rstrip("/")
@@ -428,6 +442,30 @@ class Lobby:
         except LobbyError as exc:
             return self._refusal(exc)
         return self._answer(HTTPStatus.OK, answer)
+
+    def _metrics(self, authorization: str | None) -> Response:
+        """``/metrics`` in Prometheus' text format, for those :func:`scrape_allowed` admits."""
+        if not scrape_allowed(is_loopback(self.host), authorization, self.metrics_token):
+            if self.metrics_token is None:
+                return self._answer(
+                    HTTPStatus.FORBIDDEN, "/metrics off loopback needs a metrics token"
+                )
+            return self._answer(
+                HTTPStatus.UNAUTHORIZED,
+                "a metrics token is needed (Bearer)",
+                [("WWW-Authenticate", 'Bearer realm="metrics"')],
+            )
+        self.answered[200] = self.answered.get(200, 0) + 1
+        body = generate_latest(self.metrics_registry)
+        headers = Headers(
+            [
+                ("Content-Type", CONTENT_TYPE_LATEST),
+                ("Content-Length", str(len(body))),
+                ("Cache-Control", "no-store"),
+                ("Connection", "close"),
+            ]
+        )
+        return Response(200, "OK", headers, body)
 
     def _refusal(self, exc: LobbyError) -> Response:
         retry = [] if exc.retry_after_s is None else [("Retry-After", str(exc.retry_after_s))]
@@ -479,8 +517,17 @@ class Lobby:
             What the back end refused (404, 502, 503), or 503 for a user when the room is full
             (a viewer may still watch).
         """
-        placement = await self._place_once(name)
+        started = time.monotonic()
+        try:
+            placement = await self._place_once(name)
+        except LobbyError as exc:
+            busy = "busy placing" in exc.message
+            self._count("rooms_refused", "busy" if busy else str(exc.status.value))
+            raise
+        finally:
+            self.placement_times.add(time.monotonic() - started)
         if placement.full and role == "user":
+            self._count("rooms_refused", "full")
             raise LobbyError(
                 HTTPStatus.SERVICE_UNAVAILABLE,
                 f"room {name!r} is full (every seat taken); try later, or watch it as a viewer",

@@ -1,21 +1,11 @@
 """The lobby's two back ends: where a room runs, and making it there (:mod:`server.lobby`).
 
-- :class:`LocalServers` (``--server URL``, repeated, or a TOML file): reads every room server's
-  ``/status`` and picks the one already running the room; else one that makes rooms on demand
-  and has a free room slot (the most free slots first), where it makes the room now by opening
-  and closing a websocket to ``/rooms/NAME/ws`` (the server builds it from its template; a
-  server whose templates do not allow the name answers 404 and the next one is tried); else
-  no capacity (503). A draining server is never picked.
-- :class:`AgonesAllocator` (``--agones-allocator URL``): one GameServerAllocation
-  (``allocation.agones.dev/v1``) through the allocator service's REST API (``POST
-  /gameserverallocation``, Agones' ``allocation.swagger.json``) with three selectors in order: a
-  server of the fleet whose ``rooms`` list holds NAME, else an Allocated one with a free slot
-  in ``rooms``, else a Ready one; the allocation adds NAME to the chosen server's ``rooms``
-  list (``lists.rooms.addValues``, which ignores a value already there).
-
-Both speak blocking HTTP (urllib) in the lobby's own thread pool (:data:`BACKEND_THREADS`);
-every call is bounded in time, and a caller that finds every thread busy is refused at once
-(503 with a ``Retry-After``) instead of queueing behind a back end that hangs.
+:class:`LocalServers` (``--server URL``) reads every room server's ``/status`` and picks the one
+running the room, else makes it on one with a free slot; :class:`AgonesAllocator`
+(``--agones-allocator URL``) asks for one GameServerAllocation whose list selectors find the
+server whose ``rooms`` list holds the name, else one with a free slot, and add the name to it.
+Both speak blocking HTTP (urllib) in the lobby's own thread pool (:data:`BACKEND_THREADS`),
+each call bounded in time; a timeout is a 503 with ``Retry-After``.
 """
 
 from __future__ import annotations
@@ -360,7 +350,8 @@ class LocalServers:
         return 101
 
     async def place(self, name: str) -> Placement:
-        """The server running room ``name``, else one that makes it now (see the module).
+        """The server running room ``name``, else one not draining that makes it now (the
+        most free slots first; docs/deploy.md).
 
         Raises
         ------
