@@ -25,8 +25,8 @@ before its end, is cut off (no answer); a method other than GET 405, a bad room 
 400, an unknown path 404, more than :data:`ADDRESS_RATE_PER_S` requests a second from one
 client (burst :data:`ADDRESS_BURST`) 429 with ``Retry-After``. A connection over
 :data:`MAX_CONNECTIONS_PER_ADDRESS` open from its address, or over :data:`MAX_CONNECTIONS` in
-all, is answered 503 with ``Retry-After`` (cut off after :data:`REFUSED_READ_TIMEOUT_S` if it
-sends nothing). The client is the TCP peer, or, from a trusted proxy (``--trusted-proxy``), the
+all, is answered 503 with ``Retry-After`` as it arrives, and one from an address whose budget
+is spent 429, before its request is read (cut off :data:`REFUSED_READ_TIMEOUT_S` later). The client is the TCP peer, or, from a trusted proxy (``--trusted-proxy``), the
 address its ``X-Forwarded-For`` names (:mod:`server.lobby_limits`). At most
 :data:`MAX_PLACEMENTS` placements run at once; one that waits :data:`PLACEMENT_WAIT_S` for a
 turn, or whose back end does not answer within its timeout, is answered 503 with
@@ -122,9 +122,13 @@ READ_TIMEOUT_S = 5.0
 #: Time to answer a request once read [s]: the back ends bound each step (statuses, a room's
 #: build, the allocator), this bounds a request waiting behind others for the same name.
 ANSWER_TIMEOUT_S = 120.0
-#: Time a connection over a connection limit has to send its request [s]: it is answered 503
-#: at once when it does, cut off when it does not.
+#: Time a refused connection (answered 429 or 503 as it arrives) is kept to read its answer
+#: before it is cut off [s].
 REFUSED_READ_TIMEOUT_S = 1.0
+#: Connections the kernel queues before the lobby accepts them: a burst of connections from
+#: one address (refused at once, but accepted first) must not overflow the queue, or others'
+#: connection attempts are dropped and retried by TCP a second later.
+LISTEN_BACKLOG = 1024
 #: Room placements in flight at once (each one allocation, or one ``/status`` per server).
 MAX_PLACEMENTS = 8
 #: Time a placement waits for one of the :data:`MAX_PLACEMENTS` slots [s]; then 503 with
@@ -150,6 +154,26 @@ def _response(status: HTTPStatus, payload: Any, extra: Sequence[tuple[str, str]]
     return Response(status.value, status.phrase, headers, body)
 
 
+def _canned(status: HTTPStatus, message: str) -> bytes:
+    """The bytes of a refusal written before a request is read (see :class:`_LobbyConnection`)."""
+    body = (json.dumps({"error": message, "status": status.value}) + "\n").encode()
+    head = (
+        f"HTTP/1.1 {status.value} {status.phrase}\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\nCache-Control: no-store\r\nRetry-After: 1\r\n"
+        "Connection: close\r\n\r\n"
+    )
+    return head.encode() + body
+
+
+_REFUSALS = {
+    "budget": _canned(HTTPStatus.TOO_MANY_REQUESTS, "too many requests; slow down"),
+    "address": _canned(
+        HTTPStatus.SERVICE_UNAVAILABLE, "too many connections from your address at once; try again"
+    ),
+    "total": _canned(HTTPStatus.SERVICE_UNAVAILABLE, "the lobby is busy; try again"),
+}
+
+
 class _LobbyConnection(ServerConnection):
     """websockets' server connection with the lobby's limits on a request not yet read.
 
@@ -161,14 +185,17 @@ class _LobbyConnection(ServerConnection):
     ``read_timeout_s`` or whose bytes before its request exceed :data:`MAX_HEAD_BYTES`, and
     leaves the parsing to websockets. :meth:`Lobby.start` makes a subclass bound to its lobby.
 
-    A connection over a limit (:class:`server.lobby_limits.ConnectionCounts`: per address, in
-    all) is not counted and has :data:`REFUSED_READ_TIMEOUT_S` to send its request, which is
-    then answered 503 without further work: idle sockets from one address hold at most
-    ``per_address`` places, and everyone else is served.
+    A connection from an address whose request budget is spent (429), or over a connection
+    limit (503; :class:`server.lobby_limits.ConnectionCounts`: per address, in all), is refused
+    as it arrives, before websockets sees it: a canned answer with ``Retry-After`` is written,
+    the connection half-closed and cut off :data:`REFUSED_READ_TIMEOUT_S` later whatever it
+    sends. A flood from one address so costs little more than its accept, idle sockets from one
+    address hold at most ``per_address`` places, and everyone else is served. (A trusted
+    proxy's budget is its clients', charged once their request is read.)
     """
 
     lobby: Lobby
-    refused: str | None = None  #: why it is over a limit ("address", "total"), or None
+    refused: str | None = None  #: why it was refused ("budget", "address", "total"), or None
     peer: str = "?"
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -176,16 +203,33 @@ class _LobbyConnection(ServerConnection):
         peer = transport.get_extra_info("peername")
         self.peer = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
         lobby = self.lobby
-        self.refused = lobby.connections.admit(
-            self.peer, proxy=is_trusted(self.peer, lobby.trusted_proxies)
-        )
+        proxy = is_trusted(self.peer, lobby.trusted_proxies)
+        if not proxy and lobby.budgets.spent(self.peer, time.monotonic()):
+            self.refused = "budget"
+        else:
+            self.refused = lobby.connections.admit(self.peer, proxy=proxy)
         if self.refused is not None:
-            lobby._count("connections_refused", self.refused)
+            self._refuse(transport, self.refused)
+            return
         super().connection_made(transport)
-        wait = lobby.read_timeout_s if self.refused is None else REFUSED_READ_TIMEOUT_S
-        self._deadline = self.loop.call_later(wait, self._read_late)
+        self._deadline = self.loop.call_later(lobby.read_timeout_s, self._read_late)
+
+    def _refuse(self, transport: asyncio.BaseTransport, why: str) -> None:
+        """Answer a refused connection with a canned 429 or 503 and let it go."""
+        assert isinstance(transport, asyncio.Transport)
+        self.lobby._count("connections_refused", why)
+        status = HTTPStatus.TOO_MANY_REQUESTS if why == "budget" else HTTPStatus.SERVICE_UNAVAILABLE
+        self.lobby.answered[status.value] = self.lobby.answered.get(status.value, 0) + 1
+        transport.write(_REFUSALS[why])
+        if transport.can_write_eof():
+            transport.write_eof()  # the answer, then FIN; the client's bytes are read and dropped
+        else:
+            transport.close()
+        self._deadline = self.loop.call_later(REFUSED_READ_TIMEOUT_S, transport.abort)
 
     def data_received(self, data: bytes) -> None:
+        if self.refused is not None:
+            return
         if self.request is None:
             self._head_bytes += len(data)
             if self._head_bytes > MAX_HEAD_BYTES:
@@ -199,10 +243,16 @@ class _LobbyConnection(ServerConnection):
             self.lobby._dropped("request not read in time")
             self.transport.abort()
 
+    def eof_received(self) -> bool | None:
+        if self.refused is not None:
+            return None  # the client is done: close
+        return super().eof_received()
+
     def connection_lost(self, exc: Exception | None) -> None:
         self._deadline.cancel()
-        if self.refused is None:
-            self.lobby.connections.release(self.peer)
+        if self.refused is not None:
+            return  # websockets never saw it
+        self.lobby.connections.release(self.peer)
         super().connection_lost(exc)
 
 
@@ -327,6 +377,7 @@ class Lobby:
             open_timeout=None,  # the read deadline is _LobbyConnection's; the answer's, ours
             server_header=None,
             create_connection=connection,
+            backlog=LISTEN_BACKLOG,
             logger=logging.getLogger("haptic.lobby.http"),
         )
         self.port = int(next(iter(self._server.sockets)).getsockname()[1])
@@ -366,17 +417,7 @@ class Lobby:
 
     async def _process_request(self, connection: ServerConnection, request: Request) -> Response:
         """Answer one request (websockets has parsed it: GET, no body, bounded lines)."""
-        refused = getattr(connection, "refused", None)
         peer = str(getattr(connection, "peer", "?"))
-        if refused is not None:
-            why = (
-                "too many connections from your address at once"
-                if refused == "address"
-                else "the lobby is busy"
-            )
-            return self._answer(
-                HTTPStatus.SERVICE_UNAVAILABLE, f"{why}; try again", [("Retry-After", "1")]
-            )
         try:
             address = client_address(
                 peer, request.headers.get_all("X-Forwarded-For"), self.trusted_proxies

@@ -213,6 +213,12 @@ class AddressBudgets:
     max_addresses: int = MAX_ADDRESSES
     buckets: dict[str, TokenBucket] = field(default_factory=dict)
 
+    def spent(self, address: str, now_s: float) -> bool:
+        """Whether ``address`` has less than one request left at ``now_s`` [s] (nothing is
+        charged: a connection can be refused before its request is read)."""
+        bucket = self.buckets.get(budget_key(address))
+        return bucket is not None and bucket.refill(now_s) < 1.0
+
     def take(self, address: str, now_s: float) -> bool:
         """Charge one request to ``address`` at ``now_s`` [s]; False: over its budget."""
         key = budget_key(address)
