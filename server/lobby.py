@@ -19,18 +19,18 @@ the request and answers what it refuses itself, with its own limits. A request l
 ``websockets.http11.MAX_LINE_LENGTH`` (8192 bytes) gets 414, a header line over it or more
 than ``MAX_NUM_HEADERS`` (128) header lines 431; a body, a ``Transfer-Encoding`` or bytes
 that are not HTTP/1.x get the connection closed without an answer (websockets' parser takes no
-request body, so the lobby is GET only: a role is a query parameter). The lobby adds: a request
-not read within :data:`READ_TIMEOUT_S` of the connection, or more than :data:`MAX_HEAD_BYTES`
-before its end, is cut off (no answer); a method other than GET 405, a bad room name or role
-400, an unknown path 404, more than :data:`ADDRESS_RATE_PER_S` requests a second from one
-client (burst :data:`ADDRESS_BURST`) 429 with ``Retry-After``. A connection over
-:data:`MAX_CONNECTIONS_PER_ADDRESS` open from its address, or over :data:`MAX_CONNECTIONS` in
-all, is answered 503 with ``Retry-After`` as it arrives, and one from an address whose budget
-is spent 429, before its request is read (cut off :data:`REFUSED_READ_TIMEOUT_S` later). The client is the TCP peer, or, from a trusted proxy (``--trusted-proxy``), the
-address its ``X-Forwarded-For`` names (:mod:`server.lobby_limits`). At most
-:data:`MAX_PLACEMENTS` placements run at once; one that waits :data:`PLACEMENT_WAIT_S` for a
-turn, or whose back end does not answer within its timeout, is answered 503 with
-``Retry-After``, never queued.
+request body, so the lobby is GET only: a role is a query parameter). The lobby adds
+(:mod:`server.lobby_http`): a request not read within :data:`READ_TIMEOUT_S` of the
+connection, or over 64 KiB before its end, is cut off (no answer); a method other than GET
+405, a bad room name or role 400, an unknown path 404, more than :data:`ADDRESS_RATE_PER_S`
+requests a second from one client (burst :data:`ADDRESS_BURST`) 429 with ``Retry-After``. A
+connection over :data:`MAX_CONNECTIONS_PER_ADDRESS` open from its address, or over
+:data:`MAX_CONNECTIONS` in all, is answered 503 with ``Retry-After`` as it arrives, and one
+from an address whose budget is spent 429, before its request is read. The client is the TCP
+peer, or, from a trusted proxy (``--trusted-proxy``), the address its ``X-Forwarded-For``
+names (:mod:`server.lobby_limits`). At most :data:`MAX_PLACEMENTS` placements run at once; one
+that waits :data:`PLACEMENT_WAIT_S` for a turn, or whose back end does not answer within its
+timeout, is answered 503 with ``Retry-After``, never queued.
 
 With a token file (``TOKEN ROLE [NAME]`` lines, :class:`server.security.TokenTable`) every room
 request needs ``Authorization: Bearer TOKEN`` and a viewer's token gets only viewer tokens;
@@ -70,6 +70,9 @@ from haptic_collab.server.lobby_backends import (
     allocation_request,
     load_servers,
 )
+from haptic_collab.server.lobby_http import (
+    LobbyConnection,
+)
 from haptic_collab.server.lobby_limits import (
     ADDRESS_BURST,
     ADDRESS_RATE_PER_S,
@@ -78,7 +81,6 @@ from haptic_collab.server.lobby_limits import (
     AddressBudgets,
     ConnectionCounts,
     client_address,
-    is_trusted,
     parse_proxies,
 )
 from haptic_collab.server.lobby_metrics import PlacementTimes, lobby_registry
@@ -114,17 +116,11 @@ __all__ = [
 
 log = logging.getLogger("haptic.lobby")
 
-#: Largest request line and headers together [bytes]: websockets bounds each line (8192 bytes)
-#: and their number (128), so up to 1 MiB; the lobby cuts off a request larger than this.
-MAX_HEAD_BYTES = 65536
 #: Time to read a whole request [s] (a slow sender is cut off).
 READ_TIMEOUT_S = 5.0
 #: Time to answer a request once read [s]: the back ends bound each step (statuses, a room's
 #: build, the allocator), this bounds a request waiting behind others for the same name.
 ANSWER_TIMEOUT_S = 120.0
-#: Time a refused connection (answered 429 or 503 as it arrives) is kept to read its answer
-#: before it is cut off [s].
-REFUSED_READ_TIMEOUT_S = 1.0
 #: Connections the kernel queues before the lobby accepts them: a burst of connections from
 #: one address (refused at once, but accepted first) must not overflow the queue, or others'
 #: connection attempts are dropped and retried by TCP a second later.
@@ -152,108 +148,6 @@ def _response(status: HTTPStatus, payload: Any, extra: Sequence[tuple[str, str]]
         ]
     )
     return Response(status.value, status.phrase, headers, body)
-
-
-def _canned(status: HTTPStatus, message: str) -> bytes:
-    """The bytes of a refusal written before a request is read (see :class:`_LobbyConnection`)."""
-    body = (json.dumps({"error": message, "status": status.value}) + "\n").encode()
-    head = (
-        f"HTTP/1.1 {status.value} {status.phrase}\r\nContent-Type: application/json\r\n"
-        f"Content-Length: {len(body)}\r\nCache-Control: no-store\r\nRetry-After: 1\r\n"
-        "Connection: close\r\n\r\n"
-    )
-    return head.encode() + body
-
-
-_REFUSALS = {
-    "budget": _canned(HTTPStatus.TOO_MANY_REQUESTS, "too many requests; slow down"),
-    "address": _canned(
-        HTTPStatus.SERVICE_UNAVAILABLE, "too many connections from your address at once; try again"
-    ),
-    "total": _canned(HTTPStatus.SERVICE_UNAVAILABLE, "the lobby is busy; try again"),
-}
-
-
-class _LobbyConnection(ServerConnection):
-    """websockets' server connection with the lobby's limits on a request not yet read.
-
-    websockets' parser bounds each line (:data:`websockets.http11.MAX_LINE_LENGTH`) and the
-    number of header lines (:data:`websockets.http11.MAX_NUM_HEADERS`), not their sum, and its
-    ``open_timeout`` covers the whole handshake, the lobby's answer included (a room may take
-    :data:`ROOM_BUILD_TIMEOUT_S` to build). So this subclass (websockets' ``create_connection``)
-    counts the connections open, cuts off one whose request is not read within the lobby's
-    ``read_timeout_s`` or whose bytes before its request exceed :data:`MAX_HEAD_BYTES`, and
-    leaves the parsing to websockets. :meth:`Lobby.start` makes a subclass bound to its lobby.
-
-    A connection from an address whose request budget is spent (429), or over a connection
-    limit (503; :class:`server.lobby_limits.ConnectionCounts`: per address, in all), is refused
-    as it arrives, before websockets sees it: a canned answer with ``Retry-After`` is written,
-    the connection half-closed and cut off :data:`REFUSED_READ_TIMEOUT_S` later whatever it
-    sends. A flood from one address so costs little more than its accept, idle sockets from one
-    address hold at most ``per_address`` places, and everyone else is served. (A trusted
-    proxy's budget is its clients', charged once their request is read.)
-    """
-
-    lobby: Lobby
-    refused: str | None = None  #: why it was refused ("budget", "address", "total"), or None
-    peer: str = "?"
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self._head_bytes = 0
-        peer = transport.get_extra_info("peername")
-        self.peer = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
-        lobby = self.lobby
-        proxy = is_trusted(self.peer, lobby.trusted_proxies)
-        if not proxy and lobby.budgets.spent(self.peer, time.monotonic()):
-            self.refused = "budget"
-        else:
-            self.refused = lobby.connections.admit(self.peer, proxy=proxy)
-        if self.refused is not None:
-            self._refuse(transport, self.refused)
-            return
-        super().connection_made(transport)
-        self._deadline = self.loop.call_later(lobby.read_timeout_s, self._read_late)
-
-    def _refuse(self, transport: asyncio.BaseTransport, why: str) -> None:
-        """Answer a refused connection with a canned 429 or 503 and let it go."""
-        assert isinstance(transport, asyncio.Transport)
-        self.lobby._count("connections_refused", why)
-        status = HTTPStatus.TOO_MANY_REQUESTS if why == "budget" else HTTPStatus.SERVICE_UNAVAILABLE
-        self.lobby.answered[status.value] = self.lobby.answered.get(status.value, 0) + 1
-        transport.write(_REFUSALS[why])
-        if transport.can_write_eof():
-            transport.write_eof()  # the answer, then FIN; the client's bytes are read and dropped
-        else:
-            transport.close()
-        self._deadline = self.loop.call_later(REFUSED_READ_TIMEOUT_S, transport.abort)
-
-    def data_received(self, data: bytes) -> None:
-        if self.refused is not None:
-            return
-        if self.request is None:
-            self._head_bytes += len(data)
-            if self._head_bytes > MAX_HEAD_BYTES:
-                self.lobby._dropped("headers over the lobby's limit")
-                self.transport.abort()
-                return
-        super().data_received(data)
-
-    def _read_late(self) -> None:
-        if self.request is None:
-            self.lobby._dropped("request not read in time")
-            self.transport.abort()
-
-    def eof_received(self) -> bool | None:
-        if self.refused is not None:
-            return None  # the client is done: close
-        return super().eof_received()
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self._deadline.cancel()
-        if self.refused is not None:
-            return  # websockets never saw it
-        self.lobby.connections.release(self.peer)
-        super().connection_lost(exc)
 
 
 class Lobby:
@@ -366,7 +260,7 @@ class Lobby:
     # -- the service -------------------------------------------------------------------------
     async def start(self) -> None:
         """Listen; :attr:`port` is the port taken."""
-        connection = type("LobbyConnection", (_LobbyConnection,), {"lobby": self})
+        connection = type("BoundLobbyConnection", (LobbyConnection,), {"lobby": self})
         self._server = await serve(
             self._never_upgraded,
             self.host,
@@ -374,7 +268,7 @@ class Lobby:
             process_request=self._process_request,
             ssl=self.ssl_context,
             ssl_handshake_timeout=self.read_timeout_s if self.ssl_context is not None else None,
-            open_timeout=None,  # the read deadline is _LobbyConnection's; the answer's, ours
+            open_timeout=None,  # the read deadline is LobbyConnection's; the answer's, ours
             server_header=None,
             create_connection=connection,
             backlog=LISTEN_BACKLOG,
@@ -388,6 +282,9 @@ class Lobby:
         )  # fmt: skip
 
     async def stop(self) -> None:
+        """Stop listening and give up the placements under way (their waiters are gone)."""
+        for flight in list(self._flights.values()):
+            flight.cancel()
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(Exception):
