@@ -7,7 +7,8 @@ token for it (:func:`server.security.make_room_token`, signed with the secret th
 with the room servers' ``--token-secret-file``). Two back ends find the server
 (:mod:`server.lobby_backends`): :class:`LocalServers` (``--server URL``: the room servers'
 ``/status``, a room made on demand) and :class:`AgonesAllocator` (``--agones-allocator URL``:
-one GameServerAllocation with list selectors on the fleet's ``rooms`` list).
+one GameServerAllocation with list selectors on the fleet's ``rooms`` list,
+:mod:`server.lobby_agones`).
 
 Each name is placed once: a request for a name whose placement is under way gets that
 placement's outcome instead of placing it again, so two users asking at once for a room nobody
@@ -58,16 +59,15 @@ from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
+from haptic_collab.server.lobby_agones import AgonesAllocator, allocation_request
 from haptic_collab.server.lobby_backends import (
     BACKEND_TIMEOUT_S,
     ROOM_BUILD_TIMEOUT_S,
-    AgonesAllocator,
     Backend,
     LobbyError,
     LocalServers,
     Placement,
     RoomServer,
-    allocation_request,
     load_servers,
 )
 from haptic_collab.server.lobby_http import (

@@ -7,6 +7,8 @@ land on two servers: the first test shows that happening to two lobbies that do 
 other. Given each other as peers (server/lobby_peers.py), every name has one owner that places
 it, and users asking through either replica at once all end up on one server. While a name's
 owner is down, a request for that name is refused with ``Retry-After``, never placed elsewhere.
+A name asked again moments after its placement, while the allocator's cache does not show it
+yet, is answered from the lobby's memory instead of allocated again.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import Any
 from haptic_collab.server.lobby import AgonesAllocator, Lobby
 from haptic_collab.server.lobby_peers import Peers
 from haptic_collab.server.security import MIN_SECRET_BYTES, check_room_token
-from tests.support.agones_allocator import Allocator, GameServer
+from tests.support.agones_allocator import Allocator, GameServer, LaggingCacheAllocator
 
 SECRET = b"r" * MIN_SECRET_BYTES
 ASKERS = ThreadPoolExecutor(48, thread_name_prefix="asker")
@@ -123,6 +125,26 @@ async def test_replicas_that_know_each_other_place_every_name_once() -> None:
             assert b.counts.get(("peer_asked", ""), 0) > 0
             allocated = [c.body["lists"]["rooms"]["addValues"][0] for c in alloc.calls]
             assert sorted(allocated) == sorted(names)
+
+
+async def test_a_name_asked_again_while_the_allocators_cache_lags_stays_on_its_server() -> None:
+    # each allocator pod matches against an informer cache that lags the writes: an allocation
+    # soon after another for the same name does not see its list entry
+    for remember_s, servers in ((0.0, 2), (3.0, 1)):
+        with LaggingCacheAllocator(fleet(3), cache_lag_s=1.0) as alloc:
+            backend = AgonesAllocator(alloc.url, match_labels=FLEET, remember_s=remember_s)
+            lobby = Lobby(backend, SECRET, port=0)
+            await lobby.start()
+            try:
+                first = await ask(lobby, "/rooms/anatomy", "127.0.4.1")
+                again = await ask(lobby, "/rooms/anatomy", "127.0.4.2")  # right after
+            finally:
+                await lobby.stop()
+            assert (first[0], again[0]) == (200, 200)
+            # asking the allocator every time (remember_s 0) puts the second user elsewhere;
+            # the lobby's memory of the placement keeps both on one server
+            assert len(alloc.holding("anatomy")) == servers, remember_s
+            assert (first[2]["url"] == again[2]["url"]) == (servers == 1)
 
 
 async def test_while_a_names_owner_is_down_it_is_refused_not_placed_twice() -> None:
