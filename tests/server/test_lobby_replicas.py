@@ -7,6 +7,7 @@ land on two servers: the first test shows that happening to two lobbies that do 
 other. Given each other as peers (server/lobby_peers.py), every name has one owner that places
 it, and users asking through either replica at once all end up on one server. While a name's
 owner is down, a request for that name is refused with ``Retry-After``, never placed elsewhere.
+Two ``haptic lobby`` processes given each other with ``--peer`` do the same.
 A name asked again moments after its placement, while the allocator's cache does not show it
 yet, is answered from the lobby's memory instead of allocated again.
 """
@@ -17,14 +18,21 @@ import asyncio
 import contextlib
 import http.client
 import json
+import socket
+import subprocess
+import time
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
+
+from prometheus_client.parser import text_string_to_metric_families
 
 from haptic_collab.server.lobby import AgonesAllocator, Lobby
 from haptic_collab.server.lobby_peers import Peers
 from haptic_collab.server.security import MIN_SECRET_BYTES, check_room_token
 from tests.support.agones_allocator import Allocator, GameServer, LaggingCacheAllocator
+from tests.support.processes import ROOT, haptic
 
 SECRET = b"r" * MIN_SECRET_BYTES
 ASKERS = ThreadPoolExecutor(48, thread_name_prefix="asker")
@@ -45,8 +53,15 @@ def fleet(n: int, capacity: int = 4) -> list[GameServer]:
     ]
 
 
+class _At:
+    """What :func:`ask` needs of a lobby: its port."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+
+
 async def ask(
-    lobby: Lobby, path: str, source: str = "127.0.0.1"
+    lobby: Lobby | _At, path: str, source: str = "127.0.0.1"
 ) -> tuple[int, dict[str, str], dict[str, Any]]:
     """(status, headers, JSON answer) of ``GET path``, sent from the address ``source``."""
 
@@ -172,3 +187,71 @@ async def test_a_peer_request_without_the_replicas_signature_is_not_served() -> 
             assert status == 404
             assert "GET /rooms/NAME" in answer["error"]
             assert alloc.calls == []
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def test_two_haptic_lobby_processes_given_as_peers_place_each_name_once(
+    tmp_path: Path,
+) -> None:
+    secret, metrics = tmp_path / "secret", tmp_path / "metrics-token"
+    secret.write_text("p" * 48)
+    metrics.write_text("metrics-token-0123456789\n")
+    ports = [free_port(), free_port()]
+    urls = [f"http://127.0.0.1:{p}" for p in ports]
+    names = [f"proc-{i}" for i in range(6)]
+    with Allocator(fleet(len(names)), lag_s=LAG_S) as alloc:
+        procs = []
+        try:
+            for port, me in zip(ports, urls, strict=True):
+                cmd = haptic(
+                    "lobby", "--port", str(port), "--token-secret-file", str(secret),
+                    "--agones-allocator", alloc.url, "--agones-fleet", "haptic-collab",
+                    "--metrics-token-file", str(metrics),
+                    "--peer", urls[0], "--peer", urls[1], "--peer-self", me,
+                )  # fmt: skip
+                procs.append(subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.DEVNULL))
+            deadline = time.monotonic() + 60.0
+            while any(not _listening(p) for p in ports):
+                assert time.monotonic() < deadline, "the lobbies did not start"
+                assert all(p.poll() is None for p in procs)
+                await asyncio.sleep(0.1)
+            lobbies = [_At(p) for p in ports]
+            asked = [(n, i % 2) for i, n in enumerate(names * 4)]
+            answers = await asyncio.gather(
+                *(
+                    ask(lobbies[which], f"/rooms/{n}", f"127.0.5.{i + 1}")
+                    for i, (n, which) in enumerate(asked)
+                )
+            )
+            assert [a[0] for a in answers] == [200] * len(asked), answers
+            for name in names:
+                assert len(alloc.holding(name)) == 1, (name, alloc.holding(name))
+            # each process says, on its /metrics, how many names it asked the other to place
+            conn = http.client.HTTPConnection("127.0.0.1", ports[0], timeout=10)
+            conn.request(
+                "GET", "/metrics", headers={"Authorization": "Bearer metrics-token-0123456789"}
+            )
+            text = conn.getresponse().read().decode()
+            conn.close()
+            got = {
+                (m.name, tuple(m.labels.items())): m.value
+                for f in text_string_to_metric_families(text)
+                for m in f.samples
+            }
+            assert got["haptic_lobby_peer_requests_total", (("direction", "asked"),)] > 0
+        finally:
+            for p in procs:
+                p.terminate()
+            for p in procs:
+                p.wait(10)
+
+
+def _listening(port: int) -> bool:
+    with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 0.2):
+        return True
+    return False
