@@ -163,6 +163,13 @@ class Peers:
                 )
             except KeyError:
                 pass
+        if code == HTTPStatus.NOT_FOUND and "GET /rooms/NAME" in str(answer):
+            # the owner took it for a user's request: the signature did not check out there
+            raise LobbyError(
+                HTTPStatus.BAD_GATEWAY,
+                f"the lobby replica {owner} refused this replica's request: do they share the "
+                "token secret, and do their clocks agree within 30 s?",
+            )
         if isinstance(answer, dict) and isinstance(answer.get("error"), str) and code >= 400:
             try:
                 status = HTTPStatus(code)

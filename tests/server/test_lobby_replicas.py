@@ -182,10 +182,20 @@ async def test_while_a_names_owner_is_down_it_is_refused_not_placed_twice() -> N
 
 async def test_a_peer_request_without_the_replicas_signature_is_not_served() -> None:
     with Allocator(fleet(1)) as alloc:
-        async with replicas(alloc.url, 2, peers=True) as (a, _b):
+        async with replicas(alloc.url, 2, peers=True) as (a, b):
             status, _, answer = await ask(a, "/peer/place/anatomy")
             assert status == 404
             assert "GET /rooms/NAME" in answer["error"]
+            assert alloc.calls == []
+            # a replica with another secret: the user is told what is wrong, not "not found"
+            b._secret = b"o" * MIN_SECRET_BYTES
+            assert a.peers is not None
+            theirs = next(
+                f"n-{i}" for i in range(100) if a.peers.owner(f"n-{i}") != a.peers.self_url
+            )
+            status, _, answer = await ask(a, f"/rooms/{theirs}")
+            assert status == 502
+            assert "do they share the token secret" in answer["error"]
             assert alloc.calls == []
 
 
