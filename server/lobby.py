@@ -253,8 +253,9 @@ class Lobby:
         self.answered: dict[int, int] = {}
         #: Connections cut off before their request was read (too slow, too large).
         self.dropped = 0
-        #: Events by (kind, reason): ``("connections_refused", "address" | "total")``,
-        #: ``("dropped", ...)``, ``("placement_busy", "")`` (read by /metrics).
+        #: Events by (kind, reason), read by /metrics: ``connections_refused`` (``budget``,
+        #: ``address``, ``total``), ``dropped`` (why), ``rooms_refused`` (``full``, ``busy``, an
+        #: HTTP status), ``placement_busy``, ``peer_asked``, ``peer_requests``.
         self.counts: dict[tuple[str, str], int] = {}
 
     # -- the service -------------------------------------------------------------------------
