@@ -16,15 +16,20 @@ lobby``'s own parser for every replica (after Kubernetes' ``$(VAR)`` expansion) 
 replica among its peers; every file it reads is on a volume that holds it; the probes, Services,
 PodDisruptionBudget, NetworkPolicy and PodMonitors select the pods and ports that exist; every
 metric and label an alert reads is one the lobby or the room server exports (from a real
-scrape), or Agones' documented ``agones_gameservers_count``. Not checked: that PromQL parses (no
-PromQL parser offline: only balanced brackets), and admission (a cluster's policies, quotas).
+scrape), or Agones' documented ``agones_gameservers_count``; each alert's PromQL parses by
+Prometheus' own grammar (@prometheus-io/lezer-promql, run with Node.js from tests/deploy/promql/,
+installed by ``make test``). Not checked: admission (a cluster's policies, quotas), and what an
+alert's query returns on real data.
 """
 
 from __future__ import annotations
 
 import copy
+import json
 import re
 import shlex
+import shutil
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -304,3 +309,31 @@ def test_every_alert_reads_metrics_and_labels_that_are_exported() -> None:
     exprs = {r["alert"]: r["expr"] for g in rule["spec"]["groups"] for r in g["rules"]}
     assert 'code="429"' in exprs["HapticAllocationExhausted"]
     assert 'type="Unhealthy"' in exprs["HapticGameServersUnhealthy"]
+
+
+PROMQL = ROOT / "tests" / "deploy" / "promql"
+
+
+def promql_errors(exprs: dict[str, str]) -> dict[str, list[str]]:
+    """Syntax errors of each PromQL expression, by Prometheus' grammar (tests/deploy/promql)."""
+    node = shutil.which("node")
+    if node is None or not (PROMQL / "node_modules" / "@prometheus-io").is_dir():
+        pytest.skip("PromQL grammar not installed: make test (or npm ci in tests/deploy/promql)")
+    done = subprocess.run(
+        [node, str(PROMQL / "check.mjs")],
+        input=json.dumps(exprs),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    return json.loads(done.stdout)  # type: ignore[no-any-return]
+
+
+def test_every_alert_expression_parses_as_promql() -> None:
+    rule = one("PrometheusRule")
+    exprs = {r["alert"]: r["expr"] for g in rule["spec"]["groups"] for r in g["rules"]}
+    assert promql_errors(exprs) == {name: [] for name in exprs}
+    # the check has teeth: a missing bracket and a doubled operator are errors
+    broken = promql_errors({"a": "sum(rate(x_total[5m])", "b": "rate(x_total[5m]) >> 1"})
+    assert all(broken.values()), broken
