@@ -2,8 +2,8 @@
 
 :class:`LocalServers` (``--server URL``) reads every room server's ``/status`` and picks the one
 running the room, else makes it on one with a free slot; the Agones back end
-(:mod:`server.lobby_agones`) asks the allocator. Both speak blocking HTTP (urllib) in the lobby's own thread pool (:data:`BACKEND_THREADS`),
-each call bounded in time; a timeout is a 503 with ``Retry-After``.
+(:mod:`server.lobby_agones`) asks the allocator. Both speak blocking HTTP (urllib) in the
+lobby's own thread pool (:data:`BACKEND_THREADS`), each call bounded in time; a timeout is a 503 with ``Retry-After``.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ import asyncio
 import json
 import time
 from http import HTTPStatus
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 from websockets.asyncio.server import ServerConnection
 
@@ -56,10 +56,11 @@ class LobbyConnection(ServerConnection):
     websockets' parser bounds each line (:data:`websockets.http11.MAX_LINE_LENGTH`) and the
     number of header lines (:data:`websockets.http11.MAX_NUM_HEADERS`), not their sum, and its
     ``open_timeout`` covers the whole handshake, the lobby's answer included (a room may take
-    :data:`server.lobby_backends.ROOM_BUILD_TIMEOUT_S` to build). So this subclass (websockets' ``create_connection``)
-    counts the connections open, cuts off one whose request is not read within the lobby's
-    ``read_timeout_s`` or whose bytes before its request exceed :data:`MAX_HEAD_BYTES`, and
-    leaves the parsing to websockets. :meth:`Lobby.start` makes a subclass bound to its lobby.
+    :data:`server.lobby_backends.ROOM_BUILD_TIMEOUT_S` to build). So this subclass (websockets'
+    ``create_connection``) counts the connections open, cuts off one whose request is not read
+    within the lobby's ``read_timeout_s`` or whose bytes before its request exceed
+    :data:`MAX_HEAD_BYTES`, and leaves the parsing to websockets. :meth:`Lobby.start` makes a
+    subclass bound to its lobby.
 
     A connection from an address whose request budget is spent (429), or over a connection
     limit (503; :class:`server.lobby_limits.ConnectionCounts`: per address, in all), is refused
@@ -92,9 +93,11 @@ class LobbyConnection(ServerConnection):
 
     def _refuse(self, transport: asyncio.BaseTransport, why: str) -> None:
         """Answer a refused connection with a canned 429 or 503 and let it go."""
-        assert isinstance(transport, asyncio.Transport)
+        transport = cast(asyncio.Transport, transport)
         self.lobby._count("connections_refused", why)
-        status = HTTPStatus.TOO_MANY_REQUESTS if why == "budget" else HTTPStatus.SERVICE_UNAVAILABLE
+        status = HTTPStatus.SERVICE_UNAVAILABLE
+        if why == "budget":
+            status = HTTPStatus.TOO_MANY_REQUESTS
         self.lobby.answered[status.value] = self.lobby.answered.get(status.value, 0) + 1
         transport.write(_REFUSALS[why])
         if transport.can_write_eof():

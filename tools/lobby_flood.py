@@ -2,7 +2,8 @@
 
 Starts the stand-in Agones allocator (tests/support/agones_allocator.py) in this process and a
 ``haptic lobby`` process in front of it, then runs three scenarios, each while a second address
-(127.0.0.3) asks for a room every 250 ms (within its budget of 5 a second) and records its answers and their latency:
+(127.0.0.3) asks for a room every 250 ms (within its budget of 5 a second) and records its
+answers and their latency:
 
 - ``idle``: 300 connections from 127.0.0.2 that send nothing, held for 5 s;
 - ``flood``: 1000 requests a second from 127.0.0.2 for 5 s (each its own connection);

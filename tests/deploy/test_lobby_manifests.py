@@ -79,7 +79,11 @@ def all_manifests() -> list[tuple[str, dict[str, Any]]]:
         *sorted((LOBBY / "examples").glob("*.yaml")),
         *sorted(MONITORING.glob("*.yaml")),
     ]
-    return [(f"{p.relative_to(ROOT)}:{d['kind']}/{d['metadata']['name']}", d) for p in paths for d in docs(p)]  # fmt: skip
+    return [
+        (f"{p.relative_to(ROOT)}:{d['kind']}/{d['metadata']['name']}", d)
+        for p in paths
+        for d in docs(p)
+    ]
 
 
 def prometheus_schemas() -> dict[tuple[str, str], dict[str, Any]]:
