@@ -110,10 +110,10 @@ async def test_two_lobbies_that_do_not_know_each_other_can_place_a_name_twice() 
 
 
 async def test_replicas_that_know_each_other_place_every_name_once() -> None:
-    names = [f"lab-{i}" for i in range(8)]
     # a server per name: the stand-in's lagging view sends new names at once to Ready servers
-    with Allocator(fleet(len(names)), lag_s=LAG_S) as alloc:
+    with Allocator(fleet(8), lag_s=LAG_S) as alloc:
         async with replicas(alloc.url, 2, peers=True) as (a, b):
+            names = owned_half_and_half(a.peers, 8)
             # every name asked 3 times through each replica, all at once, by 48 users
             asked = [(n, lobby) for n in names for lobby in (a, b, a, b, a, b)]
             answers = await asyncio.gather(
@@ -199,6 +199,15 @@ async def test_a_peer_request_without_the_replicas_signature_is_not_served() -> 
             assert alloc.calls == []
 
 
+def owned_half_and_half(peers: Peers | None, n: int) -> list[str]:
+    """``n`` room names, half owned by each of two replicas (the ports, so the owners, vary)."""
+    assert peers is not None and len(peers.urls) == 2
+    pool = [f"lab-{i}" for i in range(1000)]
+    first = [name for name in pool if peers.owner(name) == peers.urls[0]][: n // 2]
+    second = [name for name in pool if peers.owner(name) == peers.urls[1]][: n - n // 2]
+    return first + second
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -213,7 +222,7 @@ async def test_two_haptic_lobby_processes_given_as_peers_place_each_name_once(
     metrics.write_text("metrics-token-0123456789\n")
     ports = [free_port(), free_port()]
     urls = [f"http://127.0.0.1:{p}" for p in ports]
-    names = [f"proc-{i}" for i in range(6)]
+    names = owned_half_and_half(Peers.of(urls, urls[0]), 6)
     with Allocator(fleet(len(names)), lag_s=LAG_S) as alloc:
         procs = []
         try:
