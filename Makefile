@@ -6,6 +6,7 @@ STAMP   := $(VENV)/.installed
 RUNSTAMP := $(VENV)/.installed-run
 WEBSTAMP := web/node_modules/.installed
 JSSTAMP := client/js/node_modules/.installed
+PROMQLSTAMP := tests/deploy/promql/node_modules/.installed
 MESHSTAMP := tests/data/meshes/.fetched
 
 .PHONY: all install web-install js-install browser meshes test test-slow lint typecheck generated unit unit-slow demo bench reproduce clean wheel
@@ -40,6 +41,11 @@ $(JSSTAMP): client/js/package.json client/js/package-lock.json
 	touch $(JSSTAMP)
 
 js-install: $(JSSTAMP)
+
+# Prometheus' PromQL grammar, to parse the alerts of deploy/monitoring/ in the tests.
+$(PROMQLSTAMP): tests/deploy/promql/package.json tests/deploy/promql/package-lock.json
+	cd tests/deploy/promql && npm ci --no-audit --no-fund
+	touch $(PROMQLSTAMP)
 
 # Real meshes for the mesh tests (Stanford bunny, a CAD nut, a many-body ant, an open scan),
 # fetched by package name with npm and pip into tests/data/meshes/, never committed.
@@ -79,7 +85,7 @@ PYTEST_ARGS ?=
 # -rs: each skipped test is named with its reason.
 PYTEST  = $(BIN)/pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=25 -rs $(PYTEST_ARGS)
 PYTEST_ALONE = $(BIN)/pytest -q -n 0 --durations=10 -rs $(PYTEST_ARGS)
-UNITDEPS = $(STAMP) $(WEBSTAMP) $(JSSTAMP) $(MESHSTAMP) browser
+UNITDEPS = $(STAMP) $(WEBSTAMP) $(JSSTAMP) $(PROMQLSTAMP) $(MESHSTAMP) browser
 NOTESTS_OK = rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest: no tests selected"; exit 0; fi; exit $$rc
 
 # Every test but those marked `slow` (benchmark-shaped: fidelity grids, soaks, long runs end to end).
@@ -105,7 +111,7 @@ generated: $(STAMP)
 # and the disk), then the checks side by side with the meshes' fetch, then the tests on every
 # core. Each stage's output is kept together (--output-sync).
 test:
-	@$(MAKE) --no-print-directory -j4 --output-sync=target $(STAMP) $(WEBSTAMP) $(JSSTAMP) browser
+	@$(MAKE) --no-print-directory -j4 --output-sync=target $(STAMP) $(WEBSTAMP) $(JSSTAMP) $(PROMQLSTAMP) browser
 	@$(MAKE) --no-print-directory -j4 --output-sync=target lint typecheck generated $(MESHSTAMP)
 	@$(MAKE) --no-print-directory unit
 
@@ -121,4 +127,4 @@ bench: $(RUNSTAMP)
 	$(BIN)/haptic bench all --json
 
 clean:
-	rm -rf $(VENV) web/node_modules out demo-out build dist
+	rm -rf $(VENV) web/node_modules tests/deploy/promql/node_modules out demo-out build dist

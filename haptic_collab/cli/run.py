@@ -21,6 +21,7 @@ from haptic_collab.cli.args import (
     _nonneg,
     _nonneg_int,
     _positive,
+    _whole_positive,
     _why,
 )
 
@@ -513,6 +514,8 @@ def _cmd_lobby(args: argparse.Namespace) -> int:
     import signal
 
     from haptic_collab.server.lobby import Lobby
+    from haptic_collab.server.lobby_peers import Peers
+    from haptic_collab.server.main import ServerOptions, build_metrics_token
     from haptic_collab.server.security import TokenTable, load_secret
 
     _configure_logging(args)
@@ -520,9 +523,13 @@ def _cmd_lobby(args: argparse.Namespace) -> int:
     try:
         secret = load_secret(args.token_secret_file)
         auth = TokenTable.load(args.token_file) if args.token_file else None
+        metrics = build_metrics_token(ServerOptions(metrics_token_file=args.metrics_token_file))
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if bool(args.peer) != bool(args.peer_self):
+        raise CliError("--peer URL (every replica) and --peer-self URL (this one) go together")
     try:
+        peers = Peers.of(args.peer, args.peer_self) if args.peer else None
         lobby = Lobby(
             backend,
             secret,
@@ -532,6 +539,10 @@ def _cmd_lobby(args: argparse.Namespace) -> int:
             auth=auth,
             insecure=args.insecure,
             ssl_context=_tls_server_context(args.tls_cert, args.tls_key),
+            trusted_proxies=args.trusted_proxy,
+            max_connections_per_address=args.max_connections_per_address,
+            peers=peers,
+            metrics_token=metrics,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
@@ -641,6 +652,40 @@ def _add_lobby(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     )
     sec.add_argument("--tls-cert", default=None, metavar="PEM", help="serve https")
     sec.add_argument("--tls-key", default=None, metavar="PEM", help="the certificate's key")
+    sec.add_argument(
+        "--metrics-token-file",
+        default=None,
+        metavar="FILE",
+        help="the token a scrape of /metrics must carry (Bearer); without it /metrics is served "
+        "on loopback only",
+    )
+    lim = p.add_argument_group("limits and replicas (docs/deploy.md#finding-a-room)")
+    lim.add_argument(
+        "--trusted-proxy",
+        action="append",
+        default=[],
+        metavar="ADDRESS|NETWORK",
+        help="a proxy whose X-Forwarded-For names the client (e.g. 10.0.0.0/8; repeat); from "
+        "anyone else the header is ignored",
+    )
+    lim.add_argument(
+        "--max-connections-per-address",
+        type=_whole_positive,
+        default=16,
+        metavar="N",
+        help="connections one address may hold open at once (default %(default)s)",
+    )
+    lim.add_argument(
+        "--peer",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="every lobby replica, http(s)://HOST:PORT, the same list on each (repeat): each "
+        "room name is placed by one owner replica",
+    )
+    lim.add_argument(
+        "--peer-self", default=None, metavar="URL", help="this replica's entry of --peer"
+    )
     p.add_argument("--duration", type=_positive, default=None, help="stop after this many seconds")
     p.set_defaults(func=_cmd_lobby)
 

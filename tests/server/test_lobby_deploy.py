@@ -138,6 +138,18 @@ def test_the_lobby_and_client_commands_say_what_is_missing(tmp_path: Path, capsy
     with pytest.raises(SystemExit):
         main(["lobby", "--token-secret-file", str(secret), "--server", "ftp://h"])
     assert "http(s)://HOST:PORT" in capsys.readouterr().err
+    one = ["--token-secret-file", str(secret), "--server", "http://h:1"]
+    assert main(["lobby", *one, "--trusted-proxy", "lb.example"]) == 2
+    assert "address or a network such as 10.0.0.0/8, got 'lb.example'" in capsys.readouterr().err
+    assert main(["lobby", *one, "--peer", "http://a:8780"]) == 2
+    assert "--peer-self URL (this one) go together" in capsys.readouterr().err
+    peers = ["--peer", "http://a:8780", "--peer", "http://b:8780", "--peer-self", "http://c:8780"]
+    assert main(["lobby", *one, *peers]) == 2
+    assert "is not among its peers" in capsys.readouterr().err
+    bad = tmp_path / "metrics-token"
+    bad.write_text("short")
+    assert main(["lobby", *one, "--metrics-token-file", str(bad)]) == 2
+    assert "the metrics token file must hold one token" in capsys.readouterr().err
     assert main(["client", "--lobby", "http://127.0.0.1:1"]) == 2
     assert "--room NAME go together" in capsys.readouterr().err
     assert main(["client", "--lobby", "http://h:1", "--room", "a", "--url", "ws://h/ws"]) == 2

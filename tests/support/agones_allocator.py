@@ -33,6 +33,8 @@ tests/support/agones_sidecar.py), as a real GameServer's status is what its SDK 
 its state and lists are then read from that sidecar, and an allocation is written to it
 (:meth:`Sidecar.allocate`), so the room server's own list updates and the allocations meet in
 one place, as in a cluster.
+
+:class:`LaggingCacheAllocator` adds a third reading: a cache that lags the writes themselves.
 """
 
 from __future__ import annotations
@@ -206,12 +208,7 @@ class Allocator:
                 "details": [],
             }
             return self._reply(h, call.status, call.answer)
-        with self._lock:  # the informer's view when the request arrives
-            for gs in self.servers:
-                gs.refresh()
-            view = [copy.copy(gs) for gs in self.servers]
-            for gs in view:
-                gs.lists = copy.deepcopy(gs.lists)
+        view = self._view()  # the informer's view when the request arrives
         chosen = self._match(call.body, view)
         if self.lag_s:
             time.sleep(self.lag_s)
@@ -230,6 +227,17 @@ class Allocator:
             )
             call.status, call.answer = 200, answer
         self._reply(h, call.status, call.answer)
+
+    def _view(self) -> list[GameServer]:
+        """The GameServers as the selectors see them: as they are now (one backed by a sidecar
+        as that sidecar last wrote it)."""
+        with self._lock:
+            for gs in self.servers:
+                gs.refresh()
+            view = [copy.copy(gs) for gs in self.servers]
+            for gs in view:
+                gs.lists = copy.deepcopy(gs.lists)
+            return view
 
     @staticmethod
     def _passes(sel: dict[str, Any], gs: GameServer) -> bool:
@@ -302,3 +310,33 @@ class Allocator:
                 for n, v in gs.lists.items()
             },
         }
+
+
+# ------------------------------------------------------------ an informer that lags the writes
+class LaggingCacheAllocator(Allocator):
+    """The stand-in with a cache that lags the writes by ``cache_lag_s``, as an allocator pod's
+    informer does (and another pod's more so): a request is matched against the GameServers as
+    they were ``cache_lag_s`` before it arrived, so an allocation that follows another for the
+    same name within that time does not see its list entry. (:class:`Allocator`'s ``lag_s`` is
+    the other race: two requests matched against one view.) Used by the lobby's tests; the
+    interface is :class:`Allocator`'s, with ``cache_lag_s`` [s] added.
+    """
+
+    def __init__(self, servers: list[GameServer], cache_lag_s: float, **kw: Any) -> None:
+        super().__init__(servers, **kw)
+        self.cache_lag_s = float(cache_lag_s)
+        #: (time.monotonic() of a write, the fleet after it), oldest first
+        self._history: list[tuple[float, list[GameServer]]] = [
+            (-float("inf"), copy.deepcopy(servers))
+        ]
+
+    def _view(self) -> list[GameServer]:
+        seen = time.monotonic() - self.cache_lag_s
+        with self._lock:
+            return copy.deepcopy([v for t, v in self._history if t <= seen][-1])
+
+    def _write(self, body: dict[str, Any], chosen: tuple[str, str] | None) -> dict[str, Any] | None:
+        answer = super()._write(body, chosen)  # called under the lock
+        if answer is not None:
+            self._history.append((time.monotonic(), copy.deepcopy(self.servers)))
+        return answer
