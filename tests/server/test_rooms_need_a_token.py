@@ -33,13 +33,20 @@ HANDSHAKES = 1000
 
 
 @contextlib.asynccontextmanager
-async def token_server(tmp_path: Path, max_rooms: int = 3) -> AsyncIterator[int]:
-    """``haptic server --token-secret-file F --max-rooms N`` with a template for any name; its
-    port."""
+async def token_server(
+    tmp_path: Path, max_rooms: int = 3, *, host: str = "127.0.0.1", metrics_token: str = ""
+) -> AsyncIterator[int]:
+    """``haptic server --token-secret-file F --max-rooms N`` with a template for any name (and
+    ``--metrics-token-file`` holding ``metrics_token``, if given); its port."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
     secret = tmp_path / "secret"
     secret.write_bytes(SECRET)
+    metrics_file = tmp_path / "metrics-token"
+    metrics_file.write_text(metrics_token + "\n")
     opts = ServerOptions(
+        host=host,
         port=0,
+        metrics_token_file=str(metrics_file) if metrics_token else None,
         sim_rate_hz=20.0,
         subdivisions=1,
         token_secret_file=str(secret),
@@ -152,3 +159,35 @@ async def test_a_silent_connection_is_closed_and_waiting_ones_are_bounded(tmp_pa
         codes = sorted(ws.close_code for ws in opened)
         assert codes == [1008] * 8 + [1013] * 4  # 8 waited for a hello, 4 were one too many
         assert await rooms_of(port) == [DEFAULT_ROOM]
+
+
+async def test_two_new_names_never_share_the_last_free_slot_of_a_server(tmp_path) -> None:
+    """The lobby makes each new room with its user's token in the handshake: the room exists
+    (and ``/status`` counts it) before the lobby answers, so a server with one free slot gets
+    one new name and the next goes to the other server; both users are welcomed. (Before, the
+    tokenless handshake made no room, both names went to the first server, and the second
+    user got ``room_unavailable``.)"""
+    async with (
+        token_server(tmp_path / "a", max_rooms=2) as port_a,
+        token_server(tmp_path / "b", max_rooms=2) as port_b,
+    ):
+        lobby = Lobby(
+            LocalServers([RoomServer(f"http://127.0.0.1:{p}") for p in (port_a, port_b)]),
+            SECRET,
+            port=0,
+        )
+        await lobby.start()
+        try:
+            answers = []
+            for name in ("anatomy-1", "anatomy-2"):  # one after the other, nobody joined yet
+                status, answer = await ask(lobby, f"/rooms/{name}")
+                assert status == 200, answer
+                answers.append(answer)
+            assert answers[0]["server"] != answers[1]["server"]
+            for answer in answers:
+                got = await first_answer(answer["url"], answer["token"])
+                assert got["type"] == "welcome", got
+        finally:
+            await lobby.stop()
+        assert await rooms_of(port_a) != await rooms_of(port_b)
+        assert {"anatomy-1", "anatomy-2"} <= set(await rooms_of(port_a) + await rooms_of(port_b))
