@@ -253,6 +253,22 @@ def _http_json(
         return status, raw.decode("utf-8", "replace").strip()
 
 
+def load_status_token(path: str | Path) -> str:
+    """The room servers' metrics token of a file (its one line, whitespace stripped), which
+    :class:`LocalServers` sends with each ``/status`` request (``--status-token-file``).
+
+    Raises
+    ------
+    ValueError
+        A file that cannot be read, or whose content is not one token (16-256 printable
+        characters without spaces or ``#``); the message never shows the file's content.
+    """
+    from haptic_collab.server.main import ServerOptions, build_metrics_token
+
+    build_metrics_token(ServerOptions(metrics_token_file=str(path)))  # readable, one token
+    return Path(path).read_text(encoding="utf-8").strip()
+
+
 # ------------------------------------------------------------------------------ local back end
 class LocalServers:
     """The local back end: a fixed list of room servers, each asked for its ``/status``.

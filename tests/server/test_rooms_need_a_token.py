@@ -21,6 +21,8 @@ from typing import Any
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
+from haptic_collab.cli import build_parser
+from haptic_collab.cli.run import _lobby_backend
 from haptic_collab.server.app import DEFAULT_ROOM
 from haptic_collab.server.lobby import Lobby, LocalServers, RoomServer
 from haptic_collab.server.main import ServerOptions, run_server
@@ -191,3 +193,32 @@ async def test_two_new_names_never_share_the_last_free_slot_of_a_server(tmp_path
             await lobby.stop()
         assert await rooms_of(port_a) != await rooms_of(port_b)
         assert {"anatomy-1", "anatomy-2"} <= set(await rooms_of(port_a) + await rooms_of(port_b))
+
+
+async def test_the_lobby_reads_the_status_of_a_server_off_loopback_with_its_metrics_token(
+    tmp_path,
+) -> None:
+    """A room server listening off loopback answers ``/status`` only with its metrics token:
+    a lobby without it finds no server (503), one given the same token file
+    (``--status-token-file``) places the name and its user is welcomed. (The server listens on
+    0.0.0.0; every request goes to 127.0.0.1.)"""
+    metrics = "m" * 32
+    token_file = tmp_path / "status-token"
+    token_file.write_text(metrics + "\n")
+    async with token_server(tmp_path / "s", host="0.0.0.0", metrics_token=metrics) as port:
+        server = f"http://127.0.0.1:{port}"
+        argv = ["lobby", "--token-secret-file", str(tmp_path / "s" / "secret"), "--server", server]
+        without = _lobby_backend(build_parser().parse_args(argv))
+        with_token = _lobby_backend(
+            build_parser().parse_args([*argv, "--status-token-file", str(token_file)])
+        )
+        for backend, expected in ((without, 503), (with_token, 200)):
+            lobby = Lobby(backend, SECRET, port=0)
+            await lobby.start()
+            try:
+                status, answer = await ask(lobby, "/rooms/anatomy-1")
+            finally:
+                await lobby.stop()
+            assert status == expected, answer
+        got = await first_answer(answer["url"], answer["token"])
+        assert got["type"] == "welcome", got
