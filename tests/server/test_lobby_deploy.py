@@ -60,7 +60,11 @@ def test_two_room_servers_and_a_lobby_that_points_at_them(tmp_path: Path) -> Non
     args = parser.parse_args(command(lobby_svc))
     assert args.command == "lobby" and args.token_secret_file == "/run/secrets/token_secret"
     assert "token_secret" in lobby_svc["secrets"]
+    assert args.status_token_file == "/run/secrets/metrics_token"
+    args.status_token_file = str(tmp_path / "metrics_token")  # the secret, here
+    (tmp_path / "metrics_token").write_text("t" * 32 + "\n")
     backend = _lobby_backend(args)
+    assert backend.status_token == "t" * 32
     assert [s.url for s in backend.servers] == ["http://room-a:8765", "http://room-b:8765"]
     assert [s.bases[0] for s in backend.servers] == [
         f"ws://localhost:{published['room-a']}",
@@ -69,6 +73,30 @@ def test_two_room_servers_and_a_lobby_that_points_at_them(tmp_path: Path) -> Non
     assert lobby_svc["ports"] == [f"127.0.0.1:{args.port}:{args.port}"]
     assert set(lobby_svc["depends_on"]) == {"room-a", "room-b"}
     assert compose()["secrets"]["token_secret"]["file"]
+
+
+def test_status_is_read_with_the_metrics_token_the_servers_off_loopback_require() -> None:
+    """Every server here listens on 0.0.0.0, so its ``/status`` answers only with its metrics
+    token (403 without one configured): the lobby and every healthcheck that reads ``/status``
+    send the token the server checks, from a secret the service mounts; the others do not read
+    it (a healthcheck that fails keeps the lobby and the users from starting)."""
+    services = compose()["services"]
+    parser = build_parser()
+    lobby = parser.parse_args(command(services["lobby"]))
+    for name, svc in services.items():
+        args = parser.parse_args(command(svc))
+        if args.command != "server":
+            continue
+        assert args.host == "0.0.0.0"
+        check = " ".join(svc["healthcheck"]["test"])
+        if "/status" in check:
+            assert args.metrics_token_file and args.metrics_token_file in check, name
+        if name in ("room-a", "room-b"):  # the lobby reads their /status
+            assert args.metrics_token_file == lobby.status_token_file, name
+        if args.metrics_token_file:
+            secret = args.metrics_token_file.removeprefix("/run/secrets/")
+            assert secret in svc["secrets"] and secret in compose()["secrets"], name
+    assert "metrics_token" in services["lobby"]["secrets"]
 
 
 def test_the_services_there_before_still_run_the_same_commands() -> None:
