@@ -484,6 +484,11 @@ def _lobby_backend(args: argparse.Namespace):  # type: ignore[no-untyped-def]
             "give the room servers (--server URL, --servers-file FILE) or --agones-allocator URL, "
             "one of the two"
         )
+    if args.status_token_file and not servers:
+        raise CliError(
+            "--status-token-file is for the local room servers (--server): the Agones back end "
+            "does not read /status"
+        )
     if servers:
         status_token = None
         if args.status_token_file:

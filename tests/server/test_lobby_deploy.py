@@ -178,6 +178,13 @@ def test_the_lobby_and_client_commands_say_what_is_missing(tmp_path: Path, capsy
     bad.write_text("short")
     assert main(["lobby", *one, "--metrics-token-file", str(bad)]) == 2
     assert "the metrics token file must hold one token" in capsys.readouterr().err
+    assert main(["lobby", *one, "--status-token-file", str(bad)]) == 2
+    assert "the metrics token file must hold one token" in capsys.readouterr().err
+    assert main(["lobby", *one, "--status-token-file", str(tmp_path / "none")]) == 2
+    assert "cannot read the metrics token file" in capsys.readouterr().err
+    agones = ["--token-secret-file", str(secret), "--agones-allocator", "http://h:2"]
+    assert main(["lobby", *agones, "--status-token-file", str(bad)]) == 2
+    assert "--status-token-file is for the local room servers" in capsys.readouterr().err
     assert main(["client", "--lobby", "http://127.0.0.1:1"]) == 2
     assert "--room NAME go together" in capsys.readouterr().err
     assert main(["client", "--lobby", "http://h:1", "--room", "a", "--url", "ws://h/ws"]) == 2

@@ -222,3 +222,19 @@ async def test_the_lobby_reads_the_status_of_a_server_off_loopback_with_its_metr
             assert status == expected, answer
         got = await first_answer(answer["url"], answer["token"])
         assert got["type"] == "welcome", got
+
+
+async def test_a_server_that_refuses_the_lobbys_room_token_is_a_clear_502(tmp_path) -> None:
+    """A lobby whose token secret is not the servers' gets its handshake refused (401): it
+    answers 502 and says why, rather than hand the user a token the server will refuse."""
+    async with token_server(tmp_path) as port:
+        other = b"o" * MIN_SECRET_BYTES
+        lobby = Lobby(LocalServers([RoomServer(f"http://127.0.0.1:{port}")]), other, port=0)
+        await lobby.start()
+        try:
+            status, answer = await ask(lobby, "/rooms/anatomy-1")
+        finally:
+            await lobby.stop()
+        assert status == 502, answer
+        assert "token secret is not the lobby's" in answer["error"]
+        assert await rooms_of(port) == [DEFAULT_ROOM]
