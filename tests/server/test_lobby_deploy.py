@@ -189,3 +189,39 @@ def test_the_lobby_and_client_commands_say_what_is_missing(tmp_path: Path, capsy
     assert "--room NAME go together" in capsys.readouterr().err
     assert main(["client", "--lobby", "http://h:1", "--room", "a", "--url", "ws://h/ws"]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+async def test_the_room_servers_healthcheck_passes_against_a_server_off_loopback(
+    tmp_path: Path,
+) -> None:
+    """room-a's healthcheck, run as Docker runs it, against a server listening on 0.0.0.0 with
+    a metrics token (as in its container; the request goes to 127.0.0.1): it passes, and fails
+    without the token (what kept the lobby from starting). Only the port and the secret's path
+    differ from the compose file."""
+    import asyncio
+    import subprocess
+    import sys
+
+    from tests.server.test_rooms_need_a_token import token_server
+
+    svc = compose()["services"]["room-a"]
+    kind, *test = svc["healthcheck"]["test"]
+    assert kind == "CMD" and test[:2] == ["python", "-c"]
+    code = test[2]
+    token = "h" * 32
+    secret = tmp_path / "metrics_token"
+    secret.write_text(token + "\n")
+    async with token_server(tmp_path / "s", host="0.0.0.0", metrics_token=token) as port:
+        here = code.replace("127.0.0.1:8765", f"127.0.0.1:{port}").replace(
+            "/run/secrets/metrics_token", str(secret)
+        )
+        assert here != code and "/status" in here
+
+        def run(src: str) -> int:
+            return subprocess.run(
+                [sys.executable, "-c", src], capture_output=True, timeout=60
+            ).returncode
+
+        assert await asyncio.to_thread(run, here) == 0
+        bare = f"import urllib.request; urllib.request.urlopen('http://127.0.0.1:{port}/status')"
+        assert await asyncio.to_thread(run, bare) != 0  # 401: the check before this change
