@@ -160,7 +160,9 @@ class Lobby:
     Parameters
     ----------
     backend : Backend
-        :class:`LocalServers` or :class:`AgonesAllocator`.
+        :class:`LocalServers` or :class:`AgonesAllocator`. A :class:`LocalServers` without a
+        ``room_token`` gets the lobby's: the handshake that makes a room carries a user's token
+        for it (a server with tokens makes the room at once only for that).
     secret : bytes
         The token secret the room servers share (:func:`server.security.load_secret`).
     host : str
@@ -228,6 +230,10 @@ class Lobby:
                 "--token-file (or --insecure)"
             )
         make_room_token(secret, "default", "user", clock() + 1.0)  # a usable secret, or raise
+        if isinstance(backend, LocalServers) and backend.room_token is None:
+            # the handshake that makes a room carries the token its user will get (a server
+            # with tokens makes the room at once only then, so /status counts it at once)
+            backend.room_token = self._user_token
         self.backend = backend
         self._secret = secret
         self.host = host
@@ -442,6 +448,10 @@ class Lobby:
             if role == "user" and entry.role != "user":
                 raise LobbyError(HTTPStatus.FORBIDDEN, "this token may only watch (role viewer)")
         return role
+
+    def _user_token(self, name: str) -> str:
+        """A user's room token for room ``name``, valid :attr:`token_ttl_s` seconds."""
+        return make_room_token(self._secret, name, "user", int(self.clock() + self.token_ttl_s))
 
     async def join(self, name: str, role: Role) -> dict[str, Any]:
         """Where room ``name`` runs and a token for ``role`` in it (the answer's JSON).

@@ -253,6 +253,22 @@ def _http_json(
         return status, raw.decode("utf-8", "replace").strip()
 
 
+def load_status_token(path: str | Path) -> str:
+    """The room servers' metrics token of a file (its one line, whitespace stripped), which
+    :class:`LocalServers` sends with each ``/status`` request (``--status-token-file``).
+
+    Raises
+    ------
+    ValueError
+        A file that cannot be read, or whose content is not one token (16-256 printable
+        characters without spaces or ``#``); the message never shows the file's content.
+    """
+    from haptic_collab.server.main import ServerOptions, build_metrics_token
+
+    build_metrics_token(ServerOptions(metrics_token_file=str(path)))  # readable, one token
+    return Path(path).read_text(encoding="utf-8").strip()
+
+
 # ------------------------------------------------------------------------------ local back end
 class LocalServers:
     """The local back end: a fixed list of room servers, each asked for its ``/status``.
@@ -267,6 +283,16 @@ class LocalServers:
         TLS context for ``https://`` servers (default: the system's CAs).
     build_timeout_s : float
         Time a server may take to make a room [s] (:data:`ROOM_BUILD_TIMEOUT_S`).
+    room_token : callable, optional
+        ``room_token(name)``: a room token for room ``name`` (a user's, signed with the secret
+        the servers share), sent as ``Authorization: Bearer`` in the handshake that makes the
+        room: a server with tokens makes a room at the handshake only for a token that names it
+        (docs/rooms-operations.md). :class:`server.lobby.Lobby` sets it (its own signer) when
+        None. Without one the handshake carries no token.
+    status_token : str, optional
+        The servers' metrics token (their ``--metrics-token-file``), sent as ``Authorization:
+        Bearer`` with each ``/status`` request: a server listening off loopback answers
+        ``/status`` only with it (401 with another or none, 403 when it has none).
 
     Raises
     ------
@@ -280,6 +306,9 @@ class LocalServers:
         timeout_s: float = BACKEND_TIMEOUT_S,
         context: ssl.SSLContext | None = None,
         build_timeout_s: float = ROOM_BUILD_TIMEOUT_S,
+        *,
+        room_token: Callable[[str], str] | None = None,
+        status_token: str | None = None,
     ) -> None:
         if not servers:
             raise ValueError("the local lobby needs at least one room server (--server URL)")
@@ -287,6 +316,8 @@ class LocalServers:
         self.timeout_s = float(timeout_s)
         self.context = context
         self.build_timeout_s = float(build_timeout_s)
+        self.room_token = room_token
+        self.status_token = status_token
         #: The last rooms the lobby made: (server URL, room name), oldest first.
         self.made: deque[tuple[str, str]] = deque(maxlen=MADE_KEPT)
 
@@ -294,14 +325,29 @@ class LocalServers:
         return {"backend": "local", "servers": [s.url for s in self.servers]}
 
     async def status(self, server: RoomServer) -> dict[str, Any] | None:
-        """A server's ``/status`` (None: it did not answer, or not with a status)."""
+        """A server's ``/status`` (None: it did not answer, or not with a status), asked with
+        :attr:`status_token` when there is one."""
+        headers = (
+            {} if self.status_token is None else {"Authorization": f"Bearer {self.status_token}"}
+        )
         try:
             code, answer = await _in_pool(
                 _http_json, "GET", server.url + "/status", timeout_s=self.timeout_s,
-                context=self.context,
+                context=self.context, headers=headers,
             )  # fmt: skip
         except OSError as exc:
             log.warning("room server %s: no status (%s)", server.url, exc)
+            return None
+        if code in (HTTPStatus.UNAUTHORIZED, HTTPStatus.FORBIDDEN):
+            log.warning(
+                "room server %s refuses its /status to the lobby (HTTP %s): off loopback it "
+                "answers only with its metrics token; %s",
+                server.url,
+                code,
+                "give the server --metrics-token-file"
+                if code == HTTPStatus.FORBIDDEN
+                else "give the lobby the same token (--status-token-file)",
+            )
             return None
         if code != 200 or not isinstance(answer, dict) or not isinstance(answer.get("rooms"), dict):
             log.warning("room server %s: no status (HTTP %s)", server.url, code)
@@ -310,13 +356,15 @@ class LocalServers:
 
     async def make_room(self, server: RoomServer, name: str) -> int:
         """Have ``server`` make room ``name`` from its template: open a websocket to the room's
-        path (the server builds the room before it accepts the handshake) and close it.
+        path with the room's token (:attr:`room_token`) as ``Authorization: Bearer`` (the server
+        builds the room before it accepts the handshake) and close it.
 
         Returns
         -------
         int
             101 when the room runs now; else the server's HTTP status (404: no template allows
-            the name, 503: full or draining), or 0 when it could not be reached.
+            the name, 503: full or draining, 401: the server does not take the lobby's room
+            token), or 0 when it could not be reached.
 
         Raises
         ------
@@ -327,11 +375,24 @@ class LocalServers:
         ws_base = _bases(server.url)[0]
         url = ws_base + room_ws_path(name)
         tls = self.context if url.startswith("wss://") else None
+        headers = {}
+        if self.room_token is not None:
+            headers["Authorization"] = f"Bearer {self.room_token(name)}"
         try:
-            async with connect(url, open_timeout=self.build_timeout_s, ssl=tls) as ws:
+            async with connect(
+                url, open_timeout=self.build_timeout_s, ssl=tls, additional_headers=headers
+            ) as ws:
                 await ws.close(1000, "lobby: room made")
         except InvalidStatus as exc:
-            return int(exc.response.status_code)
+            code = int(exc.response.status_code)
+            if code == HTTPStatus.UNAUTHORIZED:
+                log.error(
+                    "room server %s refuses the lobby's token for room %r: its "
+                    "--token-secret-file is not the lobby's",
+                    server.url,
+                    name,
+                )
+            return code
         except TimeoutError:
             log.warning("room server %s: still making room %r", server.url, name)
             raise LobbyError(
@@ -351,7 +412,9 @@ class LocalServers:
         ------
         LobbyError
             503 when no server runs it and none that makes rooms has a free slot (or none
-            answers), 404 when no server runs it and none may make a room of that name.
+            answers, or every one refuses its ``/status`` to the lobby), 404 when no server runs
+            it and none may make a room of that name, 502 when every server with a free slot
+            refused the lobby's room token (another token secret).
         """
         statuses = await asyncio.gather(*(self.status(s) for s in self.servers))
         up = [(s, st) for s, st in zip(self.servers, statuses, strict=True) if st is not None]
@@ -387,6 +450,12 @@ class LocalServers:
             raise LobbyError(
                 HTTPStatus.NOT_FOUND,
                 f"no server runs room {name!r} and none makes rooms on demand",
+            )
+        if answers and all(a == HTTPStatus.UNAUTHORIZED for a in answers):
+            raise LobbyError(
+                HTTPStatus.BAD_GATEWAY,
+                f"the room servers refuse the lobby's token for room {name!r}: their token "
+                "secret is not the lobby's",
             )
         if answers and all(a == 404 for a in answers):
             raise LobbyError(

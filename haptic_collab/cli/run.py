@@ -484,8 +484,21 @@ def _lobby_backend(args: argparse.Namespace):  # type: ignore[no-untyped-def]
             "give the room servers (--server URL, --servers-file FILE) or --agones-allocator URL, "
             "one of the two"
         )
+    if args.status_token_file and not servers:
+        raise CliError(
+            "--status-token-file is for the local room servers (--server): the Agones back end "
+            "does not read /status"
+        )
     if servers:
-        return LocalServers(servers)
+        status_token = None
+        if args.status_token_file:
+            from haptic_collab.server.lobby_backends import load_status_token
+
+            try:
+                status_token = load_status_token(args.status_token_file)
+            except ValueError as exc:
+                raise CliError(str(exc)) from None
+        return LocalServers(servers, status_token=status_token)
     context = None
     if args.agones_allocator.startswith("https://"):
         try:
@@ -593,6 +606,13 @@ def _add_lobby(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         metavar="FILE.toml",
         help="room servers as [[servers]] tables with url (and public)",
     )
+    local.add_argument(
+        "--status-token-file",
+        default=None,
+        metavar="FILE",
+        help="the room servers' metrics token (their --metrics-token-file), sent as Bearer with "
+        "each /status request: servers off loopback answer /status only with it",
+    )
     ag = p.add_argument_group("Agones (a GameServerAllocation per room name)")
     ag.add_argument(
         "--agones-allocator",
@@ -622,7 +642,8 @@ def _add_lobby(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "--public-scheme",
         choices=["ws", "wss"],
         default="ws",
-        help="what clients speak to the allocated servers (default %(default)s)",
+        help="what clients speak to the allocated servers: wss when the game port serves TLS "
+        "(deploy/agones/fleet.yaml does; default %(default)s)",
     )
     sec = p.add_argument_group("tokens (docs/security.md)")
     sec.add_argument(

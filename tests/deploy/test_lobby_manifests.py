@@ -209,6 +209,26 @@ def test_every_file_the_lobby_reads_is_on_a_volume_that_holds_it() -> None:
     assert example["type"] == "Opaque"
 
 
+def test_users_and_prometheus_speak_tls_to_the_fleets_game_port_as_it_serves_it() -> None:
+    """The Fleet's servers serve TLS on the game port (``--tls-cert``): the lobby hands users
+    ``wss://`` URLs and ``https://`` viewer pages for them, and the PodMonitor scrapes that
+    port over https (a plain ws:// or http:// to it fails the TLS handshake)."""
+    fleet = docs(FLEET)[0]
+    (server,) = fleet["spec"]["template"]["spec"]["template"]["spec"]["containers"]
+    tls = build_parser().parse_args(server["args"]).tls_cert is not None
+    assert tls  # what deploy/agones/fleet.yaml says now; the rest holds either way
+    sts = one("StatefulSet")
+    (container,) = sts["spec"]["template"]["spec"]["containers"]
+    args = build_parser().parse_args(_expanded_args(container, "haptic-lobby-0", "labs"))
+    backend = AgonesAllocator("http://allocator.invalid", scheme=args.public_scheme)
+    answer = {"gameServerName": "gs-1", "address": "203.0.113.5", "ports": [{"port": 7005}]}
+    placed = backend.placement("lab", answer)
+    assert placed.ws_base == ("wss" if tls else "ws") + "://203.0.113.5:7005"
+    assert placed.http_base == ("https" if tls else "http") + "://203.0.113.5:7005"
+    (game,) = one("PodMonitor", "haptic-collab")["spec"]["podMetricsEndpoints"]
+    assert game.get("scheme", "http") == ("https" if tls else "http")
+
+
 def test_services_budget_policy_and_probes_select_the_lobby_s_pods_and_port() -> None:
     sts = one("StatefulSet")
     labels = sts["spec"]["template"]["metadata"]["labels"]

@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 
+from haptic_collab.cli import build_parser
 from haptic_collab.server.lobby import AgonesAllocator, Lobby, allocation_request
 from haptic_collab.server.security import MIN_SECRET_BYTES, check_room_token
 from tests.support.agones_allocator import Allocator, GameServer
@@ -98,6 +99,26 @@ async def test_a_room_is_allocated_once_and_found_again_on_the_same_server() -> 
     # every request the lobby sent is what the swagger describes
     assert alloc.calls and all(not c.errors for c in alloc.calls), [c.errors for c in alloc.calls]
     assert {c.body["namespace"] for c in alloc.calls} == {"labs"}
+
+
+async def test_with_tls_on_the_game_port_users_get_wss_and_an_https_viewer() -> None:
+    """``haptic lobby --public-scheme wss`` (deploy/lobby/statefulset.yaml, as the Fleet serves
+    TLS): the URL and viewer page the user gets speak TLS to the allocated server."""
+    args = build_parser().parse_args(
+        ["lobby", "--token-secret-file", "unused", "--agones-allocator", "http://h:1"]
+    )
+    assert args.public_scheme == "ws"  # the default, as before
+    with Allocator(fleet(1)) as alloc:
+        backend = AgonesAllocator(alloc.url, namespace="labs", scheme="wss")
+        lobby = Lobby(backend, SECRET, port=0)
+        await lobby.start()
+        try:
+            status, answer = await ask(lobby, "/rooms/anatomy-1")
+        finally:
+            await lobby.stop()
+    assert status == 200, answer
+    assert answer["url"] == "wss://127.0.0.1:7000/rooms/anatomy-1/ws"
+    assert answer["viewer"].startswith("https://127.0.0.1:7000/rooms/anatomy-1/#token=")
 
 
 async def test_two_users_asking_at_once_for_a_new_room_end_on_one_server() -> None:

@@ -60,7 +60,11 @@ def test_two_room_servers_and_a_lobby_that_points_at_them(tmp_path: Path) -> Non
     args = parser.parse_args(command(lobby_svc))
     assert args.command == "lobby" and args.token_secret_file == "/run/secrets/token_secret"
     assert "token_secret" in lobby_svc["secrets"]
+    assert args.status_token_file == "/run/secrets/metrics_token"
+    args.status_token_file = str(tmp_path / "metrics_token")  # the secret, here
+    (tmp_path / "metrics_token").write_text("t" * 32 + "\n")
     backend = _lobby_backend(args)
+    assert backend.status_token == "t" * 32
     assert [s.url for s in backend.servers] == ["http://room-a:8765", "http://room-b:8765"]
     assert [s.bases[0] for s in backend.servers] == [
         f"ws://localhost:{published['room-a']}",
@@ -69,6 +73,30 @@ def test_two_room_servers_and_a_lobby_that_points_at_them(tmp_path: Path) -> Non
     assert lobby_svc["ports"] == [f"127.0.0.1:{args.port}:{args.port}"]
     assert set(lobby_svc["depends_on"]) == {"room-a", "room-b"}
     assert compose()["secrets"]["token_secret"]["file"]
+
+
+def test_status_is_read_with_the_metrics_token_the_servers_off_loopback_require() -> None:
+    """Every server here listens on 0.0.0.0, so its ``/status`` answers only with its metrics
+    token (403 without one configured): the lobby and every healthcheck that reads ``/status``
+    send the token the server checks, from a secret the service mounts; the others do not read
+    it (a healthcheck that fails keeps the lobby and the users from starting)."""
+    services = compose()["services"]
+    parser = build_parser()
+    lobby = parser.parse_args(command(services["lobby"]))
+    for name, svc in services.items():
+        args = parser.parse_args(command(svc))
+        if args.command != "server":
+            continue
+        assert args.host == "0.0.0.0"
+        check = " ".join(svc["healthcheck"]["test"])
+        if "/status" in check:
+            assert args.metrics_token_file and args.metrics_token_file in check, name
+        if name in ("room-a", "room-b"):  # the lobby reads their /status
+            assert args.metrics_token_file == lobby.status_token_file, name
+        if args.metrics_token_file:
+            secret = args.metrics_token_file.removeprefix("/run/secrets/")
+            assert secret in svc["secrets"] and secret in compose()["secrets"], name
+    assert "metrics_token" in services["lobby"]["secrets"]
 
 
 def test_the_services_there_before_still_run_the_same_commands() -> None:
@@ -150,7 +178,50 @@ def test_the_lobby_and_client_commands_say_what_is_missing(tmp_path: Path, capsy
     bad.write_text("short")
     assert main(["lobby", *one, "--metrics-token-file", str(bad)]) == 2
     assert "the metrics token file must hold one token" in capsys.readouterr().err
+    assert main(["lobby", *one, "--status-token-file", str(bad)]) == 2
+    assert "the metrics token file must hold one token" in capsys.readouterr().err
+    assert main(["lobby", *one, "--status-token-file", str(tmp_path / "none")]) == 2
+    assert "cannot read the metrics token file" in capsys.readouterr().err
+    agones = ["--token-secret-file", str(secret), "--agones-allocator", "http://h:2"]
+    assert main(["lobby", *agones, "--status-token-file", str(bad)]) == 2
+    assert "--status-token-file is for the local room servers" in capsys.readouterr().err
     assert main(["client", "--lobby", "http://127.0.0.1:1"]) == 2
     assert "--room NAME go together" in capsys.readouterr().err
     assert main(["client", "--lobby", "http://h:1", "--room", "a", "--url", "ws://h/ws"]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+async def test_the_room_servers_healthcheck_passes_against_a_server_off_loopback(
+    tmp_path: Path,
+) -> None:
+    """room-a's healthcheck, run as Docker runs it, against a server listening on 0.0.0.0 with
+    a metrics token (as in its container; the request goes to 127.0.0.1): it passes, and fails
+    without the token (what kept the lobby from starting). Only the port and the secret's path
+    differ from the compose file."""
+    import asyncio
+    import subprocess
+    import sys
+
+    from tests.server.test_rooms_need_a_token import token_server
+
+    svc = compose()["services"]["room-a"]
+    kind, *test = svc["healthcheck"]["test"]
+    assert kind == "CMD" and test[:2] == ["python", "-c"]
+    code = test[2]
+    token = "h" * 32
+    secret = tmp_path / "metrics_token"
+    secret.write_text(token + "\n")
+    async with token_server(tmp_path / "s", host="0.0.0.0", metrics_token=token) as port:
+        here = code.replace("127.0.0.1:8765", f"127.0.0.1:{port}").replace(
+            "/run/secrets/metrics_token", str(secret)
+        )
+        assert here != code and "/status" in here
+
+        def run(src: str) -> int:
+            return subprocess.run(
+                [sys.executable, "-c", src], capture_output=True, timeout=60
+            ).returncode
+
+        assert await asyncio.to_thread(run, here) == 0
+        bare = f"import urllib.request; urllib.request.urlopen('http://127.0.0.1:{port}/status')"
+        assert await asyncio.to_thread(run, bare) != 0  # 401: the check before this change

@@ -21,6 +21,8 @@ from typing import Any
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
+from haptic_collab.cli import build_parser
+from haptic_collab.cli.run import _lobby_backend
 from haptic_collab.server.app import DEFAULT_ROOM
 from haptic_collab.server.lobby import Lobby, LocalServers, RoomServer
 from haptic_collab.server.main import ServerOptions, run_server
@@ -33,13 +35,20 @@ HANDSHAKES = 1000
 
 
 @contextlib.asynccontextmanager
-async def token_server(tmp_path: Path, max_rooms: int = 3) -> AsyncIterator[int]:
-    """``haptic server --token-secret-file F --max-rooms N`` with a template for any name; its
-    port."""
+async def token_server(
+    tmp_path: Path, max_rooms: int = 3, *, host: str = "127.0.0.1", metrics_token: str = ""
+) -> AsyncIterator[int]:
+    """``haptic server --token-secret-file F --max-rooms N`` with a template for any name (and
+    ``--metrics-token-file`` holding ``metrics_token``, if given); its port."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
     secret = tmp_path / "secret"
     secret.write_bytes(SECRET)
+    metrics_file = tmp_path / "metrics-token"
+    metrics_file.write_text(metrics_token + "\n")
     opts = ServerOptions(
+        host=host,
         port=0,
+        metrics_token_file=str(metrics_file) if metrics_token else None,
         sim_rate_hz=20.0,
         subdivisions=1,
         token_secret_file=str(secret),
@@ -151,4 +160,81 @@ async def test_a_silent_connection_is_closed_and_waiting_ones_are_bounded(tmp_pa
             await asyncio.wait_for(ws.wait_closed(), 30.0)
         codes = sorted(ws.close_code for ws in opened)
         assert codes == [1008] * 8 + [1013] * 4  # 8 waited for a hello, 4 were one too many
+        assert await rooms_of(port) == [DEFAULT_ROOM]
+
+
+async def test_two_new_names_never_share_the_last_free_slot_of_a_server(tmp_path) -> None:
+    """The lobby makes each new room with its user's token in the handshake: the room exists
+    (and ``/status`` counts it) before the lobby answers, so a server with one free slot gets
+    one new name and the next goes to the other server; both users are welcomed. (Before, the
+    tokenless handshake made no room, both names went to the first server, and the second
+    user got ``room_unavailable``.)"""
+    async with (
+        token_server(tmp_path / "a", max_rooms=2) as port_a,
+        token_server(tmp_path / "b", max_rooms=2) as port_b,
+    ):
+        lobby = Lobby(
+            LocalServers([RoomServer(f"http://127.0.0.1:{p}") for p in (port_a, port_b)]),
+            SECRET,
+            port=0,
+        )
+        await lobby.start()
+        try:
+            answers = []
+            for name in ("anatomy-1", "anatomy-2"):  # one after the other, nobody joined yet
+                status, answer = await ask(lobby, f"/rooms/{name}")
+                assert status == 200, answer
+                answers.append(answer)
+            assert answers[0]["server"] != answers[1]["server"]
+            for answer in answers:
+                got = await first_answer(answer["url"], answer["token"])
+                assert got["type"] == "welcome", got
+        finally:
+            await lobby.stop()
+        assert await rooms_of(port_a) != await rooms_of(port_b)
+        assert {"anatomy-1", "anatomy-2"} <= set(await rooms_of(port_a) + await rooms_of(port_b))
+
+
+async def test_the_lobby_reads_the_status_of_a_server_off_loopback_with_its_metrics_token(
+    tmp_path,
+) -> None:
+    """A room server listening off loopback answers ``/status`` only with its metrics token:
+    a lobby without it finds no server (503), one given the same token file
+    (``--status-token-file``) places the name and its user is welcomed. (The server listens on
+    0.0.0.0; every request goes to 127.0.0.1.)"""
+    metrics = "m" * 32
+    token_file = tmp_path / "status-token"
+    token_file.write_text(metrics + "\n")
+    async with token_server(tmp_path / "s", host="0.0.0.0", metrics_token=metrics) as port:
+        server = f"http://127.0.0.1:{port}"
+        argv = ["lobby", "--token-secret-file", str(tmp_path / "s" / "secret"), "--server", server]
+        without = _lobby_backend(build_parser().parse_args(argv))
+        with_token = _lobby_backend(
+            build_parser().parse_args([*argv, "--status-token-file", str(token_file)])
+        )
+        for backend, expected in ((without, 503), (with_token, 200)):
+            lobby = Lobby(backend, SECRET, port=0)
+            await lobby.start()
+            try:
+                status, answer = await ask(lobby, "/rooms/anatomy-1")
+            finally:
+                await lobby.stop()
+            assert status == expected, answer
+        got = await first_answer(answer["url"], answer["token"])
+        assert got["type"] == "welcome", got
+
+
+async def test_a_server_that_refuses_the_lobbys_room_token_is_a_clear_502(tmp_path) -> None:
+    """A lobby whose token secret is not the servers' gets its handshake refused (401): it
+    answers 502 and says why, rather than hand the user a token the server will refuse."""
+    async with token_server(tmp_path) as port:
+        other = b"o" * MIN_SECRET_BYTES
+        lobby = Lobby(LocalServers([RoomServer(f"http://127.0.0.1:{port}")]), other, port=0)
+        await lobby.start()
+        try:
+            status, answer = await ask(lobby, "/rooms/anatomy-1")
+        finally:
+            await lobby.stop()
+        assert status == 502, answer
+        assert "token secret is not the lobby's" in answer["error"]
         assert await rooms_of(port) == [DEFAULT_ROOM]
