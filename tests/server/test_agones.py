@@ -381,7 +381,8 @@ async def test_a_hung_room_process_is_restarted_and_health_goes_on_meanwhile(cap
             await until(lambda: health() >= pings + 2)  # pings while b is down
             default_ticks = app.status()["rooms"][DEFAULT_ROOM]["tick"]
             await until(lambda: hung.running and hung.pid != pid)
-            assert app.status()["rooms"][DEFAULT_ROOM]["tick"] > default_ticks
+            # the other room ticks on (on a loaded machine b may be back before its next report)
+            await until(lambda: app.status()["rooms"][DEFAULT_ROOM]["tick"] > default_ticks)
             assert hung.restarts == 1 and agent.health_withheld == 0
         finally:
             with contextlib.suppress(ProcessLookupError):
