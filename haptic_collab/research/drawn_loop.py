@@ -42,7 +42,6 @@ from haptic_collab.server.contact_stiffness import effective_stiffness, stiff_st
 from haptic_collab.shared.declared_set import DrawnCondition, DrawnHand
 from haptic_collab.shared.gains.design import GainDesign
 from haptic_collab.shared.gains.interim import interim_design
-from haptic_collab.shared.gains.key import GainKey
 from haptic_collab.shared.gains.table import GainTable, design_cell
 from haptic_collab.shared.gains.verified_plane import plane_against, verified_plane
 from haptic_collab.shared.local_model import LocalModelParams
@@ -245,7 +244,9 @@ def _min_jerk(t: float, t0: float, t1: float, a: float, b: float) -> float:
     return a + (b - a) * (10 * s**3 - 15 * s**4 + 6 * s**5)
 
 
-def user_target(depth_m: float, *, nudge: bool, press: tuple[float, float], release_s: float):  # type: ignore[no-untyped-def]
+def user_target(
+    depth_m: float, *, nudge: bool, press: tuple[float, float], release_s: float
+) -> Callable[[float], float]:
     """The hand's aim [m, depth inward] over time: above the surface, a press to ``depth_m``,
     a 2 mm nudge out and back in 0.1 s (``nudge``), a hold, and a release."""
     start = -5e-3
@@ -373,7 +374,6 @@ def run(
     probe = np.zeros(n_steps)
     force = np.zeros(n_steps)
     sources: dict[str, int] = {}
-    pings: list[tuple[float, int, float]] = []  # (arrival at client, user, t_client)
     for n in range(n_steps):
         t = n * T
         for ui, u in enumerate(users):
@@ -416,7 +416,6 @@ def run(
         if n % n_ratio == tick_offset:
             _server_tick(obj, users, sim_tick, delay, t)
             sim_tick += 1
-    del pings
     t_axis = np.arange(n_steps) * T
     w = (t_axis >= HOLD_WINDOW_S[0]) & (t_axis < HOLD_WINDOW_S[1])
     tw = t_axis[w]
@@ -548,6 +547,3 @@ def _run_jobs(u: _User, t: float, ui: int) -> None:
         upd = s.retry_waiting(t)
         if upd is not None:
             u.servo.set_patch(upd)
-
-
-_ = GainKey  # re-exported type for callers' annotations
