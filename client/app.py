@@ -935,8 +935,15 @@ def _check_whole_rate_ratio(servo_rate_hz: float, sim_rate_hz: float) -> None:
 
 def passivity_on(choice: Literal["auto", "on", "off"], local_model: Literal["p", "pi"]) -> bool:
     """Whether the servo runs the passivity observer and controller at the device port
-    (``--passivity``): ``auto`` (the default) for a PI local model."""
-    return choice == "on" or (choice == "auto" and local_model == "pi")
+    (``--passivity``): ``auto`` (the default) for either local model.
+
+    Once only for PI. With its damper kept at the device port (the object is pushed by the
+    coupling: :class:`client.servo.ServoCore`), it also stops the compensated P model's ring on a
+    damper the server does not report: 28-31 mm with the box's heavy, soft, lightly damped hand,
+    0.07-0.09 mm with it (docs/stability.md). ``local_model`` is kept for callers that ask per
+    model."""
+    del local_model
+    return choice != "off"
 
 
 def _local_model_params(

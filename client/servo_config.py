@@ -34,7 +34,7 @@ class ServoConfig:
     passivity : bool
         Run the time-domain passivity observer and controller at the device port
         (:mod:`shared.passivity`; Hannaford and Ryu 2002), default False (the client turns it on
-        for PI local models).
+        for either local model: ``client.app.passivity_on``).
     passivity_energy_bias_j : float
         Energy [J] the port may give the user before the controller damps, >= 0 (default 1 mJ).
     engage_with_button : bool

@@ -953,8 +953,8 @@ def _add_client(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         "--passivity",
         choices=["auto", "on", "off"],
         default="auto",
-        help="time-domain passivity controller at the device port; auto = on for PI "
-        "(default %(default)s)",
+        help="time-domain passivity controller at the device port; auto = on for either local "
+        "model (default %(default)s)",
     )
     _add_shared(p, "--margin", help="K_o margin of the gain design (default %(default)s)")
     p.add_argument(

@@ -41,7 +41,7 @@ Schemes (:func:`haptic_collab.research.fidelity_schemes.rendering_for` for the g
     product's design for the K_o at the top and the delay ticks the client would measure
     (:class:`shared.gains.table.GainTable`, margin 0.15, K_h <= the device's maximum stiffness,
     B_h <= its maximum damping); eq. 17 threshold fixed at 1 mm, release over two simulation
-    periods, integral limited to the device's maximum force; passivity layer on for PI
+    periods, integral limited to the device's maximum force; passivity layer on
     (``ServoConfig(passivity=True)``, 1 mJ bias). Two safety features of the servo that the 1-D
     model does not have are set out of the way so that the schemes are compared as control laws:
     the force ramp at start-up is one tick (``ramp_s = T``) and the velocity limit is raised to

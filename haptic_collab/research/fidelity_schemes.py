@@ -310,13 +310,14 @@ def scheme_tuning(scheme: str, device: DeviceModel = DeviceModel()) -> str:
     text = {
         "local-p": (
             "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
-            "client measures, own-force compensation included (docs/own-force.md)"
+            "client measures, own-force compensation included (docs/own-force.md); passivity "
+            "layer on (the client's default)"
         ),
         "local-pi": (
             "the product's full-loop design (haptic gains) for K_o, rate and the delay ticks the "
             "client measures, own-force compensation included (docs/own-force.md: a compensated "
             "P model where that is closer to K_o); eq. 17 threshold 1 mm; passivity layer on "
-            "(the client's default for PI)"
+            "(the client's default)"
         ),
         "mmt": (
             "model-mediated teleoperation (Mitra and Niemeyer 2008): a plane with the stiffness "
@@ -599,7 +600,6 @@ def rendering_for(
     if scheme in LOCAL_MODELS:
         if design is None:
             raise ValueError(f"{scheme} needs the product's gain design")
-        pi = scheme == "local-pi"
         return Rendering(
             scheme,
             "coupling",
@@ -609,7 +609,7 @@ def rendering_for(
             proxy_hold=design.proxy_hold,
             theta_m=PRODUCT_THETA_M,
             release_time_s=2.0 / sim_rate_hz,
-            passivity=pi,
+            passivity=True,  # the client's default for either model (client.app.passivity_on)
             passivity_bias_j=PRODUCT_PASSIVITY_BIAS_J,
             own_gain=design.own_gain,
             follows_k_o=bool(table),

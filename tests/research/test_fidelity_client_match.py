@@ -182,10 +182,15 @@ def test_the_simulators_local_model_renders_what_the_client_renders(
     k_o = g.grid_point(44)
     # the product's rendering of the design for K_o (its cell's, unscaled at the grid point),
     # with another user near (no rest plane)
-    r = rendering_for(
-        "local-p", sim_rate_hz=rate, design=designs[44], table=table, rest_plane=False
+    # the renderer is compared here; the passivity layer the client adds at the device port is
+    # compared with the product's controller in test_fidelity_1d.py
+    r = replace(
+        rendering_for(
+            "local-p", sim_rate_hz=rate, design=designs[44], table=table, rest_plane=False
+        ),
+        passivity=False,
     )
-    assert r.gain_transfer_s == PRODUCT_GAIN_TRANSFER_S > 0.0 and not r.passivity
+    assert r.gain_transfer_s == PRODUCT_GAIN_TRANSFER_S > 0.0
     for rendering in (r, replace(r, gain_transfer_s=0.0)):
         sim = simulate([Cell(rendering, k_o, rate, delay_ms, None, traj, STIFFENING)]).f[0]
         client = _client_forces(rendering, k_o, rate, delay_ms, traj, STIFFENING)
@@ -206,7 +211,10 @@ def test_alone_the_simulator_renders_the_rest_plane_as_the_client(
     g = GainTable()
     table = [TableCell.from_design(c, d, g.grid_ratio) for c, d in designs.items()]
     k_o = g.grid_point(44)
-    r = rendering_for("local-p", sim_rate_hz=rate, design=designs[44], table=table)
+    r = replace(
+        rendering_for("local-p", sim_rate_hz=rate, design=designs[44], table=table),
+        passivity=False,  # the renderer alone (the passivity layer: test_fidelity_1d.py)
+    )
     assert r.rest_plane
     sim = simulate([Cell(r, k_o, rate, delay_ms, None, traj, STIFFENING)]).f[0]
     client = _client_forces(r, k_o, rate, delay_ms, traj, STIFFENING)
@@ -358,7 +366,12 @@ def test_the_simulator_renders_the_products_policy_on_random_inputs() -> None:
         first = table.lookup(key, k_o) or table.fallback(key, k_o)
         assert first is not None
         alone = bool(rng.random() < 0.4)
-        r = rendering_for("local-p", sim_rate_hz=rate, design=first, table=tcells, rest_plane=alone)
+        r = replace(
+            rendering_for(
+                "local-p", sim_rate_hz=rate, design=first, table=tcells, rest_plane=alone
+            ),
+            passivity=False,  # the renderer alone (the passivity layer: test_fidelity_1d.py)
+        )
         stale = bool(rng.random() < 0.5)
         lag = stale_ticks(round(SERVO_HZ / rate)) if stale else 0
         sim = simulate([Cell(r, k_o, rate, delay_ms, None, traj, obj, stale_sample=stale)]).f[0]
