@@ -24,23 +24,15 @@ import pytest
 from haptic_collab.cli import build_parser
 from haptic_collab.server.lobby import AgonesAllocator, Lobby, allocation_request
 from haptic_collab.server.security import MIN_SECRET_BYTES, check_room_token
-from tests.support.agones_allocator import Allocator, GameServer
+from tests.support.agones_allocator import FLEET, Allocator, GameServer
+from tests.support.agones_allocator import fleet as stand_in_fleet
 
 SECRET = b"k" * MIN_SECRET_BYTES
 ASKERS = ThreadPoolExecutor(16, thread_name_prefix="asker")
-FLEET = {"agones.dev/fleet": "haptic-collab"}
 
 
 def fleet(n: int, capacity: int = 2) -> list[GameServer]:
-    return [
-        GameServer(
-            f"haptic-collab-{i}",
-            port=7000 + i,
-            labels=dict(FLEET),
-            lists={"rooms": {"capacity": capacity, "values": []}},
-        )
-        for i in range(n)
-    ]
+    return stand_in_fleet(n, capacity)
 
 
 async def ask(lobby: Lobby, path: str) -> tuple[int, dict[str, Any]]:

@@ -24,23 +24,15 @@ from typing import Any
 from haptic_collab.server.lobby import MAX_PLACEMENTS, AgonesAllocator, Lobby
 from haptic_collab.server.lobby_limits import ADDRESS_BURST
 from haptic_collab.server.security import MIN_SECRET_BYTES
-from tests.support.agones_allocator import Allocator, GameServer
+from tests.support.agones_allocator import FLEET, Allocator, GameServer
+from tests.support.agones_allocator import fleet as stand_in_fleet
 
 SECRET = b"f" * MIN_SECRET_BYTES
 ASKERS = ThreadPoolExecutor(32, thread_name_prefix="asker")
-FLEET = {"agones.dev/fleet": "haptic-collab"}
 
 
 def fleet(n: int, capacity: int = 8) -> list[GameServer]:
-    return [
-        GameServer(
-            f"haptic-collab-{i}",
-            port=7000 + i,
-            labels=dict(FLEET),
-            lists={"rooms": {"capacity": capacity, "values": []}},
-        )
-        for i in range(n)
-    ]
+    return stand_in_fleet(n, capacity)
 
 
 def get(

@@ -31,26 +31,18 @@ from prometheus_client.parser import text_string_to_metric_families
 from haptic_collab.server.lobby import AgonesAllocator, Lobby
 from haptic_collab.server.lobby_peers import Peers
 from haptic_collab.server.security import MIN_SECRET_BYTES, check_room_token
-from tests.support.agones_allocator import Allocator, GameServer, LaggingCacheAllocator
+from tests.support.agones_allocator import FLEET, Allocator, GameServer, LaggingCacheAllocator
+from tests.support.agones_allocator import fleet as stand_in_fleet
 from tests.support.processes import ROOT, haptic
 
 SECRET = b"r" * MIN_SECRET_BYTES
 ASKERS = ThreadPoolExecutor(48, thread_name_prefix="asker")
-FLEET = {"agones.dev/fleet": "haptic-collab"}
 #: The stand-in's informer lag [s]: wide enough that requests sent together fall inside it.
 LAG_S = 0.4
 
 
 def fleet(n: int, capacity: int = 4) -> list[GameServer]:
-    return [
-        GameServer(
-            f"haptic-collab-{i}",
-            port=7000 + i,
-            labels=dict(FLEET),
-            lists={"rooms": {"capacity": capacity, "values": []}},
-        )
-        for i in range(n)
-    ]
+    return stand_in_fleet(n, capacity)
 
 
 class _At:

@@ -96,6 +96,24 @@ def _spec() -> dict[str, Any]:
     return json.loads((DATA / "allocation.swagger.json").read_text())
 
 
+#: The Fleet label every stand-in GameServer of :func:`fleet` carries (deploy/agones/fleet.yaml's).
+FLEET = {"agones.dev/fleet": "haptic-collab"}
+
+
+def fleet(n: int, capacity: int) -> list[GameServer]:
+    """``n`` Ready GameServers ``haptic-collab-0..n-1`` on ports 7000+i, labelled :data:`FLEET`,
+    each with an empty ``rooms`` list of ``capacity``."""
+    return [
+        GameServer(
+            f"haptic-collab-{i}",
+            port=7000 + i,
+            labels=dict(FLEET),
+            lists={"rooms": {"capacity": capacity, "values": []}},
+        )
+        for i in range(n)
+    ]
+
+
 class Allocator:
     """The stand-in allocator on ``127.0.0.1:port`` (0: a free port); a context manager.
 
