@@ -404,11 +404,7 @@ def run(
                     u.seq += 1
                     # the force the user pushes the object with: minus the force on the handle
                     u.up.append((t + delay(), u.seq, float(smp.force_n[2]), -float(smp.probe_m[2])))
-        probe[n] = (
-            -users[0].servo.device.position_m[2]
-            if hasattr(users[0].servo.device, "position_m")
-            else 0.0
-        )
+        probe[n] = -users[0].device.position_m[2]
         snap0 = users[0].servo.latest()
         force[n] = float(snap0.force_n[2]) if snap0 is not None else 0.0
         if not math.isfinite(probe[n]) or abs(probe[n]) > RUNAWAY_M:
